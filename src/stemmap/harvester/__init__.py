@@ -1,0 +1,1 @@
+"""stemmap.harvester"""
