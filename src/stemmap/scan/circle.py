@@ -87,7 +87,9 @@ def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
     return p
 
 
-def fit_circle_kasa(points: ArrayLike) -> CircleFit:
+def fit_circle_kasa(
+    points: ArrayLike, *, origin: ArrayLike | None = None, sigma: float | None = None
+) -> CircleFit:
     """Kasa algebraic least-squares circle fit.
 
     Minimises sum (x^2 + y^2 + D x + E y + F)^2 over (D, E, F), a linear problem. The points are
@@ -96,6 +98,7 @@ def fit_circle_kasa(points: ArrayLike) -> CircleFit:
     Parameters
     ----------
     points : array_like of shape (N, 2), metres
+    origin, sigma : ignored (accepted for a uniform fit signature)
 
     Returns
     -------
@@ -144,7 +147,9 @@ def fit_circle_kasa(points: ArrayLike) -> CircleFit:
     return CircleFit(center=center, radius=radius, rms=rms, n_points=n, method="kasa")
 
 
-#: Registry of fit methods by name. Other modules add to it; ``fit_circle`` dispatches on it.
+#: Registry of fit methods by name; ``fit_circle`` dispatches on it. Every registered function
+#: takes ``points`` (N, 2) and must accept (and may ignore) the keywords ``origin`` (sensor
+#: position in the points' frame, (2,)) and ``sigma`` (range noise, metres).
 FIT_METHODS: dict[str, Callable[..., CircleFit]] = {"kasa": fit_circle_kasa}
 
 
