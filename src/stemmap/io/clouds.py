@@ -1,0 +1,408 @@
+"""Point-cloud readers: LAS/LAZ (laspy, chunked), PLY (plyfile), PCD (pypcd4), XYZ text, ROS bags.
+
+Every reader returns a :class:`stemmap.types.PointCloud` (xyz in metres, float64) and fails with
+:class:`stemmap.errors.InputError` naming the file and the problem (missing, empty, truncated,
+wrong header, no x/y/z fields).
+
+LAS/LAZ files can be streamed with :func:`iter_las_chunks` so that a 20-million-point cloud never
+has to sit in memory at once; :func:`read_cloud` reads the whole file.
+
+PLY and PCD go through maintained third-party parsers (``plyfile``, ``pypcd4``), imported lazily
+so the rest of stemmap works without them; a missing parser is reported as an InputError that
+names the package to install.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.errors import InputError
+from stemmap.types import PointCloud
+
+__all__ = [
+    "CLOUD_EXTENSIONS",
+    "count_points",
+    "iter_cloud_chunks",
+    "iter_las_chunks",
+    "read_cloud",
+    "read_las",
+    "read_pcd",
+    "read_ply",
+    "read_xyz",
+]
+
+log = logging.getLogger(__name__)
+
+#: File extensions :func:`read_cloud` understands (lower case, with the dot).
+CLOUD_EXTENSIONS = (".las", ".laz", ".ply", ".pcd", ".xyz", ".txt", ".csv", ".pts")
+_BAG_EXTENSIONS = (".bag", ".db3", ".mcap")
+
+PathLike = str | os.PathLike[str]
+
+
+def _check_file(path: PathLike) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"point-cloud file {str(p)!r} does not exist.")
+    if p.is_file() and p.stat().st_size == 0:
+        raise InputError(f"point-cloud file {str(p)!r} is empty (0 bytes).")
+    return p
+
+
+def _finish(xyz: NDArray[Any], path: Path, fields: dict[str, NDArray[Any]]) -> PointCloud:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    finite = np.all(np.isfinite(xyz), axis=1)
+    if not np.all(finite):
+        n_bad = int((~finite).sum())
+        log.info("%s: dropping %d points with NaN/inf coordinates", path, n_bad)
+        xyz = xyz[finite]
+        fields = {k: v[finite] for k, v in fields.items()}
+    return PointCloud(xyz, frame=path.stem, fields=fields)
+
+
+# --------------------------------------------------------------------------------------------
+# LAS / LAZ
+# --------------------------------------------------------------------------------------------
+
+_LAS_FIELDS = ("intensity", "return_number", "classification", "gps_time")
+
+
+def _las_fields(points: Any, names: tuple[str, ...]) -> dict[str, NDArray[Any]]:
+    present = set(points.point_format.dimension_names)
+    return {k: np.asarray(points[k]) for k in names if k in present}
+
+
+def iter_las_chunks(
+    path: PathLike, chunk_size: int = 2_000_000, *, fields: tuple[str, ...] = ()
+) -> Iterator[PointCloud]:
+    """Stream a LAS/LAZ file as point clouds of at most ``chunk_size`` points.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A ``.las`` or ``.laz`` file (LAZ via the ``lazrs`` backend of laspy).
+    chunk_size : int, > 0
+        Points per chunk; memory use is bounded by a few times ``chunk_size * 24`` bytes.
+    fields : tuple of str
+        Extra LAS dimensions to carry along (e.g. ``("intensity",)``); absent ones are skipped.
+
+    Yields
+    ------
+    PointCloud
+        Scaled coordinates (metres) of each chunk, in file order.
+
+    Raises
+    ------
+    InputError
+        If the file is missing, is not LAS/LAZ, or is truncated (fewer points than its header
+        announces).
+    """
+    import laspy
+
+    p = _check_file(path)
+    if chunk_size <= 0:
+        raise InputError(f"chunk_size must be > 0, got {chunk_size}.")
+    try:
+        reader = laspy.open(p)
+    except Exception as exc:
+        raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
+    with reader:
+        expected = int(reader.header.point_count)
+        seen = 0
+        try:
+            for chunk in reader.chunk_iterator(chunk_size):
+                n = len(chunk)
+                if n == 0:
+                    break
+                xyz = np.column_stack((chunk.x, chunk.y, chunk.z))
+                seen += n
+                yield _finish(xyz, p, _las_fields(chunk, fields))
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(
+                f"{str(p)!r} is truncated or corrupt: reading failed after {seen} of {expected} "
+                f"points ({exc})."
+            ) from exc
+        if seen < expected:
+            raise InputError(
+                f"{str(p)!r} is truncated: its header announces {expected} points but only "
+                f"{seen} could be read."
+            )
+
+
+def read_las(path: PathLike, *, fields: tuple[str, ...] = _LAS_FIELDS) -> PointCloud:
+    """Read a whole LAS/LAZ file (see :func:`iter_las_chunks` for streaming).
+
+    Extra dimensions present in the file and named in ``fields`` (default: intensity,
+    return_number, classification, gps_time) are kept in ``PointCloud.fields``.
+    """
+    all_fields = tuple(fields)
+    parts = list(iter_las_chunks(path, chunk_size=5_000_000, fields=all_fields))
+    p = Path(path)
+    if not parts:
+        raise InputError(f"{str(p)!r} holds no points.")
+    xyz = np.concatenate([c.xyz for c in parts])
+    out_fields = {k: np.concatenate([c.fields[k] for c in parts]) for k in parts[0].fields}
+    return PointCloud(xyz, frame=p.stem, fields=out_fields)
+
+
+# --------------------------------------------------------------------------------------------
+# PLY
+# --------------------------------------------------------------------------------------------
+
+
+def read_ply(path: PathLike) -> PointCloud:
+    """Read the ``vertex`` element of a PLY file (ascii, binary little or big endian).
+
+    Uses the ``plyfile`` package. Properties other than x, y, z that have one value per vertex
+    are kept as fields (e.g. intensity, red/green/blue).
+    """
+    p = _check_file(path)
+    try:
+        from plyfile import PlyData
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise InputError(
+            f"reading {str(p)!r} needs the 'plyfile' package; "
+            "install it with `pip install plyfile`."
+        ) from exc
+    try:
+        ply = PlyData.read(str(p))
+        vertex = ply["vertex"]
+        data = vertex.data
+    except KeyError as exc:
+        raise InputError(f"PLY file {str(p)!r} has no 'vertex' element.") from exc
+    except Exception as exc:
+        raise InputError(f"{str(p)!r} is not a readable PLY file (truncated?): {exc}") from exc
+    names = data.dtype.names or ()
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise InputError(
+            f"PLY file {str(p)!r} vertex element lacks the coordinate(s) "
+            f"{', '.join(missing)}; it has {', '.join(names) or 'none'}."
+        )
+    if len(data) == 0:
+        raise InputError(f"PLY file {str(p)!r} holds no vertices.")
+    xyz = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in ("x", "y", "z")])
+    fields = {
+        k: np.asarray(data[k])
+        for k in names
+        if k not in ("x", "y", "z") and np.asarray(data[k]).dtype != object
+    }
+    return _finish(xyz, p, fields)
+
+
+# --------------------------------------------------------------------------------------------
+# PCD
+# --------------------------------------------------------------------------------------------
+
+
+def _check_pcd_size(p: Path) -> None:
+    """Reject a ``DATA binary`` PCD whose body is shorter than its header announces.
+
+    (The parser would otherwise return garbage or fewer points without complaint.)
+    """
+    header: dict[str, list[str]] = {}
+    with p.open("rb") as fh:
+        offset = 0
+        for _ in range(64):
+            raw = fh.readline()
+            if not raw:
+                break
+            offset += len(raw)
+            line = raw.decode("ascii", errors="replace").strip()
+            if not line or line.startswith("#"):
+                continue
+            key, *vals = line.split()
+            header[key.upper()] = vals
+            if key.upper() == "DATA":
+                break
+    if "DATA" not in header:
+        raise InputError(f"{str(p)!r} is not a PCD file: no DATA line in its header.")
+    if header["DATA"][:1] != ["binary"]:
+        return
+    try:
+        sizes = [int(v) for v in header["SIZE"]]
+        counts = [int(v) for v in header.get("COUNT", ["1"] * len(sizes))]
+        n = int(header["POINTS"][0])
+    except (KeyError, ValueError, IndexError) as exc:
+        raise InputError(f"PCD file {str(p)!r} has a malformed header: {exc}.") from exc
+    need = n * sum(s * c for s, c in zip(sizes, counts, strict=False))
+    have = p.stat().st_size - offset
+    if have < need:
+        raise InputError(
+            f"PCD file {str(p)!r} is truncated: its header announces {n} points "
+            f"({need} bytes) but only {have} bytes follow the header."
+        )
+
+
+def read_pcd(path: PathLike) -> PointCloud:
+    """Read a PCL ``.pcd`` file (DATA ascii, binary or binary_compressed).
+
+    Uses the ``pypcd4`` package. Scalar fields other than x, y, z are kept as fields.
+    """
+    p = _check_file(path)
+    try:
+        from pypcd4 import PointCloud as PcdCloud
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise InputError(
+            f"reading {str(p)!r} needs the 'pypcd4' package; install it with `pip install pypcd4`."
+        ) from exc
+    _check_pcd_size(p)
+    try:
+        pc = PcdCloud.from_path(str(p))
+        names = tuple(pc.fields)
+        arr = pc.numpy()
+    except Exception as exc:
+        raise InputError(f"{str(p)!r} is not a readable PCD file (truncated?): {exc}") from exc
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise InputError(
+            f"PCD file {str(p)!r} lacks the field(s) {', '.join(missing)}; "
+            f"it has {', '.join(names)}."
+        )
+    arr = np.asarray(arr)
+    if arr.ndim != 2 or arr.shape[0] == 0:
+        raise InputError(f"PCD file {str(p)!r} holds no points.")
+    idx = {n: i for i, n in enumerate(names)}
+    xyz = arr[:, [idx["x"], idx["y"], idx["z"]]]
+    fields = {n: arr[:, i] for n, i in idx.items() if n not in ("x", "y", "z") and i < arr.shape[1]}
+    return _finish(xyz, p, fields)
+
+
+# --------------------------------------------------------------------------------------------
+# XYZ text
+# --------------------------------------------------------------------------------------------
+
+
+def read_xyz(path: PathLike) -> PointCloud:
+    """Read a text file of points, one per line: ``x y z [more columns]``.
+
+    Columns may be separated by whitespace, commas or semicolons; lines starting with ``#`` and
+    a single non-numeric header line are skipped. Extra columns become fields ``col3``, ``col4``...
+    """
+    p = _check_file(path)
+    try:
+        with p.open("r", encoding="utf-8", errors="strict") as fh:
+            first = ""
+            for line in fh:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    first = line
+                    break
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{str(p)!r} is not a text point file (binary content).") from exc
+    if not first:
+        raise InputError(f"{str(p)!r} holds no points.")
+    delim: str | None = None
+    for d in (",", ";"):
+        if d in first:
+            delim = d
+            break
+    tokens = [t for t in (first.split(delim) if delim else first.split()) if t.strip()]
+    try:
+        [float(t) for t in tokens]
+        skip = 0
+    except ValueError:
+        skip = 1
+    try:
+        arr = np.loadtxt(p, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
+    except ValueError as exc:
+        raise InputError(
+            f"{str(p)!r} has a malformed line (every line needs the same number of numeric "
+            f"columns, at least x y z): {exc}"
+        ) from exc
+    if arr.shape[0] == 0:
+        raise InputError(f"{str(p)!r} holds no points.")
+    if arr.shape[1] < 3:
+        raise InputError(f"{str(p)!r} has {arr.shape[1]} column(s); need at least x y z.")
+    fields = {f"col{i}": arr[:, i] for i in range(3, arr.shape[1])}
+    return _finish(arr[:, :3], p, fields)
+
+
+# --------------------------------------------------------------------------------------------
+# dispatch
+# --------------------------------------------------------------------------------------------
+
+
+def _read_bag(path: Path, topic: str | None) -> PointCloud:
+    try:
+        from stemmap.io import rosbag
+    except ImportError as exc:
+        raise InputError(
+            f"reading the bag {str(path)!r} needs stemmap.io.rosbag, which is not available."
+        ) from exc
+    reader = getattr(rosbag, "read_pointclouds", None)
+    if reader is None:
+        raise InputError(
+            f"reading the bag {str(path)!r} needs stemmap.io.rosbag.read_pointclouds, which is "
+            "not available in this version."
+        )
+    clouds = list(reader(path, topic=topic))
+    if not clouds:
+        raise InputError(f"bag {str(path)!r} holds no sensor_msgs/PointCloud2 messages.")
+    xyz = np.concatenate([c.xyz for c in clouds])
+    return PointCloud(xyz, time=clouds[0].time, frame=clouds[0].frame)
+
+
+def read_cloud(path: PathLike, *, topic: str | None = None) -> PointCloud:
+    """Read a point cloud, choosing the reader from the file extension.
+
+    ``.las``/``.laz`` -> :func:`read_las`; ``.ply`` -> :func:`read_ply`; ``.pcd`` ->
+    :func:`read_pcd`; ``.xyz``/``.txt``/``.csv``/``.pts`` -> :func:`read_xyz`; ROS bags
+    (``.bag``, ``.db3``, ``.mcap`` or a ROS2 bag folder) -> every PointCloud2 message of ``topic``
+    (or of all topics) stacked in the sensor frame (no motion compensation).
+
+    Raises
+    ------
+    InputError
+        Unknown extension, missing/empty/truncated file, or no x/y/z coordinates.
+    """
+    p = Path(path)
+    ext = p.suffix.lower()
+    if p.is_dir() or ext in _BAG_EXTENSIONS:
+        if not p.exists():
+            raise InputError(f"bag {str(p)!r} does not exist.")
+        return _read_bag(p, topic)
+    if ext in (".las", ".laz"):
+        return read_las(p)
+    if ext == ".ply":
+        return read_ply(p)
+    if ext == ".pcd":
+        return read_pcd(p)
+    if ext in (".xyz", ".txt", ".csv", ".pts"):
+        return read_xyz(p)
+    raise InputError(
+        f"cannot read {str(p)!r}: unknown point-cloud extension {ext!r}; "
+        f"use one of {', '.join(CLOUD_EXTENSIONS + _BAG_EXTENSIONS)}."
+    )
+
+
+def count_points(path: PathLike) -> int | None:
+    """Number of points announced by a LAS/LAZ header (None for other formats)."""
+    p = Path(path)
+    if p.suffix.lower() not in (".las", ".laz"):
+        return None
+    import laspy
+
+    _check_file(p)
+    try:
+        with laspy.open(p) as reader:
+            return int(reader.header.point_count)
+    except Exception as exc:
+        raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
+
+
+def iter_cloud_chunks(path: PathLike, chunk_size: int = 2_000_000) -> Iterator[PointCloud]:
+    """Stream any supported cloud: LAS/LAZ in chunks, other formats as one chunk."""
+    p = Path(path)
+    if p.suffix.lower() in (".las", ".laz"):
+        yield from iter_las_chunks(p, chunk_size)
+    else:
+        yield read_cloud(p)
