@@ -1,0 +1,184 @@
+"""Helpers shared by the readers and writers (private)."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.errors import InputError
+
+PathLike = str | os.PathLike[str]
+
+
+class SkippedFrame(NamedTuple):
+    """A frame of a long log that could not be used and was skipped.
+
+    Attributes
+    ----------
+    index : int
+        Position of the frame in the file (row, message or array index, 0-based).
+    time : float
+        Time stamp of the frame in seconds, NaN when it could not be read.
+    reason : str
+        Full-sentence reason, naming the field and value at fault.
+    """
+
+    index: int
+    time: float
+    reason: str
+
+
+def existing_file(path: PathLike, what: str) -> Path:
+    """``path`` as a Path; InputError if it does not exist or is not a regular file."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{what} file {str(p)!r} does not exist.")
+    if not p.is_file():
+        raise InputError(f"{what} path {str(p)!r} is not a regular file.")
+    return p
+
+
+def read_text(path: Path, what: str) -> str:
+    """Read a UTF-8 text file; InputError naming the file on decode/OS errors."""
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{what} file {str(path)!r} is not UTF-8 text (byte {exc.start}): is it binary?"
+        ) from exc
+    except OSError as exc:
+        raise InputError(f"cannot read {what} file {str(path)!r}: {exc}.") from exc
+
+
+def fmt_float(v: float) -> str:
+    """Shortest text that reads back to the same float64 ('nan', 'inf', '-inf' for non-finite)."""
+    if math.isnan(v):
+        return "nan"
+    return repr(float(v))
+
+
+def fmt_row(values: Sequence[Any]) -> str:
+    """One CSV line from ints and floats, exact round trip for float64."""
+    out = []
+    for v in values:
+        if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+            out.append(str(int(v)))
+        else:
+            out.append(fmt_float(float(v)))
+    return ",".join(out)
+
+
+class CsvTable(NamedTuple):
+    """Numeric columns of a CSV file plus the 1-based file line number of each data row."""
+
+    header: list[str]
+    columns: dict[str, NDArray[np.float64]]
+    lines: NDArray[np.int64]
+
+
+def parse_numeric_csv(
+    path: Path,
+    text: str,
+    required: Sequence[str],
+    optional: Sequence[str],
+    what: str,
+) -> CsvTable:
+    """Parse a header + numeric-rows CSV into float64 columns (an empty field is NaN).
+
+    Lines starting with ``#`` and blank lines are ignored. Every data row must have as many
+    fields as the header and every field must parse as a float, else InputError naming the
+    line. Returns the header, the required and present optional columns, and line numbers.
+    """
+    numbered = [
+        (k + 1, ln)
+        for k, ln in enumerate(text.splitlines())
+        if ln.strip() and not ln.lstrip().startswith("#")
+    ]
+    if not numbered:
+        raise InputError(f"{what} file {str(path)!r} is empty (no header line).")
+    header = [h.strip() for h in numbered[0][1].split(",")]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(
+            f"{what} file {str(path)!r} lacks column(s) {', '.join(missing)}; "
+            f"its header has {', '.join(header)} but needs {', '.join(required)}."
+        )
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise InputError(f"{what} file {str(path)!r} repeats column(s) {', '.join(dup)}.")
+    ncol = len(header)
+    rows = numbered[1:]
+    for lineno, ln in rows:
+        if ln.count(",") != ncol - 1:
+            raise InputError(
+                f"{what} file {str(path)!r} line {lineno} has {ln.count(',') + 1} fields but "
+                f"the header has {ncol}: the row is truncated or malformed."
+            )
+    linenos = np.array([n for n, _ in rows], dtype=np.int64)
+    data = np.zeros((0, ncol)) if not rows else _parse_fast(path, rows, header, what)
+    cols = {c: data[:, header.index(c)] for c in (*required, *optional) if c in header}
+    return CsvTable(header, cols, linenos)
+
+
+def _parse_fast(
+    path: Path, rows: Sequence[tuple[int, str]], header: Sequence[str], what: str
+) -> NDArray[np.float64]:
+    """numpy's C parser; on any failure fall back to :func:`_parse_slow` for the message."""
+    ncol = len(header)
+    try:
+        data = np.loadtxt([ln for _, ln in rows], delimiter=",", ndmin=2, dtype=np.float64)
+        return np.asarray(data.reshape(len(rows), ncol), dtype=np.float64)
+    except ValueError:
+        return _parse_slow(path, rows, header, what)
+
+
+def _parse_slow(
+    path: Path, rows: Sequence[tuple[int, str]], header: Sequence[str], what: str
+) -> NDArray[np.float64]:
+    """Field-by-field parse: empty field = NaN; InputError naming the first bad field."""
+    data = np.empty((len(rows), len(header)), dtype=np.float64)
+    for r, (lineno, ln) in enumerate(rows):
+        for c, f in enumerate(ln.split(",")):
+            s = f.strip()
+            if not s:
+                data[r, c] = np.nan
+                continue
+            try:
+                data[r, c] = float(s)
+            except ValueError:
+                raise InputError(
+                    f"{what} file {str(path)!r} line {lineno}, column {header[c]!r}: "
+                    f"{s!r} is not a number."
+                ) from None
+    return data
+
+
+def require_finite(path: Path, what: str, table: CsvTable, name: str) -> None:
+    """InputError naming the first line where column ``name`` is NaN or infinite."""
+    values = table.columns[name]
+    bad = ~np.isfinite(values)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise InputError(
+            f"{what} file {str(path)!r} line {table.lines[k]}: column {name!r} is {values[k]}, "
+            "but must be a finite number."
+        )
+
+
+def require_integer(path: Path, what: str, table: CsvTable, name: str) -> None:
+    """InputError naming the first line where column ``name`` is not a whole number."""
+    values = table.columns[name]
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(values) | (values != np.round(values))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise InputError(
+            f"{what} file {str(path)!r} line {table.lines[k]}: column {name!r} is {values[k]}, "
+            "but must be a whole number."
+        )

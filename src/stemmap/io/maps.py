@@ -1,0 +1,513 @@
+"""Stem maps and per-frame stem observations: CSV and GeoJSON, written atomically.
+
+Formats (also in docs/algorithms/io.md):
+
+* trees CSV: ``id,x,y,diameter,std_x,std_y,n_obs,diameter_std,confidence,cov_xy,first_time,
+  last_time`` -- metres, seconds; ``nan`` where unknown. Plain CSV without comment lines, so
+  that spreadsheets and GIS tools read it as is; the frame / CRS are not stored in it.
+* observations CSV (the ``stemmap detect`` output): ``scan_index,time,x,y,diameter,radius_std,
+  n_points,arc_deg,width,quality,std_x,std_y`` -- sensor frame, metres, seconds, degrees.
+* trees GeoJSON (RFC 7946): a FeatureCollection of Points, see :func:`write_trees_geojson`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from stemmap.errors import InputError
+from stemmap.io._util import (
+    PathLike,
+    existing_file,
+    fmt_row,
+    parse_numeric_csv,
+    read_text,
+    require_finite,
+    require_integer,
+)
+from stemmap.io.atomic import atomic_write
+from stemmap.types import FloatArray, StemMap, StemObservations, Tree
+
+__all__ = [
+    "OBSERVATION_CSV_COLUMNS",
+    "TREE_CSV_COLUMNS",
+    "local_to_lonlat",
+    "lonlat_to_local",
+    "read_observations_csv",
+    "read_trees_csv",
+    "read_trees_geojson",
+    "write_observations_csv",
+    "write_trees_csv",
+    "write_trees_geojson",
+]
+
+#: Columns of the trees CSV, in order. ``std_x``, ``std_y`` are sqrt of the covariance diagonal.
+TREE_CSV_COLUMNS = (
+    "id",
+    "x",
+    "y",
+    "diameter",
+    "std_x",
+    "std_y",
+    "n_obs",
+    "diameter_std",
+    "confidence",
+    "cov_xy",
+    "first_time",
+    "last_time",
+)
+_TREE_REQUIRED = ("id", "x", "y", "diameter")
+
+#: Columns of the observations CSV written by ``stemmap detect``, in order.
+OBSERVATION_CSV_COLUMNS = (
+    "scan_index",
+    "time",
+    "x",
+    "y",
+    "diameter",
+    "radius_std",
+    "n_points",
+    "arc_deg",
+    "width",
+    "quality",
+    "std_x",
+    "std_y",
+)
+_OBS_REQUIRED = ("scan_index", "time", "x", "y", "diameter")
+
+# WGS84 ellipsoid (NIMA TR8350.2)
+_WGS84_A = 6378137.0
+_WGS84_F = 1.0 / 298.257223563
+_WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
+
+_WGS84_NAMES = {"EPSG:4326", "WGS84", "OGC:CRS84", "URN:OGC:DEF:CRS:OGC:1.3:CRS84"}
+
+
+# --------------------------------------------------------------------------------------------
+# trees CSV
+# --------------------------------------------------------------------------------------------
+
+
+def _tree_row(t: Tree) -> tuple[Any, ...]:
+    sx, sy = (math.sqrt(v) if v >= 0 else math.nan for v in (t.cov[0, 0], t.cov[1, 1]))
+    return (
+        int(t.id),
+        t.x,
+        t.y,
+        t.diameter,
+        sx,
+        sy,
+        int(t.n_obs),
+        t.diameter_std,
+        t.confidence,
+        float(t.cov[0, 1]),
+        t.first_time,
+        t.last_time,
+    )
+
+
+def write_trees_csv(path: PathLike, stem_map: StemMap) -> None:
+    """Write one row per tree with columns :data:`TREE_CSV_COLUMNS`, atomically.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Output file; parent folders are created.
+    stem_map : StemMap
+        Coordinates in metres in ``stem_map.frame``; diameters in metres.
+
+    Notes
+    -----
+    Floats are written with the shortest text that reads back to the same float64, so
+    :func:`read_trees_csv` reproduces the map exactly (frame and CRS excepted).
+    """
+    with atomic_write(path) as fh:
+        fh.write(",".join(TREE_CSV_COLUMNS) + "\n")
+        for t in stem_map:
+            fh.write(fmt_row(_tree_row(t)) + "\n")
+
+
+def read_trees_csv(path: PathLike, *, frame: str = "map", crs: str | None = None) -> StemMap:
+    """Read a trees CSV written by :func:`write_trees_csv` (or any CSV with at least
+    ``id,x,y,diameter``; missing optional columns become NaN / 0 / 1).
+
+    Parameters
+    ----------
+    path : str or PathLike
+    frame, crs : str
+        Frame name and CRS given to the map (the CSV does not store them).
+
+    Raises
+    ------
+    InputError
+        Missing or empty file; missing required column; malformed row; NaN/inf in
+        ``id``, ``x``, ``y`` or ``diameter``; a non-integer or repeated id; a negative diameter.
+    """
+    what = "trees CSV"
+    p = existing_file(path, what)
+    table = parse_numeric_csv(p, read_text(p, what), _TREE_REQUIRED, TREE_CSV_COLUMNS, what)
+    for c in _TREE_REQUIRED:
+        require_finite(p, what, table, c)
+    require_integer(p, what, table, "id")
+    cols = table.columns
+    ids = cols["id"].astype(np.int64)
+    uniq, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise InputError(f"{what} {str(p)!r} repeats tree id {int(uniq[counts > 1][0])}.")
+    if np.any(cols["diameter"] < 0):
+        k = int(np.argmax(cols["diameter"] < 0))
+        raise InputError(
+            f"{what} {str(p)!r} line {table.lines[k]}: diameter {cols['diameter'][k]} is negative."
+        )
+    n = ids.shape[0]
+
+    def col(name: str, default: float) -> FloatArray:
+        return cols[name] if name in cols else np.full(n, default)
+
+    if "n_obs" in cols:
+        n_obs_f = np.nan_to_num(cols["n_obs"], nan=0.0)
+        cols["n_obs"] = n_obs_f
+        require_integer(p, what, table, "n_obs")
+    sx, sy, cxy = col("std_x", math.nan), col("std_y", math.nan), col("cov_xy", math.nan)
+    if "cov_xy" not in cols:
+        cxy = np.where(np.isfinite(sx) & np.isfinite(sy), 0.0, math.nan)
+    n_obs = col("n_obs", 0.0).astype(np.int64)
+    dstd, conf = col("diameter_std", math.nan), col("confidence", 1.0)
+    t0, t1 = col("first_time", math.nan), col("last_time", math.nan)
+    trees = tuple(
+        Tree(
+            id=int(ids[i]),
+            x=float(cols["x"][i]),
+            y=float(cols["y"][i]),
+            diameter=float(cols["diameter"][i]),
+            cov=np.array([[sx[i] ** 2, cxy[i]], [cxy[i], sy[i] ** 2]]),
+            n_obs=int(n_obs[i]),
+            first_time=float(t0[i]),
+            last_time=float(t1[i]),
+            confidence=float(conf[i]),
+            diameter_std=float(dstd[i]),
+        )
+        for i in range(n)
+    )
+    return StemMap(trees, frame=frame, crs=crs)
+
+
+# --------------------------------------------------------------------------------------------
+# GeoJSON
+# --------------------------------------------------------------------------------------------
+
+
+def _meridian_radii(lat_rad: float) -> tuple[float, float]:
+    """Meridional (M) and prime-vertical (N) radii of curvature of WGS84 at a latitude, m."""
+    s2 = math.sin(lat_rad) ** 2
+    w = math.sqrt(1.0 - _WGS84_E2 * s2)
+    m = _WGS84_A * (1.0 - _WGS84_E2) / w**3
+    nrad = _WGS84_A / w
+    return m, nrad
+
+
+def local_to_lonlat(
+    xy: FloatArray, origin_lonlat: tuple[float, float]
+) -> tuple[FloatArray, FloatArray]:
+    """Local east-north metres around ``origin_lonlat`` to WGS84 longitude/latitude (degrees).
+
+    Tangent-plane (equirectangular) approximation with the WGS84 radii of curvature at the
+    origin's latitude: lat = lat0 + y / M, lon = lon0 + x / (N cos lat0). The position error
+    grows with the square of the distance: below 1 cm within 1 km of the origin (for
+    latitudes below 70 degrees), ample for a forest stand. ``x`` must point east, ``y`` north.
+    """
+    lon0, lat0 = float(origin_lonlat[0]), float(origin_lonlat[1])
+    if not (-180.0 <= lon0 <= 180.0 and -90.0 < lat0 < 90.0):
+        raise InputError(
+            f"origin_lonlat must be (longitude, latitude) in degrees, got ({lon0}, {lat0})."
+        )
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    m, nrad = _meridian_radii(math.radians(lat0))
+    lat = lat0 + np.degrees(p[:, 1] / m)
+    lon = lon0 + np.degrees(p[:, 0] / (nrad * math.cos(math.radians(lat0))))
+    return lon, lat
+
+
+def lonlat_to_local(
+    lon: FloatArray, lat: FloatArray, origin_lonlat: tuple[float, float]
+) -> FloatArray:
+    """Inverse of :func:`local_to_lonlat`: degrees to east-north metres, shape (N, 2)."""
+    lon0, lat0 = float(origin_lonlat[0]), float(origin_lonlat[1])
+    m, nrad = _meridian_radii(math.radians(lat0))
+    x = np.radians(np.asarray(lon, dtype=np.float64) - lon0) * nrad * math.cos(math.radians(lat0))
+    y = np.radians(np.asarray(lat, dtype=np.float64) - lat0) * m
+    return np.column_stack((x, y))
+
+
+def _json_num(v: float, ndigits: int | None = None) -> float | None:
+    if not math.isfinite(v):
+        return None
+    return round(v, ndigits) if ndigits is not None else float(v)
+
+
+def _is_wgs84(crs: str | None) -> bool:
+    return crs is not None and crs.strip().upper() in _WGS84_NAMES
+
+
+def _crs_urn(crs: str) -> str:
+    c = crs.strip()
+    if c.upper().startswith("EPSG:"):
+        return f"urn:ogc:def:crs:EPSG::{c.split(':', 1)[1]}"
+    return c
+
+
+def write_trees_geojson(
+    path: PathLike,
+    stem_map: StemMap,
+    crs: str | None = None,
+    *,
+    origin_lonlat: tuple[float, float] | None = None,
+    precision: int | None = None,
+) -> None:
+    """Write the map as a GeoJSON FeatureCollection of Points (RFC 7946), atomically.
+
+    Each tree is a Point feature with ``"id"`` and properties ``diameter`` (m),
+    ``diameter_std``, ``std_x``, ``std_y``, ``cov_xy``, ``n_obs``, ``confidence``,
+    ``first_time``, ``last_time``; unknown values are ``null`` (JSON has no NaN).
+
+    Coordinates -- decided as follows (RFC 7946 §4 requires WGS84 longitude/latitude):
+
+    1. ``origin_lonlat=(lon, lat)`` given: the map frame is taken as local east-north metres
+       around that point and converted to WGS84 degrees (:func:`local_to_lonlat`). Valid RFC
+       7946; the original metric coordinates stay in properties ``x``, ``y``.
+    2. ``crs`` (or ``stem_map.crs``) is WGS84 (``EPSG:4326``, ``OGC:CRS84``): x, y are already
+       longitude, latitude and are written as is.
+    3. ``crs`` is another CRS (e.g. ``EPSG:3067``): projected coordinates are written as is,
+       with the pre-RFC ``"crs"`` member naming it (GDAL and QGIS honour it; RFC 7946 §4 allows
+       other CRSs "by prior arrangement").
+    4. no CRS (a local metric frame): projected metres are written without a ``"crs"`` member;
+       the top-level foreign member ``"stemmap"`` records ``frame``, ``units`` = ``"m"`` and
+       ``crs`` = null, so nobody mistakes them for degrees.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    stem_map : StemMap
+    crs : str, optional
+        Overrides ``stem_map.crs``.
+    origin_lonlat : (float, float), optional
+        WGS84 longitude, latitude (degrees) of the map origin; the map's x axis must point east.
+    precision : int, optional
+        Decimal places for coordinates (RFC 7946 §11.2 suggests 6-7 for degrees); default
+        full float64 precision.
+    """
+    crs = crs if crs is not None else stem_map.crs
+    xy = stem_map.xy
+    if origin_lonlat is not None:
+        lon, lat = local_to_lonlat(xy, origin_lonlat)
+        coords = np.column_stack((lon, lat))
+        out_crs: str | None = "OGC:CRS84"
+    else:
+        coords = xy
+        out_crs = crs
+    features = []
+    for t, (cx, cy) in zip(stem_map.trees, coords, strict=True):
+        row = _tree_row(t)
+        props: dict[str, Any] = {
+            k: (_json_num(float(v)) if k not in ("id", "n_obs") else int(v))
+            for k, v in zip(TREE_CSV_COLUMNS, row, strict=True)
+            if k not in ("x", "y")
+        }
+        props["x"] = float(t.x)
+        props["y"] = float(t.y)
+        features.append(
+            {
+                "type": "Feature",
+                "id": int(t.id),
+                "geometry": {
+                    "type": "Point",
+                    "coordinates": [
+                        _json_num(float(cx), precision),
+                        _json_num(float(cy), precision),
+                    ],
+                },
+                "properties": props,
+            }
+        )
+    doc: dict[str, Any] = {"type": "FeatureCollection", "features": features}
+    if out_crs is not None and not _is_wgs84(out_crs):
+        doc["crs"] = {"type": "name", "properties": {"name": _crs_urn(out_crs)}}
+    doc["stemmap"] = {
+        "frame": stem_map.frame,
+        "units": "degrees" if _is_wgs84(out_crs) else "m",
+        "crs": out_crs,
+        "origin_lonlat": list(origin_lonlat) if origin_lonlat is not None else None,
+        "x_y_properties": "metres in the map frame",
+    }
+    if len(coords):
+        lo = coords.min(axis=0)
+        hi = coords.max(axis=0)
+        doc["bbox"] = [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])]
+    text = json.dumps(doc, allow_nan=False, separators=(",", ":"))
+    with atomic_write(path) as fh:
+        fh.write(text + "\n")
+
+
+def read_trees_geojson(path: PathLike) -> StemMap:
+    """Read a GeoJSON FeatureCollection of Point trees (as written by
+    :func:`write_trees_geojson`) into a :class:`StemMap`.
+
+    Tree positions come from the ``x``, ``y`` properties when present (the metric map frame),
+    else from the Point coordinates. ``diameter`` is required in every feature's properties;
+    ``id`` falls back to the feature order.
+
+    Raises
+    ------
+    InputError
+        Missing file, invalid JSON, not a FeatureCollection, a non-Point geometry, or a feature
+        without a finite diameter.
+    """
+    p = existing_file(path, "trees GeoJSON")
+    try:
+        doc = json.loads(read_text(p, "trees GeoJSON"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"trees GeoJSON {str(p)!r} is not valid JSON: {exc}.") from exc
+    if not isinstance(doc, Mapping) or doc.get("type") != "FeatureCollection":
+        raise InputError(f"trees GeoJSON {str(p)!r} is not a FeatureCollection.")
+    feats = doc.get("features")
+    if not isinstance(feats, list):
+        raise InputError(f"trees GeoJSON {str(p)!r} has no 'features' list.")
+    meta = doc.get("stemmap") if isinstance(doc.get("stemmap"), Mapping) else {}
+    assert isinstance(meta, Mapping)
+    crs_member = doc.get("crs")
+    crs = meta.get("crs")
+    if crs is None and isinstance(crs_member, Mapping):
+        crs = crs_member.get("properties", {}).get("name")
+    trees = []
+    for k, f in enumerate(feats):
+        geom = f.get("geometry") if isinstance(f, Mapping) else None
+        if not isinstance(geom, Mapping) or geom.get("type") != "Point":
+            raise InputError(f"trees GeoJSON {str(p)!r} feature {k} is not a Point feature.")
+        props = f.get("properties") or {}
+
+        def num(name: str, default: float, props: Mapping[str, Any] = props) -> float:
+            v = props.get(name)
+            return default if v is None else float(v)
+
+        try:
+            coords = [float(c) for c in geom["coordinates"][:2]]
+            x = num("x", coords[0])
+            y = num("y", coords[1])
+            d = num("diameter", math.nan)
+            sx, sy = num("std_x", math.nan), num("std_y", math.nan)
+            cxy = num("cov_xy", math.nan)
+            tree = Tree(
+                id=int(f.get("id", props.get("id", k))),
+                x=x,
+                y=y,
+                diameter=d,
+                cov=np.array([[sx * sx, cxy], [cxy, sy * sy]]),
+                n_obs=int(props.get("n_obs") or 0),
+                first_time=num("first_time", math.nan),
+                last_time=num("last_time", math.nan),
+                confidence=num("confidence", 1.0),
+                diameter_std=num("diameter_std", math.nan),
+            )
+        except (TypeError, ValueError, KeyError, IndexError) as exc:
+            raise InputError(
+                f"trees GeoJSON {str(p)!r} feature {k} has a malformed field: {exc}."
+            ) from exc
+        if not (math.isfinite(tree.x) and math.isfinite(tree.y) and math.isfinite(d)):
+            raise InputError(
+                f"trees GeoJSON {str(p)!r} feature {k} lacks a finite position or diameter."
+            )
+        trees.append(tree)
+    frame = str(meta.get("frame", "map"))
+    return StemMap(tuple(trees), frame=frame, crs=None if crs is None else str(crs))
+
+
+# --------------------------------------------------------------------------------------------
+# observations CSV (stemmap detect)
+# --------------------------------------------------------------------------------------------
+
+
+def write_observations_csv(path: PathLike, obs: StemObservations) -> None:
+    """Write one row per observation with columns :data:`OBSERVATION_CSV_COLUMNS`, atomically.
+
+    This is the ``stemmap detect`` output. ``x``, ``y`` are the trunk centre in ``obs.frame``
+    (the sensor frame for scan detections), metres; ``diameter`` = 2 r; ``radius_std``,
+    ``std_x``, ``std_y`` = sqrt of the (r, r), (x, x), (y, y) covariance entries (``nan``
+    where the fit gave no covariance); ``arc_deg`` in degrees, ``width`` the chord width (m).
+    """
+    var = np.diagonal(obs.covs, axis1=1, axis2=2)  # (K, 3): x, y, r
+    with np.errstate(invalid="ignore"):
+        std = np.where(var >= 0, np.sqrt(np.abs(var)), np.nan)
+    with atomic_write(path) as fh:
+        fh.write(",".join(OBSERVATION_CSV_COLUMNS) + "\n")
+        for i in range(len(obs)):
+            row = (
+                int(obs.index[i]),
+                obs.times[i],
+                obs.centers[i, 0],
+                obs.centers[i, 1],
+                2.0 * obs.radii[i],
+                std[i, 2],
+                int(obs.n_points[i]),
+                obs.arc_deg[i],
+                obs.widths[i],
+                obs.quality[i],
+                std[i, 0],
+                std[i, 1],
+            )
+            fh.write(fmt_row(row) + "\n")
+
+
+def read_observations_csv(
+    path: PathLike, *, source: str = "", frame: str = "laser"
+) -> StemObservations:
+    """Read an observations CSV (at least ``scan_index,time,x,y,diameter``).
+
+    Covariances are rebuilt as diag(std_x^2, std_y^2, radius_std^2) (NaN when absent; the
+    off-diagonal terms are not stored).
+
+    Raises
+    ------
+    InputError
+        Missing/empty file, missing column, malformed row, NaN/inf in a required column,
+        non-integer ``scan_index`` or ``n_points``, negative diameter.
+    """
+    what = "observations CSV"
+    p = existing_file(path, what)
+    table = parse_numeric_csv(p, read_text(p, what), _OBS_REQUIRED, OBSERVATION_CSV_COLUMNS, what)
+    for c in _OBS_REQUIRED:
+        require_finite(p, what, table, c)
+    require_integer(p, what, table, "scan_index")
+    cols = table.columns
+    k = cols["x"].shape[0]
+    if np.any(cols["diameter"] < 0):
+        i = int(np.argmax(cols["diameter"] < 0))
+        raise InputError(
+            f"{what} {str(p)!r} line {table.lines[i]}: diameter {cols['diameter'][i]} is negative."
+        )
+    if "n_points" in cols:
+        require_integer(p, what, table, "n_points")
+
+    def col(name: str, default: float) -> FloatArray:
+        return cols[name] if name in cols else np.full(k, default)
+
+    covs = np.zeros((k, 3, 3))
+    covs[:, 0, 0] = col("std_x", math.nan) ** 2
+    covs[:, 1, 1] = col("std_y", math.nan) ** 2
+    covs[:, 2, 2] = col("radius_std", math.nan) ** 2
+    return StemObservations(
+        centers=np.column_stack((cols["x"], cols["y"])),
+        radii=0.5 * cols["diameter"],
+        covs=covs,
+        n_points=col("n_points", 0.0).astype(np.int64),
+        arc_deg=col("arc_deg", math.nan),
+        widths=col("width", math.nan),
+        quality=col("quality", 1.0),
+        index=cols["scan_index"].astype(np.int64),
+        times=cols["time"],
+        source=source,
+        frame=frame,
+    )
