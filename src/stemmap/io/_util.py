@@ -21,7 +21,7 @@ class SkippedFrame(NamedTuple):
 
     Attributes
     ----------
-    index : int
+    frame_index : int
         Position of the frame in the file (row, message or array index, 0-based).
     time : float
         Time stamp of the frame in seconds, NaN when it could not be read.
@@ -29,7 +29,7 @@ class SkippedFrame(NamedTuple):
         Full-sentence reason, naming the field and value at fault.
     """
 
-    index: int
+    frame_index: int
     time: float
     reason: str
 
