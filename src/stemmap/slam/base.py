@@ -1,0 +1,396 @@
+"""The SLAM interface every back-end builds to: inputs, problem, result, registry.
+
+Inputs are columnar (numpy arrays, not lists of objects): :class:`Controls` (odometry) and
+:class:`TreeFrames` (per-scan tree detections, polar in the sensor frame). A
+:class:`SlamProblem` ties them to a motion model and the sensor's mounting; a back-end
+(:class:`SlamBackend`) turns it into a :class:`SlamResult` (trajectory + stem map + stats).
+
+Observation model shared by all back-ends (sensor at ``sensor_offset = (a, b)`` in the vehicle
+frame, pose ``(x, y, theta)`` of the vehicle reference point)::
+
+    s = (x + a cos(theta) - b sin(theta),  y + a sin(theta) + b cos(theta))
+    range   = |m - s|
+    bearing = atan2(m_y - s_y, m_x - s_x) - theta        (CCW from the vehicle's forward axis)
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.slam.motion import MotionModel, rollout
+from stemmap.types import FloatArray, StemMap, StemObservations, Trajectory, wrap_angle
+
+__all__ = [
+    "BACKENDS",
+    "Controls",
+    "IntArray",
+    "SlamBackend",
+    "SlamProblem",
+    "SlamResult",
+    "TreeFrames",
+    "dead_reckoning",
+    "make_backend",
+    "observation_to_world",
+    "observe",
+    "sensor_poses",
+]
+
+IntArray = NDArray[np.int64]
+
+
+def _ro(value: ArrayLike, name: str, dtype: Any = np.float64) -> NDArray[Any]:
+    try:
+        arr = np.array(value, dtype=dtype, copy=True).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be numeric, got {type(value).__name__}: {exc}") from exc
+    arr.setflags(write=False)
+    return arr
+
+
+def _check_nondecreasing(t: FloatArray, name: str) -> None:
+    if not np.all(np.isfinite(t)):
+        k = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise InputError(f"{name} must be finite; value {t[k]} at index {k}.")
+    if t.shape[0] > 1:
+        d = np.diff(t)
+        if np.any(d < 0):
+            k = int(np.flatnonzero(d < 0)[0])
+            raise InputError(
+                f"{name} must be non-decreasing; time goes backwards from {t[k]} s to "
+                f"{t[k + 1]} s at index {k + 1}."
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class Controls:
+    """Odometry inputs, time-ordered.
+
+    Parameters
+    ----------
+    times : ndarray (M,), s, non-decreasing
+    speed : ndarray (M,), m/s
+        Victoria Park: speed of the left rear wheel (encoder).
+    steer : ndarray (M,)
+        Front steering angle, rad (``kind="ackermann"``), or yaw rate, rad/s (``"unicycle"``).
+    kind : {"ackermann", "unicycle"}
+
+    Raises
+    ------
+    InputError
+        On length mismatch, non-finite values, time going backwards or an unknown kind.
+    """
+
+    times: FloatArray
+    speed: FloatArray
+    steer: FloatArray
+    kind: Literal["ackermann", "unicycle"]
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("ackermann", "unicycle"):
+            raise InputError(f"Controls.kind must be 'ackermann' or 'unicycle', got {self.kind!r}.")
+        t = _ro(self.times, "Controls.times")
+        _check_nondecreasing(t, "Controls.times")
+        object.__setattr__(self, "times", t)
+        for name in ("speed", "steer"):
+            arr = _ro(getattr(self, name), f"Controls.{name}")
+            if arr.shape != t.shape:
+                raise InputError(
+                    f"Controls.{name} has {arr.shape[0]} values but times has {t.shape[0]}."
+                )
+            if not np.all(np.isfinite(arr)):
+                k = int(np.flatnonzero(~np.isfinite(arr))[0])
+                raise InputError(f"Controls.{name} must be finite; value {arr[k]} at index {k}.")
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    def slice(self, t0: float, t1: float) -> Controls:
+        """Controls with ``t0 <= time <= t1`` plus the last one before ``t0`` (the hold value)."""
+        i0 = max(int(np.searchsorted(self.times, t0, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(self.times, t1, side="right"))
+        s = slice(i0, i1)
+        return Controls(self.times[s], self.speed[s], self.steer[s], self.kind)
+
+
+@dataclass(frozen=True, eq=False)
+class TreeFrames:
+    """Tree detections, columnar, one frame per scan; polar coordinates in the SENSOR frame.
+
+    Parameters
+    ----------
+    times : ndarray (F,), s, non-decreasing
+    ptr : ndarray (F+1,), int
+        Detections of frame ``f`` are ``[ptr[f], ptr[f+1])``; ``ptr[0] == 0``, ``ptr[-1] == K``.
+    ranges : ndarray (K,), m, > 0
+    bearings : ndarray (K,), rad, CCW from the sensor's forward axis, wrapped to (-pi, pi]
+    diameters : ndarray (K,), m (NaN if unknown)
+    """
+
+    times: FloatArray
+    ptr: IntArray
+    ranges: FloatArray
+    bearings: FloatArray
+    diameters: FloatArray
+
+    def __post_init__(self) -> None:
+        t = _ro(self.times, "TreeFrames.times")
+        _check_nondecreasing(t, "TreeFrames.times")
+        ptr = _ro(self.ptr, "TreeFrames.ptr", dtype=np.int64)
+        r = _ro(self.ranges, "TreeFrames.ranges")
+        k = r.shape[0]
+        if ptr.shape[0] != t.shape[0] + 1:
+            raise InputError(
+                f"TreeFrames.ptr must have {t.shape[0] + 1} entries (frames + 1), "
+                f"got {ptr.shape[0]}."
+            )
+        if ptr[0] != 0 or ptr[-1] != k or np.any(np.diff(ptr) < 0):
+            raise InputError(
+                f"TreeFrames.ptr must rise from 0 to the number of detections ({k}); "
+                f"got {ptr[0]} .. {ptr[-1]}."
+            )
+        b = _ro(self.bearings, "TreeFrames.bearings")
+        d = _ro(self.diameters, "TreeFrames.diameters")
+        for name, arr in (("bearings", b), ("diameters", d)):
+            if arr.shape[0] != k:
+                raise InputError(f"TreeFrames.{name} has {arr.shape[0]} values but ranges has {k}.")
+        if not np.all(np.isfinite(r) & (r > 0)):
+            i = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
+            raise InputError(f"TreeFrames.ranges must be finite and > 0; value {r[i]} at {i}.")
+        if not np.all(np.isfinite(b)):
+            i = int(np.flatnonzero(~np.isfinite(b))[0])
+            raise InputError(f"TreeFrames.bearings must be finite; value {b[i]} at {i}.")
+        bw = wrap_angle(b)
+        bw = np.asarray(bw, dtype=np.float64).reshape(-1)
+        bw.setflags(write=False)
+        object.__setattr__(self, "times", t)
+        object.__setattr__(self, "ptr", ptr)
+        object.__setattr__(self, "ranges", r)
+        object.__setattr__(self, "bearings", bw)
+        object.__setattr__(self, "diameters", d)
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    @property
+    def n_detections(self) -> int:
+        return int(self.ranges.shape[0])
+
+    def frame(self, f: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``(ranges, bearings, diameters)`` of frame ``f`` (views)."""
+        s = slice(int(self.ptr[f]), int(self.ptr[f + 1]))
+        return self.ranges[s], self.bearings[s], self.diameters[s]
+
+    @property
+    def frame_index(self) -> IntArray:
+        """Frame index of every detection, shape (K,)."""
+        return np.repeat(np.arange(len(self), dtype=np.int64), np.diff(self.ptr))
+
+    def select_frames(self, start: int, stop: int) -> TreeFrames:
+        """Frames ``start:stop`` (detections re-based)."""
+        p0, p1 = int(self.ptr[start]), int(self.ptr[stop])
+        s = slice(p0, p1)
+        return TreeFrames(
+            self.times[start:stop],
+            self.ptr[start : stop + 1] - p0,
+            self.ranges[s],
+            self.bearings[s],
+            self.diameters[s],
+        )
+
+    def slice(self, t0: float, t1: float) -> TreeFrames:
+        """Frames with ``t0 <= time <= t1``."""
+        a = int(np.searchsorted(self.times, t0, side="left"))
+        b = int(np.searchsorted(self.times, t1, side="right"))
+        return self.select_frames(a, b)
+
+    @classmethod
+    def from_observations(cls, obs: StemObservations, times: ArrayLike) -> TreeFrames:
+        """Build frames from a detector's batch; ``obs.index`` gives each one's frame in ``times``.
+
+        Observation centres must be in the sensor frame; range and bearing are computed from
+        them, the diameter is ``2 * radius``.
+        """
+        t = _ro(times, "times")
+        idx = np.asarray(obs.index, dtype=np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= t.shape[0]):
+            raise InputError(
+                f"StemObservations.index must lie in [0, {t.shape[0]}) (one per frame time); "
+                f"got values in [{idx.min()}, {idx.max()}]."
+            )
+        order = np.argsort(idx, kind="stable")
+        c = obs.centers[order]
+        counts = np.bincount(idx, minlength=t.shape[0])
+        ptr = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+        return cls(
+            t,
+            ptr,
+            np.hypot(c[:, 0], c[:, 1]),
+            np.arctan2(c[:, 1], c[:, 0]),
+            2.0 * np.asarray(obs.radii)[order],
+        )
+
+    @classmethod
+    def empty_frames(cls, times: ArrayLike) -> TreeFrames:
+        t = _ro(times, "times")
+        z = np.zeros(0)
+        return cls(t, np.zeros(t.shape[0] + 1, dtype=np.int64), z, z, z)
+
+
+@dataclass(frozen=True, eq=False)
+class SlamProblem:
+    """Everything a back-end needs.
+
+    Parameters
+    ----------
+    controls : Controls
+    frames : TreeFrames
+    motion : MotionModel
+        Must accept ``controls`` (e.g. :class:`~stemmap.slam.motion.AckermannModel` for
+        ``kind="ackermann"``).
+    sensor_offset : (a, b), m
+        Sensor position in the vehicle frame (forward, left).
+    initial_pose : (x, y, theta)
+        Vehicle pose at ``frames.times[0]``.
+    name : str
+    max_range : float, m
+        Range beyond which the detector reports nothing (used by negative information).
+    fov : (min, max), rad
+        Bearing window of the detector in the sensor frame.
+    """
+
+    controls: Controls
+    frames: TreeFrames
+    motion: MotionModel
+    sensor_offset: tuple[float, float] = (0.0, 0.0)
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = ""
+    max_range: float = math.inf
+    fov: tuple[float, float] = (-math.pi, math.pi)
+
+    def __post_init__(self) -> None:
+        if len(self.frames) == 0:
+            raise InputError(f"SLAM problem {self.name!r} has no frames.")
+
+
+@dataclass
+class SlamResult:
+    """A back-end's output: vehicle pose at every frame time, the stem map, and run statistics."""
+
+    trajectory: Trajectory
+    stem_map: StemMap
+    stats: dict[str, float | int | str] = field(default_factory=dict)
+
+
+@runtime_checkable
+class SlamBackend(Protocol):
+    name: str
+
+    def run(
+        self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
+    ) -> SlamResult: ...
+
+
+#: name -> "module:Class"; instantiated with keyword config (each class has sensible defaults).
+BACKENDS: dict[str, str] = {
+    "treedb": "stemmap.slam.treedb:TreeDbSlam",
+    "ekf": "stemmap.slam.ekf:EkfSlam",
+    "fastslam": "stemmap.slam.fastslam:FastSlam",
+    "forestrix": "stemmap.slam.forestrix:ForestrixSlam",
+    "isam2": "stemmap.slam.graph:Isam2Slam",
+}
+
+
+def make_backend(name: str, **config: Any) -> SlamBackend:
+    """Instantiate a back-end by name with keyword config.
+
+    Raises
+    ------
+    ConfigError
+        If ``name`` is unknown or its module cannot be imported.
+    """
+    if name not in BACKENDS:
+        raise ConfigError(
+            f"unknown SLAM back-end {name!r}; choose one of {', '.join(sorted(BACKENDS))}."
+        )
+    mod_name, cls_name = BACKENDS[name].split(":")
+    try:
+        cls = getattr(importlib.import_module(mod_name), cls_name)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"SLAM back-end {name!r} is not available: {exc}.") from exc
+    backend: SlamBackend = cls(**config)
+    return backend
+
+
+def _unique_times(times: FloatArray) -> FloatArray:
+    """Strictly increasing copy of non-decreasing ``times`` (duplicates nudged by 1 µs)."""
+    t = np.array(times, dtype=np.float64)
+    for k in range(1, t.shape[0]):  # rare; only runs past duplicates
+        if t[k] <= t[k - 1]:
+            t[k] = t[k - 1] + 1e-6
+    return t
+
+
+def frame_trajectory(times: FloatArray, poses: FloatArray, frame: str = "map") -> Trajectory:
+    """A :class:`Trajectory` at frame times (duplicated frame times nudged to keep order)."""
+    t = times if np.all(np.diff(times) > 0) else _unique_times(times)
+    return Trajectory(t, poses, frame=frame)
+
+
+def dead_reckoning(problem: SlamProblem) -> Trajectory:
+    """Integrate the controls only (no landmarks): vehicle pose at every frame time."""
+    poses = rollout(
+        problem.motion, problem.controls, problem.frames.times, np.asarray(problem.initial_pose)
+    )
+    return frame_trajectory(problem.frames.times, poses)
+
+
+# --------------------------------------------------------------------------------------------
+# Observation model helpers (shared by back-ends)
+# --------------------------------------------------------------------------------------------
+
+
+def sensor_poses(poses: ArrayLike, sensor_offset: tuple[float, float]) -> FloatArray:
+    """Sensor poses (..., 3) for vehicle poses (..., 3) and a mounting offset (a, b)."""
+    p = np.asarray(poses, dtype=np.float64)
+    a, b = sensor_offset
+    c, s = np.cos(p[..., 2]), np.sin(p[..., 2])
+    out = np.array(p, copy=True)
+    out[..., 0] = p[..., 0] + a * c - b * s
+    out[..., 1] = p[..., 1] + a * s + b * c
+    return out
+
+
+def observation_to_world(
+    pose: ArrayLike,
+    ranges: ArrayLike,
+    bearings: ArrayLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> FloatArray:
+    """World positions (K, 2) of range-bearing detections taken from vehicle ``pose`` (3,)
+    or per-detection poses (K, 3)."""
+    s = sensor_poses(pose, sensor_offset)
+    r = np.asarray(ranges, dtype=np.float64)
+    ang = s[..., 2] + np.asarray(bearings, dtype=np.float64)
+    return np.column_stack((s[..., 0] + r * np.cos(ang), s[..., 1] + r * np.sin(ang)))
+
+
+def observe(
+    pose: ArrayLike,
+    landmarks: ArrayLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> tuple[FloatArray, FloatArray]:
+    """Predicted ``(ranges, bearings)`` (N,) of world ``landmarks`` (N, 2) from vehicle ``pose``."""
+    s = sensor_poses(pose, sensor_offset)
+    m = np.asarray(landmarks, dtype=np.float64).reshape(-1, 2)
+    dx = m[:, 0] - s[..., 0]
+    dy = m[:, 1] - s[..., 1]
+    return np.hypot(dx, dy), np.asarray(wrap_angle(np.arctan2(dy, dx) - s[..., 2]))
