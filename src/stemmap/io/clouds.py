@@ -332,8 +332,10 @@ def read_xyz(path: PathLike) -> PointCloud:
 
 
 def _read_bag(path: Path, topic: str | None) -> PointCloud:
+    import importlib
+
     try:
-        from stemmap.io import rosbag
+        rosbag = importlib.import_module("stemmap.io.rosbag")
     except ImportError as exc:
         raise InputError(
             f"reading the bag {str(path)!r} needs stemmap.io.rosbag, which is not available."

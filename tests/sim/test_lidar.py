@@ -1,0 +1,104 @@
+"""3D lidar simulator: exact geometry of hits, labels, determinism, sensor models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.sim.lidar import (
+    LABEL_GROUND,
+    LABEL_SHRUB,
+    LidarModel,
+    Stand3D,
+    cast_rays_3d,
+    lidar_preset,
+    random_stand3d,
+    simulate_mobile,
+    simulate_tls,
+)
+
+
+def _one_stem(lean: tuple[float, float] = (0.0, 0.0), taper: float = 0.0) -> Stand3D:
+    return Stand3D([[5.0, 0.0]], [0.4], [15.0], [lean], [taper], ground=(0.0, 0.0, 0.0))
+
+
+def test_horizontal_ray_hits_vertical_cylinder_exactly() -> None:
+    st = _one_stem()
+    r, lab = cast_rays_3d(st, [0, 0, 1.3], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    assert r[0] == pytest.approx(5.0 - 0.2, abs=1e-9)
+    assert lab[0] == 0
+    assert np.isinf(r[1]) and lab[1] == -99
+
+
+def test_taper_changes_radius_with_height() -> None:
+    st = _one_stem(taper=0.01)
+    # at 6.3 m the radius is 0.2 - 0.01 * 5 = 0.15 m
+    r, _ = cast_rays_3d(st, [0, 0, 6.3], [[1.0, 0.0, 0.0]])
+    assert r[0] == pytest.approx(5.0 - 0.15, abs=1e-6)
+
+
+def test_lean_moves_axis_and_truth() -> None:
+    st = _one_stem(lean=(0.05, 0.0))
+    np.testing.assert_allclose(st.trees_xy, [[5.0 + 0.05 * 1.3, 0.0]], atol=1e-12)
+    r, _ = cast_rays_3d(st, [0, 0, 1.3], [[1.0, 0.0, 0.0]])
+    # leaning cylinder: horizontal section is an ellipse with semi-axis r / cos(lean) along x
+    lean = np.arctan(0.05)
+    assert r[0] == pytest.approx(5.065 - 0.2 / np.cos(lean), abs=1e-6)
+
+
+def test_ground_plane_with_slope() -> None:
+    st = Stand3D([[50.0, 50.0]], [0.3], [10.0], [[0, 0]], [0.0], ground=(1.0, 0.1, 0.0))
+    r, lab = cast_rays_3d(st, [0, 0, 3.0], [[0.0, 0.0, -1.0]])
+    assert r[0] == pytest.approx(2.0) and lab[0] == LABEL_GROUND
+
+
+def test_random_stand_and_tls_labels_and_noise() -> None:
+    st = random_stand3d(12, (15, 15), rng=7)
+    model = lidar_preset("tls_coarse")
+    c1 = simulate_tls(st, [[7.5, 7.5]], model, rng=3)
+    c2 = simulate_tls(st, [[7.5, 7.5]], model, rng=3)
+    np.testing.assert_array_equal(c1.xyz, c2.xyz)  # same seed, same cloud
+    lab = c1.fields["label"]
+    assert {LABEL_GROUND, LABEL_SHRUB} <= set(np.unique(lab).tolist())
+    assert (lab >= 0).sum() > 1000
+    # ground points sit on the plane within the noise (5 mm, 6 sigma)
+    g = c1.xyz[lab == LABEL_GROUND]
+    dz = g[:, 2] - st.ground_z(g[:, :2])
+    assert np.max(np.abs(dz)) < 0.03 + 1e-9
+    # stem points near breast height lie at the stem radius (noise 5 mm; lean < 4 deg)
+    for i in range(st.n_trees):
+        p = c1.xyz[lab == i]
+        h = p[:, 2] - st.breast_height_z[i]
+        sel = np.abs(h) < 0.02
+        if sel.sum() < 10:
+            continue
+        rr = np.hypot(*(p[sel, :2] - st.trees_xy[i]).T)
+        assert np.median(rr) == pytest.approx(st.dbh[i] / 2, abs=0.006)
+
+
+def test_mobile_frames_and_world_agree() -> None:
+    st = random_stand3d(8, (12, 12), branches_per_tree=2, n_shrubs=2, rng=1)
+    path = np.column_stack((np.linspace(1, 11, 4), np.full(4, 6.0)))
+    m = simulate_mobile(st, path, lidar_preset("vlp16", range_noise=0.0), rng=0)
+    assert len(m.frames) == 4 and m.poses.shape == (4, 4)
+    # frame k transformed by pose k equals the world points of frame k
+    k = 2
+    x, y, z, yaw = m.poses[k]
+    c, s = np.cos(yaw), np.sin(yaw)
+    w = m.frames[k].xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + [x, y, z]
+    np.testing.assert_allclose(w, m.cloud.xyz[m.cloud.fields["frame_index"] == k], atol=1e-9)
+    # 16 beams: elevations in the sensor frame take 16 distinct values
+    el = np.degrees(np.arctan2(m.frames[k].xyz[:, 2], np.hypot(*m.frames[k].xyz[:, :2].T)))
+    assert len(np.unique(np.round(el, 3))) <= 16
+
+
+def test_bad_configs() -> None:
+    with pytest.raises(ConfigError):
+        lidar_preset("nope")
+    with pytest.raises(ConfigError):
+        LidarModel((0.0,), 0.0)
+    with pytest.raises(InputError):
+        Stand3D([[0, 0]], [0.3, 0.2], [10.0], [[0, 0]], [0.0])
+    with pytest.raises(ConfigError):
+        simulate_mobile(_one_stem(), [[0, 0]])
