@@ -1,1 +1,76 @@
-"""stemmap.sim"""
+"""Simulator: stands, 2D scanner, drives with odometry -- every input with ground truth.
+
+See docs/algorithms/sim-eval.md for the models and the decisions behind them.
+"""
+
+from stemmap.sim.forest import (
+    CLUTTER_KINDS,
+    Stand,
+    add_clutter,
+    clustered_stand,
+    make_trunks_noncircular,
+    random_stand,
+    row_stand,
+    sample_dbh,
+)
+from stemmap.sim.scanner import (
+    HIT_CLUTTER,
+    HIT_NONE,
+    SCANNER_PRESETS,
+    ScannerModel,
+    cast_rays,
+    cast_scans,
+    scanner_preset,
+    simulate_scan,
+    simulate_scans,
+)
+from stemmap.sim.trajectory import (
+    ODOMETRY_PRESETS,
+    Odometry,
+    OdometryNoise,
+    RelativeOdometry,
+    SimRun,
+    VisualOdometryNoise,
+    clear_corridor,
+    compose_poses,
+    integrate_unicycle,
+    lawnmower_path,
+    loop_path,
+    relative_poses,
+    simulate_run,
+    straight_path,
+)
+
+__all__ = [
+    "CLUTTER_KINDS",
+    "HIT_CLUTTER",
+    "HIT_NONE",
+    "ODOMETRY_PRESETS",
+    "SCANNER_PRESETS",
+    "Odometry",
+    "OdometryNoise",
+    "RelativeOdometry",
+    "ScannerModel",
+    "SimRun",
+    "Stand",
+    "VisualOdometryNoise",
+    "add_clutter",
+    "cast_rays",
+    "cast_scans",
+    "clear_corridor",
+    "clustered_stand",
+    "compose_poses",
+    "integrate_unicycle",
+    "lawnmower_path",
+    "loop_path",
+    "make_trunks_noncircular",
+    "random_stand",
+    "relative_poses",
+    "row_stand",
+    "sample_dbh",
+    "scanner_preset",
+    "simulate_run",
+    "simulate_scan",
+    "simulate_scans",
+    "straight_path",
+]

@@ -1,17 +1,48 @@
-"""2D laser scanner simulation by exact ray casting against a :class:`~stemmap.sim.forest.Stand`."""
+"""2D laser scanner simulation by exact ray casting against a :class:`~stemmap.sim.forest.Stand`.
+
+Two ray casters give the same first-hit distances:
+
+* :func:`cast_rays` -- arbitrary ray directions from one origin, plain numpy, (B x objects)
+  brute force. The reference implementation (used by the tests to check the fast one).
+* :func:`cast_scans` -- many scans of one uniform beam fan from many poses. Every object is
+  "rasterised" into the few beams its angular extent covers (a numba kernel), so the cost is
+  O(scans x objects in range x beams per object), not O(scans x beams x objects).
+
+:func:`simulate_scans` adds the sensor model on top: beam divergence sampled by sub-beams
+(mixed pixels at trunk edges), range noise (absolute + proportional to range), dropouts,
+range window. Ground truth per beam is the id of the object that the beam footprint hits
+(tree index, ``-2`` clutter, ``-1`` nothing).
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-from stemmap.errors import ConfigError
+from stemmap.errors import ConfigError, InputError
 from stemmap.sim.forest import Stand
-from stemmap.types import FloatArray, LaserScan, Pose2
+from stemmap.types import FloatArray, LaserScan, Pose2, ScanBatch
 
-__all__ = ["ScannerModel", "cast_rays", "simulate_scan"]
+__all__ = [
+    "HIT_CLUTTER",
+    "HIT_NONE",
+    "SCANNER_PRESETS",
+    "ScannerModel",
+    "cast_rays",
+    "cast_scans",
+    "scanner_preset",
+    "simulate_scan",
+    "simulate_scans",
+]
+
+#: ``hit_id`` of a beam that hit clutter (bush, rock, wall, branch).
+HIT_CLUTTER = -2
+#: ``hit_id`` of a beam that hit nothing within ``range_max``.
+HIT_NONE = -1
 
 
 @dataclass(frozen=True)
@@ -20,11 +51,36 @@ class ScannerModel:
 
     Parameters
     ----------
-    angle_min, angle_max : float, radians (inclusive span of beams)
-    angle_increment : float, radians
+    angle_min, angle_max : float, radians
+        Inclusive span of beam centres, counter-clockwise from the sensor's x axis.
+    angle_increment : float, radians, > 0
     range_min, range_max : float, metres
-    range_noise : float, metres (1-sigma Gaussian)
-    dropout : float in [0, 1), probability a beam returns nothing
+        Returns outside (range_min, range_max) are reported as "no return" (``inf``).
+    range_noise : float, metres, >= 0
+        Constant part of the 1-sigma Gaussian range noise.
+    dropout : float in [0, 1)
+        Probability that a beam which hit something returns nothing.
+    range_noise_rel : float, >= 0
+        Range-proportional part of the noise: ``sigma(r) = range_noise + range_noise_rel * r``
+        (triangulation scanners such as RPLIDAR are specified as a percentage of range).
+    beam_divergence : float, radians, >= 0
+        Full angular width of the beam footprint. ``0`` is an ideal thin ray.
+    sub_beams : int, >= 1
+        Rays sampled uniformly across the footprint when ``beam_divergence > 0``.
+    min_hit_fraction : float in (0, 1]
+        Fraction of the footprint that must hit a surface for the beam to return (an energy
+        threshold). 0.5 keeps silhouette edges unbiased on average.
+    scan_rate_hz : float, > 0
+        Scans per second (used as the default rate of :func:`~stemmap.sim.trajectory.simulate_run`).
+
+    Notes
+    -----
+    **Mixed pixels.** When the footprint straddles a trunk edge, part of the sub-beams hit
+    the trunk and part the background. The returned range is the mean of the sub-beams that
+    hit, weighted by ``1 / r^2`` (returned energy of a diffuse target); it therefore lies
+    between the two ranges, as the "mixed pixels" (phantom points) that real time-of-flight
+    scanners report at edges. Ground truth of such a beam is the object that covers most
+    sub-beams (ties: the nearest).
     """
 
     angle_min: float = -math.pi / 2
@@ -34,14 +90,36 @@ class ScannerModel:
     range_max: float = 30.0
     range_noise: float = 0.01
     dropout: float = 0.0
+    range_noise_rel: float = 0.0
+    beam_divergence: float = 0.0
+    sub_beams: int = 5
+    min_hit_fraction: float = 0.5
+    scan_rate_hz: float = 10.0
 
     def __post_init__(self) -> None:
         if not self.angle_increment > 0:
-            raise ConfigError("angle_increment must be > 0.")
+            raise ConfigError(f"angle_increment must be > 0 rad, got {self.angle_increment}.")
         if not self.angle_max > self.angle_min:
-            raise ConfigError("angle_max must exceed angle_min.")
+            raise ConfigError(
+                f"angle_max ({self.angle_max}) must exceed angle_min ({self.angle_min})."
+            )
         if not 0.0 <= self.dropout < 1.0:
-            raise ConfigError("dropout must be in [0, 1).")
+            raise ConfigError(f"dropout must be in [0, 1), got {self.dropout}.")
+        if not (0.0 <= self.range_min < self.range_max):
+            raise ConfigError(
+                f"range window must satisfy 0 <= range_min < range_max, got "
+                f"[{self.range_min}, {self.range_max}]."
+            )
+        for name in ("range_noise", "range_noise_rel", "beam_divergence"):
+            v = getattr(self, name)
+            if not (v >= 0.0 and math.isfinite(v)):
+                raise ConfigError(f"{name} must be finite and >= 0, got {v}.")
+        if int(self.sub_beams) != self.sub_beams or self.sub_beams < 1:
+            raise ConfigError(f"sub_beams must be an integer >= 1, got {self.sub_beams}.")
+        if not 0.0 < self.min_hit_fraction <= 1.0:
+            raise ConfigError(f"min_hit_fraction must be in (0, 1], got {self.min_hit_fraction}.")
+        if not self.scan_rate_hz > 0:
+            raise ConfigError(f"scan_rate_hz must be > 0, got {self.scan_rate_hz}.")
 
     @property
     def n_beams(self) -> int:
@@ -51,36 +129,131 @@ class ScannerModel:
     def angles(self) -> FloatArray:
         return self.angle_min + self.angle_increment * np.arange(self.n_beams, dtype=np.float64)
 
+    @property
+    def sub_beam_offsets(self) -> FloatArray:
+        """Angular offsets (rad) of the sub-beams from the beam centre, shape (K,)."""
+        k = int(self.sub_beams) if self.beam_divergence > 0 else 1
+        if k == 1:
+            return np.zeros(1)
+        return self.beam_divergence * ((np.arange(k) + 0.5) / k - 0.5)
+
+    def range_sigma(self, ranges: ArrayLike) -> FloatArray:
+        """1-sigma range noise (m) at the given true ranges."""
+        return self.range_noise + self.range_noise_rel * np.asarray(ranges, dtype=np.float64)
+
+
+#: Published-spec-like scanner presets. ``sick_lms``: SICK LMS2xx, 0.5 deg, 180 deg FOV, 80 m,
+#: ~1 cm noise, ~0.25 deg divergence, 75 Hz. ``rplidar``: RPLIDAR-like, 1 deg, 360 deg, 12 m,
+#: 1.5 % of range noise, 10 Hz (divergence and dropout are our assumptions; see
+#: docs/algorithms/sim-eval.md).
+SCANNER_PRESETS: dict[str, ScannerModel] = {
+    "sick_lms": ScannerModel(
+        angle_min=-math.pi / 2,
+        angle_max=math.pi / 2,
+        angle_increment=math.radians(0.5),
+        range_min=0.05,
+        range_max=80.0,
+        range_noise=0.01,
+        range_noise_rel=0.0,
+        beam_divergence=math.radians(0.25),
+        sub_beams=5,
+        dropout=0.0,
+        scan_rate_hz=75.0,
+    ),
+    "rplidar": ScannerModel(
+        angle_min=-math.pi,
+        angle_max=math.pi - math.radians(1.0),
+        angle_increment=math.radians(1.0),
+        range_min=0.15,
+        range_max=12.0,
+        range_noise=0.0,
+        range_noise_rel=0.015,
+        beam_divergence=math.radians(0.5),
+        sub_beams=5,
+        dropout=0.01,
+        scan_rate_hz=10.0,
+    ),
+}
+
+
+def scanner_preset(scanner: ScannerModel | str | None, **overrides: float) -> ScannerModel:
+    """A :class:`ScannerModel` from a model, a preset name or ``None`` (default model).
+
+    Keyword overrides replace fields (e.g. ``range_noise=0.02``).
+
+    Raises
+    ------
+    ConfigError
+        If the preset name is unknown or an override is not a field.
+    """
+    if scanner is None:
+        model = ScannerModel()
+    elif isinstance(scanner, ScannerModel):
+        model = scanner
+    elif isinstance(scanner, str):
+        try:
+            model = SCANNER_PRESETS[scanner]
+        except KeyError as exc:
+            raise ConfigError(
+                f"unknown scanner preset {scanner!r}; choose one of {sorted(SCANNER_PRESETS)}."
+            ) from exc
+    else:
+        raise ConfigError(f"scanner must be a ScannerModel or preset name, got {scanner!r}.")
+    if overrides:
+        try:
+            model = replace(model, **overrides)  # type: ignore[arg-type]
+        except TypeError as exc:
+            raise ConfigError(f"bad scanner override: {exc}.") from exc
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# Reference ray caster (numpy, arbitrary directions)
+# --------------------------------------------------------------------------------------------
+
+
+def _circles(stand: Stand) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
+    """Circles that reflect: round trees (not the polygonal ones) and clutter circles."""
+    round_trees = ~stand.tree_is_polygon
+    centers = np.vstack((stand.trees_xy[round_trees], stand.clutter_xy))
+    radii = np.concatenate((stand.radii[round_trees], stand.clutter_radius))
+    ids = np.concatenate(
+        (
+            np.flatnonzero(round_trees).astype(np.int64),
+            np.full(len(stand.clutter_radius), HIT_CLUTTER, dtype=np.int64),
+        )
+    )
+    return centers, radii, ids
+
 
 def cast_rays(
-    origin: FloatArray, directions: FloatArray, stand: Stand, max_range: float
-) -> tuple[FloatArray, np.ndarray]:
-    """Exact first-hit distances of rays against the stand's circles and segments.
+    origin: ArrayLike, directions: ArrayLike, stand: Stand, max_range: float
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Exact first-hit distances of rays from one origin against the stand's circles and segments.
 
     Parameters
     ----------
-    origin : (2,) world position of the sensor
-    directions : (B,) world angles of the rays, radians
+    origin : array_like of shape (2,), metres, world frame
+    directions : array_like of shape (B,), radians, world frame
     stand : Stand
     max_range : float, metres
 
     Returns
     -------
-    ranges : (B,) distance to first hit, ``inf`` where nothing is hit within ``max_range``
-    hit_id : (B,) int -- tree index for trees (and polygon segments owned by a tree),
-        -2 for clutter, -1 for no hit
+    ranges : ndarray of shape (B,)
+        Distance to the first hit, ``inf`` where nothing is hit within ``max_range``.
+    hit_id : ndarray of shape (B,), int
+        Tree index for trees (and polygon segments owned by a tree), ``-2`` for clutter,
+        ``-1`` for no hit.
     """
-    o = np.asarray(origin, dtype=np.float64)
-    u = np.column_stack((np.cos(directions), np.sin(directions)))  # (B, 2)
+    o = np.asarray(origin, dtype=np.float64).reshape(2)
+    dirs = np.asarray(directions, dtype=np.float64).reshape(-1)
+    u = np.column_stack((np.cos(dirs), np.sin(dirs)))  # (B, 2)
     n_b = u.shape[0]
     best = np.full(n_b, np.inf)
-    hit = np.full(n_b, -1, dtype=np.int64)
+    hit = np.full(n_b, HIT_NONE, dtype=np.int64)
 
-    centers = np.vstack((stand.trees_xy, stand.clutter_xy))
-    radii = np.concatenate((stand.radii, stand.clutter_radius))
-    ids = np.concatenate(
-        (np.arange(stand.n_trees, dtype=np.int64), np.full(len(stand.clutter_radius), -2))
-    )
+    centers, radii, ids = _circles(stand)
     if centers.shape[0]:
         rel = centers - o  # (C, 2)
         dist = np.hypot(rel[:, 0], rel[:, 1])
@@ -113,46 +286,330 @@ def cast_rays(
         t = np.where(valid, t, np.inf)
         j = np.argmin(t, axis=1)
         tj = t[np.arange(n_b), j]
-        owner = np.where(stand.segment_owner >= 0, stand.segment_owner, -2)
+        owner = np.where(stand.segment_owner >= 0, stand.segment_owner, HIT_CLUTTER)
         better = tj < best
         best = np.where(better, tj, best)
         hit = np.where(better, owner[j], hit)
 
     far = best >= max_range
     best[far] = np.inf
-    hit[far] = -1
+    hit[far] = HIT_NONE
     return best, hit
+
+
+# --------------------------------------------------------------------------------------------
+# Fast batch caster (numba): rasterise each object into the beams it covers
+# --------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _beam_index_range(
+    psi_lo: float, psi_hi: float, inc: float, n_beams: int
+) -> tuple[int, int, int, int]:
+    """Beam index intervals [a0, b0], [a1, b1] covering relative angles [psi_lo, psi_hi].
+
+    Angles are relative to beam 0 (radians); the interval is tried at shifts of -2pi, 0 and
+    +2pi so that objects across a 360-degree scanner's seam are found. For spans < 2pi at most
+    two shifted intervals are non-empty; an empty interval has a > b.
+    """
+    two_pi = 2.0 * math.pi
+    i0a, i0b, i1a, i1b = 1, 0, 1, 0
+    found = 0
+    for k in range(3):
+        shift = (k - 1) * two_pi
+        a = max(math.ceil((psi_lo + shift) / inc), 0)
+        b = min(math.floor((psi_hi + shift) / inc), n_beams - 1)
+        if a <= b:
+            if found == 0:
+                i0a, i0b = a, b
+            else:
+                i1a, i1b = a, b
+            found += 1
+    return i0a, i0b, i1a, i1b
+
+
+@numba.njit(cache=True)
+def _cast_scans_kernel(
+    poses: FloatArray,
+    angle0: float,
+    inc: float,
+    n_beams: int,
+    circles: FloatArray,
+    circle_ids: NDArray[np.int64],
+    segments: FloatArray,
+    segment_ids: NDArray[np.int64],
+    max_range: float,
+    out_r: FloatArray,
+    out_id: NDArray[np.int64],
+) -> None:
+    n_scans = poses.shape[0]
+    n_c = circles.shape[0]
+    n_s = segments.shape[0]
+    for s in range(n_scans):
+        ox = poses[s, 0]
+        oy = poses[s, 1]
+        base = poses[s, 2] + angle0  # world angle of beam 0
+        for i in range(n_beams):
+            out_r[s, i] = np.inf
+            out_id[s, i] = -1
+        for c in range(n_c):
+            cx = circles[c, 0] - ox
+            cy = circles[c, 1] - oy
+            r = circles[c, 2]
+            d2 = cx * cx + cy * cy
+            d = math.sqrt(d2)
+            if d - r >= max_range or d <= r:
+                continue
+            half = math.asin(r / d)
+            psi = math.atan2(cy, cx) - base
+            psi = psi - 2.0 * math.pi * math.floor(psi / (2.0 * math.pi))  # [0, 2pi)
+            a0, b0, a1, b1 = _beam_index_range(psi - half, psi + half, inc, n_beams)
+            cc = d2 - r * r
+            for rng_a, rng_b in ((a0, b0), (a1, b1)):
+                for i in range(rng_a, rng_b + 1):
+                    ang = base + inc * i
+                    ux = math.cos(ang)
+                    uy = math.sin(ang)
+                    b = ux * cx + uy * cy
+                    disc = b * b - cc
+                    if disc < 0.0:
+                        continue
+                    t = b - math.sqrt(disc)
+                    if 0.0 < t < out_r[s, i]:
+                        out_r[s, i] = t
+                        out_id[s, i] = circle_ids[c]
+        for g in range(n_s):
+            p0x = segments[g, 0] - ox
+            p0y = segments[g, 1] - oy
+            p1x = segments[g, 2] - ox
+            p1y = segments[g, 3] - oy
+            dx = p1x - p0x
+            dy = p1y - p0y
+            # distance from origin to the segment (cull)
+            L2 = dx * dx + dy * dy
+            if L2 > 0.0:
+                tt = -(p0x * dx + p0y * dy) / L2
+                tt = min(1.0, max(0.0, tt))
+            else:
+                tt = 0.0
+            qx = p0x + tt * dx
+            qy = p0y + tt * dy
+            if math.sqrt(qx * qx + qy * qy) >= max_range:
+                continue
+            phi0 = math.atan2(p0y, p0x) - base
+            phi0 = phi0 - 2.0 * math.pi * math.floor(phi0 / (2.0 * math.pi))
+            span = math.atan2(p0x * p1y - p0y * p1x, p0x * p1x + p0y * p1y)  # (-pi, pi]
+            lo = phi0 + min(0.0, span)
+            hi = phi0 + max(0.0, span)
+            a0, b0, a1, b1 = _beam_index_range(lo - 1e-12, hi + 1e-12, inc, n_beams)
+            for rng_a, rng_b in ((a0, b0), (a1, b1)):
+                for i in range(rng_a, rng_b + 1):
+                    ang = base + inc * i
+                    ux = math.cos(ang)
+                    uy = math.sin(ang)
+                    den = ux * dy - uy * dx
+                    if abs(den) <= 1e-12:
+                        continue
+                    t = (p0x * dy - p0y * dx) / den
+                    sp = (p0x * uy - p0y * ux) / den
+                    if t > 0.0 and 0.0 <= sp <= 1.0 and t < out_r[s, i]:
+                        out_r[s, i] = t
+                        out_id[s, i] = segment_ids[g]
+        for i in range(n_beams):
+            if out_r[s, i] >= max_range:
+                out_r[s, i] = np.inf
+                out_id[s, i] = -1
+
+
+def cast_scans(
+    stand: Stand,
+    poses: ArrayLike,
+    *,
+    angle_min: float,
+    angle_increment: float,
+    n_beams: int,
+    max_range: float,
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Exact first-hit ranges of a uniform beam fan from many sensor poses.
+
+    Parameters
+    ----------
+    stand : Stand
+    poses : array_like of shape (S, 3)
+        Sensor poses (x, y in metres, theta in radians) in the world frame.
+    angle_min, angle_increment : float, radians
+        Beam ``i`` points at ``theta + angle_min + i * angle_increment``; ``angle_increment > 0``.
+    n_beams : int
+    max_range : float, metres
+
+    Returns
+    -------
+    ranges : ndarray of shape (S, n_beams), ``inf`` = nothing within ``max_range``
+    hit_id : ndarray of shape (S, n_beams), int (tree index, -2 clutter, -1 nothing)
+
+    Notes
+    -----
+    Same geometry as :func:`cast_rays`: the ray ``o + t u`` meets the circle ``|p - c| = r`` at
+    ``t = u.c' - sqrt((u.c')^2 - |c'|^2 + r^2)`` with ``c' = c - o``; the segment
+    ``p0 + s d`` at ``t = (p0 x d) / (u x d)``. Only the beams inside each object's angular
+    extent (``asin(r/|c'|)`` around the bearing for circles) are tested.
+    """
+    p = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+    if not np.all(np.isfinite(p)):
+        raise InputError("cast_scans: every sensor pose must be finite.")
+    if not angle_increment > 0:
+        raise InputError(f"cast_scans needs angle_increment > 0, got {angle_increment}.")
+    centers, radii, ids = _circles(stand)
+    circles = np.ascontiguousarray(np.column_stack((centers, radii)).reshape(-1, 3))
+    seg = np.ascontiguousarray(stand.segments.reshape(-1, 4))
+    seg_ids = np.where(stand.segment_owner >= 0, stand.segment_owner, HIT_CLUTTER).astype(np.int64)
+    out_r = np.empty((p.shape[0], int(n_beams)))
+    out_id = np.empty((p.shape[0], int(n_beams)), dtype=np.int64)
+    _cast_scans_kernel(
+        p,
+        float(angle_min),
+        float(angle_increment),
+        int(n_beams),
+        circles,
+        np.ascontiguousarray(ids),
+        seg,
+        np.ascontiguousarray(seg_ids),
+        float(max_range),
+        out_r,
+        out_id,
+    )
+    return out_r, out_id
+
+
+# --------------------------------------------------------------------------------------------
+# Sensor model
+# --------------------------------------------------------------------------------------------
+
+
+def _combine_sub_beams(
+    sub_r: FloatArray, sub_id: NDArray[np.int64], min_hit_fraction: float
+) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
+    """Mixed-pixel model: (S, N, K) sub-beam ranges -> (S, N) range, hit id, mixed flag."""
+    k = sub_r.shape[-1]
+    if k == 1:
+        return sub_r[..., 0], sub_id[..., 0], np.zeros(sub_r.shape[:-1], dtype=bool)
+    hit = np.isfinite(sub_r)
+    n_hit = hit.sum(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(hit, 1.0 / np.where(hit, sub_r, 1.0) ** 2, 0.0)
+        r = np.sum(w * np.where(hit, sub_r, 0.0), axis=-1) / np.sum(w, axis=-1)
+    returns = n_hit >= math.ceil(min_hit_fraction * k - 1e-9)
+    r = np.where(returns, r, np.inf)
+    # ground truth: the id covering most sub-beams; ties -> the nearest (sub-beams sorted by
+    # range put the nearest id first, argmax returns the first maximum)
+    order = np.argsort(np.where(hit, sub_r, np.inf), axis=-1, kind="stable")
+    ids_sorted = np.take_along_axis(sub_id, order, axis=-1)
+    counts = np.zeros(ids_sorted.shape, dtype=np.int64)
+    for j in range(k):
+        counts[..., j] = np.sum(ids_sorted == ids_sorted[..., j : j + 1], axis=-1)
+    counts = np.where(ids_sorted == HIT_NONE, -1, counts)
+    best = np.argmax(counts, axis=-1)
+    gt = np.take_along_axis(ids_sorted, best[..., None], axis=-1)[..., 0]
+    gt = np.where(returns, gt, HIT_NONE)
+    first = sub_id[..., :1]
+    mixed = returns & np.any(sub_id != first, axis=-1)
+    return r, gt, mixed
+
+
+def simulate_scans(
+    stand: Stand,
+    poses: ArrayLike,
+    model: ScannerModel | str | None = None,
+    *,
+    times: ArrayLike | None = None,
+    rng: np.random.Generator | int | None = None,
+    frame: str = "laser",
+) -> tuple[ScanBatch, NDArray[np.int64], NDArray[np.bool_]]:
+    """Simulate scans from many sensor poses (vectorised; thousands of scans per second).
+
+    Parameters
+    ----------
+    stand : Stand
+    poses : array_like of shape (S, 3)
+        Sensor poses (x, y, theta) in the world frame.
+    model : ScannerModel or preset name (see :data:`SCANNER_PRESETS`), optional
+    times : array_like of shape (S,), seconds, optional
+        Scan times; default ``arange(S) / model.scan_rate_hz``.
+    rng : numpy Generator or int seed
+    frame : str
+        Name of the sensor frame of the returned scans.
+
+    Returns
+    -------
+    scans : ScanBatch
+        Ranges in the sensor frame; "no return" is ``inf``.
+    hit_ids : ndarray of shape (S, N), int
+        Ground truth per beam: tree index, ``-2`` clutter, ``-1`` nothing (also for dropouts
+        and returns outside the range window).
+    mixed : ndarray of shape (S, N), bool
+        Beams whose footprint hit more than one object or an object and the background.
+
+    Notes
+    -----
+    Per beam: cast ``sub_beams`` exact rays across the divergence, combine them with the mixed
+    pixel model (:class:`ScannerModel` Notes), add ``N(0, sigma(r)^2)`` range noise with
+    ``sigma(r) = range_noise + range_noise_rel * r``, drop with probability ``dropout``, then
+    apply the range window.
+    """
+    m = scanner_preset(model)
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    n_s = p.shape[0]
+    if times is None:
+        t = np.arange(n_s, dtype=np.float64) / m.scan_rate_hz
+    else:
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        if t.shape[0] != n_s:
+            raise InputError(f"simulate_scans got {n_s} poses but {t.shape[0]} times.")
+    gen = np.random.default_rng(rng)
+    offsets = m.sub_beam_offsets
+    n_b = m.n_beams
+    sub_r = np.empty((n_s, n_b, offsets.size))
+    sub_id = np.empty((n_s, n_b, offsets.size), dtype=np.int64)
+    for j, off in enumerate(offsets):
+        sub_r[..., j], sub_id[..., j] = cast_scans(
+            stand,
+            p,
+            angle_min=m.angle_min + float(off),
+            angle_increment=m.angle_increment,
+            n_beams=n_b,
+            max_range=m.range_max,
+        )
+    ranges, hit, mixed = _combine_sub_beams(sub_r, sub_id, m.min_hit_fraction)
+    finite = np.isfinite(ranges)
+    sigma = m.range_sigma(np.where(finite, ranges, 0.0))
+    noise = gen.standard_normal(ranges.shape) * sigma
+    ranges = np.where(finite, ranges + noise, np.inf)
+    if m.dropout > 0:
+        drop = gen.random(ranges.shape) < m.dropout
+        ranges[drop] = np.inf
+    with np.errstate(invalid="ignore"):
+        outside = ~((ranges > m.range_min) & (ranges < m.range_max))
+    ranges[outside] = np.inf
+    hit = np.where(outside, HIT_NONE, hit)
+    mixed &= ~outside
+    batch = ScanBatch(ranges, t, m.angle_min, m.angle_increment, m.range_min, m.range_max, frame)
+    return batch, hit, mixed
 
 
 def simulate_scan(
     stand: Stand,
     pose: Pose2,
-    model: ScannerModel | None = None,
+    model: ScannerModel | str | None = None,
     *,
     time: float = 0.0,
     rng: np.random.Generator | int | None = None,
-) -> tuple[LaserScan, np.ndarray]:
+) -> tuple[LaserScan, NDArray[np.int64]]:
     """Simulate one scan from ``pose`` (sensor pose in the world frame).
 
-    Returns the scan (in the sensor frame, "no return" as inf) and the per-beam hit id
-    (tree index, -2 clutter, -1 nothing).
+    Returns the scan (in the sensor frame, "no return" as ``inf``) and the per-beam hit id
+    (tree index, -2 clutter, -1 nothing). See :func:`simulate_scans` for the sensor model.
     """
-    m = model or ScannerModel()
-    gen = np.random.default_rng(rng)
-    angles = m.angles
-    ranges, hit = cast_rays(np.array([pose.x, pose.y]), angles + pose.theta, stand, m.range_max)
-    finite = np.isfinite(ranges)
-    ranges = ranges + np.where(finite, gen.normal(0.0, m.range_noise, ranges.shape), 0.0)
-    if m.dropout > 0:
-        drop = gen.random(ranges.shape) < m.dropout
-        ranges[drop] = np.inf
-        hit[drop] = -1
-    scan = LaserScan(
-        ranges,
-        m.angle_min,
-        m.angle_increment,
-        time=time,
-        range_min=m.range_min,
-        range_max=m.range_max,
+    batch, hit, _ = simulate_scans(
+        stand, [[pose.x, pose.y, pose.theta]], model, times=[time], rng=rng
     )
-    return scan, hit
+    return batch[0], hit[0]

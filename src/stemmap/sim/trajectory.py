@@ -1,0 +1,788 @@
+"""Simulated drives: a vehicle follows a path through a stand, scanning and logging odometry.
+
+:func:`simulate_run` is the one-call simulator used by the detection, SLAM and fusion tests:
+
+1. The vehicle is a unicycle (speed ``v``, yaw rate ``omega``) steered along the path by a
+   pure-pursuit controller at the odometry rate (default 50 Hz); controls are piecewise
+   constant between odometry samples and the true path is their *exact* integration
+   (:func:`integrate_unicycle`), so noise-free odometry reproduces the truth to rounding.
+2. Scans are taken at the scanner rate from the sensor pose (vehicle pose composed with the
+   mounting offset) and simulated by :func:`~stemmap.sim.scanner.simulate_scans`.
+3. Wheel odometry is the true controls with a speed scale error, white noise, a yaw-rate bias
+   and wheel-slip events (:class:`OdometryNoise`). A second, independent source ("visual
+   odometry") gives noisy relative pose increments between consecutive scans
+   (:class:`VisualOdometryNoise`).
+
+Path helpers: :func:`straight_path`, :func:`loop_path` (closed, for loop-closure tests),
+:func:`lawnmower_path`; :func:`clear_corridor` removes trees the vehicle would drive through.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.sim.forest import Stand
+from stemmap.sim.scanner import ScannerModel, scanner_preset, simulate_scans
+from stemmap.types import FloatArray, Pose2, ScanBatch, Trajectory, wrap_angle
+
+__all__ = [
+    "ODOMETRY_PRESETS",
+    "Odometry",
+    "OdometryNoise",
+    "RelativeOdometry",
+    "SimRun",
+    "VisualOdometryNoise",
+    "clear_corridor",
+    "compose_poses",
+    "integrate_unicycle",
+    "lawnmower_path",
+    "loop_path",
+    "relative_poses",
+    "simulate_run",
+    "straight_path",
+]
+
+RngLike = np.random.Generator | int | None
+
+
+# --------------------------------------------------------------------------------------------
+# Noise models
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class OdometryNoise:
+    """Wheel-odometry error model (applied per odometry sample).
+
+    Parameters
+    ----------
+    speed_scale : float, > 0
+        Multiplicative speed error (wheel radius / calibration), e.g. 1.02 = reads 2 % fast.
+    speed_noise : float, m/s, >= 0
+        1-sigma white noise added to each speed sample.
+    yaw_rate_bias : float, rad/s
+        Constant gyro / differential-wheel bias.
+    yaw_rate_noise : float, rad/s, >= 0
+        1-sigma white noise added to each yaw-rate sample.
+    slip_rate : float, events per second, >= 0
+        Wheel-slip events form a Poisson process.
+    slip_duration : float, seconds, > 0
+        Length of each slip event.
+    slip_excess : float, >= 0
+        During a slip the wheels turn faster than the vehicle moves: the measured speed is
+        ``true * (1 + slip_excess)`` (times the scale error).
+    """
+
+    speed_scale: float = 1.0
+    speed_noise: float = 0.0
+    yaw_rate_bias: float = 0.0
+    yaw_rate_noise: float = 0.0
+    slip_rate: float = 0.0
+    slip_duration: float = 0.5
+    slip_excess: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not self.speed_scale > 0:
+            raise ConfigError(f"speed_scale must be > 0, got {self.speed_scale}.")
+        for name in ("speed_noise", "yaw_rate_noise", "slip_rate", "slip_excess"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"OdometryNoise.{name} must be >= 0, got {getattr(self, name)}.")
+        if not self.slip_duration > 0:
+            raise ConfigError(f"slip_duration must be > 0 s, got {self.slip_duration}.")
+        if not math.isfinite(self.yaw_rate_bias):
+            raise ConfigError(f"yaw_rate_bias must be finite, got {self.yaw_rate_bias}.")
+
+
+#: Named wheel-odometry error levels. ``none``: perfect. ``wheel``: a decent encoder +
+#: gyro (1 % scale, 0.05 m/s, 0.2 deg/s bias, 1 deg/s noise). ``forest``: rough terrain with
+#: 3 % scale, 0.5 deg/s bias and slips every ~20 s.
+ODOMETRY_PRESETS: dict[str, OdometryNoise] = {
+    "none": OdometryNoise(),
+    "wheel": OdometryNoise(
+        speed_scale=1.01,
+        speed_noise=0.05,
+        yaw_rate_bias=math.radians(0.2),
+        yaw_rate_noise=math.radians(1.0),
+    ),
+    "forest": OdometryNoise(
+        speed_scale=1.03,
+        speed_noise=0.08,
+        yaw_rate_bias=math.radians(0.5),
+        yaw_rate_noise=math.radians(2.0),
+        slip_rate=0.05,
+        slip_duration=0.8,
+        slip_excess=0.5,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class VisualOdometryNoise:
+    """Error model of the second odometry source: relative pose increments between scans.
+
+    Each increment ``(dx, dy, dtheta)`` (expressed in the earlier vehicle frame) gets
+    independent Gaussian noise with standard deviations
+    ``sigma_xy + sigma_rel * |translation|`` (x and y) and ``sigma_theta`` (heading); an
+    increment is missing (NaN) with probability ``dropout`` (lost tracking).
+    """
+
+    sigma_xy: float = 0.005
+    sigma_rel: float = 0.01
+    sigma_theta: float = math.radians(0.05)
+    dropout: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (self.sigma_xy >= 0 and self.sigma_rel >= 0 and self.sigma_theta >= 0):
+            raise ConfigError("VisualOdometryNoise sigmas must be >= 0.")
+        if not 0 <= self.dropout < 1:
+            raise ConfigError(f"VisualOdometryNoise.dropout must be in [0, 1), got {self.dropout}.")
+
+
+# --------------------------------------------------------------------------------------------
+# Odometry records
+# --------------------------------------------------------------------------------------------
+
+
+def _readonly(a: ArrayLike, dtype: Any = np.float64) -> NDArray[Any]:
+    arr = np.array(a, dtype=dtype, copy=True)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Odometry:
+    """Timed unicycle controls of the vehicle (body frame), piecewise constant.
+
+    ``speed[k]`` (m/s, forward) and ``yaw_rate[k]`` (rad/s, counter-clockwise) hold over
+    ``[times[k], times[k + 1])``; the last sample holds for one more nominal period.
+    """
+
+    times: FloatArray
+    speed: FloatArray
+    yaw_rate: FloatArray
+
+    def __post_init__(self) -> None:
+        t = _readonly(self.times).reshape(-1)
+        v = _readonly(self.speed).reshape(-1)
+        w = _readonly(self.yaw_rate).reshape(-1)
+        if not (t.shape == v.shape == w.shape):
+            raise InputError(
+                f"Odometry needs equal lengths, got times {t.shape}, speed {v.shape}, "
+                f"yaw_rate {w.shape}."
+            )
+        if t.size > 1 and not np.all(np.diff(t) > 0):
+            raise InputError("Odometry.times must be strictly increasing.")
+        object.__setattr__(self, "times", t)
+        object.__setattr__(self, "speed", v)
+        object.__setattr__(self, "yaw_rate", w)
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    def integrate(self, pose0: ArrayLike = (0.0, 0.0, 0.0)) -> Trajectory:
+        """Dead-reckoned vehicle trajectory at ``times`` (exact arc integration)."""
+        dt = np.diff(self.times)
+        poses = integrate_unicycle(pose0, self.speed[:-1], self.yaw_rate[:-1], dt)
+        return Trajectory(self.times, poses, frame="odom")
+
+
+@dataclass(frozen=True, eq=False)
+class RelativeOdometry:
+    """Relative pose increments between pairs of scans (a second odometry source).
+
+    Attributes
+    ----------
+    index0, index1 : ndarray of shape (K,), int
+        Scan indices; the increment maps the vehicle pose at ``index0`` to the one at ``index1``.
+    times0, times1 : ndarray of shape (K,), seconds
+    increments : ndarray of shape (K, 3)
+        ``(dx, dy, dtheta)`` of pose ``index1`` expressed in the frame of pose ``index0``
+        (``pose1 = pose0 * increment``); NaN rows are dropouts.
+    covs : ndarray of shape (K, 3, 3)
+        Covariance of each increment as simulated.
+    """
+
+    index0: NDArray[np.int64]
+    index1: NDArray[np.int64]
+    times0: FloatArray
+    times1: FloatArray
+    increments: FloatArray
+    covs: FloatArray
+
+    def __post_init__(self) -> None:
+        for name in ("index0", "index1"):
+            object.__setattr__(self, name, _readonly(getattr(self, name), np.int64).reshape(-1))
+        for name in ("times0", "times1"):
+            object.__setattr__(self, name, _readonly(getattr(self, name)).reshape(-1))
+        inc = _readonly(self.increments).reshape(-1, 3)
+        cov = _readonly(self.covs).reshape(-1, 3, 3)
+        k = self.index0.shape[0]
+        if not (self.index1.shape[0] == self.times0.shape[0] == self.times1.shape[0] == k):
+            raise InputError("RelativeOdometry columns have different lengths.")
+        if inc.shape[0] != k or cov.shape[0] != k:
+            raise InputError("RelativeOdometry increments/covs do not match the index columns.")
+        object.__setattr__(self, "increments", inc)
+        object.__setattr__(self, "covs", cov)
+
+    def __len__(self) -> int:
+        return int(self.index0.shape[0])
+
+    def integrate(self, pose0: ArrayLike = (0.0, 0.0, 0.0)) -> Trajectory:
+        """Chain consecutive increments into a trajectory (dropouts are treated as no motion)."""
+        inc = np.where(np.isnan(self.increments), 0.0, self.increments)
+        poses = np.empty((len(self) + 1, 3))
+        poses[0] = np.asarray(pose0, dtype=np.float64)
+        for k in range(len(self)):  # sequential composition; K is the number of scans
+            poses[k + 1] = compose_poses(poses[k], inc[k])
+        times = np.concatenate((self.times0[:1], self.times1))
+        return Trajectory(times, poses, frame="odom")
+
+
+@dataclass(frozen=True, eq=False)
+class SimRun:
+    """Everything one simulated drive produces, with ground truth.
+
+    Attributes
+    ----------
+    stand : Stand
+        The stand that was scanned (after :func:`clear_corridor`, if requested).
+    scanner : ScannerModel
+    scans : ScanBatch
+        Ranges in the sensor frame ("no return" = ``inf``).
+    true_poses : Trajectory
+        Sensor pose per scan in the world frame (x, y, theta); ``frame="world"``.
+    vehicle_poses : Trajectory
+        Vehicle (odometry reference point) pose per scan in the world frame.
+    sensor_offset : Pose2
+        Sensor pose in the vehicle frame (``sensor = vehicle * offset``).
+    hit_ids : ndarray of shape (S, N), int
+        Ground truth per beam: tree index, -2 clutter, -1 nothing.
+    mixed : ndarray of shape (S, N), bool
+        Beams whose footprint straddled an edge (mixed pixels).
+    odometry : Odometry
+        Noisy wheel odometry (speed, yaw rate) at ``odom_rate_hz``.
+    true_odometry : Odometry
+        The exact controls; ``true_odometry.integrate(true_path.poses[0])`` is ``true_path``.
+    true_path : Trajectory
+        Vehicle pose at every odometry time, world frame.
+    slipping : ndarray of shape (M,), bool
+        Odometry samples inside a wheel-slip event.
+    visual_odometry : RelativeOdometry
+        Noisy increments between consecutive scans (vehicle frame).
+    params : dict
+        Every parameter of the scenario, for benchmark JSON output.
+    """
+
+    stand: Stand
+    scanner: ScannerModel
+    scans: ScanBatch
+    true_poses: Trajectory
+    vehicle_poses: Trajectory
+    sensor_offset: Pose2
+    hit_ids: NDArray[np.int64]
+    mixed: NDArray[np.bool_]
+    odometry: Odometry
+    true_odometry: Odometry
+    true_path: Trajectory
+    slipping: NDArray[np.bool_]
+    visual_odometry: RelativeOdometry
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+
+# --------------------------------------------------------------------------------------------
+# Pose algebra and the unicycle
+# --------------------------------------------------------------------------------------------
+
+
+def compose_poses(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """``a * b`` for (..., 3) pose arrays: ``b`` given in ``a``'s frame, mapped to a's parent."""
+    pa = np.asarray(a, dtype=np.float64)
+    pb = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(pa[..., 2]), np.sin(pa[..., 2])
+    x = pa[..., 0] + c * pb[..., 0] - s * pb[..., 1]
+    y = pa[..., 1] + s * pb[..., 0] + c * pb[..., 1]
+    return np.stack((x, y, wrap_angle(pa[..., 2] + pb[..., 2])), axis=-1)
+
+
+def relative_poses(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """``a^-1 * b`` for (..., 3) pose arrays: pose ``b`` expressed in the frame of pose ``a``."""
+    pa = np.asarray(a, dtype=np.float64)
+    pb = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(pa[..., 2]), np.sin(pa[..., 2])
+    dx = pb[..., 0] - pa[..., 0]
+    dy = pb[..., 1] - pa[..., 1]
+    return np.stack(
+        (c * dx + s * dy, -s * dx + c * dy, wrap_angle(pb[..., 2] - pa[..., 2])), axis=-1
+    )
+
+
+def _arc_step(theta: FloatArray, v: FloatArray, w: FloatArray, dt: FloatArray) -> FloatArray:
+    """Exact displacement (dx, dy) of a unicycle over ``dt`` at constant (v, w) from ``theta``."""
+    dth = w * dt
+    small = np.abs(dth) < 1e-9
+    w_safe = np.where(small, 1.0, w)
+    th1 = theta + dth
+    dx = np.where(
+        small, v * dt * np.cos(theta + dth / 2), v / w_safe * (np.sin(th1) - np.sin(theta))
+    )
+    dy = np.where(
+        small, v * dt * np.sin(theta + dth / 2), v / w_safe * (np.cos(theta) - np.cos(th1))
+    )
+    return np.stack((dx, dy), axis=-1)
+
+
+def integrate_unicycle(
+    pose0: ArrayLike, speed: ArrayLike, yaw_rate: ArrayLike, dt: ArrayLike
+) -> FloatArray:
+    """Exact integration of piecewise-constant unicycle controls.
+
+    Parameters
+    ----------
+    pose0 : array_like of shape (3,)
+    speed, yaw_rate, dt : array_like of shape (K,)
+        Controls held over intervals of length ``dt`` (s).
+
+    Returns
+    -------
+    ndarray of shape (K + 1, 3)
+        Poses at the interval boundaries, starting with ``pose0``.
+
+    Notes
+    -----
+    Over one interval ``theta' = theta + w dt``, ``x' = x + v/w (sin theta' - sin theta)``,
+    ``y' = y + v/w (cos theta - cos theta')`` (straight-line limit when ``|w dt| < 1e-9``).
+    Headings accumulate without wrapping before the trig, then are wrapped to (-pi, pi].
+    """
+    p0 = np.asarray(pose0, dtype=np.float64).reshape(3)
+    v = np.asarray(speed, dtype=np.float64).reshape(-1)
+    w = np.asarray(yaw_rate, dtype=np.float64).reshape(-1)
+    d = np.broadcast_to(np.asarray(dt, dtype=np.float64), v.shape)
+    theta = p0[2] + np.concatenate(([0.0], np.cumsum(w * d)))
+    steps = _arc_step(theta[:-1], v, w, d)
+    xy = p0[:2] + np.concatenate((np.zeros((1, 2)), np.cumsum(steps, axis=0)))
+    return np.column_stack((xy, wrap_angle(theta)))
+
+
+# --------------------------------------------------------------------------------------------
+# Paths
+# --------------------------------------------------------------------------------------------
+
+
+def straight_path(start: ArrayLike, end: ArrayLike) -> FloatArray:
+    """A straight drive: waypoints (2, 2) from ``start`` to ``end`` (metres)."""
+    a = np.asarray(start, dtype=np.float64).reshape(2)
+    b = np.asarray(end, dtype=np.float64).reshape(2)
+    if np.allclose(a, b):
+        raise ConfigError("straight_path needs distinct start and end points.")
+    return np.vstack((a, b))
+
+
+def loop_path(
+    center: ArrayLike,
+    radii: tuple[float, float],
+    *,
+    n_points: int = 120,
+    laps: float = 1.0,
+    start_angle: float = -math.pi / 2,
+) -> FloatArray:
+    """A closed elliptical loop (counter-clockwise), for loop-closure tests.
+
+    Parameters
+    ----------
+    center : (2,), metres
+    radii : (rx, ry), metres, > 0
+    n_points : int
+        Waypoints per lap.
+    laps : float
+        1.0 ends where it started (the loop closes); > 1 revisits the start.
+    start_angle : float, radians
+        Where on the ellipse the drive starts.
+
+    Returns
+    -------
+    ndarray of shape (round(n_points * laps) + 1, 2)
+    """
+    rx, ry = radii
+    if not (rx > 0 and ry > 0 and n_points >= 8 and laps > 0):
+        raise ConfigError("loop_path needs radii > 0, n_points >= 8 and laps > 0.")
+    c = np.asarray(center, dtype=np.float64).reshape(2)
+    m = round(n_points * laps)
+    a = start_angle + 2 * np.pi * np.arange(m + 1) / n_points
+    return c + np.column_stack((rx * np.cos(a), ry * np.sin(a)))
+
+
+def lawnmower_path(
+    bounds: tuple[float, float, float, float],
+    spacing: float,
+    *,
+    margin: float = 2.0,
+    turn_points: int = 12,
+) -> FloatArray:
+    """Back-and-forth strips along x, ``spacing`` apart in y, joined by semicircular turns.
+
+    Parameters
+    ----------
+    bounds : (xmin, ymin, xmax, ymax), metres
+    spacing : float, metres, > 0
+        Distance between strips (the turn radius is ``spacing / 2``).
+    margin : float, metres
+        Distance kept from the bounds.
+    turn_points : int
+        Waypoints per turn.
+    """
+    x0, y0, x1, y1 = (float(b) for b in bounds)
+    x0, y0, x1, y1 = x0 + margin, y0 + margin, x1 - margin, y1 - margin
+    if not (spacing > 0 and x1 - x0 > spacing and y1 - y0 >= 0):
+        raise ConfigError(
+            f"lawnmower_path: bounds minus margin ({x0}, {y0}, {x1}, {y1}) too small for "
+            f"spacing {spacing} m."
+        )
+    r = spacing / 2
+    n_strips = math.floor((y1 - y0) / spacing) + 1
+    pts: list[FloatArray] = []
+    for i in range(n_strips):
+        y = y0 + i * spacing
+        left, right = x0 + r, x1 - r
+        forward = i % 2 == 0
+        xs = (left, right) if forward else (right, left)
+        pts.append(np.array([[xs[0], y], [xs[1], y]]))
+        if i < n_strips - 1:
+            a = np.linspace(-np.pi / 2, np.pi / 2, turn_points + 2)[1:-1]
+            cx = right if forward else left
+            sign = 1.0 if forward else -1.0
+            pts.append(np.column_stack((cx + sign * r * np.cos(a), y + r + r * np.sin(a))))
+    return np.vstack(pts)
+
+
+def clear_corridor(stand: Stand, path: ArrayLike, half_width: float) -> Stand:
+    """Remove trees whose trunk surface is within ``half_width`` (m) of the path polyline.
+
+    A harvester drives on a strip road: the simulated drive must not pass through trunks.
+    Clutter is removed the same way (circles by surface distance, segments by either end or
+    midpoint distance).
+    """
+    p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+    if p.shape[0] < 2:
+        raise InputError("clear_corridor needs a path with at least 2 points.")
+
+    def dist_to_path(q: FloatArray) -> FloatArray:
+        if q.shape[0] == 0:
+            return np.zeros(0)
+        a, b = p[:-1], p[1:]
+        ab = b - a
+        l2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
+        t = np.clip(np.einsum("qsk,sk->qs", q[:, None, :] - a[None], ab) / l2, 0, 1)
+        closest = a[None] + t[..., None] * ab[None]
+        return np.asarray(np.min(np.linalg.norm(q[:, None, :] - closest, axis=2), axis=1))
+
+    keep_trees = dist_to_path(stand.trees_xy) - stand.radii > half_width
+    out = stand.subset_trees(keep_trees)
+    keep_c = dist_to_path(out.clutter_xy) - out.clutter_radius > half_width
+    seg = out.segments
+    clutter_seg = out.segment_owner < 0
+    d_seg = (
+        np.minimum.reduce(
+            [
+                dist_to_path(seg[:, :2]),
+                dist_to_path(seg[:, 2:]),
+                dist_to_path((seg[:, :2] + seg[:, 2:]) / 2),
+            ]
+        )
+        if seg.shape[0]
+        else np.zeros(0)
+    )
+    keep_s = ~clutter_seg | (d_seg > half_width)
+    return replace(
+        out,
+        clutter_xy=out.clutter_xy[keep_c],
+        clutter_radius=out.clutter_radius[keep_c],
+        segments=seg[keep_s],
+        segment_owner=out.segment_owner[keep_s],
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Controller
+# --------------------------------------------------------------------------------------------
+
+
+def _resample_polyline(p: FloatArray, ds: float) -> tuple[FloatArray, FloatArray]:
+    seg = np.hypot(*np.diff(p, axis=0).T)
+    s = np.concatenate(([0.0], np.cumsum(seg)))
+    keep = np.concatenate(([True], seg > 1e-12))
+    p, s = p[keep], s[keep]
+    n = max(math.ceil(s[-1] / ds) + 1, 2)
+    sq = np.linspace(0.0, s[-1], n)
+    return np.column_stack((np.interp(sq, s, p[:, 0]), np.interp(sq, s, p[:, 1]))), sq
+
+
+def _pure_pursuit(
+    waypoints: FloatArray,
+    pose0: FloatArray,
+    speed: float,
+    dt: float,
+    lookahead: float,
+    max_yaw_rate: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Controls (v, w) per step that follow the polyline until its end."""
+    ds = min(0.05, lookahead / 10)
+    path, s = _resample_polyline(waypoints, ds)
+    total = float(s[-1])
+    n_look = max(1, round(lookahead / ds))
+    window = max(4 * n_look, round(2 * speed * dt / ds) + 4)
+    x, y, th = (float(v) for v in pose0)
+    idx = 0
+    v_out: list[float] = []
+    w_out: list[float] = []
+    max_steps = int(3 * total / (speed * dt)) + 1000
+    for _ in range(max_steps):
+        hi = min(idx + window, path.shape[0])
+        seg = path[idx:hi]
+        idx += int(np.argmin((seg[:, 0] - x) ** 2 + (seg[:, 1] - y) ** 2))
+        if total - s[idx] < speed * dt or idx == path.shape[0] - 1:
+            break
+        tx, ty = path[min(idx + n_look, path.shape[0] - 1)]
+        alpha = math.atan2(ty - y, tx - x) - th
+        alpha = math.atan2(math.sin(alpha), math.cos(alpha))
+        dist = max(math.hypot(tx - x, ty - y), 1e-6)
+        w = max(-max_yaw_rate, min(max_yaw_rate, 2.0 * speed * math.sin(alpha) / dist))
+        v_out.append(speed)
+        w_out.append(w)
+        # advance with the exact arc
+        dth = w * dt
+        if abs(dth) < 1e-9:
+            x += speed * dt * math.cos(th)
+            y += speed * dt * math.sin(th)
+        else:
+            x += speed / w * (math.sin(th + dth) - math.sin(th))
+            y += speed / w * (math.cos(th) - math.cos(th + dth))
+        th += dth
+    else:
+        raise ConfigError(
+            "the vehicle could not follow the path (too sharp for max_yaw_rate at this speed); "
+            "slow down, raise max_yaw_rate, or smooth the waypoints."
+        )
+    return np.asarray(v_out), np.asarray(w_out)
+
+
+# --------------------------------------------------------------------------------------------
+# The run
+# --------------------------------------------------------------------------------------------
+
+
+def _noisy_odometry(
+    true: Odometry, noise: OdometryNoise, gen: np.random.Generator
+) -> tuple[Odometry, NDArray[np.bool_]]:
+    t = true.times
+    slipping = np.zeros(t.shape[0], dtype=bool)
+    if noise.slip_rate > 0 and t.size:
+        duration = float(t[-1] - t[0])
+        n_events = gen.poisson(noise.slip_rate * duration)
+        starts = gen.uniform(t[0], t[-1], n_events)
+        for s0 in starts:
+            slipping |= (t >= s0) & (t < s0 + noise.slip_duration)
+    v = true.speed * noise.speed_scale * np.where(slipping, 1.0 + noise.slip_excess, 1.0)
+    v = v + gen.normal(0.0, 1.0, t.shape) * noise.speed_noise
+    w = true.yaw_rate + noise.yaw_rate_bias + gen.normal(0.0, 1.0, t.shape) * noise.yaw_rate_noise
+    return Odometry(t, v, w), slipping
+
+
+def _visual_odometry(
+    vehicle: FloatArray, times: FloatArray, noise: VisualOdometryNoise, gen: np.random.Generator
+) -> RelativeOdometry:
+    k = vehicle.shape[0] - 1
+    inc = relative_poses(vehicle[:-1], vehicle[1:]).reshape(-1, 3)
+    dist = np.hypot(inc[:, 0], inc[:, 1])
+    sxy = noise.sigma_xy + noise.sigma_rel * dist
+    sig = np.column_stack((sxy, sxy, np.full(k, noise.sigma_theta)))
+    noisy = inc + gen.normal(0.0, 1.0, inc.shape) * sig
+    noisy[:, 2] = wrap_angle(noisy[:, 2])
+    if noise.dropout > 0:
+        noisy[gen.random(k) < noise.dropout] = np.nan
+    covs = np.zeros((k, 3, 3))
+    covs[:, [0, 1, 2], [0, 1, 2]] = sig**2
+    idx = np.arange(k)
+    return RelativeOdometry(idx, idx + 1, times[:-1], times[1:], noisy, covs)
+
+
+def _poses_at(true_path: Trajectory, odo: Odometry, tq: FloatArray) -> FloatArray:
+    """Exact vehicle poses at arbitrary times inside the run (arc from the previous sample)."""
+    k = np.clip(np.searchsorted(odo.times, tq, side="right") - 1, 0, len(odo) - 1)
+    base = true_path.poses[k]
+    dt = tq - odo.times[k]
+    d = _arc_step(base[:, 2], odo.speed[k], odo.yaw_rate[k], dt)
+    return np.column_stack(
+        (base[:, 0] + d[:, 0], base[:, 1] + d[:, 1], wrap_angle(base[:, 2] + odo.yaw_rate[k] * dt))
+    )
+
+
+def simulate_run(
+    stand: Stand,
+    path: ArrayLike | Trajectory,
+    *,
+    scanner: ScannerModel | str | None = "sick_lms",
+    speed: float = 1.0,
+    rate_hz: float | None = None,
+    odom_rate_hz: float = 50.0,
+    odometry_noise: OdometryNoise | str | None = "wheel",
+    vo_noise: VisualOdometryNoise | None = None,
+    sensor_offset: Pose2 | None = None,
+    lookahead: float = 2.0,
+    max_yaw_rate: float = 0.8,
+    corridor_half_width: float | None = None,
+    max_scans: int | None = None,
+    rng: RngLike = None,
+) -> SimRun:
+    """Simulate a drive through ``stand``: scans, true poses, wheel and visual odometry.
+
+    Parameters
+    ----------
+    stand : Stand
+    path : array_like of shape (K, 2) or Trajectory
+        Waypoints (metres, world frame) followed by a pure-pursuit controller at ``speed``; the
+        drive starts at the first waypoint heading to the second and stops at the last. Or an
+        explicit vehicle :class:`~stemmap.types.Trajectory`: its controls are derived by finite
+        differences at ``odom_rate_hz`` and re-integrated (so the truth stays a unicycle).
+    scanner : ScannerModel or preset name (``"sick_lms"``, ``"rplidar"``)
+    speed : float, m/s, > 0
+    rate_hz : float, optional
+        Scan rate; default the scanner's ``scan_rate_hz``.
+    odom_rate_hz : float
+        Wheel-odometry rate (controls are constant between samples).
+    odometry_noise : OdometryNoise or preset name (see :data:`ODOMETRY_PRESETS`) or None
+    vo_noise : VisualOdometryNoise, optional (default :class:`VisualOdometryNoise()`)
+    sensor_offset : Pose2, optional
+        Sensor pose in the vehicle frame (default: at the vehicle reference point).
+    lookahead : float, metres
+        Pure-pursuit lookahead distance.
+    max_yaw_rate : float, rad/s
+    corridor_half_width : float, metres, optional
+        If given, trees and clutter within this distance of the path are removed first
+        (:func:`clear_corridor`); ``SimRun.stand`` is the cleared stand.
+    max_scans : int, optional
+        Keep only the first ``max_scans`` scans (and the odometry up to the last of them).
+    rng : numpy Generator or int seed
+        Independent child streams are spawned for the scanner, wheel odometry and visual
+        odometry, so changing one noise model does not change the others' draws.
+
+    Returns
+    -------
+    SimRun
+
+    Raises
+    ------
+    ConfigError
+        On bad rates/speeds, unknown presets, or a path the vehicle cannot follow.
+    InputError
+        On malformed waypoints.
+    """
+    model = scanner_preset(scanner)
+    rate = model.scan_rate_hz if rate_hz is None else float(rate_hz)
+    if not (speed > 0 and rate > 0 and odom_rate_hz > 0 and lookahead > 0 and max_yaw_rate > 0):
+        raise ConfigError(
+            "simulate_run needs speed, rate_hz, odom_rate_hz, lookahead and max_yaw_rate > 0."
+        )
+    if isinstance(odometry_noise, str):
+        try:
+            onoise = ODOMETRY_PRESETS[odometry_noise]
+        except KeyError as exc:
+            raise ConfigError(
+                f"unknown odometry noise preset {odometry_noise!r}; choose one of "
+                f"{sorted(ODOMETRY_PRESETS)}."
+            ) from exc
+    else:
+        onoise = odometry_noise or OdometryNoise()
+    vnoise = vo_noise or VisualOdometryNoise()
+    offset = sensor_offset or Pose2(0.0, 0.0, 0.0)
+    gen = np.random.default_rng(rng)
+    g_scan, g_odo, g_vo = gen.spawn(3)
+    dt = 1.0 / odom_rate_hz
+
+    if isinstance(path, Trajectory):
+        if len(path) < 2:
+            raise InputError("simulate_run needs a Trajectory with at least 2 poses.")
+        tq = np.arange(path.times[0], path.times[-1] + 1e-12, dt)
+        pq = path.interpolate(tq)
+        rel = relative_poses(pq[:-1], pq[1:])
+        v_true = rel[:, 0] / dt
+        w_true = rel[:, 2] / dt
+        pose0 = pq[0]
+        t0 = float(tq[0])
+        path_xy = path.xy
+    else:
+        wp = np.asarray(path, dtype=np.float64)
+        if wp.ndim != 2 or wp.shape[1] != 2 or wp.shape[0] < 2 or not np.all(np.isfinite(wp)):
+            raise InputError(
+                f"simulate_run path must be finite waypoints of shape (K >= 2, 2), got {wp.shape}."
+            )
+        d0 = wp[1] - wp[0]
+        pose0 = np.array([wp[0, 0], wp[0, 1], math.atan2(d0[1], d0[0])])
+        v_true, w_true = _pure_pursuit(wp, pose0, speed, dt, lookahead, max_yaw_rate)
+        t0 = 0.0
+        path_xy = wp
+    if v_true.size < 1:
+        raise ConfigError("the path is shorter than one odometry step; nothing to simulate.")
+    if corridor_half_width is not None:
+        stand = clear_corridor(stand, path_xy, corridor_half_width)
+
+    t_odo: FloatArray = t0 + dt * np.arange(v_true.size + 1, dtype=np.float64)
+    # the last sample's controls hold for one more period; repeat the last control
+    true_odo = Odometry(t_odo, np.append(v_true, v_true[-1]), np.append(w_true, w_true[-1]))
+    true_path = Trajectory(t_odo, integrate_unicycle(pose0, v_true, w_true, dt), frame="world")
+    t_scan = t0 + np.arange(0.0, t_odo[-1] - t0 + 1e-12, 1.0 / rate)
+    if max_scans is not None:
+        if max_scans < 2:
+            raise ConfigError(f"max_scans must be >= 2, got {max_scans}.")
+        t_scan = t_scan[:max_scans]
+        keep_odo = t_odo <= t_scan[-1] + dt
+        true_odo = Odometry(
+            true_odo.times[keep_odo], true_odo.speed[keep_odo], true_odo.yaw_rate[keep_odo]
+        )
+        true_path = Trajectory(true_path.times[keep_odo], true_path.poses[keep_odo], "world")
+    if t_scan.size < 2:
+        raise ConfigError("the drive is shorter than two scan periods; lengthen the path.")
+    vehicle = _poses_at(true_path, true_odo, t_scan)
+    sensor = compose_poses(vehicle, offset.as_array())
+    scans, hit, mixed = simulate_scans(stand, sensor, model, times=t_scan, rng=g_scan)
+    odo, slipping = _noisy_odometry(true_odo, onoise, g_odo)
+    vo = _visual_odometry(vehicle, t_scan, vnoise, g_vo)
+    params: dict[str, Any] = {
+        "scanner": asdict(model),
+        "speed_m_s": speed,
+        "scan_rate_hz": rate,
+        "odom_rate_hz": odom_rate_hz,
+        "odometry_noise": asdict(onoise),
+        "vo_noise": asdict(vnoise),
+        "sensor_offset": [offset.x, offset.y, offset.theta],
+        "lookahead_m": lookahead,
+        "max_yaw_rate_rad_s": max_yaw_rate,
+        "corridor_half_width_m": corridor_half_width,
+        "n_scans": int(t_scan.size),
+        "n_trees": stand.n_trees,
+        "n_clutter_objects": stand.n_clutter_objects,
+    }
+    return SimRun(
+        stand=stand,
+        scanner=model,
+        scans=scans,
+        true_poses=Trajectory(t_scan, sensor, frame="world"),
+        vehicle_poses=Trajectory(t_scan, vehicle, frame="world"),
+        sensor_offset=offset,
+        hit_ids=hit,
+        mixed=mixed,
+        odometry=odo,
+        true_odometry=true_odo,
+        true_path=true_path,
+        slipping=slipping,
+        visual_odometry=vo,
+        params=params,
+    )
