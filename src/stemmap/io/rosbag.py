@@ -1,0 +1,801 @@
+"""ROS1 (``.bag``) and ROS2 (folder with ``metadata.yaml``, or a bare ``.db3`` / ``.mcap``)
+bag readers, via the ``rosbags`` package (no ROS installation needed).
+
+Supported messages and what they become:
+
+=============================  =====================================================
+``sensor_msgs/LaserScan``      :class:`stemmap.types.LaserScan` (:func:`iter_laser_scans`)
+``nav_msgs/Odometry``          :class:`OdometryLog` -- times, planar poses, twists
+``sensor_msgs/Imu``            :class:`ImuLog` -- roll / pitch (tilt compensation)
+``sensor_msgs/NavSatFix``      :class:`GnssLog` -- latitude, longitude, altitude, status
+``sensor_msgs/PointCloud2``    :class:`stemmap.types.PointCloud` (:func:`read_pointclouds`)
+=============================  =====================================================
+
+Topic choice: with ``topic=None`` the only topic of the needed type is used; if there is none
+or more than one, an :class:`~stemmap.errors.InputError` lists the bag's topics.
+
+Time stamps are the message ``header.stamp`` in seconds; a zero stamp (drivers that do not
+fill it) falls back to the bag's receive time. A message that cannot be decoded is skipped,
+logged, and recorded in the optional ``skipped`` list; a bag whose data end early (truncated
+recording) yields the messages before the damage and records one skipped entry for the rest.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from stemmap.errors import InputError
+from stemmap.io._util import PathLike, SkippedFrame
+from stemmap.io.maps import lonlat_to_local
+from stemmap.io.trajectory import yaw_from_quaternion
+from stemmap.types import FloatArray, LaserScan, PointCloud, Trajectory
+
+__all__ = [
+    "BAG_SUFFIXES",
+    "GnssLog",
+    "ImuLog",
+    "OdometryLog",
+    "PointField",
+    "decode_pointcloud2",
+    "indexed_laser_scans",
+    "is_bag",
+    "iter_laser_scans",
+    "laserscan_from_msg",
+    "list_topics",
+    "open_bag",
+    "read_imu",
+    "read_navsatfix",
+    "read_odometry",
+    "read_pointclouds",
+    "roll_pitch_from_acceleration",
+    "roll_pitch_from_quaternion",
+]
+
+log = logging.getLogger(__name__)
+
+#: File suffixes recognised as bags (ROS1 ``.bag``; ROS2 storage files ``.db3``, ``.mcap``).
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+
+LASERSCAN = "sensor_msgs/msg/LaserScan"
+ODOMETRY = "nav_msgs/msg/Odometry"
+IMU = "sensor_msgs/msg/Imu"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+
+#: sensor_msgs/PointField datatype codes -> numpy type characters.
+POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def _norm_type(msgtype: str) -> str:
+    """``sensor_msgs/LaserScan`` and ``sensor_msgs/msg/LaserScan`` -> the latter."""
+    parts = msgtype.split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return msgtype
+
+
+def is_bag(path: PathLike) -> bool:
+    """True if ``path`` looks like a ROS bag: a ``.bag``/``.db3``/``.mcap`` file or a folder
+    holding ``metadata.yaml`` (ROS2)."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    return p.suffix.lower() in BAG_SUFFIXES
+
+
+@contextlib.contextmanager
+def open_bag(path: PathLike) -> Iterator[Any]:
+    """Open a ROS1 or ROS2 bag as a ``rosbags.highlevel.AnyReader`` (context manager).
+
+    Bags without embedded message definitions are decoded with the ROS1 Noetic (``.bag``) or
+    ROS2 Humble type store.
+
+    Raises
+    ------
+    InputError
+        If the path does not exist or the bag cannot be opened (truncated, not a bag, ...).
+    """
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"ROS bag {str(p)!r} does not exist.")
+    if p.is_dir() and not (p / "metadata.yaml").is_file():
+        raise InputError(
+            f"{str(p)!r} is a folder without metadata.yaml, so it is not a ROS2 bag; "
+            "pass the bag folder, a .db3/.mcap file or a ROS1 .bag file."
+        )
+    store = Stores.ROS1_NOETIC if p.suffix.lower() == ".bag" else Stores.ROS2_HUMBLE
+    try:
+        reader = AnyReader([p], default_typestore=get_typestore(store))
+        reader.open()
+    except Exception as exc:  # rosbags raises many types on damaged files; wrap them all
+        raise InputError(
+            f"cannot open ROS bag {str(p)!r} ({type(exc).__name__}: {exc}); the file may be "
+            "truncated or not a bag."
+        ) from exc
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def list_topics(path: PathLike) -> dict[str, str]:
+    """Topics of a bag and their message types (``pkg/msg/Type``), sorted by topic name."""
+    with open_bag(path) as reader:
+        return {name: _norm_type(str(info.msgtype)) for name, info in reader.topics.items()}
+
+
+def _describe_topics(topics: dict[str, str]) -> str:
+    if not topics:
+        return "the bag has no topics"
+    return "available topics: " + ", ".join(f"{t} ({m})" for t, m in sorted(topics.items()))
+
+
+def _select_topic(reader: Any, path: Path, msgtype: str, topic: str | None) -> str:
+    topics = {name: _norm_type(str(info.msgtype)) for name, info in reader.topics.items()}
+    if topic is not None:
+        if topic not in topics:
+            raise InputError(
+                f"ROS bag {str(path)!r} has no topic {topic!r}; {_describe_topics(topics)}."
+            )
+        if topics[topic] != msgtype:
+            raise InputError(
+                f"topic {topic!r} in ROS bag {str(path)!r} carries {topics[topic]}, "
+                f"not {msgtype}; {_describe_topics(topics)}."
+            )
+        return topic
+    matching = sorted(t for t, m in topics.items() if m == msgtype)
+    if len(matching) == 1:
+        return matching[0]
+    if not matching:
+        raise InputError(
+            f"ROS bag {str(path)!r} has no {msgtype} topic; {_describe_topics(topics)}."
+        )
+    raise InputError(
+        f"ROS bag {str(path)!r} has {len(matching)} {msgtype} topics ({', '.join(matching)}); "
+        "choose one with topic=... (--topic on the command line)."
+    )
+
+
+class _Message(NamedTuple):
+    seq: int
+    bag_time: float
+    msg: Any  # None when decoding failed
+    error: str
+
+
+def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[_Message]:
+    """Decoded messages of one topic; decode failures and truncation come back as errors."""
+    p = Path(path)
+    with open_bag(p) as reader:
+        chosen = _select_topic(reader, p, msgtype, topic)
+        conns = [c for c in reader.connections if c.topic == chosen]
+        gen = reader.messages(connections=conns)
+        k = 0
+        while True:
+            try:
+                conn, t_ns, raw = next(gen)
+            except StopIteration:
+                return
+            except Exception as exc:  # damaged chunk / truncated file
+                yield _Message(
+                    k,
+                    math.nan,
+                    None,
+                    f"the bag's data end or are damaged after message {k} of topic {chosen} "
+                    f"({type(exc).__name__}: {exc}); the rest of the topic is lost",
+                )
+                return
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                yield _Message(
+                    k,
+                    t_ns * 1e-9,
+                    None,
+                    f"message {k} of topic {chosen} cannot be decoded as {msgtype} "
+                    f"({type(exc).__name__}: {exc})",
+                )
+            else:
+                yield _Message(k, t_ns * 1e-9, msg, "")
+            k += 1
+
+
+def _stamp(header: Any, fallback: float) -> float:
+    st = header.stamp
+    t = float(st.sec) + 1e-9 * float(st.nanosec)
+    return t if t != 0.0 else fallback
+
+
+def _skip(skipped: list[SkippedFrame] | None, path: PathLike, m: _Message, reason: str) -> None:
+    log.warning("skipping a frame of %s: %s.", path, reason)
+    if skipped is not None:
+        skipped.append(SkippedFrame(m.seq, m.bag_time, reason))
+
+
+def _checked(
+    messages: Iterator[_Message], path: PathLike, skipped: list[SkippedFrame] | None
+) -> Iterator[_Message]:
+    """Good messages only; the bad ones are logged and recorded."""
+    for m in messages:
+        if m.msg is None:
+            _skip(skipped, path, m, m.error)
+        else:
+            yield m
+
+
+# --------------------------------------------------------------------------------------------
+# LaserScan
+# --------------------------------------------------------------------------------------------
+
+
+def laserscan_from_msg(msg: Any, time: float) -> LaserScan:
+    """A :class:`LaserScan` from a decoded ``sensor_msgs/LaserScan`` message.
+
+    ``intensities`` are kept when they have one value per beam, dropped otherwise (many
+    drivers publish an empty array). Raises InputError on invalid geometry.
+    """
+    ranges = np.asarray(msg.ranges, dtype=np.float64)
+    inten = np.asarray(msg.intensities, dtype=np.float64)
+    return LaserScan(
+        ranges,
+        float(msg.angle_min),
+        float(msg.angle_increment),
+        time=time,
+        range_min=max(float(msg.range_min), 0.0),
+        range_max=float(msg.range_max) if float(msg.range_max) > 0 else math.inf,
+        intensities=inten if inten.shape == ranges.shape else None,
+        frame=str(msg.header.frame_id) or "laser",
+    )
+
+
+def iter_laser_scans(
+    path: PathLike, topic: str | None = None, *, skipped: list[SkippedFrame] | None = None
+) -> Iterator[LaserScan]:
+    """Lazily yield the ``sensor_msgs/LaserScan`` messages of a bag as :class:`LaserScan`.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ROS1 ``.bag``, ROS2 bag folder, or ROS2 ``.db3`` / ``.mcap`` file.
+    topic : str, optional
+        Topic name; default: the only LaserScan topic in the bag.
+    skipped : list, optional
+        Receives a :class:`SkippedFrame` for every message that could not be used.
+
+    Raises
+    ------
+    InputError
+        If the bag cannot be opened or the topic is missing / ambiguous.
+    """
+    for _, scan in indexed_laser_scans(path, topic, skipped=skipped):
+        yield scan
+
+
+def indexed_laser_scans(
+    path: PathLike, topic: str | None = None, *, skipped: list[SkippedFrame] | None = None
+) -> Iterator[tuple[int, LaserScan]]:
+    """Like :func:`iter_laser_scans`, yielding ``(message index in the topic, scan)``."""
+    for m in _checked(_iter_messages(path, LASERSCAN, topic), path, skipped):
+        try:
+            scan = laserscan_from_msg(m.msg, _stamp(m.msg.header, m.bag_time))
+        except (InputError, AttributeError, TypeError, ValueError) as exc:
+            _skip(skipped, path, m, f"LaserScan message {m.seq} is invalid: {exc}")
+        else:
+            yield m.seq, scan
+
+
+# --------------------------------------------------------------------------------------------
+# Odometry
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class OdometryLog:
+    """``nav_msgs/Odometry`` messages as arrays, sorted by time.
+
+    Attributes
+    ----------
+    times : ndarray (N,), seconds
+    poses : ndarray (N, 3)
+        x, y (m) and yaw (rad, in (-pi, pi]) of ``child_frame`` in ``frame``.
+    z : ndarray (N,), metres
+    quaternions : ndarray (N, 4)
+        Full orientation ``(qx, qy, qz, qw)``.
+    twists : ndarray (N, 3)
+        Forward and lateral speed (m/s) and yaw rate (rad/s), in ``child_frame``.
+    pose_cov : ndarray (N, 3, 3)
+        Covariance over (x, y, yaw) taken from the 6x6 ROS covariance (rows/cols 0, 1, 5).
+    frame, child_frame : str
+    """
+
+    times: FloatArray
+    poses: FloatArray
+    z: FloatArray
+    quaternions: FloatArray
+    twists: FloatArray
+    pose_cov: FloatArray
+    frame: str
+    child_frame: str
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    def trajectory(self) -> Trajectory:
+        """The poses as a :class:`Trajectory` (later duplicates of a time stamp dropped)."""
+        keep = np.concatenate(([True], np.diff(self.times) > 0))
+        return Trajectory(self.times[keep], self.poses[keep], frame=self.frame)
+
+
+def _sorted(times: FloatArray, *arrays: NDArray[Any]) -> list[NDArray[Any]]:
+    order = np.argsort(times, kind="stable")
+    return [times[order], *(a[order] for a in arrays)]
+
+
+def read_odometry(
+    path: PathLike, topic: str | None = None, *, skipped: list[SkippedFrame] | None = None
+) -> OdometryLog:
+    """Read every ``nav_msgs/Odometry`` message of a topic into an :class:`OdometryLog`.
+
+    Raises
+    ------
+    InputError
+        Bag unreadable, topic missing or ambiguous, or no usable message.
+    """
+    rows: list[list[float]] = []
+    covs: list[NDArray[np.float64]] = []
+    frame = child = ""
+    for m in _checked(_iter_messages(path, ODOMETRY, topic), path, skipped):
+        msg = m.msg
+        try:
+            pos, q = msg.pose.pose.position, msg.pose.pose.orientation
+            lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+            row = [
+                _stamp(msg.header, m.bag_time),
+                pos.x,
+                pos.y,
+                pos.z,
+                q.x,
+                q.y,
+                q.z,
+                q.w,
+                lin.x,
+                lin.y,
+                ang.z,
+            ]
+            cov6 = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
+        except (AttributeError, TypeError, ValueError) as exc:
+            _skip(skipped, path, m, f"Odometry message {m.seq} is malformed: {exc}")
+            continue
+        vals = np.asarray(row, dtype=np.float64)
+        if not np.all(np.isfinite(vals[:8])) or not np.linalg.norm(vals[4:8]) > 0:
+            _skip(skipped, path, m, f"Odometry message {m.seq} has a NaN/inf or zero pose")
+            continue
+        rows.append(row)
+        covs.append(cov6[np.ix_([0, 1, 5], [0, 1, 5])])
+        frame = frame or str(msg.header.frame_id)
+        child = child or str(msg.child_frame_id)
+    if not rows:
+        raise InputError(f"ROS bag {str(path)!r} holds no usable nav_msgs/Odometry message.")
+    a = np.asarray(rows)
+    t, a, cov = _sorted(a[:, 0], a, np.asarray(covs))
+    yaw = yaw_from_quaternion(a[:, 4:8])
+    return OdometryLog(
+        times=t,
+        poses=np.column_stack((a[:, 1], a[:, 2], yaw)),
+        z=a[:, 3],
+        quaternions=a[:, 4:8],
+        twists=a[:, 8:11],
+        pose_cov=cov,
+        frame=frame or "odom",
+        child_frame=child or "base_link",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# IMU
+# --------------------------------------------------------------------------------------------
+
+
+def roll_pitch_from_quaternion(q: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Roll and pitch (rad) of quaternions ``(qx, qy, qz, qw)`` (N, 4), z-y-x Euler (ROS tf).
+
+    roll = atan2(2 (w x + y z), 1 - 2 (x^2 + y^2)); pitch = asin(2 (w y - z x)).
+    """
+    qa = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    qa = qa / np.linalg.norm(qa, axis=1, keepdims=True)
+    x, y, z, w = qa.T
+    roll = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
+    return roll, pitch
+
+
+def roll_pitch_from_acceleration(acc: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Roll and pitch (rad) from accelerometer specific force (N, 3), valid when the sensor
+    is not accelerating (gravity dominates).
+
+    A level sensor reads (0, 0, +g). With the z-y-x convention the body-frame gravity reading
+    is g (-sin p, sin r cos p, cos r cos p), hence roll = atan2(a_y, a_z) and
+    pitch = atan2(-a_x, hypot(a_y, a_z)).
+    """
+    a = np.asarray(acc, dtype=np.float64).reshape(-1, 3)
+    roll = np.arctan2(a[:, 1], a[:, 2])
+    pitch = np.arctan2(-a[:, 0], np.hypot(a[:, 1], a[:, 2]))
+    return roll, pitch
+
+
+@dataclass(frozen=True, eq=False)
+class ImuLog:
+    """``sensor_msgs/Imu`` messages as arrays, sorted by time.
+
+    Attributes
+    ----------
+    times : ndarray (N,), seconds
+    roll, pitch : ndarray (N,), radians
+        From the orientation quaternion when the message has one, else from the
+        accelerometer (see :func:`roll_pitch_from_acceleration`); ``from_orientation`` says which.
+    yaw : ndarray (N,), radians; NaN where the message had no orientation
+    angular_velocity : ndarray (N, 3), rad/s
+    linear_acceleration : ndarray (N, 3), m/s^2
+    from_orientation : ndarray (N,) of bool
+    frame : str
+    """
+
+    times: FloatArray
+    roll: FloatArray
+    pitch: FloatArray
+    yaw: FloatArray
+    angular_velocity: FloatArray
+    linear_acceleration: FloatArray
+    from_orientation: NDArray[np.bool_]
+    frame: str
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    def tilt_at(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Roll and pitch (rad) linearly interpolated at ``times`` (held at the ends)."""
+        tq = np.asarray(times, dtype=np.float64)
+        return np.interp(tq, self.times, self.roll), np.interp(tq, self.times, self.pitch)
+
+
+def read_imu(
+    path: PathLike, topic: str | None = None, *, skipped: list[SkippedFrame] | None = None
+) -> ImuLog:
+    """Read every ``sensor_msgs/Imu`` message of a topic into an :class:`ImuLog`.
+
+    ROS marks "no orientation" with ``orientation_covariance[0] == -1``; those messages (and
+    any with a zero/NaN quaternion) take roll and pitch from the accelerometer instead.
+
+    Raises
+    ------
+    InputError
+        Bag unreadable, topic missing or ambiguous, or no usable message.
+    """
+    rows: list[list[float]] = []
+    has_q: list[bool] = []
+    frame = ""
+    for m in _checked(_iter_messages(path, IMU, topic), path, skipped):
+        msg = m.msg
+        try:
+            q, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+            row = [_stamp(msg.header, m.bag_time), q.x, q.y, q.z, q.w, w.x, w.y, w.z, a.x, a.y]
+            row.append(a.z)
+            ocov0 = float(np.asarray(msg.orientation_covariance, dtype=np.float64)[0])
+        except (AttributeError, TypeError, ValueError, IndexError) as exc:
+            _skip(skipped, path, m, f"Imu message {m.seq} is malformed: {exc}")
+            continue
+        vals = np.asarray(row)
+        qok = (
+            ocov0 != -1.0
+            and bool(np.all(np.isfinite(vals[1:5])))
+            and (float(np.linalg.norm(vals[1:5])) > 0)
+        )
+        if not qok and not np.all(np.isfinite(vals[8:11])):
+            _skip(skipped, path, m, f"Imu message {m.seq} has neither orientation nor gravity")
+            continue
+        rows.append(row)
+        has_q.append(qok)
+        frame = frame or str(msg.header.frame_id)
+    if not rows:
+        raise InputError(f"ROS bag {str(path)!r} holds no usable sensor_msgs/Imu message.")
+    t, a, hq = _sorted(np.asarray(rows)[:, 0], np.asarray(rows), np.asarray(has_q))
+    quat = np.where(hq[:, None], a[:, 1:5], np.array([0.0, 0.0, 0.0, 1.0]))
+    r_q, p_q = roll_pitch_from_quaternion(quat)
+    r_a, p_a = roll_pitch_from_acceleration(a[:, 8:11])
+    yaw = np.where(hq, yaw_from_quaternion(quat), np.nan)
+    return ImuLog(
+        times=t,
+        roll=np.where(hq, r_q, r_a),
+        pitch=np.where(hq, p_q, p_a),
+        yaw=yaw,
+        angular_velocity=a[:, 5:8],
+        linear_acceleration=a[:, 8:11],
+        from_orientation=hq.astype(bool),
+        frame=frame or "imu",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# NavSatFix
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class GnssLog:
+    """``sensor_msgs/NavSatFix`` messages as arrays, sorted by time.
+
+    Attributes
+    ----------
+    times : ndarray (N,), seconds
+    lat, lon : ndarray (N,), degrees (WGS84); alt : ndarray (N,), metres
+    status : ndarray (N,) of int
+        ROS NavSatStatus: -1 no fix, 0 fix, 1 SBAS-augmented, 2 ground-based augmentation (RTK).
+    cov : ndarray (N, 3, 3), m^2, east-north-up
+    cov_type : ndarray (N,) of int (0 unknown, 1 approximated, 2 diagonal known, 3 known)
+    frame : str
+    """
+
+    times: FloatArray
+    lat: FloatArray
+    lon: FloatArray
+    alt: FloatArray
+    status: NDArray[np.int64]
+    cov: FloatArray
+    cov_type: NDArray[np.int64]
+    frame: str
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        """Fixes with status >= 0 and finite latitude/longitude."""
+        return (self.status >= 0) & np.isfinite(self.lat) & np.isfinite(self.lon)
+
+    def to_local(self, origin_lonlat: tuple[float, float] | None = None) -> FloatArray:
+        """East-north metres (N, 2) around ``origin_lonlat`` (default: the first valid fix),
+        by the tangent-plane approximation of :func:`stemmap.io.maps.lonlat_to_local`."""
+        if origin_lonlat is None:
+            v = np.flatnonzero(self.valid)
+            if v.size == 0:
+                raise InputError("the GNSS log has no valid fix to use as the local origin.")
+            origin_lonlat = (float(self.lon[v[0]]), float(self.lat[v[0]]))
+        return lonlat_to_local(self.lon, self.lat, origin_lonlat)
+
+
+def read_navsatfix(
+    path: PathLike, topic: str | None = None, *, skipped: list[SkippedFrame] | None = None
+) -> GnssLog:
+    """Read every ``sensor_msgs/NavSatFix`` message of a topic into a :class:`GnssLog`.
+
+    Messages without a fix (status -1, or NaN position as some drivers send) are kept with
+    their status so that gaps stay visible; use :attr:`GnssLog.valid` to filter.
+
+    Raises
+    ------
+    InputError
+        Bag unreadable, topic missing or ambiguous, or no message at all.
+    """
+    rows: list[list[float]] = []
+    covs: list[NDArray[np.float64]] = []
+    frame = ""
+    for m in _checked(_iter_messages(path, NAVSATFIX, topic), path, skipped):
+        msg = m.msg
+        try:
+            row = [
+                _stamp(msg.header, m.bag_time),
+                float(msg.latitude),
+                float(msg.longitude),
+                float(msg.altitude),
+                int(msg.status.status),
+                int(msg.position_covariance_type),
+            ]
+            cov = np.asarray(msg.position_covariance, dtype=np.float64).reshape(3, 3)
+        except (AttributeError, TypeError, ValueError) as exc:
+            _skip(skipped, path, m, f"NavSatFix message {m.seq} is malformed: {exc}")
+            continue
+        rows.append(row)
+        covs.append(cov)
+        frame = frame or str(msg.header.frame_id)
+    if not rows:
+        raise InputError(f"ROS bag {str(path)!r} holds no usable sensor_msgs/NavSatFix message.")
+    a = np.asarray(rows)
+    t, a, cov = _sorted(a[:, 0], a, np.asarray(covs))
+    return GnssLog(
+        times=t,
+        lat=a[:, 1],
+        lon=a[:, 2],
+        alt=a[:, 3],
+        status=a[:, 4].astype(np.int64),
+        cov=cov,
+        cov_type=a[:, 5].astype(np.int64),
+        frame=frame or "gps",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# PointCloud2
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PointField:
+    """Layout of one field of a PointCloud2 point (mirrors ``sensor_msgs/PointField``)."""
+
+    name: str
+    offset: int
+    datatype: int
+    count: int = 1
+
+
+def decode_pointcloud2(
+    data: bytes | NDArray[np.uint8],
+    fields: Sequence[PointField | tuple[str, int, int, int]],
+    *,
+    point_step: int,
+    width: int,
+    height: int = 1,
+    row_step: int | None = None,
+    is_bigendian: bool = False,
+    skip_nans: bool = True,
+    time: float = 0.0,
+    frame: str = "lidar",
+) -> PointCloud:
+    """Decode the byte buffer of a ``sensor_msgs/PointCloud2`` into a :class:`PointCloud`.
+
+    Vectorised: the point layout (any offsets, any ``point_step`` with padding, any row
+    padding via ``row_step``, little- or big-endian) becomes one numpy structured dtype that
+    views the buffer without a per-point loop.
+
+    Parameters
+    ----------
+    data : bytes or ndarray of uint8
+        ``msg.data``: at least ``(height - 1) * row_step + width * point_step`` bytes.
+    fields : sequence of PointField or (name, offset, datatype, count)
+        Must contain ``x``, ``y`` and ``z``. Datatype codes as sensor_msgs/PointField
+        (1 INT8 ... 8 FLOAT64). Fields with an empty name (padding) are ignored.
+    point_step, width, height, row_step : int
+        Bytes per point, points per row, rows, bytes per row (default ``width * point_step``).
+    is_bigendian : bool
+    skip_nans : bool
+        Drop points whose x, y or z is NaN/inf (organised clouds mark missing returns so).
+    time, frame
+        Passed to the :class:`PointCloud`.
+
+    Returns
+    -------
+    PointCloud
+        ``xyz`` as float64; every other named field in ``fields`` (native byte order, shape
+        (N,) or (N, count)).
+
+    Raises
+    ------
+    InputError
+        Unknown datatype, a field outside ``point_step``, missing x/y/z, duplicate field names,
+        or a buffer too short for the declared layout.
+    """
+    if point_step <= 0 or width < 0 or height < 0:
+        raise InputError(
+            f"PointCloud2 layout is invalid: point_step={point_step}, width={width}, "
+            f"height={height}."
+        )
+    row_step = width * point_step if row_step is None else int(row_step)
+    if row_step < width * point_step:
+        raise InputError(
+            f"PointCloud2 row_step {row_step} is smaller than width * point_step = "
+            f"{width * point_step}."
+        )
+    endian = ">" if is_bigendian else "<"
+    names: list[str] = []
+    formats: list[Any] = []
+    offsets: list[int] = []
+    for f in fields:
+        if isinstance(f, PointField):
+            name, offset, datatype, count = f.name, f.offset, int(f.datatype), int(f.count)
+        else:
+            name, offset, datatype, count = str(f[0]), int(f[1]), int(f[2]), int(f[3])
+        if not name:
+            continue
+        if datatype not in POINTFIELD_DTYPES:
+            raise InputError(
+                f"PointCloud2 field {name!r} has unknown datatype {datatype}; "
+                "expected 1..8 (INT8 ... FLOAT64)."
+            )
+        if name in names:
+            raise InputError(f"PointCloud2 field {name!r} appears twice in the layout.")
+        base = np.dtype(endian + POINTFIELD_DTYPES[datatype])
+        count = max(count, 1)
+        if offset < 0 or offset + base.itemsize * count > point_step:
+            raise InputError(
+                f"PointCloud2 field {name!r} (offset {offset}, {count} x {base.itemsize} bytes) "
+                f"does not fit in point_step {point_step}."
+            )
+        names.append(name)
+        formats.append(base if count == 1 else (base, (count,)))
+        offsets.append(offset)
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise InputError(
+            f"PointCloud2 has no {', '.join(missing)} field(s); its fields are "
+            f"{', '.join(names) or 'none'}."
+        )
+    dtype = np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step}
+    )
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    buf = np.ascontiguousarray(buf, dtype=np.uint8).reshape(-1)
+    n = width * height
+    need = 0 if n == 0 else (height - 1) * row_step + width * point_step
+    if buf.size < need:
+        raise InputError(
+            f"PointCloud2 data has {buf.size} bytes but the layout ({height} rows x {width} "
+            f"points, point_step {point_step}, row_step {row_step}) needs {need}."
+        )
+    if n == 0:
+        recs = np.zeros(0, dtype=dtype)
+    elif row_step == width * point_step:
+        recs = buf[: n * point_step].view(dtype)
+    else:
+        rows = np.lib.stride_tricks.as_strided(
+            buf, shape=(height, width * point_step), strides=(row_step, 1), writeable=False
+        )
+        recs = np.ascontiguousarray(rows).reshape(-1).view(dtype)
+    xyz = np.column_stack([recs[c].astype(np.float64) for c in ("x", "y", "z")])
+    keep = np.all(np.isfinite(xyz), axis=1) if skip_nans else np.ones(n, dtype=bool)
+    extra = {}
+    for c in names:
+        if c in ("x", "y", "z"):
+            continue
+        col = recs[c]
+        extra[c] = col[keep].astype(col.dtype.newbyteorder("="))
+    return PointCloud(xyz[keep], time=time, frame=frame, fields=extra)
+
+
+def read_pointclouds(
+    path: PathLike,
+    topic: str | None = None,
+    *,
+    skip_nans: bool = True,
+    skipped: list[SkippedFrame] | None = None,
+) -> Iterator[PointCloud]:
+    """Lazily yield the ``sensor_msgs/PointCloud2`` messages of a bag as :class:`PointCloud`.
+
+    Each cloud stays in its sensor frame (``header.frame_id``); see
+    :func:`decode_pointcloud2` for the decoding. Bad messages are skipped and recorded.
+
+    Raises
+    ------
+    InputError
+        If the bag cannot be opened or the topic is missing / ambiguous.
+    """
+    for m in _checked(_iter_messages(path, POINTCLOUD2, topic), path, skipped):
+        msg = m.msg
+        try:
+            cloud = decode_pointcloud2(
+                np.asarray(msg.data, dtype=np.uint8),
+                [PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
+                point_step=int(msg.point_step),
+                width=int(msg.width),
+                height=int(msg.height),
+                row_step=int(msg.row_step),
+                is_bigendian=bool(msg.is_bigendian),
+                skip_nans=skip_nans,
+                time=_stamp(msg.header, m.bag_time),
+                frame=str(msg.header.frame_id) or "lidar",
+            )
+        except (InputError, AttributeError, TypeError, ValueError) as exc:
+            _skip(skipped, path, m, f"PointCloud2 message {m.seq} is invalid: {exc}")
+        else:
+            yield cloud
