@@ -1,0 +1,468 @@
+"""Numba kernel of the "ours" circle fit: silhouette-constrained robust geometric fit.
+
+One compiled routine fits every segment of a batch (points grouped by contiguous segment), so
+the detector pays the Python/numpy dispatch cost once per batch, not once per segment. The
+public wrappers live in :mod:`stemmap.scan.circle`; the model is documented there and in
+docs/algorithms/scan-fits.md.
+
+Why numba and not padded numpy: each segment runs a Levenberg-Marquardt loop whose number of
+iterations and accepted/rejected steps depend on its data, plus a 3x3 solve per iteration.
+A padded (K, Nmax) numpy version would run the worst-case iteration count for every segment and
+pay ~40 array dispatches per iteration; the compiled loop fits a 10-point arc in a few
+microseconds (numbers in docs/algorithms/scan-fits.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from stemmap.types import FloatArray
+
+__all__ = ["STATUS_MESSAGES", "fit_ours_segments"]
+
+#: Status codes of the kernel, mapped to full-sentence reasons by the Python wrapper.
+OK = 0
+TOO_FEW = 1
+COINCIDENT = 2
+COLLINEAR = 3
+NOT_CONVERGED = 4
+
+STATUS_MESSAGES = {
+    OK: "",
+    TOO_FEW: "need at least 3 points for a circle fit",
+    COINCIDENT: "all points coincide",
+    COLLINEAR: "points are collinear (no curvature and no usable silhouette)",
+    NOT_CONVERGED: "the geometric fit did not reach a valid circle behind the arc",
+}
+
+_HUBER_K = 1.5  # Huber threshold in units of sigma (95 % efficiency under Gaussian noise)
+_SIGMA_FLOOR = 2e-4  # metres: smallest noise scale used when sigma is estimated from residuals
+_MAX_ITER = 40
+_SQRT12 = math.sqrt(12.0)
+
+
+@njit(cache=True)
+def _solve3(H: FloatArray, g: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
+    """Solve the 3x3 system H out = g by Cramer's rule; False if singular."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 0], H[1, 1], H[1, 2]
+    gg, h, i = H[2, 0], H[2, 1], H[2, 2]
+    det = a * (e * i - f * h) - b * (d * i - f * gg) + c * (d * h - e * gg)
+    scale = abs(a * e * i) + abs(b * f * gg) + abs(c * d * h) + 1e-300
+    if not abs(det) > 1e-14 * scale:
+        return False
+    inv = 1.0 / det
+    out[0] = inv * (g[0] * (e * i - f * h) - b * (g[1] * i - f * g[2]) + c * (g[1] * h - e * g[2]))
+    out[1] = inv * (
+        a * (g[1] * i - f * g[2]) - g[0] * (d * i - f * gg) + c * (d * g[2] - g[1] * gg)
+    )
+    out[2] = inv * (
+        a * (e * g[2] - g[1] * h) - b * (d * g[2] - g[1] * gg) + g[0] * (d * h - e * gg)
+    )
+    return True
+
+
+@njit(cache=True)
+def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
+    e = np.zeros(3)
+    col = np.zeros(3)
+    for j in range(3):
+        e[:] = 0.0
+        e[j] = 1.0
+        if not _solve3(H, e, col):
+            return False
+        for k in range(3):
+            out[k, j] = col[k]
+    return True
+
+
+@njit(cache=True)
+def _cost_and_normal(
+    lx: FloatArray,
+    ly: FloatArray,
+    cx: float,
+    cy: float,
+    r: float,
+    inv_sigma: float,
+    use_sil: bool,
+    t_lo: float,
+    t_hi: float,
+    w_lo: float,
+    w_hi: float,
+    robust: bool,
+    H: FloatArray,
+    g: FloatArray,
+) -> float:  # pragma: no cover - numba
+    """Robust cost at (cx, cy, r) and the Gauss-Newton normal equations H, g (IRLS weights)."""
+    H[:, :] = 0.0
+    g[:] = 0.0
+    cost = 0.0
+    n = lx.shape[0]
+    for i in range(n):
+        dx = lx[i] - cx
+        dy = ly[i] - cy
+        dist = math.sqrt(dx * dx + dy * dy)
+        e = (dist - r) * inv_sigma
+        if dist > 0.0:
+            j0 = -dx / dist * inv_sigma
+            j1 = -dy / dist * inv_sigma
+        else:
+            j0 = 0.0
+            j1 = 0.0
+        j2 = -inv_sigma
+        ae = abs(e)
+        if robust and ae > _HUBER_K:
+            w = _HUBER_K / ae
+            cost += _HUBER_K * ae - 0.5 * _HUBER_K * _HUBER_K
+        else:
+            w = 1.0
+            cost += 0.5 * e * e
+        H[0, 0] += w * j0 * j0
+        H[0, 1] += w * j0 * j1
+        H[0, 2] += w * j0 * j2
+        H[1, 1] += w * j1 * j1
+        H[1, 2] += w * j1 * j2
+        H[2, 2] += w * j2 * j2
+        g[0] += w * j0 * e
+        g[1] += w * j1 * e
+        g[2] += w * j2 * e
+    if use_sil:
+        d2 = cx * cx + cy * cy
+        dd = math.sqrt(d2)
+        q = math.sqrt(max(d2 - r * r, 1e-300))
+        alpha = math.asin(min(r / dd, 1.0))
+        beta = math.atan2(cy, cx)
+        # d beta / d(cx, cy); d alpha / d(cx, cy, r)
+        b0 = -cy / d2
+        b1 = cx / d2
+        a0 = -r * cx / (d2 * q)
+        a1 = -r * cy / (d2 * q)
+        a2 = 1.0 / q
+        for side in range(2):
+            sgn = -1.0 if side == 0 else 1.0
+            target = t_lo if side == 0 else t_hi
+            inv_sang = w_lo if side == 0 else w_hi
+            if inv_sang == 0.0:
+                continue
+            e = (beta + sgn * alpha - target) * inv_sang
+            j0 = (b0 + sgn * a0) * inv_sang
+            j1 = (b1 + sgn * a1) * inv_sang
+            j2 = (sgn * a2) * inv_sang
+            cost += 0.5 * e * e
+            H[0, 0] += j0 * j0
+            H[0, 1] += j0 * j1
+            H[0, 2] += j0 * j2
+            H[1, 1] += j1 * j1
+            H[1, 2] += j1 * j2
+            H[2, 2] += j2 * j2
+            g[0] += j0 * e
+            g[1] += j1 * e
+            g[2] += j2 * e
+    H[1, 0] = H[0, 1]
+    H[2, 0] = H[0, 2]
+    H[2, 1] = H[1, 2]
+    return cost
+
+
+@njit(cache=True)
+def _valid(
+    cx: float, cy: float, r: float, rho_min: float, use_sil: bool
+) -> bool:  # pragma: no cover - numba
+    """The centre lies behind the arc: sensor outside the circle, centre beyond the nearest
+    return, positive radius."""
+    if not (r > 0.0) or not math.isfinite(cx) or not math.isfinite(cy) or not math.isfinite(r):
+        return False
+    dd = math.sqrt(cx * cx + cy * cy)
+    if not use_sil:
+        return True
+    return dd > r * (1.0 + 1e-12) and dd > rho_min
+
+
+@njit(cache=True)
+def _lm(
+    lx: FloatArray,
+    ly: FloatArray,
+    p: FloatArray,
+    inv_sigma: float,
+    use_sil: bool,
+    t_lo: float,
+    t_hi: float,
+    w_lo: float,
+    w_hi: float,
+    rho_min: float,
+    robust: bool,
+) -> tuple[float, int]:  # pragma: no cover - numba
+    """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations)."""
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    Hn = np.zeros((3, 3))
+    Ht = np.zeros((3, 3))
+    gt = np.zeros(3)
+    step = np.zeros(3)
+    cost = _cost_and_normal(
+        lx, ly, p[0], p[1], p[2], inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, H, g
+    )
+    lam = 1e-3
+    it = 0
+    for it in range(_MAX_ITER):
+        improved = False
+        for _ in range(12):
+            for a in range(3):
+                for b in range(3):
+                    Hn[a, b] = H[a, b]
+                Hn[a, a] = H[a, a] * (1.0 + lam) + 1e-12
+            mg = -g
+            if not _solve3(Hn, mg, step):
+                lam *= 10.0
+                continue
+            cx = p[0] + step[0]
+            cy = p[1] + step[1]
+            r = p[2] + step[2]
+            if not _valid(cx, cy, r, rho_min, use_sil):
+                lam *= 10.0
+                continue
+            new_cost = _cost_and_normal(
+                lx, ly, cx, cy, r, inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, Ht, gt
+            )
+            if new_cost <= cost:
+                dp = abs(step[0]) + abs(step[1]) + abs(step[2])
+                scale = abs(p[0]) + abs(p[1]) + abs(p[2])
+                p[0], p[1], p[2] = cx, cy, r
+                rel = cost - new_cost
+                cost = new_cost
+                H[:, :] = Ht
+                g[:] = gt
+                lam = max(lam * 0.3, 1e-9)
+                improved = True
+                if dp <= 1e-12 * (1.0 + scale) or rel <= 1e-14 * (1.0 + cost):
+                    return cost, it + 1
+                break
+            lam *= 10.0
+        if not improved:
+            return cost, it + 1
+    return cost, it + 1
+
+
+@njit(cache=True)
+def _fit_one(
+    px: FloatArray,
+    py: FloatArray,
+    ox: float,
+    oy: float,
+    sigma: float,
+    dtheta: float,
+    use_lo: bool,
+    use_hi: bool,
+    out: FloatArray,
+) -> int:  # pragma: no cover - numba
+    """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status."""
+    n = px.shape[0]
+    if n < 3:
+        return TOO_FEW
+    # ---- local frame: origin at the sensor, x axis along the mean bearing of the points ----
+    sx = 0.0
+    sy = 0.0
+    qx = px - ox
+    qy = py - oy
+    rho = np.sqrt(qx * qx + qy * qy)
+    spread = 0.0
+    for i in range(n):
+        spread += abs(px[i] - px[0]) + abs(py[i] - py[0])
+        if rho[i] > 0.0:
+            sx += qx[i] / rho[i]
+            sy += qy[i] / rho[i]
+    if spread == 0.0:
+        return COINCIDENT
+    phi0 = math.atan2(sy, sx)
+    c0 = math.cos(phi0)
+    s0 = math.sin(phi0)
+    lx = c0 * qx + s0 * qy
+    ly = -s0 * qx + c0 * qy
+    th = np.arctan2(ly, lx)
+    th_sorted = np.sort(th)
+    th_min = th_sorted[0]
+    th_max = th_sorted[n - 1]
+    one_sided = th_min > -0.5 * math.pi + 1e-3 and th_max < 0.5 * math.pi - 1e-3
+    rho_min = np.min(rho)
+    if dtheta <= 0.0:
+        diffs = np.diff(th_sorted)
+        dtheta = np.median(diffs)
+        if not dtheta > 0.0:
+            dtheta = (th_max - th_min) / (n - 1)
+    # Points around the sensor (or on it) have no visible side: no silhouette terms then.
+    use_sil = (use_lo or use_hi) and one_sided and rho_min > 0.0 and dtheta > 0.0
+    # Silhouette targets: the lower tangent bearing lies uniformly in (th_min - dtheta, th_min],
+    # the upper in [th_max, th_max + dtheta); an unused side gets its target from the fit itself
+    # (weight zero is emulated by an infinite target std below).
+    t_lo = th_min - 0.5 * dtheta
+    t_hi = th_max + 0.5 * dtheta
+    # ---- initial guess from the silhouette and the nearest return (always behind the arc) ----
+    half = 0.5 * (t_hi - t_lo)
+    sa = min(math.sin(min(half, 0.5 * math.pi - 1e-3)), 0.95)
+    near = rho_min
+    r0 = near * sa / (1.0 - sa)
+    d0 = near + r0
+    b0 = 0.5 * (t_lo + t_hi)
+    p = np.empty(3)
+    p[0] = d0 * math.cos(b0)
+    p[1] = d0 * math.sin(b0)
+    p[2] = r0
+    if not use_sil:
+        # No silhouette: start from the algebraic (Kasa) solution in the local frame.
+        mx = np.mean(lx)
+        my = np.mean(ly)
+        ux = lx - mx
+        uy = ly - my
+        sc = math.sqrt(np.mean(ux * ux + uy * uy))
+        ux = ux / sc
+        uy = uy / sc
+        A = np.zeros((3, 3))
+        bb = np.zeros(3)
+        for i in range(n):
+            z = -(ux[i] * ux[i] + uy[i] * uy[i])
+            row = (ux[i], uy[i], 1.0)
+            for a in range(3):
+                bb[a] += row[a] * z
+                for b in range(3):
+                    A[a, b] += row[a] * row[b]
+        sol = np.zeros(3)
+        if not _solve3(A, bb, sol):
+            return COLLINEAR
+        kcx = -0.5 * sol[0]
+        kcy = -0.5 * sol[1]
+        r2 = kcx * kcx + kcy * kcy - sol[2]
+        if not r2 > 0.0:
+            return COLLINEAR
+        p[0] = kcx * sc + mx
+        p[1] = kcy * sc + my
+        p[2] = math.sqrt(r2) * sc
+    # ---- noise scale: given, or estimated from a first (equal-weight) pass ----
+    extent = max(th_max - th_min, dtheta) * near
+    sang = dtheta / _SQRT12
+    w_lo = 1.0 / sang if (use_sil and use_lo) else 0.0
+    w_hi = 1.0 / sang if (use_sil and use_hi) else 0.0
+    if sigma > 0.0:
+        sig = sigma
+    else:
+        # first pass: points weighted like the silhouette (sigma ~ range * angular std)
+        sig = max(near * sang, _SIGMA_FLOOR)
+        _lm(lx, ly, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+        ss = 0.0
+        for i in range(n):
+            d = math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2]
+            ss += d * d
+        dof = n - 3 if n > 3 else 1
+        sig = max(math.sqrt(ss / dof), _SIGMA_FLOOR)
+    _lm(lx, ly, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+    if not _valid(p[0], p[1], p[2], rho_min, use_sil):
+        return NOT_CONVERGED
+    if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
+        return COLLINEAR
+    # ---- covariance from the final (robustly weighted) Gauss-Newton Hessian ----
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    _cost_and_normal(
+        lx, ly, p[0], p[1], p[2], 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, True, H, g
+    )
+    C = np.zeros((3, 3))
+    if not _inv3(H, C):
+        C[:, :] = np.nan
+    ss = 0.0
+    for i in range(n):
+        d = math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2]
+        ss += d * d
+    # rotate back to the input frame
+    gx = ox + c0 * p[0] - s0 * p[1]
+    gy = oy + s0 * p[0] + c0 * p[1]
+    R = np.array([[c0, -s0, 0.0], [s0, c0, 0.0], [0.0, 0.0, 1.0]])
+    Cg = R @ C @ R.T
+    out[0] = gx
+    out[1] = gy
+    out[2] = p[2]
+    k = 3
+    for a in range(3):
+        for b in range(3):
+            out[k] = Cg[a, b]
+            k += 1
+    out[12] = math.sqrt(ss / n)
+    out[13] = sig
+    return OK
+
+
+@njit(cache=True)
+def _fit_segments(
+    px: FloatArray,
+    py: FloatArray,
+    starts: np.ndarray,
+    stops: np.ndarray,
+    ox: FloatArray,
+    oy: FloatArray,
+    sigma: FloatArray,
+    dtheta: FloatArray,
+    use_lo: np.ndarray,
+    use_hi: np.ndarray,
+    out: FloatArray,
+    status: np.ndarray,
+) -> None:  # pragma: no cover - numba
+    for k in range(starts.shape[0]):
+        a = starts[k]
+        b = stops[k]
+        status[k] = _fit_one(
+            px[a:b],
+            py[a:b],
+            ox[k],
+            oy[k],
+            sigma[k],
+            dtheta[k],
+            use_lo[k],
+            use_hi[k],
+            out[k],
+        )
+
+
+def fit_ours_segments(
+    px: FloatArray,
+    py: FloatArray,
+    starts: np.ndarray,
+    stops: np.ndarray,
+    ox: FloatArray,
+    oy: FloatArray,
+    sigma: FloatArray,
+    dtheta: FloatArray,
+    use_lo: np.ndarray,
+    use_hi: np.ndarray,
+) -> tuple[FloatArray, np.ndarray]:
+    """Run the kernel on K segments ``px[starts[k]:stops[k]]``.
+
+    All per-segment arrays have shape (K,); ``sigma <= 0`` means "estimate from residuals",
+    ``dtheta <= 0`` means "estimate the beam spacing from the bearings".
+
+    Returns
+    -------
+    out : ndarray of shape (K, 14)
+        cx, cy, r, cov (row-major 3x3 over cx, cy, r), rms, sigma used. NaN where failed.
+    status : ndarray of shape (K,), int64
+        Kernel status code (``STATUS_MESSAGES``).
+    """
+    k = starts.shape[0]
+    out = np.full((k, 14), np.nan)
+    status = np.zeros(k, dtype=np.int64)
+    _fit_segments(
+        np.ascontiguousarray(px, dtype=np.float64),
+        np.ascontiguousarray(py, dtype=np.float64),
+        np.ascontiguousarray(starts, dtype=np.int64),
+        np.ascontiguousarray(stops, dtype=np.int64),
+        np.ascontiguousarray(ox, dtype=np.float64),
+        np.ascontiguousarray(oy, dtype=np.float64),
+        np.ascontiguousarray(sigma, dtype=np.float64),
+        np.ascontiguousarray(dtheta, dtype=np.float64),
+        np.ascontiguousarray(use_lo, dtype=np.bool_),
+        np.ascontiguousarray(use_hi, dtype=np.bool_),
+        out,
+        status,
+    )
+    out[status != OK] = np.nan
+    return out, status
