@@ -1,0 +1,306 @@
+"""Loader for the ACFR Victoria Park dataset (Guivant & Nebot), text redistribution.
+
+Files read (all whitespace-separated, one record per line, common time base in seconds):
+
+* ``inputs.dat``: ``t speed_m_s steering_rad``, 40 Hz. Speed of the LEFT REAR wheel
+  (encoder), front steering angle positive to the left.
+* ``measurements.dat``: ``t range_m bearing_rad diameter_m``, one row per tree detected in a
+  scan (ACFR's own detector). Dataset bearing: 0..pi, 0 = right of the vehicle, pi/2 = straight
+  ahead. Only scans with at least one detection appear (7,230 of 7,249).
+* ``gps.dat``: ``t x_m y_m`` (shifted and rotated by the redistributor: align before comparing).
+
+Conventions adopted (see docs/algorithms/slam.md):
+
+* Bearing: ours = dataset - pi/2 (CCW from the laser's forward axis). Tested against the data:
+  with this convention dead-reckoned world positions of the same tree seen in consecutive scans
+  agree; with the mirrored one (pi/2 - dataset) they drift apart when the car turns.
+* Vehicle: :class:`~stemmap.slam.motion.AckermannModel` with L = 2.83 m, H = 0.76 m, laser at
+  a = 3.78 m ahead of the rear axle (info.txt gives 0.95 m measured from the FRONT axle:
+  2.83 + 0.95 = 3.78) and b = 0.50 m to the left.
+* Scans without detections: the scan period is 0.2135 s; gaps of k periods between detection
+  times are filled with k - 1 empty frames, which recovers all 7,249 scans.
+
+Bad input: a missing file is an :class:`~stemmap.errors.InputError`; malformed rows (wrong field
+count, non-numeric, non-finite, out-of-range values, time going backwards) are skipped with a
+logged warning and counted in ``VictoriaPark.skipped``; if more than ``max_bad_fraction`` of a
+file is bad, loading fails with an InputError naming the file and the first bad line.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.datasets import find_datasets_dir
+from stemmap.errors import InputError
+from stemmap.slam.base import Controls, SlamProblem, TreeFrames
+from stemmap.slam.motion import AckermannModel
+from stemmap.types import FloatArray
+
+__all__ = [
+    "SCAN_PERIOD_S",
+    "VictoriaPark",
+    "dataset_bearing_to_ours",
+    "load_victoria_park",
+    "victoria_park_model",
+]
+
+log = logging.getLogger(__name__)
+
+#: Nominal laser scan period (s), median of detection-time differences.
+SCAN_PERIOD_S = 0.2135
+#: Detector range limit of the laser (m): the SICK LMS returns up to 80 m.
+MAX_RANGE_M = 80.0
+
+
+def victoria_park_model(sigma_speed: float = 0.10, sigma_steer: float = 0.02) -> AckermannModel:
+    """The car of Victoria Park (Guivant & Nebot): L 2.83, H 0.76, laser at (3.78, 0.50) m."""
+    return AckermannModel(
+        L=2.83, H=0.76, a=3.78, b=0.50, sigma_speed=sigma_speed, sigma_steer=sigma_steer
+    )
+
+
+def dataset_bearing_to_ours(bearing: Any) -> FloatArray:
+    """Dataset bearing (0 = right, pi/2 = ahead) -> ours (CCW from forward, (-pi, pi])."""
+    return np.asarray(bearing, dtype=np.float64) - 0.5 * math.pi
+
+
+@dataclass(frozen=True, eq=False)
+class VictoriaPark:
+    """The loaded run.
+
+    Attributes
+    ----------
+    controls : Controls (kind "ackermann")
+    frames : TreeFrames
+        One frame per laser scan (including empty ones), detections in the laser frame.
+    gps_times : ndarray (G,), s
+    gps_xy : ndarray (G, 2), m (redistributor's frame)
+    model : AckermannModel
+    path : Path
+    skipped : dict of file name to number of rows skipped
+    """
+
+    controls: Controls
+    frames: TreeFrames
+    gps_times: FloatArray
+    gps_xy: FloatArray
+    model: AckermannModel
+    path: Path
+    skipped: dict[str, int] = field(default_factory=dict)
+
+    def problem(self, *, model: AckermannModel | None = None, name: str = "") -> SlamProblem:
+        """A :class:`SlamProblem` (vehicle starts at the origin heading along +x)."""
+        m = model or self.model
+        return SlamProblem(
+            controls=self.controls,
+            frames=self.frames,
+            motion=m,
+            sensor_offset=(m.a, m.b),
+            initial_pose=(0.0, 0.0, 0.0),
+            name=name or f"victoria_park[{self.frames.times[0]:.1f}-{self.frames.times[-1]:.1f}]",
+            max_range=MAX_RANGE_M,
+            fov=(-0.5 * math.pi, 0.5 * math.pi),
+        )
+
+    def slice(self, t0: float, t1: float) -> VictoriaPark:
+        """The part of the run with ``t0 <= t <= t1`` (for short tests)."""
+        if not t1 > t0:
+            raise InputError(f"slice needs t1 > t0, got [{t0}, {t1}].")
+        frames = self.frames.slice(t0, t1)
+        if len(frames) == 0:
+            raise InputError(f"no Victoria Park scans between {t0} s and {t1} s.")
+        g = (self.gps_times >= t0) & (self.gps_times <= t1)
+        return replace(
+            self,
+            controls=self.controls.slice(t0, t1),
+            frames=frames,
+            gps_times=self.gps_times[g],
+            gps_xy=self.gps_xy[g],
+        )
+
+
+def _read_table(
+    path: Path, ncols: int, max_bad_fraction: float, skipped: dict[str, int]
+) -> FloatArray:
+    """Read a whitespace table; skip (and count) malformed lines; time column must not go back."""
+    if not path.is_file():
+        raise InputError(
+            f"Victoria Park file {path} is missing; expected the text redistribution "
+            "(inputs.dat, measurements.dat, gps.dat) in that folder."
+        )
+    try:
+        text = path.read_text(encoding="ascii", errors="replace")
+    except OSError as exc:
+        raise InputError(f"cannot read Victoria Park file {path}: {exc}.") from exc
+    lines = text.splitlines()
+    rows: list[list[float]] = []
+    bad: list[tuple[int, str]] = []
+    try:  # fast path: a clean file
+        arr = np.loadtxt(lines, ndmin=2) if lines else np.zeros((0, ncols))
+        if arr.shape[1] != ncols or not np.all(np.isfinite(arr)):
+            raise ValueError
+    except ValueError:
+        for ln, line in enumerate(lines, start=1):
+            parts = line.split()
+            if not parts:
+                continue
+            if len(parts) != ncols:
+                bad.append((ln, f"{len(parts)} fields instead of {ncols}"))
+                continue
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError:
+                bad.append((ln, "non-numeric field"))
+                continue
+            if not all(math.isfinite(v) for v in vals):
+                bad.append((ln, "non-finite value"))
+                continue
+            rows.append(vals)
+        arr = np.array(rows, dtype=np.float64).reshape(-1, ncols)
+    # time going backwards: drop rows earlier than any row before them
+    if arr.shape[0] > 1:
+        prev_max = np.maximum.accumulate(np.concatenate(([-np.inf], arr[:-1, 0])))
+        back = arr[:, 0] < prev_max
+        if np.any(back):
+            for k in np.flatnonzero(back)[:5]:
+                bad.append((-1, f"time {arr[k, 0]} s goes backwards (after {prev_max[k]} s)"))
+            n_back = int(back.sum())
+            if n_back > 5:
+                bad.append((-1, f"... and {n_back - 5} more rows going back in time"))
+            arr = arr[~back]
+            skipped[path.name + ":backwards"] = n_back
+    n_total = max(len([ln for ln in lines if ln.strip()]), 1)
+    n_bad = len([b for b in bad if b[0] > 0]) + skipped.get(path.name + ":backwards", 0)
+    if n_bad:
+        first = bad[0]
+        where = f"line {first[0]}" if first[0] > 0 else "a row"
+        msg = (
+            f"{path}: skipped {n_bad} malformed row(s) of {n_total}; first at {where}: {first[1]}."
+        )
+        if n_bad / n_total > max_bad_fraction:
+            raise InputError(
+                msg
+                + f" That is more than {max_bad_fraction:.0%} of the file: is it the right file?"
+            )
+        log.warning(msg)
+        skipped[path.name] = n_bad
+    if arr.shape[0] == 0:
+        raise InputError(f"Victoria Park file {path} has no valid rows.")
+    return arr
+
+
+def _fill_empty_scans(times: FloatArray, period: float) -> FloatArray:
+    """Detection-frame times plus inferred times of the scans that detected nothing."""
+    d = np.diff(times)
+    k = np.rint(d / period).astype(np.int64)
+    gaps = np.flatnonzero(k >= 2)
+    extra = [times[i] + d[i] * np.arange(1, k[i]) / k[i] for i in gaps]
+    if not extra:
+        return times
+    return np.sort(np.concatenate([times, *extra]))
+
+
+def load_victoria_park(
+    path: str | os.PathLike[str] | None = None,
+    *,
+    model: AckermannModel | None = None,
+    fill_empty_scans: bool = True,
+    max_bad_fraction: float = 0.01,
+) -> VictoriaPark:
+    """Load the Victoria Park run into core SLAM types.
+
+    Parameters
+    ----------
+    path : path-like, optional
+        Folder holding ``inputs.dat``, ``measurements.dat``, ``gps.dat``. Default:
+        ``<find_datasets_dir()>/victoria_park``.
+    model : AckermannModel, optional
+        Vehicle model; default :func:`victoria_park_model`.
+    fill_empty_scans : bool
+        Insert empty frames for the scans that detected no tree (see module notes).
+    max_bad_fraction : float
+        Largest fraction of malformed rows tolerated per file before failing.
+
+    Returns
+    -------
+    VictoriaPark
+
+    Raises
+    ------
+    InputError
+        Missing folder/file, a file with no valid rows or too many malformed rows.
+    """
+    if path is None:
+        base = find_datasets_dir()
+        if base is None:
+            raise InputError(
+                "no datasets folder found: pass the Victoria Park folder or set STEMMAP_DATASETS."
+            )
+        folder = base / "victoria_park"
+    else:
+        folder = Path(path)
+    if not folder.is_dir():
+        raise InputError(f"Victoria Park folder {folder} does not exist.")
+    skipped: dict[str, int] = {}
+    inp = _read_table(folder / "inputs.dat", 3, max_bad_fraction, skipped)
+    meas = _read_table(folder / "measurements.dat", 4, max_bad_fraction, skipped)
+    gps = _read_table(folder / "gps.dat", 3, max_bad_fraction, skipped)
+
+    # physically impossible detections are bad rows too
+    ok = (
+        (meas[:, 1] > 0)
+        & (meas[:, 1] <= MAX_RANGE_M)
+        & (meas[:, 2] >= 0)
+        & (meas[:, 2] <= math.pi)
+        & (meas[:, 3] > 0)
+    )
+    if not np.all(ok):
+        n = int((~ok).sum())
+        log.warning(
+            "%s: skipped %d detection(s) with range outside (0, %g] m, bearing outside "
+            "[0, pi] or diameter <= 0.",
+            folder / "measurements.dat",
+            n,
+            MAX_RANGE_M,
+        )
+        skipped["measurements.dat:invalid"] = n
+        meas = meas[ok]
+
+    controls = Controls(inp[:, 0], inp[:, 1], inp[:, 2], "ackermann")
+    det_times = np.unique(meas[:, 0])
+    frame_times = _fill_empty_scans(det_times, SCAN_PERIOD_S) if fill_empty_scans else det_times
+    fidx = np.searchsorted(frame_times, meas[:, 0])
+    counts = np.bincount(fidx, minlength=frame_times.shape[0])
+    ptr = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    order = np.argsort(fidx, kind="stable")
+    frames = TreeFrames(
+        frame_times,
+        ptr,
+        meas[order, 1],
+        dataset_bearing_to_ours(meas[order, 2]),
+        meas[order, 3],
+    )
+    log.info(
+        "Victoria Park: %d controls, %d scans (%d with detections), %d detections, %d GPS fixes.",
+        len(controls),
+        len(frames),
+        det_times.shape[0],
+        frames.n_detections,
+        gps.shape[0],
+    )
+    return VictoriaPark(
+        controls=controls,
+        frames=frames,
+        gps_times=gps[:, 0].copy(),
+        gps_xy=gps[:, 1:3].copy(),
+        model=model or victoria_park_model(),
+        path=folder,
+        skipped=skipped,
+    )

@@ -1,0 +1,276 @@
+"""Trajectory evaluation: SE(2) alignment, ATE against (screened) GPS, loop-closure error.
+
+The protocol for a run with an unreliable GPS (Victoria Park):
+
+1. :func:`screen_gps` decides which fixes to trust using only the GPS and the wheel odometry,
+   never the trajectory being scored.
+2. :func:`ate` aligns the trajectory to the kept fixes with ONE best-fit rigid transform
+   (:func:`align_se2`, closed form) and scores EVERY kept fix: RMSE, p95 and max, no trimming,
+   so a bad stretch of trajectory cannot hide.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from stemmap.errors import InputError
+from stemmap.types import FloatArray, Trajectory
+
+__all__ = [
+    "AteResult",
+    "GpsScreen",
+    "Se2Alignment",
+    "align_se2",
+    "ate",
+    "loop_closure_error",
+    "point_track",
+    "screen_gps",
+]
+
+
+@dataclass(frozen=True)
+class Se2Alignment:
+    """A rigid planar transform ``p -> R(theta) p + t`` (from :func:`align_se2`)."""
+
+    theta: float
+    t: tuple[float, float]
+
+    @property
+    def rotation(self) -> FloatArray:
+        c, s = math.cos(self.theta), math.sin(self.theta)
+        return np.array([[c, -s], [s, c]])
+
+    def apply(self, xy: ArrayLike) -> FloatArray:
+        """Transform (N, 2) points."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return p @ self.rotation.T + np.asarray(self.t)
+
+    def apply_poses(self, poses: ArrayLike) -> FloatArray:
+        """Transform (N, 3) poses (headings rotate by ``theta``)."""
+        p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        out = np.empty_like(p)
+        out[:, :2] = self.apply(p[:, :2])
+        out[:, 2] = np.pi - np.mod(np.pi - (p[:, 2] + self.theta), 2 * np.pi)
+        return out
+
+
+def align_se2(src: ArrayLike, dst: ArrayLike, weights: ArrayLike | None = None) -> Se2Alignment:
+    """Best-fit rigid transform (rotation + translation, no scale) taking ``src`` onto ``dst``.
+
+    Closed form (2-D Kabsch/Umeyama): with centred point sets ``a = src - mean``,
+    ``b = dst - mean``, ``theta = atan2(sum(a_x b_y - a_y b_x), sum(a_x b_x + a_y b_y))`` and
+    ``t = mean_dst - R mean_src``; this minimises ``sum w |R src + t - dst|^2``.
+
+    Raises
+    ------
+    InputError
+        On shape mismatch or fewer than 2 points.
+    """
+    a = np.asarray(src, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(dst, dtype=np.float64).reshape(-1, 2)
+    if a.shape != b.shape:
+        raise InputError(f"align_se2: src has {a.shape[0]} points but dst has {b.shape[0]}.")
+    if a.shape[0] < 2:
+        raise InputError(f"align_se2 needs at least 2 point pairs, got {a.shape[0]}.")
+    w = np.ones(a.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    ma = w @ a
+    mb = w @ b
+    ac, bc = a - ma, b - mb
+    s = float(w @ (ac[:, 0] * bc[:, 1] - ac[:, 1] * bc[:, 0]))
+    c = float(w @ (ac[:, 0] * bc[:, 0] + ac[:, 1] * bc[:, 1]))
+    theta = math.atan2(s, c)
+    R = np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]])
+    t = mb - R @ ma
+    return Se2Alignment(theta, (float(t[0]), float(t[1])))
+
+
+def point_track(
+    trajectory: Trajectory, times: ArrayLike, offset: tuple[float, float] = (0.0, 0.0)
+) -> FloatArray:
+    """Positions (N, 2) at ``times`` of the point at ``offset`` (forward, left) in the vehicle
+    frame, linearly interpolated between trajectory poses (e.g. the GPS antenna or the laser)."""
+    p = trajectory.interpolate(times)
+    a, b = offset
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    return np.column_stack((p[:, 0] + a * c - b * s, p[:, 1] + a * s + b * c))
+
+
+@dataclass(frozen=True, eq=False)
+class GpsScreen:
+    """Result of :func:`screen_gps`: ``keep`` (G,) bool and the counts."""
+
+    keep: NDArray[np.bool_]
+    n_total: int
+    n_kept: int
+    rule: str
+
+
+def screen_gps(
+    gps_times: ArrayLike,
+    gps_xy: ArrayLike,
+    odo_xy: ArrayLike,
+    odo_distance: ArrayLike,
+    *,
+    abs_tol: float = 0.5,
+    rel_tol: float = 0.10,
+) -> GpsScreen:
+    """Keep the GPS fixes whose motion agrees with the wheel odometry.
+
+    A fix ``k`` is kept when its displacement ``D = |g_k - g_j|`` from the previous KEPT fix ``j``
+    matches the odometry between the two times::
+
+        chord - tol <= D <= arc + tol,     tol = abs_tol + rel_tol * arc
+
+    where ``arc`` is the path length driven (from the wheel encoder) and ``chord`` the length of
+    the dead-reckoned displacement over the same interval (``chord <= arc``; they differ only when
+    the vehicle turned between the fixes, e.g. across a GPS outage). The first kept fix is the
+    first one that agrees with its successor by the same rule. The rule never looks at the
+    trajectory being evaluated.
+
+    Parameters
+    ----------
+    gps_times : (G,) s, increasing
+    gps_xy : (G, 2) m
+    odo_xy : (G, 2) m
+        Dead-reckoned position of the same vehicle point at ``gps_times`` (any frame).
+    odo_distance : (G,) m
+        Cumulative path length driven at ``gps_times``.
+    abs_tol, rel_tol : float
+        The paper-style tolerance "0.5 m + 10 %".
+    """
+    t = np.asarray(gps_times, dtype=np.float64).reshape(-1)
+    g = np.asarray(gps_xy, dtype=np.float64).reshape(-1, 2)
+    o = np.asarray(odo_xy, dtype=np.float64).reshape(-1, 2)
+    dist = np.asarray(odo_distance, dtype=np.float64).reshape(-1)
+    n = t.shape[0]
+    if not (g.shape[0] == o.shape[0] == dist.shape[0] == n):
+        raise InputError(
+            f"screen_gps: {n} times, {g.shape[0]} fixes, {o.shape[0]} odometry positions and "
+            f"{dist.shape[0]} distances must all match."
+        )
+    keep = np.zeros(n, dtype=bool)
+
+    def agrees(j: int, k: int) -> bool:
+        d = float(np.hypot(*(g[k] - g[j])))
+        arc = float(dist[k] - dist[j])
+        chord = float(np.hypot(*(o[k] - o[j])))
+        tol = abs_tol + rel_tol * arc
+        return chord - tol <= d <= arc + tol
+
+    start = next((k for k in range(n - 1) if agrees(k, k + 1)), None)
+    if start is not None:
+        keep[start] = True
+        j = start
+        for k in range(start + 1, n):
+            if agrees(j, k):
+                keep[k] = True
+                j = k
+    rule = f"displacement vs odometry within {abs_tol} m + {rel_tol:.0%} of distance driven"
+    return GpsScreen(keep, n, int(keep.sum()), rule)
+
+
+@dataclass(frozen=True, eq=False)
+class AteResult:
+    """Absolute trajectory error after one rigid alignment; falsy (with ``reason``) on failure."""
+
+    rmse: float
+    p95: float
+    max: float
+    mean: float
+    n: int
+    errors: FloatArray
+    alignment: Se2Alignment | None
+    reason: str = ""
+
+    def __bool__(self) -> bool:
+        return self.n > 0 and self.alignment is not None
+
+    def as_dict(self, prefix: str = "ate_") -> dict[str, float | int]:
+        return {
+            f"{prefix}rmse_m": self.rmse,
+            f"{prefix}p95_m": self.p95,
+            f"{prefix}max_m": self.max,
+            f"{prefix}mean_m": self.mean,
+            f"{prefix}n": self.n,
+        }
+
+
+def ate(
+    trajectory: Trajectory,
+    ref_times: ArrayLike,
+    ref_xy: ArrayLike,
+    *,
+    offset: tuple[float, float] = (0.0, 0.0),
+    keep: ArrayLike | None = None,
+) -> AteResult:
+    """ATE of the point at ``offset`` on the vehicle against reference positions.
+
+    The trajectory is interpolated at the reference times inside its time span, aligned ONCE by
+    :func:`align_se2` to all kept references, and every kept reference is scored (no trimming).
+
+    Returns
+    -------
+    AteResult
+        Falsy with a ``reason`` if fewer than 3 references overlap the trajectory.
+    """
+    rt = np.asarray(ref_times, dtype=np.float64).reshape(-1)
+    rx = np.asarray(ref_xy, dtype=np.float64).reshape(-1, 2)
+    if rx.shape[0] != rt.shape[0]:
+        raise InputError(f"ate: {rt.shape[0]} reference times but {rx.shape[0]} positions.")
+    m = np.ones(rt.shape[0], dtype=bool) if keep is None else np.asarray(keep, dtype=bool).copy()
+    if m.shape != rt.shape:
+        raise InputError(f"ate: keep mask has shape {m.shape}, need {rt.shape}.")
+    m &= (rt >= trajectory.times[0]) & (rt <= trajectory.times[-1])
+    if m.sum() < 3:
+        return AteResult(
+            math.nan,
+            math.nan,
+            math.nan,
+            math.nan,
+            0,
+            np.zeros(0),
+            None,
+            reason=f"only {int(m.sum())} reference positions overlap the trajectory (need 3).",
+        )
+    est = point_track(trajectory, rt[m], offset)
+    al = align_se2(est, rx[m])
+    err = np.hypot(*(al.apply(est) - rx[m]).T)
+    return AteResult(
+        rmse=float(np.sqrt(np.mean(err**2))),
+        p95=float(np.percentile(err, 95)),
+        max=float(err.max()),
+        mean=float(err.mean()),
+        n=int(err.shape[0]),
+        errors=err,
+        alignment=al,
+    )
+
+
+def loop_closure_error(
+    trajectory: Trajectory,
+    true_displacement: ArrayLike = (0.0, 0.0),
+    *,
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> float:
+    """Loop-closure error (visual-lidar paper §3.2): Euclidean xy distance between the estimated
+    end point and where it should be relative to the start.
+
+    The paper's prerequisite is a run that starts and ends at the same spot
+    (``true_displacement = (0, 0)``); with ground truth pass the true end-minus-start
+    displacement expressed in the START POSE's frame (m), so the two compare whatever the
+    world frames are.
+    """
+    if len(trajectory) < 2:
+        raise InputError("loop_closure_error needs a trajectory with at least 2 poses.")
+    p = point_track(trajectory, trajectory.times[[0, -1]], offset)
+    th0 = float(trajectory.poses[0, 2])
+    c, s = math.cos(th0), math.sin(th0)
+    w = p[1] - p[0]
+    body = np.array([c * w[0] + s * w[1], -s * w[0] + c * w[1]])
+    d = body - np.asarray(true_displacement, dtype=np.float64).reshape(2)
+    return float(np.hypot(d[0], d[1]))

@@ -1,0 +1,123 @@
+"""Victoria Park loader: counts, conventions (tested against the data), bad input."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from stemmap.datasets.victoria_park import (
+    dataset_bearing_to_ours,
+    load_victoria_park,
+    victoria_park_model,
+)
+from stemmap.errors import InputError
+from stemmap.slam.base import observation_to_world
+from stemmap.slam.motion import AckermannModel, preintegrate
+
+
+@pytest.fixture(scope="module")
+def vp(datasets_dir):
+    return load_victoria_park(datasets_dir / "victoria_park")
+
+
+def test_counts_and_time_bases(vp):
+    assert len(vp.frames) == 7249  # 7,230 scans with detections + 19 inferred empty scans
+    assert vp.frames.n_detections == 52974
+    assert len(vp.controls) == 61945
+    assert vp.gps_xy.shape == (4466, 2)
+    assert vp.frames.times[0] == pytest.approx(0.852)
+    assert np.all(np.diff(vp.frames.times) > 0.2)  # scan period 0.2135 s
+    assert np.all(np.abs(vp.frames.bearings) <= math.pi / 2 + 1e-9)  # 180 deg laser, ahead
+    assert vp.skipped == {}
+
+
+def test_bearing_conversion():
+    np.testing.assert_allclose(
+        dataset_bearing_to_ours([0.0, math.pi / 2, math.pi]), [-math.pi / 2, 0.0, math.pi / 2]
+    )
+
+
+def _consistency(vp, model, flip=False, lag=5):
+    """Median world-frame distance between a tree seen now and the same tree `lag` scans later,
+    both placed with dead reckoning: small when the geometry and conventions are right."""
+    fr = vp.frames
+    pre = preintegrate(model, vp.controls, fr.times)
+    bear = -fr.bearings if flip else fr.bearings
+    w = observation_to_world(pre.poses[fr.frame_index], fr.ranges, bear, model.sensor_offset)
+    d = []
+    for f in range(len(fr) - lag):
+        A = w[fr.ptr[f] : fr.ptr[f + 1]]
+        B = w[fr.ptr[f + lag] : fr.ptr[f + lag + 1]]
+        if len(A) and len(B):
+            dd, _ = cKDTree(A).query(B)
+            d.append(dd[dd < 3.0])
+    return float(np.median(np.concatenate(d)))
+
+
+@pytest.mark.slow
+def test_conventions_are_the_ones_the_data_supports(vp):
+    part = vp.slice(0.0, 400.0)
+    ours = _consistency(part, victoria_park_model())
+    # full run, measured: 0.17 m ours vs 0.75 m mirrored bearings, 0.23 m with a = 0.95 m,
+    # 0.23 m with the encoder on the right wheel (H < 0), 0.20 m with the laser on the right
+    assert ours < 0.25
+    assert _consistency(part, victoria_park_model(), flip=True) > 2 * ours
+    assert _consistency(part, AckermannModel(a=0.95)) > ours
+    assert _consistency(part, AckermannModel(H=-0.76)) > ours
+    assert _consistency(part, AckermannModel(b=-0.5)) > ours
+
+
+def test_slice_and_problem(vp):
+    part = vp.slice(100.0, 130.0)
+    assert 130 < len(part.frames) < 145  # 30 s / 0.2135 s
+    assert part.frames.times[0] >= 100.0 and part.frames.times[-1] <= 130.0
+    assert part.controls.times[0] <= 100.0  # hold value before the slice start is kept
+    assert np.all((part.gps_times >= 100.0) & (part.gps_times <= 130.0))
+    p = part.problem()
+    assert p.sensor_offset == (3.78, 0.5)
+    with pytest.raises(InputError):
+        vp.slice(5000.0, 6000.0)
+
+
+def _write_copy(src: Path, dst: Path, edit=None) -> None:
+    dst.mkdir()
+    for name in ("inputs.dat", "measurements.dat", "gps.dat"):
+        lines = (src / name).read_text().splitlines()[:400]
+        if edit and name in edit:
+            lines = edit[name](lines)
+        (dst / name).write_text("\n".join(lines) + "\n")
+
+
+def test_missing_file_is_input_error(tmp_path, datasets_dir):
+    with pytest.raises(InputError, match="does not exist"):
+        load_victoria_park(tmp_path / "nope")
+    _write_copy(datasets_dir / "victoria_park", tmp_path / "vp")
+    (tmp_path / "vp" / "gps.dat").unlink()
+    with pytest.raises(InputError, match=r"gps\.dat is missing"):
+        load_victoria_park(tmp_path / "vp")
+
+
+def test_truncated_and_backwards_rows_are_skipped_with_warning(tmp_path, datasets_dir, caplog):
+    def damage(lines):
+        lines = list(lines)
+        lines[10] = lines[10].split()[0]  # truncated row
+        t = lines[20].split()
+        lines[20] = " ".join(["0.0", *t[1:]])  # time going backwards
+        return lines
+
+    _write_copy(
+        datasets_dir / "victoria_park",
+        tmp_path / "vp",
+        {"measurements.dat": damage},
+    )
+    vp = load_victoria_park(tmp_path / "vp", max_bad_fraction=0.05)
+    assert vp.skipped["measurements.dat"] == 2
+    assert vp.frames.n_detections == 398
+    assert "malformed" in caplog.text
+    # 2 bad rows of 400 (0.5 %) exceed a 0.1 % budget
+    with pytest.raises(InputError, match="more than"):
+        load_victoria_park(tmp_path / "vp", max_bad_fraction=0.001)
