@@ -1,0 +1,323 @@
+"""Per-segment features and filters for trunk candidates in 2D scans.
+
+Everything is computed for *all segments of a batch at once* from the flattened returns of a
+:class:`~stemmap.scan.segment.Segments` table (``np.add.reduceat`` over segment starts); no
+per-segment Python loop.
+
+Paper methods
+-------------
+* :func:`point_curvature` -- curvature of a single point, Zheng et al. 2012 eq. 3 (corrected).
+* :func:`cluster_curvature` -- curvature of the whole cluster, Zheng §3.2 criterion (1).
+* :func:`chord_width` -- trunk width by the law of cosines from the edge beams, Xue et al. 2018
+  eq. 12; also Zheng §3.2 criterion (3), the greatest acceptable width, and the visual-lidar
+  paper's 0.55 m width threshold (§2.2).
+* :func:`sagitta_depth` -- depth of the cluster, Zheng §3.2 criterion (4).
+* :func:`radius_median_filter` -- keep returns within 0.5 m of the cluster's median point
+  (visual-lidar paper §2.3), which separates overlapping trunks.
+* :func:`line_fit_rms` -- residual of the best straight line; :func:`is_straight` rejects walls
+  and fences (ours: the papers only reject them implicitly through depth and width).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from stemmap.errors import ConfigError
+from stemmap.scan.segment import Segments
+from stemmap.types import FloatArray
+
+__all__ = [
+    "SegmentFeatures",
+    "chord_width",
+    "cluster_curvature",
+    "is_straight",
+    "line_fit_rms",
+    "point_curvature",
+    "radius_median_filter",
+    "sagitta_depth",
+    "segment_features",
+    "segment_sum",
+]
+
+BoolArray = NDArray[np.bool_]
+
+
+def segment_sum(values: ArrayLike, segs: Segments) -> FloatArray:
+    """Sum of a per-return quantity (M,) over every segment, shape (K,)."""
+    v = np.asarray(values, dtype=np.float64)
+    if len(segs) == 0:
+        return np.zeros(0)
+    out: FloatArray = np.add.reduceat(v, segs.start)
+    return out
+
+
+def chord_width(r0: ArrayLike, r1: ArrayLike, theta: ArrayLike) -> FloatArray:
+    """Trunk width from the two edge beams by the law of cosines (Xue et al. 2018, eq. 12).
+
+    ``AB^2 = O_R A^2 + O_R B^2 - 2 O_R A O_R B cos(theta)``.
+
+    Parameters
+    ----------
+    r0, r1 : array_like, metres -- ranges of the first and last return of the segment
+    theta : array_like, radians -- angle between the two edge beams
+
+    Returns
+    -------
+    ndarray, metres
+
+    Notes
+    -----
+    The chord between the outermost returns is shorter than the diameter: the edge beams hit
+    the trunk inside its tangent lines (Xue et al. report 6-16.7 % under-estimation). It is a
+    width *feature*, not a diameter estimate.
+
+    Examples
+    --------
+    >>> round(float(chord_width(1.0, 1.0, np.pi / 3)), 12)
+    1.0
+    """
+    a = np.asarray(r0, dtype=np.float64)
+    b = np.asarray(r1, dtype=np.float64)
+    c = np.cos(np.asarray(theta, dtype=np.float64))
+    out: FloatArray = np.sqrt(np.maximum(a * a + b * b - 2.0 * a * b * c, 0.0))
+    return out
+
+
+def point_curvature(r: ArrayLike, segs: Segments | None = None) -> FloatArray:
+    """Curvature of single returns (Zheng et al. 2012, eq. 3, corrected).
+
+    ``cur_i = (l_{i+1} - l_i) - (l_i - l_{i-1}) = l_{i+1} - 2 l_i + l_{i-1}``.
+
+    Parameters
+    ----------
+    r : array_like of shape (M,), metres, ranges in beam order
+    segs : Segments, optional
+        When given, the first and last return of every segment (no neighbour inside the
+        segment) get NaN; otherwise only the two ends of ``r``.
+
+    Returns
+    -------
+    ndarray of shape (M,)
+
+    Notes
+    -----
+    The paper prints ``l_{i+1} - 2 l_{i-1} + l_i``, which contradicts its own first
+    expression; we implement the second difference (decision in
+    docs/algorithms/scan-detection.md). A trunk facing the scanner is convex in range
+    (``cur > 0`` near its middle); a one-beam spike outward has a large negative curvature.
+
+    Examples
+    --------
+    >>> point_curvature([2.0, 1.0, 2.0, 3.0]).tolist()
+    [nan, 2.0, 0.0, nan]
+    """
+    v = np.asarray(r, dtype=np.float64)
+    out = np.full(v.shape, np.nan)
+    if v.shape[0] >= 3:
+        out[1:-1] = v[2:] - 2.0 * v[1:-1] + v[:-2]
+    if segs is not None and len(segs):
+        out[segs.start] = np.nan
+        out[segs.stop - 1] = np.nan
+    return out
+
+
+def _edge_angle(segs: Segments) -> FloatArray:
+    """Angle at the sensor between the first and last return of every segment, radians."""
+    p = segs.points
+    i0, i1 = segs.start, segs.stop - 1
+    cross = p.x[i0] * p.y[i1] - p.y[i0] * p.x[i1]
+    dot = p.x[i0] * p.x[i1] + p.y[i0] * p.y[i1]
+    out: FloatArray = np.abs(np.arctan2(cross, dot))
+    return out
+
+
+def sagitta_depth(segs: Segments) -> FloatArray:
+    """Depth of every segment: largest distance of a return from the chord between its ends,
+    measured towards the sensor (Zheng et al. 2012, §3.2 criterion 4).
+
+    Returns
+    -------
+    ndarray of shape (K,), metres; negative when the segment bulges away from the sensor
+    (a concave shape, never a trunk seen from outside); 0 for segments of 1-2 returns.
+
+    Notes
+    -----
+    Zheng et al. name the criterion ("smallest acceptable depth of the cluster") without
+    defining depth; we take the sagitta, which is 0 for flat objects (ground, walls) and close
+    to the radius for a trunk (decision in docs/algorithms/scan-detection.md).
+    """
+    k = len(segs)
+    if k == 0:
+        return np.zeros(0)
+    p = segs.points
+    lab = segs.labels
+    i0, i1 = segs.start, segs.stop - 1
+    x0, y0 = p.x[i0], p.y[i0]
+    dx, dy = p.x[i1] - x0, p.y[i1] - y0
+    length = np.hypot(dx, dy)
+    safe = np.where(length > 0, length, 1.0)
+    nx, ny = -dy / safe, dx / safe
+    # orient the normal towards the sensor (origin)
+    flip = (nx * -x0 + ny * -y0) < 0
+    nx = np.where(flip, -nx, nx)
+    ny = np.where(flip, -ny, ny)
+    d = (p.x - x0[lab]) * nx[lab] + (p.y - y0[lab]) * ny[lab]
+    dmax: FloatArray = np.maximum.reduceat(d, segs.start)
+    dmin: FloatArray = np.minimum.reduceat(d, segs.start)
+    out = np.where(dmax >= -dmin, dmax, dmin)
+    out = np.where(length > 0, out, 0.0)
+    res: FloatArray = out
+    return res
+
+
+def cluster_curvature(width: ArrayLike, depth: ArrayLike) -> FloatArray:
+    """Curvature of a whole cluster (Zheng et al. 2012, §3.2 criterion 1), 1/m.
+
+    The circle through the two ends of a chord of length ``w`` and the point at sagitta ``h``
+    has radius ``(w^2/4 + h^2) / (2 h)``; its inverse is the cluster curvature, so the paper's
+    minimum and maximum curvature "prescribe the acceptable value of the trunk radius".
+
+    Returns
+    -------
+    ndarray; 0 for a straight cluster (``h = 0``), negative for a concave one.
+
+    Examples
+    --------
+    >>> round(float(cluster_curvature(0.4, 0.2)), 9)  # half circle of radius 0.2
+    5.0
+    """
+    w = np.asarray(width, dtype=np.float64)
+    h = np.asarray(depth, dtype=np.float64)
+    den = w * w / 4.0 + h * h
+    out: FloatArray = np.where(den > 0, 2.0 * h / np.where(den > 0, den, 1.0), 0.0)
+    return out
+
+
+def line_fit_rms(segs: Segments) -> FloatArray:
+    """RMS orthogonal distance of every segment's returns to its best straight line (PCA).
+
+    Returns
+    -------
+    ndarray of shape (K,), metres (0 for segments of 1-2 returns).
+    """
+    k = len(segs)
+    if k == 0:
+        return np.zeros(0)
+    p = segs.points
+    n = segs.counts.astype(np.float64)
+    lab = segs.labels
+    # centre per segment first (numerically safe far from the sensor)
+    mx = segment_sum(p.x, segs) / n
+    my = segment_sum(p.y, segs) / n
+    qx = p.x - mx[lab]
+    qy = p.y - my[lab]
+    sxx = segment_sum(qx * qx, segs) / n
+    syy = segment_sum(qy * qy, segs) / n
+    sxy = segment_sum(qx * qy, segs) / n
+    tr = sxx + syy
+    det = sxx * syy - sxy * sxy
+    lam_min = tr / 2.0 - np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    out: FloatArray = np.sqrt(np.maximum(lam_min, 0.0))
+    return out
+
+
+def is_straight(
+    line_rms: ArrayLike, width: ArrayLike, sigma: float, *, ratio: float = 0.05
+) -> BoolArray:
+    """Straight-segment test (walls, fences, ground): the line residual, after removing the
+    range noise, is below ``ratio`` times the segment width (ours).
+
+    ``sqrt(max(rms^2 - sigma^2, 0)) < ratio * width``. A half-visible trunk has a line residual
+    of about 0.3 r (width 2 r), far above 5 % of its width; a wall's residual is pure noise.
+    """
+    if sigma < 0 or ratio <= 0:
+        raise ConfigError(f"need sigma >= 0 and ratio > 0, got {sigma}, {ratio}.")
+    rms = np.asarray(line_rms, dtype=np.float64)
+    excess = np.sqrt(np.maximum(rms * rms - sigma * sigma, 0.0))
+    out: BoolArray = excess < ratio * np.asarray(width, dtype=np.float64)
+    return out
+
+
+def _segment_median(values: FloatArray, segs: Segments) -> FloatArray:
+    """Median of ``values`` within every segment (lower middle for even counts... averaged)."""
+    lab = segs.labels
+    order = np.lexsort((values, lab))
+    sv = values[order]
+    c = segs.counts
+    lo = segs.start + (c - 1) // 2
+    hi = segs.start + c // 2
+    out: FloatArray = 0.5 * (sv[lo] + sv[hi])
+    return out
+
+
+def radius_median_filter(segs: Segments, radius: float = 0.5) -> BoolArray:
+    """Keep returns within ``radius`` of their segment's median point (visual-lidar paper §2.3).
+
+    The median point is the coordinate-wise median of the segment's returns. Returns farther
+    away belong to another trunk merged into the same cluster (or to noise).
+
+    Parameters
+    ----------
+    segs : Segments
+    radius : float, metres, > 0 (paper: 0.5 m)
+
+    Returns
+    -------
+    ndarray of shape (M,), bool -- True for returns to keep.
+    """
+    if not radius > 0:
+        raise ConfigError(f"radius median filter radius must be > 0 m, got {radius}.")
+    p = segs.points
+    if len(segs) == 0:
+        return np.zeros(len(p), dtype=bool)
+    lab = segs.labels
+    mx = _segment_median(p.x, segs)
+    my = _segment_median(p.y, segs)
+    out: BoolArray = np.hypot(p.x - mx[lab], p.y - my[lab]) <= radius
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentFeatures:
+    """Features of every segment, shape (K,) each.
+
+    Attributes
+    ----------
+    n_points : int
+    width : metres, edge-beam chord (Xue eq. 12)
+    depth : metres, sagitta towards the sensor (Zheng §3.2)
+    curvature : 1/m, cluster curvature (Zheng §3.2)
+    line_rms : metres, residual of the best straight line
+    arc_angle : radians, angle the segment subtends at the sensor
+    mean_range : metres
+    """
+
+    n_points: NDArray[np.int64]
+    width: FloatArray
+    depth: FloatArray
+    curvature: FloatArray
+    line_rms: FloatArray
+    arc_angle: FloatArray
+    mean_range: FloatArray
+
+
+def segment_features(segs: Segments) -> SegmentFeatures:
+    """Compute :class:`SegmentFeatures` for all segments at once."""
+    p = segs.points
+    n = segs.counts
+    theta = _edge_angle(segs) if len(segs) else np.zeros(0)
+    width = chord_width(p.r[segs.start], p.r[segs.stop - 1], theta)
+    depth = sagitta_depth(segs)
+    nf = np.maximum(n, 1).astype(np.float64)
+    return SegmentFeatures(
+        n_points=n,
+        width=width,
+        depth=depth,
+        curvature=cluster_curvature(width, depth),
+        line_rms=line_fit_rms(segs),
+        arc_angle=theta,
+        mean_range=segment_sum(p.r, segs) / nf,
+    )
