@@ -1,0 +1,361 @@
+"""FastSLAM 1.0 with per-particle landmark EKFs, vectorised over particles (Munjer 2025, §3.6).
+
+Munjer et al. localise and map trees with FastSLAM [Montemerlo 2002/2004]: every particle
+``S_t^(k) = {state_t^(k), map_t^(k)}`` (their eq. 9) carries a pose hypothesis, predicted with the
+motion model ``x_t = f(x_{t-1}, u_t) + ω_t`` (eq. 10), and its own map of independent 2x2 landmark
+EKFs updated with ``z_t = h(x_t, t_i) + v_t`` (eq. 11); particle weights follow the consistency of
+predicted and observed landmarks. Published parameter: 100 particles (their Table 1).
+
+Implementation choices (recorded in docs/algorithms/slam-frontends.md):
+
+* **FastSLAM 1.0**: the proposal is the motion model (odometry increment between frames from
+  :func:`~stemmap.slam.motion.preintegrate`, its covariance sampled per particle); the weight is the
+  product of the Gaussian likelihoods of the associated detections.
+* **Data association per particle** (maximum likelihood with a new-landmark likelihood ``p0``, as
+  in Montemerlo et al. 2004 "unknown data association"): every particle matches every detection
+  of the frame against its own ``max_candidates`` nearest landmarks; two detections may not claim
+  the same landmark (the less likely one is dropped for that frame).
+* Everything is an array over particles: poses ``(P, 3)``, landmark means ``(P, C, 2)``,
+  covariances ``(P, C, 2, 2)`` with a capacity ``C`` that doubles when needed; one frame is a
+  handful of numpy operations on ``(P, K, M)`` arrays (``K`` detections, ``M`` candidates).
+* Resampling (systematic, seeded) when the effective sample size falls below
+  ``resample_threshold * P``. The trajectory is the ancestry of the final best particle
+  (parent indices are stored per frame and back-tracked at the end, no path copying).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time as _time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from stemmap.errors import ConfigError
+from stemmap.slam.treedb import range_bearing_jacobians
+from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
+
+if TYPE_CHECKING:  # pragma: no cover
+    from stemmap.slam.base import SlamProblem, SlamResult
+
+__all__ = ["PRESETS", "FastSlam", "systematic_resample"]
+
+log = logging.getLogger(__name__)
+
+#: Published parameter sets: ``"munjer2025"`` = 100 particles (Munjer et al. 2025, Table 1).
+PRESETS: dict[str, dict[str, float | int]] = {"munjer2025": {"n_particles": 100}}
+
+
+def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> np.ndarray:
+    """Systematic resampling: indices (P,) drawn with one uniform offset.
+
+    Parameters
+    ----------
+    weights : ndarray (P,), non-negative, summing to 1
+    rng : numpy Generator
+
+    Returns
+    -------
+    ndarray (P,) of int, non-decreasing
+    """
+    p = weights.shape[0]
+    positions = (rng.random() + np.arange(p)) / p
+    cdf = np.cumsum(weights)
+    cdf[-1] = 1.0
+    return np.searchsorted(cdf, positions, side="left").astype(np.int64)
+
+
+def _sample_gaussian(cov: FloatArray, n: int, rng: np.random.Generator) -> FloatArray:
+    """n samples (n, 3) of N(0, cov) for a possibly singular PSD cov (eigen square root)."""
+    c = np.nan_to_num(0.5 * (cov + cov.T))
+    w, v = np.linalg.eigh(c)
+    sq = v * np.sqrt(np.clip(w, 0.0, None))
+    out: FloatArray = rng.standard_normal((n, 3)) @ sq.T
+    return out
+
+
+def _inv2(S: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Inverse and determinant of a stack of 2x2 matrices (..., 2, 2)."""
+    a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
+    det = a * d - b * c
+    inv = np.empty_like(S)
+    inv[..., 0, 0] = d / det
+    inv[..., 0, 1] = -b / det
+    inv[..., 1, 0] = -c / det
+    inv[..., 1, 1] = a / det
+    return inv, det
+
+
+@dataclass
+class FastSlam:
+    """FastSLAM 1.0 back-end (Munjer et al. 2025 §3.6; Montemerlo et al. 2002).
+
+    Parameters
+    ----------
+    preset : str, optional
+        ``"munjer2025"`` (100 particles).
+    n_particles : int
+        P (paper: 100).
+    sigma_range : float, m
+    sigma_bearing : float, rad
+        Detection noise R = diag(σ_r², σ_φ²).
+    new_landmark_chi2 : float
+        A detection starts a new landmark when its best candidate's log-likelihood is below that
+        of a detection at squared Mahalanobis distance ``new_landmark_chi2`` from a landmark whose
+        innovation covariance is 2R (a freshly initialised one) -- Montemerlo's ``p0``.
+    resample_threshold : float in (0, 1]
+        Resample when ESS < threshold * P.
+    max_candidates : int
+        Landmarks per particle considered for association: the nearest ones inside the frame's
+        window (the range and bearing span of its detections widened by ``window_margin``).
+    window_margin : float, m
+    min_observations : int
+        Landmarks of the best particle seen fewer times are left out of the output map.
+    seed : int
+    """
+
+    preset: str | None = None
+    n_particles: int = 100
+    sigma_range: float = 0.3
+    sigma_bearing: float = math.radians(1.0)
+    new_landmark_chi2: float = 13.8
+    resample_threshold: float = 0.5
+    max_candidates: int = 24
+    window_margin: float = 3.0
+    min_observations: int = 3
+    seed: int = 0
+    name: str = "fastslam"
+
+    def __post_init__(self) -> None:
+        if self.preset is not None:
+            if self.preset not in PRESETS:
+                raise ConfigError(
+                    f"unknown FastSlam preset {self.preset!r}; choose from {sorted(PRESETS)}."
+                )
+            self.n_particles = int(PRESETS[self.preset]["n_particles"])
+        if int(self.n_particles) < 1:
+            raise ConfigError(f"FastSlam.n_particles must be >= 1, got {self.n_particles}.")
+        if not (self.sigma_range > 0 and self.sigma_bearing > 0):
+            raise ConfigError("FastSlam: sigma_range and sigma_bearing must be > 0.")
+        if not 0 < self.resample_threshold <= 1:
+            raise ConfigError(
+                f"FastSlam.resample_threshold must be in (0, 1], got {self.resample_threshold}."
+            )
+        if int(self.max_candidates) < 1 or int(self.min_observations) < 1:
+            raise ConfigError("FastSlam: max_candidates and min_observations must be >= 1.")
+        if not self.new_landmark_chi2 > 0:
+            raise ConfigError("FastSlam.new_landmark_chi2 must be > 0.")
+
+    # ----------------------------------------------------------------------------------------
+    def run(
+        self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
+    ) -> SlamResult:
+        """Run the particle filter over ``problem``; see the module docstring."""
+        from stemmap.slam.base import SlamResult, frame_trajectory
+        from stemmap.slam.motion import compose, preintegrate
+
+        t_start = _time.perf_counter()
+        rng = np.random.default_rng(self.seed)
+        frames = problem.frames
+        nf = len(frames)
+        P = int(self.n_particles)
+        off = problem.sensor_offset
+        pre = preintegrate(
+            problem.motion, problem.controls, frames.times, np.asarray(problem.initial_pose)
+        )
+        R = np.diag([self.sigma_range**2, self.sigma_bearing**2])
+        _, det_new = _inv2(2.0 * R)
+        log_p0 = -0.5 * self.new_landmark_chi2 - 0.5 * math.log((2 * math.pi) ** 2 * det_new)
+
+        X = np.tile(np.asarray(problem.initial_pose, dtype=np.float64), (P, 1))
+        cap = 64
+        mu = np.zeros((P, cap, 2))
+        Sig = np.zeros((P, cap, 2, 2))
+        nobs = np.zeros((P, cap), dtype=np.int64)
+        dsum = np.zeros((P, cap))
+        dcnt = np.zeros((P, cap), dtype=np.int64)
+        tfirst = np.zeros((P, cap))
+        tlast = np.zeros((P, cap))
+        nlm = np.zeros(P, dtype=np.int64)
+        logw = np.zeros(P)
+        pose_hist = np.empty((nf, P, 3))
+        parents = np.empty((nf, P), dtype=np.int64)
+        ident = np.arange(P, dtype=np.int64)
+        n_resample = 0
+        rows = np.arange(P)[:, None]
+
+        for f in range(nf):
+            parents[f] = ident
+            if f > 0:
+                noise = _sample_gaussian(pre.covs[f - 1], P, rng)
+                X = compose(X, pre.deltas[f - 1][None, :] + noise)
+            r, b, d = frames.frame(f)
+            k = r.shape[0]
+            tf = float(frames.times[f])
+            if k:
+                z = np.column_stack((r, b))  # (K, 2)
+                M = min(int(self.max_candidates), int(nlm.max()))
+                ll_best = np.full((P, k), -np.inf)
+                assoc = np.full((P, k), -1, dtype=np.int64)
+                if M > 0:
+                    # candidates: the M nearest existing landmarks of each particle
+                    c_all = mu.shape[1]
+                    valid = np.arange(c_all)[None, :] < nlm[:, None]
+                    sx = X[:, 0] + off[0] * np.cos(X[:, 2]) - off[1] * np.sin(X[:, 2])
+                    sy = X[:, 1] + off[0] * np.sin(X[:, 2]) + off[1] * np.cos(X[:, 2])
+                    ddx = mu[:, :, 0] - sx[:, None]
+                    ddy = mu[:, :, 1] - sy[:, None]
+                    dist2 = ddx * ddx + ddy * ddy
+                    # window of this frame: range and bearing span of its detections + margin
+                    rmax = float(r.max()) + self.window_margin
+                    near = valid & (dist2 <= rmax * rmax)
+                    pp, cc = np.nonzero(near)
+                    bw = wrap_angle(np.arctan2(ddy[pp, cc], ddx[pp, cc]) - X[pp, 2])
+                    bmid = 0.5 * (float(b.max()) + float(b.min()))
+                    half = 0.5 * (float(b.max()) - float(b.min())) + self.window_margin / rmax
+                    inside = np.zeros_like(near)
+                    inside[pp, cc] = np.abs(wrap_angle(bw - bmid)) <= half + 0.05
+                    dist2 = np.where(inside, dist2, np.inf)
+                    if c_all > M:
+                        cand = np.argpartition(dist2, M - 1, axis=1)[:, :M]
+                    else:
+                        cand = np.broadcast_to(np.arange(c_all), (P, c_all))[:, :M]
+                    cvalid = np.take_along_axis(dist2, cand, axis=1) < np.inf  # (P, M)
+                    m_mu = mu[rows, cand]  # (P, M, 2)
+                    m_S = Sig[rows, cand]  # (P, M, 2, 2)
+                    zp, _, Hm = range_bearing_jacobians(X[:, None, :], m_mu, off)
+                    S = Hm @ m_S @ np.swapaxes(Hm, -1, -2) + R
+                    Sinv, detS = _inv2(S)
+                    nu = z[None, :, None, :] - zp[:, None, :, :]  # (P, K, M, 2)
+                    nu[..., 1] = wrap_angle(nu[..., 1])
+                    d2 = np.einsum("pkmi,pmij,pkmj->pkm", nu, Sinv, nu)
+                    ll = -0.5 * d2 - 0.5 * np.log((2 * math.pi) ** 2 * detS)[:, None, :]
+                    ll = np.where(cvalid[:, None, :], ll, -np.inf)
+                    jbest = np.argmax(ll, axis=2)  # (P, K)
+                    ll_best = np.take_along_axis(ll, jbest[..., None], axis=2)[..., 0]
+                    is_match = ll_best >= log_p0
+                    # resolve conflicts: one detection per landmark per particle
+                    pk_p, pk_k = np.nonzero(is_match)
+                    if pk_p.size:
+                        key = pk_p * M + jbest[pk_p, pk_k]
+                        order = np.lexsort((-ll_best[pk_p, pk_k], key))
+                        first = np.r_[True, key[order][1:] != key[order][:-1]]
+                        win = order[first]
+                        lose = order[~first]
+                        wp, wk = pk_p[win], pk_k[win]
+                        wm = jbest[wp, wk]
+                        lm = cand[wp, wm]
+                        assoc[wp, wk] = lm
+                        # EKF update of the matched landmarks (unique (p, lm) pairs)
+                        Hs = Hm[wp, wm]
+                        Ss = Sig[wp, lm]
+                        Kg = Ss @ np.swapaxes(Hs, 1, 2) @ Sinv[wp, wm]
+                        mu[wp, lm] = mu[wp, lm] + np.einsum("nij,nj->ni", Kg, nu[wp, wk, wm])
+                        newS = (np.eye(2) - Kg @ Hs) @ Ss
+                        Sig[wp, lm] = 0.5 * (newS + np.swapaxes(newS, 1, 2))
+                        nobs[wp, lm] += 1
+                        tlast[wp, lm] = tf
+                        dd = d[wk]
+                        okd = np.isfinite(dd)
+                        dsum[wp[okd], lm[okd]] += dd[okd]
+                        dcnt[wp[okd], lm[okd]] += 1
+                        # losers of a conflict: dropped for this frame (weight as p0)
+                        assoc[pk_p[lose], pk_k[lose]] = -2
+                # weights: matched -> likelihood, otherwise p0
+                logw += np.sum(np.where(assoc >= 0, ll_best, log_p0), axis=1)
+                # new landmarks
+                new = assoc == -1
+                n_new = new.sum(axis=1)
+                if np.any(n_new):
+                    need = int((nlm + n_new).max())
+                    if need > mu.shape[1]:
+                        grow = max(need, 2 * mu.shape[1]) - mu.shape[1]
+                        mu = np.concatenate((mu, np.zeros((P, grow, 2))), axis=1)
+                        Sig = np.concatenate((Sig, np.zeros((P, grow, 2, 2))), axis=1)
+                        nobs = np.concatenate((nobs, np.zeros((P, grow), np.int64)), axis=1)
+                        dsum = np.concatenate((dsum, np.zeros((P, grow))), axis=1)
+                        dcnt = np.concatenate((dcnt, np.zeros((P, grow), np.int64)), axis=1)
+                        tfirst = np.concatenate((tfirst, np.zeros((P, grow))), axis=1)
+                        tlast = np.concatenate((tlast, np.zeros((P, grow))), axis=1)
+                    np_, nk = np.nonzero(new)
+                    slot = nlm[np_] + (np.cumsum(new, axis=1) - 1)[np_, nk]
+                    Xp = X[np_]
+                    c, s = np.cos(Xp[:, 2]), np.sin(Xp[:, 2])
+                    sxn = Xp[:, 0] + off[0] * c - off[1] * s
+                    syn = Xp[:, 1] + off[0] * s + off[1] * c
+                    ang = Xp[:, 2] + b[nk]
+                    mxy = np.column_stack((sxn + r[nk] * np.cos(ang), syn + r[nk] * np.sin(ang)))
+                    _, _, Hn = range_bearing_jacobians(Xp, mxy, off)
+                    Hinv, _ = _inv2(Hn)
+                    mu[np_, slot] = mxy
+                    Sig[np_, slot] = Hinv @ R @ np.swapaxes(Hinv, 1, 2)
+                    nobs[np_, slot] = 1
+                    dd = d[nk]
+                    okd = np.isfinite(dd)
+                    dsum[np_, slot] = np.where(okd, dd, 0.0)
+                    dcnt[np_, slot] = okd.astype(np.int64)
+                    tfirst[np_, slot] = tf
+                    tlast[np_, slot] = tf
+                    nlm = nlm + n_new
+                # resample on low effective sample size
+                logw -= logw.max()
+                w = np.exp(logw)
+                w /= w.sum()
+                ess = 1.0 / float(np.sum(w * w))
+                if ess < self.resample_threshold * P:
+                    idx = systematic_resample(w, rng)
+                    parents[f] = idx
+                    X = X[idx]
+                    top = int(nlm.max())
+                    mu = mu[idx, : max(top, 1)]
+                    Sig = Sig[idx, : max(top, 1)]
+                    nobs = nobs[idx, : max(top, 1)]
+                    dsum = dsum[idx, : max(top, 1)]
+                    dcnt = dcnt[idx, : max(top, 1)]
+                    tfirst = tfirst[idx, : max(top, 1)]
+                    tlast = tlast[idx, : max(top, 1)]
+                    nlm = nlm[idx]
+                    logw = np.zeros(P)
+                    n_resample += 1
+                else:
+                    logw = np.log(np.maximum(w, 1e-300))
+            pose_hist[f] = X
+            if progress is not None and (f % 200 == 0 or f == nf - 1):
+                progress(f + 1, nf)
+
+        best = int(np.argmax(logw))
+        # back-track the ancestry of the best particle
+        traj = np.empty((nf, 3))
+        cur = best
+        for f in range(nf - 1, -1, -1):
+            traj[f] = pose_hist[f, cur]
+            cur = int(parents[f, cur])
+        n_best = int(nlm[best])
+        keep = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
+        trees = []
+        for new_id, j in enumerate(keep):
+            dia = dsum[best, j] / dcnt[best, j] if dcnt[best, j] > 0 else math.nan
+            trees.append(
+                Tree(
+                    id=new_id,
+                    x=float(mu[best, j, 0]),
+                    y=float(mu[best, j, 1]),
+                    diameter=float(dia),
+                    cov=Sig[best, j],
+                    n_obs=int(nobs[best, j]),
+                    first_time=float(tfirst[best, j]),
+                    last_time=float(tlast[best, j]),
+                )
+            )
+        stats: dict[str, float | int | str] = {
+            "backend": self.name,
+            "n_particles": P,
+            "landmarks_best_particle": n_best,
+            "landmarks_mapped": len(trees),
+            "resamples": n_resample,
+            "runtime_s": float(_time.perf_counter() - t_start),
+        }
+        return SlamResult(frame_trajectory(frames.times, traj), StemMap(tuple(trees)), stats)
