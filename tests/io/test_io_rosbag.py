@@ -1,0 +1,359 @@
+"""ROS bag readers, tested on ROS1 / ROS2 (sqlite3, mcap) bags written with rosbags' writers."""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import BagFactory
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stemmap.errors import InputError
+from stemmap.io import (
+    SkippedFrame,
+    decode_pointcloud2,
+    iter_scans,
+    list_topics,
+    read_imu,
+    read_navsatfix,
+    read_odometry,
+    read_pointclouds,
+    read_scans,
+)
+from stemmap.io.rosbag import (
+    PointField,
+    is_bag,
+    roll_pitch_from_acceleration,
+    roll_pitch_from_quaternion,
+)
+
+F32, F64, U8, U16, I32 = 7, 8, 2, 4, 5
+
+
+def _yaw_quat(yaw: float) -> tuple[float, float, float, float]:
+    return (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+
+
+def _quat_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
+    )
+
+
+# ---------------------------------------------------------------- LaserScan
+
+
+def test_laserscan_round_trip(tmp_path: Path, bags: BagFactory) -> None:
+    rng = np.random.default_rng(1)
+    ranges = rng.uniform(0.5, 20.0, size=(5, 271)).astype(np.float32)
+    ranges[:, 7] = np.nan
+    ranges[:, 8] = np.inf
+    msgs = [
+        ("/scan", bags.laserscan(1700000000.0 + 0.025 * i, ranges[i], -2.35, 0.0175, 0.05, 25.0))
+        for i in range(5)
+    ]
+    p = bags.write(tmp_path / "scans", msgs)
+    assert is_bag(p)
+    b = read_scans(p)
+    # float32 on the wire: ranges are exactly the float32 values promoted to float64
+    np.testing.assert_array_equal(b.ranges, ranges.astype(np.float64))
+    # stamps: sec + nanosec; float64 at 1.7e9 s resolves ~0.24 us
+    np.testing.assert_allclose(b.times, 1700000000.0 + 0.025 * np.arange(5), atol=1e-6)
+    assert b.angle_min == pytest.approx(-2.35, abs=1e-6)  # float32 field
+    assert b.angle_increment == pytest.approx(0.0175, rel=1e-6)
+    assert (b.range_min, b.range_max) == pytest.approx((0.05, 25.0), rel=1e-6)
+    assert b.frame == "laser"
+    assert len(list(iter_scans(p))) == 5
+
+
+def test_laserscan_intensities_kept(tmp_path: Path) -> None:
+    f = BagFactory(2)
+    p = f.write(tmp_path / "b", [("/scan", f.laserscan(1.0, [1.0, 2.0], intensities=[5.0, 6.0]))])
+    (s,) = list(iter_scans(p))
+    np.testing.assert_array_equal(s.intensities, [5.0, 6.0])
+
+
+def test_corrupt_message_is_skipped(tmp_path: Path, bags: BagFactory) -> None:
+    msgs = [("/scan", bags.laserscan(10.0 + i, np.full(30, 3.0))) for i in range(3)]
+    p = bags.write(tmp_path / "b", msgs, raw=[("/scan", "sensor_msgs/msg/LaserScan", b"\x00\x01")])
+    skipped: list[SkippedFrame] = []
+    b = read_scans(p, skipped=skipped)
+    assert len(b) == 3 and len(skipped) == 1
+    assert skipped[0].frame_index == 3 and "cannot be decoded" in skipped[0].reason
+
+
+def test_mixed_geometry_keeps_dominant(tmp_path: Path, bags: BagFactory) -> None:
+    msgs = [
+        ("/scan", bags.laserscan(1.0 + i, np.full(40 if i != 2 else 35, 3.0))) for i in range(4)
+    ]
+    p = bags.write(tmp_path / "b", msgs)
+    skipped: list[SkippedFrame] = []
+    b = read_scans(p, skipped=skipped)
+    assert b.n_beams == 40 and len(b) == 3
+    assert [s.frame_index for s in skipped] == [2] and "35 beams" in skipped[0].reason
+
+
+def test_zero_stamp_falls_back_to_bag_time(tmp_path: Path) -> None:
+    f = BagFactory(1)
+    p = f.write(tmp_path / "b", [("/scan", f.laserscan(0.0, [1.0]))])
+    (s,) = list(iter_scans(p))
+    assert s.time == pytest.approx(1e-9)  # the writer's receive time (1 ns)
+
+
+# ---------------------------------------------------------------- topic selection
+
+
+def test_topic_selection(tmp_path: Path) -> None:
+    f = BagFactory(2)
+    msgs = [
+        ("/front/scan", f.laserscan(1.0, [1.0, 2.0])),
+        ("/rear/scan", f.laserscan(1.0, [3.0, 4.0, 5.0])),
+        ("/odom", f.odometry(1.0, (0, 0, 0), _yaw_quat(0), (0, 0, 0), 0)),
+    ]
+    p = f.write(tmp_path / "b", msgs)
+    assert list_topics(p) == {
+        "/front/scan": "sensor_msgs/msg/LaserScan",
+        "/odom": "nav_msgs/msg/Odometry",
+        "/rear/scan": "sensor_msgs/msg/LaserScan",
+    }
+    with pytest.raises(InputError, match=r"2 sensor_msgs/msg/LaserScan topics.*--topic"):
+        read_scans(p)
+    assert read_scans(p, topic="/rear/scan").n_beams == 3
+    with pytest.raises(InputError, match=r"no topic '/scan'.*/front/scan \(sensor_msgs"):
+        read_scans(p, topic="/scan")
+    with pytest.raises(InputError, match=r"'/odom'.*carries nav_msgs/msg/Odometry"):
+        read_scans(p, topic="/odom")
+    with pytest.raises(InputError, match=r"no sensor_msgs/msg/Imu topic; available topics"):
+        read_imu(p)
+    assert len(read_odometry(p)) == 1  # the only Odometry topic is auto-selected
+
+
+# ---------------------------------------------------------------- damaged / missing bags
+
+
+def test_missing_and_non_bag_paths(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="does not exist"):
+        read_scans(tmp_path / "x.bag")
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(InputError, match="without metadata.yaml"):
+        list_topics(tmp_path / "folder")
+    (tmp_path / "fake.bag").write_bytes(b"#ROSBAG V2.0\nthis is not a bag")
+    with pytest.raises(InputError, match=r"cannot open ROS bag .*fake\.bag"):
+        read_scans(tmp_path / "fake.bag")
+
+
+def test_truncated_bag(tmp_path: Path, bags: BagFactory) -> None:
+    """A bag cut in half (recording killed, copy interrupted) is refused with an InputError
+    naming the file and the likely cause -- never a raw rosbags/sqlite exception."""
+    rng = np.random.default_rng(2)
+    msgs = [("/scan", bags.laserscan(1.0 + i, rng.uniform(1, 9, 500))) for i in range(200)]
+    p = bags.write(tmp_path / "b", msgs)
+    if p.is_dir():  # ROS2: truncate the storage file, read it without metadata
+        (storage,) = [q for q in p.iterdir() if q.suffix in (".db3", ".mcap")]
+        target = tmp_path / f"cut{storage.suffix}"
+        shutil.copy(storage, target)
+    else:
+        target = p
+    data = target.read_bytes()
+    target.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=rf"cannot open ROS bag '{target}'.*truncated"):
+        read_scans(target)
+
+
+# ---------------------------------------------------------------- Odometry
+
+
+def test_odometry_round_trip(tmp_path: Path, bags: BagFactory) -> None:
+    n = 20
+    t = 50.0 + 0.1 * np.arange(n)
+    yaw = np.linspace(-3.0, 3.0, n)  # crosses +-pi region edges without wrapping issues
+    cov = np.zeros((6, 6))
+    cov[0, 0], cov[1, 1], cov[5, 5], cov[0, 5] = 0.01, 0.02, 0.003, 0.001
+    order = np.r_[1, 0, 2:n]  # out-of-order stamps must come back sorted
+    msgs = [
+        ("/odom", bags.odometry(t[i], (i, -i, 0.5), _yaw_quat(yaw[i]), (1.5, 0.1, 0), 0.2, cov))
+        for i in order
+    ]
+    o = read_odometry(bags.write(tmp_path / "b", msgs))
+    np.testing.assert_allclose(o.times, t, atol=1e-6)
+    np.testing.assert_allclose(o.poses[:, 0], np.arange(n))
+    np.testing.assert_allclose(o.poses[:, 2], yaw, atol=1e-12)
+    np.testing.assert_allclose(o.twists, np.tile([1.5, 0.1, 0.2], (n, 1)))
+    np.testing.assert_allclose(o.z, 0.5)
+    np.testing.assert_allclose(o.pose_cov[0], cov[np.ix_([0, 1, 5], [0, 1, 5])])
+    assert (o.frame, o.child_frame) == ("odom", "base_link")
+    tr = o.trajectory()
+    assert len(tr) == n and tr.frame == "odom"
+
+
+# ---------------------------------------------------------------- IMU
+
+
+def test_imu_orientation_and_gravity(tmp_path: Path, bags: BagFactory) -> None:
+    roll, pitch, yaw = 0.1, -0.2, 1.0
+    q = _quat_rpy(roll, pitch, yaw)
+    g = 9.81
+    acc = (
+        -g * math.sin(pitch),
+        g * math.sin(roll) * math.cos(pitch),
+        g * math.cos(roll) * math.cos(pitch),
+    )
+    msgs = [
+        ("/imu", bags.imu(1.0, q, acc)),
+        ("/imu", bags.imu(2.0, (0, 0, 0, 0), acc, has_orientation=False)),  # accel-only IMU
+    ]
+    log = read_imu(bags.write(tmp_path / "b", msgs))
+    assert log.from_orientation.tolist() == [True, False]
+    # message 0 from the quaternion (float64 on the wire: exact to rounding)
+    assert (log.roll[0], log.pitch[0], log.yaw[0]) == pytest.approx((roll, pitch, yaw), abs=1e-12)
+    # message 1 from gravity: same tilt, no yaw
+    assert (log.roll[1], log.pitch[1]) == pytest.approx((roll, pitch), abs=1e-12)
+    assert math.isnan(log.yaw[1])
+    r, p = log.tilt_at([1.5])
+    assert (r[0], p[0]) == pytest.approx((roll, pitch), abs=1e-12)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.floats(-1.4, 1.4),  # |roll| < 80 deg
+    st.floats(-1.4, 1.4),  # |pitch| < 80 deg (away from gimbal lock)
+    st.floats(-3.1, 3.1),
+)
+def test_roll_pitch_quaternion_and_gravity_agree(roll: float, pitch: float, yaw: float) -> None:
+    q = _quat_rpy(roll, pitch, yaw)
+    r_q, p_q = roll_pitch_from_quaternion([q])
+    g = 9.81
+    acc = [
+        -g * math.sin(pitch),
+        g * math.sin(roll) * math.cos(pitch),
+        g * math.cos(roll) * math.cos(pitch),
+    ]
+    r_a, p_a = roll_pitch_from_acceleration([acc])
+    # both are exact formulas; 1e-9 rad allows float rounding of the trigonometry
+    assert r_q[0] == pytest.approx(roll, abs=1e-9) and p_q[0] == pytest.approx(pitch, abs=1e-9)
+    assert r_a[0] == pytest.approx(roll, abs=1e-9) and p_a[0] == pytest.approx(pitch, abs=1e-9)
+
+
+# ---------------------------------------------------------------- NavSatFix
+
+
+def test_navsatfix_round_trip(tmp_path: Path, bags: BagFactory) -> None:
+    msgs = [
+        ("/fix", bags.navsatfix(1.0, 60.0, 25.0, 30.0, status=2, var=0.04)),
+        ("/fix", bags.navsatfix(2.0, 60.0 + 100 / 111412.2, 25.0, 31.0, status=0)),
+        ("/fix", bags.navsatfix(3.0, math.nan, math.nan, math.nan, status=-1)),
+    ]
+    g = read_navsatfix(bags.write(tmp_path / "b", msgs))
+    np.testing.assert_array_equal(g.status, [2, 0, -1])
+    assert g.valid.tolist() == [True, True, False]
+    assert g.cov[0, 0, 0] == pytest.approx(0.04) and g.cov[0, 2, 2] == pytest.approx(0.16)
+    xy = g.to_local()
+    # 1 deg of latitude at 60 N spans 111412.2 m on WGS84 (meridian arc): 100 m north
+    assert xy[1] == pytest.approx([0.0, 100.0], abs=0.01)
+    assert g.frame == "gps"
+
+
+# ---------------------------------------------------------------- PointCloud2
+
+
+def _xyzi(
+    n: int, big: bool, pad: int
+) -> tuple[np.ndarray, bytes, list[tuple[str, int, int, int]], int]:
+    e = ">" if big else "<"
+    step = 16 + 2 + pad  # x y z intensity(f32) ring(u16) + padding
+    dt = np.dtype(
+        {
+            "names": ["x", "y", "z", "intensity", "ring"],
+            "formats": [e + "f4"] * 4 + [e + "u2"],
+            "offsets": [0, 4, 8, 12, 16],
+            "itemsize": step,
+        }
+    )
+    rng = np.random.default_rng(3)
+    a = np.zeros(n, dtype=dt)
+    for c in ("x", "y", "z", "intensity"):
+        a[c] = rng.uniform(-10, 10, n)
+    a["ring"] = np.arange(n) % 16
+    a["x"][5] = np.nan  # a missing return in an organised cloud
+    fields = [("x", 0, F32, 1), ("y", 4, F32, 1), ("z", 8, F32, 1), ("intensity", 12, F32, 1)]
+    fields.append(("ring", 16, U16, 1))
+    return a, a.tobytes(), fields, step
+
+
+@pytest.mark.parametrize("big", [False, True])
+def test_pointcloud2_round_trip(tmp_path: Path, bags: BagFactory, big: bool) -> None:
+    a, data, fields, step = _xyzi(64, big, pad=6)
+    msgs = [("/points", bags.pointcloud2(5.0, data, fields, step, 64, is_bigendian=big))]
+    (cloud,) = list(read_pointclouds(bags.write(tmp_path / "b", msgs)))
+    keep = np.isfinite(a["x"])
+    assert len(cloud) == 63 and cloud.frame == "velodyne" and cloud.time == 5.0
+    np.testing.assert_array_equal(cloud.xyz[:, 1], a["y"][keep].astype(np.float64))
+    np.testing.assert_array_equal(cloud.fields["ring"], a["ring"][keep])
+    assert cloud.fields["ring"].dtype.isnative
+
+
+def test_pointcloud2_row_padding_and_multi_count_fields() -> None:
+    # 2 rows x 3 points, point_step 32 (x,y,z f64 + 2-element u8 'rgb' at 24), row_step 100
+    width, height, step, row_step = 3, 2, 32, 100
+    buf = np.zeros(row_step * height, dtype=np.uint8)
+    expect = []
+    for r in range(height):
+        for c in range(width):
+            off = r * row_step + c * step
+            xyz = np.array([r, c, r * 10 + c], dtype="<f8")
+            buf[off : off + 24] = np.frombuffer(xyz.tobytes(), np.uint8)
+            buf[off + 24 : off + 26] = [r, c]
+            expect.append(xyz)
+    fields = [PointField("x", 0, F64), PointField("y", 8, F64), PointField("z", 16, F64)]
+    fields.append(PointField("rgb", 24, U8, 2))
+    fields.append(PointField("", 26, U8, 1))  # unnamed padding field: ignored
+    cloud = decode_pointcloud2(
+        buf[: row_step + width * step],  # last row without its trailing padding
+        fields,
+        point_step=step,
+        width=width,
+        height=height,
+        row_step=row_step,
+    )
+    np.testing.assert_array_equal(cloud.xyz, np.array(expect))
+    assert cloud.fields["rgb"].shape == (6, 2) and cloud.fields["rgb"][4].tolist() == [1, 1]
+
+
+def test_pointcloud2_bad_layouts() -> None:
+    xyz = [("x", 0, F32, 1), ("y", 4, F32, 1), ("z", 8, F32, 1)]
+    data = bytes(12 * 4)
+    with pytest.raises(InputError, match="no z field"):
+        decode_pointcloud2(data, xyz[:2], point_step=12, width=4)
+    with pytest.raises(InputError, match="unknown datatype 9"):
+        decode_pointcloud2(data, [*xyz, ("i", 0, 9, 1)], point_step=12, width=4)
+    with pytest.raises(InputError, match="does not fit in point_step 12"):
+        decode_pointcloud2(data, [*xyz, ("i", 10, F32, 1)], point_step=12, width=4)
+    with pytest.raises(InputError, match="needs 60"):
+        decode_pointcloud2(data, xyz, point_step=12, width=5)
+    with pytest.raises(InputError, match="appears twice"):
+        decode_pointcloud2(data, [*xyz, ("x", 0, F32, 1)], point_step=12, width=4)
+    with pytest.raises(InputError, match="row_step 10"):
+        decode_pointcloud2(data, xyz, point_step=12, width=4, row_step=10)
+    empty = decode_pointcloud2(b"", xyz, point_step=12, width=0)
+    assert len(empty) == 0
+
+
+def test_pointcloud2_keep_nans_and_int_coordinates() -> None:
+    a = np.array([(1, 2, 3), (4, 5, 6)], dtype=[("x", "<i4"), ("y", "<i4"), ("z", "<i4")])
+    c = decode_pointcloud2(
+        a.tobytes(), [("x", 0, I32, 1), ("y", 4, I32, 1), ("z", 8, I32, 1)], point_step=12, width=2
+    )
+    np.testing.assert_array_equal(c.xyz, [[1, 2, 3], [4, 5, 6]])
+    f = np.array([(np.nan, 0, 0)], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    fl = [("x", 0, F32, 1), ("y", 4, F32, 1), ("z", 8, F32, 1)]
+    assert len(decode_pointcloud2(f.tobytes(), fl, point_step=12, width=1, skip_nans=False)) == 1
