@@ -22,10 +22,14 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode="markdown",
 )
 
 #: Modules under stemmap.cli that define ``register(app)``; one per area.
-_COMMAND_MODULES: tuple[str, ...] = ()
+_COMMAND_MODULES: tuple[str, ...] = (
+    "stemmap.cli._harvest",
+    "stemmap.cli._detect",
+)
 
 
 @app.callback()

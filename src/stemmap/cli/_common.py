@@ -11,9 +11,12 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from stemmap.errors import StemmapError
 
-__all__ = ["console", "fail_on_stemmap_error", "progress"]
+__all__ = ["console", "fail_on_stemmap_error", "out", "progress"]
 
+#: diagnostics, warnings and progress go to stderr
 console = Console(stderr=True)
+#: results (tables, summaries) go to stdout
+out = Console()
 
 
 @contextlib.contextmanager
