@@ -63,6 +63,8 @@ class Stand:
         Centre of every non-tree object (one per bush, wall, rock, ...), for true-reject counts.
     clutter_kinds : tuple of str, length K
         Kind of each non-tree object (see :data:`CLUTTER_KINDS`).
+    clutter_objects_extent : ndarray of shape (K,), metres
+        Radius around each object centre that the object occupies (half a wall's length).
 
     Raises
     ------
@@ -80,6 +82,7 @@ class Stand:
     tree_is_polygon: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
     clutter_objects_xy: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     clutter_kinds: tuple[str, ...] = ()
+    clutter_objects_extent: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         xy = np.array(self.trees_xy, dtype=np.float64).reshape(-1, 2)
@@ -119,7 +122,16 @@ class Stand:
             raise InputError(
                 f"Stand.clutter_kinds has {len(kinds)} entries for {oxy.shape[0]} objects."
             )
+        ext = np.array(self.clutter_objects_extent, dtype=np.float64).reshape(-1)
+        if ext.shape[0] == 0:
+            ext = np.zeros(oxy.shape[0])
+        if ext.shape[0] != oxy.shape[0]:
+            raise InputError(
+                f"Stand.clutter_objects_extent has {ext.shape[0]} values for "
+                f"{oxy.shape[0]} objects."
+            )
         for name, arr in (
+            ("clutter_objects_extent", ext),
             ("trees_xy", xy),
             ("diameters", d),
             ("clutter_xy", cxy),
@@ -516,6 +528,7 @@ def add_clutter(
     owners: list[NDArray[np.int64]] = [stand.segment_owner]
     obj_xy: list[FloatArray] = [stand.clutter_objects_xy]
     kinds: list[str] = list(stand.clutter_kinds)
+    extents: list[float] = list(stand.clutter_objects_extent)
 
     def add_segments(s: FloatArray) -> None:
         segs.append(s.reshape(-1, 4))
@@ -531,6 +544,7 @@ def add_clutter(
         circ_r.append(gen.uniform(0.005, 0.025, m))
         obj_xy.append(c[None])
         kinds.append("bush")
+        extents.append(spread)
     for _ in range(n_branches):
         length = gen.uniform(0.4, 2.0)
         c = free_point(length / 2)
@@ -539,6 +553,7 @@ def add_clutter(
         add_segments(np.concatenate((c - d, c + d)))
         obj_xy.append(c[None])
         kinds.append("branch")
+        extents.append(length / 2)
     for _ in range(n_walls):
         length = gen.uniform(4.0, 12.0)
         c = free_point(length / 2)
@@ -547,6 +562,7 @@ def add_clutter(
         add_segments(np.concatenate((c - d, c + d)))
         obj_xy.append(c[None])
         kinds.append("wall")
+        extents.append(length / 2)
     for _ in range(n_fences):
         length = gen.uniform(5.0, 15.0)
         c = free_point(length / 2)
@@ -560,6 +576,7 @@ def add_clutter(
         circ_r.append(np.full(posts.shape[0], 0.05))
         obj_xy.append(c[None])
         kinds.append("fence")
+        extents.append(length / 2)
     for _ in range(n_rocks):
         radius = gen.uniform(0.25, 0.7)
         c = free_point(radius * 1.5)
@@ -570,6 +587,7 @@ def add_clutter(
         add_segments(_polygon_segments(poly))
         obj_xy.append(c[None])
         kinds.append("rock")
+        extents.append(float(rr.max()))
 
     return replace(
         stand,
@@ -579,6 +597,7 @@ def add_clutter(
         segment_owner=np.concatenate(owners),
         clutter_objects_xy=np.vstack(obj_xy),
         clutter_kinds=tuple(kinds),
+        clutter_objects_extent=np.asarray(extents, dtype=np.float64),
     )
 
 

@@ -486,34 +486,76 @@ def cast_scans(
 # --------------------------------------------------------------------------------------------
 
 
+@numba.njit(cache=True)
+def _combine_kernel(
+    sub_r: FloatArray,
+    sub_id: NDArray[np.int64],
+    k_min: int,
+    out_r: FloatArray,
+    out_id: NDArray[np.int64],
+    out_mixed: NDArray[np.bool_],
+) -> None:
+    n_s, n_b, k = sub_r.shape
+    for s in range(n_s):
+        for i in range(n_b):
+            n_hit = 0
+            wsum = 0.0
+            rsum = 0.0
+            for j in range(k):
+                r = sub_r[s, i, j]
+                if r < np.inf:
+                    n_hit += 1
+                    w = 1.0 / (r * r)
+                    wsum += w
+                    rsum += w * r
+            if n_hit < k_min or n_hit == 0:
+                out_r[s, i] = np.inf
+                out_id[s, i] = -1
+                out_mixed[s, i] = False
+                continue
+            out_r[s, i] = rsum / wsum
+            best_id = -1
+            best_count = 0
+            best_range = np.inf
+            mixed = False
+            for j in range(k):
+                if sub_id[s, i, j] != sub_id[s, i, 0]:
+                    mixed = True
+                r = sub_r[s, i, j]
+                if not r < np.inf:
+                    continue
+                count = 0
+                for q in range(k):
+                    if sub_id[s, i, q] == sub_id[s, i, j] and sub_r[s, i, q] < np.inf:
+                        count += 1
+                if count > best_count or (count == best_count and r < best_range):
+                    best_count = count
+                    best_id = sub_id[s, i, j]
+                    best_range = r
+            out_id[s, i] = best_id
+            out_mixed[s, i] = mixed
+
+
 def _combine_sub_beams(
     sub_r: FloatArray, sub_id: NDArray[np.int64], min_hit_fraction: float
 ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
-    """Mixed-pixel model: (S, N, K) sub-beam ranges -> (S, N) range, hit id, mixed flag."""
+    """Mixed-pixel model: (S, N, K) sub-beam ranges -> (S, N) range, hit id, mixed flag.
+
+    Range: ``1/r^2``-weighted mean of the sub-beams that hit, if at least
+    ``ceil(min_hit_fraction * K)`` hit, else no return. Ground truth: the id covering most
+    sub-beams (ties: the one with the nearest sub-beam). Mixed: the sub-beams disagree.
+    """
     k = sub_r.shape[-1]
     if k == 1:
         return sub_r[..., 0], sub_id[..., 0], np.zeros(sub_r.shape[:-1], dtype=bool)
-    hit = np.isfinite(sub_r)
-    n_hit = hit.sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(hit, 1.0 / np.where(hit, sub_r, 1.0) ** 2, 0.0)
-        r = np.sum(w * np.where(hit, sub_r, 0.0), axis=-1) / np.sum(w, axis=-1)
-    returns = n_hit >= math.ceil(min_hit_fraction * k - 1e-9)
-    r = np.where(returns, r, np.inf)
-    # ground truth: the id covering most sub-beams; ties -> the nearest (sub-beams sorted by
-    # range put the nearest id first, argmax returns the first maximum)
-    order = np.argsort(np.where(hit, sub_r, np.inf), axis=-1, kind="stable")
-    ids_sorted = np.take_along_axis(sub_id, order, axis=-1)
-    counts = np.zeros(ids_sorted.shape, dtype=np.int64)
-    for j in range(k):
-        counts[..., j] = np.sum(ids_sorted == ids_sorted[..., j : j + 1], axis=-1)
-    counts = np.where(ids_sorted == HIT_NONE, -1, counts)
-    best = np.argmax(counts, axis=-1)
-    gt = np.take_along_axis(ids_sorted, best[..., None], axis=-1)[..., 0]
-    gt = np.where(returns, gt, HIT_NONE)
-    first = sub_id[..., :1]
-    mixed = returns & np.any(sub_id != first, axis=-1)
-    return r, gt, mixed
+    out_r = np.empty(sub_r.shape[:-1])
+    out_id = np.empty(sub_r.shape[:-1], dtype=np.int64)
+    out_mixed = np.empty(sub_r.shape[:-1], dtype=bool)
+    k_min = math.ceil(min_hit_fraction * k - 1e-9)
+    _combine_kernel(
+        np.ascontiguousarray(sub_r), np.ascontiguousarray(sub_id), k_min, out_r, out_id, out_mixed
+    )
+    return out_r, out_id, out_mixed
 
 
 def simulate_scans(

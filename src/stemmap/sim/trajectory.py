@@ -488,25 +488,25 @@ def clear_corridor(stand: Stand, path: ArrayLike, half_width: float) -> Stand:
     out = stand.subset_trees(keep_trees)
     keep_c = dist_to_path(out.clutter_xy) - out.clutter_radius > half_width
     seg = out.segments
-    clutter_seg = out.segment_owner < 0
-    d_seg = (
-        np.minimum.reduce(
-            [
-                dist_to_path(seg[:, :2]),
-                dist_to_path(seg[:, 2:]),
-                dist_to_path((seg[:, :2] + seg[:, 2:]) / 2),
-            ]
-        )
-        if seg.shape[0]
-        else np.zeros(0)
-    )
-    keep_s = ~clutter_seg | (d_seg > half_width)
+    if seg.shape[0]:
+        # distance of a segment to the path: min over 17 points along it (walls are long)
+        f = np.linspace(0.0, 1.0, 17)
+        pts = seg[:, None, :2] + f[None, :, None] * (seg[:, None, 2:] - seg[:, None, :2])
+        d_seg = dist_to_path(pts.reshape(-1, 2)).reshape(seg.shape[0], f.size).min(axis=1)
+    else:
+        d_seg = np.zeros(0)
+    keep_s = (out.segment_owner >= 0) | (d_seg > half_width)
+    # non-tree objects whose extent reaches into the corridor are dropped from the truth list
+    keep_o = dist_to_path(out.clutter_objects_xy) - out.clutter_objects_extent > half_width
     return replace(
         out,
         clutter_xy=out.clutter_xy[keep_c],
         clutter_radius=out.clutter_radius[keep_c],
         segments=seg[keep_s],
         segment_owner=out.segment_owner[keep_s],
+        clutter_objects_xy=out.clutter_objects_xy[keep_o],
+        clutter_kinds=tuple(k for k, ok in zip(out.clutter_kinds, keep_o, strict=True) if ok),
+        clutter_objects_extent=out.clutter_objects_extent[keep_o],
     )
 
 

@@ -1,0 +1,102 @@
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stemmap.errors import InputError
+from stemmap.eval import align_rigid_2d, map_metrics, pairwise_distance_errors
+from stemmap.types import StemMap, Tree
+
+
+def _rot(a: float) -> np.ndarray:
+    return np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+
+
+def test_pairwise_distance_errors_hand_built():
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 5.0]])
+    est = np.array([[0.0, 0.0], [11.0, 0.0], [0.0, 5.0]])
+    p = pairwise_distance_errors(est, truth)
+    assert p.percent_error[0, 1] == pytest.approx(10.0)
+    assert p.percent_error[0, 2] == pytest.approx(0.0)
+    d12_true, d12_est = math.hypot(10, 5), math.hypot(11, 5)
+    assert p.abs_error[1, 2] == pytest.approx(d12_est - d12_true)
+    expect = (10.0 + 0.0 + 100 * (d12_est - d12_true) / d12_true) / 3
+    assert p.mean_percent_error == pytest.approx(expect)
+    assert math.isnan(p.percent_error[1, 1])
+    json.dumps(p.to_dict())
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    a=st.floats(-3.1, 3.1), tx=st.floats(-50, 50), ty=st.floats(-50, 50), seed=st.integers(0, 999)
+)
+def test_pairwise_errors_are_frame_free_and_alignment_is_exact(a, tx, ty, seed):
+    truth = np.random.default_rng(seed).uniform(0, 30, (8, 2))
+    moved = truth @ _rot(a).T + [tx, ty]
+    p = pairwise_distance_errors(moved, truth)
+    assert p.max_percent_error < 1e-6
+    R, t = align_rigid_2d(moved, truth)
+    np.testing.assert_allclose(moved @ R.T + t, truth, atol=1e-8)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_map_metrics_counts_duplicates_and_spurious():
+    truth = np.array([[0.0, 0.0], [5.0, 0.0], [10.0, 0.0], [15.0, 0.0]])
+    tdiam = np.array([0.3, 0.3, 0.3, 0.3])
+    mp = np.array([[0.1, 0.0], [5.0, 0.1], [5.3, -0.2], [30.0, 0.0]])  # 1 dup near tree 1
+    mdiam = np.array([0.32, 0.28, 0.3, 0.3])
+    m = map_metrics(mp, mdiam, truth, tdiam, gate=0.5)
+    assert (m.n_matched, m.n_duplicates, m.n_spurious, m.n_missed) == (2, 1, 1, 2)
+    assert m.precision == 0.5 and m.recall == 0.5
+    assert m.duplicate_rate == 0.25
+    assert m.position_rmse == pytest.approx(0.1)
+    assert m.diameter_bias == pytest.approx(0.0)
+    assert m.diameter_rmse == pytest.approx(0.02)
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["n_duplicates"] == 1
+
+
+def test_map_metrics_alignment_recovers_a_rigidly_moved_map():
+    rng = np.random.default_rng(5)
+    truth = rng.uniform(0, 40, (40, 2))
+    a = math.radians(4.0)
+    noisy = truth + rng.normal(0, 0.05, truth.shape)  # 5 cm mapping noise
+    # small offsets: what a SLAM map starting at a slightly wrong pose looks like
+    mapped = (noisy - 20) @ _rot(a).T + 20 + [0.4, -0.3]
+    raw = map_metrics(mapped, np.full(40, 0.3), truth, np.full(40, 0.3), gate=0.5)
+    al = map_metrics(mapped, np.full(40, 0.3), truth, np.full(40, 0.3), gate=0.5, align=True)
+    assert al.n_matched == 40 > raw.n_matched
+    # after alignment only the 5 cm noise remains: RMSE of a 2D N(0, 0.05^2 I) error is
+    # 0.05 * sqrt(2) = 7 cm; allow sampling spread
+    assert al.position_rmse < 0.09
+    assert math.atan2(al.rotation[1, 0], al.rotation[0, 0]) == pytest.approx(-a, abs=0.005)
+    # inter-tree distances do not depend on the frame: same pairwise error either way
+    assert al.pairwise.mean_percent_error < 1.0
+
+
+def test_map_metrics_accepts_stemmap():
+    sm = StemMap((Tree(0, 1.0, 2.0, 0.3), Tree(1, 5.0, 2.0, 0.4)))
+    m = map_metrics(sm, None, [[1.0, 2.0], [5.0, 2.0]], [0.3, 0.5], gate=0.5)
+    assert m.n_matched == 2 and m.diameter_bias == pytest.approx(-0.05)
+
+
+def test_map_metrics_bad_inputs():
+    with pytest.raises(InputError, match="map_diam"):
+        map_metrics([[0, 0]], None, [[0, 0]], [0.3])
+    with pytest.raises(InputError, match="diameters"):
+        map_metrics([[0, 0]], [0.3, 0.2], [[0, 0]], [0.3])
+    with pytest.raises(InputError, match="gate"):
+        map_metrics([[0, 0]], [0.3], [[0, 0]], [0.3], gate=-1)
+    with pytest.raises(InputError, match="row for row"):
+        pairwise_distance_errors(np.zeros((3, 2)), np.zeros((2, 2)))
+    with pytest.raises(InputError):
+        align_rigid_2d(np.zeros((1, 2)), np.zeros((1, 2)))
+
+
+def test_empty_map():
+    m = map_metrics(np.zeros((0, 2)), np.zeros(0), [[0.0, 0.0]], [0.3])
+    assert m.n_matched == 0 and m.n_missed == 1 and math.isnan(m.precision)
+    assert math.isnan(m.pairwise.mean_percent_error)
