@@ -107,6 +107,11 @@ class DetectorConfig:
         Reject segments whose line residual is pure noise (walls, fences; ours).
     straight_ratio : float
         See :func:`stemmap.scan.features.is_straight`.
+    straight_test : {"chi2", "ratio"}
+        Chi-square test of a line against ``sigma`` or the residual/width ratio.
+    straight_min_points : int
+        Apply the straightness test only to segments with at least this many returns: 4-7
+        returns of a small or far trunk are as consistent with a line as with an arc.
     drop_partial : bool
         Drop segments with an occluded or truncated end.
     fit_method : str
@@ -145,6 +150,8 @@ class DetectorConfig:
     max_curvature: float = math.inf
     reject_straight: bool = False
     straight_ratio: float = 0.05
+    straight_test: Literal["chi2", "ratio"] = "chi2"
+    straight_min_points: int = 3
     drop_partial: bool = False
     fit_method: str = "kasa"
     sigma: float = 0.01
@@ -169,6 +176,8 @@ class DetectorConfig:
             object.__setattr__(self, "fov_deg", (float(self.fov_deg[0]), float(self.fov_deg[1])))
         if self.tilt not in ("none", "eq1", "rotation"):
             raise bad("tilt", self.tilt, "choose 'none', 'eq1' or 'rotation'")
+        if self.straight_test not in ("chi2", "ratio"):
+            raise bad("straight_test", self.straight_test, "choose 'chi2' or 'ratio'")
         if self.segmentation not in ("range_jump", "euclidean"):
             raise bad("segmentation", self.segmentation, "choose 'range_jump' or 'euclidean'")
         if not self.max_jump > 0:
@@ -298,12 +307,14 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_width": 1.6,
         "min_depth": 0.0,
         "reject_straight": True,
-        "straight_ratio": 0.05,
-        "fit_method": "kasa",
+        "straight_test": "chi2",
+        "straight_min_points": 8,
+        "fit_method": "ours",
         "sigma": 0.01,
         "min_radius": 0.02,
         "max_radius": 0.8,
-        "max_radius_width_ratio": 1.5,
+        "max_radius_width_ratio": 0.8,
+        "max_rms_sigma": 2.0,
     },
 }
 
@@ -648,7 +659,14 @@ class ScanTrunkDetector:
         keep &= f.depth >= cfg.min_depth
         keep &= (f.curvature >= cfg.min_curvature) & (f.curvature <= cfg.max_curvature)
         if cfg.reject_straight:
-            keep &= ~is_straight(f.line_rms, f.width, cfg.sigma, ratio=cfg.straight_ratio)
+            straight = is_straight(
+                f.line_rms,
+                f.width,
+                cfg.sigma,
+                ratio=cfg.straight_ratio,
+                n_points=f.n_points if cfg.straight_test == "chi2" else None,
+            )
+            keep &= ~(straight & (f.n_points >= cfg.straight_min_points))
         if cfg.drop_partial:
             keep &= ~segs.partial
         return segs.select(keep)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import chdtri
 
 from stemmap.errors import ConfigError
 from stemmap.scan.segment import Segments
@@ -225,17 +226,50 @@ def line_fit_rms(segs: Segments) -> FloatArray:
 
 
 def is_straight(
-    line_rms: ArrayLike, width: ArrayLike, sigma: float, *, ratio: float = 0.05
+    line_rms: ArrayLike,
+    width: ArrayLike,
+    sigma: float,
+    *,
+    ratio: float = 0.05,
+    n_points: ArrayLike | None = None,
+    alpha: float = 0.01,
 ) -> BoolArray:
-    """Straight-segment test (walls, fences, ground): the line residual, after removing the
-    range noise, is below ``ratio`` times the segment width (ours).
+    """Straight-segment test for walls, fences and ground (ours).
 
-    ``sqrt(max(rms^2 - sigma^2, 0)) < ratio * width``. A half-visible trunk has a line residual
-    of about 0.3 r (width 2 r), far above 5 % of its width; a wall's residual is pure noise.
+    Without ``n_points``: the line residual left after removing the range noise is below
+    ``ratio`` times the width, ``sqrt(max(rms^2 - sigma^2, 0)) < ratio * width``.
+
+    With ``n_points`` (the default of the detector): a chi-square test -- the segment is
+    straight when a straight line explains its returns within the noise,
+    ``n rms^2 / sigma^2 <= chi2_{n-2}(1 - alpha)``. A half-visible trunk has a line residual of
+    about ``0.31 r`` (r = radius), far above a 1 cm noise for any trunk worth measuring; a wall's
+    residual is the noise itself.
+
+    Parameters
+    ----------
+    line_rms : array_like of shape (K,), metres (:func:`line_fit_rms`)
+    width : array_like of shape (K,), metres
+    sigma : float, metres, > 0 for the chi-square test
+    ratio : float, > 0
+    n_points : array_like of shape (K,), int, optional
+    alpha : float in (0, 1) -- false-straight rate for a true line
+
+    Examples
+    --------
+    >>> is_straight([0.01, 0.05], [1.0, 0.3], 0.01, n_points=[20, 8]).tolist()
+    [True, False]
     """
-    if sigma < 0 or ratio <= 0:
-        raise ConfigError(f"need sigma >= 0 and ratio > 0, got {sigma}, {ratio}.")
+    if sigma < 0 or ratio <= 0 or not 0 < alpha < 1:
+        raise ConfigError(
+            f"need sigma >= 0, ratio > 0, 0 < alpha < 1; got {sigma}, {ratio}, {alpha}."
+        )
     rms = np.asarray(line_rms, dtype=np.float64)
+    if n_points is not None and sigma > 0:
+        n = np.asarray(n_points, dtype=np.float64)
+        dof = np.maximum(n - 2.0, 1.0)
+        stat = n * rms * rms / (sigma * sigma)
+        chi: BoolArray = stat <= chdtri(dof, alpha)
+        return chi
     excess = np.sqrt(np.maximum(rms * rms - sigma * sigma, 0.0))
     out: BoolArray = excess < ratio * np.asarray(width, dtype=np.float64)
     return out
