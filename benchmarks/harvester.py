@@ -66,7 +66,8 @@ def run(n_runs: int = 100, seed: int = 0) -> dict[str, object]:
         "runs": n_runs,
         "seed": seed,
         "scenario": {
-            "stand": "25 trees in an 11 m disc around the crane, none within 2 m, DBH ~ N(25, 8) cm",
+            "stand": "25 trees in an 11 m disc around the crane, none within 2 m, "
+            "DBH ~ N(25, 8) cm",
             "targets": "alternate nearest reachable trunk / trunk nearest a random bearing",
             "scanner": asdict(scanner),
             "mount": asdict(mount),

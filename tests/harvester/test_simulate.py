@@ -1,3 +1,4 @@
+import itertools
 import math
 
 import numpy as np
@@ -26,7 +27,7 @@ def test_loop_converges_on_the_chosen_trunk(seed):
     assert res.max_acceleration_ratio <= 1.02
     # the distance estimate shrinks every cycle while the target is tracked
     d = [c.distance for c in res.log]
-    assert all(b < a for a, b in zip(d, d[1:], strict=False))
+    assert all(b < a for a, b in itertools.pairwise(d))
 
 
 def test_noise_free_loop_is_nearly_exact():
