@@ -243,10 +243,8 @@ def lonlat_to_local(
     return np.column_stack((x, y))
 
 
-def _json_num(v: float, ndigits: int | None = None) -> float | None:
-    if not math.isfinite(v):
-        return None
-    return round(v, ndigits) if ndigits is not None else float(v)
+def _json_num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
 
 
 def _is_wgs84(crs: str | None) -> bool:
@@ -309,6 +307,8 @@ def write_trees_geojson(
     else:
         coords = xy
         out_crs = crs
+    if precision is not None:
+        coords = np.round(coords, precision)
     features = []
     for t, (cx, cy) in zip(stem_map.trees, coords, strict=True):
         row = _tree_row(t)
@@ -325,10 +325,7 @@ def write_trees_geojson(
                 "id": int(t.id),
                 "geometry": {
                     "type": "Point",
-                    "coordinates": [
-                        _json_num(float(cx), precision),
-                        _json_num(float(cy), precision),
-                    ],
+                    "coordinates": [_json_num(float(cx)), _json_num(float(cy))],
                 },
                 "properties": props,
             }

@@ -43,6 +43,13 @@ TRAJECTORY_CSV_COLUMNS = ("time", "x", "y", "theta")
 _TILT_WARN_RAD = math.radians(5.0)
 
 
+def wrap_if_needed(angle: FloatArray) -> FloatArray:
+    """Wrap to (-pi, pi] only the angles outside it, leaving the others bit-identical."""
+    a = np.asarray(angle, dtype=np.float64)
+    inside = (a > -math.pi) & (a <= math.pi)
+    return np.where(inside, a, np.asarray(wrap_angle(a)))
+
+
 def yaw_to_quaternion(yaw: FloatArray) -> FloatArray:
     """Quaternions ``(qx, qy, qz, qw)`` of rotations by ``yaw`` (rad) about +z, shape (N, 4)."""
     h = 0.5 * np.asarray(yaw, dtype=np.float64).reshape(-1)
@@ -61,7 +68,7 @@ def yaw_from_quaternion(q: FloatArray) -> FloatArray:
     with np.errstate(invalid="ignore", divide="ignore"):
         q = q / n
     x, y, z, w = q.T
-    return np.asarray(wrap_angle(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))))
+    return wrap_if_needed(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
 
 
 def write_trajectory_csv(path: PathLike, trajectory: Trajectory) -> None:
@@ -117,7 +124,7 @@ def read_trajectory_csv(path: PathLike, *, frame: str = "map") -> Trajectory:
     for c in TRAJECTORY_CSV_COLUMNS:
         require_finite(p, "trajectory CSV", table, c)
     cols = table.columns
-    poses = np.column_stack((cols["x"], cols["y"], wrap_angle(cols["theta"])))
+    poses = np.column_stack((cols["x"], cols["y"], wrap_if_needed(cols["theta"])))
     return _trajectory(p, cols["time"], poses, frame, table.lines)
 
 
