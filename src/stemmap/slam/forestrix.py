@@ -268,7 +268,8 @@ def pose_from_matches(
         cross = np.sum(qe[:, 0] * qt[:, 1] - qe[:, 1] * qt[:, 0])
         dot = np.sum(qe[:, 0] * qt[:, 0] + qe[:, 1] * qt[:, 1])
         dth = float(np.arctan2(cross, dot))
-    return PoseFit(dth, (float(ce[0]), float(ce[1])), tuple((ct - ce).tolist()), m)  # type: ignore[arg-type]
+    shift = ct - ce
+    return PoseFit(dth, (float(ce[0]), float(ce[1])), (float(shift[0]), float(shift[1])), m)
 
 
 # --------------------------------------------------------------------------------------------
@@ -571,7 +572,8 @@ class ForestrixSlam:
         dia = graph.diameters()
         cnt = np.asarray(graph.count, dtype=np.int64)
         trees = []
-        for new_id, j in enumerate(np.flatnonzero(cnt >= self.min_observations)):
+        for new_id, jj in enumerate(np.flatnonzero(cnt >= self.min_observations)):
+            j = int(jj)
             trees.append(
                 Tree(
                     id=new_id,
