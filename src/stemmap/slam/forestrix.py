@@ -572,17 +572,16 @@ class ForestrixSlam:
         dia = graph.diameters()
         cnt = np.asarray(graph.count, dtype=np.int64)
         trees = []
-        for new_id, jj in enumerate(np.flatnonzero(cnt >= self.min_observations)):
-            j = int(jj)
+        for new_id, jt in enumerate(np.flatnonzero(cnt >= self.min_observations).tolist()):
             trees.append(
                 Tree(
                     id=new_id,
-                    x=float(xy[j, 0]),
-                    y=float(xy[j, 1]),
-                    diameter=float(dia[j]),
-                    n_obs=int(cnt[j]),
-                    first_time=float(graph.first_time[j]),
-                    last_time=float(graph.last_time[j]),
+                    x=float(xy[jt, 0]),
+                    y=float(xy[jt, 1]),
+                    diameter=float(dia[jt]),
+                    n_obs=int(cnt[jt]),
+                    first_time=float(graph.first_time[jt]),
+                    last_time=float(graph.last_time[jt]),
                 )
             )
         stats: dict[str, float | int | str] = {
