@@ -522,6 +522,25 @@ def add_clutter(
             "add_clutter could not find free space for an object; the stand is too dense."
         )
 
+    def free_segment(lo: float, hi: float) -> tuple[FloatArray, FloatArray]:
+        """Centre and half-vector of a segment whose every point clears the trunks."""
+        for _ in range(500):
+            length = gen.uniform(lo, hi)
+            c = gen.uniform((x0, y0), (x1, y1))
+            a = gen.uniform(0, np.pi)
+            d = 0.5 * length * np.array([math.cos(a), math.sin(a)])
+            if stand.n_trees == 0:
+                return c, d
+            rel = stand.trees_xy - c
+            t = np.clip(rel @ d / (d @ d), -1.0, 1.0)
+            dist = np.hypot(*(rel - t[:, None] * d).T) - stand.radii
+            if dist.min() > clearance:
+                return c, d
+        raise ConfigError(
+            f"add_clutter could not fit a {lo}-{hi} m long object between the trunks; the "
+            "stand is too dense for walls/fences/branches."
+        )
+
     circ_xy: list[FloatArray] = [stand.clutter_xy]
     circ_r: list[FloatArray] = [stand.clutter_radius]
     segs: list[FloatArray] = [stand.segments]
@@ -546,28 +565,23 @@ def add_clutter(
         kinds.append("bush")
         extents.append(spread)
     for _ in range(n_branches):
-        length = gen.uniform(0.4, 2.0)
-        c = free_point(length / 2)
-        a = gen.uniform(0, np.pi)
-        d = 0.5 * length * np.array([math.cos(a), math.sin(a)])
+        c, d = free_segment(0.4, 2.0)
+        length = 2 * float(np.hypot(*d))
         add_segments(np.concatenate((c - d, c + d)))
         obj_xy.append(c[None])
         kinds.append("branch")
         extents.append(length / 2)
     for _ in range(n_walls):
-        length = gen.uniform(4.0, 12.0)
-        c = free_point(length / 2)
-        a = gen.uniform(0, np.pi)
-        d = 0.5 * length * np.array([math.cos(a), math.sin(a)])
+        c, d = free_segment(4.0, 12.0)
+        length = 2 * float(np.hypot(*d))
         add_segments(np.concatenate((c - d, c + d)))
         obj_xy.append(c[None])
         kinds.append("wall")
         extents.append(length / 2)
     for _ in range(n_fences):
-        length = gen.uniform(5.0, 15.0)
-        c = free_point(length / 2)
-        a = gen.uniform(0, np.pi)
-        u = np.array([math.cos(a), math.sin(a)])
+        c, d = free_segment(5.0, 15.0)
+        length = 2 * float(np.hypot(*d))
+        u = d / np.hypot(*d)
         add_segments(np.concatenate((c - 0.5 * length * u, c + 0.5 * length * u)))
         posts = c + np.outer(np.arange(-length / 2, length / 2 + 1e-9, 2.0), u)
         # posts stand just beside the rail so both reflect

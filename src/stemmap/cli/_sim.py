@@ -1,0 +1,219 @@
+"""``stemmap sim``: simulated sensor data with ground truth.
+
+``stemmap sim scans --out run.npz`` simulates a stand and a drive through it and writes
+
+* ``run.npz`` -- the scans (``ranges`` (S, N) metres, inf = no return, ``time`` (S,),
+  ``angle_min``, ``angle_increment``, ``range_min``, ``range_max``), via
+  :func:`stemmap.io.scans.write_scans_npz`;
+* ``run_trees.csv`` -- ground-truth trees ``id,x,y,diameter`` (world frame, metres);
+* ``run_poses.csv`` -- the true sensor pose of every scan ``time,x,y,theta`` (world frame);
+* ``run_truth.npz`` -- per-beam ground truth (``hit_ids``, ``mixed``), wheel odometry (noisy
+  and true), non-tree objects, and the scenario parameters as JSON text.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from stemmap.cli._common import fail_on_stemmap_error, out
+
+__all__ = ["register"]
+
+sim_app = typer.Typer(
+    name="sim",
+    help="Simulate sensor data with ground truth (stands, drives, 2D scans, odometry).",
+    no_args_is_help=True,
+)
+
+
+class Layout(StrEnum):
+    random = "random"
+    clustered = "clustered"
+    rows = "rows"
+
+
+class PathKind(StrEnum):
+    loop = "loop"
+    lawnmower = "lawnmower"
+    straight = "straight"
+
+
+def _sibling(path: Path, suffix: str) -> Path:
+    return path.with_name(f"{path.stem}_{suffix}")
+
+
+@sim_app.command("scans")
+def scans(
+    out_path: Annotated[Path, typer.Option("--out", "-o", help="Scans NPZ to write.")],
+    preset: Annotated[str, typer.Option(help="Scanner preset: sick_lms, rplidar.")] = "sick_lms",
+    seed: Annotated[int, typer.Option(help="Random seed (same seed, same files).")] = 0,
+    n_scans: Annotated[
+        int | None,
+        typer.Option("--n-scans", help="Number of scans (default: one pass along the path)."),
+    ] = None,
+    layout: Annotated[Layout, typer.Option(help="Stand layout.")] = Layout.random,
+    n_trees: Annotated[int, typer.Option("--n-trees", help="Trees in the stand.")] = 60,
+    size: Annotated[float, typer.Option(help="Stand side length, metres (square).")] = 40.0,
+    path: Annotated[PathKind, typer.Option("--path", help="Drive pattern.")] = PathKind.loop,
+    speed: Annotated[float, typer.Option(help="Vehicle speed, m/s.")] = 1.0,
+    rate_hz: Annotated[
+        float | None, typer.Option("--rate-hz", help="Scan rate (default: the preset's).")
+    ] = None,
+    clutter: Annotated[
+        bool, typer.Option("--clutter/--no-clutter", help="Bushes, branches, walls, rocks.")
+    ] = True,
+    noncircular: Annotated[
+        bool, typer.Option("--noncircular/--circular", help="Elliptic, rough-barked trunks.")
+    ] = False,
+    odometry: Annotated[
+        str, typer.Option(help="Wheel-odometry noise preset: none, wheel, forest.")
+    ] = "wheel",
+    trees_out: Annotated[
+        Path | None, typer.Option(help="Truth trees CSV (default: <out>_trees.csv).")
+    ] = None,
+    poses_out: Annotated[
+        Path | None, typer.Option(help="True sensor poses CSV (default: <out>_poses.csv).")
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
+) -> None:
+    """Simulate a drive through a stand and write scans + ground truth.
+
+    Example: stemmap sim scans --out run.npz --preset sick_lms --seed 1 --n-scans 2000
+    """
+    from stemmap.errors import ConfigError
+    from stemmap.io.atomic import atomic_write
+    from stemmap.io.scans import write_scans_npz
+    from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.sim import (
+        add_clutter,
+        clustered_stand,
+        lawnmower_path,
+        loop_path,
+        make_trunks_noncircular,
+        random_stand,
+        row_stand,
+        scanner_preset,
+        simulate_run,
+        straight_path,
+    )
+
+    with fail_on_stemmap_error():
+        if n_scans is not None and n_scans < 2:
+            raise ConfigError(f"--n-scans must be >= 2, got {n_scans}.")
+        if not size > 4.0:
+            raise ConfigError(f"--size must exceed 4 m, got {size}.")
+        gen = np.random.default_rng(seed)
+        row_gap = size / 5
+        g_stand, g_clutter, g_shape, g_run = gen.spawn(4)
+        if layout is Layout.random:
+            stand = random_stand(n_trees, (size, size), rng=g_stand)
+        elif layout is Layout.clustered:
+            stand = clustered_stand(n_trees, (size, size), rng=g_stand)
+        else:
+            per_row = max(1, round(math.sqrt(n_trees)))
+            n_rows = max(1, math.ceil(n_trees / per_row))
+            row_gap = size / (n_rows + 1)
+            stand = row_stand(
+                n_rows,
+                per_row,
+                row_spacing=size / (n_rows + 1),
+                tree_spacing=size / (per_row + 1),
+                origin=(size / (per_row + 1), size / (n_rows + 1)),
+                rng=g_stand,
+            )
+        if clutter:
+            k = max(1, n_trees // 10)
+            stand = add_clutter(
+                stand, n_bushes=k, n_branches=k, n_walls=1, n_fences=1, n_rocks=k, rng=g_clutter
+            )
+        if noncircular:
+            stand = make_trunks_noncircular(stand, rng=g_shape)
+        model = scanner_preset(preset)
+        rate = model.scan_rate_hz if rate_hz is None else rate_hz
+        c = np.array([size / 2, size / 2])
+        if path is PathKind.loop:
+            lap = loop_path(c, (0.35 * size, 0.3 * size))
+            lap_len = float(np.sum(np.hypot(*np.diff(lap, axis=0).T)))
+            laps = 1.0
+            if n_scans is not None:
+                laps = max(1.0, math.ceil(n_scans / (lap_len / speed * rate) * 1.05 + 0.05))
+            wp = loop_path(c, (0.35 * size, 0.3 * size), laps=laps)
+        elif path is PathKind.lawnmower:
+            # rows stand at y = k * gap (k = 1..n_rows): strips half a gap off drive between them
+            gap = row_gap if layout is Layout.rows else size / 5
+            wp = lawnmower_path((0.0, 0.0, size, size), gap, margin=gap / 2)
+        else:
+            wp = straight_path((0.1 * size, 0.1 * size), (0.9 * size, 0.9 * size))
+        run = simulate_run(
+            stand,
+            wp,
+            scanner=model,
+            speed=speed,
+            rate_hz=rate,
+            odometry_noise=odometry,
+            corridor_half_width=1.2,
+            max_scans=n_scans,
+            rng=g_run,
+        )
+        if n_scans is not None and len(run) < n_scans:
+            raise ConfigError(
+                f"the {path.value} drive yields only {len(run)} scans at {rate} Hz and {speed} m/s;"
+                " lower --speed, use --path loop, or ask for fewer --n-scans."
+            )
+        write_scans_npz(out_path, run.scans)
+        t_path = trees_out or _sibling(out_path, "trees.csv")
+        p_path = poses_out or _sibling(out_path, "poses.csv")
+        st = run.stand
+        with atomic_write(t_path) as fh:
+            fh.write("id,x,y,diameter\n")
+            for i in range(st.n_trees):
+                x, y = st.trees_xy[i]
+                fh.write(f"{i},{x:.6f},{y:.6f},{st.diameters[i]:.6f}\n")
+        write_trajectory_csv(p_path, run.true_poses)
+        params = dict(run.params)
+        params.update(
+            {
+                "seed": seed,
+                "layout": layout.value,
+                "path": path.value,
+                "size_m": size,
+                "clutter": clutter,
+                "noncircular": noncircular,
+                "preset": preset,
+            }
+        )
+        truth_path = _sibling(out_path, "truth.npz")
+        with atomic_write(truth_path, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                hit_ids=run.hit_ids.astype(np.int32),
+                mixed=run.mixed,
+                odom_time=run.odometry.times,
+                odom_speed=run.odometry.speed,
+                odom_yaw_rate=run.odometry.yaw_rate,
+                true_speed=run.true_odometry.speed,
+                true_yaw_rate=run.true_odometry.yaw_rate,
+                clutter_xy=st.clutter_objects_xy,
+                clutter_extent=st.clutter_objects_extent,
+                clutter_kind=np.array(st.clutter_kinds, dtype=str),
+                params_json=np.array(json.dumps(params, default=float)),
+            )
+        if not quiet:
+            out.print(
+                f"simulated {len(run)} scans x {run.scans.n_beams} beams ({preset}), "
+                f"{st.n_trees} trees, {st.n_clutter_objects} non-tree objects\n"
+                f"  scans: {out_path}\n  trees: {t_path}\n  poses: {p_path}\n"
+                f"  truth: {truth_path}"
+            )
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``sim`` command group to the ``stemmap`` app."""
+    app.add_typer(sim_app, name="sim")
