@@ -29,6 +29,7 @@ app = typer.Typer(
 _COMMAND_MODULES: tuple[str, ...] = (
     "stemmap.cli._harvest",
     "stemmap.cli._detect",
+    "stemmap.cli._sim",
 )
 
 
