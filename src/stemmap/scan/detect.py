@@ -633,18 +633,18 @@ class ScanTrunkDetector:
         )
         segs = segs.select(segs.counts >= cfg.min_points)
         if cfg.point_curvature_min is not None and len(segs):
+            # Zheng §3.2 criterion (2): failing returns are rejected, the cluster stays
             cur = point_curvature(segs.points.r, segs)
             keep = ~(cur < cfg.point_curvature_min)
             if not np.all(keep):
-                segs = segs.split(keep, min_points=cfg.min_points)
+                segs = segs.drop(keep)
         if cfg.radius_median is not None and len(segs):
             keep = radius_median_filter(segs, cfg.radius_median)
             if not np.all(keep):
-                if cfg.split_merged:
-                    segs = segs.split(keep, min_points=cfg.min_points)
-                else:
-                    segs = segs.split(keep, min_points=1)
-                    # paper: the removed returns are discarded; a cut segment stays one trunk
+                # ours (split_merged): the far returns become segments of their own (the
+                # second trunk); visual-lidar §2.3: they are discarded
+                segs = segs.cut(keep) if cfg.split_merged else segs.drop(keep)
+            segs = segs.select(segs.counts >= cfg.min_points)
         return self._filter(segs)
 
     def _filter(self, segs: Segments) -> Segments:

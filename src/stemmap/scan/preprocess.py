@@ -196,7 +196,8 @@ def tilt_compensate(ranges: ArrayLike, roll: ArrayLike, pitch: ArrayLike) -> Flo
     Eq. 1 scales every beam by the same factor. It is exact only for a beam pointing along the
     tilt axis' normal; the exact horizontal distance depends on the beam bearing (a beam
     along the roll axis is not shortened by roll at all). :func:`project_tilted` computes the
-    exact projection; for roll and pitch of a few degrees the two differ by under 0.1 %.
+    exact projection; the two differ by at most ``1 - cos(alpha) cos(beta)`` of the range
+    (about ``(alpha^2 + beta^2) / 2``: 0.06 % at 2 deg, 0.4 % at 5 deg).
 
     Examples
     --------

@@ -283,6 +283,53 @@ class Segments:
             self.truncated_end[k],
         )
 
+    def drop(self, keep_points: ArrayLike) -> Segments:
+        """Remove the returns where ``keep_points`` (M,) is False; every segment stays one
+        segment (segments left without returns disappear). Flags are unchanged."""
+        kp = np.asarray(keep_points, dtype=bool)
+        if kp.shape != (len(self.points),):
+            raise InputError(f"keep_points has shape {kp.shape}, expected ({len(self.points)},).")
+        counts = np.bincount(self.labels[kp], minlength=len(self)).astype(np.int64)
+        alive = counts > 0
+        stop = np.cumsum(counts[alive]).astype(np.int64)
+        return Segments(
+            self.points.take(kp),
+            stop - counts[alive],
+            stop,
+            self.scan[alive],
+            self.occluded_start[alive],
+            self.occluded_end[alive],
+            self.truncated_start[alive],
+            self.truncated_end[alive],
+        )
+
+    def cut(self, flags: ArrayLike) -> Segments:
+        """Split every segment wherever the boolean ``flags`` (M,) changes value between two
+        consecutive returns; no return is removed. Inner cut ends are marked occluded."""
+        fl = np.asarray(flags, dtype=bool)
+        if fl.shape != (len(self.points),):
+            raise InputError(f"flags has shape {fl.shape}, expected ({len(self.points)},).")
+        m = len(self.points)
+        brk = np.zeros(m, dtype=bool)
+        brk[self.start] = True
+        if m > 1:
+            brk[1:] |= fl[1:] != fl[:-1]
+        starts = np.flatnonzero(brk).astype(np.int64)
+        stops = (np.append(starts[1:], m) if starts.size else starts).astype(np.int64)
+        seg_of = self.labels[starts] if m else starts
+        first_piece = starts == self.start[seg_of]
+        last_piece = stops == self.stop[seg_of]
+        return Segments(
+            self.points,
+            starts,
+            stops,
+            self.scan[seg_of],
+            np.where(first_piece, self.occluded_start[seg_of], True),
+            np.where(last_piece, self.occluded_end[seg_of], True),
+            first_piece & self.truncated_start[seg_of],
+            last_piece & self.truncated_end[seg_of],
+        )
+
     def split(self, keep_points: ArrayLike, *, min_points: int = 1) -> Segments:
         """Drop the returns where ``keep_points`` (M,) is False and split every segment where a
         run of dropped returns interrupted it; pieces shorter than ``min_points`` are dropped.
@@ -305,7 +352,7 @@ class Segments:
         idx = np.flatnonzero(kp)
         new_start_flag = pstart[idx]
         starts = np.flatnonzero(new_start_flag).astype(np.int64)
-        stops = np.append(starts[1:], idx.shape[0]).astype(np.int64)
+        stops = (np.append(starts[1:], idx.shape[0]) if starts.size else starts).astype(np.int64)
         seg_of = lab[idx[starts]]
         first_piece = idx[starts] == self.start[seg_of]
         last_piece = idx[stops - 1] == self.stop[seg_of] - 1
@@ -359,7 +406,7 @@ def build_segments(
         raise InputError("breaks[0] must be True: the first return always starts a segment.")
     last = pts.n_beams - 1 if last_beam is None else int(last_beam)
     start = np.flatnonzero(b).astype(np.int64)
-    stop = np.append(start[1:], len(pts)).astype(np.int64)
+    stop = (np.append(start[1:], len(pts)) if start.size else start).astype(np.int64)
     seg_scan = pts.scan[start]
     b0 = pts.beam[start]
     b1 = pts.beam[stop - 1]

@@ -1,0 +1,134 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stemmap import ConfigError
+from stemmap.scan.features import (
+    chord_width,
+    cluster_curvature,
+    is_straight,
+    line_fit_rms,
+    point_curvature,
+    radius_median_filter,
+    sagitta_depth,
+    segment_features,
+)
+from stemmap.scan.segment import build_segments, extract_points, range_jump_breaks
+
+INC = math.radians(0.5)
+
+
+def trunk_ranges(distance, radius, angles):
+    """Exact ranges to a circle centred on the x axis (inf where missed)."""
+    b = distance * np.cos(angles)
+    disc = b * b - (distance * distance - radius * radius)
+    with np.errstate(invalid="ignore"):
+        return np.where(disc >= 0, b - np.sqrt(np.maximum(disc, 0)), np.inf)
+
+
+def segments_of(r, jump=0.2):
+    r = np.atleast_2d(np.asarray(r, dtype=float))
+    n = r.shape[1]
+    a = INC * (np.arange(n) - n // 2)
+    p = extract_points(np.where(np.isfinite(r), r, np.nan), a, INC)
+    return build_segments(p, range_jump_breaks(p, jump), ranges=r)
+
+
+def test_law_of_cosines_xue_eq12():
+    assert chord_width(1.0, 1.0, math.pi / 3) == pytest.approx(1.0)
+    assert chord_width(3.0, 4.0, math.pi / 2) == pytest.approx(5.0)
+    # a 30 cm trunk at 3 m seen at 0.5 deg: the chord is shorter than the diameter
+    # (Xue et al. report 6-16.7 % under-estimation) but within one beam spacing of it
+    a = INC * (np.arange(-40, 41))
+    segs = segments_of(trunk_ranges(3.0, 0.15, a))
+    f = segment_features(segs)
+    assert 0.30 - 2 * 3.0 * INC < f.width[0] < 0.30
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(0.1, 20), st.floats(0.1, 20), st.floats(0.0, math.pi))
+def test_chord_width_is_the_euclidean_distance(r0, r1, theta):
+    p0 = np.array([r0, 0.0])
+    p1 = r1 * np.array([math.cos(theta), math.sin(theta)])
+    assert float(chord_width(r0, r1, theta)) == pytest.approx(np.linalg.norm(p1 - p0), abs=1e-9)
+
+
+def test_point_curvature_zheng_eq3_corrected():
+    # second difference l_{i+1} - 2 l_i + l_{i-1}; the printed l_{i+1} - 2 l_{i-1} + l_i
+    # would give -1 for the middle of [1, 2, 3] instead of 0 (a straight ramp)
+    np.testing.assert_array_equal(point_curvature([1.0, 2.0, 3.0]), [np.nan, 0.0, np.nan])
+    segs = segments_of([5.0, 4.9, 5.0, 9.0, 9.0, 9.0])
+    cur = point_curvature(segs.points.r, segs)
+    assert cur[1] == pytest.approx(0.2) and np.isnan(cur[0]) and np.isnan(cur[2])
+    assert np.isnan(cur[3]) and cur[4] == 0.0
+
+
+def test_depth_curvature_recover_a_half_circle():
+    # dense scan of a 0.2 m radius trunk at 1.5 m: sagitta ~ r, curvature ~ 1/r
+    a = np.radians(np.arange(-20, 20.01, 0.05))
+    r = trunk_ranges(1.5, 0.2, a)
+    p = extract_points(np.where(np.isfinite(r), r, np.nan), a, math.radians(0.05))
+    segs = build_segments(p, range_jump_breaks(p, 0.2), ranges=r)
+    f = segment_features(segs)
+    assert len(segs) == 1
+    # visible arc from 1.5 m spans at most 2*acos(r/d) = 164.7 deg, so sagitta < r and
+    # chord < 2r; exact values from the two edge returns (symmetric about the x axis)
+    x_end, y_end = segs.points.x[0], abs(segs.points.y[0])
+    assert f.depth[0] == pytest.approx(x_end - (1.5 - 0.2), abs=1e-4)
+    assert f.width[0] == pytest.approx(2 * y_end, abs=1e-4)
+    assert f.depth[0] < 0.2 * (1 - 0.2 / 1.5) + 1e-9
+    # the circle through both edges and the apex is the trunk itself
+    assert f.curvature[0] == pytest.approx(1 / 0.2, rel=1e-3)
+    assert cluster_curvature(0.4, 0.0) == 0.0
+
+
+def test_wall_is_straight_trunk_is_not():
+    rng = np.random.default_rng(3)
+    # wall x = 4 seen over 40 deg, 1 cm noise; a 25 cm trunk at 3 m with the same noise
+    a = np.radians(np.arange(-20, 20.01, 0.5))
+    wall = 4.0 / np.cos(a) + rng.normal(0, 0.01, a.size)
+    trunk = trunk_ranges(3.0, 0.125, a) + rng.normal(0, 0.01, a.size)
+    r = np.stack([wall, trunk])
+    p = extract_points(np.where(np.isfinite(r), r, np.nan), a, INC)
+    segs = build_segments(p, range_jump_breaks(p, 0.2), ranges=r)
+    f = segment_features(segs)
+    wall_k = int(np.argmax(f.n_points * (segs.scan == 0)))
+    trunk_k = int(np.argmax(f.n_points * (segs.scan == 1)))
+    # line residual of a wall is the noise (1 cm), of a trunk ~0.31 r (decisively larger)
+    assert line_fit_rms(segs)[wall_k] == pytest.approx(0.01, rel=0.35)
+    assert f.line_rms[trunk_k] > 0.02
+    for kw in ({"n_points": f.n_points}, {}):
+        st_ = is_straight(f.line_rms, f.width, 0.01, **kw)
+        assert st_[wall_k] and not st_[trunk_k]
+    assert abs(sagitta_depth(segs)[wall_k]) < 0.05
+    with pytest.raises(ConfigError):
+        is_straight(f.line_rms, f.width, 0.01, alpha=2.0)
+
+
+def test_radius_median_filter_separates_merged_trunks():
+    # two trunks side by side at the same range merge under the range-jump rule
+    a = np.radians(np.arange(-15, 15.01, 0.25))
+    r = np.minimum(
+        trunk_ranges(4.0, 0.15, a - math.radians(-4.5)),
+        trunk_ranges(4.0, 0.15, a - math.radians(1.5)),
+    )
+    gap = np.flatnonzero(np.isinf(r))
+    # close the gap between them so that they form one cluster
+    inner = gap[(gap > np.argmin(np.abs(a + math.radians(4.5)))) & (gap < np.argmin(np.abs(a)))]
+    r[inner] = 4.0
+    p = extract_points(np.where(np.isfinite(r), r, np.nan), a, math.radians(0.25))
+    segs = build_segments(p, range_jump_breaks(p, 0.3), ranges=r)
+    assert len(segs) == 1
+    keep = radius_median_filter(segs, 0.2)
+    assert 0 < keep.sum() < len(keep)
+    # paper: the far returns are discarded, one cluster remains
+    dropped = segs.drop(keep)
+    assert len(dropped) == 1 and dropped.counts[0] == keep.sum()
+    # ours: the far returns form their own segments
+    parts = segs.cut(keep)
+    assert len(parts) >= 2 and int(parts.counts.sum()) == len(keep)
+    with pytest.raises(ConfigError):
+        radius_median_filter(segs, 0.0)
