@@ -24,6 +24,7 @@ from stemmap.io import (
     read_odometry,
     read_pointclouds,
     read_scans,
+    read_scans_indexed,
 )
 from stemmap.io.rosbag import (
     PointField,
@@ -102,6 +103,7 @@ def test_mixed_geometry_keeps_dominant(tmp_path: Path, bags: BagFactory) -> None
     b = read_scans(p, skipped=skipped)
     assert b.n_beams == 40 and len(b) == 3
     assert [s.frame_index for s in skipped] == [2] and "35 beams" in skipped[0].reason
+    assert read_scans_indexed(p)[1].tolist() == [0, 1, 3]
 
 
 def test_zero_stamp_falls_back_to_bag_time(tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ from stemmap.io import (
     SkippedFrame,
     iter_scans,
     read_scans,
+    read_scans_indexed,
     stack_scans,
     write_scans_csv,
     write_scans_npz,
@@ -122,6 +123,7 @@ def test_csv_truncated_row_and_bad_value_are_skipped(
     np.testing.assert_array_equal(got.times, b.times[[0, 2]])
     np.testing.assert_array_equal(got.ranges, b.ranges[[0, 2]])
     assert sum("skipping scan" in r.message for r in caplog.records) == 4
+    assert read_scans_indexed(p)[1].tolist() == [0, 2]
 
 
 def test_csv_empty_fields_are_no_return(tmp_path: Path) -> None:
@@ -142,6 +144,7 @@ def test_npz_nan_time_frame_is_skipped(tmp_path: Path) -> None:
     b = read_scans(p, skipped=skipped)
     assert len(b) == 2 and [s.frame_index for s in skipped] == [1]
     assert [i for i, _ in scans_mod._indexed(p, None, None)] == [0, 2]
+    assert read_scans_indexed(p)[1].tolist() == [0, 2]
 
 
 def test_stack_scans_keeps_dominant_geometry(caplog: pytest.LogCaptureFixture) -> None:

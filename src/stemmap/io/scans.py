@@ -47,6 +47,7 @@ __all__ = [
     "SkippedFrame",
     "iter_scans",
     "read_scans",
+    "read_scans_indexed",
     "scan_file_kind",
     "stack_scans",
     "write_scans_csv",
@@ -392,6 +393,15 @@ def stack_scans(
     InputError
         If ``scans`` is empty.
     """
+    return _stack(scans, indices, skipped, source)[0]
+
+
+def _stack(
+    scans: Sequence[LaserScan],
+    indices: Sequence[int] | None,
+    skipped: list[SkippedFrame] | None,
+    source: str,
+) -> tuple[ScanBatch, NDArray[np.int64]]:
     if not scans:
         raise InputError(f"{source} holds no usable laser scan.")
     keys = [_geometry_key(s) for s in scans]
@@ -415,9 +425,11 @@ def stack_scans(
         )
     idx = list(range(len(scans))) if indices is None else list(indices)
     kept = []
+    kept_idx = []
     for k, s, key in zip(idx, scans, keys, strict=True):
         if key == best:
             kept.append(s)
+            kept_idx.append(k)
         else:
             why = (
                 f"its geometry ({key[0]} beams from {key[1]:.6g} rad, step {key[2]:.6g} rad) "
@@ -440,7 +452,7 @@ def stack_scans(
     if len(frames) > 1:
         log.warning("%s: scans name several frames %s; using the first.", source, dict(frames))
     s0 = kept[0]
-    return ScanBatch(
+    batch = ScanBatch(
         ranges,
         np.array([s.time for s in kept]),
         s0.angle_min,
@@ -449,6 +461,7 @@ def stack_scans(
         hi,
         s0.frame,
     )
+    return batch, np.asarray(kept_idx, dtype=np.int64)
 
 
 def read_scans(
@@ -493,9 +506,18 @@ def read_scans(
     ...
     stemmap.errors.InputError: scan CSV file '...scans.csv' does not exist.
     """
+    return read_scans_indexed(path, topic=topic, skipped=skipped)[0]
+
+
+def read_scans_indexed(
+    path: PathLike, *, topic: str | None = None, skipped: list[SkippedFrame] | None = None
+) -> tuple[ScanBatch, NDArray[np.int64]]:
+    """:func:`read_scans` plus the position in the file (row / message index, 0-based) of
+    every scan in the batch, so that results can be reported against the original frames
+    when damaged or mismatched frames were skipped."""
     kind = scan_file_kind(path)
     if kind == "npz":
-        return _read_npz(path, skipped)[0]
+        return _read_npz(path, skipped)
     local: list[SkippedFrame] = []
     pairs = list(_indexed(path, topic, local))
     if skipped is not None:
@@ -505,6 +527,4 @@ def read_scans(
             f"{str(path)!r} holds no usable laser scan"
             + (f" ({len(local)} damaged frame(s) skipped)." if local else ".")
         )
-    return stack_scans(
-        [s for _, s in pairs], indices=[i for i, _ in pairs], skipped=skipped, source=str(path)
-    )
+    return _stack([s for _, s in pairs], [i for i, _ in pairs], skipped, str(path))
