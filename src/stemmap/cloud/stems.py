@@ -1,0 +1,910 @@
+"""Stem positions and diameters (DBH) from 3D point clouds.
+
+Two methods, both returning a columnar :class:`CloudStems`:
+
+* :func:`detect_stems_munjer` -- EB-LiDAR (Munjer et al. 2025, §3.2-3.3, Table 1): pass-through
+  box, voxel-grid averaging, DBSCAN, PCA eccentricity filter, circle fit of the cluster's
+  horizontal projection; :func:`associate_proximity` merges detections across frames (1.0 m).
+  Preset ``"munjer2025"``.
+* :func:`detect_stems` -- ours, for terrestrial, mobile and robot clouds: ground model and height
+  normalisation, several horizontal slices around breast height, grid clustering of the
+  slice band, robust geometric circle fits per slice (``scan.circle`` "ours", batched) with
+  quality tests (arc coverage, residual, point count), a taper/lean line through the slices
+  evaluated at 1.3 m, and optional stem height. Every threshold derives from the measured point
+  spacing or the measured residual noise floor: no per-cloud tuning. Preset ``"ours"``.
+
+:func:`detect_stems_file` streams a LAS/LAZ file in chunks (two passes: ground, then band), so
+a 20-million-point cloud is processed in bounded memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from stemmap.cloud.cluster import dbscan
+from stemmap.cloud.filters import as_xyz, pass_through, point_spacing, voxel_downsample
+from stemmap.cloud.ground import GroundAccumulator, GroundModel
+from stemmap.cloud.shape import cluster_covariances, pca_eccentricity
+from stemmap.errors import ConfigError, InputError
+from stemmap.scan.circle import fit_circles_batch
+from stemmap.types import FloatArray, StemObservations
+
+__all__ = [
+    "PRESETS",
+    "CloudStems",
+    "MunjerConfig",
+    "StemConfig",
+    "associate_proximity",
+    "detect_stems",
+    "detect_stems_file",
+    "detect_stems_munjer",
+    "get_preset",
+]
+
+log = logging.getLogger(__name__)
+
+BREAST_HEIGHT = 1.3
+
+
+# --------------------------------------------------------------------------------------------
+# result
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class CloudStems:
+    """Stems found in one cloud (columnar).
+
+    Attributes
+    ----------
+    xy : ndarray (K, 2), metres -- stem centre at breast height, cloud frame
+    z : ndarray (K,), metres -- z (cloud frame) of the breast-height cross-section
+    diameter : ndarray (K,), metres -- DBH
+    n_points : ndarray (K,), int -- points supporting the fits
+    quality : ndarray (K,), in [0, 1]
+    arc_deg : ndarray (K,) -- mean angular coverage of the fitted slices, degrees
+    rms : ndarray (K,), metres -- mean residual RMS of the fitted slices
+    n_slices : ndarray (K,), int -- slices that passed the quality tests
+    taper : ndarray (K,) -- radius change per metre of height (NaN if not estimated)
+    height : ndarray (K,), metres -- stem (tree) height, NaN unless requested
+    eccentricity : ndarray (K,) -- Munjer's lambda1/lambda2 (NaN for ours)
+    method : str
+    frame : str
+    spacing : float, metres -- measured point spacing (NaN for munjer2025)
+    """
+
+    xy: FloatArray
+    z: FloatArray
+    diameter: FloatArray
+    n_points: NDArray[np.int64]
+    quality: FloatArray
+    arc_deg: FloatArray
+    rms: FloatArray
+    n_slices: NDArray[np.int64]
+    taper: FloatArray
+    height: FloatArray
+    eccentricity: FloatArray
+    method: str = ""
+    frame: str = "cloud"
+    spacing: float = math.nan
+
+    def __len__(self) -> int:
+        return int(self.xy.shape[0])
+
+    @classmethod
+    def empty(cls, method: str, frame: str = "cloud", spacing: float = math.nan) -> CloudStems:
+        z = np.zeros(0)
+        zi = np.zeros(0, dtype=np.int64)
+        return cls(np.zeros((0, 2)), z, z, zi, z, z, z, zi, z, z, z, method, frame, spacing)
+
+    @classmethod
+    def from_columns(cls, **cols: Any) -> CloudStems:
+        k = np.asarray(cols["xy"]).reshape(-1, 2).shape[0]
+        nan = np.full(k, np.nan)
+        defaults: dict[str, Any] = {
+            "quality": np.ones(k),
+            "arc_deg": nan,
+            "rms": nan,
+            "n_slices": np.ones(k, dtype=np.int64),
+            "taper": nan,
+            "height": nan,
+            "eccentricity": nan,
+        }
+        defaults.update(cols)
+        d = defaults
+        return cls(
+            xy=np.asarray(d["xy"], dtype=np.float64).reshape(-1, 2),
+            z=np.asarray(d["z"], dtype=np.float64).reshape(-1),
+            diameter=np.asarray(d["diameter"], dtype=np.float64).reshape(-1),
+            n_points=np.asarray(d["n_points"], dtype=np.int64).reshape(-1),
+            quality=np.asarray(d["quality"], dtype=np.float64).reshape(-1),
+            arc_deg=np.asarray(d["arc_deg"], dtype=np.float64).reshape(-1),
+            rms=np.asarray(d["rms"], dtype=np.float64).reshape(-1),
+            n_slices=np.asarray(d["n_slices"], dtype=np.int64).reshape(-1),
+            taper=np.asarray(d["taper"], dtype=np.float64).reshape(-1),
+            height=np.asarray(d["height"], dtype=np.float64).reshape(-1),
+            eccentricity=np.asarray(d["eccentricity"], dtype=np.float64).reshape(-1),
+            method=str(d.get("method", "")),
+            frame=str(d.get("frame", "cloud")),
+            spacing=float(d.get("spacing", math.nan)),
+        )
+
+    def select(self, idx: ArrayLike) -> CloudStems:
+        i = np.asarray(idx)
+        return replace(
+            self,
+            **{
+                k: getattr(self, k)[i]
+                for k in (
+                    "xy",
+                    "z",
+                    "diameter",
+                    "n_points",
+                    "quality",
+                    "arc_deg",
+                    "rms",
+                    "n_slices",
+                    "taper",
+                    "height",
+                    "eccentricity",
+                )
+            },
+        )
+
+    def to_observations(self, time: float = 0.0, index: int = 0) -> StemObservations:
+        """As a :class:`StemObservations` batch (covariance NaN: not estimated per stem)."""
+        k = len(self)
+        return StemObservations(
+            centers=self.xy,
+            radii=self.diameter / 2,
+            covs=np.full((k, 3, 3), np.nan),
+            n_points=self.n_points,
+            arc_deg=self.arc_deg,
+            widths=np.full(k, np.nan),
+            quality=self.quality,
+            index=np.full(k, index, dtype=np.int64),
+            times=np.full(k, time),
+            source=f"cloud:{self.method}",
+            frame=self.frame,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# EB-LiDAR (Munjer et al. 2025)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MunjerConfig:
+    """Parameters of EB-LiDAR (Munjer et al. 2025, §3.2-3.3 and Table 1).
+
+    Attributes
+    ----------
+    box_x, box_y, box_z : (lo, hi), metres, lidar frame
+        Pass-through box; the paper: x (0, 10), y (-10, 10), z (-0.5, 0).
+    voxel : float, metres -- voxel-grid averaging (0.01)
+    eps : float, metres -- DBSCAN neighbourhood radius (0.25)
+    min_points : int -- DBSCAN minimum points (20)
+    eccentricity_range : (lo, hi) -- kept clusters' lambda1/lambda2 (10, 20)
+    fit_std_max : float, metres -- "standard deviation limit for cylinder fitting" (0.1)
+    association_distance : float, metres -- proximity association across frames (1.0)
+    fit_method : str -- circle fit of the projection (a ``FIT_METHODS`` name; the paper does not
+        name one, so the algebraic Kasa fit is the default)
+    """
+
+    box_x: tuple[float, float] | None = (0.0, 10.0)
+    box_y: tuple[float, float] | None = (-10.0, 10.0)
+    box_z: tuple[float, float] | None = (-0.5, 0.0)
+    voxel: float = 0.01
+    eps: float = 0.25
+    min_points: int = 20
+    eccentricity_range: tuple[float, float] = (10.0, 20.0)
+    fit_std_max: float = 0.1
+    association_distance: float = 1.0
+    fit_method: str = "kasa"
+
+    def __post_init__(self) -> None:
+        if not (self.voxel > 0 and self.eps > 0 and self.min_points >= 1):
+            raise ConfigError("munjer2025 needs voxel > 0, eps > 0 and min_points >= 1.")
+        lo, hi = self.eccentricity_range
+        if not hi >= lo >= 1:
+            raise ConfigError(f"eccentricity_range must satisfy 1 <= lo <= hi, got {lo}, {hi}.")
+
+
+def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> CloudStems:
+    """EB-LiDAR stem detection in one lidar frame (Munjer et al. 2025, §3.2-3.3).
+
+    Parameters
+    ----------
+    xyz : array_like (N, 3), metres, lidar frame (x forward, z up, origin at the sensor)
+    config : MunjerConfig, default the published Table 1 values
+
+    Returns
+    -------
+    CloudStems
+        One row per accepted cluster: centre and diameter from the circle fit of its xy
+        projection, ``z`` its mean height, ``eccentricity`` its lambda1/lambda2.
+
+    Notes
+    -----
+    Pipeline: pass-through box (§3.2) -> voxel-grid averaging, eq. (2) -> DBSCAN(eps, minPts)
+    (§3.3) -> covariance of each cluster, eq. (3), and eccentricity ``e = lambda1 / lambda2``,
+    eq. (4), over the two largest eigenvalues of the 3D covariance -> keep ``10 <= e <= 20``
+    (§3.3: "between 10 and 20"; Table 1 names 20 the cutoff) -> circle fit of the cluster's 2D
+    projection, rejected when the residual standard deviation exceeds 0.1 m (Table 1).
+    """
+    cfg = config or MunjerConfig()
+    p = as_xyz(xyz)
+    p = p[pass_through(p, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)]
+    if p.shape[0] < cfg.min_points:
+        return CloudStems.empty("munjer2025")
+    v = np.asarray(voxel_downsample(p, cfg.voxel))
+    lab = dbscan(v, cfg.eps, cfg.min_points)
+    if lab.size == 0 or lab.max() < 0:
+        return CloudStems.empty("munjer2025")
+    cen, cov, sizes = cluster_covariances(v, lab)
+    ecc = pca_eccentricity(cov)
+    lo, hi = cfg.eccentricity_range
+    cand = np.flatnonzero((ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points))
+    if cand.size == 0:
+        return CloudStems.empty("munjer2025")
+    sel = np.isin(lab, cand)
+    fits = fit_circles_batch(v[sel, :2], lab[sel], cfg.fit_method, edges=None)
+    ok = fits.ok & (fits.rms <= cfg.fit_std_max)
+    ids = fits.segment_ids[ok]
+    return CloudStems.from_columns(
+        xy=fits.centers[ok],
+        z=cen[ids, 2],
+        diameter=2 * fits.radii[ok],
+        n_points=sizes[ids],
+        rms=fits.rms[ok],
+        eccentricity=ecc[ids],
+        method="munjer2025",
+        frame="lidar",
+    )
+
+
+def associate_proximity(
+    detections: Iterable[CloudStems], distance: float = 1.0, *, frame: str = "world"
+) -> CloudStems:
+    """Merge per-frame detections (already in one common frame) into trees by proximity.
+
+    Munjer et al. (2025, Table 1, "proximity threshold for cluster association", 1.0 m): a
+    detection within ``distance`` of an existing tree's running-mean position joins it (the
+    nearest), otherwise it starts a new tree. Output positions are the running means, diameters
+    the medians of the joined detections, ``n_points`` the summed support and ``n_slices`` the
+    number of joined detections.
+    """
+    if not distance > 0:
+        raise ConfigError(f"association distance must be > 0 m, got {distance}.")
+    sums: list[FloatArray] = []
+    diams: list[list[float]] = []
+    zs: list[list[float]] = []
+    npts: list[int] = []
+    ecc: list[list[float]] = []
+    for det in detections:
+        for k in range(len(det)):
+            c = det.xy[k]
+            j = -1
+            if sums:
+                means = np.array([s[:2] / s[2] for s in sums])
+                dist = np.hypot(*(means - c).T)
+                m = int(np.argmin(dist))
+                j = m if dist[m] <= distance else -1
+            if j < 0:
+                sums.append(np.array([c[0], c[1], 1.0]))
+                diams.append([float(det.diameter[k])])
+                zs.append([float(det.z[k])])
+                npts.append(int(det.n_points[k]))
+                ecc.append([float(det.eccentricity[k])])
+            else:
+                sums[j] += [c[0], c[1], 1.0]
+                diams[j].append(float(det.diameter[k]))
+                zs[j].append(float(det.z[k]))
+                npts[j] += int(det.n_points[k])
+                ecc[j].append(float(det.eccentricity[k]))
+    if not sums:
+        return CloudStems.empty("munjer2025", frame)
+    s = np.array(sums)
+    return CloudStems.from_columns(
+        xy=s[:, :2] / s[:, 2:3],
+        z=[float(np.mean(v)) for v in zs],
+        diameter=[float(np.median(v)) for v in diams],
+        n_points=npts,
+        n_slices=s[:, 2].astype(np.int64),
+        eccentricity=[float(np.median(v)) for v in ecc],
+        method="munjer2025",
+        frame=frame,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# ours
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StemConfig:
+    """Parameters of our stem detector. Defaults need no per-cloud tuning.
+
+    Attributes
+    ----------
+    breast_height : float, metres (1.3)
+    slice_centers : tuple of float, metres above ground
+        Centres of the horizontal slices fitted per stem; the band they span is clustered.
+    slice_thickness : float, metres
+    ground_cell : float, metres -- ground raster cell (1.0)
+    min_diameter, max_diameter : float, metres -- plausible DBH window (0.04, 1.5)
+    min_arc_deg : float -- minimum angular coverage of a slice fit (one side of a trunk seen
+        from one scanner covers up to ~180 degrees)
+    min_slice_points : int -- minimum inliers of a slice fit
+    min_slices : int -- slices that must pass for a stem (1 for a pre-cut slice cloud)
+    min_vertical_extent : float, metres -- the passing slices' centres must span at least this
+        (a stem is vertical; bushes and branch stubs are not); ignored for a pre-cut slice
+    residual_factor : float -- a slice fit passes if its RMS is below ``residual_factor`` times
+        the cloud's noise floor (median slice RMS) -- measured, not tuned
+    cluster_cell_factor : float -- grid clustering cell = this x the 90th-percentile 2D point
+        spacing in the band (measured)
+    spacing : float, optional -- override the measured point spacing, metres
+    fit_method : str -- circle fit (``scan.circle.FIT_METHODS``); "ours" is the robust
+        geometric fit
+    estimate_height : bool -- also estimate stem height (highest point within 1 m of the axis)
+    slice_mode : "auto" | "always" | "never" -- treat the cloud as an already cut, height-
+        normalised slice (auto: when its z extent is below 1 m)
+    """
+
+    breast_height: float = BREAST_HEIGHT
+    slice_centers: tuple[float, ...] = (0.9, 1.1, 1.3, 1.5, 1.7, 1.9)
+    slice_thickness: float = 0.2
+    ground_cell: float = 1.0
+    min_diameter: float = 0.04
+    max_diameter: float = 1.5
+    min_arc_deg: float = 50.0
+    min_slice_points: int = 8
+    min_slices: int = 3
+    residual_factor: float = 3.0
+    cluster_cell_factor: float = 2.0
+    spacing: float | None = None
+    fit_method: str = "ours"
+    estimate_height: bool = False
+    slice_mode: str = "auto"
+    min_vertical_extent: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not self.slice_centers or self.slice_thickness <= 0:
+            raise ConfigError("need at least one slice centre and slice_thickness > 0 m.")
+        if not 0 < self.min_diameter < self.max_diameter:
+            raise ConfigError(
+                f"need 0 < min_diameter < max_diameter, got {self.min_diameter}, "
+                f"{self.max_diameter}."
+            )
+        if self.slice_mode not in ("auto", "always", "never"):
+            raise ConfigError(f"slice_mode must be auto, always or never, got {self.slice_mode!r}.")
+        if self.spacing is not None and not self.spacing > 0:
+            raise ConfigError(f"spacing must be > 0 m, got {self.spacing}.")
+
+    @property
+    def band(self) -> tuple[float, float]:
+        c = np.asarray(self.slice_centers)
+        return float(c.min() - self.slice_thickness / 2), float(c.max() + self.slice_thickness / 2)
+
+
+PRESETS: dict[str, MunjerConfig | StemConfig] = {
+    "munjer2025": MunjerConfig(),
+    "ours": StemConfig(),
+    "ours_kasa": StemConfig(fit_method="kasa"),
+}
+
+
+def get_preset(name: str) -> MunjerConfig | StemConfig:
+    """A named configuration (``"munjer2025"``, ``"ours"``, ``"ours_kasa"``)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ConfigError(
+            f"unknown stems preset {name!r}; choose one of {sorted(PRESETS)}."
+        ) from None
+
+
+@dataclass
+class _Band:
+    """Points of the slice band: xy, height above ground, absolute z; and a canopy raster."""
+
+    xy: FloatArray
+    h: FloatArray
+    z: FloatArray
+    canopy: dict[str, Any] = field(default_factory=dict)
+
+
+def _slice_setup(cfg: StemConfig, zmin: float, zmax: float, slice_mode: bool) -> StemConfig:
+    if not slice_mode:
+        return cfg
+    # a pre-cut slice: split its extent into sub-slices of >= 5 cm, at most 3
+    ext = max(zmax - zmin, 1e-3)
+    n = int(np.clip(ext // 0.05, 1, 3))
+    th = ext / n
+    centers = tuple(float(zmin + th * (k + 0.5)) for k in range(n))
+    return replace(
+        cfg,
+        slice_centers=centers,
+        slice_thickness=th * 1.0001,
+        min_slices=1,
+        breast_height=float((zmin + zmax) / 2),
+    )
+
+
+def detect_stems(
+    xyz: ArrayLike,
+    config: StemConfig | None = None,
+    *,
+    origin: ArrayLike | None = None,
+    ground: GroundModel | None = None,
+) -> CloudStems:
+    """Our stem detector on an in-memory cloud (see the module docstring).
+
+    Parameters
+    ----------
+    xyz : array_like (N, 3), metres
+        Any frame with z up. Clouds whose z extent is below 1 m are taken as already
+        height-normalised slices (``config.slice_mode``).
+    config : StemConfig, default preset "ours"
+    origin : array_like (2,), optional
+        Sensor position (single-scan clouds); unused by the default fit, kept for methods
+        that model the viewpoint.
+    ground : GroundModel, optional
+        Use this ground instead of fitting one.
+
+    Returns
+    -------
+    CloudStems
+        ``z`` is the absolute z of breast height at each stem; ``quality`` combines the
+        fraction of slices passing, their arc coverage and residual.
+    """
+    cfg = config or StemConfig()
+    p = as_xyz(xyz)
+    if p.shape[0] == 0:
+        return CloudStems.empty("ours")
+    zmin, zmax = float(p[:, 2].min()), float(p[:, 2].max())
+    is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
+    cfg = _slice_setup(cfg, zmin, zmax, is_slice)
+    if is_slice:
+        band = _Band(p[:, :2], p[:, 2], p[:, 2])
+    else:
+        g = ground or _ground_of([p], cfg.ground_cell)
+        h = g.height_of(p)
+        lo, hi = cfg.band
+        m = (h >= lo) & (h <= hi)
+        band = _Band(p[m, :2], h[m], p[m, 2])
+        if cfg.estimate_height:
+            band.canopy = _canopy_update({}, p[:, :2], h)
+    return _stems_from_band(band, cfg, origin, slice_cloud=is_slice)
+
+
+def _ground_of(chunks: Iterable[FloatArray], cell: float) -> GroundModel:
+    acc = GroundAccumulator(cell)
+    for c in chunks:
+        acc.update(c)
+    return acc.model()
+
+
+_CANOPY_CELL = 0.25
+_KEY_OFF = 1 << 30
+
+
+def _canopy_update(canopy: dict[str, Any], xy: FloatArray, h: FloatArray) -> dict[str, Any]:
+    """Running max height per 0.25 m cell (keys -> max h), for stem height."""
+    if xy.shape[0] == 0:
+        return canopy
+    ij = np.floor(xy / _CANOPY_CELL).astype(np.int64) + _KEY_OFF
+    keys = (ij[:, 0] << 32) | ij[:, 1]
+    if canopy:
+        keys = np.concatenate((canopy["keys"], keys))
+        h = np.concatenate((canopy["h"], h))
+    order = np.lexsort((-h, keys))
+    keys, h = keys[order], h[order]
+    first = np.ones(keys.shape[0], dtype=bool)
+    first[1:] = keys[1:] != keys[:-1]
+    return {"keys": keys[first], "h": h[first]}
+
+
+def _stem_heights(canopy: dict[str, Any], xy: FloatArray, radius: float = 1.0) -> FloatArray:
+    if not canopy:
+        return np.full(xy.shape[0], np.nan)
+    i = (canopy["keys"] >> 32) - _KEY_OFF
+    j = (canopy["keys"] & 0xFFFFFFFF) - _KEY_OFF
+    cxy = (np.column_stack((i, j)) + 0.5) * _CANOPY_CELL
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(cxy)
+    out = np.full(xy.shape[0], np.nan)
+    for k, nb in enumerate(tree.query_ball_point(xy, radius)):
+        if nb:
+            out[k] = float(np.max(canopy["h"][nb]))
+    return out
+
+
+def _band_spacing_2d(xy: FloatArray, rng: int = 0) -> float:
+    """90th percentile of the 2D nearest-neighbour distance of band points (sampled)."""
+    from scipy.spatial import cKDTree
+
+    n = xy.shape[0]
+    if n < 3:
+        return math.nan
+    gen = np.random.default_rng(rng)
+    q = xy if n <= 20_000 else xy[gen.choice(n, 20_000, replace=False)]
+    d, _ = cKDTree(xy).query(q, k=2)
+    d = d[:, 1]
+    d = d[d > 1e-9]
+    return float(np.quantile(d, 0.9)) if d.size else math.nan
+
+
+def _far_origins(
+    pts: FloatArray, ids: NDArray[np.int64], k: int, centers: FloatArray
+) -> FloatArray:
+    """A viewpoint far out on the visible side of each segment (for the geometric fit's
+    'centre behind the arc' test): centre + 1 km along (points' centroid - centre)."""
+    cnt = np.maximum(np.bincount(ids, minlength=k), 1)
+    cen = np.column_stack([np.bincount(ids, pts[:, j], k) / cnt for j in range(2)])
+    d = cen - centers
+    norm = np.hypot(d[:, 0], d[:, 1])
+    d = np.where(norm[:, None] > 1e-6, d / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
+    c = np.where(np.isfinite(centers), centers, cen)
+    return np.asarray(c + 1000.0 * d, dtype=np.float64)
+
+
+def _segment_arcs(
+    pts: FloatArray, ids: NDArray[np.int64], k: int, centers: FloatArray
+) -> FloatArray:
+    """Arc coverage (degrees) of every segment around its centre, vectorised."""
+    a = np.arctan2(pts[:, 1] - centers[ids, 1], pts[:, 0] - centers[ids, 0])
+    order = np.lexsort((a, ids))
+    a, s = a[order], ids[order]
+    nxt = np.roll(a, -1)
+    first = np.ones(s.shape[0], dtype=bool)
+    first[1:] = s[1:] != s[:-1]
+    last = np.roll(first, -1)
+    # wrap: the gap after a segment's last angle goes to its first angle + 2 pi
+    first_angle = a[first]
+    seg_of_first = s[first]
+    wrap_to = np.empty(k)
+    wrap_to[seg_of_first] = first_angle + 2 * np.pi
+    gap = np.where(last, wrap_to[s] - a, nxt - a)
+    maxgap = np.zeros(k)
+    np.maximum.at(maxgap, s, gap)
+    cnt = np.bincount(ids, minlength=k)
+    arc = np.degrees(2 * np.pi - maxgap)
+    return np.asarray(np.where(cnt >= 2, arc, 0.0), dtype=np.float64)
+
+
+def _fit_segments(
+    pts: FloatArray, ids: NDArray[np.int64], k: int, method: str
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int64]]:
+    """Robust batched circle fit of K segments: fit, trim |res| > 3 sigma (MAD), refit.
+
+    Returns centres (K, 2), radii, rms, ok, inlier counts; rows for ids absent from ``ids``
+    are NaN / False.
+    """
+    centers = np.full((k, 2), np.nan)
+    radii = np.full(k, np.nan)
+    rms = np.full(k, np.nan)
+    ok = np.zeros(k, dtype=bool)
+    nin = np.zeros(k, dtype=np.int64)
+    if pts.shape[0] == 0:
+        return centers, radii, rms, ok, nin
+    first = fit_circles_batch(pts, ids, "kasa")
+    c0 = np.full((k, 2), np.nan)
+    c0[first.segment_ids] = first.centers
+    keep = np.ones(pts.shape[0], dtype=bool)
+    for it in range(2):
+        sel_ids = ids[keep]
+        present = np.unique(sel_ids)
+        if present.size == 0:
+            break
+        if method == "kasa":
+            fits = fit_circles_batch(pts[keep], sel_ids, "kasa")
+        else:
+            origins = _far_origins(pts[keep], sel_ids, k, c0)[present]
+            fits = fit_circles_batch(
+                pts[keep],
+                sel_ids,
+                method,
+                origin=origins,
+                edges=np.zeros((present.size, 2), dtype=bool),
+            )
+        centers[:] = np.nan
+        radii[:] = np.nan
+        ok[:] = False
+        centers[fits.segment_ids] = fits.centers
+        radii[fits.segment_ids] = fits.radii
+        ok[fits.segment_ids] = fits.ok
+        c0 = np.where(np.isfinite(centers), centers, c0)
+        if it == 1:
+            break
+        # trim outliers: |residual| > max(3 * 1.4826 * MAD, 1 mm) of the segment
+        good = ok[ids]
+        res = np.full(pts.shape[0], np.inf)
+        res[good] = np.abs(np.hypot(*(pts[good] - centers[ids[good]]).T) - radii[ids[good]])
+        mad = np.full(k, np.inf)
+        for_seg = np.flatnonzero(good)
+        if for_seg.size:
+            order = np.lexsort((res[for_seg], ids[for_seg]))
+            s_ids = ids[for_seg][order]
+            s_res = res[for_seg][order]
+            starts = np.flatnonzero(np.r_[True, s_ids[1:] != s_ids[:-1]])
+            counts = np.diff(np.r_[starts, s_ids.size])
+            med = s_res[starts + counts // 2]
+            mad[s_ids[starts]] = med
+        thr = np.maximum(3.0 * 1.4826 * mad, 0.001)
+        keep = good & (res <= thr[ids])
+        keep |= ~good  # segments that failed keep their points for the second try
+    res2 = np.full(pts.shape[0], np.nan)
+    good = ok[ids] & keep
+    res2[good] = np.hypot(*(pts[good] - centers[ids[good]]).T) - radii[ids[good]]
+    nin = np.bincount(ids[good], minlength=k).astype(np.int64)
+    ss = np.bincount(ids[good], res2[good] ** 2, minlength=k)
+    rms = np.sqrt(ss / np.maximum(nin, 1))
+    rms = np.where(nin > 0, rms, np.nan)
+    return centers, radii, rms, ok, nin
+
+
+def _stems_from_band(
+    band: _Band, cfg: StemConfig, origin: ArrayLike | None, *, slice_cloud: bool = False
+) -> CloudStems:
+    xy, h = band.xy, band.h
+    n = xy.shape[0]
+    if n < cfg.min_slice_points:
+        return CloudStems.empty("ours")
+    # --- spacing -> clustering cell (measured, not tuned)
+    sp2d = cfg.spacing if cfg.spacing is not None else _band_spacing_2d(xy)
+    if not math.isfinite(sp2d):
+        return CloudStems.empty("ours")
+    cell = float(np.clip(cfg.cluster_cell_factor * sp2d, 0.01, 0.25))
+    # --- grid components with one-cell gap bridging (dilated occupancy)
+    from scipy import ndimage
+
+    lo = xy.min(axis=0)
+    ij = np.floor((xy - lo) / cell).astype(np.int64)
+    shape = ij.max(axis=0) + 1
+    if int(shape[0]) * int(shape[1]) > 300_000_000:
+        raise InputError(
+            f"the slice band spans {shape[0] * cell:.0f} x {shape[1] * cell:.0f} m at a "
+            f"{cell:.3f} m clustering cell; tile the cloud into smaller plots."
+        )
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    occ = np.zeros(int(shape[0]) * int(shape[1]), dtype=bool)
+    occ[flat] = True
+    occ2 = occ.reshape(int(shape[0]), int(shape[1]))
+    dil = ndimage.binary_dilation(occ2, structure=np.ones((3, 3), bool))
+    lab_img, n_lab = ndimage.label(dil, structure=np.ones((3, 3), bool))
+    lab = lab_img.ravel()[flat].astype(np.int64) - 1
+    # --- candidate clusters: enough points, plausible footprint
+    counts = np.bincount(lab, minlength=n_lab)
+    xmin = np.full(n_lab, np.inf)
+    xmax = np.full(n_lab, -np.inf)
+    ymin = np.full(n_lab, np.inf)
+    ymax = np.full(n_lab, -np.inf)
+    np.minimum.at(xmin, lab, xy[:, 0])
+    np.maximum.at(xmax, lab, xy[:, 0])
+    np.minimum.at(ymin, lab, xy[:, 1])
+    np.maximum.at(ymax, lab, xy[:, 1])
+    extent = np.maximum(xmax - xmin, ymax - ymin)
+    # a stem's footprint can be widened by an attached branch or shrub in some slices (the
+    # per-slice robust fits and consistency tests deal with those), so only absurd ones go
+    cand = (counts >= cfg.min_slice_points) & (extent <= 3.0 * cfg.max_diameter + 2 * cell)
+    # --- slice assignment
+    centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
+    ns = centers_h.shape[0]
+    # assign each point to the nearest slice centre within half a thickness
+    near = np.argmin(np.abs(h[:, None] - centers_h[None, :]), axis=1)
+    inside = np.abs(h - centers_h[near]) <= cfg.slice_thickness / 2
+    sl = np.where(inside, near, -1)
+    use = cand[lab] & (sl >= 0)
+    if not use.any():
+        return CloudStems.empty("ours", spacing=sp2d)
+    cl_ids, cl_inv = np.unique(lab[use], return_inverse=True)
+    kc = cl_ids.shape[0]
+    seg = cl_inv.astype(np.int64) * ns + sl[use]
+    pts = xy[use]
+    kseg = kc * ns
+    seg_n = np.bincount(seg, minlength=kseg)
+    fitmask = seg_n[seg] >= cfg.min_slice_points
+    pts_f, seg_f = pts[fitmask], seg[fitmask]
+    centers, radii, rms, ok, nin = _fit_segments(pts_f, seg_f, kseg, cfg.fit_method)
+    arcs = np.zeros(kseg)
+    if ok.any():
+        good = ok[seg_f]
+        arcs = _segment_arcs(pts_f[good], seg_f[good], kseg, np.where(ok[:, None], centers, 0))
+    # --- quality tests; noise floor measured from the data
+    plausible = (
+        ok
+        & (nin >= cfg.min_slice_points)
+        & (radii >= cfg.min_diameter / 2)
+        & (radii <= cfg.max_diameter / 2)
+        & (arcs >= cfg.min_arc_deg)
+    )
+    if not plausible.any():
+        return CloudStems.empty("ours", spacing=sp2d)
+    noise_floor = float(np.median(rms[plausible]))
+    rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
+    passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
+    P = passed.reshape(kc, ns)
+    C = centers.reshape(kc, ns, 2)
+    R = radii.reshape(kc, ns)
+    W = (nin / np.maximum(rms, 1e-4) ** 2).reshape(kc, ns)
+    A = arcs.reshape(kc, ns)
+    RMS = rms.reshape(kc, ns)
+    NIN = nin.reshape(kc, ns)
+    present = (seg_n.reshape(kc, ns) >= cfg.min_slice_points).sum(axis=1)
+    rows = []
+    for c in np.flatnonzero(P.sum(axis=1) >= cfg.min_slices):
+        m = P[c]
+        # consistency: drop slices whose radius or centre is far from the median
+        r_med = float(np.median(R[c, m]))
+        c_med = np.median(C[c, m], axis=0)
+        tol = max(0.15 * r_med, 3 * rms_max)
+        m = (
+            m
+            & (np.abs(R[c] - r_med) <= tol)
+            & (np.hypot(*(C[c] - c_med).T) <= max(tol, 0.3 * r_med))
+        )
+        if m.sum() < cfg.min_slices:
+            continue
+        if not slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent:
+            continue  # not a vertical structure (a bush, a boulder, a branch stub)
+        hh = centers_h[m] - cfg.breast_height
+        w = W[c, m]
+        if m.sum() >= 3 and np.ptp(hh) >= 0.3:
+            # weighted least-squares line through the slices (taper, lean), at breast height
+            X = np.column_stack((np.ones(hh.size), hh))
+            sw = np.sqrt(w)
+            coef_r = np.linalg.lstsq(X * sw[:, None], R[c, m] * sw, rcond=None)[0]
+            coef_x = np.linalg.lstsq(X * sw[:, None], C[c, m, 0] * sw, rcond=None)[0]
+            coef_y = np.linalg.lstsq(X * sw[:, None], C[c, m, 1] * sw, rcond=None)[0]
+            taper = float(coef_r[1])
+            if abs(taper) > 0.05:  # implausible taper: fall back to the weighted mean
+                r_bh = float(np.average(R[c, m], weights=w))
+                taper = math.nan
+            else:
+                r_bh = float(coef_r[0])
+            cxy = np.array([coef_x[0], coef_y[0]])
+        else:
+            r_bh = float(np.average(R[c, m], weights=w))
+            cxy = np.average(C[c, m], axis=0, weights=w)
+            taper = math.nan
+        frac = float(m.sum()) / max(int(present[c]), 1)
+        arc = float(np.mean(A[c, m]))
+        rr = float(np.mean(RMS[c, m]))
+        q = frac * min(1.0, arc / 120.0) * min(1.0, noise_floor / max(rr, 1e-6))
+        rows.append(
+            (cxy[0], cxy[1], 2 * r_bh, int(NIN[c, m].sum()), q, arc, rr, int(m.sum()), taper)
+        )
+    if not rows:
+        return CloudStems.empty("ours", spacing=sp2d)
+    arr = np.array(rows, dtype=np.float64)
+    # suppress duplicates (a trunk split into two clusters): keep the better supported one
+    order = np.argsort(-arr[:, 3])
+    kept: list[int] = []
+    for i in order:
+        if all(
+            math.hypot(arr[i, 0] - arr[j, 0], arr[i, 1] - arr[j, 1])
+            > 0.5 * max(arr[i, 2], arr[j, 2])
+            for j in kept
+        ):
+            kept.append(int(i))
+    arr = arr[np.sort(kept)]
+    # absolute z of breast height at each stem: median z - h offset of nearby band points
+    zbh = _breast_height_z(band, arr[:, :2], cfg.breast_height)
+    heights = _stem_heights(band.canopy, arr[:, :2]) if band.canopy else np.full(len(arr), np.nan)
+    return CloudStems.from_columns(
+        xy=arr[:, :2],
+        z=zbh,
+        diameter=arr[:, 2],
+        n_points=arr[:, 3].astype(np.int64),
+        quality=np.clip(arr[:, 4], 0.0, 1.0),
+        arc_deg=arr[:, 5],
+        rms=arr[:, 6],
+        n_slices=arr[:, 7].astype(np.int64),
+        taper=arr[:, 8],
+        height=heights,
+        method="ours" if cfg.fit_method == "ours" else f"ours_{cfg.fit_method}",
+        frame="cloud",
+        spacing=sp2d,
+    )
+
+
+def _breast_height_z(band: _Band, xy: FloatArray, bh: float) -> FloatArray:
+    from scipy.spatial import cKDTree
+
+    if band.xy.shape[0] == 0 or xy.shape[0] == 0:
+        return np.full(xy.shape[0], np.nan)
+    off = band.z - band.h  # ground z under each band point
+    tree = cKDTree(band.xy)
+    _, idx = tree.query(xy, k=min(16, band.xy.shape[0]))
+    idx = np.atleast_2d(idx)
+    return np.asarray(np.median(off[idx], axis=1) + bh, dtype=np.float64)
+
+
+# --------------------------------------------------------------------------------------------
+# streaming over files
+# --------------------------------------------------------------------------------------------
+
+
+def detect_stems_file(
+    path: str | Path,
+    config: StemConfig | MunjerConfig | None = None,
+    *,
+    chunk_size: int = 2_000_000,
+    on_chunk: Callable[[int, int], None] | None = None,
+) -> CloudStems:
+    """Run a detector on a cloud file, streaming LAS/LAZ in chunks.
+
+    ``StemConfig`` (ours): pass 1 builds the ground raster (and z range), pass 2 keeps only the
+    slice band (and a canopy-height raster if heights are requested); memory is bounded by the
+    chunk size plus the band. ``MunjerConfig``: the cloud is read whole (a lidar frame is small).
+
+    ``on_chunk(points_done, points_total)`` is called after each chunk of each pass (for a
+    progress bar; ``points_total`` counts both passes).
+    """
+    from stemmap.io.clouds import count_points, iter_cloud_chunks, read_cloud
+
+    cfg = config or StemConfig()
+    if isinstance(cfg, MunjerConfig):
+        cloud = read_cloud(path)
+        if on_chunk:
+            on_chunk(len(cloud), len(cloud))
+        return detect_stems_munjer(cloud.xyz, cfg)
+    total = count_points(path)
+    done = 0
+    acc = GroundAccumulator(cfg.ground_cell)
+    zmin, zmax = math.inf, -math.inf
+    n_total = 0
+    for chunk in iter_cloud_chunks(path, chunk_size):
+        xyz = chunk.xyz
+        if xyz.shape[0] == 0:
+            continue
+        n_total += xyz.shape[0]
+        zmin = min(zmin, float(xyz[:, 2].min()))
+        zmax = max(zmax, float(xyz[:, 2].max()))
+        acc.update(xyz)
+        done += xyz.shape[0]
+        if on_chunk:
+            on_chunk(done, 2 * (total or n_total))
+    if n_total == 0:
+        raise InputError(f"{str(path)!r} holds no points.")
+    is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
+    cfg = _slice_setup(cfg, zmin, zmax, is_slice)
+    ground = None if is_slice else acc.model()
+    lo, hi = cfg.band
+    xs, hs, zs = [], [], []
+    canopy: dict[str, Any] = {}
+    for chunk in iter_cloud_chunks(path, chunk_size):
+        xyz = chunk.xyz
+        if ground is None:
+            h = xyz[:, 2]
+        else:
+            h = ground.height_of(xyz)
+            if cfg.estimate_height:
+                canopy = _canopy_update(canopy, xyz[:, :2], h)
+        m = (h >= lo) & (h <= hi)
+        xs.append(xyz[m, :2])
+        hs.append(h[m])
+        zs.append(xyz[m, 2])
+        done += xyz.shape[0]
+        if on_chunk:
+            on_chunk(done, 2 * n_total)
+    band = _Band(np.concatenate(xs), np.concatenate(hs), np.concatenate(zs), canopy)
+    log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
+    return _stems_from_band(band, cfg, None, slice_cloud=is_slice)
+
+
+def point_spacing_of(xyz: ArrayLike) -> float:
+    """Median 3D nearest-neighbour spacing (re-exported for the CLI and benchmarks)."""
+    return point_spacing(xyz)
