@@ -1,0 +1,177 @@
+"""Reader / writer throughput: scans (NPZ, CSV, ROS1 / ROS2 bags), PointCloud2 decoding, maps.
+
+Prints one JSON object with --json. Every file is written to a temporary folder by stemmap's
+own writers (scans, maps) or rosbags' writers (bags), then read back; the times are wall-clock
+medians of ``--repeat`` runs on one core (the machine may be shared: compare ratios within one
+run rather than absolute numbers across runs).
+
+    python benchmarks/io_readers.py --json [--scans 5000] [--beams 361] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import struct
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.io import (
+    decode_pointcloud2,
+    read_scans,
+    read_trees_csv,
+    write_scans_csv,
+    write_scans_npz,
+    write_trees_csv,
+    write_trees_geojson,
+)
+from stemmap.types import ScanBatch, StemMap, Tree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "io"))
+from io_bagfactory import BagFactory  # test helper that writes real bags
+
+
+def _median_time(fn: Callable[[], Any], repeat: int) -> float:
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+def _scans(n_scans: int, n_beams: int, rng: np.random.Generator) -> ScanBatch:
+    r = rng.uniform(0.3, 30.0, (n_scans, n_beams))
+    r[rng.random(r.shape) < 0.1] = np.nan
+    return ScanBatch(
+        r, 0.025 * np.arange(n_scans), -math.pi / 2, math.pi / (n_beams - 1), 0.05, 80.0
+    )
+
+
+def _naive_pointcloud2(data: bytes, n: int, step: int) -> np.ndarray:
+    """Per-point struct.unpack: the loop a vectorised decoder replaces (reference only)."""
+    out = np.empty((n, 3))
+    for i in range(n):
+        out[i] = struct.unpack_from("<fff", data, i * step)
+    return out
+
+
+def run(
+    n_scans: int, n_beams: int, n_bag: int, n_points: int, n_trees: int, repeat: int
+) -> dict[str, Any]:
+    rng = np.random.default_rng(0)
+    res: dict[str, Any] = {
+        "scenario": {
+            "n_scans": n_scans,
+            "n_beams": n_beams,
+            "n_bag_messages": n_bag,
+            "n_pointcloud_points": n_points,
+            "pointcloud_point_step_bytes": 22,
+            "n_trees": n_trees,
+            "no_return_fraction": 0.1,
+            "repeat": repeat,
+            "timing": "median wall-clock of repeat runs, one process, shared 2-core machine",
+            "python": sys.version.split()[0],
+            "numpy": np.__version__,
+        }
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        batch = _scans(n_scans, n_beams, rng)
+        for kind, writer in (("npz", write_scans_npz), ("csv", write_scans_csv)):
+            p = d / f"scans.{kind}"
+            tw = _median_time(lambda p=p, w=writer: w(p, batch), repeat)
+            tr = _median_time(lambda p=p: read_scans(p), repeat)
+            res[f"scans_{kind}"] = {
+                "write_s": round(tw, 4),
+                "read_s": round(tr, 4),
+                "read_scans_per_s": round(n_scans / tr),
+                "file_mb": round(p.stat().st_size / 1e6, 2),
+            }
+        small = _scans(n_bag, n_beams, rng)
+        for label, fac in (
+            ("ros1", BagFactory(1)),
+            ("ros2_sqlite3", BagFactory(2)),
+            ("ros2_mcap", BagFactory(2, "mcap")),
+        ):
+            msgs = [
+                ("/scan", fac.laserscan(1000.0 + t, r, small.angle_min, small.angle_increment))
+                for t, r in zip(small.times, small.ranges, strict=True)
+            ]
+            p = fac.write(d / f"bag_{label}", msgs)
+            tr = _median_time(lambda p=p: read_scans(p), repeat)
+            res[f"bag_{label}_laserscan"] = {
+                "read_s": round(tr, 4),
+                "messages_per_s": round(n_bag / tr),
+            }
+        # PointCloud2: x y z f32, intensity f32, ring u16, 4 bytes padding -> 22-byte points
+        step = 22
+        dt = np.dtype(
+            {
+                "names": ["x", "y", "z", "intensity", "ring"],
+                "formats": ["<f4", "<f4", "<f4", "<f4", "<u2"],
+                "offsets": [0, 4, 8, 12, 16],
+                "itemsize": step,
+            }
+        )
+        pts = np.zeros(n_points, dtype=dt)
+        for c in ("x", "y", "z", "intensity"):
+            pts[c] = rng.uniform(-50, 50, n_points)
+        pts["x"][rng.random(n_points) < 0.05] = np.nan
+        data = pts.tobytes()
+        fields = [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("intensity", 12, 7, 1)]
+        fields.append(("ring", 16, 4, 1))
+        tv = _median_time(
+            lambda: decode_pointcloud2(data, fields, point_step=step, width=n_points), repeat
+        )
+        n_naive = min(n_points, 100_000)
+        tn = _median_time(lambda: _naive_pointcloud2(data, n_naive, step), 1) * n_points / n_naive
+        res["pointcloud2_decode"] = {
+            "vectorised_s": round(tv, 5),
+            "points_per_s": round(n_points / tv),
+            "naive_struct_loop_s_extrapolated": round(tn, 4),
+            "speedup_vs_naive": round(tn / tv, 1),
+        }
+        trees = StemMap(
+            tuple(
+                Tree(i, *rng.uniform(-100, 100, 2), rng.uniform(0.1, 0.6), np.eye(2) * 1e-3, 5)
+                for i in range(n_trees)
+            )
+        )
+        p = d / "trees.csv"
+        res["trees_csv"] = {
+            "write_s": round(_median_time(lambda: write_trees_csv(p, trees), repeat), 4),
+            "read_s": round(_median_time(lambda: read_trees_csv(p), repeat), 4),
+        }
+        g = d / "trees.geojson"
+        res["trees_geojson_write_s"] = round(
+            _median_time(lambda: write_trees_geojson(g, trees, origin_lonlat=(25.0, 60.0)), repeat),
+            4,
+        )
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--scans", type=int, default=5000)
+    ap.add_argument("--beams", type=int, default=361)
+    ap.add_argument("--bag-messages", type=int, default=2000)
+    ap.add_argument("--points", type=int, default=1_000_000)
+    ap.add_argument("--trees", type=int, default=5000)
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args()
+    res = run(a.scans, a.beams, a.bag_messages, a.points, a.trees, a.repeat)
+    print(json.dumps(res, indent=None if a.json else 2))
+
+
+if __name__ == "__main__":
+    main()
