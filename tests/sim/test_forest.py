@@ -1,0 +1,113 @@
+import math
+
+import numpy as np
+import pytest
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.sim import (
+    CLUTTER_KINDS,
+    Stand,
+    add_clutter,
+    clustered_stand,
+    make_trunks_noncircular,
+    random_stand,
+    row_stand,
+    sample_dbh,
+)
+
+
+def _min_gap(s: Stand) -> float:
+    d = np.hypot(*(s.trees_xy[:, None] - s.trees_xy[None]).transpose(2, 0, 1))
+    gap = d - (s.radii[:, None] + s.radii[None])
+    np.fill_diagonal(gap, np.inf)
+    return float(gap.min())
+
+
+@pytest.mark.parametrize("dist", ["normal", "weibull"])
+def test_sample_dbh_moments(dist):
+    d = sample_dbh(20_000, distribution=dist, mean=0.3, std=0.08, dbh_min=0.01, dbh_max=2.0, rng=1)
+    # truncation at 0.01 m removes < 0.01 % of the mass: moments within sampling error
+    # (std of the mean 0.08 / sqrt(20000) = 0.0006 -> 0.003 is 5 sigma; std within 3 %)
+    assert d.mean() == pytest.approx(0.3, abs=0.003)
+    assert d.std() == pytest.approx(0.08, rel=0.03)
+
+
+def test_sample_dbh_truncation_and_errors():
+    d = sample_dbh(1000, mean=0.3, std=0.2, dbh_min=0.1, dbh_max=0.4, rng=2)
+    assert d.min() >= 0.1 and d.max() <= 0.4 and d.size == 1000
+    with pytest.raises(ConfigError):
+        sample_dbh(10, distribution="lognormal")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError):
+        sample_dbh(10, dbh_min=0.5, dbh_max=0.4)
+    with pytest.raises(ConfigError, match="widen"):
+        sample_dbh(10, mean=0.3, std=0.001, dbh_min=1.0, dbh_max=1.1)
+
+
+def test_clustered_stand_is_more_clumped_than_random():
+    c = clustered_stand(80, (50, 50), n_clusters=4, cluster_std=3.0, rng=3)
+    r = random_stand(80, (50, 50), min_spacing=0.8, rng=3)
+    assert c.n_trees == r.n_trees == 80
+    assert _min_gap(c) >= 0.8
+
+    def mean_nn(s: Stand) -> float:
+        d = np.hypot(*(s.trees_xy[:, None] - s.trees_xy[None]).transpose(2, 0, 1))
+        np.fill_diagonal(d, np.inf)
+        return float(d.min(axis=1).mean())
+
+    # clumping shortens nearest-neighbour distances (Clark-Evans ratio < 1)
+    assert mean_nn(c) < 0.8 * mean_nn(r)
+
+
+def test_row_stand_geometry():
+    s = row_stand(4, 10, row_spacing=4.0, tree_spacing=3.0, jitter=0.0, heading=0.0, rng=4)
+    assert s.n_trees == 40
+    np.testing.assert_allclose(np.unique(s.trees_xy[:, 1]), [0.0, 4.0, 8.0, 12.0], atol=1e-12)
+    np.testing.assert_allclose(np.unique(s.trees_xy[:, 0]), np.arange(10) * 3.0, atol=1e-12)
+    rot = row_stand(2, 5, heading=math.pi / 2, jitter=0.0, rng=4)
+    np.testing.assert_allclose(rot.trees_xy[:5, 0], 0.0, atol=1e-12)  # row along +y
+    missing = row_stand(20, 20, missing=0.25, rng=5)
+    # binomial(400, 0.75): 5 sigma = 43 trees
+    assert abs(missing.n_trees - 300) < 43
+
+
+def test_add_clutter_places_every_kind_clear_of_trunks():
+    s = random_stand(40, (40, 40), rng=6)
+    c = add_clutter(s, n_bushes=3, n_branches=2, n_walls=1, n_fences=1, n_rocks=2, rng=7)
+    assert c.clutter_kinds.count("bush") == 3 and c.clutter_kinds.count("rock") == 2
+    assert set(c.clutter_kinds) <= set(CLUTTER_KINDS)
+    assert c.clutter_objects_xy.shape == (9, 2) and c.clutter_objects_extent.shape == (9,)
+    np.testing.assert_array_equal(c.trees_xy, s.trees_xy)
+    # bush stems stay off the trunks: every clutter circle is outside every trunk
+    d = np.hypot(*(c.clutter_xy[:, None] - s.trees_xy[None]).transpose(2, 0, 1))
+    assert np.all(d - s.radii[None] - c.clutter_radius[:, None] > 0)
+    assert np.all(c.segment_owner == -1)
+
+
+def test_noncircular_fraction_and_subset():
+    s = make_trunks_noncircular(random_stand(50, (40, 40), rng=8), fraction=0.5, rng=9)
+    k = int(s.tree_is_polygon.sum())
+    assert 10 < k < 40  # binomial(50, 0.5): 4 sigma
+    assert s.segments.shape[0] == 48 * k
+    keep = np.zeros(50, dtype=bool)
+    keep[::2] = True
+    sub = s.subset_trees(keep)
+    assert sub.n_trees == 25
+    assert sub.segments.shape[0] == 48 * int(s.tree_is_polygon[keep].sum())
+    assert sub.segment_owner.max() < 25
+
+
+def test_stand_validation():
+    with pytest.raises(InputError, match="diameters"):
+        Stand([[0, 0], [1, 1]], [0.3])
+    with pytest.raises(InputError, match="positive"):
+        Stand([[0, 0]], [0.0])
+    with pytest.raises(InputError, match="segment_owner"):
+        Stand([[0, 0]], [0.3], segments=[[0, 0, 1, 1]], segment_owner=[3])
+    with pytest.raises(InputError, match="clutter_kinds"):
+        Stand([[0, 0]], [0.3], clutter_objects_xy=[[1, 1]])
+    with pytest.raises(ConfigError):
+        add_clutter(Stand([[0, 0]], [0.3]), n_bushes=-1)
+    with pytest.raises(ConfigError):
+        make_trunks_noncircular(Stand([[0, 0]], [0.3]), ellipticity=0.7)
+    with pytest.raises(ConfigError, match="could place only"):
+        random_stand(500, (5, 5))
