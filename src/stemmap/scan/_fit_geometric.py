@@ -39,12 +39,13 @@ STATUS_MESSAGES = {
 }
 
 _HUBER_K = 1.5  # Huber threshold in units of sigma (95 % efficiency under Gaussian noise)
+_REJECT = 4.0  # outlier rejection threshold, sigma units, after the Huber fit
 _SIGMA_FLOOR = 2e-4  # metres: smallest noise scale used when sigma is estimated from residuals
 _MAX_ITER = 40
 _SQRT12 = math.sqrt(12.0)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve3(H: FloatArray, g: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     """Solve the 3x3 system H out = g by Cramer's rule; False if singular."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
@@ -65,7 +66,7 @@ def _solve3(H: FloatArray, g: FloatArray, out: FloatArray) -> bool:  # pragma: n
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     e = np.zeros(3)
     col = np.zeros(3)
@@ -79,10 +80,11 @@ def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _cost_and_normal(
     lx: FloatArray,
     ly: FloatArray,
+    keep: FloatArray,
     cx: float,
     cy: float,
     r: float,
@@ -102,6 +104,8 @@ def _cost_and_normal(
     cost = 0.0
     n = lx.shape[0]
     for i in range(n):
+        if keep[i] == 0.0:
+            continue
         dx = lx[i] - cx
         dy = ly[i] - cy
         dist = math.sqrt(dx * dx + dy * dy)
@@ -167,7 +171,7 @@ def _cost_and_normal(
     return cost
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _valid(
     cx: float, cy: float, r: float, rho_min: float, use_sil: bool
 ) -> bool:  # pragma: no cover - numba
@@ -181,10 +185,11 @@ def _valid(
     return dd > r * (1.0 + 1e-12) and dd > rho_min
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _lm(
     lx: FloatArray,
     ly: FloatArray,
+    keep: FloatArray,
     p: FloatArray,
     inv_sigma: float,
     use_sil: bool,
@@ -203,7 +208,7 @@ def _lm(
     gt = np.zeros(3)
     step = np.zeros(3)
     cost = _cost_and_normal(
-        lx, ly, p[0], p[1], p[2], inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, H, g
+        lx, ly, keep, p[0], p[1], p[2], inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, H, g
     )
     lam = 1e-3
     it = 0
@@ -225,7 +230,7 @@ def _lm(
                 lam *= 10.0
                 continue
             new_cost = _cost_and_normal(
-                lx, ly, cx, cy, r, inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, Ht, gt
+                lx, ly, keep, cx, cy, r, inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, Ht, gt
             )
             if new_cost <= cost:
                 dp = abs(step[0]) + abs(step[1]) + abs(step[2])
@@ -246,7 +251,7 @@ def _lm(
     return cost, it + 1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _fit_one(
     px: FloatArray,
     py: FloatArray,
@@ -344,19 +349,42 @@ def _fit_one(
     sang = dtheta / _SQRT12
     w_lo = 1.0 / sang if (use_sil and use_lo) else 0.0
     w_hi = 1.0 / sang if (use_sil and use_hi) else 0.0
+    keep = np.ones(n)
     if sigma > 0.0:
         sig = sigma
     else:
         # first pass: points weighted like the silhouette (sigma ~ range * angular std)
         sig = max(near * sang, _SIGMA_FLOOR)
-        _lm(lx, ly, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+        _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
         ss = 0.0
         for i in range(n):
             d = math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2]
             ss += d * d
         dof = n - 3 if n > 3 else 1
         sig = max(math.sqrt(ss / dof), _SIGMA_FLOOR)
-    _lm(lx, ly, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+    _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+    # ---- outlier rejection (mixed pixels): drop up to N // 4 returns beyond 4 sigma ----
+    if n >= 6:
+        dabs = np.empty(n)
+        for i in range(n):
+            dabs[i] = abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
+        scale = sig
+        if sigma <= 0.0:
+            scale = max(1.4826 * np.median(dabs) * math.sqrt(n / (n - 3.0)), _SIGMA_FLOOR)
+        order = np.argsort(-dabs)
+        n_rej = 0
+        for j in range(n // 4):
+            i = order[j]
+            if dabs[i] > _REJECT * scale:
+                keep[i] = 0.0
+                n_rej += 1
+        if n_rej > 0:
+            if sigma <= 0.0:
+                ss = 0.0
+                for i in range(n):
+                    ss += keep[i] * dabs[i] * dabs[i]
+                sig = max(math.sqrt(ss / max(n - n_rej - 3, 1)), _SIGMA_FLOOR)
+            _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
     if not _valid(p[0], p[1], p[2], rho_min, use_sil):
         return NOT_CONVERGED
     if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
@@ -365,15 +393,17 @@ def _fit_one(
     H = np.zeros((3, 3))
     g = np.zeros(3)
     _cost_and_normal(
-        lx, ly, p[0], p[1], p[2], 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, True, H, g
+        lx, ly, keep, p[0], p[1], p[2], 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, True, H, g
     )
     C = np.zeros((3, 3))
     if not _inv3(H, C):
         C[:, :] = np.nan
     ss = 0.0
+    n_in = 0.0
     for i in range(n):
         d = math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2]
-        ss += d * d
+        ss += keep[i] * d * d
+        n_in += keep[i]
     # rotate back to the input frame
     gx = ox + c0 * p[0] - s0 * p[1]
     gy = oy + s0 * p[0] + c0 * p[1]
@@ -387,12 +417,12 @@ def _fit_one(
         for b in range(3):
             out[k] = Cg[a, b]
             k += 1
-    out[12] = math.sqrt(ss / n)
+    out[12] = math.sqrt(ss / n_in)
     out[13] = sig
     return OK
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _fit_segments(
     px: FloatArray,
     py: FloatArray,
@@ -443,7 +473,8 @@ def fit_ours_segments(
     Returns
     -------
     out : ndarray of shape (K, 14)
-        cx, cy, r, cov (row-major 3x3 over cx, cy, r), rms, sigma used. NaN where failed.
+        cx, cy, r, cov (row-major 3x3 over cx, cy, r), rms of the inlier returns, sigma used.
+        NaN where failed.
     status : ndarray of shape (K,), int64
         Kernel status code (``STATUS_MESSAGES``).
     """

@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan._fit_geometric import STATUS_MESSAGES, fit_ours_segments
-from stemmap.types import FloatArray, wrap_angle
+from stemmap.types import FloatArray
 
 __all__ = [
     "FIT_METHODS",
@@ -235,7 +235,9 @@ def _with_rms(
 #: Published parameters of Zheng et al. (2012) §3.3: k_max = 1000 iterations, x0 = 0. The paper
 #: gives no value for the termination threshold epsilon on ||d_k||; 1e-12 (on the centred and
 #: scaled problem, where the unknowns are O(1)) is our choice and reaches machine precision.
-ZHENG2012_FR = {"k_max": 1000, "tol": 1e-12}
+ZHENG2012_K_MAX: int = 1000
+ZHENG2012_TOL: float = 1e-12
+ZHENG2012_FR: dict[str, float] = {"k_max": ZHENG2012_K_MAX, "tol": ZHENG2012_TOL}
 
 
 def fit_circle_fletcher_reeves(
@@ -245,8 +247,8 @@ def fit_circle_fletcher_reeves(
     sigma: float | None = None,
     angle_increment: float | None = None,
     edges: tuple[bool, bool] = (True, True),
-    k_max: int = ZHENG2012_FR["k_max"],
-    tol: float = ZHENG2012_FR["tol"],
+    k_max: int = ZHENG2012_K_MAX,
+    tol: float = ZHENG2012_TOL,
 ) -> CircleFit:
     """Circle fit by Fletcher-Reeves conjugate gradient on the linear system of Zheng eq. (8).
 
@@ -455,8 +457,8 @@ def fit_circle_chord_width(
     """Circle whose diameter is the Xue (2018) eq. 12 chord width of the edge beams.
 
     Radius = width / 2. The centre is placed on the ray bisecting the two edge beams, at
-    ``range + r``, where ``range`` is the range of the return whose bearing is closest to that
-    ray (the front surface of the trunk along the bisector).
+    ``range + r``, where ``range`` is the range of the front surface along that ray
+    (linearly interpolated between the returns either side of it).
 
     Parameters
     ----------
@@ -498,12 +500,12 @@ def fit_circle_chord_width(
     width, bis, _ = chord_width(p, origin=o)
     if not width > 0.0:
         return CircleFit.failed("edge returns coincide (zero chord width)", method, n)
-    q = p - o
-    bearings = np.arctan2(q[:, 1], q[:, 0])
-    k = int(np.argmin(np.abs(wrap_angle(bearings - bis))))
+    _, th, rho = _by_bearing(p, o)
     r = 0.5 * width
-    rng_k = float(np.hypot(*q[k]))
-    center = o + (rng_k + r) * np.array([math.cos(bis), math.sin(bis)])
+    # range of the front surface along the bisecting ray, interpolated between the returns
+    # either side of it (continuous in the data, so the fit is rotation equivariant)
+    front = float(np.interp(bis, th, rho))
+    center = o + (front + r) * np.array([math.cos(bis), math.sin(bis)])
     return _with_rms(p, center, r, method)
 
 
@@ -591,6 +593,8 @@ def fit_circle_ours(
     p = as_points(points)
     o = _origin(origin)
     n = p.shape[0]
+    if n < 3:
+        return CircleFit.failed(STATUS_MESSAGES[1], "ours", n)
     res = fit_circles_batch(
         p,
         np.zeros(n, dtype=np.int64),
