@@ -105,8 +105,10 @@ def match_tree_groups(
     """Match the echoes of one scan to map trees by tree groups (Öhman 2007 §2.1).
 
     A *group* is a tree and its ``group_size - 1`` nearest neighbours (echo groups within the
-    scan, tree groups within the map). A candidate pair (echo i, tree j) -- tree j within
-    ``search_radius`` of echo i's predicted position -- gets one vote of *support* for every
+    scan; tree groups among the map trees that are a candidate of some echo, i.e. that may be in
+    view -- the paper's "the tree graph is usually incomplete" problem turned around). A
+    candidate pair (echo i, tree j) -- tree j within ``search_radius`` of echo i's predicted
+    position -- gets one vote of *support* for every
     neighbour i' of i for which some neighbour j' of j is a candidate for i' and
     ``|d(i, i') - d(j, j')| <= dist_tol``: only inter-tree distances are compared (they are
     invariant to the unknown pose error). Echoes are matched one group at a time, in
@@ -158,12 +160,21 @@ def match_tree_groups(
         return out
     g = int(group_size) - 1
     ne, de = _neighbours(e, g)  # (K, g)
-    nt, dt = _neighbours(t, g)  # (N, g)
+    # Tree groups are formed among the trees that could be in this scan (a candidate of some
+    # echo): the map around the scan is usually denser than what the scan sees (blind areas),
+    # and groups over all map trees would hold neighbours no echo group can contain.
+    inview = np.flatnonzero(cand.any(axis=0))
+    nt_sub, dt_sub = _neighbours(t[inview], g)
+    nt = np.full((n, g), -1, dtype=np.int64)
+    dt = np.full((n, g), np.inf)
+    nt[inview] = np.where(nt_sub >= 0, inview[np.clip(nt_sub, 0, None)], -1)
+    dt[inview] = dt_sub
     # (Q, g, g): neighbour a of echo ci vs neighbour b of tree cj
     ea = ne[ci]
     tb = nt[cj]
     ok = (ea[:, :, None] >= 0) & (tb[:, None, :] >= 0)
-    agree = np.abs(de[ci][:, :, None] - dt[cj][:, None, :]) <= dist_tol
+    with np.errstate(invalid="ignore"):  # inf - inf on padded (missing) neighbours
+        agree = np.abs(de[ci][:, :, None] - dt[cj][:, None, :]) <= dist_tol
     pair_is_cand = cand[np.clip(ea, 0, None)[:, :, None], np.clip(tb, 0, None)[:, None, :]]
     support = np.sum(np.any(ok & agree & pair_is_cand, axis=2), axis=1)  # (Q,)
     # tie-break by distance to the predicted position
