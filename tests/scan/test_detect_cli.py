@@ -1,0 +1,64 @@
+import csv
+import math
+
+import numpy as np
+from typer.testing import CliRunner
+
+from stemmap.cli import app
+from stemmap.sim.forest import Stand
+from stemmap.sim.scanner import cast_rays
+
+runner = CliRunner()
+
+
+def _ranges(n_scans):
+    a = np.radians(np.arange(-90.0, 90.0 + 1e-9, 0.5))
+    stand = Stand(np.array([[3.0, 0.0], [2.0, 2.0]]), np.array([0.3, 0.2]))
+    r, _ = cast_rays(np.zeros(2), a, stand, 30.0)
+    rng = np.random.default_rng(0)
+    return np.tile(r, (n_scans, 1)) + rng.normal(0, 0.005, (n_scans, a.size)), a
+
+
+def test_detect_writes_rows_and_reports_a_corrupt_frame(tmp_path):
+    ranges, a = _ranges(4)
+    times = np.array([0.0, np.nan, 0.2, 0.3])  # frame 1 is damaged (no valid time stamp)
+    src = tmp_path / "scans.npz"
+    np.savez(
+        src,
+        ranges=ranges,
+        time=times,
+        angle_min=a[0],
+        angle_increment=math.radians(0.5),
+        range_min=0.05,
+        range_max=30.0,
+    )
+    out = tmp_path / "stems.csv"
+    res = runner.invoke(app, ["detect", str(src), "--out", str(out), "--fit", "kasa"])
+    assert res.exit_code == 0, res.output
+    assert "skipped frame 1" in res.output
+    with out.open() as fh:
+        rows = list(csv.DictReader(fh))
+    required = {"scan_index", "time", "x", "y", "diameter", "radius_std", "n_points"}
+    assert required <= set(rows[0])
+    # two trunks in each of the three good frames; scan_index is the position in the file
+    assert sorted({int(r["scan_index"]) for r in rows}) == [0, 2, 3]
+    assert len(rows) == 6
+    d = sorted(float(r["diameter"]) for r in rows if int(r["scan_index"]) == 0)
+    # 5 mm noise, >= 10 returns per trunk: diameters within 2 cm
+    assert abs(d[0] - 0.2) < 0.02 and abs(d[1] - 0.3) < 0.02
+
+
+def test_detect_bad_inputs_exit_2(tmp_path):
+    res = runner.invoke(app, ["detect", str(tmp_path / "missing.npz"), "--out", "x.csv"])
+    assert res.exit_code == 2 and "does not exist" in " ".join(res.output.split())
+    trunc = tmp_path / "trunc.npz"
+    ranges, a = _ranges(2)
+    np.savez(trunc, ranges=ranges, time=np.zeros(2), angle_min=a[0], angle_increment=0.01)
+    trunc.write_bytes(trunc.read_bytes()[:100])
+    res = runner.invoke(app, ["detect", str(trunc), "--out", str(tmp_path / "o.csv")])
+    assert res.exit_code == 2 and "error" in res.output
+    assert not (tmp_path / "o.csv").exists()
+    ok = tmp_path / "ok.npz"
+    np.savez(ok, ranges=ranges, time=np.zeros(2), angle_min=a[0], angle_increment=0.01)
+    res = runner.invoke(app, ["detect", str(ok), "--out", "x.csv", "--preset", "ohman2007"])
+    assert res.exit_code == 2 and "Öhman" in " ".join(res.output.split())
