@@ -30,6 +30,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "stemmap.cli._harvest",
     "stemmap.cli._detect",
     "stemmap.cli._sim",
+    "stemmap.cli._io",
 )
 
 

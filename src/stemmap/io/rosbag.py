@@ -45,6 +45,8 @@ __all__ = [
     "ImuLog",
     "OdometryLog",
     "PointField",
+    "TopicSummary",
+    "bag_summary",
     "decode_pointcloud2",
     "indexed_laser_scans",
     "is_bag",
@@ -134,6 +136,23 @@ def list_topics(path: PathLike) -> dict[str, str]:
     """Topics of a bag and their message types (``pkg/msg/Type``), sorted by topic name."""
     with open_bag(path) as reader:
         return {name: _norm_type(str(info.msgtype)) for name, info in reader.topics.items()}
+
+
+class TopicSummary(NamedTuple):
+    """One topic of a bag: name, message type (``pkg/msg/Type``) and message count."""
+
+    topic: str
+    msgtype: str
+    n_messages: int
+
+
+def bag_summary(path: PathLike) -> list[TopicSummary]:
+    """Every topic of a bag with its type and message count, sorted by topic name."""
+    with open_bag(path) as reader:
+        return [
+            TopicSummary(name, _norm_type(str(info.msgtype)), int(info.msgcount))
+            for name, info in sorted(reader.topics.items())
+        ]
 
 
 def _describe_topics(topics: dict[str, str]) -> str:

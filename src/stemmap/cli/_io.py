@@ -1,0 +1,93 @@
+"""``stemmap io``: inspect bags and convert scan files between formats.
+
+* ``stemmap io topics BAG`` -- the topics of a ROS1 / ROS2 bag with types and message counts.
+* ``stemmap io convert-scans SRC --out DST`` -- 2D scans from NPZ, CSV or a bag to NPZ or CSV
+  (the layouts of docs/algorithms/io.md); damaged frames are reported and skipped.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from stemmap.cli._common import console, fail_on_stemmap_error, out
+
+__all__ = ["register"]
+
+io_app = typer.Typer(
+    name="io",
+    help="Inspect ROS bags and convert scan files (NPZ, CSV, ROS1/ROS2 bags).",
+    no_args_is_help=True,
+)
+
+
+@io_app.command("topics")
+def topics(
+    bag: Annotated[
+        Path, typer.Argument(help="ROS1 .bag, ROS2 bag folder, or ROS2 .db3 / .mcap file.")
+    ],
+) -> None:
+    """List the topics of a bag with their message types and counts.
+
+    Example: stemmap io topics run.bag
+    """
+    from rich.table import Table
+
+    from stemmap.io.rosbag import bag_summary
+
+    with fail_on_stemmap_error():
+        rows = bag_summary(bag)
+    table = Table(title=str(bag))
+    table.add_column("topic")
+    table.add_column("type")
+    table.add_column("messages", justify="right")
+    for r in rows:
+        table.add_row(r.topic, r.msgtype, str(r.n_messages))
+    out.print(table)
+
+
+@io_app.command("convert-scans")
+def convert_scans(
+    src: Annotated[
+        Path, typer.Argument(help="Scans: .npz, .csv, ROS1 .bag or ROS2 bag (folder/.db3/.mcap).")
+    ],
+    out_path: Annotated[
+        Path, typer.Option("--out", "-o", help="Output file: .npz or .csv (chosen by suffix).")
+    ],
+    topic: Annotated[
+        str | None, typer.Option(help="LaserScan topic of a bag (default: the only one).")
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
+) -> None:
+    """Convert 2D laser scans to NPZ or CSV (scans of the dominant beam geometry).
+
+    Example: stemmap io convert-scans run.bag --topic /scan --out run.npz
+    """
+    from stemmap.errors import InputError
+    from stemmap.io.scans import SkippedFrame, read_scans, write_scans_csv, write_scans_npz
+
+    with fail_on_stemmap_error():
+        ext = out_path.suffix.lower()
+        if ext not in (".npz", ".csv"):
+            raise InputError(
+                f"output {str(out_path)!r} must end in .npz or .csv, not {ext or 'nothing'!r}."
+            )
+        skipped: list[SkippedFrame] = []
+        batch = read_scans(src, topic=topic, skipped=skipped)
+        for sk in skipped:
+            console.print(
+                f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"
+            )
+        (write_scans_npz if ext == ".npz" else write_scans_csv)(out_path, batch)
+    if not quiet:
+        out.print(
+            f"{len(batch)} scans x {batch.n_beams} beams ({len(skipped)} skipped) -> {out_path}",
+            markup=False,
+        )
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``io`` command group to the ``stemmap`` app."""
+    app.add_typer(io_app)
