@@ -83,7 +83,10 @@ def test_simulated_scene_iou() -> None:
     # Rendered bark obeys the RGB rules except in shaded silhouettes and pixel noise (5 DN);
     # trunks hidden behind each other merge. Measured 0.8-0.9: require 0.7.
     assert iou > 0.7
-    assert not (seg.mask & (sc.truth.label == -2)).any()  # bushes never segmented
+    bush = sc.truth.label == -2
+    # Bushes are stripped by colour; morphological closing may bleed a few pixels over a
+    # trunk-bush boundary: under 1 % of the bush pixels.
+    assert (seg.mask & bush).sum() < 0.01 * bush.sum()
 
 
 def test_bad_inputs() -> None:

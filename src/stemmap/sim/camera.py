@@ -262,7 +262,7 @@ def _cast(
     n = xy.shape[0]
     st = Stand(
         xy.reshape(-1, 2) if n else np.zeros((0, 2)),
-        r if n else np.zeros(0),
+        2.0 * r if n else np.zeros(0),  # Stand takes diameters
         segments=seg,
         segment_owner=np.full(seg.shape[0], -1, dtype=np.int64),
     )
@@ -295,7 +295,7 @@ def render_scene(
     2D ray cast along the pixel's azimuth (azimuths binned at 1/4 pixel), the hit height from the
     pixel's elevation. Classes:
 
-    * trees: bark-coloured (per-tree jitter), vertical streak texture, Lambertian shading, from
+    * trees: bark-coloured (per-tree jitter), patchy bark texture, Lambertian shading, from
       the ground to ``trunk_height``;
     * clutter circles: green leafy bushes up to ``bush_height``, except a fraction
       ``mimic_fraction`` drawn as bark-coloured posts up to ``post_height`` (distractors a colour
@@ -349,9 +349,12 @@ def render_scene(
 
     # Shading and streak texture per tree-hit bin.
     shade = np.ones(nb)
-    streak = np.zeros(nb)
+    kbin = np.zeros(nb, dtype=np.int64)
     post_shade = np.ones(nb)
-    tex = gen.normal(0.0, 12.0, (max(n_t, 1), 36))
+    # Bark texture: patches of 10 deg around the trunk x 0.25 m in height (plates of bark),
+    # so texture edges are short while the silhouette edges run the trunk's full height.
+    n_hz = max(1, math.ceil(trunk_height / 0.25))
+    tex = gen.normal(0.0, 10.0, (max(n_t, 1), 36, n_hz))
     for r_l, i_l, xy, rad, sh in (
         (r_tree, i_tree, stand.trees_xy, stand.radii, shade),
         (r_post, i_post, stand.clutter_xy[mimic], stand.clutter_radius[mimic], post_shade),
@@ -366,7 +369,7 @@ def render_scene(
         if r_l is r_tree:
             phi = np.arctan2(nrm[:, 1], nrm[:, 0])
             k = ((phi + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36
-            streak[fin] = tex[i_l[fin], k]
+            kbin[fin] = k
 
     tree_rgb = _BARK + gen.normal(0.0, bark_jitter, (max(n_t, 1), 3)) * np.array([1.0, 0.8, 0.6])
     tree_rgb[:, 2] = np.minimum(tree_rgb[:, 2], tree_rgb[:, 1] - 5)
@@ -397,8 +400,11 @@ def render_scene(
     paint(r_bush, bush_height, np.full((H, W), -2, np.int32), np.broadcast_to(_BUSH, (H, W, 3)))
     post_col = post_rgb[None, :] * post_shade[:, None]
     paint(r_post, post_height, np.full((H, W), -3, np.int32), post_col[b_idx])
-    tcol = (tree_rgb[np.clip(i_tree, 0, max(n_t - 1, 0))] + streak[:, None]) * shade[:, None]
-    paint(r_tree, trunk_height, i_tree[b_idx].astype(np.int32), tcol[b_idx])
+    it_px = np.clip(i_tree, 0, max(n_t - 1, 0))[b_idx]
+    z_px = cz + np.where(np.isfinite(r_tree[b_idx]), r_tree[b_idx], 0.0) * tan_el
+    hz = np.clip(((z_px - ground_z) / 0.25).astype(np.int64), 0, n_hz - 1)
+    tcol = (tree_rgb[it_px] + tex[it_px, kbin[b_idx], hz][..., None]) * shade[b_idx][..., None]
+    paint(r_tree, trunk_height, i_tree[b_idx].astype(np.int32), tcol)
 
     img += gen.normal(0.0, pixel_noise, img.shape)
     bush_px = label == -2
