@@ -11,7 +11,6 @@ from stemmap.errors import ConfigError, InputError
 from stemmap.fusion.bpa import (
     PRESETS,
     BpaParams,
-    chord_width,
     laser_bpa,
     no_support_mass,
     vision_bpa,
@@ -76,11 +75,6 @@ def test_table3_combination_and_decision_exact() -> None:
     np.testing.assert_array_equal(np.round(comb.mass.as_array().T, 3), TABLE3)
     # Decision (eq. 17, eps1 = eps2 = 0.1): 1, 4, 8, 9 are trunks, 5 is not.
     np.testing.assert_array_equal(decide_xue2018(comb.mass), [True, True, False, True, True])
-
-
-def test_chord_width_law_of_cosines() -> None:
-    # Two beams 90 degrees apart at 3 m and 4 m -> 5 m.
-    assert chord_width(3.0, 4.0, np.pi / 2) == pytest.approx(5.0, rel=1e-12)
 
 
 def test_laser_bpa_tails_continuous_and_printed() -> None:

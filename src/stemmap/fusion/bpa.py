@@ -1,6 +1,7 @@
 """Basic probability assignments (BPAs) of laser and vision regions of interest.
 
-Laser RoIs get their evidence from the measured trunk width (Xue et al. 2018, eq. 12-13); vision
+Laser RoIs get their evidence from the measured trunk width (Xue et al. 2018, eq. 13; the
+width itself, eq. 12, is :func:`stemmap.scan.circle.chord_width`); vision
 RoIs from the stripping segmentation's matching level alpha (eq. 14-15, eq. 18). Regions seen by
 one sensor only get the paper's "no support" mass from the other (§3.2.4).
 
@@ -20,12 +21,10 @@ from numpy.typing import ArrayLike
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.fusion.evidence import Mass
-from stemmap.types import FloatArray
 
 __all__ = [
     "PRESETS",
     "BpaParams",
-    "chord_width",
     "laser_bpa",
     "no_support_mass",
     "vision_bpa",
@@ -108,33 +107,6 @@ def _params(params: BpaParams | str | None) -> BpaParams:
                 f"unknown BPA preset {params!r}; choose one of {sorted(PRESETS)}."
             ) from None
     return params
-
-
-def chord_width(r_a: ArrayLike, r_b: ArrayLike, theta: ArrayLike) -> FloatArray:
-    """Trunk width from the two edge beams (Xue et al. 2018, eq. 12, law of cosines).
-
-    AB^2 = O_R A^2 + O_R B^2 - 2 O_R A O_R B cos(theta).
-
-    Parameters
-    ----------
-    r_a, r_b : array_like, metres
-        Ranges of the two edge beams.
-    theta : array_like, radians
-        Angle between the two edge beams.
-
-    Returns
-    -------
-    ndarray, metres
-
-    Examples
-    --------
-    >>> round(float(chord_width(2.0, 2.0, np.radians(5.0))), 4)
-    0.1745
-    """
-    a = np.asarray(r_a, dtype=np.float64)
-    b = np.asarray(r_b, dtype=np.float64)
-    th = np.asarray(theta, dtype=np.float64)
-    return np.sqrt(np.maximum(a * a + b * b - 2.0 * a * b * np.cos(th), 0.0))
 
 
 def laser_bpa(widths: ArrayLike, params: BpaParams | str | None = None) -> Mass:
