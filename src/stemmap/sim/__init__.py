@@ -13,6 +13,11 @@ from stemmap.sim.forest import (
     row_stand,
     sample_dbh,
 )
+from stemmap.sim.observations import (
+    oracle_observations,
+    returns_per_tree,
+    trees_in_sensor_frame,
+)
 from stemmap.sim.scanner import (
     HIT_CLUTTER,
     HIT_NONE,
@@ -26,6 +31,8 @@ from stemmap.sim.scanner import (
 )
 from stemmap.sim.trajectory import (
     ODOMETRY_PRESETS,
+    Gnss,
+    GnssNoise,
     Odometry,
     OdometryNoise,
     RelativeOdometry,
@@ -47,6 +54,8 @@ __all__ = [
     "HIT_NONE",
     "ODOMETRY_PRESETS",
     "SCANNER_PRESETS",
+    "Gnss",
+    "GnssNoise",
     "Odometry",
     "OdometryNoise",
     "RelativeOdometry",
@@ -64,8 +73,10 @@ __all__ = [
     "lawnmower_path",
     "loop_path",
     "make_trunks_noncircular",
+    "oracle_observations",
     "random_stand",
     "relative_poses",
+    "returns_per_tree",
     "row_stand",
     "sample_dbh",
     "scanner_preset",
@@ -73,4 +84,5 @@ __all__ = [
     "simulate_scan",
     "simulate_scans",
     "straight_path",
+    "trees_in_sensor_frame",
 ]

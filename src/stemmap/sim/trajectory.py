@@ -33,6 +33,8 @@ from stemmap.types import FloatArray, Pose2, ScanBatch, Trajectory, wrap_angle
 
 __all__ = [
     "ODOMETRY_PRESETS",
+    "Gnss",
+    "GnssNoise",
     "Odometry",
     "OdometryNoise",
     "RelativeOdometry",
@@ -144,6 +146,30 @@ class VisualOdometryNoise:
             raise ConfigError(f"VisualOdometryNoise.dropout must be in [0, 1), got {self.dropout}.")
 
 
+@dataclass(frozen=True)
+class GnssNoise:
+    """Error model of GNSS position fixes of the vehicle.
+
+    Each fix is ``truth + e_white + e_slow``: white noise ``N(0, sigma²)`` per axis plus a
+    first-order Gauss-Markov error (standard deviation ``sigma_slow``, correlation time
+    ``tau`` seconds), the slowly wandering multipath error seen under canopy. Outages (no fix)
+    form a Poisson process (``outage_rate`` per second) of length ``outage_duration``.
+    """
+
+    rate_hz: float = 1.0
+    sigma: float = 0.5
+    sigma_slow: float = 1.0
+    tau: float = 30.0
+    outage_rate: float = 0.0
+    outage_duration: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not (self.rate_hz > 0 and self.tau > 0 and self.outage_duration > 0):
+            raise ConfigError("GnssNoise needs rate_hz, tau and outage_duration > 0.")
+        if not (self.sigma >= 0 and self.sigma_slow >= 0 and self.outage_rate >= 0):
+            raise ConfigError("GnssNoise sigmas and outage_rate must be >= 0.")
+
+
 # --------------------------------------------------------------------------------------------
 # Odometry records
 # --------------------------------------------------------------------------------------------
@@ -245,6 +271,29 @@ class RelativeOdometry:
 
 
 @dataclass(frozen=True, eq=False)
+class Gnss:
+    """GNSS fixes: ``times`` (K,) s, ``xy`` (K, 2) m in the world frame, ``sigma`` (K,) m
+    (the simulated total 1-sigma per axis). Fixes inside outages are absent."""
+
+    times: FloatArray
+    xy: FloatArray
+    sigma: FloatArray
+
+    def __post_init__(self) -> None:
+        t = _readonly(self.times).reshape(-1)
+        xy = _readonly(self.xy).reshape(-1, 2)
+        sg = _readonly(self.sigma).reshape(-1)
+        if not (xy.shape[0] == t.shape[0] == sg.shape[0]):
+            raise InputError("Gnss times, xy and sigma have different lengths.")
+        object.__setattr__(self, "times", t)
+        object.__setattr__(self, "xy", xy)
+        object.__setattr__(self, "sigma", sg)
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
 class SimRun:
     """Everything one simulated drive produces, with ground truth.
 
@@ -277,6 +326,8 @@ class SimRun:
         Noisy increments between consecutive scans (vehicle frame).
     params : dict
         Every parameter of the scenario, for benchmark JSON output.
+    gnss : Gnss or None
+        GNSS fixes of the vehicle position (:class:`GnssNoise`).
     """
 
     stand: Stand
@@ -293,6 +344,7 @@ class SimRun:
     slipping: NDArray[np.bool_]
     visual_odometry: RelativeOdometry
     params: dict[str, Any] = field(default_factory=dict)
+    gnss: Gnss | None = None
 
     def __len__(self) -> int:
         return len(self.scans)
@@ -614,6 +666,28 @@ def _visual_odometry(
     return RelativeOdometry(idx, idx + 1, times[:-1], times[1:], noisy, covs)
 
 
+def _gnss(true_path: Trajectory, odo: Odometry, noise: GnssNoise, gen: np.random.Generator) -> Gnss:
+    t0, t1 = float(true_path.times[0]), float(true_path.times[-1])
+    t = np.arange(t0, t1 + 1e-12, 1.0 / noise.rate_hz)
+    xy = _poses_at(true_path, odo, t)[:, :2]
+    # Gauss-Markov: e_k = a e_{k-1} + sqrt(1 - a^2) sigma_slow w_k, stationary start
+    a = math.exp(-1.0 / (noise.rate_hz * noise.tau))
+    w = gen.normal(0.0, 1.0, (t.size, 2))
+    slow = np.empty((t.size, 2))
+    if t.size:
+        slow[0] = noise.sigma_slow * w[0]
+        q = noise.sigma_slow * math.sqrt(1.0 - a * a)
+        for k in range(1, t.size):  # a scalar recursion at 1-10 Hz: few thousand steps
+            slow[k] = a * slow[k - 1] + q * w[k]
+    fix = xy + slow + gen.normal(0.0, 1.0, xy.shape) * noise.sigma
+    keep = np.ones(t.size, dtype=bool)
+    if noise.outage_rate > 0:
+        for s0 in gen.uniform(t0, t1, gen.poisson(noise.outage_rate * (t1 - t0))):
+            keep &= ~((t >= s0) & (t < s0 + noise.outage_duration))
+    total = math.hypot(noise.sigma, noise.sigma_slow)
+    return Gnss(t[keep], fix[keep], np.full(int(keep.sum()), total))
+
+
 def _poses_at(true_path: Trajectory, odo: Odometry, tq: FloatArray) -> FloatArray:
     """Exact vehicle poses at arbitrary times inside the run (arc from the previous sample)."""
     k = np.clip(np.searchsorted(odo.times, tq, side="right") - 1, 0, len(odo) - 1)
@@ -635,6 +709,7 @@ def simulate_run(
     odom_rate_hz: float = 50.0,
     odometry_noise: OdometryNoise | str | None = "wheel",
     vo_noise: VisualOdometryNoise | None = None,
+    gnss_noise: GnssNoise | None = None,
     sensor_offset: Pose2 | None = None,
     lookahead: float = 2.0,
     max_yaw_rate: float = 0.8,
@@ -660,6 +735,8 @@ def simulate_run(
         Wheel-odometry rate (controls are constant between samples).
     odometry_noise : OdometryNoise or preset name (see :data:`ODOMETRY_PRESETS`) or None
     vo_noise : VisualOdometryNoise, optional (default :class:`VisualOdometryNoise()`)
+    gnss_noise : GnssNoise, optional (default :class:`GnssNoise()`: 1 Hz, 0.5 m white + 1 m
+        slowly correlated error, no outages)
     sensor_offset : Pose2, optional
         Sensor pose in the vehicle frame (default: at the vehicle reference point).
     lookahead : float, metres
@@ -671,8 +748,8 @@ def simulate_run(
     max_scans : int, optional
         Keep only the first ``max_scans`` scans (and the odometry up to the last of them).
     rng : numpy Generator or int seed
-        Independent child streams are spawned for the scanner, wheel odometry and visual
-        odometry, so changing one noise model does not change the others' draws.
+        Independent child streams are spawned for the scanner, wheel odometry, visual
+        odometry and GNSS, so changing one noise model does not change the others' draws.
 
     Returns
     -------
@@ -704,7 +781,8 @@ def simulate_run(
     vnoise = vo_noise or VisualOdometryNoise()
     offset = sensor_offset or Pose2(0.0, 0.0, 0.0)
     gen = np.random.default_rng(rng)
-    g_scan, g_odo, g_vo = gen.spawn(3)
+    g_scan, g_odo, g_vo, g_gnss = gen.spawn(4)
+    gnoise = gnss_noise or GnssNoise()
     dt = 1.0 / odom_rate_hz
 
     if isinstance(path, Trajectory):
@@ -755,6 +833,7 @@ def simulate_run(
     scans, hit, mixed = simulate_scans(stand, sensor, model, times=t_scan, rng=g_scan)
     odo, slipping = _noisy_odometry(true_odo, onoise, g_odo)
     vo = _visual_odometry(vehicle, t_scan, vnoise, g_vo)
+    gnss = _gnss(true_path, true_odo, gnoise, g_gnss)
     params: dict[str, Any] = {
         "scanner": asdict(model),
         "speed_m_s": speed,
@@ -762,6 +841,7 @@ def simulate_run(
         "odom_rate_hz": odom_rate_hz,
         "odometry_noise": asdict(onoise),
         "vo_noise": asdict(vnoise),
+        "gnss_noise": asdict(gnoise),
         "sensor_offset": [offset.x, offset.y, offset.theta],
         "lookahead_m": lookahead,
         "max_yaw_rate_rad_s": max_yaw_rate,
@@ -785,4 +865,5 @@ def simulate_run(
         slipping=slipping,
         visual_odometry=vo,
         params=params,
+        gnss=gnss,
     )
