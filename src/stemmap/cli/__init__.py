@@ -31,6 +31,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "stemmap.cli._detect",
     "stemmap.cli._sim",
     "stemmap.cli._io",
+    "stemmap.cli._stems",
 )
 
 

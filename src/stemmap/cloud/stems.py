@@ -349,6 +349,8 @@ class StemConfig:
     min_slices : int -- slices that must pass for a stem (1 for a pre-cut slice cloud)
     min_vertical_extent : float, metres -- the passing slices' centres must span at least this
         (a stem is vertical; bushes and branch stubs are not); ignored for a pre-cut slice
+    max_taper : float -- largest plausible |d radius / d height| in the band, m/m; a candidate
+        whose slice radii change faster is not a stem
     residual_factor : float -- a slice fit passes if its RMS is below ``residual_factor`` times
         the cloud's noise floor (median slice RMS) -- measured, not tuned
     cluster_cell_factor : float -- grid clustering cell = this x the 90th-percentile 2D point
@@ -376,7 +378,8 @@ class StemConfig:
     fit_method: str = "ours"
     estimate_height: bool = False
     slice_mode: str = "auto"
-    min_vertical_extent: float = 0.5
+    min_vertical_extent: float = 0.4
+    max_taper: float = 0.05
 
     def __post_init__(self) -> None:
         if not self.slice_centers or self.slice_thickness <= 0:
@@ -655,6 +658,27 @@ def _fit_segments(
     return centers, radii, rms, ok, nin
 
 
+def _vertical_filter(
+    xy: FloatArray, sl: NDArray[np.int64], ns: int, cell: float
+) -> NDArray[np.bool_]:
+    """Keep points whose 2D cell is occupied in at least half of the slices (>= 2).
+
+    A trunk's surface projects onto the same cells at every height of the band; branches,
+    needles and leaves occupy a cell at one or two heights only. Removing them before
+    clustering keeps them out of the circle fits (a spruce whorl otherwise swamps its stem).
+    The cell (3-10 cm) tolerates the lean of a stem between adjacent slices.
+    """
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+    ny = int(ij[:, 1].max()) + 1
+    key = ij[:, 0] * ny + ij[:, 1]
+    ok = sl >= 0
+    pair = np.unique(key[ok] * ns + sl[ok])
+    cell_keys, n_sl = np.unique(pair // ns, return_counts=True)
+    need = max(2, (ns + 1) // 2)
+    good_cells = cell_keys[n_sl >= need]
+    return np.asarray(ok & np.isin(key, good_cells), dtype=bool)
+
+
 def _stems_from_band(
     band: _Band, cfg: StemConfig, origin: ArrayLike | None, *, slice_cloud: bool = False
 ) -> CloudStems:
@@ -667,6 +691,18 @@ def _stems_from_band(
     if not math.isfinite(sp2d):
         return CloudStems.empty("ours")
     cell = float(np.clip(cfg.cluster_cell_factor * sp2d, 0.01, 0.25))
+    centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
+    ns = centers_h.shape[0]
+    # --- slice of each point: the nearest slice centre within half a thickness
+    near = np.argmin(np.abs(h[:, None] - centers_h[None, :]), axis=1)
+    sl_all = np.where(np.abs(h - centers_h[near]) <= cfg.slice_thickness / 2, near, -1)
+    keep = sl_all >= 0
+    if not slice_cloud and ns >= 3:
+        keep &= _vertical_filter(xy, sl_all, ns, float(np.clip(cell, 0.03, 0.1)))
+    xy, h = xy[keep], h[keep]
+    sl_all = sl_all[keep]
+    if xy.shape[0] < cfg.min_slice_points:
+        return CloudStems.empty("ours", spacing=sp2d)
     # --- grid components with one-cell gap bridging (dilated occupancy)
     from scipy import ndimage
 
@@ -699,13 +735,7 @@ def _stems_from_band(
     # a stem's footprint can be widened by an attached branch or shrub in some slices (the
     # per-slice robust fits and consistency tests deal with those), so only absurd ones go
     cand = (counts >= cfg.min_slice_points) & (extent <= 3.0 * cfg.max_diameter + 2 * cell)
-    # --- slice assignment
-    centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
-    ns = centers_h.shape[0]
-    # assign each point to the nearest slice centre within half a thickness
-    near = np.argmin(np.abs(h[:, None] - centers_h[None, :]), axis=1)
-    inside = np.abs(h - centers_h[near]) <= cfg.slice_thickness / 2
-    sl = np.where(inside, near, -1)
+    sl = sl_all
     use = cand[lab] & (sl >= 0)
     if not use.any():
         return CloudStems.empty("ours", spacing=sp2d)
@@ -757,7 +787,7 @@ def _stems_from_band(
         )
         if m.sum() < cfg.min_slices:
             continue
-        if not slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent:
+        if not slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent - 1e-9:
             continue  # not a vertical structure (a bush, a boulder, a branch stub)
         hh = centers_h[m] - cfg.breast_height
         w = W[c, m]
@@ -769,11 +799,9 @@ def _stems_from_band(
             coef_x = np.linalg.lstsq(X * sw[:, None], C[c, m, 0] * sw, rcond=None)[0]
             coef_y = np.linalg.lstsq(X * sw[:, None], C[c, m, 1] * sw, rcond=None)[0]
             taper = float(coef_r[1])
-            if abs(taper) > 0.05:  # implausible taper: fall back to the weighted mean
-                r_bh = float(np.average(R[c, m], weights=w))
-                taper = math.nan
-            else:
-                r_bh = float(coef_r[0])
+            if abs(taper) > cfg.max_taper:
+                continue  # radius changes too fast with height for a stem (bush, boulder)
+            r_bh = float(coef_r[0])
             cxy = np.array([coef_x[0], coef_y[0]])
         else:
             r_bh = float(np.average(R[c, m], weights=w))
