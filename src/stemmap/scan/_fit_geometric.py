@@ -242,7 +242,7 @@ def _lm(
                 g[:] = gt
                 lam = max(lam * 0.3, 1e-9)
                 improved = True
-                if dp <= 1e-12 * (1.0 + scale) or rel <= 1e-14 * (1.0 + cost):
+                if dp <= 1e-9 * (1.0 + scale) or rel <= 1e-10 * (1.0 + cost):
                     return cost, it + 1
                 break
             lam *= 10.0
