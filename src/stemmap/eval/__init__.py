@@ -12,6 +12,7 @@ from stemmap.eval.detection import (
     detection_metrics,
     scan_detection_metrics,
 )
+from stemmap.eval.diameters import DiameterBin, DiameterErrors, diameter_errors
 from stemmap.eval.maps import (
     MapMetrics,
     PairwiseDistanceErrors,
@@ -24,6 +25,8 @@ from stemmap.eval.matching import Matching, match_points
 __all__ = [
     "DEFAULT_RANGE_BINS",
     "DetectionMetrics",
+    "DiameterBin",
+    "DiameterErrors",
     "MapMetrics",
     "Matching",
     "PairwiseDistanceErrors",
@@ -31,6 +34,7 @@ __all__ = [
     "align_rigid_2d",
     "detectable_trees",
     "detection_metrics",
+    "diameter_errors",
     "map_metrics",
     "match_points",
     "pairwise_distance_errors",
