@@ -558,6 +558,10 @@ def _combine_sub_beams(
     return out_r, out_id, out_mixed
 
 
+#: Sub-beam samples (scans x beams x sub-beams) processed per chunk in :func:`simulate_scans`.
+_SUB_BEAM_CHUNK = 1 << 17
+
+
 def simulate_scans(
     stand: Stand,
     poses: ArrayLike,
@@ -610,18 +614,26 @@ def simulate_scans(
     gen = np.random.default_rng(rng)
     offsets = m.sub_beam_offsets
     n_b = m.n_beams
-    sub_r = np.empty((n_s, n_b, offsets.size))
-    sub_id = np.empty((n_s, n_b, offsets.size), dtype=np.int64)
-    for j, off in enumerate(offsets):
-        sub_r[..., j], sub_id[..., j] = cast_scans(
-            stand,
-            p,
-            angle_min=m.angle_min + float(off),
-            angle_increment=m.angle_increment,
-            n_beams=n_b,
-            max_range=m.range_max,
-        )
-    ranges, hit, mixed = _combine_sub_beams(sub_r, sub_id, m.min_hit_fraction)
+    ranges = np.empty((n_s, n_b))
+    hit = np.empty((n_s, n_b), dtype=np.int64)
+    mixed = np.empty((n_s, n_b), dtype=bool)
+    # chunks of scans keep the (chunk, N, K) sub-beam buffers in cache
+    chunk = max(1, _SUB_BEAM_CHUNK // max(1, n_b * offsets.size))
+    for c0 in range(0, n_s, chunk):
+        pc = p[c0 : c0 + chunk]
+        sub_r = np.empty((pc.shape[0], n_b, offsets.size))
+        sub_id = np.empty((pc.shape[0], n_b, offsets.size), dtype=np.int64)
+        for j, off in enumerate(offsets):
+            sub_r[..., j], sub_id[..., j] = cast_scans(
+                stand,
+                pc,
+                angle_min=m.angle_min + float(off),
+                angle_increment=m.angle_increment,
+                n_beams=n_b,
+                max_range=m.range_max,
+            )
+        sl = slice(c0, c0 + pc.shape[0])
+        ranges[sl], hit[sl], mixed[sl] = _combine_sub_beams(sub_r, sub_id, m.min_hit_fraction)
     finite = np.isfinite(ranges)
     sigma = m.range_sigma(np.where(finite, ranges, 0.0))
     noise = gen.standard_normal(ranges.shape) * sigma
