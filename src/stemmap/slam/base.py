@@ -15,6 +15,7 @@ frame, pose ``(x, y, theta)`` of the vehicle reference point)::
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import math
 from collections.abc import Callable
@@ -41,6 +42,7 @@ __all__ = [
     "observation_to_world",
     "observe",
     "sensor_poses",
+    "single_threaded_blas",
 ]
 
 IntArray = NDArray[np.int64]
@@ -328,6 +330,16 @@ def make_backend(name: str, **config: Any) -> SlamBackend:
         raise ConfigError(f"SLAM back-end {name!r} is not available: {exc}.") from exc
     backend: SlamBackend = cls(**config)
     return backend
+
+
+def single_threaded_blas() -> contextlib.AbstractContextManager[Any]:
+    """Context manager limiting BLAS/OpenMP to one thread (filters doing many small matrix
+    products run faster that way); a no-op if ``threadpoolctl`` is missing."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - scikit-learn depends on it
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1)
 
 
 def _unique_times(times: FloatArray) -> FloatArray:
