@@ -16,9 +16,13 @@ from rosbags.typesys import Stores, get_typestore
 class BagFactory:
     """Builds ROS messages and writes them to ROS1 (``ros=1``) or ROS2 (``ros=2``) bags."""
 
-    def __init__(self, ros: int, storage: str = "sqlite3") -> None:
+    def __init__(
+        self, ros: int, storage: str = "sqlite3", chunk_bytes: int = 0, compression: str = ""
+    ) -> None:
         self.ros = ros
         self.storage = storage
+        self.chunk_bytes = chunk_bytes  # ROS1: chunk size threshold (0 = rosbags' 1 MiB)
+        self.compression = compression  # ROS1: "", "bz2" or "lz4"
         self.ts = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
 
     def t(self, name: str) -> Any:
@@ -164,6 +168,10 @@ class BagFactory:
         if self.ros == 1:
             path = path.with_suffix(".bag")
             writer: Any = Writer1(path)
+            if self.chunk_bytes:
+                writer.chunk_threshold = self.chunk_bytes
+            if self.compression:
+                writer.set_compression(Writer1.CompressionFormat[self.compression.upper()])
         else:
             plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
             writer = Writer2(path, version=9, storage_plugin=plugin)

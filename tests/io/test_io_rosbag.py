@@ -157,7 +157,9 @@ def test_missing_and_non_bag_paths(tmp_path: Path) -> None:
 
 def test_truncated_bag(tmp_path: Path, bags: BagFactory) -> None:
     """A bag cut in half (recording killed, copy interrupted) is refused with an InputError
-    naming the file and the likely cause -- never a raw rosbags/sqlite exception."""
+    naming the file and the likely cause -- never a raw rosbags/sqlite exception. (A ROS1 bag
+    cut after its first chunk starts is salvaged instead, see
+    test_ros1_bag_without_index_is_salvaged; here the ROS1 bag is cut inside its header.)"""
     rng = np.random.default_rng(2)
     msgs = [("/scan", bags.laserscan(1.0 + i, rng.uniform(1, 9, 500))) for i in range(200)]
     p = bags.write(tmp_path / "b", msgs)
@@ -168,11 +170,71 @@ def test_truncated_bag(tmp_path: Path, bags: BagFactory) -> None:
     else:
         target = p
     data = target.read_bytes()
-    target.write_bytes(data[: len(data) // 2])
+    target.write_bytes(data[: len(data) // 2] if p.is_dir() else data[:2000])
     with pytest.raises(
         InputError, match=rf"cannot open ROS bag '{re.escape(str(target))}'.*truncated"
     ):
         read_scans(target)
+
+
+@pytest.mark.parametrize("compression", ["", "bz2", "lz4"])
+def test_ros1_bag_without_index_is_salvaged(tmp_path: Path, compression: str) -> None:
+    """ROS1 bags cut short (copy interrupted) keep every message of their complete chunks;
+    uncompressed chunks are read up to the last complete message record."""
+    f = BagFactory(1, chunk_bytes=20_000, compression=compression)
+    rng = np.random.default_rng(4)
+    ranges = rng.uniform(1, 9, (200, 500)).astype(np.float32)
+    msgs = [("/scan", f.laserscan(1.0 + i, ranges[i])) for i in range(200)]
+    p = f.write(tmp_path / "b", msgs)
+    data = p.read_bytes()
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    skipped: list[SkippedFrame] = []
+    b, idx = read_scans_indexed(cut, skipped=skipped)
+    n = len(b)
+    assert 0 < n < 200 and idx.tolist() == list(range(n))
+    np.testing.assert_array_equal(b.ranges, ranges[:n].astype(np.float64))  # intact messages
+    assert len(skipped) == 1 and "lost" in skipped[0].reason and skipped[0].frame_index == n
+    if not compression:  # 60 % of ~2 kB-per-message data: about 120 messages recoverable
+        assert n >= 115
+    assert list_topics(cut) == {"/scan": "sensor_msgs/msg/LaserScan"}
+
+
+def test_ros1_killed_recording_without_chunk_size(tmp_path: Path) -> None:
+    """rosbag writes a chunk's size only when closing it: a killed recording leaves the last
+    chunk with data length 0 and no index. Its message records are still read."""
+    f = BagFactory(1)  # one chunk holds all 30 messages
+    msgs = [("/scan", f.laserscan(1.0 + i, np.full(100, float(i)))) for i in range(30)]
+    p = f.write(tmp_path / "b", msgs)
+    data = bytearray(p.read_bytes())
+    # find the chunk record (op=0x05) after the 4096-byte bag header record and zero its
+    # data length, then drop everything after the 25th message (the index and the rest)
+    from stemmap.io.rosbag import _records
+
+    recs = list(_records(memoryview(bytes(data)), 13))
+    chunk = next(r for r in recs if r[1]["op"] == b"\x05")
+    _, _, a, _ = chunk
+    data[a - 4 : a] = (0).to_bytes(4, "little")
+    inner = list(_records(memoryview(bytes(data[a:])), 0))
+    msg_recs = [r for r in inner if r[1]["op"] == b"\x02"]
+    end = a + msg_recs[24][3] + 10  # 10 bytes into message 26: an incomplete record
+    cut = tmp_path / "killed.bag"
+    cut.write_bytes(bytes(data[:end]))
+    skipped: list[SkippedFrame] = []
+    b = read_scans(cut, skipped=skipped)
+    np.testing.assert_array_equal(b.ranges[:, 0], np.arange(25.0))
+    assert "incomplete" in skipped[-1].reason
+
+
+def test_not_a_bag_is_not_salvaged(tmp_path: Path) -> None:
+    p = tmp_path / "x.bag"
+    p.write_bytes(b"hello world, not a bag at all")
+    with pytest.raises(InputError, match=r"cannot open ROS bag"):
+        read_scans(p)
+    q = tmp_path / "magic_only.bag"
+    q.write_bytes(b"#ROSBAG V2.0\n")
+    with pytest.raises(InputError, match=r"recovered no message"):
+        read_scans(q)
 
 
 # ---------------------------------------------------------------- Odometry

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,8 +135,7 @@ def open_bag(path: PathLike) -> Iterator[Any]:
 
 def list_topics(path: PathLike) -> dict[str, str]:
     """Topics of a bag and their message types (``pkg/msg/Type``), sorted by topic name."""
-    with open_bag(path) as reader:
-        return {name: _norm_type(str(info.msgtype)) for name, info in reader.topics.items()}
+    return {t.topic: t.msgtype for t in bag_summary(path)}
 
 
 class TopicSummary(NamedTuple):
@@ -147,12 +147,27 @@ class TopicSummary(NamedTuple):
 
 
 def bag_summary(path: PathLike) -> list[TopicSummary]:
-    """Every topic of a bag with its type and message count, sorted by topic name."""
-    with open_bag(path) as reader:
-        return [
-            TopicSummary(name, _norm_type(str(info.msgtype)), int(info.msgcount))
-            for name, info in sorted(reader.topics.items())
-        ]
+    """Every topic of a bag with its type and message count, sorted by topic name.
+
+    For a ROS1 bag without a valid index, the counts are those recovered from its chunks.
+    """
+    p = Path(path)
+    try:
+        with open_bag(p) as reader:
+            return [
+                TopicSummary(name, _norm_type(str(info.msgtype)), int(info.msgcount))
+                for name, info in sorted(reader.topics.items())
+            ]
+    except InputError as exc:
+        if not (p.suffix.lower() == ".bag" and p.is_file()):
+            raise
+        sv = _salvage_or_raise(p, exc, None)
+    counts: Counter[str] = Counter()
+    for cid, n in sv.counts.items():
+        if cid in sv.conns:
+            counts[sv.conns[cid][0]] += n
+    topics = {t: m for t, m, _ in sv.conns.values()}
+    return [TopicSummary(t, topics[t], counts.get(t, 0)) for t in sorted(topics)]
 
 
 def _describe_topics(topics: dict[str, str]) -> str:
@@ -163,6 +178,10 @@ def _describe_topics(topics: dict[str, str]) -> str:
 
 def _select_topic(reader: Any, path: Path, msgtype: str, topic: str | None) -> str:
     topics = {name: _norm_type(str(info.msgtype)) for name, info in reader.topics.items()}
+    return _choose_topic(topics, path, msgtype, topic)
+
+
+def _choose_topic(topics: dict[str, str], path: Path, msgtype: str, topic: str | None) -> str:
     if topic is not None:
         if topic not in topics:
             raise InputError(
@@ -195,9 +214,20 @@ class _Message(NamedTuple):
 
 
 def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[_Message]:
-    """Decoded messages of one topic; decode failures and truncation come back as errors."""
+    """Decoded messages of one topic; decode failures and truncation come back as errors.
+
+    A ROS1 bag that rosbags cannot open (index missing or damaged: a recording that was
+    killed, a copy cut short) is salvaged by reading its chunks in file order.
+    """
     p = Path(path)
-    with open_bag(p) as reader:
+    with contextlib.ExitStack() as stack:
+        try:
+            reader = stack.enter_context(open_bag(p))
+        except InputError as exc:
+            if not (p.suffix.lower() == ".bag" and p.is_file()):
+                raise
+            yield from _iter_salvaged(p, msgtype, topic, exc)
+            return
         chosen = _select_topic(reader, p, msgtype, topic)
         conns = [c for c in reader.connections if c.topic == chosen]
         gen = reader.messages(connections=conns)
@@ -231,6 +261,65 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
             k += 1
 
 
+def _salvage_or_raise(path: Path, open_error: InputError, keep_topic: str | None) -> _Salvage:
+    try:
+        sv = _ros1_salvage(path, keep_topic)
+    except (InputError, OSError, ValueError, KeyError) as exc:
+        raise open_error from exc
+    if not sv.counts:
+        raise InputError(
+            f"{open_error} Reading its chunks without the index recovered no message either."
+        ) from open_error
+    if keep_topic is None:
+        log.warning(
+            "ROS bag %s: the index is missing or damaged; found %d messages by reading its "
+            "chunks%s.",
+            path,
+            sum(sv.counts.values()),
+            f" ({sv.stop})" if sv.stop else "",
+        )
+    return sv
+
+
+def _iter_salvaged(
+    path: Path, msgtype: str, topic: str | None, open_error: InputError
+) -> Iterator[_Message]:
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    first = _salvage_or_raise(path, open_error, None)  # pass 1: topics and counts only
+    topics = {t: m for t, m, _ in first.conns.values()}
+    chosen = _choose_topic(topics, path, msgtype, topic)
+    sv = _salvage_or_raise(path, open_error, chosen)  # pass 2: this topic's messages
+    store = get_typestore(Stores.ROS1_NOETIC)
+    for t, m, definition in sv.conns.values():  # non-standard types: the bag's definitions
+        if t == chosen and m not in store.types and definition:
+            with contextlib.suppress(Exception):
+                store.register(get_types_from_msg(definition, m))
+    k = 0
+    for rec in sv.msgs:
+        try:
+            msg = store.deserialize_ros1(rec.raw, sv.conns[rec.conn][1])
+        except Exception as exc:
+            yield _Message(
+                k,
+                rec.t_ns * 1e-9,
+                None,
+                f"message {k} of topic {chosen} cannot be decoded as {msgtype} "
+                f"({type(exc).__name__}: {exc})",
+            )
+        else:
+            yield _Message(k, rec.t_ns * 1e-9, msg, "")
+        k += 1
+    if sv.stop:
+        yield _Message(
+            k,
+            math.nan,
+            None,
+            f"the bag has no valid index and {sv.stop}; messages of {chosen} after message "
+            f"{k - 1} are lost",
+        )
+
+
 def _stamp(header: Any, fallback: float) -> float:
     st = header.stamp
     t = float(st.sec) + 1e-9 * float(st.nanosec)
@@ -252,6 +341,177 @@ def _checked(
             _skip(skipped, path, m, m.error)
         else:
             yield m
+
+
+# --------------------------------------------------------------------------------------------
+# ROS1 salvage: read the chunks of a bag whose index is missing or damaged
+# --------------------------------------------------------------------------------------------
+
+_ROS1_MAGIC = b"#ROSBAG V2.0\n"
+_OP_MSGDATA, _OP_BAGHEADER, _OP_INDEX, _OP_CHUNK, _OP_CHUNKINFO, _OP_CONNECTION = 2, 3, 4, 5, 6, 7
+
+
+def _parse_header(buf: bytes | memoryview) -> dict[str, bytes]:
+    """ROS1 record header: repeated ``uint32 len`` + ``name=value``; ValueError if malformed."""
+    out: dict[str, bytes] = {}
+    pos, n = 0, len(buf)
+    while pos < n:
+        if pos + 4 > n:
+            raise ValueError("header field length runs past the header")
+        ln = int.from_bytes(buf[pos : pos + 4], "little")
+        pos += 4
+        if ln == 0 or pos + ln > n:
+            raise ValueError("header field runs past the header")
+        field = bytes(buf[pos : pos + ln])
+        pos += ln
+        name, sep, value = field.partition(b"=")
+        if not sep:
+            raise ValueError("header field without '='")
+        out[name.decode("latin-1")] = value
+    return out
+
+
+def _records(
+    buf: bytes | memoryview, start: int
+) -> Iterator[tuple[int, dict[str, bytes], int, int]]:
+    """``(offset, header, data_start, data_end)`` of consecutive ROS1 records; stops at the first
+    record that does not fit in ``buf`` (its offset is then returned by StopIteration value)."""
+    pos, n = start, len(buf)
+    while pos + 4 <= n:
+        hlen = int.from_bytes(buf[pos : pos + 4], "little")
+        if pos + 4 + hlen + 4 > n:
+            return
+        try:
+            header = _parse_header(buf[pos + 4 : pos + 4 + hlen])
+        except ValueError:
+            return
+        dpos = pos + 4 + hlen
+        dlen = int.from_bytes(buf[dpos : dpos + 4], "little")
+        yield pos, header, dpos + 4, min(dpos + 4 + dlen, n)
+        if dpos + 4 + dlen > n:
+            return
+        pos = dpos + 4 + dlen
+
+
+class _Salvaged(NamedTuple):
+    conn: int
+    t_ns: int
+    raw: bytes
+
+
+class _Salvage(NamedTuple):
+    conns: dict[int, tuple[str, str, str]]  # id -> (topic, msgtype, message definition)
+    counts: Counter[int]  # messages per connection id
+    msgs: list[_Salvaged]  # messages of the kept topic, in file order
+    stop: str  # where and why reading stopped; "" if the file ended cleanly
+
+
+def _ros1_salvage(path: Path, keep_topic: str | None = None) -> _Salvage:
+    """Messages of a ROS1 bag read chunk by chunk, without its index (memory-mapped).
+
+    Counts the messages of every connection and keeps the raw messages of ``keep_topic`` only.
+    A chunk whose recorded size is missing (recording killed mid-chunk: rosbag writes the size
+    when it closes the chunk) or runs past the end of the file is read as far as its
+    uncompressed message records are complete, like ``rosbag reindex``.
+    """
+    import bz2
+    import mmap
+
+    with path.open("rb") as fh:
+        try:
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+        except ValueError:  # empty file
+            mm = None
+        if mm is None or mm[: len(_ROS1_MAGIC)] != _ROS1_MAGIC:
+            if mm is not None:
+                mm.close()
+            raise InputError(f"{str(path)!r} does not start with the ROS1 magic '#ROSBAG V2.0'.")
+        view = memoryview(mm)
+        try:
+            return _salvage_view(view, keep_topic, bz2.decompress)
+        finally:
+            # slices still referenced by a traceback keep the map alive: let GC close it then
+            with contextlib.suppress(BufferError):
+                view.release()
+                mm.close()
+
+
+def _conn_record(h: dict[str, bytes], buf: bytes | memoryview) -> tuple[int, tuple[str, str, str]]:
+    c = _parse_header(buf)
+    return int.from_bytes(h["conn"], "little"), (
+        h.get("topic", c.get("topic", b"")).decode(),
+        _norm_type(c.get("type", b"").decode()),
+        c.get("message_definition", b"").decode(errors="replace"),
+    )
+
+
+def _salvage_view(view: memoryview, keep_topic: str | None, bz2_decompress: Any) -> _Salvage:
+    conns: dict[int, tuple[str, str, str]] = {}
+    counts: Counter[int] = Counter()
+    msgs: list[_Salvaged] = []
+    stop = ""
+    pos_end = len(_ROS1_MAGIC)
+
+    def inner(buf: bytes | memoryview) -> int:
+        end = 0
+        for _, h, a, b in _records(buf, 0):
+            op = h.get("op", b"\x00")[0]
+            if b - a < int.from_bytes(buf[a - 4 : a], "little"):
+                break  # record cut by the end of the file
+            if op == _OP_CONNECTION:
+                cid, info = _conn_record(h, buf[a:b])
+                conns[cid] = info
+            elif op == _OP_MSGDATA:
+                cid = int.from_bytes(h["conn"], "little")
+                counts[cid] += 1
+                if keep_topic is not None and cid in conns and conns[cid][0] == keep_topic:
+                    t = h.get("time", bytes(8))
+                    sec, nsec = int.from_bytes(t[:4], "little"), int.from_bytes(t[4:8], "little")
+                    msgs.append(_Salvaged(cid, sec * 1_000_000_000 + nsec, bytes(buf[a:b])))
+            end = b
+        return end
+
+    for off, h, a, b in _records(view, len(_ROS1_MAGIC)):
+        op = h.get("op", b"\x00")[0]
+        declared = int.from_bytes(view[a - 4 : a], "little")
+        complete = b - a == declared and declared > 0
+        if op == _OP_CHUNK:
+            comp = h.get("compression", b"none").decode()
+            if comp not in ("none", "bz2", "lz4"):
+                stop = f"the chunk at byte {off} uses the unknown compression {comp!r}"
+                break
+            if complete:
+                try:
+                    if comp == "none":
+                        raw: bytes | memoryview = view[a:b]
+                    elif comp == "bz2":
+                        raw = bz2_decompress(view[a:b])
+                    else:
+                        from lz4.frame import decompress as lz4_decompress
+
+                        raw = lz4_decompress(bytes(view[a:b]))
+                except Exception as exc:
+                    stop = f"the chunk at byte {off} cannot be decompressed ({exc})"
+                    break
+                inner(raw)
+            elif comp == "none":
+                end = inner(view[a:])
+                stop = f"the last chunk (byte {off}) is incomplete; read up to byte {a + end}"
+                break
+            else:
+                stop = f"the {comp}-compressed chunk at byte {off} is cut by the end of the file"
+                break
+        elif b - a != declared:
+            stop = f"the file ends inside a record at byte {off}"
+            break
+        elif op == _OP_CONNECTION:
+            cid, info = _conn_record(h, view[a:b])
+            conns.setdefault(cid, info)
+        pos_end = b
+    else:
+        if pos_end < len(view):
+            stop = f"the file ends inside a record at byte {pos_end}"
+    return _Salvage(conns, counts, msgs, stop)
 
 
 # --------------------------------------------------------------------------------------------
