@@ -1,0 +1,300 @@
+"""2D laser trunk detection: accuracy per circle-fit method, paper presets, and speed.
+
+Scenario (every parameter is echoed in the JSON): a simulated stand with clutter (bushes,
+branches, a wall, a fence, rocks), a SICK LMS-like scanner (0.5 deg, 180 deg, 1 cm range noise,
+0.25 deg beam divergence with mixed pixels), a drive through the stand. Each scan is scored
+against the truth in the sensor frame with ``stemmap.eval.detection.scan_detection_metrics``:
+a tree counts if it has >= 5 returns, DBH >= 10 cm and lies within 15 m; detections whose
+centre lies beyond 15.5 m are not scored.
+
+Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--quick]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")  # one core, as the targets are stated
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import importlib.util
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.datasets import find_datasets_dir
+from stemmap.eval.detection import scan_detection_metrics
+from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
+from stemmap.sim.forest import add_clutter, random_stand
+from stemmap.sim.scanner import ScannerModel, scanner_preset, simulate_scans
+from stemmap.sim.trajectory import lawnmower_path, simulate_run
+from stemmap.types import ScanBatch, StemObservations
+
+FIT_METHODS = ("kasa", "fletcher_reeves", "three_point", "chord_width", "ours")
+
+SCENARIO: dict[str, Any] = {
+    "stand": {
+        "layout": "random",
+        "n_trees": 90,
+        "size_m": [50.0, 50.0],
+        "dbh_mean_m": 0.30,
+        "dbh_std_m": 0.10,
+        "dbh_min_m": 0.08,
+        "min_spacing_m": 1.5,
+    },
+    "clutter": {"n_bushes": 10, "n_branches": 10, "n_walls": 1, "n_fences": 1, "n_rocks": 6},
+    "scanner": {
+        "preset": "sick_lms",
+        "angle_min_deg": -90.0,
+        "angle_max_deg": 90.0,
+        "angle_increment_deg": 0.5,
+        "range_max_m": 30.0,
+        "range_noise_m": 0.01,
+        "beam_divergence_deg": 0.25,
+        "sub_beams": 5,
+        "mixed_pixels": True,
+        "dropout": 0.0,
+    },
+    "drive": {
+        "path": "lawnmower",
+        "strip_spacing_m": 8.0,
+        "margin_m": 5.0,
+        "speed_m_s": 1.0,
+        "scan_rate_hz": 5.0,
+        "corridor_half_width_m": 1.0,
+    },
+    "scoring": {
+        "gate_m": 0.5,
+        "min_returns": 5,
+        "min_dbh_m": 0.10,
+        "max_range_m": 15.0,
+        "detections_scored_within_m": 15.5,
+        "range_bins_m": [0.0, 5.0, 10.0, 15.0],
+    },
+}
+
+TARGETS = {
+    "recall_min": 0.95,
+    "precision_min": 0.95,
+    "dbh_rmse_cm_le5_max": 1.0,
+    "dbh_rmse_cm_5_10_max": 2.5,
+    "abs_dbh_bias_cm_max": 0.5,
+    "scans_per_second_361_min": 20000,
+    "latency_ms_1081_max": 0.5,
+}
+
+
+def make_run(n_scans: int, seed: int) -> Any:
+    s = SCENARIO
+    rng = np.random.default_rng(seed)
+    st = s["stand"]
+    stand = random_stand(
+        st["n_trees"],
+        tuple(st["size_m"]),
+        dbh_mean=st["dbh_mean_m"],
+        dbh_std=st["dbh_std_m"],
+        dbh_min=st["dbh_min_m"],
+        min_spacing=st["min_spacing_m"],
+        rng=rng,
+    )
+    stand = add_clutter(stand, **s["clutter"], rng=rng)
+    sc = s["scanner"]
+    model = scanner_preset(sc["preset"], range_max=sc["range_max_m"])
+    dr = s["drive"]
+    path = lawnmower_path(stand.bounds, dr["strip_spacing_m"], margin=dr["margin_m"])
+    return simulate_run(
+        stand,
+        path,
+        scanner=model,
+        speed=dr["speed_m_s"],
+        rate_hz=dr["scan_rate_hz"],
+        corridor_half_width=dr["corridor_half_width_m"],
+        max_scans=n_scans,
+        rng=rng,
+    )
+
+
+def score(obs: StemObservations, run: Any) -> dict[str, Any]:
+    sc = SCENARIO["scoring"]
+    keep = np.hypot(obs.centers[:, 0], obs.centers[:, 1]) <= sc["detections_scored_within_m"]
+    m = scan_detection_metrics(
+        obs.select(keep),
+        run,
+        gate=sc["gate_m"],
+        min_returns=sc["min_returns"],
+        max_range=sc["max_range_m"],
+        min_diameter=sc["min_dbh_m"],
+        range_bins=sc["range_bins_m"],
+    )
+
+    def cm(v: float) -> float | None:
+        return None if not math.isfinite(v) else round(100.0 * v, 3)
+
+    def rate(v: float) -> float | None:
+        return None if not math.isfinite(v) else round(v, 4)
+
+    out: dict[str, Any] = {
+        "recall": rate(m.recall),
+        "precision": rate(m.precision),
+        "f1": rate(m.f1),
+        "ta": m.ta,
+        "fa": m.fa,
+        "fr": m.fr,
+        "dbh_rmse_cm": cm(m.diameter_rmse),
+        "dbh_bias_cm": cm(m.diameter_bias),
+        "center_rmse_cm": cm(m.center_rmse),
+    }
+    for b in m.by_range:
+        key = f"{b.range_lo:g}_{b.range_hi:g}"
+        out[f"dbh_rmse_cm_{key}"] = cm(b.diameter_rmse)
+        out[f"dbh_bias_cm_{key}"] = cm(b.diameter_bias)
+        out[f"recall_{key}"] = rate(b.recall)
+        out[f"n_{key}"] = b.ta
+    # the names the issue asks for
+    out["dbh_rmse_cm_le5"] = out.get("dbh_rmse_cm_0_5")
+    out["dbh_bias_cm_le5"] = out.get("dbh_bias_cm_0_5")
+    out["dbh_rmse_cm_5_10"] = out.get("dbh_rmse_cm_5_10")
+    out["dbh_bias_cm_5_10"] = out.get("dbh_bias_cm_5_10")
+    return out
+
+
+def timed(fn: Any, repeats: int) -> float:
+    """Best wall time of ``repeats`` calls (seconds)."""
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def speed(run: Any, n_batch: int, seed: int) -> dict[str, Any]:
+    det = ScanTrunkDetector("stemmap")
+    scans = run.scans
+    reps = math.ceil(n_batch / len(scans))
+    big = ScanBatch(
+        np.tile(scans.ranges, (reps, 1))[:n_batch],
+        np.arange(n_batch, dtype=np.float64),
+        scans.angle_min,
+        scans.angle_increment,
+        scans.range_min,
+        scans.range_max,
+    )
+    det.detect_batch(ScanBatch.from_scans([big[0]]))  # JIT warm-up
+    t_batch = timed(lambda: det.detect_batch(big), 3)
+    n_obs = len(det.detect_batch(big))
+    kasa = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method="kasa"))
+    t_kasa = timed(lambda: kasa.detect_batch(big), 3)
+    # one 1081-beam scan: 270 deg at 0.25 deg (LMS1xx / UTM-30LX class)
+    m1081 = ScannerModel(
+        angle_min=math.radians(-135.0),
+        angle_max=math.radians(135.0),
+        angle_increment=math.radians(0.25),
+        range_max=30.0,
+        range_noise=0.01,
+    )
+    poses = run.true_poses.poses[:: max(1, len(run.true_poses.poses) // 20)][:20]
+    b1081, _, _ = simulate_scans(run.stand, poses, m1081, rng=seed)
+    one = [b1081[i] for i in range(len(b1081))]
+    for s in one[:3]:
+        det.detect(s)
+    lat = []
+    for s in one:
+        lat.append(timed(lambda s=s: det.detect(s), 20))
+    return {
+        "n_beams": int(scans.n_beams),
+        "batch_scans": n_batch,
+        "observations_in_batch": n_obs,
+        "scans_per_second_361": round(n_batch / t_batch),
+        "scans_per_second_361_kasa": round(n_batch / t_kasa),
+        "latency_ms_1081": round(1e3 * float(np.median(lat)), 4),
+        "latency_ms_1081_max": round(1e3 * float(np.max(lat)), 4),
+        "latency_scans": len(one),
+        "threads": 1,
+        "method": "best of 3 (batch) / best of 20 per scan, median over scans (latency)",
+    }
+
+
+def real_geometry(seed: int) -> dict[str, Any] | None:
+    path = Path(__file__).resolve().parent / "scan_fits_real.py"
+    ddir = find_datasets_dir(Path(__file__).resolve().parent)
+    if not path.exists() or ddir is None:
+        return None
+    spec = importlib.util.spec_from_file_location("scan_fits_real", path)
+    if spec is None or spec.loader is None:
+        return None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    fn = getattr(mod, "run_real_geometry", None)
+    if fn is None:
+        return None
+    res: dict[str, Any] = fn(ddir)
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--scans", type=int, default=400, help="scans of the drive to score")
+    ap.add_argument("--batch", type=int, default=10000, help="scans in the speed batch")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-real", action="store_true", help="skip the real-geometry section")
+    args = ap.parse_args(argv)
+
+    run = make_run(args.scans, args.seed)
+    result: dict[str, Any] = {
+        "benchmark": "scan_detection",
+        "scenario": {**SCENARIO, "seed": args.seed, "n_scans": len(run.scans)},
+        "targets": TARGETS,
+        "detector_default": DetectorConfig.preset("stemmap").to_dict(),
+    }
+    methods: dict[str, Any] = {}
+    for m in FIT_METHODS:
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method=m))
+        methods[m] = score(det.detect_batch(run.scans), run)
+    result["methods"] = methods
+    presets: dict[str, Any] = {}
+    for name in PRESETS:
+        det = ScanTrunkDetector(name)
+        presets[name] = {"fit": det.config.fit_method, **score(det.detect_batch(run.scans), run)}
+    result["presets"] = presets
+    sp = speed(run, args.batch, args.seed)
+    result["speed"] = sp
+    result["scans_per_second_361"] = sp["scans_per_second_361"]
+    result["latency_ms_1081"] = sp["latency_ms_1081"]
+    ours = methods["ours"]
+    result["meets_targets"] = {
+        "recall": (ours["recall"] or 0.0) >= TARGETS["recall_min"],
+        "precision": (ours["precision"] or 0.0) >= TARGETS["precision_min"],
+        "dbh_rmse_le5": (ours["dbh_rmse_cm_le5"] or 1e9) <= TARGETS["dbh_rmse_cm_le5_max"],
+        "dbh_rmse_5_10": (ours["dbh_rmse_cm_5_10"] or 1e9) <= TARGETS["dbh_rmse_cm_5_10_max"],
+        "dbh_bias": max(abs(ours["dbh_bias_cm_le5"] or 1e9), abs(ours["dbh_bias_cm_5_10"] or 1e9))
+        <= TARGETS["abs_dbh_bias_cm_max"],
+        "speed_361": sp["scans_per_second_361"] >= TARGETS["scans_per_second_361_min"],
+        "latency_1081": sp["latency_ms_1081"] <= TARGETS["latency_ms_1081_max"],
+    }
+    if not args.no_real:
+        try:
+            result["real_geometry"] = real_geometry(args.seed)
+        except Exception as exc:  # the section belongs to scan-fit; report, do not crash
+            result["real_geometry"] = {"error": f"{type(exc).__name__}: {exc}"}
+    result["machine"] = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "cpu_count": os.cpu_count(),
+        "note": "shared 2-core machine under load from other jobs; timings are noisy",
+    }
+    print(json.dumps(result) if args.json else json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
