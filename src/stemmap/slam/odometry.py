@@ -163,12 +163,16 @@ class FusedOdometry:
         Fused (v, ω).
     n_rejected : ndarray (2,), int
         Measurements of source A / B rejected by the innovation gate.
+    calibration : ndarray (2,)
+        Final estimates of source A's yaw-rate bias (rad/s) and source B's speed-scale error
+        (zeros unless ``calibrate``).
     """
 
     trajectory: Trajectory
     covariances: FloatArray
     velocities: FloatArray
     n_rejected: NDArray[np.int64]
+    calibration: FloatArray
 
 
 def fuse_odometry(
@@ -179,13 +183,18 @@ def fuse_odometry(
     accel_noise: float = 0.5,
     yaw_accel_noise: float = 0.5,
     gate_prob: float | None = 0.999,
+    calibrate: bool = False,
+    bias_prior: float = math.radians(1.0),
+    scale_prior: float = 0.05,
+    bias_walk: float = 1e-4,
+    scale_walk: float = 1e-4,
 ) -> FusedOdometry:
     """Loosely coupled EKF fusion of two odometry sources (visual-lidar §2.4, Munjer §3.5).
 
     Parameters
     ----------
     source_a, source_b : OdometrySource
-        E.g. wheel odometry and visual (or scan-matching) odometry, same time base.
+        E.g. wheel odometry (A) and visual or scan-matching odometry (B), same time base.
     initial_pose : (3,)
     accel_noise : float, m/s² /√Hz
         Spectral density of the random walk on speed (how fast the speed may change).
@@ -193,6 +202,20 @@ def fuse_odometry(
     gate_prob : float in (0, 1) or None
         Innovation gate (ours): a measurement whose squared Mahalanobis innovation exceeds the
         chi-square quantile of this probability is rejected. ``None`` = no gate (the papers).
+    calibrate : bool
+        Ours: augment the state with source A's yaw-rate bias ``b`` and source B's speed-scale
+        error ``k`` (A measures ``(v, ω + b)``, B measures ``((1 + k) v, ω)``), both slow random
+        walks. This encodes the visual-lidar paper's §2.4 observation: wheel odometry (A) has
+        metric scale but a drifting heading, visual odometry (B) "estimates direction
+        accurately" but "may have a different scale". Both errors are systematic, not white: a
+        plain EKF only averages them down, the augmented one estimates them (A anchors the
+        scale, B the heading). False = the papers' plain filter (``b = k = 0`` fixed).
+    bias_prior : float, rad/s
+        Prior std of ``b``.
+    scale_prior : float
+        Prior std of ``k``.
+    bias_walk, scale_walk : float, per √s
+        Random-walk densities of ``b`` and ``k``.
 
     Returns
     -------
@@ -209,6 +232,8 @@ def fuse_odometry(
         raise ConfigError("fuse_odometry: accel_noise and yaw_accel_noise must be > 0.")
     if gate_prob is not None and not 0.0 < gate_prob < 1.0:
         raise ConfigError(f"fuse_odometry: gate_prob must be in (0, 1) or None, got {gate_prob}.")
+    if min(bias_prior, scale_prior, bias_walk, scale_walk) < 0:
+        raise ConfigError("fuse_odometry: calibration priors and walks must be >= 0.")
     # merge both streams by time (stable: A before B at equal times)
     t_all = np.concatenate((source_a.times, source_b.times))
     src = np.concatenate((np.zeros(len(source_a), np.int64), np.ones(len(source_b), np.int64)))
@@ -229,16 +254,30 @@ def fuse_odometry(
     thr1 = chi2.ppf(gate_prob, 1) if gate_prob is not None else math.inf
     thr2 = chi2.ppf(gate_prob, 2) if gate_prob is not None else math.inf
     qa, qw = accel_noise**2, yaw_accel_noise**2
+    qb = bias_walk**2 if calibrate else 0.0
+    qk = scale_walk**2 if calibrate else 0.0
 
-    x = np.zeros(5)
+    # state: x, y, theta, v, omega, b (A's yaw-rate bias), k (B's speed-scale error)
+    x = np.zeros(7)
     x[:3] = np.asarray(initial_pose, dtype=np.float64).reshape(3)
-    P = np.diag([0.0, 0.0, 0.0, 1e2, 1e2])  # velocities unknown until measured
+    P = np.diag(
+        [
+            0.0,
+            0.0,
+            0.0,
+            1e2,
+            1e2,
+            bias_prior**2 if calibrate else 0.0,
+            scale_prior**2 if calibrate else 0.0,
+        ]
+    )
     n = t_all.shape[0]
-    out_x = np.empty((n, 5))
+    out_x = np.empty((n, 7))
     out_P = np.empty((n, 3, 3))
     rejected = np.zeros(2, dtype=np.int64)
     t_prev = float(t_all[0])
-    F = np.eye(5)
+    F = np.eye(7)
+    H = np.zeros((2, 7))
     for i in range(n):
         dt = float(t_all[i]) - t_prev
         t_prev = float(t_all[i])
@@ -259,18 +298,30 @@ def fuse_odometry(
             P = F @ P @ F.T
             P[3, 3] += qa * dt
             P[4, 4] += qw * dt
+            P[5, 5] += qb * dt
+            P[6, 6] += qk * dt
         z = z_all[i]
         have = np.isfinite(z)
         if np.any(have):
-            sel = np.flatnonzero(have) + 3
-            y = z[have] - x[sel]
-            S = P[np.ix_(sel, sel)] + np.diag(r_all[i][have])
+            # h_A = (v, omega + b);  h_B = ((1 + k) v, omega)
+            H[:] = 0.0
+            if src[i] == 0:
+                pred = np.array([x[3], x[4] + x[5]])
+                H[0, 3] = 1.0
+                H[1, 4], H[1, 5] = 1.0, 1.0
+            else:
+                pred = np.array([(1.0 + x[6]) * x[3], x[4]])
+                H[0, 3], H[0, 6] = 1.0 + x[6], x[3]
+                H[1, 4] = 1.0
+            Hs = H[have]
+            y = z[have] - pred[have]
+            S = Hs @ P @ Hs.T + np.diag(r_all[i][have])
             Sinv = np.linalg.inv(S)
             d2 = float(y @ Sinv @ y)
-            if d2 > (thr2 if sel.size == 2 else thr1):
+            if d2 > (thr2 if y.size == 2 else thr1):
                 rejected[src[i]] += 1
             else:
-                K = P[:, sel] @ Sinv
+                K = P @ Hs.T @ Sinv
                 x = x + K @ y
                 P = P - K @ S @ K.T
                 P = 0.5 * (P + P.T)
@@ -281,4 +332,6 @@ def fuse_odometry(
     poses = out_x[last, :3].copy()
     poses[:, 2] = wrap_angle(poses[:, 2])
     traj = Trajectory(t_all[last], poses, frame="odom")
-    return FusedOdometry(traj, out_P[last], out_x[last, 3:], rejected)
+    return FusedOdometry(
+        traj, out_P[last], out_x[last, 3:5], rejected, calibration=out_x[-1, 5:].copy()
+    )
