@@ -378,18 +378,15 @@ def relative_poses(a: ArrayLike, b: ArrayLike) -> FloatArray:
 
 
 def _arc_step(theta: FloatArray, v: FloatArray, w: FloatArray, dt: FloatArray) -> FloatArray:
-    """Exact displacement (dx, dy) of a unicycle over ``dt`` at constant (v, w) from ``theta``."""
+    """Exact displacement (dx, dy) of a unicycle over ``dt`` at constant (v, w) from ``theta``.
+
+    Uses ``v/w (sin(th + d) - sin th) = v dt sinc(d/2) cos(th + d/2)`` (and the cosine twin)
+    with ``d = w dt``: exact, and free of the cancellation of the ``v/w`` form when ``w -> 0``.
+    """
     dth = w * dt
-    small = np.abs(dth) < 1e-9
-    w_safe = np.where(small, 1.0, w)
-    th1 = theta + dth
-    dx = np.where(
-        small, v * dt * np.cos(theta + dth / 2), v / w_safe * (np.sin(th1) - np.sin(theta))
-    )
-    dy = np.where(
-        small, v * dt * np.sin(theta + dth / 2), v / w_safe * (np.cos(theta) - np.cos(th1))
-    )
-    return np.stack((dx, dy), axis=-1)
+    chord = v * dt * np.sinc(dth / (2.0 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
+    mid = theta + dth / 2.0
+    return np.stack((chord * np.cos(mid), chord * np.sin(mid)), axis=-1)
 
 
 def integrate_unicycle(
@@ -411,7 +408,8 @@ def integrate_unicycle(
     Notes
     -----
     Over one interval ``theta' = theta + w dt``, ``x' = x + v/w (sin theta' - sin theta)``,
-    ``y' = y + v/w (cos theta - cos theta')`` (straight-line limit when ``|w dt| < 1e-9``).
+    ``y' = y + v/w (cos theta - cos theta')``, evaluated in the cancellation-free chord form
+    ``v dt sinc(w dt / 2) (cos, sin)(theta + w dt / 2)`` (exact; straight line when w = 0).
     Headings accumulate without wrapping before the trig, then are wrapped to (-pi, pi].
     """
     p0 = np.asarray(pose0, dtype=np.float64).reshape(3)
@@ -611,12 +609,10 @@ def _pure_pursuit(
         w_out.append(w)
         # advance with the exact arc
         dth = w * dt
-        if abs(dth) < 1e-9:
-            x += speed * dt * math.cos(th)
-            y += speed * dt * math.sin(th)
-        else:
-            x += speed / w * (math.sin(th + dth) - math.sin(th))
-            y += speed / w * (math.cos(th) - math.cos(th + dth))
+        half = dth / 2.0
+        chord = speed * dt * (math.sin(half) / half if half != 0.0 else 1.0)
+        x += chord * math.cos(th + half)
+        y += chord * math.sin(th + half)
         th += dth
     else:
         raise ConfigError(
