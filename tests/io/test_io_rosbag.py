@@ -424,3 +424,75 @@ def test_pointcloud2_keep_nans_and_int_coordinates() -> None:
     f = np.array([(np.nan, 0, 0)], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     fl = [("x", 0, F32, 1), ("y", 4, F32, 1), ("z", 8, F32, 1)]
     assert len(decode_pointcloud2(f.tobytes(), fl, point_step=12, width=1, skip_nans=False)) == 1
+
+
+_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    order=st.permutations(["x", "y", "z", "t"]),
+    coord_type=st.sampled_from([7, 8, 5, 3]),
+    extra_type=st.integers(1, 8),
+    gaps=st.lists(st.integers(0, 5), min_size=5, max_size=5),
+    big=st.booleans(),
+    width=st.integers(0, 7),
+    height=st.integers(1, 3),
+    row_pad=st.integers(0, 9),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_pointcloud2_any_layout(
+    order: list[str],
+    coord_type: int,
+    extra_type: int,
+    gaps: list[int],
+    big: bool,
+    width: int,
+    height: int,
+    row_pad: int,
+    seed: int,
+) -> None:
+    """Random field order, types, gaps between fields, trailing padding, row padding and byte
+    order: the decoded values equal the ones packed (exactly: no arithmetic is involved)."""
+    e = ">" if big else "<"
+    offsets, fields, off = {}, [], 0
+    for k, name in enumerate(order):
+        off += gaps[k]
+        dt = coord_type if name != "t" else extra_type
+        offsets[name] = off
+        fields.append((name, off, dt, 1))
+        off += np.dtype(_TYPES[dt]).itemsize
+    step = off + gaps[4]
+    dtype = np.dtype(
+        {
+            "names": list(order),
+            "formats": [e + _TYPES[f[2]] for f in fields],
+            "offsets": [offsets[n] for n in order],
+            "itemsize": step,
+        }
+    )
+    rng = np.random.default_rng(seed)
+    n = width * height
+    pts = np.zeros(n, dtype=dtype)
+    for name, _, dt, _ in fields:
+        info = np.iinfo(_TYPES[dt]) if _TYPES[dt][0] in "iu" else None
+        lo, hi = (max(info.min, -100), min(info.max, 100)) if info else (-100, 100)
+        pts[name] = rng.integers(lo, hi + 1, n) if info else rng.uniform(lo, hi, n)
+    row_step = width * step + row_pad
+    buf = np.zeros(row_step * height, dtype=np.uint8)
+    raw = np.frombuffer(pts.tobytes(), np.uint8).reshape(height, width * step)
+    buf.reshape(height, row_step)[:, : width * step] = raw
+    c = decode_pointcloud2(
+        buf.tobytes(),
+        fields,
+        point_step=step,
+        width=width,
+        height=height,
+        row_step=row_step,
+        is_bigendian=big,
+    )
+    assert len(c) == n
+    for j, name in enumerate("xyz"):
+        np.testing.assert_array_equal(c.xyz[:, j], pts[name].astype(np.float64))
+    np.testing.assert_array_equal(c.fields["t"], pts["t"])
+    assert c.fields["t"].dtype == np.dtype(_TYPES[extra_type])  # native order, same kind

@@ -11,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 import stemmap.io.scans as scans_mod
 from stemmap.errors import InputError
@@ -293,3 +296,29 @@ def test_binary_csv(tmp_path: Path) -> None:
 def test_docstring_examples_run() -> None:
     res = doctest.testmod(scans_mod, optionflags=doctest.ELLIPSIS)
     assert res.failed == 0 and res.attempted > 0
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    arrays(
+        np.float64,
+        st.tuples(st.integers(1, 4), st.integers(1, 6)),
+        elements=st.floats(allow_nan=True, allow_infinity=True, allow_subnormal=True),
+    ),
+    st.floats(-math.pi, math.pi),
+    st.floats(1e-6, 0.1),
+)
+def test_csv_and_npz_round_trip_any_float(
+    tmp_path_factory: pytest.TempPathFactory, r: np.ndarray, amin: float, inc: float
+) -> None:
+    b = ScanBatch(r, np.arange(r.shape[0]) * 0.1, amin, inc)
+    d = tmp_path_factory.mktemp("rt")
+    write_scans_csv(d / "s.csv", b)
+    write_scans_npz(d / "s.npz", b)
+    for name in ("s.csv", "s.npz"):
+        got = read_scans(d / name)
+        # exact: negative zero, subnormals, +-inf and NaN all survive
+        np.testing.assert_array_equal(got.ranges, b.ranges)
+        num = ~np.isnan(b.ranges)
+        np.testing.assert_array_equal(np.signbit(got.ranges[num]), np.signbit(b.ranges[num]))
+        assert (got.angle_min, got.angle_increment) == (amin, inc)
