@@ -28,6 +28,12 @@ def test_sim_scans_writes_scans_and_truth(tmp_path):
         # ground truth agrees with the ranges: a beam has a return iff it hit something
         np.testing.assert_array_equal(np.isfinite(ranges), hit != -1)
         assert hit.max() < len(rows)
+    # the io area's reader reads what we wrote
+    from stemmap.io.scans import read_scans
+
+    batch = read_scans(out)
+    assert len(batch) == 60
+    np.testing.assert_array_equal(np.isfinite(batch.ranges), np.isfinite(ranges))
 
 
 def test_sim_scans_same_seed_same_file(tmp_path):
