@@ -76,6 +76,10 @@ def test_laserscan_round_trip(tmp_path: Path, bags: BagFactory) -> None:
     assert (b.range_min, b.range_max) == pytest.approx((0.05, 25.0), rel=1e-6)
     assert b.frame == "laser"
     assert len(list(iter_scans(p))) == 5
+    if p.is_dir():  # a bare ROS2 storage file (metadata.yaml lost) reads the same
+        (storage,) = [q for q in p.iterdir() if q.suffix in (".db3", ".mcap")]
+        assert is_bag(storage)
+        np.testing.assert_array_equal(read_scans(storage).ranges, b.ranges)
 
 
 def test_laserscan_intensities_kept(tmp_path: Path) -> None:
