@@ -27,11 +27,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.types import FloatArray
+from stemmap.types import FloatArray, StemMap
 
 __all__ = [
     "RefinedTrees",
     "kalman_refine_trees",
+    "refine_stem_map",
     "world_observation_covariance",
 ]
 
@@ -201,3 +202,104 @@ def kalman_refine_trees(
         Pn = (eye - K) @ Pm
         P[j] = 0.5 * (Pn + np.swapaxes(Pn, 1, 2))
     return RefinedTrees(xy, P, n_obs)
+
+
+def refine_stem_map(
+    stem_map: StemMap,
+    poses: ArrayLike,
+    frame_ptr: ArrayLike,
+    ranges: ArrayLike,
+    bearings: ArrayLike,
+    *,
+    sigma_range: float,
+    sigma_bearing: float,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+    pose_covs: ArrayLike | None = None,
+    gate: float = 1.0,
+    process_noise: float = 0.0,
+) -> StemMap:
+    """Refine a stem map with every detection, Munjer 2025 §3.6 (post-step for any back-end).
+
+    Each detection is mapped to the world at its frame's pose, associated with the nearest
+    mapped tree within ``gate`` (a tree takes at most one detection per frame, the closest),
+    and every tree is re-estimated by :func:`kalman_refine_trees` with the detection covariance
+    of :func:`world_observation_covariance` (pose covariance propagated).
+
+    Parameters
+    ----------
+    stem_map : StemMap
+    poses : ndarray (F, 3)
+        Vehicle pose at every frame.
+    frame_ptr : ndarray (F + 1,), int
+        Detections of frame f are ``[ptr[f], ptr[f+1])``.
+    ranges, bearings : ndarray (K,)
+        Detections in the sensor frame.
+    sigma_range, sigma_bearing : float
+    sensor_offset : (a, b), m
+    pose_covs : ndarray (F, 3, 3), optional
+        Pose covariance per frame (default: poses treated as exact).
+    gate : float, m
+    process_noise : float, m²
+
+    Returns
+    -------
+    StemMap
+        Same trees (ids, diameters) with refined positions, covariances and detection counts;
+        trees that received no detection are unchanged.
+    """
+    from dataclasses import replace
+
+    from stemmap.slam.base import observation_to_world
+
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    ptr = np.asarray(frame_ptr, dtype=np.int64).reshape(-1)
+    r = np.asarray(ranges, dtype=np.float64).reshape(-1)
+    b = np.asarray(bearings, dtype=np.float64).reshape(-1)
+    if ptr.shape[0] != p.shape[0] + 1 or ptr[-1] != r.shape[0] or b.shape != r.shape:
+        raise InputError(
+            f"refine_stem_map: {p.shape[0]} poses need {p.shape[0] + 1} frame pointers ending at "
+            f"the {r.shape[0]} detections; got {ptr.shape[0]} pointers and {b.shape[0]} bearings."
+        )
+    if len(stem_map) == 0 or r.size == 0:
+        return stem_map
+    if not gate > 0:
+        raise ConfigError(f"refine_stem_map: gate must be > 0 m, got {gate}.")
+    frame = np.repeat(np.arange(p.shape[0]), np.diff(ptr))
+    z = observation_to_world(p[frame], r, b, sensor_offset)
+    S = np.zeros((p.shape[0], 3, 3)) if pose_covs is None else np.asarray(pose_covs, np.float64)
+    R = world_observation_covariance(
+        p[frame],
+        S.reshape(-1, 3, 3)[frame],
+        r,
+        b,
+        sigma_range=sigma_range,
+        sigma_bearing=sigma_bearing,
+        sensor_offset=sensor_offset,
+    )
+    from scipy.spatial import cKDTree
+
+    d, j = cKDTree(stem_map.xy).query(z, k=1, distance_upper_bound=gate)
+    j = np.where(np.isfinite(d), j, -1).astype(np.int64)
+    # one detection per tree and frame: keep the closest
+    ok = np.flatnonzero(j >= 0)
+    order = ok[np.lexsort((d[ok], j[ok], frame[ok]))]
+    key = frame[order] * (len(stem_map) + 1) + j[order]
+    dup = np.r_[False, key[1:] == key[:-1]]
+    j[order[dup]] = -1
+    # keep time order for the sequential filter
+    out = kalman_refine_trees(z, R, j, len(stem_map), process_noise=process_noise)
+    trees = []
+    for k, t in enumerate(stem_map.trees):
+        if out.n_obs[k] > 0:
+            trees.append(
+                replace(
+                    t,
+                    x=float(out.xy[k, 0]),
+                    y=float(out.xy[k, 1]),
+                    cov=out.cov[k],
+                    n_obs=int(out.n_obs[k]),
+                )
+            )
+        else:
+            trees.append(t)
+    return StemMap(tuple(trees), frame=stem_map.frame, crs=stem_map.crs)

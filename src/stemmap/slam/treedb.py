@@ -351,6 +351,11 @@ class TreeDbSlam:
         Detection noise for the localisation update.
     chi2_gate : float
         Squared Mahalanobis gate for landmark association (2 dof; 9.21 = 99 %).
+    refine : bool
+        Re-estimate the landmarks with the Kalman refinement of Munjer §3.6
+        (:func:`~stemmap.slam.refine.refine_stem_map`) using the per-frame pose covariance, which
+        gives every tree a covariance with the pose uncertainty propagated. False = the paper's
+        eq. (2) averages and a scatter covariance.
     """
 
     preset: str | None = None
@@ -360,6 +365,7 @@ class TreeDbSlam:
     sigma_range: float = 0.3
     sigma_bearing: float = math.radians(1.0)
     chi2_gate: float = 9.21
+    refine: bool = True
     name: str = "treedb"
 
     def __post_init__(self) -> None:
@@ -392,6 +398,7 @@ class TreeDbSlam:
         pose = np.asarray(problem.initial_pose, dtype=np.float64).copy()
         P = np.zeros((3, 3))
         poses = np.empty((nf, 3))
+        pose_covs = np.empty((nf, 3, 3))
         db = TreeDb()
         n_updates = 0
         for f in range(nf):
@@ -411,12 +418,28 @@ class TreeDbSlam:
                     )
                     n_updates += int(k > 0)
             poses[f] = pose
+            pose_covs[f] = P
             if r.size:
                 xy = observation_to_world(pose, r, b, off)
                 db, _ = treedb_update(db, xy, d, float(frames.times[f]), gate=self.gate)
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
         stem_map = db.to_stem_map(self.promote_count)
+        if self.refine:
+            from stemmap.slam.refine import refine_stem_map
+
+            stem_map = refine_stem_map(
+                stem_map,
+                poses,
+                frames.ptr,
+                frames.ranges,
+                frames.bearings,
+                sigma_range=self.sigma_range,
+                sigma_bearing=self.sigma_bearing,
+                sensor_offset=off,
+                pose_covs=pose_covs,
+                gate=self.gate,
+            )
         stats: dict[str, float | int | str] = {
             "backend": self.name,
             "db_entries": len(db),
