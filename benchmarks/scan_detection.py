@@ -32,11 +32,12 @@ import numpy as np
 
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.detection import scan_detection_metrics
+from stemmap.eval.matching import match_points
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
 from stemmap.sim.forest import add_clutter, random_stand
 from stemmap.sim.scanner import ScannerModel, scanner_preset, simulate_scans
 from stemmap.sim.trajectory import lawnmower_path, simulate_run
-from stemmap.types import ScanBatch, StemObservations
+from stemmap.types import LaserScan, ScanBatch, StemObservations
 
 FIT_METHODS = ("kasa", "fletcher_reeves", "three_point", "chord_width", "ours")
 
@@ -223,16 +224,138 @@ def speed(run: Any, n_batch: int, seed: int) -> dict[str, Any]:
     }
 
 
-def real_geometry(seed: int) -> dict[str, Any] | None:
+REAL: dict[str, Any] = {
+    "dataset": "fortls_slice/diameters.laz (TLS slice 1.2-1.4 m, ~20 trunks as full rings)",
+    "reference": "ring fit of scan_fits_real.load_rings (full ring, geometric)",
+    "scanner": "virtual nearest-return scanner: 360 deg, one beam per bin, the nearest slice "
+    "point whose bearing lies within the beam footprint, reported at the beam's nominal bearing",
+    "angle_increment_deg": 0.5,
+    "footprint_deg": 0.5,
+    "range_noise_m": 0.01,
+    "vantage_radii_m": [0.0, 5.0, 10.0],
+    "vantage_bearings_deg": [0, 45, 90, 135, 180, 225, 270, 315],
+    "vantage_min_clearance_m": 0.3,
+    "min_returns": 5,
+    "max_range_m": 15.0,
+    "gate_m": 0.5,
+}
+
+
+def _load_fits_real() -> Any:
     path = Path(__file__).resolve().parent / "scan_fits_real.py"
-    ddir = find_datasets_dir(Path(__file__).resolve().parent)
-    if not path.exists() or ddir is None:
+    if not path.exists():
         return None
     spec = importlib.util.spec_from_file_location("scan_fits_real", path)
     if spec is None or spec.loader is None:
         return None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    return mod
+
+
+def virtual_laser_scan(
+    xy: np.ndarray,
+    vantage: np.ndarray,
+    *,
+    angle_increment: float,
+    footprint: float,
+    noise: float,
+    rng: np.random.Generator,
+    range_max: float = 30.0,
+) -> tuple[LaserScan, np.ndarray]:
+    """A 360 deg scan of a 2D point set: beam k (bearing -pi + (k + 1/2) * increment) returns the
+    nearest point within +-footprint/2 of its bearing, plus N(0, noise) range noise.
+
+    Returns the scan and, per beam, the index of the point it returned (-1 = none)."""
+    n = round(2 * math.pi / angle_increment)
+    q = xy - vantage
+    rho = np.hypot(q[:, 0], q[:, 1])
+    u = (np.arctan2(q[:, 1], q[:, 0]) + math.pi) / angle_increment
+    beam = np.floor(u).astype(np.int64) % n
+    inside = np.abs(u - np.floor(u) - 0.5) * angle_increment <= footprint / 2 + 1e-12
+    cand = np.flatnonzero(inside)
+    order = cand[np.lexsort((rho[cand], beam[cand]))]
+    first = np.ones(order.shape[0], dtype=bool)
+    first[1:] = beam[order[1:]] != beam[order[:-1]]
+    nearest = order[first]
+    ranges = np.full(n, np.inf)
+    ranges[beam[nearest]] = rho[nearest] + rng.normal(0.0, noise, nearest.shape[0])
+    src = np.full(n, -1, dtype=np.int64)
+    src[beam[nearest]] = nearest
+    scan = LaserScan(ranges, -math.pi + angle_increment / 2, angle_increment, range_max=range_max)
+    return scan, src
+
+
+def run_real_detection(datasets_dir: Path, seed: int) -> dict[str, Any] | None:
+    """End-to-end detection on virtual scans of the real TLS slice, per fit method, without and
+    with the footprint correction; DBH error against each trunk's full-ring reference."""
+    mod = _load_fits_real()
+    if mod is None or not hasattr(mod, "load_rings"):
+        return None
+    xy, labels, refs = mod.load_rings(datasets_dir)
+    ref = np.array([[r["x"], r["y"], r["diameter"]] for r in refs])
+    inc = math.radians(REAL["angle_increment_deg"])
+    foot = math.radians(REAL["footprint_deg"])
+    vantages = [np.zeros(2)]
+    for rad in REAL["vantage_radii_m"][1:]:
+        for b in REAL["vantage_bearings_deg"]:
+            vantages.append(rad * np.array([math.cos(math.radians(b)), math.sin(math.radians(b))]))
+    rng = np.random.default_rng(seed)
+    scans = []
+    for v in vantages:
+        gap = np.hypot(ref[:, 0] - v[0], ref[:, 1] - v[1]) - ref[:, 2] / 2
+        if np.min(gap) < REAL["vantage_min_clearance_m"]:
+            continue
+        scan, src = virtual_laser_scan(
+            xy, v, angle_increment=inc, footprint=foot, noise=REAL["range_noise_m"], rng=rng
+        )
+        hit = labels[src[src >= 0]]
+        counts = np.bincount(hit[hit >= 0], minlength=ref.shape[0])
+        local = ref[:, :2] - v
+        elig = (counts >= REAL["min_returns"]) & (np.hypot(*local.T) <= REAL["max_range_m"])
+        scans.append((scan, local, elig))
+    out: dict[str, Any] = {
+        "scenario": {**REAL, "seed": seed, "n_scans": len(scans), "n_trunks": len(refs)},
+        "trunk_dbh_cm_range": [round(100 * ref[:, 2].min(), 1), round(100 * ref[:, 2].max(), 1)],
+    }
+    for corr in (False, True):
+        section: dict[str, Any] = {}
+        for m in FIT_METHODS:
+            cfg = DetectorConfig.preset(
+                "stemmap", fit_method=m, beam_footprint_deg=REAL["footprint_deg"] if corr else 0.0
+            )
+            det = ScanTrunkDetector(cfg)
+            errs: list[float] = []
+            n_elig = fa = 0
+            for scan, local, elig in scans:
+                obs = det.detect(scan)
+                mt = match_points(obs.centers, local, REAL["gate_m"])
+                ok = elig[mt.pairs[:, 1]] if mt.n_matched else np.zeros(0, dtype=bool)
+                for (i, j), good in zip(mt.pairs, ok, strict=True):
+                    if good:
+                        errs.append(2 * obs.radii[i] - ref[j, 2])
+                n_elig += int(elig.sum())
+                near = np.hypot(*obs.centers.T) <= REAL["max_range_m"] if len(obs) else []
+                fa += int(np.sum(np.isin(np.flatnonzero(near), mt.unmatched_detections)))
+            e = 100 * np.asarray(errs)
+            section[m] = {
+                "eligible": n_elig,
+                "detected": len(errs),
+                "recall": round(len(errs) / max(n_elig, 1), 4),
+                "unmatched_detections": fa,
+                "dbh_rmse_cm": round(float(np.sqrt(np.mean(e**2))), 3) if e.size else None,
+                "dbh_bias_cm": round(float(np.mean(e)), 3) if e.size else None,
+                "dbh_median_abs_cm": round(float(np.median(np.abs(e))), 3) if e.size else None,
+            }
+        out["footprint_corrected" if corr else "uncorrected"] = section
+    return out
+
+
+def real_geometry(seed: int) -> dict[str, Any] | None:
+    mod = _load_fits_real()
+    ddir = find_datasets_dir(Path(__file__).resolve().parent)
+    if mod is None or ddir is None:
+        return None
     fn = getattr(mod, "run_real_geometry", None)
     if fn is None:
         return None
@@ -282,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
         "latency_1081": sp["latency_ms_1081"] <= TARGETS["latency_ms_1081_max"],
     }
     if not args.no_real:
+        ddir = find_datasets_dir(Path(__file__).resolve().parent)
+        result["real_detection"] = None if ddir is None else run_real_detection(ddir, args.seed)
         try:
             result["real_geometry"] = real_geometry(args.seed)
         except Exception as exc:  # the section belongs to scan-fit; report, do not crash

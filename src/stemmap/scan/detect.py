@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
 from stemmap.scan.features import (
+    footprint_correct,
     is_straight,
     point_curvature,
     radius_median_filter,
@@ -125,6 +126,10 @@ class DetectorConfig:
     max_rms_sigma : float
         Reject fits whose RMS orthogonal residual exceeds this multiple of ``sigma``: the
         outline is not a circle (rocks, polygons, bushes; ours).
+    beam_footprint_deg : float, degrees
+        Footprint of a nearest-return (first-echo) sensor; returns are moved to the footprint
+        side nearest the trunk apex before fitting (:func:`~stemmap.scan.features.
+        footprint_correct`). 0 for averaging sensors and the simulator.
     """
 
     name: str = "custom"
@@ -159,6 +164,7 @@ class DetectorConfig:
     max_radius: float = math.inf
     max_radius_width_ratio: float = math.inf
     max_rms_sigma: float = math.inf
+    beam_footprint_deg: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -200,6 +206,8 @@ class DetectorConfig:
             raise bad("sigma", self.sigma, "it must be >= 0 m")
         if not (self.max_radius > self.min_radius >= 0):
             raise bad("max_radius", self.max_radius, "need 0 <= min_radius < max_radius")
+        if not (self.beam_footprint_deg >= 0 and math.isfinite(self.beam_footprint_deg)):
+            raise bad("beam_footprint_deg", self.beam_footprint_deg, "it must be >= 0 degrees")
         if not self.max_rms_sigma > 0:
             raise bad("max_rms_sigma", self.max_rms_sigma, "it must be > 0")
         if not self.max_radius_width_ratio > 0:
@@ -689,6 +697,8 @@ class ScanTrunkDetector:
         )
         if len(segs) == 0:
             return StemObservations.empty(source=self.source, frame=frame)
+        if cfg.beam_footprint_deg > 0:
+            segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
         centers, radii, covs, ok = _fit_segments(segs, cfg.fit_method, cfg.sigma)
         p = segs.points
         n = segs.counts
