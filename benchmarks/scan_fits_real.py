@@ -41,6 +41,7 @@ DEFAULTS: dict[str, Any] = {
     "ranges_m": (3.0, 6.0, 9.0, 12.0),
     "bearings_per_range": 2,
     "min_points": 3,
+    "skip_occluded": True,
     "cluster_cell_m": 0.05,
     "min_ring_points": 500,
     "seed": 7,
@@ -166,6 +167,7 @@ def run_real_geometry(
     ranges_m: tuple[float, ...] = DEFAULTS["ranges_m"],
     bearings_per_range: int = DEFAULTS["bearings_per_range"],
     min_points: int = DEFAULTS["min_points"],
+    skip_occluded: bool = DEFAULTS["skip_occluded"],
     seed: int = DEFAULTS["seed"],
     methods: tuple[str, ...] | None = None,
     _cache: dict[str, Any] | None = None,
@@ -180,6 +182,8 @@ def run_real_geometry(
     ranges_m : distances of the vantage points from each trunk centre, metres
     bearings_per_range : random bearings per distance (seeded)
     min_points : arcs with fewer returns are skipped (not fitted by any method)
+    skip_occluded : skip arcs with an edge hidden by a nearer trunk (a detector flags these as
+        partial trunks); when False they are fitted with that edge marked
     seed : RNG seed (vantage bearings and noise)
     methods : fit methods to run (default: all registered)
 
@@ -200,6 +204,7 @@ def run_real_geometry(
     edges: list[tuple[bool, bool]] = []
     truth: list[float] = []
     dist: list[float] = []
+    n_occluded = 0
     for t, ref in enumerate(refs):
         centre = np.array([ref["x"], ref["y"]])
         for d in ranges_m:
@@ -207,6 +212,9 @@ def run_real_geometry(
                 vantage = centre + d * np.array([math.cos(bearing), math.sin(bearing)])
                 got = virtual_scan(xy, labels, vantage, t, bin_rad, range_noise_m, rng)
                 if got is None or got[0].shape[0] < min_points:
+                    continue
+                if skip_occluded and not all(got[1]):
+                    n_occluded += 1
                     continue
                 arcs.append(got[0])
                 edges.append(got[1])
@@ -248,6 +256,7 @@ def run_real_geometry(
             "ranges_m": list(ranges_m),
             "bearings_per_range": bearings_per_range,
             "min_points": min_points,
+            "skip_occluded": skip_occluded,
             "seed": seed,
             "clustering": "8-connected occupancy grid",
             "cluster_cell_m": DEFAULTS["cluster_cell_m"],
@@ -267,7 +276,8 @@ def run_real_geometry(
             "points_per_arc_mean": round(float(n_pts.mean()), 1),
             "points_per_arc_min": int(n_pts.min()),
             "points_per_arc_max": int(n_pts.max()),
-            "occluded_edges": int(np.sum(~np.asarray(edges))),
+            "occluded_edges_fitted": int(np.sum(~np.asarray(edges))),
+            "skipped_partly_occluded": n_occluded,
         },
         "methods": out_methods,
     }

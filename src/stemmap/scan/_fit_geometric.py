@@ -29,6 +29,7 @@ TOO_FEW = 1
 COINCIDENT = 2
 COLLINEAR = 3
 NOT_CONVERGED = 4
+PARTIAL_TOO_FEW = 5
 
 STATUS_MESSAGES = {
     OK: "",
@@ -36,6 +37,10 @@ STATUS_MESSAGES = {
     COINCIDENT: "all points coincide",
     COLLINEAR: "points are collinear (no curvature and no usable silhouette)",
     NOT_CONVERGED: "the geometric fit did not reach a valid circle behind the arc",
+    PARTIAL_TOO_FEW: (
+        "a partial arc (one edge occluded) needs at least 4 returns: with 3 the circle through "
+        "them is unconstrained and its linearised covariance is overconfident"
+    ),
 }
 
 _HUBER_K = 1.5  # Huber threshold in units of sigma (95 % efficiency under Gaussian noise)
@@ -299,6 +304,8 @@ def _fit_one(
             dtheta = (th_max - th_min) / (n - 1)
     # Points around the sensor (or on it) have no visible side: no silhouette terms then.
     use_sil = (use_lo or use_hi) and one_sided and rho_min > 0.0 and dtheta > 0.0
+    if use_sil and use_lo != use_hi and n < 4:
+        return PARTIAL_TOO_FEW
     # Silhouette targets: the lower tangent bearing lies uniformly in (th_min - dtheta, th_min],
     # the upper in [th_max, th_max + dtheta); an unused side gets its target from the fit itself
     # (weight zero is emulated by an infinite target std below).
