@@ -500,3 +500,12 @@ def test_pointcloud2_any_layout(
         np.testing.assert_array_equal(c.xyz[:, j], pts[name].astype(np.float64))
     np.testing.assert_array_equal(c.fields["t"], pts["t"])
     assert c.fields["t"].dtype == np.dtype(_TYPES[extra_type])  # native order, same kind
+
+
+def test_docstring_examples_run() -> None:
+    import doctest
+
+    import stemmap.io.rosbag as rosbag_mod
+
+    res = doctest.testmod(rosbag_mod)
+    assert res.failed == 0 and res.attempted > 0

@@ -219,6 +219,29 @@ def local_to_lonlat(
     origin's latitude: lat = lat0 + y / M, lon = lon0 + x / (N cos lat0). The position error
     grows with the square of the distance: below 1 cm within 1 km of the origin (for
     latitudes below 70 degrees), ample for a forest stand. ``x`` must point east, ``y`` north.
+
+    Parameters
+    ----------
+    xy : ndarray of shape (N, 2), metres
+        East, north offsets from the origin.
+    origin_lonlat : (float, float)
+        WGS84 longitude in [-180, 180] and latitude in (-90, 90), degrees.
+
+    Returns
+    -------
+    lon, lat : ndarray of shape (N,), degrees
+
+    Raises
+    ------
+    InputError
+        If the origin is not a valid longitude/latitude pair.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> lon, lat = local_to_lonlat(np.array([[0.0, 110574.3]]), (0.0, 0.0))
+    >>> round(float(lat[0]), 4)  # 1 degree of latitude at the equator is 110.574 km
+    1.0
     """
     lon0, lat0 = float(origin_lonlat[0]), float(origin_lonlat[1])
     if not (-180.0 <= lon0 <= 180.0 and -90.0 < lat0 < 90.0):
@@ -235,7 +258,19 @@ def local_to_lonlat(
 def lonlat_to_local(
     lon: FloatArray, lat: FloatArray, origin_lonlat: tuple[float, float]
 ) -> FloatArray:
-    """Inverse of :func:`local_to_lonlat`: degrees to east-north metres, shape (N, 2)."""
+    """Inverse of :func:`local_to_lonlat`: WGS84 degrees to east-north metres, shape (N, 2).
+
+    Parameters
+    ----------
+    lon, lat : ndarray of shape (N,), degrees
+    origin_lonlat : (float, float)
+        Longitude, latitude (degrees) of the local origin.
+
+    Returns
+    -------
+    ndarray of shape (N, 2)
+        East, north (m): x = rad(lon - lon0) N cos(lat0), y = rad(lat - lat0) M.
+    """
     lon0, lat0 = float(origin_lonlat[0]), float(origin_lonlat[1])
     m, nrad = _meridian_radii(math.radians(lat0))
     x = np.radians(np.asarray(lon, dtype=np.float64) - lon0) * nrad * math.cos(math.radians(lat0))
@@ -434,6 +469,13 @@ def write_observations_csv(path: PathLike, obs: StemObservations) -> None:
     (the sensor frame for scan detections), metres; ``diameter`` = 2 r; ``radius_std``,
     ``std_x``, ``std_y`` = sqrt of the (r, r), (x, x), (y, y) covariance entries (``nan``
     where the fit gave no covariance); ``arc_deg`` in degrees, ``width`` the chord width (m).
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Output file; parent folders are created. An empty batch writes the header only.
+    obs : StemObservations
+        ``index`` is written as ``scan_index`` (the frame's position in the input file).
     """
     var = np.diagonal(obs.covs, axis1=1, axis2=2)  # (K, 3): x, y, r
     with np.errstate(invalid="ignore"):

@@ -150,6 +150,21 @@ def bag_summary(path: PathLike) -> list[TopicSummary]:
     """Every topic of a bag with its type and message count, sorted by topic name.
 
     For a ROS1 bag without a valid index, the counts are those recovered from its chunks.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ROS1 ``.bag``, ROS2 bag folder, or ROS2 ``.db3`` / ``.mcap`` file.
+
+    Returns
+    -------
+    list of TopicSummary
+        ``(topic, msgtype, n_messages)``; types as ``pkg/msg/Type`` for ROS1 and ROS2 alike.
+
+    Raises
+    ------
+    InputError
+        If the path does not exist or is not a readable bag.
     """
     p = Path(path)
     try:
@@ -627,6 +642,22 @@ def read_odometry(
 ) -> OdometryLog:
     """Read every ``nav_msgs/Odometry`` message of a topic into an :class:`OdometryLog`.
 
+    Messages with a NaN/inf or zero-quaternion pose are skipped and recorded.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ROS1 ``.bag``, ROS2 bag folder, or ROS2 ``.db3`` / ``.mcap`` file.
+    topic : str, optional
+        Topic name; default: the only topic of this message type in the bag.
+    skipped : list of SkippedFrame, optional
+        Receives one entry per message that could not be used (also logged as a warning).
+
+    Returns
+    -------
+    OdometryLog
+        Sorted by ``header.stamp``; yaw by the z-y-x (ROS tf) convention.
+
     Raises
     ------
     InputError
@@ -757,6 +788,20 @@ def read_imu(
     ROS marks "no orientation" with ``orientation_covariance[0] == -1``; those messages (and
     any with a zero/NaN quaternion) take roll and pitch from the accelerometer instead.
 
+    Parameters
+    ----------
+    path : str or PathLike
+        ROS1 ``.bag``, ROS2 bag folder, or ROS2 ``.db3`` / ``.mcap`` file.
+    topic : str, optional
+        Topic name; default: the only topic of this message type in the bag.
+    skipped : list of SkippedFrame, optional
+        Receives one entry per message that could not be used (also logged as a warning).
+
+    Returns
+    -------
+    ImuLog
+        Sorted by time; ``from_orientation`` tells which source gave roll and pitch.
+
     Raises
     ------
     InputError
@@ -862,6 +907,20 @@ def read_navsatfix(
     Messages without a fix (status -1, or NaN position as some drivers send) are kept with
     their status so that gaps stay visible; use :attr:`GnssLog.valid` to filter.
 
+    Parameters
+    ----------
+    path : str or PathLike
+        ROS1 ``.bag``, ROS2 bag folder, or ROS2 ``.db3`` / ``.mcap`` file.
+    topic : str, optional
+        Topic name; default: the only topic of this message type in the bag.
+    skipped : list of SkippedFrame, optional
+        Receives one entry per message that could not be used (also logged as a warning).
+
+    Returns
+    -------
+    GnssLog
+        Sorted by time; degrees, metres, ENU covariance in m^2.
+
     Raises
     ------
     InputError
@@ -959,6 +1018,16 @@ def decode_pointcloud2(
         ``xyz`` as float64; every other named field in ``fields`` (native byte order, shape
         (N,) or (N, count)).
 
+    Examples
+    --------
+    >>> import numpy as np
+    >>> pts = np.array([(1.0, 2.0, 3.0, 7), (np.nan, 0.0, 0.0, 8)],
+    ...                dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("ring", ">u2")])
+    >>> fields = [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("ring", 12, 4, 1)]
+    >>> c = decode_pointcloud2(pts.tobytes(), fields, point_step=14, width=2, is_bigendian=True)
+    >>> c.xyz.tolist(), c.fields["ring"].tolist()
+    ([[1.0, 2.0, 3.0]], [7])
+
     Raises
     ------
     InputError
@@ -1053,6 +1122,22 @@ def read_pointclouds(
 
     Each cloud stays in its sensor frame (``header.frame_id``); see
     :func:`decode_pointcloud2` for the decoding. Bad messages are skipped and recorded.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ROS1 ``.bag``, ROS2 bag folder, or ROS2 ``.db3`` / ``.mcap`` file.
+    topic : str, optional
+        Topic name; default: the only topic of this message type in the bag.
+    skip_nans : bool
+        Drop points with a NaN/inf coordinate (default True).
+    skipped : list of SkippedFrame, optional
+        Receives one entry per message that could not be used (also logged as a warning).
+
+    Yields
+    ------
+    PointCloud
+        One per message, ``xyz`` float64 in ``header.frame_id``, other fields in ``fields``.
 
     Raises
     ------

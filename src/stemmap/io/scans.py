@@ -195,7 +195,21 @@ def _read_npz(
 
 def write_scans_npz(path: PathLike, batch: ScanBatch, *, compress: bool = True) -> None:
     """Write a :class:`ScanBatch` as an NPZ archive (the format :func:`read_scans` reads),
-    atomically. Fields: ranges, time, angle_min, angle_increment, range_min, range_max, frame.
+    atomically.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Output file (``.npz``); parent folders are created.
+    batch : ScanBatch
+    compress : bool
+        ``np.savez_compressed`` (default) or plain ``np.savez``.
+
+    Notes
+    -----
+    Fields: ``ranges`` (S, N) float64 m, ``time`` (S,) s, scalars ``angle_min``,
+    ``angle_increment`` (rad), ``range_min``, ``range_max`` (m) and the string ``frame``.
+    Lossless: :func:`read_scans` returns the same values bit for bit.
     """
     arrays = {
         "ranges": np.asarray(batch.ranges),
@@ -305,7 +319,18 @@ def _fmt_block(a: FloatArray) -> list[str]:
 def write_scans_csv(path: PathLike, batch: ScanBatch) -> None:
     """Write a :class:`ScanBatch` in the scans CSV layout (module docstring), atomically.
 
-    Floats are written with the shortest text that reads back to the same float64.
+    Parameters
+    ----------
+    path : str or PathLike
+        Output file (``.csv``); parent folders are created.
+    batch : ScanBatch
+
+    Notes
+    -----
+    A ``# ... frame=NAME`` comment line, the header
+    ``time,angle_min,angle_increment,range_min,range_max,r0..r{N-1}``, then one row per scan.
+    Floats are written with the shortest text that reads back to the same float64 (``nan`` for
+    no return), so :func:`read_scans` returns the same values bit for bit.
     """
     n = batch.n_beams
     head = ",".join((*SCAN_CSV_FIXED_COLUMNS, *(f"r{i}" for i in range(n))))
