@@ -114,6 +114,10 @@ class FastSlam:
     window_margin : float, m
     min_observations : int
         Landmarks of the best particle seen fewer times are left out of the output map.
+    tentative_timeout_s : float, s
+        Ours (standard FastSLAM landmark-existence practice, not in Munjer): a landmark seen
+        fewer than ``min_observations`` times and not re-seen for this long is deleted from the
+        particle's map (checked every 25 frames; 0 disables). Keeps clutter from piling up.
     seed : int
     """
 
@@ -126,6 +130,7 @@ class FastSlam:
     max_candidates: int = 24
     window_margin: float = 3.0
     min_observations: int = 3
+    tentative_timeout_s: float = 5.0
     seed: int = 0
     name: str = "fastslam"
 
@@ -185,6 +190,7 @@ class FastSlam:
         parents = np.empty((nf, P), dtype=np.int64)
         ident = np.arange(P, dtype=np.int64)
         n_resample = 0
+        n_pruned = 0
         rows = np.arange(P)[:, None]
 
         for f in range(nf):
@@ -322,6 +328,26 @@ class FastSlam:
                     n_resample += 1
                 else:
                     logw = np.log(np.maximum(w, 1e-300))
+            if self.tentative_timeout_s > 0 and f % 25 == 24 and int(nlm.max()) > 0:
+                # drop tentative landmarks (seen < min_observations times) not re-seen within
+                # the timeout: clutter and one-off false detections (compaction per particle)
+                top = int(nlm.max())
+                slots = np.arange(top)[None, :]
+                keep = (slots < nlm[:, None]) & (
+                    (nobs[:, :top] >= self.min_observations)
+                    | (tlast[:, :top] > tf - self.tentative_timeout_s)
+                )
+                if not np.all(keep == (slots < nlm[:, None])):
+                    order = np.argsort(~keep, axis=1, kind="stable")
+                    mu = np.take_along_axis(mu[:, :top], order[:, :, None], axis=1)
+                    Sig = np.take_along_axis(Sig[:, :top], order[:, :, None, None], axis=1)
+                    nobs = np.take_along_axis(nobs[:, :top], order, axis=1)
+                    dsum = np.take_along_axis(dsum[:, :top], order, axis=1)
+                    dcnt = np.take_along_axis(dcnt[:, :top], order, axis=1)
+                    tfirst = np.take_along_axis(tfirst[:, :top], order, axis=1)
+                    tlast = np.take_along_axis(tlast[:, :top], order, axis=1)
+                    n_pruned += int(nlm.sum() - keep.sum())
+                    nlm = keep.sum(axis=1).astype(np.int64)
             pose_hist[f] = X
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
@@ -356,6 +382,7 @@ class FastSlam:
             "landmarks_best_particle": n_best,
             "landmarks_mapped": len(trees),
             "resamples": n_resample,
+            "tentative_pruned_total": n_pruned,
             "runtime_s": float(_time.perf_counter() - t_start),
         }
         return SlamResult(frame_trajectory(frames.times, traj), StemMap(tuple(trees)), stats)
