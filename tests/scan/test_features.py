@@ -9,6 +9,7 @@ from stemmap import ConfigError
 from stemmap.scan.features import (
     chord_width,
     cluster_curvature,
+    footprint_correct,
     is_straight,
     line_fit_rms,
     point_curvature,
@@ -132,3 +133,26 @@ def test_radius_median_filter_separates_merged_trunks():
     assert len(parts) >= 2 and int(parts.counts.sum()) == len(keep)
     with pytest.raises(ConfigError):
         radius_median_filter(segs, 0.0)
+
+
+def test_footprint_correction_restores_nearest_return_geometry():
+    # a first-echo scanner with a 0.5 deg footprint at 0.5 deg spacing reports, at the nominal
+    # bearing, the nearest point of the trunk within the footprint; after the correction every
+    # return lies exactly on the trunk circle (up to the sampling of the footprint)
+    d, rad, inc = 4.0, 0.2, math.radians(0.5)
+    nominal = inc * np.arange(-20, 21)
+    fine = np.linspace(-0.5, 0.5, 401) * inc
+    rr = trunk_ranges(d, rad, nominal[:, None] + fine[None, :])
+    r = rr.min(axis=1)
+    p = extract_points(np.where(np.isfinite(r), r, np.nan), nominal, inc)
+    segs = build_segments(p, range_jump_breaks(p, 0.3), ranges=r[None, :])
+    assert len(segs) == 1
+    resid_raw = np.abs(np.hypot(segs.points.x - d, segs.points.y) - rad)
+    fixed = footprint_correct(segs, inc)
+    resid = np.abs(np.hypot(fixed.points.x - d, fixed.points.y) - rad)
+    assert resid_raw.max() > 5e-3  # the edge returns sit centimetres off the circle
+    assert resid.max() < 1e-4  # 1/400 of the footprint: the fine sampling step
+    np.testing.assert_array_equal(fixed.points.r, segs.points.r)
+    assert footprint_correct(segs, 0.0) is segs
+    with pytest.raises(ConfigError):
+        footprint_correct(segs, -1.0)

@@ -41,6 +41,12 @@ def detect(
     sigma: Annotated[
         float | None, typer.Option(help="Override the sensor range noise, metres.")
     ] = None,
+    footprint: Annotated[
+        float | None,
+        typer.Option(
+            help="Beam footprint of a nearest-return scanner, degrees (corrects wide trunks)."
+        ),
+    ] = None,
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
     ] = False,
@@ -63,6 +69,8 @@ def detect(
             overrides["fit_method"] = fit
         if sigma is not None:
             overrides["sigma"] = sigma
+        if footprint is not None:
+            overrides["beam_footprint_deg"] = footprint
         detector = ScanTrunkDetector(DetectorConfig.preset(preset, **overrides))
         skipped: list[SkippedFrame] = []
         batch = read_scans(scans, topic=topic, skipped=skipped)
