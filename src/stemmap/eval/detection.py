@@ -163,7 +163,9 @@ class _Pooled:
         self.center_err.append(np.hypot(*(det_xy[di] - truth_xy[ti]).T))
         self.diam_err.append(det_diam[di] - truth_diam[ti])
         self.pair_range.append(truth_range[ti])
-        missed = np.setdiff1d(np.flatnonzero(eligible), ti)
+        not_found = eligible.copy()
+        not_found[ti] = False
+        missed = np.flatnonzero(not_found)
         self.miss_range.append(truth_range[missed])
         fa_idx = m.unmatched_detections
         self.fa += int(fa_idx.size)
