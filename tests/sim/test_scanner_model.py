@@ -278,3 +278,30 @@ def test_fast_caster_matches_reference_anywhere(x, y, th, seed):
     rr, hh = cast_rays([x, y], m.angles + th, stand, m.range_max)
     np.testing.assert_allclose(r[0], rr, atol=1e-9)
     np.testing.assert_array_equal(h[0], hh)
+
+
+@settings(max_examples=20, deadline=None)
+@given(x=st.floats(2, 28), y=st.floats(2, 28), th=st.floats(-3.14, 3.14), seed=st.integers(0, 50))
+def test_mixed_pixel_model_against_reference_sub_beams(x, y, th, seed):
+    # noise-free, no dropout: each beam equals the 1/r^2-weighted mean of the reference
+    # caster's sub-beam ranges (so it lies between the nearest and farthest surface), returns
+    # iff >= 3 of 5 sub-beams hit, and its truth id is the majority id
+    stand = _cluttered_stand(seed % 5)
+    m = ScannerModel(
+        range_noise=0.0, beam_divergence=math.radians(0.4), sub_beams=5, range_max=30.0
+    )
+    batch, hit, mixed = simulate_scans(stand, [[x, y, th]], m, rng=0)
+    dirs = (m.angles[:, None] + m.sub_beam_offsets[None, :] + th).ravel()
+    sr, sid = cast_rays([x, y], dirs, stand, m.range_max)
+    sr, sid = sr.reshape(m.n_beams, 5), sid.reshape(m.n_beams, 5)
+    n_hit = np.isfinite(sr).sum(axis=1)
+    returns = n_hit >= 3
+    np.testing.assert_array_equal(np.isfinite(batch.ranges[0]), returns)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(np.isfinite(sr), 1.0 / sr**2, 0.0)
+        expect = np.sum(w * np.where(np.isfinite(sr), sr, 0.0), axis=1) / w.sum(axis=1)
+    np.testing.assert_allclose(batch.ranges[0, returns], expect[returns], rtol=1e-12)
+    for i in np.flatnonzero(returns):
+        _ids, counts = np.unique(sid[i][np.isfinite(sr[i])], return_counts=True)
+        assert counts.max() == np.sum(sid[i] == hit[0, i])
+        assert mixed[0, i] == (np.unique(sid[i]).size > 1)
