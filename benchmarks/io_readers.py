@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import statistics
 import struct
@@ -112,6 +113,20 @@ def run(
                 "read_s": round(tr, 4),
                 "messages_per_s": round(n_bag / tr),
             }
+            if label == "ros1":  # the same bag without its index (cut at 95 %): salvage path
+                cut = d / "cut.bag"
+                raw = p.read_bytes()
+                cut.write_bytes(raw[: int(len(raw) * 0.95)])
+                logging.disable(logging.WARNING)
+                ts = _median_time(lambda c=cut: read_scans(c), repeat)
+                n_rec = len(read_scans(cut))
+                logging.disable(logging.NOTSET)
+                res["bag_ros1_salvage_laserscan"] = {
+                    "file_fraction_kept": 0.95,
+                    "messages_recovered": n_rec,
+                    "read_s": round(ts, 4),
+                    "messages_per_s": round(n_rec / ts),
+                }
         # PointCloud2: x y z f32, intensity f32, ring u16, 4 bytes padding -> 22-byte points
         step = 22
         dt = np.dtype(
