@@ -504,3 +504,17 @@ def test_docstring_examples_run() -> None:
     for mod in (maps_mod, traj_mod):
         res = doctest.testmod(mod, optionflags=doctest.ELLIPSIS)
         assert res.failed == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.floats(-179.0, 179.0),
+    st.floats(-80.0, 80.0),
+    st.floats(-2000.0, 2000.0),
+    st.floats(-2000.0, 2000.0),
+)
+def test_local_lonlat_inverse(lon0: float, lat0: float, x: float, y: float) -> None:
+    lon, lat = local_to_lonlat(np.array([[x, y]]), (lon0, lat0))
+    back = lonlat_to_local(lon, lat, (lon0, lat0))
+    # exact inverses up to float rounding of degrees near 180 (1e-13 deg ~ 1e-8 m)
+    np.testing.assert_allclose(back[0], [x, y], atol=1e-6)

@@ -509,3 +509,28 @@ def test_docstring_examples_run() -> None:
 
     res = doctest.testmod(rosbag_mod)
     assert res.failed == 0 and res.attempted > 0
+
+
+@pytest.mark.parametrize("mode", ["FILE", "MESSAGE"])
+def test_ros2_zstd_compressed_bag(tmp_path: Path, mode: str) -> None:
+    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    f = BagFactory(2)
+    w = Writer(tmp_path / "z", version=9)
+    w.set_compression(CompressionMode[mode], CompressionFormat.ZSTD)
+    with w:
+        c = w.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=f.ts)
+        for i in range(3):
+            w.write(c, 10**9 * (i + 1), f.serialize(f.laserscan(1.0 + i, np.full(5, 2.0 + i))))
+    b = read_scans(tmp_path / "z")
+    np.testing.assert_array_equal(b.ranges[:, 0], [2.0, 3.0, 4.0])
+
+
+def test_gnss_to_local_needs_a_fix(tmp_path: Path) -> None:
+    f = BagFactory(2)
+    msgs = [("/fix", f.navsatfix(1.0, math.nan, math.nan, math.nan, status=-1))]
+    g = read_navsatfix(f.write(tmp_path / "b", msgs))
+    with pytest.raises(InputError, match="no valid fix"):
+        g.to_local()
+    assert g.to_local((25.0, 60.0)).shape == (1, 2)  # explicit origin: NaN rows kept
