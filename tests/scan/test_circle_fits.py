@@ -322,19 +322,20 @@ def test_ours_is_unbiased_on_short_noisy_arcs_where_kasa_is_not() -> None:
     kw = {"sigma": 0.01, "angle_increment": DTH}
     ka = (fit_circles_batch(pts, ids, "kasa").diameters - 2 * radii) * 100
     ours = (fit_circles_batch(pts, ids, "ours", **kw).diameters - 2 * radii) * 100
-    # measured (seed 11): kasa bias -1.9 cm, RMSE 2.1 cm; ours bias ~0.0 cm, RMSE 0.5 cm.
-    # Standard error of the mean of ours = 0.5 / sqrt(300) = 0.03 cm, so |bias| < 0.2 cm is
-    # 6 standard errors, while kasa's shrinkage is 60 of its standard errors.
+    # measured (seed 11): kasa bias -1.58 cm, RMSE 1.91 cm; ours bias -0.08 cm, RMSE 0.70 cm.
+    # Standard error of the mean of ours = 0.70 / sqrt(300) = 0.04 cm, so |bias| < 0.2 cm is
+    # measured + 3 standard errors, while kasa's shrinkage is ~15 of its standard errors.
     assert np.mean(ka) < -1.0
     assert abs(np.mean(ours)) < 0.2
-    assert np.sqrt(np.mean(ours**2)) < 0.4 * np.sqrt(np.mean(ka**2))
+    assert np.sqrt(np.mean(ours**2)) < 0.5 * np.sqrt(np.mean(ka**2))  # measured ratio 0.37
 
 
-@pytest.mark.parametrize(("dist", "max_bias", "max_rmse"), [(5.0, 0.5, 2.0), (10.0, 1.0, 3.5)])
+@pytest.mark.parametrize(("dist", "max_bias", "max_rmse"), [(5.0, 0.65, 1.8), (10.0, 1.1, 3.2)])
 def test_ours_accuracy_at_range(dist: float, max_bias: float, max_rmse: float) -> None:
-    # 3-12 returns per arc. Measured (seed 12): 5 m: bias -0.2, RMSE 1.3 cm; 10 m: bias -0.6,
-    # RMSE 2.3 cm; the silhouette alone limits the width to ~ range * 0.5 deg / sqrt(6)
-    # (1.8 cm at 5 m, 3.6 cm at 10 m). Bounds: measured + 3 standard errors (400 arcs).
+    # 0.5 deg beams, 1 cm noise, radius 5-30 cm: 3-12 returns per arc. Measured (seed 12):
+    # 5 m: bias -0.41, RMSE 1.48 cm (kasa RMSE 18 cm); 10 m: bias -0.71, RMSE 2.74 cm (kasa 22).
+    # Bounds: measured + 3 standard errors of the mean (RMSE / sqrt(400)) for the bias, +20 %
+    # for the RMSE. The negative bias is the known weakness documented in scan-fits.md.
     rng = np.random.default_rng(12)
     pts, ids, radii = arc_batch(dist, 400, 0.01, rng)
     fits = fit_circles_batch(pts, ids, "ours", sigma=0.01, angle_increment=DTH)
