@@ -28,6 +28,10 @@ def test_sim_scans_writes_scans_and_truth(tmp_path):
         # ground truth agrees with the ranges: a beam has a return iff it hit something
         np.testing.assert_array_equal(np.isfinite(ranges), hit != -1)
         assert hit.max() < len(rows)
+    odo = np.loadtxt(tmp_path / "run_odometry.csv", delimiter=",", skiprows=1)
+    assert odo.shape[1] == 3 and odo[-1, 0] >= poses[-1, 0]  # odometry covers every scan
+    gnss = np.loadtxt(tmp_path / "run_gnss.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert gnss.shape[1] == 4
     # the io area's reader reads what we wrote
     from stemmap.io.scans import read_scans
 

@@ -7,6 +7,9 @@
   :func:`stemmap.io.scans.write_scans_npz`;
 * ``run_trees.csv`` -- ground-truth trees ``id,x,y,diameter`` (world frame, metres);
 * ``run_poses.csv`` -- the true sensor pose of every scan ``time,x,y,theta`` (world frame);
+* ``run_odometry.csv`` -- noisy wheel odometry ``time,speed,yaw_rate`` (m/s, rad/s; controls
+  held until the next row);
+* ``run_gnss.csv`` -- noisy GNSS fixes of the vehicle ``time,x,y,sigma`` (world frame, m);
 * ``run_truth.npz`` -- per-beam ground truth (``hit_ids``, ``mixed``), wheel odometry (noisy
   and true), non-tree objects, and the scenario parameters as JSON text.
 """
@@ -177,6 +180,23 @@ def scans(
                 x, y = st.trees_xy[i]
                 fh.write(f"{i},{x:.6f},{y:.6f},{st.diameters[i]:.6f}\n")
         write_trajectory_csv(p_path, run.true_poses)
+        o_path = _sibling(out_path, "odometry.csv")
+        with atomic_write(o_path) as fh:
+            fh.write("time,speed,yaw_rate\n")
+            odo = run.odometry
+            for t, v, w in zip(
+                odo.times.tolist(), odo.speed.tolist(), odo.yaw_rate.tolist(), strict=True
+            ):
+                fh.write(f"{t!r},{v!r},{w!r}\n")
+        g_path = _sibling(out_path, "gnss.csv")
+        with atomic_write(g_path) as fh:
+            fh.write("time,x,y,sigma\n")
+            if run.gnss is not None:
+                g = run.gnss
+                for t, (x, y), sg in zip(
+                    g.times.tolist(), g.xy.tolist(), g.sigma.tolist(), strict=True
+                ):
+                    fh.write(f"{t!r},{x!r},{y!r},{sg!r}\n")
         params = dict(run.params)
         params.update(
             {
@@ -210,7 +230,7 @@ def scans(
                 f"simulated {len(run)} scans x {run.scans.n_beams} beams ({preset}), "
                 f"{st.n_trees} trees, {st.n_clutter_objects} non-tree objects\n"
                 f"  scans: {out_path}\n  trees: {t_path}\n  poses: {p_path}\n"
-                f"  truth: {truth_path}"
+                f"  odometry: {o_path}\n  gnss: {g_path}\n  truth: {truth_path}"
             )
 
 
