@@ -38,7 +38,7 @@ import logging
 import math
 import time as _time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -288,47 +288,82 @@ def pose_from_matches(
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
 class TreeGraph:
     """Hybrid graph of the map (Öhman 2007 §2.2): nodes with Cartesian positions, diameters and
     counts; edges with measured lengths (mean of the in-scan distances between co-observed trees).
+
+    Node attributes are numpy arrays with amortised growth (``xy[:len(graph)]`` are valid).
     """
 
-    xy: list[list[float]] = field(default_factory=list)
-    count: list[int] = field(default_factory=list)
-    dia_wsum: list[float] = field(default_factory=list)
-    dia_w: list[float] = field(default_factory=list)
-    first_time: list[float] = field(default_factory=list)
-    last_time: list[float] = field(default_factory=list)
-    edges: dict[tuple[int, int], list[float]] = field(default_factory=dict)
+    def __init__(self) -> None:
+        self._n = 0
+        self._xy = np.zeros((64, 2))
+        self._count = np.zeros(64, dtype=np.int64)
+        self._dia_wsum = np.zeros(64)
+        self._dia_w = np.zeros(64)
+        self._first = np.zeros(64)
+        self._last = np.zeros(64)
+        self.edges: dict[tuple[int, int], list[float]] = {}
 
     def __len__(self) -> int:
-        return len(self.xy)
+        return self._n
+
+    @property
+    def xy(self) -> FloatArray:
+        """Node positions (N, 2), a view (do not resize)."""
+        return self._xy[: self._n]
+
+    @property
+    def count(self) -> IntArray:
+        return self._count[: self._n]
+
+    @property
+    def first_time(self) -> FloatArray:
+        return self._first[: self._n]
+
+    @property
+    def last_time(self) -> FloatArray:
+        return self._last[: self._n]
 
     def positions(self) -> FloatArray:
-        return np.asarray(self.xy, dtype=np.float64).reshape(-1, 2)
+        """A copy of the node positions (N, 2)."""
+        return self._xy[: self._n].copy()
+
+    def set_positions(self, xy: FloatArray) -> None:
+        self._xy[: self._n] = np.asarray(xy, dtype=np.float64).reshape(self._n, 2)
+
+    def _grow(self) -> None:
+        cap = 2 * self._xy.shape[0]
+        for name in ("_xy", "_count", "_dia_wsum", "_dia_w", "_first", "_last"):
+            old = getattr(self, name)
+            new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
+            new[: old.shape[0]] = old
+            setattr(self, name, new)
 
     def add_tree(self, xy: FloatArray, diameter: float, weight: float, time: float) -> int:
-        self.xy.append([float(xy[0]), float(xy[1])])
-        self.count.append(1)
+        if self._n == self._xy.shape[0]:
+            self._grow()
+        j = self._n
+        self._xy[j] = xy
+        self._count[j] = 1
         ok = math.isfinite(diameter)
-        self.dia_wsum.append(weight * diameter if ok else 0.0)
-        self.dia_w.append(weight if ok else 0.0)
-        self.first_time.append(time)
-        self.last_time.append(time)
-        return len(self.xy) - 1
+        self._dia_wsum[j] = weight * diameter if ok else 0.0
+        self._dia_w[j] = weight if ok else 0.0
+        self._first[j] = time
+        self._last[j] = time
+        self._n += 1
+        return j
 
     def update_tree(
         self, j: int, xy: FloatArray, diameter: float, weight: float, time: float
     ) -> None:
-        c = self.count[j]
-        self.xy[j][0] = (c * self.xy[j][0] + float(xy[0])) / (c + 1)
-        self.xy[j][1] = (c * self.xy[j][1] + float(xy[1])) / (c + 1)
-        self.count[j] = c + 1
+        c = float(self._count[j])
+        self._xy[j] = (c * self._xy[j] + xy) / (c + 1.0)
+        self._count[j] += 1
         if math.isfinite(diameter):
-            self.dia_wsum[j] += weight * diameter
-            self.dia_w[j] += weight
-        self.last_time[j] = time
+            self._dia_wsum[j] += weight * diameter
+            self._dia_w[j] += weight
+        self._last[j] = time
 
     def add_edge(self, i: int, j: int, length: float) -> None:
         if i == j:
@@ -350,8 +385,8 @@ class TreeGraph:
         return keys, vals[:, 0] / vals[:, 1], vals[:, 1]
 
     def diameters(self) -> FloatArray:
-        w = np.asarray(self.dia_w)
-        s = np.asarray(self.dia_wsum)
+        w = self._dia_w[: self._n]
+        s = self._dia_wsum[: self._n]
         return np.where(w > 0, s / np.where(w > 0, w, 1.0), np.nan)
 
 
@@ -407,9 +442,12 @@ def relax_tree_graph(
         d = x[j] - x[i]
         cur = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
         pull = (0.5 * (cur - ln) / cur * w)[:, None] * d  # move i towards j if too long
-        move = np.zeros_like(x)
-        np.add.at(move, i, pull)
-        np.add.at(move, j, -pull)
+        move = np.column_stack(
+            (
+                np.bincount(i, pull[:, 0], n) - np.bincount(j, pull[:, 0], n),
+                np.bincount(i, pull[:, 1], n) - np.bincount(j, pull[:, 1], n),
+            )
+        )
         x += step * movable[:, None] * move / wsum[:, None]
     return x
 
@@ -574,14 +612,14 @@ class ForestrixSlam:
                 relaxed = relax_tree_graph(
                     graph.positions(), ed, ln, wt, iterations=self.relax_iterations
                 )
-                graph.xy = relaxed.tolist()
+                graph.set_positions(relaxed)
             poses[f] = pose
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
 
         xy = graph.positions()
         dia = graph.diameters()
-        cnt = np.asarray(graph.count, dtype=np.int64)
+        cnt = graph.count.copy()
         trees = []
         for new_id, jt in enumerate(np.flatnonzero(cnt >= self.min_observations).tolist()):
             trees.append(
