@@ -99,6 +99,11 @@ def diameter_errors(
     -------
     DiameterErrors
 
+    References
+    ----------
+    .. [1] M. Öhman et al., "Tree Measurement and Simultaneous Localization and Mapping
+       System for Forest Harvesters", FSR 2007, §2.3.
+
     Examples
     --------
     >>> e = diameter_errors([0.31, 0.19], [0.30, 0.20], ranges=[2.0, 7.0])

@@ -118,6 +118,12 @@ def pairwise_distance_errors(
     Returns
     -------
     PairwiseDistanceErrors
+
+    References
+    ----------
+    .. [1] M. A. Munjer, T. C. Jie, E. Hayashi, "Comparative Analysis of LiDAR-Based and
+       Depth-Assisted Image-Based Tree Mapping for Autonomous Forestry Robots", 2025, §4.
+       Figs. 10, 11, 13 (inter-tree distance error matrix; mean 7.13 % EB-LiDAR, 4.24 % DAIM).
     """
     e = np.asarray(est_xy, dtype=np.float64).reshape(-1, 2)
     t = np.asarray(truth_xy, dtype=np.float64).reshape(-1, 2)
