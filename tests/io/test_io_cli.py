@@ -44,4 +44,16 @@ def test_cli_errors_are_one_line(tmp_path: Path) -> None:
     assert res.exit_code == 2 and "does not exist" in text and "Traceback" not in text
     (tmp_path / "a.npz").write_bytes(b"junk")
     res = runner.invoke(app, ["io", "convert-scans", str(tmp_path / "a.npz"), "-o", "x.txt"])
-    assert res.exit_code == 2 and "must end in .npz or .csv" in " ".join(res.output.split())
+    assert res.exit_code == 2 and "must end in .npz, .csv or .bag" in " ".join(res.output.split())
+
+
+def test_convert_to_bags_and_back(tmp_path: Path) -> None:
+    b = ScanBatch(np.arange(12.0).reshape(3, 4) / 4, np.array([0.5, 0.6, 0.7]), -0.2, 0.1)
+    write_scans_npz(tmp_path / "a.npz", b)
+    for out, extra in (("a.bag", []), ("a_ros2", ["--storage", "mcap"])):
+        args = ["io", "convert-scans", str(tmp_path / "a.npz"), "-o", str(tmp_path / out)]
+        res = runner.invoke(app, [*args, "--out-topic", "/laser", *extra])
+        assert res.exit_code == 0, res.output
+        back = read_scans(tmp_path / out, topic="/laser")
+        np.testing.assert_array_equal(back.ranges, b.ranges)  # quarter-metres: exact in float32
+        np.testing.assert_allclose(back.times, b.times, atol=1e-9)

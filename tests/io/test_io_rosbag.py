@@ -534,3 +534,36 @@ def test_gnss_to_local_needs_a_fix(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no valid fix"):
         g.to_local()
     assert g.to_local((25.0, 60.0)).shape == (1, 2)  # explicit origin: NaN rows kept
+
+
+@pytest.mark.parametrize(("ros", "storage"), [(1, "sqlite3"), (2, "sqlite3"), (2, "mcap")])
+def test_write_scans_bag_round_trip(tmp_path: Path, ros: int, storage: str) -> None:
+    from stemmap.io.rosbag import write_scans_bag
+    from stemmap.types import ScanBatch
+
+    rng = np.random.default_rng(5)
+    r = rng.uniform(0.5, 20, (6, 50)).astype(np.float32).astype(np.float64)
+    r[0, :3] = np.nan
+    b = ScanBatch(r, 1.7e9 + 0.1 * np.arange(6), -1.2, 0.05, 0.1, 30.0, frame="lms")
+    p = write_scans_bag(tmp_path / "out", b, ros=ros, storage=storage)
+    assert p.name == ("out.bag" if ros == 1 else "out")
+    back = read_scans(p)
+    np.testing.assert_array_equal(back.ranges, b.ranges)  # float32-representable: exact
+    np.testing.assert_allclose(back.times, b.times, atol=1e-6)  # ns stamps, float64 at 1.7e9 s
+    assert back.frame == "lms" and back.n_beams == 50
+    # overwriting an existing bag replaces it whole and leaves no temp folder behind
+    write_scans_bag(p, ScanBatch(r[:2], b.times[:2], -1.2, 0.05), ros=ros, storage=storage)
+    assert len(read_scans(p)) == 2
+    assert sorted(q.name for q in tmp_path.iterdir()) == [p.name]
+
+
+def test_write_scans_bag_bad_config(tmp_path: Path) -> None:
+    from stemmap.errors import ConfigError
+    from stemmap.io.rosbag import write_scans_bag
+    from stemmap.types import ScanBatch
+
+    b = ScanBatch(np.ones((1, 2)), [0.0], 0.0, 0.1)
+    with pytest.raises(ConfigError, match="ros must be 1 or 2"):
+        write_scans_bag(tmp_path / "x", b, ros=3)
+    with pytest.raises(ConfigError, match="storage"):
+        write_scans_bag(tmp_path / "x", b, ros=2, storage="csv")

@@ -54,25 +54,39 @@ def convert_scans(
         Path, typer.Argument(help="Scans: .npz, .csv, ROS1 .bag or ROS2 bag (folder/.db3/.mcap).")
     ],
     out_path: Annotated[
-        Path, typer.Option("--out", "-o", help="Output file: .npz or .csv (chosen by suffix).")
+        Path,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Output: .npz, .csv, ROS1 .bag, or a suffix-less path for a ROS2 bag folder.",
+        ),
     ],
     topic: Annotated[
         str | None, typer.Option(help="LaserScan topic of a bag (default: the only one).")
     ] = None,
+    out_topic: Annotated[
+        str, typer.Option("--out-topic", help="Topic name when writing a bag.")
+    ] = "/scan",
+    storage: Annotated[
+        str, typer.Option(help="ROS2 storage when writing a ROS2 bag: sqlite3 or mcap.")
+    ] = "sqlite3",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
 ) -> None:
-    """Convert 2D laser scans to NPZ or CSV (scans of the dominant beam geometry).
+    """Convert 2D laser scans between NPZ, CSV and ROS bags (dominant beam geometry kept).
 
-    Example: stemmap io convert-scans run.bag --topic /scan --out run.npz
+    Examples: stemmap io convert-scans run.bag --topic /scan --out run.npz;
+    stemmap io convert-scans run.npz --out run_ros2 --storage mcap
     """
     from stemmap.errors import InputError
+    from stemmap.io.rosbag import write_scans_bag
     from stemmap.io.scans import SkippedFrame, read_scans, write_scans_csv, write_scans_npz
 
     with fail_on_stemmap_error():
         ext = out_path.suffix.lower()
-        if ext not in (".npz", ".csv"):
+        if ext not in (".npz", ".csv", ".bag", ""):
             raise InputError(
-                f"output {str(out_path)!r} must end in .npz or .csv, not {ext or 'nothing'!r}."
+                f"output {str(out_path)!r} must end in .npz, .csv or .bag, or have no suffix "
+                f"(a ROS2 bag folder); got {ext!r}."
             )
         skipped: list[SkippedFrame] = []
         batch = read_scans(src, topic=topic, skipped=skipped)
@@ -80,7 +94,13 @@ def convert_scans(
             console.print(
                 f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"
             )
-        (write_scans_npz if ext == ".npz" else write_scans_csv)(out_path, batch)
+        if ext == ".npz":
+            write_scans_npz(out_path, batch)
+        elif ext == ".csv":
+            write_scans_csv(out_path, batch)
+        else:
+            ros = 1 if ext == ".bag" else 2
+            write_scans_bag(out_path, batch, topic=out_topic, ros=ros, storage=storage)
     if not quiet:
         out.print(
             f"{len(batch)} scans x {batch.n_beams} beams ({len(skipped)} skipped) -> {out_path}",

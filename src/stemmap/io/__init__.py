@@ -31,6 +31,7 @@ from stemmap.io.rosbag import (
     read_navsatfix,
     read_odometry,
     read_pointclouds,
+    write_scans_bag,
 )
 from stemmap.io.scans import (
     SkippedFrame,
@@ -78,6 +79,7 @@ __all__ = [
     "read_trees_geojson",
     "stack_scans",
     "write_observations_csv",
+    "write_scans_bag",
     "write_scans_csv",
     "write_scans_npz",
     "write_trajectory_csv",
