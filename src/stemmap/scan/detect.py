@@ -409,11 +409,20 @@ def fit_kasa_segments(segs: Segments) -> tuple[FloatArray, FloatArray, np.ndarra
     return centers, radius, good
 
 
+def _fit_rms(segs: Segments, centers: FloatArray, radii: FloatArray) -> FloatArray:
+    """RMS orthogonal residual of every segment's returns to its fitted circle, metres."""
+    p = segs.points
+    lab = segs.labels
+    res = np.hypot(p.x - centers[lab, 0], p.y - centers[lab, 1]) - radii[lab]
+    out: FloatArray = np.sqrt(segment_sum(res * res, segs) / segs.counts)
+    return out
+
+
 def _geometric_cov(
     segs: Segments, centers: FloatArray, radii: FloatArray, sigma: float
-) -> tuple[FloatArray, FloatArray]:
+) -> FloatArray:
     """Covariance over (x, y, r) of every fitted circle from the orthogonal-distance Jacobian,
-    ``s^2 (J^T J)^-1`` with ``s^2 = max(sigma^2, sum res^2 / (n - 3))``; also the RMS residual."""
+    ``s^2 (J^T J)^-1`` with ``s^2 = max(sigma^2, sum res^2 / (n - 3))`` (NaN if singular)."""
     k = len(segs)
     p = segs.points
     lab = segs.labels
@@ -425,7 +434,6 @@ def _geometric_cov(
     res = d - radii[lab]
     n = segs.counts.astype(np.float64)
     rss = segment_sum(res * res, segs)
-    rms = np.sqrt(rss / n)
     s2 = np.maximum(sigma * sigma, np.where(n > 3, rss / np.maximum(n - 3, 1), 0.0))
     JtJ = np.empty((k, 3, 3))
     JtJ[:, 0, 0] = segment_sum(ux * ux, segs)
@@ -439,7 +447,7 @@ def _geometric_cov(
     inv_ok = np.isfinite(detj) & (np.abs(detj) > 1e-12 * np.maximum(n, 1.0) ** 3)
     if np.any(inv_ok):
         cov[inv_ok] = np.linalg.inv(JtJ[inv_ok]) * s2[inv_ok, None, None]
-    return cov, rms
+    return cov
 
 
 def _fit_segments(
@@ -713,17 +721,19 @@ class ScanTrunkDetector:
             return StemObservations.empty(source=self.source, frame=frame)
         segs = segs.select(ok)
         centers, radii, covs, f_width = centers[ok], radii[ok], covs[ok], f_width[ok]
-        geo_cov, rms = _geometric_cov(segs, centers, radii, cfg.sigma)
+        rms = _fit_rms(segs, centers, radii)
         if math.isfinite(cfg.max_rms_sigma):
             circ = rms <= cfg.max_rms_sigma * cfg.sigma
             if not np.all(circ):
                 segs = segs.select(circ)
                 centers, radii, covs = centers[circ], radii[circ], covs[circ]
-                f_width, geo_cov, rms = f_width[circ], geo_cov[circ], rms[circ]
+                f_width, rms = f_width[circ], rms[circ]
                 if len(segs) == 0:
                     return StemObservations.empty(source=self.source, frame=frame)
         missing = ~np.all(np.isfinite(covs), axis=(1, 2))
-        covs[missing] = geo_cov[missing]
+        if np.any(missing):
+            sub = segs.select(missing)
+            covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], cfg.sigma)
         arc = _arc_deg(segs, centers)
         n = segs.counts
         quality = _quality(n, rms, cfg.sigma, segs.partial)

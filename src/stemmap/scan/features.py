@@ -269,7 +269,8 @@ def is_straight(
         n = np.asarray(n_points, dtype=np.float64)
         dof = np.maximum(n - 2.0, 1.0)
         stat = n * rms * rms / (sigma * sigma)
-        chi: BoolArray = stat <= chdtri(dof, alpha)
+        u, inv = np.unique(dof, return_inverse=True)  # few distinct counts: one quantile each
+        chi: BoolArray = stat <= chdtri(u, alpha)[inv.reshape(-1)]
         return chi
     excess = np.sqrt(np.maximum(rms * rms - sigma * sigma, 0.0))
     out: BoolArray = excess < ratio * np.asarray(width, dtype=np.float64)
@@ -308,10 +309,20 @@ def radius_median_filter(segs: Segments, radius: float = 0.5) -> BoolArray:
     p = segs.points
     if len(segs) == 0:
         return np.zeros(len(p), dtype=bool)
-    lab = segs.labels
-    mx = _segment_median(p.x, segs)
-    my = _segment_median(p.y, segs)
-    out: BoolArray = np.hypot(p.x - mx[lab], p.y - my[lab]) <= radius
+    # a segment whose bounding box fits in the radius keeps every return (the median point lies
+    # inside the box): only the others need the (sorting) median
+    dx = np.maximum.reduceat(p.x, segs.start) - np.minimum.reduceat(p.x, segs.start)
+    dy = np.maximum.reduceat(p.y, segs.start) - np.minimum.reduceat(p.y, segs.start)
+    big = np.hypot(dx, dy) > radius
+    out: BoolArray = np.ones(len(p), dtype=bool)
+    if not np.any(big):
+        return out
+    sub = segs.select(big)
+    lab = sub.labels
+    mx = _segment_median(sub.points.x, sub)
+    my = _segment_median(sub.points.y, sub)
+    in_big = np.repeat(big, segs.counts)
+    out[in_big] = np.hypot(sub.points.x - mx[lab], sub.points.y - my[lab]) <= radius
     return out
 
 
