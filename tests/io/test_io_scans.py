@@ -198,6 +198,18 @@ def test_truncated_npz(tmp_path: Path, rng: np.random.Generator) -> None:
         read_scans(p)
 
 
+@pytest.mark.parametrize("compress", [True, False])
+def test_corrupted_npz_bytes(tmp_path: Path, rng: np.random.Generator, compress: bool) -> None:
+    p = tmp_path / "s.npz"
+    write_scans_npz(p, _batch(rng), compress=compress)
+    data = bytearray(p.read_bytes())
+    i = len(data) // 2
+    data[i : i + 64] = bytes(64)  # a damaged disk block in the middle of 'ranges'
+    p.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"field 'ranges' cannot be read \(Bad CRC-32"):
+        read_scans(p)
+
+
 def test_npz_with_object_array_is_refused_without_unpickling(tmp_path: Path) -> None:
     p = tmp_path / "evil.npz"
     np.savez(

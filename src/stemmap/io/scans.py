@@ -28,6 +28,7 @@ import logging
 import math
 import re
 import zipfile
+import zlib
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -123,7 +124,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
                 continue
             try:
                 arr = z[src]
-            except (ValueError, zipfile.BadZipFile, OSError, EOFError) as exc:
+            except (ValueError, zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
                 raise InputError(
                     f"scan NPZ {str(p)!r} field {src!r} cannot be read ({exc}); object arrays "
                     "are refused (no pickle) and a truncated file cannot be decoded."
@@ -137,7 +138,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
         if "frame" in z.files:
             try:
                 fr = z["frame"]
-            except (ValueError, zipfile.BadZipFile, OSError, EOFError) as exc:
+            except (ValueError, zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
                 raise InputError(f"scan NPZ {str(p)!r} field 'frame' cannot be read.") from exc
             if fr.dtype.kind != "U" or fr.size != 1:
                 raise InputError(f"scan NPZ {str(p)!r} field 'frame' must be one string.")
