@@ -111,3 +111,12 @@ def test_stand_validation():
         make_trunks_noncircular(Stand([[0, 0]], [0.3]), ellipticity=0.7)
     with pytest.raises(ConfigError, match="could place only"):
         random_stand(500, (5, 5))
+
+
+def test_to_stem_map_carries_the_truth():
+    s = random_stand(12, (20, 20), rng=11)
+    sm = s.to_stem_map()
+    assert len(sm) == 12 and sm.frame == "world"
+    np.testing.assert_allclose(sm.xy, s.trees_xy)
+    np.testing.assert_allclose(sm.diameters, s.diameters)
+    assert [t.id for t in sm] == list(range(12))

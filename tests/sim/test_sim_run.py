@@ -219,3 +219,24 @@ def test_unicycle_constant_controls_stay_on_the_circle(v, w, th):
     rad = v / w
     centre = np.array([2.0 - rad * np.sin(th), 3.0 + rad * np.cos(th)])
     np.testing.assert_allclose(np.hypot(*(poses[:, :2] - centre).T), rad, rtol=1e-9, atol=1e-9)
+
+
+def test_clear_corridor_handles_clutter_and_truth_objects():
+    from stemmap.sim import add_clutter
+
+    st_ = add_clutter(
+        random_stand(30, (30.0, 30.0), rng=12), n_bushes=6, n_walls=2, n_rocks=3, rng=13
+    )
+    path = np.array([[0.0, 15.0], [30.0, 15.0]])
+    out = clear_corridor(st_, path, half_width=1.5)
+
+    def dist(q):
+        return np.abs(q[:, 1] - 15.0)  # the path is the line y = 15 across the stand
+
+    assert np.all(dist(out.trees_xy) - out.radii > 1.5)
+    assert np.all(dist(out.clutter_xy) - out.clutter_radius > 1.5)
+    clutter_seg = out.segments[out.segment_owner < 0]
+    crosses = (clutter_seg[:, 1] - 15.0) * (clutter_seg[:, 3] - 15.0) <= 0
+    assert not crosses.any()  # no wall or rock edge left across the road
+    assert np.all(dist(out.clutter_objects_xy) - out.clutter_objects_extent > 1.5)
+    assert len(out.clutter_kinds) == out.clutter_objects_xy.shape[0]

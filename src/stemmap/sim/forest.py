@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.types import FloatArray
+from stemmap.types import FloatArray, StemMap, Tree
 
 __all__ = [
     "CLUTTER_KINDS",
@@ -157,6 +157,16 @@ class Stand:
     @property
     def n_clutter_objects(self) -> int:
         return int(self.clutter_objects_xy.shape[0])
+
+    def to_stem_map(self, frame: str = "world") -> StemMap:
+        """The ground truth as a :class:`~stemmap.types.StemMap` (ids = tree indices)."""
+        return StemMap(
+            tuple(
+                Tree(i, float(x), float(y), float(d), cov=np.zeros((2, 2)), confidence=1.0)
+                for i, ((x, y), d) in enumerate(zip(self.trees_xy, self.diameters, strict=True))
+            ),
+            frame=frame,
+        )
 
     def subset_trees(self, keep: ArrayLike) -> Stand:
         """A stand with only the trees selected by a boolean mask (clutter kept, ids renumbered)."""
