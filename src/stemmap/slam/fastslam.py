@@ -77,6 +77,14 @@ def _sample_gaussian(cov: FloatArray, n: int, rng: np.random.Generator) -> Float
     return out
 
 
+def _sample_batch(covs: FloatArray, rng: np.random.Generator) -> FloatArray:
+    """One sample (P, 3) of N(0, covs[p]) per particle (eigen square roots, PSD-safe)."""
+    w, v = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, 1, 2)))
+    sq = v * np.sqrt(np.clip(w, 0.0, None))[:, None, :]
+    out: FloatArray = np.einsum("pij,pj->pi", sq, rng.standard_normal((covs.shape[0], 3)))
+    return out
+
+
 def _inv2(S: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Inverse and determinant of a stack of 2x2 matrices (..., 2, 2)."""
     a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
@@ -114,6 +122,10 @@ class FastSlam:
     window_margin : float, m
     min_observations : int
         Landmarks of the best particle seen fewer times are left out of the output map.
+    version : {1, 2}
+        1 = FastSLAM 1.0 (motion-model proposal; Munjer cites Montemerlo's FastSLAM), 2 = ours:
+        the FastSLAM 2.0 proposal (pose sampled from the motion prediction fused with this
+        frame's matched detections, batch form), for odometry much noisier than the laser.
     tentative_timeout_s : float, s
         Ours (standard FastSLAM landmark-existence practice, not in Munjer): a landmark seen
         fewer than ``min_observations`` times and not re-seen for this long is deleted from the
@@ -131,6 +143,7 @@ class FastSlam:
     window_margin: float = 3.0
     min_observations: int = 3
     tentative_timeout_s: float = 5.0
+    version: int = 1
     seed: int = 0
     name: str = "fastslam"
 
@@ -151,6 +164,8 @@ class FastSlam:
             )
         if int(self.max_candidates) < 1 or int(self.min_observations) < 1:
             raise ConfigError("FastSlam: max_candidates and min_observations must be >= 1.")
+        if self.version not in (1, 2):
+            raise ConfigError(f"FastSlam.version must be 1 or 2, got {self.version}.")
         if not self.new_landmark_chi2 > 0:
             raise ConfigError("FastSlam.new_landmark_chi2 must be > 0.")
 
@@ -195,12 +210,24 @@ class FastSlam:
 
         for f in range(nf):
             parents[f] = ident
-            if f > 0:
-                noise = _sample_gaussian(pre.covs[f - 1], P, rng)
-                X = compose(X, pre.deltas[f - 1][None, :] + noise)
             r, b, d = frames.frame(f)
             k = r.shape[0]
             tf = float(frames.times[f])
+            v2 = self.version == 2 and k > 0 and f > 0
+            if f > 0:
+                if v2:
+                    # FastSLAM 2.0: keep the predicted mean; the pose is sampled below from the
+                    # proposal that includes this frame's detections
+                    X = compose(X, pre.deltas[f - 1][None, :])
+                    G = np.zeros((P, 3, 3))
+                    cth, sth = np.cos(X[:, 2]), np.sin(X[:, 2])
+                    G[:, 0, 0], G[:, 0, 1], G[:, 1, 0], G[:, 1, 1] = cth, -sth, sth, cth
+                    G[:, 2, 2] = 1.0
+                    Qw = G @ np.nan_to_num(pre.covs[f - 1]) @ np.swapaxes(G, 1, 2)
+                else:
+                    noise = _sample_gaussian(pre.covs[f - 1], P, rng)
+                    X = compose(X, pre.deltas[f - 1][None, :] + noise)
+                    v2 = False
             if k:
                 z = np.column_stack((r, b))  # (K, 2)
                 M = min(int(self.max_candidates), int(nlm.max()))
@@ -232,9 +259,13 @@ class FastSlam:
                     cvalid = np.take_along_axis(dist2, cand, axis=1) < np.inf  # (P, M)
                     m_mu = mu[rows, cand]  # (P, M, 2)
                     m_S = Sig[rows, cand]  # (P, M, 2, 2)
-                    zp, _, Hm = range_bearing_jacobians(X[:, None, :], m_mu, off)
+                    zp, Hx, Hm = range_bearing_jacobians(X[:, None, :], m_mu, off)
                     S = Hm @ m_S @ np.swapaxes(Hm, -1, -2) + R
-                    Sinv, detS = _inv2(S)
+                    if v2:  # association and weight use the predicted pose's uncertainty too
+                        S_full = S + Hx @ Qw[:, None] @ np.swapaxes(Hx, -1, -2)
+                        Sinv, detS = _inv2(S_full)
+                    else:
+                        Sinv, detS = _inv2(S)
                     nu = z[None, :, None, :] - zp[:, None, :, :]  # (P, K, M, 2)
                     nu[..., 1] = wrap_angle(nu[..., 1])
                     d2 = np.einsum("pkmi,pmij,pkmj->pkm", nu, Sinv, nu)
@@ -255,11 +286,32 @@ class FastSlam:
                         wm = jbest[wp, wk]
                         lm = cand[wp, wm]
                         assoc[wp, wk] = lm
-                        # EKF update of the matched landmarks (unique (p, lm) pairs)
-                        Hs = Hm[wp, wm]
+                        if v2:
+                            # proposal N(mu_x, Sig_x): Sig_x^-1 = Q^-1 + sum Hx^T S^-1 Hx,
+                            # mu_x = x_pred + Sig_x sum Hx^T S^-1 nu (batch over the detections)
+                            Sm_inv, _ = _inv2(S[wp, wm])
+                            HxT = np.swapaxes(Hx[wp, wm], 1, 2)
+                            A = HxT @ Sm_inv @ Hx[wp, wm]
+                            bvec = np.einsum("nij,nj->ni", HxT @ Sm_inv, nu[wp, wk, wm])
+                            info = np.linalg.inv(Qw + 1e-12 * np.eye(3))
+                            np.add.at(info, wp, A)
+                            rhs = np.zeros((P, 3))
+                            np.add.at(rhs, wp, bvec)
+                            Sx = np.linalg.inv(info)
+                            Sx = 0.5 * (Sx + np.swapaxes(Sx, 1, 2))
+                            mx = X + np.einsum("pij,pj->pi", Sx, rhs)
+                            X = mx + _sample_batch(Sx, rng)
+                            X[:, 2] = wrap_angle(X[:, 2])
+                            v2 = False  # sampled
+                        # EKF update of the matched landmarks (unique (p, lm) pairs) at the
+                        # (sampled) pose
+                        zs, _, Hs = range_bearing_jacobians(X[wp], mu[wp, lm], off)
                         Ss = Sig[wp, lm]
-                        Kg = Ss @ np.swapaxes(Hs, 1, 2) @ Sinv[wp, wm]
-                        mu[wp, lm] = mu[wp, lm] + np.einsum("nij,nj->ni", Kg, nu[wp, wk, wm])
+                        nus = z[wk] - zs
+                        nus[:, 1] = wrap_angle(nus[:, 1])
+                        Sinv_s, _ = _inv2(Hs @ Ss @ np.swapaxes(Hs, 1, 2) + R)
+                        Kg = Ss @ np.swapaxes(Hs, 1, 2) @ Sinv_s
+                        mu[wp, lm] = mu[wp, lm] + np.einsum("nij,nj->ni", Kg, nus)
                         newS = (np.eye(2) - Kg @ Hs) @ Ss
                         Sig[wp, lm] = 0.5 * (newS + np.swapaxes(newS, 1, 2))
                         nobs[wp, lm] += 1
@@ -270,6 +322,9 @@ class FastSlam:
                         dcnt[wp[okd], lm[okd]] += 1
                         # losers of a conflict: dropped for this frame (weight as p0)
                         assoc[pk_p[lose], pk_k[lose]] = -2
+                if v2:  # no detection matched in any particle: sample the motion model
+                    X = X + _sample_batch(Qw, rng)
+                    X[:, 2] = wrap_angle(X[:, 2])
                 # weights: matched -> likelihood, otherwise p0
                 logw += np.sum(np.where(assoc >= 0, ll_best, log_p0), axis=1)
                 # new landmarks
@@ -360,9 +415,9 @@ class FastSlam:
             traj[f] = pose_hist[f, cur]
             cur = int(parents[f, cur])
         n_best = int(nlm[best])
-        keep = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
+        mapped = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
         trees = []
-        for new_id, j in enumerate(keep):
+        for new_id, j in enumerate(mapped):
             dia = dsum[best, j] / dcnt[best, j] if dcnt[best, j] > 0 else math.nan
             trees.append(
                 Tree(
