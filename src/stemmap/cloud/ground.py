@@ -62,7 +62,7 @@ class GroundAccumulator:
             raise ConfigError(f"ground cell must be > 0 m, got {cell}.")
         self.cell = float(cell)
         self._keys = np.zeros(0, dtype=np.int64)
-        self._zmin = np.zeros(0)
+        self._low = np.zeros((0, 3))  # lowest point of each cell
 
     def update(self, xyz: ArrayLike) -> None:
         p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
@@ -72,12 +72,12 @@ class GroundAccumulator:
         ij += _OFF
         keys = (ij[:, 0] << 32) | ij[:, 1]
         keys = np.concatenate((self._keys, keys))
-        z = np.concatenate((self._zmin, p[:, 2]))
-        order = np.lexsort((z, keys))
-        keys, z = keys[order], z[order]
+        pts = np.concatenate((self._low, p))
+        order = np.lexsort((pts[:, 2], keys))
+        keys, pts = keys[order], pts[order]
         first = np.ones(keys.shape[0], dtype=bool)
         first[1:] = keys[1:] != keys[:-1]
-        self._keys, self._zmin = keys[first], z[first]
+        self._keys, self._low = keys[first], pts[first]
 
     def model(self, *, max_step: float = 0.5) -> GroundModel:
         """Clean and fill the minima raster.
@@ -92,18 +92,49 @@ class GroundAccumulator:
         j = (self._keys & 0xFFFFFFFF) - _OFF
         i0, j0 = int(i.min()), int(j.min())
         nx, ny = int(i.max() - i0 + 1), int(j.max() - j0 + 1)
-        z = np.full((nx, ny), np.nan)
-        z[i - i0, j - j0] = self._zmin
-        empty = np.isnan(z)
-        if empty.all():  # pragma: no cover - guarded above
-            raise InputError("cannot build a ground model from an empty cloud.")
-        if empty.any():
-            _, (fi, fj) = ndimage.distance_transform_edt(empty, return_indices=True)
-            z = z[fi, fj]
-        med = ndimage.median_filter(z, size=3, mode="nearest")
-        bad = np.abs(z - med) > max_step
-        z = np.where(bad, med, z)
-        return GroundModel((i0 * self.cell, j0 * self.cell), self.cell, z)
+        ox, oy = i0 * self.cell, j0 * self.cell
+        grid = np.full((3, nx, ny), np.nan)
+        grid[:, i - i0, j - j0] = (self._low - [ox, oy, 0.0]).T
+        X, Y, Z = grid
+        valid = ~np.isnan(Z)
+        if not valid.all():
+            _, (fi, fj) = ndimage.distance_transform_edt(~valid, return_indices=True)
+            Z = Z[fi, fj]
+        med = ndimage.median_filter(Z, size=3, mode="nearest")
+        good = valid & (np.abs(Z - med) <= max_step)
+        # local plane through the lowest points of the 3 x 3 neighbourhood, evaluated at the
+        # cell centre: removes the bias of a raw cell minimum on a slope (it sits at the cell's
+        # low edge, slope x cell / 2 below the centre)
+        w = good.astype(np.float64)
+        Xg, Yg, Zg = (np.where(good, a, 0.0) for a in (X, Y, Z))
+        k = np.ones((3, 3))
+
+        def box_sum(a: FloatArray) -> FloatArray:
+            return np.asarray(ndimage.convolve(a, k, mode="constant"), dtype=np.float64)
+
+        s1, sx, sy, sz = box_sum(w), box_sum(Xg), box_sum(Yg), box_sum(Zg)
+        sxx, sxy, syy = box_sum(Xg * Xg), box_sum(Xg * Yg), box_sum(Yg * Yg)
+        sxz, syz = box_sum(Xg * Zg), box_sum(Yg * Zg)
+        A = np.stack(
+            (
+                np.stack((sxx, sxy, sx), -1),
+                np.stack((sxy, syy, sy), -1),
+                np.stack((sx, sy, s1), -1),
+            ),
+            -2,
+        )
+        b = np.stack((sxz, syz, sz), -1)
+        det = np.linalg.det(A)
+        scale = np.maximum(s1, 1.0) ** 3 * self.cell**4
+        solvable = (s1 >= 4) & (np.abs(det) > 1e-9 * scale)
+        coef = np.zeros_like(b)
+        if solvable.any():
+            coef[solvable] = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]
+        xc = (np.arange(nx)[:, None] + 0.5) * self.cell * np.ones((1, ny))
+        yc = (np.arange(ny)[None, :] + 0.5) * self.cell * np.ones((nx, 1))
+        plane = coef[..., 0] * xc + coef[..., 1] * yc + coef[..., 2]
+        z = np.where(solvable, plane, np.where(good, Z, med))
+        return GroundModel((ox, oy), self.cell, z + 0.0)
 
 
 def fit_ground(xyz: ArrayLike, cell: float = 1.0, *, max_step: float = 0.5) -> GroundModel:

@@ -534,16 +534,22 @@ def _stem_heights(canopy: dict[str, Any], xy: FloatArray, radius: float = 1.0) -
     return out
 
 
-def _band_spacing_2d(xy: FloatArray, rng: int = 0) -> float:
-    """90th percentile of the 2D nearest-neighbour distance of band points (sampled)."""
+def _band_spacing(xy: FloatArray, h: FloatArray, rng: int = 0) -> float:
+    """90th percentile of the 3D nearest-neighbour distance of band points (sampled).
+
+    3D, not in the xy projection: a scanner's rows stack on a trunk, so projected neighbours
+    are much closer than neighbours along the arc, which is what clustering must bridge. The
+    90th percentile (not the median) speaks for the sparse, far trunks.
+    """
     from scipy.spatial import cKDTree
 
     n = xy.shape[0]
     if n < 3:
         return math.nan
+    p = np.column_stack((xy, h))
     gen = np.random.default_rng(rng)
-    q = xy if n <= 20_000 else xy[gen.choice(n, 20_000, replace=False)]
-    d, _ = cKDTree(xy).query(q, k=2)
+    q = p if n <= 20_000 else p[gen.choice(n, 20_000, replace=False)]
+    d, _ = cKDTree(p).query(q, k=2)
     d = d[:, 1]
     d = d[d > 1e-9]
     return float(np.quantile(d, 0.9)) if d.size else math.nan
@@ -587,8 +593,51 @@ def _segment_arcs(
     return np.asarray(np.where(cnt >= 2, arc, 0.0), dtype=np.float64)
 
 
+def _ransac_circle(
+    q: FloatArray,
+    tol: float,
+    radius_window: tuple[float, float],
+    gen: np.random.Generator,
+    n_hyp: int = 96,
+) -> tuple[float, float, float] | None:
+    """Circle through 3 random points with the most points within ``tol``, vectorised over
+    ``n_hyp`` hypotheses; None if no hypothesis has a radius inside ``radius_window``."""
+    m = q.shape[0]
+    if m < 3:
+        return None
+    t = gen.integers(0, m, (n_hyp, 3))
+    a, b, c = q[t[:, 0]], q[t[:, 1]], q[t[:, 2]]
+    d = 2 * (
+        a[:, 0] * (b[:, 1] - c[:, 1])
+        + b[:, 0] * (c[:, 1] - a[:, 1])
+        + c[:, 0] * (a[:, 1] - b[:, 1])
+    )
+    good = np.abs(d) > 1e-12
+    if not good.any():
+        return None
+    a, b, c, d = a[good], b[good], c[good], d[good]
+    a2, b2, c2 = (a * a).sum(1), (b * b).sum(1), (c * c).sum(1)
+    ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / d
+    uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / d
+    r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
+    inwin = (r >= radius_window[0]) & (r <= radius_window[1])
+    if not inwin.any():
+        return None
+    ux, uy, r = ux[inwin], uy[inwin], r[inwin]
+    res = np.abs(np.hypot(q[None, :, 0] - ux[:, None], q[None, :, 1] - uy[:, None]) - r[:, None])
+    score = (res <= tol).sum(axis=1)
+    j = int(np.argmax(score))
+    return float(ux[j]), float(uy[j]), float(r[j])
+
+
 def _fit_segments(
-    pts: FloatArray, ids: NDArray[np.int64], k: int, method: str
+    pts: FloatArray,
+    ids: NDArray[np.int64],
+    k: int,
+    method: str,
+    *,
+    ransac_tol: float = 0.0,
+    radius_window: tuple[float, float] = (0.0, np.inf),
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int64]]:
     """Robust batched circle fit of K segments: fit, trim |res| > 3 sigma (MAD), refit.
 
@@ -606,6 +655,23 @@ def _fit_segments(
     c0 = np.full((k, 2), np.nan)
     c0[first.segment_ids] = first.centers
     keep = np.ones(pts.shape[0], dtype=bool)
+    # segments the algebraic fit explains badly (a branch or a bush glued to the trunk): find
+    # the dominant circle by RANSAC first and start from its inliers
+    suspect = ~first.ok | (first.rms > 0.05 * np.where(first.ok, first.radii, 1.0))
+    if suspect.any() and ransac_tol > 0:
+        order = np.argsort(ids, kind="stable")
+        starts = np.searchsorted(ids[order], first.segment_ids)
+        stops = np.searchsorted(ids[order], first.segment_ids, side="right")
+        gen = np.random.default_rng(0)
+        for row in np.flatnonzero(suspect)[:2000]:
+            idx = order[starts[row] : stops[row]]
+            best = _ransac_circle(pts[idx], ransac_tol, radius_window, gen)
+            if best is None:
+                continue
+            cx, cy, r = best
+            res = np.abs(np.hypot(pts[idx, 0] - cx, pts[idx, 1] - cy) - r)
+            keep[idx] = res <= 3 * ransac_tol
+            c0[first.segment_ids[row]] = (cx, cy)
     for it in range(2):
         sel_ids = ids[keep]
         present = np.unique(sel_ids)
@@ -658,6 +724,15 @@ def _fit_segments(
     return centers, radii, rms, ok, nin
 
 
+def _theil_sen(x: FloatArray, y: FloatArray) -> tuple[float, float]:
+    """Theil-Sen line ``y = a + b x``: b the median pairwise slope, a the median intercept."""
+    i, j = np.triu_indices(x.size, 1)
+    dx = x[j] - x[i]
+    ok = np.abs(dx) > 1e-9
+    b = float(np.median((y[j] - y[i])[ok] / dx[ok])) if ok.any() else 0.0
+    return float(np.median(y - b * x)), b
+
+
 def _vertical_filter(
     xy: FloatArray, sl: NDArray[np.int64], ns: int, cell: float
 ) -> NDArray[np.bool_]:
@@ -687,7 +762,7 @@ def _stems_from_band(
     if n < cfg.min_slice_points:
         return CloudStems.empty("ours")
     # --- spacing -> clustering cell (measured, not tuned)
-    sp2d = cfg.spacing if cfg.spacing is not None else _band_spacing_2d(xy)
+    sp2d = cfg.spacing if cfg.spacing is not None else _band_spacing(xy, h)
     if not math.isfinite(sp2d):
         return CloudStems.empty("ours")
     cell = float(np.clip(cfg.cluster_cell_factor * sp2d, 0.01, 0.25))
@@ -747,7 +822,14 @@ def _stems_from_band(
     seg_n = np.bincount(seg, minlength=kseg)
     fitmask = seg_n[seg] >= cfg.min_slice_points
     pts_f, seg_f = pts[fitmask], seg[fitmask]
-    centers, radii, rms, ok, nin = _fit_segments(pts_f, seg_f, kseg, cfg.fit_method)
+    centers, radii, rms, ok, nin = _fit_segments(
+        pts_f,
+        seg_f,
+        kseg,
+        cfg.fit_method,
+        ransac_tol=max(0.5 * sp2d, 0.005),
+        radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
+    )
     arcs = np.zeros(kseg)
     if ok.any():
         good = ok[seg_f]
@@ -765,6 +847,15 @@ def _stems_from_band(
     noise_floor = float(np.median(rms[plausible]))
     rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
     passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
+    log.debug(
+        "slice fits: %d ok, %d enough points, %d radius window, %d arc, %d residual of %d",
+        ok.sum(),
+        (ok & (nin >= cfg.min_slice_points)).sum(),
+        (ok & (radii >= cfg.min_diameter / 2) & (radii <= cfg.max_diameter / 2)).sum(),
+        (ok & (arcs >= cfg.min_arc_deg)).sum(),
+        passed.sum(),
+        ok.size,
+    )
     P = passed.reshape(kc, ns)
     C = centers.reshape(kc, ns, 2)
     R = radii.reshape(kc, ns)
@@ -792,12 +883,11 @@ def _stems_from_band(
         hh = centers_h[m] - cfg.breast_height
         w = W[c, m]
         if m.sum() >= 3 and np.ptp(hh) >= 0.3:
-            # weighted least-squares line through the slices (taper, lean), at breast height
-            X = np.column_stack((np.ones(hh.size), hh))
-            sw = np.sqrt(w)
-            coef_r = np.linalg.lstsq(X * sw[:, None], R[c, m] * sw, rcond=None)[0]
-            coef_x = np.linalg.lstsq(X * sw[:, None], C[c, m, 0] * sw, rcond=None)[0]
-            coef_y = np.linalg.lstsq(X * sw[:, None], C[c, m, 1] * sw, rcond=None)[0]
+            # robust (Theil-Sen) line through the slices (taper, lean), at breast height: one
+            # slice spoilt by a branch or a shrub does not tilt it
+            coef_r = _theil_sen(hh, R[c, m])
+            coef_x = _theil_sen(hh, C[c, m, 0])
+            coef_y = _theil_sen(hh, C[c, m, 1])
             taper = float(coef_r[1])
             if abs(taper) > cfg.max_taper:
                 continue  # radius changes too fast with height for a stem (bush, boulder)

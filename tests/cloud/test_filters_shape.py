@@ -1,0 +1,115 @@
+"""Filters, clustering, shape descriptors and the ground model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stemmap.cloud.cluster import dbscan, grid_components
+from stemmap.cloud.filters import pass_through, point_spacing, voxel_downsample
+from stemmap.cloud.ground import GroundAccumulator, fit_ground
+from stemmap.cloud.shape import arc_coverage_deg, cluster_covariances, pca_eccentricity
+from stemmap.errors import ConfigError, InputError
+
+
+def test_pass_through_is_strict_box() -> None:
+    p = np.array([[0.0, 0, -0.2], [0.1, 0, -0.2], [0.1, 10, -0.2], [5, -9.9, -0.49], [5, 0, 0.0]])
+    keep = pass_through(p, x=(0, 10), y=(-10, 10), z=(-0.5, 0))
+    assert keep.tolist() == [False, True, False, True, False]
+    with pytest.raises(ConfigError):
+        pass_through(p, x=(1, 0))
+    with pytest.raises(InputError):
+        pass_through(np.zeros((3, 2)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    voxel=st.floats(0.005, 0.5),
+    seed=st.integers(0, 2**31),
+)
+def test_voxel_downsample_properties(n: int, voxel: float, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-2, 2, (n, 3))
+    out, counts = voxel_downsample(p, voxel, return_counts=True)
+    assert counts.sum() == n  # every point lands in exactly one voxel
+    # the weighted mean of the voxel means is the mean of all points (eq. 2 averages)
+    np.testing.assert_allclose((out * counts[:, None]).sum(0) / n, p.mean(0), atol=1e-9)
+    # no two outputs share a voxel, and there are at most as many outputs as inputs
+    assert out.shape[0] <= n
+
+
+def test_voxel_downsample_exact_means() -> None:
+    p = np.array([[0.001, 0.001, 0.001], [0.009, 0.009, 0.009], [0.5, 0.5, 0.5]])
+    out = voxel_downsample(p, 0.01)
+    np.testing.assert_allclose(out, [[0.005, 0.005, 0.005], [0.5, 0.5, 0.5]])
+    with pytest.raises(ConfigError):
+        voxel_downsample(p, 0.0)
+
+
+def test_point_spacing_of_a_grid() -> None:
+    g = np.stack(np.meshgrid(np.arange(50), np.arange(50), [0.0]), -1).reshape(-1, 3) * 0.02
+    assert point_spacing(g) == pytest.approx(0.02, rel=1e-9)
+    assert np.isnan(point_spacing(np.zeros((1, 3))))
+
+
+def test_cluster_covariances_and_eccentricity() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.normal(0, [1.0, 0.25, 0.1], (4000, 3))  # variances 1, 1/16, 1/100
+    b = rng.normal(0, 1.0, (4000, 3)) + 10
+    p = np.vstack((a, b))
+    lab = np.repeat([0, 1], 4000)
+    _, cov, n = cluster_covariances(p, lab)
+    assert n.tolist() == [4000, 4000]
+    e = pca_eccentricity(cov)
+    # 4000 samples: variance estimates within ~5 %, so the ratio 16 within ~10 %
+    assert e[0] == pytest.approx(16.0, rel=0.1)
+    assert e[1] == pytest.approx(1.0, rel=0.15)
+    np.testing.assert_allclose(cov[0], np.cov(a.T, bias=True), atol=1e-12)
+
+
+def test_arc_coverage() -> None:
+    t = np.linspace(0, 2 * np.pi, 361)[:-1]
+    ring = np.column_stack((np.cos(t), np.sin(t)))
+    assert arc_coverage_deg(ring, [0, 0]) == pytest.approx(359.0)
+    half = ring[(t >= 0) & (t <= np.pi)]
+    assert arc_coverage_deg(half, [0, 0]) == pytest.approx(180.0)
+
+
+def test_grid_components_and_dbscan() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 0.3, (200, 2))
+    b = rng.uniform(0, 0.3, (200, 2)) + np.array([2.0, 0.0])
+    p = np.vstack((a, b))
+    lab = grid_components(p, 0.05)
+    assert len(set(lab[:200])) == 1 and len(set(lab[200:])) == 1 and lab[0] != lab[-1]
+    lab3 = dbscan(np.column_stack((p, np.zeros(400))), 0.1, 5)
+    assert lab3[0] != lab3[-1] and lab3.min() >= 0
+    with pytest.raises(ConfigError):
+        dbscan(p, 0.0, 5)
+
+
+def test_ground_on_a_slope_with_objects() -> None:
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 20, (40_000, 2))
+    z = 3.0 + 0.1 * xy[:, 0] - 0.05 * xy[:, 1] + rng.normal(0, 0.01, len(xy))
+    # a "trunk" and some "bushes" above the ground, and one low outlier
+    trunk = np.column_stack((rng.normal(10, 0.1, (3000, 2)), rng.uniform(0, 10, 3000)))
+    trunk[:, 2] += 3.0 + 0.1 * 10 - 0.05 * 10
+    low = np.array([[5.5, 5.5, -20.0]])
+    p = np.vstack((np.column_stack((xy, z)), trunk, low))
+    g = fit_ground(p, 1.0)
+    q = rng.uniform(1, 19, (500, 2))
+    truth = 3.0 + 0.1 * q[:, 0] - 0.05 * q[:, 1]
+    # cell minima sit ~2-3 sigma below the plane (1 cm noise) and bilinear interpolation of a
+    # plane is exact: a few centimetres
+    assert np.max(np.abs(g.ground_at(q) - truth)) < 0.05
+    # streaming in chunks gives the same raster
+    acc = GroundAccumulator(1.0)
+    for part in np.array_split(p, 7):
+        acc.update(part)
+    np.testing.assert_allclose(acc.model().z, g.z)
+    with pytest.raises(InputError):
+        GroundAccumulator(1.0).model()

@@ -1,0 +1,253 @@
+"""Stem detection and DBH: ours and EB-LiDAR (munjer2025) on simulated clouds with truth,
+streaming files, bad inputs, and the real clouds in ../shared/datasets."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from typer.testing import CliRunner
+
+from stemmap.cli import app
+from stemmap.cloud.stems import (
+    CloudStems,
+    MunjerConfig,
+    StemConfig,
+    associate_proximity,
+    detect_stems,
+    detect_stems_file,
+    detect_stems_munjer,
+    get_preset,
+)
+from stemmap.errors import ConfigError, InputError
+from stemmap.eval.matching import match_points
+from stemmap.io.clouds import read_cloud
+from stemmap.sim.lidar import (
+    Stand3D,
+    lidar_preset,
+    random_stand3d,
+    simulate_mobile,
+    simulate_tls,
+)
+
+
+@pytest.fixture(scope="module")
+def tls_scene() -> tuple[Stand3D, np.ndarray]:
+    stand = random_stand3d(14, (16.0, 16.0), dbh_min=0.1, rng=11)
+    cloud = simulate_tls(stand, [[8.0, 8.0]], lidar_preset("tls_coarse"), rng=5)
+    return stand, cloud.xyz
+
+
+def _score(det: CloudStems, stand: Stand3D) -> tuple[float, float, float]:
+    m = match_points(det.xy, stand.trees_xy, 0.5)
+    recall = m.n_matched / stand.n_trees
+    d = det.diameter[m.pairs[:, 0]] - stand.dbh[m.pairs[:, 1]]
+    rmse = float(np.sqrt(np.mean(d**2))) if d.size else np.inf
+    return recall, rmse, m.n_matched / max(len(det), 1)
+
+
+def test_ours_on_single_scan_tls(tls_scene: tuple[Stand3D, np.ndarray]) -> None:
+    stand, xyz = tls_scene
+    det = detect_stems(xyz)
+    recall, rmse, precision = _score(det, stand)
+    # one scan position, every stem >= 10 cm; occlusion may hide one of 14
+    assert recall >= 13 / 14
+    # 5 mm range noise on half arcs: the geometric fit over several slices is ~2 mm accurate;
+    # 1 cm is the issue's target
+    assert rmse < 0.01
+    assert precision >= 0.85  # simulated shrub blobs can pass as thin stems
+    assert np.all((det.quality >= 0) & (det.quality <= 1))
+    assert np.all(det.arc_deg <= 200)  # one side visible only
+
+
+def test_ours_is_density_independent(tls_scene: tuple[Stand3D, np.ndarray]) -> None:
+    """The same stems at half the points with no change of configuration (thresholds come
+    from the measured spacing). The coarse TLS is already sparse (3.5 cm at 8 m): at half
+    density a 20 cm trunk has ~18 points per 20 cm slice."""
+    stand, xyz = tls_scene
+    rng = np.random.default_rng(0)
+    sparse = xyz[rng.random(len(xyz)) < 0.5]
+    full, quarter = detect_stems(xyz), detect_stems(sparse)
+    assert quarter.spacing > full.spacing
+    r_full, _, _ = _score(full, stand)
+    r_q, rmse_q, _ = _score(quarter, stand)
+    assert r_q >= r_full - 1 / 14
+    assert rmse_q < 0.01  # fewer points per slice: noisier, still within 1 cm
+
+
+def test_kasa_variant_is_biased_on_half_arcs(tls_scene: tuple[Stand3D, np.ndarray]) -> None:
+    """The algebraic fit shrinks one-sided arcs (negative DBH bias); the geometric one not."""
+    stand, xyz = tls_scene
+
+    def bias(det: CloudStems) -> float:
+        m = match_points(det.xy, stand.trees_xy, 0.5)
+        return float(np.median(det.diameter[m.pairs[:, 0]] - stand.dbh[m.pairs[:, 1]]))
+
+    b_ours, b_kasa = bias(detect_stems(xyz)), bias(detect_stems(xyz, get_preset("ours_kasa")))
+    assert b_kasa < -0.002  # measured about -0.6 cm on this scene
+    assert abs(b_ours) < abs(b_kasa)
+
+
+def test_slice_mode_on_rings(rng: np.random.Generator) -> None:
+    """A pre-cut, height-normalised slice (like fortls_slice): full rings, no ground."""
+    centres = np.array([[2.0, 1.0], [-3.0, 4.0], [5.0, -5.0]])
+    radii = np.array([0.12, 0.2, 0.31])
+    pts = []
+    for c, r in zip(centres, radii, strict=True):
+        t = rng.uniform(0, 2 * np.pi, 800)
+        rr = r + rng.normal(0, 0.003, 800)
+        pts.append(
+            np.column_stack(
+                (
+                    c + np.column_stack((np.cos(t), np.sin(t))) * rr[:, None],
+                    rng.uniform(1.2, 1.4, 800),
+                )
+            )
+        )
+    det = detect_stems(np.vstack(pts))
+    assert len(det) == 3
+    m = match_points(det.xy, centres, 0.1)
+    err = det.diameter[m.pairs[:, 0]] - 2 * radii[m.pairs[:, 1]]
+    assert np.max(np.abs(err)) < 0.003  # 3 mm noise, 800 points per ring: sub-millimetre fits
+    assert np.all(det.arc_deg > 350)
+
+
+def test_streaming_file_matches_in_memory(
+    tmp_path: Path, tls_scene: tuple[Stand3D, np.ndarray]
+) -> None:
+    _, xyz = tls_scene
+    f = tmp_path / "c.laz"
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    header.scales = np.array([0.0005, 0.0005, 0.0005])
+    header.offsets = xyz.min(axis=0)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.write(f)
+    ticks: list[tuple[int, int]] = []
+    det_f = detect_stems_file(f, chunk_size=100_000, on_chunk=lambda a, b: ticks.append((a, b)))
+    det_m = detect_stems(read_cloud(f).xyz)
+    assert len(ticks) >= 4 and ticks[-1][0] == ticks[-1][1]
+    assert len(det_f) == len(det_m)
+    m = match_points(det_f.xy, det_m.xy, 0.05)
+    assert m.n_matched == len(det_m)
+    np.testing.assert_allclose(
+        det_f.diameter[m.pairs[:, 0]], det_m.diameter[m.pairs[:, 1]], atol=0.002
+    )
+    # CLI on the same file
+    out = tmp_path / "stems.csv"
+    res = CliRunner().invoke(
+        app, ["stems", str(f), "--out", str(out), "--geojson", str(tmp_path / "s.geojson")]
+    )
+    assert res.exit_code == 0, res.output
+    rows = out.read_text().splitlines()
+    assert rows[0].startswith("id,x,y,z,diameter,n_points,quality")
+    assert len(rows) == len(det_f) + 1
+
+
+def test_mobile_vlp16() -> None:
+    stand = random_stand3d(10, (14.0, 14.0), dbh_min=0.12, n_shrubs=4, rng=3)
+    path = np.column_stack((np.linspace(0.5, 13.5, 25), np.full(25, 7.0)))
+    mob = simulate_mobile(stand, path, lidar_preset("vlp16"), rng=1, keep_frames=True)
+    det = detect_stems(mob.cloud.xyz)
+    recall, rmse, _ = _score(det, stand)
+    assert recall >= 0.9
+    # 3 cm range noise, many revolutions: the issue's 2 cm target
+    assert rmse < 0.02
+    # EB-LiDAR per frame, then proximity association in the world frame
+    per_frame = []
+    for fr, pose in zip(mob.frames, mob.poses, strict=True):
+        d = detect_stems_munjer(fr.xyz)
+        c, s = np.cos(pose[3]), np.sin(pose[3])
+        xy = d.xy @ np.array([[c, s], [-s, c]]) + pose[:2]
+        per_frame.append(replace(d, xy=xy))
+    trees = associate_proximity(per_frame, 1.0)
+    assert trees.method == "munjer2025"
+    assert np.all(np.isfinite(trees.xy))
+
+
+def test_munjer_eccentricity_window() -> None:
+    """A thin arc at one lidar ring (elongated, e in [10, 20]) is kept; a blob is not."""
+    rng = np.random.default_rng(4)
+    t = rng.uniform(-0.9, 0.9, 400)
+    arc = np.column_stack(
+        (5.0 - 0.2 * np.cos(t), 0.2 * np.sin(t), -0.3 + rng.normal(0, 0.015, 400))
+    )
+    blob = rng.normal([3.0, -4.0, -0.25], 0.08, (400, 3))
+    det = detect_stems_munjer(np.vstack((arc, blob)))
+    assert len(det) == 1
+    assert 10 <= det.eccentricity[0] <= 20
+    assert np.hypot(*(det.xy[0] - [5.0, 0.0])) < 0.05
+    assert det.diameter[0] == pytest.approx(0.4, abs=0.05)
+    assert len(detect_stems_munjer(np.vstack((arc, blob)), MunjerConfig(box_x=(6, 10)))) == 0
+
+
+def test_associate_proximity_merges_within_threshold() -> None:
+    a = CloudStems.from_columns(
+        xy=[[0.0, 0.0], [5.0, 0.0]], z=[0, 0], diameter=[0.2, 0.3], n_points=[10, 10]
+    )
+    b = CloudStems.from_columns(
+        xy=[[0.5, 0.0], [9.0, 0.0]], z=[0, 0], diameter=[0.4, 0.3], n_points=[10, 10]
+    )
+    t = associate_proximity([a, b], 1.0)
+    assert len(t) == 3
+    np.testing.assert_allclose(t.xy[0], [0.25, 0.0])
+    assert t.n_slices[0] == 2
+    with pytest.raises(ConfigError):
+        associate_proximity([a], 0.0)
+
+
+def test_bad_inputs_and_configs() -> None:
+    with pytest.raises(InputError):
+        detect_stems(np.zeros((5, 2)))
+    with pytest.raises(InputError):
+        detect_stems(np.array([[0.0, 0.0, np.nan]]))
+    with pytest.raises(ConfigError):
+        get_preset("fsct")
+    with pytest.raises(ConfigError):
+        StemConfig(min_diameter=0.5, max_diameter=0.1)
+    with pytest.raises(ConfigError):
+        MunjerConfig(eps=0.0)
+    # nothing stem-like: a falsy, empty result, not an error and not zeros
+    flat = np.column_stack((np.random.default_rng(0).uniform(0, 5, (2000, 2)), np.zeros(2000)))
+    det = detect_stems(flat)
+    assert len(det) == 0
+    assert len(detect_stems(np.zeros((0, 3)))) == 0
+
+
+# ------------------------------------------------------------------------------------------
+# real clouds
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_fortls_full_rings_and_single_side_views(datasets_dir: Path) -> None:
+    xyz = read_cloud(datasets_dir / "fortls_slice" / "diameters.laz").xyz
+    full = detect_stems(xyz)
+    assert len(full) >= 20  # the README: ~21 trunks seen as full rings
+    assert np.all(full.arc_deg > 300)
+    # single-side views: keep, for each trunk, the half of its ring facing one direction
+    for u in ([1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]):
+        _, k = cKDTree(full.xy).query(xyz[:, :2])
+        keep = np.sum((xyz[:, :2] - full.xy[k]) * u, axis=1) > 0
+        half = detect_stems(xyz[keep])
+        m = match_points(half.xy, full.xy, 0.1)
+        assert m.n_matched >= len(full) - 1
+        diff = half.diameter[m.pairs[:, 0]] - full.diameter[m.pairs[:, 1]]
+        # half rings of sub-millimetre noise: the geometric fit agrees within 1 cm
+        assert np.max(np.abs(diff)) < 0.01
+
+
+@pytest.mark.slow
+def test_lidr_single_trunk_and_treels(datasets_dir: Path) -> None:
+    det = detect_stems(read_cloud(datasets_dir / "lidr_dbh" / "dbh.laz").xyz)
+    best = int(np.argmax(det.quality * det.n_points))
+    # lidR's own documentation fits this trunk at about 0.29 m (we report our measurement)
+    assert 0.2 < det.diameter[best] < 0.4
+    pine = detect_stems(read_cloud(datasets_dir / "treels" / "pine.laz").xyz)
+    assert len(pine) == 1 and 0.1 < pine.diameter[0] < 0.5
+    plot = detect_stems(read_cloud(datasets_dir / "treels" / "pine_plot.laz").xyz)
+    assert 8 <= len(plot) <= 25
