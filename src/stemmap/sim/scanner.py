@@ -332,6 +332,7 @@ def _beam_index_range(
 def _cast_scans_kernel(
     poses: FloatArray,
     angle0: float,
+    offsets: FloatArray,
     inc: float,
     n_beams: int,
     circles: FloatArray,
@@ -342,16 +343,24 @@ def _cast_scans_kernel(
     out_r: FloatArray,
     out_id: NDArray[np.int64],
 ) -> None:
+    """First hits of ray ``(s, i, k)`` at world angle ``theta_s + angle0 + offsets[k] + i inc``.
+
+    Each object's bearing and angular half-width are computed once per scan and reused for
+    every sub-beam offset (that per-object work dominates the cost).
+    """
     n_scans = poses.shape[0]
     n_c = circles.shape[0]
     n_s = segments.shape[0]
+    n_k = offsets.shape[0]
+    two_pi = 2.0 * math.pi
     for s in range(n_scans):
         ox = poses[s, 0]
         oy = poses[s, 1]
-        base = poses[s, 2] + angle0  # world angle of beam 0
+        base = poses[s, 2] + angle0  # world angle of beam 0 (before the offsets)
         for i in range(n_beams):
-            out_r[s, i] = np.inf
-            out_id[s, i] = -1
+            for k in range(n_k):
+                out_r[s, i, k] = np.inf
+                out_id[s, i, k] = -1
         for c in range(n_c):
             cx = circles[c, 0] - ox
             cy = circles[c, 1] - oy
@@ -362,22 +371,24 @@ def _cast_scans_kernel(
                 continue
             half = math.asin(r / d)
             psi = math.atan2(cy, cx) - base
-            psi = psi - 2.0 * math.pi * math.floor(psi / (2.0 * math.pi))  # [0, 2pi)
-            a0, b0, a1, b1 = _beam_index_range(psi - half, psi + half, inc, n_beams)
+            psi = psi - two_pi * math.floor(psi / two_pi)  # [0, 2pi)
             cc = d2 - r * r
-            for rng_a, rng_b in ((a0, b0), (a1, b1)):
-                for i in range(rng_a, rng_b + 1):
-                    ang = base + inc * i
-                    ux = math.cos(ang)
-                    uy = math.sin(ang)
-                    b = ux * cx + uy * cy
-                    disc = b * b - cc
-                    if disc < 0.0:
-                        continue
-                    t = b - math.sqrt(disc)
-                    if 0.0 < t < out_r[s, i]:
-                        out_r[s, i] = t
-                        out_id[s, i] = circle_ids[c]
+            for k in range(n_k):
+                off = offsets[k]
+                a0, b0, a1, b1 = _beam_index_range(psi - off - half, psi - off + half, inc, n_beams)
+                for rng_a, rng_b in ((a0, b0), (a1, b1)):
+                    for i in range(rng_a, rng_b + 1):
+                        ang = base + off + inc * i
+                        ux = math.cos(ang)
+                        uy = math.sin(ang)
+                        b = ux * cx + uy * cy
+                        disc = b * b - cc
+                        if disc < 0.0:
+                            continue
+                        t = b - math.sqrt(disc)
+                        if 0.0 < t < out_r[s, i, k]:
+                            out_r[s, i, k] = t
+                            out_id[s, i, k] = circle_ids[c]
         for g in range(n_s):
             p0x = segments[g, 0] - ox
             p0y = segments[g, 1] - oy
@@ -385,7 +396,7 @@ def _cast_scans_kernel(
             p1y = segments[g, 3] - oy
             dx = p1x - p0x
             dy = p1y - p0y
-            # distance from origin to the segment (cull)
+            # distance from the origin to the segment (cull)
             L2 = dx * dx + dy * dy
             if L2 > 0.0:
                 tt = -(p0x * dx + p0y * dy) / L2
@@ -397,28 +408,70 @@ def _cast_scans_kernel(
             if math.sqrt(qx * qx + qy * qy) >= max_range:
                 continue
             phi0 = math.atan2(p0y, p0x) - base
-            phi0 = phi0 - 2.0 * math.pi * math.floor(phi0 / (2.0 * math.pi))
+            phi0 = phi0 - two_pi * math.floor(phi0 / two_pi)
             span = math.atan2(p0x * p1y - p0y * p1x, p0x * p1x + p0y * p1y)  # (-pi, pi]
             lo = phi0 + min(0.0, span)
             hi = phi0 + max(0.0, span)
-            a0, b0, a1, b1 = _beam_index_range(lo - 1e-12, hi + 1e-12, inc, n_beams)
-            for rng_a, rng_b in ((a0, b0), (a1, b1)):
-                for i in range(rng_a, rng_b + 1):
-                    ang = base + inc * i
-                    ux = math.cos(ang)
-                    uy = math.sin(ang)
-                    den = ux * dy - uy * dx
-                    if abs(den) <= 1e-12:
-                        continue
-                    t = (p0x * dy - p0y * dx) / den
-                    sp = (p0x * uy - p0y * ux) / den
-                    if t > 0.0 and 0.0 <= sp <= 1.0 and t < out_r[s, i]:
-                        out_r[s, i] = t
-                        out_id[s, i] = segment_ids[g]
+            for k in range(n_k):
+                off = offsets[k]
+                a0, b0, a1, b1 = _beam_index_range(lo - off - 1e-12, hi - off + 1e-12, inc, n_beams)
+                for rng_a, rng_b in ((a0, b0), (a1, b1)):
+                    for i in range(rng_a, rng_b + 1):
+                        ang = base + off + inc * i
+                        ux = math.cos(ang)
+                        uy = math.sin(ang)
+                        den = ux * dy - uy * dx
+                        if abs(den) <= 1e-12:
+                            continue
+                        t = (p0x * dy - p0y * dx) / den
+                        sp = (p0x * uy - p0y * ux) / den
+                        if t > 0.0 and 0.0 <= sp <= 1.0 and t < out_r[s, i, k]:
+                            out_r[s, i, k] = t
+                            out_id[s, i, k] = segment_ids[g]
         for i in range(n_beams):
-            if out_r[s, i] >= max_range:
-                out_r[s, i] = np.inf
-                out_id[s, i] = -1
+            for k in range(n_k):
+                if out_r[s, i, k] >= max_range:
+                    out_r[s, i, k] = np.inf
+                    out_id[s, i, k] = -1
+
+
+def _cast_sub_beams(
+    stand: Stand,
+    poses: FloatArray,
+    angle_min: float,
+    offsets: FloatArray,
+    angle_increment: float,
+    n_beams: int,
+    max_range: float,
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """(S, N, K) first-hit ranges and ids of every sub-beam (see :func:`cast_scans`)."""
+    p = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+    if not np.all(np.isfinite(p)):
+        raise InputError("cast_scans: every sensor pose must be finite.")
+    if not angle_increment > 0:
+        raise InputError(f"cast_scans needs angle_increment > 0, got {angle_increment}.")
+    centers, radii, ids = _circles(stand)
+    circles = np.ascontiguousarray(np.column_stack((centers, radii)).reshape(-1, 3))
+    seg = np.ascontiguousarray(stand.segments.reshape(-1, 4))
+    seg_ids = np.where(stand.segment_owner >= 0, stand.segment_owner, HIT_CLUTTER).astype(np.int64)
+    off = np.ascontiguousarray(np.asarray(offsets, dtype=np.float64).reshape(-1))
+    out_r = np.empty((p.shape[0], int(n_beams), off.size))
+    out_id = np.empty((p.shape[0], int(n_beams), off.size), dtype=np.int64)
+    _cast_scans_kernel(
+        p,
+        float(angle_min),
+        off,
+        float(angle_increment),
+        int(n_beams),
+        circles,
+        np.ascontiguousarray(ids),
+        seg,
+        np.ascontiguousarray(seg_ids),
+        float(max_range),
+        out_r,
+        out_id,
+    )
+    return out_r, out_id
 
 
 def cast_scans(
@@ -454,31 +507,16 @@ def cast_scans(
     ``p0 + s d`` at ``t = (p0 x d) / (u x d)``. Only the beams inside each object's angular
     extent (``asin(r/|c'|)`` around the bearing for circles) are tested.
     """
-    p = np.ascontiguousarray(np.asarray(poses, dtype=np.float64).reshape(-1, 3))
-    if not np.all(np.isfinite(p)):
-        raise InputError("cast_scans: every sensor pose must be finite.")
-    if not angle_increment > 0:
-        raise InputError(f"cast_scans needs angle_increment > 0, got {angle_increment}.")
-    centers, radii, ids = _circles(stand)
-    circles = np.ascontiguousarray(np.column_stack((centers, radii)).reshape(-1, 3))
-    seg = np.ascontiguousarray(stand.segments.reshape(-1, 4))
-    seg_ids = np.where(stand.segment_owner >= 0, stand.segment_owner, HIT_CLUTTER).astype(np.int64)
-    out_r = np.empty((p.shape[0], int(n_beams)))
-    out_id = np.empty((p.shape[0], int(n_beams)), dtype=np.int64)
-    _cast_scans_kernel(
-        p,
-        float(angle_min),
-        float(angle_increment),
-        int(n_beams),
-        circles,
-        np.ascontiguousarray(ids),
-        seg,
-        np.ascontiguousarray(seg_ids),
-        float(max_range),
-        out_r,
-        out_id,
+    r, h = _cast_sub_beams(
+        stand,
+        np.asarray(poses, dtype=np.float64),
+        angle_min,
+        np.zeros(1),
+        angle_increment,
+        n_beams,
+        max_range,
     )
-    return out_r, out_id
+    return r[..., 0], h[..., 0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -621,17 +659,9 @@ def simulate_scans(
     chunk = max(1, _SUB_BEAM_CHUNK // max(1, n_b * offsets.size))
     for c0 in range(0, n_s, chunk):
         pc = p[c0 : c0 + chunk]
-        sub_r = np.empty((pc.shape[0], n_b, offsets.size))
-        sub_id = np.empty((pc.shape[0], n_b, offsets.size), dtype=np.int64)
-        for j, off in enumerate(offsets):
-            sub_r[..., j], sub_id[..., j] = cast_scans(
-                stand,
-                pc,
-                angle_min=m.angle_min + float(off),
-                angle_increment=m.angle_increment,
-                n_beams=n_b,
-                max_range=m.range_max,
-            )
+        sub_r, sub_id = _cast_sub_beams(
+            stand, pc, m.angle_min, offsets, m.angle_increment, n_b, m.range_max
+        )
         sl = slice(c0, c0 + pc.shape[0])
         ranges[sl], hit[sl], mixed[sl] = _combine_sub_beams(sub_r, sub_id, m.min_hit_fraction)
     finite = np.isfinite(ranges)
