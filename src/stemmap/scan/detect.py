@@ -98,6 +98,10 @@ class DetectorConfig:
         discarded (ours), so the second of two merged trunks is still detected.
     min_points, max_points : int
         Returns per segment (visual-lidar: >= 40 at 0.12 deg).
+    min_points_partial : int
+        Returns needed by a segment with an occluded or truncated end (ours): a few returns
+        cut off by an occluder are as often a clump of bush stems as a trunk. The effective
+        minimum is the larger of the two.
     min_width, max_width : float, metres
         Edge-beam chord width (Xue eq. 12); visual-lidar: <= 0.55 m.
     min_depth : float, metres
@@ -147,6 +151,7 @@ class DetectorConfig:
     radius_median: float | None = None
     split_merged: bool = False
     min_points: int = 3
+    min_points_partial: int = 3
     max_points: int | None = None
     min_width: float = 0.0
     max_width: float = math.inf
@@ -312,6 +317,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "radius_median": 0.8,
         "split_merged": True,
         "min_points": 4,
+        "min_points_partial": 5,
         "max_width": 1.6,
         "min_depth": 0.0,
         "reject_straight": True,
@@ -669,6 +675,7 @@ class ScanTrunkDetector:
             return segs
         f = segment_features(segs)
         keep = f.n_points >= cfg.min_points
+        keep &= ~segs.partial | (f.n_points >= cfg.min_points_partial)
         if cfg.max_points is not None:
             keep &= f.n_points <= cfg.max_points
         keep &= (f.width >= cfg.min_width) & (f.width <= cfg.max_width)
