@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -253,3 +254,37 @@ def test_presets_and_config_errors():
         DetectorConfig(max_jump=0.0)
     with pytest.raises(ConfigError, match="none of the scan's beams"):
         ScanTrunkDetector(DetectorConfig(fov_deg=(100.0, 120.0))).detect(scan_of(np.ones(ANG.size)))
+
+
+def test_batch_with_per_scan_attitude():
+    pitch = np.radians([0.0, 6.0, 10.0])
+    a = np.radians(np.arange(-20.0, 20.0 + 1e-9, 0.25))
+    flat = scene_ranges([(4.0, 0.0, 0.2)], a)
+    rows = np.stack([flat / math.cos(p) for p in pitch])
+    batch = ScanBatch(rows, np.arange(3.0), a[0], a[1] - a[0], 0.0, 50.0)
+    for tilt in ("eq1", "rotation"):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method="kasa", tilt=tilt))
+        obs = det.detect_batch(batch, pitch=pitch)
+        assert obs.index.tolist() == [0, 1, 2]
+        # eq. 1 is exact here (beams near the x axis); the rotation to within r (1 - cos a)
+        # of the +-2 deg the trunk spans: < 0.02 m
+        np.testing.assert_allclose(obs.centers[:, 0], 4.0, atol=2e-3 if tilt == "eq1" else 0.02)
+    with pytest.raises(InputError, match="one value per scan"):
+        ScanTrunkDetector(DetectorConfig(tilt="eq1")).detect_batch(batch, pitch=np.zeros(2))
+
+
+def test_partial_segments_need_more_returns():
+    # a far trunk whose right half is hidden behind a near one leaves 4 returns
+    a = np.radians(np.arange(-10.0, 10.0 + 1e-9, 0.5))
+    r = scene_ranges([(2.0, -0.03, 0.05), (8.0, 0.30, 0.2)], a)
+    base = DetectorConfig.preset("stemmap", fit_method="kasa", min_points=3)
+    segs = ScanTrunkDetector(dataclasses.replace(base, min_points_partial=3)).candidates(
+        r[None, :], a[0], a[1] - a[0], 0.0, 50.0
+    )
+    far = int(np.argmax(segs.points.r[segs.start]))
+    assert segs.partial[far]
+    n_far = int(segs.counts[far])
+    strict = ScanTrunkDetector(dataclasses.replace(base, min_points_partial=n_far + 1)).candidates(
+        r[None, :], a[0], a[1] - a[0], 0.0, 50.0
+    )
+    assert len(strict) == len(segs) - 1
