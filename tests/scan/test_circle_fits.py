@@ -231,12 +231,16 @@ def test_degenerate_inputs_fail_with_a_reason(method: str) -> None:
     same = np.full((5, 2), 3.0)
     fit = fit_circle(same, method)
     assert not fit and fit.reason
-    line = np.column_stack((np.linspace(2, 3, 6), np.linspace(1, 1.5, 6)))
+    line = np.column_stack((np.linspace(2, 3, 6), np.linspace(2, 2.5, 6)))
     fit = fit_circle(line, method, edges=(False, False))
     if method == "chord_width":  # a width needs no curvature
         assert fit
     else:
         assert not fit and fit.reason, method
+    # returns all on one beam (a line through the sensor): no bearing spread, no silhouette
+    ray = np.column_stack((np.linspace(2, 3, 6), np.linspace(1, 1.5, 6)))
+    fit = fit_circle(ray, method)
+    assert not fit and fit.reason, method
 
 
 @pytest.mark.parametrize("method", ALL)
@@ -386,3 +390,45 @@ def test_ours_occluded_edge_is_dropped() -> None:
     wrong = fit_circle_ours(keep, sigma=0.002, angle_increment=DTH, edges=(True, True))
     assert abs(right.radius - 0.25) < 0.01
     assert abs(wrong.radius - 0.25) > abs(right.radius - 0.25)
+
+
+segments = st.lists(
+    st.one_of(
+        # a noisy visible arc
+        st.tuples(st.floats(1.0, 15.0), st.floats(-3.0, 3.0), st.floats(0.05, 0.5)).map(
+            lambda c: visible_arc(
+                (c[0] * math.cos(c[1]), c[0] * math.sin(c[1])),
+                c[2],
+                sigma=0.01,
+                rng=np.random.default_rng(int(c[0] * 1000)),
+            )
+        ),
+        # arbitrary small point sets: 0-5 points, possibly duplicated or collinear
+        st.lists(st.tuples(st.integers(-3, 3), st.integers(-3, 3)), max_size=5).map(
+            lambda v: np.array(v, dtype=float).reshape(-1, 2)
+        ),
+    ),
+    min_size=1,
+    max_size=6,
+)
+
+
+@settings(max_examples=40, deadline=None)
+@given(segments)
+def test_vectorised_batch_equals_single_fits(segs) -> None:
+    segs = [s for s in segs if s.shape[0]]
+    if not segs:
+        return
+    pts = np.vstack(segs)
+    ids = np.repeat(np.arange(len(segs)), [s.shape[0] for s in segs])
+    for m in ALL:
+        fits = fit_circles_batch(pts, ids, m, sigma=0.01, angle_increment=DTH)
+        for k, s in enumerate(segs):
+            single = fit_circle(s, m, sigma=0.01, angle_increment=DTH)
+            assert bool(fits.ok[k]) == bool(single), (m, k, fits.reasons[k], single.reason)
+            assert fits.reasons[k] == single.reason, m
+            if single:
+                # same algebra, summed in a different order: round-off only
+                np.testing.assert_allclose(fits.centers[k], single.center, rtol=1e-7, atol=1e-7)
+                assert fits.radii[k] == pytest.approx(single.radius, rel=1e-7, abs=1e-7), m
+                assert fits.rms[k] == pytest.approx(single.rms, rel=1e-6, abs=1e-9), m

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.scan import _fit_batch as _fb
 from stemmap.scan._fit_geometric import STATUS_MESSAGES, fit_ours_segments
 from stemmap.types import FloatArray
 
@@ -149,9 +150,9 @@ def fit_circle_kasa(
     q = q / scale
     A = np.column_stack((q, np.ones(n)))
     b = -(q[:, 0] ** 2 + q[:, 1] ** 2)
-    sol, _, rank, sv = np.linalg.lstsq(A, b, rcond=None)
-    if rank < 3 or sv[-1] < 1e-9 * sv[0]:
+    if _rank_deficient(A.T @ A):
         return CircleFit.failed("points are collinear", "kasa", n)
+    sol = np.linalg.lstsq(A, b, rcond=None)[0]
     D, E, F = sol
     cx, cy = -D / 2.0, -E / 2.0
     r2 = cx * cx + cy * cy - F
@@ -210,8 +211,33 @@ def _by_bearing(p: FloatArray, o: FloatArray) -> tuple[FloatArray, FloatArray, F
     mean_dir = math.atan2(float(np.sum(q[:, 1] / safe)), float(np.sum(q[:, 0] / safe)))
     c, s = math.cos(mean_dir), math.sin(mean_dir)
     th = np.arctan2(-s * q[:, 0] + c * q[:, 1], c * q[:, 0] + s * q[:, 1])
-    order = np.argsort(th, kind="stable")
+    # bearings quantised to 1e-12 rad so that round-off cannot reorder returns that share a
+    # bearing; ties broken by range (nearest first)
+    order = np.lexsort((rho, np.round(th * 1e12)))
     return p[order], th[order] + mean_dir, rho[order]
+
+
+_AT_ORIGIN = "a point coincides with the sensor origin, so its bearing is undefined"
+_COLLINEAR_EIG = 1e-14  # smallest / largest eigenvalue of A^T A (= singular value ratio 1e-7)
+
+
+def _rank_deficient(M: FloatArray) -> bool:
+    """Collinearity test on the 3x3 normal matrix A^T A of the centred, scaled points (the
+    same test as the batch fits, so single and batch decide alike)."""
+    ev = np.linalg.eigvalsh(M)
+    return not ev[0] >= _COLLINEAR_EIG * ev[2]
+
+
+def _single_from_batch(p: FloatArray, o: FloatArray, method: str) -> CircleFit:
+    """One segment through the vectorised implementation (so single and batch agree exactly)."""
+    n = p.shape[0]
+    starts = np.zeros(1, dtype=np.int64)
+    counts = np.array([n], dtype=np.int64)
+    fn = _fb.three_point_batch if method == "three_point" else _fb.chord_width_batch
+    centers, radii, why = fn(p, starts, counts, o[None, :])
+    if not np.isfinite(radii[0]):
+        return CircleFit.failed(str(why[0]), method, n)
+    return _with_rms(p, centers[0].copy(), float(radii[0]), method)
 
 
 def _with_rms(
@@ -312,8 +338,7 @@ def fit_circle_fletcher_reeves(
     b = q[:, 0] ** 2 + q[:, 1] ** 2
     M = A.T @ A
     Atb = A.T @ b
-    sv = np.linalg.svd(A, compute_uv=False)
-    if sv[-1] < 1e-9 * sv[0]:
+    if _rank_deficient(M):
         return CircleFit.failed("points are collinear", method, n)
     x = np.zeros(3)  # step 1: x_0 = 0
     g = M @ x - Atb  # step 2
@@ -396,25 +421,7 @@ def fit_circle_three_point(
     [0.0, 0.0, 1.0]
     """
     p = as_points(points)
-    method = "three_point"
-    n = p.shape[0]
-    if n < 3:
-        return CircleFit.failed(f"need at least 3 points, got {n}", method, n)
-    o = _origin(origin)
-    ps, _, _ = _by_bearing(p, o)
-    ref = ps.mean(axis=0)
-    a, c, b = ps[0] - ref, ps[n // 2] - ref, ps[-1] - ref
-    M = 2.0 * np.array([c - a, b - c])
-    rhs = np.array([c @ c - a @ a, b @ b - c @ c])
-    scale = max(float(np.abs(M).max()), 1e-300)
-    det = float(np.linalg.det(M / scale))
-    if abs(det) < 1e-12:
-        if np.allclose(a, c) or np.allclose(b, c) or np.allclose(a, b):
-            return CircleFit.failed("first, middle and last points coincide", method, n)
-        return CircleFit.failed("first, middle and last points are collinear", method, n)
-    center_rel = np.linalg.solve(M, rhs)
-    radius = float(np.mean(np.hypot(*(np.array([a, c, b]) - center_rel).T)))
-    return _with_rms(p, center_rel + ref, radius, method)
+    return _single_from_batch(p, _origin(origin), "three_point")
 
 
 # --------------------------------------------------------------------------------------------
@@ -492,21 +499,7 @@ def fit_circle_chord_width(
     (0.4, [5.0, 0.0])
     """
     p = as_points(points)
-    method = "chord_width"
-    n = p.shape[0]
-    if n < 2:
-        return CircleFit.failed(f"need at least 2 points, got {n}", method, n)
-    o = _origin(origin)
-    width, bis, _ = chord_width(p, origin=o)
-    if not width > 0.0:
-        return CircleFit.failed("edge returns coincide (zero chord width)", method, n)
-    _, th, rho = _by_bearing(p, o)
-    r = 0.5 * width
-    # range of the front surface along the bisecting ray, interpolated between the returns
-    # either side of it (continuous in the data, so the fit is rotation equivariant)
-    front = float(np.interp(bis, th, rho))
-    center = o + (front + r) * np.array([math.cos(bis), math.sin(bis)])
-    return _with_rms(p, center, r, method)
+    return _single_from_batch(p, _origin(origin), "chord_width")
 
 
 # --------------------------------------------------------------------------------------------
@@ -725,8 +718,10 @@ def fit_circles_batch(
         Segment of each point. Need not be sorted (a stable sort groups them, keeping the
         order of points inside a segment).
     method : str
-        A name in ``FIT_METHODS``. "ours" runs one compiled loop over all segments; the other
-        methods are called segment by segment.
+        A name in ``FIT_METHODS``. "ours" runs one compiled loop over all segments; kasa,
+        fletcher_reeves (paper preset k_max, tol), three_point and chord_width run as vectorised
+        numpy over all segments (same results as the single fits to round-off); any other
+        registered method is called segment by segment.
     origin : array_like of shape (2,) or (K, 2), metres, optional
         Sensor position for all segments or per segment (K = number of distinct ids).
     sigma : float or array_like of shape (K,), metres, optional
@@ -823,6 +818,30 @@ def fit_circles_batch(
             method=method,
         )
 
+    vectorised = {
+        "kasa": lambda: _fb.kasa_batch(p, starts, counts),
+        "fletcher_reeves": lambda: _fb.fletcher_reeves_batch(
+            p, starts, counts, ZHENG2012_K_MAX, ZHENG2012_TOL
+        ),
+        "three_point": lambda: _fb.three_point_batch(p, starts, counts, o),
+        "chord_width": lambda: _fb.chord_width_batch(p, starts, counts, o),
+    }
+    if method in vectorised and fn is FIT_METHODS[method]:
+        centers, radii, why = vectorised[method]()
+        ok = np.isfinite(radii)
+        return CircleFits(
+            segment_ids=uniq.astype(np.int64),
+            centers=centers,
+            radii=radii,
+            covs=np.full((k, 3, 3), np.nan),
+            rms=_fb.rms_batch(p, starts, counts, centers, radii),
+            n_points=counts.astype(np.int64),
+            ok=ok,
+            reasons=tuple(str(r) for r in why),
+            method=method,
+        )
+
+    # any other registered method: one call per segment
     centers = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)
     covs = np.full((k, 3, 3), np.nan)
