@@ -718,42 +718,35 @@ class ScanTrunkDetector:
         p = segs.points
         n = segs.counts
         f_width = segment_features_width(segs)
-        # plausibility (ours): radius bounds, centre behind the visible surface, not near-flat
+        # plausibility (ours): radius bounds, not near-flat, centre behind the visible surface,
+        # outline a circle within the noise; failed fits carry NaN and fail every test
         mean_r = segment_sum(p.r, segs) / n
         with np.errstate(invalid="ignore"):
             ok &= (radii >= cfg.min_radius) & (radii <= cfg.max_radius)
             ok &= radii <= cfg.max_radius_width_ratio * np.maximum(f_width, 1e-9)
             ok &= np.hypot(centers[:, 0], centers[:, 1]) > mean_r
+            rms = _fit_rms(segs, centers, radii)
+            if math.isfinite(cfg.max_rms_sigma):
+                ok &= rms <= cfg.max_rms_sigma * cfg.sigma
         if not np.any(ok):
             return StemObservations.empty(source=self.source, frame=frame)
-        segs = segs.select(ok)
-        centers, radii, covs, f_width = centers[ok], radii[ok], covs[ok], f_width[ok]
-        rms = _fit_rms(segs, centers, radii)
-        if math.isfinite(cfg.max_rms_sigma):
-            circ = rms <= cfg.max_rms_sigma * cfg.sigma
-            if not np.all(circ):
-                segs = segs.select(circ)
-                centers, radii, covs = centers[circ], radii[circ], covs[circ]
-                f_width, rms = f_width[circ], rms[circ]
-                if len(segs) == 0:
-                    return StemObservations.empty(source=self.source, frame=frame)
-        missing = ~np.all(np.isfinite(covs), axis=(1, 2))
+        missing = ok & ~np.all(np.isfinite(covs), axis=(1, 2))
         if np.any(missing):
             sub = segs.select(missing)
             covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], cfg.sigma)
-        arc = _arc_deg(segs, centers)
-        n = segs.counts
-        quality = _quality(n, rms, cfg.sigma, segs.partial)
+        with np.errstate(invalid="ignore"):
+            arc = _arc_deg(segs, centers)
+            quality = _quality(n, rms, cfg.sigma, segs.partial)
         return StemObservations(
-            centers=centers,
-            radii=radii,
-            covs=covs,
-            n_points=n,
-            arc_deg=arc,
-            widths=f_width,
-            quality=quality,
-            index=segs.scan,
-            times=np.asarray(times)[segs.scan],
+            centers=centers[ok],
+            radii=radii[ok],
+            covs=covs[ok],
+            n_points=n[ok],
+            arc_deg=arc[ok],
+            widths=f_width[ok],
+            quality=quality[ok],
+            index=segs.scan[ok],
+            times=np.asarray(times)[segs.scan[ok]],
             source=self.source,
             frame=frame,
         )

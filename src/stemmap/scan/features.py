@@ -20,6 +20,7 @@ Paper methods
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -226,6 +227,15 @@ def line_fit_rms(segs: Segments) -> FloatArray:
     return out
 
 
+@functools.lru_cache(maxsize=8)
+def _chi2_upper(alpha: float) -> FloatArray:
+    """Upper ``alpha`` quantiles of chi-square with 0..1023 degrees of freedom (index = dof)."""
+    dof = np.arange(1024, dtype=np.float64)
+    out: FloatArray = np.concatenate(([0.0], chdtri(dof[1:], alpha)))
+    out.setflags(write=False)
+    return out
+
+
 def is_straight(
     line_rms: ArrayLike,
     width: ArrayLike,
@@ -269,8 +279,13 @@ def is_straight(
         n = np.asarray(n_points, dtype=np.float64)
         dof = np.maximum(n - 2.0, 1.0)
         stat = n * rms * rms / (sigma * sigma)
-        u, inv = np.unique(dof, return_inverse=True)  # few distinct counts: one quantile each
-        chi: BoolArray = stat <= chdtri(u, alpha)[inv.reshape(-1)]
+        table = _chi2_upper(alpha)
+        d = dof.astype(np.int64)
+        small = d < table.shape[0]
+        limit = np.where(small, table[np.minimum(d, table.shape[0] - 1)], 0.0)
+        if not np.all(small):
+            limit[~small] = chdtri(dof[~small], alpha)
+        chi: BoolArray = stat <= limit
         return chi
     excess = np.sqrt(np.maximum(rms * rms - sigma * sigma, 0.0))
     out: BoolArray = excess < ratio * np.asarray(width, dtype=np.float64)
