@@ -26,6 +26,7 @@ __all__ = [
     "PRESETS",
     "BpaParams",
     "laser_bpa",
+    "laser_bpa_ours",
     "no_support_mass",
     "vision_bpa",
 ]
@@ -147,6 +148,32 @@ def laser_bpa(widths: ArrayLike, params: BpaParams | str | None = None) -> Mass:
     )
     t = np.where(finite, t, 0.0)
     return Mass(t, 1.0 - t, np.zeros_like(t))
+
+
+def laser_bpa_ours(
+    widths: ArrayLike, params: BpaParams | str | None = None, *, k_t: float = 0.65
+) -> Mass:
+    """Our laser BPA: a trunk-like width is necessary, not sufficient.
+
+    With f = m1(T) / k1 from eq. 13 (1 inside the width band, decaying outside):
+    m(T) = k_t f, m(NT) = 1 - k1 f, m(Omega) = (k1 - k_t) f.
+
+    Inside the band Xue's eq. 13 puts all of k1 on T, so the laser alone accepts every
+    trunk-wide object (bushes, poles) with certainty 0.9 and no combination can overturn it
+    without near-total conflict. Here the in-band belief k1 is split between T (k_t) and
+    ignorance, while out-of-band widths keep eq. 13's strong NT: geometry rules objects *out*
+    reliably, and *in* only tentatively.
+
+    Examples
+    --------
+    >>> np.round(laser_bpa_ours([0.16, 1.0]).as_array(), 3).tolist()
+    [[0.65, 0.1, 0.25], [0.0, 1.0, 0.0]]
+    """
+    p = _params(params)
+    if not 0.0 < k_t <= p.k1:
+        raise ConfigError(f"k_t must be in (0, k1 = {p.k1}], got {k_t}.")
+    f = laser_bpa(widths, p).t / p.k1
+    return Mass(k_t * f, 1.0 - p.k1 * f, (p.k1 - k_t) * f)
 
 
 def vision_bpa(alpha: ArrayLike, params: BpaParams | str | None = None) -> Mass:

@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError
 from stemmap.sim.forest import Stand
@@ -279,10 +279,11 @@ def render_scene(
     scanner: ScannerModel | None = None,
     laser_height: float = 1.0,
     trunk_height: float = 6.0,
-    bush_height: float = 0.9,
+    bush_height: float = 1.6,
     wall_height: float = 2.0,
     post_height: float = 2.5,
     mimic_fraction: float = 0.0,
+    mimic_mask: ArrayLike | None = None,
     bark_jitter: float = 20.0,
     pixel_noise: float = 5.0,
     rng: np.random.Generator | int | None = None,
@@ -299,7 +300,8 @@ def render_scene(
       the ground to ``trunk_height``;
     * clutter circles: green leafy bushes up to ``bush_height``, except a fraction
       ``mimic_fraction`` drawn as bark-coloured posts up to ``post_height`` (distractors a colour
-      rule cannot reject; the laser's width evidence can);
+      rule cannot reject; the laser's width evidence can); ``mimic_mask`` (C,) picks them
+      explicitly instead;
     * segments: grey walls / fences up to ``wall_height``;
     * soil-coloured ground and sky.
 
@@ -337,7 +339,11 @@ def render_scene(
     n_t = stand.n_trees
     n_c = stand.clutter_xy.shape[0]
     mimic = np.zeros(n_c, bool)
-    if n_c and mimic_fraction > 0:
+    if mimic_mask is not None:
+        mimic = np.asarray(mimic_mask, dtype=bool).reshape(-1)
+        if mimic.shape != (n_c,):
+            raise ConfigError(f"mimic_mask needs {n_c} values (one per clutter circle).")
+    elif n_c and mimic_fraction > 0:
         mimic[gen.permutation(n_c)[: round(mimic_fraction * n_c)]] = True
     noseg = np.zeros((0, 4))
     r_tree, i_tree = _cast(o_w, az_w, stand.trees_xy, stand.radii, noseg, far)
