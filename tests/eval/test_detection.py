@@ -170,6 +170,9 @@ def test_scan_detection_metrics_perfect_detector_scores_one():
     assert m.center_rmse < 1e-9 and abs(m.diameter_bias) < 1e-12
     assert m.n_frames == 40
     assert m.tr == m.n_nontree > 0  # the oracle never reports a bush
+    fc = m.frame_counts
+    assert fc is not None and fc.shape == (40, 3)
+    assert fc[:, 0].sum() == m.ta and fc[:, 1].sum() == 0 and fc[:, 2].sum() == 0
     # dropping every second detection halves the recall
     half = scan_detection_metrics(
         obs.select(np.arange(n) % 2 == 0), run, gate=0.5, min_diameter=0.0, max_range=100.0

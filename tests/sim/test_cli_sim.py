@@ -73,3 +73,69 @@ def test_sim_scans_bad_preset_is_a_clean_error(tmp_path):
     res = runner.invoke(app, ["sim", "scans", "--out", str(tmp_path / "x.npz"), "--preset", "nope"])
     assert res.exit_code == 2
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_sim_score_perfect_and_degraded_detections(tmp_path):
+    import json
+
+    from stemmap.eval import detectable_trees
+    from stemmap.io.maps import write_observations_csv
+    from stemmap.types import StemObservations
+
+    run = tmp_path / "run.npz"
+    res = runner.invoke(
+        app, ["sim", "scans", "--out", str(run), "--seed", "2", "--n-scans", "40", "-q"]
+    )
+    assert res.exit_code == 0, res.output
+    trees = np.loadtxt(tmp_path / "run_trees.csv", delimiter=",", skiprows=1)
+    poses = np.loadtxt(tmp_path / "run_poses.csv", delimiter=",", skiprows=1)
+    with np.load(tmp_path / "run_truth.npz") as z:
+        hit = z["hit_ids"].astype(np.int64)
+    ok = detectable_trees(hit, trees.shape[0], min_returns=5)
+    rows = []
+    for k in range(poses.shape[0]):
+        c, s = np.cos(poses[k, 3]), np.sin(poses[k, 3])
+        for i in np.flatnonzero(ok[k]):
+            dx, dy = trees[i, 1] - poses[k, 1], trees[i, 2] - poses[k, 2]
+            rows.append((k, c * dx + s * dy, -s * dx + c * dy, trees[i, 3] / 2))
+    a = np.array(rows)
+    n = a.shape[0]
+    obs = StemObservations(
+        centers=a[:, 1:3],
+        radii=a[:, 3],
+        covs=np.zeros((n, 3, 3)),
+        n_points=np.full(n, 5),
+        arc_deg=np.zeros(n),
+        widths=np.zeros(n),
+        quality=np.ones(n),
+        index=a[:, 0],
+        times=poses[a[:, 0].astype(int), 0],
+    )
+    det = tmp_path / "stems.csv"
+    write_observations_csv(det, obs)
+    out_json = tmp_path / "m.json"
+    res = runner.invoke(
+        app,
+        [
+            "sim",
+            "score",
+            str(det),
+            "--run",
+            str(run),
+            "--json",
+            str(out_json),
+            "--max-range",
+            "1000",
+            "--min-diameter",
+            "0",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    m = json.loads(out_json.read_text())
+    # the oracle reports exactly the detectable trees at their true positions (CSV rounding
+    # of the written coordinates stays far below a millimetre)
+    assert m["fa"] == 0 and m["fr"] == 0 and m["ta"] == n
+    assert m["center_rmse"] < 1e-3
+    # a mismatched run is refused with a clean error
+    res = runner.invoke(app, ["sim", "score", str(det), "--run", str(tmp_path / "nope.npz")])
+    assert res.exit_code == 2

@@ -1,4 +1,7 @@
-"""``stemmap sim``: simulated sensor data with ground truth.
+"""``stemmap sim``: simulated sensor data with ground truth, and scoring against it.
+
+``stemmap sim score stems.csv --run run.npz`` scores per-scan detections (``stemmap detect``
+output) against the truth files of a ``stemmap sim scans`` run.
 
 ``stemmap sim scans --out run.npz`` simulates a stand and a drive through it and writes
 
@@ -232,6 +235,132 @@ def scans(
                 f"  scans: {out_path}\n  trees: {t_path}\n  poses: {p_path}\n"
                 f"  odometry: {o_path}\n  gnss: {g_path}\n  truth: {truth_path}"
             )
+
+
+def _read_truth_trees(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read an ``id,x,y,diameter`` truth CSV written by ``stemmap sim scans``."""
+    from stemmap.errors import InputError
+
+    if not path.is_file():
+        raise InputError(f"truth trees CSV {str(path)!r} does not exist.")
+    try:
+        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise InputError(f"truth trees CSV {str(path)!r} is malformed: {exc}") from exc
+    if table.shape[1] != 4 or not np.all(np.isfinite(table)):
+        raise InputError(
+            f"truth trees CSV {str(path)!r} must have finite columns id,x,y,diameter; "
+            f"got {table.shape[1]} columns."
+        )
+    order = np.argsort(table[:, 0])
+    if not np.array_equal(table[order, 0], np.arange(table.shape[0])):
+        raise InputError(f"truth trees CSV {str(path)!r}: ids must be 0..T-1.")
+    return table[order, 1:3], table[order, 3]
+
+
+@sim_app.command("score")
+def score(
+    detections: Annotated[
+        Path, typer.Argument(help="Observations CSV from `stemmap detect` (sensor frame).")
+    ],
+    run_path: Annotated[
+        Path,
+        typer.Option(
+            "--run", help="The scans NPZ written by `stemmap sim scans` (truth beside it)."
+        ),
+    ],
+    gate: Annotated[float, typer.Option(help="Match gate, metres.")] = 0.5,
+    min_returns: Annotated[
+        int, typer.Option("--min-returns", help="Beams a trunk needs to count as detectable.")
+    ] = 5,
+    max_range: Annotated[
+        float, typer.Option("--max-range", help="Trees farther than this are don't-care, m.")
+    ] = 15.0,
+    min_diameter: Annotated[
+        float, typer.Option("--min-diameter", help="Thinner trees are don't-care, m.")
+    ] = 0.10,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write the metrics as JSON here.")
+    ] = None,
+) -> None:
+    """Score per-scan detections against the simulator's ground truth (TA/FA/FR/TR, DBH error).
+
+    Example: stemmap sim scans --out run.npz && stemmap detect run.npz --out stems.csv &&
+    stemmap sim score stems.csv --run run.npz
+    """
+    from stemmap.errors import InputError
+    from stemmap.eval import score_scan_detections
+    from stemmap.io.atomic import atomic_write
+    from stemmap.io.maps import read_observations_csv
+    from stemmap.io.scans import read_scans
+    from stemmap.io.trajectory import read_trajectory_csv
+
+    with fail_on_stemmap_error():
+        batch = read_scans(run_path)
+        trees_xy, diam = _read_truth_trees(_sibling(run_path, "trees.csv"))
+        poses = read_trajectory_csv(_sibling(run_path, "poses.csv")).poses
+        truth_path = _sibling(run_path, "truth.npz")
+        if not truth_path.is_file():
+            raise InputError(f"truth NPZ {str(truth_path)!r} does not exist.")
+        try:
+            with np.load(truth_path, allow_pickle=False) as z:
+                hit_ids = np.asarray(z["hit_ids"], dtype=np.int64)
+                clutter_xy = np.asarray(z["clutter_xy"], dtype=np.float64).reshape(-1, 2)
+                clutter_ext = np.asarray(z["clutter_extent"], dtype=np.float64)
+        except (KeyError, ValueError, OSError) as exc:
+            raise InputError(f"truth NPZ {str(truth_path)!r} is unreadable: {exc}") from exc
+        if hit_ids.shape != batch.ranges.shape or poses.shape[0] != len(batch):
+            raise InputError(
+                f"{str(run_path)!r} has {batch.ranges.shape} ranges but the truth has "
+                f"{hit_ids.shape} hit ids and {poses.shape[0]} poses; the files do not belong "
+                "together."
+            )
+        obs = read_observations_csv(detections)
+        a_max = batch.angle_min + batch.angle_increment * (batch.n_beams - 1)
+        m = score_scan_detections(
+            obs,
+            trees_xy=trees_xy,
+            diameters=diam,
+            sensor_poses=poses,
+            hit_ids=hit_ids,
+            nontree_xy=clutter_xy,
+            nontree_extent=clutter_ext,
+            fov=(min(batch.angle_min, a_max), max(batch.angle_min, a_max), batch.angle_increment),
+            gate=gate,
+            min_returns=min_returns,
+            max_range=max_range,
+            min_diameter=min_diameter,
+        )
+        d = m.to_dict()
+        d["eligibility"] = {
+            "min_returns": min_returns,
+            "max_range_m": max_range,
+            "min_diameter_m": min_diameter,
+        }
+        if json_out is not None:
+            with atomic_write(json_out) as fh:
+                json.dump(d, fh, indent=2)
+
+        def cm(v: float) -> str:
+            return "n/a" if not math.isfinite(v) else f"{100 * v:.2f} cm"
+
+        def ratio(v: float) -> str:
+            return "n/a" if not math.isfinite(v) else f"{v:.3f}"
+
+        out.print(
+            f"{m.n_frames} scans, {m.n_detections} detections: TA {m.ta}, FA {m.fa}, FR {m.fr}, "
+            f"TR {m.tr}/{m.n_nontree}\n"
+            f"precision {ratio(m.precision)}, recall {ratio(m.recall)}, F1 {ratio(m.f1)}; "
+            f"centre RMSE {cm(m.center_rmse)}; DBH RMSE {cm(m.diameter_rmse)}, "
+            f"bias {cm(m.diameter_bias)}"
+        )
+        for b in m.by_range:
+            if b.n_truth:
+                out.print(
+                    f"  {b.range_lo:g}-{b.range_hi:g} m: recall {ratio(b.recall)}, "
+                    f"DBH RMSE {cm(b.diameter_rmse)}, bias {cm(b.diameter_bias)} "
+                    f"({b.n_truth} trees)"
+                )
 
 
 def register(app: typer.Typer) -> None:

@@ -11,6 +11,7 @@ from stemmap.eval.detection import (
     detectable_trees,
     detection_metrics,
     scan_detection_metrics,
+    score_scan_detections,
 )
 from stemmap.eval.diameters import DiameterBin, DiameterErrors, diameter_errors
 from stemmap.eval.maps import (
@@ -39,4 +40,5 @@ __all__ = [
     "match_points",
     "pairwise_distance_errors",
     "scan_detection_metrics",
+    "score_scan_detections",
 ]

@@ -45,6 +45,7 @@ __all__ = [
     "detectable_trees",
     "detection_metrics",
     "scan_detection_metrics",
+    "score_scan_detections",
 ]
 
 #: Range-bin edges (m) used by default: the issue's targets are set at <= 5 m and 5-10 m.
@@ -92,7 +93,8 @@ class DetectionMetrics:
     """Result of :func:`detection_metrics` / :func:`scan_detection_metrics`.
 
     Counts are integers; rates and errors are floats in metres (NaN where undefined).
-    ``matching`` holds the last frame's assignment (single-frame use) or None (pooled).
+    ``matching`` holds the last frame's assignment (single-frame use) or None (pooled);
+    ``frame_counts`` (F, 3) holds (TA, FA, FR) of every frame, for per-scan recall.
     """
 
     gate: float
@@ -115,13 +117,14 @@ class DetectionMetrics:
     by_range: tuple[RangeBinMetrics, ...] = ()
     n_frames: int = 1
     matching: Matching | None = field(default=None, repr=False)
+    frame_counts: NDArray[np.int64] | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (NaN -> None); lengths in metres."""
         out = {
             k: _nan_to_none(v)
             for k, v in self.__dict__.items()
-            if k not in ("by_range", "matching")
+            if k not in ("by_range", "matching", "frame_counts")
         }
         out["by_range"] = [b.to_dict() for b in self.by_range]
         return out
@@ -142,6 +145,7 @@ class _Pooled:
     n_nontree: int = 0
     n_frames: int = 0
     last: Matching | None = None
+    counts: list[tuple[int, int, int]] = field(default_factory=list)
 
     def add_frame(
         self,
@@ -180,6 +184,7 @@ class _Pooled:
             self.n_nontree += int(nontree_xy.shape[0])
         self.n_frames += 1
         self.last = m
+        self.counts.append((int(di.size), int(fa_idx.size), int(missed.size)))
 
     def summary(self, gate: float, bins: Sequence[float]) -> DetectionMetrics:
         ce = np.concatenate(self.center_err) if self.center_err else np.zeros(0)
@@ -233,6 +238,7 @@ class _Pooled:
             by_range=tuple(by_range),
             n_frames=self.n_frames,
             matching=self.last if self.n_frames == 1 else None,
+            frame_counts=np.asarray(self.counts, dtype=np.int64).reshape(-1, 3),
         )
 
 
@@ -430,18 +436,84 @@ def scan_detection_metrics(
     Returns
     -------
     DetectionMetrics
-        Pooled counts and errors; ``n_frames`` is the number of scans.
+        Pooled counts and errors; ``n_frames`` is the number of scans; ``frame_counts``
+        holds (TA, FA, FR) per scan.
+    """
+    sc = run.scanner
+    return score_scan_detections(
+        detections,
+        trees_xy=run.stand.trees_xy,
+        diameters=run.stand.diameters,
+        sensor_poses=run.true_poses.poses,
+        hit_ids=run.hit_ids,
+        nontree_xy=run.stand.clutter_objects_xy,
+        nontree_extent=run.stand.clutter_objects_extent,
+        fov=(sc.angle_min, sc.angle_max, sc.angle_increment),
+        gate=gate,
+        min_returns=min_returns,
+        max_range=max_range,
+        min_diameter=min_diameter,
+        range_bins=range_bins,
+    )
+
+
+def score_scan_detections(
+    detections: StemObservations,
+    *,
+    trees_xy: ArrayLike,
+    diameters: ArrayLike,
+    sensor_poses: ArrayLike,
+    hit_ids: ArrayLike,
+    nontree_xy: ArrayLike | None = None,
+    nontree_extent: ArrayLike | None = None,
+    fov: tuple[float, float, float] | None = None,
+    gate: float = 0.5,
+    min_returns: int = 5,
+    max_range: float = 15.0,
+    min_diameter: float = 0.10,
+    range_bins: Sequence[float] = DEFAULT_RANGE_BINS,
+) -> DetectionMetrics:
+    """:func:`scan_detection_metrics` on plain arrays (e.g. read back from ``stemmap sim`` files).
+
+    Parameters
+    ----------
+    detections : StemObservations
+        Sensor-frame detections; ``index`` is the scan index.
+    trees_xy : array_like of shape (T, 2), world frame, metres
+    diameters : array_like of shape (T,), metres
+    sensor_poses : array_like of shape (S, 3)
+        True sensor pose (x, y, theta) of every scan, world frame.
+    hit_ids : array_like of shape (S, N), int
+        Per-beam ground truth (tree index, negatives for non-trees / nothing).
+    nontree_xy, nontree_extent : array_like of shape (K, 2), (K,), optional
+        Non-tree objects (world frame) for true rejects.
+    fov : (angle_min, angle_max, angle_increment), radians, optional
+        Scanner field of view: non-tree objects outside it are not counted. ``None``: 360°.
+    gate, min_returns, max_range, min_diameter, range_bins
+        As in :func:`scan_detection_metrics`.
     """
     if not (gate > 0 and math.isfinite(gate)):
         raise InputError(f"gate must be a finite distance > 0 m, got {gate}.")
-    n_s = len(run.scans)
+    txy = _xy(trees_xy, "trees_xy")
+    tdiam = _vec(diameters, txy.shape[0], "diameters")
+    poses = np.asarray(sensor_poses, dtype=np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 3:
+        raise InputError(f"sensor_poses must have shape (S, 3), got {poses.shape}.")
+    hits = np.asarray(hit_ids)
+    n_s = poses.shape[0]
+    if hits.ndim != 2 or hits.shape[0] != n_s:
+        raise InputError(f"hit_ids must have shape (S, N) with S = {n_s} scans, got {hits.shape}.")
     if len(detections) and (detections.index.min() < 0 or detections.index.max() >= n_s):
         raise InputError(
             f"detection scan indices must lie in [0, {n_s}), got "
             f"[{detections.index.min()}, {detections.index.max()}]."
         )
-    stand = run.stand
-    poses = run.true_poses.poses
+    nxy = _xy(nontree_xy, "nontree_xy") if nontree_xy is not None else np.zeros((0, 2))
+    next_ = (
+        np.zeros(nxy.shape[0])
+        if nontree_extent is None
+        else _vec(nontree_extent, nxy.shape[0], "nontree_extent")
+    )
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
 
     def to_sensor(xy: FloatArray) -> FloatArray:
@@ -454,28 +526,30 @@ def scan_detection_metrics(
             axis=-1,
         )
 
-    t_local = to_sensor(stand.trees_xy)
+    t_local = to_sensor(txy)
     t_range = np.hypot(t_local[..., 0], t_local[..., 1])
     eligible = detectable_trees(
-        run.hit_ids,
-        stand.n_trees,
+        hits,
+        txy.shape[0],
         min_returns=min_returns,
         truth_range=t_range,
         max_range=max_range,
-        diameters=stand.diameters,
+        diameters=tdiam,
         min_diameter=min_diameter,
     )
-    o_local = to_sensor(stand.clutter_objects_xy)
+    o_local = to_sensor(nxy)
     o_range = np.hypot(o_local[..., 0], o_local[..., 1])
-    o_bear = np.arctan2(o_local[..., 1], o_local[..., 0])
-    sc = run.scanner
-    in_fov = (o_bear >= sc.angle_min) & (o_bear <= sc.angle_max) | (
-        sc.angle_max - sc.angle_min >= 2 * math.pi - 2 * sc.angle_increment
-    )
+    if fov is None:
+        in_fov = np.ones(o_range.shape, dtype=bool)
+    else:
+        a_min, a_max, a_inc = fov
+        o_bear = np.arctan2(o_local[..., 1], o_local[..., 0])
+        in_fov = (o_bear >= a_min) & (o_bear <= a_max) | (
+            a_max - a_min >= 2 * math.pi - 2 * abs(a_inc)
+        )
     o_ok = (o_range <= max_range) & in_fov
     order = np.argsort(detections.index, kind="stable")
-    idx_sorted = detections.index[order]
-    starts = np.searchsorted(idx_sorted, np.arange(n_s + 1))
+    starts = np.searchsorted(detections.index[order], np.arange(n_s + 1))
     bins = _bins(range_bins)
     pool = _Pooled()
     for k in range(n_s):
@@ -484,11 +558,11 @@ def scan_detection_metrics(
             detections.centers[sel],
             detections.diameters[sel],
             t_local[k],
-            stand.diameters,
+            tdiam,
             eligible[k],
             t_range[k],
             float(gate),
             o_local[k][o_ok[k]],
-            stand.clutter_objects_extent[o_ok[k]],
+            next_[o_ok[k]],
         )
     return pool.summary(float(gate), bins)
