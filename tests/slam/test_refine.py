@@ -11,7 +11,12 @@ from hypothesis import strategies as st
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.slam.base import observation_to_world
-from stemmap.slam.refine import kalman_refine_trees, world_observation_covariance
+from stemmap.slam.refine import (
+    kalman_refine_trees,
+    refine_stem_map,
+    world_observation_covariance,
+)
+from stemmap.types import StemMap, Tree
 
 
 @settings(max_examples=40, deadline=None)
@@ -91,3 +96,29 @@ def test_refine_bad_input():
         )
     empty = kalman_refine_trees([[0.0, 0.0]], [np.eye(2)], [-1], n_trees=2)
     assert np.all(np.isnan(empty.xy)) and empty.n_obs.tolist() == [0, 0]
+
+
+def test_refine_stem_map_moves_trees_to_the_detections_and_shrinks_covariance(rng):
+    # two trees, a vehicle passing by; the map is 0.4 m off, detections are exact + 2 cm noise
+    truth = np.array([[10.0, 3.0], [14.0, -2.0]])
+    smap = StemMap(
+        (
+            Tree(0, 10.4, 3.0, 0.3, cov=np.eye(2)),
+            Tree(1, 14.0, -2.4, 0.4, cov=np.eye(2)),
+            Tree(2, 40.0, 40.0, 0.2, cov=np.eye(2)),  # never detected: unchanged
+        )
+    )
+    poses = np.column_stack((np.linspace(0, 8, 20), np.zeros(20), np.zeros(20)))
+    rel = truth[None, :, :] - poses[:, None, :2]
+    r = np.hypot(rel[..., 0], rel[..., 1]).reshape(-1) + rng.normal(0, 0.02, 40)
+    b = np.arctan2(rel[..., 1], rel[..., 0]).reshape(-1)
+    ptr = np.arange(0, 41, 2)
+    out = refine_stem_map(smap, poses, ptr, r, b, sigma_range=0.02, sigma_bearing=1e-3, gate=1.0)
+    # 20 detections of 2 cm noise: within 2 cm of the truth (about 4 sigma of the mean)
+    np.testing.assert_allclose(out.xy[:2], truth, atol=0.02)
+    assert [t.n_obs for t in out] == [20, 20, 0]
+    assert out.trees[2] is smap.trees[2]
+    assert np.all(np.linalg.eigvalsh(out.trees[0].cov) < 1e-3)
+    assert [t.diameter for t in out] == [0.3, 0.4, 0.2]
+    with pytest.raises(InputError):
+        refine_stem_map(smap, poses, ptr[:-1], r, b, sigma_range=0.1, sigma_bearing=0.01)
