@@ -84,8 +84,10 @@ def chord_width(r0: ArrayLike, r1: ArrayLike, theta: ArrayLike) -> FloatArray:
     """
     a = np.asarray(r0, dtype=np.float64)
     b = np.asarray(r1, dtype=np.float64)
-    c = np.cos(np.asarray(theta, dtype=np.float64))
-    out: FloatArray = np.sqrt(np.maximum(a * a + b * b - 2.0 * a * b * c, 0.0))
+    h = np.sin(np.asarray(theta, dtype=np.float64) / 2.0)
+    # eq. 12 with cos(theta) = 1 - 2 sin^2(theta / 2): identical, without the cancellation of
+    # a^2 + b^2 - 2ab cos(theta) for the small angles a far trunk subtends
+    out: FloatArray = np.sqrt((a - b) ** 2 + 4.0 * a * b * h * h)
     return out
 
 
