@@ -292,13 +292,12 @@ def _fit_one(
     lx = c0 * qx + s0 * qy
     ly = -s0 * qx + c0 * qy
     th = np.arctan2(ly, lx)
-    th_sorted = np.sort(th)
-    th_min = th_sorted[0]
-    th_max = th_sorted[n - 1]
+    th_min = np.min(th)
+    th_max = np.max(th)
     one_sided = th_min > -0.5 * math.pi + 1e-3 and th_max < 0.5 * math.pi - 1e-3
     rho_min = np.min(rho)
     if dtheta <= 0.0:
-        diffs = np.diff(th_sorted)
+        diffs = np.diff(np.sort(th))
         dtheta = np.median(diffs)
         if not dtheta > 0.0:
             dtheta = (th_max - th_min) / (n - 1)
@@ -378,13 +377,14 @@ def _fit_one(
         scale = sig
         if sigma <= 0.0:
             scale = max(1.4826 * np.median(dabs) * math.sqrt(n / (n - 3.0)), _SIGMA_FLOOR)
-        order = np.argsort(-dabs)
         n_rej = 0
-        for j in range(n // 4):
-            i = order[j]
-            if dabs[i] > _REJECT * scale:
-                keep[i] = 0.0
-                n_rej += 1
+        if np.max(dabs) > _REJECT * scale:
+            order = np.argsort(-dabs)
+            for j in range(n // 4):
+                i = order[j]
+                if dabs[i] > _REJECT * scale:
+                    keep[i] = 0.0
+                    n_rej += 1
         if n_rej > 0:
             if sigma <= 0.0:
                 ss = 0.0
@@ -414,16 +414,20 @@ def _fit_one(
     # rotate back to the input frame
     gx = ox + c0 * p[0] - s0 * p[1]
     gy = oy + s0 * p[0] + c0 * p[1]
-    R = np.array([[c0, -s0, 0.0], [s0, c0, 0.0], [0.0, 0.0, 1.0]])
-    Cg = R @ C @ R.T
+    # Cg = R C R^T with R the rotation back to the input frame (written out: a 3x3 matmul
+    # through BLAS costs more than the whole fit of a short arc)
+    R = np.zeros((3, 3))
+    R[0, 0], R[0, 1], R[1, 0], R[1, 1], R[2, 2] = c0, -s0, s0, c0, 1.0
     out[0] = gx
     out[1] = gy
     out[2] = p[2]
-    k = 3
     for a in range(3):
         for b in range(3):
-            out[k] = Cg[a, b]
-            k += 1
+            acc = 0.0
+            for i in range(3):
+                for j in range(3):
+                    acc += R[a, i] * C[i, j] * R[b, j]
+            out[3 + 3 * a + b] = acc
     out[12] = math.sqrt(ss / n_in)
     out[13] = sig
     return OK

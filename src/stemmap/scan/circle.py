@@ -588,16 +588,32 @@ def fit_circle_ours(
     n = p.shape[0]
     if n < 3:
         return CircleFit.failed(STATUS_MESSAGES[1], "ours", n)
-    res = fit_circles_batch(
-        p,
-        np.zeros(n, dtype=np.int64),
-        "ours",
-        origin=o,
-        sigma=sigma,
-        angle_increment=angle_increment,
-        edges=edges,
+    sig = _check_sigma(sigma)
+    inc = _check_increment(angle_increment)
+    lo, hi = (bool(v) for v in edges)
+    out, status = fit_ours_segments(
+        p[:, 0],
+        p[:, 1],
+        np.zeros(1, dtype=np.int64),
+        np.array([n], dtype=np.int64),
+        o[:1],
+        o[1:],
+        np.array([sig]),
+        np.array([inc]),
+        np.array([lo]),
+        np.array([hi]),
     )
-    return res[0]
+    if status[0] != 0:
+        return CircleFit.failed(STATUS_MESSAGES[int(status[0])], "ours", n)
+    row = out[0]
+    return CircleFit(
+        center=row[:2].copy(),
+        radius=float(row[2]),
+        cov=row[3:12].reshape(3, 3).copy(),
+        rms=float(row[12]),
+        n_points=n,
+        method="ours",
+    )
 
 
 #: Registry of fit methods by name; ``fit_circle`` dispatches on it. Every registered function
