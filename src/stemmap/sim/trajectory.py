@@ -695,6 +695,40 @@ def _poses_at(true_path: Trajectory, odo: Odometry, tq: FloatArray) -> FloatArra
     )
 
 
+def _skewed_scans(
+    stand: Stand,
+    model: ScannerModel,
+    true_path: Trajectory,
+    true_odo: Odometry,
+    offset: Pose2,
+    t_scan: FloatArray,
+    beam_dt: float,
+    gen: np.random.Generator,
+) -> tuple[ScanBatch, NDArray[np.int64], NDArray[np.bool_]]:
+    """Scans whose beams are cast from the pose at each beam's own time (sliced fan)."""
+    n_b = model.n_beams
+    n_slices = min(32, n_b // 2)
+    edges = np.linspace(0, n_b, n_slices + 1).round().astype(np.int64)
+    gens = gen.spawn(n_slices)
+    ranges = np.empty((t_scan.size, n_b))
+    hit = np.empty((t_scan.size, n_b), dtype=np.int64)
+    mixed = np.empty((t_scan.size, n_b), dtype=bool)
+    inc = model.angle_increment
+    for j in range(n_slices):
+        i0, i1 = int(edges[j]), int(edges[j + 1])
+        t_mid = t_scan + beam_dt * (i0 + i1 - 1) / 2.0
+        sens = compose_poses(_poses_at(true_path, true_odo, t_mid), offset.as_array())
+        part = replace(
+            model, angle_min=model.angle_min + i0 * inc, angle_max=model.angle_min + (i1 - 1) * inc
+        )
+        b, h, mx = simulate_scans(stand, sens, part, times=t_scan, rng=gens[j])
+        ranges[:, i0:i1], hit[:, i0:i1], mixed[:, i0:i1] = b.ranges, h, mx
+    batch = ScanBatch(
+        ranges, t_scan, model.angle_min, inc, model.range_min, model.range_max, "laser"
+    )
+    return batch, hit, mixed
+
+
 def simulate_run(
     stand: Stand,
     path: ArrayLike | Trajectory,
@@ -711,6 +745,7 @@ def simulate_run(
     max_yaw_rate: float = 0.8,
     corridor_half_width: float | None = None,
     max_scans: int | None = None,
+    motion_skew: bool = False,
     rng: RngLike = None,
 ) -> SimRun:
     """Simulate a drive through ``stand``: scans, true poses, wheel and visual odometry.
@@ -743,6 +778,13 @@ def simulate_run(
         (:func:`clear_corridor`); ``SimRun.stand`` is the cleared stand.
     max_scans : int, optional
         Keep only the first ``max_scans`` scans (and the odometry up to the last of them).
+    motion_skew : bool
+        If True, beam ``i`` is measured from the pose at ``time + i * dt_beam`` with
+        ``dt_beam = angle_increment / (2 pi rate)`` (a mirror turning once per scan), as a
+        real scanner does while the vehicle moves; ``scans.times`` and ``true_poses`` stay the
+        time and pose of the first beam (the ROS ``LaserScan`` stamp convention). Poses are
+        held constant over slices of <= 1/32 of the beams. Default False: every beam from the
+        scan pose.
     rng : numpy Generator or int seed
         Independent child streams are spawned for the scanner, wheel odometry, visual
         odometry and GNSS, so changing one noise model does not change the others' draws.
@@ -812,12 +854,16 @@ def simulate_run(
     # the last sample's controls hold for one more period; repeat the last control
     true_odo = Odometry(t_odo, np.append(v_true, v_true[-1]), np.append(w_true, w_true[-1]))
     true_path = Trajectory(t_odo, integrate_unicycle(pose0, v_true, w_true, dt), frame="world")
-    t_scan = t0 + np.arange(0.0, t_odo[-1] - t0 + 1e-12, 1.0 / rate)
+    beam_dt = model.angle_increment / (2.0 * math.pi * rate)
+    skew = motion_skew and model.n_beams >= 4
+    # with motion skew a scan needs the drive to last for its whole sweep
+    sweep = beam_dt * (model.n_beams - 1) if skew else 0.0
+    t_scan = t0 + np.arange(0.0, t_odo[-1] - t0 - sweep + 1e-12, 1.0 / rate)
     if max_scans is not None:
         if max_scans < 2:
             raise ConfigError(f"max_scans must be >= 2, got {max_scans}.")
         t_scan = t_scan[:max_scans]
-        keep_odo = t_odo <= t_scan[-1] + dt
+        keep_odo = t_odo <= t_scan[-1] + sweep + dt
         true_odo = Odometry(
             true_odo.times[keep_odo], true_odo.speed[keep_odo], true_odo.yaw_rate[keep_odo]
         )
@@ -826,7 +872,12 @@ def simulate_run(
         raise ConfigError("the drive is shorter than two scan periods; lengthen the path.")
     vehicle = _poses_at(true_path, true_odo, t_scan)
     sensor = compose_poses(vehicle, offset.as_array())
-    scans, hit, mixed = simulate_scans(stand, sensor, model, times=t_scan, rng=g_scan)
+    if skew:
+        scans, hit, mixed = _skewed_scans(
+            stand, model, true_path, true_odo, offset, t_scan, beam_dt, g_scan
+        )
+    else:
+        scans, hit, mixed = simulate_scans(stand, sensor, model, times=t_scan, rng=g_scan)
     odo, slipping = _noisy_odometry(true_odo, onoise, g_odo)
     vo = _visual_odometry(vehicle, t_scan, vnoise, g_vo)
     gnss = _gnss(true_path, true_odo, gnoise, g_gnss)
@@ -842,6 +893,8 @@ def simulate_run(
         "lookahead_m": lookahead,
         "max_yaw_rate_rad_s": max_yaw_rate,
         "corridor_half_width_m": corridor_half_width,
+        "motion_skew": motion_skew,
+        "beam_time_increment_s": beam_dt if skew else 0.0,
         "n_scans": int(t_scan.size),
         "n_trees": stand.n_trees,
         "n_clutter_objects": stand.n_clutter_objects,
