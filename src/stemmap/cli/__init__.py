@@ -32,6 +32,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "stemmap.cli._sim",
     "stemmap.cli._io",
     "stemmap.cli._stems",
+    "stemmap.cli._vision",
 )
 
 

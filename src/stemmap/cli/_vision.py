@@ -1,0 +1,313 @@
+"""``stemmap calibrate | segment | fuse``: laser-camera calibration, trunk segmentation, fusion.
+
+File formats
+------------
+Correspondence CSV (calibrate): header ``x,y,u,v`` (laser metres, image pixels; Xue 2018 §3.1)
+or ``x,y,z,u,v`` (3D sensor points, for PnP). Lines starting with ``#`` are comments.
+
+Calibration JSON (written by calibrate, read by fuse): ``G`` (3x3, laser plane -> pixels),
+``method``, ``rms_px``, ``n_pairs``, ``n_inliers``, ``residuals_px``; with intrinsics given also
+``camera`` {``K``, ``width``, ``height``} and, for PnP, ``laser_to_camera`` {``R``, ``t``}.
+
+RoI CSV (segment --rois): ``x,y,w,h,alpha`` per region (pixels; alpha of Xue eq. 18).
+
+Decisions CSV (fuse): ``kind,laser_index,region_index,x,y,width,mT,mNT,mTheta,conflict,is_trunk``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+import cv2
+import numpy as np
+import typer
+from rich.table import Table
+
+from stemmap.cli._common import console, fail_on_stemmap_error, out
+from stemmap.errors import ConfigError, InputError
+from stemmap.io.atomic import atomic_write
+
+__all__ = ["calibrate", "fuse", "register", "segment"]
+
+
+def _read_table(path: Path, required: list[str], optional: list[str]) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise InputError(f"{path} does not exist.")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read {path}: {exc}") from exc
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise InputError(f"{path} is empty; expected a header line {','.join(required)}.")
+    rows = list(csv.reader(io.StringIO("\n".join(lines))))
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(
+            f"{path} lacks column(s) {', '.join(missing)}; its header is {','.join(header)}."
+        )
+    data = []
+    for k, r in enumerate(rows[1:], start=2):
+        if len(r) != len(header):
+            raise InputError(f"{path}, data row {k}: {len(r)} fields for {len(header)} columns.")
+        try:
+            data.append([float(v) for v in r])
+        except ValueError as exc:
+            raise InputError(f"{path}, data row {k}: every field must be a number.") from exc
+    arr = np.asarray(data, dtype=np.float64).reshape(-1, len(header))
+    return {c: arr[:, header.index(c)] for c in required + optional if c in header}
+
+
+def _camera(
+    fx: float | None,
+    fy: float | None,
+    cx: float | None,
+    cy: float | None,
+    width: int | None,
+    height: int | None,
+) -> Any:
+    from stemmap.vision.camera import CameraModel
+
+    vals = (fx, cx, cy, width, height)
+    if all(v is None for v in vals):
+        return None
+    if any(v is None for v in vals):
+        raise ConfigError("camera intrinsics need --fx, --cx, --cy, --width and --height together.")
+    K = np.array([[fx, 0.0, cx], [0.0, fy if fy is not None else fx, cy], [0.0, 0.0, 1.0]])
+    return CameraModel(K, int(width), int(height))  # type: ignore[arg-type]
+
+
+def calibrate(
+    pairs: Annotated[Path, typer.Argument(help="Correspondence CSV: x,y,u,v or x,y,z,u,v.")],
+    out_path: Annotated[Path, typer.Option("--out", "-o", help="Calibration JSON to write.")],
+    method: Annotated[
+        str, typer.Option(help="Homography: xue2018, dlt, dlt_refined, ransac.")
+    ] = "dlt_refined",
+    threshold_px: Annotated[float, typer.Option(help="RANSAC inlier threshold, pixels.")] = 3.0,
+    pnp: Annotated[
+        bool, typer.Option(help="Also solve the sensor-to-camera pose by PnP (needs --fx ...).")
+    ] = False,
+    fx: Annotated[float | None, typer.Option(help="Focal length x, pixels.")] = None,
+    fy: Annotated[float | None, typer.Option(help="Focal length y, pixels (default fx).")] = None,
+    cx: Annotated[float | None, typer.Option(help="Principal point x, pixels.")] = None,
+    cy: Annotated[float | None, typer.Option(help="Principal point y, pixels.")] = None,
+    width: Annotated[int | None, typer.Option(help="Image width, pixels.")] = None,
+    height: Annotated[int | None, typer.Option(help="Image height, pixels.")] = None,
+    seed: Annotated[int, typer.Option(help="RANSAC random seed.")] = 0,
+) -> None:
+    """Fit the laser-to-image matrix G (and optionally the PnP pose); report pixel errors.
+
+    Example: stemmap calibrate pairs.csv --out calib.json --method ransac
+    """
+    from stemmap.vision.calibrate import fit_homography, solve_pnp
+
+    with fail_on_stemmap_error():
+        t = _read_table(pairs, ["x", "y", "u", "v"], ["z"])
+        xy = np.column_stack((t["x"], t["y"]))
+        uv = np.column_stack((t["u"], t["v"]))
+        opts: dict[str, Any] = (
+            {"threshold_px": threshold_px, "rng": seed} if method == "ransac" else {}
+        )
+        fit = fit_homography(xy, uv, method, **opts)
+        if not fit:
+            raise InputError(f"calibration of {pairs} failed: {fit.reason}.")
+        doc: dict[str, Any] = {
+            "G": fit.G.tolist(),
+            "method": fit.method,
+            "rms_px": fit.rms_px,
+            "n_pairs": int(xy.shape[0]),
+            "n_inliers": int(fit.inliers.sum()),
+            "residuals_px": [round(float(r), 4) for r in fit.residuals_px],
+        }
+        cam = _camera(fx, fy, cx, cy, width, height)
+        if cam is not None:
+            doc["camera"] = {"K": cam.K.tolist(), "width": cam.width, "height": cam.height}
+        if pnp:
+            if cam is None:
+                raise ConfigError(
+                    "--pnp needs the camera intrinsics (--fx --cx --cy --width --height)."
+                )
+            z = t.get("z", np.zeros(xy.shape[0]))
+            pose = solve_pnp(np.column_stack((xy, z)), uv, cam, ransac=method == "ransac")
+            if not pose or pose.transform is None:
+                raise InputError(f"PnP on {pairs} failed: {pose.reason}.")
+            doc["laser_to_camera"] = {
+                "R": pose.transform.R.tolist(),
+                "t": pose.transform.t.tolist(),
+                "rms_px": pose.rms_px,
+            }
+        with atomic_write(out_path) as fh:
+            json.dump(doc, fh, indent=2)
+    table = Table(title=f"calibration ({fit.method})")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    table.add_row("pairs", str(xy.shape[0]))
+    table.add_row("inliers", str(int(fit.inliers.sum())))
+    table.add_row("RMS reprojection error (px)", f"{fit.rms_px:.3f}")
+    table.add_row("max error (px)", f"{float(np.max(fit.residuals_px)):.3f}")
+    if "laser_to_camera" in doc:
+        table.add_row("PnP RMS error (px)", f"{doc['laser_to_camera']['rms_px']:.3f}")
+    out.print(table)
+
+
+def segment(
+    image: Annotated[Path, typer.Argument(help="Colour image (PNG, JPEG, ...).")],
+    out_path: Annotated[Path, typer.Option("--out", "-o", help="Mask PNG to write (0 / 255).")],
+    rois: Annotated[
+        Path | None, typer.Option(help="Also write the regions: x,y,w,h,alpha CSV.")
+    ] = None,
+    preset: Annotated[
+        str, typer.Option(help="Segmentation preset: xue2018, xue2018_strict, full_frame.")
+    ] = "xue2018",
+) -> None:
+    """Stripping segmentation of trunks (Xue 2018); writes the mask and optionally the RoIs.
+
+    Example: stemmap segment frame.png --out mask.png --rois rois.csv
+    """
+    from stemmap.vision.segment import segment_trunks
+
+    with fail_on_stemmap_error():
+        if not image.is_file():
+            raise InputError(f"image {image} does not exist.")
+        bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(f"{image} is not a readable image file.")
+        seg = segment_trunks(np.ascontiguousarray(bgr[..., ::-1]), preset)
+        ok, buf = cv2.imencode(".png", seg.mask.astype(np.uint8) * 255)
+        if not ok:  # pragma: no cover - OpenCV failure
+            raise InputError(f"could not encode the mask for {out_path}.")
+        with atomic_write(out_path, "wb") as fh:
+            fh.write(buf.tobytes())
+        if rois is not None:
+            with atomic_write(rois) as fh:
+                w = csv.writer(fh, lineterminator="\n")
+                w.writerow(["x", "y", "w", "h", "alpha"])
+                r = seg.regions
+                for k in range(len(r)):
+                    w.writerow(
+                        [int(r.x[k]), int(r.y[k]), int(r.w[k]), int(r.h[k]), f"{r.alpha[k]:.4f}"]
+                    )
+    out.print(f"{len(seg.regions)} trunk region(s); mask written to {out_path}")
+
+
+def fuse(
+    scan: Annotated[Path, typer.Option(help="Scan file (.npz, .csv, bag) read by stemmap.io.")],
+    image: Annotated[Path, typer.Option(help="The camera image taken with the scan.")],
+    calibration: Annotated[Path, typer.Option(help="Calibration JSON from `stemmap calibrate`.")],
+    out_path: Annotated[Path, typer.Option("--out", "-o", help="Decisions CSV to write.")],
+    scan_index: Annotated[int, typer.Option(help="Which scan of the file (0-based).")] = 0,
+    method: Annotated[str, typer.Option(help="xue2018 or ours.")] = "xue2018",
+    bpa: Annotated[
+        str, typer.Option(help="BPA preset: xue2018, xue2018_printed, forest.")
+    ] = "xue2018",
+    preset: Annotated[str, typer.Option(help="Segmentation preset.")] = "xue2018",
+) -> None:
+    """Fuse one laser scan with one image: laser RoIs + stripping segmentation + Dempster-Shafer.
+
+    ``ours`` needs the camera intrinsics in the calibration JSON (calibrate --fx ...).
+
+    Example: stemmap fuse --scan run.npz --image frame.png --calibration calib.json --out d.csv
+    """
+    from stemmap.fusion.associate import laser_rois
+    from stemmap.fusion.fuse import FusionParams, fuse_ours, fuse_xue2018
+    from stemmap.io.scans import read_scans
+    from stemmap.vision.camera import CameraModel, RigidTransform
+    from stemmap.vision.segment import segment_trunks
+
+    with fail_on_stemmap_error():
+        if method not in ("xue2018", "ours"):
+            raise ConfigError(f"--method must be 'xue2018' or 'ours', got {method!r}.")
+        try:
+            doc = json.loads(calibration.read_text(encoding="utf-8"))
+            G = np.asarray(doc["G"], dtype=np.float64)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise InputError(
+                f"{calibration} is not a calibration JSON with a 3x3 'G': {exc}"
+            ) from exc
+        if G.shape != (3, 3) or not np.all(np.isfinite(G)):
+            raise InputError(f"{calibration}: 'G' must be a finite 3x3 matrix.")
+        batch = read_scans(scan)
+        if not 0 <= scan_index < len(batch):
+            raise InputError(
+                f"{scan} has {len(batch)} scan(s); --scan-index {scan_index} is out of range."
+            )
+        if not image.is_file():
+            raise InputError(f"image {image} does not exist.")
+        bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(f"{image} is not a readable image file.")
+        rgb = np.ascontiguousarray(bgr[..., ::-1], dtype=np.uint8)
+        rois = laser_rois(batch[scan_index])
+        seg = segment_trunks(rgb, preset)
+        if method == "xue2018":
+            res = fuse_xue2018(rois, seg.regions, G, image_width=rgb.shape[1], bpa=bpa)
+        else:
+            if "camera" not in doc:
+                raise ConfigError(
+                    f"--method ours needs camera intrinsics in {calibration} "
+                    "(run `stemmap calibrate` with --fx --cx --cy --width --height)."
+                )
+            cam = CameraModel(
+                np.asarray(doc["camera"]["K"]), doc["camera"]["width"], doc["camera"]["height"]
+            )
+            l2c = None
+            if "laser_to_camera" in doc:
+                l2c = RigidTransform(
+                    np.asarray(doc["laser_to_camera"]["R"]), np.asarray(doc["laser_to_camera"]["t"])
+                )
+            res = fuse_ours(
+                rois, seg.regions, G, rgb, cam, laser_to_camera=l2c, params=FusionParams(bpa=bpa)
+            )
+        with atomic_write(out_path) as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(
+                [
+                    "kind",
+                    "laser_index",
+                    "region_index",
+                    "x",
+                    "y",
+                    "width",
+                    "mT",
+                    "mNT",
+                    "mTheta",
+                    "conflict",
+                    "is_trunk",
+                ]
+            )
+            for k in range(len(res)):
+                li, ri = int(res.laser_index[k]), int(res.region_index[k])
+                kind = "pair" if li >= 0 and ri >= 0 else ("laser" if li >= 0 else "vision")
+                x, y = res.centers[k]
+                w.writerow(
+                    [
+                        kind,
+                        li,
+                        ri,
+                        "" if math.isnan(x) else f"{x:.4f}",
+                        "" if math.isnan(y) else f"{y:.4f}",
+                        "" if math.isnan(res.diameters[k]) else f"{res.diameters[k]:.4f}",
+                        f"{res.m_fused.t[k]:.4f}",
+                        f"{res.m_fused.nt[k]:.4f}",
+                        f"{res.m_fused.theta[k]:.4f}",
+                        f"{res.conflict[k]:.4f}",
+                        int(res.is_trunk[k]),
+                    ]
+                )
+    console.print(
+        f"{len(rois)} laser RoI(s), {len(seg.regions)} image region(s), "
+        f"{len(res.association.pairs)} pair(s): {int(res.is_trunk.sum())} trunk(s) -> {out_path}"
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add calibrate, segment and fuse to the stemmap app."""
+    app.command("calibrate")(calibrate)
+    app.command("segment")(segment)
+    app.command("fuse")(fuse)

@@ -1,0 +1,123 @@
+"""CLI: stemmap calibrate | segment | fuse on simulated data."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+from typer.testing import CliRunner
+
+from stemmap.cli import app
+from stemmap.fusion.scenes import fusion_scene
+from stemmap.io.scans import write_scans_npz
+from stemmap.sim.camera import xue2018_rig
+from stemmap.types import ScanBatch
+from stemmap.vision.camera import apply_homography, laser_plane_homography
+
+RUNNER = CliRunner()
+RIG = xue2018_rig()
+G = laser_plane_homography(RIG.camera, RIG.laser_to_camera)
+
+
+def _pairs(path: Path, n: int = 20) -> None:
+    rng = np.random.default_rng(0)
+    xy = np.column_stack((rng.uniform(2, 7, n), rng.uniform(-1, 1, n)))
+    uv = apply_homography(G, xy) + rng.normal(0, 0.5, (n, 2))
+    with path.open("w") as fh:
+        fh.write("# laser x,y (m), pixel u,v\nx,y,u,v\n")
+        for (x, y), (u, v) in zip(xy, uv, strict=True):
+            fh.write(f"{x},{y},{u},{v}\n")
+
+
+def test_calibrate_and_fuse(tmp_path: Path) -> None:
+    pairs = tmp_path / "pairs.csv"
+    _pairs(pairs)
+    calib = tmp_path / "calib.json"
+    K = RIG.camera.K
+    res = RUNNER.invoke(
+        app,
+        [
+            "calibrate",
+            str(pairs),
+            "--out",
+            str(calib),
+            "--method",
+            "ransac",
+            "--fx",
+            str(K[0, 0]),
+            "--cx",
+            str(K[0, 2]),
+            "--cy",
+            str(K[1, 2]),
+            "--width",
+            "1280",
+            "--height",
+            "720",
+            "--pnp",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    doc = json.loads(calib.read_text())
+    assert doc["rms_px"] < 1.0  # 0.5 px noise
+    assert np.allclose(np.asarray(doc["laser_to_camera"]["t"]), RIG.laser_to_camera.t, atol=0.05)
+
+    sc = fusion_scene(2, rig=RIG)
+    scan_path = tmp_path / "scan.npz"
+    write_scans_npz(scan_path, ScanBatch.from_scans([sc.scan]))
+    img = tmp_path / "frame.png"
+    cv2.imwrite(str(img), sc.image[..., ::-1])
+    for method in ("xue2018", "ours"):
+        out = tmp_path / f"decisions_{method}.csv"
+        res = RUNNER.invoke(
+            app,
+            [
+                "fuse",
+                "--scan",
+                str(scan_path),
+                "--image",
+                str(img),
+                "--calibration",
+                str(calib),
+                "--out",
+                str(out),
+                "--method",
+                method,
+                "--bpa",
+                "forest",
+            ],
+        )
+        assert res.exit_code == 0, res.output
+        rows = list(csv.DictReader(out.open()))
+        assert rows and {"kind", "is_trunk", "mT"} <= set(rows[0])
+        assert sum(int(r["is_trunk"]) for r in rows) >= 1
+
+
+def test_segment(tmp_path: Path) -> None:
+    sc = fusion_scene(0, rig=RIG)
+    img = tmp_path / "frame.png"
+    cv2.imwrite(str(img), sc.image[..., ::-1])
+    mask, rois = tmp_path / "mask.png", tmp_path / "rois.csv"
+    res = RUNNER.invoke(app, ["segment", str(img), "--out", str(mask), "--rois", str(rois)])
+    assert res.exit_code == 0, res.output
+    m = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
+    assert m.shape == (720, 1280) and set(np.unique(m)) <= {0, 255}
+    rows = list(csv.DictReader(rois.open()))
+    assert rows and set(rows[0]) == {"x", "y", "w", "h", "alpha"}
+
+
+def test_cli_errors(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y,u\n1,2,3\n")
+    res = RUNNER.invoke(app, ["calibrate", str(bad), "--out", str(tmp_path / "c.json")])
+    assert res.exit_code == 2 and "lacks column" in " ".join(res.output.split())
+    res = RUNNER.invoke(
+        app, ["segment", str(tmp_path / "none.png"), "--out", str(tmp_path / "m.png")]
+    )
+    assert res.exit_code == 2 and "does not" in " ".join(res.output.split())
+    few = tmp_path / "few.csv"
+    few.write_text("x,y,u,v\n1,0,1,1\n2,0,2,2\n3,0,3,3\n")
+    res = RUNNER.invoke(app, ["calibrate", str(few), "--out", str(tmp_path / "c.json")])
+    assert res.exit_code == 2 and "failed" in " ".join(res.output.split())
