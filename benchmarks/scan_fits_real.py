@@ -361,10 +361,15 @@ def run_speed(
     shared)."""
     rng = np.random.default_rng(seed)
     arcs = []
+    # whole visible arcs with exactly n_points returns (not truncated ones: a cut arc has a
+    # false silhouette edge): at 5 m with 0.5 deg beams, 10 returns need r ~ 0.2-0.24 m
+    r_mid = 5.0 * math.sin(math.radians(0.25 * n_points))
     while len(arcs) < n_arcs:
-        pts, _, _ = simulated_arcs(5.0, 1, bin_deg=0.5, noise=0.01, rng=rng, r_range=(0.2, 0.4))
-        if pts.shape[0] >= n_points:
-            arcs.append(pts[:n_points])
+        pts, _, _ = simulated_arcs(
+            5.0, 1, bin_deg=0.5, noise=0.01, rng=rng, r_range=(0.9 * r_mid, 1.1 * r_mid)
+        )
+        if pts.shape[0] == n_points:
+            arcs.append(pts)
     allp = np.vstack(arcs)
     ids = np.repeat(np.arange(n_arcs), n_points)
     out: dict[str, Any] = {}
