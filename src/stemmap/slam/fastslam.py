@@ -117,8 +117,9 @@ class FastSlam:
     resample_threshold : float in (0, 1]
         Resample when ESS < threshold * P.
     max_candidates : int
-        Landmarks per particle considered for association: the nearest ones inside the frame's
-        window (the range and bearing span of its detections widened by ``window_margin``).
+        Landmarks per particle considered for association: among those within the frame's
+        maximum detection range + ``window_margin`` of the sensor, the ones closest to any of
+        the frame's detections (mapped with the particle's pose).
     window_margin : float, m
     min_observations : int
         Landmarks of the best particle seen fewer times are left out of the output map.
@@ -246,12 +247,15 @@ class FastSlam:
                     rmax = float(r.max()) + self.window_margin
                     near = valid & (dist2 <= rmax * rmax)
                     pp, cc = np.nonzero(near)
-                    bw = wrap_angle(np.arctan2(ddy[pp, cc], ddx[pp, cc]) - X[pp, 2])
-                    bmid = 0.5 * (float(b.max()) + float(b.min()))
-                    half = 0.5 * (float(b.max()) - float(b.min())) + self.window_margin / rmax
-                    inside = np.zeros_like(near)
-                    inside[pp, cc] = np.abs(wrap_angle(bw - bmid)) <= half + 0.05
-                    dist2 = np.where(inside, dist2, np.inf)
+                    # rank landmarks by their distance to the nearest detection of this frame
+                    # (as predicted by the particle): far trees are not crowded out by near ones
+                    ang_o = X[:, 2][:, None] + b[None, :]
+                    ox = sx[:, None] + r[None, :] * np.cos(ang_o)  # (P, K)
+                    oy = sy[:, None] + r[None, :] * np.sin(ang_o)
+                    gx = mu[pp, cc, 0][:, None] - ox[pp]
+                    gy = mu[pp, cc, 1][:, None] - oy[pp]
+                    dist2 = np.full(near.shape, np.inf)
+                    dist2[pp, cc] = np.min(gx * gx + gy * gy, axis=1)
                     if c_all > M:
                         cand = np.argpartition(dist2, M - 1, axis=1)[:, :M]
                     else:
