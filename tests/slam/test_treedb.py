@@ -108,6 +108,16 @@ def test_gate_separates_new_trees_and_one_detection_per_tree():
     assert db.count.tolist() == [2, 1, 1, 1]
 
 
+def test_known_association_overrides_the_gate():
+    db, _ = treedb_update(TreeDb(), [[0.0, 0.0], [3.0, 0.0]], None, gate=0.5)
+    # detection 0 is 1.2 m from tree 0 (beyond the gate) but was matched by the localisation
+    db, idx = treedb_update(db, [[1.2, 0.0], [3.1, 0.0]], None, gate=0.5, known=[0, -1])
+    assert idx.tolist() == [0, 1] and len(db) == 2
+    np.testing.assert_allclose(db.xy[0], [0.6, 0.0])
+    with pytest.raises(InputError, match="known"):
+        treedb_update(db, [[0.0, 0.0]], None, known=[5])
+
+
 def test_promotion_at_count_threshold_paper_20():
     assert PRESETS["visual_lidar"].promote_count == 20
     db = TreeDb()
