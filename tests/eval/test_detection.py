@@ -124,6 +124,31 @@ def test_count_identities(n, k, seed):
     assert sum(b.fr for b in m.by_range) == m.fr
 
 
+@settings(max_examples=50, deadline=None)
+@given(n=st.integers(0, 10), k=st.integers(0, 10), c=st.integers(0, 5), seed=st.integers(0, 999))
+def test_count_identities_with_dont_care_and_clutter(n, k, c, seed):
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(0, 15, (n, 2))
+    det = rng.uniform(0, 15, (k, 2))
+    elig = rng.random(n) < 0.6
+    clutter = rng.uniform(0, 15, (c, 2))
+    m = detection_metrics(
+        det,
+        np.full(k, 0.3),
+        truth,
+        np.full(n, 0.3),
+        gate=1.0,
+        truth_eligible=elig,
+        nontree_xy=clutter,
+        nontree_extent=np.full(c, 0.2),
+    )
+    assert m.ta + m.fa + m.n_ignored == k
+    assert m.ta + m.fr == int(elig.sum()) == m.n_truth_eligible
+    assert 0 <= m.tr <= c == m.n_nontree
+    if m.fa == 0:
+        assert m.tr == c  # no unmatched detection can claim a non-tree object
+
+
 def test_detectable_trees_counts_returns():
     hit = np.array([[0, 0, 0, 0, 0, 1, 1, -1, -2], [1] * 5 + [-1] * 4])
     ok = detectable_trees(hit, 3, min_returns=5)

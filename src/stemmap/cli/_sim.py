@@ -78,6 +78,10 @@ def scans(
     noncircular: Annotated[
         bool, typer.Option("--noncircular/--circular", help="Elliptic, rough-barked trunks.")
     ] = False,
+    motion_skew: Annotated[
+        bool,
+        typer.Option("--motion-skew/--no-motion-skew", help="Cast each beam from its own pose."),
+    ] = False,
     odometry: Annotated[
         str, typer.Option(help="Wheel-odometry noise preset: none, wheel, forest.")
     ] = "wheel",
@@ -166,6 +170,7 @@ def scans(
             odometry_noise=odometry,
             corridor_half_width=1.2,
             max_scans=n_scans,
+            motion_skew=motion_skew,
             rng=g_run,
         )
         if n_scans is not None and len(run) < n_scans:
