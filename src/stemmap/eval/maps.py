@@ -230,6 +230,13 @@ def map_metrics(
     Returns
     -------
     MapMetrics
+
+    Examples
+    --------
+    >>> m = map_metrics([[0.0, 0.1], [5.0, 0.0], [5.2, 0.1]], [0.3, 0.3, 0.3],
+    ...                 [[0.0, 0.0], [5.0, 0.0], [9.0, 0.0]], [0.3, 0.3, 0.3], gate=0.5)
+    >>> m.n_matched, m.n_duplicates, m.n_missed, round(m.position_rmse, 3)
+    (2, 1, 1, 0.071)
     """
     if isinstance(map_xy, StemMap):
         mdiam = map_xy.diameters if map_diam is None else np.asarray(map_diam, dtype=np.float64)

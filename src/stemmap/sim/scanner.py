@@ -639,6 +639,16 @@ def simulate_scans(
     pixel model (:class:`ScannerModel` Notes), add ``N(0, sigma(r)^2)`` range noise with
     ``sigma(r) = range_noise + range_noise_rel * r``, drop with probability ``dropout``, then
     apply the range window.
+
+    Examples
+    --------
+    >>> from stemmap.sim import Stand
+    >>> stand = Stand([[5.0, 0.0]], [0.4])  # one 40 cm trunk 5 m ahead
+    >>> scans, hit, mixed = simulate_scans(stand, [[0.0, 0.0, 0.0]], "sick_lms", rng=0)
+    >>> scans.ranges.shape, int((hit == 0).sum())
+    ((1, 361), 9)
+    >>> bool(abs(np.min(scans.ranges) - 4.8) < 0.05)  # front of the trunk, 1 cm noise
+    True
     """
     m = scanner_preset(model)
     p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)

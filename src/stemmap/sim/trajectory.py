@@ -799,6 +799,18 @@ def simulate_run(
         On bad rates/speeds, unknown presets, or a path the vehicle cannot follow.
     InputError
         On malformed waypoints.
+
+    Examples
+    --------
+    >>> from stemmap.sim import loop_path, random_stand
+    >>> stand = random_stand(30, (30.0, 30.0), rng=1)
+    >>> run = simulate_run(stand, loop_path((15.0, 15.0), (9.0, 6.0)), rate_hz=10.0,
+    ...                    corridor_half_width=1.0, rng=2)
+    >>> run.scans.ranges.shape == run.hit_ids.shape == (len(run), 361)
+    True
+    >>> end, start = run.true_path.poses[-1, :2], run.true_path.poses[0, :2]
+    >>> bool(np.hypot(*(end - start)) < 0.1)  # the loop closes
+    True
     """
     model = scanner_preset(scanner)
     rate = model.scan_rate_hz if rate_hz is None else float(rate_hz)
