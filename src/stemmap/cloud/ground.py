@@ -71,8 +71,16 @@ class GroundAccumulator:
         ij = np.floor(p[:, :2] / self.cell).astype(np.int64)
         ij += _OFF
         keys = (ij[:, 0] << 32) | ij[:, 1]
-        keys = np.concatenate((self._keys, keys))
-        pts = np.concatenate((self._low, p))
+        # reduce the chunk to its lowest point per cell first (one int sort + ufunc.at, much
+        # cheaper than a lexsort of the whole chunk), then merge with the running minima
+        uk, inv = np.unique(keys, return_inverse=True)
+        zmin = np.full(uk.shape[0], np.inf)
+        np.minimum.at(zmin, inv, p[:, 2])
+        cand = np.flatnonzero(p[:, 2] == zmin[inv])
+        _, first = np.unique(inv[cand], return_index=True)
+        sel = cand[first]
+        keys = np.concatenate((self._keys, keys[sel]))
+        pts = np.concatenate((self._low, p[sel]))
         order = np.lexsort((pts[:, 2], keys))
         keys, pts = keys[order], pts[order]
         first = np.ones(keys.shape[0], dtype=bool)
