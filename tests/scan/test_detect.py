@@ -288,3 +288,22 @@ def test_partial_segments_need_more_returns():
         r[None, :], a[0], a[1] - a[0], 0.0, 50.0
     )
     assert len(strict) == len(segs) - 1
+
+
+def test_chunked_batches_give_identical_results():
+    rng = np.random.default_rng(5)
+    rows = [
+        scene_ranges([(3.0, 1.0, 0.15), (6.0, -2.0, 0.25)], ANG) + rng.normal(0, 0.01, ANG.size)
+        for _ in range(7)
+    ]
+    rows[3][:] = np.nan  # an empty scan in the middle
+    batch = ScanBatch(np.stack(rows), np.arange(7) * 0.1, ANG[0], ANG[1] - ANG[0], 0.0, 50.0)
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method="kasa"))
+    whole = det.detect_batch(batch, pitch=np.zeros(7))
+    for chunk in (1, 2, 3, 7):
+        part = det.detect_batch(batch, pitch=np.zeros(7), chunk_scans=chunk)
+        np.testing.assert_array_equal(part.index, whole.index)
+        np.testing.assert_array_equal(part.centers, whole.centers)
+    assert 3 not in whole.index.tolist() and len(whole) == 12
+    with pytest.raises(ConfigError, match="chunk_scans"):
+        det.detect_batch(batch, chunk_scans=0)
