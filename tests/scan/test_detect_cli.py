@@ -62,3 +62,58 @@ def test_detect_bad_inputs_exit_2(tmp_path):
     np.savez(ok, ranges=ranges, time=np.zeros(2), angle_min=a[0], angle_increment=0.01)
     res = runner.invoke(app, ["detect", str(ok), "--out", "x.csv", "--preset", "ohman2007"])
     assert res.exit_code == 2 and "Öhman" in " ".join(res.output.split())
+
+
+def _write_ros1_bag(path, topics, ranges, angle_min, inc, corrupt_topic=None):
+    """A ROS1 bag with sensor_msgs/LaserScan on every topic (plus one damaged message)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    with Writer(path) as w:
+        conns = {t: w.add_connection(t, "sensor_msgs/msg/LaserScan", typestore=ts) for t in topics}
+        for k, row in enumerate(ranges):
+            stamp = T["builtin_interfaces/msg/Time"](sec=k, nanosec=0)
+            msg = T["sensor_msgs/msg/LaserScan"](
+                header=T["std_msgs/msg/Header"](seq=k, stamp=stamp, frame_id="laser"),
+                angle_min=angle_min,
+                angle_max=angle_min + inc * (len(row) - 1),
+                angle_increment=inc,
+                time_increment=0.0,
+                scan_time=0.1,
+                range_min=0.05,
+                range_max=30.0,
+                ranges=np.where(np.isfinite(row), row, np.inf).astype(np.float32),
+                intensities=np.zeros(0, np.float32),
+            )
+            data = bytes(ts.serialize_ros1(msg, "sensor_msgs/msg/LaserScan"))
+            for t in topics:
+                w.write(conns[t], (k + 1) * 1_000_000_000, data)
+        if corrupt_topic is not None:
+            w.write(conns[corrupt_topic], (len(ranges) + 1) * 1_000_000_000, b"\x01\x02\x03")
+    return path
+
+
+def test_detect_reads_a_ros1_bag_topic(tmp_path):
+    ranges, a = _ranges(3)
+    bag = _write_ros1_bag(
+        tmp_path / "run.bag",
+        ["/scan", "/scan_rear"],
+        ranges,
+        float(a[0]),
+        math.radians(0.5),
+        corrupt_topic="/scan",
+    )
+    out = tmp_path / "bag.csv"
+    res = runner.invoke(
+        app, ["detect", str(bag), "--out", str(out), "--topic", "/scan", "--fit", "kasa"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "skipped frame 3" in res.output  # the damaged 4th message
+    with out.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted({int(r["scan_index"]) for r in rows}) == [0, 1, 2] and len(rows) == 6
+    # two LaserScan topics and none chosen: the reader's error names them
+    res = runner.invoke(app, ["detect", str(bag), "--out", str(tmp_path / "x.csv")])
+    assert res.exit_code == 2 and "/scan_rear" in " ".join(res.output.split())
