@@ -105,6 +105,10 @@ def test_stand_validation():
         Stand([[0, 0]], [0.3], segments=[[0, 0, 1, 1]], segment_owner=[3])
     with pytest.raises(InputError, match="clutter_kinds"):
         Stand([[0, 0]], [0.3], clutter_objects_xy=[[1, 1]])
+    with pytest.raises(InputError, match="finite"):
+        Stand([[0, 0]], [0.3], segments=[[0, 0, np.nan, 1]])
+    with pytest.raises(InputError, match="radius"):
+        Stand([[0, 0]], [0.3], clutter_xy=[[1, 1]], clutter_radius=[0.0])
     with pytest.raises(ConfigError):
         add_clutter(Stand([[0, 0]], [0.3]), n_bushes=-1)
     with pytest.raises(ConfigError):

@@ -109,6 +109,10 @@ class Stand:
             own = np.full(seg.shape[0], -1, dtype=np.int64)
         if np.any(own >= xy.shape[0]):
             raise InputError("Stand.segment_owner names a tree index that does not exist.")
+        if not (np.all(np.isfinite(cxy)) and np.all(np.isfinite(seg))):
+            raise InputError("Stand clutter positions and segment end points must be finite.")
+        if np.any(~(cr > 0)):
+            raise InputError("every clutter circle radius in a Stand must be positive.")
         poly = np.array(self.tree_is_polygon, dtype=bool).reshape(-1)
         if poly.shape[0] == 0:
             poly = np.zeros(xy.shape[0], dtype=bool)
