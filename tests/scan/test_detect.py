@@ -307,3 +307,20 @@ def test_chunked_batches_give_identical_results():
     assert 3 not in whole.index.tolist() and len(whole) == 12
     with pytest.raises(ConfigError, match="chunk_scans"):
         det.detect_batch(batch, chunk_scans=0)
+
+
+def test_full_circle_scan_does_not_split_a_trunk_at_the_seam():
+    # RPLIDAR-like 360 deg at 0.5 deg; beam 0 at -180 deg: a trunk right behind the sensor
+    # straddles the first and last beams
+    a = np.radians(-180.0 + 0.5 * np.arange(720))
+    trees = [(-3.0, 0.0, 0.15), (2.0, 1.0, 0.1)]
+    r = scene_ranges(trees, a) + np.random.default_rng(4).normal(0, 0.005, a.size)
+    assert np.isfinite(r[0]) and np.isfinite(r[-1])
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method="kasa"))
+    obs = det.detect(scan_of(r, a))
+    assert len(obs) == 2
+    back = int(np.argmin(obs.centers[:, 0]))
+    assert obs.centers[back] == pytest.approx([-3.0, 0.0], abs=0.01)
+    # all returns of the trunk in one segment, not flagged partial (quality not halved)
+    assert obs.n_points[back] == int(np.sum(np.isfinite(scene_ranges(trees[:1], a))))
+    assert obs.quality[back] > 0.5

@@ -119,3 +119,18 @@ def test_projection_batch_and_small_tilt_agreement():
     assert np.max(np.abs(h - eq1)) > 0.5 * bound.max()  # and the bound is attained
     with pytest.raises(InputError, match="per-scan attitude"):
         project_tilted(r, a, np.zeros(2), 0.0)
+
+
+def test_seam_shift_and_roll():
+    from stemmap.scan.preprocess import roll_beams, seam_shift
+
+    r = np.array([[1.0, 1.0, np.nan, 5.0], [1.0, 1.0, 5.0, 2.0], [2.0, 2.0, 2.0, 9.0]])
+    sh = seam_shift(r)
+    # first missing beam; else the largest jump, wrapping (9 -> 2 between beams 3 and 0)
+    assert sh.tolist() == [2, 2, 0]
+    rolled = roll_beams(r, sh)
+    assert np.isnan(rolled[0, 0]) and rolled[1].tolist() == [5.0, 2.0, 1.0, 1.0]
+    np.testing.assert_array_equal(np.sort(rolled, axis=1), np.sort(r, axis=1))
+    assert roll_beams(np.arange(4.0), [1, 3]).tolist() == [[1, 2, 3, 0], [3, 0, 1, 2]]
+    with pytest.raises(InputError):
+        roll_beams(r, [0, 1])

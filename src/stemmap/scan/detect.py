@@ -34,7 +34,14 @@ from stemmap.scan.features import (
     segment_features,
     segment_sum,
 )
-from stemmap.scan.preprocess import fov_window, gate_ranges, median_filter3, project_tilted
+from stemmap.scan.preprocess import (
+    fov_window,
+    gate_ranges,
+    median_filter3,
+    project_tilted,
+    roll_beams,
+    seam_shift,
+)
 from stemmap.scan.preprocess import tilt_compensate as _tilt_eq1
 from stemmap.scan.segment import (
     Segments,
@@ -672,6 +679,14 @@ class ScanTrunkDetector:
                 r, bearing, _ = project_tilted(r, angles, rr, pp)
         if cfg.median_filter:
             r = median_filter3(r)
+        if cfg.fov_deg is None and abs(n * angle_increment) >= 2 * math.pi - 0.5 * abs(
+            angle_increment
+        ):
+            # 360 deg scan: beam 0 and beam N-1 are neighbours; cut where nothing straddles
+            shift = seam_shift(r)
+            r = roll_beams(r, shift)
+            bearing = roll_beams(bearing, shift)
+            first_beam, last_beam = -1, n  # no field-of-view edge: never truncated
         pts = extract_points(r, bearing, angle_increment)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)

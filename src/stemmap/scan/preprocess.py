@@ -10,6 +10,8 @@ Paper methods
   2018 §3.1: 8 m, 60-120 deg for the camera overlap).
 * :func:`median_filter3` -- three-neighbour median filter (Xue et al. 2018, §2.2).
 * :func:`tilt_compensate` -- horizontal distance from roll and pitch (Zheng et al. 2012, eq. 1).
+* :func:`seam_shift` / :func:`roll_beams` -- cut 360 deg scans where no object straddles the
+  cut (ours).
 * :func:`project_tilted` -- exact alternative: rotate every beam by the full 3D attitude and
   project onto the horizontal plane (ours; eq. 1 is its zero-bearing special case).
 """
@@ -19,7 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
@@ -30,7 +32,9 @@ __all__ = [
     "gate_ranges",
     "median_filter3",
     "project_tilted",
+    "roll_beams",
     "rotation_rpy",
+    "seam_shift",
     "tilt_compensate",
 ]
 
@@ -289,3 +293,49 @@ def project_tilted(
     y = R[..., 1, 0] * px + R[..., 1, 1] * py
     z = R[..., 2, 0] * px + R[..., 2, 1] * py
     return np.hypot(x, y), np.arctan2(y, x), z
+
+
+def seam_shift(ranges: ArrayLike) -> NDArray[np.int64]:
+    """Where to cut each full-circle (360 deg) scan so that no object straddles the cut (ours).
+
+    A 360 deg scanner's first and last beams are neighbours; cutting at beam 0 splits any trunk
+    seen there into two partial segments. The cut goes at the first beam without a return, or,
+    when every beam returned, at the largest range jump between neighbouring beams.
+
+    Parameters
+    ----------
+    ranges : array_like of shape (N,) or (S, N), metres, NaN = no return
+
+    Returns
+    -------
+    ndarray of shape (S,), int -- index of the beam each scan should start at
+
+    Examples
+    --------
+    >>> seam_shift([[1.0, 1.0, np.nan, 5.0], [1.0, 1.0, 5.0, 2.0]]).tolist()
+    [2, 2]
+    """
+    r = np.atleast_2d(as_ranges(ranges))
+    missing = ~np.isfinite(r)
+    has_gap = missing.any(axis=1)
+    first_gap = np.argmax(missing, axis=1)
+    jump = np.abs(r - np.roll(r, 1, axis=1))  # jump[k] = |r_k - r_{k-1}| (wrapping)
+    biggest = np.argmax(np.where(np.isfinite(jump), jump, -1.0), axis=1)
+    out: NDArray[np.int64] = np.where(has_gap, first_gap, biggest).astype(np.int64)
+    return out
+
+
+def roll_beams(values: ArrayLike, shift: ArrayLike) -> FloatArray:
+    """Rotate every scan's beams so that scan ``s`` starts at beam ``shift[s]``:
+    ``out[s, k] = values[s, (k + shift[s]) % N]``. ``values`` (S, N) or (N,) (then broadcast)."""
+    sh = np.asarray(shift, dtype=np.int64).reshape(-1)
+    v = np.asarray(values, dtype=np.float64)
+    n = v.shape[-1]
+    idx = (np.arange(n)[None, :] + sh[:, None]) % n
+    if v.ndim == 1:
+        out: FloatArray = v[idx]
+        return out
+    if v.shape[0] != sh.shape[0]:
+        raise InputError(f"{sh.shape[0]} shifts for {v.shape[0]} scans.")
+    rolled: FloatArray = np.take_along_axis(v, idx, axis=1)
+    return rolled
