@@ -630,7 +630,7 @@ FIT_METHODS: dict[str, Callable[..., CircleFit]] = {
 }
 
 
-def fit_circle(points: ArrayLike, method: str = "ours", **options: Any) -> CircleFit:
+def fit_circle(points: ArrayLike, method: str = "kasa", **options: Any) -> CircleFit:
     """Fit a circle with the named method (see ``FIT_METHODS``).
 
     Raises
