@@ -523,12 +523,14 @@ def fit_circle_ours(
 
     where ``D = |c - origin|`` and ``beta`` is the bearing of the centre. The first term is the
     orthogonal-distance (geometric) fit, made robust to a mixed-pixel or outlier return by a
-    Huber loss (k = 1.5 sigma). The second term is the beam-width-aware silhouette: a beam
+    Huber loss (k = 1.5 sigma) followed, for N >= 6, by rejecting up to N // 4 returns beyond
+    4 sigma and refitting (``rms`` is then over the inliers). The second term is the beam-width-aware silhouette: a beam
     returns only if it hits the trunk, so the tangent bearing of each side lies between the edge
     beam and the neighbouring beam that missed; ``t_edge`` is the middle of that interval
     (edge bearing -+ angle_increment / 2) and ``s = angle_increment / sqrt(12)`` the standard
-    deviation of a uniform interval of that width. Steps are only accepted while the centre
-    stays behind the visible arc (``D > r`` and ``D`` beyond the nearest return).
+    deviation of a uniform interval of that width. With a silhouette, steps are only accepted
+    while the centre stays behind the visible arc (``D > r`` and ``D`` beyond the nearest
+    return).
     Solved by Levenberg-Marquardt from a silhouette-based start; the covariance is the inverse
     Gauss-Newton Hessian of the normalised residuals (so it is scaled by ``sigma`` if given,
     else by the residual RMS with ``N - 3`` degrees of freedom, floored at 0.2 mm).
@@ -554,7 +556,8 @@ def fit_circle_ours(
     -------
     CircleFit
         With ``cov`` over (cx, cy, r). Falsy with a reason for fewer than 3 points, coincident
-        or collinear points without a silhouette, or when no valid circle behind the arc exists.
+        or collinear points without a silhouette, a partial arc (one edge occluded) with only 3
+        returns, or when no valid circle behind the arc exists.
 
     Raises
     ------
@@ -568,7 +571,14 @@ def fit_circle_ours(
     Fletcher-Reeves which converges to the same solution) shrink the radius toward the chord,
     and any unconstrained fit has a near-flat cost along "bigger circle further away"; the
     silhouette pins r / D to within a beam, the points pin the front surface, and the
-    geometric residual has no algebraic bias. See docs/algorithms/scan-fits.md for numbers.
+    geometric residual has no algebraic bias. See docs/algorithms/scan-fits.md for numbers
+    (simulated arcs by range, real TLS trunk geometry) and the known small negative bias.
+
+    References
+    ----------
+    This project (issue 2). Geometric vs algebraic circle fits and the short-arc bias of Kasa:
+    Chernov N. (2010), "Circular and Linear Regression: Fitting Circles and Lines by Least
+    Squares", CRC Press.
 
     Examples
     --------
