@@ -324,3 +324,18 @@ def test_full_circle_scan_does_not_split_a_trunk_at_the_seam():
     # all returns of the trunk in one segment, not flagged partial (quality not halved)
     assert obs.n_points[back] == int(np.sum(np.isfinite(scene_ranges(trees[:1], a))))
     assert obs.quality[back] > 0.5
+
+
+def test_range_proportional_noise_scales_the_circularity_test():
+    # a trunk at 9 m with 3 cm noise: a 1 cm constant sigma calls it "not a circle", the same
+    # sensor described as 1 mm + 0.33 % of range accepts it
+    rng = np.random.default_rng(11)
+    a = np.radians(np.arange(-10.0, 10.0 + 1e-9, 0.1))
+    r = scene_ranges([(9.0, 0.0, 0.25)], a) + rng.normal(0, 0.03, a.size)
+    strict = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.01)
+    scaled = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.001, sigma_rel=0.0033)
+    assert len(ScanTrunkDetector(strict).detect(scan_of(r, a))) == 0
+    obs = ScanTrunkDetector(scaled).detect(scan_of(r, a))
+    assert len(obs) == 1 and obs.centers[0] == pytest.approx([9.0, 0.0], abs=0.1)
+    with pytest.raises(ConfigError, match="sigma_rel"):
+        DetectorConfig(sigma_rel=-0.1)

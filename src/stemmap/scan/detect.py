@@ -130,6 +130,9 @@ class DetectorConfig:
         Circle fit registered in :data:`stemmap.scan.circle.FIT_METHODS`.
     sigma : float, metres
         Range noise of the sensor (fit weighting, covariance floor, straightness test).
+    sigma_rel : float, >= 0
+        Range-proportional part of the noise (triangulation scanners such as RPLIDAR are
+        specified in % of range): each segment uses ``sigma + sigma_rel * mean range``.
     min_radius, max_radius : float, metres
         Plausible fitted trunk radius.
     max_radius_width_ratio : float
@@ -172,6 +175,7 @@ class DetectorConfig:
     drop_partial: bool = False
     fit_method: str = "kasa"
     sigma: float = 0.01
+    sigma_rel: float = 0.0
     min_radius: float = 0.0
     max_radius: float = math.inf
     max_radius_width_ratio: float = math.inf
@@ -216,6 +220,8 @@ class DetectorConfig:
             raise bad("max_curvature", self.max_curvature, "it must exceed min_curvature")
         if not self.sigma >= 0:
             raise bad("sigma", self.sigma, "it must be >= 0 m")
+        if not (self.sigma_rel >= 0 and math.isfinite(self.sigma_rel)):
+            raise bad("sigma_rel", self.sigma_rel, "it must be >= 0")
         if not (self.max_radius > self.min_radius >= 0):
             raise bad("max_radius", self.max_radius, "need 0 <= min_radius < max_radius")
         if not (self.beam_footprint_deg >= 0 and math.isfinite(self.beam_footprint_deg)):
@@ -432,7 +438,7 @@ def _fit_rms(segs: Segments, centers: FloatArray, radii: FloatArray) -> FloatArr
 
 
 def _geometric_cov(
-    segs: Segments, centers: FloatArray, radii: FloatArray, sigma: float
+    segs: Segments, centers: FloatArray, radii: FloatArray, sigma: float | FloatArray
 ) -> FloatArray:
     """Covariance over (x, y, r) of every fitted circle from the orthogonal-distance Jacobian,
     ``s^2 (J^T J)^-1`` with ``s^2 = max(sigma^2, sum res^2 / (n - 3))`` (NaN if singular)."""
@@ -447,7 +453,8 @@ def _geometric_cov(
     res = d - radii[lab]
     n = segs.counts.astype(np.float64)
     rss = segment_sum(res * res, segs)
-    s2 = np.maximum(sigma * sigma, np.where(n > 3, rss / np.maximum(n - 3, 1), 0.0))
+    sig = np.asarray(sigma, dtype=np.float64)
+    s2 = np.maximum(sig * sig, np.where(n > 3, rss / np.maximum(n - 3, 1), 0.0))
     JtJ = np.empty((k, 3, 3))
     JtJ[:, 0, 0] = segment_sum(ux * ux, segs)
     JtJ[:, 1, 1] = segment_sum(uy * uy, segs)
@@ -464,7 +471,7 @@ def _geometric_cov(
 
 
 def _fit_segments(
-    segs: Segments, method: str, sigma: float
+    segs: Segments, method: str, sigma: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
     """Fit every segment with ``method``: centers (K, 2), radii (K,), covs (K, 3, 3), ok (K,).
 
@@ -489,7 +496,7 @@ def _fit_segments(
             segs.labels,
             method,
             origin=np.zeros(2),
-            sigma=sigma if sigma > 0 else None,
+            sigma=sigma if np.all(sigma > 0) else None,
             angle_increment=abs(p.angle_increment),
             edges=edges,
         )
@@ -734,7 +741,7 @@ class ScanTrunkDetector:
             straight = is_straight(
                 f.line_rms,
                 f.width,
-                cfg.sigma,
+                cfg.sigma + cfg.sigma_rel * f.mean_range,
                 ratio=cfg.straight_ratio,
                 n_points=f.n_points if cfg.straight_test == "chi2" else None,
             )
@@ -763,29 +770,30 @@ class ScanTrunkDetector:
             return StemObservations.empty(source=self.source, frame=frame)
         if cfg.beam_footprint_deg > 0:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
-        centers, radii, covs, ok = _fit_segments(segs, cfg.fit_method, cfg.sigma)
         p = segs.points
         n = segs.counts
+        mean_r = segment_sum(p.r, segs) / n
+        sigma = cfg.sigma + cfg.sigma_rel * mean_r  # per-segment range noise
+        centers, radii, covs, ok = _fit_segments(segs, cfg.fit_method, sigma)
         f_width = segment_features_width(segs)
         # plausibility (ours): radius bounds, not near-flat, centre behind the visible surface,
         # outline a circle within the noise; failed fits carry NaN and fail every test
-        mean_r = segment_sum(p.r, segs) / n
         with np.errstate(invalid="ignore"):
             ok &= (radii >= cfg.min_radius) & (radii <= cfg.max_radius)
             ok &= radii <= cfg.max_radius_width_ratio * np.maximum(f_width, 1e-9)
             ok &= np.hypot(centers[:, 0], centers[:, 1]) > mean_r
             rms = _fit_rms(segs, centers, radii)
             if math.isfinite(cfg.max_rms_sigma):
-                ok &= rms <= cfg.max_rms_sigma * cfg.sigma
+                ok &= rms <= cfg.max_rms_sigma * sigma
         if not np.any(ok):
             return StemObservations.empty(source=self.source, frame=frame)
         missing = ok & ~np.all(np.isfinite(covs), axis=(1, 2))
         if np.any(missing):
             sub = segs.select(missing)
-            covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], cfg.sigma)
+            covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], sigma[missing])
         with np.errstate(invalid="ignore"):
             arc = _arc_deg(segs, centers)
-            quality = _quality(n, rms, cfg.sigma, segs.partial)
+            quality = _quality(n, rms, sigma, segs.partial)
         return StemObservations(
             centers=centers[ok],
             radii=radii[ok],
@@ -825,11 +833,11 @@ def _arc_deg(segs: Segments, centers: FloatArray) -> FloatArray:
     return out
 
 
-def _quality(n: np.ndarray, rms: FloatArray, sigma: float, partial: np.ndarray) -> FloatArray:
+def _quality(n: np.ndarray, rms: FloatArray, sigma: FloatArray, partial: np.ndarray) -> FloatArray:
     """Heuristic quality in [0, 1]: support (n / 10, capped), fit residual against the noise,
     halved for partial (occluded or truncated) segments."""
     support = np.minimum(n / 10.0, 1.0)
-    s = max(sigma, 1e-6)
+    s = np.maximum(sigma, 1e-6)
     fit = np.exp(-np.square(np.maximum(rms - s, 0.0) / (3.0 * s)))
     out: FloatArray = support * fit * np.where(partial, 0.5, 1.0)
     return out

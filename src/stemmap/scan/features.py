@@ -241,7 +241,7 @@ def _chi2_upper(alpha: float) -> FloatArray:
 def is_straight(
     line_rms: ArrayLike,
     width: ArrayLike,
-    sigma: float,
+    sigma: float | ArrayLike,
     *,
     ratio: float = 0.05,
     n_points: ArrayLike | None = None,
@@ -262,7 +262,7 @@ def is_straight(
     ----------
     line_rms : array_like of shape (K,), metres (:func:`line_fit_rms`)
     width : array_like of shape (K,), metres
-    sigma : float, metres, > 0 for the chi-square test
+    sigma : float or array_like of shape (K,), metres, > 0 for the chi-square test
     ratio : float, > 0
     n_points : array_like of shape (K,), int, optional
     alpha : float in (0, 1) -- false-straight rate for a true line
@@ -272,15 +272,16 @@ def is_straight(
     >>> is_straight([0.01, 0.05], [1.0, 0.3], 0.01, n_points=[20, 8]).tolist()
     [True, False]
     """
-    if sigma < 0 or ratio <= 0 or not 0 < alpha < 1:
+    sig = np.asarray(sigma, dtype=np.float64)
+    if np.any(sig < 0) or ratio <= 0 or not 0 < alpha < 1:
         raise ConfigError(
-            f"need sigma >= 0, ratio > 0, 0 < alpha < 1; got {sigma}, {ratio}, {alpha}."
+            f"need sigma >= 0, ratio > 0, 0 < alpha < 1; got {sigma!r}, {ratio}, {alpha}."
         )
     rms = np.asarray(line_rms, dtype=np.float64)
-    if n_points is not None and sigma > 0:
+    if n_points is not None and np.all(sig > 0):
         n = np.asarray(n_points, dtype=np.float64)
         dof = np.maximum(n - 2.0, 1.0)
-        stat = n * rms * rms / (sigma * sigma)
+        stat = n * rms * rms / (sig * sig)
         table = _chi2_upper(alpha)
         d = dof.astype(np.int64)
         small = d < table.shape[0]
@@ -289,7 +290,7 @@ def is_straight(
             limit[~small] = chdtri(dof[~small], alpha)
         chi: BoolArray = stat <= limit
         return chi
-    excess = np.sqrt(np.maximum(rms * rms - sigma * sigma, 0.0))
+    excess = np.sqrt(np.maximum(rms * rms - sig * sig, 0.0))
     out: BoolArray = excess < ratio * np.asarray(width, dtype=np.float64)
     return out
 
