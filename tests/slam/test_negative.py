@@ -15,6 +15,7 @@ from stemmap.slam.negative import (
     expected_visibility,
     negative_information,
     remove_false_trees,
+    remove_false_trees_after,
 )
 from stemmap.slam.treedb import TreeDbSlam
 from stemmap.types import StemMap, Tree
@@ -114,9 +115,7 @@ def test_log_odds_rule_and_min_expected():
 def test_post_step_on_a_backend_result(sim):
     problem, _ = sim
     res = TreeDbSlam(promote_count=3).run(problem)
-    sp = sensor_poses(res.trajectory.poses, problem.sensor_offset)
-    det = _world_detections(problem, res.trajectory.poses)
-    cleaned, info = remove_false_trees(res.stem_map, sp, problem.frames.ptr, det, FOV, gate=0.7)
+    cleaned, info = remove_false_trees_after(res, problem, range_min=0.5, gate=0.7)
     assert len(cleaned) == len(res.stem_map) - info.n_removed
     # no false detections were simulated: almost nothing should be removed (<= 10 %)
     assert info.n_removed <= 0.1 * len(res.stem_map)
@@ -138,6 +137,13 @@ def test_negative_bad_input():
         )
     with pytest.raises(ConfigError):
         SensorFov(1.0, -1.0)
+    from stemmap.slam.base import SlamResult
+    from stemmap.types import Trajectory
+
+    problem, _ = sim_problem(seed=4, laps=0.2)
+    bad = SlamResult(Trajectory([0.0, 1.0], np.zeros((2, 3))), StemMap(()))
+    with pytest.raises(InputError, match="frames"):
+        remove_false_trees_after(bad, problem)
     with pytest.raises(ConfigError):
         SensorFov(range_min=5.0, range_max=1.0)
     with pytest.raises(ConfigError, match="rule"):

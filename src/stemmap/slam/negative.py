@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -34,12 +34,16 @@ from numpy.typing import ArrayLike, NDArray
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray, StemMap, wrap_angle
 
+if TYPE_CHECKING:  # pragma: no cover
+    from stemmap.slam.base import SlamProblem, SlamResult
+
 __all__ = [
     "NegativeInfoResult",
     "SensorFov",
     "expected_visibility",
     "negative_information",
     "remove_false_trees",
+    "remove_false_trees_after",
 ]
 
 
@@ -300,3 +304,35 @@ def remove_false_trees(
             tot = int(h + m)
             kept.append(replace(t, confidence=float(h / tot) if tot else t.confidence))
     return StemMap(tuple(kept), frame=stem_map.frame, crs=stem_map.crs), res
+
+
+def remove_false_trees_after(
+    result: SlamResult,
+    problem: SlamProblem,
+    *,
+    range_min: float = 1.0,
+    range_max: float | None = None,
+    **kwargs: object,
+) -> tuple[StemMap, NegativeInfoResult]:
+    """Negative-information post-step for any back-end's result.
+
+    Sensor poses come from ``result.trajectory`` and ``problem.sensor_offset``, the detections
+    from ``problem.frames`` mapped with those poses, the bearing window from ``problem.fov`` and
+    the range window from ``range_min`` .. ``range_max`` (default ``min(problem.max_range,
+    30 m)``: the range where the detector can be expected to find a trunk). Other keyword
+    arguments go to :func:`negative_information`.
+    """
+    from stemmap.slam.base import observation_to_world, sensor_poses
+
+    fr = problem.frames
+    poses = result.trajectory.poses
+    if poses.shape[0] != len(fr):
+        raise InputError(
+            f"remove_false_trees_after: the trajectory has {poses.shape[0]} poses but the problem "
+            f"has {len(fr)} frames; pass the result of running this problem."
+        )
+    rmax = float(min(problem.max_range, 30.0)) if range_max is None else float(range_max)
+    fov = SensorFov(problem.fov[0], problem.fov[1], range_min, rmax)
+    det = observation_to_world(poses[fr.frame_index], fr.ranges, fr.bearings, problem.sensor_offset)
+    sp = sensor_poses(poses, problem.sensor_offset)
+    return remove_false_trees(result.stem_map, sp, fr.ptr, det, fov, **kwargs)
