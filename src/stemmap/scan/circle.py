@@ -524,10 +524,11 @@ def fit_circle_ours(
     where ``D = |c - origin|`` and ``beta`` is the bearing of the centre. The first term is the
     orthogonal-distance (geometric) fit, made robust to a mixed-pixel or outlier return by a
     Huber loss (k = 1.5 sigma) followed, for N >= 6, by rejecting up to N // 4 returns beyond
-    4 sigma and refitting (``rms`` is then over the inliers). The second term is the beam-width-aware silhouette: a beam
-    returns only if it hits the trunk, so the tangent bearing of each side lies between the edge
-    beam and the neighbouring beam that missed; ``t_edge`` is the middle of that interval
-    (edge bearing -+ angle_increment / 2) and ``s = angle_increment / sqrt(12)`` the standard
+    4 sigma and refitting (``rms`` is then over the inliers). The second term is the
+    beam-width-aware silhouette: a beam returns only if it hits the trunk, so the tangent
+    bearing of each side lies between the edge beam and the neighbouring beam that missed;
+    ``t_edge`` is the middle of that interval (edge bearing -+ angle_increment / 2) and
+    ``s = angle_increment / sqrt(12)`` the standard
     deviation of a uniform interval of that width. With a silhouette, steps are only accepted
     while the centre stays behind the visible arc (``D > r`` and ``D`` beyond the nearest
     return).
