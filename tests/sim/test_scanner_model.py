@@ -301,7 +301,9 @@ def test_mixed_pixel_model_against_reference_sub_beams(x, y, th, seed):
         # the range window (range_min 5 cm) applies after mixing
         returns = (n_hit >= 3) & (expect > m.range_min) & (expect < m.range_max)
     np.testing.assert_array_equal(np.isfinite(batch.ranges[0]), returns)
-    np.testing.assert_allclose(batch.ranges[0, returns], expect[returns], rtol=1e-12)
+    # beam angles are summed in a different order than the reference: at grazing incidence
+    # the rounding difference reaches ~1e-11 m; 1e-9 m is the casters' agreement bound
+    np.testing.assert_allclose(batch.ranges[0, returns], expect[returns], rtol=0, atol=1e-9)
     for i in np.flatnonzero(returns):
         _ids, counts = np.unique(sid[i][np.isfinite(sr[i])], return_counts=True)
         assert counts.max() == np.sum(sid[i] == hit[0, i])
