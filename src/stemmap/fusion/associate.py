@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,6 +42,8 @@ class LaserRois:
     centers : (K, 2) metres -- approximate trunk centre: on the bearing bisecting the edge
         beams, at the nearest return's range plus half the width (the nearest point of a
         circle is at D - r)
+    partial : (K,) bool -- an end is occluded by a nearer return or truncated by the field of
+        view: the width is only a lower bound
     """
 
     points: FloatArray
@@ -51,6 +53,11 @@ class LaserRois:
     widths: FloatArray
     ranges: FloatArray
     centers: FloatArray
+    partial: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self) -> None:
+        if self.partial.shape[0] != self.start.shape[0]:
+            object.__setattr__(self, "partial", np.zeros(self.start.shape[0], bool))
 
     def __len__(self) -> int:
         return int(self.start.shape[0])
@@ -85,6 +92,7 @@ class LaserRois:
             self.widths[k],
             self.ranges[k],
             self.centers[k],
+            self.partial[k],
         )
 
 
@@ -151,7 +159,7 @@ def laser_rois(
     u = mid / np.maximum(np.hypot(mid[:, 0], mid[:, 1]), 1e-12)[:, None]
     rmin = np.minimum.reduceat(rr, start)
     centers = u * (rmin + widths / 2.0)[:, None]
-    return LaserRois(xy, p.beam[idx], start, stop, widths, med, centers)
+    return LaserRois(xy, p.beam[idx], start, stop, widths, med, centers, segs.partial.copy())
 
 
 def project_rois(rois: LaserRois, G: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:

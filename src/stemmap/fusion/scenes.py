@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.fusion.associate import LaserRois
+from stemmap.fusion.fuse import FusionParams
 from stemmap.sim.camera import CameraRig, Scene, render_scene, xue2018_rig
 from stemmap.sim.forest import Stand
 from stemmap.sim.scanner import ScannerModel
@@ -176,6 +177,7 @@ def evaluate_fusion(
     *,
     rig: CameraRig | None = None,
     bpa: str = "forest",
+    fusion_params: FusionParams | None = None,
     **scene_options: object,
 ) -> dict[str, Counts]:
     """Laser-only, vision-only, Xue-fused and our fused detections on simulated scenes.
