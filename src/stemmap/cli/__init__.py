@@ -33,6 +33,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "stemmap.cli._io",
     "stemmap.cli._stems",
     "stemmap.cli._vision",
+    "stemmap.cli._map",
 )
 
 

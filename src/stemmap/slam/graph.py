@@ -1,0 +1,482 @@
+"""Graph SLAM with GTSAM: iSAM2 incremental smoothing plus a final batch optimisation (ours).
+
+The problem reads as a factor graph (GTSAM conventions; GTSAM batches are (2, N), ours (N, 2)):
+
+* variables ``X(f)``: :class:`gtsam.Pose2` of the **sensor** at frame ``f`` (the laser pose, so
+  bearing-range factors need no mounting offset; vehicle poses are recovered at the end by
+  composing with the inverse mounting transform);
+* ``L(j)``: :class:`gtsam.Point2` of tree ``j``;
+* a prior on ``X(0)``;
+* ``BetweenFactorPose2(X(f), X(f+1))`` from the Ackermann (or unicycle) odometry pre-integrated
+  between the frames, covariance propagated from the control noise
+  (:func:`stemmap.slam.motion.preintegrate`) and carried to the sensor frame with the adjoint of
+  the mounting transform;
+* ``BearingRangeFactor2D(X(f), L(j))`` for every associated detection, with a robust (Huber by
+  default, or Cauchy) noise model on ``(sigma_bearing, sigma_range)``.
+
+Data association runs against the current estimate: every detection is placed in the world from
+the predicted sensor pose, and its Mahalanobis distance to nearby trees uses the detection's
+world covariance (measurement noise mapped by the inverse observation Jacobian) plus a
+relative-drift term that grows with the distance driven since the tree was last seen (the cheap
+approximation of the joint pose-landmark marginal), plus the diameter cue
+``(d_obs - d_tree)² / (σ²_d + σ²_d / n)``. Pairs are taken greedily by increasing distance
+(one detection per tree per frame); an unmatched detection becomes a new tree only when it is
+clearly separate from every tree.
+
+iSAM2 is updated every ``update_every`` frames; after the last frame a Levenberg-Marquardt batch
+optimisation refines everything, and :class:`gtsam.Marginals` gives each tree's 2x2 covariance.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from stemmap.errors import ConfigError
+from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory
+from stemmap.slam.motion import between, preintegrate
+from stemmap.types import FloatArray, StemMap, Tree
+
+__all__ = ["Isam2Config", "Isam2Slam"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Isam2Config:
+    """Settings of :class:`Isam2Slam` (defaults justified in docs/algorithms/slam.md).
+
+    sigma_range, sigma_bearing : measurement noise (m, rad)
+    sigma_diameter : m, diameter scatter for the association cue (None disables it)
+    robust : "huber", "cauchy" or "none"; robust_k : kernel width in sigmas
+    gate_chi2 : association gate on the Mahalanobis d² (3 dof with the diameter cue)
+    new_chi2 : a detection starts a new tree only if its d² to every tree exceeds this
+    new_min_dist : m, and it is at least this far from every tree
+    max_range : m, detections farther than this are not used (bearing error x range)
+    drift_scale : multiplies the odometry-derived relative variance between the vehicle and a
+        tree, accumulated since the tree was last seen (see ``_relative_variance``), capped at
+        ``max_drift_sigma``² (m²)
+    keyframe_every : frames per keyframe (one Pose2 variable and one iSAM2 update each); the
+        detections of a tree within a keyframe window are merged into one factor
+    relinearize_threshold : iSAM2 relinearisation threshold
+    batch_iterations : LM iterations at the end (0 = skip the batch step)
+    min_obs : trees seen fewer times are left out of the map (they stay in the graph)
+    marginals : compute per-tree covariances (Marginals) at the end
+    """
+
+    sigma_range: float = 0.10
+    sigma_bearing: float = math.radians(0.5)
+    sigma_diameter: float | None = 0.10
+    robust: str = "huber"
+    robust_k: float = 1.345
+    gate_chi2: float = 11.34
+    new_chi2: float = 30.0
+    new_min_dist: float = 1.0
+    max_range: float = 50.0
+    drift_scale: float = 1.0
+    max_drift_sigma: float = 3.0
+    keyframe_every: int = 5
+    relinearize_threshold: float = 0.05
+    relinearize_skip: int = 10
+    batch_iterations: int = 20
+    min_obs: int = 3
+    marginals: bool = True
+    prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
+
+    def __post_init__(self) -> None:
+        if self.robust not in ("huber", "cauchy", "none"):
+            raise ConfigError(
+                f"Isam2Config.robust must be 'huber', 'cauchy' or 'none', got {self.robust!r}."
+            )
+        for name in (
+            "sigma_range",
+            "sigma_bearing",
+            "robust_k",
+            "gate_chi2",
+            "new_chi2",
+            "max_range",
+            "relinearize_threshold",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"Isam2Config.{name} must be a positive number, got {v}.")
+        if self.keyframe_every < 1:
+            raise ConfigError(
+                f"Isam2Config.keyframe_every must be >= 1, got {self.keyframe_every}."
+            )
+        if self.sigma_diameter is not None and not self.sigma_diameter > 0:
+            raise ConfigError(
+                f"Isam2Config.sigma_diameter must be > 0 or None, got {self.sigma_diameter}."
+            )
+
+
+def _sensor_between(
+    deltas: FloatArray, covs: FloatArray, offset: tuple[float, float]
+) -> tuple[FloatArray, FloatArray]:
+    """Vehicle-frame odometry increments -> sensor-frame increments and GTSAM tangent covariances.
+
+    ``δ_s = T_vs⁻¹ δ T_vs``. Our covariance is additive on ``(x, y, θ)`` in the START frame; GTSAM
+    perturbs on the right, in the END frame (``δ Exp(ξ)``): ``ξ_xy ≈ R(θ_δ)ᵀ e_xy``,
+    ``ξ_θ = e_θ``; then ``ξ_s = Ad(T_vs⁻¹) ξ``.
+    """
+    a, b = offset
+    n = deltas.shape[0]
+    c, s = np.cos(deltas[:, 2]), np.sin(deltas[:, 2])
+    # δ_s translation: T_vs^-1 δ T_vs with T_vs = (a, b, 0)
+    tx = deltas[:, 0] + c * a - s * b - a
+    ty = deltas[:, 1] + s * a + c * b - b
+    ds = np.column_stack((tx, ty, deltas[:, 2]))
+    M = np.zeros((n, 3, 3))
+    M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1] = c, s, -s, c
+    M[:, 2, 2] = 1.0
+    # Ad(T^-1) for T = (a, b, 0): T^-1 = (-a, -b, 0); Pose2 adjoint [[R, [y, -x]^T], [0, 1]]
+    Ad = np.array([[1.0, 0.0, -b], [0.0, 1.0, a], [0.0, 0.0, 1.0]])
+    G = Ad[None] @ M
+    cov = G @ covs @ np.swapaxes(G, 1, 2)
+    return ds, cov
+
+
+class Isam2Slam:
+    """GTSAM iSAM2 graph SLAM back-end (registered as ``"isam2"``), see module docs."""
+
+    name = "isam2"
+
+    def __init__(self, config: Isam2Config | None = None, **kwargs: object) -> None:
+        if config is not None and kwargs:
+            raise ConfigError("pass either an Isam2Config or keyword settings, not both.")
+        try:
+            self.config = config or Isam2Config(**kwargs)  # type: ignore[arg-type]
+        except TypeError as exc:
+            raise ConfigError(f"bad iSAM2 setting: {exc}.") from exc
+
+    def run(
+        self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
+    ) -> SlamResult:
+        import gtsam
+        from gtsam.symbol_shorthand import L as LK
+        from gtsam.symbol_shorthand import X as XK
+
+        cfg = self.config
+        t_start = time.perf_counter()
+        frames = problem.frames
+        nf = len(frames)
+        a, b = problem.sensor_offset
+        T_vs = gtsam.Pose2(a, b, 0.0)
+        T_sv = T_vs.inverse()
+        # odometry between consecutive frames (for association and drift) and keyframes
+        pre = preintegrate(problem.motion, problem.controls, frames.times, problem.initial_pose)
+        _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+        kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
+        kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
+        nk = kf_frames.size
+        pre_k = preintegrate(
+            problem.motion, problem.controls, frames.times[kf_frames], problem.initial_pose
+        )
+        d_k, cov_k = _sensor_between(pre_k.deltas, pre_k.covs, (a, b))
+        # a standing vehicle still gets a (tiny) well-posed odometry factor
+        cov_k = cov_k + np.diag([1e-3**2, 1e-3**2, 1e-4**2])[None]
+        # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
+        rel_v = between(pre.poses[kf_frames[kf_of]], pre.poses)
+        rel_s, _ = _sensor_between(rel_v, np.zeros((nf, 3, 3)), (a, b))
+        cum_dist = np.concatenate(([0.0], np.cumsum(pre.distance)))
+        cum_xy = np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1]))))
+        cum_th = np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2])))
+
+        def meas_noise(sig_b: float, sig_r: float) -> Any:
+            base = gtsam.noiseModel.Diagonal.Sigmas(np.array([sig_b, sig_r]))
+            if cfg.robust == "huber":
+                return gtsam.noiseModel.Robust.Create(
+                    gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k), base
+                )
+            if cfg.robust == "cauchy":
+                return gtsam.noiseModel.Robust.Create(
+                    gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k), base
+                )
+            return base
+
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(cfg.relinearize_threshold)
+        params.relinearizeSkip = cfg.relinearize_skip
+        isam = gtsam.ISAM2(params)
+        graph_all = gtsam.NonlinearFactorGraph()
+        new_f = gtsam.NonlinearFactorGraph()
+        new_v = gtsam.Values()
+
+        s0 = gtsam.Pose2(*problem.initial_pose).compose(T_vs)
+        prior = gtsam.noiseModel.Diagonal.Sigmas(np.array(cfg.prior_sigmas))
+        pf = gtsam.PriorFactorPose2(XK(0), s0, prior)
+        new_f.add(pf)
+        graph_all.add(pf)
+        new_v.insert(XK(0), s0)
+
+        # landmark bookkeeping (numpy, grown geometrically)
+        cap = 1024
+        lm_xy = np.zeros((cap, 2))
+        lm_dsum = np.zeros(cap)
+        lm_dn = np.zeros(cap, dtype=np.int64)
+        lm_nobs = np.zeros(cap, dtype=np.int64)
+        lm_first = np.zeros(cap, dtype=np.int64)
+        lm_last = np.zeros(cap, dtype=np.int64)
+        lm_in_graph = np.zeros(cap, dtype=bool)
+        n_lm = 0
+        sd2 = (cfg.sigma_diameter or 1.0) ** 2
+        use_d = cfg.sigma_diameter is not None
+        vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
+        kf_est = np.array([s0.x(), s0.y(), s0.theta()])  # current keyframe sensor pose
+        n_matched = n_new = n_ambiguous = n_far = n_factors_meas = 0
+        # observations of the current keyframe window: landmark -> list of (x, y, var_xy, var_th)
+        window: dict[int, list[tuple[float, float, float, float]]] = {}
+
+        def flush(k: int) -> None:
+            """Merge the window's observations per tree into one bearing-range factor each."""
+            nonlocal n_factors_meas
+            for j, obs in window.items():
+                arr = np.asarray(obs)
+                mx, my = arr[:, 0].mean(), arr[:, 1].mean()
+                rr = math.hypot(mx, my)
+                n = arr.shape[0]
+                # n detections averaged; odometry within the window adds its own variance
+                var_r = vr / n + float(arr[:, 2].mean())
+                var_b = vb / n + float(arr[:, 2].mean()) / (rr * rr) + float(arr[:, 3].mean())
+                if not lm_in_graph[j]:
+                    c, s = math.cos(kf_est[2]), math.sin(kf_est[2])
+                    new_v.insert(
+                        LK(j),
+                        np.array([kf_est[0] + c * mx - s * my, kf_est[1] + s * mx + c * my]),
+                    )
+                    lm_in_graph[j] = True
+                fac = gtsam.BearingRangeFactor2D(
+                    XK(k),
+                    LK(j),
+                    gtsam.Rot2(math.atan2(my, mx)),
+                    rr,
+                    meas_noise(math.sqrt(var_b), math.sqrt(var_r)),
+                )
+                new_f.add(fac)
+                graph_all.add(fac)
+                n_factors_meas += 1
+            window.clear()
+
+        for f in range(nf):
+            k = int(kf_of[f])
+            if f > 0 and kf_frames[k] == f:
+                # close the previous keyframe: factors, iSAM2 update, fresh estimates
+                flush(k - 1)
+                d = d_k[k - 1]
+                bf = gtsam.BetweenFactorPose2(
+                    XK(k - 1),
+                    XK(k),
+                    gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])),
+                    gtsam.noiseModel.Gaussian.Covariance(cov_k[k - 1]),
+                )
+                new_f.add(bf)
+                graph_all.add(bf)
+                prev = gtsam.Pose2(*kf_est)
+                new_v.insert(XK(k), prev.compose(gtsam.Pose2(*d)))
+                isam.update(new_f, new_v)
+                new_f = gtsam.NonlinearFactorGraph()
+                new_v = gtsam.Values()
+                est = isam.calculateEstimate()
+                p = est.atPose2(XK(k))
+                kf_est = np.array([p.x(), p.y(), p.theta()])
+                if n_lm:
+                    ing = np.flatnonzero(lm_in_graph[:n_lm])
+                    lm_xy[ing] = gtsam.utilities.extractPoint2(est)
+            # predicted sensor pose of this frame
+            q = rel_s[f]
+            c, s = math.cos(kf_est[2]), math.sin(kf_est[2])
+            sp = (
+                kf_est[0] + c * q[0] - s * q[1],
+                kf_est[1] + s * q[0] + c * q[1],
+                kf_est[2] + q[2],
+            )
+            r, bear, diam = frames.frame(f)
+            use = r <= cfg.max_range
+            n_far += int((~use).sum())
+            r, bear, diam = r[use], bear[use], diam[use]
+            nd = r.shape[0]
+            if nd:
+                ang = sp[2] + bear
+                ca, sa = np.cos(ang), np.sin(ang)
+                wx = sp[0] + r * ca
+                wy = sp[1] + r * sa
+                # world covariance of each detection: Gz R Gzᵀ (Gz = d(world)/d(r, b))
+                cxx = ca * ca * vr + (r * sa) ** 2 * vb
+                cyy = sa * sa * vr + (r * ca) ** 2 * vb
+                cxy = ca * sa * vr - r * r * sa * ca * vb
+                assign = np.full(nd, -1, dtype=np.int64)
+                d2min = np.full(nd, np.inf)
+                dmin = np.full(nd, np.inf)
+                if n_lm:
+                    Lxy = lm_xy[:n_lm]
+                    near = np.flatnonzero(
+                        (Lxy[:, 0] - sp[0]) ** 2 + (Lxy[:, 1] - sp[1]) ** 2
+                        < (cfg.max_range + 10.0) ** 2
+                    )
+                    if near.size:
+                        ex = wx[:, None] - Lxy[near, 0][None, :]
+                        ey = wy[:, None] - Lxy[near, 1][None, :]
+                        f0 = lm_last[near]
+                        dD = cum_dist[f] - cum_dist[f0]
+                        # position random walk + heading random walk swept over the distance
+                        # driven (lateral var = var_theta D²/3) and over the detection range
+                        drift = cfg.drift_scale * (
+                            (cum_xy[f] - cum_xy[f0])
+                            + (cum_th[f] - cum_th[f0]) * (dD * dD / 3.0 + float(np.mean(r)) ** 2)
+                        )
+                        drift = np.minimum(drift, cfg.max_drift_sigma**2)
+                        # tree position variance ~ one detection's / n_obs (isotropic bound)
+                        lm_var = (vr + (20.0**2) * vb) / np.maximum(lm_nobs[near], 1) + drift
+                        sxx = cxx[:, None] + lm_var[None, :]
+                        syy = cyy[:, None] + lm_var[None, :]
+                        sxy = np.broadcast_to(cxy[:, None], sxx.shape)
+                        det = sxx * syy - sxy * sxy
+                        d2 = (syy * ex * ex - 2 * sxy * ex * ey + sxx * ey * ey) / det
+                        if use_d:
+                            dn = np.maximum(lm_dn[near], 1)
+                            dmean = lm_dsum[near] / dn
+                            dd = diam[:, None] - dmean[None, :]
+                            extra = dd * dd / (sd2 + sd2 / dn[None, :])
+                            d2 = d2 + np.where(np.isfinite(extra), extra, 0.0)
+                        d2min = d2.min(axis=1)
+                        dmin = np.sqrt(ex * ex + ey * ey).min(axis=1)
+                        ii, jj = np.nonzero(d2 < cfg.gate_chi2)
+                        order = np.argsort(d2[ii, jj], kind="stable")
+                        used_i: set[int] = set()
+                        used_j: set[int] = set()
+                        for t_ in order:
+                            i_, j_ = int(ii[t_]), int(jj[t_])
+                            if i_ in used_i or j_ in used_j:
+                                continue
+                            assign[i_] = near[j_]
+                            used_i.add(i_)
+                            used_j.add(j_)
+                # detection in the keyframe's sensor frame, and window odometry variance
+                px, py = r * np.cos(bear), r * np.sin(bear)
+                cq, sq = math.cos(q[2]), math.sin(q[2])
+                kx, ky = q[0] + cq * px - sq * py, q[1] + sq * px + cq * py
+                kf0 = int(kf_frames[k])
+                w_xy = float(cum_xy[f] - cum_xy[kf0])
+                w_th = float(cum_th[f] - cum_th[kf0])
+                for i in range(nd):
+                    j = int(assign[i])
+                    if j < 0:
+                        if d2min[i] <= cfg.new_chi2 or dmin[i] < cfg.new_min_dist:
+                            n_ambiguous += 1
+                            continue
+                        if n_lm == lm_xy.shape[0]:
+                            g = lm_xy.shape[0]
+                            lm_xy = np.concatenate((lm_xy, np.zeros((g, 2))))
+                            lm_dsum = np.concatenate((lm_dsum, np.zeros(g)))
+                            lm_dn = np.concatenate((lm_dn, np.zeros(g, dtype=np.int64)))
+                            lm_nobs = np.concatenate((lm_nobs, np.zeros(g, dtype=np.int64)))
+                            lm_first = np.concatenate((lm_first, np.zeros(g, dtype=np.int64)))
+                            lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
+                            lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
+                        j = n_lm
+                        n_lm += 1
+                        lm_xy[j] = (wx[i], wy[i])
+                        lm_first[j] = f
+                        n_new += 1
+                    else:
+                        n_matched += 1
+                    lm_nobs[j] += 1
+                    lm_last[j] = f
+                    if math.isfinite(diam[i]):
+                        lm_dsum[j] += diam[i]
+                        lm_dn[j] += 1
+                    window.setdefault(j, []).append((float(kx[i]), float(ky[i]), w_xy, w_th))
+            if progress is not None and (f % 50 == 0 or f == nf - 1):
+                progress(f + 1, nf)
+        flush(nk - 1)
+        isam.update(new_f, new_v)
+
+        t_inc = time.perf_counter() - t_start
+        result = isam.calculateEstimate()
+        n_lm_iters = 0
+        if cfg.batch_iterations > 0:
+            lm_params = gtsam.LevenbergMarquardtParams()
+            lm_params.setMaxIterations(cfg.batch_iterations)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph_all, result, lm_params)
+            result = opt.optimize()
+            n_lm_iters = int(opt.iterations())
+        kf_s = gtsam.utilities.extractPose2(result)  # sensor poses of keyframes, in key order
+        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
+        base_p = kf_s[kf_of]
+        cb, sb = np.cos(base_p[:, 2]), np.sin(base_p[:, 2])
+        sp_all = np.column_stack(
+            (
+                base_p[:, 0] + cb * rel_s[:, 0] - sb * rel_s[:, 1],
+                base_p[:, 1] + sb * rel_s[:, 0] + cb * rel_s[:, 1],
+                base_p[:, 2] + rel_s[:, 2],
+            )
+        )
+        # vehicle pose = sensor pose ∘ T_sv
+        cv, sv = np.cos(sp_all[:, 2]), np.sin(sp_all[:, 2])
+        txv, tyv = T_sv.x(), T_sv.y()
+        veh = np.column_stack(
+            (
+                sp_all[:, 0] + cv * txv - sv * tyv,
+                sp_all[:, 1] + sv * txv + cv * tyv,
+                (sp_all[:, 2] + math.pi) % (2 * math.pi) - math.pi,
+            )
+        )
+        pts = np.zeros((n_lm, 2))
+        ing = np.flatnonzero(lm_in_graph[:n_lm])
+        if ing.size:
+            pts[ing] = gtsam.utilities.extractPoint2(result)
+        keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
+        covs = np.full((n_lm, 2, 2), np.nan)
+        if cfg.marginals and keep.size:
+            try:
+                marg = gtsam.Marginals(graph_all, result)
+                # joint marginals in chunks: one Bayes-tree pass per chunk instead of per tree
+                for c0 in range(0, keep.size, 64):
+                    chunk = keep[c0 : c0 + 64]
+                    kv = gtsam.KeyVector([LK(int(q_)) for q_ in chunk])
+                    full = marg.jointMarginalCovariance(kv).fullMatrix()
+                    for t_, q_ in enumerate(chunk):
+                        covs[q_] = full[2 * t_ : 2 * t_ + 2, 2 * t_ : 2 * t_ + 2]
+            except RuntimeError as exc:  # indeterminant system: leave NaN, say why
+                log.warning("iSAM2: marginal covariances unavailable: %s", exc)
+        trees = []
+        for jk in keep.tolist():
+            dn = int(lm_dn[jk])
+            trees.append(
+                Tree(
+                    id=jk,
+                    x=float(pts[jk, 0]),
+                    y=float(pts[jk, 1]),
+                    diameter=float(lm_dsum[jk] / dn) if dn else math.nan,
+                    cov=covs[jk],
+                    n_obs=int(lm_nobs[jk]),
+                    first_time=float(frames.times[lm_first[jk]]),
+                    last_time=float(frames.times[lm_last[jk]]),
+                )
+            )
+        runtime = time.perf_counter() - t_start
+        stats: dict[str, float | int | str] = {
+            "backend": self.name,
+            "frames": nf,
+            "detections": frames.n_detections,
+            "matched": n_matched,
+            "new_landmarks": n_new,
+            "ambiguous_discarded": n_ambiguous,
+            "beyond_max_range": n_far,
+            "landmarks_in_graph": n_lm,
+            "landmarks": len(trees),
+            "factors": int(graph_all.size()),
+            "keyframes": int(nk),
+            "measurement_factors": n_factors_meas,
+            "lm_iterations": n_lm_iters,
+            "incremental_s": t_inc,
+            "runtime_s": runtime,
+        }
+        log.info("iSAM2: %s", stats)
+        return SlamResult(frame_trajectory(frames.times, veh), StemMap(tuple(trees)), stats)
