@@ -158,7 +158,7 @@ def kalman_refine_trees(
     --------
     >>> import numpy as np
     >>> out = kalman_refine_trees([[0.0, 0.0], [1.0, 0.0]], [np.eye(2), np.eye(2)], [0, 0])
-    >>> out.xy.tolist(), out.cov[0, 0, 0]
+    >>> out.xy.tolist(), float(out.cov[0, 0, 0])
     ([[0.5, 0.0]], 0.5)
     """
     zz = np.asarray(z, dtype=np.float64).reshape(-1, 2)
