@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.sim.camera import simulate_plate_views, xue2018_rig
@@ -180,3 +182,29 @@ def test_bad_inputs() -> None:
         CameraModel(np.eye(2), 10, 10)
     with pytest.raises(InputError, match="plate scan"):
         plate_edges_from_scan(np.zeros((3, 2)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.floats(-0.3, 0.3),  # yaw of the camera, rad
+    st.floats(0.0, 0.5),  # pitch down, rad
+    st.floats(0.1, 0.6),  # height above the laser, m
+    st.integers(0, 2**31 - 1),
+)
+def test_dlt_recovers_random_rigs(yaw: float, pitch: float, height: float, seed: int) -> None:
+    """Property: for any rig looking forward, noise-free pairs give G up to scale and ~0 px."""
+    from stemmap.sim.camera import xue2018_rig as rig_of
+
+    rig = rig_of(
+        tilt_deg=math.degrees(pitch), yaw_deg=math.degrees(yaw), camera_offset=(0.0, 0.0, height)
+    )
+    G = laser_plane_homography(rig.camera, rig.laser_to_camera)
+    rng = np.random.default_rng(seed)
+    xy = np.column_stack((rng.uniform(2.0, 8.0, 12), rng.uniform(-2.0, 2.0, 12)))
+    uv, front = project_laser_points(xy, rig.camera, rig.laser_to_camera)
+    assume(front.all())
+    fit = fit_homography_dlt(xy, uv, refine=True)
+    assert fit
+    assert fit.rms_px < 1e-6
+    Gn = fit.G / np.linalg.norm(fit.G) * np.sign(fit.G[0, 0] * G[0, 0])
+    np.testing.assert_allclose(Gn, G / np.linalg.norm(G), atol=1e-7)

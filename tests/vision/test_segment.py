@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.sim.camera import render_scene
@@ -119,3 +121,23 @@ def test_mangrove_recall_and_iou(datasets_dir) -> None:  # type: ignore[no-untyp
     assert res["n_trunks"] == 15
     assert res["recall"] >= 0.7
     assert res["mean_iou"] >= 0.3
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_segmentation_invariants(seed: int) -> None:
+    """Property: on random blocky images every kept region is taller than wide, alpha obeys
+    eq. 18 and lies in (0, 1], and the mask is exactly the union of the kept regions."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((90, 160, 3), np.uint8)
+    img[:] = SOIL
+    for _ in range(8):
+        x, y = rng.integers(0, 150), rng.integers(0, 80)
+        w, h = rng.integers(2, 40), rng.integers(2, 60)
+        img[y : y + h, x : x + w] = BARK if rng.random() < 0.7 else LEAF
+    seg = segment_trunks(img, with_params("xue2018", crop_top=0.0))
+    r = seg.regions
+    assert np.all(r.h > r.w)
+    np.testing.assert_allclose(r.alpha, np.minimum(1.0, 2.0 * r.area / (r.w * r.h)))
+    assert np.all((r.alpha > 0) & (r.alpha <= 1))
+    assert int(seg.mask.sum()) == int(r.area.sum())
