@@ -87,6 +87,25 @@ def bench_calibration(trials: int, seed: int) -> dict[str, Any]:
                 errs[m].append(_held_out(fit.G, rng) if fit else math.inf)
         for m in methods:
             table[m][str(n)] = round(float(np.median(errs[m])), 3)
+    # Effect of noise at 28 pairs: image noise (laser noise 5 mm) and laser noise (image 1 px).
+    by_noise: dict[str, dict[str, float]] = {"xue2018": {}, "dlt_refined": {}}
+    for label, pxn, lzn in (
+        ("px0.25_laser0.005", 0.25, 0.005),
+        ("px1_laser0.005", 1.0, 0.005),
+        ("px4_laser0.005", 4.0, 0.005),
+        ("px1_laser0", 1.0, 0.0),
+        ("px1_laser0.02", 1.0, 0.02),
+    ):
+        e2: dict[str, list[float]] = {m: [] for m in by_noise}
+        for _ in range(trials):
+            xy = _laser_points(28, rng)
+            uv = apply_homography(G_TRUE, xy) + rng.normal(0, pxn, (28, 2))
+            xy_m = xy + rng.normal(0, lzn, xy.shape)
+            for m in by_noise:
+                fit = fit_homography(xy_m, uv, m)
+                e2[m].append(_held_out(fit.G, rng) if fit else math.inf)
+        for m in by_noise:
+            by_noise[m][label] = round(float(np.median(e2[m])), 3)
     # RANSAC vs plain DLT with 30 % gross outliers (40 pairs).
     out_r, out_d = [], []
     for _ in range(trials):
@@ -146,6 +165,7 @@ def bench_calibration(trials: int, seed: int) -> dict[str, Any]:
             "held_out_points": 200,
         },
         "heldout_rms_px_median_by_pairs": table,
+        "heldout_rms_px_median_28_pairs_by_noise": by_noise,
         "ransac_30pct_outliers_heldout_px_median": round(float(np.median(out_r)), 3),
         "dlt_refined_30pct_outliers_heldout_px_median": round(float(np.median(out_d)), 3),
         "plate_pipeline": {
