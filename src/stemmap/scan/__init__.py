@@ -23,13 +23,16 @@ from stemmap.scan.features import (
     radius_median_filter,
     sagitta_depth,
     segment_features,
+    segment_widths,
 )
 from stemmap.scan.preprocess import (
     fov_window,
     gate_ranges,
     median_filter3,
     project_tilted,
+    roll_beams,
     rotation_rpy,
+    seam_shift,
     tilt_compensate,
 )
 from stemmap.scan.segment import (
@@ -65,8 +68,11 @@ __all__ = [
     "project_tilted",
     "radius_median_filter",
     "range_jump_breaks",
+    "roll_beams",
     "rotation_rpy",
     "sagitta_depth",
+    "seam_shift",
     "segment_features",
+    "segment_widths",
     "tilt_compensate",
 ]

@@ -33,6 +33,7 @@ from stemmap.scan.features import (
     radius_median_filter,
     segment_features,
     segment_sum,
+    segment_widths,
 )
 from stemmap.scan.preprocess import (
     fov_window,
@@ -775,7 +776,7 @@ class ScanTrunkDetector:
         mean_r = segment_sum(p.r, segs) / n
         sigma = cfg.sigma + cfg.sigma_rel * mean_r  # per-segment range noise
         centers, radii, covs, ok = _fit_segments(segs, cfg.fit_method, sigma)
-        f_width = segment_features_width(segs)
+        f_width = segment_widths(segs)
         # plausibility (ours): radius bounds, not near-flat, centre behind the visible surface,
         # outline a circle within the noise; failed fits carry NaN and fail every test
         with np.errstate(invalid="ignore"):
@@ -785,6 +786,13 @@ class ScanTrunkDetector:
             rms = _fit_rms(segs, centers, radii)
             if math.isfinite(cfg.max_rms_sigma):
                 ok &= rms <= cfg.max_rms_sigma * sigma
+        log.debug(
+            "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
+            len(times),
+            len(segs),
+            int(np.count_nonzero(ok)),
+            self.source,
+        )
         if not np.any(ok):
             return StemObservations.empty(source=self.source, frame=frame)
         missing = ok & ~np.all(np.isfinite(covs), axis=(1, 2))
@@ -807,17 +815,6 @@ class ScanTrunkDetector:
             source=self.source,
             frame=frame,
         )
-
-
-def segment_features_width(segs: Segments) -> FloatArray:
-    """Edge-beam chord width (Xue eq. 12) of every segment."""
-    from stemmap.scan.features import chord_width
-
-    p = segs.points
-    i0, i1 = segs.start, segs.stop - 1
-    cross = p.x[i0] * p.y[i1] - p.y[i0] * p.x[i1]
-    dot = p.x[i0] * p.x[i1] + p.y[i0] * p.y[i1]
-    return chord_width(p.r[i0], p.r[i1], np.abs(np.arctan2(cross, dot)))
 
 
 def _arc_deg(segs: Segments, centers: FloatArray) -> FloatArray:

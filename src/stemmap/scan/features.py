@@ -43,6 +43,7 @@ __all__ = [
     "sagitta_depth",
     "segment_features",
     "segment_sum",
+    "segment_widths",
 ]
 
 BoolArray = NDArray[np.bool_]
@@ -137,6 +138,14 @@ def _edge_angle(segs: Segments) -> FloatArray:
     dot = p.x[i0] * p.x[i1] + p.y[i0] * p.y[i1]
     out: FloatArray = np.abs(np.arctan2(cross, dot))
     return out
+
+
+def segment_widths(segs: Segments) -> FloatArray:
+    """Edge-beam chord width of every segment (Xue et al. 2018, eq. 12), metres, shape (K,)."""
+    if len(segs) == 0:
+        return np.zeros(0)
+    p = segs.points
+    return chord_width(p.r[segs.start], p.r[segs.stop - 1], _edge_angle(segs))
 
 
 def sagitta_depth(segs: Segments) -> FloatArray:
@@ -428,7 +437,7 @@ def segment_features(segs: Segments) -> SegmentFeatures:
     p = segs.points
     n = segs.counts
     theta = _edge_angle(segs) if len(segs) else np.zeros(0)
-    width = chord_width(p.r[segs.start], p.r[segs.stop - 1], theta)
+    width = segment_widths(segs)
     depth = sagitta_depth(segs)
     nf = np.maximum(n, 1).astype(np.float64)
     return SegmentFeatures(
