@@ -1,1 +1,52 @@
-"""stemmap.cloud"""
+"""Stems and DBH from 3D lidar and terrestrial point clouds.
+
+* :func:`detect_stems` -- ours (ground model, multi-slice robust geometric fits, quality tests;
+  thresholds from the measured point spacing); :func:`detect_stems_file` streams LAS/LAZ.
+* :func:`detect_stems_munjer` + :func:`associate_proximity` -- EB-LiDAR (Munjer et al. 2025).
+* Building blocks: :mod:`~stemmap.cloud.filters` (pass-through, voxel grid, spacing),
+  :mod:`~stemmap.cloud.cluster` (DBSCAN, grid components), :mod:`~stemmap.cloud.shape`
+  (covariances, PCA eccentricity, arc coverage), :mod:`~stemmap.cloud.ground` (ground raster,
+  height normalisation), :mod:`~stemmap.cloud.export` (CSV, GeoJSON, PNG).
+
+See docs/algorithms/cloud.md for the paper-to-function map and measured numbers.
+"""
+
+from stemmap.cloud.cluster import dbscan, grid_components
+from stemmap.cloud.filters import pass_through, point_spacing, voxel_downsample
+from stemmap.cloud.ground import GroundAccumulator, GroundModel, fit_ground, normalize_heights
+from stemmap.cloud.shape import arc_coverage_deg, cluster_covariances, pca_eccentricity
+from stemmap.cloud.stems import (
+    PRESETS,
+    CloudStems,
+    MunjerConfig,
+    StemConfig,
+    associate_proximity,
+    detect_stems,
+    detect_stems_file,
+    detect_stems_munjer,
+    get_preset,
+)
+
+__all__ = [
+    "PRESETS",
+    "CloudStems",
+    "GroundAccumulator",
+    "GroundModel",
+    "MunjerConfig",
+    "StemConfig",
+    "arc_coverage_deg",
+    "associate_proximity",
+    "cluster_covariances",
+    "dbscan",
+    "detect_stems",
+    "detect_stems_file",
+    "detect_stems_munjer",
+    "fit_ground",
+    "get_preset",
+    "grid_components",
+    "normalize_heights",
+    "pass_through",
+    "pca_eccentricity",
+    "point_spacing",
+    "voxel_downsample",
+]

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.cloud.cluster import dbscan
-from stemmap.cloud.filters import as_xyz, pass_through, point_spacing, voxel_downsample
+from stemmap.cloud.filters import as_xyz, pass_through, voxel_downsample
 from stemmap.cloud.ground import GroundAccumulator, GroundModel
 from stemmap.cloud.shape import cluster_covariances, pca_eccentricity
 from stemmap.errors import ConfigError, InputError
@@ -344,7 +344,8 @@ class StemConfig:
     ground_cell : float, metres -- ground raster cell (1.0)
     min_diameter, max_diameter : float, metres -- plausible DBH window (0.04, 1.5)
     min_arc_deg : float -- minimum angular coverage of a slice fit (one side of a trunk seen
-        from one scanner covers up to ~180 degrees)
+        from one scanner covers up to ~180 degrees; 30 keeps partly occluded trunks, whose
+        DBH is then less certain and whose quality is scaled by arc / 120 degrees)
     min_slice_points : int -- minimum inliers of a slice fit
     min_slices : int -- slices that must pass for a stem (1 for a pre-cut slice cloud)
     min_vertical_extent : float, metres -- the passing slices' centres must span at least this
@@ -369,7 +370,7 @@ class StemConfig:
     ground_cell: float = 1.0
     min_diameter: float = 0.04
     max_diameter: float = 1.5
-    min_arc_deg: float = 50.0
+    min_arc_deg: float = 30.0
     min_slice_points: int = 8
     min_slices: int = 3
     residual_factor: float = 3.0
@@ -448,7 +449,6 @@ def detect_stems(
     xyz: ArrayLike,
     config: StemConfig | None = None,
     *,
-    origin: ArrayLike | None = None,
     ground: GroundModel | None = None,
 ) -> CloudStems:
     """Our stem detector on an in-memory cloud (see the module docstring).
@@ -459,9 +459,6 @@ def detect_stems(
         Any frame with z up. Clouds whose z extent is below 1 m are taken as already
         height-normalised slices (``config.slice_mode``).
     config : StemConfig, default preset "ours"
-    origin : array_like (2,), optional
-        Sensor position (single-scan clouds); unused by the default fit, kept for methods
-        that model the viewpoint.
     ground : GroundModel, optional
         Use this ground instead of fitting one.
 
@@ -488,7 +485,7 @@ def detect_stems(
         band = _Band(p[m, :2], h[m], p[m, 2])
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
-    return _stems_from_band(band, cfg, origin, slice_cloud=is_slice)
+    return _stems_from_band(band, cfg, slice_cloud=is_slice)
 
 
 def _ground_of(chunks: Iterable[FloatArray], cell: float) -> GroundModel:
@@ -754,9 +751,7 @@ def _vertical_filter(
     return np.asarray(ok & np.isin(key, good_cells), dtype=bool)
 
 
-def _stems_from_band(
-    band: _Band, cfg: StemConfig, origin: ArrayLike | None, *, slice_cloud: bool = False
-) -> CloudStems:
+def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False) -> CloudStems:
     xy, h = band.xy, band.h
     n = xy.shape[0]
     if n < cfg.min_slice_points:
@@ -1020,9 +1015,4 @@ def detect_stems_file(
             on_chunk(done, 2 * n_total)
     band = _Band(np.concatenate(xs), np.concatenate(hs), np.concatenate(zs), canopy)
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
-    return _stems_from_band(band, cfg, None, slice_cloud=is_slice)
-
-
-def point_spacing_of(xyz: ArrayLike) -> float:
-    """Median 3D nearest-neighbour spacing (re-exported for the CLI and benchmarks)."""
-    return point_spacing(xyz)
+    return _stems_from_band(band, cfg, slice_cloud=is_slice)
