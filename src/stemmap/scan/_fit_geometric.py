@@ -73,15 +73,24 @@ def _solve3(H: FloatArray, g: FloatArray, out: FloatArray) -> bool:  # pragma: n
 
 @njit(cache=True, error_model="numpy")
 def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
-    e = np.zeros(3)
-    col = np.zeros(3)
-    for j in range(3):
-        e[:] = 0.0
-        e[j] = 1.0
-        if not _solve3(H, e, col):
-            return False
-        for k in range(3):
-            out[k, j] = col[k]
+    """Inverse of a 3x3 matrix by cofactors; False if singular."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 0], H[1, 1], H[1, 2]
+    g, h, i = H[2, 0], H[2, 1], H[2, 2]
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    scale = abs(a * e * i) + abs(b * f * g) + abs(c * d * h) + 1e-300
+    if not abs(det) > 1e-14 * scale:
+        return False
+    inv = 1.0 / det
+    out[0, 0] = (e * i - f * h) * inv
+    out[0, 1] = (c * h - b * i) * inv
+    out[0, 2] = (b * f - c * e) * inv
+    out[1, 0] = (f * g - d * i) * inv
+    out[1, 1] = (a * i - c * g) * inv
+    out[1, 2] = (c * d - a * f) * inv
+    out[2, 0] = (d * h - e * g) * inv
+    out[2, 1] = (b * g - a * h) * inv
+    out[2, 2] = (a * e - b * d) * inv
     return True
 
 
@@ -204,14 +213,19 @@ def _lm(
     w_hi: float,
     rho_min: float,
     robust: bool,
+    ws3: FloatArray,
+    wv: FloatArray,
 ) -> tuple[float, int]:  # pragma: no cover - numba
-    """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations)."""
-    H = np.zeros((3, 3))
-    g = np.zeros(3)
-    Hn = np.zeros((3, 3))
-    Ht = np.zeros((3, 3))
-    gt = np.zeros(3)
-    step = np.zeros(3)
+    """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations).
+
+    ``ws3`` (>= 3, 3, 3) and ``wv`` (>= 4, 3) are scratch space (no allocation per call)."""
+    H = ws3[0]
+    Hn = ws3[1]
+    Ht = ws3[2]
+    g = wv[0]
+    gt = wv[1]
+    step = wv[2]
+    mg = wv[3]
     cost = _cost_and_normal(
         lx, ly, keep, p[0], p[1], p[2], inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, H, g
     )
@@ -224,7 +238,8 @@ def _lm(
                 for b in range(3):
                     Hn[a, b] = H[a, b]
                 Hn[a, a] = H[a, a] * (1.0 + lam) + 1e-12
-            mg = -g
+            for a in range(3):
+                mg[a] = -g[a]
             if not _solve3(Hn, mg, step):
                 lam *= 10.0
                 continue
@@ -243,8 +258,10 @@ def _lm(
                 p[0], p[1], p[2] = cx, cy, r
                 rel = cost - new_cost
                 cost = new_cost
-                H[:, :] = Ht
-                g[:] = gt
+                for a in range(3):
+                    g[a] = gt[a]
+                    for b in range(3):
+                        H[a, b] = Ht[a, b]
                 lam = max(lam * 0.3, 1e-9)
                 improved = True
                 if dp <= 1e-9 * (1.0 + scale) or rel <= 1e-10 * (1.0 + cost):
@@ -267,35 +284,56 @@ def _fit_one(
     use_lo: bool,
     use_hi: bool,
     out: FloatArray,
+    buf: FloatArray,
+    ws3: FloatArray,
+    wv: FloatArray,
 ) -> int:  # pragma: no cover - numba
-    """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status."""
+    """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status.
+
+    ``buf`` (6, >= N), ``ws3`` (6, 3, 3) and ``wv`` (6, 3) are scratch space shared by all
+    segments of a batch, so a fit allocates nothing on the common path."""
     n = px.shape[0]
     if n < 3:
         return TOO_FEW
+    lx = buf[0, :n]
+    ly = buf[1, :n]
+    rho = buf[2, :n]
+    th = buf[3, :n]
+    keep = buf[4, :n]
+    dabs = buf[5, :n]
     # ---- local frame: origin at the sensor, x axis along the mean bearing of the points ----
     sx = 0.0
     sy = 0.0
-    qx = px - ox
-    qy = py - oy
-    rho = np.sqrt(qx * qx + qy * qy)
     spread = 0.0
+    rho_min = math.inf
     for i in range(n):
+        qx = px[i] - ox
+        qy = py[i] - oy
+        rr = math.sqrt(qx * qx + qy * qy)
+        rho[i] = rr
+        rho_min = min(rho_min, rr)
         spread += abs(px[i] - px[0]) + abs(py[i] - py[0])
-        if rho[i] > 0.0:
-            sx += qx[i] / rho[i]
-            sy += qy[i] / rho[i]
+        if rr > 0.0:
+            sx += qx / rr
+            sy += qy / rr
     if spread == 0.0:
         return COINCIDENT
     phi0 = math.atan2(sy, sx)
     c0 = math.cos(phi0)
     s0 = math.sin(phi0)
-    lx = c0 * qx + s0 * qy
-    ly = -s0 * qx + c0 * qy
-    th = np.arctan2(ly, lx)
-    th_min = np.min(th)
-    th_max = np.max(th)
+    th_min = math.inf
+    th_max = -math.inf
+    for i in range(n):
+        qx = px[i] - ox
+        qy = py[i] - oy
+        lx[i] = c0 * qx + s0 * qy
+        ly[i] = -s0 * qx + c0 * qy
+        t = math.atan2(ly[i], lx[i])
+        th[i] = t
+        th_min = min(th_min, t)
+        th_max = max(th_max, t)
+        keep[i] = 1.0
     one_sided = th_min > -0.5 * math.pi + 1e-3 and th_max < 0.5 * math.pi - 1e-3
-    rho_min = np.min(rho)
     if dtheta <= 0.0:
         diffs = np.diff(np.sort(th))
         dtheta = np.median(diffs)
@@ -317,7 +355,7 @@ def _fit_one(
     r0 = near * sa / (1.0 - sa)
     d0 = near + r0
     b0 = 0.5 * (t_lo + t_hi)
-    p = np.empty(3)
+    p = wv[4]
     p[0] = d0 * math.cos(b0)
     p[1] = d0 * math.sin(b0)
     p[2] = r0
@@ -355,23 +393,21 @@ def _fit_one(
     sang = dtheta / _SQRT12
     w_lo = 1.0 / sang if (use_sil and use_lo) else 0.0
     w_hi = 1.0 / sang if (use_sil and use_hi) else 0.0
-    keep = np.ones(n)
     if sigma > 0.0:
         sig = sigma
     else:
         # first pass: points weighted like the silhouette (sigma ~ range * angular std)
         sig = max(near * sang, _SIGMA_FLOOR)
-        _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+        _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True, ws3, wv)
         ss = 0.0
         for i in range(n):
             d = math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2]
             ss += d * d
         dof = n - 3 if n > 3 else 1
         sig = max(math.sqrt(ss / dof), _SIGMA_FLOOR)
-    _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+    _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True, ws3, wv)
     # ---- outlier rejection (mixed pixels): drop up to N // 4 returns beyond 4 sigma ----
     if n >= 6:
-        dabs = np.empty(n)
         for i in range(n):
             dabs[i] = abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
         scale = sig
@@ -391,18 +427,18 @@ def _fit_one(
                 for i in range(n):
                     ss += keep[i] * dabs[i] * dabs[i]
                 sig = max(math.sqrt(ss / max(n - n_rej - 3, 1)), _SIGMA_FLOOR)
-            _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True)
+            _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True, ws3, wv)
     if not _valid(p[0], p[1], p[2], rho_min, use_sil):
         return NOT_CONVERGED
     if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
         return COLLINEAR
     # ---- covariance from the final (robustly weighted) Gauss-Newton Hessian ----
-    H = np.zeros((3, 3))
-    g = np.zeros(3)
+    H = ws3[3]
+    g = wv[5]
     _cost_and_normal(
         lx, ly, keep, p[0], p[1], p[2], 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, True, H, g
     )
-    C = np.zeros((3, 3))
+    C = ws3[4]
     if not _inv3(H, C):
         C[:, :] = np.nan
     ss = 0.0
@@ -416,7 +452,8 @@ def _fit_one(
     gy = oy + s0 * p[0] + c0 * p[1]
     # Cg = R C R^T with R the rotation back to the input frame (written out: a 3x3 matmul
     # through BLAS costs more than the whole fit of a short arc)
-    R = np.zeros((3, 3))
+    R = ws3[5]
+    R[:, :] = 0.0
     R[0, 0], R[0, 1], R[1, 0], R[1, 1], R[2, 2] = c0, -s0, s0, c0, 1.0
     out[0] = gx
     out[1] = gy
@@ -448,6 +485,12 @@ def _fit_segments(
     out: FloatArray,
     status: np.ndarray,
 ) -> None:  # pragma: no cover - numba
+    nmax = 0
+    for k in range(starts.shape[0]):
+        nmax = max(nmax, stops[k] - starts[k])
+    buf = np.empty((6, nmax))
+    ws3 = np.empty((6, 3, 3))
+    wv = np.empty((6, 3))
     for k in range(starts.shape[0]):
         a = starts[k]
         b = stops[k]
@@ -461,6 +504,9 @@ def _fit_segments(
             use_lo[k],
             use_hi[k],
             out[k],
+            buf,
+            ws3,
+            wv,
         )
 
 
