@@ -4,6 +4,7 @@ and on hand-written spec-exact headers; bad and truncated files must raise Input
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import laspy
 import numpy as np
@@ -184,3 +185,20 @@ def test_real_laz_files(datasets_dir: Path) -> None:
     assert z.min() >= 1.2 - 1e-3 and z.max() <= 1.4 + 1e-3
     dbh = read_cloud(datasets_dir / "lidr_dbh" / "dbh.laz")
     assert len(dbh) == 1369
+
+
+def test_bag_of_pointcloud2(tmp_path: Path, bags: Any) -> None:
+    """ROS1 / ROS2 bags (written with rosbags' own writers) through read_cloud."""
+    rng = np.random.default_rng(3)
+    msgs = []
+    parts = []
+    for k in range(2):
+        a = rng.uniform(-5, 5, (50, 3)).astype("<f4")
+        parts.append(a)
+        fields = [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1)]  # 7 = FLOAT32
+        msgs.append(("/points", bags.pointcloud2(1.0 + k, a.tobytes(), fields, 12, 50)))
+    path = bags.write(tmp_path / "b", msgs)
+    cloud = read_cloud(path, topic="/points")
+    np.testing.assert_array_equal(cloud.xyz, np.vstack(parts).astype(np.float64))
+    with pytest.raises(InputError):
+        read_cloud(tmp_path / "missing.bag")
