@@ -18,6 +18,7 @@ from stemmap.types import FloatArray
 __all__ = [
     "bearing_order",
     "chord_width_batch",
+    "eig_ratio_sym3",
     "fletcher_reeves_batch",
     "kasa_batch",
     "rms_batch",
@@ -69,12 +70,37 @@ def _normal_equations(
     return M, s[:, 5:8]
 
 
+def eig_ratio_sym3(M: FloatArray) -> FloatArray:
+    """Smallest / largest eigenvalue of symmetric positive semi-definite 3x3 matrices (K, 3, 3),
+    in closed form (trigonometric solution of the characteristic cubic; Smith 1961) -- one
+    vectorised pass instead of one LAPACK call per matrix. Absolute accuracy ~1e-15 of the
+    largest eigenvalue, like any eigen-solver."""
+    a00, a11, a22 = M[:, 0, 0], M[:, 1, 1], M[:, 2, 2]
+    a01, a02, a12 = M[:, 0, 1], M[:, 0, 2], M[:, 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    pp = np.sqrt(p2 / 6.0)
+    safe = np.where(pp > 0, pp, 1.0)
+    b00, b11, b22 = (a00 - q) / safe, (a11 - q) / safe, (a22 - q) / safe
+    b01, b02, b12 = a01 / safe, a02 / safe, a12 / safe
+    det_b = (
+        b00 * (b11 * b22 - b12 * b12)
+        - b01 * (b01 * b22 - b12 * b02)
+        + b02 * (b01 * b12 - b11 * b02)
+    )
+    phi = np.arccos(np.clip(det_b / 2.0, -1.0, 1.0)) / 3.0
+    lam_max = np.where(pp > 0, q + 2.0 * pp * np.cos(phi), q)
+    lam_min = np.where(pp > 0, q + 2.0 * pp * np.cos(phi + 2.0 * np.pi / 3.0), q)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(lam_max > 0, lam_min / np.where(lam_max > 0, lam_max, 1.0), 0.0)
+
+
 def _collinear(M: FloatArray) -> NDArray[np.bool_]:
     """Rank test shared with the single fits: smallest / largest eigenvalue of A^T A below
     ``COLLINEAR_EIG`` (a singular-value ratio of 1e-7; eigenvalues of A^T A carry ~1e-16
     relative round-off, so a tighter test could not tell collinear points from round-off)."""
-    ev = np.linalg.eigvalsh(M)
-    return ~(ev[:, 0] >= COLLINEAR_EIG * ev[:, 2])
+    return ~(eig_ratio_sym3(M) >= COLLINEAR_EIG)
 
 
 def _reasons(k: int) -> NDArray[np.object_]:

@@ -224,8 +224,7 @@ _COLLINEAR_EIG = 1e-14  # smallest / largest eigenvalue of A^T A (= singular val
 def _rank_deficient(M: FloatArray) -> bool:
     """Collinearity test on the 3x3 normal matrix A^T A of the centred, scaled points (the
     same test as the batch fits, so single and batch decide alike)."""
-    ev = np.linalg.eigvalsh(M)
-    return not ev[0] >= _COLLINEAR_EIG * ev[2]
+    return not float(_fb.eig_ratio_sym3(M[None])[0]) >= _COLLINEAR_EIG
 
 
 def _single_from_batch(p: FloatArray, o: FloatArray, method: str) -> CircleFit:
@@ -713,6 +712,9 @@ class CircleFits:
         )
 
 
+_STATUS_TEXT = np.array([STATUS_MESSAGES[k] for k in range(max(STATUS_MESSAGES) + 1)], dtype=object)
+
+
 def _per_segment(value: ArrayLike | None, k: int, name: str, default: float) -> FloatArray:
     if value is None:
         return np.full(k, default)
@@ -792,7 +794,13 @@ def fit_circles_batch(
     if ids.size and np.any(ids[1:] < ids[:-1]):
         order = np.argsort(ids, kind="stable")
         p, ids = p[order], ids[order]
-    uniq, starts, counts = np.unique(ids, return_index=True, return_counts=True)
+    # ids are sorted now: segment starts where the id changes (cheaper than np.unique)
+    if ids.size:
+        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    else:
+        starts = np.zeros(0, dtype=np.int64)
+    uniq = ids[starts]
+    counts = np.diff(np.r_[starts, ids.size])
     k = uniq.shape[0]
     stops = starts + counts
     if origin is None:
@@ -841,7 +849,7 @@ def fit_circles_batch(
             rms=out[:, 12].copy(),
             n_points=counts.astype(np.int64),
             ok=ok,
-            reasons=tuple(STATUS_MESSAGES[int(s)] for s in status),
+            reasons=tuple(_STATUS_TEXT[status].tolist()),
             method=method,
         )
 
