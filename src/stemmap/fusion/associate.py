@@ -2,7 +2,7 @@
 
 * :func:`laser_rois` -- Xue et al. (2018) §2.2 and §2.4.2: three-neighbour median filter,
   segmentation at range jumps (the "change rate of polar radius"), chord width (eq. 12). Built
-  on the scan-detect area's functions (stemmap.scan.preprocess / segment / detect).
+  on the scan-detect area's functions (stemmap.scan.preprocess / segment / features).
 * :func:`associate` -- each laser RoI's returns are projected into the image with the laser-to-
   image matrix G (eq. 3); a laser RoI and an image region correspond when their column spans
   overlap (Xue §3.2.4 pairs A-D with regions 9, 8, 4, 1 this way); one-to-one by the Hungarian
@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.scan.detect import segment_features_width
+from stemmap.scan.features import segment_widths
 from stemmap.scan.preprocess import median_filter3
 from stemmap.scan.segment import build_segments, extract_points, range_jump_breaks
 from stemmap.types import FloatArray, LaserScan
@@ -143,7 +143,7 @@ def laser_rois(
     segs = segs.select(keep)
     if len(segs) == 0:
         return empty
-    widths = segment_features_width(segs)
+    widths = segment_widths(segs)
     p = segs.points
     idx = np.concatenate([np.arange(a, b) for a, b in zip(segs.start, segs.stop, strict=True)])
     xy = np.column_stack((p.x[idx], p.y[idx]))
