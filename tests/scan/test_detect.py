@@ -339,3 +339,17 @@ def test_range_proportional_noise_scales_the_circularity_test():
     assert len(obs) == 1 and obs.centers[0] == pytest.approx([9.0, 0.0], abs=0.1)
     with pytest.raises(ConfigError, match="sigma_rel"):
         DetectorConfig(sigma_rel=-0.1)
+
+
+def test_trunk_cut_by_the_field_of_view_is_truncated():
+    # a trunk centred on the +50 deg edge of a (-50, 50) deg window: half of it is outside
+    a = np.radians(np.arange(-90.0, 90.0 + 1e-9, 0.25))
+    c = 3.0 * np.array([math.cos(math.radians(50.0)), math.sin(math.radians(50.0))])
+    r = scene_ranges([(c[0], c[1], 0.2), (3.0, 0.0, 0.1)], a)
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method="kasa", fov_deg=(-50, 50)))
+    segs = det.candidates(r[None, :], a[0], a[1] - a[0], 0.0, 50.0)
+    edge = int(np.argmax(np.arctan2(segs.points.y[segs.start], segs.points.x[segs.start])))
+    assert segs.truncated_end[edge] and not segs.truncated_start[edge]
+    assert not segs.partial[1 - edge]
+    # nothing outside the window survives
+    assert np.all(np.abs(np.degrees(np.arctan2(segs.points.y, segs.points.x))) <= 50.0 + 1e-9)
