@@ -155,11 +155,23 @@ def test_relaxation_bad_input():
 # ------------------------------------------------------------------------------------------
 
 
-def test_forestrix_on_simulated_loop():
-    problem, run = sim_problem(seed=3, laps=1.2)
+@pytest.fixture(scope="module")
+def sim3():
+    return sim_problem(seed=3, laps=1.2)
+
+
+def test_presets_select_the_papers_pose_estimate():
+    assert ForestrixSlam().pose_method == "procrustes"
+    paper = make_backend("forestrix", preset="ohman2007_g11")
+    assert isinstance(paper, ForestrixSlam)
+    assert paper.pose_method == "ohman2007" and paper.group_size == 11
+
+
+@pytest.mark.parametrize("preset", [None, "ohman2007"])
+def test_forestrix_on_simulated_loop(sim3, preset):
+    problem, run = sim3
     truth = run.vehicle_poses.poses
-    res = make_backend("forestrix").run(problem)
-    assert isinstance(make_backend("forestrix", preset="ohman2007_g11"), ForestrixSlam)
+    res = make_backend("forestrix", preset=preset).run(problem)
     err = np.hypot(*(res.trajectory.poses[:, :2] - truth[:, :2]).T)
     err_dr = np.hypot(*(dead_reckoning(problem).poses[:, :2] - truth[:, :2]).T)
     # scan-to-map matching every frame: drift well below dead reckoning (measured ~4x)
