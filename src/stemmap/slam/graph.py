@@ -64,9 +64,13 @@ class Isam2Config:
         ``max_drift_sigma``² (m²)
     keyframe_every : frames per keyframe (one Pose2 variable and one iSAM2 update each); the
         detections of a tree within a keyframe window are merged into one factor
+    update_every : keyframes per iSAM2 update (association in between uses the odometry
+        prediction from the last estimate)
     relinearize_threshold : iSAM2 relinearisation threshold
     batch_iterations : LM iterations at the end (0 = skip the batch step)
     min_obs : trees seen fewer times are left out of the map (they stay in the graph)
+    merge_dist : m, after the batch step two trees closer than this with compatible diameters
+        are merged into one and the graph is optimised again (0 disables)
     marginals : compute per-tree covariances (Marginals) at the end
     """
 
@@ -82,10 +86,12 @@ class Isam2Config:
     drift_scale: float = 1.0
     max_drift_sigma: float = 3.0
     keyframe_every: int = 5
+    update_every: int = 1
     relinearize_threshold: float = 0.05
     relinearize_skip: int = 10
     batch_iterations: int = 20
     min_obs: int = 3
+    merge_dist: float = 1.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
 
@@ -106,6 +112,8 @@ class Isam2Config:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"Isam2Config.{name} must be a positive number, got {v}.")
+        if self.update_every < 1:
+            raise ConfigError(f"Isam2Config.update_every must be >= 1, got {self.update_every}.")
         if self.keyframe_every < 1:
             raise ConfigError(
                 f"Isam2Config.keyframe_every must be >= 1, got {self.keyframe_every}."
@@ -140,6 +148,38 @@ def _sensor_between(
     G = Ad[None] @ M
     cov = G @ covs @ np.swapaxes(G, 1, 2)
     return ds, cov
+
+
+def _merge_duplicates(
+    xy: FloatArray, diam: FloatArray, nobs: np.ndarray, dist: float, max_ddiam: float
+) -> np.ndarray:
+    """Representative index of each landmark after merging close, diameter-compatible pairs.
+
+    Pairs closer than ``dist`` (m) whose mean diameters differ by less than ``max_ddiam`` are
+    joined (union-find); each group is represented by its most-observed member.
+    """
+    from scipy.spatial import cKDTree
+
+    n = xy.shape[0]
+    parent = np.arange(n)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    for i, j in sorted(cKDTree(xy).query_pairs(dist)):
+        if abs(diam[i] - diam[j]) > max_ddiam:
+            continue
+        ri, rj = find(i), find(j)
+        if ri == rj:
+            continue
+        if nobs[ri] >= nobs[rj]:
+            parent[rj] = ri
+        else:
+            parent[ri] = rj
+    return np.array([find(i) for i in range(n)], dtype=np.int64)
 
 
 class Isam2Slam:
@@ -213,6 +253,8 @@ class Isam2Slam:
         pf = gtsam.PriorFactorPose2(XK(0), s0, prior)
         new_f.add(pf)
         graph_all.add(pf)
+        other_factors: list[Any] = [pf]  # prior + odometry, kept to rebuild the graph after merging
+        meas_rec: list[tuple[int, int, float, float, float, float]] = []
         new_v.insert(XK(0), s0)
 
         # landmark bookkeeping (numpy, grown geometrically)
@@ -229,7 +271,7 @@ class Isam2Slam:
         use_d = cfg.sigma_diameter is not None
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         kf_est = np.array([s0.x(), s0.y(), s0.theta()])  # current keyframe sensor pose
-        n_matched = n_new = n_ambiguous = n_far = n_factors_meas = 0
+        n_matched = n_new = n_ambiguous = n_far = n_factors_meas = n_updates = 0
         # observations of the current keyframe window: landmark -> list of (x, y, var_xy, var_th)
         window: dict[int, list[tuple[float, float, float, float]]] = {}
 
@@ -260,6 +302,7 @@ class Isam2Slam:
                 )
                 new_f.add(fac)
                 graph_all.add(fac)
+                meas_rec.append((k, j, math.atan2(my, mx), rr, math.sqrt(var_b), math.sqrt(var_r)))
                 n_factors_meas += 1
             window.clear()
 
@@ -277,17 +320,21 @@ class Isam2Slam:
                 )
                 new_f.add(bf)
                 graph_all.add(bf)
-                prev = gtsam.Pose2(*kf_est)
-                new_v.insert(XK(k), prev.compose(gtsam.Pose2(*d)))
-                isam.update(new_f, new_v)
-                new_f = gtsam.NonlinearFactorGraph()
-                new_v = gtsam.Values()
-                est = isam.calculateEstimate()
-                p = est.atPose2(XK(k))
-                kf_est = np.array([p.x(), p.y(), p.theta()])
-                if n_lm:
+                other_factors.append(bf)
+                pred = gtsam.Pose2(*kf_est).compose(gtsam.Pose2(*d))
+                new_v.insert(XK(k), pred)
+                kf_est = np.array([pred.x(), pred.y(), pred.theta()])
+                if k % cfg.update_every == 0:
+                    isam.update(new_f, new_v)
+                    n_updates += 1
+                    new_f = gtsam.NonlinearFactorGraph()
+                    new_v = gtsam.Values()
+                    est = isam.calculateEstimate()
+                    p = est.atPose2(XK(k))
+                    kf_est = np.array([p.x(), p.y(), p.theta()])
                     ing = np.flatnonzero(lm_in_graph[:n_lm])
-                    lm_xy[ing] = gtsam.utilities.extractPoint2(est)
+                    if ing.size:
+                        lm_xy[ing] = gtsam.utilities.extractPoint2(est)
             # predicted sensor pose of this frame
             q = rel_s[f]
             c, s = math.cos(kf_est[2]), math.sin(kf_est[2])
@@ -396,6 +443,7 @@ class Isam2Slam:
                 progress(f + 1, nf)
         flush(nk - 1)
         isam.update(new_f, new_v)
+        n_updates += 1
 
         t_inc = time.perf_counter() - t_start
         result = isam.calculateEstimate()
@@ -406,6 +454,56 @@ class Isam2Slam:
             opt = gtsam.LevenbergMarquardtOptimizer(graph_all, result, lm_params)
             result = opt.optimize()
             n_lm_iters = int(opt.iterations())
+        # merge duplicated trees (two landmarks of one trunk, e.g. first seen far away and
+        # initialised apart): closer than merge_dist with compatible diameters -> one key;
+        # the rebuilt graph is optimised again (this also closes the loops they imply)
+        n_merged = 0
+        if cfg.merge_dist > 0 and n_lm > 1:
+            ing = np.flatnonzero(lm_in_graph[:n_lm])
+            est_xy = gtsam.utilities.extractPoint2(result)
+            rep = _merge_duplicates(
+                est_xy,
+                lm_dsum[ing] / np.maximum(lm_dn[ing], 1),
+                lm_nobs[ing],
+                cfg.merge_dist,
+                3.0 * (cfg.sigma_diameter or math.inf) * math.sqrt(2.0),
+            )
+            n_merged = int((rep != np.arange(ing.size)).sum())
+            if n_merged:
+                target = ing[rep]  # landmark slot each slot maps to
+                remap = np.arange(n_lm)
+                remap[ing] = target
+                g2 = gtsam.NonlinearFactorGraph()
+                for fac in other_factors:
+                    g2.add(fac)
+                for k_, j_, b_, r_, sb_, sr_ in meas_rec:
+                    g2.add(
+                        gtsam.BearingRangeFactor2D(
+                            XK(k_), LK(int(remap[j_])), gtsam.Rot2(b_), r_, meas_noise(sb_, sr_)
+                        )
+                    )
+                v2 = gtsam.Values()
+                for k_ in range(nk):
+                    v2.insert(XK(k_), result.atPose2(XK(k_)))
+                gone = np.zeros(n_lm, dtype=bool)
+                for t_, j_ in enumerate(ing.tolist()):
+                    if remap[j_] == j_:
+                        v2.insert(LK(j_), est_xy[t_])
+                    else:
+                        gone[j_] = True
+                        tgt = int(remap[j_])
+                        lm_nobs[tgt] += lm_nobs[j_]
+                        lm_dsum[tgt] += lm_dsum[j_]
+                        lm_dn[tgt] += lm_dn[j_]
+                        lm_first[tgt] = min(lm_first[tgt], lm_first[j_])
+                        lm_last[tgt] = max(lm_last[tgt], lm_last[j_])
+                lm_in_graph[:n_lm] &= ~gone
+                graph_all = g2
+                lm_params = gtsam.LevenbergMarquardtParams()
+                lm_params.setMaxIterations(max(cfg.batch_iterations, 5))
+                opt = gtsam.LevenbergMarquardtOptimizer(graph_all, v2, lm_params)
+                result = opt.optimize()
+                n_lm_iters += int(opt.iterations())
         kf_s = gtsam.utilities.extractPose2(result)  # sensor poses of keyframes, in key order
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
         base_p = kf_s[kf_of]
@@ -447,13 +545,13 @@ class Isam2Slam:
                 log.warning("iSAM2: marginal covariances unavailable: %s", exc)
         trees = []
         for jk in keep.tolist():
-            dn = int(lm_dn[jk])
+            n_d = int(lm_dn[jk])
             trees.append(
                 Tree(
                     id=jk,
                     x=float(pts[jk, 0]),
                     y=float(pts[jk, 1]),
-                    diameter=float(lm_dsum[jk] / dn) if dn else math.nan,
+                    diameter=float(lm_dsum[jk] / n_d) if n_d else math.nan,
                     cov=covs[jk],
                     n_obs=int(lm_nobs[jk]),
                     first_time=float(frames.times[lm_first[jk]]),
@@ -473,8 +571,10 @@ class Isam2Slam:
             "landmarks": len(trees),
             "factors": int(graph_all.size()),
             "keyframes": int(nk),
+            "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
             "lm_iterations": n_lm_iters,
+            "merged_duplicates": n_merged,
             "incremental_s": t_inc,
             "runtime_s": runtime,
         }

@@ -1,0 +1,88 @@
+"""Association: Mahalanobis gating, greedy nearest neighbour, JCBB."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.slam.association import (
+    chi2_gate,
+    individual_compatibility,
+    jcbb,
+    joint_nis,
+    nearest_neighbour,
+)
+
+
+def test_individual_compatibility_matches_direct_formula(rng):
+    k, c = 3, 4
+    nu = rng.normal(size=(k, c, 2))
+    A = rng.normal(size=(2 * c, 2 * c))
+    C = A @ A.T + np.eye(2 * c)
+    R = np.array([[0.2, 0.05], [0.05, 0.1]])
+    extra = rng.uniform(0, 2, size=(k, c))
+    d2 = individual_compatibility(nu, C, R, extra)
+    for i in range(k):
+        for j in range(c):
+            S = C[2 * j : 2 * j + 2, 2 * j : 2 * j + 2] + R
+            ref = nu[i, j] @ np.linalg.solve(S, nu[i, j]) + extra[i, j]
+            assert d2[i, j] == pytest.approx(ref, rel=1e-12)
+
+
+def test_nearest_neighbour_is_one_to_one_and_gated():
+    d2 = np.array([[1.0, 2.0], [0.5, 8.0], [20.0, 30.0]])
+    a = nearest_neighbour(d2, gate=9.21)
+    # pair (1, 0) is the best, so observation 0 takes landmark 1; observation 2 is gated out
+    np.testing.assert_array_equal(a, [1, 0, -1])
+
+
+def _common_shift_case():
+    """Two landmarks 1 m apart on x; both observations shifted +0.6 m by one pose error.
+
+    Predicted-measurement covariance: a common pose term (sigma 1 m on x, fully correlated
+    between the landmarks) plus 0.05 m independent noise.
+    """
+    pred = np.array([[0.0, 0.0], [1.0, 0.0]])  # landmark predictions
+    z = np.array([[0.6, 0.0], [1.6, 0.0]])  # observations
+    nu = z[:, None, :] - pred[None, :, :]
+    common = np.zeros((4, 4))
+    for a in (0, 2):
+        for b in (0, 2):
+            common[a, b] = 1.0
+    C = common + 0.05**2 * np.eye(4)
+    R = 0.05**2 * np.eye(2)
+    return nu, C, R
+
+
+def test_jcbb_uses_the_correlation_nn_cannot_see():
+    nu, C, R = _common_shift_case()
+    d2 = individual_compatibility(nu, C, R)
+    nn = nearest_neighbour(d2, chi2_gate(0.99, 2))
+    # greedy NN takes the closest pair first (observation 0 -> landmark 1, 0.4 m) and is left
+    # with the crossed pairing; the common 0.6 m shift is invisible pair by pair
+    np.testing.assert_array_equal(nn, [1, 0])
+    jc = jcbb(nu, C, R, alpha=0.99)
+    np.testing.assert_array_equal(jc, [0, 1])
+    # the joint hypothesis is far more consistent than the crossed one
+    assert joint_nis([(0, 0), (1, 1)], nu, C, np.stack([R, R])) < 1.0
+
+
+def test_jcbb_diameter_cue_breaks_ties():
+    nu = np.zeros((1, 2, 2))
+    C = 0.1 * np.eye(4)
+    R = 0.01 * np.eye(2)
+    extra = np.array([[15.0, 0.1]])  # landmark 0 has a very different diameter
+    np.testing.assert_array_equal(jcbb(nu, C, R, extra_d2=extra, extra_dof=1), [1])
+
+
+def test_bad_inputs():
+    with pytest.raises(InputError):
+        individual_compatibility(np.zeros((2, 3)), np.eye(6), np.eye(2))
+    with pytest.raises(InputError):
+        individual_compatibility(np.zeros((2, 3, 2)), np.eye(4), np.eye(2))
+    with pytest.raises(InputError):
+        jcbb(np.zeros((2, 1, 2)), np.eye(2), np.zeros((3, 2, 2)))
+    with pytest.raises(ConfigError):
+        chi2_gate(1.5, 2)
+    assert chi2_gate(0.99, 2) == pytest.approx(9.2103, abs=1e-4)

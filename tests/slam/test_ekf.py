@@ -1,0 +1,88 @@
+"""EKF-SLAM on a synthetic loop with ground truth and on a slice of Victoria Park."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir-less mode)
+
+from stemmap.errors import ConfigError
+from stemmap.eval.matching import match_points
+from stemmap.slam.base import dead_reckoning, make_backend
+from stemmap.slam.ekf import EkfConfig, EkfSlam
+
+
+@pytest.fixture(scope="module")
+def loop():
+    return loop_problem(0, laps=1.2)
+
+
+@pytest.mark.parametrize("association", ["jcbb", "nn"])
+def test_ekf_tracks_a_loop_far_better_than_dead_reckoning(loop, association):
+    problem, truth, trees, diam = loop
+    res = EkfSlam(association=association).run(problem)
+    err = np.hypot(*(res.trajectory.xy - truth[:, :2]).T)
+    dr = np.hypot(*(dead_reckoning(problem).xy - truth[:, :2]).T)
+    # detections carry 5 cm / 0.3 deg noise; with ~20 trees per scan the pose is good to
+    # ~0.1 m; dead reckoning drifts ~10 m (2 % speed scale, steering bias)
+    assert dr.max() > 5.0
+    assert err.max() < 0.3
+    assert math.sqrt(np.mean(err**2)) < 0.15
+    # the map: every true tree seen >= 3 times is mapped once, to ~0.1 m
+    m = match_points(res.stem_map.xy, trees, gate=0.5)
+    assert m.n_matched >= 0.9 * len(res.stem_map)
+    assert np.sqrt(np.mean(m.distances**2)) < 0.15
+    # diameters are the mean of 3 cm-noise measurements
+    d_err = res.stem_map.diameters[m.pairs[:, 0]] - diam[m.pairs[:, 1]]
+    assert np.median(np.abs(d_err)) < 0.02
+    assert res.stats["landmarks"] == len(res.stem_map)
+
+
+def test_ekf_covariances_are_consistent(loop):
+    """Tree position errors against truth, normalised by the filter's covariance: the mean NEES
+    of a 2-D Gaussian is 2; an EKF is mildly over-confident, so allow up to 3x."""
+    problem, _truth, trees, _ = loop
+    res = EkfSlam().run(problem)
+    m = match_points(res.stem_map.xy, trees, gate=0.5)
+    nees = []
+    for (i, j), _d in zip(m.pairs, m.distances, strict=True):
+        t = res.stem_map.trees[i]
+        e = np.array([t.x, t.y]) - trees[j]
+        nees.append(e @ np.linalg.solve(t.cov, e))
+    assert 0.3 < float(np.mean(nees)) < 6.0
+
+
+def test_ekf_pruning_removes_one_off_landmarks():
+    problem, *_ = loop_problem(2, laps=0.5)
+    kept = EkfSlam(prune_after=5, min_obs=3).run(problem)
+    assert kept.stats["pruned"] >= 0
+    assert all(t.n_obs >= 3 for t in kept.stem_map if t.last_time - t.first_time > 1.0)
+
+
+def test_bad_config():
+    with pytest.raises(ConfigError):
+        EkfSlam(association="magic")
+    with pytest.raises(ConfigError):
+        EkfSlam(sigma_range=-1.0)
+    with pytest.raises(ConfigError):
+        EkfSlam(EkfConfig(), sigma_range=0.1)
+    with pytest.raises(ConfigError):
+        make_backend("ekf", nonsense=1)
+
+
+@pytest.mark.slow
+def test_ekf_on_victoria_park_first_minute(datasets_dir):
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.trajectory import ate
+
+    vp = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 90.0)
+    res = make_backend("ekf").run(vp.problem())
+    r = ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=vp.model.sensor_offset)
+    # measured 1.8 m (EKF) vs 1.5 m (dead reckoning, still good this early) and 0.84 m
+    # (iSAM2) against the raw GPS over the first 90 s: the EKF runs and stays bounded, but it
+    # is not better than odometry on this short stretch (see docs/algorithms/slam.md)
+    assert r and r.rmse < 2.5
+    assert len(res.stem_map) > 30
+    assert res.stats["matched"] > 0.75 * vp.frames.n_detections
