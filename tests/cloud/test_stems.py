@@ -251,3 +251,20 @@ def test_lidr_single_trunk_and_treels(datasets_dir: Path) -> None:
     assert len(pine) == 1 and 0.1 < pine.diameter[0] < 0.5
     plot = detect_stems(read_cloud(datasets_dir / "treels" / "pine_plot.laz").xyz)
     assert 8 <= len(plot) <= 25
+
+
+def test_stem_height_limited_by_what_the_scanner_sees(
+    tls_scene: tuple[Stand3D, np.ndarray],
+) -> None:
+    stand, xyz = tls_scene
+    det = detect_stems(xyz, replace(StemConfig(), estimate_height=True))
+    m = match_points(det.xy, stand.trees_xy, 0.5)
+    j = m.pairs[:, 1]
+    # the coarse TLS looks up to +49.75 deg from 1.5 m: a stem at distance d is seen up to
+    # 1.5 + d tan(49.75 deg), or to its top if lower
+    dist = np.hypot(*(stand.trees_xy[j] - 8.0).T) - stand.dbh[j] / 2
+    visible = np.minimum(stand.heights[j], 1.5 + dist * np.tan(np.radians(49.75)))
+    err = det.height[m.pairs[:, 0]] - visible
+    # branches inside the 1 m search radius rise above the stem's visible part, and the 8 %
+    # ground slope shifts heights by up to 0.1 m per metre: 1.5 m tolerance
+    assert np.all(np.abs(err) < 1.5)
