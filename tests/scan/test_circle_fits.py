@@ -271,6 +271,8 @@ def test_bad_inputs_raise_input_or_config_errors() -> None:
         fit_circle_ours(p, sigma=-0.01)
     with pytest.raises(InputError, match="angle_increment"):
         fit_circle_ours(p, angle_increment=0.0)
+    with pytest.raises(InputError, match="edges"):
+        fit_circle_ours(p, edges=(True, True, False))  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="unknown circle fit"):
         fit_circles_batch(p, np.zeros(len(p), dtype=int), "ransac")
     with pytest.raises(InputError, match="segment_ids"):

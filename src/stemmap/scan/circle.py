@@ -600,7 +600,10 @@ def fit_circle_ours(
         return CircleFit.failed(STATUS_MESSAGES[1], "ours", n)
     sig = _check_sigma(sigma)
     inc = _check_increment(angle_increment)
-    lo, hi = (bool(v) for v in edges)
+    e = np.asarray(edges)
+    if e.shape != (2,):
+        raise InputError(f"edges must be a pair of booleans (first, last), got {edges!r}.")
+    lo, hi = bool(e[0]), bool(e[1])
     out, status = fit_ours_segments(
         p[:, 0],
         p[:, 1],
