@@ -214,8 +214,10 @@ def test_bad_inputs_and_configs() -> None:
     # nothing stem-like: a falsy, empty result, not an error and not zeros
     flat = np.column_stack((np.random.default_rng(0).uniform(0, 5, (2000, 2)), np.zeros(2000)))
     det = detect_stems(flat)
-    assert len(det) == 0
-    assert len(detect_stems(np.zeros((0, 3)))) == 0
+    assert not det and len(det) == 0 and det.reason
+    empty = detect_stems(np.zeros((0, 3)))
+    assert not empty and "empty" in empty.reason
+    assert "pass-through" in detect_stems_munjer(np.zeros((3, 3))).reason
 
 
 # ------------------------------------------------------------------------------------------

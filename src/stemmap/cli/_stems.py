@@ -84,7 +84,7 @@ def stems(
             + (f", {png}" if png else "")
         )
         if len(result) == 0:
-            console.print("[yellow]warning:[/yellow] no stems found.")
+            console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
 
 
 def register(app: typer.Typer) -> None:

@@ -79,6 +79,7 @@ class CloudStems:
     method : str
     frame : str
     spacing : float, metres -- measured point spacing (NaN for munjer2025)
+    reason : str -- why nothing was found (empty results are falsy)
     """
 
     xy: FloatArray
@@ -95,15 +96,22 @@ class CloudStems:
     method: str = ""
     frame: str = "cloud"
     spacing: float = math.nan
+    reason: str = ""
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])
 
+    def __bool__(self) -> bool:
+        """False when no stem was found (``reason`` says why)."""
+        return len(self) > 0
+
     @classmethod
-    def empty(cls, method: str, frame: str = "cloud", spacing: float = math.nan) -> CloudStems:
+    def empty(
+        cls, method: str, frame: str = "cloud", spacing: float = math.nan, *, reason: str = ""
+    ) -> CloudStems:
         z = np.zeros(0)
         zi = np.zeros(0, dtype=np.int64)
-        return cls(np.zeros((0, 2)), z, z, zi, z, z, z, zi, z, z, z, method, frame, spacing)
+        return cls(np.zeros((0, 2)), z, z, zi, z, z, z, zi, z, z, z, method, frame, spacing, reason)
 
     @classmethod
     def from_columns(cls, **cols: Any) -> CloudStems:
@@ -245,17 +253,21 @@ def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> C
     p = as_xyz(xyz)
     p = p[pass_through(p, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)]
     if p.shape[0] < cfg.min_points:
-        return CloudStems.empty("munjer2025")
+        return CloudStems.empty(
+            "munjer2025", reason=f"fewer than {cfg.min_points} points inside the pass-through box"
+        )
     v = np.asarray(voxel_downsample(p, cfg.voxel))
     lab = dbscan(v, cfg.eps, cfg.min_points)
     if lab.size == 0 or lab.max() < 0:
-        return CloudStems.empty("munjer2025")
+        return CloudStems.empty("munjer2025", reason="DBSCAN found no cluster")
     cen, cov, sizes = cluster_covariances(v, lab)
     ecc = pca_eccentricity(cov)
     lo, hi = cfg.eccentricity_range
     cand = np.flatnonzero((ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points))
     if cand.size == 0:
-        return CloudStems.empty("munjer2025")
+        return CloudStems.empty(
+            "munjer2025", reason=f"no cluster has an eccentricity in [{lo}, {hi}]"
+        )
     sel = np.isin(lab, cand)
     fits = fit_circles_batch(v[sel, :2], lab[sel], cfg.fit_method, edges=None)
     ok = fits.ok & (fits.rms <= cfg.fit_std_max)
@@ -312,7 +324,7 @@ def associate_proximity(
                 npts[j] += int(det.n_points[k])
                 ecc[j].append(float(det.eccentricity[k]))
     if not sums:
-        return CloudStems.empty("munjer2025", frame)
+        return CloudStems.empty("munjer2025", frame, reason="no detections to associate")
     s = np.array(sums)
     return CloudStems.from_columns(
         xy=s[:, :2] / s[:, 2:3],
@@ -471,7 +483,7 @@ def detect_stems(
     cfg = config or StemConfig()
     p = as_xyz(xyz)
     if p.shape[0] == 0:
-        return CloudStems.empty("ours")
+        return CloudStems.empty("ours", reason="the cloud is empty")
     zmin, zmax = float(p[:, 2].min()), float(p[:, 2].max())
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     cfg = _slice_setup(cfg, zmin, zmax, is_slice)
@@ -755,11 +767,15 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     xy, h = band.xy, band.h
     n = xy.shape[0]
     if n < cfg.min_slice_points:
-        return CloudStems.empty("ours")
+        return CloudStems.empty(
+            "ours", reason=f"fewer than {cfg.min_slice_points} points in the slice band"
+        )
     # --- spacing -> clustering cell (measured, not tuned)
     sp2d = cfg.spacing if cfg.spacing is not None else _band_spacing(xy, h)
     if not math.isfinite(sp2d):
-        return CloudStems.empty("ours")
+        return CloudStems.empty(
+            "ours", reason="point spacing could not be measured (duplicate points only?)"
+        )
     cell = float(np.clip(cfg.cluster_cell_factor * sp2d, 0.01, 0.25))
     centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
     ns = centers_h.shape[0]
@@ -772,7 +788,9 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     xy, h = xy[keep], h[keep]
     sl_all = sl_all[keep]
     if xy.shape[0] < cfg.min_slice_points:
-        return CloudStems.empty("ours", spacing=sp2d)
+        return CloudStems.empty(
+            "ours", spacing=sp2d, reason="no points left after the vertical-consistency filter"
+        )
     # --- grid components with one-cell gap bridging (dilated occupancy)
     from scipy import ndimage
 
@@ -808,7 +826,9 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     sl = sl_all
     use = cand[lab] & (sl >= 0)
     if not use.any():
-        return CloudStems.empty("ours", spacing=sp2d)
+        return CloudStems.empty(
+            "ours", spacing=sp2d, reason="no cluster has enough points in any slice"
+        )
     cl_ids, cl_inv = np.unique(lab[use], return_inverse=True)
     kc = cl_ids.shape[0]
     seg = cl_inv.astype(np.int64) * ns + sl[use]
@@ -838,7 +858,11 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         & (arcs >= cfg.min_arc_deg)
     )
     if not plausible.any():
-        return CloudStems.empty("ours", spacing=sp2d)
+        return CloudStems.empty(
+            "ours",
+            spacing=sp2d,
+            reason="no slice fit passed the quality tests (points, radius, arc)",
+        )
     noise_floor = float(np.median(rms[plausible]))
     rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
     passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
@@ -900,7 +924,11 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             (cxy[0], cxy[1], 2 * r_bh, int(NIN[c, m].sum()), q, arc, rr, int(m.sum()), taper)
         )
     if not rows:
-        return CloudStems.empty("ours", spacing=sp2d)
+        return CloudStems.empty(
+            "ours",
+            spacing=sp2d,
+            reason="no cluster passed the per-stem tests (slices, vertical extent, taper)",
+        )
     arr = np.array(rows, dtype=np.float64)
     # suppress duplicates (a trunk split into two clusters): keep the better supported one
     order = np.argsort(-arr[:, 3])
