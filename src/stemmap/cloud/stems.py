@@ -362,6 +362,8 @@ class StemConfig:
     min_slices : int -- slices that must pass for a stem (1 for a pre-cut slice cloud)
     min_vertical_extent : float, metres -- the passing slices' centres must span at least this
         (a stem is vertical; bushes and branch stubs are not); ignored for a pre-cut slice
+    slices_per_spacing : float -- a slice is at least this many measured point spacings thick;
+        sparse clouds get fewer, thicker slices over the same band (0 disables)
     max_taper : float -- largest plausible |d radius / d height| in the band, m/m; a candidate
         whose slice radii change faster is not a stem
     residual_factor : float -- a slice fit passes if its RMS is below ``residual_factor`` times
@@ -392,6 +394,7 @@ class StemConfig:
     estimate_height: bool = False
     slice_mode: str = "auto"
     min_vertical_extent: float = 0.4
+    slices_per_spacing: float = 4.0
     max_taper: float = 0.05
 
     def __post_init__(self) -> None:
@@ -733,6 +736,24 @@ def _fit_segments(
     return centers, radii, rms, ok, nin
 
 
+def _adapt_slices(cfg: StemConfig, spacing: float) -> StemConfig:
+    """Thicker, fewer slices over the same band when the cloud is sparse.
+
+    A slice must be at least ``slices_per_spacing`` point spacings thick so that a trunk side
+    holds enough points for a fit; the band (first to last slice edge) is kept and cut into as
+    many equal slices of at least that thickness as fit, never fewer than 3.
+    """
+    lo, hi = cfg.band
+    need = max(cfg.slice_thickness, cfg.slices_per_spacing * spacing)
+    if need <= cfg.slice_thickness + 1e-12:
+        return cfg
+    n = max(3, int((hi - lo) // need))
+    th = (hi - lo) / n
+    centers = tuple(float(lo + th * (k + 0.5)) for k in range(n))
+    log.info("sparse cloud (spacing %.3f m): %d slices of %.2f m", spacing, n, th)
+    return replace(cfg, slice_centers=centers, slice_thickness=th)
+
+
 def _theil_sen(x: FloatArray, y: FloatArray) -> tuple[float, float]:
     """Theil-Sen line ``y = a + b x``: b the median pairwise slope, a the median intercept."""
     i, j = np.triu_indices(x.size, 1)
@@ -777,6 +798,8 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             "ours", reason="point spacing could not be measured (duplicate points only?)"
         )
     cell = float(np.clip(cfg.cluster_cell_factor * sp2d, 0.01, 0.25))
+    if not slice_cloud and cfg.slices_per_spacing > 0:
+        cfg = _adapt_slices(cfg, sp2d)
     centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
     ns = centers_h.shape[0]
     # --- slice of each point: the nearest slice centre within half a thickness
