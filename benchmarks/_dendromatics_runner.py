@@ -75,9 +75,9 @@ def run_one(path: str, n_points: int = 1000, h_range: float = 1.0) -> dict[str, 
 
 
 def main() -> None:
-    import dendromatics
+    from importlib.metadata import version
 
-    out: dict[str, Any] = {"version": getattr(dendromatics, "__version__", "?"), "files": {}}
+    out: dict[str, Any] = {"version": version("dendromatics"), "files": {}}
     for path in sys.argv[1:]:
         key = path.rsplit("/", 2)[-2] + "/" + path.rsplit("/", 1)[-1]
         out["files"][key] = {}
