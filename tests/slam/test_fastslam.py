@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_treedb import sim_problem  # shared simulated loop (tests/slam/test_treedb.py)
 
-from stemmap.errors import ConfigError
+from stemmap.errors import ConfigError, InputError
 from stemmap.eval.matching import match_points
 from stemmap.slam.base import dead_reckoning, make_backend
 from stemmap.slam.fastslam import PRESETS, FastSlam, systematic_resample
@@ -108,3 +108,12 @@ def test_fastslam_on_victoria_park_slice(datasets_dir):
     assert len(res.trajectory) == len(vp.frames)
     assert np.all(np.isfinite(res.trajectory.poses))
     assert len(res.stem_map) >= 5
+
+
+def test_fastslam_rejects_controls_of_the_wrong_kind(sim):
+    from stemmap.slam.motion import AckermannModel
+
+    problem, _ = sim
+    bad = type(problem)(problem.controls, problem.frames, AckermannModel())
+    with pytest.raises(InputError, match="kind"):
+        FastSlam(n_particles=5).run(bad)

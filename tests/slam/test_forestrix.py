@@ -203,3 +203,12 @@ def test_forestrix_on_victoria_park_slice(datasets_dir):
     assert len(res.trajectory) == len(vp.frames)
     assert np.all(np.isfinite(res.trajectory.poses))
     assert res.stats["frames_corrected"] > 0
+
+
+def test_forestrix_rejects_controls_of_the_wrong_kind(sim3):
+    from stemmap.slam.motion import AckermannModel
+
+    problem, _ = sim3
+    bad = type(problem)(problem.controls, problem.frames, AckermannModel())
+    with pytest.raises(InputError, match="kind"):
+        ForestrixSlam().run(bad)

@@ -270,3 +270,12 @@ def test_scans_to_trunks_to_map_with_the_scan_detector():
     # diameters from the detector's circle fits: mean error a few mm (measured 4 mm)
     d_err = res.stem_map.diameters[m.pairs[:, 0]] - run.stand.diameters[m.pairs[:, 1]]
     assert np.mean(np.abs(d_err)) < 0.02
+
+
+def test_treedb_rejects_controls_of_the_wrong_kind(sim):
+    from stemmap.slam.motion import AckermannModel
+
+    problem, _ = sim
+    bad = type(problem)(problem.controls, problem.frames, AckermannModel())
+    with pytest.raises(InputError, match="kind"):
+        TreeDbSlam().run(bad)
