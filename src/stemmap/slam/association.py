@@ -192,6 +192,15 @@ def jcbb(
     cands = [
         list(np.flatnonzero(d2[i] < gate1)[np.argsort(d2[i][d2[i] < gate1])]) for i in range(k)
     ]
+    # fast path: if greedy NN pairs every observation that has a candidate and the pairing is
+    # jointly compatible, no hypothesis can have more pairings -- accept it without searching
+    nn = nearest_neighbour(d2, gate1)
+    n_with = sum(1 for x in cands if x)
+    nn_pairs = [(i, int(j)) for i, j in enumerate(nn) if j >= 0]
+    if len(nn_pairs) == n_with and (
+        not nn_pairs or joint_nis(nn_pairs, nu, C, R, E) < chi2_gate(alpha, dof1 * len(nn_pairs))
+    ):
+        return nn
     state = _Search([], math.inf, 0)
     remaining = np.array([sum(1 for x in cands[i:] if x) for i in range(k)] + [0])
 

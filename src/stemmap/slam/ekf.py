@@ -152,6 +152,7 @@ class EkfSlam:
         lm_last: list[int] = []
         poses = np.zeros((nf, 3))
         n_matched = n_new = n_pruned = n_ambiguous = 0
+        nis_sum, nis_dof = 0.0, 0
 
         for f in range(nf):
             # ---------------- predict
@@ -248,7 +249,10 @@ class EkfSlam:
                         # which keeps P positive semi-definite over thousands of updates)
                         Lc = np.linalg.cholesky(0.5 * (S + S.T))
                         W = solve_triangular(Lc, PHt.T, lower=True).T
-                        self.x[:n] += W @ solve_triangular(Lc, v, lower=True)
+                        wv = solve_triangular(Lc, v, lower=True)
+                        nis_sum += float(wv @ wv)
+                        nis_dof += v.size
+                        self.x[:n] += W @ wv
                         self.x[2] = (self.x[2] + math.pi) % (2 * math.pi) - math.pi
                         self.P[:n, :n] -= W @ W.T
                         n_matched += mi.size
@@ -345,6 +349,8 @@ class EkfSlam:
             "pruned": n_pruned,
             "ambiguous_discarded": n_ambiguous,
             "landmarks": nl,
+            # normalised innovation squared per degree of freedom: ~1 for a consistent filter
+            "nis_per_dof": nis_sum / nis_dof if nis_dof else math.nan,
             "runtime_s": runtime,
         }
         log.info("EKF-SLAM: %s", stats)
