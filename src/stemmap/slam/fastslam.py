@@ -123,6 +123,11 @@ class FastSlam:
     window_margin : float, m
     min_observations : int
         Landmarks of the best particle seen fewer times are left out of the output map.
+    min_new_separation : float, m
+        Ours: a detection that matches no landmark but lies closer than this to one of the
+        particle's landmarks is skipped for the frame rather than starting a new landmark (two
+        trunks closer than 1 m are rare; such a detection is far more often the same tree seen
+        with a slightly wrong pose). 0 disables.
     version : {1, 2}
         1 = FastSLAM 1.0 (motion-model proposal; Munjer cites Montemerlo's FastSLAM), 2 = ours:
         the FastSLAM 2.0 proposal (pose sampled from the motion prediction fused with this
@@ -144,6 +149,7 @@ class FastSlam:
     window_margin: float = 3.0
     min_observations: int = 3
     tentative_timeout_s: float = 5.0
+    min_new_separation: float = 1.0
     version: int = 1
     seed: int = 0
     name: str = "fastslam"
@@ -278,6 +284,17 @@ class FastSlam:
                     jbest = np.argmax(ll, axis=2)  # (P, K)
                     ll_best = np.take_along_axis(ll, jbest[..., None], axis=2)[..., 0]
                     is_match = ll_best >= log_p0
+                    if self.min_new_separation > 0:
+                        # a detection that fails the likelihood test but lies within
+                        # min_new_separation of one of the particle's landmarks is ambiguous:
+                        # drop it for this frame instead of starting a duplicate (ours)
+                        ex = m_mu[:, None, :, 0] - ox[:, :, None]  # (P, K, M)
+                        ey = m_mu[:, None, :, 1] - oy[:, :, None]
+                        close = np.any(
+                            cvalid[:, None, :] & (ex * ex + ey * ey < self.min_new_separation**2),
+                            axis=2,
+                        )
+                        assoc[~is_match & close] = -2
                     # resolve conflicts: one detection per landmark per particle
                     pk_p, pk_k = np.nonzero(is_match)
                     if pk_p.size:
