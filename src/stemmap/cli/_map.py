@@ -54,17 +54,27 @@ def _simulated(seed: int, n_trees: int, size: float) -> tuple[Any, dict[str, Any
 
     stand = random_stand(n_trees, (size, size), rng=seed)
     path = loop_path((size / 2, size / 2), (0.35 * size, 0.35 * size), laps=1.0)
-    run = simulate_run(stand, path, speed=1.0, corridor_half_width=2.0, rng=seed)
+    run = simulate_run(stand, path, speed=1.0, rate_hz=5.0, corridor_half_width=2.0, rng=seed)
     obs = ScanTrunkDetector().detect_batch(run.scans)
     frames = TreeFrames.from_observations(obs, run.scans.times)
     odo = run.odometry
     controls = Controls(odo.times, odo.speed, odo.yaw_rate, "unicycle")
     off = run.sensor_offset
     v0 = run.vehicle_poses.poses[0]
+    # motion noise from the simulator's own odometry spec (per-sample white noise at the
+    # odometry rate -> one-second average, plus the bias / scale error as a 1-s equivalent)
+    on = run.params.get("odometry_noise") or {}
+    rate = float(run.params.get("odom_rate_hz", 50.0))
+    sig_v = float(on.get("speed_noise", 0.05)) / math.sqrt(rate) + abs(
+        float(on.get("speed_scale", 1.0)) - 1.0
+    )
+    sig_w = float(on.get("yaw_rate_noise", 0.0175)) / math.sqrt(rate) + abs(
+        float(on.get("yaw_rate_bias", 0.0))
+    )
     problem = SlamProblem(
         controls,
         frames,
-        UnicycleModel(sigma_speed=0.05, sigma_steer=0.02),
+        UnicycleModel(sigma_speed=max(sig_v, 1e-3), sigma_steer=max(sig_w, 1e-4)),
         sensor_offset=(off.x, off.y),
         initial_pose=(float(v0[0]), float(v0[1]), float(v0[2])),
         name=f"sim(seed={seed}, trees={n_trees}, size={size} m)",

@@ -60,6 +60,7 @@ class EkfConfig:
     new_landmark_min_dist : m, and only if it is at least this far from every landmark
     max_new_range : m, no landmarks are started from detections farther than this
     prune_after, min_obs : landmark quality (prune_after = 0 disables pruning)
+    prune_every : frames between pruning passes (each pass copies the covariance once)
     search_radius : m, landmarks farther than this from the sensor are not association candidates
     """
 
@@ -72,6 +73,7 @@ class EkfConfig:
     new_landmark_min_dist: float = 1.0
     max_new_range: float = 40.0
     prune_after: int = 10
+    prune_every: int = 20
     min_obs: int = 3
     search_radius: float = 85.0
 
@@ -84,6 +86,8 @@ class EkfConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"EkfConfig.{name} must be a positive number, got {v}.")
+        if self.prune_every < 1:
+            raise ConfigError(f"EkfConfig.prune_every must be >= 1, got {self.prune_every}.")
         if self.sigma_diameter is not None and not self.sigma_diameter > 0:
             raise ConfigError(
                 f"EkfConfig.sigma_diameter must be > 0 or None, got {self.sigma_diameter}."
@@ -295,11 +299,12 @@ class EkfSlam:
                     lm_last.append(f)
                     n_new += 1
             # ---------------- landmark quality pruning
-            if cfg.prune_after > 0 and lm_first:
+            # (batched every prune_every frames: each removal copies P, O(n²))
+            if cfg.prune_after > 0 and lm_first and (f % cfg.prune_every == 0 or f == nf - 1):
                 nl = (self.n - 3) // 2
                 first = np.asarray(lm_first)
                 nobs = np.asarray(lm_nobs)
-                bad = np.flatnonzero((first == f - cfg.prune_after) & (nobs < cfg.min_obs))
+                bad = np.flatnonzero((first <= f - cfg.prune_after) & (nobs < cfg.min_obs))
                 if bad.size:
                     keep_l = np.ones(nl, dtype=bool)
                     keep_l[bad] = False

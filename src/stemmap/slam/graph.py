@@ -394,7 +394,11 @@ class Isam2Slam:
                         d2min = d2.min(axis=1)
                         dmin = np.sqrt(ex * ex + ey * ey).min(axis=1)
                         ii, jj = np.nonzero(d2 < cfg.gate_chi2)
-                        order = np.argsort(d2[ii, jj], kind="stable")
+                        # rank gated pairs by negative log-likelihood d² + ln|S|, not by d²
+                        # alone: d² favours uncertain (long unseen) trees over the nearby,
+                        # recently seen one that actually produced the detection
+                        nll = d2[ii, jj] + np.log(det[ii, jj])
+                        order = np.argsort(nll, kind="stable")
                         used_i: set[int] = set()
                         used_j: set[int] = set()
                         for t_ in order:
