@@ -84,7 +84,7 @@ class Isam2Config:
     new_min_dist: float = 1.0
     max_range: float = 50.0
     drift_scale: float = 1.0
-    max_drift_sigma: float = 3.0
+    max_drift_sigma: float = 1.5
     keyframe_every: int = 5
     update_every: int = 1
     relinearize_threshold: float = 0.05
