@@ -121,3 +121,41 @@ def test_truncated_and_backwards_rows_are_skipped_with_warning(tmp_path, dataset
     # 2 bad rows of 400 (0.5 %) exceed a 0.1 % budget
     with pytest.raises(InputError, match="more than"):
         load_victoria_park(tmp_path / "vp", max_bad_fraction=0.001)
+
+
+def test_stemmap_map_cli_writes_every_product(tmp_path, datasets_dir):
+    import json
+
+    from typer.testing import CliRunner
+
+    from stemmap.cli import app
+
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        app,
+        [
+            "map",
+            "--dataset",
+            "victoria-park",
+            "--data",
+            str(datasets_dir / "victoria_park"),
+            "--t-end",
+            "40",
+            "--backend",
+            "isam2",
+            "--out",
+            str(out),
+            "--no-progress",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    for name in ("trees.csv", "trees.geojson", "trajectory.csv", "metrics.json", "map.png"):
+        assert (out / name).stat().st_size > 100, name
+    header = (out / "trees.csv").read_text().splitlines()[0].split(",")
+    assert header[:7] == ["id", "x", "y", "diameter", "std_x", "std_y", "n_obs"]
+    assert (out / "trajectory.csv").read_text().startswith("time,x,y,theta")
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["n_trees"] > 10 and m["ate_rmse_m"] < 2.0
+    # bad input: no source / two sources -> exit code 2 with a message, no traceback
+    bad = CliRunner().invoke(app, ["map", "--sim", "--dataset", "victoria-park", "--out", "x"])
+    assert bad.exit_code == 2 and "exactly one input" in bad.output
