@@ -912,11 +912,24 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         # consistency: drop slices whose radius or centre is far from the median
         r_med = float(np.median(R[c, m]))
         c_med = np.median(C[c, m], axis=0)
-        tol = max(0.15 * r_med, 3 * rms_max)
+        # tolerance: 15 % of the radius, or 5 sigma of a slice radius, whichever is larger.
+        # sigma_r is the fit's parameter noise, not the points': ~2 rms / sqrt(n) on a half
+        # arc, growing like (180 deg / arc)^2 on shorter arcs (partly occluded trunks)
+        short = np.maximum(1.0, 180.0 / np.maximum(A[c, m], 1.0)) ** 2
+        sig_r = float(np.median(2.0 * RMS[c, m] / np.sqrt(np.maximum(NIN[c, m], 1)) * short))
+        tol = max(0.15 * r_med, 5.0 * sig_r)
+        # centres are compared with a robust line through them (a leaning stem's centre
+        # moves with height), radii with their median
+        if m.sum() >= 3:
+            hm = centers_h[m]
+            lx, ly = _theil_sen(hm, C[c, m, 0]), _theil_sen(hm, C[c, m, 1])
+            pred = np.column_stack((lx[0] + lx[1] * centers_h, ly[0] + ly[1] * centers_h))
+        else:
+            pred = np.broadcast_to(c_med, C[c].shape)
         m = (
             m
             & (np.abs(R[c] - r_med) <= tol)
-            & (np.hypot(*(C[c] - c_med).T) <= max(tol, 0.3 * r_med))
+            & (np.hypot(*(C[c] - pred).T) <= max(tol, 0.3 * r_med))
         )
         if m.sum() < cfg.min_slices:
             continue
