@@ -77,6 +77,17 @@ def test_fused_drift_clearly_below_either_source(two_sources):
     assert np.trace(covs[-1][:2, :2]) > np.trace(covs[len(covs) // 10][:2, :2])
 
 
+def test_scale_reference_b_estimates_the_wheel_scale_instead(two_sources):
+    run, wheel, visual = two_sources
+    p0 = run.true_path.poses[0]
+    fused = fuse_odometry(wheel, visual, initial_pose=p0, calibrate=True, scale_reference="b")
+    # now the visual source is metric: the wheel reads 1.03 / 0.93 - 1 = +10.8 % relative to it
+    assert fused.calibration[1] == pytest.approx(1.03 / VO_SCALE - 1.0, abs=0.01)
+    assert fused.calibration[0] == pytest.approx(math.radians(0.5), abs=math.radians(0.05))
+    with pytest.raises(ConfigError, match="scale_reference"):
+        fuse_odometry(wheel, visual, calibrate=True, scale_reference="c")  # type: ignore[arg-type]
+
+
 def test_plain_ekf_is_a_weighted_average_of_the_sources(two_sources):
     # the papers' filter (no calibration, no gate) cannot remove systematic errors: its drift
     # lies between the two sources (measured ~25 m), documented as the reason for `calibrate`

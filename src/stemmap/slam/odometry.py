@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -164,8 +165,8 @@ class FusedOdometry:
     n_rejected : ndarray (2,), int
         Measurements of source A / B rejected by the innovation gate.
     calibration : ndarray (2,)
-        Final estimates of source A's yaw-rate bias (rad/s) and source B's speed-scale error
-        (zeros unless ``calibrate``).
+        Final estimates of source A's yaw-rate bias (rad/s) and the speed-scale error of the
+        non-reference source (zeros unless ``calibrate``).
     """
 
     trajectory: Trajectory
@@ -184,6 +185,7 @@ def fuse_odometry(
     yaw_accel_noise: float = 0.5,
     gate_prob: float | None = 0.999,
     calibrate: bool = False,
+    scale_reference: Literal["a", "b"] = "a",
     bias_prior: float = math.radians(1.0),
     scale_prior: float = 0.05,
     bias_walk: float = 1e-4,
@@ -210,6 +212,11 @@ def fuse_odometry(
         accurately" but "may have a different scale". Both errors are systematic, not white: a
         plain EKF only averages them down, the augmented one estimates them (A anchors the
         scale, B the heading). False = the papers' plain filter (``b = k = 0`` fixed).
+    scale_reference : {"a", "b"}
+        Which source is metric when calibrating: ``"a"`` (default, wheel) estimates B's speed
+        scale as above; ``"b"`` estimates A's instead (e.g. B is LiDAR scan matching, or a
+        visual odometry known to be well scaled). Two relative sources cannot tell whose scale
+        is right; this is a modelling choice.
     bias_prior : float, rad/s
         Prior std of ``b``.
     scale_prior : float
@@ -232,6 +239,10 @@ def fuse_odometry(
         raise ConfigError("fuse_odometry: accel_noise and yaw_accel_noise must be > 0.")
     if gate_prob is not None and not 0.0 < gate_prob < 1.0:
         raise ConfigError(f"fuse_odometry: gate_prob must be in (0, 1) or None, got {gate_prob}.")
+    if scale_reference not in ("a", "b"):
+        raise ConfigError(
+            f"fuse_odometry: scale_reference must be 'a' or 'b', got {scale_reference!r}."
+        )
     if min(bias_prior, scale_prior, bias_walk, scale_walk) < 0:
         raise ConfigError("fuse_odometry: calibration priors and walks must be >= 0.")
     # merge both streams by time (stable: A before B at equal times)
@@ -257,7 +268,8 @@ def fuse_odometry(
     qb = bias_walk**2 if calibrate else 0.0
     qk = scale_walk**2 if calibrate else 0.0
 
-    # state: x, y, theta, v, omega, b (A's yaw-rate bias), k (B's speed-scale error)
+    # state: x, y, theta, v, omega, b (A's yaw-rate bias), k (speed-scale error of the source
+    # that is not the scale reference)
     x = np.zeros(7)
     x[:3] = np.asarray(initial_pose, dtype=np.float64).reshape(3)
     P = np.diag(
@@ -303,16 +315,18 @@ def fuse_odometry(
         z = z_all[i]
         have = np.isfinite(z)
         if np.any(have):
-            # h_A = (v, omega + b);  h_B = ((1 + k) v, omega)
+            # h_A = (s_A v, omega + b);  h_B = (s_B v, omega) with s = 1 + k for the source
+            # whose scale is estimated (the other one is the metric reference)
             H[:] = 0.0
+            scaled = (src[i] == 1) == (scale_reference == "a")
+            sc = 1.0 + x[6] if scaled else 1.0
+            pred = np.array([sc * x[3], x[4] + (x[5] if src[i] == 0 else 0.0)])
+            H[0, 3] = sc
+            if scaled:
+                H[0, 6] = x[3]
+            H[1, 4] = 1.0
             if src[i] == 0:
-                pred = np.array([x[3], x[4] + x[5]])
-                H[0, 3] = 1.0
-                H[1, 4], H[1, 5] = 1.0, 1.0
-            else:
-                pred = np.array([(1.0 + x[6]) * x[3], x[4]])
-                H[0, 3], H[0, 6] = 1.0 + x[6], x[3]
-                H[1, 4] = 1.0
+                H[1, 5] = 1.0
             Hs = H[have]
             y = z[have] - pred[have]
             S = Hs @ P @ Hs.T + np.diag(r_all[i][have])
