@@ -270,3 +270,13 @@ def test_stem_height_limited_by_what_the_scanner_sees(
     # branches inside the 1 m search radius rise above the stem's visible part, and the 8 %
     # ground slope shifts heights by up to 0.1 m per metre: 1.5 m tolerance
     assert np.all(np.abs(err) < 1.5)
+
+
+def test_georeferenced_offsets_change_nothing(tls_scene: tuple[Stand3D, np.ndarray]) -> None:
+    """UTM-sized coordinates: the same stems, shifted, to float64 round-off."""
+    _, xyz = tls_scene
+    off = np.array([500_000.0, 6_000_000.0, 300.0])
+    a, b = detect_stems(xyz), detect_stems(xyz + off)
+    assert len(a) == len(b)
+    np.testing.assert_allclose(b.xy - off[:2], a.xy, atol=1e-6)
+    np.testing.assert_allclose(b.diameter, a.diameter, atol=1e-6)
