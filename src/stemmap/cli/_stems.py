@@ -73,10 +73,13 @@ def stems(
             write_stems_geojson(geojson, result)
         if png is not None:
             if bg is None and ext in (".las", ".laz"):
-                from stemmap.io.clouds import iter_las_chunks
+                import numpy as np
 
-                first = next(iter_las_chunks(cloud, 200_000), None)
-                bg = None if first is None else first.xyz[:, :2]
+                from stemmap.io.clouds import count_points, iter_las_chunks
+
+                # background: every k-th point of the whole file (one more streaming pass)
+                step = max(1, (count_points(cloud) or 0) // 200_000)
+                bg = np.concatenate([c.xyz[::step, :2] for c in iter_las_chunks(cloud, chunk_size)])
             plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
         out.print(
             f"{len(result)} stems ({result.method}) written to {out_csv}"
