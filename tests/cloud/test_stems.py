@@ -140,9 +140,26 @@ def test_streaming_file_matches_in_memory(
     # CLI on the same file
     out = tmp_path / "stems.csv"
     res = CliRunner().invoke(
-        app, ["stems", str(f), "--out", str(out), "--geojson", str(tmp_path / "s.geojson")]
+        app,
+        [
+            "stems",
+            str(f),
+            "--out",
+            str(out),
+            "--geojson",
+            str(tmp_path / "s.geojson"),
+            "--png",
+            str(tmp_path / "s.png"),
+        ],
     )
     assert res.exit_code == 0, res.output
+    assert (tmp_path / "s.png").read_bytes()[:4] == b"\x89PNG"
+    import json
+
+    gj = json.loads((tmp_path / "s.geojson").read_text())
+    assert gj["type"] == "FeatureCollection" and len(gj["features"]) == len(det_f)
+    bad = CliRunner().invoke(app, ["stems", str(tmp_path / "nope.laz"), "--out", str(out)])
+    assert bad.exit_code == 2
     rows = out.read_text().splitlines()
     assert rows[0].startswith("id,x,y,z,diameter,n_points,quality")
     assert len(rows) == len(det_f) + 1
