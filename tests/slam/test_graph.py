@@ -89,8 +89,9 @@ def test_sensor_between_covariance_by_sampling(rng):
 
 
 def test_merge_duplicates_union_find():
-    xy = np.array([[0.0, 0.0], [0.5, 0.0], [0.9, 0.0], [10.0, 0.0], [10.3, 0.0]])
-    diam = np.array([0.3, 0.31, 0.29, 0.3, 0.9])  # the last pair has different diameters
+    xy = np.array([[0.0, 0.0], [0.5, 0.0], [0.9, 0.0], [10.0, 0.0], [10.8, 0.0]])
+    # the last pair: different diameters and 0.8 m apart (trunks would not overlap)
+    diam = np.array([0.3, 0.31, 0.29, 0.3, 0.9])
     nobs = np.array([5, 50, 1, 3, 3])
     rep = _merge_duplicates(xy, diam, nobs, 1.0, 0.2)
     np.testing.assert_array_equal(rep, [1, 1, 1, 3, 4])
@@ -142,3 +143,11 @@ def test_isam2_and_ekf_close_the_loop_on_the_simulator():
         assert lc < lc_dr / 3.0, name
         err = np.hypot(*(res.trajectory.interpolate(truth.times)[:, :2] - truth.xy).T)
         assert err.max() < 1.0, name
+
+
+def test_merge_duplicates_joins_overlapping_trunks_of_any_diameter():
+    # a 1.0 m "trunk" 0.3 m from a 0.3 m tree overlaps it: one tree, not two
+    xy = np.array([[0.0, 0.0], [0.3, 0.0], [5.0, 0.0], [5.9, 0.0]])
+    diam = np.array([0.3, 1.0, 0.3, 1.0])  # second pair 0.9 m apart: no overlap (0.65)
+    rep = _merge_duplicates(xy, diam, np.array([50, 3, 50, 3]), 1.0, 0.42)
+    np.testing.assert_array_equal(rep, [0, 0, 2, 3])
