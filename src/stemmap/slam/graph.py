@@ -467,6 +467,7 @@ class Isam2Slam:
         # initialised apart): closer than merge_dist with compatible diameters -> one key;
         # the rebuilt graph is optimised again (this also closes the loops they imply)
         n_merged = 0
+        alias = np.arange(n_lm)  # landmark slot each slot's factors now point to
         for _round in range(3 if cfg.merge_dist > 0 and n_lm > 1 else 0):
             # merging moves trees; repeat until no close compatible pair is left
             ing = np.flatnonzero(lm_in_graph[:n_lm])
@@ -486,13 +487,15 @@ class Isam2Slam:
                 target = ing[rep]  # landmark slot each slot maps to
                 remap = np.arange(n_lm)
                 remap[ing] = target
+                # compose with earlier rounds: a factor of a tree merged before follows it
+                alias = remap[alias]
                 g2 = gtsam.NonlinearFactorGraph()
                 for fac in other_factors:
                     g2.add(fac)
                 for k_, j_, b_, r_, sb_, sr_ in meas_rec:
                     g2.add(
                         gtsam.BearingRangeFactor2D(
-                            XK(k_), LK(int(remap[j_])), gtsam.Rot2(b_), r_, meas_noise(sb_, sr_)
+                            XK(k_), LK(int(alias[j_])), gtsam.Rot2(b_), r_, meas_noise(sb_, sr_)
                         )
                     )
                 v2 = gtsam.Values()
