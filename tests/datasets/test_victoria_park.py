@@ -159,3 +159,21 @@ def test_stemmap_map_cli_writes_every_product(tmp_path, datasets_dir):
     # bad input: no source / two sources -> exit code 2 with a message, no traceback
     bad = CliRunner().invoke(app, ["map", "--sim", "--dataset", "victoria-park", "--out", "x"])
     assert bad.exit_code == 2 and "exactly one input" in bad.output
+
+
+def test_gps_screening_on_the_real_run(vp):
+    from stemmap.eval.trajectory import screen_gps
+    from stemmap.slam.base import sensor_poses
+
+    pre = preintegrate(vp.model, vp.controls, vp.gps_times)
+    sp = sensor_poses(pre.poses, vp.model.sensor_offset)
+    s = screen_gps(
+        vp.gps_times, vp.gps_xy, sp[:, :2], np.concatenate(([0.0], np.cumsum(pre.distance)))
+    )
+    # measured: 3,669 of 4,466 fixes kept; the rule must keep most fixes and drop the jumps
+    assert 0.75 * s.n_total < s.n_kept < 0.9 * s.n_total
+    kept = vp.gps_xy[s.keep]
+    step = np.hypot(*np.diff(kept, axis=0).T)
+    dt = np.diff(vp.gps_times[s.keep])
+    # consecutive kept fixes never imply more than the car's top speed (6.6 m/s) + tolerance
+    assert np.all(step <= 6.7 * dt + 0.5 + 0.1 * 6.7 * dt)
