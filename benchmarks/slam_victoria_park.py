@@ -48,7 +48,11 @@ def _score(name: str, data: str | None, t_end: float | None) -> dict[str, Any]:
         vp.gps_times, vp.gps_xy, sp[:, :2], np.concatenate(([0.0], np.cumsum(pre.distance)))
     )
     t0 = time.perf_counter()
-    if name == "dead_reckoning":
+    if name in ("dead_reckoning", "dead_reckoning_raw"):
+        if name == "dead_reckoning_raw":  # the steering signal as recorded (no offset)
+            from stemmap.datasets.victoria_park import victoria_park_model
+
+            problem = vp.problem(model=victoria_park_model(steer_offset=0.0))
         traj = dead_reckoning(problem)
         n_trees: int | None = None
         dups: int | None = None
@@ -106,7 +110,7 @@ def main() -> None:
         except ImportError as exc:
             skipped[n] = f"not importable: {exc}"
     results: dict[str, Any] = {}
-    for n in ["dead_reckoning", *available]:
+    for n in ["dead_reckoning_raw", "dead_reckoning", *available]:
         cmd = [sys.executable, __file__, "--worker", n]
         if args.data:
             cmd += ["--data", args.data]
@@ -123,6 +127,8 @@ def main() -> None:
             "dataset": "ACFR Victoria Park (text redistribution)",
             "t_end_s": args.t_end,
             "vehicle": {"L": 2.83, "H": 0.76, "a": 3.78, "b": 0.50},
+            "steer_offset_rad": "0.0055, estimated without GPS (estimate_steer_offset); "
+            "dead_reckoning_raw uses 0",
             "ate_point": "laser (a, b) in the vehicle frame",
             "gps_screening": "keep a fix if its displacement from the previous kept fix "
             "matches the wheel odometry within 0.5 m + 10 % of the distance driven",

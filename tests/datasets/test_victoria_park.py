@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +11,16 @@ import pytest
 from scipy.spatial import cKDTree
 
 from stemmap.datasets.victoria_park import (
+    STEER_OFFSET_RAD,
     dataset_bearing_to_ours,
+    estimate_steer_offset,
     load_victoria_park,
+    reobservation_consistency,
     victoria_park_model,
 )
 from stemmap.errors import InputError
 from stemmap.slam.base import observation_to_world
-from stemmap.slam.motion import AckermannModel, preintegrate
+from stemmap.slam.motion import preintegrate
 
 
 @pytest.fixture(scope="module")
@@ -61,14 +65,29 @@ def _consistency(vp, model, flip=False, lag=5):
 @pytest.mark.slow
 def test_conventions_are_the_ones_the_data_supports(vp):
     part = vp.slice(0.0, 400.0)
-    ours = _consistency(part, victoria_park_model())
-    # full run, measured: 0.17 m ours vs 0.75 m mirrored bearings, 0.23 m with a = 0.95 m,
-    # 0.23 m with the encoder on the right wheel (H < 0), 0.20 m with the laser on the right
+    base = victoria_park_model(steer_offset=0.0)
+    ours = _consistency(part, base)
+    # full run, raw steering, measured: 0.17 m ours vs 0.75 m mirrored bearings, 0.23 m with
+    # a = 0.95 m, 0.23 m with the encoder on the right wheel (H < 0), 0.20 m with the laser on
+    # the right
     assert ours < 0.25
-    assert _consistency(part, victoria_park_model(), flip=True) > 2 * ours
-    assert _consistency(part, AckermannModel(a=0.95)) > ours
-    assert _consistency(part, AckermannModel(H=-0.76)) > ours
-    assert _consistency(part, AckermannModel(b=-0.5)) > ours
+    assert _consistency(part, base, flip=True) > 2 * ours
+    assert _consistency(part, replace(base, a=0.95)) > ours
+    assert _consistency(part, replace(base, H=-0.76)) > ours
+    assert _consistency(part, replace(base, b=-0.5)) > ours
+    # same statistic helper in the library
+    assert reobservation_consistency(part, base) == pytest.approx(ours)
+
+
+@pytest.mark.slow
+def test_steering_offset_is_estimated_without_gps(vp):
+    part = vp.slice(0.0, 400.0)
+    off = estimate_steer_offset(part)
+    # full run: 0.0055 rad (grid 0.005-0.006); a 400 s slice agrees within 1.5 mrad
+    assert abs(off - STEER_OFFSET_RAD) < 1.5e-3
+    raw = reobservation_consistency(part, victoria_park_model(steer_offset=0.0), lag=25)
+    cal = reobservation_consistency(part, victoria_park_model(), lag=25)
+    assert cal < 0.8 * raw  # measured on the full run: 0.27 m vs 0.69 m at a 5-s lag
 
 
 def test_slice_and_problem(vp):

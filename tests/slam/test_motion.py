@@ -187,3 +187,15 @@ def test_between_inverts_compose(a, b):
     back = compose(a, d)
     np.testing.assert_allclose(back[:2], b[:2], atol=1e-9)
     assert abs(wrap_angle(back[2] - b[2])) < 1e-9
+
+
+def test_steer_offset_is_added_to_the_measured_angle():
+    m0 = AckermannModel()
+    m1 = AckermannModel(steer_offset=0.01)
+    x = np.array([1.0, 2.0, 0.3])
+    np.testing.assert_allclose(m1.predict(x, (3.0, 0.2), 0.1), m0.predict(x, (3.0, 0.21), 0.1))
+    _, Fu = m1.jacobians(x, (3.0, 0.2), 0.1)
+    _, nFu = _numeric_jacobians(m1, x, (3.0, 0.2), 0.1)
+    np.testing.assert_allclose(Fu, nFu, atol=1e-7)
+    with pytest.raises(ConfigError):
+        AckermannModel(steer_offset=1.0)

@@ -45,9 +45,12 @@ from stemmap.types import FloatArray
 
 __all__ = [
     "SCAN_PERIOD_S",
+    "STEER_OFFSET_RAD",
     "VictoriaPark",
     "dataset_bearing_to_ours",
+    "estimate_steer_offset",
     "load_victoria_park",
+    "reobservation_consistency",
     "victoria_park_model",
 ]
 
@@ -59,11 +62,85 @@ SCAN_PERIOD_S = 0.2135
 MAX_RANGE_M = 80.0
 
 
-def victoria_park_model(sigma_speed: float = 0.10, sigma_steer: float = 0.02) -> AckermannModel:
-    """The car of Victoria Park (Guivant & Nebot): L 2.83, H 0.76, laser at (3.78, 0.50) m."""
+#: Steering-sensor offset (rad) estimated from the data without GPS by
+#: :func:`estimate_steer_offset` on the full run (grid optimum 0.0055 rad = 0.32 deg).
+STEER_OFFSET_RAD = 0.0055
+
+
+def victoria_park_model(
+    sigma_speed: float = 0.10, sigma_steer: float = 0.02, steer_offset: float = STEER_OFFSET_RAD
+) -> AckermannModel:
+    """The car of Victoria Park (Guivant & Nebot): L 2.83, H 0.76, laser at (3.78, 0.50) m,
+    steering offset :data:`STEER_OFFSET_RAD` (pass 0.0 for the raw steering signal)."""
     return AckermannModel(
-        L=2.83, H=0.76, a=3.78, b=0.50, sigma_speed=sigma_speed, sigma_steer=sigma_steer
+        L=2.83,
+        H=0.76,
+        a=3.78,
+        b=0.50,
+        sigma_speed=sigma_speed,
+        sigma_steer=sigma_steer,
+        steer_offset=steer_offset,
     )
+
+
+def reobservation_consistency(
+    data: VictoriaPark, model: AckermannModel | None = None, *, lag: int = 5, stride: int = 1
+) -> float:
+    """GPS-free calibration statistic: place every detection in the world by dead reckoning
+    and return the median distance (m) between a tree seen in scan f and the nearest detection
+    in scan f + ``lag`` (pairs farther than 3 m ignored). Right geometry, conventions and
+    odometry calibration make a tree land on itself; errors grow with ``lag``.
+    """
+    from scipy.spatial import cKDTree
+
+    from stemmap.slam.base import observation_to_world
+    from stemmap.slam.motion import preintegrate
+
+    m = model or data.model
+    fr = data.frames
+    pre = preintegrate(m, data.controls, fr.times)
+    w = observation_to_world(pre.poses[fr.frame_index], fr.ranges, fr.bearings, m.sensor_offset)
+    d = []
+    for f in range(0, len(fr) - lag, stride):
+        A = w[fr.ptr[f] : fr.ptr[f + 1]]
+        B = w[fr.ptr[f + lag] : fr.ptr[f + lag + 1]]
+        if len(A) and len(B):
+            dd, _ = cKDTree(A).query(B)
+            d.append(dd[dd < 3.0])
+    if not d:
+        return math.nan
+    return float(np.median(np.concatenate(d)))
+
+
+def estimate_steer_offset(
+    data: VictoriaPark,
+    *,
+    lag: int = 25,
+    lo: float = -0.02,
+    hi: float = 0.02,
+    tol: float = 2e-4,
+) -> float:
+    """Steering-sensor offset (rad) that minimises :func:`reobservation_consistency` at a
+    5-s lag (golden-section search on [lo, hi]); uses only odometry and tree detections."""
+    model = data.model
+
+    def cost(off: float) -> float:
+        return reobservation_consistency(data, replace(model, steer_offset=off), lag=lag, stride=2)
+
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = cost(c), cost(d)
+    while b - a > tol:
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = cost(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = cost(d)
+    return 0.5 * (a + b)
 
 
 def dataset_bearing_to_ours(bearing: Any) -> FloatArray:

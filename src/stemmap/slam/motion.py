@@ -213,6 +213,10 @@ class AckermannModel(_ArcModel):
         Std of the one-second average of the encoder speed error.
     sigma_steer : float, rad
         Std of the one-second average of the steering angle error.
+    steer_offset : float, rad
+        Constant added to the measured steering angle (sensor calibration; Victoria Park:
+        +0.0055 rad, estimated without GPS by
+        :func:`stemmap.datasets.victoria_park.estimate_steer_offset`).
 
     Notes
     -----
@@ -238,6 +242,7 @@ class AckermannModel(_ArcModel):
     sigma_speed: float = 0.10
     sigma_steer: float = 0.02
     kind: str = "ackermann"
+    steer_offset: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.L) and self.L > 0):
@@ -248,6 +253,10 @@ class AckermannModel(_ArcModel):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"AckermannModel.{name} must be >= 0, got {v}.")
+        if not (math.isfinite(self.steer_offset) and abs(self.steer_offset) < 0.5):
+            raise ConfigError(
+                f"AckermannModel.steer_offset must be a small angle (rad), got {self.steer_offset}."
+            )
 
     @property
     def sensor_offset(self) -> tuple[float, float]:
@@ -261,14 +270,14 @@ class AckermannModel(_ArcModel):
     def arc(self, u: ArrayLike, dt: ArrayLike) -> tuple[FloatArray, FloatArray]:
         uu = _as_controls(u, 2)
         d = np.asarray(dt, dtype=np.float64)
-        t = np.tan(uu[..., 1])
+        t = np.tan(uu[..., 1] + self.steer_offset)
         ds = uu[..., 0] / (1.0 - t * self.H / self.L) * d
         return ds, ds * t / self.L
 
     def arc_jacobian(self, u: ArrayLike, dt: ArrayLike) -> FloatArray:
         uu = _as_controls(u, 2)
         d = np.asarray(dt, dtype=np.float64)
-        v, al = uu[..., 0], uu[..., 1]
+        v, al = uu[..., 0], uu[..., 1] + self.steer_offset
         t = np.tan(al)
         sec2 = 1.0 + t * t
         k = 1.0 - t * self.H / self.L
