@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from stemmap.datasets.victoria_park import (
+    LASER_TIME_OFFSET_S,
     STEER_OFFSET_RAD,
     dataset_bearing_to_ours,
     estimate_steer_offset,
@@ -33,7 +34,10 @@ def test_counts_and_time_bases(vp):
     assert vp.frames.n_detections == 52974
     assert len(vp.controls) == 61945
     assert vp.gps_xy.shape == (4466, 2)
-    assert vp.frames.times[0] == pytest.approx(0.852)
+    # first scan stamped 0.852 s; the GPS-free latency calibration moves it by -0.055 s
+    assert vp.frames.times[0] == pytest.approx(0.852 + LASER_TIME_OFFSET_S)
+    raw = load_victoria_park(vp.path, laser_time_offset=0.0)
+    assert raw.frames.times[0] == pytest.approx(0.852)
     assert np.all(np.diff(vp.frames.times) > 0.2)  # scan period 0.2135 s
     assert np.all(np.abs(vp.frames.bearings) <= math.pi / 2 + 1e-9)  # 180 deg laser, ahead
     assert vp.skipped == {}
