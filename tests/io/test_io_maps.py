@@ -518,3 +518,25 @@ def test_local_lonlat_inverse(lon0: float, lat0: float, x: float, y: float) -> N
     back = lonlat_to_local(lon, lat, (lon0, lat0))
     # exact inverses up to float rounding of degrees near 180 (1e-13 deg ~ 1e-8 m)
     np.testing.assert_allclose(back[0], [x, y], atol=1e-6)
+
+
+def test_atomic_write_gives_plain_file_permissions(tmp_path: Path) -> None:
+    """A product must be readable like a file from open(): 0666 less the umask (not mkstemp's
+    0600), and a rewrite keeps an existing file's mode."""
+    import os
+
+    from stemmap.io.atomic import atomic_write
+
+    old = os.umask(0o022)
+    try:
+        new = tmp_path / "new.csv"
+        with atomic_write(new) as fh:
+            fh.write("a\n")
+        assert new.stat().st_mode & 0o777 == 0o644
+        new.chmod(0o640)
+        with atomic_write(new) as fh:
+            fh.write("b\n")
+        assert new.stat().st_mode & 0o777 == 0o640
+        assert new.read_text() == "b\n"
+    finally:
+        os.umask(old)

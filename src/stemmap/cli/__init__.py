@@ -27,6 +27,7 @@ app = typer.Typer(
 
 #: Modules under stemmap.cli that define ``register(app)``; one per area.
 _COMMAND_MODULES: tuple[str, ...] = (
+    "stemmap.cli._demo",
     "stemmap.cli._harvest",
     "stemmap.cli._detect",
     "stemmap.cli._sim",

@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
+from typing import Any
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from stemmap.errors import StemmapError
 
-__all__ = ["console", "fail_on_stemmap_error", "out", "progress"]
+__all__ = [
+    "clean_json",
+    "console",
+    "fail_on_stemmap_error",
+    "json_default",
+    "out",
+    "progress",
+]
 
 #: diagnostics, warnings and progress go to stderr
 console = Console(stderr=True)
@@ -40,3 +50,23 @@ def progress(enabled: bool = True) -> Progress:
         disable=not enabled,
         transient=True,
     )
+
+
+def clean_json(v: Any) -> Any:
+    """JSON has no NaN/inf: replace them by null, recursively."""
+    if isinstance(v, dict):
+        return {k: clean_json(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [clean_json(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    return v
+
+
+def json_default(v: Any) -> Any:
+    """``json.dump(default=...)`` for numpy scalars and arrays."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f"cannot serialise {type(v).__name__}")

@@ -16,10 +16,10 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import fail_on_stemmap_error, out, progress
+from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
 from stemmap.errors import ConfigError, InputError
 
-__all__ = ["register"]
+__all__ = ["register", "sim_problem", "slam_metrics"]
 
 log = logging.getLogger(__name__)
 
@@ -46,23 +46,37 @@ def _victoria_park(data: Path | None, t_end: float | None) -> tuple[Any, dict[st
 
 
 def _simulated(seed: int, n_trees: int, size: float) -> tuple[Any, dict[str, Any]]:
-    from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.sim.forest import random_stand
     from stemmap.sim.trajectory import loop_path, simulate_run
-    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
-    from stemmap.slam.motion import UnicycleModel
 
     stand = random_stand(n_trees, (size, size), rng=seed)
     path = loop_path((size / 2, size / 2), (0.35 * size, 0.35 * size), laps=1.0)
     run = simulate_run(stand, path, speed=1.0, rate_hz=5.0, corridor_half_width=2.0, rng=seed)
-    obs = ScanTrunkDetector().detect_batch(run.scans)
+    return sim_problem(run, name=f"sim(seed={seed}, trees={n_trees}, size={size} m)")
+
+
+def sim_problem(
+    run: Any, obs: Any = None, *, name: str = "simulated run"
+) -> tuple[Any, dict[str, Any]]:
+    """A :class:`~stemmap.slam.base.SlamProblem` from a simulated run (and its context).
+
+    ``obs`` are the run's per-scan trunk detections (default: the default detector on
+    ``run.scans``). The motion noise comes from the simulator's own odometry spec, so nothing
+    is tuned on the ground truth.
+    """
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
+    from stemmap.slam.motion import UnicycleModel
+
+    if obs is None:
+        obs = ScanTrunkDetector().detect_batch(run.scans)
     frames = TreeFrames.from_observations(obs, run.scans.times)
     odo = run.odometry
     controls = Controls(odo.times, odo.speed, odo.yaw_rate, "unicycle")
     off = run.sensor_offset
     v0 = run.vehicle_poses.poses[0]
-    # motion noise from the simulator's own odometry spec (per-sample white noise at the
-    # odometry rate -> one-second average, plus the bias / scale error as a 1-s equivalent)
+    # per-sample white noise at the odometry rate -> one-second average, plus the bias /
+    # scale error as a 1-s equivalent
     on = run.params.get("odometry_noise") or {}
     rate = float(run.params.get("odom_rate_hz", 50.0))
     sig_v = float(on.get("speed_noise", 0.05)) / math.sqrt(rate) + abs(
@@ -77,7 +91,7 @@ def _simulated(seed: int, n_trees: int, size: float) -> tuple[Any, dict[str, Any
         UnicycleModel(sigma_speed=max(sig_v, 1e-3), sigma_steer=max(sig_w, 1e-4)),
         sensor_offset=(off.x, off.y),
         initial_pose=(float(v0[0]), float(v0[1]), float(v0[2])),
-        name=f"sim(seed={seed}, trees={n_trees}, size={size} m)",
+        name=name,
         max_range=run.scanner.range_max if hasattr(run.scanner, "range_max") else math.inf,
     )
     return problem, {"kind": "sim", "run": run, "params": run.params}
@@ -114,7 +128,7 @@ def _bag(path: Path, sensor_offset: tuple[float, float]) -> tuple[Any, dict[str,
     return problem, {"kind": "bag", "odometry": odo}
 
 
-def _metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
+def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
     from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
     from stemmap.slam.base import dead_reckoning, duplicate_pairs, sensor_poses
@@ -235,13 +249,13 @@ def map_command(
                 bar.update(task, completed=done, total=total)
 
             result = be.run(problem, progress=tick)
-        metrics, gps_map, truth_xy = _metrics(problem, result, ctx)
+        metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
         out_dir.mkdir(parents=True, exist_ok=True)
         write_trees_csv(out_dir / "trees.csv", result.stem_map)
         write_trees_geojson(out_dir / "trees.geojson", result.stem_map)
         write_trajectory_csv(out_dir / "trajectory.csv", result.trajectory)
         with atomic_write(out_dir / "metrics.json") as fh:
-            json.dump(_clean(metrics), fh, indent=1, default=_json_default, allow_nan=False)
+            json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
         save_stem_map_png(
             out_dir / "map.png",
             result.stem_map,
@@ -253,26 +267,7 @@ def map_command(
         )
     summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
     out.print(f"wrote {out_dir}/: trees.csv trees.geojson trajectory.csv metrics.json map.png")
-    out.print(json.dumps(_clean(summary), default=_json_default))
-
-
-def _clean(v: Any) -> Any:
-    """JSON has no NaN/inf: replace them by null, recursively."""
-    if isinstance(v, dict):
-        return {k: _clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_clean(x) for x in v]
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    return v
-
-
-def _json_default(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    raise TypeError(f"cannot serialise {type(v).__name__}")
+    out.print(json.dumps(clean_json(summary), default=json_default))
 
 
 def register(app: typer.Typer) -> None:

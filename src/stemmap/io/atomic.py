@@ -26,6 +26,15 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "w", **kwargs: Any) -
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    # mkstemp creates 0600 files; a product should get the permissions a plain open() would
+    # give (an existing file's mode, else 0666 less the umask), so other tools and users can read it
+    try:
+        mode_bits = target.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode_bits = 0o666 & ~umask
+    os.fchmod(fd, mode_bits)
     if mode == "w":
         kwargs.setdefault("encoding", "utf-8")
         kwargs.setdefault("newline", "")
