@@ -39,6 +39,7 @@ def harvest_sim(
 
     Example: stemmap harvest-sim --seed 3 --target bearing --bearing 30 --png capture.png
     """
+    from stemmap.harvester.capture import warm_up_planner
     from stemmap.harvester.kinematics import ForestryCrane
     from stemmap.harvester.simulate import harvester_stand, simulate_capture
     from stemmap.viz.harvester import plot_capture
@@ -47,6 +48,7 @@ def harvest_sim(
         raise typer.BadParameter("use nearest, index or bearing", param_hint="--target")
     with fail_on_stemmap_error():
         crane = ForestryCrane()
+        warm_up_planner()  # a controller compiles before its first control period
         stand = harvester_stand(trees, rng=seed)
         result = simulate_capture(
             stand,
