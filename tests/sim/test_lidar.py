@@ -102,3 +102,47 @@ def test_bad_configs() -> None:
         Stand3D([[0, 0]], [0.3, 0.2], [10.0], [[0, 0]], [0.0])
     with pytest.raises(ConfigError):
         simulate_mobile(_one_stem(), [[0, 0]])
+
+
+def _inside_tapered_stem(p: np.ndarray, st: Stand3D) -> np.ndarray:
+    """Brute force: is each point (M, 3) inside the (vertical, leaning) stem 0 of ``st``?"""
+    from stemmap.sim.lidar import _MIN_RADIUS, _objects
+
+    c = _objects(st)["cones"][0]  # base(3) axis(3) length r_ref s_ref taper
+    base, axis = c[:3], c[3:6]
+    length, r_ref, s_ref, taper = (float(v) for v in c[6:10])
+    w = p - base
+    s = w @ axis
+    dist = np.linalg.norm(w - s[:, None] * axis, axis=1)
+    radius = np.maximum(r_ref + taper * (s_ref - s), _MIN_RADIUS)
+    return (s >= 0) & (s <= length) & (dist <= radius)
+
+
+@pytest.mark.parametrize("lean", [(0.0, 0.0), (0.03, 0.02)])
+def test_tapered_hits_are_the_first_surface_point_brute_force(lean: tuple[float, float]) -> None:
+    """Every ray's hit is where a fine march along it first enters the tapered (leaning) stem,
+    at all heights -- including rays between the tapered surface and the breast-height
+    cylinder, which must miss (a fixed-point solver once returned phantom hits there)."""
+    st = _one_stem(lean=lean, taper=0.012)
+    rng = np.random.default_rng(3)
+    origin = np.array([0.0, 0.0, 1.0])
+    # rays aimed near the stem at heights 0.2-14 m, many of them grazing its silhouette
+    z = rng.uniform(0.2, 14.0, 400)
+    y = rng.uniform(-0.3, 0.3, 400)
+    target = np.column_stack((np.full(400, 5.0), y, z))
+    d = target - origin
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r, lab = cast_rays_3d(st, origin, d)
+    step = 2e-4
+    t = np.arange(3.0, 16.0, step)  # the stem lies 4.5-15 m along these rays
+    hits = 0
+    for i in range(d.shape[0]):
+        inside = _inside_tapered_stem(origin + t[:, None] * d[i], st)
+        if inside.any():
+            t_true = t[np.argmax(inside)]
+            assert lab[i] == 0
+            assert r[i] == pytest.approx(t_true, abs=2 * step)
+            hits += 1
+        else:
+            assert lab[i] != 0, f"phantom stem hit at ray {i}"
+    assert 50 < hits < 390  # the rays do graze the silhouette both ways

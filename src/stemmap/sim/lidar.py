@@ -253,31 +253,57 @@ def _hit_cones(
 ) -> FloatArray:
     """First positive hit distance of rays (R,) against tapered cylinders (K,): (R, K), inf if none.
 
-    Radius at axial position s: ``max(r_ref + taper * (s_ref - s), 5 mm)``; solved by fixed-point
-    iteration on s (taper is small, two iterations reach sub-micrometre accuracy).
+    Radius at axial position s: ``max(r_ref + taper * (s_ref - s), 5 mm)``. The lateral surface
+    ``|w⊥ + t d⊥| = R0 - k s(t)`` (``R0 = r_ref + taper s_ref``, ``k = taper``, ``s(t) = w·a +
+    t d·a``) is a quadratic in t, solved exactly; where the radius would fall below 5 mm (a stem's
+    tip) the 5 mm cylinder is used. (An earlier fixed-point iteration on the radius reset it to
+    ``r_ref`` after a miss, so rays between the tapered surface and the ``r_ref`` cylinder
+    returned phantom hits on that cylinder.)
     """
     w = o[None, :] - base  # (K, 3), one origin
-    wa = np.sum(w * axis, axis=1)  # (K,)
+    wa = np.sum(w * axis, axis=1)[None, :]  # (1, K)
     da = d @ axis.T  # (R, K)
-    w_perp = w - wa[:, None] * axis  # (K, 3)
-    # d_perp = d - da * axis ; |w_perp + t d_perp|^2 = r^2
+    w_perp = w - wa.T * axis  # (K, 3)
     dd = np.sum(d * d, axis=1)[:, None]  # (R, 1)
-    a = dd - da * da
-    b = 2.0 * (d @ w_perp.T)  # w_perp . axis = 0, so d.w_perp == d_perp.w_perp
-    c0 = np.sum(w_perp * w_perp, axis=1)[None, :]
-    r = np.broadcast_to(r_ref, a.shape).copy()
-    t = np.full(a.shape, np.inf)
-    for _ in range(3):
-        c = c0 - r * r
-        disc = b * b - 4.0 * a * c
-        ok = (disc >= 0) & (a > 1e-12)
+    a = dd - da * da  # |d⊥|²
+    b = 2.0 * (d @ w_perp.T)  # w⊥ · axis = 0, so d · w⊥ == d⊥ · w⊥
+    c0 = np.sum(w_perp * w_perp, axis=1)[None, :]  # |w⊥|²
+
+    def first_entry(P: FloatArray, Q: FloatArray, thin: bool) -> FloatArray:
+        """Nearest t > 0 where the ray enters ``|w⊥ + t d⊥| = P - Q t`` (outside -> inside,
+        i.e. f(t) = |w⊥ + t d⊥|² - (P - Q t)² decreasing) on the part of the surface that the
+        radius rule uses: radius >= 5 mm for the cone (``thin`` False), the cone thinner than
+        5 mm for the 5 mm cylinder (``thin`` True, where P, Q describe the cylinder and the
+        cone's radius is checked separately). Both roots are tried: near a stem's tip the
+        smaller one can lie on the cone's other nappe."""
+        A = a - Q * Q
+        B = b + 2.0 * P * Q
+        C = c0 - P * P
+        disc = B * B - 4.0 * A * C
+        ok = (disc >= 0.0) & (np.abs(A) > 1e-12)
         sq = np.sqrt(np.where(ok, disc, 0.0))
-        t = np.where(ok, (-b - sq) / (2.0 * np.where(a > 1e-12, a, 1.0)), np.inf)
-        s = wa[None, :] + np.where(ok, t, 0.0) * da
-        r = np.where(ok, np.maximum(r_ref + taper * (s_ref - s), _MIN_RADIUS), r_ref)
+        den = 2.0 * np.where(ok, A, 1.0)
+        best = np.full(da.shape, np.inf)
+        for t_r in ((-B - sq) / den, (-B + sq) / den):
+            slope = 2.0 * a * t_r + b + 2.0 * Q * (P - Q * t_r)
+            r_cone = cone_P - cone_Q * t_r
+            on_part = (r_cone < _MIN_RADIUS) if thin else (r_cone >= _MIN_RADIUS)
+            good = ok & (t_r > 1e-6) & (slope < 0.0) & on_part
+            best = np.where(good & (t_r < best), t_r, best)
+        return best
+
+    k = np.broadcast_to(taper, wa.shape)
+    cone_P = (r_ref + taper * s_ref)[None, :] - k * wa  # cone radius at t = 0
+    cone_Q = k * da  # cone radius(t) = cone_P - cone_Q t
+    t_cone = first_entry(cone_P, cone_Q, thin=False)
+    # the 5 mm cylinder, valid only where the cone would be thinner than that
+    t_cyl = first_entry(
+        np.broadcast_to(np.full(wa.shape, _MIN_RADIUS), da.shape), np.zeros(da.shape), thin=True
+    )
+    t = np.minimum(t_cone, t_cyl)
     finite = np.isfinite(t)
-    s = wa[None, :] + np.where(finite, t, 0.0) * da
-    valid = finite & (t > 1e-6) & (s >= 0.0) & (s <= length)
+    s = wa + np.where(finite, t, 0.0) * da
+    valid = finite & (t > 1e-6) & (s >= 0.0) & (s <= length[None, :])
     return np.where(valid, t, np.inf)
 
 
