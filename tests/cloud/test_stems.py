@@ -391,3 +391,35 @@ def test_pooled_fit_finds_sparse_trunks(tls_scene: tuple[Stand3D, np.ndarray]) -
     full_on, full_off = detect_stems(xyz), detect_stems(xyz, StemConfig(pooled_fallback=False))
     assert len(full_on) == len(full_off)
     np.testing.assert_allclose(full_on.diameter, full_off.diameter)
+
+
+def _sparse_trunk_scene(top: float, seed: int = 0) -> np.ndarray:
+    """Flat ground, a dense trunk (r 15 cm, half seen) and a sparse one (r 12 cm, 120 deg seen,
+    30 returns per metre: 6 per 20 cm slice) reaching up to ``top``."""
+    g = np.random.default_rng(seed)
+    pts = [np.column_stack((g.uniform(0, 10, (20000, 2)), g.normal(0, 0.002, 20000)))]
+
+    def trunk(c: tuple[float, float], r: float, n_per_m: int, half: float, h: float) -> np.ndarray:
+        n = int(n_per_m * h)
+        t = g.uniform(-half, half, n)
+        rr = r + g.normal(0, 0.002, n)
+        return np.column_stack((c[0] - rr * np.cos(t), c[1] - rr * np.sin(t), g.uniform(0, h, n)))
+
+    pts.append(trunk((2.0, 2.0), 0.15, 1000, np.pi / 2, 4.0))
+    pts.append(trunk((7.0, 7.0), 0.12, 30, np.radians(60), top))
+    return np.vstack(pts)
+
+
+def test_pooled_fit_needs_a_stem_that_goes_on_above_the_band() -> None:
+    """6 returns per slice are too few for the slice fits; the pooled cylinder finds the trunk
+    (DBH within 2 cm: ~36 band points over 120 deg, lean free). The same points ending at
+    1.6 m (a shrub's height) are not a stem."""
+    tall = _sparse_trunk_scene(4.0)
+    off = detect_stems(tall, StemConfig(pooled_fallback=False))
+    on = detect_stems(tall)
+    assert len(off) == 1 and len(on) == 2
+    k = int(np.argmin(np.hypot(*(on.xy - [7.0, 7.0]).T)))
+    assert np.hypot(*(on.xy[k] - [7.0, 7.0])) < 0.02
+    assert abs(on.diameter[k] - 0.24) < 0.02
+    assert np.isnan(on.taper[k]) and 0 < on.quality[k] <= 1
+    assert len(detect_stems(_sparse_trunk_scene(1.6))) == 1

@@ -1262,6 +1262,8 @@ def _pooled_stems(
         if nin[j] < 2 * cfg.min_slice_points or nin[j] < 0.5 * n_all:
             continue
         hs = has_in[j]
+        if not hs[-1]:
+            continue  # a stem goes on above the band; a shrub or a stack of leaf blobs ends
         if hs.sum() < cfg.min_slices + 1 or np.ptp(centers_h[hs]) < cfg.min_vertical_extent - 1e-9:
             continue
         mine = keep & (ids == j)
