@@ -12,6 +12,9 @@ Two methods, both returning a columnar :class:`CloudStems`:
   quality tests (arc coverage, residual, point count), a taper/lean line through the slices
   evaluated at 1.3 m, and optional stem height. Every threshold derives from the measured point
   spacing or the measured residual noise floor: no per-cloud tuning. Preset ``"ours"``.
+  Clusters with too few points per slice get one pooled tilted-cylinder fit over the band
+  (:func:`_pooled_stems`); given each point's sensor position (``origins``), slice fits are
+  refined with residuals along the rays (:func:`_refine_along_rays`).
 
 :func:`detect_stems_file` streams a LAS/LAZ file in chunks (two passes: ground, then band), so
 a 20-million-point cloud is processed in bounded memory.
@@ -1157,7 +1160,7 @@ def _pooled_stems(
     slices spanning ``cfg.min_vertical_extent`` and >= 2 x ``cfg.min_slice_points`` points
     are fitted at once by a tilted circular cylinder (centre at breast height, lean,
     radius; taper ignored: over the 1.2 m band a taper of 1 cm/m moves the radius by < 6 mm
-    at the band's ends and ~1 mm at its centre): Levenberg-Marquardt batched over the
+    at the band's ends and ~1 mm at its centre): damped Gauss-Newton batched over the
     candidates, Huber weights (scale 2 x the noise floor), trimming of |res| > 3 x 1.4826
     MAD, refit. One fit replaces the per-slice consistency checks, so the tests are
     stricter, all on the inliers:
