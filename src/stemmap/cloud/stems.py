@@ -780,6 +780,28 @@ RAY_MIN_COS = 0.5
 RAY_MIN_ARC_DEG = 90.0
 
 
+def _range_errors(
+    pts: FloatArray, ids: NDArray[np.int64], u: FloatArray, c: FloatArray, r: FloatArray
+) -> FloatArray:
+    """Range error of each point along its (horizontal, unit) ray ``u`` for circles (c, r).
+
+    The ray enters the circle at ``p - e u`` with ``|p - e u - c| = r``; the entry nearest the
+    sensor is ``e = w.u + sqrt((w.u)^2 - |w|^2 + r^2)``, ``w = p - c`` (exact, any incidence).
+    Rays that miss the circle (negative discriminant: grazing returns pushed outside by noise)
+    get the orthogonal residual scaled as at a 60-degree incidence, ``d / RAY_MIN_COS`` (0.5;
+    a heuristic: beyond the tangent no range error reaches the circle).
+    """
+    w = pts - c[ids]
+    wu = np.sum(w * u, axis=1)
+    ww = np.sum(w * w, axis=1)
+    disc = wu * wu - ww + r[ids] ** 2
+    d = np.sqrt(ww) - r[ids]
+    return np.asarray(
+        np.where(disc >= 0, wu + np.sqrt(np.maximum(disc, 0.0)), d / RAY_MIN_COS),
+        dtype=np.float64,
+    )
+
+
 def _refine_along_rays(
     pts: FloatArray,
     ids: NDArray[np.int64],
@@ -788,70 +810,68 @@ def _refine_along_rays(
     centers: FloatArray,
     radii: FloatArray,
     ok: NDArray[np.bool_],
-    n_iter: int = 5,
+    n_iter: int = 10,
 ) -> tuple[FloatArray, FloatArray]:
-    """Refine circle fits with residuals measured along each point's ray.
+    """Refine circle fits by minimising each point's range error along its ray.
 
     A lidar's range noise lies along the ray. The orthogonal distance of a point to the
-    circle is then ``eps cos(alpha)`` (alpha: incidence angle between the horizontal ray and
-    the surface normal): small on the flanks of a one-sided arc, full on its front. An
-    orthogonal-distance fit weights both alike and shrinks the radius of one-sided arcs
-    (2D Monte Carlo, r = 14 cm, half arc seen along one direction, 3 cm noise: -0.86 cm of
-    DBH; the same with radial noise: none). The maximum-likelihood residual is the range error
-    ``e = d / cos(alpha)`` (d the orthogonal residual; first order in ``eps / r``), with
-    alpha taken at the fitted circle; Gauss-Newton on ``e`` (full Jacobian, alpha depends on
-    the centre) over (cx, cy, r) of all segments at once, 5 iterations from the orthogonal
-    fit. ``cos alpha`` is floored at 0.5 (60 degrees): beyond, the
-    second-order outward shift ``eps^2 sin^2(alpha) / 2r`` of grazing returns is no longer
-    small against the first-order term (ratio 0.16 at 60 degrees, 3 cm, r = 14 cm; 0.38 at
-    75 degrees). Segments whose step fails keep their orthogonal fit. The caller refines only
-    arcs of at least ``RAY_MIN_ARC_DEG`` (90): on narrower arcs the radius is ill-conditioned
-    (sagitta < 30 % of r) and its random error, not this bias, dominates; re-weighting them
-    moves noise (a 28-56 degree trunk of the terrestrial benchmark changed by 3.5 cm).
+    circle is then about ``eps cos(alpha)`` (alpha: incidence angle between the horizontal
+    ray and the surface normal): full on the front of a one-sided arc, small on its flanks,
+    where the noise moves returns along the surface and, at grazing incidence, outside it. An
+    orthogonal-distance fit treats all returns alike and shrinks the radius of one-sided arcs
+    (2D Monte Carlo, r = 14 cm, half arc, 3 cm noise along one view direction: -0.7 to -0.9 cm
+    of DBH; radial noise: none; docs/algorithms/cloud.md, Known limits). The maximum-likelihood
+    fit under range noise minimises the range errors themselves (:func:`_range_errors`,
+    exact at any incidence). Batched damped Gauss-Newton over (cx, cy, r) of all segments,
+    finite-difference Jacobian (the exact residual's derivative is singular at tangency),
+    soft-L1 weights with a scale of 3 x the segment's orthogonal RMS (about 2.5 range-noise
+    sigmas), 10 iterations from the orthogonal fit. Segments whose step fails keep their
+    current fit. The caller refines only arcs of at least ``RAY_MIN_ARC_DEG`` (90): on
+    narrower arcs the radius is ill-conditioned (sagitta < 30 % of r) and its random error,
+    not this bias, dominates (a 28-56 degree trunk of the terrestrial benchmark moved by
+    3.5 cm with the first-order variant).
     """
     c = centers.copy()
     r = radii.copy()
     if pts.shape[0] == 0:
         return c, r
     u = pts - origins
-    un = np.hypot(u[:, 0], u[:, 1])
-    u = u / np.maximum(un, 1e-9)[:, None]
+    u = u / np.maximum(np.hypot(u[:, 0], u[:, 1]), 1e-9)[:, None]
+    cnt = np.bincount(ids, minlength=k)
+    d0 = np.hypot(*(pts - c[ids]).T) - r[ids]
+    rms0 = np.sqrt(np.bincount(ids, d0 * d0, minlength=k) / np.maximum(cnt, 1))
+    f = np.maximum(3.0 * rms0, 1e-3)[ids]
+    hstep = 1e-6
     for _ in range(n_iter):
-        v = pts - c[ids]
-        dist = np.maximum(np.hypot(v[:, 0], v[:, 1]), 1e-9)
-        n = v / dist[:, None]
-        un_ = np.sum(u * n, axis=1)
-        cos = np.abs(un_)
-        sc = np.maximum(cos, RAY_MIN_COS)
-        d = dist - r[ids]
-        e = d / sc  # range error along the ray (first order)
-        # d e / d(cx, cy, r): d' / s - d s' / s^2, with s' = d|u.n|/dc where cos > floor
-        ds = np.where(cos > RAY_MIN_COS, np.sign(un_), 0.0)[:, None] * (
-            -(u - un_[:, None] * n) / dist[:, None]
-        )
-        J = np.column_stack(
-            (
-                -n[:, 0] / sc - d * ds[:, 0] / sc**2,
-                -n[:, 1] / sc - d * ds[:, 1] / sc**2,
-                -1.0 / sc,
-            )
-        )
+        e = _range_errors(pts, ids, u, c, r)
+        w = 1.0 / np.sqrt(1.0 + (e / f) ** 2)  # soft-L1 (IRLS)
+        J = np.empty((pts.shape[0], 3))
+        for j in range(3):
+            cc, rr = c.copy(), r.copy()
+            if j < 2:
+                cc[:, j] += hstep
+            else:
+                rr += hstep
+            J[:, j] = (_range_errors(pts, ids, u, cc, rr) - e) / hstep
         A = np.zeros((k, 3, 3))
         g = np.zeros((k, 3))
         for a in range(3):
-            g[:, a] = np.bincount(ids, J[:, a] * e, minlength=k)
+            g[:, a] = np.bincount(ids, w * J[:, a] * e, minlength=k)
             for b in range(a, 3):
-                A[:, a, b] = A[:, b, a] = np.bincount(ids, J[:, a] * J[:, b], minlength=k)
-        cnt = np.bincount(ids, minlength=k)
-        good = ok & (cnt >= 3) & (np.abs(np.linalg.det(A)) > 1e-18)
+                A[:, a, b] = A[:, b, a] = np.bincount(ids, w * J[:, a] * J[:, b], minlength=k)
+        A += 1e-3 * np.einsum("kii->ki", A)[:, :, None] * np.eye(3)[None] + 1e-12 * np.eye(3)
+        good = ok & (cnt >= 3)
         if not good.any():
             break
         step = np.zeros((k, 3))
         step[good] = np.linalg.solve(A[good], -g[good][:, :, None])[:, :, 0]
-        c_new = c + step[:, :2]
         r_new = r + step[:, 2]
-        good &= np.isfinite(r_new) & (r_new > 0) & (np.abs(step[:, 2]) < 0.5 * np.maximum(r, 1e-3))
-        c = np.where(good[:, None], c_new, c)
+        good &= (
+            np.isfinite(step).all(axis=1)
+            & (r_new > 0)
+            & (np.abs(step[:, 2]) < 0.5 * np.maximum(r, 1e-3))
+        )
+        c = np.where(good[:, None], c + step[:, :2], c)
         r = np.where(good, r_new, r)
     return c, r
 
