@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
+import stemmap.cloud.stems as stems_mod
 from stemmap.cli import app
 from stemmap.cloud.stems import (
     CloudStems,
@@ -297,3 +298,128 @@ def test_georeferenced_offsets_change_nothing(tls_scene: tuple[Stand3D, np.ndarr
     assert len(a) == len(b)
     np.testing.assert_allclose(b.xy - off[:2], a.xy, atol=1e-6)
     np.testing.assert_allclose(b.diameter, a.diameter, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------
+# range noise along the rays; pooled fit of sparse trunks
+# ------------------------------------------------------------------------------------------
+
+
+def _half_arcs_along_ray_noise(
+    n_seg: int, r: float, sigma: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half circles seen from a far sensor at +x, range noise along the rays (-x)."""
+    gen = np.random.default_rng(seed)
+    pts, ids = [], []
+    for k in range(n_seg):
+        phi = gen.uniform(-np.pi / 2, np.pi / 2, 150)
+        p = np.column_stack((r * np.cos(phi), r * np.sin(phi)))
+        p[:, 0] += gen.normal(0.0, sigma, 150)
+        pts.append(p + np.array([10.0 * k, 0.0]))
+        ids.append(np.full(150, k))
+    q = np.vstack(pts)
+    ids_a = np.concatenate(ids).astype(np.int64)
+    origins = q + np.array([1000.0, 0.0])  # rays along -x
+    return q, ids_a, origins
+
+
+def test_refinement_along_rays_removes_the_range_noise_bias() -> None:
+    """Range noise along the rays biases orthogonal fits of one-sided arcs low (2D Monte Carlo
+    of docs/algorithms/cloud.md: -0.86 cm of DBH at r = 14 cm, 3 cm noise); the fit with
+    residuals along the rays does not."""
+    r = 0.14
+    q, ids, origins = _half_arcs_along_ray_noise(120, r, 0.03, seed=7)
+    args = (q, ids, 120, "ours")
+    kw = {"ransac_tol": 0.015, "radius_window": (0.02, 0.75)}
+    _, r_orth, _, ok_o, _ = stems_mod._fit_segments(*args, **kw)
+    _, r_ray, _, ok_r, _ = stems_mod._fit_segments(*args, **kw, ray_origins=origins)
+    bias_orth = 2 * float(np.mean(r_orth[ok_o] - r))
+    bias_ray = 2 * float(np.mean(r_ray[ok_r] - r))
+    assert bias_orth < -0.004
+    assert abs(bias_ray) < 0.003
+    assert abs(bias_ray) < abs(bias_orth) / 2
+    # a clean half circle stays exact
+    phi = np.linspace(-np.pi / 2, np.pi / 2, 150)
+    arc = np.column_stack((r * np.cos(phi), r * np.sin(phi)))
+    c, rr, _, ok, _ = stems_mod._fit_segments(
+        arc, np.zeros(150, dtype=np.int64), 1, "ours", ray_origins=arc + np.array([1000.0, 0.0])
+    )
+    assert ok[0] and abs(rr[0] - r) < 1e-6 and np.hypot(*c[0]) < 1e-6
+
+
+def test_detect_stems_with_origins_mobile() -> None:
+    """Sensor positions of a mobile scan (the pose of each point's revolution): the DBH bias
+    of the 3 cm range noise shrinks, recall stays."""
+    stand = random_stand3d(10, (14.0, 14.0), dbh_min=0.12, n_shrubs=4, rng=3)
+    path = np.column_stack((np.linspace(0.5, 13.5, 25), np.full(25, 7.0)))
+    mob = simulate_mobile(stand, path, lidar_preset("vlp16"), rng=1, keep_frames=False)
+    origins = mob.poses[mob.cloud.fields["frame_index"], :3]
+    plain = detect_stems(mob.cloud.xyz)
+    rays = detect_stems(mob.cloud.xyz, origins=origins)
+
+    def bias(det: CloudStems) -> float:
+        m = match_points(det.xy, stand.trees_xy, 0.5)
+        return float(np.mean(det.diameter[m.pairs[:, 0]] - stand.dbh[m.pairs[:, 1]]))
+
+    r_plain, rmse_plain, _ = _score(plain, stand)
+    r_rays, rmse_rays, _ = _score(rays, stand)
+    assert r_rays >= r_plain
+    assert abs(bias(rays)) < abs(bias(plain))
+    assert rmse_rays < rmse_plain
+    # a single scanner position for every point is accepted too; wrong shapes are not
+    one = detect_stems(mob.cloud.xyz, origins=mob.poses[0, :3])
+    assert len(one) > 0
+    with pytest.raises(InputError):
+        detect_stems(mob.cloud.xyz, origins=np.zeros((5, 3)))
+    with pytest.raises(InputError):
+        detect_stems(mob.cloud.xyz, origins=np.full(3, np.nan))
+
+
+def test_pooled_fit_finds_sparse_trunks(tls_scene: tuple[Stand3D, np.ndarray]) -> None:
+    """At 10 % of the coarse scan, trunks hold fewer than 8 points per slice: the pooled
+    band fit finds them, and the shrubs still do not pass."""
+    stand, xyz = tls_scene
+    sparse = xyz[np.random.default_rng(1).random(len(xyz)) < 0.1]
+    off = detect_stems(sparse, StemConfig(pooled_fallback=False))
+    on = detect_stems(sparse)
+    r_off, _, p_off = _score(off, stand)
+    r_on, rmse_on, p_on = _score(on, stand)
+    assert r_on > r_off
+    assert p_on >= p_off - 1e-9
+    assert rmse_on < 0.015  # pooled stems: sparse, one-sided; 1.5 cm
+    # nothing changes where every trunk has enough points per slice
+    full_on, full_off = detect_stems(xyz), detect_stems(xyz, StemConfig(pooled_fallback=False))
+    assert len(full_on) == len(full_off)
+    np.testing.assert_allclose(full_on.diameter, full_off.diameter)
+
+
+def _sparse_trunk_scene(top: float, seed: int = 0) -> np.ndarray:
+    """Flat ground, a dense trunk (r 15 cm, half seen) and a sparse one (r 12 cm, 120 deg seen,
+    30 returns per metre: 6 per 20 cm slice) reaching up to ``top``."""
+    g = np.random.default_rng(seed)
+    pts = [np.column_stack((g.uniform(0, 10, (20000, 2)), g.normal(0, 0.002, 20000)))]
+
+    def trunk(c: tuple[float, float], r: float, n_per_m: int, half: float, h: float) -> np.ndarray:
+        n = int(n_per_m * h)
+        t = g.uniform(-half, half, n)
+        rr = r + g.normal(0, 0.002, n)
+        return np.column_stack((c[0] - rr * np.cos(t), c[1] - rr * np.sin(t), g.uniform(0, h, n)))
+
+    pts.append(trunk((2.0, 2.0), 0.15, 1000, np.pi / 2, 4.0))
+    pts.append(trunk((7.0, 7.0), 0.12, 30, np.radians(60), top))
+    return np.vstack(pts)
+
+
+def test_pooled_fit_needs_a_stem_that_goes_on_above_the_band() -> None:
+    """6 returns per slice are too few for the slice fits; the pooled cylinder finds the trunk
+    (DBH within 2 cm: ~36 band points over 120 deg, lean free). The same points ending at
+    1.6 m (a shrub's height) are not a stem."""
+    tall = _sparse_trunk_scene(4.0)
+    off = detect_stems(tall, StemConfig(pooled_fallback=False))
+    on = detect_stems(tall)
+    assert len(off) == 1 and len(on) == 2
+    k = int(np.argmin(np.hypot(*(on.xy - [7.0, 7.0]).T)))
+    assert np.hypot(*(on.xy[k] - [7.0, 7.0])) < 0.02
+    assert abs(on.diameter[k] - 0.24) < 0.02
+    assert np.isnan(on.taper[k]) and 0 < on.quality[k] <= 1
+    assert len(detect_stems(_sparse_trunk_scene(1.6))) == 1
