@@ -2,7 +2,8 @@
 
 Prints ONE JSON object (with --json) holding every parameter of every scenario and:
 
-* simulated stands (terrestrial single scan, 5 mm; 16-beam mobile along a path, 3 cm), per
+* simulated stands (terrestrial single scan and 4-station plot, 5 mm; 16-beam mobile along a
+  path, 3 cm), per
   method: recall (all, DBH >= 10 cm), precision (all detections, and detections >= 7.5 cm), DBH
   RMSE / bias, position RMSE, time and points per second;
 * a 20-million-point LAS (tiled simulated TLS plots) processed by ``stemmap stems`` in a
@@ -152,6 +153,27 @@ def munjer_mobile(frames: Any, poses: np.ndarray, cfg: MunjerConfig) -> CloudSte
     return associate_proximity(parts, cfg.association_distance)
 
 
+#: Multi-scan TLS plot design: the plot centre plus three stations 7 m out at 90, 210 and 330
+#: degrees (the usual way a terrestrial plot is scanned, so that trunks hidden from one station
+#: are seen from another).
+TLS_MULTI_POSITIONS = np.array(
+    [[12.5, 12.5]]
+    + [
+        [12.5 + 7.0 * np.cos(np.radians(a)), 12.5 + 7.0 * np.sin(np.radians(a))]
+        for a in (90, 210, 330)
+    ]
+)
+
+
+def munjer_multi(
+    xyz: np.ndarray, scan: np.ndarray, heads: np.ndarray, cfg: MunjerConfig
+) -> CloudStems:
+    """EB-LiDAR on a multi-station TLS plot: :func:`munjer_tls` on each station's own points,
+    detections associated by proximity (1.0 m)."""
+    parts = [munjer_tls(xyz[scan == k], heads[k], cfg) for k in range(heads.shape[0])]
+    return associate_proximity(parts, cfg.association_distance)
+
+
 def run_sim(quick: bool) -> dict[str, Any]:
     seeds = [1, 2] if quick else [1, 2, 3]
     stand_kw = {"n_trees": 30, "size": (25.0, 25.0)}
@@ -178,6 +200,12 @@ def run_sim(quick: bool) -> dict[str, Any]:
                 "positions": "one scan at the plot centre",
                 "height_m": 1.5,
             },
+            "terrestrial_multi": {
+                "model": "as terrestrial",
+                "positions": TLS_MULTI_POSITIONS.round(3).tolist(),
+                "height_m": 1.5,
+                "note": "stations merged in the world frame; munjer2025 runs per station",
+            },
             "mobile": {
                 **{k: v for k, v in asdict(vlp).items() if k != "elevations_deg"},
                 "elevations_deg": list(vlp.elevations_deg),
@@ -192,7 +220,7 @@ def run_sim(quick: bool) -> dict[str, Any]:
         }
     }
     methods = ("munjer2025", "ours", "ours_kasa", "ours_origins")
-    for scen in ("terrestrial", "mobile"):
+    for scen in ("terrestrial", "terrestrial_multi", "mobile"):
         rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
         dets: dict[str, list[tuple[CloudStems, Stand3D, np.ndarray]]] = {m: [] for m in methods}
         for seed in seeds:
@@ -205,6 +233,15 @@ def run_sim(quick: bool) -> dict[str, Any]:
                 origin = np.array([*origin_xy, stand.ground_z(origin_xy)[0] + 1.5])
                 frames, poses = None, None
                 origins = origin
+            elif scen == "terrestrial_multi":
+                pos = TLS_MULTI_POSITIONS
+                cloud = simulate_tls(stand, pos, tls_model, rng=300 + seed)
+                xyz = cloud.xyz
+                vis = visible_trees(stand, xyz, cloud.fields["label"])
+                heads = np.column_stack((pos, stand.ground_z(pos) + 1.5))
+                scan_of = np.asarray(cloud.fields["scan"], dtype=np.int64)
+                frames, poses = None, None
+                origins = heads[scan_of]
             else:
                 path = np.column_stack((np.linspace(0.5, 24.5, n_path), np.full(n_path, 12.3)))
                 mob = simulate_mobile(stand, path, vlp, rng=200 + seed)
@@ -217,11 +254,12 @@ def run_sim(quick: bool) -> dict[str, Any]:
                 t0 = time.perf_counter()
                 if meth == "munjer2025":
                     assert isinstance(cfg, MunjerConfig)
-                    det = (
-                        munjer_tls(xyz, origin, cfg)
-                        if frames is None
-                        else munjer_mobile(frames, poses, cfg)  # type: ignore[arg-type]
-                    )
+                    if scen == "terrestrial_multi":
+                        det = munjer_multi(xyz, scan_of, heads, cfg)
+                    elif frames is None:
+                        det = munjer_tls(xyz, origin, cfg)
+                    else:
+                        det = munjer_mobile(frames, poses, cfg)  # type: ignore[arg-type]
                 else:
                     assert isinstance(cfg, StemConfig)
                     det = detect_stems(
