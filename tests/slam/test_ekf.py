@@ -91,6 +91,33 @@ def test_compressed_ekf_equals_the_full_ekf(loop, association):
     _assert_same_run(full, wide, 1e-9)
 
 
+def test_merge_decisions():
+    """One tree twice: fused when the filter agrees (Mahalanobis), dropped when it does not but
+    the trunks overlap or the two were never matched in one scan; two trees seen together
+    and not overlapping stay."""
+    from stemmap.slam._ekf_compressed import decide_merges
+
+    xy = np.array([[0.0, 0.0], [0.05, 0.0], [10.0, 0.0], [10.2, 0.0], [20.0, 0.0], [20.8, 0.0]])
+    pi, pj = np.array([0, 2, 4]), np.array([1, 3, 5])
+    cov = np.broadcast_to(np.eye(2) * 0.01**2, (3, 2, 2))  # 1 cm each, uncorrelated
+    zero = np.zeros((3, 2, 2))
+    dmean = np.array([0.30, 0.31, 0.40, 0.40, 0.30, 0.30])
+    dn = np.full(6, 20)
+    nobs = np.array([50, 10, 5, 30, 40, 40])
+    kw = {"sd2": 0.1**2, "alpha": 0.99}
+    seen_together = np.array([True, True, True])
+    plan = decide_merges(pi, pj, xy, cov, cov, zero, dmean, dn, nobs, seen_together, **kw)
+    # pair 0: 5 cm apart with 1.4 cm relative sigma is d² 12.5 > 11.3 -- not one point, but the
+    # 0.3 m trunks overlap; pair 1 overlaps (0.2 m < 0.4 m); pair 2: 0.8 m apart, two trees
+    assert sorted(plan) == [(0, 1, False), (3, 2, False)]
+    loose = np.broadcast_to(np.eye(2) * 0.05**2, (3, 2, 2))
+    plan = decide_merges(pi, pj, xy, loose, loose, zero, dmean, dn, nobs, seen_together, **kw)
+    assert (0, 1, True) in plan  # compatible: fused by the constraint, most-observed kept
+    never = np.array([True, True, False])
+    plan = decide_merges(pi, pj, xy, cov, cov, zero, dmean, dn, nobs, never, **kw)
+    assert (4, 5, False) in plan  # never matched in one scan: one tree
+
+
 def test_bad_config():
     with pytest.raises(ConfigError):
         EkfSlam(association="magic")
@@ -133,4 +160,5 @@ def test_compressed_ekf_equals_the_full_ekf_on_victoria_park(datasets_dir):
     full = EkfSlam(update="full").run(problem)
     comp = EkfSlam().run(problem)
     assert comp.stats["full_updates"] > 5
+    assert full.stats["merged"] == comp.stats["merged"] > 5  # duplicate merging exercised
     _assert_same_run(full, comp, 1e-8)

@@ -64,12 +64,101 @@ def _stack_jacobian(Jv: FloatArray, Jl: FloatArray) -> FloatArray:
     return H.reshape(2 * c, 3 + 2 * c)
 
 
+def _blocks(P: FloatArray, ri: IntArray, rj: IntArray) -> FloatArray:
+    """The 2x2 blocks ``P[ri:ri+2, rj:rj+2]`` for arrays of row starts (p, 2, 2)."""
+    out = np.empty((ri.size, 2, 2))
+    out[:, 0, 0], out[:, 0, 1] = P[ri, rj], P[ri, rj + 1]
+    out[:, 1, 0], out[:, 1, 1] = P[ri + 1, rj], P[ri + 1, rj + 1]
+    return out
+
+
 def _inv2_quad(T: FloatArray, x: FloatArray, y: FloatArray) -> FloatArray:
     """``[x y] T⁻¹ [x y]ᵀ`` for stacked 2x2 ``T`` (same closed form as
     :func:`stemmap.slam.association.individual_compatibility`)."""
     a, b, d = T[..., 0, 0], 0.5 * (T[..., 0, 1] + T[..., 1, 0]), T[..., 1, 1]
     det = a * d - b * b
     out: FloatArray = (d * x * x - 2.0 * b * x * y + a * y * y) / det
+    return out
+
+
+def close_pairs(
+    xy: FloatArray, recent: NDArray[np.bool_], radius: float
+) -> tuple[IntArray, IntArray]:
+    """Landmark pairs closer than ``radius`` with at least one member seen recently (sorted)."""
+    from scipy.spatial import cKDTree
+
+    if xy.shape[0] < 2:
+        e = np.zeros(0, dtype=np.int64)
+        return e, e
+    pr = cKDTree(xy).query_pairs(radius, output_type="ndarray")
+    if pr.shape[0]:
+        pr = pr[recent[pr[:, 0]] | recent[pr[:, 1]]]
+        pr = pr[np.lexsort((pr[:, 1], pr[:, 0]))]
+    return pr[:, 0].astype(np.int64), pr[:, 1].astype(np.int64)
+
+
+def decide_merges(
+    pi: IntArray,
+    pj: IntArray,
+    xy: FloatArray,
+    Pii: FloatArray,
+    Pjj: FloatArray,
+    Pij: FloatArray,
+    d_mean: FloatArray,
+    d_n: IntArray,
+    nobs: IntArray,
+    together: NDArray[np.bool_],
+    *,
+    sd2: float | None,
+    alpha: float,
+) -> list[tuple[int, int, bool]]:
+    """Which close pairs are one tree: ``[(keep, drop, fuse), ...]`` (greedy, one merge per
+    landmark per pass).
+
+    * **fuse** when the pair is statistically one point: ``d² = Δᵀ S⁻¹ Δ`` with the joint
+      ``S = P_ii + P_jj - P_ij - P_ji`` (plus the diameter cue ``(d̄_i - d̄_j)² / (σ²/n_i +
+      σ²/n_j)``, one more dof) below ``chi2(alpha)``; the filter then applies the constraint
+      ``m_i - m_j = 0`` and marginalises ``m_j`` out;
+    * **drop** (marginalise the less-observed one, no constraint) when the filter is too
+      confident to call them one point (a many-sigma constraint would jolt the state) but
+      the data say they are one tree: the trunk circles overlap, ``|Δ| < (d̄_i + d̄_j) / 2``
+      (two real trunks cannot), or the two were never matched in the same scan
+      (``together`` False: a laser scan shows two trunks 1 m apart as two detections, one
+      trunk as one).
+
+    The kept landmark is the more-observed one.
+    """
+    if not pi.size:
+        return []
+    S = Pii + Pjj - Pij - Pij.transpose(0, 2, 1)
+    D = xy[pi] - xy[pj]
+    d2 = _inv2_quad(S, D[:, 0], D[:, 1])
+    has = (d_n[pi] > 0) & (d_n[pj] > 0)
+    dof = np.full(pi.size, 2)
+    if sd2 is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            e = (d_mean[pi] - d_mean[pj]) ** 2 / (sd2 / d_n[pi] + sd2 / d_n[pj])
+        d2 = d2 + np.where(has, e, 0.0)
+        dof[has] = 3
+    gate = np.array([chi2_gate(alpha, int(k)) for k in dof])
+    fuse = d2 < gate
+    dist = np.hypot(D[:, 0], D[:, 1])
+    with np.errstate(invalid="ignore"):
+        overlap = has & (dist < 0.5 * (d_mean[pi] + d_mean[pj]))
+    same = ~fuse & (overlap | ~together)
+    order = np.concatenate(
+        (np.flatnonzero(fuse)[np.argsort(d2[fuse], kind="stable")],
+         np.flatnonzero(same)[np.argsort(dist[same], kind="stable")])
+    )  # fmt: skip
+    used: set[int] = set()
+    out = []
+    for t in order:
+        i, j = int(pi[t]), int(pj[t])
+        if i in used or j in used:
+            continue
+        used.update((i, j))
+        keep, drop = (i, j) if nobs[i] >= nobs[j] else (j, i)
+        out.append((keep, drop, bool(fuse[t])))
     return out
 
 
@@ -267,6 +356,19 @@ class _Compressed:
         self._xB = None
         return float(wv @ wv)
 
+    def all_xy(self) -> tuple[IntArray, FloatArray]:
+        """(ids, current xy) of every alive landmark: active ones first, in ``a_ids`` order."""
+        loc, bxy = self.b_xy_near(0.0, 0.0, math.inf)
+        return np.concatenate((self.a_ids, self.b_ids[loc])), np.vstack((self.a_xy(), bxy))
+
+    def fuse(self, ri: int, rj: int) -> None:
+        """Constraint ``m_i - m_j = 0`` between the active landmarks at rows ``ri``, ``rj``
+        (a noise-free pseudo-measurement; a 1 mm sigma keeps the Cholesky factor regular)."""
+        cols = np.array([ri, ri + 1, rj, rj + 1])
+        Hn = np.array([[1.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, -1.0]])
+        v = -(self.xA[[ri, ri + 1]] - self.xA[[rj, rj + 1]])
+        self.update(cols, Hn, v, np.eye(2) * 1e-6)
+
     def add_landmark(
         self, lm_id: int, mx: float, my: float, rng_: float, ang: float, R1: FloatArray,
         a: float, b: float,
@@ -353,6 +455,8 @@ def run_compressed(
     n_matched = n_new = n_pruned = n_ambiguous = 0
     nis_sum, nis_dof = 0.0, 0
     n_sync_moved = 0
+    n_merged = n_fused = 0
+    coseen: set[tuple[int, int]] = set()  # landmark pairs matched in one scan
 
     def sensor() -> tuple[float, float, float, float, float, float, float]:
         x, y, th = st.xA[0], st.xA[1], st.xA[2]
@@ -432,9 +536,10 @@ def run_compressed(
 
     center = np.array(sensor()[:2])
 
-    def resync(r: FloatArray, bear: FloatArray) -> None:
+    def resync(r: FloatArray, bear: FloatArray, extra_ids: IntArray | None = None) -> None:
         """Full update; the new active set is every landmark within ``local_radius`` plus every
-        one within the search radius that may gate with this frame's detections."""
+        one within the search radius that may gate with this frame's detections (plus
+        ``extra_ids``)."""
         sx, sy = sensor()[:2]
         center[:] = (sx, sy)
         st.sync(None)
@@ -450,6 +555,8 @@ def run_compressed(
             Pjj[:, 1, 0] = st.Pg[rows + 1, rows]
             Pjj[:, 1, 1] = st.Pg[rows + 1, rows + 1]
             act[far[may_gate(r, bear, L[far], Pjj)]] = True
+        if extra_ids is not None:
+            act |= np.isin(st.g_ids, extra_ids)
         st._start(st.g_ids[act])
 
     for f in range(nf):
@@ -530,6 +637,14 @@ def run_compressed(
                     nis_dof += v.size
                     n_matched += m
                     jid = st.a_ids[cand[mj]]  # distinct (one-to-one association)
+                    if cfg.merge_radius > 0 and m > 1:
+                        # landmarks matched in the same scan are different trees
+                        pxy = LA[cand[mj]]
+                        dd = np.hypot(*(pxy[:, None, :] - pxy[None, :, :]).transpose(2, 0, 1))
+                        uu, ww = np.nonzero(np.triu(dd < 2 * cfg.merge_radius, 1))
+                        for u, w in zip(uu.tolist(), ww.tolist(), strict=True):
+                            a_, b_ = int(jid[u]), int(jid[w])
+                            coseen.add((a_, b_) if a_ < b_ else (b_, a_))
                     nobs[jid] += 1
                     last[jid] = f
                     dm_ = diam[mi]
@@ -584,6 +699,54 @@ def run_compressed(
                 st.remove(bad)
                 alive[bad] = False
                 n_pruned += bad.size
+        # ---------------- duplicate merging (same pass)
+        if cfg.merge_radius > 0 and n_ids and (f % cfg.prune_every == 0 or f == nf - 1):
+            recent = alive[:n_ids] & (last[:n_ids] > f - cfg.prune_every)
+            ids_all, xy_all = st.all_xy()
+            pi, pj = close_pairs(xy_all, recent[ids_all], cfg.merge_radius)
+            if pi.size:
+                members = ids_all[np.union1d(pi, pj)]
+                if not np.isin(members, st.a_ids).all():
+                    resync(r, bear, members)
+                    ids_all, xy_all = st.all_xy()
+                    pi, pj = close_pairs(xy_all, recent[ids_all], cfg.merge_radius)
+                # all members are active: ids_all[:na] = st.a_ids, rows 3 + 2t of P_AA
+                ri, rj = 3 + 2 * pi, 3 + 2 * pj
+                PA = st.PA
+                pid = ids_all  # landmark id per combined index
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    dmean = d_sum[pid] / d_n[pid]
+                Pii, Pjj, Pij = _blocks(PA, ri, ri), _blocks(PA, rj, rj), _blocks(PA, ri, rj)
+                gi, gj = pid[pi], pid[pj]
+                together = np.array(
+                    [
+                        (min(u, w), max(u, w)) in coseen
+                        for u, w in zip(gi.tolist(), gj.tolist(), strict=True)
+                    ],
+                    dtype=bool,
+                )
+                plan = decide_merges(
+                    pi, pj, xy_all, Pii, Pjj, Pij, dmean, d_n[pid], nobs[pid], together,
+                    sd2=sd2 if use_d else None, alpha=cfg.gate_alpha,
+                )  # fmt: skip
+                drops = []
+                for keep, drop, fuse in plan:
+                    if fuse:
+                        st.fuse(3 + 2 * keep, 3 + 2 * drop)
+                        n_fused += 1
+                    ki, di = int(pid[keep]), int(pid[drop])
+                    nobs[ki] += nobs[di]
+                    d_sum[ki] += d_sum[di]
+                    d_sq[ki] += d_sq[di]
+                    d_n[ki] += d_n[di]
+                    first[ki] = min(first[ki], first[di])
+                    last[ki] = max(last[ki], last[di])
+                    drops.append(di)
+                if drops:
+                    dr = np.array(drops, dtype=np.int64)
+                    st.remove(dr)
+                    alive[dr] = False
+                    n_merged += dr.size
         poses[f] = st.xA[:3]
         if progress is not None and (f % 50 == 0 or f == nf - 1):
             progress(f + 1, nf)
@@ -623,6 +786,8 @@ def run_compressed(
         "pruned": n_pruned,
         "ambiguous_discarded": n_ambiguous,
         "landmarks": nl,
+        "merged": n_merged,
+        "merged_by_constraint": n_fused,
         "full_updates": st.n_sync,
         "full_updates_moved": n_sync_moved,
         "nis_per_dof": nis_sum / nis_dof if nis_dof else math.nan,
