@@ -112,21 +112,19 @@ def decide_merges(
     sd2: float | None,
     alpha: float,
 ) -> list[tuple[int, int, bool]]:
-    """Which close pairs are one tree: ``[(keep, drop, fuse), ...]`` (greedy, one merge per
-    landmark per pass).
+    """Which close pairs are one tree: ``[(keep, drop, compatible), ...]`` (greedy, one merge
+    per landmark per pass; the kept landmark is the more-observed one).
 
-    * **fuse** when the pair is statistically one point: ``d² = Δᵀ S⁻¹ Δ`` with the joint
+    * **compatible** -- the pair is statistically one point: ``d² = Δᵀ S⁻¹ Δ`` with the joint
       ``S = P_ii + P_jj - P_ij - P_ji`` (plus the diameter cue ``(d̄_i - d̄_j)² / (σ²/n_i +
-      σ²/n_j)``, one more dof) below ``chi2(alpha)``; the filter then applies the constraint
-      ``m_i - m_j = 0`` and marginalises ``m_j`` out;
-    * **drop** (marginalise the less-observed one, no constraint) when the filter is too
-      confident to call them one point (a many-sigma constraint would jolt the state) but
-      the data say they are one tree: the trunk circles overlap, ``|Δ| < (d̄_i + d̄_j) / 2``
-      (two real trunks cannot), or the two were never matched in the same scan
-      (``together`` False: a laser scan shows two trunks 1 m apart as two detections, one
-      trunk as one).
+      σ²/n_j)``, one more dof) below ``chi2(alpha)``;
+    * or the filter is too confident to call them one point but the data say they are one
+      tree: the trunk circles overlap, ``|Δ| < (d̄_i + d̄_j) / 2`` (two real trunks cannot),
+      or the two were never matched in the same scan (``together`` False: a laser scan shows
+      two trunks 1 m apart as two detections, one trunk as one).
 
-    The kept landmark is the more-observed one.
+    The filter then applies the constraint ``m_i - m_j = 0`` and marginalises ``m_drop`` out
+    (``EkfConfig.merge_constraint``; without it, incompatible pairs are only marginalised).
     """
     if not pi.size:
         return []
@@ -730,10 +728,10 @@ def run_compressed(
                     sd2=sd2 if use_d else None, alpha=cfg.gate_alpha,
                 )  # fmt: skip
                 drops = []
-                for keep, drop, fuse in plan:
-                    if fuse:
+                for keep, drop, compatible in plan:
+                    n_fused += int(compatible)
+                    if compatible or cfg.merge_constraint:
                         st.fuse(3 + 2 * keep, 3 + 2 * drop)
-                        n_fused += 1
                     ki, di = int(pid[keep]), int(pid[drop])
                     nobs[ki] += nobs[di]
                     d_sum[ki] += d_sum[di]
@@ -787,7 +785,7 @@ def run_compressed(
         "ambiguous_discarded": n_ambiguous,
         "landmarks": nl,
         "merged": n_merged,
-        "merged_by_constraint": n_fused,
+        "merged_compatible": n_fused,
         "full_updates": st.n_sync,
         "full_updates_moved": n_sync_moved,
         "nis_per_dof": nis_sum / nis_dof if nis_dof else math.nan,

@@ -70,6 +70,8 @@ class EkfConfig:
         active submap at each full update (run time only; the result does not depend on it)
     merge_radius : m, landmark pairs closer than this (one of them seen since the last pass)
         are tested for being one tree every ``prune_every`` frames (0 disables merging)
+    merge_constraint : a merge applies the constraint ``m_i = m_j`` (a loop closure) also
+        when the pair is not Mahalanobis-compatible; False: such pairs are only marginalised
     local_move : m, compressed filter: a full update also happens when the sensor is this far
         from where the current local period began (run time only)
     """
@@ -90,6 +92,7 @@ class EkfConfig:
     local_radius: float = 60.0
     local_move: float = 20.0
     merge_radius: float = 1.0
+    merge_constraint: bool = True
 
     def __post_init__(self) -> None:
         if self.association not in ("jcbb", "nn"):
@@ -382,10 +385,10 @@ class EkfSlam:
                         sd2=sd2 if use_d else None, alpha=cfg.gate_alpha,
                     )  # fmt: skip
                     keep_l = np.ones(len(lm_id), dtype=bool)
-                    for kp, dr, fuse in plan:
-                        if fuse:
+                    for kp, dr, compatible in plan:
+                        n_fused += int(compatible)
+                        if compatible or cfg.merge_constraint:
                             self._fuse(3 + 2 * kp, 3 + 2 * dr)
-                            n_fused += 1
                         lm_nobs[kp] += lm_nobs[dr]
                         lm_d_sum[kp] += lm_d_sum[dr]
                         lm_d_sq[kp] += lm_d_sq[dr]
@@ -433,7 +436,7 @@ class EkfSlam:
             "new_landmarks": n_new,
             "pruned": n_pruned,
             "merged": n_merged,
-            "merged_by_constraint": n_fused,
+            "merged_compatible": n_fused,
             "ambiguous_discarded": n_ambiguous,
             "landmarks": nl,
             # normalised innovation squared per degree of freedom: ~1 for a consistent filter
