@@ -19,8 +19,16 @@ Guivant & Nebot 2001 for Victoria Park). Per laser frame:
 5. **Prune** (optional landmark quality): a landmark that is still seen fewer than
    ``min_obs`` times ``prune_after`` frames after its creation is removed from the state.
 
-The covariance lives in a preallocated buffer that grows geometrically, so adding a landmark
-does not copy the whole matrix every time.
+6. **Merge** duplicates (same pass): landmarks closer than ``merge_radius`` that are one tree
+   (Mahalanobis-compatible, overlapping trunks, or never matched in the same scan) are joined
+   by the constraint ``m_i = m_j`` and the less-observed one is marginalised
+   (:func:`stemmap.slam._ekf_compressed.decide_merges`).
+
+The default ``update="compressed"`` runs the same steps on the compressed filter of Guivant &
+Nebot 2001 (:mod:`stemmap.slam._ekf_compressed`): per frame only the local submap is updated,
+the rest once on leaving the area; the result equals this full filter (``update="full"``,
+below) to round-off. In the full filter the covariance lives in a preallocated buffer that
+grows geometrically, so adding a landmark does not copy the whole matrix every time.
 """
 
 from __future__ import annotations
