@@ -19,8 +19,16 @@ Guivant & Nebot 2001 for Victoria Park). Per laser frame:
 5. **Prune** (optional landmark quality): a landmark that is still seen fewer than
    ``min_obs`` times ``prune_after`` frames after its creation is removed from the state.
 
-The covariance lives in a preallocated buffer that grows geometrically, so adding a landmark
-does not copy the whole matrix every time.
+6. **Merge** duplicates (same pass): landmarks closer than ``merge_radius`` that are one tree
+   (Mahalanobis-compatible, overlapping trunks, or never matched in the same scan) are joined
+   by the constraint ``m_i = m_j`` and the less-observed one is marginalised
+   (:func:`stemmap.slam._ekf_compressed.decide_merges`).
+
+The default ``update="compressed"`` runs the same steps on the compressed filter of Guivant &
+Nebot 2001 (:mod:`stemmap.slam._ekf_compressed`): per frame only the local submap is updated,
+the rest once on leaving the area; the result equals this full filter (``update="full"``,
+below) to round-off. In the full filter the covariance lives in a preallocated buffer that
+grows geometrically, so adding a landmark does not copy the whole matrix every time.
 """
 
 from __future__ import annotations
@@ -30,11 +38,13 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.linalg import solve_triangular
 
 from stemmap.errors import ConfigError
+from stemmap.slam._ekf_compressed import _blocks, close_pairs, decide_merges, run_compressed
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.motion import preintegrate
@@ -62,6 +72,16 @@ class EkfConfig:
     prune_after, min_obs : landmark quality (prune_after = 0 disables pruning)
     prune_every : frames between pruning passes (each pass copies the covariance once)
     search_radius : m, landmarks farther than this from the sensor are not association candidates
+    update : "compressed" (default; Guivant & Nebot 2001 compressed filter, exact) or "full"
+        (the reference: every step updates the whole covariance)
+    local_radius : m, compressed filter: landmarks within this distance of the sensor form the
+        active submap at each full update (run time only; the result does not depend on it)
+    merge_radius : m, landmark pairs closer than this (one of them seen since the last pass)
+        are tested for being one tree every ``prune_every`` frames (0 disables merging)
+    merge_constraint : a merge applies the constraint ``m_i = m_j`` (a loop closure) also
+        when the pair is not Mahalanobis-compatible; False: such pairs are only marginalised
+    local_move : m, compressed filter: a full update also happens when the sensor is this far
+        from where the current local period began (run time only)
     """
 
     sigma_range: float = 0.10
@@ -76,13 +96,29 @@ class EkfConfig:
     prune_every: int = 20
     min_obs: int = 3
     search_radius: float = 85.0
+    update: str = "compressed"
+    local_radius: float = 60.0
+    local_move: float = 20.0
+    merge_radius: float = 1.0
+    merge_constraint: bool = True
 
     def __post_init__(self) -> None:
         if self.association not in ("jcbb", "nn"):
             raise ConfigError(
                 f"EkfConfig.association must be 'jcbb' or 'nn', got {self.association!r}."
             )
-        for name in ("sigma_range", "sigma_bearing", "new_landmark_chi2", "search_radius"):
+        if self.update not in ("compressed", "full"):
+            raise ConfigError(
+                f"EkfConfig.update must be 'compressed' or 'full', got {self.update!r}."
+            )
+        for name in (
+            "sigma_range",
+            "sigma_bearing",
+            "new_landmark_chi2",
+            "search_radius",
+            "local_radius",
+            "local_move",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"EkfConfig.{name} must be a positive number, got {v}.")
@@ -129,6 +165,8 @@ class EkfSlam:
         # The per-frame matrices are small: multi-threaded BLAS only adds overhead (measured
         # 25x slower on a loaded 2-core machine), so the filter runs single-threaded.
         with single_threaded_blas():
+            if self.config.update == "compressed":
+                return run_compressed(self.config, problem, progress, self.name)
             return self._run(problem, progress)
 
     def _run(self, problem: SlamProblem, progress: Callable[[int, int], None] | None) -> SlamResult:
@@ -154,8 +192,19 @@ class EkfSlam:
         lm_nobs: list[int] = []
         lm_first: list[int] = []
         lm_last: list[int] = []
+        lm_id: list[int] = []  # permanent id (slots shift when landmarks are removed)
+        coseen: set[tuple[int, int]] = set()  # ids of landmark pairs matched in one scan
+        n_merged = n_fused = 0
         poses = np.zeros((nf, 3))
         n_matched = n_new = n_pruned = n_ambiguous = 0
+
+        def compact(kl: list[bool]) -> None:
+            lists: tuple[list[Any], ...] = (
+                lm_d_sum, lm_d_sq, lm_d_n, lm_nobs, lm_first, lm_last, lm_id
+            )  # fmt: skip
+            for lst in lists:
+                lst[:] = [v for v, kk in zip(lst, kl, strict=True) if kk]
+
         nis_sum, nis_dof = 0.0, 0
 
         for f in range(nf):
@@ -260,6 +309,15 @@ class EkfSlam:
                         self.x[2] = (self.x[2] + math.pi) % (2 * math.pi) - math.pi
                         self.P[:n, :n] -= W @ W.T
                         n_matched += mi.size
+                        if cfg.merge_radius > 0 and mi.size > 1:
+                            # landmarks matched in the same scan are different trees
+                            ms = cand[mj]
+                            pxy = self.x[3 : self.n].reshape(-1, 2)[ms]
+                            dd = np.hypot(*(pxy[:, None, :] - pxy[None, :, :]).transpose(2, 0, 1))
+                            uu, ww = np.nonzero(np.triu(dd < 2 * cfg.merge_radius, 1))
+                            for u, w in zip(uu.tolist(), ww.tolist(), strict=True):
+                                a_, b_ = lm_id[ms[u]], lm_id[ms[w]]
+                                coseen.add((a_, b_) if a_ < b_ else (b_, a_))
                         for i, j in zip(mi, cand[mj], strict=True):
                             lm_nobs[j] += 1
                             lm_last[j] = f
@@ -297,6 +355,7 @@ class EkfSlam:
                     lm_nobs.append(1)
                     lm_first.append(f)
                     lm_last.append(f)
+                    lm_id.append(n_new)
                     n_new += 1
             # ---------------- landmark quality pruning
             # (batched every prune_every frames: each removal copies P, O(n²))
@@ -309,14 +368,46 @@ class EkfSlam:
                     keep_l = np.ones(nl, dtype=bool)
                     keep_l[bad] = False
                     self._remove_landmarks(keep_l)
-                    kl = keep_l.tolist()
-                    lm_d_sum[:] = [v for v, kk in zip(lm_d_sum, kl, strict=True) if kk]
-                    lm_d_sq[:] = [v for v, kk in zip(lm_d_sq, kl, strict=True) if kk]
-                    lm_d_n[:] = [i for i, kk in zip(lm_d_n, kl, strict=True) if kk]
-                    lm_nobs[:] = [i for i, kk in zip(lm_nobs, kl, strict=True) if kk]
-                    lm_first[:] = [i for i, kk in zip(lm_first, kl, strict=True) if kk]
-                    lm_last[:] = [i for i, kk in zip(lm_last, kl, strict=True) if kk]
+                    compact(keep_l.tolist())
                     n_pruned += bad.size
+            # ---------------- duplicate merging (same pass; see _ekf_compressed.decide_merges)
+            if cfg.merge_radius > 0 and lm_first and (f % cfg.prune_every == 0 or f == nf - 1):
+                xy = self.x[3 : self.n].reshape(-1, 2)
+                recent = np.asarray(lm_last) > f - cfg.prune_every
+                pi, pj = close_pairs(xy, recent, cfg.merge_radius)
+                if pi.size:
+                    ri, rj = 3 + 2 * pi, 3 + 2 * pj
+                    dn_ = np.asarray(lm_d_n)
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        dmean = np.asarray(lm_d_sum) / dn_
+                    together = np.array(
+                        [
+                            (min(lm_id[u], lm_id[w]), max(lm_id[u], lm_id[w])) in coseen
+                            for u, w in zip(pi.tolist(), pj.tolist(), strict=True)
+                        ],
+                        dtype=bool,
+                    )
+                    plan = decide_merges(
+                        pi, pj, xy.copy(), _blocks(self.P, ri, ri), _blocks(self.P, rj, rj),
+                        _blocks(self.P, ri, rj), dmean, dn_, np.asarray(lm_nobs), together,
+                        sd2=sd2 if use_d else None, alpha=cfg.gate_alpha,
+                    )  # fmt: skip
+                    keep_l = np.ones(len(lm_id), dtype=bool)
+                    for kp, dr, compatible in plan:
+                        n_fused += int(compatible)
+                        if compatible or cfg.merge_constraint:
+                            self._fuse(3 + 2 * kp, 3 + 2 * dr)
+                        lm_nobs[kp] += lm_nobs[dr]
+                        lm_d_sum[kp] += lm_d_sum[dr]
+                        lm_d_sq[kp] += lm_d_sq[dr]
+                        lm_d_n[kp] += lm_d_n[dr]
+                        lm_first[kp] = min(lm_first[kp], lm_first[dr])
+                        lm_last[kp] = max(lm_last[kp], lm_last[dr])
+                        keep_l[dr] = False
+                    if plan:
+                        self._remove_landmarks(keep_l)
+                        compact(keep_l.tolist())
+                        n_merged += len(plan)
             poses[f] = self.x[:3]
             if progress is not None and (f % 50 == 0 or f == nf - 1):
                 progress(f + 1, nf)
@@ -352,6 +443,8 @@ class EkfSlam:
             "matched": n_matched,
             "new_landmarks": n_new,
             "pruned": n_pruned,
+            "merged": n_merged,
+            "merged_compatible": n_fused,
             "ambiguous_discarded": n_ambiguous,
             "landmarks": nl,
             # normalised innovation squared per degree of freedom: ~1 for a consistent filter
@@ -386,6 +479,21 @@ class EkfSlam:
         P[n : n + 2, n : n + 2] = Gx @ P[:3, :3] @ Gx.T + Gz @ R1 @ Gz.T
         self.x[n], self.x[n + 1] = mx, my
         self.n = n + 2
+
+    def _fuse(self, ri: int, rj: int) -> None:
+        """Constraint ``m_i - m_j = 0`` between the landmarks at rows ``ri``, ``rj`` (a
+        noise-free pseudo-measurement; a 1 mm sigma keeps the Cholesky factor regular)."""
+        n = self.n
+        cols = np.array([ri, ri + 1, rj, rj + 1])
+        Hn = np.array([[1.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, -1.0]])
+        v = -(self.x[[ri, ri + 1]] - self.x[[rj, rj + 1]])
+        PHt = self.P[:n, cols] @ Hn.T
+        S = Hn @ PHt[cols] + np.eye(2) * 1e-6
+        Lc = np.linalg.cholesky(0.5 * (S + S.T))
+        W = solve_triangular(Lc, PHt.T, lower=True).T
+        self.x[:n] += W @ solve_triangular(Lc, v, lower=True)
+        self.x[2] = (self.x[2] + math.pi) % (2 * math.pi) - math.pi
+        self.P[:n, :n] -= W @ W.T
 
     def _remove_landmarks(self, keep: np.ndarray) -> None:
         kept = 3 + 2 * np.flatnonzero(keep)
