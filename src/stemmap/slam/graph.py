@@ -14,17 +14,31 @@ The problem reads as a factor graph (GTSAM conventions; GTSAM batches are (2, N)
 * ``BearingRangeFactor2D(X(f), L(j))`` for every associated detection, with a robust (Huber by
   default, or Cauchy) noise model on ``(sigma_bearing, sigma_range)``.
 
-Data association runs against the current estimate: every detection is placed in the world from
-the predicted sensor pose, and its Mahalanobis distance to nearby trees uses the detection's
-world covariance (measurement noise mapped by the inverse observation Jacobian) plus a
-relative-drift term that grows with the distance driven since the tree was last seen (the cheap
-approximation of the joint pose-landmark marginal), plus the diameter cue
-``(d_obs - d_tree)² / (σ²_d + σ²_d / n)``. Pairs are taken greedily by increasing distance
-(one detection per tree per frame); an unmatched detection becomes a new tree only when it is
-clearly separate from every tree.
+Front-end (``stemmap.slam._isam2_track.track_keyframe``, numba): between iSAM2 updates a pose
+tracker carries the latest sensor-pose estimate forward with the odometry and its 3x3
+covariance (``P' = F P Fᵀ + Q``), and every frame is associated in three steps:
 
-iSAM2 is updated every ``update_every`` frames; after the last frame a Levenberg-Marquardt batch
-optimisation refines everything, and :class:`gtsam.Marginals` gives each tree's 2x2 covariance.
+1. **local trees** (whose estimate is tied to the current local map: odometry drift since their
+   last observation that is already in iSAM2 below ``local_drift_sigma``): Mahalanobis gate
+   with the pose covariance mapped through each detection (``J P Jᵀ``, so the heading error
+   grows with range), the detection's world covariance, the tree's ``σ²/n`` and the diameter
+   cue ``(d_obs - d_tree)² / (σ²_d + σ²_d / n)``; one-to-one greedy by negative log-likelihood
+   ``d² + ln|S|``; then a MAP update of the tracked pose from the matched trees, and a second
+   gating pass with the posterior. The trees are held fixed: the tracker only serves the
+   association, the factors come from the raw detections.
+2. **re-acquisition** of the other trees (revisits, loop closures): a wide gate with the
+   odometry drift since they were last seen (capped at ``max_drift_sigma``), accepted only as a
+   group of >= 2 detections that agree on one common offset (the drift of a revisit is common
+   to the trees of that earlier pass), or singly when the tree is where the tracked pose puts it
+   (gate without the drift). The old code gated every pair independently with the full drift,
+   which let one detection pick a tree 2 m away while its neighbours said the pose was right.
+3. an unmatched detection becomes a new tree only when it is clearly separate from every tree
+   (d² > ``new_chi2`` with the drift, and farther than ``new_min_dist``); otherwise it is
+   discarded as ambiguous.
+
+iSAM2 is updated every ``update_every`` keyframes (the tracker bridges the gap); after the last
+frame duplicate trees are merged, one Levenberg-Marquardt batch optimisation refines
+everything, and :class:`gtsam.Marginals` gives each tree's 2x2 covariance.
 """
 
 from __future__ import annotations
@@ -36,10 +50,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 
 from stemmap.errors import ConfigError
+from stemmap.slam._isam2_track import (
+    C_AMBIG,
+    C_FAR,
+    C_LOCAL,
+    C_NEW,
+    C_REACQ,
+    C_SINGLE,
+    track_keyframe,
+)
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory
 from stemmap.slam.motion import between, preintegrate
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
@@ -60,9 +82,14 @@ class Isam2Config:
     new_chi2 : a detection starts a new tree only if its d² to every tree exceeds this
     new_min_dist : m, and it is at least this far from every tree
     max_range : m, detections farther than this are not used (bearing error x range)
-    drift_scale : multiplies the odometry-derived relative variance between the vehicle and a
-        tree, accumulated since the tree was last seen (see ``_relative_variance``), capped at
-        ``max_drift_sigma``² (m²)
+    drift_scale : unused (kept for old configs): the drift is the odometry-derived variance
+        between the estimate at the last iSAM2 update and a tree's last observation in iSAM2,
+        capped at ``max_drift_sigma``² (m²)
+    local_drift_sigma : m, trees whose drift is below this are "local" (step 1 of the
+        front-end); the others are re-acquired as a consistent group (step 2)
+    consensus_chi2 : gate on the difference of two re-acquisition offsets (2 dof, 99 %)
+    track_floor_sigmas : (m, m, rad), covariance of the tracked pose right after an iSAM2
+        update (the estimate relative to the local map)
     keyframe_every : frames per keyframe (one Pose2 variable and one iSAM2 update each); the
         detections of a tree within a keyframe window are merged into one factor
     update_every : keyframes per iSAM2 update (association in between uses the odometry
@@ -70,6 +97,8 @@ class Isam2Config:
     relinearize_threshold : iSAM2 relinearisation threshold
     batch_iterations : LM iterations at the end (0 = skip the batch step)
     min_obs : trees seen fewer times are left out of the map (they stay in the graph)
+    min_window_obs : a tree seen in fewer scans of a keyframe window gets no factor from that
+        window (its detections still serve the association)
     merge_dist : m, after the batch step two trees closer than this with compatible diameters
         are merged into one and the graph is optimised again (0 disables)
     marginals : compute per-tree covariances (Marginals) at the end
@@ -95,6 +124,7 @@ class Isam2Config:
     relinearize_skip: int = 10
     batch_iterations: int = 20
     min_obs: int = 3
+    min_window_obs: int = 2
     merge_dist: float = 1.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -189,403 +219,6 @@ def _merge_duplicates(
         else:
             parent[ri] = rj
     return np.array([find(i) for i in range(n)], dtype=np.int64)
-
-
-# ---------------------------------------------------------------------------------------------
-# Front-end tracker (numba): pose tracking against the current tree estimates + association
-# ---------------------------------------------------------------------------------------------
-
-# indices into the per-run counters array filled by _track_keyframe
-_C_LOCAL, _C_REACQ, _C_SINGLE, _C_NEW, _C_AMBIG, _C_FAR = range(6)
-
-
-@numba.njit(cache=True)
-def _inv2(a: float, b: float, c: float) -> tuple[float, float, float, float]:
-    """Inverse of the symmetric 2x2 [[a, b], [b, c]] as (ia, ib, ic, det)."""
-    det = a * c - b * b
-    return c / det, -b / det, a / det, det
-
-
-@numba.njit(cache=True)
-def _track_keyframe(
-    f_start: int,
-    f_stop: int,
-    kf_frame: int,
-    f_upd: int,
-    ptr: np.ndarray,
-    rng: np.ndarray,
-    brg: np.ndarray,
-    dia: np.ndarray,
-    sp_dr: np.ndarray,
-    cov_f: np.ndarray,
-    cum_xy: np.ndarray,
-    cum_th: np.ndarray,
-    cum_dist: np.ndarray,
-    trk: np.ndarray,
-    P: np.ndarray,
-    fc: np.ndarray,
-    lm_xy: np.ndarray,
-    lm_dsum: np.ndarray,
-    lm_dn: np.ndarray,
-    lm_nobs: np.ndarray,
-    lm_first: np.ndarray,
-    lm_last: np.ndarray,
-    lm_inc: np.ndarray,
-    n_lm_in: int,
-    params: np.ndarray,
-    out_j: np.ndarray,
-    out_kx: np.ndarray,
-    out_ky: np.ndarray,
-    out_wxy: np.ndarray,
-    out_wth: np.ndarray,
-    counters: np.ndarray,
-) -> tuple[int, int]:
-    """Track the sensor pose through frames [f_start, f_stop) of one keyframe and associate.
-
-    See ``Isam2Slam`` (docs/algorithms/slam.md, "Front-end"). Returns (n_lm, n_out).
-    """
-    vr, vb, sd2, use_d = params[0], params[1], params[2], params[3] > 0.5
-    gate, new_chi2, new_min_dist, max_range = params[4], params[5], params[6], params[7]
-    max_drift2, local_drift2, cons_gate = params[8], params[9], params[10]
-    n_lm = n_lm_in
-    n_out = 0
-    for f in range(f_start, f_stop):
-        # ---- 1. propagate the tracked pose and its 3x3 covariance from frame fc to f
-        g = fc[0]
-        while g < f:
-            a0, b0 = sp_dr[g], sp_dr[g + 1]
-            c0, s0 = math.cos(a0[2]), math.sin(a0[2])
-            dx, dy = b0[0] - a0[0], b0[1] - a0[1]
-            lx, ly = c0 * dx + s0 * dy, -s0 * dx + c0 * dy
-            lt = (b0[2] - a0[2] + math.pi) % (2.0 * math.pi) - math.pi
-            ct, st = math.cos(trk[2]), math.sin(trk[2])
-            nx = trk[0] + ct * lx - st * ly
-            ny = trk[1] + st * lx + ct * ly
-            nt = trk[2] + lt
-            # error propagation: position error + heading error swept over the chord
-            F = np.eye(3)
-            F[0, 2] = -(ny - trk[1])
-            F[1, 2] = nx - trk[0]
-            Pn = F @ P @ F.T
-            # increment noise (sensor tangent, end frame) rotated to the world
-            c1, s1 = math.cos(nt), math.sin(nt)
-            Rz = np.eye(3)
-            Rz[0, 0], Rz[0, 1], Rz[1, 0], Rz[1, 1] = c1, -s1, s1, c1
-            Pn += Rz @ cov_f[g] @ Rz.T
-            P[:, :] = Pn
-            trk[0], trk[1], trk[2] = nx, ny, nt
-            g += 1
-        fc[0] = f
-        # ---- 2. detections of frame f (within max_range), world positions and covariances
-        i0, i1 = ptr[f], ptr[f + 1]
-        nd = 0
-        for i in range(i0, i1):
-            if rng[i] <= max_range:
-                nd += 1
-            else:
-                counters[_C_FAR] += 1
-        if nd == 0:
-            continue
-        r = np.empty(nd)
-        b = np.empty(nd)
-        dd = np.empty(nd)
-        q = 0
-        for i in range(i0, i1):
-            if rng[i] <= max_range:
-                r[q], b[q], dd[q] = rng[i], brg[i], dia[i]
-                q += 1
-        # meas world covariance (bearing + range noise), per detection
-        mxx = np.empty(nd)
-        mxy = np.empty(nd)
-        myy = np.empty(nd)
-        wx = np.empty(nd)
-        wy = np.empty(nd)
-        px0, py0, pt0 = trk[0], trk[1], trk[2]
-        P0 = P.copy()
-        for i in range(nd):
-            ang = pt0 + b[i]
-            ca, sa = math.cos(ang), math.sin(ang)
-            wx[i] = px0 + r[i] * ca
-            wy[i] = py0 + r[i] * sa
-            mxx[i] = ca * ca * vr + (r[i] * sa) ** 2 * vb
-            myy[i] = sa * sa * vr + (r[i] * ca) ** 2 * vb
-            mxy[i] = ca * sa * vr - r[i] * r[i] * sa * ca * vb
-        # near trees, their variance and drift relative to the estimate at the last update
-        near_cnt = 0
-        lim = (max_range + 10.0) ** 2
-        for j in range(n_lm):
-            ex, ey = lm_xy[j, 0] - px0, lm_xy[j, 1] - py0
-            if ex * ex + ey * ey < lim:
-                near_cnt += 1
-        near = np.empty(near_cnt, dtype=np.int64)
-        tvar = np.empty(near_cnt)
-        drift = np.empty(near_cnt)
-        hdrift = np.empty(near_cnt)
-        dmean = np.empty(near_cnt)
-        dvar = np.empty(near_cnt)
-        q = 0
-        for j in range(n_lm):
-            ex, ey = lm_xy[j, 0] - px0, lm_xy[j, 1] - py0
-            if ex * ex + ey * ey < lim:
-                near[q] = j
-                tvar[q] = (vr + 400.0 * vb) / max(lm_nobs[j], 1)
-                f0 = lm_inc[j]
-                if f0 < 0 or f0 >= f_upd:
-                    drift[q] = 0.0
-                    hdrift[q] = 0.0
-                else:
-                    dD = cum_dist[f_upd] - cum_dist[f0]
-                    hv = cum_th[f_upd] - cum_th[f0]
-                    rr2 = ex * ex + ey * ey
-                    drift[q] = min((cum_xy[f_upd] - cum_xy[f0]) + hv * (dD * dD / 3.0 + rr2),
-                                   max_drift2)
-                    hdrift[q] = hv
-                n_d = max(lm_dn[j], 1)
-                dmean[q] = lm_dsum[j] / n_d
-                dvar[q] = sd2 + sd2 / n_d
-                q += 1
-        assign = np.full(nd, -1, dtype=np.int64)
-        tree_used = np.zeros(near_cnt, dtype=np.bool_)
-        # ---- 3. local association + pose update (two passes: gate with the prior, update,
-        # re-gate with the posterior); only trees whose estimate is tied to the local map
-        ncap = nd * near_cnt
-        cand_i = np.empty(ncap, dtype=np.int64)
-        cand_q = np.empty(ncap, dtype=np.int64)
-        cand_n = np.empty(ncap)
-        for _it in range(2):
-            n_c = 0
-            for i in range(nd):
-                for qq in range(near_cnt):
-                    if drift[qq] > local_drift2:
-                        continue
-                    j = near[qq]
-                    ex = lm_xy[j, 0] - wx[i]
-                    ey = lm_xy[j, 1] - wy[i]
-                    # J P J^T with J = [[1, 0, -(wy - py)], [0, 1, wx - px]]
-                    jx, jy = -(wy[i] - trk[1]), wx[i] - trk[0]
-                    sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2]
-                    syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2]
-                    sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2]
-                    lv = tvar[qq] + drift[qq]
-                    sxx += mxx[i] + lv
-                    syy += myy[i] + lv
-                    sxy += mxy[i]
-                    ia, ib, ic, det = _inv2(sxx, sxy, syy)
-                    d2 = ia * ex * ex + 2 * ib * ex * ey + ic * ey * ey
-                    if use_d and math.isfinite(dd[i]) and math.isfinite(dmean[qq]):
-                        d2 += (dd[i] - dmean[qq]) ** 2 / dvar[qq]
-                    if d2 < gate:
-                        cand_i[n_c] = i
-                        cand_q[n_c] = qq
-                        cand_n[n_c] = d2 + math.log(det)
-                        n_c += 1
-            # greedy one-to-one by negative log-likelihood
-            for i in range(nd):
-                assign[i] = -1
-            tree_used[:] = False
-            if n_c:
-                order = np.argsort(cand_n[:n_c])
-                for t in order:
-                    i, qq = cand_i[t], cand_q[t]
-                    if assign[i] >= 0 or tree_used[qq]:
-                        continue
-                    assign[i] = qq
-                    tree_used[qq] = True
-            # MAP pose correction from the prior (trk at pass 0 = px0, py0, pt0; P0) with the
-            # matched trees treated as known points of covariance (tvar + drift) I
-            Lam = np.linalg.inv(P0)
-            eta = np.zeros(3)
-            n_m = 0
-            for i in range(nd):
-                qq = assign[i]
-                if qq < 0:
-                    continue
-                n_m += 1
-                j = near[qq]
-                ang = pt0 + b[i]
-                ca, sa = math.cos(ang), math.sin(ang)
-                ox, oy = px0 + r[i] * ca, py0 + r[i] * sa
-                ex, ey = lm_xy[j, 0] - ox, lm_xy[j, 1] - oy
-                lv = tvar[qq] + drift[qq]
-                ia, ib, ic, det = _inv2(mxx[i] + lv, mxy[i], myy[i] + lv)
-                jx, jy = -(oy - py0), ox - px0
-                # H = [[1, 0, jx], [0, 1, jy]]; Lam += H^T W H; eta += H^T W e
-                Hm = np.zeros((2, 3))
-                Hm[0, 0], Hm[0, 2], Hm[1, 1], Hm[1, 2] = 1.0, jx, 1.0, jy
-                W = np.empty((2, 2))
-                W[0, 0], W[0, 1], W[1, 0], W[1, 1] = ia, ib, ib, ic
-                Lam += Hm.T @ W @ Hm
-                ev = np.empty(2)
-                ev[0], ev[1] = ex, ey
-                eta += Hm.T @ (W @ ev)
-            if n_m == 0:
-                trk[0], trk[1], trk[2] = px0, py0, pt0
-                P[:, :] = P0
-                break
-            Pp = np.linalg.inv(Lam)
-            dl = Pp @ eta
-            trk[0], trk[1], trk[2] = px0 + dl[0], py0 + dl[1], pt0 + dl[2]
-            P[:, :] = 0.5 * (Pp + Pp.T)
-            for i in range(nd):
-                ang = trk[2] + b[i]
-                wx[i] = trk[0] + r[i] * math.cos(ang)
-                wy[i] = trk[1] + r[i] * math.sin(ang)
-        for i in range(nd):
-            if assign[i] >= 0:
-                counters[_C_LOCAL] += 1
-        # ---- 4. re-acquisition of trees not tied to the local map (loop closures): wide gate
-        # with their drift, accepted only as a group with a common offset (>= 2 detections),
-        # or singly if the tree is where the tracked pose puts it (tight gate, no drift)
-        ci = np.empty(ncap, dtype=np.int64)
-        cq = np.empty(ncap, dtype=np.int64)
-        cex = np.empty(ncap)
-        cey = np.empty(ncap)
-        cvar = np.empty(ncap)
-        cn = np.empty(ncap)
-        ctight = np.empty(ncap, dtype=np.bool_)
-        nc = 0
-        for i in range(nd):
-            if assign[i] >= 0:
-                continue
-            for qq in range(near_cnt):
-                if tree_used[qq] or drift[qq] <= local_drift2:
-                    continue
-                j = near[qq]
-                ex = lm_xy[j, 0] - wx[i]
-                ey = lm_xy[j, 1] - wy[i]
-                jx, jy = -(wy[i] - trk[1]), wx[i] - trk[0]
-                sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2] + mxx[i] + tvar[qq]
-                syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2] + myy[i] + tvar[qq]
-                sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2] + mxy[i]
-                extra = 0.0
-                if use_d and math.isfinite(dd[i]) and math.isfinite(dmean[qq]):
-                    extra = (dd[i] - dmean[qq]) ** 2 / dvar[qq]
-                ia, ib, ic, det = _inv2(sxx, sxy, syy)
-                d2t = ia * ex * ex + 2 * ib * ex * ey + ic * ey * ey + extra
-                ia, ib, ic, det = _inv2(sxx + drift[qq], sxy, syy + drift[qq])
-                d2 = ia * ex * ex + 2 * ib * ex * ey + ic * ey * ey + extra
-                if d2 < gate:
-                    ci[nc] = i
-                    cq[nc] = qq
-                    cex[nc] = ex
-                    cey[nc] = ey
-                    cvar[nc] = 0.5 * (sxx + syy)
-                    cn[nc] = d2 + math.log(det)
-                    ctight[nc] = d2t < gate
-                    nc += 1
-        if nc:
-            support = np.zeros(nc, dtype=np.int64)
-            for p in range(nc):
-                for p2 in range(nc):
-                    if ci[p2] == ci[p] or cq[p2] == cq[p]:
-                        continue
-                    jp, jq = near[cq[p]], near[cq[p2]]
-                    sep2 = (lm_xy[jp, 0] - lm_xy[jq, 0]) ** 2 + (lm_xy[jp, 1] - lm_xy[jq, 1]) ** 2
-                    hv = min(hdrift[cq[p]], hdrift[cq[p2]])
-                    tol = cvar[p] + cvar[p2] + 0.05**2 + hv * sep2
-                    de2 = (cex[p] - cex[p2]) ** 2 + (cey[p] - cey[p2]) ** 2
-                    if de2 < cons_gate * tol:
-                        support[p] += 1
-            best = -1
-            for p in range(nc):
-                if support[p] >= 1 and (
-                    best < 0
-                    or support[p] > support[best]
-                    or (support[p] == support[best] and cn[p] < cn[best])
-                ):
-                    best = p
-            if best >= 0:
-                # the seed and the pairs consistent with it, one-to-one by closeness
-                assign[ci[best]] = cq[best]
-                tree_used[cq[best]] = True
-                counters[_C_REACQ] += 1
-                dev = np.empty(nc)
-                for p2 in range(nc):
-                    dev[p2] = (cex[best] - cex[p2]) ** 2 + (cey[best] - cey[p2]) ** 2
-                for p2 in np.argsort(dev):
-                    i, qq = ci[p2], cq[p2]
-                    if assign[i] >= 0 or tree_used[qq]:
-                        continue
-                    jp, jq = near[cq[best]], near[qq]
-                    sep2 = (lm_xy[jp, 0] - lm_xy[jq, 0]) ** 2 + (lm_xy[jp, 1] - lm_xy[jq, 1]) ** 2
-                    hv = min(hdrift[cq[best]], hdrift[qq])
-                    tol = cvar[best] + cvar[p2] + 0.05**2 + hv * sep2
-                    if dev[p2] < cons_gate * tol:
-                        assign[i] = qq
-                        tree_used[qq] = True
-                        counters[_C_REACQ] += 1
-            # single pairs where the tree is where the tracked pose says (tight gate)
-            order = np.argsort(cn[:nc])
-            for p in order:
-                i, qq = ci[p], cq[p]
-                if assign[i] >= 0 or tree_used[qq] or not ctight[p]:
-                    continue
-                assign[i] = qq
-                tree_used[qq] = True
-                counters[_C_SINGLE] += 1
-        # ---- 5. unmatched detections: new tree if clearly separate, else discard
-        kx0, ky0, kt0 = sp_dr[kf_frame, 0], sp_dr[kf_frame, 1], sp_dr[kf_frame, 2]
-        ck, sk = math.cos(kt0), math.sin(kt0)
-        fx, fy, ft = sp_dr[f, 0], sp_dr[f, 1], sp_dr[f, 2]
-        qx = ck * (fx - kx0) + sk * (fy - ky0)
-        qy = -sk * (fx - kx0) + ck * (fy - ky0)
-        qt = ft - kt0
-        cq_, sq_ = math.cos(qt), math.sin(qt)
-        w_xy = cum_xy[f] - cum_xy[kf_frame]
-        w_th = cum_th[f] - cum_th[kf_frame]
-        for i in range(nd):
-            if assign[i] >= 0:
-                j = near[assign[i]]
-            else:
-                sep = True
-                for qq in range(near_cnt):
-                    jn = near[qq]
-                    ex = lm_xy[jn, 0] - wx[i]
-                    ey = lm_xy[jn, 1] - wy[i]
-                    if ex * ex + ey * ey < new_min_dist * new_min_dist:
-                        sep = False
-                        break
-                    jx, jy = -(wy[i] - trk[1]), wx[i] - trk[0]
-                    lv = tvar[qq] + drift[qq]
-                    sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2] + mxx[i] + lv
-                    syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2] + myy[i] + lv
-                    sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2] + mxy[i]
-                    ia, ib, ic, det = _inv2(sxx, sxy, syy)
-                    d2 = ia * ex * ex + 2 * ib * ex * ey + ic * ey * ey
-                    if use_d and math.isfinite(dd[i]) and math.isfinite(dmean[qq]):
-                        d2 += (dd[i] - dmean[qq]) ** 2 / dvar[qq]
-                    if d2 <= new_chi2:
-                        sep = False
-                        break
-                if not sep:
-                    counters[_C_AMBIG] += 1
-                    continue
-                if n_lm >= lm_xy.shape[0]:
-                    counters[_C_AMBIG] += 1  # no room (the caller grows the arrays)
-                    continue
-                j = n_lm
-                n_lm += 1
-                lm_xy[j, 0], lm_xy[j, 1] = wx[i], wy[i]
-                lm_first[j] = f
-                lm_inc[j] = -1
-                lm_nobs[j] = 0
-                lm_dsum[j] = 0.0
-                lm_dn[j] = 0
-                counters[_C_NEW] += 1
-            lm_nobs[j] += 1
-            lm_last[j] = f
-            if math.isfinite(dd[i]):
-                lm_dsum[j] += dd[i]
-                lm_dn[j] += 1
-            # detection in the keyframe's sensor frame (dead reckoning within the window)
-            pxs, pys = r[i] * math.cos(b[i]), r[i] * math.sin(b[i])
-            out_j[n_out] = j
-            out_kx[n_out] = qx + cq_ * pxs - sq_ * pys
-            out_ky[n_out] = qy + sq_ * pxs + cq_ * pys
-            out_wxy[n_out] = w_xy
-            out_wth[n_out] = w_th
-            n_out += 1
-    return n_lm, n_out
 
 
 class Isam2Slam:
@@ -711,18 +344,18 @@ class Isam2Slam:
         f_upd = 0
         counters = np.zeros(6, dtype=np.int64)
         kfe = cfg.keyframe_every
-        out_cap = int(np.diff(ptr).reshape(-1)[: nf].max(initial=0)) * kfe + 1
+        out_cap = int(np.diff(ptr).reshape(-1)[:nf].max(initial=0)) * kfe + 1
         out_j = np.zeros(out_cap, dtype=np.int64)
         out_kx = np.zeros(out_cap)
         out_ky = np.zeros(out_cap)
         out_wxy = np.zeros(out_cap)
         out_wth = np.zeros(out_cap)
-        n_factors_meas = n_updates = 0
+        n_factors_meas = n_updates = n_single_skipped = 0
         window: tuple[Any, ...] = ()
 
         def flush(k: int) -> None:
             """Merge the window's detections per tree into one bearing-range factor each."""
-            nonlocal n_factors_meas
+            nonlocal n_factors_meas, n_single_skipped
             if not window:
                 return
             wj, wkx, wky, wwxy, wwth = window
@@ -737,6 +370,9 @@ class Isam2Slam:
             sig_b = np.sqrt(vb / cnt + mxy_ / (rr * rr) + mth)
             brg_w = np.arctan2(my, mx)
             for t_, j in enumerate(trees_w.tolist()):
+                if cnt[t_] < cfg.min_window_obs:
+                    n_single_skipped += 1  # not confirmed by a second scan of the window
+                    continue
                 if not lm_in_graph[j]:
                     new_v.insert(LK(j), lm_xy[j].copy())
                     lm_in_graph[j] = True
@@ -813,7 +449,7 @@ class Isam2Slam:
                 lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
                 lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
                 lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
-            n_lm, n_out = _track_keyframe(
+            n_lm, n_out = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
                 cum_dist, trk, P_trk, fc, lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last,
                 lm_inc, n_lm, kparams, out_j, out_kx, out_ky, out_wxy, out_wth, counters,
@@ -834,10 +470,10 @@ class Isam2Slam:
         flush(nk - 1)
         isam.update(new_f, new_v)
         n_updates += 1
-        n_matched = int(counters[_C_LOCAL] + counters[_C_REACQ] + counters[_C_SINGLE])
-        n_new = int(counters[_C_NEW])
-        n_ambiguous = int(counters[_C_AMBIG])
-        n_far = int(counters[_C_FAR])
+        n_matched = int(counters[C_LOCAL] + counters[C_REACQ] + counters[C_SINGLE])
+        n_new = int(counters[C_NEW])
+        n_ambiguous = int(counters[C_AMBIG])
+        n_far = int(counters[C_FAR])
 
         t_inc = time.perf_counter() - t_start
         result = isam.calculateEstimate()
@@ -949,6 +585,18 @@ class Isam2Slam:
         ing = np.flatnonzero(lm_in_graph[:n_lm])
         if ing.size:
             pts[ing] = gtsam.utilities.extractPoint2(result)
+        # association quality without ground truth: share of (merged) detections whose
+        # normalised bearing-range residual at the optimum exceeds 3 (a correctly associated
+        # detection does so with probability ~1 %)
+        n_outlier = 0
+        if meas_rec and ing.size:
+            mr = np.array(meas_rec)
+            kf_xyt = gtsam.utilities.extractPose2(result)[mr[:, 0].astype(np.int64)]
+            lmp = pts[alias[mr[:, 1].astype(np.int64)]]
+            dxm, dym = lmp[:, 0] - kf_xyt[:, 0], lmp[:, 1] - kf_xyt[:, 1]
+            rb = wrap_angle(mr[:, 2] - (np.arctan2(dym, dxm) - kf_xyt[:, 2])) / mr[:, 4]
+            rr_ = (mr[:, 3] - np.hypot(dxm, dym)) / mr[:, 5]
+            n_outlier = int(np.count_nonzero(rb * rb + rr_ * rr_ > 9.0))
         keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
         covs = np.full((n_lm, 2, 2), np.nan)
         if cfg.marginals and keep.size:
@@ -993,10 +641,12 @@ class Isam2Slam:
             "keyframes": int(nk),
             "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
+            "unconfirmed_windows_skipped": n_single_skipped,
             "lm_iterations": n_lm_iters,
             "merged_duplicates": n_merged,
             "odometry_chi2_per_dof": chi_odo / n_odo if n_odo else math.nan,
             "measurement_chi2_per_dof": chi_meas / n_meas if n_meas else math.nan,
+            "measurement_outlier_fraction": n_outlier / len(meas_rec) if meas_rec else math.nan,
             "incremental_s": t_inc,
             "runtime_s": runtime,
         }
