@@ -77,13 +77,14 @@ def track_keyframe(
     observation is in iSAM2 (-1: none yet). Outputs per associated detection (``out_*``): tree,
     position in the keyframe's sensor frame ``kf_frame`` (dead reckoning within the window) and
     the window's odometry variances. ``params``: vr, vb, sd2, use_diameter, gate, new_chi2,
-    new_min_dist, max_range, max_drift², local_drift², consensus_chi2.
+    new_min_dist, max_range, max_drift², local_drift², consensus_chi2, drift_scale.
 
     Returns (n_lm, n_out).
     """
     vr, vb, sd2, use_d = params[0], params[1], params[2], params[3] > 0.5
     gate, new_chi2, new_min_dist, max_range = params[4], params[5], params[6], params[7]
     max_drift2, local_drift2, cons_gate = params[8], params[9], params[10]
+    drift_scale = params[11]
     n_lm = n_lm_in
     n_out = 0
     for f in range(f_start, f_stop):
@@ -175,7 +176,8 @@ def track_keyframe(
                     hv = cum_th[f_upd] - cum_th[f0]
                     rr2 = ex * ex + ey * ey
                     drift[q] = min(
-                        (cum_xy[f_upd] - cum_xy[f0]) + hv * (dD * dD / 3.0 + rr2), max_drift2
+                        drift_scale * ((cum_xy[f_upd] - cum_xy[f0]) + hv * (dD * dD / 3.0 + rr2)),
+                        max_drift2,
                     )
                     hdrift[q] = hv
                 n_d = max(lm_dn[j], 1)

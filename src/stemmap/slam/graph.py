@@ -82,8 +82,8 @@ class Isam2Config:
     new_chi2 : a detection starts a new tree only if its d² to every tree exceeds this
     new_min_dist : m, and it is at least this far from every tree
     max_range : m, detections farther than this are not used (bearing error x range)
-    drift_scale : unused (kept for old configs): the drift is the odometry-derived variance
-        between the estimate at the last iSAM2 update and a tree's last observation in iSAM2,
+    drift_scale : multiplies the odometry-derived variance between a tree's last observation
+        in iSAM2 and the last update (the tree's drift relative to the current estimate),
         capped at ``max_drift_sigma``² (m²)
     local_drift_sigma : m, trees whose drift is below this are "local" (step 1 of the
         front-end); the others are re-acquired as a consistent group (step 2)
@@ -322,6 +322,7 @@ class Isam2Slam:
                 cfg.max_drift_sigma**2,
                 cfg.local_drift_sigma**2,
                 cfg.consensus_chi2,
+                cfg.drift_scale,
             ]
         )
         # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
