@@ -29,9 +29,9 @@ from stemmap.cli._map import Backend, sim_problem, slam_metrics
 
 __all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
 
-#: Default SLAM back-end of the demo. EKF: on this simulated loop it closed the loop on every
-#: seed tried (1-3: trajectory RMSE 0.14-0.34 m); iSAM2 drifted on seed 1 (1.1 m RMSE, loop not
-#: closed) while doing well on seeds 2-6 (docs/algorithms/slam.md, known issues).
+#: Default SLAM back-end of the demo. EKF: on this simulated loop it closes the loop on every
+#: seed tried (seeds 1-6: trajectory RMSE 0.13-0.36 m, loop-closure error <= 0.09 m); iSAM2
+#: does as well on most seeds but not on all (seed 4: 0.63 m, loop 1.29 m; docs/algorithms/slam.md).
 DEMO_BACKEND = "ekf"
 
 #: The demo's stand, clutter, scanner and drive (every parameter declared, as the benchmarks do).
