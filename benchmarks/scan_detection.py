@@ -321,8 +321,13 @@ def run_real_detection(datasets_dir: Path, seed: int) -> dict[str, Any] | None:
     for corr in (False, True):
         section: dict[str, Any] = {}
         for m in FIT_METHODS:
+            # the virtual scanner reports the nearest return (first echo), not a footprint
+            # average: no averaging-scanner edge model (beam_divergence_deg = 0)
             cfg = DetectorConfig.preset(
-                "stemmap", fit_method=m, beam_footprint_deg=REAL["footprint_deg"] if corr else 0.0
+                "stemmap",
+                fit_method=m,
+                beam_footprint_deg=REAL["footprint_deg"] if corr else 0.0,
+                beam_divergence_deg=0.0,
             )
             det = ScanTrunkDetector(cfg)
             errs: list[float] = []
@@ -363,6 +368,92 @@ def real_geometry(seed: int) -> dict[str, Any] | None:
     return res
 
 
+def benchmark_crlb(run: Any) -> dict[str, Any] | None:
+    """Cramer-Rao bound on the DBH error for this drive's own geometry (docs: scan-fits.md).
+
+    For every eligible tree of every scan (the scorer's rules) the returns are the beams whose
+    ground truth is that tree and whose range is the trunk's (within 0.1 m: mixed pixels that
+    blend in the background are not trunk returns); each side is a silhouette edge unless the
+    beam beyond hit a nearer object or lies outside the field of view. Fisher information of
+    range noise on those returns plus Gaussian tangent priors: std 1/sqrt(12) beams, or
+    (1 - 2h)/sqrt(12) where the beam beyond returned from behind the trunk (background: the
+    tangent is in the gap between two footprints, h = half the footprint in beams). RMS of the
+    bound per range bin, cm; also over whole trunks (both edges visible) only."""
+    mod = _load_fits_real()
+    if mod is None or not hasattr(mod, "crlb_diameter_var"):
+        return None
+    sc = SCENARIO["scoring"]
+    scans = run.scans
+    inc = abs(scans.angle_increment)
+    h = run.scanner.beam_divergence / (2.0 * inc)
+    ang = scans.angles
+    poses = run.true_poses.poses
+    cth, sth = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    sigma = run.scanner.range_noise
+    var: dict[str, list[float]] = {"0_5": [], "5_10": []}
+    var_bg: dict[str, list[float]] = {"0_5": [], "5_10": []}
+    whole: dict[str, list[bool]] = {"0_5": [], "5_10": []}
+    n_beams = scans.n_beams
+    for k in range(len(scans)):
+        hit = run.hit_ids[k]
+        for j in np.unique(hit[hit >= 0]):
+            beams = np.flatnonzero(hit == j)
+            dbh = run.stand.diameters[j]
+            if beams.shape[0] < sc["min_returns"] or dbh < sc["min_dbh_m"]:
+                continue
+            d = run.stand.trees_xy[j] - poses[k, :2]
+            c = np.array([cth[k] * d[0] + sth[k] * d[1], -sth[k] * d[0] + cth[k] * d[1]])
+            dist = float(np.hypot(*c))
+            key = "0_5" if dist <= 5.0 else "5_10" if dist <= 10.0 else None
+            if key is None:
+                continue
+            std = np.full(2, 1.0 / math.sqrt(12.0)) * inc
+            std_bg = std.copy()
+            for side, (b_edge, step) in enumerate(((beams[0], -1), (beams[-1], 1))):
+                nb = b_edge + step
+                if not 0 <= nb < n_beams:
+                    std[side] = std_bg[side] = math.inf  # truncated by the field of view
+                    continue
+                rn = scans.ranges[k, nb]
+                if np.isfinite(rn) and rn < dist - dbh / 2:
+                    std[side] = std_bg[side] = math.inf  # occluded
+                elif np.isfinite(rn) and 0.0 < h < 0.5:
+                    std_bg[side] = (1.0 - 2.0 * h) / math.sqrt(12.0) * inc
+            r = dbh / 2.0
+            th = ang[beams]
+            # a return carries the trunk's range unless it blends in a background (a mixed
+            # pixel with something behind: tens of cm off); footprint-averaged trunk-only edge
+            # returns are within ~1.5 cm of the centre ray's range
+            u = np.column_stack((np.cos(th), np.sin(th)))
+            bb = u @ c
+            rho_true = bb - np.sqrt(np.maximum(bb * bb - (c @ c - r * r), 0.0))
+            th = th[np.abs(scans.ranges[k, beams] - rho_true) < 0.1]
+            if th.shape[0] < 3:
+                continue
+            var[key].append(mod.crlb_diameter_var(c, r, th, sigma, std))
+            var_bg[key].append(mod.crlb_diameter_var(c, r, th, sigma, std_bg))
+            whole[key].append(bool(np.all(np.isfinite(std))))
+
+    def rms(v: list[float], sel: list[bool] | None = None) -> float | None:
+        a = np.asarray(v)
+        if sel is not None:
+            a = a[np.asarray(sel, dtype=bool)]
+        a = a[np.isfinite(a)]
+        return round(100.0 * math.sqrt(float(np.mean(a))), 3) if a.size else None
+
+    out: dict[str, Any] = {
+        "model": "range noise on the returns + Gaussian tangent priors (scan-fits.md)"
+    }
+    for k in var:
+        out[f"crlb_dbh_rmse_cm_{k}"] = rms(var[k])
+        out[f"crlb_with_background_dbh_rmse_cm_{k}"] = rms(var_bg[k])
+        out[f"crlb_whole_trunks_dbh_rmse_cm_{k}"] = rms(var[k], whole[k])
+        out[f"crlb_whole_trunks_with_background_dbh_rmse_cm_{k}"] = rms(var_bg[k], whole[k])
+        out[f"n_{k}"] = len(var[k])
+        out[f"n_whole_{k}"] = int(np.sum(whole[k]))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
@@ -370,9 +461,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=10000, help="scans in the speed batch")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-real", action="store_true", help="skip the real-geometry section")
+    ap.add_argument(
+        "--crlb", action="store_true", help="only the Cramer-Rao bound of the drive's geometry"
+    )
     args = ap.parse_args(argv)
 
     run = make_run(args.scans, args.seed)
+    if args.crlb:
+        out = {"benchmark": "scan_detection_crlb", "seed": args.seed, **(benchmark_crlb(run) or {})}
+        print(json.dumps(out))
+        return 0
     result: dict[str, Any] = {
         "benchmark": "scan_detection",
         "scenario": {**SCENARIO, "seed": args.seed, "n_scans": len(run.scans)},

@@ -394,8 +394,14 @@ def run_project_simulator(
         tree = hit[scan_i, beam_i]
         seg = scan_i * n + tree  # one segment per (scan, tree)
         for m in FIT_METHODS:
+            # ours models the footprint of the edge returns (the preset's beam divergence)
             fits = fit_circles_batch(
-                pts, seg, m, sigma=model.range_noise, angle_increment=model.angle_increment
+                pts,
+                seg,
+                m,
+                sigma=model.range_noise,
+                angle_increment=model.angle_increment,
+                beam_divergence=model.beam_divergence,
             )
             keep = fits.ok & (fits.n_points >= 3)
             err = (fits.diameters - dbh[fits.segment_ids % n])[keep] * 100.0
@@ -464,6 +470,148 @@ def run_speed(
     }
 
 
+def _range_jacobian(c: np.ndarray, r: float, th: np.ndarray) -> np.ndarray:
+    """d rho_i / d(cx, cy, r) of thin-beam returns at bearings ``th`` (first hit of a circle)."""
+    u = np.column_stack((np.cos(th), np.sin(th)))
+    b = u @ c
+    q = np.sqrt(np.maximum(b * b - (c @ c - r * r), 1e-30))
+    dc = u - (b[:, None] * u - c[None, :]) / q[:, None]
+    return np.column_stack((dc, -r / q))
+
+
+def _orthogonal_jacobian(c: np.ndarray, r: float, th: np.ndarray) -> np.ndarray:
+    """d(|p_i - c| - r) / d(cx, cy, r) with the returns p_i on the circle (the fit's former
+    orthogonal-distance model, isotropic noise)."""
+    u = np.column_stack((np.cos(th), np.sin(th)))
+    b = u @ c
+    rho = b - np.sqrt(np.maximum(b * b - (c @ c - r * r), 0.0))
+    n = (u * rho[:, None] - c) / r
+    return np.column_stack((-n, -np.ones(th.shape[0])))
+
+
+def _tangent_jacobian(c: np.ndarray, r: float) -> np.ndarray:
+    """d(beta -+ asin(r / D)) / d(cx, cy, r): the two tangent bearings (rows lo, hi)."""
+    d2 = float(c @ c)
+    q = math.sqrt(d2 - r * r)
+    b = np.array([-c[1] / d2, c[0] / d2, 0.0])
+    a = np.array([-r * c[0] / (d2 * q), -r * c[1] / (d2 * q), 1.0 / q])
+    return np.vstack((b - a, b + a))
+
+
+def crlb_diameter_var(
+    c: np.ndarray,
+    r: float,
+    th: np.ndarray,
+    sigma: float,
+    tangent_std: np.ndarray | None,
+    model: str = "range",
+) -> float:
+    """Cramer-Rao bound on var(2 r) for returns at bearings ``th`` (range or orthogonal noise
+    ``sigma``) plus Gaussian tangent observations with the given stds (rows lo, hi; None or
+    inf = no silhouette on that side). Fisher information J = sum_i g_i g_i^T / sigma^2 +
+    sum_edge t_e t_e^T / s_e^2; bound = 4 [J^-1]_rr."""
+    jac = _range_jacobian(c, r, th) if model == "range" else _orthogonal_jacobian(c, r, th)
+    fisher = jac.T @ jac / sigma**2
+    if tangent_std is not None:
+        t = _tangent_jacobian(c, r)
+        for k in range(2):
+            if np.isfinite(tangent_std[k]):
+                fisher += np.outer(t[k], t[k]) / tangent_std[k] ** 2
+    try:
+        return float(4.0 * np.linalg.inv(fisher)[2, 2])
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
+def linearised_mmse_diameter_var(
+    c: np.ndarray,
+    r: float,
+    th: np.ndarray,
+    sigma: float,
+    width: float,
+    rng: np.random.Generator,
+    n_draw: int = 150,
+    n_post: int = 4000,
+) -> float:
+    """Bayesian minimum MSE of 2 r when each tangent bearing is only known to lie in an interval
+    of ``width`` (uniform beam phase, the silhouette's true likelihood) and the returns carry
+    Gaussian range noise, in the linearised model: posterior = Gaussian (returns) restricted to
+    the two slabs; its mean by rejection sampling, averaged over ``n_draw`` realisations."""
+    jac = _range_jacobian(c, r, th)
+    cov = np.linalg.inv(jac.T @ jac / sigma**2)
+    chol = np.linalg.cholesky(cov)
+    t = _tangent_jacobian(c, r)
+    errs = []
+    for _ in range(n_draw):
+        theta_p = chol @ rng.standard_normal(3)
+        obs = rng.uniform(-0.5, 0.5, 2) * width
+        samp = theta_p + rng.standard_normal((n_post, 3)) @ chol.T
+        ok = np.all(np.abs(obs - samp @ t.T) < width / 2, axis=1)
+        if ok.sum() < 50:
+            samp = theta_p + rng.standard_normal((20 * n_post, 3)) @ chol.T
+            ok = np.all(np.abs(obs - samp @ t.T) < width / 2, axis=1)
+        if ok.any():
+            errs.append(2.0 * float(samp[ok, 2].mean()))
+    return float(np.mean(np.square(errs)))
+
+
+def run_crlb(
+    *,
+    ranges_m: tuple[float, ...] = (2.0, 3.0, 4.0, 5.0, 7.0, 10.0),
+    radius_m: float = 0.15,
+    bin_deg: float = 0.5,
+    range_noise_m: float = 0.01,
+    n_phase: int = 24,
+    seed: int = 3,
+) -> dict[str, Any]:
+    """How well can any fit do? Diameter error bounds for one trunk seen whole (both edges),
+    RMS over ``n_phase`` beam phases, cm (docs/algorithms/scan-fits.md, "Cramer-Rao bound")."""
+    dth = math.radians(bin_deg)
+    s = dth / math.sqrt(12.0)
+    rng = np.random.default_rng(seed)
+    out: dict[str, Any] = {}
+    for d in ranges_m:
+        c = np.array([d, 0.0])
+        half = math.asin(radius_m / d)
+        rows = []
+        for ph in (np.arange(n_phase) + 0.5) / n_phase:
+            th = np.arange(-half + ph * dth, half, dth)
+            rows.append(
+                (
+                    th.shape[0],
+                    crlb_diameter_var(c, radius_m, th, range_noise_m, np.full(2, s), "orth"),
+                    crlb_diameter_var(c, radius_m, th, range_noise_m, np.full(2, s)),
+                    crlb_diameter_var(c, radius_m, th, range_noise_m, None),
+                    linearised_mmse_diameter_var(c, radius_m, th, range_noise_m, dth, rng)
+                    if ph * n_phase % 2 < 1
+                    else math.nan,
+                )
+            )
+        a = np.asarray(rows)
+
+        def rms_cm(v: np.ndarray) -> float:
+            return round(100.0 * math.sqrt(float(np.nanmean(v))), 3)
+
+        out[f"{d:g}m"] = {
+            "returns_mean": round(float(a[:, 0].mean()), 1),
+            "crlb_orthogonal_gauss_silhouette_cm": rms_cm(a[:, 1]),
+            "crlb_range_gauss_silhouette_cm": rms_cm(a[:, 2]),
+            "crlb_range_no_silhouette_cm": rms_cm(a[:, 3]),
+            "mmse_range_uniform_silhouette_cm": rms_cm(a[:, 4]),
+            "silhouette_only_cm": round(100.0 * math.sqrt(2.0) * d * math.cos(half) * s, 3),
+        }
+    return {
+        "scenario": {
+            "radius_m": radius_m,
+            "bin_deg": bin_deg,
+            "range_noise_m": range_noise_m,
+            "beam_phases": n_phase,
+            "seed": seed,
+        },
+        "bounds": out,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--datasets", type=Path, default=None, help="shared datasets folder")
@@ -475,7 +623,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--with-sim", action="store_true", help="add simulated arcs by range and fit speed"
     )
+    ap.add_argument(
+        "--crlb", action="store_true", help="only the diameter error bounds (Cramer-Rao, MMSE)"
+    )
     args = ap.parse_args(argv)
+    if args.crlb:
+        res_b = run_crlb(bin_deg=args.bin_deg, range_noise_m=args.noise)
+        print(json.dumps(res_b) if args.json else json.dumps(res_b, indent=2))
+        return 0
     ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
     if ddir is None:
         print("shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)

@@ -94,31 +94,194 @@ def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     return True
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _accumulate(
+    H: FloatArray, g: FloatArray, w: float, j0: float, j1: float, j2: float, e: float
+) -> None:  # pragma: no cover - numba
+    """Add one weighted residual e with Jacobian row (j0, j1, j2) to the upper triangle of H
+    and to g."""
+    H[0, 0] += w * j0 * j0
+    H[0, 1] += w * j0 * j1
+    H[0, 2] += w * j0 * j2
+    H[1, 1] += w * j1 * j1
+    H[1, 2] += w * j1 * j2
+    H[2, 2] += w * j2 * j2
+    g[0] += w * j0 * e
+    g[1] += w * j1 * e
+    g[2] += w * j2 * e
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _huber(e: float, robust: bool) -> tuple[float, float]:  # pragma: no cover - numba
+    """(cost, IRLS weight) of a normalised residual under the Huber loss (or plain LS)."""
+    ae = abs(e)
+    if robust and ae > _HUBER_K:
+        return _HUBER_K * ae - 0.5 * _HUBER_K * _HUBER_K, _HUBER_K / ae
+    return 0.5 * e * e, 1.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _footprint_range(
+    b: float, s0: float, r: float, foot: float, out: FloatArray
+) -> bool:  # pragma: no cover - numba
+    """Mean range over the part of a beam footprint that hits the circle, and its partials.
+
+    The beam's centre ray has unit direction u; ``b = u . c`` and ``s0 = u x c`` (signed
+    distance of the centre from the ray). A ray rotated by delta (|delta| <= foot / 2) sees the
+    centre at ``b + s0 delta`` along it and ``s0 - b delta`` across it (first order in delta,
+    error < 0.03 mm for foot = 0.25 deg), so its first hit is at
+    ``b + s0 delta - sqrt(r^2 - (s0 - b delta)^2)``. Averaged over the hit part
+    [da, db] of the footprint (|s0 - b delta| <= r) the square root integrates in closed form.
+
+    A beam returns only if at least half its footprint hits (its centre ray hits). When the
+    circle leaves less than that, the window is kept at the half footprint on the circle's
+    side (rays past the tangent count at their closest approach, the square root being 0
+    there): the prediction and its derivatives stay bounded and continuous where the model
+    says the beam should not have returned; the silhouette term pulls the circle back.
+    Writes (pred, d pred/d b, d pred/d s0, d pred/d r) to ``out``; False if b <= 0."""
+    if not b > 0.0:
+        return False
+    half = 0.5 * foot
+    lo_c = (s0 - r) / b
+    hi_c = (s0 + r) / b
+    da = max(-half, min(lo_c, 0.0))
+    db = min(half, max(hi_c, 0.0))
+    wd = db - da
+    if not wd > 1e-12 * foot:
+        return False
+    sa = min(max(s0 - b * da, -r), r)
+    sb = min(max(s0 - b * db, -r), r)
+    fpa = math.sqrt(max(r * r - sa * sa, 0.0))
+    fpb = math.sqrt(max(r * r - sb * sb, 0.0))
+    # asin(+-1) = +-pi/2 where a limit is the circle's edge (the common case at a trunk edge)
+    ta = math.copysign(0.5 * math.pi, sa) if abs(sa) >= r else math.asin(sa / r)
+    tb = math.copysign(0.5 * math.pi, sb) if abs(sb) >= r else math.asin(sb / r)
+    # S = F(sa) - F(sb), F(s) = int_0^s sqrt(r^2 - t^2) dt = (s sqrt(r^2 - s^2) + r^2 asin(s/r)) / 2
+    S = 0.5 * (sa * fpa - sb * fpb + r * r * (ta - tb))
+    bw = b * wd
+    pred = b + 0.5 * s0 * (da + db) - S / bw
+    # partials of S: dF/ds = sqrt(r^2 - s^2), dF/dr = r asin(s / r)
+    ds_s0 = fpa - fpb
+    ds_b = -da * fpa + db * fpb
+    ds_r = r * (ta - tb)
+    p_b = 1.0 - ds_b / bw + S / (b * bw)
+    p_s = 0.5 * (da + db) - ds_s0 / bw
+    p_r = -ds_r / bw
+    if -half < lo_c < 0.0:  # the lower limit is the circle's edge: da = (s0 - r) / b
+        p_da = 0.5 * s0 + b * fpa / bw - S / (bw * wd)
+        p_b += p_da * (-lo_c / b)
+        p_s += p_da / b
+        p_r += -p_da / b
+    if 0.0 < hi_c < half:  # the upper limit is the circle's edge: db = (s0 + r) / b
+        p_db = 0.5 * s0 - b * fpb / bw + S / (bw * wd)
+        p_b += p_db * (-hi_c / b)
+        p_s += p_db / b
+        p_r += p_db / b
+    out[0] = pred
+    out[1] = p_b
+    out[2] = p_s
+    out[3] = p_r
+    return True
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _range_residual(
+    i: int,
+    uxs: FloatArray,
+    uys: FloatArray,
+    rho: FloatArray,
+    cx: float,
+    cy: float,
+    r: float,
+    foot: float,
+    tmp: FloatArray,
+) -> tuple[float, float, float, float, float, float, float, float]:  # pragma: no cover
+    """Range residual of return i (metres) along its beam and its Jacobian over (cx, cy, r),
+    plus a second "miss" residual (distance by which the beam passes the circle) and its
+    Jacobian: (e, j0, j1, j2, m, k0, k1, k2). ``foot > 0``: footprint-averaged prediction.
+    ``uxs``, ``uys``: unit beam directions of the returns."""
+    ux = uxs[i]
+    uy = uys[i]
+    b = ux * cx + uy * cy
+    s0 = ux * cy - uy * cx
+    # d b / d(cx, cy) = u; d s0 / d(cx, cy) = (-uy, ux)
+    if foot > 0.0:
+        if _footprint_range(b, s0, r, foot, tmp):
+            e = rho[i] - tmp[0]
+            return (
+                e,
+                -(tmp[1] * ux - tmp[2] * uy),
+                -(tmp[1] * uy + tmp[2] * ux),
+                -tmp[3],
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
+    else:
+        disc = r * r - s0 * s0
+        if disc > 0.0 and b > 0.0:
+            q = math.sqrt(disc)
+            qj = max(q, 1e-2 * r)
+            e = rho[i] - (b - q)
+            p_s = s0 / qj
+            return e, -(ux - p_s * uy), -(uy + p_s * ux), r / qj, 0.0, 0.0, 0.0, 0.0
+    # the beam misses the circle: range to the closest approach + the miss distance
+    sg = 1.0 if s0 >= 0.0 else -1.0
+    m = max(abs(s0) - r, 0.0)
+    return rho[i] - b, -ux, -uy, 0.0, m, -sg * uy, sg * ux, -1.0
+
+
 @njit(cache=True, error_model="numpy")
 def _cost_and_normal(
     lx: FloatArray,
     ly: FloatArray,
+    rho: FloatArray,
+    ux: FloatArray,
+    uy: FloatArray,
     keep: FloatArray,
     cx: float,
     cy: float,
     r: float,
-    inv_sigma: float,
-    use_sil: bool,
-    t_lo: float,
-    t_hi: float,
-    w_lo: float,
-    w_hi: float,
+    mdl: FloatArray,
     robust: bool,
     H: FloatArray,
     g: FloatArray,
+    tmp: FloatArray,
 ) -> float:  # pragma: no cover - numba
-    """Robust cost at (cx, cy, r) and the Gauss-Newton normal equations H, g (IRLS weights)."""
+    """Robust cost at (cx, cy, r) and the Gauss-Newton normal equations H, g (IRLS weights).
+
+    ``mdl`` = (1/sigma, t_lo, t_hi, 1/s_lo, 1/s_hi, footprint, i_lo, i_hi, range_model,
+    use_sil): silhouette targets and inverse stds (0 = side unused), beam footprint (rad),
+    indices of the lowest/highest-bearing returns (footprint-averaged in the range model) and
+    whether residuals are ranges along the beams (1) or orthogonal distances (0). ``tmp``
+    (>= 4) is scratch space."""
     H[:, :] = 0.0
     g[:] = 0.0
     cost = 0.0
     n = lx.shape[0]
+    inv_sigma = mdl[0]
+    range_model = mdl[8] > 0.0
+    foot = mdl[5]
+    i_lo = int(mdl[6])
+    i_hi = int(mdl[7])
     for i in range(n):
         if keep[i] == 0.0:
+            continue
+        if range_model:
+            f_i = 0.0
+            if (i == i_lo and mdl[3] > 0.0) or (i == i_hi and mdl[4] > 0.0):
+                f_i = foot
+            e, j0, j1, j2, m, k0, k1, k2 = _range_residual(i, ux, uy, rho, cx, cy, r, f_i, tmp)
+            e *= inv_sigma
+            c_e, w = _huber(e, robust)
+            cost += c_e
+            _accumulate(H, g, w, j0 * inv_sigma, j1 * inv_sigma, j2 * inv_sigma, e)
+            if m > 0.0:
+                m *= inv_sigma
+                c_m, w = _huber(m, robust)
+                cost += c_m
+                _accumulate(H, g, w, k0 * inv_sigma, k1 * inv_sigma, k2 * inv_sigma, m)
             continue
         dx = lx[i] - cx
         dy = ly[i] - cy
@@ -130,24 +293,10 @@ def _cost_and_normal(
         else:
             j0 = 0.0
             j1 = 0.0
-        j2 = -inv_sigma
-        ae = abs(e)
-        if robust and ae > _HUBER_K:
-            w = _HUBER_K / ae
-            cost += _HUBER_K * ae - 0.5 * _HUBER_K * _HUBER_K
-        else:
-            w = 1.0
-            cost += 0.5 * e * e
-        H[0, 0] += w * j0 * j0
-        H[0, 1] += w * j0 * j1
-        H[0, 2] += w * j0 * j2
-        H[1, 1] += w * j1 * j1
-        H[1, 2] += w * j1 * j2
-        H[2, 2] += w * j2 * j2
-        g[0] += w * j0 * e
-        g[1] += w * j1 * e
-        g[2] += w * j2 * e
-    if use_sil:
+        c_e, w = _huber(e, robust)
+        cost += c_e
+        _accumulate(H, g, w, j0, j1, -inv_sigma, e)
+    if mdl[9] > 0.0:
         d2 = cx * cx + cy * cy
         dd = math.sqrt(d2)
         q = math.sqrt(max(d2 - r * r, 1e-300))
@@ -161,24 +310,21 @@ def _cost_and_normal(
         a2 = 1.0 / q
         for side in range(2):
             sgn = -1.0 if side == 0 else 1.0
-            target = t_lo if side == 0 else t_hi
-            inv_sang = w_lo if side == 0 else w_hi
+            target = mdl[1] if side == 0 else mdl[2]
+            inv_sang = mdl[3] if side == 0 else mdl[4]
             if inv_sang == 0.0:
                 continue
             e = (beta + sgn * alpha - target) * inv_sang
-            j0 = (b0 + sgn * a0) * inv_sang
-            j1 = (b1 + sgn * a1) * inv_sang
-            j2 = (sgn * a2) * inv_sang
             cost += 0.5 * e * e
-            H[0, 0] += j0 * j0
-            H[0, 1] += j0 * j1
-            H[0, 2] += j0 * j2
-            H[1, 1] += j1 * j1
-            H[1, 2] += j1 * j2
-            H[2, 2] += j2 * j2
-            g[0] += j0 * e
-            g[1] += j1 * e
-            g[2] += j2 * e
+            _accumulate(
+                H,
+                g,
+                1.0,
+                (b0 + sgn * a0) * inv_sang,
+                (b1 + sgn * a1) * inv_sang,
+                (sgn * a2) * inv_sang,
+                e,
+            )
     H[1, 0] = H[0, 1]
     H[2, 0] = H[0, 2]
     H[2, 1] = H[1, 2]
@@ -203,14 +349,12 @@ def _valid(
 def _lm(
     lx: FloatArray,
     ly: FloatArray,
+    rho: FloatArray,
+    ux: FloatArray,
+    uy: FloatArray,
     keep: FloatArray,
     p: FloatArray,
-    inv_sigma: float,
-    use_sil: bool,
-    t_lo: float,
-    t_hi: float,
-    w_lo: float,
-    w_hi: float,
+    mdl: FloatArray,
     rho_min: float,
     robust: bool,
     ws3: FloatArray,
@@ -218,7 +362,8 @@ def _lm(
 ) -> tuple[float, int]:  # pragma: no cover - numba
     """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations).
 
-    ``ws3`` (>= 3, 3, 3) and ``wv`` (>= 4, 3) are scratch space (no allocation per call)."""
+    ``mdl``: see :func:`_cost_and_normal`. ``ws3`` (>= 3, 3, 3) and ``wv`` (>= 6, 3) are
+    scratch space (no allocation per call)."""
     H = ws3[0]
     Hn = ws3[1]
     Ht = ws3[2]
@@ -226,9 +371,9 @@ def _lm(
     gt = wv[1]
     step = wv[2]
     mg = wv[3]
-    cost = _cost_and_normal(
-        lx, ly, keep, p[0], p[1], p[2], inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, H, g
-    )
+    tmp = wv[6:8].reshape(-1)
+    use_sil = mdl[9] > 0.0
+    cost = _cost_and_normal(lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, robust, H, g, tmp)
     lam = 1e-3
     it = 0
     for it in range(_MAX_ITER):
@@ -243,6 +388,15 @@ def _lm(
             if not _solve3(Hn, mg, step):
                 lam *= 10.0
                 continue
+            # decrease predicted by the local quadratic model (gain ratio and stopping test)
+            pred_red = 0.0
+            for a in range(3):
+                hs = 0.0
+                for b in range(3):
+                    hs += H[a, b] * step[b]
+                pred_red -= g[a] * step[a] + 0.5 * step[a] * hs
+            if pred_red <= 1e-10 * (1.0 + cost):
+                return cost, it + 1
             cx = p[0] + step[0]
             cy = p[1] + step[1]
             r = p[2] + step[2]
@@ -250,7 +404,7 @@ def _lm(
                 lam *= 10.0
                 continue
             new_cost = _cost_and_normal(
-                lx, ly, keep, cx, cy, r, inv_sigma, use_sil, t_lo, t_hi, w_lo, w_hi, robust, Ht, gt
+                lx, ly, rho, ux, uy, keep, cx, cy, r, mdl, robust, Ht, gt, tmp
             )
             if new_cost <= cost:
                 dp = abs(step[0]) + abs(step[1]) + abs(step[2])
@@ -262,15 +416,43 @@ def _lm(
                     g[a] = gt[a]
                     for b in range(3):
                         H[a, b] = Ht[a, b]
-                lam = max(lam * 0.3, 1e-9)
+                # trust-region style damping: shrink lambda only where the quadratic model
+                # predicted the decrease well (edge returns make the cost far from quadratic)
+                gain = rel / pred_red
+                if gain > 0.75:
+                    lam = max(lam * 0.3, 1e-9)
+                elif gain < 0.25:
+                    lam *= 2.0
                 improved = True
-                if dp <= 1e-9 * (1.0 + scale) or rel <= 1e-10 * (1.0 + cost):
+                if dp <= 1e-6 * (1.0 + scale) or rel <= 1e-5 * (1.0 + cost):
                     return cost, it + 1
                 break
             lam *= 10.0
         if not improved:
             return cost, it + 1
     return cost, it + 1
+
+
+@njit(cache=True, error_model="numpy")
+def _abs_residual(
+    i: int,
+    lx: FloatArray,
+    ly: FloatArray,
+    rho: FloatArray,
+    ux: FloatArray,
+    uy: FloatArray,
+    p: FloatArray,
+    mdl: FloatArray,
+    tmp: FloatArray,
+) -> float:  # pragma: no cover - numba
+    """|residual| of return i in metres under the model ``mdl`` (range or orthogonal)."""
+    if mdl[8] > 0.0:
+        f_i = 0.0
+        if (i == int(mdl[6]) and mdl[3] > 0.0) or (i == int(mdl[7]) and mdl[4] > 0.0):
+            f_i = mdl[5]
+        e, _, _, _, m, _, _, _ = _range_residual(i, ux, uy, rho, p[0], p[1], p[2], f_i, tmp)
+        return math.sqrt(e * e + m * m)
+    return abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
 
 
 @njit(cache=True, error_model="numpy")
@@ -283,15 +465,19 @@ def _fit_one(
     dtheta: float,
     use_lo: bool,
     use_hi: bool,
+    sil: FloatArray,
+    foot: float,
+    range_model: bool,
     out: FloatArray,
     buf: FloatArray,
     ws3: FloatArray,
     wv: FloatArray,
+    mdl: FloatArray,
 ) -> int:  # pragma: no cover - numba
     """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status.
 
-    ``buf`` (6, >= N), ``ws3`` (6, 3, 3) and ``wv`` (6, 3) are scratch space shared by all
-    segments of a batch, so a fit allocates nothing on the common path."""
+    ``buf`` (8, >= N), ``ws3`` (6, 3, 3), ``wv`` (8, 3) and ``mdl`` (10,) are scratch space
+    shared by all segments of a batch, so a fit allocates nothing on the common path."""
     n = px.shape[0]
     if n < 3:
         return TOO_FEW
@@ -301,6 +487,8 @@ def _fit_one(
     th = buf[3, :n]
     keep = buf[4, :n]
     dabs = buf[5, :n]
+    ux = buf[6, :n]
+    uy = buf[7, :n]
     # ---- local frame: origin at the sensor, x axis along the mean bearing of the points ----
     sx = 0.0
     sy = 0.0
@@ -330,6 +518,8 @@ def _fit_one(
         ly[i] = -s0 * qx + c0 * qy
         t = math.atan2(ly[i], lx[i])
         th[i] = t
+        ux[i] = lx[i] / rho[i] if rho[i] > 0.0 else 0.0
+        uy[i] = ly[i] / rho[i] if rho[i] > 0.0 else 0.0
         th_min = min(th_min, t)
         th_max = max(th_max, t)
         keep[i] = 1.0
@@ -346,8 +536,10 @@ def _fit_one(
     # Silhouette targets: the lower tangent bearing lies uniformly in (th_min - dtheta, th_min],
     # the upper in [th_max, th_max + dtheta); an unused side gets its target from the fit itself
     # (weight zero is emulated by an infinite target std below).
-    t_lo = th_min - 0.5 * dtheta
-    t_hi = th_max + 0.5 * dtheta
+    off_lo = sil[0] * dtheta if math.isfinite(sil[0]) else 0.5 * dtheta
+    off_hi = sil[2] * dtheta if math.isfinite(sil[2]) else 0.5 * dtheta
+    t_lo = th_min - off_lo
+    t_hi = th_max + off_hi
     # ---- initial guess from the silhouette and the nearest return (always behind the arc) ----
     half = 0.5 * (t_hi - t_lo)
     sa = min(math.sin(min(half, 0.5 * math.pi - 1e-3)), 0.95)
@@ -391,25 +583,49 @@ def _fit_one(
     # ---- noise scale: given, or estimated from a first (equal-weight) pass ----
     extent = max(th_max - th_min, dtheta) * near
     sang = dtheta / _SQRT12
-    w_lo = 1.0 / sang if (use_sil and use_lo) else 0.0
-    w_hi = 1.0 / sang if (use_sil and use_hi) else 0.0
+    s_lo = sil[1] * dtheta if math.isfinite(sil[1]) else sang
+    s_hi = sil[3] * dtheta if math.isfinite(sil[3]) else sang
+    w_lo = 1.0 / s_lo if (use_sil and use_lo) else 0.0
+    w_hi = 1.0 / s_hi if (use_sil and use_hi) else 0.0
+    i_lo = 0
+    i_hi = 0
+    for i in range(n):
+        if th[i] < th[i_lo]:
+            i_lo = i
+        if th[i] > th[i_hi]:
+            i_hi = i
+    # Range residuals need a view from outside the circle: only with a silhouette (one-sided
+    # points, sensor kept outside by _valid); otherwise orthogonal distances, as before.
+    use_range = range_model and use_sil
+    mdl[1] = t_lo
+    mdl[2] = t_hi
+    mdl[3] = w_lo
+    mdl[4] = w_hi
+    mdl[5] = foot if use_range else 0.0
+    mdl[6] = i_lo
+    mdl[7] = i_hi
+    mdl[8] = 1.0 if use_range else 0.0
+    mdl[9] = 1.0 if use_sil else 0.0
+    tmp = wv[6:8].reshape(-1)
     if sigma > 0.0:
         sig = sigma
     else:
         # first pass: points weighted like the silhouette (sigma ~ range * angular std)
         sig = max(near * sang, _SIGMA_FLOOR)
-        _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True, ws3, wv)
+        mdl[0] = 1.0 / sig
+        _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv)
         ss = 0.0
         for i in range(n):
-            d = math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2]
+            d = _abs_residual(i, lx, ly, rho, ux, uy, p, mdl, tmp)
             ss += d * d
         dof = n - 3 if n > 3 else 1
         sig = max(math.sqrt(ss / dof), _SIGMA_FLOOR)
-    _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True, ws3, wv)
+    mdl[0] = 1.0 / sig
+    _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv)
     # ---- outlier rejection (mixed pixels): drop up to N // 4 returns beyond 4 sigma ----
     if n >= 6:
         for i in range(n):
-            dabs[i] = abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
+            dabs[i] = _abs_residual(i, lx, ly, rho, ux, uy, p, mdl, tmp)
         scale = sig
         if sigma <= 0.0:
             scale = max(1.4826 * np.median(dabs) * math.sqrt(n / (n - 3.0)), _SIGMA_FLOOR)
@@ -427,7 +643,8 @@ def _fit_one(
                 for i in range(n):
                     ss += keep[i] * dabs[i] * dabs[i]
                 sig = max(math.sqrt(ss / max(n - n_rej - 3, 1)), _SIGMA_FLOOR)
-            _lm(lx, ly, keep, p, 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, rho_min, True, ws3, wv)
+                mdl[0] = 1.0 / sig
+            _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv)
     if not _valid(p[0], p[1], p[2], rho_min, use_sil):
         return NOT_CONVERGED
     if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
@@ -435,9 +652,7 @@ def _fit_one(
     # ---- covariance from the final (robustly weighted) Gauss-Newton Hessian ----
     H = ws3[3]
     g = wv[5]
-    _cost_and_normal(
-        lx, ly, keep, p[0], p[1], p[2], 1.0 / sig, use_sil, t_lo, t_hi, w_lo, w_hi, True, H, g
-    )
+    _cost_and_normal(lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, True, H, g, tmp)
     C = ws3[4]
     if not _inv3(H, C):
         C[:, :] = np.nan
@@ -482,15 +697,19 @@ def _fit_segments(
     dtheta: FloatArray,
     use_lo: np.ndarray,
     use_hi: np.ndarray,
+    sil: FloatArray,
+    foot: float,
+    range_model: bool,
     out: FloatArray,
     status: np.ndarray,
 ) -> None:  # pragma: no cover - numba
     nmax = 0
     for k in range(starts.shape[0]):
         nmax = max(nmax, stops[k] - starts[k])
-    buf = np.empty((6, nmax))
+    buf = np.empty((8, nmax))
     ws3 = np.empty((6, 3, 3))
-    wv = np.empty((6, 3))
+    wv = np.empty((8, 3))
+    mdl = np.empty(10)
     for k in range(starts.shape[0]):
         a = starts[k]
         b = stops[k]
@@ -503,10 +722,14 @@ def _fit_segments(
             dtheta[k],
             use_lo[k],
             use_hi[k],
+            sil[k],
+            foot,
+            range_model,
             out[k],
             buf,
             ws3,
             wv,
+            mdl,
         )
 
 
@@ -521,6 +744,9 @@ def fit_ours_segments(
     dtheta: FloatArray,
     use_lo: np.ndarray,
     use_hi: np.ndarray,
+    sil: FloatArray | None = None,
+    footprint: float = 0.0,
+    range_model: bool = True,
 ) -> tuple[FloatArray, np.ndarray]:
     """Run the kernel on K segments ``px[starts[k]:stops[k]]``.
 
@@ -536,6 +762,8 @@ def fit_ours_segments(
         Kernel status code (``STATUS_MESSAGES``).
     """
     k = starts.shape[0]
+    if sil is None:
+        sil = np.full((k, 4), np.nan)
     out = np.full((k, 14), np.nan)
     status = np.zeros(k, dtype=np.int64)
     _fit_segments(
@@ -549,6 +777,9 @@ def fit_ours_segments(
         np.ascontiguousarray(dtheta, dtype=np.float64),
         np.ascontiguousarray(use_lo, dtype=np.bool_),
         np.ascontiguousarray(use_hi, dtype=np.bool_),
+        np.ascontiguousarray(sil, dtype=np.float64).reshape(k, 4),
+        float(footprint),
+        bool(range_model),
         out,
         status,
     )

@@ -210,6 +210,53 @@ def _check_increment(angle_increment: float | None) -> float:
     return a
 
 
+def _check_divergence(beam_divergence: float | None) -> float:
+    """``beam_divergence`` (full footprint width, radians) as a float >= 0 (0 = thin beam)."""
+    if beam_divergence is None:
+        return 0.0
+    b = float(beam_divergence)
+    if not (math.isfinite(b) and 0.0 <= b < 0.5):
+        raise InputError(
+            f"beam_divergence (full angular width of the beam footprint, radians) must be finite, "
+            f">= 0 and < 0.5 rad, got {beam_divergence!r}."
+        )
+    return b
+
+
+_RESIDUALS = ("range", "orthogonal")
+
+
+def _check_residuals(residuals: str) -> bool:
+    """True for range residuals; raise ConfigError for an unknown name."""
+    if residuals not in _RESIDUALS:
+        raise ConfigError(f"residuals must be one of {_RESIDUALS}, got {residuals!r}.")
+    return residuals == "range"
+
+
+def _check_silhouette(silhouette: ArrayLike | None, k: int) -> FloatArray:
+    """Per-segment silhouette priors as a (k, 4) array (lo offset, lo std, hi offset, hi std) in
+    beam spacings; NaN = default. Accepts (2, 2) (shared) or (k, 2, 2)."""
+    if silhouette is None:
+        return np.full((k, 4), np.nan)
+    a = np.asarray(silhouette, dtype=np.float64)
+    if a.shape == (2, 2):
+        a = np.broadcast_to(a, (k, 2, 2))
+    if a.shape != (k, 2, 2):
+        raise InputError(
+            f"silhouette must have shape (2, 2) or ({k}, 2, 2): per side (first, last) the "
+            f"(offset, std) of the tangent beyond the edge return, in beam spacings; got "
+            f"{a.shape}."
+        )
+    flat = a.reshape(k, 4)
+    off, std = flat[:, [0, 2]], flat[:, [1, 3]]
+    if np.any(np.isinf(flat)) or np.any(std <= 0) or np.any(off < -1e3):
+        raise InputError(
+            "silhouette offsets must be finite (NaN = default) and stds finite and > 0 "
+            "(beam spacings)."
+        )
+    return np.ascontiguousarray(flat)
+
+
 def _by_bearing(p: FloatArray, o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Points sorted by bearing from ``o`` (bearings relative to their mean direction, so an
     arc straddling +-pi sorts correctly). Returns sorted points, bearings and ranges."""
@@ -521,24 +568,35 @@ def fit_circle_ours(
     sigma: float | None = None,
     angle_increment: float | None = None,
     edges: tuple[bool, bool] = (True, True),
+    beam_divergence: float | None = None,
+    silhouette: ArrayLike | None = None,
+    residuals: str = "range",
 ) -> CircleFit:
     """Silhouette-constrained robust geometric circle fit for one-sided laser arcs (ours).
 
     Minimises over (cx, cy, r)
 
-    ``sum_i huber((|p_i - c| - r) / sigma) + sum_{edge} ((beta +- asin(r / D) - t_edge) / s)^2 / 2``
+    ``sum_i huber((rho_i - rho_hat_i(c, r)) / sigma)``
+    ``+ sum_{edge} ((beta +- asin(r / D) - t_edge) / s_edge)^2 / 2``
 
     where ``D = |c - origin|`` and ``beta`` is the bearing of the centre. The first term is the
-    orthogonal-distance (geometric) fit, made robust to a mixed-pixel or outlier return by a
-    Huber loss (k = 1.5 sigma) followed, for N >= 6, by rejecting up to N // 4 returns beyond
-    4 sigma and refitting (``rms`` is then over the inliers). The second term is the
-    beam-width-aware silhouette: a beam returns only if it hits the trunk, so the tangent
-    bearing of each side lies between the edge beam and the neighbouring beam that missed;
-    ``t_edge`` is the middle of that interval (edge bearing -+ angle_increment / 2) and
-    ``s = angle_increment / sqrt(12)`` the standard
-    deviation of a uniform interval of that width. With a silhouette, steps are only accepted
-    while the centre stays behind the visible arc (``D > r`` and ``D`` beyond the nearest
-    return).
+    range-noise model of a laser scanner: ``rho_hat_i`` is the range at which return i's beam
+    first meets the circle (``b - sqrt(r^2 - s^2)`` with ``b``, ``s`` the centre's coordinates
+    along and across the beam; a beam that misses adds the miss distance as a second residual).
+    For the two edge returns of an averaging scanner (``beam_divergence`` > 0) it is the mean
+    range over the part of the beam footprint that hits the circle (closed form), which is
+    where a beam that grazes the trunk really returns. With ``residuals="orthogonal"`` the
+    first term is the former orthogonal-distance fit ``(|p_i - c| - r) / sigma``. Either is made
+    robust to a mixed pixel or outlier by a Huber loss (k = 1.5 sigma) followed, for N >= 6, by
+    rejecting up to N // 4 returns beyond 4 sigma and refitting (``rms`` is then over the
+    inliers). The second term is the beam-width-aware silhouette: a beam returns only if it
+    hits the trunk, so the tangent bearing of each side lies between the edge beam and the
+    neighbouring beam that missed; by default ``t_edge`` is the middle of that interval (edge
+    bearing -+ angle_increment / 2) and ``s_edge = angle_increment / sqrt(12)`` the standard
+    deviation of a uniform interval of that width; ``silhouette`` replaces both per side (the
+    detector narrows them when the neighbouring beam saw the background or a mixed pixel).
+    With a silhouette, steps are only accepted while the centre stays behind the visible arc
+    (``D > r`` and ``D`` beyond the nearest return).
     Solved by Levenberg-Marquardt from a silhouette-based start; the covariance is the inverse
     Gauss-Newton Hessian of the normalised residuals (so it is scaled by ``sigma`` if given,
     else by the residual RMS with ``N - 3`` degrees of freedom, floored at 0.2 mm).
@@ -558,7 +616,16 @@ def fit_circle_ours(
         False for a side occluded by a nearer object (a partial segment): that side's term is
         dropped. With both False, or when the points are not all within +-90 deg of their mean
         bearing from ``origin`` (no visible side, e.g. a full ring around the sensor), the fit is
-        a plain robust geometric fit started from Kasa.
+        a plain robust geometric (orthogonal-distance) fit started from Kasa.
+    beam_divergence : float, radians, optional
+        Full angular width of the beam footprint of an averaging scanner (one that reports the
+        mean range of what its footprint hits: mixed pixels). 0 / None: thin beams.
+    silhouette : array_like of shape (2, 2), optional
+        Rows (first, last return in bearing order): ``(offset, std)`` of the tangent bearing
+        beyond the edge return, in units of ``angle_increment``; NaN keeps the default
+        ``(0.5, 1 / sqrt(12))``.
+    residuals : {"range", "orthogonal"}
+        Noise model of the returns (see above); "range" by default.
 
     Returns
     -------
@@ -570,8 +637,10 @@ def fit_circle_ours(
     Raises
     ------
     InputError
-        If ``points`` is not a finite (N, 2) array, or ``origin``/``sigma``/``angle_increment``
-        are invalid.
+        If ``points`` is not a finite (N, 2) array, or ``origin``/``sigma``/``angle_increment``/
+        ``beam_divergence``/``silhouette`` are invalid.
+    ConfigError
+        If ``residuals`` is unknown.
 
     Notes
     -----
@@ -612,6 +681,9 @@ def fit_circle_ours(
     if e.shape != (2,):
         raise InputError(f"edges must be a pair of booleans (first, last), got {edges!r}.")
     lo, hi = bool(e[0]), bool(e[1])
+    foot = _check_divergence(beam_divergence)
+    sil = _check_silhouette(silhouette, 1)
+    use_range = _check_residuals(residuals)
     out, status = fit_ours_segments(
         p[:, 0],
         p[:, 1],
@@ -623,6 +695,9 @@ def fit_circle_ours(
         np.array([inc]),
         np.array([lo]),
         np.array([hi]),
+        sil,
+        foot,
+        use_range,
     )
     if status[0] != 0:
         return CircleFit.failed(STATUS_MESSAGES[int(status[0])], "ours", n)
@@ -748,6 +823,9 @@ def fit_circles_batch(
     sigma: ArrayLike | None = None,
     angle_increment: float | None = None,
     edges: ArrayLike | None = None,
+    beam_divergence: float | None = None,
+    silhouette: ArrayLike | None = None,
+    residuals: str = "range",
 ) -> CircleFits:
     """Fit one circle per segment of a batch of points.
 
@@ -771,6 +849,9 @@ def fit_circles_batch(
     edges : array_like of shape (K, 2), bool, optional
         Whether the first/last return of each segment is a true silhouette edge (default all
         True).
+    beam_divergence, residuals : see :func:`fit_circle_ours` (ours only).
+    silhouette : array_like of shape (2, 2) or (K, 2, 2), optional
+        Per segment, see :func:`fit_circle_ours` (ours only).
 
     Returns
     -------
@@ -837,6 +918,9 @@ def fit_circles_batch(
             e = np.broadcast_to(e, (k, 2))
         if e.shape != (k, 2):
             raise InputError(f"edges must have shape (2,) or ({k}, 2), got {e.shape}.")
+    foot = _check_divergence(beam_divergence)
+    sil = _check_silhouette(silhouette, k)
+    use_range = _check_residuals(residuals)
 
     if method == "ours":
         out, status = fit_ours_segments(
@@ -850,6 +934,9 @@ def fit_circles_batch(
             np.full(k, inc),
             e[:, 0],
             e[:, 1],
+            sil,
+            foot,
+            use_range,
         )
         ok = status == 0
         return CircleFits(

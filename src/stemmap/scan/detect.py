@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
 from stemmap.scan.features import (
+    edge_silhouette,
     footprint_correct,
     is_straight,
     point_curvature,
@@ -145,6 +146,19 @@ class DetectorConfig:
         Footprint of a nearest-return (first-echo) sensor; returns are moved to the footprint
         side nearest the trunk apex before fitting (:func:`~stemmap.scan.features.
         footprint_correct`). 0 for averaging sensors and the simulator.
+    beam_divergence_deg : float, degrees
+        Full footprint width of an averaging sensor (one that reports the mean range of what
+        its footprint hits, i.e. mixed pixels at edges; SICK LMS2xx class: ~0.25 deg). The
+        ``ours`` fit models the edge returns as footprint averages, and (with
+        ``neighbour_silhouette``) the beams beyond each segment end narrow or pin the tangent
+        (:func:`~stemmap.scan.features.edge_silhouette`). 0 = thin beams. Ignored when
+        ``beam_footprint_deg`` > 0 (a first-echo sensor does not average its footprint).
+    neighbour_silhouette : bool
+        Derive the ``ours`` silhouette prior of each end from the neighbouring beams (needs
+        ``beam_divergence_deg`` > 0).
+    fit_residuals : {"range", "orthogonal"}
+        Noise model of the ``ours`` fit: range noise along each beam (default) or orthogonal
+        distances (the fit before the edge model).
     """
 
     name: str = "custom"
@@ -182,6 +196,9 @@ class DetectorConfig:
     max_radius_width_ratio: float = math.inf
     max_rms_sigma: float = math.inf
     beam_footprint_deg: float = 0.0
+    beam_divergence_deg: float = 0.0
+    neighbour_silhouette: bool = True
+    fit_residuals: Literal["range", "orthogonal"] = "range"
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -227,6 +244,12 @@ class DetectorConfig:
             raise bad("max_radius", self.max_radius, "need 0 <= min_radius < max_radius")
         if not (self.beam_footprint_deg >= 0 and math.isfinite(self.beam_footprint_deg)):
             raise bad("beam_footprint_deg", self.beam_footprint_deg, "it must be >= 0 degrees")
+        if not (0.0 <= self.beam_divergence_deg < 20.0):
+            raise bad(
+                "beam_divergence_deg", self.beam_divergence_deg, "it must be in [0, 20) degrees"
+            )
+        if self.fit_residuals not in ("range", "orthogonal"):
+            raise bad("fit_residuals", self.fit_residuals, "choose 'range' or 'orthogonal'")
         if not self.max_rms_sigma > 0:
             raise bad("max_rms_sigma", self.max_rms_sigma, "it must be > 0")
         if not self.max_radius_width_ratio > 0:
@@ -343,6 +366,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_radius": 0.8,
         "max_radius_width_ratio": 0.8,
         "max_rms_sigma": 2.0,
+        # SICK LMS2xx-class averaging scanner (docs/algorithms/scan-fits.md, "edge model")
+        "beam_divergence_deg": 0.25,
     },
 }
 
@@ -472,14 +497,23 @@ def _geometric_cov(
 
 
 def _fit_segments(
-    segs: Segments, method: str, sigma: FloatArray
+    segs: Segments,
+    method: str,
+    sigma: FloatArray,
+    *,
+    silhouette: FloatArray | None = None,
+    beam_divergence: float = 0.0,
+    residuals: str = "range",
 ) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
     """Fit every segment with ``method``: centers (K, 2), radii (K,), covs (K, 3, 3), ok (K,).
 
     Kasa runs as one vectorised solve (:func:`fit_kasa_segments`); every other method goes
     through :func:`stemmap.scan.circle.fit_circles_batch` (compiled loop for "ours"), with the
     sensor at the origin, the beam spacing, and each end flagged as a true silhouette edge
-    unless it is occluded or truncated.
+    unless it is occluded or truncated. ``silhouette`` (K, 2, 2) (segment start, end: offset,
+    std in beams; :func:`~stemmap.scan.features.edge_silhouette`), ``beam_divergence`` (rad)
+    and ``residuals`` are passed to "ours". The fits take the ends in bearing order, so with a
+    negative angle increment the start is the *last* end.
     """
     k = len(segs)
     covs = np.full((k, 3, 3), np.nan)
@@ -490,8 +524,19 @@ def _fit_segments(
     edges = np.column_stack(
         (~(segs.occluded_start | segs.truncated_start), ~(segs.occluded_end | segs.truncated_end))
     )
+    if p.angle_increment < 0:  # bearing order is the reverse of beam order
+        edges = edges[:, ::-1]
+        if silhouette is not None:
+            silhouette = silhouette[:, ::-1]
     batch_fn = getattr(_circle, "fit_circles_batch", None)
     if batch_fn is not None:
+        extra: dict[str, Any] = {}
+        if method == "ours":
+            extra = {
+                "silhouette": silhouette,
+                "beam_divergence": beam_divergence,
+                "residuals": residuals,
+            }
         res = batch_fn(
             np.column_stack((p.x, p.y)),
             segs.labels,
@@ -500,6 +545,7 @@ def _fit_segments(
             sigma=sigma if np.all(sigma > 0) else None,
             angle_increment=abs(p.angle_increment),
             edges=edges,
+            **extra,
         )
         centers = np.asarray(res.centers, dtype=np.float64).reshape(k, 2)
         radii = np.asarray(res.radii, dtype=np.float64).reshape(k)
@@ -654,6 +700,22 @@ class ScanTrunkDetector:
         pitch: ArrayLike | None = None,
     ) -> Segments:
         """Pre-processing, segmentation and segment filters: the trunk candidate segments."""
+        return self._candidates(
+            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
+        )[0]
+
+    def _candidates(
+        self,
+        ranges: ArrayLike,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float = 0.0,
+        range_max: float = math.inf,
+        roll: ArrayLike | None = None,
+        pitch: ArrayLike | None = None,
+    ) -> tuple[Segments, FloatArray, bool]:
+        """:meth:`candidates` plus the processed range grid the returns came from and whether
+        its beams wrap around (360-degree scan)."""
         cfg = self.config
         r = np.asarray(ranges, dtype=np.float64)
         if r.ndim == 1:
@@ -668,6 +730,7 @@ class ScanTrunkDetector:
         lo = max(lo, range_min)
         r = gate_ranges(r, lo, hi)
         first_beam, last_beam = 0, n - 1
+        wrap = False
         if cfg.fov_deg is not None:
             a_lo, a_hi = math.radians(cfg.fov_deg[0]), math.radians(cfg.fov_deg[1])
             r = fov_window(r, wrap_angle(angles), a_lo, a_hi)
@@ -695,6 +758,7 @@ class ScanTrunkDetector:
             r = roll_beams(r, shift)
             bearing = roll_beams(bearing, shift)
             first_beam, last_beam = -1, n  # no field-of-view edge: never truncated
+            wrap = True
         pts = extract_points(r, bearing, angle_increment)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
@@ -724,7 +788,7 @@ class ScanTrunkDetector:
                 # second trunk); visual-lidar §2.3: they are discarded
                 segs = segs.cut(keep) if cfg.split_merged else segs.drop(keep)
             segs = segs.select(segs.counts >= cfg.min_points)
-        return self._filter(segs)
+        return self._filter(segs), r, wrap
 
     def _filter(self, segs: Segments) -> Segments:
         cfg = self.config
@@ -764,7 +828,7 @@ class ScanTrunkDetector:
         pitch: ArrayLike | None,
     ) -> StemObservations:
         cfg = self.config
-        segs = self.candidates(
+        segs, grid, wrap = self._candidates(
             ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
         )
         if len(segs) == 0:
@@ -775,13 +839,31 @@ class ScanTrunkDetector:
         n = segs.counts
         mean_r = segment_sum(p.r, segs) / n
         sigma = cfg.sigma + cfg.sigma_rel * mean_r  # per-segment range noise
-        centers, radii, covs, ok = _fit_segments(segs, cfg.fit_method, sigma)
+        # a footprint correction means a first-echo sensor: no averaging-scanner edge model
+        divergence = 0.0 if cfg.beam_footprint_deg > 0 else math.radians(cfg.beam_divergence_deg)
+        sil = None
+        if cfg.fit_method == "ours" and cfg.neighbour_silhouette and divergence > 0:
+            sil = edge_silhouette(segs, grid, divergence, margin=cfg.occlusion_margin, wrap=wrap)
+        centers, radii, covs, ok = _fit_segments(
+            segs,
+            cfg.fit_method,
+            sigma,
+            silhouette=sil,
+            beam_divergence=divergence,
+            residuals=cfg.fit_residuals,
+        )
         f_width = segment_widths(segs)
+        sil_width = f_width
+        if sil is not None:
+            # a neighbour that saw a mixed pixel puts the tangent up to ~1 beam beyond the edge
+            # return: the silhouette is wider than the edge-beam chord by that much
+            beyond = np.nansum(np.maximum(sil[:, :, 0] - 0.5, 0.0), axis=1)
+            sil_width = f_width + beyond * mean_r * abs(segs.points.angle_increment)
         # plausibility (ours): radius bounds, not near-flat, centre behind the visible surface,
         # outline a circle within the noise; failed fits carry NaN and fail every test
         with np.errstate(invalid="ignore"):
             ok &= (radii >= cfg.min_radius) & (radii <= cfg.max_radius)
-            ok &= radii <= cfg.max_radius_width_ratio * np.maximum(f_width, 1e-9)
+            ok &= radii <= cfg.max_radius_width_ratio * np.maximum(sil_width, 1e-9)
             ok &= np.hypot(centers[:, 0], centers[:, 1]) > mean_r
             rms = _fit_rms(segs, centers, radii)
             if math.isfinite(cfg.max_rms_sigma):

@@ -16,6 +16,8 @@ Paper methods
   (visual-lidar paper §2.3), which separates overlapping trunks.
 * :func:`line_fit_rms` -- residual of the best straight line; :func:`is_straight` rejects walls
   and fences (ours: the papers only reject them implicitly through depth and width).
+* :func:`edge_silhouette` -- where each trunk edge's tangent lies, from the beams next to the
+  segment: background behind them narrows the interval, a mixed pixel pins it (ours).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ __all__ = [
     "SegmentFeatures",
     "chord_width",
     "cluster_curvature",
+    "edge_silhouette",
     "footprint_correct",
     "is_straight",
     "line_fit_rms",
@@ -406,6 +409,110 @@ def footprint_correct(segs: Segments, footprint: float) -> Segments:
         p.angle_increment,
     )
     return replace(segs, points=pts)
+
+
+#: Standard deviation of the trunk's share of a mixed pixel's footprint as recovered from its
+#: range (fraction of the footprint): the energy-weighted blend below is a model of the sensor,
+#: whose beam profile is not exactly uniform (the simulator samples it with 5 sub-beams).
+MIXED_FRACTION_STD = 0.2
+
+
+def mixed_fraction(rho_mixed: ArrayLike, rho_near: ArrayLike, rho_far: ArrayLike) -> FloatArray:
+    """Share ``f`` of a beam footprint on the near surface, from the range of a mixed pixel.
+
+    An averaging scanner whose footprint covers two surfaces reports the energy-weighted mean
+    range; with the diffuse-target energy ``~ 1 / rho^2`` per unit footprint,
+    ``rho_m = (f / rho_n + (1 - f) / rho_f) / (f / rho_n^2 + (1 - f) / rho_f^2)``, solved for
+    ``f`` (clipped to [0, 1]; NaN where the ranges are not ordered ``rho_n < rho_m < rho_f``)."""
+    m = np.asarray(rho_mixed, dtype=np.float64)
+    a = 1.0 / np.asarray(rho_near, dtype=np.float64)
+    b = 1.0 / np.asarray(rho_far, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = b * (1.0 - m * b) / ((a - b) * (m * (a + b) - 1.0))
+    ok = (np.asarray(rho_near) < m) & (m < np.asarray(rho_far))
+    out: FloatArray = np.where(ok, np.clip(f, 0.0, 1.0), np.nan)
+    return out
+
+
+def edge_silhouette(
+    segs: Segments,
+    ranges: ArrayLike,
+    divergence: float,
+    *,
+    margin: float = 0.2,
+    wrap: bool = False,
+) -> FloatArray:
+    """Prior on each segment end's tangent bearing from the beams beyond it (ours).
+
+    For an averaging scanner with beam spacing ``d`` and a footprint of full width
+    ``divergence`` (``h = divergence / (2 d)`` beams each side of a beam centre), look at the
+    two beams beyond each end (``n1`` next to the edge return, then ``n2``):
+
+    * ``n1`` returned nothing or is within ``margin`` of the edge range: no information; the
+      default (tangent uniform between the edge beam and ``n1``, offset 1/2, std 1/sqrt(12)).
+    * ``n1`` is background (more than ``margin`` farther than the edge return) and ``n2`` is
+      the same background (within ``margin`` of ``n1``): neither footprint is mixed, so the
+      tangent lies in the gap between them: offset 1/2, std ``(1 - 2 h) / sqrt(12)``.
+    * ``n2`` is farther than ``n1`` by more than ``margin``: ``n1`` is a mixed pixel of the
+      trunk (range of the edge return) and the background (range of ``n2``); its range gives the
+      trunk's share ``f`` of its footprint (:func:`mixed_fraction`), so the tangent lies at
+      ``1 - h + 2 h f`` beams beyond the edge return (std ``2 h`` x
+      :data:`MIXED_FRACTION_STD`).
+
+    Occluded ends (``n1`` nearer) are left at the default (the fit drops them anyway).
+
+    Parameters
+    ----------
+    segs : Segments
+    ranges : array_like of shape (S, N), metres
+        The gated range grid the segment returns came from (inf/NaN = no return).
+    divergence : float, radians, >= 0 (0 or >= one beam spacing: all defaults)
+    margin : float, metres
+    wrap : bool
+        Beams wrap around (360-degree scan): beam -1 is beam N - 1.
+
+    Returns
+    -------
+    ndarray of shape (K, 2, 2)
+        Per segment, rows (start, end) in beam order: (offset, std) in beam spacings; NaN where
+        the default applies.
+    """
+    k = len(segs)
+    out = np.full((k, 2, 2), np.nan)
+    p = segs.points
+    inc = abs(p.angle_increment)
+    h = divergence / (2.0 * inc) if inc > 0 else 0.0
+    if k == 0 or not (0.0 < h < 0.5):
+        return out
+    grid = np.asarray(ranges, dtype=np.float64).reshape(p.n_scans, p.n_beams)
+    n = p.n_beams
+
+    def at(beams: NDArray[np.int64]) -> FloatArray:
+        if wrap:
+            b = np.mod(beams, n)
+            val: FloatArray = grid[segs.scan, b]
+        else:
+            b = np.clip(beams, 0, n - 1)
+            val = np.where((beams >= 0) & (beams < n), grid[segs.scan, b], np.inf)
+        return np.where(np.isfinite(val), val, np.inf)
+
+    ends = ((segs.start, -1), (segs.stop - 1, 1))
+    for side, (idx, step) in enumerate(ends):
+        edge_r = p.r[idx]
+        b_edge = p.beam[idx]
+        r1 = at(b_edge + step)
+        r2 = at(b_edge + 2 * step)
+        with np.errstate(invalid="ignore"):
+            bg = np.isfinite(r1) & (r1 > edge_r + margin)
+            clean = bg & np.isfinite(r2) & (np.abs(r2 - r1) <= margin)
+            mixed = bg & np.isfinite(r2) & (r2 > r1 + margin)
+        f = mixed_fraction(r1, edge_r, r2)
+        mixed &= np.isfinite(f)
+        out[clean, side, 0] = 0.5
+        out[clean, side, 1] = (1.0 - 2.0 * h) / np.sqrt(12.0)
+        out[mixed, side, 0] = 1.0 - h + 2.0 * h * f[mixed]
+        out[mixed, side, 1] = 2.0 * h * MIXED_FRACTION_STD
+    return out
 
 
 @dataclass(frozen=True, eq=False)
