@@ -52,6 +52,32 @@ if TYPE_CHECKING:
     from stemmap.slam.ekf import EkfConfig
 
 
+def augment_landmark_covariance(
+    P: FloatArray, n: int, theta: float, a: float, b: float, rng_: float, ang: float,
+    R1: FloatArray,
+) -> FloatArray:  # fmt: skip
+    """Add the rows/columns ``n, n+1`` of a new landmark to the covariance ``P`` in place.
+
+    The landmark is ``m = s(x) + r (cos(ang), sin(ang))`` with the sensor at ``(a, b)`` in the
+    vehicle frame and ``ang = theta + bearing``: ``P_mx = G_x P_vx``, ``P_mm = G_x P_vv G_xᵀ +
+    G_z R G_zᵀ`` (Dissanayake et al. 2001). Returns ``G_x`` (2, 3), the Jacobian w.r.t. the pose.
+    Shared by the full and the compressed filter.
+    """
+    c, s = math.cos(theta), math.sin(theta)
+    ca, sa = math.cos(ang), math.sin(ang)
+    Gx = np.array(
+        [
+            [1.0, 0.0, -a * s - b * c - rng_ * sa],
+            [0.0, 1.0, a * c - b * s + rng_ * ca],
+        ]
+    )
+    Gz = np.array([[ca, -rng_ * sa], [sa, rng_ * ca]])
+    P[n : n + 2, :n] = Gx @ P[:3, :n]
+    P[:n, n : n + 2] = P[n : n + 2, :n].T
+    P[n : n + 2, n : n + 2] = Gx @ P[:3, :3] @ Gx.T + Gz @ R1 @ Gz.T
+    return Gx
+
+
 def _stack_jacobian(Jv: FloatArray, Jl: FloatArray) -> FloatArray:
     """``H`` (2c, 3 + 2c) over [vehicle, landmark 1..c] from per-landmark blocks
     ``Jv`` (c, 2, 3) and ``Jl`` (c, 2, 2) (block diagonal in the landmark columns)."""
@@ -374,20 +400,7 @@ class _Compressed:
         """Augment the active state (same Jacobians as ``EkfSlam._add_landmark``)."""
         self._reserve(2)
         n = self.nA
-        th = self.xA[2]
-        c, s = math.cos(th), math.sin(th)
-        ca, sa = math.cos(ang), math.sin(ang)
-        Gx = np.array(
-            [
-                [1.0, 0.0, -a * s - b * c - rng_ * sa],
-                [0.0, 1.0, a * c - b * s + rng_ * ca],
-            ]
-        )
-        Gz = np.array([[ca, -rng_ * sa], [sa, rng_ * ca]])
-        P = self.PA
-        P[n : n + 2, :n] = Gx @ P[:3, :n]
-        P[:n, n : n + 2] = P[n : n + 2, :n].T
-        P[n : n + 2, n : n + 2] = Gx @ P[:3, :3] @ Gx.T + Gz @ R1 @ Gz.T
+        Gx = augment_landmark_covariance(self.PA, n, float(self.xA[2]), a, b, rng_, ang, R1)
         self.Phi[n : n + 2] = Gx @ self.Phi[:3]
         self.xA[n], self.xA[n + 1] = mx, my
         self.nA = n + 2

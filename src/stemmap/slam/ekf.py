@@ -44,7 +44,13 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from stemmap.errors import ConfigError
-from stemmap.slam._ekf_compressed import _blocks, close_pairs, decide_merges, run_compressed
+from stemmap.slam._ekf_compressed import (
+    _blocks,
+    augment_landmark_covariance,
+    close_pairs,
+    decide_merges,
+    run_compressed,
+)
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.motion import preintegrate
@@ -461,22 +467,8 @@ class EkfSlam:
         ``ang`` (= theta + bearing) from the current pose."""
         self._reserve(2)
         n = self.n
-        th = self.x[2]
-        c, s = math.cos(th), math.sin(th)
-        ca, sa = math.cos(ang), math.sin(ang)
         # m = s(x) + r [cos(th + b), sin(th + b)]
-        Gx = np.array(
-            [
-                [1.0, 0.0, -a * s - b * c - rng_ * sa],
-                [0.0, 1.0, a * c - b * s + rng_ * ca],
-            ]
-        )
-        Gz = np.array([[ca, -rng_ * sa], [sa, rng_ * ca]])
-        P = self.P
-        Pvx = P[:3, :n]
-        P[n : n + 2, :n] = Gx @ Pvx
-        P[:n, n : n + 2] = P[n : n + 2, :n].T
-        P[n : n + 2, n : n + 2] = Gx @ P[:3, :3] @ Gx.T + Gz @ R1 @ Gz.T
+        augment_landmark_covariance(self.P, n, float(self.x[2]), a, b, rng_, ang, R1)
         self.x[n], self.x[n + 1] = mx, my
         self.n = n + 2
 
