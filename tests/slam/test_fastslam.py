@@ -117,3 +117,68 @@ def test_fastslam_rejects_controls_of_the_wrong_kind(sim):
     bad = type(problem)(problem.controls, problem.frames, AckermannModel())
     with pytest.raises(InputError, match="kind"):
         FastSlam(n_particles=5).run(bad)
+
+
+def test_fastslam_matches_the_pre_vectorisation_reference(sim):
+    # reference numbers produced by the FastSlam code before the element-wise rewrite
+    # (einsum / 2x2 matmul version, commit 670ed4d) on this exact problem and seed
+    problem, _ = sim
+    sub = type(problem)(
+        problem.controls,
+        problem.frames.select_frames(0, 300),
+        problem.motion,
+        initial_pose=problem.initial_pose,
+    )
+    res = FastSlam(n_particles=20, seed=7).run(sub)
+    np.testing.assert_allclose(
+        res.trajectory.poses[-1],
+        [27.716617727196674, 40.27917132233682, -2.89944878200758],
+        rtol=0,
+        atol=1e-9,
+    )
+    assert len(res.stem_map) == 39
+    assert res.stats["landmarks_best_particle"] == 39
+    assert res.stats["resamples"] == 202
+    np.testing.assert_allclose(
+        res.stem_map.xy.sum(axis=0), [1822.9752492678906, 1172.0617664729543], rtol=0, atol=1e-8
+    )
+
+
+def test_element_formulas_match_the_matrix_forms():
+    from stemmap.slam.fastslam import _ekf_update, _inv2, _predict_and_inv
+    from stemmap.slam.treedb import range_bearing_jacobians
+    from stemmap.types import wrap_angle
+
+    rng = np.random.default_rng(5)
+    P, M, off = 7, 5, (0.4, -0.2)
+    X = np.column_stack((rng.normal(0, 5, P), rng.normal(0, 5, P), rng.uniform(-4, 4, P)))
+    m = X[:, None, :2] + rng.normal(0, 8, (P, M, 2))
+    L = rng.normal(0, 0.3, (P, M, 2, 2))
+    Sg = L @ np.swapaxes(L, -1, -2) + 0.01 * np.eye(2)
+    R = np.diag([0.09, 3e-4])
+    zr, zb, i00, i01, i10, i11, det = _predict_and_inv(X, m, Sg, off, R[0, 0], R[1, 1])
+    zp, _, Hm = range_bearing_jacobians(X[:, None, :], m, off)
+    Sinv, detS = _inv2(Hm @ Sg @ np.swapaxes(Hm, -1, -2) + R)
+    np.testing.assert_allclose(np.stack((zr, zb), -1), zp, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        np.stack((np.stack((i00, i01), -1), np.stack((i10, i11), -1)), -2), Sinv, rtol=1e-10
+    )
+    np.testing.assert_allclose(det, detS, rtol=1e-10)
+
+    # EKF update of some (particle, landmark) pairs against the matrix form
+    wp, lm = np.array([0, 2, 2, 6]), np.array([1, 0, 4, 3])
+    z = zp[wp, lm] + rng.normal(0, [0.3, 0.02], (4, 2))
+    mu, Sig = m.copy(), Sg.copy()
+    _ekf_update(mu, Sig, wp, lm, X[wp], z, off, R[0, 0], R[1, 1])
+    zs, _, Hs = range_bearing_jacobians(X[wp], m[wp, lm], off)
+    nus = z - zs
+    nus[:, 1] = wrap_angle(nus[:, 1])
+    Ss = Sg[wp, lm]
+    Kg = Ss @ np.swapaxes(Hs, 1, 2) @ _inv2(Hs @ Ss @ np.swapaxes(Hs, 1, 2) + R)[0]
+    newS = (np.eye(2) - Kg @ Hs) @ Ss
+    np.testing.assert_allclose(mu[wp, lm], m[wp, lm] + np.einsum("nij,nj->ni", Kg, nus), 1e-12)
+    np.testing.assert_allclose(Sig[wp, lm], 0.5 * (newS + np.swapaxes(newS, 1, 2)), 1e-10)
+    untouched = np.ones((P, M), bool)
+    untouched[wp, lm] = False
+    np.testing.assert_array_equal(mu[untouched], m[untouched])
+    np.testing.assert_array_equal(Sig[untouched], Sg[untouched])

@@ -68,12 +68,14 @@ def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> np.nda
     return np.searchsorted(cdf, positions, side="left").astype(np.int64)
 
 
-def _sample_gaussian(cov: FloatArray, n: int, rng: np.random.Generator) -> FloatArray:
-    """n samples (n, 3) of N(0, cov) for a possibly singular PSD cov (eigen square root)."""
-    c = np.nan_to_num(0.5 * (cov + cov.T))
+def _psd_sqrt_stack(covs: FloatArray) -> FloatArray:
+    """Eigen square roots (N, 3, 3) of a stack of possibly singular PSD covariances.
+
+    ``rng.standard_normal((n, 3)) @ sq[i].T`` is then n samples of N(0, covs[i]).
+    """
+    c = np.nan_to_num(0.5 * (covs + np.swapaxes(covs, 1, 2)))
     w, v = np.linalg.eigh(c)
-    sq = v * np.sqrt(np.clip(w, 0.0, None))
-    out: FloatArray = rng.standard_normal((n, 3)) @ sq.T
+    out: FloatArray = v * np.sqrt(np.clip(w, 0.0, None))[:, None, :]
     return out
 
 
@@ -95,6 +97,114 @@ def _inv2(S: FloatArray) -> tuple[FloatArray, FloatArray]:
     inv[..., 1, 0] = -c / det
     inv[..., 1, 1] = a / det
     return inv, det
+
+
+def _wrap_inplace(a: FloatArray) -> None:
+    """``a[:] = wrap_angle(a)`` without temporaries (same formula: pi - mod(pi - a, 2 pi))."""
+    np.subtract(np.pi, a, out=a)
+    np.mod(a, 2.0 * np.pi, out=a)
+    np.subtract(np.pi, a, out=a)
+
+
+def _observe(
+    px: FloatArray, py: FloatArray, th: FloatArray, m: FloatArray, a: float, b: float
+) -> tuple[FloatArray, ...]:
+    """Predicted (range, bearing) and H_m elements: the arithmetic of range_bearing_jacobians."""
+    c, s = np.cos(th), np.sin(th)
+    dx = m[..., 0] - (px + a * c - b * s)
+    dy = m[..., 1] - (py + a * s + b * c)
+    q = np.maximum(dx * dx + dy * dy, 1e-12)
+    zr = np.sqrt(q)
+    zb = np.arctan2(dy, dx) - th
+    _wrap_inplace(zb)
+    return zr, zb, dx / zr, dy / zr, -dy / q, dx / q
+
+
+def _predict_and_inv(
+    X: FloatArray, m: FloatArray, m_S: FloatArray, off: tuple[float, float], r00: float, r11: float
+) -> tuple[FloatArray, ...]:
+    """Predicted (range, bearing) and inverse innovation covariance, element by element.
+
+    Same arithmetic as :func:`~stemmap.slam.treedb.range_bearing_jacobians` (poses ``X`` (P, 3)
+    against landmarks ``m`` (P, M, 2)) followed by ``S = H_m Sig H_m^T + R`` (R diagonal) and
+    :func:`_inv2`, without the (P, M, 2, 2) temporaries. Returns ``zr, zb, i00, i01, i10, i11,
+    det`` as (P, M) arrays.
+    """
+    zr, zb, h00, h01, h10, h11 = _observe(
+        X[:, 0][:, None], X[:, 1][:, None], X[:, 2][:, None], m, float(off[0]), float(off[1])
+    )
+    s00, s01, s10, s11 = m_S[..., 0, 0], m_S[..., 0, 1], m_S[..., 1, 0], m_S[..., 1, 1]
+    a00 = h00 * s00 + h01 * s10  # A = H_m Sig
+    a01 = h00 * s01 + h01 * s11
+    a10 = h10 * s00 + h11 * s10
+    a11 = h10 * s01 + h11 * s11
+    S00 = a00 * h00 + a01 * h01 + r00  # S = A H_m^T + R
+    S01 = a00 * h10 + a01 * h11
+    S10 = a10 * h00 + a11 * h01
+    S11 = a10 * h10 + a11 * h11 + r11
+    det = S00 * S11 - S01 * S10
+    return zr, zb, S11 / det, -S01 / det, -S10 / det, S00 / det, det
+
+
+def _ekf_update(
+    mu: FloatArray,
+    Sig: FloatArray,
+    wp: np.ndarray,
+    lm: np.ndarray,
+    Xw: FloatArray,
+    zw: FloatArray,
+    off: tuple[float, float],
+    r00: float,
+    r11: float,
+) -> None:
+    """Landmark EKF update of ``mu[wp, lm]``, ``Sig[wp, lm]`` (unique pairs) in place.
+
+    Element formulas of ``K = Sig H^T (H Sig H^T + R)^-1``, ``mu += K nu``,
+    ``Sig = sym((I - K H) Sig)`` with the matrix products summed in the same order.
+    """
+    m = mu[wp, lm]
+    Ss = Sig[wp, lm]
+    zr, zb, h00, h01, h10, h11 = _observe(
+        Xw[:, 0], Xw[:, 1], Xw[:, 2], m, float(off[0]), float(off[1])
+    )
+    n0 = zw[:, 0] - zr
+    n1 = zw[:, 1] - zb
+    _wrap_inplace(n1)
+    s00, s01, s10, s11 = Ss[:, 0, 0], Ss[:, 0, 1], Ss[:, 1, 0], Ss[:, 1, 1]
+    t00 = h00 * s00 + h01 * s10  # T = H Sig
+    t01 = h00 * s01 + h01 * s11
+    t10 = h10 * s00 + h11 * s10
+    t11 = h10 * s01 + h11 * s11
+    S00 = t00 * h00 + t01 * h01 + r00  # S = T H^T + R
+    S01 = t00 * h10 + t01 * h11 + 0.0
+    S10 = t10 * h00 + t11 * h01 + 0.0
+    S11 = t10 * h10 + t11 * h11 + r11
+    det = S00 * S11 - S01 * S10
+    j00, j01, j10, j11 = S11 / det, -S01 / det, -S10 / det, S00 / det
+    u00 = s00 * h00 + s01 * h01  # U = Sig H^T
+    u01 = s00 * h10 + s01 * h11
+    u10 = s10 * h00 + s11 * h01
+    u11 = s10 * h10 + s11 * h11
+    k00 = u00 * j00 + u01 * j10  # K = U S^-1
+    k01 = u00 * j01 + u01 * j11
+    k10 = u10 * j00 + u11 * j10
+    k11 = u10 * j01 + u11 * j11
+    out = np.empty_like(m)
+    out[:, 0] = m[:, 0] + (k00 * n0 + k01 * n1)
+    out[:, 1] = m[:, 1] + (k10 * n0 + k11 * n1)
+    mu[wp, lm] = out
+    w00 = 1.0 - (k00 * h00 + k01 * h10)  # W = I - K H
+    w01 = 0.0 - (k00 * h01 + k01 * h11)
+    w10 = 0.0 - (k10 * h00 + k11 * h10)
+    w11 = 1.0 - (k10 * h01 + k11 * h11)
+    newS = np.empty_like(Ss)
+    v01 = w00 * s01 + w01 * s11  # W Sig, symmetrised
+    v10 = w10 * s00 + w11 * s10
+    newS[:, 0, 0] = 0.5 * ((w00 * s00 + w01 * s10) * 2.0)
+    newS[:, 1, 1] = 0.5 * ((w10 * s01 + w11 * s11) * 2.0)
+    newS[:, 0, 1] = 0.5 * (v01 + v10)
+    newS[:, 1, 0] = 0.5 * (v10 + v01)
+    Sig[wp, lm] = newS
 
 
 @dataclass
@@ -214,6 +324,8 @@ class FastSlam:
         n_resample = 0
         n_pruned = 0
         rows = np.arange(P)[:, None]
+        # square roots of the motion covariances (version 1 samples them every frame)
+        sq_motion = _psd_sqrt_stack(np.asarray(pre.covs)) if nf > 1 else np.zeros((0, 3, 3))
 
         for f in range(nf):
             parents[f] = ident
@@ -232,7 +344,8 @@ class FastSlam:
                     G[:, 2, 2] = 1.0
                     Qw = G @ np.nan_to_num(pre.covs[f - 1]) @ np.swapaxes(G, 1, 2)
                 else:
-                    noise = _sample_gaussian(pre.covs[f - 1], P, rng)
+                    # = _sample_gaussian(pre.covs[f - 1], P, rng), square roots precomputed
+                    noise = rng.standard_normal((P, 3)) @ sq_motion[f - 1].T
                     X = compose(X, pre.deltas[f - 1][None, :] + noise)
                     v2 = False
             if k:
@@ -258,10 +371,15 @@ class FastSlam:
                     ang_o = X[:, 2][:, None] + b[None, :]
                     ox = sx[:, None] + r[None, :] * np.cos(ang_o)  # (P, K)
                     oy = sy[:, None] + r[None, :] * np.sin(ang_o)
-                    gx = mu[pp, cc, 0][:, None] - ox[pp]
-                    gy = mu[pp, cc, 1][:, None] - oy[pp]
+                    mu_near = mu[near]  # (N, 2), the order of (pp, cc)
+                    oxp, oyp = ox[pp], oy[pp]
+                    gx = np.subtract(mu_near[:, 0][:, None], oxp, out=oxp)
+                    gy = np.subtract(mu_near[:, 1][:, None], oyp, out=oyp)
+                    gx *= gx
+                    gy *= gy
+                    gx += gy
                     dist2 = np.full(near.shape, np.inf)
-                    dist2[pp, cc] = np.min(gx * gx + gy * gy, axis=1)
+                    dist2[pp, cc] = np.min(gx, axis=1)
                     if c_all > M:
                         cand = np.argpartition(dist2, M - 1, axis=1)[:, :M]
                     else:
@@ -269,18 +387,30 @@ class FastSlam:
                     cvalid = np.take_along_axis(dist2, cand, axis=1) < np.inf  # (P, M)
                     m_mu = mu[rows, cand]  # (P, M, 2)
                     m_S = Sig[rows, cand]  # (P, M, 2, 2)
-                    zp, Hx, Hm = range_bearing_jacobians(X[:, None, :], m_mu, off)
-                    S = Hm @ m_S @ np.swapaxes(Hm, -1, -2) + R
                     if v2:  # association and weight use the predicted pose's uncertainty too
+                        zp, Hx, Hm = range_bearing_jacobians(X[:, None, :], m_mu, off)
+                        S = Hm @ m_S @ np.swapaxes(Hm, -1, -2) + R
                         S_full = S + Hx @ Qw[:, None] @ np.swapaxes(Hx, -1, -2)
                         Sinv, detS = _inv2(S_full)
+                        zp0, zp1 = zp[..., 0], zp[..., 1]
+                        i00, i01 = Sinv[..., 0, 0], Sinv[..., 0, 1]
+                        i10, i11 = Sinv[..., 1, 0], Sinv[..., 1, 1]
                     else:
-                        Sinv, detS = _inv2(S)
-                    nu = z[None, :, None, :] - zp[:, None, :, :]  # (P, K, M, 2)
-                    nu[..., 1] = wrap_angle(nu[..., 1])
-                    d2 = np.einsum("pkmi,pmij,pkmj->pkm", nu, Sinv, nu)
-                    ll = -0.5 * d2 - 0.5 * np.log((2 * math.pi) ** 2 * detS)[:, None, :]
-                    ll = np.where(cvalid[:, None, :], ll, -np.inf)
+                        zp0, zp1, i00, i01, i10, i11, detS = _predict_and_inv(
+                            X, m_mu, m_S, off, R[0, 0], R[1, 1]
+                        )
+                    # innovations (P, K, M) per component
+                    nu0 = r[None, :, None] - zp0[:, None, :]
+                    nu1 = b[None, :, None] - zp1[:, None, :]
+                    _wrap_inplace(nu1)
+                    # d2 = nu^T S^-1 nu, summed in einsum's order (i outer, j inner)
+                    d2 = nu0 * i00[:, None, :] * nu0
+                    d2 += nu0 * i01[:, None, :] * nu1
+                    d2 += nu1 * i10[:, None, :] * nu0
+                    d2 += nu1 * i11[:, None, :] * nu1
+                    ll = -0.5 * d2
+                    ll -= 0.5 * np.log((2 * math.pi) ** 2 * detS)[:, None, :]
+                    ll[~np.broadcast_to(cvalid[:, None, :], ll.shape)] = -np.inf
                     jbest = np.argmax(ll, axis=2)  # (P, K)
                     ll_best = np.take_along_axis(ll, jbest[..., None], axis=2)[..., 0]
                     is_match = ll_best >= log_p0
@@ -313,7 +443,8 @@ class FastSlam:
                             Sm_inv, _ = _inv2(S[wp, wm])
                             HxT = np.swapaxes(Hx[wp, wm], 1, 2)
                             A = HxT @ Sm_inv @ Hx[wp, wm]
-                            bvec = np.einsum("nij,nj->ni", HxT @ Sm_inv, nu[wp, wk, wm])
+                            nu_w = np.column_stack((nu0[wp, wk, wm], nu1[wp, wk, wm]))
+                            bvec = np.einsum("nij,nj->ni", HxT @ Sm_inv, nu_w)
                             info = np.linalg.inv(Qw + 1e-12 * np.eye(3))
                             np.add.at(info, wp, A)
                             rhs = np.zeros((P, 3))
@@ -326,15 +457,7 @@ class FastSlam:
                             v2 = False  # sampled
                         # EKF update of the matched landmarks (unique (p, lm) pairs) at the
                         # (sampled) pose
-                        zs, _, Hs = range_bearing_jacobians(X[wp], mu[wp, lm], off)
-                        Ss = Sig[wp, lm]
-                        nus = z[wk] - zs
-                        nus[:, 1] = wrap_angle(nus[:, 1])
-                        Sinv_s, _ = _inv2(Hs @ Ss @ np.swapaxes(Hs, 1, 2) + R)
-                        Kg = Ss @ np.swapaxes(Hs, 1, 2) @ Sinv_s
-                        mu[wp, lm] = mu[wp, lm] + np.einsum("nij,nj->ni", Kg, nus)
-                        newS = (np.eye(2) - Kg @ Hs) @ Ss
-                        Sig[wp, lm] = 0.5 * (newS + np.swapaxes(newS, 1, 2))
+                        _ekf_update(mu, Sig, wp, lm, X[wp], z[wk], off, R[0, 0], R[1, 1])
                         nobs[wp, lm] += 1
                         tlast[wp, lm] = tf
                         dd = d[wk]
