@@ -300,20 +300,9 @@ class EkfSlam:
                         )
                         Hn = Hs[:, nz]
                         cols = sc[nz]
-                        n = self.n
-                        PHt = self.P[:n, cols] @ Hn.T  # (n, 2m)
-                        S = Hn @ PHt[cols] + np.kron(np.eye(mi.size), R1)
                         v = nu[mi, mj].reshape(-1)
-                        # S = L Lᵀ; W = P Hᵀ L⁻ᵀ; x += W L⁻¹ν; P -= W Wᵀ (exactly symmetric,
-                        # which keeps P positive semi-definite over thousands of updates)
-                        Lc = np.linalg.cholesky(0.5 * (S + S.T))
-                        W = solve_triangular(Lc, PHt.T, lower=True).T
-                        wv = solve_triangular(Lc, v, lower=True)
-                        nis_sum += float(wv @ wv)
+                        nis_sum += self._update(cols, Hn, v, np.kron(np.eye(mi.size), R1))
                         nis_dof += v.size
-                        self.x[:n] += W @ wv
-                        self.x[2] = (self.x[2] + math.pi) % (2 * math.pi) - math.pi
-                        self.P[:n, :n] -= W @ W.T
                         n_matched += mi.size
                         if cfg.merge_radius > 0 and mi.size > 1:
                             # landmarks matched in the same scan are different trees
@@ -475,17 +464,27 @@ class EkfSlam:
     def _fuse(self, ri: int, rj: int) -> None:
         """Constraint ``m_i - m_j = 0`` between the landmarks at rows ``ri``, ``rj`` (a
         noise-free pseudo-measurement; a 1 mm sigma keeps the Cholesky factor regular)."""
-        n = self.n
         cols = np.array([ri, ri + 1, rj, rj + 1])
         Hn = np.array([[1.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, -1.0]])
         v = -(self.x[[ri, ri + 1]] - self.x[[rj, rj + 1]])
-        PHt = self.P[:n, cols] @ Hn.T
-        S = Hn @ PHt[cols] + np.eye(2) * 1e-6
+        self._update(cols, Hn, v, np.eye(2) * 1e-6)
+
+    def _update(self, cols: np.ndarray, Hn: FloatArray, v: FloatArray, R: np.ndarray) -> float:
+        """Joint EKF update with ``H`` nonzero only in the state columns ``cols``; returns the NIS.
+
+        ``S = L Lᵀ``; ``W = P Hᵀ L⁻ᵀ``; ``x += W L⁻¹ν``; ``P -= W Wᵀ`` (exactly symmetric, which
+        keeps P positive semi-definite over thousands of updates). ``P Hᵀ`` is O(n·m).
+        """
+        n = self.n
+        PHt = self.P[:n, cols] @ Hn.T  # (n, 2m)
+        S = Hn @ PHt[cols] + R
         Lc = np.linalg.cholesky(0.5 * (S + S.T))
         W = solve_triangular(Lc, PHt.T, lower=True).T
-        self.x[:n] += W @ solve_triangular(Lc, v, lower=True)
+        wv = solve_triangular(Lc, v, lower=True)
+        self.x[:n] += W @ wv
         self.x[2] = (self.x[2] + math.pi) % (2 * math.pi) - math.pi
         self.P[:n, :n] -= W @ W.T
+        return float(wv @ wv)
 
     def _remove_landmarks(self, keep: np.ndarray) -> None:
         kept = 3 + 2 * np.flatnonzero(keep)
