@@ -1,4 +1,4 @@
-"""Point-cloud readers: LAS/LAZ (laspy, chunked), PLY (plyfile), PCD (pypcd4), XYZ text, ROS bags.
+"""Point-cloud readers: LAS/LAZ (laspy, chunked), PLY (our own), PCD (pypcd4), XYZ text, ROS bags.
 
 Every reader returns a :class:`stemmap.types.PointCloud` (xyz in metres, float64) and fails with
 :class:`stemmap.errors.InputError` naming the file and the problem (missing, empty, truncated,
@@ -7,9 +7,10 @@ wrong header, no x/y/z fields).
 LAS/LAZ files can be streamed with :func:`iter_las_chunks` so that a 20-million-point cloud never
 has to sit in memory at once; :func:`read_cloud` reads the whole file.
 
-PLY and PCD go through maintained third-party parsers (``plyfile``, ``pypcd4``), imported lazily
-so the rest of stemmap works without them; a missing parser is reported as an InputError that
-names the package to install.
+PLY is read by our own parser (:mod:`stemmap.io._ply`; the GPL-3 ``plyfile`` package cannot be
+a dependency of an MIT library). PCD goes through ``pypcd4``, imported lazily so the rest of
+stemmap works without it; a missing parser is reported as an InputError that names the package
+to install.
 """
 
 from __future__ import annotations
@@ -162,40 +163,36 @@ def read_las(path: PathLike, *, fields: tuple[str, ...] = _LAS_FIELDS) -> PointC
 def read_ply(path: PathLike) -> PointCloud:
     """Read the ``vertex`` element of a PLY file (ascii, binary little or big endian).
 
-    Uses the ``plyfile`` package. Properties other than x, y, z that have one value per vertex
-    are kept as fields (e.g. intensity, red/green/blue).
+    Our own reader of the PLY format (Turk 1994; see :mod:`stemmap.io._ply`): binary vertex
+    blocks are one structured ``np.fromfile``, ascii blocks one ``np.loadtxt``; elements before
+    the vertices (with list properties such as faces, too) are skipped, elements after them are
+    not read. Scalar vertex properties other than x, y, z are kept as fields in their declared
+    type (e.g. intensity, red/green/blue); list properties of the vertex element are dropped.
+
+    Raises
+    ------
+    InputError
+        Missing or empty file, malformed header (the message names the line), unsupported
+        format or type, no vertex element, no x/y/z, no vertices, a body shorter than its
+        header announces.
     """
+    from stemmap.io._ply import read_ply_vertices
+
     p = _check_file(path)
-    try:
-        from plyfile import PlyData
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise InputError(
-            f"reading {str(p)!r} needs the 'plyfile' package; "
-            "install it with `pip install plyfile`."
-        ) from exc
-    try:
-        ply = PlyData.read(str(p))
-        vertex = ply["vertex"]
-        data = vertex.data
-    except KeyError as exc:
-        raise InputError(f"PLY file {str(p)!r} has no 'vertex' element.") from exc
-    except Exception as exc:
-        raise InputError(f"{str(p)!r} is not a readable PLY file (truncated?): {exc}") from exc
-    names = data.dtype.names or ()
-    missing = [c for c in ("x", "y", "z") if c not in names]
+    cols, header = read_ply_vertices(p)
+    vertex = header.element("vertex")
+    assert vertex is not None  # read_ply_vertices refuses files without one
+    missing = [c for c in ("x", "y", "z") if c not in cols]
     if missing:
+        names = ", ".join(q.name for q in vertex.properties) or "none"
         raise InputError(
             f"PLY file {str(p)!r} vertex element lacks the coordinate(s) "
-            f"{', '.join(missing)}; it has {', '.join(names) or 'none'}."
+            f"{', '.join(missing)}; it has {names}."
         )
-    if len(data) == 0:
+    if vertex.count == 0:
         raise InputError(f"PLY file {str(p)!r} holds no vertices.")
-    xyz = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in ("x", "y", "z")])
-    fields = {
-        k: np.asarray(data[k])
-        for k in names
-        if k not in ("x", "y", "z") and np.asarray(data[k]).dtype != object
-    }
+    xyz = np.column_stack([cols[c].astype(np.float64, copy=False) for c in ("x", "y", "z")])
+    fields = {k: v for k, v in cols.items() if k not in ("x", "y", "z")}
     return _finish(xyz, p, fields)
 
 
@@ -387,8 +384,15 @@ def read_cloud(path: PathLike, *, topic: str | None = None) -> PointCloud:
 
 
 def count_points(path: PathLike) -> int | None:
-    """Number of points announced by a LAS/LAZ header (None for other formats)."""
+    """Number of points announced by a LAS/LAZ or PLY header (None for other formats)."""
     p = Path(path)
+    if p.suffix.lower() == ".ply":
+        from stemmap.io._ply import read_ply_header
+
+        _check_file(p)
+        with p.open("rb") as fh:
+            vertex = read_ply_header(fh, p).element("vertex")
+        return None if vertex is None else vertex.count
     if p.suffix.lower() not in (".las", ".laz"):
         return None
     import laspy
