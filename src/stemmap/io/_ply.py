@@ -24,14 +24,21 @@ import mmap
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import InputError
 
-__all__ = ["PlyElement", "PlyHeader", "PlyProperty", "read_ply_header", "read_ply_vertices"]
+__all__ = [
+    "PlyElement",
+    "PlyHeader",
+    "PlyProperty",
+    "PlyVertices",
+    "read_ply_header",
+    "read_ply_vertices",
+]
 
 #: PLY scalar type names -> numpy type codes (without byte order).
 PLY_TYPES: dict[str, str] = {
@@ -298,7 +305,12 @@ def _uniform_list_dtype(buf: Any, offset: int, elem: PlyElement, bo: str) -> np.
 
 
 def _binary_lists(
-    buf: Any, offset: int, elem: PlyElement, bo: str, path: Path, keep: bool
+    buf: Any,
+    offset: int,
+    elem: PlyElement,
+    bo: str,
+    path: Path,
+    keep: bool,
 ) -> tuple[int, dict[str, NDArray[Any]]]:
     """An element with list properties: fast path when all list lengths equal the first
     record's (triangle meshes), checked on a strided view; else the record-by-record walk."""
@@ -318,7 +330,37 @@ def _binary_lists(
     return _walk_binary(buf, offset, elem, bo, path, keep)
 
 
-def _read_binary(fh: BinaryIO, path: Path, header: PlyHeader) -> dict[str, NDArray[Any]]:
+class PlyVertices(NamedTuple):
+    """The decoded vertex element: ``xyz`` (N, 3) float64 (None without x, y and z), the other
+    scalar properties in native byte order and their declared types, and the header."""
+
+    xyz: NDArray[np.float64] | None
+    fields: dict[str, NDArray[Any]]
+    header: PlyHeader
+
+
+_XYZ = ("x", "y", "z")
+
+
+def _assemble(cols: Any, elem: PlyElement, header: PlyHeader) -> PlyVertices:
+    """Split columns (a structured record array, possibly a memory-mapped view, or a dict)
+    into the (N, 3) float64 coordinates and native-order copies of the other properties."""
+    names = {p.name for p in elem.properties if not p.is_list}
+    xyz = None
+    if all(c in names for c in _XYZ):
+        # one pass per column: byte swap and widening straight into the output
+        xyz = np.empty((elem.count, 3), dtype=np.float64)
+        for i, c in enumerate(_XYZ):
+            xyz[:, i] = cols[c]
+    fields = {
+        p.name: np.asarray(cols[p.name]).astype(p.dtype)
+        for p in elem.properties
+        if not p.is_list and (xyz is None or p.name not in _XYZ)
+    }
+    return PlyVertices(xyz, fields, header)
+
+
+def _read_binary(fh: BinaryIO, path: Path, header: PlyHeader) -> PlyVertices:
     bo = header.byte_order
     size = path.stat().st_size
     offset = header.data_offset
@@ -338,15 +380,19 @@ def _read_binary(fh: BinaryIO, path: Path, header: PlyHeader) -> dict[str, NDArr
             if not is_vertex:
                 offset += need
                 continue
-            fh.seek(offset)
-            rec = np.fromfile(fh, dtype=dt, count=elem.count)
-            return {p.name: rec[p.name].astype(p.dtype) for p in elem.properties}
+            # memory-mapped: the records come straight from the page cache, and only the
+            # columns we return are copied (one pass each, swapping and widening as needed)
+            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                rec = np.frombuffer(mm, dtype=dt, count=elem.count, offset=offset)
+                out = _assemble(rec, elem, header)
+                del rec
+            return out
         # list properties: needs the bytes (memory-mapped, not read)
         fh.seek(0)
         with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-            offset, cols = _binary_lists(mm, offset, elem, bo, path, keep=is_vertex)
+            offset, cols = _binary_lists(mm, offset, elem, bo, path, is_vertex)
         if is_vertex:
-            return cols
+            return _assemble(cols, elem, header)
     raise AssertionError("unreachable: the caller checked that a vertex element exists")
 
 
@@ -364,8 +410,8 @@ def _ascii_cast(path: Path, prop: PlyProperty, v: NDArray[np.float64]) -> NDArra
         if np.any(bad):
             k = int(np.argmax(bad))
             raise InputError(
-                f"PLY file {str(path)!r}: vertex {k} property {prop.name!r} is {float(v[k]):g}, not a "
-                f"{dt.name} value."
+                f"PLY file {str(path)!r}: vertex {k} property {prop.name!r} is "
+                f"{float(v[k]):g}, not a {dt.name} value."
             )
     return v.astype(dt)
 
@@ -419,8 +465,8 @@ def _read_ascii(fh: BinaryIO, path: Path, header: PlyHeader) -> dict[str, NDArra
                 )
             except ValueError as exc:
                 raise InputError(
-                    f"PLY file {str(path)!r}: the vertex block is malformed or truncated (each of its "
-                    f"{elem.count} lines needs {n} numbers): {exc}"
+                    f"PLY file {str(path)!r}: the vertex block is malformed or truncated (each "
+                    f"of its {elem.count} lines needs {n} numbers): {exc}"
                 ) from exc
             if arr.shape[0] < elem.count:
                 raise _truncated(path, elem, f"the file ends after {arr.shape[0]} of them")
@@ -440,9 +486,10 @@ def _read_ascii(fh: BinaryIO, path: Path, header: PlyHeader) -> dict[str, NDArra
     raise AssertionError("unreachable: the caller checked that a vertex element exists")
 
 
-def read_ply_vertices(path: Path) -> tuple[dict[str, NDArray[Any]], PlyHeader]:
-    """The scalar properties of the ``vertex`` element (native byte order, declared types)
-    and the header. List properties of the vertex element are skipped.
+def read_ply_vertices(path: Path) -> PlyVertices:
+    """The ``vertex`` element: coordinates as one (N, 3) float64 array, the other scalar
+    properties (native byte order, declared types), and the header. List properties of the
+    vertex element are skipped.
 
     Raises
     ------
@@ -459,7 +506,9 @@ def read_ply_vertices(path: Path) -> tuple[dict[str, NDArray[Any]], PlyHeader]:
                     f"PLY file {str(path)!r} has no 'vertex' element (its elements: {names})."
                 )
             if header.format == "ascii":
-                return _read_ascii(fh, path, header), header
-            return _read_binary(fh, path, header), header
+                vertex = header.element("vertex")
+                assert vertex is not None
+                return _assemble(_read_ascii(fh, path, header), vertex, header)
+            return _read_binary(fh, path, header)
     except OSError as exc:
         raise InputError(f"cannot read PLY file {str(path)!r}: {exc}.") from exc

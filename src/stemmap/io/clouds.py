@@ -59,7 +59,10 @@ def _check_file(path: PathLike) -> Path:
 
 def _finish(xyz: NDArray[Any], path: Path, fields: dict[str, NDArray[Any]]) -> PointCloud:
     xyz = np.asarray(xyz, dtype=np.float64)
-    finite = np.all(np.isfinite(xyz), axis=1)
+    finite_xyz = np.isfinite(xyz)
+    if finite_xyz.all():  # the usual case; a flat all() is ~8x faster than all(axis=1)
+        return PointCloud(xyz, frame=path.stem, fields=fields)
+    finite = finite_xyz[:, 0] & finite_xyz[:, 1] & finite_xyz[:, 2]
     if not np.all(finite):
         n_bad = int((~finite).sum())
         log.info("%s: dropping %d points with NaN/inf coordinates", path, n_bad)
@@ -179,20 +182,18 @@ def read_ply(path: PathLike) -> PointCloud:
     from stemmap.io._ply import read_ply_vertices
 
     p = _check_file(path)
-    cols, header = read_ply_vertices(p)
+    xyz, fields, header = read_ply_vertices(p)
     vertex = header.element("vertex")
     assert vertex is not None  # read_ply_vertices refuses files without one
-    missing = [c for c in ("x", "y", "z") if c not in cols]
-    if missing:
-        names = ", ".join(q.name for q in vertex.properties) or "none"
+    if xyz is None:
+        have = [q.name for q in vertex.properties if not q.is_list]
+        missing = [c for c in ("x", "y", "z") if c not in have]
         raise InputError(
             f"PLY file {str(p)!r} vertex element lacks the coordinate(s) "
-            f"{', '.join(missing)}; it has {names}."
+            f"{', '.join(missing)}; it has {', '.join(have) or 'none'}."
         )
     if vertex.count == 0:
         raise InputError(f"PLY file {str(p)!r} holds no vertices.")
-    xyz = np.column_stack([cols[c].astype(np.float64, copy=False) for c in ("x", "y", "z")])
-    fields = {k: v for k, v in cols.items() if k not in ("x", "y", "z")}
     return _finish(xyz, p, fields)
 
 
