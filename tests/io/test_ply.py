@@ -235,7 +235,7 @@ def test_non_ascii_header_and_binary_body_under_ascii(tmp_path: Path) -> None:
         read_ply(f)
     g = tmp_path / "wrong.ply"
     g.write_bytes(_GOOD_HEAD.replace("binary_little_endian", "ascii").encode() + b"\xff\xfe\x00")
-    with pytest.raises(InputError, match="non-ASCII|malformed"):
+    with pytest.raises(InputError, match=r"non-ASCII|malformed"):
         read_ply(g)
 
 

@@ -32,6 +32,7 @@ __all__ = [
     "count_points",
     "iter_cloud_chunks",
     "iter_las_chunks",
+    "point_fields",
     "read_cloud",
     "read_las",
     "read_pcd",
@@ -406,10 +407,43 @@ def count_points(path: PathLike) -> int | None:
         raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
 
 
-def iter_cloud_chunks(path: PathLike, chunk_size: int = 2_000_000) -> Iterator[PointCloud]:
-    """Stream any supported cloud: LAS/LAZ in chunks, other formats as one chunk."""
+def point_fields(path: PathLike) -> tuple[str, ...] | None:
+    """Names of the per-point fields a LAS/LAZ or PLY header declares (None for other formats,
+    whose fields are known only after reading). LAS names are laspy's dimension names
+    (``gps_time``, ``intensity``, extra bytes...); PLY names are the vertex's scalar properties.
+    """
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext == ".ply":
+        from stemmap.io._ply import read_ply_header
+
+        _check_file(p)
+        with p.open("rb") as fh:
+            vertex = read_ply_header(fh, p).element("vertex")
+        return () if vertex is None else tuple(q.name for q in vertex.properties if not q.is_list)
+    if ext not in (".las", ".laz"):
+        return None
+    import laspy
+
+    _check_file(p)
+    try:
+        with laspy.open(p) as reader:
+            return tuple(reader.header.point_format.dimension_names)
+    except Exception as exc:
+        raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
+
+
+def iter_cloud_chunks(
+    path: PathLike,
+    chunk_size: int = 2_000_000,
+    *,
+    fields: tuple[str, ...] = (),
+    topic: str | None = None,
+) -> Iterator[PointCloud]:
+    """Stream any supported cloud: LAS/LAZ in chunks (carrying the extra dimensions named in
+    ``fields``), other formats as one chunk (with all their fields; ``topic`` for bags)."""
     p = Path(path)
     if p.suffix.lower() in (".las", ".laz"):
-        yield from iter_las_chunks(p, chunk_size)
+        yield from iter_las_chunks(p, chunk_size, fields=fields)
     else:
-        yield read_cloud(p)
+        yield read_cloud(p, topic=topic)
