@@ -130,9 +130,11 @@ def stems(
     time stamps for a mobile cloud) the circle fits of preset ours minimise the range errors
     along each point's ray, which removes the low DBH bias of a noisy mobile lidar.
 
-    Examples: stemmap stems plot.laz --out stems.csv --png stems.png;
-    stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0;
-    stemmap stems station.ply --origin 12.5,3.0
+    Example: stemmap stems plot.laz --out stems.csv --png stems.png
+
+    Mobile: stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0
+
+    One station: stemmap stems station.ply --origin 12.5,3.0
     """
     from dataclasses import replace
 
