@@ -1,5 +1,6 @@
 """Benchmark: DBH of `stemmap stems` on a mobile-lidar LAS file with and without the sensor
-positions (--trajectory + the points' gps_time), through the command line.
+positions (--trajectory + the points' gps_time), through the command line; and the same
+detector in memory on the float64 and the 1-mm-rounded coordinates (what the LAS file holds).
 
 The stands, sensor and path are those of the ``mobile`` scenario of benchmarks/cloud_stems.py
 (30 trees in 25 x 25 m, VLP-16-like lidar with 3 cm range noise at 0.8 m, 60 revolutions along
@@ -27,11 +28,13 @@ import resource
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from stemmap.cloud.stems import detect_stems
 from stemmap.eval.matching import match_points
 from stemmap.sim.lidar import lidar_preset, random_stand3d, simulate_mobile
 
@@ -39,6 +42,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "cloud"))
 from cloud_files import point_times, vehicle_trajectory, write_las, write_trajectory
 
 GATE = 0.5  # m, as benchmarks/cloud_stems.py
+IN_MEMORY = (
+    "in_memory_float64_without",
+    "in_memory_float64_true_origins",
+    "in_memory_1mm_without",
+    "in_memory_1mm_true_origins",
+)
 LEVER = (1.2, -0.3)
 N_PATH = 60
 
@@ -79,12 +88,14 @@ def run(seeds: list[int]) -> dict[str, Any]:
             "of every other revolution, reference point offset from the scanner by "
             f"{LEVER} m (forward, left)",
             "match_gate_m": GATE,
-            "cpu": "user + system CPU of the `python -m stemmap stems` child processes",
+            "cpu": "CLI rows: user + system CPU of the `python -m stemmap stems` child "
+            "processes (whole command); in_memory rows: process CPU of detect_stems alone",
         }
     }
+    names = ("without", "with_trajectory", *IN_MEMORY)
     acc: dict[str, dict[str, list[Any]]] = {
         k: {"d": [], "p": [], "n_det": [], "n_match": [], "n_truth": [], "cpu": [], "n_pts": []}
-        for k in ("without", "with_trajectory")
+        for k in names
     }
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
@@ -99,10 +110,25 @@ def run(seeds: list[int]) -> dict[str, Any]:
                 "without": [],
                 "with_trajectory": ["--trajectory", str(traj), "--sensor-offset", "1.2,-0.3"],
             }
+            detections = {}
             for name, extra in runs.items():  # alternate within each stand
                 out = d / f"{name}{seed}.csv"
                 cpu = _cli(["stems", str(las), "--out", str(out), *extra])
-                xy, dia = _read(out)
+                detections[name] = (*_read(out), cpu)
+            # the same detector in memory, on the simulator's float64 coordinates and on
+            # them rounded to the LAS file's 1 mm, with and without the true sensor positions
+            origins = mob.poses[mob.cloud.fields["frame_index"], :3]
+            rounded = np.round(mob.cloud.xyz * 1000.0) / 1000.0
+            for name, (xyz, o) in {
+                "in_memory_float64_without": (mob.cloud.xyz, None),
+                "in_memory_float64_true_origins": (mob.cloud.xyz, origins),
+                "in_memory_1mm_without": (rounded, None),
+                "in_memory_1mm_true_origins": (rounded, origins),
+            }.items():
+                c0 = time.process_time()
+                det = detect_stems(xyz, origins=o)
+                detections[name] = (det.xy, det.diameter, time.process_time() - c0)
+            for name, (xy, dia, cpu) in detections.items():
                 m = match_points(xy, stand.trees_xy, GATE)
                 a = acc[name]
                 a["d"].append(dia[m.pairs[:, 0]] - stand.dbh[m.pairs[:, 1]])

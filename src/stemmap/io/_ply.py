@@ -342,9 +342,10 @@ class PlyVertices(NamedTuple):
 _XYZ = ("x", "y", "z")
 
 
-def _assemble(cols: Any, elem: PlyElement, header: PlyHeader) -> PlyVertices:
-    """Split columns (a structured record array, possibly a memory-mapped view, or a dict)
-    into the (N, 3) float64 coordinates and native-order copies of the other properties."""
+def _assemble(cols: Any, elem: PlyElement, header: PlyHeader, views: bool = False) -> PlyVertices:
+    """Split columns (a structured record array, possibly memory-mapped, or a dict) into the
+    (N, 3) float64 coordinates and the other properties in native byte order (copies, or with
+    ``views`` the columns themselves when they are native already)."""
     names = {p.name for p in elem.properties if not p.is_list}
     xyz = None
     if all(c in names for c in _XYZ):
@@ -352,11 +353,12 @@ def _assemble(cols: Any, elem: PlyElement, header: PlyHeader) -> PlyVertices:
         xyz = np.empty((elem.count, 3), dtype=np.float64)
         for i, c in enumerate(_XYZ):
             xyz[:, i] = cols[c]
-    fields = {
-        p.name: np.asarray(cols[p.name]).astype(p.dtype)
-        for p in elem.properties
-        if not p.is_list and (xyz is None or p.name not in _XYZ)
-    }
+    fields = {}
+    for p in elem.properties:
+        if p.is_list or (xyz is not None and p.name in _XYZ):
+            continue
+        col = np.asarray(cols[p.name])
+        fields[p.name] = col if views and col.dtype.isnative else col.astype(p.dtype)
     return PlyVertices(xyz, fields, header)
 
 
@@ -380,13 +382,14 @@ def _read_binary(fh: BinaryIO, path: Path, header: PlyHeader) -> PlyVertices:
             if not is_vertex:
                 offset += need
                 continue
-            # memory-mapped: the records come straight from the page cache, and only the
-            # columns we return are copied (one pass each, swapping and widening as needed)
-            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-                rec = np.frombuffer(mm, dtype=dt, count=elem.count, offset=offset)
-                out = _assemble(rec, elem, header)
-                del rec
-            return out
+            if elem.count == 0:
+                return _assemble(np.zeros(0, dtype=dt), elem, header)
+            # memory-mapped: the records come straight from the page cache; the coordinates
+            # are copied (swapped and widened in the same pass), the other columns stay views
+            # of the mapping when they are in native byte order (the caller copies them; the
+            # mapping closes when the last view goes)
+            rec = np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(elem.count,))
+            return _assemble(rec, elem, header, views=True)
         # list properties: needs the bytes (memory-mapped, not read)
         fh.seek(0)
         with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
