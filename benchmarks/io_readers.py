@@ -9,8 +9,9 @@ run rather than absolute numbers across runs).
     python benchmarks/io_readers.py --json [--scans 5000] [--beams 361] [--repeat 3]
     python benchmarks/io_readers.py --json --only-ply --ply-points 15000000
 
-The PLY section writes a binary little-endian file (x, y, z float32, intensity float32, red,
-green, blue uchar: 19-byte vertices, followed by a face element as in a mesh export) and reads it
+The PLY sections write a binary little-endian file, and a smaller ascii one (x, y, z float32,
+intensity float32, red, green, blue uchar: 19-byte vertices, then a face element as in a mesh
+export; ascii floats with 9 significant digits, exact for float32) and read each
 with stemmap's read_ply (our reader) and, when plyfile is installed (GPL-3, not a stemmap
 dependency; the comparison is skipped without it), with read_ply as it was before, on plyfile:
 the same PointCloud (xyz float64, the other properties as fields) from either. The two readers
@@ -61,16 +62,16 @@ def _median_time(fn: Callable[[], Any], repeat: int) -> float:
     return statistics.median(ts)
 
 
-def _write_ply(path: Path, n: int, rng: np.random.Generator) -> None:
-    """A binary little-endian PLY by hand (header per the spec, then packed records)."""
+def _write_ply(path: Path, n: int, rng: np.random.Generator, text: bool = False) -> None:
+    """A PLY by hand (header per the spec, then packed records or ascii lines)."""
     dt = np.dtype(
         [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")]
         + [(c, "u1") for c in ("red", "green", "blue")]
     )
     n_faces = 1000
     head = (
-        "ply\nformat binary_little_endian 1.0\ncomment stemmap benchmark\n"
-        f"element vertex {n}\n"
+        f"ply\nformat {'ascii' if text else 'binary_little_endian'} 1.0\n"
+        f"comment stemmap benchmark\nelement vertex {n}\n"
         + "".join(f"property float {c}\n" for c in ("x", "y", "z", "intensity"))
         + "".join(f"property uchar {c}\n" for c in ("red", "green", "blue"))
         + f"element face {n_faces}\nproperty list uchar int vertex_indices\nend_header\n"
@@ -86,11 +87,18 @@ def _write_ply(path: Path, n: int, rng: np.random.Generator) -> None:
                 rec[c] = rng.uniform(-50, 50, m)
             for c in ("red", "green", "blue"):
                 rec[c] = rng.integers(0, 256, m)
-            fh.write(rec.tobytes())
+            if text:
+                cols = np.column_stack([rec[c].astype(np.float64) for c in dt.names or ()])
+                np.savetxt(fh, cols, fmt=["%.9g"] * 4 + ["%d"] * 3)
+            else:
+                fh.write(rec.tobytes())
         faces = np.empty(n_faces, dtype=face)
         faces["n"] = 3
         faces["v"] = rng.integers(0, n, (n_faces, 3))
-        fh.write(faces.tobytes())
+        if text:
+            np.savetxt(fh, np.column_stack((faces["n"], faces["v"])), fmt="%d")
+        else:
+            fh.write(faces.tobytes())
 
 
 def _read_ply_via_plyfile(path: Path) -> Any:
@@ -106,8 +114,8 @@ def _read_ply_via_plyfile(path: Path) -> Any:
     return _finish(xyz, path, fields)
 
 
-def run_ply(n_points: int, repeat: int) -> dict[str, Any]:
-    """Read speed of our PLY reader vs plyfile on one binary file (alternating runs)."""
+def run_ply(n_points: int, repeat: int, text: bool = False) -> dict[str, Any]:
+    """Read speed of our PLY reader vs plyfile on one binary (or ascii) file, alternating."""
     try:
         import plyfile  # noqa: F401
     except ImportError:
@@ -118,7 +126,7 @@ def run_ply(n_points: int, repeat: int) -> dict[str, Any]:
     out: dict[str, Any] = {"n_points": n_points, "load_avg_start": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory() as tmp:
         p = Path(tmp) / "cloud.ply"
-        _write_ply(p, n_points, rng)
+        _write_ply(p, n_points, rng, text)
         out["file_mb"] = round(p.stat().st_size / 1e6, 1)
         readers: dict[str, Callable[[], Any]] = {"ours": lambda: read_ply(p)}
         if have_plyfile:
@@ -290,10 +298,12 @@ def main() -> None:
     ap.add_argument("--trees", type=int, default=5000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--ply-points", type=int, default=2_000_000)
+    ap.add_argument("--ply-ascii-points", type=int, default=500_000)
     ap.add_argument("--only-ply", action="store_true", help="run the PLY section only")
     a = ap.parse_args()
     res = {} if a.only_ply else run(a.scans, a.beams, a.bag_messages, a.points, a.trees, a.repeat)
     res["ply_read"] = run_ply(a.ply_points, a.repeat)
+    res["ply_read_ascii"] = run_ply(a.ply_ascii_points, a.repeat, text=True)
     print(json.dumps(res, indent=None if a.json else 2))
 
 
