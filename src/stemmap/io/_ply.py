@@ -13,8 +13,8 @@ Implements the PLY polygon file format as specified by Greg Turk, "The PLY Polyg
 
 Only the ``vertex`` element is decoded. Elements before it are skipped (list properties such as
 ``face`` too, which needs the list lengths); elements after it are not read at all. Binary
-vertex blocks are read with one ``np.fromfile`` into a structured dtype; ascii blocks with one
-``np.loadtxt`` call.
+vertex blocks are one packed structured dtype over the memory-mapped file (``np.memmap``);
+ascii blocks one ``np.loadtxt`` call.
 """
 
 from __future__ import annotations
@@ -382,8 +382,8 @@ def _read_binary(fh: BinaryIO, path: Path, header: PlyHeader) -> PlyVertices:
             if not is_vertex:
                 offset += need
                 continue
-            if elem.count == 0:
-                return _assemble(np.zeros(0, dtype=dt), elem, header)
+            if elem.count == 0 or dt.itemsize == 0:  # nothing to map
+                return _assemble(np.zeros(elem.count, dtype=dt), elem, header)
             # memory-mapped: the records come straight from the page cache; the coordinates
             # are copied (swapped and widened in the same pass), the other columns stay views
             # of the mapping when they are in native byte order (the caller copies them; the
@@ -492,7 +492,8 @@ def _read_ascii(fh: BinaryIO, path: Path, header: PlyHeader) -> dict[str, NDArra
 def read_ply_vertices(path: Path) -> PlyVertices:
     """The ``vertex`` element: coordinates as one (N, 3) float64 array, the other scalar
     properties (native byte order, declared types), and the header. List properties of the
-    vertex element are skipped.
+    vertex element are skipped. Properties of a binary file may be read-only views of the
+    memory-mapped file (copy what you keep: :func:`stemmap.io.clouds.read_ply` does).
 
     Raises
     ------

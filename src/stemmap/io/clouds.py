@@ -168,7 +168,8 @@ def read_ply(path: PathLike) -> PointCloud:
     """Read the ``vertex`` element of a PLY file (ascii, binary little or big endian).
 
     Our own reader of the PLY format (Turk 1994; see :mod:`stemmap.io._ply`): binary vertex
-    blocks are one structured ``np.fromfile``, ascii blocks one ``np.loadtxt``; elements before
+    blocks are one structured dtype over the memory-mapped file, ascii blocks one
+    ``np.loadtxt``; elements before
     the vertices (with list properties such as faces, too) are skipped, elements after them are
     not read. Scalar vertex properties other than x, y, z are kept as fields in their declared
     type (e.g. intensity, red/green/blue); list properties of the vertex element are dropped.
