@@ -363,3 +363,17 @@ def test_agrees_with_plyfile_on_a_mesh(tmp_path: Path, fmt: str) -> None:
     for c in ("red", "t"):
         np.testing.assert_array_equal(cloud.fields[c], theirs[c])
         assert cloud.fields[c].dtype == np.dtype(theirs[c].dtype).newbyteorder("=")
+
+
+def test_reading_does_not_need_plyfile(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """stemmap is MIT licensed and must not use the GPL-3 plyfile: with its import blocked,
+    PLY files of every format still read."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "plyfile", None)  # `import plyfile` now raises
+    with pytest.raises(ImportError):
+        import plyfile  # noqa: F401
+    for fmt in FORMATS:
+        f = tmp_path / f"{fmt}.ply"
+        write_ply(f, fmt, [("vertex", XYZ, [[1.0, 2.0, 3.0]]), ("face", [FACE], [[[0, 0, 0]]])])
+        np.testing.assert_array_equal(read_cloud(f).xyz, [[1.0, 2.0, 3.0]])
