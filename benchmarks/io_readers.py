@@ -1,4 +1,5 @@
-"""Reader / writer throughput: scans (NPZ, CSV, ROS1 / ROS2 bags), PointCloud2 decoding, maps.
+"""Reader / writer throughput: scans (NPZ, CSV, ROS1 / ROS2 bags), PointCloud2 decoding, maps,
+PLY point clouds.
 
 Prints one JSON object with --json. Every file is written to a temporary folder by stemmap's
 own writers (scans, maps) or rosbags' writers (bags), then read back; the times are wall-clock
@@ -6,6 +7,16 @@ medians of ``--repeat`` runs on one core (the machine may be shared: compare rat
 run rather than absolute numbers across runs).
 
     python benchmarks/io_readers.py --json [--scans 5000] [--beams 361] [--repeat 3]
+    python benchmarks/io_readers.py --json --only-ply --ply-points 15000000
+
+The PLY sections write a binary little-endian file, and a smaller ascii one (x, y, z float32,
+intensity float32, red, green, blue uchar: 19-byte vertices, then a face element as in a mesh
+export; ascii floats with 9 significant digits, exact for float32) and read each
+with stemmap's read_ply (our reader) and, when plyfile is installed (GPL-3, not a stemmap
+dependency; the comparison is skipped without it), with read_ply as it was before, on plyfile:
+the same PointCloud (xyz float64, the other properties as fields) from either. The two readers
+alternate; process CPU time and wall time are reported, with the load average at the start and
+end.
 """
 
 from __future__ import annotations
@@ -14,6 +25,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import statistics
 import struct
 import sys
@@ -34,6 +46,7 @@ from stemmap.io import (
     write_trees_csv,
     write_trees_geojson,
 )
+from stemmap.io.clouds import read_ply
 from stemmap.types import ScanBatch, StemMap, Tree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "io"))
@@ -47,6 +60,107 @@ def _median_time(fn: Callable[[], Any], repeat: int) -> float:
         fn()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts)
+
+
+def _write_ply(path: Path, n: int, rng: np.random.Generator, text: bool = False) -> None:
+    """A PLY by hand (header per the spec, then packed records or ascii lines)."""
+    dt = np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")]
+        + [(c, "u1") for c in ("red", "green", "blue")]
+    )
+    n_faces = 1000
+    head = (
+        f"ply\nformat {'ascii' if text else 'binary_little_endian'} 1.0\n"
+        f"comment stemmap benchmark\nelement vertex {n}\n"
+        + "".join(f"property float {c}\n" for c in ("x", "y", "z", "intensity"))
+        + "".join(f"property uchar {c}\n" for c in ("red", "green", "blue"))
+        + f"element face {n_faces}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    face = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
+    with path.open("wb") as fh:
+        fh.write(head.encode())
+        step = 2_000_000
+        for a in range(0, n, step):
+            m = min(step, n - a)
+            rec = np.empty(m, dtype=dt)
+            for c in ("x", "y", "z", "intensity"):
+                rec[c] = rng.uniform(-50, 50, m)
+            for c in ("red", "green", "blue"):
+                rec[c] = rng.integers(0, 256, m)
+            if text:
+                cols = np.column_stack([rec[c].astype(np.float64) for c in dt.names or ()])
+                np.savetxt(fh, cols, fmt=["%.9g"] * 4 + ["%d"] * 3)
+            else:
+                fh.write(rec.tobytes())
+        faces = np.empty(n_faces, dtype=face)
+        faces["n"] = 3
+        faces["v"] = rng.integers(0, n, (n_faces, 3))
+        if text:
+            np.savetxt(fh, np.column_stack((faces["n"], faces["v"])), fmt="%d")
+        else:
+            fh.write(faces.tobytes())
+
+
+def _read_ply_via_plyfile(path: Path) -> Any:
+    """stemmap's read_ply as it was before our reader (plyfile parse, the same PointCloud)."""
+    from plyfile import PlyData
+
+    from stemmap.io.clouds import _finish
+
+    data = PlyData.read(str(path))["vertex"].data
+    names = data.dtype.names or ()
+    xyz = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in ("x", "y", "z")])
+    fields = {k: np.asarray(data[k]) for k in names if k not in ("x", "y", "z")}
+    return _finish(xyz, path, fields)
+
+
+def run_ply(n_points: int, repeat: int, text: bool = False) -> dict[str, Any]:
+    """Read speed of our PLY reader vs plyfile on one binary (or ascii) file, alternating."""
+    try:
+        import plyfile  # noqa: F401
+    except ImportError:
+        have_plyfile = False
+    else:
+        have_plyfile = True
+    rng = np.random.default_rng(1)
+    out: dict[str, Any] = {"n_points": n_points, "load_avg_start": os.getloadavg()[0]}
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "cloud.ply"
+        _write_ply(p, n_points, rng, text)
+        out["file_mb"] = round(p.stat().st_size / 1e6, 1)
+        readers: dict[str, Callable[[], Any]] = {"ours": lambda: read_ply(p)}
+        if have_plyfile:
+            readers["plyfile"] = lambda: _read_ply_via_plyfile(p)
+        times: dict[str, dict[str, list[float]]] = {k: {"cpu": [], "wall": []} for k in readers}
+        ref: np.ndarray | None = None
+        for _ in range(repeat):
+            for name, fn in readers.items():  # alternate the readers within each round
+                c0, w0 = time.process_time(), time.perf_counter()
+                xyz = fn().xyz
+                times[name]["cpu"].append(time.process_time() - c0)
+                times[name]["wall"].append(time.perf_counter() - w0)
+                if ref is None:
+                    ref = xyz
+                elif not np.array_equal(ref, xyz):
+                    raise AssertionError(f"{name} read different coordinates")
+                del xyz
+        for name, t in times.items():
+            cpu, wall = statistics.median(t["cpu"]), statistics.median(t["wall"])
+            out[name] = {
+                "cpu_s": round(cpu, 3),
+                "wall_s": round(wall, 3),
+                "points_per_cpu_s": round(n_points / cpu),
+                "points_per_wall_s": round(n_points / wall),
+            }
+        if have_plyfile:
+            out["speedup_cpu_vs_plyfile"] = round(out["plyfile"]["cpu_s"] / out["ours"]["cpu_s"], 2)
+            out["speedup_wall_vs_plyfile"] = round(
+                out["plyfile"]["wall_s"] / out["ours"]["wall_s"], 2
+            )
+        else:
+            out["plyfile"] = "not installed: comparison skipped"
+    out["load_avg_end"] = os.getloadavg()[0]
+    return out
 
 
 def _scans(n_scans: int, n_beams: int, rng: np.random.Generator) -> ScanBatch:
@@ -183,8 +297,13 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--trees", type=int, default=5000)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--ply-points", type=int, default=2_000_000)
+    ap.add_argument("--ply-ascii-points", type=int, default=500_000)
+    ap.add_argument("--only-ply", action="store_true", help="run the PLY section only")
     a = ap.parse_args()
-    res = run(a.scans, a.beams, a.bag_messages, a.points, a.trees, a.repeat)
+    res = {} if a.only_ply else run(a.scans, a.beams, a.bag_messages, a.points, a.trees, a.repeat)
+    res["ply_read"] = run_ply(a.ply_points, a.repeat)
+    res["ply_read_ascii"] = run_ply(a.ply_ascii_points, a.repeat, text=True)
     print(json.dumps(res, indent=None if a.json else 2))
 
 

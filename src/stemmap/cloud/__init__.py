@@ -1,7 +1,8 @@
 """Stems and DBH from 3D lidar and terrestrial point clouds.
 
 * :func:`detect_stems` -- ours (ground model, multi-slice robust geometric fits, quality tests;
-  thresholds from the measured point spacing); :func:`detect_stems_file` streams LAS/LAZ.
+  thresholds from the measured point spacing); :func:`detect_stems_file` streams LAS/LAZ;
+  :class:`SensorPositions` (a station, or a trajectory + point times) for its along-ray fits.
 * :func:`detect_stems_munjer` + :func:`associate_proximity` -- EB-LiDAR (Munjer et al. 2025).
 * Building blocks: :mod:`~stemmap.cloud.filters` (pass-through, voxel grid, spacing),
   :mod:`~stemmap.cloud.cluster` (DBSCAN, grid components), :mod:`~stemmap.cloud.shape`
@@ -14,6 +15,7 @@ See docs/algorithms/cloud.md for the paper-to-function map and measured numbers.
 from stemmap.cloud.cluster import dbscan, grid_components
 from stemmap.cloud.filters import pass_through, point_spacing, voxel_downsample
 from stemmap.cloud.ground import GroundAccumulator, GroundModel, fit_ground, normalize_heights
+from stemmap.cloud.sensor import SensorPositions
 from stemmap.cloud.shape import arc_coverage_deg, cluster_covariances, pca_eccentricity
 from stemmap.cloud.stems import (
     PRESETS,
@@ -33,6 +35,7 @@ __all__ = [
     "GroundAccumulator",
     "GroundModel",
     "MunjerConfig",
+    "SensorPositions",
     "StemConfig",
     "arc_coverage_deg",
     "associate_proximity",

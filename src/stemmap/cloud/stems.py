@@ -17,7 +17,9 @@ Two methods, both returning a columnar :class:`CloudStems`:
   refined with residuals along the rays (:func:`_refine_along_rays`).
 
 :func:`detect_stems_file` streams a LAS/LAZ file in chunks (two passes: ground, then band), so
-a 20-million-point cloud is processed in bounded memory.
+a 20-million-point cloud is processed in bounded memory; with
+:class:`stemmap.cloud.sensor.SensorPositions` (a station, or a trajectory and the points' time
+stamps) it gets the along-ray refinement too.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from stemmap.cloud.cluster import dbscan
 from stemmap.cloud.filters import as_xyz, pass_through, voxel_downsample
 from stemmap.cloud.ground import GroundAccumulator, GroundModel
+from stemmap.cloud.sensor import SensorPositions
 from stemmap.cloud.shape import cluster_covariances, pca_eccentricity
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan.circle import fit_circles_batch
@@ -1340,24 +1343,51 @@ def detect_stems_file(
     *,
     chunk_size: int = 2_000_000,
     on_chunk: Callable[[int, int], None] | None = None,
+    sensor: SensorPositions | None = None,
+    topic: str | None = None,
 ) -> CloudStems:
     """Run a detector on a cloud file, streaming LAS/LAZ in chunks.
 
-    ``StemConfig`` (ours): pass 1 builds the ground raster (and z range), pass 2 keeps only the
-    slice band (and a canopy-height raster if heights are requested); memory is bounded by the
-    chunk size plus the band. ``MunjerConfig``: the cloud is read whole (a lidar frame is small).
+    ``StemConfig`` (ours) on LAS/LAZ: pass 1 builds the ground raster (and z range), pass 2
+    keeps only the slice band (and a canopy-height raster if heights are requested); memory is
+    bounded by the chunk size plus the band. Other formats (PLY, PCD, text, bags: ``topic``)
+    are read whole and go to :func:`detect_stems`. ``MunjerConfig``: the cloud is read whole
+    (a lidar frame is small).
+
+    ``sensor`` gives each point's sensor position (a station, or a trajectory interpolated at
+    the points' time stamps, :class:`stemmap.cloud.sensor.SensorPositions`) for the along-ray
+    refinement of the slice fits (``detect_stems(..., origins=)``). Only ``ours`` uses it:
+    with ``munjer2025`` or the Kasa fit it is a ConfigError rather than silently ignored.
 
     ``on_chunk(points_done, points_total)`` is called after each chunk of each pass (for a
     progress bar; ``points_total`` counts both passes).
     """
-    from stemmap.io.clouds import count_points, iter_cloud_chunks, read_cloud
+    from stemmap.io.clouds import count_points, iter_cloud_chunks, point_fields, read_cloud
 
     cfg = config or StemConfig()
-    if isinstance(cfg, MunjerConfig):
-        cloud = read_cloud(path)
+    src = repr(str(path))
+    if sensor is not None and (isinstance(cfg, MunjerConfig) or cfg.fit_method == "kasa"):
+        name = "munjer2025" if isinstance(cfg, MunjerConfig) else "the Kasa fit (ours_kasa)"
+        raise ConfigError(
+            f"sensor positions are used only by preset 'ours'; {name} has no along-ray "
+            "refinement. Drop the sensor positions or use preset 'ours'."
+        )
+    if isinstance(cfg, MunjerConfig) or Path(path).suffix.lower() not in (".las", ".laz"):
+        cloud = read_cloud(path, topic=topic)
         if on_chunk:
             on_chunk(len(cloud), len(cloud))
-        return detect_stems_munjer(cloud.xyz, cfg)
+        if isinstance(cfg, MunjerConfig):
+            return detect_stems_munjer(cloud.xyz, cfg)
+        origins = None
+        if sensor is not None:
+            times = None
+            if sensor.needs_time:
+                times = cloud.fields[sensor.pick_time_field(cloud.fields, src)]
+            origins = sensor.origins(len(cloud), times, src)
+        return detect_stems(cloud.xyz, cfg, origins=origins)
+    tfield: str | None = None
+    if sensor is not None and sensor.needs_time:
+        tfield = sensor.pick_time_field(point_fields(path) or (), src)
     total = count_points(path)
     done = 0
     acc = GroundAccumulator(cfg.ground_cell)
@@ -1375,14 +1405,14 @@ def detect_stems_file(
         if on_chunk:
             on_chunk(done, 2 * (total or n_total))
     if n_total == 0:
-        raise InputError(f"{str(path)!r} holds no points.")
+        raise InputError(f"{src} holds no points.")
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     cfg = _slice_setup(cfg, zmin, zmax, is_slice)
     ground = None if is_slice else acc.model()
     lo, hi = cfg.band
-    xs, hs, zs = [], [], []
+    xs, hs, zs, os_ = [], [], [], []
     canopy: dict[str, Any] = {}
-    for chunk in iter_cloud_chunks(path, chunk_size):
+    for chunk in iter_cloud_chunks(path, chunk_size, fields=(tfield,) if tfield else ()):
         xyz = chunk.xyz
         if ground is None:
             h = xyz[:, 2]
@@ -1394,9 +1424,18 @@ def detect_stems_file(
         xs.append(xyz[m, :2])
         hs.append(h[m])
         zs.append(xyz[m, 2])
+        if sensor is not None:  # only the band's points need a sensor position
+            times = None if tfield is None else chunk.fields[tfield][m]
+            os_.append(sensor.origins(int(m.sum()), times, src))
         done += xyz.shape[0]
         if on_chunk:
             on_chunk(done, 2 * n_total)
-    band = _Band(np.concatenate(xs), np.concatenate(hs), np.concatenate(zs), canopy)
+    band = _Band(
+        np.concatenate(xs),
+        np.concatenate(hs),
+        np.concatenate(zs),
+        canopy,
+        origins=np.concatenate(os_) if sensor is not None else None,
+    )
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
     return _stems_from_band(band, cfg, slice_cloud=is_slice)
