@@ -2,7 +2,7 @@
 
 simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 -> per-scan trunk detection (:class:`stemmap.scan.detect.ScanTrunkDetector`, default preset)
--> tree-landmark SLAM (default back-end EKF, ``--backend`` for the others) -> stem map + path
+-> tree-landmark SLAM (default back-end iSAM2, ``--backend`` for the others) -> stem map + path
 -> scored against the simulator's truth, written to ``--out``:
 
 * ``detections.csv`` -- every trunk seen in every scan (the ``stemmap detect`` format, sensor
@@ -29,10 +29,10 @@ from stemmap.cli._map import Backend, sim_problem, slam_metrics
 
 __all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
 
-#: Default SLAM back-end of the demo. EKF: on this simulated loop it closes the loop on every
-#: seed tried (seeds 1-6: trajectory RMSE 0.13-0.36 m, loop-closure error <= 0.09 m); iSAM2
-#: does as well on most seeds but not on all (seed 4: 0.63 m, loop 1.29 m; docs/algorithms/slam.md).
-DEMO_BACKEND = "ekf"
+#: Default SLAM back-end of the demo: ours, GTSAM iSAM2 with odometry self-calibration. On this
+#: simulated loop, seeds 1-6, trajectory RMSE 0.03-0.18 m and loop-closure error <= 0.13 m (EKF
+#: 0.12-0.32 m / <= 0.12 m; docs/algorithms/slam.md "Odometry self-calibration").
+DEMO_BACKEND = "isam2"
 
 #: The demo's stand, clutter, scanner and drive (every parameter declared, as the benchmarks do).
 DEMO_SCENARIO: dict[str, Any] = {
