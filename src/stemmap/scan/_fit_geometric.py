@@ -259,8 +259,14 @@ def _cost_and_normal(
     H: FloatArray,
     g: FloatArray,
     tmp: FloatArray,
+    cap: float,
 ) -> float:  # pragma: no cover - numba
     """Robust cost at (cx, cy, r) and the Gauss-Newton normal equations H, g (IRLS weights).
+
+    Returns early, with H and g unset, as soon as the partial cost exceeds ``cap`` (the cost
+    of the point a trial step would replace): every term is >= 0 and a rounded sum of
+    non-negative terms never decreases, so the full cost would exceed ``cap`` too and the
+    step is rejected either way (``cap = inf``: always the full evaluation).
 
     ``mdl`` = (1/sigma, t_lo, t_hi, 1/s_lo, 1/s_hi, footprint, i_lo, i_hi, range_model,
     use_sil): silhouette targets and inverse stds (0 = side unused), beam footprint (rad),
@@ -292,6 +298,8 @@ def _cost_and_normal(
                 c_m, w = _huber(m, robust)
                 cost += c_m
                 acc = _accumulate(acc, w, k0 * inv_sigma, k1 * inv_sigma, k2 * inv_sigma, m)
+            if cost > cap:
+                return cost
             continue
         dx = lx[i] - cx
         dy = ly[i] - cy
@@ -306,6 +314,8 @@ def _cost_and_normal(
         c_e, w = _huber(e, robust)
         cost += c_e
         acc = _accumulate(acc, w, j0, j1, -inv_sigma, e)
+        if cost > cap:
+            return cost
     if mdl[9] > 0.0:
         d2 = cx * cx + cy * cy
         dd = math.sqrt(d2)
@@ -392,7 +402,9 @@ def _lm(
     mg = wv[3]
     tmp = wv[6:8].reshape(-1)
     use_sil = mdl[9] > 0.0
-    cost = _cost_and_normal(lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, robust, H, g, tmp)
+    cost = _cost_and_normal(
+        lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, robust, H, g, tmp, math.inf
+    )
     lam = 1e-3
     it = 0
     for it in range(_MAX_ITER):
@@ -423,7 +435,7 @@ def _lm(
                 lam *= 10.0
                 continue
             new_cost = _cost_and_normal(
-                lx, ly, rho, ux, uy, keep, cx, cy, r, mdl, robust, Ht, gt, tmp
+                lx, ly, rho, ux, uy, keep, cx, cy, r, mdl, robust, Ht, gt, tmp, cost
             )
             if new_cost <= cost:
                 dp = abs(step[0]) + abs(step[1]) + abs(step[2])
