@@ -18,6 +18,15 @@ docs/algorithms/scan-detection.md, "Speed").
 Why: the numpy pipeline pays ~100 small array dispatches per call, which dominate the latency
 of a single scan (~1 ms) and a third of the batch time; the kernel touches each return a few
 times in cache and allocates nothing per scan on the common path.
+
+Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "ours", no
+first-echo footprint correction, no tilt compensation to apply. Everything else runs the numpy
+pipeline.
+
+Development note: numba's on-disk cache (``cache=True``) of this module does not notice edits
+to :mod:`stemmap.scan._fit_geometric` (the kernel links ``_fit_one`` in at compile time). After
+changing the fit, delete ``__pycache__/_detect_fast*.nb[ic]`` or touch this file, or the
+detector keeps running the old fit.
 """
 
 from __future__ import annotations
@@ -374,7 +383,7 @@ def _detect_kernel(
             tr0[j] = b0 <= first_beam
             tr1[j] = b1 >= last
         # ---- Segments.select(counts >= min_points): compact returns and table ----
-        ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, ns, min_points)
+        ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- single-point curvature (features.point_curvature, Zheng 2012 eq. 3) ----
         if pcur_on and ns > 0:
             for j in range(ns):
@@ -434,7 +443,7 @@ def _detect_kernel(
                     ns = ns2
                 else:
                     ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
-            ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, ns, min_points)
+            ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- segment features and filters (detect._filter, features.segment_features) ----
         nk = 0
         for j in range(ns):
@@ -634,32 +643,16 @@ def _select_min(
     pr: FloatArray,
     px: FloatArray,
     py: FloatArray,
+    keep: np.ndarray,
     ns: int,
     min_points: float,
 ) -> tuple[int, int]:  # pragma: no cover - numba
     """``Segments.select(counts >= min_points)`` in place: (segments, returns) left."""
-    nk = 0
-    w = 0
     for j in range(ns):
-        a = st[j]
-        b = sp[j]
-        if not (b - a >= min_points):
-            continue
-        start = w
-        for i in range(a, b):
-            pb[w] = pb[i]
-            pr[w] = pr[i]
-            px[w] = px[i]
-            py[w] = py[i]
-            w += 1
-        st[nk] = start
-        sp[nk] = w
-        oc0[nk] = oc0[j]
-        oc1[nk] = oc1[j]
-        tr0[nk] = tr0[j]
-        tr1[nk] = tr1[j]
-        nk += 1
-    return nk, w
+        big = sp[j] - st[j] >= min_points
+        for i in range(st[j], sp[j]):
+            keep[i] = big
+    return _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
 
 
 @njit(cache=True, error_model="numpy")

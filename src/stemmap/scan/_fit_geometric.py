@@ -10,6 +10,9 @@ iterations and accepted/rejected steps depend on its data, plus a 3x3 solve per 
 A padded (K, Nmax) numpy version would run the worst-case iteration count for every segment and
 pay ~40 array dispatches per iteration; the compiled loop fits a 10-point arc in a few
 microseconds (numbers in docs/algorithms/scan-fits.md).
+
+The detector's compiled pipeline (:mod:`stemmap.scan._detect_fast`) calls ``_fit_one``
+directly; numba's cache of that module does not notice edits here (see its docstring).
 """
 
 from __future__ import annotations
