@@ -210,6 +210,9 @@ def _detect_kernel(
     prm: FloatArray,
     chi2: FloatArray,
 ) -> tuple[FloatArray, np.ndarray, int]:  # pragma: no cover - numba
+    """The detector pipeline over every scan (see the module docstring and
+    :func:`detect_scans`). ``prm`` is unpacked below in :data:`PARAM_NAMES` order (keep the two
+    in step). Each block names the reference function whose expressions it repeats."""
     s_count, n = ranges.shape
     lo = prm[0]
     hi = prm[1]
