@@ -10,6 +10,9 @@ iterations and accepted/rejected steps depend on its data, plus a 3x3 solve per 
 A padded (K, Nmax) numpy version would run the worst-case iteration count for every segment and
 pay ~40 array dispatches per iteration; the compiled loop fits a 10-point arc in a few
 microseconds (numbers in docs/algorithms/scan-fits.md).
+
+The detector's compiled pipeline (:mod:`stemmap.scan._detect_fast`) calls ``_fit_one``
+directly; numba's cache of that module does not notice edits here (see its docstring).
 """
 
 from __future__ import annotations
@@ -96,19 +99,30 @@ def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _accumulate(
-    H: FloatArray, g: FloatArray, w: float, j0: float, j1: float, j2: float, e: float
-) -> None:  # pragma: no cover - numba
-    """Add one weighted residual e with Jacobian row (j0, j1, j2) to the upper triangle of H
-    and to g."""
-    H[0, 0] += w * j0 * j0
-    H[0, 1] += w * j0 * j1
-    H[0, 2] += w * j0 * j2
-    H[1, 1] += w * j1 * j1
-    H[1, 2] += w * j1 * j2
-    H[2, 2] += w * j2 * j2
-    g[0] += w * j0 * e
-    g[1] += w * j1 * e
-    g[2] += w * j2 * e
+    acc: tuple[float, float, float, float, float, float, float, float, float],
+    w: float,
+    j0: float,
+    j1: float,
+    j2: float,
+    e: float,
+) -> tuple[float, float, float, float, float, float, float, float, float]:  # pragma: no cover
+    """Add one weighted residual e with Jacobian row (j0, j1, j2) to the running sums
+    ``acc`` = (H00, H01, H02, H11, H12, H22, g0, g1, g2) of the upper triangle of H and of g.
+
+    The sums live in registers (a tuple) rather than in the H / g arrays: stores to an array
+    that may alias the inputs forced a load and store of all nine per return. The additions
+    happen in the same order, so the results are the same to the bit."""
+    return (
+        acc[0] + w * j0 * j0,
+        acc[1] + w * j0 * j1,
+        acc[2] + w * j0 * j2,
+        acc[3] + w * j1 * j1,
+        acc[4] + w * j1 * j2,
+        acc[5] + w * j2 * j2,
+        acc[6] + w * j0 * e,
+        acc[7] + w * j1 * e,
+        acc[8] + w * j2 * e,
+    )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -248,16 +262,21 @@ def _cost_and_normal(
     H: FloatArray,
     g: FloatArray,
     tmp: FloatArray,
+    cap: float,
 ) -> float:  # pragma: no cover - numba
     """Robust cost at (cx, cy, r) and the Gauss-Newton normal equations H, g (IRLS weights).
+
+    Returns early, with H and g unset, as soon as the partial cost exceeds ``cap`` (the cost
+    of the point a trial step would replace): every term is >= 0 and a rounded sum of
+    non-negative terms never decreases, so the full cost would exceed ``cap`` too and the
+    step is rejected either way (``cap = inf``: always the full evaluation).
 
     ``mdl`` = (1/sigma, t_lo, t_hi, 1/s_lo, 1/s_hi, footprint, i_lo, i_hi, range_model,
     use_sil): silhouette targets and inverse stds (0 = side unused), beam footprint (rad),
     indices of the lowest/highest-bearing returns (footprint-averaged in the range model) and
     whether residuals are ranges along the beams (1) or orthogonal distances (0). ``tmp``
     (>= 4) is scratch space."""
-    H[:, :] = 0.0
-    g[:] = 0.0
+    acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     cost = 0.0
     n = lx.shape[0]
     inv_sigma = mdl[0]
@@ -276,12 +295,14 @@ def _cost_and_normal(
             e *= inv_sigma
             c_e, w = _huber(e, robust)
             cost += c_e
-            _accumulate(H, g, w, j0 * inv_sigma, j1 * inv_sigma, j2 * inv_sigma, e)
+            acc = _accumulate(acc, w, j0 * inv_sigma, j1 * inv_sigma, j2 * inv_sigma, e)
             if m > 0.0:
                 m *= inv_sigma
                 c_m, w = _huber(m, robust)
                 cost += c_m
-                _accumulate(H, g, w, k0 * inv_sigma, k1 * inv_sigma, k2 * inv_sigma, m)
+                acc = _accumulate(acc, w, k0 * inv_sigma, k1 * inv_sigma, k2 * inv_sigma, m)
+            if cost > cap:
+                return cost
             continue
         dx = lx[i] - cx
         dy = ly[i] - cy
@@ -295,7 +316,9 @@ def _cost_and_normal(
             j1 = 0.0
         c_e, w = _huber(e, robust)
         cost += c_e
-        _accumulate(H, g, w, j0, j1, -inv_sigma, e)
+        acc = _accumulate(acc, w, j0, j1, -inv_sigma, e)
+        if cost > cap:
+            return cost
     if mdl[9] > 0.0:
         d2 = cx * cx + cy * cy
         dd = math.sqrt(d2)
@@ -316,18 +339,26 @@ def _cost_and_normal(
                 continue
             e = (beta + sgn * alpha - target) * inv_sang
             cost += 0.5 * e * e
-            _accumulate(
-                H,
-                g,
+            acc = _accumulate(
+                acc,
                 1.0,
                 (b0 + sgn * a0) * inv_sang,
                 (b1 + sgn * a1) * inv_sang,
                 (sgn * a2) * inv_sang,
                 e,
             )
-    H[1, 0] = H[0, 1]
-    H[2, 0] = H[0, 2]
-    H[2, 1] = H[1, 2]
+    H[0, 0] = acc[0]
+    H[0, 1] = acc[1]
+    H[0, 2] = acc[2]
+    H[1, 0] = acc[1]
+    H[1, 1] = acc[3]
+    H[1, 2] = acc[4]
+    H[2, 0] = acc[2]
+    H[2, 1] = acc[4]
+    H[2, 2] = acc[5]
+    g[0] = acc[6]
+    g[1] = acc[7]
+    g[2] = acc[8]
     return cost
 
 
@@ -363,7 +394,8 @@ def _lm(
     """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations).
 
     ``mdl``: see :func:`_cost_and_normal`. ``ws3`` (>= 3, 3, 3) and ``wv`` (>= 6, 3) are
-    scratch space (no allocation per call)."""
+    scratch space (no allocation per call). On return ``ws3[0]`` and ``wv[0]`` hold the
+    normal equations H, g at the returned ``p`` (every exit leaves H paired with p)."""
     H = ws3[0]
     Hn = ws3[1]
     Ht = ws3[2]
@@ -373,7 +405,9 @@ def _lm(
     mg = wv[3]
     tmp = wv[6:8].reshape(-1)
     use_sil = mdl[9] > 0.0
-    cost = _cost_and_normal(lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, robust, H, g, tmp)
+    cost = _cost_and_normal(
+        lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, robust, H, g, tmp, math.inf
+    )
     lam = 1e-3
     it = 0
     for it in range(_MAX_ITER):
@@ -404,7 +438,7 @@ def _lm(
                 lam *= 10.0
                 continue
             new_cost = _cost_and_normal(
-                lx, ly, rho, ux, uy, keep, cx, cy, r, mdl, robust, Ht, gt, tmp
+                lx, ly, rho, ux, uy, keep, cx, cy, r, mdl, robust, Ht, gt, tmp, cost
             )
             if new_cost <= cost:
                 dp = abs(step[0]) + abs(step[1]) + abs(step[2])
@@ -650,9 +684,9 @@ def _fit_one(
     if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
         return COLLINEAR
     # ---- covariance from the final (robustly weighted) Gauss-Newton Hessian ----
-    H = ws3[3]
-    g = wv[5]
-    _cost_and_normal(lx, ly, rho, ux, uy, keep, p[0], p[1], p[2], mdl, True, H, g, tmp)
+    # the last _lm left the normal equations at the returned p in ws3[0] (same p, mdl, keep,
+    # robust weights as a fresh _cost_and_normal: the identical numbers, one pass saved)
+    H = ws3[0]
     C = ws3[4]
     if not _inv3(H, C):
         C[:, :] = np.nan

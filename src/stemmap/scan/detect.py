@@ -16,17 +16,21 @@ docs/algorithms/scan-detection.md.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
+from scipy.special import chdtri
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
+from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
 from stemmap.scan.features import (
+    _chi2_upper,
     edge_silhouette,
     footprint_correct,
     is_straight,
@@ -37,6 +41,7 @@ from stemmap.scan.features import (
     segment_widths,
 )
 from stemmap.scan.preprocess import (
+    check_gate,
     fov_window,
     gate_ranges,
     median_filter3,
@@ -568,6 +573,65 @@ def _fit_segments(
 # ----------------------------------------------------------------------------------------------
 
 
+class _BeamGeometry(NamedTuple):
+    """What a scan's beam layout and the field of view make of its beams (shared by every
+    scan of one sensor, so it is computed once: :func:`_beam_geometry`)."""
+
+    angles: FloatArray  # (N,) radians
+    cos: FloatArray  # np.cos / np.sin of the angles (the compiled path's return coordinates)
+    sin: FloatArray
+    inside: NDArray[np.bool_]  # (N,) beams inside the field of view
+    first_beam: int  # first / last beam of the field of view; -1 / N for a 360 deg scan
+    last_beam: int
+    wrap: bool  # 360 deg scan: beam 0 and beam N-1 are neighbours
+
+
+@functools.lru_cache(maxsize=64)
+def _beam_geometry(
+    n: int, angle_min: float, angle_increment: float, fov_deg: tuple[float, float] | None
+) -> _BeamGeometry:
+    angles = angle_min + angle_increment * np.arange(n, dtype=np.float64)
+    first_beam, last_beam, wrap = 0, n - 1, False
+    if fov_deg is not None:
+        a_lo, a_hi = math.radians(fov_deg[0]), math.radians(fov_deg[1])
+        wa = wrap_angle(angles)
+        inside = (wa >= a_lo) & (wa <= a_hi)
+        idx = np.flatnonzero(inside)
+        if idx.size == 0:
+            raise ConfigError(f"field of view {fov_deg} deg contains none of the scan's beams.")
+        first_beam, last_beam = int(idx[0]), int(idx[-1])
+    else:
+        inside = np.ones(n, dtype=bool)
+        if abs(n * angle_increment) >= 2 * math.pi - 0.5 * abs(angle_increment):
+            first_beam, last_beam, wrap = -1, n, True  # no field-of-view edge: never truncated
+    geo = _BeamGeometry(angles, np.cos(angles), np.sin(angles), inside, first_beam, last_beam, wrap)
+    for a in (geo.angles, geo.cos, geo.sin, geo.inside):
+        a.setflags(write=False)
+    return geo
+
+
+@functools.lru_cache(maxsize=8)
+def _chi2_table(n_beams: int) -> FloatArray:
+    """Upper 1 % chi-square quantiles (``is_straight``'s default alpha) for 0..max(1023, N)
+    degrees of freedom: a segment has at most N returns."""
+    base = _chi2_upper(0.01)
+    if n_beams < base.shape[0]:
+        return base
+    extra = chdtri(np.arange(base.shape[0], n_beams + 1, dtype=np.float64), 0.01)
+    out: FloatArray = np.concatenate((base, extra))
+    out.setflags(write=False)
+    return out
+
+
+def _as_scans(ranges: ArrayLike) -> FloatArray:
+    r = np.asarray(ranges, dtype=np.float64)
+    if r.ndim == 1:
+        r = r[None, :]
+    if r.ndim != 2 or r.shape[1] == 0:
+        raise InputError(f"ranges must have shape (S, N) with N > 0, got {r.shape}.")
+    return r
+
+
 class ScanTrunkDetector:
     """Detect trunks in 2D laser scans.
 
@@ -602,6 +666,7 @@ class ScanTrunkDetector:
         if not isinstance(config, DetectorConfig):
             raise ConfigError(f"config must be a DetectorConfig or preset name, got {config!r}.")
         self.config = config
+        self._params_cache: dict[tuple[Any, ...], FloatArray] = {}
 
     @classmethod
     def from_preset(cls, name: str, **overrides: Any) -> ScanTrunkDetector:
@@ -717,29 +782,15 @@ class ScanTrunkDetector:
         """:meth:`candidates` plus the processed range grid the returns came from and whether
         its beams wrap around (360-degree scan)."""
         cfg = self.config
-        r = np.asarray(ranges, dtype=np.float64)
-        if r.ndim == 1:
-            r = r[None, :]
-        if r.ndim != 2 or r.shape[1] == 0:
-            raise InputError(f"ranges must have shape (S, N) with N > 0, got {r.shape}.")
+        r = _as_scans(ranges)
         n = r.shape[1]
-        angles = angle_min + angle_increment * np.arange(n, dtype=np.float64)
-        lo = cfg.range_min if cfg.range_min is not None else range_min
-        hi = cfg.range_max if cfg.range_max is not None else range_max
-        hi = min(hi, range_max)
-        lo = max(lo, range_min)
+        geo = _beam_geometry(n, angle_min, angle_increment, cfg.fov_deg)
+        angles = geo.angles
+        lo, hi = self._gate(range_min, range_max)
         r = gate_ranges(r, lo, hi)
-        first_beam, last_beam = 0, n - 1
-        wrap = False
         if cfg.fov_deg is not None:
             a_lo, a_hi = math.radians(cfg.fov_deg[0]), math.radians(cfg.fov_deg[1])
             r = fov_window(r, wrap_angle(angles), a_lo, a_hi)
-            inside = np.flatnonzero((wrap_angle(angles) >= a_lo) & (wrap_angle(angles) <= a_hi))
-            if inside.size == 0:
-                raise ConfigError(
-                    f"field of view {cfg.fov_deg} deg contains none of the scan's beams."
-                )
-            first_beam, last_beam = int(inside[0]), int(inside[-1])
         bearing: FloatArray = angles
         if roll is not None or pitch is not None:
             rr = 0.0 if roll is None else roll
@@ -750,15 +801,12 @@ class ScanTrunkDetector:
                 r, bearing, _ = project_tilted(r, angles, rr, pp)
         if cfg.median_filter:
             r = median_filter3(r)
-        if cfg.fov_deg is None and abs(n * angle_increment) >= 2 * math.pi - 0.5 * abs(
-            angle_increment
-        ):
+        first_beam, last_beam, wrap = geo.first_beam, geo.last_beam, geo.wrap
+        if wrap:
             # 360 deg scan: beam 0 and beam N-1 are neighbours; cut where nothing straddles
             shift = seam_shift(r)
             r = roll_beams(r, shift)
             bearing = roll_beams(bearing, shift)
-            first_beam, last_beam = -1, n  # no field-of-view edge: never truncated
-            wrap = True
         pts = extract_points(r, bearing, angle_increment)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
@@ -815,6 +863,20 @@ class ScanTrunkDetector:
             keep &= ~segs.partial
         return segs.select(keep)
 
+    def _gate(self, range_min: float, range_max: float) -> tuple[float, float]:
+        """The range gate: the config's limits within the scan's own."""
+        cfg = self.config
+        lo = cfg.range_min if cfg.range_min is not None else range_min
+        hi = cfg.range_max if cfg.range_max is not None else range_max
+        return max(lo, range_min), min(hi, range_max)
+
+    def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
+        """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
+        fit, no footprint correction, no tilt compensation to apply."""
+        cfg = self.config
+        no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
+        return cfg.fit_method == "ours" and cfg.beam_footprint_deg == 0 and no_tilt
+
     def _run(
         self,
         ranges: ArrayLike,
@@ -827,6 +889,138 @@ class ScanTrunkDetector:
         roll: ArrayLike | None,
         pitch: ArrayLike | None,
     ) -> StemObservations:
+        if self._compiled(roll, pitch):
+            return self._run_compiled(
+                ranges, times, angle_min, angle_increment, range_min, range_max, frame
+            )
+        return self._run_numpy(
+            ranges, times, angle_min, angle_increment, range_min, range_max, frame, roll, pitch
+        )
+
+    def _kernel_params(self, geo: _BeamGeometry, lo: float, hi: float, inc: float) -> FloatArray:
+        """The config as the compiled kernel's parameter vector (``_detect_fast.PARAM_NAMES``);
+        cached per scan layout."""
+        key = (self.config, lo, hi, inc, geo.first_beam, geo.last_beam, geo.wrap)
+        cached = self._params_cache.get(key)
+        if cached is not None:
+            return cached
+        cfg = self.config
+        # decisions the numpy path takes per batch, resolved once: the chi-square straightness
+        # test and the fit's given sigma need sigma + sigma_rel * mean range > 0, which holds
+        # for every segment exactly when sigma > 0 or sigma_rel > 0 (ranges are > 0)
+        sigma_pos = cfg.sigma > 0 or cfg.sigma_rel > 0
+        divergence = math.radians(cfg.beam_divergence_deg)
+        values: dict[str, float] = {
+            "lo": lo,
+            "hi": hi,
+            "median": cfg.median_filter,
+            "wrap": geo.wrap,
+            "first_beam": geo.first_beam,
+            "last_beam": geo.last_beam,
+            "euclidean": cfg.segmentation == "euclidean",
+            "max_jump": cfg.max_jump,
+            "range_factor": cfg.range_factor,
+            "max_skip": cfg.max_skip,
+            "occlusion_margin": cfg.occlusion_margin,
+            "pcur_on": cfg.point_curvature_min is not None,
+            "pcur_min": cfg.point_curvature_min or 0.0,
+            "rmed_on": cfg.radius_median is not None,
+            "rmed": cfg.radius_median or 0.0,
+            "split": cfg.split_merged,
+            "min_points": cfg.min_points,
+            "min_points_partial": cfg.min_points_partial,
+            "max_points": math.inf if cfg.max_points is None else cfg.max_points,
+            "min_width": cfg.min_width,
+            "max_width": cfg.max_width,
+            "min_depth": cfg.min_depth,
+            "min_curvature": cfg.min_curvature,
+            "max_curvature": cfg.max_curvature,
+            "reject_straight": cfg.reject_straight,
+            "straight_chi2": cfg.straight_test == "chi2" and sigma_pos,
+            "straight_ratio": cfg.straight_ratio,
+            "straight_min_points": cfg.straight_min_points,
+            "drop_partial": cfg.drop_partial,
+            "sigma": cfg.sigma,
+            "sigma_rel": cfg.sigma_rel,
+            "fit_sigma_given": sigma_pos,
+            "min_radius": cfg.min_radius,
+            "max_radius": cfg.max_radius,
+            "max_radius_width_ratio": cfg.max_radius_width_ratio,
+            "max_rms_sigma": cfg.max_rms_sigma,
+            "divergence": divergence,
+            "use_silhouette": cfg.neighbour_silhouette and divergence > 0,
+            "range_model": _circle._check_residuals(cfg.fit_residuals),
+            "angle_increment": inc,
+        }
+        prm = np.empty(N_PARAMS)
+        for name, v in values.items():
+            prm[PARAM_INDEX[name]] = float(v)
+        prm.setflags(write=False)
+        self._params_cache[key] = prm
+        return prm
+
+    def _run_compiled(
+        self,
+        ranges: ArrayLike,
+        times: FloatArray,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float,
+        range_max: float,
+        frame: str,
+    ) -> StemObservations:
+        """:meth:`_run_numpy` in one compiled pass (:mod:`stemmap.scan._detect_fast`); same
+        results (tests/scan/test_detect_fast.py)."""
+        r = _as_scans(ranges)
+        n = r.shape[1]
+        if angle_increment == 0.0 or not math.isfinite(angle_increment):
+            raise InputError(f"angle_increment must be finite and non-zero, got {angle_increment}.")
+        geo = _beam_geometry(n, angle_min, angle_increment, self.config.fov_deg)
+        lo, hi = self._gate(range_min, range_max)
+        check_gate(lo, hi)
+        prm = self._kernel_params(geo, lo, hi, float(angle_increment))
+        # read-only view: every input of the kernel is read-only, so one compiled
+        # specialisation serves writable and frozen (LaserScan / ScanBatch) ranges alike
+        rv = np.ascontiguousarray(r).view()
+        rv.setflags(write=False)
+        rows, scan_idx, n_cand = detect_scans(rv, geo.cos, geo.sin, geo.inside, prm, _chi2_table(n))
+        log.debug(
+            "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
+            len(times),
+            n_cand,
+            rows.shape[0],
+            self.source,
+        )
+        if rows.shape[0] == 0:
+            return StemObservations.empty(source=self.source, frame=frame)
+        return StemObservations(
+            centers=rows[:, 0:2],
+            radii=rows[:, 2],
+            covs=rows[:, 3:12],
+            n_points=rows[:, 15].astype(np.int64),
+            arc_deg=rows[:, 12],
+            widths=rows[:, 13],
+            quality=rows[:, 14],
+            index=scan_idx,
+            times=np.asarray(times)[scan_idx],
+            source=self.source,
+            frame=frame,
+        )
+
+    def _run_numpy(
+        self,
+        ranges: ArrayLike,
+        times: FloatArray,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float,
+        range_max: float,
+        frame: str,
+        roll: ArrayLike | None,
+        pitch: ArrayLike | None,
+    ) -> StemObservations:
+        """The pipeline step by step through the named functions of the preprocess, segment,
+        features and circle modules (the reference the compiled path is tested against)."""
         cfg = self.config
         segs, grid, wrap = self._candidates(
             ranges, angle_min, angle_increment, range_min, range_max, roll, pitch

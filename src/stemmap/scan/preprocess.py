@@ -28,6 +28,7 @@ from stemmap.types import FloatArray
 
 __all__ = [
     "as_ranges",
+    "check_gate",
     "fov_window",
     "gate_ranges",
     "median_filter3",
@@ -55,6 +56,14 @@ def as_ranges(ranges: ArrayLike, name: str = "ranges") -> FloatArray:
     return r
 
 
+def check_gate(range_min: float, range_max: float) -> None:
+    """Raise ConfigError unless ``0 <= range_min < range_max`` (the gate of :func:`gate_ranges`)."""
+    if not (range_min >= 0.0 and range_max > range_min):
+        raise ConfigError(
+            f"range gate must satisfy 0 <= range_min < range_max, got [{range_min}, {range_max}]."
+        )
+
+
 def gate_ranges(
     ranges: ArrayLike, range_min: float = 0.0, range_max: float = math.inf
 ) -> FloatArray:
@@ -79,10 +88,7 @@ def gate_ranges(
     >>> gate_ranges([0.01, 1.0, 9.0, np.inf], 0.05, 8.0).tolist()
     [nan, 1.0, nan, nan]
     """
-    if not (range_min >= 0.0 and range_max > range_min):
-        raise ConfigError(
-            f"range gate must satisfy 0 <= range_min < range_max, got [{range_min}, {range_max}]."
-        )
+    check_gate(range_min, range_max)
     r = as_ranges(ranges)
     with np.errstate(invalid="ignore"):
         bad = ~((r > range_min) & (r < range_max))

@@ -1,0 +1,776 @@
+"""Compiled single-pass version of :class:`~stemmap.scan.detect.ScanTrunkDetector`'s pipeline.
+
+One numba kernel runs, scan by scan, every step the detector otherwise runs as a chain of
+vectorised numpy functions: range gate and field-of-view window, three-neighbour median filter
+(Xue et al. 2018 §2.2), 360-degree seam cut, point extraction, range-jump (Zheng et al. 2012
+eq. 2) or adaptive Euclidean segmentation, occlusion flags, single-point curvature filter
+(Zheng eq. 3), radius median filter with optional splitting (visual-lidar paper 2023 §2.3),
+segment features and filters (Xue eq. 12 width, Zheng §3.2 depth and curvature, chi-square
+straightness test), the edge-silhouette priors, the "ours" circle fit (the same compiled
+``_fit_one`` of :mod:`stemmap.scan._fit_geometric`), the plausibility checks, arc extent and
+quality. The named pure functions in :mod:`~stemmap.scan.preprocess`,
+:mod:`~stemmap.scan.segment` and :mod:`~stemmap.scan.features` remain the reference: this
+kernel evaluates the same expressions in the same order, and every per-segment sum replicates
+numpy's pairwise summation of ``np.add.reduceat`` (:func:`_seg_sum`), so its results equal the
+reference pipeline's bit for bit on this machine (tests/scan/test_detect_fast.py compares them;
+docs/algorithms/scan-detection.md, "Speed").
+
+Why: the numpy pipeline pays ~100 small array dispatches per call, which dominate the latency
+of a single scan (~1 ms) and a third of the batch time; the kernel touches each return a few
+times in cache and allocates nothing per scan on the common path.
+
+Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "ours", no
+first-echo footprint correction, no tilt compensation to apply. Everything else runs the numpy
+pipeline.
+
+Development note: numba's on-disk cache (``cache=True``) of this module does not notice edits
+to :mod:`stemmap.scan._fit_geometric` (the kernel links ``_fit_one`` in at compile time). After
+changing the fit, delete ``__pycache__/_detect_fast*.nb[ic]`` or touch this file, or the
+detector keeps running the old fit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from stemmap.scan._fit_geometric import OK, _fit_one
+from stemmap.scan.features import MIXED_FRACTION_STD
+from stemmap.types import FloatArray
+
+__all__ = ["N_PARAMS", "PARAM_INDEX", "detect_scans"]
+
+#: Names of the entries of the kernel's parameter vector, in order (see ``detect.py``).
+PARAM_NAMES = (
+    "lo",  # range gate, exclusive, metres
+    "hi",
+    "median",  # 1: three-neighbour median filter
+    "wrap",  # 1: 360-degree scan, cut at the seam
+    "first_beam",  # first / last beam of the field of view (-1 / N when wrapping)
+    "last_beam",
+    "euclidean",  # 1: Euclidean segmentation, 0: range jump
+    "max_jump",
+    "range_factor",
+    "max_skip",
+    "occlusion_margin",
+    "pcur_on",  # single-point curvature filter
+    "pcur_min",
+    "rmed_on",  # radius median filter
+    "rmed",
+    "split",  # split_merged
+    "min_points",
+    "min_points_partial",
+    "max_points",  # inf = none
+    "min_width",
+    "max_width",
+    "min_depth",
+    "min_curvature",
+    "max_curvature",
+    "reject_straight",
+    "straight_chi2",  # 1: chi-square test, 0: residual/width ratio
+    "straight_ratio",
+    "straight_min_points",
+    "drop_partial",
+    "sigma",
+    "sigma_rel",
+    "fit_sigma_given",  # 1: pass the per-segment sigma to the fit, 0: let it estimate
+    "min_radius",
+    "max_radius",
+    "max_radius_width_ratio",
+    "max_rms_sigma",
+    "divergence",  # radians, full footprint of an averaging scanner
+    "use_silhouette",  # 1: priors from the beams beyond each end
+    "range_model",  # 1: range residuals, 0: orthogonal
+    "angle_increment",  # signed, radians
+)
+PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
+N_PARAMS = len(PARAM_NAMES)
+
+#: Output columns of the kernel, one row per detection.
+OUT_COLUMNS = 16  # cx, cy, r, cov (9, row-major over cx, cy, r), arc_deg, width, quality, n
+_RAD2DEG = 180.0 / math.pi
+_SQRT12 = math.sqrt(12.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _pairwise(a: FloatArray, lo: int, n: int) -> float:  # pragma: no cover - numba
+    """numpy's pairwise summation of ``a[lo:lo + n]`` (``DOUBLE_pairwise_sum``: blocks of 128,
+    eight accumulators), so the sums below equal ``np.add.reduceat`` bit for bit."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    if n <= 128:
+        r0 = a[lo]
+        r1 = a[lo + 1]
+        r2 = a[lo + 2]
+        r3 = a[lo + 3]
+        r4 = a[lo + 4]
+        r5 = a[lo + 5]
+        r6 = a[lo + 6]
+        r7 = a[lo + 7]
+        i = 8
+        end = n - n % 8
+        while i < end:
+            j = lo + i
+            r0 += a[j]
+            r1 += a[j + 1]
+            r2 += a[j + 2]
+            r3 += a[j + 3]
+            r4 += a[j + 4]
+            r5 += a[j + 5]
+            r6 += a[j + 6]
+            r7 += a[j + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += a[lo + i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise(a, lo, n2) + _pairwise(a, lo + n2, n - n2)
+
+
+@njit(cache=True, error_model="numpy")
+def _seg_sum(a: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
+    """``np.add.reduceat(a, starts)`` for one segment: the first value plus the pairwise sum of
+    the rest (numpy's reduction order)."""
+    return a[start] + _pairwise(a, start + 1, stop - start - 1)
+
+
+@njit(cache=True, error_model="numpy")
+def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
+    """Median of ``v[start:stop]`` (mean of the two middle values for even counts), as
+    :func:`stemmap.scan.features._segment_median`."""
+    s = np.sort(v[start:stop])
+    c = stop - start
+    return 0.5 * (s[(c - 1) // 2] + s[c // 2])
+
+
+@njit(cache=True, error_model="numpy")
+def _grid_at(grid: FloatArray, beam: int, n: int, wrap: bool) -> float:  # pragma: no cover
+    """Range of ``beam`` in the scan's grid, inf for no return or outside the scan (the
+    ``at`` helper of :func:`stemmap.scan.features.edge_silhouette`)."""
+    if wrap:
+        v = grid[beam % n]
+    elif 0 <= beam < n:
+        v = grid[beam]
+    else:
+        return math.inf
+    return v if math.isfinite(v) else math.inf
+
+
+@njit(cache=True, error_model="numpy")
+def _edge_prior(
+    grid: FloatArray,
+    edge_r: float,
+    b_edge: int,
+    step: int,
+    n: int,
+    wrap: bool,
+    h: float,
+    margin: float,
+    out: FloatArray,
+    o: int,
+) -> None:  # pragma: no cover - numba
+    """One end of :func:`stemmap.scan.features.edge_silhouette` (with ``mixed_fraction``):
+    writes (offset, std) in beam spacings to ``out[o:o + 2]``, NaN for the default."""
+    out[o] = np.nan
+    out[o + 1] = np.nan
+    r1 = _grid_at(grid, b_edge + step, n, wrap)
+    r2 = _grid_at(grid, b_edge + 2 * step, n, wrap)
+    bg = math.isfinite(r1) and r1 > edge_r + margin
+    if not (bg and math.isfinite(r2)):
+        return
+    if abs(r2 - r1) <= margin:
+        out[o] = 0.5
+        out[o + 1] = (1.0 - 2.0 * h) / _SQRT12
+    elif r2 > r1 + margin:
+        m = r1
+        a = 1.0 / edge_r
+        b = 1.0 / r2
+        f = b * (1.0 - m * b) / ((a - b) * (m * (a + b) - 1.0))
+        if not (edge_r < m and m < r2) or not math.isfinite(f):
+            return
+        f = min(max(f, 0.0), 1.0)
+        out[o] = 1.0 - h + 2.0 * h * f
+        out[o + 1] = 2.0 * h * MIXED_FRACTION_STD
+
+
+@njit(cache=True, error_model="numpy")
+def _detect_kernel(
+    ranges: FloatArray,
+    cosb: FloatArray,
+    sinb: FloatArray,
+    fov_in: np.ndarray,
+    prm: FloatArray,
+    chi2: FloatArray,
+) -> tuple[FloatArray, np.ndarray, int]:  # pragma: no cover - numba
+    """The detector pipeline over every scan (see the module docstring and
+    :func:`detect_scans`). ``prm`` is unpacked below in :data:`PARAM_NAMES` order (keep the two
+    in step). Each block names the reference function whose expressions it repeats."""
+    s_count, n = ranges.shape
+    lo = prm[0]
+    hi = prm[1]
+    median = prm[2] > 0.0
+    wrap = prm[3] > 0.0
+    first_beam = int(prm[4])
+    last_beam = int(prm[5])
+    euclid = prm[6] > 0.0
+    max_jump = prm[7]
+    range_factor = prm[8]
+    max_skip = int(prm[9])
+    margin = prm[10]
+    pcur_on = prm[11] > 0.0
+    pcur_min = prm[12]
+    rmed_on = prm[13] > 0.0
+    rmed = prm[14]
+    split = prm[15] > 0.0
+    min_points = prm[16]
+    min_points_partial = prm[17]
+    max_points = prm[18]
+    min_width = prm[19]
+    max_width = prm[20]
+    min_depth = prm[21]
+    min_curv = prm[22]
+    max_curv = prm[23]
+    reject_straight = prm[24] > 0.0
+    straight_chi2 = prm[25] > 0.0
+    straight_ratio = prm[26]
+    straight_min_points = prm[27]
+    drop_partial = prm[28] > 0.0
+    sigma0 = prm[29]
+    sigma_rel = prm[30]
+    fit_sigma_given = prm[31] > 0.0
+    min_radius = prm[32]
+    max_radius = prm[33]
+    max_rw = prm[34]
+    max_rms_sigma = prm[35]
+    divergence = prm[36]
+    use_sil_cfg = prm[37] > 0.0
+    range_model = prm[38] > 0.0
+    inc = prm[39]
+    absinc = abs(inc)
+    h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
+    use_sil = use_sil_cfg and 0.0 < h_sil < 0.5
+    rms_check = math.isfinite(max_rms_sigma)
+    # scratch, reused by every scan
+    g0 = np.empty(n)
+    grid = np.empty(n)
+    bidx = np.empty(n, dtype=np.int64)
+    pb = np.empty(n, dtype=np.int64)
+    pr = np.empty(n)
+    px = np.empty(n)
+    py = np.empty(n)
+    tmp = np.empty(n)
+    keep = np.empty(n, dtype=np.bool_)
+    st = np.empty(n, dtype=np.int64)
+    sp = np.empty(n, dtype=np.int64)
+    oc0 = np.empty(n, dtype=np.bool_)
+    oc1 = np.empty(n, dtype=np.bool_)
+    tr0 = np.empty(n, dtype=np.bool_)
+    tr1 = np.empty(n, dtype=np.bool_)
+    st2 = np.empty(n, dtype=np.int64)
+    sp2 = np.empty(n, dtype=np.int64)
+    oc02 = np.empty(n, dtype=np.bool_)
+    oc12 = np.empty(n, dtype=np.bool_)
+    tr02 = np.empty(n, dtype=np.bool_)
+    tr12 = np.empty(n, dtype=np.bool_)
+    wid = np.empty(n)
+    sil = np.empty(4)
+    sil_fit = np.empty(4)
+    fit_out = np.empty(14)
+    buf = np.empty((8, n))
+    ws3 = np.empty((6, 3, 3))
+    wv = np.empty((8, 3))
+    mdl = np.empty(10)
+    jtj = np.empty((3, 3))
+    cap = max(16, 2 * s_count)
+    rows = np.empty((cap, OUT_COLUMNS))
+    scans = np.empty(cap, dtype=np.int64)
+    n_out = 0
+    n_cand = 0
+    for s in range(s_count):
+        # ---- range gate and field-of-view window (preprocess.gate_ranges / fov_window) ----
+        for k in range(n):
+            v = ranges[s, k]
+            g0[k] = v if (v > lo and v < hi and fov_in[k]) else np.nan
+        # ---- three-neighbour median filter (preprocess.median_filter3, Xue 2018 §2.2) ----
+        if median and n >= 3:
+            grid[0] = g0[0]
+            grid[n - 1] = g0[n - 1]
+            for k in range(1, n - 1):
+                a = g0[k - 1]
+                b = g0[k]
+                c = g0[k + 1]
+                if math.isfinite(a) and math.isfinite(b) and math.isfinite(c):
+                    grid[k] = max(min(a, c), min(max(a, c), b))
+                else:
+                    grid[k] = b
+        else:
+            grid[:] = g0
+        # ---- 360-degree seam (preprocess.seam_shift / roll_beams) ----
+        shift = 0
+        if wrap:
+            gap = -1
+            for k in range(n):
+                if not math.isfinite(grid[k]):
+                    gap = k
+                    break
+            if gap >= 0:
+                shift = gap
+            else:
+                best = -math.inf
+                for k in range(n):
+                    jmp = abs(grid[k] - grid[k - 1])  # k = 0: beam N - 1
+                    if jmp > best:
+                        best = jmp
+                        shift = k
+            g0[:] = grid
+            for k in range(n):
+                bidx[k] = (k + shift) % n
+                grid[k] = g0[bidx[k]]
+        else:
+            for k in range(n):
+                bidx[k] = k
+        # ---- returns (segment.extract_points) ----
+        m = 0
+        for k in range(n):
+            v = grid[k]
+            if math.isfinite(v):
+                pb[m] = k
+                pr[m] = v
+                px[m] = v * cosb[bidx[k]]
+                py[m] = v * sinb[bidx[k]]
+                m += 1
+        if m == 0:
+            continue
+        # ---- segmentation (segment.range_jump_breaks / euclidean_breaks) + build_segments --
+        ns = 0
+        for i in range(m):
+            brk = i == 0
+            if not brk:
+                gap_b = pb[i] - pb[i - 1]
+                brk = gap_b > max_skip + 1
+                if not brk:
+                    if euclid:
+                        d = math.hypot(px[i] - px[i - 1], py[i] - py[i - 1])
+                        thr = max_jump
+                        if range_factor > 0.0:
+                            thr = max_jump + range_factor * min(pr[i], pr[i - 1]) * absinc * float(
+                                gap_b
+                            )
+                        brk = d > thr
+                    else:
+                        brk = abs(pr[i] - pr[i - 1]) > max_jump
+            if brk:
+                if ns > 0:
+                    sp[ns - 1] = i
+                st[ns] = i
+                ns += 1
+        sp[ns - 1] = m
+        last = last_beam
+        for j in range(ns):
+            b0 = pb[st[j]]
+            b1 = pb[sp[j] - 1]
+            r0 = pr[st[j]]
+            r1 = pr[sp[j] - 1]
+            prev_r = grid[max(b0 - 1, 0)]
+            next_r = grid[min(b1 + 1, n - 1)]
+            oc0[j] = b0 > first_beam and prev_r < r0 - margin
+            oc1[j] = b1 < last and next_r < r1 - margin
+            tr0[j] = b0 <= first_beam
+            tr1[j] = b1 >= last
+        # ---- Segments.select(counts >= min_points): compact returns and table ----
+        ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
+        # ---- single-point curvature (features.point_curvature, Zheng 2012 eq. 3) ----
+        if pcur_on and ns > 0:
+            for j in range(ns):
+                for i in range(st[j], sp[j]):
+                    keep[i] = True
+                    if st[j] < i < sp[j] - 1:
+                        cur = pr[i + 1] - 2.0 * pr[i] + pr[i - 1]
+                        keep[i] = not (cur < pcur_min)
+            ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
+        # ---- radius median filter (features.radius_median_filter, visual-lidar §2.3) ----
+        if rmed_on and ns > 0:
+            any_drop = False
+            for j in range(ns):
+                a = st[j]
+                b = sp[j]
+                xmin = px[a]
+                xmax = px[a]
+                ymin = py[a]
+                ymax = py[a]
+                for i in range(a, b):
+                    keep[i] = True
+                    xmin = min(xmin, px[i])
+                    xmax = max(xmax, px[i])
+                    ymin = min(ymin, py[i])
+                    ymax = max(ymax, py[i])
+                if math.hypot(xmax - xmin, ymax - ymin) > rmed:
+                    mx = _median(px, a, b)
+                    my = _median(py, a, b)
+                    for i in range(a, b):
+                        keep[i] = math.hypot(px[i] - mx, py[i] - my) <= rmed
+                        any_drop |= not keep[i]
+            if any_drop:
+                if split:
+                    # Segments.cut: new pieces where the keep flag changes; inner ends occluded
+                    ns2 = 0
+                    for j in range(ns):
+                        for i in range(st[j], sp[j]):
+                            if i == st[j] or keep[i] != keep[i - 1]:
+                                if i != st[j]:
+                                    sp2[ns2 - 1] = i
+                                st2[ns2] = i
+                                first = i == st[j]
+                                oc02[ns2] = oc0[j] if first else True
+                                tr02[ns2] = first and tr0[j]
+                                oc12[ns2] = True
+                                tr12[ns2] = False
+                                ns2 += 1
+                        sp2[ns2 - 1] = sp[j]
+                        oc12[ns2 - 1] = oc1[j]
+                        tr12[ns2 - 1] = tr1[j]
+                    st, st2 = st2, st
+                    sp, sp2 = sp2, sp
+                    oc0, oc02 = oc02, oc0
+                    oc1, oc12 = oc12, oc1
+                    tr0, tr02 = tr02, tr0
+                    tr1, tr12 = tr12, tr1
+                    ns = ns2
+                else:
+                    ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
+            ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
+        # ---- segment features and filters (detect._filter, features.segment_features) ----
+        nk = 0
+        for j in range(ns):
+            a = st[j]
+            b = sp[j]
+            i1 = b - 1
+            cnt = float(b - a)
+            partial = oc0[j] or oc1[j] or tr0[j] or tr1[j]
+            cross = px[a] * py[i1] - py[a] * px[i1]
+            dot = px[a] * px[i1] + py[a] * py[i1]
+            theta = abs(math.atan2(cross, dot))
+            hh = math.sin(theta / 2.0)
+            ra = pr[a]
+            rb = pr[i1]
+            width = math.sqrt((ra - rb) * (ra - rb) + 4.0 * ra * rb * hh * hh)
+            # sagitta depth (features.sagitta_depth, Zheng §3.2 criterion 4)
+            x0 = px[a]
+            y0 = py[a]
+            dx = px[i1] - x0
+            dy = py[i1] - y0
+            length = math.hypot(dx, dy)
+            safe = length if length > 0 else 1.0
+            nx = -dy / safe
+            ny = dx / safe
+            if (nx * -x0 + ny * -y0) < 0:
+                nx = -nx
+                ny = -ny
+            dmax = -math.inf
+            dmin = math.inf
+            for i in range(a, b):
+                dd = (px[i] - x0) * nx + (py[i] - y0) * ny
+                dmax = max(dmax, dd)
+                dmin = min(dmin, dd)
+            depth = dmax if dmax >= -dmin else dmin
+            if not length > 0:
+                depth = 0.0
+            den = width * width / 4.0 + depth * depth
+            curv = 2.0 * depth / den if den > 0 else 0.0
+            ok = cnt >= min_points
+            ok &= (not partial) or cnt >= min_points_partial
+            ok &= cnt <= max_points
+            ok &= width >= min_width and width <= max_width
+            ok &= depth >= min_depth
+            ok &= curv >= min_curv and curv <= max_curv
+            if ok and reject_straight:
+                # line_fit_rms + is_straight (chi-square or ratio test)
+                nf = float(b - a)
+                mx = _seg_sum(px, a, b) / nf
+                my = _seg_sum(py, a, b) / nf
+                for i in range(a, b):
+                    qx = px[i] - mx
+                    tmp[i] = qx * qx
+                sxx = _seg_sum(tmp, a, b) / nf
+                for i in range(a, b):
+                    qy = py[i] - my
+                    tmp[i] = qy * qy
+                syy = _seg_sum(tmp, a, b) / nf
+                for i in range(a, b):
+                    tmp[i] = (px[i] - mx) * (py[i] - my)
+                sxy = _seg_sum(tmp, a, b) / nf
+                tr = sxx + syy
+                det = sxx * syy - sxy * sxy
+                lam_min = tr / 2.0 - math.sqrt(max(tr * tr / 4.0 - det, 0.0))
+                line_rms = math.sqrt(max(lam_min, 0.0))
+                sig = sigma0 + sigma_rel * (_seg_sum(pr, a, b) / nf)
+                if straight_chi2:
+                    dof = max(nf - 2.0, 1.0)
+                    stat = nf * line_rms * line_rms / (sig * sig)
+                    straight = stat <= chi2[int(dof)]
+                else:
+                    excess = math.sqrt(max(line_rms * line_rms - sig * sig, 0.0))
+                    straight = excess < straight_ratio * width
+                ok &= not (straight and cnt >= straight_min_points)
+            if drop_partial:
+                ok &= not partial
+            if ok:  # Segments.select(keep): the table is compacted in place below
+                st[nk] = a
+                sp[nk] = b
+                oc0[nk] = oc0[j]
+                oc1[nk] = oc1[j]
+                tr0[nk] = tr0[j]
+                tr1[nk] = tr1[j]
+                wid[nk] = width
+                nk += 1
+        n_cand += nk
+        # ---- fit, plausibility, arc and quality (detect.ScanTrunkDetector._run) ----
+        for j in range(nk):
+            a = st[j]
+            b = sp[j]
+            cnt_i = b - a
+            mean_r = _seg_sum(pr, a, b) / cnt_i
+            sig = sigma0 + sigma_rel * mean_r
+            sil[:] = np.nan
+            if use_sil:
+                _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
+                _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
+            e_start = not (oc0[j] or tr0[j])
+            e_end = not (oc1[j] or tr1[j])
+            if inc < 0:  # the fit takes the ends in bearing order
+                use_lo, use_hi = e_end, e_start
+                sil_fit[0] = sil[2]
+                sil_fit[1] = sil[3]
+                sil_fit[2] = sil[0]
+                sil_fit[3] = sil[1]
+            else:
+                use_lo, use_hi = e_start, e_end
+                sil_fit[:] = sil
+            fit_out[:] = np.nan
+            status = _fit_one(
+                px[a:b],
+                py[a:b],
+                0.0,
+                0.0,
+                sig if fit_sigma_given else 0.0,
+                absinc,
+                use_lo,
+                use_hi,
+                sil_fit,
+                divergence,
+                range_model,
+                fit_out,
+                buf,
+                ws3,
+                wv,
+                mdl,
+            )
+            if status != OK:
+                continue
+            cx = fit_out[0]
+            cy = fit_out[1]
+            rad = fit_out[2]
+            sil_width = wid[j]
+            if use_sil:
+                beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)
+                beyond += 0.0 if math.isnan(sil[2]) else max(sil[2] - 0.5, 0.0)
+                sil_width = wid[j] + beyond * mean_r * absinc
+            good = rad >= min_radius and rad <= max_radius
+            good &= rad <= max_rw * max(sil_width, 1e-9)
+            good &= math.hypot(cx, cy) > mean_r
+            for i in range(a, b):
+                res = math.hypot(px[i] - cx, py[i] - cy) - rad
+                tmp[i] = res * res
+            rms = math.sqrt(_seg_sum(tmp, a, b) / cnt_i)
+            if rms_check:
+                good &= rms <= max_rms_sigma * sig
+            if not good:
+                continue
+            cov_ok = True
+            for q in range(9):
+                cov_ok &= math.isfinite(fit_out[3 + q])
+            if not cov_ok:
+                _geometric_cov(px, py, a, b, cx, cy, rad, sig, tmp, jtj, fit_out)
+            # arc extent around the centre (detect._arc_deg)
+            ref = math.atan2(-cy, -cx)
+            pmax = -math.inf
+            pmin = math.inf
+            for i in range(a, b):
+                phi = math.atan2(py[i] - cy, px[i] - cx) - ref
+                # numba's float % is CPython's (fmod, then the divisor's sign), i.e. np.mod
+                phi = math.pi - (math.pi - phi) % (2.0 * math.pi)
+                pmax = max(pmax, phi)
+                pmin = min(pmin, phi)
+            # quality (detect._quality)
+            support = min(cnt_i / 10.0, 1.0)
+            sq = max(sig, 1e-6)
+            e = max(rms - sq, 0.0) / (3.0 * sq)
+            partial = oc0[j] or oc1[j] or tr0[j] or tr1[j]
+            qual = support * math.exp(-(e * e)) * (0.5 if partial else 1.0)
+            if n_out == rows.shape[0]:
+                rows2 = np.empty((2 * n_out, OUT_COLUMNS))
+                rows2[:n_out] = rows
+                rows = rows2
+                scans2 = np.empty(2 * n_out, dtype=np.int64)
+                scans2[:n_out] = scans
+                scans = scans2
+            row = rows[n_out]
+            for q in range(12):
+                row[q] = fit_out[q]
+            row[12] = (pmax - pmin) * _RAD2DEG
+            row[13] = wid[j]
+            row[14] = qual
+            row[15] = cnt_i
+            scans[n_out] = s
+            n_out += 1
+    return rows[:n_out], scans[:n_out], n_cand
+
+
+@njit(cache=True, error_model="numpy")
+def _select_min(
+    st: np.ndarray,
+    sp: np.ndarray,
+    oc0: np.ndarray,
+    oc1: np.ndarray,
+    tr0: np.ndarray,
+    tr1: np.ndarray,
+    pb: np.ndarray,
+    pr: FloatArray,
+    px: FloatArray,
+    py: FloatArray,
+    keep: np.ndarray,
+    ns: int,
+    min_points: float,
+) -> tuple[int, int]:  # pragma: no cover - numba
+    """``Segments.select(counts >= min_points)`` in place: (segments, returns) left."""
+    for j in range(ns):
+        big = sp[j] - st[j] >= min_points
+        for i in range(st[j], sp[j]):
+            keep[i] = big
+    return _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
+
+
+@njit(cache=True, error_model="numpy")
+def _drop(
+    st: np.ndarray,
+    sp: np.ndarray,
+    oc0: np.ndarray,
+    oc1: np.ndarray,
+    tr0: np.ndarray,
+    tr1: np.ndarray,
+    pb: np.ndarray,
+    pr: FloatArray,
+    px: FloatArray,
+    py: FloatArray,
+    keep: np.ndarray,
+    ns: int,
+) -> tuple[int, int]:  # pragma: no cover - numba
+    """``Segments.drop(keep)`` in place: returns not kept removed, emptied segments gone."""
+    nk = 0
+    w = 0
+    for j in range(ns):
+        start = w
+        for i in range(st[j], sp[j]):
+            if keep[i]:
+                pb[w] = pb[i]
+                pr[w] = pr[i]
+                px[w] = px[i]
+                py[w] = py[i]
+                w += 1
+        if w == start:
+            continue
+        st[nk] = start
+        sp[nk] = w
+        oc0[nk] = oc0[j]
+        oc1[nk] = oc1[j]
+        tr0[nk] = tr0[j]
+        tr1[nk] = tr1[j]
+        nk += 1
+    return nk, w
+
+
+@njit(cache=True, error_model="numpy")
+def _geometric_cov(
+    px: FloatArray,
+    py: FloatArray,
+    a: int,
+    b: int,
+    cx: float,
+    cy: float,
+    rad: float,
+    sig: float,
+    tmp: FloatArray,
+    jtj: FloatArray,
+    out: FloatArray,
+) -> None:  # pragma: no cover - numba
+    """``detect._geometric_cov`` for one segment, written to ``out[3:12]`` (NaN if singular).
+    Only reached when the fit's Hessian was singular (rare); numba's LAPACK may differ from
+    numpy's in the last bits here."""
+    nf = float(b - a)
+    for i in range(a, b):
+        dx = px[i] - cx
+        dy = py[i] - cy
+        d = math.hypot(dx, dy)
+        res = d - rad
+        tmp[i] = res * res
+    rss = _seg_sum(tmp, a, b)
+    s2 = max(sig * sig, rss / max(nf - 3.0, 1.0) if nf > 3.0 else 0.0)
+    for u, v in ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2)):
+        for i in range(a, b):
+            dx = px[i] - cx
+            dy = py[i] - cy
+            d = math.hypot(dx, dy)
+            ds = d if d > 0 else 1.0
+            e = (dx / ds, dy / ds, 1.0)
+            tmp[i] = e[u] * e[v]
+        jtj[u, v] = _seg_sum(tmp, a, b)
+        jtj[v, u] = jtj[u, v]
+    jtj[2, 2] = nf
+    det = np.linalg.det(jtj)
+    if math.isfinite(det) and abs(det) > 1e-12 * max(nf, 1.0) ** 3:
+        inv = np.linalg.inv(jtj)
+        for u in range(3):
+            for v in range(3):
+                out[3 + 3 * u + v] = inv[u, v] * s2
+    else:
+        for q in range(9):
+            out[3 + q] = np.nan
+
+
+def detect_scans(
+    ranges: FloatArray,
+    cos_bearing: FloatArray,
+    sin_bearing: FloatArray,
+    fov_inside: np.ndarray,
+    params: FloatArray,
+    chi2_table: FloatArray,
+) -> tuple[FloatArray, np.ndarray, int]:
+    """Run the compiled pipeline on scans ``ranges`` (S, N).
+
+    Parameters
+    ----------
+    ranges : ndarray of shape (S, N), float64, C-contiguous, metres (NaN/inf = no return)
+    cos_bearing, sin_bearing : ndarray of shape (N,) -- ``np.cos`` / ``np.sin`` of the beam
+        angles (computed by numpy, so the returns' coordinates equal the reference's)
+    fov_inside : ndarray of shape (N,), bool -- beams inside the field of view
+    params : ndarray of shape (N_PARAMS,) -- see :data:`PARAM_NAMES`
+    chi2_table : ndarray -- upper 1 % chi-square quantiles by degrees of freedom (>= N entries)
+
+    Returns
+    -------
+    rows : ndarray of shape (D, 16) -- cx, cy, r, cov (9), arc_deg, width, quality, n_points
+    scans : ndarray of shape (D,), int -- scan index of each detection
+    n_candidates : int -- candidate segments that reached the fit
+    """
+    rows, scans, n_cand = _detect_kernel(
+        ranges, cos_bearing, sin_bearing, fov_inside, params, chi2_table
+    )
+    return rows, scans, int(n_cand)

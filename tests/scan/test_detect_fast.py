@@ -1,0 +1,154 @@
+"""The compiled detector pipeline (stemmap.scan._detect_fast) against the step-by-step numpy
+pipeline of named functions it replaces on the hot path.
+
+The kernel evaluates the same expressions in the same order and replicates numpy's pairwise
+summation, so on this machine the two agree bit for bit; the tolerance below (1e-9 relative,
+1e-15 absolute for covariance entries near zero) only leaves room for a platform whose numpy
+and numba math libraries round differently. Detections must match exactly (same scans, same
+number of returns).
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from stemmap.scan import _detect_fast
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.sim.forest import add_clutter, random_stand
+from stemmap.sim.scanner import scanner_preset, simulate_scans
+from stemmap.types import ScanBatch, StemObservations
+
+FIELDS = ("centers", "radii", "covs", "arc_deg", "widths", "quality", "times")
+
+
+@pytest.fixture(scope="module")
+def stand():
+    rng = np.random.default_rng(11)
+    st = random_stand(45, (30.0, 30.0), dbh_mean=0.3, dbh_std=0.1, dbh_min=0.08, rng=rng)
+    return add_clutter(st, n_bushes=4, n_branches=4, n_walls=1, n_fences=1, n_rocks=3, rng=rng)
+
+
+def _poses(n):
+    t = np.linspace(0.0, 1.0, n)
+    return np.column_stack((3.0 + 24.0 * t, 4.0 + 20.0 * t, 0.7 + 3.0 * t))
+
+
+def _scans(stand, **model):
+    base = scanner_preset("sick_lms", range_max=30.0)
+    batch, _, _ = simulate_scans(stand, _poses(40), dataclasses.replace(base, **model), rng=3)
+    return batch
+
+
+def _both(det, batch):
+    args = (
+        batch.ranges,
+        batch.times,
+        batch.angle_min,
+        batch.angle_increment,
+        batch.range_min,
+        batch.range_max,
+        batch.frame,
+    )
+    return det._run_compiled(*args), det._run_numpy(*args, None, None)
+
+
+def assert_same(fast: StemObservations, ref: StemObservations) -> None:
+    assert len(fast) == len(ref)
+    np.testing.assert_array_equal(fast.index, ref.index)
+    np.testing.assert_array_equal(fast.n_points, ref.n_points)
+    assert fast.source == ref.source and fast.frame == ref.frame
+    for name in FIELDS:
+        np.testing.assert_allclose(
+            getattr(fast, name), getattr(ref, name), rtol=1e-9, atol=1e-15, err_msg=name
+        )
+
+
+CONFIGS = {
+    "stemmap": {},
+    "no_split": {"split_merged": False},
+    "thin_beams": {"beam_divergence_deg": 0.0},
+    "orthogonal": {"fit_residuals": "orthogonal", "neighbour_silhouette": False},
+    "estimated_sigma": {"sigma": 0.0, "straight_test": "ratio", "max_rms_sigma": math.inf},
+    "relative_sigma": {"sigma": 0.005, "sigma_rel": 0.002},
+    "zheng_like": {
+        "segmentation": "range_jump",
+        "max_jump": 0.2,
+        "max_skip": 0,
+        "point_curvature_min": -0.1,
+        "radius_median": None,
+        "fov_deg": (-50.0, 50.0),
+        "range_max": 8.0,
+        "median_filter": True,
+    },
+    "strict": {"max_points": 40, "drop_partial": True, "min_depth": 0.01, "min_width": 0.05},
+}
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_compiled_pipeline_equals_numpy_pipeline(stand, name):
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **CONFIGS[name]))
+    fast, ref = _both(det, _scans(stand))
+    assert len(ref) > 20  # the comparison covers real detections
+    assert_same(fast, ref)
+
+
+def test_compiled_pipeline_on_360_degree_scans_with_dropouts(stand):
+    inc = math.radians(0.5)
+    batch = _scans(stand, angle_min=-math.pi, angle_max=math.pi - inc, dropout=0.02)
+    det = ScanTrunkDetector("stemmap")
+    fast, ref = _both(det, batch)
+    assert len(ref) > 40
+    assert_same(fast, ref)
+
+
+def test_compiled_pipeline_with_reversed_beam_order(stand):
+    batch = _scans(stand)
+    last = batch.angle_min + batch.angle_increment * (batch.n_beams - 1)
+    rev = ScanBatch(
+        batch.ranges[:, ::-1].copy(),
+        batch.times,
+        last,
+        -batch.angle_increment,
+        batch.range_min,
+        batch.range_max,
+    )
+    det = ScanTrunkDetector("stemmap")
+    fast, ref = _both(det, rev)
+    assert len(ref) > 20
+    assert_same(fast, ref)
+    # and the same trunks as the forward scans (fit ends swap with the bearing order)
+    fwd, _ = _both(det, batch)
+    assert len(fwd) == len(fast)
+
+
+def test_public_api_uses_the_compiled_path_and_single_equals_batch(stand):
+    batch = _scans(stand)
+    det = ScanTrunkDetector("stemmap")
+    assert det._compiled(None, None)
+    assert not ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_method="kasa"))._compiled(
+        None, None
+    )
+    assert not det._compiled(0.01, None)  # tilt compensation runs the numpy pipeline
+    whole = det.detect_batch(batch)
+    _, ref = _both(det, batch)
+    assert_same(whole, ref)
+    for s in (0, 7, 23):
+        one = det.detect(batch[s])
+        sel = whole.select(whole.index == s)
+        np.testing.assert_array_equal(one.radii, sel.radii)
+
+
+def test_kernel_parameter_names_are_unique():
+    assert len(set(_detect_fast.PARAM_NAMES)) == _detect_fast.N_PARAMS
+
+
+def test_pairwise_sum_equals_numpy_reduceat():
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=5000) * 1e3
+    starts = np.r_[0, np.sort(rng.choice(np.arange(1, 5000), 60, replace=False))]
+    stops = np.r_[starts[1:], 5000]
+    ref = np.add.reduceat(x, starts)
+    mine = np.array([_detect_fast._seg_sum(x, a, b) for a, b in zip(starts, stops, strict=True)])
+    np.testing.assert_array_equal(mine, ref)  # same summation order, bit for bit
