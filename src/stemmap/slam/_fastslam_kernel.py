@@ -75,9 +75,7 @@ def associate_update(
     """
     P = X.shape[0]
     K = r.shape[0]
-    cap = mu.shape[1]
-    dmin = np.empty(cap)
-    idx = np.empty(cap, dtype=np.int64)
+    cdist = np.empty(max_cand)
     ox = np.empty(K)
     oy = np.empty(K)
     jb = np.empty(K, dtype=np.int64)
@@ -100,8 +98,9 @@ def associate_update(
             oy[k] = sy + r[k] * math.sin(ang)
             assoc[p, k] = -1
             ll_best[p, k] = -np.inf
-        # 1. candidates: near the sensor, ranked by the distance to the nearest detection
-        nn = 0
+        # 1. candidates: near the sensor, the max_cand nearest to a detection (kept sorted by
+        #    that distance; a bounded insertion instead of a sort of all near landmarks)
+        m_n = 0
         for j in range(nlm[p]):
             ddx = mu[p, j, 0] - sx
             ddy = mu[p, j, 1] - sy
@@ -113,20 +112,21 @@ def associate_update(
                     gx = gx * gx + gy * gy
                     if gx < g:
                         g = gx
-                dmin[nn] = g
-                idx[nn] = j
-                nn += 1
-        if nn == 0:
+                if m_n == max_cand:
+                    if not g < cdist[m_n - 1]:
+                        continue
+                    t = m_n - 1
+                else:
+                    t = m_n
+                    m_n += 1
+                while t > 0 and g < cdist[t - 1]:
+                    cdist[t] = cdist[t - 1]
+                    cnd[t] = cnd[t - 1]
+                    t -= 1
+                cdist[t] = g
+                cnd[t] = j
+        if m_n == 0:
             continue
-        if nn > max_cand:
-            order = np.argsort(dmin[:nn])
-            m_n = max_cand
-            for t in range(m_n):
-                cnd[t] = idx[order[t]]
-        else:
-            m_n = nn
-            for t in range(m_n):
-                cnd[t] = idx[t]
         # 2. predicted measurement and inverse innovation covariance per candidate
         for t in range(m_n):
             j = cnd[t]
@@ -242,10 +242,11 @@ def associate_update(
 
 
 @numba.njit(cache=True, inline="always")
-def _copy_particle(
+def _copy_slot(
     q: int,
+    i: int,
     p: int,
-    nlm: np.ndarray,
+    j: int,
     mu: np.ndarray,
     Sig: np.ndarray,
     nobs: np.ndarray,
@@ -254,15 +255,19 @@ def _copy_particle(
     tfirst: np.ndarray,
     tlast: np.ndarray,
 ) -> None:
-    n = nlm[q]
-    mu[p, :n] = mu[q, :n]
-    Sig[p, :n] = Sig[q, :n]
-    nobs[p, :n] = nobs[q, :n]
-    dsum[p, :n] = dsum[q, :n]
-    dcnt[p, :n] = dcnt[q, :n]
-    tfirst[p, :n] = tfirst[q, :n]
-    tlast[p, :n] = tlast[q, :n]
-    nlm[p] = n
+    """Landmark ``i`` of particle ``q`` -> landmark ``j`` of particle ``p`` (element by element:
+    a slice assignment within one array would go through a temporary copy)."""
+    mu[p, j, 0] = mu[q, i, 0]
+    mu[p, j, 1] = mu[q, i, 1]
+    Sig[p, j, 0, 0] = Sig[q, i, 0, 0]
+    Sig[p, j, 0, 1] = Sig[q, i, 0, 1]
+    Sig[p, j, 1, 0] = Sig[q, i, 1, 0]
+    Sig[p, j, 1, 1] = Sig[q, i, 1, 1]
+    nobs[p, j] = nobs[q, i]
+    dsum[p, j] = dsum[q, i]
+    dcnt[p, j] = dcnt[q, i]
+    tfirst[p, j] = tfirst[q, i]
+    tlast[p, j] = tlast[q, i]
 
 
 @numba.njit(cache=True)
@@ -288,11 +293,15 @@ def resample_inplace(
     for p in range(P):  # copy from above, ascending
         q = idx[p]
         if q > p:
-            _copy_particle(q, p, nlm, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
+            for j in range(nlm[q]):
+                _copy_slot(q, j, p, j, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
+            nlm[p] = nlm[q]
     for p in range(P - 1, -1, -1):  # copy from below, descending
         q = idx[p]
         if q < p:
-            _copy_particle(q, p, nlm, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
+            for j in range(nlm[q]):
+                _copy_slot(q, j, p, j, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
+            nlm[p] = nlm[q]
 
 
 @numba.njit(cache=True)
@@ -314,12 +323,6 @@ def compact_inplace(
         for j in range(nlm[p]):
             if keep[p, j]:
                 if w != j:
-                    mu[p, w] = mu[p, j]
-                    Sig[p, w] = Sig[p, j]
-                    nobs[p, w] = nobs[p, j]
-                    dsum[p, w] = dsum[p, j]
-                    dcnt[p, w] = dcnt[p, j]
-                    tfirst[p, w] = tfirst[p, j]
-                    tlast[p, w] = tlast[p, j]
+                    _copy_slot(p, j, p, w, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
                 w += 1
         nlm[p] = w
