@@ -110,8 +110,7 @@ def nearest_neighbour(d2: ArrayLike, gate: float) -> IntArray:
     order = np.argsort(D[ii, jj], kind="stable")
     used_i: set[int] = set()
     used_j: set[int] = set()
-    for t in order:
-        i, j = int(ii[t]), int(jj[t])
+    for i, j in zip(ii[order].tolist(), jj[order].tolist(), strict=True):
         if i in used_i or j in used_j:
             continue
         assign[i] = j
@@ -135,12 +134,28 @@ def joint_nis(
         return 0.0
     obs = np.array([p[0] for p in pairs])
     cand = np.array([p[1] for p in pairs])
+    return _joint_nis(obs, cand, innovations, pred_cov, meas_cov, extra_d2)
+
+
+def _joint_nis(
+    obs: IntArray,
+    cand: IntArray,
+    innovations: FloatArray,
+    pred_cov: FloatArray,
+    meas_cov: FloatArray,
+    extra_d2: FloatArray | None,
+) -> float:
+    """:func:`joint_nis` of the pairs ``(obs[t], cand[t])`` (at least one)."""
     nu = innovations[obs, cand].reshape(-1)
     rows = np.stack((2 * cand, 2 * cand + 1), axis=1).reshape(-1)
-    S = pred_cov[np.ix_(rows, rows)].copy()
+    S = pred_cov[np.ix_(rows, rows)]
+    # + R_t on the diagonal blocks (one addition per element, as a loop over the blocks)
     R = meas_cov[obs]
-    for t in range(len(pairs)):
-        S[2 * t : 2 * t + 2, 2 * t : 2 * t + 2] += R[t]
+    r0 = 2 * np.arange(obs.size)
+    S[r0, r0] += R[:, 0, 0]
+    S[r0, r0 + 1] += R[:, 0, 1]
+    S[r0 + 1, r0] += R[:, 1, 0]
+    S[r0 + 1, r0 + 1] += R[:, 1, 1]
     try:
         val = float(nu @ np.linalg.solve(S, nu))
     except np.linalg.LinAlgError:
@@ -189,18 +204,21 @@ def jcbb(
     dof1 = 2 + extra_dof
     d2 = individual_compatibility(nu, C, R, E)
     gate1 = chi2_gate(alpha, dof1)
-    cands = [
-        list(np.flatnonzero(d2[i] < gate1)[np.argsort(d2[i][d2[i] < gate1])]) for i in range(k)
-    ]
+    ok = d2 < gate1
+    has = ok.any(axis=1)
     # fast path: if greedy NN pairs every observation that has a candidate and the pairing is
     # jointly compatible, no hypothesis can have more pairings -- accept it without searching
     nn = nearest_neighbour(d2, gate1)
-    n_with = sum(1 for x in cands if x)
-    nn_pairs = [(i, int(j)) for i, j in enumerate(nn) if j >= 0]
-    if len(nn_pairs) == n_with and (
-        not nn_pairs or joint_nis(nn_pairs, nu, C, R, E) < chi2_gate(alpha, dof1 * len(nn_pairs))
+    nn_obs = np.flatnonzero(nn >= 0)
+    if nn_obs.size == int(has.sum()) and (
+        not nn_obs.size
+        or _joint_nis(nn_obs, nn[nn_obs], nu, C, R, E) < chi2_gate(alpha, dof1 * nn_obs.size)
     ):
         return nn
+    cands = []
+    for i in range(k):
+        js = np.flatnonzero(ok[i])
+        cands.append(js[np.argsort(d2[i, js])].tolist())
     state = _Search([], math.inf, 0)
     remaining = np.array([sum(1 for x in cands[i:] if x) for i in range(k)] + [0])
 
