@@ -109,3 +109,34 @@ def test_joint_nis_equals_the_block_by_block_construction(rng):
     ref = float(v @ np.linalg.solve(S, v)) + float(extra[obs, cand].sum())
     assert joint_nis(pairs, nu, C, R, extra) == ref
     assert joint_nis([], nu, C, R, extra) == 0.0
+
+
+def _nn_reference(D, gate):
+    # the pure-Python greedy assignment the compiled kernel replaced
+    assign = np.full(D.shape[0], -1, dtype=np.int64)
+    ii, jj = np.nonzero(gate > D)
+    used_i, used_j = set(), set()
+    for t in np.argsort(D[ii, jj], kind="stable"):
+        i, j = int(ii[t]), int(jj[t])
+        if i not in used_i and j not in used_j:
+            assign[i] = j
+            used_i.add(i)
+            used_j.add(j)
+    return assign
+
+
+def test_nearest_neighbour_equals_the_python_greedy_loop(rng):
+    for _ in range(200):
+        k, c = rng.integers(1, 9), rng.integers(1, 12)
+        D = rng.choice([0.5, 1.0, 2.0, 7.0], size=(k, c)) if rng.random() < 0.3 else None
+        if D is None:  # ties above, continuous values here
+            D = rng.exponential(4.0, size=(k, c))
+        D[rng.random((k, c)) < 0.1] = np.nan
+        np.testing.assert_array_equal(nearest_neighbour(D, 6.0), _nn_reference(D, 6.0))
+    assert nearest_neighbour(np.zeros((3, 0)), 6.0).tolist() == [-1, -1, -1]
+
+
+def test_joint_nis_of_a_singular_covariance_is_infinite():
+    nu = np.ones((2, 2, 2))
+    C = np.zeros((4, 4))
+    assert joint_nis([(0, 0), (1, 1)], nu, C, np.zeros((2, 2, 2))) == np.inf

@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.slam._association_kernel import greedy_nn, joint_nis_core
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -99,23 +100,14 @@ def individual_compatibility(
 def nearest_neighbour(d2: ArrayLike, gate: float) -> IntArray:
     """Greedy one-to-one nearest neighbour: pairs taken in increasing ``d²`` below ``gate``.
 
-    Returns ``assign`` (k,): candidate index per observation, ``-1`` if unassigned.
+    Returns ``assign`` (k,): candidate index per observation, ``-1`` if unassigned. Ties in
+    ``d²`` go to the earlier pair in row-major order (compiled loop:
+    :func:`stemmap.slam._association_kernel.greedy_nn`).
     """
-    D = np.asarray(d2, dtype=np.float64)
-    k = D.shape[0]
-    assign = np.full(k, -1, dtype=np.int64)
+    D = np.ascontiguousarray(d2, dtype=np.float64)
     if D.size == 0:
-        return assign
-    ii, jj = np.nonzero(gate > D)
-    order = np.argsort(D[ii, jj], kind="stable")
-    used_i: set[int] = set()
-    used_j: set[int] = set()
-    for i, j in zip(ii[order].tolist(), jj[order].tolist(), strict=True):
-        if i in used_i or j in used_j:
-            continue
-        assign[i] = j
-        used_i.add(i)
-        used_j.add(j)
+        return np.full(D.shape[0], -1, dtype=np.int64)
+    assign: IntArray = greedy_nn(D, float(gate))
     return assign
 
 
@@ -128,7 +120,9 @@ def joint_nis(
 ) -> float:
     """Joint normalised innovation squared of a hypothesis ``[(obs, cand), ...]``.
 
-    ``D² = νᵀ (H P Hᵀ + R)⁻¹ ν`` over the stacked innovations, plus the independent extra cue.
+    ``D² = νᵀ (H P Hᵀ + R)⁻¹ ν`` over the stacked innovations, plus the independent extra cue;
+    ``inf`` if the joint covariance is singular. ``meas_cov`` is (k, 2, 2). The stacking and the
+    solve are compiled (:func:`stemmap.slam._association_kernel.joint_nis_core`).
     """
     if not pairs:
         return 0.0
@@ -146,20 +140,7 @@ def _joint_nis(
     extra_d2: FloatArray | None,
 ) -> float:
     """:func:`joint_nis` of the pairs ``(obs[t], cand[t])`` (at least one)."""
-    nu = innovations[obs, cand].reshape(-1)
-    rows = np.stack((2 * cand, 2 * cand + 1), axis=1).reshape(-1)
-    S = pred_cov[np.ix_(rows, rows)]
-    # + R_t on the diagonal blocks (one addition per element, as a loop over the blocks)
-    R = meas_cov[obs]
-    r0 = 2 * np.arange(obs.size)
-    S[r0, r0] += R[:, 0, 0]
-    S[r0, r0 + 1] += R[:, 0, 1]
-    S[r0 + 1, r0] += R[:, 1, 0]
-    S[r0 + 1, r0 + 1] += R[:, 1, 1]
-    try:
-        val = float(nu @ np.linalg.solve(S, nu))
-    except np.linalg.LinAlgError:
-        return math.inf
+    val = joint_nis_core(obs, cand, innovations, pred_cov, meas_cov)
     if extra_d2 is not None:
         val += float(extra_d2[obs, cand].sum())
     return val
