@@ -16,11 +16,16 @@ Implementation choices (recorded in docs/algorithms/slam-frontends.md):
   of the frame against its own ``max_candidates`` nearest landmarks; two detections may not claim
   the same landmark (the less likely one is dropped for that frame).
 * Everything is an array over particles: poses ``(P, 3)``, landmark means ``(P, C, 2)``,
-  covariances ``(P, C, 2, 2)`` with a capacity ``C`` that doubles when needed; one frame is a
-  handful of numpy operations on ``(P, K, M)`` arrays (``K`` detections, ``M`` candidates).
+  covariances ``(P, C, 2, 2)`` with a capacity ``C`` that doubles when needed and is never
+  shrunk. The association and landmark updates of version 1 run particle by particle in a
+  compiled kernel (:func:`stemmap.slam._fastslam_kernel.associate_update`); version 2, and
+  version 1 with ``_kernel = False``, run the same steps as numpy operations on ``(P, K, M)``
+  arrays (``K`` detections, ``M`` candidates) -- the reference the kernel is tested against.
 * Resampling (systematic, seeded) when the effective sample size falls below
-  ``resample_threshold * P``. The trajectory is the ancestry of the final best particle
-  (parent indices are stored per frame and back-tracked at the end, no path copying).
+  ``resample_threshold * P``, done in place copying only the landmarks in use
+  (:func:`~stemmap.slam._fastslam_kernel.resample_inplace`). The trajectory is the ancestry of
+  the final best particle (parent indices are stored per frame and back-tracked at the end, no
+  path copying).
 """
 
 from __future__ import annotations
