@@ -359,7 +359,6 @@ class FastSlam:
                     X = compose(X, pre.deltas[f - 1][None, :] + noise)
                     v2 = False
             if k:
-                z = np.column_stack((r, b))  # (K, 2)
                 M = min(int(self.max_candidates), int(nlm.max()))
                 if self.version == 1 and self._kernel:
                     # the numpy block below, particle by particle (same operations, compiled)
@@ -479,7 +478,8 @@ class FastSlam:
                             v2 = False  # sampled
                         # EKF update of the matched landmarks (unique (p, lm) pairs) at the
                         # (sampled) pose
-                        _ekf_update(mu, Sig, wp, lm, X[wp], z[wk], off, R[0, 0], R[1, 1])
+                        z = np.column_stack((r[wk], b[wk]))
+                        _ekf_update(mu, Sig, wp, lm, X[wp], z, off, R[0, 0], R[1, 1])
                         nobs[wp, lm] += 1
                         tlast[wp, lm] = tf
                         dd = d[wk]
