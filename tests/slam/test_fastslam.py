@@ -144,6 +144,30 @@ def test_fastslam_matches_the_pre_vectorisation_reference(sim):
     )
 
 
+def test_fastslam2_matches_the_pre_kernel_reference(sim):
+    # reference numbers of version 2 produced by the code before the compiled kernel and the
+    # in-place resampling (commit a5dbfa4); the new code differs in the last bits (2e-14 m here)
+    problem, _ = sim
+    sub = type(problem)(
+        problem.controls,
+        problem.frames.select_frames(0, 300),
+        problem.motion,
+        initial_pose=problem.initial_pose,
+    )
+    res = FastSlam(n_particles=20, seed=7, version=2).run(sub)
+    np.testing.assert_allclose(
+        res.trajectory.poses[-1],
+        [27.794018330676906, 40.30452634429954, -2.905082120949281],
+        rtol=0,
+        atol=1e-9,
+    )
+    assert len(res.stem_map) == res.stats["landmarks_best_particle"] == 39
+    assert res.stats["resamples"] == 31
+    np.testing.assert_allclose(
+        res.stem_map.xy.sum(axis=0), [1825.1334760278587, 1171.0553225994386], rtol=0, atol=1e-8
+    )
+
+
 def test_element_formulas_match_the_matrix_forms():
     from stemmap.slam.fastslam import _ekf_update, _inv2, _predict_and_inv
     from stemmap.slam.treedb import range_bearing_jacobians
