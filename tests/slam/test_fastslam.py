@@ -19,6 +19,16 @@ def sim():
     return sim_problem(seed=2, laps=1.2)
 
 
+def _first_frames(problem, n):
+    """The problem restricted to its first ``n`` laser frames."""
+    return type(problem)(
+        problem.controls,
+        problem.frames.select_frames(0, n),
+        problem.motion,
+        initial_pose=problem.initial_pose,
+    )
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     st.lists(st.floats(0.0, 1.0), min_size=1, max_size=64).filter(lambda w: sum(w) > 1e-6),
@@ -87,12 +97,7 @@ def test_fastslam2_proposal_on_simulated_loop(sim):
 
 def test_fastslam_is_deterministic_for_a_seed(sim):
     problem, _ = sim
-    sub = type(problem)(
-        problem.controls,
-        problem.frames.select_frames(0, 120),
-        problem.motion,
-        initial_pose=problem.initial_pose,
-    )
+    sub = _first_frames(problem, 120)
     a = FastSlam(n_particles=20, seed=7).run(sub)
     b = FastSlam(n_particles=20, seed=7).run(sub)
     np.testing.assert_array_equal(a.trajectory.poses, b.trajectory.poses)
@@ -123,12 +128,7 @@ def test_fastslam_matches_the_pre_vectorisation_reference(sim):
     # reference numbers produced by the FastSlam code before the element-wise rewrite
     # (einsum / 2x2 matmul version, commit 670ed4d) on this exact problem and seed
     problem, _ = sim
-    sub = type(problem)(
-        problem.controls,
-        problem.frames.select_frames(0, 300),
-        problem.motion,
-        initial_pose=problem.initial_pose,
-    )
+    sub = _first_frames(problem, 300)
     res = FastSlam(n_particles=20, seed=7).run(sub)
     np.testing.assert_allclose(
         res.trajectory.poses[-1],
@@ -148,12 +148,7 @@ def test_fastslam2_matches_the_pre_kernel_reference(sim):
     # reference numbers of version 2 produced by the code before the compiled kernel and the
     # in-place resampling (commit a5dbfa4); the new code differs in the last bits (2e-14 m here)
     problem, _ = sim
-    sub = type(problem)(
-        problem.controls,
-        problem.frames.select_frames(0, 300),
-        problem.motion,
-        initial_pose=problem.initial_pose,
-    )
+    sub = _first_frames(problem, 300)
     res = FastSlam(n_particles=20, seed=7, version=2).run(sub)
     np.testing.assert_allclose(
         res.trajectory.poses[-1],
