@@ -86,3 +86,57 @@ def test_bad_inputs():
     with pytest.raises(ConfigError):
         chi2_gate(1.5, 2)
     assert chi2_gate(0.99, 2) == pytest.approx(9.2103, abs=1e-4)
+
+
+def test_joint_nis_equals_the_block_by_block_construction(rng):
+    # the R blocks are added with one fancy-indexed addition per entry: same values, bit for bit,
+    # as adding R_t block by block (the form before the speed-up)
+    k, c = 5, 6
+    nu = rng.normal(size=(k, c, 2))
+    A = rng.normal(size=(2 * c, 2 * c))
+    C = A @ A.T + np.eye(2 * c)
+    R = rng.uniform(0.05, 0.3, size=(k, 2, 2))
+    R = 0.5 * (R + R.transpose(0, 2, 1)) + np.eye(2)
+    extra = rng.uniform(0, 2, size=(k, c))
+    pairs = [(0, 3), (2, 0), (3, 5), (4, 1)]
+    obs = np.array([p[0] for p in pairs])
+    cand = np.array([p[1] for p in pairs])
+    rows = np.stack((2 * cand, 2 * cand + 1), axis=1).reshape(-1)
+    S = C[np.ix_(rows, rows)].copy()
+    for t in range(len(pairs)):
+        S[2 * t : 2 * t + 2, 2 * t : 2 * t + 2] += R[obs[t]]
+    v = nu[obs, cand].reshape(-1)
+    ref = float(v @ np.linalg.solve(S, v)) + float(extra[obs, cand].sum())
+    assert joint_nis(pairs, nu, C, R, extra) == ref
+    assert joint_nis([], nu, C, R, extra) == 0.0
+
+
+def _nn_reference(D, gate):
+    # the pure-Python greedy assignment the compiled kernel replaced
+    assign = np.full(D.shape[0], -1, dtype=np.int64)
+    ii, jj = np.nonzero(gate > D)
+    used_i, used_j = set(), set()
+    for t in np.argsort(D[ii, jj], kind="stable"):
+        i, j = int(ii[t]), int(jj[t])
+        if i not in used_i and j not in used_j:
+            assign[i] = j
+            used_i.add(i)
+            used_j.add(j)
+    return assign
+
+
+def test_nearest_neighbour_equals_the_python_greedy_loop(rng):
+    for _ in range(200):
+        k, c = rng.integers(1, 9), rng.integers(1, 12)
+        D = rng.choice([0.5, 1.0, 2.0, 7.0], size=(k, c)) if rng.random() < 0.3 else None
+        if D is None:  # ties above, continuous values here
+            D = rng.exponential(4.0, size=(k, c))
+        D[rng.random((k, c)) < 0.1] = np.nan
+        np.testing.assert_array_equal(nearest_neighbour(D, 6.0), _nn_reference(D, 6.0))
+    assert nearest_neighbour(np.zeros((3, 0)), 6.0).tolist() == [-1, -1, -1]
+
+
+def test_joint_nis_of_a_singular_covariance_is_infinite():
+    nu = np.ones((2, 2, 2))
+    C = np.zeros((4, 4))
+    assert joint_nis([(0, 0), (1, 1)], nu, C, np.zeros((2, 2, 2))) == np.inf

@@ -162,3 +162,11 @@ def test_compressed_ekf_equals_the_full_ekf_on_victoria_park(datasets_dir):
     assert comp.stats["full_updates"] > 5
     assert full.stats["merged"] == comp.stats["merged"] > 5  # duplicate merging exercised
     _assert_same_run(full, comp, 1e-8)
+
+
+def test_block_diag_noise_is_kron():
+    from stemmap.slam._ekf_compressed import block_diag_noise
+
+    R1 = np.array([[0.01, 0.002], [0.002, 7.6e-5]])
+    for m in range(5):
+        np.testing.assert_array_equal(block_diag_noise(m, R1), np.kron(np.eye(m), R1))

@@ -19,6 +19,16 @@ def sim():
     return sim_problem(seed=2, laps=1.2)
 
 
+def _first_frames(problem, n):
+    """The problem restricted to its first ``n`` laser frames."""
+    return type(problem)(
+        problem.controls,
+        problem.frames.select_frames(0, n),
+        problem.motion,
+        initial_pose=problem.initial_pose,
+    )
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     st.lists(st.floats(0.0, 1.0), min_size=1, max_size=64).filter(lambda w: sum(w) > 1e-6),
@@ -87,12 +97,7 @@ def test_fastslam2_proposal_on_simulated_loop(sim):
 
 def test_fastslam_is_deterministic_for_a_seed(sim):
     problem, _ = sim
-    sub = type(problem)(
-        problem.controls,
-        problem.frames.select_frames(0, 120),
-        problem.motion,
-        initial_pose=problem.initial_pose,
-    )
+    sub = _first_frames(problem, 120)
     a = FastSlam(n_particles=20, seed=7).run(sub)
     b = FastSlam(n_particles=20, seed=7).run(sub)
     np.testing.assert_array_equal(a.trajectory.poses, b.trajectory.poses)
@@ -123,12 +128,7 @@ def test_fastslam_matches_the_pre_vectorisation_reference(sim):
     # reference numbers produced by the FastSlam code before the element-wise rewrite
     # (einsum / 2x2 matmul version, commit 670ed4d) on this exact problem and seed
     problem, _ = sim
-    sub = type(problem)(
-        problem.controls,
-        problem.frames.select_frames(0, 300),
-        problem.motion,
-        initial_pose=problem.initial_pose,
-    )
+    sub = _first_frames(problem, 300)
     res = FastSlam(n_particles=20, seed=7).run(sub)
     np.testing.assert_allclose(
         res.trajectory.poses[-1],
@@ -141,6 +141,25 @@ def test_fastslam_matches_the_pre_vectorisation_reference(sim):
     assert res.stats["resamples"] == 202
     np.testing.assert_allclose(
         res.stem_map.xy.sum(axis=0), [1822.9752492678906, 1172.0617664729543], rtol=0, atol=1e-8
+    )
+
+
+def test_fastslam2_matches_the_pre_kernel_reference(sim):
+    # reference numbers of version 2 produced by the code before the compiled kernel and the
+    # in-place resampling (commit a5dbfa4); the new code differs in the last bits (2e-14 m here)
+    problem, _ = sim
+    sub = _first_frames(problem, 300)
+    res = FastSlam(n_particles=20, seed=7, version=2).run(sub)
+    np.testing.assert_allclose(
+        res.trajectory.poses[-1],
+        [27.794018330676906, 40.30452634429954, -2.905082120949281],
+        rtol=0,
+        atol=1e-9,
+    )
+    assert len(res.stem_map) == res.stats["landmarks_best_particle"] == 39
+    assert res.stats["resamples"] == 31
+    np.testing.assert_allclose(
+        res.stem_map.xy.sum(axis=0), [1825.1334760278587, 1171.0553225994386], rtol=0, atol=1e-8
     )
 
 
@@ -182,3 +201,78 @@ def test_element_formulas_match_the_matrix_forms():
     untouched[wp, lm] = False
     np.testing.assert_array_equal(mu[untouched], m[untouched])
     np.testing.assert_array_equal(Sig[untouched], Sg[untouched])
+
+
+def _assert_same_run(a, b):
+    # measured bit-identical on the development machine; 1e-9 m allows numpy's vectorised
+    # sin/cos (other CPUs) to differ from libm's in the last bit
+    np.testing.assert_allclose(a.trajectory.poses, b.trajectory.poses, rtol=0, atol=1e-9)
+    assert len(a.stem_map) == len(b.stem_map)
+    np.testing.assert_allclose(a.stem_map.xy, b.stem_map.xy, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        np.array([t.cov for t in a.stem_map.trees]),
+        np.array([t.cov for t in b.stem_map.trees]),
+        rtol=1e-9,
+        atol=1e-15,
+    )
+    assert [t.n_obs for t in a.stem_map.trees] == [t.n_obs for t in b.stem_map.trees]
+    for key in ("landmarks_best_particle", "resamples", "tentative_pruned_total"):
+        assert a.stats[key] == b.stats[key]
+
+
+def test_compiled_kernel_matches_the_numpy_path(sim):
+    problem, _ = sim
+    fast = FastSlam(n_particles=20, seed=7)
+    ref = FastSlam(n_particles=20, seed=7)
+    ref._kernel = False
+    _assert_same_run(fast.run(problem), ref.run(problem))
+
+
+@pytest.mark.slow
+def test_compiled_kernel_matches_the_numpy_path_on_victoria_park(datasets_dir):
+    # real clutter, tentative pruning, capacity growth and ~1 resampling per frame
+    from stemmap.datasets.victoria_park import load_victoria_park
+
+    problem = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 150.0).problem()
+    ref = FastSlam(n_particles=30)
+    ref._kernel = False
+    fast = FastSlam(n_particles=30).run(problem)
+    assert fast.stats["tentative_pruned_total"] > 0 and fast.stats["resamples"] > 100
+    _assert_same_run(fast, ref.run(problem))
+
+
+def test_in_place_resampling_and_compaction_match_fancy_indexing():
+    from stemmap.slam._fastslam_kernel import compact_inplace, resample_inplace
+
+    rng = np.random.default_rng(3)
+    P, C = 9, 12
+    nlm = rng.integers(0, C + 1, P).astype(np.int64)
+    arrays = [
+        rng.normal(size=(P, C, 2)),
+        rng.normal(size=(P, C, 2, 2)),
+        rng.integers(0, 9, (P, C)).astype(np.int64),
+        rng.normal(size=(P, C)),
+        rng.integers(0, 9, (P, C)).astype(np.int64),
+        rng.normal(size=(P, C)),
+        rng.normal(size=(P, C)),
+    ]
+    for _ in range(20):
+        idx = systematic_resample(rng.dirichlet(np.full(P, 0.3)), rng)
+        want = [a[idx] for a in arrays]
+        want_n = nlm[idx]
+        resample_inplace(idx, nlm, *arrays)
+        np.testing.assert_array_equal(nlm, want_n)
+        for a, w in zip(arrays, want, strict=True):
+            for p in range(P):  # slots beyond nlm are unused and not copied
+                np.testing.assert_array_equal(a[p, : nlm[p]], w[p, : nlm[p]])
+        keep = rng.random((P, C)) < 0.7
+        order = np.argsort(~keep, axis=1, kind="stable")
+        want = [np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), 1)
+                for a in arrays]  # fmt: skip
+        want_n = (keep & (np.arange(C) < nlm[:, None])).sum(axis=1)
+        compact_inplace(keep, nlm, *arrays)
+        np.testing.assert_array_equal(nlm, want_n)
+        for a, w in zip(arrays, want, strict=True):
+            for p in range(P):
+                np.testing.assert_array_equal(a[p, : nlm[p]], w[p, : nlm[p]])
+        nlm = np.minimum(nlm + rng.integers(0, 4, P), C).astype(np.int64)

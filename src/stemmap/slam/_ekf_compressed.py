@@ -90,6 +90,15 @@ def _stack_jacobian(Jv: FloatArray, Jl: FloatArray) -> FloatArray:
     return H.reshape(2 * c, 3 + 2 * c)
 
 
+def block_diag_noise(m: int, R1: FloatArray) -> FloatArray:
+    """``kron(I_m, R1)``: the (2m, 2m) noise of m stacked 2-d measurements (same values)."""
+    out = np.zeros((2 * m, 2 * m))
+    i = 2 * np.arange(m)
+    out[i, i], out[i, i + 1] = R1[0, 0], R1[0, 1]
+    out[i + 1, i], out[i + 1, i + 1] = R1[1, 0], R1[1, 1]
+    return out
+
+
 def _blocks(P: FloatArray, ri: IntArray, rj: IntArray) -> FloatArray:
     """The 2x2 blocks ``P[ri:ri+2, rj:rj+2]`` for arrays of row starts (p, 2, 2)."""
     out = np.empty((ri.size, 2, 2))
@@ -644,7 +653,7 @@ def run_compressed(
                     Hn = _stack_jacobian(Jv[mj], Jl[mj])
                     cols = np.concatenate(([0, 1, 2], crow[mj].ravel()))
                     v = nu[mi, mj].reshape(-1)
-                    nis_sum += st.update(cols, Hn, v, np.kron(np.eye(m), R1).astype(np.float64))
+                    nis_sum += st.update(cols, Hn, v, block_diag_noise(m, R1))
                     nis_dof += v.size
                     n_matched += m
                     jid = st.a_ids[cand[mj]]  # distinct (one-to-one association)

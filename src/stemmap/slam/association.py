@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.slam._association_kernel import greedy_nn, joint_nis_core
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -99,24 +100,14 @@ def individual_compatibility(
 def nearest_neighbour(d2: ArrayLike, gate: float) -> IntArray:
     """Greedy one-to-one nearest neighbour: pairs taken in increasing ``d²`` below ``gate``.
 
-    Returns ``assign`` (k,): candidate index per observation, ``-1`` if unassigned.
+    Returns ``assign`` (k,): candidate index per observation, ``-1`` if unassigned. Ties in
+    ``d²`` go to the earlier pair in row-major order (compiled loop:
+    :func:`stemmap.slam._association_kernel.greedy_nn`).
     """
-    D = np.asarray(d2, dtype=np.float64)
-    k = D.shape[0]
-    assign = np.full(k, -1, dtype=np.int64)
+    D = np.ascontiguousarray(d2, dtype=np.float64)
     if D.size == 0:
-        return assign
-    ii, jj = np.nonzero(gate > D)
-    order = np.argsort(D[ii, jj], kind="stable")
-    used_i: set[int] = set()
-    used_j: set[int] = set()
-    for t in order:
-        i, j = int(ii[t]), int(jj[t])
-        if i in used_i or j in used_j:
-            continue
-        assign[i] = j
-        used_i.add(i)
-        used_j.add(j)
+        return np.full(D.shape[0], -1, dtype=np.int64)
+    assign: IntArray = greedy_nn(D, float(gate))
     return assign
 
 
@@ -129,22 +120,27 @@ def joint_nis(
 ) -> float:
     """Joint normalised innovation squared of a hypothesis ``[(obs, cand), ...]``.
 
-    ``D² = νᵀ (H P Hᵀ + R)⁻¹ ν`` over the stacked innovations, plus the independent extra cue.
+    ``D² = νᵀ (H P Hᵀ + R)⁻¹ ν`` over the stacked innovations, plus the independent extra cue;
+    ``inf`` if the joint covariance is singular. ``meas_cov`` is (k, 2, 2). The stacking and the
+    solve are compiled (:func:`stemmap.slam._association_kernel.joint_nis_core`).
     """
     if not pairs:
         return 0.0
     obs = np.array([p[0] for p in pairs])
     cand = np.array([p[1] for p in pairs])
-    nu = innovations[obs, cand].reshape(-1)
-    rows = np.stack((2 * cand, 2 * cand + 1), axis=1).reshape(-1)
-    S = pred_cov[np.ix_(rows, rows)].copy()
-    R = meas_cov[obs]
-    for t in range(len(pairs)):
-        S[2 * t : 2 * t + 2, 2 * t : 2 * t + 2] += R[t]
-    try:
-        val = float(nu @ np.linalg.solve(S, nu))
-    except np.linalg.LinAlgError:
-        return math.inf
+    return _joint_nis(obs, cand, innovations, pred_cov, meas_cov, extra_d2)
+
+
+def _joint_nis(
+    obs: IntArray,
+    cand: IntArray,
+    innovations: FloatArray,
+    pred_cov: FloatArray,
+    meas_cov: FloatArray,
+    extra_d2: FloatArray | None,
+) -> float:
+    """:func:`joint_nis` of the pairs ``(obs[t], cand[t])`` (at least one)."""
+    val = joint_nis_core(obs, cand, innovations, pred_cov, meas_cov)
     if extra_d2 is not None:
         val += float(extra_d2[obs, cand].sum())
     return val
@@ -189,18 +185,21 @@ def jcbb(
     dof1 = 2 + extra_dof
     d2 = individual_compatibility(nu, C, R, E)
     gate1 = chi2_gate(alpha, dof1)
-    cands = [
-        list(np.flatnonzero(d2[i] < gate1)[np.argsort(d2[i][d2[i] < gate1])]) for i in range(k)
-    ]
+    ok = d2 < gate1
+    has = ok.any(axis=1)
     # fast path: if greedy NN pairs every observation that has a candidate and the pairing is
     # jointly compatible, no hypothesis can have more pairings -- accept it without searching
     nn = nearest_neighbour(d2, gate1)
-    n_with = sum(1 for x in cands if x)
-    nn_pairs = [(i, int(j)) for i, j in enumerate(nn) if j >= 0]
-    if len(nn_pairs) == n_with and (
-        not nn_pairs or joint_nis(nn_pairs, nu, C, R, E) < chi2_gate(alpha, dof1 * len(nn_pairs))
+    nn_obs = np.flatnonzero(nn >= 0)
+    if nn_obs.size == int(has.sum()) and (
+        not nn_obs.size
+        or _joint_nis(nn_obs, nn[nn_obs], nu, C, R, E) < chi2_gate(alpha, dof1 * nn_obs.size)
     ):
         return nn
+    cands = []
+    for i in range(k):
+        js = np.flatnonzero(ok[i])
+        cands.append(js[np.argsort(d2[i, js])].tolist())
     state = _Search([], math.inf, 0)
     remaining = np.array([sum(1 for x in cands[i:] if x) for i in range(k)] + [0])
 

@@ -47,6 +47,7 @@ from stemmap.errors import ConfigError
 from stemmap.slam._ekf_compressed import (
     _blocks,
     augment_landmark_covariance,
+    block_diag_noise,
     close_pairs,
     decide_merges,
     run_compressed,
@@ -301,7 +302,7 @@ class EkfSlam:
                         Hn = Hs[:, nz]
                         cols = sc[nz]
                         v = nu[mi, mj].reshape(-1)
-                        nis_sum += self._update(cols, Hn, v, np.kron(np.eye(mi.size), R1))
+                        nis_sum += self._update(cols, Hn, v, block_diag_noise(mi.size, R1))
                         nis_dof += v.size
                         n_matched += mi.size
                         if cfg.merge_radius > 0 and mi.size > 1:

@@ -16,11 +16,16 @@ Implementation choices (recorded in docs/algorithms/slam-frontends.md):
   of the frame against its own ``max_candidates`` nearest landmarks; two detections may not claim
   the same landmark (the less likely one is dropped for that frame).
 * Everything is an array over particles: poses ``(P, 3)``, landmark means ``(P, C, 2)``,
-  covariances ``(P, C, 2, 2)`` with a capacity ``C`` that doubles when needed; one frame is a
-  handful of numpy operations on ``(P, K, M)`` arrays (``K`` detections, ``M`` candidates).
+  covariances ``(P, C, 2, 2)`` with a capacity ``C`` that doubles when needed and is never
+  shrunk. The association and landmark updates of version 1 run particle by particle in a
+  compiled kernel (:func:`stemmap.slam._fastslam_kernel.associate_update`); version 2, and
+  version 1 with ``_kernel = False``, run the same steps as numpy operations on ``(P, K, M)``
+  arrays (``K`` detections, ``M`` candidates) -- the reference the kernel is tested against.
 * Resampling (systematic, seeded) when the effective sample size falls below
-  ``resample_threshold * P``. The trajectory is the ancestry of the final best particle
-  (parent indices are stored per frame and back-tracked at the end, no path copying).
+  ``resample_threshold * P``, done in place copying only the landmarks in use
+  (:func:`~stemmap.slam._fastslam_kernel.resample_inplace`). The trajectory is the ancestry of
+  the final best particle (parent indices are stored per frame and back-tracked at the end, no
+  path copying).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from stemmap.errors import ConfigError
+from stemmap.slam._fastslam_kernel import associate_update, compact_inplace, resample_inplace
 from stemmap.slam.treedb import range_bearing_jacobians
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
@@ -263,6 +269,9 @@ class FastSlam:
     version: int = 1
     seed: int = 0
     name: str = "fastslam"
+    #: version 1 runs the compiled per-particle kernel (:mod:`stemmap.slam._fastslam_kernel`);
+    #: False runs the same steps as numpy array operations (the reference the tests compare to)
+    _kernel = True
 
     def __post_init__(self) -> None:
         if self.preset is not None:
@@ -324,6 +333,7 @@ class FastSlam:
         n_resample = 0
         n_pruned = 0
         rows = np.arange(P)[:, None]
+        sep2 = self.min_new_separation**2 if self.min_new_separation > 0 else 0.0
         # square roots of the motion covariances (version 1 samples them every frame)
         sq_motion = _psd_sqrt_stack(np.asarray(pre.covs)) if nf > 1 else np.zeros((0, 3, 3))
 
@@ -349,10 +359,21 @@ class FastSlam:
                     X = compose(X, pre.deltas[f - 1][None, :] + noise)
                     v2 = False
             if k:
-                z = np.column_stack((r, b))  # (K, 2)
                 M = min(int(self.max_candidates), int(nlm.max()))
-                ll_best = np.full((P, k), -np.inf)
-                assoc = np.full((P, k), -1, dtype=np.int64)
+                if self.version == 1 and self._kernel:
+                    # the numpy block below, particle by particle (same operations, compiled)
+                    ll_best = np.empty((P, k))
+                    assoc = np.empty((P, k), dtype=np.int64)
+                    rmax = float(r.max()) + self.window_margin
+                    associate_update(
+                        X, mu, Sig, nlm, nobs, tlast, dsum, dcnt, r, b, d,
+                        float(off[0]), float(off[1]), R[0, 0], R[1, 1], log_p0,
+                        int(self.max_candidates), rmax * rmax, sep2, tf, assoc, ll_best,
+                    )  # fmt: skip
+                    M = 0
+                else:
+                    ll_best = np.full((P, k), -np.inf)
+                    assoc = np.full((P, k), -1, dtype=np.int64)
                 if M > 0:
                     # candidates: the M nearest existing landmarks of each particle
                     c_all = mu.shape[1]
@@ -457,7 +478,8 @@ class FastSlam:
                             v2 = False  # sampled
                         # EKF update of the matched landmarks (unique (p, lm) pairs) at the
                         # (sampled) pose
-                        _ekf_update(mu, Sig, wp, lm, X[wp], z[wk], off, R[0, 0], R[1, 1])
+                        z = np.column_stack((r[wk], b[wk]))
+                        _ekf_update(mu, Sig, wp, lm, X[wp], z, off, R[0, 0], R[1, 1])
                         nobs[wp, lm] += 1
                         tlast[wp, lm] = tf
                         dd = d[wk]
@@ -514,15 +536,8 @@ class FastSlam:
                     idx = systematic_resample(w, rng)
                     parents[f] = idx
                     X = X[idx]
-                    top = int(nlm.max())
-                    mu = mu[idx, : max(top, 1)]
-                    Sig = Sig[idx, : max(top, 1)]
-                    nobs = nobs[idx, : max(top, 1)]
-                    dsum = dsum[idx, : max(top, 1)]
-                    dcnt = dcnt[idx, : max(top, 1)]
-                    tfirst = tfirst[idx, : max(top, 1)]
-                    tlast = tlast[idx, : max(top, 1)]
-                    nlm = nlm[idx]
+                    # in place, landmarks in use only; the capacity is kept (no regrowth)
+                    resample_inplace(idx, nlm, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
                     logw = np.zeros(P)
                     n_resample += 1
                 else:
@@ -537,16 +552,8 @@ class FastSlam:
                     | (tlast[:, :top] > tf - self.tentative_timeout_s)
                 )
                 if not np.all(keep == (slots < nlm[:, None])):
-                    order = np.argsort(~keep, axis=1, kind="stable")
-                    mu = np.take_along_axis(mu[:, :top], order[:, :, None], axis=1)
-                    Sig = np.take_along_axis(Sig[:, :top], order[:, :, None, None], axis=1)
-                    nobs = np.take_along_axis(nobs[:, :top], order, axis=1)
-                    dsum = np.take_along_axis(dsum[:, :top], order, axis=1)
-                    dcnt = np.take_along_axis(dcnt[:, :top], order, axis=1)
-                    tfirst = np.take_along_axis(tfirst[:, :top], order, axis=1)
-                    tlast = np.take_along_axis(tlast[:, :top], order, axis=1)
                     n_pruned += int(nlm.sum() - keep.sum())
-                    nlm = keep.sum(axis=1).astype(np.int64)
+                    compact_inplace(keep, nlm, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
             pose_hist[f] = X
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
