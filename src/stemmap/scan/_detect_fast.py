@@ -572,6 +572,7 @@ def _detect_kernel(
                 ws3,
                 wv,
                 mdl,
+                1.0,  # the fit's default stopping thresholds
             )
             if status != OK:
                 continue

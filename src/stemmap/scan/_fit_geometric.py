@@ -390,8 +390,12 @@ def _lm(
     robust: bool,
     ws3: FloatArray,
     wv: FloatArray,
+    tol: float,
 ) -> tuple[float, int]:  # pragma: no cover - numba
     """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations).
+
+    ``tol`` scales the stopping thresholds (step 1e-6 relative, decrease 1e-5 of the cost);
+    ``tol < 1`` also allows 10x the iterations (a tight reference for tests, not for use).
 
     ``mdl``: see :func:`_cost_and_normal`. ``ws3`` (>= 3, 3, 3) and ``wv`` (>= 6, 3) are
     scratch space (no allocation per call). On return ``ws3[0]`` and ``wv[0]`` hold the
@@ -410,7 +414,10 @@ def _lm(
     )
     lam = 1e-3
     it = 0
-    for it in range(_MAX_ITER):
+    xtol = 1e-6 * tol
+    ftol = 1e-5 * tol
+    max_iter = _MAX_ITER if tol >= 1.0 else 10 * _MAX_ITER
+    for it in range(max_iter):
         improved = False
         for _ in range(12):
             for a in range(3):
@@ -458,7 +465,7 @@ def _lm(
                 elif gain < 0.25:
                     lam *= 2.0
                 improved = True
-                if dp <= 1e-6 * (1.0 + scale) or rel <= 1e-5 * (1.0 + cost):
+                if dp <= xtol * (1.0 + scale) or rel <= ftol * (1.0 + cost):
                     return cost, it + 1
                 break
             lam *= 10.0
@@ -507,11 +514,13 @@ def _fit_one(
     ws3: FloatArray,
     wv: FloatArray,
     mdl: FloatArray,
+    tol: float,
 ) -> int:  # pragma: no cover - numba
     """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status.
 
     ``buf`` (8, >= N), ``ws3`` (6, 3, 3), ``wv`` (8, 3) and ``mdl`` (10,) are scratch space
-    shared by all segments of a batch, so a fit allocates nothing on the common path."""
+    shared by all segments of a batch, so a fit allocates nothing on the common path.
+    ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults)."""
     n = px.shape[0]
     if n < 3:
         return TOO_FEW
@@ -647,7 +656,7 @@ def _fit_one(
         # first pass: points weighted like the silhouette (sigma ~ range * angular std)
         sig = max(near * sang, _SIGMA_FLOOR)
         mdl[0] = 1.0 / sig
-        _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv)
+        _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
         ss = 0.0
         for i in range(n):
             d = _abs_residual(i, lx, ly, rho, ux, uy, p, mdl, tmp)
@@ -655,7 +664,7 @@ def _fit_one(
         dof = n - 3 if n > 3 else 1
         sig = max(math.sqrt(ss / dof), _SIGMA_FLOOR)
     mdl[0] = 1.0 / sig
-    _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv)
+    _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
     # ---- outlier rejection (mixed pixels): drop up to N // 4 returns beyond 4 sigma ----
     if n >= 6:
         for i in range(n):
@@ -678,7 +687,7 @@ def _fit_one(
                     ss += keep[i] * dabs[i] * dabs[i]
                 sig = max(math.sqrt(ss / max(n - n_rej - 3, 1)), _SIGMA_FLOOR)
                 mdl[0] = 1.0 / sig
-            _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv)
+            _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
     if not _valid(p[0], p[1], p[2], rho_min, use_sil):
         return NOT_CONVERGED
     if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
@@ -736,6 +745,7 @@ def _fit_segments(
     range_model: bool,
     out: FloatArray,
     status: np.ndarray,
+    tol: float,
 ) -> None:  # pragma: no cover - numba
     nmax = 0
     for k in range(starts.shape[0]):
@@ -764,6 +774,7 @@ def _fit_segments(
             ws3,
             wv,
             mdl,
+            tol,
         )
 
 
@@ -781,11 +792,14 @@ def fit_ours_segments(
     sil: FloatArray | None = None,
     footprint: float = 0.0,
     range_model: bool = True,
+    tolerance: float = 1.0,
 ) -> tuple[FloatArray, np.ndarray]:
     """Run the kernel on K segments ``px[starts[k]:stops[k]]``.
 
     All per-segment arrays have shape (K,); ``sigma <= 0`` means "estimate from residuals",
-    ``dtheta <= 0`` means "estimate the beam spacing from the bearings".
+    ``dtheta <= 0`` means "estimate the beam spacing from the bearings". ``tolerance`` scales
+    the LM stopping thresholds (1.0: the defaults the detector uses; tests pass e.g. 1e-8 to
+    get a tightly converged reference of the same cost).
 
     Returns
     -------
@@ -816,6 +830,7 @@ def fit_ours_segments(
         bool(range_model),
         out,
         status,
+        float(tolerance),
     )
     out[status != OK] = np.nan
     return out, status
