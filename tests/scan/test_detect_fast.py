@@ -152,3 +152,34 @@ def test_pairwise_sum_equals_numpy_reduceat():
     ref = np.add.reduceat(x, starts)
     mine = np.array([_detect_fast._seg_sum(x, a, b) for a, b in zip(starts, stops, strict=True)])
     np.testing.assert_array_equal(mine, ref)  # same summation order, bit for bit
+
+
+def test_algebraic_floor_is_the_kasa_minimum_and_bounds_every_circle() -> None:
+    """The pre-fit reject rests on two facts: ``_algebraic_floor`` is the least-squares minimum
+    of ``sum (|p - c|^2 - r^2)^2`` over all circles (checked against numpy's lstsq), so no
+    circle scores below it; and ``(d - r)^2 = (d^2 - r^2)^2 / (d + r)^2``, so the orthogonal
+    cost of a circle with every ``d_i + r <= M`` is at least floor / M^2."""
+    rng = np.random.default_rng(5)
+    for trial in range(200):
+        n = int(rng.integers(4, 40))
+        if trial % 2:  # noisy arcs (trunk-like)
+            c = rng.uniform(-5, 5, 2)
+            r = rng.uniform(0.05, 0.5)
+            t = rng.uniform(0, rng.uniform(0.5, 3.0), n)
+            p = c + (r + rng.normal(0, 0.01, n))[:, None] * np.c_[np.cos(t), np.sin(t)]
+        else:  # clutter-like blobs
+            p = rng.uniform(-1, 1, (n, 2)) * rng.uniform(0.05, 1.0) + rng.uniform(-5, 5, 2)
+        px, py = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
+        floor = _detect_fast._algebraic_floor(px, py, 0, n)
+        A = np.c_[px, py, np.ones(n)]
+        z = px**2 + py**2
+        sol, *_ = np.linalg.lstsq(A, z, rcond=None)
+        ref = float(np.sum((A @ sol - z) ** 2))
+        assert floor == pytest.approx(ref, rel=1e-6, abs=1e-15)
+        for _ in range(5):  # any circle: algebraic cost >= floor, orthogonal >= floor / M^2
+            cc = rng.uniform(-6, 6, 2)
+            rr = rng.uniform(0.01, 2.0)
+            d = np.hypot(px - cc[0], py - cc[1])
+            assert np.sum((d**2 - rr**2) ** 2) >= floor * (1 - 1e-9)
+            m = float(np.max(d + rr))
+            assert np.sum((d - rr) ** 2) >= floor / m**2 * (1 - 1e-9)

@@ -143,6 +143,52 @@ def _seg_sum(a: FloatArray, start: int, stop: int) -> float:  # pragma: no cover
 
 
 @njit(cache=True, error_model="numpy")
+def _algebraic_floor(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma: no cover
+    """Minimum over all circles of the Kasa (algebraic) cost ``sum (|p - c|^2 - r^2)^2`` of the
+    points ``a..b-1`` (a linear least-squares problem in (2c, r^2 - |c|^2), solved in centred
+    coordinates; the residuals are summed explicitly). 0.0 when the points are collinear (no
+    useful bound)."""
+    nf = float(b - a)
+    mx = 0.0
+    my = 0.0
+    for i in range(a, b):
+        mx += px[i]
+        my += py[i]
+    mx /= nf
+    my /= nf
+    zm = 0.0
+    for i in range(a, b):
+        zm += (px[i] - mx) ** 2 + (py[i] - my) ** 2
+    zm /= nf
+    suu = 0.0
+    svv = 0.0
+    suv = 0.0
+    suz = 0.0
+    svz = 0.0
+    for i in range(a, b):
+        u = px[i] - mx
+        v = py[i] - my
+        z = u * u + v * v - zm
+        suu += u * u
+        svv += v * v
+        suv += u * v
+        suz += u * z
+        svz += v * z
+    det = suu * svv - suv * suv
+    if not det > 1e-12 * (suu + svv) ** 2:
+        return 0.0
+    ca = (svv * suz - suv * svz) / det
+    cb = (suu * svz - suv * suz) / det
+    res = 0.0
+    for i in range(a, b):
+        u = px[i] - mx
+        v = py[i] - my
+        e = u * u + v * v - zm - ca * u - cb * v
+        res += e * e
+    return res
+
+
+@njit(cache=True, error_model="numpy")
 def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
     """Median of ``v[start:stop]`` (mean of the two middle values for even counts), as
     :func:`stemmap.scan.features._segment_median`."""
@@ -543,6 +589,23 @@ def _detect_kernel(
             if use_sil:
                 _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
                 _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
+            sil_width = wid[j]
+            if use_sil:
+                beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)
+                beyond += 0.0 if math.isnan(sil[2]) else max(sil[2] - 0.5, 0.0)
+                sil_width = wid[j] + beyond * mean_r * absinc
+            if rms_check:
+                # Exact early reject (docs/algorithms/scan-detection.md, "pre-fit bound"): a
+                # circle the checks below accept has r <= r_cap and RMS <= k sigma, so every
+                # |d_i - r| <= sqrt(N) k sigma and d_i + r <= 2 r_cap + sqrt(N) k sigma = M;
+                # with (d - r) = (d^2 - r^2) / (d + r), N RMS^2 >= kasa_min / M^2. If even that
+                # floor exceeds the RMS limit, no fit can pass: skip the (costly) fit.
+                lim = max_rms_sigma * sig
+                r_cap = min(max_radius, max_rw * max(sil_width, 1e-9))
+                m_cap = 2.0 * r_cap + math.sqrt(cnt_i) * lim
+                floor = _algebraic_floor(px, py, a, b) / (m_cap * m_cap)
+                if floor > 1.001 * cnt_i * lim * lim:  # margin: round-off of the floor
+                    continue
             e_start = not (oc0[j] or tr0[j])
             e_end = not (oc1[j] or tr1[j])
             if inc < 0:  # the fit takes the ends in bearing order
@@ -579,11 +642,6 @@ def _detect_kernel(
             cx = fit_out[0]
             cy = fit_out[1]
             rad = fit_out[2]
-            sil_width = wid[j]
-            if use_sil:
-                beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)
-                beyond += 0.0 if math.isnan(sil[2]) else max(sil[2] - 0.5, 0.0)
-                sil_width = wid[j] + beyond * mean_r * absinc
             good = rad >= min_radius and rad <= max_radius
             good &= rad <= max_rw * max(sil_width, 1e-9)
             good &= math.hypot(cx, cy) > mean_r
