@@ -52,6 +52,26 @@ if TYPE_CHECKING:
     from stemmap.slam.ekf import EkfConfig
 
 
+def grow_buffers(n: int, need: int, P: FloatArray, *rows: FloatArray) -> list[FloatArray] | None:
+    """Capacity growth of an EKF state buffer (amortised: x1.5 + 64).
+
+    ``P`` is the (cap, cap) covariance and ``rows`` arrays whose first axis has ``cap``
+    entries (the mean, the compressed filter's Phi). Returns ``None`` when ``need`` entries
+    fit already, else new zeroed buffers ``[P, *rows]`` with the first ``n`` entries copied.
+    """
+    if need <= P.shape[0]:
+        return None
+    cap = max(need, int(P.shape[0] * 1.5) + 64)
+    P2 = np.zeros((cap, cap))
+    P2[:n, :n] = P[:n, :n]
+    out = [P2]
+    for r in rows:
+        r2 = np.zeros((cap, *r.shape[1:]))
+        r2[:n] = r[:n]
+        out.append(r2)
+    return out
+
+
 def augment_landmark_covariance(
     P: FloatArray, n: int, theta: float, a: float, b: float, rng_: float, ang: float,
     R1: FloatArray,
@@ -250,17 +270,9 @@ class _Compressed:
         self.b_alive = np.ones(nb, dtype=bool)
 
     def _reserve(self, extra: int) -> None:
-        need = self.nA + extra
-        if need <= self.PA.shape[0]:
-            return
-        cap = max(need, int(self.PA.shape[0] * 1.5) + 64)
-        PA = np.zeros((cap, cap))
-        PA[: self.nA, : self.nA] = self.PA[: self.nA, : self.nA]
-        xA = np.zeros(cap)
-        xA[: self.nA] = self.xA[: self.nA]
-        Phi = np.zeros((cap, self.na0))
-        Phi[: self.nA] = self.Phi[: self.nA]
-        self.PA, self.xA, self.Phi = PA, xA, Phi
+        grown = grow_buffers(self.nA, self.nA + extra, self.PA, self.xA, self.Phi)
+        if grown is not None:
+            self.PA, self.xA, self.Phi = grown
 
     def sync(self, new_a_ids: IntArray | None) -> None:
         """Full update (eqs. 23-25), drop pruned landmarks, start a new period with

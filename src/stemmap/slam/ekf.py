@@ -50,6 +50,7 @@ from stemmap.slam._ekf_compressed import (
     block_diag_noise,
     close_pairs,
     decide_merges,
+    grow_buffers,
     run_compressed,
 )
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
@@ -156,15 +157,9 @@ class EkfSlam:
 
     # ------------------------------------------------------------------ state buffer helpers
     def _reserve(self, extra: int) -> None:
-        need = self.n + extra
-        if need <= self.P.shape[0]:
-            return
-        cap = max(need, int(self.P.shape[0] * 1.5) + 64)
-        P = np.zeros((cap, cap))
-        P[: self.n, : self.n] = self.P[: self.n, : self.n]
-        x = np.zeros(cap)
-        x[: self.n] = self.x[: self.n]
-        self.P, self.x = P, x
+        grown = grow_buffers(self.n, self.n + extra, self.P, self.x)
+        if grown is not None:
+            self.P, self.x = grown
 
     def run(
         self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
