@@ -244,3 +244,12 @@ def test_sensor_positions_validation() -> None:
     assert sp.pick_time_field(["x", "timestamp"], "f") == "timestamp"
     with pytest.raises(InputError, match="its fields: x, y"):
         sp.pick_time_field(["x", "y"], "f")
+
+
+def test_in_memory_origins_with_the_kasa_fit_are_refused() -> None:
+    """The Kasa fit has no along-ray refinement: origins would be silently unused."""
+    from stemmap.cloud.stems import PRESETS
+
+    xyz = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(ConfigError, match="only by the geometric fit"):
+        detect_stems(xyz, PRESETS["ours_kasa"], origins=np.zeros(3))

@@ -493,7 +493,9 @@ def detect_stems(
         Sensor position of each point (a TLS station; for a mobile cloud the trajectory pose
         at the point's time). When given, the slice fits are refined with residuals along the
         rays (:func:`_refine_along_rays`): range noise lies along the ray, not across the
-        surface, which biases orthogonal-distance fits of one-sided arcs low.
+        surface, which biases orthogonal-distance fits of one-sided arcs low. Only the
+        geometric fit uses them: with ``fit_method="kasa"`` they raise a ConfigError rather
+        than being silently ignored.
 
     Returns
     -------
@@ -507,6 +509,11 @@ def detect_stems(
         return CloudStems.empty("ours", reason="the cloud is empty")
     o: FloatArray | None = None
     if origins is not None:
+        if cfg.fit_method == "kasa":
+            raise ConfigError(
+                "origins are used only by the geometric fit (preset 'ours'); the Kasa fit has "
+                "no along-ray refinement. Drop origins or use fit_method='ours'."
+            )
         o = np.asarray(origins, dtype=np.float64)
         if o.shape == (3,) or o.shape == (2,):
             o = np.broadcast_to(o[:2], (p.shape[0], 2))
