@@ -51,6 +51,9 @@ _REJECT = 4.0  # outlier rejection threshold, sigma units, after the Huber fit
 _SIGMA_FLOOR = 2e-4  # metres: smallest noise scale used when sigma is estimated from residuals
 _MAX_ITER = 40
 _SQRT12 = math.sqrt(12.0)
+_EP_PASSES = 2  # sweeps over the two tangent sites (a third moves diameters by < 1e-5 m)
+_INV_SQRT2 = 1.0 / math.sqrt(2.0)
+_INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 @njit(cache=True, error_model="numpy")
@@ -497,6 +500,106 @@ def _abs_residual(
 
 
 @njit(cache=True, error_model="numpy")
+def _truncated_moments(
+    m: float, v: float, lo: float, hi: float
+) -> tuple[float, float, bool]:  # pragma: no cover - numba
+    """Mean and variance of N(m, v) restricted to [lo, hi]; False where the interval holds
+    (numerically) no mass or the variance would not be positive."""
+    s = math.sqrt(v)
+    a = (lo - m) / s
+    b = (hi - m) / s
+    z = 0.5 * (math.erfc(-b * _INV_SQRT2) - math.erfc(-a * _INV_SQRT2))
+    if not z > 1e-9:
+        return m, v, False
+    pa = _INV_SQRT2PI * math.exp(-0.5 * a * a)
+    pb = _INV_SQRT2PI * math.exp(-0.5 * b * b)
+    dm = (pa - pb) / z
+    var = v * (1.0 + (a * pa - b * pb) / z - dm * dm)
+    if not var > 0.0:
+        return m, v, False
+    return m + s * dm, var, True
+
+
+@njit(cache=True, error_model="numpy")
+def _box_tangents(
+    p: FloatArray, C: FloatArray, mdl: FloatArray, work: FloatArray
+) -> bool:  # pragma: no cover - numba
+    """Replace the Gaussian tangent terms by the uniform intervals they stand for (EP).
+
+    The fit's silhouette term is the Gaussian surrogate (same mean and variance) of a tangent
+    bearing known only to lie in an interval (beam quantisation, scan-fits.md "Silhouette
+    term"). Given the fit's Gaussian posterior (``p``, ``C`` = inverse Gauss-Newton Hessian),
+    expectation propagation swaps each side's Gaussian site for the uniform interval of width
+    sqrt(12) x std around the same target: the cavity (posterior without that site) is
+    restricted to the interval, its moments (truncated normal) replace the posterior's along
+    the site's direction ``a = d t / d(cx, cy, r)``, and the site becomes the Gaussian that
+    reproduces them. Two sweeps over both sides; linearised at the current mean. Updates ``p``
+    and ``C`` in place (posterior mean and covariance) and returns True, or leaves them and
+    returns False where a site cannot be matched (no mass in the interval, a non-positive
+    cavity variance). ``mdl``: see :func:`_cost_and_normal`; ``work`` (>= 2, 3) scratch."""
+    ms = np.empty(2)
+    vs = np.empty(2)
+    width = np.empty(2)
+    tau = np.empty(2)
+    for side in range(2):
+        w_inv = mdl[3] if side == 0 else mdl[4]
+        if not w_inv > 0.0:
+            return False
+        tau[side] = mdl[1] if side == 0 else mdl[2]
+        ms[side] = tau[side]
+        vs[side] = 1.0 / (w_inv * w_inv)
+        width[side] = _SQRT12 / w_inv
+    a = work[0]
+    ca = work[1]
+    for _ in range(_EP_PASSES):
+        for side in range(2):
+            sgn = -1.0 if side == 0 else 1.0
+            cx = p[0]
+            cy = p[1]
+            r = p[2]
+            d2 = cx * cx + cy * cy
+            if not d2 > r * r:
+                return False
+            q = math.sqrt(d2 - r * r)
+            a[0] = -cy / d2 + sgn * (-r * cx / (d2 * q))
+            a[1] = cx / d2 + sgn * (-r * cy / (d2 * q))
+            a[2] = sgn / q
+            mt = math.atan2(cy, cx) + sgn * math.asin(r / math.sqrt(d2))
+            vt = 0.0
+            for i in range(3):
+                acc = 0.0
+                for j in range(3):
+                    acc += C[i, j] * a[j]
+                ca[i] = acc
+                vt += a[i] * acc
+            if not vt > 0.0:
+                return False
+            pc = 1.0 / vt - 1.0 / vs[side]
+            if not pc > 0.0:
+                return False
+            vc = 1.0 / pc
+            mc = vc * (mt / vt - ms[side] / vs[side])
+            half = 0.5 * width[side]
+            mn, vn, good = _truncated_moments(mc, vc, tau[side] - half, tau[side] + half)
+            if not good:
+                return False
+            g = (mn - mt) / vt
+            shrink = (vt - vn) / (vt * vt)
+            for i in range(3):
+                p[i] += ca[i] * g
+                for j in range(3):
+                    C[i, j] -= ca[i] * ca[j] * shrink
+            pn = 1.0 / vn - 1.0 / vc
+            if pn > 1e-300:
+                vs[side] = 1.0 / pn
+                ms[side] = (mn / vn - mc / vc) / pn
+            else:  # the interval adds nothing beyond the cavity: a flat site
+                vs[side] = 1e300
+                ms[side] = mn
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def _fit_one(
     px: FloatArray,
     py: FloatArray,
@@ -699,6 +802,17 @@ def _fit_one(
     C = ws3[4]
     if not _inv3(H, C):
         C[:, :] = np.nan
+    elif use_sil and use_lo and use_hi:
+        # both tangents observed: the posterior is compact and the linearised moment match
+        # holds; with one tangent it is curved along the "bigger circle further away" valley
+        # (measured on separate seeds: EP made partial arcs slightly worse), so no EP there
+        pe = wv[5]
+        pe[0], pe[1], pe[2] = p[0], p[1], p[2]
+        Ce = ws3[3]
+        Ce[:, :] = C
+        if _box_tangents(pe, Ce, mdl, wv[6:8]) and _valid(pe[0], pe[1], pe[2], rho_min, use_sil):
+            p[0], p[1], p[2] = pe[0], pe[1], pe[2]
+            C[:, :] = Ce
     ss = 0.0
     n_in = 0.0
     for i in range(n):
