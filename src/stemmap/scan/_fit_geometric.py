@@ -618,12 +618,14 @@ def _fit_one(
     wv: FloatArray,
     mdl: FloatArray,
     tol: float,
+    box: bool,
 ) -> int:  # pragma: no cover - numba
     """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status.
 
     ``buf`` (8, >= N), ``ws3`` (6, 3, 3), ``wv`` (8, 3) and ``mdl`` (10,) are scratch space
     shared by all segments of a batch, so a fit allocates nothing on the common path.
-    ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults)."""
+    ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults). ``box``:
+    refine arcs with both tangents by the uniform tangent intervals (:func:`_box_tangents`)."""
     n = px.shape[0]
     if n < 3:
         return TOO_FEW
@@ -802,7 +804,7 @@ def _fit_one(
     C = ws3[4]
     if not _inv3(H, C):
         C[:, :] = np.nan
-    elif use_sil and use_lo and use_hi:
+    elif box and use_sil and use_lo and use_hi:
         # both tangents observed: the posterior is compact and the linearised moment match
         # holds; with one tangent it is curved along the "bigger circle further away" valley
         # (measured on separate seeds: EP made partial arcs slightly worse), so no EP there
@@ -860,6 +862,7 @@ def _fit_segments(
     out: FloatArray,
     status: np.ndarray,
     tol: float,
+    box: bool,
 ) -> None:  # pragma: no cover - numba
     nmax = 0
     for k in range(starts.shape[0]):
@@ -889,6 +892,7 @@ def _fit_segments(
             wv,
             mdl,
             tol,
+            box,
         )
 
 
@@ -907,13 +911,17 @@ def fit_ours_segments(
     footprint: float = 0.0,
     range_model: bool = True,
     tolerance: float = 1.0,
+    box_tangents: bool = True,
 ) -> tuple[FloatArray, np.ndarray]:
     """Run the kernel on K segments ``px[starts[k]:stops[k]]``.
 
     All per-segment arrays have shape (K,); ``sigma <= 0`` means "estimate from residuals",
     ``dtheta <= 0`` means "estimate the beam spacing from the bearings". ``tolerance`` scales
     the LM stopping thresholds (1.0: the defaults the detector uses; tests pass e.g. 1e-8 to
-    get a tightly converged reference of the same cost).
+    get a tightly converged reference of the same cost). ``box_tangents``: where both tangents
+    are observed, refine the fit by the uniform tangent intervals the Gaussian silhouette terms
+    stand for (:func:`_box_tangents`; the detector's default); False = the plain MAP of the
+    Gaussian surrogate.
 
     Returns
     -------
@@ -945,6 +953,7 @@ def fit_ours_segments(
         out,
         status,
         float(tolerance),
+        bool(box_tangents),
     )
     out[status != OK] = np.nan
     return out, status
