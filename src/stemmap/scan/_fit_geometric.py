@@ -51,7 +51,6 @@ _REJECT = 4.0  # outlier rejection threshold, sigma units, after the Huber fit
 _SIGMA_FLOOR = 2e-4  # metres: smallest noise scale used when sigma is estimated from residuals
 _MAX_ITER = 40
 _SQRT12 = math.sqrt(12.0)
-_EP_PASSES = 2  # sweeps over the two tangent sites (a third moves diameters by < 1e-5 m)
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
@@ -529,73 +528,59 @@ def _box_tangents(
     The fit's silhouette term is the Gaussian surrogate (same mean and variance) of a tangent
     bearing known only to lie in an interval (beam quantisation, scan-fits.md "Silhouette
     term"). Given the fit's Gaussian posterior (``p``, ``C`` = inverse Gauss-Newton Hessian),
-    expectation propagation swaps each side's Gaussian site for the uniform interval of width
-    sqrt(12) x std around the same target: the cavity (posterior without that site) is
-    restricted to the interval, its moments (truncated normal) replace the posterior's along
-    the site's direction ``a = d t / d(cx, cy, r)``, and the site becomes the Gaussian that
-    reproduces them. Two sweeps over both sides; linearised at the current mean. Updates ``p``
-    and ``C`` in place (posterior mean and covariance) and returns True, or leaves them and
-    returns False where a site cannot be matched (no mass in the interval, a non-positive
-    cavity variance). ``mdl``: see :func:`_cost_and_normal`; ``work`` (>= 2, 3) scratch."""
-    ms = np.empty(2)
-    vs = np.empty(2)
-    width = np.empty(2)
-    tau = np.empty(2)
+    each side in turn (one sweep, assumed-density filtering; a second sweep moved the
+    benchmark's diameters by < 1e-5 m): the cavity (posterior without that side's Gaussian
+    term) is restricted to the uniform interval of width sqrt(12) x std around the same
+    target, and the posterior takes the tilted moments (truncated normal) along the site's
+    direction ``a = d t / d(cx, cy, r)`` (linearised at the current mean), keeping its
+    conditional given t. Updates ``p`` and ``C`` in place (posterior mean and covariance) and
+    returns True, or returns False (``p``, ``C`` then partly updated: the caller keeps copies)
+    where a side cannot be matched (no mass in the interval, a non-positive cavity variance).
+    ``mdl``: see :func:`_cost_and_normal`; ``work`` (>= 2, 3) scratch."""
+    a = work[0]
+    ca = work[1]
     for side in range(2):
         w_inv = mdl[3] if side == 0 else mdl[4]
         if not w_inv > 0.0:
             return False
-        tau[side] = mdl[1] if side == 0 else mdl[2]
-        ms[side] = tau[side]
-        vs[side] = 1.0 / (w_inv * w_inv)
-        width[side] = _SQRT12 / w_inv
-    a = work[0]
-    ca = work[1]
-    for _ in range(_EP_PASSES):
-        for side in range(2):
-            sgn = -1.0 if side == 0 else 1.0
-            cx = p[0]
-            cy = p[1]
-            r = p[2]
-            d2 = cx * cx + cy * cy
-            if not d2 > r * r:
-                return False
-            q = math.sqrt(d2 - r * r)
-            a[0] = -cy / d2 + sgn * (-r * cx / (d2 * q))
-            a[1] = cx / d2 + sgn * (-r * cy / (d2 * q))
-            a[2] = sgn / q
-            mt = math.atan2(cy, cx) + sgn * math.asin(r / math.sqrt(d2))
-            vt = 0.0
-            for i in range(3):
-                acc = 0.0
-                for j in range(3):
-                    acc += C[i, j] * a[j]
-                ca[i] = acc
-                vt += a[i] * acc
-            if not vt > 0.0:
-                return False
-            pc = 1.0 / vt - 1.0 / vs[side]
-            if not pc > 0.0:
-                return False
-            vc = 1.0 / pc
-            mc = vc * (mt / vt - ms[side] / vs[side])
-            half = 0.5 * width[side]
-            mn, vn, good = _truncated_moments(mc, vc, tau[side] - half, tau[side] + half)
-            if not good:
-                return False
-            g = (mn - mt) / vt
-            shrink = (vt - vn) / (vt * vt)
-            for i in range(3):
-                p[i] += ca[i] * g
-                for j in range(3):
-                    C[i, j] -= ca[i] * ca[j] * shrink
-            pn = 1.0 / vn - 1.0 / vc
-            if pn > 1e-300:
-                vs[side] = 1.0 / pn
-                ms[side] = (mn / vn - mc / vc) / pn
-            else:  # the interval adds nothing beyond the cavity: a flat site
-                vs[side] = 1e300
-                ms[side] = mn
+        tau = mdl[1] if side == 0 else mdl[2]
+        vs = 1.0 / (w_inv * w_inv)  # the Gaussian site: mean tau, variance vs
+        half = 0.5 * _SQRT12 / w_inv
+        sgn = -1.0 if side == 0 else 1.0
+        cx = p[0]
+        cy = p[1]
+        r = p[2]
+        d2 = cx * cx + cy * cy
+        if not d2 > r * r:
+            return False
+        q = math.sqrt(d2 - r * r)
+        a[0] = -cy / d2 - sgn * r * cx / (d2 * q)
+        a[1] = cx / d2 - sgn * r * cy / (d2 * q)
+        a[2] = sgn / q
+        mt = math.atan2(cy, cx) + sgn * math.asin(r / math.sqrt(d2))
+        vt = 0.0
+        for i in range(3):
+            acc = 0.0
+            for j in range(3):
+                acc += C[i, j] * a[j]
+            ca[i] = acc
+            vt += a[i] * acc
+        if not vt > 0.0:
+            return False
+        pc = 1.0 / vt - 1.0 / vs
+        if not pc > 0.0:
+            return False
+        vc = 1.0 / pc
+        mc = vc * (mt / vt - tau / vs)
+        mn, vn, good = _truncated_moments(mc, vc, tau - half, tau + half)
+        if not good:
+            return False
+        g = (mn - mt) / vt
+        shrink = (vt - vn) / (vt * vt)
+        for i in range(3):
+            p[i] += ca[i] * g
+            for j in range(3):
+                C[i, j] -= ca[i] * ca[j] * shrink
     return True
 
 
