@@ -31,6 +31,7 @@ from scipy import ndimage
 
 from stemmap.datasets import find_datasets_dir
 from stemmap.errors import InputError
+from stemmap.scan._fit_geometric import _footprint_range
 from stemmap.scan.circle import FIT_METHODS, fit_circle_ours, fit_circles_batch
 
 SLICE = Path("fortls_slice") / "diameters.laz"
@@ -498,6 +499,19 @@ def _tangent_jacobian(c: np.ndarray, r: float) -> np.ndarray:
     return np.vstack((b - a, b + a))
 
 
+def _footprint_edge_jacobian(c: np.ndarray, r: float, th: float, footprint: float) -> np.ndarray:
+    """d rho / d(cx, cy, r) of an edge return whose range is the mean over the part of a beam
+    footprint of ``footprint`` rad that hits the circle (the ours fit's edge model,
+    scan-fits.md "Edge model"; the kernel's own prediction and partials)."""
+    ux, uy = math.cos(th), math.sin(th)
+    out = np.zeros(4)
+    b = ux * c[0] + uy * c[1]
+    s0 = ux * c[1] - uy * c[0]
+    if not _footprint_range(b, s0, r, footprint, out):
+        return _range_jacobian(c, r, np.array([th]))[0]
+    return np.array([out[1] * ux - out[2] * uy, out[1] * uy + out[2] * ux, out[3]])
+
+
 def crlb_diameter_var(
     c: np.ndarray,
     r: float,
@@ -505,12 +519,21 @@ def crlb_diameter_var(
     sigma: float,
     tangent_std: np.ndarray | None,
     model: str = "range",
+    footprint: float = 0.0,
 ) -> float:
     """Cramer-Rao bound on var(2 r) for returns at bearings ``th`` (range or orthogonal noise
     ``sigma``) plus Gaussian tangent observations with the given stds (rows lo, hi; None or
     inf = no silhouette on that side). Fisher information J = sum_i g_i g_i^T / sigma^2 +
-    sum_edge t_e t_e^T / s_e^2; bound = 4 [J^-1]_rr."""
+    sum_edge t_e t_e^T / s_e^2; bound = 4 [J^-1]_rr. ``footprint`` > 0 (range model): the
+    lowest / highest-bearing return of a side with a tangent term is footprint-averaged (an
+    averaging scanner, the ours fit's edge model) instead of a thin ray: its range changes
+    less steeply with the tangent's position than a grazing thin ray's, so it carries less
+    information (the thin-ray bound is optimistic there)."""
     jac = _range_jacobian(c, r, th) if model == "range" else _orthogonal_jacobian(c, r, th)
+    if footprint > 0 and model == "range" and tangent_std is not None and th.shape[0] >= 2:
+        for side, i in enumerate((int(np.argmin(th)), int(np.argmax(th)))):
+            if np.isfinite(tangent_std[side]):
+                jac[i] = _footprint_edge_jacobian(c, r, float(th[i]), footprint)
     fisher = jac.T @ jac / sigma**2
     if tangent_std is not None:
         t = _tangent_jacobian(c, r)

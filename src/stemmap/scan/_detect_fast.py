@@ -636,6 +636,7 @@ def _detect_kernel(
                 wv,
                 mdl,
                 1.0,  # the fit's default stopping thresholds
+                True,  # uniform tangent intervals on two-tangent arcs (the fit's default)
             )
             if status != OK:
                 continue

@@ -51,6 +51,8 @@ _REJECT = 4.0  # outlier rejection threshold, sigma units, after the Huber fit
 _SIGMA_FLOOR = 2e-4  # metres: smallest noise scale used when sigma is estimated from residuals
 _MAX_ITER = 40
 _SQRT12 = math.sqrt(12.0)
+_INV_SQRT2 = 1.0 / math.sqrt(2.0)
+_INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 @njit(cache=True, error_model="numpy")
@@ -497,6 +499,92 @@ def _abs_residual(
 
 
 @njit(cache=True, error_model="numpy")
+def _truncated_moments(
+    m: float, v: float, lo: float, hi: float
+) -> tuple[float, float, bool]:  # pragma: no cover - numba
+    """Mean and variance of N(m, v) restricted to [lo, hi]; False where the interval holds
+    (numerically) no mass or the variance would not be positive."""
+    s = math.sqrt(v)
+    a = (lo - m) / s
+    b = (hi - m) / s
+    z = 0.5 * (math.erfc(-b * _INV_SQRT2) - math.erfc(-a * _INV_SQRT2))
+    if not z > 1e-9:
+        return m, v, False
+    pa = _INV_SQRT2PI * math.exp(-0.5 * a * a)
+    pb = _INV_SQRT2PI * math.exp(-0.5 * b * b)
+    dm = (pa - pb) / z
+    var = v * (1.0 + (a * pa - b * pb) / z - dm * dm)
+    if not var > 0.0:
+        return m, v, False
+    return m + s * dm, var, True
+
+
+@njit(cache=True, error_model="numpy")
+def _box_tangents(
+    p: FloatArray, C: FloatArray, mdl: FloatArray, work: FloatArray
+) -> bool:  # pragma: no cover - numba
+    """Replace the Gaussian tangent terms by the uniform intervals they stand for (EP).
+
+    The fit's silhouette term is the Gaussian surrogate (same mean and variance) of a tangent
+    bearing known only to lie in an interval (beam quantisation, scan-fits.md "Silhouette
+    term"). Given the fit's Gaussian posterior (``p``, ``C`` = inverse Gauss-Newton Hessian),
+    each side in turn (one sweep, assumed-density filtering; a second sweep moved the
+    benchmark's diameters by < 1e-5 m): the cavity (posterior without that side's Gaussian
+    term) is restricted to the uniform interval of width sqrt(12) x std around the same
+    target, and the posterior takes the tilted moments (truncated normal) along the site's
+    direction ``a = d t / d(cx, cy, r)`` (linearised at the current mean), keeping its
+    conditional given t. Updates ``p`` and ``C`` in place (posterior mean and covariance) and
+    returns True, or returns False (``p``, ``C`` then partly updated: the caller keeps copies)
+    where a side cannot be matched (no mass in the interval, a non-positive cavity variance).
+    ``mdl``: see :func:`_cost_and_normal`; ``work`` (>= 2, 3) scratch."""
+    a = work[0]
+    ca = work[1]
+    for side in range(2):
+        w_inv = mdl[3] if side == 0 else mdl[4]
+        if not w_inv > 0.0:
+            return False
+        tau = mdl[1] if side == 0 else mdl[2]
+        vs = 1.0 / (w_inv * w_inv)  # the Gaussian site: mean tau, variance vs
+        half = 0.5 * _SQRT12 / w_inv
+        sgn = -1.0 if side == 0 else 1.0
+        cx = p[0]
+        cy = p[1]
+        r = p[2]
+        d2 = cx * cx + cy * cy
+        if not d2 > r * r:
+            return False
+        q = math.sqrt(d2 - r * r)
+        a[0] = -cy / d2 - sgn * r * cx / (d2 * q)
+        a[1] = cx / d2 - sgn * r * cy / (d2 * q)
+        a[2] = sgn / q
+        mt = math.atan2(cy, cx) + sgn * math.asin(r / math.sqrt(d2))
+        vt = 0.0
+        for i in range(3):
+            acc = 0.0
+            for j in range(3):
+                acc += C[i, j] * a[j]
+            ca[i] = acc
+            vt += a[i] * acc
+        if not vt > 0.0:
+            return False
+        pc = 1.0 / vt - 1.0 / vs
+        if not pc > 0.0:
+            return False
+        vc = 1.0 / pc
+        mc = vc * (mt / vt - tau / vs)
+        mn, vn, good = _truncated_moments(mc, vc, tau - half, tau + half)
+        if not good:
+            return False
+        g = (mn - mt) / vt
+        shrink = (vt - vn) / (vt * vt)
+        for i in range(3):
+            p[i] += ca[i] * g
+            for j in range(3):
+                C[i, j] -= ca[i] * ca[j] * shrink
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def _fit_one(
     px: FloatArray,
     py: FloatArray,
@@ -515,12 +603,14 @@ def _fit_one(
     wv: FloatArray,
     mdl: FloatArray,
     tol: float,
+    box: bool,
 ) -> int:  # pragma: no cover - numba
     """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status.
 
     ``buf`` (8, >= N), ``ws3`` (6, 3, 3), ``wv`` (8, 3) and ``mdl`` (10,) are scratch space
     shared by all segments of a batch, so a fit allocates nothing on the common path.
-    ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults)."""
+    ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults). ``box``:
+    refine arcs with both tangents by the uniform tangent intervals (:func:`_box_tangents`)."""
     n = px.shape[0]
     if n < 3:
         return TOO_FEW
@@ -699,6 +789,17 @@ def _fit_one(
     C = ws3[4]
     if not _inv3(H, C):
         C[:, :] = np.nan
+    elif box and use_sil and use_lo and use_hi:
+        # both tangents observed: the posterior is compact and the linearised moment match
+        # holds; with one tangent it is curved along the "bigger circle further away" valley
+        # (measured on separate seeds: EP made partial arcs slightly worse), so no EP there
+        pe = wv[5]
+        pe[0], pe[1], pe[2] = p[0], p[1], p[2]
+        Ce = ws3[3]
+        Ce[:, :] = C
+        if _box_tangents(pe, Ce, mdl, wv[6:8]) and _valid(pe[0], pe[1], pe[2], rho_min, use_sil):
+            p[0], p[1], p[2] = pe[0], pe[1], pe[2]
+            C[:, :] = Ce
     ss = 0.0
     n_in = 0.0
     for i in range(n):
@@ -746,6 +847,7 @@ def _fit_segments(
     out: FloatArray,
     status: np.ndarray,
     tol: float,
+    box: bool,
 ) -> None:  # pragma: no cover - numba
     nmax = 0
     for k in range(starts.shape[0]):
@@ -775,6 +877,7 @@ def _fit_segments(
             wv,
             mdl,
             tol,
+            box,
         )
 
 
@@ -793,13 +896,17 @@ def fit_ours_segments(
     footprint: float = 0.0,
     range_model: bool = True,
     tolerance: float = 1.0,
+    box_tangents: bool = True,
 ) -> tuple[FloatArray, np.ndarray]:
     """Run the kernel on K segments ``px[starts[k]:stops[k]]``.
 
     All per-segment arrays have shape (K,); ``sigma <= 0`` means "estimate from residuals",
     ``dtheta <= 0`` means "estimate the beam spacing from the bearings". ``tolerance`` scales
     the LM stopping thresholds (1.0: the defaults the detector uses; tests pass e.g. 1e-8 to
-    get a tightly converged reference of the same cost).
+    get a tightly converged reference of the same cost). ``box_tangents``: where both tangents
+    are observed, refine the fit by the uniform tangent intervals the Gaussian silhouette terms
+    stand for (:func:`_box_tangents`; the detector's default); False = the plain MAP of the
+    Gaussian surrogate.
 
     Returns
     -------
@@ -831,6 +938,7 @@ def fit_ours_segments(
         out,
         status,
         float(tolerance),
+        bool(box_tangents),
     )
     out[status != OK] = np.nan
     return out, status

@@ -599,7 +599,11 @@ def fit_circle_ours(
     (``D > r`` and ``D`` beyond the nearest return).
     Solved by Levenberg-Marquardt from a silhouette-based start; the covariance is the inverse
     Gauss-Newton Hessian of the normalised residuals (so it is scaled by ``sigma`` if given,
-    else by the residual RMS with ``N - 3`` degrees of freedom, floored at 0.2 mm).
+    else by the residual RMS with ``N - 3`` degrees of freedom, floored at 0.2 mm). With both
+    edges used, the Gaussian tangent terms are then replaced by the uniform intervals they
+    stand for (width ``sqrt(12) * s_edge``): one expectation-propagation sweep on that Gaussian
+    posterior, whose mean and covariance are returned (docs/algorithms/scan-fits.md, "Uniform
+    tangent intervals").
 
     Parameters
     ----------
