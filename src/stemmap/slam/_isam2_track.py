@@ -12,7 +12,16 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["C_AMBIG", "C_FAR", "C_LOCAL", "C_NEW", "C_REACQ", "C_SINGLE", "track_keyframe"]
+__all__ = [
+    "C_AMBIG",
+    "C_FAR",
+    "C_LOCAL",
+    "C_NEW",
+    "C_REACQ",
+    "C_SINGLE",
+    "merge_window",
+    "track_keyframe",
+]
 
 # ---------------------------------------------------------------------------------------------
 # Front-end tracker (numba): pose tracking against the current tree estimates + association
@@ -426,3 +435,66 @@ def track_keyframe(
             out_wth[n_out] = w_th
             n_out += 1
     return n_lm, n_out
+
+
+@numba.njit(cache=True)
+def merge_window(
+    out_j: np.ndarray,
+    out_kx: np.ndarray,
+    out_ky: np.ndarray,
+    out_wxy: np.ndarray,
+    out_wth: np.ndarray,
+    n_out: int,
+    vr: float,
+    vb: float,
+    min_obs: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """One bearing-range measurement per tree of a keyframe window (``track_keyframe`` output).
+
+    The detections of a tree are averaged in the keyframe's sensor frame; the factor's variances
+    are ``sigma^2 / n`` plus the window's odometry variance (``mxy`` on the position, ``mth``
+    on the heading): ``sigma_r^2 = vr / n + mxy``, ``sigma_b^2 = vb / n + mxy / r^2 + mth``.
+    Trees seen in fewer than ``min_obs`` scans of the window get no measurement.
+
+    Returns ``(trees, bearing, range, sigmas (m, 2) as (sigma_b, sigma_r), n_skipped)``, trees
+    in ascending id order. Sums run in detection order and the elementary functions are the
+    C library's, as in the numpy ``unique`` + ``bincount`` formulation this replaces (~100 us
+    of numpy calls per keyframe in the full run): the results are bit-identical.
+    """
+    trees = np.unique(out_j[:n_out])
+    nt = trees.shape[0]
+    slot = np.searchsorted(trees, out_j[:n_out])
+    cnt = np.zeros(nt, dtype=np.int64)
+    sx = np.zeros(nt)
+    sy = np.zeros(nt)
+    sxy = np.zeros(nt)
+    sth = np.zeros(nt)
+    for i in range(n_out):
+        t = slot[i]
+        cnt[t] += 1
+        sx[t] += out_kx[i]
+        sy[t] += out_ky[i]
+        sxy[t] += out_wxy[i]
+        sth[t] += out_wth[i]
+    m = 0
+    for t in range(nt):
+        if cnt[t] >= min_obs:
+            m += 1
+    keep = np.empty(m, dtype=np.int64)
+    brg = np.empty(m)
+    rng = np.empty(m)
+    sig = np.empty((m, 2))
+    q = 0
+    for t in range(nt):
+        if cnt[t] < min_obs:
+            continue
+        c = float(cnt[t])
+        mx, my, mxy, mth = sx[t] / c, sy[t] / c, sxy[t] / c, sth[t] / c
+        r = math.hypot(mx, my)
+        keep[q] = trees[t]
+        brg[q] = math.atan2(my, mx)
+        rng[q] = r
+        sig[q, 0] = math.sqrt(vb / c + mxy / (r * r) + mth)
+        sig[q, 1] = math.sqrt(vr / c + mxy)
+        q += 1
+    return keep, brg, rng, sig, nt - m
