@@ -1,6 +1,7 @@
-"""Numba front-end of :class:`stemmap.slam.graph.Isam2Slam`: pose tracking and association.
+"""Numba kernels of :class:`stemmap.slam.graph.Isam2Slam`: pose tracking and association,
+the per-window measurement merge, and the banded solve of the tree marginals.
 
-Kept in its own module so that the compiled kernel (``numba.njit(cache=True)``) is not
+Kept in its own module so that the compiled kernels (``numba.njit(cache=True)``) are not
 invalidated by edits to ``graph.py``. The method is described in ``graph.py`` and in
 docs/algorithms/slam.md ("Front-end").
 """
@@ -19,6 +20,7 @@ __all__ = [
     "C_NEW",
     "C_REACQ",
     "C_SINGLE",
+    "band_cho_solve",
     "merge_window",
     "track_keyframe",
 ]
@@ -498,3 +500,34 @@ def merge_window(
         sig[q, 1] = math.sqrt(vr / c + mxy)
         q += 1
     return keep, brg, rng, sig, nt - m
+
+
+@numba.njit(cache=True)
+def band_cho_solve(ub: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``A X = B`` from the banded Cholesky factor ``U`` (``A = Uᵀ U``), many right sides.
+
+    ``ub`` (w + 1, n) is ``U`` in LAPACK's upper band storage (``ub[w + i - j, j] = U[i, j]``,
+    as ``scipy.linalg.cholesky_banded`` returns it), ``b`` (n, m) C-ordered. LAPACK's
+    ``dpbtrs`` solves one right-hand side at a time; here the inner loop runs along a row of
+    ``B`` (contiguous), 5x faster for the ~800 right sides of the tree marginals.
+    """
+    w = ub.shape[0] - 1
+    n, m = b.shape
+    x = b.copy()
+    for j in range(n):  # Uᵀ y = b (forward)
+        for i in range(max(0, j - w), j):
+            u = ub[w + i - j, j]
+            for c in range(m):
+                x[j, c] -= u * x[i, c]
+        d = ub[w, j]
+        for c in range(m):
+            x[j, c] /= d
+    for i in range(n - 1, -1, -1):  # U x = y (backward)
+        for j in range(i + 1, min(n, i + w + 1)):
+            u = ub[w + i - j, j]
+            for c in range(m):
+                x[i, c] -= u * x[j, c]
+        d = ub[w, i]
+        for c in range(m):
+            x[i, c] /= d
+    return x
