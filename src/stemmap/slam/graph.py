@@ -425,7 +425,11 @@ class Isam2Slam:
     ) -> SlamResult:
         # One BLAS thread: the matrices of the run are small, and on the shared 2-core machine
         # OpenBLAS's spinning worker threads cost CPU out of all proportion (dpotrf + dtrtri of
-        # the ~800 x 800 tree information in _point_marginals: 0.9 s of CPU instead of 0.03 s)
+        # the ~800 x 800 tree information in _point_marginals: 0.9 s of CPU instead of 0.03 s).
+        # The limit applies to the BLAS libraries loaded when it is set: scipy's (used by
+        # scipy.linalg and by numba's kernels) is loaded first.
+        import scipy.linalg  # noqa: F401
+
         with single_threaded_blas():
             return self._run(problem, progress)
 
