@@ -353,14 +353,16 @@ def _track_one_scan(trees, lm_inc, det_xy, nobs=20):
     counters = np.zeros(6, dtype=np.int64)
     out = [np.zeros(nd + 1, dtype=np.int64)] + [np.zeros(nd + 1) for _ in range(4)]
     vr, vb = 0.1**2, math.radians(0.5) ** 2
-    params = np.array([vr, vb, 0.01, 1.0, 11.34, 30.0, 1.0, 50.0, 1.5**2, 0.3**2, 9.21, 1.0])
-    n_lm, n_out = track_keyframe(
+    params = np.array([vr, vb, 0.01, 1.0, 11.34, 30.0, 1.0, 50.0, 1.5**2, 0.3**2, 9.21, 1.0, 1])
+    n_lm, n_out, trees_w, *_ = track_keyframe(
         2, 3, 2, 2, ptr, rng_, brg, dia, np.zeros((nf, 3)), np.zeros((nf - 1, 3, 3)),
         np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1e-3]), np.array([0.0, 0.0, 30.0]),
         np.zeros(3), np.diag([0.05, 0.05, 0.005]) ** 2, np.array([2], dtype=np.int64),
         lm_xy, lm_dsum, lm_dn, lm_nobs, np.zeros(cap, dtype=np.int64),
         np.zeros(cap, dtype=np.int64), inc, n0, params, *out, counters,
     )  # fmt: skip
+    # the window's measurements are one per associated tree (min_window_obs = 1 here)
+    np.testing.assert_array_equal(trees_w, np.unique(out[0][:n_out]))
     return counters, out[0][:n_out], n_lm
 
 

@@ -73,7 +73,7 @@ def track_keyframe(
     out_wxy: np.ndarray,
     out_wth: np.ndarray,
     counters: np.ndarray,
-) -> tuple[int, int]:
+) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Track the sensor pose through frames [f_start, f_stop) of one keyframe and associate.
 
     Steps (module docs of :mod:`stemmap.slam.graph`): propagate ``trk``/``P`` from frame
@@ -85,12 +85,17 @@ def track_keyframe(
     (world frame, heading error about the sensor), the landmark arrays (grown by the caller:
     room for every detection of the keyframe), ``counters``. ``f_upd`` is the first frame of the
     keyframe of the last iSAM2 update; ``lm_inc[j]`` the last frame of tree ``j`` whose
-    observation is in iSAM2 (-1: none yet). Outputs per associated detection (``out_*``): tree,
-    position in the keyframe's sensor frame ``kf_frame`` (dead reckoning within the window) and
-    the window's odometry variances. ``params``: vr, vb, sd2, use_diameter, gate, new_chi2,
-    new_min_dist, max_range, max_drift², local_drift², consensus_chi2, drift_scale.
+    observation is in iSAM2 (-1: none yet). Scratch per associated detection (``out_*``,
+    room for every detection of the keyframe): tree, position in the keyframe's sensor frame
+    ``kf_frame`` (dead reckoning within the window) and the window's odometry variances; they
+    are merged per tree by :func:`merge_window` (called here: one compiled function to load
+    per process instead of two, ~0.07 s). ``params``: vr, vb, sd2, use_diameter, gate,
+    new_chi2, new_min_dist, max_range, max_drift², local_drift², consensus_chi2, drift_scale,
+    min_window_obs.
 
-    Returns (n_lm, n_out).
+    Returns ``(n_lm, n_out, *merge_window(...))``: the number of trees, of associated
+    detections (in ``out_*``), then the window's measurements (trees, bearing, range, sigmas,
+    number of trees skipped).
     """
     vr, vb, sd2, use_d = params[0], params[1], params[2], params[3] > 0.5
     gate, new_chi2, new_min_dist, max_range = params[4], params[5], params[6], params[7]
@@ -436,10 +441,13 @@ def track_keyframe(
             out_wxy[n_out] = w_xy
             out_wth[n_out] = w_th
             n_out += 1
-    return n_lm, n_out
+    trees, brg_w, rng_w, sig_w, n_skip = merge_window(
+        out_j, out_kx, out_ky, out_wxy, out_wth, n_out, vr, vb, int(params[12])
+    )
+    return n_lm, n_out, trees, brg_w, rng_w, sig_w, n_skip
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")  # x / 0 -> inf, as the numpy code it replaced
 def merge_window(
     out_j: np.ndarray,
     out_kx: np.ndarray,

@@ -72,7 +72,6 @@ from stemmap.slam._isam2_track import (
     C_REACQ,
     C_SINGLE,
     band_cho_solve,
-    merge_window,
     track_keyframe,
 )
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
@@ -559,6 +558,7 @@ class Isam2Slam:
                 cfg.local_drift_sigma**2,
                 cfg.consensus_chi2,
                 cfg.drift_scale,
+                cfg.min_window_obs,
             ]
         )
         # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
@@ -588,7 +588,7 @@ class Isam2Slam:
         out_wxy = np.zeros(out_cap)
         out_wth = np.zeros(out_cap)
         n_factors_meas = n_updates = n_single_skipped = 0
-        window: tuple[Any, ...] = ()
+        window: list[Any] = []  # the last keyframe's measurements (track_keyframe)
 
         def flush(k: int) -> None:
             """Merge the window's detections per tree into one bearing-range factor each."""
@@ -695,19 +695,11 @@ class Isam2Slam:
                 lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
                 lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
                 lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
-            n_lm, n_out = track_keyframe(
+            n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
                 cum_dist, trk, P_trk, fc, lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last,
                 lm_inc, n_lm, kparams, out_j, out_kx, out_ky, out_wxy, out_wth, counters,
             )  # fmt: skip
-            # merged now: the kernel reuses its output buffers in the next keyframe
-            window = (
-                merge_window(
-                    out_j, out_kx, out_ky, out_wxy, out_wth, n_out, vr, vb, cfg.min_window_obs
-                )
-                if n_out
-                else ()
-            )
             if progress is not None:
                 progress(f1, nf)
         flush(nk - 1)
