@@ -38,7 +38,8 @@ covariance (``P' = F P Fᵀ + Q``), and every frame is associated in three steps
 
 iSAM2 is updated every ``update_every`` keyframes (the tracker bridges the gap); after the last
 frame duplicate trees are merged, one Levenberg-Marquardt batch optimisation refines
-everything, and :class:`gtsam.Marginals` gives each tree's 2x2 covariance.
+everything, and each tree's 2x2 marginal covariance is the Schur complement of the information
+over the pose chain (:func:`_point_marginals`, equal to :class:`gtsam.Marginals`).
 
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
@@ -116,7 +117,7 @@ class Isam2Config:
         window (its detections still serve the association)
     merge_dist : m, after the batch step two trees closer than this with compatible diameters
         are merged into one and the graph is optimised again (0 disables)
-    marginals : compute per-tree covariances (Marginals) at the end
+    marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
         correction (:func:`_calibration_lsq`); online over the last ``calib_window``
