@@ -522,20 +522,15 @@ def band_cho_solve(ub: np.ndarray, b: np.ndarray) -> np.ndarray:
     w = ub.shape[0] - 1
     n, m = b.shape
     x = b.copy()
-    for j in range(n):  # Uᵀ y = b (forward)
-        for i in range(max(0, j - w), j):
-            u = ub[w + i - j, j]
+    for step in range(2):  # Uᵀ y = b (forward), then U x = y (backward)
+        for t in range(n):
+            r = t if step == 0 else n - 1 - t
+            lo, hi = (max(0, r - w), r) if step == 0 else (r + 1, min(n, r + w + 1))
+            for o in range(lo, hi):
+                u = ub[w + o - r, r] if step == 0 else ub[w + r - o, o]  # Uᵀ[r, o] / U[r, o]
+                for c in range(m):
+                    x[r, c] -= u * x[o, c]
+            d = ub[w, r]
             for c in range(m):
-                x[j, c] -= u * x[i, c]
-        d = ub[w, j]
-        for c in range(m):
-            x[j, c] /= d
-    for i in range(n - 1, -1, -1):  # U x = y (backward)
-        for j in range(i + 1, min(n, i + w + 1)):
-            u = ub[w + i - j, j]
-            for c in range(m):
-                x[i, c] -= u * x[j, c]
-        d = ub[w, i]
-        for c in range(m):
-            x[i, c] /= d
+                x[r, c] /= d
     return x
