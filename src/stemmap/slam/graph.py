@@ -345,8 +345,8 @@ def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
     The same quantity as ``gtsam.Marginals(graph, values).marginalCovariance(key)``: the
     inverse of the Gauss-Newton information ``H = AᵀA`` of GTSAM's whitened linearisation
     (robust weights included), restricted to the trees ``L`` by the Schur complement over the
-    poses ``P``: ``Σ_LL = (H_LL - H_LP H_PP⁻¹ H_PL)⁻¹`` (exact; e.g. Triggs et al., "Bundle
-    adjustment -- a modern synthesis", 2000, section 6.1). The poses of :class:`Isam2Slam`
+    poses ``P``: ``Σ_LL = (H_LL - H_LP H_PP⁻¹ H_PL)⁻¹`` (exact: the marginal of a Gaussian in
+    information form is the Schur complement of the other block). The poses of :class:`Isam2Slam`
     form a chain (a prior and odometry between consecutive keyframes), so ``H_PP`` is banded
     (bandwidth 5 with the keyframes in key order): one banded Cholesky and a compiled solve
     with the ~800 tree columns as right sides; any other structure takes a sparse LU. The
