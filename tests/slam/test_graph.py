@@ -18,6 +18,7 @@ from stemmap.slam.graph import (
     _calibration_jacobians,
     _calibration_lsq,
     _merge_duplicates,
+    _point_marginals,
     _sensor_between,
 )
 from stemmap.slam.motion import between, compose
@@ -63,6 +64,58 @@ def test_isam2_map_and_marginals(loop_result):
     assert 0.3 < float(np.mean(nees)) < 6.0
     d_err = res.stem_map.diameters[m.pairs[:, 0]] - diam[m.pairs[:, 1]]
     assert np.median(np.abs(d_err)) < 0.02
+
+
+@pytest.mark.parametrize(("loop", "perturb"), [(False, True), (True, True), (False, False)])
+def test_point_marginals_equal_gtsam_marginals(rng, loop, perturb):
+    """The Schur-complement tree covariances are GTSAM's marginals (same linearisation).
+
+    A pose chain with a prior, odometry and robust bearing-range factors at perturbed values
+    (so that Huber reweights some residuals) or at the exact ones (zero residuals: GTSAM's
+    sparse Jacobian then has no right-hand-side column); ``loop`` adds a pose-pose factor
+    from the last to the first pose, which breaks the banded pose block and takes the
+    sparse-LU path. Both
+    compute the inverse of the same information matrix: they may differ only by round-off
+    (1e-10 relative on the full Victoria Park run), so the tolerance is 1e-7 relative.
+    """
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import L as LK
+    from gtsam.symbol_shorthand import X as XK
+
+    g = gtsam.NonlinearFactorGraph()
+    v = gtsam.Values()
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, 0.01]))
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(1.345)
+    meas = gtsam.noiseModel.Robust.Create(
+        huber, gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.1]))
+    )
+    g.add(gtsam.PriorFactorPose2(XK(0), gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)))
+    n_pose, n_lm = 12, 6
+    poses = [np.array([2.0 * k, 0.3 * math.sin(k), 0.05 * k]) for k in range(n_pose)]
+    lms = rng.uniform((-2.0, 3.0), (24.0, 12.0), size=(n_lm, 2))
+    for k in range(n_pose):
+        v.insert(XK(k), gtsam.Pose2(*(poses[k] + perturb * rng.normal(0.0, [0.2, 0.2, 0.02]))))
+        if k:
+            d = gtsam.Pose2(*poses[k - 1]).between(gtsam.Pose2(*poses[k]))
+            g.add(gtsam.BetweenFactorPose2(XK(k - 1), XK(k), d, odo))
+        for j in range(n_lm):
+            if (k + j) % 3:  # each tree seen from most poses
+                p = gtsam.Pose2(*poses[k])
+                g.add(
+                    gtsam.BearingRangeFactor2D(
+                        XK(k), LK(j), p.bearing(lms[j]), p.range(lms[j]), meas
+                    )
+                )
+    if loop:
+        d = gtsam.Pose2(*poses[-1]).between(gtsam.Pose2(*poses[0]))
+        g.add(gtsam.BetweenFactorPose2(XK(n_pose - 1), XK(0), d, odo))
+    for j in range(n_lm):
+        v.insert(LK(j), lms[j] + perturb * rng.normal(0.0, 0.5, 2))
+    keys = [LK(j) for j in (4, 0, 2)]  # any subset, any order
+    got = _point_marginals(g, v, keys)
+    marg = gtsam.Marginals(g, v)
+    want = np.array([marg.marginalCovariance(k) for k in keys])
+    np.testing.assert_allclose(got, want, rtol=1e-7, atol=0.0)
 
 
 def test_sensor_between_matches_composition(rng):
@@ -300,14 +353,16 @@ def _track_one_scan(trees, lm_inc, det_xy, nobs=20):
     counters = np.zeros(6, dtype=np.int64)
     out = [np.zeros(nd + 1, dtype=np.int64)] + [np.zeros(nd + 1) for _ in range(4)]
     vr, vb = 0.1**2, math.radians(0.5) ** 2
-    params = np.array([vr, vb, 0.01, 1.0, 11.34, 30.0, 1.0, 50.0, 1.5**2, 0.3**2, 9.21, 1.0])
-    n_lm, n_out = track_keyframe(
+    params = np.array([vr, vb, 0.01, 1.0, 11.34, 30.0, 1.0, 50.0, 1.5**2, 0.3**2, 9.21, 1.0, 1])
+    n_lm, n_out, trees_w, *_ = track_keyframe(
         2, 3, 2, 2, ptr, rng_, brg, dia, np.zeros((nf, 3)), np.zeros((nf - 1, 3, 3)),
         np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1e-3]), np.array([0.0, 0.0, 30.0]),
         np.zeros(3), np.diag([0.05, 0.05, 0.005]) ** 2, np.array([2], dtype=np.int64),
         lm_xy, lm_dsum, lm_dn, lm_nobs, np.zeros(cap, dtype=np.int64),
         np.zeros(cap, dtype=np.int64), inc, n0, params, *out, counters,
     )  # fmt: skip
+    # the window's measurements are one per associated tree (min_window_obs = 1 here)
+    np.testing.assert_array_equal(trees_w, np.unique(out[0][:n_out]))
     return counters, out[0][:n_out], n_lm
 
 

@@ -1,6 +1,7 @@
-"""Numba front-end of :class:`stemmap.slam.graph.Isam2Slam`: pose tracking and association.
+"""Numba kernels of :class:`stemmap.slam.graph.Isam2Slam`: pose tracking and association,
+the per-window measurement merge, and the banded solve of the tree marginals.
 
-Kept in its own module so that the compiled kernel (``numba.njit(cache=True)``) is not
+Kept in its own module so that the compiled kernels (``numba.njit(cache=True)``) are not
 invalidated by edits to ``graph.py``. The method is described in ``graph.py`` and in
 docs/algorithms/slam.md ("Front-end").
 """
@@ -12,7 +13,17 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["C_AMBIG", "C_FAR", "C_LOCAL", "C_NEW", "C_REACQ", "C_SINGLE", "track_keyframe"]
+__all__ = [
+    "C_AMBIG",
+    "C_FAR",
+    "C_LOCAL",
+    "C_NEW",
+    "C_REACQ",
+    "C_SINGLE",
+    "band_cho_solve",
+    "merge_window",
+    "track_keyframe",
+]
 
 # ---------------------------------------------------------------------------------------------
 # Front-end tracker (numba): pose tracking against the current tree estimates + association
@@ -62,7 +73,7 @@ def track_keyframe(
     out_wxy: np.ndarray,
     out_wth: np.ndarray,
     counters: np.ndarray,
-) -> tuple[int, int]:
+) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Track the sensor pose through frames [f_start, f_stop) of one keyframe and associate.
 
     Steps (module docs of :mod:`stemmap.slam.graph`): propagate ``trk``/``P`` from frame
@@ -74,12 +85,17 @@ def track_keyframe(
     (world frame, heading error about the sensor), the landmark arrays (grown by the caller:
     room for every detection of the keyframe), ``counters``. ``f_upd`` is the first frame of the
     keyframe of the last iSAM2 update; ``lm_inc[j]`` the last frame of tree ``j`` whose
-    observation is in iSAM2 (-1: none yet). Outputs per associated detection (``out_*``): tree,
-    position in the keyframe's sensor frame ``kf_frame`` (dead reckoning within the window) and
-    the window's odometry variances. ``params``: vr, vb, sd2, use_diameter, gate, new_chi2,
-    new_min_dist, max_range, max_drift², local_drift², consensus_chi2, drift_scale.
+    observation is in iSAM2 (-1: none yet). Scratch per associated detection (``out_*``,
+    room for every detection of the keyframe): tree, position in the keyframe's sensor frame
+    ``kf_frame`` (dead reckoning within the window) and the window's odometry variances; they
+    are merged per tree by :func:`merge_window` (called here: one compiled function to load
+    per process instead of two, ~0.07 s). ``params``: vr, vb, sd2, use_diameter, gate,
+    new_chi2, new_min_dist, max_range, max_drift², local_drift², consensus_chi2, drift_scale,
+    min_window_obs.
 
-    Returns (n_lm, n_out).
+    Returns ``(n_lm, n_out, *merge_window(...))``: the number of trees, of associated
+    detections (in ``out_*``), then the window's measurements (trees, bearing, range, sigmas,
+    number of trees skipped).
     """
     vr, vb, sd2, use_d = params[0], params[1], params[2], params[3] > 0.5
     gate, new_chi2, new_min_dist, max_range = params[4], params[5], params[6], params[7]
@@ -425,4 +441,96 @@ def track_keyframe(
             out_wxy[n_out] = w_xy
             out_wth[n_out] = w_th
             n_out += 1
-    return n_lm, n_out
+    trees, brg_w, rng_w, sig_w, n_skip = merge_window(
+        out_j, out_kx, out_ky, out_wxy, out_wth, n_out, vr, vb, int(params[12])
+    )
+    return n_lm, n_out, trees, brg_w, rng_w, sig_w, n_skip
+
+
+@numba.njit(cache=True, error_model="numpy")  # x / 0 -> inf, as the numpy code it replaced
+def merge_window(
+    out_j: np.ndarray,
+    out_kx: np.ndarray,
+    out_ky: np.ndarray,
+    out_wxy: np.ndarray,
+    out_wth: np.ndarray,
+    n_out: int,
+    vr: float,
+    vb: float,
+    min_obs: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """One bearing-range measurement per tree of a keyframe window (``track_keyframe`` output).
+
+    The detections of a tree are averaged in the keyframe's sensor frame; the factor's variances
+    are ``sigma^2 / n`` plus the window's odometry variance (``mxy`` on the position, ``mth``
+    on the heading): ``sigma_r^2 = vr / n + mxy``, ``sigma_b^2 = vb / n + mxy / r^2 + mth``.
+    Trees seen in fewer than ``min_obs`` scans of the window get no measurement.
+
+    Returns ``(trees, bearing, range, sigmas (m, 2) as (sigma_b, sigma_r), n_skipped)``, trees
+    in ascending id order. Sums run in detection order and the elementary functions are the
+    C library's, as in the numpy ``unique`` + ``bincount`` formulation this replaces (~100 us
+    of numpy calls per keyframe in the full run): the results are bit-identical.
+    """
+    trees = np.unique(out_j[:n_out])
+    nt = trees.shape[0]
+    slot = np.searchsorted(trees, out_j[:n_out])
+    cnt = np.zeros(nt, dtype=np.int64)
+    sx = np.zeros(nt)
+    sy = np.zeros(nt)
+    sxy = np.zeros(nt)
+    sth = np.zeros(nt)
+    for i in range(n_out):
+        t = slot[i]
+        cnt[t] += 1
+        sx[t] += out_kx[i]
+        sy[t] += out_ky[i]
+        sxy[t] += out_wxy[i]
+        sth[t] += out_wth[i]
+    m = 0
+    for t in range(nt):
+        if cnt[t] >= min_obs:
+            m += 1
+    keep = np.empty(m, dtype=np.int64)
+    brg = np.empty(m)
+    rng = np.empty(m)
+    sig = np.empty((m, 2))
+    q = 0
+    for t in range(nt):
+        if cnt[t] < min_obs:
+            continue
+        c = float(cnt[t])
+        mx, my, mxy, mth = sx[t] / c, sy[t] / c, sxy[t] / c, sth[t] / c
+        r = math.hypot(mx, my)
+        keep[q] = trees[t]
+        brg[q] = math.atan2(my, mx)
+        rng[q] = r
+        sig[q, 0] = math.sqrt(vb / c + mxy / (r * r) + mth)
+        sig[q, 1] = math.sqrt(vr / c + mxy)
+        q += 1
+    return keep, brg, rng, sig, nt - m
+
+
+@numba.njit(cache=True)
+def band_cho_solve(ub: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``A X = B`` from the banded Cholesky factor ``U`` (``A = Uᵀ U``), many right sides.
+
+    ``ub`` (w + 1, n) is ``U`` in LAPACK's upper band storage (``ub[w + i - j, j] = U[i, j]``,
+    as ``scipy.linalg.cholesky_banded`` returns it), ``b`` (n, m) C-ordered. LAPACK's
+    ``dpbtrs`` solves one right-hand side at a time; here the inner loop runs along a row of
+    ``B`` (contiguous), 5x faster for the ~800 right sides of the tree marginals.
+    """
+    w = ub.shape[0] - 1
+    n, m = b.shape
+    x = b.copy()
+    for step in range(2):  # Uᵀ y = b (forward), then U x = y (backward)
+        for t in range(n):
+            r = t if step == 0 else n - 1 - t
+            lo, hi = (max(0, r - w), r) if step == 0 else (r + 1, min(n, r + w + 1))
+            for o in range(lo, hi):
+                u = ub[w + o - r, r] if step == 0 else ub[w + r - o, o]  # Uᵀ[r, o] / U[r, o]
+                for c in range(m):
+                    x[r, c] -= u * x[o, c]
+            d = ub[w, r]
+            for c in range(m):
+                x[r, c] /= d
+    return x

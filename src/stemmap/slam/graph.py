@@ -38,7 +38,8 @@ covariance (``P' = F P Fᵀ + Q``), and every frame is associated in three steps
 
 iSAM2 is updated every ``update_every`` keyframes (the tracker bridges the gap); after the last
 frame duplicate trees are merged, one Levenberg-Marquardt batch optimisation refines
-everything, and :class:`gtsam.Marginals` gives each tree's 2x2 covariance.
+everything, and each tree's 2x2 marginal covariance is the Schur complement of the information
+over the pose chain (:func:`_point_marginals`, equal to :class:`gtsam.Marginals`).
 
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
@@ -71,9 +72,10 @@ from stemmap.slam._isam2_track import (
     C_NEW,
     C_REACQ,
     C_SINGLE,
+    band_cho_solve,
     track_keyframe,
 )
-from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory
+from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.motion import between, compose, preintegrate
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
@@ -115,7 +117,7 @@ class Isam2Config:
         window (its detections still serve the association)
     merge_dist : m, after the batch step two trees closer than this with compatible diameters
         are merged into one and the graph is optimised again (0 disables)
-    marginals : compute per-tree covariances (Marginals) at the end
+    marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
         correction (:func:`_calibration_lsq`); online over the last ``calib_window``
@@ -337,6 +339,81 @@ def _merge_duplicates(
     return np.array([find(i) for i in range(n)], dtype=np.int64)
 
 
+def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
+    """(n, 2, 2) marginal covariances of the Point2 variables ``keys`` at ``values`` (ours).
+
+    The same quantity as ``gtsam.Marginals(graph, values).marginalCovariance(key)``: the
+    inverse of the Gauss-Newton information ``H = AᵀA`` of GTSAM's whitened linearisation
+    (robust weights included), restricted to the trees ``L`` by the Schur complement over the
+    poses ``P``: ``Σ_LL = (H_LL - H_LP H_PP⁻¹ H_PL)⁻¹`` (exact: the marginal of a Gaussian in
+    information form is the Schur complement of the other block). The poses of :class:`Isam2Slam`
+    form a chain (a prior and odometry between consecutive keyframes), so ``H_PP`` is banded
+    (bandwidth 5 with the keyframes in key order): one banded Cholesky and a compiled solve
+    with the ~800 tree columns as right sides; any other structure takes a sparse LU. The
+    dense ``S⁻¹`` is only needed on its 2x2 diagonal blocks: ``S = UᵀU``, ``S⁻¹ = U⁻¹U⁻ᵀ``,
+    the blocks are products of row pairs of ``U⁻¹``. Full Victoria Park run: ~0.25 s instead
+    of ~0.5 s for GTSAM's joint marginals in chunks of 128 trees (which eliminate the whole
+    graph once per chunk); the covariances agree to ~1e-10 relative (round-off).
+
+    Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
+    """
+    import scipy.linalg as sla
+    import scipy.sparse as sp
+    from scipy.linalg import lapack
+
+    ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, col, value); last col = b
+    # columns follow the sorted keys (GTSAM's default ordering of sparseJacobian); GTSAM
+    # Symbol keys hold their letter in the top byte: 'l' = Point2 (2), 'x' = Pose2 (3)
+    all_keys = np.array(sorted(values.keys()), dtype=np.uint64)
+    is_pt = (all_keys >> np.uint64(56)) == ord("l")
+    dims = np.where(is_pt, 2, 3)
+    start = np.concatenate(([0], np.cumsum(dims)))
+    n_col = int(start[-1])
+    cols = ijs[1].astype(np.int64) - 1
+    # (GTSAM leaves out entries below 1e-12, of b too: at an exact fit there is no b column)
+    if int(cols.max(initial=0)) > n_col:
+        raise ValueError("unexpected variable layout in the linearised graph")
+    a_mat = sp.csr_matrix(
+        (ijs[2][cols < n_col], (ijs[0][cols < n_col].astype(np.int64) - 1, cols[cols < n_col])),
+        shape=(int(ijs[0].max(initial=0)), n_col),
+    )
+    h = (a_mat.T @ a_mat).tocsr()
+    col_of = [np.arange(start[i], start[i + 1]) for i in range(all_keys.size)]
+    i_l = np.concatenate([col_of[i] for i in np.flatnonzero(is_pt)] or [np.zeros(0, int)])
+    i_p = np.concatenate([col_of[i] for i in np.flatnonzero(~is_pt)] or [np.zeros(0, int)])
+    h_ll = h[i_l][:, i_l].toarray()
+    h_pl = h[i_p][:, i_l]
+    h_pp = h[i_p][:, i_p].tocoo()
+    w = 5
+    solve: Callable[[FloatArray], FloatArray]
+    if h_pp.nnz and int(np.abs(h_pp.row - h_pp.col).max()) <= w:
+        ab = np.zeros((w + 1, i_p.size))
+        up = h_pp.row <= h_pp.col
+        ab[w + h_pp.row[up] - h_pp.col[up], h_pp.col[up]] = h_pp.data[up]
+        ub = sla.cholesky_banded(ab)
+        solve = lambda rhs: band_cho_solve(ub, rhs)  # noqa: E731
+    else:
+        from scipy.sparse.linalg import splu
+
+        solve = splu(h_pp.tocsc()).solve
+    # S = H_LL - H_LP H_PP⁻¹ H_PL, 128 tree columns at a time (a dense n_P x n_L right side
+    # would add ~60 MB to the peak memory of the full run)
+    s_mat = h_ll
+    for c0 in range(0, i_l.size, 128):
+        h_c = h_pl[:, c0 : c0 + 128]
+        s_mat[:, c0 : c0 + 128] -= h_pl.T @ solve(h_c.toarray())
+    u, info = lapack.dpotrf(s_mat, lower=0, clean=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"tree information not positive definite (dpotrf {info})")
+    u_inv, info = lapack.dtrtri(u, lower=0)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"singular tree information (dtrtri {info})")
+    # row of each requested key in the L block (points in sorted-key order)
+    pos = np.searchsorted(all_keys[is_pt], np.array(keys, dtype=np.uint64))
+    rows = u_inv.reshape(-1, 2, u_inv.shape[1])[pos]
+    return np.asarray(np.einsum("jak,jbk->jab", rows, rows), dtype=np.float64)
+
+
 class Isam2Slam:
     """GTSAM iSAM2 graph SLAM back-end (registered as ``"isam2"``), see module docs."""
 
@@ -353,6 +430,17 @@ class Isam2Slam:
     def run(
         self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
     ) -> SlamResult:
+        # One BLAS thread: the matrices of the run are small, and on the shared 2-core machine
+        # OpenBLAS's spinning worker threads cost CPU out of all proportion (dpotrf + dtrtri of
+        # the ~800 x 800 tree information in _point_marginals: 0.9 s of CPU instead of 0.03 s).
+        # The limit applies to the BLAS libraries loaded when it is set: scipy's (used by
+        # scipy.linalg and by numba's kernels) is loaded first.
+        import scipy.linalg  # noqa: F401
+
+        with single_threaded_blas():
+            return self._run(problem, progress)
+
+    def _run(self, problem: SlamProblem, progress: Callable[[int, int], None] | None) -> SlamResult:
         import gtsam
         from gtsam.symbol_shorthand import L as LK
         from gtsam.symbol_shorthand import X as XK
@@ -427,8 +515,9 @@ class Isam2Slam:
             else None
         )
 
-        def meas_noise(sig_b: float, sig_r: float) -> Any:
-            base = gtsam.noiseModel.Diagonal.Sigmas(np.array([sig_b, sig_r]))
+        def meas_noise(sigmas: FloatArray) -> Any:
+            """Noise of one bearing-range factor, ``sigmas`` = (sigma_bearing, sigma_range)."""
+            base = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             return base if kernel is None else gtsam.noiseModel.Robust.Create(kernel, base)
 
         params = gtsam.ISAM2Params()
@@ -446,6 +535,7 @@ class Isam2Slam:
         graph_all.add(pf)
         meas_rec: list[tuple[int, int, float, float, float, float]] = []
         meas_fac: list[Any] = []  # the factor of each meas_rec entry (reused when rebuilding)
+        odo_fac: list[Any] = []  # the odometry factors of the graph, in keyframe order
         new_v.insert(XK(0), s0)
 
         # landmark bookkeeping (numpy, grown geometrically; filled by the numba tracker)
@@ -475,6 +565,7 @@ class Isam2Slam:
                 cfg.local_drift_sigma**2,
                 cfg.consensus_chi2,
                 cfg.drift_scale,
+                cfg.min_window_obs,
             ]
         )
         # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
@@ -504,45 +595,33 @@ class Isam2Slam:
         out_wxy = np.zeros(out_cap)
         out_wth = np.zeros(out_cap)
         n_factors_meas = n_updates = n_single_skipped = 0
-        window: tuple[Any, ...] = ()
+        window: list[Any] = []  # the last keyframe's measurements (track_keyframe)
 
         def flush(k: int) -> None:
             """Merge the window's detections per tree into one bearing-range factor each."""
             nonlocal n_factors_meas, n_single_skipped
             if not window:
                 return
-            wj, wkx, wky, wwxy, wwth = window
-            trees_w, inv, cnt = np.unique(wj, return_inverse=True, return_counts=True)
-            mx = np.bincount(inv, weights=wkx) / cnt
-            my = np.bincount(inv, weights=wky) / cnt
-            mxy_ = np.bincount(inv, weights=wwxy) / cnt
-            mth = np.bincount(inv, weights=wwth) / cnt
-            rr = np.hypot(mx, my)
-            # n detections averaged; odometry within the window adds its own variance
-            sig_r = np.sqrt(vr / cnt + mxy_)
-            sig_b = np.sqrt(vb / cnt + mxy_ / (rr * rr) + mth)
-            brg_w = np.arctan2(my, mx)
-            for t_, j in enumerate(trees_w.tolist()):
-                if cnt[t_] < cfg.min_window_obs:
-                    n_single_skipped += 1  # not confirmed by a second scan of the window
-                    continue
+            trees_w, brg_w, rr, sig, n_skip = window
+            n_single_skipped += n_skip  # not confirmed by a second scan of the window
+            js = trees_w.tolist()
+            if not js:
+                return
+            bl, rl = brg_w.tolist(), rr.tolist()
+            xk = XK(k)
+            for t_, j in enumerate(js):
                 if not lm_in_graph[j]:
                     new_v.insert(LK(j), lm_xy[j].copy())
                     lm_in_graph[j] = True
                 fac = gtsam.BearingRangeFactor2D(
-                    XK(k),
-                    LK(j),
-                    gtsam.Rot2(float(brg_w[t_])),
-                    float(rr[t_]),
-                    meas_noise(float(sig_b[t_]), float(sig_r[t_])),
+                    xk, LK(j), gtsam.Rot2(bl[t_]), rl[t_], meas_noise(sig[t_])
                 )
                 new_f.add(fac)
                 graph_all.add(fac)
                 meas_fac.append(fac)
-                meas_rec.append(
-                    (k, j, float(brg_w[t_]), float(rr[t_]), float(sig_b[t_]), float(sig_r[t_]))
-                )
-                n_factors_meas += 1
+            sbl, srl = sig[:, 0].tolist(), sig[:, 1].tolist()
+            meas_rec.extend(zip([k] * len(js), js, bl, rl, sbl, srl, strict=True))
+            n_factors_meas += len(js)
 
         for k in range(nk):
             f0 = int(kf_frames[k])
@@ -561,6 +640,7 @@ class Isam2Slam:
                 bf = odo_factor(k - 1, d0_)
                 new_f.add(bf)
                 graph_all.add(bf)
+                odo_fac.append(bf)
                 # initial value: the tracked pose carried to this keyframe by dead reckoning
                 g_ = int(fc[0])
                 rel = between(sp_dr[g_], sp_dr[f0])
@@ -605,8 +685,10 @@ class Isam2Slam:
                         ing = np.flatnonzero(lm_in_graph[:n_lm])
                         dxy = lm_xy[ing] - trk[:2]
                         near_k = ing[dxy[:, 0] ** 2 + dxy[:, 1] ** 2 < (cfg.max_range + 30.0) ** 2]
-                        for jn in near_k.tolist():
-                            lm_xy[jn] = isam.calculateEstimatePoint2(LK(jn))
+                        if near_k.size:
+                            lm_xy[near_k] = [
+                                isam.calculateEstimatePoint2(LK(jn)) for jn in near_k.tolist()
+                            ]
             f1 = min(f0 + kfe, nf)
             # room for every detection of this keyframe becoming a new tree
             need = n_lm + int(ptr[f1] - ptr[f0])
@@ -620,22 +702,11 @@ class Isam2Slam:
                 lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
                 lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
                 lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
-            n_lm, n_out = track_keyframe(
+            n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
                 cum_dist, trk, P_trk, fc, lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last,
                 lm_inc, n_lm, kparams, out_j, out_kx, out_ky, out_wxy, out_wth, counters,
             )  # fmt: skip
-            window = (
-                (
-                    out_j[:n_out].copy(),
-                    out_kx[:n_out].copy(),
-                    out_ky[:n_out].copy(),
-                    out_wxy[:n_out].copy(),
-                    out_wth[:n_out].copy(),
-                )
-                if n_out
-                else ()
-            )
             if progress is not None:
                 progress(f1, nf)
         flush(nk - 1)
@@ -699,12 +770,14 @@ class Isam2Slam:
             alias = remap[alias]
             g2 = gtsam.NonlinearFactorGraph()
             g2.add(pf)
-            for i_, d_ in enumerate(odo_measured(0, nk - 1)):
-                g2.add(odo_factor(i_, d_))
+            odo_fac = [odo_factor(i_, d_) for i_, d_ in enumerate(odo_measured(0, nk - 1))]
+            for fac_o in odo_fac:
+                g2.add(fac_o)
             for i_m, (k_, j_, b_, r_, sb_, sr_) in enumerate(meas_rec):
                 if alias[j_] != j_:  # the tree was merged: a factor on its representative
+                    noise_m = meas_noise(np.array([sb_, sr_]))
                     meas_fac[i_m] = gtsam.BearingRangeFactor2D(
-                        XK(k_), LK(int(alias[j_])), gtsam.Rot2(b_), r_, meas_noise(sb_, sr_)
+                        XK(k_), LK(int(alias[j_])), gtsam.Rot2(b_), r_, noise_m
                     )
                 g2.add(meas_fac[i_m])
             v2 = gtsam.Values()
@@ -761,19 +834,16 @@ class Isam2Slam:
         )
         # consistency (GPS-free): chi² per degree of freedom of each factor kind at the optimum;
         # ~1 when the noise models match the data (robust factors report their robust cost)
-        chi_odo = chi_meas = 0.0
-        n_odo = n_meas = 0
-        for i_f in range(graph_all.size()):
-            fac_i = graph_all.at(i_f)
-            if fac_i is None:
-                continue
-            e2 = 2.0 * fac_i.error(result)
-            if isinstance(fac_i, gtsam.BetweenFactorPose2):
-                chi_odo += e2
-                n_odo += 3
-            elif isinstance(fac_i, gtsam.BearingRangeFactor2D):
-                chi_meas += e2
-                n_meas += 2
+        # (one C++ error sum per kind over the factors in graph order: equal to summing them
+        # one by one from Python, ~10x faster)
+        chi2_kind = []
+        for facs in (odo_fac, meas_fac):
+            g_kind = gtsam.NonlinearFactorGraph()
+            for fac_i in facs:
+                g_kind.add(fac_i)
+            chi2_kind.append(2.0 * g_kind.error(result))
+        chi_odo, chi_meas = chi2_kind
+        n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         pts = np.zeros((n_lm, 2))
         ing = np.flatnonzero(lm_in_graph[:n_lm])
         if ing.size:
@@ -794,17 +864,8 @@ class Isam2Slam:
         covs = np.full((n_lm, 2, 2), np.nan)
         if cfg.marginals and keep.size:
             try:
-                marg = gtsam.Marginals(graph_all, result)
-                # joint marginals in chunks: one Bayes-tree pass per chunk instead of per tree
-                # (full run, CPU: chunks of 32 / 64 / 128 / all 392 trees 0.57 / 0.43 / 0.33 /
-                # 0.90 s)
-                for c0 in range(0, keep.size, 128):
-                    chunk = keep[c0 : c0 + 128]
-                    kv = gtsam.KeyVector([LK(int(q_)) for q_ in chunk])
-                    full = marg.jointMarginalCovariance(kv).fullMatrix()
-                    for t_, q_ in enumerate(chunk):
-                        covs[q_] = full[2 * t_ : 2 * t_ + 2, 2 * t_ : 2 * t_ + 2]
-            except RuntimeError as exc:  # indeterminant system: leave NaN, say why
+                covs[keep] = _point_marginals(graph_all, result, [LK(int(q_)) for q_ in keep])
+            except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
                 log.warning("iSAM2: marginal covariances unavailable: %s", exc)
         trees = []
         for jk in keep.tolist():
