@@ -23,10 +23,12 @@ Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "o
 first-echo footprint correction, no tilt compensation to apply. Everything else runs the numpy
 pipeline.
 
-Development note: numba's on-disk cache (``cache=True``) of this module does not notice edits
-to :mod:`stemmap.scan._fit_geometric` (the kernel links ``_fit_one`` in at compile time). After
-changing the fit, delete ``__pycache__/_detect_fast*.nb[ic]`` or touch this file, or the
-detector keeps running the old fit.
+numba's on-disk cache (``cache=True``) of this module is keyed on this file alone, but the
+kernel compiles in ``_fit_one`` of :mod:`stemmap.scan._fit_geometric` and the constant
+``MIXED_FRACTION_STD`` of :mod:`stemmap.scan.features`; at import
+:func:`stemmap._numba_cache.drop_stale_cache` drops this module's cache entries when either
+file changed (an edit, or a ``git pull`` into an editable install), so the stale fit cannot
+keep running.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap import _numba_cache
+from stemmap.scan import _fit_geometric, features
 from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan.features import MIXED_FRACTION_STD
 from stemmap.types import FloatArray
@@ -834,3 +838,7 @@ def detect_scans(
         ranges, cos_bearing, sin_bearing, fov_inside, params, chi2_table
     )
     return rows, scans, int(n_cand)
+
+
+# after every kernel is defined, before the first call loads the cache (see the module notes)
+_numba_cache.drop_stale_cache(_detect_kernel, __file__, _fit_geometric.__file__, features.__file__)

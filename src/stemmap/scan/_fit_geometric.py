@@ -12,7 +12,7 @@ pay ~40 array dispatches per iteration; the compiled loop fits a 10-point arc in
 microseconds (numbers in docs/algorithms/scan-fits.md).
 
 The detector's compiled pipeline (:mod:`stemmap.scan._detect_fast`) calls ``_fit_one``
-directly; numba's cache of that module does not notice edits here (see its docstring).
+directly; that module drops its numba cache when this file changes (see its docstring).
 """
 
 from __future__ import annotations

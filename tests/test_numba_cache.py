@@ -1,0 +1,74 @@
+"""numba's cache of a module that compiles in another module's kernels is dropped when that
+other module changes (stemmap._numba_cache)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+from stemmap import _numba_cache
+from stemmap._numba_cache import drop_stale_cache
+
+
+def _fake(tmp_path: Path) -> tuple[SimpleNamespace, Path, Path, Path]:
+    mod = tmp_path / "kern.py"
+    dep = tmp_path / "dep.py"
+    mod.write_text("# kernels\n")
+    dep.write_text("X = 1\n")
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    return SimpleNamespace(_cache=SimpleNamespace(_cache_path=str(cache))), mod, dep, cache
+
+
+def _entries(cache: Path) -> list[str]:
+    for name in ("kern.f-3.py311.nbi", "kern.f-3.py311.1.nbc"):
+        (cache / name).write_bytes(b"x")
+    (cache / "other.g-1.py311.nbi").write_bytes(b"x")  # another module's entry: never touched
+    return sorted(p.name for p in cache.iterdir() if p.name.startswith("kern.f"))
+
+
+def test_cache_dropped_only_when_a_dependency_changes(tmp_path: Path) -> None:
+    disp, mod, dep, cache = _fake(tmp_path)
+    _entries(cache)
+    # no record yet: whatever is cached may predate the dependency -> dropped
+    assert drop_stale_cache(disp, str(mod), str(dep))
+    assert not list(cache.glob("kern.*.nb?"))
+    assert (cache / "other.g-1.py311.nbi").exists()
+    # the kernels recompile and cache again; the dependency is unchanged -> kept
+    kept = _entries(cache)
+    assert not drop_stale_cache(disp, str(mod), str(dep))
+    assert sorted(p.name for p in cache.glob("kern.*.nb?")) == kept
+    # an edit of the dependency (content, not mtime, is what counts) -> dropped
+    dep.write_text("X = 2\n")
+    assert drop_stale_cache(disp, str(mod), str(dep))
+    assert not list(cache.glob("kern.*.nb?"))
+
+
+def test_unwritable_cache_is_not_an_error(tmp_path: Path) -> None:
+    disp, mod, dep, _ = _fake(tmp_path)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    disp._cache._cache_path = str(blocker / "sub")  # cannot be created: a file is in the way
+    assert drop_stale_cache(disp, str(mod), str(dep))
+
+
+def test_fallback_without_numba_internals(tmp_path: Path) -> None:
+    _, mod, _, _ = _fake(tmp_path)
+    assert _numba_cache._cache_dir(object(), mod) == tmp_path / "__pycache__"
+
+
+def test_the_detector_kernel_records_its_dependencies() -> None:
+    """The real module: numba's cache location is found and the record matches the files the
+    kernel compiles in (so a later edit of either is noticed)."""
+    from stemmap.scan import _detect_fast, _fit_geometric, features
+
+    cache = _numba_cache._cache_dir(_detect_fast._detect_kernel, Path(_detect_fast.__file__))
+    record = cache / "_detect_fast.deps-sha256"
+    if not record.exists():  # a read-only install: nothing to check
+        return
+    assert not drop_stale_cache(
+        _detect_fast._detect_kernel,
+        _detect_fast.__file__,
+        _fit_geometric.__file__,
+        features.__file__,
+    )
