@@ -110,7 +110,7 @@ def test_cli_trajectory(mobile: tuple[Stand3D, MobileScan, Path, Path], tmp_path
         app,
         [
             *("stems", str(las), "--out", str(out), "--trajectory", str(traj)),
-            *("--sensor-offset", f"{LEVER[0]},{LEVER[1]}", "--chunk-size", "150000"),
+            *("--sensor-offset", f"{LEVER[0]},{LEVER[1]}", "--read-points", "150000"),
         ],
     )
     assert res.exit_code == 0, res.output

@@ -8,6 +8,12 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from stemmap.cli._catalog import (
+    EngineOptions,
+    catalog_background,
+    run_catalog_stems,
+    wants_engine,
+)
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
 from stemmap.errors import ConfigError
 
@@ -68,7 +74,14 @@ def _sensor(
 
 
 def stems(
-    cloud: Annotated[Path, typer.Argument(help="LAS/LAZ, PLY, PCD, XYZ text or a ROS bag.")],
+    clouds: Annotated[
+        list[str],
+        typer.Argument(
+            help="A cloud (LAS/LAZ, PLY, PCD, XYZ text, a ROS bag), or LAS/LAZ tiles: several "
+            "files, a folder, a glob ('tiles/*.laz') or a .txt listing paths.",
+            show_default=False,
+        ),
+    ],
     out_csv: Annotated[Path, typer.Option("--out", help="CSV to write, one row per stem.")] = Path(
         "stems.csv"
     ),
@@ -79,9 +92,56 @@ def stems(
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
     heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
-    chunk_size: Annotated[int, typer.Option(help="Points per chunk when streaming LAS/LAZ.")] = (
-        2_000_000
-    ),
+    read_points: Annotated[
+        int, typer.Option(help="Points per block when streaming LAS/LAZ.")
+    ] = 2_000_000,
+    chunk_size: Annotated[
+        float | None,
+        typer.Option(
+            help="Side (m) of the square processing chunks of a tile catalog [default: from "
+            "the point density, ~8 M points per buffered chunk].",
+            rich_help_panel="Tile catalogs (Dask engine)",
+        ),
+    ] = None,
+    buffer: Annotated[
+        float | None,
+        typer.Option(
+            help="Buffer (m) read around each chunk [default: 5]; stems belong to the chunk "
+            "holding their centre.",
+            rich_help_panel="Tile catalogs (Dask engine)",
+        ),
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            help="Worker processes of the local Dask cluster [default: one per core].",
+            rich_help_panel="Tile catalogs (Dask engine)",
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Submit to a running Dask scheduler tcp://HOST:PORT instead (the work folder "
+            "must be shared with its workers).",
+            rich_help_panel="Tile catalogs (Dask engine)",
+        ),
+    ] = None,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            help="Skip chunks the work folder's manifest records as done with the same inputs "
+            "and parameters.",
+            rich_help_panel="Tile catalogs (Dask engine)",
+        ),
+    ] = False,
+    work: Annotated[
+        Path | None,
+        typer.Option(
+            help="Work folder for chunk results and the manifest [default: OUT's name + "
+            "'_chunks' beside it].",
+            rich_help_panel="Tile catalogs (Dask engine)",
+        ),
+    ] = None,
     origin: Annotated[
         str | None,
         typer.Option(
@@ -132,6 +192,9 @@ def stems(
 
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
 
+    Tiles: stemmap stems tiles/ --out stems.csv --workers 2 --chunk-size 50 --buffer 5
+    (a Dask cluster, one task per buffered chunk, resumable with --resume)
+
     Mobile: stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0
 
     One station: stemmap stems station.ply --origin 12.5,3.0
@@ -147,31 +210,44 @@ def stems(
         if isinstance(cfg, StemConfig) and heights:
             cfg = replace(cfg, estimate_height=True)
         sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
-        with progress() as bar:
-            task = bar.add_task(f"reading {cloud.name}", total=None)
+        opts = EngineOptions(chunk_size, buffer, workers, scheduler, resume, work)
+        catalog = None
+        if wants_engine(clouds, opts):
+            if topic is not None:
+                raise ConfigError("--topic applies to a bag, not to a tile catalog.")
+            result, _, catalog = run_catalog_stems(clouds, cfg, opts, sensor, out_csv)
+            name = f"{len(catalog)} tiles"
+        else:
+            cloud = Path(clouds[0])
+            name = cloud.name
+            with progress() as bar:
+                task = bar.add_task(f"reading {cloud.name}", total=None)
 
-            def tick(done: int, total: int) -> None:
-                bar.update(task, completed=done, total=total)
+                def tick(done: int, total: int) -> None:
+                    bar.update(task, completed=done, total=total)
 
-            result = detect_stems_file(
-                cloud, cfg, chunk_size=chunk_size, on_chunk=tick, sensor=sensor, topic=topic
-            )
+                result = detect_stems_file(
+                    cloud, cfg, chunk_size=read_points, on_chunk=tick, sensor=sensor, topic=topic
+                )
         write_stems_csv(out_csv, result)
         if geojson is not None:
             write_stems_geojson(geojson, result)
         if png is not None:
             import numpy as np
 
-            # background: every k-th point of the whole file (one more streaming pass; the
-            # size of a non-LAS file is known only once it is read, as one chunk)
-            total = count_points(cloud)
-            bg = np.concatenate(
-                [
-                    c.xyz[:: max(1, (total or len(c)) // 200_000), :2]
-                    for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
-                ]
-            )
-            plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
+            if catalog is not None:
+                bg = catalog_background(catalog)
+            else:
+                # background: every k-th point of the whole file (one more streaming pass; the
+                # size of a non-LAS file is known only once it is read, as one chunk)
+                total = count_points(cloud)
+                bg = np.concatenate(
+                    [
+                        c.xyz[:: max(1, (total or len(c)) // 200_000), :2]
+                        for c in iter_cloud_chunks(cloud, read_points, topic=topic)
+                    ]
+                )
+            plot_stems(png, result, background_xy=bg, title=f"{name}: {len(result)} stems")
         out.print(
             f"{len(result)} stems ({result.method}"
             + (", along-ray fits" if sensor is not None else "")

@@ -1,0 +1,134 @@
+"""The Dask side of the engine: a client on a local or remote cluster, and a task runner that
+retries, reports and never lets one failed task stop the others.
+
+This module is the only one that imports ``dask.distributed``; the task functions it runs are
+plain functions of stemmap (picklable, pure but for the files they write).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from stemmap.errors import ConfigError
+
+__all__ = ["TaskOutcome", "dask_client", "run_tasks"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TaskOutcome:
+    """How one task ended: ``value`` if it succeeded, else ``error`` (type and message)."""
+
+    key: str
+    ok: bool
+    value: Any = None
+    error: str = ""
+
+
+@contextlib.contextmanager
+def dask_client(
+    workers: int | None = None,
+    scheduler: str | None = None,
+    *,
+    memory_limit: str | int = "auto",
+) -> Iterator[Any]:
+    """A ``dask.distributed.Client``, closed (and its local cluster stopped) on exit.
+
+    Parameters
+    ----------
+    workers : int, optional
+        Worker processes of the local cluster (one thread each); default one per core
+        (``os.cpu_count()``). Ignored with ``scheduler``.
+    scheduler : str, optional
+        Address of a running scheduler (``tcp://HOST:PORT``): submit there instead of
+        starting a local cluster.
+    memory_limit : str or int
+        Per-worker memory limit of the local cluster (Dask's ``"auto"``: the machine's memory
+        divided among the workers).
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - a main dependency
+        raise ConfigError(
+            "the scale-out engine needs dask.distributed: pip install 'dask[distributed]'."
+        ) from exc
+    if scheduler is not None:
+        if "://" not in scheduler:
+            raise ConfigError(
+                f"--scheduler must be an address like tcp://HOST:PORT, got {scheduler!r}."
+            )
+        try:
+            client = Client(scheduler, timeout="30s")
+        except OSError as exc:
+            raise ConfigError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from exc
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    # a local cluster's start-up and shutdown chatter (INFO) is not the user's business
+    for name in ("distributed", "distributed.nanny", "distributed.scheduler"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    if n < 1:
+        raise ConfigError(f"--workers must be >= 1, got {n}.")
+    cluster = LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        memory_limit=memory_limit,
+    )
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        cluster.close()
+
+
+def run_tasks(
+    client: Any,
+    fn: Callable[..., Any],
+    tasks: Sequence[tuple[str, tuple[Any, ...]]],
+    *,
+    retries: int = 2,
+    on_done: Callable[[TaskOutcome], None] | None = None,
+) -> list[TaskOutcome]:
+    """Run ``fn(*args)`` for every ``(key, args)`` on the cluster; collect every outcome.
+
+    A task that raises is retried ``retries`` times (a worker that dies mid-task has its tasks
+    rescheduled by the scheduler on another worker, Dask's ``allowed-failures``); one that
+    still fails is reported as a failed :class:`TaskOutcome` while the others go on.
+    ``on_done`` is called in the client, in completion order, once per task.
+    """
+    from distributed import as_completed
+
+    if not tasks:
+        return []
+    futures = {}
+    for key, args in tasks:
+        fut = client.submit(fn, *args, key=key, pure=False, retries=retries)
+        futures[fut.key] = fut
+    outcomes: list[TaskOutcome] = []
+    for fut in as_completed(list(futures.values())):
+        if fut.status == "finished":
+            oc = TaskOutcome(str(fut.key), True, value=fut.result())
+        else:
+            exc = fut.exception()
+            oc = TaskOutcome(str(fut.key), False, error=f"{type(exc).__name__}: {exc}")
+            log.error("task %s failed: %s", fut.key, oc.error)
+        fut.release()
+        outcomes.append(oc)
+        if on_done is not None:
+            on_done(oc)
+    return outcomes

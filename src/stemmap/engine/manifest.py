@@ -1,0 +1,153 @@
+"""Per-chunk results and the chunk manifest of a scaled-out run (resume support).
+
+Layout of a run's work folder::
+
+    <work>/manifest.jsonl       one JSON line per finished or failed chunk, appended in order
+    <work>/chunks/<id>.npz      a chunk's result, written atomically (temp file + rename)
+
+A manifest line holds ``chunk``, ``status`` (``done`` / ``failed``), ``inputs`` (path -> content
+hash of every tile the buffered chunk reads), ``params`` (hash of the detector configuration
+and the chunk geometry), ``seconds``, ``time`` (UTC, ISO 8601) and, for a failed chunk,
+``error``. A chunk is *done* for ``--resume`` when its last line says ``done`` with the same
+inputs and params and its result file exists.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import logging
+import os
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+from stemmap.errors import InputError
+from stemmap.io.atomic import atomic_write
+
+__all__ = ["Manifest", "params_hash"]
+
+log = logging.getLogger(__name__)
+
+
+def params_hash(obj: Any) -> str:
+    """Stable hash (BLAKE2b, 128 bit, hex) of a JSON-able value or dataclass."""
+
+    def norm(v: Any) -> Any:
+        if is_dataclass(v) and not isinstance(v, type):
+            return {"__type__": type(v).__name__, **{k: norm(x) for k, x in asdict(v).items()}}
+        if isinstance(v, dict):
+            return {str(k): norm(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [norm(x) for x in v]
+        if hasattr(v, "tolist"):
+            return v.tolist()
+        return v
+
+    text = json.dumps(norm(obj), sort_keys=True, default=repr)
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+class Manifest:
+    """The append-only chunk manifest of one work folder (written by the client only)."""
+
+    def __init__(self, work: str | os.PathLike[str]) -> None:
+        self.work = Path(work)
+        self.path = self.work / "manifest.jsonl"
+        self.chunks = self.work / "chunks"
+
+    def result_path(self, chunk_id: str) -> Path:
+        return self.chunks / f"{chunk_id}.npz"
+
+    def entries(self) -> dict[str, dict[str, Any]]:
+        """The last line of each chunk (a torn last line from a kill is skipped)."""
+        out: dict[str, dict[str, Any]] = {}
+        if not self.path.exists():
+            return out
+        for k, line in enumerate(self.path.read_text(encoding="utf-8").splitlines()):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+                out[str(rec["chunk"])] = rec
+            except (ValueError, KeyError):
+                log.warning("%s line %d is not a manifest record; ignored", self.path, k + 1)
+        return out
+
+    def is_done(self, chunk_id: str, inputs: dict[str, str], params: str) -> bool:
+        rec = self.entries().get(chunk_id)
+        return (
+            rec is not None
+            and rec.get("status") == "done"
+            and rec.get("inputs") == inputs
+            and rec.get("params") == params
+            and self.result_path(chunk_id).exists()
+        )
+
+    def done_set(self, wanted: dict[str, tuple[dict[str, str], str]]) -> set[str]:
+        """Ids among ``wanted`` (id -> (inputs, params)) already done with matching hashes."""
+        ent = self.entries()
+        return {
+            cid
+            for cid, (inputs, params) in wanted.items()
+            if (rec := ent.get(cid)) is not None
+            and rec.get("status") == "done"
+            and rec.get("inputs") == inputs
+            and rec.get("params") == params
+            and self.result_path(cid).exists()
+        }
+
+    def append(
+        self,
+        chunk_id: str,
+        status: str,
+        inputs: dict[str, str],
+        params: str,
+        *,
+        seconds: float = float("nan"),
+        error: str = "",
+        **extra: Any,
+    ) -> None:
+        """Append one line (one ``write`` of a whole line, flushed and fsynced)."""
+        rec: dict[str, Any] = {
+            "chunk": chunk_id,
+            "status": status,
+            "inputs": inputs,
+            "params": params,
+            "seconds": round(seconds, 3) if seconds == seconds else None,
+            "time": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            **extra,
+        }
+        if error:
+            rec["error"] = error
+        self.work.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(rec, sort_keys=True) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def reset(self) -> None:
+        """Start a fresh run: drop the manifest (results are overwritten chunk by chunk)."""
+        if self.path.exists():
+            self.path.unlink()
+
+
+def save_columns(path: Path, columns: dict[str, Any]) -> None:
+    """Write named arrays as an .npz atomically (no pickled objects)."""
+    import numpy as np
+
+    with atomic_write(path, "wb") as fh:
+        arrays: dict[str, Any] = {k: np.asarray(v) for k, v in columns.items()}
+        np.savez(fh, **arrays)
+
+
+def load_columns(path: Path) -> dict[str, Any]:
+    """Read an .npz written by :func:`save_columns` (pickles refused)."""
+    import numpy as np
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"chunk result {str(path)!r} is unreadable ({exc}); rerun it.") from exc

@@ -1,0 +1,350 @@
+"""Stems over a tile catalog: one Dask task per buffered chunk, merged once all are done.
+
+Each task (:func:`stems_chunk`) reads its buffered chunk (:func:`~stemmap.engine.catalog.
+read_chunk`), runs the public detector (:func:`stemmap.cloud.detect_stems`: ground model and
+stems of the buffered points), keeps the stems whose centre the chunk owns
+(:meth:`~stemmap.engine.catalog.Chunk.owns`) and writes them atomically to the run's work
+folder. The client appends a manifest line per chunk (:class:`~stemmap.engine.manifest.
+Manifest`), skips chunks already done on ``resume``, and merges the chunk results into one
+:class:`~stemmap.cloud.CloudStems` sorted by x then y.
+
+Equivalence with one process over the whole cloud holds when the buffer covers what the
+detector looks at around a stem: its points (half a DBH), its cluster, and the ground raster
+cells under it with their 3 x 3 neighbourhoods (two ground cells, plus one for the raster's
+bilinear interpolation) -- :data:`MIN_EXACT_BUFFER` with the default 1 m ground cell. The
+cloud's slice mode (a pre-cut slice or a full cloud) is decided once for the whole catalog from
+the header z range, never per chunk.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
+from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
+from stemmap.engine.cluster import TaskOutcome, dask_client, run_tasks
+from stemmap.engine.manifest import Manifest, load_columns, params_hash, save_columns
+from stemmap.engine.staging import chunk_points, clear_stage, stage_tile
+from stemmap.errors import InputError, StemmapError
+
+__all__ = [
+    "DEFAULT_BUFFER",
+    "MIN_EXACT_BUFFER",
+    "CatalogRun",
+    "merge_chunk_results",
+    "run_stems_catalog",
+    "stems_chunk",
+]
+
+log = logging.getLogger(__name__)
+
+#: Default buffer, metres: above :data:`MIN_EXACT_BUFFER` with a margin.
+DEFAULT_BUFFER = 5.0
+#: Smallest buffer (m) for which chunked results equal one process over the whole cloud with
+#: the default detector: max DBH / 2 (0.75 m) + 3 ground cells of 1 m.
+MIN_EXACT_BUFFER = 3.75
+
+_COLUMNS = (
+    "xy",
+    "z",
+    "diameter",
+    "n_points",
+    "quality",
+    "arc_deg",
+    "rms",
+    "n_slices",
+    "taper",
+    "height",
+    "eccentricity",
+)
+
+
+def _detect(
+    xyz: np.ndarray, cfg: StemConfig | MunjerConfig, origins: np.ndarray | None
+) -> CloudStems:
+    from stemmap.cloud import detect_stems, detect_stems_munjer
+
+    if isinstance(cfg, MunjerConfig):
+        return detect_stems_munjer(xyz, cfg)
+    return detect_stems(xyz, cfg, origins=origins)
+
+
+def stems_chunk(
+    catalog: Catalog,
+    chunk: Chunk,
+    config: StemConfig | MunjerConfig,
+    result_path: str,
+    sensor: SensorPositions | None = None,
+    time_field: str | None = None,
+    stage: str | None = None,
+) -> dict[str, Any]:
+    """Detect stems in one buffered chunk and write the owned ones to ``result_path`` (.npz).
+
+    Runs on a worker. The points come from the staged fragments of its LAS/LAZ tiles
+    (``stage``, :mod:`~stemmap.engine.staging`) or are read directly (COPC tiles, or
+    ``stage=None``). Returns a small summary (points read, stems kept, seconds).
+    """
+    t0 = time.perf_counter()
+    fields = (time_field,) if time_field else ()
+    xyz, extra = chunk_points(catalog, chunk, stage, fields)
+    n = int(xyz.shape[0])
+    method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
+    if n == 0:
+        stems = CloudStems.empty(method, reason="the buffered chunk holds no point")
+    else:
+        origins = None
+        if sensor is not None:
+            times = extra[time_field] if time_field else None
+            origins = sensor.origins(n, times, f"chunk {chunk.id}")
+        stems = _detect(xyz, config, origins)
+    del xyz, extra
+    own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
+    cols: dict[str, Any] = {k: getattr(own, k) for k in _COLUMNS}
+    cols["method"] = np.array(own.method or method)
+    cols["spacing"] = np.array(own.spacing)
+    save_columns(Path(result_path), cols)
+    return {
+        "n_points": n,
+        "n_stems": len(own),
+        "n_found": len(stems),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def merge_chunk_results(paths: list[Path], method: str = "ours") -> CloudStems:
+    """Concatenate chunk results into one CloudStems sorted by x, then y (independent of the
+    chunking)."""
+    parts = [load_columns(p) for p in paths]
+    parts = [p for p in parts if np.asarray(p["xy"]).size]
+    if not parts:
+        return CloudStems.empty(method, reason="no chunk found a stem")
+    cols = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in _COLUMNS}
+    xy = cols["xy"].reshape(-1, 2)
+    order = np.lexsort((xy[:, 1], xy[:, 0]))
+    merged = {k: v[order] for k, v in cols.items()}
+    sp = [float(p["spacing"]) for p in parts if math.isfinite(float(p["spacing"]))]
+    return CloudStems.from_columns(
+        **merged,
+        method=str(parts[0]["method"]),
+        frame="cloud",
+        spacing=float(np.median(sp)) if sp else math.nan,
+    )
+
+
+@dataclass
+class CatalogRun:
+    """Outcome of :func:`run_stems_catalog`.
+
+    ``stems`` is None when a chunk failed (no merged product is written then); ``failed``
+    maps chunk id -> error; ``skipped`` lists the chunks a resume found done.
+    """
+
+    stems: CloudStems | None
+    chunks: list[Chunk]
+    computed: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    n_points: int = 0
+    work: Path = Path()
+
+
+def _catalog_config(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> StemConfig | MunjerConfig:
+    """Decide the slice mode once from the catalog's header z range (a single process decides
+    it from the whole cloud; a chunk holding only flat ground must not pass for a slice)."""
+    if not isinstance(cfg, StemConfig) or cfg.slice_mode != "auto":
+        return cfg
+    zs = np.array([(t.bounds[2], t.bounds[5]) for t in catalog.tiles])
+    is_slice = float(zs[:, 1].max() - zs[:, 0].min()) < 1.0
+    return replace(cfg, slice_mode="always" if is_slice else "never")
+
+
+def run_stems_catalog(
+    catalog: Catalog,
+    config: StemConfig | MunjerConfig,
+    work: str | Path,
+    *,
+    chunk_size: float | None = None,
+    buffer: float = DEFAULT_BUFFER,
+    max_points: int = 8_000_000,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    resume: bool = False,
+    retries: int = 2,
+    sensor: SensorPositions | None = None,
+    on_progress: Callable[[str, int, int], None] | None = None,
+    client: Any = None,
+) -> CatalogRun:
+    """Detect stems over a tile catalog on Dask, chunk by chunk, resumable.
+
+    Parameters
+    ----------
+    catalog : Catalog
+    config : StemConfig or MunjerConfig
+    work : path
+        Work folder (manifest + per-chunk results); created if missing.
+    chunk_size, buffer, max_points
+        Chunk layout (:func:`~stemmap.engine.catalog.plan_chunks`), metres / points.
+    workers, scheduler
+        Local cluster size or a running scheduler's address
+        (:func:`~stemmap.engine.cluster.dask_client`); ignored when ``client`` is given.
+    resume : bool
+        Skip chunks the manifest records as done with the same input hashes and parameters.
+        Without it, the manifest is restarted.
+    retries : int
+        Extra attempts of a failing chunk before it is reported failed.
+    sensor : SensorPositions, optional
+        Sensor positions for the along-ray fits (ours); a trajectory reads each point's time.
+    on_progress : callable(phase, done, total), optional
+        Called in the client as tiles are read (phase ``"reading tiles"``) and chunks finish
+        (``"chunks"``; chunks a resume skips count as done from the start).
+
+    Returns
+    -------
+    CatalogRun
+    """
+    cfg = _catalog_config(catalog, config)
+    if buffer < MIN_EXACT_BUFFER:
+        log.warning(
+            "buffer %.2f m < %.2f m: stems near chunk edges may differ from a single-process "
+            "run (ground and stem fits see less than they would)",
+            buffer,
+            MIN_EXACT_BUFFER,
+        )
+    chunks = plan_chunks(catalog, chunk_size, buffer, max_points=max_points)
+    man = Manifest(work)
+    time_field: str | None = None
+    if sensor is not None and sensor.needs_time:
+        import laspy
+
+        with laspy.open(catalog.tiles[0].path) as rd:
+            names = tuple(rd.header.point_format.dimension_names)
+        time_field = sensor.pick_time_field(names, repr(catalog.tiles[0].path))
+    hashes: dict[int, str] = {}
+
+    def inputs_of(ch: Chunk) -> dict[str, str]:
+        for k in ch.tiles:
+            if k not in hashes:
+                hashes[k] = catalog.tiles[k].content_hash()
+        return {catalog.tiles[k].path: hashes[k] for k in ch.tiles}
+
+    base = params_hash({"config": cfg, "sensor": sensor, "time_field": time_field})
+    wanted = {
+        ch.id: (inputs_of(ch), params_hash([base, ch.box, ch.buffer, ch.open_sides]))
+        for ch in chunks
+    }
+    if resume:
+        done = man.done_set(wanted)
+    else:
+        man.reset()
+        done = set()
+    todo = [ch for ch in chunks if ch.id not in done]
+    run = CatalogRun(None, chunks, skipped=sorted(done), work=Path(work))
+    log.info(
+        "%d tiles, %d points, %d chunks (%d done before), buffer %.1f m",
+        len(catalog),
+        catalog.n_points,
+        len(chunks),
+        len(done),
+        buffer,
+    )
+    stage = str(Path(work) / "stage")
+    fields = (time_field,) if time_field else ()
+    # stage 1: decode each LAS/LAZ tile once into the fragments of the chunks still to do
+    per_tile: dict[int, list[Chunk]] = {}
+    for ch in todo:
+        for k in ch.tiles:
+            if not catalog.tiles[k].copc:
+                per_tile.setdefault(k, []).append(ch)
+    stage_tasks = [
+        (f"stage-tile-{k}", (catalog, k, chs, stage, fields)) for k, chs in sorted(per_tile.items())
+    ]
+    n_stage = len(stage_tasks)
+    staged = 0
+    if on_progress is not None:
+        on_progress("reading tiles", 0, n_stage)
+        on_progress("chunks", len(done), len(chunks))
+
+    def tile_done(oc: TaskOutcome) -> None:
+        nonlocal staged
+        staged += 1
+        if not oc.ok:
+            bad = int(oc.key.removeprefix("stage-tile-"))
+            for ch in per_tile[bad]:
+                run.failed.setdefault(ch.id, f"tile {catalog.tiles[bad].path}: {oc.error}")
+        if on_progress is not None:
+            on_progress("reading tiles", staged, n_stage)
+
+    count = len(done)
+
+    def chunk_done(oc: TaskOutcome) -> None:
+        nonlocal count
+        cid = oc.key.removeprefix("stems-chunk-")
+        inputs, params = wanted[cid]
+        if oc.ok:
+            man.append(
+                cid,
+                "done",
+                inputs,
+                params,
+                seconds=oc.value["seconds"],
+                n_points=oc.value["n_points"],
+                n_stems=oc.value["n_stems"],
+            )
+            run.computed.append(cid)
+            run.n_points += int(oc.value["n_points"])
+            clear_stage(stage, cid)
+        else:
+            man.append(cid, "failed", inputs, params, error=oc.error)
+            run.failed[cid] = oc.error
+        count += 1
+        if on_progress is not None:
+            on_progress("chunks", count, len(chunks))
+
+    man.chunks.mkdir(parents=True, exist_ok=True)
+
+    def execute(cl: Any) -> None:
+        run_tasks(cl, stage_tile, stage_tasks, retries=retries, on_done=tile_done)
+        for cid in sorted(run.failed):  # chunks whose tiles could not be read
+            man.append(cid, "failed", *wanted[cid], error=run.failed[cid])
+            count_failed(cid)
+        tasks = [
+            (
+                f"stems-chunk-{ch.id}",
+                (catalog, ch, cfg, str(man.result_path(ch.id)), sensor, time_field, stage),
+            )
+            for ch in todo
+            if ch.id not in run.failed
+        ]
+        run_tasks(cl, stems_chunk, tasks, retries=retries, on_done=chunk_done)
+
+    def count_failed(cid: str) -> None:
+        nonlocal count
+        count += 1
+        if on_progress is not None:
+            on_progress("chunks", count, len(chunks))
+
+    if todo:
+        if client is not None:
+            execute(client)
+        else:
+            with dask_client(workers, scheduler) as cl:
+                execute(cl)
+    if run.failed:
+        return run
+    clear_stage(stage)
+    method = "munjer2025" if isinstance(cfg, MunjerConfig) else "ours"
+    try:
+        run.stems = merge_chunk_results([man.result_path(ch.id) for ch in chunks], method)
+    except StemmapError:
+        raise
+    except Exception as exc:  # pragma: no cover - a result file removed under our feet
+        raise InputError(f"merging the chunk results in {work} failed: {exc}") from exc
+    return run
