@@ -25,15 +25,18 @@ def quantize(xyz: np.ndarray) -> np.ndarray:
     return np.round(xyz * 1000.0) / 1000.0
 
 
-def stand_cloud(size: float = 40.0, n_trees: int = 40, seed: int = 3) -> np.ndarray:
-    """A coarse multi-station TLS cloud of a ``size`` x ``size`` m stand, cropped to it."""
+def stand_cloud(
+    size: float = 40.0, n_trees: int = 40, seed: int = 3, stations: int = 3
+) -> np.ndarray:
+    """A coarse TLS cloud of a ``size`` x ``size`` m stand scanned from ``stations`` x
+    ``stations`` positions, cropped to the stand, on the 1 mm grid of a LAS file."""
     stand = random_stand3d(n_trees, (size, size), rng=seed, n_shrubs=6)
-    g = np.linspace(size / 6, size * 5 / 6, 3)
+    g = np.linspace(size / (2 * stations), size * (1 - 1 / (2 * stations)), stations)
     pos = [(x, y) for x in g for y in g]
     pc = simulate_tls(stand, pos, lidar_preset("tls_coarse", range_max=30.0), rng=seed + 1)
-    xyz = pc.xyz
+    xyz = quantize(pc.xyz)
     keep = (xyz[:, 0] >= 0) & (xyz[:, 0] < size) & (xyz[:, 1] >= 0) & (xyz[:, 1] < size)
-    return quantize(xyz[keep])
+    return xyz[keep]
 
 
 def write_tiles(folder: Path, xyz: np.ndarray, tile: float, ext: str = ".laz") -> list[Path]:

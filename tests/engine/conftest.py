@@ -1,0 +1,29 @@
+"""Shared fixtures: a small simulated TLS stand written as LAZ tiles (built once per session)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from tiles import stand_cloud, write_tiles
+
+
+@pytest.fixture(scope="session")
+def stand_tiles(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray]:
+    """A 30 x 30 m stand (24 trees, 4 TLS stations) cut into nine 10 m LAZ tiles; returns the
+    tile folder and the whole cloud as the tiles store it (1 mm grid, tile order)."""
+    root = tmp_path_factory.mktemp("stand")
+    xyz = stand_cloud(size=30.0, n_trees=24, seed=5, stations=2)
+    paths = write_tiles(root / "tiles", xyz, 10.0)
+    import laspy
+
+    whole = []
+    for p in paths:  # the order a catalog reads them in: sorted paths
+        las = laspy.read(p)
+        whole.append(np.column_stack((las.x, las.y, las.z)))
+    return root / "tiles", np.concatenate(whole)

@@ -1,0 +1,114 @@
+"""Tile catalog: inputs, header-only index, chunk grid (ownership partition, split), reads."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stemmap.engine import Catalog, expand_inputs, plan_chunks, read_chunk
+from stemmap.engine.staging import chunk_points, stage_tile
+from stemmap.errors import ConfigError, InputError
+
+
+def test_inputs_folder_glob_list_and_files(stand_tiles: tuple[Path, np.ndarray]) -> None:
+    folder, _ = stand_tiles
+    files = sorted(folder.glob("*.laz"))
+    assert len(files) == 9
+    lst = folder.parent / "tiles.txt"
+    lst.write_text("# my tiles\n" + "\n".join(f"tiles/{p.name}" for p in files[:3]) + "\n\n")
+    assert expand_inputs([folder]) == files
+    assert expand_inputs([str(folder / "tile_0_*.laz")]) == [
+        p for p in files if p.name.startswith("tile_0_")
+    ]
+    assert [p.resolve() for p in expand_inputs([lst])] == files[:3]
+    # duplicates collapse; order is by path
+    assert expand_inputs([files[1], files[0], files[1]]) == files[:2]
+
+
+def test_inputs_errors_name_the_input(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match=r"nope\.laz"):
+        expand_inputs([tmp_path / "nope.laz"])
+    with pytest.raises(InputError, match=r"holds no \.las/\.laz"):
+        expand_inputs([tmp_path])
+    with pytest.raises(InputError, match="matches no file"):
+        expand_inputs([str(tmp_path / "*.laz")])
+    (tmp_path / "a.ply").write_text("ply")
+    with pytest.raises(InputError, match="LAS/LAZ files only"):
+        expand_inputs([tmp_path / "a.ply"])
+    bad = tmp_path / "bad.laz"
+    bad.write_bytes(b"not a las file at all")
+    with pytest.raises(InputError, match="not a readable LAS/LAZ"):
+        Catalog.from_inputs([bad])
+
+
+def test_catalog_from_headers(stand_tiles: tuple[Path, np.ndarray]) -> None:
+    folder, xyz = stand_tiles
+    cat = Catalog.from_inputs([folder])
+    assert cat.n_points == len(xyz)
+    b = cat.bounds
+    np.testing.assert_allclose(b, [*xyz[:, :2].min(0), *xyz[:, :2].max(0)], atol=1e-9)
+    assert not any(t.copc for t in cat.tiles)
+
+
+@pytest.mark.parametrize(("size", "buffer"), [(10.0, 2.0), (7.0, 5.0), (25.0, 0.0)])
+def test_owned_areas_partition_the_plane(
+    stand_tiles: tuple[Path, np.ndarray], size: float, buffer: float
+) -> None:
+    """Every position -- inside the catalog, on chunk edges, far outside -- belongs to exactly
+    one chunk: a stem is neither lost nor doubled."""
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    chunks = plan_chunks(cat, size, buffer)
+    rng = np.random.default_rng(0)
+    pts = np.concatenate(
+        (
+            rng.uniform(-20, 50, (5000, 2)),
+            np.round(rng.uniform(-5, 35, (2000, 2)) / size) * size,  # exactly on edges
+        )
+    )
+    owners = np.sum([c.owns(pts) for c in chunks], axis=0)
+    assert np.all(owners == 1)
+
+
+def test_dense_chunks_are_split(stand_tiles: tuple[Path, np.ndarray]) -> None:
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    whole = plan_chunks(cat, 40.0, 2.0)
+    assert len(whole) == 1
+    budget = cat.n_points // 3
+    split = plan_chunks(cat, 40.0, 2.0, max_points=budget)
+    assert len(split) > 1
+    assert all(c.expected_points <= budget for c in split)
+    # the split chunks still partition the plane
+    pts = np.random.default_rng(1).uniform(-10, 50, (3000, 2))
+    assert np.all(np.sum([c.owns(pts) for c in split], axis=0) == 1)
+    # automatic chunk size: multiples of 10 m within the budget
+    auto = plan_chunks(cat, None, 2.0, max_points=budget)
+    assert all((c.box[2] - c.box[0]) % 10 == 0 for c in auto)
+
+
+def test_bad_chunk_options(stand_tiles: tuple[Path, np.ndarray]) -> None:
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    with pytest.raises(ConfigError, match="--chunk-size"):
+        plan_chunks(cat, 0.0, 1.0)
+    with pytest.raises(ConfigError, match="--buffer"):
+        plan_chunks(cat, 10.0, -1.0)
+
+
+def test_read_chunk_and_staging_read_exactly_the_buffered_box(
+    stand_tiles: tuple[Path, np.ndarray], tmp_path: Path
+) -> None:
+    folder, xyz = stand_tiles
+    cat = Catalog.from_inputs([folder])
+    chunks = plan_chunks(cat, 12.0, 3.0)
+    stage = str(tmp_path / "stage")
+    for k in range(len(cat.tiles)):
+        stage_tile(cat, k, [c for c in chunks if k in c.tiles], stage, read_points=50_000)
+    for ch in chunks:
+        x0, y0, x1, y1 = ch.buffered
+        m = (xyz[:, 0] >= x0) & (xyz[:, 0] <= x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] <= y1)
+        direct, _ = read_chunk(cat, ch, read_points=70_000)
+        staged, _ = chunk_points(cat, ch, stage)
+        # same points in the same order (tile order, then file order)
+        np.testing.assert_array_equal(direct, xyz[m])
+        np.testing.assert_array_equal(staged, xyz[m])
