@@ -1,0 +1,227 @@
+"""Scale-out benchmark: a simulated multi-tile stand on the Dask engine (prints JSON).
+
+The stand: one simulated 40 x 40 m TLS tile (``stemmap.sim``: 9 stations, coarse TLS, 1 mm
+LAS grid) repeated over a square grid of tiles, every copy mirrored differently so neighbouring
+tiles differ, written tile by tile as LAZ (only one tile is ever in memory) until ``--points``
+points are on disk. Then:
+
+* runs with 1 and 2 workers (local cluster, one process each) and two chunk sizes: wall time,
+  throughput, points/s per worker end to end from LAZ, peak RSS per worker, machine load;
+* identical stems: every run's merged stems against the first run's;
+* resume: a CLI run killed (SIGKILL, whole process group) once half of the chunks are done,
+  then resumed -- the chunks computed by the resume must be exactly the ones not done before.
+
+Usage::
+
+    python benchmarks/catalog.py --points 100000000 --out /tmp/catalog_bench
+    python benchmarks/catalog.py --points 10000000   # quick
+
+The machine is shared: absolute speeds depend on its load (reported per run as the 1-minute
+load average before and after); the 1 vs 2 worker ratio is the meaningful number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "engine"))
+
+from tiles import stand_cloud, write_laz
+
+TILE = 40.0
+
+
+def make_tiles(folder: Path, points: int, seed: int) -> tuple[int, int]:
+    """Write tiles until ``points`` points are on disk; returns (tiles, points)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    base = stand_cloud(size=TILE, n_trees=40, seed=seed, stations=3)
+    n_tiles = max(1, math.ceil(points / len(base)))
+    side = math.ceil(math.sqrt(n_tiles))
+    written = 0
+    for k in range(n_tiles):
+        i, j = k % side, k // side
+        xyz = base.copy()
+        if (i + j) % 2:  # mirror in x
+            xyz[:, 0] = TILE - xyz[:, 0]
+        if j % 2:  # mirror in y
+            xyz[:, 1] = TILE - xyz[:, 1]
+        keep = (xyz[:, 0] < TILE) & (xyz[:, 1] < TILE)  # half-open tiles
+        xyz = xyz[keep]
+        xyz[:, 0] += i * TILE
+        xyz[:, 1] += j * TILE
+        write_laz(folder / f"tile_{i:03d}_{j:03d}.laz", xyz)
+        written += len(xyz)
+    return n_tiles, written
+
+
+def _peak_rss() -> int:
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float) -> dict[str, Any]:
+    from distributed import Client, LocalCluster
+
+    from stemmap.cloud import StemConfig
+    from stemmap.engine import Catalog, run_stems_catalog
+
+    shutil.rmtree(work, ignore_errors=True)
+    t0 = time.perf_counter()
+    with (
+        LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        startup = time.perf_counter() - t0
+        load0 = os.getloadavg()[0]
+        t1 = time.perf_counter()
+        cat = Catalog.from_inputs([tiles])
+        run = run_stems_catalog(
+            cat, StemConfig(), work, chunk_size=chunk, buffer=buffer, client=client
+        )
+        wall = time.perf_counter() - t1
+        rss = client.run(_peak_rss)
+        load1 = os.getloadavg()[0]
+    assert run.stems is not None and not run.failed, run.failed
+    n = cat.n_points
+    return {
+        "workers": workers,
+        "chunk_size_m": chunk,
+        "buffer_m": buffer,
+        "chunks": len(run.chunks),
+        "points": n,
+        "stems": len(run.stems),
+        "wall_s": round(wall, 2),
+        "cluster_startup_s": round(startup, 2),
+        "points_per_s": round(n / wall),
+        "points_per_s_per_worker": round(n / wall / workers),
+        "peak_rss_per_worker_gb": sorted(round(v / 1e9, 3) for v in rss.values()),
+        "load_1min_before_after": [round(load0, 2), round(load1, 2)],
+        "_stems": run.stems,
+    }
+
+
+def compare(a: Any, b: Any) -> dict[str, Any]:
+    from scipy.spatial import cKDTree
+
+    if len(a) != len(b):
+        return {"same_count": False, "n": [len(a), len(b)]}
+    d, i = cKDTree(b.xy).query(a.xy)
+    return {
+        "same_count": True,
+        "one_to_one": bool(np.unique(i).size == len(a)),
+        "max_position_diff_mm": round(float(d.max()) * 1000, 4),
+        "max_diameter_diff_mm": round(float(np.abs(b.diameter[i] - a.diameter).max()) * 1000, 4),
+        "bit_identical": bool(
+            np.array_equal(a.xy, b.xy) and np.array_equal(a.diameter, b.diameter)
+        ),
+    }
+
+
+def resume_after_kill(tiles: Path, work: Path, chunk: float, buffer: float) -> dict[str, Any]:
+    from stemmap.cloud import StemConfig
+    from stemmap.engine import Catalog, Manifest, run_stems_catalog
+
+    shutil.rmtree(work, ignore_errors=True)
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    env = dict(os.environ, PYTHONPATH=src + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cat = Catalog.from_inputs([tiles])
+    cmd = [
+        *(sys.executable, "-m", "stemmap", "stems", str(tiles), "--out", str(work / "s.csv")),
+        *("--work", str(work), "--workers", "2", "--chunk-size", str(chunk)),
+        *("--buffer", str(buffer)),
+    ]
+    proc = subprocess.Popen(
+        cmd, env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    man = Manifest(work)
+    from stemmap.engine import plan_chunks
+
+    total = len(plan_chunks(cat, chunk, buffer))
+    t0 = time.monotonic()
+    while proc.poll() is None and time.monotonic() - t0 < 3600:
+        if len(man.entries()) >= total // 2:
+            break
+        time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGKILL)  # the CLI and its local cluster's workers
+    proc.wait(timeout=30)
+    done_before = {c for c, r in man.entries().items() if r["status"] == "done"}
+    run = run_stems_catalog(
+        cat, StemConfig(), work, chunk_size=chunk, buffer=buffer, workers=2, resume=True
+    )
+    redone = set(run.computed)
+    all_ids = {c.id for c in run.chunks}
+    return {
+        "chunks": total,
+        "done_before_kill": len(done_before),
+        "computed_on_resume": len(redone),
+        "redid_only_unfinished": redone == all_ids - done_before,
+        "skipped_on_resume": len(run.skipped),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--points", type=int, default=100_000_000)
+    ap.add_argument("--out", type=Path, default=Path("/tmp/stemmap_catalog_bench"))
+    ap.add_argument("--chunk-sizes", default="20,40")
+    ap.add_argument("--buffer", type=float, default=5.0)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--keep", action="store_true", help="keep the tiles and work folders")
+    args = ap.parse_args()
+    tiles = args.out / "tiles"
+    shutil.rmtree(args.out, ignore_errors=True)
+    t0 = time.perf_counter()
+    n_tiles, n_points = make_tiles(tiles, args.points, args.seed)
+    gen_s = time.perf_counter() - t0
+    sizes = [float(v) for v in args.chunk_sizes.split(",")]
+    runs = []
+    for chunk in sizes:
+        for workers in (1, 2):
+            runs.append(run_once(tiles, args.out / "work", workers, chunk, args.buffer))
+    ref = runs[0]["_stems"]
+    for r in runs:
+        r["vs_first_run"] = compare(ref, r.pop("_stems"))
+    speedup = {
+        f"chunk_{int(c)}m": round(
+            next(r["wall_s"] for r in runs if r["chunk_size_m"] == c and r["workers"] == 1)
+            / next(r["wall_s"] for r in runs if r["chunk_size_m"] == c and r["workers"] == 2),
+            3,
+        )
+        for c in sizes
+    }
+    res = resume_after_kill(tiles, args.out / "resume", sizes[-1], args.buffer)
+    report = {
+        "data": f"simulated TLS stand, {n_tiles} LAZ tiles of {TILE:.0f} m, {n_points} points",
+        "laz_bytes": sum(p.stat().st_size for p in tiles.glob("*.laz")),
+        "generate_s": round(gen_s, 1),
+        "cores": os.cpu_count(),
+        "runs": runs,
+        "speedup_2_vs_1_worker": speedup,
+        "resume_after_kill": res,
+    }
+    print(json.dumps(report, indent=2))
+    if not args.keep:
+        shutil.rmtree(args.out, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
