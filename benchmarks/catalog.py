@@ -61,7 +61,11 @@ def make_tiles(folder: Path, points: int, seed: int) -> tuple[int, int]:
         xyz = xyz[keep]
         xyz[:, 0] += i * TILE
         xyz[:, 1] += j * TILE
-        write_laz(folder / f"tile_{i:03d}_{j:03d}.laz", xyz)
+        path = folder / f"tile_{i:03d}_{j:03d}.laz"
+        if not path.exists():  # written under a temporary name: an existing tile is complete
+            tmp = folder / f".{path.name}.tmp.laz"
+            write_laz(tmp, xyz)
+            os.replace(tmp, path)
         written += len(xyz)
     return n_tiles, written
 
@@ -186,17 +190,27 @@ def main() -> None:
     ap.add_argument("--buffer", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--keep", action="store_true", help="keep the tiles and work folders")
+    ap.add_argument(
+        "--log", type=Path, default=None, help="also append each run's JSON here as it ends"
+    )
     args = ap.parse_args()
-    tiles = args.out / "tiles"
-    shutil.rmtree(args.out, ignore_errors=True)
+    tiles = args.out / "tiles"  # tiles already there (same --points/--seed) are reused
     t0 = time.perf_counter()
     n_tiles, n_points = make_tiles(tiles, args.points, args.seed)
     gen_s = time.perf_counter() - t0
     sizes = [float(v) for v in args.chunk_sizes.split(",")]
     runs = []
+
+    def note(rec: dict[str, Any]) -> None:
+        if args.log is not None:
+            with args.log.open("a") as fh:
+                fh.write(json.dumps({k: v for k, v in rec.items() if k != "_stems"}) + "\n")
+
+    note({"generated": n_points, "tiles": n_tiles, "generate_s": round(gen_s, 1)})
     for chunk in sizes:
-        for workers in (1, 2):
+        for workers in (2, 1):
             runs.append(run_once(tiles, args.out / "work", workers, chunk, args.buffer))
+            note(runs[-1])
     ref = runs[0]["_stems"]
     for r in runs:
         r["vs_first_run"] = compare(ref, r.pop("_stems"))
@@ -209,6 +223,7 @@ def main() -> None:
         for c in sizes
     }
     res = resume_after_kill(tiles, args.out / "resume", sizes[-1], args.buffer)
+    note({"resume_after_kill": res})
     report = {
         "data": f"simulated TLS stand, {n_tiles} LAZ tiles of {TILE:.0f} m, {n_points} points",
         "laz_bytes": sum(p.stat().st_size for p in tiles.glob("*.laz")),
