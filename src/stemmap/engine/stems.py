@@ -22,7 +22,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,18 +52,9 @@ DEFAULT_BUFFER = 5.0
 #: the default detector: max DBH / 2 (0.75 m) + 3 ground cells of 1 m.
 MIN_EXACT_BUFFER = 3.75
 
-_COLUMNS = (
-    "xy",
-    "z",
-    "diameter",
-    "n_points",
-    "quality",
-    "arc_deg",
-    "rms",
-    "n_slices",
-    "taper",
-    "height",
-    "eccentricity",
+#: the per-stem (array) columns of a CloudStems, as stored in a chunk result
+_COLUMNS = tuple(
+    f.name for f in fields(CloudStems) if f.name not in ("method", "frame", "spacing", "reason")
 )
 
 
