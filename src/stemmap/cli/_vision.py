@@ -31,6 +31,7 @@ from rich.table import Table
 from stemmap.cli._common import console, fail_on_stemmap_error, out
 from stemmap.errors import ConfigError, InputError
 from stemmap.io.atomic import atomic_write
+from stemmap.io.products import run_products
 
 __all__ = ["calibrate", "fuse", "register", "segment"]
 
@@ -107,7 +108,10 @@ def calibrate(
     """
     from stemmap.vision.calibrate import fit_homography, solve_pnp
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("calibrate", inputs=[pairs], outputs=[out_path]) as run,
+    ):
         t = _read_table(pairs, ["x", "y", "u", "v"], ["z"])
         xy = np.column_stack((t["x"], t["y"]))
         uv = np.column_stack((t["u"], t["v"]))
@@ -142,7 +146,7 @@ def calibrate(
                 "t": pose.transform.t.tolist(),
                 "rms_px": pose.rms_px,
             }
-        with atomic_write(out_path) as fh:
+        with atomic_write(run.path(out_path)) as fh:
             json.dump(doc, fh, indent=2)
     table = Table(title=f"calibration ({fit.method})")
     table.add_column("quantity")
@@ -172,7 +176,10 @@ def segment(
     """
     from stemmap.vision.segment import segment_trunks
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("segment", inputs=[image], outputs=[out_path, rois]) as run,
+    ):
         if not image.is_file():
             raise InputError(f"image {image} does not exist.")
         bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
@@ -182,10 +189,10 @@ def segment(
         ok, buf = cv2.imencode(".png", seg.mask.astype(np.uint8) * 255)
         if not ok:  # pragma: no cover - OpenCV failure
             raise InputError(f"could not encode the mask for {out_path}.")
-        with atomic_write(out_path, "wb") as fh:
+        with atomic_write(run.path(out_path), "wb") as fh:
             fh.write(buf.tobytes())
         if rois is not None:
-            with atomic_write(rois) as fh:
+            with atomic_write(run.path(rois)) as fh:
                 w = csv.writer(fh, lineterminator="\n")
                 w.writerow(["x", "y", "w", "h", "alpha"])
                 r = seg.regions
@@ -220,7 +227,10 @@ def fuse(
     from stemmap.vision.camera import CameraModel, RigidTransform
     from stemmap.vision.segment import segment_trunks
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("fuse", inputs=[scan, image, calibration], outputs=[out_path]) as run,
+    ):
         if method not in ("xue2018", "ours"):
             raise ConfigError(f"--method must be 'xue2018' or 'ours', got {method!r}.")
         try:
@@ -264,7 +274,7 @@ def fuse(
             res = fuse_ours(
                 rois, seg.regions, G, rgb, cam, laser_to_camera=l2c, params=FusionParams(bpa=bpa)
             )
-        with atomic_write(out_path) as fh:
+        with atomic_write(run.path(out_path)) as fh:
             w = csv.writer(fh, lineterminator="\n")
             w.writerow(
                 [
