@@ -203,19 +203,31 @@ def stems(
 
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
+    from stemmap.engine import expand_inputs
     from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.products import run_products
 
     with fail_on_stemmap_error():
+        opts = EngineOptions(chunk_size, buffer, workers, scheduler, resume, work)
+        engine = wants_engine(clouds, opts)
+        in_paths = expand_inputs(clouds) if engine else [Path(clouds[0])]
+    with (
+        fail_on_stemmap_error(),
+        run_products(
+            "stems", inputs=[*in_paths, trajectory], outputs=[out_csv, geojson, png]
+        ) as run,
+    ):
         cfg = get_preset(preset)
         if isinstance(cfg, StemConfig) and heights:
             cfg = replace(cfg, estimate_height=True)
         sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
-        opts = EngineOptions(chunk_size, buffer, workers, scheduler, resume, work)
         catalog = None
-        if wants_engine(clouds, opts):
+        if engine:
             if topic is not None:
                 raise ConfigError("--topic applies to a bag, not to a tile catalog.")
-            result, _, catalog = run_catalog_stems(clouds, cfg, opts, sensor, out_csv)
+            result, _, catalog = run_catalog_stems(
+                [str(p) for p in in_paths], cfg, opts, sensor, out_csv
+            )
             name = f"{len(catalog)} tiles"
         else:
             cloud = Path(clouds[0])
@@ -229,9 +241,9 @@ def stems(
                 result = detect_stems_file(
                     cloud, cfg, chunk_size=read_points, on_chunk=tick, sensor=sensor, topic=topic
                 )
-        write_stems_csv(out_csv, result)
+        write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
-            write_stems_geojson(geojson, result)
+            write_stems_geojson(run.path(geojson), result)
         if png is not None:
             import numpy as np
 
@@ -247,7 +259,8 @@ def stems(
                         for c in iter_cloud_chunks(cloud, read_points, topic=topic)
                     ]
                 )
-            plot_stems(png, result, background_xy=bg, title=f"{name}: {len(result)} stems")
+            title = f"{name}: {len(result)} stems"
+            plot_stems(run.path(png), result, background_xy=bg, title=title)
         out.print(
             f"{len(result)} stems ({result.method}"
             + (", along-ray fits" if sensor is not None else "")
