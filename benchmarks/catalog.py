@@ -70,6 +70,10 @@ def make_tiles(folder: Path, points: int, seed: int) -> tuple[int, int]:
     return n_tiles, written
 
 
+def _cpu_s() -> float:
+    return time.process_time()
+
+
 def _peak_rss() -> int:
     import resource
 
@@ -103,6 +107,7 @@ def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float)
         )
         wall = time.perf_counter() - t1
         rss = client.run(_peak_rss)
+        cpu = client.run(_cpu_s)  # fresh workers: their whole CPU time is this run's
         load1 = os.getloadavg()[0]
     assert run.stems is not None and not run.failed, run.failed
     n = cat.n_points
@@ -117,6 +122,10 @@ def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float)
         "cluster_startup_s": round(startup, 2),
         "points_per_s": round(n / wall),
         "points_per_s_per_worker": round(n / wall / workers),
+        # load-independent: points per CPU-second a worker spent (reading LAZ, staging,
+        # detecting); what one worker does end to end on an otherwise idle core
+        "points_per_cpu_s_per_worker": round(n / sum(cpu.values())),
+        "worker_cpu_s": sorted(round(v, 1) for v in cpu.values()),
         "peak_rss_per_worker_gb": sorted(round(v / 1e9, 3) for v in rss.values()),
         "load_1min_before_after": [round(load0, 2), round(load1, 2)],
         "_stems": run.stems,
