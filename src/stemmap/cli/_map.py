@@ -17,6 +17,13 @@ import numpy as np
 import typer
 
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._geo import (
+    CrsOption,
+    GpkgFlag,
+    checked_crs,
+    write_gps_frame,
+    write_map_products,
+)
 from stemmap.errors import ConfigError, InputError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
@@ -30,6 +37,11 @@ class Backend(StrEnum):
     fastslam = "fastslam"
     forestrix = "forestrix"
     isam2 = "isam2"
+
+
+class TrajectoryFormat(StrEnum):
+    csv = "csv"
+    tum = "tum"
 
 
 class Dataset(StrEnum):
@@ -162,6 +174,7 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
             m.update(r.as_dict("ate_"))
             al = r.alignment
             assert al is not None
+            ctx["alignment"] = al
             # GPS into the map frame (inverse of the map->GPS alignment) for the figure
             g = vp.gps_xy[scr.keep] - np.asarray(al.t)
             gps_map = g @ al.rotation
@@ -190,6 +203,21 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
     return m, gps_map, truth_xy
 
 
+def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
+    """What the map and trajectory coordinates mean (recorded in metrics.json)."""
+    a, b = problem.sensor_offset
+    return {
+        "map_frame": "the odometry frame of the first pose (x, y metres)",
+        "crs": crs,
+        "georeferenced": crs is not None,
+        "trajectory_point": "the vehicle reference point of the motion model (Victoria Park: "
+        "the rear-axle centre), sensor_offset_m behind the laser",
+        "sensor_offset_m": [a, b],
+        "sensor_offset_meaning": f"the laser is {a} m ahead and {b} m left of the trajectory "
+        "point, in the vehicle frame",
+    }
+
+
 def map_command(
     bag: Annotated[
         Path | None, typer.Argument(help="ROS1/ROS2 bag with LaserScan + Odometry.")
@@ -215,15 +243,20 @@ def map_command(
         str, typer.Option("--sensor-offset", help="Bag: laser position 'a,b' (m) in the vehicle.")
     ] = "0,0",
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    crs: CrsOption = None,
+    gpkg: GpkgFlag = False,
+    trajectory_format: Annotated[
+        TrajectoryFormat,
+        typer.Option(help="trajectory.csv (time,x,y,theta) or TUM trajectory.tum for evo."),
+    ] = TrajectoryFormat.csv,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM."""
     from stemmap.io.atomic import atomic_write
-    from stemmap.io.maps import write_trees_csv, write_trees_geojson
-    from stemmap.io.trajectory import write_trajectory_csv
     from stemmap.slam.base import dead_reckoning, make_backend
     from stemmap.viz.maps import save_stem_map_png
 
     with fail_on_stemmap_error():
+        crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
         if sources != 1:
             raise ConfigError("give exactly one input: a BAG, --dataset victoria-park, or --sim.")
@@ -250,10 +283,23 @@ def map_command(
 
             result = be.run(problem, progress=tick)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
+        metrics["frames"] = frames_metadata(problem, crs)
         out_dir.mkdir(parents=True, exist_ok=True)
-        write_trees_csv(out_dir / "trees.csv", result.stem_map)
-        write_trees_geojson(out_dir / "trees.geojson", result.stem_map)
-        write_trajectory_csv(out_dir / "trajectory.csv", result.trajectory)
+        fmt = trajectory_format.value
+        names = write_map_products(
+            out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
+        )
+        if "alignment" in ctx:
+            names += write_gps_frame(
+                out_dir,
+                ctx["alignment"],
+                result.stem_map,
+                result.trajectory,
+                sensor_offset=problem.sensor_offset,
+                gpkg=gpkg,
+                trajectory_format=fmt,
+            )
+        names += ["metrics.json", "map.png"]
         with atomic_write(out_dir / "metrics.json") as fh:
             json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
         save_stem_map_png(
@@ -266,7 +312,7 @@ def map_command(
             title=f"{problem.name}: {backend.value}",
         )
     summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
-    out.print(f"wrote {out_dir}/: trees.csv trees.geojson trajectory.csv metrics.json map.png")
+    out.print(f"wrote {out_dir}/: {' '.join(names)}")
     out.print(json.dumps(clean_json(summary), default=json_default))
 
 

@@ -40,6 +40,7 @@ __all__ = [
     "read_observations_csv",
     "read_trees_csv",
     "read_trees_geojson",
+    "tree_rows",
     "write_observations_csv",
     "write_trees_csv",
     "write_trees_geojson",
@@ -84,8 +85,6 @@ _WGS84_A = 6378137.0
 _WGS84_F = 1.0 / 298.257223563
 _WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
 
-_WGS84_NAMES = {"EPSG:4326", "WGS84", "OGC:CRS84", "URN:OGC:DEF:CRS:OGC:1.3:CRS84"}
-
 
 # --------------------------------------------------------------------------------------------
 # trees CSV
@@ -108,6 +107,11 @@ def _tree_row(t: Tree) -> tuple[Any, ...]:
         t.first_time,
         t.last_time,
     )
+
+
+def tree_rows(stem_map: StemMap) -> list[tuple[Any, ...]]:
+    """One tuple per tree in :data:`TREE_CSV_COLUMNS` order (std from the covariance)."""
+    return [_tree_row(t) for t in stem_map]
 
 
 def write_trees_csv(path: PathLike, stem_map: StemMap) -> None:
@@ -282,17 +286,6 @@ def _json_num(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
-def _is_wgs84(crs: str | None) -> bool:
-    return crs is not None and crs.strip().upper() in _WGS84_NAMES
-
-
-def _crs_urn(crs: str) -> str:
-    c = crs.strip()
-    if c.upper().startswith("EPSG:"):
-        return f"urn:ogc:def:crs:EPSG::{c.split(':', 1)[1]}"
-    return c
-
-
 def write_trees_geojson(
     path: PathLike,
     stem_map: StemMap,
@@ -307,41 +300,37 @@ def write_trees_geojson(
     ``diameter_std``, ``std_x``, ``std_y``, ``cov_xy``, ``n_obs``, ``confidence``,
     ``first_time``, ``last_time``; unknown values are ``null`` (JSON has no NaN).
 
-    Coordinates -- decided as follows (RFC 7946 §4 requires WGS84 longitude/latitude):
+    Coordinates (:func:`stemmap.io.geo.geojson_coordinates`, docs/outputs.md):
 
-    1. ``origin_lonlat=(lon, lat)`` given: the map frame is taken as local east-north metres
-       around that point and converted to WGS84 degrees (:func:`local_to_lonlat`). Valid RFC
-       7946; the original metric coordinates stay in properties ``x``, ``y``.
-    2. ``crs`` (or ``stem_map.crs``) is WGS84 (``EPSG:4326``, ``OGC:CRS84``): x, y are already
-       longitude, latitude and are written as is.
-    3. ``crs`` is another CRS (e.g. ``EPSG:3067``): projected coordinates are written as is,
-       with the pre-RFC ``"crs"`` member naming it (GDAL and QGIS honour it; RFC 7946 §4 allows
-       other CRSs "by prior arrangement").
-    4. no CRS (a local metric frame): projected metres are written without a ``"crs"`` member;
-       the top-level foreign member ``"stemmap"`` records ``frame``, ``units`` = ``"m"`` and
-       ``crs`` = null, so nobody mistakes them for degrees.
+    * a CRS is known (``crs``, ``stem_map.crs``, or ``origin_lonlat`` which makes the map a
+      local east-north tangent plane, :func:`stemmap.io.geo.tangent_plane_crs`): RFC 7946,
+      geometry in WGS84 longitude/latitude (8 decimals, 1 mm), no ``crs`` member; the native
+      coordinates stay in properties ``x``, ``y``.
+    * no CRS (a local metric frame): the geometry is in metres and the ``crs`` member names a
+      local engineering CRS, which GDAL/QGIS read as ``LOCAL_CS`` metres -- never as degrees.
+
+    The top-level foreign member ``"stemmap"`` records ``frame``, ``crs`` (native), ``units``
+    of the geometry and ``origin_lonlat``.
 
     Parameters
     ----------
     path : str or PathLike
     stem_map : StemMap
     crs : str, optional
-        Overrides ``stem_map.crs``.
+        Overrides ``stem_map.crs`` (EPSG code, WKT or PROJ string of the map's x, y).
     origin_lonlat : (float, float), optional
         WGS84 longitude, latitude (degrees) of the map origin; the map's x axis must point east.
+        Ignored when a CRS is given.
     precision : int, optional
-        Decimal places for coordinates (RFC 7946 §11.2 suggests 6-7 for degrees); default
-        full float64 precision.
+        Decimal places for the coordinates (default: 8 for degrees, full for metres).
     """
+    from stemmap.io.geo import crs_label, geojson_coordinates, tangent_plane_crs
+
     crs = crs if crs is not None else stem_map.crs
-    xy = stem_map.xy
-    if origin_lonlat is not None:
-        lon, lat = local_to_lonlat(xy, origin_lonlat)
-        coords = np.column_stack((lon, lat))
-        out_crs: str | None = "OGC:CRS84"
-    else:
-        coords = xy
-        out_crs = crs
+    if crs is None and origin_lonlat is not None:
+        crs = crs_label(tangent_plane_crs(origin_lonlat))
+    coords, members, meta = geojson_coordinates(stem_map.xy, crs, stem_map.frame)
+    meta["origin_lonlat"] = list(origin_lonlat) if origin_lonlat is not None else None
     if precision is not None:
         coords = np.round(coords, precision)
     features = []
@@ -365,16 +354,8 @@ def write_trees_geojson(
                 "properties": props,
             }
         )
-    doc: dict[str, Any] = {"type": "FeatureCollection", "features": features}
-    if out_crs is not None and not _is_wgs84(out_crs):
-        doc["crs"] = {"type": "name", "properties": {"name": _crs_urn(out_crs)}}
-    doc["stemmap"] = {
-        "frame": stem_map.frame,
-        "units": "degrees" if _is_wgs84(out_crs) else "m",
-        "crs": out_crs,
-        "origin_lonlat": list(origin_lonlat) if origin_lonlat is not None else None,
-        "x_y_properties": "metres in the map frame",
-    }
+    doc: dict[str, Any] = {"type": "FeatureCollection", **members, "features": features}
+    doc["stemmap"] = meta
     if len(coords):
         lo = coords.min(axis=0)
         hi = coords.max(axis=0)
@@ -412,8 +393,10 @@ def read_trees_geojson(path: PathLike) -> StemMap:
     assert isinstance(meta, Mapping)
     crs_member = doc.get("crs")
     crs = meta.get("crs")
-    if crs is None and isinstance(crs_member, Mapping):
+    if crs is None and "crs" not in meta and isinstance(crs_member, Mapping):
         crs = crs_member.get("properties", {}).get("name")
+        if isinstance(crs, str) and crs.lstrip().upper().startswith(("LOCAL_CS", "ENGCRS")):
+            crs = None  # a local frame, not a CRS
     trees = []
     for k, f in enumerate(feats):
         geom = f.get("geometry") if isinstance(f, Mapping) else None
