@@ -25,6 +25,7 @@ import numpy as np
 import typer
 
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
 
 __all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
@@ -106,6 +107,8 @@ def run_demo(
     n_trees: int = 120,
     backend: str = DEMO_BACKEND,
     show_progress: bool = False,
+    crs: str | None = None,
+    gpkg: bool = False,
 ) -> dict[str, Any]:
     """Simulate, detect, map and score; write every product to ``out_dir``; return the metrics.
 
@@ -113,12 +116,18 @@ def run_demo(
     ------
     ConfigError
         On an unknown back-end or an impossible scenario (e.g. too many trees for the stand).
+
+    Notes
+    -----
+    ``crs`` declares the simulated world frame as that CRS (a what-if for GIS checks: the
+    simulator has no real position); ``gpkg`` adds ``map.gpkg``.
     """
+    from stemmap.cli._geo import write_map_products
+    from stemmap.cli._map import frames_metadata
     from stemmap.eval.detection import scan_detection_metrics
     from stemmap.eval.maps import map_metrics
     from stemmap.io.atomic import atomic_write
-    from stemmap.io.maps import write_observations_csv, write_trees_csv, write_trees_geojson
-    from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.io.maps import write_observations_csv
     from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.sim.observations import returns_per_tree
     from stemmap.slam.base import dead_reckoning, make_backend
@@ -176,15 +185,14 @@ def run_demo(
         "map": map_dict,
         "slam": {k: v for k, v in slam.items() if k not in ("map", "scenario")},
         "timings": timings,
+        "frames": frames_metadata(problem, crs),
         "scenario": DEMO_SCENARIO,
         "simulator": run.params,
     }
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_observations_csv(out_dir / "detections.csv", obs)
-    write_trees_csv(out_dir / "trees.csv", result.stem_map)
-    write_trees_geojson(out_dir / "trees.geojson", result.stem_map)
-    write_trajectory_csv(out_dir / "trajectory.csv", result.trajectory)
+    write_map_products(out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg)
     with atomic_write(out_dir / "truth_trees.csv") as fh:
         fh.write("id,x,y,diameter\n")
         for i, ((x, y), d) in enumerate(zip(stand.trees_xy, stand.diameters, strict=True)):
@@ -260,6 +268,8 @@ def demo(
         _DEFAULT_BACKEND
     ),
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    crs: CrsOption = None,
+    gpkg: GpkgFlag = False,
 ) -> None:
     """Simulate a forest and a drive, detect every trunk, map it, and score it against truth.
 
@@ -270,7 +280,13 @@ def demo(
     """
     with fail_on_stemmap_error():
         m = run_demo(
-            out_dir, seed=seed, n_trees=n_trees, backend=backend.value, show_progress=show_progress
+            out_dir,
+            seed=seed,
+            n_trees=n_trees,
+            backend=backend.value,
+            show_progress=show_progress,
+            crs=checked_crs(crs),
+            gpkg=gpkg,
         )
     d, mp, s = m["detection"], m["map"], m["slam"]
 
@@ -289,7 +305,7 @@ def demo(
         f"{cm(s.get('loop_closure_error_m'))} "
         f"(dead reckoning {cm(s.get('dead_reckoning_loop_closure_error_m'))})",
         f"wrote {out_dir}/: detections.csv trees.csv trees.geojson trajectory.csv "
-        "truth_trees.csv metrics.json demo.png",
+        "truth_trees.csv metrics.json demo.png" + (" map.gpkg" if gpkg else ""),
     ]
     for line in lines:
         out.print(line, markup=False, soft_wrap=True)

@@ -207,7 +207,8 @@ def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
     """What the map and trajectory coordinates mean (recorded in metrics.json)."""
     a, b = problem.sensor_offset
     return {
-        "map_frame": "the odometry frame of the first pose (x, y metres)",
+        "map_frame": "the frame of the initial pose (x, y metres; odometry frame, the "
+        "simulator's world frame for --sim and demo)",
         "crs": crs,
         "georeferenced": crs is not None,
         "trajectory_point": "the vehicle reference point of the motion model (Victoria Park: "

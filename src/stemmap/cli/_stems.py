@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._geo import checked_crs
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -77,6 +78,21 @@ def stems(
     ] = "ours",
     geojson: Annotated[Path | None, typer.Option(help="Also write a GeoJSON of the stems.")] = None,
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
+    gpkg: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write a GeoPackage (layer 'stems') in the cloud's CRS.",
+            rich_help_panel="Georeferencing",
+        ),
+    ] = None,
+    crs: Annotated[
+        str | None,
+        typer.Option(
+            help="CRS of the cloud's x, y (EPSG code, WKT, PROJ) [default: the LAS/LAZ "
+            "header's CRS; none: a local frame].",
+            rich_help_panel="Georeferencing",
+        ),
+    ] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
     heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
     chunk_size: Annotated[int, typer.Option(help="Points per chunk when streaming LAS/LAZ.")] = (
@@ -141,8 +157,10 @@ def stems(
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.geo import GeoLayer, array_fields, las_crs, write_gpkg
 
     with fail_on_stemmap_error():
+        crs = checked_crs(crs) if crs is not None else las_crs(cloud)
         cfg = get_preset(preset)
         if isinstance(cfg, StemConfig) and heights:
             cfg = replace(cfg, estimate_height=True)
@@ -158,7 +176,10 @@ def stems(
             )
         write_stems_csv(out_csv, result)
         if geojson is not None:
-            write_stems_geojson(geojson, result)
+            write_stems_geojson(geojson, result, crs=crs)
+        if gpkg is not None:
+            fields = array_fields(result, len(result), skip=("xy",))
+            write_gpkg(gpkg, [GeoLayer("stems", result.xy, fields)], crs, result.frame)
         if png is not None:
             import numpy as np
 
@@ -178,6 +199,8 @@ def stems(
             + f") written to {out_csv}"
             + (f", {geojson}" if geojson else "")
             + (f", {png}" if png else "")
+            + (f", {gpkg}" if gpkg else "")
+            + (f" (CRS {crs[:40]})" if crs else " (local frame, no CRS)")
         )
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")

@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike
 
 from stemmap.cloud.stems import CloudStems
 from stemmap.io.atomic import atomic_write
+from stemmap.io.geo import georeference_features
 
 __all__ = ["STEM_CSV_COLUMNS", "plot_stems", "write_stems_csv", "write_stems_geojson"]
 
@@ -70,8 +71,9 @@ def write_stems_geojson(
 ) -> None:
     """A FeatureCollection of Points (cloud frame coordinates) with the CSV columns as properties.
 
-    Coordinates are the cloud's own; pass ``crs`` (e.g. ``"EPSG:32633"``) only when the cloud is
-    georeferenced (it is recorded as a ``crs`` member, RFC 7946 otherwise assumes WGS84).
+    With ``crs`` (the cloud's CRS, e.g. ``"EPSG:32633"``) the geometry is WGS84 lon/lat per RFC
+    7946 and the cloud coordinates stay in properties ``x``, ``y``; without it the geometry is
+    in cloud metres, declared a local frame (:func:`stemmap.io.geo.georeference_features`).
     """
     feats: list[dict[str, Any]] = []
     for k in range(len(stems)):
@@ -100,8 +102,7 @@ def write_stems_geojson(
             }
         )
     doc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
-    if crs:
-        doc["crs"] = {"type": "name", "properties": {"name": crs}}
+    georeference_features(doc, stems.xy, crs, stems.frame)  # RFC 7946 lon/lat or local metres
     with atomic_write(path, "w") as fh:
         json.dump(doc, fh, indent=1)
 
