@@ -176,7 +176,7 @@ def test_stemmap_map_cli_writes_every_product(tmp_path, datasets_dir):
         assert (out / name).stat().st_size > 100, name
     header = (out / "trees.csv").read_text().splitlines()[0].split(",")
     assert header[:7] == ["id", "x", "y", "diameter", "std_x", "std_y", "n_obs"]
-    assert (out / "trajectory.csv").read_text().startswith("time,x,y,theta")
+    assert (out / "trajectory.csv").read_text().startswith("time_s,x,y,theta")
     m = json.loads((out / "metrics.json").read_text())
     assert m["n_trees"] > 10 and m["ate_rmse_m"] < 2.0
     # bad input: no source / two sources -> exit code 2 with a message, no traceback

@@ -301,7 +301,7 @@ def test_observations_csv_round_trip(tmp_path: Path, rng: np.random.Generator) -
     write_observations_csv(p, o)
     lines = p.read_text().splitlines()
     assert tuple(lines[0].split(",")) == OBSERVATION_CSV_COLUMNS
-    assert lines[0].startswith("scan_index,time,x,y,diameter,radius_std,n_points")
+    assert lines[0].startswith("scan_index,time_s,x,y,diameter,radius_std,n_points")
     assert len(lines) == len(o) + 1
     b = read_observations_csv(p, source="scan:ours")
     for name in ("centers", "radii", "n_points", "arc_deg", "widths", "quality", "index", "times"):
@@ -328,7 +328,7 @@ def test_observations_csv_empty_and_minimal(tmp_path: Path) -> None:
     [
         ("scan_index,time,x,y\n1,2,3,4\n", "lacks column.*diameter"),
         ("scan_index,time,x,y,diameter\n1.5,0,0,0,0.3\n", "'scan_index' is 1.5"),
-        ("scan_index,time,x,y,diameter\n1,nan,0,0,0.3\n", "'time' is nan"),
+        ("scan_index,time,x,y,diameter\n1,nan,0,0,0.3\n", "'time_s' is nan"),
         ("scan_index,time,x,y,diameter\n1,0,0,0,-1\n", "negative"),
         ("scan_index,time,x,y,diameter,n_points\n1,0,0,0,1,2.5\n", "'n_points' is 2.5"),
     ],
@@ -353,7 +353,7 @@ def test_trajectory_csv_round_trip(tmp_path: Path, rng: np.random.Generator) -> 
     tr = _traj(rng)
     p = tmp_path / "path.csv"
     write_trajectory_csv(p, tr)
-    assert p.read_text().splitlines()[0] == "time,x,y,theta"
+    assert p.read_text().splitlines()[0] == "time_s,x,y,theta"
     back = read_trajectory_csv(p, frame="odom")
     np.testing.assert_array_equal(back.times, tr.times)
     np.testing.assert_array_equal(back.poses, tr.poses)

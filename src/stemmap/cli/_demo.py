@@ -8,7 +8,7 @@ simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 * ``detections.csv`` -- every trunk seen in every scan (the ``stemmap detect`` format, sensor
   frame);
 * ``trees.csv``, ``trees.geojson`` -- the stem map (world frame, metres);
-* ``trajectory.csv`` -- the estimated path (time,x,y,theta);
+* ``trajectory.csv`` -- the estimated path (time_s,x,y,theta);
 * ``truth_trees.csv`` -- the simulator's trees (id,x,y,diameter);
 * ``metrics.json`` -- detection precision/recall and DBH error, map and path errors, scenario;
 * ``demo.png`` -- the map over the truth, and the per-scan DBH error against range.
@@ -131,6 +131,7 @@ def run_demo(
     from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.sim.observations import returns_per_tree
     from stemmap.slam.base import dead_reckoning, make_backend
+    from stemmap.slam.uncertainty import annotate_uncertainty
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -161,6 +162,7 @@ def run_demo(
             bar.update(task, completed=done, total=total)
 
         result = be.run(problem, progress=tick)
+    result.stem_map, unc = annotate_uncertainty(result, problem)
     timings["slam_s"] = time.perf_counter() - t0
     slam, _, _ = slam_metrics(problem, result, ctx)
 
@@ -184,6 +186,7 @@ def run_demo(
         "detection": det.to_dict(),
         "map": map_dict,
         "slam": {k: v for k, v in slam.items() if k not in ("map", "scenario")},
+        "uncertainty": unc.to_dict(),
         "timings": timings,
         "frames": frames_metadata(problem, crs),
         "scenario": DEMO_SCENARIO,

@@ -1,7 +1,7 @@
 """``stemmap map``: tree-landmark SLAM on a dataset, a simulated run or a ROS bag.
 
 Writes to ``--out DIR``: ``trees.csv`` (id,x,y,diameter,std_x,std_y,n_obs,...),
-``trees.geojson``, ``trajectory.csv`` (time,x,y,theta), ``metrics.json`` and ``map.png``.
+``trees.geojson``, ``trajectory.csv`` (time_s,x,y,theta), ``metrics.json`` and ``map.png``.
 """
 
 from __future__ import annotations
@@ -248,12 +248,13 @@ def map_command(
     gpkg: GpkgFlag = False,
     trajectory_format: Annotated[
         TrajectoryFormat,
-        typer.Option(help="trajectory.csv (time,x,y,theta) or TUM trajectory.tum for evo."),
+        typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
     ] = TrajectoryFormat.csv,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM."""
     from stemmap.io.atomic import atomic_write
     from stemmap.slam.base import dead_reckoning, make_backend
+    from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
 
     with fail_on_stemmap_error():
@@ -283,7 +284,9 @@ def map_command(
                 bar.update(task, completed=done, total=total)
 
             result = be.run(problem, progress=tick)
+        result.stem_map, unc = annotate_uncertainty(result, problem)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
+        metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs)
         out_dir.mkdir(parents=True, exist_ok=True)
         fmt = trajectory_format.value

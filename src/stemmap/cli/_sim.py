@@ -9,7 +9,7 @@ output) against the truth files of a ``stemmap sim scans`` run.
   ``angle_min``, ``angle_increment``, ``range_min``, ``range_max``), via
   :func:`stemmap.io.scans.write_scans_npz`;
 * ``run_trees.csv`` -- ground-truth trees ``id,x,y,diameter`` (world frame, metres);
-* ``run_poses.csv`` -- the true sensor pose of every scan ``time,x,y,theta`` (world frame);
+* ``run_poses.csv`` -- the true sensor pose of every scan ``time_s,x,y,theta`` (world frame);
 * ``run_odometry.csv`` -- noisy wheel odometry ``time,speed,yaw_rate`` (m/s, rad/s; controls
   held until the next row);
 * ``run_gnss.csv`` -- noisy GNSS fixes of the vehicle ``time,x,y,sigma`` (world frame, m);

@@ -109,7 +109,7 @@ def stems(
     trajectory: Annotated[
         Path | None,
         typer.Option(
-            help="Machine path, stemmap CSV time,x,y,theta (.csv) or TUM 't x y z qx qy qz qw'; "
+            help="Machine path, stemmap CSV time_s,x,y,theta (.csv) or TUM 't x y z qx qy qz qw'; "
             "each point's sensor position is interpolated at its time stamp (ours).",
             rich_help_panel="Sensor positions (along-ray fits)",
         ),

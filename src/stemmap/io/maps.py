@@ -2,12 +2,16 @@
 
 Formats (also in docs/algorithms/io.md):
 
-* trees CSV: ``id,x,y,diameter,std_x,std_y,n_obs,diameter_std,confidence,cov_xy,first_time,
-  last_time`` -- metres, seconds; ``nan`` where unknown. Plain CSV without comment lines, so
-  that spreadsheets and GIS tools read it as is; the frame / CRS are not stored in it.
-* observations CSV (the ``stemmap detect`` output): ``scan_index,time,x,y,diameter,radius_std,
-  n_points,arc_deg,width,quality,std_x,std_y`` -- sensor frame, metres, seconds, degrees.
+* trees CSV: ``id,x,y,diameter,std_x,std_y,n_obs,diameter_std,confidence,cov_xy_m2,
+  first_time_s,last_time_s`` -- metres, seconds; ``nan`` where unknown. Plain CSV without
+  comment lines, so that spreadsheets and GIS tools read it as is; the frame / CRS are not
+  stored in it.
+* observations CSV (the ``stemmap detect`` output): ``scan_index,time_s,x,y,diameter,
+  radius_std,n_points,arc_deg,width,quality,std_x,std_y`` -- sensor frame, metres, seconds, degrees.
 * trees GeoJSON (RFC 7946): a FeatureCollection of Points, see :func:`write_trees_geojson`.
+
+Every column is described in docs/outputs.md. Readers also accept the pre-0.2 names ``time``,
+``first_time``, ``last_time``, ``cov_xy``.
 """
 
 from __future__ import annotations
@@ -57,16 +61,16 @@ TREE_CSV_COLUMNS = (
     "n_obs",
     "diameter_std",
     "confidence",
-    "cov_xy",
-    "first_time",
-    "last_time",
+    "cov_xy_m2",
+    "first_time_s",
+    "last_time_s",
 )
 _TREE_REQUIRED = ("id", "x", "y", "diameter")
 
 #: Columns of the observations CSV written by ``stemmap detect``, in order.
 OBSERVATION_CSV_COLUMNS = (
     "scan_index",
-    "time",
+    "time_s",
     "x",
     "y",
     "diameter",
@@ -78,7 +82,7 @@ OBSERVATION_CSV_COLUMNS = (
     "std_x",
     "std_y",
 )
-_OBS_REQUIRED = ("scan_index", "time", "x", "y", "diameter")
+_OBS_REQUIRED = ("scan_index", "time_s", "x", "y", "diameter")
 
 # WGS84 ellipsoid (NIMA TR8350.2)
 _WGS84_A = 6378137.0
@@ -176,12 +180,12 @@ def read_trees_csv(path: PathLike, *, frame: str = "map", crs: str | None = None
         n_obs_f = np.nan_to_num(cols["n_obs"], nan=0.0)
         cols["n_obs"] = n_obs_f
         require_integer(p, what, table, "n_obs")
-    sx, sy, cxy = col("std_x", math.nan), col("std_y", math.nan), col("cov_xy", math.nan)
-    if "cov_xy" not in cols:
+    sx, sy, cxy = col("std_x", math.nan), col("std_y", math.nan), col("cov_xy_m2", math.nan)
+    if "cov_xy_m2" not in cols:
         cxy = np.where(np.isfinite(sx) & np.isfinite(sy), 0.0, math.nan)
     n_obs = col("n_obs", 0.0).astype(np.int64)
     dstd, conf = col("diameter_std", math.nan), col("confidence", 1.0)
-    t0, t1 = col("first_time", math.nan), col("last_time", math.nan)
+    t0, t1 = col("first_time_s", math.nan), col("last_time_s", math.nan)
     trees = tuple(
         Tree(
             id=int(ids[i]),
@@ -414,7 +418,7 @@ def read_trees_geojson(path: PathLike) -> StemMap:
             y = num("y", coords[1])
             d = num("diameter", math.nan)
             sx, sy = num("std_x", math.nan), num("std_y", math.nan)
-            cxy = num("cov_xy", math.nan)
+            cxy = num("cov_xy_m2", num("cov_xy", math.nan))
             tree = Tree(
                 id=int(f.get("id", props.get("id", k))),
                 x=x,
@@ -422,8 +426,8 @@ def read_trees_geojson(path: PathLike) -> StemMap:
                 diameter=d,
                 cov=np.array([[sx * sx, cxy], [cxy, sy * sy]]),
                 n_obs=int(props.get("n_obs") or 0),
-                first_time=num("first_time", math.nan),
-                last_time=num("last_time", math.nan),
+                first_time=num("first_time_s", num("first_time", math.nan)),
+                last_time=num("last_time_s", num("last_time", math.nan)),
                 confidence=num("confidence", 1.0),
                 diameter_std=num("diameter_std", math.nan),
             )
@@ -529,7 +533,7 @@ def read_observations_csv(
         widths=col("width", math.nan),
         quality=col("quality", 1.0),
         index=cols["scan_index"].astype(np.int64),
-        times=cols["time"],
+        times=cols["time_s"],
         source=source,
         frame=frame,
     )
