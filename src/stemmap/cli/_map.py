@@ -221,7 +221,19 @@ def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
 
 def map_command(
     bag: Annotated[
-        Path | None, typer.Argument(help="ROS1/ROS2 bag with LaserScan + Odometry.")
+        Path | None,
+        typer.Argument(
+            metavar="[INPUT]",
+            help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
+            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry.",
+        ),
+    ] = None,
+    odometry: Annotated[
+        Path | None,
+        typer.Option(
+            help="Wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) for scan or detection "
+            "inputs [default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes].",
+        ),
     ] = None,
     dataset: Annotated[
         Dataset | None, typer.Option("--dataset", help="A known public dataset.")
@@ -252,7 +264,9 @@ def map_command(
     ] = TrajectoryFormat.csv,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM."""
+    from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
+    from stemmap.io.rosbag import is_bag
     from stemmap.slam.base import dead_reckoning, make_backend
     from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
@@ -261,13 +275,18 @@ def map_command(
         crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
         if sources != 1:
-            raise ConfigError("give exactly one input: a BAG, --dataset victoria-park, or --sim.")
+            raise ConfigError(
+                "give exactly one input: a bag, scans or detections file, --dataset "
+                "victoria-park, or --sim."
+            )
         if dataset is not None:
             problem, ctx = _victoria_park(data, t_end)
         elif sim:
             problem, ctx = _simulated(seed, sim_trees, sim_size)
         else:
             assert bag is not None
+            if odometry is not None and is_bag(bag):
+                raise ConfigError("--odometry is for scan / detection files; a bag has its own.")
             try:
                 a_str, b_str = sensor_offset.split(",")
                 off = (float(a_str), float(b_str))
@@ -275,7 +294,7 @@ def map_command(
                 raise ConfigError(
                     f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
                 ) from exc
-            problem, ctx = _bag(bag, off)
+            problem, ctx = _bag(bag, off) if is_bag(bag) else file_problem(bag, odometry, off)
         be = make_backend(backend.value)
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
