@@ -17,6 +17,7 @@ simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -202,13 +203,16 @@ def run_demo(
             fh.write(f"{i},{x:.4f},{y:.4f},{d:.4f}\n")
     with atomic_write(out_dir / "metrics.json") as fh:
         json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
-    _figure(out_dir / "demo.png", run, obs, det, result, dead_reckoning(problem), seen)
+    head = (
+        f"stem map ({backend}): recall {map_dict['recall_of_seen']:.2f} of the "
+        f"{int(seen.sum())} trees seen, precision {map_dict['precision']:.2f}, "
+        f"position RMSE {100 * (map_dict.get('position_rmse') or math.nan):.0f} cm"
+    )
+    _figure(out_dir / "demo.png", run, obs, det, result, dead_reckoning(problem), head)
     return metrics
 
 
-def _figure(
-    path: Path, run: Any, obs: Any, det: Any, result: Any, dr: Any, seen: np.ndarray
-) -> None:
+def _figure(path: Path, run: Any, obs: Any, det: Any, result: Any, dr: Any, title: str) -> None:
     """Left: stem map, path, dead reckoning and truth. Right: per-scan DBH error vs range."""
     import matplotlib
 
@@ -228,7 +232,8 @@ def _figure(
         result.trajectory,
         reference=dr,
         truth_xy=run.stand.trees_xy,
-        title=f"stem map: {len(result.stem_map)} trees mapped, {int(seen.sum())} seen by the laser",
+        title=title,
+        gate=DEMO_SCENARIO["scoring"]["map_gate_m"],
     )
     ax2 = fig.add_subplot(1, 2, 2)
     # per-scan matches of detections to truth (sensor frame), same gate as the metrics

@@ -203,6 +203,20 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
     return m, gps_map, truth_xy
 
 
+def headline(m: dict[str, Any]) -> str:
+    """One line of the run's key numbers (figure titles, the terminal summary)."""
+    parts = [f"{m.get('n_trees', 0)} trees"]
+    mm = m.get("map")
+    if isinstance(mm, dict):
+        parts.append(f"recall {mm.get('recall', math.nan):.2f}")
+        parts.append(f"precision {mm.get('precision', math.nan):.2f}")
+    if "ate_rmse_m" in m:
+        parts.append(f"ATE RMSE {m['ate_rmse_m']:.2f} m vs GPS")
+    if "trajectory_rmse_m" in m:
+        parts.append(f"path RMSE {m['trajectory_rmse_m']:.2f} m")
+    return ", ".join(parts)
+
+
 def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
     """What the map and trajectory coordinates mean (recorded in metrics.json)."""
     a, b = problem.sensor_offset
@@ -332,7 +346,7 @@ def map_command(
             gps_xy=gps_map,
             reference=dead_reckoning(problem),
             truth_xy=truth_xy,
-            title=f"{problem.name}: {backend.value}",
+            title=f"{problem.name}: {backend.value}\n{headline(metrics)}",
         )
     summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
     out.print(f"wrote {out_dir}/: {' '.join(names)}")

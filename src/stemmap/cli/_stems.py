@@ -192,7 +192,7 @@ def stems(
                     for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
                 ]
             )
-            plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
+            plot_stems(png, result, background_xy=bg, title=cloud.name)
         out.print(
             f"{len(result)} stems ({result.method}"
             + (", along-ray fits" if sensor is not None else "")
