@@ -25,9 +25,10 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
 from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
+from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 
 __all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
 
@@ -276,16 +277,19 @@ def demo(
         _DEFAULT_BACKEND
     ),
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    as_json: JsonFlag = False,
     crs: CrsOption = None,
     gpkg: GpkgFlag = False,
 ) -> None:
     """Simulate a forest and a drive, detect every trunk, map it, and score it against truth.
 
     Needs no input. Writes detections.csv, trees.csv, trees.geojson, trajectory.csv,
-    truth_trees.csv, metrics.json and demo.png to --out, and prints a summary.
+    truth_trees.csv, metrics.json and demo.png (and map.gpkg with --gpkg) to --out, and prints
+    a summary (--json: one JSON object). Every column: docs/outputs.md.
 
     Example: stemmap demo --out stemmap-demo --seed 1
     """
+    announce_compile("scan", "slam")
     with fail_on_stemmap_error():
         m = run_demo(
             out_dir,
@@ -297,26 +301,37 @@ def demo(
             gpkg=gpkg,
         )
     d, mp, s = m["detection"], m["map"], m["slam"]
-
-    def cm(v: float | None) -> str:
-        return "n/a" if v is None or not np.isfinite(v) else f"{100 * v:.2f} cm"
-
-    lines = [
-        f"stemmap demo (seed {m['seed']}): {m['n_trees_in_stand']} trees beside the drive, "
-        f"{m['n_trees_seen']} seen from the path, {m['n_scans']} scans",
-        f"  per-scan detection: precision {d['precision']:.3f}, recall {d['recall']:.3f}, "
-        f"DBH RMSE {cm(d['diameter_rmse'])}, bias {cm(d['diameter_bias'])}",
-        f"  stem map ({m['backend']}): {mp['n_map']} trees, {mp['n_matched']} matched, "
-        f"recall {mp['recall_of_seen']:.3f} (of the trees seen), precision {mp['precision']:.3f}, "
-        f"position RMSE {cm(mp['position_rmse'])}, DBH RMSE {cm(mp['diameter_rmse'])}",
-        f"  path: RMSE {cm(s.get('trajectory_rmse_m'))}, loop-closure error "
-        f"{cm(s.get('loop_closure_error_m'))} "
-        f"(dead reckoning {cm(s.get('dead_reckoning_loop_closure_error_m'))})",
-        f"wrote {out_dir}/: detections.csv trees.csv trees.geojson trajectory.csv "
-        "truth_trees.csv metrics.json demo.png" + (" map.gpkg" if gpkg else ""),
-    ]
-    for line in lines:
-        out.print(line, markup=False, soft_wrap=True)
+    rows = [
+        ("trees in the stand / seen from the path",
+         f"{m['n_trees_in_stand']} / {m['n_trees_seen']}", "n_trees_in_stand, n_trees_seen"),
+        ("scans", fmt(m["n_scans"]), "n_scans"),
+        ("per-scan detection: precision", fmt(d["precision"], digits=3), "detection.precision"),
+        ("per-scan detection: recall", fmt(d["recall"], digits=3), "detection.recall"),
+        ("per-scan DBH RMSE / bias",
+         f"{fmt(d['diameter_rmse'], ' cm', 100)} / {fmt(d['diameter_bias'], ' cm', 100)}",
+         "detection.diameter_rmse, .diameter_bias"),
+        (f"stem map ({m['backend']}): trees mapped / matched",
+         f"{mp['n_map']} / {mp['n_matched']}", "map.n_map, map.n_matched"),
+        ("map recall of the trees seen", fmt(mp["recall_of_seen"], digits=3),
+         "map.recall_of_seen"),
+        ("map recall of all stand trees", fmt(mp["recall"], digits=3), "map.recall"),
+        ("map precision", fmt(mp["precision"], digits=3), "map.precision"),
+        ("tree position RMSE", fmt(mp["position_rmse"], " cm", 100), "map.position_rmse"),
+        ("map DBH RMSE", fmt(mp["diameter_rmse"], " cm", 100), "map.diameter_rmse"),
+        ("path RMSE", fmt(s.get("trajectory_rmse_m"), " cm", 100), "slam.trajectory_rmse_m"),
+        ("loop-closure error (dead reckoning)",
+         f"{fmt(s.get('loop_closure_error_m'), ' cm', 100)} "
+         f"({fmt(s.get('dead_reckoning_loop_closure_error_m'), ' cm', 100)})",
+         "slam.loop_closure_error_m"),
+    ]  # fmt: skip
+    files = [
+        "detections.csv", "trees.csv", "trees.geojson", "trajectory.csv", "truth_trees.csv",
+        "metrics.json", "demo.png", *(["map.gpkg"] if gpkg else []),
+    ]  # fmt: skip
+    print_summary(
+        f"stemmap demo (seed {m['seed']})", rows, out_dir, files, as_json=as_json,
+        payload={"metrics": m},
+    )  # fmt: skip
 
 
 def register(app: typer.Typer) -> None:

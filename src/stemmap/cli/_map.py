@@ -16,7 +16,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
 from stemmap.cli._geo import (
     CrsOption,
     GpkgFlag,
@@ -24,6 +24,7 @@ from stemmap.cli._geo import (
     write_gps_frame,
     write_map_products,
 )
+from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.errors import ConfigError, InputError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
@@ -203,6 +204,39 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
     return m, gps_map, truth_xy
 
 
+def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]:
+    """The terminal summary of a map run: (quantity, value, metrics.json key)."""
+    rows = [
+        ("trees mapped", fmt(m.get("n_trees")), "n_trees"),
+        ("tree pairs closer than 1 m", fmt(m.get("duplicates_1m")), "duplicates_1m"),
+    ]
+    if "ate_rmse_m" in m:
+        rows.append(("path error vs GPS (ATE RMSE)", fmt(m["ate_rmse_m"], " m"), "ate_rmse_m"))
+        dr = m.get("dead_reckoning_ate_rmse_m")
+        rows.append(("dead reckoning ATE RMSE", fmt(dr, " m"), "dead_reckoning_ate_rmse_m"))
+    if "trajectory_rmse_m" in m:
+        rows.append(("path RMSE vs truth", fmt(m["trajectory_rmse_m"], " m"), "trajectory_rmse_m"))
+        lc = m.get("loop_closure_error_m")
+        rows.append(("loop-closure error", fmt(lc, " m"), "loop_closure_error_m"))
+    mm = m.get("map")
+    if isinstance(mm, dict):
+        rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
+        rows.append(("map precision", fmt(mm.get("precision")), "map.precision"))
+        pr = mm.get("position_rmse")
+        rows.append(("tree position RMSE", fmt(pr, " cm", 100, 1), "map.position_rmse"))
+        dr_ = mm.get("diameter_rmse")
+        rows.append(("DBH RMSE", fmt(dr_, " cm", 100, 2), "map.diameter_rmse"))
+    if len(stem_map):
+        import numpy as np
+
+        ds = np.array([t.diameter_std for t in stem_map])
+        conf = np.array([t.confidence for t in stem_map])
+        med = float(np.nanmedian(ds)) if np.isfinite(ds).any() else math.nan
+        rows.append(("median DBH standard error", fmt(med, " cm", 100, 2), "trees.csv"))
+        rows.append(("trees with confidence >= 0.5", fmt(int(np.sum(conf >= 0.5))), "trees.csv"))
+    return rows
+
+
 def headline(m: dict[str, Any]) -> str:
     """One line of the run's key numbers (figure titles, the terminal summary)."""
     parts = [f"{m.get('n_trees', 0)} trees"]
@@ -237,7 +271,7 @@ def map_command(
     bag: Annotated[
         Path | None,
         typer.Argument(
-            metavar="[INPUT]",
+            metavar="INPUT",
             help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
             "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry.",
         ),
@@ -270,6 +304,7 @@ def map_command(
         str, typer.Option("--sensor-offset", help="Bag: laser position 'a,b' (m) in the vehicle.")
     ] = "0,0",
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    as_json: JsonFlag = False,
     crs: CrsOption = None,
     gpkg: GpkgFlag = False,
     trajectory_format: Annotated[
@@ -277,7 +312,19 @@ def map_command(
         typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
     ] = TrajectoryFormat.csv,
 ) -> None:
-    """Map trees and the machine's path with tree-landmark SLAM."""
+    """Map trees and the machine's path with tree-landmark SLAM.
+
+    Writes to --out: trees.csv, trees.geojson, trajectory.csv (--trajectory-format tum:
+    trajectory.tum), metrics.json, map.png, and with --gpkg map.gpkg; Victoria Park also
+    gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json (the map in the
+    GPS frame). Every column: docs/outputs.md.
+
+    Example: stemmap map --dataset victoria-park --out vp
+
+    Example: stemmap sim scans --out run.npz && stemmap map run.npz --out runmap
+
+    Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
+    """
     from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
     from stemmap.io.rosbag import is_bag
@@ -293,6 +340,7 @@ def map_command(
                 "give exactly one input: a bag, scans or detections file, --dataset "
                 "victoria-park, or --sim."
             )
+        announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
         if dataset is not None:
             problem, ctx = _victoria_park(data, t_end)
         elif sim:
@@ -348,9 +396,14 @@ def map_command(
             truth_xy=truth_xy,
             title=f"{problem.name}: {backend.value}\n{headline(metrics)}",
         )
-    summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
-    out.print(f"wrote {out_dir}/: {' '.join(names)}")
-    out.print(json.dumps(clean_json(summary), default=json_default))
+    print_summary(
+        f"stemmap map: {problem.name} ({backend.value})",
+        summary_rows(metrics, result.stem_map),
+        out_dir,
+        names,
+        as_json=as_json,
+        payload={"metrics": metrics},
+    )
 
 
 def register(app: typer.Typer) -> None:

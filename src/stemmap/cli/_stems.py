@@ -8,8 +8,9 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._common import console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
+from stemmap.cli._summary import JsonFlag, fmt, print_summary
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -137,6 +138,7 @@ def stems(
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = None,
+    as_json: JsonFlag = False,
 ) -> None:
     """Find stems in CLOUD and write x, y, z, diameter, n_points, quality per stem (cloud frame,
     metres). LAS/LAZ files are streamed in chunks (progress bar). munjer2025 expects one lidar
@@ -146,6 +148,10 @@ def stems(
     time stamps for a mobile cloud) the circle fits of preset ours minimise the range errors
     along each point's ray, which removes the low DBH bias of a noisy mobile lidar.
 
+    Writes the stems CSV (--out) and, on request, --geojson (WGS84 lon/lat when the CRS is
+    known: --crs or the LAS header), --gpkg (native CRS) and --png (top view to scale). Every
+    column: docs/outputs.md.
+
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
 
     Mobile: stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0
@@ -153,6 +159,8 @@ def stems(
     One station: stemmap stems station.ply --origin 12.5,3.0
     """
     from dataclasses import replace
+
+    import numpy as np
 
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
@@ -181,8 +189,6 @@ def stems(
             fields = array_fields(result, len(result), skip=("xy",))
             write_gpkg(gpkg, [GeoLayer("stems", result.xy, fields)], crs, result.frame)
         if png is not None:
-            import numpy as np
-
             # background: every k-th point of the whole file (one more streaming pass; the
             # size of a non-LAS file is known only once it is read, as one chunk)
             total = count_points(cloud)
@@ -193,15 +199,19 @@ def stems(
                 ]
             )
             plot_stems(png, result, background_xy=bg, title=cloud.name)
-        out.print(
-            f"{len(result)} stems ({result.method}"
-            + (", along-ray fits" if sensor is not None else "")
-            + f") written to {out_csv}"
-            + (f", {geojson}" if geojson else "")
-            + (f", {png}" if png else "")
-            + (f", {gpkg}" if gpkg else "")
-            + (f" (CRS {crs[:40]})" if crs else " (local frame, no CRS)")
-        )
+        files = [str(p) for p in (out_csv, geojson, gpkg, png) if p is not None]
+        med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
+        rows = [
+            ("stems", fmt(len(result)), "rows of the CSV"),
+            ("median DBH", fmt(med, " cm", 100, 1), "diameter"),
+            ("method", result.method + (", along-ray fits" if sensor is not None else ""), ""),
+            ("CRS", crs[:40] if crs else "none (local frame)", ""),
+        ]
+        print_summary(
+            f"stemmap stems: {cloud.name}", rows, None, files, as_json=as_json,
+            payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
+                     "method": result.method},
+        )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
 
