@@ -126,6 +126,7 @@ def run_demo(
     """
     from stemmap.cli._geo import write_map_products
     from stemmap.cli._map import frames_metadata
+    from stemmap.cli._summary import write_run_report
     from stemmap.eval.detection import scan_detection_metrics
     from stemmap.eval.maps import map_metrics
     from stemmap.io.atomic import atomic_write
@@ -210,6 +211,18 @@ def run_demo(
         f"position RMSE {100 * (map_dict.get('position_rmse') or math.nan):.0f} cm"
     )
     _figure(out_dir / "demo.png", run, obs, det, result, dead_reckoning(problem), head)
+    write_run_report(
+        out_dir,
+        title=f"stemmap demo (seed {seed}, {backend})",
+        headline=head,
+        metrics=metrics,
+        figure="demo.png",
+        stem_map=result.stem_map,
+        parameters={"seed": seed, "n_trees": n_trees, "backend": backend, "crs": crs},
+        files=["detections.csv", "trees.csv", "trees.geojson", "trajectory.csv",
+               "truth_trees.csv", "metrics.json", "demo.png"],
+        crs=crs,
+    )  # fmt: skip
     return metrics
 
 
@@ -284,8 +297,8 @@ def demo(
     """Simulate a forest and a drive, detect every trunk, map it, and score it against truth.
 
     Needs no input. Writes detections.csv, trees.csv, trees.geojson, trajectory.csv,
-    truth_trees.csv, metrics.json and demo.png (and map.gpkg with --gpkg) to --out, and prints
-    a summary (--json: one JSON object). Every column: docs/outputs.md.
+    truth_trees.csv, metrics.json, demo.png and report.html (and map.gpkg with --gpkg) to
+    --out, and prints a summary (--json: one JSON object). Every column: docs/outputs.md.
 
     Example: stemmap demo --out stemmap-demo --seed 1
     """
@@ -326,7 +339,7 @@ def demo(
     ]  # fmt: skip
     files = [
         "detections.csv", "trees.csv", "trees.geojson", "trajectory.csv", "truth_trees.csv",
-        "metrics.json", "demo.png", *(["map.gpkg"] if gpkg else []),
+        "metrics.json", "demo.png", "report.html", *(["map.gpkg"] if gpkg else []),
     ]  # fmt: skip
     print_summary(
         f"stemmap demo (seed {m['seed']})", rows, out_dir, files, as_json=as_json,

@@ -24,7 +24,13 @@ from stemmap.cli._geo import (
     write_gps_frame,
     write_map_products,
 )
-from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
+from stemmap.cli._summary import (
+    JsonFlag,
+    announce_compile,
+    fmt,
+    print_summary,
+    write_run_report,
+)
 from stemmap.errors import ConfigError, InputError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
@@ -315,9 +321,9 @@ def map_command(
     """Map trees and the machine's path with tree-landmark SLAM.
 
     Writes to --out: trees.csv, trees.geojson, trajectory.csv (--trajectory-format tum:
-    trajectory.tum), metrics.json, map.png, and with --gpkg map.gpkg; Victoria Park also
-    gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json (the map in the
-    GPS frame). Every column: docs/outputs.md.
+    trajectory.tum), metrics.json, map.png, report.html, and with --gpkg map.gpkg; Victoria
+    Park also gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json
+    (the map in the GPS frame). Every column: docs/outputs.md.
 
     Example: stemmap map --dataset victoria-park --out vp
 
@@ -396,6 +402,20 @@ def map_command(
             truth_xy=truth_xy,
             title=f"{problem.name}: {backend.value}\n{headline(metrics)}",
         )
+        names.append(
+            write_run_report(
+                out_dir,
+                title=f"stemmap map: {problem.name} ({backend.value})",
+                headline=headline(metrics),
+                metrics=metrics,
+                figure="map.png",
+                stem_map=result.stem_map,
+                parameters={"backend": backend.value, "input": problem.name, "crs": crs,
+                            "sensor_offset_m": list(problem.sensor_offset), "t_end": t_end},
+                files=names,
+                crs=crs,
+            )
+        )  # fmt: skip
     print_summary(
         f"stemmap map: {problem.name} ({backend.value})",
         summary_rows(metrics, result.stem_map),

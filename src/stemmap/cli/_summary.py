@@ -89,11 +89,66 @@ def print_summary(
     from rich.table import Table
 
     table = Table(title=title, title_justify="left", show_lines=False)
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
-    table.add_column("metrics.json key", style="dim")
+    table.add_column("quantity", no_wrap=True)
+    table.add_column("value", justify="right", no_wrap=True)
+    table.add_column("metrics.json key", style="dim", overflow="fold")
     for name, value, key in rows:
         table.add_row(name, value, key)
     out.print(table)
     where = f"{out_dir}/: " if out_dir is not None else ""
     out.print(f"wrote {where}{' '.join(files)}", markup=False, soft_wrap=True)
+
+
+def run_warnings(m: dict[str, Any], crs: str | None) -> list[str]:
+    """Things a reader of the report should know about the run."""
+    w = []
+    if crs is None:
+        w.append(
+            "no CRS: coordinates are metres in a local frame (declared as such in the GeoJSON "
+            "and GeoPackage); pass --crs if the odometry frame is georeferenced."
+        )
+    if m.get("n_trees", 1) == 0:
+        w.append("the map has no trees.")
+    if m.get("duplicates_1m"):
+        w.append(f"{m['duplicates_1m']} pairs of mapped trees are closer than 1 m (duplicates?).")
+    if "ate_error" in m:
+        w.append(f"no ATE against GPS: {m['ate_error']}")
+    return w
+
+
+def write_run_report(
+    out_dir: Path,
+    *,
+    title: str,
+    headline: str,
+    metrics: dict[str, Any],
+    figure: str,
+    stem_map: Any,
+    parameters: dict[str, Any],
+    files: Sequence[str],
+    crs: str | None,
+) -> str:
+    """``report.html`` of a map / demo run in ``out_dir`` (figure = the PNG written there);
+    returns its name."""
+    from stemmap.io.maps import TREE_CSV_COLUMNS, tree_rows
+    from stemmap.viz.report import write_report
+
+    doc = json.loads(json.dumps(clean_json(metrics), default=json_default))
+    rows = [
+        [round(v, 4) if isinstance(v, float) and math.isfinite(v) else v for v in r]
+        for r in tree_rows(stem_map)
+    ]
+    write_report(
+        out_dir / "report.html",
+        title=title,
+        headline=headline,
+        metrics=doc,
+        figure_png=(out_dir / figure).read_bytes(),
+        diameters=stem_map.diameters,
+        table_header=TREE_CSV_COLUMNS,
+        table_rows=rows,
+        parameters=parameters,
+        warnings=run_warnings(doc, crs),
+        files=files,
+    )
+    return "report.html"
