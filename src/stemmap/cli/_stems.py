@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -79,6 +79,12 @@ def stems(
     ] = "ours",
     geojson: Annotated[Path | None, typer.Option(help="Also write a GeoJSON of the stems.")] = None,
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write a self-contained HTML report (figure, DBH histogram, table)."
+        ),
+    ] = None,
     gpkg: Annotated[
         Path | None,
         typer.Option(
@@ -188,7 +194,10 @@ def stems(
         if gpkg is not None:
             fields = array_fields(result, len(result), skip=("xy",))
             write_gpkg(gpkg, [GeoLayer("stems", result.xy, fields)], crs, result.frame)
-        if png is not None:
+        fig_path = png
+        if report is not None and png is None:
+            fig_path = report.with_name(f".{report.name}.figure.png")
+        if fig_path is not None:
             # background: every k-th point of the whole file (one more streaming pass; the
             # size of a non-LAS file is known only once it is read, as one chunk)
             total = count_points(cloud)
@@ -198,8 +207,8 @@ def stems(
                     for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
                 ]
             )
-            plot_stems(png, result, background_xy=bg, title=cloud.name)
-        files = [str(p) for p in (out_csv, geojson, gpkg, png) if p is not None]
+            plot_stems(fig_path, result, background_xy=bg, title=cloud.name)
+        files = [str(p) for p in (out_csv, geojson, gpkg, png, report) if p is not None]
         med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
         rows = [
             ("stems", fmt(len(result)), "rows of the CSV"),
@@ -207,6 +216,11 @@ def stems(
             ("method", result.method + (", along-ray fits" if sensor is not None else ""), ""),
             ("CRS", crs[:40] if crs else "none (local frame)", ""),
         ]
+        if report is not None:
+            assert fig_path is not None
+            _stems_report(report, fig_path, result, cloud, crs, rows, files)
+            if png is None:
+                fig_path.unlink(missing_ok=True)
         print_summary(
             f"stemmap stems: {cloud.name}", rows, None, files, as_json=as_json,
             payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
@@ -214,6 +228,44 @@ def stems(
         )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
+
+
+def _stems_report(
+    path: Path, fig: Path, result: Any, cloud: Path, crs: str | None, rows: Any, files: Any
+) -> None:
+    """report.html of a stems run: the figure, DBH histogram, summary and per-stem table."""
+    import numpy as np
+
+    from stemmap.cloud.export import STEM_CSV_COLUMNS
+    from stemmap.viz.report import write_report
+
+    metrics: dict[str, Any] = {
+        "n_stems": len(result),
+        "median_dbh_m": float(np.nanmedian(result.diameter)) if len(result) else None,
+        "method": result.method,
+        "crs": crs,
+        "point_spacing_m": float(result.spacing) if math.isfinite(result.spacing) else None,
+    }
+    cols = [c for c in STEM_CSV_COLUMNS if c not in ("id", "method") and hasattr(result, c)]
+    table = [
+        [k, round(float(result.xy[k, 0]), 3), round(float(result.xy[k, 1]), 3)]
+        + [round(float(getattr(result, c)[k]), 4) for c in cols if c not in ("x", "y")]
+        for k in range(len(result))
+    ]
+    header = ["id", "x", "y", *[c for c in cols if c not in ("x", "y")]]
+    write_report(
+        path,
+        title=f"stemmap stems: {cloud.name}",
+        headline=", ".join(f"{r[0]} {r[1]}" for r in rows),
+        metrics=metrics,
+        figure_png=fig.read_bytes(),
+        diameters=result.diameter,
+        table_header=header,
+        table_rows=table,
+        parameters={"cloud": str(cloud), "method": result.method, "crs": crs},
+        warnings=[] if crs else ["no CRS: coordinates are the cloud's local metres."],
+        files=[str(f) for f in files],
+    )
 
 
 def register(app: typer.Typer) -> None:

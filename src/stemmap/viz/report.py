@@ -99,6 +99,10 @@ def dbh_histogram_svg(
             f'text-anchor="middle">{edges[i]:g}</text>'
         )
     parts.append(
+        f'<text x="{ml + pw:.1f}" y="{mt + ph + 14}" font-size="10" '
+        f'text-anchor="middle">{edges[-1]:g}</text>'
+    )
+    parts.append(
         f'<text x="{ml + pw / 2}" y="{height - 4}" font-size="11" text-anchor="middle">'
         f"DBH class (cm, {bin_cm:g} cm wide)</text>"
     )
