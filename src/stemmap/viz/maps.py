@@ -57,7 +57,8 @@ def plot_stem_map(
     ``min_draw_diameter`` is drawn at that size so it stays visible on a large map) with a
     centre dot of fixed screen size, so that every tree is visible at any map extent. The
     trajectory is a line, GPS fixes dots, an optional reference trajectory (dead reckoning)
-    dashed. With ``truth_xy`` the map is matched to the truth (one-to-one, within ``gate``
+    dashed. Without truth the centre dots are coloured by ``confidence`` (colour bar). With
+    ``truth_xy`` the map is matched to the truth (one-to-one, within ``gate``
     metres): matched trees green, spurious mapped trees red, missed true trees as black
     crosses; matched true positions are small open grey rings drawn *under* the mapped trees.
     """
@@ -98,7 +99,10 @@ def plot_stem_map(
             PatchCollection(patches, facecolor=colour, edgecolor="k", lw=0.3, alpha=0.7, zorder=4)
         )
         if t_xy is None:
-            ax.plot(*xy.T, "o", color="darkgreen", ms=2.5, zorder=5, label=f"mapped tree ({n})")
+            conf = np.array([t.confidence for t in stem_map], dtype=np.float64)
+            sc = ax.scatter(*xy.T, s=9, c=conf, cmap="RdYlGn", vmin=0, vmax=1, zorder=5,
+                            edgecolors="k", linewidths=0.2, label=f"mapped tree ({n})")  # fmt: skip
+            ax.figure.colorbar(sc, ax=ax, shrink=0.6, pad=0.02, label="confidence (real tree)")
         else:
             if matched.any():
                 ax.plot(*xy[matched].T, "o", color="darkgreen", ms=2.5, zorder=5,
