@@ -302,10 +302,12 @@ def demo(
 
     Example: stemmap demo --out stemmap-demo --seed 1
     """
+    from stemmap.io.products import run_products
+
     announce_compile("scan", "slam")
-    with fail_on_stemmap_error():
+    with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
         m = run_demo(
-            out_dir,
+            run.dir,
             seed=seed,
             n_trees=n_trees,
             backend=backend.value,
@@ -339,7 +341,7 @@ def demo(
     ]  # fmt: skip
     files = [
         "detections.csv", "trees.csv", "trees.geojson", "trajectory.csv", "truth_trees.csv",
-        "metrics.json", "demo.png", "report.html", *(["map.gpkg"] if gpkg else []),
+        "metrics.json", "demo.png", "report.html", *(["map.gpkg"] if gpkg else []), "run.json",
     ]  # fmt: skip
     print_summary(
         f"stemmap demo (seed {m['seed']})", rows, out_dir, files, as_json=as_json,

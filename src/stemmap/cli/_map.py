@@ -55,6 +55,18 @@ class Dataset(StrEnum):
     victoria_park = "victoria-park"
 
 
+def _vp_inputs(data: Path | None) -> list[Path]:
+    """The Victoria Park files a run reads (recorded and protected by the run manifest)."""
+    from stemmap.datasets import find_datasets_dir
+
+    if data is None:
+        root = find_datasets_dir()
+        if root is None:
+            return []
+        data = root / "victoria_park"
+    return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
+
+
 def _victoria_park(data: Path | None, t_end: float | None) -> tuple[Any, dict[str, Any]]:
     from stemmap.datasets.victoria_park import load_victoria_park
 
@@ -333,12 +345,14 @@ def map_command(
     """
     from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
+    from stemmap.io.products import run_products
     from stemmap.io.rosbag import is_bag
     from stemmap.slam.base import dead_reckoning, make_backend
     from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
 
-    with fail_on_stemmap_error():
+    inputs = [bag, odometry] if dataset is None else _vp_inputs(data)
+    with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
         crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
         if sources != 1:
@@ -375,14 +389,16 @@ def map_command(
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
         metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs)
-        out_dir.mkdir(parents=True, exist_ok=True)
+        stage = run.dir
+        if "odometry" in ctx and isinstance(ctx["odometry"], str):
+            run.add_input(ctx["odometry"])
         fmt = trajectory_format.value
         names = write_map_products(
-            out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
+            stage, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
         )
         if "alignment" in ctx:
             names += write_gps_frame(
-                out_dir,
+                stage,
                 ctx["alignment"],
                 result.stem_map,
                 result.trajectory,
@@ -391,10 +407,10 @@ def map_command(
                 trajectory_format=fmt,
             )
         names += ["metrics.json", "map.png"]
-        with atomic_write(out_dir / "metrics.json") as fh:
+        with atomic_write(stage / "metrics.json") as fh:
             json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
         save_stem_map_png(
-            out_dir / "map.png",
+            stage / "map.png",
             result.stem_map,
             result.trajectory,
             gps_xy=gps_map,
@@ -404,7 +420,7 @@ def map_command(
         )
         names.append(
             write_run_report(
-                out_dir,
+                stage,
                 title=f"stemmap map: {problem.name} ({backend.value})",
                 headline=headline(metrics),
                 metrics=metrics,
@@ -420,7 +436,7 @@ def map_command(
         f"stemmap map: {problem.name} ({backend.value})",
         summary_rows(metrics, result.stem_map),
         out_dir,
-        names,
+        [*names, "run.json"],
         as_json=as_json,
         payload={"metrics": metrics},
     )

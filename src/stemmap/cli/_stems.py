@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -172,8 +173,14 @@ def stems(
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.io.clouds import count_points, iter_cloud_chunks
     from stemmap.io.geo import GeoLayer, array_fields, las_crs, write_gpkg
+    from stemmap.io.products import run_products
 
-    with fail_on_stemmap_error():
+    outputs = [out_csv, geojson, gpkg, png, report]
+    with (
+        fail_on_stemmap_error(),
+        run_products("stems", inputs=[cloud, trajectory], outputs=outputs) as run,
+        tempfile.TemporaryDirectory() as tmp,
+    ):
         crs = checked_crs(crs) if crs is not None else las_crs(cloud)
         cfg = get_preset(preset)
         if isinstance(cfg, StemConfig) and heights:
@@ -188,15 +195,15 @@ def stems(
             result = detect_stems_file(
                 cloud, cfg, chunk_size=chunk_size, on_chunk=tick, sensor=sensor, topic=topic
             )
-        write_stems_csv(out_csv, result)
+        write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
-            write_stems_geojson(geojson, result, crs=crs)
+            write_stems_geojson(run.path(geojson), result, crs=crs)
         if gpkg is not None:
             fields = array_fields(result, len(result), skip=("xy",))
-            write_gpkg(gpkg, [GeoLayer("stems", result.xy, fields)], crs, result.frame)
-        fig_path = png
+            write_gpkg(run.path(gpkg), [GeoLayer("stems", result.xy, fields)], crs, result.frame)
+        fig_path = None if png is None else run.path(png)
         if report is not None and png is None:
-            fig_path = report.with_name(f".{report.name}.figure.png")
+            fig_path = Path(tmp) / "figure.png"
         if fig_path is not None:
             # background: every k-th point of the whole file (one more streaming pass; the
             # size of a non-LAS file is known only once it is read, as one chunk)
@@ -218,9 +225,7 @@ def stems(
         ]
         if report is not None:
             assert fig_path is not None
-            _stems_report(report, fig_path, result, cloud, crs, rows, files)
-            if png is None:
-                fig_path.unlink(missing_ok=True)
+            _stems_report(run.path(report), fig_path, result, cloud, crs, rows, files)
         print_summary(
             f"stemmap stems: {cloud.name}", rows, None, files, as_json=as_json,
             payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
