@@ -175,9 +175,13 @@ def test_map_cli_crs_gpkg_tum(tmp_path: Path) -> None:
             "--gpkg",
             "--trajectory-format",
             "tum",
+            "--json",
         ],
     )
     assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)  # --json: one object on stdout, nothing else
+    assert {"trees.csv", "map.gpkg", "trajectory.tum", "report.html"} <= set(doc["files"])
+    assert int(doc["summary"]["trees mapped"]) == doc["metrics"]["n_trees"]
     trees = np.loadtxt(out / "trees.csv", delimiter=",", skiprows=1, ndmin=2)
     meta, _, geom, _ = ogr_read(out / "map.gpkg", layer="trees")
     assert meta["crs"] == "EPSG:32633"

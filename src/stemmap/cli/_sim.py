@@ -95,6 +95,11 @@ def scans(
 ) -> None:
     """Simulate a drive through a stand and write scans + ground truth.
 
+    Writes OUT (e.g. run.npz: the scans) and beside it run_trees.csv (true trees),
+    run_poses.csv (true sensor poses), run_odometry.csv (noisy wheel odometry, the input of
+    `stemmap map run.npz`), run_gnss.csv, run_truth.npz and run.npz.run.json. Columns:
+    docs/outputs.md and the module doc.
+
     Example: stemmap sim scans --out run.npz --preset sick_lms --seed 1 --n-scans 2000
     """
     from stemmap.errors import ConfigError
