@@ -119,9 +119,14 @@ def test_stems_cli_carries_las_crs(tmp_path: Path, rng: np.random.Generator) -> 
     assert las_crs(f) == "EPSG:32633"
     gj, gp = tmp_path / "s.geojson", tmp_path / "s.gpkg"
     args = ["stems", str(f), "--out", str(tmp_path / "s.csv"), "--geojson", str(gj)]
-    res = CliRunner().invoke(app, [*args, "--gpkg", str(gp)])
+    rep = tmp_path / "s.html"
+    res = CliRunner().invoke(app, [*args, "--gpkg", str(gp), "--report", str(rep), "--json"])
     assert res.exit_code == 0, res.output
-    assert "EPSG:32633" in res.output
+    summary = json.loads(res.stdout)
+    assert summary["crs"] == "EPSG:32633" and summary["n_stems"] == 3
+    page = rep.read_text()
+    assert "data-key='n_stems'>3<" in page and "data:image/png;base64," in page
+    assert not list(tmp_path.glob("*figure*"))  # the report's figure is inlined, not left behind
     doc = json.loads(gj.read_text())
     assert "crs" not in doc and doc["stemmap"]["crs"] == "EPSG:32633"
     lonlat = np.array([f["geometry"]["coordinates"] for f in doc["features"]])
