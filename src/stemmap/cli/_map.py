@@ -389,6 +389,7 @@ def map_command(
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
         metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs)
+        run.note(frames=metrics["frames"])  # the body point and CRS travel with the manifest
         stage = run.dir
         if "odometry" in ctx and isinstance(ctx["odometry"], str):
             run.add_input(ctx["odometry"])
