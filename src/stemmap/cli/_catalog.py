@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import typer
 
-from stemmap.cli._common import console, out, progress
+from stemmap.cli._common import console, progress
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -125,7 +125,6 @@ def run_catalog_stems(
             "the cause and rerun with --resume to redo only those chunks."
         )
         raise typer.Exit(code=1)
-    out.print(f"{catalog.n_points} points in {len(catalog)} tiles, {len(run.chunks)} chunks")
     return run.stems, len(catalog), catalog
 
 
