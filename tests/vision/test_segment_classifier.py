@@ -203,5 +203,8 @@ def test_cli_method_and_model_errors(tmp_path: Path) -> None:
     assert res.exit_code == 2 and "--method must be one of" in " ".join(res.output.split())
     res = RUNNER.invoke(app, ["segment", str(photo), "--out", str(out), "--model", str(photo)])
     assert res.exit_code == 2 and "not a readable .npz" in " ".join(res.output.split())
+    res = RUNNER.invoke(app, ["segment", str(photo), "--out", str(out)])  # shipped model
+    assert res.exit_code == 0 and "(pixel)" in res.output
+    assert cv2.imread(str(out), cv2.IMREAD_GRAYSCALE).shape == (H, W)
     res = RUNNER.invoke(app, ["segment", "--help"])
     assert "CROPS THE TOP 25 %" in " ".join(res.output.split())

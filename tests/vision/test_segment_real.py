@@ -71,4 +71,4 @@ def test_shipped_model_on_real_crops(photos) -> None:
     for name, img, gt in photos:
         crop = (slice(0, 432), slice(0, 768))  # 16:9 crop of the top of the photo
         iou = _iou(segment_pixels(np.ascontiguousarray(img[crop]), model).mask, gt[crop])
-        assert iou > 0.7, (name, iou)  # 0.84-0.89 when written
+        assert iou > 0.7, (name, iou)  # 0.85-0.88 when written
