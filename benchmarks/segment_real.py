@@ -37,7 +37,7 @@ from threadpoolctl import threadpool_limits
 
 from stemmap.datasets import find_datasets_dir
 from stemmap.vision.image_io import read_image
-from stemmap.vision.segment import segment_trunks
+from stemmap.vision.segment import evaluate_segmentation, segment_trunks
 from stemmap.vision.segment_classifier import (
     PixelModel,
     postprocess,
@@ -60,8 +60,7 @@ SOURCE = {
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
-    u = int((a | b).sum())
-    return float((a & b).sum() / u) if u else 1.0
+    return evaluate_segmentation(a, [b])["iou"]
 
 
 def load(folder: Path, width: int) -> tuple[list[str], list[np.ndarray], list[np.ndarray]]:
