@@ -203,6 +203,11 @@ def test_cli_method_and_model_errors(tmp_path: Path) -> None:
     assert res.exit_code == 2 and "--method must be one of" in " ".join(res.output.split())
     res = RUNNER.invoke(app, ["segment", str(photo), "--out", str(out), "--model", str(photo)])
     assert res.exit_code == 2 and "not a readable .npz" in " ".join(res.output.split())
+    res = RUNNER.invoke(  # the model file would overwrite a training image: refused
+        app, ["segment", "--train", str(photo), "--labels", str(out), "--model-out", str(photo)]
+    )
+    assert res.exit_code != 0 and str(photo) in " ".join(res.output.split())
+    assert cv2.imread(str(photo)) is not None
     res = RUNNER.invoke(app, ["segment", str(photo), "--out", str(out)])  # shipped model
     assert res.exit_code == 0 and "(pixel)" in res.output
     assert cv2.imread(str(out), cv2.IMREAD_GRAYSCALE).shape == (H, W)
