@@ -141,6 +141,12 @@ def test_bad_model_files_are_clear_errors(model, tmp_path: Path) -> None:
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="not a readable"):
         load_model(tmp_path / "junk.npz")
+    (tmp_path / "cut.npz").write_bytes(good.read_bytes()[:2000])  # a truncated download
+    with pytest.raises(InputError, match="not a readable"):
+        load_model(tmp_path / "cut.npz")
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with pytest.raises(InputError, match="single"):
+        load_model(tmp_path / "one.npy")
     with pytest.raises(InputError, match="does not exist"):
         load_model(tmp_path / "missing.npz")
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from importlib import resources
@@ -453,7 +454,10 @@ def load_model(path: str | Path) -> PixelModel:
     """
     p = Path(path)
     try:
-        with np.load(p, allow_pickle=False) as z:
+        loaded = np.load(p, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise InputError(f"{p} is a single .npy array, not a .npz model file.")
+        with loaded as z:
             files = set(z.files)
             missing = ({"header"} | set(_ARRAYS)) - files
             if missing:
@@ -467,7 +471,7 @@ def load_model(path: str | Path) -> PixelModel:
         raise
     except FileNotFoundError:
         raise InputError(f"model file {p} does not exist.") from None
-    except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
+    except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"{p} is not a readable .npz model file: {exc}") from exc
     if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
         raise InputError(f"{p}: header format is not {MODEL_FORMAT!r}.")
