@@ -362,13 +362,17 @@ def segment(
     ] = None,
     train: Annotated[
         list[Path] | None,
-        typer.Option(help="Train a pixel classifier on these images or folders (repeatable)."),
+        typer.Option(
+            metavar="IMAGES",
+            help="Train a pixel classifier on these images or folders (repeatable).",
+        ),
     ] = None,
     labels: Annotated[
         list[Path] | None,
         typer.Option(
+            metavar="LABELS",
             help="Training labels, files or folders: YOLO polygon .txt (class 0 = trunk) or "
-            "mask PNG (nonzero = trunk), matched to the images by file name stem."
+            "mask PNG (nonzero = trunk), matched to the images by file name stem.",
         ),
     ] = None,
     model_out: Annotated[
