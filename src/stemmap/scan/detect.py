@@ -33,12 +33,18 @@ from stemmap.scan.features import (
     _chi2_upper,
     edge_silhouette,
     footprint_correct,
-    is_straight,
     point_curvature,
     radius_median_filter,
     segment_features,
     segment_sum,
     segment_widths,
+)
+from stemmap.scan.plausibility import (
+    fit_reasons,
+    range_roughness,
+    rejected_candidates,
+    robust_residual_scale,
+    segment_reasons,
 )
 from stemmap.scan.preprocess import (
     check_gate,
@@ -164,6 +170,19 @@ class DetectorConfig:
     fit_residuals : {"range", "orthogonal"}
         Noise model of the ``ours`` fit: range noise along each beam (default) or orthogonal
         distances (the fit before the edge model).
+    sigma_from_data : bool
+        Estimate each segment's noise + bark roughness from its returns
+        (:func:`~stemmap.scan.plausibility.range_roughness`) and use ``max(sigma, estimate)``
+        for the fit's robust scale, the RMS test and the covariance (ours, issue 11): real bark
+        is rougher than a sensor's range noise.
+    roughness_max_factor : float, >= 1
+        With ``sigma_from_data``: the estimate is capped at this multiple of the configured
+        sigma (a bush or a clump of branches is rougher still and must keep failing the RMS
+        test).
+    rms_robust : bool
+        The RMS test reads ``1.4826 x median |residual|`` instead of the RMS
+        (:func:`~stemmap.scan.plausibility.robust_residual_scale`): a few returns off the
+        circle (branch stub, mixed pixel, bark ridge) do not reject a trunk (ours, issue 11).
     """
 
     name: str = "custom"
@@ -204,6 +223,9 @@ class DetectorConfig:
     beam_divergence_deg: float = 0.0
     neighbour_silhouette: bool = True
     fit_residuals: Literal["range", "orthogonal"] = "range"
+    sigma_from_data: bool = False
+    roughness_max_factor: float = 3.0
+    rms_robust: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -255,6 +277,8 @@ class DetectorConfig:
             )
         if self.fit_residuals not in ("range", "orthogonal"):
             raise bad("fit_residuals", self.fit_residuals, "choose 'range' or 'orthogonal'")
+        if not (self.roughness_max_factor >= 1.0 and math.isfinite(self.roughness_max_factor)):
+            raise bad("roughness_max_factor", self.roughness_max_factor, "it must be >= 1")
         if not self.max_rms_sigma > 0:
             raise bad("max_rms_sigma", self.max_rms_sigma, "it must be > 0")
         if not self.max_radius_width_ratio > 0:
@@ -373,6 +397,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "max_rms_sigma": 2.0,
         # SICK LMS2xx-class averaging scanner (docs/algorithms/scan-fits.md, "edge model")
         "beam_divergence_deg": 0.25,
+        # rough real bark (issue 11): sigma per segment >= its robust range roughness
+        "sigma_from_data": True,
+        "rms_robust": True,
     },
 }
 
@@ -571,6 +598,21 @@ def _fit_segments(
 # ----------------------------------------------------------------------------------------------
 # detector
 # ----------------------------------------------------------------------------------------------
+
+
+class _Fitted(NamedTuple):
+    """Circle fits of candidate segments and what the plausibility tests read."""
+
+    centers: FloatArray  # (K, 2)
+    radii: FloatArray
+    covs: FloatArray  # (K, 3, 3)
+    ok: NDArray[np.bool_]  # the fit converged
+    sigma: FloatArray  # per-segment range noise
+    mean_r: FloatArray  # mean range of the returns
+    width: FloatArray  # edge-beam chord
+    sil_width: FloatArray  # silhouette width (chord widened by mixed-pixel neighbours)
+    rms: FloatArray  # RMS orthogonal residual
+    test_rms: FloatArray  # what the RMS test reads (the RMS or the robust residual scale)
 
 
 class _BeamGeometry(NamedTuple):
@@ -778,9 +820,12 @@ class ScanTrunkDetector:
         range_max: float = math.inf,
         roll: ArrayLike | None = None,
         pitch: ArrayLike | None = None,
+        *,
+        apply_filters: bool = True,
     ) -> tuple[Segments, FloatArray, bool]:
         """:meth:`candidates` plus the processed range grid the returns came from and whether
-        its beams wrap around (360-degree scan)."""
+        its beams wrap around (360-degree scan). ``apply_filters=False``: every segment with
+        >= ``min_points`` returns, before the segment filters (for the rejection report)."""
         cfg = self.config
         r = _as_scans(ranges)
         n = r.shape[1]
@@ -836,32 +881,18 @@ class ScanTrunkDetector:
                 # second trunk); visual-lidar §2.3: they are discarded
                 segs = segs.cut(keep) if cfg.split_merged else segs.drop(keep)
             segs = segs.select(segs.counts >= cfg.min_points)
-        return self._filter(segs), r, wrap
+        return (self._filter(segs) if apply_filters else segs), r, wrap
 
     def _filter(self, segs: Segments) -> Segments:
-        cfg = self.config
+        """The segment filters (:func:`~stemmap.scan.plausibility.segment_reasons`)."""
         if len(segs) == 0:
             return segs
-        f = segment_features(segs)
-        keep = f.n_points >= cfg.min_points
-        keep &= ~segs.partial | (f.n_points >= cfg.min_points_partial)
-        if cfg.max_points is not None:
-            keep &= f.n_points <= cfg.max_points
-        keep &= (f.width >= cfg.min_width) & (f.width <= cfg.max_width)
-        keep &= f.depth >= cfg.min_depth
-        keep &= (f.curvature >= cfg.min_curvature) & (f.curvature <= cfg.max_curvature)
-        if cfg.reject_straight:
-            straight = is_straight(
-                f.line_rms,
-                f.width,
-                cfg.sigma + cfg.sigma_rel * f.mean_range,
-                ratio=cfg.straight_ratio,
-                n_points=f.n_points if cfg.straight_test == "chi2" else None,
-            )
-            keep &= ~(straight & (f.n_points >= cfg.straight_min_points))
-        if cfg.drop_partial:
-            keep &= ~segs.partial
-        return segs.select(keep)
+        return segs.select(segment_reasons(segs, segment_features(segs), self.config) == 0)
+
+    def rejected(self, batch: ScanBatch) -> dict[str, Any]:
+        """Candidates of ``batch`` the detector drops and the test that dropped each
+        (:func:`stemmap.scan.plausibility.rejected_candidates`)."""
+        return rejected_candidates(self, batch)
 
     def _gate(self, range_min: float, range_max: float) -> tuple[float, float]:
         """The range gate: the config's limits within the scan's own."""
@@ -951,6 +982,9 @@ class ScanTrunkDetector:
             "use_silhouette": cfg.neighbour_silhouette and divergence > 0,
             "range_model": _circle._check_residuals(cfg.fit_residuals),
             "angle_increment": inc,
+            "sigma_from_data": cfg.sigma_from_data,
+            "roughness_max_factor": cfg.roughness_max_factor,
+            "rms_robust": cfg.rms_robust,
         }
         prm = np.empty(N_PARAMS)
         for name, v in values.items():
@@ -1007,6 +1041,45 @@ class ScanTrunkDetector:
             frame=frame,
         )
 
+    def _fit_candidates(self, segs: Segments, grid: FloatArray, wrap: bool) -> _Fitted:
+        """Circle fit of every candidate segment (sensor at the origin) with what the fit
+        plausibility tests need (:func:`~stemmap.scan.plausibility.fit_reasons`)."""
+        cfg = self.config
+        p = segs.points
+        n = segs.counts
+        mean_r = segment_sum(p.r, segs) / n
+        sigma = cfg.sigma + cfg.sigma_rel * mean_r  # per-segment range noise
+        if cfg.sigma_from_data and (cfg.sigma > 0 or cfg.sigma_rel > 0):
+            # (sigma 0: the fit estimates its own scale, nothing to raise)
+            sigma = np.maximum(
+                sigma, np.minimum(range_roughness(segs), cfg.roughness_max_factor * sigma)
+            )
+        # a footprint correction means a first-echo sensor: no averaging-scanner edge model
+        divergence = 0.0 if cfg.beam_footprint_deg > 0 else math.radians(cfg.beam_divergence_deg)
+        sil = None
+        if cfg.fit_method == "ours" and cfg.neighbour_silhouette and divergence > 0:
+            sil = edge_silhouette(segs, grid, divergence, margin=cfg.occlusion_margin, wrap=wrap)
+        centers, radii, covs, ok = _fit_segments(
+            segs,
+            cfg.fit_method,
+            sigma,
+            silhouette=sil,
+            beam_divergence=divergence,
+            residuals=cfg.fit_residuals,
+        )
+        f_width = segment_widths(segs)
+        sil_width = f_width
+        if sil is not None:
+            # a neighbour that saw a mixed pixel puts the tangent up to ~1 beam beyond the edge
+            # return: the silhouette is wider than the edge-beam chord by that much
+            beyond = np.nansum(np.maximum(sil[:, :, 0] - 0.5, 0.0), axis=1)
+            sil_width = f_width + beyond * mean_r * abs(segs.points.angle_increment)
+        with np.errstate(invalid="ignore"):
+            rms = _fit_rms(segs, centers, radii)
+            # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
+            test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
+        return _Fitted(centers, radii, covs, ok, sigma, mean_r, f_width, sil_width, rms, test_rms)
+
     def _run_numpy(
         self,
         ranges: ArrayLike,
@@ -1029,39 +1102,29 @@ class ScanTrunkDetector:
             return StemObservations.empty(source=self.source, frame=frame)
         if cfg.beam_footprint_deg > 0:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
-        p = segs.points
-        n = segs.counts
-        mean_r = segment_sum(p.r, segs) / n
-        sigma = cfg.sigma + cfg.sigma_rel * mean_r  # per-segment range noise
-        # a footprint correction means a first-echo sensor: no averaging-scanner edge model
-        divergence = 0.0 if cfg.beam_footprint_deg > 0 else math.radians(cfg.beam_divergence_deg)
-        sil = None
-        if cfg.fit_method == "ours" and cfg.neighbour_silhouette and divergence > 0:
-            sil = edge_silhouette(segs, grid, divergence, margin=cfg.occlusion_margin, wrap=wrap)
-        centers, radii, covs, ok = _fit_segments(
-            segs,
-            cfg.fit_method,
-            sigma,
-            silhouette=sil,
-            beam_divergence=divergence,
-            residuals=cfg.fit_residuals,
+        fitted = self._fit_candidates(segs, grid, wrap)
+        centers, radii, covs, sigma, rms = (
+            fitted.centers,
+            fitted.radii,
+            fitted.covs,
+            fitted.sigma,
+            fitted.rms,
         )
-        f_width = segment_widths(segs)
-        sil_width = f_width
-        if sil is not None:
-            # a neighbour that saw a mixed pixel puts the tangent up to ~1 beam beyond the edge
-            # return: the silhouette is wider than the edge-beam chord by that much
-            beyond = np.nansum(np.maximum(sil[:, :, 0] - 0.5, 0.0), axis=1)
-            sil_width = f_width + beyond * mean_r * abs(segs.points.angle_increment)
-        # plausibility (ours): radius bounds, not near-flat, centre behind the visible surface,
-        # outline a circle within the noise; failed fits carry NaN and fail every test
-        with np.errstate(invalid="ignore"):
-            ok &= (radii >= cfg.min_radius) & (radii <= cfg.max_radius)
-            ok &= radii <= cfg.max_radius_width_ratio * np.maximum(sil_width, 1e-9)
-            ok &= np.hypot(centers[:, 0], centers[:, 1]) > mean_r
-            rms = _fit_rms(segs, centers, radii)
-            if math.isfinite(cfg.max_rms_sigma):
-                ok &= rms <= cfg.max_rms_sigma * sigma
+        n = segs.counts
+        f_width = fitted.width
+        ok = (
+            fit_reasons(
+                cfg,
+                centers,
+                radii,
+                fitted.ok,
+                fitted.sil_width,
+                fitted.mean_r,
+                fitted.test_rms,
+                sigma,
+            )
+            == 0
+        )
         log.debug(
             "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
             len(times),
