@@ -340,7 +340,7 @@ def test_range_proportional_noise_scales_the_circularity_test():
     obs = ScanTrunkDetector(scaled).detect(scan_of(r, a))
     assert len(obs) == 1 and obs.centers[0] == pytest.approx([9.0, 0.0], abs=0.1)
     # the noise estimated from the returns themselves (the preset default) accepts it too
-    est = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.01)
+    est = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.01, sigma_from_data=True)
     obs = ScanTrunkDetector(est).detect(scan_of(r, a))
     assert len(obs) == 1 and obs.centers[0] == pytest.approx([9.0, 0.0], abs=0.1)
     with pytest.raises(ConfigError, match="sigma_rel"):
