@@ -339,7 +339,9 @@ def virtual_scans(
         near = (rho <= max_range) & (rho > point_radius)
         if centers is not None:
             t = labels >= 0
-            out = xy[t] - centers[labels[t]]  # outward normal of a reference trunk's point
+            out = (
+                xy[t] - np.asarray(centers, dtype=np.float64)[labels[t]]
+            )  # outward normal of a reference trunk's point
             near[t] &= np.einsum("ij,ij->i", out, -q[t]) > 0.0
         q, rho, lab = q[near], rho[near], labels[near]
         order = np.argsort(rho, kind="stable")
