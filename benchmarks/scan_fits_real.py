@@ -400,7 +400,7 @@ def run_speed(
     dispatch per segment) and one batched call. One process, one thread (noisy: the machine is
     shared)."""
     rng = np.random.default_rng(seed)
-    arcs = []
+    arcs: list[np.ndarray] = []
     # whole visible arcs with exactly n_points returns (not truncated ones: a cut arc has a
     # false silhouette edge): at 5 m with 0.5 deg beams, 10 returns need r ~ 0.2-0.24 m
     r_mid = 5.0 * math.sin(math.radians(0.25 * n_points))
