@@ -24,7 +24,8 @@ from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
 
 if TYPE_CHECKING:
-    from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+    from stemmap.scan.config import DetectorConfig
+    from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.types import ScanBatch
 
 __all__ = [
