@@ -70,11 +70,15 @@ def detect(
     (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md).
     """
     from stemmap.io.maps import write_observations_csv
+    from stemmap.io.products import run_products
     from stemmap.io.scans import SkippedFrame, read_scans
     from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
     from stemmap.types import ScanBatch, StemObservations
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("detect", inputs=[scans], outputs=[out_path, rejected]) as run,
+    ):
         overrides: dict[str, object] = {}
         if fit is not None:
             overrides["fit_method"] = fit
@@ -137,9 +141,9 @@ def detect(
         result = StemObservations.concatenate(parts)
         if len(result) == 0:
             result = StemObservations.empty(source=detector.source, frame=batch.frame)
-        write_observations_csv(out_path, result)
+        write_observations_csv(run.path(out_path), result)
         if rejected is not None:
-            n_rejected = _write_rejected_csv(rejected, rejected_parts)
+            n_rejected = _write_rejected_csv(run.path(rejected), rejected_parts)
     if not quiet:
         n_with = len(np.unique(result.index)) if len(result) else 0
         out.print(

@@ -141,8 +141,12 @@ def stems(
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.products import run_products
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("stems", inputs=[cloud, trajectory], outputs=[out_csv, geojson, png]) as run,
+    ):
         cfg = get_preset(preset)
         if isinstance(cfg, StemConfig) and heights:
             cfg = replace(cfg, estimate_height=True)
@@ -156,9 +160,9 @@ def stems(
             result = detect_stems_file(
                 cloud, cfg, chunk_size=chunk_size, on_chunk=tick, sensor=sensor, topic=topic
             )
-        write_stems_csv(out_csv, result)
+        write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
-            write_stems_geojson(geojson, result)
+            write_stems_geojson(run.path(geojson), result)
         if png is not None:
             import numpy as np
 
@@ -171,7 +175,8 @@ def stems(
                     for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
                 ]
             )
-            plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
+            title = f"{cloud.name}: {len(result)} stems"
+            plot_stems(run.path(png), result, background_xy=bg, title=title)
         out.print(
             f"{len(result)} stems ({result.method}"
             + (", along-ray fits" if sensor is not None else "")
