@@ -339,7 +339,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # SICK LMS2xx-class averaging scanner (docs/algorithms/scan-fits.md, "edge model")
         "beam_divergence_deg": 0.25,
         # sigma_from_data / rms_robust (issue 11) stay off: leave-one-dataset-out on the real
-        # slices chose them off for 5 of 6 held-out datasets (scan-detection.md)
+        # slices chose them off for every held-out dataset (scan-detection.md)
     },
 }
 
@@ -363,11 +363,11 @@ PRESET_NOTES: dict[str, str] = {
     "stemmap": "Ours: adaptive Euclidean segmentation, straight-segment rejection, splitting "
     "radius median filter, fit plausibility checks. Segmentation and filter values tuned on "
     "the simulator; the noise-scale and residual-test choices (sigma_from_data, "
-    "roughness_max_factor, rms_robust, max_rms_sigma) chosen leave-one-dataset-out on six "
-    "real breast-height slices (FORTLS, TreeLS pine plot / pine, lidR, aRchi; "
-    "benchmarks/real_geometry.py --loo) with the simulator as a sanity check: all off / 2 sigma "
-    "on 5 of 6 held-out datasets. For a first-echo (nearest-return) scanner set "
-    "beam_footprint_deg to its footprint (stemmap detect --footprint): on the real slices at "
-    "0.5 deg this takes the DBH bias from +7 cm to < 1 cm.",
+    "roughness_max_factor, rms_robust, max_rms_sigma) chosen leave-one-dataset-out on the five "
+    "real breast-height slices with reference trunks (FORTLS, TreeLS pine plot / pine, lidR, "
+    "aRchi tree 1; benchmarks/real_geometry.py --loo), the simulator as a sanity check: all "
+    "off, max_rms_sigma 2, for every held-out dataset. For a first-echo (nearest-return) "
+    "scanner set beam_footprint_deg to its footprint (stemmap detect --footprint): on the "
+    "FORTLS slice at 0.5 deg this takes the DBH bias from +7 cm to +0.01 cm.",
     "ohman2007": "No preset: the paper publishes no laser segmentation parameters.",
 }
