@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
 from stemmap.cloud.result import BREAST_HEIGHT
 from stemmap.errors import ConfigError
 
@@ -48,6 +49,8 @@ class StemConfig:
     pooled_fallback : bool -- clusters the per-slice fits reject get one tilted-cylinder fit
         over the whole band with stricter tests (:func:`_pooled_stems`): trunks with few
         returns per slice (partly occluded, sparse clouds)
+    max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
+        a cloud that would need more is refused with an InputError naming the raster (4 GB)
     """
 
     breast_height: float = BREAST_HEIGHT
@@ -69,6 +72,7 @@ class StemConfig:
     slices_per_spacing: float = 4.0
     max_taper: float = 0.05
     pooled_fallback: bool = True
+    max_memory: float = DEFAULT_MAX_MEMORY
 
     def __post_init__(self) -> None:
         if not self.slice_centers or self.slice_thickness <= 0:
@@ -80,6 +84,8 @@ class StemConfig:
             )
         if self.slice_mode not in ("auto", "always", "never"):
             raise ConfigError(f"slice_mode must be auto, always or never, got {self.slice_mode!r}.")
+        if not self.max_memory > 0:
+            raise ConfigError(f"max_memory must be > 0 bytes, got {self.max_memory}.")
         if self.spacing is not None and not self.spacing > 0:
             raise ConfigError(f"spacing must be > 0 m, got {self.spacing}.")
 

@@ -8,6 +8,7 @@ chunks (:class:`GroundAccumulator`), so a 20-million-point file never sits in me
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,24 @@ from scipy import ndimage
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
 
-__all__ = ["GroundAccumulator", "GroundModel", "fit_ground", "normalize_heights"]
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DEFAULT_MAX_MEMORY",
+    "GroundAccumulator",
+    "GroundModel",
+    "core_cells",
+    "fit_ground",
+    "normalize_heights",
+    "raster_guard",
+]
+
+DEFAULT_MAX_MEMORY = 4e9  # bytes: the rasters of one run (ground grid, clustering grid)
+# bytes per ground cell while the model is built: ~40 float64 rasters of the cell grid (cell
+# minima, median, box sums, the 3 x 3 normal matrices and their solve)
+_GROUND_BYTES_PER_CELL = 40 * 8
+BASE_GROUND = "ground"
+BASE_STEM = "lowest stem points"
 
 
 @dataclass(frozen=True, eq=False)
@@ -29,11 +47,15 @@ class GroundModel:
     origin : (x0, y0), metres; lower-left corner of cell (0, 0)
     cell : float, metres
     z : ndarray (nx, ny), metres; ground height at cell centres
+    base : str -- how heights are referenced: ``"ground"`` (a ground raster from the cloud's
+        lowest points) or ``"lowest stem points"`` (a cloud without ground, e.g. one tree
+        segmented by 3DFin, TreeQSM or ITSMe: a flat base at its stem's lowest points)
     """
 
     origin: tuple[float, float]
     cell: float
     z: FloatArray
+    base: str = BASE_GROUND
 
     def height_of(self, xyz: ArrayLike) -> FloatArray:
         """Height above ground of (N, 3) points (bilinear between cell centres, clamped)."""
@@ -51,16 +73,45 @@ class GroundModel:
         )
 
 
+def core_cells(ij: NDArray[np.int64], pad: int = 2) -> NDArray[np.bool_]:
+    """Cells inside the robust extent of a set of occupied cells (``ij``, (M, 2) indices).
+
+    The extent is the 0.1-99.9 % quantile box of the occupied cells, grown by 10 % of its
+    size plus ``pad`` cells on every side: a stray point kilometres away (a GNSS glitch, a
+    UTM cloud with one point at 0, 0, 0) falls outside and cannot make a raster span the
+    kilometres in between; the edge cells of a real plot stay inside.
+    """
+    if ij.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    lo = np.floor(np.quantile(ij, 0.001, axis=0))
+    hi = np.ceil(np.quantile(ij, 0.999, axis=0))
+    grow = 0.1 * (hi - lo) + pad
+    return np.asarray(np.all((ij >= lo - grow) & (ij <= hi + grow), axis=1), dtype=bool)
+
+
+def raster_guard(n_cells: int, bytes_per_cell: float, budget: float, what: str, fix: str) -> None:
+    """InputError when a raster of ``n_cells`` cells would need more than ``budget`` bytes."""
+    need = float(n_cells) * bytes_per_cell
+    if need > budget:
+        raise InputError(
+            f"{what} would need {need / 1e9:.1f} GB ({n_cells} cells), above the memory "
+            f"budget of {budget / 1e9:.1f} GB; {fix}"
+        )
+
+
 _OFF = 1 << 30  # cell indices are shifted to be non-negative before packing into int64 keys
 
 
 class GroundAccumulator:
     """Per-cell minimum z over a stream of chunks; :meth:`model` builds the GroundModel."""
 
-    def __init__(self, cell: float = 1.0) -> None:
+    def __init__(self, cell: float = 1.0, max_memory: float = DEFAULT_MAX_MEMORY) -> None:
         if not cell > 0:
             raise ConfigError(f"ground cell must be > 0 m, got {cell}.")
+        if not max_memory > 0:
+            raise ConfigError(f"max_memory must be > 0 bytes, got {max_memory}.")
         self.cell = float(cell)
+        self.max_memory = float(max_memory)
         self._keys = np.zeros(0, dtype=np.int64)
         self._low = np.zeros((0, 3))  # lowest point of each cell
 
@@ -87,6 +138,28 @@ class GroundAccumulator:
         first[1:] = keys[1:] != keys[:-1]
         self._keys, self._low = keys[first], pts[first]
 
+    def stem_base(self, max_width: float, slab: float = 0.5) -> float | None:
+        """Base z of a cloud without ground (one segmented tree), or None if it has ground.
+
+        The lowest points of the cells (the accumulator's minima) within ``slab`` metres of
+        the cloud's lowest point are the ground where there is ground: they spread over the
+        plot (a 2.5 m TLS cut-out of one spruce: 2.5 m). A tree exported without ground
+        (3DFin, TreeQSM, ITSMe) has only its stem's cut there: they fit inside one stem
+        footprint, ``max_width`` (the largest plausible DBH). Then the base is that lowest
+        point, and heights are measured from it.
+        """
+        if self._keys.size == 0:
+            return None
+        z0 = float(self._low[:, 2].min())
+        low = self._low[self._low[:, 2] <= z0 + slab, :2]
+        if float(np.max(np.ptp(low, axis=0))) > max_width:
+            return None
+        return z0
+
+    def flat(self, z: float, base: str) -> GroundModel:
+        """A flat 'ground' at ``z`` (one cell; ``base`` says what it is)."""
+        return GroundModel((0.0, 0.0), self.cell, np.full((1, 1), float(z)), base)
+
     def model(self, *, max_step: float = 0.5) -> GroundModel:
         """Clean and fill the minima raster.
 
@@ -98,11 +171,31 @@ class GroundAccumulator:
             raise InputError("cannot build a ground model from an empty cloud.")
         i = (self._keys >> 32) - _OFF
         j = (self._keys & 0xFFFFFFFF) - _OFF
+        low = self._low
+        core = core_cells(np.column_stack((i, j)))
+        if not core.all():
+            log.warning(
+                "ground: %d of %d occupied %.1f m cells lie far outside the cloud's extent "
+                "(stray points); the ground raster covers the rest, and they get the nearest "
+                "ground",
+                int((~core).sum()),
+                core.size,
+                self.cell,
+            )
+            i, j, low = i[core], j[core], low[core]
+        nx_, ny_ = int(i.max() - i.min() + 1), int(j.max() - j.min() + 1)
+        raster_guard(
+            nx_ * ny_,
+            _GROUND_BYTES_PER_CELL,
+            self.max_memory,
+            f"the ground raster ({nx_} x {ny_} cells of {self.cell:g} m)",
+            "tile the cloud into smaller plots, or raise --max-memory.",
+        )
         i0, j0 = int(i.min()), int(j.min())
         nx, ny = int(i.max() - i0 + 1), int(j.max() - j0 + 1)
         ox, oy = i0 * self.cell, j0 * self.cell
         grid = np.full((3, nx, ny), np.nan)
-        grid[:, i - i0, j - j0] = (self._low - [ox, oy, 0.0]).T
+        grid[:, i - i0, j - j0] = (low - [ox, oy, 0.0]).T
         X, Y, Z = grid
         valid = ~np.isnan(Z)
         if not valid.all():
@@ -145,9 +238,15 @@ class GroundAccumulator:
         return GroundModel((ox, oy), self.cell, z + 0.0)
 
 
-def fit_ground(xyz: ArrayLike, cell: float = 1.0, *, max_step: float = 0.5) -> GroundModel:
+def fit_ground(
+    xyz: ArrayLike,
+    cell: float = 1.0,
+    *,
+    max_step: float = 0.5,
+    max_memory: float = DEFAULT_MAX_MEMORY,
+) -> GroundModel:
     """Ground model of an in-memory cloud (see :class:`GroundAccumulator`)."""
-    acc = GroundAccumulator(cell)
+    acc = GroundAccumulator(cell, max_memory)
     acc.update(xyz)
     return acc.model(max_step=max_step)
 

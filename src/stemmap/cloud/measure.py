@@ -14,14 +14,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.result import CloudStems
+from stemmap.cloud.ground import BASE_GROUND, core_cells, raster_guard
+from stemmap.cloud.result import RULE_BH, CloudStems
 from stemmap.cloud.slicefit import (
     _band_spacing,
     _fit_segments,
     _segment_arcs,
+    _segment_covariances,
     _theil_sen,
 )
-from stemmap.errors import InputError
 from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
@@ -38,9 +39,11 @@ class _Band:
     z: FloatArray
     canopy: dict[str, Any] = field(default_factory=dict)
     origins: FloatArray | None = None  # (N, 2) horizontal sensor position of each point
+    base: str = BASE_GROUND  # what the heights h are measured from (GroundModel.base)
 
 
 _CANOPY_CELL = 0.25
+_CLUSTER_BYTES_PER_CELL = 16  # occupancy + dilation (bool), labels (int32), temporaries
 _KEY_OFF = 1 << 30
 
 
@@ -115,6 +118,75 @@ def _vertical_filter(
     return np.asarray(ok & np.isin(key, good_cells), dtype=bool)
 
 
+BUTTRESS_CLEARANCE = 0.3  # m above the top of a buttress where the diameter is taken
+
+
+def _line_uncertainty(
+    hh: FloatArray,
+    r: FloatArray,
+    c: FloatArray,
+    coefs: tuple[tuple[float, float], ...],
+    cov_i: FloatArray,
+) -> tuple[float, FloatArray]:
+    """Variance of the radius and covariance of the centre at ``hh = 0`` of the slice lines.
+
+    Two estimates, the larger kept: the slices' fit covariances
+    (:func:`~stemmap.cloud.slicefit._segment_covariances`) averaged and divided by the number
+    of slices (independent slices, intercept at the band's middle), and the scatter of the
+    slice values about the Theil-Sen lines (1.4826 MAD, squared, over the number of slices):
+    bark roughness and branch stubs move whole slices, which no single fit's covariance sees.
+    """
+    n = hh.shape[0]
+    coef_r, coef_x, coef_y = coefs
+    fit_r = float(np.nanmean(cov_i[:, 2, 2])) / n
+    fit_xy = np.nanmean(cov_i[:, :2, :2], axis=0) / n
+    res_r = r - (coef_r[0] + coef_r[1] * hh)
+    res_c = c - np.column_stack((coef_x[0] + coef_x[1] * hh, coef_y[0] + coef_y[1] * hh))
+    dof = max(n - 2, 1)
+    sc_r = (1.4826 * float(np.median(np.abs(res_r)))) ** 2 * n / dof / n
+    sc_xy = (res_c.T @ res_c) / dof / n
+    var_r = max(fit_r, sc_r) if math.isfinite(fit_r) else sc_r
+    cov_xy = (
+        sc_xy if not np.isfinite(fit_xy).all() or np.trace(sc_xy) > np.trace(fit_xy) else fit_xy
+    )
+    return var_r, np.asarray(cov_xy, dtype=np.float64)
+
+
+def _mean_uncertainty(cov_i: FloatArray) -> tuple[float, FloatArray]:
+    """Inverse-variance combination of the slices' fit covariances (fewer than 3 slices)."""
+    good = np.isfinite(cov_i).all(axis=(1, 2))
+    if not good.any():
+        return math.nan, np.full((2, 2), np.nan)
+    info_r = float(np.sum(1.0 / np.maximum(cov_i[good, 2, 2], 1e-12)))
+    info_xy = np.sum(np.linalg.inv(cov_i[good, :2, :2] + 1e-12 * np.eye(2)), axis=0)
+    return 1.0 / info_r, np.asarray(np.linalg.inv(info_xy), dtype=np.float64)
+
+
+def _radius_consensus(
+    r: FloatArray, m: NDArray[np.bool_], tol: float, sig_r: float
+) -> tuple[float, NDArray[np.bool_]]:
+    """Radius most slices agree on, and the slices that agree.
+
+    The median of all passing slices is right when most slices see the stem. In a spruce
+    whose whorls hide the stem in some slices, those slices fit large circles through the
+    branches and the median lands between stem and clutter, rejecting both. The consensus is
+    the slice radius with the most slices within its tolerance (15 % of it, or 5 sigma of a
+    slice radius); when every slice agrees with the median, the median is kept (the common
+    case, unchanged).
+    """
+    idx = np.flatnonzero(m)
+    r_med = float(np.median(r[idx]))
+    if np.all(np.abs(r[idx] - r_med) <= tol):
+        return r_med, m
+    tols = np.maximum(0.15 * r[idx], 5.0 * sig_r)
+    support = (np.abs(r[idx][None, :] - r[idx][:, None]) <= tols[:, None]).sum(axis=1)
+    best = support == support.max()
+    # among equally supported radii, the smallest: clutter makes circles larger, not smaller
+    j = idx[best][int(np.argmin(r[idx][best]))]
+    agree = m & (np.abs(r - r[j]) <= max(0.15 * r[j], 5.0 * sig_r))
+    return float(np.median(r[agree])), agree
+
+
 def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False) -> CloudStems:
     xy, h = band.xy, band.h
     n = xy.shape[0]
@@ -149,14 +221,23 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     # --- grid components with one-cell gap bridging (dilated occupancy)
     from scipy import ndimage
 
+    # stray band points far outside the cloud cannot hold a stem and must not stretch the grid
+    core = core_cells(np.floor(xy / 1.0).astype(np.int64))
+    if not core.all():
+        log.warning("%d stray band point(s) far outside the cloud ignored", int((~core).sum()))
+        xy, h, sl_all = xy[core], h[core], sl_all[core]
+        orig = None if orig is None else orig[core]
     lo = xy.min(axis=0)
     ij = np.floor((xy - lo) / cell).astype(np.int64)
     shape = ij.max(axis=0) + 1
-    if int(shape[0]) * int(shape[1]) > 300_000_000:
-        raise InputError(
-            f"the slice band spans {shape[0] * cell:.0f} x {shape[1] * cell:.0f} m at a "
-            f"{cell:.3f} m clustering cell; tile the cloud into smaller plots."
-        )
+    raster_guard(
+        int(shape[0]) * int(shape[1]),
+        _CLUSTER_BYTES_PER_CELL,
+        cfg.max_memory,
+        f"the clustering grid of the slice band ({shape[0] * cell:.0f} x "
+        f"{shape[1] * cell:.0f} m at {cell:.3f} m)",
+        "tile the cloud into smaller plots, or raise --max-memory.",
+    )
     flat = ij[:, 0] * shape[1] + ij[:, 1]
     occ = np.zeros(int(shape[0]) * int(shape[1]), dtype=bool)
     occ[flat] = True
@@ -201,6 +282,7 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
         ray_origins=None if orig is None else orig[use][fitmask],
     )
+    seg_cov = _segment_covariances(pts_f, seg_f, kseg, centers, radii, rms)
     arcs = np.zeros(kseg)
     if ok.any():
         good = ok[seg_f]
@@ -238,20 +320,25 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     A = arcs.reshape(kc, ns)
     RMS = rms.reshape(kc, ns)
     NIN = nin.reshape(kc, ns)
+    COV = seg_cov.reshape(kc, ns, 3, 3)
+    FIT = (ok & (radii > 0)).reshape(kc, ns)
     present = (seg_n.reshape(kc, ns) >= cfg.min_slice_points).sum(axis=1)
     rows: list[tuple[float, ...]] = []
+    rules: list[str] = []
     accepted = np.zeros(kc, dtype=bool)
     for c in np.flatnonzero(P.sum(axis=1) >= cfg.min_slices):
         m = P[c]
         # consistency: drop slices whose radius or centre is far from the median
         r_med = float(np.median(R[c, m]))
-        c_med = np.median(C[c, m], axis=0)
         # tolerance: 15 % of the radius, or 5 sigma of a slice radius, whichever is larger.
         # sigma_r is the fit's parameter noise, not the points': ~2 rms / sqrt(n) on a half
         # arc, growing like (180 deg / arc)^2 on shorter arcs (partly occluded trunks)
         short = np.maximum(1.0, 180.0 / np.maximum(A[c, m], 1.0)) ** 2
         sig_r = float(np.median(2.0 * RMS[c, m] / np.sqrt(np.maximum(NIN[c, m], 1)) * short))
         tol = max(0.15 * r_med, 5.0 * sig_r)
+        r_med, m = _radius_consensus(R[c], m, tol, sig_r)
+        tol = max(0.15 * r_med, 5.0 * sig_r)
+        c_med = np.median(C[c, m], axis=0)
         # centres are compared with a robust line through them (a leaning stem's centre
         # moves with height), radii with their median
         if m.sum() >= 3:
@@ -269,8 +356,26 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             continue
         if not slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent - 1e-9:
             continue  # not a vertical structure (a bush, a boulder, a branch stub)
-        hh = centers_h[m] - cfg.breast_height
+        # buttress / root flare: slices below breast height, centred on the stem, fitted with
+        # a radius above the stem's tolerance. Forestry convention: the diameter is taken
+        # 0.3 m above the top of the swelling when it reaches above 1.0 m
+        flare = (
+            ~m
+            & FIT[c]
+            & (centers_h < cfg.breast_height)
+            & (R[c] > r_med + tol)
+            & (np.hypot(*(C[c] - pred).T) <= r_med + R[c])
+        )
+        h_meas = cfg.breast_height
+        rule = RULE_BH
+        if flare.any() and not slice_cloud:
+            top = float(centers_h[flare].max() + cfg.slice_thickness / 2)
+            if top + BUTTRESS_CLEARANCE > cfg.breast_height:
+                h_meas = top + BUTTRESS_CLEARANCE
+                rule = f"above buttress (swelling to {top:.2f} m)"
+        hh = centers_h[m] - h_meas
         w = W[c, m]
+        cov_i = COV[c, m]
         if m.sum() >= 3 and np.ptp(hh) >= 0.3:
             # robust (Theil-Sen) line through the slices (taper, lean), at breast height: one
             # slice spoilt by a branch or a shrub does not tilt it
@@ -282,17 +387,40 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
                 continue  # radius changes too fast with height for a stem (bush, boulder)
             r_bh = float(coef_r[0])
             cxy = np.array([coef_x[0], coef_y[0]])
+            var_r, cov_xy = _line_uncertainty(hh, R[c, m], C[c, m], (coef_r, coef_x, coef_y), cov_i)
+            # lean: the horizontal slice of a stem leaning by theta is an ellipse with axes
+            # d / cos(theta) and d; a circle fit returns about their mean, so the diameter
+            # across the axis is 2 cos(theta) / (1 + cos(theta)) of it (first order)
+            cos_t = 1.0 / math.sqrt(1.0 + coef_x[1] ** 2 + coef_y[1] ** 2)
+            r_bh *= 2 * cos_t / (1 + cos_t)
         else:
             r_bh = float(np.average(R[c, m], weights=w))
             cxy = np.average(C[c, m], axis=0, weights=w)
             taper = math.nan
+            var_r, cov_xy = _mean_uncertainty(cov_i)
         frac = float(m.sum()) / max(int(present[c]), 1)
         arc = float(np.mean(A[c, m]))
         rr = float(np.mean(RMS[c, m]))
         q = frac * min(1.0, arc / 120.0) * min(1.0, noise_floor / max(rr, 1e-6))
         rows.append(
-            (cxy[0], cxy[1], 2 * r_bh, int(NIN[c, m].sum()), q, arc, rr, int(m.sum()), taper)
+            (
+                cxy[0],
+                cxy[1],
+                2 * r_bh,
+                int(NIN[c, m].sum()),
+                q,
+                arc,
+                rr,
+                int(m.sum()),
+                taper,
+                2 * math.sqrt(var_r),
+                cov_xy[0, 0],
+                cov_xy[0, 1],
+                cov_xy[1, 1],
+                h_meas,
+            )
         )
+        rules.append(rule)
         accepted[c] = True
     if cfg.pooled_fallback and not slice_cloud:
         pooled = _pooled_stems(
@@ -308,6 +436,7 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         if pooled:
             log.info("%d stem(s) from the pooled band fit", len(pooled))
             rows.extend(pooled)
+            rules.extend([RULE_BH] * len(pooled))
     if not rows:
         return CloudStems.empty(
             "ours",
@@ -325,7 +454,9 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             for j in kept
         ):
             kept.append(int(i))
-    arr = arr[np.sort(kept)]
+    kept = sorted(kept)
+    arr = arr[kept]
+    rule_arr = np.array([rules[i] for i in kept], dtype=object)
     # absolute z of breast height at each stem: median z - h offset of nearby band points
     zbh = _breast_height_z(band, arr[:, :2], cfg.breast_height)
     heights = _stem_heights(band.canopy, arr[:, :2]) if band.canopy else np.full(len(arr), np.nan)
@@ -340,9 +471,16 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         n_slices=arr[:, 7].astype(np.int64),
         taper=arr[:, 8],
         height=heights,
+        diameter_std=arr[:, 9],
+        xy_cov=np.stack(
+            (np.stack((arr[:, 10], arr[:, 11]), -1), np.stack((arr[:, 11], arr[:, 12]), -1)), -2
+        ),
+        dbh_height=arr[:, 13],
+        dbh_rule=rule_arr,
         method="ours" if cfg.fit_method == "ours" else f"ours_{cfg.fit_method}",
         frame="cloud",
         spacing=sp2d,
+        base=band.base,
     )
 
 
@@ -458,6 +596,17 @@ def _pooled_stems(
     r = th[:, 4]
     nin = np.bincount(ids[keep], minlength=k)
     rms = np.sqrt(np.bincount(ids[keep], d[keep] ** 2, minlength=k) / np.maximum(nin, 1))
+    # covariance of (cx, cy, lean x, lean y, r): s^2 (J^T J)^-1 over the inliers
+    Jk = np.column_stack((-n[:, 0], -n[:, 1], -n[:, 0] * hh, -n[:, 1] * hh, -np.ones_like(d)))
+    Jk = Jk[keep]
+    AJ = np.zeros((k, 5, 5))
+    for a in range(5):
+        for b in range(a, 5):
+            AJ[:, a, b] = AJ[:, b, a] = np.bincount(ids[keep], Jk[:, a] * Jk[:, b], minlength=k)
+    pcov = np.full((k, 5, 5), np.nan)
+    inv_ok = np.abs(np.linalg.det(AJ)) > 1e-30
+    if inv_ok.any():
+        pcov[inv_ok] = np.linalg.inv(AJ[inv_ok]) * (rms[inv_ok] ** 2)[:, None, None]
     cxy = th[:, :2]
     # arc: the directions of the points seen from the axis at their heights
     arcs = _segment_arcs(n[keep], ids[keep], k, np.zeros((k, 2)))
@@ -503,6 +652,11 @@ def _pooled_stems(
                 float(rms[j]),
                 int(hs.sum()),
                 math.nan,
+                2 * math.sqrt(pcov[j, 4, 4]) if np.isfinite(pcov[j, 4, 4]) else math.nan,
+                float(pcov[j, 0, 0]),
+                float(pcov[j, 0, 1]),
+                float(pcov[j, 1, 1]),
+                bh,
             )
         )
     return rows

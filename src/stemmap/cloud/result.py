@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -11,9 +11,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from stemmap.types import FloatArray, StemObservations
 
-__all__ = ["BREAST_HEIGHT", "CloudStems"]
+__all__ = ["BASE_SLICE", "BREAST_HEIGHT", "RULE_BH", "CloudStems"]
 
 BREAST_HEIGHT = 1.3
+BASE_SLICE = "slice heights as given"  # a pre-cut, height-normalised slice
+RULE_BH = "breast height"
 
 
 # --------------------------------------------------------------------------------------------
@@ -38,6 +40,14 @@ class CloudStems:
     taper : ndarray (K,) -- radius change per metre of height (NaN if not estimated)
     height : ndarray (K,), metres -- stem (tree) height, NaN unless requested
     eccentricity : ndarray (K,) -- Munjer's lambda1/lambda2 (NaN for ours)
+    diameter_std : ndarray (K,), metres -- 1-sigma of the DBH from the fit covariance (NaN if
+        not estimated; see docs/algorithms/cloud.md, Uncertainty)
+    xy_cov : ndarray (K, 2, 2), m^2 -- covariance of the stem centre (NaN if not estimated)
+    dbh_height : ndarray (K,), metres above the base -- where the DBH was measured
+    dbh_rule : ndarray (K,) of str -- why there (``"breast height"``, ``"above buttress"``,
+        ...)
+    base : str -- what heights are measured from: ``"ground"``, ``"lowest stem points"`` (a
+        cloud without ground) or ``"slice heights as given"``
     method : str
     frame : str
     spacing : float, metres -- measured point spacing (NaN for munjer2025)
@@ -55,10 +65,27 @@ class CloudStems:
     taper: FloatArray
     height: FloatArray
     eccentricity: FloatArray
+    diameter_std: FloatArray = field(default_factory=lambda: np.zeros(0))
+    xy_cov: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    dbh_height: FloatArray = field(default_factory=lambda: np.zeros(0))
+    dbh_rule: NDArray[np.object_] = field(default_factory=lambda: np.zeros(0, dtype=object))
     method: str = ""
     frame: str = "cloud"
     spacing: float = math.nan
     reason: str = ""
+    base: str = "ground"
+
+    def __post_init__(self) -> None:
+        k = int(self.xy.shape[0])
+        # columns added later default to "not estimated" for every row
+        if self.diameter_std.shape[0] != k:
+            object.__setattr__(self, "diameter_std", np.full(k, np.nan))
+        if self.xy_cov.shape[0] != k:
+            object.__setattr__(self, "xy_cov", np.full((k, 2, 2), np.nan))
+        if self.dbh_height.shape[0] != k:
+            object.__setattr__(self, "dbh_height", np.full(k, np.nan))
+        if self.dbh_rule.shape[0] != k:
+            object.__setattr__(self, "dbh_rule", np.full(k, "", dtype=object))
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])
@@ -73,7 +100,23 @@ class CloudStems:
     ) -> CloudStems:
         z = np.zeros(0)
         zi = np.zeros(0, dtype=np.int64)
-        return cls(np.zeros((0, 2)), z, z, zi, z, z, z, zi, z, z, z, method, frame, spacing, reason)
+        return cls(
+            np.zeros((0, 2)),
+            z,
+            z,
+            zi,
+            z,
+            z,
+            z,
+            zi,
+            z,
+            z,
+            z,
+            method=method,
+            frame=frame,
+            spacing=spacing,
+            reason=reason,
+        )
 
     @classmethod
     def from_columns(cls, **cols: Any) -> CloudStems:
@@ -87,6 +130,10 @@ class CloudStems:
             "taper": nan,
             "height": nan,
             "eccentricity": nan,
+            "diameter_std": nan,
+            "xy_cov": np.full((k, 2, 2), np.nan),
+            "dbh_height": nan,
+            "dbh_rule": np.full(k, "", dtype=object),
         }
         defaults.update(cols)
         d = defaults
@@ -102,9 +149,14 @@ class CloudStems:
             taper=np.asarray(d["taper"], dtype=np.float64).reshape(-1),
             height=np.asarray(d["height"], dtype=np.float64).reshape(-1),
             eccentricity=np.asarray(d["eccentricity"], dtype=np.float64).reshape(-1),
+            diameter_std=np.asarray(d["diameter_std"], dtype=np.float64).reshape(-1),
+            xy_cov=np.asarray(d["xy_cov"], dtype=np.float64).reshape(-1, 2, 2),
+            dbh_height=np.asarray(d["dbh_height"], dtype=np.float64).reshape(-1),
+            dbh_rule=np.asarray(d["dbh_rule"], dtype=object).reshape(-1),
             method=str(d.get("method", "")),
             frame=str(d.get("frame", "cloud")),
             spacing=float(d.get("spacing", math.nan)),
+            base=str(d.get("base", "ground")),
         )
 
     def select(self, idx: ArrayLike) -> CloudStems:
@@ -125,17 +177,27 @@ class CloudStems:
                     "taper",
                     "height",
                     "eccentricity",
+                    "diameter_std",
+                    "xy_cov",
+                    "dbh_height",
+                    "dbh_rule",
                 )
             },
         )
 
     def to_observations(self, time: float = 0.0, index: int = 0) -> StemObservations:
-        """As a :class:`StemObservations` batch (covariance NaN: not estimated per stem)."""
+        """As a :class:`StemObservations` batch; covariance of (x, y, r) from ``xy_cov`` and
+        ``diameter_std`` (x-y and r assumed uncorrelated; NaN where not estimated)."""
         k = len(self)
+        covs = np.full((k, 3, 3), np.nan)
+        covs[:, :2, :2] = self.xy_cov
+        covs[:, :2, 2] = covs[:, 2, :2] = 0.0
+        covs[:, 2, 2] = (self.diameter_std / 2) ** 2
+        covs[~np.isfinite(covs).all(axis=(1, 2))] = np.nan
         return StemObservations(
             centers=self.xy,
             radii=self.diameter / 2,
-            covs=np.full((k, 3, 3), np.nan),
+            covs=covs,
             n_points=self.n_points,
             arc_deg=self.arc_deg,
             widths=np.full(k, np.nan),

@@ -41,10 +41,10 @@ from numpy.typing import ArrayLike
 
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.filters import as_xyz
-from stemmap.cloud.ground import GroundAccumulator, GroundModel
+from stemmap.cloud.ground import BASE_STEM, GroundAccumulator, GroundModel
 from stemmap.cloud.measure import _Band, _canopy_update, _stems_from_band
 from stemmap.cloud.munjer import MunjerConfig, associate_proximity, detect_stems_munjer
-from stemmap.cloud.result import BREAST_HEIGHT, CloudStems
+from stemmap.cloud.result import BASE_SLICE, BREAST_HEIGHT, CloudStems
 from stemmap.cloud.sensor import SensorPositions
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
@@ -156,22 +156,37 @@ def detect_stems(
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     cfg = _slice_setup(cfg, zmin, zmax, is_slice)
     if is_slice:
-        band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o)
+        band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o, base=BASE_SLICE)
     else:
-        g = ground or _ground_of([p], cfg.ground_cell)
+        g = ground or _ground_of([p], cfg)
         h = g.height_of(p)
         lo, hi = cfg.band
         m = (h >= lo) & (h <= hi)
-        band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m])
+        band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m], base=g.base)
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
     return _stems_from_band(band, cfg, slice_cloud=is_slice)
 
 
-def _ground_of(chunks: Iterable[FloatArray], cell: float) -> GroundModel:
-    acc = GroundAccumulator(cell)
+def _ground_of(chunks: Iterable[FloatArray], cfg: StemConfig) -> GroundModel:
+    acc = GroundAccumulator(cfg.ground_cell, cfg.max_memory)
     for c in chunks:
         acc.update(c)
+    return _ground_model(acc, cfg)
+
+
+def _ground_model(acc: GroundAccumulator, cfg: StemConfig) -> GroundModel:
+    """The ground raster, or for a cloud without ground (one segmented tree) a flat base at
+    its stem's lowest points (:meth:`GroundAccumulator.stem_base`)."""
+    z_base = acc.stem_base(cfg.max_diameter)
+    if z_base is not None:
+        log.info(
+            "no ground in the cloud (its lowest 0.5 m fit inside %.1f m): heights from the "
+            "stem's lowest points, z = %.3f",
+            cfg.max_diameter,
+            z_base,
+        )
+        return acc.flat(z_base, BASE_STEM)
     return acc.model()
 
 
@@ -228,7 +243,7 @@ def detect_stems_file(
         tfield = sensor.pick_time_field(point_fields(path) or (), src)
     total = count_points(path)
     done = 0
-    acc = GroundAccumulator(cfg.ground_cell)
+    acc = GroundAccumulator(cfg.ground_cell, cfg.max_memory)
     zmin, zmax = math.inf, -math.inf
     n_total = 0
     for chunk in iter_cloud_chunks(path, chunk_size):
@@ -246,7 +261,7 @@ def detect_stems_file(
         raise InputError(f"{src} holds no points.")
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     cfg = _slice_setup(cfg, zmin, zmax, is_slice)
-    ground = None if is_slice else acc.model()
+    ground = None if is_slice else _ground_model(acc, cfg)
     lo, hi = cfg.band
     xs, hs, zs, os_ = [], [], [], []
     canopy: dict[str, Any] = {}
@@ -274,6 +289,7 @@ def detect_stems_file(
         np.concatenate(zs),
         canopy,
         origins=np.concatenate(os_) if sensor is not None else None,
+        base=BASE_SLICE if ground is None else ground.base,
     )
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
     return _stems_from_band(band, cfg, slice_cloud=is_slice)
