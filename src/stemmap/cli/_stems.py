@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -78,7 +79,40 @@ def stems(
     geojson: Annotated[Path | None, typer.Option(help="Also write a GeoJSON of the stems.")] = None,
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
-    heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
+    heights: Annotated[
+        bool, typer.Option(help="Estimate stem (tree) heights: highest point within 1 m (ours).")
+    ] = True,
+    max_memory: Annotated[
+        float,
+        typer.Option(
+            help="Memory budget in GB for the run's rasters (ground grid, clustering grid); a "
+            "cloud that needs more is refused with an error (tile it)."
+        ),
+    ] = DEFAULT_MAX_MEMORY / 1e9,
+    profile: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the stem profiles (diameter every 0.5 m up the visible stem, with std) "
+            "to this CSV (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
+    metrics: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write a JSON with the plot summary (stems/ha, basal area m2/ha, quadratic "
+            "mean diameter, DBH histogram) and per-tree DBH, height and stem volume (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
+    labels: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the cloud as LAS with a tree_id extra dimension (0 = ground or no tree; "
+            "i = row i-1 of the CSV) (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
     chunk_size: Annotated[int, typer.Option(help="Points per chunk when streaming LAS/LAZ.")] = (
         2_000_000
     ),
@@ -144,8 +178,15 @@ def stems(
 
     with fail_on_stemmap_error():
         cfg = get_preset(preset)
-        if isinstance(cfg, StemConfig) and heights:
-            cfg = replace(cfg, estimate_height=True)
+        if not max_memory > 0:
+            raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
+        if isinstance(cfg, StemConfig):
+            cfg = replace(cfg, estimate_height=heights, max_memory=max_memory * 1e9)
+        elif profile or metrics or labels:
+            raise ConfigError(
+                "--profile, --metrics and --labels need preset ours (munjer2025 works on one "
+                "lidar frame, not a plot)."
+            )
         sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
         with progress() as bar:
             task = bar.add_task(f"reading {cloud.name}", total=None)
@@ -172,12 +213,19 @@ def stems(
                 ]
             )
             plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
+        if profile or metrics or labels:
+            from stemmap.cli._stems_products import write_forestry_products
+
+            write_forestry_products(
+                cloud, result, chunk_size, topic, profile=profile, metrics=metrics, labels=labels
+            )
         out.print(
             f"{len(result)} stems ({result.method}"
             + (", along-ray fits" if sensor is not None else "")
             + f") written to {out_csv}"
             + (f", {geojson}" if geojson else "")
             + (f", {png}" if png else "")
+            + "".join(f", {f}" for f in (profile, metrics, labels) if f)
         )
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")

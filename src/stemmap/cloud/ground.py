@@ -99,6 +99,7 @@ def raster_guard(n_cells: int, bytes_per_cell: float, budget: float, what: str, 
         )
 
 
+_SUPPORT = 0.1  # m: points this close above a cell's minimum support it
 _OFF = 1 << 30  # cell indices are shifted to be non-negative before packing into int64 keys
 
 
@@ -114,6 +115,7 @@ class GroundAccumulator:
         self.max_memory = float(max_memory)
         self._keys = np.zeros(0, dtype=np.int64)
         self._low = np.zeros((0, 3))  # lowest point of each cell
+        self._sup = np.zeros(0, dtype=np.int64)  # points within _SUPPORT above it
 
     def update(self, xyz: ArrayLike) -> None:
         p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
@@ -130,28 +132,60 @@ class GroundAccumulator:
         cand = np.flatnonzero(p[:, 2] == zmin[inv])
         _, first = np.unique(inv[cand], return_index=True)
         sel = cand[first]
+        # support of each minimum: the chunk's points within _SUPPORT of it (a lone noise
+        # point below the ground has support 1; the ground or a stem's cut has many)
+        near = p[:, 2] <= zmin[inv] + _SUPPORT
+        cnt = np.bincount(inv[near], minlength=uk.shape[0])
         keys = np.concatenate((self._keys, keys[sel]))
         pts = np.concatenate((self._low, p[sel]))
+        sup = np.concatenate((self._sup, cnt))
         order = np.lexsort((pts[:, 2], keys))
-        keys, pts = keys[order], pts[order]
+        keys, pts, sup = keys[order], pts[order], sup[order]
         first = np.ones(keys.shape[0], dtype=bool)
         first[1:] = keys[1:] != keys[:-1]
+        # merging two minima of one cell: the support adds up when they are within _SUPPORT
+        # (approximately: points of the higher one above the lower one + _SUPPORT count too)
+        grp = np.cumsum(first) - 1
+        zlow = pts[first, 2][grp]
+        add = np.bincount(grp, np.where(pts[:, 2] <= zlow + _SUPPORT, sup, 0))
         self._keys, self._low = keys[first], pts[first]
+        self._sup = add.astype(np.int64)
 
     def stem_base(self, max_width: float, slab: float = 0.5) -> float | None:
         """Base z of a cloud without ground (one segmented tree), or None if it has ground.
 
         The lowest points of the cells (the accumulator's minima) within ``slab`` metres of
         the cloud's lowest point are the ground where there is ground: they spread over the
-        plot (a 2.5 m TLS cut-out of one spruce: 2.5 m). A tree exported without ground
+        plot (a 2.5 m TLS cut-out of one spruce: 2.5 m). Cells far outside the cloud
+        (:func:`core_cells`) and minima with fewer than 3 points within 0.1 m above them (a
+        lone noise point below the ground) are left out. A tree exported without ground
         (3DFin, TreeQSM, ITSMe) has only its stem's cut there: they fit inside one stem
         footprint, ``max_width`` (the largest plausible DBH). Then the base is that lowest
         point, and heights are measured from it.
         """
         if self._keys.size == 0:
             return None
-        z0 = float(self._low[:, 2].min())
-        low = self._low[self._low[:, 2] <= z0 + slab, :2]
+        i = (self._keys >> 32) - _OFF
+        j = (self._keys & 0xFFFFFFFF) - _OFF
+        # stray points far away, and lone noise points below the ground (support < 3 and
+        # more than ``slab`` below every neighbouring cell's minimum), are no base
+        zc = self._low[:, 2]
+        nbr = np.full(zc.shape[0], np.inf)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di == dj == 0:
+                    continue
+                k2 = ((i + di + _OFF) << 32) | (j + dj + _OFF)
+                pos = np.clip(np.searchsorted(self._keys, k2), 0, self._keys.size - 1)
+                hit = self._keys[pos] == k2
+                nbr = np.where(hit, np.minimum(nbr, zc[pos]), nbr)
+        lone = (self._sup < 3) & (zc < nbr - slab)
+        ok = core_cells(np.column_stack((i, j))) & ~lone
+        if not ok.any():
+            return None
+        cells = self._low[ok]
+        z0 = float(cells[:, 2].min())
+        low = cells[cells[:, 2] <= z0 + slab, :2]
         if float(np.max(np.ptp(low, axis=0))) > max_width:
             return None
         return z0

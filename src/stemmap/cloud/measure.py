@@ -119,6 +119,42 @@ def _vertical_filter(
 
 
 BUTTRESS_CLEARANCE = 0.3  # m above the top of a buttress where the diameter is taken
+BUTTRESS_OUTSIDE = 0.1  # fraction of a slice's points on fins outside the fitted circle
+
+
+def _outside_fraction(
+    band: _Band,
+    tree: Any,
+    sl: NDArray[np.int64],
+    c: FloatArray,
+    r: FloatArray,
+    rms: FloatArray,
+) -> FloatArray:
+    """Per slice of one stem: the fraction of the band's points within two radii of the
+    slice circle's centre that lie outside it by more than max(3 RMS, 2 cm) and less than one
+    radius -- buttress fins and root flare, which the robust fit trims as outliers (it
+    measures the round core between the fins). All band points, before the vertical filter
+    (a fin shrinks with height, so the filter removes much of it)."""
+    ns = r.shape[0]
+    out = np.zeros(ns)
+    if tree is None or not np.isfinite(r).any():
+        return out
+    k = int(np.nanargmax(r))
+    idx = np.asarray(tree.query_ball_point(c[k], 2.0 * float(np.nanmax(r))), dtype=np.int64)
+    if idx.size == 0:
+        return out
+    for s in range(ns):
+        if not np.isfinite(r[s]):
+            continue
+        q = idx[sl[idx] == s]
+        d = np.hypot(*(band.xy[q] - c[s]).T)
+        q_in = d <= 2 * r[s]
+        if q_in.sum() < 8:
+            continue
+        res = d[q_in] - r[s]
+        thr = max(3 * float(rms[s]) if np.isfinite(rms[s]) else 0.0, 0.02)
+        out[s] = float(np.mean((res > thr) & (res < r[s])))
+    return out
 
 
 def _line_uncertainty(
@@ -321,6 +357,14 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     RMS = rms.reshape(kc, ns)
     NIN = nin.reshape(kc, ns)
     COV = seg_cov.reshape(kc, ns, 3, 3)
+    from scipy.spatial import cKDTree
+
+    # the band before the vertical filter (which removes fins: they shrink with height)
+    band_tree = cKDTree(band.xy) if not slice_cloud else None
+    near_all = np.argmin(np.abs(band.h[:, None] - centers_h[None, :]), axis=1)
+    band_sl = np.where(
+        np.abs(band.h - centers_h[near_all]) <= cfg.slice_thickness / 2, near_all, -1
+    )
     FIT = (ok & (radii > 0)).reshape(kc, ns)
     present = (seg_n.reshape(kc, ns) >= cfg.min_slice_points).sum(axis=1)
     rows: list[tuple[float, ...]] = []
@@ -359,13 +403,20 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         # buttress / root flare: slices below breast height, centred on the stem, fitted with
         # a radius above the stem's tolerance. Forestry convention: the diameter is taken
         # 0.3 m above the top of the swelling when it reaches above 1.0 m
+        out_f = _outside_fraction(band, band_tree, band_sl, C[c], R[c], RMS[c])
         flare = (
-            ~m
-            & FIT[c]
+            FIT[c]
             & (centers_h < cfg.breast_height)
-            & (R[c] > r_med + tol)
             & (np.hypot(*(C[c] - pred).T) <= r_med + R[c])
+            & ((~m & (R[c] > r_med + tol)) | (out_f > BUTTRESS_OUTSIDE))
         )
+        # a buttress starts at the ground: only the run of flared slices from the lowest up;
+        # and above it the stem is clean (a spruce's whorls put branch points around the
+        # stem at every height, which is not a buttress)
+        flare &= np.cumprod(flare | (centers_h < centers_h[FIT[c]].min())).astype(bool)
+        above = FIT[c] & ~flare & (centers_h > centers_h[flare].max() if flare.any() else False)
+        if flare.any() and (not above.any() or out_f[above].max() > BUTTRESS_OUTSIDE / 2):
+            flare[:] = False
         h_meas = cfg.breast_height
         rule = RULE_BH
         if flare.any() and not slice_cloud:

@@ -73,7 +73,7 @@ class CloudStems:
     frame: str = "cloud"
     spacing: float = math.nan
     reason: str = ""
-    base: str = "ground"
+    base: str = ""
 
     def __post_init__(self) -> None:
         k = int(self.xy.shape[0])
@@ -156,7 +156,7 @@ class CloudStems:
             method=str(d.get("method", "")),
             frame=str(d.get("frame", "cloud")),
             spacing=float(d.get("spacing", math.nan)),
-            base=str(d.get("base", "ground")),
+            base=str(d.get("base", "")),
         )
 
     def select(self, idx: ArrayLike) -> CloudStems:
