@@ -164,7 +164,14 @@ def stems(
     time stamps for a mobile cloud) the circle fits of preset ours minimise the range errors
     along each point's ray, which removes the low DBH bias of a noisy mobile lidar.
 
+    Products: the stems CSV (x, y, z, diameter, diameter_std, position covariance, height,
+    where and why the DBH was measured, what heights are measured from); on request a GeoJSON,
+    a PNG, the stem profiles CSV (--profile), a metrics JSON with the plot summary (--metrics)
+    and a LAS with a tree_id per point (--labels).
+
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
+
+    Forestry: stemmap stems plot.laz --profile profile.csv --metrics metrics.json --labels trees.laz
 
     Mobile: stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0
 

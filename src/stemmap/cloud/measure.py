@@ -19,6 +19,7 @@ from stemmap.cloud.result import RULE_BH, CloudStems
 from stemmap.cloud.slicefit import (
     _band_spacing,
     _fit_segments,
+    _normal_matrices,
     _segment_arcs,
     _segment_covariances,
     _theil_sen,
@@ -649,11 +650,7 @@ def _pooled_stems(
     rms = np.sqrt(np.bincount(ids[keep], d[keep] ** 2, minlength=k) / np.maximum(nin, 1))
     # covariance of (cx, cy, lean x, lean y, r): s^2 (J^T J)^-1 over the inliers
     Jk = np.column_stack((-n[:, 0], -n[:, 1], -n[:, 0] * hh, -n[:, 1] * hh, -np.ones_like(d)))
-    Jk = Jk[keep]
-    AJ = np.zeros((k, 5, 5))
-    for a in range(5):
-        for b in range(a, 5):
-            AJ[:, a, b] = AJ[:, b, a] = np.bincount(ids[keep], Jk[:, a] * Jk[:, b], minlength=k)
+    AJ = _normal_matrices(Jk[keep], ids[keep], k)
     pcov = np.full((k, 5, 5), np.nan)
     inv_ok = np.abs(np.linalg.det(AJ)) > 1e-30
     if inv_ok.any():

@@ -353,6 +353,16 @@ def _theil_sen(x: FloatArray, y: FloatArray) -> tuple[float, float]:
     return float(np.median(y - b * x)), b
 
 
+def _normal_matrices(J: FloatArray, ids: NDArray[np.int64], k: int) -> FloatArray:
+    """Per-segment normal matrices ``J^T J`` (K, P, P) of stacked Jacobian rows ``J`` (N, P)."""
+    npar = J.shape[1]
+    A = np.zeros((k, npar, npar))
+    for a in range(npar):
+        for b in range(a, npar):
+            A[:, a, b] = A[:, b, a] = np.bincount(ids, J[:, a] * J[:, b], minlength=k)
+    return A
+
+
 def _segment_covariances(
     pts: FloatArray,
     ids: NDArray[np.int64],
@@ -381,10 +391,7 @@ def _segment_covariances(
     inl = np.abs(res) <= 3 * s
     i = ids[ok][inl]
     J = np.column_stack((-v[inl, 0] / d[inl], -v[inl, 1] / d[inl], -np.ones(int(inl.sum()))))
-    A = np.zeros((k, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            A[:, a, b] = A[:, b, a] = np.bincount(i, J[:, a] * J[:, b], minlength=k)
+    A = _normal_matrices(J, i, k)
     n = np.bincount(i, minlength=k)
     good = (n >= 3) & (np.abs(np.linalg.det(A)) > 1e-18)
     if good.any():
