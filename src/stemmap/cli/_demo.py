@@ -268,9 +268,11 @@ def demo(
 
     Example: stemmap demo --out stemmap-demo --seed 1
     """
-    with fail_on_stemmap_error():
+    from stemmap.io.products import run_products
+
+    with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
         m = run_demo(
-            out_dir, seed=seed, n_trees=n_trees, backend=backend.value, show_progress=show_progress
+            run.dir, seed=seed, n_trees=n_trees, backend=backend.value, show_progress=show_progress
         )
     d, mp, s = m["detection"], m["map"], m["slam"]
 
@@ -289,7 +291,7 @@ def demo(
         f"{cm(s.get('loop_closure_error_m'))} "
         f"(dead reckoning {cm(s.get('dead_reckoning_loop_closure_error_m'))})",
         f"wrote {out_dir}/: detections.csv trees.csv trees.geojson trajectory.csv "
-        "truth_trees.csv metrics.json demo.png",
+        "truth_trees.csv metrics.json demo.png run.json",
     ]
     for line in lines:
         out.print(line, markup=False, soft_wrap=True)

@@ -36,6 +36,18 @@ class Dataset(StrEnum):
     victoria_park = "victoria-park"
 
 
+def _vp_inputs(data: Path | None) -> list[Path]:
+    """The Victoria Park files a run reads (recorded and protected by the run manifest)."""
+    from stemmap.datasets import find_datasets_dir
+
+    if data is None:
+        root = find_datasets_dir()
+        if root is None:
+            return []
+        data = root / "victoria_park"
+    return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
+
+
 def _victoria_park(data: Path | None, t_end: float | None) -> tuple[Any, dict[str, Any]]:
     from stemmap.datasets.victoria_park import load_victoria_park
 
@@ -219,11 +231,13 @@ def map_command(
     """Map trees and the machine's path with tree-landmark SLAM."""
     from stemmap.io.atomic import atomic_write
     from stemmap.io.maps import write_trees_csv, write_trees_geojson
+    from stemmap.io.products import run_products
     from stemmap.io.trajectory import write_trajectory_csv
     from stemmap.slam.base import dead_reckoning, make_backend
     from stemmap.viz.maps import save_stem_map_png
 
-    with fail_on_stemmap_error():
+    inputs = [bag] if dataset is None else _vp_inputs(data)
+    with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
         if sources != 1:
             raise ConfigError("give exactly one input: a BAG, --dataset victoria-park, or --sim.")
@@ -250,14 +264,14 @@ def map_command(
 
             result = be.run(problem, progress=tick)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        write_trees_csv(out_dir / "trees.csv", result.stem_map)
-        write_trees_geojson(out_dir / "trees.geojson", result.stem_map)
-        write_trajectory_csv(out_dir / "trajectory.csv", result.trajectory)
-        with atomic_write(out_dir / "metrics.json") as fh:
+        stage = run.dir
+        write_trees_csv(stage / "trees.csv", result.stem_map)
+        write_trees_geojson(stage / "trees.geojson", result.stem_map)
+        write_trajectory_csv(stage / "trajectory.csv", result.trajectory)
+        with atomic_write(stage / "metrics.json") as fh:
             json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
         save_stem_map_png(
-            out_dir / "map.png",
+            stage / "map.png",
             result.stem_map,
             result.trajectory,
             gps_xy=gps_map,
@@ -266,7 +280,11 @@ def map_command(
             title=f"{problem.name}: {backend.value}",
         )
     summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
-    out.print(f"wrote {out_dir}/: trees.csv trees.geojson trajectory.csv metrics.json map.png")
+    out.print(
+        f"wrote {out_dir}/: trees.csv trees.geojson trajectory.csv metrics.json map.png run.json",
+        markup=False,
+        soft_wrap=True,
+    )
     out.print(json.dumps(clean_json(summary), default=json_default))
 
 

@@ -182,8 +182,16 @@ def stems(
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.products import run_products
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products(
+            "stems",
+            inputs=[cloud, trajectory],
+            outputs=[out_csv, geojson, png, profile, metrics, labels],
+        ) as run,
+    ):
         cfg = get_preset(preset)
         if not max_memory > 0:
             raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
@@ -204,9 +212,9 @@ def stems(
             result = detect_stems_file(
                 cloud, cfg, chunk_size=chunk_size, on_chunk=tick, sensor=sensor, topic=topic
             )
-        write_stems_csv(out_csv, result)
+        write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
-            write_stems_geojson(geojson, result)
+            write_stems_geojson(run.path(geojson), result)
         if png is not None:
             import numpy as np
 
@@ -219,12 +227,19 @@ def stems(
                     for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
                 ]
             )
-            plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
+            title = f"{cloud.name}: {len(result)} stems"
+            plot_stems(run.path(png), result, background_xy=bg, title=title)
         if profile or metrics or labels:
             from stemmap.cli._stems_products import write_forestry_products
 
             write_forestry_products(
-                cloud, result, chunk_size, topic, profile=profile, metrics=metrics, labels=labels
+                cloud,
+                result,
+                chunk_size,
+                topic,
+                profile=None if profile is None else run.path(profile),
+                metrics=None if metrics is None else run.path(metrics),
+                labels=None if labels is None else run.path(labels),
             )
         out.print(
             f"{len(result)} stems ({result.method}"
