@@ -51,7 +51,7 @@ def detect(
         bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
     ] = False,
 ) -> None:
-    """Detect trunks in every scan and write scan_index,time,x,y,diameter,radius_std,n_points,...
+    """Detect trunks in every scan and write scan_index,time_s,x,y,diameter,radius_std,n_points,...
 
     Coordinates are in the sensor frame (metres). A damaged frame is reported and skipped;
     ``scan_index`` is the frame's position in the file, so skipped frames leave gaps.
