@@ -312,7 +312,13 @@ def _stems_report(
         "crs": crs,
         "point_spacing_m": float(result.spacing) if math.isfinite(result.spacing) else None,
     }
-    cols = [c for c in STEM_CSV_COLUMNS if c not in ("id", "method") and hasattr(result, c)]
+    cols = [
+        c
+        for c in STEM_CSV_COLUMNS
+        if c not in ("id", "method", "base")
+        and hasattr(result, c)
+        and np.asarray(getattr(result, c)).dtype.kind in "biuf"
+    ]
     table = [
         [k, round(float(result.xy[k, 0]), 3), round(float(result.xy[k, 1]), 3)]
         + [round(float(getattr(result, c)[k]), 4) for c in cols if c not in ("x", "y")]
