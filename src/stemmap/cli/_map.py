@@ -36,12 +36,14 @@ class Dataset(StrEnum):
     victoria_park = "victoria-park"
 
 
-def _victoria_park(data: Path | None, t_end: float | None) -> tuple[Any, dict[str, Any]]:
+def _victoria_park(
+    data: Path | None, t_end: float | None, t_start: float = 0.0
+) -> tuple[Any, dict[str, Any]]:
     from stemmap.datasets.victoria_park import load_victoria_park
 
     vp = load_victoria_park(data)
-    if t_end is not None:
-        vp = vp.slice(0.0, t_end)
+    if t_end is not None or t_start > 0:
+        vp = vp.slice(t_start, math.inf if t_end is None else t_end)
     return vp.problem(), {"kind": "victoria-park", "vp": vp}
 
 
@@ -150,6 +152,24 @@ def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backen
     return dataclasses.replace(problem, gnss=fixes)
 
 
+def _continue(problem: Any, folder: Path, guess: str | None, backend: str) -> tuple[Any, Any]:
+    """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call)."""
+    from stemmap.io.maps import read_trees_csv
+    from stemmap.slam.relocalise import continue_session
+
+    if backend != "isam2":
+        raise ConfigError(f"--prior-map is used by the isam2 back-end only; got {backend}.")
+    g = None
+    if guess is not None:
+        try:
+            gx, gy, gd = (float(v) for v in guess.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--start-guess must be 'x,y,heading_deg', got {guess!r}.") from exc
+        g = (gx, gy, math.radians(gd))
+    csv = folder / "trees.csv" if folder.is_dir() else folder
+    return continue_session(problem, read_trees_csv(csv), g)
+
+
 def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
     from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
@@ -233,6 +253,9 @@ def map_command(
     t_end: Annotated[
         float | None, typer.Option("--t-end", help="Use the dataset only up to this time (s).")
     ] = None,
+    t_start: Annotated[
+        float, typer.Option("--t-start", help="Use the dataset from this time (s).")
+    ] = 0.0,
     seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
     sim_trees: Annotated[int, typer.Option("--sim-trees", help="Trees in the stand.")] = 150,
     sim_size: Annotated[float, typer.Option("--sim-size", help="Stand side (m).")] = 60.0,
@@ -254,6 +277,22 @@ def map_command(
     gnss_sigma: Annotated[
         float, typer.Option("--gnss-sigma", help="Fix sigma (m) where the CSV has none.")
     ] = 1.0,
+    prior_map: Annotated[
+        Path | None,
+        typer.Option(
+            "--prior-map",
+            help="Map folder of an earlier session (its trees.csv): "
+            "relocalise in it, map on, write the merged map; isam2.",
+        ),
+    ] = None,
+    start_guess: Annotated[
+        str | None,
+        typer.Option(
+            "--start-guess",
+            help="With --prior-map: rough start 'x,y,heading_deg' in "
+            "the map (searched within 30 m / 45 deg); default: global search.",
+        ),
+    ] = None,
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM."""
@@ -268,7 +307,7 @@ def map_command(
         if sources != 1:
             raise ConfigError("give exactly one input: a BAG, --dataset victoria-park, or --sim.")
         if dataset is not None:
-            problem, ctx = _victoria_park(data, t_end)
+            problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
             problem, ctx = _simulated(seed, sim_trees, sim_size)
         else:
@@ -283,6 +322,9 @@ def map_command(
             problem, ctx = _bag(bag, off)
         if gnss is not None:
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
+        reloc = None
+        if prior_map is not None:
+            problem, reloc = _continue(problem, prior_map, start_guess, backend.value)
         be = make_backend(backend.value)
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
@@ -292,6 +334,8 @@ def map_command(
 
             result = be.run(problem, progress=tick)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
+        if reloc is not None:
+            metrics["relocalisation"] = reloc.__dict__
         out_dir.mkdir(parents=True, exist_ok=True)
         write_trees_csv(out_dir / "trees.csv", result.stem_map)
         write_trees_geojson(out_dir / "trees.geojson", result.stem_map)

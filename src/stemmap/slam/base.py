@@ -274,6 +274,10 @@ class SlamProblem:
     gnss : GnssFixes or None
         GNSS fixes (:class:`stemmap.slam.gnss.GnssFixes`, antenna lever arm included); the
         ``isam2`` back-end fuses them as robust priors and returns the map in their frame.
+    prior_map : StemMap or None
+        A map of an earlier session, in whose frame ``initial_pose`` is given (e.g. from
+        :func:`stemmap.slam.relocalise.relocalise`); ``isam2`` starts from its trees (with
+        their covariances as priors) and returns the merged map.
     """
 
     controls: Controls
@@ -285,6 +289,7 @@ class SlamProblem:
     max_range: float = math.inf
     fov: tuple[float, float] = (-math.pi, math.pi)
     gnss: GnssFixes | None = None
+    prior_map: StemMap | None = None
 
     def __post_init__(self) -> None:
         if len(self.frames) == 0:

@@ -85,6 +85,7 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose, preintegrate
+from stemmap.slam.relocalise import prior_tree_factors
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -139,6 +140,8 @@ class Isam2Config:
         :mod:`stemmap.slam.gnss`)
     gnss_prior_sigmas : (m, m, rad) weak prior on the first pose when GNSS is fused (the GNSS
         fixes fix the frame; this only keeps the first updates well-posed)
+    reloc_prior_sigmas : (m, m, rad) prior on the first pose when the problem has a
+        ``prior_map`` (the relocalised start: the map's trees fix the frame)
     """
 
     sigma_range: float = 0.10
@@ -175,6 +178,7 @@ class Isam2Config:
     gnss_robust: str = "cauchy"
     gnss_robust_k: float = 2.3849
     gnss_prior_sigmas: tuple[float, float, float] = (10.0, 10.0, 0.5)
+    reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust"):
@@ -452,18 +456,37 @@ class Isam2Slam:
 
         s0 = gtsam.Pose2(*problem.initial_pose).compose(T_vs)
         prior = gtsam.noiseModel.Diagonal.Sigmas(
-            np.array(cfg.prior_sigmas if gnss_plan is None else cfg.gnss_prior_sigmas)
+            np.array(cfg.prior_sigmas if problem.prior_map is None else cfg.reloc_prior_sigmas)
         )
+        pf = gtsam.PriorFactorPose2(XK(0), s0, prior)
         gnss_fac: list[Any] = []  # the GNSS factors in the graph (kept when rebuilding)
         gnss_keys: list[int] = []
         g_next = 0  # next fix of gnss_plan to add
+        remove_idx: list[int] = []  # iSAM2 factor indices to remove at the next update
 
         def add_gnss(k_done: int) -> None:
-            """Add the fixes hanging from keyframes <= k_done (their time has passed)."""
-            nonlocal g_next
+            """Add the fixes hanging from keyframes <= k_done (their time has passed).
+
+            With the first fix the tight prior on ``X(0)`` (which fixed the gauge until then)
+            is swapped for the weak ``gnss_prior_sigmas`` one: from now on the fixes give the
+            frame. (A weak prior from the start leaves the first updates without a fix nearly
+            indeterminate: GTSAM refuses them.)
+            """
+            nonlocal g_next, pf
             if gnss_plan is None:
                 return
             g1 = int(np.searchsorted(gnss_plan.kf, k_done, side="right"))
+            if g_next == 0 and g1 > 0:
+                weak = gtsam.PriorFactorPose2(
+                    XK(0), s0, gtsam.noiseModel.Diagonal.Sigmas(np.array(cfg.gnss_prior_sigmas))
+                )
+                graph_all.replace(0, weak)
+                if n_updates == 0:  # still in the pending batch (its first factor)
+                    new_f.replace(0, weak)
+                else:
+                    remove_idx.append(0)  # iSAM2 numbers factors in the order they came in
+                    new_f.add(weak)
+                pf = weak
             for i_g in range(g_next, g1):
                 xk_ = XK(int(gnss_plan.kf[i_g]))
                 x_est = (
@@ -478,7 +501,6 @@ class Isam2Slam:
                 gnss_keys.append(key)
             g_next = max(g_next, g1)
 
-        pf = gtsam.PriorFactorPose2(XK(0), s0, prior)
         new_f.add(pf)
         graph_all.add(pf)
         meas_rec: list[tuple[int, int, float, float, float, float]] = []
@@ -497,6 +519,31 @@ class Isam2Slam:
         lm_inc = np.full(cap, -1, dtype=np.int64)  # last frame whose observation is in iSAM2
         lm_in_graph = np.zeros(cap, dtype=bool)
         n_lm = 0
+        map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
+        if problem.prior_map is not None and len(problem.prior_map):
+            # a map of an earlier session (relocalised into: problem.initial_pose is in its
+            # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
+            # prior, so this session updates them and adds new ones (one merged map)
+            n_lm = len(problem.prior_map)
+            cap = n_lm + 1024
+            lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph = (
+                np.zeros((cap, 2)), np.zeros(cap), np.zeros(cap, dtype=np.int64),
+                np.zeros(cap, dtype=np.int64), np.zeros(cap, dtype=np.int64),
+                np.zeros(cap, dtype=np.int64), np.full(cap, -1, dtype=np.int64),
+                np.zeros(cap, dtype=bool),
+            )  # fmt: skip
+            for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
+                prior_tree_factors(problem.prior_map, LK, cfg.min_obs)
+            ):
+                lm_xy[j_p] = xy_p
+                if math.isfinite(d_p):
+                    lm_dsum[j_p], lm_dn[j_p] = d_p * n_p, n_p
+                lm_nobs[j_p] = n_p
+                lm_in_graph[j_p] = True
+                new_v.insert(LK(j_p), xy_p.copy())
+                new_f.add(fac_p)
+                graph_all.add(fac_p)
+                map_fac.append(fac_p)
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         sd2 = (cfg.sigma_diameter or 1.0) ** 2
         kparams = np.array(
@@ -601,7 +648,8 @@ class Isam2Slam:
                 new_v.insert(XK(k), init)
                 add_gnss(k - 1)
                 if k % cfg.update_every == 0:
-                    isam.update(new_f, new_v)
+                    isam.update(new_f, new_v, remove_idx)
+                    remove_idx.clear()
                     n_updates += 1
                     new_f = gtsam.NonlinearFactorGraph()
                     new_v = gtsam.Values()
@@ -660,7 +708,7 @@ class Isam2Slam:
                 progress(f1, nf)
         flush(nk - 1)
         add_gnss(nk - 1)
-        isam.update(new_f, new_v)
+        isam.update(new_f, new_v, remove_idx)
         n_updates += 1
         n_matched = int(counters[C_LOCAL] + counters[C_REACQ] + counters[C_SINGLE])
         n_new = int(counters[C_NEW])
@@ -721,7 +769,12 @@ class Isam2Slam:
             g2 = gtsam.NonlinearFactorGraph()
             g2.add(pf)
             odo_fac = [odo_factor(i_, d_) for i_, d_ in enumerate(odo_measured(0, nk - 1))]
-            for fac_o in odo_fac + gnss_fac:
+            for j_p, fac_p in enumerate(map_fac):  # a merged prior tree: on its representative
+                if alias[j_p] != j_p:
+                    map_fac[j_p] = gtsam.PriorFactorPoint2(
+                        LK(int(alias[j_p])), fac_p.prior(), fac_p.noiseModel()
+                    )
+            for fac_o in odo_fac + gnss_fac + map_fac:
                 g2.add(fac_o)
             for i_m, (k_, j_, b_, r_, sb_, sr_) in enumerate(meas_rec):
                 if alias[j_] != j_:  # the tree was merged: a factor on its representative
