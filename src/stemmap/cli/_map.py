@@ -170,6 +170,22 @@ def _continue(problem: Any, folder: Path, guess: str | None, backend: str) -> tu
     return continue_session(problem, read_trees_csv(csv), g)
 
 
+def _realtime(problem: Any, backend: str, tick: Any) -> Any:
+    """``--realtime``: the log through :func:`stemmap.slam.online.replay`, latency in stats."""
+    from stemmap.slam.base import SlamResult
+    from stemmap.slam.online import replay
+
+    if backend != "isam2" or problem.gnss is not None or problem.prior_map is not None:
+        raise ConfigError("--realtime runs the isam2 online mapper without --gnss/--prior-map.")
+    st = replay(problem, on_scan=lambda _m, f: tick(f + 1, len(problem.frames)))
+    lat = np.asarray(st["latency_s"]) * 1e3
+    stats = {"backend": "isam2-online", **st["stats"], "rss_mb": st["rss_mb_by_pass"][-1]}
+    for q in (50, 90, 99):
+        stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
+    stats["latency_ms_max"] = float(lat.max())
+    return SlamResult(st["trajectory"], st["stem_map"], stats)
+
+
 def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
     from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
@@ -293,6 +309,14 @@ def map_command(
             "the map (searched within 30 m / 45 deg); default: global search.",
         ),
     ] = None,
+    realtime: Annotated[
+        bool,
+        typer.Option(
+            "--realtime",
+            help="Replay the log scan by scan through the online mapper "
+            "(OnlineMapper) and report per-scan latency; isam2.",
+        ),
+    ] = False,
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM."""
@@ -332,7 +356,10 @@ def map_command(
             def tick(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
 
-            result = be.run(problem, progress=tick)
+            if realtime:
+                result = _realtime(problem, backend.value, tick)
+            else:
+                result = be.run(problem, progress=tick)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
         if reloc is not None:
             metrics["relocalisation"] = reloc.__dict__

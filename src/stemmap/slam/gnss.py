@@ -309,11 +309,12 @@ def robust_kernel(gtsam: Any, kind: str, k: float) -> Any:
 
 
 def gnss_factors(
-    plan: GnssPlan, i: int, x_key: int, x_est: Any, kernel: Any
+    plan: GnssPlan, i: int, x_key: int, x_est: Any, kernel: Any, key: int | None = None
 ) -> tuple[list[Any], int, Any]:
     """Factors, key and initial value of fix ``i`` of ``plan`` (see the module docs).
 
-    ``x_key`` / ``x_est`` are the key and current estimate of the fix's keyframe pose. Returns
+    ``x_key`` / ``x_est`` are the key and current estimate of the fix's keyframe pose; ``key``
+    the antenna pose's key (default ``Z(i)``). Returns
     ``([BetweenFactorPose2(X, Z), PoseTranslationPrior2D(Z)], Z key, Z initial pose)``; the
     prior's noise is isotropic ``sigma`` wrapped in ``kernel`` (robust) when given.
     """
@@ -322,7 +323,7 @@ def gnss_factors(
 
     r = plan.rel[i]
     rel = gtsam.Pose2(float(r[0]), float(r[1]), float(r[2]))
-    key = ZK(i)
+    key = ZK(i) if key is None else key
     between_f = gtsam.BetweenFactorPose2(
         x_key, key, rel, gtsam.noiseModel.Gaussian.Covariance(plan.rel_cov[i])
     )
