@@ -146,7 +146,10 @@ def _online(data: str | None, passes: int) -> dict[str, Any]:
     vp = load_victoria_park(data)
     st = replay(vp.problem(), passes=passes)
     lat = np.asarray(st["latency_s"]) * 1e3
+    cpu = np.asarray(st["cpu_s"]) * 1e3
     return {
+        "cpu_ms_p50": round(float(np.percentile(cpu, 50)), 3),
+        "cpu_ms_p99": round(float(np.percentile(cpu, 99)), 3),
         "passes": passes,
         "scans": int(lat.size),
         "latency_ms_p50": round(float(np.percentile(lat, 50)), 3),

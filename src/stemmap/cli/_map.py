@@ -170,14 +170,30 @@ def _continue(problem: Any, folder: Path, guess: str | None, backend: str) -> tu
     return continue_session(problem, read_trees_csv(csv), g)
 
 
-def _realtime(problem: Any, backend: str, tick: Any) -> Any:
-    """``--realtime``: the log through :func:`stemmap.slam.online.replay`, latency in stats."""
+def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
+    """``--realtime``: the log through :func:`stemmap.slam.online.replay` (latency in stats),
+    logged to a Rerun recording with ``--rerun``."""
     from stemmap.slam.base import SlamResult
     from stemmap.slam.online import replay
 
     if backend != "isam2" or problem.gnss is not None or problem.prior_map is not None:
         raise ConfigError("--realtime runs the isam2 online mapper without --gnss/--prior-map.")
-    st = replay(problem, on_scan=lambda _m, f: tick(f + 1, len(problem.frames)))
+    rec = None
+    if rrd is not None:
+        from stemmap.viz.live import RerunRecorder
+
+        rec = RerunRecorder(rrd)
+
+    def on_scan(m: Any, f: int) -> None:
+        if rec is not None:
+            rec(m, f)
+        tick(f + 1, len(problem.frames))
+
+    try:
+        st = replay(problem, on_scan=on_scan)
+    finally:
+        if rec is not None:
+            rec.close()
     lat = np.asarray(st["latency_s"]) * 1e3
     stats = {"backend": "isam2-online", **st["stats"], "rss_mb": st["rss_mb_by_pass"][-1]}
     for q in (50, 90, 99):
@@ -317,6 +333,13 @@ def map_command(
             "(OnlineMapper) and report per-scan latency; isam2.",
         ),
     ] = False,
+    rerun: Annotated[
+        Path | None,
+        typer.Option(
+            "--rerun",
+            help="Write a Rerun recording (.rrd) of the run; implies --realtime (needs rerun-sdk).",
+        ),
+    ] = None,
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM."""
@@ -356,8 +379,8 @@ def map_command(
             def tick(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
 
-            if realtime:
-                result = _realtime(problem, backend.value, tick)
+            if realtime or rerun is not None:
+                result = _realtime(problem, backend.value, tick, rerun)
             else:
                 result = be.run(problem, progress=tick)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)

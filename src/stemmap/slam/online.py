@@ -206,6 +206,9 @@ class OnlineMapper:
         self.n_gnss = 0
         self._new_isam()
         self.latency_s: list[float] = []
+        self.cpu_s: list[float] = []
+        self._kd = np.zeros(3)  # vehicle increment since the keyframe's first scan
+        self._kc = np.zeros((3, 3))
 
     # ------------------------------------------------------------------ smoother life cycle
     def _new_isam(self) -> None:
@@ -276,10 +279,23 @@ class OnlineMapper:
         :func:`replay` does): multi-threaded BLAS on these small matrices costs CPU out of all
         proportion on a shared machine, and setting the limit per scan costs ~10 ms.
         """
-        t_in = time.perf_counter()
+        t_in, c_in = time.perf_counter(), time.process_time()
         pose = self._scan(float(t), ranges, bearings, diameters)
         self.latency_s.append(time.perf_counter() - t_in)
+        self.cpu_s.append(time.process_time() - c_in)
         return pose
+
+    def _accumulate(self, d: FloatArray, c: FloatArray) -> None:
+        """Chain a frame increment (``d``, covariance ``c`` in its start frame) onto the
+        keyframe's: ``D' = D ⊕ d``, ``Σ' = J_D Σ J_Dᵀ + J_d c J_dᵀ`` (additive errors in the
+        keyframe's start frame, the convention of :func:`stemmap.slam.motion.preintegrate`)."""
+        D, S = self._kd, self._kc
+        cz, sz = math.cos(D[2]), math.sin(D[2])
+        wx, wy = cz * d[0] - sz * d[1], sz * d[0] + cz * d[1]
+        Jd_ = np.array([[1.0, 0.0, -wy], [0.0, 1.0, wx], [0.0, 0.0, 1.0]])
+        Jn = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+        self._kc = Jd_ @ S @ Jd_.T + Jn @ c @ Jn.T
+        self._kd = np.array([D[0] + wx, D[1] + wy, D[2] + d[2]])
 
     def _scan(self, t: float, r: Any, b: Any, d: Any) -> tuple[float, float, float]:
         c = self.cfg.isam2
@@ -301,6 +317,7 @@ class OnlineMapper:
             v_prev = self.veh.a[f - 1]
             dv, cv = self._dead_reckon(float(self.times.a[f - 1]), t, v_prev)
             v = compose(v_prev, dv)
+            self._accumulate(dv, cv)
             _, cs = _sensor_between(dv[None], cv[None], self.offset)
             self.cov_f.append(cs[0])
             self.cum_dist.append(self.cum_dist.a[f - 1] + math.hypot(dv[0], dv[1]))
@@ -407,8 +424,9 @@ class OnlineMapper:
         self._win = []
         # odometry factor (k-1 -> k) in the sensor frame
         f0 = self.kf_frame[k - 1]
-        t0, t1 = float(self.times.a[f0]), float(self.times.a[f])
-        dv, cv = self._dead_reckon(t0, t1, self.veh.a[f0])
+        t0 = float(self.times.a[f0])
+        dv, cv = self._kd, self._kc  # chained frame increments (= pre-integration, 2nd order)
+        self._kd, self._kc = np.zeros(3), np.zeros((3, 3))
         ds, cs = _sensor_between(dv[None], cv[None], self.offset)
         cs = cs[0] + np.diag([1e-3**2, 1e-3**2, 1e-4**2])
         self._add(g.BetweenFactorPose2(
@@ -542,9 +560,10 @@ class OnlineMapper:
         self.new_v = g.Values()
 
     # ------------------------------------------------------------------ outputs
-    def stem_map(self) -> StemMap:
+    def stem_map(self, *, with_covariance: bool = False) -> StemMap:
         """The current map: trees seen >= ``min_obs`` times, estimates from the smoother (or the
-        value they left it with), covariance where known."""
+        value they left it with); covariance of the trees that left the smoother, and with
+        ``with_covariance`` also of those in it (iSAM2 marginals: ~0.1-1 ms per tree)."""
         from gtsam.symbol_shorthand import L as LK
 
         n = self.n_lm
@@ -554,11 +573,14 @@ class OnlineMapper:
             xy = self.lm_xy.a[j]
             if est is not None and self.lm_in_graph.a[j] and est.exists(LK(j)):
                 xy = est.atPoint2(LK(j))
+            cov = self.lm_cov.a[j].copy()
+            if with_covariance and est is not None and self.lm_in_graph.a[j] and est.exists(LK(j)):
+                cov = np.asarray(self.isam.marginalCovariance(LK(j)), dtype=np.float64)
             nd = int(self.lm_dn.a[j])
             trees.append(Tree(
                 id=j, x=float(xy[0]), y=float(xy[1]),
                 diameter=float(self.lm_dsum.a[j] / nd) if nd else math.nan,
-                cov=self.lm_cov.a[j].copy(), n_obs=int(self.lm_nobs.a[j]),
+                cov=cov, n_obs=int(self.lm_nobs.a[j]),
                 first_time=float(self.times.a[self.lm_first.a[j]]),
                 last_time=float(self.times.a[self.lm_last.a[j]]),
             ))  # fmt: skip
@@ -614,10 +636,14 @@ def _replay(
     poses, rss = [], []
     t_shift = 0.0
     for p_ in range(passes):
-        if p_ > 0:  # transit: straight at 10 m/s, one sample per 0.1 s
-            t_a = float(ctl.times[-1]) + t_shift
+        if p_ > 0:  # transit: straight at 10 m/s, odometry at 10 Hz, empty scans at 5 Hz
+            t_a = float(max(ctl.times[-1], fr.times[-1])) + t_shift
+            empty = np.zeros(0)
             for q in range(int(transit_s * 10)):
-                m.add_odometry(t_a + 0.1 * (q + 1), 10.0, 0.0)
+                tq = t_a + 0.1 * (q + 1)
+                m.add_odometry(tq, 10.0, 0.0)
+                if q % 2 == 1:
+                    m.add_scan(tq, empty, empty, empty)
             t_shift += span + transit_s + 1.0
         ci = 0
         for f in range(len(fr)):
@@ -635,6 +661,7 @@ def _replay(
     arr = np.asarray(poses)
     return {
         "latency_s": m.latency_s,
+        "cpu_s": m.cpu_s,
         "trajectory": frame_trajectory(arr[:, 0], arr[:, 1:]),
         "stem_map": m.stem_map(),
         "trees": len(m.stem_map()),
