@@ -90,3 +90,29 @@ def test_online_input_checks(loop):
     with pytest.raises(ConfigError):
         OnlineConfig(window_keyframes=2, isam2=Isam2Config(update_every=3))
     assert dataclasses.is_dataclass(OnlineConfig())
+
+
+def test_rerun_recording_of_an_online_run(tmp_path):
+    pytest.importorskip("rerun")
+    import subprocess
+    import sys
+
+    from stemmap.viz.live import RerunRecorder, sigma_ellipses
+
+    problem, _, _, _ = loop_problem(5, laps=0.4)
+    path = tmp_path / "run.rrd"
+    rec = RerunRecorder(path, map_every=10)
+    st = replay(problem, on_scan=rec)
+    rec.close()
+    assert rec.n_logged == len(st["latency_s"])
+    assert path.stat().st_size > 10_000
+    out = subprocess.run(
+        [sys.executable, "-m", "rerun", "rrd", "print", str(path)],
+        capture_output=True, text=True, check=True, timeout=120,
+    )  # fmt: skip
+    for entity in ("world/vehicle", "world/detections", "world/path", "world/trees"):
+        assert entity in out.stdout
+    # the 2-sigma ellipse of a diagonal covariance reaches 2 sigma along each axis
+    e = sigma_ellipses(np.array([[1.0, 2.0]]), np.array([[[0.25, 0.0], [0.0, 0.04]]]))[0]
+    np.testing.assert_allclose(e[:, 0].max() - 1.0, 1.0, atol=1e-9)
+    np.testing.assert_allclose(e[:, 1].max() - 2.0, 0.4, atol=0.03)

@@ -72,12 +72,16 @@ class OnlineConfig:
     isam2 : the back-end's settings (``calibrate``, ``merge_dist`` and ``batch_iterations`` are
         batch-only and ignored here)
     window_keyframes : keyframes between re-anchors of the smoother (bounded work / memory)
+    idle_keyframes : also re-anchor after this many keyframes without a tree measurement
+        (a transit): the odometry chain alone would grow the window's pose uncertainty to
+        where GTSAM finds the system indeterminate when trees appear again
     tree_sigma_floor : m, added (in quadrature) to a tree's marginal sigma when it leaves the
         optimiser (the dropped correlations)
     """
 
     isam2: Isam2Config = field(default_factory=Isam2Config)
     window_keyframes: int = 150
+    idle_keyframes: int = 10
     tree_sigma_floor: float = 0.02
 
     def __post_init__(self) -> None:
@@ -207,6 +211,7 @@ class OnlineMapper:
         self._new_isam()
         self.latency_s: list[float] = []
         self.cpu_s: list[float] = []
+        self.k_meas = 0  # last keyframe with a tree measurement
         self._kd = np.zeros(3)  # vehicle increment since the keyframe's first scan
         self._kc = np.zeros((3, 3))
 
@@ -403,6 +408,8 @@ class OnlineMapper:
                 cj, ckx, cky, cwxy, cwth, int(cj.shape[0]), vr, vb, mo
             )
             xk = XK(k - 1)
+            if trees.size:
+                self.k_meas = k - 1
             for t_, j in enumerate(trees.tolist()):
                 if not self.lm_in_graph.a[j]:
                     self.new_v.insert(LK(j), self.lm_xy.a[j].copy())
@@ -527,7 +534,10 @@ class OnlineMapper:
             near = ing[dxy[:, 0] ** 2 + dxy[:, 1] ** 2 < (self.cfg.isam2.max_range + 30.0) ** 2]
             for j in near.tolist():
                 self.lm_xy.a[j] = self.isam.calculateEstimatePoint2(LK(j))
-        if k - self.k_anchor >= self.cfg.window_keyframes:
+        idle = k - self.k_meas >= self.cfg.idle_keyframes
+        if k - self.k_anchor >= self.cfg.window_keyframes or (
+            idle and k - self.k_anchor >= self.cfg.idle_keyframes
+        ):
             self._reanchor(k)
 
     def _reanchor(self, k: int) -> None:
@@ -549,7 +559,14 @@ class OnlineMapper:
             self.lm_cov.a[ing] = covs
             self.lm_xy.a[ing] = np.array([est.atPoint2(LK(int(j))) for j in ing])
         pk = est.atPose2(XK(k))
-        cov_k = self.isam.marginalCovariance(XK(k))
+        # the pose's marginal, its sigmas capped at reloc_prior_sigmas (1 m, 0.05 rad), the
+        # correlations kept: after a stretch without trees (a transit) the absolute uncertainty
+        # reaches tens of metres, and a prior that weak only sets the gauge while GTSAM rejects
+        # the ill-conditioned system (as for a weak first-pose prior, see graph.py / GNSS)
+        cov_k = np.asarray(self.isam.marginalCovariance(XK(k)), dtype=np.float64)
+        sd = np.sqrt(np.maximum(np.diag(cov_k), 1e-20))
+        scale = np.minimum(1.0, np.asarray(self.cfg.isam2.reloc_prior_sigmas) / sd)
+        cov_k = cov_k * np.outer(scale, scale)
         self.lm_in_graph.a[:n] = False
         self._new_isam()
         self.pf = g.PriorFactorPose2(XK(k), pk, g.noiseModel.Gaussian.Covariance(cov_k))
@@ -604,7 +621,7 @@ def replay(
     problem: SlamProblem,
     *,
     passes: int = 1,
-    transit_s: float = 100.0,
+    transit_s: float = 200.0,
     config: OnlineConfig | None = None,
     on_scan: Any = None,
 ) -> dict[str, Any]:
@@ -612,7 +629,7 @@ def replay(
     each scan, then the scan) and return per-scan latency, the path and the map.
 
     ``passes`` > 1 drives the log again and again, each pass after ``transit_s`` of straight
-    driving at 10 m/s without detections (the machine moving to the next stand, 1 km), so the
+    driving at 3 m/s without detections (the machine moving to the next stand, 600 m), so the
     replay is ``passes`` times longer and the map grows with new area (a memory test).
     ``on_scan(mapper, frame_index)`` is called after every scan (e.g. a live viewer).
     """
@@ -636,12 +653,12 @@ def _replay(
     poses, rss = [], []
     t_shift = 0.0
     for p_ in range(passes):
-        if p_ > 0:  # transit: straight at 10 m/s, odometry at 10 Hz, empty scans at 5 Hz
+        if p_ > 0:  # transit: straight at 3 m/s, odometry at 10 Hz, empty scans at 5 Hz
             t_a = float(max(ctl.times[-1], fr.times[-1])) + t_shift
             empty = np.zeros(0)
             for q in range(int(transit_s * 10)):
                 tq = t_a + 0.1 * (q + 1)
-                m.add_odometry(tq, 10.0, 0.0)
+                m.add_odometry(tq, 3.0, 0.0)
                 if q % 2 == 1:
                     m.add_scan(tq, empty, empty, empty)
             t_shift += span + transit_s + 1.0
