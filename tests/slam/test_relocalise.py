@@ -110,3 +110,24 @@ def test_bad_config():
         RelocConfig(min_inliers=2)
     with pytest.raises(ConfigError):
         RelocConfig(ambiguity_ratio=1.0)
+
+
+@pytest.mark.slow
+def test_victoria_park_second_session_relocalises_in_the_first_sessions_map(datasets_dir):
+    """Map 0-400 s, then start the 400-700 s session 15 m / 20 deg off (measured: found after
+    the first 5-s window, within ~0.1 m of session 1's end pose)."""
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.slam.motion import compose, preintegrate
+
+    vp = load_victoria_park(datasets_dir / "victoria_park")
+    r1 = Isam2Slam().run(vp.slice(0.0, 400.0).problem())
+    p2 = vp.slice(400.0, 700.0).problem()
+    t1, t2 = float(r1.trajectory.times[-1]), float(p2.frames.times[0])
+    d = preintegrate(vp.model, vp.controls, [t1, t2], with_covariance=False).deltas[0]
+    want = compose(r1.trajectory.poses[-1], d)
+    guess = (want[0] + 12.0, want[1] - 9.0, want[2] + math.radians(20.0))
+    rel = relocalise(p2, r1.stem_map, guess=guess)
+    assert rel.ok, rel.reason
+    assert rel.time_s <= 30.0
+    assert math.hypot(rel.pose[0] - want[0], rel.pose[1] - want[1]) < 0.5
+    assert abs(math.remainder(rel.pose[2] - want[2], 2 * math.pi)) < math.radians(1.0)
