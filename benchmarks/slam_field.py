@@ -79,9 +79,9 @@ def _gnss(data: str | None, csv_out: str | None) -> dict[str, Any]:
     cv_rows, (kern, sig) = _gnss_cv(vp, fused)
     if csv_out:
         with open(csv_out, "w", encoding="utf-8") as fh:
-            fh.write("time,x,y,sigma\n")
+            fh.write("time_s,x,y,sigma\n")
             for t, (x, y), s in zip(fused.times, fused.xy, fused.sigma, strict=True):
-                fh.write(f"{t!r},{x!r},{y!r},{s!r}\n")
+                fh.write(f"{float(t)!r},{float(x)!r},{float(y)!r},{float(s)!r}\n")
     off = vp.model.sensor_offset
     default = Isam2Slam().run(dataclasses.replace(vp.problem(), gnss=fused))
     rd = ate(default.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=unused, align=False)

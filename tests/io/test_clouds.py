@@ -202,3 +202,33 @@ def test_bag_of_pointcloud2(tmp_path: Path, bags: Any) -> None:
     np.testing.assert_array_equal(cloud.xyz, np.vstack(parts).astype(np.float64))
     with pytest.raises(InputError):
         read_cloud(tmp_path / "missing.bag")
+
+
+def _patch_las_header(f: Path, offset: int, fmt: str, value: Any) -> None:
+    import struct
+
+    data = bytearray(f.read_bytes())
+    struct.pack_into(fmt, data, offset, value)
+    f.write_bytes(bytes(data))
+
+
+def test_las_point_count_half_the_file_is_an_error(tmp_path: Path, pts: np.ndarray) -> None:
+    """A header announcing half the records would silently read half the cloud (issue 13)."""
+    f = tmp_path / "half.las"
+    _write_las(f, pts)
+    # LAS 1.2 header: legacy point count (uint32) at byte 107
+    _patch_las_header(f, 107, "<I", len(pts) // 2)
+    with pytest.raises(InputError, match=r"half\.las.*announces 250 points.*holds 500"):
+        read_cloud(f)
+    with pytest.raises(InputError, match="announces"):
+        list(iter_cloud_chunks(f, chunk_size=100))
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_las_zero_scale_is_an_error(tmp_path: Path, pts: np.ndarray, axis: int) -> None:
+    f = tmp_path / "zero.las"
+    _write_las(f, pts)
+    # x, y, z scale factors (float64) at bytes 131, 139, 147
+    _patch_las_header(f, 131 + 8 * axis, "<d", 0.0)
+    with pytest.raises(InputError, match=r"zero\.las.*scale factors.*finite non-zero"):
+        read_cloud(f)

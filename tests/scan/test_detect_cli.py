@@ -38,7 +38,7 @@ def test_detect_writes_rows_and_reports_a_corrupt_frame(tmp_path):
     assert "skipped frame 1" in res.output
     with out.open() as fh:
         rows = list(csv.DictReader(fh))
-    required = {"scan_index", "time", "x", "y", "diameter", "radius_std", "n_points"}
+    required = {"scan_index", "time_s", "x", "y", "diameter", "radius_std", "n_points"}
     assert required <= set(rows[0])
     # two trunks in each of the three good frames; scan_index is the position in the file
     assert sorted({int(r["scan_index"]) for r in rows}) == [0, 2, 3]

@@ -126,7 +126,7 @@ def test_read_gnss_csv(tmp_path):
     np.testing.assert_allclose(f.xy[1], [1.5, 2.5])
     assert f.lever_arm == (0.3, 0.0)
     p2 = tmp_path / "nosig.csv"
-    p2.write_text("time,x,y\n0,1,2\n1,2,3\n")
+    p2.write_text("time_s,x,y\n0,1,2\n1,2,3\n")
     np.testing.assert_allclose(read_gnss_csv(p2).sigma, [1.0, 1.0])
 
 

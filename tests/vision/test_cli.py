@@ -121,3 +121,64 @@ def test_cli_errors(tmp_path: Path) -> None:
     few.write_text("x,y,u,v\n1,0,1,1\n2,0,2,2\n3,0,3,3\n")
     res = RUNNER.invoke(app, ["calibrate", str(few), "--out", str(tmp_path / "c.json")])
     assert res.exit_code == 2 and "failed" in " ".join(res.output.split())
+
+
+def _fuse_inputs(tmp_path: Path, empty: bool = False) -> list[str]:
+    sc = fusion_scene(2, rig=RIG)
+    b = ScanBatch.from_scans([sc.scan])
+    if empty:  # a scan with no returns at all
+        b = ScanBatch(np.full_like(b.ranges, np.inf), b.times, b.angle_min, b.angle_increment)
+    write_scans_npz(tmp_path / "scan.npz", b)
+    cv2.imwrite(str(tmp_path / "frame.png"), sc.image[..., ::-1])
+    return ["fuse", "--scan", str(tmp_path / "scan.npz"), "--image", str(tmp_path / "frame.png")]
+
+
+def _calib(tmp_path: Path, doc: dict) -> Path:
+    p = tmp_path / "calib.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def test_fuse_scan_without_returns(tmp_path: Path) -> None:
+    """An empty scan fused to work (it raised ValueError): the image's regions are reported."""
+    K = RIG.camera.K.tolist()
+    calib = _calib(tmp_path, {"G": G.tolist(), "camera": {"K": K, "width": 1280, "height": 720}})
+    argv = [*_fuse_inputs(tmp_path, empty=True), "--calibration", str(calib)]
+    for method in ("xue2018", "ours"):
+        out = tmp_path / f"d_{method}.csv"
+        res = RUNNER.invoke(app, [*argv, "--out", str(out), "--method", method])
+        assert res.exit_code == 0, res.output
+        assert "has no returns" in res.output
+        rows = list(csv.DictReader(out.open()))
+        assert rows and all(r["kind"] == "vision" and r["is_trunk"] == "0" for r in rows)
+
+
+def test_fuse_calibration_errors_name_the_field(tmp_path: Path) -> None:
+    argv = _fuse_inputs(tmp_path)
+    K = RIG.camera.K.tolist()
+    cases = [
+        ({}, "lacks the field 'G'"),
+        ({"G": [[0, 0, 0]] * 3}, "'G' is singular"),
+        ({"G": [[1, 2], [3, 4]]}, "'G' must be a 3x3 array"),
+        ({"G": G.tolist(), "camera": {"width": 1280, "height": 720}}, "'camera.K'"),
+        ({"G": G.tolist(), "camera": {"K": K, "height": 720}}, "'camera.width'"),
+        ({"G": G.tolist(), "camera": {"K": K, "width": -5, "height": 720}}, "'camera.width'"),
+        (
+            {"G": G.tolist(), "camera": {"K": K, "width": 9, "height": 9}, "laser_to_camera": {}},
+            "'laser_to_camera.R'",
+        ),
+        ([1, 2, 3], "must hold an object"),
+    ]
+    for doc, expected in cases:
+        calib = _calib(tmp_path, doc)
+        res = RUNNER.invoke(
+            app, [*argv, "--calibration", str(calib), "--out", str(tmp_path / "d.csv")]
+        )
+        assert res.exit_code == 2, (doc, res.output)
+        errs = [ln for ln in res.output.splitlines() if ln.startswith("error:")]
+        assert len(errs) == 1 and expected in errs[0], (doc, res.output)
+    (tmp_path / "calib.json").write_text('{"G": [1, 2')
+    res = RUNNER.invoke(
+        app, [*argv, "--calibration", str(tmp_path / "calib.json"), "--out", "d.csv"]
+    )
+    assert res.exit_code == 2 and "not valid JSON" in res.output

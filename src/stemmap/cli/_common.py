@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from stemmap.errors import StemmapError
@@ -20,6 +22,7 @@ __all__ = [
     "fail_on_stemmap_error",
     "json_default",
     "out",
+    "print_error",
     "progress",
 ]
 
@@ -29,13 +32,32 @@ console = Console(stderr=True)
 out = Console()
 
 
+def print_error(message: str) -> None:
+    """One ``error: ...`` line on stderr, never wrapped and never read as rich markup."""
+    console.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
+
+
 @contextlib.contextmanager
 def fail_on_stemmap_error() -> Iterator[None]:
-    """Turn a StemmapError into a one-line message and exit code 2 (no traceback)."""
+    """Turn a StemmapError or an OS error into one ``error:`` line and exit code 2.
+
+    The line is printed unwrapped (``soft_wrap``), so a long path stays on one line and tools
+    can ``grep '^error:'``. OS errors (a failed read or write that no reader wrapped) name the
+    file and the reason; no traceback is shown.
+    """
     try:
         yield
     except StemmapError as exc:
-        console.print(f"[red]error:[/red] {exc}")
+        print_error(str(exc))
+        raise typer.Exit(code=2) from exc
+    except MemoryError as exc:
+        print_error(
+            "out of memory: the input is too large for this machine (see docs/reliability.md)."
+        )
+        raise typer.Exit(code=2) from exc
+    except OSError as exc:
+        where = f" {os.fsdecode(exc.filename)!r}" if exc.filename is not None else ""
+        print_error(f"cannot access{where}: {exc.strerror or exc}.")
         raise typer.Exit(code=2) from exc
 
 

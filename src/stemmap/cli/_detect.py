@@ -51,7 +51,7 @@ def detect(
         bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
     ] = False,
 ) -> None:
-    """Detect trunks in every scan and write scan_index,time,x,y,diameter,radius_std,n_points,...
+    """Detect trunks in every scan and write scan_index,time_s,x,y,diameter,radius_std,n_points,...
 
     Coordinates are in the sensor frame (metres). A damaged frame is reported and skipped;
     ``scan_index`` is the frame's position in the file, so skipped frames leave gaps.
@@ -59,11 +59,15 @@ def detect(
     Example: stemmap detect run.npz --out stems.csv --preset stemmap
     """
     from stemmap.io.maps import write_observations_csv
+    from stemmap.io.products import run_products
     from stemmap.io.scans import SkippedFrame, read_scans
     from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
     from stemmap.types import ScanBatch, StemObservations
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("detect", inputs=[scans], outputs=[out_path]) as run,
+    ):
         overrides: dict[str, object] = {}
         if fit is not None:
             overrides["fit_method"] = fit
@@ -119,7 +123,7 @@ def detect(
         result = StemObservations.concatenate(parts)
         if len(result) == 0:
             result = StemObservations.empty(source=detector.source, frame=batch.frame)
-        write_observations_csv(out_path, result)
+        write_observations_csv(run.path(out_path), result)
     if not quiet:
         n_with = len(np.unique(result.index)) if len(result) else 0
         out.print(

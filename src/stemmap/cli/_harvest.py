@@ -42,11 +42,12 @@ def harvest_sim(
     from stemmap.harvester.capture import warm_up_planner
     from stemmap.harvester.kinematics import ForestryCrane
     from stemmap.harvester.simulate import harvester_stand, simulate_capture
+    from stemmap.io.products import run_products
     from stemmap.viz.harvester import plot_capture
 
     if target not in ("nearest", "index", "bearing"):
         raise typer.BadParameter("use nearest, index or bearing", param_hint="--target")
-    with fail_on_stemmap_error():
+    with fail_on_stemmap_error(), run_products("harvest-sim", outputs=[png]) as run:
         crane = ForestryCrane()
         warm_up_planner()  # a controller compiles before its first control period
         stand = harvester_stand(trees, rng=seed)
@@ -73,7 +74,7 @@ def harvest_sim(
                 f"{c.planning_ms:.2f}",
             )
         out.print(table)
-        plot_capture(png, stand, result, crane)
+        plot_capture(run.path(png), stand, result, crane)
         err = f"{result.final_error * 100:.1f} cm" if math.isfinite(result.final_error) else "n/a"
         out.print(
             f"{'CAPTURED' if result.success else 'FAILED: ' + result.reason}; "

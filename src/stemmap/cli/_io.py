@@ -78,10 +78,14 @@ def convert_scans(
     stemmap io convert-scans run.npz --out run_ros2 --storage mcap
     """
     from stemmap.errors import InputError
+    from stemmap.io.products import run_products
     from stemmap.io.rosbag import write_scans_bag
     from stemmap.io.scans import SkippedFrame, read_scans, write_scans_csv, write_scans_npz
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("io convert-scans", inputs=[src], outputs=[out_path]) as run,
+    ):
         ext = out_path.suffix.lower()
         if ext not in (".npz", ".csv", ".bag", ""):
             raise InputError(
@@ -94,13 +98,14 @@ def convert_scans(
             console.print(
                 f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"
             )
+        staged = run.path(out_path)
         if ext == ".npz":
-            write_scans_npz(out_path, batch)
+            write_scans_npz(staged, batch)
         elif ext == ".csv":
-            write_scans_csv(out_path, batch)
+            write_scans_csv(staged, batch)
         else:
             ros = 1 if ext == ".bag" else 2
-            write_scans_bag(out_path, batch, topic=out_topic, ros=ros, storage=storage)
+            write_scans_bag(staged, batch, topic=out_topic, ros=ros, storage=storage)
     if not quiet:
         out.print(
             f"{len(batch)} scans x {batch.n_beams} beams ({len(skipped)} skipped) -> {out_path}",

@@ -1,7 +1,7 @@
 """``stemmap map``: tree-landmark SLAM on a dataset, a simulated run or a ROS bag.
 
 Writes to ``--out DIR``: ``trees.csv`` (id,x,y,diameter,std_x,std_y,n_obs,...),
-``trees.geojson``, ``trajectory.csv`` (time,x,y,theta), ``metrics.json`` and ``map.png``.
+``trees.geojson``, ``trajectory.csv`` (time_s,x,y,theta), ``metrics.json`` and ``map.png``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,21 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
+from stemmap.cli._geo import (
+    CrsOption,
+    GpkgFlag,
+    checked_crs,
+    write_gps_frame,
+    write_map_products,
+)
+from stemmap.cli._summary import (
+    JsonFlag,
+    announce_compile,
+    fmt,
+    print_summary,
+    write_run_report,
+)
 from stemmap.errors import ConfigError, InputError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
@@ -32,8 +46,25 @@ class Backend(StrEnum):
     isam2 = "isam2"
 
 
+class TrajectoryFormat(StrEnum):
+    csv = "csv"
+    tum = "tum"
+
+
 class Dataset(StrEnum):
     victoria_park = "victoria-park"
+
+
+def _vp_inputs(data: Path | None) -> list[Path]:
+    """The Victoria Park files a run reads (recorded and protected by the run manifest)."""
+    from stemmap.datasets import find_datasets_dir
+
+    if data is None:
+        root = find_datasets_dir()
+        if root is None:
+            return []
+        data = root / "victoria_park"
+    return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
 
 
 def _victoria_park(
@@ -239,6 +270,7 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
             m.update(r.as_dict("ate_"))
             al = r.alignment
             assert al is not None
+            ctx["alignment"] = al
             # GPS into the map frame (inverse of the map->GPS alignment) for the figure
             g = vp.gps_xy[scr.keep] - np.asarray(al.t)
             gps_map = g @ al.rotation
@@ -267,9 +299,84 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
     return m, gps_map, truth_xy
 
 
+def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]:
+    """The terminal summary of a map run: (quantity, value, metrics.json key)."""
+    rows = [
+        ("trees mapped", fmt(m.get("n_trees")), "n_trees"),
+        ("tree pairs closer than 1 m", fmt(m.get("duplicates_1m")), "duplicates_1m"),
+    ]
+    if "ate_rmse_m" in m:
+        rows.append(("path error vs GPS (ATE RMSE)", fmt(m["ate_rmse_m"], " m"), "ate_rmse_m"))
+        dr = m.get("dead_reckoning_ate_rmse_m")
+        rows.append(("dead reckoning ATE RMSE", fmt(dr, " m"), "dead_reckoning_ate_rmse_m"))
+    if "trajectory_rmse_m" in m:
+        rows.append(("path RMSE vs truth", fmt(m["trajectory_rmse_m"], " m"), "trajectory_rmse_m"))
+        lc = m.get("loop_closure_error_m")
+        rows.append(("loop-closure error", fmt(lc, " m"), "loop_closure_error_m"))
+    mm = m.get("map")
+    if isinstance(mm, dict):
+        rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
+        rows.append(("map precision", fmt(mm.get("precision")), "map.precision"))
+        pr = mm.get("position_rmse")
+        rows.append(("tree position RMSE", fmt(pr, " cm", 100, 1), "map.position_rmse"))
+        dr_ = mm.get("diameter_rmse")
+        rows.append(("DBH RMSE", fmt(dr_, " cm", 100, 2), "map.diameter_rmse"))
+    if len(stem_map):
+        import numpy as np
+
+        ds = np.array([t.diameter_std for t in stem_map])
+        conf = np.array([t.confidence for t in stem_map])
+        med = float(np.nanmedian(ds)) if np.isfinite(ds).any() else math.nan
+        rows.append(("median DBH standard error", fmt(med, " cm", 100, 2), "trees.csv"))
+        rows.append(("trees with confidence >= 0.5", fmt(int(np.sum(conf >= 0.5))), "trees.csv"))
+    return rows
+
+
+def headline(m: dict[str, Any]) -> str:
+    """One line of the run's key numbers (figure titles, the terminal summary)."""
+    parts = [f"{m.get('n_trees', 0)} trees"]
+    mm = m.get("map")
+    if isinstance(mm, dict):
+        parts.append(f"recall {mm.get('recall', math.nan):.2f}")
+        parts.append(f"precision {mm.get('precision', math.nan):.2f}")
+    if "ate_rmse_m" in m:
+        parts.append(f"ATE RMSE {m['ate_rmse_m']:.2f} m vs GPS")
+    if "trajectory_rmse_m" in m:
+        parts.append(f"path RMSE {m['trajectory_rmse_m']:.2f} m")
+    return ", ".join(parts)
+
+
+def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
+    """What the map and trajectory coordinates mean (recorded in metrics.json)."""
+    a, b = problem.sensor_offset
+    return {
+        "map_frame": "the frame of the initial pose (x, y metres; odometry frame, the "
+        "simulator's world frame for --sim and demo)",
+        "crs": crs,
+        "georeferenced": crs is not None,
+        "trajectory_point": "the vehicle reference point of the motion model (Victoria Park: "
+        "the rear-axle centre), sensor_offset_m behind the laser",
+        "sensor_offset_m": [a, b],
+        "sensor_offset_meaning": f"the laser is {a} m ahead and {b} m left of the trajectory "
+        "point, in the vehicle frame",
+    }
+
+
 def map_command(
     bag: Annotated[
-        Path | None, typer.Argument(help="ROS1/ROS2 bag with LaserScan + Odometry.")
+        Path | None,
+        typer.Argument(
+            metavar="INPUT",
+            help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
+            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry.",
+        ),
+    ] = None,
+    odometry: Annotated[
+        Path | None,
+        typer.Option(
+            help="Wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) for scan or detection "
+            "inputs [default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes].",
+        ),
     ] = None,
     dataset: Annotated[
         Dataset | None, typer.Option("--dataset", help="A known public dataset.")
@@ -296,7 +403,7 @@ def map_command(
     ] = "0,0",
     gnss: Annotated[
         Path | None,
-        typer.Option("--gnss", help="GNSS fixes CSV 'time,x,y[,sigma]' (metric frame); isam2."),
+        typer.Option("--gnss", help="GNSS fixes CSV 'time_s,x,y[,sigma]' (metric frame); isam2."),
     ] = None,
     gnss_lever: Annotated[
         str | None,
@@ -341,24 +448,53 @@ def map_command(
         ),
     ] = None,
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    as_json: JsonFlag = False,
+    crs: CrsOption = None,
+    gpkg: GpkgFlag = False,
+    trajectory_format: Annotated[
+        TrajectoryFormat,
+        typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
+    ] = TrajectoryFormat.csv,
 ) -> None:
-    """Map trees and the machine's path with tree-landmark SLAM."""
+    """Map trees and the machine's path with tree-landmark SLAM.
+
+    Writes to --out: trees.csv, trees.geojson, trajectory.csv (--trajectory-format tum:
+    trajectory.tum), metrics.json, map.png, report.html, and with --gpkg map.gpkg; Victoria
+    Park also gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json
+    (the map in the GPS frame). Every column: docs/outputs.md.
+
+    Example: stemmap map --dataset victoria-park --out vp
+
+    Example: stemmap sim scans --out run.npz && stemmap map run.npz --out runmap
+
+    Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
+    """
+    from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
-    from stemmap.io.maps import write_trees_csv, write_trees_geojson
-    from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.io.products import run_products
+    from stemmap.io.rosbag import is_bag
     from stemmap.slam.base import dead_reckoning, make_backend
+    from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
 
-    with fail_on_stemmap_error():
+    inputs = [bag, odometry] if dataset is None else _vp_inputs(data)
+    with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
+        crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
         if sources != 1:
-            raise ConfigError("give exactly one input: a BAG, --dataset victoria-park, or --sim.")
+            raise ConfigError(
+                "give exactly one input: a bag, scans or detections file, --dataset "
+                "victoria-park, or --sim."
+            )
+        announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
         if dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
             problem, ctx = _simulated(seed, sim_trees, sim_size)
         else:
             assert bag is not None
+            if odometry is not None and is_bag(bag):
+                raise ConfigError("--odometry is for scan / detection files; a bag has its own.")
             try:
                 a_str, b_str = sensor_offset.split(",")
                 off = (float(a_str), float(b_str))
@@ -366,7 +502,7 @@ def map_command(
                 raise ConfigError(
                     f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
                 ) from exc
-            problem, ctx = _bag(bag, off)
+            problem, ctx = _bag(bag, off) if is_bag(bag) else file_problem(bag, odometry, off)
         if gnss is not None:
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None
@@ -383,27 +519,64 @@ def map_command(
                 result = _realtime(problem, backend.value, tick, rerun)
             else:
                 result = be.run(problem, progress=tick)
+        result.stem_map, unc = annotate_uncertainty(result, problem)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
         if reloc is not None:
             metrics["relocalisation"] = reloc.__dict__
-        out_dir.mkdir(parents=True, exist_ok=True)
-        write_trees_csv(out_dir / "trees.csv", result.stem_map)
-        write_trees_geojson(out_dir / "trees.geojson", result.stem_map)
-        write_trajectory_csv(out_dir / "trajectory.csv", result.trajectory)
-        with atomic_write(out_dir / "metrics.json") as fh:
+        metrics["uncertainty"] = unc.to_dict()
+        metrics["frames"] = frames_metadata(problem, crs)
+        run.note(frames=metrics["frames"])  # the body point and CRS travel with the manifest
+        stage = run.dir
+        if "odometry" in ctx and isinstance(ctx["odometry"], str):
+            run.add_input(ctx["odometry"])
+        fmt = trajectory_format.value
+        names = write_map_products(
+            stage, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
+        )
+        if "alignment" in ctx:
+            names += write_gps_frame(
+                stage,
+                ctx["alignment"],
+                result.stem_map,
+                result.trajectory,
+                sensor_offset=problem.sensor_offset,
+                gpkg=gpkg,
+                trajectory_format=fmt,
+            )
+        names += ["metrics.json", "map.png"]
+        with atomic_write(stage / "metrics.json") as fh:
             json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
         save_stem_map_png(
-            out_dir / "map.png",
+            stage / "map.png",
             result.stem_map,
             result.trajectory,
             gps_xy=gps_map,
             reference=dead_reckoning(problem),
             truth_xy=truth_xy,
-            title=f"{problem.name}: {backend.value}",
+            title=f"{problem.name}: {backend.value}\n{headline(metrics)}",
         )
-    summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
-    out.print(f"wrote {out_dir}/: trees.csv trees.geojson trajectory.csv metrics.json map.png")
-    out.print(json.dumps(clean_json(summary), default=json_default))
+        names.append(
+            write_run_report(
+                stage,
+                title=f"stemmap map: {problem.name} ({backend.value})",
+                headline=headline(metrics),
+                metrics=metrics,
+                figure="map.png",
+                stem_map=result.stem_map,
+                parameters={"backend": backend.value, "input": problem.name, "crs": crs,
+                            "sensor_offset_m": list(problem.sensor_offset), "t_end": t_end},
+                files=names,
+                crs=crs,
+            )
+        )  # fmt: skip
+    print_summary(
+        f"stemmap map: {problem.name} ({backend.value})",
+        summary_rows(metrics, result.stem_map),
+        out_dir,
+        [*names, "run.json"],
+        as_json=as_json,
+        payload={"metrics": metrics},
+    )
 
 
 def register(app: typer.Typer) -> None:

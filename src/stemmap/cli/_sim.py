@@ -9,7 +9,7 @@ output) against the truth files of a ``stemmap sim scans`` run.
   ``angle_min``, ``angle_increment``, ``range_min``, ``range_max``), via
   :func:`stemmap.io.scans.write_scans_npz`;
 * ``run_trees.csv`` -- ground-truth trees ``id,x,y,diameter`` (world frame, metres);
-* ``run_poses.csv`` -- the true sensor pose of every scan ``time,x,y,theta`` (world frame);
+* ``run_poses.csv`` -- the true sensor pose of every scan ``time_s,x,y,theta`` (world frame);
 * ``run_odometry.csv`` -- noisy wheel odometry ``time,speed,yaw_rate`` (m/s, rad/s; controls
   held until the next row);
 * ``run_gnss.csv`` -- noisy GNSS fixes of the vehicle ``time,x,y,sigma`` (world frame, m);
@@ -95,10 +95,16 @@ def scans(
 ) -> None:
     """Simulate a drive through a stand and write scans + ground truth.
 
+    Writes OUT (e.g. run.npz: the scans) and beside it run_trees.csv (true trees),
+    run_poses.csv (true sensor poses), run_odometry.csv (noisy wheel odometry, the input of
+    `stemmap map run.npz`), run_gnss.csv, run_truth.npz and run.npz.run.json. Columns:
+    docs/outputs.md and the module doc.
+
     Example: stemmap sim scans --out run.npz --preset sick_lms --seed 1 --n-scans 2000
     """
     from stemmap.errors import ConfigError
     from stemmap.io.atomic import atomic_write
+    from stemmap.io.products import run_products
     from stemmap.io.scans import write_scans_npz
     from stemmap.io.trajectory import write_trajectory_csv
     from stemmap.sim import (
@@ -114,7 +120,13 @@ def scans(
         straight_path,
     )
 
-    with fail_on_stemmap_error():
+    t_path = trees_out or _sibling(out_path, "trees.csv")
+    p_path = poses_out or _sibling(out_path, "poses.csv")
+    o_path = _sibling(out_path, "odometry.csv")
+    g_path = _sibling(out_path, "gnss.csv")
+    truth_path = _sibling(out_path, "truth.npz")
+    products = [out_path, t_path, p_path, o_path, g_path, truth_path]
+    with fail_on_stemmap_error(), run_products("sim scans", outputs=products) as run:
         if n_scans is not None and n_scans < 2:
             raise ConfigError(f"--n-scans must be >= 2, got {n_scans}.")
         if not size > 4.0:
@@ -161,7 +173,7 @@ def scans(
             wp = lawnmower_path((0.0, 0.0, size, size), gap, margin=gap / 2)
         else:
             wp = straight_path((0.1 * size, 0.1 * size), (0.9 * size, 0.9 * size))
-        run = simulate_run(
+        sim = simulate_run(
             stand,
             wp,
             scanner=model,
@@ -173,39 +185,35 @@ def scans(
             motion_skew=motion_skew,
             rng=g_run,
         )
-        if n_scans is not None and len(run) < n_scans:
+        if n_scans is not None and len(sim) < n_scans:
             raise ConfigError(
-                f"the {path.value} drive yields only {len(run)} scans at {rate} Hz and {speed} m/s;"
+                f"the {path.value} drive yields only {len(sim)} scans at {rate} Hz and {speed} m/s;"
                 " lower --speed, use --path loop, or ask for fewer --n-scans."
             )
-        write_scans_npz(out_path, run.scans)
-        t_path = trees_out or _sibling(out_path, "trees.csv")
-        p_path = poses_out or _sibling(out_path, "poses.csv")
-        st = run.stand
-        with atomic_write(t_path) as fh:
+        write_scans_npz(run.path(out_path), sim.scans)
+        st = sim.stand
+        with atomic_write(run.path(t_path)) as fh:
             fh.write("id,x,y,diameter\n")
             for i in range(st.n_trees):
                 x, y = st.trees_xy[i]
                 fh.write(f"{i},{x:.6f},{y:.6f},{st.diameters[i]:.6f}\n")
-        write_trajectory_csv(p_path, run.true_poses)
-        o_path = _sibling(out_path, "odometry.csv")
-        with atomic_write(o_path) as fh:
+        write_trajectory_csv(run.path(p_path), sim.true_poses)
+        with atomic_write(run.path(o_path)) as fh:
             fh.write("time,speed,yaw_rate\n")
-            odo = run.odometry
+            odo = sim.odometry
             for t, v, w in zip(
                 odo.times.tolist(), odo.speed.tolist(), odo.yaw_rate.tolist(), strict=True
             ):
                 fh.write(f"{t!r},{v!r},{w!r}\n")
-        g_path = _sibling(out_path, "gnss.csv")
-        with atomic_write(g_path) as fh:
+        with atomic_write(run.path(g_path)) as fh:
             fh.write("time,x,y,sigma\n")
-            if run.gnss is not None:
-                g = run.gnss
+            if sim.gnss is not None:
+                g = sim.gnss
                 for t, (x, y), sg in zip(
                     g.times.tolist(), g.xy.tolist(), g.sigma.tolist(), strict=True
                 ):
                     fh.write(f"{t!r},{x!r},{y!r},{sg!r}\n")
-        params = dict(run.params)
+        params = dict(sim.params)
         params.update(
             {
                 "seed": seed,
@@ -217,17 +225,16 @@ def scans(
                 "preset": preset,
             }
         )
-        truth_path = _sibling(out_path, "truth.npz")
-        with atomic_write(truth_path, "wb") as fh:
+        with atomic_write(run.path(truth_path), "wb") as fh:
             np.savez_compressed(
                 fh,
-                hit_ids=run.hit_ids.astype(np.int32),
-                mixed=run.mixed,
-                odom_time=run.odometry.times,
-                odom_speed=run.odometry.speed,
-                odom_yaw_rate=run.odometry.yaw_rate,
-                true_speed=run.true_odometry.speed,
-                true_yaw_rate=run.true_odometry.yaw_rate,
+                hit_ids=sim.hit_ids.astype(np.int32),
+                mixed=sim.mixed,
+                odom_time=sim.odometry.times,
+                odom_speed=sim.odometry.speed,
+                odom_yaw_rate=sim.odometry.yaw_rate,
+                true_speed=sim.true_odometry.speed,
+                true_yaw_rate=sim.true_odometry.yaw_rate,
                 clutter_xy=st.clutter_objects_xy,
                 clutter_extent=st.clutter_objects_extent,
                 clutter_kind=np.array(st.clutter_kinds, dtype=str),
@@ -235,7 +242,7 @@ def scans(
             )
         if not quiet:
             out.print(
-                f"simulated {len(run)} scans x {run.scans.n_beams} beams ({preset}), "
+                f"simulated {len(sim)} scans x {sim.scans.n_beams} beams ({preset}), "
                 f"{st.n_trees} trees, {st.n_clutter_objects} non-tree objects\n"
                 f"  scans: {out_path}\n  trees: {t_path}\n  poses: {p_path}\n"
                 f"  odometry: {o_path}\n  gnss: {g_path}\n  truth: {truth_path}"
@@ -297,10 +304,17 @@ def score(
     from stemmap.eval import score_scan_detections
     from stemmap.io.atomic import atomic_write
     from stemmap.io.maps import read_observations_csv
+    from stemmap.io.products import run_products
     from stemmap.io.scans import read_scans
     from stemmap.io.trajectory import read_trajectory_csv
 
-    with fail_on_stemmap_error():
+    truth_files = [_sibling(run_path, s) for s in ("trees.csv", "poses.csv", "truth.npz")]
+    with (
+        fail_on_stemmap_error(),
+        run_products(
+            "sim score", inputs=[detections, run_path, *truth_files], outputs=[json_out]
+        ) as run,
+    ):
         batch = read_scans(run_path)
         trees_xy, diam = _read_truth_trees(_sibling(run_path, "trees.csv"))
         poses = read_trajectory_csv(_sibling(run_path, "poses.csv")).poses
@@ -343,7 +357,7 @@ def score(
             "min_diameter_m": min_diameter,
         }
         if json_out is not None:
-            with atomic_write(json_out) as fh:
+            with atomic_write(run.path(json_out)) as fh:
                 json.dump(d, fh, indent=2)
 
         def cm(v: float) -> str:

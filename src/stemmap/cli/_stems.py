@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._common import console, fail_on_stemmap_error, progress
+from stemmap.cli._geo import checked_crs
+from stemmap.cli._summary import JsonFlag, fmt, print_summary
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -77,6 +80,27 @@ def stems(
     ] = "ours",
     geojson: Annotated[Path | None, typer.Option(help="Also write a GeoJSON of the stems.")] = None,
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write a self-contained HTML report (figure, DBH histogram, table)."
+        ),
+    ] = None,
+    gpkg: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write a GeoPackage (layer 'stems') in the cloud's CRS.",
+            rich_help_panel="Georeferencing",
+        ),
+    ] = None,
+    crs: Annotated[
+        str | None,
+        typer.Option(
+            help="CRS of the cloud's x, y (EPSG code, WKT, PROJ) [default: the LAS/LAZ "
+            "header's CRS; none: a local frame].",
+            rich_help_panel="Georeferencing",
+        ),
+    ] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
     heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
     chunk_size: Annotated[int, typer.Option(help="Points per chunk when streaming LAS/LAZ.")] = (
@@ -93,7 +117,7 @@ def stems(
     trajectory: Annotated[
         Path | None,
         typer.Option(
-            help="Machine path, stemmap CSV time,x,y,theta (.csv) or TUM 't x y z qx qy qz qw'; "
+            help="Machine path, stemmap CSV time_s,x,y,theta (.csv) or TUM 't x y z qx qy qz qw'; "
             "each point's sensor position is interpolated at its time stamp (ours).",
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
@@ -121,6 +145,7 @@ def stems(
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = None,
+    as_json: JsonFlag = False,
 ) -> None:
     """Find stems in CLOUD and write x, y, z, diameter, n_points, quality per stem (cloud frame,
     metres). LAS/LAZ files are streamed in chunks (progress bar). munjer2025 expects one lidar
@@ -130,6 +155,10 @@ def stems(
     time stamps for a mobile cloud) the circle fits of preset ours minimise the range errors
     along each point's ray, which removes the low DBH bias of a noisy mobile lidar.
 
+    Writes the stems CSV (--out) and, on request, --geojson (WGS84 lon/lat when the CRS is
+    known: --crs or the LAS header), --gpkg (native CRS) and --png (top view to scale). Every
+    column: docs/outputs.md.
+
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
 
     Mobile: stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0
@@ -138,11 +167,21 @@ def stems(
     """
     from dataclasses import replace
 
+    import numpy as np
+
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.geo import GeoLayer, array_fields, las_crs, write_gpkg
+    from stemmap.io.products import run_products
 
-    with fail_on_stemmap_error():
+    outputs = [out_csv, geojson, gpkg, png, report]
+    with (
+        fail_on_stemmap_error(),
+        run_products("stems", inputs=[cloud, trajectory], outputs=outputs) as run,
+        tempfile.TemporaryDirectory() as tmp,
+    ):
+        crs = checked_crs(crs) if crs is not None else las_crs(cloud)
         cfg = get_preset(preset)
         if isinstance(cfg, StemConfig) and heights:
             cfg = replace(cfg, estimate_height=True)
@@ -156,12 +195,16 @@ def stems(
             result = detect_stems_file(
                 cloud, cfg, chunk_size=chunk_size, on_chunk=tick, sensor=sensor, topic=topic
             )
-        write_stems_csv(out_csv, result)
+        write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
-            write_stems_geojson(geojson, result)
-        if png is not None:
-            import numpy as np
-
+            write_stems_geojson(run.path(geojson), result, crs=crs)
+        if gpkg is not None:
+            fields = array_fields(result, len(result), skip=("xy",))
+            write_gpkg(run.path(gpkg), [GeoLayer("stems", result.xy, fields)], crs, result.frame)
+        fig_path = None if png is None else run.path(png)
+        if report is not None and png is None:
+            fig_path = Path(tmp) / "figure.png"
+        if fig_path is not None:
             # background: every k-th point of the whole file (one more streaming pass; the
             # size of a non-LAS file is known only once it is read, as one chunk)
             total = count_points(cloud)
@@ -171,16 +214,63 @@ def stems(
                     for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
                 ]
             )
-            plot_stems(png, result, background_xy=bg, title=f"{cloud.name}: {len(result)} stems")
-        out.print(
-            f"{len(result)} stems ({result.method}"
-            + (", along-ray fits" if sensor is not None else "")
-            + f") written to {out_csv}"
-            + (f", {geojson}" if geojson else "")
-            + (f", {png}" if png else "")
-        )
+            plot_stems(fig_path, result, background_xy=bg, title=cloud.name)
+        files = [str(p) for p in (out_csv, geojson, gpkg, png, report) if p is not None]
+        med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
+        rows = [
+            ("stems", fmt(len(result)), "rows of the CSV"),
+            ("median DBH", fmt(med, " cm", 100, 1), "diameter"),
+            ("method", result.method + (", along-ray fits" if sensor is not None else ""), ""),
+            ("CRS", crs[:40] if crs else "none (local frame)", ""),
+        ]
+        if report is not None:
+            assert fig_path is not None
+            _stems_report(run.path(report), fig_path, result, cloud, crs, rows, files)
+        print_summary(
+            f"stemmap stems: {cloud.name}", rows, None, files, as_json=as_json,
+            payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
+                     "method": result.method},
+        )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
+
+
+def _stems_report(
+    path: Path, fig: Path, result: Any, cloud: Path, crs: str | None, rows: Any, files: Any
+) -> None:
+    """report.html of a stems run: the figure, DBH histogram, summary and per-stem table."""
+    import numpy as np
+
+    from stemmap.cloud.export import STEM_CSV_COLUMNS
+    from stemmap.viz.report import write_report
+
+    metrics: dict[str, Any] = {
+        "n_stems": len(result),
+        "median_dbh_m": float(np.nanmedian(result.diameter)) if len(result) else None,
+        "method": result.method,
+        "crs": crs,
+        "point_spacing_m": float(result.spacing) if math.isfinite(result.spacing) else None,
+    }
+    cols = [c for c in STEM_CSV_COLUMNS if c not in ("id", "method") and hasattr(result, c)]
+    table = [
+        [k, round(float(result.xy[k, 0]), 3), round(float(result.xy[k, 1]), 3)]
+        + [round(float(getattr(result, c)[k]), 4) for c in cols if c not in ("x", "y")]
+        for k in range(len(result))
+    ]
+    header = ["id", "x", "y", *[c for c in cols if c not in ("x", "y")]]
+    write_report(
+        path,
+        title=f"stemmap stems: {cloud.name}",
+        headline=", ".join(f"{r[0]} {r[1]}" for r in rows),
+        metrics=metrics,
+        figure_png=fig.read_bytes(),
+        diameters=result.diameter,
+        table_header=header,
+        table_rows=table,
+        parameters={"cloud": str(cloud), "method": result.method, "crs": crs},
+        warnings=[] if crs else ["no CRS: coordinates are the cloud's local metres."],
+        files=[str(f) for f in files],
+    )
 
 
 def register(app: typer.Typer) -> None:

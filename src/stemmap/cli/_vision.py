@@ -26,13 +26,15 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out
 from stemmap.errors import ConfigError, InputError
 from stemmap.io.atomic import atomic_write
+from stemmap.io.products import run_products
 
-__all__ = ["calibrate", "fuse", "register", "segment"]
+__all__ = ["calibrate", "fuse", "read_calibration", "register", "segment"]
 
 
 def _read_table(path: Path, required: list[str], optional: list[str]) -> dict[str, np.ndarray]:
@@ -62,6 +64,96 @@ def _read_table(path: Path, required: list[str], optional: list[str]) -> dict[st
             raise InputError(f"{path}, data row {k}: every field must be a number.") from exc
     arr = np.asarray(data, dtype=np.float64).reshape(-1, len(header))
     return {c: arr[:, header.index(c)] for c in required + optional if c in header}
+
+
+def _matrix(doc: dict[str, Any], key: str, shape: tuple[int, ...], path: Path, where: str) -> Any:
+    """``doc[key]`` as a finite float array of ``shape``; InputError naming the field."""
+    name = f"{where}{key}"
+    if key not in doc:
+        raise InputError(f"calibration JSON {str(path)!r} lacks the field {name!r}.")
+    try:
+        a = np.asarray(doc[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        form = "x".join(str(n) for n in shape)
+        raise InputError(
+            f"calibration JSON {str(path)!r}: field {name!r} must be a {form} array of finite "
+            f"numbers, got {str(doc[key])[:80]}."
+        )
+    return a
+
+
+def read_calibration(path: Path) -> dict[str, Any]:
+    """Read and check a calibration JSON written by ``stemmap calibrate`` (see module doc).
+
+    Every field the fusion uses is checked here, so a damaged or hand-edited file ends in one
+    error naming the field (never a KeyError): ``G`` 3x3 finite and invertible (an all-zero or
+    singular matrix maps every laser point to nowhere); optional ``camera`` with ``K`` 3x3
+    (positive focal lengths) and positive integer ``width``/``height``; optional
+    ``laser_to_camera`` with a rotation ``R`` (orthonormal, det +1) and a 3-vector ``t``.
+    """
+    if not path.exists():
+        raise InputError(f"calibration JSON {str(path)!r} does not exist.")
+    if path.is_dir():
+        raise InputError(f"calibration JSON {str(path)!r} is a folder, not a file.")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"calibration JSON {str(path)!r} is not UTF-8 text: is it binary?"
+        ) from exc
+    except ValueError as exc:
+        raise InputError(f"calibration JSON {str(path)!r} is not valid JSON: {exc}.") from exc
+    except OSError as exc:
+        raise InputError(f"cannot read calibration JSON {str(path)!r}: {exc}.") from exc
+    if not isinstance(doc, dict):
+        raise InputError(f"calibration JSON {str(path)!r} must hold an object with a field 'G'.")
+    G = _matrix(doc, "G", (3, 3), path, "")
+    s = np.linalg.svd(G, compute_uv=False)
+    if not s[0] > 0 or s[-1] / s[0] < 1e-12:
+        raise InputError(
+            f"calibration JSON {str(path)!r}: field 'G' is singular (singular values "
+            f"{', '.join(f'{v:.3g}' for v in s)}); rerun `stemmap calibrate`."
+        )
+    out: dict[str, Any] = {"G": G}
+    if "camera" in doc:
+        cam = doc["camera"]
+        if not isinstance(cam, dict):
+            raise InputError(f"calibration JSON {str(path)!r}: field 'camera' must be an object.")
+        K = _matrix(cam, "K", (3, 3), path, "camera.")
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise InputError(
+                f"calibration JSON {str(path)!r}: 'camera.K' focal lengths must be > 0, got "
+                f"fx={K[0, 0]}, fy={K[1, 1]}."
+            )
+        size = []
+        for key in ("width", "height"):
+            v = cam.get(key)
+            if v is None:
+                raise InputError(f"calibration JSON {str(path)!r} lacks the field 'camera.{key}'.")
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise InputError(
+                    f"calibration JSON {str(path)!r}: 'camera.{key}' must be a positive whole "
+                    f"number of pixels, got {v!r}."
+                )
+            size.append(v)
+        out["camera"] = (K, size[0], size[1])
+    if "laser_to_camera" in doc:
+        l2c = doc["laser_to_camera"]
+        if not isinstance(l2c, dict):
+            raise InputError(
+                f"calibration JSON {str(path)!r}: field 'laser_to_camera' must be an object."
+            )
+        R = _matrix(l2c, "R", (3, 3), path, "laser_to_camera.")
+        t = _matrix(l2c, "t", (3,), path, "laser_to_camera.")
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise InputError(
+                f"calibration JSON {str(path)!r}: 'laser_to_camera.R' is not a rotation matrix "
+                "(R R^T != I or det R < 0)."
+            )
+        out["laser_to_camera"] = (R, t)
+    return out
 
 
 def _camera(
@@ -107,7 +199,10 @@ def calibrate(
     """
     from stemmap.vision.calibrate import fit_homography, solve_pnp
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("calibrate", inputs=[pairs], outputs=[out_path]) as run,
+    ):
         t = _read_table(pairs, ["x", "y", "u", "v"], ["z"])
         xy = np.column_stack((t["x"], t["y"]))
         uv = np.column_stack((t["u"], t["v"]))
@@ -142,7 +237,7 @@ def calibrate(
                 "t": pose.transform.t.tolist(),
                 "rms_px": pose.rms_px,
             }
-        with atomic_write(out_path) as fh:
+        with atomic_write(run.path(out_path)) as fh:
             json.dump(doc, fh, indent=2)
     table = Table(title=f"calibration ({fit.method})")
     table.add_column("quantity")
@@ -172,7 +267,10 @@ def segment(
     """
     from stemmap.vision.segment import segment_trunks
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("segment", inputs=[image], outputs=[out_path, rois]) as run,
+    ):
         if not image.is_file():
             raise InputError(f"image {image} does not exist.")
         bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
@@ -182,10 +280,10 @@ def segment(
         ok, buf = cv2.imencode(".png", seg.mask.astype(np.uint8) * 255)
         if not ok:  # pragma: no cover - OpenCV failure
             raise InputError(f"could not encode the mask for {out_path}.")
-        with atomic_write(out_path, "wb") as fh:
+        with atomic_write(run.path(out_path), "wb") as fh:
             fh.write(buf.tobytes())
         if rois is not None:
-            with atomic_write(rois) as fh:
+            with atomic_write(run.path(rois)) as fh:
                 w = csv.writer(fh, lineterminator="\n")
                 w.writerow(["x", "y", "w", "h", "alpha"])
                 r = seg.regions
@@ -220,18 +318,14 @@ def fuse(
     from stemmap.vision.camera import CameraModel, RigidTransform
     from stemmap.vision.segment import segment_trunks
 
-    with fail_on_stemmap_error():
+    with (
+        fail_on_stemmap_error(),
+        run_products("fuse", inputs=[scan, image, calibration], outputs=[out_path]) as run,
+    ):
         if method not in ("xue2018", "ours"):
             raise ConfigError(f"--method must be 'xue2018' or 'ours', got {method!r}.")
-        try:
-            doc = json.loads(calibration.read_text(encoding="utf-8"))
-            G = np.asarray(doc["G"], dtype=np.float64)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise InputError(
-                f"{calibration} is not a calibration JSON with a 3x3 'G': {exc}"
-            ) from exc
-        if G.shape != (3, 3) or not np.all(np.isfinite(G)):
-            raise InputError(f"{calibration}: 'G' must be a finite 3x3 matrix.")
+        doc = read_calibration(calibration)
+        G = doc["G"]
         batch = read_scans(scan)
         if not 0 <= scan_index < len(batch):
             raise InputError(
@@ -243,6 +337,12 @@ def fuse(
         if bgr is None:
             raise InputError(f"{image} is not a readable image file.")
         rgb = np.ascontiguousarray(bgr[..., ::-1], dtype=np.uint8)
+        if not np.any(np.isfinite(batch.ranges[scan_index])):
+            console.print(
+                f"[yellow]warning:[/yellow] scan {scan_index} of {escape(str(scan))} has no "
+                "returns: only the image can show trunks.",
+                soft_wrap=True,
+            )
         rois = laser_rois(batch[scan_index])
         seg = segment_trunks(rgb, preset)
         if method == "xue2018":
@@ -253,18 +353,14 @@ def fuse(
                     f"--method ours needs camera intrinsics in {calibration} "
                     "(run `stemmap calibrate` with --fx --cx --cy --width --height)."
                 )
-            cam = CameraModel(
-                np.asarray(doc["camera"]["K"]), doc["camera"]["width"], doc["camera"]["height"]
-            )
+            cam = CameraModel(*doc["camera"])
             l2c = None
             if "laser_to_camera" in doc:
-                l2c = RigidTransform(
-                    np.asarray(doc["laser_to_camera"]["R"]), np.asarray(doc["laser_to_camera"]["t"])
-                )
+                l2c = RigidTransform(*doc["laser_to_camera"])
             res = fuse_ours(
                 rois, seg.regions, G, rgb, cam, laser_to_camera=l2c, params=FusionParams(bpa=bpa)
             )
-        with atomic_write(out_path) as fh:
+        with atomic_write(run.path(out_path)) as fh:
             w = csv.writer(fh, lineterminator="\n")
             w.writerow(
                 [

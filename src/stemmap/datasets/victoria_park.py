@@ -71,6 +71,10 @@ log = logging.getLogger(__name__)
 SCAN_PERIOD_S = 0.2135
 #: Detector range limit of the laser (m): the SICK LMS returns up to 80 m.
 MAX_RANGE_M = 80.0
+#: Largest time (s) the laser scans may extend past either end of the odometry. The original
+#: files start with a 0.18 s head gap (first scan 0.797 s, first control 0.973 s); a scan more
+#: than 1 s (~5 scans, 40 control periods) outside the odometry means a truncated inputs.dat.
+SPAN_TOLERANCE_S = 1.0
 
 
 #: Laser time-stamp correction (s) added to every scan time: the scans were acquired ~55 ms
@@ -189,8 +193,58 @@ class VictoriaPark:
     path: Path
     skipped: dict[str, int] = field(default_factory=dict)
 
+    def check_time_spans(self) -> None:
+        """Refuse laser scans the odometry does not cover (a truncated or foreign file).
+
+        Dead reckoning past the last control extrapolates the last speed and steering, which
+        put the EKF/FastSLAM/treedb/Forestrix paths 166-445 m off on a run whose inputs.dat
+        was cut at 7 s (issue 13) and left iSAM2 with an indeterminate system. The spans must
+        agree within :data:`SPAN_TOLERANCE_S`; odometry running past the last scan is only
+        logged (the map simply ends earlier).
+
+        Raises
+        ------
+        InputError
+            Naming both files, their time spans and the ``--t-end`` / :meth:`slice` that maps
+            the common span.
+        """
+        tc = self.controls.times
+        tf = self.frames.times
+        if len(tc) < 2 or len(tf) == 0:
+            raise InputError(
+                f"Victoria Park in {self.path}: {len(tc)} odometry row(s) and {len(tf)} scan(s); "
+                "need at least 2 controls and 1 scan."
+            )
+        c0, c1, f0, f1 = float(tc[0]), float(tc[-1]), float(tf[0]), float(tf[-1])
+        if f1 > c1 + SPAN_TOLERANCE_S or f0 < c0 - SPAN_TOLERANCE_S:
+            lo, hi = max(c0, f0), min(c1, f1)
+            fix = (
+                f"map only the common span with --t-end {hi:.1f} (library: .slice({lo:.1f}, "
+                f"{hi:.1f}))"
+                if hi > lo
+                else "the spans do not overlap at all"
+            )
+            raise InputError(
+                f"Victoria Park in {self.path}: the odometry (inputs.dat) covers "
+                f"{c0:.1f}-{c1:.1f} s but the laser scans (measurements.dat) cover "
+                f"{f0:.1f}-{f1:.1f} s; inputs.dat is truncated or the files do not belong "
+                f"together: {fix}."
+            )
+        if c1 > f1 + SPAN_TOLERANCE_S:
+            log.warning(
+                "Victoria Park in %s: the laser scans end at %.1f s, %.1f s before the odometry "
+                "(measurements.dat truncated?); the map ends there.",
+                self.path,
+                f1,
+                c1 - f1,
+            )
+
     def problem(self, *, model: AckermannModel | None = None, name: str = "") -> SlamProblem:
-        """A :class:`SlamProblem` (vehicle starts at the origin heading along +x)."""
+        """A :class:`SlamProblem` (vehicle starts at the origin heading along +x).
+
+        Raises InputError if the odometry does not cover the scans (:meth:`check_time_spans`).
+        """
+        self.check_time_spans()
         m = model or self.model
         return SlamProblem(
             controls=self.controls,

@@ -154,6 +154,18 @@ def _stack(parts: list[Mass]) -> Mass:
     )
 
 
+def _roi_centers(rois: LaserRois, li: NDArray[np.int64]) -> FloatArray:
+    """(N, 2) laser RoI centre of each fused object; NaN rows for vision-only objects.
+
+    Always (N, 2), also when the scan had no laser RoI at all (an empty scan: issue 13).
+    """
+    out = np.full((li.shape[0], 2), np.nan)
+    if len(rois):
+        has = li >= 0
+        out[has] = np.asarray(rois.centers)[li[has]]
+    return out
+
+
 def _pick(m: Mass, idx: NDArray[np.int64], fallback: Mass) -> Mass:
     """Rows ``idx`` of ``m``; rows with idx < 0 take ``fallback`` (a scalar mass)."""
     ok = idx >= 0
@@ -199,9 +211,7 @@ def fuse_xue2018(
     mv = _pick(mv_all, ri, ns)
     comb = combine_dempster(ml, mv)
     dec = decide_xue2018(comb.mass, eps1=eps1, eps2=eps2) & comb.ok
-    centers = np.where(
-        (li >= 0)[:, None], rois.centers[np.maximum(li, 0)] if len(rois) else np.nan, np.nan
-    )
+    centers = _roi_centers(rois, li)
     diam = np.where(li >= 0, rois.widths[np.maximum(li, 0)] if len(rois) else np.nan, np.nan)
     return FusionResult(
         li,
@@ -318,9 +328,7 @@ def fuse_ours(
     ok &= comb3.ok
     conflict = 1 - (1 - conflict) * (1 - comb3.conflict)
     dec = decide_xue2018(fused, eps1=p.eps1, eps2=p.eps2) & ok
-    centers = np.where(
-        (li >= 0)[:, None], rois.centers[np.maximum(li, 0)] if len(rois) else np.nan, np.nan
-    )
+    centers = _roi_centers(rois, li)
     return FusionResult(
         li,
         ri,

@@ -84,6 +84,53 @@ def _las_fields(points: Any, names: tuple[str, ...]) -> dict[str, NDArray[Any]]:
     return {k: np.asarray(points[k]) for k in names if k in present}
 
 
+def _check_las_header(p: Path, header: Any) -> None:
+    """InputError on a LAS header that contradicts itself or the file (issue 13).
+
+    * every scale factor must be finite and non-zero (a zero scale maps every point onto the
+      offset: a silently collapsed cloud);
+    * an uncompressed file must hold exactly ``point_count`` records between the point-data
+      offset and the first extended VLR (or the end of the file). A header announcing fewer
+      points than the file holds would silently read part of the cloud; fewer bytes than it
+      announces is a truncated file. LAZ is compressed (no size rule); its reader reports a
+      short file.
+    """
+    scales = np.asarray(header.scales, dtype=np.float64)
+    if scales.shape != (3,) or not np.all(np.isfinite(scales)) or np.any(scales == 0):
+        raise InputError(
+            f"{str(p)!r}: the LAS header's scale factors are {scales.tolist()}; each must be a "
+            "finite non-zero number (typically 0.001 or 0.01)."
+        )
+    if header.are_points_compressed:
+        return
+    rec = int(header.point_format.size)
+    start = int(header.offset_to_point_data)
+    size = p.stat().st_size
+    end = size
+    evlr = int(getattr(header, "start_of_first_evlr", 0) or 0)
+    if int(getattr(header, "number_of_evlrs", 0) or 0) > 0 and start < evlr <= size:
+        end = evlr
+    if rec <= 0 or start > size:
+        raise InputError(
+            f"{str(p)!r}: the LAS header puts the point data at byte {start} of a {size}-byte "
+            f"file (record length {rec}); the header is corrupt."
+        )
+    held = (end - start) // rec
+    expected = int(header.point_count)
+    if held > expected:
+        raise InputError(
+            f"{str(p)!r}: the LAS header announces {expected} points but the file holds "
+            f"{held} point records ({end - start} bytes of {rec}-byte records); the header's "
+            "point count is wrong, so part of the cloud would be ignored. Repair the header "
+            "(e.g. `las2las` / laspy) or regenerate the file."
+        )
+    if held < expected:
+        raise InputError(
+            f"{str(p)!r} is truncated: its header announces {expected} points but the file "
+            f"holds only {held} ({size} bytes)."
+        )
+
+
 def iter_las_chunks(
     path: PathLike, chunk_size: int = 2_000_000, *, fields: tuple[str, ...] = ()
 ) -> Iterator[PointCloud]:
@@ -119,6 +166,7 @@ def iter_las_chunks(
     except Exception as exc:
         raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
     with reader:
+        _check_las_header(p, reader.header)
         expected = int(reader.header.point_count)
         seen = 0
         try:

@@ -47,12 +47,45 @@ from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 if TYPE_CHECKING:  # pragma: no cover
     from stemmap.slam.base import SlamProblem, SlamResult
 
-__all__ = ["PRESETS", "FastSlam", "systematic_resample"]
+__all__ = [
+    "PRESETS",
+    "FastSlam",
+    "particle_landmark_covariance",
+    "systematic_resample",
+]
 
 log = logging.getLogger(__name__)
 
 #: Published parameter sets: ``"munjer2025"`` = 100 particles (Munjer et al. 2025, Table 1).
 PRESETS: dict[str, dict[str, float | int]] = {"munjer2025": {"n_particles": 100}}
+
+
+def particle_landmark_covariance(
+    mu: FloatArray,
+    sig: FloatArray,
+    nlm: np.ndarray,
+    weights: FloatArray,
+    best: int,
+    j: int,
+    gate: float = 1.0,
+) -> FloatArray:
+    """Covariance of landmark slot ``j`` of particle ``best`` over the particle set.
+
+    The map posterior of FastSLAM is a mixture over particles of per-landmark Gaussians
+    (Montemerlo et al. 2002, eq. 3), so the landmark's covariance is the mixture covariance
+    ``sum_p w_p (Sigma_p + (mu_p - mu_bar)(mu_p - mu_bar)^T)`` over the particles that hold
+    the same landmark (slot ``j`` within ``gate`` metres of the best particle's estimate:
+    slots are inherited through resampling). It adds the spread of the particles' trajectories
+    to the best particle's own landmark EKF covariance.
+    """
+    have = np.flatnonzero(nlm > j)
+    d = np.hypot(*(mu[have, j] - mu[best, j]).T)
+    sel = have[d < gate]
+    w = weights[sel] / max(float(weights[sel].sum()), 1e-300)
+    m = w @ mu[sel, j]
+    dev = mu[sel, j] - m
+    cov = np.einsum("p,pij->ij", w, sig[sel, j]) + np.einsum("p,pi,pk->ik", w, dev, dev)
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> np.ndarray:
@@ -567,6 +600,7 @@ class FastSlam:
             cur = int(parents[f, cur])
         n_best = int(nlm[best])
         mapped = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
+        w_final = np.exp(logw - logw.max())
         trees = []
         for new_id, j in enumerate(mapped):
             dia = dsum[best, j] / dcnt[best, j] if dcnt[best, j] > 0 else math.nan
@@ -576,7 +610,7 @@ class FastSlam:
                     x=float(mu[best, j, 0]),
                     y=float(mu[best, j, 1]),
                     diameter=float(dia),
-                    cov=Sig[best, j],
+                    cov=particle_landmark_covariance(mu, Sig, nlm, w_final, best, int(j)),
                     n_obs=int(nobs[best, j]),
                     first_time=float(tfirst[best, j]),
                     last_time=float(tlast[best, j]),

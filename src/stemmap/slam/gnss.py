@@ -55,7 +55,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Columns of the GNSS CSV (``sigma`` optional), in order.
-GNSS_CSV_COLUMNS = ("time", "x", "y", "sigma")
+GNSS_CSV_COLUMNS = ("time_s", "x", "y", "sigma")
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,7 +113,8 @@ class GnssFixes:
 def read_gnss_csv(
     path: Any, *, lever_arm: tuple[float, float] = (0.0, 0.0), default_sigma: float = 1.0
 ) -> GnssFixes:
-    """Read a GNSS CSV ``time,x,y[,sigma]`` (header required; ``#`` comments allowed).
+    """Read a GNSS CSV ``time_s,x,y[,sigma]`` (header required, ``time`` accepted for
+    ``time_s``; ``#`` comments allowed).
 
     ``x, y`` are metric coordinates (a projected CRS such as UTM); ``sigma`` (m) defaults to
     ``default_sigma`` where the column or a value is missing. Raises :class:`InputError` naming
@@ -126,7 +127,7 @@ def read_gnss_csv(
     table = parse_numeric_csv(p, read_text(p, what), GNSS_CSV_COLUMNS[:3], ("sigma",), what)
     for name in GNSS_CSV_COLUMNS[:3]:
         require_finite(p, what, table, name)
-    t = table.columns["time"]
+    t = table.columns["time_s"]
     if t.shape[0] == 0:
         raise InputError(f"{what} file {str(p)!r} has no fixes.")
     sig = table.columns.get("sigma")
