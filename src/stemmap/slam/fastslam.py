@@ -258,7 +258,10 @@ class FastSlam:
         P (paper: 100).
     sigma_range : float, m
     sigma_bearing : float, rad
-        Detection noise R = diag(σ_r², σ_φ²).
+        Detection noise R = diag(σ_r², σ_φ²). Defaults 0.5 m / 2° (issue 18): the weight
+        multiplies the likelihoods of all detections of a frame, and a trunk centre's
+        viewpoint-dependent error persists over many scans; with 0.3 m / 1° the weights
+        collapsed (resampling in 61 % of the Victoria Park frames, 36 % now).
     new_landmark_chi2 : float
         A detection starts a new landmark when its best candidate's log-likelihood is below that
         of a detection at squared Mahalanobis distance ``new_landmark_chi2`` from a landmark whose
@@ -271,7 +274,9 @@ class FastSlam:
         the frame's detections (mapped with the particle's pose).
     window_margin : float, m
     min_observations : int
-        Landmarks of the best particle seen fewer times are left out of the output map.
+        Landmarks of the best particle seen fewer times are left out of the output map (and
+        tentative ones are pruned, see ``tentative_timeout_s``). Default 5 (was 3): on
+        Victoria Park 3 kept ~505 trees against iSAM2's 392 and the EKF's 414, 5 keeps ~397.
     min_new_separation : float, m
         Ours: a detection that matches no landmark but lies closer than this to one of the
         particle's landmarks is skipped for the frame rather than starting a new landmark (two
@@ -290,13 +295,13 @@ class FastSlam:
 
     preset: str | None = None
     n_particles: int = 100
-    sigma_range: float = 0.3
-    sigma_bearing: float = math.radians(1.0)
+    sigma_range: float = 0.5
+    sigma_bearing: float = math.radians(2.0)
     new_landmark_chi2: float = 13.8
     resample_threshold: float = 0.5
     max_candidates: int = 24
     window_margin: float = 3.0
-    min_observations: int = 3
+    min_observations: int = 5
     tentative_timeout_s: float = 5.0
     min_new_separation: float = 1.0
     version: int = 1
