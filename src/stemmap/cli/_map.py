@@ -67,12 +67,14 @@ def _vp_inputs(data: Path | None) -> list[Path]:
     return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
 
 
-def _victoria_park(data: Path | None, t_end: float | None) -> tuple[Any, dict[str, Any]]:
+def _victoria_park(
+    data: Path | None, t_end: float | None, t_start: float = 0.0
+) -> tuple[Any, dict[str, Any]]:
     from stemmap.datasets.victoria_park import load_victoria_park
 
     vp = load_victoria_park(data)
-    if t_end is not None:
-        vp = vp.slice(0.0, t_end)
+    if t_end is not None or t_start > 0:
+        vp = vp.slice(t_start, math.inf if t_end is None else t_end)
     return vp.problem(), {"kind": "victoria-park", "vp": vp}
 
 
@@ -159,6 +161,78 @@ def _bag(path: Path, sensor_offset: tuple[float, float]) -> tuple[Any, dict[str,
     return problem, {"kind": "bag", "odometry": odo}
 
 
+def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
+    """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
+    import dataclasses
+
+    from stemmap.slam.gnss import read_gnss_csv
+
+    if backend != "isam2":
+        raise ConfigError(f"--gnss is fused by the isam2 back-end only; got --backend {backend}.")
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise ConfigError(f"--gnss-sigma must be a positive number of metres, got {sigma}.")
+    if lever is None:  # Victoria Park: the antenna is at the laser (docs/algorithms/slam.md)
+        arm = problem.sensor_offset if problem.name.startswith("victoria_park") else (0.0, 0.0)
+    else:
+        try:
+            lx, ly = (float(v) for v in lever.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--gnss-lever must be 'x,y' in metres, got {lever!r}.") from exc
+        arm = (lx, ly)
+    fixes = read_gnss_csv(path, lever_arm=arm, default_sigma=sigma)
+    return dataclasses.replace(problem, gnss=fixes)
+
+
+def _continue(problem: Any, folder: Path, guess: str | None, backend: str) -> tuple[Any, Any]:
+    """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call)."""
+    from stemmap.io.maps import read_trees_csv
+    from stemmap.slam.relocalise import continue_session
+
+    if backend != "isam2":
+        raise ConfigError(f"--prior-map is used by the isam2 back-end only; got {backend}.")
+    g = None
+    if guess is not None:
+        try:
+            gx, gy, gd = (float(v) for v in guess.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--start-guess must be 'x,y,heading_deg', got {guess!r}.") from exc
+        g = (gx, gy, math.radians(gd))
+    csv = folder / "trees.csv" if folder.is_dir() else folder
+    return continue_session(problem, read_trees_csv(csv), g)
+
+
+def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
+    """``--realtime``: the log through :func:`stemmap.slam.online.replay` (latency in stats),
+    logged to a Rerun recording with ``--rerun``."""
+    from stemmap.slam.base import SlamResult
+    from stemmap.slam.online import replay
+
+    if backend != "isam2" or problem.gnss is not None or problem.prior_map is not None:
+        raise ConfigError("--realtime runs the isam2 online mapper without --gnss/--prior-map.")
+    rec = None
+    if rrd is not None:
+        from stemmap.viz.live import RerunRecorder
+
+        rec = RerunRecorder(rrd)
+
+    def on_scan(m: Any, f: int) -> None:
+        if rec is not None:
+            rec(m, f)
+        tick(f + 1, len(problem.frames))
+
+    try:
+        st = replay(problem, on_scan=on_scan)
+    finally:
+        if rec is not None:
+            rec.close()
+    lat = np.asarray(st["latency_s"]) * 1e3
+    stats = {"backend": "isam2-online", **st["stats"], "rss_mb": st["rss_mb_by_pass"][-1]}
+    for q in (50, 90, 99):
+        stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
+    stats["latency_ms_max"] = float(lat.max())
+    return SlamResult(st["trajectory"], st["stem_map"], stats)
+
+
 def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
     from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
@@ -186,6 +260,9 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
         off = vp.model.sensor_offset
         r = ate(result.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep)
         rd = ate(dr, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep)
+        if problem.gnss is not None:  # map in the GPS frame: also scored as it is
+            m.update(ate(result.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep,
+                         align=False).as_dict("ate_unaligned_"))  # fmt: skip
         m["gps_fixes_kept"] = scr.n_kept
         m["gps_fixes_total"] = scr.n_total
         m["gps_screening"] = scr.rule
@@ -315,12 +392,61 @@ def map_command(
     t_end: Annotated[
         float | None, typer.Option("--t-end", help="Use the dataset only up to this time (s).")
     ] = None,
+    t_start: Annotated[
+        float, typer.Option("--t-start", help="Use the dataset from this time (s).")
+    ] = 0.0,
     seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
     sim_trees: Annotated[int, typer.Option("--sim-trees", help="Trees in the stand.")] = 150,
     sim_size: Annotated[float, typer.Option("--sim-size", help="Stand side (m).")] = 60.0,
     sensor_offset: Annotated[
         str, typer.Option("--sensor-offset", help="Bag: laser position 'a,b' (m) in the vehicle.")
     ] = "0,0",
+    gnss: Annotated[
+        Path | None,
+        typer.Option("--gnss", help="GNSS fixes CSV 'time_s,x,y[,sigma]' (metric frame); isam2."),
+    ] = None,
+    gnss_lever: Annotated[
+        str | None,
+        typer.Option(
+            "--gnss-lever",
+            help="Antenna position 'x,y' (m) in the vehicle frame (default: the laser point "
+            "for victoria-park, else 0,0).",
+        ),
+    ] = None,
+    gnss_sigma: Annotated[
+        float, typer.Option("--gnss-sigma", help="Fix sigma (m) where the CSV has none.")
+    ] = 1.0,
+    prior_map: Annotated[
+        Path | None,
+        typer.Option(
+            "--prior-map",
+            help="Map folder of an earlier session (its trees.csv): "
+            "relocalise in it, map on, write the merged map; isam2.",
+        ),
+    ] = None,
+    start_guess: Annotated[
+        str | None,
+        typer.Option(
+            "--start-guess",
+            help="With --prior-map: rough start 'x,y,heading_deg' in "
+            "the map (searched within 30 m / 45 deg); default: global search.",
+        ),
+    ] = None,
+    realtime: Annotated[
+        bool,
+        typer.Option(
+            "--realtime",
+            help="Replay the log scan by scan through the online mapper "
+            "(OnlineMapper) and report per-scan latency; isam2.",
+        ),
+    ] = False,
+    rerun: Annotated[
+        Path | None,
+        typer.Option(
+            "--rerun",
+            help="Write a Rerun recording (.rrd) of the run; implies --realtime (needs rerun-sdk).",
+        ),
+    ] = None,
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     as_json: JsonFlag = False,
     crs: CrsOption = None,
@@ -362,7 +488,7 @@ def map_command(
             )
         announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
         if dataset is not None:
-            problem, ctx = _victoria_park(data, t_end)
+            problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
             problem, ctx = _simulated(seed, sim_trees, sim_size)
         else:
@@ -377,6 +503,11 @@ def map_command(
                     f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
                 ) from exc
             problem, ctx = _bag(bag, off) if is_bag(bag) else file_problem(bag, odometry, off)
+        if gnss is not None:
+            problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
+        reloc = None
+        if prior_map is not None:
+            problem, reloc = _continue(problem, prior_map, start_guess, backend.value)
         be = make_backend(backend.value)
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
@@ -384,9 +515,14 @@ def map_command(
             def tick(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
 
-            result = be.run(problem, progress=tick)
+            if realtime or rerun is not None:
+                result = _realtime(problem, backend.value, tick, rerun)
+            else:
+                result = be.run(problem, progress=tick)
         result.stem_map, unc = annotate_uncertainty(result, problem)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
+        if reloc is not None:
+            metrics["relocalisation"] = reloc.__dict__
         metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs)
         run.note(frames=metrics["frames"])  # the body point and CRS travel with the manifest

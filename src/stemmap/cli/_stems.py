@@ -18,6 +18,7 @@ from stemmap.cli._catalog import (
 from stemmap.cli._common import console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
 from stemmap.cli._summary import JsonFlag, fmt, print_summary
+from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -115,7 +116,40 @@ def stems(
         ),
     ] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
-    heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
+    heights: Annotated[
+        bool, typer.Option(help="Estimate stem (tree) heights: highest point within 1 m (ours).")
+    ] = True,
+    max_memory: Annotated[
+        float,
+        typer.Option(
+            help="Memory budget in GB for the run's rasters (ground grid, clustering grid); a "
+            "cloud that needs more is refused with an error (tile it)."
+        ),
+    ] = DEFAULT_MAX_MEMORY / 1e9,
+    profile: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the stem profiles (diameter every 0.5 m up the visible stem, with std) "
+            "to this CSV (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
+    metrics: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write a JSON with the plot summary (stems/ha, basal area m2/ha, quadratic "
+            "mean diameter, DBH histogram) and per-tree DBH, height and stem volume (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
+    labels: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the cloud as LAS with a tree_id extra dimension (0 = ground or no tree; "
+            "i = row i-1 of the CSV) (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
     read_points: Annotated[
         int, typer.Option(help="Points per block when streaming LAS/LAZ.")
     ] = 2_000_000,
@@ -219,7 +253,15 @@ def stems(
     known: --crs or the LAS header), --gpkg (native CRS) and --png (top view to scale). Every
     column: docs/outputs.md.
 
+    Forestry products (preset ours): --profile (stem profiles CSV: diameter every 0.5 m up the
+    visible stem, with std), --metrics (JSON: stems/ha, basal area m2/ha, quadratic mean
+    diameter, DBH histogram, per-tree height and volume), --labels (LAS with a tree_id per
+    point). The CSV also gives diameter_std, the position covariance, where and why the DBH
+    was measured (dbh_height, dbh_rule) and what heights are measured from (base).
+
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
+
+    Forestry: stemmap stems plot.laz --profile profile.csv --metrics metrics.json --labels trees.laz
 
     Tiles: stemmap stems tiles/ --out stems.csv --workers 2 --chunk-size 50 --buffer 5
     (a Dask cluster, one task per buffered chunk, resumable with --resume)
@@ -243,7 +285,7 @@ def stems(
         opts = EngineOptions(chunk_size, buffer, workers, scheduler, resume, work)
         engine = wants_engine(clouds, opts)
         in_paths = expand_inputs(clouds) if engine else [Path(clouds[0])]
-    outputs = [out_csv, geojson, gpkg, png, report]
+    outputs = [out_csv, geojson, gpkg, png, report, profile, metrics, labels]
     with (
         fail_on_stemmap_error(),
         run_products("stems", inputs=[*in_paths, trajectory], outputs=outputs) as run,
@@ -251,13 +293,25 @@ def stems(
     ):
         crs = checked_crs(crs) if crs is not None else las_crs(in_paths[0])
         cfg = get_preset(preset)
-        if isinstance(cfg, StemConfig) and heights:
-            cfg = replace(cfg, estimate_height=True)
+        if not max_memory > 0:
+            raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
+        if isinstance(cfg, StemConfig):
+            cfg = replace(cfg, estimate_height=heights, max_memory=max_memory * 1e9)
+        elif profile or metrics or labels:
+            raise ConfigError(
+                "--profile, --metrics and --labels need preset ours (munjer2025 works on one "
+                "lidar frame, not a plot)."
+            )
         sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
         catalog = None
         if engine:
             if topic is not None:
                 raise ConfigError("--topic applies to a bag, not to a tile catalog.")
+            if profile or metrics or labels:
+                raise ConfigError(
+                    "--profile, --metrics and --labels read the whole cloud: not available for "
+                    "a tile catalog yet; run them per tile."
+                )
             result, _, catalog = run_catalog_stems(
                 [str(p) for p in in_paths], cfg, opts, sensor, out_csv
             )
@@ -297,7 +351,19 @@ def stems(
                     ]
                 )
             plot_stems(fig_path, result, background_xy=bg, title=name)
-        files = [str(p) for p in (out_csv, geojson, gpkg, png, report) if p is not None]
+        if profile or metrics or labels:
+            from stemmap.cli._stems_products import write_forestry_products
+
+            write_forestry_products(
+                cloud,
+                result,
+                read_points,
+                topic,
+                profile=None if profile is None else run.path(profile),
+                metrics=None if metrics is None else run.path(metrics),
+                labels=None if labels is None else run.path(labels),
+            )
+        files = [str(p) for p in outputs if p is not None]
         med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
         rows = [
             ("stems", fmt(len(result)), "rows of the CSV"),
@@ -335,7 +401,13 @@ def _stems_report(
         "crs": crs,
         "point_spacing_m": float(result.spacing) if math.isfinite(result.spacing) else None,
     }
-    cols = [c for c in STEM_CSV_COLUMNS if c not in ("id", "method") and hasattr(result, c)]
+    cols = [
+        c
+        for c in STEM_CSV_COLUMNS
+        if c not in ("id", "method", "base")
+        and hasattr(result, c)
+        and np.asarray(getattr(result, c)).dtype.kind in "biuf"
+    ]
     table = [
         [k, round(float(result.xy[k, 0]), 3), round(float(result.xy[k, 1]), 3)]
         + [round(float(getattr(result, c)[k]), 4) for c in cols if c not in ("x", "y")]

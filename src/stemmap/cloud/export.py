@@ -17,7 +17,11 @@ from stemmap.io.geo import georeference_features
 
 __all__ = ["STEM_CSV_COLUMNS", "plot_stems", "write_stems_csv", "write_stems_geojson"]
 
-#: Columns of the stems CSV (metres, degrees; quality in [0, 1]).
+#: Columns of the stems CSV (metres, degrees; quality in [0, 1]; covariances in m^2).
+#: ``diameter_std`` and ``cov_xx, cov_xy, cov_yy`` come from the fit covariance (empty where
+#: not estimated); ``dbh_height`` (m above the base) and ``dbh_rule`` say where the DBH was
+#: measured and why; ``base`` what heights are measured from (``ground``, ``lowest stem
+#: points`` for a cloud without ground, ``slice heights as given``). docs/algorithms/cloud.md.
 STEM_CSV_COLUMNS = (
     "id",
     "x",
@@ -33,11 +37,22 @@ STEM_CSV_COLUMNS = (
     "height",
     "eccentricity",
     "method",
+    "diameter_std",
+    "cov_xx",
+    "cov_xy",
+    "cov_yy",
+    "dbh_height",
+    "dbh_rule",
+    "base",
 )
 
 
 def _num(v: float) -> str:
     return "" if not math.isfinite(v) else f"{v:.4f}"
+
+
+def _sci(v: float) -> str:
+    return "" if not math.isfinite(v) else f"{v:.4g}"
 
 
 def write_stems_csv(path: str | os.PathLike[str], stems: CloudStems) -> None:
@@ -62,6 +77,13 @@ def write_stems_csv(path: str | os.PathLike[str], stems: CloudStems) -> None:
                     _num(float(stems.height[k])),
                     _num(float(stems.eccentricity[k])),
                     stems.method,
+                    _sci(float(stems.diameter_std[k])),
+                    _sci(float(stems.xy_cov[k, 0, 0])),
+                    _sci(float(stems.xy_cov[k, 0, 1])),
+                    _sci(float(stems.xy_cov[k, 1, 1])),
+                    _num(float(stems.dbh_height[k])),
+                    str(stems.dbh_rule[k]),
+                    stems.base,
                 ]
             )
 

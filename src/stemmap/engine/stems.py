@@ -52,10 +52,16 @@ DEFAULT_BUFFER = 5.0
 #: the default detector: max DBH / 2 (0.75 m) + 3 ground cells of 1 m.
 MIN_EXACT_BUFFER = 3.75
 
+#: the scalar (per-cloud) fields of a CloudStems; every other field is a per-stem column
+_SCALARS = ("method", "frame", "spacing", "reason", "base")
 #: the per-stem (array) columns of a CloudStems, as stored in a chunk result
-_COLUMNS = tuple(
-    f.name for f in fields(CloudStems) if f.name not in ("method", "frame", "spacing", "reason")
-)
+_COLUMNS = tuple(f.name for f in fields(CloudStems) if f.name not in _SCALARS)
+
+
+def _storable(v: Any) -> Any:
+    """An array savable without pickle: object (string) columns become unicode arrays."""
+    a = np.asarray(v)
+    return a.astype(str) if a.dtype == object else a
 
 
 def _detect(
@@ -98,9 +104,10 @@ def stems_chunk(
         stems = _detect(xyz, config, origins)
     del xyz, extra
     own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
-    cols: dict[str, Any] = {k: getattr(own, k) for k in _COLUMNS}
+    cols: dict[str, Any] = {k: _storable(getattr(own, k)) for k in _COLUMNS}
     cols["method"] = np.array(own.method or method)
     cols["spacing"] = np.array(own.spacing)
+    cols["base"] = np.array(getattr(own, "base", ""))
     save_columns(Path(result_path), cols)
     return {
         "n_points": n,
@@ -117,13 +124,15 @@ def merge_chunk_results(paths: list[Path], method: str = "ours") -> CloudStems:
     parts = [p for p in parts if np.asarray(p["xy"]).size]
     if not parts:
         return CloudStems.empty(method, reason="no chunk found a stem")
-    cols = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in _COLUMNS}
+    cols = {k: np.concatenate([np.asarray(p[k]) for p in parts if k in p]) for k in _COLUMNS}
     xy = cols["xy"].reshape(-1, 2)
     order = np.lexsort((xy[:, 1], xy[:, 0]))
     merged = {k: v[order] for k, v in cols.items()}
     sp = [float(p["spacing"]) for p in parts if math.isfinite(float(p["spacing"]))]
+    bases = sorted({str(p["base"]) for p in parts if "base" in p})
     return CloudStems.from_columns(
         **merged,
+        base=", ".join(bases),
         method=str(parts[0]["method"]),
         frame="cloud",
         spacing=float(np.median(sp)) if sp else math.nan,
