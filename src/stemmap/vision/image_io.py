@@ -163,6 +163,8 @@ def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> NDA
     p = Path(path)
     if max_pixels < 1:
         raise InputError(f"max_pixels must be >= 1, got {max_pixels}.")
+    if p.is_dir():
+        raise InputError(f"image {p} is a folder; give an image file (PNG, JPEG or BMP).")
     if not p.is_file():
         raise InputError(f"image {p} does not exist.")
     try:
