@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -79,9 +80,12 @@ def stems(
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
     heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
-    chunk_size: Annotated[int, typer.Option(help="Points per chunk when streaming LAS/LAZ.")] = (
-        2_000_000
-    ),
+    chunk_size: Annotated[
+        int,
+        typer.Option(
+            help="Points per chunk when streaming LAS/LAZ.", callback=bounded("--chunk-size", ge=1)
+        ),
+    ] = 2_000_000,
     origin: Annotated[
         str | None,
         typer.Option(
@@ -110,6 +114,7 @@ def stems(
         typer.Option(
             help="Seconds added to the point times before the trajectory look-up (e.g. 1e9 for "
             "LAS adjusted standard GPS time against GPS seconds).",
+            callback=bounded("--time-offset"),
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = 0.0,

@@ -96,6 +96,17 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
     """Load and validate the NPZ arrays (no pickle). InputError names file and field."""
     p = existing_file(path, "scan NPZ")
     try:
+        with p.open("rb") as fh:
+            magic = fh.read(6)
+    except OSError as exc:
+        raise InputError(f"cannot read scan NPZ {str(p)!r}: {exc}.") from exc
+    if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
+        raise InputError(
+            f"scan NPZ {str(p)!r} is not an NPZ (zip) archive: it starts with {magic!r}"
+            + (" (text: is it a CSV named .npz?)" if magic.isascii() else "")
+            + "; write scans with np.savez or `stemmap io convert-scans`."
+        )
+    try:
         z = np.load(p, allow_pickle=False)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
         raise InputError(
