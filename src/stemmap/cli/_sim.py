@@ -336,7 +336,7 @@ def score(
     from stemmap.io.atomic import atomic_write
     from stemmap.io.maps import read_observations_csv
     from stemmap.io.products import run_products
-    from stemmap.io.scans import read_scans
+    from stemmap.io.scans import NPZ_ERRORS, read_scans
     from stemmap.io.trajectory import read_trajectory_csv
 
     truth_files = [_sibling(run_path, s) for s in ("trees.csv", "poses.csv", "truth.npz")]
@@ -356,7 +356,7 @@ def score(
                 hit_ids = np.asarray(z["hit_ids"], dtype=np.int64)
                 clutter_xy = np.asarray(z["clutter_xy"], dtype=np.float64).reshape(-1, 2)
                 clutter_ext = np.asarray(z["clutter_extent"], dtype=np.float64)
-        except (KeyError, ValueError, OSError) as exc:
+        except (KeyError, *NPZ_ERRORS) as exc:
             raise InputError(f"truth NPZ {str(truth_path)!r} is unreadable: {exc}") from exc
         if hit_ids.shape != batch.ranges.shape or poses.shape[0] != len(batch):
             raise InputError(

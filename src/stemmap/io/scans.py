@@ -92,9 +92,18 @@ def _record(skipped: list[SkippedFrame] | None, path: Path, k: int, t: float, wh
 # --------------------------------------------------------------------------------------------
 
 
-#: What numpy/zipfile raise on a damaged archive member (NotImplementedError: a zip header
-#: naming an unknown compression method or zip version; found by benchmarks/fuzz.py).
-_NPZ_ERRORS = (ValueError, zipfile.BadZipFile, OSError, EOFError, zlib.error, NotImplementedError)
+#: What numpy/zipfile raise on a damaged archive (found by the fuzz tests: NotImplementedError
+#: for a header naming an unknown compression method or zip version, RuntimeError for a
+#: flipped "encrypted" flag).
+NPZ_ERRORS = (
+    ValueError,
+    zipfile.BadZipFile,
+    OSError,
+    EOFError,
+    zlib.error,
+    NotImplementedError,
+    RuntimeError,
+)
 
 
 def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
@@ -113,7 +122,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
         )
     try:
         z = np.load(p, allow_pickle=False)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, NotImplementedError) as exc:
+    except NPZ_ERRORS as exc:
         raise InputError(
             f"scan NPZ {str(p)!r} cannot be read ({type(exc).__name__}: {exc}); the file may be "
             "truncated or not an .npz archive."
@@ -140,7 +149,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
                 continue
             try:
                 arr = z[src]
-            except _NPZ_ERRORS as exc:
+            except NPZ_ERRORS as exc:
                 raise InputError(
                     f"scan NPZ {str(p)!r} field {src!r} cannot be read ({exc}); object arrays "
                     "are refused (no pickle) and a truncated file cannot be decoded."
@@ -154,7 +163,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
         if "frame" in z.files:
             try:
                 fr = z["frame"]
-            except _NPZ_ERRORS as exc:
+            except NPZ_ERRORS as exc:
                 raise InputError(f"scan NPZ {str(p)!r} field 'frame' cannot be read.") from exc
             if fr.dtype.kind != "U" or fr.size != 1:
                 raise InputError(f"scan NPZ {str(p)!r} field 'frame' must be one string.")
