@@ -25,14 +25,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-import laspy
 import numpy as np
-from scipy import ndimage
 
 from stemmap.datasets import find_datasets_dir
 from stemmap.errors import InputError
+from stemmap.eval.real_slices import SLICES, load_slice
 from stemmap.scan._fit_geometric import _footprint_range
-from stemmap.scan.circle import FIT_METHODS, fit_circle_ours, fit_circles_batch
+from stemmap.scan.circle import FIT_METHODS, fit_circles_batch
 
 SLICE = Path("fortls_slice") / "diameters.laz"
 
@@ -49,53 +48,24 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
-def cluster_grid(xy: np.ndarray, cell: float) -> np.ndarray:
-    """Label points by 8-connected components of an occupancy grid of ``cell`` metres.
-
-    Equivalent to single-linkage clustering at ~cell spacing (DBSCAN with eps ~ cell and
-    min_samples = 1) but ~100x faster here: the trunks in the slice are metres apart.
-    """
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
-    grid = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
-    grid[ij[:, 0], ij[:, 1]] = True
-    lab, _ = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
-    return np.asarray(lab[ij[:, 0], ij[:, 1]], dtype=np.int64) - 1
-
-
 def load_rings(
     datasets_dir: Path, cell: float = 0.05, min_ring_points: int = 500
 ) -> tuple[np.ndarray, np.ndarray, list[dict[str, float]]]:
-    """Points (N, 2), trunk index per point (-1 = not a trunk) and the ring reference per trunk.
+    """Points (N, 2), trunk index per point (-1 = not a trunk) and the ring reference per trunk
+    of the FORTLS slice (:func:`stemmap.eval.real_slices.load_slice`, shared with
+    benchmarks/real_geometry.py; every trunk there is a full ring).
 
-    The reference is a plain geometric (orthogonal-distance) fit of the full ring (``ours``
-    without silhouette terms: on a full ring every fit method agrees to < 0.1 mm).
+    ``cell`` and ``min_ring_points`` are those of the slice's spec (5 cm, 500 points): they
+    are checked, not passed on.
     """
-    path = Path(datasets_dir) / SLICE
-    if not path.is_file():
-        raise InputError(f"{path} not found; set STEMMAP_DATASETS to the shared datasets folder.")
-    las = laspy.read(path)
-    xy = np.column_stack((np.asarray(las.x), np.asarray(las.y))).astype(np.float64)
-    labels = cluster_grid(xy, cell)
-    refs: list[dict[str, float]] = []
-    keep = np.full(labels.max() + 2, -1, dtype=np.int64)
-    for lab in range(labels.max() + 1):
-        ring = xy[labels == lab]
-        if ring.shape[0] < min_ring_points:
-            continue
-        fit = fit_circle_ours(ring, edges=(False, False))
-        if not fit:
-            continue
-        keep[lab] = len(refs)
-        refs.append(
-            {
-                "x": float(fit.center[0]),
-                "y": float(fit.center[1]),
-                "diameter": fit.diameter,
-                "ring_rms_m": fit.rms,
-                "n_points": int(ring.shape[0]),
-            }
+    spec = SLICES["fortls_slice"]
+    if (cell, min_ring_points) != (spec.cell, spec.min_ring_points):
+        raise InputError(
+            f"load_rings: cell / min_ring_points are fixed by SLICES['fortls_slice'] "
+            f"({spec.cell}, {spec.min_ring_points}); got ({cell}, {min_ring_points})."
         )
-    return xy, keep[labels], refs
+    sl = load_slice(datasets_dir, "fortls_slice")
+    return sl.xy, sl.labels, sl.refs
 
 
 def virtual_scan(
@@ -430,7 +400,7 @@ def run_speed(
     dispatch per segment) and one batched call. One process, one thread (noisy: the machine is
     shared)."""
     rng = np.random.default_rng(seed)
-    arcs = []
+    arcs: list[np.ndarray] = []
     # whole visible arcs with exactly n_points returns (not truncated ones: a cut arc has a
     # false silhouette edge): at 5 m with 0.5 deg beams, 10 returns need r ~ 0.2-0.24 m
     r_mid = 5.0 * math.sin(math.radians(0.25 * n_points))

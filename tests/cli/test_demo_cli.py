@@ -52,7 +52,7 @@ def test_demo_writes_every_product_and_scores_well(tmp_path: Path) -> None:
     with (out / "detections.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == det["n_detections"]
-    assert {"scan_index", "time", "x", "y", "diameter", "radius_std", "n_points"} <= set(rows[0])
+    assert {"scan_index", "time_s", "x", "y", "diameter", "radius_std", "n_points"} <= set(rows[0])
     truth = np.loadtxt(out / "truth_trees.csv", delimiter=",", skiprows=1)
     assert truth.shape == (m["n_trees_in_stand"], 4)
 

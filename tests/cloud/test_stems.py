@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
-import stemmap.cloud.stems as stems_mod
+import stemmap.cloud.slicefit as slicefit
 from stemmap.cli import app
 from stemmap.cloud.stems import (
     CloudStems,
@@ -331,8 +331,8 @@ def test_refinement_along_rays_removes_the_range_noise_bias() -> None:
     q, ids, origins = _half_arcs_along_ray_noise(120, r, 0.03, seed=7)
     args = (q, ids, 120, "ours")
     kw = {"ransac_tol": 0.015, "radius_window": (0.02, 0.75)}
-    _, r_orth, _, ok_o, _ = stems_mod._fit_segments(*args, **kw)
-    _, r_ray, _, ok_r, _ = stems_mod._fit_segments(*args, **kw, ray_origins=origins)
+    _, r_orth, _, ok_o, _ = slicefit._fit_segments(*args, **kw)
+    _, r_ray, _, ok_r, _ = slicefit._fit_segments(*args, **kw, ray_origins=origins)
     bias_orth = 2 * float(np.mean(r_orth[ok_o] - r))
     bias_ray = 2 * float(np.mean(r_ray[ok_r] - r))
     assert bias_orth < -0.004
@@ -341,7 +341,7 @@ def test_refinement_along_rays_removes_the_range_noise_bias() -> None:
     # a clean half circle stays exact
     phi = np.linspace(-np.pi / 2, np.pi / 2, 150)
     arc = np.column_stack((r * np.cos(phi), r * np.sin(phi)))
-    c, rr, _, ok, _ = stems_mod._fit_segments(
+    c, rr, _, ok, _ = slicefit._fit_segments(
         arc, np.zeros(150, dtype=np.int64), 1, "ours", ray_origins=arc + np.array([1000.0, 0.0])
     )
     assert ok[0] and abs(rr[0] - r) < 1e-6 and np.hypot(*c[0]) < 1e-6

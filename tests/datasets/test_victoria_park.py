@@ -176,9 +176,20 @@ def test_stemmap_map_cli_writes_every_product(tmp_path, datasets_dir):
         assert (out / name).stat().st_size > 100, name
     header = (out / "trees.csv").read_text().splitlines()[0].split(",")
     assert header[:7] == ["id", "x", "y", "diameter", "std_x", "std_y", "n_obs"]
-    assert (out / "trajectory.csv").read_text().startswith("time,x,y,theta")
+    assert (out / "trajectory.csv").read_text().startswith("time_s,x,y,theta")
     m = json.loads((out / "metrics.json").read_text())
     assert m["n_trees"] > 10 and m["ate_rmse_m"] < 2.0
+    assert m["frames"]["sensor_offset_m"][0] == pytest.approx(3.78)  # rear axle -> laser
+    # the map in the GPS frame: the alignment moves the laser track onto the GPS fixes
+    al = json.loads((out / "gps_alignment.json").read_text())
+    from stemmap.eval.trajectory import Se2Alignment
+
+    a = Se2Alignment(al["theta_rad"], tuple(al["t_m"]))
+    t_map = np.loadtxt(out / "trees.csv", delimiter=",", skiprows=1, ndmin=2)[:, 1:3]
+    t_gps = np.loadtxt(out / "gps_trees.csv", delimiter=",", skiprows=1, ndmin=2)[:, 1:3]
+    np.testing.assert_allclose(a.apply(t_map), t_gps, atol=1e-9)
+    conf = np.loadtxt(out / "trees.csv", delimiter=",", skiprows=1, ndmin=2)[:, 8]
+    assert np.all((conf >= 0) & (conf <= 1))
     # bad input: no source / two sources -> exit code 2 with a message, no traceback
     bad = CliRunner().invoke(app, ["map", "--sim", "--dataset", "victoria-park", "--out", "x"])
     assert bad.exit_code == 2 and "exactly one input" in bad.output

@@ -173,36 +173,45 @@ def _check_rfc7946(doc: dict) -> None:
 
 
 def test_geojson_local_frame(tmp_path: Path, rng: np.random.Generator) -> None:
+    """Without a CRS the geometry stays in metres and is declared a local engineering CRS:
+    GDAL reads LOCAL_CS metres, not WGS84 degrees (the map must not land at latitude 152)."""
+    from pyogrio.raw import read as ogr_read
+
     m = _map(rng)
     p = tmp_path / "trees.geojson"
     write_trees_geojson(p, m)
     doc = _strict_json(p)
     _check_rfc7946(doc)
-    assert "crs" not in doc  # RFC 7946 removed the member; local metres are flagged instead
-    assert doc["stemmap"] == {
-        "frame": "map",
-        "units": "m",
-        "crs": None,
-        "origin_lonlat": None,
-        "x_y_properties": "metres in the map frame",
-    }
+    assert doc["stemmap"]["units"] == "m" and doc["stemmap"]["crs"] is None
     f3 = doc["features"][3]
     assert f3["properties"]["std_x"] is None and f3["geometry"]["coordinates"][0] == m.trees[3].x
-    _same_trees(m, read_trees_geojson(p))
+    meta, _, geom, _ = ogr_read(p)
+    assert meta["crs"].startswith("LOCAL_CS") and "metre" in meta["crs"]
+    x, y = np.frombuffer(geom[3][5:], "<f8")
+    assert (x, y) == (m.trees[3].x, m.trees[3].y)
+    back = read_trees_geojson(p)
+    assert back.crs is None
+    _same_trees(m, back)
 
 
-def test_geojson_projected_and_wgs84(tmp_path: Path, rng: np.random.Generator) -> None:
-    m = _map(rng, n=3, crs="EPSG:3067")
+def test_geojson_projected_is_rfc7946_lonlat(tmp_path: Path) -> None:
+    """A UTM map is written in WGS84 lon/lat: the central-meridian point (500000 m, 0 m) of
+    UTM 33N (EPSG:32633) is (15 E, 0 N) by definition; GDAL reads it back as WGS84."""
+    from pyogrio.raw import read as ogr_read
+
+    m = StemMap((Tree(1, 500000.0, 0.0, 0.3), Tree(2, 500000.0, 6651411.19, 0.3)), crs="EPSG:32633")
     p = tmp_path / "utm.geojson"
     write_trees_geojson(p, m)
     doc = _strict_json(p)
-    assert doc["crs"] == {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::3067"}}
-    assert read_trees_geojson(p).crs == "EPSG:3067"
-    geo = StemMap((Tree(1, 24.9, 60.2, 0.3),), crs="EPSG:4326")
-    write_trees_geojson(tmp_path / "wgs.geojson", geo)
-    doc = _strict_json(tmp_path / "wgs.geojson")
     assert "crs" not in doc and doc["stemmap"]["units"] == "degrees"
-    assert doc["features"][0]["geometry"]["coordinates"] == [24.9, 60.2]
+    assert doc["features"][0]["geometry"]["coordinates"] == [15.0, 0.0]
+    # 6 651 411.19 m of meridian arc from the equator is 60 N on WGS84 (UTM k0 = 0.9996)
+    assert doc["features"][1]["geometry"]["coordinates"] == pytest.approx([15.0, 60.0], abs=1e-7)
+    meta, _, _, _ = ogr_read(p)
+    assert "WGS 84" in meta["crs"] or meta["crs"] == "EPSG:4326"
+    back = read_trees_geojson(p)
+    assert back.crs == "EPSG:32633"
+    np.testing.assert_array_equal(back.xy, m.xy)  # the native x, y properties
 
 
 def test_geojson_with_origin_is_lonlat(tmp_path: Path, rng: np.random.Generator) -> None:
@@ -216,8 +225,9 @@ def test_geojson_with_origin_is_lonlat(tmp_path: Path, rng: np.random.Generator)
     lon = np.array([f["geometry"]["coordinates"][0] for f in doc["features"]])
     lat = np.array([f["geometry"]["coordinates"][1] for f in doc["features"]])
     assert np.all(np.abs(lon - origin[0]) < 0.01) and np.all(np.abs(lat - origin[1]) < 0.01)
-    # 9 decimals of a degree = 0.1 mm; the inverse restores the metric map to that level
-    np.testing.assert_allclose(lonlat_to_local(lon, lat, origin), m.xy, atol=2e-4)
+    # the transverse Mercator of the origin and the tangent-plane formulas agree to < 1 mm
+    # within 50 m of the origin
+    np.testing.assert_allclose(lonlat_to_local(lon, lat, origin), m.xy, atol=1e-3)
     _same_trees(m, read_trees_geojson(p))  # the metric x, y properties are kept
 
 
@@ -291,7 +301,7 @@ def test_observations_csv_round_trip(tmp_path: Path, rng: np.random.Generator) -
     write_observations_csv(p, o)
     lines = p.read_text().splitlines()
     assert tuple(lines[0].split(",")) == OBSERVATION_CSV_COLUMNS
-    assert lines[0].startswith("scan_index,time,x,y,diameter,radius_std,n_points")
+    assert lines[0].startswith("scan_index,time_s,x,y,diameter,radius_std,n_points")
     assert len(lines) == len(o) + 1
     b = read_observations_csv(p, source="scan:ours")
     for name in ("centers", "radii", "n_points", "arc_deg", "widths", "quality", "index", "times"):
@@ -318,7 +328,7 @@ def test_observations_csv_empty_and_minimal(tmp_path: Path) -> None:
     [
         ("scan_index,time,x,y\n1,2,3,4\n", "lacks column.*diameter"),
         ("scan_index,time,x,y,diameter\n1.5,0,0,0,0.3\n", "'scan_index' is 1.5"),
-        ("scan_index,time,x,y,diameter\n1,nan,0,0,0.3\n", "'time' is nan"),
+        ("scan_index,time,x,y,diameter\n1,nan,0,0,0.3\n", "'time_s' is nan"),
         ("scan_index,time,x,y,diameter\n1,0,0,0,-1\n", "negative"),
         ("scan_index,time,x,y,diameter,n_points\n1,0,0,0,1,2.5\n", "'n_points' is 2.5"),
     ],
@@ -343,7 +353,7 @@ def test_trajectory_csv_round_trip(tmp_path: Path, rng: np.random.Generator) -> 
     tr = _traj(rng)
     p = tmp_path / "path.csv"
     write_trajectory_csv(p, tr)
-    assert p.read_text().splitlines()[0] == "time,x,y,theta"
+    assert p.read_text().splitlines()[0] == "time_s,x,y,theta"
     back = read_trajectory_csv(p, frame="odom")
     np.testing.assert_array_equal(back.times, tr.times)
     np.testing.assert_array_equal(back.poses, tr.poses)

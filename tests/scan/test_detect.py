@@ -332,10 +332,16 @@ def test_range_proportional_noise_scales_the_circularity_test():
     rng = np.random.default_rng(11)
     a = np.radians(np.arange(-10.0, 10.0 + 1e-9, 0.1))
     r = scene_ranges([(9.0, 0.0, 0.25)], a) + rng.normal(0, 0.03, a.size)
-    strict = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.01)
-    scaled = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.001, sigma_rel=0.0033)
+    strict = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.01, sigma_from_data=False)
+    scaled = DetectorConfig.preset(
+        "stemmap", fit_method="kasa", sigma=0.001, sigma_rel=0.0033, sigma_from_data=False
+    )
     assert len(ScanTrunkDetector(strict).detect(scan_of(r, a))) == 0
     obs = ScanTrunkDetector(scaled).detect(scan_of(r, a))
+    assert len(obs) == 1 and obs.centers[0] == pytest.approx([9.0, 0.0], abs=0.1)
+    # the noise estimated from the returns themselves (the preset default) accepts it too
+    est = DetectorConfig.preset("stemmap", fit_method="kasa", sigma=0.01, sigma_from_data=True)
+    obs = ScanTrunkDetector(est).detect(scan_of(r, a))
     assert len(obs) == 1 and obs.centers[0] == pytest.approx([9.0, 0.0], abs=0.1)
     with pytest.raises(ConfigError, match="sigma_rel"):
         DetectorConfig(sigma_rel=-0.1)

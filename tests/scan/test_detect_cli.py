@@ -38,7 +38,7 @@ def test_detect_writes_rows_and_reports_a_corrupt_frame(tmp_path):
     assert "skipped frame 1" in res.output
     with out.open() as fh:
         rows = list(csv.DictReader(fh))
-    required = {"scan_index", "time", "x", "y", "diameter", "radius_std", "n_points"}
+    required = {"scan_index", "time_s", "x", "y", "diameter", "radius_std", "n_points"}
     assert required <= set(rows[0])
     # two trunks in each of the three good frames; scan_index is the position in the file
     assert sorted({int(r["scan_index"]) for r in rows}) == [0, 2, 3]
@@ -117,3 +117,33 @@ def test_detect_reads_a_ros1_bag_topic(tmp_path):
     # two LaserScan topics and none chosen: the reader's error names them
     res = runner.invoke(app, ["detect", str(bag), "--out", str(tmp_path / "x.csv")])
     assert res.exit_code == 2 and "/scan_rear" in " ".join(res.output.split())
+
+
+def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
+    ranges, a = _ranges(3)
+    # a wall x = 5 m seen at bearings 20-40 deg: a straight segment the stemmap preset drops
+    wall = (a > math.radians(20.0)) & (a < math.radians(40.0))
+    ranges[:, wall] = 5.0 / np.cos(a[wall])
+    src = tmp_path / "scans.npz"
+    np.savez(
+        src,
+        ranges=ranges,
+        time=np.array([0.0, 0.1, 0.2]),
+        angle_min=a[0],
+        angle_increment=math.radians(0.5),
+        range_min=0.05,
+        range_max=30.0,
+    )
+    out, rej = tmp_path / "stems.csv", tmp_path / "rejected.csv"
+    res = runner.invoke(app, ["detect", str(src), "--out", str(out), "--rejected", str(rej)])
+    assert res.exit_code == 0, res.output
+    with rej.open() as fh:
+        rows = list(csv.DictReader(fh))
+    walls = [r for r in rows if abs(float(r["bearing_deg"]) - 30.0) < 5.0]
+    # one wall candidate per scan, dropped as flat (sagitta <= 0 or a line within the noise)
+    # before any fit
+    assert sorted(int(r["scan_index"]) for r in walls) == [0, 1, 2]
+    assert {r["reason"] for r in walls} <= {"depth", "straight"}
+    assert all(r["radius"] == "nan" for r in walls)
+    with out.open() as fh:
+        assert len(list(csv.DictReader(fh))) == 6  # the two trunks, still detected

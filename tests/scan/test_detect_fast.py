@@ -72,6 +72,9 @@ CONFIGS = {
     "orthogonal": {"fit_residuals": "orthogonal", "neighbour_silhouette": False},
     "estimated_sigma": {"sigma": 0.0, "straight_test": "ratio", "max_rms_sigma": math.inf},
     "relative_sigma": {"sigma": 0.005, "sigma_rel": 0.002},
+    # issue 11: sigma raised to the measured roughness, robust residual-scale RMS test
+    "data_sigma_robust": {"sigma_from_data": True, "roughness_max_factor": 3.0, "rms_robust": True},
+    "data_sigma": {"sigma_from_data": True, "roughness_max_factor": 2.0, "sigma": 0.005},
     "zheng_like": {
         "segmentation": "range_jump",
         "max_jump": 0.2,

@@ -42,9 +42,11 @@ def test_ekf_tracks_a_loop_far_better_than_dead_reckoning(loop, association):
 
 def test_ekf_covariances_are_consistent(loop):
     """Tree position errors against truth, normalised by the filter's covariance: the mean NEES
-    of a 2-D Gaussian is 2; an EKF is mildly over-confident, so allow up to 3x."""
+    of a 2-D Gaussian is 2; an EKF is mildly over-confident, so allow up to 3x. The filter is
+    given the simulator's detection noise (5 cm, 0.3°): the default (0.3 m, 1°, chosen for the
+    viewpoint-dependent trunk centres of real data) is deliberately conservative here."""
     problem, _truth, trees, _ = loop
-    res = EkfSlam().run(problem)
+    res = EkfSlam(sigma_range=0.05, sigma_bearing=math.radians(0.3)).run(problem)
     m = match_points(res.stem_map.xy, trees, gate=0.5)
     nees = []
     for (i, j), _d in zip(m.pairs, m.distances, strict=True):
@@ -134,18 +136,19 @@ def test_bad_config():
 
 
 @pytest.mark.slow
-def test_ekf_on_victoria_park_first_minute(datasets_dir):
-    from stemmap.datasets.victoria_park import load_victoria_park
-    from stemmap.eval.trajectory import ate
+def test_ekf_on_victoria_park_first_300_s(datasets_dir):
+    from _vp import screened_ate
 
-    vp = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 90.0)
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.slam.base import duplicate_pairs
+
+    vp = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 300.0)
     res = make_backend("ekf").run(vp.problem())
-    r = ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=vp.model.sensor_offset)
-    # measured 1.8 m (EKF) vs 1.5 m (dead reckoning, still good this early) and 0.84 m
-    # (iSAM2) against the raw GPS over the first 90 s: the EKF runs and stays bounded, but it
-    # is not better than odometry on this short stretch (see docs/algorithms/slam.md)
-    assert r and r.rmse < 2.5
-    assert len(res.stem_map) > 30
+    # measured (issue 18, benchmark scorer): 1.11 m, 163 trees, 0 pairs < 1 m (dead reckoning
+    # 11.1 m, iSAM2 0.94 m); the full run is in docs/algorithms/slam.md
+    assert screened_ate(vp, res) < 1.5
+    assert 130 < len(res.stem_map) < 200
+    assert duplicate_pairs(res.stem_map, 1.0) <= 0.02 * len(res.stem_map)
     assert res.stats["matched"] > 0.75 * vp.frames.n_detections
 
 
@@ -157,8 +160,11 @@ def test_compressed_ekf_equals_the_full_ekf_on_victoria_park(datasets_dir):
 
     vp = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 150.0)
     problem = vp.problem()
-    full = EkfSlam(update="full").run(problem)
-    comp = EkfSlam().run(problem)
+    # tight detection noise (the pre-issue-18 default): it creates duplicates, so the merging
+    # is exercised too (the default 0.3 m / 1° merges only once in these 150 s)
+    tight = {"sigma_range": 0.10, "sigma_bearing": math.radians(0.5)}
+    full = EkfSlam(update="full", **tight).run(problem)
+    comp = EkfSlam(**tight).run(problem)
     assert comp.stats["full_updates"] > 5
     assert full.stats["merged"] == comp.stats["merged"] > 5  # duplicate merging exercised
     _assert_same_run(full, comp, 1e-8)

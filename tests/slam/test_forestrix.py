@@ -195,14 +195,22 @@ def test_forestrix_config_errors():
 
 
 @pytest.mark.slow
-def test_forestrix_on_victoria_park_slice(datasets_dir):
-    from stemmap.datasets.victoria_park import load_victoria_park
+def test_forestrix_on_victoria_park_first_300_s(datasets_dir):
+    from _vp import screened_ate
 
-    vp = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 60.0)
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.slam.base import duplicate_pairs
+
+    vp = load_victoria_park(datasets_dir / "victoria_park").slice(0.0, 300.0)
     res = ForestrixSlam().run(vp.problem())
     assert len(res.trajectory) == len(vp.frames)
-    assert np.all(np.isfinite(res.trajectory.poses))
-    assert res.stats["frames_corrected"] > 0
+    assert res.stats["frames_corrected"] > 0.8 * len(vp.frames)
+    # measured (issue 18, benchmark scorer): 0.94 m, 222 trees, 3 pairs < 1 m after the
+    # output merge (10 pairs among 228 without it); dead reckoning 11.1 m
+    assert screened_ate(vp, res) < 1.3
+    assert 180 < len(res.stem_map) < 260
+    assert duplicate_pairs(res.stem_map, 1.0) <= 0.02 * len(res.stem_map)
+    assert res.stats["trees_merged"] > 0
 
 
 def test_forestrix_rejects_controls_of_the_wrong_kind(sim3):

@@ -100,7 +100,10 @@ def test_segment(tmp_path: Path) -> None:
     img = tmp_path / "frame.png"
     cv2.imwrite(str(img), sc.image[..., ::-1])
     mask, rois = tmp_path / "mask.png", tmp_path / "rois.csv"
-    res = RUNNER.invoke(app, ["segment", str(img), "--out", str(mask), "--rois", str(rois)])
+    res = RUNNER.invoke(
+        app,
+        ["segment", str(img), "--out", str(mask), "--rois", str(rois), "--method", "xue2018"],
+    )
     assert res.exit_code == 0, res.output
     m = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
     assert m.shape == (720, 1280) and set(np.unique(m)) <= {0, 255}

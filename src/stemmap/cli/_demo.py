@@ -8,7 +8,7 @@ simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 * ``detections.csv`` -- every trunk seen in every scan (the ``stemmap detect`` format, sensor
   frame);
 * ``trees.csv``, ``trees.geojson`` -- the stem map (world frame, metres);
-* ``trajectory.csv`` -- the estimated path (time,x,y,theta);
+* ``trajectory.csv`` -- the estimated path (time_s,x,y,theta);
 * ``truth_trees.csv`` -- the simulator's trees (id,x,y,diameter);
 * ``metrics.json`` -- detection precision/recall and DBH error, map and path errors, scenario;
 * ``demo.png`` -- the map over the truth, and the per-scan DBH error against range.
@@ -17,6 +17,7 @@ simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -24,8 +25,10 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
+from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
+from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.cli._validate import bounded
 
 __all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
@@ -107,6 +110,8 @@ def run_demo(
     n_trees: int = 120,
     backend: str = DEMO_BACKEND,
     show_progress: bool = False,
+    crs: str | None = None,
+    gpkg: bool = False,
 ) -> dict[str, Any]:
     """Simulate, detect, map and score; write every product to ``out_dir``; return the metrics.
 
@@ -114,15 +119,23 @@ def run_demo(
     ------
     ConfigError
         On an unknown back-end or an impossible scenario (e.g. too many trees for the stand).
+
+    Notes
+    -----
+    ``crs`` declares the simulated world frame as that CRS (a what-if for GIS checks: the
+    simulator has no real position); ``gpkg`` adds ``map.gpkg``.
     """
+    from stemmap.cli._geo import write_map_products
+    from stemmap.cli._map import frames_metadata
+    from stemmap.cli._summary import write_run_report
     from stemmap.eval.detection import scan_detection_metrics
     from stemmap.eval.maps import map_metrics
     from stemmap.io.atomic import atomic_write
-    from stemmap.io.maps import write_observations_csv, write_trees_csv, write_trees_geojson
-    from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.io.maps import write_observations_csv
     from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.sim.observations import returns_per_tree
     from stemmap.slam.base import dead_reckoning, make_backend
+    from stemmap.slam.uncertainty import annotate_uncertainty
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -153,6 +166,7 @@ def run_demo(
             bar.update(task, completed=done, total=total)
 
         result = be.run(problem, progress=tick)
+    result.stem_map, unc = annotate_uncertainty(result, problem)
     timings["slam_s"] = time.perf_counter() - t0
     slam, _, _ = slam_metrics(problem, result, ctx)
 
@@ -176,29 +190,44 @@ def run_demo(
         "detection": det.to_dict(),
         "map": map_dict,
         "slam": {k: v for k, v in slam.items() if k not in ("map", "scenario")},
+        "uncertainty": unc.to_dict(),
         "timings": timings,
+        "frames": frames_metadata(problem, crs),
         "scenario": DEMO_SCENARIO,
         "simulator": run.params,
     }
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_observations_csv(out_dir / "detections.csv", obs)
-    write_trees_csv(out_dir / "trees.csv", result.stem_map)
-    write_trees_geojson(out_dir / "trees.geojson", result.stem_map)
-    write_trajectory_csv(out_dir / "trajectory.csv", result.trajectory)
+    write_map_products(out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg)
     with atomic_write(out_dir / "truth_trees.csv") as fh:
         fh.write("id,x,y,diameter\n")
         for i, ((x, y), d) in enumerate(zip(stand.trees_xy, stand.diameters, strict=True)):
             fh.write(f"{i},{x:.4f},{y:.4f},{d:.4f}\n")
     with atomic_write(out_dir / "metrics.json") as fh:
         json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
-    _figure(out_dir / "demo.png", run, obs, det, result, dead_reckoning(problem), seen)
+    head = (
+        f"stem map ({backend}): recall {map_dict['recall_of_seen']:.2f} of the "
+        f"{int(seen.sum())} trees seen, precision {map_dict['precision']:.2f}, "
+        f"position RMSE {100 * (map_dict.get('position_rmse') or math.nan):.0f} cm"
+    )
+    _figure(out_dir / "demo.png", run, obs, det, result, dead_reckoning(problem), head)
+    write_run_report(
+        out_dir,
+        title=f"stemmap demo (seed {seed}, {backend})",
+        headline=head,
+        metrics=metrics,
+        figure="demo.png",
+        stem_map=result.stem_map,
+        parameters={"seed": seed, "n_trees": n_trees, "backend": backend, "crs": crs},
+        files=["detections.csv", "trees.csv", "trees.geojson", "trajectory.csv",
+               "truth_trees.csv", "metrics.json", "demo.png"],
+        crs=crs,
+    )  # fmt: skip
     return metrics
 
 
-def _figure(
-    path: Path, run: Any, obs: Any, det: Any, result: Any, dr: Any, seen: np.ndarray
-) -> None:
+def _figure(path: Path, run: Any, obs: Any, det: Any, result: Any, dr: Any, title: str) -> None:
     """Left: stem map, path, dead reckoning and truth. Right: per-scan DBH error vs range."""
     import matplotlib
 
@@ -218,7 +247,8 @@ def _figure(
         result.trajectory,
         reference=dr,
         truth_xy=run.stand.trees_xy,
-        title=f"stem map: {len(result.stem_map)} trees mapped, {int(seen.sum())} seen by the laser",
+        title=title,
+        gate=DEMO_SCENARIO["scoring"]["map_gate_m"],
     )
     ax2 = fig.add_subplot(1, 2, 2)
     # per-scan matches of detections to truth (sensor frame), same gate as the metrics
@@ -271,41 +301,63 @@ def demo(
         _DEFAULT_BACKEND
     ),
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    as_json: JsonFlag = False,
+    crs: CrsOption = None,
+    gpkg: GpkgFlag = False,
 ) -> None:
     """Simulate a forest and a drive, detect every trunk, map it, and score it against truth.
 
     Needs no input. Writes detections.csv, trees.csv, trees.geojson, trajectory.csv,
-    truth_trees.csv, metrics.json and demo.png to --out, and prints a summary.
+    truth_trees.csv, metrics.json, demo.png and report.html (and map.gpkg with --gpkg) to
+    --out, and prints a summary (--json: one JSON object). Every column: docs/outputs.md.
 
     Example: stemmap demo --out stemmap-demo --seed 1
     """
     from stemmap.io.products import run_products
 
+    announce_compile("scan", "slam")
     with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
         m = run_demo(
-            run.dir, seed=seed, n_trees=n_trees, backend=backend.value, show_progress=show_progress
+            run.dir,
+            seed=seed,
+            n_trees=n_trees,
+            backend=backend.value,
+            show_progress=show_progress,
+            crs=checked_crs(crs),
+            gpkg=gpkg,
         )
     d, mp, s = m["detection"], m["map"], m["slam"]
-
-    def cm(v: float | None) -> str:
-        return "n/a" if v is None or not np.isfinite(v) else f"{100 * v:.2f} cm"
-
-    lines = [
-        f"stemmap demo (seed {m['seed']}): {m['n_trees_in_stand']} trees beside the drive, "
-        f"{m['n_trees_seen']} seen from the path, {m['n_scans']} scans",
-        f"  per-scan detection: precision {d['precision']:.3f}, recall {d['recall']:.3f}, "
-        f"DBH RMSE {cm(d['diameter_rmse'])}, bias {cm(d['diameter_bias'])}",
-        f"  stem map ({m['backend']}): {mp['n_map']} trees, {mp['n_matched']} matched, "
-        f"recall {mp['recall_of_seen']:.3f} (of the trees seen), precision {mp['precision']:.3f}, "
-        f"position RMSE {cm(mp['position_rmse'])}, DBH RMSE {cm(mp['diameter_rmse'])}",
-        f"  path: RMSE {cm(s.get('trajectory_rmse_m'))}, loop-closure error "
-        f"{cm(s.get('loop_closure_error_m'))} "
-        f"(dead reckoning {cm(s.get('dead_reckoning_loop_closure_error_m'))})",
-        f"wrote {out_dir}/: detections.csv trees.csv trees.geojson trajectory.csv "
-        "truth_trees.csv metrics.json demo.png run.json",
-    ]
-    for line in lines:
-        out.print(line, markup=False, soft_wrap=True)
+    rows = [
+        ("trees in the stand / seen from the path",
+         f"{m['n_trees_in_stand']} / {m['n_trees_seen']}", "n_trees_in_stand, n_trees_seen"),
+        ("scans", fmt(m["n_scans"]), "n_scans"),
+        ("per-scan detection: precision", fmt(d["precision"], digits=3), "detection.precision"),
+        ("per-scan detection: recall", fmt(d["recall"], digits=3), "detection.recall"),
+        ("per-scan DBH RMSE / bias",
+         f"{fmt(d['diameter_rmse'], ' cm', 100)} / {fmt(d['diameter_bias'], ' cm', 100)}",
+         "detection.diameter_rmse, .diameter_bias"),
+        (f"stem map ({m['backend']}): trees mapped / matched",
+         f"{mp['n_map']} / {mp['n_matched']}", "map.n_map, map.n_matched"),
+        ("map recall of the trees seen", fmt(mp["recall_of_seen"], digits=3),
+         "map.recall_of_seen"),
+        ("map recall of all stand trees", fmt(mp["recall"], digits=3), "map.recall"),
+        ("map precision", fmt(mp["precision"], digits=3), "map.precision"),
+        ("tree position RMSE", fmt(mp["position_rmse"], " cm", 100), "map.position_rmse"),
+        ("map DBH RMSE", fmt(mp["diameter_rmse"], " cm", 100), "map.diameter_rmse"),
+        ("path RMSE", fmt(s.get("trajectory_rmse_m"), " cm", 100), "slam.trajectory_rmse_m"),
+        ("loop-closure error (dead reckoning)",
+         f"{fmt(s.get('loop_closure_error_m'), ' cm', 100)} "
+         f"({fmt(s.get('dead_reckoning_loop_closure_error_m'), ' cm', 100)})",
+         "slam.loop_closure_error_m"),
+    ]  # fmt: skip
+    files = [
+        "detections.csv", "trees.csv", "trees.geojson", "trajectory.csv", "truth_trees.csv",
+        "metrics.json", "demo.png", "report.html", *(["map.gpkg"] if gpkg else []), "run.json",
+    ]  # fmt: skip
+    print_summary(
+        f"stemmap demo (seed {m['seed']})", rows, out_dir, files, as_json=as_json,
+        payload={"metrics": m},
+    )  # fmt: skip
 
 
 def register(app: typer.Typer) -> None:

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -52,16 +53,26 @@ def detect(
             callback=bounded("--footprint", ge=0, lt=180),
         ),
     ] = None,
+    rejected: Annotated[
+        Path | None,
+        typer.Option(
+            "--rejected",
+            help="Also write the rejected trunk candidates to this CSV, each with the test "
+            "that dropped it (reason column).",
+        ),
+    ] = None,
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
     ] = False,
 ) -> None:
-    """Detect trunks in every scan and write scan_index,time,x,y,diameter,radius_std,n_points,...
+    """Detect trunks in every scan and write scan_index,time_s,x,y,diameter,radius_std,n_points,...
 
     Coordinates are in the sensor frame (metres). A damaged frame is reported and skipped;
     ``scan_index`` is the frame's position in the file, so skipped frames leave gaps.
 
     Example: stemmap detect run.npz --out stems.csv --preset stemmap
+    --rejected FILE lists every candidate the detector dropped with the test that dropped it
+    (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md).
     """
     from stemmap.io.maps import write_observations_csv
     from stemmap.io.products import run_products
@@ -71,7 +82,7 @@ def detect(
 
     with (
         fail_on_stemmap_error(),
-        run_products("detect", inputs=[scans], outputs=[out_path]) as run,
+        run_products("detect", inputs=[scans], outputs=[out_path, rejected]) as run,
     ):
         overrides: dict[str, object] = {}
         if fit is not None:
@@ -94,6 +105,7 @@ def detect(
         if file_index.shape[0] != len(batch):  # skipped indices outside 0..n_total-1
             file_index = np.arange(len(batch), dtype=np.int64)
         parts: list[StemObservations] = []
+        rejected_parts: list[dict[str, Any]] = []
         show = not quiet and len(batch) >= _PROGRESS_MIN_SCANS
         with progress(show) as bar:
             task = bar.add_task("detecting trunks", total=len(batch))
@@ -109,6 +121,12 @@ def detect(
                     batch.frame,
                 )
                 obs = detector.detect_batch(chunk)
+                if rejected is not None:
+                    rej = detector.rejected(chunk)
+                    local = rej["scan_index"]
+                    rej["time"] = chunk.times[local]
+                    rej["scan_index"] = file_index[a + local]
+                    rejected_parts.append(rej)
                 parts.append(
                     StemObservations(
                         centers=obs.centers,
@@ -129,6 +147,8 @@ def detect(
         if len(result) == 0:
             result = StemObservations.empty(source=detector.source, frame=batch.frame)
         write_observations_csv(run.path(out_path), result)
+        if rejected is not None:
+            n_rejected = _write_rejected_csv(run.path(rejected), rejected_parts)
     if not quiet:
         n_with = len(np.unique(result.index)) if len(result) else 0
         out.print(
@@ -137,6 +157,53 @@ def detect(
             f"{detector.config.fit_method}]",
             markup=False,
         )
+        if rejected is not None:
+            out.print(f"{n_rejected} rejected candidates -> {rejected}", markup=False)
+
+
+#: Columns of the ``--rejected`` CSV (stemmap.scan.plausibility.rejected_candidates).
+_REJECTED_COLUMNS = (
+    "scan_index",
+    "time",
+    "reason",
+    "n_points",
+    "bearing_deg",
+    "range",
+    "width",
+    "partial",
+    "x",
+    "y",
+    "radius",
+    "rms",
+    "sigma",
+)
+
+
+def _write_rejected_csv(path: Path, parts: list[dict[str, Any]]) -> int:
+    """Write the rejected candidates (one row each, :data:`_REJECTED_COLUMNS`); NaN = not
+    fitted (dropped by a segment filter). Returns the row count."""
+    from stemmap.errors import InputError
+
+    n = 0
+    try:
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(_REJECTED_COLUMNS)
+            for part in parts:
+                cols = [part[c] for c in _REJECTED_COLUMNS]
+                for row in zip(*cols, strict=True):
+                    w.writerow(
+                        [
+                            f"{v:.6g}"
+                            if isinstance(v, float | np.floating)
+                            else (int(v) if isinstance(v, np.bool_ | bool) else v)
+                            for v in row
+                        ]
+                    )
+                    n += 1
+    except OSError as exc:
+        raise InputError(f"cannot write the rejected candidates to {path}: {exc}.") from exc
+    return n
 
 
 def register(app: typer.Typer) -> None:

@@ -1,7 +1,7 @@
 """``stemmap map``: tree-landmark SLAM on a dataset, a simulated run or a ROS bag.
 
 Writes to ``--out DIR``: ``trees.csv`` (id,x,y,diameter,std_x,std_y,n_obs,...),
-``trees.geojson``, ``trajectory.csv`` (time,x,y,theta), ``metrics.json`` and ``map.png``.
+``trees.geojson``, ``trajectory.csv`` (time_s,x,y,theta), ``metrics.json`` and ``map.png``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,21 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, out, progress
+from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
+from stemmap.cli._geo import (
+    CrsOption,
+    GpkgFlag,
+    checked_crs,
+    write_gps_frame,
+    write_map_products,
+)
+from stemmap.cli._summary import (
+    JsonFlag,
+    announce_compile,
+    fmt,
+    print_summary,
+    write_run_report,
+)
 from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
 
@@ -31,6 +45,11 @@ class Backend(StrEnum):
     fastslam = "fastslam"
     forestrix = "forestrix"
     isam2 = "isam2"
+
+
+class TrajectoryFormat(StrEnum):
+    csv = "csv"
+    tum = "tum"
 
 
 class Dataset(StrEnum):
@@ -49,12 +68,14 @@ def _vp_inputs(data: Path | None) -> list[Path]:
     return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
 
 
-def _victoria_park(data: Path | None, t_end: float | None) -> tuple[Any, dict[str, Any]]:
+def _victoria_park(
+    data: Path | None, t_end: float | None, t_start: float = 0.0
+) -> tuple[Any, dict[str, Any]]:
     from stemmap.datasets.victoria_park import load_victoria_park
 
     vp = load_victoria_park(data)
-    if t_end is not None:
-        vp = vp.slice(0.0, t_end)
+    if t_end is not None or t_start > 0:
+        vp = vp.slice(t_start, math.inf if t_end is None else t_end)
     return vp.problem(), {"kind": "victoria-park", "vp": vp}
 
 
@@ -141,6 +162,78 @@ def _bag(path: Path, sensor_offset: tuple[float, float]) -> tuple[Any, dict[str,
     return problem, {"kind": "bag", "odometry": odo}
 
 
+def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
+    """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
+    import dataclasses
+
+    from stemmap.slam.gnss import read_gnss_csv
+
+    if backend != "isam2":
+        raise ConfigError(f"--gnss is fused by the isam2 back-end only; got --backend {backend}.")
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise ConfigError(f"--gnss-sigma must be a positive number of metres, got {sigma}.")
+    if lever is None:  # Victoria Park: the antenna is at the laser (docs/algorithms/slam.md)
+        arm = problem.sensor_offset if problem.name.startswith("victoria_park") else (0.0, 0.0)
+    else:
+        try:
+            lx, ly = (float(v) for v in lever.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--gnss-lever must be 'x,y' in metres, got {lever!r}.") from exc
+        arm = (lx, ly)
+    fixes = read_gnss_csv(path, lever_arm=arm, default_sigma=sigma)
+    return dataclasses.replace(problem, gnss=fixes)
+
+
+def _continue(problem: Any, folder: Path, guess: str | None, backend: str) -> tuple[Any, Any]:
+    """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call)."""
+    from stemmap.io.maps import read_trees_csv
+    from stemmap.slam.relocalise import continue_session
+
+    if backend != "isam2":
+        raise ConfigError(f"--prior-map is used by the isam2 back-end only; got {backend}.")
+    g = None
+    if guess is not None:
+        try:
+            gx, gy, gd = (float(v) for v in guess.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--start-guess must be 'x,y,heading_deg', got {guess!r}.") from exc
+        g = (gx, gy, math.radians(gd))
+    csv = folder / "trees.csv" if folder.is_dir() else folder
+    return continue_session(problem, read_trees_csv(csv), g)
+
+
+def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
+    """``--realtime``: the log through :func:`stemmap.slam.online.replay` (latency in stats),
+    logged to a Rerun recording with ``--rerun``."""
+    from stemmap.slam.base import SlamResult
+    from stemmap.slam.online import replay
+
+    if backend != "isam2" or problem.gnss is not None or problem.prior_map is not None:
+        raise ConfigError("--realtime runs the isam2 online mapper without --gnss/--prior-map.")
+    rec = None
+    if rrd is not None:
+        from stemmap.viz.live import RerunRecorder
+
+        rec = RerunRecorder(rrd)
+
+    def on_scan(m: Any, f: int) -> None:
+        if rec is not None:
+            rec(m, f)
+        tick(f + 1, len(problem.frames))
+
+    try:
+        st = replay(problem, on_scan=on_scan)
+    finally:
+        if rec is not None:
+            rec.close()
+    lat = np.asarray(st["latency_s"]) * 1e3
+    stats = {"backend": "isam2-online", **st["stats"], "rss_mb": st["rss_mb_by_pass"][-1]}
+    for q in (50, 90, 99):
+        stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
+    stats["latency_ms_max"] = float(lat.max())
+    return SlamResult(st["trajectory"], st["stem_map"], stats)
+
+
 def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
     from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
@@ -168,6 +261,9 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
         off = vp.model.sensor_offset
         r = ate(result.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep)
         rd = ate(dr, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep)
+        if problem.gnss is not None:  # map in the GPS frame: also scored as it is
+            m.update(ate(result.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep,
+                         align=False).as_dict("ate_unaligned_"))  # fmt: skip
         m["gps_fixes_kept"] = scr.n_kept
         m["gps_fixes_total"] = scr.n_total
         m["gps_screening"] = scr.rule
@@ -175,6 +271,7 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
             m.update(r.as_dict("ate_"))
             al = r.alignment
             assert al is not None
+            ctx["alignment"] = al
             # GPS into the map frame (inverse of the map->GPS alignment) for the figure
             g = vp.gps_xy[scr.keep] - np.asarray(al.t)
             gps_map = g @ al.rotation
@@ -203,9 +300,84 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
     return m, gps_map, truth_xy
 
 
+def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]:
+    """The terminal summary of a map run: (quantity, value, metrics.json key)."""
+    rows = [
+        ("trees mapped", fmt(m.get("n_trees")), "n_trees"),
+        ("tree pairs closer than 1 m", fmt(m.get("duplicates_1m")), "duplicates_1m"),
+    ]
+    if "ate_rmse_m" in m:
+        rows.append(("path error vs GPS (ATE RMSE)", fmt(m["ate_rmse_m"], " m"), "ate_rmse_m"))
+        dr = m.get("dead_reckoning_ate_rmse_m")
+        rows.append(("dead reckoning ATE RMSE", fmt(dr, " m"), "dead_reckoning_ate_rmse_m"))
+    if "trajectory_rmse_m" in m:
+        rows.append(("path RMSE vs truth", fmt(m["trajectory_rmse_m"], " m"), "trajectory_rmse_m"))
+        lc = m.get("loop_closure_error_m")
+        rows.append(("loop-closure error", fmt(lc, " m"), "loop_closure_error_m"))
+    mm = m.get("map")
+    if isinstance(mm, dict):
+        rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
+        rows.append(("map precision", fmt(mm.get("precision")), "map.precision"))
+        pr = mm.get("position_rmse")
+        rows.append(("tree position RMSE", fmt(pr, " cm", 100, 1), "map.position_rmse"))
+        dr_ = mm.get("diameter_rmse")
+        rows.append(("DBH RMSE", fmt(dr_, " cm", 100, 2), "map.diameter_rmse"))
+    if len(stem_map):
+        import numpy as np
+
+        ds = np.array([t.diameter_std for t in stem_map])
+        conf = np.array([t.confidence for t in stem_map])
+        med = float(np.nanmedian(ds)) if np.isfinite(ds).any() else math.nan
+        rows.append(("median DBH standard error", fmt(med, " cm", 100, 2), "trees.csv"))
+        rows.append(("trees with confidence >= 0.5", fmt(int(np.sum(conf >= 0.5))), "trees.csv"))
+    return rows
+
+
+def headline(m: dict[str, Any]) -> str:
+    """One line of the run's key numbers (figure titles, the terminal summary)."""
+    parts = [f"{m.get('n_trees', 0)} trees"]
+    mm = m.get("map")
+    if isinstance(mm, dict):
+        parts.append(f"recall {mm.get('recall', math.nan):.2f}")
+        parts.append(f"precision {mm.get('precision', math.nan):.2f}")
+    if "ate_rmse_m" in m:
+        parts.append(f"ATE RMSE {m['ate_rmse_m']:.2f} m vs GPS")
+    if "trajectory_rmse_m" in m:
+        parts.append(f"path RMSE {m['trajectory_rmse_m']:.2f} m")
+    return ", ".join(parts)
+
+
+def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
+    """What the map and trajectory coordinates mean (recorded in metrics.json)."""
+    a, b = problem.sensor_offset
+    return {
+        "map_frame": "the frame of the initial pose (x, y metres; odometry frame, the "
+        "simulator's world frame for --sim and demo)",
+        "crs": crs,
+        "georeferenced": crs is not None,
+        "trajectory_point": "the vehicle reference point of the motion model (Victoria Park: "
+        "the rear-axle centre), sensor_offset_m behind the laser",
+        "sensor_offset_m": [a, b],
+        "sensor_offset_meaning": f"the laser is {a} m ahead and {b} m left of the trajectory "
+        "point, in the vehicle frame",
+    }
+
+
 def map_command(
     bag: Annotated[
-        Path | None, typer.Argument(help="ROS1/ROS2 bag with LaserScan + Odometry.")
+        Path | None,
+        typer.Argument(
+            metavar="INPUT",
+            help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
+            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry.",
+        ),
+    ] = None,
+    odometry: Annotated[
+        Path | None,
+        typer.Option(
+            help="Wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) for scan or detection "
+            "inputs [default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes].",
+        ),
     ] = None,
     dataset: Annotated[
         Dataset | None, typer.Option("--dataset", help="A known public dataset.")
@@ -226,6 +398,9 @@ def map_command(
             callback=bounded("--t-end", gt=0),
         ),
     ] = None,
+    t_start: Annotated[
+        float, typer.Option("--t-start", help="Use the dataset from this time (s).")
+    ] = 0.0,
     seed: Annotated[
         int, typer.Option("--seed", help="Simulation seed.", callback=bounded("--seed", ge=0))
     ] = 1,
@@ -246,27 +421,100 @@ def map_command(
     sensor_offset: Annotated[
         str, typer.Option("--sensor-offset", help="Bag: laser position 'a,b' (m) in the vehicle.")
     ] = "0,0",
+    gnss: Annotated[
+        Path | None,
+        typer.Option("--gnss", help="GNSS fixes CSV 'time_s,x,y[,sigma]' (metric frame); isam2."),
+    ] = None,
+    gnss_lever: Annotated[
+        str | None,
+        typer.Option(
+            "--gnss-lever",
+            help="Antenna position 'x,y' (m) in the vehicle frame (default: the laser point "
+            "for victoria-park, else 0,0).",
+        ),
+    ] = None,
+    gnss_sigma: Annotated[
+        float, typer.Option("--gnss-sigma", help="Fix sigma (m) where the CSV has none.")
+    ] = 1.0,
+    prior_map: Annotated[
+        Path | None,
+        typer.Option(
+            "--prior-map",
+            help="Map folder of an earlier session (its trees.csv): "
+            "relocalise in it, map on, write the merged map; isam2.",
+        ),
+    ] = None,
+    start_guess: Annotated[
+        str | None,
+        typer.Option(
+            "--start-guess",
+            help="With --prior-map: rough start 'x,y,heading_deg' in "
+            "the map (searched within 30 m / 45 deg); default: global search.",
+        ),
+    ] = None,
+    realtime: Annotated[
+        bool,
+        typer.Option(
+            "--realtime",
+            help="Replay the log scan by scan through the online mapper "
+            "(OnlineMapper) and report per-scan latency; isam2.",
+        ),
+    ] = False,
+    rerun: Annotated[
+        Path | None,
+        typer.Option(
+            "--rerun",
+            help="Write a Rerun recording (.rrd) of the run; implies --realtime (needs rerun-sdk).",
+        ),
+    ] = None,
     show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    as_json: JsonFlag = False,
+    crs: CrsOption = None,
+    gpkg: GpkgFlag = False,
+    trajectory_format: Annotated[
+        TrajectoryFormat,
+        typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
+    ] = TrajectoryFormat.csv,
 ) -> None:
-    """Map trees and the machine's path with tree-landmark SLAM."""
+    """Map trees and the machine's path with tree-landmark SLAM.
+
+    Writes to --out: trees.csv, trees.geojson, trajectory.csv (--trajectory-format tum:
+    trajectory.tum), metrics.json, map.png, report.html, and with --gpkg map.gpkg; Victoria
+    Park also gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json
+    (the map in the GPS frame). Every column: docs/outputs.md.
+
+    Example: stemmap map --dataset victoria-park --out vp
+
+    Example: stemmap sim scans --out run.npz && stemmap map run.npz --out runmap
+
+    Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
+    """
+    from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
-    from stemmap.io.maps import write_trees_csv, write_trees_geojson
     from stemmap.io.products import run_products
-    from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.io.rosbag import is_bag
     from stemmap.slam.base import dead_reckoning, make_backend
+    from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
 
-    inputs = [bag] if dataset is None else _vp_inputs(data)
+    inputs = [bag, odometry] if dataset is None else _vp_inputs(data)
     with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
+        crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
         if sources != 1:
-            raise ConfigError("give exactly one input: a BAG, --dataset victoria-park, or --sim.")
+            raise ConfigError(
+                "give exactly one input: a bag, scans or detections file, --dataset "
+                "victoria-park, or --sim."
+            )
+        announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
         if dataset is not None:
-            problem, ctx = _victoria_park(data, t_end)
+            problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
             problem, ctx = _simulated(seed, sim_trees, sim_size)
         else:
             assert bag is not None
+            if odometry is not None and is_bag(bag):
+                raise ConfigError("--odometry is for scan / detection files; a bag has its own.")
             try:
                 a_str, b_str = sensor_offset.split(",")
                 off = (float(a_str), float(b_str))
@@ -274,7 +522,12 @@ def map_command(
                 raise ConfigError(
                     f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
                 ) from exc
-            problem, ctx = _bag(bag, off)
+            problem, ctx = _bag(bag, off) if is_bag(bag) else file_problem(bag, odometry, off)
+        if gnss is not None:
+            problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
+        reloc = None
+        if prior_map is not None:
+            problem, reloc = _continue(problem, prior_map, start_guess, backend.value)
         be = make_backend(backend.value)
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
@@ -282,12 +535,35 @@ def map_command(
             def tick(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
 
-            result = be.run(problem, progress=tick)
+            if realtime or rerun is not None:
+                result = _realtime(problem, backend.value, tick, rerun)
+            else:
+                result = be.run(problem, progress=tick)
+        result.stem_map, unc = annotate_uncertainty(result, problem)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
+        if reloc is not None:
+            metrics["relocalisation"] = reloc.__dict__
+        metrics["uncertainty"] = unc.to_dict()
+        metrics["frames"] = frames_metadata(problem, crs)
+        run.note(frames=metrics["frames"])  # the body point and CRS travel with the manifest
         stage = run.dir
-        write_trees_csv(stage / "trees.csv", result.stem_map)
-        write_trees_geojson(stage / "trees.geojson", result.stem_map)
-        write_trajectory_csv(stage / "trajectory.csv", result.trajectory)
+        if "odometry" in ctx and isinstance(ctx["odometry"], str):
+            run.add_input(ctx["odometry"])
+        fmt = trajectory_format.value
+        names = write_map_products(
+            stage, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
+        )
+        if "alignment" in ctx:
+            names += write_gps_frame(
+                stage,
+                ctx["alignment"],
+                result.stem_map,
+                result.trajectory,
+                sensor_offset=problem.sensor_offset,
+                gpkg=gpkg,
+                trajectory_format=fmt,
+            )
+        names += ["metrics.json", "map.png"]
         with atomic_write(stage / "metrics.json") as fh:
             json.dump(clean_json(metrics), fh, indent=1, default=json_default, allow_nan=False)
         save_stem_map_png(
@@ -297,15 +573,30 @@ def map_command(
             gps_xy=gps_map,
             reference=dead_reckoning(problem),
             truth_xy=truth_xy,
-            title=f"{problem.name}: {backend.value}",
+            title=f"{problem.name}: {backend.value}\n{headline(metrics)}",
         )
-    summary = {k: metrics[k] for k in metrics if k.startswith(("ate_", "n_trees", "dup", "loop"))}
-    out.print(
-        f"wrote {out_dir}/: trees.csv trees.geojson trajectory.csv metrics.json map.png run.json",
-        markup=False,
-        soft_wrap=True,
+        names.append(
+            write_run_report(
+                stage,
+                title=f"stemmap map: {problem.name} ({backend.value})",
+                headline=headline(metrics),
+                metrics=metrics,
+                figure="map.png",
+                stem_map=result.stem_map,
+                parameters={"backend": backend.value, "input": problem.name, "crs": crs,
+                            "sensor_offset_m": list(problem.sensor_offset), "t_end": t_end},
+                files=names,
+                crs=crs,
+            )
+        )  # fmt: skip
+    print_summary(
+        f"stemmap map: {problem.name} ({backend.value})",
+        summary_rows(metrics, result.stem_map),
+        out_dir,
+        [*names, "run.json"],
+        as_json=as_json,
+        payload={"metrics": metrics},
     )
-    out.print(json.dumps(clean_json(summary), default=json_default))
 
 
 def register(app: typer.Typer) -> None:

@@ -9,7 +9,7 @@ output) against the truth files of a ``stemmap sim scans`` run.
   ``angle_min``, ``angle_increment``, ``range_min``, ``range_max``), via
   :func:`stemmap.io.scans.write_scans_npz`;
 * ``run_trees.csv`` -- ground-truth trees ``id,x,y,diameter`` (world frame, metres);
-* ``run_poses.csv`` -- the true sensor pose of every scan ``time,x,y,theta`` (world frame);
+* ``run_poses.csv`` -- the true sensor pose of every scan ``time_s,x,y,theta`` (world frame);
 * ``run_odometry.csv`` -- noisy wheel odometry ``time,speed,yaw_rate`` (m/s, rad/s; controls
   held until the next row);
 * ``run_gnss.csv`` -- noisy GNSS fixes of the vehicle ``time,x,y,sigma`` (world frame, m);
@@ -118,6 +118,11 @@ def scans(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
 ) -> None:
     """Simulate a drive through a stand and write scans + ground truth.
+
+    Writes OUT (e.g. run.npz: the scans) and beside it run_trees.csv (true trees),
+    run_poses.csv (true sensor poses), run_odometry.csv (noisy wheel odometry, the input of
+    `stemmap map run.npz`), run_gnss.csv, run_truth.npz and run.npz.run.json. Columns:
+    docs/outputs.md and the module doc.
 
     Example: stemmap sim scans --out run.npz --preset sick_lms --seed 1 --n-scans 2000
     """

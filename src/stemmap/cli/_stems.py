@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import math
+import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._common import console, fail_on_stemmap_error, progress
+from stemmap.cli._geo import checked_crs
+from stemmap.cli._summary import JsonFlag, fmt, print_summary
 from stemmap.cli._validate import bounded
+from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -78,8 +82,62 @@ def stems(
     ] = "ours",
     geojson: Annotated[Path | None, typer.Option(help="Also write a GeoJSON of the stems.")] = None,
     png: Annotated[Path | None, typer.Option(help="Also write a top-view PNG.")] = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write a self-contained HTML report (figure, DBH histogram, table)."
+        ),
+    ] = None,
+    gpkg: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write a GeoPackage (layer 'stems') in the cloud's CRS.",
+            rich_help_panel="Georeferencing",
+        ),
+    ] = None,
+    crs: Annotated[
+        str | None,
+        typer.Option(
+            help="CRS of the cloud's x, y (EPSG code, WKT, PROJ) [default: the LAS/LAZ "
+            "header's CRS; none: a local frame].",
+            rich_help_panel="Georeferencing",
+        ),
+    ] = None,
     topic: Annotated[str | None, typer.Option(help="PointCloud2 topic (bags only).")] = None,
-    heights: Annotated[bool, typer.Option(help="Also estimate stem heights (ours).")] = False,
+    heights: Annotated[
+        bool, typer.Option(help="Estimate stem (tree) heights: highest point within 1 m (ours).")
+    ] = True,
+    max_memory: Annotated[
+        float,
+        typer.Option(
+            help="Memory budget in GB for the run's rasters (ground grid, clustering grid); a "
+            "cloud that needs more is refused with an error (tile it)."
+        ),
+    ] = DEFAULT_MAX_MEMORY / 1e9,
+    profile: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the stem profiles (diameter every 0.5 m up the visible stem, with std) "
+            "to this CSV (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
+    metrics: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write a JSON with the plot summary (stems/ha, basal area m2/ha, quadratic "
+            "mean diameter, DBH histogram) and per-tree DBH, height and stem volume (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
+    labels: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the cloud as LAS with a tree_id extra dimension (0 = ground or no tree; "
+            "i = row i-1 of the CSV) (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
     chunk_size: Annotated[
         int,
         typer.Option(
@@ -97,7 +155,7 @@ def stems(
     trajectory: Annotated[
         Path | None,
         typer.Option(
-            help="Machine path, stemmap CSV time,x,y,theta (.csv) or TUM 't x y z qx qy qz qw'; "
+            help="Machine path, stemmap CSV time_s,x,y,theta (.csv) or TUM 't x y z qx qy qz qw'; "
             "each point's sensor position is interpolated at its time stamp (ours).",
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
@@ -126,6 +184,7 @@ def stems(
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = None,
+    as_json: JsonFlag = False,
 ) -> None:
     """Find stems in CLOUD and write x, y, z, diameter, n_points, quality per stem (cloud frame,
     metres). LAS/LAZ files are streamed in chunks (progress bar). munjer2025 expects one lidar
@@ -135,7 +194,19 @@ def stems(
     time stamps for a mobile cloud) the circle fits of preset ours minimise the range errors
     along each point's ray, which removes the low DBH bias of a noisy mobile lidar.
 
+    Writes the stems CSV (--out) and, on request, --geojson (WGS84 lon/lat when the CRS is
+    known: --crs or the LAS header), --gpkg (native CRS) and --png (top view to scale). Every
+    column: docs/outputs.md.
+
+    Forestry products (preset ours): --profile (stem profiles CSV: diameter every 0.5 m up the
+    visible stem, with std), --metrics (JSON: stems/ha, basal area m2/ha, quadratic mean
+    diameter, DBH histogram, per-tree height and volume), --labels (LAS with a tree_id per
+    point). The CSV also gives diameter_std, the position covariance, where and why the DBH
+    was measured (dbh_height, dbh_rule) and what heights are measured from (base).
+
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
+
+    Forestry: stemmap stems plot.laz --profile profile.csv --metrics metrics.json --labels trees.laz
 
     Mobile: stemmap stems drive.laz --trajectory path.csv --sensor-offset 1.2,0
 
@@ -143,18 +214,31 @@ def stems(
     """
     from dataclasses import replace
 
+    import numpy as np
+
     from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.geo import GeoLayer, array_fields, las_crs, write_gpkg
     from stemmap.io.products import run_products
 
+    outputs = [out_csv, geojson, gpkg, png, report, profile, metrics, labels]
     with (
         fail_on_stemmap_error(),
-        run_products("stems", inputs=[cloud, trajectory], outputs=[out_csv, geojson, png]) as run,
+        run_products("stems", inputs=[cloud, trajectory], outputs=outputs) as run,
+        tempfile.TemporaryDirectory() as tmp,
     ):
+        crs = checked_crs(crs) if crs is not None else las_crs(cloud)
         cfg = get_preset(preset)
-        if isinstance(cfg, StemConfig) and heights:
-            cfg = replace(cfg, estimate_height=True)
+        if not max_memory > 0:
+            raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
+        if isinstance(cfg, StemConfig):
+            cfg = replace(cfg, estimate_height=heights, max_memory=max_memory * 1e9)
+        elif profile or metrics or labels:
+            raise ConfigError(
+                "--profile, --metrics and --labels need preset ours (munjer2025 works on one "
+                "lidar frame, not a plot)."
+            )
         sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
         with progress() as bar:
             task = bar.add_task(f"reading {cloud.name}", total=None)
@@ -167,10 +251,14 @@ def stems(
             )
         write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
-            write_stems_geojson(run.path(geojson), result)
-        if png is not None:
-            import numpy as np
-
+            write_stems_geojson(run.path(geojson), result, crs=crs)
+        if gpkg is not None:
+            fields = array_fields(result, len(result), skip=("xy",))
+            write_gpkg(run.path(gpkg), [GeoLayer("stems", result.xy, fields)], crs, result.frame)
+        fig_path = None if png is None else run.path(png)
+        if report is not None and png is None:
+            fig_path = Path(tmp) / "figure.png"
+        if fig_path is not None:
             # background: every k-th point of the whole file (one more streaming pass; the
             # size of a non-LAS file is known only once it is read, as one chunk)
             total = count_points(cloud)
@@ -180,17 +268,81 @@ def stems(
                     for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)
                 ]
             )
-            title = f"{cloud.name}: {len(result)} stems"
-            plot_stems(run.path(png), result, background_xy=bg, title=title)
-        out.print(
-            f"{len(result)} stems ({result.method}"
-            + (", along-ray fits" if sensor is not None else "")
-            + f") written to {out_csv}"
-            + (f", {geojson}" if geojson else "")
-            + (f", {png}" if png else "")
-        )
+            plot_stems(fig_path, result, background_xy=bg, title=cloud.name)
+        if profile or metrics or labels:
+            from stemmap.cli._stems_products import write_forestry_products
+
+            write_forestry_products(
+                cloud,
+                result,
+                chunk_size,
+                topic,
+                profile=None if profile is None else run.path(profile),
+                metrics=None if metrics is None else run.path(metrics),
+                labels=None if labels is None else run.path(labels),
+            )
+        files = [str(p) for p in outputs if p is not None]
+        med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
+        rows = [
+            ("stems", fmt(len(result)), "rows of the CSV"),
+            ("median DBH", fmt(med, " cm", 100, 1), "diameter"),
+            ("method", result.method + (", along-ray fits" if sensor is not None else ""), ""),
+            ("CRS", crs[:40] if crs else "none (local frame)", ""),
+        ]
+        if report is not None:
+            assert fig_path is not None
+            _stems_report(run.path(report), fig_path, result, cloud, crs, rows, files)
+        print_summary(
+            f"stemmap stems: {cloud.name}", rows, None, files, as_json=as_json,
+            payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
+                     "method": result.method},
+        )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
+
+
+def _stems_report(
+    path: Path, fig: Path, result: Any, cloud: Path, crs: str | None, rows: Any, files: Any
+) -> None:
+    """report.html of a stems run: the figure, DBH histogram, summary and per-stem table."""
+    import numpy as np
+
+    from stemmap.cloud.export import STEM_CSV_COLUMNS
+    from stemmap.viz.report import write_report
+
+    metrics: dict[str, Any] = {
+        "n_stems": len(result),
+        "median_dbh_m": float(np.nanmedian(result.diameter)) if len(result) else None,
+        "method": result.method,
+        "crs": crs,
+        "point_spacing_m": float(result.spacing) if math.isfinite(result.spacing) else None,
+    }
+    cols = [
+        c
+        for c in STEM_CSV_COLUMNS
+        if c not in ("id", "method", "base")
+        and hasattr(result, c)
+        and np.asarray(getattr(result, c)).dtype.kind in "biuf"
+    ]
+    table = [
+        [k, round(float(result.xy[k, 0]), 3), round(float(result.xy[k, 1]), 3)]
+        + [round(float(getattr(result, c)[k]), 4) for c in cols if c not in ("x", "y")]
+        for k in range(len(result))
+    ]
+    header = ["id", "x", "y", *[c for c in cols if c not in ("x", "y")]]
+    write_report(
+        path,
+        title=f"stemmap stems: {cloud.name}",
+        headline=", ".join(f"{r[0]} {r[1]}" for r in rows),
+        metrics=metrics,
+        figure_png=fig.read_bytes(),
+        diameters=result.diameter,
+        table_header=header,
+        table_rows=table,
+        parameters={"cloud": str(cloud), "method": result.method, "crs": crs},
+        warnings=[] if crs else ["no CRS: coordinates are the cloud's local metres."],
+        files=[str(f) for f in files],
+    )
 
 
 def register(app: typer.Typer) -> None:

@@ -36,7 +36,7 @@ from stemmap.io._util import existing_file
 from stemmap.io.atomic import atomic_write
 from stemmap.io.products import run_products
 
-__all__ = ["calibrate", "fuse", "read_calibration", "register", "segment"]
+__all__ = ["calibrate", "fuse", "overlay_image", "read_calibration", "register", "segment"]
 
 
 def _read_table(path: Path, required: list[str], optional: list[str]) -> dict[str, np.ndarray]:
@@ -272,36 +272,192 @@ def calibrate(
     out.print(table)
 
 
+_SEGMENT_METHODS = ("pixel", "xue2018", "xue2018_strict", "full_frame")
+_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+
+
+def _expand(paths: list[Path], suffixes: tuple[str, ...], what: str) -> list[Path]:
+    """Files given directly, or the files with one of ``suffixes`` inside given folders."""
+    files: list[Path] = []
+    for p in paths:
+        if p.is_dir():
+            files += sorted(f for f in p.iterdir() if f.suffix.lower() in suffixes)
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise InputError(f"{what} {p} does not exist.")
+    if not files:
+        raise InputError(f"no {what} files found in {', '.join(map(str, paths))}.")
+    return files
+
+
+def _pair_labels(images: list[Path], labels: list[Path]) -> list[tuple[Path, Path]]:
+    """Pair every training image with the label file of the same stem (.txt YOLO or mask)."""
+    by_stem: dict[str, Path] = {}
+    for lab in labels:
+        if lab.stem in by_stem:
+            raise InputError(f"two label files for {lab.stem!r}: {by_stem[lab.stem]} and {lab}.")
+        by_stem[lab.stem] = lab
+    pairs = []
+    for im in images:
+        if im.stem not in by_stem:
+            raise InputError(
+                f"no label file named {im.stem}.txt (YOLO polygons) or {im.stem}.png (mask) "
+                f"for training image {im}."
+            )
+        pairs.append((im, by_stem[im.stem]))
+    return pairs
+
+
+def _encode(path: Path, img: np.ndarray) -> bytes:
+    ext = path.suffix.lower() if path.suffix.lower() in (".png", ".jpg", ".jpeg") else ".png"
+    ok, buf = cv2.imencode(ext, img)
+    if not ok:  # pragma: no cover - OpenCV failure
+        raise InputError(f"could not encode the image for {path}.")
+    return bytes(buf.tobytes())
+
+
+def overlay_image(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """BGR picture of the photo with the trunk mask in translucent red and its outline."""
+    bgr = np.ascontiguousarray(rgb[..., ::-1]).copy()
+    m = mask.astype(bool)
+    bgr[m] = (0.45 * bgr[m] + 0.55 * np.array([40, 40, 255])).astype(np.uint8)
+    contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(bgr, contours, -1, (0, 0, 255), max(1, round(rgb.shape[1] / 640)))
+    return bgr
+
+
+def _train_segmenter(
+    train: list[Path], labels: list[Path], model_out: Path, work_width: int, max_pixels: int
+) -> str:
+    from stemmap.vision.image_io import read_image
+    from stemmap.vision.segment_classifier import (
+        read_label_mask,
+        save_model,
+        train_pixel_classifier,
+    )
+
+    pairs = _pair_labels(
+        _expand(train, _IMAGE_SUFFIXES, "training image"),
+        _expand(labels, (".txt", ".png", ".bmp"), "label"),
+    )
+    imgs, masks = [], []
+    for im, lab in pairs:
+        rgb = read_image(im, max_pixels=max_pixels)
+        imgs.append(rgb)
+        masks.append(read_label_mask(lab, rgb.shape[1], rgb.shape[0]))
+    meta = {"trained_on": [im.name for im, _ in pairs]}
+    model = train_pixel_classifier(imgs, masks, work_width=work_width, meta=meta)
+    save_model(model, model_out)
+    return f"trained on {len(pairs)} image(s) ({model.trees.n_nodes} tree nodes)"
+
+
 def segment(
-    image: Annotated[Path, typer.Argument(help="Colour image (PNG, JPEG, ...).")],
-    out_path: Annotated[Path, typer.Option("--out", "-o", help="Mask PNG to write (0 / 255).")],
+    image: Annotated[
+        Path | None, typer.Argument(help="Colour image (PNG, JPEG, BMP) to segment.")
+    ] = None,
+    out_path: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Mask PNG to write (0 / 255).")
+    ] = None,
     rois: Annotated[
         Path | None, typer.Option(help="Also write the regions: x,y,w,h,alpha CSV.")
     ] = None,
+    overlay: Annotated[
+        Path | None,
+        typer.Option(help="Also write the photo with the mask drawn over it (PNG or JPEG)."),
+    ] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help="pixel: trainable pixel classifier (default model: the shipped mangrove one, "
+            "or --model). xue2018: Xue 2018's stripping segmentation (RGB rules); it CROPS THE "
+            "TOP 25 % of the image (canopy) and keeps only regions taller than wide. "
+            "xue2018_strict: without our green-plant rule. full_frame: Xue without the crop."
+        ),
+    ] = "pixel",
     preset: Annotated[
-        str, typer.Option(help="Segmentation preset: xue2018, xue2018_strict, full_frame.")
-    ] = "xue2018",
+        str | None, typer.Option(help="Alias of --method for the Xue presets (older scripts).")
+    ] = None,
+    model: Annotated[
+        Path | None, typer.Option(help="Pixel-classifier model (.npz from --model-out).")
+    ] = None,
+    train: Annotated[
+        list[Path] | None,
+        typer.Option(
+            metavar="IMAGES",
+            help="Train a pixel classifier on these images or folders (repeatable).",
+        ),
+    ] = None,
+    labels: Annotated[
+        list[Path] | None,
+        typer.Option(
+            metavar="LABELS",
+            help="Training labels, files or folders: YOLO polygon .txt (class 0 = trunk) or "
+            "mask PNG (nonzero = trunk), matched to the images by file name stem.",
+        ),
+    ] = None,
+    model_out: Annotated[
+        Path | None, typer.Option(help="Where --train writes the model (.npz, no pickle).")
+    ] = None,
+    work_width: Annotated[
+        int, typer.Option(help="Training: feature resolution (image width, pixels).")
+    ] = 384,
+    max_pixels: Annotated[
+        int,
+        typer.Option(help="Refuse images with more pixels than this (read from the header)."),
+    ] = 100_000_000,
 ) -> None:
-    """Stripping segmentation of trunks (Xue 2018); writes the mask and optionally the RoIs.
+    """Segment trunks in a photo (mask, regions, overlay), or train a pixel classifier.
 
-    Example: stemmap segment frame.png --out mask.png --rois rois.csv
+    Examples:
+    stemmap segment photo.jpg --out mask.png --overlay overlay.jpg;
+    stemmap segment frame.png --out mask.png --method xue2018 --rois rois.csv;
+    stemmap segment --train photos/ --labels labels/ --model-out trunks.npz;
+    stemmap segment photo.jpg --model trunks.npz --out mask.png
     """
+    from stemmap.vision.image_io import read_image
     from stemmap.vision.segment import segment_trunks
+    from stemmap.vision.segment_classifier import default_model, load_model, segment_pixels
 
+    if train is not None or labels is not None or model_out is not None:
+        with (
+            fail_on_stemmap_error(),
+            run_products(
+                "segment", inputs=[*(train or []), *(labels or [])], outputs=[model_out]
+            ) as run,
+        ):
+            if not train or not labels or model_out is None:
+                raise ConfigError("training needs --train IMAGES, --labels LABELS and --model-out.")
+            if image is not None:
+                raise ConfigError(
+                    f"give either an image to segment ({image}) or --train, not both."
+                )
+            msg = _train_segmenter(train, labels, run.path(model_out), work_width, max_pixels)
+        out.print(f"{msg} -> {model_out}")
+        return
     with (
         fail_on_stemmap_error(),
-        run_products("segment", inputs=[image], outputs=[out_path, rois]) as run,
+        run_products("segment", inputs=[image, model], outputs=[out_path, rois, overlay]) as run,
     ):
-        existing_file(image, "image")
-        bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise InputError(f"{image} is not a readable image file.")
-        seg = segment_trunks(np.ascontiguousarray(bgr[..., ::-1]), preset)
-        ok, buf = cv2.imencode(".png", seg.mask.astype(np.uint8) * 255)
-        if not ok:  # pragma: no cover - OpenCV failure
-            raise InputError(f"could not encode the mask for {out_path}.")
+        if image is None or out_path is None:
+            raise ConfigError("segment needs an IMAGE and --out MASK (or --train ... to train).")
+        meth = preset if preset is not None else method
+        if meth not in _SEGMENT_METHODS:
+            raise ConfigError(
+                f"--method must be one of {', '.join(_SEGMENT_METHODS)}, got {meth!r}."
+            )
+        if model is not None and meth != "pixel":
+            raise ConfigError(f"--model is for --method pixel, not {meth!r}.")
+        rgb = read_image(image, max_pixels=max_pixels)
+        if meth == "pixel":
+            seg = segment_pixels(rgb, load_model(model) if model else default_model())
+        else:
+            seg = segment_trunks(rgb, meth)
         with atomic_write(run.path(out_path), "wb") as fh:
-            fh.write(buf.tobytes())
+            fh.write(_encode(out_path.with_suffix(".png"), seg.mask.astype(np.uint8) * 255))
+        if overlay is not None:
+            with atomic_write(run.path(overlay), "wb") as fh:
+                fh.write(_encode(overlay, overlay_image(rgb, seg.mask)))
         if rois is not None:
             with atomic_write(run.path(rois)) as fh:
                 w = csv.writer(fh, lineterminator="\n")
@@ -311,7 +467,7 @@ def segment(
                     w.writerow(
                         [int(r.x[k]), int(r.y[k]), int(r.w[k]), int(r.h[k]), f"{r.alpha[k]:.4f}"]
                     )
-    out.print(f"{len(seg.regions)} trunk region(s); mask written to {out_path}")
+    out.print(f"{len(seg.regions)} trunk region(s) ({meth}); mask written to {out_path}")
 
 
 def fuse(

@@ -8,6 +8,7 @@ chunks (:class:`GroundAccumulator`), so a 20-million-point file never sits in me
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,24 @@ from scipy import ndimage
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
 
-__all__ = ["GroundAccumulator", "GroundModel", "fit_ground", "normalize_heights"]
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DEFAULT_MAX_MEMORY",
+    "GroundAccumulator",
+    "GroundModel",
+    "core_cells",
+    "fit_ground",
+    "normalize_heights",
+    "raster_guard",
+]
+
+DEFAULT_MAX_MEMORY = 4e9  # bytes: the rasters of one run (ground grid, clustering grid)
+# bytes per ground cell while the model is built: ~40 float64 rasters of the cell grid (cell
+# minima, median, box sums, the 3 x 3 normal matrices and their solve)
+_GROUND_BYTES_PER_CELL = 40 * 8
+BASE_GROUND = "ground"
+BASE_STEM = "lowest stem points"
 
 
 @dataclass(frozen=True, eq=False)
@@ -29,11 +47,15 @@ class GroundModel:
     origin : (x0, y0), metres; lower-left corner of cell (0, 0)
     cell : float, metres
     z : ndarray (nx, ny), metres; ground height at cell centres
+    base : str -- how heights are referenced: ``"ground"`` (a ground raster from the cloud's
+        lowest points) or ``"lowest stem points"`` (a cloud without ground, e.g. one tree
+        segmented by 3DFin, TreeQSM or ITSMe: a flat base at its stem's lowest points)
     """
 
     origin: tuple[float, float]
     cell: float
     z: FloatArray
+    base: str = BASE_GROUND
 
     def height_of(self, xyz: ArrayLike) -> FloatArray:
         """Height above ground of (N, 3) points (bilinear between cell centres, clamped)."""
@@ -51,18 +73,49 @@ class GroundModel:
         )
 
 
+def core_cells(ij: NDArray[np.int64], pad: int = 2) -> NDArray[np.bool_]:
+    """Cells inside the robust extent of a set of occupied cells (``ij``, (M, 2) indices).
+
+    The extent is the 0.1-99.9 % quantile box of the occupied cells, grown by 10 % of its
+    size plus ``pad`` cells on every side: a stray point kilometres away (a GNSS glitch, a
+    UTM cloud with one point at 0, 0, 0) falls outside and cannot make a raster span the
+    kilometres in between; the edge cells of a real plot stay inside.
+    """
+    if ij.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    lo = np.floor(np.quantile(ij, 0.001, axis=0))
+    hi = np.ceil(np.quantile(ij, 0.999, axis=0))
+    grow = 0.1 * (hi - lo) + pad
+    return np.asarray(np.all((ij >= lo - grow) & (ij <= hi + grow), axis=1), dtype=bool)
+
+
+def raster_guard(n_cells: int, bytes_per_cell: float, budget: float, what: str, fix: str) -> None:
+    """InputError when a raster of ``n_cells`` cells would need more than ``budget`` bytes."""
+    need = float(n_cells) * bytes_per_cell
+    if need > budget:
+        raise InputError(
+            f"{what} would need {need / 1e9:.1f} GB ({n_cells} cells), above the memory "
+            f"budget of {budget / 1e9:.1f} GB; {fix}"
+        )
+
+
+_SUPPORT = 0.1  # m: points this close above a cell's minimum support it
 _OFF = 1 << 30  # cell indices are shifted to be non-negative before packing into int64 keys
 
 
 class GroundAccumulator:
     """Per-cell minimum z over a stream of chunks; :meth:`model` builds the GroundModel."""
 
-    def __init__(self, cell: float = 1.0) -> None:
+    def __init__(self, cell: float = 1.0, max_memory: float = DEFAULT_MAX_MEMORY) -> None:
         if not cell > 0:
             raise ConfigError(f"ground cell must be > 0 m, got {cell}.")
+        if not max_memory > 0:
+            raise ConfigError(f"max_memory must be > 0 bytes, got {max_memory}.")
         self.cell = float(cell)
+        self.max_memory = float(max_memory)
         self._keys = np.zeros(0, dtype=np.int64)
         self._low = np.zeros((0, 3))  # lowest point of each cell
+        self._sup = np.zeros(0, dtype=np.int64)  # points within _SUPPORT above it
 
     def update(self, xyz: ArrayLike) -> None:
         p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
@@ -79,13 +132,67 @@ class GroundAccumulator:
         cand = np.flatnonzero(p[:, 2] == zmin[inv])
         _, first = np.unique(inv[cand], return_index=True)
         sel = cand[first]
+        # support of each minimum: the chunk's points within _SUPPORT of it (a lone noise
+        # point below the ground has support 1; the ground or a stem's cut has many)
+        near = p[:, 2] <= zmin[inv] + _SUPPORT
+        cnt = np.bincount(inv[near], minlength=uk.shape[0])
         keys = np.concatenate((self._keys, keys[sel]))
         pts = np.concatenate((self._low, p[sel]))
+        sup = np.concatenate((self._sup, cnt))
         order = np.lexsort((pts[:, 2], keys))
-        keys, pts = keys[order], pts[order]
+        keys, pts, sup = keys[order], pts[order], sup[order]
         first = np.ones(keys.shape[0], dtype=bool)
         first[1:] = keys[1:] != keys[:-1]
+        # merging two minima of one cell: the support adds up when they are within _SUPPORT
+        # (approximately: points of the higher one above the lower one + _SUPPORT count too)
+        grp = np.cumsum(first) - 1
+        zlow = pts[first, 2][grp]
+        add = np.bincount(grp, np.where(pts[:, 2] <= zlow + _SUPPORT, sup, 0))
         self._keys, self._low = keys[first], pts[first]
+        self._sup = add.astype(np.int64)
+
+    def stem_base(self, max_width: float, slab: float = 0.5) -> float | None:
+        """Base z of a cloud without ground (one segmented tree), or None if it has ground.
+
+        The lowest points of the cells (the accumulator's minima) within ``slab`` metres of
+        the cloud's lowest point are the ground where there is ground: they spread over the
+        plot (a 2.5 m TLS cut-out of one spruce: 2.5 m). Cells far outside the cloud
+        (:func:`core_cells`) and minima with fewer than 3 points within 0.1 m above them (a
+        lone noise point below the ground) are left out. A tree exported without ground
+        (3DFin, TreeQSM, ITSMe) has only its stem's cut there: they fit inside one stem
+        footprint, ``max_width`` (the largest plausible DBH). Then the base is that lowest
+        point, and heights are measured from it.
+        """
+        if self._keys.size == 0:
+            return None
+        i = (self._keys >> 32) - _OFF
+        j = (self._keys & 0xFFFFFFFF) - _OFF
+        # stray points far away, and lone noise points below the ground (support < 3 and
+        # more than ``slab`` below every neighbouring cell's minimum), are no base
+        zc = self._low[:, 2]
+        nbr = np.full(zc.shape[0], np.inf)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di == dj == 0:
+                    continue
+                k2 = ((i + di + _OFF) << 32) | (j + dj + _OFF)
+                pos = np.clip(np.searchsorted(self._keys, k2), 0, self._keys.size - 1)
+                hit = self._keys[pos] == k2
+                nbr = np.where(hit, np.minimum(nbr, zc[pos]), nbr)
+        lone = (self._sup < 3) & (zc < nbr - slab)
+        ok = core_cells(np.column_stack((i, j))) & ~lone
+        if not ok.any():
+            return None
+        cells = self._low[ok]
+        z0 = float(cells[:, 2].min())
+        low = cells[cells[:, 2] <= z0 + slab, :2]
+        if float(np.max(np.ptp(low, axis=0))) > max_width:
+            return None
+        return z0
+
+    def flat(self, z: float, base: str) -> GroundModel:
+        """A flat 'ground' at ``z`` (one cell; ``base`` says what it is)."""
+        return GroundModel((0.0, 0.0), self.cell, np.full((1, 1), float(z)), base)
 
     def model(self, *, max_step: float = 0.5) -> GroundModel:
         """Clean and fill the minima raster.
@@ -98,11 +205,31 @@ class GroundAccumulator:
             raise InputError("cannot build a ground model from an empty cloud.")
         i = (self._keys >> 32) - _OFF
         j = (self._keys & 0xFFFFFFFF) - _OFF
+        low = self._low
+        core = core_cells(np.column_stack((i, j)))
+        if not core.all():
+            log.warning(
+                "ground: %d of %d occupied %.1f m cells lie far outside the cloud's extent "
+                "(stray points); the ground raster covers the rest, and they get the nearest "
+                "ground",
+                int((~core).sum()),
+                core.size,
+                self.cell,
+            )
+            i, j, low = i[core], j[core], low[core]
+        nx_, ny_ = int(i.max() - i.min() + 1), int(j.max() - j.min() + 1)
+        raster_guard(
+            nx_ * ny_,
+            _GROUND_BYTES_PER_CELL,
+            self.max_memory,
+            f"the ground raster ({nx_} x {ny_} cells of {self.cell:g} m)",
+            "tile the cloud into smaller plots, or raise --max-memory.",
+        )
         i0, j0 = int(i.min()), int(j.min())
         nx, ny = int(i.max() - i0 + 1), int(j.max() - j0 + 1)
         ox, oy = i0 * self.cell, j0 * self.cell
         grid = np.full((3, nx, ny), np.nan)
-        grid[:, i - i0, j - j0] = (self._low - [ox, oy, 0.0]).T
+        grid[:, i - i0, j - j0] = (low - [ox, oy, 0.0]).T
         X, Y, Z = grid
         valid = ~np.isnan(Z)
         if not valid.all():
@@ -145,9 +272,15 @@ class GroundAccumulator:
         return GroundModel((ox, oy), self.cell, z + 0.0)
 
 
-def fit_ground(xyz: ArrayLike, cell: float = 1.0, *, max_step: float = 0.5) -> GroundModel:
+def fit_ground(
+    xyz: ArrayLike,
+    cell: float = 1.0,
+    *,
+    max_step: float = 0.5,
+    max_memory: float = DEFAULT_MAX_MEMORY,
+) -> GroundModel:
     """Ground model of an in-memory cloud (see :class:`GroundAccumulator`)."""
-    acc = GroundAccumulator(cell)
+    acc = GroundAccumulator(cell, max_memory)
     acc.update(xyz)
     return acc.model(max_step=max_step)
 

@@ -33,9 +33,10 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from stemmap.datasets import find_datasets_dir
 from stemmap.errors import InputError
@@ -43,7 +44,11 @@ from stemmap.slam.base import Controls, SlamProblem, TreeFrames
 from stemmap.slam.motion import AckermannModel
 from stemmap.types import FloatArray
 
+if TYPE_CHECKING:
+    from stemmap.slam.gnss import GnssFixes
+
 __all__ = [
+    "GPS_SIGMA_M",
     "LASER_TIME_OFFSET_S",
     "SCAN_PERIOD_S",
     "STEER_OFFSET_RAD",
@@ -54,6 +59,11 @@ __all__ = [
     "reobservation_consistency",
     "victoria_park_model",
 ]
+
+#: m, 1-sigma error of one GPS fix: the GPS disagrees with itself by 1.49 m RMS at revisits
+#: where the trees overlay to 0.1 m, i.e. ~1.05 m per fix (docs/algorithms/slam.md, "Where the
+#: iSAM2 error against the GPS comes from"; measured before GNSS fusion existed).
+GPS_SIGMA_M = 1.0
 
 log = logging.getLogger(__name__)
 
@@ -246,6 +256,46 @@ class VictoriaPark:
             max_range=MAX_RANGE_M,
             fov=(-0.5 * math.pi, 0.5 * math.pi),
         )
+
+    def screened_gps(self) -> NDArray[np.bool_]:
+        """(G,) mask of the GPS fixes kept by :func:`stemmap.eval.trajectory.screen_gps` (a rule
+        that looks only at the GPS and the wheel odometry, never at a SLAM result)."""
+        from stemmap.eval.trajectory import screen_gps
+        from stemmap.slam.base import sensor_poses
+        from stemmap.slam.motion import preintegrate
+
+        pre = preintegrate(self.model, self.controls, self.gps_times)
+        sp = sensor_poses(pre.poses, self.model.sensor_offset)
+        dist = np.concatenate(([0.0], np.cumsum(pre.distance)))
+        return np.asarray(screen_gps(self.gps_times, self.gps_xy, sp[:, :2], dist).keep)
+
+    def gnss_split(
+        self, every: int = 10, sigma: float = GPS_SIGMA_M
+    ) -> tuple[GnssFixes, NDArray[np.bool_]]:
+        """Every ``every``-th screened fix as :class:`~stemmap.slam.gnss.GnssFixes` to fuse, and
+        the (G,) mask of the screened fixes NOT fused (to score on, without alignment).
+
+        The antenna is at the laser (docs/algorithms/slam.md, "Trajectory evaluation": scoring
+        the laser point fits the GPS best, a least-squares lever arm relative to it is
+        (0.01, 0.03) m), so the lever arm is the laser offset. ``sigma`` (m) defaults to
+        :data:`GPS_SIGMA_M`, the GPS's disagreement with itself at revisits.
+        """
+        from stemmap.slam.gnss import GnssFixes as _Fixes
+
+        if every < 1:
+            raise InputError(f"gnss_split: every must be >= 1, got {every}.")
+        kept = np.flatnonzero(self.screened_gps())
+        fused = kept[::every]
+        unused = np.zeros(self.gps_times.shape[0], dtype=bool)
+        unused[kept] = True
+        unused[fused] = False
+        fx = _Fixes(
+            self.gps_times[fused],
+            self.gps_xy[fused],
+            np.full(fused.size, float(sigma)),
+            self.model.sensor_offset,
+        )
+        return fx, unused
 
     def slice(self, t0: float, t1: float) -> VictoriaPark:
         """The part of the run with ``t0 <= t <= t1`` (for short tests)."""

@@ -207,11 +207,14 @@ def ate(
     *,
     offset: tuple[float, float] = (0.0, 0.0),
     keep: ArrayLike | None = None,
+    align: bool = True,
 ) -> AteResult:
     """ATE of the point at ``offset`` on the vehicle against reference positions.
 
     The trajectory is interpolated at the reference times inside its time span, aligned ONCE by
     :func:`align_se2` to all kept references, and every kept reference is scored (no trimming).
+    ``align=False`` scores it as it is (a trajectory already in the references' frame, e.g. a
+    GNSS-fused run scored on fixes it did not use); ``alignment`` is then the identity.
 
     Returns
     -------
@@ -238,7 +241,7 @@ def ate(
             reason=f"only {int(m.sum())} reference positions overlap the trajectory (need 3).",
         )
     est = point_track(trajectory, rt[m], offset)
-    al = align_se2(est, rx[m])
+    al = align_se2(est, rx[m]) if align else Se2Alignment(0.0, (0.0, 0.0))
     err = np.hypot(*(al.apply(est) - rx[m]).T)
     return AteResult(
         rmse=float(np.sqrt(np.mean(err**2))),

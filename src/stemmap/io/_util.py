@@ -82,6 +82,15 @@ class CsvTable(NamedTuple):
     lines: NDArray[np.int64]
 
 
+#: Old column name -> current name with its unit; readers accept both.
+COLUMN_ALIASES = {
+    "time": "time_s",
+    "first_time": "first_time_s",
+    "last_time": "last_time_s",
+    "cov_xy": "cov_xy_m2",
+}
+
+
 def parse_numeric_csv(
     path: Path,
     text: str,
@@ -103,6 +112,11 @@ def parse_numeric_csv(
     if not numbered:
         raise InputError(f"{what} file {str(path)!r} is empty (no header line).")
     header = [h.strip() for h in numbered[0][1].split(",")]
+    # columns renamed to carry their unit (stemmap < 0.2 wrote the bare names)
+    header = [
+        COLUMN_ALIASES[h] if h in COLUMN_ALIASES and COLUMN_ALIASES[h] not in header else h
+        for h in header
+    ]
     missing = [c for c in required if c not in header]
     if missing:
         raise InputError(

@@ -2,12 +2,16 @@
 
 Formats (also in docs/algorithms/io.md):
 
-* trees CSV: ``id,x,y,diameter,std_x,std_y,n_obs,diameter_std,confidence,cov_xy,first_time,
-  last_time`` -- metres, seconds; ``nan`` where unknown. Plain CSV without comment lines, so
-  that spreadsheets and GIS tools read it as is; the frame / CRS are not stored in it.
-* observations CSV (the ``stemmap detect`` output): ``scan_index,time,x,y,diameter,radius_std,
-  n_points,arc_deg,width,quality,std_x,std_y`` -- sensor frame, metres, seconds, degrees.
+* trees CSV: ``id,x,y,diameter,std_x,std_y,n_obs,diameter_std,confidence,cov_xy_m2,
+  first_time_s,last_time_s`` -- metres, seconds; ``nan`` where unknown. Plain CSV without
+  comment lines, so that spreadsheets and GIS tools read it as is; the frame / CRS are not
+  stored in it.
+* observations CSV (the ``stemmap detect`` output): ``scan_index,time_s,x,y,diameter,
+  radius_std,n_points,arc_deg,width,quality,std_x,std_y`` -- sensor frame, metres, seconds, degrees.
 * trees GeoJSON (RFC 7946): a FeatureCollection of Points, see :func:`write_trees_geojson`.
+
+Every column is described in docs/outputs.md. Readers also accept the pre-0.2 names ``time``,
+``first_time``, ``last_time``, ``cov_xy``.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ __all__ = [
     "read_observations_csv",
     "read_trees_csv",
     "read_trees_geojson",
+    "tree_rows",
     "write_observations_csv",
     "write_trees_csv",
     "write_trees_geojson",
@@ -56,16 +61,16 @@ TREE_CSV_COLUMNS = (
     "n_obs",
     "diameter_std",
     "confidence",
-    "cov_xy",
-    "first_time",
-    "last_time",
+    "cov_xy_m2",
+    "first_time_s",
+    "last_time_s",
 )
 _TREE_REQUIRED = ("id", "x", "y", "diameter")
 
 #: Columns of the observations CSV written by ``stemmap detect``, in order.
 OBSERVATION_CSV_COLUMNS = (
     "scan_index",
-    "time",
+    "time_s",
     "x",
     "y",
     "diameter",
@@ -77,14 +82,12 @@ OBSERVATION_CSV_COLUMNS = (
     "std_x",
     "std_y",
 )
-_OBS_REQUIRED = ("scan_index", "time", "x", "y", "diameter")
+_OBS_REQUIRED = ("scan_index", "time_s", "x", "y", "diameter")
 
 # WGS84 ellipsoid (NIMA TR8350.2)
 _WGS84_A = 6378137.0
 _WGS84_F = 1.0 / 298.257223563
 _WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
-
-_WGS84_NAMES = {"EPSG:4326", "WGS84", "OGC:CRS84", "URN:OGC:DEF:CRS:OGC:1.3:CRS84"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -108,6 +111,11 @@ def _tree_row(t: Tree) -> tuple[Any, ...]:
         t.first_time,
         t.last_time,
     )
+
+
+def tree_rows(stem_map: StemMap) -> list[tuple[Any, ...]]:
+    """One tuple per tree in :data:`TREE_CSV_COLUMNS` order (std from the covariance)."""
+    return [_tree_row(t) for t in stem_map]
 
 
 def write_trees_csv(path: PathLike, stem_map: StemMap) -> None:
@@ -172,12 +180,12 @@ def read_trees_csv(path: PathLike, *, frame: str = "map", crs: str | None = None
         n_obs_f = np.nan_to_num(cols["n_obs"], nan=0.0)
         cols["n_obs"] = n_obs_f
         require_integer(p, what, table, "n_obs")
-    sx, sy, cxy = col("std_x", math.nan), col("std_y", math.nan), col("cov_xy", math.nan)
-    if "cov_xy" not in cols:
+    sx, sy, cxy = col("std_x", math.nan), col("std_y", math.nan), col("cov_xy_m2", math.nan)
+    if "cov_xy_m2" not in cols:
         cxy = np.where(np.isfinite(sx) & np.isfinite(sy), 0.0, math.nan)
     n_obs = col("n_obs", 0.0).astype(np.int64)
     dstd, conf = col("diameter_std", math.nan), col("confidence", 1.0)
-    t0, t1 = col("first_time", math.nan), col("last_time", math.nan)
+    t0, t1 = col("first_time_s", math.nan), col("last_time_s", math.nan)
     trees = tuple(
         Tree(
             id=int(ids[i]),
@@ -282,17 +290,6 @@ def _json_num(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
-def _is_wgs84(crs: str | None) -> bool:
-    return crs is not None and crs.strip().upper() in _WGS84_NAMES
-
-
-def _crs_urn(crs: str) -> str:
-    c = crs.strip()
-    if c.upper().startswith("EPSG:"):
-        return f"urn:ogc:def:crs:EPSG::{c.split(':', 1)[1]}"
-    return c
-
-
 def write_trees_geojson(
     path: PathLike,
     stem_map: StemMap,
@@ -307,41 +304,37 @@ def write_trees_geojson(
     ``diameter_std``, ``std_x``, ``std_y``, ``cov_xy``, ``n_obs``, ``confidence``,
     ``first_time``, ``last_time``; unknown values are ``null`` (JSON has no NaN).
 
-    Coordinates -- decided as follows (RFC 7946 §4 requires WGS84 longitude/latitude):
+    Coordinates (:func:`stemmap.io.geo.geojson_coordinates`, docs/outputs.md):
 
-    1. ``origin_lonlat=(lon, lat)`` given: the map frame is taken as local east-north metres
-       around that point and converted to WGS84 degrees (:func:`local_to_lonlat`). Valid RFC
-       7946; the original metric coordinates stay in properties ``x``, ``y``.
-    2. ``crs`` (or ``stem_map.crs``) is WGS84 (``EPSG:4326``, ``OGC:CRS84``): x, y are already
-       longitude, latitude and are written as is.
-    3. ``crs`` is another CRS (e.g. ``EPSG:3067``): projected coordinates are written as is,
-       with the pre-RFC ``"crs"`` member naming it (GDAL and QGIS honour it; RFC 7946 §4 allows
-       other CRSs "by prior arrangement").
-    4. no CRS (a local metric frame): projected metres are written without a ``"crs"`` member;
-       the top-level foreign member ``"stemmap"`` records ``frame``, ``units`` = ``"m"`` and
-       ``crs`` = null, so nobody mistakes them for degrees.
+    * a CRS is known (``crs``, ``stem_map.crs``, or ``origin_lonlat`` which makes the map a
+      local east-north tangent plane, :func:`stemmap.io.geo.tangent_plane_crs`): RFC 7946,
+      geometry in WGS84 longitude/latitude (8 decimals, 1 mm), no ``crs`` member; the native
+      coordinates stay in properties ``x``, ``y``.
+    * no CRS (a local metric frame): the geometry is in metres and the ``crs`` member names a
+      local engineering CRS, which GDAL/QGIS read as ``LOCAL_CS`` metres -- never as degrees.
+
+    The top-level foreign member ``"stemmap"`` records ``frame``, ``crs`` (native), ``units``
+    of the geometry and ``origin_lonlat``.
 
     Parameters
     ----------
     path : str or PathLike
     stem_map : StemMap
     crs : str, optional
-        Overrides ``stem_map.crs``.
+        Overrides ``stem_map.crs`` (EPSG code, WKT or PROJ string of the map's x, y).
     origin_lonlat : (float, float), optional
         WGS84 longitude, latitude (degrees) of the map origin; the map's x axis must point east.
+        Ignored when a CRS is given.
     precision : int, optional
-        Decimal places for coordinates (RFC 7946 §11.2 suggests 6-7 for degrees); default
-        full float64 precision.
+        Decimal places for the coordinates (default: 8 for degrees, full for metres).
     """
+    from stemmap.io.geo import crs_label, geojson_coordinates, tangent_plane_crs
+
     crs = crs if crs is not None else stem_map.crs
-    xy = stem_map.xy
-    if origin_lonlat is not None:
-        lon, lat = local_to_lonlat(xy, origin_lonlat)
-        coords = np.column_stack((lon, lat))
-        out_crs: str | None = "OGC:CRS84"
-    else:
-        coords = xy
-        out_crs = crs
+    if crs is None and origin_lonlat is not None:
+        crs = crs_label(tangent_plane_crs(origin_lonlat))
+    coords, members, meta = geojson_coordinates(stem_map.xy, crs, stem_map.frame)
+    meta["origin_lonlat"] = list(origin_lonlat) if origin_lonlat is not None else None
     if precision is not None:
         coords = np.round(coords, precision)
     features = []
@@ -365,16 +358,8 @@ def write_trees_geojson(
                 "properties": props,
             }
         )
-    doc: dict[str, Any] = {"type": "FeatureCollection", "features": features}
-    if out_crs is not None and not _is_wgs84(out_crs):
-        doc["crs"] = {"type": "name", "properties": {"name": _crs_urn(out_crs)}}
-    doc["stemmap"] = {
-        "frame": stem_map.frame,
-        "units": "degrees" if _is_wgs84(out_crs) else "m",
-        "crs": out_crs,
-        "origin_lonlat": list(origin_lonlat) if origin_lonlat is not None else None,
-        "x_y_properties": "metres in the map frame",
-    }
+    doc: dict[str, Any] = {"type": "FeatureCollection", **members, "features": features}
+    doc["stemmap"] = meta
     if len(coords):
         lo = coords.min(axis=0)
         hi = coords.max(axis=0)
@@ -412,8 +397,10 @@ def read_trees_geojson(path: PathLike) -> StemMap:
     assert isinstance(meta, Mapping)
     crs_member = doc.get("crs")
     crs = meta.get("crs")
-    if crs is None and isinstance(crs_member, Mapping):
+    if crs is None and "crs" not in meta and isinstance(crs_member, Mapping):
         crs = crs_member.get("properties", {}).get("name")
+        if isinstance(crs, str) and crs.lstrip().upper().startswith(("LOCAL_CS", "ENGCRS")):
+            crs = None  # a local frame, not a CRS
     trees = []
     for k, f in enumerate(feats):
         geom = f.get("geometry") if isinstance(f, Mapping) else None
@@ -431,7 +418,7 @@ def read_trees_geojson(path: PathLike) -> StemMap:
             y = num("y", coords[1])
             d = num("diameter", math.nan)
             sx, sy = num("std_x", math.nan), num("std_y", math.nan)
-            cxy = num("cov_xy", math.nan)
+            cxy = num("cov_xy_m2", num("cov_xy", math.nan))
             tree = Tree(
                 id=int(f.get("id", props.get("id", k))),
                 x=x,
@@ -439,8 +426,8 @@ def read_trees_geojson(path: PathLike) -> StemMap:
                 diameter=d,
                 cov=np.array([[sx * sx, cxy], [cxy, sy * sy]]),
                 n_obs=int(props.get("n_obs") or 0),
-                first_time=num("first_time", math.nan),
-                last_time=num("last_time", math.nan),
+                first_time=num("first_time_s", num("first_time", math.nan)),
+                last_time=num("last_time_s", num("last_time", math.nan)),
                 confidence=num("confidence", 1.0),
                 diameter_std=num("diameter_std", math.nan),
             )
@@ -546,7 +533,7 @@ def read_observations_csv(
         widths=col("width", math.nan),
         quality=col("quality", 1.0),
         index=cols["scan_index"].astype(np.int64),
-        times=cols["time"],
+        times=cols["time_s"],
         source=source,
         frame=frame,
     )

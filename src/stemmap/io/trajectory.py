@@ -38,7 +38,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Columns of the stemmap trajectory CSV, in order.
-TRAJECTORY_CSV_COLUMNS = ("time", "x", "y", "theta")
+TRAJECTORY_CSV_COLUMNS = ("time_s", "x", "y", "theta")
 
 _TILT_WARN_RAD = math.radians(5.0)
 
@@ -72,7 +72,7 @@ def yaw_from_quaternion(q: FloatArray) -> FloatArray:
 
 
 def write_trajectory_csv(path: PathLike, trajectory: Trajectory) -> None:
-    """Write ``time,x,y,theta`` rows (s, m, m, rad), atomically.
+    """Write ``time_s,x,y,theta`` rows (s, m, m, rad), atomically.
 
     Parameters
     ----------
@@ -98,7 +98,8 @@ def write_trajectory_csv(path: PathLike, trajectory: Trajectory) -> None:
 
 
 def read_trajectory_csv(path: PathLike, *, frame: str = "map") -> Trajectory:
-    """Read a ``time,x,y,theta`` CSV (extra columns are ignored; ``#`` lines are comments).
+    """Read a ``time_s,x,y,theta`` CSV (extra columns are ignored; ``#`` lines are comments;
+    a bare ``time`` header, as stemmap < 0.2 wrote, is accepted).
 
     Parameters
     ----------
@@ -125,7 +126,7 @@ def read_trajectory_csv(path: PathLike, *, frame: str = "map") -> Trajectory:
         require_finite(p, "trajectory CSV", table, c)
     cols = table.columns
     poses = np.column_stack((cols["x"], cols["y"], wrap_if_needed(cols["theta"])))
-    return _trajectory(p, cols["time"], poses, frame, table.lines)
+    return _trajectory(p, cols["time_s"], poses, frame, table.lines)
 
 
 def _trajectory(

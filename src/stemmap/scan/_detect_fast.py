@@ -88,6 +88,9 @@ PARAM_NAMES = (
     "use_silhouette",  # 1: priors from the beams beyond each end
     "range_model",  # 1: range residuals, 0: orthogonal
     "angle_increment",  # signed, radians
+    "sigma_from_data",  # 1: per-segment sigma >= the robust range roughness of the returns
+    "roughness_max_factor",  # ... but at most this multiple of the configured sigma
+    "rms_robust",  # 1: the RMS test reads 1.4826 x the median absolute residual
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -95,7 +98,40 @@ N_PARAMS = len(PARAM_NAMES)
 #: Output columns of the kernel, one row per detection.
 OUT_COLUMNS = 16  # cx, cy, r, cov (9, row-major over cx, cy, r), arc_deg, width, quality, n
 _RAD2DEG = 180.0 / math.pi
+#: 1.4826 MAD -> sigma for a Gaussian, / sqrt(6): the std of a second difference of iid noise
+#: (plausibility.range_roughness; the same constant on both paths)
+_ROUGH = 1.4826 / math.sqrt(6.0)
 _SQRT12 = math.sqrt(12.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _range_roughness(r: FloatArray) -> float:
+    """Robust range-noise + bark-roughness scale of consecutive returns (numba twin of
+    :func:`stemmap.scan.plausibility.range_roughness`, same arithmetic)."""
+    m = r.shape[0] - 2
+    if m < 1:
+        return 0.0
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = abs(r[i] - 2.0 * r[i + 1] + r[i + 2])
+    d.sort()
+    h = m // 2
+    med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
+    return _ROUGH * med
+
+
+@njit(cache=True, error_model="numpy")
+def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r: float) -> float:
+    """1.4826 x the median absolute orthogonal residual (numba twin of
+    :func:`stemmap.scan.plausibility.robust_residual_scale`, same arithmetic)."""
+    m = x.shape[0]
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = abs(math.hypot(x[i] - cx, y[i] - cy) - r)
+    d.sort()
+    h = m // 2
+    med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
+    return 1.4826 * med
 
 
 @njit(cache=True, error_model="numpy")
@@ -304,6 +340,9 @@ def _detect_kernel(
     use_sil_cfg = prm[37] > 0.0
     range_model = prm[38] > 0.0
     inc = prm[39]
+    sigma_from_data = prm[40] > 0.0
+    rough_max = prm[41]
+    rms_robust = prm[42] > 0.0
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
     use_sil = use_sil_cfg and 0.0 < h_sil < 0.5
@@ -589,6 +628,8 @@ def _detect_kernel(
             cnt_i = b - a
             mean_r = _seg_sum(pr, a, b) / cnt_i
             sig = sigma0 + sigma_rel * mean_r
+            if sigma_from_data and fit_sigma_given:  # sigma 0: the fit estimates its scale
+                sig = max(sig, min(_range_roughness(pr[a:b]), rough_max * sig))
             sil[:] = np.nan
             if use_sil:
                 _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
@@ -598,7 +639,7 @@ def _detect_kernel(
                 beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)
                 beyond += 0.0 if math.isnan(sil[2]) else max(sil[2] - 0.5, 0.0)
                 sil_width = wid[j] + beyond * mean_r * absinc
-            if rms_check:
+            if rms_check and not rms_robust:  # (the bound holds for the plain RMS only)
                 # Exact early reject (docs/algorithms/scan-detection.md, "pre-fit bound"): a
                 # circle the checks below accept has r <= r_cap and RMS <= k sigma, so every
                 # |d_i - r| <= sqrt(N) k sigma and d_i + r <= 2 r_cap + sqrt(N) k sigma = M;
@@ -655,7 +696,12 @@ def _detect_kernel(
                 tmp[i] = res * res
             rms = math.sqrt(_seg_sum(tmp, a, b) / cnt_i)
             if rms_check:
-                good &= rms <= max_rms_sigma * sig
+                if rms_robust:
+                    good &= _robust_residual_scale(px[a:b], py[a:b], cx, cy, rad) <= (
+                        max_rms_sigma * sig
+                    )
+                else:
+                    good &= rms <= max_rms_sigma * sig
             if not good:
                 continue
             cov_ok = True

@@ -20,7 +20,7 @@ import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -28,6 +28,9 @@ from numpy.typing import ArrayLike, NDArray
 from stemmap.errors import ConfigError, InputError
 from stemmap.slam.motion import MotionModel, rollout
 from stemmap.types import FloatArray, StemMap, StemObservations, Trajectory, wrap_angle
+
+if TYPE_CHECKING:
+    from stemmap.slam.gnss import GnssFixes
 
 __all__ = [
     "BACKENDS",
@@ -268,6 +271,13 @@ class SlamProblem:
         Range beyond which the detector reports nothing (used by negative information).
     fov : (min, max), rad
         Bearing window of the detector in the sensor frame.
+    gnss : GnssFixes or None
+        GNSS fixes (:class:`stemmap.slam.gnss.GnssFixes`, antenna lever arm included); the
+        ``isam2`` back-end fuses them as robust priors and returns the map in their frame.
+    prior_map : StemMap or None
+        A map of an earlier session, in whose frame ``initial_pose`` is given (e.g. from
+        :func:`stemmap.slam.relocalise.relocalise`); ``isam2`` starts from its trees (with
+        their covariances as priors) and returns the merged map.
     """
 
     controls: Controls
@@ -278,6 +288,8 @@ class SlamProblem:
     name: str = ""
     max_range: float = math.inf
     fov: tuple[float, float] = (-math.pi, math.pi)
+    gnss: GnssFixes | None = None
+    prior_map: StemMap | None = None
 
     def __post_init__(self) -> None:
         if len(self.frames) == 0:

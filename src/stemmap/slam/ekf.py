@@ -67,8 +67,10 @@ log = logging.getLogger(__name__)
 class EkfConfig:
     """EKF-SLAM settings (defaults justified in docs/algorithms/slam.md).
 
-    sigma_range : m, range noise of a tree-centre detection
-    sigma_bearing : rad, bearing noise (default one 0.5° beam step)
+    sigma_range : m, range noise of a tree-centre detection (default 0.3 m, as the other
+        filters: the centre error of a trunk depends on the viewpoint and persists over many
+        scans, so the scan-to-scan scatter, ~0.03 m, would make the filter over-confident)
+    sigma_bearing : rad, bearing noise (default 1°, same reason)
     sigma_diameter : m, scatter of one diameter measurement (None/inf disables the cue)
     association : "jcbb" or "nn"
     gate_alpha : individual/joint gate probability
@@ -92,8 +94,8 @@ class EkfConfig:
         from where the current local period began (run time only)
     """
 
-    sigma_range: float = 0.10
-    sigma_bearing: float = math.radians(0.5)
+    sigma_range: float = 0.30
+    sigma_bearing: float = math.radians(1.0)
     sigma_diameter: float | None = 0.10
     association: str = "jcbb"
     gate_alpha: float = 0.99

@@ -47,12 +47,45 @@ from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 if TYPE_CHECKING:  # pragma: no cover
     from stemmap.slam.base import SlamProblem, SlamResult
 
-__all__ = ["PRESETS", "FastSlam", "systematic_resample"]
+__all__ = [
+    "PRESETS",
+    "FastSlam",
+    "particle_landmark_covariance",
+    "systematic_resample",
+]
 
 log = logging.getLogger(__name__)
 
 #: Published parameter sets: ``"munjer2025"`` = 100 particles (Munjer et al. 2025, Table 1).
 PRESETS: dict[str, dict[str, float | int]] = {"munjer2025": {"n_particles": 100}}
+
+
+def particle_landmark_covariance(
+    mu: FloatArray,
+    sig: FloatArray,
+    nlm: np.ndarray,
+    weights: FloatArray,
+    best: int,
+    j: int,
+    gate: float = 1.0,
+) -> FloatArray:
+    """Covariance of landmark slot ``j`` of particle ``best`` over the particle set.
+
+    The map posterior of FastSLAM is a mixture over particles of per-landmark Gaussians
+    (Montemerlo et al. 2002, eq. 3), so the landmark's covariance is the mixture covariance
+    ``sum_p w_p (Sigma_p + (mu_p - mu_bar)(mu_p - mu_bar)^T)`` over the particles that hold
+    the same landmark (slot ``j`` within ``gate`` metres of the best particle's estimate:
+    slots are inherited through resampling). It adds the spread of the particles' trajectories
+    to the best particle's own landmark EKF covariance.
+    """
+    have = np.flatnonzero(nlm > j)
+    d = np.hypot(*(mu[have, j] - mu[best, j]).T)
+    sel = have[d < gate]
+    w = weights[sel] / max(float(weights[sel].sum()), 1e-300)
+    m = w @ mu[sel, j]
+    dev = mu[sel, j] - m
+    cov = np.einsum("p,pij->ij", w, sig[sel, j]) + np.einsum("p,pi,pk->ik", w, dev, dev)
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> np.ndarray:
@@ -225,7 +258,10 @@ class FastSlam:
         P (paper: 100).
     sigma_range : float, m
     sigma_bearing : float, rad
-        Detection noise R = diag(σ_r², σ_φ²).
+        Detection noise R = diag(σ_r², σ_φ²). Defaults 0.5 m / 2° (issue 18): the weight
+        multiplies the likelihoods of all detections of a frame, and a trunk centre's
+        viewpoint-dependent error persists over many scans; with 0.3 m / 1° the weights
+        collapsed (resampling in 61 % of the Victoria Park frames, 36 % now).
     new_landmark_chi2 : float
         A detection starts a new landmark when its best candidate's log-likelihood is below that
         of a detection at squared Mahalanobis distance ``new_landmark_chi2`` from a landmark whose
@@ -238,7 +274,9 @@ class FastSlam:
         the frame's detections (mapped with the particle's pose).
     window_margin : float, m
     min_observations : int
-        Landmarks of the best particle seen fewer times are left out of the output map.
+        Landmarks of the best particle seen fewer times are left out of the output map (and
+        tentative ones are pruned, see ``tentative_timeout_s``). Default 5 (was 3): on
+        Victoria Park 3 kept ~505 trees against iSAM2's 392 and the EKF's 414, 5 keeps ~397.
     min_new_separation : float, m
         Ours: a detection that matches no landmark but lies closer than this to one of the
         particle's landmarks is skipped for the frame rather than starting a new landmark (two
@@ -257,13 +295,13 @@ class FastSlam:
 
     preset: str | None = None
     n_particles: int = 100
-    sigma_range: float = 0.3
-    sigma_bearing: float = math.radians(1.0)
+    sigma_range: float = 0.5
+    sigma_bearing: float = math.radians(2.0)
     new_landmark_chi2: float = 13.8
     resample_threshold: float = 0.5
     max_candidates: int = 24
     window_margin: float = 3.0
-    min_observations: int = 3
+    min_observations: int = 5
     tentative_timeout_s: float = 5.0
     min_new_separation: float = 1.0
     version: int = 1
@@ -567,6 +605,7 @@ class FastSlam:
             cur = int(parents[f, cur])
         n_best = int(nlm[best])
         mapped = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
+        w_final = np.exp(logw - logw.max())
         trees = []
         for new_id, j in enumerate(mapped):
             dia = dsum[best, j] / dcnt[best, j] if dcnt[best, j] > 0 else math.nan
@@ -576,7 +615,7 @@ class FastSlam:
                     x=float(mu[best, j, 0]),
                     y=float(mu[best, j, 1]),
                     diameter=float(dia),
-                    cov=Sig[best, j],
+                    cov=particle_landmark_covariance(mu, Sig, nlm, w_final, best, int(j)),
                     n_obs=int(nobs[best, j]),
                     first_time=float(tfirst[best, j]),
                     last_time=float(tlast[best, j]),

@@ -65,6 +65,8 @@ from typing import Any
 import numpy as np
 
 from stemmap.errors import ConfigError
+from stemmap.slam._graph_marginals import _merge_duplicates, _point_marginals
+from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
 from stemmap.slam._isam2_track import (
     C_AMBIG,
     C_FAR,
@@ -72,11 +74,18 @@ from stemmap.slam._isam2_track import (
     C_NEW,
     C_REACQ,
     C_SINGLE,
-    band_cho_solve,
     track_keyframe,
 )
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
+from stemmap.slam.gnss import (
+    gnss_factors,
+    gnss_residuals,
+    plan_gnss,
+    robust_kernel,
+    with_gnss_frame,
+)
 from stemmap.slam.motion import between, compose, preintegrate
+from stemmap.slam.relocalise import prior_tree_factors
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -126,6 +135,13 @@ class Isam2Config:
     calib_prior_sigmas : (offset, scale) prior sigmas (mean 0: the motion model's own
         calibration is the prior mean)
     calib_walk_sigmas : (offset, scale) random-walk intensities per sqrt(second)
+    gnss_robust, gnss_robust_k : robust kernel of the GNSS position priors ("cauchy", "huber"
+        or "none") and its width in sigmas (used when the problem has ``gnss`` fixes,
+        :mod:`stemmap.slam.gnss`)
+    gnss_prior_sigmas : (m, m, rad) weak prior on the first pose when GNSS is fused (the GNSS
+        fixes fix the frame; this only keeps the first updates well-posed)
+    reloc_prior_sigmas : (m, m, rad) prior on the first pose when the problem has a
+        ``prior_map`` (the relocalised start: the map's trees fix the frame)
     """
 
     sigma_range: float = 0.10
@@ -159,16 +175,23 @@ class Isam2Config:
     calib_every: int = 20
     calib_window: int = 40
     calib_rounds: int = 4
+    gnss_robust: str = "cauchy"
+    gnss_robust_k: float = 2.3849
+    gnss_prior_sigmas: tuple[float, float, float] = (10.0, 10.0, 0.5)
+    reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
 
     def __post_init__(self) -> None:
-        if self.robust not in ("huber", "cauchy", "none"):
-            raise ConfigError(
-                f"Isam2Config.robust must be 'huber', 'cauchy' or 'none', got {self.robust!r}."
-            )
+        for name in ("robust", "gnss_robust"):
+            if getattr(self, name) not in ("huber", "cauchy", "none"):
+                raise ConfigError(
+                    f"Isam2Config.{name} must be 'huber', 'cauchy' or 'none', "
+                    f"got {getattr(self, name)!r}."
+                )
         for name in (
             "sigma_range",
             "sigma_bearing",
             "robust_k",
+            "gnss_robust_k",
             "gate_chi2",
             "new_chi2",
             "max_range",
@@ -201,217 +224,6 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.sigma_diameter must be > 0 or None, got {self.sigma_diameter}."
             )
-
-
-def _sensor_between(
-    deltas: FloatArray, covs: FloatArray, offset: tuple[float, float]
-) -> tuple[FloatArray, FloatArray]:
-    """Vehicle-frame odometry increments -> sensor-frame increments and GTSAM tangent covariances.
-
-    ``δ_s = T_vs⁻¹ δ T_vs``. Our covariance is additive on ``(x, y, θ)`` in the START frame; GTSAM
-    perturbs on the right, in the END frame (``δ Exp(ξ)``): ``ξ_xy ≈ R(θ_δ)ᵀ e_xy``,
-    ``ξ_θ = e_θ``; then ``ξ_s = Ad(T_vs⁻¹) ξ``.
-    """
-    a, b = offset
-    n = deltas.shape[0]
-    c, s = np.cos(deltas[:, 2]), np.sin(deltas[:, 2])
-    # δ_s translation: T_vs^-1 δ T_vs with T_vs = (a, b, 0)
-    tx = deltas[:, 0] + c * a - s * b - a
-    ty = deltas[:, 1] + s * a + c * b - b
-    ds = np.column_stack((tx, ty, deltas[:, 2]))
-    M = np.zeros((n, 3, 3))
-    M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1] = c, s, -s, c
-    M[:, 2, 2] = 1.0
-    # Ad(T^-1) for T = (a, b, 0): T^-1 = (-a, -b, 0); Pose2 adjoint [[R, [y, -x]^T], [0, 1]]
-    Ad = np.array([[1.0, 0.0, -b], [0.0, 1.0, a], [0.0, 0.0, 1.0]])
-    G = Ad[None] @ M
-    cov = G @ covs @ np.swapaxes(G, 1, 2)
-    return ds, cov
-
-
-def _calibration_jacobians(
-    problem: SlamProblem, times: FloatArray, d0: FloatArray, eps: float = 1e-4
-) -> FloatArray:
-    """(K, 3, 2): derivative of each sensor-frame increment w.r.t. the calibration ``c``.
-
-    ``c = (o, s)``: every steering sample (yaw-rate sample for unicycle controls) becomes
-    ``steer + o`` and every speed sample ``speed (1 + s)``. Forward differences of the same
-    pre-integration the odometry factors use, so the Jacobian is generic in the motion model
-    (the increments are smooth in both parameters over one keyframe); GTSAM's right-tangent
-    convention, ``δ(c) ≈ δ0 Exp(J c)``.
-    """
-    from stemmap.slam.base import Controls
-
-    ctl = problem.controls
-    out = np.empty((d0.shape[0], 3, 2))
-    zeros = np.zeros((d0.shape[0], 3, 3))
-    for i, (d_steer, d_scale) in enumerate(((eps, 0.0), (0.0, eps))):
-        c2 = Controls(
-            ctl.times, np.asarray(ctl.speed) * (1.0 + d_scale), np.asarray(ctl.steer) + d_steer,
-            ctl.kind,
-        )  # fmt: skip
-        pre = preintegrate(problem.motion, c2, times, problem.initial_pose, with_covariance=False)
-        d1, _ = _sensor_between(pre.deltas, zeros, problem.sensor_offset)
-        out[:, :, i] = between(d0, d1) / eps
-    return out
-
-
-def _calibration_lsq(
-    res: FloatArray,
-    J: FloatArray,
-    info: FloatArray,
-    c_lin: FloatArray,
-    seg: np.ndarray,
-    n_seg: int,
-    dur: FloatArray,
-    prior_sigmas: tuple[float, float],
-    walk_sigmas: tuple[float, float],
-) -> FloatArray:
-    """Calibration of each segment given the poses: one block-coordinate step (ours).
-
-    The odometry factor of keyframe ``k`` used the increment ``δ(c_lin_k) = δ0 Exp(J_k c_lin_k)``
-    and has the residual ``res_k = Log(δ(c_lin_k)⁻¹ X_k⁻¹ X_k+1)`` at the current poses; to first
-    order ``res_k ≈ J_k (c_seg(k) - c_lin_k)``. Minimises
-    ``Σ_k |res_k - J_k (c_seg(k) - c_lin_k)|²_info_k + |c_0 / prior|² +
-    Σ_s |(c_s+1 - c_s) / (walk sqrt(dur_s))|²`` (prior mean 0: the motion model's own
-    calibration; random walk between segments) -- the conditional MAP of the calibration given
-    the poses, a small dense (2 n_seg)² system.
-
-    res (K, 3), J (K, 3, 2), info (K, 3, 3), c_lin (K, 2), seg (K,) segment of each factor,
-    dur (n_seg - 1,) s between segment starts. Returns (n_seg, 2).
-    """
-    n = 2 * n_seg
-    JtW = np.swapaxes(J, 1, 2) @ info  # (K, 2, 3)
-    A_k = JtW @ J  # (K, 2, 2)
-    b_k = (JtW @ (res + (J @ c_lin[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
-    A = np.zeros((n, n))
-    bb = np.zeros(n)
-    for i in range(2):
-        bb[i::2] = np.bincount(seg, weights=b_k[:, i], minlength=n_seg)
-        for j in range(2):
-            A[i::2, j::2] += np.diag(np.bincount(seg, weights=A_k[:, i, j], minlength=n_seg))
-    A[0:2, 0:2] += np.diag(1.0 / np.asarray(prior_sigmas) ** 2)
-    w2 = np.asarray(walk_sigmas) ** 2
-    for s_ in range(n_seg - 1):
-        W = np.diag(1.0 / (w2 * max(float(dur[s_]), 1e-3)))
-        i0, i1 = 2 * s_, 2 * s_ + 2
-        A[i0 : i0 + 2, i0 : i0 + 2] += W
-        A[i1 : i1 + 2, i1 : i1 + 2] += W
-        A[i0 : i0 + 2, i1 : i1 + 2] -= W
-        A[i1 : i1 + 2, i0 : i0 + 2] -= W
-    return np.asarray(np.linalg.solve(A, bb), dtype=np.float64).reshape(n_seg, 2)
-
-
-def _merge_duplicates(
-    xy: FloatArray, diam: FloatArray, nobs: np.ndarray, dist: float, max_ddiam: float
-) -> np.ndarray:
-    """Representative index of each landmark after merging close, diameter-compatible pairs.
-
-    Pairs closer than ``dist`` (m) whose mean diameters differ by less than ``max_ddiam`` are
-    joined (union-find), and so are pairs whose trunk circles would overlap whatever their
-    diameters (on Victoria Park the detector sometimes reports ~1 m "trunks" on top of a
-    0.3 m tree; the diameter cue keeps them apart during association). Each group is
-    represented by its most-observed member.
-    """
-    from scipy.spatial import cKDTree
-
-    n = xy.shape[0]
-    parent = np.arange(n)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = int(parent[i])
-        return i
-
-    for i, j in sorted(cKDTree(xy).query_pairs(dist)):
-        d_ij = float(np.hypot(*(xy[i] - xy[j])))
-        overlap = d_ij < 0.5 * (diam[i] + diam[j])  # two real trunks cannot overlap
-        if abs(diam[i] - diam[j]) > max_ddiam and not overlap:
-            continue
-        ri, rj = find(i), find(j)
-        if ri == rj:
-            continue
-        if nobs[ri] >= nobs[rj]:
-            parent[rj] = ri
-        else:
-            parent[ri] = rj
-    return np.array([find(i) for i in range(n)], dtype=np.int64)
-
-
-def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
-    """(n, 2, 2) marginal covariances of the Point2 variables ``keys`` at ``values`` (ours).
-
-    The same quantity as ``gtsam.Marginals(graph, values).marginalCovariance(key)``: the
-    inverse of the Gauss-Newton information ``H = AᵀA`` of GTSAM's whitened linearisation
-    (robust weights included), restricted to the trees ``L`` by the Schur complement over the
-    poses ``P``: ``Σ_LL = (H_LL - H_LP H_PP⁻¹ H_PL)⁻¹`` (exact: the marginal of a Gaussian in
-    information form is the Schur complement of the other block). The poses of :class:`Isam2Slam`
-    form a chain (a prior and odometry between consecutive keyframes), so ``H_PP`` is banded
-    (bandwidth 5 with the keyframes in key order): one banded Cholesky and a compiled solve
-    with the ~800 tree columns as right sides; any other structure takes a sparse LU. The
-    dense ``S⁻¹`` is only needed on its 2x2 diagonal blocks: ``S = UᵀU``, ``S⁻¹ = U⁻¹U⁻ᵀ``,
-    the blocks are products of row pairs of ``U⁻¹``. Full Victoria Park run: ~0.25 s instead
-    of ~0.5 s for GTSAM's joint marginals in chunks of 128 trees (which eliminate the whole
-    graph once per chunk); the covariances agree to ~1e-10 relative (round-off).
-
-    Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
-    """
-    import scipy.linalg as sla
-    import scipy.sparse as sp
-    from scipy.linalg import lapack
-
-    ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, col, value); last col = b
-    # columns follow the sorted keys (GTSAM's default ordering of sparseJacobian); GTSAM
-    # Symbol keys hold their letter in the top byte: 'l' = Point2 (2), 'x' = Pose2 (3)
-    all_keys = np.array(sorted(values.keys()), dtype=np.uint64)
-    is_pt = (all_keys >> np.uint64(56)) == ord("l")
-    dims = np.where(is_pt, 2, 3)
-    start = np.concatenate(([0], np.cumsum(dims)))
-    n_col = int(start[-1])
-    cols = ijs[1].astype(np.int64) - 1
-    # (GTSAM leaves out entries below 1e-12, of b too: at an exact fit there is no b column)
-    if int(cols.max(initial=0)) > n_col:
-        raise ValueError("unexpected variable layout in the linearised graph")
-    a_mat = sp.csr_matrix(
-        (ijs[2][cols < n_col], (ijs[0][cols < n_col].astype(np.int64) - 1, cols[cols < n_col])),
-        shape=(int(ijs[0].max(initial=0)), n_col),
-    )
-    h = (a_mat.T @ a_mat).tocsr()
-    col_of = [np.arange(start[i], start[i + 1]) for i in range(all_keys.size)]
-    i_l = np.concatenate([col_of[i] for i in np.flatnonzero(is_pt)] or [np.zeros(0, int)])
-    i_p = np.concatenate([col_of[i] for i in np.flatnonzero(~is_pt)] or [np.zeros(0, int)])
-    h_ll = h[i_l][:, i_l].toarray()
-    h_pl = h[i_p][:, i_l]
-    h_pp = h[i_p][:, i_p].tocoo()
-    w = 5
-    solve: Callable[[FloatArray], FloatArray]
-    if h_pp.nnz and int(np.abs(h_pp.row - h_pp.col).max()) <= w:
-        ab = np.zeros((w + 1, i_p.size))
-        up = h_pp.row <= h_pp.col
-        ab[w + h_pp.row[up] - h_pp.col[up], h_pp.col[up]] = h_pp.data[up]
-        ub = sla.cholesky_banded(ab)
-        solve = lambda rhs: band_cho_solve(ub, rhs)  # noqa: E731
-    else:
-        from scipy.sparse.linalg import splu
-
-        solve = splu(h_pp.tocsc()).solve
-    # S = H_LL - H_LP H_PP⁻¹ H_PL, 128 tree columns at a time (a dense n_P x n_L right side
-    # would add ~60 MB to the peak memory of the full run)
-    s_mat = h_ll
-    for c0 in range(0, i_l.size, 128):
-        h_c = h_pl[:, c0 : c0 + 128]
-        s_mat[:, c0 : c0 + 128] -= h_pl.T @ solve(h_c.toarray())
-    u, info = lapack.dpotrf(s_mat, lower=0, clean=1)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"tree information not positive definite (dpotrf {info})")
-    u_inv, info = lapack.dtrtri(u, lower=0)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"singular tree information (dtrtri {info})")
-    # row of each requested key in the L block (points in sorted-key order)
-    pos = np.searchsorted(all_keys[is_pt], np.array(keys, dtype=np.uint64))
-    rows = u_inv.reshape(-1, 2, u_inv.shape[1])[pos]
-    return np.asarray(np.einsum("jak,jbk->jab", rows, rows), dtype=np.float64)
 
 
 class Isam2Slam:
@@ -447,6 +259,7 @@ class Isam2Slam:
 
         cfg = self.config
         t_start = time.perf_counter()
+        problem = with_gnss_frame(problem)  # the graph lives in the frame of the GNSS fixes
         frames = problem.frames
         nf = len(frames)
         a, b = problem.sensor_offset
@@ -464,6 +277,11 @@ class Isam2Slam:
         d_k, cov_k = _sensor_between(pre_k.deltas, pre_k.covs, (a, b))
         # a standing vehicle still gets a (tiny) well-posed odometry factor
         cov_k = cov_k + np.diag([1e-3**2, 1e-3**2, 1e-4**2])[None]
+        gnss_plan = (
+            None
+            if problem.gnss is None
+            else plan_gnss(problem, problem.gnss, frames.times[kf_frames], pre_k.poses, cov_k)
+        )
         # odometry self-calibration (steering / yaw-rate offset, speed scale), see
         # _calibration_lsq: c_used[i] is the calibration inside the factor of keyframes (i, i+1)
         calibrate = cfg.calibrate and nk > 2
@@ -507,13 +325,9 @@ class Isam2Slam:
         cum_th = np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2])))
 
         # one (stateless) robust kernel shared by every measurement factor
-        kernel = (
-            gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
-            if cfg.robust == "huber"
-            else gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
-            if cfg.robust == "cauchy"
-            else None
-        )
+        kernel = robust_kernel(gtsam, cfg.robust, cfg.robust_k)
+
+        gnss_kernel = robust_kernel(gtsam, cfg.gnss_robust, cfg.gnss_robust_k)
 
         def meas_noise(sigmas: FloatArray) -> Any:
             """Noise of one bearing-range factor, ``sigmas`` = (sigma_bearing, sigma_range)."""
@@ -529,8 +343,52 @@ class Isam2Slam:
         new_v = gtsam.Values()
 
         s0 = gtsam.Pose2(*problem.initial_pose).compose(T_vs)
-        prior = gtsam.noiseModel.Diagonal.Sigmas(np.array(cfg.prior_sigmas))
+        prior = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(cfg.prior_sigmas if problem.prior_map is None else cfg.reloc_prior_sigmas)
+        )
         pf = gtsam.PriorFactorPose2(XK(0), s0, prior)
+        gnss_fac: list[Any] = []  # the GNSS factors in the graph (kept when rebuilding)
+        gnss_keys: list[int] = []
+        g_next = 0  # next fix of gnss_plan to add
+        remove_idx: list[int] = []  # iSAM2 factor indices to remove at the next update
+
+        def add_gnss(k_done: int) -> None:
+            """Add the fixes hanging from keyframes <= k_done (their time has passed).
+
+            With the first fix the tight prior on ``X(0)`` (which fixed the gauge until then)
+            is swapped for the weak ``gnss_prior_sigmas`` one: from now on the fixes give the
+            frame. (A weak prior from the start leaves the first updates without a fix nearly
+            indeterminate: GTSAM refuses them.)
+            """
+            nonlocal g_next, pf
+            if gnss_plan is None:
+                return
+            g1 = int(np.searchsorted(gnss_plan.kf, k_done, side="right"))
+            if g_next == 0 and g1 > 0:
+                weak = gtsam.PriorFactorPose2(
+                    XK(0), s0, gtsam.noiseModel.Diagonal.Sigmas(np.array(cfg.gnss_prior_sigmas))
+                )
+                graph_all.replace(0, weak)
+                if n_updates == 0:  # still in the pending batch (its first factor)
+                    new_f.replace(0, weak)
+                else:
+                    remove_idx.append(0)  # iSAM2 numbers factors in the order they came in
+                    new_f.add(weak)
+                pf = weak
+            for i_g in range(g_next, g1):
+                xk_ = XK(int(gnss_plan.kf[i_g]))
+                x_est = (
+                    new_v.atPose2(xk_) if new_v.exists(xk_) else isam.calculateEstimatePose2(xk_)
+                )
+                facs, key, val = gnss_factors(gnss_plan, i_g, xk_, x_est, gnss_kernel)
+                for fac_g in facs:
+                    new_f.add(fac_g)
+                    graph_all.add(fac_g)
+                    gnss_fac.append(fac_g)
+                new_v.insert(key, val)
+                gnss_keys.append(key)
+            g_next = max(g_next, g1)
+
         new_f.add(pf)
         graph_all.add(pf)
         meas_rec: list[tuple[int, int, float, float, float, float]] = []
@@ -549,6 +407,31 @@ class Isam2Slam:
         lm_inc = np.full(cap, -1, dtype=np.int64)  # last frame whose observation is in iSAM2
         lm_in_graph = np.zeros(cap, dtype=bool)
         n_lm = 0
+        map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
+        if problem.prior_map is not None and len(problem.prior_map):
+            # a map of an earlier session (relocalised into: problem.initial_pose is in its
+            # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
+            # prior, so this session updates them and adds new ones (one merged map)
+            n_lm = len(problem.prior_map)
+            cap = n_lm + 1024
+            lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph = (
+                np.zeros((cap, 2)), np.zeros(cap), np.zeros(cap, dtype=np.int64),
+                np.zeros(cap, dtype=np.int64), np.zeros(cap, dtype=np.int64),
+                np.zeros(cap, dtype=np.int64), np.full(cap, -1, dtype=np.int64),
+                np.zeros(cap, dtype=bool),
+            )  # fmt: skip
+            for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
+                prior_tree_factors(problem.prior_map, LK, cfg.min_obs)
+            ):
+                lm_xy[j_p] = xy_p
+                if math.isfinite(d_p):
+                    lm_dsum[j_p], lm_dn[j_p] = d_p * n_p, n_p
+                lm_nobs[j_p] = n_p
+                lm_in_graph[j_p] = True
+                new_v.insert(LK(j_p), xy_p.copy())
+                new_f.add(fac_p)
+                graph_all.add(fac_p)
+                map_fac.append(fac_p)
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         sd2 = (cfg.sigma_diameter or 1.0) ** 2
         kparams = np.array(
@@ -651,8 +534,10 @@ class Isam2Slam:
                     trk[2] + rel[2],
                 )
                 new_v.insert(XK(k), init)
+                add_gnss(k - 1)
                 if k % cfg.update_every == 0:
-                    isam.update(new_f, new_v)
+                    isam.update(new_f, new_v, remove_idx)
+                    remove_idx.clear()
                     n_updates += 1
                     new_f = gtsam.NonlinearFactorGraph()
                     new_v = gtsam.Values()
@@ -710,7 +595,8 @@ class Isam2Slam:
             if progress is not None:
                 progress(f1, nf)
         flush(nk - 1)
-        isam.update(new_f, new_v)
+        add_gnss(nk - 1)
+        isam.update(new_f, new_v, remove_idx)
         n_updates += 1
         n_matched = int(counters[C_LOCAL] + counters[C_REACQ] + counters[C_SINGLE])
         n_new = int(counters[C_NEW])
@@ -752,7 +638,7 @@ class Isam2Slam:
                 remap[ing] = ing[rep]  # landmark slot each slot maps to
             cal_moved = False
             if calibrate:
-                kf_xyt = gtsam.utilities.extractPose2(result)
+                kf_xyt = gtsam.utilities.extractPose2(result)[:nk]
                 c_seg = _calibration_lsq(
                     odo_residuals(kf_xyt, 0, nk - 1), J_k, info_k, c_used, seg_k, n_seg,
                     dur_seg, cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
@@ -771,7 +657,12 @@ class Isam2Slam:
             g2 = gtsam.NonlinearFactorGraph()
             g2.add(pf)
             odo_fac = [odo_factor(i_, d_) for i_, d_ in enumerate(odo_measured(0, nk - 1))]
-            for fac_o in odo_fac:
+            for j_p, fac_p in enumerate(map_fac):  # a merged prior tree: on its representative
+                if alias[j_p] != j_p:
+                    map_fac[j_p] = gtsam.PriorFactorPoint2(
+                        LK(int(alias[j_p])), fac_p.prior(), fac_p.noiseModel()
+                    )
+            for fac_o in odo_fac + gnss_fac + map_fac:
                 g2.add(fac_o)
             for i_m, (k_, j_, b_, r_, sb_, sr_) in enumerate(meas_rec):
                 if alias[j_] != j_:  # the tree was merged: a factor on its representative
@@ -783,6 +674,8 @@ class Isam2Slam:
             v2 = gtsam.Values()
             for k_ in range(nk):
                 v2.insert(XK(k_), result.atPose2(XK(k_)))
+            for key_g in gnss_keys:
+                v2.insert(key_g, result.atPose2(key_g))
             gone = np.zeros(n_lm, dtype=bool)
             for t_, j_ in enumerate(ing.tolist()):
                 if remap[j_] == j_:
@@ -811,7 +704,7 @@ class Isam2Slam:
             opt = gtsam.LevenbergMarquardtOptimizer(graph_all, result, lm_params)
             result = opt.optimize()
             n_lm_iters += int(opt.iterations())
-        kf_s = gtsam.utilities.extractPose2(result)  # sensor poses of keyframes, in key order
+        kf_s = gtsam.utilities.extractPose2(result)[:nk]  # sensor poses of keyframes, in key order
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
         base_p = kf_s[kf_of]
         cb, sb = np.cos(base_p[:, 2]), np.sin(base_p[:, 2])
@@ -854,7 +747,7 @@ class Isam2Slam:
         n_outlier = 0
         if meas_rec and ing.size:
             mr = np.array(meas_rec)
-            kf_xyt = gtsam.utilities.extractPose2(result)[mr[:, 0].astype(np.int64)]
+            kf_xyt = gtsam.utilities.extractPose2(result)[:nk][mr[:, 0].astype(np.int64)]
             lmp = pts[alias[mr[:, 1].astype(np.int64)]]
             dxm, dym = lmp[:, 0] - kf_xyt[:, 0], lmp[:, 1] - kf_xyt[:, 1]
             rb = wrap_angle(mr[:, 2] - (np.arctan2(dym, dxm) - kf_xyt[:, 2])) / mr[:, 4]
@@ -882,6 +775,16 @@ class Isam2Slam:
                     last_time=float(frames.times[lm_last[jk]]),
                 )
             )
+        gnss_stats: dict[str, float | int] = {}
+        if gnss_plan is not None and gnss_keys:
+            # fixes the robust loss set aside: normalised residual > 3 at the optimum
+            ant = np.array([result.atPose2(k_g).translation() for k_g in gnss_keys])
+            r_g = gnss_residuals(gnss_plan, ant)
+            gnss_stats = {
+                "gnss_fixes_fused": len(gnss_keys),
+                "gnss_fixes_outliers": int(np.count_nonzero(r_g > 3.0)),
+                "gnss_residual_rms_m": float(np.sqrt(np.mean((r_g * gnss_plan.sigma) ** 2))),
+            }
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,
@@ -905,6 +808,7 @@ class Isam2Slam:
             "measurement_outlier_fraction": n_outlier / len(meas_rec) if meas_rec else math.nan,
             "calibration_segments": n_seg,
             "calibration_rounds": n_cal_rounds,
+            **gnss_stats,
             "incremental_s": t_inc,
             "runtime_s": runtime,
         }

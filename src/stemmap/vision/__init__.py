@@ -10,6 +10,11 @@ calibrate
     (Xue eqs. 4-6), PnP (visual-lidar §2.1).
 segment
     Stripping segmentation and matching level alpha (Xue §2.4.3, eq. 18).
+segment_features, segment_classifier
+    Trainable ilastik-style pixel classifier (multi-scale features, gradient-boosted trees in
+    a pickle-free model file); the default of ``stemmap segment``.
+image_io
+    Safe photo reading: pixel limit from the header, truncated / damaged files refused.
 edges
     Edge-based trunk diameter (Öhman 2007 §3).
 depth
@@ -42,7 +47,16 @@ from stemmap.vision.camera import (
 from stemmap.vision.depth import DaimParams, daim_trunks
 from stemmap.vision.detector import Detections, OnnxDetector, SegmentationDetector, TrunkDetector
 from stemmap.vision.edges import EdgeParams, measure_diameter
+from stemmap.vision.image_io import read_image
 from stemmap.vision.segment import Regions, Segmentation, SegmentParams, segment_trunks
+from stemmap.vision.segment_classifier import (
+    PixelModel,
+    default_model,
+    load_model,
+    save_model,
+    segment_pixels,
+    train_pixel_classifier,
+)
 
 __all__ = [
     "CameraModel",
@@ -51,6 +65,7 @@ __all__ = [
     "EdgeParams",
     "HomographyFit",
     "OnnxDetector",
+    "PixelModel",
     "PlateModel",
     "PoseFit",
     "Regions",
@@ -61,17 +76,23 @@ __all__ = [
     "TrunkDetector",
     "apply_homography",
     "daim_trunks",
+    "default_model",
     "fit_homography",
     "fit_homography_dlt",
     "fit_homography_ransac",
     "fit_homography_xue2018",
     "laser_plane_homography",
+    "load_model",
     "measure_diameter",
     "plate_edges_from_scan",
     "project_laser_points",
     "project_points",
+    "read_image",
     "refine_homography",
+    "save_model",
+    "segment_pixels",
     "segment_trunks",
     "solve_plate_points",
     "solve_pnp",
+    "train_pixel_classifier",
 ]

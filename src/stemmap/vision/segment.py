@@ -30,6 +30,7 @@ __all__ = [
     "Segmentation",
     "evaluate_mangrove",
     "evaluate_segmentation",
+    "label_regions",
     "matching_level",
     "read_yolo_polygons",
     "rgb_trunk_mask",
@@ -256,6 +257,31 @@ def _fill_holes(binary: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.asarray(binary | holes.astype(np.uint8))
 
 
+def label_regions(
+    binary: NDArray[np.uint8] | NDArray[np.bool_],
+    *,
+    min_area: float = 1.0,
+    k3: float = 2.0,
+    y_offset: int = 0,
+) -> tuple[NDArray[np.int32], Regions]:
+    """Connected components (8-connected) of a binary mask with their boxes, areas and matching
+    levels alpha (Xue 2018 eq. 18); components smaller than ``min_area`` pixels are not returned
+    (their pixels keep their label). Box rows are shifted by ``y_offset`` (a cropped image).
+    """
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(
+        np.asarray(binary, dtype=np.uint8), connectivity=8
+    )
+    st = stats[1:].astype(np.int64)
+    ids = np.arange(1, n, dtype=np.int64)
+    big = st[:, cv2.CC_STAT_AREA] >= max(1.0, min_area)
+    st, ids = st[big], ids[big]
+    x, y = st[:, cv2.CC_STAT_LEFT], st[:, cv2.CC_STAT_TOP] + y_offset
+    w, h = st[:, cv2.CC_STAT_WIDTH], st[:, cv2.CC_STAT_HEIGHT]
+    area = st[:, cv2.CC_STAT_AREA]
+    alpha = matching_level(area, w * h, k3) if len(ids) else np.zeros(0)
+    return np.asarray(lab, dtype=np.int32), Regions(x, y, w, h, area, alpha, ids)
+
+
 def segment_trunks(image: ArrayLike, params: SegmentParams | str | None = None) -> Segmentation:
     """Stripping segmentation of trunks (Xue et al. 2018, §2.4.3, Fig. 7; §3.2.2, Fig. 10).
 
@@ -290,18 +316,11 @@ def segment_trunks(image: ArrayLike, params: SegmentParams | str | None = None) 
     binary = _fill_holes(binary)
     binary = np.asarray(cv2.morphologyEx(binary, cv2.MORPH_OPEN, se), dtype=np.uint8)
     binary = np.asarray(cv2.morphologyEx(binary, cv2.MORPH_CLOSE, se), dtype=np.uint8)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
-    st = stats[1:].astype(np.int64)
-    ids = np.arange(1, n, dtype=np.int64)
     min_area = p.min_area_frac * crop.shape[0] * crop.shape[1]
-    big = st[:, cv2.CC_STAT_AREA] >= max(1.0, min_area)
-    st, ids = st[big], ids[big]
-    x, y = st[:, cv2.CC_STAT_LEFT], st[:, cv2.CC_STAT_TOP] + top
-    w, h = st[:, cv2.CC_STAT_WIDTH], st[:, cv2.CC_STAT_HEIGHT]
-    area = st[:, cv2.CC_STAT_AREA]
-    alpha = matching_level(area, w * h, p.k3) if len(ids) else np.zeros(0)
-    cands = Regions(x, y, w, h, area, alpha, ids)
-    keep = h > w if p.taller_than_wide else np.ones(len(ids), bool)
+    lab, cands = label_regions(binary, min_area=min_area, k3=p.k3, y_offset=top)
+    n = int(lab.max()) + 1
+    w, h = cands.w, cands.h
+    keep = h > w if p.taller_than_wide else np.ones(len(cands), bool)
     regions = cands.select(keep)
     labels = np.zeros((H, W), np.int32)
     labels[top:] = lab

@@ -1,0 +1,123 @@
+"""File inputs of ``stemmap map`` other than bags: scans (NPZ / CSV, e.g. from ``stemmap sim
+scans``) or a detections CSV (``stemmap detect``), each with a wheel-odometry CSV."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.errors import InputError
+
+__all__ = ["file_problem", "is_detections_csv", "odometry_path", "read_odometry_csv"]
+
+#: Columns of the odometry CSV (``stemmap sim scans`` writes ``time,speed,yaw_rate``).
+ODOMETRY_CSV_COLUMNS = ("time_s", "speed", "yaw_rate")
+
+
+def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``time_s,speed,yaw_rate`` (s, m/s, rad/s; each row held until the next) -> arrays.
+
+    Raises
+    ------
+    InputError
+        Missing file or column, non-finite values, fewer than 2 rows, times not increasing.
+    """
+    from stemmap.io._util import existing_file, parse_numeric_csv, read_text, require_finite
+
+    what = "odometry CSV"
+    p = existing_file(path, what)
+    table = parse_numeric_csv(p, read_text(p, what), ODOMETRY_CSV_COLUMNS, (), what)
+    for c in ODOMETRY_CSV_COLUMNS:
+        require_finite(p, what, table, c)
+    t = table.columns["time_s"]
+    if t.shape[0] < 2:
+        raise InputError(f"{what} {str(p)!r} has {t.shape[0]} rows; dead reckoning needs >= 2.")
+    if np.any(np.diff(t) < 0):
+        k = int(np.argmax(np.diff(t) < 0))
+        raise InputError(
+            f"{what} {str(p)!r} line {table.lines[k + 1]}: time {t[k + 1]} goes backwards."
+        )
+    keep = np.concatenate(([True], np.diff(t) > 0))
+    return t[keep], table.columns["speed"][keep], table.columns["yaw_rate"][keep]
+
+
+def is_detections_csv(path: Path) -> bool:
+    """A ``stemmap detect`` CSV (header with ``scan_index``) rather than a scans CSV."""
+    if path.suffix.lower() not in (".csv", ".txt") or not path.is_file():
+        return False
+    with path.open(encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith("#"):
+                return "scan_index" in [h.strip() for h in line.split(",")]
+    return False
+
+
+def odometry_path(source: Path, odometry: Path | None) -> Path:
+    """``--odometry`` or the ``<stem>_odometry.csv`` that ``stemmap sim scans`` writes beside
+    ``<stem>.npz``; InputError naming both options when neither exists."""
+    if odometry is not None:
+        return odometry
+    guess = source.with_name(f"{source.stem}_odometry.csv")
+    if guess.is_file():
+        return guess
+    raise InputError(
+        f"{source} has no odometry: pass --odometry FILE (CSV time_s,speed,yaw_rate in s, m/s, "
+        f"rad/s), or put it beside the input as {guess.name}."
+    )
+
+
+def file_problem(
+    source: Path, odometry: Path | None, sensor_offset: tuple[float, float]
+) -> tuple[Any, dict[str, Any]]:
+    """A :class:`~stemmap.slam.base.SlamProblem` from scans or detections plus odometry.
+
+    Scans are run through the default :class:`~stemmap.scan.detect.ScanTrunkDetector`. The map
+    frame starts at the vehicle pose (0, 0, 0) of the first frame; the motion noise is the
+    :class:`~stemmap.slam.motion.UnicycleModel` default.
+    """
+    from dataclasses import replace
+
+    from stemmap.io.maps import read_observations_csv
+    from stemmap.io.scans import read_scans
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
+    from stemmap.slam.motion import UnicycleModel
+
+    odo_file = odometry_path(source, odometry)
+    t_odo, speed, yaw_rate = read_odometry_csv(odo_file)
+    max_range = math.inf
+    if is_detections_csv(source):
+        obs = read_observations_csv(source)
+        if len(obs) == 0:
+            raise InputError(f"detections CSV {source} has no rows.")
+        scans, first = np.unique(obs.index, return_index=True)
+        times = obs.times[first]
+        if np.any(np.diff(times) < 0):
+            raise InputError(f"detections CSV {source}: scan times must increase with scan_index.")
+        obs = replace(obs, index=np.searchsorted(scans, obs.index))
+        kind = "detections"
+    else:
+        batch = read_scans(source)
+        obs = ScanTrunkDetector().detect_batch(batch)
+        times = batch.times
+        max_range = float(batch.range_max)
+        kind = "scans"
+    frames = TreeFrames.from_observations(obs, times)
+    if times[0] < t_odo[0] or times[-1] > t_odo[-1] + 1.0:
+        raise InputError(
+            f"the {kind} of {source} span {times[0]:.3f}-{times[-1]:.3f} s but the odometry "
+            f"{odo_file} spans {t_odo[0]:.3f}-{t_odo[-1]:.3f} s: the time bases differ."
+        )
+    problem = SlamProblem(
+        Controls(t_odo, speed, yaw_rate, "unicycle"),
+        frames,
+        UnicycleModel(),
+        sensor_offset=sensor_offset,
+        initial_pose=(0.0, 0.0, 0.0),
+        name=str(source),
+        max_range=max_range,
+    )
+    return problem, {"kind": kind, "odometry": str(odo_file)}

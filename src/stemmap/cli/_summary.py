@@ -1,0 +1,154 @@
+"""Terminal output of the product-writing commands: a rich summary table for people, ``--json``
+for machines, and the first-run numba compile announcement."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from stemmap.cli._common import clean_json, console, json_default, out
+
+__all__ = ["JsonFlag", "announce_compile", "fmt", "print_summary"]
+
+JsonFlag = Annotated[
+    bool,
+    typer.Option(
+        "--json",
+        help="Print one JSON object (the summary, the metrics and the files written) on stdout "
+        "instead of the table.",
+    ),
+]
+
+#: Modules whose numba kernels compile on first use, with a rough first-run cost.
+_KERNEL_MODULES = {
+    "scan": ("stemmap.scan._detect_fast", "stemmap.scan._fit_geometric"),
+    "slam": (
+        "stemmap.slam._fastslam_kernel",
+        "stemmap.slam._association_kernel",
+        "stemmap.slam._isam2_track",
+    ),
+}
+
+
+def announce_compile(*areas: str) -> None:
+    """Tell the user (stderr) when the numba kernels of ``areas`` (``scan``, ``slam``) have no
+    on-disk cache yet: the first run then compiles them (about a minute on a loaded 2-core
+    machine) without any other sign of life."""
+    import importlib.util
+
+    missing = []
+    names = [n for a in areas or ("scan",) for n in _KERNEL_MODULES.get(a, ())]
+    for name in names:
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.origin is None:
+            continue
+        src = Path(spec.origin)
+        cache = src.parent / "__pycache__"
+        if not any(cache.glob(f"{src.stem}.*.nbi")):
+            missing.append(name.rsplit(".", 1)[1])
+    if missing:
+        console.print(
+            f"[cyan]first run:[/cyan] compiling numba kernels ({', '.join(missing)}); this takes "
+            "about a minute once and is cached for later runs."
+        )
+
+
+def fmt(v: Any, unit: str = "", scale: float = 1.0, digits: int = 2) -> str:
+    """A number for the table: ``n/a`` for None / NaN, else scaled and rounded with its unit."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return str(v)
+    if isinstance(v, int) and scale == 1.0:
+        return f"{v}{unit}"
+    return f"{scale * float(v):.{digits}f}{unit}"
+
+
+def print_summary(
+    title: str,
+    rows: Sequence[tuple[str, str, str]],
+    out_dir: Path | None,
+    files: Sequence[str],
+    *,
+    as_json: bool,
+    payload: dict[str, Any],
+) -> None:
+    """The run's summary: ``rows`` (quantity, value, where in metrics.json) as a table, or
+    ``payload`` + ``files`` as one JSON object (``--json``)."""
+    if as_json:
+        doc = {"summary": {r[0]: r[1] for r in rows}, **payload, "files": list(files)}
+        if out_dir is not None:
+            doc["out_dir"] = str(out_dir)
+        typer.echo(json.dumps(clean_json(doc), default=json_default))
+        return
+    from rich.table import Table
+
+    table = Table(title=title, title_justify="left", show_lines=False)
+    table.add_column("quantity", no_wrap=True)
+    table.add_column("value", justify="right", no_wrap=True)
+    table.add_column("metrics.json key", style="dim", overflow="fold")
+    for name, value, key in rows:
+        table.add_row(name, value, key)
+    out.print(table)
+    where = f"{out_dir}/: " if out_dir is not None else ""
+    out.print(f"wrote {where}{' '.join(files)}", markup=False, soft_wrap=True)
+
+
+def run_warnings(m: dict[str, Any], crs: str | None) -> list[str]:
+    """Things a reader of the report should know about the run."""
+    w = []
+    if crs is None:
+        w.append(
+            "no CRS: coordinates are metres in a local frame (declared as such in the GeoJSON "
+            "and GeoPackage); pass --crs if the odometry frame is georeferenced."
+        )
+    if m.get("n_trees", 1) == 0:
+        w.append("the map has no trees.")
+    if m.get("duplicates_1m"):
+        w.append(f"{m['duplicates_1m']} pairs of mapped trees are closer than 1 m (duplicates?).")
+    if "ate_error" in m:
+        w.append(f"no ATE against GPS: {m['ate_error']}")
+    return w
+
+
+def write_run_report(
+    out_dir: Path,
+    *,
+    title: str,
+    headline: str,
+    metrics: dict[str, Any],
+    figure: str,
+    stem_map: Any,
+    parameters: dict[str, Any],
+    files: Sequence[str],
+    crs: str | None,
+) -> str:
+    """``report.html`` of a map / demo run in ``out_dir`` (figure = the PNG written there);
+    returns its name."""
+    from stemmap.io.maps import TREE_CSV_COLUMNS, tree_rows
+    from stemmap.viz.report import write_report
+
+    doc = json.loads(json.dumps(clean_json(metrics), default=json_default))
+    rows = [
+        [round(v, 4) if isinstance(v, float) and math.isfinite(v) else v for v in r]
+        for r in tree_rows(stem_map)
+    ]
+    write_report(
+        out_dir / "report.html",
+        title=title,
+        headline=headline,
+        metrics=doc,
+        figure_png=(out_dir / figure).read_bytes(),
+        diameters=stem_map.diameters,
+        table_header=TREE_CSV_COLUMNS,
+        table_rows=rows,
+        parameters=parameters,
+        warnings=run_warnings(doc, crs),
+        files=files,
+    )
+    return "report.html"

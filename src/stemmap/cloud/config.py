@@ -1,0 +1,95 @@
+"""Parameters of our cloud stem detector (:class:`StemConfig`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
+from stemmap.cloud.result import BREAST_HEIGHT
+from stemmap.errors import ConfigError
+
+__all__ = ["StemConfig"]
+
+
+@dataclass(frozen=True)
+class StemConfig:
+    """Parameters of our stem detector. Defaults need no per-cloud tuning.
+
+    Attributes
+    ----------
+    breast_height : float, metres (1.3)
+    slice_centers : tuple of float, metres above ground
+        Centres of the horizontal slices fitted per stem; the band they span is clustered.
+    slice_thickness : float, metres
+    ground_cell : float, metres -- ground raster cell (1.0)
+    min_diameter, max_diameter : float, metres -- plausible DBH window (0.04, 1.5)
+    min_arc_deg : float -- minimum angular coverage of a slice fit (one side of a trunk seen
+        from one scanner covers up to ~180 degrees; 30 keeps partly occluded trunks, whose
+        DBH is then less certain and whose quality is scaled by arc / 120 degrees)
+    min_slice_points : int -- minimum inliers of a slice fit
+    min_slices : int -- slices that must pass for a stem (1 for a pre-cut slice cloud)
+    min_vertical_extent : float, metres -- the passing slices' centres must span at least this
+        (a stem is vertical; bushes and branch stubs are not); ignored for a pre-cut slice
+    slices_per_spacing : float -- a slice is at least this many measured point spacings thick;
+        sparse clouds get fewer, thicker slices over the same band (0 disables)
+    max_taper : float -- largest plausible |d radius / d height| in the band, m/m; a candidate
+        whose slice radii change faster is not a stem
+    residual_factor : float -- a slice fit passes if its RMS is below ``residual_factor`` times
+        the cloud's noise floor (median slice RMS) -- measured, not tuned
+    cluster_cell_factor : float -- grid clustering cell = this x the 90th-percentile 2D point
+        spacing in the band (measured)
+    spacing : float, optional -- override the measured point spacing, metres
+    fit_method : str -- circle fit (``scan.circle.FIT_METHODS``); "ours" is the robust
+        geometric fit
+    estimate_height : bool -- also estimate stem height (highest point within 1 m of the axis)
+    slice_mode : "auto" | "always" | "never" -- treat the cloud as an already cut, height-
+        normalised slice (auto: when its z extent is below 1 m)
+    pooled_fallback : bool -- clusters the per-slice fits reject get one tilted-cylinder fit
+        over the whole band with stricter tests (:func:`_pooled_stems`): trunks with few
+        returns per slice (partly occluded, sparse clouds)
+    max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
+        a cloud that would need more is refused with an InputError naming the raster (4 GB)
+    """
+
+    breast_height: float = BREAST_HEIGHT
+    slice_centers: tuple[float, ...] = (0.9, 1.1, 1.3, 1.5, 1.7, 1.9)
+    slice_thickness: float = 0.2
+    ground_cell: float = 1.0
+    min_diameter: float = 0.04
+    max_diameter: float = 1.5
+    min_arc_deg: float = 30.0
+    min_slice_points: int = 8
+    min_slices: int = 3
+    residual_factor: float = 3.0
+    cluster_cell_factor: float = 2.0
+    spacing: float | None = None
+    fit_method: str = "ours"
+    estimate_height: bool = False
+    slice_mode: str = "auto"
+    min_vertical_extent: float = 0.4
+    slices_per_spacing: float = 4.0
+    max_taper: float = 0.05
+    pooled_fallback: bool = True
+    max_memory: float = DEFAULT_MAX_MEMORY
+
+    def __post_init__(self) -> None:
+        if not self.slice_centers or self.slice_thickness <= 0:
+            raise ConfigError("need at least one slice centre and slice_thickness > 0 m.")
+        if not 0 < self.min_diameter < self.max_diameter:
+            raise ConfigError(
+                f"need 0 < min_diameter < max_diameter, got {self.min_diameter}, "
+                f"{self.max_diameter}."
+            )
+        if self.slice_mode not in ("auto", "always", "never"):
+            raise ConfigError(f"slice_mode must be auto, always or never, got {self.slice_mode!r}.")
+        if not self.max_memory > 0:
+            raise ConfigError(f"max_memory must be > 0 bytes, got {self.max_memory}.")
+        if self.spacing is not None and not self.spacing > 0:
+            raise ConfigError(f"spacing must be > 0 m, got {self.spacing}.")
+
+    @property
+    def band(self) -> tuple[float, float]:
+        c = np.asarray(self.slice_centers)
+        return float(c.min() - self.slice_thickness / 2), float(c.max() + self.slice_thickness / 2)

@@ -1,0 +1,168 @@
+"""EB-LiDAR stem detection (Munjer et al. 2025, §3.2-3.3, Table 1) and proximity association
+across frames."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from stemmap.cloud.cluster import dbscan
+from stemmap.cloud.filters import as_xyz, pass_through, voxel_downsample
+from stemmap.cloud.result import CloudStems
+from stemmap.cloud.shape import cluster_covariances, pca_eccentricity
+from stemmap.errors import ConfigError
+from stemmap.scan.circle import fit_circles_batch
+from stemmap.types import FloatArray
+
+__all__ = ["MunjerConfig", "associate_proximity", "detect_stems_munjer"]
+
+
+@dataclass(frozen=True)
+class MunjerConfig:
+    """Parameters of EB-LiDAR (Munjer et al. 2025, §3.2-3.3 and Table 1).
+
+    Attributes
+    ----------
+    box_x, box_y, box_z : (lo, hi), metres, lidar frame
+        Pass-through box; the paper: x (0, 10), y (-10, 10), z (-0.5, 0).
+    voxel : float, metres -- voxel-grid averaging (0.01)
+    eps : float, metres -- DBSCAN neighbourhood radius (0.25)
+    min_points : int -- DBSCAN minimum points (20)
+    eccentricity_range : (lo, hi) -- kept clusters' lambda1/lambda2 (10, 20)
+    fit_std_max : float, metres -- "standard deviation limit for cylinder fitting" (0.1)
+    association_distance : float, metres -- proximity association across frames (1.0)
+    fit_method : str -- circle fit of the projection (a ``FIT_METHODS`` name; the paper does not
+        name one, so the algebraic Kasa fit is the default)
+    """
+
+    box_x: tuple[float, float] | None = (0.0, 10.0)
+    box_y: tuple[float, float] | None = (-10.0, 10.0)
+    box_z: tuple[float, float] | None = (-0.5, 0.0)
+    voxel: float = 0.01
+    eps: float = 0.25
+    min_points: int = 20
+    eccentricity_range: tuple[float, float] = (10.0, 20.0)
+    fit_std_max: float = 0.1
+    association_distance: float = 1.0
+    fit_method: str = "kasa"
+
+    def __post_init__(self) -> None:
+        if not (self.voxel > 0 and self.eps > 0 and self.min_points >= 1):
+            raise ConfigError("munjer2025 needs voxel > 0, eps > 0 and min_points >= 1.")
+        lo, hi = self.eccentricity_range
+        if not hi >= lo >= 1:
+            raise ConfigError(f"eccentricity_range must satisfy 1 <= lo <= hi, got {lo}, {hi}.")
+
+
+def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> CloudStems:
+    """EB-LiDAR stem detection in one lidar frame (Munjer et al. 2025, §3.2-3.3).
+
+    Parameters
+    ----------
+    xyz : array_like (N, 3), metres, lidar frame (x forward, z up, origin at the sensor)
+    config : MunjerConfig, default the published Table 1 values
+
+    Returns
+    -------
+    CloudStems
+        One row per accepted cluster: centre and diameter from the circle fit of its xy
+        projection, ``z`` its mean height, ``eccentricity`` its lambda1/lambda2.
+
+    Notes
+    -----
+    Pipeline: pass-through box (§3.2) -> voxel-grid averaging, eq. (2) -> DBSCAN(eps, minPts)
+    (§3.3) -> covariance of each cluster, eq. (3), and eccentricity ``e = lambda1 / lambda2``,
+    eq. (4), over the two largest eigenvalues of the 3D covariance -> keep ``10 <= e <= 20``
+    (§3.3: "between 10 and 20"; Table 1 names 20 the cutoff) -> circle fit of the cluster's 2D
+    projection, rejected when the residual standard deviation exceeds 0.1 m (Table 1).
+    """
+    cfg = config or MunjerConfig()
+    p = as_xyz(xyz)
+    p = p[pass_through(p, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)]
+    if p.shape[0] < cfg.min_points:
+        return CloudStems.empty(
+            "munjer2025", reason=f"fewer than {cfg.min_points} points inside the pass-through box"
+        )
+    v = np.asarray(voxel_downsample(p, cfg.voxel))
+    lab = dbscan(v, cfg.eps, cfg.min_points)
+    if lab.size == 0 or lab.max() < 0:
+        return CloudStems.empty("munjer2025", reason="DBSCAN found no cluster")
+    cen, cov, sizes = cluster_covariances(v, lab)
+    ecc = pca_eccentricity(cov)
+    lo, hi = cfg.eccentricity_range
+    cand = np.flatnonzero((ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points))
+    if cand.size == 0:
+        return CloudStems.empty(
+            "munjer2025", reason=f"no cluster has an eccentricity in [{lo}, {hi}]"
+        )
+    sel = np.isin(lab, cand)
+    fits = fit_circles_batch(v[sel, :2], lab[sel], cfg.fit_method, edges=None)
+    ok = fits.ok & (fits.rms <= cfg.fit_std_max)
+    ids = fits.segment_ids[ok]
+    return CloudStems.from_columns(
+        xy=fits.centers[ok],
+        z=cen[ids, 2],
+        diameter=2 * fits.radii[ok],
+        n_points=sizes[ids],
+        rms=fits.rms[ok],
+        eccentricity=ecc[ids],
+        method="munjer2025",
+        frame="lidar",
+    )
+
+
+def associate_proximity(
+    detections: Iterable[CloudStems], distance: float = 1.0, *, frame: str = "world"
+) -> CloudStems:
+    """Merge per-frame detections (already in one common frame) into trees by proximity.
+
+    Munjer et al. (2025, Table 1, "proximity threshold for cluster association", 1.0 m): a
+    detection within ``distance`` of an existing tree's running-mean position joins it (the
+    nearest), otherwise it starts a new tree. Output positions are the running means, diameters
+    the medians of the joined detections, ``n_points`` the summed support and ``n_slices`` the
+    number of joined detections.
+    """
+    if not distance > 0:
+        raise ConfigError(f"association distance must be > 0 m, got {distance}.")
+    sums: list[FloatArray] = []
+    diams: list[list[float]] = []
+    zs: list[list[float]] = []
+    npts: list[int] = []
+    ecc: list[list[float]] = []
+    for det in detections:
+        for k in range(len(det)):
+            c = det.xy[k]
+            j = -1
+            if sums:
+                means = np.array([s[:2] / s[2] for s in sums])
+                dist = np.hypot(*(means - c).T)
+                m = int(np.argmin(dist))
+                j = m if dist[m] <= distance else -1
+            if j < 0:
+                sums.append(np.array([c[0], c[1], 1.0]))
+                diams.append([float(det.diameter[k])])
+                zs.append([float(det.z[k])])
+                npts.append(int(det.n_points[k]))
+                ecc.append([float(det.eccentricity[k])])
+            else:
+                sums[j] += [c[0], c[1], 1.0]
+                diams[j].append(float(det.diameter[k]))
+                zs[j].append(float(det.z[k]))
+                npts[j] += int(det.n_points[k])
+                ecc[j].append(float(det.eccentricity[k]))
+    if not sums:
+        return CloudStems.empty("munjer2025", frame, reason="no detections to associate")
+    s = np.array(sums)
+    return CloudStems.from_columns(
+        xy=s[:, :2] / s[:, 2:3],
+        z=[float(np.mean(v)) for v in zs],
+        diameter=[float(np.median(v)) for v in diams],
+        n_points=npts,
+        n_slices=s[:, 2].astype(np.int64),
+        eccentricity=[float(np.median(v)) for v in ecc],
+        method="munjer2025",
+        frame=frame,
+    )

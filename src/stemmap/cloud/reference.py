@@ -1,0 +1,86 @@
+"""Reference diameters from a cloud's own full rings (for benchmarks and real-data tests).
+
+Where a trunk is seen all round (a TLS plot, a segmented single tree), a plain geometric
+circle fit of the points in a thin ring at the measurement height is the best reference the
+cloud itself offers; its residual RMS and arc coverage say how good a reference it is. It
+shares the points with the detector but none of its machinery (clustering, slices, consensus,
+tests, taper line, lean correction), so it checks them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from stemmap.cloud.slicefit import _segment_arcs
+
+__all__ = ["RingReference", "ring_reference"]
+
+
+@dataclass(frozen=True)
+class RingReference:
+    """A full-ring reference: ``diameter`` (m), its fit ``rms`` (m), ``arc_deg``, ``n``."""
+
+    x: float
+    y: float
+    diameter: float
+    rms: float
+    arc_deg: float
+    n: int
+
+    @property
+    def full(self) -> bool:
+        """Seen all round (arc >= 300 degrees) with at least 20 points."""
+        return self.arc_deg >= 300.0 and self.n >= 20
+
+
+def ring_reference(
+    xyz: ArrayLike,
+    center: tuple[float, float],
+    z: float,
+    radius: float,
+    *,
+    half_thickness: float = 0.05,
+) -> RingReference | None:
+    """Geometric least-squares circle of the ring ``|z_i - z| <= half_thickness`` near a stem.
+
+    Points within ``1.5 radius + 0.1 m`` of ``center``; start from the given circle (the
+    points within 30 % of its radius), then Gauss-Newton on the orthogonal distances with
+    3 x 1.4826 MAD trimming, three rounds.
+    None when fewer than 10 points are in the ring.
+    """
+    p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    c = np.asarray(center, dtype=np.float64)
+    m = (np.abs(p[:, 2] - z) <= half_thickness) & (
+        np.hypot(p[:, 0] - c[0], p[:, 1] - c[1]) <= 1.5 * radius + 0.1
+    )
+    q = p[m, :2]
+    if q.shape[0] < 10:
+        return None
+    cx, cy, r = float(c[0]), float(c[1]), float(radius)
+    # start from the given circle: points within 30 % of r (2 cm at least) of it; a fork or
+    # a branch in the ring is outside and stays out
+    keep = np.abs(np.hypot(q[:, 0] - cx, q[:, 1] - cy) - r) <= max(0.3 * r, 0.02)
+    if keep.sum() < 10:
+        return None
+    for _ in range(3):
+        for _ in range(20):
+            v = q[keep] - (cx, cy)
+            d = np.maximum(np.hypot(v[:, 0], v[:, 1]), 1e-12)
+            J = np.column_stack((-v[:, 0] / d, -v[:, 1] / d, -np.ones_like(d)))
+            step = np.linalg.lstsq(J, -(d - r), rcond=None)[0]
+            cx, cy, r = cx + step[0], cy + step[1], r + step[2]
+            if np.abs(step).max() < 1e-7:
+                break
+        res = np.abs(np.hypot(q[:, 0] - cx, q[:, 1] - cy) - r)
+        mad = float(np.median(res[keep]))
+        keep = res <= max(3 * 1.4826 * mad, 1e-3)
+    res = np.hypot(q[keep, 0] - cx, q[keep, 1] - cy) - r
+    ids = np.zeros(int(keep.sum()), dtype=np.int64)
+    arc = float(_segment_arcs(q[keep], ids, 1, np.array([[cx, cy]]))[0])
+    return RingReference(
+        float(cx), float(cy), 2 * float(r), math.sqrt(float(np.mean(res**2))), arc, int(keep.sum())
+    )

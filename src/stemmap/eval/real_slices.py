@@ -1,0 +1,378 @@
+"""Breast-height slices of real point clouds and virtual 2D laser scans made from them.
+
+Shared by ``benchmarks/real_geometry.py`` (detector recall and DBH error on real trunk
+geometry) and ``benchmarks/scan_fits_real.py`` (circle fits on real arcs).
+
+A slice is the part of a real terrestrial / mobile lidar cloud between 1.2 and 1.4 m above the
+ground (:data:`SLICES` says how each cloud's ground is found). Its points are clustered on a
+5 cm occupancy grid; a cluster seen (nearly) all round (inliers in >= 250 degrees of 10-degree
+sectors around its centre) gets a *reference* circle (:func:`ring_reference`): RANSAC then a
+geometric (orthogonal-distance) fit of the ring, with returns farther than 3 robust sigmas
+from it (branches, needles) trimmed and the fit repeated. The reference's own RMS and
+inlier fraction are reported with it.
+
+A virtual 2D scan from a vantage point keeps, per beam, what a 2D scanner at 1.3 m would see
+of the whole slice (every trunk, branch and bush occludes what is behind it):
+
+- ``"nearest"``: a first-echo scanner whose beam fills the angular step: the nearest slice
+  point within the beam's angular cell (width = the angular resolution).
+- ``"averaging"``: a SICK LMS2xx-class scanner: the beam footprint (``footprint_deg``, 0.25 deg
+  by default, centred on the beam) is cut into sub-rays; each sub-ray returns the nearest
+  point in its sub-cell and the beam reports the mean range of the sub-rays that hit
+  (mixed pixels at silhouette edges).
+
+Gaussian range noise can be added per beam. Each beam also carries the index of the
+reference trunk it hit (-1 = anything else), which tells which trunks are visible.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from stemmap.errors import InputError
+from stemmap.types import FloatArray
+
+__all__ = [
+    "SLICES",
+    "RealSlice",
+    "SliceSpec",
+    "cluster_grid",
+    "load_slice",
+    "ring_reference",
+    "surface_point_radius",
+    "virtual_scans",
+]
+
+
+@dataclass(frozen=True)
+class SliceSpec:
+    """Where a slice comes from: ``path`` under the datasets folder and how heights are
+    measured: ``"as_is"`` (the file is already a breast-height slice), ``"ground"`` (heights
+    above a 1 m grid of lowest points, :func:`stemmap.cloud.ground.fit_ground`) or
+    ``"lowest"`` (a single tree without ground: heights above the 0.1 % lowest point; only the
+    points within 0.5 m of the stem base, the median xy of the points below 0.5 m, can be the
+    trunk: the others are branches). ``cell``: clustering grid, metres (coarser for sparse
+    clouds)."""
+
+    path: str
+    heights: Literal["as_is", "ground", "lowest"]
+    z_lo: float = 1.2
+    z_hi: float = 1.4
+    min_ring_points: int = 100
+    cell: float = 0.05
+    min_coverage_deg: float = 250.0
+
+
+#: Every real cloud of the shared datasets that has trunks at breast height.
+SLICES: dict[str, SliceSpec] = {
+    "fortls_slice": SliceSpec("fortls_slice/diameters.laz", "as_is", min_ring_points=500),
+    "treels_pine_plot": SliceSpec("treels/pine_plot.laz", "ground", min_ring_points=30),
+    "treels_pine": SliceSpec("treels/pine.laz", "lowest"),
+    "treels_spruce": SliceSpec("treels/spruce.laz", "lowest"),
+    "lidr_dbh": SliceSpec("lidr_dbh/dbh.laz", "as_is"),
+    "archi_tree1": SliceSpec(
+        "archi/Tree_1_point_cloud.las", "lowest", min_ring_points=30, cell=0.1
+    ),
+    "archi_tree2": SliceSpec("archi/Tree_2_point_cloud.las", "lowest"),
+}
+
+
+@dataclass(frozen=True)
+class RealSlice:
+    """A breast-height slice: ``xy`` (N, 2) points, ``labels`` (N,) reference trunk per point
+    (-1 = not a reference trunk), ``refs`` one dict per reference trunk (x, y, diameter,
+    ring_rms_m, inlier_fraction, coverage_deg, n_points); ``partial`` the ring fits of
+    clusters seen over less than the spec's ``min_coverage_deg`` (no reference: they stay in
+    the scans as occluders and are neither hits nor false alarms)."""
+
+    name: str
+    xy: FloatArray
+    labels: NDArray[np.int64]
+    refs: list[dict[str, float]]
+    partial: list[dict[str, float]]
+
+    @property
+    def centers(self) -> FloatArray:
+        return np.array([[r["x"], r["y"]] for r in self.refs]).reshape(-1, 2)
+
+    @property
+    def diameters(self) -> FloatArray:
+        return np.array([r["diameter"] for r in self.refs])
+
+
+def cluster_grid(xy: FloatArray, cell: float) -> NDArray[np.int64]:
+    """Label points by 8-connected components of an occupancy grid of ``cell`` metres.
+
+    Equivalent to single-linkage clustering at ~cell spacing (DBSCAN with eps ~ cell and
+    min_samples = 1) but ~100x faster here: the trunks in a slice are metres apart.
+    """
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+    grid = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    lab, _ = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
+    return np.asarray(lab[ij[:, 0], ij[:, 1]], dtype=np.int64) - 1
+
+
+def _ransac_circle(
+    pts: FloatArray, tol: float, rng: np.random.Generator, n_trials: int = 300
+) -> NDArray[np.bool_]:
+    """Inliers (within ``tol`` of the circle) of the 3-point circle with the most inliers among
+    ``n_trials`` random triples (Fischler & Bolles 1981): the trunk among branches."""
+    best = np.ones(pts.shape[0], dtype=bool)
+    best_n = 0
+    for _ in range(n_trials):
+        a, b, c = pts[rng.choice(pts.shape[0], 3, replace=False)]
+        d = 2.0 * (a[0] * (b[1] - c[1]) + b[0] * (c[1] - a[1]) + c[0] * (a[1] - b[1]))
+        if abs(d) < 1e-12:
+            continue
+        a2, b2, c2 = a @ a, b @ b, c @ c
+        ux = (a2 * (b[1] - c[1]) + b2 * (c[1] - a[1]) + c2 * (a[1] - b[1])) / d
+        uy = (a2 * (c[0] - b[0]) + b2 * (a[0] - c[0]) + c2 * (b[0] - a[0])) / d
+        r = math.hypot(a[0] - ux, a[1] - uy)
+        if not 0.02 < r < 1.0:
+            continue
+        inl = np.abs(np.hypot(pts[:, 0] - ux, pts[:, 1] - uy) - r) <= tol
+        n = int(inl.sum())
+        if n > best_n:
+            best, best_n = inl, n
+    return best
+
+
+def ring_reference(
+    ring: FloatArray,
+    *,
+    min_coverage_deg: float = 0.0,
+    trim_sigmas: float = 3.0,
+    seed: int = 0,
+) -> tuple[dict[str, float], NDArray[np.bool_]] | None:
+    """Reference circle of a trunk seen (nearly) all round.
+
+    A RANSAC circle (2 cm tolerance) separates the trunk from branches and needles in the
+    cluster; then a geometric fit of its inliers, returns farther than ``trim_sigmas`` robust
+    sigmas (1.4826 MAD, floor 5 mm) trimmed, fit repeated (three times in all).
+
+    Returns the reference (x, y, diameter, ring_rms_m over the inliers, inlier_fraction,
+    coverage_deg: 10-degree sectors around the centre holding inliers) and the inlier mask, or
+    None when the fit fails or the coverage is below ``min_coverage_deg`` (a trunk seen from one
+    side only has no trustworthy reference).
+    """
+    from stemmap.scan.circle import fit_circle_ours
+
+    inl = _ransac_circle(ring, 0.02, np.random.default_rng(seed))
+    fit = None
+    for _ in range(3):
+        if inl.sum() < 10:
+            return None
+        fit = fit_circle_ours(ring[inl], edges=(False, False))
+        if not fit:
+            return None
+        res = np.hypot(*(ring - fit.center).T) - fit.radius
+        mad = 1.4826 * float(np.median(np.abs(res[inl] - np.median(res[inl]))))
+        inl = np.abs(res) <= trim_sigmas * max(mad, 0.005)
+    assert fit is not None
+    q = ring[inl] - fit.center
+    sectors = np.unique(np.floor(np.degrees(np.arctan2(q[:, 1], q[:, 0]) + math.pi) / 10.0))
+    coverage = 10.0 * sectors.size
+    if coverage < min_coverage_deg:
+        return None
+    res = np.hypot(*q.T) - fit.radius
+    ref = {
+        "x": float(fit.center[0]),
+        "y": float(fit.center[1]),
+        "diameter": float(fit.diameter),
+        "ring_rms_m": float(np.sqrt(np.mean(res * res))),
+        "inlier_fraction": float(inl.mean()),
+        "coverage_deg": float(coverage),
+        "n_points": int(inl.sum()),
+    }
+    return ref, inl
+
+
+def _read_xyz(path: Path) -> FloatArray:
+    import laspy
+
+    if not path.is_file():
+        raise InputError(
+            f"{path} not found; set STEMMAP_DATASETS to the shared datasets folder "
+            "(see ../shared/datasets/README.md)."
+        )
+    las = laspy.read(path)
+    return np.column_stack((las.x, las.y, las.z)).astype(np.float64)
+
+
+def load_slice(datasets_dir: Path | str, name: str) -> RealSlice:
+    """The breast-height slice ``name`` (a key of :data:`SLICES`) with its ring references.
+
+    Coordinates are shifted so that the slice's bounding-box centre is the origin.
+    """
+    try:
+        spec = SLICES[name]
+    except KeyError:
+        raise InputError(f"unknown real slice {name!r}; choose one of {sorted(SLICES)}.") from None
+    xyz = _read_xyz(Path(datasets_dir) / spec.path)
+    base_xy = None
+    if spec.heights == "as_is":
+        keep = np.ones(xyz.shape[0], dtype=bool)
+    else:
+        if spec.heights == "ground":
+            from stemmap.cloud.ground import fit_ground, normalize_heights
+
+            h = normalize_heights(xyz, fit_ground(xyz, cell=1.0))[:, 2]
+        else:
+            h = xyz[:, 2] - float(np.quantile(xyz[:, 2], 0.001))
+            base_xy = np.median(xyz[h < 0.5, :2], axis=0)
+        keep = (h >= spec.z_lo) & (h <= spec.z_hi)
+    xy = xyz[keep, :2]
+    if xy.shape[0] < spec.min_ring_points:
+        raise InputError(f"{spec.path}: only {xy.shape[0]} points at breast height.")
+    shift = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
+    xy = xy - shift
+    clusters = cluster_grid(xy, spec.cell)
+    if base_xy is not None:  # single tree: the stem is within 0.5 m of the stem base
+        clusters = np.where(np.hypot(*(xy - (base_xy - shift)).T) <= 0.5, 0, -1)
+    labels = np.full(xy.shape[0], -1, dtype=np.int64)
+    refs: list[dict[str, float]] = []
+    partial: list[dict[str, float]] = []
+    for lab in np.flatnonzero(np.bincount(clusters[clusters >= 0]) >= spec.min_ring_points):
+        idx = np.flatnonzero(clusters == lab)
+        got = ring_reference(xy[idx])
+        if got is None:
+            continue
+        ref, inl = got
+        if ref["coverage_deg"] < spec.min_coverage_deg:
+            partial.append(ref)
+            continue
+        labels[idx[inl]] = len(refs)
+        fill = _fill_unseen_sectors(xy[idx[inl]], ref)
+        ref["filled_sectors_deg"] = 360.0 - ref["coverage_deg"]
+        xy = np.vstack((xy, fill))
+        labels = np.concatenate((labels, np.full(fill.shape[0], len(refs), dtype=np.int64)))
+        refs.append(ref)
+    return RealSlice(name=name, xy=xy, labels=labels, refs=refs, partial=partial)
+
+
+def _fill_unseen_sectors(ring: FloatArray, ref: dict[str, float]) -> FloatArray:
+    """Points every 5 mm on the reference circle in the 10-degree sectors where the ring has no
+    return (the side the lidar did not see): a solid trunk, so that a virtual beam cannot pass
+    through the unseen side and return from the inside of the far wall."""
+    c = np.array([ref["x"], ref["y"]])
+    r = 0.5 * ref["diameter"]
+    q = ring - c
+    seen = np.zeros(36, dtype=bool)
+    seen[np.floor(np.degrees(np.arctan2(q[:, 1], q[:, 0]) + math.pi) / 10.0).astype(int) % 36] = (
+        True
+    )
+    step = 0.005 / r
+    phi = np.arange(-math.pi, math.pi, step)
+    phi = phi[~seen[np.floor(np.degrees(phi + math.pi) / 10.0).astype(int) % 36]]
+    return c + r * np.column_stack((np.cos(phi), np.sin(phi)))
+
+
+def surface_point_radius(xy: FloatArray) -> float:
+    """Disc radius that closes a sampled surface: half the 90th percentile of the
+    nearest-neighbour spacing of the distinct points (most gaps between neighbours are
+    bridged), at least 2 mm."""
+    from scipy.spatial import cKDTree
+
+    u = np.unique(xy, axis=0)
+    if u.shape[0] < 2:
+        return 0.002
+    d, _ = cKDTree(u).query(u, k=2)
+    return max(0.5 * float(np.quantile(d[:, 1], 0.9)), 0.002)
+
+
+def virtual_scans(
+    xy: FloatArray,
+    labels: NDArray[np.int64],
+    vantages: FloatArray,
+    *,
+    resolution_deg: float,
+    model: Literal["nearest", "averaging"] = "nearest",
+    footprint_deg: float = 0.25,
+    sub_rays: int = 5,
+    max_range: float = 30.0,
+    point_radius: float | None = None,
+    centers: FloatArray | None = None,
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Noise-free 360-degree 2D scans of a slice from each vantage point.
+
+    Beam k of every scan points at bearing ``-pi + k * resolution`` (the x axis of the slice is
+    the scanner's 0 bearing). See the module docstring for the two scanner models. A cloud is
+    a sample of the bark, not a surface: each point is taken as a disc of ``point_radius``
+    (default :func:`surface_point_radius`) so that narrow (sub-)rays cannot pass between the
+    points of a trunk and return from the inside of its far side. With ``centers`` (one per
+    reference trunk) the points of a reference trunk facing away from the vantage are culled
+    (a solid trunk hides its own far side).
+
+    Returns
+    -------
+    ranges : ndarray (V, N), metres (inf = no return within ``max_range``)
+    hit : ndarray (V, N), the reference trunk each beam returned from (-1 = other or none); for
+        an averaging beam the trunk of the nearest sub-ray
+    """
+    if model not in ("nearest", "averaging"):
+        raise InputError(f"scanner model must be 'nearest' or 'averaging', got {model!r}.")
+    res = math.radians(resolution_deg)
+    n_beams = round(2.0 * math.pi / res)
+    vantages = np.atleast_2d(np.asarray(vantages, dtype=np.float64))
+    ranges = np.full((vantages.shape[0], n_beams), np.inf)
+    hit = np.full((vantages.shape[0], n_beams), -1, dtype=np.int64)
+    if model == "nearest":
+        sub, n_sub, width = res, 1, res
+    else:
+        width = math.radians(footprint_deg)
+        n_sub = max(int(sub_rays), 1)
+        sub = width / n_sub
+    if point_radius is None:
+        point_radius = surface_point_radius(xy)
+    step = max(round(res / sub), 1)  # sub-cells per beam step (1 for "nearest")
+    for v, o in enumerate(vantages):
+        q = xy - o
+        rho = np.hypot(q[:, 0], q[:, 1])
+        near = (rho <= max_range) & (rho > point_radius)
+        if centers is not None:
+            t = labels >= 0
+            out = (
+                xy[t] - np.asarray(centers, dtype=np.float64)[labels[t]]
+            )  # outward normal of a reference trunk's point
+            near[t] &= np.einsum("ij,ij->i", out, -q[t]) > 0.0
+        q, rho, lab = q[near], rho[near], labels[near]
+        order = np.argsort(rho, kind="stable")
+        q, rho, lab = q[order], rho[order], lab[order]
+        th = np.arctan2(q[:, 1], q[:, 0]) + math.pi  # [0, 2 pi]
+        # each point is a disc of point_radius: it covers every sub-cell its angular interval
+        # touches (a surface, not a sieve the sub-rays pass through)
+        half = np.arcsin(np.minimum(point_radius / rho, 1.0))
+        lo = np.floor((th - half + 0.5 * width) / sub).astype(np.int64)
+        hi = np.floor((th + half + 0.5 * width) / sub).astype(np.int64)
+        cnt = hi - lo + 1
+        idx = np.repeat(np.arange(rho.shape[0]), cnt)  # still sorted by range
+        cell = np.repeat(lo - np.cumsum(cnt) + cnt, cnt) + np.arange(idx.shape[0])
+        k = np.floor_divide(cell, step)
+        j = cell - k * step
+        ok = j < n_sub
+        k, j, idx = k[ok] % n_beams, j[ok], idx[ok]
+        flat = k * n_sub + j
+        first_idx = np.unique(flat, return_index=True)[1]  # sorted by rho: first = nearest
+        f = flat[first_idx]
+        sub_r = np.full((n_beams, n_sub), np.inf)
+        sub_l = np.full((n_beams, n_sub), -1, dtype=np.int64)
+        sub_r.reshape(-1)[f] = rho[idx[first_idx]]
+        sub_l.reshape(-1)[f] = lab[idx[first_idx]]
+        if n_sub == 1:
+            ranges[v] = sub_r[:, 0]
+            hit[v] = sub_l[:, 0]
+        else:
+            fin = np.isfinite(sub_r)
+            cnt_b = fin.sum(axis=1)
+            tot = np.where(fin, sub_r, 0.0).sum(axis=1)
+            ranges[v] = np.where(cnt_b > 0, tot / np.maximum(cnt_b, 1), np.inf)
+            hit[v] = sub_l[np.arange(n_beams), np.argmin(sub_r, axis=1)]
+    return ranges, hit

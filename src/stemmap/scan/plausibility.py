@@ -1,0 +1,229 @@
+"""Why a trunk candidate is dropped: the segment filters and fit plausibility tests of
+:class:`~stemmap.scan.detect.ScanTrunkDetector` as reason codes.
+
+Each test returns, per candidate segment, the code of the *first* test it fails (0 = kept), in
+the order the detector applies them. The detector keeps exactly the candidates with code 0 (the
+same boolean logic as before the codes existed: ``tests/scan/test_detect_fast.py`` checks the
+numpy path against the compiled one), and :func:`rejected_candidates` lists the others with
+their reason (``stemmap detect --rejected FILE``).
+
+Segments with fewer than ``min_points`` returns right after segmentation (single stray returns,
+leaves, grass) are not candidates and are never listed.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.scan.features import SegmentFeatures, is_straight
+from stemmap.scan.segment import Segments
+from stemmap.types import FloatArray
+
+if TYPE_CHECKING:
+    from stemmap.scan.config import DetectorConfig
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.types import ScanBatch
+
+__all__ = [
+    "REASONS",
+    "fit_reasons",
+    "range_roughness",
+    "rejected_candidates",
+    "robust_residual_scale",
+    "segment_reasons",
+]
+
+#: 1.4826 MAD -> sigma of a Gaussian, / sqrt(6): std of a second difference of iid noise
+_ROUGH = 1.4826 / math.sqrt(6.0)
+
+
+def range_roughness(segs: Segments) -> FloatArray:
+    """Robust scale of range noise plus bark roughness of every segment, metres.
+
+    ``1.4826 median_i |r_{i-1} - 2 r_i + r_{i+1}| / sqrt(6)`` over the consecutive returns of
+    the segment: for i.i.d. range errors of std s the second difference has std sqrt(6) s, and
+    the median ignores the few large differences a trunk's curvature gives near its edges
+    (0 for segments of < 3 returns). Ours (issue 11): the detector's sigma per segment is
+    ``max(sigma, roughness)``, so rough bark widens the fit's Huber scale and the RMS test
+    instead of failing them. Same arithmetic as the compiled path (``_range_roughness``).
+    """
+    r = segs.points.r
+    out = np.zeros(len(segs))
+    for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
+        m = int(b - a) - 2
+        if m < 1:
+            continue
+        seg = r[a:b]
+        d = np.sort(np.abs(seg[:-2] - 2.0 * seg[1:-1] + seg[2:]))
+        h = m // 2
+        med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
+        out[j] = _ROUGH * med
+    return out
+
+
+#: Reason codes (index = code). Segment filters first, then the fit tests.
+REASONS: tuple[str, ...] = (
+    "kept",
+    "min_points",  # fewer returns than min_points
+    "min_points_partial",  # occluded / truncated end and fewer than min_points_partial
+    "max_points",
+    "width",  # edge-beam chord outside [min_width, max_width]
+    "depth",  # sagitta towards the sensor below min_depth
+    "curvature",  # cluster curvature outside [min_curvature, max_curvature]
+    "straight",  # line residual is pure noise (is_straight)
+    "partial",  # drop_partial
+    "fit_failed",  # the circle fit did not converge / degenerate
+    "radius",  # fitted radius outside [min_radius, max_radius]
+    "radius_width_ratio",  # radius > max_radius_width_ratio x silhouette width
+    "centre_in_front",  # fitted centre nearer than the returns
+    "rms",  # RMS (or robust residual scale) > max_rms_sigma x sigma
+)
+_CODE = {name: i for i, name in enumerate(REASONS)}
+
+
+def robust_residual_scale(segs: Segments, centers: FloatArray, radii: FloatArray) -> FloatArray:
+    """``1.4826 median_i | |p_i - c| - r |`` per segment: the residual scale of a circle fit that
+    a few returns off the circle (a branch stub, a mixed pixel, a bark ridge) do not inflate,
+    unlike the RMS (ours, issue 11: the RMS test rejected real bark). Same arithmetic as the
+    compiled path (``_robust_residual_scale``)."""
+    p = segs.points
+    out = np.full(len(segs), np.nan)
+    for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
+        d = np.sort(np.abs(np.hypot(p.x[a:b] - centers[j, 0], p.y[a:b] - centers[j, 1]) - radii[j]))
+        m = d.shape[0]
+        h = m // 2
+        out[j] = 1.4826 * (d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h]))
+    return out
+
+
+def _first_failure(codes: NDArray[np.int8], fails: NDArray[np.bool_], name: str) -> None:
+    codes[(codes == 0) & fails] = _CODE[name]
+
+
+def segment_reasons(segs: Segments, f: SegmentFeatures, cfg: DetectorConfig) -> NDArray[np.int8]:
+    """Reason code per segment of the segment filters (Zheng et al. 2012 §3.2 criteria 1, 3, 4;
+    Xue et al. 2018 eq. 12 width window; ours: partial-segment minimum, straightness)."""
+    codes = np.zeros(len(segs), dtype=np.int8)
+    _first_failure(codes, f.n_points < cfg.min_points, "min_points")
+    _first_failure(
+        codes, segs.partial & (f.n_points < cfg.min_points_partial), "min_points_partial"
+    )
+    if cfg.max_points is not None:
+        _first_failure(codes, f.n_points > cfg.max_points, "max_points")
+    _first_failure(codes, ~((f.width >= cfg.min_width) & (f.width <= cfg.max_width)), "width")
+    _first_failure(codes, ~(f.depth >= cfg.min_depth), "depth")
+    _first_failure(
+        codes,
+        ~((f.curvature >= cfg.min_curvature) & (f.curvature <= cfg.max_curvature)),
+        "curvature",
+    )
+    if cfg.reject_straight:
+        straight = is_straight(
+            f.line_rms,
+            f.width,
+            cfg.sigma + cfg.sigma_rel * f.mean_range,
+            ratio=cfg.straight_ratio,
+            n_points=f.n_points if cfg.straight_test == "chi2" else None,
+        )
+        _first_failure(codes, straight & (f.n_points >= cfg.straight_min_points), "straight")
+    if cfg.drop_partial:
+        _first_failure(codes, segs.partial, "partial")
+    return codes
+
+
+def fit_reasons(
+    cfg: DetectorConfig,
+    centers: FloatArray,
+    radii: FloatArray,
+    fit_ok: NDArray[np.bool_],
+    sil_width: FloatArray,
+    mean_r: FloatArray,
+    rms: FloatArray,
+    sigma: FloatArray,
+) -> NDArray[np.int8]:
+    """Reason code per fitted segment of the fit plausibility tests (ours): radius bounds, not
+    near-flat (radius <= ratio x silhouette width), centre behind the visible surface, outline a
+    circle within the noise (RMS <= max_rms_sigma x sigma). Failed fits carry NaN."""
+    codes = np.zeros(centers.shape[0], dtype=np.int8)
+    with np.errstate(invalid="ignore"):
+        _first_failure(codes, ~fit_ok, "fit_failed")
+        _first_failure(codes, ~((radii >= cfg.min_radius) & (radii <= cfg.max_radius)), "radius")
+        _first_failure(
+            codes,
+            ~(radii <= cfg.max_radius_width_ratio * np.maximum(sil_width, 1e-9)),
+            "radius_width_ratio",
+        )
+        _first_failure(codes, ~(np.hypot(centers[:, 0], centers[:, 1]) > mean_r), "centre_in_front")
+        if math.isfinite(cfg.max_rms_sigma):
+            _first_failure(codes, ~(rms <= cfg.max_rms_sigma * sigma), "rms")
+    return codes
+
+
+def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[str, Any]:
+    """Every candidate segment of ``batch`` the detector drops, with the test that dropped it.
+
+    Runs the numpy reference pipeline (no tilt compensation). Returns columns (one entry per
+    rejected candidate): ``scan_index``, ``reason`` (a name of :data:`REASONS`), ``n_points``,
+    ``bearing_deg`` and ``range`` of the segment's mean return, ``width`` (edge-beam chord, m),
+    ``partial`` (an end occluded or truncated), and for fitted candidates ``x``, ``y``,
+    ``radius``, ``rms`` and ``sigma`` (NaN when the candidate failed a segment filter).
+    """
+    from stemmap.scan.features import footprint_correct, segment_features, segment_sum
+
+    segs, grid, wrap = detector._candidates(
+        batch.ranges,
+        batch.angle_min,
+        batch.angle_increment,
+        batch.range_min,
+        batch.range_max,
+        apply_filters=False,
+    )
+    k = len(segs)
+    nan = np.full(k, np.nan)
+    cols: dict[str, Any] = {"x": nan.copy(), "y": nan.copy(), "radius": nan.copy()}
+    cols["rms"], cols["sigma"] = nan.copy(), nan.copy()
+    if k == 0:
+        codes = np.zeros(0, dtype=np.int8)
+    else:
+        f = segment_features(segs)
+        codes = segment_reasons(segs, f, detector.config)
+        passed = np.flatnonzero(codes == 0)
+        if passed.size:
+            sub = segs.select(codes == 0)
+            if detector.config.beam_footprint_deg > 0:
+                sub = footprint_correct(sub, math.radians(detector.config.beam_footprint_deg))
+            fitted = detector._fit_candidates(sub, grid, wrap)
+            fcodes = fit_reasons(
+                detector.config,
+                fitted.centers,
+                fitted.radii,
+                fitted.ok,
+                fitted.sil_width,
+                fitted.mean_r,
+                fitted.test_rms,
+                fitted.sigma,
+            )
+            codes[passed] = fcodes
+            cols["x"][passed], cols["y"][passed] = fitted.centers[:, 0], fitted.centers[:, 1]
+            cols["radius"][passed], cols["rms"][passed] = fitted.radii, fitted.rms
+            cols["sigma"][passed] = fitted.sigma
+    rej = codes != 0
+    p = segs.points
+    n = np.maximum(segs.counts, 1)
+    mx = segment_sum(p.x, segs) / n if k else nan
+    my = segment_sum(p.y, segs) / n if k else nan
+    width = segment_features(segs).width if k else nan
+    return {
+        "scan_index": segs.scan[rej],
+        "reason": [REASONS[c] for c in codes[rej]],
+        "n_points": segs.counts[rej],
+        "bearing_deg": np.degrees(np.arctan2(my, mx))[rej],
+        "range": np.hypot(mx, my)[rej],
+        "width": width[rej],
+        "partial": segs.partial[rej],
+        **{name: v[rej] for name, v in cols.items()},
+    }

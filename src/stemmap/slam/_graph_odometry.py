@@ -1,0 +1,116 @@
+"""Odometry factors of the iSAM2 back-end: sensor-frame increments and self-calibration (ours).
+
+Split out of :mod:`stemmap.slam.graph` (which re-exports the names): the vehicle-frame
+pre-integrated increments carried to the sensor frame in GTSAM's tangent convention, and the
+steering-offset / speed-scale calibration estimated from the graph's own poses (see
+docs/algorithms/slam.md "Odometry self-calibration").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stemmap.slam.base import SlamProblem
+from stemmap.slam.motion import between, preintegrate
+from stemmap.types import FloatArray
+
+__all__ = ["_calibration_jacobians", "_calibration_lsq", "_sensor_between"]
+
+
+def _sensor_between(
+    deltas: FloatArray, covs: FloatArray, offset: tuple[float, float]
+) -> tuple[FloatArray, FloatArray]:
+    """Vehicle-frame odometry increments -> sensor-frame increments and GTSAM tangent covariances.
+
+    ``δ_s = T_vs⁻¹ δ T_vs``. Our covariance is additive on ``(x, y, θ)`` in the START frame; GTSAM
+    perturbs on the right, in the END frame (``δ Exp(ξ)``): ``ξ_xy ≈ R(θ_δ)ᵀ e_xy``,
+    ``ξ_θ = e_θ``; then ``ξ_s = Ad(T_vs⁻¹) ξ``.
+    """
+    a, b = offset
+    n = deltas.shape[0]
+    c, s = np.cos(deltas[:, 2]), np.sin(deltas[:, 2])
+    # δ_s translation: T_vs^-1 δ T_vs with T_vs = (a, b, 0)
+    tx = deltas[:, 0] + c * a - s * b - a
+    ty = deltas[:, 1] + s * a + c * b - b
+    ds = np.column_stack((tx, ty, deltas[:, 2]))
+    M = np.zeros((n, 3, 3))
+    M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1] = c, s, -s, c
+    M[:, 2, 2] = 1.0
+    # Ad(T^-1) for T = (a, b, 0): T^-1 = (-a, -b, 0); Pose2 adjoint [[R, [y, -x]^T], [0, 1]]
+    Ad = np.array([[1.0, 0.0, -b], [0.0, 1.0, a], [0.0, 0.0, 1.0]])
+    G = Ad[None] @ M
+    cov = G @ covs @ np.swapaxes(G, 1, 2)
+    return ds, cov
+
+
+def _calibration_jacobians(
+    problem: SlamProblem, times: FloatArray, d0: FloatArray, eps: float = 1e-4
+) -> FloatArray:
+    """(K, 3, 2): derivative of each sensor-frame increment w.r.t. the calibration ``c``.
+
+    ``c = (o, s)``: every steering sample (yaw-rate sample for unicycle controls) becomes
+    ``steer + o`` and every speed sample ``speed (1 + s)``. Forward differences of the same
+    pre-integration the odometry factors use, so the Jacobian is generic in the motion model
+    (the increments are smooth in both parameters over one keyframe); GTSAM's right-tangent
+    convention, ``δ(c) ≈ δ0 Exp(J c)``.
+    """
+    from stemmap.slam.base import Controls
+
+    ctl = problem.controls
+    out = np.empty((d0.shape[0], 3, 2))
+    zeros = np.zeros((d0.shape[0], 3, 3))
+    for i, (d_steer, d_scale) in enumerate(((eps, 0.0), (0.0, eps))):
+        c2 = Controls(
+            ctl.times, np.asarray(ctl.speed) * (1.0 + d_scale), np.asarray(ctl.steer) + d_steer,
+            ctl.kind,
+        )  # fmt: skip
+        pre = preintegrate(problem.motion, c2, times, problem.initial_pose, with_covariance=False)
+        d1, _ = _sensor_between(pre.deltas, zeros, problem.sensor_offset)
+        out[:, :, i] = between(d0, d1) / eps
+    return out
+
+
+def _calibration_lsq(
+    res: FloatArray,
+    J: FloatArray,
+    info: FloatArray,
+    c_lin: FloatArray,
+    seg: np.ndarray,
+    n_seg: int,
+    dur: FloatArray,
+    prior_sigmas: tuple[float, float],
+    walk_sigmas: tuple[float, float],
+) -> FloatArray:
+    """Calibration of each segment given the poses: one block-coordinate step (ours).
+
+    The odometry factor of keyframe ``k`` used the increment ``δ(c_lin_k) = δ0 Exp(J_k c_lin_k)``
+    and has the residual ``res_k = Log(δ(c_lin_k)⁻¹ X_k⁻¹ X_k+1)`` at the current poses; to first
+    order ``res_k ≈ J_k (c_seg(k) - c_lin_k)``. Minimises
+    ``Σ_k |res_k - J_k (c_seg(k) - c_lin_k)|²_info_k + |c_0 / prior|² +
+    Σ_s |(c_s+1 - c_s) / (walk sqrt(dur_s))|²`` (prior mean 0: the motion model's own
+    calibration; random walk between segments) -- the conditional MAP of the calibration given
+    the poses, a small dense (2 n_seg)² system.
+
+    res (K, 3), J (K, 3, 2), info (K, 3, 3), c_lin (K, 2), seg (K,) segment of each factor,
+    dur (n_seg - 1,) s between segment starts. Returns (n_seg, 2).
+    """
+    n = 2 * n_seg
+    JtW = np.swapaxes(J, 1, 2) @ info  # (K, 2, 3)
+    A_k = JtW @ J  # (K, 2, 2)
+    b_k = (JtW @ (res + (J @ c_lin[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
+    A = np.zeros((n, n))
+    bb = np.zeros(n)
+    for i in range(2):
+        bb[i::2] = np.bincount(seg, weights=b_k[:, i], minlength=n_seg)
+        for j in range(2):
+            A[i::2, j::2] += np.diag(np.bincount(seg, weights=A_k[:, i, j], minlength=n_seg))
+    A[0:2, 0:2] += np.diag(1.0 / np.asarray(prior_sigmas) ** 2)
+    w2 = np.asarray(walk_sigmas) ** 2
+    for s_ in range(n_seg - 1):
+        W = np.diag(1.0 / (w2 * max(float(dur[s_]), 1e-3)))
+        i0, i1 = 2 * s_, 2 * s_ + 2
+        A[i0 : i0 + 2, i0 : i0 + 2] += W
+        A[i1 : i1 + 2, i1 : i1 + 2] += W
+        A[i0 : i0 + 2, i1 : i1 + 2] -= W
+        A[i1 : i1 + 2, i0 : i0 + 2] -= W
+    return np.asarray(np.linalg.solve(A, bb), dtype=np.float64).reshape(n_seg, 2)

@@ -1,0 +1,367 @@
+"""Global relocalisation in a prior stem map by tree-group matching (after Öhman et al. 2007).
+
+A new session starts somewhere in an area mapped before, its start pose unknown (or known only
+roughly). :func:`relocalise` drives on with dead reckoning for growing windows of the run
+(``window_s`` steps up to ``max_window_s``), builds a *local* tree map from the window's
+detections, and matches it to the prior map:
+
+1. **Local trees**: every detection placed with the dead-reckoned sensor pose (drift over
+   ~30 s on Victoria Park is a few decimetres); detections within ``cluster_radius`` of each
+   other are one tree (connected components), kept when seen in >= ``min_cluster`` scans.
+2. **Hypotheses from pairs of trees** (Öhman 2007 §2.1: inter-tree distances are invariant to
+   the unknown pose, so they are what is matched): every local pair ``(a, b)`` at a well
+   conditioned distance (``pair_range``) is paired with every map pair ``(j, k)`` whose distance
+   agrees within ``pair_tol``; each such correspondence fixes one SE(2) transform. With a
+   start guess, transforms farther than ``search_radius`` / ``search_angle`` from it are
+   dropped (``None``: global search).
+3. **Scoring**: a hypothesis scores the number of local trees that land within ``inlier_dist``
+   of a map tree (one k-d tree query for all hypotheses at once); the best is refined by the
+   closed-form SE(2) fit (:func:`stemmap.eval.trajectory.align_se2`) over its inliers.
+4. **Acceptance**: at least ``min_inliers`` inliers, and no *different* hypothesis (more than
+   2 m or 5 deg away) with more than ``ambiguity_ratio`` times the best score -- a repetitive
+   stand (an orchard row) must not relocalise on the wrong row.
+
+Öhman et al. match groups of a tree and its nearest neighbours with the pose predicted by
+odometry (their matcher, :func:`stemmap.slam.forestrix.match_tree_groups`, assumes the
+prediction is within ``search_radius`` of the truth, 2 m by default); a start that is off by
+tens of metres needs the pose-free pair hypotheses above, which test the same invariant (the
+inter-tree distances) over all candidate pairs. Decision documented in
+docs/algorithms/slam.md "Maps reused across sessions".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.slam.base import SlamProblem, sensor_poses
+from stemmap.slam.motion import preintegrate
+from stemmap.types import FloatArray, StemMap
+
+__all__ = [
+    "RelocConfig",
+    "Relocalisation",
+    "continue_session",
+    "local_trees",
+    "match_to_map",
+    "prior_tree_factors",
+    "relocalise",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RelocConfig:
+    """Settings of :func:`relocalise` (see the module docs; defaults in docs/algorithms/slam.md).
+
+    window_s, max_window_s : s, the local map grows by ``window_s`` until ``max_window_s``
+    cluster_radius : m; min_cluster : scans per local tree
+    pair_range : (m, m) local pair distances used for hypotheses; max_pairs : at most this many
+    pair_tol : m, agreement of a local and a map inter-tree distance
+    inlier_dist : m; min_inliers : local trees that must land on map trees
+    ambiguity_ratio : a distinct second hypothesis must score below this fraction of the best
+    search_radius, search_angle : m, rad around the start guess (None: global)
+    """
+
+    window_s: float = 5.0
+    max_window_s: float = 30.0
+    cluster_radius: float = 0.6
+    min_cluster: int = 3
+    pair_range: tuple[float, float] = (6.0, 40.0)
+    max_pairs: int = 60
+    pair_tol: float = 0.4
+    inlier_dist: float = 0.8
+    min_inliers: int = 6
+    ambiguity_ratio: float = 0.7
+    search_radius: float | None = 30.0
+    search_angle: float | None = math.radians(45.0)
+
+    def __post_init__(self) -> None:
+        for name in ("window_s", "max_window_s", "cluster_radius", "pair_tol", "inlier_dist"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"RelocConfig.{name} must be a positive number, got {v}.")
+        if self.min_inliers < 3 or self.min_cluster < 1 or self.max_pairs < 1:
+            raise ConfigError("RelocConfig: min_inliers >= 3, min_cluster >= 1, max_pairs >= 1.")
+        if not 0 < self.ambiguity_ratio < 1:
+            raise ConfigError(
+                f"RelocConfig.ambiguity_ratio must be in (0, 1), got {self.ambiguity_ratio}."
+            )
+
+
+@dataclass(frozen=True)
+class Relocalisation:
+    """Result of :func:`relocalise`.
+
+    ok : whether a pose was accepted; pose : (x, y, theta) of the vehicle at the run's first
+    frame in the map frame (the start guess when not ok); time_s : seconds of the run used
+    (the window that succeeded); n_inliers, n_local : inlier and local tree counts;
+    second_ratio : score of the best distinct other hypothesis / best; reason : why not ok
+    """
+
+    ok: bool
+    pose: tuple[float, float, float]
+    time_s: float
+    n_inliers: int
+    n_local: int
+    second_ratio: float
+    reason: str = ""
+
+
+def local_trees(problem: SlamProblem, t_end: float, cfg: RelocConfig) -> tuple[FloatArray, int]:
+    """(m, 2) local trees (dead-reckoned frame of ``problem.initial_pose``) seen up to ``t_end``,
+    and the number of scans used. Step 1 of the module docs."""
+    fr = problem.frames
+    nf = int(np.searchsorted(fr.times, t_end, side="right"))
+    if nf < 2:
+        return np.zeros((0, 2)), nf
+    pre = preintegrate(
+        problem.motion, problem.controls, fr.times[:nf], problem.initial_pose,
+        with_covariance=False,
+    )  # fmt: skip
+    sp = sensor_poses(pre.poses, problem.sensor_offset)
+    k = int(fr.ptr[nf])
+    fi = fr.frame_index[:k]
+    r, b = fr.ranges[:k], fr.bearings[:k]
+    keep = r <= min(problem.max_range, 40.0)
+    fi, r, b = fi[keep], r[keep], b[keep]
+    ang = sp[fi, 2] + b
+    xy = np.column_stack((sp[fi, 0] + r * np.cos(ang), sp[fi, 1] + r * np.sin(ang)))
+    if xy.shape[0] == 0:
+        return np.zeros((0, 2)), nf
+    pairs = cKDTree(xy).query_pairs(cfg.cluster_radius, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = xy.shape[0]
+    g = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    n_c, lab = connected_components(g, directed=False)
+    # scans per cluster (a tree seen in many scans, not many detections of one scan)
+    scans = np.zeros(n_c, dtype=np.int64)
+    u = np.unique(np.column_stack((lab, fi)), axis=0)
+    np.add.at(scans, u[:, 0], 1)
+    cnt = np.bincount(lab, minlength=n_c)
+    cx = np.bincount(lab, weights=xy[:, 0], minlength=n_c) / np.maximum(cnt, 1)
+    cy = np.bincount(lab, weights=xy[:, 1], minlength=n_c) / np.maximum(cnt, 1)
+    ok = scans >= cfg.min_cluster
+    order = np.argsort(-scans[ok], kind="stable")  # most-seen first
+    return np.column_stack((cx[ok], cy[ok]))[order], nf
+
+
+def _transforms(la: FloatArray, lb: FloatArray, ma: FloatArray, mb: FloatArray) -> FloatArray:
+    """(H, 3) SE(2) ``(tx, ty, theta)`` taking local points la -> ma and (approx.) lb -> mb."""
+    th = np.arctan2(mb[:, 1] - ma[:, 1], mb[:, 0] - ma[:, 0]) - np.arctan2(
+        lb[:, 1] - la[:, 1], lb[:, 0] - la[:, 0]
+    )
+    # anchor at the pair's midpoint (the distance mismatch splits evenly)
+    lm, mm = 0.5 * (la + lb), 0.5 * (ma + mb)
+    c, s = np.cos(th), np.sin(th)
+    tx = mm[:, 0] - (c * lm[:, 0] - s * lm[:, 1])
+    ty = mm[:, 1] - (s * lm[:, 0] + c * lm[:, 1])
+    return np.column_stack((tx, ty, np.angle(np.exp(1j * th))))
+
+
+def _apply(T: FloatArray, xy: FloatArray) -> FloatArray:
+    """(H, m, 2): local points ``xy`` (m, 2) under each transform of ``T`` (H, 3)."""
+    c, s = np.cos(T[:, 2])[:, None], np.sin(T[:, 2])[:, None]
+    return np.stack(
+        (T[:, 0:1] + c * xy[None, :, 0] - s * xy[None, :, 1],
+         T[:, 1:2] + s * xy[None, :, 0] + c * xy[None, :, 1]), axis=-1,
+    )  # fmt: skip
+
+
+def match_to_map(
+    local_xy: FloatArray,
+    map_xy: FloatArray,
+    cfg: RelocConfig,
+    guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> tuple[FloatArray | None, int, float, str]:
+    """Best SE(2) ``(tx, ty, theta)`` taking local trees onto map trees (steps 2-4 of the module
+    docs), its inlier count, the distinct-second-best ratio, and a reason when rejected.
+
+    ``guess`` is the transform expected a priori, i.e. the start pose in the map (the local
+    frame's origin is the start); hypotheses whose start position / heading differ from it by
+    more than ``search_radius`` / ``search_angle`` are dropped.
+    """
+    m = local_xy.shape[0]
+    if m < cfg.min_inliers:
+        return None, 0, 0.0, f"only {m} local trees (need {cfg.min_inliers})"
+    if map_xy.shape[0] < cfg.min_inliers:
+        return None, 0, 0.0, f"the prior map has only {map_xy.shape[0]} trees"
+    lo, hi = cfg.pair_range
+    cen = local_xy.mean(axis=0)
+    gth = guess[2]
+    g_xy = np.array([guess[0], guess[1]])
+    map_use = map_xy
+    if cfg.search_radius is not None:  # map trees any admissible start could see
+        ext = float(np.hypot(*local_xy.T).max())
+        d_c = np.hypot(*(map_xy - g_xy).T)
+        map_use = map_xy[d_c <= cfg.search_radius + ext + cfg.inlier_dist]
+        if map_use.shape[0] < cfg.min_inliers:
+            return None, 0, 0.0, "no mapped trees near the start guess"
+    # local pairs among the most-seen trees, spread over distances
+    top = local_xy[: min(m, 25)]
+    ia, ib = np.triu_indices(top.shape[0], 1)
+    dl = np.hypot(*(top[ia] - top[ib]).T)
+    sel = np.flatnonzero((dl >= lo) & (dl <= hi))
+    if sel.size == 0:
+        return None, 0, 0.0, "no local tree pair in the usable distance range"
+    sel = sel[np.linspace(0, sel.size - 1, min(sel.size, cfg.max_pairs)).astype(np.int64)]
+    # map pairs (both orders) sorted by distance
+    mt = cKDTree(map_use)
+    mp = mt.query_pairs(hi + cfg.pair_tol, output_type="ndarray")
+    if mp.shape[0] == 0:
+        return None, 0, 0.0, "no map tree pairs"
+    mp = np.concatenate((mp, mp[:, ::-1]))
+    dm = np.hypot(*(map_use[mp[:, 0]] - map_use[mp[:, 1]]).T)
+    o = np.argsort(dm)
+    mp, dm = mp[o], dm[o]
+    hyps = []
+    for q in sel.tolist():
+        a, b = int(ia[q]), int(ib[q])
+        j0 = np.searchsorted(dm, dl[q] - cfg.pair_tol)
+        j1 = np.searchsorted(dm, dl[q] + cfg.pair_tol, side="right")
+        if j1 <= j0:
+            continue
+        cand = mp[j0:j1]
+        k = cand.shape[0]
+        la, lb = np.repeat(top[a : a + 1], k, 0), np.repeat(top[b : b + 1], k, 0)
+        hyps.append(_transforms(la, lb, map_use[cand[:, 0]], map_use[cand[:, 1]]))
+    if not hyps:
+        return None, 0, 0.0, "no map pair matches a local inter-tree distance"
+    T = np.concatenate(hyps)
+    if cfg.search_angle is not None:
+        T = T[np.abs(np.angle(np.exp(1j * (T[:, 2] - gth)))) <= cfg.search_angle]
+    if cfg.search_radius is not None and T.shape[0]:
+        T = T[np.hypot(T[:, 0] - g_xy[0], T[:, 1] - g_xy[1]) <= cfg.search_radius]
+    if T.shape[0] == 0:
+        return None, 0, 0.0, "no hypothesis within the search bounds of the start guess"
+    score = np.zeros(T.shape[0], dtype=np.int64)
+    for h0 in range(0, T.shape[0], 4096):  # bounded memory
+        pts = _apply(T[h0 : h0 + 4096], local_xy)
+        d, _ = mt.query(pts.reshape(-1, 2), distance_upper_bound=cfg.inlier_dist)
+        score[h0 : h0 + 4096] = np.isfinite(d).reshape(pts.shape[:2]).sum(axis=1)
+    best = int(np.argmax(score))
+    # refine: closed-form fit over the inliers, twice (inliers may change)
+    from stemmap.eval.trajectory import align_se2
+
+    Tb = T[best]
+    n_in = int(score[best])
+    for _ in range(2):
+        p = _apply(Tb[None], local_xy)[0]
+        d, j = mt.query(p, distance_upper_bound=cfg.inlier_dist)
+        inl = np.isfinite(d)
+        if inl.sum() < 3:
+            break
+        al = align_se2(local_xy[inl], map_use[j[inl]])
+        Tb = np.array([al.t[0], al.t[1], al.theta])
+        n_in = int(inl.sum())
+    # ambiguity: best score among hypotheses distinct from the best
+    c_b = _apply(Tb[None], cen[None])[0, 0]
+    c_all = _apply(T, cen[None])[:, 0]
+    distinct = (np.hypot(*(c_all - c_b).T) > 2.0) | (
+        np.abs(np.angle(np.exp(1j * (T[:, 2] - Tb[2])))) > math.radians(5.0)
+    )
+    second = int(score[distinct].max(initial=0))
+    ratio = second / max(n_in, 1)
+    if n_in < cfg.min_inliers:
+        return None, n_in, ratio, f"{n_in} inliers (need {cfg.min_inliers})"
+    if ratio >= cfg.ambiguity_ratio:
+        return None, n_in, ratio, f"ambiguous: a distinct hypothesis scores {second} vs {n_in}"
+    return Tb, n_in, ratio, ""
+
+
+def relocalise(
+    problem: SlamProblem,
+    prior_map: StemMap,
+    cfg: RelocConfig | None = None,
+    guess: tuple[float, float, float] | None = None,
+) -> Relocalisation:
+    """Find the run's start pose in ``prior_map`` (module docs); ``guess`` is the start pose
+    expected in the map frame (default ``problem.initial_pose``), searched around within
+    ``cfg.search_radius`` / ``cfg.search_angle``."""
+    cfg = cfg or RelocConfig()
+    if len(prior_map) == 0:
+        raise InputError("relocalise: the prior map has no trees.")
+    g = problem.initial_pose if guess is None else guess
+    # local frame = the run dead-reckoned from the origin; the guess maps it into the map
+    base = dataclasses.replace(problem, initial_pose=(0.0, 0.0, 0.0))
+    t0 = float(problem.frames.times[0])
+    t_last = float(problem.frames.times[-1])
+    map_xy = prior_map.xy
+    res = Relocalisation(False, tuple(g), 0.0, 0, 0, 0.0, "no window tried")  # type: ignore[arg-type]
+    w = cfg.window_s
+    while True:
+        t_end = min(t0 + w, t_last)
+        loc, _ = local_trees(base, t_end, cfg)
+        T, n_in, ratio, why = match_to_map(loc, map_xy, cfg, (g[0], g[1], g[2]))
+        if T is not None:
+            pose = (float(T[0]), float(T[1]), float(np.angle(np.exp(1j * T[2]))))
+            log.info(
+                "relocalised after %.1f s: pose (%.2f, %.2f, %.1f deg), %d of %d local trees",
+                t_end - t0, pose[0], pose[1], math.degrees(pose[2]), n_in, loc.shape[0],
+            )  # fmt: skip
+            return Relocalisation(True, pose, t_end - t0, n_in, loc.shape[0], ratio)
+        res = Relocalisation(False, tuple(g), t_end - t0, n_in, loc.shape[0], ratio, why)  # type: ignore[arg-type]
+        if w >= cfg.max_window_s or t_end >= t_last:
+            break
+        w = min(w + cfg.window_s, cfg.max_window_s)
+    log.warning("relocalisation failed after %.1f s: %s", res.time_s, res.reason)
+    return res
+
+
+def prior_tree_factors(
+    prior_map: StemMap, key: Any, min_obs: int, default_sigma: float = 0.1
+) -> list[tuple[FloatArray, float, int, Any]]:
+    """``(xy, diameter, n_obs, PriorFactorPoint2)`` per tree of a prior map, landmark keys
+    ``key(0..n-1)`` in map order.
+
+    The prior's covariance is the tree's marginal covariance from the earlier session (the
+    trees CSV's ``std_x, std_y, cov_xy``); trees without one get ``default_sigma`` (m). A
+    tree's observation count is at least ``min_obs`` so it stays in the merged map.
+    """
+    import gtsam
+
+    out = []
+    for j, t in enumerate(prior_map):
+        cov = np.asarray(t.cov, dtype=np.float64)
+        if not (np.isfinite(cov).all() and np.linalg.eigvalsh(cov).min() > 0):
+            cov = np.eye(2) * default_sigma**2
+        cov = cov + np.eye(2) * 1e-6  # a floor: a 0-variance prior is a constraint
+        xy = np.array([t.x, t.y], dtype=np.float64)
+        fac = gtsam.PriorFactorPoint2(key(j), xy, gtsam.noiseModel.Gaussian.Covariance(cov))
+        out.append((xy, float(t.diameter), max(int(t.n_obs), min_obs), fac))
+    return out
+
+
+def continue_session(
+    problem: SlamProblem,
+    prior_map: StemMap,
+    guess: tuple[float, float, float] | None = None,
+    cfg: RelocConfig | None = None,
+) -> tuple[SlamProblem, Relocalisation]:
+    """``problem`` relocalised in ``prior_map`` and set to map on from it (merged output).
+
+    ``guess`` (vehicle pose at the first scan, map frame) bounds the search; without one the
+    search is global. Raises :class:`InputError` when relocalisation fails, with the reason.
+    """
+    cfg = cfg or RelocConfig()
+    if guess is None:
+        cfg = dataclasses.replace(cfg, search_radius=None, search_angle=None)
+        guess = (0.0, 0.0, 0.0)
+    rel = relocalise(problem, prior_map, cfg, guess)
+    if not rel.ok:
+        raise InputError(
+            f"could not relocalise in the prior map within {rel.time_s:.0f} s of driving: "
+            f"{rel.reason}. Check that the run starts inside the mapped area, or give a start "
+            "guess closer than the search radius."
+        )
+    return dataclasses.replace(problem, initial_pose=rel.pose, prior_map=prior_map), rel

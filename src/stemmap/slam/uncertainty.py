@@ -1,0 +1,330 @@
+"""Per-tree uncertainty and confidence for the stem map of any SLAM back-end (a post-step).
+
+Every back-end returns tree positions and mean diameters, but they differ in what else they
+know: the EKF has a covariance and per-observation diameter moments, iSAM2 a marginal
+covariance but no diameter spread, FastSLAM per-particle landmark EKFs, Forestrix nothing.
+:func:`annotate_uncertainty` fills the gaps the same way for all of them, from the run itself
+(no ground truth):
+
+1. **Association.** Every detection is placed in the map with the estimated trajectory
+   (:func:`~stemmap.slam.base.observation_to_world`) and given to the nearest mapped tree within
+   ``gate`` metres.
+2. **Diameter std** (``diameter_std``, m): the standard error of the mapped diameter,
+   ``s / sqrt(n) * sqrt(1 + (n - 1) rho)`` with ``s`` the sample standard deviation of the
+   tree's ``n`` per-detection diameters and ``rho`` (:data:`DIAMETER_RHO`) the correlation of
+   one trunk's per-scan diameter errors: the design effect of clustered samples (Kish 1965,
+   "Survey Sampling", §5.4) -- scans of one trunk share part of their error (same side seen,
+   same bark), which does not average out as 1 / sqrt(n). NaN with fewer than 2 diameters.
+3. **Position covariance** (``cov``), only where the back-end gave none (Forestrix): the
+   covariance of the associated map-frame detections over ``n``.
+4. **Confidence** (``confidence`` in [0, 1]): the posterior probability that the landmark is a
+   real, repeatedly detectable object rather than a spurious landmark, from how often it was
+   detected when it should have been (:func:`expected_detections`: in view, not occluded by a
+   nearer mapped tree, within the range that holds 90 % of the run's detections) -- a mixture
+   of real landmarks detected with a range-dependent probability and spurious ones detected
+   with a constant lower one, fitted by EM to the whole map (:func:`detection_confidence`),
+   with the per-frame evidence tempered by the measured run length of hits and misses
+   (:func:`run_length_factor`).
+
+Calibration on the simulator: benchmarks/uncertainty_calibration.py (docs/outputs.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from stemmap.errors import ConfigError
+from stemmap.types import FloatArray, StemMap
+
+if TYPE_CHECKING:  # pragma: no cover
+    from stemmap.slam.base import SlamProblem, SlamResult
+
+__all__ = [
+    "DIAMETER_RHO",
+    "MixtureFit",
+    "UncertaintyReport",
+    "annotate_uncertainty",
+    "detection_confidence",
+    "diameter_standard_errors",
+    "expected_detections",
+    "run_length_factor",
+]
+
+
+#: Intra-trunk correlation of per-frame diameter errors (module doc, item 2): set from the
+#: simulator calibration, benchmarks/uncertainty_calibration.py.
+DIAMETER_RHO = 0.03
+
+
+@dataclass(frozen=True)
+class MixtureFit:
+    """Binomial mixture of :func:`detection_confidence`: per-tree ``confidence`` and the fitted
+    ``p_detect`` (real), ``p_false`` (spurious), ``prior_real`` and EM ``iterations``."""
+
+    confidence: FloatArray
+    p_detect: float
+    p_false: float
+    prior_real: float
+    iterations: int
+    run_length: float = 1.0
+
+
+def detection_confidence(
+    tree_index: ArrayLike,
+    ranges: ArrayLike,
+    hit: ArrayLike,
+    n_trees: int,
+    *,
+    bin_width: float = 2.0,
+    max_iter: int = 300,
+    tol: float = 1e-9,
+) -> MixtureFit:
+    """Posterior probability of being real from per-frame hits and misses (module doc, item 4).
+
+    One row per (tree, frame) in which the tree was expected in view: ``tree_index``, its
+    ``range`` from the sensor and whether a detection was within the gate (``hit``). A real
+    tree is detected with a probability ``p_d(range)`` that depends on the range (piecewise
+    constant in ``bin_width`` bins: small trunks far away return few points); a spurious
+    landmark with a constant ``p_f``. EM for this two-component mixture over trees
+    (Dempster, Laird & Rubin 1977, §4.3): E-step responsibilities ``w_j`` from the Bernoulli
+    log-likelihoods, M-step ``pi`` = mean ``w_j``, ``p_d`` per bin and ``p_f`` = the
+    ``w``-weighted / ``(1 - w)``-weighted hit rates. ``p_f`` is capped below the lowest
+    ``p_d`` so the components cannot swap. Start: ``w_j = 0.9``.
+
+    Returns
+    -------
+    MixtureFit
+        ``p_detect`` is the row-weighted mean of ``p_d(range)`` over the real component.
+    """
+    ti = np.asarray(tree_index, dtype=np.int64).reshape(-1)
+    rr = np.asarray(ranges, dtype=np.float64).reshape(-1)
+    y = np.asarray(hit, dtype=bool).reshape(-1)
+    if not (ti.shape == rr.shape == y.shape):
+        raise ConfigError("detection_confidence: tree_index, ranges and hit must have one length.")
+    if bin_width <= 0:
+        raise ConfigError(f"detection_confidence: bin_width must be > 0 m, got {bin_width}.")
+    eps = 1e-4
+    has = np.bincount(ti, minlength=n_trees) > 0 if ti.size else np.zeros(n_trees, dtype=bool)
+    w = np.full(n_trees, 0.9)
+    if not np.any(has):
+        return MixtureFit(w, math.nan, math.nan, 0.9, 0, 1.0)
+    k_eff = run_length_factor(ti, y)
+    bins = np.floor(rr / bin_width).astype(np.int64)
+    nb = int(bins.max()) + 1
+    yf = y.astype(np.float64)
+    prev = -math.inf
+    it = 0
+    pd_bin = np.full(nb, 0.5)
+    pf = 0.1
+    pi = 0.9
+    for it in range(1, max_iter + 1):  # noqa: B007 -- reported
+        # M-step from the current responsibilities
+        wr = w[ti]
+        num = np.bincount(bins, wr * yf, minlength=nb)
+        den = np.bincount(bins, wr, minlength=nb)
+        glob = float(num.sum() / max(den.sum(), eps))
+        # bins with little weight borrow the pooled rate (1 pseudo-row of weight 5)
+        pd_bin = np.clip((num + 5.0 * glob) / (den + 5.0), eps, 1 - eps)
+        pf = float(np.sum((1 - wr) * yf) / max(np.sum(1 - wr), eps))
+        pf = float(np.clip(pf, eps, 0.9 * float(pd_bin.min())))
+        pi = float(np.clip(w[has].mean(), eps, 1 - eps))
+        # E-step
+        pd = pd_bin[bins]
+        ll_real = np.where(y, np.log(pd), np.log1p(-pd))
+        ll_false = np.where(y, math.log(pf), math.log1p(-pf))
+        lr = np.bincount(ti, ll_real, minlength=n_trees) / k_eff + math.log(pi)
+        lf = np.bincount(ti, ll_false, minlength=n_trees) / k_eff + math.log1p(-pi)
+        top = np.maximum(lr, lf)
+        ll = float(np.sum((top + np.log(np.exp(lr - top) + np.exp(lf - top)))[has]))
+        w = np.where(has, 1.0 / (1.0 + np.exp(np.clip(lf - lr, -700, 700))), pi)
+        if ll - prev < tol * max(1.0, abs(ll)):
+            break
+        prev = ll
+    wr = w[ti]
+    p_det = float(np.sum(wr * pd_bin[bins]) / max(np.sum(wr), eps))
+    return MixtureFit(w, p_det, pf, pi, it, k_eff)
+
+
+def run_length_factor(tree_index: ArrayLike, hit: ArrayLike) -> float:
+    """How many consecutive frames behave as one independent trial (>= 1).
+
+    Hits and misses of one tree come in runs (a trunk hidden behind an unmapped bush is
+    missed for many frames in a row), so per-frame Bernoulli log-likelihoods overstate the
+    evidence. With the Wald-Wolfowitz expectation of the number of runs of ``n`` independent
+    trials with hit rate ``p``, ``1 + 2 (n - 1) p (1 - p)``, the factor is the ratio of the
+    expected to the observed number of runs, summed over trees; the log-likelihoods are
+    divided by it (a tempered, composite likelihood). Rows of a tree must be in time order.
+    """
+    ti = np.asarray(tree_index, dtype=np.int64).reshape(-1)
+    y = np.asarray(hit, dtype=bool).reshape(-1)
+    if ti.size < 2:
+        return 1.0
+    order = np.argsort(ti, kind="stable")
+    ts, ys = ti[order], y[order]
+    n = np.bincount(ts).astype(np.float64)
+    p = np.divide(np.bincount(ts, ys.astype(np.float64)), n, out=np.zeros_like(n), where=n > 0)
+    change = (ts[1:] == ts[:-1]) & (ys[1:] != ys[:-1])
+    runs = np.bincount(ts[1:][change], minlength=n.size) + (n > 0)
+    expected = np.where(n > 0, 1.0 + 2.0 * (n - 1.0) * p * (1.0 - p), 0.0)
+    return float(max(1.0, expected.sum() / max(float(runs.sum()), 1.0)))
+
+
+def expected_detections(
+    trees_xy: ArrayLike,
+    diameters: ArrayLike,
+    sensor_poses: ArrayLike,
+    frame_ptr: ArrayLike,
+    detections_xy: ArrayLike,
+    fov: Any,
+    *,
+    gate: float,
+) -> tuple[NDArray[np.int64], FloatArray, NDArray[np.bool_]]:
+    """Rows (tree, range, hit) for every frame in which a tree was expected: in the field of
+    view and range window and not occluded by a nearer mapped tree
+    (:func:`~stemmap.slam.negative.expected_visibility`); ``hit`` when a detection of that
+    frame lies within ``gate`` of the tree (the same counting as
+    :func:`~stemmap.slam.negative.negative_information`)."""
+    from stemmap.slam.negative import expected_visibility
+
+    xy = np.asarray(trees_xy, dtype=np.float64).reshape(-1, 2)
+    radii = np.asarray(diameters, dtype=np.float64).reshape(-1) / 2.0
+    sp = np.asarray(sensor_poses, dtype=np.float64).reshape(-1, 3)
+    ptr = np.asarray(frame_ptr, dtype=np.int64).reshape(-1)
+    det = np.asarray(detections_xy, dtype=np.float64).reshape(-1, 2)
+    rows_t: list[NDArray[np.int64]] = []
+    rows_r: list[FloatArray] = []
+    rows_h: list[NDArray[np.bool_]] = []
+    if xy.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
+    index = cKDTree(xy)
+    reach = fov.range_max + 2.0
+    for f in range(sp.shape[0]):
+        near = np.asarray(index.query_ball_point(sp[f, :2], reach), dtype=np.int64)
+        if near.size == 0:
+            continue
+        in_view, occluded = expected_visibility(xy[near], radii[near], sp[f], fov)
+        expect = in_view & ~occluded
+        if not np.any(expect):
+            continue
+        cand = near[expect]
+        z = det[ptr[f] : ptr[f + 1]]
+        seen = np.zeros(cand.size, dtype=bool)
+        if z.shape[0]:
+            rel = xy[cand][:, None, :] - z[None, :, :]
+            dd = np.hypot(rel[..., 0], rel[..., 1])
+            seen = np.any(dd <= gate, axis=1)
+        rows_t.append(cand)
+        rows_r.append(np.hypot(*(xy[cand] - sp[f, :2]).T))
+        rows_h.append(seen)
+    if not rows_t:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
+    return np.concatenate(rows_t), np.concatenate(rows_r), np.concatenate(rows_h)
+
+
+def diameter_standard_errors(
+    tree_index: ArrayLike, diameters: ArrayLike, n_trees: int, *, rho: float = 0.0
+) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
+    """Per-tree diameter statistics of the associated detections.
+
+    Returns
+    -------
+    se : ndarray (n_trees,), m
+        ``s / sqrt(n) * sqrt(1 + (n - 1) rho)`` (module doc, item 2); NaN where n < 2.
+    spread : ndarray (n_trees,), m
+        ``s``, the sample standard deviation of one detection's diameter; NaN where n < 2.
+    n : ndarray (n_trees,), int
+    """
+    idx = np.asarray(tree_index, dtype=np.int64).reshape(-1)
+    d = np.asarray(diameters, dtype=np.float64).reshape(-1)
+    ok = (idx >= 0) & np.isfinite(d)
+    idx, d = idx[ok], d[ok]
+    n = np.bincount(idx, minlength=n_trees).astype(np.float64)
+    s1 = np.bincount(idx, d, minlength=n_trees)
+    s2 = np.bincount(idx, d * d, minlength=n_trees)
+    mean = np.divide(s1, n, out=np.zeros(n_trees), where=n > 0)
+    ss = np.maximum(s2 - n * mean**2, 0.0)
+    var = np.divide(ss, n - 1, out=np.full(n_trees, np.nan), where=n > 1)
+    spread = np.sqrt(var)
+    se = spread / np.sqrt(np.maximum(n, 1.0)) * np.sqrt(1.0 + (n - 1.0) * rho)
+    return np.where(n > 1, se, np.nan), spread, n.astype(np.int64)
+
+
+@dataclass(frozen=True)
+class UncertaintyReport:
+    """What :func:`annotate_uncertainty` measured (goes to metrics.json)."""
+
+    associated_fraction: float
+    p_detect: float
+    p_false: float
+    prior_real: float
+    expected_range_m: float
+    gate_m: float
+    run_length_frames: float
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def annotate_uncertainty(
+    result: SlamResult, problem: SlamProblem, *, gate: float = 0.75, rho: float = DIAMETER_RHO
+) -> tuple[StemMap, UncertaintyReport]:
+    """The result's stem map with ``diameter_std``, missing covariances and ``confidence``
+    filled in as the module doc describes. A back-end's finite covariance is kept;
+    ``diameter_std`` and ``confidence`` are always recomputed, so that they mean the same for
+    every back-end."""
+    from stemmap.slam.base import observation_to_world, sensor_poses
+    from stemmap.slam.negative import SensorFov
+
+    if gate <= 0:
+        raise ConfigError(f"annotate_uncertainty: gate must be > 0 m, got {gate}.")
+    sm = result.stem_map
+    fr = problem.frames
+    poses = result.trajectory.poses
+    nt = len(sm)
+    det = observation_to_world(poses[fr.frame_index], fr.ranges, fr.bearings, problem.sensor_offset)
+    idx = np.full(det.shape[0], -1, dtype=np.int64)
+    if nt and det.shape[0]:
+        dist, near = cKDTree(sm.xy).query(det, distance_upper_bound=gate)
+        hit = np.isfinite(dist)
+        idx[hit] = near[hit]
+    dstd, _, _ = diameter_standard_errors(idx, fr.diameters, nt, rho=rho)
+    r_hi = float(np.quantile(fr.ranges, 0.9)) if fr.ranges.size else 20.0
+    r_hi = min(r_hi, float(problem.max_range))
+    fov = SensorFov(problem.fov[0], problem.fov[1], min(1.0, 0.5 * r_hi), r_hi)
+    sp = sensor_poses(poses, problem.sensor_offset)
+    ti, rr, hit = expected_detections(
+        sm.xy, sm.diameters if nt else np.zeros(0), sp, fr.ptr, det, fov, gate=gate
+    )
+    mix = detection_confidence(ti, rr, hit, nt)
+    trees = []
+    for j, t in enumerate(sm.trees):
+        cov = t.cov
+        if not np.all(np.isfinite(cov)):
+            cov = _mean_covariance(det[idx == j])
+        trees.append(
+            replace(t, cov=cov, diameter_std=float(dstd[j]), confidence=float(mix.confidence[j]))
+        )
+    report = UncertaintyReport(
+        associated_fraction=float(np.mean(idx >= 0)) if idx.size else math.nan,
+        p_detect=mix.p_detect,
+        p_false=mix.p_false,
+        prior_real=mix.prior_real,
+        expected_range_m=r_hi,
+        gate_m=gate,
+        run_length_frames=mix.run_length,
+    )
+    return StemMap(tuple(trees), frame=sm.frame, crs=sm.crs), report
+
+
+def _mean_covariance(z: NDArray[np.float64]) -> FloatArray:
+    """Covariance of the mean of ``z`` (K, 2); NaN with fewer than 2 points."""
+    if z.shape[0] < 2:
+        return np.full((2, 2), np.nan)
+    c = np.cov(z.T) / z.shape[0]
+    return np.asarray(0.5 * (c + c.T), dtype=np.float64)

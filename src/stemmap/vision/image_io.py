@@ -1,0 +1,187 @@
+"""Safe reading of photos: size checked from the header before decoding, damage detected.
+
+A 1 MB PNG can decode to 20000 x 20000 pixels (1.2 GB of RGB, several GB during processing),
+and OpenCV decodes a JPEG cut in half into a complete-looking image (grey bottom rows) without
+complaint. :func:`read_image` therefore
+
+1. reads the width and height from the file header (PNG IHDR, JPEG SOFn, BMP info header)
+   without decoding, and refuses more than ``max_pixels`` (``stemmap segment --max-pixels``);
+2. checks the container is complete: PNG chunks walked to IEND with their CRCs, JPEG entropy
+   data followed by its EOI marker, BMP file size against its header;
+3. decodes and checks the decoded size equals the header's.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.errors import InputError
+
+__all__ = ["DEFAULT_MAX_PIXELS", "check_complete", "image_header", "read_image"]
+
+#: Default pixel limit (100 Mpx: a 12-24 Mpx phone photo passes; 400 Mpx bombs do not).
+DEFAULT_MAX_PIXELS = 100_000_000
+
+_PNG_SIG = b"\x89PNG\r\n\x1a\n"
+# SOF markers carry the frame size; C4 (DHT), C8 (JPG), CC (DAC) are not frames.
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _fmt(data: bytes) -> str:
+    if data.startswith(_PNG_SIG):
+        return "png"
+    if data.startswith(b"\xff\xd8"):
+        return "jpeg"
+    if data.startswith(b"BM"):
+        return "bmp"
+    return "unknown"
+
+
+def _jpeg_frame(data: bytes, path: Path) -> tuple[int, int, int]:
+    """(width, height, offset of the first SOS segment) from the JPEG marker stream."""
+    pos, n = 2, len(data)
+    size: tuple[int, int] | None = None
+    while pos + 4 <= n:
+        if data[pos] != 0xFF:
+            raise InputError(f"{path}: damaged JPEG header (no marker at byte {pos}).")
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # markers without a length
+            pos += 2
+            continue
+        (length,) = struct.unpack(">H", data[pos + 2 : pos + 4])
+        if length < 2 or pos + 2 + length > n:
+            raise InputError(f"{path}: truncated JPEG (segment at byte {pos} runs past the end).")
+        if marker in _SOF:
+            if length < 7:
+                raise InputError(f"{path}: damaged JPEG frame header.")
+            h, w = struct.unpack(">HH", data[pos + 5 : pos + 9])
+            size = (w, h)
+        if marker == 0xDA:  # start of scan: entropy-coded data follows
+            if size is None:
+                raise InputError(f"{path}: JPEG without a frame header (SOF) before its data.")
+            return size[0], size[1], pos + 2 + length
+        pos += 2 + length
+    raise InputError(f"{path}: truncated JPEG (header ends before the image data).")
+
+
+def _png_size_and_check(data: bytes, path: Path, *, full: bool) -> tuple[int, int]:
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise InputError(f"{path}: damaged PNG (no IHDR chunk).")
+    w, h = struct.unpack(">II", data[16:24])
+    if not full:
+        return w, h
+    pos, n = 8, len(data)
+    while True:
+        if pos + 12 > n:
+            raise InputError(
+                f"{path}: truncated PNG ({n} bytes; the data stops inside chunk at byte {pos}, "
+                "no IEND)."
+            )
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        ctype = data[pos + 4 : pos + 8]
+        end = pos + 12 + length
+        if end > n:
+            raise InputError(
+                f"{path}: truncated PNG (chunk {ctype.decode('latin-1')!r} at byte {pos} needs "
+                f"{length} bytes, the file ends {end - n} bytes short)."
+            )
+        (crc,) = struct.unpack(">I", data[end - 4 : end])
+        if zlib.crc32(data[pos + 4 : end - 4]) != crc:
+            raise InputError(
+                f"{path}: damaged PNG (CRC error in chunk {ctype.decode('latin-1')!r} at byte "
+                f"{pos})."
+            )
+        if ctype == b"IEND":
+            return w, h
+        pos = end
+
+
+def image_header(data: bytes, path: Path) -> tuple[str, int, int]:
+    """(format, width, height) from the header bytes, without decoding."""
+    fmt = _fmt(data)
+    if fmt == "png":
+        w, h = _png_size_and_check(data, path, full=False)
+    elif fmt == "jpeg":
+        w, h, _ = _jpeg_frame(data, path)
+    elif fmt == "bmp":
+        if len(data) < 26:
+            raise InputError(f"{path}: truncated BMP header.")
+        w, h = struct.unpack("<ii", data[18:26])
+        w, h = abs(w), abs(h)
+    else:
+        raise InputError(
+            f"{path}: not a PNG, JPEG or BMP image (first bytes {data[:8]!r}); convert it to PNG "
+            "or JPEG."
+        )
+    if w < 1 or h < 1:
+        raise InputError(f"{path}: header gives an empty image ({w} x {h}).")
+    return fmt, int(w), int(h)
+
+
+def check_complete(data: bytes, fmt: str, path: Path) -> None:
+    """Raise InputError when the file is cut short or its container is damaged."""
+    if fmt == "png":
+        _png_size_and_check(data, path, full=True)
+    elif fmt == "jpeg":
+        _, _, sos = _jpeg_frame(data, path)
+        if data.find(b"\xff\xd9", sos) < 0:
+            raise InputError(
+                f"{path}: truncated JPEG (no end-of-image marker after the image data; "
+                f"{len(data)} bytes). The file was cut short, e.g. an interrupted copy."
+            )
+    elif fmt == "bmp":
+        (declared,) = struct.unpack("<I", data[2:6])
+        if declared > len(data):
+            raise InputError(
+                f"{path}: truncated BMP (header says {declared} bytes, file has {len(data)})."
+            )
+
+
+def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> NDArray[np.uint8]:
+    """Read a PNG / JPEG / BMP photo as (H, W, 3) uint8 **RGB**, safely.
+
+    Parameters
+    ----------
+    path : image file
+    max_pixels : refuse images with more pixels than this (checked on the header, before
+        decoding); ``stemmap segment --max-pixels``.
+
+    Raises
+    ------
+    InputError
+        Missing file, unknown format, too many pixels, truncated or damaged file.
+    """
+    p = Path(path)
+    if max_pixels < 1:
+        raise InputError(f"max_pixels must be >= 1, got {max_pixels}.")
+    if not p.is_file():
+        raise InputError(f"image {p} does not exist.")
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read image {p}: {exc}") from exc
+    fmt, w, h = image_header(data, p)
+    if w * h > max_pixels:
+        raise InputError(
+            f"{p}: {w} x {h} = {w * h:,} pixels exceeds the limit of {max_pixels:,} "
+            f"(decoding would need ~{3 * w * h / 1e9:.1f} GB); downscale the image or raise "
+            "--max-pixels."
+        )
+    check_complete(data, fmt, p)
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"{p}: the {fmt.upper()} data could not be decoded (damaged file?).")
+    if bgr.shape[:2] not in ((h, w), (w, h)):  # (w, h): EXIF orientation applied
+        raise InputError(
+            f"{p}: decoded {bgr.shape[1]} x {bgr.shape[0]} pixels but the header says {w} x {h}."
+        )
+    return np.ascontiguousarray(bgr[..., ::-1])

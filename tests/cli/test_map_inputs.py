@@ -1,0 +1,58 @@
+"""`stemmap map` on files: scans from `stemmap sim scans`, detections from `stemmap detect`."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stemmap.cli import app
+from stemmap.eval.matching import match_points
+from stemmap.io.maps import read_trees_csv
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("simrun")
+    res = CliRunner().invoke(
+        app, ["sim", "scans", "--out", str(d / "run.npz"), "--seed", "2", "--n-scans", "900"]
+    )
+    assert res.exit_code == 0, res.output
+    return d
+
+
+def _in_world(trees_csv: Path, poses_csv: Path) -> np.ndarray:
+    """Map frame = the first scan's pose (the simulator's sensor sits at the vehicle point)."""
+    _, x0, y0, th0 = np.loadtxt(poses_csv, delimiter=",", skiprows=1, max_rows=1)
+    c, s = math.cos(th0), math.sin(th0)
+    xy = read_trees_csv(trees_csv).xy
+    return xy @ np.array([[c, s], [-s, c]]) + [x0, y0]
+
+
+@pytest.mark.slow
+def test_map_scans_and_detections(sim_run: Path) -> None:
+    run = CliRunner()
+    truth = np.loadtxt(sim_run / "run_trees.csv", delimiter=",", skiprows=1)[:, 1:3]
+    out1 = sim_run / "m_scans"
+    res = run.invoke(app, ["map", str(sim_run / "run.npz"), "--backend", "ekf", "--out", str(out1)])
+    assert res.exit_code == 0, res.output
+    world = _in_world(out1 / "trees.csv", sim_run / "run_poses.csv")
+    assert len(world) >= 5
+    # mapped trees are stand trees (12 m of driving: odometry drift stays < 0.5 m); the
+    # default scene has clutter (bushes, rocks, a wall) that may add a spurious landmark or two
+    assert match_points(world, truth, gate=0.5).n_matched >= 0.8 * len(world)
+
+    det = sim_run / "det.csv"
+    assert run.invoke(app, ["detect", str(sim_run / "run.npz"), "--out", str(det)]).exit_code == 0
+    out2 = sim_run / "m_det"
+    args = ["map", str(det), "--backend", "ekf", "--out", str(out2)]
+    res = run.invoke(app, [*args, "--odometry", str(sim_run / "run_odometry.csv")])
+    assert res.exit_code == 0, res.output
+    world2 = _in_world(out2 / "trees.csv", sim_run / "run_poses.csv")
+    assert match_points(world2, world, gate=0.05).n_matched == len(world)  # same detections
+
+    res = run.invoke(app, args)  # no odometry beside det.csv
+    assert res.exit_code == 2 and "--odometry" in res.output

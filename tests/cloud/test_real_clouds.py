@@ -1,0 +1,85 @@
+"""Every real cloud in ../shared/datasets yields its stems (issue 11), with DBH against the
+cloud's own breast-height ring and tree height against the cloud's top (issue 14).
+
+Numbers per dataset: ``python benchmarks/cloud_real.py`` (docs/algorithms/cloud.md, "Real
+clouds"). Tolerances: 1.5 cm of the ring reference for single trees (the issue's target; the
+references' own RMS is 0.3-2.1 cm), 1 cm DBH RMSE over a plot's full rings, 0.5 m of height.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stemmap.cloud.reference import ring_reference
+from stemmap.cloud.result import BASE_SLICE, CloudStems
+from stemmap.cloud.stems import StemConfig, detect_stems_file
+from stemmap.io.clouds import read_cloud
+
+pytestmark = pytest.mark.slow
+
+
+def _run(path: Path) -> tuple[np.ndarray, CloudStems, list[float], list[float]]:
+    xyz = read_cloud(path).xyz
+    det = detect_stems_file(path, replace(StemConfig(), estimate_height=True))
+    errs, full = [], []
+    for i in range(len(det)):
+        z = float(det.z[i]) if det.base != BASE_SLICE else float(np.median(xyz[:, 2]))
+        half = 0.05 if det.spacing < 0.03 else 0.1
+        ref = ring_reference(xyz, tuple(det.xy[i]), z, det.diameter[i] / 2, half_thickness=half)
+        if ref is not None:
+            errs.append(float(det.diameter[i] - ref.diameter))
+            if ref.full:
+                full.append(errs[-1])
+    return xyz, det, errs, full
+
+
+def _height_ok(xyz: np.ndarray, det: CloudStems) -> None:
+    for i in range(len(det)):
+        near = np.hypot(*(xyz[:, :2] - det.xy[i]).T) <= 1.0
+        base = det.z[i] - det.dbh_height[i]
+        assert abs(det.height[i] - (xyz[near, 2].max() - base)) < 0.5
+
+
+@pytest.mark.parametrize(
+    ("rel", "base"),
+    [
+        ("treels/spruce.laz", "ground"),  # branches to the ground: found no stem before
+        ("treels/pine.laz", "ground"),
+        ("archi/Tree_1_point_cloud.las", "lowest stem points"),  # no ground in the cloud
+        ("archi/Tree_2_point_cloud.las", "lowest stem points"),
+    ],
+)
+def test_single_trees(datasets_dir: Path, rel: str, base: str) -> None:
+    xyz, det, errs, _ = _run(datasets_dir / rel)
+    assert len(det) == 1
+    assert det.base == base
+    assert len(errs) == 1 and abs(errs[0]) < 0.015
+    assert np.isfinite(det.diameter_std[0]) and det.diameter_std[0] < 0.01
+    _height_ok(xyz, det)
+
+
+def test_lidr_slice(datasets_dir: Path) -> None:
+    _, det, _, full = _run(datasets_dir / "lidr_dbh" / "dbh.laz")
+    assert len(det) == 1 and det.base == BASE_SLICE
+    assert len(full) == 1 and abs(full[0]) < 0.015
+
+
+def test_pine_plot(datasets_dir: Path) -> None:
+    xyz, det, _, full = _run(datasets_dir / "treels" / "pine_plot.laz")
+    # 17 trunks pass through 1.3 m (the 1.3 m slice, docs/algorithms/cloud.md; the other
+    # blobs in it are shrubs and debris below 1.5 m)
+    assert len(det) == 17
+    assert len(full) >= 8
+    assert float(np.sqrt(np.mean(np.square(full)))) <= 0.01
+    _height_ok(xyz, det)
+
+
+def test_fortls_slice(datasets_dir: Path) -> None:
+    _, det, _, full = _run(datasets_dir / "fortls_slice" / "diameters.laz")
+    # 20 trunks of 10001 points each (200,020 points): all seen as full rings
+    assert len(det) == 20 and len(full) == 20
+    assert float(np.sqrt(np.mean(np.square(full)))) <= 0.01

@@ -1,0 +1,95 @@
+"""Per-tree uncertainty and confidence (stemmap.slam.uncertainty)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stemmap.slam.uncertainty import (
+    annotate_uncertainty,
+    detection_confidence,
+    diameter_standard_errors,
+    run_length_factor,
+)
+
+
+def _rows(
+    rng: np.random.Generator, real: np.ndarray, n_frames: int, p_f: float, block: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(tree, range, hit) rows: real trees detected with 0.9 - 0.04 * range, false with p_f;
+    each outcome repeated ``block`` frames (temporally correlated)."""
+    ti, rr, hh = [], [], []
+    for j, is_real in enumerate(real):
+        r = rng.uniform(2, 14, n_frames // block)
+        p = 0.9 - 0.04 * r if is_real else np.full(r.shape, p_f)
+        y = rng.random(r.shape) < p
+        ti.append(np.full(r.size * block, j))
+        rr.append(np.repeat(r, block))
+        hh.append(np.repeat(y, block))
+    return np.concatenate(ti), np.concatenate(rr), np.concatenate(hh)
+
+
+def test_confidence_separates_and_is_calibrated(rng: np.random.Generator) -> None:
+    real = rng.random(300) < 0.85
+    ti, rr, hh = _rows(rng, real, 40, p_f=0.1)
+    fit = detection_confidence(ti, rr, hh, real.size)
+    assert fit.p_false == pytest.approx(0.1, abs=0.03)
+    assert fit.prior_real == pytest.approx(real.mean(), abs=0.05)
+    assert fit.run_length == pytest.approx(1.0, abs=0.15)  # independent frames
+    c = fit.confidence
+    # calibration: among trees given > 0.9, > 0.9 are real; among < 0.1, < 0.1 are real
+    assert real[c > 0.9].mean() > 0.9 and real[c < 0.1].mean() < 0.1
+    # Brier score far below the prior-only forecast's
+    brier = np.mean((c - real) ** 2)
+    assert brier < 0.25 * np.mean((real.mean() - real) ** 2)
+
+
+def test_run_length_tempers_correlated_evidence(rng: np.random.Generator) -> None:
+    real = rng.random(200) < 0.85
+    ti, rr, hh = _rows(rng, real, 60, p_f=0.1, block=6)
+    k = run_length_factor(ti, hh)
+    assert 3.0 < k < 9.0  # blocks of 6 identical outcomes
+    fit = detection_confidence(ti, rr, hh, real.size)
+    assert fit.run_length == pytest.approx(k)
+    c = fit.confidence
+    assert real[c > 0.9].mean() > 0.9
+
+
+def test_trees_never_in_view_get_the_prior() -> None:
+    fit = detection_confidence(np.array([0, 0, 0, 1, 1]), np.full(5, 3.0), [1, 1, 1, 0, 0], 3)
+    assert fit.confidence[2] == pytest.approx(fit.prior_real)
+
+
+def test_diameter_standard_errors() -> None:
+    idx = np.array([0, 0, 0, 0, 1, 2, 2, -1])
+    d = np.array([0.30, 0.32, 0.28, 0.30, 0.5, 0.2, np.nan, 9.0])
+    se, spread, n = diameter_standard_errors(idx, d, 4, rho=0.0)
+    s = float(np.std([0.30, 0.32, 0.28, 0.30], ddof=1))
+    assert spread[0] == pytest.approx(s) and se[0] == pytest.approx(s / 2)
+    assert n.tolist() == [4, 1, 1, 0]
+    assert np.isnan(se[1:]).all()  # < 2 finite diameters
+    se_r, _, _ = diameter_standard_errors(idx, d, 4, rho=0.5)
+    assert se_r[0] == pytest.approx(s / 2 * math.sqrt(1 + 3 * 0.5))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["fastslam", "isam2"])
+def test_every_backend_gets_uncertainty(backend: str) -> None:
+    """iSAM2 and FastSLAM used to leave diameter_std empty and confidence at 1."""
+    from stemmap.cli._map import _simulated
+    from stemmap.slam.base import make_backend
+
+    problem, _ = _simulated(3, 40, 30.0)
+    result = make_backend(backend).run(problem)
+    sm, rep = annotate_uncertainty(result, problem)
+    assert len(sm) == len(result.stem_map)
+    dstd = np.array([t.diameter_std for t in sm])
+    conf = np.array([t.confidence for t in sm])
+    n_ok = np.array([t.n_obs >= 3 for t in sm])
+    assert np.isfinite(dstd[n_ok]).mean() > 0.95
+    assert np.all(dstd[np.isfinite(dstd)] < 0.05)  # standard error of a mean, not a spread
+    assert np.all((conf >= 0) & (conf <= 1)) and conf.std() > 0
+    assert all(np.all(np.isfinite(t.cov)) for t in sm)
+    assert 0.8 < rep.associated_fraction <= 1.0
