@@ -115,4 +115,4 @@ def test_misleading_messages_fixed(tmp_path):
     ):
         res = runner.invoke(app, argv)
         assert res.exit_code == 2 and "does not exist" not in res.output, res.output
-        assert "not a regular file" in res.output
+        assert "not a regular file" in res.output or "is a folder" in res.output

@@ -185,3 +185,17 @@ def test_fuse_calibration_errors_name_the_field(tmp_path: Path) -> None:
         app, [*argv, "--calibration", str(tmp_path / "calib.json"), "--out", "d.csv"]
     )
     assert res.exit_code == 2 and "not valid JSON" in res.output
+
+
+def test_fuse_refuses_a_truncated_image(tmp_path: Path) -> None:
+    """fuse reads its photo like segment does: a PNG cut in half is an error, not a half image."""
+    K = RIG.camera.K.tolist()
+    calib = _calib(tmp_path, {"G": G.tolist(), "camera": {"K": K, "width": 1280, "height": 720}})
+    argv = [*_fuse_inputs(tmp_path), "--calibration", str(calib)]
+    png = tmp_path / "frame.png"
+    png.write_bytes(png.read_bytes()[: png.stat().st_size // 2])
+    out = tmp_path / "d.csv"
+    res = RUNNER.invoke(app, [*argv, "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "error:" in res.output and "frame.png" in res.output
+    assert not out.exists()

@@ -107,3 +107,9 @@ def test_damaged_png_crc_and_jpeg_trailer(tmp_path: Path) -> None:
     other.write_bytes(b"GIF89a" + bytes(20))
     with pytest.raises(InputError, match="not a PNG, JPEG or BMP"):
         read_image(other)
+
+
+def test_a_folder_is_named_as_a_folder(tmp_path: Path) -> None:
+    """Issue 13: a folder was reported as "does not exist"."""
+    with pytest.raises(InputError, match="is a folder"):
+        read_image(tmp_path)

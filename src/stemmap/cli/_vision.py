@@ -497,6 +497,7 @@ def fuse(
     from stemmap.fusion.fuse import FusionParams, fuse_ours, fuse_xue2018
     from stemmap.io.scans import read_scans
     from stemmap.vision.camera import CameraModel, RigidTransform
+    from stemmap.vision.image_io import read_image
     from stemmap.vision.segment import segment_trunks
 
     with (
@@ -512,11 +513,7 @@ def fuse(
             raise InputError(
                 f"{scan} has {len(batch)} scan(s); --scan-index {scan_index} is out of range."
             )
-        existing_file(image, "image")
-        bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise InputError(f"{image} is not a readable image file.")
-        rgb = np.ascontiguousarray(bgr[..., ::-1], dtype=np.uint8)
+        rgb = read_image(image)  # header pixel limit and truncation checks, as in segment
         if not np.any(np.isfinite(batch.ranges[scan_index])):
             console.print(
                 f"[yellow]warning:[/yellow] scan {scan_index} of {escape(str(scan))} has no "

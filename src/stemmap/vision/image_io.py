@@ -163,10 +163,10 @@ def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> NDA
     p = Path(path)
     if max_pixels < 1:
         raise InputError(f"max_pixels must be >= 1, got {max_pixels}.")
-    if not p.is_file():  # a folder is "not a regular file", not "does not exist" (issue 13)
-        raise InputError(
-            f"image {p} does not exist." if not p.exists() else f"image {p} is not a regular file."
-        )
+    if p.is_dir():
+        raise InputError(f"image {p} is a folder; give an image file (PNG, JPEG or BMP).")
+    if not p.is_file():
+        raise InputError(f"image {p} does not exist.")
     try:
         data = p.read_bytes()
     except OSError as exc:
