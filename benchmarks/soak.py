@@ -1,0 +1,259 @@
+"""Soak benchmark (issue 13): a Victoria Park drive N times as long, through ``stemmap map``.
+
+The real log (ACFR Victoria Park, text redistribution, read with
+:func:`stemmap.datasets.victoria_park.load_victoria_park`) is replayed ``--repeats`` times as
+revisits of the same park, built in memory (the dataset files are only read). The log ends
+21 m (GPS) from where it starts, with another heading, so replaying it forward again would
+teleport the vehicle, which no odometry explains. Every second pass is therefore the log
+driven *backwards* (time reversed, wheel speed negated, the same scans in reverse order): the
+vehicle retraces its path to the start, where the next forward pass begins, so every pass
+revisits the same trees and the motion is physically continuous. Passes are 1 s apart
+(standing still).
+
+Each back-end runs in its own subprocess (honest peak RSS) through the ``stemmap map``
+command itself (typer app, ``--dataset victoria-park``) with the dataset loader swapped for
+the replayed drive, so product writing, uncertainty annotation and metrics are the CLI's own.
+Reported per back-end and repeat count:
+
+* ``peak_rss_mb`` (``ru_maxrss``) and ``rss_after_load_mb`` (before SLAM);
+* time per 100 scans from the back-end's progress calls (every keyframe for iSAM2, every 50
+  scans for the EKF): first tenth vs last tenth of the run (``growth_last_vs_first``), and
+  per pass;
+* map quality: ATE against the screened GPS for every pass (each pass aligned on its own)
+  and for the whole run under ONE alignment (drift between passes shows there), tree count
+  and pairs of trees closer than 1 m (revisits must not create duplicates), compared with a
+  1x run of the same back-end.
+
+A warm-up run on the first 60 s compiles the numba kernels before timing. Absolute times are
+from a loaded shared machine (2 cores, ~8 users): compare the ratios.
+
+Usage: ``python benchmarks/soak.py --json [--repeats 10] [--backends isam2,ekf]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+GAP_S = 1.0  # standstill between passes
+
+
+def _rss_mb() -> float:
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+
+
+def revisit_drive(vp: Any, passes: int) -> tuple[Any, list[tuple[float, float]]]:
+    """``vp`` driven ``passes`` times, forward and backward alternately (see module doc).
+
+    Returns the new :class:`~stemmap.datasets.victoria_park.VictoriaPark` and the time span
+    (s) of every pass.
+    """
+    from stemmap.slam.base import Controls, TreeFrames
+
+    c, fr = vp.controls, vp.frames
+    t0 = float(min(c.times[0], fr.times[0], vp.gps_times[0]))
+    t1 = float(max(c.times[-1], fr.times[-1], vp.gps_times[-1]))
+    span = t1 - t0
+    det = [fr.frame(f) for f in range(len(fr))]
+    ct, cv, cs, ft, fd, gt, gx, spans = [], [], [], [], [], [], [], []
+    for p in range(passes):
+        base = t0 + p * (span + GAP_S)
+        spans.append((base, base + span))
+        if p % 2 == 0:
+            ct.append(c.times - t0 + base)
+            cv.append(c.speed)
+            cs.append(c.steer)
+            ft.append(fr.times - t0 + base)
+            fd += det
+            gt.append(vp.gps_times - t0 + base)
+            gx.append(vp.gps_xy)
+        else:
+            # control i holds on [t_i, t_i+1): backwards it holds from the image of t_i+1
+            ct.append(base + (t1 - c.times[1:][::-1]))
+            cv.append(-c.speed[:-1][::-1])
+            cs.append(c.steer[:-1][::-1])
+            ft.append(base + (t1 - fr.times[::-1]))
+            fd += det[::-1]
+            gt.append(base + (t1 - vp.gps_times[::-1]))
+            gx.append(vp.gps_xy[::-1])
+    counts = [len(d[0]) for d in fd]
+    frames = TreeFrames(
+        np.concatenate(ft),
+        np.concatenate(([0], np.cumsum(counts))).astype(np.int64),
+        *(np.concatenate([d[k] for d in fd]) for k in range(3)),
+    )
+    controls = Controls(np.concatenate(ct), np.concatenate(cv), np.concatenate(cs), c.kind)
+    rep = dataclasses.replace(
+        vp,
+        controls=controls,
+        frames=frames,
+        gps_times=np.concatenate(gt),
+        gps_xy=np.concatenate(gx),
+    )
+    return rep, spans
+
+
+def _per_100(marks: list[tuple[int, float]], n: int) -> dict[str, Any]:
+    """Seconds per 100 scans in the first and last tenth, from (frames done, time) marks."""
+    f = np.array([0] + [m[0] for m in marks], dtype=float)
+    t = np.array([0.0] + [m[1] for m in marks])
+    a, b = np.interp([0.1 * n, 0.9 * n], f, t)
+    first = 100.0 * a / (0.1 * n)
+    last = 100.0 * (t[-1] - b) / (f[-1] - 0.9 * n)
+    return {
+        "s_per_100_scans_first_tenth": round(first, 4),
+        "s_per_100_scans_last_tenth": round(last, 4),
+        "growth_last_vs_first": round(last / first, 3),
+    }
+
+
+def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
+    import stemmap.cli._map as cli_map
+    import stemmap.slam.base as slam_base
+    from stemmap.cli import app
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.trajectory import ate
+
+    vp = load_victoria_park(data)
+    make = slam_base.make_backend
+    make(backend).run(vp.slice(0.0, 60.0).problem())  # compile numba kernels before timing
+    rep, spans = revisit_drive(vp, repeats)
+    rss_load = _rss_mb()
+    marks: list[tuple[int, float]] = []
+    seen: dict[str, Any] = {}
+
+    class Timed:
+        def __init__(self, inner: Any) -> None:
+            self.inner = inner
+
+        def run(self, problem: Any, progress: Any = None) -> Any:
+            t_start = time.perf_counter()
+
+            def tick(done: int, total: int) -> None:
+                marks.append((done, time.perf_counter() - t_start))
+                if progress is not None:
+                    progress(done, total)
+
+            res = self.inner.run(problem, progress=tick)
+            seen["slam_s"] = time.perf_counter() - t_start
+            seen["result"] = res
+            return res
+
+    def timed_make(name: str, **cfg: Any) -> Any:
+        return Timed(make(name, **cfg))
+
+    def replayed(data_: Any, t_end: Any, t_start: float = 0.0) -> Any:
+        return rep.problem(name=f"victoria_park x{repeats}"), {"kind": "victoria-park", "vp": rep}
+
+    slam_base.make_backend = timed_make
+    cli_map._victoria_park = replayed  # type: ignore[assignment]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "map"
+        argv = ["map", "--dataset", "victoria-park", "--backend", backend, "--out", str(out)]
+        argv += ["--no-progress", "--json"] + (["--data", data] if data else [])
+        t_cli = time.perf_counter()
+        app(argv, standalone_mode=False)
+        cli_s = time.perf_counter() - t_cli
+        metrics = json.loads((out / "metrics.json").read_text())
+    res = seen["result"]
+    keep = rep.screened_gps()
+    off = rep.model.sensor_offset
+    per_pass: list[dict[str, Any]] = []
+    ends = [0] + [int(np.searchsorted(rep.frames.times, b, side="right")) for _, b in spans]
+    for k, (a, b) in enumerate(spans):
+        in_pass = keep & (rep.gps_times >= a) & (rep.gps_times <= b)
+        r = ate(res.trajectory, rep.gps_times, rep.gps_xy, offset=off, keep=in_pass)
+        fa, fb = ends[k], ends[k + 1]
+        ta, tb = np.interp([fa, fb], [0] + [m[0] for m in marks], [0.0] + [m[1] for m in marks])
+        per_pass.append(
+            {
+                "direction": "forward" if k % 2 == 0 else "backward",
+                "ate_rmse_m": round(float(r.rmse), 3) if r else None,
+                "s_per_100_scans": round(100.0 * (tb - ta) / max(fb - fa, 1), 4),
+            }
+        )
+    return {
+        "backend": backend,
+        "repeats": repeats,
+        "scans": len(rep.frames),
+        "drive_s": round(spans[-1][1] - spans[0][0], 1),
+        "peak_rss_mb": _rss_mb(),
+        "rss_after_load_mb": rss_load,
+        "slam_s": round(seen["slam_s"], 1),
+        "map_command_s": round(cli_s, 1),
+        **_per_100(marks, len(rep.frames)),
+        # pass 1 builds the map (cost grows with it); from pass 2 on the map is complete
+        "growth_last_vs_second_pass": (
+            round(per_pass[-1]["s_per_100_scans"] / per_pass[1]["s_per_100_scans"], 3)
+            if len(per_pass) > 2
+            else None
+        ),
+        "ate_rmse_m_one_alignment": metrics.get("ate_rmse_m"),
+        "gps_fixes_kept": metrics.get("gps_fixes_kept"),
+        "per_pass": per_pass,
+        "n_trees": metrics["n_trees"],
+        "duplicates_1m": metrics["duplicates_1m"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--data", default=None, help="Victoria Park folder (default: shared)")
+    ap.add_argument("--repeats", type=int, default=10, help="passes over the log (default 10)")
+    ap.add_argument("--backends", default="isam2,ekf", help="comma list")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--result", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.worker:
+        r = _worker(args.worker, args.repeats, args.data)
+        Path(args.result).write_text(json.dumps(r))
+        return
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for be in [b for b in args.backends.split(",") if b]:
+            for n in sorted({1, args.repeats}):
+                name = f"{be}_x{n}"
+                res_path = Path(tmp) / f"{name}.json"
+                cmd = [sys.executable, __file__, "--worker", be, "--repeats", str(n)]
+                cmd += ["--result", str(res_path)] + (["--data", args.data] if args.data else [])
+                t0 = time.perf_counter()
+                proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if proc.returncode != 0 or not res_path.exists():
+                    results[name] = {"error": proc.stderr.strip().splitlines()[-3:] or ["failed"]}
+                    continue
+                results[name] = json.loads(res_path.read_text())
+                results[name]["wall_s"] = round(time.perf_counter() - t0, 1)
+    out = {
+        "benchmark": "soak",
+        "repeats": args.repeats,
+        "results": results,
+        "scenario": {
+            "dataset": "ACFR Victoria Park (text redistribution), passes alternately forward "
+            "and backward, `stemmap map` defaults",
+            "cpu_count": os.cpu_count(),
+            "load_avg_1min": round(os.getloadavg()[0], 2),
+        },
+    }
+    if args.json:
+        print(json.dumps(out, indent=1))
+    else:
+        for k, v in out.items():
+            print(k, v)
+
+
+if __name__ == "__main__":
+    main()
