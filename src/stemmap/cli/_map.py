@@ -24,6 +24,7 @@ from stemmap.cli._geo import (
     write_gps_frame,
     write_map_products,
 )
+from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
     announce_compile,
@@ -364,12 +365,14 @@ def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
 
 
 def map_command(
-    bag: Annotated[
-        Path | None,
+    logs: Annotated[
+        list[Path] | None,
         typer.Argument(
             metavar="INPUT",
             help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
-            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry.",
+            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry. "
+            "Several logs (files, a folder, a glob, a .txt list): one Dask task per log, "
+            "OUT/<log>/ each, OUT/summary.csv.",
         ),
     ] = None,
     odometry: Annotated[
@@ -475,6 +478,8 @@ def map_command(
         TrajectoryFormat,
         typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
     ] = TrajectoryFormat.csv,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM.
 
@@ -488,7 +493,12 @@ def map_command(
     Example: stemmap sim scans --out run.npz && stemmap map run.npz --out runmap
 
     Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
+
+    Example: stemmap map logs/ --workers 2 --out maps  (maps/<log>/ per log, maps/summary.csv)
     """
+    if wants_logs(logs, workers, scheduler):
+        return run_many_logs("map", dict(locals()), as_json=as_json)
+    bag = logs[0] if logs else None
     from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
     from stemmap.io.products import run_products

@@ -123,7 +123,7 @@ def _product_counts(command: str, product: Path) -> dict[str, Any]:
         obs = read_observations_csv(product)
         return {"n_observations": len(obs), "n_scans": len(np.unique(obs.index))}
     m = json.loads((product / "metrics.json").read_text(encoding="utf-8"))
-    return {"n_trees": m.get("n_trees"), "n_scans": m.get("frames")}
+    return {"n_trees": m.get("n_trees"), "n_observations": m.get("detections")}
 
 
 def run_log_command(command: str, params: dict[str, Any]) -> dict[str, Any]:
@@ -183,8 +183,8 @@ def _print_summary(command: str, rows: list[dict[str, Any]], out_dir: Path) -> N
     from rich.table import Table
 
     t = Table(title=f"stemmap {command}: {len(rows)} logs -> {out_dir}")
-    cols = ["log", "status", "seconds", "n_scans"]
-    cols.append("n_observations" if command == "detect" else "n_trees")
+    cols = ["log", "status", "seconds", "n_observations"]
+    cols += ["n_scans"] if command == "detect" else ["n_trees"]
     cols.append("error")
     for c in cols:
         t.add_column(c, overflow="fold")

@@ -169,7 +169,8 @@ def expand_inputs(
     The defaults make a tile catalog (LAS/LAZ). Drive logs (:mod:`stemmap.engine.logs`) pass
     their own ``extensions``, ``unit_dir`` (a folder that is one input itself, e.g. a ROS 2
     bag, is kept as is, and is one entry when met inside a folder) and ``companion`` (files of
-    a folder that belong to another input, e.g. a log's odometry CSV, and are not inputs).
+    a folder or glob match that belong to another input, e.g. a log's odometry CSV, and are
+    not inputs; a file named directly or in a list file is always taken).
 
     Raises
     ------
@@ -216,7 +217,11 @@ def expand_inputs(
             found.append(p)
         elif any(c in s for c in "*?["):
             matches = sorted(Path(m) for m in glob.glob(os.path.expanduser(s), recursive=True))
-            matches = [m for m in matches if m.is_file() or unit(m)]
+            matches = [
+                m
+                for m in matches
+                if unit(m) or (m.is_file() and not (companion is not None and companion(m)))
+            ]
             if not matches:
                 raise InputError(f"the pattern {s!r} matches no file.")
             found.extend(matches)
