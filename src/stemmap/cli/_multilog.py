@@ -154,8 +154,10 @@ def run_log_command(command: str, params: dict[str, Any]) -> dict[str, Any]:
 def _per_log_params(
     command: str, params: dict[str, Any], log: Path, folder: Path
 ) -> dict[str, Any]:
-    """The single-log command's parameters for ``log`` writing into ``folder``."""
-    p = dict(params)
+    """The single-log command's parameters for ``log`` writing into ``folder`` (absolute
+    paths: a remote worker's working folder is not ours)."""
+    log, folder = log.absolute(), folder.absolute()
+    p = {k: v.absolute() if isinstance(v, Path) else v for k, v in params.items()}
     p[_INPUT_PARAM[command]] = [log]
     p["workers"] = None
     p["scheduler"] = None
