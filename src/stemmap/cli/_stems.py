@@ -332,7 +332,7 @@ def stems(
         if geojson is not None:
             write_stems_geojson(run.path(geojson), result, crs=crs)
         if gpkg is not None:
-            fields = array_fields(result, len(result), skip=("xy",))
+            fields = array_fields(result, len(result), skip=("xy",), constants=("method", "base"))
             write_gpkg(run.path(gpkg), [GeoLayer("stems", result.xy, fields)], crs, result.frame)
         fig_path = None if png is None else run.path(png)
         if report is not None and png is None:
