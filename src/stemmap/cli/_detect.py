@@ -10,6 +10,7 @@ import numpy as np
 import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._validate import bounded
 
 __all__ = ["detect", "register"]
 
@@ -40,12 +41,16 @@ def detect(
         typer.Option(help="Override the preset's circle fit (kasa, fletcher_reeves, ours, ...)."),
     ] = None,
     sigma: Annotated[
-        float | None, typer.Option(help="Override the sensor range noise, metres.")
+        float | None,
+        typer.Option(
+            help="Override the sensor range noise, metres.", callback=bounded("--sigma", gt=0)
+        ),
     ] = None,
     footprint: Annotated[
         float | None,
         typer.Option(
-            help="Beam footprint of a nearest-return scanner, degrees (corrects wide trunks)."
+            help="Beam footprint of a nearest-return scanner, degrees (corrects wide trunks).",
+            callback=bounded("--footprint", ge=0, lt=180),
         ),
     ] = None,
     rejected: Annotated[

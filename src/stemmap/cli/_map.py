@@ -31,6 +31,7 @@ from stemmap.cli._summary import (
     print_summary,
     write_run_report,
 )
+from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
@@ -402,14 +403,33 @@ def map_command(
         "stemmap_map"
     ),
     t_end: Annotated[
-        float | None, typer.Option("--t-end", help="Use the dataset only up to this time (s).")
+        float | None,
+        typer.Option(
+            "--t-end",
+            help="Use the dataset only up to this time (s).",
+            callback=bounded("--t-end", gt=0),
+        ),
     ] = None,
     t_start: Annotated[
         float, typer.Option("--t-start", help="Use the dataset from this time (s).")
     ] = 0.0,
-    seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
-    sim_trees: Annotated[int, typer.Option("--sim-trees", help="Trees in the stand.")] = 150,
-    sim_size: Annotated[float, typer.Option("--sim-size", help="Stand side (m).")] = 60.0,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Simulation seed.", callback=bounded("--seed", ge=0))
+    ] = 1,
+    sim_trees: Annotated[
+        int,
+        typer.Option(
+            "--sim-trees", help="Trees in the stand.", callback=bounded("--sim-trees", ge=1)
+        ),
+    ] = 150,
+    sim_size: Annotated[
+        float,
+        typer.Option(
+            "--sim-size",
+            help="Stand side (m), > 4 (the loop keeps 15 % of the side from the edge).",
+            callback=bounded("--sim-size", gt=4),
+        ),
+    ] = 60.0,
     sensor_offset: Annotated[
         str, typer.Option("--sensor-offset", help="Bag: laser position 'a,b' (m) in the vehicle.")
     ] = "0,0",

@@ -18,6 +18,7 @@ from stemmap.cli._catalog import (
 from stemmap.cli._common import console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
 from stemmap.cli._summary import JsonFlag, fmt, print_summary
+from stemmap.cli._validate import bounded
 from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
 from stemmap.errors import ConfigError
 
@@ -151,13 +152,17 @@ def stems(
         ),
     ] = None,
     read_points: Annotated[
-        int, typer.Option(help="Points per block when streaming LAS/LAZ.")
+        int,
+        typer.Option(
+            help="Points per block when streaming LAS/LAZ.", callback=bounded("--read-points", ge=1)
+        ),
     ] = 2_000_000,
     chunk_size: Annotated[
         float | None,
         typer.Option(
             help="Side (m) of the square processing chunks of a tile catalog [default: from "
             "the point density, ~8 M points per buffered chunk].",
+            callback=bounded("--chunk-size", gt=0),
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,
@@ -166,6 +171,7 @@ def stems(
         typer.Option(
             help="Buffer (m) read around each chunk [default: 5]; stems belong to the chunk "
             "holding their centre.",
+            callback=bounded("--buffer", ge=0),
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,
@@ -173,6 +179,7 @@ def stems(
         int | None,
         typer.Option(
             help="Worker processes of the local Dask cluster [default: one per core].",
+            callback=bounded("--workers", ge=1),
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,
@@ -228,6 +235,7 @@ def stems(
         typer.Option(
             help="Seconds added to the point times before the trajectory look-up (e.g. 1e9 for "
             "LAS adjusted standard GPS time against GPS seconds).",
+            callback=bounded("--time-offset"),
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = 0.0,
