@@ -235,9 +235,13 @@ def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
     return SlamResult(st["trajectory"], st["stem_map"], stats)
 
 
+RPE_DELTA_M = 10.0
+"""Path length (m) of the relative pose error's stretches on simulated runs (evo's --delta)."""
+
+
 def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
-    from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
+    from stemmap.eval.trajectory import ate, loop_closure_error, rpe, screen_gps
     from stemmap.slam.base import dead_reckoning, duplicate_pairs, sensor_poses
     from stemmap.slam.motion import preintegrate
 
@@ -288,6 +292,8 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
         err = np.hypot(*(result.trajectory.interpolate(truth.times)[:, :2] - truth.xy).T)
         m["trajectory_rmse_m"] = float(np.sqrt(np.mean(err**2)))
         m["trajectory_max_m"] = float(err.max())
+        r_rel = rpe(result.trajectory, truth, delta=RPE_DELTA_M)  # full poses: evo's RPE
+        m.update(r_rel.as_dict("rpe_") if r_rel else {"rpe_error": r_rel.reason})
         true_disp = truth.xy[-1] - truth.xy[0]
         th0 = float(truth.poses[0, 2])
         c, s = math.cos(th0), math.sin(th0)
@@ -315,6 +321,12 @@ def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]
         rows.append(("path RMSE vs truth", fmt(m["trajectory_rmse_m"], " m"), "trajectory_rmse_m"))
         lc = m.get("loop_closure_error_m")
         rows.append(("loop-closure error", fmt(lc, " m"), "loop_closure_error_m"))
+    if "rpe_trans_rmse_m" in m:
+        per = f"per {m['rpe_delta']:g} {m['rpe_delta_unit']}"
+        rows.append((f"RPE translation RMSE ({per})", fmt(m["rpe_trans_rmse_m"], " m"),
+                     "rpe_trans_rmse_m"))  # fmt: skip
+        rows.append((f"RPE rotation RMSE ({per})", fmt(m["rpe_rot_rmse_deg"], " deg"),
+                     "rpe_rot_rmse_deg"))  # fmt: skip
     mm = m.get("map")
     if isinstance(mm, dict):
         rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
