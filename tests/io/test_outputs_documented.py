@@ -181,6 +181,13 @@ def test_catalog_manifest_documented(tmp_path: Path) -> None:
     assert _undocumented(keys, "stems catalog work folder") == []
 
 
+def test_multilog_summary_documented(tmp_path: Path) -> None:
+    from stemmap.cli._multilog import _write_summary
+
+    _write_summary(tmp_path / "summary.csv", [{"log": "a", "status": "done", "n_trees": 3}])
+    assert _undocumented(_header(tmp_path / "summary.csv"), "summary.csv") == []
+
+
 @pytest.mark.parametrize("res", ["ate", "rpe"])
 def test_trajectory_metric_keys_documented(res: str) -> None:
     z = np.zeros(0)
