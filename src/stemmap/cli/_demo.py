@@ -345,6 +345,9 @@ def demo(
         ("tree position RMSE", fmt(mp["position_rmse"], " cm", 100), "map.position_rmse"),
         ("map DBH RMSE", fmt(mp["diameter_rmse"], " cm", 100), "map.diameter_rmse"),
         ("path RMSE", fmt(s.get("trajectory_rmse_m"), " cm", 100), "slam.trajectory_rmse_m"),
+        ("RPE per 10 m of path: translation / rotation RMSE",
+         f"{fmt(s.get('rpe_trans_rmse_m'), ' cm', 100)} / {fmt(s.get('rpe_rot_rmse_deg'), ' deg')}",
+         "slam.rpe_trans_rmse_m, .rpe_rot_rmse_deg"),
         ("loop-closure error (dead reckoning)",
          f"{fmt(s.get('loop_closure_error_m'), ' cm', 100)} "
          f"({fmt(s.get('dead_reckoning_loop_closure_error_m'), ' cm', 100)})",

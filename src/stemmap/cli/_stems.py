@@ -282,11 +282,16 @@ def stems(
 
     import numpy as np
 
-    from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
+    from stemmap.cloud.export import (
+        plot_stems,
+        write_stems_csv,
+        write_stems_geojson,
+        write_stems_gpkg,
+    )
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.engine import expand_inputs
     from stemmap.io.clouds import count_points, iter_cloud_chunks
-    from stemmap.io.geo import GeoLayer, array_fields, las_crs, write_gpkg
+    from stemmap.io.geo import las_crs
     from stemmap.io.products import run_products
 
     with fail_on_stemmap_error():
@@ -340,8 +345,7 @@ def stems(
         if geojson is not None:
             write_stems_geojson(run.path(geojson), result, crs=crs)
         if gpkg is not None:
-            fields = array_fields(result, len(result), skip=("xy",))
-            write_gpkg(run.path(gpkg), [GeoLayer("stems", result.xy, fields)], crs, result.frame)
+            write_stems_gpkg(run.path(gpkg), result, crs=crs)
         fig_path = None if png is None else run.path(png)
         if report is not None and png is None:
             fig_path = Path(tmp) / "figure.png"
