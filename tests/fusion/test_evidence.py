@@ -159,3 +159,34 @@ def test_table2_band_is_the_papers() -> None:
     # the paper's four laser widths (169.6-183.6 mm) sit inside the band
     widths = np.array(list(WIDTHS.values()))
     assert np.all((widths > p.w_min) & (widths < p.w_max))
+
+
+def test_dempster_with_conflict_and_ignorance_on_both_sides() -> None:
+    # Hand-computed eq. 16 with K > 0 AND Omega > 0 on both sides (Table 3 never has both):
+    # K = 0.5*0.4 + 0.3*0.4 = 0.32; T = 0.2 + 0.1 + 0.08 = 0.38; NT = 0.12 + 0.06 + 0.08 = 0.26;
+    # Omega = 0.04; each / (1 - K) = 0.68.
+    c = combine_dempster(Mass(0.5, 0.3, 0.2), Mass(0.4, 0.4, 0.2))
+    assert c
+    assert float(c.conflict) == pytest.approx(0.32, abs=1e-12)
+    np.testing.assert_allclose(
+        [float(c.mass.t), float(c.mass.nt), float(c.mass.theta)],
+        [0.38 / 0.68, 0.26 / 0.68, 0.04 / 0.68],
+        atol=1e-12,
+    )
+    with pytest.raises(InputError, match="differ"):
+        combine_dempster(
+            Mass([0.5, 0.5], [0.5, 0.5], [0, 0]), Mass([1.0] * 3, [0.0] * 3, [0.0] * 3)
+        )
+
+
+def test_decision_inequalities_are_strict_as_in_eq17() -> None:
+    # Exact binary fractions, so each tie is exact: eq. 17 uses strict inequalities.
+    assert bool(decide_xue2018(Mass(0.625, 0.125, 0.25), eps1=0.25, eps2=0.5))
+    assert not decide_xue2018(Mass(0.5, 0.25, 0.25), eps1=0.25, eps2=0.5)  # T - NT == eps1
+    assert not decide_xue2018(Mass(0.625, 0.125, 0.25), eps1=0.25, eps2=0.25)  # Omega == eps2
+    assert not decide_xue2018(Mass(0.375, 0.25, 0.375), eps1=0.0, eps2=0.5)  # T == Omega
+    # Threshold ranges: eps1 in [0, 1), eps2 in (0, 1].
+    assert bool(decide_xue2018(Mass(1.0, 0.0, 0.0), eps1=0.0, eps2=1.0))
+    for eps1, eps2 in ((1.0, 0.1), (-0.1, 0.1), (0.1, 1.5), (0.1, 0.0)):
+        with pytest.raises(ConfigError, match="eps1 in"):
+            decide_xue2018(Mass(1.0, 0.0, 0.0), eps1=eps1, eps2=eps2)
