@@ -190,3 +190,21 @@ def test_decision_inequalities_are_strict_as_in_eq17() -> None:
     for eps1, eps2 in ((1.0, 0.1), (-0.1, 0.1), (0.1, 1.5), (0.1, 0.0)):
         with pytest.raises(ConfigError, match="eps1 in"):
             decide_xue2018(Mass(1.0, 0.0, 0.0), eps1=eps1, eps2=eps2)
+
+
+def test_mass_is_a_frozen_clipped_float_copy() -> None:
+    src = np.array([1, 0])
+    m = Mass(src, 1 - src, [0, 0])  # integer input
+    src[0] = 0  # the caller's array changes afterwards: the mass must not
+    for a in (m.t, m.nt, m.theta):
+        assert a.dtype == np.float64 and not a.flags.writeable
+    assert m.t.tolist() == [1.0, 0.0] and m.nt.tolist() == [0.0, 1.0]
+    # Rounding within the 1e-9 tolerance is accepted, then clipped into [0, 1].
+    r = Mass(1.0 + 4e-10, -4e-10, 0.0)
+    assert float(r.t) == 1.0 and float(r.nt) == 0.0
+    with pytest.raises(InputError, match="finite"):
+        Mass(np.nan, 0.5, 0.5)
+    with pytest.raises(InputError, match=r"\[0, 1\]; got 1.2\."):
+        Mass(1.2, -0.2, 0.0)
+    with pytest.raises(InputError, match=r"element 1 sums to 1.1 \(t=0.5, nt=0.6, theta=0\)"):
+        Mass([0.5, 0.5], [0.5, 0.6], [0.0, 0.0])
