@@ -208,3 +208,12 @@ def test_mass_is_a_frozen_clipped_float_copy() -> None:
         Mass(1.2, -0.2, 0.0)
     with pytest.raises(InputError, match=r"element 1 sums to 1.1 \(t=0.5, nt=0.6, theta=0\)"):
         Mass([0.5, 0.5], [0.5, 0.6], [0.0, 0.0])
+
+
+def test_mass_helpers() -> None:
+    m = Mass.from_t_nt([0.5, 0.25], [0.25, 0.5])
+    assert m.theta.tolist() == [0.25, 0.25]  # 1 - T - NT
+    assert m.pignistic_t().tolist() == [0.625, 0.375]  # T + Omega / 2 (Smets)
+    sub = m[1]
+    assert (float(sub.t), float(sub.nt), float(sub.theta)) == (0.25, 0.5, 0.25)
+    assert m[np.array([False, True])].t.tolist() == [0.25]
