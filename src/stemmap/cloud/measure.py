@@ -106,9 +106,12 @@ def _vertical_filter(
     A trunk's surface projects onto the same cells at every height of the band; branches,
     needles and leaves occupy a cell at one or two heights only. Removing them before
     clustering keeps them out of the circle fits (a spruce whorl otherwise swamps its stem).
-    The cell (3-10 cm) tolerates the lean of a stem between adjacent slices.
+    The cell (3-10 cm) tolerates the lean of a stem between adjacent slices. Cells lie on the
+    global lattice ``floor(x / cell)`` (not anchored at the points' minimum), so a point falls
+    in the same cell whatever part of the cloud is processed (one chunk of a catalog or all).
     """
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+    ij = np.floor(xy / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
     ny = int(ij[:, 1].max()) + 1
     key = ij[:, 0] * ny + ij[:, 1]
     ok = sl >= 0
@@ -264,8 +267,10 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         log.warning("%d stray band point(s) far outside the cloud ignored", int((~core).sum()))
         xy, h, sl_all = xy[core], h[core], sl_all[core]
         orig = None if orig is None else orig[core]
-    lo = xy.min(axis=0)
-    ij = np.floor((xy - lo) / cell).astype(np.int64)
+    # cells on the global lattice floor(x / cell), offset to start at 0: the same point gets
+    # the same cell in any chunk of a catalog as in the whole cloud
+    ij = np.floor(xy / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
     shape = ij.max(axis=0) + 1
     raster_guard(
         int(shape[0]) * int(shape[1]),
@@ -338,7 +343,9 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             spacing=sp2d,
             reason="no slice fit passed the quality tests (points, radius, arc)",
         )
-    noise_floor = float(np.median(rms[plausible]))
+    noise_floor = (
+        cfg.noise_floor if cfg.noise_floor is not None else float(np.median(rms[plausible]))
+    )
     rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
     passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
     log.debug(
@@ -490,10 +497,13 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             rows.extend(pooled)
             rules.extend([RULE_BH] * len(pooled))
     if not rows:
-        return CloudStems.empty(
-            "ours",
-            spacing=sp2d,
-            reason="no cluster passed the per-stem tests (slices, vertical extent, taper)",
+        return replace(
+            CloudStems.empty(
+                "ours",
+                spacing=sp2d,
+                reason="no cluster passed the per-stem tests (slices, vertical extent, taper)",
+            ),
+            noise_floor=noise_floor,
         )
     arr = np.array(rows, dtype=np.float64)
     # suppress duplicates (a trunk split into two clusters): keep the better supported one
@@ -532,6 +542,7 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         method="ours" if cfg.fit_method == "ours" else f"ours_{cfg.fit_method}",
         frame="cloud",
         spacing=sp2d,
+        noise_floor=noise_floor,
         base=band.base,
     )
 

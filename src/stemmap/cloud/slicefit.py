@@ -4,6 +4,7 @@ batched geometric fits with outlier trimming, refinement along the rays, Theil-S
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 from numpy.typing import NDArray
@@ -170,10 +171,14 @@ def _fit_segments(
         order = np.argsort(ids, kind="stable")
         starts = np.searchsorted(ids[order], first.segment_ids)
         stops = np.searchsorted(ids[order], first.segment_ids, side="right")
-        gen = np.random.default_rng(0)
         for row in np.flatnonzero(suspect)[:2000]:
             idx = order[starts[row] : stops[row]]
-            best = _ransac_circle(pts[idx], ransac_tol, radius_window, gen)
+            # seeded by the segment's own points, not by a stream shared with the segments
+            # before it: a segment gets the same draws in any chunk of a catalog as in the
+            # whole cloud (docs/algorithms/engine.md)
+            q = np.ascontiguousarray(pts[idx])
+            gen = np.random.default_rng(zlib.crc32(q.tobytes()))
+            best = _ransac_circle(q, ransac_tol, radius_window, gen)
             if best is None:
                 continue
             cx, cy, r = best
