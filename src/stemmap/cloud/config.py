@@ -47,6 +47,9 @@ class StemConfig:
         median RMS of the band's plausible slice fits. The tile engine measures spacing and
         noise floor once per catalog and passes both to every chunk, so a chunk's thresholds
         are those of the whole cloud (docs/algorithms/engine.md)
+    grid_origin : (x, y), optional -- anchor the clustering and vertical-filter grids at this
+        point (cell edges at origin + k x cell) instead of at the band's minimum; the tile
+        engine sets one for the whole catalog so every chunk uses the same cells
     fit_method : str -- circle fit (``scan.circle.FIT_METHODS``); "ours" is the robust
         geometric fit
     estimate_height : bool -- also estimate stem height (highest point within 1 m of the axis)
@@ -72,6 +75,7 @@ class StemConfig:
     cluster_cell_factor: float = 2.0
     spacing: float | None = None
     noise_floor: float | None = None
+    grid_origin: tuple[float, float] | None = None
     fit_method: str = "ours"
     estimate_height: bool = False
     slice_mode: str = "auto"

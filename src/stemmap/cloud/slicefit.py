@@ -4,7 +4,6 @@ batched geometric fits with outlier trimming, refinement along the rays, Theil-S
 from __future__ import annotations
 
 import math
-import zlib
 
 import numpy as np
 from numpy.typing import NDArray
@@ -173,12 +172,11 @@ def _fit_segments(
         stops = np.searchsorted(ids[order], first.segment_ids, side="right")
         for row in np.flatnonzero(suspect)[:2000]:
             idx = order[starts[row] : stops[row]]
-            # seeded by the segment's own points, not by a stream shared with the segments
-            # before it: a segment gets the same draws in any chunk of a catalog as in the
-            # whole cloud (docs/algorithms/engine.md)
-            q = np.ascontiguousarray(pts[idx])
-            gen = np.random.default_rng(zlib.crc32(q.tobytes()))
-            best = _ransac_circle(q, ransac_tol, radius_window, gen)
+            # seeded per segment (by its point count), not by a stream shared with the
+            # segments before it: a segment gets the same draws in any chunk of a catalog as
+            # in the whole cloud (docs/algorithms/engine.md), and in a shifted copy of it
+            gen = np.random.default_rng(idx.size)
+            best = _ransac_circle(pts[idx], ransac_tol, radius_window, gen)
             if best is None:
                 continue
             cx, cy, r = best

@@ -124,7 +124,12 @@ def catalog_statistics(
     sensor: SensorPositions | None = None,
     time_field: str | None = None,
 ) -> StemConfig:
-    """``config`` with the point spacing and slice noise floor of the catalog filled in.
+    """``config`` with the grid origin, point spacing and slice noise floor of the catalog
+    filled in.
+
+    The detector's clustering and vertical-filter grids are anchored at
+    ``StemConfig.grid_origin``, set here to the catalog's lower-left header corner (without
+    it each chunk would anchor them at its own points' minimum).
 
     Our detector measures both on the points it is given (``StemConfig.spacing``,
     ``StemConfig.noise_floor``); measured per buffered chunk they would differ from chunk to
@@ -136,6 +141,10 @@ def catalog_statistics(
     When the pilot measures nothing (no band points, no plausible slice fit) the value stays
     unset and each chunk measures its own (logged as a warning).
     """
+    if config.grid_origin is None:
+        # one anchor for the grids of every chunk: the catalog's lower-left header corner
+        x0, y0, _, _ = catalog.bounds
+        config = replace(config, grid_origin=(x0, y0))
     if config.spacing is not None and config.noise_floor is not None:
         return config
     b = pilot_box(catalog, max_points)
