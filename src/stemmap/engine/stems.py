@@ -13,7 +13,9 @@ detector looks at around a stem: its points (half a DBH), its cluster, and the g
 cells under it with their 3 x 3 neighbourhoods (two ground cells, plus one for the raster's
 bilinear interpolation) -- :data:`MIN_EXACT_BUFFER` with the default 1 m ground cell. The
 cloud's slice mode (a pre-cut slice or a full cloud) is decided once for the whole catalog from
-the header z range, never per chunk.
+the header z range, never per chunk; the detector's grid origin, point spacing and noise floor
+once by :func:`catalog_statistics`, so each chunk runs with the single process's state
+(``CatalogRun.config``).
 """
 
 from __future__ import annotations
