@@ -78,6 +78,24 @@ def _finite_scalar(value: Any, name: str) -> float:
 # --------------------------------------------------------------------------------------------
 
 
+def _check_increment(value: Any, n_beams: int) -> float:
+    """The angle increment as a float; InputError if zero or if the beams span > 360 deg.
+
+    A scanner's beams cover at most one turn: ``|increment| * (n_beams - 1) <= 2 pi`` (a
+    1-rad increment over 181 beams, or a 0, is a damaged header, never a real scan).
+    """
+    inc = _finite_scalar(value, "angle_increment")
+    if inc == 0.0:
+        raise InputError("angle_increment must be non-zero (radians between beams).")
+    span = abs(inc) * max(n_beams - 1, 0)
+    if span > 2.0 * math.pi + 1e-9:
+        raise InputError(
+            f"angle_increment {inc!r} rad over {n_beams} beams spans {math.degrees(span):.0f} "
+            "degrees; a scan covers at most 360 (is the increment in degrees, or damaged?)."
+        )
+    return inc
+
+
 @dataclass(frozen=True, eq=False)
 class LaserScan:
     """One 2D laser scan; mirrors ROS ``sensor_msgs/LaserScan``.
@@ -119,9 +137,7 @@ class LaserScan:
         ranges = _frozen_array(self.ranges, "LaserScan.ranges", ndim=1)
         object.__setattr__(self, "ranges", ranges)
         object.__setattr__(self, "angle_min", _finite_scalar(self.angle_min, "angle_min"))
-        inc = _finite_scalar(self.angle_increment, "angle_increment")
-        if inc == 0.0:
-            raise InputError("angle_increment must be non-zero (radians between beams).")
+        inc = _check_increment(self.angle_increment, ranges.shape[-1])
         object.__setattr__(self, "angle_increment", inc)
         object.__setattr__(self, "time", _finite_scalar(self.time, "time"))
         rmin = float(self.range_min)
@@ -188,9 +204,7 @@ class ScanBatch:
         object.__setattr__(self, "ranges", ranges)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "angle_min", _finite_scalar(self.angle_min, "angle_min"))
-        inc = _finite_scalar(self.angle_increment, "angle_increment")
-        if inc == 0.0:
-            raise InputError("angle_increment must be non-zero (radians between beams).")
+        inc = _check_increment(self.angle_increment, ranges.shape[-1])
         object.__setattr__(self, "angle_increment", inc)
         rmin, rmax = float(self.range_min), float(self.range_max)
         if not (rmin >= 0.0 and rmax > rmin):

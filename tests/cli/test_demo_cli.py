@@ -44,6 +44,10 @@ def test_demo_writes_every_product_and_scores_well(tmp_path: Path) -> None:
     assert mp["position_rmse"] < 0.25
     # the loop-closure target: at least 3x smaller than dead reckoning
     assert slam["loop_closure_error_m"] * 3 < slam["dead_reckoning_loop_closure_error_m"]
+    # evo's RPE vs the true poses per 10 m (measured 0.019 m / 0.11 deg on the default demo;
+    # the bounds only catch a broken wiring: a lost loop gives metres / tens of degrees)
+    assert slam["rpe_n"] >= 3 and slam["rpe_delta_unit"] == "m"
+    assert 0 <= slam["rpe_trans_rmse_m"] < 1 and 0 <= slam["rpe_rot_rmse_deg"] < 5
 
     # the files agree with the metrics and with each other
     trees = read_trees_csv(out / "trees.csv")

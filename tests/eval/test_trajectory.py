@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stemmap.errors import InputError
-from stemmap.eval.trajectory import align_se2, ate, loop_closure_error, screen_gps
+from stemmap.errors import ConfigError, InputError
+from stemmap.eval.trajectory import align_se2, ate, loop_closure_error, rpe, screen_gps
 from stemmap.types import Trajectory
 
 
@@ -105,3 +105,51 @@ def test_loop_closure_error():
     # with a known displacement expressed in the start pose's frame
     line = Trajectory([0.0, 1.0], [[0, 0, math.pi / 2], [0, 5, math.pi / 2]])
     assert loop_closure_error(line, (5.0, 0.0)) == pytest.approx(0.0, abs=1e-12)
+
+
+def _line(t, x, theta):
+    return Trajectory(np.asarray(t, float), np.column_stack((x, np.zeros_like(t), theta)))
+
+
+def test_rpe_scale_drift_hand_computed():
+    # reference: 1 m/s along x; estimate runs 10 % long. Stretches of 5 m: pairs (0,5), (5,10);
+    # each estimated stretch is 5.5 m straight ahead, so E = (0.5, 0, 0) for both.
+    t = np.arange(11.0)
+    ref = _line(t, t, np.zeros(11))
+    est = _line(t, 1.1 * t, np.zeros(11))
+    r = rpe(est, ref, delta=5.0)
+    assert r.n == 2
+    np.testing.assert_allclose(r.trans_errors, [0.5, 0.5], atol=1e-12)
+    np.testing.assert_allclose(r.rot_errors_deg, [0.0, 0.0], atol=1e-12)
+    assert r.trans_rmse == pytest.approx(0.5)
+    d = r.as_dict()
+    assert d["rpe_trans_rmse_m"] == pytest.approx(0.5) and d["rpe_delta_unit"] == "m"
+
+
+def test_rpe_heading_drift_hand_computed():
+    # same positions, heading drifts 0.02 rad/s. Pair (0,5): P_0^-1 P_5 = (5, 0, 0.1) against
+    # (5, 0, 0): translation error 0, rotation 0.1 rad. Pair (5,10): seen from P_5 (heading
+    # 0.1) the 5 m step is (5 cos 0.1, -5 sin 0.1): |(5 cos 0.1 - 5, -5 sin 0.1)| = 10 sin 0.05.
+    t = np.arange(11.0)
+    ref = _line(t, t, np.zeros(11))
+    est = _line(t, t, 0.02 * t)
+    r = rpe(est, ref, delta=5.0)
+    np.testing.assert_allclose(r.trans_errors, [0.0, 10 * math.sin(0.05)], atol=1e-12)
+    np.testing.assert_allclose(r.rot_errors_deg, [math.degrees(0.1)] * 2, atol=1e-10)
+    # time stretches of 2 s: pairs (0,2), (2,4), ... (8,10)
+    rt = rpe(est, ref, delta=2.0, delta_unit="s")
+    assert rt.n == 5
+    np.testing.assert_allclose(rt.rot_errors_deg, [math.degrees(0.04)] * 5, atol=1e-10)
+
+
+def test_rpe_identical_is_zero_and_bad_input():
+    t = np.linspace(0, 20, 41)
+    ref = Trajectory(t, np.column_stack((np.cos(t / 5) * 10, np.sin(t / 5) * 10, t / 5 + 1.5)))
+    r = rpe(ref, ref, delta=3.0)
+    assert r.n > 3 and r.trans_max < 1e-9 and r.rot_max_deg < 1e-9
+    short = rpe(ref, ref, delta=1e4)
+    assert not short and "shorter" in short.reason
+    with pytest.raises(ConfigError):
+        rpe(ref, ref, delta=0.0)
+    with pytest.raises(ConfigError):
+        rpe(ref, ref, delta_unit="frames")

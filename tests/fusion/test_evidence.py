@@ -139,3 +139,23 @@ def test_bad_inputs() -> None:
     with pytest.raises(ConfigError):
         decide_xue2018(Mass(1.0, 0.0, 0.0), eps2=0.0)
     assert "xue2018" in PRESETS
+
+
+def test_table2_band_is_the_papers() -> None:
+    """Table 2 alone holds for any band containing 0.17-0.18 m: pin the band (issue 13).
+
+    Xue 2018 eq. 13 with W = [130, 185] mm and dw = 20 mm: k1 = 0.9 on [110, 205] mm, falling
+    by e per 10 mm outside. A preset with another band fails here even if Table 2 passes.
+    """
+    p = PRESETS["xue2018"]
+    assert (p.w_min, p.w_max, p.dw) == (0.13, 0.185, 0.02)
+    w = np.array([0.1095, 0.1105, 0.2045, 0.2055, 0.215, 0.100])
+    t = laser_bpa(w, "xue2018").t
+    np.testing.assert_allclose(t[1:3], 0.9, atol=0)
+    np.testing.assert_allclose(t[0], 0.9 * np.exp(-0.05), rtol=1e-9)  # 0.5 mm below 110 mm
+    np.testing.assert_allclose(t[3], 0.9 * np.exp(-0.05), rtol=1e-9)  # 0.5 mm above 205 mm
+    np.testing.assert_allclose(t[4], 0.9 / np.e, rtol=1e-9)
+    np.testing.assert_allclose(t[5], 0.9 / np.e, rtol=1e-9)
+    # the paper's four laser widths (169.6-183.6 mm) sit inside the band
+    widths = np.array(list(WIDTHS.values()))
+    assert np.all((widths > p.w_min) & (widths < p.w_max))

@@ -17,6 +17,7 @@ from stemmap.cli import app
 from stemmap.errors import ConfigError
 from stemmap.io.geo import (
     GeoLayer,
+    array_fields,
     las_crs,
     local_crs,
     parse_crs,
@@ -91,6 +92,40 @@ def test_gpkg_write_is_atomic(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
+def test_gpkg_text_and_covariance_fields_round_trip(tmp_path: Path) -> None:
+    from stemmap.cloud.result import CloudStems
+
+    k = 3
+    cov = np.array([[[4e-4, 1e-4], [1e-4, 9e-4]]] * k) * np.arange(1, k + 1)[:, None, None]
+    cov[2] = np.nan  # not estimated -> NULL
+    z = np.array([1.3, 1.3, 1.3])
+    stems = CloudStems(
+        np.array([[UTM_E, UTM_N], [UTM_E + 5, UTM_N], [UTM_E, UTM_N + 5]]),
+        z, np.array([0.2, 0.3, 0.25]), np.array([50, 60, 70]), np.ones(k), np.full(k, 300.0),
+        np.full(k, 0.003), np.array([3, 4, 5]), np.full(k, np.nan), np.array([20.0, 21.0, 22.0]),
+        np.full(k, np.nan), diameter_std=np.array([0.004, 0.005, np.nan]), xy_cov=cov,
+        dbh_height=np.array([1.3, 1.3, 1.8]),
+        dbh_rule=np.array(["breast height", "breast height", "above buttress"], dtype=object),
+        method="ours", base="ground",
+    )  # fmt: skip
+    fields = array_fields(stems, k, skip=("xy",), constants=("method", "base"))
+    assert "xy_cov" not in fields and {"cov_xx", "cov_xy", "cov_yy"} <= set(fields)
+    p = tmp_path / "s.gpkg"
+    write_gpkg(p, [GeoLayer("stems", stems.xy, fields)], "EPSG:32633", "cloud")
+    meta, _, geom, data = ogr_read(p, layer="stems")
+    got = dict(zip(meta["fields"], data, strict=True))
+    assert meta["crs"] == "EPSG:32633"
+    np.testing.assert_allclose(_xy(geom), stems.xy)
+    np.testing.assert_allclose(got["cov_xx"][:2], [4e-4, 8e-4])
+    np.testing.assert_allclose(got["cov_xy"][:2], [1e-4, 2e-4])
+    np.testing.assert_allclose(got["cov_yy"][:2], [9e-4, 18e-4])
+    assert np.isnan(got["cov_xx"][2])  # NULL reads back as NaN
+    assert list(got["dbh_rule"]) == ["breast height", "breast height", "above buttress"]
+    assert list(got["base"]) == ["ground"] * k and list(got["method"]) == ["ours"] * k
+    np.testing.assert_array_equal(got["n_points"], [50, 60, 70])
+    np.testing.assert_allclose(got["diameter_std"][:2], [0.004, 0.005])
+
+
 def _rings_las(path: Path, crs: str | None, rng: np.random.Generator) -> np.ndarray:
     """Three full trunk rings at 1.2-1.4 m (a height-normalised slice) in UTM 33N."""
     centres = np.array([[UTM_E + 2, UTM_N + 1], [UTM_E - 3, UTM_N + 4], [UTM_E + 5, UTM_N - 5]])
@@ -139,6 +174,9 @@ def test_stems_cli_carries_las_crs(tmp_path: Path, rng: np.random.Generator) -> 
     got = _xy(geom)
     d = np.hypot(*(got[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
     assert np.all(d.min(axis=1) < 0.01)  # every stem within 1 cm of a ring centre
+    # the GPKG carries the CSV's uncertainty and text columns (same names)
+    cols = set(meta["fields"])
+    assert {"diameter_std", "cov_xx", "cov_xy", "cov_yy", "dbh_rule", "base", "method"} <= cols
     # --crs overrides the header; a geographic CRS is refused with a clear error
     res = CliRunner().invoke(app, [*args, "--crs", "EPSG:4326"])
     assert res.exit_code == 2 and "geographic" in res.output

@@ -8,12 +8,68 @@ from __future__ import annotations
 
 import importlib
 import logging
+import sys
+from typing import Any
 
 import typer
+from typer.core import TyperGroup
 
 __all__ = ["app", "main"]
 
+
+def _click_exception() -> type[Exception]:
+    """click's ClickException (typer >= 0.20 vendors click as ``typer._click``)."""
+    for mod in ("typer._click.exceptions", "click.exceptions"):
+        try:
+            cls: type[Exception] = importlib.import_module(mod).ClickException
+        except (ImportError, AttributeError):
+            continue
+        return cls
+    raise ImportError("click's ClickException not found")  # pragma: no cover
+
+
+class _PlainErrorGroup(TyperGroup):
+    """typer's group, but a usage error is one unwrapped ``error:`` line (not a rich panel).
+
+    A rich panel wraps a long message over several boxed lines, which breaks ``grep
+    '^error:'`` and copy-paste of paths (issue 13). Help output keeps rich formatting.
+    """
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        kwargs["standalone_mode"] = False
+        if not standalone_mode:
+            return super().main(*args, **kwargs)
+        from stemmap.cli._common import console, print_error
+
+        try:
+            rv = super().main(*args, **kwargs)
+        except _click_exception() as caught:
+            exc: Any = caught
+            if type(exc).__name__ == "NoArgsIsHelpError":  # help was asked for: typer shows it
+                from typer import rich_utils
+
+                rich_utils.rich_format_error(exc)
+                sys.exit(exc.exit_code)
+            ctx = getattr(exc, "ctx", None)
+            if ctx is not None:
+                console.print(ctx.get_usage(), markup=False, soft_wrap=True, highlight=False)
+                if ctx.command.get_help_option(ctx) is not None:
+                    console.print(
+                        f"Try '{ctx.command_path} {ctx.help_option_names[0]}' for help.",
+                        markup=False,
+                        soft_wrap=True,
+                        highlight=False,
+                    )
+            print_error(exc.format_message())
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            console.print("Aborted!", markup=False)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
 app = typer.Typer(
+    cls=_PlainErrorGroup,
     name="stemmap",
     help=(
         "Tree stem maps from 2D laser scans, 3D point clouds, camera images and odometry.\n\n"

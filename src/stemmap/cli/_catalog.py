@@ -8,6 +8,7 @@ glob, a list file, or any engine option (``--chunk-size``, ``--buffer``, ``--wor
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -15,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from stemmap.cli._common import console, progress
+from stemmap.engine.logs import is_ros2_bag
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -46,31 +48,30 @@ class EngineOptions:
         )
 
 
-def is_ros2_bag(path: Path) -> bool:
-    """A ROS 2 bag is a folder with a ``metadata.yaml`` (and .db3 / .mcap files)."""
-    return path.is_dir() and (path / "metadata.yaml").is_file()
-
-
-def wants_engine(inputs: list[str], opts: EngineOptions) -> bool:
-    """Whether ``stemmap stems INPUTS`` runs on the engine (see the module docstring)."""
+def wants_engine(
+    inputs: Sequence[str | Path], opts: EngineOptions, extensions: Sequence[str] = (".las", ".laz")
+) -> bool:
+    """Whether ``stemmap stems INPUTS`` runs on the engine (see the module docstring); with
+    ``extensions`` of drive logs, whether ``stemmap detect`` / ``map`` take several logs (a
+    list file is a ``.txt`` / ``.lst`` whose first entry has one of ``extensions``)."""
     if len(inputs) != 1 or opts.given:
         return True
     p = Path(inputs[0])
     if p.is_dir():
         return not is_ros2_bag(p)
     if p.is_file():
-        return p.suffix.lower() in (".txt", ".lst") and _is_list_file(p)
-    return any(c in inputs[0] for c in "*?[")
+        return p.suffix.lower() in (".txt", ".lst") and _is_list_file(p, extensions)
+    return any(c in str(inputs[0]) for c in "*?[")
 
 
-def _is_list_file(p: Path) -> bool:
-    """A .txt that names LAS/LAZ files (an XYZ text cloud starts with numbers instead)."""
+def _is_list_file(p: Path, extensions: Sequence[str]) -> bool:
+    """A .txt that names files with ``extensions`` (an XYZ text cloud starts with numbers)."""
     try:
         with p.open(encoding="utf-8") as fh:
             for line in fh:
                 s = line.strip()
                 if s and not s.startswith("#"):
-                    return s.lower().endswith((".las", ".laz"))
+                    return s.lower().endswith(tuple(extensions))
     except (OSError, UnicodeDecodeError):
         return False
     return False

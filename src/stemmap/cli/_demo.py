@@ -29,6 +29,7 @@ from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default,
 from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
 from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
+from stemmap.cli._validate import bounded
 
 __all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
 
@@ -284,8 +285,18 @@ def demo(
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path(
         "stemmap-demo"
     ),
-    seed: Annotated[int, typer.Option(help="Simulation seed (same seed, same files).")] = 1,
-    n_trees: Annotated[int, typer.Option("--n-trees", help="Trees in the 60 x 60 m stand.")] = 120,
+    seed: Annotated[
+        int,
+        typer.Option(
+            help="Simulation seed (same seed, same files).", callback=bounded("--seed", ge=0)
+        ),
+    ] = 1,
+    n_trees: Annotated[
+        int,
+        typer.Option(
+            "--n-trees", help="Trees in the 60 x 60 m stand.", callback=bounded("--n-trees", ge=1)
+        ),
+    ] = 120,
     backend: Annotated[Backend, typer.Option("--backend", help="SLAM back-end.")] = (
         _DEFAULT_BACKEND
     ),
@@ -334,6 +345,9 @@ def demo(
         ("tree position RMSE", fmt(mp["position_rmse"], " cm", 100), "map.position_rmse"),
         ("map DBH RMSE", fmt(mp["diameter_rmse"], " cm", 100), "map.diameter_rmse"),
         ("path RMSE", fmt(s.get("trajectory_rmse_m"), " cm", 100), "slam.trajectory_rmse_m"),
+        ("RPE per 10 m of path: translation / rotation RMSE",
+         f"{fmt(s.get('rpe_trans_rmse_m'), ' cm', 100)} / {fmt(s.get('rpe_rot_rmse_deg'), ' deg')}",
+         "slam.rpe_trans_rmse_m, .rpe_rot_rmse_deg"),
         ("loop-closure error (dead reckoning)",
          f"{fmt(s.get('loop_closure_error_m'), ' cm', 100)} "
          f"({fmt(s.get('dead_reckoning_loop_closure_error_m'), ' cm', 100)})",

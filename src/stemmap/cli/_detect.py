@@ -10,6 +10,8 @@ import numpy as np
 import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
+from stemmap.cli._validate import bounded
 
 __all__ = ["detect", "register"]
 
@@ -22,11 +24,20 @@ _PROGRESS_MIN_SCANS = 5000
 
 def detect(
     scans: Annotated[
-        Path,
-        typer.Argument(help="Scan file: .npz, .csv, ROS1 .bag or ROS2 bag (folder/.db3/.mcap)."),
+        list[Path],
+        typer.Argument(
+            help="Scan file: .npz, .csv, ROS1 .bag or ROS2 bag (folder/.db3/.mcap). Several "
+            "logs (files, a folder, a glob, a .txt list) run one Dask task per log."
+        ),
     ],
     out_path: Annotated[
-        Path, typer.Option("--out", "-o", help="Observations CSV to write (one row per trunk).")
+        Path,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Observations CSV to write (one row per trunk); with several logs a folder: "
+            "OUT/<log>/observations.csv per log and OUT/summary.csv.",
+        ),
     ],
     preset: Annotated[
         str,
@@ -40,12 +51,16 @@ def detect(
         typer.Option(help="Override the preset's circle fit (kasa, fletcher_reeves, ours, ...)."),
     ] = None,
     sigma: Annotated[
-        float | None, typer.Option(help="Override the sensor range noise, metres.")
+        float | None,
+        typer.Option(
+            help="Override the sensor range noise, metres.", callback=bounded("--sigma", gt=0)
+        ),
     ] = None,
     footprint: Annotated[
         float | None,
         typer.Option(
-            help="Beam footprint of a nearest-return scanner, degrees (corrects wide trunks)."
+            help="Beam footprint of a nearest-return scanner, degrees (corrects wide trunks).",
+            callback=bounded("--footprint", ge=0, lt=180),
         ),
     ] = None,
     rejected: Annotated[
@@ -59,6 +74,8 @@ def detect(
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
     ] = False,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
 ) -> None:
     """Detect trunks in every scan and write scan_index,time_s,x,y,diameter,radius_std,n_points,...
 
@@ -68,7 +85,12 @@ def detect(
     Example: stemmap detect run.npz --out stems.csv --preset stemmap
     --rejected FILE lists every candidate the detector dropped with the test that dropped it
     (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md).
+
+    Example: stemmap detect logs/ --out det --workers 2  (one folder per log + summary.csv)
     """
+    if wants_logs(scans, workers, scheduler):
+        return run_many_logs("detect", dict(locals()))
+    scan = scans[0]
     from stemmap.io.maps import write_observations_csv
     from stemmap.io.products import run_products
     from stemmap.io.scans import SkippedFrame, read_scans
@@ -77,7 +99,7 @@ def detect(
 
     with (
         fail_on_stemmap_error(),
-        run_products("detect", inputs=[scans], outputs=[out_path, rejected]) as run,
+        run_products("detect", inputs=[scan], outputs=[out_path, rejected]) as run,
     ):
         overrides: dict[str, object] = {}
         if fit is not None:
@@ -88,7 +110,7 @@ def detect(
             overrides["beam_footprint_deg"] = footprint
         detector = ScanTrunkDetector(DetectorConfig.preset(preset, **overrides))
         skipped: list[SkippedFrame] = []
-        batch = read_scans(scans, topic=topic, skipped=skipped)
+        batch = read_scans(scan, topic=topic, skipped=skipped)
         for sk in skipped:
             console.print(
                 f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"

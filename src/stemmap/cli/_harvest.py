@@ -10,23 +10,45 @@ import typer
 from rich.table import Table
 
 from stemmap.cli._common import fail_on_stemmap_error, out
+from stemmap.cli._validate import bounded
 
 __all__ = ["register"]
 
 
 def harvest_sim(
-    seed: Annotated[int, typer.Option(help="Random seed of the stand and the noise.")] = 1,
-    trees: Annotated[int, typer.Option(help="Trees around the parked machine.")] = 25,
+    seed: Annotated[
+        int,
+        typer.Option(
+            help="Random seed of the stand and the noise.", callback=bounded("--seed", ge=0)
+        ),
+    ] = 1,
+    trees: Annotated[
+        int,
+        typer.Option(help="Trees around the parked machine.", callback=bounded("--trees", ge=1)),
+    ] = 25,
     target: Annotated[
         str, typer.Option(help="How to pick the trunk: nearest, index or bearing.")
     ] = "nearest",
     index: Annotated[
-        int | None, typer.Option(help="With --target index: row among the first scan's trunks.")
+        int | None,
+        typer.Option(
+            help="With --target index: row among the first scan's trunks.",
+            callback=bounded("--index", ge=0),
+        ),
     ] = None,
     bearing: Annotated[
-        float | None, typer.Option(help="With --target bearing: degrees from the machine's x axis.")
+        float | None,
+        typer.Option(
+            help="With --target bearing: degrees from the machine's x axis.",
+            callback=bounded("--bearing", ge=-180, le=180),
+        ),
     ] = None,
-    max_cycles: Annotated[int, typer.Option(help="Give up after this many cycles.")] = 40,
+    max_cycles: Annotated[
+        int,
+        typer.Option(
+            help="Give up after this many cycles.", callback=bounded("--max-cycles", ge=1)
+        ),
+    ] = 40,
     png: Annotated[Path, typer.Option(help="Top-view figure to write.")] = Path("harvest.png"),
 ) -> None:
     """Simulate a crane-mounted 2D laser guiding the harvesting head to a trunk.
@@ -47,6 +69,13 @@ def harvest_sim(
 
     if target not in ("nearest", "index", "bearing"):
         raise typer.BadParameter("use nearest, index or bearing", param_hint="--target")
+    if target == "bearing" and bearing is None:
+        raise typer.BadParameter(
+            "--target bearing needs --bearing DEGREES (from the machine's x axis, -180..180).",
+            param_hint="--bearing",
+        )
+    if target == "index" and index is None:
+        raise typer.BadParameter("--target index needs --index ROW (>= 0).", param_hint="--index")
     with fail_on_stemmap_error(), run_products("harvest-sim", outputs=[png]) as run:
         crane = ForestryCrane()
         warm_up_planner()  # a controller compiles before its first control period

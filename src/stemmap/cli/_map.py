@@ -24,6 +24,7 @@ from stemmap.cli._geo import (
     write_gps_frame,
     write_map_products,
 )
+from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
     announce_compile,
@@ -31,6 +32,7 @@ from stemmap.cli._summary import (
     print_summary,
     write_run_report,
 )
+from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
@@ -233,9 +235,13 @@ def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
     return SlamResult(st["trajectory"], st["stem_map"], stats)
 
 
+RPE_DELTA_M = 10.0
+"""Path length (m) of the relative pose error's stretches on simulated runs (evo's --delta)."""
+
+
 def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
     """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
-    from stemmap.eval.trajectory import ate, loop_closure_error, screen_gps
+    from stemmap.eval.trajectory import ate, loop_closure_error, rpe, screen_gps
     from stemmap.slam.base import dead_reckoning, duplicate_pairs, sensor_poses
     from stemmap.slam.motion import preintegrate
 
@@ -286,6 +292,8 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
         err = np.hypot(*(result.trajectory.interpolate(truth.times)[:, :2] - truth.xy).T)
         m["trajectory_rmse_m"] = float(np.sqrt(np.mean(err**2)))
         m["trajectory_max_m"] = float(err.max())
+        r_rel = rpe(result.trajectory, truth, delta=RPE_DELTA_M)  # full poses: evo's RPE
+        m.update(r_rel.as_dict("rpe_") if r_rel else {"rpe_error": r_rel.reason})
         true_disp = truth.xy[-1] - truth.xy[0]
         th0 = float(truth.poses[0, 2])
         c, s = math.cos(th0), math.sin(th0)
@@ -313,6 +321,12 @@ def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]
         rows.append(("path RMSE vs truth", fmt(m["trajectory_rmse_m"], " m"), "trajectory_rmse_m"))
         lc = m.get("loop_closure_error_m")
         rows.append(("loop-closure error", fmt(lc, " m"), "loop_closure_error_m"))
+    if "rpe_trans_rmse_m" in m:
+        per = f"per {m['rpe_delta']:g} {m['rpe_delta_unit']}"
+        rows.append((f"RPE translation RMSE ({per})", fmt(m["rpe_trans_rmse_m"], " m"),
+                     "rpe_trans_rmse_m"))  # fmt: skip
+        rows.append((f"RPE rotation RMSE ({per})", fmt(m["rpe_rot_rmse_deg"], " deg"),
+                     "rpe_rot_rmse_deg"))  # fmt: skip
     mm = m.get("map")
     if isinstance(mm, dict):
         rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
@@ -363,12 +377,14 @@ def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
 
 
 def map_command(
-    bag: Annotated[
-        Path | None,
+    logs: Annotated[
+        list[Path] | None,
         typer.Argument(
             metavar="INPUT",
             help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
-            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry.",
+            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry. "
+            "Several logs (files, a folder, a glob, a .txt list): one Dask task per log, "
+            "OUT/<log>/ each, OUT/summary.csv.",
         ),
     ] = None,
     odometry: Annotated[
@@ -390,14 +406,33 @@ def map_command(
         "stemmap_map"
     ),
     t_end: Annotated[
-        float | None, typer.Option("--t-end", help="Use the dataset only up to this time (s).")
+        float | None,
+        typer.Option(
+            "--t-end",
+            help="Use the dataset only up to this time (s).",
+            callback=bounded("--t-end", gt=0),
+        ),
     ] = None,
     t_start: Annotated[
         float, typer.Option("--t-start", help="Use the dataset from this time (s).")
     ] = 0.0,
-    seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
-    sim_trees: Annotated[int, typer.Option("--sim-trees", help="Trees in the stand.")] = 150,
-    sim_size: Annotated[float, typer.Option("--sim-size", help="Stand side (m).")] = 60.0,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Simulation seed.", callback=bounded("--seed", ge=0))
+    ] = 1,
+    sim_trees: Annotated[
+        int,
+        typer.Option(
+            "--sim-trees", help="Trees in the stand.", callback=bounded("--sim-trees", ge=1)
+        ),
+    ] = 150,
+    sim_size: Annotated[
+        float,
+        typer.Option(
+            "--sim-size",
+            help="Stand side (m), > 4 (the loop keeps 15 % of the side from the edge).",
+            callback=bounded("--sim-size", gt=4),
+        ),
+    ] = 60.0,
     sensor_offset: Annotated[
         str, typer.Option("--sensor-offset", help="Bag: laser position 'a,b' (m) in the vehicle.")
     ] = "0,0",
@@ -455,6 +490,8 @@ def map_command(
         TrajectoryFormat,
         typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
     ] = TrajectoryFormat.csv,
+    workers: WorkersOption = None,
+    scheduler: SchedulerOption = None,
 ) -> None:
     """Map trees and the machine's path with tree-landmark SLAM.
 
@@ -468,7 +505,12 @@ def map_command(
     Example: stemmap sim scans --out run.npz && stemmap map run.npz --out runmap
 
     Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
+
+    Example: stemmap map logs/ --workers 2 --out maps  (maps/<log>/ per log, maps/summary.csv)
     """
+    if wants_logs(logs, workers, scheduler):
+        return run_many_logs("map", dict(locals()), as_json=as_json)
+    bag = logs[0] if logs else None
     from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
     from stemmap.io.products import run_products

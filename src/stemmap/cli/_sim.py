@@ -29,6 +29,8 @@ import numpy as np
 import typer
 
 from stemmap.cli._common import fail_on_stemmap_error, out
+from stemmap.cli._validate import bounded
+from stemmap.io._util import existing_file
 
 __all__ = ["register"]
 
@@ -59,18 +61,40 @@ def _sibling(path: Path, suffix: str) -> Path:
 def scans(
     out_path: Annotated[Path, typer.Option("--out", "-o", help="Scans NPZ to write.")],
     preset: Annotated[str, typer.Option(help="Scanner preset: sick_lms, rplidar.")] = "sick_lms",
-    seed: Annotated[int, typer.Option(help="Random seed (same seed, same files).")] = 0,
+    seed: Annotated[
+        int,
+        typer.Option(help="Random seed (same seed, same files).", callback=bounded("--seed", ge=0)),
+    ] = 0,
     n_scans: Annotated[
         int | None,
-        typer.Option("--n-scans", help="Number of scans (default: one pass along the path)."),
+        typer.Option(
+            "--n-scans",
+            help="Number of scans (default: one pass along the path).",
+            callback=bounded("--n-scans", ge=2),
+        ),
     ] = None,
     layout: Annotated[Layout, typer.Option(help="Stand layout.")] = Layout.random,
-    n_trees: Annotated[int, typer.Option("--n-trees", help="Trees in the stand.")] = 60,
-    size: Annotated[float, typer.Option(help="Stand side length, metres (square).")] = 40.0,
+    n_trees: Annotated[
+        int,
+        typer.Option("--n-trees", help="Trees in the stand.", callback=bounded("--n-trees", ge=1)),
+    ] = 60,
+    size: Annotated[
+        float,
+        typer.Option(
+            help="Stand side length, metres (square), > 4.", callback=bounded("--size", gt=4)
+        ),
+    ] = 40.0,
     path: Annotated[PathKind, typer.Option("--path", help="Drive pattern.")] = PathKind.loop,
-    speed: Annotated[float, typer.Option(help="Vehicle speed, m/s.")] = 1.0,
+    speed: Annotated[
+        float, typer.Option(help="Vehicle speed, m/s.", callback=bounded("--speed", gt=0))
+    ] = 1.0,
     rate_hz: Annotated[
-        float | None, typer.Option("--rate-hz", help="Scan rate (default: the preset's).")
+        float | None,
+        typer.Option(
+            "--rate-hz",
+            help="Scan rate (default: the preset's).",
+            callback=bounded("--rate-hz", gt=0),
+        ),
     ] = None,
     clutter: Annotated[
         bool, typer.Option("--clutter/--no-clutter", help="Bushes, branches, walls, rocks.")
@@ -127,10 +151,6 @@ def scans(
     truth_path = _sibling(out_path, "truth.npz")
     products = [out_path, t_path, p_path, o_path, g_path, truth_path]
     with fail_on_stemmap_error(), run_products("sim scans", outputs=products) as run:
-        if n_scans is not None and n_scans < 2:
-            raise ConfigError(f"--n-scans must be >= 2, got {n_scans}.")
-        if not size > 4.0:
-            raise ConfigError(f"--size must exceed 4 m, got {size}.")
         gen = np.random.default_rng(seed)
         row_gap = size / 5
         g_stand, g_clutter, g_shape, g_run = gen.spawn(4)
@@ -253,8 +273,7 @@ def _read_truth_trees(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read an ``id,x,y,diameter`` truth CSV written by ``stemmap sim scans``."""
     from stemmap.errors import InputError
 
-    if not path.is_file():
-        raise InputError(f"truth trees CSV {str(path)!r} does not exist.")
+    existing_file(path, "truth trees CSV")
     try:
         table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:
@@ -281,15 +300,32 @@ def score(
             "--run", help="The scans NPZ written by `stemmap sim scans` (truth beside it)."
         ),
     ],
-    gate: Annotated[float, typer.Option(help="Match gate, metres.")] = 0.5,
+    gate: Annotated[
+        float, typer.Option(help="Match gate, metres.", callback=bounded("--gate", gt=0))
+    ] = 0.5,
     min_returns: Annotated[
-        int, typer.Option("--min-returns", help="Beams a trunk needs to count as detectable.")
+        int,
+        typer.Option(
+            "--min-returns",
+            help="Beams a trunk needs to count as detectable.",
+            callback=bounded("--min-returns", ge=1),
+        ),
     ] = 5,
     max_range: Annotated[
-        float, typer.Option("--max-range", help="Trees farther than this are don't-care, m.")
+        float,
+        typer.Option(
+            "--max-range",
+            help="Trees farther than this are don't-care, m.",
+            callback=bounded("--max-range", gt=0),
+        ),
     ] = 15.0,
     min_diameter: Annotated[
-        float, typer.Option("--min-diameter", help="Thinner trees are don't-care, m.")
+        float,
+        typer.Option(
+            "--min-diameter",
+            help="Thinner trees are don't-care, m.",
+            callback=bounded("--min-diameter", ge=0),
+        ),
     ] = 0.10,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the metrics as JSON here.")
@@ -305,7 +341,7 @@ def score(
     from stemmap.io.atomic import atomic_write
     from stemmap.io.maps import read_observations_csv
     from stemmap.io.products import run_products
-    from stemmap.io.scans import read_scans
+    from stemmap.io.scans import NPZ_ERRORS, read_scans
     from stemmap.io.trajectory import read_trajectory_csv
 
     truth_files = [_sibling(run_path, s) for s in ("trees.csv", "poses.csv", "truth.npz")]
@@ -319,14 +355,13 @@ def score(
         trees_xy, diam = _read_truth_trees(_sibling(run_path, "trees.csv"))
         poses = read_trajectory_csv(_sibling(run_path, "poses.csv")).poses
         truth_path = _sibling(run_path, "truth.npz")
-        if not truth_path.is_file():
-            raise InputError(f"truth NPZ {str(truth_path)!r} does not exist.")
+        existing_file(truth_path, "truth NPZ")
         try:
             with np.load(truth_path, allow_pickle=False) as z:
                 hit_ids = np.asarray(z["hit_ids"], dtype=np.int64)
                 clutter_xy = np.asarray(z["clutter_xy"], dtype=np.float64).reshape(-1, 2)
                 clutter_ext = np.asarray(z["clutter_extent"], dtype=np.float64)
-        except (KeyError, ValueError, OSError) as exc:
+        except (KeyError, *NPZ_ERRORS) as exc:
             raise InputError(f"truth NPZ {str(truth_path)!r} is unreadable: {exc}") from exc
         if hit_ids.shape != batch.ranges.shape or poses.shape[0] != len(batch):
             raise InputError(

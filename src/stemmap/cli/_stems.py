@@ -18,6 +18,7 @@ from stemmap.cli._catalog import (
 from stemmap.cli._common import console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
 from stemmap.cli._summary import JsonFlag, fmt, print_summary
+from stemmap.cli._validate import bounded
 from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
 from stemmap.errors import ConfigError
 
@@ -151,13 +152,17 @@ def stems(
         ),
     ] = None,
     read_points: Annotated[
-        int, typer.Option(help="Points per block when streaming LAS/LAZ.")
+        int,
+        typer.Option(
+            help="Points per block when streaming LAS/LAZ.", callback=bounded("--read-points", ge=1)
+        ),
     ] = 2_000_000,
     chunk_size: Annotated[
         float | None,
         typer.Option(
             help="Side (m) of the square processing chunks of a tile catalog [default: from "
             "the point density, ~8 M points per buffered chunk].",
+            callback=bounded("--chunk-size", gt=0),
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,
@@ -166,6 +171,7 @@ def stems(
         typer.Option(
             help="Buffer (m) read around each chunk [default: 5]; stems belong to the chunk "
             "holding their centre.",
+            callback=bounded("--buffer", ge=0),
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,
@@ -173,6 +179,7 @@ def stems(
         int | None,
         typer.Option(
             help="Worker processes of the local Dask cluster [default: one per core].",
+            callback=bounded("--workers", ge=1),
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,
@@ -228,6 +235,7 @@ def stems(
         typer.Option(
             help="Seconds added to the point times before the trajectory look-up (e.g. 1e9 for "
             "LAS adjusted standard GPS time against GPS seconds).",
+            callback=bounded("--time-offset"),
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = 0.0,
@@ -274,11 +282,16 @@ def stems(
 
     import numpy as np
 
-    from stemmap.cloud.export import plot_stems, write_stems_csv, write_stems_geojson
+    from stemmap.cloud.export import (
+        plot_stems,
+        write_stems_csv,
+        write_stems_geojson,
+        write_stems_gpkg,
+    )
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.engine import expand_inputs
     from stemmap.io.clouds import count_points, iter_cloud_chunks
-    from stemmap.io.geo import GeoLayer, array_fields, las_crs, write_gpkg
+    from stemmap.io.geo import las_crs
     from stemmap.io.products import run_products
 
     with fail_on_stemmap_error():
@@ -332,8 +345,7 @@ def stems(
         if geojson is not None:
             write_stems_geojson(run.path(geojson), result, crs=crs)
         if gpkg is not None:
-            fields = array_fields(result, len(result), skip=("xy",))
-            write_gpkg(run.path(gpkg), [GeoLayer("stems", result.xy, fields)], crs, result.frame)
+            write_stems_gpkg(run.path(gpkg), result, crs=crs)
         fig_path = None if png is None else run.path(png)
         if report is not None and png is None:
             fig_path = Path(tmp) / "figure.png"

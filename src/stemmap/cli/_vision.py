@@ -30,7 +30,9 @@ from rich.markup import escape
 from rich.table import Table
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out
+from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
+from stemmap.io._util import existing_file
 from stemmap.io.atomic import atomic_write
 from stemmap.io.products import run_products
 
@@ -38,8 +40,7 @@ __all__ = ["calibrate", "fuse", "overlay_image", "read_calibration", "register",
 
 
 def _read_table(path: Path, required: list[str], optional: list[str]) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise InputError(f"{path} does not exist.")
+    existing_file(path, "correspondence CSV")
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -181,17 +182,37 @@ def calibrate(
     method: Annotated[
         str, typer.Option(help="Homography: xue2018, dlt, dlt_refined, ransac.")
     ] = "dlt_refined",
-    threshold_px: Annotated[float, typer.Option(help="RANSAC inlier threshold, pixels.")] = 3.0,
+    threshold_px: Annotated[
+        float,
+        typer.Option(
+            help="RANSAC inlier threshold, pixels.", callback=bounded("--threshold-px", gt=0)
+        ),
+    ] = 3.0,
     pnp: Annotated[
         bool, typer.Option(help="Also solve the sensor-to-camera pose by PnP (needs --fx ...).")
     ] = False,
-    fx: Annotated[float | None, typer.Option(help="Focal length x, pixels.")] = None,
-    fy: Annotated[float | None, typer.Option(help="Focal length y, pixels (default fx).")] = None,
-    cx: Annotated[float | None, typer.Option(help="Principal point x, pixels.")] = None,
-    cy: Annotated[float | None, typer.Option(help="Principal point y, pixels.")] = None,
-    width: Annotated[int | None, typer.Option(help="Image width, pixels.")] = None,
-    height: Annotated[int | None, typer.Option(help="Image height, pixels.")] = None,
-    seed: Annotated[int, typer.Option(help="RANSAC random seed.")] = 0,
+    fx: Annotated[
+        float | None, typer.Option(help="Focal length x, pixels.", callback=bounded("--fx", gt=0))
+    ] = None,
+    fy: Annotated[
+        float | None,
+        typer.Option(help="Focal length y, pixels (default fx).", callback=bounded("--fy", gt=0)),
+    ] = None,
+    cx: Annotated[
+        float | None, typer.Option(help="Principal point x, pixels.", callback=bounded("--cx"))
+    ] = None,
+    cy: Annotated[
+        float | None, typer.Option(help="Principal point y, pixels.", callback=bounded("--cy"))
+    ] = None,
+    width: Annotated[
+        int | None, typer.Option(help="Image width, pixels.", callback=bounded("--width", ge=1))
+    ] = None,
+    height: Annotated[
+        int | None, typer.Option(help="Image height, pixels.", callback=bounded("--height", ge=1))
+    ] = None,
+    seed: Annotated[
+        int, typer.Option(help="RANSAC random seed.", callback=bounded("--seed", ge=0))
+    ] = 0,
 ) -> None:
     """Fit the laser-to-image matrix G (and optionally the PnP pose); report pixel errors.
 
@@ -454,7 +475,12 @@ def fuse(
     image: Annotated[Path, typer.Option(help="The camera image taken with the scan.")],
     calibration: Annotated[Path, typer.Option(help="Calibration JSON from `stemmap calibrate`.")],
     out_path: Annotated[Path, typer.Option("--out", "-o", help="Decisions CSV to write.")],
-    scan_index: Annotated[int, typer.Option(help="Which scan of the file (0-based).")] = 0,
+    scan_index: Annotated[
+        int,
+        typer.Option(
+            help="Which scan of the file (0-based).", callback=bounded("--scan-index", ge=0)
+        ),
+    ] = 0,
     method: Annotated[str, typer.Option(help="xue2018 or ours.")] = "xue2018",
     bpa: Annotated[
         str, typer.Option(help="BPA preset: xue2018, xue2018_printed, forest.")

@@ -13,9 +13,15 @@ from numpy.typing import ArrayLike
 
 from stemmap.cloud.stems import CloudStems
 from stemmap.io.atomic import atomic_write
-from stemmap.io.geo import georeference_features
+from stemmap.io.geo import GeoLayer, array_fields, georeference_features, write_gpkg
 
-__all__ = ["STEM_CSV_COLUMNS", "plot_stems", "write_stems_csv", "write_stems_geojson"]
+__all__ = [
+    "STEM_CSV_COLUMNS",
+    "plot_stems",
+    "write_stems_csv",
+    "write_stems_geojson",
+    "write_stems_gpkg",
+]
 
 #: Columns of the stems CSV (metres, degrees; quality in [0, 1]; covariances in m^2).
 #: ``diameter_std`` and ``cov_xx, cov_xy, cov_yy`` come from the fit covariance (empty where
@@ -127,6 +133,16 @@ def write_stems_geojson(
     georeference_features(doc, stems.xy, crs, stems.frame)  # RFC 7946 lon/lat or local metres
     with atomic_write(path, "w") as fh:
         json.dump(doc, fh, indent=1)
+
+
+def write_stems_gpkg(
+    path: str | os.PathLike[str], stems: CloudStems, *, crs: str | None = None
+) -> None:
+    """A GeoPackage (layer ``stems``, Points in the native ``crs`` or the local frame) whose
+    fields are the CSV's columns except ``id``, ``x``, ``y`` (the geometry): numbers, the text
+    columns ``method``, ``dbh_rule``, ``base``, and ``cov_xx``, ``cov_xy``, ``cov_yy``."""
+    fields = array_fields(stems, len(stems), skip=("xy",), constants=("method", "base"))
+    write_gpkg(path, [GeoLayer("stems", stems.xy, fields)], crs, stems.frame)
 
 
 def plot_stems(

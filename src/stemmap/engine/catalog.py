@@ -23,7 +23,7 @@ import hashlib
 import logging
 import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -154,48 +154,83 @@ def _from_list_file(p: Path) -> list[Path]:
     return out
 
 
-def expand_inputs(inputs: Iterable[str | os.PathLike[str]]) -> list[Path]:
-    """Resolve a mix of LAS/LAZ files, folders (their ``*.las`` / ``*.laz``, not recursive),
-    glob patterns and text files listing paths (``.txt`` / ``.lst``, one per line) into a
-    sorted list of distinct files.
+def expand_inputs(
+    inputs: Iterable[str | os.PathLike[str]],
+    *,
+    extensions: Sequence[str] = TILE_EXTENSIONS,
+    unit_dir: Callable[[Path], bool] | None = None,
+    companion: Callable[[Path], bool] | None = None,
+    what: str = "tile",
+) -> list[Path]:
+    """Resolve a mix of files, folders (their files with ``extensions``, not recursive), glob
+    patterns and text files listing paths (``.txt`` / ``.lst``, one per line) into a sorted
+    list of distinct inputs.
+
+    The defaults make a tile catalog (LAS/LAZ). Drive logs (:mod:`stemmap.engine.logs`) pass
+    their own ``extensions``, ``unit_dir`` (a folder that is one input itself, e.g. a ROS 2
+    bag, is kept as is, and is one entry when met inside a folder) and ``companion`` (files of
+    a folder or glob match that belong to another input, e.g. a log's odometry CSV, and are
+    not inputs; a file named directly or in a list file is always taken).
 
     Raises
     ------
     InputError
-        An input that does not exist or matches nothing, a folder without LAS/LAZ files, or a
-        listed/matched file that is not LAS/LAZ.
+        An input that does not exist or matches nothing, a folder without inputs, or a
+        listed/matched file without one of ``extensions``.
     """
+    exts = tuple(e.lower() for e in extensions)
+    shown = "/".join(exts)
+    kinds = "/".join(e.lstrip(".").upper() for e in exts)
+
+    def unit(q: Path) -> bool:
+        return unit_dir is not None and q.is_dir() and unit_dir(q)
+
     found: list[Path] = []
     for item in inputs:
         s = str(item)
         p = Path(s).expanduser()
-        if p.is_dir():
-            tiles = sorted(q for q in p.iterdir() if q.suffix.lower() in TILE_EXTENSIONS)
-            if not tiles:
-                raise InputError(
-                    f"folder {s!r} holds no .las/.laz file (a tile folder is not searched "
-                    "recursively; pass a glob like 'dir/**/*.laz' for sub-folders)."
+        if unit(p):
+            found.append(p)
+        elif p.is_dir():
+            members = sorted(
+                q
+                for q in p.iterdir()
+                if unit(q)
+                or (
+                    q.is_file()
+                    and q.suffix.lower() in exts
+                    and not (companion is not None and companion(q))
                 )
-            found.extend(tiles)
+            )
+            if not members:
+                raise InputError(
+                    f"folder {s!r} holds no {shown} file (a {what} folder is not searched "
+                    f"recursively; pass a glob like 'dir/**/*{exts[0]}' for sub-folders)."
+                )
+            found.extend(members)
         elif p.is_file() and p.suffix.lower() in (".txt", ".lst"):
             listed = _from_list_file(p)
             if not listed:
-                raise InputError(f"list file {s!r} names no tile.")
+                raise InputError(f"list file {s!r} names no {what}.")
             found.extend(listed)
         elif p.is_file():
             found.append(p)
         elif any(c in s for c in "*?["):
             matches = sorted(Path(m) for m in glob.glob(os.path.expanduser(s), recursive=True))
-            matches = [m for m in matches if m.is_file()]
+            matches = [
+                m
+                for m in matches
+                if unit(m) or (m.is_file() and not (companion is not None and companion(m)))
+            ]
             if not matches:
                 raise InputError(f"the pattern {s!r} matches no file.")
             found.extend(matches)
         else:
             raise InputError(f"input {s!r} does not exist (a file, folder, glob or list file).")
-    bad = [str(q) for q in found if q.suffix.lower() not in TILE_EXTENSIONS]
+    bad = [str(q) for q in found if not unit(q) and q.suffix.lower() not in exts]
     if bad:
         raise InputError(
-            f"a tile catalog takes LAS/LAZ files only; not LAS/LAZ: {', '.join(bad[:5])}"
+            f"{what} inputs take {kinds} files only; not {kinds}: {', '.join(bad[:5])}"
             + (" ..." if len(bad) > 5 else "")
             + ". Convert other formats, or pass a single file to process it on its own."
         )

@@ -88,12 +88,21 @@ def dask_client(
     )
     try:
         client = Client(cluster)
+        # a failed task is reported by run_tasks (with its error) in the client: the local
+        # workers' own "Compute Failed" dumps (the task's arguments) would repeat it as noise
+        client.run(_quiet_worker_logs)
         try:
             yield client
         finally:
             client.close()
     finally:
         cluster.close()
+
+
+def _quiet_worker_logs() -> None:
+    """In a local worker: log only critical messages of dask.distributed."""
+    for name in ("distributed", "distributed.worker", "distributed.core", "distributed.nanny"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
 def run_tasks(

@@ -7,6 +7,9 @@ The protocol for a run with an unreliable GPS (Victoria Park):
 2. :func:`ate` aligns the trajectory to the kept fixes with ONE best-fit rigid transform
    (:func:`align_se2`, closed form) and scores EVERY kept fix: RMSE, p95 and max, no trimming,
    so a bad stretch of trajectory cannot hide.
+
+:func:`rpe` gives the relative pose error against a full SE(2) reference (simulated truth):
+the drift over a fixed stretch of path (metres) or time (seconds), as evo's RPE.
 """
 
 from __future__ import annotations
@@ -17,17 +20,19 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from stemmap.errors import InputError
+from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray, Trajectory
 
 __all__ = [
     "AteResult",
     "GpsScreen",
+    "RpeResult",
     "Se2Alignment",
     "align_se2",
     "ate",
     "loop_closure_error",
     "point_track",
+    "rpe",
     "screen_gps",
 ]
 
@@ -277,3 +282,130 @@ def loop_closure_error(
     body = np.array([c * w[0] + s * w[1], -s * w[0] + c * w[1]])
     d = body - np.asarray(true_displacement, dtype=np.float64).reshape(2)
     return float(np.hypot(d[0], d[1]))
+
+
+@dataclass(frozen=True, eq=False)
+class RpeResult:
+    """Relative pose error over ``delta`` (:func:`rpe`); falsy (with ``reason``) on failure."""
+
+    trans_rmse: float
+    trans_mean: float
+    trans_max: float
+    rot_rmse_deg: float
+    rot_max_deg: float
+    n: int
+    delta: float
+    delta_unit: str
+    trans_errors: FloatArray
+    rot_errors_deg: FloatArray
+    reason: str = ""
+
+    def __bool__(self) -> bool:
+        return self.n > 0
+
+    def as_dict(self, prefix: str = "rpe_") -> dict[str, float | int | str]:
+        return {
+            f"{prefix}trans_rmse_m": self.trans_rmse,
+            f"{prefix}trans_mean_m": self.trans_mean,
+            f"{prefix}trans_max_m": self.trans_max,
+            f"{prefix}rot_rmse_deg": self.rot_rmse_deg,
+            f"{prefix}rot_max_deg": self.rot_max_deg,
+            f"{prefix}n": self.n,
+            f"{prefix}delta": self.delta,
+            f"{prefix}delta_unit": self.delta_unit,
+        }
+
+
+def _relative(poses: FloatArray, i: NDArray[np.int64], j: NDArray[np.int64]) -> FloatArray:
+    """``P_i^-1 P_j`` as (K, 3) x, y, theta for SE(2) poses (x, y, theta)."""
+    d = poses[j, :2] - poses[i, :2]
+    c, s = np.cos(poses[i, 2]), np.sin(poses[i, 2])
+    th = poses[j, 2] - poses[i, 2]
+    return np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], th))
+
+
+def rpe(
+    trajectory: Trajectory,
+    reference: Trajectory,
+    *,
+    delta: float = 10.0,
+    delta_unit: str = "m",
+) -> RpeResult:
+    """Relative pose error of ``trajectory`` against a full-pose ``reference``.
+
+    evo's RPE (Grupp, evo wiki "Metrics"; Sturm et al. 2012, eq. 3) in SE(2): for a pose pair
+    ``(i, j)`` of the reference ``Q`` and the estimate ``P`` (interpolated at the reference
+    times), ``E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the translation error is ``|trans(E_ij)|``
+    (m) and the rotation error ``|angle(E_ij)|`` (deg). No alignment is needed: the error is
+    relative.
+
+    Pairs, as evo without ``--all_pairs``: consecutive, non-overlapping stretches starting at
+    the first reference pose inside the trajectory's time span; ``j`` is the first pose at
+    least ``delta`` after ``i`` -- path length travelled along the REFERENCE (``delta_unit
+    "m"``, evo's ``--delta_unit m``) or time (``"s"``) -- and the next pair starts at ``j``.
+    (evo's chain starts at the first pose one ``delta`` in; ours at the first pose, one more
+    stretch.)
+
+    Returns
+    -------
+    RpeResult
+        Falsy with a ``reason`` when no stretch of ``delta`` fits in the overlap.
+
+    Raises
+    ------
+    ConfigError
+        When ``delta <= 0`` or ``delta_unit`` is not "m" or "s".
+    """
+    if not delta > 0:
+        raise ConfigError(f"rpe: delta must be > 0, got {delta}.")
+    if delta_unit not in ("m", "s"):
+        raise ConfigError(f"rpe: delta_unit must be 'm' (path) or 's' (time), got {delta_unit!r}.")
+    t = reference.times
+    m = (t >= trajectory.times[0]) & (t <= trajectory.times[-1])
+    q = reference.poses[m]
+    tq = t[m]
+
+    def empty(reason: str) -> RpeResult:
+        nan = math.nan
+        z = np.zeros(0)
+        return RpeResult(nan, nan, nan, nan, nan, 0, delta, delta_unit, z, z, reason=reason)
+
+    if q.shape[0] < 2:
+        return empty(f"only {q.shape[0]} reference poses overlap the trajectory (need 2).")
+    if delta_unit == "m":
+        along = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(q[:, :2], axis=0).T))))
+    else:
+        along = tq - tq[0]
+    ids = [0]
+    while True:
+        k = int(np.searchsorted(along, along[ids[-1]] + delta - 1e-12, side="left"))
+        if k >= along.shape[0]:
+            break
+        ids.append(k)
+    if len(ids) < 2:
+        return empty(f"the overlap is shorter than one stretch of {delta} {delta_unit}.")
+    i = np.asarray(ids[:-1], dtype=np.int64)
+    j = np.asarray(ids[1:], dtype=np.int64)
+    p = trajectory.interpolate(tq)
+    p[:, 2] = np.unwrap(p[:, 2])
+    qq = q.copy()
+    qq[:, 2] = np.unwrap(qq[:, 2])
+    dq = _relative(qq, i, j)
+    dp = _relative(p, i, j)
+    # E = dq^-1 dp
+    c, s = np.cos(dq[:, 2]), np.sin(dq[:, 2])
+    dx, dy = dp[:, 0] - dq[:, 0], dp[:, 1] - dq[:, 1]
+    et = np.hypot(c * dx + s * dy, -s * dx + c * dy)
+    er = np.abs(np.degrees(np.angle(np.exp(1j * (dp[:, 2] - dq[:, 2])))))
+    return RpeResult(
+        trans_rmse=float(np.sqrt(np.mean(et**2))),
+        trans_mean=float(et.mean()),
+        trans_max=float(et.max()),
+        rot_rmse_deg=float(np.sqrt(np.mean(er**2))),
+        rot_max_deg=float(er.max()),
+        n=int(et.shape[0]),
+        delta=float(delta),
+        delta_unit=delta_unit,
+        trans_errors=et,
+        rot_errors_deg=er,
+    )

@@ -127,7 +127,7 @@ def choose_target(
         return int(cand[np.argmin(np.hypot(xy[cand, 0], xy[cand, 1]))])
     if mode == "bearing":
         if bearing is None:
-            raise ConfigError("mode='bearing' needs a bearing (rad).")
+            raise ConfigError("mode='bearing' needs a bearing in radians (bearing=...).")
         diff = np.abs(np.angle(np.exp(1j * (np.arctan2(xy[cand, 1], xy[cand, 0]) - bearing))))
         return int(cand[np.argmin(diff)])
     raise ConfigError(f"unknown target mode {mode!r}; use 'nearest', 'index' or 'bearing'.")

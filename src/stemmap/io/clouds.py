@@ -84,6 +84,38 @@ def _las_fields(points: Any, names: tuple[str, ...]) -> dict[str, NDArray[Any]]:
     return {k: np.asarray(points[k]) for k in names if k in present}
 
 
+#: Smallest LAS VLR: its 54-byte header with an empty payload (LAS 1.4 R15 §2.5).
+_VLR_HEADER_BYTES = 54
+
+
+def _check_las_layout(p: Path) -> None:
+    """InputError if the fixed LAS header cannot describe this file (before laspy parses it).
+
+    laspy trusts ``number_of_vlrs``: a damaged count (e.g. 2^32 - 1) made it loop for minutes
+    reading empty records (found by benchmarks/fuzz.py). The VLRs lie between the header and
+    the point data, so ``header_size + 54 * number_of_vlrs <= offset_to_point_data <= size``.
+    """
+    import struct
+
+    try:
+        with p.open("rb") as fh:
+            head = fh.read(104)
+    except OSError as exc:
+        raise InputError(f"cannot read {str(p)!r}: {exc}.") from exc
+    if len(head) < 104 or head[:4] != b"LASF":
+        raise InputError(
+            f"{str(p)!r} is not a LAS/LAZ file: it lacks the 'LASF' signature or its "
+            f"{len(head)}-byte header is shorter than 104 bytes."
+        )
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    size = p.stat().st_size
+    if not (header_size <= offset <= size) or header_size + _VLR_HEADER_BYTES * n_vlrs > offset:
+        raise InputError(
+            f"{str(p)!r}: the LAS header is corrupt: header size {header_size} B, "
+            f"{n_vlrs} VLR(s) and point data at byte {offset} do not fit a {size}-byte file."
+        )
+
+
 def _check_las_header(p: Path, header: Any) -> None:
     """InputError on a LAS header that contradicts itself or the file (issue 13).
 
@@ -161,6 +193,7 @@ def iter_las_chunks(
     p = _check_file(path)
     if chunk_size <= 0:
         raise InputError(f"chunk_size must be > 0, got {chunk_size}.")
+    _check_las_layout(p)
     try:
         reader = laspy.open(p)
     except Exception as exc:
@@ -449,6 +482,7 @@ def count_points(path: PathLike) -> int | None:
     import laspy
 
     _check_file(p)
+    _check_las_layout(p)
     try:
         with laspy.open(p) as reader:
             return int(reader.header.point_count)
@@ -475,6 +509,7 @@ def point_fields(path: PathLike) -> tuple[str, ...] | None:
     import laspy
 
     _check_file(p)
+    _check_las_layout(p)
     try:
         with laspy.open(p) as reader:
             return tuple(reader.header.point_format.dimension_names)

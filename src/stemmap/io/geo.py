@@ -247,6 +247,12 @@ def _wkb_line(xy: NDArray[np.float64]) -> NDArray[np.object_]:
     return out
 
 
+def _field_array(values: Sequence[Any] | NDArray[Any]) -> NDArray[Any]:
+    """A field column for pyogrio: text as an object array of str (GPKG TEXT), else as is."""
+    a = np.asarray(values)
+    return a.astype(object) if a.dtype.kind in "US" else a
+
+
 def write_gpkg(
     path: str | os.PathLike[str], layers: Sequence[GeoLayer], crs: str | None, frame: str
 ) -> None:
@@ -268,7 +274,7 @@ def write_gpkg(
                 xy = xy[np.all(np.isfinite(xy), axis=1)]
             geom = _wkb_line(xy) if lay.line else _wkb_points(xy)
             names = list(lay.fields)
-            data = [np.asarray(lay.fields[n]) for n in names]
+            data = [_field_array(lay.fields[n]) for n in names]
             ogr_write(
                 str(tmp),
                 geometry=geom,
@@ -286,18 +292,38 @@ def write_gpkg(
         raise
 
 
-def array_fields(obj: Any, n: int, skip: Sequence[str] = ()) -> dict[str, NDArray[Any]]:
-    """The 1-D numeric array attributes of length ``n`` of a dataclass (e.g. a
-    :class:`~stemmap.cloud.stems.CloudStems`), as GeoPackage fields, in declaration order."""
+def array_fields(
+    obj: Any, n: int, skip: Sequence[str] = (), constants: Sequence[str] = ()
+) -> dict[str, NDArray[Any]]:
+    """The per-row attributes of a dataclass (e.g. a :class:`~stemmap.cloud.stems.CloudStems`)
+    as GeoPackage fields, in declaration order.
+
+    * 1-D arrays of length ``n``: numeric (int, float, bool) or text (str / object arrays,
+      written as GPKG TEXT);
+    * (n, 2, 2) x/y covariance arrays: three fields ``cov_xx``, ``cov_xy``, ``cov_yy`` (m^2)
+      for ``xy_cov`` or ``cov``, ``NAME_cov_xx``... for ``NAME_cov``;
+    * the scalar attributes named in ``constants`` (e.g. ``method``), repeated on every row.
+    """
     import dataclasses
 
     out: dict[str, NDArray[Any]] = {}
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
-        if f.name in skip or not isinstance(v, np.ndarray):
+        if f.name in skip:
             continue
-        if v.ndim == 1 and v.shape[0] == n and v.dtype.kind in "biuf":
-            out[f.name] = v
+        if f.name in constants:
+            out[f.name] = np.full(n, v, dtype=object if isinstance(v, str) else None)
+            continue
+        if not isinstance(v, np.ndarray) or v.shape[:1] != (n,):
+            continue
+        if v.ndim == 1 and v.dtype.kind in "biufUO":
+            out[f.name] = v.astype(object) if v.dtype.kind in "UO" else v
+        elif v.ndim == 3 and v.shape[1:] == (2, 2) and v.dtype.kind == "f":
+            stem = f.name.replace("cov", "").strip("_")
+            pre = "cov_" if stem in ("", "xy") else f"{stem}_cov_"
+            out[pre + "xx"] = v[:, 0, 0]
+            out[pre + "xy"] = v[:, 0, 1]
+            out[pre + "yy"] = v[:, 1, 1]
     return out
 
 

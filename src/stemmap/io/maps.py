@@ -301,8 +301,8 @@ def write_trees_geojson(
     """Write the map as a GeoJSON FeatureCollection of Points (RFC 7946), atomically.
 
     Each tree is a Point feature with ``"id"`` and properties ``diameter`` (m),
-    ``diameter_std``, ``std_x``, ``std_y``, ``cov_xy``, ``n_obs``, ``confidence``,
-    ``first_time``, ``last_time``; unknown values are ``null`` (JSON has no NaN).
+    ``diameter_std``, ``std_x``, ``std_y``, ``cov_xy_m2``, ``n_obs``, ``confidence``,
+    ``first_time_s``, ``last_time_s``; unknown values are ``null`` (JSON has no NaN).
 
     Coordinates (:func:`stemmap.io.geo.geojson_coordinates`, docs/outputs.md):
 

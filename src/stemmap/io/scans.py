@@ -92,12 +92,37 @@ def _record(skipped: list[SkippedFrame] | None, path: Path, k: int, t: float, wh
 # --------------------------------------------------------------------------------------------
 
 
+#: What numpy/zipfile raise on a damaged archive (found by the fuzz tests: NotImplementedError
+#: for a header naming an unknown compression method or zip version, RuntimeError for a
+#: flipped "encrypted" flag).
+NPZ_ERRORS = (
+    ValueError,
+    zipfile.BadZipFile,
+    OSError,
+    EOFError,
+    zlib.error,
+    NotImplementedError,
+    RuntimeError,
+)
+
+
 def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
     """Load and validate the NPZ arrays (no pickle). InputError names file and field."""
     p = existing_file(path, "scan NPZ")
     try:
+        with p.open("rb") as fh:
+            magic = fh.read(6)
+    except OSError as exc:
+        raise InputError(f"cannot read scan NPZ {str(p)!r}: {exc}.") from exc
+    if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
+        raise InputError(
+            f"scan NPZ {str(p)!r} is not an NPZ (zip) archive: it starts with {magic!r}"
+            + (" (text: is it a CSV named .npz?)" if magic.isascii() else "")
+            + "; write scans with np.savez or `stemmap io convert-scans`."
+        )
+    try:
         z = np.load(p, allow_pickle=False)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+    except NPZ_ERRORS as exc:
         raise InputError(
             f"scan NPZ {str(p)!r} cannot be read ({type(exc).__name__}: {exc}); the file may be "
             "truncated or not an .npz archive."
@@ -124,7 +149,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
                 continue
             try:
                 arr = z[src]
-            except (ValueError, zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
+            except NPZ_ERRORS as exc:
                 raise InputError(
                     f"scan NPZ {str(p)!r} field {src!r} cannot be read ({exc}); object arrays "
                     "are refused (no pickle) and a truncated file cannot be decoded."
@@ -138,7 +163,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
         if "frame" in z.files:
             try:
                 fr = z["frame"]
-            except (ValueError, zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
+            except NPZ_ERRORS as exc:
                 raise InputError(f"scan NPZ {str(p)!r} field 'frame' cannot be read.") from exc
             if fr.dtype.kind != "U" or fr.size != 1:
                 raise InputError(f"scan NPZ {str(p)!r} field 'frame' must be one string.")
