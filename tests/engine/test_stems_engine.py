@@ -14,17 +14,16 @@ import pytest
 from scipy.spatial import cKDTree
 
 from stemmap.cloud import CloudStems, StemConfig, detect_stems
-from stemmap.engine import Catalog, Manifest, run_stems_catalog
+from stemmap.engine import Catalog, Manifest, catalog_statistics, run_stems_catalog
 
-# Tolerances of the chunked result against one process over the whole cloud. The detector's
-# clustering and vertical-filter grids are anchored at the minimum of the points it is given,
-# and its point spacing and slice noise floor are measured on them, so the same stem fitted in
-# a buffered chunk sees a few points assigned differently: measured differences are up to
-# 2.5 mm in position and diameter on this two-station stand, 1.1 / 1.8 mm on a nine-station
-# one (exactly 0 with grids anchored at multiples of the cell and a fixed spacing, see
-# docs/algorithms/engine.md) -- well below the detector's ~1 cm DBH error on such clouds.
-POS_TOL = 0.005
-DBH_TOL = 0.005
+# Tolerances of the chunked result against one process over the whole cloud. The engine
+# anchors the detector's grids at one catalog-wide origin, its RANSAC draws are seeded per
+# slice and the engine passes the catalog's spacing and noise floor to every chunk
+# (docs/algorithms/engine.md), so a stem sees the same points, cells and thresholds in any
+# chunk: the results agree to rounding (measured: 0.0 m). Issue 12 asks for positions within
+# 1 mm and the same diameters; 1e-6 m leaves room for summation-order rounding only.
+POS_TOL = 1e-3
+DBH_TOL = 1e-6
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +41,10 @@ def client() -> Iterator[Any]:
 
 @pytest.fixture(scope="module")
 def reference(stand_tiles: tuple[Path, np.ndarray]) -> CloudStems:
-    """One process over the whole cloud, points in the catalog's order."""
-    return detect_stems(stand_tiles[1], StemConfig())
+    """One process over the whole cloud, points in the catalog's order, grids anchored where
+    the engine anchors them (the catalog's lower-left corner)."""
+    x0, y0, _, _ = Catalog.from_inputs([stand_tiles[0]]).bounds
+    return detect_stems(stand_tiles[1], StemConfig(grid_origin=(x0, y0)))
 
 
 def assert_same_stems(a: CloudStems, b: CloudStems) -> None:
@@ -51,8 +52,9 @@ def assert_same_stems(a: CloudStems, b: CloudStems) -> None:
     d, i = cKDTree(b.xy).query(a.xy)
     assert np.unique(i).size == len(a)  # one-to-one
     assert d.max() < POS_TOL
-    np.testing.assert_allclose(b.diameter[i], a.diameter, atol=DBH_TOL)
+    np.testing.assert_allclose(b.diameter[i], a.diameter, rtol=0, atol=DBH_TOL)
     np.testing.assert_array_equal(b.n_slices[i], a.n_slices)
+    np.testing.assert_array_equal(b.n_points[i], a.n_points)
 
 
 @pytest.mark.parametrize(("size", "buffer"), [(10.0, 4.0), (7.0, 5.0), (None, 5.0)])
@@ -70,6 +72,10 @@ def test_chunked_equals_single_process(
     )
     assert not run.failed and run.stems is not None
     assert_same_stems(reference, run.stems)
+    # the whole stand fits the pilot budget: the catalog statistics are the single process's
+    assert isinstance(run.config, StemConfig)
+    assert run.config.spacing == reference.spacing
+    assert run.config.noise_floor == reference.noise_floor
     # merged output is sorted by x, then y, whatever the chunking
     assert np.all(np.diff(run.stems.xy[:, 0]) >= 0)
     lines = Manifest(tmp_path).entries()
@@ -77,6 +83,38 @@ def test_chunked_equals_single_process(
     assert all(r["status"] == "done" for r in lines.values())
     assert sum(r["n_stems"] for r in lines.values()) == len(run.stems)
     assert not (tmp_path / "stage").exists()  # staged fragments are removed
+
+
+def test_pilot_statistics_make_chunkings_agree_on_a_large_catalog(
+    stand_tiles: tuple[Path, np.ndarray], client: Any, tmp_path: Path
+) -> None:
+    """A catalog above the pilot budget: spacing and noise floor come from a centred pilot box
+    (not the whole cloud), are the same for every chunk size, and the chunked result equals a
+    single process run with them (``run.config``)."""
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    budget = cat.n_points // 3
+    runs = [
+        run_stems_catalog(
+            cat,
+            StemConfig(),
+            tmp_path / str(size),
+            chunk_size=size,
+            buffer=4.0,
+            max_points=budget,
+            client=client,
+        )
+        for size in (10.0, 15.0)
+    ]
+    a, b = runs
+    assert a.config == b.config and isinstance(a.config, StemConfig)
+    assert a.config.spacing is not None and a.config.noise_floor is not None
+    assert a.stems is not None and b.stems is not None
+    assert_same_stems(a.stems, b.stems)
+    single = detect_stems(stand_tiles[1], a.config)
+    assert_same_stems(single, a.stems)
+    # set by the user: kept as given
+    mine = StemConfig(spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0))
+    assert catalog_statistics(cat, mine) == mine
 
 
 def test_resume_redoes_only_missing_or_changed_chunks(

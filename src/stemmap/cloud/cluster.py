@@ -65,8 +65,10 @@ def grid_components(
     n = p.shape[0]
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    lo = p[:, :2].min(axis=0)
-    ij = np.floor((p[:, :2] - lo) / cell).astype(np.int64)
+    # cells on the global lattice floor(x / cell), offset to start at 0 (independent of the
+    # extent of the points given)
+    ij = np.floor(p[:, :2] / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
     shape = ij.max(axis=0) + 1
     if shape[0] * shape[1] > 400_000_000:
         raise InputError(

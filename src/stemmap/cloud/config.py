@@ -40,7 +40,16 @@ class StemConfig:
         the cloud's noise floor (median slice RMS) -- measured, not tuned
     cluster_cell_factor : float -- grid clustering cell = this x the 90th-percentile 2D point
         spacing in the band (measured)
-    spacing : float, optional -- override the measured point spacing, metres
+    spacing : float, optional -- use this point spacing (metres) instead of measuring it on
+        the band (90th percentile of the 3D nearest-neighbour distance); the spacing sets the
+        clustering cell, the slice thickness of sparse clouds and the RANSAC tolerance
+    noise_floor : float, optional -- use this slice-fit noise floor (metres) instead of the
+        median RMS of the band's plausible slice fits. The tile engine measures spacing and
+        noise floor once per catalog and passes both to every chunk, so a chunk's thresholds
+        are those of the whole cloud (docs/algorithms/engine.md)
+    grid_origin : (x, y), optional -- anchor the clustering and vertical-filter grids at this
+        point (cell edges at origin + k x cell) instead of at the band's minimum; the tile
+        engine sets one for the whole catalog so every chunk uses the same cells
     fit_method : str -- circle fit (``scan.circle.FIT_METHODS``); "ours" is the robust
         geometric fit
     estimate_height : bool -- also estimate stem height (highest point within 1 m of the axis)
@@ -65,6 +74,8 @@ class StemConfig:
     residual_factor: float = 3.0
     cluster_cell_factor: float = 2.0
     spacing: float | None = None
+    noise_floor: float | None = None
+    grid_origin: tuple[float, float] | None = None
     fit_method: str = "ours"
     estimate_height: bool = False
     slice_mode: str = "auto"
@@ -88,6 +99,8 @@ class StemConfig:
             raise ConfigError(f"max_memory must be > 0 bytes, got {self.max_memory}.")
         if self.spacing is not None and not self.spacing > 0:
             raise ConfigError(f"spacing must be > 0 m, got {self.spacing}.")
+        if self.noise_floor is not None and not self.noise_floor > 0:
+            raise ConfigError(f"noise_floor must be > 0 m, got {self.noise_floor}.")
 
     @property
     def band(self) -> tuple[float, float]:

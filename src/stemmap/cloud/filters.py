@@ -57,8 +57,14 @@ def pass_through(
 
 
 def voxel_keys(xyz: FloatArray, voxel: float) -> NDArray[np.int64]:
-    """One int64 key per point naming its voxel (21 bits per axis after shifting to >= 0)."""
-    q = np.floor((xyz - xyz.min(axis=0)) / voxel).astype(np.int64)
+    """One int64 key per point naming its voxel (21 bits per axis after shifting to >= 0).
+
+    Voxels lie on the global lattice ``floor(x / voxel)`` (not anchored at the points'
+    minimum), so a point falls in the same voxel in any chunk of a catalog as in the whole
+    cloud; keys are offset by the smallest voxel index of ``xyz``.
+    """
+    q = np.floor(xyz / voxel).astype(np.int64)
+    q -= q.min(axis=0)
     if np.any(q >= (1 << 21)):
         raise InputError(
             f"cloud extent {np.ptp(xyz, axis=0).max():.1f} m is too large for voxel {voxel} m "

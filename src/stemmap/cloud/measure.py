@@ -98,17 +98,40 @@ def _adapt_slices(cfg: StemConfig, spacing: float) -> StemConfig:
     return replace(cfg, slice_centers=centers, slice_thickness=th)
 
 
+def _grid_cells(
+    xy: FloatArray, cell: float, origin: tuple[float, float] | None
+) -> NDArray[np.int64]:
+    """(N, 2) cell indices of ``xy`` on a grid of ``cell`` metres, offset to start at 0.
+
+    Without ``origin`` the grid is anchored at the points' minimum (a shifted copy of a cloud
+    gets the same cells: georeferenced and local coordinates give the same stems). With
+    ``origin`` (``StemConfig.grid_origin``) cell edges lie at ``origin + k * cell``: a point
+    falls in the same cell whatever part of the cloud is processed -- the tile engine passes
+    one origin for the whole catalog, so a chunk sees the cells of a single process.
+    """
+    lo = xy.min(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+    ij = np.floor((xy - lo) / cell).astype(np.int64)
+    if origin is not None:
+        ij -= ij.min(axis=0)
+    return ij
+
+
 def _vertical_filter(
-    xy: FloatArray, sl: NDArray[np.int64], ns: int, cell: float
+    xy: FloatArray,
+    sl: NDArray[np.int64],
+    ns: int,
+    cell: float,
+    origin: tuple[float, float] | None = None,
 ) -> NDArray[np.bool_]:
     """Keep points whose 2D cell is occupied in at least half of the slices (>= 2).
 
     A trunk's surface projects onto the same cells at every height of the band; branches,
     needles and leaves occupy a cell at one or two heights only. Removing them before
     clustering keeps them out of the circle fits (a spruce whorl otherwise swamps its stem).
-    The cell (3-10 cm) tolerates the lean of a stem between adjacent slices.
+    The cell (3-10 cm) tolerates the lean of a stem between adjacent slices. Cells are those
+    of :func:`_grid_cells` (anchored at ``origin``, or at the points' minimum).
     """
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+    ij = _grid_cells(xy, cell, origin)
     ny = int(ij[:, 1].max()) + 1
     key = ij[:, 0] * ny + ij[:, 1]
     ok = sl >= 0
@@ -247,7 +270,7 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     sl_all = np.where(np.abs(h - centers_h[near]) <= cfg.slice_thickness / 2, near, -1)
     keep = sl_all >= 0
     if not slice_cloud and ns >= 3:
-        keep &= _vertical_filter(xy, sl_all, ns, float(np.clip(cell, 0.03, 0.1)))
+        keep &= _vertical_filter(xy, sl_all, ns, float(np.clip(cell, 0.03, 0.1)), cfg.grid_origin)
     xy, h = xy[keep], h[keep]
     sl_all = sl_all[keep]
     orig = None if band.origins is None else band.origins[keep]
@@ -264,8 +287,7 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         log.warning("%d stray band point(s) far outside the cloud ignored", int((~core).sum()))
         xy, h, sl_all = xy[core], h[core], sl_all[core]
         orig = None if orig is None else orig[core]
-    lo = xy.min(axis=0)
-    ij = np.floor((xy - lo) / cell).astype(np.int64)
+    ij = _grid_cells(xy, cell, cfg.grid_origin)
     shape = ij.max(axis=0) + 1
     raster_guard(
         int(shape[0]) * int(shape[1]),
@@ -338,7 +360,9 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             spacing=sp2d,
             reason="no slice fit passed the quality tests (points, radius, arc)",
         )
-    noise_floor = float(np.median(rms[plausible]))
+    noise_floor = (
+        cfg.noise_floor if cfg.noise_floor is not None else float(np.median(rms[plausible]))
+    )
     rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
     passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
     log.debug(
@@ -490,10 +514,13 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
             rows.extend(pooled)
             rules.extend([RULE_BH] * len(pooled))
     if not rows:
-        return CloudStems.empty(
-            "ours",
-            spacing=sp2d,
-            reason="no cluster passed the per-stem tests (slices, vertical extent, taper)",
+        return replace(
+            CloudStems.empty(
+                "ours",
+                spacing=sp2d,
+                reason="no cluster passed the per-stem tests (slices, vertical extent, taper)",
+            ),
+            noise_floor=noise_floor,
         )
     arr = np.array(rows, dtype=np.float64)
     # suppress duplicates (a trunk split into two clusters): keep the better supported one
@@ -532,6 +559,7 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
         method="ours" if cfg.fit_method == "ours" else f"ours_{cfg.fit_method}",
         frame="cloud",
         spacing=sp2d,
+        noise_floor=noise_floor,
         base=band.base,
     )
 

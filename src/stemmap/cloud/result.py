@@ -50,7 +50,10 @@ class CloudStems:
         cloud without ground) or ``"slice heights as given"``
     method : str
     frame : str
-    spacing : float, metres -- measured point spacing (NaN for munjer2025)
+    spacing : float, metres -- point spacing used (measured, or ``StemConfig.spacing``; NaN
+        for munjer2025)
+    noise_floor : float, metres -- slice-fit noise floor used (median RMS of the plausible
+        slice fits, or ``StemConfig.noise_floor``; NaN when not reached or for munjer2025)
     reason : str -- why nothing was found (empty results are falsy)
     """
 
@@ -74,6 +77,7 @@ class CloudStems:
     spacing: float = math.nan
     reason: str = ""
     base: str = ""
+    noise_floor: float = math.nan
 
     def __post_init__(self) -> None:
         k = int(self.xy.shape[0])
@@ -157,6 +161,7 @@ class CloudStems:
             frame=str(d.get("frame", "cloud")),
             spacing=float(d.get("spacing", math.nan)),
             base=str(d.get("base", "")),
+            noise_floor=float(d.get("noise_floor", math.nan)),
         )
 
     def select(self, idx: ArrayLike) -> CloudStems:

@@ -170,9 +170,12 @@ def _fit_segments(
         order = np.argsort(ids, kind="stable")
         starts = np.searchsorted(ids[order], first.segment_ids)
         stops = np.searchsorted(ids[order], first.segment_ids, side="right")
-        gen = np.random.default_rng(0)
         for row in np.flatnonzero(suspect)[:2000]:
             idx = order[starts[row] : stops[row]]
+            # seeded per segment (by its point count), not by a stream shared with the
+            # segments before it: a segment gets the same draws in any chunk of a catalog as
+            # in the whole cloud (docs/algorithms/engine.md), and in a shifted copy of it
+            gen = np.random.default_rng(idx.size)
             best = _ransac_circle(pts[idx], ransac_tol, radius_window, gen)
             if best is None:
                 continue

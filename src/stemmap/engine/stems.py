@@ -13,7 +13,9 @@ detector looks at around a stem: its points (half a DBH), its cluster, and the g
 cells under it with their 3 x 3 neighbourhoods (two ground cells, plus one for the raster's
 bilinear interpolation) -- :data:`MIN_EXACT_BUFFER` with the default 1 m ground cell. The
 cloud's slice mode (a pre-cut slice or a full cloud) is decided once for the whole catalog from
-the header z range, never per chunk.
+the header z range, never per chunk; the detector's grid origin, point spacing and noise floor
+once by :func:`catalog_statistics`, so each chunk runs with the single process's state
+(``CatalogRun.config``).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ __all__ = [
     "DEFAULT_BUFFER",
     "MIN_EXACT_BUFFER",
     "CatalogRun",
+    "catalog_statistics",
     "merge_chunk_results",
     "run_stems_catalog",
     "stems_chunk",
@@ -53,7 +56,7 @@ DEFAULT_BUFFER = 5.0
 MIN_EXACT_BUFFER = 3.75
 
 #: the scalar (per-cloud) fields of a CloudStems; every other field is a per-stem column
-_SCALARS = ("method", "frame", "spacing", "reason", "base")
+_SCALARS = ("method", "frame", "spacing", "reason", "base", "noise_floor")
 #: the per-stem (array) columns of a CloudStems, as stored in a chunk result
 _COLUMNS = tuple(f.name for f in fields(CloudStems) if f.name not in _SCALARS)
 
@@ -74,6 +77,110 @@ def _detect(
     return detect_stems(xyz, cfg, origins=origins)
 
 
+def _chunk_stems(
+    catalog: Catalog,
+    chunk: Chunk,
+    config: StemConfig | MunjerConfig,
+    sensor: SensorPositions | None,
+    time_field: str | None,
+    stage: str | None,
+) -> tuple[CloudStems, int]:
+    """All stems the detector finds in the buffered chunk (owned or not), and its points."""
+    fields = (time_field,) if time_field else ()
+    xyz, extra = chunk_points(catalog, chunk, stage, fields)
+    n = int(xyz.shape[0])
+    if n == 0:
+        method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
+        return CloudStems.empty(method, reason="the buffered chunk holds no point"), 0
+    origins = None
+    if sensor is not None:
+        times = extra[time_field] if time_field else None
+        origins = sensor.origins(n, times, f"chunk {chunk.id}")
+    return _detect(xyz, config, origins), n
+
+
+def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, float]:
+    """The catalog's bounding box, or when it is expected to hold more than ``max_points``
+    points, the largest box with the same centre and aspect expected to hold at most that
+    many (header densities; independent of the chunk layout)."""
+    x0, y0, x1, y1 = catalog.bounds
+    cx, cy, hw, hh = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+
+    def box(f: float) -> tuple[float, float, float, float]:
+        return (cx - f * hw, cy - f * hh, cx + f * hw, cy + f * hh)
+
+    if catalog.expected_points(box(1.0)) <= max_points:
+        return box(1.0)
+    lo, hi = 0.0, 1.0
+    for _ in range(40):  # expected points grow monotonically with f
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if catalog.expected_points(box(mid)) <= max_points else (lo, mid)
+    return box(lo)
+
+
+def catalog_statistics(
+    catalog: Catalog,
+    config: StemConfig,
+    *,
+    max_points: int = 8_000_000,
+    sensor: SensorPositions | None = None,
+    time_field: str | None = None,
+) -> StemConfig:
+    """``config`` with the grid origin, point spacing and slice noise floor of the catalog
+    filled in.
+
+    The detector's clustering and vertical-filter grids are anchored at
+    ``StemConfig.grid_origin``, set here to the catalog's lower-left header corner (without
+    it each chunk would anchor them at its own points' minimum).
+
+    Our detector measures both on the points it is given (``StemConfig.spacing``,
+    ``StemConfig.noise_floor``); measured per buffered chunk they would differ from chunk to
+    chunk and from a single process over the whole cloud, and with them the clustering cell,
+    the slice layout of a sparse cloud and the residual test. They are measured once, by the
+    detector on a pilot region (:func:`pilot_box`: the whole catalog when it holds at most
+    ``max_points`` points, else a centred box holding about that many), read in the client,
+    and every chunk gets them through its config. Values already set in ``config`` are kept.
+    When the pilot measures nothing (no band points, no plausible slice fit) the value stays
+    unset and each chunk measures its own (logged as a warning).
+    """
+    if config.grid_origin is None:
+        # one anchor for the grids of every chunk: the catalog's lower-left header corner
+        x0, y0, _, _ = catalog.bounds
+        config = replace(config, grid_origin=(x0, y0))
+    if config.spacing is not None and config.noise_floor is not None:
+        return config
+    b = pilot_box(catalog, max_points)
+    tiles = tuple(k for k, t in enumerate(catalog.tiles) if t.overlaps(b))
+    pilot = Chunk("pilot", b, 0.0, tiles, (True,) * 4, catalog.expected_points(b))
+    try:
+        stems, n = _chunk_stems(catalog, pilot, config, sensor, time_field, None)
+    except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
+        log.warning("the pilot region could not be read (%s)", exc)
+        stems, n = CloudStems.empty("ours", reason=f"pilot region unreadable: {exc}"), 0
+    sp = config.spacing if config.spacing is not None else stems.spacing
+    nf = config.noise_floor if config.noise_floor is not None else stems.noise_floor
+    log.info(
+        "catalog statistics from %d points in (%.1f, %.1f, %.1f, %.1f): spacing %.4f m, "
+        "noise floor %.4f m",
+        n,
+        *b,
+        sp,
+        nf,
+    )
+    if not (math.isfinite(sp) and math.isfinite(nf)):
+        log.warning(
+            "the pilot region could not measure the catalog's point spacing / noise floor "
+            "(%s); each chunk measures its own, so stems near chunk edges may differ slightly "
+            "from a single-process run. Set them with StemConfig(spacing=, noise_floor=).",
+            stems.reason or "no plausible slice fit",
+        )
+    return replace(
+        config,
+        spacing=sp if math.isfinite(sp) and sp > 0 else None,
+        noise_floor=nf if math.isfinite(nf) and nf > 0 else None,
+    )
+
+
 def stems_chunk(
     catalog: Catalog,
     chunk: Chunk,
@@ -90,23 +197,13 @@ def stems_chunk(
     ``stage=None``). Returns a small summary (points read, stems kept, seconds).
     """
     t0 = time.perf_counter()
-    fields = (time_field,) if time_field else ()
-    xyz, extra = chunk_points(catalog, chunk, stage, fields)
-    n = int(xyz.shape[0])
+    stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
     method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
-    if n == 0:
-        stems = CloudStems.empty(method, reason="the buffered chunk holds no point")
-    else:
-        origins = None
-        if sensor is not None:
-            times = extra[time_field] if time_field else None
-            origins = sensor.origins(n, times, f"chunk {chunk.id}")
-        stems = _detect(xyz, config, origins)
-    del xyz, extra
     own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
     cols: dict[str, Any] = {k: _storable(getattr(own, k)) for k in _COLUMNS}
     cols["method"] = np.array(own.method or method)
     cols["spacing"] = np.array(own.spacing)
+    cols["noise_floor"] = np.array(own.noise_floor)
     cols["base"] = np.array(getattr(own, "base", ""))
     save_columns(Path(result_path), cols)
     return {
@@ -129,6 +226,8 @@ def merge_chunk_results(paths: list[Path], method: str = "ours") -> CloudStems:
     order = np.lexsort((xy[:, 1], xy[:, 0]))
     merged = {k: v[order] for k, v in cols.items()}
     sp = [float(p["spacing"]) for p in parts if math.isfinite(float(p["spacing"]))]
+    nf = [float(p.get("noise_floor", math.nan)) for p in parts]
+    nf = [v for v in nf if math.isfinite(v)]
     bases = sorted({str(p["base"]) for p in parts if "base" in p})
     return CloudStems.from_columns(
         **merged,
@@ -136,6 +235,7 @@ def merge_chunk_results(paths: list[Path], method: str = "ours") -> CloudStems:
         method=str(parts[0]["method"]),
         frame="cloud",
         spacing=float(np.median(sp)) if sp else math.nan,
+        noise_floor=float(np.median(nf)) if nf else math.nan,
     )
 
 
@@ -154,6 +254,9 @@ class CatalogRun:
     failed: dict[str, str] = field(default_factory=dict)
     n_points: int = 0
     work: Path = Path()
+    #: the configuration every chunk ran with (slice mode, spacing and noise floor of the
+    #: catalog filled in): ``detect_stems(cloud, run.config)`` is the single-process equivalent
+    config: StemConfig | MunjerConfig | None = None
 
 
 def _catalog_config(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> StemConfig | MunjerConfig:
@@ -227,6 +330,10 @@ def run_stems_catalog(
         with laspy.open(catalog.tiles[0].path) as rd:
             names = tuple(rd.header.point_format.dimension_names)
         time_field = sensor.pick_time_field(names, repr(catalog.tiles[0].path))
+    if isinstance(cfg, StemConfig):
+        cfg = catalog_statistics(
+            catalog, cfg, max_points=max_points, sensor=sensor, time_field=time_field
+        )
     hashes: dict[int, str] = {}
 
     def inputs_of(ch: Chunk) -> dict[str, str]:
@@ -246,7 +353,7 @@ def run_stems_catalog(
         man.reset()
         done = set()
     todo = [ch for ch in chunks if ch.id not in done]
-    run = CatalogRun(None, chunks, skipped=sorted(done), work=Path(work))
+    run = CatalogRun(None, chunks, skipped=sorted(done), work=Path(work), config=cfg)
     log.info(
         "%d tiles, %d points, %d chunks (%d done before), buffer %.1f m",
         len(catalog),
