@@ -89,9 +89,11 @@ def print_summary(
     from rich.table import Table
 
     table = Table(title=title, title_justify="left", show_lines=False)
-    table.add_column("quantity", no_wrap=True)
+    # the quantity (prose) wraps; the key keeps a readable width, so a narrow or non-tty
+    # console (80 columns) never folds a key letter by letter
+    table.add_column("quantity", ratio=3)
     table.add_column("value", justify="right", no_wrap=True)
-    table.add_column("metrics.json key", style="dim", overflow="fold")
+    table.add_column("metrics.json key", style="dim", overflow="fold", ratio=2, min_width=22)
     for name, value, key in rows:
         table.add_row(name, value, key)
     out.print(table)
