@@ -161,3 +161,27 @@ def test_input_hashes_and_folder_inputs(tmp_path):
     doc = json.loads((tmp_path / "o.csv.run.json").read_text())
     assert doc["inputs"][0]["sha256"] == hashlib.sha256(b"abc").hexdigest()
     assert doc["inputs"][1]["kind"] == "folder" and doc["inputs"][1]["files"] == 1
+
+
+def test_file_sha256_reads_an_unchanged_file_once(tmp_path, monkeypatch) -> None:
+    """Both manifests of a run and the tile engine record the same hash: one read per file;
+    a rewritten file (new mtime/size) is hashed again."""
+    import hashlib
+    import os
+
+    from stemmap.io import products
+
+    f = tmp_path / "a.bin"
+    f.write_bytes(b"x" * 1000)
+    calls = []
+    real_open = open
+    monkeypatch.setattr(
+        "builtins.open", lambda p, *a, **k: (calls.append(p), real_open(p, *a, **k))[1]
+    )
+    first = products.file_sha256(f)
+    assert products.file_sha256(f) == first == hashlib.sha256(b"x" * 1000).hexdigest()
+    assert len(calls) == 1
+    f.write_bytes(b"y" * 1001)
+    os.utime(f, ns=(1, 2))
+    assert products.file_sha256(f) == hashlib.sha256(b"y" * 1001).hexdigest()
+    assert len(calls) == 2

@@ -19,7 +19,6 @@ exactly one chunk (:meth:`Chunk.owns`).
 from __future__ import annotations
 
 import glob
-import hashlib
 import logging
 import math
 import os
@@ -32,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.io.products import file_sha256
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -46,7 +46,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 TILE_EXTENSIONS = (".las", ".laz")
-_HASH_BLOCK = 1 << 22
 
 
 @dataclass(frozen=True)
@@ -92,12 +91,9 @@ class Tile:
         return self.n_points * fw * fh
 
     def content_hash(self) -> str:
-        """BLAKE2b (128 bit) of the file's bytes, hex: the input identity a manifest records."""
-        h = hashlib.blake2b(digest_size=16)
-        with open(self.path, "rb") as fh:
-            while block := fh.read(_HASH_BLOCK):
-                h.update(block)
-        return h.hexdigest()
+        """SHA-256 of the file's bytes, hex: the input identity a manifest records (the same
+        function, and the same per-process memo, as the run's ``run.json``)."""
+        return file_sha256(self.path)
 
 
 def _is_copc(header: Any) -> bool:

@@ -104,8 +104,22 @@ class OutputError(StemmapError, OSError):
 # --------------------------------------------------------------------------- hashing, versions
 
 
+#: SHA-256 of files already read by this process, keyed by (device, inode, size, mtime_ns):
+#: a run hashes each input once although its manifest is written twice (``committing`` then
+#: ``complete``) and the tile engine records the same hashes in its chunk manifest.
+_SHA256_SEEN: dict[tuple[int, int, int, int], str] = {}
+
+
 def file_sha256(path: PathLike, chunk: int = 1 << 20) -> str:
-    """Hex SHA-256 of a file, read in ``chunk``-byte blocks (bounded memory)."""
+    """Hex SHA-256 of a file, read in ``chunk``-byte blocks (bounded memory).
+
+    Memoised per process on the file's identity and modification time, so a file that is
+    unchanged is read once however many manifests record it.
+    """
+    st = os.stat(path)
+    key = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    if key in _SHA256_SEEN:
+        return _SHA256_SEEN[key]
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         while True:
@@ -113,7 +127,10 @@ def file_sha256(path: PathLike, chunk: int = 1 << 20) -> str:
             if not b:
                 break
             h.update(b)
-    return h.hexdigest()
+    if len(_SHA256_SEEN) >= 4096:  # bounded: a long-lived process hashing many files
+        _SHA256_SEEN.clear()
+    _SHA256_SEEN[key] = h.hexdigest()
+    return _SHA256_SEEN[key]
 
 
 def _describe(path: Path, base: Path | None = None) -> dict[str, Any]:
