@@ -59,12 +59,12 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from stemmap.errors import ConfigError
+from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_marginals import _merge_duplicates, _point_marginals
 from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
 from stemmap.slam._isam2_track import (
@@ -91,139 +91,6 @@ from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 __all__ = ["Isam2Config", "Isam2Slam"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Isam2Config:
-    """Settings of :class:`Isam2Slam` (defaults justified in docs/algorithms/slam.md).
-
-    sigma_range, sigma_bearing : measurement noise (m, rad)
-    sigma_diameter : m, diameter scatter for the association cue (None disables it)
-    robust : "huber", "cauchy" or "none"; robust_k : kernel width in sigmas
-    gate_chi2 : association gate on the Mahalanobis d² (3 dof with the diameter cue)
-    new_chi2 : a detection starts a new tree only if its d² to every tree exceeds this
-    new_min_dist : m, and it is at least this far from every tree
-    max_range : m, detections farther than this are not used (bearing error x range)
-    drift_scale : multiplies the odometry-derived variance between a tree's last observation
-        in iSAM2 and the last update (the tree's drift relative to the current estimate),
-        capped at ``max_drift_sigma``² (m²)
-    local_drift_sigma : m, trees whose drift is below this are "local" (step 1 of the
-        front-end); the others are re-acquired as a consistent group (step 2)
-    consensus_chi2 : gate on the difference of two re-acquisition offsets (2 dof, 99 %)
-    track_floor_sigmas : (m, m, rad), covariance of the tracked pose right after an iSAM2
-        update (the estimate relative to the local map)
-    keyframe_every : frames per keyframe (one Pose2 variable and one iSAM2 update each); the
-        detections of a tree within a keyframe window are merged into one factor
-    update_every : keyframes per iSAM2 update (association in between uses the odometry
-        prediction from the last estimate)
-    relinearize_threshold : iSAM2 relinearisation threshold
-    batch_iterations : LM iterations at the end (0 = skip the batch step)
-    batch_rel_tol : LM stops when an iteration lowers the cost by less than this fraction
-        (GTSAM's default is 1e-5; 1e-4 of the full run's cost is ~0.9, under 1 % of the cost's
-        own standard deviation sqrt(dof / 2) ~ 100, so the optimum does not change measurably)
-    min_obs : trees seen fewer times are left out of the map (they stay in the graph)
-    min_window_obs : a tree seen in fewer scans of a keyframe window gets no factor from that
-        window (its detections still serve the association)
-    merge_dist : m, after the batch step two trees closer than this with compatible diameters
-        are merged into one and the graph is optimised again (0 disables)
-    marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
-    calibrate : estimate the odometry calibration from the graph's own poses: a steering
-        offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
-        correction (:func:`_calibration_lsq`); online over the last ``calib_window``
-        keyframes (for the new odometry factors), at the end per segment of ``calib_every``
-        keyframes linked by a random walk, alternated with the batch LM (``calib_rounds``)
-    calib_prior_sigmas : (offset, scale) prior sigmas (mean 0: the motion model's own
-        calibration is the prior mean)
-    calib_walk_sigmas : (offset, scale) random-walk intensities per sqrt(second)
-    gnss_robust, gnss_robust_k : robust kernel of the GNSS position priors ("cauchy", "huber"
-        or "none") and its width in sigmas (used when the problem has ``gnss`` fixes,
-        :mod:`stemmap.slam.gnss`)
-    gnss_prior_sigmas : (m, m, rad) weak prior on the first pose when GNSS is fused (the GNSS
-        fixes fix the frame; this only keeps the first updates well-posed)
-    reloc_prior_sigmas : (m, m, rad) prior on the first pose when the problem has a
-        ``prior_map`` (the relocalised start: the map's trees fix the frame)
-    """
-
-    sigma_range: float = 0.10
-    sigma_bearing: float = math.radians(0.5)
-    sigma_diameter: float | None = 0.10
-    robust: str = "huber"
-    robust_k: float = 1.345
-    gate_chi2: float = 11.34
-    new_chi2: float = 30.0
-    new_min_dist: float = 1.0
-    max_range: float = 50.0
-    drift_scale: float = 1.0
-    max_drift_sigma: float = 1.5
-    local_drift_sigma: float = 0.3
-    consensus_chi2: float = 9.21
-    track_floor_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.005)
-    keyframe_every: int = 5
-    update_every: int = 3
-    relinearize_threshold: float = 0.05
-    relinearize_skip: int = 10
-    batch_iterations: int = 20
-    batch_rel_tol: float = 1e-4
-    min_obs: int = 3
-    min_window_obs: int = 2
-    merge_dist: float = 1.0
-    marginals: bool = True
-    prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
-    calibrate: bool = True
-    calib_prior_sigmas: tuple[float, float] = (0.02, 0.05)
-    calib_walk_sigmas: tuple[float, float] = (1e-4, 1e-3)
-    calib_every: int = 20
-    calib_window: int = 40
-    calib_rounds: int = 4
-    gnss_robust: str = "cauchy"
-    gnss_robust_k: float = 2.3849
-    gnss_prior_sigmas: tuple[float, float, float] = (10.0, 10.0, 0.5)
-    reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
-
-    def __post_init__(self) -> None:
-        for name in ("robust", "gnss_robust"):
-            if getattr(self, name) not in ("huber", "cauchy", "none"):
-                raise ConfigError(
-                    f"Isam2Config.{name} must be 'huber', 'cauchy' or 'none', "
-                    f"got {getattr(self, name)!r}."
-                )
-        for name in (
-            "sigma_range",
-            "sigma_bearing",
-            "robust_k",
-            "gnss_robust_k",
-            "gate_chi2",
-            "new_chi2",
-            "max_range",
-            "relinearize_threshold",
-            "batch_rel_tol",
-        ):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"Isam2Config.{name} must be a positive number, got {v}.")
-        if self.update_every < 1:
-            raise ConfigError(f"Isam2Config.update_every must be >= 1, got {self.update_every}.")
-        if self.keyframe_every < 1:
-            raise ConfigError(
-                f"Isam2Config.keyframe_every must be >= 1, got {self.keyframe_every}."
-            )
-        if not 1 <= self.min_window_obs <= self.keyframe_every:
-            # a window holds keyframe_every scans: a larger minimum would drop every factor
-            raise ConfigError(
-                f"Isam2Config.min_window_obs must be in [1, keyframe_every = "
-                f"{self.keyframe_every}], got {self.min_window_obs}."
-            )
-        for name in ("calib_every", "calib_window", "calib_rounds"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"Isam2Config.{name} must be >= 1, got {getattr(self, name)}.")
-        for name in ("calib_prior_sigmas", "calib_walk_sigmas"):
-            v2 = getattr(self, name)
-            if len(v2) != 2 or not all(math.isfinite(x) and x > 0 for x in v2):
-                raise ConfigError(f"Isam2Config.{name} must be two positive numbers, got {v2}.")
-        if self.sigma_diameter is not None and not self.sigma_diameter > 0:
-            raise ConfigError(
-                f"Isam2Config.sigma_diameter must be > 0 or None, got {self.sigma_diameter}."
-            )
 
 
 class Isam2Slam:
