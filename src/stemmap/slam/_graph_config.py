@@ -48,6 +48,11 @@ class Isam2Config:
         window (its detections still serve the association)
     merge_dist : m, after the batch step two trees closer than this with compatible diameters
         are merged into one and the graph is optimised again (0 disables)
+    revisit_factors : a keyframe whose every measured tree already has this many measurement
+        factors in the graph adds no pose to the graph (reduced pose graph,
+        :mod:`stemmap.slam._graph_revisits`): it is tracked and associated as usual, and its
+        pose is localised on the final map; so a revisited stand does not grow the graph.
+        0 = every keyframe enters the graph
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -89,6 +94,7 @@ class Isam2Config:
     min_obs: int = 3
     min_window_obs: int = 2
     merge_dist: float = 1.0
+    revisit_factors: int = 15
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
@@ -134,6 +140,10 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.min_window_obs must be in [1, keyframe_every = "
                 f"{self.keyframe_every}], got {self.min_window_obs}."
+            )
+        if self.revisit_factors < 0:
+            raise ConfigError(
+                f"Isam2Config.revisit_factors must be >= 0 (0 = off), got {self.revisit_factors}."
             )
         for name in ("calib_every", "calib_window", "calib_rounds"):
             if getattr(self, name) < 1:

@@ -67,6 +67,7 @@ from stemmap.errors import ConfigError
 from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_marginals import _merge_duplicates, _point_marginals
 from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
+from stemmap.slam._graph_revisits import compose_increments, localise_skipped, redundant
 from stemmap.slam._isam2_track import (
     C_AMBIG,
     C_FAR,
@@ -162,27 +163,38 @@ class Isam2Slam:
             seg_k = np.arange(nk - 1) // cfg.calib_every
             n_seg = int(seg_k[-1]) + 1
             dur_seg = np.diff(frames.times[kf_frames[:: cfg.calib_every]])[: n_seg - 1]
-        odo_noise: dict[int, Any] = {}
+        odo_noise: dict[tuple[int, int], Any] = {}
+        # keyframes with a GNSS fix always enter the graph (the fix hangs from their pose)
+        must_keep = np.zeros(nk, dtype=bool)
+        if gnss_plan is not None:
+            must_keep[np.asarray(gnss_plan.kf, dtype=np.int64)] = True
 
-        def odo_measured(i0: int, i1: int) -> FloatArray:
-            """Increments of the odometry factors i0..i1-1 with their calibration c_used."""
+        def odo_measured(idx: Any) -> FloatArray:
+            """Increments of the steps ``idx`` (keyframe k -> k + 1) with their calibration."""
             if not calibrate:
-                return d_k[i0:i1]
-            corr = (J_k[i0:i1] @ c_used[i0:i1, :, None])[:, :, 0]
-            return compose(d_k[i0:i1], corr)  # δ0 Exp(J c) to first order (J c is small)
+                return d_k[idx]
+            corr = (J_k[idx] @ c_used[idx][:, :, None])[:, :, 0]
+            return compose(d_k[idx], corr)  # δ0 Exp(J c) to first order (J c is small)
 
-        def odo_factor(i: int, d: FloatArray) -> Any:
-            """BetweenFactorPose2 of keyframes (i, i + 1), increment ``d`` (``odo_measured``)."""
-            if i not in odo_noise:
-                odo_noise[i] = gtsam.noiseModel.Gaussian.Covariance(cov_k[i])
+        def odo_factor(ka: int, kb: int, d: FloatArray | None = None) -> Any:
+            """BetweenFactorPose2 of graph keyframes ``ka < kb``: the steps between composed
+            (:func:`compose_increments`; one step: its own increment ``d`` and covariance)."""
+            if kb == ka + 1:
+                d = odo_measured(slice(ka, kb))[0] if d is None else d
+                cov = cov_k[ka]
+            else:
+                d, cov = compose_increments(odo_measured(slice(ka, kb)), cov_k[ka:kb])
+            if (ka, kb) not in odo_noise:
+                odo_noise[(ka, kb)] = gtsam.noiseModel.Gaussian.Covariance(cov)
             return gtsam.BetweenFactorPose2(
-                XK(i), XK(i + 1), gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])), odo_noise[i]
-            )
+                XK(ka), XK(kb), gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])),
+                odo_noise[(ka, kb)],
+            )  # fmt: skip
 
-        def odo_residuals(kf_xyt: FloatArray, i0: int, i1: int) -> FloatArray:
-            """Residuals of the odometry factors i0..i1-1 at keyframe poses kf_xyt[i0..i1]."""
-            rel = between(kf_xyt[i0:i1], kf_xyt[i0 + 1 : i1 + 1])
-            return between(odo_measured(i0, i1), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
+        def odo_residuals(kf_xyt: FloatArray, idx: np.ndarray) -> FloatArray:
+            """Residuals of the one-step odometry factors ``idx`` at keyframe poses kf_xyt."""
+            rel = between(kf_xyt[idx], kf_xyt[idx + 1])
+            return between(odo_measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
 
         # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
         rel_v = between(pre.poses[kf_frames[kf_of]], pre.poses)
@@ -261,7 +273,14 @@ class Isam2Slam:
         meas_rec: list[tuple[int, int, float, float, float, float]] = []
         meas_fac: list[Any] = []  # the factor of each meas_rec entry (reused when rebuilding)
         odo_fac: list[Any] = []  # the odometry factors of the graph, in keyframe order
+        edges: list[tuple[int, int]] = []  # the graph keyframes each odometry factor links
         new_v.insert(XK(0), s0)
+        in_graph_k = np.zeros(nk, dtype=bool)  # keyframes with a pose in the graph
+        in_graph_k[0] = True
+        kf_init = np.zeros((nk, 3))  # the front-end's sensor pose of every keyframe
+        kf_init[0] = (s0.x(), s0.y(), s0.theta())
+        # measurements of the keyframes left out of the graph (_graph_revisits)
+        skipped: dict[int, tuple[np.ndarray, FloatArray, FloatArray, FloatArray]] = {}
 
         # landmark bookkeeping (numpy, grown geometrically; filled by the numba tracker)
         cap = 1024
@@ -299,6 +318,7 @@ class Isam2Slam:
                 new_f.add(fac_p)
                 graph_all.add(fac_p)
                 map_fac.append(fac_p)
+        lm_nfac = np.zeros(lm_xy.shape[0], dtype=np.int64)  # measurement factors per tree
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         sd2 = (cfg.sigma_diameter or 1.0) ** 2
         kparams = np.array(
@@ -369,29 +389,58 @@ class Isam2Slam:
                 new_f.add(fac)
                 graph_all.add(fac)
                 meas_fac.append(fac)
+            lm_nfac[trees_w] += 1
             sbl, srl = sig[:, 0].tolist(), sig[:, 1].tolist()
             meas_rec.extend(zip([k] * len(js), js, bl, rl, sbl, srl, strict=True))
             n_factors_meas += len(js)
 
+        g_last = 0  # the last keyframe in the graph
+
+        def close_keyframe(kc: int) -> None:
+            """Keyframe ``kc``'s window is complete: into the graph (pose, odometry from the
+            last graph keyframe, its factors), or left out when it only re-observes well-mapped
+            trees (:func:`redundant`; its pose is localised at the end)."""
+            nonlocal g_last, n_single_skipped
+            n_skip_w = int(window[4]) if window else 0
+            if (
+                kc > 0
+                and window
+                and not must_keep[kc]
+                and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors)
+            ):
+                skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
+                n_single_skipped += n_skip_w
+                return
+            if kc > 0:
+                bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
+                new_f.add(bf)
+                graph_all.add(bf)
+                odo_fac.append(bf)
+                edges.append((g_last, kc))
+                new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
+                in_graph_k[kc] = True
+                g_last = kc
+            flush(kc)
+
+        d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
         for k in range(nk):
             f0 = int(kf_frames[k])
             if k > 0:
-                # close the previous keyframe: factors, odometry, maybe an iSAM2 update
-                flush(k - 1)
                 c_used[k - 1] = c_cur
+                # the step k-1 -> k with the current calibration (odo_measured for one step,
+                # in scalars: 1,450 calls on VP)
                 d0_ = d_k[k - 1]
-                if calibrate:  # odo_measured for one factor, in scalars (1,450 calls on VP)
+                if calibrate:
                     xi = J_k[k - 1] @ c_cur
                     cz, sz = math.cos(d0_[2]), math.sin(d0_[2])
                     d0_ = np.array(
                         (d0_[0] + cz * xi[0] - sz * xi[1], d0_[1] + sz * xi[0] + cz * xi[1],
                          d0_[2] + xi[2])
                     )  # fmt: skip
-                bf = odo_factor(k - 1, d0_)
-                new_f.add(bf)
-                graph_all.add(bf)
-                odo_fac.append(bf)
-                # initial value: the tracked pose carried to this keyframe by dead reckoning
+                # close the previous keyframe (the step into it is d_last), then this one's
+                # initial value: the tracked pose carried to it by dead reckoning
+                close_keyframe(k - 1)
+                d_last = d0_
                 g_ = int(fc[0])
                 rel = between(sp_dr[g_], sp_dr[f0])
                 ct_, st_ = math.cos(trk[2]), math.sin(trk[2])
@@ -400,35 +449,55 @@ class Isam2Slam:
                     trk[1] + st_ * rel[0] + ct_ * rel[1],
                     trk[2] + rel[2],
                 )
-                new_v.insert(XK(k), init)
+                kf_init[k] = (init.x(), init.y(), init.theta())
                 add_gnss(k - 1)
                 if k % cfg.update_every == 0:
-                    isam.update(new_f, new_v, remove_idx)
-                    remove_idx.clear()
-                    n_updates += 1
-                    new_f = gtsam.NonlinearFactorGraph()
-                    new_v = gtsam.Values()
-                    p = isam.calculateEstimatePose2(XK(k))
-                    if calibrate and k // cfg.calib_every != cal_seg:
-                        # online calibration from the last calib_window keyframes (constant
-                        # over the window), once per segment (it varies slowly; each pose
-                        # read-out costs ~50 us): new odometry factors use it
-                        cal_seg = k // cfg.calib_every
-                        k0 = max(0, k - cfg.calib_window)
-                        xw = np.zeros((k + 1, 3))
-                        for i_ in range(k0, k + 1):
-                            q_ = p if i_ == k else isam.calculateEstimatePose2(XK(i_))
-                            xw[i_] = (q_.x(), q_.y(), q_.theta())
-                        c_cur = _calibration_lsq(
-                            odo_residuals(xw, k0, k), J_k[k0:k], info_k[k0:k], c_used[k0:k],
-                            np.zeros(k - k0, dtype=np.int64), 1, np.zeros(0),
-                            cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
-                        )[0]  # fmt: skip
-                    # the tracker restarts from the estimate; every observation so far is in
-                    dth = float(wrap_angle(p.theta() - init.theta()))
-                    trk[:] = (p.x(), p.y(), trk[2] + rel[2] + dth)
+                    restart = False  # else the front-end tracks on the map alone
+                    if new_f.size() or new_v.size() or remove_idx:
+                        isam.update(new_f, new_v, remove_idx)
+                        remove_idx.clear()
+                        n_updates += 1
+                        new_f = gtsam.NonlinearFactorGraph()
+                        new_v = gtsam.Values()
+                        restart = g_last == k - 1
+                        if restart:
+                            # keyframe k's estimate: keyframe k-1's, carried by the odometry step
+                            p = isam.calculateEstimatePose2(XK(k - 1)).compose(
+                                gtsam.Pose2(float(d0_[0]), float(d0_[1]), float(d0_[2]))
+                            )
+                        if calibrate and restart and k // cfg.calib_every != cal_seg:
+                            # online calibration from the last calib_window keyframes (constant
+                            # over the window), once per segment (it varies slowly; each pose
+                            # read-out costs ~50 us): new odometry factors use it; one-step
+                            # odometry factors of the graph only
+                            cal_seg = k // cfg.calib_every
+                            k0 = max(0, k - cfg.calib_window)
+                            xw = np.zeros((k + 1, 3))
+                            for i_ in range(k0, k):
+                                if in_graph_k[i_]:
+                                    q_ = isam.calculateEstimatePose2(XK(i_))
+                                    xw[i_] = (q_.x(), q_.y(), q_.theta())
+                            xw[k] = (p.x(), p.y(), p.theta())
+                            has = np.append(in_graph_k[k0:k], True)  # k: its estimate p
+                            idx = k0 + np.flatnonzero(has[:-1] & has[1:])
+                            if idx.size:
+                                c_cur = _calibration_lsq(
+                                    odo_residuals(xw, idx), J_k[idx], info_k[idx], c_used[idx],
+                                    np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
+                                    cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
+                                )[0]  # fmt: skip
+                    # the tracker restarts from the estimate (on a revisit left out of the
+                    # graph: from its own pose, carried here); its covariance is relative to
+                    # the trees just seen, the drift since the others were seen covers them
+                    dth = float(wrap_angle(p.theta() - init.theta())) if restart else 0.0
+                    if restart:
+                        trk[:2] = (p.x(), p.y())
+                    else:
+                        trk[:2] = (init.x(), init.y())
+                    trk[2] = trk[2] + rel[2] + dth
                     P_trk[:, :] = P_floor
                     fc[0] = f0
+                    # every observation so far is in (or redundant with) the graph
                     f_upd = f0
                     lm_inc[:n_lm] = lm_last[:n_lm]
                     # refresh the trees that can be associated soon (within the search radius
@@ -454,6 +523,7 @@ class Isam2Slam:
                 lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
                 lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
                 lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
+                lm_nfac = np.concatenate((lm_nfac, np.zeros(g, dtype=np.int64)))
             n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
                 cum_dist, trk, P_trk, fc, lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last,
@@ -461,10 +531,20 @@ class Isam2Slam:
             )  # fmt: skip
             if progress is not None:
                 progress(f1, nf)
-        flush(nk - 1)
+        close_keyframe(nk - 1)
         add_gnss(nk - 1)
-        isam.update(new_f, new_v, remove_idx)
-        n_updates += 1
+        if new_f.size() or new_v.size() or remove_idx:
+            isam.update(new_f, new_v, remove_idx)
+            n_updates += 1
+        gk = np.flatnonzero(in_graph_k)  # the graph keyframes (key order)
+        one_step = gk[:-1][np.diff(gk) == 1]  # one-step odometry factors (calibration)
+
+        def kf_poses(values: Any) -> FloatArray:
+            """(nk, 3) sensor poses of the graph keyframes in ``values`` (NaN elsewhere)."""
+            out = np.full((nk, 3), np.nan)
+            out[gk] = gtsam.utilities.extractPose2(values)[: gk.size]
+            return out
+
         n_matched = int(counters[C_LOCAL] + counters[C_REACQ] + counters[C_SINGLE])
         n_new = int(counters[C_NEW])
         n_ambiguous = int(counters[C_AMBIG])
@@ -505,10 +585,10 @@ class Isam2Slam:
                 remap[ing] = ing[rep]  # landmark slot each slot maps to
             cal_moved = False
             if calibrate:
-                kf_xyt = gtsam.utilities.extractPose2(result)[:nk]
                 c_seg = _calibration_lsq(
-                    odo_residuals(kf_xyt, 0, nk - 1), J_k, info_k, c_used, seg_k, n_seg,
-                    dur_seg, cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
+                    odo_residuals(kf_poses(result), one_step), J_k[one_step], info_k[one_step],
+                    c_used[one_step], seg_k[one_step], n_seg, dur_seg, cfg.calib_prior_sigmas,
+                    cfg.calib_walk_sigmas,
                 )  # fmt: skip
                 dc = (J_k @ (c_seg[seg_k] - c_used)[:, :, None])[:, :, 0]
                 moved = np.sqrt(np.einsum("ki,kij,kj->k", dc, info_k, dc))
@@ -523,7 +603,7 @@ class Isam2Slam:
             alias = remap[alias]
             g2 = gtsam.NonlinearFactorGraph()
             g2.add(pf)
-            odo_fac = [odo_factor(i_, d_) for i_, d_ in enumerate(odo_measured(0, nk - 1))]
+            odo_fac = [odo_factor(ka_, kb_) for ka_, kb_ in edges]
             for j_p, fac_p in enumerate(map_fac):  # a merged prior tree: on its representative
                 if alias[j_p] != j_p:
                     map_fac[j_p] = gtsam.PriorFactorPoint2(
@@ -539,7 +619,7 @@ class Isam2Slam:
                     )
                 g2.add(meas_fac[i_m])
             v2 = gtsam.Values()
-            for k_ in range(nk):
+            for k_ in gk.tolist():
                 v2.insert(XK(k_), result.atPose2(XK(k_)))
             for key_g in gnss_keys:
                 v2.insert(key_g, result.atPose2(key_g))
@@ -571,27 +651,7 @@ class Isam2Slam:
             opt = gtsam.LevenbergMarquardtOptimizer(graph_all, result, lm_params)
             result = opt.optimize()
             n_lm_iters += int(opt.iterations())
-        kf_s = gtsam.utilities.extractPose2(result)[:nk]  # sensor poses of keyframes, in key order
-        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
-        base_p = kf_s[kf_of]
-        cb, sb = np.cos(base_p[:, 2]), np.sin(base_p[:, 2])
-        sp_all = np.column_stack(
-            (
-                base_p[:, 0] + cb * rel_s[:, 0] - sb * rel_s[:, 1],
-                base_p[:, 1] + sb * rel_s[:, 0] + cb * rel_s[:, 1],
-                base_p[:, 2] + rel_s[:, 2],
-            )
-        )
-        # vehicle pose = sensor pose ∘ T_sv
-        cv, sv = np.cos(sp_all[:, 2]), np.sin(sp_all[:, 2])
-        txv, tyv = T_sv.x(), T_sv.y()
-        veh = np.column_stack(
-            (
-                sp_all[:, 0] + cv * txv - sv * tyv,
-                sp_all[:, 1] + sv * txv + cv * tyv,
-                (sp_all[:, 2] + math.pi) % (2 * math.pi) - math.pi,
-            )
-        )
+        kf_s = kf_poses(result)  # sensor poses of the graph keyframes
         # consistency (GPS-free): chi² per degree of freedom of each factor kind at the optimum;
         # ~1 when the noise models match the data (robust factors report their robust cost)
         # (one C++ error sum per kind over the factors in graph order: equal to summing them
@@ -614,7 +674,7 @@ class Isam2Slam:
         n_outlier = 0
         if meas_rec and ing.size:
             mr = np.array(meas_rec)
-            kf_xyt = gtsam.utilities.extractPose2(result)[:nk][mr[:, 0].astype(np.int64)]
+            kf_xyt = kf_s[mr[:, 0].astype(np.int64)]
             lmp = pts[alias[mr[:, 1].astype(np.int64)]]
             dxm, dym = lmp[:, 0] - kf_xyt[:, 0], lmp[:, 1] - kf_xyt[:, 1]
             rb = wrap_angle(mr[:, 2] - (np.arctan2(dym, dxm) - kf_xyt[:, 2])) / mr[:, 4]
@@ -627,6 +687,33 @@ class Isam2Slam:
                 covs[keep] = _point_marginals(graph_all, result, [LK(int(q_)) for q_ in keep])
             except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
                 log.warning("iSAM2: marginal covariances unavailable: %s", exc)
+        # the keyframes left out of the graph: localised on the final map, run by run
+        n_localised = localise_skipped(
+            gtsam,
+            {k_: (alias[m_[0]], *m_[1:]) for k_, m_ in skipped.items()},
+            kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
+            (XK, LK),
+        )  # fmt: skip
+        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
+        base_p = kf_s[kf_of]
+        cb, sb = np.cos(base_p[:, 2]), np.sin(base_p[:, 2])
+        sp_all = np.column_stack(
+            (
+                base_p[:, 0] + cb * rel_s[:, 0] - sb * rel_s[:, 1],
+                base_p[:, 1] + sb * rel_s[:, 0] + cb * rel_s[:, 1],
+                base_p[:, 2] + rel_s[:, 2],
+            )
+        )
+        # vehicle pose = sensor pose ∘ T_sv
+        cv, sv = np.cos(sp_all[:, 2]), np.sin(sp_all[:, 2])
+        txv, tyv = T_sv.x(), T_sv.y()
+        veh = np.column_stack(
+            (
+                sp_all[:, 0] + cv * txv - sv * tyv,
+                sp_all[:, 1] + sv * txv + cv * tyv,
+                (sp_all[:, 2] + math.pi) % (2 * math.pi) - math.pi,
+            )
+        )
         trees = []
         for jk in keep.tolist():
             n_d = int(lm_dn[jk])
@@ -665,6 +752,9 @@ class Isam2Slam:
             "landmarks": len(trees),
             "factors": int(graph_all.size()),
             "keyframes": int(nk),
+            "keyframes_in_graph": int(gk.size),
+            "keyframes_localised": len(skipped),
+            "localisation_runs": n_localised,
             "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
             "unconfirmed_windows_skipped": n_single_skipped,

@@ -1,0 +1,177 @@
+"""Revisits in the iSAM2 back-end: a keyframe that adds no information adds no pose (ours).
+
+A drive that revisits a mapped stand again and again (a forwarder's daily work, the soak of
+``benchmarks/soak.py``) must not grow the factor graph with every pass: iSAM2's memory and the
+work of each update grow with the graph, and the final batch step with it. Following the
+*reduced pose graph* of Johannsson, Kaess, Fallon and Leonard (2013, "Temporally scalable
+visual SLAM using a reduced pose graph", ICRA: the graph grows with the explored area, not
+with time), :class:`stemmap.slam.graph.Isam2Slam` keeps a keyframe out of the graph when it
+only re-observes well-mapped trees:
+
+* **redundant keyframe** (:func:`redundant`): every tree that would get a factor from the
+  keyframe's window is already in the graph with at least ``revisit_factors`` measurement
+  factors (so one more factor moves it by at most ~1/``revisit_factors`` of its own scatter),
+  and the keyframe carries no GNSS fix. A keyframe without any tree factor (a transit) is
+  redundant too: its pose only chains odometry, which the composed factor below carries
+  exactly. The front-end still tracks and associates every scan against the map (so
+  revisits still find their trees), the keyframe's measurements are kept aside;
+* the next keyframe that does enter the graph is linked to the previous one in the graph by
+  the **composed odometry** of the keyframes between (:func:`compose_increments`: the
+  increments composed in SE(2), the covariance carried with the adjoint, as GTSAM's
+  ``Pose2.compose`` Jacobians do), so no odometry information is lost;
+* after the final batch step, the poses of the left-out keyframes are **localised** against
+  the final map (:func:`localise_skipped`): per run of consecutive left-out keyframes, one
+  small Levenberg-Marquardt problem with their odometry chain between the two graph
+  keyframes around them (held at their final estimates), their own bearing-range
+  measurements, and the trees as priors at their final estimates with their marginal
+  covariances (the mechanism of :mod:`stemmap.slam.relocalise` for prior maps). Its size is
+  the run's, so the cost of the whole step is linear in the drive and its memory bounded by
+  the longest run.
+
+What this bounds: the graph, iSAM2's memory and per-update work, the final batch and
+marginals grow with the mapped area (and with trees still below ``revisit_factors``), not
+with drive time. Per-frame bookkeeping (trajectory, dead reckoning, ~100 bytes per scan) stays
+linear in the drive, as for every back-end.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from stemmap.slam.motion import between, compose
+from stemmap.types import FloatArray
+
+__all__ = ["compose_increments", "localise_skipped", "redundant"]
+
+
+def _adjoint_inv(d: FloatArray) -> FloatArray:
+    """GTSAM's ``Pose2.AdjointMap`` of ``d⁻¹`` for ``d = (x, y, θ)``: [[R, (y', -x')], [0, 1]]."""
+    c, s = np.cos(d[2]), np.sin(d[2])
+    xi, yi = -c * d[0] - s * d[1], s * d[0] - c * d[1]  # translation of d⁻¹
+    return np.array([[c, s, yi], [-s, c, -xi], [0.0, 0.0, 1.0]])
+
+
+def compose_increments(d: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """One SE(2) increment and its covariance from consecutive increments ``d`` (m, 3), ``cov``.
+
+    ``D = d_0 ∘ d_1 ∘ ... ∘ d_m-1``; covariances in GTSAM's convention (right perturbation,
+    tangent order x, y, θ): ``C ← Ad(d_i⁻¹) C Ad(d_i⁻¹)ᵀ + cov_i``, the first-order
+    propagation of ``Pose2.compose`` (Barfoot 2017, State Estimation for Robotics, eq. 7.300
+    for SE(3); the SE(2) adjoint here). Exact for the mean; the covariance is first order.
+    """
+    D = np.array(d[0], dtype=np.float64)
+    C = np.array(cov[0], dtype=np.float64)
+    for i in range(1, d.shape[0]):
+        A = _adjoint_inv(d[i])
+        C = A @ C @ A.T + cov[i]
+        c, s = np.cos(D[2]), np.sin(D[2])
+        D = np.array(
+            (D[0] + c * d[i, 0] - s * d[i, 1], D[1] + s * d[i, 0] + c * d[i, 1], D[2] + d[i, 2])
+        )
+    D[2] = (D[2] + np.pi) % (2.0 * np.pi) - np.pi
+    return D, 0.5 * (C + C.T)
+
+
+def redundant(trees: np.ndarray, in_graph: np.ndarray, n_factors: np.ndarray, min_f: int) -> bool:
+    """True when a keyframe whose window measures ``trees`` adds nothing the graph needs.
+
+    Every tree is in the graph with at least ``min_f`` measurement factors (vacuously true
+    with no tree); ``min_f <= 0`` disables the rule (every keyframe enters the graph).
+    """
+    if min_f <= 0:
+        return False
+    if trees.size == 0:
+        return True
+    return bool(np.all(in_graph[trees]) and np.all(n_factors[trees] >= min_f))
+
+
+def localise_skipped(
+    gtsam: Any,
+    skipped: dict[int, tuple[np.ndarray, FloatArray, FloatArray, FloatArray]],
+    kf_pose: FloatArray,
+    init: FloatArray,
+    steps: FloatArray,
+    step_cov: FloatArray,
+    tree_xy: FloatArray,
+    tree_cov: FloatArray,
+    meas_noise: Callable[[FloatArray], Any],
+    keys: tuple[Callable[[int], int], Callable[[int], int]],
+    anchor_sigmas: Sequence[float] = (1e-3, 1e-3, 1e-4),
+    iterations: int = 10,
+) -> int:
+    """Fill ``kf_pose`` (in place) at the left-out keyframes: each run localised on the map.
+
+    ``skipped`` maps a left-out keyframe to its window's measurements ``(trees, bearing, range,
+    sigmas (m, 2))`` (trees already mapped to their merged representatives); ``kf_pose``
+    (nk, 3) holds the final sensor poses of the graph keyframes (rows of left-out ones are
+    overwritten); ``init`` (nk, 3) the front-end's poses (initial values); ``steps`` /
+    ``step_cov`` the odometry increments of keyframe ``k`` to ``k + 1`` and their covariances;
+    ``tree_xy`` / ``tree_cov`` the trees' final estimates and marginal covariances (NaN:
+    0.1 m). Keyframe 0 is always in the graph. Returns the number of LM problems solved.
+    """
+    XK, LK = keys
+    nk = kf_pose.shape[0]
+    todo = np.array(sorted(skipped), dtype=np.int64)
+    if todo.size == 0:
+        return 0
+    # runs of consecutive left-out keyframes
+    breaks = np.flatnonzero(np.diff(todo) > 1) + 1
+    anchor = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(anchor_sigmas, dtype=np.float64))
+    lm_params = gtsam.LevenbergMarquardtParams()
+    lm_params.setMaxIterations(iterations)
+    n_solved = 0
+    for run in np.split(todo, breaks):
+        s, e = int(run[0]), int(run[-1])
+        g = gtsam.NonlinearFactorGraph()
+        v = gtsam.Values()
+        lo, hi = s - 1, e + 1 if e + 1 < nk else e
+        for k in (lo, hi):
+            if k not in skipped:
+                p = gtsam.Pose2(*(float(q) for q in kf_pose[k]))
+                g.add(gtsam.PriorFactorPose2(XK(k), p, anchor))
+                v.insert(XK(k), p)
+        # initial values: the front-end's poses, moved rigidly onto the left anchor's estimate
+        start = compose(kf_pose[lo][None], between(init[lo][None], init[s : e + 1]))
+        for k in range(s, e + 1):
+            v.insert(XK(k), gtsam.Pose2(*(float(q) for q in start[k - s])))
+        for k in range(lo, hi):
+            dk = steps[k]
+            g.add(
+                gtsam.BetweenFactorPose2(
+                    XK(k),
+                    XK(k + 1),
+                    gtsam.Pose2(float(dk[0]), float(dk[1]), float(dk[2])),
+                    gtsam.noiseModel.Gaussian.Covariance(step_cov[k]),
+                )
+            )
+        seen: set[int] = set()
+        for k in range(s, e + 1):
+            trees, brg, rng, sig = skipped[k]
+            for t, j in enumerate(trees.tolist()):
+                g.add(
+                    gtsam.BearingRangeFactor2D(
+                        XK(k), LK(j), gtsam.Rot2(float(brg[t])), float(rng[t]), meas_noise(sig[t])
+                    )
+                )
+                if j not in seen:
+                    seen.add(j)
+                    cj = tree_cov[j]
+                    if not np.all(np.isfinite(cj)):
+                        cj = np.diag([0.1**2, 0.1**2])
+                    xy = tree_xy[j]
+                    g.add(
+                        gtsam.PriorFactorPoint2(
+                            LK(j), np.array(xy, dtype=np.float64),
+                            gtsam.noiseModel.Gaussian.Covariance(np.asarray(cj, np.float64)),
+                        )
+                    )  # fmt: skip
+                    v.insert(LK(j), np.array(xy, dtype=np.float64))
+        res = gtsam.LevenbergMarquardtOptimizer(g, v, lm_params).optimize()
+        for k in range(s, e + 1):
+            p = res.atPose2(XK(k))
+            kf_pose[k] = (p.x(), p.y(), p.theta())
+        n_solved += 1
+    return n_solved

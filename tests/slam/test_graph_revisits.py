@@ -1,0 +1,103 @@
+"""iSAM2 on revisits: redundant keyframes stay out of the graph (reduced pose graph)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir-less mode)
+
+from stemmap.errors import ConfigError
+from stemmap.eval.matching import match_points
+from stemmap.slam._graph_revisits import compose_increments, redundant
+from stemmap.slam.base import duplicate_pairs
+from stemmap.slam.graph import Isam2Config, Isam2Slam
+from stemmap.slam.motion import compose
+
+
+def test_compose_increments_equals_gtsam_chain(rng):
+    """Mean = the SE(2) composition; covariance = GTSAM's marginal of the chain's end pose."""
+    gtsam = pytest.importorskip("gtsam")
+    m = 6
+    d = np.column_stack((rng.uniform(0.5, 3.0, m), rng.normal(0, 0.3, m), rng.normal(0, 0.4, m)))
+    cov = []
+    for _ in range(m):
+        a = rng.normal(0, 0.05, (3, 3))
+        cov.append(a @ a.T + np.diag([1e-3, 1e-3, 1e-4]))
+    cov = np.array(cov)
+    D, C = compose_increments(d, cov)
+    want = np.zeros(3)
+    for i in range(m):
+        want = compose(want, d[i])
+    np.testing.assert_allclose(D, want, atol=1e-12)
+    # chain X0 (fixed by a very tight prior) -> X1 ... -> Xm; Marginals of Xm is C
+    g = gtsam.NonlinearFactorGraph()
+    v = gtsam.Values()
+    g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
+    v.insert(0, gtsam.Pose2())
+    for i in range(m):
+        g.add(
+            gtsam.BetweenFactorPose2(
+                i, i + 1, gtsam.Pose2(*d[i]), gtsam.noiseModel.Gaussian.Covariance(cov[i])
+            )
+        )
+        v.insert(i + 1, v.atPose2(i).compose(gtsam.Pose2(*d[i])))
+    ref = gtsam.Marginals(g, v).marginalCovariance(m)
+    np.testing.assert_allclose(C, ref, rtol=1e-6, atol=1e-12)
+    # one increment: returned unchanged
+    D1, C1 = compose_increments(d[:1], cov[:1])
+    np.testing.assert_array_equal(D1, d[0])
+    np.testing.assert_allclose(C1, cov[0], atol=0)
+
+
+def test_redundant_rule():
+    in_graph = np.array([True, True, False])
+    n_f = np.array([20, 15, 0])
+    assert redundant(np.array([0, 1]), in_graph, n_f, 15)  # both at >= 15 factors
+    assert not redundant(np.array([0, 1]), in_graph, n_f, 16)  # tree 1 has 15 < 16
+    assert not redundant(np.array([0, 2]), in_graph, n_f, 1)  # tree 2 not in the graph yet
+    assert redundant(np.zeros(0, dtype=np.int64), in_graph, n_f, 15)  # no tree: transit
+    assert not redundant(np.array([0]), in_graph, n_f, 0)  # 0 = off: every keyframe enters
+    assert not redundant(np.zeros(0, dtype=np.int64), in_graph, n_f, 0)
+    with pytest.raises(ConfigError, match="revisit_factors"):
+        Isam2Config(revisit_factors=-1)
+
+
+@pytest.fixture(scope="module")
+def five_laps():
+    problem, truth, trees, _diam = loop_problem(2, laps=5.0)
+    reduced = Isam2Slam().run(problem)
+    full = Isam2Slam(revisit_factors=0).run(problem)
+    return truth, trees, reduced, full
+
+
+def test_revisits_do_not_grow_the_graph(five_laps):
+    _truth, _trees, reduced, full = five_laps
+    nk = reduced.stats["keyframes"]
+    assert full.stats["keyframes_in_graph"] == nk  # off: every keyframe is a pose
+    assert full.stats["keyframes_localised"] == 0
+    # five laps over the same trees: after the first lap the trees have their factors, so
+    # most later keyframes stay out (measured ~1/3 of the keyframes in the graph)
+    assert reduced.stats["keyframes_in_graph"] < 0.5 * nk
+    assert reduced.stats["keyframes_localised"] == nk - reduced.stats["keyframes_in_graph"]
+    assert reduced.stats["factors"] < 0.6 * full.stats["factors"]
+
+
+def test_revisits_keep_path_and_map_quality(five_laps):
+    truth, trees, reduced, full = five_laps
+    rms = {}
+    for name, res in (("reduced", reduced), ("full", full)):
+        err = np.hypot(*(res.trajectory.xy - truth[:, :2]).T)
+        rms[name] = math.sqrt(np.mean(err**2))
+        # every frame has a pose (the left-out keyframes are localised on the map)
+        assert np.all(np.isfinite(res.trajectory.xy))
+        m = match_points(res.stem_map.xy, trees, gate=0.5)
+        assert m.n_matched >= 0.9 * len(res.stem_map)
+        assert np.sqrt(np.mean(m.distances**2)) < 0.15
+        assert duplicate_pairs(res.stem_map, 1.0) <= 0.02 * len(res.stem_map) + 1
+    # the localised poses are as good as the smoothed ones (measured: within ~10 %)
+    assert rms["reduced"] < 0.15
+    assert rms["reduced"] < 1.3 * rms["full"] + 0.01
+    # no tree is duplicated by the revisits: the two maps hold the same trees
+    assert abs(len(reduced.stem_map) - len(full.stem_map)) <= 0.05 * len(full.stem_map) + 1
