@@ -69,8 +69,8 @@ log = logging.getLogger(__name__)
 class OnlineConfig:
     """Settings of :class:`OnlineMapper`.
 
-    isam2 : the back-end's settings (``calibrate``, ``merge_dist`` and ``batch_iterations`` are
-        batch-only and ignored here)
+    isam2 : the back-end's settings (``calibrate``, ``merge_dist``, ``batch_iterations`` and
+        ``revisit_factors`` are batch-only and ignored here: the window bounds the work)
     window_keyframes : keyframes between re-anchors of the smoother (bounded work / memory)
     idle_keyframes : also re-anchor after this many keyframes without a tree measurement
         (a transit): the odometry chain alone would grow the window's pose uncertainty to
