@@ -100,3 +100,58 @@ def test_empty_map():
     m = map_metrics(np.zeros((0, 2)), np.zeros(0), [[0.0, 0.0]], [0.3])
     assert m.n_matched == 0 and m.n_missed == 1 and math.isnan(m.precision)
     assert math.isnan(m.pairwise.mean_percent_error)
+
+
+def test_pairwise_distance_errors_every_field():
+    """Signed errors, both matrices, the summary values over pairs i < j, labels and JSON."""
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 5.0]])
+    est = np.array([[0.0, 0.0], [9.0, 0.0], [0.0, 5.5]])  # one pair 1 m short, one 0.5 m long
+    p = pairwise_distance_errors(est, truth, truth_index=[7, 3, 9])
+    assert p.truth_index.tolist() == [7, 3, 9] and p.truth_index.dtype == np.int64
+    np.testing.assert_allclose(p.true[0], [0.0, 10.0, 5.0])
+    np.testing.assert_allclose(p.estimated[0], [0.0, 9.0, 5.5])
+    np.testing.assert_allclose(p.abs_error, p.estimated - p.true)  # signed
+    assert p.abs_error[0, 1] == pytest.approx(-1.0) and p.abs_error[0, 2] == pytest.approx(0.5)
+    assert p.percent_error[0, 1] == pytest.approx(10.0)  # |error| / true
+    assert p.percent_error[0, 2] == pytest.approx(10.0)
+    np.testing.assert_allclose(p.percent_error, p.percent_error.T, equal_nan=True)
+    assert np.all(np.isnan(np.diag(p.percent_error)))
+    d12 = abs(math.hypot(9.0, 5.5) - math.hypot(10.0, 5.0))
+    assert p.mean_abs_error == pytest.approx((1.0 + 0.5 + d12) / 3)
+    assert p.max_percent_error == pytest.approx(10.0)
+    d = json.loads(json.dumps(p.to_dict()))
+    assert d["truth_index"] == [7, 3, 9]
+    assert d["mean_abs_error_m"] == pytest.approx(p.mean_abs_error)
+    assert d["max_percent_error"] == pytest.approx(10.0)
+    assert d["mean_percent_error"] == pytest.approx(p.mean_percent_error)
+    assert d["percent_error"][0][0] is None and d["percent_error"][0][1] == pytest.approx(10.0)
+
+
+def test_pairwise_distance_errors_one_tree_and_bad_inputs():
+    p = pairwise_distance_errors([[1.0, 2.0]], [[1.0, 2.0]])
+    assert p.estimated.shape == (1, 1) and p.true.shape == (1, 1)
+    assert math.isnan(p.mean_percent_error) and math.isnan(p.max_percent_error)
+    assert math.isnan(p.mean_abs_error)
+    d = p.to_dict()
+    assert d["mean_percent_error"] is None and d["mean_abs_error_m"] is None
+    assert d["max_percent_error"] is None and d["truth_index"] == [0]
+    with pytest.raises(InputError, match=r"row for row; got \(2, 2\) and \(1, 2\)"):
+        pairwise_distance_errors([[0, 0], [1, 1]], [[0, 0]])
+    with pytest.raises(InputError, match=r"truth_index must have 2 entries, got \(3,\)"):
+        pairwise_distance_errors([[0, 0], [1, 1]], [[0, 0], [1, 1]], truth_index=[1, 2, 3])
+
+
+def test_align_rigid_2d_is_a_proper_rotation_even_for_a_mirrored_set():
+    src = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    # the best orthogonal map is a reflection; a rotation (det +1) must be returned
+    R, t = align_rigid_2d(src, src * [1.0, -1.0])
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R @ R.T, np.eye(2), atol=1e-12)
+    # a pure translation is recovered exactly, with R = I
+    R, t = align_rigid_2d(src, src + np.array([3.0, -2.0]))
+    np.testing.assert_allclose(R, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(t, [3.0, -2.0], atol=1e-12)
+    with pytest.raises(InputError, match=r"got \(1, 2\), \(1, 2\)"):
+        align_rigid_2d([[0.0, 0.0]], [[0.0, 0.0]])
+    with pytest.raises(InputError, match="equal shape"):
+        align_rigid_2d(src, src[:3])
