@@ -155,3 +155,39 @@ def test_align_rigid_2d_is_a_proper_rotation_even_for_a_mirrored_set():
         align_rigid_2d([[0.0, 0.0]], [[0.0, 0.0]])
     with pytest.raises(InputError, match="equal shape"):
         align_rigid_2d(src, src[:3])
+
+
+def test_align_rigid_2d_recovers_a_rotation_about_an_offset_centre_from_two_points():
+    a = math.radians(30.0)
+    src = np.array([[10.0, 20.0], [14.0, 23.0]])  # two points (the minimum), mean far from 0
+    dst = src @ _rot(a).T + [5.0, -7.0]
+    R, t = align_rigid_2d(src, dst)
+    assert math.atan2(R[1, 0], R[0, 0]) == pytest.approx(a, abs=1e-12)
+    np.testing.assert_allclose(t, [5.0, -7.0], atol=1e-9)
+    np.testing.assert_allclose(src @ R.T + t, dst, atol=1e-9)
+
+
+def test_pairwise_distance_errors_of_two_trees():
+    p = pairwise_distance_errors([[0.0, 0.0], [0.0, 3.3]], [[0.0, 0.0], [0.0, 3.0]])
+    assert p.true[0, 1] == pytest.approx(3.0) and p.estimated[1, 0] == pytest.approx(3.3)
+    assert p.mean_percent_error == pytest.approx(10.0)
+    assert p.mean_abs_error == pytest.approx(0.3)
+
+
+def test_map_metrics_to_dict_reports_the_alignment_and_the_pairwise_summary():
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 5.0], [8.0, 9.0]])
+    a = math.radians(-3.0)
+    mapped = truth @ _rot(a).T + [0.2, 0.1]
+    m = map_metrics(mapped, np.full(4, 0.3), truth, np.full(4, 0.3), gate=0.5, align=True)
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["rotation_rad"] == pytest.approx(-a, abs=1e-9)  # map frame -> truth frame
+    np.testing.assert_allclose(d["translation"], m.translation)
+    assert d["pairwise_mean_percent_error"] == pytest.approx(0.0, abs=1e-9)
+    assert d["pairwise_mean_abs_error"] == pytest.approx(0.0, abs=1e-9)
+    for k in ("rotation", "pairwise", "matching"):
+        assert k not in d
+    assert d["n_matched"] == 4 and d["aligned"] is True
+    # one mapped tree: no pair, so the pairwise summary is null
+    one = map_metrics([[0.0, 0.0]], [0.3], [[0.0, 0.0]], [0.3]).to_dict()
+    assert one["pairwise_mean_percent_error"] is None and one["pairwise_mean_abs_error"] is None
+    assert one["rotation_rad"] == 0.0 and one["translation"] == [0.0, 0.0]
