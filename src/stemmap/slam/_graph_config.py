@@ -51,8 +51,10 @@ class Isam2Config:
     revisit_factors : a keyframe whose every measured tree already has this many measurement
         factors in the graph adds no pose to the graph (reduced pose graph,
         :mod:`stemmap.slam._graph_revisits`): it is tracked and associated as usual, and its
-        pose is localised on the final map; so a revisited stand does not grow the graph.
-        0 = every keyframe enters the graph
+        pose is localised on the final map; so a revisited stand grows the graph less.
+        0 (default) = every keyframe enters the graph. Opt-in: 15 kept the path and the map
+        on a 3-pass Victoria Park replay at half the time, but lost the path in passes 8 and
+        10 of a 10-pass replay (docs/reliability.md "Soak")
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -94,7 +96,7 @@ class Isam2Config:
     min_obs: int = 3
     min_window_obs: int = 2
     merge_dist: float = 1.0
-    revisit_factors: int = 15
+    revisit_factors: int = 0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
