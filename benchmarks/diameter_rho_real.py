@@ -30,9 +30,8 @@ import numpy as np
 from scipy.optimize import brentq
 
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, load_slice, virtual_scans
+from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan.detect import ScanTrunkDetector
-from stemmap.types import ScanBatch
 
 MEDIAN_ABS_Z = 0.6745
 OFFSETS_M = (4.0, 8.0)
@@ -69,16 +68,7 @@ def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, 
                 sl.xy, sl.labels, vp, resolution_deg=0.5, model=model,  # type: ignore[arg-type]
                 centers=sl.centers,
             )  # fmt: skip
-            ranges = ranges0 + (rng.normal(0.0, noise, ranges0.shape) if noise > 0 else 0.0)
-            ranges = np.where(np.isfinite(ranges0), np.maximum(ranges, 0.05), np.inf)
-            batch = ScanBatch(
-                ranges=ranges,
-                times=np.arange(vp.shape[0], dtype=np.float64),
-                angle_min=-math.pi,
-                angle_increment=math.radians(0.5),
-                range_max=30.0,
-            )
-            obs = det.detect_batch(batch)
+            obs = det.detect_batch(noisy_batch(ranges0, 0.5, noise, rng))
             errs = []
             for s in range(vp.shape[0]):
                 m = obs.index == s
