@@ -104,3 +104,25 @@ def test_dtm_without_crs_is_a_local_frame(tmp_path: Path, rng: np.random.Generat
     with rasterio.open(out) as r:
         assert r.crs is not None and r.crs.to_epsg() is None
         assert "plot.las" in r.crs.to_wkt() and "LOCAL_CS" in r.crs.to_wkt()
+
+
+def test_dtm_carries_the_las_header_crs(tmp_path: Path, rng: np.random.Generator) -> None:
+    import laspy
+    import pyproj
+
+    xyz = _plot(rng)
+    header = laspy.LasHeader(point_format=0, version="1.4")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.floor(xyz.min(axis=0))
+    header.add_crs(pyproj.CRS("EPSG:32633"))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    cloud = tmp_path / "plot.las"
+    las.write(cloud)
+    out = tmp_path / "dtm.tif"
+    args = ["stems", str(cloud), "--out", str(tmp_path / "s.csv"), "--dtm", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    with rasterio.open(out) as r:
+        assert r.crs.to_epsg() == 32633
+        assert r.bounds.left == pytest.approx(X0) and r.bounds.bottom == pytest.approx(Y0)
