@@ -28,7 +28,7 @@ from scipy import ndimage
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
-from stemmap.vision.camera import CameraModel, RigidTransform
+from stemmap.vision.camera import CameraModel, RigidTransform, undistort_region
 
 __all__ = [
     "COLOUR_PCA",
@@ -468,7 +468,8 @@ class EdgeDiameter:
     ----------
     diameter : float, metres (NaN when failed)
     diameter_pinhole : float, metres -- Öhman's pinhole conversion, width_px * range / f
-    left_u, right_u : float, image columns of the two edges
+    left_u, right_u : float, columns of the two edges in the ideal pinhole image (the image's
+        own columns when the camera has no distortion; see :meth:`CameraModel.undistort_points`)
     pass_used : int
     ok, reason
     """
@@ -511,6 +512,10 @@ def measure_diameter(
     range_m : float, metres -- laser range to the trunk's near surface
     width_bounds : (w_min, w_max), metres -- the laser's trunk-width bounds
     camera : CameraModel
+        With non-zero distortion coefficients the region is undistorted
+        (:func:`~stemmap.vision.camera.undistort_region`) before any edge is measured (Öhman
+        §3.2 corrects only the two chosen points; a curved edge would already have blurred the
+        1D projection by then).
     laser_to_camera : RigidTransform, optional
         When given, the edge rays are rotated into the laser frame so their horizontal angle is
         exact for a tilted camera (otherwise the camera's own x-z plane is used).
@@ -535,6 +540,12 @@ def measure_diameter(
     x1, y1 = min(W, int(b[0] + b[2])), min(H, int(b[1] + b[3]))
     if x1 - x0 < 3 or y1 - y0 < 3:
         return EdgeDiameter(math.nan, math.nan, math.nan, math.nan, 0, False, "box outside image")
+    ox = oy = 0
+    if camera.has_distortion:
+        # Undistort the region first: a straight trunk edge is curved by the lens, which would
+        # smear its column in the 1D projection; from here on pixels are ideal-pinhole pixels.
+        img, (ox, oy, w_ud, h_ud) = undistort_region(img, camera, (x0, y0, x1 - x0, y1 - y0))
+        x0, y0, x1, y1 = 0, 0, w_ud, h_ud
     f = camera.fx
     w_min, w_max = width_bounds
     lo_px = max(1.0, f * w_min / range_m)
@@ -565,12 +576,12 @@ def measure_diameter(
     widths = np.asarray(rights) - np.asarray(lefts)
     k = int(np.argsort(widths)[len(widths) // 2])
     pair = EdgePair(lefts[k], rights[k], math.nan, math.nan)
-    ul, ur = x0 + pair.left, x0 + pair.right
+    ul, ur = ox + x0 + pair.left, ox + x0 + pair.right
     # The edge at column k of the profile is between pixels k and k+1 of a Canny response; the
     # boundary sits at k + 0.5 on average for a step edge. Width is a difference: unaffected.
     width_px = ur - ul
     d_pin = width_px * range_m / f
-    v = y0 + (y1 - y0) / 2.0
+    v = oy + y0 + (y1 - y0) / 2.0
     Kinv = np.linalg.inv(camera.K)
     r1 = Kinv @ np.array([ul, v, 1.0])
     r2 = Kinv @ np.array([ur, v, 1.0])
