@@ -102,3 +102,27 @@ def test_calibration_file_carries_distortion(tmp_path: Path) -> None:
         with pytest.raises(InputError, match=r"camera\.dist"):
             read_calibration(_calib(tmp_path, {"K": K, "width": 640, "height": 360,
                                                "dist": bad}))  # fmt: skip
+
+
+def test_calibrate_cli_writes_distortion(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from stemmap.cli import app
+    from stemmap.vision.camera import apply_homography, laser_plane_homography
+
+    G = laser_plane_homography(BASE.camera, BASE.laser_to_camera)
+    rng = np.random.default_rng(0)
+    xy = np.column_stack((rng.uniform(2, 7, 20), rng.uniform(-1, 1, 20)))
+    uv = apply_homography(G, xy)
+    pairs = tmp_path / "pairs.csv"
+    rows = "".join(f"{a},{b},{c},{d}\n" for (a, b), (c, d) in zip(xy, uv, strict=True))
+    pairs.write_text("x,y,u,v\n" + rows, encoding="utf-8")
+    K = BASE.camera.K
+    base = ["calibrate", str(pairs), "--out", str(tmp_path / "c.json"), "--fx", str(K[0, 0])]
+    base += ["--cx", str(K[0, 2]), "--cy", str(K[1, 2]), "--width", "640", "--height", "360"]
+    res = CliRunner().invoke(app, [*base, "--dist=-0.3,0.08,0.001,-0.001"])
+    assert res.exit_code == 0, res.output
+    cam = CameraModel(*read_calibration(tmp_path / "c.json")["camera"])
+    np.testing.assert_allclose(cam.dist, [-0.3, 0.08, 0.001, -0.001, 0.0])
+    res = CliRunner().invoke(app, [*base, "--dist", "barrel"])
+    assert res.exit_code != 0 and "--dist" in res.output
