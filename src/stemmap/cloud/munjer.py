@@ -36,6 +36,12 @@ class MunjerConfig:
     association_distance : float, metres -- proximity association across frames (1.0)
     fit_method : str -- circle fit of the projection (a ``FIT_METHODS`` name; the paper does not
         name one, so the algebraic Kasa fit is the default)
+    eccentricity_axes : "major_minor" or "largest" -- which two eigenvalues of the cluster's 3D
+        covariance make ``e``. The paper says "two principal eigenvalues, lambda1 > lambda2";
+        "largest" (the two biggest) puts a 16-beam trunk cluster at e ~ 1.4-3.5 (its height
+        band against its width), never in [10, 20]; "major_minor" (biggest over smallest: a
+        partial trunk is a curved sheet, thin in depth) gives trunks e ~ 6-16. Default
+        "major_minor"; the evidence is in docs/algorithms/cloud.md.
     """
 
     box_x: tuple[float, float] | None = (0.0, 10.0)
@@ -48,6 +54,7 @@ class MunjerConfig:
     fit_std_max: float = 0.1
     association_distance: float = 1.0
     fit_method: str = "kasa"
+    eccentricity_axes: str = "major_minor"
 
     def __post_init__(self) -> None:
         if not (self.voxel > 0 and self.eps > 0 and self.min_points >= 1):
@@ -55,6 +62,11 @@ class MunjerConfig:
         lo, hi = self.eccentricity_range
         if not hi >= lo >= 1:
             raise ConfigError(f"eccentricity_range must satisfy 1 <= lo <= hi, got {lo}, {hi}.")
+        if self.eccentricity_axes not in ("largest", "major_minor"):
+            raise ConfigError(
+                "eccentricity_axes must be 'major_minor' or 'largest', got "
+                f"{self.eccentricity_axes!r}."
+            )
 
 
 def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> CloudStems:
@@ -91,7 +103,7 @@ def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> C
     if lab.size == 0 or lab.max() < 0:
         return CloudStems.empty("munjer2025", reason="DBSCAN found no cluster")
     cen, cov, sizes = cluster_covariances(v, lab)
-    ecc = pca_eccentricity(cov)
+    ecc = pca_eccentricity(cov, cfg.eccentricity_axes)
     lo, hi = cfg.eccentricity_range
     cand = np.flatnonzero((ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points))
     if cand.size == 0:
