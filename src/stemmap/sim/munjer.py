@@ -7,7 +7,8 @@ objects placed to test false accepts. :func:`simulate_munjer_drive` renders such
 * the stand: park spacing (Poisson disc, >= 3.5 m between trunk surfaces) or orchard rows,
   vertical untapered trunks (so the 3D lidar and the camera renderer see the same cylinders),
   flat ground, and ``n_objects`` bushes (the non-tree objects) placed off the path;
-* the drive: an elliptical loop at ``speed`` m/s (3-5 m/s per the issue), true vehicle poses at
+* the drive: laps of a stadium (straights 8 m apart joined by 4 m radius half circles, 5 m from
+  the stand's ends) at ``speed`` m/s (3-5 m/s per the issue), true vehicle poses at
   ``odom_rate_hz``;
 * lidar frames: a VLP-16 (:func:`~stemmap.sim.lidar.lidar_preset` ``"vlp16"``, 0.2 degree steps
   = 10 Hz) at ``lidar_height`` above the ground, one revolution per frame at ``lidar_rate_hz``,
@@ -37,6 +38,8 @@ from stemmap.sim.camera import CameraRig, render_scene
 from stemmap.sim.forest import Stand, random_stand
 from stemmap.sim.lidar import LidarModel, Stand3D, lidar_preset, simulate_mobile
 from stemmap.sim.trajectory import Odometry, OdometryNoise, _noisy_odometry
+from stemmap.slam.base import Controls
+from stemmap.slam.motion import UnicycleModel
 from stemmap.types import FloatArray, PointCloud, Pose2, wrap_angle
 from stemmap.vision.camera import LASER_TO_CAMERA_AXES, CameraModel, RigidTransform
 
@@ -119,6 +122,22 @@ class MunjerDrive:
     lidar_height: float
     params: dict[str, object] = field(default_factory=dict)
 
+    def controls(self) -> Controls:
+        """The motion source (noisy odometry) as unicycle controls for a SLAM problem."""
+        o = self.odometry
+        return Controls(o.times, o.speed, o.yaw_rate, "unicycle")
+
+    def motion_model(self) -> UnicycleModel:
+        """Motion noise from the odometry's own error spec (nothing read from the truth): white
+        noise averaged over one second plus the scale error at the drive speed and the bias."""
+        n = self.params["odometry_noise"]
+        assert isinstance(n, dict)
+        rate = float(self.params["odom_rate_hz"])  # type: ignore[arg-type]
+        speed = float(self.params["speed"])  # type: ignore[arg-type]
+        sig_v = n["speed_noise"] / math.sqrt(rate) + abs(n["speed_scale"] - 1.0) * speed
+        sig_w = n["yaw_rate_noise"] / math.sqrt(rate) + abs(n["yaw_rate_bias"])
+        return UnicycleModel(sigma_speed=max(sig_v, 1e-3), sigma_steer=max(sig_w, 1e-4))
+
 
 def _stand(layout: str, size: tuple[float, float], n_trees: int, gen: np.random.Generator) -> Stand:
     if layout == "park":
@@ -136,19 +155,31 @@ def _stand(layout: str, size: tuple[float, float], n_trees: int, gen: np.random.
     raise ConfigError(f"unknown layout {layout!r}; choose 'park' or 'orchard'.")
 
 
-def _loop_poses(
-    center: FloatArray, radii: tuple[float, float], speed: float, duration: float, rate: float
-) -> tuple[FloatArray, FloatArray]:
-    """Constant-speed drive along an ellipse (counter-clockwise from its bottom): times, poses."""
-    a = np.linspace(-math.pi / 2, 3 * math.pi / 2, 20001)
-    pts = center + np.column_stack((radii[0] * np.cos(a), radii[1] * np.sin(a)))
-    s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))))
+def _stadium_poses(
+    center: FloatArray, half_sep: float, straight: float, speed: float, duration: float, rate: float
+) -> tuple[FloatArray, FloatArray, float]:
+    """Constant-speed laps of a stadium (two straights along y, ``2 half_sep`` apart, joined by
+    half circles), counter-clockwise from the start of the right-hand straight: times, poses
+    (x, y, heading) and the lap length. Straights let a forward camera see the trees between
+    them ahead of the robot (an ellipse keeps inner trees always abeam)."""
+    r, L = half_sep, straight
+    lap = 2 * L + 2 * math.pi * r
     t = np.arange(0.0, duration + 1e-9, 1.0 / rate)
-    sq = np.mod(speed * t, s[-1])
-    aq = np.interp(sq, s, a)
-    xy = center + np.column_stack((radii[0] * np.cos(aq), radii[1] * np.sin(aq)))
-    heading = np.arctan2(radii[1] * np.cos(aq), -radii[0] * np.sin(aq))
-    return t, np.column_stack((xy, heading))
+    s = np.mod(speed * t, lap)
+    cx, cy = center
+    x, y, th = np.empty_like(s), np.empty_like(s), np.empty_like(s)
+    b1, b2, b3 = L, L + math.pi * r, 2 * L + math.pi * r
+    m = s < b1  # up the right straight
+    x[m], y[m], th[m] = cx + r, cy - L / 2 + s[m], math.pi / 2
+    m = (s >= b1) & (s < b2)  # top half circle
+    a = (s[m] - b1) / r
+    x[m], y[m], th[m] = cx + r * np.cos(a), cy + L / 2 + r * np.sin(a), math.pi / 2 + a
+    m = (s >= b2) & (s < b3)  # down the left straight
+    x[m], y[m], th[m] = cx - r, cy + L / 2 - (s[m] - b2), -math.pi / 2
+    m = s >= b3  # bottom half circle
+    a = (s[m] - b3) / r
+    x[m], y[m], th[m] = cx - r * np.cos(a), cy - L / 2 - r * np.sin(a), -math.pi / 2 + a
+    return t, np.column_stack((x, y, wrap_angle(th))), lap
 
 
 def simulate_munjer_drive(
@@ -178,7 +209,7 @@ def simulate_munjer_drive(
     size : stand extent (m); the paper's test area is about 25 x 35 m
     n_trees : trees drawn for the park layout (before the path corridor is cleared)
     n_objects : non-tree objects (bushes, 0.35-0.6 m radius, 0.8-1.4 m tall)
-    speed : m/s along the loop (the issue: 3-5 m/s)
+    speed : m/s along the stadium loop (the issue: 3-5 m/s)
     duration : s (default: one lap)
     lidar_rate_hz, odom_rate_hz : frame and odometry rates
     lidar_height : lidar above the ground (m); the paper's pass-through z in (-0.5, 0) then keeps
@@ -202,12 +233,11 @@ def simulate_munjer_drive(
     gen = np.random.default_rng(rng)
     w, h = size
     center = np.array([w / 2, h / 2])
-    radii = (max(w / 2 - 5.0, 2.0), max(h / 2 - 5.0, 2.0))
-    # one lap: circumference of the ellipse (Ramanujan)
-    a_, b_ = radii
-    lap = math.pi * (3 * (a_ + b_) - math.sqrt((3 * a_ + b_) * (a_ + 3 * b_)))
+    half_sep = min(4.0, w / 4)
+    straight = max(h - 10.0 - 2 * half_sep, 1.0)
+    lap = 2 * straight + 2 * math.pi * half_sep
     dur = lap / speed if duration is None else float(duration)
-    t_odo, p_odo = _loop_poses(center, radii, speed, dur, odom_rate_hz)
+    t_odo, p_odo, _ = _stadium_poses(center, half_sep, straight, speed, dur, odom_rate_hz)
     path = p_odo[:, :2]
 
     from stemmap.sim.trajectory import clear_corridor

@@ -8,6 +8,7 @@ any SLAM front end writing ``time_s,x,y,theta``) is turned into body-frame veloc
 
 * :func:`eb_lidar_observations` -- EB-LiDAR (:func:`~stemmap.cloud.munjer.detect_stems_munjer`)
   on every lidar frame, as sensor-frame :class:`~stemmap.types.StemObservations`;
+* :func:`ours_lidar_observations` -- stemmap's own cloud detector on every frame, for comparison;
 * :func:`daim_observations` -- a trunk detector's boxes (never truth) + aligned depth ->
   :func:`~stemmap.vision.depth.daim_trunks` on every RGB-D frame;
 * :func:`munjer_problem` -- a :class:`~stemmap.slam.base.SlamProblem` from either;
@@ -19,8 +20,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -31,13 +33,19 @@ from stemmap.slam.base import Controls, SlamProblem, SlamResult, TreeFrames
 from stemmap.slam.motion import UnicycleModel
 from stemmap.types import FloatArray, PointCloud, StemObservations, Trajectory
 
+if TYPE_CHECKING:
+    from stemmap.cloud.config import StemConfig
+    from stemmap.cloud.result import CloudStems
+
 __all__ = [
     "MunjerMapConfig",
     "controls_from_trajectory",
     "daim_observations",
     "eb_lidar_observations",
+    "lidar_observations",
     "map_munjer",
     "munjer_problem",
+    "ours_lidar_observations",
 ]
 
 log = logging.getLogger(__name__)
@@ -64,31 +72,32 @@ def _stack(parts: list[StemObservations], source: str, frame: str) -> StemObserv
     return StemObservations(**cat, source=source, frame=frame)
 
 
-def eb_lidar_observations(
+def lidar_observations(
     frames: Sequence[PointCloud | FloatArray],
     times: ArrayLike,
-    config: MunjerConfig | None = None,
+    detect: Callable[[FloatArray], CloudStems],
+    source: str,
 ) -> StemObservations:
-    """EB-LiDAR on every lidar frame (Munjer et al. 2025, §3.2-3.3).
+    """Run a per-frame cloud stem detector on every lidar frame.
 
     Parameters
     ----------
     frames : F lidar frames, sensor frame (x forward, z up), metres
     times : (F,) s
-    config : MunjerConfig (default: the published Table 1 values)
+    detect : ``xyz (N, 3) -> CloudStems`` in the same frame
+    source : the observations' ``source`` tag
 
     Returns
     -------
-    StemObservations in the sensor frame, ``index`` = frame index, ``source="cloud:munjer2025"``.
+    StemObservations in the sensor frame, ``index`` = frame index.
     """
     t = np.asarray(times, dtype=np.float64).reshape(-1)
     if t.shape[0] != len(frames):
         raise InputError(f"{len(frames)} lidar frames but {t.shape[0]} times.")
-    cfg = config or MunjerConfig()
     parts = []
     for f, fr in enumerate(frames):
-        xyz = fr.xyz if isinstance(fr, PointCloud) else fr
-        det = detect_stems_munjer(xyz, cfg)
+        xyz = fr.xyz if isinstance(fr, PointCloud) else np.asarray(fr, dtype=np.float64)
+        det = detect(xyz)
         k = len(det)
         if k == 0:
             continue
@@ -103,11 +112,40 @@ def eb_lidar_observations(
                 quality=np.ones(k),
                 index=np.full(k, f, dtype=np.int64),
                 times=np.full(k, t[f]),
-                source="cloud:munjer2025",
+                source=source,
                 frame="lidar",
             )
         )
-    return _stack(parts, "cloud:munjer2025", "lidar")
+    return _stack(parts, source, "lidar")
+
+
+def eb_lidar_observations(
+    frames: Sequence[PointCloud | FloatArray],
+    times: ArrayLike,
+    config: MunjerConfig | None = None,
+) -> StemObservations:
+    """EB-LiDAR (:func:`~stemmap.cloud.munjer.detect_stems_munjer`, Munjer et al. 2025,
+    §3.2-3.3, Table 1 by default) on every lidar frame; see :func:`lidar_observations`."""
+    cfg = config or MunjerConfig()
+    return lidar_observations(
+        frames, times, lambda xyz: detect_stems_munjer(xyz, cfg), "cloud:munjer2025"
+    )
+
+
+def ours_lidar_observations(
+    frames: Sequence[PointCloud | FloatArray],
+    times: ArrayLike,
+    config: StemConfig | None = None,
+) -> StemObservations:
+    """stemmap's own cloud detector (:func:`~stemmap.cloud.stems.detect_stems`, ground fit,
+    breast-height slices, fits refined along the rays from the sensor at the frame origin) on
+    every lidar frame; see :func:`lidar_observations`."""
+    from stemmap.cloud.stems import detect_stems
+
+    origin = np.zeros(3)
+    return lidar_observations(
+        frames, times, lambda xyz: detect_stems(xyz, config, origins=origin), "cloud:ours"
+    )
 
 
 def daim_observations(
