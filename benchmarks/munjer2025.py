@@ -32,8 +32,6 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.eval.detection import detection_metrics
-from stemmap.eval.maps import map_metrics
 from stemmap.sim.munjer import MunjerDrive, simulate_munjer_drive
 from stemmap.slam.munjer import (
     MunjerMapConfig,
@@ -67,16 +65,7 @@ def _score(drive: MunjerDrive, obs: StemObservations, seed: int) -> dict[str, An
     result = map_munjer(problem, MunjerMapConfig(seed=seed))
     sm = result.stem_map
     st = drive.stand2d
-    m = detection_metrics(
-        sm.xy,
-        sm.diameters,
-        st.trees_xy,
-        st.diameters,
-        gate=GATE,
-        nontree_xy=st.clutter_objects_xy,
-        nontree_extent=st.clutter_objects_extent,
-    )
-    mm = map_metrics(sm, None, st.trees_xy, st.diameters, gate=GATE)
+    m, mm = drive.score(sm, GATE)
     traj = np.hypot(*(result.trajectory.poses[:, :2] - drive.poses[:, :2]).T)
     return {
         "n_real": st.n_trees,

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from stemmap.cloud.munjer import MunjerConfig
-from stemmap.eval.detection import DetectionMetrics, detection_metrics
-from stemmap.eval.maps import MapMetrics, map_metrics
+from stemmap.eval.detection import DetectionMetrics
+from stemmap.eval.maps import MapMetrics
 from stemmap.sim.munjer import D435_DEPTH_K, MunjerDrive, simulate_munjer_drive
 from stemmap.slam.base import dead_reckoning
 from stemmap.slam.munjer import (
@@ -42,18 +42,7 @@ def _map(
     t = d.times if times is None else times
     p0 = (float(d.poses[0, 0]), float(d.poses[0, 1]), float(d.poses[0, 2]))
     problem = munjer_problem(obs, t, d.controls(), d.motion_model(), initial_pose=p0)
-    sm = map_munjer(problem, MunjerMapConfig(seed=1)).stem_map
-    st = d.stand2d
-    m = detection_metrics(
-        sm.xy,
-        sm.diameters,
-        st.trees_xy,
-        st.diameters,
-        gate=1.0,
-        nontree_xy=st.clutter_objects_xy,
-        nontree_extent=st.clutter_objects_extent,
-    )
-    return m, map_metrics(sm, None, st.trees_xy, st.diameters, gate=1.0)
+    return d.score(map_munjer(problem, MunjerMapConfig(seed=1)).stem_map)
 
 
 def test_lidar_and_camera_see_the_same_stand(drive: MunjerDrive) -> None:

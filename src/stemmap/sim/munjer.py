@@ -28,20 +28,23 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import ConfigError
-from stemmap.sim.camera import CameraRig, render_scene
+from stemmap.sim.camera import CameraRig, render_scene, xue2018_rig
 from stemmap.sim.forest import Stand, random_stand
 from stemmap.sim.lidar import LidarModel, Stand3D, lidar_preset, simulate_mobile
 from stemmap.sim.trajectory import Odometry, OdometryNoise, _noisy_odometry
 from stemmap.slam.base import Controls
 from stemmap.slam.motion import UnicycleModel
-from stemmap.types import FloatArray, PointCloud, Pose2, wrap_angle
-from stemmap.vision.camera import LASER_TO_CAMERA_AXES, CameraModel, RigidTransform
+from stemmap.types import FloatArray, PointCloud, Pose2, StemMap, wrap_angle
+
+if TYPE_CHECKING:
+    from stemmap.eval.detection import DetectionMetrics
+    from stemmap.eval.maps import MapMetrics
 
 __all__ = [
     "D435_DEPTH_K",
@@ -79,10 +82,9 @@ def realsense_rig(
 
     ``camera_offset``: camera centre in the lidar frame (x forward, y left, z up), metres.
     """
-    cam = CameraModel.from_fov(width, height, hfov_deg)
-    R = LASER_TO_CAMERA_AXES
-    c = np.asarray(camera_offset, dtype=np.float64)
-    return CameraRig(cam, RigidTransform(R, -R @ c))
+    return xue2018_rig(
+        width=width, height=height, hfov_deg=hfov_deg, tilt_deg=0.0, camera_offset=camera_offset
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,6 +128,25 @@ class MunjerDrive:
         """The motion source (noisy odometry) as unicycle controls for a SLAM problem."""
         o = self.odometry
         return Controls(o.times, o.speed, o.yaw_rate, "unicycle")
+
+    def score(self, stem_map: StemMap, gate: float = 1.0) -> tuple[DetectionMetrics, MapMetrics]:
+        """Score a stem map in the world frame as Munjer et al. 2025 Table 2 (TA/TR/FA/FR
+        against the trees and the non-tree objects) and as a map (position RMSE, pairwise
+        inter-tree distance error), one-to-one matching within ``gate`` m (Table 1: 1.0 m)."""
+        from stemmap.eval.detection import detection_metrics
+        from stemmap.eval.maps import map_metrics
+
+        st = self.stand2d
+        m = detection_metrics(
+            stem_map.xy,
+            stem_map.diameters,
+            st.trees_xy,
+            st.diameters,
+            gate=gate,
+            nontree_xy=st.clutter_objects_xy,
+            nontree_extent=st.clutter_objects_extent,
+        )
+        return m, map_metrics(stem_map, None, st.trees_xy, st.diameters, gate=gate)
 
     def motion_model(self) -> UnicycleModel:
         """Motion noise from the odometry's own error spec (nothing read from the truth): white
