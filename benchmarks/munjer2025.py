@@ -93,10 +93,10 @@ def _pool(runs: list[dict[str, Any]]) -> dict[str, Any]:
     r = s["ta"] / (s["ta"] + s["fr"]) if s["ta"] + s["fr"] else math.nan
     f1 = 2 * p * r / (p + r) if p + r > 0 else math.nan
     acc = (s["ta"] + s["tr"]) / (s["ta"] + s["tr"] + s["fa"] + s["fr"])
-    mean = {
-        k: float(np.nanmean([x[k] for x in runs]))
-        for k in ("position_rmse", "pairwise_percent_error", "diameter_rmse")
-    }
+    mean = {}
+    for k in ("position_rmse", "pairwise_percent_error", "diameter_rmse"):
+        v = [float(x[k]) for x in runs if math.isfinite(float(x[k]))]
+        mean[k] = float(np.mean(v)) if v else math.nan
     return {**s, "precision": p, "recall": r, "f1": f1, "accuracy": acc, **mean}
 
 
