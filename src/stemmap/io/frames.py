@@ -15,6 +15,7 @@ Keys (all optional except ``times``):
 from __future__ import annotations
 
 import itertools
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,8 +99,8 @@ def is_frames_npz(path: Path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as z:
             return "times" in z.files and ("points" in z.files or "images" in z.files)
-    except (OSError, ValueError):
-        return False
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return False  # not a bundle: the caller's own reader reports the damage
 
 
 def read_frames_npz(path: Path) -> FramesBundle:
@@ -115,7 +116,7 @@ def read_frames_npz(path: Path) -> FramesBundle:
         raise InputError(f"frames bundle {str(p)!r} does not exist.")
     try:
         z = dict(np.load(p, allow_pickle=False))
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"frames bundle {str(p)!r} is not a readable NPZ: {exc}") from exc
     if "times" not in z:
         raise InputError(f"frames bundle {str(p)!r} has no 'times' array.")
