@@ -191,3 +191,51 @@ def test_map_metrics_to_dict_reports_the_alignment_and_the_pairwise_summary():
     one = map_metrics([[0.0, 0.0]], [0.3], [[0.0, 0.0]], [0.3]).to_dict()
     assert one["pairwise_mean_percent_error"] is None and one["pairwise_mean_abs_error"] is None
     assert one["rotation_rad"] == 0.0 and one["translation"] == [0.0, 0.0]
+
+
+def test_map_metrics_every_count_and_error_with_shuffled_rows():
+    """Map rows in another order than the truth: each statistic from the matched pairs."""
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [20.0, 20.0]])
+    tdiam = np.array([0.20, 0.30, 0.40, 0.50])
+    # map: truth 2 (+0.3 m), truth 0 (+0.4 m), a duplicate of truth 0, truth 1 (exact), and a
+    # spurious tree far from all; truth 3 is missed
+    mxy = np.array([[0.0, 10.3], [0.4, 0.0], [0.0, 0.7], [10.0, 0.0], [50.0, 50.0]])
+    mdiam = np.array([0.43, 0.18, 0.25, 0.30, 0.30])
+    m = map_metrics(mxy, mdiam, truth, tdiam)  # default gate 1 m
+    assert (m.gate, m.n_map, m.n_truth) == (1.0, 5, 4)
+    assert (m.n_matched, m.n_duplicates, m.n_spurious, m.n_missed) == (3, 1, 1, 1)
+    assert m.precision == pytest.approx(3 / 5) and m.recall == pytest.approx(3 / 4)
+    assert m.duplicate_rate == pytest.approx(1 / 5)
+    errs = np.array([0.3, 0.4, 0.0])
+    assert m.position_rmse == pytest.approx(math.sqrt(np.mean(errs**2)))
+    assert m.position_mean == pytest.approx(errs.mean())
+    assert m.position_max == pytest.approx(0.4)
+    d_err = np.array([0.43 - 0.40, 0.18 - 0.20, 0.0])
+    assert m.diameter_rmse == pytest.approx(math.sqrt(np.mean(d_err**2)))
+    assert m.diameter_bias == pytest.approx(d_err.mean())
+    assert m.aligned is False
+    np.testing.assert_array_equal(m.rotation, np.eye(2))
+    # the pairwise comparison uses the matched pairs, labelled by their truth ids
+    assert sorted(m.pairwise.truth_index.tolist()) == [0, 1, 2]
+    assert m.matching.n_matched == 3
+    # a smaller gate drops the 0.4 m match
+    m3 = map_metrics(mxy, mdiam, truth, tdiam, gate=0.35)
+    assert m3.gate == 0.35 and m3.n_matched == 2 and m3.position_max == pytest.approx(0.3)
+
+
+def test_map_metrics_nothing_matched_and_input_errors():
+    m = map_metrics([[50.0, 50.0]], [0.3], [[0.0, 0.0]], [0.3])
+    assert (m.n_matched, m.n_spurious, m.n_duplicates, m.n_missed) == (0, 1, 0, 1)
+    for k in ("position_rmse", "position_mean", "position_max", "diameter_rmse"):
+        assert math.isnan(getattr(m, k))
+    with pytest.raises(InputError, match=r"^map and truth positions must be finite\.$"):
+        map_metrics([[math.nan, 0.0]], [0.3], [[0.0, 0.0]], [0.3])
+    with pytest.raises(InputError, match=r"^map and truth positions must be finite\.$"):
+        map_metrics([[0.0, 0.0]], [0.3], [[math.inf, 0.0]], [0.3])
+    with pytest.raises(InputError, match=r"^map_diam is required unless map_xy is a StemMap\.$"):
+        map_metrics([[0.0, 0.0]], None, [[0.0, 0.0]], [0.3])
+    with pytest.raises(InputError, match="map has 2 positions and 1 diameters; truth has 1"):
+        map_metrics([[0.0, 0.0], [1.0, 1.0]], [0.3], [[0.0, 0.0]], [0.3])
+    for gate in (0.0, -1.0, math.inf, math.nan):
+        with pytest.raises(InputError, match="gate must be a finite distance"):
+            map_metrics([[0.0, 0.0]], [0.3], [[0.0, 0.0]], [0.3], gate=gate)
