@@ -239,3 +239,22 @@ def test_map_metrics_nothing_matched_and_input_errors():
     for gate in (0.0, -1.0, math.inf, math.nan):
         with pytest.raises(InputError, match="gate must be a finite distance"):
             map_metrics([[0.0, 0.0]], [0.3], [[0.0, 0.0]], [0.3], gate=gate)
+
+
+def test_map_metrics_alignment_with_shuffled_rows_and_extra_trees():
+    """The ICP-style alignment pairs map rows with truth rows by the matching, not by order."""
+    rng = np.random.default_rng(11)
+    truth = rng.uniform(0, 40, (30, 2))
+    a = math.radians(5.0)
+    order = rng.permutation(30)
+    mapped = (truth[order] - 20) @ _rot(a).T + 20 + [0.5, -0.4]
+    mapped = np.vstack((mapped, [[100.0, 100.0]]))  # one spurious tree far away
+    m = map_metrics(mapped, np.full(31, 0.3), truth, np.full(30, 0.3), gate=0.3, align=True)
+    assert m.aligned and (m.n_matched, m.n_spurious) == (30, 1)
+    assert m.position_max < 1e-6
+    assert math.atan2(m.rotation[1, 0], m.rotation[0, 0]) == pytest.approx(-a, abs=1e-9)
+    np.testing.assert_allclose(mapped[:30] @ m.rotation.T + m.translation, truth[order], atol=1e-6)
+    # two trees are enough to align (0.64 m off: inside the first rounds' 3x gate)
+    shifted = truth[:2] + np.array([0.5, -0.4])
+    two = map_metrics(shifted[::-1], [0.3, 0.3], truth[:2], [0.3, 0.3], gate=0.3, align=True)
+    assert two.n_matched == 2 and two.position_max < 1e-6
