@@ -44,7 +44,11 @@ _IMG = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
 
 @dataclass(frozen=True, eq=False)
 class CameraFrames:
-    """A frames folder opened for reading: calibration, mount and lazily loaded frames."""
+    """A frames folder opened for reading: calibration, mount and lazily loaded frames.
+
+    Iterating yields :class:`VisualFrame` objects with depth images converted to float metres
+    (NaN = no depth), so :attr:`calibration` has ``depth_scale`` 1.
+    """
 
     path: Path
     calibration: StereoCalibration
@@ -53,6 +57,7 @@ class CameraFrames:
     left: tuple[Path, ...]
     right: tuple[Path, ...] | None
     depth: tuple[Path, ...] | None
+    depth_scale: float = 0.001
 
     def __len__(self) -> int:
         return len(self.left)
@@ -61,7 +66,13 @@ class CameraFrames:
         for k, lp in enumerate(self.left):
             left = _read_image(lp)
             right = _read_image(self.right[k]) if self.right is not None else None
-            depth = _read_depth(self.depth[k]) if self.depth is not None else None
+            depth = None
+            if self.depth is not None:
+                dp = self.depth[k]
+                # float metres for the odometry: PNG units scaled, .npy already in metres
+                scale = 1.0 if dp.suffix == ".npy" else self.depth_scale
+                depth = _read_depth(dp).astype(np.float64) * scale
+                depth[depth <= 0] = np.nan
             yield VisualFrame(float(self.times[k]), left, right, depth)
 
 
@@ -159,6 +170,9 @@ def read_camera_frames(folder: str | Path) -> CameraFrames:
     times = _times(root, left, d)
     mount = d.get("vehicle_from_camera")
     T = None if mount is None else np.asarray(mount, dtype=np.float64).reshape(4, 4)
+    depth_scale = cal.depth_scale
+    # frames carry depth in metres (see CameraFrames.__iter__)
+    cal = StereoCalibration(cal.fx, cal.fy, cal.cx, cal.cy, cal.width, cal.height, cal.baseline)
     return CameraFrames(
         root,
         cal,
@@ -167,6 +181,7 @@ def read_camera_frames(folder: str | Path) -> CameraFrames:
         tuple(left),
         None if right is None else tuple(right),
         None if depth is None else tuple(depth),
+        depth_scale,
     )
 
 

