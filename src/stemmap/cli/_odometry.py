@@ -21,8 +21,8 @@ def odometry(
         Path | None,
         typer.Option(
             "--camera",
-            help="Camera frames folder: left/ + right/ (rectified stereo) or rgb/ + depth/, with "
-            "camera.json intrinsics (docs/cli.md).",
+            help="Camera frames folder (left/ + right/ rectified stereo, or rgb/ + depth/, with "
+            "camera.json intrinsics) or a ROS bag with Image + CameraInfo topics (docs/cli.md).",
         ),
     ] = None,
     out: Annotated[
@@ -31,10 +31,25 @@ def odometry(
     max_corners: Annotated[
         int | None, typer.Option(help="Shi-Tomasi corners per keyframe (default 400).")
     ] = None,
+    left_topic: Annotated[
+        str | None, typer.Option(help="Bag: left (or colour) Image topic; guessed if unique.")
+    ] = None,
+    right_topic: Annotated[str | None, typer.Option(help="Bag: right Image topic.")] = None,
+    depth_topic: Annotated[
+        str | None, typer.Option(help="Bag: depth Image topic (RGB-D instead of stereo).")
+    ] = None,
+    info_topic: Annotated[
+        str | None, typer.Option(help="Bag: CameraInfo topic of the left camera.")
+    ] = None,
+    baseline: Annotated[
+        float | None,
+        typer.Option(help="Bag: stereo baseline, m (default: from the right CameraInfo's P)."),
+    ] = None,
 ) -> None:
     """Estimate the vehicle's path from sensor data.
 
-    Example: stemmap odometry --camera frames/ --out traj.csv
+    Examples: stemmap odometry --camera frames/ --out traj.csv;
+    stemmap odometry --camera run.bag --left-topic /zed2/left/image_rect_color --out traj.csv
     """
     if camera is None:
         print_error("give a sensor input: --camera FRAMES_DIR.")
@@ -42,7 +57,16 @@ def odometry(
     from stemmap.cli._odometry_camera import camera_odometry
 
     with fail_on_stemmap_error():
-        camera_odometry(camera, out, max_corners=max_corners)
+        camera_odometry(
+            camera,
+            out,
+            max_corners=max_corners,
+            left_topic=left_topic,
+            right_topic=right_topic,
+            depth_topic=depth_topic,
+            info_topic=info_topic,
+            baseline=baseline,
+        )
 
 
 def register(app: typer.Typer) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,11 +29,28 @@ _DEFAULT_MOUNT = np.array(
 )
 
 
-def camera_odometry(frames_dir: Path, out: Path, *, max_corners: int | None = None) -> Trajectory:
-    """Visual odometry of ``frames_dir`` written to ``out`` (CSV); returns the trajectory."""
+def camera_odometry(
+    frames_dir: Path,
+    out: Path,
+    *,
+    max_corners: int | None = None,
+    left_topic: str | None = None,
+    right_topic: str | None = None,
+    depth_topic: str | None = None,
+    info_topic: str | None = None,
+    baseline: float | None = None,
+) -> Trajectory:
+    """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV).
+
+    A bag (``.bag``, ROS2 folder, ``.db3``, ``.mcap``) is read by
+    :func:`stemmap.io.camera_bag.read_camera_bag` with the given topics (guessed when None);
+    a folder by :func:`stemmap.io.camera_frames.read_camera_frames`. Returns the trajectory.
+    """
     from dataclasses import replace
 
+    from stemmap.io.camera_bag import read_camera_bag
     from stemmap.io.camera_frames import read_camera_frames
+    from stemmap.io.rosbag import is_bag
     from stemmap.io.trajectory import write_trajectory_csv
     from stemmap.odometry.visual import (
         VisualOdometryConfig,
@@ -41,9 +59,23 @@ def camera_odometry(frames_dir: Path, out: Path, *, max_corners: int | None = No
         run_visual_odometry,
     )
 
-    if not frames_dir.is_dir():
-        raise InputError(f"{frames_dir}: not a folder (expected a camera frames folder).")
-    frames = read_camera_frames(frames_dir)
+    frames: Any
+    if is_bag(frames_dir):
+        frames = read_camera_bag(
+            frames_dir,
+            left_topic=left_topic,
+            right_topic=right_topic,
+            depth_topic=depth_topic,
+            info_topic=info_topic,
+            baseline=baseline,
+        )
+    elif frames_dir.is_dir():
+        frames = read_camera_frames(frames_dir)
+    else:
+        raise InputError(
+            f"{frames_dir}: not a camera frames folder or a ROS bag (.bag, ROS2 folder, .db3, "
+            ".mcap)."
+        )
     cfg = VisualOdometryConfig()
     if max_corners is not None:
         cfg = replace(cfg, max_corners=max_corners)

@@ -133,6 +133,7 @@ class VisualOdometryConfig:
     keyframe_max_translation: float = 1.0
     keyframe_max_rotation_deg: float = 15.0
     max_step: float = 2.0
+    rng_seed: int = 0
 
     def __post_init__(self) -> None:
         if self.max_corners < 4 or self.min_inliers < 4:
@@ -300,6 +301,9 @@ class VisualOdometry:
     ) -> None:
         self.cal = calibration
         self.cfg = config or VisualOdometryConfig()
+        # PnP RANSAC draws from OpenCV's global RNG: seed it so a run is reproducible
+        # (two runs in one process otherwise differ by ~1e-5 m)
+        cv2.setRNGSeed(self.cfg.rng_seed)
         self.pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, float)
         self._velocity = np.eye(4)  # last frame-to-frame motion, prev_from_cur
         self._kf_pose: FloatArray | None = None
