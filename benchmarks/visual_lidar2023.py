@@ -60,7 +60,7 @@ LOOPS: dict[str, list[tuple[float, float]]] = {
     "around_row_2": [(5, 2), (21, 2), (21, 6), (-3, 6), (-3, 2), (5, 2)],
     "around_rows_2_3": [(5, 2), (21, 2), (21, 10), (-3, 10), (-3, 2), (5, 2)],
     "around_row_3_cw": [(5, 6), (-3, 6), (-3, 10), (21, 10), (21, 6), (5, 6)],
-    "around_row_2_twice": [(5, 2), (21, 2), (21, 6), (-3, 6), (-3, 2)] * 2 + [(5, 2)],
+    "around_row_2_twice": [(5.0, 2.0), (21, 2), (21, 6), (-3, 6), (-3, 2)] * 2 + [(5, 2)],
 }
 
 #: Trunks are detected within this range (m); the paper's distance filter is 5 m (§2.2).
@@ -155,7 +155,7 @@ def run_loop(
         )
         # rendering and odometry interleave (frames are rendered on demand)
         vo = run_visual_odometry((VisualFrame(f.time, f.left, f.right) for f in frames), cal)
-        if cached is not None:
+        if cache is not None and cached is not None:
             cache.mkdir(parents=True, exist_ok=True)
             np.savez(
                 cached,
