@@ -68,19 +68,23 @@ FULL_SCANNERS = tuple(
 )
 
 
-#: Parameters chosen leave-one-dataset-out (``--loo``): the data-driven noise scale and the
-#: residual test, the two choices issue 11 questions (each value is a method switch or a
-#: bound, not a per-dataset constant).
+#: Parameters chosen leave-one-dataset-out (``--loo``). The grid of the previous round
+#: (sigma_from_data, roughness_max_factor, rms_robust, max_rms_sigma: all chosen off / 2 for
+#: every held-out dataset) is kept at those values; this round's grid holds the two issue-11
+#: remedies for real trunks: concave-corner cuts (off, or 3 / 6 cm deep in a non-convex
+#: segment and never / 5 / 10 cm deep in a convex one) and the relative bark roughness of the
+#: RMS test (0 / 3 % of the radius). Each value is a method switch or a bound, not a
+#: per-dataset constant.
 LOO_GRID: tuple[dict[str, Any], ...] = tuple(
     {
-        "sigma_from_data": f > 1.0,
-        "roughness_max_factor": max(f, 1.0),
-        "rms_robust": rob,
-        "max_rms_sigma": k,
+        "split_corners": depth is not None,
+        "corner_depth": depth if depth is not None else 0.03,
+        "corner_depth_convex": convex,
+        "bark_roughness": bark,
     }
-    for rob in (False, True)
-    for f in (1.0, 2.0, 3.0)
-    for k in (2.0, 3.0)
+    for depth, convex in [(None, math.inf)]
+    + [(d, c) for d in (0.03, 0.06) for c in (math.inf, 0.05, 0.10)]
+    for bark in (0.0, 0.03)
 )
 
 
