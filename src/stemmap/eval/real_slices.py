@@ -310,10 +310,11 @@ def virtual_scans(
     points of a trunk and return from the inside of its far side; a (sub-)cell returns the
     range of the nearest part of the disc inside its angular cell. With ``centers`` (one per
     reference trunk) the points of a reference trunk facing away from the vantage are culled
-    (a solid trunk hides its own far side) and its discs are centred ``point_radius`` inside the sampled surface, so that their
-    envelope is that surface: without this, every silhouette of a sparse cloud was widened by
-    ``point_radius`` on each side (+2 x point_radius of diameter in the detectors' estimates:
-    +1.6 cm on the TreeLS pine plot, 8 mm discs; issue 11 diagnosis).
+    (a solid trunk hides its own far side) and its discs are centred ``point_radius`` inside
+    the sampled surface, so that their envelope is that surface: without this, every
+    silhouette of a sparse cloud was widened by ``point_radius`` on each side (+2 x
+    point_radius of diameter in the detectors' estimates: +1.6 cm on the TreeLS pine plot,
+    8 mm discs; issue 11 diagnosis).
 
     Returns
     -------
