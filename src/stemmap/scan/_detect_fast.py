@@ -537,19 +537,23 @@ def _detect_kernel(
                     ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- concave-corner cuts of non-convex segments (detect._corner_cuts, ours) ----
-        if corners_on and ns > 0 and corner_parity(
-            px,
-            py,
-            st,
-            sp,
-            ns,
-            corner_span,
-            corner_depth,
-            corner_convex,
-            convex_min,
-            tmp,
-            keep,
-            corner,
+        if (
+            corners_on
+            and ns > 0
+            and corner_parity(
+                px,
+                py,
+                st,
+                sp,
+                ns,
+                corner_span,
+                corner_depth,
+                corner_convex,
+                convex_min,
+                tmp,
+                keep,
+                corner,
+            )
         ):
             ns2 = cut_at_changes(
                 st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns
@@ -564,9 +568,7 @@ def _detect_kernel(
             for i in range(m):  # the junction return belongs to neither piece
                 keep[i] = not corner[i]
             ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
-            ns, m = _select_min(
-                st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points
-            )
+            ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- segment features and filters (detect._filter, features.segment_features) ----
         nk = 0
         for j in range(ns):
