@@ -54,24 +54,20 @@ def corner_parity(
     sp: np.ndarray,
     ns: int,
     span: int,
-    depth: float,
-    depth_convex: float,
-    min_depth: float,
+    thresholds: FloatArray,
     d: FloatArray,
     keep: np.ndarray,
     corner: np.ndarray,
 ) -> bool:  # pragma: no cover - numba
     """``keep[i]`` = parity of the concave corners up to return ``i`` of its segment (flips at
-    every corner of :func:`~stemmap.scan.segment.concave_corners`, starts False in every
-    segment): corners deeper than ``depth`` in a segment whose sagitta is below ``min_depth``
-    (not a convex arc), deeper than ``depth_convex`` in the others (detect._corner_cuts).
-    ``corner[i]``: return ``i`` is a corner. Returns whether any corner was found. ``d`` is
-    scratch (>= returns)."""
+    every corner of :func:`~stemmap.scan.segment.concave_corners` deeper than the segment's
+    ``thresholds[j]``, starts False in every segment; detect._corner_cuts), ``corner[i]``:
+    return ``i`` is a corner. Returns whether any corner was found. ``d`` is scratch."""
     found = False
     for j in range(ns):
         a0 = st[j]
         b0 = sp[j]
-        thr = depth if sagitta(px, py, a0, b0) < min_depth else depth_convex
+        thr = thresholds[j]
         for i in range(a0, b0):
             d[i] = -math.inf
             if i - span >= a0 and i + span < b0:

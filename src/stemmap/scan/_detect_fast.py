@@ -97,6 +97,7 @@ PARAM_NAMES = (
     "corner_span",
     "corner_depth",
     "corner_depth_convex",  # inf: convex segments are never cut
+    "corner_sigmas",  # corners at least this many sigma deep
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -354,6 +355,7 @@ def _detect_kernel(
     corner_span = int(prm[45])
     corner_depth = prm[46]
     corner_convex = prm[47]
+    corner_sigmas = prm[48]
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -537,23 +539,17 @@ def _detect_kernel(
                     ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- concave-corner cuts of non-convex segments (detect._corner_cuts, ours) ----
+        if corners_on and ns > 0:
+            for j in range(ns):  # corner depth threshold per segment (wid is free here)
+                a = st[j]
+                b = sp[j]
+                thr = corner_depth if sagitta(px, py, a, b) < convex_min else corner_convex
+                sig = sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a))
+                wid[j] = max(thr, corner_sigmas * sig)
         if (
             corners_on
             and ns > 0
-            and corner_parity(
-                px,
-                py,
-                st,
-                sp,
-                ns,
-                corner_span,
-                corner_depth,
-                corner_convex,
-                convex_min,
-                tmp,
-                keep,
-                corner,
-            )
+            and corner_parity(px, py, st, sp, ns, corner_span, wid, tmp, keep, corner)
         ):
             ns2 = cut_at_changes(
                 st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns

@@ -645,6 +645,7 @@ class ScanTrunkDetector:
             "corner_span": cfg.corner_span,
             "corner_depth": cfg.corner_depth,
             "corner_depth_convex": cfg.corner_depth_convex,
+            "corner_sigmas": cfg.corner_sigmas,
         }
         prm = np.empty(N_PARAMS)
         for name, v in values.items():
@@ -821,11 +822,14 @@ def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:
     at the concave corners (:func:`~stemmap.scan.segment.concave_corners`) deeper than
     ``corner_depth`` in a segment that is not a convex arc (sagitta below ``max(min_depth,
     0)``), deeper than ``corner_depth_convex`` in a convex one (the dents of rough bark on a
-    trunk's own arc are not junctions); the corner return is dropped and pieces with fewer
-    than ``min_points`` returns go."""
+    trunk's own arc are not junctions), and at least ``corner_sigmas`` range-noise sigmas deep
+    (noise alone makes no corner); the corner return is dropped and pieces with fewer than
+    ``min_points`` returns go."""
     thr = np.where(
         sagitta_depth(segs) < max(cfg.min_depth, 0.0), cfg.corner_depth, cfg.corner_depth_convex
     )
+    sigma = cfg.sigma + cfg.sigma_rel * (segment_sum(segs.points.r, segs) / segs.counts)
+    thr = np.maximum(thr, cfg.corner_sigmas * sigma)
     cuts = concave_corners(segs, cfg.corner_span, thr[segs.labels])
     if not np.any(cuts):
         return segs
