@@ -459,6 +459,29 @@ def _polygon_segments(xy: FloatArray) -> FloatArray:
     return np.column_stack((xy, np.roll(xy, -1, axis=0)))
 
 
+def _with_clutter(
+    stand: Stand,
+    circ_xy: list[FloatArray],
+    circ_r: list[FloatArray],
+    segs: list[FloatArray],
+    owners: list[NDArray[np.int64]],
+    obj_xy: list[FloatArray],
+    kinds: list[str],
+    extents: list[float],
+) -> Stand:
+    """``stand`` with the accumulated clutter lists (each starting with the stand's own)."""
+    return replace(
+        stand,
+        clutter_xy=np.vstack(circ_xy),
+        clutter_radius=np.concatenate(circ_r),
+        segments=np.vstack(segs),
+        segment_owner=np.concatenate(owners),
+        clutter_objects_xy=np.vstack(obj_xy),
+        clutter_kinds=tuple(kinds),
+        clutter_objects_extent=np.asarray(extents, dtype=np.float64),
+    )
+
+
 def add_clutter(
     stand: Stand,
     *,
@@ -607,16 +630,7 @@ def add_clutter(
         kinds.append("rock")
         extents.append(float(rr.max()))
 
-    return replace(
-        stand,
-        clutter_xy=np.vstack(circ_xy),
-        clutter_radius=np.concatenate(circ_r),
-        segments=np.vstack(segs),
-        segment_owner=np.concatenate(owners),
-        clutter_objects_xy=np.vstack(obj_xy),
-        clutter_kinds=tuple(kinds),
-        clutter_objects_extent=np.asarray(extents, dtype=np.float64),
-    )
+    return _with_clutter(stand, circ_xy, circ_r, segs, owners, obj_xy, kinds, extents)
 
 
 def add_understory(
@@ -683,16 +697,7 @@ def add_understory(
             obj_xy.append((0.5 * (p0 + p1))[None])
             kinds.append("branch")
             extents.append(length / 2)
-    return replace(
-        stand,
-        clutter_xy=np.vstack(circ_xy),
-        clutter_radius=np.concatenate(circ_r),
-        segments=np.vstack(segs),
-        segment_owner=np.concatenate(owners),
-        clutter_objects_xy=np.vstack(obj_xy),
-        clutter_kinds=tuple(kinds),
-        clutter_objects_extent=np.asarray(extents, dtype=np.float64),
-    )
+    return _with_clutter(stand, circ_xy, circ_r, segs, owners, obj_xy, kinds, extents)
 
 
 def make_trunks_noncircular(
