@@ -15,7 +15,7 @@ from numba import njit
 
 from stemmap.types import FloatArray
 
-__all__ = ["corner_parity", "cut_at_changes", "sagitta"]
+__all__ = ["corner_parity", "cut_at_changes", "cut_tables", "sagitta"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -130,3 +130,40 @@ def cut_at_changes(
         oc12[ns2 - 1] = oc1[j]
         tr12[ns2 - 1] = tr1[j]
     return ns2
+
+
+@njit(cache=True, error_model="numpy")
+def cut_tables(
+    st: np.ndarray,
+    sp: np.ndarray,
+    oc0: np.ndarray,
+    oc1: np.ndarray,
+    tr0: np.ndarray,
+    tr1: np.ndarray,
+    st2: np.ndarray,
+    sp2: np.ndarray,
+    oc02: np.ndarray,
+    oc12: np.ndarray,
+    tr02: np.ndarray,
+    tr12: np.ndarray,
+    keep: np.ndarray,
+    ns: int,
+) -> tuple[
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    int,
+]:  # pragma: no cover - numba
+    """:func:`cut_at_changes` into the spare tables, returned first (the cut table) with the
+    old tables as the new spares, and the number of pieces."""
+    n2 = cut_at_changes(st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns)
+    return st2, sp2, oc02, oc12, tr02, tr12, st, sp, oc0, oc1, tr0, tr1, n2

@@ -40,7 +40,7 @@ from numba import njit
 
 from stemmap import _numba_cache
 from stemmap.scan import _corners, _fit_geometric, features
-from stemmap.scan._corners import corner_parity, cut_at_changes, sagitta
+from stemmap.scan._corners import corner_parity, cut_tables, sagitta
 from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan.features import MIXED_FRACTION_STD
 from stemmap.types import FloatArray
@@ -525,16 +525,9 @@ def _detect_kernel(
             if any_drop:
                 if split:
                     # Segments.cut: new pieces where the keep flag changes; inner ends occluded
-                    ns2 = cut_at_changes(
+                    st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, ns = cut_tables(
                         st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns
                     )
-                    st, st2 = st2, st
-                    sp, sp2 = sp2, sp
-                    oc0, oc02 = oc02, oc0
-                    oc1, oc12 = oc12, oc1
-                    tr0, tr02 = tr02, tr0
-                    tr1, tr12 = tr12, tr1
-                    ns = ns2
                 else:
                     ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
@@ -551,16 +544,9 @@ def _detect_kernel(
             and ns > 0
             and corner_parity(px, py, st, sp, ns, corner_span, wid, tmp, keep, corner)
         ):
-            ns2 = cut_at_changes(
+            st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, ns = cut_tables(
                 st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns
             )
-            st, st2 = st2, st
-            sp, sp2 = sp2, sp
-            oc0, oc02 = oc02, oc0
-            oc1, oc12 = oc12, oc1
-            tr0, tr02 = tr02, tr0
-            tr1, tr12 = tr12, tr1
-            ns = ns2
             for i in range(m):  # the junction return belongs to neither piece
                 keep[i] = not corner[i]
             ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
