@@ -1,6 +1,7 @@
 """Compiled segment cutting of :mod:`stemmap.scan._detect_fast`: the cut at flag changes
-(:meth:`stemmap.scan.segment.Segments.cut`, used by the splitting radius median filter) and the
-concave-corner flags (:func:`stemmap.scan.segment.concave_corners`, ours, issue 11).
+(:meth:`stemmap.scan.segment.Segments.cut`, for the splitting radius median filter and the
+corner cuts) and the concave-corner flags (:func:`stemmap.scan.segment.concave_corners`,
+ours, issue 11).
 
 Same arithmetic, in the same order, as the numpy reference functions, so that the compiled
 detector equals the numpy pipeline bit for bit (tests/scan/test_detect_fast.py).
@@ -15,7 +16,7 @@ from numba import njit
 
 from stemmap.types import FloatArray
 
-__all__ = ["corner_parity", "cut_at_changes", "cut_tables", "sagitta"]
+__all__ = ["corner_parity", "cut_tables", "sagitta"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -95,44 +96,6 @@ def corner_parity(
 
 
 @njit(cache=True, error_model="numpy")
-def cut_at_changes(
-    st: np.ndarray,
-    sp: np.ndarray,
-    oc0: np.ndarray,
-    oc1: np.ndarray,
-    tr0: np.ndarray,
-    tr1: np.ndarray,
-    st2: np.ndarray,
-    sp2: np.ndarray,
-    oc02: np.ndarray,
-    oc12: np.ndarray,
-    tr02: np.ndarray,
-    tr12: np.ndarray,
-    keep: np.ndarray,
-    ns: int,
-) -> int:  # pragma: no cover - numba
-    """``Segments.cut(keep)`` into the ``*2`` tables: new pieces where ``keep`` changes between
-    consecutive returns of a segment, inner ends occluded; returns the number of pieces."""
-    ns2 = 0
-    for j in range(ns):
-        for i in range(st[j], sp[j]):
-            if i == st[j] or keep[i] != keep[i - 1]:
-                if i != st[j]:
-                    sp2[ns2 - 1] = i
-                st2[ns2] = i
-                first = i == st[j]
-                oc02[ns2] = oc0[j] if first else True
-                tr02[ns2] = first and tr0[j]
-                oc12[ns2] = True
-                tr12[ns2] = False
-                ns2 += 1
-        sp2[ns2 - 1] = sp[j]
-        oc12[ns2 - 1] = oc1[j]
-        tr12[ns2 - 1] = tr1[j]
-    return ns2
-
-
-@njit(cache=True, error_model="numpy")
 def cut_tables(
     st: np.ndarray,
     sp: np.ndarray,
@@ -163,7 +126,23 @@ def cut_tables(
     np.ndarray,
     int,
 ]:  # pragma: no cover - numba
-    """:func:`cut_at_changes` into the spare tables, returned first (the cut table) with the
-    old tables as the new spares, and the number of pieces."""
-    n2 = cut_at_changes(st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns)
-    return st2, sp2, oc02, oc12, tr02, tr12, st, sp, oc0, oc1, tr0, tr1, n2
+    """``Segments.cut(keep)`` into the spare ``*2`` tables: new pieces where ``keep`` changes
+    between consecutive returns of a segment, inner ends occluded. Returns the cut table first,
+    the old one as the new spare, and the number of pieces."""
+    ns2 = 0
+    for j in range(ns):
+        for i in range(st[j], sp[j]):
+            if i == st[j] or keep[i] != keep[i - 1]:
+                if i != st[j]:
+                    sp2[ns2 - 1] = i
+                st2[ns2] = i
+                first = i == st[j]
+                oc02[ns2] = oc0[j] if first else True
+                tr02[ns2] = first and tr0[j]
+                oc12[ns2] = True
+                tr12[ns2] = False
+                ns2 += 1
+        sp2[ns2 - 1] = sp[j]
+        oc12[ns2 - 1] = oc1[j]
+        tr12[ns2 - 1] = tr1[j]
+    return st2, sp2, oc02, oc12, tr02, tr12, st, sp, oc0, oc1, tr0, tr1, ns2
