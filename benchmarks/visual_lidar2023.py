@@ -111,9 +111,14 @@ def run_loop(
         run_visual_odometry,
         visual_odometry_source,
     )
-    from stemmap.sim.forest import row_stand, with_forest_edge
+    from stemmap.sim.forest import row_stand
     from stemmap.sim.observations import oracle_observations
-    from stemmap.sim.render import StereoCamera, iter_stereo, stand3d_from_stand
+    from stemmap.sim.render import (
+        StereoCamera,
+        iter_stereo,
+        stand3d_from_stand,
+        with_forest_edge,
+    )
     from stemmap.sim.scanner import scanner_preset
     from stemmap.sim.trajectory import VisualOdometryNoise, simulate_run
     from stemmap.slam.base import Controls, SlamProblem, TreeFrames

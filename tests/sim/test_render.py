@@ -95,7 +95,7 @@ def test_camera_config_is_checked():
 
 
 def test_forest_edge_surrounds_the_stand_and_keeps_its_trees():
-    from stemmap.sim.forest import with_forest_edge
+    from stemmap.sim.render import with_forest_edge
 
     rows = row_stand(3, 7, row_spacing=4.0, tree_spacing=3.0, rng=1)
     st = with_forest_edge(rows, gap=6.0, width=10.0, density=0.05, rng=2)

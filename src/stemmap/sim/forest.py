@@ -34,7 +34,6 @@ __all__ = [
     "random_stand",
     "row_stand",
     "sample_dbh",
-    "with_forest_edge",
 ]
 
 #: Kinds of non-tree objects the simulator places.
@@ -448,52 +447,6 @@ def row_stand(
     lo = xy.min(axis=0) - tree_spacing if xy.size else np.zeros(2)
     hi = xy.max(axis=0) + tree_spacing if xy.size else np.zeros(2)
     return Stand(xy, dbh, bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
-
-
-def with_forest_edge(
-    stand: Stand,
-    *,
-    gap: float = 6.0,
-    width: float = 10.0,
-    density: float = 0.05,
-    min_spacing: float = 1.5,
-    dbh_mean: float = 0.30,
-    rng: RngLike = None,
-) -> Stand:
-    """``stand`` surrounded by a band of random forest (an orchard or plot inside woodland).
-
-    Trees are placed at ``density`` per m² with ``min_spacing`` surface gaps in the band from
-    ``gap`` to ``gap + width`` metres outside ``stand.bounds``; the stand's own trees, clutter
-    and segments are kept (its trees first, so their indices do not change) and the bounds
-    grow by ``gap + width``. Gives a camera something to see on headland turns, where a bare
-    plane beyond the last row leaves only sky and distant ground.
-    """
-    if not (gap >= 0 and width > 0 and density > 0):
-        raise ConfigError("with_forest_edge needs gap >= 0, width > 0 and density > 0.")
-    gen = np.random.default_rng(rng)
-    x0, y0, x1, y1 = stand.bounds
-    m = gap + width
-    lo, hi = np.array([x0 - m, y0 - m]), np.array([x1 + m, y1 + m])
-    area = (x1 - x0 + 2 * m) * (y1 - y0 + 2 * m) - (x1 - x0 + 2 * gap) * (y1 - y0 + 2 * gap)
-    n = int(density * area)
-    cand = gen.uniform(lo, hi, size=(200 * max(n, 1), 2))
-    inner = (
-        (cand[:, 0] > x0 - gap)
-        & (cand[:, 0] < x1 + gap)
-        & (cand[:, 1] > y0 - gap)
-        & (cand[:, 1] < y1 + gap)
-    )
-    cand = cand[~inner]
-    dbh = sample_dbh(cand.shape[0], mean=dbh_mean, std=0.1, dbh_min=0.1, dbh_max=0.8, rng=gen)
-    idx = _place_with_spacing(cand, dbh, min_spacing, n)
-    poly = stand.tree_is_polygon
-    return replace(
-        stand,
-        trees_xy=np.concatenate((stand.trees_xy, cand[idx])),
-        diameters=np.concatenate((stand.diameters, dbh[idx])),
-        tree_is_polygon=np.concatenate((poly, np.zeros(idx.size, bool))) if poly.size else poly,
-        bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
-    )
 
 
 # --------------------------------------------------------------------------------------------
