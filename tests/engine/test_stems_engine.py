@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from stemmap.cloud import CloudStems, StemConfig, detect_stems
+from stemmap.cloud import CloudStems, StemConfig, detect_statistics, detect_stems
 from stemmap.engine import Catalog, Manifest, catalog_statistics, run_stems_catalog
 
 # Tolerances of the chunked result against one process over the whole cloud. The engine
@@ -112,9 +112,29 @@ def test_pilot_statistics_make_chunkings_agree_on_a_large_catalog(
     assert_same_stems(a.stems, b.stems)
     single = detect_stems(stand_tiles[1], a.config)
     assert_same_stems(single, a.stems)
+    # the engine measured them on a worker from the staged pilot fragments: the same values
+    # as measuring them in this process from the files
+    here = catalog_statistics(cat, StemConfig(slice_mode="never"), max_points=budget)
+    assert here == a.config
     # set by the user: kept as given
     mine = StemConfig(spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0))
     assert catalog_statistics(cat, mine) == mine
+
+
+def test_detect_statistics_are_the_full_detectors(
+    stand_tiles: tuple[Path, np.ndarray], reference: CloudStems
+) -> None:
+    """The pilot's shortcut (stop at the noise floor, no canopy raster) measures exactly what
+    the full detector measures, heights on or off."""
+    x0, y0, _, _ = Catalog.from_inputs([stand_tiles[0]]).bounds
+    cfg = StemConfig(grid_origin=(x0, y0), estimate_height=True)
+    st = detect_statistics(stand_tiles[1], cfg)
+    assert len(st) == 0
+    assert st.spacing == reference.spacing and st.noise_floor == reference.noise_floor
+    full = detect_stems(stand_tiles[1], cfg)
+    assert st.spacing == full.spacing and st.noise_floor == full.noise_floor
+    given = detect_statistics(stand_tiles[1], StemConfig(spacing=0.05, noise_floor=0.002))
+    assert (given.spacing, given.noise_floor) == (0.05, 0.002)
 
 
 def test_resume_redoes_only_missing_or_changed_chunks(
@@ -129,6 +149,7 @@ def test_resume_redoes_only_missing_or_changed_chunks(
     assert len(first.computed) == n
     again = run_stems_catalog(cat, StemConfig(), work, chunk_size=10.0, resume=True, client=client)
     assert again.computed == [] and len(again.skipped) == n
+    assert again.config == first.config  # the statistics the chunks ran with, from the manifest
     assert_same_stems(first.stems, again.stems)  # type: ignore[arg-type]
     # a chunk whose line is missing (killed before it finished) is redone, only it
     man = Manifest(work)

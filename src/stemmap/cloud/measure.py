@@ -247,7 +247,12 @@ def _radius_consensus(
     return float(np.median(r[agree])), agree
 
 
-def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False) -> CloudStems:
+def _stems_from_band(
+    band: _Band, cfg: StemConfig, *, slice_cloud: bool = False, statistics_only: bool = False
+) -> CloudStems:
+    """Stems of the slice band. With ``statistics_only`` stop once the point spacing and the
+    slice noise floor are measured: an empty CloudStems carrying both (the steps before them
+    are exactly the full run's, so the values are the ones the full run measures)."""
     xy, h = band.xy, band.h
     n = xy.shape[0]
     if n < cfg.min_slice_points:
@@ -363,6 +368,11 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     noise_floor = (
         cfg.noise_floor if cfg.noise_floor is not None else float(np.median(rms[plausible]))
     )
+    if statistics_only:
+        return replace(
+            CloudStems.empty("ours", spacing=sp2d, reason="statistics only"),
+            noise_floor=noise_floor,
+        )
     rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
     passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
     log.debug(

@@ -56,6 +56,7 @@ __all__ = [
     "MunjerConfig",
     "StemConfig",
     "associate_proximity",
+    "detect_statistics",
     "detect_stems",
     "detect_stems_file",
     "detect_stems_munjer",
@@ -131,6 +132,44 @@ def detect_stems(
         fraction of slices passing, their arc coverage and residual.
     """
     cfg = config or StemConfig()
+    prep = _band_of(xyz, cfg, ground, origins)
+    if isinstance(prep, CloudStems):
+        return prep
+    band, cfg, is_slice = prep
+    return _stems_from_band(band, cfg, slice_cloud=is_slice)
+
+
+def detect_statistics(
+    xyz: ArrayLike, config: StemConfig | None = None, *, origins: ArrayLike | None = None
+) -> CloudStems:
+    """The point spacing and slice noise floor :func:`detect_stems` measures on this cloud,
+    without measuring stems.
+
+    The detector's steps up to the noise floor (ground, height band, spacing, clustering,
+    slice fits and their quality tests) are run exactly as in :func:`detect_stems`; the
+    canopy raster (stem heights) and everything after the noise floor are skipped. Returns
+    an empty CloudStems whose ``spacing`` and ``noise_floor`` are the measured values (NaN,
+    with ``reason``, when the cloud has no band points or no plausible slice fit). Values
+    set in ``config`` are returned as given. Used by the scale-out engine's pilot region
+    (:func:`stemmap.engine.catalog_statistics`).
+    """
+    cfg = replace(config or StemConfig(), estimate_height=False)
+    prep = _band_of(xyz, cfg, None, origins)
+    if isinstance(prep, CloudStems):
+        return prep
+    band, cfg, is_slice = prep
+    return _stems_from_band(band, cfg, slice_cloud=is_slice, statistics_only=True)
+
+
+def _band_of(
+    xyz: ArrayLike,
+    cfg: StemConfig,
+    ground: GroundModel | None,
+    origins: ArrayLike | None,
+) -> tuple[_Band, StemConfig, bool] | CloudStems:
+    """The slice band of an in-memory cloud (heights above its ground, canopy raster when
+    heights are estimated), the configuration adapted to a pre-cut slice, and whether the
+    cloud is one; an empty CloudStems for an empty cloud."""
     p = as_xyz(xyz)
     if p.shape[0] == 0:
         return CloudStems.empty("ours", reason="the cloud is empty")
@@ -165,7 +204,7 @@ def detect_stems(
         band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m], base=g.base)
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
-    return _stems_from_band(band, cfg, slice_cloud=is_slice)
+    return band, cfg, is_slice
 
 
 def _ground_of(chunks: Iterable[FloatArray], cfg: StemConfig) -> GroundModel:

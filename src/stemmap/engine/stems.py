@@ -32,9 +32,9 @@ import numpy as np
 
 from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
 from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
-from stemmap.engine.cluster import TaskOutcome, dask_client, run_tasks
+from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph
 from stemmap.engine.manifest import Manifest, load_columns, params_hash, save_columns
-from stemmap.engine.staging import chunk_points, clear_stage, stage_tile
+from stemmap.engine.staging import chunk_points, clear_stage, stage_tile_outcome
 from stemmap.errors import InputError, StemmapError
 
 __all__ = [
@@ -43,6 +43,8 @@ __all__ = [
     "CatalogRun",
     "catalog_statistics",
     "merge_chunk_results",
+    "pilot_chunk",
+    "pilot_statistics",
     "run_stems_catalog",
     "stems_chunk",
 ]
@@ -118,6 +120,110 @@ def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, f
     return box(lo)
 
 
+def _anchored(catalog: Catalog, config: StemConfig) -> StemConfig:
+    """``config`` with its grids anchored at the catalog's lower-left header corner (one
+    anchor for every chunk; without it each chunk would anchor them at its own points'
+    minimum). A grid origin already set is kept."""
+    if config.grid_origin is not None:
+        return config
+    x0, y0, _, _ = catalog.bounds
+    return replace(config, grid_origin=(x0, y0))
+
+
+def pilot_chunk(catalog: Catalog, max_points: int) -> Chunk:
+    """The pilot region (:func:`pilot_box`) as an unbuffered chunk named ``"pilot"`` (it is
+    staged and read like a chunk)."""
+    b = pilot_box(catalog, max_points)
+    tiles = tuple(k for k, t in enumerate(catalog.tiles) if t.overlaps(b))
+    return Chunk("pilot", b, 0.0, tiles, (True,) * 4, catalog.expected_points(b))
+
+
+def pilot_statistics(
+    catalog: Catalog,
+    pilot: Chunk,
+    config: StemConfig,
+    sensor: SensorPositions | None = None,
+    time_field: str | None = None,
+    stage: str | None = None,
+    *staged: dict[str, Any],
+) -> dict[str, Any]:
+    """The point spacing and slice noise floor our detector measures on the pilot region
+    (:func:`stemmap.cloud.detect_statistics`: the detector's steps up to the noise floor,
+    exactly; no canopy raster, no stem measurement).
+
+    Runs on a worker (or in the client with ``stage=None``: a direct read). ``staged`` are
+    the staging outcomes of its tiles (:func:`~stemmap.engine.staging.stage_tile_outcome`).
+    Never raises: an unreadable region gives NaN values and a ``reason``. The pilot's staged
+    fragments are removed.
+    """
+    from stemmap.cloud import detect_statistics
+    from stemmap.engine.staging import check_staged
+
+    nan = {"spacing": math.nan, "noise_floor": math.nan, "n_points": 0}
+    try:
+        check_staged(staged)
+        fields = (time_field,) if time_field else ()
+        xyz, extra = chunk_points(catalog, pilot, stage, fields)
+        n = int(xyz.shape[0])
+        if n == 0:
+            return {**nan, "reason": "the pilot region holds no point"}
+        origins = None
+        if sensor is not None:
+            times = extra[time_field] if time_field else None
+            origins = sensor.origins(n, times, "the pilot region")
+        st = detect_statistics(xyz, config, origins=origins)
+    except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
+        return {**nan, "reason": f"pilot region unreadable: {exc}"}
+    finally:
+        if stage is not None:
+            clear_stage(stage, pilot.id)
+    return {
+        "spacing": float(st.spacing),
+        "noise_floor": float(st.noise_floor),
+        "n_points": n,
+        "reason": st.reason,
+    }
+
+
+def _with_statistics(config: StemConfig, stats: dict[str, Any] | None) -> StemConfig:
+    """``config`` with the pilot's spacing and noise floor filled in where unset (a
+    non-finite or non-positive value stays unset: each chunk then measures its own)."""
+    if stats is None:
+        return config
+
+    def pick(mine: float | None, value: Any) -> float | None:
+        if mine is not None:
+            return mine
+        v = math.nan if value is None else float(value)
+        return v if math.isfinite(v) and v > 0 else None
+
+    return replace(
+        config,
+        spacing=pick(config.spacing, stats.get("spacing")),
+        noise_floor=pick(config.noise_floor, stats.get("noise_floor")),
+    )
+
+
+def _log_statistics(config: StemConfig, pilot: Chunk, stats: dict[str, Any]) -> None:
+    sp = config.spacing if config.spacing is not None else float(stats["spacing"])
+    nf = config.noise_floor if config.noise_floor is not None else float(stats["noise_floor"])
+    log.info(
+        "catalog statistics from %d points in (%.1f, %.1f, %.1f, %.1f): spacing %.4f m, "
+        "noise floor %.4f m",
+        int(stats.get("n_points", 0)),
+        *pilot.box,
+        sp,
+        nf,
+    )
+    if not (math.isfinite(sp) and math.isfinite(nf)):
+        log.warning(
+            "the pilot region could not measure the catalog's point spacing / noise floor "
+            "(%s); each chunk measures its own, so stems near chunk edges may differ slightly "
+            "from a single-process run. Set them with StemConfig(spacing=, noise_floor=).",
+            stats.get("reason") or "no plausible slice fit",
+        )
+
+
 def catalog_statistics(
     catalog: Catalog,
     config: StemConfig,
@@ -127,7 +233,8 @@ def catalog_statistics(
     time_field: str | None = None,
 ) -> StemConfig:
     """``config`` with the grid origin, point spacing and slice noise floor of the catalog
-    filled in.
+    filled in, computed in this process (the engine computes the same on a worker from the
+    staged pilot region, :func:`pilot_statistics`).
 
     The detector's clustering and vertical-filter grids are anchored at
     ``StemConfig.grid_origin``, set here to the catalog's lower-left header corner (without
@@ -138,47 +245,18 @@ def catalog_statistics(
     chunk and from a single process over the whole cloud, and with them the clustering cell,
     the slice layout of a sparse cloud and the residual test. They are measured once, by the
     detector on a pilot region (:func:`pilot_box`: the whole catalog when it holds at most
-    ``max_points`` points, else a centred box holding about that many), read in the client,
-    and every chunk gets them through its config. Values already set in ``config`` are kept.
-    When the pilot measures nothing (no band points, no plausible slice fit) the value stays
-    unset and each chunk measures its own (logged as a warning).
+    ``max_points`` points, else a centred box holding about that many), and every chunk gets
+    them through its config. Values already set in ``config`` are kept. When the pilot
+    measures nothing (no band points, no plausible slice fit) the value stays unset and each
+    chunk measures its own (logged as a warning).
     """
-    if config.grid_origin is None:
-        # one anchor for the grids of every chunk: the catalog's lower-left header corner
-        x0, y0, _, _ = catalog.bounds
-        config = replace(config, grid_origin=(x0, y0))
+    config = _anchored(catalog, config)
     if config.spacing is not None and config.noise_floor is not None:
         return config
-    b = pilot_box(catalog, max_points)
-    tiles = tuple(k for k, t in enumerate(catalog.tiles) if t.overlaps(b))
-    pilot = Chunk("pilot", b, 0.0, tiles, (True,) * 4, catalog.expected_points(b))
-    try:
-        stems, n = _chunk_stems(catalog, pilot, config, sensor, time_field, None)
-    except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
-        log.warning("the pilot region could not be read (%s)", exc)
-        stems, n = CloudStems.empty("ours", reason=f"pilot region unreadable: {exc}"), 0
-    sp = config.spacing if config.spacing is not None else stems.spacing
-    nf = config.noise_floor if config.noise_floor is not None else stems.noise_floor
-    log.info(
-        "catalog statistics from %d points in (%.1f, %.1f, %.1f, %.1f): spacing %.4f m, "
-        "noise floor %.4f m",
-        n,
-        *b,
-        sp,
-        nf,
-    )
-    if not (math.isfinite(sp) and math.isfinite(nf)):
-        log.warning(
-            "the pilot region could not measure the catalog's point spacing / noise floor "
-            "(%s); each chunk measures its own, so stems near chunk edges may differ slightly "
-            "from a single-process run. Set them with StemConfig(spacing=, noise_floor=).",
-            stems.reason or "no plausible slice fit",
-        )
-    return replace(
-        config,
-        spacing=sp if math.isfinite(sp) and sp > 0 else None,
-        noise_floor=nf if math.isfinite(nf) and nf > 0 else None,
-    )
+    pilot = pilot_chunk(catalog, max_points)
+    stats = pilot_statistics(catalog, pilot, config, sensor, time_field, None)
+    _log_statistics(config, pilot, stats)
+    return _with_statistics(config, stats)
 
 
 def stems_chunk(
@@ -189,14 +267,24 @@ def stems_chunk(
     sensor: SensorPositions | None = None,
     time_field: str | None = None,
     stage: str | None = None,
+    statistics: dict[str, Any] | None = None,
+    *staged: dict[str, Any],
 ) -> dict[str, Any]:
     """Detect stems in one buffered chunk and write the owned ones to ``result_path`` (.npz).
 
     Runs on a worker. The points come from the staged fragments of its LAS/LAZ tiles
-    (``stage``, :mod:`~stemmap.engine.staging`) or are read directly (COPC tiles, or
-    ``stage=None``). Returns a small summary (points read, stems kept, seconds).
+    (``stage``, :mod:`~stemmap.engine.staging`; ``staged``: their staging outcomes, an
+    unreadable tile fails the chunk with its error) or are read directly (COPC tiles, or
+    ``stage=None``). ``statistics``: the pilot region's spacing and noise floor
+    (:func:`pilot_statistics`), filled into ``config`` where unset. Returns a small summary
+    (points read, stems kept, seconds, the statistics used).
     """
+    from stemmap.engine.staging import check_staged
+
     t0 = time.perf_counter()
+    check_staged(staged)
+    if isinstance(config, StemConfig):
+        config = _with_statistics(config, statistics)
     stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
     method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
     own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
@@ -211,6 +299,8 @@ def stems_chunk(
         "n_stems": len(own),
         "n_found": len(stems),
         "seconds": time.perf_counter() - t0,
+        "spacing": getattr(config, "spacing", None),
+        "noise_floor": getattr(config, "noise_floor", None),
     }
 
 
@@ -330,10 +420,11 @@ def run_stems_catalog(
         with laspy.open(catalog.tiles[0].path) as rd:
             names = tuple(rd.header.point_format.dimension_names)
         time_field = sensor.pick_time_field(names, repr(catalog.tiles[0].path))
+    pilot: Chunk | None = None
     if isinstance(cfg, StemConfig):
-        cfg = catalog_statistics(
-            catalog, cfg, max_points=max_points, sensor=sensor, time_field=time_field
-        )
+        cfg = _anchored(catalog, cfg)
+        if cfg.spacing is None or cfg.noise_floor is None:
+            pilot = pilot_chunk(catalog, max_points)
     hashes: dict[int, str] = {}
 
     def inputs_of(ch: Chunk) -> dict[str, str]:
@@ -342,7 +433,16 @@ def run_stems_catalog(
                 hashes[k] = catalog.tiles[k].content_hash()
         return {catalog.tiles[k].path: hashes[k] for k in ch.tiles}
 
-    base = params_hash({"config": cfg, "sensor": sensor, "time_field": time_field})
+    # the catalog statistics are a function of the configuration and the pilot region's
+    # files: both identify a chunk's parameters (the statistics are measured after this)
+    base = params_hash(
+        {
+            "config": cfg,
+            "sensor": sensor,
+            "time_field": time_field,
+            "pilot": None if pilot is None else [pilot.box, inputs_of(pilot)],
+        }
+    )
     wanted = {
         ch.id: (inputs_of(ch), params_hash([base, ch.box, ch.buffer, ch.open_sides]))
         for ch in chunks
@@ -362,37 +462,56 @@ def run_stems_catalog(
         len(done),
         buffer,
     )
+    if isinstance(cfg, StemConfig) and pilot is not None and not todo and chunks:
+        # every chunk done before: the statistics they ran with
+        run.config = _with_statistics(cfg, man.entries()[chunks[0].id])
     stage = str(Path(work) / "stage")
     fields = (time_field,) if time_field else ()
-    # stage 1: decode each LAS/LAZ tile once into the fragments of the chunks still to do
+    # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
+    # to do (and of the pilot region); the pilot measures the catalog statistics on a worker
+    # as soon as its tiles are staged; each chunk runs once its tiles and the pilot are done
     per_tile: dict[int, list[Chunk]] = {}
-    for ch in todo:
+    for ch in [*todo, *([pilot] if pilot is not None and todo else [])]:
         for k in ch.tiles:
             if not catalog.tiles[k].copc:
                 per_tile.setdefault(k, []).append(ch)
-    stage_tasks = [
-        (f"stage-tile-{k}", (catalog, k, chs, stage, fields)) for k, chs in sorted(per_tile.items())
+    graph: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
+        (f"stage-tile-{k}", stage_tile_outcome, (catalog, k, chs, stage, fields, retries))
+        for k, chs in sorted(per_tile.items())
     ]
-    n_stage = len(stage_tasks)
+
+    def deps(ch: Chunk) -> list[Dep]:
+        return [Dep(f"stage-tile-{k}") for k in ch.tiles if k in per_tile]
+
+    stats: Any = None
+    if pilot is not None and todo:
+        pilot_args = (catalog, pilot, cfg, sensor, time_field, stage, *deps(pilot))
+        graph.append(("pilot", pilot_statistics, pilot_args))
+        stats = Dep("pilot")
+    for ch in todo:
+        path = str(man.result_path(ch.id))
+        args = (catalog, ch, cfg, path, sensor, time_field, stage, stats, *deps(ch))
+        graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
+    n_stage = len(per_tile)
     staged = 0
     if on_progress is not None:
         on_progress("reading tiles", 0, n_stage)
         on_progress("chunks", len(done), len(chunks))
-
-    def tile_done(oc: TaskOutcome) -> None:
-        nonlocal staged
-        staged += 1
-        if not oc.ok:
-            bad = int(oc.key.removeprefix("stage-tile-"))
-            for ch in per_tile[bad]:
-                run.failed.setdefault(ch.id, f"tile {catalog.tiles[bad].path}: {oc.error}")
-        if on_progress is not None:
-            on_progress("reading tiles", staged, n_stage)
-
     count = len(done)
 
-    def chunk_done(oc: TaskOutcome) -> None:
-        nonlocal count
+    def task_done(oc: TaskOutcome) -> None:
+        nonlocal staged, count
+        if oc.key.startswith("stage-tile-"):
+            staged += 1
+            if on_progress is not None:
+                on_progress("reading tiles", staged, n_stage)
+            return
+        if oc.key == "pilot":
+            assert pilot is not None and isinstance(cfg, StemConfig)
+            value = oc.value if oc.ok else {"spacing": math.nan, "noise_floor": math.nan}
+            _log_statistics(cfg, pilot, {"reason": oc.error, **value})
+            run.config = _with_statistics(cfg, value)
+            return
         cid = oc.key.removeprefix("stems-chunk-")
         inputs, params = wanted[cid]
         if oc.ok:
@@ -404,6 +523,8 @@ def run_stems_catalog(
                 seconds=oc.value["seconds"],
                 n_points=oc.value["n_points"],
                 n_stems=oc.value["n_stems"],
+                spacing=oc.value["spacing"],
+                noise_floor=oc.value["noise_floor"],
             )
             run.computed.append(cid)
             run.n_points += int(oc.value["n_points"])
@@ -416,34 +537,14 @@ def run_stems_catalog(
             on_progress("chunks", count, len(chunks))
 
     man.chunks.mkdir(parents=True, exist_ok=True)
-
-    def execute(cl: Any) -> None:
-        run_tasks(cl, stage_tile, stage_tasks, retries=retries, on_done=tile_done)
-        for cid in sorted(run.failed):  # chunks whose tiles could not be read
-            man.append(cid, "failed", *wanted[cid], error=run.failed[cid])
-            count_failed(cid)
-        tasks = [
-            (
-                f"stems-chunk-{ch.id}",
-                (catalog, ch, cfg, str(man.result_path(ch.id)), sensor, time_field, stage),
-            )
-            for ch in todo
-            if ch.id not in run.failed
-        ]
-        run_tasks(cl, stems_chunk, tasks, retries=retries, on_done=chunk_done)
-
-    def count_failed(cid: str) -> None:
-        nonlocal count
-        count += 1
-        if on_progress is not None:
-            on_progress("chunks", count, len(chunks))
-
+    # the pilot first among ready tasks: every chunk waits for it
+    prio = {"pilot": 1}
     if todo:
         if client is not None:
-            execute(client)
+            run_graph(client, graph, retries=retries, priorities=prio, on_done=task_done)
         else:
             with dask_client(workers, scheduler) as cl:
-                execute(cl)
+                run_graph(cl, graph, retries=retries, priorities=prio, on_done=task_done)
     if run.failed:
         return run
     clear_stage(stage)
