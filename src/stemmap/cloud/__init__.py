@@ -21,13 +21,16 @@ from stemmap.cloud.stems import (
     PRESETS,
     CloudStems,
     MunjerConfig,
+    PreparedCloud,
     StemConfig,
     associate_proximity,
+    detect_prepared,
     detect_statistics,
     detect_stems,
     detect_stems_file,
     detect_stems_munjer,
     get_preset,
+    prepare_cloud,
 )
 
 __all__ = [
@@ -36,12 +39,14 @@ __all__ = [
     "GroundAccumulator",
     "GroundModel",
     "MunjerConfig",
+    "PreparedCloud",
     "SensorPositions",
     "StemConfig",
     "arc_coverage_deg",
     "associate_proximity",
     "cluster_covariances",
     "dbscan",
+    "detect_prepared",
     "detect_statistics",
     "detect_stems",
     "detect_stems_file",
@@ -53,5 +58,6 @@ __all__ = [
     "pass_through",
     "pca_eccentricity",
     "point_spacing",
+    "prepare_cloud",
     "voxel_downsample",
 ]

@@ -45,6 +45,7 @@ __all__ = [
     "merge_chunk_results",
     "pilot_chunk",
     "pilot_statistics",
+    "prepare_chunk",
     "run_stems_catalog",
     "stems_chunk",
 ]
@@ -79,6 +80,10 @@ def _detect(
     return detect_stems(xyz, cfg, origins=origins)
 
 
+def _no_points(method: str) -> CloudStems:
+    return CloudStems.empty(method, reason="the buffered chunk holds no point")
+
+
 def _chunk_stems(
     catalog: Catalog,
     chunk: Chunk,
@@ -92,8 +97,7 @@ def _chunk_stems(
     xyz, extra = chunk_points(catalog, chunk, stage, fields)
     n = int(xyz.shape[0])
     if n == 0:
-        method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
-        return CloudStems.empty(method, reason="the buffered chunk holds no point"), 0
+        return _no_points("munjer2025" if isinstance(config, MunjerConfig) else "ours"), 0
     origins = None
     if sensor is not None:
         times = extra[time_field] if time_field else None
@@ -153,8 +157,9 @@ def pilot_statistics(
 
     Runs on a worker (or in the client with ``stage=None``: a direct read). ``staged`` are
     the staging outcomes of its tiles (:func:`~stemmap.engine.staging.stage_tile_outcome`).
-    Never raises: an unreadable region gives NaN values and a ``reason``. The pilot's staged
-    fragments are removed.
+    Never raises: an unreadable region gives NaN values and a ``reason``. Its staged
+    fragments stay (a pilot rescheduled after its worker died reads them again): the client
+    removes them.
     """
     from stemmap.cloud import detect_statistics
     from stemmap.engine.staging import check_staged
@@ -174,9 +179,6 @@ def pilot_statistics(
         st = detect_statistics(xyz, config, origins=origins)
     except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
         return {**nan, "reason": f"pilot region unreadable: {exc}"}
-    finally:
-        if stage is not None:
-            clear_stage(stage, pilot.id)
     return {
         "spacing": float(st.spacing),
         "noise_floor": float(st.noise_floor),
@@ -259,6 +261,45 @@ def catalog_statistics(
     return _with_statistics(config, stats)
 
 
+def _prepared_path(stage: str, chunk_id: str) -> Path:
+    return Path(stage) / chunk_id / "prepared.npz"
+
+
+def prepare_chunk(
+    catalog: Catalog,
+    chunk: Chunk,
+    config: StemConfig,
+    stage: str,
+    sensor: SensorPositions | None = None,
+    time_field: str | None = None,
+    *staged: dict[str, Any],
+) -> dict[str, Any]:
+    """The detector's ground step on one buffered chunk (:func:`stemmap.cloud.prepare_cloud`:
+    ground raster, heights, slice band, canopy raster), saved beside its fragments.
+
+    Runs on a worker, before the catalog statistics are known (the ground step does not use
+    them), so chunks are prepared while the pilot region is measured. ``staged``: the
+    staging outcomes of its tiles (an unreadable tile fails the chunk with its error).
+    Returns the points read, the saved file and the seconds spent.
+    """
+    from stemmap.cloud import PreparedCloud, prepare_cloud
+    from stemmap.engine.staging import check_staged
+
+    t0 = time.perf_counter()
+    check_staged(staged)
+    fields = (time_field,) if time_field else ()
+    xyz, extra = chunk_points(catalog, chunk, stage, fields)
+    n = int(xyz.shape[0])
+    origins = None
+    if sensor is not None and n:
+        times = extra[time_field] if time_field else None
+        origins = sensor.origins(n, times, f"chunk {chunk.id}")
+    prep = prepare_cloud(xyz, config, origins=origins) if n else PreparedCloud(None)
+    path = _prepared_path(stage, chunk.id)
+    save_columns(path, prep.to_columns())
+    return {"n_points": n, "path": str(path), "seconds": time.perf_counter() - t0}
+
+
 def stems_chunk(
     catalog: Catalog,
     chunk: Chunk,
@@ -268,6 +309,7 @@ def stems_chunk(
     time_field: str | None = None,
     stage: str | None = None,
     statistics: dict[str, Any] | None = None,
+    prepared: dict[str, Any] | None = None,
     *staged: dict[str, Any],
 ) -> dict[str, Any]:
     """Detect stems in one buffered chunk and write the owned ones to ``result_path`` (.npz).
@@ -275,17 +317,26 @@ def stems_chunk(
     Runs on a worker. The points come from the staged fragments of its LAS/LAZ tiles
     (``stage``, :mod:`~stemmap.engine.staging`; ``staged``: their staging outcomes, an
     unreadable tile fails the chunk with its error) or are read directly (COPC tiles, or
-    ``stage=None``). ``statistics``: the pilot region's spacing and noise floor
-    (:func:`pilot_statistics`), filled into ``config`` where unset. Returns a small summary
-    (points read, stems kept, seconds, the statistics used).
+    ``stage=None``); or the chunk was prepared before (``prepared``: the result of
+    :func:`prepare_chunk`) and only the steps after the ground run here.
+    ``statistics``: the pilot region's spacing and noise floor (:func:`pilot_statistics`),
+    filled into ``config`` where unset. Returns a small summary (points read, stems kept,
+    seconds -- with the preparation's --, the statistics used).
     """
+    from stemmap.cloud import PreparedCloud, detect_prepared
     from stemmap.engine.staging import check_staged
 
     t0 = time.perf_counter()
     check_staged(staged)
     if isinstance(config, StemConfig):
         config = _with_statistics(config, statistics)
-    stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
+    if prepared is not None and isinstance(config, StemConfig):
+        prep = PreparedCloud.from_columns(load_columns(Path(prepared["path"])))
+        n = int(prepared["n_points"])
+        stems = detect_prepared(prep, config) if n else _no_points("ours")
+        t0 -= float(prepared["seconds"])
+    else:
+        stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
     method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
     own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
     cols: dict[str, Any] = {k: _storable(getattr(own, k)) for k in _COLUMNS}
@@ -490,7 +541,13 @@ def run_stems_catalog(
         stats = Dep("pilot")
     for ch in todo:
         path = str(man.result_path(ch.id))
-        args = (catalog, ch, cfg, path, sensor, time_field, stage, stats, *deps(ch))
+        if stats is None:
+            args = (catalog, ch, cfg, path, sensor, time_field, stage, None, None, *deps(ch))
+        else:  # the ground step runs while the pilot is measured; the rest after it
+            prep = (catalog, ch, cfg, stage, sensor, time_field, *deps(ch))
+            graph.append((f"prepare-chunk-{ch.id}", prepare_chunk, prep))
+            args = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
+            args += (Dep(f"prepare-chunk-{ch.id}"),)
         graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
     n_stage = len(per_tile)
     staged = 0
@@ -511,7 +568,10 @@ def run_stems_catalog(
             value = oc.value if oc.ok else {"spacing": math.nan, "noise_floor": math.nan}
             _log_statistics(cfg, pilot, {"reason": oc.error, **value})
             run.config = _with_statistics(cfg, value)
+            clear_stage(stage, pilot.id)
             return
+        if oc.key.startswith("prepare-chunk-"):
+            return  # its outcome reaches the chunk's stems task (an error fails it)
         cid = oc.key.removeprefix("stems-chunk-")
         inputs, params = wanted[cid]
         if oc.ok:
