@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.ground import BASE_GROUND, core_cells, raster_guard
+from stemmap.cloud.ground import BASE_GROUND, cell_index, core_cells, raster_guard
 from stemmap.cloud.result import RULE_BH, CloudStems
 from stemmap.cloud.slicefit import (
     _band_spacing,
@@ -49,19 +49,20 @@ _KEY_OFF = 1 << 30
 
 
 def _canopy_update(canopy: dict[str, Any], xy: FloatArray, h: FloatArray) -> dict[str, Any]:
-    """Running max height per 0.25 m cell (keys -> max h), for stem height."""
+    """Running max height per 0.25 m cell (keys -> max h, keys sorted), for stem height."""
     if xy.shape[0] == 0:
         return canopy
-    ij = np.floor(xy / _CANOPY_CELL).astype(np.int64) + _KEY_OFF
-    keys = (ij[:, 0] << 32) | ij[:, 1]
+    ij = np.floor(xy / _CANOPY_CELL).astype(np.int64)
     if canopy:
-        keys = np.concatenate((canopy["keys"], keys))
+        i = (canopy["keys"] >> 32) - _KEY_OFF
+        j = (canopy["keys"] & 0xFFFFFFFF) - _KEY_OFF
+        ij = np.concatenate((np.column_stack((i, j)), ij))
         h = np.concatenate((canopy["h"], h))
-    order = np.lexsort((-h, keys))
-    keys, h = keys[order], h[order]
-    first = np.ones(keys.shape[0], dtype=bool)
-    first[1:] = keys[1:] != keys[:-1]
-    return {"keys": keys[first], "h": h[first]}
+    cells, inv = cell_index(ij)  # the distinct cells, sorted, without a sort of the points
+    hmax = np.full(cells.shape[0], -np.inf)
+    np.maximum.at(hmax, inv, h)
+    keys = ((cells[:, 0] + _KEY_OFF) << 32) | (cells[:, 1] + _KEY_OFF)
+    return {"keys": keys, "h": hmax}
 
 
 def _stem_heights(canopy: dict[str, Any], xy: FloatArray, radius: float = 1.0) -> FloatArray:
