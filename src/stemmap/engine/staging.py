@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -129,14 +130,28 @@ def stage_tile_outcome(
     returns ``{"ok": True, "tile", "counts"}`` or ``{"ok": False, "tile", "error"}``, so the
     tasks depending on it (the chunks reading the tile, the pilot region) still run and
     decide: a chunk fails with the tile's error, the pilot reports it unreadable."""
+    c0 = task_clock()
     error = ""
     for _ in range(1 + max(retries, 0)):
         try:
             counts = stage_tile(catalog, tile, chunks, stage, fields)
-            return {"ok": True, "tile": tile, "counts": counts}
+            return {"ok": True, "tile": tile, "counts": counts, **task_spent(c0)}
         except Exception as exc:
             error = f"{type(exc).__name__}: {exc}"
-    return {"ok": False, "tile": tile, "error": f"tile {catalog.tiles[tile].path}: {error}"}
+    path = catalog.tiles[tile].path
+    return {"ok": False, "tile": tile, "error": f"tile {path}: {error}", **task_spent(c0)}
+
+
+def task_clock() -> tuple[float, float]:
+    """(wall, thread CPU) seconds now: a task's start, for :func:`task_spent`."""
+    return time.perf_counter(), time.thread_time()
+
+
+def task_spent(c0: tuple[float, float]) -> dict[str, float]:
+    """Wall and CPU seconds of the calling thread since ``c0`` (``task_s``, ``cpu_s``): what
+    a task reports so the client can break a run down by phase (a one-thread worker runs the
+    task in this thread; LAZ decoding is single-threaded there)."""
+    return {"task_s": time.perf_counter() - c0[0], "cpu_s": time.thread_time() - c0[1]}
 
 
 def check_staged(outcomes: Sequence[dict[str, Any]]) -> None:

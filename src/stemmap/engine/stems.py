@@ -34,7 +34,13 @@ from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
 from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
 from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph
 from stemmap.engine.manifest import Manifest, load_columns, params_hash, save_columns
-from stemmap.engine.staging import chunk_points, clear_stage, stage_tile_outcome
+from stemmap.engine.staging import (
+    chunk_points,
+    clear_stage,
+    stage_tile_outcome,
+    task_clock,
+    task_spent,
+)
 from stemmap.errors import InputError, StemmapError
 
 __all__ = [
@@ -164,6 +170,7 @@ def pilot_statistics(
     from stemmap.cloud import detect_statistics
     from stemmap.engine.staging import check_staged
 
+    c0 = task_clock()
     nan = {"spacing": math.nan, "noise_floor": math.nan, "n_points": 0}
     try:
         check_staged(staged)
@@ -171,19 +178,20 @@ def pilot_statistics(
         xyz, extra = chunk_points(catalog, pilot, stage, fields)
         n = int(xyz.shape[0])
         if n == 0:
-            return {**nan, "reason": "the pilot region holds no point"}
+            return {**nan, "reason": "the pilot region holds no point", **task_spent(c0)}
         origins = None
         if sensor is not None:
             times = extra[time_field] if time_field else None
             origins = sensor.origins(n, times, "the pilot region")
         st = detect_statistics(xyz, config, origins=origins)
     except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
-        return {**nan, "reason": f"pilot region unreadable: {exc}"}
+        return {**nan, "reason": f"pilot region unreadable: {exc}", **task_spent(c0)}
     return {
         "spacing": float(st.spacing),
         "noise_floor": float(st.noise_floor),
         "n_points": n,
         "reason": st.reason,
+        **task_spent(c0),
     }
 
 
@@ -285,7 +293,7 @@ def prepare_chunk(
     from stemmap.cloud import PreparedCloud, prepare_cloud
     from stemmap.engine.staging import check_staged
 
-    t0 = time.perf_counter()
+    c0 = task_clock()
     check_staged(staged)
     fields = (time_field,) if time_field else ()
     xyz, extra = chunk_points(catalog, chunk, stage, fields)
@@ -297,7 +305,7 @@ def prepare_chunk(
     prep = prepare_cloud(xyz, config, origins=origins) if n else PreparedCloud(None)
     path = _prepared_path(stage, chunk.id)
     save_columns(path, prep.to_columns())
-    return {"n_points": n, "path": str(path), "seconds": time.perf_counter() - t0}
+    return {"n_points": n, "path": str(path), **task_spent(c0)}
 
 
 def stems_chunk(
@@ -326,15 +334,16 @@ def stems_chunk(
     from stemmap.cloud import PreparedCloud, detect_prepared
     from stemmap.engine.staging import check_staged
 
-    t0 = time.perf_counter()
+    c0 = task_clock()
     check_staged(staged)
     if isinstance(config, StemConfig):
         config = _with_statistics(config, statistics)
+    before = 0.0  # the preparation's seconds (the manifest records the chunk's total)
     if prepared is not None and isinstance(config, StemConfig):
         prep = PreparedCloud.from_columns(load_columns(Path(prepared["path"])))
         n = int(prepared["n_points"])
         stems = detect_prepared(prep, config) if n else _no_points("ours")
-        t0 -= float(prepared["seconds"])
+        before = float(prepared["task_s"])
     else:
         stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
     method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
@@ -349,9 +358,10 @@ def stems_chunk(
         "n_points": n,
         "n_stems": len(own),
         "n_found": len(stems),
-        "seconds": time.perf_counter() - t0,
+        "seconds": before + time.perf_counter() - c0[0],
         "spacing": getattr(config, "spacing", None),
         "noise_floor": getattr(config, "noise_floor", None),
+        **task_spent(c0),
     }
 
 
@@ -398,6 +408,9 @@ class CatalogRun:
     #: the configuration every chunk ran with (slice mode, spacing and noise floor of the
     #: catalog filled in): ``detect_stems(cloud, run.config)`` is the single-process equivalent
     config: StemConfig | MunjerConfig | None = None
+    #: per phase (``stage``, ``pilot``, ``prepare``, ``stems``): tasks run, and the wall and
+    #: CPU seconds they spent on the workers (summed) -- where a run's time goes
+    phases: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _catalog_config(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> StemConfig | MunjerConfig:
@@ -558,6 +571,12 @@ def run_stems_catalog(
 
     def task_done(oc: TaskOutcome) -> None:
         nonlocal staged, count
+        if oc.ok and isinstance(oc.value, dict) and "cpu_s" in oc.value:
+            phase = oc.key.split("-")[0]
+            acc = run.phases.setdefault(phase, {"tasks": 0, "task_s": 0.0, "cpu_s": 0.0})
+            acc["tasks"] += 1
+            acc["task_s"] += float(oc.value["task_s"])
+            acc["cpu_s"] += float(oc.value["cpu_s"])
         if oc.key.startswith("stage-tile-"):
             staged += 1
             if on_progress is not None:
