@@ -193,3 +193,30 @@ def test_failed_tile_is_reported_and_the_rest_finish(
     lines = Manifest(tmp_path / "w").entries()
     assert all("tile_0_0" in lines[c]["error"] for c in users)
     assert all(lines[c]["status"] == "failed" for c in users)
+
+
+def test_one_worker_thread_reads_the_pilot_from_the_stage(
+    stand_tiles: tuple[Path, np.ndarray], reference: CloudStems, tmp_path: Path
+) -> None:
+    """With one worker thread the pilot region is staged with the chunks (no second decode)
+    rather than read directly: the same statistics and stems, nothing left in the stage."""
+    from distributed import Client, LocalCluster
+
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    with (
+        LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        Client(cluster) as one,
+    ):
+        run = run_stems_catalog(cat, StemConfig(), tmp_path, chunk_size=10.0, client=one)
+    assert not run.failed and run.stems is not None
+    assert_same_stems(reference, run.stems)
+    assert isinstance(run.config, StemConfig)
+    assert (run.config.spacing, run.config.noise_floor) == (
+        reference.spacing,
+        reference.noise_floor,
+    )
+    assert set(run.phases) == {"stage", "pilot", "prepare", "stems"}
+    assert run.phases["prepare"]["tasks"] == len(run.chunks)
+    assert not (tmp_path / "stage").exists()

@@ -532,41 +532,50 @@ def run_stems_catalog(
     stage = str(Path(work) / "stage")
     fields = (time_field,) if time_field else ()
     # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
-    # to do (and of the pilot region); the pilot measures the catalog statistics on a worker
-    # as soon as its tiles are staged; each chunk runs once its tiles and the pilot are done
+    # to do; the pilot measures the catalog statistics on a worker; each chunk's ground step
+    # (prepare) runs as soon as its tiles are staged, the rest of the detector once the
+    # pilot is done too. With one worker thread the pilot reads staged fragments as well
+    # (no second decode); with more it reads its tiles itself and starts at once, decoding
+    # them a second time on a core that would otherwise wait: the pilot is the longest task
+    # and every chunk's second step waits for it.
     per_tile: dict[int, list[Chunk]] = {}
-    for ch in [*todo, *([pilot] if pilot is not None and todo else [])]:
-        for k in ch.tiles:
-            if not catalog.tiles[k].copc:
-                per_tile.setdefault(k, []).append(ch)
-    graph: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
-        (f"stage-tile-{k}", stage_tile_outcome, (catalog, k, chs, stage, fields, retries))
-        for k, chs in sorted(per_tile.items())
-    ]
 
-    def deps(ch: Chunk) -> list[Dep]:
-        return [Dep(f"stage-tile-{k}") for k in ch.tiles if k in per_tile]
+    def build(threads: int) -> list[tuple[str, Callable[..., Any], tuple[Any, ...]]]:
+        direct = threads > 1
+        per_tile.clear()
+        readers = [*todo, *([pilot] if pilot is not None and todo and not direct else [])]
+        for ch in readers:
+            for k in ch.tiles:
+                if not catalog.tiles[k].copc:
+                    per_tile.setdefault(k, []).append(ch)
+        graph: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
+            (f"stage-tile-{k}", stage_tile_outcome, (catalog, k, chs, stage, fields, retries))
+            for k, chs in sorted(per_tile.items())
+        ]
 
-    stats: Any = None
-    if pilot is not None and todo:
-        pilot_args = (catalog, pilot, cfg, sensor, time_field, stage, *deps(pilot))
-        graph.append(("pilot", pilot_statistics, pilot_args))
-        stats = Dep("pilot")
-    for ch in todo:
-        path = str(man.result_path(ch.id))
-        if stats is None:
-            args = (catalog, ch, cfg, path, sensor, time_field, stage, None, None, *deps(ch))
-        else:  # the ground step runs while the pilot is measured; the rest after it
-            prep = (catalog, ch, cfg, stage, sensor, time_field, *deps(ch))
-            graph.append((f"prepare-chunk-{ch.id}", prepare_chunk, prep))
-            args = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
-            args += (Dep(f"prepare-chunk-{ch.id}"),)
-        graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
-    n_stage = len(per_tile)
+        def deps(ch: Chunk) -> list[Dep]:
+            return [Dep(f"stage-tile-{k}") for k in ch.tiles if k in per_tile]
+
+        stats: Any = None
+        if pilot is not None and todo:
+            where = None if direct else stage
+            pilot_args = (catalog, pilot, cfg, sensor, time_field, where, *deps(pilot))
+            graph.append(("pilot", pilot_statistics, pilot_args))
+            stats = Dep("pilot")
+        for ch in todo:
+            path = str(man.result_path(ch.id))
+            if stats is None:
+                args = (catalog, ch, cfg, path, sensor, time_field, stage, None, None, *deps(ch))
+            else:  # the ground step runs while the pilot is measured; the rest after it
+                prep = (catalog, ch, cfg, stage, sensor, time_field, *deps(ch))
+                graph.append((f"prepare-chunk-{ch.id}", prepare_chunk, prep))
+                args = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
+                args += (Dep(f"prepare-chunk-{ch.id}"),)
+            graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
+        return graph
+
+    n_stage = 0
     staged = 0
-    if on_progress is not None:
-        on_progress("reading tiles", 0, n_stage)
-        on_progress("chunks", len(done), len(chunks))
     count = len(done)
 
     def task_done(oc: TaskOutcome) -> None:
@@ -616,14 +625,25 @@ def run_stems_catalog(
             on_progress("chunks", count, len(chunks))
 
     man.chunks.mkdir(parents=True, exist_ok=True)
-    # the pilot first among ready tasks: every chunk waits for it
-    prio = {"pilot": 1}
+
+    def execute(cl: Any) -> None:
+        nonlocal n_stage
+        graph = build(sum(cl.nthreads().values()))
+        n_stage = len(per_tile)
+        if on_progress is not None:
+            on_progress("reading tiles", 0, n_stage)
+            on_progress("chunks", len(done), len(chunks))
+        # the pilot first among ready tasks: every chunk's second step waits for it
+        run_graph(cl, graph, retries=retries, priorities={"pilot": 1}, on_done=task_done)
+
+    if not todo and on_progress is not None:
+        on_progress("chunks", len(done), len(chunks))
     if todo:
         if client is not None:
-            run_graph(client, graph, retries=retries, priorities=prio, on_done=task_done)
+            execute(client)
         else:
             with dask_client(workers, scheduler) as cl:
-                run_graph(cl, graph, retries=retries, priorities=prio, on_done=task_done)
+                execute(cl)
     if run.failed:
         return run
     clear_stage(stage)
