@@ -4,7 +4,6 @@ any chunking. The COPC files are written by copclib (a dev dependency)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,19 +29,6 @@ def _read_all(path: str) -> np.ndarray:
     with laspy.CopcReader.open(path) as rd:
         pts = rd.query()
         return np.column_stack((pts.x, pts.y, pts.z))
-
-
-@pytest.fixture(scope="module")
-def client() -> Iterator[Any]:
-    from distributed import Client, LocalCluster
-
-    with (
-        LocalCluster(
-            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
-        ) as cluster,
-        Client(cluster) as cl,
-    ):
-        yield cl
 
 
 @pytest.fixture(scope="module")

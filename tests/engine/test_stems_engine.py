@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,19 +23,6 @@ from stemmap.engine import Catalog, Manifest, catalog_statistics, run_stems_cata
 # 1 mm and the same diameters; 1e-6 m leaves room for summation-order rounding only.
 POS_TOL = 1e-3
 DBH_TOL = 1e-6
-
-
-@pytest.fixture(scope="module")
-def client() -> Iterator[Any]:
-    from distributed import Client, LocalCluster
-
-    with (
-        LocalCluster(
-            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
-        ) as cluster,
-        Client(cluster) as cl,
-    ):
-        yield cl
 
 
 @pytest.fixture(scope="module")
