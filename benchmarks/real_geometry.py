@@ -39,10 +39,9 @@ from typing import Any
 import numpy as np
 
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, RealSlice, load_slice, virtual_scans
+from stemmap.eval.real_slices import SLICES, RealSlice, load_slice, noisy_batch, virtual_scans
 from stemmap.scan.circle import FIT_METHODS
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
-from stemmap.types import ScanBatch
 
 RANGE_BANDS = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 15.0))
 DIAMETER_CLASSES = ((0.10, 0.20), (0.20, 0.30), (0.30, 0.50), (0.50, 1.00))
@@ -225,15 +224,7 @@ def run_dataset(
                 centers=sl.centers,
             )
         ranges0, hit = geometry[key]
-        ranges = ranges0 + (rng.normal(0.0, noise, ranges0.shape) if noise > 0 else 0.0)
-        ranges = np.where(np.isfinite(ranges0), np.maximum(ranges, 0.05), np.inf)
-        batch = ScanBatch(
-            ranges=ranges,
-            times=np.arange(vp.shape[0], dtype=np.float64),
-            angle_min=-math.pi,
-            angle_increment=math.radians(res),
-            range_max=30.0,
-        )
+        batch = noisy_batch(ranges0, res, noise, rng)
         n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
         conf: dict[str, Any] = {}
         for name, cfg in dets.items():

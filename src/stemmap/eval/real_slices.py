@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from stemmap.errors import InputError
-from stemmap.types import FloatArray
+from stemmap.types import FloatArray, ScanBatch
 
 __all__ = [
     "SLICES",
@@ -45,6 +45,7 @@ __all__ = [
     "SliceSpec",
     "cluster_grid",
     "load_slice",
+    "noisy_batch",
     "ring_reference",
     "surface_point_radius",
     "virtual_scans",
@@ -376,3 +377,19 @@ def virtual_scans(
             ranges[v] = np.where(cnt_b > 0, tot / np.maximum(cnt_b, 1), np.inf)
             hit[v] = sub_l[np.arange(n_beams), np.argmin(sub_r, axis=1)]
     return ranges, hit
+
+
+def noisy_batch(
+    ranges0: FloatArray, resolution_deg: float, noise: float, rng: np.random.Generator
+) -> ScanBatch:
+    """The virtual scans ``ranges0`` (V, N) of :func:`virtual_scans` as a ScanBatch, with
+    Gaussian range noise of ``noise`` metres per beam (kept >= 5 cm; no return stays inf)."""
+    ranges = ranges0 + (rng.normal(0.0, noise, ranges0.shape) if noise > 0 else 0.0)
+    ranges = np.where(np.isfinite(ranges0), np.maximum(ranges, 0.05), np.inf)
+    return ScanBatch(
+        ranges=ranges,
+        times=np.arange(ranges0.shape[0], dtype=np.float64),
+        angle_min=-math.pi,
+        angle_increment=math.radians(resolution_deg),
+        range_max=30.0,
+    )
