@@ -91,6 +91,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "stemmap.cli._stems",
     "stemmap.cli._vision",
     "stemmap.cli._map",
+    "stemmap.cli._odometry",
 )
 
 

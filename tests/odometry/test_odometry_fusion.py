@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.sim.forest import random_stand
-from stemmap.sim.trajectory import loop_path, simulate_run
-from stemmap.slam.motion import between
-from stemmap.slam.odometry import (
+from stemmap.odometry.fusion import (
     OdometrySource,
     dead_reckon_source,
     fuse_odometry,
     velocities_from_poses,
 )
+from stemmap.sim.forest import random_stand
+from stemmap.sim.trajectory import loop_path, simulate_run
+from stemmap.slam.motion import between
 from stemmap.types import Trajectory
 
 VO_SCALE = 0.93  # the visual source reads 7 % short ("map may have a different scale", §2.4)

@@ -1,0 +1,44 @@
+"""Odometry front ends feeding slam/: lidar scan matching (:mod:`.lidar`), wheel + IMU sources
+(:mod:`.inertial`), and their loosely coupled EKF fusion (:mod:`.fusion`).
+
+Submodules are imported on first use of a name (``from stemmap.odometry import fuse_sources``
+loads only :mod:`.fusion`), so a front end's heavy dependency (KISS-ICP, OpenCV) is paid only
+by the code that uses it. See docs/algorithms/odometry.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: public name -> submodule defining it (each front end adds its own lines)
+_LAZY: dict[str, str] = {
+    "FusedOdometry": "fusion",
+    "OdometrySource": "fusion",
+    "dead_reckon_source": "fusion",
+    "fuse_odometry": "fusion",
+    "fuse_sources": "fusion",
+    "velocities_from_poses": "fusion",
+    "LidarOdometry": "lidar",
+    "LidarOdometryConfig": "lidar",
+    "LidarOdometryResult": "lidar",
+    "lidar_odometry": "lidar",
+    "fuse_front_ends": "inertial",
+    "gyro_source": "inertial",
+    "motion_prior": "inertial",
+    "PoseSource": "fusion",
+    "wheel_source": "inertial",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'stemmap.odometry' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"stemmap.odometry.{mod}"), name)
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
