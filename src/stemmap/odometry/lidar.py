@@ -17,7 +17,8 @@ Decisions where the paper is silent (docs/algorithms/odometry.md):
   wherever it is: those rings pin point-to-point ICP to zero forward motion (on a simulated
   16-beam drive at 4 m/s the raw frames gave 57 % drift, the ground-free ones 0.4 %). Points
   less than ``ground_clearance`` above a per-frame ground raster (:func:`stemmap.cloud.ground
-  .fit_ground`, cell ``ground_cell``) are dropped before registration.
+  .fit_ground`, cell ``ground_cell``) are dropped before registration. A frame thinner than
+  ``ground_clearance`` (a 2D scan stored as x, y, 0 points) has no ground and keeps all.
 * **Degenerate frames.** A frame with fewer than ``min_points`` usable points (empty, all
   returns out of range, a blocked sensor) is not registered: the pose is extrapolated with the
   last velocity (KISS-ICP's own constant-velocity model), the frame is marked ``held`` and its
@@ -227,7 +228,8 @@ class LidarOdometry:
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         r = np.linalg.norm(pts, axis=1)
         pts = pts[(r > cfg.min_range) & (r < cfg.max_range)]
-        if not planar and cfg.remove_ground and pts.shape[0] >= cfg.min_points:
+        flat = pts.shape[0] == 0 or float(np.ptp(pts[:, 2])) < cfg.ground_clearance
+        if not (planar or flat) and cfg.remove_ground and pts.shape[0] >= cfg.min_points:
             from stemmap.cloud.ground import fit_ground
 
             ground = fit_ground(pts, cfg.ground_cell)
