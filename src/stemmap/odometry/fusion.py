@@ -231,6 +231,22 @@ class FusedOdometry:
 _SIGMAS = ("sigma_speed", "sigma_yaw_rate")
 
 
+def _ekf_update(
+    x: FloatArray, P: FloatArray, H: FloatArray, y: FloatArray, R: FloatArray, gate: float
+) -> bool:
+    """In-place EKF update with innovation ``y``; False (and no change) when the squared
+    Mahalanobis innovation exceeds ``gate``."""
+    S = H @ P @ H.T + R
+    Sinv = np.linalg.inv(S)
+    if float(y @ Sinv @ y) > gate:
+        return False
+    K = P @ H.T @ Sinv
+    x += K @ y
+    P -= K @ S @ K.T
+    P[:] = 0.5 * (P + P.T)
+    return True
+
+
 def _flags(flags: Sequence[bool] | None, n: int, what: str) -> list[bool]:
     if flags is None:
         return [False] * n
@@ -407,43 +423,27 @@ def fuse_sources(
             if np.all(np.isfinite(Rm)):
                 y = zp[row[i]] - x[:3]
                 y[2] = math.remainder(y[2], 2.0 * math.pi)
-                S = P[:3, :3] + Rm
-                Sinv = np.linalg.inv(S)
-                if gate_poses and float(y @ Sinv @ y) > thr3:
+                thr = thr3 if gate_poses else math.inf
+                if not _ekf_update(x, P, Hp, y, Rm, thr):
                     rejected[s_i] += 1
-                else:
-                    K = P @ Hp.T @ Sinv
-                    x = x + K @ y
-                    P = P - K @ S @ K.T
-                    P = 0.5 * (P + P.T)
-            out_x[i] = x[:5]
-            out_P[i] = P[:3, :3]
-            continue
-        z = z_all[row[i]]
-        have = np.isfinite(z)
-        if np.any(have):
-            bi, ki = int(bias_idx[s_i]), int(scale_idx[s_i])
-            H[:] = 0.0
-            sc = 1.0 + x[ki] if ki >= 0 else 1.0
-            pred = np.array([sc * x[3], x[4] + (x[bi] if bi >= 0 else 0.0)])
-            H[0, 3] = sc
-            if ki >= 0:
-                H[0, ki] = x[3]
-            H[1, 4] = 1.0
-            if bi >= 0:
-                H[1, bi] = 1.0
-            Hs = H[have]
-            y = z[have] - pred[have]
-            S = Hs @ P @ Hs.T + np.diag(r_all[row[i]][have])
-            Sinv = np.linalg.inv(S)
-            d2 = float(y @ Sinv @ y)
-            if d2 > (thr2 if y.size == 2 else thr1):
-                rejected[s_i] += 1
-            else:
-                K = P @ Hs.T @ Sinv
-                x = x + K @ y
-                P = P - K @ S @ K.T
-                P = 0.5 * (P + P.T)
+        else:
+            z = z_all[row[i]]
+            have = np.isfinite(z)
+            if np.any(have):
+                bi, ki = int(bias_idx[s_i]), int(scale_idx[s_i])
+                H[:] = 0.0
+                sc = 1.0 + x[ki] if ki >= 0 else 1.0
+                pred = np.array([sc * x[3], x[4] + (x[bi] if bi >= 0 else 0.0)])
+                H[0, 3] = sc
+                if ki >= 0:
+                    H[0, ki] = x[3]
+                H[1, 4] = 1.0
+                if bi >= 0:
+                    H[1, bi] = 1.0
+                y = z[have] - pred[have]
+                R = np.diag(r_all[row[i]][have])
+                if not _ekf_update(x, P, H[have], y, R, thr2 if y.size == 2 else thr1):
+                    rejected[s_i] += 1
         out_x[i] = x[:5]
         out_P[i] = P[:3, :3]
     # keep the last state per distinct time (Trajectory needs strictly increasing times)

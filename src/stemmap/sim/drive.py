@@ -19,21 +19,10 @@ from stemmap.errors import ConfigError
 from stemmap.sim.forest import Stand
 from stemmap.sim.imu import ImuNoise, ImuSim, simulate_imu
 from stemmap.sim.lidar import LidarModel, Stand3D, _scan_from, lidar_preset
-from stemmap.sim.trajectory import SimRun, simulate_run
+from stemmap.sim.trajectory import SimRun, distance_to_polyline, simulate_run
 from stemmap.types import FloatArray, PointCloud, Trajectory
 
 __all__ = ["LidarDrive", "clear_corridor3d", "simulate_lidar_drive"]
-
-
-def _dist_to_polyline(q: FloatArray, p: FloatArray) -> FloatArray:
-    if q.shape[0] == 0:
-        return np.zeros(0)
-    a, b = p[:-1], p[1:]
-    ab = b - a
-    l2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
-    t = np.clip(np.einsum("qsk,sk->qs", q[:, None, :] - a[None], ab) / l2, 0, 1)
-    closest = a[None] + t[..., None] * ab[None]
-    return np.asarray(np.min(np.linalg.norm(q[:, None, :] - closest, axis=2), axis=1))
 
 
 def clear_corridor3d(stand: Stand3D, path: ArrayLike, half_width: float) -> Stand3D:
@@ -43,9 +32,9 @@ def clear_corridor3d(stand: Stand3D, path: ArrayLike, half_width: float) -> Stan
     p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
     if p.shape[0] < 2:
         raise ConfigError("clear_corridor3d needs a path with at least 2 points.")
-    keep_t = _dist_to_polyline(stand.base_xy, p) - stand.dbh / 2 > half_width
-    keep_b = _dist_to_polyline(stand.branches[:, :2], p) > half_width
-    keep_s = _dist_to_polyline(stand.spheres[:, :2], p) - stand.spheres[:, 3] > half_width
+    keep_t = distance_to_polyline(stand.base_xy, p) - stand.dbh / 2 > half_width
+    keep_b = distance_to_polyline(stand.branches[:, :2], p) > half_width
+    keep_s = distance_to_polyline(stand.spheres[:, :2], p) - stand.spheres[:, 3] > half_width
     return Stand3D(
         stand.base_xy[keep_t],
         stand.dbh[keep_t],
