@@ -251,3 +251,25 @@ def test_cli_odometry_bad_input_is_one_error_line(tmp_path):
     )
     assert res.exit_code == 2
     assert "error:" in res.output and "do not exist" in res.output
+
+
+def test_cli_odometry_laserscan_bag(scan_drive, tmp_path):
+    """A ROS1 bag with a LaserScan topic is read as 2D frames (lidar only)."""
+    from stemmap.io.rosbag import write_scans_bag
+    from stemmap.types import ScanBatch
+
+    run, _ = scan_drive
+    sc = run.scans
+    batch = ScanBatch(sc.ranges[:40], sc.times[:40], sc.angle_min, sc.angle_increment, 0.0, 80.0)
+    bag = write_scans_bag(tmp_path / "drive.bag", batch)
+    seq = open_frames(bag)
+    assert seq.kind == "bag" and seq.msgtype == "laserscan" and seq.topic == "/scan"
+    out = tmp_path / "traj.csv"
+    res = CliRunner().invoke(
+        app,
+        ["odometry", str(bag), "--max-range", "80", "--min-range", "0.1", "-q", "--out", str(out)],
+    )
+    assert res.exit_code == 0, res.output
+    traj = read_trajectory_csv(out)
+    assert len(traj) == 40
+    assert _end_error(traj, run) < 0.1
