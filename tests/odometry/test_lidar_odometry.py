@@ -100,17 +100,18 @@ def test_fused_3d_meets_target_and_beats_dead_reckoning(drive3d, runs3d):
 
 @pytest.mark.slow
 def test_fused_bridges_a_lidar_blackout(drive3d):
-    """2.5 s of empty frames mid-drive (sensor blocked): lidar alone coasts at constant
-    velocity through the S bend, dead reckoning drifts with the gyro bias and wheel scale; the
-    fused front end (IMU-aided ICP + EKF) beats both."""
+    """4 s of empty frames mid-drive (sensor blocked): lidar alone coasts at constant velocity
+    through the S bend and cannot re-register (~20 % drift), dead reckoning drifts with the gyro
+    bias and wheel scale (~2.5 %); the fused front end (IMU-aided ICP + EKF) beats both.
+    (A 2.5 s gap on this drive is short enough for constant velocity to re-register.)"""
     d = drive3d
     p0 = d.true_poses.poses[0]
     frames = [
-        (t, np.zeros((0, 3)) if 30 <= k < 55 else f.xyz)
+        (t, np.zeros((0, 3)) if 25 <= k < 65 else f.xyz)
         for k, (t, f) in enumerate(zip(d.times, d.frames, strict=True))
     ]
     lidar = lidar_odometry(frames, initial_pose=p0)
-    assert int(lidar.held.sum()) == 25
+    assert int(lidar.held.sum()) == 40
     aided = lidar_odometry(
         frames, initial_pose=p0, motion_prior=motion_prior(d.imu.log, initial_pose=p0)
     )
