@@ -12,6 +12,7 @@ import typer
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._validate import bounded
+from stemmap.errors import ConfigError, InputError
 
 __all__ = ["detect", "register"]
 
@@ -45,6 +46,15 @@ def detect(
     ] = "stemmap",
     topic: Annotated[
         str | None, typer.Option(help="LaserScan topic of a bag (default: the only one).")
+    ] = None,
+    imu_topic: Annotated[
+        str | None,
+        typer.Option(
+            help="sensor_msgs/Imu topic of the same bag: its roll and pitch (interpolated at "
+            "each scan time) project the tilted scan onto the horizontal before detection "
+            "(Zheng 2012 eq. 1 with --preset zheng2012, the exact rotation otherwise). The IMU "
+            "axes must be the scanner's (an AHRS fixed on the scanner, as in Zheng 2012)."
+        ),
     ] = None,
     fit: Annotated[
         str | None,
@@ -87,6 +97,8 @@ def detect(
     (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md).
 
     Example: stemmap detect logs/ --out det --workers 2  (one folder per log + summary.csv)
+
+    Example: stemmap detect crane.bag --out stems.csv --imu-topic /imu  (tilted scanner)
     """
     if wants_logs(scans, workers, scheduler):
         return run_many_logs("detect", dict(locals()))
@@ -109,8 +121,14 @@ def detect(
         if footprint is not None:
             overrides["beam_footprint_deg"] = footprint
         detector = ScanTrunkDetector(DetectorConfig.preset(preset, **overrides))
+        if imu_topic is not None and rejected is not None:
+            raise ConfigError(
+                "--rejected lists candidates of the untilted scans; it cannot be combined with "
+                "--imu-topic yet. Run once without --imu-topic for the rejected list."
+            )
         skipped: list[SkippedFrame] = []
         batch = read_scans(scan, topic=topic, skipped=skipped)
+        roll, pitch = _scan_attitude(scan, imu_topic, batch.times)
         for sk in skipped:
             console.print(
                 f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"
@@ -137,7 +155,11 @@ def detect(
                     batch.range_max,
                     batch.frame,
                 )
-                obs = detector.detect_batch(chunk)
+                obs = detector.detect_batch(
+                    chunk,
+                    roll=None if roll is None else roll[a:b],
+                    pitch=None if pitch is None else pitch[a:b],
+                )
                 if rejected is not None:
                     rej = detector.rejected(chunk)
                     local = rej["scan_index"]
@@ -176,6 +198,41 @@ def detect(
         )
         if rejected is not None:
             out.print(f"{n_rejected} rejected candidates -> {rejected}", markup=False)
+
+
+#: IMU samples may end this long before the first / after the last scan (s): an IMU at
+#: >= 10 Hz started with the scanner covers its scans to within a sample period or two.
+_IMU_MAX_GAP_S = 0.5
+
+
+def _scan_attitude(
+    scan: Path, imu_topic: str | None, times: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Roll and pitch (rad) of every scan from the bag's IMU topic (None without one).
+
+    Linear interpolation of the IMU's roll and pitch at the scan times (``ImuLog.tilt_at``);
+    scans more than :data:`_IMU_MAX_GAP_S` outside the IMU's time span are an error, not a
+    silently held attitude.
+    """
+    if imu_topic is None:
+        return None, None
+    from stemmap.io.rosbag import is_bag, read_imu
+
+    if not is_bag(scan):
+        raise ConfigError(
+            f"--imu-topic reads a sensor_msgs/Imu topic from a ROS bag; {scan} is not a bag."
+        )
+    imu = read_imu(scan, imu_topic)
+    if len(times):
+        lo, hi = float(imu.times[0]), float(imu.times[-1])
+        t0, t1 = float(np.min(times)), float(np.max(times))
+        if t0 < lo - _IMU_MAX_GAP_S or t1 > hi + _IMU_MAX_GAP_S:
+            raise InputError(
+                f"IMU topic {imu_topic!r} of {scan} covers t = {lo:.3f}..{hi:.3f} s but the "
+                f"scans span {t0:.3f}..{t1:.3f} s; the attitude of scans outside it is unknown. "
+                "Check the topic, or cut the scans to the IMU's time span."
+            )
+    return imu.tilt_at(times)
 
 
 #: Columns of the ``--rejected`` CSV (stemmap.scan.plausibility.rejected_candidates).

@@ -7,7 +7,9 @@ or ``x,y,z,u,v`` (3D sensor points, for PnP). Lines starting with ``#`` are comm
 
 Calibration JSON (written by calibrate, read by fuse): ``G`` (3x3, laser plane -> pixels),
 ``method``, ``rms_px``, ``n_pairs``, ``n_inliers``, ``residuals_px``; with intrinsics given also
-``camera`` {``K``, ``width``, ``height``} and, for PnP, ``laser_to_camera`` {``R``, ``t``}.
+``camera`` {``K``, ``width``, ``height``, optional ``dist`` = OpenCV (k1, k2, p1, p2[, k3]),
+used to undistort image regions before edge diameters} and, for PnP, ``laser_to_camera``
+{``R``, ``t``}.
 
 RoI CSV (segment --rois): ``x,y,w,h,alpha`` per region (pixels; alpha of Xue eq. 18).
 
@@ -85,13 +87,32 @@ def _matrix(doc: dict[str, Any], key: str, shape: tuple[int, ...], path: Path, w
     return a
 
 
+def _distortion(cam: dict[str, Any], path: Path) -> np.ndarray:
+    """``camera.dist``: OpenCV's (k1, k2, p1, p2[, k3]); zeros when absent."""
+    if "dist" not in cam:
+        return np.zeros(5)
+    try:
+        d = np.asarray(cam["dist"], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        d = np.zeros(0)
+    if d.shape[0] not in (4, 5) or not np.all(np.isfinite(d)):
+        raise InputError(
+            f"calibration JSON {str(path)!r}: 'camera.dist' must be 4 or 5 finite numbers "
+            f"(OpenCV k1, k2, p1, p2[, k3]; the rational and thin-prism models are not "
+            f"supported), got {str(cam['dist'])[:80]}."
+        )
+    return np.concatenate((d, np.zeros(5 - d.shape[0])))
+
+
 def read_calibration(path: Path) -> dict[str, Any]:
     """Read and check a calibration JSON written by ``stemmap calibrate`` (see module doc).
 
     Every field the fusion uses is checked here, so a damaged or hand-edited file ends in one
     error naming the field (never a KeyError): ``G`` 3x3 finite and invertible (an all-zero or
     singular matrix maps every laser point to nowhere); optional ``camera`` with ``K`` 3x3
-    (positive focal lengths) and positive integer ``width``/``height``; optional
+    (positive focal lengths), positive integer ``width``/``height`` and optional lens
+    distortion ``dist`` (OpenCV k1, k2, p1, p2[, k3]; ``camera`` is returned as
+    ``(K, width, height, dist)``, the arguments of ``CameraModel``); optional
     ``laser_to_camera`` with a rotation ``R`` (orthonormal, det +1) and a 3-vector ``t``.
     """
     if not path.exists():
@@ -139,7 +160,7 @@ def read_calibration(path: Path) -> dict[str, Any]:
                     f"number of pixels, got {v!r}."
                 )
             size.append(v)
-        out["camera"] = (K, size[0], size[1])
+        out["camera"] = (K, size[0], size[1], _distortion(cam, path))
     if "laser_to_camera" in doc:
         l2c = doc["laser_to_camera"]
         if not isinstance(l2c, dict):
@@ -164,16 +185,32 @@ def _camera(
     cy: float | None,
     width: int | None,
     height: int | None,
+    dist: str | None = None,
 ) -> Any:
     from stemmap.vision.camera import CameraModel
 
     vals = (fx, cx, cy, width, height)
     if all(v is None for v in vals):
+        if dist is not None:
+            raise ConfigError(
+                "--dist needs the camera intrinsics (--fx --cx --cy --width --height)."
+            )
         return None
     if any(v is None for v in vals):
         raise ConfigError("camera intrinsics need --fx, --cx, --cy, --width and --height together.")
+    d = np.zeros(5)
+    if dist is not None:
+        try:
+            dv = [float(v) for v in dist.split(",")]
+        except ValueError:
+            dv = []
+        if len(dv) not in (4, 5) or not all(math.isfinite(v) for v in dv):
+            raise ConfigError(
+                f"--dist must be 4 or 5 comma-separated numbers k1,k2,p1,p2[,k3], got {dist!r}."
+            )
+        d[: len(dv)] = dv
     K = np.array([[fx, 0.0, cx], [0.0, fy if fy is not None else fx, cy], [0.0, 0.0, 1.0]])
-    return CameraModel(K, int(width), int(height))  # type: ignore[arg-type]
+    return CameraModel(K, int(width), int(height), d)  # type: ignore[arg-type]
 
 
 def calibrate(
@@ -213,6 +250,13 @@ def calibrate(
     seed: Annotated[
         int, typer.Option(help="RANSAC random seed.", callback=bounded("--seed", ge=0))
     ] = 0,
+    dist: Annotated[
+        str | None,
+        typer.Option(
+            help="Lens distortion 'k1,k2,p1,p2[,k3]' (OpenCV), stored with the intrinsics; "
+            "image regions are undistorted with it before edge diameters are measured."
+        ),
+    ] = None,
 ) -> None:
     """Fit the laser-to-image matrix G (and optionally the PnP pose); report pixel errors.
 
@@ -241,9 +285,11 @@ def calibrate(
             "n_inliers": int(fit.inliers.sum()),
             "residuals_px": [round(float(r), 4) for r in fit.residuals_px],
         }
-        cam = _camera(fx, fy, cx, cy, width, height)
+        cam = _camera(fx, fy, cx, cy, width, height, dist)
         if cam is not None:
             doc["camera"] = {"K": cam.K.tolist(), "width": cam.width, "height": cam.height}
+            if cam.has_distortion:
+                doc["camera"]["dist"] = cam.dist.tolist()
         if pnp:
             if cam is None:
                 raise ConfigError(

@@ -10,8 +10,10 @@ Decisions (docs/algorithms/harvester.md):
 * The straight line is time-scaled by a forward-backward pass over the discretised path (joint
   velocity and acceleration limits mapped onto the path parameter), starting from the velocity the
   crane already has, so replanning every ten set-points does not jerk the crane to a stop.
-* The scanner sits on the stick and is levelled (the AHRS of Zheng §2 measures the residual tilt,
-  which ``stemmap.scan.preprocess`` compensates); trunks are taken as vertical.
+* The scanner sits on the stick; its scan plane may be tilted (``ScannerMount.roll`` /
+  ``pitch``: the machine on a slope, the boom's attitude; plus vibration in the simulator). The
+  AHRS of Zheng §2 measures roll and pitch and the detector projects the scan onto the
+  horizontal (``stemmap.scan.preprocess``); trunks are taken as vertical.
 """
 
 from __future__ import annotations
@@ -50,10 +52,13 @@ __all__ = [
 @dataclass(frozen=True)
 class ScannerMount:
     """Where the 2D scanner sits on the crane: ``along`` metres out the stick from the
-    boom-stick joint, scan plane levelled, x axis along the slew direction turned by ``yaw``."""
+    boom-stick joint, x axis along the slew direction turned by ``yaw``; the scan plane tilted
+    by ``roll`` / ``pitch`` (radians, z-y-x as an AHRS reports them; 0 = level)."""
 
     along: float = 1.0
     yaw: float = 0.0
+    roll: float = 0.0
+    pitch: float = 0.0
 
 
 def scanner_pose(crane: ForestryCrane, q: ArrayLike, mount: ScannerMount) -> FloatArray:

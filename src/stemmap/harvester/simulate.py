@@ -28,6 +28,7 @@ from stemmap.harvester.capture import (
 from stemmap.harvester.kinematics import FloatArray, ForestryCrane, UnreachableError
 from stemmap.sim.forest import Stand, random_stand
 from stemmap.sim.scanner import ScannerModel, simulate_scan
+from stemmap.sim.tilted import simulate_tilted_scan
 from stemmap.types import LaserScan, Pose2
 
 __all__ = [
@@ -39,8 +40,9 @@ __all__ = [
     "zheng2012_scanner",
 ]
 
-#: scan -> (centres (K, 2) in the scanner frame, diameters (K,))
-TrunkDetector = Callable[[LaserScan], tuple[FloatArray, FloatArray]]
+#: (scan, roll, pitch) -> (centres (K, 2) in the level scanner frame, diameters (K,)); roll and
+#: pitch (rad) are the AHRS reading, None without one (Zheng 2012 §2, eq. 1)
+TrunkDetector = Callable[[LaserScan, float | None, float | None], tuple[FloatArray, FloatArray]]
 
 
 def zheng2012_scanner(range_noise: float = 0.01) -> ScannerModel:
@@ -61,8 +63,10 @@ def default_detector() -> TrunkDetector:
 
     det = ScanTrunkDetector.from_preset("stemmap")
 
-    def detect(scan: LaserScan) -> tuple[FloatArray, FloatArray]:
-        obs = det.detect(scan)
+    def detect(
+        scan: LaserScan, roll: float | None, pitch: float | None
+    ) -> tuple[FloatArray, FloatArray]:
+        obs = det.detect(scan, roll=roll, pitch=pitch)
         return np.asarray(obs.centers), np.asarray(obs.diameters)
 
     return detect
@@ -72,7 +76,9 @@ def default_detector() -> TrunkDetector:
 class CaptureNoise:
     """Error sources of the loop: joint encoders (what the controller believes), hydraulic
     tracking of set-points, and boom vibration moving the scanner (unknown to the controller).
-    Angles in rad, lengths in m (1-sigma)."""
+    ``vibration_tilt`` rocks the scan plane about the mount's roll and pitch per scan;
+    ``imu_tilt`` is the AHRS error on roll and pitch (0.2 deg: an Xsens MTi-class unit's
+    static accuracy is 0.2-0.5 deg). Angles in rad, lengths in m (1-sigma)."""
 
     encoder_angle: float = math.radians(0.05)
     encoder_length: float = 0.002
@@ -80,6 +86,8 @@ class CaptureNoise:
     tracking_length: float = 0.005
     vibration_yaw: float = math.radians(0.2)
     vibration_xy: float = 0.01
+    vibration_tilt: float = 0.0
+    imu_tilt: float = math.radians(0.2)
 
 
 @dataclass(frozen=True)
@@ -128,13 +136,17 @@ def harvester_stand(
 
 def _scan_from(
     stand: Stand, crane: ForestryCrane, q: FloatArray, mount: ScannerMount, model: ScannerModel,
-    gen: np.random.Generator, noise: CaptureNoise, time_s: float,
+    gen: np.random.Generator, noise: CaptureNoise, time_s: float, tilt: tuple[float, float],
 ) -> LaserScan:  # fmt: skip
     T = scanner_pose(crane, q, mount)
     yaw = math.atan2(T[1, 0], T[0, 0]) + gen.normal(0.0, noise.vibration_yaw)
     x, y = T[:2, 3] + gen.normal(0.0, noise.vibration_xy, 2)
-    scan, _ = simulate_scan(stand, Pose2(x, y, yaw), model, time=time_s, rng=gen)
-    return scan
+    if tilt == (0.0, 0.0):  # level: the footprint / mixed-pixel scanner model
+        scan, _ = simulate_scan(stand, Pose2(x, y, yaw), model, time=time_s, rng=gen)
+        return scan
+    height = float(T[2, 3])  # the base frame's z = 0 is the ground at the crane
+    return simulate_tilted_scan(stand, Pose2(x, y, yaw), tilt[0], tilt[1], model,
+                                height=max(height, 0.1), time=time_s, rng=gen)  # fmt: skip
 
 
 def simulate_capture(
@@ -152,14 +164,21 @@ def simulate_capture(
     bearing: float | None = None,
     max_cycles: int = 40,
     association_gate: float = 0.5,
+    use_imu: bool = True,
     rng: np.random.Generator | int | None = None,
 ) -> CaptureResult:
     """Run the receding-horizon capture loop on a simulated stand (base frame = world frame).
 
     ``index`` (with ``mode="index"``) is the row of the operator's pick among the trunks
-    detected in the first scan.
+    detected in the first scan. When the scan plane is tilted (``mount.roll`` / ``pitch``,
+    ``noise.vibration_tilt``) every scan is taken with the tilted-scanner model and, with
+    ``use_imu``, the detector gets the AHRS roll and pitch (true + ``noise.imu_tilt``) to
+    project the scan onto the horizontal (Zheng 2012 §2-3.1); without it the tilted ranges are
+    used as if level (trunks read too far and too wide).
     """
     gen = np.random.default_rng(rng)
+    # tilt and AHRS draws come from a child stream: a level run draws exactly as before
+    tilt_gen = gen.spawn(1)[0]
     crane = crane or ForestryCrane()
     mount = mount or ScannerMount()
     model = scanner or zheng2012_scanner()
@@ -181,8 +200,16 @@ def simulate_capture(
     lost = 0
     for cycle in range(max_cycles):
         q_meas = q_true + gen.normal(0.0, enc_sigma)
-        scan = _scan_from(stand, crane, q_true, mount, model, gen, nz, t)
-        centers, diams = detect(scan)
+        tilt = (0.0, 0.0)
+        att: tuple[float | None, float | None] = (None, None)
+        if mount.roll or mount.pitch or nz.vibration_tilt:
+            r_t, p_t = tilt_gen.normal([mount.roll, mount.pitch], nz.vibration_tilt)
+            tilt = (float(r_t), float(p_t))
+            if use_imu:
+                r_m, p_m = tilt_gen.normal(tilt, nz.imu_tilt)
+                att = (float(r_m), float(p_m))
+        scan = _scan_from(stand, crane, q_true, mount, model, gen, nz, t, tilt)
+        centers, diams = detect(scan, *att)
         xy = trunks_to_base(centers, scanner_pose(crane, q_meas, mount))
         seen = False
         if target_xy is None:

@@ -291,10 +291,10 @@ def render_scene(
     """Render one laser scan and one camera image of ``stand`` seen from ``pose``.
 
     The laser is at ``pose`` (world frame), ``laser_height`` above flat ground; the camera is
-    mounted by ``rig``. Every pixel's ray is intersected exactly with vertical cylinders (trees,
-    clutter circles) and vertical planes (segments): the horizontal hit distance comes from a
-    2D ray cast along the pixel's azimuth (azimuths binned at 1/4 pixel), the hit height from the
-    pixel's elevation. Classes:
+    mounted by ``rig`` (its lens distortion, if any, is rendered). Every pixel's ray is
+    intersected exactly with vertical cylinders (trees, clutter circles) and vertical planes
+    (segments): the horizontal hit distance comes from a 2D ray cast along the pixel's azimuth
+    (azimuths binned at 1/4 pixel), the hit height from the pixel's elevation. Classes:
 
     * trees: bark-coloured (per-tree jitter), patchy bark texture, Lambertian shading, from
       the ground to ``trunk_height``;
@@ -318,8 +318,10 @@ def render_scene(
     T_cl = rig.laser_to_camera.inverse()
     c_l = T_cl.t
     uu, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    Kinv = np.linalg.inv(cam.K)
-    d_cam = np.stack((uu, vv, np.ones_like(uu)), axis=-1) @ Kinv.T  # z_cam = 1
+    # Each pixel's ray (z_cam = 1), through the lens model: with distortion coefficients the
+    # image is rendered as the real, distorted camera sees it.
+    xy_n = cam.normalised(np.column_stack((uu.ravel(), vv.ravel()))).reshape(H, W, 2)
+    d_cam = np.concatenate((xy_n, np.ones((H, W, 1))), axis=-1)
     d_l = d_cam @ T_cl.R.T
     horiz = np.hypot(d_l[..., 0], d_l[..., 1])
     az = np.arctan2(d_l[..., 1], d_l[..., 0])

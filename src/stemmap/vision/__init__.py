@@ -43,10 +43,12 @@ from stemmap.vision.camera import (
     laser_plane_homography,
     project_laser_points,
     project_points,
+    undistort_image,
+    undistort_region,
 )
 from stemmap.vision.depth import DaimParams, daim_trunks
 from stemmap.vision.detector import Detections, OnnxDetector, SegmentationDetector, TrunkDetector
-from stemmap.vision.edges import EdgeParams, measure_diameter
+from stemmap.vision.edges import EdgeParams, measure_diameter, phase_congruency_edges
 from stemmap.vision.image_io import read_image
 from stemmap.vision.segment import Regions, Segmentation, SegmentParams, segment_trunks
 from stemmap.vision.segment_classifier import (
@@ -84,6 +86,7 @@ __all__ = [
     "laser_plane_homography",
     "load_model",
     "measure_diameter",
+    "phase_congruency_edges",
     "plate_edges_from_scan",
     "project_laser_points",
     "project_points",
@@ -95,4 +98,6 @@ __all__ = [
     "solve_plate_points",
     "solve_pnp",
     "train_pixel_classifier",
+    "undistort_image",
+    "undistort_region",
 ]

@@ -1,29 +1,34 @@
 """Edge-based trunk diameter from an image region with laser range (Öhman et al. 2007, §3).
 
-Pipeline (:func:`measure_diameter`): optional homomorphic filtering -> vertical Fourier filtering
--> Canny, with a second, more sensitive pass (homomorphic on, lower hysteresis) when too few
-edges are found -> keep near-vertical edge pixels -> project to a 1D column signal -> pick the
-strongest edge and pair it with the strongest partner within the laser's width bounds -> refine
-both by a distance-dependent weighted average -> pixels to metres with the pinhole model.
+Pipeline (:func:`measure_diameter`): lens undistortion of the region (when the camera has
+distortion coefficients) -> optional homomorphic filtering -> vertical Fourier filtering -> Canny,
+with a second pass when too few edges are found (homomorphic on, and Kovesi's phase congruency
+from the ``phasepack`` library instead of Canny, as Öhman; or Canny with lower hysteresis) ->
+keep near-vertical edge pixels -> project to a 1D column signal -> pick the strongest edge and
+pair it with the strongest partner within the laser's width bounds -> refine both by a
+distance-dependent weighted average -> pixels to metres with the pinhole model.
 
-Öhman's second pass used a phase-congruency detector (Kovesi); we do not have one and use Canny
-on the homomorphically filtered image with iterated, lower hysteresis thresholds instead
-(documented in docs/algorithms/vision-fusion.md).
+The Canny pass is OpenCV's; Fleck's (1992) enhancements to Canny, used by Kovesi's MATLAB code,
+are in no maintained Python library we found, so the first pass is plain Canny (documented in
+docs/algorithms/vision-fusion.md).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
-from stemmap.vision.camera import CameraModel, RigidTransform
+from stemmap.vision.camera import CameraModel, RigidTransform, undistort_region
 
 __all__ = [
     "COLOUR_PCA",
@@ -33,6 +38,7 @@ __all__ = [
     "edge_profile",
     "homomorphic_filter",
     "measure_diameter",
+    "phase_congruency_edges",
     "select_edge_pair",
     "vertical_edges",
     "vertical_fourier_filter",
@@ -60,6 +66,7 @@ class EdgeParams:
         If fewer than this fraction of ROI pixels are vertical edges, run the second pass.
     second_pass_scales : tuple of float
         Threshold multipliers tried in the second pass (iterated hysteresis, Öhman §3.1).
+        Phase congruency tries 1.0 first (its first pass has not run: Canny's has).
     min_strength : float
         An edge must be "more than 5 pixels strong" (Öhman §3.2): column count > 5.
     smooth_near, smooth_far : int
@@ -77,6 +84,16 @@ class EdgeParams:
     strips : int
         Ours: measure in this many horizontal strips and take the median width, which tolerates
         leaning trunks and perspective (Öhman: 1, "assumes the trees are straight").
+    second_pass : "phase_congruency" or "canny"
+        Detector of the second (low-contrast) pass: Kovesi's phase congruency (Öhman §3.1,
+        through ``phasepack``) or Canny with the thresholds scaled by ``second_pass_scales``.
+    pc_low, pc_high : float in (0, 1)
+        Hysteresis thresholds on the phase-congruency edge strength (Kovesi's maximum moment,
+        0..1), scaled by ``second_pass_scales`` like the Canny ones. 0.1 / 0.3 are the values
+        Kovesi's own examples use with ``hysthresh``.
+    pc_scales : int
+        Number of log-Gabor scales of the phase congruency (Kovesi's default 4-5; 4 keeps the
+        largest filter (3 x 2.1^3 = 28 px wavelength) inside small regions).
     """
 
     homomorphic_first: bool = False
@@ -96,6 +113,10 @@ class EdgeParams:
     colour: str = "luma"
     weighting: str = "count"
     strips: int = 1
+    second_pass: str = "phase_congruency"
+    pc_low: float = 0.1
+    pc_high: float = 0.3
+    pc_scales: int = 4
 
     def __post_init__(self) -> None:
         if not 0 < self.canny_low <= self.canny_high:
@@ -116,12 +137,22 @@ class EdgeParams:
             raise ConfigError(f"strips must be >= 1, got {self.strips}.")
         if self.colour not in ("luma", "pca"):
             raise ConfigError(f"colour must be 'luma' or 'pca', got {self.colour!r}.")
+        if self.second_pass not in ("phase_congruency", "canny"):
+            raise ConfigError(
+                f"second_pass must be 'phase_congruency' or 'canny', got {self.second_pass!r}."
+            )
+        if not 0 < self.pc_low <= self.pc_high < 1:
+            raise ConfigError(f"need 0 < pc_low <= pc_high < 1, got {self.pc_low}, {self.pc_high}.")
+        if self.pc_scales < 2:
+            raise ConfigError(f"pc_scales must be >= 2, got {self.pc_scales}.")
 
 
-#: Öhman et al. (2007): edges > 5 px strong, 3-9 bin weighted average; other values ours.
+#: Öhman et al. (2007): Canny, then homomorphic + phase congruency; edges > 5 px strong, 3-9 bin
+#: weighted average; other values ours.
 OHMAN2007 = EdgeParams()
-#: Ours: colour-PCA grey image, gradient-weighted projection, 4 strips (see EdgeParams).
-COLOUR_PCA = EdgeParams(colour="pca", weighting="magnitude", strips=4)
+#: Ours: colour-PCA grey image, gradient-weighted projection, 4 strips (see EdgeParams); the
+#: second pass is Canny with lower thresholds (what this preset was measured with).
+COLOUR_PCA = EdgeParams(colour="pca", weighting="magnitude", strips=4, second_pass="canny")
 
 
 def _gray(image: ArrayLike, colour: str = "luma") -> FloatArray:
@@ -195,15 +226,112 @@ def _to_u8(g: FloatArray) -> NDArray[np.uint8]:
     return np.asarray(np.clip((g - lo) * (255.0 / (hi - lo)), 0, 255), dtype=np.uint8)
 
 
-def vertical_edges(
-    image: ArrayLike, params: EdgeParams = OHMAN2007, *, return_gradient: bool = False
-) -> tuple[NDArray[np.bool_], int] | tuple[NDArray[np.bool_], int, FloatArray]:
-    """Near-vertical edge pixels of an image region, with Öhman's two-pass strategy.
+def _phasecong() -> Any:
+    """``phasepack.phasecong``, imported on first use (it warns about pyfftw at import)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from phasepack import phasecong
+    except ImportError as exc:  # pragma: no cover - phasepack is a dependency
+        raise ConfigError(
+            "the phase-congruency edge pass needs the 'phasepack' package (a stemmap "
+            "dependency): pip install phasepack, or use EdgeParams(second_pass='canny')."
+        ) from exc
+    return phasecong
+
+
+def _hysteresis(strength: FloatArray, low: float, high: float) -> NDArray[np.bool_]:
+    """Pixels above ``low`` connected (8-neighbourhood) to a pixel above ``high``."""
+    weak = strength > low
+    lab, n = ndimage.label(weak, structure=np.ones((3, 3), dtype=bool))
+    if n == 0:
+        return np.zeros(strength.shape, dtype=bool)
+    strong = np.zeros(n + 1, dtype=bool)
+    strong[np.unique(lab[strength > high])] = True
+    strong[0] = False
+    return np.asarray(strong[lab], dtype=bool)
+
+
+def phase_congruency_edges(
+    image: ArrayLike,
+    *,
+    low: float = 0.1,
+    high: float = 0.3,
+    n_scales: int = 4,
+    max_angle_deg: float = 30.0,
+) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Near-vertical edges by phase congruency (Kovesi 1999, 2002; Öhman 2007 §3.1).
+
+    Phase congruency is contrast-invariant: a 2-grey-level step between two occluding trunks
+    scores like a 100-level one, which is why Öhman uses it for the hard, low-contrast cases.
+    The edge strength is Kovesi's maximum moment of the phase-congruency covariance ``M``
+    (0..1), computed by ``phasepack.phasecong`` (6 orientations, ``n_scales`` log-Gabor scales,
+    smallest wavelength 3 px, scale factor 2.1, noise threshold k = 2: Kovesi's defaults). The
+    strength is thinned by non-maximum suppression across the edge -- along image rows, since
+    only near-vertical edges are kept -- and linked by hysteresis (``low``, ``high``), as Kovesi's
+    ``nonmaxsup`` + ``hysthresh``. Edges whose orientation (phasepack's ``ori``, the direction
+    of the feature normal in degrees 0..180) is more than ``max_angle_deg`` from horizontal,
+    i.e. edges more than that from vertical, are dropped.
+
+    Parameters
+    ----------
+    image : (H, W) grey or (H, W, 3) RGB
+    low, high : float in (0, 1) -- hysteresis thresholds on ``M``
+    n_scales : int, >= 2
+    max_angle_deg : float, degrees
 
     Returns
     -------
     edges : (H, W) bool
-    pass_used : int -- 1 (plain Canny) or 2 (homomorphic + lower hysteresis)
+    strength : (H, W) float -- ``M``
+
+    References
+    ----------
+    P. Kovesi, "Image features from phase congruency", Videre 1(3), 1999; "Edges are not just
+    steps", ACCV 2002. M. Öhman et al., FSR 2007, §3.1.
+
+    Examples
+    --------
+    >>> img = np.full((40, 60), 100.0); img[:, 30:] = 103.0  # a 3-level step
+    >>> e, m = phase_congruency_edges(img)
+    >>> np.flatnonzero(e.any(axis=0)).tolist()  # the step only, not the image borders
+    [30]
+    """
+    g = _gray(image)
+    if not 0 < low <= high < 1:
+        raise ConfigError(f"need 0 < low <= high < 1, got {low}, {high}.")
+    # phasepack filters by FFT (periodic): mirror-pad so the image borders are not edges.
+    py, px = min(32, g.shape[0] - 1), min(32, g.shape[1] - 1)
+    gp = np.pad(g, ((py, py), (px, px)), mode="reflect")
+    M, _, ori, *_ = _phasecong()(
+        gp, nscale=int(n_scales), norient=6, minWaveLength=3, mult=2.1, k=2.0
+    )
+    crop = (slice(py, py + g.shape[0]), slice(px, px + g.shape[1]))
+    M = np.nan_to_num(np.asarray(M, dtype=np.float64)[crop])
+    o = np.asarray(ori, dtype=np.float64)[crop]
+    lft = np.pad(M, ((0, 0), (1, 0)), mode="edge")[:, :-1]
+    rgt = np.pad(M, ((0, 0), (0, 1)), mode="edge")[:, 1:]
+    thin = np.where(np.greater_equal(M, lft) & np.greater_equal(M, rgt), M, 0.0)
+    vertical = (o <= max_angle_deg) | (o >= 180.0 - max_angle_deg)
+    return _hysteresis(thin, low, high) & vertical, M
+
+
+def vertical_edges(
+    image: ArrayLike, params: EdgeParams = OHMAN2007, *, return_gradient: bool = False
+) -> tuple[NDArray[np.bool_], int] | tuple[NDArray[np.bool_], int, FloatArray]:
+    """Near-vertical edge pixels of an image region, with Öhman's two-pass strategy (§3.1).
+
+    Pass 1: Canny on the vertically Fourier-filtered image (homomorphic filtering only with
+    ``homomorphic_first``). If it finds fewer than ``min_edge_fraction`` of the pixels, pass 2
+    runs on the homomorphically filtered image with ``params.second_pass``: phase congruency
+    (:func:`phase_congruency_edges`, Öhman) or Canny, each with its hysteresis thresholds
+    scaled by ``second_pass_scales`` in turn until enough edges are found (Öhman: "iterated
+    with varying hysteresis threshold values until enough edge features were detected").
+
+    Returns
+    -------
+    edges : (H, W) bool
+    pass_used : int -- 1 (plain Canny) or 2 (homomorphic + second detector)
     gx : (H, W) float, only with ``return_gradient`` -- horizontal Sobel gradient of the
         filtered grey image the edges came from (signed: bright-to-the-right positive)
     """
@@ -230,8 +358,16 @@ def vertical_edges(
     if e.sum() < need:
         used = 2
         hom = homomorphic_filter(g, sigma=p.hom_sigma, low=p.hom_low, high=p.hom_high)
-        for sc in p.second_pass_scales:
-            e, gx = run(hom, sc)
+        pc = p.second_pass == "phase_congruency"
+        for sc in (1.0, *p.second_pass_scales) if pc else p.second_pass_scales:
+            if pc:
+                f = vertical_fourier_filter(hom, angle_deg=p.vertical_angle_deg)
+                e, _ = phase_congruency_edges(
+                    f, low=p.pc_low * sc, high=p.pc_high * sc, n_scales=p.pc_scales
+                )
+                gx = np.asarray(cv2.Sobel(_to_u8(f), cv2.CV_32F, 1, 0, ksize=3), np.float64)
+            else:
+                e, gx = run(hom, sc)
             if e.sum() >= need:
                 break
     if return_gradient:
@@ -332,7 +468,8 @@ class EdgeDiameter:
     ----------
     diameter : float, metres (NaN when failed)
     diameter_pinhole : float, metres -- Öhman's pinhole conversion, width_px * range / f
-    left_u, right_u : float, image columns of the two edges
+    left_u, right_u : float, columns of the two edges in the ideal pinhole image (the image's
+        own columns when the camera has no distortion; see :meth:`CameraModel.undistort_points`)
     pass_used : int
     ok, reason
     """
@@ -375,6 +512,10 @@ def measure_diameter(
     range_m : float, metres -- laser range to the trunk's near surface
     width_bounds : (w_min, w_max), metres -- the laser's trunk-width bounds
     camera : CameraModel
+        With non-zero distortion coefficients the region is undistorted
+        (:func:`~stemmap.vision.camera.undistort_region`) before any edge is measured (Öhman
+        §3.2 corrects only the two chosen points; a curved edge would already have blurred the
+        1D projection by then).
     laser_to_camera : RigidTransform, optional
         When given, the edge rays are rotated into the laser frame so their horizontal angle is
         exact for a tilted camera (otherwise the camera's own x-z plane is used).
@@ -399,6 +540,12 @@ def measure_diameter(
     x1, y1 = min(W, int(b[0] + b[2])), min(H, int(b[1] + b[3]))
     if x1 - x0 < 3 or y1 - y0 < 3:
         return EdgeDiameter(math.nan, math.nan, math.nan, math.nan, 0, False, "box outside image")
+    ox = oy = 0
+    if camera.has_distortion:
+        # Undistort the region first: a straight trunk edge is curved by the lens, which would
+        # smear its column in the 1D projection; from here on pixels are ideal-pinhole pixels.
+        img, (ox, oy, w_ud, h_ud) = undistort_region(img, camera, (x0, y0, x1 - x0, y1 - y0))
+        x0, y0, x1, y1 = 0, 0, w_ud, h_ud
     f = camera.fx
     w_min, w_max = width_bounds
     lo_px = max(1.0, f * w_min / range_m)
@@ -429,12 +576,12 @@ def measure_diameter(
     widths = np.asarray(rights) - np.asarray(lefts)
     k = int(np.argsort(widths)[len(widths) // 2])
     pair = EdgePair(lefts[k], rights[k], math.nan, math.nan)
-    ul, ur = x0 + pair.left, x0 + pair.right
+    ul, ur = ox + x0 + pair.left, ox + x0 + pair.right
     # The edge at column k of the profile is between pixels k and k+1 of a Canny response; the
     # boundary sits at k + 0.5 on average for a step edge. Width is a difference: unaffected.
     width_px = ur - ul
     d_pin = width_px * range_m / f
-    v = y0 + (y1 - y0) / 2.0
+    v = oy + y0 + (y1 - y0) / 2.0
     Kinv = np.linalg.inv(camera.K)
     r1 = Kinv @ np.array([ul, v, 1.0])
     r2 = Kinv @ np.array([ur, v, 1.0])
