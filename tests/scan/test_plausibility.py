@@ -100,3 +100,18 @@ def test_every_candidate_is_either_detected_or_rejected_with_one_reason():
 def test_config_checks_the_roughness_cap():
     with pytest.raises(Exception, match="roughness_max_factor"):
         DetectorConfig(roughness_max_factor=0.5)
+
+
+def test_rms_limit_adds_relative_bark_roughness_in_quadrature():
+    from stemmap.scan.plausibility import rms_limit
+
+    sigma = np.array([0.01, 0.01])
+    radii = np.array([0.1, 0.4])
+    plain = DetectorConfig.preset("stemmap", bark_roughness=0.0)
+    np.testing.assert_array_equal(rms_limit(plain, sigma, radii), 2.0 * sigma)
+    bark = DetectorConfig.preset("stemmap", bark_roughness=0.05)
+    np.testing.assert_allclose(
+        rms_limit(bark, sigma, radii), 2.0 * np.sqrt(0.01**2 + (0.05 * radii) ** 2)
+    )
+    with pytest.raises(Exception, match="bark_roughness"):
+        DetectorConfig.preset("stemmap", bark_roughness=-0.1)

@@ -117,3 +117,38 @@ def test_segments_partition_the_returns(values, n_scans):
         assert np.all(p.scan[segs.start] == p.scan[segs.stop - 1])
         per_scan = np.bincount(segs.scan, minlength=n_scans)
         assert np.all(per_scan == per_scan[0])
+
+
+def _arc_scan(points_xy):
+    """One scan whose returns are ``points_xy`` (sensor at the origin), in bearing order."""
+    th = np.arctan2(points_xy[:, 1], points_xy[:, 0])
+    order = np.argsort(th)
+    inc = 0.001
+    beams = np.round((th[order] - th[order][0]) / inc).astype(int)
+    ranges = np.full((1, int(beams[-1]) + 1), np.inf)
+    ranges[0, beams] = np.hypot(*points_xy[order].T)
+    angles = th[order][0] + inc * np.arange(ranges.shape[1])
+    pts = extract_points(ranges, angles, inc)
+    return build_segments(pts, np.r_[True, np.zeros(len(pts) - 1, dtype=bool)])
+
+
+def test_concave_corner_at_a_trunk_branch_junction_and_none_on_the_arc():
+    from stemmap.scan.segment import concave_corners
+
+    # a trunk (r 15 cm at 5 m) seen from the sensor, and a branch leaving its silhouette edge
+    # sideways: the junction lies behind the chord of its neighbours
+    phi = np.linspace(math.pi - 1.2, math.pi + 1.2, 40)
+    arc = np.column_stack((5.0 + 0.15 * np.cos(phi), 0.15 * np.sin(phi)))
+    tip = arc[0]
+    branch = tip + np.outer(np.linspace(0.03, 0.5, 15), [0.0, 1.0])
+    segs = _arc_scan(np.vstack((arc, branch)))
+    corners = concave_corners(segs, span=2, depth=0.005)
+    assert corners.sum() == 1
+    junction = segs.points.x[corners], segs.points.y[corners]
+    assert np.hypot(junction[0] - tip[0], junction[1] - tip[1]) < 0.05
+    # the trunk alone: convex everywhere (the 1 mrad beam grid moves returns by <= 2.5 mm)
+    assert not concave_corners(_arc_scan(arc), span=2, depth=0.005).any()
+    with pytest.raises(ConfigError):
+        concave_corners(segs, span=0)
+    with pytest.raises(ConfigError):
+        concave_corners(segs, depth=0.0)

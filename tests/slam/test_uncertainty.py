@@ -89,7 +89,8 @@ def test_every_backend_gets_uncertainty(backend: str) -> None:
     conf = np.array([t.confidence for t in sm])
     n_ok = np.array([t.n_obs >= 3 for t in sm])
     assert np.isfinite(dstd[n_ok]).mean() > 0.95
-    assert np.all(dstd[np.isfinite(dstd)] < 0.05)  # standard error of a mean, not a spread
+    # rho = 1 (real trunks): the per-scan spread of the diameters, a few cm on the simulator
+    assert np.all(dstd[np.isfinite(dstd)] < 0.05)
     assert np.all((conf >= 0) & (conf <= 1)) and conf.std() > 0
     assert all(np.all(np.isfinite(t.cov)) for t in sm)
     assert 0.8 < rep.associated_fraction <= 1.0

@@ -24,6 +24,7 @@ from stemmap.cli._geo import (
     write_gps_frame,
     write_map_products,
 )
+from stemmap.cli._map_frames import Frontend
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
@@ -382,7 +383,9 @@ def map_command(
         typer.Argument(
             metavar="INPUT",
             help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
-            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry. "
+            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry; "
+            "or a frames bundle (.npz of 3D lidar and / or RGB-D frames, e.g. from `stemmap sim "
+            "munjer`) with --frontend and --odometry. "
             "Several logs (files, a folder, a glob, a .txt list): one Dask task per log, "
             "OUT/<log>/ each, OUT/summary.csv.",
         ),
@@ -401,7 +404,45 @@ def map_command(
         Path | None, typer.Option("--data", help="Dataset folder (default: shared datasets).")
     ] = None,
     sim: Annotated[bool, typer.Option("--sim", help="Simulate a loop through a stand.")] = False,
-    backend: Annotated[Backend, typer.Option("--backend", help="SLAM back-end.")] = (Backend.isam2),
+    backend: Annotated[
+        Backend | None,
+        typer.Option(
+            "--backend",
+            help="SLAM back-end [default: isam2; fastslam (100 particles) + Kalman refinement "
+            "of the trees for a frames bundle, Munjer 2025].",
+        ),
+    ] = None,
+    frontend: Annotated[
+        Frontend | None,
+        typer.Option(
+            "--frontend",
+            help="Frames bundle: trunk detector per frame: eb-lidar (Munjer's EB-LiDAR on the "
+            "lidar frames), daim (detector boxes + aligned depth), ours (stemmap's cloud "
+            "detector on the lidar frames) [default: eb-lidar].",
+        ),
+    ] = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(
+            "--model",
+            help="--frontend daim: ONNX trunk detector (default: the segmentation detector).",
+        ),
+    ] = None,
+    motion_sigma: Annotated[
+        str,
+        typer.Option(
+            "--motion-sigma",
+            help="Frames bundle: the motion source's error 'speed,yaw_rate' (m/s, rad/s, "
+            "one-second averages) = FastSLAM motion noise.",
+        ),
+    ] = "0.05,0.002",
+    refine: Annotated[
+        bool,
+        typer.Option(
+            "--refine/--no-refine",
+            help="Frames bundle with fastslam: per-tree Kalman refinement (Munjer §3.6).",
+        ),
+    ] = True,
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path(
         "stemmap_map"
     ),
@@ -507,12 +548,16 @@ def map_command(
     Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
 
     Example: stemmap map logs/ --workers 2 --out maps  (maps/<log>/ per log, maps/summary.csv)
+
+    Example: stemmap sim munjer --out drive.npz && stemmap map drive.npz --frontend daim --out m
     """
     if wants_logs(logs, workers, scheduler):
         return run_many_logs("map", dict(locals()), as_json=as_json)
     bag = logs[0] if logs else None
+    from stemmap.cli._map_frames import frames_problem
     from stemmap.cli._map_inputs import file_problem
     from stemmap.io.atomic import atomic_write
+    from stemmap.io.frames import is_frames_npz
     from stemmap.io.products import run_products
     from stemmap.io.rosbag import is_bag
     from stemmap.slam.base import dead_reckoning, make_backend
@@ -528,8 +573,30 @@ def map_command(
                 "give exactly one input: a bag, scans or detections file, --dataset "
                 "victoria-park, or --sim."
             )
+        is_frames = bag is not None and is_frames_npz(bag)
+        if frontend is not None and not is_frames:
+            raise ConfigError("--frontend needs a frames bundle (.npz with lidar or RGB-D frames).")
+        backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
-        if dataset is not None:
+        if is_frames:
+            assert bag is not None
+            try:
+                sv, sw = (float(v) for v in motion_sigma.split(","))
+            except ValueError as exc:
+                raise ConfigError(
+                    f"--motion-sigma must be 'speed,yaw_rate' (m/s, rad/s), got {motion_sigma!r}."
+                ) from exc
+            if not (sv > 0 and sw > 0):
+                raise ConfigError(f"--motion-sigma values must be > 0, got {motion_sigma!r}.")
+            problem, ctx = frames_problem(
+                bag,
+                odometry,
+                frontend or Frontend.eb_lidar,
+                model=model,
+                sigma_speed=sv,
+                sigma_yaw_rate=sw,
+            )
+        elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
             problem, ctx = _simulated(seed, sim_trees, sim_size)
@@ -559,6 +626,11 @@ def map_command(
 
             if realtime or rerun is not None:
                 result = _realtime(problem, backend.value, tick, rerun)
+            elif is_frames and backend == Backend.fastslam:
+                from stemmap.slam.munjer import MunjerMapConfig, map_munjer
+
+                result = map_munjer(problem, MunjerMapConfig(refine=refine, seed=seed))
+                tick(len(problem.frames), len(problem.frames))
             else:
                 result = be.run(problem, progress=tick)
         result.stem_map, unc = annotate_uncertainty(result, problem)

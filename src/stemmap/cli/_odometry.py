@@ -1,4 +1,5 @@
-"""``stemmap odometry``: lidar frames (+ IMU and wheel speed) -> a trajectory CSV / TUM file."""
+"""``stemmap odometry``: lidar frames (+ IMU and wheel speed), or camera frames (``--camera``,
+:mod:`stemmap.cli._odometry_camera`) -> a trajectory CSV / TUM file."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._common import console, fail_on_stemmap_error, out, print_error, progress
 from stemmap.cli._validate import bounded
 
 if TYPE_CHECKING:
@@ -21,14 +22,14 @@ _TUM_SUFFIXES = (".tum", ".txt")
 
 def odometry(
     frames: Annotated[
-        Path,
+        Path | None,
         typer.Argument(
             help="Lidar frames: a folder of per-frame clouds (.pcd/.ply/.las/.laz/.xyz, timed by "
             "a times.csv sidecar, by file names in seconds, or by --rate), a 2D scan file "
             "(.npz/.csv), or a ROS bag (PointCloud2 or LaserScan topic).",
             show_default=False,
         ),
-    ],
+    ] = None,
     out_path: Annotated[
         Path,
         typer.Option(
@@ -37,7 +38,7 @@ def odometry(
             help="Trajectory to write: .csv (time_s,x,y,theta) or .tum/.txt (TUM: t x y z qx qy "
             "qz qw); one pose per lidar frame.",
         ),
-    ],
+    ] = Path("odometry.csv"),
     imu: Annotated[
         Path | None,
         typer.Option(
@@ -91,6 +92,33 @@ def odometry(
         ),
     ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress or summary.")] = False,
+    camera: Annotated[
+        Path | None,
+        typer.Option(
+            "--camera",
+            help="Camera frames folder (left/ + right/ rectified stereo, or rgb/ + depth/, with "
+            "camera.json intrinsics) or a ROS bag with Image + CameraInfo topics: visual "
+            "odometry instead of lidar (docs/cli.md).",
+        ),
+    ] = None,
+    max_corners: Annotated[
+        int | None, typer.Option(help="Camera: Shi-Tomasi corners per keyframe (default 400).")
+    ] = None,
+    left_topic: Annotated[
+        str | None,
+        typer.Option(help="Camera bag: left (or colour) Image topic; guessed if unique."),
+    ] = None,
+    right_topic: Annotated[str | None, typer.Option(help="Camera bag: right Image topic.")] = None,
+    depth_topic: Annotated[
+        str | None, typer.Option(help="Camera bag: depth Image topic (RGB-D instead of stereo).")
+    ] = None,
+    info_topic: Annotated[
+        str | None, typer.Option(help="Camera bag: CameraInfo topic of the left camera.")
+    ] = None,
+    baseline: Annotated[
+        float | None,
+        typer.Option(help="Camera bag: stereo baseline, m (default: the right CameraInfo's P)."),
+    ] = None,
 ) -> None:
     """Odometry from lidar frames, fused with an IMU and wheel speed (Munjer 2025 §3.5).
 
@@ -108,7 +136,33 @@ def odometry(
     Example: stemmap odometry drive.bag --imu drive.bag --odom-topic /wheel_odom --out traj.tum
 
     Example: stemmap odometry scans.npz --imu imu.csv --max-range 80 --out traj.csv  (2D scans)
+
+    Example: stemmap odometry --camera frames/ --out traj.csv  (stereo / RGB-D visual odometry)
     """
+    if camera is not None:
+        if frames is not None:
+            print_error(
+                "give lidar FRAMES or --camera, not both: fusing visual with lidar odometry is "
+                "not wired into this command yet."
+            )
+            raise typer.Exit(code=2)
+        from stemmap.cli._odometry_camera import camera_odometry
+
+        with fail_on_stemmap_error():
+            camera_odometry(
+                camera,
+                out_path,
+                max_corners=max_corners,
+                left_topic=left_topic,
+                right_topic=right_topic,
+                depth_topic=depth_topic,
+                info_topic=info_topic,
+                baseline=baseline,
+            )
+        return
+    if frames is None:
+        print_error("give a sensor input: lidar FRAMES, or --camera FRAMES_DIR for a camera.")
+        raise typer.Exit(code=2)
     from stemmap.io.products import run_products
 
     with (
@@ -151,7 +205,7 @@ def _read_inertial(imu: Path | None, imu_topic: str | None, odom_topic: str | No
 
 def _run(frames: Path, *, imu: Path | None, quiet: bool, **opt: Any) -> tuple[Any, dict[str, Any]]:
     from stemmap.errors import InputError
-    from stemmap.io.frames import open_frames
+    from stemmap.io.lidar_frames import open_frames
     from stemmap.odometry.inertial import fuse_front_ends, motion_prior
     from stemmap.odometry.lidar import LidarOdometryConfig, lidar_odometry
     from stemmap.types import Trajectory

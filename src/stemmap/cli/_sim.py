@@ -419,4 +419,7 @@ def score(
 
 def register(app: typer.Typer) -> None:
     """Add the ``sim`` command group to the ``stemmap`` app."""
+    from stemmap.cli._sim_munjer import munjer
+
+    sim_app.command("munjer")(munjer)
     app.add_typer(sim_app, name="sim")

@@ -143,6 +143,14 @@ def stems(
             rich_help_panel="Forestry products",
         ),
     ] = None,
+    dtm: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the terrain model (the ground raster heights are measured from) as a "
+            "float32 GeoTIFF in the cloud's CRS, nodata where no point fell (ours).",
+            rich_help_panel="Forestry products",
+        ),
+    ] = None,
     labels: Annotated[
         Path | None,
         typer.Option(
@@ -264,12 +272,15 @@ def stems(
     Forestry products (preset ours): --profile (stem profiles CSV: diameter every 0.5 m up the
     visible stem, with std), --metrics (JSON: stems/ha, basal area m2/ha, quadratic mean
     diameter, DBH histogram, per-tree height and volume), --labels (LAS with a tree_id per
-    point). The CSV also gives diameter_std, the position covariance, where and why the DBH
-    was measured (dbh_height, dbh_rule) and what heights are measured from (base).
+    point), --dtm (GeoTIFF terrain model). The CSV also gives diameter_std, the position
+    covariance, where and why the DBH was measured (dbh_height, dbh_rule) and what heights are
+    measured from (base).
 
     Example: stemmap stems plot.laz --out stems.csv --png stems.png
 
     Forestry: stemmap stems plot.laz --profile profile.csv --metrics metrics.json --labels trees.laz
+
+    Terrain: stemmap stems plot.laz --dtm dtm.tif --crs EPSG:32633
 
     Tiles: stemmap stems tiles/ --out stems.csv --workers 2 --chunk-size 50 --buffer 5
     (a Dask cluster, one task per buffered chunk, resumable with --resume)
@@ -298,7 +309,7 @@ def stems(
         opts = EngineOptions(chunk_size, buffer, workers, scheduler, resume, work)
         engine = wants_engine(clouds, opts)
         in_paths = expand_inputs(clouds) if engine else [Path(clouds[0])]
-    outputs = [out_csv, geojson, gpkg, png, report, profile, metrics, labels]
+    outputs = [out_csv, geojson, gpkg, png, report, profile, metrics, labels, dtm]
     with (
         fail_on_stemmap_error(),
         run_products("stems", inputs=[*in_paths, trajectory], outputs=outputs) as run,
@@ -310,20 +321,20 @@ def stems(
             raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
         if isinstance(cfg, StemConfig):
             cfg = replace(cfg, estimate_height=heights, max_memory=max_memory * 1e9)
-        elif profile or metrics or labels:
+        elif profile or metrics or labels or dtm:
             raise ConfigError(
-                "--profile, --metrics and --labels need preset ours (munjer2025 works on one "
-                "lidar frame, not a plot)."
+                "--profile, --metrics, --labels and --dtm need preset ours (munjer2025 works "
+                "on one lidar frame, not a plot)."
             )
         sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
         catalog = None
         if engine:
             if topic is not None:
                 raise ConfigError("--topic applies to a bag, not to a tile catalog.")
-            if profile or metrics or labels:
+            if profile or metrics or labels or dtm:
                 raise ConfigError(
-                    "--profile, --metrics and --labels read the whole cloud: not available for "
-                    "a tile catalog yet; run them per tile."
+                    "--profile, --metrics, --labels and --dtm read the whole cloud: not "
+                    "available for a tile catalog yet; run them per tile."
                 )
             result, _, catalog = run_catalog_stems(
                 [str(p) for p in in_paths], cfg, opts, sensor, out_csv
@@ -375,6 +386,15 @@ def stems(
                 metrics=None if metrics is None else run.path(metrics),
                 labels=None if labels is None else run.path(labels),
             )
+        if dtm is not None:
+            from stemmap.cloud.dtm import ground_of_file, write_dtm
+
+            assert isinstance(cfg, StemConfig)
+            ground = ground_of_file(
+                cloud, cfg.ground_cell, cfg.max_diameter, chunk_size=read_points, topic=topic,
+                max_memory=cfg.max_memory,
+            )  # fmt: skip
+            write_dtm(run.path(dtm), ground, crs, frame=cloud.name)
         files = [str(p) for p in outputs if p is not None]
         med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
         rows = [

@@ -50,12 +50,15 @@ class GroundModel:
     base : str -- how heights are referenced: ``"ground"`` (a ground raster from the cloud's
         lowest points) or ``"lowest stem points"`` (a cloud without ground, e.g. one tree
         segmented by 3DFin, TreeQSM or ITSMe: a flat base at its stem's lowest points)
+    observed : ndarray (nx, ny) of bool, optional -- cells that held points (the others were
+        filled from the nearest cell); None for a flat base
     """
 
     origin: tuple[float, float]
     cell: float
     z: FloatArray
     base: str = BASE_GROUND
+    observed: NDArray[np.bool_] | None = None
 
     def height_of(self, xyz: ArrayLike) -> FloatArray:
         """Height above ground of (N, 3) points (bilinear between cell centres, clamped)."""
@@ -269,7 +272,7 @@ class GroundAccumulator:
         yc = (np.arange(ny)[None, :] + 0.5) * self.cell * np.ones((nx, 1))
         plane = coef[..., 0] * xc + coef[..., 1] * yc + coef[..., 2]
         z = np.where(solvable, plane, np.where(good, Z, med))
-        return GroundModel((ox, oy), self.cell, z + 0.0)
+        return GroundModel((ox, oy), self.cell, z + 0.0, observed=valid)
 
 
 def fit_ground(

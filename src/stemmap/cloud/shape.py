@@ -52,11 +52,13 @@ def cluster_covariances(
     return cen.reshape(k, d), cov, sizes
 
 
-def pca_eccentricity(cov: ArrayLike) -> FloatArray:
+def pca_eccentricity(cov: ArrayLike, axes: str = "largest") -> FloatArray:
     """Eccentricity ``e = lambda1 / lambda2`` of covariance matrices (Munjer et al. 2025, eq. 4).
 
-    ``lambda1 >= lambda2`` are the two largest eigenvalues of each (D, D) matrix in ``cov``
-    (shape (K, D, D) or (D, D)). ``inf`` where ``lambda2 == 0`` (collinear points).
+    ``axes="largest"``: ``lambda1 >= lambda2`` are the two largest eigenvalues of each (D, D)
+    matrix in ``cov`` (shape (K, D, D) or (D, D)); ``axes="major_minor"``: the largest over the
+    smallest (for D = 3, the elongation of a curved sheet against its thickness; see
+    docs/algorithms/cloud.md, "EB-LiDAR on 16-beam frames"). ``inf`` where the denominator is 0.
 
     Examples
     --------
@@ -66,8 +68,10 @@ def pca_eccentricity(cov: ArrayLike) -> FloatArray:
     c = np.asarray(cov, dtype=np.float64)
     single = c.ndim == 2
     c = c.reshape(-1, c.shape[-2], c.shape[-1])
+    if axes not in ("largest", "major_minor"):
+        raise InputError(f"axes must be 'largest' or 'major_minor', got {axes!r}.")
     w = np.linalg.eigvalsh(c)  # ascending
-    l1, l2 = w[:, -1], w[:, -2]
+    l1, l2 = w[:, -1], (w[:, -2] if axes == "largest" else w[:, 0])
     with np.errstate(divide="ignore", invalid="ignore"):
         e = np.where(l2 > 0, l1 / np.where(l2 > 0, l2, 1.0), np.inf)
     return e[0] if single else e

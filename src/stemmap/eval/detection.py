@@ -11,8 +11,9 @@ Definitions (Munjer et al. 2025, §4, after their reference [15]):
   unmatched detection lies within ``gate + extent`` of its centre. Needs the list of non-tree
   objects (``Stand.clutter_objects_xy``); without it TR is 0 and reported as such.
 
-Precision = TA / (TA + FA), recall = TA / (TA + FR), F1 their harmonic mean; undefined values
-are NaN (never 0). Centre error and diameter error are over TA pairs; diameter error is
+Precision = TA / (TA + FA), recall = TA / (TA + FR), F1 their harmonic mean, accuracy =
+(TA + TR) / (TA + TR + FA + FR) (Munjer 2025 Table 2: EB-LiDAR 6, 2, 1, 0 -> 0.89); undefined
+values are NaN (never 0). Centre error and diameter error are over TA pairs; diameter error is
 ``estimate - truth`` (bias > 0 = overestimate), reported overall and per range bin, the way
 Öhman et al. 2007 §2.3 report diameter error growing with measurement distance.
 
@@ -119,6 +120,11 @@ class DetectionMetrics:
     matching: Matching | None = field(default=None, repr=False)
     frame_counts: NDArray[np.int64] | None = field(default=None, repr=False)
 
+    @property
+    def accuracy(self) -> float:
+        """(TA + TR) / (TA + TR + FA + FR), Munjer et al. 2025 §4 after their ref. [15]."""
+        return _ratio(self.ta + self.tr, self.ta + self.tr + self.fa + self.fr)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (NaN -> None); lengths in metres."""
         out = {
@@ -126,6 +132,7 @@ class DetectionMetrics:
             for k, v in self.__dict__.items()
             if k not in ("by_range", "matching", "frame_counts")
         }
+        out["accuracy"] = _nan_to_none(self.accuracy)
         out["by_range"] = [b.to_dict() for b in self.by_range]
         return out
 

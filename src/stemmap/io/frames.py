@@ -1,211 +1,162 @@
-"""Sequences of lidar frames for odometry: a folder of per-frame clouds, a 2D scan file, or the
-PointCloud2 / LaserScan topic of a ROS bag, each yielded lazily as ``(time, frame)``.
+"""Frames bundle: 3D lidar frames and / or aligned RGB-D frames of one drive in one NPZ file
+(the input of ``stemmap map FRAMES.npz --frontend eb-lidar|daim|ours``).
 
-Folder of clouds
-----------------
-Every file with a point-cloud extension (``.pcd``, ``.ply``, ``.las``, ``.laz``, ``.xyz``,
-``.txt``, ``.pts``, ``.csv``) is one frame, in the SENSOR frame (x forward, z up). Time stamps,
-first rule that applies:
+Keys (all optional except ``times``):
 
-1. a sidecar ``times.csv`` in the folder with header ``file,time_s`` and one row per frame
-   file (other files are ignored; frames are taken in time order);
-2. every file stem is a number of seconds (``1690000000.123456.pcd``, ``12.3.ply``);
-3. ``rate_hz`` given: files in name order at ``k / rate_hz`` seconds.
-
-Anything else is an InputError that lists these three options.
+* ``times`` (F,) float64, s, strictly increasing -- one per lidar / odometry frame;
+* lidar: ``points`` (N, 3) float32, metres, sensor frame (x forward, y left, z up), frame
+  ``f`` is ``points[frame_ptr[f]:frame_ptr[f + 1]]``; ``frame_ptr`` (F + 1,) int64;
+* RGB-D: ``images`` (C, H, W, 3) uint8 RGB, ``depths`` (C, H, W) float32 z-depth in metres
+  (NaN or 0 = no return, aligned pixel for pixel), ``image_frames`` (C,) int64 (the frame each
+  image belongs to), ``camera_K`` (3, 3) pinhole intrinsics, ``camera_to_body`` (4, 4) the
+  camera -> lidar (vehicle) transform.
 """
 
 from __future__ import annotations
 
-import csv
 import itertools
-import logging
-import math
-from collections.abc import Iterator
+import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 from stemmap.errors import InputError
-from stemmap.io._util import PathLike
-from stemmap.io.clouds import CLOUD_EXTENSIONS, read_cloud
-from stemmap.types import LaserScan, PointCloud
+from stemmap.types import FloatArray
 
-log = logging.getLogger(__name__)
-
-__all__ = ["TIMES_SIDECAR", "FrameSequence", "open_frames"]
-
-TIMES_SIDECAR = "times.csv"
+__all__ = ["FramesBundle", "is_frames_npz", "read_frames_npz", "write_frames_npz"]
 
 
-@dataclass(frozen=True)
-class FrameSequence:
-    """Where frames come from, and how to iterate them (:meth:`__iter__` is lazy).
+@dataclass(frozen=True, eq=False)
+class FramesBundle:
+    """A read frames bundle; ``lidar`` / ``images`` are None when the file has none."""
 
-    Attributes
-    ----------
-    path : Path
-    kind : str
-        ``"folder"``, ``"scans"`` (2D scan file) or ``"bag"``.
-    files : tuple of (float, Path)
-        For a folder: each frame file with its time.
-    topic : str or None
-        For a bag: the PointCloud2 or LaserScan topic to read.
-    msgtype : str
-        For a bag: ``"pointcloud2"`` or ``"laserscan"``.
-    """
+    times: FloatArray
+    lidar: tuple[FloatArray, ...] | None
+    images: NDArray[np.uint8] | None
+    depths: FloatArray | None
+    image_frames: NDArray[np.int64] | None
+    camera_matrix: FloatArray | None
+    camera_to_body: FloatArray | None
 
-    path: Path
-    kind: str
-    files: tuple[tuple[float, Path], ...] = ()
-    topic: str | None = None
-    msgtype: str = ""
+    def rig(self) -> object:
+        """A :class:`~stemmap.sim.camera.CameraRig` of the bundle's camera (needs RGB-D)."""
+        from stemmap.sim.camera import CameraRig
+        from stemmap.vision.camera import CameraModel, RigidTransform
 
-    def __len__(self) -> int:
-        return len(self.files)
-
-    def __iter__(self) -> Iterator[tuple[float, PointCloud | LaserScan]]:
-        if self.kind == "folder":
-            for t, f in self.files:
-                yield t, read_cloud(f)
-        elif self.kind == "scans":
-            from stemmap.io.scans import iter_scans
-
-            for scan in iter_scans(self.path):
-                yield scan.time, scan
-        elif self.msgtype == "laserscan":
-            from stemmap.io.rosbag import iter_laser_scans
-
-            for scan in iter_laser_scans(self.path, self.topic):
-                yield scan.time, scan
-        else:
-            from stemmap.io.rosbag import read_pointclouds
-
-            for cloud in read_pointclouds(self.path, self.topic):
-                yield cloud.time, cloud
+        if self.camera_matrix is None or self.camera_to_body is None or self.images is None:
+            raise InputError("the frames bundle has no RGB-D camera (camera_K, camera_to_body).")
+        h, w = self.images.shape[1:3]
+        T = self.camera_to_body
+        to_body = RigidTransform(T[:3, :3], T[:3, 3])
+        return CameraRig(CameraModel(self.camera_matrix, int(w), int(h)), to_body.inverse())
 
 
-def _sidecar_times(folder: Path, sidecar: Path) -> list[tuple[float, Path]]:
-    out: list[tuple[float, Path]] = []
+def write_frames_npz(
+    path: Path,
+    times: ArrayLike,
+    *,
+    lidar: Sequence[ArrayLike] | None = None,
+    images: Sequence[NDArray[np.uint8]] | None = None,
+    depths: Sequence[ArrayLike] | None = None,
+    image_frames: ArrayLike | None = None,
+    camera_matrix: ArrayLike | None = None,
+    camera_to_body: ArrayLike | None = None,
+) -> None:
+    """Write a frames bundle (see the module docstring); compressed NPZ, atomically."""
+    from stemmap.io.atomic import atomic_write
+
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    out: dict[str, NDArray[np.generic]] = {"times": t}
+    if lidar is not None:
+        if len(lidar) != t.shape[0]:
+            raise InputError(f"{len(lidar)} lidar frames for {t.shape[0]} times.")
+        pts = [np.asarray(p, dtype=np.float32).reshape(-1, 3) for p in lidar]
+        out["points"] = np.concatenate(pts) if pts else np.zeros((0, 3), np.float32)
+        out["frame_ptr"] = np.concatenate(([0], np.cumsum([len(p) for p in pts]))).astype(np.int64)
+    if images is not None:
+        parts = (depths, image_frames, camera_matrix, camera_to_body)
+        if any(x is None for x in parts):
+            raise InputError(
+                "RGB-D frames need depths, image_frames, camera_matrix and camera_to_body."
+            )
+        assert depths is not None and image_frames is not None
+        out["images"] = np.asarray(images, dtype=np.uint8)
+        out["depths"] = np.asarray(depths, dtype=np.float32)
+        out["image_frames"] = np.asarray(image_frames, dtype=np.int64).reshape(-1)
+        out["camera_K"] = np.asarray(camera_matrix, dtype=np.float64).reshape(3, 3)
+        out["camera_to_body"] = np.asarray(camera_to_body, dtype=np.float64).reshape(4, 4)
+    with atomic_write(path, "wb") as fh:
+        np.savez_compressed(fh, **out)  # type: ignore[arg-type]
+
+
+def is_frames_npz(path: Path) -> bool:
+    """An NPZ holding ``times`` plus lidar (``points``) or RGB-D (``images``) frames."""
+    if path.suffix.lower() != ".npz" or not path.is_file():
+        return False
     try:
-        with sidecar.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the frame times {str(sidecar)!r}: {exc}") from exc
-    body = [r for r in rows if r and not r[0].lstrip().startswith("#")]
-    if not body or [c.strip() for c in body[0][:2]] != ["file", "time_s"]:
-        raise InputError(
-            f"{str(sidecar)!r} must start with the header 'file,time_s' (one row per frame file)."
-        )
-    for k, r in enumerate(body[1:], start=2):
-        if len(r) < 2:
-            raise InputError(f"{str(sidecar)!r} row {k} needs a file name and a time.")
-        f = folder / r[0].strip()
-        try:
-            t = float(r[1])
-        except ValueError:
-            raise InputError(f"{str(sidecar)!r} row {k}: time {r[1]!r} is not a number.") from None
-        if not math.isfinite(t):
-            raise InputError(f"{str(sidecar)!r} row {k}: time {r[1]!r} is not finite.")
-        if not f.is_file():
-            raise InputError(
-                f"{str(sidecar)!r} row {k} names {r[0]!r}, which is not in the folder."
-            )
-        out.append((t, f))
-    if not out:
-        raise InputError(f"{str(sidecar)!r} lists no frame.")
-    return out
+        with np.load(path, allow_pickle=False) as z:
+            return "times" in z.files and ("points" in z.files or "images" in z.files)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return False  # not a bundle: the caller's own reader reports the damage
 
 
-def _folder(folder: Path, rate_hz: float | None) -> FrameSequence:
-    sidecar = folder / TIMES_SIDECAR
-    files = sorted(
-        f
-        for f in folder.iterdir()
-        if f.is_file() and f.suffix.lower() in CLOUD_EXTENSIONS and f.name != TIMES_SIDECAR
-    )
-    if sidecar.is_file():
-        timed = _sidecar_times(folder, sidecar)
-    else:
-        if not files:
-            raise InputError(
-                f"folder {str(folder)!r} holds no point-cloud file ({', '.join(CLOUD_EXTENSIONS)})."
-            )
-        try:
-            timed = [(float(f.stem), f) for f in files]
-        except ValueError:
-            if rate_hz is None:
-                raise InputError(
-                    f"cannot time the frames in {str(folder)!r}: give a sidecar "
-                    f"{TIMES_SIDECAR} ('file,time_s' rows), name the files by their time in "
-                    "seconds (12.300.pcd), or pass --rate HZ (frames in name order)."
-                ) from None
-            if not rate_hz > 0:
-                raise InputError(f"--rate must be > 0 Hz, got {rate_hz}.") from None
-            timed = [(k / rate_hz, f) for k, f in enumerate(files)]
-    timed.sort(key=lambda tf: tf[0])
-    for (t0, f0), (t1, f1) in itertools.pairwise(timed):
-        if not t1 > t0:
-            raise InputError(
-                f"frames {f0.name!r} and {f1.name!r} in {str(folder)!r} have the same time "
-                f"{t0} s; every frame needs its own time."
-            )
-    return FrameSequence(folder, "folder", tuple(timed))
-
-
-def open_frames(
-    path: PathLike, *, topic: str | None = None, rate_hz: float | None = None
-) -> FrameSequence:
-    """Find the frames at ``path`` (see the module docstring for the forms accepted).
-
-    Parameters
-    ----------
-    path : str or PathLike
-        A folder of per-frame clouds, a 2D scan file (``.npz``, ``.csv``: :mod:`stemmap.io
-        .scans`), or a ROS bag.
-    topic : str, optional
-        Bag topic (PointCloud2 or LaserScan); default: the only PointCloud2 topic, else the
-        only LaserScan topic.
-    rate_hz : float, optional
-        Frame rate for a folder whose files carry no time.
+def read_frames_npz(path: Path) -> FramesBundle:
+    """Read and check a frames bundle.
 
     Raises
     ------
     InputError
-        Missing path, no frames, untimed frames, an ambiguous or missing bag topic.
+        Missing file or key, inconsistent shapes, non-increasing times, bad frame indices.
     """
     p = Path(path)
-    if not p.exists():
-        raise InputError(f"frames {str(p)!r} do not exist.")
-    from stemmap.io.rosbag import IMU, LASERSCAN, POINTCLOUD2, is_bag, list_topics
-
-    if is_bag(p):
-        topics = list_topics(p)
-        clouds = [t for t, m in topics.items() if m == POINTCLOUD2]
-        scans = [t for t, m in topics.items() if m == LASERSCAN]
-        if topic is not None:
-            if topic not in topics:
-                raise InputError(
-                    f"bag {str(p)!r} has no topic {topic!r}; it has {', '.join(topics) or 'none'}."
-                )
-            if topics[topic] not in (POINTCLOUD2, LASERSCAN):
-                raise InputError(
-                    f"topic {topic!r} of {str(p)!r} is {topics[topic]}, not a PointCloud2 or "
-                    "LaserScan topic."
-                )
-            kind = "pointcloud2" if topics[topic] == POINTCLOUD2 else "laserscan"
-            return FrameSequence(p, "bag", topic=topic, msgtype=kind)
-        if len(clouds) == 1:
-            return FrameSequence(p, "bag", topic=clouds[0], msgtype="pointcloud2")
-        if not clouds and len(scans) == 1:
-            return FrameSequence(p, "bag", topic=scans[0], msgtype="laserscan")
-        found = ", ".join(f"{t} ({m})" for t, m in topics.items() if m != IMU) or "none"
-        raise InputError(
-            f"bag {str(p)!r}: choose the lidar topic with --topic; PointCloud2 / LaserScan "
-            f"topics found: {found}."
-        )
-    if p.is_dir():
-        return _folder(p, rate_hz)
-    from stemmap.io.scans import scan_file_kind
-
-    scan_file_kind(p)  # InputError for an unknown file type
-    return FrameSequence(p, "scans")
+    if not p.is_file():
+        raise InputError(f"frames bundle {str(p)!r} does not exist.")
+    try:
+        z = dict(np.load(p, allow_pickle=False))
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"frames bundle {str(p)!r} is not a readable NPZ: {exc}") from exc
+    if "times" not in z:
+        raise InputError(f"frames bundle {str(p)!r} has no 'times' array.")
+    t = np.asarray(z["times"], dtype=np.float64).reshape(-1)
+    if t.size == 0 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise InputError(f"frames bundle {str(p)!r}: 'times' must be finite and increasing.")
+    lidar = None
+    if "points" in z:
+        ptr = np.asarray(z.get("frame_ptr", np.zeros(0)), dtype=np.int64).reshape(-1)
+        pts = np.asarray(z["points"], dtype=np.float64).reshape(-1, 3)
+        if ptr.shape[0] != t.shape[0] + 1 or ptr[0] != 0 or ptr[-1] != pts.shape[0]:
+            raise InputError(
+                f"frames bundle {str(p)!r}: frame_ptr must have {t.shape[0] + 1} entries from 0 "
+                f"to the {pts.shape[0]} points."
+            )
+        if np.any(np.diff(ptr) < 0) or not np.all(np.isfinite(pts)):
+            raise InputError(f"frames bundle {str(p)!r}: bad frame_ptr or non-finite points.")
+        lidar = tuple(pts[a:b] for a, b in itertools.pairwise(ptr))
+    images = depths = frames = K = T = None
+    if "images" in z:
+        missing = [
+            k for k in ("depths", "image_frames", "camera_K", "camera_to_body") if k not in z
+        ]
+        if missing:
+            raise InputError(f"frames bundle {str(p)!r}: RGB-D frames lack {missing}.")
+        images = np.asarray(z["images"], dtype=np.uint8)
+        depths = np.asarray(z["depths"], dtype=np.float64)
+        frames = np.asarray(z["image_frames"], dtype=np.int64).reshape(-1)
+        K = np.asarray(z["camera_K"], dtype=np.float64).reshape(3, 3)
+        T = np.asarray(z["camera_to_body"], dtype=np.float64).reshape(4, 4)
+        if images.ndim != 4 or images.shape[3] != 3 or depths.shape != images.shape[:3]:
+            raise InputError(
+                f"frames bundle {str(p)!r}: images (C, H, W, 3) and depths (C, H, W) must agree; "
+                f"got {images.shape} and {depths.shape}."
+            )
+        if frames.shape[0] != images.shape[0] or (
+            frames.size and (frames.min() < 0 or frames.max() >= t.shape[0])
+        ):
+            raise InputError(
+                f"frames bundle {str(p)!r}: image_frames must give each of the "
+                f"{images.shape[0]} images a frame in [0, {t.shape[0]})."
+            )
+    return FramesBundle(t, lidar, images, depths, frames, K, T)

@@ -1,9 +1,10 @@
 """Odometry front ends feeding slam/: lidar scan matching (:mod:`.lidar`), wheel + IMU sources
-(:mod:`.inertial`), and their loosely coupled EKF fusion (:mod:`.fusion`).
+(:mod:`.inertial`), visual odometry from stereo / RGB-D frames (:mod:`.visual`), and their
+loosely coupled EKF fusion (:mod:`.fusion`).
 
 Submodules are imported on first use of a name (``from stemmap.odometry import fuse_sources``
 loads only :mod:`.fusion`), so a front end's heavy dependency (KISS-ICP, OpenCV) is paid only
-by the code that uses it. See docs/algorithms/odometry.md.
+by the code that uses it. See docs/algorithms/odometry.md and visual-odometry.md.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 _LAZY: dict[str, str] = {
     "FusedOdometry": "fusion",
     "OdometrySource": "fusion",
+    "PoseSource": "fusion",
     "dead_reckon_source": "fusion",
     "fuse_odometry": "fusion",
     "fuse_sources": "fusion",
@@ -26,8 +28,15 @@ _LAZY: dict[str, str] = {
     "fuse_front_ends": "inertial",
     "gyro_source": "inertial",
     "motion_prior": "inertial",
-    "PoseSource": "fusion",
     "wheel_source": "inertial",
+    "StereoCalibration": "visual",
+    "VisualFrame": "visual",
+    "VisualOdometry": "visual",
+    "VisualOdometryConfig": "visual",
+    "VisualOdometryResult": "visual",
+    "VoStatus": "visual",
+    "planar_from_camera": "visual",
+    "run_visual_odometry": "visual",
 }
 
 __all__ = sorted(_LAZY)

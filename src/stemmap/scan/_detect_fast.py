@@ -39,7 +39,8 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
-from stemmap.scan import _fit_geometric, features
+from stemmap.scan import _corners, _fit_geometric, features
+from stemmap.scan._corners import corner_parity, cut_tables, sagitta
 from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan.features import MIXED_FRACTION_STD
 from stemmap.types import FloatArray
@@ -91,6 +92,12 @@ PARAM_NAMES = (
     "sigma_from_data",  # 1: per-segment sigma >= the robust range roughness of the returns
     "roughness_max_factor",  # ... but at most this multiple of the configured sigma
     "rms_robust",  # 1: the RMS test reads 1.4826 x the median absolute residual
+    "bark_roughness",  # RMS bound sqrt(sigma^2 + (bark x radius)^2) when > 0
+    "corners_on",  # 1: cut segments at concave corners
+    "corner_span",
+    "corner_depth",
+    "corner_depth_convex",  # inf: convex segments are never cut
+    "corner_sigmas",  # corners at least this many sigma deep
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -343,6 +350,13 @@ def _detect_kernel(
     sigma_from_data = prm[40] > 0.0
     rough_max = prm[41]
     rms_robust = prm[42] > 0.0
+    bark = prm[43]
+    corners_on = prm[44] > 0.0
+    corner_span = int(prm[45])
+    corner_depth = prm[46]
+    corner_convex = prm[47]
+    corner_sigmas = prm[48]
+    convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
     use_sil = use_sil_cfg and 0.0 < h_sil < 0.5
@@ -357,6 +371,7 @@ def _detect_kernel(
     py = np.empty(n)
     tmp = np.empty(n)
     keep = np.empty(n, dtype=np.bool_)
+    corner = np.empty(n, dtype=np.bool_)
     st = np.empty(n, dtype=np.int64)
     sp = np.empty(n, dtype=np.int64)
     oc0 = np.empty(n, dtype=np.bool_)
@@ -510,31 +525,31 @@ def _detect_kernel(
             if any_drop:
                 if split:
                     # Segments.cut: new pieces where the keep flag changes; inner ends occluded
-                    ns2 = 0
-                    for j in range(ns):
-                        for i in range(st[j], sp[j]):
-                            if i == st[j] or keep[i] != keep[i - 1]:
-                                if i != st[j]:
-                                    sp2[ns2 - 1] = i
-                                st2[ns2] = i
-                                first = i == st[j]
-                                oc02[ns2] = oc0[j] if first else True
-                                tr02[ns2] = first and tr0[j]
-                                oc12[ns2] = True
-                                tr12[ns2] = False
-                                ns2 += 1
-                        sp2[ns2 - 1] = sp[j]
-                        oc12[ns2 - 1] = oc1[j]
-                        tr12[ns2 - 1] = tr1[j]
-                    st, st2 = st2, st
-                    sp, sp2 = sp2, sp
-                    oc0, oc02 = oc02, oc0
-                    oc1, oc12 = oc12, oc1
-                    tr0, tr02 = tr02, tr0
-                    tr1, tr12 = tr12, tr1
-                    ns = ns2
+                    st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, ns = cut_tables(
+                        st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns
+                    )
                 else:
                     ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
+            ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
+        # ---- concave-corner cuts of non-convex segments (detect._corner_cuts, ours) ----
+        if corners_on and ns > 0:
+            for j in range(ns):  # corner depth threshold per segment (wid is free here)
+                a = st[j]
+                b = sp[j]
+                thr = corner_depth if sagitta(px, py, a, b) < convex_min else corner_convex
+                sig = sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a))
+                wid[j] = max(thr, corner_sigmas * sig)
+        if (
+            corners_on
+            and ns > 0
+            and corner_parity(px, py, st, sp, ns, corner_span, wid, tmp, keep, corner)
+        ):
+            st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, ns = cut_tables(
+                st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns
+            )
+            for i in range(m):  # the junction return belongs to neither piece
+                keep[i] = not corner[i]
+            ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- segment features and filters (detect._filter, features.segment_features) ----
         nk = 0
@@ -551,27 +566,7 @@ def _detect_kernel(
             ra = pr[a]
             rb = pr[i1]
             width = math.sqrt((ra - rb) * (ra - rb) + 4.0 * ra * rb * hh * hh)
-            # sagitta depth (features.sagitta_depth, Zheng §3.2 criterion 4)
-            x0 = px[a]
-            y0 = py[a]
-            dx = px[i1] - x0
-            dy = py[i1] - y0
-            length = math.hypot(dx, dy)
-            safe = length if length > 0 else 1.0
-            nx = -dy / safe
-            ny = dx / safe
-            if (nx * -x0 + ny * -y0) < 0:
-                nx = -nx
-                ny = -ny
-            dmax = -math.inf
-            dmin = math.inf
-            for i in range(a, b):
-                dd = (px[i] - x0) * nx + (py[i] - y0) * ny
-                dmax = max(dmax, dd)
-                dmin = min(dmin, dd)
-            depth = dmax if dmax >= -dmin else dmin
-            if not length > 0:
-                depth = 0.0
+            depth = sagitta(px, py, a, b)  # features.sagitta_depth, Zheng §3.2 criterion 4
             den = width * width / 4.0 + depth * depth
             curv = 2.0 * depth / den if den > 0 else 0.0
             ok = cnt >= min_points
@@ -645,8 +640,10 @@ def _detect_kernel(
                 # |d_i - r| <= sqrt(N) k sigma and d_i + r <= 2 r_cap + sqrt(N) k sigma = M;
                 # with (d - r) = (d^2 - r^2) / (d + r), N RMS^2 >= kasa_min / M^2. If even that
                 # floor exceeds the RMS limit, no fit can pass: skip the (costly) fit.
-                lim = max_rms_sigma * sig
                 r_cap = min(max_radius, max_rw * max(sil_width, 1e-9))
+                lim = max_rms_sigma * sig
+                if bark > 0.0:  # the bound grows with the radius: take it at r_cap
+                    lim = max_rms_sigma * math.sqrt(sig * sig + (bark * r_cap) * (bark * r_cap))
                 m_cap = 2.0 * r_cap + math.sqrt(cnt_i) * lim
                 floor = _algebraic_floor(px, py, a, b) / (m_cap * m_cap)
                 if floor > 1.001 * cnt_i * lim * lim:  # margin: round-off of the floor
@@ -696,12 +693,13 @@ def _detect_kernel(
                 tmp[i] = res * res
             rms = math.sqrt(_seg_sum(tmp, a, b) / cnt_i)
             if rms_check:
+                lim = max_rms_sigma * sig
+                if bark > 0.0:  # plausibility.rms_limit
+                    lim = max_rms_sigma * math.sqrt(sig * sig + (bark * rad) * (bark * rad))
                 if rms_robust:
-                    good &= _robust_residual_scale(px[a:b], py[a:b], cx, cy, rad) <= (
-                        max_rms_sigma * sig
-                    )
+                    good &= _robust_residual_scale(px[a:b], py[a:b], cx, cy, rad) <= lim
                 else:
-                    good &= rms <= max_rms_sigma * sig
+                    good &= rms <= lim
             if not good:
                 continue
             cov_ok = True
@@ -887,4 +885,6 @@ def detect_scans(
 
 
 # after every kernel is defined, before the first call loads the cache (see the module notes)
-_numba_cache.drop_stale_cache(_detect_kernel, __file__, _fit_geometric.__file__, features.__file__)
+_numba_cache.drop_stale_cache(
+    _detect_kernel, __file__, _fit_geometric.__file__, features.__file__, _corners.__file__
+)

@@ -36,6 +36,7 @@ from stemmap.scan.features import (
     footprint_correct,
     point_curvature,
     radius_median_filter,
+    sagitta_depth,
     segment_features,
     segment_sum,
     segment_widths,
@@ -60,6 +61,7 @@ from stemmap.scan.preprocess import tilt_compensate as _tilt_eq1
 from stemmap.scan.segment import (
     Segments,
     build_segments,
+    concave_corners,
     euclidean_breaks,
     extract_points,
     range_jump_breaks,
@@ -532,6 +534,8 @@ class ScanTrunkDetector:
                 # second trunk); visual-lidar §2.3: they are discarded
                 segs = segs.cut(keep) if cfg.split_merged else segs.drop(keep)
             segs = segs.select(segs.counts >= cfg.min_points)
+        if cfg.split_corners and len(segs):
+            segs = _corner_cuts(segs, cfg)
         return (self._filter(segs) if apply_filters else segs), r, wrap
 
     def _filter(self, segs: Segments) -> Segments:
@@ -636,6 +640,12 @@ class ScanTrunkDetector:
             "sigma_from_data": cfg.sigma_from_data,
             "roughness_max_factor": cfg.roughness_max_factor,
             "rms_robust": cfg.rms_robust,
+            "bark_roughness": cfg.bark_roughness,
+            "corners_on": cfg.split_corners,
+            "corner_span": cfg.corner_span,
+            "corner_depth": cfg.corner_depth,
+            "corner_depth_convex": cfg.corner_depth_convex,
+            "corner_sigmas": cfg.corner_sigmas,
         }
         prm = np.empty(N_PARAMS)
         for name, v in values.items():
@@ -805,6 +815,27 @@ class ScanTrunkDetector:
             source=self.source,
             frame=frame,
         )
+
+
+def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:
+    """Cut trunks merged with a branch, bush or second stem at the junctions (ours, issue 11):
+    at the concave corners (:func:`~stemmap.scan.segment.concave_corners`) deeper than
+    ``corner_depth`` in a segment that is not a convex arc (sagitta below ``max(min_depth,
+    0)``), deeper than ``corner_depth_convex`` in a convex one (the dents of rough bark on a
+    trunk's own arc are not junctions), and at least ``corner_sigmas`` range-noise sigmas deep
+    (noise alone makes no corner); the corner return is dropped and pieces with fewer than
+    ``min_points`` returns go."""
+    thr = np.where(
+        sagitta_depth(segs) < max(cfg.min_depth, 0.0), cfg.corner_depth, cfg.corner_depth_convex
+    )
+    sigma = cfg.sigma + cfg.sigma_rel * (segment_sum(segs.points.r, segs) / segs.counts)
+    thr = np.maximum(thr, cfg.corner_sigmas * sigma)
+    cuts = concave_corners(segs, cfg.corner_span, thr[segs.labels])
+    if not np.any(cuts):
+        return segs
+    # the junction return itself belongs to neither piece (the same cut in either beam order)
+    segs = segs.cut(np.cumsum(cuts) % 2 == 1).drop(~cuts)
+    return segs.select(segs.counts >= cfg.min_points)
 
 
 def _arc_deg(segs: Segments, centers: FloatArray) -> FloatArray:

@@ -33,6 +33,7 @@ __all__ = [
     "fit_reasons",
     "range_roughness",
     "rejected_candidates",
+    "rms_limit",
     "robust_residual_scale",
     "segment_reasons",
 ]
@@ -159,8 +160,22 @@ def fit_reasons(
         )
         _first_failure(codes, ~(np.hypot(centers[:, 0], centers[:, 1]) > mean_r), "centre_in_front")
         if math.isfinite(cfg.max_rms_sigma):
-            _first_failure(codes, ~(rms <= cfg.max_rms_sigma * sigma), "rms")
+            _first_failure(codes, ~(rms <= rms_limit(cfg, sigma, radii)), "rms")
     return codes
+
+
+def rms_limit(cfg: DetectorConfig, sigma: FloatArray, radii: FloatArray) -> FloatArray:
+    """Largest residual scale the RMS test accepts: ``max_rms_sigma x sigma`` or, with
+    ``bark_roughness`` b > 0, ``max_rms_sigma x sqrt(sigma^2 + (b r)^2)`` (ours, issue 11): a
+    real trunk's outline deviates from its best circle by a roughly constant fraction of its
+    radius (bark ridges, ellipticity; the ring references of the real slices: 2.5-8 %), so a
+    large trunk may be rougher than the sensor noise. Same arithmetic as the compiled path."""
+    k = cfg.max_rms_sigma
+    if cfg.bark_roughness > 0.0:
+        br = cfg.bark_roughness * radii
+        out: FloatArray = k * np.sqrt(sigma * sigma + br * br)
+        return out
+    return k * sigma
 
 
 def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[str, Any]:

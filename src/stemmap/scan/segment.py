@@ -14,6 +14,7 @@ Paper methods
 * :func:`build_segments` -- segment table with occlusion flags: an end is *occluded* when the
   neighbouring beam returned from nearer than the segment's end (the trunk may continue behind
   it), and *truncated* when it touches the edge of the field of view.
+* :func:`concave_corners` -- where a segment holds two touching objects (ours, issue 11).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ __all__ = [
     "Segments",
     "adaptive_gap",
     "build_segments",
+    "concave_corners",
     "euclidean_breaks",
     "extract_points",
     "range_jump_breaks",
@@ -437,3 +439,63 @@ def build_segments(
         b0 <= first_beam,
         b1 >= last,
     )
+
+
+def concave_corners(segs: Segments, span: int = 2, depth: ArrayLike = 0.03) -> BoolArray:
+    """Returns where a segment turns concave (seen from the sensor): the junction of two
+    touching objects, where the segment is cut (ours, issue 11).
+
+    The visible outline of one convex object (a trunk) is convex from the sensor; that of two
+    touching convex objects (a trunk and a branch, a bush or a second stem merged into one
+    segment by the segmentation) is convex except at their junction, which lies *behind* the
+    chord of its neighbours. For return ``i`` of a segment with ``span`` returns on each side,
+    its concave depth is its distance behind the chord from return ``i - span`` to
+    ``i + span``, positive on the far side from the sensor (at the origin). A return is a
+    corner when that depth exceeds ``depth`` and is a local maximum (``>=`` the previous,
+    ``>`` the next return's depth).
+
+    Parameters
+    ----------
+    segs : Segments
+    span : int, >= 1
+        Chord neighbour offset, returns.
+    depth : float or array (M,), metres, > 0
+        Least concave depth of a corner (above the range noise and bark roughness), one value
+        or one per return (``inf``: no corner).
+
+    Returns
+    -------
+    ndarray (M,), bool -- True at the returns that start a new piece
+    (``segs.cut(np.cumsum(corners) % 2 == 1)`` cuts there; :mod:`stemmap.scan._corners` is
+    the compiled twin, same arithmetic).
+    """
+    if span < 1:
+        raise ConfigError(f"corner span must be >= 1 return, got {span}.")
+    p = segs.points
+    m = len(p)
+    thr = np.broadcast_to(np.asarray(depth, dtype=np.float64), (m,))
+    if not np.all(thr > 0):
+        raise ConfigError(f"corner depth must be > 0 m, got {np.min(thr)}.")
+    d = np.full(m, -np.inf)
+    out = np.zeros(m, dtype=bool)
+    if m == 0:
+        return out
+    lab = segs.labels
+    i = np.arange(m)
+    valid = (i - span >= segs.start[lab]) & (i + span < segs.stop[lab])
+    iv = i[valid]
+    a = iv - span
+    c = iv + span
+    cx = p.x[c] - p.x[a]
+    cy = p.y[c] - p.y[a]
+    side_p = cx * (p.y[iv] - p.y[a]) - cy * (p.x[iv] - p.x[a])
+    side_o = cy * p.x[a] - cx * p.y[a]
+    length = np.hypot(cx, cy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dv = np.where(side_o > 0.0, -side_p, side_p) / length
+    d[iv] = np.where(length > 0.0, dv, 0.0)
+    prev = np.concatenate(([-np.inf], d[:-1]))
+    nxt = np.concatenate((d[1:], [-np.inf]))
+    # the neighbours of a valid return are in its segment (span >= 1)
+    out[:] = (d > thr) & (d >= prev) & (d > nxt)
+    return out

@@ -7,6 +7,7 @@ from stemmap.sim.forest import (
     CLUTTER_KINDS,
     Stand,
     add_clutter,
+    add_understory,
     clustered_stand,
     make_trunks_noncircular,
     random_stand,
@@ -18,6 +19,7 @@ from stemmap.sim.observations import (
     returns_per_tree,
     trees_in_sensor_frame,
 )
+from stemmap.sim.outline import trunk_outline
 from stemmap.sim.scanner import (
     HIT_CLUTTER,
     HIT_NONE,
@@ -64,6 +66,7 @@ __all__ = [
     "Stand",
     "VisualOdometryNoise",
     "add_clutter",
+    "add_understory",
     "cast_rays",
     "cast_scans",
     "clear_corridor",
@@ -85,4 +88,5 @@ __all__ = [
     "simulate_scans",
     "straight_path",
     "trees_in_sensor_frame",
+    "trunk_outline",
 ]

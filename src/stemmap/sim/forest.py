@@ -21,12 +21,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.sim.outline import rough_radius, trunk_outline
 from stemmap.types import FloatArray, StemMap, Tree
 
 __all__ = [
     "CLUTTER_KINDS",
     "Stand",
     "add_clutter",
+    "add_understory",
     "clustered_stand",
     "make_trunks_noncircular",
     "random_stand",
@@ -35,7 +37,7 @@ __all__ = [
 ]
 
 #: Kinds of non-tree objects the simulator places.
-CLUTTER_KINDS = ("bush", "branch", "wall", "fence", "rock")
+CLUTTER_KINDS = ("bush", "branch", "wall", "fence", "rock", "understory")
 
 RngLike = np.random.Generator | int | None
 
@@ -457,16 +459,27 @@ def _polygon_segments(xy: FloatArray) -> FloatArray:
     return np.column_stack((xy, np.roll(xy, -1, axis=0)))
 
 
-def _rough_radius(
-    n_vertices: int, radius: float, roughness: float, gen: np.random.Generator
-) -> FloatArray:
-    """Radius profile r(phi) = radius (1 + smooth random harmonics, relative RMS ~ roughness)."""
-    phi = 2 * np.pi * np.arange(n_vertices) / n_vertices
-    prof = np.zeros(n_vertices)
-    for k in range(2, 9):
-        prof += gen.normal(0.0, 1.0 / k) * np.cos(k * phi + gen.uniform(0, 2 * np.pi))
-    rms = float(np.sqrt(np.mean(prof**2))) or 1.0
-    return np.asarray(radius * (1.0 + roughness * prof / rms))
+def _with_clutter(
+    stand: Stand,
+    circ_xy: list[FloatArray],
+    circ_r: list[FloatArray],
+    segs: list[FloatArray],
+    owners: list[NDArray[np.int64]],
+    obj_xy: list[FloatArray],
+    kinds: list[str],
+    extents: list[float],
+) -> Stand:
+    """``stand`` with the accumulated clutter lists (each starting with the stand's own)."""
+    return replace(
+        stand,
+        clutter_xy=np.vstack(circ_xy),
+        clutter_radius=np.concatenate(circ_r),
+        segments=np.vstack(segs),
+        segment_owner=np.concatenate(owners),
+        clutter_objects_xy=np.vstack(obj_xy),
+        clutter_kinds=tuple(kinds),
+        clutter_objects_extent=np.asarray(extents, dtype=np.float64),
+    )
 
 
 def add_clutter(
@@ -609,7 +622,7 @@ def add_clutter(
         radius = gen.uniform(0.25, 0.7)
         c = free_point(radius * 1.5)
         nv = 24
-        rr = _rough_radius(nv, radius, 0.3, gen)
+        rr = rough_radius(nv, radius, 0.3, gen)
         phi = 2 * np.pi * np.arange(nv) / nv
         poly = c + np.column_stack((rr * np.cos(phi), rr * np.sin(phi)))
         add_segments(_polygon_segments(poly))
@@ -617,16 +630,74 @@ def add_clutter(
         kinds.append("rock")
         extents.append(float(rr.max()))
 
-    return replace(
-        stand,
-        clutter_xy=np.vstack(circ_xy),
-        clutter_radius=np.concatenate(circ_r),
-        segments=np.vstack(segs),
-        segment_owner=np.concatenate(owners),
-        clutter_objects_xy=np.vstack(obj_xy),
-        clutter_kinds=tuple(kinds),
-        clutter_objects_extent=np.asarray(extents, dtype=np.float64),
-    )
+    return _with_clutter(stand, circ_xy, circ_r, segs, owners, obj_xy, kinds, extents)
+
+
+def add_understory(
+    stand: Stand,
+    *,
+    stems_per_tree: float = 1.0,
+    branches_per_tree: float = 0.5,
+    rng: RngLike = None,
+) -> Stand:
+    """Add what grows against real trunks at scan height (issue 11): thin understory stems
+    beside the trunks and low branches leaving them.
+
+    Parameters
+    ----------
+    stand : Stand
+    stems_per_tree : float, >= 0
+        Mean number (Poisson) of thin stems per tree: circles of radius 0.5-2.5 cm whose surface
+        is 2-50 cm from the trunk's surface (a sapling, a sucker, a shrub stem: the
+        segmentation may merge them with the trunk).
+    branches_per_tree : float, >= 0
+        Mean number (Poisson) of low branches per tree: straight segments 0.2-1.0 m long
+        starting on the trunk surface (its circle of DBH) at a random azimuth, pointing outward
+        within +-60 degrees of the radial direction (the lidR dbh slice's trunk has one: the
+        trunk and the branch are one segment from most directions).
+    rng : numpy Generator or int seed
+
+    Returns
+    -------
+    Stand
+        A new stand with the additions as clutter (kinds ``"understory"`` and ``"branch"``).
+    """
+    if not (stems_per_tree >= 0 and branches_per_tree >= 0):
+        raise ConfigError(
+            "add_understory needs stems_per_tree >= 0 and branches_per_tree >= 0, got "
+            f"{stems_per_tree}, {branches_per_tree}."
+        )
+    gen = np.random.default_rng(rng)
+    circ_xy: list[FloatArray] = [stand.clutter_xy]
+    circ_r: list[FloatArray] = [stand.clutter_radius]
+    segs: list[FloatArray] = [stand.segments]
+    owners: list[NDArray[np.int64]] = [stand.segment_owner]
+    obj_xy: list[FloatArray] = [stand.clutter_objects_xy]
+    kinds = list(stand.clutter_kinds)
+    extents = list(stand.clutter_objects_extent)
+    for c, r in zip(stand.trees_xy, stand.radii, strict=True):
+        for _ in range(int(gen.poisson(stems_per_tree))):
+            rs = float(gen.uniform(0.005, 0.025))
+            az = float(gen.uniform(0, 2 * np.pi))
+            d = r + float(gen.uniform(0.02, 0.5)) + rs
+            p = c + d * np.array([math.cos(az), math.sin(az)])
+            circ_xy.append(p[None])
+            circ_r.append(np.array([rs]))
+            obj_xy.append(p[None])
+            kinds.append("understory")
+            extents.append(rs)
+        for _ in range(int(gen.poisson(branches_per_tree))):
+            az = float(gen.uniform(0, 2 * np.pi))
+            length = float(gen.uniform(0.2, 1.0))
+            out = az + float(gen.uniform(-math.pi / 3, math.pi / 3))
+            p0 = c + r * np.array([math.cos(az), math.sin(az)])
+            p1 = p0 + length * np.array([math.cos(out), math.sin(out)])
+            segs.append(np.concatenate((p0, p1))[None])
+            owners.append(np.full(1, -1, dtype=np.int64))
+            obj_xy.append((0.5 * (p0 + p1))[None])
+            kinds.append("branch")
+            extents.append(length / 2)
+    return _with_clutter(stand, circ_xy, circ_r, segs, owners, obj_xy, kinds, extents)
 
 
 def make_trunks_noncircular(
@@ -636,9 +707,14 @@ def make_trunks_noncircular(
     roughness: float = 0.02,
     n_vertices: int = 48,
     fraction: float = 1.0,
+    bark_rms: float = 0.0,
+    lean_deg: float = 0.0,
+    buttress: float = 0.0,
+    n_lobes: int = 4,
     rng: RngLike = None,
 ) -> Stand:
-    """Replace round trunks by polygons: an ellipse with rough bark, owned by the tree.
+    """Replace round trunks by polygons (:func:`stemmap.sim.outline.trunk_outline`), owned by
+    the tree: an ellipse with rough bark, optionally bark ridges, lean and buttress lobes.
 
     Parameters
     ----------
@@ -647,11 +723,20 @@ def make_trunks_noncircular(
         Semi-axes are ``r (1 + e)`` and ``r (1 - e)`` with a random orientation, so the mean of
         the two caliper diameters stays the tree's DBH (``stand.diameters`` is unchanged).
     roughness : float, >= 0
-        Relative RMS of a smooth random radius perturbation (bark, buttresses), e.g. 0.02 = 2 %.
+        Relative RMS of a smooth random radius perturbation (out-of-roundness), e.g. 0.02 = 2 %.
     n_vertices : int, >= 8
-        Polygon vertices per trunk (48 keeps the polygon chord error below 0.3 % of r).
+        Polygon vertices per trunk (48 keeps the polygon chord error below 0.3 % of r; bark
+        ridges need more, e.g. 240).
     fraction : float in [0, 1]
         Share of trees made non-circular (chosen at random).
+    bark_rms : float, metres
+        RMS of cm-scale bark ridges (harmonics 9 to n_vertices/4, 1/k spectrum).
+    lean_deg : float, degrees
+        Largest stem lean; each chosen tree leans uniformly in [0, lean_deg] (random azimuth),
+        which stretches its horizontal section by 1/cos(lean). ``stand.diameters`` stays the
+        diameter across the stem axis.
+    buttress : float
+        Relative height of buttress lobes (``n_lobes`` of them) at scan height.
     rng : numpy Generator or int seed
     """
     if not (0 <= ellipticity < 0.5 and roughness >= 0 and n_vertices >= 8 and 0 <= fraction <= 1):
@@ -662,18 +747,22 @@ def make_trunks_noncircular(
         )
     gen = np.random.default_rng(rng)
     chosen = (gen.random(stand.n_trees) < fraction) & ~stand.tree_is_polygon
-    phi = 2 * np.pi * np.arange(n_vertices) / n_vertices
     segs = [stand.segments]
     owners = [stand.segment_owner]
     for i in np.flatnonzero(chosen):
-        r = stand.radii[i]
-        rough = _rough_radius(n_vertices, 1.0, roughness, gen) if roughness > 0 else 1.0
-        a, b = r * (1 + ellipticity), r * (1 - ellipticity)
-        rot = gen.uniform(0, np.pi)
-        ex, ey = a * np.cos(phi) * rough, b * np.sin(phi) * rough
-        c, s = math.cos(rot), math.sin(rot)
-        poly = stand.trees_xy[i] + np.column_stack((c * ex - s * ey, s * ex + c * ey))
-        segs.append(_polygon_segments(poly))
+        lean = float(gen.uniform(0.0, lean_deg)) if lean_deg > 0 else 0.0
+        outline = trunk_outline(
+            float(stand.radii[i]),
+            gen,
+            n_vertices=n_vertices,
+            ellipticity=ellipticity,
+            roughness=roughness,
+            bark_rms=bark_rms,
+            lean_deg=lean,
+            buttress=buttress,
+            n_lobes=n_lobes,
+        )
+        segs.append(_polygon_segments(stand.trees_xy[i] + outline))
         owners.append(np.full(n_vertices, i, dtype=np.int64))
     return replace(
         stand,

@@ -595,9 +595,11 @@ def simulate_mobile(
     height: float = 0.8,
     rng: np.random.Generator | int | None = None,
     keep_frames: bool = True,
+    yaws: ArrayLike | None = None,
 ) -> MobileScan:
     """A rotating lidar carried along ``path_xy`` (one revolution per waypoint), heading along
-    the path, ``height`` above the ground, as if registered by perfect SLAM.
+    the path (or ``yaws`` (F,), radians, when given), ``height`` above the ground, as if
+    registered by perfect SLAM.
 
     Returns
     -------
@@ -611,9 +613,13 @@ def simulate_mobile(
     path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
     if path.shape[0] < 2:
         raise ConfigError("simulate_mobile needs a path of at least 2 waypoints.")
-    step = np.diff(path, axis=0)
-    yaw = np.arctan2(step[:, 1], step[:, 0])
-    yaw = np.append(yaw, yaw[-1])
+    if yaws is not None:
+        yaw = np.asarray(yaws, dtype=np.float64).reshape(-1)
+        if yaw.shape[0] != path.shape[0]:
+            raise ConfigError(f"yaws has {yaw.shape[0]} values for {path.shape[0]} waypoints.")
+    else:
+        step = np.diff(path, axis=0)
+        yaw = np.append(np.arctan2(step[:, 1], step[:, 0]), np.arctan2(step[-1, 1], step[-1, 0]))
     xyz, labels, idx, frames, poses = [], [], [], [], []
     for k, p in enumerate(path):
         origin = np.array([p[0], p[1], float(stand.ground_z(p)[0]) + height])

@@ -57,9 +57,14 @@ __all__ = [
 ]
 
 
-#: Intra-trunk correlation of per-frame diameter errors (module doc, item 2): set from the
-#: simulator calibration, benchmarks/uncertainty_calibration.py.
-DIAMETER_RHO = 0.03
+#: Intra-trunk correlation of per-frame diameter errors (module doc, item 2), set on REAL trunk
+#: geometry: virtual drive-by 2D scans of every real breast-height slice of the shared datasets
+#: (benchmarks/diameter_rho_real.py) give rho = 1 on every leave-one-dataset-out split -- a
+#: trunk's per-scan errors are dominated by a shared bias (+4-5 cm for the SICK-class edge model
+#: on real one-sided arcs, per-scan spread 1-1.5 cm MAD), so averaging n scans does not reduce
+#: it and the standard error is the per-scan spread ``s``. On the simulator's ideal cylinders
+#: this is conservative (benchmarks/uncertainty_calibration.py fitted 0.03 there).
+DIAMETER_RHO = 1.0
 
 
 @dataclass(frozen=True)

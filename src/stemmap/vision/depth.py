@@ -47,7 +47,11 @@ class DaimParams:
     base_band : float, metres -- height of the "arc near the base" slice above the cluster's
         lowest point
     base_offset : float, metres -- skip this much above the lowest point (ground contact)
-    arc_bins : int -- azimuth bins across the arc; each keeps its nearest point (the surface)
+    arc_bins : int -- azimuth bins across the arc
+    arc_point : "median" or "nearest" -- what each bin keeps: the point at the median range
+        (default; robust to depth noise, which grows as z^2 on a stereo RealSense) or the
+        nearest point (the surface when depth is exact, but biased towards the camera by ~2
+        sigma of the noise). Munjer 2025 says only "three boundary points are extracted".
     fit : str -- "three_point" (Munjer) or any name in ``stemmap.scan.circle.FIT_METHODS``
     """
 
@@ -58,6 +62,7 @@ class DaimParams:
     base_band: float = 0.3
     base_offset: float = 0.1
     arc_bins: int = 24
+    arc_point: str = "median"
     fit: str = "three_point"
 
 
@@ -136,6 +141,7 @@ def base_arc(
     band: float = 0.3,
     offset: float = 0.1,
     bins: int = 24,
+    point: str = "nearest",
 ) -> FloatArray:
     """The visible arc near the base of a trunk cluster, in the horizontal plane.
 
@@ -144,13 +150,16 @@ def base_arc(
     points_body : (N, 3) metres in a frame with z up (e.g. the laser frame)
     origin_xy : (2,) camera position in that frame (the arc is what faces it)
     band, offset : the slice [z_min + offset, z_min + offset + band]
-    bins : azimuth bins; each keeps its point nearest to the origin (the surface, not the
-        scatter behind it)
+    bins : azimuth bins; each keeps one point
+    point : "nearest" (the point nearest to the origin: the surface, not the scatter behind it)
+        or "median" (the point of median range in the bin: robust to depth noise)
 
     Returns
     -------
     (M, 2) arc points ordered by bearing from ``origin_xy``
     """
+    if point not in ("nearest", "median"):
+        raise InputError(f"base_arc point must be 'nearest' or 'median', got {point!r}.")
     p = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
     o = np.asarray(origin_xy, dtype=np.float64).reshape(2)
     if p.shape[0] == 0:
@@ -165,9 +174,13 @@ def base_arc(
     edges = np.linspace(az.min(), az.max() + 1e-12, bins + 1)
     k = np.clip(np.searchsorted(edges, az, side="right") - 1, 0, bins - 1)
     order = np.lexsort((rr, k))
-    first = np.ones(order.size, bool)
-    first[1:] = k[order][1:] != k[order][:-1]
-    pick = order[first]
+    ks = k[order]
+    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    if point == "nearest":
+        pick = order[start]
+    else:
+        count = np.diff(np.r_[start, ks.size])
+        pick = order[start + (count - 1) // 2]
     pick = pick[np.argsort(az[pick])]
     return np.asarray(sl[pick, :2])
 
@@ -211,7 +224,12 @@ def daim_trunks(
             body = np.column_stack((pc[:, 2], -pc[:, 0], -pc[:, 1]))
         body = body[cluster_trunk_points(body, eps=params.eps, min_samples=params.min_samples)]
         arc = base_arc(
-            body, origin, band=params.base_band, offset=params.base_offset, bins=params.arc_bins
+            body,
+            origin,
+            band=params.base_band,
+            offset=params.base_offset,
+            bins=params.arc_bins,
+            point=params.arc_point,
         )
         if arc.shape[0] < 3:
             continue

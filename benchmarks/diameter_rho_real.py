@@ -1,0 +1,174 @@
+"""The intra-trunk correlation ``rho`` of per-scan DBH errors, measured on REAL trunk geometry.
+
+:func:`stemmap.slam.uncertainty.diameter_standard_errors` gives a mapped tree's DBH the
+standard error ``s / sqrt(n) * sqrt(1 + (n - 1) rho)`` (Kish's design effect): the ``n`` scans
+of one trunk share part of their error (same side seen, same bark). ``rho`` = 0.03 was set on
+the simulator (benchmarks/uncertainty_calibration.py), whose trunks are smooth cylinders. Here
+the trunks are the real breast-height slices of every cloud in the shared datasets
+(:mod:`stemmap.eval.real_slices`, ring references as the truth): for every reference trunk, a
+machine drives straight past it (lateral distance 4 and 8 m, on two opposite sides, a scan
+every 0.5 m from 15 m before to 15 m after; the whole slice occludes), virtual 2D scans
+(0.5 deg, nearest-return or SICK-class averaging, optional range noise), the default detector,
+and the detections matched to the trunk give per pass ``n``, the mean DBH error ``e`` and the
+per-scan spread ``s``. ``rho`` is the value that makes the median of
+``|e| / (s / sqrt(n) * sqrt(1 + (n - 1) rho))`` equal 0.6745 (the median |z| of a calibrated
+standard error), solved over all passes, and leave-one-dataset-out (solved without a dataset,
+scored on it).
+
+Usage: python benchmarks/diameter_rho_real.py [--noise 0 0.01] [--skip fortls_slice]
+Prints JSON. The machine is shared; times are not reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from scipy.optimize import brentq
+
+from stemmap.datasets import find_datasets_dir
+from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+
+MEDIAN_ABS_Z = 0.6745
+OFFSETS_M = (4.0, 8.0)
+ALONG_M = np.arange(-15.0, 15.01, 0.5)
+
+
+def passes(center: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+    """Vantage points (K, 2) of straight drives past ``center``: two opposite sides x offsets,
+    the drive direction drawn at random per trunk."""
+    phi = rng.uniform(0.0, 2.0 * math.pi)
+    u = np.array([math.cos(phi), math.sin(phi)])  # drive direction
+    n = np.array([-u[1], u[0]])  # to the side
+    out = []
+    for side in (1.0, -1.0):
+        for d in OFFSETS_M:
+            out.append(center + side * d * n + ALONG_M[:, None] * u)
+    return out
+
+
+def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, Any]]:
+    """One row per (trunk, pass) with >= 2 matched detections: n, mean error e, spread s (m)."""
+    where = find_datasets_dir()
+    if where is None:
+        raise SystemExit("no shared/datasets folder found: set STEMMAP_DATASETS.")
+    sl = load_slice(where, name)
+    rng = np.random.default_rng(seed)
+    cfg = DetectorConfig()
+    if model == "nearest" and cfg.fit_method == "ours":
+        # a first-echo scanner's footprint is one beam step (``stemmap detect --footprint``)
+        cfg = replace(cfg, beam_footprint_deg=0.5)
+    det = ScanTrunkDetector(cfg)
+    rows: list[dict[str, Any]] = []
+    for t, (c, d) in enumerate(zip(sl.centers, sl.diameters, strict=True)):
+        if not 0.1 <= d <= 1.0:
+            continue
+        for vp in passes(c, rng):
+            ranges0, _ = virtual_scans(
+                sl.xy, sl.labels, vp, resolution_deg=0.5, model=model,  # type: ignore[arg-type]
+                centers=sl.centers,
+            )  # fmt: skip
+            obs = det.detect_batch(noisy_batch(ranges0, 0.5, noise, rng))
+            errs = []
+            for s in range(vp.shape[0]):
+                m = obs.index == s
+                if not m.any():
+                    continue
+                dist = np.hypot(*(obs.centers[m] - (c - vp[s])).T)
+                k = int(np.argmin(dist))
+                if dist[k] <= d / 2.0 + 0.05:
+                    errs.append(2.0 * float(obs.radii[m][k]) - d)
+            if len(errs) >= 2:
+                e = np.asarray(errs)
+                rows.append(
+                    {
+                        "dataset": name,
+                        "trunk": t,
+                        "n": len(e),
+                        "e": float(e.mean()),
+                        "s": float(e.std(ddof=1)),
+                        "dbh": float(d),
+                    }
+                )
+    return rows
+
+
+def median_abs_z(rows: list[dict[str, Any]], rho: float) -> float:
+    n = np.array([r["n"] for r in rows], dtype=float)
+    e = np.array([r["e"] for r in rows])
+    s = np.array([r["s"] for r in rows])
+    ok = s > 0
+    se = s[ok] / np.sqrt(n[ok]) * np.sqrt(1.0 + (n[ok] - 1.0) * rho)
+    return float(np.median(np.abs(e[ok]) / se))
+
+
+def solve_rho(rows: list[dict[str, Any]]) -> float:
+    if median_abs_z(rows, 0.0) <= MEDIAN_ABS_Z:
+        return 0.0
+    if median_abs_z(rows, 1.0) > MEDIAN_ABS_Z:
+        return 1.0
+    return float(brentq(lambda r: median_abs_z(rows, r) - MEDIAN_ABS_Z, 0.0, 1.0))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.01], help="range noise, m")
+    ap.add_argument("--models", nargs="+", default=["nearest", "averaging"])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--skip", nargs="*", default=["fortls_slice"],
+        help="datasets left out (default: fortls_slice, synthetic perfect circles)",
+    )  # fmt: skip
+    a = ap.parse_args()
+    rows: list[dict[str, Any]] = []
+    for i, name in enumerate(SLICES):
+        if name in a.skip:
+            continue
+        for model in a.models:
+            for noise in a.noise:
+                for r in run_slice(name, model, noise, a.seed + i):
+                    rows.append({**r, "model": model, "noise_m": noise})
+    out: dict[str, Any] = {"n_passes": len(rows), "rho_all": solve_rho(rows)}
+    out["median_abs_z_at_rho_all"] = median_abs_z(rows, out["rho_all"])
+    out["median_abs_z_at_0.03"] = median_abs_z(rows, 0.03)
+    out["median_abs_err_cm"] = 100 * float(np.median([abs(r["e"]) for r in rows]))
+    out["median_spread_cm"] = 100 * float(np.median([r["s"] for r in rows]))
+    loo = {}
+    for name in sorted({r["dataset"] for r in rows}):
+        train = [r for r in rows if r["dataset"] != name]
+        test = [r for r in rows if r["dataset"] == name]
+        rho = solve_rho(train)
+        loo[name] = {
+            "passes": len(test),
+            "rho_without": rho,
+            "held_out_median_abs_z": median_abs_z(test, rho),
+            "held_out_median_abs_z_at_0.03": median_abs_z(test, 0.03),
+            "rho_alone": solve_rho(test),
+            "median_n": float(np.median([r["n"] for r in test])),
+            "median_abs_err_cm": 100 * float(np.median([abs(r["e"]) for r in test])),
+            "median_spread_cm": 100 * float(np.median([r["s"] for r in test])),
+        }
+    out["leave_one_dataset_out"] = loo
+    by = {}
+    for model in a.models:
+        for noise in a.noise:
+            sel = [r for r in rows if r["model"] == model and r["noise_m"] == noise]
+            if sel:
+                by[f"{model}_noise{100 * noise:g}cm"] = {
+                    "passes": len(sel),
+                    "rho": solve_rho(sel),
+                    "median_abs_z_at_rho_1": median_abs_z(sel, 1.0),
+                    "median_abs_err_cm": 100 * float(np.median([abs(r["e"]) for r in sel])),
+                    "median_spread_cm": 100 * float(np.median([r["s"] for r in sel])),
+                }
+    out["by_scanner"] = by
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

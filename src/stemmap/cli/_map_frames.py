@@ -1,0 +1,141 @@
+"""``stemmap map FRAMES.npz --frontend ...``: the Munjer et al. (2025) pipeline from a frames
+bundle (:mod:`stemmap.io.frames`) and a motion source.
+
+Motion source (``--odometry``), pluggable:
+
+* a velocity CSV ``time_s,speed,yaw_rate`` (wheel odometry, ``stemmap sim munjer`` writes one);
+* a pose CSV ``time_s,x,y,theta`` (any pose-output odometry: the lidar + IMU EKF odometry of the
+  paper, ``stemmap odometry --out traj.csv``, a SLAM front end), differenced into body-frame
+  velocities (:func:`stemmap.slam.munjer.controls_from_trajectory`).
+
+Front ends: ``eb-lidar`` (EB-LiDAR on every lidar frame), ``daim`` (a detector's boxes + aligned
+depth; ``--model`` an ONNX detector, default the segmentation detector; never truth boxes),
+``ours`` (stemmap's own cloud detector on every lidar frame).
+"""
+
+from __future__ import annotations
+
+import math
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+from stemmap.errors import ConfigError, InputError
+
+__all__ = ["Frontend", "frames_problem", "odometry_controls"]
+
+
+class Frontend(StrEnum):
+    eb_lidar = "eb-lidar"
+    daim = "daim"
+    ours = "ours"
+
+
+def _header(path: Path) -> list[str]:
+    with path.open(encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.strip() and not line.lstrip().startswith("#"):
+                return [h.strip() for h in line.split(",")]
+    raise InputError(f"odometry file {str(path)!r} is empty.")
+
+
+def odometry_controls(
+    path: Path, *, sigma_speed: float, sigma_yaw_rate: float
+) -> tuple[Any, Any, str, Any]:
+    """Controls, motion model, kind ("velocities" / "poses") and the pose trajectory (None for
+    velocities) from an odometry CSV.
+
+    ``sigma_speed`` (m/s) and ``sigma_yaw_rate`` (rad/s), one-second averages, are the motion
+    source's error: the FastSLAM motion noise.
+    """
+    from stemmap.cli._map_inputs import read_odometry_csv
+    from stemmap.io.trajectory import read_trajectory_csv
+    from stemmap.slam.base import Controls
+    from stemmap.slam.motion import UnicycleModel
+    from stemmap.slam.munjer import controls_from_trajectory
+
+    if not path.is_file():
+        raise InputError(f"odometry file {str(path)!r} does not exist.")
+    cols = _header(path)
+    if {"x", "y", "theta"} <= set(cols):
+        traj = read_trajectory_csv(path, frame="odom")
+        c, m = controls_from_trajectory(
+            traj, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate
+        )
+        return c, m, "poses", traj
+    t, v, w = read_odometry_csv(path)
+    model = UnicycleModel(sigma_speed=sigma_speed, sigma_steer=sigma_yaw_rate)
+    return Controls(t, v, w, "unicycle"), model, "velocities", None
+
+
+def frames_problem(
+    source: Path,
+    odometry: Path | None,
+    frontend: Frontend,
+    *,
+    model: Path | None,
+    sigma_speed: float,
+    sigma_yaw_rate: float,
+) -> tuple[Any, dict[str, Any]]:
+    """A SLAM problem from a frames bundle: motion source + per-frame detections."""
+    from stemmap.cli._map_inputs import odometry_path
+    from stemmap.io.frames import read_frames_npz
+    from stemmap.slam.munjer import (
+        daim_observations,
+        eb_lidar_observations,
+        munjer_problem,
+        ours_lidar_observations,
+    )
+
+    bundle = read_frames_npz(source)
+    odo = odometry_path(source, odometry)
+    controls, motion, kind, traj = odometry_controls(
+        odo, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate
+    )
+    t = bundle.times
+    if t[0] < controls.times[0] - 1e-6 or t[-1] > controls.times[-1] + 1.0:
+        raise InputError(
+            f"the frames of {source} span {t[0]:.3f}-{t[-1]:.3f} s but the odometry {odo} spans "
+            f"{controls.times[0]:.3f}-{controls.times[-1]:.3f} s: the time bases differ."
+        )
+    if frontend == Frontend.daim:
+        if bundle.images is None:
+            raise ConfigError(f"--frontend daim needs RGB-D frames; {source} has none.")
+        from stemmap.vision.detector import OnnxDetector, SegmentationDetector
+
+        detector = OnnxDetector(model) if model is not None else SegmentationDetector()
+        assert bundle.depths is not None and bundle.image_frames is not None
+        obs = daim_observations(
+            list(bundle.images),
+            list(bundle.depths),
+            bundle.image_frames,
+            t,
+            bundle.rig(),
+            detector,
+        )
+        max_range = 12.0
+    else:
+        if model is not None:
+            raise ConfigError("--model is the DAIM trunk detector; use it with --frontend daim.")
+        if bundle.lidar is None:
+            raise ConfigError(f"--frontend {frontend.value} needs lidar frames; {source} has none.")
+        if frontend == Frontend.eb_lidar:
+            obs = eb_lidar_observations(bundle.lidar, t)
+            max_range = 10.0  # the pass-through box
+        else:
+            obs = ours_lidar_observations(bundle.lidar, t)
+            max_range = math.inf
+    if len(obs) == 0:
+        raise InputError(f"the {frontend.value} front end found no trunk in any frame of {source}.")
+    # the map frame: the pose odometry's own frame, else the vehicle pose at the first frame
+    p0 = (0.0, 0.0, 0.0) if traj is None else tuple(float(v) for v in traj.interpolate([t[0]])[0])
+    problem = munjer_problem(
+        obs,
+        t,
+        controls,
+        motion,
+        initial_pose=p0,  # type: ignore[arg-type]
+        max_range=max_range,
+        name=f"{source} ({frontend.value})",
+    )
+    return problem, {"kind": "frames", "odometry": str(odo), "motion_source": kind}

@@ -1,0 +1,101 @@
+"""Camera side of ``stemmap odometry``: stereo / RGB-D visual odometry of a frames folder.
+
+:func:`camera_odometry` is what the ``odometry`` command calls for ``--camera FRAMES``; it reads
+the folder (layout: :mod:`stemmap.io.camera_frames`), runs
+:func:`stemmap.odometry.visual.run_visual_odometry` and writes the vehicle's planar path as
+``time_s,x,y,theta`` CSV (frame: the vehicle at the first image).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.cli._common import console
+from stemmap.errors import InputError
+from stemmap.types import Trajectory
+
+__all__ = ["camera_odometry"]
+
+log = logging.getLogger(__name__)
+
+#: Camera looking along the vehicle's x axis, at its origin: the mount assumed when
+#: ``camera.json`` has no ``vehicle_from_camera``.
+_DEFAULT_MOUNT = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+def camera_odometry(
+    frames_dir: Path,
+    out: Path,
+    *,
+    max_corners: int | None = None,
+    left_topic: str | None = None,
+    right_topic: str | None = None,
+    depth_topic: str | None = None,
+    info_topic: str | None = None,
+    baseline: float | None = None,
+) -> Trajectory:
+    """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV).
+
+    A bag (``.bag``, ROS2 folder, ``.db3``, ``.mcap``) is read by
+    :func:`stemmap.io.camera_bag.read_camera_bag` with the given topics (guessed when None);
+    a folder by :func:`stemmap.io.camera_frames.read_camera_frames`. Returns the trajectory.
+    """
+    from dataclasses import replace
+
+    from stemmap.io.camera_bag import read_camera_bag
+    from stemmap.io.camera_frames import read_camera_frames
+    from stemmap.io.rosbag import is_bag
+    from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.odometry.visual import (
+        VisualOdometryConfig,
+        VoStatus,
+        planar_from_camera,
+        run_visual_odometry,
+    )
+
+    frames: Any
+    if is_bag(frames_dir):
+        frames = read_camera_bag(
+            frames_dir,
+            left_topic=left_topic,
+            right_topic=right_topic,
+            depth_topic=depth_topic,
+            info_topic=info_topic,
+            baseline=baseline,
+        )
+    elif frames_dir.is_dir():
+        frames = read_camera_frames(frames_dir)
+    else:
+        raise InputError(
+            f"{frames_dir}: not a camera frames folder or a ROS bag (.bag, ROS2 folder, .db3, "
+            ".mcap)."
+        )
+    cfg = VisualOdometryConfig()
+    if max_corners is not None:
+        cfg = replace(cfg, max_corners=max_corners)
+    res = run_visual_odometry(frames, frames.calibration, cfg)
+    mount = frames.vehicle_from_camera
+    if mount is None:
+        log.info(
+            "%s: no vehicle_from_camera in camera.json; camera at the vehicle origin", frames_dir
+        )
+        mount = _DEFAULT_MOUNT
+    traj = planar_from_camera(res, mount)
+    write_trajectory_csv(out, traj)
+    lost = int(np.sum(~res.ok))
+    kf = int(np.sum(res.status == VoStatus.KEYFRAME))
+    dist = float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)))
+    mode = "stereo" if frames.calibration.is_stereo else "RGB-D"
+    console.print(
+        f"{len(res)} {mode} frames, {kf} keyframes, {lost} lost (pose extrapolated), "
+        f"path {dist:.2f} m -> {out}",
+        markup=False,
+        highlight=False,
+    )
+    return traj

@@ -1,0 +1,128 @@
+"""Digital terrain model (DTM) of a cloud as a GeoTIFF (ours; the product of lidR's
+``rasterize_terrain``, 3DFin's and FSCT's DTM outputs).
+
+The DTM is the ground raster that ``stemmap stems`` measures heights from
+(:class:`~stemmap.cloud.ground.GroundModel`: cell minima cleaned of trunks, shrubs and low
+outliers, a local plane through the 3 x 3 lowest points evaluated at each cell centre), built
+in one streaming pass over the cloud and written as a single-band float32 GeoTIFF:
+
+* one pixel per ground cell (``StemConfig.ground_cell``, 1 m by default), the value is the
+  ground height z (the cloud's vertical unit, metres) at the pixel centre;
+* pixels of cells that held no point at all are nodata (:data:`DTM_NODATA`): the ground there
+  is not measured (decision: no interpolation beyond one cell into scan shadows or outside the
+  plot; lidR interpolates over the whole hull);
+* the CRS is the cloud's (``--crs`` or the LAS header), else a local engineering CRS naming
+  the cloud's frame (:func:`~stemmap.io.geo.local_crs`), so GIS tools do not read metres as
+  degrees.
+
+A cloud without ground (one tree exported by 3DFin, TreeQSM, ITSMe) and a single 2D slice
+have no terrain: asking for their DTM is an error.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.cloud.ground import BASE_GROUND, DEFAULT_MAX_MEMORY, GroundAccumulator, GroundModel
+from stemmap.errors import InputError
+
+__all__ = ["DTM_NODATA", "ground_of_file", "write_dtm"]
+
+log = logging.getLogger(__name__)
+
+#: nodata value of the DTM GeoTIFF (cells without points)
+DTM_NODATA = -9999.0
+
+
+def ground_of_file(
+    path: str | os.PathLike[str],
+    cell: float = 1.0,
+    max_diameter: float = 2.0,
+    *,
+    chunk_size: int = 2_000_000,
+    topic: str | None = None,
+    max_memory: float = DEFAULT_MAX_MEMORY,
+) -> GroundModel:
+    """The ground model of a cloud file, streamed in chunks of ``chunk_size`` points.
+
+    Raises
+    ------
+    InputError
+        The cloud has no ground: its lowest points fit inside one stem of ``max_diameter``
+        metres (one segmented tree, :meth:`GroundAccumulator.stem_base`), or it is one thin
+        slice (z range under 1 m).
+    """
+    from stemmap.io.clouds import iter_cloud_chunks
+
+    acc = GroundAccumulator(cell, max_memory)
+    zmin, zmax = np.inf, -np.inf
+    for chunk in iter_cloud_chunks(path, chunk_size, topic=topic):
+        if len(chunk.xyz):
+            acc.update(chunk.xyz)
+            zmin = min(zmin, float(chunk.xyz[:, 2].min()))
+            zmax = max(zmax, float(chunk.xyz[:, 2].max()))
+    if not np.isfinite(zmin):
+        raise InputError(f"{path}: the cloud holds no points, so it has no terrain model.")
+    why = None
+    if zmax - zmin < 1.0:
+        why = f"it is one slice (z range {zmax - zmin:.2f} m)"
+    elif acc.stem_base(max_diameter) is not None:
+        why = "its lowest points fit inside one stem: one segmented tree"
+    if why is not None:
+        raise InputError(f"{path}: the cloud has no ground ({why}), so no DTM; leave out --dtm.")
+    return acc.model()
+
+
+def _rasterio_crs(crs: str | None, frame: str) -> Any:
+    from rasterio.crs import CRS
+
+    from stemmap.io.geo import local_crs, parse_crs
+
+    pc = local_crs(frame) if crs is None else parse_crs(crs)
+    return CRS.from_wkt(pc.to_wkt(version="WKT1_GDAL") or pc.to_wkt())
+
+
+def write_dtm(
+    path: str | os.PathLike[str], ground: GroundModel, crs: str | None, *, frame: str = "cloud"
+) -> None:
+    """Write ``ground`` as a float32 GeoTIFF (module doc): north-up, pixel = ground cell,
+    value = ground z at the pixel centre, :data:`DTM_NODATA` where no point fell."""
+    import rasterio
+    from affine import Affine
+
+    if ground.base != BASE_GROUND:
+        raise InputError(
+            f"the ground model is a flat base ({ground.base}), not a terrain: no DTM to write."
+        )
+    z = np.asarray(ground.z, dtype=np.float64)
+    obs = np.ones(z.shape, dtype=bool) if ground.observed is None else ground.observed
+    band = np.where(obs, z, DTM_NODATA).astype(np.float32)
+    # GroundModel z is indexed [i (x), j (y)] from the lower-left corner; a GeoTIFF's rows run
+    # from north to south
+    img = band.T[::-1, :]
+    nx, ny = z.shape
+    ox, oy = ground.origin
+    transform = Affine(ground.cell, 0.0, ox, 0.0, -ground.cell, oy + ny * ground.cell)
+    with rasterio.open(
+        Path(path),
+        "w",
+        driver="GTiff",
+        width=nx,
+        height=ny,
+        count=1,
+        dtype="float32",
+        crs=_rasterio_crs(crs, frame),
+        transform=transform,
+        nodata=DTM_NODATA,
+        compress="deflate",
+    ) as dst:
+        dst.write(img, 1)
+        dst.set_band_description(1, "ground height z (m)")
+        dst.update_tags(AREA_OR_POINT="Area", source="stemmap stems --dtm")
+    log.info("DTM %s: %d x %d cells of %.2f m, %d without points", path, nx, ny, ground.cell,
+             int((~obs).sum()))  # fmt: skip

@@ -1,0 +1,148 @@
+"""Compiled segment cutting of :mod:`stemmap.scan._detect_fast`: the cut at flag changes
+(:meth:`stemmap.scan.segment.Segments.cut`, for the splitting radius median filter and the
+corner cuts) and the concave-corner flags (:func:`stemmap.scan.segment.concave_corners`,
+ours, issue 11).
+
+Same arithmetic, in the same order, as the numpy reference functions, so that the compiled
+detector equals the numpy pipeline bit for bit (tests/scan/test_detect_fast.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from stemmap.types import FloatArray
+
+__all__ = ["corner_parity", "cut_tables", "sagitta"]
+
+
+@njit(cache=True, error_model="numpy")
+def sagitta(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma: no cover - numba
+    """Sagitta depth of returns ``a:b`` towards the sensor (numba twin of
+    :func:`stemmap.scan.features.sagitta_depth`, Zheng et al. 2012 §3.2 criterion 4)."""
+    i1 = b - 1
+    x0 = px[a]
+    y0 = py[a]
+    dx = px[i1] - x0
+    dy = py[i1] - y0
+    length = math.hypot(dx, dy)
+    safe = length if length > 0 else 1.0
+    nx = -dy / safe
+    ny = dx / safe
+    if (nx * -x0 + ny * -y0) < 0:
+        nx = -nx
+        ny = -ny
+    dmax = -math.inf
+    dmin = math.inf
+    for i in range(a, b):
+        dd = (px[i] - x0) * nx + (py[i] - y0) * ny
+        dmax = max(dmax, dd)
+        dmin = min(dmin, dd)
+    depth = dmax if dmax >= -dmin else dmin
+    if not length > 0:
+        depth = 0.0
+    return depth
+
+
+@njit(cache=True, error_model="numpy")
+def corner_parity(
+    px: FloatArray,
+    py: FloatArray,
+    st: np.ndarray,
+    sp: np.ndarray,
+    ns: int,
+    span: int,
+    thresholds: FloatArray,
+    d: FloatArray,
+    keep: np.ndarray,
+    corner: np.ndarray,
+) -> bool:  # pragma: no cover - numba
+    """``keep[i]`` = parity of the concave corners up to return ``i`` of its segment (flips at
+    every corner of :func:`~stemmap.scan.segment.concave_corners` deeper than the segment's
+    ``thresholds[j]``, starts False in every segment; detect._corner_cuts), ``corner[i]``:
+    return ``i`` is a corner. Returns whether any corner was found. ``d`` is scratch."""
+    found = False
+    for j in range(ns):
+        a0 = st[j]
+        b0 = sp[j]
+        thr = thresholds[j]
+        for i in range(a0, b0):
+            d[i] = -math.inf
+            if i - span >= a0 and i + span < b0:
+                a = i - span
+                c = i + span
+                cx = px[c] - px[a]
+                cy = py[c] - py[a]
+                side_p = cx * (py[i] - py[a]) - cy * (px[i] - px[a])
+                side_o = cy * px[a] - cx * py[a]
+                length = math.hypot(cx, cy)
+                if length > 0.0:
+                    d[i] = (-side_p if side_o > 0.0 else side_p) / length
+                else:
+                    d[i] = 0.0
+        flag = False
+        for i in range(a0, b0):
+            prev = d[i - 1] if i > a0 else -math.inf
+            nxt = d[i + 1] if i + 1 < b0 else -math.inf
+            corner[i] = d[i] > thr and d[i] >= prev and d[i] > nxt
+            if corner[i]:
+                flag = not flag
+                found = True
+            keep[i] = flag
+    return found
+
+
+@njit(cache=True, error_model="numpy")
+def cut_tables(
+    st: np.ndarray,
+    sp: np.ndarray,
+    oc0: np.ndarray,
+    oc1: np.ndarray,
+    tr0: np.ndarray,
+    tr1: np.ndarray,
+    st2: np.ndarray,
+    sp2: np.ndarray,
+    oc02: np.ndarray,
+    oc12: np.ndarray,
+    tr02: np.ndarray,
+    tr12: np.ndarray,
+    keep: np.ndarray,
+    ns: int,
+) -> tuple[
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    int,
+]:  # pragma: no cover - numba
+    """``Segments.cut(keep)`` into the spare ``*2`` tables: new pieces where ``keep`` changes
+    between consecutive returns of a segment, inner ends occluded. Returns the cut table first,
+    the old one as the new spare, and the number of pieces."""
+    ns2 = 0
+    for j in range(ns):
+        for i in range(st[j], sp[j]):
+            if i == st[j] or keep[i] != keep[i - 1]:
+                if i != st[j]:
+                    sp2[ns2 - 1] = i
+                st2[ns2] = i
+                first = i == st[j]
+                oc02[ns2] = oc0[j] if first else True
+                tr02[ns2] = first and tr0[j]
+                oc12[ns2] = True
+                tr12[ns2] = False
+                ns2 += 1
+        sp2[ns2 - 1] = sp[j]
+        oc12[ns2 - 1] = oc1[j]
+        tr12[ns2 - 1] = tr1[j]
+    return st2, sp2, oc02, oc12, tr02, tr12, st, sp, oc0, oc1, tr0, tr1, ns2

@@ -1,0 +1,158 @@
+"""Stereo / RGB-D visual odometry (odometry/visual.py) on rendered orchard frames."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stemmap.errors import ConfigError, InputError
+from stemmap.odometry.visual import (
+    StereoCalibration,
+    VisualFrame,
+    VisualOdometry,
+    VisualOdometryConfig,
+    VoStatus,
+    planar_from_camera,
+    run_visual_odometry,
+    visual_odometry_source,
+)
+
+
+def _path_length(xy: np.ndarray) -> float:
+    return float(np.sum(np.hypot(*np.diff(xy, axis=0).T)))
+
+
+def _run(drive, frames, cal, cfg=None):
+    res = run_visual_odometry(frames, cal, cfg)
+    est = planar_from_camera(res, drive.camera.vehicle_from_camera())
+    return res, est
+
+
+def test_stereo_drift_below_two_percent(drive):
+    """The issue's target: drift <= 2 % of the distance. Measured 0.5 % end error on this 4.9 m
+    drive (0.05 m). The bound is the target itself, not the measurement: 2 % is what the
+    EKF and the tree database are designed around."""
+    frames = [VisualFrame(f.time, f.left, f.right) for f in drive.frames]
+    res, est = _run(drive, frames, drive.stereo)
+    truth = drive.truth_in_start_frame()
+    dist = _path_length(truth)
+    err = np.hypot(*(est.poses[:, :2] - truth).T)
+    assert res.ok.all()
+    assert err[-1] < 0.02 * dist
+    assert err.max() < 0.02 * dist + 0.02
+    # heading: the S-curve turns by ~8 deg; the estimate follows within 1 deg
+    dth = est.poses[:, 2] - (drive.truth.poses[:, 2] - drive.truth.poses[0, 2])
+    assert np.max(np.abs(dth)) < math.radians(1.0)
+    # PnP RANSAC worked on many points, and keyframes were re-made along the way
+    assert np.median(res.n_inliers[1:]) > 60
+    assert 2 <= np.sum(res.status == VoStatus.KEYFRAME) < len(res) // 2
+
+
+def test_rgbd_mode_on_true_depth(drive):
+    """The RGB-D path (depth image instead of the right image) on the true depth of the same
+    frames. Measured 2.1 % end error: worse than stereo because corners on occlusion
+    boundaries (leaf spheres against the sky and each other) get a depth without a stereo
+    consistency check; 4 % bounds it with margin."""
+    frames = [VisualFrame(f.time, f.left, depth=f.depth) for f in drive.frames]
+    res, est = _run(drive, frames, drive.rgbd)
+    truth = drive.truth_in_start_frame()
+    assert res.ok.all()
+    assert np.hypot(*(est.poses[-1, :2] - truth[-1])) < 0.04 * _path_length(truth)
+
+
+def test_tracking_survives_blank_frames_and_recovers(drive):
+    """Three black frames mid-drive: no exception; they are LOST / NO_KEYFRAME with poses
+    extrapolated at constant velocity; tracking resumes; the end error stays within 3 % (the
+    extrapolation over 0.3 s of a near-constant 1 m/s motion adds a few cm)."""
+    frames = []
+    for k, f in enumerate(drive.frames):
+        if 20 <= k < 23:
+            blank = np.zeros_like(f.left)
+            frames.append(VisualFrame(f.time, blank, blank))
+        else:
+            frames.append(VisualFrame(f.time, f.left, f.right))
+    res, est = _run(drive, frames, drive.stereo)
+    st = res.status
+    assert set(st[20:23].tolist()) <= {VoStatus.LOST, VoStatus.NO_KEYFRAME}
+    assert st[23] == VoStatus.LOST  # recovery: extrapolated pose, new keyframe
+    assert np.all(np.isin(st[24:], (VoStatus.TRACKED, VoStatus.KEYFRAME)))
+    assert not res.ok[20:24].any() and res.ok[24:].all()
+    assert np.all(np.isfinite(res.poses))
+    truth = drive.truth_in_start_frame()
+    assert np.hypot(*(est.poses[-1, :2] - truth[-1])) < 0.03 * _path_length(truth)
+    # the fusion source drops the intervals touching an extrapolated pose (20..23 and 23->24)
+    src = visual_odometry_source(
+        res, drive.camera.vehicle_from_camera(), sigma_speed=0.04, sigma_yaw_rate=0.01
+    )
+    assert len(src) == len(res) - 1 - 5
+
+
+def test_outliers_from_a_sticker_on_the_lens_are_rejected(drive):
+    """A textured patch fixed in the image (dirt on the lens, with a 12 px stereo disparity, so
+    it triangulates as an object 1.6 m ahead that moves with the camera). Its corners track
+    perfectly and pass the forward-backward check; only PnP RANSAC can reject them. Without the
+    rejection the estimate would be dragged towards standing still."""
+    rng = np.random.default_rng(3)
+    patch = rng.integers(0, 255, (40, 60, 1)).repeat(3, axis=2).astype(np.uint8)
+    frames = []
+    for f in drive.frames:
+        left, right = f.left.copy(), f.right.copy()
+        left[120:160, 200:260] = patch
+        right[120:160, 188:248] = patch
+        frames.append(VisualFrame(f.time, left, right))
+    res, est = _run(drive, frames, drive.stereo)
+    truth = drive.truth_in_start_frame()
+    assert res.ok.all()
+    assert np.hypot(*(est.poses[-1, :2] - truth[-1])) < 0.02 * _path_length(truth)
+    tracked = res.status == VoStatus.TRACKED
+    assert np.all(res.n_inliers[tracked] <= res.n_tracks[tracked])
+
+
+def test_featureless_first_frames_do_not_crash():
+    cal = StereoCalibration(100.0, 100.0, 63.5, 47.5, 128, 96, baseline=0.1)
+    blank = np.zeros((96, 128), np.uint8)
+    vo = VisualOdometry(cal)
+    assert vo.process(VisualFrame(0.0, blank, blank)) == VoStatus.NO_KEYFRAME
+    assert vo.process(VisualFrame(0.1, blank, blank)) == VoStatus.NO_KEYFRAME
+    np.testing.assert_allclose(vo.pose, np.eye(4))
+
+
+def test_bad_inputs_raise_clear_errors(drive):
+    f = drive.frames[0]
+    with pytest.raises(InputError, match="right image"):
+        run_visual_odometry([VisualFrame(0.0, f.left)], drive.stereo)
+    with pytest.raises(InputError, match="depth image"):
+        run_visual_odometry([VisualFrame(0.0, f.left)], drive.rgbd)
+    with pytest.raises(InputError, match="calibration says"):
+        run_visual_odometry([VisualFrame(0.0, f.left[:-2], f.right[:-2])], drive.stereo)
+    with pytest.raises(InputError, match="increase"):
+        run_visual_odometry(
+            [VisualFrame(1.0, f.left, f.right), VisualFrame(1.0, f.left, f.right)], drive.stereo
+        )
+    with pytest.raises(InputError, match="no frames"):
+        run_visual_odometry([], drive.stereo)
+    with pytest.raises(ConfigError):
+        VisualOdometryConfig(min_inliers=3)
+    with pytest.raises(ConfigError):
+        StereoCalibration(0.0, 1.0, 0.0, 0.0, 10, 10)
+
+
+def test_planar_from_camera_recovers_the_vehicle_path(drive):
+    """Feeding the true camera poses gives back the true vehicle path (mount round trip)."""
+    from stemmap.odometry.visual import VisualOdometryResult
+
+    n = len(drive.frames)
+    res = VisualOdometryResult(
+        drive.truth.times,
+        np.array([f.world_from_camera for f in drive.frames]),
+        np.full(n, int(VoStatus.TRACKED)),
+        np.zeros(n, np.int64),
+        np.zeros(n, np.int64),
+    )
+    est = planar_from_camera(res, drive.camera.vehicle_from_camera())
+    np.testing.assert_allclose(est.poses[:, :2], drive.truth_in_start_frame(), atol=1e-9)
+    np.testing.assert_allclose(
+        est.poses[:, 2], drive.truth.poses[:, 2] - drive.truth.poses[0, 2], atol=1e-9
+    )

@@ -1,0 +1,142 @@
+"""Munjer et al. 2025 end to end on a simulated Munjer-like drive (sim/munjer.py): EB-LiDAR,
+DAIM (boxes from the segmentation detector, never truth) and stemmap's own cloud detector, each
+through FastSLAM (100 particles) + the Kalman refinement, scored as the paper's Table 2.
+
+One lap of seed 1 (148 lidar frames at 10 Hz, 4 m/s, 13 trees, 3 bushes); the numbers quoted
+in the tolerances are from ``python benchmarks/munjer2025.py`` (docs/algorithms/slam-frontends.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stemmap.cloud.munjer import MunjerConfig
+from stemmap.eval.detection import DetectionMetrics
+from stemmap.eval.maps import MapMetrics
+from stemmap.sim.munjer import D435_DEPTH_K, MunjerDrive, simulate_munjer_drive
+from stemmap.slam.base import dead_reckoning
+from stemmap.slam.munjer import (
+    MunjerMapConfig,
+    controls_from_trajectory,
+    daim_observations,
+    eb_lidar_observations,
+    map_munjer,
+    munjer_problem,
+    ours_lidar_observations,
+)
+from stemmap.types import StemObservations, Trajectory
+from stemmap.vision.detector import SegmentationDetector
+
+
+@pytest.fixture(scope="module")
+def drive() -> MunjerDrive:
+    return simulate_munjer_drive(rng=1, camera_every=2)
+
+
+def _map(
+    d: MunjerDrive, obs: StemObservations, times: np.ndarray | None = None
+) -> tuple[DetectionMetrics, MapMetrics]:
+    t = d.times if times is None else times
+    p0 = (float(d.poses[0, 0]), float(d.poses[0, 1]), float(d.poses[0, 2]))
+    problem = munjer_problem(obs, t, d.controls(), d.motion_model(), initial_pose=p0)
+    return d.score(map_munjer(problem, MunjerMapConfig(seed=1)).stem_map)
+
+
+def test_lidar_and_camera_see_the_same_stand(drive: MunjerDrive) -> None:
+    """Both renderers use one stand: lidar returns labelled tree k lie on tree k's cylinder,
+    depth pixels labelled tree k back-project onto it (exact up to the sensors' noise)."""
+    st = drive.stand2d
+    f = 20
+    fr, pose = drive.frames[f], drive.poses[f]
+    lab = fr.fields["label"]
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    w = fr.xyz[:, :2] @ np.array([[c, s], [-s, c]]) + pose[:2]
+    on = lab >= 0
+    d = np.hypot(*(w[on] - st.trees_xy[lab[on]]).T) - st.radii[lab[on]]
+    assert on.sum() > 100 and np.median(np.abs(d)) < 0.03  # VLP-16 noise: 3 cm
+    k = int(np.flatnonzero(drive.camera_frames == f)[0])
+    from stemmap.vision.depth import depth_to_points
+
+    ll = drive.image_labels[k]
+    ids = np.unique(ll[ll >= 0])
+    t = int(ids[np.argmin([np.nanmedian(drive.depths[k][ll == i]) for i in ids])])  # nearest
+    ys, xs = np.nonzero(ll == t)
+    box = [xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+    only_t = np.where(ll == t, drive.depths[k], np.nan)  # the tree's own pixels
+    pc = depth_to_points(only_t, drive.rig.camera, box)
+    body = drive.rig.laser_to_camera.inverse().apply(pc)[:, :2]
+    wb = body @ np.array([[c, s], [-s, c]]) + pose[:2]
+    dd = np.hypot(*(wb - st.trees_xy[t]).T) - st.radii[t]
+    # D435 depth noise sigma = k z^2 (radial spread; the median |error| is ~0.7 sigma)
+    z = float(np.nanmedian(only_t))
+    assert np.median(np.abs(dd)) < 0.01 + D435_DEPTH_K * z**2
+
+
+def test_eb_lidar_eccentricity_reading(drive: MunjerDrive) -> None:
+    """Why EB-LiDAR recall collapsed: over the two largest eigenvalues a 16-beam trunk cluster
+    has e ~ 1.4-3.5 (its 0.5 m band against its width), so the window [10, 20] keeps nothing;
+    largest over smallest (a partial trunk is a thin curved sheet) keeps trunks."""
+    old = eb_lidar_observations(
+        drive.frames, drive.times, MunjerConfig(eccentricity_axes="largest")
+    )
+    new = eb_lidar_observations(drive.frames, drive.times)
+    # measured 3 vs 68 detections on this lap (0 trees in the "largest" maps of 3 seeds)
+    assert len(new) >= 40 and len(old) < 0.1 * len(new)
+
+
+def test_eb_lidar_map_accuracy(drive: MunjerDrive) -> None:
+    m, mm = _map(drive, eb_lidar_observations(drive.frames, drive.times))
+    # measured: TA 8, FA 0, FR 5, TR 3. Recall is bounded by the 0.5 m band: beyond ~6 m a
+    # trunk has < 20 points (minPts) in its 1-2 rings, and thick trunks fall below e = 10.
+    assert m.precision >= 0.85 and m.recall >= 0.5
+    assert m.tr == 3 and m.accuracy >= 0.6
+    # the issue's map targets
+    assert mm.position_rmse <= 0.3
+    assert mm.pairwise.mean_percent_error <= 5.0
+
+
+def test_daim_map_accuracy_with_detector_boxes(drive: MunjerDrive) -> None:
+    obs = daim_observations(
+        drive.images,
+        drive.depths,
+        drive.camera_frames,
+        drive.times,
+        drive.rig,
+        SegmentationDetector(),
+    )
+    assert obs.source == "vision:munjer2025" and len(obs) > 30
+    m, mm = _map(drive, obs)
+    # measured (camera every frame, benchmark): TA 10, FA 0, FR 3; here every 2nd frame
+    assert m.precision >= 0.9 and m.recall >= 0.6
+    # D435 depth noise grows as z^2 (9 cm at 5 m): the three-point arc is the weak link;
+    # benchmark 0.20-0.32 m over 3 seeds
+    assert mm.position_rmse <= 0.4
+    assert mm.pairwise.mean_percent_error <= 5.0
+
+
+def test_ours_beats_both(drive: MunjerDrive) -> None:
+    sub = slice(0, None, 2)  # every 2nd frame (5 Hz): test time
+    obs = ours_lidar_observations(drive.frames[sub], drive.times[sub])
+    m, mm = _map(drive, obs, drive.times[sub])
+    eb, _ = _map(drive, eb_lidar_observations(drive.frames, drive.times))
+    assert m.f1 >= 0.9 and m.f1 > eb.f1
+    assert mm.position_rmse <= 0.3
+    assert mm.diameter_rmse < 0.03  # EB-LiDAR's Kasa arcs: ~0.07 m
+
+
+def test_controls_from_trajectory_round_trip(drive: MunjerDrive) -> None:
+    """A pose-output motion source (e.g. lidar + IMU odometry) plugs in: its controls dead-
+    reckon back to the same poses."""
+    traj = Trajectory(drive.times, drive.poses, frame="odom")
+    ctrl, model = controls_from_trajectory(traj, sigma_speed=0.05, sigma_yaw_rate=0.002)
+    obs = eb_lidar_observations(drive.frames[:5], drive.times[:5])
+    p0 = tuple(float(v) for v in drive.poses[0])
+    problem = munjer_problem(obs, drive.times, ctrl, model, initial_pose=p0)  # type: ignore[arg-type]
+    dr = dead_reckoning(problem)
+    err = np.hypot(*(dr.poses[:, :2] - drive.poses[:, :2]).T)
+    # chords of 0.4 m on 4 m radius turns: the arc vs chord difference stays below 1 cm
+    assert err.max() < 0.05
+    assert model.sigma_speed == 0.05
