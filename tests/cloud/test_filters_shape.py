@@ -113,3 +113,21 @@ def test_ground_on_a_slope_with_objects() -> None:
     np.testing.assert_allclose(acc.model().z, g.z)
     with pytest.raises(InputError):
         GroundAccumulator(1.0).model()
+
+
+@pytest.mark.parametrize("stray", [False, True])
+def test_cell_index_is_numpy_unique_of_the_packed_keys(stray: bool) -> None:
+    """The dense-occupancy cell index (ground minima, canopy raster) gives exactly the cells
+    and inverse of a sort-based ``np.unique``, also when a stray point forces the fallback."""
+    from stemmap.cloud.ground import cell_index
+
+    rng = np.random.default_rng(7)
+    ij = rng.integers(-40, 60, size=(20_000, 2)).astype(np.int64)
+    if stray:
+        ij[5] = (3_000_000, -2_000_000)  # a bounding box of 1e13 cells: np.unique path
+    keys = ((ij[:, 0] + (1 << 30)) << 32) | (ij[:, 1] + (1 << 30))
+    uk, inv = np.unique(keys, return_inverse=True)
+    cells, got = cell_index(ij)
+    np.testing.assert_array_equal(((cells[:, 0] + (1 << 30)) << 32) | (cells[:, 1] + (1 << 30)), uk)
+    np.testing.assert_array_equal(got, inv)
+    assert cell_index(np.zeros((0, 2), dtype=np.int64))[0].shape == (0, 2)

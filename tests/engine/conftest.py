@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,3 +29,17 @@ def stand_tiles(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndar
         las = laspy.read(p)
         whole.append(np.column_stack((las.x, las.y, las.z)))
     return root / "tiles", np.concatenate(whole)
+
+
+@pytest.fixture(scope="module")
+def client() -> Iterator[Any]:
+    """An in-process Dask cluster: one worker with two threads (tasks run concurrently)."""
+    from distributed import Client, LocalCluster
+
+    with (
+        LocalCluster(
+            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+        ) as cluster,
+        Client(cluster) as cl,
+    ):
+        yield cl

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from stemmap.cloud import CloudStems, StemConfig, detect_stems
+from stemmap.cloud import CloudStems, StemConfig, detect_statistics, detect_stems
 from stemmap.engine import Catalog, Manifest, catalog_statistics, run_stems_catalog
 
 # Tolerances of the chunked result against one process over the whole cloud. The engine
@@ -24,19 +23,6 @@ from stemmap.engine import Catalog, Manifest, catalog_statistics, run_stems_cata
 # 1 mm and the same diameters; 1e-6 m leaves room for summation-order rounding only.
 POS_TOL = 1e-3
 DBH_TOL = 1e-6
-
-
-@pytest.fixture(scope="module")
-def client() -> Iterator[Any]:
-    from distributed import Client, LocalCluster
-
-    with (
-        LocalCluster(
-            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
-        ) as cluster,
-        Client(cluster) as cl,
-    ):
-        yield cl
 
 
 @pytest.fixture(scope="module")
@@ -112,9 +98,29 @@ def test_pilot_statistics_make_chunkings_agree_on_a_large_catalog(
     assert_same_stems(a.stems, b.stems)
     single = detect_stems(stand_tiles[1], a.config)
     assert_same_stems(single, a.stems)
+    # the engine measured them on a worker from the staged pilot fragments: the same values
+    # as measuring them in this process from the files
+    here = catalog_statistics(cat, StemConfig(slice_mode="never"), max_points=budget)
+    assert here == a.config
     # set by the user: kept as given
     mine = StemConfig(spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0))
     assert catalog_statistics(cat, mine) == mine
+
+
+def test_detect_statistics_are_the_full_detectors(
+    stand_tiles: tuple[Path, np.ndarray], reference: CloudStems
+) -> None:
+    """The pilot's shortcut (stop at the noise floor, no canopy raster) measures exactly what
+    the full detector measures, heights on or off."""
+    x0, y0, _, _ = Catalog.from_inputs([stand_tiles[0]]).bounds
+    cfg = StemConfig(grid_origin=(x0, y0), estimate_height=True)
+    st = detect_statistics(stand_tiles[1], cfg)
+    assert len(st) == 0
+    assert st.spacing == reference.spacing and st.noise_floor == reference.noise_floor
+    full = detect_stems(stand_tiles[1], cfg)
+    assert st.spacing == full.spacing and st.noise_floor == full.noise_floor
+    given = detect_statistics(stand_tiles[1], StemConfig(spacing=0.05, noise_floor=0.002))
+    assert (given.spacing, given.noise_floor) == (0.05, 0.002)
 
 
 def test_resume_redoes_only_missing_or_changed_chunks(
@@ -129,6 +135,7 @@ def test_resume_redoes_only_missing_or_changed_chunks(
     assert len(first.computed) == n
     again = run_stems_catalog(cat, StemConfig(), work, chunk_size=10.0, resume=True, client=client)
     assert again.computed == [] and len(again.skipped) == n
+    assert again.config == first.config  # the statistics the chunks ran with, from the manifest
     assert_same_stems(first.stems, again.stems)  # type: ignore[arg-type]
     # a chunk whose line is missing (killed before it finished) is redone, only it
     man = Manifest(work)
@@ -172,3 +179,30 @@ def test_failed_tile_is_reported_and_the_rest_finish(
     lines = Manifest(tmp_path / "w").entries()
     assert all("tile_0_0" in lines[c]["error"] for c in users)
     assert all(lines[c]["status"] == "failed" for c in users)
+
+
+def test_one_worker_thread_reads_the_pilot_from_the_stage(
+    stand_tiles: tuple[Path, np.ndarray], reference: CloudStems, tmp_path: Path
+) -> None:
+    """With one worker thread the pilot region is staged with the chunks (no second decode)
+    rather than read directly: the same statistics and stems, nothing left in the stage."""
+    from distributed import Client, LocalCluster
+
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    with (
+        LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        Client(cluster) as one,
+    ):
+        run = run_stems_catalog(cat, StemConfig(), tmp_path, chunk_size=10.0, client=one)
+    assert not run.failed and run.stems is not None
+    assert_same_stems(reference, run.stems)
+    assert isinstance(run.config, StemConfig)
+    assert (run.config.spacing, run.config.noise_floor) == (
+        reference.spacing,
+        reference.noise_floor,
+    )
+    assert set(run.phases) == {"stage", "pilot", "prepare", "stems"}
+    assert run.phases["prepare"]["tasks"] == len(run.chunks)
+    assert not (tmp_path / "stage").exists()

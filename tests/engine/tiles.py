@@ -50,3 +50,61 @@ def write_tiles(folder: Path, xyz: np.ndarray, tile: float, ext: str = ".laz") -
         write_laz(p, xyz[m])
         out.append(p)
     return out
+
+
+def write_copc(path: Path, xyz: np.ndarray, depth: int = 3, seed: int = 0) -> None:
+    """A COPC file (LAS 1.4 point format 6, 1 mm scale) of ``xyz`` written by copclib.
+
+    Octree over the cube around the points: each point goes to a level drawn at random
+    (seeded) and to the node of that level holding it; a node whose descendants hold points
+    but which drew none gets one point from a descendant (a COPC reader walks the hierarchy
+    from the root). Points keep their input order within a node.
+    """
+    import copclib
+    import laspy
+
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    center = (lo + hi) / 2
+    half = float(np.max(hi - lo)) / 2 + 1e-3
+    origin = center - half
+    rng = np.random.default_rng(seed)
+    level = rng.integers(0, depth + 1, size=len(xyz))
+
+    keys = np.zeros((len(xyz), 4), dtype=np.int64)
+    for lev in range(depth + 1):
+        m = level == lev
+        cell = 2 * half / 2**lev
+        keys[m, 0] = lev
+        keys[m, 1:] = np.clip(np.floor((xyz[m] - origin) / cell), 0, 2**lev - 1)
+    nodes: dict[tuple[int, ...], list[int]] = {}
+    for i, k in enumerate(map(tuple, keys.tolist())):
+        nodes.setdefault(k, []).append(i)
+    for lev in range(depth, 0, -1):  # every ancestor of a node must hold a point
+        for key in [k for k in nodes if k[0] == lev]:
+            d, x, y, z = key
+            parent = (d - 1, x // 2, y // 2, z // 2)
+            if parent not in nodes:
+                donor = nodes[key]
+                nodes[parent] = [donor.pop(0)]
+                if not donor:
+                    del nodes[key]
+    scale = np.full(3, 0.001)
+    offset = np.floor(lo)
+    cfg = copclib.CopcConfigWriter(6, copclib.Vector3(*scale), copclib.Vector3(*offset))
+    cfg.las_header.min = copclib.Vector3(*lo)
+    cfg.las_header.max = copclib.Vector3(*hi)
+    cfg.copc_info.center_x, cfg.copc_info.center_y, cfg.copc_info.center_z = center
+    cfg.copc_info.halfsize = half
+    cfg.copc_info.spacing = 2 * half / 128
+    writer = copclib.FileWriter(str(path), cfg)
+    fmt = laspy.PointFormat(6)
+    for key in sorted(nodes):
+        idx = np.array(nodes[key])
+        rec = laspy.ScaleAwarePointRecord.zeros(
+            len(idx), point_format=fmt, scales=scale, offsets=offset
+        )
+        rec.x, rec.y, rec.z = xyz[idx, 0], xyz[idx, 1], xyz[idx, 2]
+        writer.AddNode(
+            copclib.VoxelKey(*key), copclib.VectorChar(rec.array.view(np.int8).reshape(-1))
+        )
+    writer.Close()

@@ -24,6 +24,7 @@ __all__ = [
     "DEFAULT_MAX_MEMORY",
     "GroundAccumulator",
     "GroundModel",
+    "cell_index",
     "core_cells",
     "fit_ground",
     "normalize_heights",
@@ -106,6 +107,34 @@ _SUPPORT = 0.1  # m: points this close above a cell's minimum support it
 _OFF = 1 << 30  # cell indices are shifted to be non-negative before packing into int64 keys
 
 
+def cell_index(ij: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The distinct cells of (N, 2) integer cell indices, sorted by (i, j), and the position
+    of each point's cell among them: ``np.unique`` of the packed keys, without its sort.
+
+    Points of a plot or a chunk fill a compact block of cells, so the cells are found by
+    marking a dense occupancy array over their bounding box (linear time); a block much
+    larger than the points (stray points far away) falls back to ``np.unique``. Both give
+    the same cells in the same order and the same inverse.
+    """
+    n = ij.shape[0]
+    if n == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    lo = ij.min(axis=0)
+    span = ij.max(axis=0) - lo + 1
+    if float(span[0]) * float(span[1]) > 4.0 * n + 1_000_000:
+        keys = ((ij[:, 0] + _OFF) << 32) | (ij[:, 1] + _OFF)
+        uk, inv = np.unique(keys, return_inverse=True)
+        cells = np.column_stack(((uk >> 32) - _OFF, (uk & 0xFFFFFFFF) - _OFF))
+        return cells.astype(np.int64), inv.reshape(-1).astype(np.int64)
+    d = (ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1])
+    occ = np.zeros(int(span[0] * span[1]), dtype=bool)
+    occ[d] = True
+    flat = np.flatnonzero(occ)
+    rank = np.cumsum(occ, dtype=np.int64) - 1
+    cells = np.column_stack((flat // span[1] + lo[0], flat % span[1] + lo[1]))
+    return cells.astype(np.int64), rank[d]
+
+
 class GroundAccumulator:
     """Per-cell minimum z over a stream of chunks; :meth:`model` builds the GroundModel."""
 
@@ -125,11 +154,11 @@ class GroundAccumulator:
         if p.shape[0] == 0:
             return
         ij = np.floor(p[:, :2] / self.cell).astype(np.int64)
-        ij += _OFF
-        keys = (ij[:, 0] << 32) | ij[:, 1]
-        # reduce the chunk to its lowest point per cell first (one int sort + ufunc.at, much
+        # reduce the chunk to its lowest point per cell first (cell_index + ufunc.at, much
         # cheaper than a lexsort of the whole chunk), then merge with the running minima
-        uk, inv = np.unique(keys, return_inverse=True)
+        cells, inv = cell_index(ij)
+        uk = ((cells[:, 0] + _OFF) << 32) | (cells[:, 1] + _OFF)
+        keys = uk[inv]
         zmin = np.full(uk.shape[0], np.inf)
         np.minimum.at(zmin, inv, p[:, 2])
         cand = np.flatnonzero(p[:, 2] == zmin[inv])

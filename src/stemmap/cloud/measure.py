@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.ground import BASE_GROUND, core_cells, raster_guard
+from stemmap.cloud.ground import BASE_GROUND, cell_index, core_cells, raster_guard
 from stemmap.cloud.result import RULE_BH, CloudStems
 from stemmap.cloud.slicefit import (
     _band_spacing,
@@ -49,19 +49,20 @@ _KEY_OFF = 1 << 30
 
 
 def _canopy_update(canopy: dict[str, Any], xy: FloatArray, h: FloatArray) -> dict[str, Any]:
-    """Running max height per 0.25 m cell (keys -> max h), for stem height."""
+    """Running max height per 0.25 m cell (keys -> max h, keys sorted), for stem height."""
     if xy.shape[0] == 0:
         return canopy
-    ij = np.floor(xy / _CANOPY_CELL).astype(np.int64) + _KEY_OFF
-    keys = (ij[:, 0] << 32) | ij[:, 1]
+    ij = np.floor(xy / _CANOPY_CELL).astype(np.int64)
     if canopy:
-        keys = np.concatenate((canopy["keys"], keys))
+        i = (canopy["keys"] >> 32) - _KEY_OFF
+        j = (canopy["keys"] & 0xFFFFFFFF) - _KEY_OFF
+        ij = np.concatenate((np.column_stack((i, j)), ij))
         h = np.concatenate((canopy["h"], h))
-    order = np.lexsort((-h, keys))
-    keys, h = keys[order], h[order]
-    first = np.ones(keys.shape[0], dtype=bool)
-    first[1:] = keys[1:] != keys[:-1]
-    return {"keys": keys[first], "h": h[first]}
+    cells, inv = cell_index(ij)  # the distinct cells, sorted, without a sort of the points
+    hmax = np.full(cells.shape[0], -np.inf)
+    np.maximum.at(hmax, inv, h)
+    keys = ((cells[:, 0] + _KEY_OFF) << 32) | (cells[:, 1] + _KEY_OFF)
+    return {"keys": keys, "h": hmax}
 
 
 def _stem_heights(canopy: dict[str, Any], xy: FloatArray, radius: float = 1.0) -> FloatArray:
@@ -247,7 +248,12 @@ def _radius_consensus(
     return float(np.median(r[agree])), agree
 
 
-def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False) -> CloudStems:
+def _stems_from_band(
+    band: _Band, cfg: StemConfig, *, slice_cloud: bool = False, statistics_only: bool = False
+) -> CloudStems:
+    """Stems of the slice band. With ``statistics_only`` stop once the point spacing and the
+    slice noise floor are measured: an empty CloudStems carrying both (the steps before them
+    are exactly the full run's, so the values are the ones the full run measures)."""
     xy, h = band.xy, band.h
     n = xy.shape[0]
     if n < cfg.min_slice_points:
@@ -363,6 +369,11 @@ def _stems_from_band(band: _Band, cfg: StemConfig, *, slice_cloud: bool = False)
     noise_floor = (
         cfg.noise_floor if cfg.noise_floor is not None else float(np.median(rms[plausible]))
     )
+    if statistics_only:
+        return replace(
+            CloudStems.empty("ours", spacing=sp2d, reason="statistics only"),
+            noise_floor=noise_floor,
+        )
     rms_max = cfg.residual_factor * max(noise_floor, 0.5 * sp2d / 10, 1e-4)
     passed = plausible & (rms <= np.maximum(rms_max, 0.02 * radii))
     log.debug(

@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,12 +54,16 @@ __all__ = [
     "PRESETS",
     "CloudStems",
     "MunjerConfig",
+    "PreparedCloud",
     "StemConfig",
     "associate_proximity",
+    "detect_prepared",
+    "detect_statistics",
     "detect_stems",
     "detect_stems_file",
     "detect_stems_munjer",
     "get_preset",
+    "prepare_cloud",
 ]
 
 log = logging.getLogger(__name__)
@@ -131,9 +135,112 @@ def detect_stems(
         fraction of slices passing, their arc coverage and residual.
     """
     cfg = config or StemConfig()
+    return detect_prepared(prepare_cloud(xyz, cfg, ground=ground, origins=origins), cfg)
+
+
+def detect_statistics(
+    xyz: ArrayLike, config: StemConfig | None = None, *, origins: ArrayLike | None = None
+) -> CloudStems:
+    """The point spacing and slice noise floor :func:`detect_stems` measures on this cloud,
+    without measuring stems.
+
+    The detector's steps up to the noise floor (ground, height band, spacing, clustering,
+    slice fits and their quality tests) are run exactly as in :func:`detect_stems`; the
+    canopy raster (stem heights) and everything after the noise floor are skipped. Returns
+    an empty CloudStems whose ``spacing`` and ``noise_floor`` are the measured values (NaN,
+    with ``reason``, when the cloud has no band points or no plausible slice fit). Values
+    set in ``config`` are returned as given. Used by the scale-out engine's pilot region
+    (:func:`stemmap.engine.catalog_statistics`).
+    """
+    cfg = replace(config or StemConfig(), estimate_height=False)
+    return detect_prepared(prepare_cloud(xyz, cfg, origins=origins), cfg, statistics_only=True)
+
+
+@dataclass
+class PreparedCloud:
+    """A cloud after our detector's ground step: its slice band (points with heights above
+    the ground, the canopy raster when heights are estimated, sensor positions) and the z
+    range and slice mode that adapt the configuration to a pre-cut slice.
+
+    :func:`prepare_cloud` then :func:`detect_prepared` is :func:`detect_stems`. The ground
+    step reads only ``slice_mode``, ``ground_cell``, ``max_memory``, ``max_diameter``,
+    ``band`` and ``estimate_height`` of the configuration, so the scale-out engine prepares
+    a chunk while the catalog's spacing and noise floor are still being measured and
+    detects with them afterwards. ``band`` is None for an empty cloud.
+    """
+
+    band: _Band | None
+    zmin: float = math.nan
+    zmax: float = math.nan
+    is_slice: bool = False
+
+    def to_columns(self) -> dict[str, Any]:
+        """Named arrays (no objects) for an .npz; :meth:`from_columns` reads them back."""
+        if self.band is None:
+            return {"empty": np.array(True)}
+        b = self.band
+        cols: dict[str, Any] = {
+            "empty": np.array(False),
+            "xy": b.xy,
+            "h": b.h,
+            "z": b.z,
+            "base": np.array(b.base),
+            "zrange": np.array([self.zmin, self.zmax]),
+            "is_slice": np.array(self.is_slice),
+        }
+        if b.canopy:
+            cols["canopy_keys"], cols["canopy_h"] = b.canopy["keys"], b.canopy["h"]
+        if b.origins is not None:
+            cols["origins"] = np.ascontiguousarray(b.origins)
+        return cols
+
+    @classmethod
+    def from_columns(cls, cols: dict[str, Any]) -> PreparedCloud:
+        if bool(cols["empty"]):
+            return cls(None)
+        canopy = (
+            {"keys": cols["canopy_keys"], "h": cols["canopy_h"]} if "canopy_keys" in cols else {}
+        )
+        band = _Band(
+            cols["xy"],
+            cols["h"],
+            cols["z"],
+            canopy,
+            origins=cols.get("origins"),
+            base=str(cols["base"]),
+        )
+        z0, z1 = (float(v) for v in cols["zrange"])
+        return cls(band, z0, z1, bool(cols["is_slice"]))
+
+
+def detect_prepared(
+    prepared: PreparedCloud, config: StemConfig | None = None, *, statistics_only: bool = False
+) -> CloudStems:
+    """Stems of a :class:`PreparedCloud` (the steps of :func:`detect_stems` after the
+    ground); with ``statistics_only`` only the spacing and noise floor
+    (:func:`detect_statistics`). ``config`` must be the one the cloud was prepared with, up
+    to ``spacing`` / ``noise_floor`` / ``grid_origin`` and the fit settings."""
+    if prepared.band is None:
+        return CloudStems.empty("ours", reason="the cloud is empty")
+    cfg = _slice_setup(config or StemConfig(), prepared.zmin, prepared.zmax, prepared.is_slice)
+    return _stems_from_band(
+        prepared.band, cfg, slice_cloud=prepared.is_slice, statistics_only=statistics_only
+    )
+
+
+def prepare_cloud(
+    xyz: ArrayLike,
+    config: StemConfig | None = None,
+    *,
+    ground: GroundModel | None = None,
+    origins: ArrayLike | None = None,
+) -> PreparedCloud:
+    """Our detector's ground step on an in-memory cloud (:class:`PreparedCloud`; the
+    parameters are :func:`detect_stems`'s)."""
+    cfg = config or StemConfig()
     p = as_xyz(xyz)
     if p.shape[0] == 0:
-        return CloudStems.empty("ours", reason="the cloud is empty")
+        return PreparedCloud(None)
     o: FloatArray | None = None
     if origins is not None:
         if cfg.fit_method == "kasa":
@@ -154,7 +261,6 @@ def detect_stems(
             raise InputError("origins hold non-finite values.")
     zmin, zmax = float(p[:, 2].min()), float(p[:, 2].max())
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
-    cfg = _slice_setup(cfg, zmin, zmax, is_slice)
     if is_slice:
         band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o, base=BASE_SLICE)
     else:
@@ -165,7 +271,7 @@ def detect_stems(
         band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m], base=g.base)
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
-    return _stems_from_band(band, cfg, slice_cloud=is_slice)
+    return PreparedCloud(band, zmin, zmax, is_slice)
 
 
 def _ground_of(chunks: Iterable[FloatArray], cfg: StemConfig) -> GroundModel:

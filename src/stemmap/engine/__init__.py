@@ -8,14 +8,15 @@ functions it runs stay pure.
   split when too dense; :func:`read_chunk` -- a buffered chunk's points in bounded memory.
 * :func:`run_stems_catalog` -- stems per chunk (ownership by stem centre), manifest and
   resume, merged result equal to one process over the whole cloud.
-* :func:`dask_client`, :func:`run_tasks` -- a local or remote cluster; retried tasks whose
+* :func:`dask_client`, :func:`run_graph`, :func:`run_tasks` -- a local or remote cluster; a
+  graph of tasks (stage, pilot, chunks) or independent tasks, retried, whose
   failures are reported while the others finish.
 
 See docs/algorithms/engine.md.
 """
 
 from stemmap.engine.catalog import Catalog, Chunk, Tile, expand_inputs, plan_chunks, read_chunk
-from stemmap.engine.cluster import TaskOutcome, dask_client, run_tasks
+from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph, run_tasks
 from stemmap.engine.manifest import Manifest
 from stemmap.engine.stems import (
     DEFAULT_BUFFER,
@@ -33,6 +34,7 @@ __all__ = [
     "Catalog",
     "CatalogRun",
     "Chunk",
+    "Dep",
     "Manifest",
     "TaskOutcome",
     "Tile",
@@ -42,6 +44,7 @@ __all__ = [
     "merge_chunk_results",
     "plan_chunks",
     "read_chunk",
+    "run_graph",
     "run_stems_catalog",
     "run_tasks",
     "stems_chunk",

@@ -16,7 +16,7 @@ from typing import Any
 
 from stemmap.errors import ConfigError
 
-__all__ = ["TaskOutcome", "dask_client", "run_tasks"]
+__all__ = ["Dep", "TaskOutcome", "dask_client", "run_graph", "run_tasks"]
 
 log = logging.getLogger(__name__)
 
@@ -105,29 +105,45 @@ def _quiet_worker_logs() -> None:
         logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
-def run_tasks(
+@dataclass(frozen=True)
+class Dep:
+    """An argument of a :func:`run_graph` task that stands for the result of the earlier
+    task named ``key`` (the task waits for it; Dask moves the value between workers)."""
+
+    key: str
+
+
+def run_graph(
     client: Any,
-    fn: Callable[..., Any],
-    tasks: Sequence[tuple[str, tuple[Any, ...]]],
+    tasks: Sequence[tuple[str, Callable[..., Any], tuple[Any, ...]]],
     *,
     retries: int = 2,
+    priorities: dict[str, int] | None = None,
     on_done: Callable[[TaskOutcome], None] | None = None,
 ) -> list[TaskOutcome]:
-    """Run ``fn(*args)`` for every ``(key, args)`` on the cluster; collect every outcome.
+    """Run a graph of tasks ``(key, fn, args)`` on the cluster; collect every outcome.
 
-    A task that raises is retried ``retries`` times (a worker that dies mid-task has its tasks
-    rescheduled by the scheduler on another worker, Dask's ``allowed-failures``); one that
-    still fails is reported as a failed :class:`TaskOutcome` while the others go on.
-    ``on_done`` is called in the client, in completion order, once per task.
+    Every task is submitted at once: an argument ``Dep(key)`` makes a task wait for an
+    earlier task and receive its result, so independent work runs while a dependency is
+    still being computed (no client-side barrier between stages). ``priorities`` (key ->
+    int, default 0; Dask runs higher first among ready tasks). A task that raises is retried
+    ``retries`` times (a worker that dies mid-task has its tasks rescheduled by the
+    scheduler on another worker, Dask's ``allowed-failures``); one that still fails is
+    reported as a failed :class:`TaskOutcome` while the others go on (a task depending on a
+    failed one fails with its error). ``on_done`` is called in the client, in completion
+    order, once per task.
     """
     from distributed import as_completed
 
     if not tasks:
         return []
-    futures = {}
-    for key, args in tasks:
-        fut = client.submit(fn, *args, key=key, pure=False, retries=retries)
-        futures[fut.key] = fut
+    prio = priorities or {}
+    futures: dict[str, Any] = {}
+    for key, fn, args in tasks:
+        a = tuple(futures[x.key] if isinstance(x, Dep) else x for x in args)
+        futures[key] = client.submit(
+            fn, *a, key=key, pure=False, retries=retries, priority=prio.get(key, 0)
+        )
     outcomes: list[TaskOutcome] = []
     for fut in as_completed(list(futures.values())):
         if fut.status == "finished":
@@ -141,3 +157,16 @@ def run_tasks(
         if on_done is not None:
             on_done(oc)
     return outcomes
+
+
+def run_tasks(
+    client: Any,
+    fn: Callable[..., Any],
+    tasks: Sequence[tuple[str, tuple[Any, ...]]],
+    *,
+    retries: int = 2,
+    on_done: Callable[[TaskOutcome], None] | None = None,
+) -> list[TaskOutcome]:
+    """Run ``fn(*args)`` for every independent ``(key, args)`` on the cluster
+    (:func:`run_graph` with one function and no dependencies)."""
+    return run_graph(client, [(k, fn, a) for k, a in tasks], retries=retries, on_done=on_done)

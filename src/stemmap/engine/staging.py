@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -31,7 +32,7 @@ from stemmap.engine.catalog import Catalog, Chunk
 from stemmap.errors import InputError
 from stemmap.types import FloatArray
 
-__all__ = ["clear_stage", "read_staged", "stage_tile"]
+__all__ = ["clear_stage", "read_staged", "stage_tile", "stage_tile_outcome"]
 
 
 def _frag(stage: Path, chunk_id: str, tile: int, what: str) -> Path:
@@ -66,7 +67,7 @@ def stage_tile(
                 p = _frag(root, cid, tile, w + tmp_suffix)
                 handles[(cid, w)] = open(p, "wb")  # noqa: SIM115 - closed in finally
         try:
-            with laspy.open(t.path) as rd:
+            with laspy.open(t.path, laz_backend=_one_thread_laz()) as rd:
                 names = set(rd.header.point_format.dimension_names)
                 missing = [f for f in fields if f not in names]
                 if missing:
@@ -106,6 +107,58 @@ def stage_tile(
                 with contextlib.suppress(FileNotFoundError):
                     os.unlink(_frag(root, cid, tile, w + tmp_suffix))
     return counts
+
+
+def _one_thread_laz() -> Any:
+    """lazrs' single-threaded LAZ decoder when available (laspy's default decodes on every
+    core: in a one-thread Dask worker that oversubscribes the cores the other workers use;
+    the decoded points are the same)."""
+    from laspy import LazBackend
+
+    return LazBackend.Lazrs if LazBackend.Lazrs.is_available() else None
+
+
+def stage_tile_outcome(
+    catalog: Catalog,
+    tile: int,
+    chunks: Sequence[Chunk],
+    stage: str,
+    fields: Sequence[str] = (),
+    retries: int = 2,
+) -> dict[str, Any]:
+    """:func:`stage_tile` as a graph task that never raises: tries ``1 + retries`` times and
+    returns ``{"ok": True, "tile", "counts"}`` or ``{"ok": False, "tile", "error"}``, so the
+    tasks depending on it (the chunks reading the tile, the pilot region) still run and
+    decide: a chunk fails with the tile's error, the pilot reports it unreadable."""
+    c0 = task_clock()
+    error = ""
+    for _ in range(1 + max(retries, 0)):
+        try:
+            counts = stage_tile(catalog, tile, chunks, stage, fields)
+            return {"ok": True, "tile": tile, "counts": counts, **task_spent(c0)}
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+    path = catalog.tiles[tile].path
+    return {"ok": False, "tile": tile, "error": f"tile {path}: {error}", **task_spent(c0)}
+
+
+def task_clock() -> tuple[float, float]:
+    """(wall, thread CPU) seconds now: a task's start, for :func:`task_spent`."""
+    return time.perf_counter(), time.thread_time()
+
+
+def task_spent(c0: tuple[float, float]) -> dict[str, float]:
+    """Wall and CPU seconds of the calling thread since ``c0`` (``task_s``, ``cpu_s``): what
+    a task reports so the client can break a run down by phase (a one-thread worker runs the
+    task in this thread; LAZ decoding is single-threaded there)."""
+    return {"task_s": time.perf_counter() - c0[0], "cpu_s": time.thread_time() - c0[1]}
+
+
+def check_staged(outcomes: Sequence[dict[str, Any]]) -> None:
+    """Raise the error of the first tile that could not be staged (InputError)."""
+    for oc in outcomes:
+        if not oc.get("ok", False):
+            raise InputError(str(oc.get("error", "a tile could not be read")))
 
 
 def read_staged(

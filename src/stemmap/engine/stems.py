@@ -32,9 +32,15 @@ import numpy as np
 
 from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
 from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
-from stemmap.engine.cluster import TaskOutcome, dask_client, run_tasks
+from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph
 from stemmap.engine.manifest import Manifest, load_columns, params_hash, save_columns
-from stemmap.engine.staging import chunk_points, clear_stage, stage_tile
+from stemmap.engine.staging import (
+    chunk_points,
+    clear_stage,
+    stage_tile_outcome,
+    task_clock,
+    task_spent,
+)
 from stemmap.errors import InputError, StemmapError
 
 __all__ = [
@@ -43,6 +49,9 @@ __all__ = [
     "CatalogRun",
     "catalog_statistics",
     "merge_chunk_results",
+    "pilot_chunk",
+    "pilot_statistics",
+    "prepare_chunk",
     "run_stems_catalog",
     "stems_chunk",
 ]
@@ -77,6 +86,10 @@ def _detect(
     return detect_stems(xyz, cfg, origins=origins)
 
 
+def _no_points(method: str) -> CloudStems:
+    return CloudStems.empty(method, reason="the buffered chunk holds no point")
+
+
 def _chunk_stems(
     catalog: Catalog,
     chunk: Chunk,
@@ -90,8 +103,7 @@ def _chunk_stems(
     xyz, extra = chunk_points(catalog, chunk, stage, fields)
     n = int(xyz.shape[0])
     if n == 0:
-        method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
-        return CloudStems.empty(method, reason="the buffered chunk holds no point"), 0
+        return _no_points("munjer2025" if isinstance(config, MunjerConfig) else "ours"), 0
     origins = None
     if sensor is not None:
         times = extra[time_field] if time_field else None
@@ -118,6 +130,110 @@ def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, f
     return box(lo)
 
 
+def _anchored(catalog: Catalog, config: StemConfig) -> StemConfig:
+    """``config`` with its grids anchored at the catalog's lower-left header corner (one
+    anchor for every chunk; without it each chunk would anchor them at its own points'
+    minimum). A grid origin already set is kept."""
+    if config.grid_origin is not None:
+        return config
+    x0, y0, _, _ = catalog.bounds
+    return replace(config, grid_origin=(x0, y0))
+
+
+def pilot_chunk(catalog: Catalog, max_points: int) -> Chunk:
+    """The pilot region (:func:`pilot_box`) as an unbuffered chunk named ``"pilot"`` (it is
+    staged and read like a chunk)."""
+    b = pilot_box(catalog, max_points)
+    tiles = tuple(k for k, t in enumerate(catalog.tiles) if t.overlaps(b))
+    return Chunk("pilot", b, 0.0, tiles, (True,) * 4, catalog.expected_points(b))
+
+
+def pilot_statistics(
+    catalog: Catalog,
+    pilot: Chunk,
+    config: StemConfig,
+    sensor: SensorPositions | None = None,
+    time_field: str | None = None,
+    stage: str | None = None,
+    *staged: dict[str, Any],
+) -> dict[str, Any]:
+    """The point spacing and slice noise floor our detector measures on the pilot region
+    (:func:`stemmap.cloud.detect_statistics`: the detector's steps up to the noise floor,
+    exactly; no canopy raster, no stem measurement).
+
+    Runs on a worker (or in the client with ``stage=None``: a direct read). ``staged`` are
+    the staging outcomes of its tiles (:func:`~stemmap.engine.staging.stage_tile_outcome`).
+    Never raises: an unreadable region gives NaN values and a ``reason``. Its staged
+    fragments stay (a pilot rescheduled after its worker died reads them again): the client
+    removes them.
+    """
+    from stemmap.cloud import detect_statistics
+    from stemmap.engine.staging import check_staged
+
+    c0 = task_clock()
+    nan = {"spacing": math.nan, "noise_floor": math.nan, "n_points": 0}
+    try:
+        check_staged(staged)
+        fields = (time_field,) if time_field else ()
+        xyz, extra = chunk_points(catalog, pilot, stage, fields)
+        n = int(xyz.shape[0])
+        if n == 0:
+            return {**nan, "reason": "the pilot region holds no point", **task_spent(c0)}
+        origins = None
+        if sensor is not None:
+            times = extra[time_field] if time_field else None
+            origins = sensor.origins(n, times, "the pilot region")
+        st = detect_statistics(xyz, config, origins=origins)
+    except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
+        return {**nan, "reason": f"pilot region unreadable: {exc}", **task_spent(c0)}
+    return {
+        "spacing": float(st.spacing),
+        "noise_floor": float(st.noise_floor),
+        "n_points": n,
+        "reason": st.reason,
+        **task_spent(c0),
+    }
+
+
+def _with_statistics(config: StemConfig, stats: dict[str, Any] | None) -> StemConfig:
+    """``config`` with the pilot's spacing and noise floor filled in where unset (a
+    non-finite or non-positive value stays unset: each chunk then measures its own)."""
+    if stats is None:
+        return config
+
+    def pick(mine: float | None, value: Any) -> float | None:
+        if mine is not None:
+            return mine
+        v = math.nan if value is None else float(value)
+        return v if math.isfinite(v) and v > 0 else None
+
+    return replace(
+        config,
+        spacing=pick(config.spacing, stats.get("spacing")),
+        noise_floor=pick(config.noise_floor, stats.get("noise_floor")),
+    )
+
+
+def _log_statistics(config: StemConfig, pilot: Chunk, stats: dict[str, Any]) -> None:
+    sp = config.spacing if config.spacing is not None else float(stats["spacing"])
+    nf = config.noise_floor if config.noise_floor is not None else float(stats["noise_floor"])
+    log.info(
+        "catalog statistics from %d points in (%.1f, %.1f, %.1f, %.1f): spacing %.4f m, "
+        "noise floor %.4f m",
+        int(stats.get("n_points", 0)),
+        *pilot.box,
+        sp,
+        nf,
+    )
+    if not (math.isfinite(sp) and math.isfinite(nf)):
+        log.warning(
+            "the pilot region could not measure the catalog's point spacing / noise floor "
+            "(%s); each chunk measures its own, so stems near chunk edges may differ slightly "
+            "from a single-process run. Set them with StemConfig(spacing=, noise_floor=).",
+            stats.get("reason") or "no plausible slice fit",
+        )
+
+
 def catalog_statistics(
     catalog: Catalog,
     config: StemConfig,
@@ -127,7 +243,8 @@ def catalog_statistics(
     time_field: str | None = None,
 ) -> StemConfig:
     """``config`` with the grid origin, point spacing and slice noise floor of the catalog
-    filled in.
+    filled in, computed in this process (the engine computes the same on a worker from the
+    staged pilot region, :func:`pilot_statistics`).
 
     The detector's clustering and vertical-filter grids are anchored at
     ``StemConfig.grid_origin``, set here to the catalog's lower-left header corner (without
@@ -138,47 +255,57 @@ def catalog_statistics(
     chunk and from a single process over the whole cloud, and with them the clustering cell,
     the slice layout of a sparse cloud and the residual test. They are measured once, by the
     detector on a pilot region (:func:`pilot_box`: the whole catalog when it holds at most
-    ``max_points`` points, else a centred box holding about that many), read in the client,
-    and every chunk gets them through its config. Values already set in ``config`` are kept.
-    When the pilot measures nothing (no band points, no plausible slice fit) the value stays
-    unset and each chunk measures its own (logged as a warning).
+    ``max_points`` points, else a centred box holding about that many), and every chunk gets
+    them through its config. Values already set in ``config`` are kept. When the pilot
+    measures nothing (no band points, no plausible slice fit) the value stays unset and each
+    chunk measures its own (logged as a warning).
     """
-    if config.grid_origin is None:
-        # one anchor for the grids of every chunk: the catalog's lower-left header corner
-        x0, y0, _, _ = catalog.bounds
-        config = replace(config, grid_origin=(x0, y0))
+    config = _anchored(catalog, config)
     if config.spacing is not None and config.noise_floor is not None:
         return config
-    b = pilot_box(catalog, max_points)
-    tiles = tuple(k for k, t in enumerate(catalog.tiles) if t.overlaps(b))
-    pilot = Chunk("pilot", b, 0.0, tiles, (True,) * 4, catalog.expected_points(b))
-    try:
-        stems, n = _chunk_stems(catalog, pilot, config, sensor, time_field, None)
-    except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
-        log.warning("the pilot region could not be read (%s)", exc)
-        stems, n = CloudStems.empty("ours", reason=f"pilot region unreadable: {exc}"), 0
-    sp = config.spacing if config.spacing is not None else stems.spacing
-    nf = config.noise_floor if config.noise_floor is not None else stems.noise_floor
-    log.info(
-        "catalog statistics from %d points in (%.1f, %.1f, %.1f, %.1f): spacing %.4f m, "
-        "noise floor %.4f m",
-        n,
-        *b,
-        sp,
-        nf,
-    )
-    if not (math.isfinite(sp) and math.isfinite(nf)):
-        log.warning(
-            "the pilot region could not measure the catalog's point spacing / noise floor "
-            "(%s); each chunk measures its own, so stems near chunk edges may differ slightly "
-            "from a single-process run. Set them with StemConfig(spacing=, noise_floor=).",
-            stems.reason or "no plausible slice fit",
-        )
-    return replace(
-        config,
-        spacing=sp if math.isfinite(sp) and sp > 0 else None,
-        noise_floor=nf if math.isfinite(nf) and nf > 0 else None,
-    )
+    pilot = pilot_chunk(catalog, max_points)
+    stats = pilot_statistics(catalog, pilot, config, sensor, time_field, None)
+    _log_statistics(config, pilot, stats)
+    return _with_statistics(config, stats)
+
+
+def _prepared_path(stage: str, chunk_id: str) -> Path:
+    return Path(stage) / chunk_id / "prepared.npz"
+
+
+def prepare_chunk(
+    catalog: Catalog,
+    chunk: Chunk,
+    config: StemConfig,
+    stage: str,
+    sensor: SensorPositions | None = None,
+    time_field: str | None = None,
+    *staged: dict[str, Any],
+) -> dict[str, Any]:
+    """The detector's ground step on one buffered chunk (:func:`stemmap.cloud.prepare_cloud`:
+    ground raster, heights, slice band, canopy raster), saved beside its fragments.
+
+    Runs on a worker, before the catalog statistics are known (the ground step does not use
+    them), so chunks are prepared while the pilot region is measured. ``staged``: the
+    staging outcomes of its tiles (an unreadable tile fails the chunk with its error).
+    Returns the points read, the saved file and the seconds spent.
+    """
+    from stemmap.cloud import PreparedCloud, prepare_cloud
+    from stemmap.engine.staging import check_staged
+
+    c0 = task_clock()
+    check_staged(staged)
+    fields = (time_field,) if time_field else ()
+    xyz, extra = chunk_points(catalog, chunk, stage, fields)
+    n = int(xyz.shape[0])
+    origins = None
+    if sensor is not None and n:
+        times = extra[time_field] if time_field else None
+        origins = sensor.origins(n, times, f"chunk {chunk.id}")
+    prep = prepare_cloud(xyz, config, origins=origins) if n else PreparedCloud(None)
+    path = _prepared_path(stage, chunk.id)
+    save_columns(path, prep.to_columns())
+    return {"n_points": n, "path": str(path), **task_spent(c0)}
 
 
 def stems_chunk(
@@ -189,15 +316,36 @@ def stems_chunk(
     sensor: SensorPositions | None = None,
     time_field: str | None = None,
     stage: str | None = None,
+    statistics: dict[str, Any] | None = None,
+    prepared: dict[str, Any] | None = None,
+    *staged: dict[str, Any],
 ) -> dict[str, Any]:
     """Detect stems in one buffered chunk and write the owned ones to ``result_path`` (.npz).
 
     Runs on a worker. The points come from the staged fragments of its LAS/LAZ tiles
-    (``stage``, :mod:`~stemmap.engine.staging`) or are read directly (COPC tiles, or
-    ``stage=None``). Returns a small summary (points read, stems kept, seconds).
+    (``stage``, :mod:`~stemmap.engine.staging`; ``staged``: their staging outcomes, an
+    unreadable tile fails the chunk with its error) or are read directly (COPC tiles, or
+    ``stage=None``); or the chunk was prepared before (``prepared``: the result of
+    :func:`prepare_chunk`) and only the steps after the ground run here.
+    ``statistics``: the pilot region's spacing and noise floor (:func:`pilot_statistics`),
+    filled into ``config`` where unset. Returns a small summary (points read, stems kept,
+    seconds -- with the preparation's --, the statistics used).
     """
-    t0 = time.perf_counter()
-    stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
+    from stemmap.cloud import PreparedCloud, detect_prepared
+    from stemmap.engine.staging import check_staged
+
+    c0 = task_clock()
+    check_staged(staged)
+    if isinstance(config, StemConfig):
+        config = _with_statistics(config, statistics)
+    before = 0.0  # the preparation's seconds (the manifest records the chunk's total)
+    if prepared is not None and isinstance(config, StemConfig):
+        prep = PreparedCloud.from_columns(load_columns(Path(prepared["path"])))
+        n = int(prepared["n_points"])
+        stems = detect_prepared(prep, config) if n else _no_points("ours")
+        before = float(prepared["task_s"])
+    else:
+        stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
     method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
     own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
     cols: dict[str, Any] = {k: _storable(getattr(own, k)) for k in _COLUMNS}
@@ -210,7 +358,10 @@ def stems_chunk(
         "n_points": n,
         "n_stems": len(own),
         "n_found": len(stems),
-        "seconds": time.perf_counter() - t0,
+        "seconds": before + time.perf_counter() - c0[0],
+        "spacing": getattr(config, "spacing", None),
+        "noise_floor": getattr(config, "noise_floor", None),
+        **task_spent(c0),
     }
 
 
@@ -257,6 +408,9 @@ class CatalogRun:
     #: the configuration every chunk ran with (slice mode, spacing and noise floor of the
     #: catalog filled in): ``detect_stems(cloud, run.config)`` is the single-process equivalent
     config: StemConfig | MunjerConfig | None = None
+    #: per phase (``stage``, ``pilot``, ``prepare``, ``stems``): tasks run, and the wall and
+    #: CPU seconds they spent on the workers (summed) -- where a run's time goes
+    phases: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def _catalog_config(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> StemConfig | MunjerConfig:
@@ -330,10 +484,11 @@ def run_stems_catalog(
         with laspy.open(catalog.tiles[0].path) as rd:
             names = tuple(rd.header.point_format.dimension_names)
         time_field = sensor.pick_time_field(names, repr(catalog.tiles[0].path))
+    pilot: Chunk | None = None
     if isinstance(cfg, StemConfig):
-        cfg = catalog_statistics(
-            catalog, cfg, max_points=max_points, sensor=sensor, time_field=time_field
-        )
+        cfg = _anchored(catalog, cfg)
+        if cfg.spacing is None or cfg.noise_floor is None:
+            pilot = pilot_chunk(catalog, max_points)
     hashes: dict[int, str] = {}
 
     def inputs_of(ch: Chunk) -> dict[str, str]:
@@ -342,7 +497,16 @@ def run_stems_catalog(
                 hashes[k] = catalog.tiles[k].content_hash()
         return {catalog.tiles[k].path: hashes[k] for k in ch.tiles}
 
-    base = params_hash({"config": cfg, "sensor": sensor, "time_field": time_field})
+    # the catalog statistics are a function of the configuration and the pilot region's
+    # files: both identify a chunk's parameters (the statistics are measured after this)
+    base = params_hash(
+        {
+            "config": cfg,
+            "sensor": sensor,
+            "time_field": time_field,
+            "pilot": None if pilot is None else [pilot.box, inputs_of(pilot)],
+        }
+    )
     wanted = {
         ch.id: (inputs_of(ch), params_hash([base, ch.box, ch.buffer, ch.open_sides]))
         for ch in chunks
@@ -362,37 +526,80 @@ def run_stems_catalog(
         len(done),
         buffer,
     )
+    if isinstance(cfg, StemConfig) and pilot is not None and not todo and chunks:
+        # every chunk done before: the statistics they ran with
+        run.config = _with_statistics(cfg, man.entries()[chunks[0].id])
     stage = str(Path(work) / "stage")
     fields = (time_field,) if time_field else ()
-    # stage 1: decode each LAS/LAZ tile once into the fragments of the chunks still to do
+    # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
+    # to do; the pilot measures the catalog statistics on a worker; each chunk's ground step
+    # (prepare) runs as soon as its tiles are staged, the rest of the detector once the
+    # pilot is done too. With one worker thread the pilot reads staged fragments as well
+    # (no second decode); with more it reads its tiles itself and starts at once, decoding
+    # them a second time on a core that would otherwise wait: the pilot is the longest task
+    # and every chunk's second step waits for it.
     per_tile: dict[int, list[Chunk]] = {}
-    for ch in todo:
-        for k in ch.tiles:
-            if not catalog.tiles[k].copc:
-                per_tile.setdefault(k, []).append(ch)
-    stage_tasks = [
-        (f"stage-tile-{k}", (catalog, k, chs, stage, fields)) for k, chs in sorted(per_tile.items())
-    ]
-    n_stage = len(stage_tasks)
+
+    def build(threads: int) -> list[tuple[str, Callable[..., Any], tuple[Any, ...]]]:
+        direct = threads > 1
+        per_tile.clear()
+        readers = [*todo, *([pilot] if pilot is not None and todo and not direct else [])]
+        for ch in readers:
+            for k in ch.tiles:
+                if not catalog.tiles[k].copc:
+                    per_tile.setdefault(k, []).append(ch)
+        graph: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
+            (f"stage-tile-{k}", stage_tile_outcome, (catalog, k, chs, stage, fields, retries))
+            for k, chs in sorted(per_tile.items())
+        ]
+
+        def deps(ch: Chunk) -> list[Dep]:
+            return [Dep(f"stage-tile-{k}") for k in ch.tiles if k in per_tile]
+
+        stats: Any = None
+        if pilot is not None and todo:
+            where = None if direct else stage
+            pilot_args = (catalog, pilot, cfg, sensor, time_field, where, *deps(pilot))
+            graph.append(("pilot", pilot_statistics, pilot_args))
+            stats = Dep("pilot")
+        for ch in todo:
+            path = str(man.result_path(ch.id))
+            if stats is None:
+                args = (catalog, ch, cfg, path, sensor, time_field, stage, None, None, *deps(ch))
+            else:  # the ground step runs while the pilot is measured; the rest after it
+                prep = (catalog, ch, cfg, stage, sensor, time_field, *deps(ch))
+                graph.append((f"prepare-chunk-{ch.id}", prepare_chunk, prep))
+                args = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
+                args += (Dep(f"prepare-chunk-{ch.id}"),)
+            graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
+        return graph
+
+    n_stage = 0
     staged = 0
-    if on_progress is not None:
-        on_progress("reading tiles", 0, n_stage)
-        on_progress("chunks", len(done), len(chunks))
-
-    def tile_done(oc: TaskOutcome) -> None:
-        nonlocal staged
-        staged += 1
-        if not oc.ok:
-            bad = int(oc.key.removeprefix("stage-tile-"))
-            for ch in per_tile[bad]:
-                run.failed.setdefault(ch.id, f"tile {catalog.tiles[bad].path}: {oc.error}")
-        if on_progress is not None:
-            on_progress("reading tiles", staged, n_stage)
-
     count = len(done)
 
-    def chunk_done(oc: TaskOutcome) -> None:
-        nonlocal count
+    def task_done(oc: TaskOutcome) -> None:
+        nonlocal staged, count
+        if oc.ok and isinstance(oc.value, dict) and "cpu_s" in oc.value:
+            phase = oc.key.split("-")[0]
+            acc = run.phases.setdefault(phase, {"tasks": 0, "task_s": 0.0, "cpu_s": 0.0})
+            acc["tasks"] += 1
+            acc["task_s"] += float(oc.value["task_s"])
+            acc["cpu_s"] += float(oc.value["cpu_s"])
+        if oc.key.startswith("stage-tile-"):
+            staged += 1
+            if on_progress is not None:
+                on_progress("reading tiles", staged, n_stage)
+            return
+        if oc.key == "pilot":
+            assert pilot is not None and isinstance(cfg, StemConfig)
+            value = oc.value if oc.ok else {"spacing": math.nan, "noise_floor": math.nan}
+            _log_statistics(cfg, pilot, {"reason": oc.error, **value})
+            run.config = _with_statistics(cfg, value)
+            clear_stage(stage, pilot.id)
+            return
+        if oc.key.startswith("prepare-chunk-"):
+            return  # its outcome reaches the chunk's stems task (an error fails it)
         cid = oc.key.removeprefix("stems-chunk-")
         inputs, params = wanted[cid]
         if oc.ok:
@@ -404,6 +611,8 @@ def run_stems_catalog(
                 seconds=oc.value["seconds"],
                 n_points=oc.value["n_points"],
                 n_stems=oc.value["n_stems"],
+                spacing=oc.value["spacing"],
+                noise_floor=oc.value["noise_floor"],
             )
             run.computed.append(cid)
             run.n_points += int(oc.value["n_points"])
@@ -418,26 +627,17 @@ def run_stems_catalog(
     man.chunks.mkdir(parents=True, exist_ok=True)
 
     def execute(cl: Any) -> None:
-        run_tasks(cl, stage_tile, stage_tasks, retries=retries, on_done=tile_done)
-        for cid in sorted(run.failed):  # chunks whose tiles could not be read
-            man.append(cid, "failed", *wanted[cid], error=run.failed[cid])
-            count_failed(cid)
-        tasks = [
-            (
-                f"stems-chunk-{ch.id}",
-                (catalog, ch, cfg, str(man.result_path(ch.id)), sensor, time_field, stage),
-            )
-            for ch in todo
-            if ch.id not in run.failed
-        ]
-        run_tasks(cl, stems_chunk, tasks, retries=retries, on_done=chunk_done)
-
-    def count_failed(cid: str) -> None:
-        nonlocal count
-        count += 1
+        nonlocal n_stage
+        graph = build(sum(cl.nthreads().values()))
+        n_stage = len(per_tile)
         if on_progress is not None:
-            on_progress("chunks", count, len(chunks))
+            on_progress("reading tiles", 0, n_stage)
+            on_progress("chunks", len(done), len(chunks))
+        # the pilot first among ready tasks: every chunk's second step waits for it
+        run_graph(cl, graph, retries=retries, priorities={"pilot": 1}, on_done=task_done)
 
+    if not todo and on_progress is not None:
+        on_progress("chunks", len(done), len(chunks))
     if todo:
         if client is not None:
             execute(client)
