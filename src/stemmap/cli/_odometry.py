@@ -1,72 +1,281 @@
-"""``stemmap odometry``: odometry from sensor data (camera frames).
-
-Minimal command of the visual odometry work (issue 16); the lidar/IMU side lives next to it after
-the merge. ``--camera FRAMES`` runs :func:`stemmap.cli._odometry_camera.camera_odometry`.
-"""
+"""``stemmap odometry``: lidar frames (+ IMU and wheel speed), or camera frames (``--camera``,
+:mod:`stemmap.cli._odometry_camera`) -> a trajectory CSV / TUM file."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
+import numpy as np
 import typer
 
-from stemmap.cli._common import fail_on_stemmap_error, print_error
+from stemmap.cli._common import console, fail_on_stemmap_error, out, print_error, progress
+from stemmap.cli._validate import bounded
 
-__all__ = ["register"]
+if TYPE_CHECKING:
+    from stemmap.odometry.fusion import OdometrySource
+
+__all__ = ["odometry", "register"]
+
+_TUM_SUFFIXES = (".tum", ".txt")
 
 
 def odometry(
+    frames: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Lidar frames: a folder of per-frame clouds (.pcd/.ply/.las/.laz/.xyz, timed by "
+            "a times.csv sidecar, by file names in seconds, or by --rate), a 2D scan file "
+            "(.npz/.csv), or a ROS bag (PointCloud2 or LaserScan topic).",
+            show_default=False,
+        ),
+    ] = None,
+    out_path: Annotated[
+        Path,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Trajectory to write: .csv (time_s,x,y,theta) or .tum/.txt (TUM: t x y z qx qy "
+            "qz qw); one pose per lidar frame.",
+        ),
+    ] = Path("odometry.csv"),
+    imu: Annotated[
+        Path | None,
+        typer.Option(
+            help="IMU + wheel-speed CSV (time_s,gyro_z[,wheel_speed,...]; docs/cli.md) or a ROS "
+            "bag with a sensor_msgs/Imu topic. Without it: lidar-only odometry.",
+        ),
+    ] = None,
+    topic: Annotated[
+        str | None,
+        typer.Option(help="Lidar topic of a bag (default: the only PointCloud2, else LaserScan)."),
+    ] = None,
+    imu_topic: Annotated[
+        str | None, typer.Option(help="Imu topic of the --imu bag (default: the only one).")
+    ] = None,
+    odom_topic: Annotated[
+        str | None,
+        typer.Option(help="nav_msgs/Odometry topic of the --imu bag giving the wheel speed."),
+    ] = None,
+    rate: Annotated[
+        float | None,
+        typer.Option(
+            help="Frame rate (Hz) of a folder whose files carry no time.",
+            callback=bounded("--rate", gt=0),
+        ),
+    ] = None,
+    max_range: Annotated[
+        float,
+        typer.Option(
+            help="Drop points farther than this (m).", callback=bounded("--max-range", gt=0)
+        ),
+    ] = 100.0,
+    min_range: Annotated[
+        float,
+        typer.Option(
+            help="Drop points nearer than this (m).", callback=bounded("--min-range", ge=0)
+        ),
+    ] = 0.5,
+    voxel: Annotated[
+        float | None,
+        typer.Option(
+            help="KISS-ICP map voxel (m); default max_range / 100.",
+            callback=bounded("--voxel", gt=0),
+        ),
+    ] = None,
+    keep_ground: Annotated[
+        bool,
+        typer.Option(
+            "--keep-ground",
+            help="Register 3D frames with their ground points (default: removed, a level "
+            "lidar's ground rings pin ICP to zero motion).",
+        ),
+    ] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress or summary.")] = False,
     camera: Annotated[
         Path | None,
         typer.Option(
             "--camera",
             help="Camera frames folder (left/ + right/ rectified stereo, or rgb/ + depth/, with "
-            "camera.json intrinsics) or a ROS bag with Image + CameraInfo topics (docs/cli.md).",
+            "camera.json intrinsics) or a ROS bag with Image + CameraInfo topics: visual "
+            "odometry instead of lidar (docs/cli.md).",
         ),
     ] = None,
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Trajectory CSV to write (time_s,x,y,theta).")
-    ] = Path("odometry.csv"),
     max_corners: Annotated[
-        int | None, typer.Option(help="Shi-Tomasi corners per keyframe (default 400).")
+        int | None, typer.Option(help="Camera: Shi-Tomasi corners per keyframe (default 400).")
     ] = None,
     left_topic: Annotated[
-        str | None, typer.Option(help="Bag: left (or colour) Image topic; guessed if unique.")
+        str | None,
+        typer.Option(help="Camera bag: left (or colour) Image topic; guessed if unique."),
     ] = None,
-    right_topic: Annotated[str | None, typer.Option(help="Bag: right Image topic.")] = None,
+    right_topic: Annotated[str | None, typer.Option(help="Camera bag: right Image topic.")] = None,
     depth_topic: Annotated[
-        str | None, typer.Option(help="Bag: depth Image topic (RGB-D instead of stereo).")
+        str | None, typer.Option(help="Camera bag: depth Image topic (RGB-D instead of stereo).")
     ] = None,
     info_topic: Annotated[
-        str | None, typer.Option(help="Bag: CameraInfo topic of the left camera.")
+        str | None, typer.Option(help="Camera bag: CameraInfo topic of the left camera.")
     ] = None,
     baseline: Annotated[
         float | None,
-        typer.Option(help="Bag: stereo baseline, m (default: from the right CameraInfo's P)."),
+        typer.Option(help="Camera bag: stereo baseline, m (default: the right CameraInfo's P)."),
     ] = None,
 ) -> None:
-    """Estimate the vehicle's path from sensor data.
+    """Odometry from lidar frames, fused with an IMU and wheel speed (Munjer 2025 §3.5).
 
-    Examples: stemmap odometry --camera frames/ --out traj.csv;
-    stemmap odometry --camera run.bag --left-topic /zed2/left/image_rect_color --out traj.csv
+    Every frame is registered to a local map of the previous ones (KISS-ICP point-to-point ICP;
+    3D frames lose their ground points first). With --imu, the gyro and wheels give each
+    ICP its starting guess and bridge frames too sparse to register, and an EKF fuses lidar
+    poses, gyro yaw rate and wheel speed, learning the gyro bias and the wheel scale.
+
+    The trajectory is planar (x, y, heading) in the frame of the first lidar pose, one row per
+    frame. Frames are in the sensor frame (x forward, z up); the lidar is taken to sit at the
+    vehicle's reference point.
+
+    Example: stemmap odometry frames/ --imu imu.csv --out traj.csv
+
+    Example: stemmap odometry drive.bag --imu drive.bag --odom-topic /wheel_odom --out traj.tum
+
+    Example: stemmap odometry scans.npz --imu imu.csv --max-range 80 --out traj.csv  (2D scans)
+
+    Example: stemmap odometry --camera frames/ --out traj.csv  (stereo / RGB-D visual odometry)
     """
-    if camera is None:
-        print_error("give a sensor input: --camera FRAMES_DIR.")
-        raise typer.Exit(code=2)
-    from stemmap.cli._odometry_camera import camera_odometry
+    if camera is not None:
+        if frames is not None:
+            print_error(
+                "give lidar FRAMES or --camera, not both: fusing visual with lidar odometry is "
+                "not wired into this command yet."
+            )
+            raise typer.Exit(code=2)
+        from stemmap.cli._odometry_camera import camera_odometry
 
-    with fail_on_stemmap_error():
-        camera_odometry(
-            camera,
-            out,
-            max_corners=max_corners,
-            left_topic=left_topic,
-            right_topic=right_topic,
-            depth_topic=depth_topic,
-            info_topic=info_topic,
-            baseline=baseline,
+        with fail_on_stemmap_error():
+            camera_odometry(
+                camera,
+                out_path,
+                max_corners=max_corners,
+                left_topic=left_topic,
+                right_topic=right_topic,
+                depth_topic=depth_topic,
+                info_topic=info_topic,
+                baseline=baseline,
+            )
+        return
+    if frames is None:
+        print_error("give a sensor input: lidar FRAMES, or --camera FRAMES_DIR for a camera.")
+        raise typer.Exit(code=2)
+    from stemmap.io.products import run_products
+
+    with (
+        fail_on_stemmap_error(),
+        run_products("odometry", inputs=[frames, imu], outputs=[out_path]) as run,
+    ):
+        traj, summary = _run(
+            frames,
+            imu=imu,
+            topic=topic,
+            imu_topic=imu_topic,
+            odom_topic=odom_topic,
+            rate=rate,
+            max_range=max_range,
+            min_range=min_range,
+            voxel=voxel,
+            keep_ground=keep_ground,
+            quiet=quiet,
         )
+        _write(run.path(out_path), traj)
+        run.note(**summary)
+    if not quiet:
+        for k, v in summary.items():
+            out.print(f"{k}: {v}", markup=False, highlight=False)
+
+
+def _read_inertial(imu: Path | None, imu_topic: str | None, odom_topic: str | None) -> Any:
+    if imu is None:
+        return None
+    from stemmap.io.rosbag import is_bag
+
+    if is_bag(imu):
+        from stemmap.io.imu import inertial_from_bag
+
+        return inertial_from_bag(imu, imu_topic, odom_topic)
+    from stemmap.io.imu import read_imu_csv
+
+    return read_imu_csv(imu)
+
+
+def _run(frames: Path, *, imu: Path | None, quiet: bool, **opt: Any) -> tuple[Any, dict[str, Any]]:
+    from stemmap.errors import InputError
+    from stemmap.io.lidar_frames import open_frames
+    from stemmap.odometry.inertial import fuse_front_ends, motion_prior
+    from stemmap.odometry.lidar import LidarOdometryConfig, lidar_odometry
+    from stemmap.types import Trajectory
+
+    seq = open_frames(frames, topic=opt["topic"], rate_hz=opt["rate"])
+    inertial = _read_inertial(imu, opt["imu_topic"], opt["odom_topic"])
+    cfg = LidarOdometryConfig(
+        max_range=opt["max_range"],
+        min_range=opt["min_range"],
+        voxel_size=opt["voxel"],
+        remove_ground=not opt["keep_ground"],
+    )
+    prior = motion_prior(inertial) if inertial is not None else None
+    with progress(not quiet) as bar:
+        task = bar.add_task("registering frames", total=len(seq) or None)
+
+        def counted() -> Any:
+            for item in seq:
+                yield item
+                bar.advance(task)
+
+        lidar = lidar_odometry(counted(), cfg, motion_prior=prior)
+    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
+    extra: list[OdometrySource] = []
+    summary: dict[str, Any] = {
+        "frames": len(lidar),
+        "held_frames": int(lidar.held.sum()),
+        "imu": inertial is not None,
+    }
+    if inertial is None and not extra:
+        traj = lidar.trajectory()
+    else:
+        if len(lidar) < 2:
+            raise InputError(f"{str(frames)!r} holds {len(lidar)} frame(s); odometry needs 2.")
+        fused = fuse_front_ends(lidar=lidar, inertial=inertial, extra=extra)
+        poses = fused.trajectory.interpolate(lidar.times)
+        traj = Trajectory(lidar.times, poses, frame="odom")
+        summary["rejected"] = dict(
+            zip(_source_names(inertial, extra), fused.n_rejected.tolist(), strict=False)
+        )
+        summary["calibration"] = dict(
+            zip(fused.calibration_names, np.round(fused.calibration, 6).tolist(), strict=True)
+        )
+    step = np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)
+    summary["distance_m"] = round(float(step.sum()), 3)
+    if summary["held_frames"]:
+        console.print(
+            f"warning: {summary['held_frames']} of {len(lidar)} frames had too few points to "
+            "register; their poses come from the IMU/wheels (or constant velocity).",
+            markup=False,
+        )
+    return traj, summary
+
+
+def _source_names(inertial: Any, extra: list[OdometrySource]) -> list[str]:
+    names = []
+    if inertial is not None and inertial.has_gyro:
+        names.append("gyro")
+    if inertial is not None and inertial.has_wheel:
+        names.append("wheel")
+    return [*names, *(s.name or "extra" for s in extra), "lidar"]
+
+
+def _write(path: Path, traj: Any) -> None:
+    from stemmap.io.trajectory import write_trajectory_csv, write_trajectory_tum
+
+    if path.suffix.lower() in _TUM_SUFFIXES:
+        write_trajectory_tum(path, traj)
+    else:
+        write_trajectory_csv(path, traj)
 
 
 def register(app: typer.Typer) -> None:

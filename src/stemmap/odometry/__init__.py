@@ -1,23 +1,53 @@
-"""Odometry front ends: visual odometry from stereo / RGB-D frames (:mod:`.visual`)."""
+"""Odometry front ends feeding slam/: lidar scan matching (:mod:`.lidar`), wheel + IMU sources
+(:mod:`.inertial`), visual odometry from stereo / RGB-D frames (:mod:`.visual`), and their
+loosely coupled EKF fusion (:mod:`.fusion`).
 
-from stemmap.odometry.visual import (
-    StereoCalibration,
-    VisualFrame,
-    VisualOdometry,
-    VisualOdometryConfig,
-    VisualOdometryResult,
-    VoStatus,
-    planar_from_camera,
-    run_visual_odometry,
-)
+Submodules are imported on first use of a name (``from stemmap.odometry import fuse_sources``
+loads only :mod:`.fusion`), so a front end's heavy dependency (KISS-ICP, OpenCV) is paid only
+by the code that uses it. See docs/algorithms/odometry.md and visual-odometry.md.
+"""
 
-__all__ = [
-    "StereoCalibration",
-    "VisualFrame",
-    "VisualOdometry",
-    "VisualOdometryConfig",
-    "VisualOdometryResult",
-    "VoStatus",
-    "planar_from_camera",
-    "run_visual_odometry",
-]
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: public name -> submodule defining it (each front end adds its own lines)
+_LAZY: dict[str, str] = {
+    "FusedOdometry": "fusion",
+    "OdometrySource": "fusion",
+    "PoseSource": "fusion",
+    "dead_reckon_source": "fusion",
+    "fuse_odometry": "fusion",
+    "fuse_sources": "fusion",
+    "velocities_from_poses": "fusion",
+    "LidarOdometry": "lidar",
+    "LidarOdometryConfig": "lidar",
+    "LidarOdometryResult": "lidar",
+    "lidar_odometry": "lidar",
+    "fuse_front_ends": "inertial",
+    "gyro_source": "inertial",
+    "motion_prior": "inertial",
+    "wheel_source": "inertial",
+    "StereoCalibration": "visual",
+    "VisualFrame": "visual",
+    "VisualOdometry": "visual",
+    "VisualOdometryConfig": "visual",
+    "VisualOdometryResult": "visual",
+    "VoStatus": "visual",
+    "planar_from_camera": "visual",
+    "run_visual_odometry": "visual",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'stemmap.odometry' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"stemmap.odometry.{mod}"), name)
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

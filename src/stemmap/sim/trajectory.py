@@ -513,6 +513,20 @@ def lawnmower_path(
     return np.vstack(pts)
 
 
+def distance_to_polyline(q: ArrayLike, path: ArrayLike) -> FloatArray:
+    """Distance (m) of each point of ``q`` (Q, 2) to the polyline ``path`` (K >= 2, 2)."""
+    qq = np.asarray(q, dtype=np.float64).reshape(-1, 2)
+    p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+    if qq.shape[0] == 0:
+        return np.zeros(0)
+    a, b = p[:-1], p[1:]
+    ab = b - a
+    l2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
+    t = np.clip(np.einsum("qsk,sk->qs", qq[:, None, :] - a[None], ab) / l2, 0, 1)
+    closest = a[None] + t[..., None] * ab[None]
+    return np.asarray(np.min(np.linalg.norm(qq[:, None, :] - closest, axis=2), axis=1))
+
+
 def clear_corridor(stand: Stand, path: ArrayLike, half_width: float) -> Stand:
     """Remove trees whose trunk surface is within ``half_width`` (m) of the path polyline.
 
@@ -525,14 +539,7 @@ def clear_corridor(stand: Stand, path: ArrayLike, half_width: float) -> Stand:
         raise InputError("clear_corridor needs a path with at least 2 points.")
 
     def dist_to_path(q: FloatArray) -> FloatArray:
-        if q.shape[0] == 0:
-            return np.zeros(0)
-        a, b = p[:-1], p[1:]
-        ab = b - a
-        l2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
-        t = np.clip(np.einsum("qsk,sk->qs", q[:, None, :] - a[None], ab) / l2, 0, 1)
-        closest = a[None] + t[..., None] * ab[None]
-        return np.asarray(np.min(np.linalg.norm(q[:, None, :] - closest, axis=2), axis=1))
+        return distance_to_polyline(q, p)
 
     keep_trees = dist_to_path(stand.trees_xy) - stand.radii > half_width
     out = stand.subset_trees(keep_trees)

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.sim.forest import random_stand
-from stemmap.sim.trajectory import loop_path, simulate_run
-from stemmap.slam.motion import between
-from stemmap.slam.odometry import (
+from stemmap.odometry.fusion import (
     OdometrySource,
     dead_reckon_source,
     fuse_odometry,
     velocities_from_poses,
 )
+from stemmap.sim.forest import random_stand
+from stemmap.sim.trajectory import loop_path, simulate_run
+from stemmap.slam.motion import between
 from stemmap.types import Trajectory
 
 VO_SCALE = 0.93  # the visual source reads 7 % short ("map may have a different scale", §2.4)
@@ -147,3 +147,13 @@ def test_odometry_bad_input():
         fuse_odometry(ok, ok, accel_noise=0.0)
     with pytest.raises(InputError):
         velocities_from_poses(Trajectory([0.0], [[0.0, 0.0, 0.0]]), sigma_speed=1, sigma_yaw_rate=1)
+
+
+def test_old_import_path_and_lazy_package():
+    import stemmap.odometry as odo
+    from stemmap.slam.odometry import fuse_odometry as old
+
+    assert old is fuse_odometry
+    assert odo.fuse_sources is not None and "LidarOdometry" in dir(odo)
+    with pytest.raises(AttributeError):
+        _ = odo.no_such_name
