@@ -148,6 +148,25 @@ class MunjerDrive:
         )
         return m, map_metrics(stem_map, None, st.trees_xy, st.diameters, gate=gate)
 
+    def trees_in_box(
+        self,
+        box_x: tuple[float, float] | None = (0.0, 10.0),
+        box_y: tuple[float, float] | None = (-10.0, 10.0),
+    ) -> NDArray[np.bool_]:
+        """(T,) bool: trees whose centre lies strictly inside the lidar-frame box ``box_x`` x
+        ``box_y`` (default Munjer et al. 2025 Table 1's pass-through x in (0, 10), y in
+        (-10, 10) m; ``None`` = open) in at least one frame -- the trees EB-LiDAR could see.
+        The lidar frame is the vehicle pose of the frame (the sensor sits on the vehicle axis).
+        """
+        (x0, x1) = box_x or (-np.inf, np.inf)
+        (y0, y1) = box_y or (-np.inf, np.inf)
+        d = self.stand2d.trees_xy[None, :, :] - self.poses[:, None, :2]
+        c = np.cos(self.poses[:, 2])[:, None]
+        s = np.sin(self.poses[:, 2])[:, None]
+        x = c * d[..., 0] + s * d[..., 1]
+        y = -s * d[..., 0] + c * d[..., 1]
+        return np.asarray(((x > x0) & (x < x1) & (y > y0) & (y < y1)).any(axis=0))
+
     def motion_model(self) -> UnicycleModel:
         """Motion noise from the odometry's own error spec (nothing read from the truth): white
         noise averaged over one second plus the scale error at the drive speed and the bias."""
