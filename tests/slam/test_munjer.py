@@ -114,7 +114,9 @@ def test_eb_lidar_ring_gap_limits_range() -> None:
     for r in (3.0, 8.0):
         st = Stand3D(np.array([[r, 0.0]]), np.array([0.3]), np.array([8.0]), np.zeros((1, 2)),
                      np.zeros(1), ground=(0.0, 0.0, 0.0))  # fmt: skip
-        mob = simulate_mobile(st, [[0, 0], [0, 0.01]], lidar, height=0.8, yaws=[0, 0], rng=0)
+        mob = simulate_mobile(
+            st, np.array([[0.0, 0.0], [0.0, 0.01]]), lidar, height=0.8, yaws=[0, 0], rng=0
+        )
         frame = mob.frames[0]
         found[r] = len(detect_stems_munjer(frame.xyz))
     assert found == {3.0: 1, 8.0: 0}
