@@ -125,7 +125,7 @@ def run_loop(
     from stemmap.sim.scanner import scanner_preset
     from stemmap.sim.trajectory import simulate_run
     from stemmap.slam.base import Controls, SlamProblem, TreeFrames
-    from stemmap.slam.motion import UnicycleModel
+    from stemmap.slam.motion import UnicycleModel, between
     from stemmap.slam.treedb import TreeDbSlam
     from stemmap.types import Trajectory
 
@@ -224,6 +224,9 @@ def run_loop(
         "fused_trees": trees.trajectory,
     }
     tp = truth.poses
+    lp = lidar.poses
+    lidar_step_err = between(lp[:-1], lp[1:]) - between(tp[:-1], tp[1:])
+    lidar_step_err[:, 2] = np.remainder(lidar_step_err[:, 2] + math.pi, 2 * math.pi) - math.pi
 
     def true_disp(est: Any) -> tuple[float, float]:
         """True end-minus-start displacement over the estimate's time span, in its start frame."""
@@ -247,6 +250,9 @@ def run_loop(
         "lidar_odometry_s": round(t_lidar, 1),
         "lidar_held_frames": int(lres.held.sum()),
         "lidar_median_sigma_xy_m": float(np.sqrt(np.nanmedian(cov[:, 0, 0]))),
+        # diagnostic: the actual error of the lidar's frame-to-frame steps (forward, m)
+        "lidar_step_error_std_m": float(np.std(lidar_step_err[:, 0])),
+        "lidar_step_error_std_deg": float(np.degrees(np.std(lidar_step_err[:, 2]))),
     }
     for key, est in estimates.items():
         row[f"loop_closure_error_m.{key}"] = loop_closure_error(est, true_disp(est))
