@@ -15,7 +15,7 @@ from stemmap.cli._validate import bounded
 if TYPE_CHECKING:
     from stemmap.odometry.fusion import OdometrySource
 
-__all__ = ["odometry", "register"]
+__all__ = ["lidar_trajectory", "odometry", "register"]
 
 _TUM_SUFFIXES = (".tum", ".txt")
 
@@ -26,7 +26,8 @@ def odometry(
         typer.Argument(
             help="Lidar frames: a folder of per-frame clouds (.pcd/.ply/.las/.laz/.xyz, timed by "
             "a times.csv sidecar, by file names in seconds, or by --rate), a 2D scan file "
-            "(.npz/.csv), or a ROS bag (PointCloud2 or LaserScan topic).",
+            "(.npz/.csv), a frames bundle (.npz, `stemmap sim munjer`), or a ROS bag "
+            "(PointCloud2 or LaserScan topic).",
             show_default=False,
         ),
     ] = None,
@@ -169,7 +170,7 @@ def odometry(
         fail_on_stemmap_error(),
         run_products("odometry", inputs=[frames, imu], outputs=[out_path]) as run,
     ):
-        traj, summary = _run(
+        traj, summary = lidar_trajectory(
             frames,
             imu=imu,
             topic=topic,
@@ -203,7 +204,12 @@ def _read_inertial(imu: Path | None, imu_topic: str | None, odom_topic: str | No
     return read_imu_csv(imu)
 
 
-def _run(frames: Path, *, imu: Path | None, quiet: bool, **opt: Any) -> tuple[Any, dict[str, Any]]:
+def lidar_trajectory(
+    frames: Path, *, imu: Path | None, quiet: bool, **opt: Any
+) -> tuple[Any, dict[str, Any]]:
+    """The lidar (+ IMU / wheel EKF) trajectory of ``frames`` (one pose per frame, frame
+    ``odom``) and a summary; ``opt`` holds this command's other options (topic, imu_topic,
+    odom_topic, rate, max_range, min_range, voxel, keep_ground)."""
     from stemmap.errors import InputError
     from stemmap.io.lidar_frames import open_frames
     from stemmap.odometry.inertial import fuse_front_ends, motion_prior
