@@ -210,11 +210,9 @@ def lidar_trajectory(
     """The lidar (+ IMU / wheel EKF) trajectory of ``frames`` (one pose per frame, frame
     ``odom``) and a summary; ``opt`` holds this command's other options (topic, imu_topic,
     odom_topic, rate, max_range, min_range, voxel, keep_ground)."""
-    from stemmap.errors import InputError
     from stemmap.io.lidar_frames import open_frames
-    from stemmap.odometry.inertial import fuse_front_ends, motion_prior
-    from stemmap.odometry.lidar import LidarOdometryConfig, lidar_odometry
-    from stemmap.types import Trajectory
+    from stemmap.odometry.inertial import lidar_inertial_odometry
+    from stemmap.odometry.lidar import LidarOdometryConfig
 
     seq = open_frames(frames, topic=opt["topic"], rate_hz=opt["rate"])
     inertial = _read_inertial(imu, opt["imu_topic"], opt["odom_topic"])
@@ -224,7 +222,8 @@ def lidar_trajectory(
         voxel_size=opt["voxel"],
         remove_ground=not opt["keep_ground"],
     )
-    prior = motion_prior(inertial) if inertial is not None else None
+    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
+    extra: list[OdometrySource] = []
     with progress(not quiet) as bar:
         task = bar.add_task("registering frames", total=len(seq) or None)
 
@@ -233,22 +232,13 @@ def lidar_trajectory(
                 yield item
                 bar.advance(task)
 
-        lidar = lidar_odometry(counted(), cfg, motion_prior=prior)
-    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
-    extra: list[OdometrySource] = []
+        traj, lidar, fused = lidar_inertial_odometry(counted(), inertial, cfg, extra=extra)
     summary: dict[str, Any] = {
         "frames": len(lidar),
         "held_frames": int(lidar.held.sum()),
         "imu": inertial is not None,
     }
-    if inertial is None and not extra:
-        traj = lidar.trajectory()
-    else:
-        if len(lidar) < 2:
-            raise InputError(f"{str(frames)!r} holds {len(lidar)} frame(s); odometry needs 2.")
-        fused = fuse_front_ends(lidar=lidar, inertial=inertial, extra=extra)
-        poses = fused.trajectory.interpolate(lidar.times)
-        traj = Trajectory(lidar.times, poses, frame="odom")
+    if fused is not None:
         summary["rejected"] = dict(
             zip(_source_names(inertial, extra), fused.n_rejected.tolist(), strict=False)
         )
