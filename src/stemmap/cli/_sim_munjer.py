@@ -2,7 +2,7 @@
 camera, park or orchard, 3-5 m/s; :func:`stemmap.sim.munjer.simulate_munjer_drive`) written as
 
 * ``drive.npz`` -- the frames bundle (:mod:`stemmap.io.frames`: lidar frames and RGB-D frames);
-* ``drive_odometry.csv`` -- the motion source ``time,speed,yaw_rate`` (m/s, rad/s);
+* ``drive_odometry.csv`` -- the motion source ``time_s,speed,yaw_rate`` (s, m/s, rad/s);
 * ``drive_imu.csv`` -- IMU (gyro, accelerometer, 50 Hz) + wheel speed (50 Hz) of the drive
   (:func:`stemmap.sim.imu.simulate_imu`, XSens preset; :mod:`stemmap.io.imu` layout), the
   ``--imu`` of ``stemmap odometry drive.npz`` / ``stemmap map drive.npz --odometry lidar``;
@@ -106,7 +106,7 @@ def munjer(
             camera_to_body=T if has_cam else None,
         )
         with atomic_write(run.path(o_path)) as fh:
-            fh.write("time,speed,yaw_rate\n")
+            fh.write("time_s,speed,yaw_rate\n")
             o = d.odometry
             rows = zip(o.times.tolist(), o.speed.tolist(), o.yaw_rate.tolist(), strict=True)
             for t, v, w in rows:
