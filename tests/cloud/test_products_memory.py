@@ -206,6 +206,13 @@ def test_a_stray_point_does_not_blow_up_memory(
     and the run stays small."""
     _, xyz = multi_scan
     xyz = xyz[::4]
+    # the same cloud without the stray point first: its peak is the baseline (imports, and on a
+    # fresh checkout the numba JIT compiling the kernels, ~1 GB on its own in a clean CI venv);
+    # it also warms the kernel cache for the hostile run
+    clean = tmp_path / "clean.las"
+    write_las(clean, xyz)
+    code, base_gb, output = _run_peak([str(clean), "--out", str(tmp_path / "c.csv")])
+    assert code == 0, output
     if stray == "far":
         xyz = np.vstack((xyz, [[10_000.0, 10_000.0, 1.0]]))
     else:
@@ -220,7 +227,8 @@ def test_a_stray_point_does_not_blow_up_memory(
     las.write(src)
     code, peak_gb, output = _run_peak([str(src), "--out", str(tmp_path / "s.csv")])
     assert code == 0, output
-    assert peak_gb < 1.0
+    # the unbounded grid cost tens of GB; the robust extent adds nothing measurable
+    assert peak_gb < max(base_gb, 0.5) + 0.3
     assert len((tmp_path / "s.csv").read_text().splitlines()) >= 7
 
 

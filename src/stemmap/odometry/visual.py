@@ -586,11 +586,4 @@ def visual_odometry_source(
     keep = result.ok[1:] & result.ok[:-1]
     if not keep.any():
         raise InputError("visual odometry lost every frame: nothing to fuse.")
-    return OdometrySource(
-        src.times[keep],
-        src.speed[keep],
-        src.yaw_rate[keep],
-        sigma_speed,
-        sigma_yaw_rate,
-        name="visual odometry",
-    )
+    return src.take(keep)
