@@ -2,7 +2,7 @@
 own cloud detector through the same FastSLAM (100 particles) + Kalman refinement back end.
 
 Usage: python benchmarks/munjer2025.py [--seeds 0 1 2] [--layout park] [--speed 4]
-       [--model trunks.onnx] [--out result.json]
+       [--model trunks.onnx] [--motion sim|lidar|both] [--out result.json]
 
 Prints one JSON object. Top-level keys ``eb_lidar``, ``daim``, ``ours`` hold, pooled over the
 seeds, the paper's Table 2 columns (``n_real``, ``n_det``, ``ta``, ``tr``, ``fa``, ``fr``) and
@@ -11,6 +11,15 @@ seeds) and ``pairwise_percent_error`` (the paper's 7.13 % / 4.24 % figure, mean 
 ``fastslam`` repeats the map numbers per method; ``eb_lidar_largest_two`` is EB-LiDAR with the
 eccentricity over the two largest eigenvalues (the reading that collapsed recall); ``per_seed``
 has every run; ``scenario`` every parameter.
+
+Motion source (``--motion``): ``sim`` (default) feeds FastSLAM the simulator's noisy odometry
+(``LIDAR_IMU_ODOMETRY_NOISE``, a stand-in for the paper's ICP + IMU EKF); ``lidar`` runs that
+front end itself on the drive's lidar frames and a simulated XSens IMU + wheel log
+(:func:`stemmap.odometry.inertial.lidar_inertial_odometry`, ``stemmap odometry``'s defaults, as
+``stemmap map drive.npz --odometry lidar --imu drive_imu.csv``); ``both`` adds, next to the
+``sim`` rows, ``motion_lidar_imu`` with the same Table 2 / map numbers per method and the
+odometry's own drift (``odometry_drift_percent``: final position error / distance, %, after
+putting its first pose on the true one).
 
 Scoring (eval/detection.py, eval/maps.py): the final stem map against the stand's trees and its
 non-tree objects (three bushes per drive, the paper's "three non-tree objects"), one-to-one
@@ -28,6 +37,7 @@ sigma; 0.015 m reads it as two sigma).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import platform
@@ -59,13 +69,44 @@ PAPER = {
 }  # fmt: skip
 
 
-def _score(drive: MunjerDrive, obs: StemObservations, seed: int) -> dict[str, Any]:
+def _lidar_imu_motion(drive: MunjerDrive, seed: int) -> tuple[Any, Any, float]:
+    """Controls + motion model from the lidar + IMU odometry on the drive's own frames, and
+    its drift (% of distance). The trajectory's frame (first lidar pose at the origin) is put
+    on the true start pose, as the sim motion source's map frame is."""
+    from stemmap.odometry.inertial import lidar_inertial_odometry
+    from stemmap.odometry.lidar import LidarOdometryConfig
+    from stemmap.sim.imu import simulate_imu
+    from stemmap.slam.munjer import controls_from_trajectory
+    from stemmap.types import Trajectory
+
+    log = simulate_imu(drive.odometry_true, rng=seed).log
+    cfg = LidarOdometryConfig(max_range=100.0, min_range=0.5)
+    traj, _, _ = lidar_inertial_odometry(zip(drive.times, drive.frames, strict=True), log, cfg)
+    x0, y0, th0 = drive.poses[0]
+    c, s = math.cos(th0), math.sin(th0)
+    p = traj.poses
+    world = np.column_stack(
+        (x0 + c * p[:, 0] - s * p[:, 1], y0 + s * p[:, 0] + c * p[:, 1], p[:, 2] + th0)
+    )
+    err = float(np.hypot(*(world[-1, :2] - drive.poses[-1, :2])))
+    dist = float(np.hypot(*np.diff(drive.poses[:, :2], axis=0).T).sum())
+    # the CLI's default --motion-sigma (m/s, rad/s)
+    controls, motion = controls_from_trajectory(
+        Trajectory(traj.times, world, frame="world"), sigma_speed=0.05, sigma_yaw_rate=0.002
+    )
+    return controls, motion, 100.0 * err / dist
+
+
+def _score(
+    drive: MunjerDrive, obs: StemObservations, seed: int, motion: tuple[Any, Any] | None = None
+) -> dict[str, Any]:
     t0 = time.perf_counter()
+    controls, model = motion or (drive.controls(), drive.motion_model())
     problem = munjer_problem(
         obs,
         drive.times,
-        drive.controls(),
-        drive.motion_model(),
+        controls,
+        model,
         initial_pose=(float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2])),
         max_range=12.0,
     )
@@ -133,19 +174,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=None,
         help="lidar range noise sigma (m); default the vlp16 preset's 0.03 (data sheet +-3 cm)",
     )
+    ap.add_argument("--motion", choices=["sim", "lidar", "both"], default="sim")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
+    motions = {"sim": ["sim"], "lidar": ["lidar"], "both": ["sim", "lidar"]}[a.motion]
 
     from stemmap.cloud.munjer import MunjerConfig
     from stemmap.vision.detector import OnnxDetector, SegmentationDetector
 
     detector = OnnxDetector(a.model) if a.model else SegmentationDetector()
-    runs: dict[str, list[dict[str, Any]]] = {
-        "eb_lidar": [],
-        "daim": [],
-        "ours": [],
-        "eb_lidar_largest_two": [],
-    }
+    names = ("eb_lidar", "daim", "ours", "eb_lidar_largest_two")
+    runs: dict[str, dict[str, list[dict[str, Any]]]] = {m: {n: [] for n in names} for m in motions}
+    drift: list[float] = []
     scen: dict[str, Any] = {}
     t_all = time.perf_counter()
     for seed in a.seeds:
@@ -164,10 +204,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             ),
             "ours": ours_lidar_observations(drive.frames, drive.times),
         }
-        for name, o in obs.items():
+        motion: dict[str, Any] = {"sim": None}
+        if "lidar" in motions:
+            ctl, mdl, dr = _lidar_imu_motion(drive, seed)
+            motion["lidar"] = (ctl, mdl)
+            drift.append(dr)
+        for mo, (name, o) in itertools.product(motions, obs.items()):
             if len(o) == 0:
                 st = drive.stand2d
-                runs[name].append(
+                runs[mo][name].append(
                     {"n_real": st.n_trees, "n_real_in_box": int(drive.trees_in_box().sum()),
                      "n_det": 0, "ta": 0, "fa": 0, "fr": st.n_trees,
                      "tr": st.n_clutter_objects, "position_rmse": math.nan,
@@ -175,11 +220,25 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                      "n_frame_detections": 0, "seed": seed}
                 )  # fmt: skip
                 continue
-            r = _score(drive, o, seed)
+            r = _score(drive, o, seed, motion[mo])
             r["seed"] = seed
             r["sim_seconds"] = round(t_sim, 1)
-            runs[name].append(r)
-    out: dict[str, Any] = {name: _pool(v) for name, v in runs.items()}
+            runs[mo][name].append(r)
+    main_runs = runs[motions[0]]
+    out: dict[str, Any] = {name: _pool(v) for name, v in main_runs.items()}
+    if motions[0] == "lidar":
+        out["motion_source"] = "lidar_imu"
+    if "lidar" in motions:
+        lid = {name: _pool(v) for name, v in runs["lidar"].items()}
+        out["motion_lidar_imu"] = {
+            **lid,
+            "fastslam": {
+                n: {k: lid[n][k] for k in ("position_rmse", "pairwise_percent_error")}
+                for n in ("eb_lidar", "daim", "ours")
+            },
+            "odometry_drift_percent": drift,
+            "per_seed": runs["lidar"],
+        }
     out["fastslam"] = {
         name: {k: out[name][k] for k in ("position_rmse", "pairwise_percent_error")}
         for name in ("eb_lidar", "daim", "ours")
@@ -196,13 +255,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             out[n]["pairwise_percent_error"] <= 5.0 for n in ("eb_lidar", "daim", "ours")
         ),
     }
-    out["per_seed"] = runs
+    out["per_seed"] = main_runs
     out["scenario"] = {
         **scen,
         "seeds": a.seeds,
         "lidar_range_noise": a.range_noise if a.range_noise is not None else 0.03,
         "detector": "onnx:" + str(a.model) if a.model else "SegmentationDetector",
         "gate_m": GATE,
+        "motion": a.motion,
         "back_end": MunjerMapConfig().__dict__,
     }
     out["machine"] = {

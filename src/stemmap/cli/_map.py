@@ -394,7 +394,17 @@ def map_command(
         Path | None,
         typer.Option(
             help="Wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) for scan or detection "
-            "inputs [default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes].",
+            "inputs [default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes]. "
+            "Frames bundle: that, or a pose CSV time_s,x,y,theta (`stemmap odometry --out`), or "
+            "the word 'lidar': lidar (+ --imu) odometry on the bundle's own frames.",
+        ),
+    ] = None,
+    imu: Annotated[
+        Path | None,
+        typer.Option(
+            "--imu",
+            help="--odometry lidar: IMU + wheel-speed CSV or bag fused with the lidar odometry "
+            "(as `stemmap odometry --imu`).",
         ),
     ] = None,
     dataset: Annotated[
@@ -550,6 +560,8 @@ def map_command(
     Example: stemmap map logs/ --workers 2 --out maps  (maps/<log>/ per log, maps/summary.csv)
 
     Example: stemmap sim munjer --out drive.npz && stemmap map drive.npz --frontend daim --out m
+
+    Example: stemmap map drive.npz --odometry lidar --imu drive_imu.csv --out m  (ICP + IMU EKF)
     """
     if wants_logs(logs, workers, scheduler):
         return run_many_logs("map", dict(locals()), as_json=as_json)
@@ -564,7 +576,7 @@ def map_command(
     from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
 
-    inputs = [bag, odometry] if dataset is None else _vp_inputs(data)
+    inputs = [bag, odometry, imu] if dataset is None else _vp_inputs(data)
     with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
         crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
@@ -576,6 +588,8 @@ def map_command(
         is_frames = bag is not None and is_frames_npz(bag)
         if frontend is not None and not is_frames:
             raise ConfigError("--frontend needs a frames bundle (.npz with lidar or RGB-D frames).")
+        if imu is not None and not is_frames:
+            raise ConfigError("--imu is for a frames bundle with --odometry lidar.")
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
         if is_frames:
@@ -595,6 +609,7 @@ def map_command(
                 model=model,
                 sigma_speed=sv,
                 sigma_yaw_rate=sw,
+                imu=imu,
             )
         elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)

@@ -6,7 +6,11 @@ Motion source (``--odometry``), pluggable:
 * a velocity CSV ``time_s,speed,yaw_rate`` (wheel odometry, ``stemmap sim munjer`` writes one);
 * a pose CSV ``time_s,x,y,theta`` (any pose-output odometry: the lidar + IMU EKF odometry of the
   paper, ``stemmap odometry --out traj.csv``, a SLAM front end), differenced into body-frame
-  velocities (:func:`stemmap.slam.munjer.controls_from_trajectory`).
+  velocities (:func:`stemmap.slam.munjer.controls_from_trajectory`);
+* ``lidar`` (the word, :data:`LIDAR_ODOMETRY`): the paper's ICP (+ IMU EKF with ``--imu``)
+  odometry run on the bundle's own lidar frames
+  (:func:`stemmap.cli._odometry.lidar_trajectory`, the defaults of ``stemmap odometry``), then
+  as a pose CSV.
 
 Front ends: ``eb-lidar`` (EB-LiDAR on every lidar frame), ``daim`` (a detector's boxes + aligned
 depth; ``--model`` an ONNX detector, default the segmentation detector; never truth boxes),
@@ -22,7 +26,10 @@ from typing import Any
 
 from stemmap.errors import ConfigError, InputError
 
-__all__ = ["Frontend", "frames_problem", "odometry_controls"]
+__all__ = ["LIDAR_ODOMETRY", "Frontend", "frames_problem", "odometry_controls"]
+
+#: ``--odometry lidar``: run the lidar (+ IMU) odometry on the bundle's own frames.
+LIDAR_ODOMETRY = "lidar"
 
 
 class Frontend(StrEnum):
@@ -39,6 +46,16 @@ def _header(path: Path) -> list[str]:
     raise InputError(f"odometry file {str(path)!r} is empty.")
 
 
+def trajectory_controls(
+    traj: Any, *, sigma_speed: float, sigma_yaw_rate: float
+) -> tuple[Any, Any, str, Any]:
+    """:func:`odometry_controls` of a pose trajectory already in memory."""
+    from stemmap.slam.munjer import controls_from_trajectory
+
+    c, m = controls_from_trajectory(traj, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate)
+    return c, m, "poses", traj
+
+
 def odometry_controls(
     path: Path, *, sigma_speed: float, sigma_yaw_rate: float
 ) -> tuple[Any, Any, str, Any]:
@@ -52,17 +69,13 @@ def odometry_controls(
     from stemmap.io.trajectory import read_trajectory_csv
     from stemmap.slam.base import Controls
     from stemmap.slam.motion import UnicycleModel
-    from stemmap.slam.munjer import controls_from_trajectory
 
     if not path.is_file():
         raise InputError(f"odometry file {str(path)!r} does not exist.")
     cols = _header(path)
     if {"x", "y", "theta"} <= set(cols):
         traj = read_trajectory_csv(path, frame="odom")
-        c, m = controls_from_trajectory(
-            traj, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate
-        )
-        return c, m, "poses", traj
+        return trajectory_controls(traj, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate)
     t, v, w = read_odometry_csv(path)
     model = UnicycleModel(sigma_speed=sigma_speed, sigma_steer=sigma_yaw_rate)
     return Controls(t, v, w, "unicycle"), model, "velocities", None
@@ -76,8 +89,13 @@ def frames_problem(
     model: Path | None,
     sigma_speed: float,
     sigma_yaw_rate: float,
+    imu: Path | None = None,
 ) -> tuple[Any, dict[str, Any]]:
-    """A SLAM problem from a frames bundle: motion source + per-frame detections."""
+    """A SLAM problem from a frames bundle: motion source + per-frame detections.
+
+    ``odometry`` is a velocity or pose CSV, or :data:`LIDAR_ODOMETRY` (``imu`` then an optional
+    IMU + wheel CSV or bag for the EKF); None = the ``<stem>_odometry.csv`` beside ``source``.
+    """
     from stemmap.cli._map_inputs import odometry_path
     from stemmap.io.frames import read_frames_npz
     from stemmap.slam.munjer import (
@@ -88,10 +106,22 @@ def frames_problem(
     )
 
     bundle = read_frames_npz(source)
-    odo = odometry_path(source, odometry)
-    controls, motion, kind, traj = odometry_controls(
-        odo, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate
-    )
+    sig = {"sigma_speed": sigma_speed, "sigma_yaw_rate": sigma_yaw_rate}
+    extra: dict[str, Any] = {}
+    if odometry is not None and str(odometry) == LIDAR_ODOMETRY:
+        if bundle.lidar is None:
+            raise ConfigError(f"--odometry lidar needs lidar frames; {source} has none.")
+        from stemmap.cli._odometry import lidar_trajectory
+
+        lt, extra = lidar_trajectory(source, imu=imu, quiet=True, **_LIDAR_ODOMETRY_DEFAULTS)
+        controls, motion, _, traj = trajectory_controls(lt, **sig)
+        odo: Path | str = LIDAR_ODOMETRY
+        kind = "lidar+imu" if imu is not None else "lidar"
+    else:
+        if imu is not None:
+            raise ConfigError("--imu feeds the lidar odometry: use it with --odometry lidar.")
+        odo = odometry_path(source, odometry)
+        controls, motion, kind, traj = odometry_controls(odo, **sig)
     t = bundle.times
     if t[0] < controls.times[0] - 1e-6 or t[-1] > controls.times[-1] + 1.0:
         raise InputError(
@@ -138,4 +168,20 @@ def frames_problem(
         max_range=max_range,
         name=f"{source} ({frontend.value})",
     )
-    return problem, {"kind": "frames", "odometry": str(odo), "motion_source": kind}
+    ctx: dict[str, Any] = {"kind": "frames", "odometry": str(odo), "motion_source": kind}
+    if extra:
+        ctx["lidar_odometry"] = extra
+    return problem, ctx
+
+
+#: ``stemmap odometry``'s defaults, for ``--odometry lidar``.
+_LIDAR_ODOMETRY_DEFAULTS: dict[str, Any] = {
+    "topic": None,
+    "imu_topic": None,
+    "odom_topic": None,
+    "rate": None,
+    "max_range": 100.0,
+    "min_range": 0.5,
+    "voxel": None,
+    "keep_ground": False,
+}

@@ -80,6 +80,7 @@ _SINGLE_LOG_OPTIONS = {
         "dataset": "--dataset",
         "sim": "--sim",
         "gnss": "--gnss",
+        "imu": "--imu",
         "rerun": "--rerun",
     },
 }

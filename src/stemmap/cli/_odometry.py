@@ -15,7 +15,7 @@ from stemmap.cli._validate import bounded
 if TYPE_CHECKING:
     from stemmap.odometry.fusion import OdometrySource
 
-__all__ = ["odometry", "register"]
+__all__ = ["lidar_trajectory", "odometry", "register"]
 
 _TUM_SUFFIXES = (".tum", ".txt")
 
@@ -26,7 +26,8 @@ def odometry(
         typer.Argument(
             help="Lidar frames: a folder of per-frame clouds (.pcd/.ply/.las/.laz/.xyz, timed by "
             "a times.csv sidecar, by file names in seconds, or by --rate), a 2D scan file "
-            "(.npz/.csv), or a ROS bag (PointCloud2 or LaserScan topic).",
+            "(.npz/.csv), a frames bundle (.npz, `stemmap sim munjer`), or a ROS bag "
+            "(PointCloud2 or LaserScan topic).",
             show_default=False,
         ),
     ] = None,
@@ -169,7 +170,7 @@ def odometry(
         fail_on_stemmap_error(),
         run_products("odometry", inputs=[frames, imu], outputs=[out_path]) as run,
     ):
-        traj, summary = _run(
+        traj, summary = lidar_trajectory(
             frames,
             imu=imu,
             topic=topic,
@@ -203,12 +204,15 @@ def _read_inertial(imu: Path | None, imu_topic: str | None, odom_topic: str | No
     return read_imu_csv(imu)
 
 
-def _run(frames: Path, *, imu: Path | None, quiet: bool, **opt: Any) -> tuple[Any, dict[str, Any]]:
-    from stemmap.errors import InputError
+def lidar_trajectory(
+    frames: Path, *, imu: Path | None, quiet: bool, **opt: Any
+) -> tuple[Any, dict[str, Any]]:
+    """The lidar (+ IMU / wheel EKF) trajectory of ``frames`` (one pose per frame, frame
+    ``odom``) and a summary; ``opt`` holds this command's other options (topic, imu_topic,
+    odom_topic, rate, max_range, min_range, voxel, keep_ground)."""
     from stemmap.io.lidar_frames import open_frames
-    from stemmap.odometry.inertial import fuse_front_ends, motion_prior
-    from stemmap.odometry.lidar import LidarOdometryConfig, lidar_odometry
-    from stemmap.types import Trajectory
+    from stemmap.odometry.inertial import lidar_inertial_odometry
+    from stemmap.odometry.lidar import LidarOdometryConfig
 
     seq = open_frames(frames, topic=opt["topic"], rate_hz=opt["rate"])
     inertial = _read_inertial(imu, opt["imu_topic"], opt["odom_topic"])
@@ -218,7 +222,8 @@ def _run(frames: Path, *, imu: Path | None, quiet: bool, **opt: Any) -> tuple[An
         voxel_size=opt["voxel"],
         remove_ground=not opt["keep_ground"],
     )
-    prior = motion_prior(inertial) if inertial is not None else None
+    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
+    extra: list[OdometrySource] = []
     with progress(not quiet) as bar:
         task = bar.add_task("registering frames", total=len(seq) or None)
 
@@ -227,22 +232,13 @@ def _run(frames: Path, *, imu: Path | None, quiet: bool, **opt: Any) -> tuple[An
                 yield item
                 bar.advance(task)
 
-        lidar = lidar_odometry(counted(), cfg, motion_prior=prior)
-    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
-    extra: list[OdometrySource] = []
+        traj, lidar, fused = lidar_inertial_odometry(counted(), inertial, cfg, extra=extra)
     summary: dict[str, Any] = {
         "frames": len(lidar),
         "held_frames": int(lidar.held.sum()),
         "imu": inertial is not None,
     }
-    if inertial is None and not extra:
-        traj = lidar.trajectory()
-    else:
-        if len(lidar) < 2:
-            raise InputError(f"{str(frames)!r} holds {len(lidar)} frame(s); odometry needs 2.")
-        fused = fuse_front_ends(lidar=lidar, inertial=inertial, extra=extra)
-        poses = fused.trajectory.interpolate(lidar.times)
-        traj = Trajectory(lidar.times, poses, frame="odom")
+    if fused is not None:
         summary["rejected"] = dict(
             zip(_source_names(inertial, extra), fused.n_rejected.tolist(), strict=False)
         )

@@ -2,7 +2,10 @@
 camera, park or orchard, 3-5 m/s; :func:`stemmap.sim.munjer.simulate_munjer_drive`) written as
 
 * ``drive.npz`` -- the frames bundle (:mod:`stemmap.io.frames`: lidar frames and RGB-D frames);
-* ``drive_odometry.csv`` -- the motion source ``time,speed,yaw_rate`` (m/s, rad/s);
+* ``drive_odometry.csv`` -- the motion source ``time_s,speed,yaw_rate`` (s, m/s, rad/s);
+* ``drive_imu.csv`` -- IMU (gyro, accelerometer, 50 Hz) + wheel speed (50 Hz) of the drive
+  (:func:`stemmap.sim.imu.simulate_imu`, XSens preset; :mod:`stemmap.io.imu` layout), the
+  ``--imu`` of ``stemmap odometry drive.npz`` / ``stemmap map drive.npz --odometry lidar``;
 * ``drive_trees.csv`` -- truth trees ``id,x,y,diameter`` (world frame, metres);
 * ``drive_objects.csv`` -- the non-tree objects ``id,x,y,radius,kind``;
 * ``drive_poses.csv`` -- the true vehicle (= lidar) pose of every frame ``time_s,x,y,theta``.
@@ -57,8 +60,10 @@ def munjer(
     from stemmap.errors import ConfigError
     from stemmap.io.atomic import atomic_write
     from stemmap.io.frames import write_frames_npz
+    from stemmap.io.imu import write_imu_csv
     from stemmap.io.products import run_products
     from stemmap.io.trajectory import write_trajectory_csv
+    from stemmap.sim.imu import simulate_imu
     from stemmap.sim.munjer import simulate_munjer_drive
     from stemmap.types import Trajectory
 
@@ -68,13 +73,14 @@ def munjer(
     def sib(s: str) -> Path:
         return out_path.with_name(f"{out_path.stem}_{s}")
 
-    o_path, t_path, b_path, p_path = (
+    o_path, i_path, t_path, b_path, p_path = (
         sib("odometry.csv"),
+        sib("imu.csv"),
         sib("trees.csv"),
         sib("objects.csv"),
         sib("poses.csv"),
     )
-    products = [out_path, o_path, t_path, b_path, p_path]
+    products = [out_path, o_path, i_path, t_path, b_path, p_path]
     with fail_on_stemmap_error(), run_products("sim munjer", outputs=products) as run:
         if out_path.suffix.lower() != ".npz":
             raise ConfigError(f"--out must end in .npz, got {out_path.name!r}.")
@@ -100,11 +106,12 @@ def munjer(
             camera_to_body=T if has_cam else None,
         )
         with atomic_write(run.path(o_path)) as fh:
-            fh.write("time,speed,yaw_rate\n")
+            fh.write("time_s,speed,yaw_rate\n")
             o = d.odometry
             rows = zip(o.times.tolist(), o.speed.tolist(), o.yaw_rate.tolist(), strict=True)
             for t, v, w in rows:
                 fh.write(f"{t!r},{v!r},{w!r}\n")
+        write_imu_csv(run.path(i_path), simulate_imu(d.odometry_true, rng=seed).log)
         st = d.stand2d
         with atomic_write(run.path(t_path)) as fh:
             fh.write("id,x,y,diameter\n")
@@ -122,6 +129,6 @@ def munjer(
         out.print(
             f"simulated {len(d.frames)} lidar frames, {len(d.images)} RGB-D frames, "
             f"{st.n_trees} trees, {st.n_clutter_objects} non-tree objects\n"
-            f"  frames: {out_path}\n  odometry: {o_path}\n  trees: {t_path}\n"
+            f"  frames: {out_path}\n  odometry: {o_path}\n  imu: {i_path}\n  trees: {t_path}\n"
             f"  objects: {b_path}\n  poses: {p_path}"
         )

@@ -1,5 +1,6 @@
-"""Sequences of lidar frames for odometry: a folder of per-frame clouds, a 2D scan file, or the
-PointCloud2 / LaserScan topic of a ROS bag, each yielded lazily as ``(time, frame)``.
+"""Sequences of lidar frames for odometry: a folder of per-frame clouds, a 2D scan file, a frames
+bundle NPZ (:mod:`stemmap.io.frames`, ``stemmap sim munjer``), or the PointCloud2 / LaserScan
+topic of a ROS bag, each yielded lazily as ``(time, frame)``.
 
 Folder of clouds
 ----------------
@@ -25,6 +26,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from stemmap.errors import InputError
 from stemmap.io._util import PathLike
 from stemmap.io.clouds import CLOUD_EXTENSIONS, read_cloud
@@ -45,7 +48,7 @@ class FrameSequence:
     ----------
     path : Path
     kind : str
-        ``"folder"``, ``"scans"`` (2D scan file) or ``"bag"``.
+        ``"folder"``, ``"scans"`` (2D scan file), ``"bundle"`` (frames bundle NPZ) or ``"bag"``.
     files : tuple of (float, Path)
         For a folder: each frame file with its time.
     topic : str or None
@@ -59,14 +62,22 @@ class FrameSequence:
     files: tuple[tuple[float, Path], ...] = ()
     topic: str | None = None
     msgtype: str = ""
+    n_frames: int = 0
 
     def __len__(self) -> int:
-        return len(self.files)
+        return len(self.files) or self.n_frames
 
     def __iter__(self) -> Iterator[tuple[float, PointCloud | LaserScan]]:
         if self.kind == "folder":
             for t, f in self.files:
                 yield t, read_cloud(f)
+        elif self.kind == "bundle":
+            from stemmap.io.frames import read_frames_npz
+
+            b = read_frames_npz(self.path)
+            assert b.lidar is not None
+            for t, xyz in zip(b.times.tolist(), b.lidar, strict=True):
+                yield t, PointCloud(xyz, time=t, frame="lidar")
         elif self.kind == "scans":
             from stemmap.io.scans import iter_scans
 
@@ -161,7 +172,8 @@ def open_frames(
     ----------
     path : str or PathLike
         A folder of per-frame clouds, a 2D scan file (``.npz``, ``.csv``: :mod:`stemmap.io
-        .scans`), or a ROS bag.
+        .scans`), a frames bundle with lidar frames (``.npz``: :mod:`stemmap.io.frames`), or a
+        ROS bag.
     topic : str, optional
         Bag topic (PointCloud2 or LaserScan); default: the only PointCloud2 topic, else the
         only LaserScan topic.
@@ -205,6 +217,16 @@ def open_frames(
         )
     if p.is_dir():
         return _folder(p, rate_hz)
+    from stemmap.io.frames import is_frames_npz
+
+    if is_frames_npz(p):
+        with np.load(p, allow_pickle=False) as z:
+            if "points" not in z.files:
+                raise InputError(
+                    f"frames bundle {str(p)!r} holds RGB-D frames but no lidar frames."
+                )
+            n = int(z["times"].shape[0])
+        return FrameSequence(p, "bundle", n_frames=n)
     from stemmap.io.scans import scan_file_kind
 
     scan_file_kind(p)  # InputError for an unknown file type

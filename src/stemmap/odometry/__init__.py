@@ -26,6 +26,7 @@ _LAZY: dict[str, str] = {
     "LidarOdometryResult": "lidar",
     "lidar_odometry": "lidar",
     "fuse_front_ends": "inertial",
+    "lidar_inertial_odometry": "inertial",
     "gyro_source": "inertial",
     "motion_prior": "inertial",
     "wheel_source": "inertial",

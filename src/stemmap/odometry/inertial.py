@@ -17,7 +17,7 @@ sees a lateral velocity in turns, which the non-holonomic speed model ignores.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,12 +31,18 @@ from stemmap.odometry.fusion import (
     dead_reckon_source,
     fuse_sources,
 )
-from stemmap.types import FloatArray
+from stemmap.types import FloatArray, LaserScan, PointCloud, Trajectory
 
 if TYPE_CHECKING:
-    from stemmap.odometry.lidar import LidarOdometryResult
+    from stemmap.odometry.lidar import LidarOdometryConfig, LidarOdometryResult
 
-__all__ = ["fuse_front_ends", "gyro_source", "motion_prior", "wheel_source"]
+__all__ = [
+    "fuse_front_ends",
+    "gyro_source",
+    "lidar_inertial_odometry",
+    "motion_prior",
+    "wheel_source",
+]
 
 #: Default 1-sigma of one gyro yaw-rate sample (rad/s): white noise of an MTi-class MEMS gyro
 #: at 100 Hz (0.07 deg/s) rounded up to cover vibration on rough ground.
@@ -181,3 +187,34 @@ def motion_prior(
         )
 
     return prior
+
+
+def lidar_inertial_odometry(
+    frames: Iterable[tuple[float, ArrayLike | PointCloud | LaserScan]],
+    inertial: InertialLog | None = None,
+    config: LidarOdometryConfig | None = None,
+    *,
+    extra: Sequence[OdometrySource] = (),
+) -> tuple[Trajectory, LidarOdometryResult, FusedOdometry | None]:
+    """The paper's odometry front end end to end (Munjer 2025 §3.5, Fig. 6): KISS-ICP on every
+    frame, started from the gyro + wheel dead reckoning (:func:`motion_prior`), then the EKF
+    (:func:`fuse_front_ends`) of lidar, gyro, wheels and ``extra``.
+
+    Returns
+    -------
+    trajectory : one planar pose per frame (frame ``odom``: the first lidar pose's frame); the
+        lidar's own trajectory when there is nothing to fuse
+    lidar : the scan-matching result
+    fused : the EKF result, None without ``inertial`` and ``extra``
+    """
+    from stemmap.odometry.lidar import lidar_odometry
+
+    prior = motion_prior(inertial) if inertial is not None else None
+    lidar = lidar_odometry(frames, config, motion_prior=prior)
+    if inertial is None and not extra:
+        return lidar.trajectory(), lidar, None
+    if len(lidar) < 2:
+        raise InputError(f"the lidar odometry has {len(lidar)} frame(s); fusion needs 2.")
+    fused = fuse_front_ends(lidar=lidar, inertial=inertial, extra=extra)
+    poses = fused.trajectory.interpolate(lidar.times)
+    return Trajectory(lidar.times, poses, frame="odom"), lidar, fused
