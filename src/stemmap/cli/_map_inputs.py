@@ -13,7 +13,8 @@ from stemmap.errors import InputError
 
 __all__ = ["file_problem", "is_detections_csv", "odometry_path", "read_odometry_csv"]
 
-#: Columns of the odometry CSV (``stemmap sim scans`` writes ``time,speed,yaw_rate``).
+#: Columns of the odometry CSV (``stemmap sim scans`` and ``stemmap sim munjer`` write them;
+#: an older header's ``time`` is read as ``time_s``).
 ODOMETRY_CSV_COLUMNS = ("time_s", "speed", "yaw_rate")
 
 

@@ -10,7 +10,7 @@ output) against the truth files of a ``stemmap sim scans`` run.
   :func:`stemmap.io.scans.write_scans_npz`;
 * ``run_trees.csv`` -- ground-truth trees ``id,x,y,diameter`` (world frame, metres);
 * ``run_poses.csv`` -- the true sensor pose of every scan ``time_s,x,y,theta`` (world frame);
-* ``run_odometry.csv`` -- noisy wheel odometry ``time,speed,yaw_rate`` (m/s, rad/s; controls
+* ``run_odometry.csv`` -- noisy wheel odometry ``time_s,speed,yaw_rate`` (m/s, rad/s; controls
   held until the next row);
 * ``run_gnss.csv`` -- noisy GNSS fixes of the vehicle ``time,x,y,sigma`` (world frame, m);
 * ``run_truth.npz`` -- per-beam ground truth (``hit_ids``, ``mixed``), wheel odometry (noisy
@@ -219,7 +219,7 @@ def scans(
                 fh.write(f"{i},{x:.6f},{y:.6f},{st.diameters[i]:.6f}\n")
         write_trajectory_csv(run.path(p_path), sim.true_poses)
         with atomic_write(run.path(o_path)) as fh:
-            fh.write("time,speed,yaw_rate\n")
+            fh.write("time_s,speed,yaw_rate\n")
             odo = sim.odometry
             for t, v, w in zip(
                 odo.times.tolist(), odo.speed.tolist(), odo.yaw_rate.tolist(), strict=True
