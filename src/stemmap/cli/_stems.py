@@ -19,7 +19,7 @@ from stemmap.cli._common import console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
 from stemmap.cli._summary import JsonFlag, fmt, print_summary
 from stemmap.cli._validate import bounded
-from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
+from stemmap.cloud.ground import DEFAULT_MAX_MEMORY, GroundModel
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -342,6 +342,7 @@ def stems(
             name = f"{len(catalog)} tiles"
         else:
             cloud = Path(clouds[0])
+            grounds: list[GroundModel | None] = []
             name = cloud.name
             with progress() as bar:
                 task = bar.add_task(f"reading {cloud.name}", total=None)
@@ -350,7 +351,13 @@ def stems(
                     bar.update(task, completed=done, total=total)
 
                 result = detect_stems_file(
-                    cloud, cfg, chunk_size=read_points, on_chunk=tick, sensor=sensor, topic=topic
+                    cloud,
+                    cfg,
+                    chunk_size=read_points,
+                    on_chunk=tick,
+                    sensor=sensor,
+                    topic=topic,
+                    on_ground=None if dtm is None else grounds.append,
                 )
         write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
@@ -387,13 +394,10 @@ def stems(
                 labels=None if labels is None else run.path(labels),
             )
         if dtm is not None:
-            from stemmap.cloud.dtm import ground_of_file, write_dtm
+            from stemmap.cloud.dtm import require_terrain, write_dtm
 
-            assert isinstance(cfg, StemConfig)
-            ground = ground_of_file(
-                cloud, cfg.ground_cell, cfg.max_diameter, chunk_size=read_points, topic=topic,
-                max_memory=cfg.max_memory,
-            )  # fmt: skip
+            # the ground the detector measured heights from (no second pass over the file)
+            ground = require_terrain(grounds[0], cloud)
             write_dtm(run.path(dtm), ground, crs, frame=cloud.name)
         files = [str(p) for p in outputs if p is not None]
         med = float(np.nanmedian(result.diameter)) if len(result) else math.nan

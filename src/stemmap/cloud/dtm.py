@@ -31,7 +31,7 @@ import numpy as np
 from stemmap.cloud.ground import BASE_GROUND, DEFAULT_MAX_MEMORY, GroundAccumulator, GroundModel
 from stemmap.errors import InputError
 
-__all__ = ["DTM_NODATA", "ground_of_file", "write_dtm"]
+__all__ = ["DTM_NODATA", "ground_of_file", "require_terrain", "write_dtm"]
 
 log = logging.getLogger(__name__)
 
@@ -68,14 +68,37 @@ def ground_of_file(
             zmax = max(zmax, float(chunk.xyz[:, 2].max()))
     if not np.isfinite(zmin):
         raise InputError(f"{path}: the cloud holds no points, so it has no terrain model.")
-    why = None
     if zmax - zmin < 1.0:
-        why = f"it is one slice (z range {zmax - zmin:.2f} m)"
-    elif acc.stem_base(max_diameter) is not None:
-        why = "its lowest points fit inside one stem: one segmented tree"
-    if why is not None:
-        raise InputError(f"{path}: the cloud has no ground ({why}), so no DTM; leave out --dtm.")
+        _no_ground(path, f"it is one slice (z range {zmax - zmin:.2f} m)")
+    if acc.stem_base(max_diameter) is not None:
+        _no_ground(path, _ONE_TREE)
     return acc.model()
+
+
+_ONE_TREE = "its lowest points fit inside one stem: one segmented tree"
+
+
+def _no_ground(source: object, why: str) -> None:
+    raise InputError(f"{source}: the cloud has no ground ({why}), so no DTM; leave out --dtm.")
+
+
+def require_terrain(ground: GroundModel | None, source: object) -> GroundModel:
+    """The ground model a detection run measured heights from
+    (:func:`stemmap.cloud.stems.detect_stems_file`'s ``on_ground``) as a terrain for
+    :func:`write_dtm`; the same refusals as :func:`ground_of_file`.
+
+    Raises
+    ------
+    InputError
+        ``None`` (the cloud was read as one slice) or a flat base at a lone stem's lowest
+        points (one segmented tree).
+    """
+    if ground is None:
+        _no_ground(source, "it is read as one slice (z range under 1 m)")
+    elif ground.base != BASE_GROUND:
+        _no_ground(source, _ONE_TREE)
+    assert ground is not None
+    return ground
 
 
 def _rasterio_crs(crs: str | None, frame: str) -> Any:

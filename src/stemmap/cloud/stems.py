@@ -304,6 +304,7 @@ def detect_stems_file(
     on_chunk: Callable[[int, int], None] | None = None,
     sensor: SensorPositions | None = None,
     topic: str | None = None,
+    on_ground: Callable[[GroundModel | None], None] | None = None,
 ) -> CloudStems:
     """Run a detector on a cloud file, streaming LAS/LAZ in chunks.
 
@@ -320,6 +321,10 @@ def detect_stems_file(
 
     ``on_chunk(points_done, points_total)`` is called after each chunk of each pass (for a
     progress bar; ``points_total`` counts both passes).
+
+    ``on_ground(model)`` (``ours`` only) receives the ground model the heights were measured
+    from (``None`` when the cloud is read as one slice), so a caller that also wants the
+    terrain (``stemmap stems --dtm``) does not stream the file again.
     """
     from stemmap.io.clouds import count_points, iter_cloud_chunks, point_fields, read_cloud
 
@@ -337,6 +342,11 @@ def detect_stems_file(
             on_chunk(len(cloud), len(cloud))
         if isinstance(cfg, MunjerConfig):
             return detect_stems_munjer(cloud.xyz, cfg)
+        if on_ground is not None:
+            z = cloud.xyz[:, 2]
+            flat = len(z) == 0 or cfg.slice_mode == "always"
+            flat = flat or (cfg.slice_mode == "auto" and float(z.max() - z.min()) < 1.0)
+            on_ground(None if flat else _ground_of([cloud.xyz], cfg))
         origins = None
         if sensor is not None:
             times = None
@@ -368,6 +378,8 @@ def detect_stems_file(
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     cfg = _slice_setup(cfg, zmin, zmax, is_slice)
     ground = None if is_slice else _ground_model(acc, cfg)
+    if on_ground is not None:
+        on_ground(ground)
     lo, hi = cfg.band
     xs, hs, zs, os_ = [], [], [], []
     canopy: dict[str, Any] = {}
