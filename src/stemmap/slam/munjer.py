@@ -219,8 +219,8 @@ def controls_from_trajectory(
     from stemmap.slam.odometry import velocities_from_poses
 
     src = velocities_from_poses(trajectory, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate)
-    t0 = trajectory.times[:-1]
-    controls = Controls(t0, src.speed, src.yaw_rate, "unicycle")
+    assert src.interval_start is not None  # set by velocities_from_poses: the intervals' starts
+    controls = Controls(src.interval_start, src.speed, src.yaw_rate, "unicycle")
     return controls, UnicycleModel(sigma_speed=sigma_speed, sigma_steer=sigma_yaw_rate)
 
 
