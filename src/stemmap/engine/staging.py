@@ -214,6 +214,10 @@ def _frag_points(root: Path, chunk: Chunk, k: int) -> int:
 
 def _read_into(path: Path, out: NDArray[Any], what: str) -> None:
     """Fill the C-contiguous ``out`` with the bytes of ``path`` (exactly its size)."""
+    if out.size == 0:  # an empty fragment (a memoryview of no bytes cannot be cast)
+        if path.stat().st_size:
+            raise InputError(f"{what} is torn ({path}).")
+        return
     view = out.data.cast("B")
     with open(path, "rb") as fh:
         got = fh.readinto(view)
