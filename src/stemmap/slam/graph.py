@@ -298,7 +298,7 @@ class Isam2Slam:
         lm_in_graph = np.zeros(cap, dtype=bool)
         n_lm = 0
         map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
-        joint_fac = None  # or one joint prior over them (StemMap.information)
+        joint_fac: Any = None  # or one joint prior over them (StemMap.information)
         if problem.prior_map is not None and len(problem.prior_map):
             # a map of an earlier session (relocalised into: problem.initial_pose is in its
             # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
@@ -619,7 +619,8 @@ class Isam2Slam:
                     map_fac[j_p] = gtsam.PriorFactorPoint2(
                         LK(int(alias[j_p])), fac_p.prior(), fac_p.noiseModel()
                     )
-            if joint_fac is not None:  # the joint prior map prior: on the representatives
+            if joint_fac is not None and problem.prior_map is not None:
+                # the joint prior over the map's trees: on the representatives
                 joint_fac = joint_prior_factor(problem.prior_map, LK, alias)
                 g2.add(joint_fac)
             for fac_o in odo_fac + gnss_fac + [f_ for f_ in map_fac if f_ is not None]:
