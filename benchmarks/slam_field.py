@@ -7,7 +7,10 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   alignment (``gnss_ate_unused_m``); the robust kernel and sigma are chosen by 2-fold
   cross-validation inside the fused fixes (``gnss_cv``), the a-priori default's score is
   ``gnss_default_ate_unused_m``; the same run without GNSS scored on the same fixes needs a
-  best-fit SE(2) alignment (``no_gnss_ate_unused_aligned_m``).
+  best-fit SE(2) alignment (``no_gnss_ate_unused_aligned_m``). ``gnss_track_ate_unused_m``:
+  the GNSS-frame track (the path + the fused fixes' random-walk-smoothed offset,
+  :func:`stemmap.slam.gnss.gnss_offset`; it follows the GPS's own slowly varying error), its
+  settings chosen by the same CV.
 * ``reloc``: map 0-800 s, then relocalise the 800-1549 s session in that map from start
   guesses off by U(-20, 20) m in x and y and U(-30, 30) deg (``--trials``, seed 0); success =
   accepted within 30 s of driving, within 1 m and 2 deg of session 1's end pose carried over
