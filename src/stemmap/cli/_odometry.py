@@ -13,9 +13,11 @@ from stemmap.cli._common import console, fail_on_stemmap_error, out, print_error
 from stemmap.cli._validate import bounded
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from stemmap.odometry.fusion import OdometrySource
 
-__all__ = ["lidar_trajectory", "odometry", "register"]
+__all__ = ["lidar_front_end", "lidar_trajectory", "odometry", "register"]
 
 _TUM_SUFFIXES = (".tum", ".txt")
 
@@ -210,6 +212,22 @@ def lidar_trajectory(
     """The lidar (+ IMU / wheel EKF) trajectory of ``frames`` (one pose per frame, frame
     ``odom``) and a summary; ``opt`` holds this command's other options (topic, imu_topic,
     odom_topic, rate, max_range, min_range, voxel, keep_ground)."""
+    traj, _, _, summary = lidar_front_end(frames, imu=imu, quiet=quiet, **opt)
+    return traj, summary
+
+
+def lidar_front_end(
+    frames: Path,
+    *,
+    imu: Path | None,
+    quiet: bool,
+    extra: Sequence[OdometrySource] = (),
+    **opt: Any,
+) -> tuple[Any, Any, Any, dict[str, Any]]:
+    """:func:`lidar_trajectory` with further velocity sources fused in (``extra``, e.g. the
+    visual odometry of ``stemmap map --motion fused``); returns (trajectory, the
+    :class:`~stemmap.odometry.lidar.LidarOdometryResult`, the
+    :class:`~stemmap.odometry.fusion.FusedOdometry` or None, summary)."""
     from stemmap.io.lidar_frames import open_frames
     from stemmap.odometry.inertial import lidar_inertial_odometry
     from stemmap.odometry.lidar import LidarOdometryConfig
@@ -222,8 +240,7 @@ def lidar_trajectory(
         voxel_size=opt["voxel"],
         remove_ground=not opt["keep_ground"],
     )
-    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
-    extra: list[OdometrySource] = []
+    extra = list(extra)
     with progress(not quiet) as bar:
         task = bar.add_task("registering frames", total=len(seq) or None)
 
@@ -253,10 +270,10 @@ def lidar_trajectory(
             "register; their poses come from the IMU/wheels (or constant velocity).",
             markup=False,
         )
-    return traj, summary
+    return traj, lidar, fused, summary
 
 
-def _source_names(inertial: Any, extra: list[OdometrySource]) -> list[str]:
+def _source_names(inertial: Any, extra: Sequence[OdometrySource]) -> list[str]:
     names = []
     if inertial is not None and inertial.has_gyro:
         names.append("gyro")

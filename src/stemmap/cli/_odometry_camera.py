@@ -18,7 +18,7 @@ from stemmap.cli._common import console
 from stemmap.errors import InputError
 from stemmap.types import Trajectory
 
-__all__ = ["camera_odometry"]
+__all__ = ["camera_odometry", "camera_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -46,12 +46,46 @@ def camera_odometry(
     :func:`stemmap.io.camera_bag.read_camera_bag` with the given topics (guessed when None);
     a folder by :func:`stemmap.io.camera_frames.read_camera_frames`. Returns the trajectory.
     """
+    from stemmap.io.trajectory import write_trajectory_csv
+
+    traj, _, summary = camera_trajectory(
+        frames_dir,
+        max_corners=max_corners,
+        left_topic=left_topic,
+        right_topic=right_topic,
+        depth_topic=depth_topic,
+        info_topic=info_topic,
+        baseline=baseline,
+    )
+    write_trajectory_csv(out, traj)
+    console.print(
+        f"{summary['frames']} {summary['mode']} frames, {summary['keyframes']} keyframes, "
+        f"{summary['lost_frames']} lost (pose extrapolated), path {summary['distance_m']:.2f} m "
+        f"-> {out}",
+        markup=False,
+        highlight=False,
+    )
+    return traj
+
+
+def camera_trajectory(
+    frames_dir: Path,
+    *,
+    max_corners: int | None = None,
+    left_topic: str | None = None,
+    right_topic: str | None = None,
+    depth_topic: str | None = None,
+    info_topic: str | None = None,
+    baseline: float | None = None,
+) -> tuple[Trajectory, Any, dict[str, Any]]:
+    """The planar vehicle path of the visual odometry of a frames folder or a bag (frame:
+    the vehicle at the first image), the :class:`~stemmap.odometry.visual.VisualOdometryResult`
+    and a summary (frames, mode, keyframes, lost_frames, distance_m)."""
     from dataclasses import replace
 
     from stemmap.io.camera_bag import read_camera_bag
     from stemmap.io.camera_frames import read_camera_frames
     from stemmap.io.rosbag import is_bag
-    from stemmap.io.trajectory import write_trajectory_csv
     from stemmap.odometry.visual import (
         VisualOdometryConfig,
         VoStatus,
@@ -87,15 +121,11 @@ def camera_odometry(
         )
         mount = _DEFAULT_MOUNT
     traj = planar_from_camera(res, mount)
-    write_trajectory_csv(out, traj)
-    lost = int(np.sum(~res.ok))
-    kf = int(np.sum(res.status == VoStatus.KEYFRAME))
-    dist = float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)))
-    mode = "stereo" if frames.calibration.is_stereo else "RGB-D"
-    console.print(
-        f"{len(res)} {mode} frames, {kf} keyframes, {lost} lost (pose extrapolated), "
-        f"path {dist:.2f} m -> {out}",
-        markup=False,
-        highlight=False,
-    )
-    return traj
+    summary = {
+        "frames": len(res),
+        "mode": "stereo" if frames.calibration.is_stereo else "RGB-D",
+        "keyframes": int(np.sum(res.status == VoStatus.KEYFRAME)),
+        "lost_frames": int(np.sum(~res.ok)),
+        "distance_m": float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T))),
+    }
+    return traj, res, summary
