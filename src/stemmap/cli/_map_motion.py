@@ -239,7 +239,7 @@ def motion_trajectory(
             drift_estimate_percent=_random_walk_percent(
                 np.full(n, 2.0 * VISUAL_STEP_SIGMA[0] ** 2), dist
             ),
-            drift_method="visual step sigma (VISUAL_STEP_SIGMA, calibrated on a separate "
+            drift_method="visual step sigma (VISUAL_STEP_SIGMA, measured on a simulated "
             "drive) as a random walk; heading error not included",
         )
         return vtraj, info
