@@ -52,3 +52,17 @@ def test_visual_and_fused_motion_from_a_camera_folder(tmp_path: Path, drive) -> 
         est = read_trajectory_csv(out / "trajectory.csv")
         end = np.hypot(*(est.poses[-1, :2] - truth[-1]))
         assert end < 0.05, (motion, end)
+
+
+def test_odometry_command_fuses_lidar_frames_with_a_camera(tmp_path: Path, drive) -> None:
+    """``stemmap odometry SCANS --camera FOLDER``: the same EKF as ``map --motion fused``; one
+    pose per scan, ending within 1 % of the distance of the true end (as above)."""
+    scans, cam = _log(tmp_path, drive)
+    out = tmp_path / "traj.csv"
+    res = runner.invoke(app, ["odometry", str(scans), "--camera", str(cam), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "visual_vs_lidar_percent" in res.output
+    est = read_trajectory_csv(out)
+    assert len(est) == 50
+    end = np.hypot(*(est.poses[-1, :2] - drive.truth_in_start_frame()[-1]))
+    assert end < 0.05, end

@@ -121,7 +121,7 @@ def _camera_source(source: Path, camera: Path | None) -> Path:
     )
 
 
-def _visual(camera: Path) -> tuple[Any, Any, dict[str, Any]]:
+def _visual(camera: Path, **camera_options: Any) -> tuple[Any, Any, dict[str, Any]]:
     """The visual odometry's vehicle path, its velocity source for the EKF and a summary."""
     from stemmap.odometry.fusion import velocities_from_poses
     from stemmap.odometry.visual import VISUAL_STEP_SIGMA
@@ -139,7 +139,7 @@ def _visual(camera: Path) -> tuple[Any, Any, dict[str, Any]]:
     else:
         from stemmap.cli._odometry_camera import camera_trajectory
 
-        traj, res, summary = camera_trajectory(camera)
+        traj, res, summary = camera_trajectory(camera, **camera_options)
         info = {"camera": str(camera), **summary}
         keep = res.ok[1:] & res.ok[:-1]  # as visual_odometry_source: drop lost-frame steps
     if len(traj) < 2:
@@ -204,10 +204,14 @@ def motion_trajectory(
     camera: Path | None,
     imu: Path | None,
     quiet: bool = True,
+    camera_options: dict[str, Any] | None = None,
+    lidar_options: dict[str, Any] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """The planar path of ``motion`` (``lidar``, ``visual`` or ``fused``) for the log
     ``source`` (a scan file, a frames bundle or a bag), frame ``odom`` (the sensor at the first
-    frame), and the ``motion`` record for metrics.json.
+    frame), and the ``motion`` record for metrics.json. ``camera_options`` go to
+    :func:`stemmap.cli._odometry_camera.camera_trajectory` (topics, max_corners, baseline),
+    ``lidar_options`` override :data:`LIDAR_DEFAULTS` (``stemmap odometry``'s options).
 
     Raises
     ------
@@ -227,7 +231,7 @@ def motion_trajectory(
         )
     if motion in (Motion.visual, Motion.fused):
         cam = _camera_source(source, camera)
-        vtraj, vsrc, vinfo = _visual(cam)
+        vtraj, vsrc, vinfo = _visual(cam, **(camera_options or {}))
         info["visual"] = vinfo
     if motion == Motion.visual:
         dist = _path_length(vtraj)
@@ -246,9 +250,8 @@ def motion_trajectory(
     from stemmap.cli._odometry import lidar_front_end
 
     extra = [vsrc] if motion == Motion.fused else []
-    traj, lidar, fused, summary = lidar_front_end(
-        source, imu=imu, quiet=quiet, extra=extra, **LIDAR_DEFAULTS
-    )
+    opts = {**LIDAR_DEFAULTS, **(lidar_options or {})}
+    traj, lidar, fused, summary = lidar_front_end(source, imu=imu, quiet=quiet, extra=extra, **opts)
     info["lidar"] = summary
     info["imu"] = None if imu is None else str(imu)
     if motion == Motion.fused:

@@ -101,7 +101,8 @@ def odometry(
             "--camera",
             help="Camera frames folder (left/ + right/ rectified stereo, or rgb/ + depth/, with "
             "camera.json intrinsics) or a ROS bag with Image + CameraInfo topics: visual "
-            "odometry instead of lidar (docs/cli.md).",
+            "odometry; with lidar FRAMES too, fused with the lidar odometry in the EKF (the "
+            "visual-lidar coupling of `stemmap map --motion fused`; docs/cli.md).",
         ),
     ] = None,
     max_corners: Annotated[
@@ -141,50 +142,56 @@ def odometry(
     Example: stemmap odometry scans.npz --imu imu.csv --max-range 80 --out traj.csv  (2D scans)
 
     Example: stemmap odometry --camera frames/ --out traj.csv  (stereo / RGB-D visual odometry)
+
+    Example: stemmap odometry scans.npz --camera frames/ --out traj.csv  (visual-lidar EKF)
     """
-    if camera is not None:
-        if frames is not None:
-            print_error(
-                "give lidar FRAMES or --camera, not both: fusing visual with lidar odometry is "
-                "not wired into this command yet."
-            )
-            raise typer.Exit(code=2)
+    cam_opts: dict[str, Any] = {
+        "max_corners": max_corners,
+        "left_topic": left_topic,
+        "right_topic": right_topic,
+        "depth_topic": depth_topic,
+        "info_topic": info_topic,
+        "baseline": baseline,
+    }
+    if camera is not None and frames is None:
         from stemmap.cli._odometry_camera import camera_odometry
 
         with fail_on_stemmap_error():
-            camera_odometry(
-                camera,
-                out_path,
-                max_corners=max_corners,
-                left_topic=left_topic,
-                right_topic=right_topic,
-                depth_topic=depth_topic,
-                info_topic=info_topic,
-                baseline=baseline,
-            )
+            camera_odometry(camera, out_path, **cam_opts)
         return
     if frames is None:
         print_error("give a sensor input: lidar FRAMES, or --camera FRAMES_DIR for a camera.")
         raise typer.Exit(code=2)
     from stemmap.io.products import run_products
 
+    lidar_opts: dict[str, Any] = {
+        "topic": topic,
+        "imu_topic": imu_topic,
+        "odom_topic": odom_topic,
+        "rate": rate,
+        "max_range": max_range,
+        "min_range": min_range,
+        "voxel": voxel,
+        "keep_ground": keep_ground,
+    }
     with (
         fail_on_stemmap_error(),
-        run_products("odometry", inputs=[frames, imu], outputs=[out_path]) as run,
+        run_products("odometry", inputs=[frames, imu, camera], outputs=[out_path]) as run,
     ):
-        traj, summary = lidar_trajectory(
-            frames,
-            imu=imu,
-            topic=topic,
-            imu_topic=imu_topic,
-            odom_topic=odom_topic,
-            rate=rate,
-            max_range=max_range,
-            min_range=min_range,
-            voxel=voxel,
-            keep_ground=keep_ground,
-            quiet=quiet,
-        )
+        if camera is not None:  # the visual-lidar loose coupling (stemmap map --motion fused)
+            from stemmap.cli._map_motion import Motion, motion_trajectory
+
+            traj, summary = motion_trajectory(
+                frames,
+                Motion.fused,
+                camera=camera,
+                imu=imu,
+                quiet=quiet,
+                camera_options=cam_opts,
+                lidar_options=lidar_opts,
+            )
+        else:
+            traj, summary = lidar_trajectory(frames, imu=imu, quiet=quiet, **lidar_opts)
         _write(run.path(out_path), traj)
         run.note(**summary)
     if not quiet:
