@@ -29,34 +29,14 @@ _DEFAULT_MOUNT = np.array(
 )
 
 
-def camera_odometry(
-    frames_dir: Path,
-    out: Path,
-    *,
-    max_corners: int | None = None,
-    left_topic: str | None = None,
-    right_topic: str | None = None,
-    depth_topic: str | None = None,
-    info_topic: str | None = None,
-    baseline: float | None = None,
-) -> Trajectory:
-    """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV).
-
-    A bag (``.bag``, ROS2 folder, ``.db3``, ``.mcap``) is read by
-    :func:`stemmap.io.camera_bag.read_camera_bag` with the given topics (guessed when None);
-    a folder by :func:`stemmap.io.camera_frames.read_camera_frames`. Returns the trajectory.
+def camera_odometry(frames_dir: Path, out: Path, **options: Any) -> Trajectory:
+    """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV); ``options``
+    are those of :func:`camera_trajectory` (topics, max_corners, baseline). Returns the
+    trajectory.
     """
     from stemmap.io.trajectory import write_trajectory_csv
 
-    traj, _, summary = camera_trajectory(
-        frames_dir,
-        max_corners=max_corners,
-        left_topic=left_topic,
-        right_topic=right_topic,
-        depth_topic=depth_topic,
-        info_topic=info_topic,
-        baseline=baseline,
-    )
+    traj, _, summary = camera_trajectory(frames_dir, **options)
     write_trajectory_csv(out, traj)
     console.print(
         f"{summary['frames']} {summary['mode']} frames, {summary['keyframes']} keyframes, "
@@ -80,7 +60,12 @@ def camera_trajectory(
 ) -> tuple[Trajectory, Any, dict[str, Any]]:
     """The planar vehicle path of the visual odometry of a frames folder or a bag (frame:
     the vehicle at the first image), the :class:`~stemmap.odometry.visual.VisualOdometryResult`
-    and a summary (frames, mode, keyframes, lost_frames, distance_m)."""
+    and a summary (frames, mode, keyframes, lost_frames, distance_m).
+
+    A bag (``.bag``, ROS2 folder, ``.db3``, ``.mcap``) is read by
+    :func:`stemmap.io.camera_bag.read_camera_bag` with the given topics (guessed when None);
+    a folder by :func:`stemmap.io.camera_frames.read_camera_frames`.
+    """
     from dataclasses import replace
 
     from stemmap.io.camera_bag import read_camera_bag
