@@ -164,3 +164,17 @@ def test_visual_time_base_must_match(log: Path, tmp_path: Path) -> None:
     res = runner.invoke(app, ["map", str(log), "--motion", "fused", "--camera", str(late),
                               "--out", str(tmp_path / "x")])  # fmt: skip
     assert res.exit_code != 0 and "time bases differ" in res.output, res.output
+
+
+def test_bag_without_odometry_maps_with_lidar_motion(log: Path, tmp_path: Path) -> None:
+    """A bag with only a LaserScan topic: `wheel` has nothing to dead-reckon (error naming
+    --motion lidar), `lidar` maps it as well as from the scan file (the bag's float32 ranges
+    move the ICP by millimetres: path RMSE <= 0.10 m as above)."""
+    from stemmap.io.rosbag import write_scans_bag
+    from stemmap.io.scans import read_scans
+
+    bag = write_scans_bag(tmp_path / "scans.bag", read_scans(log))
+    res = runner.invoke(app, ["map", str(bag), "--out", str(tmp_path / "w"), "--no-progress"])
+    assert res.exit_code != 0 and "--motion lidar" in res.output, res.output
+    _map(bag, tmp_path / "b", "--motion", "lidar", "--backend", "treedb")
+    assert _rmse(log, tmp_path / "b") <= 0.10

@@ -180,7 +180,12 @@ def bag_problem(
     model = UnicycleModel(sigma_speed=sig[0], sigma_steer=sig[1])
     ctx: dict[str, Any] = {"kind": "bag"}
     if motion is None:
-        odo = read_odometry(path)
+        try:
+            odo = read_odometry(path)
+        except InputError as exc:
+            raise InputError(
+                f"{exc} Without wheel odometry, take the motion from the scans: --motion lidar."
+            ) from exc
         if len(odo) < 2:
             raise InputError(
                 f"bag {path} has fewer than 2 Odometry messages; cannot dead-reckon (or use "
