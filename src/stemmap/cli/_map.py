@@ -378,14 +378,14 @@ def map_command(
             "frames bundle (.npz of 3D lidar and / or RGB-D frames, e.g. from `stemmap sim "
             "munjer`) with --frontend. Motion: see --motion. "
             "Several logs (files, a folder, a glob, a .txt list): one Dask task per log, "
-            "OUT/<log>/ each, OUT/summary.csv.",
+            "OUT/LOG/ each, OUT/summary.csv.",
         ),
     ] = None,
     motion: Annotated[
         Motion | None,
         typer.Option(
             "--motion",
-            help="Motion source of a log: wheel (--odometry FILE, the <stem>_odometry.csv beside "
+            help="Motion source of a log: wheel (--odometry FILE, the NAME_odometry.csv beside "
             "a scan file, or a bag's Odometry topic); lidar (KISS-ICP on the log's own scans or "
             "frames, + --imu); visual (stereo / RGB-D visual odometry of --camera); fused (the "
             "visual-lidar EKF of the two, + --imu). Recorded with its drift estimate in "
@@ -396,7 +396,7 @@ def map_command(
         Path | None,
         typer.Option(
             help="--motion wheel: wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) "
-            "[default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes]; frames "
+            "[default: INPUT's NAME_odometry.csv, as `stemmap sim scans` writes]; frames "
             "bundle: that, or a pose CSV time_s,x,y,theta (`stemmap odometry --out`). "
             "('--odometry lidar' is the deprecated spelling of --motion lidar.)",
         ),
@@ -569,7 +569,7 @@ def map_command(
 
     Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
 
-    Example: stemmap map logs/ --workers 2 --out maps  (maps/<log>/ per log, maps/summary.csv)
+    Example: stemmap map logs/ --workers 2 --out maps  (maps/LOG/ per log, maps/summary.csv)
 
     Example: stemmap sim munjer --out drive.npz && stemmap map drive.npz --frontend daim --out m
 
