@@ -46,7 +46,15 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
+from stemmap.slam.relaxation import (
+    LoopClosure,
+    RigidFit,
+    fit_rigid_robust,
+    loop_constraint,
+    relax_trajectory,
+    remap_trees,
+)
+from stemmap.types import FloatArray, ScanBatch, StemMap, Tree, wrap_angle
 
 if TYPE_CHECKING:  # pragma: no cover
     from stemmap.slam.base import SlamProblem, SlamResult
@@ -54,8 +62,10 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "PRESETS",
     "ForestrixSlam",
+    "LoopMatch",
     "PoseFit",
     "TreeGraph",
+    "find_loop_closure",
     "match_tree_groups",
     "pose_from_matches",
     "relax_tree_graph",
@@ -304,6 +314,7 @@ class TreeGraph:
         self._dia_w = np.zeros(64)
         self._first = np.zeros(64)
         self._last = np.zeros(64)
+        self._alive = np.zeros(64, dtype=bool)
         self.edges: dict[tuple[int, int], list[float]] = {}
 
     def __len__(self) -> int:
@@ -317,6 +328,11 @@ class TreeGraph:
     @property
     def count(self) -> IntArray:
         return self._count[: self._n]
+
+    @property
+    def alive(self) -> NDArray[np.bool_]:
+        """False for nodes merged into another (:meth:`merge`)."""
+        return self._alive[: self._n]
 
     @property
     def first_time(self) -> FloatArray:
@@ -335,7 +351,7 @@ class TreeGraph:
 
     def _grow(self) -> None:
         cap = 2 * self._xy.shape[0]
-        for name in ("_xy", "_count", "_dia_wsum", "_dia_w", "_first", "_last"):
+        for name in ("_xy", "_count", "_dia_wsum", "_dia_w", "_first", "_last", "_alive"):
             old = getattr(self, name)
             new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
             new[: old.shape[0]] = old
@@ -352,8 +368,25 @@ class TreeGraph:
         self._dia_w[j] = weight if ok else 0.0
         self._first[j] = time
         self._last[j] = time
+        self._alive[j] = True
         self._n += 1
         return j
+
+    def merge(self, src: int, dst: int) -> None:
+        """Node ``src`` is the same tree as ``dst``: pool counts, diameters and times into
+        ``dst`` and retire ``src`` (positions are re-mapped by the caller)."""
+        if src == dst:
+            return
+        self._count[dst] += self._count[src]
+        self._dia_wsum[dst] += self._dia_wsum[src]
+        self._dia_w[dst] += self._dia_w[src]
+        self._first[dst] = min(self._first[dst], self._first[src])
+        self._last[dst] = max(self._last[dst], self._last[src])
+        self._count[src] = 0
+        self._alive[src] = False
+
+    def set_counts(self, count: ArrayLike) -> None:
+        self._count[: self._n] = np.asarray(count, dtype=np.int64).reshape(self._n)
 
     def update_tree(
         self, j: int, xy: FloatArray, diameter: float, weight: float, time: float
@@ -458,9 +491,106 @@ def relax_tree_graph(
 # --------------------------------------------------------------------------------------------
 
 
+# --------------------------------------------------------------------------------------------
+# Loop detection by tree-group matching against the older map
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LoopMatch:
+    """A loop closure found by :func:`find_loop_closure`: ``recent[k]`` revisits ``old[k]``
+    (indices into the arrays given), and ``fit`` moves the recent trees onto the old ones."""
+
+    recent: IntArray
+    old: IntArray
+    fit: RigidFit
+
+    def __bool__(self) -> bool:
+        return bool(self.fit) and self.recent.size > 0
+
+
+def find_loop_closure(
+    recent_xy: ArrayLike,
+    old_xy: ArrayLike,
+    *,
+    group_size: int = 8,
+    dist_tol: float = 0.3,
+    search_radius: float = 10.0,
+    min_support: int = 3,
+    min_matches: int = 5,
+    inlier_dist: float = 1.0,
+    max_rms: float = 0.4,
+    order_from: ArrayLike | None = None,
+) -> LoopMatch:
+    """Recognise a revisit: match the recently mapped trees to the older map by tree groups.
+
+    Öhman 2007 §2.1 matches echo groups to tree groups on inter-tree distances, which do not
+    depend on the (drifted) pose; here the "echoes" are the trees mapped in the last seconds and
+    the tree graph is the part of the map not seen for a while, so a drift far beyond the
+    scan-to-map search radius is still recognised (``search_radius``: how far the recent trees
+    may have drifted). The matched pairs must agree on one rigid motion
+    (:func:`~stemmap.slam.relaxation.fit_rigid_robust`: at least ``min_matches`` pairs within
+    ``inlier_dist`` after the fit, RMS <= ``max_rms``) -- the verification the paper leaves to
+    its pose estimate.
+
+    Parameters
+    ----------
+    recent_xy : ndarray (R, 2), m
+    old_xy : ndarray (O, 2), m
+    order_from : (2,), optional
+        Match the recent trees closest to this point first (the sensor).
+
+    Returns
+    -------
+    LoopMatch
+        Falsy when no consistent revisit was found.
+    """
+    r = np.asarray(recent_xy, dtype=np.float64).reshape(-1, 2)
+    o = np.asarray(old_xy, dtype=np.float64).reshape(-1, 2)
+    empty = np.zeros(0, dtype=np.int64)
+    if r.shape[0] < min_matches or o.shape[0] < min_matches:
+        return LoopMatch(empty, empty, RigidFit(reason="too few trees to match"))
+    order = None
+    if order_from is not None:
+        c = np.asarray(order_from, dtype=np.float64).reshape(2)
+        order = np.argsort(np.hypot(r[:, 0] - c[0], r[:, 1] - c[1]))
+    m = match_tree_groups(
+        r,
+        o,
+        group_size=group_size,
+        dist_tol=dist_tol,
+        search_radius=search_radius,
+        min_support=min_support,
+        echo_order=order,
+    )
+    ri = np.flatnonzero(m >= 0)
+    oi = m[ri]
+    fit = fit_rigid_robust(
+        r[ri], o[oi], inlier_dist=inlier_dist, min_inliers=min_matches, max_rms=max_rms
+    )
+    if not fit or fit.inliers is None:
+        return LoopMatch(empty, empty, fit)
+    return LoopMatch(ri[fit.inliers], oi[fit.inliers], fit)
+
+
+# --------------------------------------------------------------------------------------------
+# Back-end
+# --------------------------------------------------------------------------------------------
+
+
 @dataclass
 class ForestrixSlam:
     """Forestrix SLAM back-end (Öhman et al. 2007 §2).
+
+    Per frame: predict with the odometry, match the scan's echoes by tree groups to the trees
+    seen in the last ``loop_gap_s`` (scan-to-map odometry), correct the pose, add or update
+    trees. Every ``loop_every_s``, the trees first mapped in the last ``loop_window_s`` are
+    matched by tree groups to the *older* map (:func:`find_loop_closure`); a revisit adds a loop
+    constraint, merges the revisited trees, relaxes the trajectory
+    (:func:`~stemmap.slam.relaxation.relax_trajectory`, GTSAM) and re-maps every tree from the
+    relaxed poses (``relaxation="pose_graph"``, default). ``relaxation="tree_graph"`` is the
+    older behaviour: one map, matched whole, and the paper's spring iteration on the tree graph
+    (:func:`relax_tree_graph`) when an old tree is re-matched; it moves map nodes only.
 
     Parameters
     ----------
@@ -475,31 +605,43 @@ class ForestrixSlam:
     min_matches : int
         Matched echoes needed to correct the pose (>= 2).
     pose_method : {"ohman2007", "procrustes"}
-        Default ``"procrustes"`` (ours; see :func:`pose_from_matches`): on the full Victoria Park
-        run 8.1 m ATE against 24.6 m for the paper's mean angle, on the simulated loop 0.36 m
-        against 0.66 m (docs/algorithms/slam-frontends.md). The presets select the paper's.
+        Default ``"procrustes"`` (ours; see :func:`pose_from_matches`); the presets select the
+        paper's mean angle.
     new_tree_gate : float, m
-        After the pose correction, an unmatched echo this close to a map tree is that tree;
-        otherwise it is a new tree.
+        After the pose correction, an unmatched echo this close to a (recent) map tree is that
+        tree; otherwise it is a new tree.
     new_tree_gate_per_m : float, m per m of range
-        Ours: widen that gate with range, ``max(new_tree_gate, new_tree_gate_per_m * r)``
-        (a bearing error moves far echoes more; 0.02 m/m ~ 1.1°). 0 = the fixed gate. First
-        600 s of Victoria Park: duplicate pairs 38 -> 26, simulated loop unchanged.
+        Ours: widen that gate with range, ``max(new_tree_gate, new_tree_gate_per_m * r)``.
     loop_gap_s : float, s
-        Re-matching a tree last seen longer ago than this closes a loop and triggers relaxation.
+        Trees not seen for this long are the "older map": the scan matcher ignores them and the
+        loop detector matches against them.
+    relaxation : {"pose_graph", "tree_graph", "none"}
+    loop_every_s, loop_window_s : float, s
+        How often loop detection runs, and how far back "recent" trees go.
+    loop_search_radius : float, m
+        Drift a revisit may have accumulated and still be recognised.
+    loop_min_support, loop_min_matches : int
+        Distance agreements per tree pair and agreeing pairs needed for a loop closure.
+    loop_sigmas : (m, m, rad)
+        Standard deviations of a loop constraint.
     relax_iterations : int
+        Spring iterations (``"tree_graph"``) or LM iterations (``"pose_graph"``).
     relax_cooldown_s : float, s
-        Minimum time between two relaxations (a returning vehicle re-sees many old trees).
+        Minimum time between two tree-graph relaxations (``"tree_graph"`` only).
+    keyframe_dist : float, m
+        Pose-graph nodes every this many metres (or 0.1 rad of turn).
     min_observations : int
         Trees seen fewer times are left out of the output map.
-    merge_dist : float, m
-        Ours (issue 18): after the run, output trees closer than this whose diameters differ by
-        less than ``merge_ddiam`` (or whose trunk circles overlap) are one tree -- iSAM2's rule
-        (:func:`stemmap.slam.graph._merge_duplicates`); members are averaged by their
-        observation counts. Victoria Park: 98 duplicate pairs < 1 m among 1,084 trees
-        (9 %). 0 disables.
-    merge_ddiam : float, m
-        3 sqrt(2) x 0.1 m, iSAM2's diameter tolerance.
+    merge_dist, merge_ddiam : float, m
+        Output trees closer than ``merge_dist`` with diameters within ``merge_ddiam`` (or
+        overlapping trunks) are one tree (iSAM2's rule). 0 disables.
+    false_trees : {"none", "rays", "detections"}
+        Öhman's false-tree removal (§2.2, Fig. 5) on the output map: ``"rays"`` casts the raw
+        scan rays (``run(..., scans=...)``) through the mapped trees
+        (:func:`~stemmap.slam.negative.remove_false_trees_by_rays`); ``"detections"`` counts
+        frames that should have seen a tree but did not
+        (:func:`~stemmap.slam.negative.remove_false_trees_after`). Default ``"rays"``: used when
+        raw scans are given, skipped (and said so in ``stats``) otherwise.
     """
 
     preset: str | None = None
@@ -512,11 +654,20 @@ class ForestrixSlam:
     new_tree_gate: float = 0.7
     new_tree_gate_per_m: float = 0.02
     loop_gap_s: float = 60.0
+    relaxation: Literal["pose_graph", "tree_graph", "none"] = "pose_graph"
+    loop_every_s: float = 1.0
+    loop_window_s: float = 20.0
+    loop_search_radius: float = 10.0
+    loop_min_support: int = 3
+    loop_min_matches: int = 5
+    loop_sigmas: tuple[float, float, float] = (0.3, 0.3, math.radians(1.0))
     relax_iterations: int = 200
     relax_cooldown_s: float = 10.0
+    keyframe_dist: float = 2.0
     min_observations: int = 3
     merge_dist: float = 1.0
     merge_ddiam: float = 0.42
+    false_trees: Literal["none", "rays", "detections"] = "rays"
     name: str = "forestrix"
 
     def __post_init__(self) -> None:
@@ -536,8 +687,22 @@ class ForestrixSlam:
             raise ConfigError("ForestrixSlam.min_matches must be >= 2 (a rotation needs 2 pairs).")
         if self.pose_method not in ("ohman2007", "procrustes"):
             raise ConfigError(f"unknown pose_method {self.pose_method!r}.")
+        if self.relaxation not in ("pose_graph", "tree_graph", "none"):
+            raise ConfigError(
+                f"unknown relaxation {self.relaxation!r}; use 'pose_graph', 'tree_graph' or 'none'."
+            )
+        if self.false_trees not in ("none", "rays", "detections"):
+            raise ConfigError(
+                f"unknown false_trees {self.false_trees!r}; use 'none', 'rays' or 'detections'."
+            )
         if not (self.dist_tol > 0 and self.search_radius > 0 and self.new_tree_gate > 0):
             raise ConfigError("ForestrixSlam: dist_tol, search_radius, new_tree_gate must be > 0.")
+        if not (self.loop_search_radius > 0 and self.loop_every_s > 0 and self.keyframe_dist > 0):
+            raise ConfigError(
+                "ForestrixSlam: loop_search_radius, loop_every_s and keyframe_dist must be > 0."
+            )
+        if int(self.loop_min_matches) < 3:
+            raise ConfigError("ForestrixSlam.loop_min_matches must be >= 3.")
         if not (self.merge_dist >= 0 and self.merge_ddiam >= 0):
             raise ConfigError(
                 f"ForestrixSlam: merge_dist and merge_ddiam must be >= 0 m, got "
@@ -545,112 +710,58 @@ class ForestrixSlam:
             )
 
     def run(
-        self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
+        self,
+        problem: SlamProblem,
+        *,
+        progress: Callable[[int, int], None] | None = None,
+        scans: ScanBatch | None = None,
     ) -> SlamResult:
-        """Run Forestrix over ``problem``; see the module docstring."""
-        from stemmap.slam.base import SlamResult, frame_trajectory, observation_to_world
-        from stemmap.slam.motion import compose, preintegrate
+        """Run Forestrix over ``problem``; see the class docstring.
+
+        ``scans``: the raw scans, one per frame of ``problem`` (same order), for the ray-cast
+        false-tree removal (``false_trees="rays"``).
+        """
+        from stemmap.slam.base import SlamResult, frame_trajectory
 
         t_start = _time.perf_counter()
         frames = problem.frames
-        nf = len(frames)
-        off = problem.sensor_offset
-        pre = preintegrate(
-            problem.motion,
-            problem.controls,
-            frames.times,
-            np.asarray(problem.initial_pose),
-            with_covariance=False,
-        )
-        pose = np.asarray(problem.initial_pose, dtype=np.float64).copy()
-        poses = np.empty((nf, 3))
-        graph = TreeGraph()
-        n_corrected = 0
-        n_loops = 0
-        last_relax = -math.inf
-        g = int(self.group_size) - 1
-        for f in range(nf):
-            if f > 0:
-                pose = compose(pose, pre.deltas[f - 1])
-            r, b, d = frames.frame(f)
-            tf = float(frames.times[f])
-            if r.size == 0:
-                poses[f] = pose
-                continue
-            echo = observation_to_world(pose, r, b, off)
-            order = np.argsort(r)
-            match = np.full(r.size, -1, dtype=np.int64)
-            local = np.zeros(0, dtype=np.int64)
-            if len(graph):
-                txy = graph.positions()
-                sp = observation_to_world(pose, [0.0], [0.0], off)[0]
-                reach = float(r.max()) + self.search_radius + 5.0
-                local = np.flatnonzero(np.hypot(txy[:, 0] - sp[0], txy[:, 1] - sp[1]) <= reach)
-                if local.size:
-                    m_loc = match_tree_groups(
-                        echo,
-                        txy[local],
-                        group_size=self.group_size,
-                        dist_tol=self.dist_tol,
-                        search_radius=self.search_radius,
-                        min_support=self.min_support,
-                        echo_order=order,
-                    )
-                    match = np.where(m_loc >= 0, local[np.clip(m_loc, 0, None)], -1)
-                mm = np.flatnonzero(match >= 0)
-                if mm.size >= self.min_matches:
-                    fit = pose_from_matches(echo[mm], txy[match[mm]], method=self.pose_method)
-                    if fit:
-                        pose = fit.apply_pose(pose)
-                        echo = observation_to_world(pose, r, b, off)
-                        n_corrected += 1
-            # classify echoes as old or new trees; accumulate
-            ids = np.empty(r.size, dtype=np.int64)
-            txy = graph.positions()
-            w_d = 1.0 / np.maximum(r, 0.5) ** 2
-            loop = False
-            taken = {int(j) for j in match if j >= 0}
-            for k in order:
-                j = int(match[k])
-                if j < 0 and txy.shape[0]:
-                    dd = np.hypot(txy[:, 0] - echo[k, 0], txy[:, 1] - echo[k, 1])
-                    jj = int(np.argmin(dd))
-                    gate_k = max(self.new_tree_gate, self.new_tree_gate_per_m * float(r[k]))
-                    if dd[jj] <= gate_k and jj not in taken:
-                        j = jj
-                        taken.add(jj)
-                if j >= 0:
-                    if tf - graph.last_time[j] > self.loop_gap_s:
-                        loop = True
-                    graph.update_tree(j, echo[k], float(d[k]), float(w_d[k]), tf)
-                else:
-                    j = graph.add_tree(echo[k], float(d[k]), float(w_d[k]), tf)
-                ids[k] = j
-            # edges to in-scan neighbours (measured distances: pose-error free)
-            if r.size >= 2:
-                nidx, ndist = _neighbours(echo, min(g, r.size - 1))
-                for a in range(r.size):
-                    for c in range(nidx.shape[1]):
-                        if nidx[a, c] >= 0:
-                            graph.add_edge(int(ids[a]), int(ids[nidx[a, c]]), float(ndist[a, c]))
-            if loop and tf - last_relax >= self.relax_cooldown_s:
-                last_relax = tf
-                n_loops += 1
-                ed, ln, wt = graph.edge_arrays()
-                relaxed = relax_tree_graph(
-                    graph.positions(), ed, ln, wt, iterations=self.relax_iterations
-                )
-                graph.set_positions(relaxed)
-            poses[f] = pose
-            if progress is not None and (f % 200 == 0 or f == nf - 1):
-                progress(f + 1, nf)
+        if scans is not None and np.atleast_2d(scans.ranges).shape[0] != len(frames):
+            raise InputError(
+                f"ForestrixSlam.run: {np.atleast_2d(scans.ranges).shape[0]} scans for "
+                f"{len(frames)} frames; give one raw scan per frame."
+            )
+        st = _RunState(self, problem)
+        for f in range(len(frames)):
+            st.step(f)
+            if progress is not None and (f % 200 == 0 or f == len(frames) - 1):
+                progress(f + 1, len(frames))
+        st.finish()
+        stem_map, n_merged = self._output_map(st)
+        stats: dict[str, float | int | str] = {
+            "backend": self.name,
+            "graph_nodes": len(st.graph),
+            "graph_edges": len(st.graph.edges),
+            "trees_merged": n_merged,
+            "frames_corrected": st.n_corrected,
+            "loop_closures": len(st.loops) if self.relaxation == "pose_graph" else st.n_loops,
+            "relaxations": st.n_relax,
+            "trees_merged_at_loops": st.n_loop_merged,
+        }
+        stem_map = self._remove_false_trees(stem_map, st, problem, scans, stats)
+        stats["trees_mapped"] = len(stem_map)
+        stats["runtime_s"] = float(_time.perf_counter() - t_start)
+        return SlamResult(frame_trajectory(frames.times, st.poses), stem_map, stats)
 
-        keep = np.flatnonzero(graph.count >= self.min_observations)
-        xy = graph.positions()[keep]
-        dia = graph.diameters()[keep]
-        cnt = graph.count[keep].astype(np.float64)
-        t_first = np.asarray(graph.first_time, dtype=np.float64)[keep]
-        t_last = np.asarray(graph.last_time, dtype=np.float64)[keep]
+    # ---- output ------------------------------------------------------------------------
+
+    def _output_map(self, st: _RunState) -> tuple[StemMap, int]:
+        g = st.graph
+        keep = np.flatnonzero(g.alive & (g.count >= self.min_observations))
+        xy = g.positions()[keep]
+        dia = g.diameters()[keep]
+        cnt = g.count[keep].astype(np.float64)
+        t_first = np.asarray(g.first_time, dtype=np.float64)[keep]
+        t_last = np.asarray(g.last_time, dtype=np.float64)[keep]
         n_merged = 0
         if self.merge_dist > 0 and keep.size > 1:
             from stemmap.slam.graph import _merge_duplicates
@@ -672,27 +783,279 @@ class ForestrixSlam:
             np.maximum.at(last, inv, t_last)
             cnt = np.asarray(w, dtype=np.float64)
             t_first, t_last = first, last
-        trees = []
-        for new_id in range(xy.shape[0]):
-            trees.append(
-                Tree(
-                    id=new_id,
-                    x=float(xy[new_id, 0]),
-                    y=float(xy[new_id, 1]),
-                    diameter=float(dia[new_id]),
-                    n_obs=int(cnt[new_id]),
-                    first_time=float(t_first[new_id]),
-                    last_time=float(t_last[new_id]),
-                )
+        trees = [
+            Tree(
+                id=i,
+                x=float(xy[i, 0]),
+                y=float(xy[i, 1]),
+                diameter=float(dia[i]),
+                n_obs=int(cnt[i]),
+                first_time=float(t_first[i]),
+                last_time=float(t_last[i]),
             )
-        stats: dict[str, float | int | str] = {
-            "backend": self.name,
-            "graph_nodes": len(graph),
-            "graph_edges": len(graph.edges),
-            "trees_mapped": len(trees),
-            "trees_merged": n_merged,
-            "frames_corrected": n_corrected,
-            "loop_closures": n_loops,
-            "runtime_s": float(_time.perf_counter() - t_start),
-        }
-        return SlamResult(frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats)
+            for i in range(xy.shape[0])
+        ]
+        return StemMap(tuple(trees)), n_merged
+
+    def _remove_false_trees(
+        self,
+        stem_map: StemMap,
+        st: _RunState,
+        problem: SlamProblem,
+        scans: ScanBatch | None,
+        stats: dict[str, float | int | str],
+    ) -> StemMap:
+        """Öhman §2.2 / Fig. 5 on the output map, at the final poses."""
+        from stemmap.slam.base import SlamResult, frame_trajectory, sensor_poses
+
+        mode = self.false_trees
+        if mode == "rays" and scans is None:
+            stats["false_trees"] = "skipped: no raw scans"
+            return stem_map
+        stats["false_trees"] = mode
+        if mode == "none" or len(stem_map) == 0:
+            stats["false_trees_removed"] = 0
+            return stem_map
+        if mode == "rays":
+            from stemmap.slam.negative import remove_false_trees_by_rays
+
+            sp = sensor_poses(st.poses, problem.sensor_offset)
+            cleaned, res = remove_false_trees_by_rays(stem_map, sp, scans)  # type: ignore[arg-type]
+        else:
+            from stemmap.slam.negative import remove_false_trees_after
+
+            tmp = SlamResult(frame_trajectory(problem.frames.times, st.poses), stem_map, {})
+            cleaned, res = remove_false_trees_after(tmp, problem)
+        stats["false_trees_removed"] = res.n_removed
+        return cleaned
+
+
+class _RunState:
+    """Mutable state of one :meth:`ForestrixSlam.run` (front-end, loop closures, relaxation)."""
+
+    def __init__(self, cfg: ForestrixSlam, problem: SlamProblem) -> None:
+        from stemmap.slam.motion import preintegrate
+
+        self.cfg = cfg
+        self.problem = problem
+        fr = problem.frames
+        self.frames = fr
+        self.off = problem.sensor_offset
+        self.pre = preintegrate(
+            problem.motion,
+            problem.controls,
+            fr.times,
+            np.asarray(problem.initial_pose),
+            with_covariance=False,
+        )
+        self.pose = np.asarray(problem.initial_pose, dtype=np.float64).copy()
+        self.poses = np.empty((len(fr), 3))
+        self.graph = TreeGraph()
+        self.det_tree = np.full(fr.n_detections, -1, dtype=np.int64)
+        self.det_frame = fr.frame_index
+        self.keyframes: list[int] = [0]
+        self.loops: list[LoopClosure] = []
+        self.pending = False
+        self.n_corrected = 0
+        self.n_loops = 0
+        self.n_relax = 0
+        self.n_loop_merged = 0
+        self.last_relax = -math.inf
+        self.last_loop_try = -math.inf
+        self.windowed = cfg.relaxation == "pose_graph"
+
+    # ---- per frame -----------------------------------------------------------------------
+
+    def step(self, f: int) -> None:
+        from stemmap.slam.base import observation_to_world
+        from stemmap.slam.motion import compose
+
+        cfg, graph = self.cfg, self.graph
+        if f > 0:
+            self.pose = compose(self.pose, self.pre.deltas[f - 1])
+        r, b, d = self.frames.frame(f)
+        tf = float(self.frames.times[f])
+        if r.size == 0:
+            self._end_frame(f, tf)
+            return
+        off = self.off
+        echo = observation_to_world(self.pose, r, b, off)
+        order = np.argsort(r)
+        match = np.full(r.size, -1, dtype=np.int64)
+        txy = graph.positions()
+        active = self._active(tf)
+        if active.size:
+            sp = observation_to_world(self.pose, [0.0], [0.0], off)[0]
+            reach = float(r.max()) + cfg.search_radius + 5.0
+            loc = active[np.hypot(txy[active, 0] - sp[0], txy[active, 1] - sp[1]) <= reach]
+            if loc.size:
+                m_loc = match_tree_groups(
+                    echo,
+                    txy[loc],
+                    group_size=cfg.group_size,
+                    dist_tol=cfg.dist_tol,
+                    search_radius=cfg.search_radius,
+                    min_support=cfg.min_support,
+                    echo_order=order,
+                )
+                match = np.where(m_loc >= 0, loc[np.clip(m_loc, 0, None)], -1)
+            mm = np.flatnonzero(match >= 0)
+            if mm.size >= cfg.min_matches:
+                fit = pose_from_matches(echo[mm], txy[match[mm]], method=cfg.pose_method)
+                if fit:
+                    self.pose = fit.apply_pose(self.pose)
+                    echo = observation_to_world(self.pose, r, b, off)
+                    self.n_corrected += 1
+        # classify echoes as old or new trees; accumulate
+        ids = np.empty(r.size, dtype=np.int64)
+        w_d = 1.0 / np.maximum(r, 0.5) ** 2
+        loop = False
+        taken = {int(j) for j in match if j >= 0}
+        ax = txy[active] if active.size else np.zeros((0, 2))
+        for k in order:
+            j = int(match[k])
+            if j < 0 and ax.shape[0]:
+                dd = np.hypot(ax[:, 0] - echo[k, 0], ax[:, 1] - echo[k, 1])
+                jj = int(np.argmin(dd))
+                gate_k = max(cfg.new_tree_gate, cfg.new_tree_gate_per_m * float(r[k]))
+                if dd[jj] <= gate_k and int(active[jj]) not in taken:
+                    j = int(active[jj])
+                    taken.add(j)
+            if j >= 0:
+                if tf - graph.last_time[j] > cfg.loop_gap_s:
+                    loop = True
+                graph.update_tree(j, echo[k], float(d[k]), float(w_d[k]), tf)
+            else:
+                j = graph.add_tree(echo[k], float(d[k]), float(w_d[k]), tf)
+            ids[k] = j
+        p0 = int(self.frames.ptr[f])
+        self.det_tree[p0 : p0 + r.size] = ids
+        if cfg.relaxation == "tree_graph":
+            self._tree_graph_step(echo, ids, loop, tf)
+        self._end_frame(f, tf)
+
+    def _active(self, tf: float) -> IntArray:
+        g = self.graph
+        if not len(g):
+            return np.zeros(0, dtype=np.int64)
+        if not self.windowed:
+            return np.flatnonzero(g.alive)
+        return np.flatnonzero(g.alive & (tf - g.last_time <= self.cfg.loop_gap_s))
+
+    def _tree_graph_step(self, echo: FloatArray, ids: IntArray, loop: bool, tf: float) -> None:
+        """The older behaviour: record in-scan edges; relax the tree graph on a re-match."""
+        cfg, graph = self.cfg, self.graph
+        g = int(cfg.group_size) - 1
+        if ids.size >= 2:
+            nidx, ndist = _neighbours(echo, min(g, ids.size - 1))
+            for a in range(ids.size):
+                for c in range(nidx.shape[1]):
+                    if nidx[a, c] >= 0:
+                        graph.add_edge(int(ids[a]), int(ids[nidx[a, c]]), float(ndist[a, c]))
+        if loop and tf - self.last_relax >= cfg.relax_cooldown_s:
+            self.last_relax = tf
+            self.n_loops += 1
+            ed, ln, wt = graph.edge_arrays()
+            relaxed = relax_tree_graph(
+                graph.positions(), ed, ln, wt, iterations=cfg.relax_iterations
+            )
+            graph.set_positions(relaxed)
+
+    def _end_frame(self, f: int, tf: float) -> None:
+        self.poses[f] = self.pose
+        if f > 0:
+            last = self.poses[self.keyframes[-1]]
+            if (
+                math.hypot(self.pose[0] - last[0], self.pose[1] - last[1]) >= self.cfg.keyframe_dist
+                or abs(math.remainder(self.pose[2] - last[2], 2 * math.pi)) >= 0.1
+            ):
+                self.keyframes.append(f)
+        if self.windowed and tf - self.last_loop_try >= self.cfg.loop_every_s:
+            self.last_loop_try = tf
+            self._try_loop(f, tf)
+
+    # ---- loop closure ----------------------------------------------------------------------
+
+    def _try_loop(self, f: int, tf: float) -> None:
+        from stemmap.slam.base import observation_to_world
+
+        cfg, g = self.cfg, self.graph
+        n = len(g)
+        if n < 2 * cfg.loop_min_matches:
+            return
+        alive, last, first = g.alive, g.last_time, g.first_time
+        xy = g.positions()
+        sp = observation_to_world(self.pose, [0.0], [0.0], self.off)[0]
+        recent = np.flatnonzero(
+            alive
+            & (first >= tf - cfg.loop_window_s)
+            & (g.count >= 2)
+            & (tf - last <= cfg.loop_gap_s)
+        )
+        if recent.size < cfg.loop_min_matches:
+            return
+        reach = float(np.max(np.hypot(*(xy[recent] - sp).T))) + cfg.loop_search_radius
+        old = np.flatnonzero(alive & (tf - last > cfg.loop_gap_s))
+        old = old[np.hypot(*(xy[old] - sp).T) <= reach]
+        if old.size < cfg.loop_min_matches:
+            return
+        lm = find_loop_closure(
+            xy[recent],
+            xy[old],
+            group_size=cfg.group_size,
+            dist_tol=cfg.dist_tol,
+            search_radius=cfg.loop_search_radius,
+            min_support=cfg.loop_min_support,
+            min_matches=cfg.loop_min_matches,
+            order_from=sp,
+        )
+        if not lm:
+            return
+        src, dst = recent[lm.recent], old[lm.old]
+        # the older frame: where the revisited trees were last seen (median time)
+        t_old = float(np.median(last[dst]))
+        j = int(np.clip(np.searchsorted(self.frames.times, t_old), 0, f))
+        self.loops.append(
+            LoopClosure(j, f, loop_constraint(self.poses[j], self.poses[f], lm.fit), cfg.loop_sigmas)
+        )
+        if self.keyframes[-1] != f:
+            self.keyframes.append(f)
+        remap = np.arange(n)
+        for s_, d_ in zip(src.tolist(), dst.tolist(), strict=True):
+            g.merge(s_, d_)
+            remap[s_] = d_
+        self.n_loop_merged += src.size
+        k_end = int(self.frames.ptr[f + 1])
+        seen = self.det_tree[:k_end]
+        self.det_tree[:k_end] = np.where(seen >= 0, remap[np.clip(seen, 0, None)], -1)
+        self._relax(f)
+
+    def _relax(self, f: int) -> None:
+        if not self.loops:
+            return
+        self.n_relax += 1
+        kf = np.asarray(self.keyframes, dtype=np.int64)
+        kf = kf[kf <= f]
+        self.poses[: f + 1] = relax_trajectory(
+            self.poses[: f + 1], kf, self.loops, max_iterations=self.cfg.relax_iterations
+        )
+        self.pose = self.poses[f].copy()
+        k_end = int(self.frames.ptr[f + 1])
+        fr = self.frames
+        xy, cnt = remap_trees(
+            self.poses[: f + 1],
+            self.det_frame[:k_end],
+            fr.ranges[:k_end],
+            fr.bearings[:k_end],
+            self.det_tree[:k_end],
+            len(self.graph),
+            self.off,
+        )
+        ok = self.graph.alive & (cnt > 0)
+        pos = self.graph.positions()
+        pos[ok] = xy[ok]
+        self.graph.set_positions(pos)
+
+    def finish(self) -> None:
+        """Nothing pending: every loop closure relaxes at once (the last state is final)."""
+        self.pending = False
