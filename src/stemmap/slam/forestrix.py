@@ -632,6 +632,8 @@ class ForestrixSlam:
         Pose-graph nodes every this many metres (or 0.1 rad of turn).
     min_observations : int
         Trees seen fewer times are left out of the output map.
+    max_range : float, m
+        Detections farther than this are not used (neither for the pose nor the map).
     merge_dist, merge_ddiam : float, m
         Output trees closer than ``merge_dist`` with diameters within ``merge_ddiam`` (or
         overlapping trunks) are one tree (iSAM2's rule). 0 disables.
@@ -664,7 +666,8 @@ class ForestrixSlam:
     relax_iterations: int = 200
     relax_cooldown_s: float = 10.0
     keyframe_dist: float = 2.0
-    min_observations: int = 3
+    min_observations: int = 5
+    max_range: float = 50.0
     merge_dist: float = 1.0
     merge_ddiam: float = 0.42
     false_trees: Literal["none", "rays", "detections"] = "rays"
@@ -746,6 +749,7 @@ class ForestrixSlam:
             "loop_closures": len(st.loops) if self.relaxation == "pose_graph" else st.n_loops,
             "relaxations": st.n_relax,
             "trees_merged_at_loops": st.n_loop_merged,
+            "trees_merged_after_relaxation": st.n_close_merged,
         }
         stem_map = self._remove_false_trees(stem_map, st, problem, scans, stats)
         stats["trees_mapped"] = len(stem_map)
@@ -860,6 +864,7 @@ class _RunState:
         self.n_loops = 0
         self.n_relax = 0
         self.n_loop_merged = 0
+        self.n_close_merged = 0
         self.last_relax = -math.inf
         self.last_loop_try = -math.inf
         self.windowed = cfg.relaxation == "pose_graph"
@@ -875,6 +880,9 @@ class _RunState:
             self.pose = compose(self.pose, self.pre.deltas[f - 1])
         r, b, d = self.frames.frame(f)
         tf = float(self.frames.times[f])
+        use = r <= cfg.max_range
+        if not use.all():
+            r, b, d = r[use], b[use], d[use]
         if r.size == 0:
             self._end_frame(f, tf)
             return
@@ -929,7 +937,7 @@ class _RunState:
                 j = graph.add_tree(echo[k], float(d[k]), float(w_d[k]), tf)
             ids[k] = j
         p0 = int(self.frames.ptr[f])
-        self.det_tree[p0 : p0 + r.size] = ids
+        self.det_tree[p0 : p0 + use.size][use] = ids
         if cfg.relaxation == "tree_graph":
             self._tree_graph_step(echo, ids, loop, tf)
         self._end_frame(f, tf)
@@ -1055,6 +1063,40 @@ class _RunState:
         pos = self.graph.positions()
         pos[ok] = xy[ok]
         self.graph.set_positions(pos)
+        if self.cfg.merge_dist > 0:
+            self._merge_close(f)
+
+    def _merge_close(self, f: int) -> None:
+        """After a relaxation the map is consistent again: trees closer than ``merge_dist`` with
+        compatible diameters (or overlapping trunks) are one tree (iSAM2's rule) -- the copies a
+        drifted revisit created before its loop was recognised."""
+        from stemmap.slam.graph import _merge_duplicates
+
+        g = self.graph
+        idx = np.flatnonzero(g.alive)
+        if idx.size < 2:
+            return
+        xy = g.positions()[idx]
+        dia = np.nan_to_num(g.diameters()[idx], nan=0.0)
+        cnt = g.count[idx].astype(np.float64)
+        rep = idx[_merge_duplicates(xy, dia, cnt, self.cfg.merge_dist, self.cfg.merge_ddiam)]
+        moved = np.flatnonzero(rep != idx)
+        if moved.size == 0:
+            return
+        n = len(g)
+        remap = np.arange(n)
+        pos = g.positions()
+        for k in moved.tolist():
+            s_, d_ = int(idx[k]), int(rep[k])
+            cs, cd = float(g.count[s_]), float(g.count[d_])
+            pos[d_] = (cs * pos[s_] + cd * pos[d_]) / max(cs + cd, 1.0)
+            g.merge(s_, d_)
+            remap[s_] = d_
+        g.set_positions(pos)
+        self.n_close_merged += moved.size
+        k_end = int(self.frames.ptr[f + 1])
+        seen = self.det_tree[:k_end]
+        self.det_tree[:k_end] = np.where(seen >= 0, remap[np.clip(seen, 0, None)], -1)
 
     def finish(self) -> None:
         """Nothing pending: every loop closure relaxes at once (the last state is final)."""
