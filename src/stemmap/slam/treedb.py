@@ -33,7 +33,8 @@ from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 if TYPE_CHECKING:  # pragma: no cover
-    from stemmap.slam.base import SlamProblem, SlamResult
+    from stemmap.slam.base import SlamProblem, SlamResult, TreeFrames
+    from stemmap.slam.loop_closure import LoopCloser
 
 __all__ = [
     "PRESETS",
@@ -41,6 +42,7 @@ __all__ = [
     "TreeDbConfig",
     "TreeDbSlam",
     "range_bearing_jacobians",
+    "treedb_from_detections",
     "treedb_update",
 ]
 
@@ -212,6 +214,7 @@ def treedb_update(
     *,
     gate: float = 0.5,
     known: ArrayLike | None = None,
+    candidates: ArrayLike | None = None,
 ) -> tuple[TreeDb, IntArray]:
     """Add one frame of detections (map frame) to the tree DB, visual-lidar paper §2.5.
 
@@ -239,6 +242,9 @@ def treedb_update(
     known : ndarray of shape (K,), int, optional
         Association already decided elsewhere (e.g. by the localisation's Mahalanobis gate, which
         scales with range): DB index per detection, -1 = decide here by ``gate``.
+    candidates : ndarray of shape (N,), bool, optional
+        Entries the ``gate`` may match (default: all), e.g. only the recently seen ones when an
+        older part of the map is left to loop closure.
 
     Returns
     -------
@@ -288,6 +294,11 @@ def treedb_update(
     if n and k:
         dist = np.hypot(z[:, None, 0] - db.xy[None, :, 0], z[:, None, 1] - db.xy[None, :, 1])
         # Greedy one-to-one: closest pairs first (a tree is seen at most once per frame).
+        if candidates is not None:
+            ok_t = np.asarray(candidates, dtype=bool).reshape(-1)
+            if ok_t.shape[0] != n:
+                raise InputError(f"treedb_update: candidates must have {n} entries.")
+            dist = np.where(ok_t[None, :], dist, np.inf)
         cand = np.argwhere(dist <= gate)
         if cand.size:
             order = np.argsort(dist[cand[:, 0], cand[:, 1]], kind="stable")
@@ -334,6 +345,55 @@ def treedb_update(
     else:
         first = db.first_time
     return TreeDb(xy_new, dia, cnt, dcnt, sq, first, last), assoc
+
+
+def treedb_from_detections(
+    xy: ArrayLike,
+    diameters: ArrayLike,
+    times: ArrayLike,
+    entry: ArrayLike,
+    n_entries: int,
+) -> TreeDb:
+    """The tree DB that eq. (2) builds from these detections and this association.
+
+    Eq. (2)'s count-weighted running average of a tree's detections is their plain mean, so
+    re-mapping the detections (e.g. from relaxed poses after a loop closure) and averaging per
+    entry gives exactly the database the updates would have built at those poses. Entries
+    without detections (merged into another) get count 0 and position NaN.
+
+    Parameters
+    ----------
+    xy : ndarray (K, 2), m -- detections in the map frame
+    diameters : ndarray (K,), m (NaN = unknown)
+    times : ndarray (K,), s
+    entry : ndarray (K,), int -- DB entry of each detection (-1 = none)
+    n_entries : int
+    """
+    z = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    d = np.asarray(diameters, dtype=np.float64).reshape(-1)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    e = np.asarray(entry, dtype=np.int64).reshape(-1)
+    ok = e >= 0
+    z, d, t, e = z[ok], d[ok], t[ok], e[ok]
+    n = int(n_entries)
+    cnt = np.bincount(e, minlength=n)
+    c = np.maximum(cnt, 1).astype(np.float64)
+    mean = np.column_stack([np.bincount(e, weights=z[:, i], minlength=n) / c for i in range(2)])
+    mean[cnt == 0] = np.nan
+    dev = z - mean[e]
+    sq = np.zeros((n, 2, 2))
+    for a in range(2):
+        for b in range(2):
+            sq[:, a, b] = np.bincount(e, weights=dev[:, a] * dev[:, b], minlength=n)
+    fin = np.isfinite(d)
+    dcnt = np.bincount(e[fin], minlength=n)
+    dsum = np.bincount(e[fin], weights=d[fin], minlength=n)
+    dia = np.where(dcnt > 0, dsum / np.maximum(dcnt, 1), np.nan)
+    first = np.full(n, np.inf)
+    np.minimum.at(first, e, t)
+    last = np.full(n, -np.inf)
+    np.maximum.at(last, e, t)
+    return TreeDb(mean, dia, cnt.astype(np.int64), dcnt.astype(np.int64), sq, first, last)
 
 
 # --------------------------------------------------------------------------------------------
@@ -389,6 +449,12 @@ class TreeDbSlam:
     chi2_gate: float = 9.21
     refine: bool = True
     landmark_association: bool = True
+    loop_closure: bool = True
+    loop_gap_s: float = 60.0
+    loop_search_radius: float = 10.0
+    loop_min_matches: int = 5
+    merge_dist: float = 1.0
+    merge_ddiam: float = 0.42
     name: str = "treedb"
 
     def __post_init__(self) -> None:
@@ -423,8 +489,23 @@ class TreeDbSlam:
         poses = np.empty((nf, 3))
         pose_covs = np.empty((nf, 3, 3))
         db = TreeDb()
+        det_entry = np.full(frames.n_detections, -1, dtype=np.int64)
+        closer = None
+        if self.loop_closure:
+            from stemmap.slam.loop_closure import LoopCloser, LoopConfig
+
+            closer = LoopCloser(
+                LoopConfig(
+                    gap_s=self.loop_gap_s,
+                    search_radius=self.loop_search_radius,
+                    min_matches=self.loop_min_matches,
+                ),
+                frames.times,
+            )
         n_updates = 0
+        n_loop_merged = 0
         for f in range(nf):
+            tf = float(frames.times[f])
             if f > 0:
                 delta = pre.deltas[f - 1]
                 Fx = _compose_jacobian(pose, delta)
@@ -434,8 +515,13 @@ class TreeDbSlam:
                 pose = compose(pose, delta)
             r, b, d = frames.frame(f)
             known = None
+            active = None
+            if closer is not None and len(db):
+                active = (db.count > 0) & (tf - db.last_time <= self.loop_gap_s)
             if self.localize and r.size and len(db):
                 lm = db.landmarks(self.promote_count)
+                if active is not None:
+                    lm = lm[active[lm]]
                 if lm.size:
                     pose, P, matched = _localize(
                         pose, P, r, b, db.xy[lm], _lm_cov(db, lm), R, off, self.chi2_gate
@@ -447,9 +533,22 @@ class TreeDbSlam:
             pose_covs[f] = P
             if r.size:
                 xy = observation_to_world(pose, r, b, off)
-                db, _ = treedb_update(
-                    db, xy, d, float(frames.times[f]), gate=self.gate, known=known
+                db, idx = treedb_update(
+                    db, xy, d, tf, gate=self.gate, known=known, candidates=active
                 )
+                det_entry[frames.ptr[f] : frames.ptr[f + 1]] = idx
+            if closer is not None:
+                closer.on_frame(f, poses)
+                if closer.due(tf) and len(db) >= 2 * closer.cfg.min_matches:
+                    sp = observation_to_world(pose, [0.0], [0.0], off)[0]
+                    alive = db.count > 0
+                    found = closer.detect(
+                        f, poses, sp, db.xy, db.first_time, db.last_time, db.count, alive
+                    )
+                    if found is not None:
+                        n_loop_merged += found[0].size
+                        db = self._relax(closer, found, poses, det_entry, f, frames, off)
+                        pose = poses[f].copy()
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
         stem_map = db.to_stem_map(self.promote_count)
@@ -473,10 +572,51 @@ class TreeDbSlam:
             "db_entries": len(db),
             "landmarks": len(stem_map),
             "frames_localized": n_updates,
+            "loop_closures": len(closer.loops) if closer is not None else 0,
+            "entries_merged_at_loops": n_loop_merged,
             "runtime_s": _time_since(t0),
         }
         log.info("treedb: %d DB entries, %d landmarks", len(db), len(stem_map))
         return SlamResult(frame_trajectory(frames.times, poses), stem_map, stats)
+
+
+    def _relax(
+        self,
+        closer: LoopCloser,
+        found: tuple[IntArray, IntArray],
+        poses: FloatArray,
+        det_entry: IntArray,
+        f: int,
+        frames: TreeFrames,
+        off: tuple[float, float],
+    ) -> TreeDb:
+        """Merge the revisited entries, relax the trajectory, rebuild the DB from the relaxed
+        poses and merge the entries that now lie on top of each other."""
+        from stemmap.slam.base import observation_to_world
+        from stemmap.slam.loop_closure import close_duplicates, relabel
+
+        k_end = int(frames.ptr[f + 1])
+        ent = det_entry[:k_end]
+        n = int(ent.max(initial=-1)) + 1
+        relabel(ent, found[0], found[1], n)
+        poses[: f + 1] = closer.relax(poses, f)
+        fi = frames.frame_index[:k_end]
+        xy = observation_to_world(poses[fi], frames.ranges[:k_end], frames.bearings[:k_end], off)
+        args = (frames.diameters[:k_end], frames.times[fi])
+        db = treedb_from_detections(xy, *args, ent, n)
+        if self.merge_dist > 0:
+            src, dst = close_duplicates(
+                np.nan_to_num(db.xy, nan=1e9),
+                db.diameter,
+                db.count,
+                db.count > 0,
+                self.merge_dist,
+                self.merge_ddiam,
+            )
+            if src.size:
+                relabel(ent, src, dst, n)
+                db = treedb_from_detections(xy, *args, ent, n)
+        return db
 
 
 def _time_since(t0: float) -> float:
