@@ -167,7 +167,7 @@ class ForestrixSlam:
     relaxation: Literal["pose_graph", "tree_graph", "none"] = "pose_graph"
     loop_every_s: float = 1.0
     loop_window_s: float = 20.0
-    loop_search_radius: float = 10.0
+    loop_search_radius: float = 20.0
     loop_min_support: int = 3
     loop_min_matches: int = 5
     loop_sigmas: tuple[float, float, float] = (0.3, 0.3, math.radians(1.0))
@@ -269,8 +269,7 @@ class ForestrixSlam:
             "graph_edges": len(st.graph.edges),
             "trees_merged": n_merged,
             "frames_corrected": st.n_corrected,
-            "loop_closures": len(st.closer.loops) if st.closer else st.n_loops,
-            "relaxations": st.closer.n_relax if st.closer else st.n_loops,
+            **(st.closer.stats() if st.closer else {"loop_closures": st.n_loops}),
             "trees_merged_at_loops": st.n_loop_merged,
             "trees_merged_after_relaxation": st.n_close_merged,
         }

@@ -150,7 +150,7 @@ class LoopConfig:
     gap_s: float = 60.0
     every_s: float = 1.0
     window_s: float = 20.0
-    search_radius: float = 10.0
+    search_radius: float = 20.0
     min_support: int = 3
     min_matches: int = 5
     group_size: int = 8
@@ -183,6 +183,7 @@ class LoopCloser:
         self.keyframes: list[int] = [0]
         self.loops: list[LoopClosure] = []
         self.n_relax = 0
+        self.corrections: list[float] = []  # m: how far each closure moved the sensor
         self._last_try = -math.inf
 
     def on_frame(self, f: int, poses: FloatArray) -> None:
@@ -212,24 +213,29 @@ class LoopCloser:
         last: FloatArray,
         count: ArrayLike,
         alive: NDArray[np.bool_],
+        *,
+        min_count: int = 2,
+        old_min_count: int = 1,
     ) -> tuple[IntArray, IntArray] | None:
         """Look for a revisit at frame ``f``; on success record the loop constraint and return
         the (recent, old) map indices of the revisited trees (the caller merges them).
 
         ``xy``, ``first``, ``last``, ``count``, ``alive``: the map's trees (positions, first and
-        last sighting times, sightings, not retired); ``sensor_xy``: where the sensor is now.
+        last sighting times, sightings, not retired); ``sensor_xy``: where the sensor is now;
+        ``min_count`` / ``old_min_count``: sightings a recent / old tree needs to take part (the
+        tree DB matches only its landmarks, as the visual-lidar paper uses them).
         """
         cfg = self.cfg
         tf = float(self.times[f])
         cnt = np.asarray(count)
         sp = np.asarray(sensor_xy, dtype=np.float64).reshape(2)
         recent = np.flatnonzero(
-            alive & (first >= tf - cfg.window_s) & (cnt >= 2) & (tf - last <= cfg.gap_s)
+            alive & (first >= tf - cfg.window_s) & (cnt >= min_count) & (tf - last <= cfg.gap_s)
         )
         if recent.size < cfg.min_matches:
             return None
         reach = float(np.max(np.hypot(*(xy[recent] - sp).T))) + cfg.search_radius
-        old = np.flatnonzero(alive & (tf - last > cfg.gap_s))
+        old = np.flatnonzero(alive & (tf - last > cfg.gap_s) & (cnt >= old_min_count))
         old = old[np.hypot(*(xy[old] - sp).T) <= reach]
         if old.size < cfg.min_matches:
             return None
@@ -249,10 +255,22 @@ class LoopCloser:
         # the older frame: where the revisited trees were last seen (median time)
         j = int(np.clip(np.searchsorted(self.times, float(np.median(last[dst]))), 0, f))
         delta = loop_constraint(poses[j], poses[f], lm.fit)
+        moved = lm.fit.apply_points(sp)[0] - sp
+        self.corrections.append(float(math.hypot(moved[0], moved[1])))
         self.loops.append(LoopClosure(j, f, delta, cfg.sigmas))
         if self.keyframes[-1] != f:
             self.keyframes.append(f)
         return src, dst
+
+    def stats(self) -> dict[str, float | int]:
+        """Loop closures, relaxations and the sizes of the corrections (GPS-free diagnostics)."""
+        c = np.asarray(self.corrections)
+        return {
+            "loop_closures": len(self.loops),
+            "relaxations": self.n_relax,
+            "loop_correction_median_m": float(np.median(c)) if c.size else 0.0,
+            "loop_correction_max_m": float(c.max()) if c.size else 0.0,
+        }
 
     def relax(self, poses: FloatArray, f: int) -> FloatArray:
         """Relaxed poses of frames ``0..f`` (all loops so far)."""

@@ -242,9 +242,10 @@ def fit_rigid_robust(
 ) -> RigidFit:
     """Least-squares SE(2) moving ``src`` onto ``dst`` (row pairs), trimming outlier pairs.
 
-    Fit on all pairs, drop pairs whose residual exceeds ``max(inlier_dist, 3 x median)`` ... at
-    most ``iterations`` times; the final fit uses only pairs within ``inlier_dist``. Falsy if
-    fewer than ``min_inliers`` pairs remain or their RMS residual exceeds ``max_rms``.
+    Fit on all pairs and drop pairs whose residual exceeds ``max(inlier_dist, 3 x median)``,
+    until stable (at most ``iterations`` times); then keep the pairs within ``inlier_dist``,
+    refit and re-select. Falsy if fewer than ``min_inliers`` pairs remain or their RMS residual
+    exceeds ``max_rms``.
 
     Examples
     --------
@@ -260,32 +261,49 @@ def fit_rigid_robust(
     if a.shape != b.shape:
         raise InputError(f"fit_rigid_robust: {a.shape[0]} source but {b.shape[0]} target points.")
     keep = np.arange(a.shape[0])
-    dth, t = 0.0, np.zeros(2)
-    for it in range(int(iterations) + 1):
-        if keep.size < max(int(min_inliers), 2):
+    need = max(int(min_inliers), 2)
+    # trim with a data-driven cut (3 x the median residual, never below inlier_dist) ...
+    for _ in range(int(iterations)):
+        if keep.size < need:
             return RigidFit(reason=f"{keep.size} agreeing pairs, need {min_inliers}")
-        ca, cb = a[keep].mean(axis=0), b[keep].mean(axis=0)
-        qa, qb = a[keep] - ca, b[keep] - cb
-        cross = np.sum(qa[:, 0] * qb[:, 1] - qa[:, 1] * qb[:, 0])
-        dot = np.sum(qa[:, 0] * qb[:, 0] + qa[:, 1] * qb[:, 1])
-        dth = float(math.atan2(cross, dot))
-        c, s = math.cos(dth), math.sin(dth)
-        rot = np.array([[c, s], [-s, c]])
-        t = cb - ca @ rot
-        res = np.hypot(*(a @ rot + t - b).T)
-        lim = (
-            inlier_dist if it == iterations else max(inlier_dist, 3.0 * float(np.median(res[keep])))
-        )
-        new = np.flatnonzero(res <= lim)
-        if np.array_equal(new, keep) and it > 0:
+        dth, t = _lsq_rigid(a[keep], b[keep])
+        res = _residuals(a, b, dth, t)
+        new = np.flatnonzero(res <= max(inlier_dist, 3.0 * float(np.median(res[keep]))))
+        if np.array_equal(new, keep):
             break
         keep = new
-    if keep.size < max(int(min_inliers), 2):
+    # ... then keep the pairs within inlier_dist, refit once and re-select
+    for _ in range(2):
+        if keep.size < need:
+            return RigidFit(reason=f"{keep.size} agreeing pairs, need {min_inliers}")
+        dth, t = _lsq_rigid(a[keep], b[keep])
+        res = _residuals(a, b, dth, t)
+        keep = np.flatnonzero(res <= inlier_dist)
+    if keep.size < need:
         return RigidFit(reason=f"{keep.size} agreeing pairs, need {min_inliers}")
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    tt = (float(t[0]), float(t[1]))
     if rms > max_rms:
-        return RigidFit(dth, (float(t[0]), float(t[1])), keep, rms, f"rms {rms:.2f} m > {max_rms}")
-    return RigidFit(dth, (float(t[0]), float(t[1])), keep, rms)
+        return RigidFit(dth, tt, keep, rms, f"rms {rms:.2f} m > {max_rms}")
+    return RigidFit(dth, tt, keep, rms)
+
+
+def _lsq_rigid(a: FloatArray, b: FloatArray) -> tuple[float, FloatArray]:
+    """Least-squares rotation angle and translation moving points ``a`` onto ``b``."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    qa, qb = a - ca, b - cb
+    cross = np.sum(qa[:, 0] * qb[:, 1] - qa[:, 1] * qb[:, 0])
+    dot = np.sum(qa[:, 0] * qb[:, 0] + qa[:, 1] * qb[:, 1])
+    dth = float(math.atan2(cross, dot))
+    c, s = math.cos(dth), math.sin(dth)
+    t: FloatArray = cb - ca @ np.array([[c, s], [-s, c]])
+    return dth, t
+
+
+def _residuals(a: FloatArray, b: FloatArray, dth: float, t: FloatArray) -> FloatArray:
+    c, s = math.cos(dth), math.sin(dth)
+    out: FloatArray = np.hypot(*(a @ np.array([[c, s], [-s, c]]) + t - b).T)
+    return out
 
 
 def remap_trees(

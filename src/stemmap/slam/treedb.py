@@ -451,8 +451,10 @@ class TreeDbSlam:
     landmark_association: bool = True
     loop_closure: bool = True
     loop_gap_s: float = 60.0
-    loop_search_radius: float = 10.0
+    loop_search_radius: float = 20.0
     loop_min_matches: int = 5
+    localize_recent_only: bool = True
+    max_range: float = 50.0
     merge_dist: float = 1.0
     merge_ddiam: float = 0.42
     name: str = "treedb"
@@ -514,13 +516,16 @@ class TreeDbSlam:
                 P = Fx @ P @ Fx.T + Rw @ pre.covs[f - 1] @ Rw.T
                 pose = compose(pose, delta)
             r, b, d = frames.frame(f)
+            use = r <= self.max_range
+            if not use.all():
+                r, b, d = r[use], b[use], d[use]
             known = None
             active = None
             if closer is not None and len(db):
                 active = (db.count > 0) & (tf - db.last_time <= self.loop_gap_s)
             if self.localize and r.size and len(db):
                 lm = db.landmarks(self.promote_count)
-                if active is not None:
+                if active is not None and self.localize_recent_only:
                     lm = lm[active[lm]]
                 if lm.size:
                     pose, P, matched = _localize(
@@ -536,14 +541,23 @@ class TreeDbSlam:
                 db, idx = treedb_update(
                     db, xy, d, tf, gate=self.gate, known=known, candidates=active
                 )
-                det_entry[frames.ptr[f] : frames.ptr[f + 1]] = idx
+                det_entry[frames.ptr[f] : frames.ptr[f + 1]][use] = idx
             if closer is not None:
                 closer.on_frame(f, poses)
                 if closer.due(tf) and len(db) >= 2 * closer.cfg.min_matches:
                     sp = observation_to_world(pose, [0.0], [0.0], off)[0]
                     alive = db.count > 0
                     found = closer.detect(
-                        f, poses, sp, db.xy, db.first_time, db.last_time, db.count, alive
+                        f,
+                        poses,
+                        sp,
+                        db.xy,
+                        db.first_time,
+                        db.last_time,
+                        db.count,
+                        alive,
+                        min_count=self.promote_count,
+                        old_min_count=self.promote_count,
                     )
                     if found is not None:
                         n_loop_merged += found[0].size
@@ -551,6 +565,8 @@ class TreeDbSlam:
                         pose = poses[f].copy()
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
+        if closer is not None and self.merge_dist > 0 and len(db):
+            db = self._merge_close(db, det_entry, poses, nf - 1, frames, off)
         stem_map = db.to_stem_map(self.promote_count)
         if self.refine:
             from stemmap.slam.refine import refine_stem_map
@@ -572,8 +588,8 @@ class TreeDbSlam:
             "db_entries": len(db),
             "landmarks": len(stem_map),
             "frames_localized": n_updates,
-            "loop_closures": len(closer.loops) if closer is not None else 0,
             "entries_merged_at_loops": n_loop_merged,
+            **(closer.stats() if closer is not None else {"loop_closures": 0}),
             "runtime_s": _time_since(t0),
         }
         log.info("treedb: %d DB entries, %d landmarks", len(db), len(stem_map))
@@ -593,7 +609,7 @@ class TreeDbSlam:
         """Merge the revisited entries, relax the trajectory, rebuild the DB from the relaxed
         poses and merge the entries that now lie on top of each other."""
         from stemmap.slam.base import observation_to_world
-        from stemmap.slam.loop_closure import close_duplicates, relabel
+        from stemmap.slam.loop_closure import relabel
 
         k_end = int(frames.ptr[f + 1])
         ent = det_entry[:k_end]
@@ -605,18 +621,39 @@ class TreeDbSlam:
         args = (frames.diameters[:k_end], frames.times[fi])
         db = treedb_from_detections(xy, *args, ent, n)
         if self.merge_dist > 0:
-            src, dst = close_duplicates(
-                np.nan_to_num(db.xy, nan=1e9),
-                db.diameter,
-                db.count,
-                db.count > 0,
-                self.merge_dist,
-                self.merge_ddiam,
-            )
-            if src.size:
-                relabel(ent, src, dst, n)
-                db = treedb_from_detections(xy, *args, ent, n)
+            db = self._merge_close(db, det_entry, poses, f, frames, off)
         return db
+
+    def _merge_close(
+        self,
+        db: TreeDb,
+        det_entry: IntArray,
+        poses: FloatArray,
+        f: int,
+        frames: TreeFrames,
+        off: tuple[float, float],
+    ) -> TreeDb:
+        """Merge entries closer than ``merge_dist`` with compatible diameters (iSAM2's rule)
+        and rebuild the DB from the detections of frames ``0..f`` at ``poses``."""
+        from stemmap.slam.base import observation_to_world
+        from stemmap.slam.loop_closure import close_duplicates, relabel
+
+        src, dst = close_duplicates(
+            np.nan_to_num(db.xy, nan=1e9),
+            db.diameter,
+            db.count,
+            db.count > 0,
+            self.merge_dist,
+            self.merge_ddiam,
+        )
+        if src.size == 0:
+            return db
+        k_end = int(frames.ptr[f + 1])
+        ent = det_entry[:k_end]
+        relabel(ent, src, dst, len(db))
+        fi = frames.frame_index[:k_end]
+        xy = observation_to_world(poses[fi], frames.ranges[:k_end], frames.bearings[:k_end], off)
+        return treedb_from_detections(xy, frames.diameters[:k_end], frames.times[fi], ent, len(db))
 
 
 def _time_since(t0: float) -> float:
