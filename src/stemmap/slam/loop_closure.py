@@ -63,7 +63,7 @@ def find_loop_closure(
     *,
     group_size: int = 8,
     dist_tol: float = 0.3,
-    search_radius: float = 10.0,
+    search_radius: float = 20.0,
     min_support: int = 3,
     min_matches: int = 5,
     inlier_dist: float = 1.0,
