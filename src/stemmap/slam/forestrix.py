@@ -372,8 +372,10 @@ class _RunState:
             problem.controls,
             fr.times,
             np.asarray(problem.initial_pose),
-            with_covariance=False,
+            with_covariance=self.windowed_cfg(cfg),
         )
+        # covariance of the increments the map did not correct (dead-reckoned frames)
+        self.dr_cov = np.zeros((len(fr), 3, 3)) if self.windowed_cfg(cfg) else None
         self.pose = np.asarray(problem.initial_pose, dtype=np.float64).copy()
         self.poses = np.empty((len(fr), 3))
         self.graph = TreeGraph()
@@ -384,6 +386,7 @@ class _RunState:
         self.n_loop_merged = 0
         self.n_close_merged = 0
         self.last_relax = -math.inf
+        self.corrected = False
         self.windowed = cfg.relaxation == "pose_graph"
         self.closer = LoopCloser(cfg.loop_config(), fr.times) if self.windowed else None
 
@@ -394,6 +397,7 @@ class _RunState:
         from stemmap.slam.motion import compose
 
         cfg, graph = self.cfg, self.graph
+        self.corrected = False
         if f > 0:
             self.pose = compose(self.pose, self.pre.deltas[f - 1])
         r, b, d = self.frames.frame(f)
@@ -432,6 +436,7 @@ class _RunState:
                     self.pose = fit.apply_pose(self.pose)
                     echo = observation_to_world(self.pose, r, b, off)
                     self.n_corrected += 1
+                    self.corrected = True
         # classify echoes as old or new trees; accumulate
         ids = np.empty(r.size, dtype=np.int64)
         w_d = 1.0 / np.maximum(r, 0.5) ** 2
@@ -459,6 +464,10 @@ class _RunState:
         if cfg.relaxation == "tree_graph":
             self._tree_graph_step(echo, ids, loop, tf)
         self._end_frame(f, tf)
+
+    @staticmethod
+    def windowed_cfg(cfg: ForestrixSlam) -> bool:
+        return cfg.relaxation == "pose_graph"
 
     def _active(self, tf: float) -> IntArray:
         g = self.graph
@@ -489,6 +498,8 @@ class _RunState:
 
     def _end_frame(self, f: int, tf: float) -> None:
         self.poses[f] = self.pose
+        if self.dr_cov is not None and f > 0 and not self.corrected:
+            self.dr_cov[f] = self.pre.covs[f - 1]
         lc = self.closer
         if lc is None:
             return
@@ -522,7 +533,7 @@ class _RunState:
 
     def _relax(self, f: int) -> None:
         assert self.closer is not None
-        self.poses[: f + 1] = self.closer.relax(self.poses, f)
+        self.poses[: f + 1] = self.closer.relax(self.poses, f, self.dr_cov)
         self.pose = self.poses[f].copy()
         k_end = int(self.frames.ptr[f + 1])
         fr = self.frames

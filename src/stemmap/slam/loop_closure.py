@@ -272,8 +272,11 @@ class LoopCloser:
             "loop_correction_max_m": float(c.max()) if c.size else 0.0,
         }
 
-    def relax(self, poses: FloatArray, f: int) -> FloatArray:
-        """Relaxed poses of frames ``0..f`` (all loops so far)."""
+    def relax(
+        self, poses: FloatArray, f: int, odometry_cov: FloatArray | None = None
+    ) -> FloatArray:
+        """Relaxed poses of frames ``0..f`` (all loops so far); ``odometry_cov``: see
+        :func:`~stemmap.slam.relaxation.relax_trajectory`."""
         self.n_relax += 1
         kf = np.asarray(self.keyframes, dtype=np.int64)
         return relax_trajectory(
@@ -282,6 +285,7 @@ class LoopCloser:
             self.loops,
             noise=self.cfg.noise,
             max_iterations=self.cfg.iterations,
+            odometry_cov=None if odometry_cov is None else odometry_cov[: f + 1],
         )
 
 

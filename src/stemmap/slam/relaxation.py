@@ -103,6 +103,7 @@ def relax_trajectory(
     *,
     noise: RelaxNoise | None = None,
     max_iterations: int = 50,
+    odometry_cov: ArrayLike | None = None,
 ) -> FloatArray:
     """Relax a trajectory with loop constraints (Öhman 2007 §2.2 relaxation; GTSAM LM solver).
 
@@ -116,6 +117,11 @@ def relax_trajectory(
     loops : list of LoopClosure
     noise : RelaxNoise, optional
     max_iterations : int
+    odometry_cov : ndarray (F, 3, 3), optional
+        Covariance of the increment into each frame that the map did *not* constrain (frames
+        the front-end could not correct: dead reckoning; zeros elsewhere). Summed per keyframe
+        edge and added to its noise, so the relaxation puts the loop error where the
+        trajectory was least certain instead of spreading it evenly.
 
     Returns
     -------
@@ -145,6 +151,13 @@ def relax_trajectory(
     dist = np.hypot(rel[:, 0], rel[:, 1])
     s_xy = nz.xy_base + nz.xy_per_m * dist
     s_th = nz.theta_base + nz.theta_per_rad * np.abs(rel[:, 2]) + nz.theta_per_m * dist
+    extra = None
+    if odometry_cov is not None:
+        oc = np.asarray(odometry_cov, dtype=np.float64).reshape(-1, 3, 3)
+        if oc.shape[0] < nf:
+            raise InputError(f"relax_trajectory: odometry_cov has {oc.shape[0]} frames, need {nf}.")
+        csum = np.concatenate((np.zeros((1, 3, 3)), np.cumsum(oc[:nf], axis=0)))
+        extra = csum[kf[1:] + 1] - csum[kf[:-1] + 1]  # frames kf[k]+1 .. kf[k+1]
     graph = gtsam.NonlinearFactorGraph()
     init = gtsam.Values()
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-4, 1e-4, 1e-6]))
@@ -152,7 +165,12 @@ def relax_trajectory(
     for k in range(kp.shape[0]):
         init.insert(k, gtsam.Pose2(*kp[k]))
     for k in range(rel.shape[0]):
-        nm = gtsam.noiseModel.Diagonal.Sigmas(np.array([s_xy[k], s_xy[k], s_th[k]]))
+        sig = np.array([s_xy[k], s_xy[k], s_th[k]])
+        if extra is not None and np.any(extra[k]):
+            cov = np.diag(sig**2) + 0.5 * (extra[k] + extra[k].T)
+            nm = gtsam.noiseModel.Gaussian.Covariance(cov)
+        else:
+            nm = gtsam.noiseModel.Diagonal.Sigmas(sig)
         graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*rel[k]), nm))
     cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(nz.loop_robust_k)
     for lc in loops:

@@ -514,6 +514,7 @@ class TreeDbSlam:
         pose_covs = np.empty((nf, 3, 3))
         db = TreeDb()
         det_entry = np.full(frames.n_detections, -1, dtype=np.int64)
+        dr_cov = np.zeros((nf, 3, 3))  # increments no landmark corrected (dead reckoning)
         closer = None
         if self.loop_closure and self.localize:  # open loop = the paper's odometry pipeline
             from stemmap.slam.loop_closure import LoopCloser, LoopConfig
@@ -543,6 +544,7 @@ class TreeDbSlam:
                 r, b, d = r[use], b[use], d[use]
             known = None
             active = None
+            corrected = False
             if closer is not None and len(db):
                 active = (db.count > 0) & (tf - db.last_time <= self.loop_gap_s)
             if self.localize and r.size and len(db):
@@ -554,10 +556,13 @@ class TreeDbSlam:
                         pose, P, r, b, db.xy[lm], _lm_cov(db, lm), R, off, self.chi2_gate
                     )
                     n_updates += int(np.any(matched >= 0))
+                    corrected = bool(np.any(matched >= 0))
                     if self.landmark_association:
                         known = np.where(matched >= 0, lm[np.clip(matched, 0, None)], -1)
             poses[f] = pose
             pose_covs[f] = P
+            if f > 0 and not corrected:
+                dr_cov[f] = pre.covs[f - 1]
             if r.size:
                 xy = observation_to_world(pose, r, b, off)
                 db, idx = treedb_update(
@@ -583,7 +588,7 @@ class TreeDbSlam:
                     )
                     if found is not None:
                         n_loop_merged += found[0].size
-                        db = self._relax(closer, found, poses, det_entry, f, frames, off)
+                        db = self._relax(closer, found, poses, det_entry, f, frames, off, dr_cov)
                         pose = poses[f].copy()
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
@@ -626,6 +631,7 @@ class TreeDbSlam:
         f: int,
         frames: TreeFrames,
         off: tuple[float, float],
+        dr_cov: FloatArray,
     ) -> TreeDb:
         """Merge the revisited entries, relax the trajectory, rebuild the DB from the relaxed
         poses and merge the entries that now lie on top of each other."""
@@ -636,7 +642,7 @@ class TreeDbSlam:
         ent = det_entry[:k_end]
         n = int(ent.max(initial=-1)) + 1
         relabel(ent, found[0], found[1], n)
-        poses[: f + 1] = closer.relax(poses, f)
+        poses[: f + 1] = closer.relax(poses, f, dr_cov)
         fi = frames.frame_index[:k_end]
         xy = observation_to_world(poses[fi], frames.ranges[:k_end], frames.bearings[:k_end], off)
         args = (frames.diameters[:k_end], frames.times[fi])
