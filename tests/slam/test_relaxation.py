@@ -1,4 +1,4 @@
-"""Loop closure and trajectory relaxation (Öhman 2007 §2.1-2.2; slam.relaxation, slam.loop_closure)."""
+"""Loop closure and trajectory relaxation (Öhman 2007 §2.1-2.2; relaxation, loop_closure)."""
 
 from __future__ import annotations
 
@@ -157,7 +157,7 @@ def test_find_loop_closure_recognises_a_drifted_revisit(rng):
     other = c + rng.uniform(-12, 12, (recent.shape[0], 2))
     assert not find_loop_closure(other, old, search_radius=10.0)
     # a drift beyond the search radius is not recognised (the radius bounds it)
-    assert not find_loop_closure(recent + [15.0, 0.0], old, search_radius=5.0)
+    assert not find_loop_closure(recent + np.array([15.0, 0.0]), old, search_radius=5.0)
 
 
 def test_loop_closer_records_a_constraint_and_returns_the_pairs(rng):

@@ -152,6 +152,10 @@ class ForestrixSlam:
         frames that should have seen a tree but did not
         (:func:`~stemmap.slam.negative.remove_false_trees_after`). Default ``"rays"``: used when
         raw scans are given, skipped (and said so in ``stats``) otherwise.
+    ray_position_tol : float, m
+        Map position error the ray casting tolerates
+        (:func:`~stemmap.slam.negative.ray_pass_through` ``position_tol``); false trees thinner
+        than twice this are never judged.
     """
 
     preset: str | None = None
@@ -179,6 +183,7 @@ class ForestrixSlam:
     merge_dist: float = 1.0
     merge_ddiam: float = 0.42
     false_trees: Literal["none", "rays", "detections"] = "rays"
+    ray_position_tol: float = 0.05
     name: str = "forestrix"
 
     def __post_init__(self) -> None:
@@ -346,7 +351,12 @@ class ForestrixSlam:
             from stemmap.slam.negative import remove_false_trees_by_rays
 
             sp = sensor_poses(st.poses, problem.sensor_offset)
-            cleaned, res = remove_false_trees_by_rays(stem_map, sp, scans)  # type: ignore[arg-type]
+            cleaned, res = remove_false_trees_by_rays(
+                stem_map,
+                sp,
+                scans,  # type: ignore[arg-type]
+                position_tol=self.ray_position_tol,
+            )
         else:
             from stemmap.slam.negative import remove_false_trees_after
 
