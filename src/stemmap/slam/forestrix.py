@@ -15,15 +15,22 @@ Per scan (their Fig. 2):
    diameter information in old ones ("the closer the scan is taken, the better the diameter
    information": weights 1/range²); edges between co-observed trees record their measured
    distances.
-5. **Relaxation** (§2.2, :func:`relax_tree_graph`): the mismatch between Cartesian node positions
-   and edge lengths is distributed by a simple iterative algorithm when a loop closes.
+5. **Relaxation** (§2.2): "the accumulated error" is distributed "evenly e.g. when a large loop
+   is being closed". Default (``relaxation="pose_graph"``): loops are found by tree-group
+   matching of the recently mapped trees against the older map
+   (:func:`~stemmap.slam.loop_closure.find_loop_closure`), the *trajectory* is relaxed with the
+   loop constraints (:func:`~stemmap.slam.relaxation.relax_trajectory`, GTSAM) and every tree is
+   re-mapped from the relaxed poses. ``relaxation="tree_graph"``: the paper's simple iterative
+   algorithm on the tree graph (:func:`relax_tree_graph`), which moves map nodes only.
+6. **False trees** (§2.2, Fig. 5): the raw scan rays are cast through the mapped trees and a tree
+   more rays pass through than hit it is removed (:mod:`stemmap.slam.negative`; ``false_trees``).
 
-False trees are removed afterwards with negative information (:mod:`stemmap.slam.negative`).
+The primitives live in :mod:`stemmap.slam._tree_groups` and are re-exported here.
 
-Decisions where the paper is silent (docs/algorithms/slam-frontends.md): the matching tolerance
-and search radius, the support needed to accept a group match, updating old trees' positions by
-a running mean, and the loop-closure trigger (an old tree -- last seen more than
-``loop_gap_s`` ago -- is re-matched).
+Decisions where the paper is silent (docs/algorithms/slam-frontends.md, slam.md): the matching
+tolerance and search radius, the support needed to accept a group match, updating old trees'
+positions by a running mean, the loop detection (search radius, agreeing pairs, the rigid-fit
+check) and the relaxation's noise model.
 
 References
 ----------
