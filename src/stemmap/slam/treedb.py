@@ -292,19 +292,22 @@ def treedb_update(
             )
         assoc[:] = np.where(kn >= 0, kn, -1)
     if n and k:
-        dist = np.hypot(z[:, None, 0] - db.xy[None, :, 0], z[:, None, 1] - db.xy[None, :, 1])
-        # Greedy one-to-one: closest pairs first (a tree is seen at most once per frame).
+        sub = np.arange(n)
         if candidates is not None:
             ok_t = np.asarray(candidates, dtype=bool).reshape(-1)
             if ok_t.shape[0] != n:
                 raise InputError(f"treedb_update: candidates must have {n} entries.")
-            dist = np.where(ok_t[None, :], dist, np.inf)
+            sub = np.flatnonzero(ok_t)
+        txy = db.xy[sub]
+        dist = np.hypot(z[:, None, 0] - txy[None, :, 0], z[:, None, 1] - txy[None, :, 1])
+        # Greedy one-to-one: closest pairs first (a tree is seen at most once per frame).
         cand = np.argwhere(dist <= gate)
         if cand.size:
             order = np.argsort(dist[cand[:, 0], cand[:, 1]], kind="stable")
             used_t = np.zeros(n, dtype=bool)
             used_t[assoc[assoc >= 0]] = True
-            for i, j in cand[order]:
+            for i, jl in cand[order]:
+                j = sub[jl]
                 if assoc[i] < 0 and not used_t[j]:
                     assoc[i] = j
                     used_t[j] = True
