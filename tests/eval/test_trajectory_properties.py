@@ -153,8 +153,8 @@ def test_align_se2_two_points_weights_and_messages():
     aw = align_se2(a, b, weights=w)
     assert aw.theta == pytest.approx(0.4) and aw.t == pytest.approx((2.0, -1.0))
     assert align_se2(a, b).theta != pytest.approx(0.4, abs=1e-3)
-    with pytest.raises(InputError, match=r"^align_se2: src has 3 points but dst has 2\.$"):
-        align_se2(np.zeros((3, 2)), np.zeros((2, 2)))
+    with pytest.raises(InputError, match=r"^align_se2: src has 3 points but dst has 4\.$"):
+        align_se2(np.zeros((3, 2)), np.zeros((4, 2)))
     with pytest.raises(InputError, match=r"^align_se2 needs at least 2 point pairs, got 1\.$"):
         align_se2(np.zeros((1, 2)), np.zeros((1, 2)))
 
@@ -170,7 +170,7 @@ def test_screen_gps_limits_are_inclusive_and_scale_with_distance():
     for d in (11.6, 8.4, 12.4):
         s = screen_gps(t, [[0.0, 0.0], [d, 0.0]], o, dist)
         assert s.keep.tolist() == [False, False], d
-    assert s.n_total == 2 and s.n_kept == 0
+    assert s.n_total == 2 and s.n_kept == 0 and s.keep.dtype == bool
     assert s.rule == "displacement vs odometry within 0.5 m + 10% of distance driven"
     # a long leg: the relative part dominates (tol = 0.5 + 10 = 10.5 m on 100 m)
     big = screen_gps(t, [[0.0, 0.0], [110.0, 0.0]], o * 10, dist * 10)
@@ -225,8 +225,11 @@ def test_ate_keep_mask_span_and_minimum():
         assert math.isnan(v)
     assert fail.errors.shape == (0,)
     assert fail.reason == "only 2 reference positions overlap the trajectory (need 3)."
-    with pytest.raises(InputError, match=r"^ate: 3 reference times but 2 positions\.$"):
-        ate(tr, [0.0, 1.0, 2.0], [[0, 0], [1, 0]])
+    with pytest.raises(InputError, match=r"^ate: 3 reference times but 4 positions\.$"):
+        ate(tr, [0.0, 1.0, 2.0], [[0, 0], [1, 0], [2, 0], [3, 0]])
+    # a keep mask of 0/1 integers is a mask, not a list of indices
+    r_int = ate(tr, ref_t, ref, keep=keep.astype(int))
+    assert r_int.n == 10 and r_int.max < 1e-9
     with pytest.raises(InputError, match=r"^ate: keep mask has shape \(2,\), need \(3,\)\.$"):
         ate(tr, [0.0, 1.0, 2.0], [[0, 0], [1, 0], [2, 0]], keep=[True, True])
 
@@ -271,5 +274,13 @@ def test_loop_closure_error_in_the_start_frame_with_an_offset():
     assert loop_closure_error(tr) == pytest.approx(math.hypot(4.0, 2.0))
     # a point 1 m ahead: start (5, 6), end (4, 9) -> world (-1, 3) -> body (3, 1)
     assert loop_closure_error(tr, (3.0, 1.0), offset=(1.0, 0.0)) == pytest.approx(0.0, abs=1e-12)
+    # a start heading off the axes: every term of the rotation into the start frame counts
+    th = math.pi / 6
+    c, s = math.cos(th), math.sin(th)
+    body = np.array([3.0, -1.5])
+    end = np.array([2.0, 1.0]) + np.array([c * body[0] - s * body[1], s * body[0] + c * body[1]])
+    tr6 = Trajectory([0.0, 1.0], [[2.0, 1.0, th], [end[0], end[1], 1.0]])
+    assert loop_closure_error(tr6, body) == pytest.approx(0.0, abs=1e-12)
+    assert loop_closure_error(tr6, (0.0, 0.0)) == pytest.approx(math.hypot(3.0, -1.5))
     with pytest.raises(InputError, match=r"^loop_closure_error needs a trajectory with at least"):
         loop_closure_error(Trajectory([0.0], [[0.0, 0.0, 0.0]]))
