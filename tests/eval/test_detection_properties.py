@@ -363,6 +363,8 @@ def test_score_scan_detections_without_scans():
     assert (m.ta, m.fa, m.fr, m.n_frames) == (0, 0, 0, 0)
     assert m.frame_counts is not None and m.frame_counts.shape == (0, 3)
     assert m.matching is None and math.isnan(m.recall)
+    for v in (m.center_rmse, m.diameter_rmse, m.diameter_bias, m.diameter_mae):
+        assert math.isnan(v)
 
 
 @pytest.mark.parametrize(
