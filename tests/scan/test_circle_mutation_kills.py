@@ -343,3 +343,59 @@ def test_unknown_method_message_lists_the_methods():
         fit_circles_batch(np.zeros((3, 2)), np.zeros(3, dtype=int), "nope")
     assert circle.fit_circle_three_point is FIT_METHODS["three_point"]
     assert fit_circle_three_point([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]).radius == pytest.approx(1)
+
+
+def test_ours_compiled_failure_names_method_and_count():
+    p = _arc(5.0, 0.0, 0.3, 3)
+    f = fit_circle_ours(p, angle_increment=INC, edges=(False, True))
+    assert not f and f.method == "ours" and f.n_points == 3
+    assert f.reason.startswith("a partial arc (one edge occluded) needs at least 4 returns")
+
+
+def test_ours_option_limits():
+    p = _arc(5.0, 0.0, 0.3, 15)
+    # sigma 0 means "estimate it", like None
+    a = fit_circle_ours(p, angle_increment=INC, sigma=0.0)
+    b = fit_circle_ours(p, angle_increment=INC)
+    assert a and a.radius == b.radius and np.array_equal(a.cov, b.cov)
+    # beam divergence: 0 (thin beam) allowed, 0.5 rad and beyond refused
+    assert fit_circle_ours(p, angle_increment=INC, beam_divergence=0.0)
+    for bad in (0.5, 0.7, -0.01):
+        with pytest.raises(InputError, match=r"^beam_divergence \(full angular width"):
+            fit_circle_ours(p, angle_increment=INC, beam_divergence=bad)
+    with pytest.raises(ConfigError, match=r"^residuals must be one of \('range', 'orthogonal'\)"):
+        fit_circle_ours(p, residuals="normal")
+    msg = r"^silhouette offsets must be finite \(NaN = default\) and stds finite and > 0 \(beam"
+    for sil in (
+        [[-2000.0, 0.3], [0.5, 0.3]],  # first side's offset
+        [[0.5, 0.3], [-2000.0, 0.3]],  # last side's offset
+        [[0.5, 0.3], [np.inf, 0.3]],
+        [[0.5, 0.0], [0.5, 0.3]],
+    ):
+        with pytest.raises(InputError, match=msg):
+            fit_circle_ours(p, angle_increment=INC, silhouette=sil)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fletcher_reeves_three_steps_on_other_arcs_and_a_symmetric_ring(seed):
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(0.05, 0.5)
+    p = _arc(rng.uniform(2, 15), rng.uniform(-3, 3), r, int(rng.integers(6, 40)), noise=1e-3)
+    f = fit_circle_fletcher_reeves(p, k_max=4)
+    assert f and f.radius == pytest.approx(fit_circle_kasa(p).radius, rel=1e-8)
+    a = np.arange(8) * math.pi / 4
+    ring = np.column_stack((np.cos(a), np.sin(a))) * r
+    g = fit_circle_fletcher_reeves(ring, k_max=4)
+    assert g and g.radius == pytest.approx(r, rel=1e-12)
+
+
+def test_batch_columns_have_the_documented_types():
+    _, pts, ids = _batch_scene()
+    for m in ("kasa", "ours", "spy"):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setitem(FIT_METHODS, "spy", fit_circle_kasa)
+            fits = fit_circles_batch(pts, ids, m)
+        assert fits.segment_ids.dtype == np.int64 and fits.n_points.dtype == np.int64
+        assert fits.ok.dtype == bool and fits.ok.tolist() == [True, True, False, True]
+        assert fits.rms.dtype == np.float64 and np.isnan(fits.rms[2])
+        assert fits.radii.dtype == np.float64 and fits.centers.dtype == np.float64
