@@ -399,3 +399,13 @@ def test_batch_columns_have_the_documented_types():
         assert fits.ok.dtype == bool and fits.ok.tolist() == [True, True, False, True]
         assert fits.rms.dtype == np.float64 and np.isnan(fits.rms[2])
         assert fits.radii.dtype == np.float64 and fits.centers.dtype == np.float64
+
+
+def test_defaults_and_shape_messages():
+    p = _arc(4.0, 1.0, 0.25, 9)
+    assert fit_circle(p).method == "kasa"  # the default method
+    assert circle.CircleFit.failed("why", "kasa").n_points == 0
+    with pytest.raises(InputError, match=r"^points must have shape \(N, 2\), got \(3, 3\)\.$"):
+        circle.as_points(np.zeros((3, 3)))
+    with pytest.raises(InputError, match=r"^silhouette must have shape \(2, 2\) or \(1, 2, 2\)"):
+        fit_circle_ours(p, angle_increment=INC, silhouette=np.zeros((3, 2)))
