@@ -152,6 +152,32 @@ class DetectorConfig:
         range``) deep: the concave depth of a return from its neighbours' chord has a noise
         std of ~1.2 sigma (span >= 2), so 5 sigma makes a false cut on a smooth arc rare
         (~1e-4 per return) whatever the sensor.
+    gap_splits : int, >= 0
+        Passes of cutting every segment that is not a convex arc (sagitta below
+        ``max(min_depth, 0)``) at its largest gap between consecutive returns (ours, issue 11;
+        :func:`~stemmap.scan.segment.split_largest_gap`): a trunk and a stem, bush or branch
+        beside it that the range-adaptive segmentation merged. The pieces go through the
+        segment filters like any segment; a cut end is occluded only when the return across
+        it is nearer by more than ``occlusion_margin``. 0 = off.
+    gap_ratio : float, >= 0
+        A segment is cut at its largest gap (``gap_splits``, and ``refit_pieces`` with
+        ``refit_split="gap"``) only if that gap exceeds this multiple of the segment's median
+        gap: a junction of two objects is a gap, the returns along one surface are evenly
+        spaced.
+    refit_pieces : bool
+        Cut a candidate that fails only the RMS test into pieces (``refit_split``) and fit
+        every piece with ``min_points`` returns that passes the segment filters once more
+        (ours, issue 11; :func:`~stemmap.scan._refit.refit_pieces`): a trunk with a stem,
+        branch fillet or bush beside it in one segment is rejected as a whole although most of
+        its returns lie on a circle. Runs on the numpy path only (the compiled path is not
+        used while it is on).
+    refit_sigmas : float, > 0
+        Outlier threshold of ``refit_pieces`` in robust residual scales (1.4826 MAD).
+    refit_split : {"gap", "outliers", "outlier_ends"}
+        How ``refit_pieces`` cuts a failed candidate: at its largest gap between consecutive
+        returns (two objects side by side, :func:`~stemmap.scan.segment.split_largest_gap`),
+        at its outlier returns, or at the runs of outliers at either end only (a branch
+        fillet or stub at the silhouette, never the dents inside a rough arc).
     """
 
     name: str = "custom"
@@ -201,6 +227,11 @@ class DetectorConfig:
     corner_span: int = 2
     corner_depth_convex: float = math.inf
     corner_sigmas: float = 5.0
+    gap_splits: int = 0
+    gap_ratio: float = 0.0
+    refit_pieces: bool = False
+    refit_sigmas: float = 3.0
+    refit_split: Literal["gap", "outliers", "outlier_ends"] = "gap"
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -266,6 +297,12 @@ class DetectorConfig:
             raise bad("corner_sigmas", self.corner_sigmas, "it must be >= 0")
         if self.corner_span < 1:
             raise bad("corner_span", self.corner_span, "it must be >= 1 return")
+        if not (self.gap_ratio >= 0 and math.isfinite(self.gap_ratio)):
+            raise bad("gap_ratio", self.gap_ratio, "it must be >= 0")
+        if not self.gap_splits >= 0:
+            raise bad("gap_splits", self.gap_splits, "it must be >= 0 passes")
+        if not (self.refit_sigmas > 0 and math.isfinite(self.refit_sigmas)):
+            raise bad("refit_sigmas", self.refit_sigmas, "it must be > 0 (robust sigmas)")
         if not self.max_rms_sigma > 0:
             raise bad("max_rms_sigma", self.max_rms_sigma, "it must be > 0")
         if not self.max_radius_width_ratio > 0:
