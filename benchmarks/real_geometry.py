@@ -13,14 +13,15 @@ textbook detector: range-jump segmentation, >= 3 returns, Kasa fit, no plausibil
 on the scans. A reference trunk is *visible* in a scan when >= ``min_returns`` beams of the
 noise-free scan return from it, its centre is within 15 m and its diameter is 10-100 cm; a
 detection matches it when its centre lies within the trunk's radius + 5 cm (greedy, nearest
-first). Reported per dataset, scanner configuration and detector: recall, DBH RMSE / bias (cm)
-by range band and diameter class, and unmatched detections per scan (these include
-non-reference trunks -- partial rings, branches -- so they bound false alarms from above).
+first). Reported per dataset, scanner configuration and detector: recall, precision (where
+the slice's reference is complete: :func:`false_alarms`), DBH RMSE / bias (cm) by range band
+and diameter class, unmatched detections and false alarms per scan.
 
 Usage::
 
     python benchmarks/real_geometry.py --quick     # 0.5 deg nearest + averaging, 3 detectors
     python benchmarks/real_geometry.py             # every scanner model, preset and fit
+    python benchmarks/real_geometry.py --loo --vantage 20   # leave one dataset out (LOO_GRID)
 
 One JSON object on stdout; every parameter of the scenario is echoed in it.
 """
