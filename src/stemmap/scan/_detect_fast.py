@@ -101,6 +101,7 @@ PARAM_NAMES = (
     "corner_sigmas",  # corners at least this many sigma deep
     "gap_splits",  # passes of cutting non-convex segments at their largest gap
     "gap_ratio",  # ... if it exceeds this multiple of the segment's median gap
+    "gap_sigmas",  # ... and the median gap by this many range-noise sigmas
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -361,6 +362,7 @@ def _detect_kernel(
     corner_sigmas = prm[48]
     gap_splits = int(prm[49])
     gap_ratio = prm[50]
+    gap_sigmas = prm[51]
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -558,8 +560,12 @@ def _detect_kernel(
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- largest-gap cuts of non-convex segments (segment.split_largest_gap, ours) ----
         for _ in range(gap_splits):
+            for j in range(ns):  # least excess of the gap over the median (wid is free here)
+                a = st[j]
+                b = sp[j]
+                wid[j] = gap_sigmas * (sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a)))
             if ns == 0 or not gap_cut_flags(
-                px, py, st, sp, ns, convex_min, gap_ratio, keep, corner
+                px, py, st, sp, ns, convex_min, gap_ratio, wid, keep, corner
             ):
                 break
             st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, ns = cut_tables(

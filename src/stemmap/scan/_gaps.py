@@ -24,12 +24,14 @@ def gap_cut_flags(
     ns: int,
     convex_min: float,
     ratio: float,
+    excess: FloatArray,
     keep: np.ndarray,
     cut: np.ndarray,
 ) -> bool:  # pragma: no cover - numba
     """Mark (``cut``) the return after the largest gap of every segment with >= 2 returns whose
     sagitta is below ``convex_min`` (first maximum on ties, as ``np.argmax``) if it exceeds
-    ``ratio`` x the segment's median gap, and write the
+    ``ratio`` x the segment's median gap and the median gap by more than ``excess[j]``, and
+    write the
     parity of the cuts so far into ``keep`` (``cut_tables`` splits where it changes). Returns
     whether any segment is cut."""
     par = False
@@ -50,7 +52,7 @@ def gap_cut_flags(
             gaps.sort()
             h = gaps.shape[0] // 2
             med = gaps[h] if gaps.shape[0] % 2 == 1 else 0.5 * (gaps[h - 1] + gaps[h])
-            if not best > ratio * med:
+            if not (best > ratio * med and best - med > excess[j]):
                 at = -1
         for i in range(a, b):
             cut[i] = i == at

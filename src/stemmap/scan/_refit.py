@@ -95,7 +95,13 @@ def refit_pieces(
     lim = rms_limit(cfg, fitted.sigma[fail], fitted.radii[fail])
     if cfg.refit_split == "gap":
         # every failed segment: cut at its largest gap; no return is dropped
-        pieces = split_largest_gap(sub, sub.counts >= 2, cfg.occlusion_margin, cfg.gap_ratio)
+        pieces = split_largest_gap(
+            sub,
+            sub.counts >= 2,
+            cfg.occlusion_margin,
+            cfg.gap_ratio,
+            cfg.gap_sigmas * fitted.sigma[fail],
+        )
         keep = np.ones(len(sub.points), dtype=bool)
     else:
         out = outlier_returns(

@@ -164,6 +164,9 @@ class DetectorConfig:
         ``refit_split="gap"``) only if that gap exceeds this multiple of the segment's median
         gap: a junction of two objects is a gap, the returns along one surface are evenly
         spaced.
+    gap_sigmas : float, >= 0
+        ... and by more than this many range-noise sigmas (``sigma + sigma_rel x mean range``,
+        per segment) above the median gap: noise alone makes no cut.
     refit_pieces : bool
         Cut a candidate that fails only the RMS test into pieces (``refit_split``) and fit
         every piece with ``min_points`` returns that passes the segment filters once more
@@ -229,6 +232,7 @@ class DetectorConfig:
     corner_sigmas: float = 5.0
     gap_splits: int = 0
     gap_ratio: float = 0.0
+    gap_sigmas: float = 0.0
     refit_pieces: bool = False
     refit_sigmas: float = 3.0
     refit_split: Literal["gap", "outliers", "outlier_ends"] = "gap"
@@ -297,6 +301,8 @@ class DetectorConfig:
             raise bad("corner_sigmas", self.corner_sigmas, "it must be >= 0")
         if self.corner_span < 1:
             raise bad("corner_span", self.corner_span, "it must be >= 1 return")
+        if not (self.gap_sigmas >= 0 and math.isfinite(self.gap_sigmas)):
+            raise bad("gap_sigmas", self.gap_sigmas, "it must be >= 0")
         if not (self.gap_ratio >= 0 and math.isfinite(self.gap_ratio)):
             raise bad("gap_ratio", self.gap_ratio, "it must be >= 0")
         if not self.gap_splits >= 0:

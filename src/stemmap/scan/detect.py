@@ -542,11 +542,13 @@ class ScanTrunkDetector:
             # ours (issue 11): a non-convex segment is cut at its largest gap, once per pass
             if len(segs) == 0:
                 break
+            sigma = cfg.sigma + cfg.sigma_rel * (segment_sum(segs.points.r, segs) / segs.counts)
             segs = split_largest_gap(
                 segs,
                 sagitta_depth(segs) < max(cfg.min_depth, 0.0),
                 cfg.occlusion_margin,
                 cfg.gap_ratio,
+                cfg.gap_sigmas * sigma,
             )
             segs = segs.select(segs.counts >= cfg.min_points)
         return (self._filter(segs) if apply_filters else segs), r, wrap
@@ -666,6 +668,7 @@ class ScanTrunkDetector:
             "corner_sigmas": cfg.corner_sigmas,
             "gap_splits": cfg.gap_splits,
             "gap_ratio": cfg.gap_ratio,
+            "gap_sigmas": cfg.gap_sigmas,
         }
         prm = np.empty(N_PARAMS)
         for name, v in values.items():
