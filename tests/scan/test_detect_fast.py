@@ -91,6 +91,7 @@ CONFIGS = {
     },
     # issue 11, third round: largest-gap cuts of non-convex segments (alone, with corners)
     "gaps": {"gap_splits": 2, "min_depth": 0.01},
+    "straight_depth": {"straight_depth_sigmas": 1.5, "straight_min_points": 5},
     "gaps_noise_floor": {"gap_splits": 2, "gap_ratio": 1.5, "gap_sigmas": 2.0, "min_depth": 0.01},
     "gaps_corners": {
         "gap_splits": 3,

@@ -113,3 +113,26 @@ def test_new_options_are_validated():
         DetectorConfig.preset("stemmap", gap_ratio=math.inf)
     with pytest.raises(ConfigError, match="refit_sigmas"):
         DetectorConfig.preset("stemmap", refit_sigmas=0.0)
+
+
+def test_a_near_arc_bulging_many_sigmas_is_not_straight():
+    from stemmap.scan.features import segment_features
+    from stemmap.scan.plausibility import REASONS, segment_reasons
+
+    # a 12.9 cm stem at 1.5 m of the TreeLS plot (0.5 deg nearest): 10 returns whose line RMS
+    # is within the chi-square bound of 1 cm noise, but whose sagitta is 3.8 cm
+    segs = _segment([1.482, 1.456, 1.448, 1.445, 1.448, 1.458, 1.462, 1.465, 1.476, 1.487])
+    f = segment_features(segs)
+    assert 0.035 < f.depth[0] < 0.04
+    off = DetectorConfig.preset("stemmap", straight_depth_sigmas=math.inf)
+    assert REASONS[segment_reasons(segs, f, off)[0]] == "straight"
+    assert DetectorConfig.preset("stemmap").straight_depth_sigmas == 3.0  # the default keeps it
+    for k, want in ((3.0, "kept"), (4.0, "straight")):
+        got = segment_reasons(segs, f, DetectorConfig.preset("stemmap", straight_depth_sigmas=k))
+        assert REASONS[got[0]] == want
+    # a wall (sagitta 0 within the noise) stays straight whatever the setting
+    ang = INC * np.arange(20)
+    wall = _segment(3.0 / np.cos(ang - ang.mean()))
+    fw = segment_features(wall)
+    loose = DetectorConfig.preset("stemmap", straight_depth_sigmas=3.0)
+    assert REASONS[segment_reasons(wall, fw, loose)[0]] in ("straight", "depth")

@@ -102,6 +102,7 @@ PARAM_NAMES = (
     "gap_splits",  # passes of cutting non-convex segments at their largest gap
     "gap_ratio",  # ... if it exceeds this multiple of the segment's median gap
     "gap_sigmas",  # ... and the median gap by this many range-noise sigmas
+    "straight_depth_sigmas",  # a sagitta of this many sigmas is never straight
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -363,6 +364,7 @@ def _detect_kernel(
     gap_splits = int(prm[49])
     gap_ratio = prm[50]
     gap_sigmas = prm[51]
+    straight_depth_sigmas = prm[52]
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -625,6 +627,7 @@ def _detect_kernel(
                 else:
                     excess = math.sqrt(max(line_rms * line_rms - sig * sig, 0.0))
                     straight = excess < straight_ratio * width
+                straight &= not (depth > straight_depth_sigmas * sig)
                 ok &= not (straight and cnt >= straight_min_points)
             if drop_partial:
                 ok &= not partial

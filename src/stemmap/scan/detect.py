@@ -669,6 +669,7 @@ class ScanTrunkDetector:
             "gap_splits": cfg.gap_splits,
             "gap_ratio": cfg.gap_ratio,
             "gap_sigmas": cfg.gap_sigmas,
+            "straight_depth_sigmas": cfg.straight_depth_sigmas,
         }
         prm = np.empty(N_PARAMS)
         for name, v in values.items():
