@@ -25,18 +25,18 @@ from stemmap.cli._geo import (
     write_map_products,
 )
 from stemmap.cli._map_frames import Frontend
-from stemmap.cli._map_prior import (
-    continue_from_map,
-    false_trees_report,
-    keep_information,
-    write_information,
-)
 from stemmap.cli._map_motion import (
     Motion,
     motion_trajectory,
     resolve_motion,
     vehicle_path,
     wheel_drift_estimate,
+)
+from stemmap.cli._map_prior import (
+    continue_from_map,
+    false_trees_report,
+    keep_information,
+    write_information,
 )
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
