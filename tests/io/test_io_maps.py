@@ -550,3 +550,47 @@ def test_atomic_write_gives_plain_file_permissions(tmp_path: Path) -> None:
         assert new.read_text() == "b\n"
     finally:
         os.umask(old)
+
+
+def _info_map(rng: np.random.Generator, n: int = 4) -> StemMap:
+    a = rng.normal(size=(2 * n, 2 * n))
+    info = a @ a.T + 2 * n * np.eye(2 * n)  # positive definite, with correlations
+    trees = tuple(
+        Tree(id=10 + 3 * i, x=float(i), y=float(-i), diameter=0.3, cov=np.eye(2) * 0.01)
+        for i in range(n)
+    )
+    return StemMap(trees, information=info)
+
+
+def test_trees_information_round_trip_reorders_by_id(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    sm = _info_map(rng)
+    p = tmp_path / maps_mod.TREES_INFORMATION_NPZ
+    maps_mod.write_trees_information(p, sm)
+    back = maps_mod.read_trees_information(p, replace(sm, information=None))
+    assert back.information is not None
+    assert np.array_equal(back.information, sm.information)  # exact: float64 in NPZ
+    # a map whose trees come in another order (a hand-sorted CSV): the matrix follows the ids
+    order = [2, 0, 3, 1]
+    shuffled = StemMap(tuple(sm.trees[k] for k in order))
+    got = maps_mod.read_trees_information(p, shuffled)
+    cols = np.array([[2 * k, 2 * k + 1] for k in order]).reshape(-1)
+    assert got.information is not None
+    assert np.array_equal(got.information, np.asarray(sm.information)[np.ix_(cols, cols)])
+
+
+def test_trees_information_rejects_a_foreign_or_broken_file(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    sm = _info_map(rng)
+    p = tmp_path / "ti.npz"
+    maps_mod.write_trees_information(p, sm)
+    other = StemMap(sm.trees[:3])  # one tree fewer: not the CSV it was written with
+    with pytest.raises(InputError, match="differ"):
+        maps_mod.read_trees_information(p, other)
+    np.savez(p, tree_ids=np.arange(4))
+    with pytest.raises(InputError, match="information"):
+        maps_mod.read_trees_information(p, StemMap(sm.trees))
+    with pytest.raises(InputError, match="no joint information"):
+        maps_mod.write_trees_information(p, StemMap(sm.trees))

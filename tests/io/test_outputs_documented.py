@@ -12,6 +12,7 @@ import csv
 import json
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import laspy
@@ -26,7 +27,12 @@ from stemmap.cloud.result import CloudStems
 from stemmap.engine.manifest import Manifest
 from stemmap.eval.trajectory import AteResult, RpeResult
 from stemmap.io.geo import write_map_gpkg
-from stemmap.io.maps import write_observations_csv, write_trees_csv, write_trees_geojson
+from stemmap.io.maps import (
+    write_observations_csv,
+    write_trees_csv,
+    write_trees_geojson,
+    write_trees_information,
+)
 from stemmap.io.trajectory import write_trajectory_csv
 from stemmap.types import StemMap, StemObservations, Trajectory, Tree
 
@@ -144,6 +150,10 @@ def test_map_products_documented(tmp_path: Path) -> None:
     assert _undocumented(props - {"geometry", "properties"}, "trees.csv") == []
     write_trajectory_csv(tmp_path / "tr.csv", _trajectory())
     assert _undocumented(_header(tmp_path / "tr.csv"), "trajectory.csv") == []
+    info = np.eye(2 * len(m)) * 100.0
+    write_trees_information(tmp_path / "ti.npz", replace(m, information=info))
+    with np.load(tmp_path / "ti.npz") as z:
+        assert _undocumented(list(z.files), "trees_information.npz") == []
     write_map_gpkg(tmp_path / "m.gpkg", m, _trajectory())
     for layer, _ in list_layers(tmp_path / "m.gpkg"):
         fields = list(read_info(tmp_path / "m.gpkg", layer=layer)["fields"])

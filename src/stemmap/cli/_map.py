@@ -32,6 +32,12 @@ from stemmap.cli._map_motion import (
     vehicle_path,
     wheel_drift_estimate,
 )
+from stemmap.cli._map_prior import (
+    continue_from_map,
+    false_trees_report,
+    keep_information,
+    write_information,
+)
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
@@ -137,7 +143,7 @@ def sim_problem(
         name=name,
         max_range=run.scanner.range_max if hasattr(run.scanner, "range_max") else math.inf,
     )
-    return problem, {"kind": "sim", "run": run, "params": run.params}
+    return problem, {"kind": "sim", "run": run, "params": run.params, "scans": run.scans}
 
 
 def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
@@ -160,24 +166,6 @@ def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backen
         arm = (lx, ly)
     fixes = read_gnss_csv(path, lever_arm=arm, default_sigma=sigma)
     return dataclasses.replace(problem, gnss=fixes)
-
-
-def _continue(problem: Any, folder: Path, guess: str | None, backend: str) -> tuple[Any, Any]:
-    """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call)."""
-    from stemmap.io.maps import read_trees_csv
-    from stemmap.slam.relocalise import continue_session
-
-    if backend != "isam2":
-        raise ConfigError(f"--prior-map is used by the isam2 back-end only; got {backend}.")
-    g = None
-    if guess is not None:
-        try:
-            gx, gy, gd = (float(v) for v in guess.split(","))
-        except ValueError as exc:
-            raise ConfigError(f"--start-guess must be 'x,y,heading_deg', got {guess!r}.") from exc
-        g = (gx, gy, math.radians(gd))
-    csv = folder / "trees.csv" if folder.is_dir() else folder
-    return continue_session(problem, read_trees_csv(csv), g)
 
 
 def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
@@ -319,6 +307,16 @@ def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]
                      "rpe_trans_rmse_m"))  # fmt: skip
         rows.append((f"RPE rotation RMSE ({per})", fmt(m["rpe_rot_rmse_deg"], " deg"),
                      "rpe_rot_rmse_deg"))  # fmt: skip
+    ft = m.get("false_trees")
+    if isinstance(ft, dict) and "method" in ft:  # forestrix: Öhman's ray-cast removal
+        if ft.get("ran"):
+            rows.append(("false trees removed (ray casting)", fmt(ft.get("removed")),
+                         "false_trees.removed"))  # fmt: skip
+        else:
+            rows.append(("false-tree removal", f"skipped: {ft.get('reason')}", "false_trees"))
+    rl = m.get("relocalisation")
+    if isinstance(rl, dict) and "prior" in rl:
+        rows.append(("prior map trees held by", f"{rl['prior']} prior", "relocalisation.prior"))
     mm = m.get("map")
     if isinstance(mm, dict):
         rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
@@ -656,9 +654,13 @@ def map_command(
         if gnss is not None:
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None
+        isam2 = backend == Backend.isam2 and not (realtime or rerun is not None)
         if prior_map is not None:
-            problem, reloc = _continue(problem, prior_map, start_guess, backend.value)
-        be = make_backend(backend.value)
+            problem, reloc, prior_note = continue_from_map(
+                problem, prior_map, start_guess, backend.value
+            )
+        # isam2 keeps the trees' joint information (trees_information.npz, for --prior-map)
+        be = make_backend(backend.value, **({"joint_information": True} if isam2 else {}))
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
 
@@ -672,12 +674,16 @@ def map_command(
 
                 result = map_munjer(problem, MunjerMapConfig(refine=refine, seed=seed))
                 tick(len(problem.frames), len(problem.frames))
+            elif backend == Backend.forestrix:  # raw scans: Öhman's ray-cast false trees
+                result = be.run(problem, progress=tick, scans=ctx.get("scans"))  # type: ignore[call-arg]
             else:
                 result = be.run(problem, progress=tick)
-        result.stem_map, unc = annotate_uncertainty(result, problem)
+        annotated, unc = annotate_uncertainty(result, problem)
+        result.stem_map = keep_information(annotated, result.stem_map)
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
         if reloc is not None:
-            metrics["relocalisation"] = reloc.__dict__
+            metrics["relocalisation"] = {**reloc.__dict__, **prior_note}
+        metrics["false_trees"] = false_trees_report(backend.value, result.stats, ctx["kind"])
         metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs)
         if bag is not None:
@@ -701,6 +707,7 @@ def map_command(
         names = write_map_products(
             stage, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
         )
+        names += write_information(stage, result.stem_map)
         if "alignment" in ctx:
             names += write_gps_frame(
                 stage,

@@ -121,6 +121,7 @@ def file_problem(
         odo_file = "the motion source"
         t_odo = np.asarray(motion.times)
     max_range = math.inf
+    batch = None
     if is_detections_csv(source):
         obs = read_observations_csv(source)
         if len(obs) == 0:
@@ -152,7 +153,10 @@ def file_problem(
         name=str(source),
         max_range=max_range,
     )
-    return problem, {"kind": kind, "odometry": str(odo_file)}
+    ctx: dict[str, Any] = {"kind": kind, "odometry": str(odo_file)}
+    if batch is not None:
+        ctx["scans"] = batch  # raw scans, one per frame: ray-cast false-tree removal
+    return problem, ctx
 
 
 def bag_problem(
@@ -178,7 +182,7 @@ def bag_problem(
     frames = TreeFrames.from_observations(obs, batch.times)
     sig = motion_sigma or (UnicycleModel().sigma_speed, UnicycleModel().sigma_steer)
     model = UnicycleModel(sigma_speed=sig[0], sigma_steer=sig[1])
-    ctx: dict[str, Any] = {"kind": "bag"}
+    ctx: dict[str, Any] = {"kind": "bag", "scans": batch}
     if motion is None:
         try:
             odo = read_odometry(path)

@@ -9,6 +9,9 @@ Formats (also in docs/algorithms/io.md):
 * observations CSV (the ``stemmap detect`` output): ``scan_index,time_s,x,y,diameter,
   radius_std,n_points,arc_deg,width,quality,std_x,std_y`` -- sensor frame, metres, seconds, degrees.
 * trees GeoJSON (RFC 7946): a FeatureCollection of Points, see :func:`write_trees_geojson`.
+* trees information NPZ (``trees_information.npz`` beside ``trees.csv``): the map's joint
+  information matrix (:attr:`~stemmap.types.StemMap.information`) with the tree ids it is
+  ordered by, see :func:`write_trees_information`.
 
 Every column is described in docs/outputs.md. Readers also accept the pre-0.2 names ``time``,
 ``first_time``, ``last_time``, ``cov_xy``.
@@ -38,16 +41,19 @@ from stemmap.types import FloatArray, StemMap, StemObservations, Tree
 
 __all__ = [
     "OBSERVATION_CSV_COLUMNS",
+    "TREES_INFORMATION_NPZ",
     "TREE_CSV_COLUMNS",
     "local_to_lonlat",
     "lonlat_to_local",
     "read_observations_csv",
     "read_trees_csv",
     "read_trees_geojson",
+    "read_trees_information",
     "tree_rows",
     "write_observations_csv",
     "write_trees_csv",
     "write_trees_geojson",
+    "write_trees_information",
 ]
 
 #: Columns of the trees CSV, in order. ``std_x``, ``std_y`` are sqrt of the covariance diagonal.
@@ -202,6 +208,79 @@ def read_trees_csv(path: PathLike, *, frame: str = "map", crs: str | None = None
         for i in range(n)
     )
     return StemMap(trees, frame=frame, crs=crs)
+
+
+# --------------------------------------------------------------------------------------------
+# joint information NPZ (beside trees.csv)
+# --------------------------------------------------------------------------------------------
+
+#: File name of the joint information written beside ``trees.csv`` (``stemmap map``).
+TREES_INFORMATION_NPZ = "trees_information.npz"
+
+
+def write_trees_information(path: PathLike, stem_map: StemMap) -> None:
+    """Write ``stem_map.information`` with the tree ids it is ordered by, atomically.
+
+    The NPZ holds ``tree_ids`` (int64, shape (N,): the ``id`` column of trees.csv, in the
+    matrix's tree order) and ``information`` (float64, shape (2N, 2N), 1/m²: rows and columns
+    ``x_0, y_0, x_1, y_1, ...`` of the trees in ``tree_ids`` order).
+
+    Raises
+    ------
+    InputError
+        The map has no joint information.
+    """
+    if stem_map.information is None:
+        raise InputError("write_trees_information: the stem map has no joint information.")
+    ids = np.array([int(t.id) for t in stem_map], dtype=np.int64)
+    with atomic_write(path, "wb") as fh:
+        np.savez_compressed(
+            fh, tree_ids=ids, information=np.asarray(stem_map.information, dtype=np.float64)
+        )
+
+
+def read_trees_information(path: PathLike, stem_map: StemMap) -> StemMap:
+    """``stem_map`` (read from the trees CSV beside ``path``) with the joint information of
+    ``path`` (:func:`write_trees_information`), reordered to the map's tree order by id.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, missing arrays, wrong shapes, non-finite values, or tree
+        ids that differ from the map's (the NPZ belongs to another trees CSV).
+    """
+    what = "trees information NPZ"
+    p = existing_file(path, what)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            ids = np.asarray(z["tree_ids"], dtype=np.int64)
+            info = np.asarray(z["information"], dtype=np.float64)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(
+            f"{what} {str(p)!r} is unreadable or lacks 'tree_ids' / 'information': {exc}."
+        ) from exc
+    n = ids.shape[0]
+    if ids.ndim != 1 or info.shape != (2 * n, 2 * n) or not np.isfinite(info).all():
+        raise InputError(
+            f"{what} {str(p)!r}: information must be a finite ({2 * n}, {2 * n}) matrix for "
+            f"{n} tree ids, got shape {info.shape}."
+        )
+    map_ids = np.array([int(t.id) for t in stem_map], dtype=np.int64)
+    if n != map_ids.size or not np.array_equal(np.sort(ids), np.sort(map_ids)):
+        raise InputError(
+            f"{what} {str(p)!r} has {n} tree ids that differ from the {map_ids.size} trees of "
+            "the trees CSV beside it; rewrite both with one `stemmap map` run (or delete the "
+            "NPZ to use per-tree priors)."
+        )
+    pos = {int(i): k for k, i in enumerate(ids)}
+    src = np.array([pos[int(i)] for i in map_ids], dtype=np.int64)
+    cols = np.column_stack([2 * src, 2 * src + 1]).reshape(-1)
+    return StemMap(
+        stem_map.trees,
+        frame=stem_map.frame,
+        crs=stem_map.crs,
+        information=info[np.ix_(cols, cols)],
+    )
 
 
 # --------------------------------------------------------------------------------------------

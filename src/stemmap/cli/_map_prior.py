@@ -1,0 +1,90 @@
+"""Map products of ``stemmap map`` that tie sessions and back-ends together: the prior map
+(``--prior-map``, with its joint information ``trees_information.npz`` when present), that
+joint information written beside trees.csv, and the ray-cast false-tree removal's report."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from stemmap.errors import ConfigError
+
+__all__ = ["continue_from_map", "false_trees_report", "keep_information", "write_information"]
+
+
+def continue_from_map(
+    problem: Any, folder: Path, guess: str | None, backend: str
+) -> tuple[Any, Any, dict[str, Any]]:
+    """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call).
+
+    The map's joint information (``trees_information.npz`` beside trees.csv) becomes one joint
+    prior over its trees; without it each tree gets its own prior (said in the returned note).
+    """
+    from stemmap.io.maps import TREES_INFORMATION_NPZ, read_trees_csv, read_trees_information
+    from stemmap.slam.relocalise import continue_session
+
+    if backend != "isam2":
+        raise ConfigError(f"--prior-map is used by the isam2 back-end only; got {backend}.")
+    g = None
+    if guess is not None:
+        try:
+            gx, gy, gd = (float(v) for v in guess.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--start-guess must be 'x,y,heading_deg', got {guess!r}.") from exc
+        g = (gx, gy, math.radians(gd))
+    csv = folder / "trees.csv" if folder.is_dir() else folder
+    prior = read_trees_csv(csv)
+    npz = csv.with_name(TREES_INFORMATION_NPZ)
+    if npz.is_file():
+        prior = read_trees_information(npz, prior)
+        note = {"prior": "joint", "information": str(npz)}
+    else:
+        note = {
+            "prior": "per-tree",
+            "note": f"no {TREES_INFORMATION_NPZ} beside {csv.name}: independent per-tree priors "
+            "(the correlations between the prior map's trees are lost)",
+        }
+    problem, reloc = continue_session(problem, prior, g)
+    return problem, reloc, note
+
+
+def keep_information(annotated: Any, original: Any) -> Any:
+    """``annotated`` (the map after uncertainty annotation, same trees in the same order) with
+    the joint information of the back-end's ``original`` map."""
+    from dataclasses import replace
+
+    info = getattr(original, "information", None)
+    if info is None or [t.id for t in annotated] != [t.id for t in original]:
+        return annotated
+    return replace(annotated, information=info)
+
+
+def write_information(stage: Path, stem_map: Any) -> list[str]:
+    """``trees_information.npz`` beside trees.csv when the map has a joint information."""
+    from stemmap.io.maps import TREES_INFORMATION_NPZ, write_trees_information
+
+    if stem_map.information is None:
+        return []
+    write_trees_information(stage / TREES_INFORMATION_NPZ, stem_map)
+    return [TREES_INFORMATION_NPZ]
+
+
+_NO_SCANS = {
+    "victoria-park": "Victoria Park has no raw laser ranges (only the trunk detections)",
+    "detections": "a detections CSV has no raw laser ranges",
+    "frames": "a frames bundle has no 2D laser scans",
+}
+
+
+def false_trees_report(backend: str, stats: dict[str, Any], kind: str) -> dict[str, Any]:
+    """metrics.json ``false_trees``: what the ray-cast false-tree removal (Öhman) did."""
+    if backend != "forestrix":
+        return {"ran": False, "reason": f"the {backend} back-end has no false-tree removal"}
+    mode = str(stats.get("false_trees", ""))
+    if mode.startswith("skipped"):
+        why = _NO_SCANS.get(kind, "the input has no raw scans")
+        return {"ran": False, "method": "rays", "reason": why}
+    if mode == "none":
+        return {"ran": False, "method": "none", "reason": "switched off"}
+    return {"ran": True, "method": mode, "removed": int(stats.get("false_trees_removed", 0))}

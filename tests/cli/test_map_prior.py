@@ -1,0 +1,136 @@
+"""`stemmap map` wiring: raw scans reach Forestrix's ray-cast false-tree removal; the isam2
+map's joint information goes to trees_information.npz and back in through --prior-map."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stemmap.cli import app
+from stemmap.io.maps import read_trees_csv, read_trees_information
+from stemmap.types import StemMap, Tree
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("simlog")
+    args = ["sim", "scans", "--out", str(d / "run.npz"), "--seed", "2", "--n-scans", "400", "-q"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    return d
+
+
+def _metrics(out: Path) -> dict[str, Any]:
+    return dict(json.loads((out / "metrics.json").read_text()))
+
+
+@pytest.mark.slow
+def test_forestrix_cli_removes_injected_false_trees_with_the_raw_scans(
+    sim_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two phantom trees are put ON the driven path (free space: the vehicle drove through
+    them, earlier scans' rays pass through them) into Forestrix's output map. Only the raw-ray
+    removal can delete them, and it runs only when the CLI passes the scans."""
+    from stemmap.slam.forestrix import ForestrixSlam
+
+    orig = ForestrixSlam._output_map
+    injected: list[np.ndarray] = []
+
+    def with_phantoms(self: ForestrixSlam, st: Any) -> tuple[StemMap, int]:
+        sm, n = orig(self, st)
+        poses = np.asarray(st.poses)
+        xy = poses[[len(poses) // 2, (3 * len(poses)) // 4], :2]
+        injected.append(xy)
+        k = 1 + max((t.id for t in sm), default=0)
+        ghosts = tuple(
+            Tree(id=k + i, x=float(p[0]), y=float(p[1]), diameter=0.25, n_obs=50)
+            for i, p in enumerate(xy)
+        )
+        return StemMap(sm.trees + ghosts), n
+
+    monkeypatch.setattr(ForestrixSlam, "_output_map", with_phantoms)
+    out = sim_log / "m_forestrix"
+    res = CliRunner().invoke(
+        app, ["map", str(sim_log / "run.npz"), "--backend", "forestrix", "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    m = _metrics(out)
+    assert m["backend_stats"]["false_trees"] == "rays"
+    assert m["false_trees"]["ran"] is True
+    assert m["false_trees"]["removed"] >= 2
+    assert m["false_trees"]["removed"] == m["backend_stats"]["false_trees_removed"]
+    xy = read_trees_csv(out / "trees.csv").xy
+    for p in injected[0]:  # 0.1 m: the phantoms sit exactly there (no re-estimation after)
+        assert np.hypot(*(xy - p).T).min() > 0.1
+    assert len(xy) >= 5  # the real trees stay
+
+
+@pytest.mark.slow
+def test_forestrix_cli_says_why_removal_was_skipped_on_detections(sim_log: Path) -> None:
+    run = CliRunner()
+    det = sim_log / "det.csv"
+    assert run.invoke(app, ["detect", str(sim_log / "run.npz"), "--out", str(det)]).exit_code == 0
+    out = sim_log / "m_det"
+    args = ["map", str(det), "--backend", "forestrix", "--out", str(out)]
+    res = run.invoke(app, [*args, "--odometry", str(sim_log / "run_odometry.csv")])
+    assert res.exit_code == 0, res.output
+    ft = _metrics(out)["false_trees"]
+    assert ft["ran"] is False and "detections CSV" in ft["reason"]
+
+
+@pytest.mark.slow
+def test_prior_map_uses_the_joint_information(
+    sim_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = CliRunner()
+    first = sim_log / "m_isam2"
+    res = run.invoke(app, ["map", str(sim_log / "run.npz"), "--out", str(first)])
+    assert res.exit_code == 0, res.output
+    npz = first / "trees_information.npz"
+    assert npz.is_file()
+    outputs = json.loads((first / "run.json").read_text())["outputs"]
+    assert "trees_information.npz" in {o["path"] for o in outputs}  # in the manifest
+    sm = read_trees_information(npz, read_trees_csv(first / "trees.csv"))
+    info = np.asarray(sm.information)
+    assert info.shape == (2 * len(sm), 2 * len(sm))
+    assert np.allclose(info, info.T, atol=1e-9 * np.abs(info).max())
+    assert np.linalg.eigvalsh(info).min() > 0  # a usable (positive definite) prior
+    # the marginal of each tree from the joint information = the trees.csv covariance
+    cov = np.linalg.inv(info)
+    for j, t in enumerate(sm):
+        c = cov[2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
+        assert np.allclose(np.sqrt(np.diag(c)), np.sqrt(np.diag(t.cov)), rtol=0.05)
+
+    import stemmap.slam.graph as graph
+
+    used: list[bool] = []
+    orig = graph.joint_prior_factor
+
+    def spy(*a: Any, **k: Any) -> Any:
+        f = orig(*a, **k)
+        used.append(f is not None)
+        return f
+
+    monkeypatch.setattr(graph, "joint_prior_factor", spy)
+    second = sim_log / "m_isam2_prior"
+    args = ["map", str(sim_log / "run.npz"), "--prior-map", str(first), "--out", str(second)]
+    args += ["--start-guess", "0,0,0"]
+    res = run.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert used and used[0]  # the joint prior factor reached the graph
+    assert _metrics(second)["relocalisation"]["prior"] == "joint"
+
+    npz.unlink()  # without it: per-tree priors, and said so
+    used.clear()
+    third = sim_log / "m_isam2_pertree"
+    args[args.index(str(second))] = str(third)
+    res = run.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert used and not any(used)
+    rl = _metrics(third)["relocalisation"]
+    assert rl["prior"] == "per-tree" and "trees_information.npz" in rl["note"]
