@@ -65,6 +65,7 @@ import numpy as np
 
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_config import Isam2Config
+from stemmap.slam._graph_localise import localise_on_map
 from stemmap.slam._graph_marginals import _merge_duplicates, _point_marginals
 from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
 from stemmap.slam._graph_revisits import compose_increments, localise_skipped, redundant
@@ -396,6 +397,38 @@ class Isam2Slam:
 
         g_last = 0  # the last keyframe in the graph
 
+        def fix_tracker(k: int, d_step: FloatArray) -> Any:
+            """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
+            the map (:func:`localise_on_map`), or None when the map does not confirm it."""
+            ks = [i for i in range(max(k - cfg.update_every, 0), k) if i in skipped]
+            kl = k - 1
+            fl = int(kf_frames[kl])
+            prior_p = compose(trk[None], between(sp_dr[int(fc[0])][None], sp_dr[fl][None]))[0]
+            parts = [skipped[i] for i in ks]
+            trees_m = np.concatenate([q[0] for q in parts])
+            if trees_m.size == 0:  # a transit: no evidence either way, dead reckoning goes on
+                return _carry(prior_p, d_step)
+            rel_m = np.concatenate(
+                [np.repeat(between(sp_dr[fl][None], sp_dr[int(kf_frames[i])][None]), q[0].size, 0)
+                 for i, q in zip(ks, parts, strict=True)]
+            )  # fmt: skip
+            fix = localise_on_map(
+                prior_p, rel_m, trees_m,
+                np.concatenate([q[1] for q in parts]), np.concatenate([q[2] for q in parts]),
+                np.concatenate([q[3] for q in parts]), lm_xy,
+                (vr + 400.0 * vb) / np.maximum(lm_nobs[: lm_xy.shape[0]], 1), P_trk + P_floor,
+            )  # fmt: skip
+            if not fix.ok:
+                log.debug("iSAM2: tracker not localised at keyframe %d: %s", kl, fix.reason)
+                return None
+            kf_init[kl] = fix.pose
+            return _carry(fix.pose, d_step)
+
+        def _carry(pose: FloatArray, d_step: FloatArray) -> Any:
+            return gtsam.Pose2(*(float(q) for q in pose)).compose(
+                gtsam.Pose2(float(d_step[0]), float(d_step[1]), float(d_step[2]))
+            )
+
         def close_keyframe(kc: int) -> None:
             """Keyframe ``kc``'s window is complete: into the graph (pose, odometry from the
             last graph keyframe, its factors), or left out when it only re-observes well-mapped
@@ -406,6 +439,7 @@ class Isam2Slam:
                 kc > 0
                 and window
                 and not must_keep[kc]
+                and kc >= force_until  # the tracker is localised on the map (_graph_localise)
                 and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors)
             ):
                 skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
@@ -423,6 +457,8 @@ class Isam2Slam:
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
+        force_until = 0  # keyframes before this enter the graph (the tracker was lost)
+        n_map_fix = n_map_lost = 0
         for k in range(nk):
             f0 = int(kf_frames[k])
             if k > 0:
@@ -486,6 +522,15 @@ class Isam2Slam:
                                     np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
                                     cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
                                 )[0]  # fmt: skip
+                    if not restart and (k - 1) in skipped:
+                        # left out of the graph: localise the tracker on the map instead
+                        p_fix = fix_tracker(k, d0_)
+                        if p_fix is None:
+                            force_until = k + cfg.update_every  # lost: map the next ones
+                            n_map_lost += 1
+                        else:
+                            p, restart = p_fix, True
+                            n_map_fix += 1
                     # the tracker restarts from the estimate (on a revisit left out of the
                     # graph: from its own pose, carried here); its covariance is relative to
                     # the trees just seen, the drift since the others were seen covers them
@@ -755,6 +800,8 @@ class Isam2Slam:
             "keyframes_in_graph": int(gk.size),
             "keyframes_localised": len(skipped),
             "localisation_runs": n_localised,
+            "tracker_map_fixes": n_map_fix,
+            "tracker_lost": n_map_lost,
             "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
             "unconfirmed_windows_skipped": n_single_skipped,
