@@ -97,6 +97,9 @@ class Isam2Config:
     min_window_obs: int = 2
     merge_dist: float = 1.0
     revisit_factors: int = 0
+    revisit_radius: float = 2.0
+    revisit_keyframes: int = 3
+    revisit_after_s: float = 60.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
@@ -142,6 +145,14 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.min_window_obs must be in [1, keyframe_every = "
                 f"{self.keyframe_every}], got {self.min_window_obs}."
+            )
+        if not (math.isfinite(self.revisit_radius) and self.revisit_radius > 0):
+            raise ConfigError(
+                f"Isam2Config.revisit_radius must be a positive number (m), got {self.revisit_radius}."
+            )
+        if self.revisit_keyframes < 1:
+            raise ConfigError(
+                f"Isam2Config.revisit_keyframes must be >= 1, got {self.revisit_keyframes}."
             )
         if self.revisit_factors < 0:
             raise ConfigError(

@@ -22,13 +22,14 @@ keyframe, with
 * a Huber weight per point and, after the first step, points beyond ``gate_chi2`` dropped
   (a wrong association must not pull the pose).
 
+Fewer than ``min_trees`` trees measured (a transit, an edge of the stand) is no evidence either
+way: the tracker dead-reckons on, as it did before.
+
 The fit is **accepted** (the tracker restarts from it, as from an iSAM2 estimate) when at least
 ``min_trees`` trees remain and they are the majority of those measured; otherwise the tracker is
 **lost** as far as the map can tell, and the caller puts the next keyframes into the graph
 (mapping mode: iSAM2 with its wide re-acquisition and the full graph to restart from) until a fit
-is accepted again. A keyframe without any tree measurement (a transit) is not evidence either way:
-the tracker dead-reckons on (the composed odometry of :mod:`stemmap.slam._graph_revisits` carries
-it exactly into the graph).
+is accepted again.
 """
 
 from __future__ import annotations
@@ -47,11 +48,14 @@ class MapFix:
     """Result of :func:`localise_on_map`.
 
     ok : the fit is accepted; pose : (x, y, theta) sensor pose (the prior when not ok);
+    lost : the trees measured (>= ``min_trees``) do not fit the map (not ok for lack of
+    trees: ``lost`` is False);
     cov : (3, 3) its covariance (GN inverse information); n_trees : measured trees;
     n_inliers : trees within the gate at the end; reason : why not ok ("" when ok)
     """
 
     ok: bool
+    lost: bool
     pose: FloatArray
     cov: FloatArray
     n_trees: int
@@ -116,8 +120,8 @@ def localise_on_map(
     m = int(trees.size)
     lam0 = np.linalg.inv(prior_cov)
     n_trees = int(np.unique(trees).size) if m else 0
-    if n_trees < min_trees:
-        return MapFix(False, prior, np.linalg.inv(lam0), n_trees, 0, f"{n_trees} trees measured")
+    if n_trees < min_trees:  # too little to tell: the caller dead-reckons on
+        return MapFix(False, False, prior, prior_cov, n_trees, 0, f"only {n_trees} trees measured")
     pts, cov = _points(rel, brg, rng, sig)
     cov = cov + tree_var[trees][:, None, None] * np.eye(2)[None]
     info = np.linalg.inv(cov)
@@ -151,5 +155,5 @@ def localise_on_map(
     n_in = int(np.unique(trees[use & (d2 <= gate_chi2)]).size)
     cov_x = np.linalg.inv(lam)
     if n_in < min_trees or 2 * n_in <= n_trees:
-        return MapFix(False, prior, cov_x, n_trees, n_in, f"{n_in} of {n_trees} trees fit")
-    return MapFix(True, x, cov_x, n_trees, n_in)
+        return MapFix(False, True, prior, cov_x, n_trees, n_in, f"{n_in} of {n_trees} trees fit")
+    return MapFix(True, False, x, cov_x, n_trees, n_in)

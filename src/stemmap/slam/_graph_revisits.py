@@ -51,7 +51,7 @@ import numpy as np
 from stemmap.slam.motion import between, compose
 from stemmap.types import FloatArray
 
-__all__ = ["compose_increments", "localise_skipped", "redundant"]
+__all__ = ["PlaceCounter", "compose_increments", "localise_skipped", "redundant"]
 
 
 def _adjoint_inv(d: FloatArray) -> FloatArray:
@@ -82,17 +82,57 @@ def compose_increments(d: FloatArray, cov: FloatArray) -> tuple[FloatArray, Floa
     return D, 0.5 * (C + C.T)
 
 
-def redundant(trees: np.ndarray, in_graph: np.ndarray, n_factors: np.ndarray, min_f: int) -> bool:
+def redundant(
+    trees: np.ndarray,
+    in_graph: np.ndarray,
+    n_factors: np.ndarray,
+    min_f: int,
+    settled: np.ndarray | None = None,
+) -> bool:
     """True when a keyframe whose window measures ``trees`` adds nothing the graph needs.
 
-    Every tree is in the graph with at least ``min_f`` measurement factors (vacuously true
-    with no tree); ``min_f <= 0`` disables the rule (every keyframe enters the graph).
+    Every tree is in the graph with at least ``min_f`` measurement factors, or is ``settled``
+    (a bool per tree: no longer allowed to pull keyframes in, see ``Isam2Config.revisit_young_s``)
+    -- vacuously true with no tree; ``min_f <= 0`` disables the rule (every keyframe enters
+    the graph).
     """
     if min_f <= 0:
         return False
     if trees.size == 0:
         return True
-    return bool(np.all(in_graph[trees]) and np.all(n_factors[trees] >= min_f))
+    enough = n_factors[trees] >= min_f
+    if settled is not None:
+        enough |= settled[trees]
+    return bool(np.all(in_graph[trees]) and np.all(enough))
+
+
+class PlaceCounter:
+    """Graph keyframes per place: how many lie within ``radius`` (m) of a point, counting only
+    those added before a given time (a hash grid of ``radius``-sized cells; exact disc counts).
+    Bounds the graph by area (``Isam2Config.revisit_keyframes``)."""
+
+    def __init__(self, radius: float) -> None:
+        self.radius = float(radius)
+        self._cells: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
+
+    def _cell(self, x: float, y: float) -> tuple[int, int]:
+        return int(np.floor(x / self.radius)), int(np.floor(y / self.radius))
+
+    def add(self, x: float, y: float, t: float = 0.0) -> None:
+        """A graph keyframe at ``(x, y)`` (m), added at time ``t`` (s)."""
+        self._cells.setdefault(self._cell(x, y), []).append((x, y, t))
+
+    def count(self, x: float, y: float, before: float = np.inf) -> int:
+        """Graph keyframes within ``radius`` of ``(x, y)`` added before time ``before``."""
+        cx, cy = self._cell(x, y)
+        r2 = self.radius * self.radius
+        n = 0
+        for i in (cx - 1, cx, cx + 1):
+            for j in (cy - 1, cy, cy + 1):
+                for px, py, pt in self._cells.get((i, j), ()):
+                    if pt < before and (px - x) ** 2 + (py - y) ** 2 <= r2:
+                        n += 1
+        return n
 
 
 def localise_skipped(

@@ -68,7 +68,12 @@ from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_localise import localise_on_map
 from stemmap.slam._graph_marginals import _merge_duplicates, _point_marginals
 from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
-from stemmap.slam._graph_revisits import compose_increments, localise_skipped, redundant
+from stemmap.slam._graph_revisits import (
+    PlaceCounter,
+    compose_increments,
+    localise_skipped,
+    redundant,
+)
 from stemmap.slam._isam2_track import (
     C_AMBIG,
     C_FAR,
@@ -320,6 +325,7 @@ class Isam2Slam:
                 graph_all.add(fac_p)
                 map_fac.append(fac_p)
         lm_nfac = np.zeros(lm_xy.shape[0], dtype=np.int64)  # measurement factors per tree
+        lm_ref = np.zeros(lm_xy.shape[0], dtype=np.int64)  # iSAM2 updates at the last refresh
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         sd2 = (cfg.sigma_diameter or 1.0) ** 2
         kparams = np.array(
@@ -396,18 +402,21 @@ class Isam2Slam:
             n_factors_meas += len(js)
 
         g_last = 0  # the last keyframe in the graph
+        # why keyframes entered the graph (a revisit that enters is one of these)
+        entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
+        places = PlaceCounter(cfg.revisit_radius)
+        places.add(*kf_init[0, :2], float(frames.times[0]))
 
-        def fix_tracker(k: int, d_step: FloatArray) -> Any:
+        def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
-            the map (:func:`localise_on_map`), or None when the map does not confirm it."""
+            the map (:func:`localise_on_map`; None when the map contradicts the tracker), and
+            the tracker's covariance to restart with (its own when too few trees tell)."""
             ks = [i for i in range(max(k - cfg.update_every, 0), k) if i in skipped]
             kl = k - 1
             fl = int(kf_frames[kl])
             prior_p = compose(trk[None], between(sp_dr[int(fc[0])][None], sp_dr[fl][None]))[0]
             parts = [skipped[i] for i in ks]
             trees_m = np.concatenate([q[0] for q in parts])
-            if trees_m.size == 0:  # a transit: no evidence either way, dead reckoning goes on
-                return _carry(prior_p, d_step)
             rel_m = np.concatenate(
                 [np.repeat(between(sp_dr[fl][None], sp_dr[int(kf_frames[i])][None]), q[0].size, 0)
                  for i, q in zip(ks, parts, strict=True)]
@@ -418,11 +427,13 @@ class Isam2Slam:
                 np.concatenate([q[3] for q in parts]), lm_xy,
                 (vr + 400.0 * vb) / np.maximum(lm_nobs[: lm_xy.shape[0]], 1), P_trk + P_floor,
             )  # fmt: skip
-            if not fix.ok:
+            if fix.lost:
                 log.debug("iSAM2: tracker not localised at keyframe %d: %s", kl, fix.reason)
-                return None
+                return None, P_floor
+            if not fix.ok:  # too few trees to tell: the tracker's own pose and covariance
+                return _carry(prior_p, d_step), P_trk.copy()
             kf_init[kl] = fix.pose
-            return _carry(fix.pose, d_step)
+            return _carry(fix.pose, d_step), fix.cov
 
         def _carry(pose: FloatArray, d_step: FloatArray) -> Any:
             return gtsam.Pose2(*(float(q) for q in pose)).compose(
@@ -435,16 +446,34 @@ class Isam2Slam:
             trees (:func:`redundant`; its pose is localised at the end)."""
             nonlocal g_last, n_single_skipped
             n_skip_w = int(window[4]) if window else 0
+            revisits = cfg.revisit_factors > 0 and kc > 0 and bool(window) and not must_keep[kc]
+            # a place with revisit_keyframes graph keyframes takes no more for young trees
+            # (the graph is bounded by the area); a lost tracker forces keyframes in
+            # (a revisit: the keyframes of an earlier visit, revisit_after_s ago or more)
+            t_kc = float(frames.times[kf_frames[kc]])
+            full = revisits and (
+                places.count(*kf_init[kc, :2], before=t_kc - cfg.revisit_after_s)
+                >= cfg.revisit_keyframes
+            )
             if (
-                kc > 0
-                and window
-                and not must_keep[kc]
-                and kc >= force_until  # the tracker is localised on the map (_graph_localise)
-                and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors)
+                revisits
+                and kc >= force_until
+                and redundant(
+                    window[0], lm_in_graph, lm_nfac, cfg.revisit_factors,
+                    lm_in_graph if full else None,
+                )  # fmt: skip
             ):
                 skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
                 n_single_skipped += n_skip_w
                 return
+            if revisits:
+                w_t = window[0]
+                why = (
+                    "forced" if kc < force_until
+                    else "new_tree" if w_t.size and not np.all(lm_in_graph[w_t])
+                    else "young_tree"
+                )  # fmt: skip
+                entered[why] += 1
             if kc > 0:
                 bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
                 new_f.add(bf)
@@ -454,6 +483,7 @@ class Isam2Slam:
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
+                places.add(*kf_init[kc, :2], float(frames.times[kf_frames[kc]]))
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
@@ -522,9 +552,10 @@ class Isam2Slam:
                                     np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
                                     cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
                                 )[0]  # fmt: skip
+                    P_restart = P_floor
                     if not restart and (k - 1) in skipped:
                         # left out of the graph: localise the tracker on the map instead
-                        p_fix = fix_tracker(k, d0_)
+                        p_fix, P_restart = fix_tracker(k, d0_)
                         if p_fix is None:
                             force_until = k + cfg.update_every  # lost: map the next ones
                             n_map_lost += 1
@@ -540,7 +571,7 @@ class Isam2Slam:
                     else:
                         trk[:2] = (init.x(), init.y())
                     trk[2] = trk[2] + rel[2] + dth
-                    P_trk[:, :] = P_floor
+                    P_trk[:, :] = P_restart
                     fc[0] = f0
                     # every observation so far is in (or redundant with) the graph
                     f_upd = f0
@@ -548,10 +579,13 @@ class Isam2Slam:
                     # refresh the trees that can be associated soon (within the search radius
                     # plus one keyframe of driving); far trees are refreshed when approached
                     if n_lm:
-                        ing = np.flatnonzero(lm_in_graph[:n_lm])
+                        # (only trees whose estimate may have changed: not refreshed since the
+                        # last iSAM2 update; in localisation mode no update runs for long)
+                        ing = np.flatnonzero(lm_in_graph[:n_lm] & (lm_ref[:n_lm] < n_updates))
                         dxy = lm_xy[ing] - trk[:2]
                         near_k = ing[dxy[:, 0] ** 2 + dxy[:, 1] ** 2 < (cfg.max_range + 30.0) ** 2]
                         if near_k.size:
+                            lm_ref[near_k] = n_updates
                             lm_xy[near_k] = [
                                 isam.calculateEstimatePoint2(LK(jn)) for jn in near_k.tolist()
                             ]
@@ -568,6 +602,7 @@ class Isam2Slam:
                 lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
                 lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
                 lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
+                lm_ref = np.concatenate((lm_ref, np.zeros(g, dtype=np.int64)))
                 lm_nfac = np.concatenate((lm_nfac, np.zeros(g, dtype=np.int64)))
             n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
@@ -802,6 +837,7 @@ class Isam2Slam:
             "localisation_runs": n_localised,
             "tracker_map_fixes": n_map_fix,
             "tracker_lost": n_map_lost,
+            **{f"keyframes_entered_{k_e}": v_e for k_e, v_e in entered.items()},
             "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
             "unconfirmed_windows_skipped": n_single_skipped,
