@@ -20,9 +20,10 @@ Reported per back-end and repeat count:
   scans for the EKF): first tenth vs last tenth of the run (``growth_last_vs_first``), and
   per pass;
 * map quality: ATE against the screened GPS for every pass (each pass aligned on its own)
-  and for the whole run under ONE alignment (drift between passes shows there), tree count
-  and pairs of trees closer than 1 m (revisits must not create duplicates), compared with a
-  1x run of the same back-end.
+  and for the whole run under ONE alignment (drift between passes shows there), tree count,
+  mapped trees first seen in each pass, and pairs of trees closer than 1 m (revisits must
+  not create duplicates), compared with a 1x run of the same back-end;
+* the back-end's graph counters (iSAM2: keyframes in the graph, localisation-mode counters).
 
 A warm-up run on the first 60 s compiles the numba kernels before timing. Absolute times are
 from a loaded shared machine (2 cores, ~8 users): compare the ratios.
@@ -171,6 +172,7 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
     off = rep.model.sensor_offset
     per_pass: list[dict[str, Any]] = []
     ends = [0] + [int(np.searchsorted(rep.frames.times, b, side="right")) for _, b in spans]
+    first_seen = np.array([t.first_time for t in res.stem_map.trees])
     for k, (a, b) in enumerate(spans):
         in_pass = keep & (rep.gps_times >= a) & (rep.gps_times <= b)
         r = ate(res.trajectory, rep.gps_times, rep.gps_xy, offset=off, keep=in_pass)
@@ -181,6 +183,8 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
                 "direction": "forward" if k % 2 == 0 else "backward",
                 "ate_rmse_m": round(float(r.rmse), 3) if r else None,
                 "s_per_100_scans": round(100.0 * (tb - ta) / max(fb - fa, 1), 4),
+                # mapped trees first seen in this pass (a revisit should add ~none)
+                "new_trees": int(np.count_nonzero((first_seen >= a) & (first_seen <= b + GAP_S))),
             }
         )
     return {
@@ -204,6 +208,13 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
         "per_pass": per_pass,
         "n_trees": metrics["n_trees"],
         "duplicates_1m": metrics["duplicates_1m"],
+        # the back-end's own counters (graph size, localisation mode), where it has them
+        "backend_stats": {
+            k: v
+            for k, v in res.stats.items()
+            if k.startswith(("keyframes", "tracker_", "landmarks"))
+            or k in ("factors", "isam2_updates")
+        },
     }
 
 

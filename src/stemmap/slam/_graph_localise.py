@@ -40,7 +40,7 @@ import numpy as np
 
 from stemmap.types import FloatArray
 
-__all__ = ["MapFix", "localise_on_map"]
+__all__ = ["MapFix", "localise_on_map", "localise_windows"]
 
 
 @dataclass(frozen=True)
@@ -157,3 +157,28 @@ def localise_on_map(
     if n_in < min_trees or 2 * n_in <= n_trees:
         return MapFix(False, True, prior, cov_x, n_trees, n_in, f"{n_in} of {n_trees} trees fit")
     return MapFix(True, False, x, cov_x, n_trees, n_in)
+
+
+def localise_windows(
+    prior: FloatArray,
+    prior_cov: FloatArray,
+    windows: list[tuple[np.ndarray, FloatArray, FloatArray, FloatArray]],
+    kf_rel: FloatArray,
+    tree_xy: FloatArray,
+    tree_var: FloatArray,
+) -> MapFix:
+    """:func:`localise_on_map` from whole keyframe windows: ``windows[i]`` = ``(trees, bearing,
+    range, sigmas)`` measured from the keyframe whose pose in the target keyframe's frame is
+    ``kf_rel[i]`` ((len(windows), 3))."""
+    n = [w[0].size for w in windows]
+    return localise_on_map(
+        prior,
+        np.repeat(np.asarray(kf_rel, dtype=np.float64).reshape(-1, 3), n, axis=0),
+        np.concatenate([w[0] for w in windows]).astype(np.int64),
+        np.concatenate([w[1] for w in windows]),
+        np.concatenate([w[2] for w in windows]),
+        np.concatenate([w[3] for w in windows]).reshape(-1, 2),
+        tree_xy,
+        tree_var,
+        prior_cov,
+    )

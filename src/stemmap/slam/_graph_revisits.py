@@ -28,12 +28,14 @@ only re-observes well-mapped trees:
   the run's, so the cost of the whole step is linear in the drive and its memory bounded by
   the longest run.
 
-Status: opt-in (``revisit_factors = 0`` by default). Measured on the Victoria Park log
-replayed as revisits (docs/reliability.md "Soak"): 3 passes kept the path (1.27 m per pass)
-and the map (464 trees, 5 pairs < 1 m) at half the time of the full graph; 10 passes lost the
-path in passes 8 and 10 (7.6 m, 32 m): in a long left-out stretch the front-end has no
-safety net (no iSAM2 estimate to restart from), and a lost front-end creates trees. A loss
-detector with relocalisation on the map (:mod:`stemmap.slam.relocalise`) is the missing part.
+Two additions make it hold on long drives (third session; docs/algorithms/slam.md
+"Localisation mode"): between iSAM2 updates the tracker is **localised on the map**
+(:mod:`stemmap.slam._graph_localise`; a fit the map contradicts puts the next keyframes into
+the graph), and the graph is **bounded by area**: where a place already holds
+``revisit_keyframes`` graph keyframes of an earlier visit within ``revisit_radius``
+(:class:`PlaceCounter`), a keyframe whose trees are all in the graph stays out even if some
+have fewer than ``revisit_factors`` factors. On by default (``revisit_factors = 15``);
+measured on the Victoria Park log replayed 10x as revisits in docs/reliability.md "Soak".
 
 What this is meant to bound: the graph, iSAM2's memory and per-update work, the final batch and
 marginals grow with the mapped area (and with trees still below ``revisit_factors``), not
@@ -111,8 +113,10 @@ class PlaceCounter:
     those added before a given time (a hash grid of ``radius``-sized cells; exact disc counts).
     Bounds the graph by area (``Isam2Config.revisit_keyframes``)."""
 
-    def __init__(self, radius: float) -> None:
+    def __init__(self, radius: float, per_place: int = 1, after_s: float = 0.0) -> None:
         self.radius = float(radius)
+        self.per_place = int(per_place)
+        self.after_s = float(after_s)
         self._cells: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
 
     def _cell(self, x: float, y: float) -> tuple[int, int]:
@@ -121,6 +125,11 @@ class PlaceCounter:
     def add(self, x: float, y: float, t: float = 0.0) -> None:
         """A graph keyframe at ``(x, y)`` (m), added at time ``t`` (s)."""
         self._cells.setdefault(self._cell(x, y), []).append((x, y, t))
+
+    def full(self, x: float, y: float, t: float) -> bool:
+        """At time ``t`` (s), ``(x, y)`` holds ``per_place`` keyframes of a visit that ended
+        ``after_s`` ago or more (added before ``t - after_s``)."""
+        return self.count(x, y, t - self.after_s) >= self.per_place
 
     def count(self, x: float, y: float, before: float = np.inf) -> int:
         """Graph keyframes within ``radius`` of ``(x, y)`` added before time ``before``."""

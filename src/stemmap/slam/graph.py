@@ -41,6 +41,11 @@ frame duplicate trees are merged, one Levenberg-Marquardt batch optimisation ref
 everything, and each tree's 2x2 marginal covariance is the Schur complement of the information
 over the pose chain (:func:`_point_marginals`, equal to :class:`gtsam.Marginals`).
 
+Localisation mode on revisits (ours; docs/algorithms/slam.md "Revisits"): a keyframe that only
+re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area);
+the tracker is then localised on the map at each restart (:mod:`stemmap.slam._graph_localise`),
+and a tracker the map contradicts puts the next keyframes back into the graph.
+
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
 order, ``δ(c) = δ0 Exp(J c)``. They are estimated from the graph's own poses
@@ -65,8 +70,8 @@ import numpy as np
 
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_config import Isam2Config
-from stemmap.slam._graph_localise import localise_on_map
-from stemmap.slam._graph_marginals import _merge_duplicates, _point_marginals
+from stemmap.slam._graph_localise import localise_windows
+from stemmap.slam._graph_marginals import _fit_diagnostics, _merge_duplicates, _point_marginals
 from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
 from stemmap.slam._graph_revisits import (
     PlaceCounter,
@@ -404,41 +409,29 @@ class Isam2Slam:
         g_last = 0  # the last keyframe in the graph
         # why keyframes entered the graph (a revisit that enters is one of these)
         entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
-        places = PlaceCounter(cfg.revisit_radius)
+        places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_s)
         places.add(*kf_init[0, :2], float(frames.times[0]))
 
         def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
-            the map (:func:`localise_on_map`; None when the map contradicts the tracker), and
+            the map (:func:`localise_windows`; None when the map contradicts the tracker), and
             the tracker's covariance to restart with (its own when too few trees tell)."""
             ks = [i for i in range(max(k - cfg.update_every, 0), k) if i in skipped]
-            kl = k - 1
-            fl = int(kf_frames[kl])
+            fl = int(kf_frames[k - 1])
             prior_p = compose(trk[None], between(sp_dr[int(fc[0])][None], sp_dr[fl][None]))[0]
-            parts = [skipped[i] for i in ks]
-            trees_m = np.concatenate([q[0] for q in parts])
-            rel_m = np.concatenate(
-                [np.repeat(between(sp_dr[fl][None], sp_dr[int(kf_frames[i])][None]), q[0].size, 0)
-                 for i, q in zip(ks, parts, strict=True)]
-            )  # fmt: skip
-            fix = localise_on_map(
-                prior_p, rel_m, trees_m,
-                np.concatenate([q[1] for q in parts]), np.concatenate([q[2] for q in parts]),
-                np.concatenate([q[3] for q in parts]), lm_xy,
-                (vr + 400.0 * vb) / np.maximum(lm_nobs[: lm_xy.shape[0]], 1), P_trk + P_floor,
+            fix = localise_windows(
+                prior_p, P_trk + P_floor, [skipped[i] for i in ks],
+                between(sp_dr[fl][None], sp_dr[kf_frames[ks]]), lm_xy,
+                (vr + 400.0 * vb) / np.maximum(lm_nobs, 1),
             )  # fmt: skip
             if fix.lost:
-                log.debug("iSAM2: tracker not localised at keyframe %d: %s", kl, fix.reason)
+                log.debug("iSAM2: tracker not localised at keyframe %d: %s", k - 1, fix.reason)
                 return None, P_floor
-            if not fix.ok:  # too few trees to tell: the tracker's own pose and covariance
-                return _carry(prior_p, d_step), P_trk.copy()
-            kf_init[kl] = fix.pose
-            return _carry(fix.pose, d_step), fix.cov
-
-        def _carry(pose: FloatArray, d_step: FloatArray) -> Any:
-            return gtsam.Pose2(*(float(q) for q in pose)).compose(
-                gtsam.Pose2(float(d_step[0]), float(d_step[1]), float(d_step[2]))
-            )
+            if fix.ok:
+                kf_init[k - 1] = fix.pose
+            pose = gtsam.Pose2(*(float(q) for q in fix.pose))  # (too few trees: the prior)
+            d_s = gtsam.Pose2(float(d_step[0]), float(d_step[1]), float(d_step[2]))
+            return pose.compose(d_s), fix.cov if fix.ok else P_trk.copy()
 
         def close_keyframe(kc: int) -> None:
             """Keyframe ``kc``'s window is complete: into the graph (pose, odometry from the
@@ -447,33 +440,24 @@ class Isam2Slam:
             nonlocal g_last, n_single_skipped
             n_skip_w = int(window[4]) if window else 0
             revisits = cfg.revisit_factors > 0 and kc > 0 and bool(window) and not must_keep[kc]
-            # a place with revisit_keyframes graph keyframes takes no more for young trees
-            # (the graph is bounded by the area); a lost tracker forces keyframes in
-            # (a revisit: the keyframes of an earlier visit, revisit_after_s ago or more)
+            # at a place visited before (PlaceCounter) young trees pull no keyframe in; a lost
+            # tracker forces keyframes in
             t_kc = float(frames.times[kf_frames[kc]])
-            full = revisits and (
-                places.count(*kf_init[kc, :2], before=t_kc - cfg.revisit_after_s)
-                >= cfg.revisit_keyframes
-            )
+            full = revisits and places.full(*kf_init[kc, :2], t_kc)
+            settled = lm_in_graph if full else None
             if (
                 revisits
                 and kc >= force_until
-                and redundant(
-                    window[0], lm_in_graph, lm_nfac, cfg.revisit_factors,
-                    lm_in_graph if full else None,
-                )  # fmt: skip
+                and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors, settled)
             ):
                 skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
                 n_single_skipped += n_skip_w
                 return
-            if revisits:
-                w_t = window[0]
-                why = (
-                    "forced" if kc < force_until
-                    else "new_tree" if w_t.size and not np.all(lm_in_graph[w_t])
-                    else "young_tree"
-                )  # fmt: skip
-                entered[why] += 1
+            if revisits:  # why it entered
+                new_t = window[0].size and not np.all(lm_in_graph[window[0]])
+                entered[
+                    "forced" if kc < force_until else "new_tree" if new_t else "young_tree"
+                ] += 1
             if kc > 0:
                 bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
                 new_f.add(bf)
@@ -483,7 +467,7 @@ class Isam2Slam:
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
-                places.add(*kf_init[kc, :2], float(frames.times[kf_frames[kc]]))
+                places.add(*kf_init[kc, :2], t_kc)
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
@@ -732,34 +716,15 @@ class Isam2Slam:
             result = opt.optimize()
             n_lm_iters += int(opt.iterations())
         kf_s = kf_poses(result)  # sensor poses of the graph keyframes
-        # consistency (GPS-free): chi² per degree of freedom of each factor kind at the optimum;
-        # ~1 when the noise models match the data (robust factors report their robust cost)
-        # (one C++ error sum per kind over the factors in graph order: equal to summing them
-        # one by one from Python, ~10x faster)
-        chi2_kind = []
-        for facs in (odo_fac, meas_fac):
-            g_kind = gtsam.NonlinearFactorGraph()
-            for fac_i in facs:
-                g_kind.add(fac_i)
-            chi2_kind.append(2.0 * g_kind.error(result))
-        chi_odo, chi_meas = chi2_kind
-        n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         pts = np.zeros((n_lm, 2))
         ing = np.flatnonzero(lm_in_graph[:n_lm])
         if ing.size:
             pts[ing] = gtsam.utilities.extractPoint2(result)
-        # association quality without ground truth: share of (merged) detections whose
-        # normalised bearing-range residual at the optimum exceeds 3 (a correctly associated
-        # detection does so with probability ~1 %)
-        n_outlier = 0
-        if meas_rec and ing.size:
-            mr = np.array(meas_rec)
-            kf_xyt = kf_s[mr[:, 0].astype(np.int64)]
-            lmp = pts[alias[mr[:, 1].astype(np.int64)]]
-            dxm, dym = lmp[:, 0] - kf_xyt[:, 0], lmp[:, 1] - kf_xyt[:, 1]
-            rb = wrap_angle(mr[:, 2] - (np.arctan2(dym, dxm) - kf_xyt[:, 2])) / mr[:, 4]
-            rr_ = (mr[:, 3] - np.hypot(dxm, dym)) / mr[:, 5]
-            n_outlier = int(np.count_nonzero(rb * rb + rr_ * rr_ > 9.0))
+        # consistency and association quality at the optimum (GPS-free, _fit_diagnostics)
+        chi_odo, chi_meas, n_outlier = _fit_diagnostics(
+            gtsam, result, odo_fac, meas_fac, meas_rec, kf_s, pts[alias]
+        )
+        n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
         covs = np.full((n_lm, 2, 2), np.nan)
         if cfg.marginals and keep.size:
@@ -774,26 +739,9 @@ class Isam2Slam:
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK),
         )  # fmt: skip
-        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
-        base_p = kf_s[kf_of]
-        cb, sb = np.cos(base_p[:, 2]), np.sin(base_p[:, 2])
-        sp_all = np.column_stack(
-            (
-                base_p[:, 0] + cb * rel_s[:, 0] - sb * rel_s[:, 1],
-                base_p[:, 1] + sb * rel_s[:, 0] + cb * rel_s[:, 1],
-                base_p[:, 2] + rel_s[:, 2],
-            )
-        )
-        # vehicle pose = sensor pose ∘ T_sv
-        cv, sv = np.cos(sp_all[:, 2]), np.sin(sp_all[:, 2])
-        txv, tyv = T_sv.x(), T_sv.y()
-        veh = np.column_stack(
-            (
-                sp_all[:, 0] + cv * txv - sv * tyv,
-                sp_all[:, 1] + sv * txv + cv * tyv,
-                (sp_all[:, 2] + math.pi) % (2 * math.pi) - math.pi,
-            )
-        )
+        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
+        # then the vehicle pose = sensor pose ∘ T_sv
+        veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
         trees = []
         for jk in keep.tolist():
             n_d = int(lm_dn[jk])
