@@ -85,6 +85,22 @@ def test_revisits_do_not_grow_the_graph(five_laps):
     assert reduced.stats["factors"] < 0.6 * full.stats["factors"]
 
 
+def test_localisation_mode_bounds_the_graph_by_area(five_laps):
+    """Laps 3-5 revisit full places: the graph grows far less than in laps 1-2 (the area bound),
+    and the tracker is localised on the map between updates without getting lost."""
+    _truth, _trees, reduced, _full = five_laps
+    two = Isam2Slam(revisit_factors=15).run(loop_problem(2, laps=2.0)[0])
+    k2, k5 = two.stats["keyframes_in_graph"], reduced.stats["keyframes_in_graph"]
+    # 2.5x the drive; measured: 105 graph keyframes after 2 laps, 114 after 5
+    assert k5 - k2 < 0.5 * k2, (k2, k5)
+    assert reduced.stats["tracker_map_fixes"] > 0.2 * reduced.stats["keyframes_localised"] / 3
+    assert reduced.stats["tracker_lost"] <= 2
+    entered = sum(
+        reduced.stats[f"keyframes_entered_{w}"] for w in ("forced", "new_tree", "young_tree")
+    )
+    assert entered == k5 - 1  # every graph keyframe after the first has its reason
+
+
 def test_revisits_keep_path_and_map_quality(five_laps):
     truth, trees, reduced, full = five_laps
     rms = {}
@@ -181,13 +197,19 @@ def test_localise_on_map_lost_and_too_few(rng):
 
 
 def test_place_counter():
-    pc = PlaceCounter(2.0)
-    for x, y in ((0.0, 0.0), (1.9, 0.0), (2.1, 0.0), (-1.0, -1.0), (10.0, 10.0)):
-        pc.add(x, y)
-    assert pc.count(0.0, 0.0) == 3  # (2.1, 0) is outside the 2 m disc, across a cell border
-    assert pc.count(2.0, 0.0) == 3
-    assert pc.count(10.5, 10.5) == 1
-    assert pc.count(-50.0, 3.0) == 0
+    pc = PlaceCounter(2.0, per_place=2, after_s=60.0)
+    for x, y, t in ((0.0, 0.0, 0.0), (1.9, 0.0, 10.0), (2.1, 0.0, 0.0), (-1.0, -1.0, 100.0)):
+        pc.add(np.array([x, y]), t)
+    pc.add(np.array([10.0, 10.0]))
+    assert pc.count(np.zeros(2)) == 3  # (2.1, 0) is outside the 2 m disc, across a cell border
+    assert pc.count(np.array([2.0, 0.0])) == 3
+    assert pc.count(np.array([10.5, 10.5])) == 1
+    assert pc.count(np.array([-50.0, 3.0])) == 0
+    assert pc.count(np.zeros(2), before=50.0) == 2  # only those added before t = 50 s
+    # full: >= 2 keyframes added 60 s or more before t
+    assert not pc.full(np.zeros(2), 65.0)  # only (0, 0) is 60 s old at t = 65 s
+    assert pc.full(np.zeros(2), 75.0)
+    assert not pc.full(np.array([10.0, 10.0]), 1e9)  # one keyframe there
 
 
 def test_redundant_settled_trees():

@@ -122,17 +122,19 @@ class PlaceCounter:
     def _cell(self, x: float, y: float) -> tuple[int, int]:
         return int(np.floor(x / self.radius)), int(np.floor(y / self.radius))
 
-    def add(self, x: float, y: float, t: float = 0.0) -> None:
-        """A graph keyframe at ``(x, y)`` (m), added at time ``t`` (s)."""
+    def add(self, xy: FloatArray, t: float = 0.0) -> None:
+        """A graph keyframe at ``xy`` (2,) (m), added at time ``t`` (s)."""
+        x, y = float(xy[0]), float(xy[1])
         self._cells.setdefault(self._cell(x, y), []).append((x, y, t))
 
-    def full(self, x: float, y: float, t: float) -> bool:
-        """At time ``t`` (s), ``(x, y)`` holds ``per_place`` keyframes of a visit that ended
+    def full(self, xy: FloatArray, t: float) -> bool:
+        """At time ``t`` (s), ``xy`` holds ``per_place`` keyframes of a visit that ended
         ``after_s`` ago or more (added before ``t - after_s``)."""
-        return self.count(x, y, t - self.after_s) >= self.per_place
+        return self.count(xy, t - self.after_s) >= self.per_place
 
-    def count(self, x: float, y: float, before: float = np.inf) -> int:
-        """Graph keyframes within ``radius`` of ``(x, y)`` added before time ``before``."""
+    def count(self, xy: FloatArray, before: float = np.inf) -> int:
+        """Graph keyframes within ``radius`` of ``xy`` (2,) added before time ``before``."""
+        x, y = float(xy[0]), float(xy[1])
         cx, cy = self._cell(x, y)
         r2 = self.radius * self.radius
         n = 0

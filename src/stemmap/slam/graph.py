@@ -410,7 +410,7 @@ class Isam2Slam:
         # why keyframes entered the graph (a revisit that enters is one of these)
         entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
         places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_s)
-        places.add(*kf_init[0, :2], float(frames.times[0]))
+        places.add(kf_init[0, :2], float(frames.times[0]))
 
         def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
@@ -443,7 +443,7 @@ class Isam2Slam:
             # at a place visited before (PlaceCounter) young trees pull no keyframe in; a lost
             # tracker forces keyframes in
             t_kc = float(frames.times[kf_frames[kc]])
-            full = revisits and places.full(*kf_init[kc, :2], t_kc)
+            full = revisits and places.full(kf_init[kc, :2], t_kc)
             settled = lm_in_graph if full else None
             if (
                 revisits
@@ -467,7 +467,7 @@ class Isam2Slam:
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
-                places.add(*kf_init[kc, :2], t_kc)
+                places.add(kf_init[kc, :2], t_kc)
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
