@@ -610,14 +610,31 @@ class Tree:
 
 @dataclass(frozen=True, eq=False)
 class StemMap:
-    """A stem map: trees in ``frame``; ``crs`` is an EPSG code or WKT when georeferenced."""
+    """A stem map: trees in ``frame``; ``crs`` is an EPSG code or WKT when georeferenced.
+
+    ``information`` (optional, from :class:`stemmap.slam.graph.Isam2Slam` with
+    ``joint_information=True``): the (2N, 2N) joint information matrix of the trees' positions
+    in tree order ``(x_0, y_0, x_1, ...)``, 1/m², every pose marginalised out. It keeps the
+    correlations the per-tree ``cov`` blocks drop; a later session continues from it
+    (:func:`stemmap.slam.relocalise.joint_prior_factor`).
+    """
 
     trees: tuple[Tree, ...]
     frame: str = "map"
     crs: str | None = None
+    information: FloatArray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "trees", tuple(self.trees))
+        if self.information is not None:
+            info = _frozen_array(self.information, "StemMap.information", ndim=2)
+            n2 = 2 * len(self.trees)
+            if info.shape != (n2, n2):
+                raise InputError(
+                    f"StemMap.information must have shape ({n2}, {n2}) for {len(self.trees)} "
+                    f"trees, got {info.shape}."
+                )
+            object.__setattr__(self, "information", info)
 
     def __len__(self) -> int:
         return len(self.trees)

@@ -1,6 +1,6 @@
 """The Munjer 2025 chain on a simulated drive: ``stemmap sim munjer`` -> ``stemmap odometry``
 (KISS-ICP + IMU / wheel EKF on the bundle's lidar frames) -> ``stemmap map --odometry traj.csv``,
-and the same in one command, ``stemmap map --odometry lidar --imu``."""
+and the same in one command, ``stemmap map --motion lidar --imu``."""
 
 from __future__ import annotations
 
@@ -97,15 +97,17 @@ def test_chain_map_accuracy(drive: Path, traj: Path, tmp_path: Path, frontend: s
 
 
 def test_one_command_equals_chain(drive: Path, traj: Path, tmp_path: Path) -> None:
-    """``--odometry lidar --imu`` runs the same odometry (``stemmap odometry``'s defaults)."""
+    """``--motion lidar --imu`` runs the same odometry (``stemmap odometry``'s defaults)."""
     imu = str(drive.with_name("drive_imu.csv"))
     outs = []
-    for odo, extra in ((str(traj), []), ("lidar", ["--imu", imu])):
-        out = tmp_path / odo.replace("/", "_")
+    for name, args in (
+        ("file", ["--odometry", str(traj)]),
+        ("lidar", ["--motion", "lidar", "--imu", imu]),
+    ):
+        out = tmp_path / name
         res = runner.invoke(
             app,
-            ["map", str(drive), "--frontend", "ours", "--odometry", odo, *extra, "--out",
-             str(out), "--no-progress"],
+            ["map", str(drive), "--frontend", "ours", *args, "--out", str(out), "--no-progress"],
         )  # fmt: skip
         assert res.exit_code == 0, res.output
         outs.append(_xy(out / "trees.csv"))
@@ -115,4 +117,4 @@ def test_one_command_equals_chain(drive: Path, traj: Path, tmp_path: Path) -> No
 def test_imu_needs_lidar_odometry(drive: Path, tmp_path: Path) -> None:
     imu = str(drive.with_name("drive_imu.csv"))
     res = runner.invoke(app, ["map", str(drive), "--imu", imu, "--out", str(tmp_path / "x")])
-    assert res.exit_code != 0 and "--odometry lidar" in res.output
+    assert res.exit_code != 0 and "--motion lidar or fused" in res.output

@@ -89,6 +89,17 @@ CONFIGS = {
         "corner_depth": 0.01,
         "bark_roughness": 0.03,
     },
+    # issue 11, third round: largest-gap cuts of non-convex segments (alone, with corners)
+    "gaps": {"gap_splits": 2, "min_depth": 0.01},
+    "straight_depth": {"straight_depth_sigmas": 1.5, "straight_min_points": 5},
+    "gaps_noise_floor": {"gap_splits": 2, "gap_ratio": 1.5, "gap_sigmas": 2.0, "min_depth": 0.01},
+    "gaps_corners": {
+        "gap_splits": 3,
+        "split_corners": True,
+        "corner_depth": 0.015,
+        "corner_depth_convex": 0.04,
+        "occlusion_margin": 0.05,
+    },
     "zheng_like": {
         "segmentation": "range_jump",
         "max_jump": 0.2,
@@ -136,6 +147,7 @@ def test_compiled_pipeline_with_reversed_beam_order(stand):
         ScanTrunkDetector.from_preset(
             "stemmap", split_corners=True, corner_depth=0.015, corner_depth_convex=0.03
         ),
+        ScanTrunkDetector.from_preset("stemmap", gap_splits=2, min_depth=0.01),
     ):
         fast, ref = _both(det, rev)
         assert len(ref) > 20

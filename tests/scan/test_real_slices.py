@@ -97,3 +97,47 @@ def test_every_real_slice_loads_with_its_ring_references():
     for sl in got.values():
         for r in sl.refs:
             assert r["coverage_deg"] >= 250.0 and r["ring_rms_m"] < 0.03
+
+
+def _real_geometry_bench():
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "real_geometry.py"
+    spec = importlib.util.spec_from_file_location("real_geometry_bench", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["real_geometry_bench"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_false_alarms_skip_references_partial_rings_far_and_incomplete_slices():
+    from stemmap.eval.real_slices import RealSlice
+
+    bench = _real_geometry_bench()
+    ref = {"x": 5.0, "y": 0.0, "diameter": 0.3}
+    part = {"x": 0.0, "y": 5.0, "diameter": 0.2}
+    sl = RealSlice("lidr_dbh", np.zeros((1, 2)), np.zeros(1, dtype=np.int64), [ref], [part])
+    vantage = np.array([1.0, 0.0])  # detections are in the sensor frame
+    det = np.array(
+        [
+            [4.02, 0.0],  # the reference trunk (matched)
+            [-1.0, 5.08],  # on the partial ring: neither hit nor false alarm
+            [2.0, 2.0],  # a branch: false alarm
+            [20.0, 0.0],  # beyond 15 m: not counted
+        ]
+    )
+    match = bench._match(det, np.array([[4.0, 0.0]]), np.array([0.2]))
+    assert match.tolist() == [0]
+    gate = np.ones(4, dtype=bool)
+    assert bench.false_alarms(sl, vantage, det, match, gate) == 1
+    gate[2] = False  # outside the detector's field of view
+    assert bench.false_alarms(sl, vantage, det, match, gate) == 0
+    plot = RealSlice("treels_pine_plot", sl.xy, sl.labels, [ref], [part])
+    assert bench.false_alarms(plot, vantage, det, match, gate) == -1  # incomplete: not scored
+    # precision = hits / (hits + false alarms); None where the reference is incomplete
+    rows = [(3.0, 0.3, 0.5), (4.0, 0.3, math.nan)]
+    assert bench.score(rows, 2, 2, 1)["all"]["precision"] == 0.5
+    assert bench.score(rows, 2, 2, -1)["all"]["precision"] is None

@@ -135,3 +135,121 @@ def test_victoria_park_second_session_relocalises_in_the_first_sessions_map(data
     assert math.hypot(rel.pose[0] - want[0], rel.pose[1] - want[1]) < 0.5
     assert abs(math.remainder(rel.pose[2] - want[2], 2 * math.pi)) < math.radians(9.0)
     assert rel.n_inliers >= 0.8 * rel.n_local
+
+
+def test_tree_joint_information_equals_gtsam_joint_marginal(rng):
+    """The joint information of a subset of trees (poses and the other trees marginalised
+    out) is GTSAM's ``jointMarginalInformation`` of the same linearisation (round-off only,
+    1e-6 relative), and its inverse's 2x2 blocks are the per-tree marginals."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import L as LK
+    from gtsam.symbol_shorthand import X as XK
+
+    from stemmap.slam._graph_marginals import _point_marginals, _tree_joint_information
+
+    g = gtsam.NonlinearFactorGraph()
+    v = gtsam.Values()
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, 0.01]))
+    meas = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.1]))
+    g.add(gtsam.PriorFactorPose2(XK(0), gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)))
+    lms = rng.uniform((-2.0, 3.0), (24.0, 12.0), size=(6, 2))
+    for k in range(10):
+        p = gtsam.Pose2(2.0 * k, 0.3 * math.sin(k), 0.05 * k)
+        v.insert(XK(k), p)
+        if k:
+            g.add(gtsam.BetweenFactorPose2(XK(k - 1), XK(k), v.atPose2(XK(k - 1)).between(p), odo))
+        for j in range(6):
+            if (k + j) % 3:
+                g.add(
+                    gtsam.BearingRangeFactor2D(
+                        XK(k), LK(j), p.bearing(lms[j]), p.range(lms[j]), meas
+                    )
+                )
+    for j in range(6):
+        v.insert(LK(j), lms[j])
+    keys = [LK(j) for j in (4, 0, 2)]
+    got = _tree_joint_information(g, v, keys)
+    kv = gtsam.KeyVector()
+    for k in keys:
+        kv.append(k)
+    want = gtsam.Marginals(g, v).jointMarginalInformation(kv).fullMatrix()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+    cov = np.linalg.inv(got)
+    blocks = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(3)])
+    np.testing.assert_allclose(blocks, _point_marginals(g, v, keys), rtol=1e-6)
+
+
+def _map_with_information(xy, info):
+    from stemmap.types import Tree
+
+    trees = [
+        Tree(id=j, x=float(p[0]), y=float(p[1]), diameter=0.3, cov=np.eye(2), n_obs=5)
+        for j, p in enumerate(xy)
+    ]
+    return StemMap(tuple(trees), information=info)
+
+
+def test_joint_prior_factor_is_the_gaussian_of_the_information(rng):
+    """Error = ½ (x - x̂)ᵀ Λ (x - x̂) with Λ the map's information (after the 1e-6 m² floor
+    of the per-tree priors), Jacobians equal to numerical ones; merged trees share a key."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import L as LK
+
+    from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
+
+    xy = rng.uniform(0, 20, (3, 2))
+    a = rng.normal(size=(6, 6))
+    info = a @ a.T + 6 * np.eye(6)
+    m = _map_with_information(xy, info)
+    assert all(f is None for *_, f in prior_tree_factors(m, LK, 3))
+    lam = np.linalg.inv(np.linalg.inv(info) + 1e-6 * np.eye(6))
+    fac = joint_prior_factor(m, LK)
+    x = xy + rng.normal(0, 0.5, xy.shape)
+    v = gtsam.Values()
+    for j in range(3):
+        v.insert(LK(j), x[j])
+    d = (x - xy).reshape(-1)
+    assert fac.error(v) == pytest.approx(0.5 * d @ lam @ d, rel=1e-9)
+    jac = fac.linearize(v).jacobian()[0]  # whitened A: ½|A δ - b|² = the error's quadratic
+    np.testing.assert_allclose(jac.T @ jac, lam, rtol=1e-9)
+    # tree 2 merged into tree 0: x_2 is read from key 0
+    fac_m = joint_prior_factor(m, LK, np.array([0, 1, 0]))
+    assert len(fac_m.keys()) == 2
+    d_m = (np.array([x[0], x[1], x[0]]) - xy).reshape(-1)
+    assert fac_m.error(v) == pytest.approx(0.5 * d_m @ lam @ d_m, rel=1e-9)
+    # no information: per-tree priors, no joint factor
+    assert joint_prior_factor(StemMap(m.trees), LK) is None
+    with pytest.raises(InputError, match="information"):
+        _map_with_information(xy, np.eye(4))
+
+
+def test_second_session_on_the_joint_information_of_the_first(sessions):
+    """Session 1 run with ``joint_information``: its map carries the (2N, 2N) information,
+    whose inverse's 2x2 blocks are the per-tree covariances; session 2 continues from all
+    trees jointly and lands in the session-1 frame as with per-tree priors."""
+    p1, p2, _, truth, _, f2 = sessions
+    r1 = Isam2Slam(joint_information=True).run(p1)
+    info = r1.stem_map.information
+    n = len(r1.stem_map)
+    assert info is not None and info.shape == (2 * n, 2 * n)
+    np.testing.assert_allclose(info, info.T, atol=1e-9 * np.abs(info).max())
+    cov = np.linalg.inv(info)
+    blocks = np.array([cov[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(n)])
+    np.testing.assert_allclose(blocks, [t.cov for t in r1.stem_map], rtol=1e-6)
+    p2c, rel = continue_session(p2, r1.stem_map)
+    assert rel.ok
+    res = Isam2Slam().run(p2c)
+    err = np.hypot(*(res.trajectory.xy - truth[f2:, :2]).T)
+    assert math.sqrt(np.mean(err**2)) < 0.3
+    assert duplicate_pairs(res.stem_map, 1.0) <= 2
+
+
+def test_with_calibration_corrects_the_controls(sessions):
+    from stemmap.slam.relocalise import with_calibration
+
+    _, p2, _, _, _, _ = sessions
+    q = with_calibration(p2, 0.01, 0.02)
+    np.testing.assert_allclose(q.controls.steer, np.asarray(p2.controls.steer) + 0.01)
+    np.testing.assert_allclose(q.controls.speed, np.asarray(p2.controls.speed) * 1.02)
+    with pytest.raises(InputError, match="finite"):
+        with_calibration(p2, math.nan, 0.0)

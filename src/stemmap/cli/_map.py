@@ -25,6 +25,13 @@ from stemmap.cli._geo import (
     write_map_products,
 )
 from stemmap.cli._map_frames import Frontend
+from stemmap.cli._map_motion import (
+    Motion,
+    motion_trajectory,
+    resolve_motion,
+    vehicle_path,
+    wheel_drift_estimate,
+)
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
@@ -34,7 +41,7 @@ from stemmap.cli._summary import (
     write_run_report,
 )
 from stemmap.cli._validate import bounded
-from stemmap.errors import ConfigError, InputError
+from stemmap.errors import ConfigError
 
 __all__ = ["register", "sim_problem", "slam_metrics"]
 
@@ -133,37 +140,6 @@ def sim_problem(
     return problem, {"kind": "sim", "run": run, "params": run.params}
 
 
-def _bag(path: Path, sensor_offset: tuple[float, float]) -> tuple[Any, dict[str, Any]]:
-    from stemmap.io.rosbag import iter_laser_scans, read_odometry
-    from stemmap.scan.detect import ScanTrunkDetector
-    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
-    from stemmap.slam.motion import UnicycleModel
-    from stemmap.types import ScanBatch
-
-    scans = list(iter_laser_scans(path))
-    if not scans:
-        raise InputError(f"bag {path} has no usable LaserScan messages.")
-    batch = ScanBatch.from_scans(scans)
-    odo = read_odometry(path)
-    if len(odo) < 2:
-        raise InputError(f"bag {path} has fewer than 2 Odometry messages; cannot dead-reckon.")
-    obs = ScanTrunkDetector().detect_batch(batch)
-    frames = TreeFrames.from_observations(obs, batch.times)
-    keep = np.concatenate(([True], np.diff(odo.times) > 0))
-    controls = Controls(odo.times[keep], odo.twists[keep, 0], odo.twists[keep, 2], "unicycle")
-    p0 = odo.trajectory().interpolate([float(batch.times[0])])[0]
-    problem = SlamProblem(
-        controls,
-        frames,
-        UnicycleModel(),
-        sensor_offset=sensor_offset,
-        initial_pose=(float(p0[0]), float(p0[1]), float(p0[2])),
-        name=str(path),
-        max_range=float(batch.range_max),
-    )
-    return problem, {"kind": "bag", "odometry": odo}
-
-
 def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
     """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
     import dataclasses
@@ -234,6 +210,21 @@ def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
         stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
     stats["latency_ms_max"] = float(lat.max())
     return SlamResult(st["trajectory"], st["stem_map"], stats)
+
+
+def _motion_sigma(text: str | None) -> tuple[float, float] | None:
+    """``--motion-sigma 'speed,yaw_rate'`` -> (m/s, rad/s); None when not given."""
+    if text is None:
+        return None
+    try:
+        sv, sw = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise ConfigError(
+            f"--motion-sigma must be 'speed,yaw_rate' (m/s, rad/s), got {text!r}."
+        ) from exc
+    if not (sv > 0 and sw > 0 and math.isfinite(sv) and math.isfinite(sw)):
+        raise ConfigError(f"--motion-sigma values must be finite and > 0, got {text!r}.")
+    return sv, sw
 
 
 RPE_DELTA_M = 10.0
@@ -382,29 +373,49 @@ def map_command(
         list[Path] | None,
         typer.Argument(
             metavar="INPUT",
-            help="ROS1/ROS2 bag with LaserScan + Odometry; scans (.npz / .csv, e.g. from "
-            "`stemmap sim scans`) or a detections CSV (`stemmap detect`), both with --odometry; "
-            "or a frames bundle (.npz of 3D lidar and / or RGB-D frames, e.g. from `stemmap sim "
-            "munjer`) with --frontend and --odometry. "
+            help="ROS1/ROS2 bag with LaserScan (+ Odometry, + Image/CameraInfo); scans (.npz / "
+            ".csv, e.g. from `stemmap sim scans`) or a detections CSV (`stemmap detect`); or a "
+            "frames bundle (.npz of 3D lidar and / or RGB-D frames, e.g. from `stemmap sim "
+            "munjer`) with --frontend. Motion: see --motion. "
             "Several logs (files, a folder, a glob, a .txt list): one Dask task per log, "
-            "OUT/<log>/ each, OUT/summary.csv.",
+            "OUT/LOG/ each, OUT/summary.csv.",
+        ),
+    ] = None,
+    motion: Annotated[
+        Motion | None,
+        typer.Option(
+            "--motion",
+            help="Motion source of a log: wheel (--odometry FILE, the NAME_odometry.csv beside "
+            "a scan file, or a bag's Odometry topic); lidar (KISS-ICP on the log's own scans or "
+            "frames, + --imu); visual (stereo / RGB-D visual odometry of --camera); fused (the "
+            "visual-lidar EKF of the two, + --imu). Recorded with its drift estimate in "
+            "metrics.json 'motion' [default: wheel].",
         ),
     ] = None,
     odometry: Annotated[
         Path | None,
         typer.Option(
-            help="Wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) for scan or detection "
-            "inputs [default: INPUT's <stem>_odometry.csv, as `stemmap sim scans` writes]. "
-            "Frames bundle: that, or a pose CSV time_s,x,y,theta (`stemmap odometry --out`), or "
-            "the word 'lidar': lidar (+ --imu) odometry on the bundle's own frames.",
+            help="--motion wheel: wheel odometry CSV time_s,speed,yaw_rate (s, m/s, rad/s) "
+            "[default: INPUT's NAME_odometry.csv, as `stemmap sim scans` writes]; frames "
+            "bundle: that, or a pose CSV time_s,x,y,theta (`stemmap odometry --out`). "
+            "('--odometry lidar' is the deprecated spelling of --motion lidar.)",
         ),
     ] = None,
     imu: Annotated[
         Path | None,
         typer.Option(
             "--imu",
-            help="--odometry lidar: IMU + wheel-speed CSV or bag fused with the lidar odometry "
-            "(as `stemmap odometry --imu`).",
+            help="--motion lidar|fused: IMU + wheel-speed CSV or bag fused with the lidar "
+            "odometry (as `stemmap odometry --imu`).",
+        ),
+    ] = None,
+    camera: Annotated[
+        Path | None,
+        typer.Option(
+            "--camera",
+            help="--motion visual|fused: camera frames folder (left/ + right/ or rgb/ + depth/, "
+            "camera.json), a bag with Image + CameraInfo topics, or the trajectory CSV of "
+            "`stemmap odometry --camera` [default: INPUT when it is a bag with Image topics].",
         ),
     ] = None,
     dataset: Annotated[
@@ -439,13 +450,14 @@ def map_command(
         ),
     ] = None,
     motion_sigma: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--motion-sigma",
-            help="Frames bundle: the motion source's error 'speed,yaw_rate' (m/s, rad/s, "
-            "one-second averages) = FastSLAM motion noise.",
+            help="The motion source's error 'speed,yaw_rate' (m/s, rad/s, one-second averages) "
+            "= the back-end's motion noise [default: 0.05,0.002 for a frames bundle, else "
+            "0.05,0.01].",
         ),
-    ] = "0.05,0.002",
+    ] = None,
     refine: Annotated[
         bool,
         typer.Option(
@@ -557,17 +569,21 @@ def map_command(
 
     Example: stemmap map drive.bag --sensor-offset 0.5,0 --crs EPSG:32633 --gpkg --out bagmap
 
-    Example: stemmap map logs/ --workers 2 --out maps  (maps/<log>/ per log, maps/summary.csv)
+    Example: stemmap map logs/ --workers 2 --out maps  (maps/LOG/ per log, maps/summary.csv)
 
     Example: stemmap sim munjer --out drive.npz && stemmap map drive.npz --frontend daim --out m
 
-    Example: stemmap map drive.npz --odometry lidar --imu drive_imu.csv --out m  (ICP + IMU EKF)
+    Example: stemmap map drive.npz --motion lidar --imu drive_imu.csv --out m  (ICP + IMU EKF)
+
+    Example: stemmap map run.npz --motion fused --camera frames/ --out m  (visual-lidar EKF)
+
+    Example: stemmap map drive.bag --motion lidar --out m  (2D scan matching, no wheel odometry)
     """
     if wants_logs(logs, workers, scheduler):
         return run_many_logs("map", dict(locals()), as_json=as_json)
     bag = logs[0] if logs else None
     from stemmap.cli._map_frames import frames_problem
-    from stemmap.cli._map_inputs import file_problem
+    from stemmap.cli._map_inputs import bag_problem, file_problem
     from stemmap.io.atomic import atomic_write
     from stemmap.io.frames import is_frames_npz
     from stemmap.io.products import run_products
@@ -576,7 +592,10 @@ def map_command(
     from stemmap.slam.uncertainty import annotate_uncertainty
     from stemmap.viz.maps import save_stem_map_png
 
-    inputs = [bag, odometry, imu] if dataset is None else _vp_inputs(data)
+    with fail_on_stemmap_error():
+        motion_src, odometry = resolve_motion(motion, odometry, camera=camera, imu=imu)
+        sigma = _motion_sigma(motion_sigma)
+    inputs = [bag, odometry, imu, camera] if dataset is None else _vp_inputs(data)
     with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
         crs = checked_crs(crs)
         sources = int(bag is not None) + int(dataset is not None) + int(sim)
@@ -588,20 +607,20 @@ def map_command(
         is_frames = bag is not None and is_frames_npz(bag)
         if frontend is not None and not is_frames:
             raise ConfigError("--frontend needs a frames bundle (.npz with lidar or RGB-D frames).")
-        if imu is not None and not is_frames:
-            raise ConfigError("--imu is for a frames bundle with --odometry lidar.")
+        if bag is None and (motion_src != Motion.wheel or motion_sigma is not None):
+            raise ConfigError(
+                "--motion and --motion-sigma are for a log input (bag, scans, frames)."
+            )
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
+        motion_run = None
+        if bag is not None and motion_src != Motion.wheel:
+            motion_run = motion_trajectory(
+                bag, motion_src, camera=camera, imu=imu, quiet=not show_progress
+            )
         if is_frames:
             assert bag is not None
-            try:
-                sv, sw = (float(v) for v in motion_sigma.split(","))
-            except ValueError as exc:
-                raise ConfigError(
-                    f"--motion-sigma must be 'speed,yaw_rate' (m/s, rad/s), got {motion_sigma!r}."
-                ) from exc
-            if not (sv > 0 and sw > 0):
-                raise ConfigError(f"--motion-sigma values must be > 0, got {motion_sigma!r}.")
+            sv, sw = sigma or (0.05, 0.002)
             problem, ctx = frames_problem(
                 bag,
                 odometry,
@@ -609,7 +628,7 @@ def map_command(
                 model=model,
                 sigma_speed=sv,
                 sigma_yaw_rate=sw,
-                imu=imu,
+                motion=motion_run,
             )
         elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)
@@ -626,7 +645,14 @@ def map_command(
                 raise ConfigError(
                     f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
                 ) from exc
-            problem, ctx = _bag(bag, off) if is_bag(bag) else file_problem(bag, odometry, off)
+            vpath = None
+            if motion_run is not None:  # the lidar's path -> the vehicle reference point's
+                src = motion_run[1]["source"]
+                vpath = motion_run[0] if src == "visual" else vehicle_path(motion_run[0], off)
+            if is_bag(bag):
+                problem, ctx = bag_problem(bag, off, motion=vpath, motion_sigma=sigma)
+            else:
+                problem, ctx = file_problem(bag, odometry, off, motion=vpath, motion_sigma=sigma)
         if gnss is not None:
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None
@@ -654,9 +680,22 @@ def map_command(
             metrics["relocalisation"] = reloc.__dict__
         metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs)
+        if bag is not None:
+            metrics["motion"] = (
+                motion_run[1]
+                if motion_run is not None
+                else {"source": "wheel", **wheel_drift_estimate(problem.controls, problem.motion)}
+            )
+            metrics["motion"]["sigma_speed"] = problem.motion.sigma_speed
+            metrics["motion"]["sigma_yaw_rate"] = problem.motion.sigma_steer
+            run.note(motion=metrics["motion"])
         run.note(frames=metrics["frames"])  # the body point and CRS travel with the manifest
         stage = run.dir
-        if "odometry" in ctx and isinstance(ctx["odometry"], str):
+        if (
+            "odometry" in ctx
+            and isinstance(ctx["odometry"], str)
+            and Path(ctx["odometry"]).is_file()
+        ):
             run.add_input(ctx["odometry"])
         fmt = trajectory_format.value
         names = write_map_products(

@@ -1,16 +1,15 @@
 """``stemmap map FRAMES.npz --frontend ...``: the Munjer et al. (2025) pipeline from a frames
 bundle (:mod:`stemmap.io.frames`) and a motion source.
 
-Motion source (``--odometry``), pluggable:
+Motion source, pluggable (``--motion``, :mod:`stemmap.cli._map_motion`):
 
-* a velocity CSV ``time_s,speed,yaw_rate`` (wheel odometry, ``stemmap sim munjer`` writes one);
-* a pose CSV ``time_s,x,y,theta`` (any pose-output odometry: the lidar + IMU EKF odometry of the
-  paper, ``stemmap odometry --out traj.csv``, a SLAM front end), differenced into body-frame
+* ``wheel`` with ``--odometry``: a velocity CSV ``time_s,speed,yaw_rate`` (wheel odometry,
+  ``stemmap sim munjer`` writes one) or a pose CSV ``time_s,x,y,theta`` (any pose-output
+  odometry: ``stemmap odometry --out traj.csv``, a SLAM front end), differenced into body-frame
   velocities (:func:`stemmap.slam.munjer.controls_from_trajectory`);
-* ``lidar`` (the word, :data:`LIDAR_ODOMETRY`): the paper's ICP (+ IMU EKF with ``--imu``)
-  odometry run on the bundle's own lidar frames
-  (:func:`stemmap.cli._odometry.lidar_trajectory`, the defaults of ``stemmap odometry``), then
-  as a pose CSV.
+* ``lidar`` / ``visual`` / ``fused``: the trajectory of
+  :func:`stemmap.cli._map_motion.motion_trajectory` (the paper's ICP + IMU EKF odometry on the
+  bundle's own lidar frames with ``lidar``), then as a pose CSV.
 
 Front ends: ``eb-lidar`` (EB-LiDAR on every lidar frame), ``daim`` (a detector's boxes + aligned
 depth; ``--model`` an ONNX detector, default the segmentation detector; never truth boxes),
@@ -26,10 +25,7 @@ from typing import Any
 
 from stemmap.errors import ConfigError, InputError
 
-__all__ = ["LIDAR_ODOMETRY", "Frontend", "frames_problem", "odometry_controls"]
-
-#: ``--odometry lidar``: run the lidar (+ IMU) odometry on the bundle's own frames.
-LIDAR_ODOMETRY = "lidar"
+__all__ = ["Frontend", "frames_problem", "odometry_controls"]
 
 
 class Frontend(StrEnum):
@@ -89,12 +85,13 @@ def frames_problem(
     model: Path | None,
     sigma_speed: float,
     sigma_yaw_rate: float,
-    imu: Path | None = None,
+    motion: tuple[Any, dict[str, Any]] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """A SLAM problem from a frames bundle: motion source + per-frame detections.
 
-    ``odometry`` is a velocity or pose CSV, or :data:`LIDAR_ODOMETRY` (``imu`` then an optional
-    IMU + wheel CSV or bag for the EKF); None = the ``<stem>_odometry.csv`` beside ``source``.
+    ``motion`` is a (trajectory, record) from :func:`stemmap.cli._map_motion.motion_trajectory`;
+    None = ``odometry``, a velocity or pose CSV (None = the ``<stem>_odometry.csv`` beside
+    ``source``).
     """
     from stemmap.cli._map_inputs import odometry_path
     from stemmap.io.frames import read_frames_npz
@@ -107,21 +104,17 @@ def frames_problem(
 
     bundle = read_frames_npz(source)
     sig = {"sigma_speed": sigma_speed, "sigma_yaw_rate": sigma_yaw_rate}
-    extra: dict[str, Any] = {}
-    if odometry is not None and str(odometry) == LIDAR_ODOMETRY:
-        if bundle.lidar is None:
-            raise ConfigError(f"--odometry lidar needs lidar frames; {source} has none.")
-        from stemmap.cli._odometry import lidar_trajectory
-
-        lt, extra = lidar_trajectory(source, imu=imu, quiet=True, **_LIDAR_ODOMETRY_DEFAULTS)
-        controls, motion, _, traj = trajectory_controls(lt, **sig)
-        odo: Path | str = LIDAR_ODOMETRY
-        kind = "lidar+imu" if imu is not None else "lidar"
+    if motion is not None:
+        if bundle.lidar is None and motion[1]["source"] != "visual":
+            raise ConfigError(
+                f"--motion {motion[1]['source']} needs lidar frames; {source} has none."
+            )
+        controls, motion_model, _, traj = trajectory_controls(motion[0], **sig)
+        odo: Path | str = motion[1]["source"]
+        kind = odo
     else:
-        if imu is not None:
-            raise ConfigError("--imu feeds the lidar odometry: use it with --odometry lidar.")
         odo = odometry_path(source, odometry)
-        controls, motion, kind, traj = odometry_controls(odo, **sig)
+        controls, motion_model, kind, traj = odometry_controls(odo, **sig)
     t = bundle.times
     if t[0] < controls.times[0] - 1e-6 or t[-1] > controls.times[-1] + 1.0:
         raise InputError(
@@ -163,25 +156,10 @@ def frames_problem(
         obs,
         t,
         controls,
-        motion,
+        motion_model,
         initial_pose=p0,  # type: ignore[arg-type]
         max_range=max_range,
         name=f"{source} ({frontend.value})",
     )
     ctx: dict[str, Any] = {"kind": "frames", "odometry": str(odo), "motion_source": kind}
-    if extra:
-        ctx["lidar_odometry"] = extra
     return problem, ctx
-
-
-#: ``stemmap odometry``'s defaults, for ``--odometry lidar``.
-_LIDAR_ODOMETRY_DEFAULTS: dict[str, Any] = {
-    "topic": None,
-    "imu_topic": None,
-    "odom_topic": None,
-    "rate": None,
-    "max_range": 100.0,
-    "min_range": 0.5,
-    "voxel": None,
-    "keep_ground": False,
-}

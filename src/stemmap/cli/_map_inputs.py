@@ -1,5 +1,6 @@
-"""File inputs of ``stemmap map`` other than bags: scans (NPZ / CSV, e.g. from ``stemmap sim
-scans``) or a detections CSV (``stemmap detect``), each with a wheel-odometry CSV."""
+"""Log inputs of ``stemmap map``: scans (NPZ / CSV, e.g. from ``stemmap sim scans``) or a
+detections CSV (``stemmap detect``), each with a wheel-odometry CSV, and ROS bags (LaserScan +
+Odometry); or any of them with a trajectory from ``--motion lidar|visual|fused``."""
 
 from __future__ import annotations
 
@@ -11,7 +12,13 @@ import numpy as np
 
 from stemmap.errors import InputError
 
-__all__ = ["file_problem", "is_detections_csv", "odometry_path", "read_odometry_csv"]
+__all__ = [
+    "bag_problem",
+    "file_problem",
+    "is_detections_csv",
+    "odometry_path",
+    "read_odometry_csv",
+]
 
 #: Columns of the odometry CSV (``stemmap sim scans`` and ``stemmap sim munjer`` write them;
 #: an older header's ``time`` is read as ``time_s``).
@@ -71,12 +78,20 @@ def odometry_path(source: Path, odometry: Path | None) -> Path:
 
 
 def file_problem(
-    source: Path, odometry: Path | None, sensor_offset: tuple[float, float]
+    source: Path,
+    odometry: Path | None,
+    sensor_offset: tuple[float, float],
+    *,
+    motion: Any = None,
+    motion_sigma: tuple[float, float] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
-    """A :class:`~stemmap.slam.base.SlamProblem` from scans or detections plus odometry.
+    """A :class:`~stemmap.slam.base.SlamProblem` from scans or detections plus a motion source.
 
     Scans are run through the default :class:`~stemmap.scan.detect.ScanTrunkDetector`. The map
-    frame starts at the vehicle pose (0, 0, 0) of the first frame; the motion noise is the
+    frame starts at the vehicle pose (0, 0, 0) of the first frame. Motion: the wheel odometry
+    CSV ``odometry`` (default ``<stem>_odometry.csv``), or ``motion``, a vehicle trajectory
+    (``stemmap map --motion lidar|visual|fused``) differenced into body-frame velocities. The
+    motion noise is ``motion_sigma`` (speed m/s, yaw rate rad/s, 1-s averages), default the
     :class:`~stemmap.slam.motion.UnicycleModel` default.
     """
     from dataclasses import replace
@@ -87,8 +102,24 @@ def file_problem(
     from stemmap.slam.base import Controls, SlamProblem, TreeFrames
     from stemmap.slam.motion import UnicycleModel
 
-    odo_file = odometry_path(source, odometry)
-    t_odo, speed, yaw_rate = read_odometry_csv(odo_file)
+    if motion is None:
+        odo_file: Path | str = odometry_path(source, odometry)
+        t_odo, speed, yaw_rate = read_odometry_csv(Path(odo_file))
+        model = (
+            UnicycleModel()
+            if motion_sigma is None
+            else UnicycleModel(sigma_speed=motion_sigma[0], sigma_steer=motion_sigma[1])
+        )
+        controls = Controls(t_odo, speed, yaw_rate, "unicycle")
+    else:
+        from stemmap.slam.munjer import controls_from_trajectory
+
+        sig = motion_sigma or (UnicycleModel().sigma_speed, UnicycleModel().sigma_steer)
+        controls, model = controls_from_trajectory(
+            motion, sigma_speed=sig[0], sigma_yaw_rate=sig[1]
+        )
+        odo_file = "the motion source"
+        t_odo = np.asarray(motion.times)
     max_range = math.inf
     if is_detections_csv(source):
         obs = read_observations_csv(source)
@@ -113,12 +144,71 @@ def file_problem(
             f"{odo_file} spans {t_odo[0]:.3f}-{t_odo[-1]:.3f} s: the time bases differ."
         )
     problem = SlamProblem(
-        Controls(t_odo, speed, yaw_rate, "unicycle"),
+        controls,
         frames,
-        UnicycleModel(),
+        model,
         sensor_offset=sensor_offset,
         initial_pose=(0.0, 0.0, 0.0),
         name=str(source),
         max_range=max_range,
     )
     return problem, {"kind": kind, "odometry": str(odo_file)}
+
+
+def bag_problem(
+    path: Path,
+    sensor_offset: tuple[float, float],
+    *,
+    motion: Any = None,
+    motion_sigma: tuple[float, float] | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """A problem from a bag's LaserScan topic; motion from its Odometry topic, or ``motion``
+    (a vehicle trajectory from ``--motion lidar|visual|fused``)."""
+    from stemmap.io.rosbag import iter_laser_scans, read_odometry
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
+    from stemmap.slam.motion import UnicycleModel
+    from stemmap.types import ScanBatch
+
+    scans = list(iter_laser_scans(path))
+    if not scans:
+        raise InputError(f"bag {path} has no usable LaserScan messages.")
+    batch = ScanBatch.from_scans(scans)
+    obs = ScanTrunkDetector().detect_batch(batch)
+    frames = TreeFrames.from_observations(obs, batch.times)
+    sig = motion_sigma or (UnicycleModel().sigma_speed, UnicycleModel().sigma_steer)
+    model = UnicycleModel(sigma_speed=sig[0], sigma_steer=sig[1])
+    ctx: dict[str, Any] = {"kind": "bag"}
+    if motion is None:
+        try:
+            odo = read_odometry(path)
+        except InputError as exc:
+            raise InputError(
+                f"{exc} Without wheel odometry, take the motion from the scans: --motion lidar."
+            ) from exc
+        if len(odo) < 2:
+            raise InputError(
+                f"bag {path} has fewer than 2 Odometry messages; cannot dead-reckon (or use "
+                "--motion lidar)."
+            )
+        keep = np.concatenate(([True], np.diff(odo.times) > 0))
+        controls = Controls(odo.times[keep], odo.twists[keep, 0], odo.twists[keep, 2], "unicycle")
+        p0 = odo.trajectory().interpolate([float(batch.times[0])])[0]
+        ctx["odometry"] = odo
+    else:
+        from stemmap.slam.munjer import controls_from_trajectory
+
+        controls, model = controls_from_trajectory(
+            motion, sigma_speed=sig[0], sigma_yaw_rate=sig[1]
+        )
+        p0 = motion.interpolate([float(batch.times[0])])[0]
+    problem = SlamProblem(
+        controls,
+        frames,
+        model,
+        sensor_offset=sensor_offset,
+        initial_pose=(float(p0[0]), float(p0[1]), float(p0[2])),
+        name=str(path),
+        max_range=float(batch.range_max),
+    )
+    return problem, ctx

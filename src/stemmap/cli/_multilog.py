@@ -81,6 +81,7 @@ _SINGLE_LOG_OPTIONS = {
         "sim": "--sim",
         "gnss": "--gnss",
         "imu": "--imu",
+        "camera": "--camera",
         "rerun": "--rerun",
     },
 }

@@ -13,9 +13,11 @@ from stemmap.cli._common import console, fail_on_stemmap_error, out, print_error
 from stemmap.cli._validate import bounded
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from stemmap.odometry.fusion import OdometrySource
 
-__all__ = ["lidar_trajectory", "odometry", "register"]
+__all__ = ["lidar_front_end", "lidar_trajectory", "odometry", "register"]
 
 _TUM_SUFFIXES = (".tum", ".txt")
 
@@ -99,7 +101,8 @@ def odometry(
             "--camera",
             help="Camera frames folder (left/ + right/ rectified stereo, or rgb/ + depth/, with "
             "camera.json intrinsics) or a ROS bag with Image + CameraInfo topics: visual "
-            "odometry instead of lidar (docs/cli.md).",
+            "odometry; with lidar FRAMES too, fused with the lidar odometry in the EKF (the "
+            "visual-lidar coupling of `stemmap map --motion fused`; docs/cli.md).",
         ),
     ] = None,
     max_corners: Annotated[
@@ -139,50 +142,56 @@ def odometry(
     Example: stemmap odometry scans.npz --imu imu.csv --max-range 80 --out traj.csv  (2D scans)
 
     Example: stemmap odometry --camera frames/ --out traj.csv  (stereo / RGB-D visual odometry)
+
+    Example: stemmap odometry scans.npz --camera frames/ --out traj.csv  (visual-lidar EKF)
     """
-    if camera is not None:
-        if frames is not None:
-            print_error(
-                "give lidar FRAMES or --camera, not both: fusing visual with lidar odometry is "
-                "not wired into this command yet."
-            )
-            raise typer.Exit(code=2)
+    cam_opts: dict[str, Any] = {
+        "max_corners": max_corners,
+        "left_topic": left_topic,
+        "right_topic": right_topic,
+        "depth_topic": depth_topic,
+        "info_topic": info_topic,
+        "baseline": baseline,
+    }
+    if camera is not None and frames is None:
         from stemmap.cli._odometry_camera import camera_odometry
 
         with fail_on_stemmap_error():
-            camera_odometry(
-                camera,
-                out_path,
-                max_corners=max_corners,
-                left_topic=left_topic,
-                right_topic=right_topic,
-                depth_topic=depth_topic,
-                info_topic=info_topic,
-                baseline=baseline,
-            )
+            camera_odometry(camera, out_path, **cam_opts)
         return
     if frames is None:
         print_error("give a sensor input: lidar FRAMES, or --camera FRAMES_DIR for a camera.")
         raise typer.Exit(code=2)
     from stemmap.io.products import run_products
 
+    lidar_opts: dict[str, Any] = {
+        "topic": topic,
+        "imu_topic": imu_topic,
+        "odom_topic": odom_topic,
+        "rate": rate,
+        "max_range": max_range,
+        "min_range": min_range,
+        "voxel": voxel,
+        "keep_ground": keep_ground,
+    }
     with (
         fail_on_stemmap_error(),
-        run_products("odometry", inputs=[frames, imu], outputs=[out_path]) as run,
+        run_products("odometry", inputs=[frames, imu, camera], outputs=[out_path]) as run,
     ):
-        traj, summary = lidar_trajectory(
-            frames,
-            imu=imu,
-            topic=topic,
-            imu_topic=imu_topic,
-            odom_topic=odom_topic,
-            rate=rate,
-            max_range=max_range,
-            min_range=min_range,
-            voxel=voxel,
-            keep_ground=keep_ground,
-            quiet=quiet,
-        )
+        if camera is not None:  # the visual-lidar loose coupling (stemmap map --motion fused)
+            from stemmap.cli._map_motion import Motion, motion_trajectory
+
+            traj, summary = motion_trajectory(
+                frames,
+                Motion.fused,
+                camera=camera,
+                imu=imu,
+                quiet=quiet,
+                camera_options=cam_opts,
+                lidar_options=lidar_opts,
+            )
+        else:
+            traj, summary = lidar_trajectory(frames, imu=imu, quiet=quiet, **lidar_opts)
         _write(run.path(out_path), traj)
         run.note(**summary)
     if not quiet:
@@ -210,6 +219,22 @@ def lidar_trajectory(
     """The lidar (+ IMU / wheel EKF) trajectory of ``frames`` (one pose per frame, frame
     ``odom``) and a summary; ``opt`` holds this command's other options (topic, imu_topic,
     odom_topic, rate, max_range, min_range, voxel, keep_ground)."""
+    traj, _, _, summary = lidar_front_end(frames, imu=imu, quiet=quiet, **opt)
+    return traj, summary
+
+
+def lidar_front_end(
+    frames: Path,
+    *,
+    imu: Path | None,
+    quiet: bool,
+    extra: Sequence[OdometrySource] = (),
+    **opt: Any,
+) -> tuple[Any, Any, Any, dict[str, Any]]:
+    """:func:`lidar_trajectory` with further velocity sources fused in (``extra``, e.g. the
+    visual odometry of ``stemmap map --motion fused``); returns (trajectory, the
+    :class:`~stemmap.odometry.lidar.LidarOdometryResult`, the
+    :class:`~stemmap.odometry.fusion.FusedOdometry` or None, summary)."""
     from stemmap.io.lidar_frames import open_frames
     from stemmap.odometry.inertial import lidar_inertial_odometry
     from stemmap.odometry.lidar import LidarOdometryConfig
@@ -222,8 +247,7 @@ def lidar_trajectory(
         voxel_size=opt["voxel"],
         remove_ground=not opt["keep_ground"],
     )
-    # further velocity sources (e.g. a camera's visual odometry) join the EKF here
-    extra: list[OdometrySource] = []
+    extra = list(extra)
     with progress(not quiet) as bar:
         task = bar.add_task("registering frames", total=len(seq) or None)
 
@@ -253,10 +277,10 @@ def lidar_trajectory(
             "register; their poses come from the IMU/wheels (or constant velocity).",
             markup=False,
         )
-    return traj, summary
+    return traj, lidar, fused, summary
 
 
-def _source_names(inertial: Any, extra: list[OdometrySource]) -> list[str]:
+def _source_names(inertial: Any, extra: Sequence[OdometrySource]) -> list[str]:
     names = []
     if inertial is not None and inertial.has_gyro:
         names.append("gyro")

@@ -18,7 +18,7 @@ from stemmap.cli._common import console
 from stemmap.errors import InputError
 from stemmap.types import Trajectory
 
-__all__ = ["camera_odometry"]
+__all__ = ["camera_odometry", "camera_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -29,9 +29,27 @@ _DEFAULT_MOUNT = np.array(
 )
 
 
-def camera_odometry(
+def camera_odometry(frames_dir: Path, out: Path, **options: Any) -> Trajectory:
+    """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV); ``options``
+    are those of :func:`camera_trajectory` (topics, max_corners, baseline). Returns the
+    trajectory.
+    """
+    from stemmap.io.trajectory import write_trajectory_csv
+
+    traj, _, summary = camera_trajectory(frames_dir, **options)
+    write_trajectory_csv(out, traj)
+    console.print(
+        f"{summary['frames']} {summary['mode']} frames, {summary['keyframes']} keyframes, "
+        f"{summary['lost_frames']} lost (pose extrapolated), path {summary['distance_m']:.2f} m "
+        f"-> {out}",
+        markup=False,
+        highlight=False,
+    )
+    return traj
+
+
+def camera_trajectory(
     frames_dir: Path,
-    out: Path,
     *,
     max_corners: int | None = None,
     left_topic: str | None = None,
@@ -39,19 +57,20 @@ def camera_odometry(
     depth_topic: str | None = None,
     info_topic: str | None = None,
     baseline: float | None = None,
-) -> Trajectory:
-    """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV).
+) -> tuple[Trajectory, Any, dict[str, Any]]:
+    """The planar vehicle path of the visual odometry of a frames folder or a bag (frame:
+    the vehicle at the first image), the :class:`~stemmap.odometry.visual.VisualOdometryResult`
+    and a summary (frames, mode, keyframes, lost_frames, distance_m).
 
     A bag (``.bag``, ROS2 folder, ``.db3``, ``.mcap``) is read by
     :func:`stemmap.io.camera_bag.read_camera_bag` with the given topics (guessed when None);
-    a folder by :func:`stemmap.io.camera_frames.read_camera_frames`. Returns the trajectory.
+    a folder by :func:`stemmap.io.camera_frames.read_camera_frames`.
     """
     from dataclasses import replace
 
     from stemmap.io.camera_bag import read_camera_bag
     from stemmap.io.camera_frames import read_camera_frames
     from stemmap.io.rosbag import is_bag
-    from stemmap.io.trajectory import write_trajectory_csv
     from stemmap.odometry.visual import (
         VisualOdometryConfig,
         VoStatus,
@@ -87,15 +106,11 @@ def camera_odometry(
         )
         mount = _DEFAULT_MOUNT
     traj = planar_from_camera(res, mount)
-    write_trajectory_csv(out, traj)
-    lost = int(np.sum(~res.ok))
-    kf = int(np.sum(res.status == VoStatus.KEYFRAME))
-    dist = float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)))
-    mode = "stereo" if frames.calibration.is_stereo else "RGB-D"
-    console.print(
-        f"{len(res)} {mode} frames, {kf} keyframes, {lost} lost (pose extrapolated), "
-        f"path {dist:.2f} m -> {out}",
-        markup=False,
-        highlight=False,
-    )
-    return traj
+    summary = {
+        "frames": len(res),
+        "mode": "stereo" if frames.calibration.is_stereo else "RGB-D",
+        "keyframes": int(np.sum(res.status == VoStatus.KEYFRAME)),
+        "lost_frames": int(np.sum(~res.ok)),
+        "distance_m": float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T))),
+    }
+    return traj, res, summary

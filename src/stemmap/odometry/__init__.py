@@ -31,6 +31,7 @@ _LAZY: dict[str, str] = {
     "motion_prior": "inertial",
     "wheel_source": "inertial",
     "StereoCalibration": "visual",
+    "VISUAL_STEP_SIGMA": "visual",
     "VisualFrame": "visual",
     "VisualOdometry": "visual",
     "VisualOdometryConfig": "visual",

@@ -39,9 +39,10 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
-from stemmap.scan import _corners, _fit_geometric, features
+from stemmap.scan import _corners, _fit_geometric, _gaps, features
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
 from stemmap.scan._fit_geometric import OK, _fit_one
+from stemmap.scan._gaps import gap_cut_flags, gap_cut_occlusion
 from stemmap.scan.features import MIXED_FRACTION_STD
 from stemmap.types import FloatArray
 
@@ -98,6 +99,10 @@ PARAM_NAMES = (
     "corner_depth",
     "corner_depth_convex",  # inf: convex segments are never cut
     "corner_sigmas",  # corners at least this many sigma deep
+    "gap_splits",  # passes of cutting non-convex segments at their largest gap
+    "gap_ratio",  # ... if it exceeds this multiple of the segment's median gap
+    "gap_sigmas",  # ... and the median gap by this many range-noise sigmas
+    "straight_depth_sigmas",  # a sagitta of this many sigmas is never straight
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -356,6 +361,10 @@ def _detect_kernel(
     corner_depth = prm[46]
     corner_convex = prm[47]
     corner_sigmas = prm[48]
+    gap_splits = int(prm[49])
+    gap_ratio = prm[50]
+    gap_sigmas = prm[51]
+    straight_depth_sigmas = prm[52]
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -551,6 +560,21 @@ def _detect_kernel(
                 keep[i] = not corner[i]
             ns, m = _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
+        # ---- largest-gap cuts of non-convex segments (segment.split_largest_gap, ours) ----
+        for _ in range(gap_splits):
+            for j in range(ns):  # least excess of the gap over the median (wid is free here)
+                a = st[j]
+                b = sp[j]
+                wid[j] = gap_sigmas * (sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a)))
+            if ns == 0 or not gap_cut_flags(
+                px, py, st, sp, ns, convex_min, gap_ratio, wid, keep, corner
+            ):
+                break
+            st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, ns = cut_tables(
+                st, sp, oc0, oc1, tr0, tr1, st2, sp2, oc02, oc12, tr02, tr12, keep, ns
+            )
+            gap_cut_occlusion(pr, st, sp, oc0, oc1, ns, m, corner, margin)
+            ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
         # ---- segment features and filters (detect._filter, features.segment_features) ----
         nk = 0
         for j in range(ns):
@@ -603,6 +627,7 @@ def _detect_kernel(
                 else:
                     excess = math.sqrt(max(line_rms * line_rms - sig * sig, 0.0))
                     straight = excess < straight_ratio * width
+                straight &= not (depth > straight_depth_sigmas * sig)
                 ok &= not (straight and cnt >= straight_min_points)
             if drop_partial:
                 ok &= not partial
@@ -886,5 +911,10 @@ def detect_scans(
 
 # after every kernel is defined, before the first call loads the cache (see the module notes)
 _numba_cache.drop_stale_cache(
-    _detect_kernel, __file__, _fit_geometric.__file__, features.__file__, _corners.__file__
+    _detect_kernel,
+    __file__,
+    _fit_geometric.__file__,
+    features.__file__,
+    _corners.__file__,
+    _gaps.__file__,
 )

@@ -29,6 +29,7 @@ from scipy.special import chdtri
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
 from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
+from stemmap.scan._refit import refit_pieces
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
     _chi2_upper,
@@ -65,6 +66,7 @@ from stemmap.scan.segment import (
     euclidean_breaks,
     extract_points,
     range_jump_breaks,
+    split_largest_gap,
 )
 from stemmap.types import FloatArray, LaserScan, ScanBatch, StemObservations, wrap_angle
 
@@ -536,6 +538,19 @@ class ScanTrunkDetector:
             segs = segs.select(segs.counts >= cfg.min_points)
         if cfg.split_corners and len(segs):
             segs = _corner_cuts(segs, cfg)
+        for _ in range(cfg.gap_splits):
+            # ours (issue 11): a non-convex segment is cut at its largest gap, once per pass
+            if len(segs) == 0:
+                break
+            sigma = cfg.sigma + cfg.sigma_rel * (segment_sum(segs.points.r, segs) / segs.counts)
+            segs = split_largest_gap(
+                segs,
+                sagitta_depth(segs) < max(cfg.min_depth, 0.0),
+                cfg.occlusion_margin,
+                cfg.gap_ratio,
+                cfg.gap_sigmas * sigma,
+            )
+            segs = segs.select(segs.counts >= cfg.min_points)
         return (self._filter(segs) if apply_filters else segs), r, wrap
 
     def _filter(self, segs: Segments) -> Segments:
@@ -561,7 +576,12 @@ class ScanTrunkDetector:
         fit, no footprint correction, no tilt compensation to apply."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
-        return cfg.fit_method == "ours" and cfg.beam_footprint_deg == 0 and no_tilt
+        return (
+            cfg.fit_method == "ours"
+            and cfg.beam_footprint_deg == 0
+            and no_tilt
+            and not cfg.refit_pieces
+        )
 
     def _run(
         self,
@@ -646,6 +666,10 @@ class ScanTrunkDetector:
             "corner_depth": cfg.corner_depth,
             "corner_depth_convex": cfg.corner_depth_convex,
             "corner_sigmas": cfg.corner_sigmas,
+            "gap_splits": cfg.gap_splits,
+            "gap_ratio": cfg.gap_ratio,
+            "gap_sigmas": cfg.gap_sigmas,
+            "straight_depth_sigmas": cfg.straight_depth_sigmas,
         }
         prm = np.empty(N_PARAMS)
         for name, v in values.items():
@@ -764,57 +788,82 @@ class ScanTrunkDetector:
         if cfg.beam_footprint_deg > 0:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
         fitted = self._fit_candidates(segs, grid, wrap)
-        centers, radii, covs, sigma, rms = (
+        codes = fit_reasons(
+            cfg,
             fitted.centers,
             fitted.radii,
-            fitted.covs,
+            fitted.ok,
+            fitted.sil_width,
+            fitted.mean_r,
+            fitted.test_rms,
             fitted.sigma,
-            fitted.rms,
         )
-        n = segs.counts
-        f_width = fitted.width
-        ok = (
-            fit_reasons(
-                cfg,
-                centers,
-                radii,
-                fitted.ok,
-                fitted.sil_width,
-                fitted.mean_r,
-                fitted.test_rms,
-                sigma,
-            )
-            == 0
-        )
+        ok = codes == 0
+        cols = _output_columns(segs, fitted, ok)
+        order_key = 2 * np.flatnonzero(ok)
+        if cfg.refit_pieces:
+            got = refit_pieces(self, segs, fitted, codes, grid, wrap)
+            if got is not None and np.any(got.ok):
+                more = _output_columns(got.segs, got.fitted, got.ok)
+                # a piece takes its parent's place in the output (the parent failed)
+                cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
+                order_key = np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
         log.debug(
             "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
             len(times),
             len(segs),
-            int(np.count_nonzero(ok)),
+            order_key.shape[0],
             self.source,
         )
-        if not np.any(ok):
+        if order_key.shape[0] == 0:
             return StemObservations.empty(source=self.source, frame=frame)
-        missing = ok & ~np.all(np.isfinite(covs), axis=(1, 2))
-        if np.any(missing):
-            sub = segs.select(missing)
-            covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], sigma[missing])
-        with np.errstate(invalid="ignore"):
-            arc = _arc_deg(segs, centers)
-            quality = _quality(n, rms, sigma, segs.partial)
+        order = np.argsort(order_key, kind="stable")
+        cols = {k: v[order] for k, v in cols.items()}
         return StemObservations(
-            centers=centers[ok],
-            radii=radii[ok],
-            covs=covs[ok],
-            n_points=n[ok],
-            arc_deg=arc[ok],
-            widths=f_width[ok],
-            quality=quality[ok],
-            index=segs.scan[ok],
-            times=np.asarray(times)[segs.scan[ok]],
+            centers=cols["centers"],
+            radii=cols["radii"],
+            covs=cols["covs"],
+            n_points=cols["n_points"],
+            arc_deg=cols["arc_deg"],
+            widths=cols["widths"],
+            quality=cols["quality"],
+            index=cols["index"],
+            times=np.asarray(times)[cols["index"]],
             source=self.source,
             frame=frame,
         )
+
+
+def _output_columns(
+    segs: Segments, fitted: _Fitted, ok: NDArray[np.bool_]
+) -> dict[str, np.ndarray]:
+    """The output columns of the kept candidates (``ok``): the fit's covariance (or the
+    geometric one where the fit gave none), arc extent, quality."""
+    centers, radii, covs, sigma, rms = (
+        fitted.centers,
+        fitted.radii,
+        fitted.covs.copy(),
+        fitted.sigma,
+        fitted.rms,
+    )
+    n = segs.counts
+    missing = ok & ~np.all(np.isfinite(covs), axis=(1, 2))
+    if np.any(missing):
+        sub = segs.select(missing)
+        covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], sigma[missing])
+    with np.errstate(invalid="ignore"):
+        arc = _arc_deg(segs, centers)
+        quality = _quality(n, rms, sigma, segs.partial)
+    return {
+        "centers": centers[ok],
+        "radii": radii[ok],
+        "covs": covs[ok],
+        "n_points": n[ok],
+        "arc_deg": arc[ok],
+        "widths": fitted.width[ok],
+        "quality": quality[ok],
+        "index": segs.scan[ok],
+    }
 
 
 def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:

@@ -123,13 +123,16 @@ def segment_reasons(segs: Segments, f: SegmentFeatures, cfg: DetectorConfig) -> 
         "curvature",
     )
     if cfg.reject_straight:
+        sigma = cfg.sigma + cfg.sigma_rel * f.mean_range
         straight = is_straight(
             f.line_rms,
             f.width,
-            cfg.sigma + cfg.sigma_rel * f.mean_range,
+            sigma,
             ratio=cfg.straight_ratio,
             n_points=f.n_points if cfg.straight_test == "chi2" else None,
         )
+        # ours (issue 11): a sagitta of many sigmas is an arc, whatever the line's RMS says
+        straight &= ~(f.depth > cfg.straight_depth_sigmas * sigma)
         _first_failure(codes, straight & (f.n_points >= cfg.straight_min_points), "straight")
     if cfg.drop_partial:
         _first_failure(codes, segs.partial, "partial")

@@ -499,3 +499,75 @@ def concave_corners(segs: Segments, span: int = 2, depth: ArrayLike = 0.03) -> B
     # the neighbours of a valid return are in its segment (span >= 1)
     out[:] = (d > thr) & (d >= prev) & (d > nxt)
     return out
+
+
+def largest_gap_cuts(
+    segs: Segments, which: ArrayLike, ratio: float = 0.0, min_excess: ArrayLike = 0.0
+) -> BoolArray:
+    """The return after the largest gap (Euclidean distance between consecutive returns) of
+    every segment where ``which`` (K,) is True and that has >= 2 returns (first maximum on
+    ties), if that gap exceeds ``ratio`` x the median gap of the segment (the median of the
+    sorted gaps, the mean of the middle two for an even count) and the median gap by more than
+    ``min_excess`` (one value or one per segment, metres: above the range noise). Returns a bool
+    (M,) that is
+    True at the first return of each second piece (ours, issue 11: :func:`split_largest_gap`;
+    ``_gaps.gap_cut_flags`` is the compiled twin)."""
+    p = segs.points
+    out = np.zeros(len(p), dtype=bool)
+    w = np.asarray(which, dtype=bool) & (segs.counts >= 2)
+    if not np.any(w):
+        return out
+    gap = np.hypot(np.diff(p.x), np.diff(p.y))
+    excess = np.broadcast_to(np.asarray(min_excess, dtype=np.float64), (len(segs),))[w]
+    for a, b, ex in zip(segs.start[w], segs.stop[w], excess, strict=True):
+        g = gap[a : b - 1]
+        k = int(np.argmax(g))
+        srt = np.sort(g)
+        h = srt.shape[0] // 2
+        med = srt[h] if srt.shape[0] % 2 == 1 else 0.5 * (srt[h - 1] + srt[h])
+        if g[k] > ratio * med and g[k] - med > ex:
+            out[a + 1 + k] = True
+    return out
+
+
+def split_largest_gap(
+    segs: Segments,
+    which: ArrayLike,
+    occlusion_margin: float,
+    ratio: float = 0.0,
+    min_excess: ArrayLike = 0.0,
+) -> Segments:
+    """Cut every segment where ``which`` is True at its largest gap between consecutive returns
+    (ours, issue 11): a segment that is not a convex arc is often two objects side by side,
+    a trunk and a stem, bush or branch behind or before it, that the (range-adaptive)
+    segmentation threshold merged; the junction is where consecutive returns lie farthest
+    apart. Unlike :meth:`Segments.cut`, a cut end is occluded only when the return across the
+    cut is nearer by more than ``occlusion_margin`` (the rule of :func:`build_segments`): a
+    trunk beside a farther object is whole. ``ratio``, ``min_excess``: see
+    :func:`largest_gap_cuts`."""
+    cuts = largest_gap_cuts(segs, which, ratio, min_excess)
+    if not np.any(cuts):
+        return segs
+    out = segs.cut(np.cumsum(cuts) % 2 == 1)
+    r = segs.points.r
+    m = r.shape[0]
+    occ_s = out.occluded_start.copy()
+    inner = cuts[out.start]
+    s = out.start[inner]
+    occ_s[inner] = r[s - 1] < r[s] - occlusion_margin
+    occ_e = out.occluded_end.copy()
+    nxt = out.stop < m
+    inner = np.zeros(len(out), dtype=bool)
+    inner[nxt] = cuts[out.stop[nxt]]
+    e = out.stop[inner]
+    occ_e[inner] = r[e] < r[e - 1] - occlusion_margin
+    return Segments(
+        out.points,
+        out.start,
+        out.stop,
+        out.scan,
+        occ_s,
+        occ_e,
+        out.truncated_start,
+        out.truncated_end,
+    )

@@ -76,6 +76,11 @@ class Isam2Config:
         fixes fix the frame; this only keeps the first updates well-posed)
     reloc_prior_sigmas : (m, m, rad) prior on the first pose when the problem has a
         ``prior_map`` (the relocalised start: the map's trees fix the frame)
+    joint_information : also return the trees' joint information matrix
+        (:attr:`stemmap.types.StemMap.information`, needs ``marginals``): a later session on
+        this map then continues from the correlated prior of all its trees instead of
+        independent per-tree priors (docs/algorithms/slam.md "Prior maps"). Off by default:
+        (2N)² floats (~12 MB for the ~600 trees of the full Victoria Park run)
     """
 
     sigma_range: float = 0.10
@@ -117,6 +122,7 @@ class Isam2Config:
     gnss_robust_k: float = 2.3849
     gnss_prior_sigmas: tuple[float, float, float] = (10.0, 10.0, 0.5)
     reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
+    joint_information: bool = False
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust"):

@@ -17,7 +17,13 @@ import numpy as np
 from stemmap.slam._isam2_track import band_cho_solve
 from stemmap.types import FloatArray, wrap_angle
 
-__all__ = ["_fit_diagnostics", "_merge_duplicates", "_point_marginals"]
+__all__ = [
+    "_fit_diagnostics",
+    "_merge_duplicates",
+    "_point_marginals",
+    "_tree_joint_information",
+    "_tree_schur",
+]
 
 
 def _merge_duplicates(
@@ -57,27 +63,11 @@ def _merge_duplicates(
     return np.array([find(i) for i in range(n)], dtype=np.int64)
 
 
-def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
-    """(n, 2, 2) marginal covariances of the Point2 variables ``keys`` at ``values`` (ours).
-
-    The same quantity as ``gtsam.Marginals(graph, values).marginalCovariance(key)``: the
-    inverse of the Gauss-Newton information ``H = AᵀA`` of GTSAM's whitened linearisation
-    (robust weights included), restricted to the trees ``L`` by the Schur complement over the
-    poses ``P``: ``Σ_LL = (H_LL - H_LP H_PP⁻¹ H_PL)⁻¹`` (exact: the marginal of a Gaussian in
-    information form is the Schur complement of the other block). The poses of :class:`Isam2Slam`
-    form a chain (a prior and odometry between consecutive keyframes), so ``H_PP`` is banded
-    (bandwidth 5 with the keyframes in key order): one banded Cholesky and a compiled solve
-    with the ~800 tree columns as right sides; any other structure takes a sparse LU. The
-    dense ``S⁻¹`` is only needed on its 2x2 diagonal blocks: ``S = UᵀU``, ``S⁻¹ = U⁻¹U⁻ᵀ``,
-    the blocks are products of row pairs of ``U⁻¹``. Full Victoria Park run: ~0.25 s instead
-    of ~0.5 s for GTSAM's joint marginals in chunks of 128 trees (which eliminate the whole
-    graph once per chunk); the covariances agree to ~1e-10 relative (round-off).
-
-    Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
-    """
+def _tree_schur(graph: Any, values: Any) -> tuple[FloatArray, np.ndarray]:
+    """The trees' joint information ``S = H_LL - H_LP H_PP⁻¹ H_PL`` (dense, 2 rows per tree) and
+    the tree keys in its order (sorted), see :func:`_point_marginals`."""
     import scipy.linalg as sla
     import scipy.sparse as sp
-    from scipy.linalg import lapack
 
     ijs = graph.linearize(values).sparseJacobian_()  # 1-based (row, col, value); last col = b
     # columns follow the sorted keys (GTSAM's default ordering of sparseJacobian); GTSAM
@@ -120,6 +110,30 @@ def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
     for c0 in range(0, i_l.size, 128):
         h_c = h_pl[:, c0 : c0 + 128]
         s_mat[:, c0 : c0 + 128] -= h_pl.T @ solve(h_c.toarray())
+    return s_mat, all_keys[is_pt]
+
+
+def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
+    """(n, 2, 2) marginal covariances of the Point2 variables ``keys`` at ``values`` (ours).
+
+    The same quantity as ``gtsam.Marginals(graph, values).marginalCovariance(key)``: the
+    inverse of the Gauss-Newton information ``H = AᵀA`` of GTSAM's whitened linearisation
+    (robust weights included), restricted to the trees ``L`` by the Schur complement over the
+    poses ``P``: ``Σ_LL = (H_LL - H_LP H_PP⁻¹ H_PL)⁻¹`` (exact: the marginal of a Gaussian in
+    information form is the Schur complement of the other block). The poses of :class:`Isam2Slam`
+    form a chain (a prior and odometry between consecutive keyframes), so ``H_PP`` is banded
+    (bandwidth 5 with the keyframes in key order): one banded Cholesky and a compiled solve
+    with the ~800 tree columns as right sides; any other structure takes a sparse LU. The
+    dense ``S⁻¹`` is only needed on its 2x2 diagonal blocks: ``S = UᵀU``, ``S⁻¹ = U⁻¹U⁻ᵀ``,
+    the blocks are products of row pairs of ``U⁻¹``. Full Victoria Park run: ~0.25 s instead
+    of ~0.5 s for GTSAM's joint marginals in chunks of 128 trees (which eliminate the whole
+    graph once per chunk); the covariances agree to ~1e-10 relative (round-off).
+
+    Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
+    """
+    from scipy.linalg import lapack
+
+    s_mat, pt_keys = _tree_schur(graph, values)
     u, info = lapack.dpotrf(s_mat, lower=0, clean=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"tree information not positive definite (dpotrf {info})")
@@ -127,7 +141,7 @@ def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
     if info != 0:
         raise np.linalg.LinAlgError(f"singular tree information (dtrtri {info})")
     # row of each requested key in the L block (points in sorted-key order)
-    pos = np.searchsorted(all_keys[is_pt], np.array(keys, dtype=np.uint64))
+    pos = np.searchsorted(pt_keys, np.array(keys, dtype=np.uint64))
     rows = u_inv.reshape(-1, 2, u_inv.shape[1])[pos]
     return np.asarray(np.einsum("jak,jbk->jab", rows, rows), dtype=np.float64)
 
@@ -168,3 +182,23 @@ def _fit_diagnostics(
         rr_ = (mr[:, 3] - np.hypot(dxm, dym)) / mr[:, 5]
         n_outlier = int(np.count_nonzero(rb * rb + rr_ * rr_ > 9.0))
     return chi2_kind[0], chi2_kind[1], n_outlier
+
+
+def _tree_joint_information(graph: Any, values: Any, keys: list[int]) -> FloatArray:
+    """(2n, 2n) joint information of the Point2 variables ``keys`` (in that order: x0, y0,
+    x1, ...) at ``values``, every other variable (poses, the trees not in ``keys``)
+    marginalised out: ``(Σ_KK)⁻¹`` with ``Σ = S⁻¹`` (:func:`_tree_schur`). Unlike the 2x2 blocks
+    of :func:`_point_marginals` it keeps the correlations between trees (their relative
+    positions are known much better than their absolute ones): the prior a later session
+    continues from (:func:`stemmap.slam.relocalise.joint_prior_factor`).
+
+    Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
+    """
+    import scipy.linalg as sla
+
+    s_mat, pt_keys = _tree_schur(graph, values)
+    pos = np.searchsorted(pt_keys, np.array(keys, dtype=np.uint64))
+    idx = np.stack((2 * pos, 2 * pos + 1), axis=1).reshape(-1)
+    cov = sla.cho_solve(sla.cho_factor(s_mat), np.eye(s_mat.shape[0])[:, idx])[idx]
+    cov = 0.5 * (cov + cov.T)
+    return np.asarray(sla.cho_solve(sla.cho_factor(cov), np.eye(idx.size)), dtype=np.float64)

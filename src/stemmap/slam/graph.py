@@ -71,7 +71,12 @@ import numpy as np
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_localise import localise_windows
-from stemmap.slam._graph_marginals import _fit_diagnostics, _merge_duplicates, _point_marginals
+from stemmap.slam._graph_marginals import (
+    _fit_diagnostics,
+    _merge_duplicates,
+    _point_marginals,
+    _tree_joint_information,
+)
 from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
 from stemmap.slam._graph_revisits import (
     PlaceCounter,
@@ -97,7 +102,7 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose, preintegrate
-from stemmap.slam.relocalise import prior_tree_factors
+from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -305,6 +310,7 @@ class Isam2Slam:
         lm_in_graph = np.zeros(cap, dtype=bool)
         n_lm = 0
         map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
+        joint_fac: Any = None  # or one joint prior over them (StemMap.information)
         if problem.prior_map is not None and len(problem.prior_map):
             # a map of an earlier session (relocalised into: problem.initial_pose is in its
             # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
@@ -326,9 +332,14 @@ class Isam2Slam:
                 lm_nobs[j_p] = n_p
                 lm_in_graph[j_p] = True
                 new_v.insert(LK(j_p), xy_p.copy())
-                new_f.add(fac_p)
-                graph_all.add(fac_p)
+                if fac_p is not None:
+                    new_f.add(fac_p)
+                    graph_all.add(fac_p)
                 map_fac.append(fac_p)
+            joint_fac = joint_prior_factor(problem.prior_map, LK)  # None: per-tree priors above
+            if joint_fac is not None:
+                new_f.add(joint_fac)
+                graph_all.add(joint_fac)
         lm_nfac = np.zeros(lm_xy.shape[0], dtype=np.int64)  # measurement factors per tree
         lm_ref = np.zeros(lm_xy.shape[0], dtype=np.int64)  # iSAM2 updates at the last refresh
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
@@ -669,11 +680,15 @@ class Isam2Slam:
             g2.add(pf)
             odo_fac = [odo_factor(ka_, kb_) for ka_, kb_ in edges]
             for j_p, fac_p in enumerate(map_fac):  # a merged prior tree: on its representative
-                if alias[j_p] != j_p:
+                if alias[j_p] != j_p and fac_p is not None:
                     map_fac[j_p] = gtsam.PriorFactorPoint2(
                         LK(int(alias[j_p])), fac_p.prior(), fac_p.noiseModel()
                     )
-            for fac_o in odo_fac + gnss_fac + map_fac:
+            if joint_fac is not None and problem.prior_map is not None:
+                # the joint prior over the map's trees: on the representatives
+                joint_fac = joint_prior_factor(problem.prior_map, LK, alias)
+                g2.add(joint_fac)
+            for fac_o in odo_fac + gnss_fac + [f_ for f_ in map_fac if f_ is not None]:
                 g2.add(fac_o)
             for i_m, (k_, j_, b_, r_, sb_, sr_) in enumerate(meas_rec):
                 if alias[j_] != j_:  # the tree was merged: a factor on its representative
@@ -727,9 +742,14 @@ class Isam2Slam:
         n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
         covs = np.full((n_lm, 2, 2), np.nan)
+        info_j = None  # joint information of the kept trees (cfg.joint_information)
         if cfg.marginals and keep.size:
             try:
                 covs[keep] = _point_marginals(graph_all, result, [LK(int(q_)) for q_ in keep])
+                if cfg.joint_information:
+                    info_j = _tree_joint_information(
+                        graph_all, result, [LK(int(q_)) for q_ in keep]
+                    )
             except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
                 log.warning("iSAM2: marginal covariances unavailable: %s", exc)
         # the keyframes left out of the graph: localised on the final map, run by run
@@ -809,4 +829,5 @@ class Isam2Slam:
                 stats[f"{name_c}_min"] = float(cal[:, i_c].min())
                 stats[f"{name_c}_max"] = float(cal[:, i_c].max())
         log.info("iSAM2: %s", stats)
-        return SlamResult(frame_trajectory(frames.times, veh), StemMap(tuple(trees)), stats)
+        stem_map = StemMap(tuple(trees), information=info_j)
+        return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats)

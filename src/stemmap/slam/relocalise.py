@@ -326,12 +326,19 @@ def prior_tree_factors(
 
     The prior's covariance is the tree's marginal covariance from the earlier session (the
     trees CSV's ``std_x, std_y, cov_xy``); trees without one get ``default_sigma`` (m). A
-    tree's observation count is at least ``min_obs`` so it stays in the merged map.
+    tree's observation count is at least ``min_obs`` so it stays in the merged map. When the
+    map carries its joint information (:attr:`StemMap.information`) the factor is ``None``:
+    :func:`joint_prior_factor` holds all trees at once instead.
     """
     import gtsam
 
-    out = []
+    out: list[tuple[FloatArray, float, int, Any]] = []
+    joint = _joint_sqrt_information(prior_map) is not None
     for j, t in enumerate(prior_map):
+        if joint:
+            xy = np.array([t.x, t.y], dtype=np.float64)
+            out.append((xy, float(t.diameter), max(int(t.n_obs), min_obs), None))
+            continue
         cov = np.asarray(t.cov, dtype=np.float64)
         if not (np.isfinite(cov).all() and np.linalg.eigvalsh(cov).min() > 0):
             cov = np.eye(2) * default_sigma**2
@@ -342,17 +349,95 @@ def prior_tree_factors(
     return out
 
 
+def _joint_sqrt_information(prior_map: StemMap) -> FloatArray | None:
+    """Upper Cholesky factor ``U`` (``UᵀU = Λ``) of the map's joint information with the same
+    1e-6 m² covariance floor as the per-tree priors; ``None`` without one (or not positive
+    definite: logged, the per-tree priors are used)."""
+    import scipy.linalg as sla
+
+    info = prior_map.information
+    if info is None or len(prior_map) == 0:
+        return None
+    try:
+        cov = sla.cho_solve(sla.cho_factor(info), np.eye(info.shape[0]))
+        cov = 0.5 * (cov + cov.T) + np.eye(info.shape[0]) * 1e-6
+        lam = sla.cho_solve(sla.cho_factor(cov), np.eye(info.shape[0]))
+        return np.asarray(sla.cholesky(0.5 * (lam + lam.T), lower=False), dtype=np.float64)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        log.warning("prior map: joint information unusable (%s); per-tree priors", exc)
+        return None
+
+
+def joint_prior_factor(prior_map: StemMap, key: Any, alias: np.ndarray | None = None) -> Any | None:
+    """One factor holding all trees of ``prior_map`` by their joint information (``None`` when
+    the map has none): the Gaussian ``‖U (x - x̂)‖²`` with ``UᵀU`` the earlier session's
+    :attr:`StemMap.information` and ``x̂`` its tree positions, on landmark keys ``key(j)``.
+
+    This is the earlier session's graph marginalised onto its trees (poses eliminated): exact
+    to first order, so this session's observations move the old trees *together*, the way the
+    earlier session's own poses tie them (per-tree priors drop those correlations and hold
+    every tree on its own). ``alias`` (slot -> representative slot, after duplicate merging)
+    puts a merged tree's part on its representative. A :class:`gtsam.CustomFactor` (one
+    dense 2N x 2N Jacobian per linearisation, ~1 ms for 200 trees).
+    """
+    import gtsam
+
+    u = _joint_sqrt_information(prior_map)
+    if u is None:
+        return None
+    n = len(prior_map)
+    rep = np.arange(n) if alias is None else np.asarray(alias[:n], dtype=np.int64)
+    reps, inv = np.unique(rep, return_inverse=True)
+    a = np.zeros((2 * n, 2 * reps.size))
+    for j in range(n):  # x_j = y_rep(j): columns of merged trees add up
+        a[:, 2 * inv[j] : 2 * inv[j] + 2] += u[:, 2 * j : 2 * j + 2]
+    ux0 = u @ prior_map.xy.reshape(-1)
+    keys = [key(int(r)) for r in reps]
+    blocks = [np.ascontiguousarray(a[:, 2 * c : 2 * c + 2]) for c in range(reps.size)]
+
+    def error(this: Any, values: Any, jac: Any) -> FloatArray:
+        y = np.concatenate([values.atPoint2(k) for k in keys])
+        if jac is not None:
+            for c, blk in enumerate(blocks):
+                jac[c] = blk
+        return np.asarray(a @ y - ux0, dtype=np.float64)
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), keys, error)
+
+
+def with_calibration(problem: SlamProblem, offset: float, scale: float) -> SlamProblem:
+    """``problem`` with its odometry corrected by an earlier session's calibration of the same
+    vehicle: every steering sample (yaw-rate sample for unicycle controls) ``+ offset`` and
+    every speed sample ``x (1 + scale)`` -- the parameters :class:`Isam2Slam` estimates
+    (stats ``calib_offset_mean``, ``calib_scale_mean``). Its own calibration then starts from
+    the earlier estimate instead of from zero (its prior mean is the problem's controls)."""
+    from stemmap.slam.base import Controls
+
+    for name, v in (("offset", offset), ("scale", scale)):
+        if not math.isfinite(v):
+            raise InputError(f"with_calibration: {name} must be finite, got {v}.")
+    c = problem.controls
+    speed = np.asarray(c.speed, dtype=np.float64) * (1.0 + scale)
+    steer = np.asarray(c.steer, dtype=np.float64) + offset
+    return dataclasses.replace(problem, controls=Controls(c.times, speed, steer, c.kind))
+
+
 def continue_session(
     problem: SlamProblem,
     prior_map: StemMap,
     guess: tuple[float, float, float] | None = None,
     cfg: RelocConfig | None = None,
+    calibration: tuple[float, float] | None = None,
 ) -> tuple[SlamProblem, Relocalisation]:
     """``problem`` relocalised in ``prior_map`` and set to map on from it (merged output).
 
     ``guess`` (vehicle pose at the first scan, map frame) bounds the search; without one the
-    search is global. Raises :class:`InputError` when relocalisation fails, with the reason.
+    search is global. ``calibration`` (offset, scale): the earlier session's odometry
+    calibration, applied first (:func:`with_calibration`). Raises :class:`InputError` when
+    relocalisation fails, with the reason.
     """
+    if calibration is not None:
+        problem = with_calibration(problem, *calibration)
     cfg = cfg or RelocConfig()
     if guess is None:
         cfg = dataclasses.replace(cfg, search_radius=None, search_angle=None)

@@ -1,0 +1,288 @@
+"""``stemmap map --motion``: where the mapper's motion comes from.
+
+* ``wheel`` (default): the log's own odometry -- ``--odometry FILE`` (a ``time_s,speed,yaw_rate``
+  CSV, or for a frames bundle also a ``time_s,x,y,theta`` pose CSV), the ``<stem>_odometry.csv``
+  beside a scan file, or a bag's nav_msgs/Odometry topic;
+* ``lidar``: KISS-ICP scan-to-map odometry on the log's own scans or 3D frames
+  (:func:`stemmap.cli._odometry.lidar_front_end`, ``stemmap odometry``'s defaults), fused with
+  ``--imu`` (gyro + wheel speed) when given;
+* ``visual``: stereo / RGB-D visual odometry of ``--camera`` (a camera frames folder, a bag with
+  Image + CameraInfo topics -- the input bag itself when it has them -- or the trajectory CSV
+  ``stemmap odometry --camera ... --out vo.csv`` wrote);
+* ``fused``: the visual-lidar paper's loose coupling (§2.4): the visual odometry as body-frame
+  velocities in the EKF of the lidar odometry (+ ``--imu``),
+  :func:`stemmap.odometry.inertial.fuse_front_ends`.
+
+The chosen trajectory becomes the mapper's controls (body-frame velocities of each interval,
+:func:`stemmap.slam.munjer.controls_from_trajectory`). ``--odometry lidar`` (the word), the
+earlier spelling of ``--motion lidar``, still works with a deprecation warning.
+
+Every run records ``motion`` in metrics.json and run.json: the source, what fed it, the path
+length and a **drift estimate** in % of distance with the method that produced it (the
+source's own noise model propagated to the end of the run: an estimate, not a measurement;
+docs/algorithms/odometry.md).
+"""
+
+from __future__ import annotations
+
+import math
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.cli._common import console
+from stemmap.errors import ConfigError, InputError
+
+__all__ = [
+    "LIDAR_WORD",
+    "Motion",
+    "motion_trajectory",
+    "resolve_motion",
+    "vehicle_path",
+    "wheel_drift_estimate",
+]
+
+#: ``--odometry lidar``: the deprecated spelling of ``--motion lidar``.
+LIDAR_WORD = "lidar"
+
+
+class Motion(StrEnum):
+    wheel = "wheel"
+    lidar = "lidar"
+    visual = "visual"
+    fused = "fused"
+
+
+def resolve_motion(
+    motion: Motion | None, odometry: Path | None, *, camera: Path | None, imu: Path | None
+) -> tuple[Motion, Path | None]:
+    """The motion source and the ``--odometry`` file after validating the combination.
+
+    ``--odometry lidar`` maps to ``--motion lidar`` (warning on stderr). Raises ConfigError for
+    combinations that would silently ignore an option.
+    """
+    if odometry is not None and str(odometry) == LIDAR_WORD and not odometry.exists():
+        console.print(
+            "warning: '--odometry lidar' is deprecated; use '--motion lidar' (--odometry is "
+            "for odometry files).",
+            markup=False,
+        )
+        if motion not in (None, Motion.lidar):
+            raise ConfigError(
+                f"--odometry lidar contradicts --motion {motion.value}; give --motion only."
+            )
+        motion, odometry = Motion.lidar, None
+    motion = motion or Motion.wheel
+    if motion != Motion.wheel and odometry is not None:
+        raise ConfigError(
+            f"--odometry {odometry} is the wheel motion source; --motion {motion.value} does not "
+            "use it (drop it, or use --motion wheel)."
+        )
+    if camera is not None and motion not in (Motion.visual, Motion.fused):
+        raise ConfigError(
+            f"--camera feeds the visual odometry: use it with --motion visual or fused, not "
+            f"{motion.value}."
+        )
+    if imu is not None and motion not in (Motion.lidar, Motion.fused):
+        raise ConfigError(
+            f"--imu is fused with the lidar odometry: use it with --motion lidar or fused, not "
+            f"{motion.value}."
+        )
+    return motion, odometry
+
+
+#: ``stemmap odometry``'s defaults, used by ``--motion lidar|fused``.
+LIDAR_DEFAULTS: dict[str, Any] = {
+    "topic": None,
+    "imu_topic": None,
+    "odom_topic": None,
+    "rate": None,
+    "max_range": 100.0,
+    "min_range": 0.5,
+    "voxel": None,
+    "keep_ground": False,
+}
+
+
+def _camera_source(source: Path, camera: Path | None) -> Path:
+    """``--camera``, else the input bag when it carries Image topics."""
+    if camera is not None:
+        return camera
+    from stemmap.io.rosbag import is_bag, list_topics
+
+    if is_bag(source) and any(m.endswith("/Image") for m in list_topics(source).values()):
+        return source
+    raise ConfigError(
+        f"--motion visual/fused needs camera frames: {source} has no Image topic; pass --camera "
+        "(a frames folder, a bag with Image + CameraInfo, or a trajectory CSV from `stemmap "
+        "odometry --camera`)."
+    )
+
+
+def _visual(camera: Path, **camera_options: Any) -> tuple[Any, Any, dict[str, Any]]:
+    """The visual odometry's vehicle path, its velocity source for the EKF and a summary."""
+    from stemmap.odometry.fusion import velocities_from_poses
+    from stemmap.odometry.visual import VISUAL_STEP_SIGMA
+
+    keep = None
+    if camera.is_file() and camera.suffix.lower() == ".csv":
+        from stemmap.io.trajectory import read_trajectory_csv
+
+        traj = read_trajectory_csv(camera, frame="odom")
+        info: dict[str, Any] = {
+            "camera": str(camera),
+            "kind": "trajectory CSV",
+            "frames": len(traj),
+        }
+    else:
+        from stemmap.cli._odometry_camera import camera_trajectory
+
+        traj, res, summary = camera_trajectory(camera, **camera_options)
+        info = {"camera": str(camera), **summary}
+        keep = res.ok[1:] & res.ok[:-1]  # as visual_odometry_source: drop lost-frame steps
+    if len(traj) < 2:
+        raise InputError(f"the visual odometry of {camera} has {len(traj)} frame(s); need 2.")
+    dt = float(np.median(np.diff(traj.times)))
+    src = velocities_from_poses(
+        traj,
+        sigma_speed=VISUAL_STEP_SIGMA[0] / dt,
+        sigma_yaw_rate=VISUAL_STEP_SIGMA[1] / dt,
+        name="visual odometry",
+    )
+    if keep is not None:
+        if not keep.any():
+            raise InputError(f"the visual odometry of {camera} lost every frame.")
+        src = src.take(keep)
+    return traj, src, info
+
+
+def _path_length(traj: Any) -> float:
+    return float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)))
+
+
+def _random_walk_percent(step_var_xy: Any, distance: float) -> float | None:
+    """100 * sqrt(sum of per-step xy variances) / distance (independent steps)."""
+    v = np.asarray(step_var_xy, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if distance <= 0 or v.size == 0:
+        return None
+    return 100.0 * math.sqrt(float(v.sum())) / distance
+
+
+def vehicle_path(traj: Any, sensor_offset: tuple[float, float]) -> Any:
+    """The vehicle reference point's path from the lidar's (``sensor = vehicle * offset``)."""
+    a, b = sensor_offset
+    if a == 0 and b == 0:
+        return traj
+    from stemmap.slam.motion import compose
+    from stemmap.types import Trajectory
+
+    return Trajectory(traj.times, compose(traj.poses, np.array([-a, -b, 0.0])), frame=traj.frame)
+
+
+def wheel_drift_estimate(controls: Any, model: Any) -> dict[str, Any]:
+    """The wheel odometry's drift estimate from the mapper's motion model: per-second speed
+    noise ``sigma_speed`` as a random walk over the run (heading noise not included)."""
+    t = np.asarray(controls.times, dtype=np.float64)
+    dt = np.diff(t)
+    dist = float(np.sum(np.abs(np.asarray(controls.speed)[:-1]) * dt))
+    var = model.sigma_speed**2 * dt  # (m/s)^2 per 1-s average, times seconds -> m^2
+    return {
+        "distance_m": round(dist, 3),
+        "drift_estimate_percent": _random_walk_percent(var, dist),
+        "drift_method": "motion-model speed noise (sigma_speed, 1-s averages) as a random walk; "
+        "heading noise and scale errors not included",
+    }
+
+
+def motion_trajectory(
+    source: Path,
+    motion: Motion,
+    *,
+    camera: Path | None,
+    imu: Path | None,
+    quiet: bool = True,
+    camera_options: dict[str, Any] | None = None,
+    lidar_options: dict[str, Any] | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """The planar path of ``motion`` (``lidar``, ``visual`` or ``fused``) for the log
+    ``source`` (a scan file, a frames bundle or a bag), frame ``odom`` (the sensor at the first
+    frame), and the ``motion`` record for metrics.json. ``camera_options`` go to
+    :func:`stemmap.cli._odometry_camera.camera_trajectory` (topics, max_corners, baseline),
+    ``lidar_options`` override :data:`LIDAR_DEFAULTS` (``stemmap odometry``'s options).
+
+    Raises
+    ------
+    ConfigError
+        ``visual`` / ``fused`` without camera frames; ``lidar`` / ``fused`` on a detections CSV
+        (no scans to register).
+    """
+    from stemmap.cli._map_inputs import is_detections_csv
+
+    if motion == Motion.wheel:
+        raise ConfigError("motion_trajectory: the wheel source is read by the input's reader.")
+    info: dict[str, Any] = {"source": motion.value}
+    if motion in (Motion.lidar, Motion.fused) and is_detections_csv(source):
+        raise ConfigError(
+            f"--motion {motion.value} registers the log's scans; {source} is a detections CSV "
+            "(no scans): use --motion wheel or visual."
+        )
+    if motion in (Motion.visual, Motion.fused):
+        cam = _camera_source(source, camera)
+        vtraj, vsrc, vinfo = _visual(cam, **(camera_options or {}))
+        info["visual"] = vinfo
+    if motion == Motion.visual:
+        dist = _path_length(vtraj)
+        from stemmap.odometry.visual import VISUAL_STEP_SIGMA
+
+        n = len(vtraj) - 1
+        info.update(
+            distance_m=round(dist, 3),
+            drift_estimate_percent=_random_walk_percent(
+                np.full(n, 2.0 * VISUAL_STEP_SIGMA[0] ** 2), dist
+            ),
+            drift_method="visual step sigma (VISUAL_STEP_SIGMA, measured on a simulated "
+            "drive) as a random walk; heading error not included",
+        )
+        return vtraj, info
+    from stemmap.cli._odometry import lidar_front_end
+
+    extra = [vsrc] if motion == Motion.fused else []
+    opts = {**LIDAR_DEFAULTS, **(lidar_options or {})}
+    traj, lidar, fused, summary = lidar_front_end(source, imu=imu, quiet=quiet, extra=extra, **opts)
+    info["lidar"] = summary
+    info["imu"] = None if imu is None else str(imu)
+    if motion == Motion.fused:
+        t_lo, t_hi = float(vsrc.interval_start[0]), float(vsrc.times[-1])
+        if t_lo > traj.times[-1] or t_hi < traj.times[0]:
+            raise InputError(
+                f"the camera frames span {t_lo:.3f}-{t_hi:.3f} s but the scans of {source} span "
+                f"{traj.times[0]:.3f}-{traj.times[-1]:.3f} s: the time bases differ."
+            )
+    dist = _path_length(traj)
+    info["distance_m"] = round(dist, 3)
+    c = lidar.increment_cov
+    info["drift_estimate_percent"] = _random_walk_percent(c[:, 0, 0] + c[:, 1, 1], dist)
+    info["drift_method"] = (
+        "lidar registration covariances (Gauss-Newton, floored) as a random walk"
+        + ("; the fused path follows the lidar's scan-to-map poses" if fused is not None else "")
+    )
+    if fused is not None:
+        info["ekf_final_position_std_m"] = float(
+            math.sqrt(max(float(np.trace(fused.covariances[-1, :2, :2])), 0.0))
+        )
+    if motion == Motion.fused:
+        info["visual_vs_lidar_percent"] = _disagreement_percent(vtraj, lidar.trajectory())
+    return traj, info
+
+
+def _disagreement_percent(a: Any, b: Any, delta: float = 10.0) -> float | None:
+    """Mean translational relative pose error of ``a`` against ``b`` over ``delta``-metre
+    stretches of ``b``, % of ``delta``: how much two odometries disagree (a measured bound on
+    the worse one's drift); None when the run is shorter than ``delta``."""
+    from stemmap.eval.trajectory import rpe
+
+    r = rpe(a, b, delta=delta)
+    return 100.0 * r.trans_mean / delta if r else None

@@ -1,0 +1,138 @@
+"""Largest-gap cuts of non-convex segments and re-fitted pieces of failed candidates (issue 11,
+third round): a trunk merged with a thin stem beside it in one segment is found again."""
+
+import math
+
+import numpy as np
+import pytest
+
+from stemmap.errors import ConfigError
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.scan.segment import ScanPoints, Segments, largest_gap_cuts, split_largest_gap
+from stemmap.types import ScanBatch
+
+INC = math.radians(0.5)
+
+
+def _scan(circles, n=121):
+    """Noise-free thin-beam ranges of circles (cx, cy, r), beams centred on the x axis."""
+    a0 = -INC * (n - 1) / 2
+    ang = a0 + INC * np.arange(n)
+    d = np.column_stack((np.cos(ang), np.sin(ang)))
+    r = np.full(n, np.inf)
+    for cx, cy, rad in circles:
+        b = d @ np.array([cx, cy])
+        disc = b * b - (cx * cx + cy * cy - rad * rad)
+        t = b - np.sqrt(np.maximum(disc, 0.0))
+        r = np.where((disc > 0) & (t > 0), np.minimum(r, t), r)
+    return ScanBatch(
+        ranges=r[None, :], times=np.zeros(1), angle_min=a0, angle_increment=INC, range_max=30.0
+    )
+
+
+def _segment(r):
+    """One segment of returns at ranges ``r`` on consecutive 0.5 degree beams."""
+    r = np.asarray(r, dtype=np.float64)
+    ang = INC * np.arange(r.shape[0])
+    m = r.shape[0]
+    pts = ScanPoints(
+        np.zeros(m, dtype=np.int64),
+        np.arange(m, dtype=np.int64),
+        r,
+        r * np.cos(ang),
+        r * np.sin(ang),
+        1,
+        m,
+        INC,
+    )
+    z = np.zeros(1, dtype=bool)
+    return Segments(pts, np.array([0]), np.array([m]), np.array([0]), z, z, z, z)
+
+
+def test_largest_gap_cut_and_the_median_gap_ratio():
+    # four returns of a trunk at 6.6 m, then two of a nearer stem 0.25 m in front
+    segs = _segment([6.57, 6.567, 6.574, 6.628, 6.386, 6.301])
+    cuts = largest_gap_cuts(segs, [True])
+    assert np.flatnonzero(cuts).tolist() == [4]
+    # the junction gap is ~4x the median gap: a ratio of 5 keeps the segment whole
+    assert not largest_gap_cuts(segs, [True], ratio=5.0).any()
+    assert not largest_gap_cuts(segs, [False]).any()
+
+
+def test_cut_ends_are_occluded_only_behind_a_nearer_return():
+    segs = _segment([6.57, 6.567, 6.574, 6.628, 6.386, 6.301])
+    near = split_largest_gap(segs, [True], occlusion_margin=0.2)
+    assert near.counts.tolist() == [4, 2]
+    # the trunk's cut end is next to a return 0.24 m nearer: occluded; the stem's is not
+    assert near.occluded_end.tolist() == [True, False]
+    assert near.occluded_start.tolist() == [False, False]
+    loose = split_largest_gap(segs, [True], occlusion_margin=0.3)
+    assert loose.occluded_end.tolist() == [False, False]
+
+
+def test_gap_splits_find_a_trunk_merged_with_a_stem_in_front():
+    batch = _scan([(5.0, 0.0, 0.1), (4.8, 0.2, 0.05)])
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_divergence_deg=0.0))
+    assert len(base.detect_batch(batch)) == 0
+    assert base.rejected(batch)["reason"] == ["depth"]  # one non-convex segment
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", beam_divergence_deg=0.0, gap_splits=1, gap_ratio=2.0)
+    )
+    obs = det.detect_batch(batch)
+    assert len(obs) == 1
+    np.testing.assert_allclose(obs.centers[0], [5.0, 0.0], atol=0.01)
+    assert abs(2 * obs.radii[0] - 0.2) < 0.015  # 0.5 deg thin beams: ~+1 cm of edge bias
+
+
+def test_refit_pieces_recover_a_trunk_whose_segment_fails_the_rms_test():
+    batch = _scan([(5.0, 0.0, 0.12), (5.12, 0.19, 0.05)])
+    cfg = {"beam_divergence_deg": 0.0}
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg))
+    assert len(base.detect_batch(batch)) == 0
+    assert base.rejected(batch)["reason"] == ["rms"]
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=True, **cfg))
+    assert not det._compiled(None, None)  # numpy path only
+    obs = det.detect_batch(batch)
+    assert len(obs) == 1 and obs.index.tolist() == [0]
+    np.testing.assert_allclose(obs.centers[0], [5.0, 0.0], atol=0.015)
+    # the same diameter (within 5 mm) as the trunk alone gives (whose own thin-beam edge
+    # bias is ~-1.6 cm at 0.5 deg without the footprint model)
+    alone = base.detect_batch(_scan([(5.0, 0.0, 0.12)]))
+    assert len(alone) == 1 and abs(obs.radii[0] - alone.radii[0]) < 0.0025
+    # outlier trimming instead of the gap cut keeps the same trunk here
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", refit_pieces=True, refit_split="outliers", **cfg)
+    )
+    assert len(det.detect_batch(batch)) <= 1
+
+
+def test_new_options_are_validated():
+    with pytest.raises(ConfigError, match="gap_splits"):
+        DetectorConfig.preset("stemmap", gap_splits=-1)
+    with pytest.raises(ConfigError, match="gap_ratio"):
+        DetectorConfig.preset("stemmap", gap_ratio=math.inf)
+    with pytest.raises(ConfigError, match="refit_sigmas"):
+        DetectorConfig.preset("stemmap", refit_sigmas=0.0)
+
+
+def test_a_near_arc_bulging_many_sigmas_is_not_straight():
+    from stemmap.scan.features import segment_features
+    from stemmap.scan.plausibility import REASONS, segment_reasons
+
+    # a 12.9 cm stem at 1.5 m of the TreeLS plot (0.5 deg nearest): 10 returns whose line RMS
+    # is within the chi-square bound of 1 cm noise, but whose sagitta is 3.8 cm
+    segs = _segment([1.482, 1.456, 1.448, 1.445, 1.448, 1.458, 1.462, 1.465, 1.476, 1.487])
+    f = segment_features(segs)
+    assert 0.035 < f.depth[0] < 0.04
+    off = DetectorConfig.preset("stemmap", straight_depth_sigmas=math.inf)
+    assert REASONS[segment_reasons(segs, f, off)[0]] == "straight"
+    assert DetectorConfig.preset("stemmap").straight_depth_sigmas == 3.0  # the default keeps it
+    for k, want in ((3.0, "kept"), (4.0, "straight")):
+        got = segment_reasons(segs, f, DetectorConfig.preset("stemmap", straight_depth_sigmas=k))
+        assert REASONS[got[0]] == want
+    # a wall (sagitta 0 within the noise) stays straight whatever the setting
+    ang = INC * np.arange(20)
+    wall = _segment(3.0 / np.cos(ang - ang.mean()))
+    fw = segment_features(wall)
+    loose = DetectorConfig.preset("stemmap", straight_depth_sigmas=3.0)
+    assert REASONS[segment_reasons(wall, fw, loose)[0]] in ("straight", "depth")
