@@ -56,10 +56,11 @@ class Isam2Config:
         keyframe enters the graph). Default 15 (docs/algorithms/slam.md "Revisits";
         docs/reliability.md "Soak": the 10-pass Victoria Park replay)
     revisit_radius, revisit_keyframes, revisit_after_s : the area bound of the mode: where
-        ``revisit_keyframes`` graph keyframes of an earlier visit (added at least
-        ``revisit_after_s`` s before) lie within ``revisit_radius`` m, a keyframe that sees only
-        trees already in the graph stays out even if some have fewer than ``revisit_factors``
-        factors (only a new tree or a lost tracker brings it in)
+        ``revisit_keyframes`` graph keyframes (added at least ``revisit_after_s`` s before;
+        0 = all) lie within ``revisit_radius`` m, a keyframe that sees only trees already in
+        the graph stays out even if some have fewer than ``revisit_factors`` factors (only a
+        new tree or a lost tracker brings it in). ``revisit_after_s = 60`` lost the path in
+        the 10x soak (docs/algorithms/slam.md "Revisits")
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -109,7 +110,7 @@ class Isam2Config:
     revisit_factors: int = 15
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
-    revisit_after_s: float = 60.0
+    revisit_after_s: float = 0.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True

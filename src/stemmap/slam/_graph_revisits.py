@@ -32,10 +32,11 @@ Two additions make it hold on long drives (third session; docs/algorithms/slam.m
 "Localisation mode"): between iSAM2 updates the tracker is **localised on the map**
 (:mod:`stemmap.slam._graph_localise`; a fit the map contradicts puts the next keyframes into
 the graph), and the graph is **bounded by area**: where a place already holds
-``revisit_keyframes`` graph keyframes of an earlier visit within ``revisit_radius``
-(:class:`PlaceCounter`), a keyframe whose trees are all in the graph stays out even if some
-have fewer than ``revisit_factors`` factors. On by default (``revisit_factors = 15``);
-measured on the Victoria Park log replayed 10x as revisits in docs/reliability.md "Soak".
+``revisit_keyframes`` graph keyframes within ``revisit_radius`` (:class:`PlaceCounter`;
+optionally only those added ``revisit_after_s`` or more before), a keyframe whose trees are
+all in the graph stays out even if some have fewer than ``revisit_factors`` factors. On by
+default (``revisit_factors = 15``); measured on the Victoria Park log replayed 10x as
+revisits in docs/reliability.md "Soak".
 
 What this is meant to bound: the graph, iSAM2's memory and per-update work, the final batch and
 marginals grow with the mapped area (and with trees still below ``revisit_factors``), not
