@@ -77,7 +77,12 @@ from stemmap.slam._graph_marginals import (
     _point_marginals,
     _tree_joint_information,
 )
-from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
+from stemmap.slam._graph_odometry import (
+    _calibration_jacobians,
+    _calibration_lsq,
+    _sensor_between,
+    preintegrate_spans,
+)
 from stemmap.slam._graph_revisits import (
     PlaceCounter,
     compose_increments,
@@ -101,7 +106,7 @@ from stemmap.slam.gnss import (
     robust_kernel,
     with_gnss_frame,
 )
-from stemmap.slam.motion import between, compose, preintegrate
+from stemmap.slam.motion import between, compose
 from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
@@ -150,12 +155,14 @@ class Isam2Slam:
         T_vs = gtsam.Pose2(a, b, 0.0)
         T_sv = T_vs.inverse()
         # odometry between consecutive frames (for association and drift) and keyframes
-        pre = preintegrate(problem.motion, problem.controls, frames.times, problem.initial_pose)
+        pre = preintegrate_spans(
+            problem.motion, problem.controls, frames.times, problem.initial_pose
+        )  # (bounded working memory on long drives)
         _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
-        pre_k = preintegrate(
+        pre_k = preintegrate_spans(
             problem.motion, problem.controls, frames.times[kf_frames], problem.initial_pose
         )
         d_k, cov_k = _sensor_between(pre_k.deltas, pre_k.covs, (a, b))
