@@ -11,10 +11,11 @@ from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir
 from stemmap.errors import ConfigError
 from stemmap.eval.matching import match_points
 from stemmap.slam._graph_localise import localise_on_map
+from stemmap.slam._graph_odometry import preintegrate_spans
 from stemmap.slam._graph_revisits import PlaceCounter, compose_increments, redundant
 from stemmap.slam.base import duplicate_pairs
 from stemmap.slam.graph import Isam2Config, Isam2Slam
-from stemmap.slam.motion import compose
+from stemmap.slam.motion import compose, preintegrate
 
 
 def test_compose_increments_equals_gtsam_chain(rng):
@@ -223,3 +224,20 @@ def test_redundant_settled_trees():
         Isam2Config(revisit_radius=0.0)
     with pytest.raises(ConfigError, match="revisit_keyframes"):
         Isam2Config(revisit_keyframes=0)
+
+
+def test_preintegrate_spans_equals_one_call():
+    """Spans joined at their end poses: the same increments and covariances as one call, the
+    same poses to rounding; below ``span_s`` it is the one call itself."""
+    problem, *_ = loop_problem(3, laps=1.0)
+    m, c, t, p0 = problem.motion, problem.controls, problem.frames.times, problem.initial_pose
+    one = preintegrate(m, c, t, p0)
+    spans = preintegrate_spans(m, c, t, p0, span_s=7.0)  # ~8 spans over the 52 s lap
+    np.testing.assert_allclose(spans.deltas, one.deltas, atol=1e-12)
+    np.testing.assert_allclose(spans.covs, one.covs, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(spans.distance, one.distance, atol=1e-12)
+    np.testing.assert_allclose(spans.poses[:, :2], one.poses[:, :2], atol=1e-9)
+    dth = np.angle(np.exp(1j * (spans.poses[:, 2] - one.poses[:, 2])))
+    assert np.abs(dth).max() < 1e-12
+    same = preintegrate_spans(m, c, t, p0, span_s=1e6)
+    np.testing.assert_array_equal(same.poses, one.poses)
