@@ -60,7 +60,7 @@ def test_fallback_without_numba_internals(tmp_path: Path) -> None:
 def test_the_detector_kernel_records_its_dependencies() -> None:
     """The real module: numba's cache location is found and the record matches the files the
     kernel compiles in (so a later edit of either is noticed)."""
-    from stemmap.scan import _corners, _detect_fast, _fit_geometric, features
+    from stemmap.scan import _corners, _detect_fast, _fit_geometric, _gaps, features
 
     cache = _numba_cache._cache_dir(_detect_fast._detect_kernel, Path(_detect_fast.__file__))
     record = cache / "_detect_fast.deps-sha256"
@@ -72,4 +72,5 @@ def test_the_detector_kernel_records_its_dependencies() -> None:
         _fit_geometric.__file__,
         features.__file__,
         _corners.__file__,
+        _gaps.__file__,
     )

@@ -176,3 +176,28 @@ def test_block_diag_noise_is_kron():
     R1 = np.array([[0.01, 0.002], [0.002, 7.6e-5]])
     for m in range(5):
         np.testing.assert_array_equal(block_diag_noise(m, R1), np.kron(np.eye(m), R1))
+
+
+@pytest.mark.parametrize("update", ["compressed", "full"])
+def test_ekf_starts_landmarks_out_to_the_search_radius(update):
+    """A tree seen only beyond 40 m is mapped (``max_new_range`` defaults to the 85 m search
+    radius: on Victoria Park 8 % of the detections lie beyond 40 m) and one beyond
+    ``max_new_range`` is not. Vehicle standing still, two trees at 60 m and 70 m, 20 scans."""
+    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
+    from stemmap.slam.motion import AckermannModel
+
+    nf = 20
+    t = np.arange(nf) * 0.2
+    ranges = np.tile([60.0, 70.0], nf)
+    bearings = np.tile([0.3, -0.2], nf)
+    frames = TreeFrames(t, np.arange(0, 2 * nf + 1, 2), ranges, bearings, np.full(2 * nf, 0.4))
+    controls = Controls(t, np.zeros(nf), np.zeros(nf), "ackermann")
+    problem = SlamProblem(controls, frames, AckermannModel(), (3.78, 0.5), (0.0, 0.0, 0.0))
+    assert EkfConfig().max_new_range == EkfConfig().search_radius
+    res = EkfSlam(update=update).run(problem)
+    assert len(res.stem_map) == 2
+    res = EkfSlam(update=update, max_new_range=65.0).run(problem)
+    assert len(res.stem_map) == 1
+    # the tree is where the detections put it: sensor (3.78, 0.5) + 60 m at 0.3 rad
+    tr = res.stem_map.trees[0]
+    assert math.hypot(tr.x - 3.78 - 60 * math.cos(0.3), tr.y - 0.5 - 60 * math.sin(0.3)) < 1e-6

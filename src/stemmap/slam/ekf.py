@@ -78,7 +78,10 @@ class EkfConfig:
         landmark exceeds this (detections between the gate and this value are discarded as
         ambiguous)
     new_landmark_min_dist : m, and only if it is at least this far from every landmark
-    max_new_range : m, no landmarks are started from detections farther than this
+    max_new_range : m, no landmarks are started from detections farther than this (default
+        85 m = ``search_radius``: a landmark is started wherever it can later be associated;
+        the earlier 40 m left 8 % of the Victoria Park detections unused, see
+        docs/algorithms/slam.md)
     prune_after, min_obs : landmark quality (prune_after = 0 disables pruning)
     prune_every : frames between pruning passes (each pass copies the covariance once)
     search_radius : m, landmarks farther than this from the sensor are not association candidates
@@ -101,7 +104,7 @@ class EkfConfig:
     gate_alpha: float = 0.99
     new_landmark_chi2: float = 25.0
     new_landmark_min_dist: float = 1.0
-    max_new_range: float = 40.0
+    max_new_range: float = 85.0
     prune_after: int = 10
     prune_every: int = 20
     min_obs: int = 3
