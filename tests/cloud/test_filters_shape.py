@@ -131,3 +131,54 @@ def test_cell_index_is_numpy_unique_of_the_packed_keys(stray: bool) -> None:
     np.testing.assert_array_equal(((cells[:, 0] + (1 << 30)) << 32) | (cells[:, 1] + (1 << 30)), uk)
     np.testing.assert_array_equal(got, inv)
     assert cell_index(np.zeros((0, 2), dtype=np.int64))[0].shape == (0, 2)
+
+
+@pytest.mark.parametrize("stray", [False, True])
+def test_dense_grid_kernels_equal_the_numpy_reductions(stray: bool) -> None:
+    """The one-pass ground-minimum and canopy-maximum kernels give exactly what the numpy
+    reductions over cell_index give: the same cells in the same order, the first of equal
+    minima, the same support counts, the same maxima -- on coordinates quantised to 1 cm
+    (many exact ties, points on cell edges, negative cells); with a stray point far away the
+    dense grid is refused and the numpy path runs."""
+    from stemmap.cloud._grid_kernel import lowest_per_cell, max_per_cell
+    from stemmap.cloud.ground import _SUPPORT, cell_index
+    from stemmap.cloud.measure import _CANOPY_CELL, _canopy_update
+
+    rng = np.random.default_rng(11)
+    p = np.round(rng.uniform(-12.0, 9.0, (30_000, 3)), 2)
+    p[:, 2] = np.round(rng.normal(0.0, 0.05, p.shape[0]), 2)  # ties in z
+    if stray:
+        p[7] = (4.0e6, -3.0e6, 0.0)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    low = lowest_per_cell(x, y, z, 1.0, _SUPPORT)
+    top = max_per_cell(x, y, z, _CANOPY_CELL)
+    if stray:
+        assert low is None and top is None
+    else:
+        assert low is not None and top is not None
+        cells, inv = cell_index(np.floor(p[:, :2] / 1.0).astype(np.int64))
+        zmin = np.full(cells.shape[0], np.inf)
+        np.minimum.at(zmin, inv, z)
+        cand = np.flatnonzero(z == zmin[inv])
+        _, first = np.unique(inv[cand], return_index=True)
+        sup = np.bincount(inv[z <= zmin[inv] + _SUPPORT], minlength=cells.shape[0])
+        np.testing.assert_array_equal(low[0], cells)
+        np.testing.assert_array_equal(low[1], cand[first])
+        np.testing.assert_array_equal(low[2], sup)
+        cells, inv = cell_index(np.floor(p[:, :2] / _CANOPY_CELL).astype(np.int64))
+        hmax = np.full(cells.shape[0], -np.inf)
+        np.maximum.at(hmax, inv, z)
+        np.testing.assert_array_equal(top[0], cells)
+        np.testing.assert_array_equal(top[1], hmax)
+    # streamed in parts (the merge path), the canopy and the ground are the same as in one go
+    one = _canopy_update({}, p[:, :2], z)
+    parts: dict[str, np.ndarray] = {}
+    acc1, acc3 = GroundAccumulator(1.0), GroundAccumulator(1.0)
+    acc1.update(p)
+    for part in np.array_split(np.arange(p.shape[0]), 3):
+        parts = _canopy_update(parts, p[part, :2], z[part])
+        acc3.update(p[part])
+    np.testing.assert_array_equal(parts["keys"], one["keys"])
+    np.testing.assert_array_equal(parts["h"], one["h"])
+    np.testing.assert_array_equal(acc1._keys, acc3._keys)
+    np.testing.assert_array_equal(acc1._low, acc3._low)

@@ -464,3 +464,35 @@ def test_pooled_fit_needs_a_stem_that_goes_on_above_the_band() -> None:
     assert abs(on.diameter[k] - 0.24) < 0.02
     assert np.isnan(on.taper[k]) and 0 < on.quality[k] <= 1
     assert len(detect_stems(_sparse_trunk_scene(1.6))) == 1
+
+
+def test_region_keeps_the_stems_inside_it(tls_scene: tuple[Stand3D, np.ndarray]) -> None:
+    """``detect_prepared(region=)`` (a tile engine's owned area) fits only the clusters near
+    the region: the stems whose centre lies in it are exactly (bit for bit) those of the run
+    without a region, the far ones are not measured; without a given noise floor the region
+    is ignored (the floor is a median over every cluster's fits)."""
+    from stemmap.cloud.stems import detect_prepared, prepare_cloud
+
+    _, xyz = tls_scene
+    cfg = StemConfig()
+    full = detect_stems(xyz, cfg)
+    cfg = replace(cfg, spacing=full.spacing, noise_floor=full.noise_floor)
+    full = detect_stems(xyz, cfg)
+    prep = prepare_cloud(xyz, cfg)
+    for region in [(0.0, 0.0, 6.0, 6.0), (8.0, -np.inf, np.inf, 8.0), (4.0, 4.0, 12.0, 12.0)]:
+        part = detect_prepared(prep, cfg, region=region)
+
+        def inside(s: CloudStems, r: tuple[float, float, float, float] = region) -> np.ndarray:
+            x, y = s.xy[:, 0], s.xy[:, 1]
+            return np.flatnonzero((x >= r[0]) & (x < r[2]) & (y >= r[1]) & (y < r[3]))
+
+        a, b = full.select(inside(full)), part.select(inside(part))
+        assert len(a) >= 1
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.diameter, b.diameter)
+        np.testing.assert_array_equal(a.z, b.z)
+        np.testing.assert_array_equal(a.height, b.height)
+    assert len(detect_prepared(prep, cfg, region=(0.0, 0.0, 1.0, 1.0))) < len(full)
+    unset = replace(cfg, noise_floor=None)
+    far = detect_prepared(prepare_cloud(xyz, unset), unset, region=(100.0, 100.0, 101.0, 101.0))
+    assert len(far) == len(detect_stems(xyz, unset))

@@ -22,7 +22,8 @@ def as_xyz(xyz: ArrayLike, name: str = "xyz") -> FloatArray:
     a = np.asarray(xyz, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
         raise InputError(f"{name} must have shape (N, 3), got {a.shape}.")
-    if not np.all(np.isfinite(a)):
+    # min and max propagate NaN and hold any inf: no (N, 3) temporary of np.isfinite
+    if a.size and not (np.isfinite(a.min()) and np.isfinite(a.max())):
         raise InputError(f"{name} contains NaN or inf coordinates; drop them first.")
     return a
 

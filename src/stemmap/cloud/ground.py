@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from stemmap.cloud._grid_kernel import lowest_per_cell
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
 
@@ -153,22 +154,28 @@ class GroundAccumulator:
         p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         if p.shape[0] == 0:
             return
-        ij = np.floor(p[:, :2] / self.cell).astype(np.int64)
-        # reduce the chunk to its lowest point per cell first (cell_index + ufunc.at, much
-        # cheaper than a lexsort of the whole chunk), then merge with the running minima
-        cells, inv = cell_index(ij)
-        uk = ((cells[:, 0] + _OFF) << 32) | (cells[:, 1] + _OFF)
-        keys = uk[inv]
-        zmin = np.full(uk.shape[0], np.inf)
-        np.minimum.at(zmin, inv, p[:, 2])
-        cand = np.flatnonzero(p[:, 2] == zmin[inv])
-        _, first = np.unique(inv[cand], return_index=True)
-        sel = cand[first]
-        # support of each minimum: the chunk's points within _SUPPORT of it (a lone noise
-        # point below the ground has support 1; the ground or a stem's cut has many)
-        near = p[:, 2] <= zmin[inv] + _SUPPORT
-        cnt = np.bincount(inv[near], minlength=uk.shape[0])
-        keys = np.concatenate((self._keys, keys[sel]))
+        # reduce the chunk to its lowest point per cell first (one pass on a dense grid, or
+        # cell_index + ufunc.at: much cheaper than a lexsort of the whole chunk), then merge
+        # with the running minima
+        low = lowest_per_cell(p[:, 0], p[:, 1], p[:, 2], self.cell, _SUPPORT)
+        if low is not None:
+            cells, sel, cnt = low
+            new = ((cells[:, 0] + _OFF) << 32) | (cells[:, 1] + _OFF)
+        else:
+            ij = np.floor(p[:, :2] / self.cell).astype(np.int64)
+            cells, inv = cell_index(ij)
+            uk = ((cells[:, 0] + _OFF) << 32) | (cells[:, 1] + _OFF)
+            zmin = np.full(uk.shape[0], np.inf)
+            np.minimum.at(zmin, inv, p[:, 2])
+            cand = np.flatnonzero(p[:, 2] == zmin[inv])
+            _, first = np.unique(inv[cand], return_index=True)
+            sel = cand[first]
+            # support of each minimum: the chunk's points within _SUPPORT of it (a lone noise
+            # point below the ground has support 1; the ground or a stem's cut has many)
+            near = p[:, 2] <= zmin[inv] + _SUPPORT
+            cnt = np.bincount(inv[near], minlength=uk.shape[0])
+            new = uk[inv[sel]]
+        keys = np.concatenate((self._keys, new))
         pts = np.concatenate((self._low, p[sel]))
         sup = np.concatenate((self._sup, cnt))
         order = np.lexsort((pts[:, 2], keys))

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from stemmap.cloud._grid_kernel import max_per_cell
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.ground import BASE_GROUND, cell_index, core_cells, raster_guard
 from stemmap.cloud.result import RULE_BH, CloudStems
@@ -44,6 +45,10 @@ class _Band:
 
 
 _CANOPY_CELL = 0.25
+#: clusters within this many maximum diameters of a requested region are fitted (a stem's
+#: centre lies within half a diameter of its cluster, a duplicate within half a diameter of
+#: the stem it suppresses: 2 diameters leave a margin for chains of both)
+REGION_MARGIN = 2.0
 _CLUSTER_BYTES_PER_CELL = 16  # occupancy + dilation (bool), labels (int32), temporaries
 _KEY_OFF = 1 << 30
 
@@ -52,12 +57,19 @@ def _canopy_update(canopy: dict[str, Any], xy: FloatArray, h: FloatArray) -> dic
     """Running max height per 0.25 m cell (keys -> max h, keys sorted), for stem height."""
     if xy.shape[0] == 0:
         return canopy
-    ij = np.floor(xy / _CANOPY_CELL).astype(np.int64)
+    dense = max_per_cell(xy[:, 0], xy[:, 1], h, _CANOPY_CELL)  # one pass when compact
+    if dense is None:
+        ij = np.floor(xy / _CANOPY_CELL).astype(np.int64)
+    else:
+        ij, h = dense
     if canopy:
         i = (canopy["keys"] >> 32) - _KEY_OFF
         j = (canopy["keys"] & 0xFFFFFFFF) - _KEY_OFF
         ij = np.concatenate((np.column_stack((i, j)), ij))
         h = np.concatenate((canopy["h"], h))
+    elif dense is not None:
+        keys = ((ij[:, 0] + _KEY_OFF) << 32) | (ij[:, 1] + _KEY_OFF)
+        return {"keys": keys, "h": h}
     cells, inv = cell_index(ij)  # the distinct cells, sorted, without a sort of the points
     hmax = np.full(cells.shape[0], -np.inf)
     np.maximum.at(hmax, inv, h)
@@ -249,11 +261,25 @@ def _radius_consensus(
 
 
 def _stems_from_band(
-    band: _Band, cfg: StemConfig, *, slice_cloud: bool = False, statistics_only: bool = False
+    band: _Band,
+    cfg: StemConfig,
+    *,
+    slice_cloud: bool = False,
+    statistics_only: bool = False,
+    region: tuple[float, float, float, float] | None = None,
 ) -> CloudStems:
     """Stems of the slice band. With ``statistics_only`` stop once the point spacing and the
     slice noise floor are measured: an empty CloudStems carrying both (the steps before them
-    are exactly the full run's, so the values are the ones the full run measures)."""
+    are exactly the full run's, so the values are the ones the full run measures).
+
+    ``region`` (xmin, ymin, xmax, ymax; infinite sides allowed): only the stems near it are
+    wanted (a tile engine's chunk keeps the stems its owned area holds). Clusters farther
+    than :data:`REGION_MARGIN` diameters from it are not fitted. Every step before the fits
+    (spacing, slices, vertical filter, clustering) still sees the whole band, the slice fits
+    are seeded per slice, and each stem's tests read only its own cluster; what crosses
+    clusters -- duplicate suppression, within half a diameter -- stays inside the margin, so
+    the stems inside the region are the ones a run without it finds. It applies only with
+    a given ``noise_floor`` (measured, it is the median over every cluster's fits)."""
     xy, h = band.xy, band.h
     n = xy.shape[0]
     if n < cfg.min_slice_points:
@@ -324,6 +350,10 @@ def _stems_from_band(
     # a stem's footprint can be widened by an attached branch or shrub in some slices (the
     # per-slice robust fits and consistency tests deal with those), so only absurd ones go
     cand = (counts >= cfg.min_slice_points) & (extent <= 3.0 * cfg.max_diameter + 2 * cell)
+    if region is not None and cfg.noise_floor is not None and not statistics_only:
+        d = REGION_MARGIN * cfg.max_diameter
+        cand &= (xmax >= region[0] - d) & (xmin <= region[2] + d)
+        cand &= (ymax >= region[1] - d) & (ymin <= region[3] + d)
     sl = sl_all
     use = cand[lab] & (sl >= 0)
     if not use.any():
@@ -548,7 +578,7 @@ def _stems_from_band(
     arr = arr[kept]
     rule_arr = np.array([rules[i] for i in kept], dtype=object)
     # absolute z of breast height at each stem: median z - h offset of nearby band points
-    zbh = _breast_height_z(band, arr[:, :2], cfg.breast_height)
+    zbh = _breast_height_z(band, arr[:, :2], cfg.breast_height, band_tree)
     heights = _stem_heights(band.canopy, arr[:, :2]) if band.canopy else np.full(len(arr), np.nan)
     return CloudStems.from_columns(
         xy=arr[:, :2],
@@ -749,13 +779,14 @@ def _pooled_stems(
     return rows
 
 
-def _breast_height_z(band: _Band, xy: FloatArray, bh: float) -> FloatArray:
+def _breast_height_z(band: _Band, xy: FloatArray, bh: float, tree: Any = None) -> FloatArray:
+    """Absolute z of breast height at ``xy``; ``tree``: a cKDTree of ``band.xy`` if built."""
     from scipy.spatial import cKDTree
 
     if band.xy.shape[0] == 0 or xy.shape[0] == 0:
         return np.full(xy.shape[0], np.nan)
     off = band.z - band.h  # ground z under each band point
-    tree = cKDTree(band.xy)
+    tree = cKDTree(band.xy) if tree is None else tree
     _, idx = tree.query(xy, k=min(16, band.xy.shape[0]))
     idx = np.atleast_2d(idx)
     return np.asarray(np.median(off[idx], axis=1) + bh, dtype=np.float64)

@@ -214,17 +214,30 @@ class PreparedCloud:
 
 
 def detect_prepared(
-    prepared: PreparedCloud, config: StemConfig | None = None, *, statistics_only: bool = False
+    prepared: PreparedCloud,
+    config: StemConfig | None = None,
+    *,
+    statistics_only: bool = False,
+    region: tuple[float, float, float, float] | None = None,
 ) -> CloudStems:
     """Stems of a :class:`PreparedCloud` (the steps of :func:`detect_stems` after the
     ground); with ``statistics_only`` only the spacing and noise floor
     (:func:`detect_statistics`). ``config`` must be the one the cloud was prepared with, up
-    to ``spacing`` / ``noise_floor`` / ``grid_origin`` and the fit settings."""
+    to ``spacing`` / ``noise_floor`` / ``grid_origin`` and the fit settings.
+
+    ``region`` (xmin, ymin, xmax, ymax, metres; infinite sides allowed): only the stems in
+    it are wanted (a tile engine's chunk keeps those its owned area holds); clusters far
+    from it are not fitted. Stems inside it are the same as without it; outside it some are
+    missing. Used only when ``config.noise_floor`` is given."""
     if prepared.band is None:
         return CloudStems.empty("ours", reason="the cloud is empty")
     cfg = _slice_setup(config or StemConfig(), prepared.zmin, prepared.zmax, prepared.is_slice)
     return _stems_from_band(
-        prepared.band, cfg, slice_cloud=prepared.is_slice, statistics_only=statistics_only
+        prepared.band,
+        cfg,
+        slice_cloud=prepared.is_slice,
+        statistics_only=statistics_only,
+        region=region,
     )
 
 

@@ -303,6 +303,19 @@ class Chunk:
         b, d = self.box, self.buffer
         return (b[0] - d, b[1] - d, b[2] + d, b[3] + d)
 
+    @property
+    def owned_region(self) -> tuple[float, float, float, float]:
+        """The owned area as (xmin, ymin, xmax, ymax), infinite on the open sides."""
+        x0, y0, x1, y1 = self.box
+        left, bottom, right, top = self.open_sides
+        inf = math.inf
+        return (
+            -inf if left else x0,
+            -inf if bottom else y0,
+            inf if right else x1,
+            inf if top else y1,
+        )
+
     def owns(self, xy: FloatArray) -> NDArray[np.bool_]:
         """Which of the (N, 2) positions lie in the owned area (half-open, border sides open)."""
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

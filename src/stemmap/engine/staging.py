@@ -32,7 +32,7 @@ from stemmap.engine.catalog import Catalog, Chunk
 from stemmap.errors import InputError
 from stemmap.types import FloatArray
 
-__all__ = ["clear_stage", "read_staged", "stage_tile", "stage_tile_outcome"]
+__all__ = ["clear_stage", "laz_selection", "read_staged", "stage_tile", "stage_tile_outcome"]
 
 
 def _frag(stage: Path, chunk_id: str, tile: int, what: str) -> Path:
@@ -56,6 +56,9 @@ def stage_tile(
     t = catalog.tiles[tile]
     root = Path(stage)
     boxes = [(c.id, c.buffered) for c in chunks]
+    by_x: dict[tuple[float, float], dict[tuple[float, float], list[str]]] = {}
+    for cid, bx in boxes:
+        by_x.setdefault((bx[0], bx[2]), {}).setdefault((bx[1], bx[3]), []).append(cid)
     what = ("xyz", *fields)
     handles: dict[tuple[str, str], IO[bytes]] = {}
     counts = {c.id: 0 for c in chunks}
@@ -67,7 +70,11 @@ def stage_tile(
                 p = _frag(root, cid, tile, w + tmp_suffix)
                 handles[(cid, w)] = open(p, "wb")  # noqa: SIM115 - closed in finally
         try:
-            with laspy.open(t.path, laz_backend=_one_thread_laz()) as rd:
+            with laspy.open(
+                t.path,
+                laz_backend=_one_thread_laz(),
+                decompression_selection=laz_selection(fields),
+            ) as rd:
                 names = set(rd.header.point_format.dimension_names)
                 missing = [f for f in fields if f not in names]
                 if missing:
@@ -77,17 +84,26 @@ def stage_tile(
                         continue
                     x, y = np.asarray(pts.x), np.asarray(pts.y)
                     xyz: FloatArray | None = None
-                    for cid, bx in boxes:
-                        m = (x >= bx[0]) & (x <= bx[2]) & (y >= bx[1]) & (y <= bx[3])
-                        if not m.any():
+                    for (x0, x1), by_y in by_x.items():
+                        # chunks on a grid share their x ranges: select each range once,
+                        # then test y on its points only
+                        ix = np.flatnonzero((x >= x0) & (x <= x1))
+                        if ix.size == 0:
                             continue
-                        if xyz is None:
-                            xyz = np.column_stack((x, y, np.asarray(pts.z)))
-                        handles[(cid, "xyz")].write(np.ascontiguousarray(xyz[m]).tobytes())
-                        for f in fields:
-                            v = np.asarray(pts[f], dtype=np.float64)[m]
-                            handles[(cid, f)].write(v.tobytes())
-                        counts[cid] += int(m.sum())
+                        ys = y[ix]
+                        for (y0, y1), cids in by_y.items():
+                            idx = ix[(ys >= y0) & (ys <= y1)]
+                            if idx.size == 0:
+                                continue
+                            if xyz is None:
+                                xyz = np.column_stack((x, y, np.asarray(pts.z)))
+                            sel = np.take(xyz, idx, axis=0)  # C-contiguous: written as is
+                            vals = [np.asarray(pts[f], dtype=np.float64)[idx] for f in fields]
+                            for cid in cids:
+                                handles[(cid, "xyz")].write(sel.data)
+                                for f, v in zip(fields, vals, strict=True):
+                                    handles[(cid, f)].write(v.data)
+                                counts[cid] += idx.size
         except InputError:
             raise
         except Exception as exc:
@@ -116,6 +132,21 @@ def _one_thread_laz() -> Any:
     from laspy import LazBackend
 
     return LazBackend.Lazrs if LazBackend.Lazrs.is_available() else None
+
+
+def laz_selection(fields: Sequence[str] = ()) -> Any:
+    """The LAZ layers to decompress for x, y, z and ``fields``: LAS 1.4 point formats 6-10
+    store each group of dimensions in its own layer, so the others (intensity,
+    classification, flags, scan angle, colours, ...) are skipped undecoded; the decoded
+    coordinates are the same. Other formats and LAS files read everything."""
+    from laspy import DecompressionSelection as Sel
+
+    sel = Sel.XY_RETURNS_CHANNEL | Sel.Z
+    for f in fields:
+        if f != "gps_time":
+            return Sel.all()
+        sel |= Sel.GPS_TIME
+    return sel
 
 
 def stage_tile_outcome(
@@ -165,23 +196,80 @@ def read_staged(
     stage: str, chunk: Chunk, tiles: Sequence[int], fields: Sequence[str] = ()
 ) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
     """A chunk's points from the fragments of ``tiles`` (in that order)."""
-    root = Path(stage)
-    parts: list[FloatArray] = []
-    extra: dict[str, list[NDArray[Any]]] = {f: [] for f in fields}
-    for k in tiles:
-        p = _frag(root, chunk.id, k, "xyz")
-        if not p.exists():
-            raise InputError(f"staged points of tile {k} for chunk {chunk.id} are missing ({p}).")
-        xyz = np.fromfile(p, dtype=np.float64).reshape(-1, 3)
-        parts.append(xyz)
-        for f in fields:
-            v = np.fromfile(_frag(root, chunk.id, k, f), dtype=np.float64)
-            if v.shape[0] != xyz.shape[0]:
-                raise InputError(f"staged field {f!r} of tile {k}, chunk {chunk.id} is torn.")
-            extra[f].append(v)
-    if not parts:
-        return np.zeros((0, 3)), {f: np.zeros(0) for f in fields}
-    return np.concatenate(parts), {f: np.concatenate(v) for f, v in extra.items()}
+    return _gather(stage, chunk, [(k, True) for k in tiles], fields, None)
+
+
+def _frag_points(root: Path, chunk: Chunk, k: int) -> int:
+    p = _frag(root, chunk.id, k, "xyz")
+    try:
+        size = p.stat().st_size
+    except FileNotFoundError:
+        raise InputError(
+            f"staged points of tile {k} for chunk {chunk.id} are missing ({p})."
+        ) from None
+    if size % 24:
+        raise InputError(f"staged points of tile {k} for chunk {chunk.id} are torn ({p}).")
+    return size // 24
+
+
+def _read_into(path: Path, out: NDArray[Any], what: str) -> None:
+    """Fill the C-contiguous ``out`` with the bytes of ``path`` (exactly its size)."""
+    if out.size == 0:  # an empty fragment (a memoryview of no bytes cannot be cast)
+        if path.stat().st_size:
+            raise InputError(f"{what} is torn ({path}).")
+        return
+    view = out.data.cast("B")
+    with open(path, "rb") as fh:
+        got = fh.readinto(view)
+        if got != view.nbytes or fh.read(1):
+            raise InputError(f"{what} is torn ({path}).")
+
+
+def _gather(
+    stage: str | None,
+    chunk: Chunk,
+    sources: Sequence[tuple[int, bool]],
+    fields: Sequence[str],
+    direct: Any,
+) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
+    """Concatenate the points of ``sources`` ((tile, staged?) in order) into arrays
+    allocated once: staged fragments are read straight into their rows, the other tiles by
+    ``direct(tile)`` (a COPC query)."""
+    root = Path(stage) if stage is not None else Path()
+    parts: list[tuple[int, Any]] = []
+    for k, staged in sources:
+        if staged:
+            parts.append((k, _frag_points(root, chunk, k)))
+        else:
+            parts.append((k, direct(k)))
+    sizes = [v if isinstance(v, int) else int(v[0].shape[0]) for _, v in parts]
+    n = sum(sizes)
+    xyz = np.empty((n, 3), dtype=np.float64)
+    extra: dict[str, NDArray[Any]] = {}
+    for f in fields:
+        kinds = [v[1][f].dtype for _, v in parts if not isinstance(v, int)]
+        kinds += [np.dtype(np.float64)] * sum(isinstance(v, int) for _, v in parts)
+        extra[f] = np.empty(n, dtype=np.result_type(*kinds) if kinds else np.float64)
+    at = 0
+    for (k, v), m in zip(parts, sizes, strict=True):
+        rows = slice(at, at + m)
+        if isinstance(v, int):
+            what = f"staged points of tile {k} for chunk {chunk.id}"
+            _read_into(_frag(root, chunk.id, k, "xyz"), xyz[rows], what)
+            for f in fields:
+                fp = _frag(root, chunk.id, k, f)
+                if not fp.exists() or fp.stat().st_size != 8 * m:
+                    raise InputError(f"staged field {f!r} of tile {k}, chunk {chunk.id} is torn.")
+                if extra[f].dtype == np.float64:
+                    _read_into(fp, extra[f][rows], f"staged field {f!r} of tile {k}")
+                else:
+                    extra[f][rows] = np.fromfile(fp, dtype=np.float64)
+        else:
+            xyz[rows] = v[0]
+            for f in fields:
+                extra[f][rows] = v[1][f]
+        at += m
+    return xyz, extra
 
 
 def clear_stage(stage: str | Path, chunk_id: str | None = None) -> None:
@@ -194,21 +282,13 @@ def chunk_points(
     catalog: Catalog, chunk: Chunk, stage: str | None, fields: Sequence[str] = ()
 ) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
     """A buffered chunk's points in tile order: staged fragments for LAS/LAZ tiles (when
-    ``stage`` is given), a direct read (a COPC query) otherwise."""
+    ``stage`` is given), a direct read (a COPC query) otherwise; one array, filled in place."""
     from dataclasses import replace
 
     from stemmap.engine.catalog import read_chunk
 
-    parts: list[FloatArray] = []
-    extra: dict[str, list[NDArray[Any]]] = {f: [] for f in fields}
-    for k in chunk.tiles:
-        if stage is not None and not catalog.tiles[k].copc:
-            xyz, ex = read_staged(stage, chunk, (k,), fields)
-        else:
-            xyz, ex = read_chunk(catalog, replace(chunk, tiles=(k,)), fields=fields)
-        parts.append(xyz)
-        for f in fields:
-            extra[f].append(ex[f])
-    if not parts:
-        return np.zeros((0, 3)), {f: np.zeros(0) for f in fields}
-    return np.concatenate(parts), {f: np.concatenate(v) for f, v in extra.items()}
+    def direct(k: int) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
+        return read_chunk(catalog, replace(chunk, tiles=(k,)), fields=fields)
+
+    sources = [(k, stage is not None and not catalog.tiles[k].copc) for k in chunk.tiles]
+    return _gather(stage, chunk, sources, fields, direct)

@@ -77,13 +77,16 @@ def _storable(v: Any) -> Any:
 
 
 def _detect(
-    xyz: np.ndarray, cfg: StemConfig | MunjerConfig, origins: np.ndarray | None
+    xyz: np.ndarray, cfg: StemConfig | MunjerConfig, origins: np.ndarray | None, chunk: Chunk
 ) -> CloudStems:
-    from stemmap.cloud import detect_stems, detect_stems_munjer
+    """The detector on a buffered chunk; ours fits only the clusters near the owned area
+    (``detect_prepared(region=)``: the owned stems are the same)."""
+    from stemmap.cloud import detect_prepared, detect_stems_munjer, prepare_cloud
 
     if isinstance(cfg, MunjerConfig):
         return detect_stems_munjer(xyz, cfg)
-    return detect_stems(xyz, cfg, origins=origins)
+    prep = prepare_cloud(xyz, cfg, origins=origins)
+    return detect_prepared(prep, cfg, region=chunk.owned_region)
 
 
 def _no_points(method: str) -> CloudStems:
@@ -108,7 +111,7 @@ def _chunk_stems(
     if sensor is not None:
         times = extra[time_field] if time_field else None
         origins = sensor.origins(n, times, f"chunk {chunk.id}")
-    return _detect(xyz, config, origins), n
+    return _detect(xyz, config, origins, chunk), n
 
 
 def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, float]:
@@ -342,7 +345,9 @@ def stems_chunk(
     if prepared is not None and isinstance(config, StemConfig):
         prep = PreparedCloud.from_columns(load_columns(Path(prepared["path"])))
         n = int(prepared["n_points"])
-        stems = detect_prepared(prep, config) if n else _no_points("ours")
+        stems = (
+            detect_prepared(prep, config, region=chunk.owned_region) if n else _no_points("ours")
+        )
         before = float(prepared["task_s"])
     else:
         stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
