@@ -10,10 +10,12 @@ from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir
 
 from stemmap.errors import ConfigError
 from stemmap.eval.matching import match_points
-from stemmap.slam._graph_revisits import compose_increments, redundant
+from stemmap.slam._graph_localise import localise_on_map
+from stemmap.slam._graph_odometry import preintegrate_spans
+from stemmap.slam._graph_revisits import PlaceCounter, compose_increments, redundant
 from stemmap.slam.base import duplicate_pairs
 from stemmap.slam.graph import Isam2Config, Isam2Slam
-from stemmap.slam.motion import compose
+from stemmap.slam.motion import compose, preintegrate
 
 
 def test_compose_increments_equals_gtsam_chain(rng):
@@ -68,7 +70,7 @@ def test_redundant_rule():
 def five_laps():
     problem, truth, trees, _diam = loop_problem(2, laps=5.0)
     reduced = Isam2Slam(revisit_factors=15).run(problem)
-    full = Isam2Slam().run(problem)  # default: every keyframe a pose
+    full = Isam2Slam(revisit_factors=0).run(problem)  # off: every keyframe a pose
     return truth, trees, reduced, full
 
 
@@ -82,6 +84,22 @@ def test_revisits_do_not_grow_the_graph(five_laps):
     assert reduced.stats["keyframes_in_graph"] < 0.5 * nk
     assert reduced.stats["keyframes_localised"] == nk - reduced.stats["keyframes_in_graph"]
     assert reduced.stats["factors"] < 0.6 * full.stats["factors"]
+
+
+def test_localisation_mode_bounds_the_graph_by_area(five_laps):
+    """Laps 3-5 revisit full places: the graph grows far less than in laps 1-2 (the area bound),
+    and the tracker is localised on the map between updates without getting lost."""
+    _truth, _trees, reduced, _full = five_laps
+    two = Isam2Slam(revisit_factors=15).run(loop_problem(2, laps=2.0)[0])
+    k2, k5 = two.stats["keyframes_in_graph"], reduced.stats["keyframes_in_graph"]
+    # 2.5x the drive; measured: 105 graph keyframes after 2 laps, 114 after 5
+    assert k5 - k2 < 0.5 * k2, (k2, k5)
+    assert reduced.stats["tracker_map_fixes"] > 0.2 * reduced.stats["keyframes_localised"] / 3
+    assert reduced.stats["tracker_lost"] <= 2
+    entered = sum(
+        reduced.stats[f"keyframes_entered_{w}"] for w in ("forced", "new_tree", "young_tree")
+    )
+    assert entered == k5 - 1  # every graph keyframe after the first has its reason
 
 
 def test_revisits_keep_path_and_map_quality(five_laps):
@@ -101,3 +119,125 @@ def test_revisits_keep_path_and_map_quality(five_laps):
     assert rms["reduced"] < 1.3 * rms["full"] + 0.01
     # no tree is duplicated by the revisits: the two maps hold the same trees
     assert abs(len(reduced.stem_map) - len(full.stem_map)) <= 0.05 * len(full.stem_map) + 1
+
+
+def _scene(rng, pose, n=12, noise=True):
+    """Trees around ``pose`` and their bearing-range measurements from it."""
+    trees = pose[:2] + rng.uniform(-30.0, 30.0, (n, 2))
+    d = trees - pose[:2]
+    rr = np.hypot(d[:, 0], d[:, 1])
+    bb = np.arctan2(d[:, 1], d[:, 0]) - pose[2]
+    sig = np.tile([math.radians(0.5), 0.1], (n, 1))
+    if noise:
+        bb = bb + rng.normal(0.0, sig[:, 0])
+        rr = rr + rng.normal(0.0, sig[:, 1])
+    return trees, bb, rr, sig
+
+
+def test_localise_on_map_recovers_the_pose(rng):
+    """Noisy measurements of 12 mapped trees, a tracker 0.4 m / 1.7 deg off: the fit lands
+    within a few sigmas of the truth (bearing 0.5 deg, range 0.1 m at <= 42 m)."""
+    truth = np.array([3.0, -2.0, 0.7])
+    trees, bb, rr, sig = _scene(rng, truth)
+    prior = truth + np.array([0.3, -0.25, 0.03])
+    fix = localise_on_map(
+        prior, np.zeros((12, 3)), np.arange(12), bb, rr, sig, trees, np.full(12, 1e-4),
+        np.diag([0.5, 0.5, 0.05]) ** 2,
+    )  # fmt: skip
+    assert fix.ok and not fix.lost and fix.n_inliers == 12
+    err = fix.pose - truth
+    sd = np.sqrt(np.diag(fix.cov))
+    assert np.all(np.abs(err) < 4.0 * sd + 1e-9), (err, sd)
+    assert np.hypot(err[0], err[1]) < 0.1 and abs(err[2]) < math.radians(0.3)
+
+
+def test_localise_on_map_measurements_from_other_keyframes(rng):
+    """A measurement taken from another sensor pose ``rel`` (in the keyframe's frame) is
+    moved into the keyframe's frame: noise-free, the truth is a fixed point."""
+    truth = np.array([-4.0, 10.0, -2.0])
+    rel = np.array([2.5, 0.3, 0.1])  # the other keyframe, in the keyframe's frame
+    other = compose(truth[None], rel[None])[0]
+    trees, bb, rr, sig = _scene(rng, other, noise=False)
+    fix = localise_on_map(
+        truth + np.array([0.2, 0.1, -0.02]), np.tile(rel, (12, 1)), np.arange(12), bb, rr, sig,
+        trees, np.zeros(12), np.diag([1.0, 1.0, 0.1]) ** 2,
+    )  # fmt: skip
+    assert fix.ok
+    np.testing.assert_allclose(fix.pose, truth, atol=2e-3)
+
+
+def test_localise_on_map_drops_a_wrong_association(rng):
+    truth = np.array([0.0, 0.0, 0.3])
+    trees, bb, rr, sig = _scene(rng, truth)
+    wrong = trees.copy()
+    wrong[0] += (2.0, -1.5)  # one detection associated with a tree 2.5 m away
+    fix = localise_on_map(
+        truth, np.zeros((12, 3)), np.arange(12), bb, rr, sig, wrong, np.full(12, 1e-4),
+        np.diag([0.5, 0.5, 0.05]) ** 2,
+    )  # fmt: skip
+    assert fix.ok and fix.n_inliers == 11
+    assert np.hypot(*(fix.pose[:2] - truth[:2])) < 0.1
+
+
+def test_localise_on_map_lost_and_too_few(rng):
+    truth = np.array([0.0, 0.0, 0.0])
+    trees, bb, rr, sig = _scene(rng, truth)
+    cov = np.diag([0.3, 0.3, 0.02]) ** 2
+    # the map contradicts the measurements (every tree scattered by metres): lost
+    scattered = trees + rng.uniform(2.0, 4.0, trees.shape) * rng.choice([-1, 1], trees.shape)
+    fix = localise_on_map(
+        truth, np.zeros((12, 3)), np.arange(12), bb, rr, sig, scattered, np.full(12, 1e-4), cov
+    )
+    assert not fix.ok and fix.lost
+    np.testing.assert_array_equal(fix.pose, truth)  # the prior is handed back
+    # two trees cannot tell: not ok, but not lost either (the tracker dead-reckons on)
+    fix2 = localise_on_map(
+        truth, np.zeros((2, 3)), np.arange(2), bb[:2], rr[:2], sig[:2], trees, np.zeros(12), cov
+    )
+    assert not fix2.ok and not fix2.lost and fix2.n_trees == 2
+
+
+def test_place_counter():
+    pc = PlaceCounter(2.0, per_place=2, after_s=60.0)
+    for x, y, t in ((0.0, 0.0, 0.0), (1.9, 0.0, 10.0), (2.1, 0.0, 0.0), (-1.0, -1.0, 100.0)):
+        pc.add(np.array([x, y]), t)
+    pc.add(np.array([10.0, 10.0]))
+    assert pc.count(np.zeros(2)) == 3  # (2.1, 0) is outside the 2 m disc, across a cell border
+    assert pc.count(np.array([2.0, 0.0])) == 3
+    assert pc.count(np.array([10.5, 10.5])) == 1
+    assert pc.count(np.array([-50.0, 3.0])) == 0
+    assert pc.count(np.zeros(2), before=50.0) == 2  # only those added before t = 50 s
+    # full: >= 2 keyframes added 60 s or more before t
+    assert not pc.full(np.zeros(2), 65.0)  # only (0, 0) is 60 s old at t = 65 s
+    assert pc.full(np.zeros(2), 75.0)
+    assert not pc.full(np.array([10.0, 10.0]), 1e9)  # one keyframe there
+
+
+def test_redundant_settled_trees():
+    in_graph = np.array([True, True, False])
+    n_f = np.array([20, 2, 0])
+    settled = np.array([True, True, True])
+    assert not redundant(np.array([0, 1]), in_graph, n_f, 15)  # tree 1 is young
+    assert redundant(np.array([0, 1]), in_graph, n_f, 15, settled)  # the place is full
+    assert not redundant(np.array([0, 2]), in_graph, n_f, 15, settled)  # 2: a new tree
+    with pytest.raises(ConfigError, match="revisit_radius"):
+        Isam2Config(revisit_radius=0.0)
+    with pytest.raises(ConfigError, match="revisit_keyframes"):
+        Isam2Config(revisit_keyframes=0)
+
+
+def test_preintegrate_spans_equals_one_call():
+    """Spans joined at their end poses: the same increments and covariances as one call, the
+    same poses to rounding; below ``span_s`` it is the one call itself."""
+    problem, *_ = loop_problem(3, laps=1.0)
+    m, c, t, p0 = problem.motion, problem.controls, problem.frames.times, problem.initial_pose
+    one = preintegrate(m, c, t, p0)
+    spans = preintegrate_spans(m, c, t, p0, span_s=7.0)  # ~8 spans over the 52 s lap
+    np.testing.assert_allclose(spans.deltas, one.deltas, atol=1e-12)
+    np.testing.assert_allclose(spans.covs, one.covs, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(spans.distance, one.distance, atol=1e-12)
+    np.testing.assert_allclose(spans.poses[:, :2], one.poses[:, :2], atol=1e-9)
+    dth = np.angle(np.exp(1j * (spans.poses[:, 2] - one.poses[:, 2])))
+    assert np.abs(dth).max() < 1e-12
+    same = preintegrate_spans(m, c, t, p0, span_s=1e6)
+    np.testing.assert_array_equal(same.poses, one.poses)

@@ -48,13 +48,19 @@ class Isam2Config:
         window (its detections still serve the association)
     merge_dist : m, after the batch step two trees closer than this with compatible diameters
         are merged into one and the graph is optimised again (0 disables)
-    revisit_factors : a keyframe whose every measured tree already has this many measurement
-        factors in the graph adds no pose to the graph (reduced pose graph,
-        :mod:`stemmap.slam._graph_revisits`): it is tracked and associated as usual, and its
-        pose is localised on the final map; so a revisited stand grows the graph less.
-        0 (default) = every keyframe enters the graph. Opt-in: 15 kept the path and the map
-        on a 3-pass Victoria Park replay at half the time, but lost the path in passes 8 and
-        10 of a 10-pass replay (docs/reliability.md "Soak")
+    revisit_factors : localisation mode on revisits (:mod:`stemmap.slam._graph_revisits`,
+        :mod:`stemmap.slam._graph_localise`): a keyframe whose every measured tree already has
+        this many measurement factors in the graph adds no pose to the graph (reduced pose
+        graph); it is tracked and associated as usual, the tracker is localised on the map
+        from its measurements, and its pose is localised on the final map. 0 = off (every
+        keyframe enters the graph). Default 15 (docs/algorithms/slam.md "Revisits";
+        docs/reliability.md "Soak": the 10-pass Victoria Park replay)
+    revisit_radius, revisit_keyframes, revisit_after_s : the area bound of the mode: where
+        ``revisit_keyframes`` graph keyframes (added at least ``revisit_after_s`` s before;
+        0 = all) lie within ``revisit_radius`` m, a keyframe that sees only trees already in
+        the graph stays out even if some have fewer than ``revisit_factors`` factors (only a
+        new tree or a lost tracker brings it in). ``revisit_after_s = 60`` lost the path in
+        the 10x soak (docs/algorithms/slam.md "Revisits")
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -101,7 +107,10 @@ class Isam2Config:
     min_obs: int = 3
     min_window_obs: int = 2
     merge_dist: float = 1.0
-    revisit_factors: int = 0
+    revisit_factors: int = 15
+    revisit_radius: float = 2.0
+    revisit_keyframes: int = 3
+    revisit_after_s: float = 0.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
@@ -148,6 +157,15 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.min_window_obs must be in [1, keyframe_every = "
                 f"{self.keyframe_every}], got {self.min_window_obs}."
+            )
+        if not (math.isfinite(self.revisit_radius) and self.revisit_radius > 0):
+            raise ConfigError(
+                f"Isam2Config.revisit_radius must be a positive number (m), got "
+                f"{self.revisit_radius}."
+            )
+        if self.revisit_keyframes < 1:
+            raise ConfigError(
+                f"Isam2Config.revisit_keyframes must be >= 1, got {self.revisit_keyframes}."
             )
         if self.revisit_factors < 0:
             raise ConfigError(

@@ -28,12 +28,15 @@ only re-observes well-mapped trees:
   the run's, so the cost of the whole step is linear in the drive and its memory bounded by
   the longest run.
 
-Status: opt-in (``revisit_factors = 0`` by default). Measured on the Victoria Park log
-replayed as revisits (docs/reliability.md "Soak"): 3 passes kept the path (1.27 m per pass)
-and the map (464 trees, 5 pairs < 1 m) at half the time of the full graph; 10 passes lost the
-path in passes 8 and 10 (7.6 m, 32 m): in a long left-out stretch the front-end has no
-safety net (no iSAM2 estimate to restart from), and a lost front-end creates trees. A loss
-detector with relocalisation on the map (:mod:`stemmap.slam.relocalise`) is the missing part.
+Two additions make it hold on long drives (third session; docs/algorithms/slam.md
+"Localisation mode"): between iSAM2 updates the tracker is **localised on the map**
+(:mod:`stemmap.slam._graph_localise`; a fit the map contradicts puts the next keyframes into
+the graph), and the graph is **bounded by area**: where a place already holds
+``revisit_keyframes`` graph keyframes within ``revisit_radius`` (:class:`PlaceCounter`;
+optionally only those added ``revisit_after_s`` or more before), a keyframe whose trees are
+all in the graph stays out even if some have fewer than ``revisit_factors`` factors. On by
+default (``revisit_factors = 15``); measured on the Victoria Park log replayed 10x as
+revisits in docs/reliability.md "Soak".
 
 What this is meant to bound: the graph, iSAM2's memory and per-update work, the final batch and
 marginals grow with the mapped area (and with trees still below ``revisit_factors``), not
@@ -51,7 +54,7 @@ import numpy as np
 from stemmap.slam.motion import between, compose
 from stemmap.types import FloatArray
 
-__all__ = ["compose_increments", "localise_skipped", "redundant"]
+__all__ = ["PlaceCounter", "compose_increments", "localise_skipped", "redundant"]
 
 
 def _adjoint_inv(d: FloatArray) -> FloatArray:
@@ -82,17 +85,66 @@ def compose_increments(d: FloatArray, cov: FloatArray) -> tuple[FloatArray, Floa
     return D, 0.5 * (C + C.T)
 
 
-def redundant(trees: np.ndarray, in_graph: np.ndarray, n_factors: np.ndarray, min_f: int) -> bool:
+def redundant(
+    trees: np.ndarray,
+    in_graph: np.ndarray,
+    n_factors: np.ndarray,
+    min_f: int,
+    settled: np.ndarray | None = None,
+) -> bool:
     """True when a keyframe whose window measures ``trees`` adds nothing the graph needs.
 
-    Every tree is in the graph with at least ``min_f`` measurement factors (vacuously true
-    with no tree); ``min_f <= 0`` disables the rule (every keyframe enters the graph).
+    Every tree is in the graph with at least ``min_f`` measurement factors, or is ``settled``
+    (a bool per tree: no longer allowed to pull keyframes in, see ``Isam2Config.revisit_young_s``)
+    -- vacuously true with no tree; ``min_f <= 0`` disables the rule (every keyframe enters
+    the graph).
     """
     if min_f <= 0:
         return False
     if trees.size == 0:
         return True
-    return bool(np.all(in_graph[trees]) and np.all(n_factors[trees] >= min_f))
+    enough = n_factors[trees] >= min_f
+    if settled is not None:
+        enough |= settled[trees]
+    return bool(np.all(in_graph[trees]) and np.all(enough))
+
+
+class PlaceCounter:
+    """Graph keyframes per place: how many lie within ``radius`` (m) of a point, counting only
+    those added before a given time (a hash grid of ``radius``-sized cells; exact disc counts).
+    Bounds the graph by area (``Isam2Config.revisit_keyframes``)."""
+
+    def __init__(self, radius: float, per_place: int = 1, after_s: float = 0.0) -> None:
+        self.radius = float(radius)
+        self.per_place = int(per_place)
+        self.after_s = float(after_s)
+        self._cells: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
+
+    def _cell(self, x: float, y: float) -> tuple[int, int]:
+        return int(np.floor(x / self.radius)), int(np.floor(y / self.radius))
+
+    def add(self, xy: FloatArray, t: float = 0.0) -> None:
+        """A graph keyframe at ``xy`` (2,) (m), added at time ``t`` (s)."""
+        x, y = float(xy[0]), float(xy[1])
+        self._cells.setdefault(self._cell(x, y), []).append((x, y, t))
+
+    def full(self, xy: FloatArray, t: float) -> bool:
+        """At time ``t`` (s), ``xy`` holds ``per_place`` keyframes of a visit that ended
+        ``after_s`` ago or more (added before ``t - after_s``)."""
+        return self.count(xy, t - self.after_s) >= self.per_place
+
+    def count(self, xy: FloatArray, before: float = np.inf) -> int:
+        """Graph keyframes within ``radius`` of ``xy`` (2,) added before time ``before``."""
+        x, y = float(xy[0]), float(xy[1])
+        cx, cy = self._cell(x, y)
+        r2 = self.radius * self.radius
+        n = 0
+        for i in (cx - 1, cx, cx + 1):
+            for j in (cy - 1, cy, cy + 1):
+                for px, py, pt in self._cells.get((i, j), ()):
+                    if pt < before and (px - x) ** 2 + (py - y) ** 2 <= r2:
+                        n += 1
+        return n
 
 
 def localise_skipped(

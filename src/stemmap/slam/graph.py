@@ -41,6 +41,11 @@ frame duplicate trees are merged, one Levenberg-Marquardt batch optimisation ref
 everything, and each tree's 2x2 marginal covariance is the Schur complement of the information
 over the pose chain (:func:`_point_marginals`, equal to :class:`gtsam.Marginals`).
 
+Localisation mode on revisits (ours; docs/algorithms/slam.md "Revisits"): a keyframe that only
+re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area);
+the tracker is then localised on the map at each restart (:mod:`stemmap.slam._graph_localise`),
+and a tracker the map contradicts puts the next keyframes back into the graph.
+
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
 order, ``δ(c) = δ0 Exp(J c)``. They are estimated from the graph's own poses
@@ -65,13 +70,25 @@ import numpy as np
 
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_config import Isam2Config
+from stemmap.slam._graph_localise import localise_windows
 from stemmap.slam._graph_marginals import (
+    _fit_diagnostics,
     _merge_duplicates,
     _point_marginals,
     _tree_joint_information,
 )
-from stemmap.slam._graph_odometry import _calibration_jacobians, _calibration_lsq, _sensor_between
-from stemmap.slam._graph_revisits import compose_increments, localise_skipped, redundant
+from stemmap.slam._graph_odometry import (
+    _calibration_jacobians,
+    _calibration_lsq,
+    _sensor_between,
+    preintegrate_spans,
+)
+from stemmap.slam._graph_revisits import (
+    PlaceCounter,
+    compose_increments,
+    localise_skipped,
+    redundant,
+)
 from stemmap.slam._isam2_track import (
     C_AMBIG,
     C_FAR,
@@ -89,7 +106,7 @@ from stemmap.slam.gnss import (
     robust_kernel,
     with_gnss_frame,
 )
-from stemmap.slam.motion import between, compose, preintegrate
+from stemmap.slam.motion import between, compose
 from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
@@ -138,12 +155,14 @@ class Isam2Slam:
         T_vs = gtsam.Pose2(a, b, 0.0)
         T_sv = T_vs.inverse()
         # odometry between consecutive frames (for association and drift) and keyframes
-        pre = preintegrate(problem.motion, problem.controls, frames.times, problem.initial_pose)
+        pre = preintegrate_spans(
+            problem.motion, problem.controls, frames.times, problem.initial_pose
+        )  # (bounded working memory on long drives)
         _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
-        pre_k = preintegrate(
+        pre_k = preintegrate_spans(
             problem.motion, problem.controls, frames.times[kf_frames], problem.initial_pose
         )
         d_k, cov_k = _sensor_between(pre_k.deltas, pre_k.covs, (a, b))
@@ -329,6 +348,7 @@ class Isam2Slam:
                 new_f.add(joint_fac)
                 graph_all.add(joint_fac)
         lm_nfac = np.zeros(lm_xy.shape[0], dtype=np.int64)  # measurement factors per tree
+        lm_ref = np.zeros(lm_xy.shape[0], dtype=np.int64)  # iSAM2 updates at the last refresh
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         sd2 = (cfg.sigma_diameter or 1.0) ** 2
         kparams = np.array(
@@ -405,6 +425,31 @@ class Isam2Slam:
             n_factors_meas += len(js)
 
         g_last = 0  # the last keyframe in the graph
+        # why keyframes entered the graph (a revisit that enters is one of these)
+        entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
+        places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_s)
+        places.add(kf_init[0, :2], float(frames.times[0]))
+
+        def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
+            """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
+            the map (:func:`localise_windows`; None when the map contradicts the tracker), and
+            the tracker's covariance to restart with (its own when too few trees tell)."""
+            ks = [i for i in range(max(k - cfg.update_every, 0), k) if i in skipped]
+            fl = int(kf_frames[k - 1])
+            prior_p = compose(trk[None], between(sp_dr[int(fc[0])][None], sp_dr[fl][None]))[0]
+            fix = localise_windows(
+                prior_p, P_trk + P_floor, [skipped[i] for i in ks],
+                between(sp_dr[fl][None], sp_dr[kf_frames[ks]]), lm_xy,
+                (vr + 400.0 * vb) / np.maximum(lm_nobs, 1),
+            )  # fmt: skip
+            if fix.lost:
+                log.debug("iSAM2: tracker not localised at keyframe %d: %s", k - 1, fix.reason)
+                return None, P_floor
+            if fix.ok:
+                kf_init[k - 1] = fix.pose
+            pose = gtsam.Pose2(*(float(q) for q in fix.pose))  # (too few trees: the prior)
+            d_s = gtsam.Pose2(float(d_step[0]), float(d_step[1]), float(d_step[2]))
+            return pose.compose(d_s), fix.cov if fix.ok else P_trk.copy()
 
         def close_keyframe(kc: int) -> None:
             """Keyframe ``kc``'s window is complete: into the graph (pose, odometry from the
@@ -412,15 +457,25 @@ class Isam2Slam:
             trees (:func:`redundant`; its pose is localised at the end)."""
             nonlocal g_last, n_single_skipped
             n_skip_w = int(window[4]) if window else 0
+            revisits = cfg.revisit_factors > 0 and kc > 0 and bool(window) and not must_keep[kc]
+            # at a place visited before (PlaceCounter) young trees pull no keyframe in; a lost
+            # tracker forces keyframes in
+            t_kc = float(frames.times[kf_frames[kc]])
+            full = revisits and places.full(kf_init[kc, :2], t_kc)
+            settled = lm_in_graph if full else None
             if (
-                kc > 0
-                and window
-                and not must_keep[kc]
-                and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors)
+                revisits
+                and kc >= force_until
+                and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors, settled)
             ):
                 skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
                 n_single_skipped += n_skip_w
                 return
+            if revisits:  # why it entered
+                new_t = window[0].size and not np.all(lm_in_graph[window[0]])
+                entered[
+                    "forced" if kc < force_until else "new_tree" if new_t else "young_tree"
+                ] += 1
             if kc > 0:
                 bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
                 new_f.add(bf)
@@ -430,9 +485,12 @@ class Isam2Slam:
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
+                places.add(kf_init[kc, :2], t_kc)
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
+        force_until = 0  # keyframes before this enter the graph (the tracker was lost)
+        n_map_fix = n_map_lost = 0
         for k in range(nk):
             f0 = int(kf_frames[k])
             if k > 0:
@@ -496,6 +554,16 @@ class Isam2Slam:
                                     np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
                                     cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
                                 )[0]  # fmt: skip
+                    P_restart = P_floor
+                    if not restart and (k - 1) in skipped:
+                        # left out of the graph: localise the tracker on the map instead
+                        p_fix, P_restart = fix_tracker(k, d0_)
+                        if p_fix is None:
+                            force_until = k + cfg.update_every  # lost: map the next ones
+                            n_map_lost += 1
+                        else:
+                            p, restart = p_fix, True
+                            n_map_fix += 1
                     # the tracker restarts from the estimate (on a revisit left out of the
                     # graph: from its own pose, carried here); its covariance is relative to
                     # the trees just seen, the drift since the others were seen covers them
@@ -505,7 +573,7 @@ class Isam2Slam:
                     else:
                         trk[:2] = (init.x(), init.y())
                     trk[2] = trk[2] + rel[2] + dth
-                    P_trk[:, :] = P_floor
+                    P_trk[:, :] = P_restart
                     fc[0] = f0
                     # every observation so far is in (or redundant with) the graph
                     f_upd = f0
@@ -513,10 +581,13 @@ class Isam2Slam:
                     # refresh the trees that can be associated soon (within the search radius
                     # plus one keyframe of driving); far trees are refreshed when approached
                     if n_lm:
-                        ing = np.flatnonzero(lm_in_graph[:n_lm])
+                        # (only trees whose estimate may have changed: not refreshed since the
+                        # last iSAM2 update; in localisation mode no update runs for long)
+                        ing = np.flatnonzero(lm_in_graph[:n_lm] & (lm_ref[:n_lm] < n_updates))
                         dxy = lm_xy[ing] - trk[:2]
                         near_k = ing[dxy[:, 0] ** 2 + dxy[:, 1] ** 2 < (cfg.max_range + 30.0) ** 2]
                         if near_k.size:
+                            lm_ref[near_k] = n_updates
                             lm_xy[near_k] = [
                                 isam.calculateEstimatePoint2(LK(jn)) for jn in near_k.tolist()
                             ]
@@ -533,6 +604,7 @@ class Isam2Slam:
                 lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
                 lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
                 lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
+                lm_ref = np.concatenate((lm_ref, np.zeros(g, dtype=np.int64)))
                 lm_nfac = np.concatenate((lm_nfac, np.zeros(g, dtype=np.int64)))
             n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
@@ -666,34 +738,15 @@ class Isam2Slam:
             result = opt.optimize()
             n_lm_iters += int(opt.iterations())
         kf_s = kf_poses(result)  # sensor poses of the graph keyframes
-        # consistency (GPS-free): chi² per degree of freedom of each factor kind at the optimum;
-        # ~1 when the noise models match the data (robust factors report their robust cost)
-        # (one C++ error sum per kind over the factors in graph order: equal to summing them
-        # one by one from Python, ~10x faster)
-        chi2_kind = []
-        for facs in (odo_fac, meas_fac):
-            g_kind = gtsam.NonlinearFactorGraph()
-            for fac_i in facs:
-                g_kind.add(fac_i)
-            chi2_kind.append(2.0 * g_kind.error(result))
-        chi_odo, chi_meas = chi2_kind
-        n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         pts = np.zeros((n_lm, 2))
         ing = np.flatnonzero(lm_in_graph[:n_lm])
         if ing.size:
             pts[ing] = gtsam.utilities.extractPoint2(result)
-        # association quality without ground truth: share of (merged) detections whose
-        # normalised bearing-range residual at the optimum exceeds 3 (a correctly associated
-        # detection does so with probability ~1 %)
-        n_outlier = 0
-        if meas_rec and ing.size:
-            mr = np.array(meas_rec)
-            kf_xyt = kf_s[mr[:, 0].astype(np.int64)]
-            lmp = pts[alias[mr[:, 1].astype(np.int64)]]
-            dxm, dym = lmp[:, 0] - kf_xyt[:, 0], lmp[:, 1] - kf_xyt[:, 1]
-            rb = wrap_angle(mr[:, 2] - (np.arctan2(dym, dxm) - kf_xyt[:, 2])) / mr[:, 4]
-            rr_ = (mr[:, 3] - np.hypot(dxm, dym)) / mr[:, 5]
-            n_outlier = int(np.count_nonzero(rb * rb + rr_ * rr_ > 9.0))
+        # consistency and association quality at the optimum (GPS-free, _fit_diagnostics)
+        chi_odo, chi_meas, n_outlier = _fit_diagnostics(
+            gtsam, result, odo_fac, meas_fac, meas_rec, kf_s, pts[alias]
+        )
+        n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
         covs = np.full((n_lm, 2, 2), np.nan)
         info_j = None  # joint information of the kept trees (cfg.joint_information)
@@ -713,26 +766,9 @@ class Isam2Slam:
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK),
         )  # fmt: skip
-        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe)
-        base_p = kf_s[kf_of]
-        cb, sb = np.cos(base_p[:, 2]), np.sin(base_p[:, 2])
-        sp_all = np.column_stack(
-            (
-                base_p[:, 0] + cb * rel_s[:, 0] - sb * rel_s[:, 1],
-                base_p[:, 1] + sb * rel_s[:, 0] + cb * rel_s[:, 1],
-                base_p[:, 2] + rel_s[:, 2],
-            )
-        )
-        # vehicle pose = sensor pose ∘ T_sv
-        cv, sv = np.cos(sp_all[:, 2]), np.sin(sp_all[:, 2])
-        txv, tyv = T_sv.x(), T_sv.y()
-        veh = np.column_stack(
-            (
-                sp_all[:, 0] + cv * txv - sv * tyv,
-                sp_all[:, 1] + sv * txv + cv * tyv,
-                (sp_all[:, 2] + math.pi) % (2 * math.pi) - math.pi,
-            )
-        )
+        # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
+        # then the vehicle pose = sensor pose ∘ T_sv
+        veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
         trees = []
         for jk in keep.tolist():
             n_d = int(lm_dn[jk])
@@ -774,6 +810,9 @@ class Isam2Slam:
             "keyframes_in_graph": int(gk.size),
             "keyframes_localised": len(skipped),
             "localisation_runs": n_localised,
+            "tracker_map_fixes": n_map_fix,
+            "tracker_lost": n_map_lost,
+            **{f"keyframes_entered_{k_e}": v_e for k_e, v_e in entered.items()},
             "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
             "unconfirmed_windows_skipped": n_single_skipped,
