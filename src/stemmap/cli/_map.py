@@ -219,8 +219,14 @@ RPE_DELTA_M = 10.0
 """Path length (m) of the relative pose error's stretches on simulated runs (evo's --delta)."""
 
 
-def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
-    """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure."""
+def slam_metrics(
+    problem: Any, result: Any, ctx: dict[str, Any], dr: Any = None
+) -> tuple[dict[str, Any], Any, Any]:
+    """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure.
+
+    ``dr`` is the run's dead reckoning (:func:`~stemmap.slam.base.dead_reckoning`), computed
+    here when not given.
+    """
     from stemmap.eval.trajectory import ate, loop_closure_error, rpe, screen_gps
     from stemmap.slam.base import dead_reckoning, duplicate_pairs, sensor_poses
     from stemmap.slam.motion import preintegrate
@@ -233,12 +239,15 @@ def slam_metrics(problem: Any, result: Any, ctx: dict[str, Any]) -> tuple[dict[s
         "frames": len(problem.frames),
         "detections": problem.frames.n_detections,
     }
-    dr = dead_reckoning(problem)
+    if dr is None:
+        dr = dead_reckoning(problem)
     gps_map = None
     truth_xy = None
     if ctx["kind"] == "victoria-park":
         vp = ctx["vp"]
-        pre = preintegrate(vp.model, vp.controls, vp.gps_times)
+        # poses and distances only: the covariance of every control segment would be the
+        # command's largest allocation on a long drive (9 doubles x 4 arrays per segment)
+        pre = preintegrate(vp.model, vp.controls, vp.gps_times, with_covariance=False)
         sp = sensor_poses(pre.poses, vp.model.sensor_offset)
         scr = screen_gps(
             vp.gps_times, vp.gps_xy, sp[:, :2], np.concatenate(([0.0], np.cumsum(pre.distance)))
@@ -680,7 +689,8 @@ def map_command(
                 result = be.run(problem, progress=tick)
         annotated, unc = annotate_uncertainty(result, problem)
         result.stem_map = keep_information(annotated, result.stem_map)
-        metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx)
+        dr = dead_reckoning(problem)  # once, for the metrics and the figure
+        metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx, dr)
         if reloc is not None:
             metrics["relocalisation"] = {**reloc.__dict__, **prior_note}
         metrics["false_trees"] = false_trees_report(backend.value, result.stats, ctx["kind"])
@@ -726,7 +736,7 @@ def map_command(
             result.stem_map,
             result.trajectory,
             gps_xy=gps_map,
-            reference=dead_reckoning(problem),
+            reference=dr,
             truth_xy=truth_xy,
             title=f"{problem.name}: {backend.value}\n{headline(metrics)}",
         )
