@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from stemmap.slam.uncertainty import (
+    DetectionCounts,
     annotate_uncertainty,
+    confidence_from_counts,
     detection_confidence,
     diameter_standard_errors,
     run_length_factor,
@@ -60,6 +62,48 @@ def test_run_length_tempers_correlated_evidence(rng: np.random.Generator) -> Non
 def test_trees_never_in_view_get_the_prior() -> None:
     fit = detection_confidence(np.array([0, 0, 0, 1, 1]), np.full(5, 3.0), [1, 1, 1, 0, 0], 3)
     assert fit.confidence[2] == pytest.approx(fit.prior_real)
+
+
+def test_counts_in_chunks_equal_counts_at_once(rng: np.random.Generator) -> None:
+    """The bounded-memory path (rows counted a block of frames at a time, as
+    annotate_uncertainty does on a long drive) gives exactly the counts of all rows at once,
+    and the run-length factor of the rows (runs continue across chunk borders)."""
+    real = rng.random(40) < 0.8
+    ti, rr, hh = _rows(rng, real, 48, p_f=0.1, block=3)
+    order = np.argsort(np.tile(np.arange(48), 40), kind="stable")  # time order, as frames come
+    ti, rr, hh = ti[order], rr[order], hh[order]
+    whole = DetectionCounts(real.size)
+    whole.add(ti, rr, hh)
+    parts = DetectionCounts(real.size)
+    for a, b in zip([0, 7, 300, 301, 1200], [7, 300, 301, 1200, ti.size], strict=True):
+        parts.add(ti[a:b], rr[a:b], hh[a:b])
+    assert np.array_equal(parts.trials, whole.trials) and np.array_equal(parts.hits, whole.hits)
+    assert np.array_equal(parts.runs, whole.runs)
+    assert parts.run_length() == pytest.approx(run_length_factor(ti, hh), rel=1e-12)
+    assert whole.trials.sum() == ti.size and whole.hits.sum() == hh.sum()
+    a_fit, b_fit = confidence_from_counts(parts), detection_confidence(ti, rr, hh, real.size)
+    assert np.array_equal(a_fit.confidence, b_fit.confidence)
+
+
+def test_counts_equal_the_per_row_em(rng: np.random.Generator) -> None:
+    """The EM on counts is the per-row EM (one iteration written out per row here): sums per
+    (tree, bin) instead of per row change only the floating-point order."""
+    real = rng.random(60) < 0.8
+    ti, rr, hh = _rows(rng, real, 30, p_f=0.1)
+    fit = detection_confidence(ti, rr, hh, real.size, max_iter=1)
+    w0 = np.full(real.size, 0.9)
+    bins = np.floor(rr / 2.0).astype(int)
+    nb = bins.max() + 1
+    num = np.bincount(bins, w0[ti] * hh, minlength=nb)
+    den = np.bincount(bins, w0[ti], minlength=nb)
+    glob = num.sum() / den.sum()
+    pd = np.clip((num + 5 * glob) / (den + 5), 1e-4, 1 - 1e-4)
+    pf = min(np.sum(0.1 * hh) / np.sum(np.full(ti.size, 0.1)), 0.9 * pd.min())
+    k = run_length_factor(ti, hh)
+    lr = np.bincount(ti, np.where(hh, np.log(pd[bins]), np.log1p(-pd[bins]))) / k + math.log(0.9)
+    lf = np.bincount(ti, np.where(hh, math.log(pf), math.log1p(-pf))) / k + math.log1p(-0.9)
+    assert fit.confidence == pytest.approx(1 / (1 + np.exp(lf - lr)), rel=1e-9, abs=1e-12)
+    assert fit.p_false == pytest.approx(pf, rel=1e-12)
 
 
 def test_diameter_standard_errors() -> None:

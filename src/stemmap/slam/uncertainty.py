@@ -47,9 +47,11 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "DIAMETER_RHO",
+    "DetectionCounts",
     "MixtureFit",
     "UncertaintyReport",
     "annotate_uncertainty",
+    "confidence_from_counts",
     "detection_confidence",
     "diameter_standard_errors",
     "expected_detections",
@@ -66,6 +68,10 @@ __all__ = [
 #: this is conservative (benchmarks/uncertainty_calibration.py fitted 0.03 there).
 DIAMETER_RHO = 1.0
 
+#: Detections converted (and frames' rows counted, /64) per block in
+#: :func:`annotate_uncertainty`: bounds its temporaries on a long drive.
+CHUNK = 65536
+
 
 @dataclass(frozen=True)
 class MixtureFit:
@@ -78,6 +84,66 @@ class MixtureFit:
     prior_real: float
     iterations: int
     run_length: float = 1.0
+
+
+class DetectionCounts:
+    """Sufficient statistics of (tree, range, hit) rows for :func:`detection_confidence`.
+
+    Per tree and range bin (``bin_width`` m): ``trials`` (frames in which the tree was
+    expected) and ``hits``; per tree the number of ``runs`` of equal outcomes in time order and
+    the ``last`` outcome (-1 before the first row). Rows are added in time order with
+    :meth:`add`, in as many chunks as wanted: the EM and the run-length factor need only these
+    counts, so their memory is (trees x bins), whatever the length of the drive.
+    """
+
+    def __init__(self, n_trees: int, bin_width: float = 2.0) -> None:
+        if bin_width <= 0:
+            raise ConfigError(f"detection_confidence: bin_width must be > 0 m, got {bin_width}.")
+        self.bin_width = float(bin_width)
+        self.n_trees = int(n_trees)
+        self.trials = np.zeros((self.n_trees, 0), dtype=np.int64)
+        self.hits = np.zeros((self.n_trees, 0), dtype=np.int64)
+        self.runs = np.zeros(self.n_trees, dtype=np.int64)
+        self.last = np.full(self.n_trees, -1, dtype=np.int8)
+
+    def add(self, tree_index: ArrayLike, ranges: ArrayLike, hit: ArrayLike) -> None:
+        """Count rows that follow (in time) every row added before."""
+        ti = np.asarray(tree_index, dtype=np.int64).reshape(-1)
+        rr = np.asarray(ranges, dtype=np.float64).reshape(-1)
+        y = np.asarray(hit, dtype=bool).reshape(-1)
+        if not (ti.shape == rr.shape == y.shape):
+            raise ConfigError(
+                "detection_confidence: tree_index, ranges and hit must have one length."
+            )
+        if ti.size == 0:
+            return
+        bins = np.floor(rr / self.bin_width).astype(np.int64)
+        nb = max(int(bins.max()) + 1, self.trials.shape[1])
+        if nb > self.trials.shape[1]:
+            pad = ((0, 0), (0, nb - self.trials.shape[1]))
+            self.trials, self.hits = np.pad(self.trials, pad), np.pad(self.hits, pad)
+        cell = ti * nb + bins
+        size = self.n_trees * nb
+        self.trials += np.bincount(cell, minlength=size).reshape(self.n_trees, nb)
+        self.hits += np.bincount(cell[y], minlength=size).reshape(self.n_trees, nb)
+        # runs: a tree's first row ever starts one; then every change of outcome
+        order = np.argsort(ti, kind="stable")
+        ts, ys = ti[order], y[order].astype(np.int8)
+        first = np.ones(ts.size, dtype=bool)
+        first[1:] = ts[1:] != ts[:-1]
+        prev = np.empty_like(ys)
+        prev[1:] = ys[:-1]
+        prev[first] = self.last[ts[first]]
+        self.runs += np.bincount(ts[prev != ys], minlength=self.n_trees)
+        last = np.ones(ts.size, dtype=bool)
+        last[:-1] = first[1:]
+        self.last[ts[last]] = ys[last]
+
+    def run_length(self) -> float:
+        """:func:`run_length_factor` of the rows counted so far."""
+        n = self.trials.sum(axis=1).astype(np.float64)
+        h = self.hits.sum(axis=1).astype(np.float64)
+        return _run_length(n, h, self.runs)
 
 
 def detection_confidence(
@@ -100,60 +166,69 @@ def detection_confidence(
     (Dempster, Laird & Rubin 1977, §4.3): E-step responsibilities ``w_j`` from the Bernoulli
     log-likelihoods, M-step ``pi`` = mean ``w_j``, ``p_d`` per bin and ``p_f`` = the
     ``w``-weighted / ``(1 - w)``-weighted hit rates. ``p_f`` is capped below the lowest
-    ``p_d`` so the components cannot swap. Start: ``w_j = 0.9``.
+    ``p_d`` so the components cannot swap. Start: ``w_j = 0.9``. The rows are reduced to
+    :class:`DetectionCounts` first (:func:`confidence_from_counts`).
 
     Returns
     -------
     MixtureFit
         ``p_detect`` is the row-weighted mean of ``p_d(range)`` over the real component.
     """
-    ti = np.asarray(tree_index, dtype=np.int64).reshape(-1)
-    rr = np.asarray(ranges, dtype=np.float64).reshape(-1)
-    y = np.asarray(hit, dtype=bool).reshape(-1)
-    if not (ti.shape == rr.shape == y.shape):
-        raise ConfigError("detection_confidence: tree_index, ranges and hit must have one length.")
-    if bin_width <= 0:
-        raise ConfigError(f"detection_confidence: bin_width must be > 0 m, got {bin_width}.")
+    counts = DetectionCounts(n_trees, bin_width)
+    counts.add(tree_index, ranges, hit)
+    return confidence_from_counts(counts, max_iter=max_iter, tol=tol)
+
+
+def confidence_from_counts(
+    counts: DetectionCounts, *, max_iter: int = 300, tol: float = 1e-9
+) -> MixtureFit:
+    """:func:`detection_confidence` on the rows' counts (the same EM, summed per tree and bin
+    instead of per row: equal up to the order of floating-point sums)."""
     eps = 1e-4
-    has = np.bincount(ti, minlength=n_trees) > 0 if ti.size else np.zeros(n_trees, dtype=bool)
+    n_trees = counts.n_trees
+    nt = counts.trials.astype(np.float64)
+    ht = counts.hits.astype(np.float64)
+    mt = nt - ht
+    n_j, h_j = nt.sum(axis=1), ht.sum(axis=1)
+    has = n_j > 0
     w = np.full(n_trees, 0.9)
     if not np.any(has):
         return MixtureFit(w, math.nan, math.nan, 0.9, 0, 1.0)
-    k_eff = run_length_factor(ti, y)
-    bins = np.floor(rr / bin_width).astype(np.int64)
-    nb = int(bins.max()) + 1
-    yf = y.astype(np.float64)
+    k_eff = counts.run_length()
     prev = -math.inf
     it = 0
-    pd_bin = np.full(nb, 0.5)
+    pd_bin = np.full(nt.shape[1], 0.5)
     pf = 0.1
     pi = 0.9
     for it in range(1, max_iter + 1):  # noqa: B007 -- reported
         # M-step from the current responsibilities
-        wr = w[ti]
-        num = np.bincount(bins, wr * yf, minlength=nb)
-        den = np.bincount(bins, wr, minlength=nb)
+        num = w @ ht
+        den = w @ nt
         glob = float(num.sum() / max(den.sum(), eps))
         # bins with little weight borrow the pooled rate (1 pseudo-row of weight 5)
         pd_bin = np.clip((num + 5.0 * glob) / (den + 5.0), eps, 1 - eps)
-        pf = float(np.sum((1 - wr) * yf) / max(np.sum(1 - wr), eps))
+        pf = float(np.sum((1 - w) * h_j) / max(float(np.sum((1 - w) * n_j)), eps))
         pf = float(np.clip(pf, eps, 0.9 * float(pd_bin.min())))
         pi = float(np.clip(w[has].mean(), eps, 1 - eps))
         # E-step
-        pd = pd_bin[bins]
-        ll_real = np.where(y, np.log(pd), np.log1p(-pd))
-        ll_false = np.where(y, math.log(pf), math.log1p(-pf))
-        lr = np.bincount(ti, ll_real, minlength=n_trees) / k_eff + math.log(pi)
-        lf = np.bincount(ti, ll_false, minlength=n_trees) / k_eff + math.log1p(-pi)
+        lr = (ht @ np.log(pd_bin) + mt @ np.log1p(-pd_bin)) / k_eff + math.log(pi)
+        lf = (h_j * math.log(pf) + (n_j - h_j) * math.log1p(-pf)) / k_eff + math.log1p(-pi)
         top = np.maximum(lr, lf)
         ll = float(np.sum((top + np.log(np.exp(lr - top) + np.exp(lf - top)))[has]))
         w = np.where(has, 1.0 / (1.0 + np.exp(np.clip(lf - lr, -700, 700))), pi)
         if ll - prev < tol * max(1.0, abs(ll)):
             break
         prev = ll
-    wr = w[ti]
-    p_det = float(np.sum(wr * pd_bin[bins]) / max(np.sum(wr), eps))
+    p_det = float(np.sum(w @ (nt * pd_bin)) / max(float(np.sum(w * n_j)), eps))
     return MixtureFit(w, p_det, pf, pi, it, k_eff)
+
+
+def _run_length(n: FloatArray, hits: FloatArray, runs: ArrayLike) -> float:
+    """The run-length factor from per-tree rows ``n``, ``hits`` and observed ``runs``."""
+    p = np.divide(hits, n, out=np.zeros_like(n), where=n > 0)
+    expected = np.where(n > 0, 1.0 + 2.0 * (n - 1.0) * p * (1.0 - p), 0.0)
+    observed = float(np.sum(np.asarray(runs, dtype=np.float64)))
+    return float(max(1.0, expected.sum() / max(observed, 1.0)))
 
 
 def run_length_factor(tree_index: ArrayLike, hit: ArrayLike) -> float:
@@ -173,11 +248,9 @@ def run_length_factor(tree_index: ArrayLike, hit: ArrayLike) -> float:
     order = np.argsort(ti, kind="stable")
     ts, ys = ti[order], y[order]
     n = np.bincount(ts).astype(np.float64)
-    p = np.divide(np.bincount(ts, ys.astype(np.float64)), n, out=np.zeros_like(n), where=n > 0)
     change = (ts[1:] == ts[:-1]) & (ys[1:] != ys[:-1])
     runs = np.bincount(ts[1:][change], minlength=n.size) + (n > 0)
-    expected = np.where(n > 0, 1.0 + 2.0 * (n - 1.0) * p * (1.0 - p), 0.0)
-    return float(max(1.0, expected.sum() / max(float(runs.sum()), 1.0)))
+    return _run_length(n, np.bincount(ts, ys.astype(np.float64)), runs)
 
 
 def expected_detections(
@@ -292,21 +365,33 @@ def annotate_uncertainty(
     fr = problem.frames
     poses = result.trajectory.poses
     nt = len(sm)
-    det = observation_to_world(poses[fr.frame_index], fr.ranges, fr.bearings, problem.sensor_offset)
+    det = np.empty((fr.n_detections, 2))
+    for a in range(0, det.shape[0], CHUNK):  # per-detection poses only a chunk at a time
+        k = slice(a, a + CHUNK)
+        det[k] = observation_to_world(
+            poses[fr.frame_index[k]], fr.ranges[k], fr.bearings[k], problem.sensor_offset
+        )
     idx = np.full(det.shape[0], -1, dtype=np.int64)
     if nt and det.shape[0]:
         dist, near = cKDTree(sm.xy).query(det, distance_upper_bound=gate)
         hit = np.isfinite(dist)
         idx[hit] = near[hit]
+        del dist, near, hit
     dstd, _, _ = diameter_standard_errors(idx, fr.diameters, nt, rho=rho)
     r_hi = float(np.quantile(fr.ranges, 0.9)) if fr.ranges.size else 20.0
     r_hi = min(r_hi, float(problem.max_range))
     fov = SensorFov(problem.fov[0], problem.fov[1], min(1.0, 0.5 * r_hi), r_hi)
     sp = sensor_poses(poses, problem.sensor_offset)
-    ti, rr, hit = expected_detections(
-        sm.xy, sm.diameters if nt else np.zeros(0), sp, fr.ptr, det, fov, gate=gate
-    )
-    mix = detection_confidence(ti, rr, hit, nt)
+    # the (tree, frame) rows grow with the drive: counted a block of frames at a time
+    counts = DetectionCounts(nt)
+    diam = sm.diameters if nt else np.zeros(0)
+    step = max(1, CHUNK // 64)
+    for f0 in range(0, sp.shape[0], step):
+        f1 = min(f0 + step, sp.shape[0])
+        counts.add(
+            *expected_detections(sm.xy, diam, sp[f0:f1], fr.ptr[f0 : f1 + 1], det, fov, gate=gate)
+        )
+    mix = confidence_from_counts(counts)
     trees = []
     for j, t in enumerate(sm.trees):
         cov = t.cov
