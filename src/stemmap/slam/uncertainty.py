@@ -223,9 +223,9 @@ def confidence_from_counts(
     return MixtureFit(w, p_det, pf, pi, it, k_eff)
 
 
-def _run_length(n: FloatArray, hits: FloatArray, runs: ArrayLike) -> float:
+def _run_length(n: FloatArray, hits: ArrayLike, runs: ArrayLike) -> float:
     """The run-length factor from per-tree rows ``n``, ``hits`` and observed ``runs``."""
-    p = np.divide(hits, n, out=np.zeros_like(n), where=n > 0)
+    p = np.divide(np.asarray(hits, dtype=np.float64), n, out=np.zeros_like(n), where=n > 0)
     expected = np.where(n > 0, 1.0 + 2.0 * (n - 1.0) * p * (1.0 - p), 0.0)
     observed = float(np.sum(np.asarray(runs, dtype=np.float64)))
     return float(max(1.0, expected.sum() / max(observed, 1.0)))
