@@ -29,6 +29,7 @@ from scipy.special import chdtri
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
 from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
+from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._refit import refit_pieces
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
@@ -581,6 +582,7 @@ class ScanTrunkDetector:
             and cfg.beam_footprint_deg == 0
             and no_tilt
             and not cfg.refit_pieces
+            and cfg.arc_refit == "off"
         )
 
     def _run(
@@ -780,10 +782,17 @@ class ScanTrunkDetector:
         """The pipeline step by step through the named functions of the preprocess, segment,
         features and circle modules (the reference the compiled path is tested against)."""
         cfg = self.config
+        arcs = cfg.arc_refit != "off"
         segs, grid, wrap = self._candidates(
-            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
+            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch,
+            apply_filters=not arcs,
         )
-        if len(segs) == 0:
+        every = segs  # with arc_refit: every candidate, before the segment filters
+        if arcs and len(every):
+            passed = segment_reasons(every, segment_features(every), cfg) == 0
+            segs = every.select(passed)
+        pos = np.flatnonzero(passed) if arcs and len(every) else np.arange(len(segs))
+        if len(segs) == 0 and not (arcs and len(every)):
             return StemObservations.empty(source=self.source, frame=frame)
         if cfg.beam_footprint_deg > 0:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
@@ -800,14 +809,16 @@ class ScanTrunkDetector:
         )
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
-        order_key = 2 * np.flatnonzero(ok)
+        order_key = 2 * pos[ok]
         if cfg.refit_pieces:
             got = refit_pieces(self, segs, fitted, codes, grid, wrap)
             if got is not None and np.any(got.ok):
                 more = _output_columns(got.segs, got.fitted, got.ok)
                 # a piece takes its parent's place in the output (the parent failed)
                 cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
-                order_key = np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
+                order_key = np.concatenate((order_key, 2 * pos[got.parent[got.ok]] + 1))
+        if arcs and len(every):
+            cols, order_key = self._arc_candidates(every, pos, ok, cols, order_key, grid, wrap)
         log.debug(
             "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
             len(times),
@@ -832,6 +843,32 @@ class ScanTrunkDetector:
             source=self.source,
             frame=frame,
         )
+
+
+    def _arc_candidates(
+        self,
+        every: Segments,
+        pos: np.ndarray,
+        ok: NDArray[np.bool_],
+        cols: dict[str, np.ndarray],
+        order_key: np.ndarray,
+        grid: FloatArray,
+        wrap: bool,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """``arc_refit``: the largest consistent arcs (:func:`~stemmap.scan._arcs.arc_pieces`)
+        of the rejected candidates (and with "all" of the accepted ones) of ``every``; a
+        passing arc takes its parent's place in the output (an accepted parent is dropped)."""
+        accepted = np.zeros(len(every), dtype=bool)
+        accepted[pos[ok]] = True
+        which = np.ones(len(every), dtype=bool) if self.config.arc_refit == "all" else ~accepted
+        got = arc_pieces(self, every, which, grid, wrap, corrected=False)
+        if got is None or not np.any(got.ok):
+            return cols, order_key
+        more = _output_columns(got.segs, got.fitted, got.ok)
+        parent = got.parent[got.ok]
+        stay = ~np.isin(order_key // 2, parent[accepted[parent]]) | (order_key % 2 == 1)
+        cols = {k: np.concatenate((cols[k][stay], more[k])) for k in cols}
+        return cols, np.concatenate((order_key[stay], 2 * parent + 1))
 
 
 def _output_columns(

@@ -1,0 +1,215 @@
+"""The largest consistent arc of a candidate segment (ours, issue 11; numpy path only).
+
+A real trunk's segment often runs on into a branch, its fillet or a stem touching it (lidR's
+single tree: 7 of 9 trunks at 0.5 deg merged with a branch into one 85-98 cm segment that is
+not convex and fails the ``depth`` filter). The circle fit of the whole segment follows the
+branch; :func:`consensus_arcs` instead grows a circle from a short convex seed window and adds
+the neighbouring returns one at a time while each new return lies within the tolerance of the
+circle fitted so far (``arc_sigmas`` robust residual scales of the arc so far, at least the RMS
+limit of the detector's RMS test), re-fitting after every addition. Every seed window is
+grown; the arc with the most returns wins (ties: the smaller residual RMS). The arc then
+becomes a candidate of its own (:func:`arc_pieces`): the same segment filters, fit and
+plausibility tests as any candidate.
+
+The growing fit is Kasa's (1976) algebraic circle, updated from running sums (one 3x3 solve per
+step); the arc's final circle is the detector's own fit.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.scan._refit import Refitted
+from stemmap.scan.features import footprint_correct, segment_features, segment_sum
+from stemmap.scan.plausibility import fit_reasons, segment_reasons
+from stemmap.scan.segment import Segments
+from stemmap.types import FloatArray
+
+if TYPE_CHECKING:
+    from stemmap.scan.config import DetectorConfig
+    from stemmap.scan.detect import ScanTrunkDetector
+
+__all__ = ["arc_pieces", "consensus_arcs", "largest_arc"]
+
+#: At most this many seed windows per segment (evenly spaced): bounds the cost of long segments.
+_MAX_SEEDS = 24
+
+
+def _kasa(s: FloatArray) -> tuple[float, float, float] | None:
+    """Kasa circle from the running sums ``s`` = (n, Sx, Sy, Sxx, Syy, Sxy, Sz, Sxz, Syz) with
+    z = x^2 + y^2 (coordinates relative to a local origin); None when degenerate."""
+    n, sx, sy, sxx, syy, sxy, sz, sxz, syz = s
+    a = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, n]])
+    rhs = np.array([sxz, syz, sz])
+    try:
+        u, v, w = np.linalg.solve(a, rhs)
+    except np.linalg.LinAlgError:
+        return None
+    cx, cy = 0.5 * u, 0.5 * v
+    r2 = w + cx * cx + cy * cy
+    if not (r2 > 0 and math.isfinite(r2)):
+        return None
+    return float(cx), float(cy), math.sqrt(r2)
+
+
+def _terms(x: FloatArray, y: FloatArray) -> FloatArray:
+    z = x * x + y * y
+    return np.stack((np.ones_like(x), x, y, x * x, y * y, x * y, z, x * z, y * z), axis=1)
+
+
+def largest_arc(
+    x: FloatArray,
+    y: FloatArray,
+    floor: float,
+    k: float,
+    seed: int,
+    r_min: float,
+    r_max: float,
+) -> tuple[int, int] | None:
+    """The largest run ``[a, b)`` of consecutive returns (sensor frame, origin = sensor) that
+    one circle explains: grown from every ``seed``-return window whose circle has a radius in
+    [r_min, r_max] and lies beyond the returns (convex towards the sensor); a neighbour joins
+    when its residual is within ``max(k x 1.4826 MAD, floor)`` of the arc's current circle.
+    None when no seed window qualifies."""
+    n = x.shape[0]
+    if n < seed:
+        return None
+    ox, oy = float(x.mean()), float(y.mean())
+    lx, ly = x - ox, y - oy
+    t = _terms(lx, ly)
+    starts = range(n - seed + 1)
+    if len(starts) > _MAX_SEEDS:
+        starts = range(0, n - seed + 1, math.ceil((n - seed + 1) / _MAX_SEEDS))
+    best: tuple[int, float, int, int] | None = None
+    for a0 in starts:
+        a, b = a0, a0 + seed
+        s = t[a:b].sum(axis=0)
+        c = _kasa(s)
+        if c is None or not (r_min <= c[2] <= r_max):
+            continue
+        if math.hypot(c[0] + ox, c[1] + oy) <= math.hypot(lx[a:b].mean() + ox, ly[a:b].mean() + oy):
+            continue  # centre not beyond the returns: concave towards the sensor
+        while True:
+            e = np.hypot(lx[a:b] - c[0], ly[a:b] - c[1]) - c[2]
+            dev = np.abs(e - np.median(e))
+            tol = max(k * 1.4826 * float(np.median(dev)), floor)
+            cand = []
+            for i in (a - 1, b):
+                if 0 <= i < n:
+                    ei = abs(math.hypot(lx[i] - c[0], ly[i] - c[1]) - c[2])
+                    if ei <= tol:
+                        cand.append((ei, i))
+            if not cand:
+                break
+            _, i = min(cand)
+            s2 = s + t[i]
+            c2 = _kasa(s2)
+            if c2 is None or not (r_min <= c2[2] <= r_max):
+                break
+            s, c = s2, c2
+            a, b = (i, b) if i < a else (a, i + 1)
+        e = np.hypot(lx[a:b] - c[0], ly[a:b] - c[1]) - c[2]
+        rms = float(np.sqrt(np.mean(e * e)))
+        key = (b - a, -rms)
+        if best is None or key > (best[0], -best[1]):
+            best = (b - a, rms, a, b)
+    return None if best is None else (best[2], best[3])
+
+
+def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
+    """Per return of ``segs``, whether it lies on its segment's largest consistent arc
+    (:func:`largest_arc`, seed ``max(min_points, 4)`` returns, ``arc_sigmas``, floor the RMS
+    limit of the RMS test at the segment's range noise and the largest radius' bark)."""
+    p = segs.points
+    keep = np.zeros(len(p), dtype=bool)
+    if len(segs) == 0:
+        return keep
+    mean_r = segment_sum(p.r, segs) / segs.counts
+    sigma = cfg.sigma + cfg.sigma_rel * mean_r
+    seed = max(cfg.min_points, 4)
+    for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
+        # the RMS test's limit for a trunk of the seed circle's size is not known yet: use
+        # the noise only (bark roughness would let a fillet join a small trunk's arc)
+        floor = cfg.max_rms_sigma * float(sigma[j])
+        got = largest_arc(
+            p.x[a:b], p.y[a:b], floor, cfg.arc_sigmas, seed, cfg.min_radius, cfg.max_radius
+        )
+        if got is not None and got[1] - got[0] < b - a:
+            keep[a + got[0] : a + got[1]] = True
+    return keep
+
+
+def _cut_flags(sub: Segments, pieces: Segments, idx: NDArray[np.int64], margin: float) -> Segments:
+    """Occlusion at a piece's cut ends by the rule of ``build_segments``: occluded only when
+    the return across the cut is nearer by more than ``margin`` (a branch going on at the
+    trunk's range does not make the trunk partial)."""
+    r = sub.points.r
+    lab = sub.labels
+    first = idx[pieces.start]
+    last = idx[pieces.stop - 1]
+    seg = lab[first]
+    cut_s = first > sub.start[seg]
+    cut_e = last < sub.stop[seg] - 1
+    occ_s = np.where(cut_s, r[np.maximum(first - 1, 0)] < r[first] - margin, sub.occluded_start[seg])
+    occ_e = np.where(
+        cut_e, r[np.minimum(last + 1, len(r) - 1)] < r[last] - margin, sub.occluded_end[seg]
+    )
+    return Segments(
+        pieces.points,
+        pieces.start,
+        pieces.stop,
+        pieces.scan,
+        occ_s,
+        occ_e,
+        pieces.truncated_start,
+        pieces.truncated_end,
+    )
+
+
+def arc_pieces(
+    detector: ScanTrunkDetector,
+    segs: Segments,
+    which: NDArray[np.bool_],
+    grid: FloatArray,
+    wrap: bool,
+    *,
+    corrected: bool,
+) -> Refitted | None:
+    """The largest consistent arcs of the segments ``which`` of ``segs``, as new candidates:
+    segment filters, footprint correction (unless the returns are ``corrected`` already), the
+    detector's fit and its plausibility tests. ``parent`` indexes ``segs``."""
+    cfg = detector.config
+    if not np.any(which):
+        return None
+    sub = segs.select(which)
+    keep = consensus_arcs(sub, cfg)
+    if not np.any(keep):
+        return None
+    idx = np.flatnonzero(keep)
+    pieces = _cut_flags(sub, sub.split(keep), idx, cfg.occlusion_margin)
+    parent = np.flatnonzero(which)[sub.labels[idx[pieces.start]]]
+    good = segment_reasons(pieces, segment_features(pieces), cfg) == 0
+    if not np.any(good):
+        return None
+    pieces, parent = pieces.select(good), parent[good]
+    if not corrected and cfg.beam_footprint_deg > 0:
+        pieces = footprint_correct(pieces, math.radians(cfg.beam_footprint_deg))
+    refit = detector._fit_candidates(pieces, grid, wrap)
+    ok = (
+        fit_reasons(
+            cfg,
+            refit.centers,
+            refit.radii,
+            refit.ok,
+            refit.sil_width,
+            refit.mean_r,
+            refit.test_rms,
+            refit.sigma,
+        )
+        == 0
+    )
+    return Refitted(pieces, refit, ok, parent.astype(np.int64))
