@@ -199,6 +199,12 @@ class DetectorConfig:
         Consensus threshold of ``arc_refit`` in robust residual scales (1.4826 MAD).
     arc_floor_sigmas : float, > 0
         ... but never below this many range-noise sigmas (``sigma + sigma_rel x range``).
+    arc_replace : float, > 1
+        With ``arc_refit``, an *accepted* candidate is replaced by its largest consistent arc
+        when the arc passes every test and the candidate's fit RMS exceeds this multiple of
+        the arc's fit RMS and the range noise (a fillet or stub at one end pulled the fit; on
+        lidR, accepted trunks with one branch return at an end were 5-10 cm too wide).
+        inf = off.
     """
 
     name: str = "custom"
@@ -258,6 +264,7 @@ class DetectorConfig:
     arc_refit: bool = False
     arc_sigmas: float = 3.0
     arc_floor_sigmas: float = 1.0
+    arc_replace: float = math.inf
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -335,6 +342,8 @@ class DetectorConfig:
             raise bad("refit_sigmas", self.refit_sigmas, "it must be > 0 (robust sigmas)")
         if not (self.arc_sigmas > 0 and math.isfinite(self.arc_sigmas)):
             raise bad("arc_sigmas", self.arc_sigmas, "it must be > 0 (robust sigmas)")
+        if not self.arc_replace > 1:
+            raise bad("arc_replace", self.arc_replace, "it must be > 1 (inf: off)")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
             raise bad("arc_floor_sigmas", self.arc_floor_sigmas, "it must be > 0 (sigmas)")
         if not self.max_rms_sigma > 0:

@@ -819,7 +819,9 @@ class ScanTrunkDetector:
                 cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
                 order_key = np.concatenate((order_key, 2 * pos[got.parent[got.ok]] + 1))
         if arcs and len(every):
-            cols, order_key = self._arc_candidates(every, cols, order_key, grid, wrap)
+            cols, order_key = self._arc_candidates(
+                every, cols, order_key, fitted.rms[ok], grid, wrap
+            )
         log.debug(
             "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
             len(times),
@@ -851,22 +853,44 @@ class ScanTrunkDetector:
         every: Segments,
         cols: dict[str, np.ndarray],
         order_key: np.ndarray,
+        parent_rms: FloatArray,
         grid: FloatArray,
         wrap: bool,
     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """``arc_refit``: the largest consistent arcs (:func:`~stemmap.scan._arcs.arc_pieces`)
         of the candidates of ``every`` rejected as not convex (``depth``); a passing arc takes
-        its parent's place in the output."""
+        its parent's place in the output. With a finite ``arc_replace`` also of the accepted
+        candidates (``order_key`` even, fit RMS ``parent_rms`` in the same order)."""
         # rejected for not being a convex arc: a trunk that runs on into a branch (lidR,
         # scan-detection.md); pieces of candidates that failed the RMS test were tried too
         # and passed as trunks on the simulator's bushes (precision 0.975 -> 0.947)
-        which = segment_reasons(every, segment_features(every), self.config) == _DEPTH
+        cfg = self.config
+        which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
+        replace = math.isfinite(cfg.arc_replace)
+        if replace:
+            # accepted candidates too: kept (output row) ones at even keys
+            rms_of = np.full(len(every), np.nan)
+            rms_of[order_key[order_key % 2 == 0] // 2] = parent_rms
+            which |= np.isfinite(rms_of)
         got = arc_pieces(self, every, which, grid, wrap, corrected=False)
         if got is None or not np.any(got.ok):
             return cols, order_key
-        more = _output_columns(got.segs, got.fitted, got.ok)
-        cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
-        return cols, np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
+        ok = got.ok.copy()
+        stay = np.ones(order_key.shape[0], dtype=bool)
+        if replace:
+            par_rms = rms_of[got.parent]
+            acc = np.isfinite(par_rms)
+            # an accepted candidate gives way to its arc only when the arc explains its
+            # returns much better (a fillet or stub at one end pulled the whole fit)
+            better = par_rms > np.maximum(cfg.arc_replace * got.fitted.rms, got.fitted.sigma)
+            ok &= ~acc | better
+            gone = got.parent[ok & acc]
+            stay = ~(np.isin(order_key // 2, gone) & (order_key % 2 == 0))
+        if not np.any(ok):
+            return cols, order_key
+        more = _output_columns(got.segs, got.fitted, ok)
+        cols = {k: np.concatenate((cols[k][stay], more[k])) for k in cols}
+        return cols, np.concatenate((order_key[stay], 2 * got.parent[ok] + 1))
 
 
 _DEPTH = REASONS.index("depth")
