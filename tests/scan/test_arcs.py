@@ -5,13 +5,14 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan.test_gaps_refit import INC
+from tests.scan.test_gaps_refit import _scan as _circles_scan
 
 from stemmap.errors import ConfigError
 from stemmap.scan._arcs import largest_arc
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
 
-INC = math.radians(0.5)
 TRUNK = (5.0, 0.0, 0.15)
 
 
@@ -22,22 +23,20 @@ def _branch(p0, p1, rad=0.03, step=0.01):
     return [(p0[0] + s * (p1[0] - p0[0]), p0[1] + s * (p1[1] - p0[1]), rad) for s in t]
 
 
-def _scan(circles, n=121, noise=0.0, seed=0):
-    """Thin-beam ranges of circles (cx, cy, r), beams centred on the x axis."""
-    a0 = -INC * (n - 1) / 2
-    ang = a0 + INC * np.arange(n)
-    d = np.column_stack((np.cos(ang), np.sin(ang)))
-    r = np.full(n, np.inf)
-    for cx, cy, rad in circles:
-        b = d @ np.array([cx, cy])
-        disc = b * b - (cx * cx + cy * cy - rad * rad)
-        t = b - np.sqrt(np.maximum(disc, 0.0))
-        r = np.where((disc > 0) & (t > 0), np.minimum(r, t), r)
+def _scan(circles, noise=0.0, seed=0):
+    """Thin-beam ranges of circles (cx, cy, r) on 121 beams centred on the x axis, plus
+    Gaussian range noise."""
+    batch = _circles_scan(circles)
     if noise > 0:
-        r = r + np.random.default_rng(seed).normal(0.0, noise, n)
-    return ScanBatch(
-        ranges=r[None, :], times=np.zeros(1), angle_min=a0, angle_increment=INC, range_max=30.0
-    )
+        r = batch.ranges + np.random.default_rng(seed).normal(0.0, noise, batch.ranges.shape)
+        batch = ScanBatch(
+            ranges=r,
+            times=batch.times,
+            angle_min=batch.angle_min,
+            angle_increment=batch.angle_increment,
+            range_max=batch.range_max,
+        )
+    return batch
 
 
 # a trunk of 30 cm at 5 m and a branch leaving its silhouette edge towards the sensor (the

@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from stemmap.scan._refit import Refitted
+from stemmap.scan._refit import Refitted, fit_passes
 from stemmap.scan.features import footprint_correct, segment_features, segment_sum
-from stemmap.scan.plausibility import fit_reasons, segment_reasons
+from stemmap.scan.plausibility import segment_reasons
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
 
@@ -123,7 +123,7 @@ def largest_arc(
                 break
             s, c = s2, c2
             a, b = (i, b) if i < a else (a, i + 1)
-        if ends_only and 0 < a and b < n:
+        if ends_only and a > 0 and b < n:
             continue  # not at an end: a trunk runs on into a branch on one side
         e = np.hypot(lx[a:b] - c[0], ly[a:b] - c[1]) - c[2]
         rms = float(np.sqrt(np.mean(e * e)))
@@ -170,7 +170,9 @@ def _cut_flags(sub: Segments, pieces: Segments, idx: NDArray[np.int64], margin: 
     seg = lab[first]
     cut_s = first > sub.start[seg]
     cut_e = last < sub.stop[seg] - 1
-    occ_s = np.where(cut_s, r[np.maximum(first - 1, 0)] < r[first] - margin, sub.occluded_start[seg])
+    occ_s = np.where(
+        cut_s, r[np.maximum(first - 1, 0)] < r[first] - margin, sub.occluded_start[seg]
+    )
     occ_e = np.where(
         cut_e, r[np.minimum(last + 1, len(r) - 1)] < r[last] - margin, sub.occluded_end[seg]
     )
@@ -215,20 +217,7 @@ def arc_pieces(
     if not corrected and cfg.beam_footprint_deg > 0:
         pieces = footprint_correct(pieces, math.radians(cfg.beam_footprint_deg))
     refit = detector._fit_candidates(pieces, grid, wrap)
-    ok = (
-        fit_reasons(
-            # the arc holds the returns that lie on one circle within the noise: the RMS
-            # test without the bark allowance (with it, round pieces of the simulator's
-            # bushes at 2-3 sigma passed)
-            replace(cfg, bark_roughness=0.0),
-            refit.centers,
-            refit.radii,
-            refit.ok,
-            refit.sil_width,
-            refit.mean_r,
-            refit.test_rms,
-            refit.sigma,
-        )
-        == 0
-    )
+    # the arc holds the returns that lie on one circle within the noise: the RMS test without
+    # the bark allowance (with it, round pieces of the simulator's bushes at 2-3 sigma passed)
+    ok = fit_passes(replace(cfg, bark_roughness=0.0), refit)
     return Refitted(pieces, refit, ok, parent.astype(np.int64))

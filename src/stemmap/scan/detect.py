@@ -28,8 +28,8 @@ from scipy.special import chdtri
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
-from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
 from stemmap.scan._arcs import arc_pieces
+from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
 from stemmap.scan._refit import refit_pieces
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
@@ -45,7 +45,7 @@ from stemmap.scan.features import (
 )
 from stemmap.scan.plausibility import (
     REASONS,
-    fit_reasons,
+    fitted_reasons,
     range_roughness,
     rejected_candidates,
     robust_residual_scale,
@@ -785,7 +785,13 @@ class ScanTrunkDetector:
         cfg = self.config
         arcs = cfg.arc_refit
         segs, grid, wrap = self._candidates(
-            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch,
+            ranges,
+            angle_min,
+            angle_increment,
+            range_min,
+            range_max,
+            roll,
+            pitch,
             apply_filters=not arcs,
         )
         every = segs  # with arc_refit: every candidate, before the segment filters
@@ -798,16 +804,7 @@ class ScanTrunkDetector:
         if cfg.beam_footprint_deg > 0:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
         fitted = self._fit_candidates(segs, grid, wrap)
-        codes = fit_reasons(
-            cfg,
-            fitted.centers,
-            fitted.radii,
-            fitted.ok,
-            fitted.sil_width,
-            fitted.mean_r,
-            fitted.test_rms,
-            fitted.sigma,
-        )
+        codes = fitted_reasons(cfg, fitted)
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
         order_key = 2 * pos[ok]
@@ -846,7 +843,6 @@ class ScanTrunkDetector:
             source=self.source,
             frame=frame,
         )
-
 
     def _arc_candidates(
         self,
