@@ -192,7 +192,8 @@ class DetectorConfig:
         circle grown from a short convex seed window, adding neighbouring returns while each
         lies within ``arc_sigmas`` robust residual scales (at least ``arc_floor_sigmas`` noise
         sigmas) of the circle so far; only an arc that reaches one end of the segment, with
-        ``min_points_partial`` returns, tested without the bark allowance -- a trunk whose
+        ``min_points_partial`` returns and a quarter of the segment's, tested without the
+        bark allowance -- a trunk whose
         segment runs on into a branch, fillet or stem. Numpy path only (the compiled path is
         not used while it is on).
     arc_sigmas : float, > 0
