@@ -198,7 +198,7 @@ def test_localise_on_map_lost_and_too_few(rng):
 
 
 def test_place_counter():
-    pc = PlaceCounter(2.0, per_place=2, after_s=60.0)
+    pc = PlaceCounter(2.0, per_place=2, after_m=60.0)
     for x, y, t in ((0.0, 0.0, 0.0), (1.9, 0.0, 10.0), (2.1, 0.0, 0.0), (-1.0, -1.0, 100.0)):
         pc.add(np.array([x, y]), t)
     pc.add(np.array([10.0, 10.0]))
@@ -206,9 +206,9 @@ def test_place_counter():
     assert pc.count(np.array([2.0, 0.0])) == 3
     assert pc.count(np.array([10.5, 10.5])) == 1
     assert pc.count(np.array([-50.0, 3.0])) == 0
-    assert pc.count(np.zeros(2), before=50.0) == 2  # only those added before t = 50 s
-    # full: >= 2 keyframes added 60 s or more before t
-    assert not pc.full(np.zeros(2), 65.0)  # only (0, 0) is 60 s old at t = 65 s
+    assert pc.count(np.zeros(2), upto=50.0) == 2  # only those added at path distance <= 50 m
+    # full: >= 2 keyframes added 60 m of driving or more before s
+    assert not pc.full(np.zeros(2), 65.0)  # only (0, 0) is 60 m back at s = 65 m
     assert pc.full(np.zeros(2), 75.0)
     assert not pc.full(np.array([10.0, 10.0]), 1e9)  # one keyframe there
 

@@ -110,7 +110,7 @@ class Isam2Config:
     revisit_factors: int = 15
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
-    revisit_after_s: float = 0.0
+    revisit_after_m: float = 0.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
