@@ -32,9 +32,10 @@ Two additions make it hold on long drives (third session; docs/algorithms/slam.m
 "Localisation mode"): between iSAM2 updates the tracker is **localised on the map**
 (:mod:`stemmap.slam._graph_localise`; a fit the map contradicts puts the next keyframes into
 the graph), and the graph is **bounded by area**: where a place already holds
-``revisit_keyframes`` graph keyframes within ``revisit_radius`` of an earlier visit (:class:`PlaceCounter`: added
-``revisit_after_m`` or more of driving before), a keyframe whose trees are
-all in the graph stays out even if some have fewer than ``revisit_factors`` factors. On by
+``revisit_keyframes`` graph keyframes of an earlier visit within ``revisit_radius``
+(:class:`PlaceCounter`: added ``revisit_after_m`` or more of driving before; a stop or slow
+driving is one visit), a keyframe whose trees are all in the graph stays out even if some
+have fewer than ``revisit_factors`` factors. On by
 default (``revisit_factors = 15``); measured on the Victoria Park log replayed 10x as
 revisits in docs/reliability.md "Soak".
 

@@ -20,8 +20,8 @@ __all__ = [
     "C_NEW",
     "C_REACQ",
     "C_SINGLE",
-    "grow_landmarks",
     "band_cho_solve",
+    "grow_landmarks",
     "merge_window",
     "track_keyframe",
 ]
