@@ -18,14 +18,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.scan.features import segment_features
-from stemmap.scan.plausibility import REASONS, fit_reasons, rms_limit, segment_reasons
+from stemmap.scan.plausibility import REASONS, fitted_reasons, rms_limit, segment_reasons
 from stemmap.scan.segment import Segments, split_largest_gap
 from stemmap.types import FloatArray
 
 if TYPE_CHECKING:
+    from stemmap.scan.config import DetectorConfig
     from stemmap.scan.detect import ScanTrunkDetector, _Fitted
 
-__all__ = ["Refitted", "outlier_returns", "refit_pieces"]
+__all__ = ["Refitted", "fit_passes", "outlier_returns", "refit_pieces"]
 
 _RMS = REASONS.index("rms")
 
@@ -124,17 +125,10 @@ def refit_pieces(
         return None
     pieces, parent = pieces.select(good), parent[good]
     refit = detector._fit_candidates(pieces, grid, wrap)
-    ok = (
-        fit_reasons(
-            cfg,
-            refit.centers,
-            refit.radii,
-            refit.ok,
-            refit.sil_width,
-            refit.mean_r,
-            refit.test_rms,
-            refit.sigma,
-        )
-        == 0
-    )
-    return Refitted(pieces, refit, ok, parent.astype(np.int64))
+    return Refitted(pieces, refit, fit_passes(cfg, refit), parent.astype(np.int64))
+
+
+def fit_passes(cfg: DetectorConfig, fitted: _Fitted) -> NDArray[np.bool_]:
+    """Whether each fitted candidate passes every fit plausibility test of ``cfg``."""
+    out: NDArray[np.bool_] = fitted_reasons(cfg, fitted) == 0
+    return out

@@ -186,6 +186,26 @@ class DetectorConfig:
         returns (two objects side by side, :func:`~stemmap.scan.segment.split_largest_gap`),
         at its outlier returns, or at the runs of outliers at either end only (a branch
         fillet or stub at the silhouette, never the dents inside a rough arc).
+    arc_refit : bool
+        Fit the largest consistent arc of a candidate rejected as not convex (``depth``) as a
+        candidate of its own (ours, issue 11; :func:`~stemmap.scan._arcs.consensus_arcs`): a
+        circle grown from a short convex seed window, adding neighbouring returns while each
+        lies within ``arc_sigmas`` robust residual scales (at least ``arc_floor_sigmas`` noise
+        sigmas) of the circle so far; only an arc that reaches one end of the segment, with
+        ``min_points_partial`` returns and a quarter of the segment's, tested without the
+        bark allowance -- a trunk whose
+        segment runs on into a branch, fillet or stem. Numpy path only (the compiled path is
+        not used while it is on).
+    arc_sigmas : float, > 0
+        Consensus threshold of ``arc_refit`` in robust residual scales (1.4826 MAD).
+    arc_floor_sigmas : float, > 0
+        ... but never below this many range-noise sigmas (``sigma + sigma_rel x range``).
+    arc_replace : float, > 1
+        With ``arc_refit``, an *accepted* candidate is replaced by its largest consistent arc
+        when the arc passes every test and the candidate's fit RMS exceeds this multiple of
+        the arc's fit RMS and the range noise (a fillet or stub at one end pulled the fit; on
+        lidR, accepted trunks with one branch return at an end were 5-10 cm too wide).
+        inf = off.
     """
 
     name: str = "custom"
@@ -242,6 +262,10 @@ class DetectorConfig:
     refit_pieces: bool = False
     refit_sigmas: float = 3.0
     refit_split: Literal["gap", "outliers", "outlier_ends"] = "gap"
+    arc_refit: bool = False
+    arc_sigmas: float = 3.0
+    arc_floor_sigmas: float = 1.0
+    arc_replace: float = math.inf
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -317,6 +341,12 @@ class DetectorConfig:
             raise bad("gap_splits", self.gap_splits, "it must be >= 0 passes")
         if not (self.refit_sigmas > 0 and math.isfinite(self.refit_sigmas)):
             raise bad("refit_sigmas", self.refit_sigmas, "it must be > 0 (robust sigmas)")
+        if not (self.arc_sigmas > 0 and math.isfinite(self.arc_sigmas)):
+            raise bad("arc_sigmas", self.arc_sigmas, "it must be > 0 (robust sigmas)")
+        if not self.arc_replace > 1:
+            raise bad("arc_replace", self.arc_replace, "it must be > 1 (inf: off)")
+        if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
+            raise bad("arc_floor_sigmas", self.arc_floor_sigmas, "it must be > 0 (sigmas)")
         if not self.max_rms_sigma > 0:
             raise bad("max_rms_sigma", self.max_rms_sigma, "it must be > 0")
         if not self.max_radius_width_ratio > 0:

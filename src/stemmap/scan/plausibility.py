@@ -25,12 +25,13 @@ from stemmap.types import FloatArray
 
 if TYPE_CHECKING:
     from stemmap.scan.config import DetectorConfig
-    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.scan.detect import ScanTrunkDetector, _Fitted
     from stemmap.types import ScanBatch
 
 __all__ = [
     "REASONS",
     "fit_reasons",
+    "fitted_reasons",
     "range_roughness",
     "rejected_candidates",
     "rms_limit",
@@ -167,6 +168,20 @@ def fit_reasons(
     return codes
 
 
+def fitted_reasons(cfg: DetectorConfig, fitted: _Fitted) -> NDArray[np.int8]:
+    """:func:`fit_reasons` of the candidates of a detector's fit (``_fit_candidates``)."""
+    return fit_reasons(
+        cfg,
+        fitted.centers,
+        fitted.radii,
+        fitted.ok,
+        fitted.sil_width,
+        fitted.mean_r,
+        fitted.test_rms,
+        fitted.sigma,
+    )
+
+
 def rms_limit(cfg: DetectorConfig, sigma: FloatArray, radii: FloatArray) -> FloatArray:
     """Largest residual scale the RMS test accepts: ``max_rms_sigma x sigma`` or, with
     ``bark_roughness`` b > 0, ``max_rms_sigma x sqrt(sigma^2 + (b r)^2)`` (ours, issue 11): a
@@ -215,16 +230,7 @@ def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[s
             if detector.config.beam_footprint_deg > 0:
                 sub = footprint_correct(sub, math.radians(detector.config.beam_footprint_deg))
             fitted = detector._fit_candidates(sub, grid, wrap)
-            fcodes = fit_reasons(
-                detector.config,
-                fitted.centers,
-                fitted.radii,
-                fitted.ok,
-                fitted.sil_width,
-                fitted.mean_r,
-                fitted.test_rms,
-                fitted.sigma,
-            )
+            fcodes = fitted_reasons(detector.config, fitted)
             codes[passed] = fcodes
             cols["x"][passed], cols["y"][passed] = fitted.centers[:, 0], fitted.centers[:, 1]
             cols["radius"][passed], cols["rms"][passed] = fitted.radii, fitted.rms

@@ -1,0 +1,130 @@
+"""The largest consistent arc of a non-convex candidate (``arc_refit``, issue 11, fourth round):
+a trunk whose segment runs on into a branch is found again with its own radius."""
+
+import math
+
+import numpy as np
+import pytest
+from tests.scan.test_gaps_refit import INC
+from tests.scan.test_gaps_refit import _scan as _circles_scan
+
+from stemmap.errors import ConfigError
+from stemmap.scan._arcs import largest_arc
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.types import ScanBatch
+
+TRUNK = (5.0, 0.0, 0.15)
+
+
+def _branch(p0, p1, rad=0.03, step=0.01):
+    """A branch as a chain of small circles from ``p0`` to ``p1`` (a continuous surface)."""
+    n = int(math.hypot(p1[0] - p0[0], p1[1] - p0[1]) / step) + 1
+    t = np.linspace(0.0, 1.0, n)
+    return [(p0[0] + s * (p1[0] - p0[0]), p0[1] + s * (p1[1] - p0[1]), rad) for s in t]
+
+
+def _scan(circles, noise=0.0, seed=0):
+    """Thin-beam ranges of circles (cx, cy, r) on 121 beams centred on the x axis, plus
+    Gaussian range noise."""
+    batch = _circles_scan(circles)
+    if noise > 0:
+        r = batch.ranges + np.random.default_rng(seed).normal(0.0, noise, batch.ranges.shape)
+        batch = ScanBatch(
+            ranges=r,
+            times=batch.times,
+            angle_min=batch.angle_min,
+            angle_increment=batch.angle_increment,
+            range_max=batch.range_max,
+        )
+    return batch
+
+
+# a trunk of 30 cm at 5 m and a branch leaving its silhouette edge towards the sensor (the
+# segment is not convex: lidR, scan-detection.md)
+TRUNK_AND_BRANCH = [TRUNK, *_branch((5.0, 0.17), (4.6, 0.8))]
+
+
+def test_the_merged_segment_is_rejected_as_not_convex_without_arcs():
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap"))
+    batch = _scan(TRUNK_AND_BRANCH)
+    assert len(det.detect_batch(batch)) == 0
+    assert "depth" in det.rejected(batch)["reason"]
+
+
+def test_the_arc_of_the_trunk_is_found_with_its_radius():
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0))
+    obs = det.detect_batch(_scan(TRUNK_AND_BRANCH))
+    assert len(obs) == 1
+    # noise-free returns on an exact circle: the arc's fit recovers it to a millimetre
+    assert obs.radii[0] == pytest.approx(TRUNK[2], abs=0.002)
+    assert np.hypot(*(obs.centers[0] - TRUNK[:2])) < 0.003
+
+
+def test_an_accepted_fit_pulled_by_a_stub_gives_way_to_its_arc():
+    # a 6 cm stub touching the trunk's silhouette edge: the segment stays convex and its fit
+    # passes, 5 cm too wide; with arc_replace the trunk's own arc replaces it
+    batch = _scan([TRUNK, (5.02, 0.19, 0.03)])
+    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0))
+    assert plain.detect_batch(batch).radii[0] > TRUNK[2] + 0.03
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_replace=2.0)
+    )
+    obs = det.detect_batch(batch)
+    assert len(obs) == 1
+    # the 0.5 deg beams leave ~2 mm between the last trunk return and the silhouette
+    assert obs.radii[0] == pytest.approx(TRUNK[2], abs=0.003)
+
+
+def test_arc_replace_leaves_a_clean_trunk_alone():
+    batch = _scan([TRUNK], noise=0.01, seed=3)
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap")).detect_batch(batch)
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_replace=2.0)
+    )
+    obs = det.detect_batch(batch)
+    assert len(obs) == len(base) == 1
+    assert obs.radii[0] == base.radii[0]
+
+
+def test_largest_arc_stops_where_the_branch_leaves_the_circle():
+    batch = _scan(TRUNK_AND_BRANCH)
+    r = batch.ranges[0]
+    ok = np.isfinite(r)
+    ang = batch.angle_min + INC * np.arange(r.shape[0])
+    x, y = (r * np.cos(ang))[ok], (r * np.sin(ang))[ok]
+    on_trunk = np.abs(np.hypot(x - TRUNK[0], y - TRUNK[1]) - TRUNK[2]) < 1e-6
+    got = largest_arc(x, y, 0.01, 2.0, 4, 0.02, 0.8)
+    assert got is not None
+    a, b = got
+    # every trunk return and no branch return (the trunk returns come first in beam order)
+    assert np.flatnonzero(on_trunk).tolist() == list(range(a, b))
+
+
+def test_an_arc_in_the_middle_of_a_segment_does_not_count():
+    # a bulge in the middle of a long wall-like run: no arc reaching an end
+    t = np.linspace(-0.5, 0.5, 41)
+    x = 5.0 + 0.0 * t
+    y = t.copy()
+    mid = np.abs(t) < 0.08
+    x[mid] -= np.sqrt(0.1**2 - t[mid] ** 2) - math.sqrt(0.1**2 - 0.08**2)
+    got = largest_arc(x, y, 0.005, 2.0, 4, 0.02, 0.8)
+    assert got is None or got[0] == 0 or got[1] == x.shape[0]
+    assert got is None or not (mid[got[0] : got[1]].all() and got[1] - got[0] < 20)
+
+
+def test_arc_refit_runs_on_the_numpy_path_and_is_off_by_default():
+    assert not DetectorConfig.preset("stemmap").arc_refit
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True))
+    assert not det._compiled(None, None)
+
+
+def test_arc_replace_must_exceed_one():
+    with pytest.raises(ConfigError, match="arc_replace"):
+        DetectorConfig.preset("stemmap", arc_replace=1.0)
+
+
+@pytest.mark.parametrize("field", ["arc_sigmas", "arc_floor_sigmas"])
+@pytest.mark.parametrize("value", [0.0, -1.0, math.inf])
+def test_arc_thresholds_are_validated(field, value):
+    with pytest.raises(ConfigError, match=field):
+        DetectorConfig.preset("stemmap", **{field: value})
