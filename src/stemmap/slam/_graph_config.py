@@ -55,12 +55,13 @@ class Isam2Config:
         from its measurements, and its pose is localised on the final map. 0 = off (every
         keyframe enters the graph). Default 15 (docs/algorithms/slam.md "Revisits";
         docs/reliability.md "Soak": the 10-pass Victoria Park replay)
-    revisit_radius, revisit_keyframes, revisit_after_s : the area bound of the mode: where
-        ``revisit_keyframes`` graph keyframes (added at least ``revisit_after_s`` s before;
-        0 = all) lie within ``revisit_radius`` m, a keyframe that sees only trees already in
-        the graph stays out even if some have fewer than ``revisit_factors`` factors (only a
-        new tree or a lost tracker brings it in). ``revisit_after_s = 60`` lost the path in
-        the 10x soak (docs/algorithms/slam.md "Revisits")
+    revisit_radius, revisit_keyframes, revisit_after_m : the area bound of the mode: where
+        ``revisit_keyframes`` graph keyframes of an earlier visit (added ``revisit_after_m`` m
+        of driving or more before; 0 = every earlier one) lie within ``revisit_radius`` m, a
+        keyframe that sees only trees already in the graph stays out even if some have fewer
+        than ``revisit_factors`` factors (only a new tree or a lost tracker brings it in).
+        Visits are told apart by path distance, not time: a vehicle that drives slowly or
+        stops is still on its first visit (docs/algorithms/slam.md "Revisits")
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -110,7 +111,7 @@ class Isam2Config:
     revisit_factors: int = 15
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
-    revisit_after_s: float = 0.0
+    revisit_after_m: float = 50.0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
@@ -162,6 +163,11 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.revisit_radius must be a positive number (m), got "
                 f"{self.revisit_radius}."
+            )
+        if not (math.isfinite(self.revisit_after_m) and self.revisit_after_m >= 0):
+            raise ConfigError(
+                f"Isam2Config.revisit_after_m must be a number >= 0 (m), got "
+                f"{self.revisit_after_m}."
             )
         if self.revisit_keyframes < 1:
             raise ConfigError(

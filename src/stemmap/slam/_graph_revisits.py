@@ -32,9 +32,10 @@ Two additions make it hold on long drives (third session; docs/algorithms/slam.m
 "Localisation mode"): between iSAM2 updates the tracker is **localised on the map**
 (:mod:`stemmap.slam._graph_localise`; a fit the map contradicts puts the next keyframes into
 the graph), and the graph is **bounded by area**: where a place already holds
-``revisit_keyframes`` graph keyframes within ``revisit_radius`` (:class:`PlaceCounter`;
-optionally only those added ``revisit_after_s`` or more before), a keyframe whose trees are
-all in the graph stays out even if some have fewer than ``revisit_factors`` factors. On by
+``revisit_keyframes`` graph keyframes of an earlier visit within ``revisit_radius``
+(:class:`PlaceCounter`: added ``revisit_after_m`` or more of driving before; a stop or slow
+driving is one visit), a keyframe whose trees are all in the graph stays out even if some
+have fewer than ``revisit_factors`` factors. On by
 default (``revisit_factors = 15``); measured on the Victoria Park log replayed 10x as
 revisits in docs/reliability.md "Soak".
 
@@ -111,38 +112,44 @@ def redundant(
 
 class PlaceCounter:
     """Graph keyframes per place: how many lie within ``radius`` (m) of a point, counting only
-    those added before a given time (a hash grid of ``radius``-sized cells; exact disc counts).
-    Bounds the graph by area (``Isam2Config.revisit_keyframes``)."""
+    those of an earlier *visit* (a hash grid of ``radius``-sized cells; exact disc counts).
+    Bounds the graph by area (``Isam2Config.revisit_keyframes``).
 
-    def __init__(self, radius: float, per_place: int = 1, after_s: float = 0.0) -> None:
+    A keyframe is stored with its path distance ``s`` (m driven since the start); one counts
+    towards the place of a later keyframe at ``s'`` only when ``s' - s >= after_m``: the
+    vehicle drove that far in between, so it left the place and came back. A vehicle that
+    drives slowly or stands still stays in one visit however long it takes (time would call
+    a stop a revisit)."""
+
+    def __init__(self, radius: float, per_place: int = 1, after_m: float = 0.0) -> None:
         self.radius = float(radius)
         self.per_place = int(per_place)
-        self.after_s = float(after_s)
+        self.after_m = float(after_m)
         self._cells: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
 
     def _cell(self, x: float, y: float) -> tuple[int, int]:
         return int(np.floor(x / self.radius)), int(np.floor(y / self.radius))
 
-    def add(self, xy: FloatArray, t: float = 0.0) -> None:
-        """A graph keyframe at ``xy`` (2,) (m), added at time ``t`` (s)."""
+    def add(self, xy: FloatArray, s: float = 0.0) -> None:
+        """A graph keyframe at ``xy`` (2,) (m), at path distance ``s`` (m)."""
         x, y = float(xy[0]), float(xy[1])
-        self._cells.setdefault(self._cell(x, y), []).append((x, y, t))
+        self._cells.setdefault(self._cell(x, y), []).append((x, y, s))
 
-    def full(self, xy: FloatArray, t: float) -> bool:
-        """At time ``t`` (s), ``xy`` holds ``per_place`` keyframes of a visit that ended
-        ``after_s`` ago or more (added before ``t - after_s``)."""
-        return self.count(xy, t - self.after_s) >= self.per_place
+    def full(self, xy: FloatArray, s: float) -> bool:
+        """At path distance ``s`` (m), ``xy`` holds ``per_place`` keyframes of an earlier visit
+        (added at path distance ``s - after_m`` or less)."""
+        return self.count(xy, s - self.after_m) >= self.per_place
 
-    def count(self, xy: FloatArray, before: float = np.inf) -> int:
-        """Graph keyframes within ``radius`` of ``xy`` (2,) added before time ``before``."""
+    def count(self, xy: FloatArray, upto: float = np.inf) -> int:
+        """Graph keyframes within ``radius`` of ``xy`` (2,) added at path distance <= ``upto``."""
         x, y = float(xy[0]), float(xy[1])
         cx, cy = self._cell(x, y)
         r2 = self.radius * self.radius
         n = 0
         for i in (cx - 1, cx, cx + 1):
             for j in (cy - 1, cy, cy + 1):
-                for px, py, pt in self._cells.get((i, j), ()):
-                    if pt < before and (px - x) ** 2 + (py - y) ** 2 <= r2:
+                for px, py, ps in self._cells.get((i, j), ()):
+                    if ps <= upto and (px - x) ** 2 + (py - y) ** 2 <= r2:
                         n += 1
         return n
 

@@ -21,6 +21,7 @@ __all__ = [
     "C_REACQ",
     "C_SINGLE",
     "band_cho_solve",
+    "grow_landmarks",
     "merge_window",
     "track_keyframe",
 ]
@@ -534,3 +535,16 @@ def band_cho_solve(ub: np.ndarray, b: np.ndarray) -> np.ndarray:
             for c in range(m):
                 x[r, c] /= d
     return x
+
+
+def grow_landmarks(
+    need: int, arrays: tuple[np.ndarray, ...], fills: tuple[float, ...]
+) -> tuple[np.ndarray, ...]:
+    """The tracker's per-landmark ``arrays`` grown (geometrically) to hold at least ``need``
+    trees, the new rows set to ``fills`` (one value per array)."""
+    n = arrays[0].shape[0]
+    g = max(need, 2 * n) - n
+    return tuple(
+        np.concatenate((a, np.full((g, *a.shape[1:]), f, dtype=a.dtype)))
+        for a, f in zip(arrays, fills, strict=True)
+    )

@@ -70,7 +70,7 @@ import numpy as np
 
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_config import Isam2Config
-from stemmap.slam._graph_localise import localise_windows
+from stemmap.slam._graph_localise import localise_windows, restart_covariance
 from stemmap.slam._graph_marginals import (
     _fit_diagnostics,
     _merge_duplicates,
@@ -96,6 +96,7 @@ from stemmap.slam._isam2_track import (
     C_NEW,
     C_REACQ,
     C_SINGLE,
+    grow_landmarks,
     track_keyframe,
 )
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
@@ -427,8 +428,8 @@ class Isam2Slam:
         g_last = 0  # the last keyframe in the graph
         # why keyframes entered the graph (a revisit that enters is one of these)
         entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
-        places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_s)
-        places.add(kf_init[0, :2], float(frames.times[0]))
+        places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_m)
+        places.add(kf_init[0, :2], 0.0)
 
         def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
@@ -460,8 +461,8 @@ class Isam2Slam:
             revisits = cfg.revisit_factors > 0 and kc > 0 and bool(window) and not must_keep[kc]
             # at a place visited before (PlaceCounter) young trees pull no keyframe in; a lost
             # tracker forces keyframes in
-            t_kc = float(frames.times[kf_frames[kc]])
-            full = revisits and places.full(kf_init[kc, :2], t_kc)
+            s_kc = float(cum_dist[kf_frames[kc]])  # path distance (m): visits by distance
+            full = revisits and places.full(kf_init[kc, :2], s_kc)
             settled = lm_in_graph if full else None
             if (
                 revisits
@@ -485,7 +486,7 @@ class Isam2Slam:
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
-                places.add(kf_init[kc, :2], t_kc)
+                places.add(kf_init[kc, :2], s_kc)
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
@@ -568,7 +569,10 @@ class Isam2Slam:
                     # graph: from its own pose, carried here); its covariance is relative to
                     # the trees just seen, the drift since the others were seen covers them
                     dth = float(wrap_angle(p.theta() - init.theta())) if restart else 0.0
-                    if restart:
+                    if restart:  # covering a disagreement with the tracker (a sharp turn)
+                        P_restart = restart_covariance(
+                            P_restart, p.x() - init.x(), p.y() - init.y(), dth
+                        )
                         trk[:2] = (p.x(), p.y())
                     else:
                         trk[:2] = (init.x(), init.y())
@@ -595,17 +599,11 @@ class Isam2Slam:
             # room for every detection of this keyframe becoming a new tree
             need = n_lm + int(ptr[f1] - ptr[f0])
             if need > lm_xy.shape[0]:
-                g = max(need, 2 * lm_xy.shape[0]) - lm_xy.shape[0]
-                lm_xy = np.concatenate((lm_xy, np.zeros((g, 2))))
-                lm_dsum = np.concatenate((lm_dsum, np.zeros(g)))
-                lm_dn = np.concatenate((lm_dn, np.zeros(g, dtype=np.int64)))
-                lm_nobs = np.concatenate((lm_nobs, np.zeros(g, dtype=np.int64)))
-                lm_first = np.concatenate((lm_first, np.zeros(g, dtype=np.int64)))
-                lm_last = np.concatenate((lm_last, np.zeros(g, dtype=np.int64)))
-                lm_inc = np.concatenate((lm_inc, np.full(g, -1, dtype=np.int64)))
-                lm_in_graph = np.concatenate((lm_in_graph, np.zeros(g, dtype=bool)))
-                lm_ref = np.concatenate((lm_ref, np.zeros(g, dtype=np.int64)))
-                lm_nfac = np.concatenate((lm_nfac, np.zeros(g, dtype=np.int64)))
+                (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph, lm_ref,
+                 lm_nfac) = grow_landmarks(
+                    need, (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc,
+                           lm_in_graph, lm_ref, lm_nfac), (0, 0, 0, 0, 0, 0, -1, False, 0, 0),
+                )  # fmt: skip
             n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
                 cum_dist, trk, P_trk, fc, lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last,
