@@ -264,7 +264,8 @@ class VictoriaPark:
         from stemmap.slam.base import sensor_poses
         from stemmap.slam.motion import preintegrate
 
-        pre = preintegrate(self.model, self.controls, self.gps_times)
+        # poses and distances only: the per-segment covariances cost ~260 MB on a 10x replay
+        pre = preintegrate(self.model, self.controls, self.gps_times, with_covariance=False)
         sp = sensor_poses(pre.poses, self.model.sensor_offset)
         dist = np.concatenate(([0.0], np.cumsum(pre.distance)))
         return np.asarray(screen_gps(self.gps_times, self.gps_xy, sp[:, :2], dist).keep)
