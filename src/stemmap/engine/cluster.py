@@ -146,10 +146,12 @@ def run_graph(
         )
     outcomes: list[TaskOutcome] = []
     for fut in as_completed(list(futures.values())):
-        if fut.status == "finished":
+        # Not ``fut.status``: a future can come out of as_completed as "lost" (the worker
+        # holding its result died) with no exception; result() waits for the scheduler's
+        # recomputation and raises only for a real failure or a cancelled task.
+        try:
             oc = TaskOutcome(str(fut.key), True, value=fut.result())
-        else:
-            exc = fut.exception()
+        except Exception as exc:  # every task error is reported, not raised
             oc = TaskOutcome(str(fut.key), False, error=f"{type(exc).__name__}: {exc}")
             log.error("task %s failed: %s", fut.key, oc.error)
         fut.release()
