@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.slam.loop_closure import LoopConfig
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -475,9 +476,9 @@ class TreeDbSlam:
     refine: bool = True
     landmark_association: bool = True
     loop_closure: bool = True
-    loop_gap_s: float = 60.0
-    loop_search_radius: float = 20.0
-    loop_min_matches: int = 5
+    loop_gap_s: float = LoopConfig.gap_s
+    loop_search_radius: float = LoopConfig.search_radius
+    loop_min_matches: int = LoopConfig.min_matches
     localize_recent_only: bool = True
     max_range: float = 50.0
     merge_dist: float = 1.0
