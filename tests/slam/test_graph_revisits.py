@@ -11,11 +11,10 @@ from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir
 from stemmap.errors import ConfigError
 from stemmap.eval.matching import match_points
 from stemmap.slam._graph_localise import localise_on_map
-from stemmap.slam._graph_odometry import preintegrate_spans
 from stemmap.slam._graph_revisits import PlaceCounter, compose_increments, redundant
 from stemmap.slam.base import duplicate_pairs
 from stemmap.slam.graph import Isam2Config, Isam2Slam
-from stemmap.slam.motion import compose, preintegrate
+from stemmap.slam.motion import compose, preintegrate, preintegrate_spans
 
 
 def test_compose_increments_equals_gtsam_chain(rng):

@@ -45,7 +45,7 @@ from scipy.linalg.lapack import dtrtri
 
 from stemmap.slam.association import chi2_gate, jcbb, nearest_neighbour
 from stemmap.slam.base import IntArray, SlamProblem, SlamResult, frame_trajectory
-from stemmap.slam.motion import preintegrate
+from stemmap.slam.motion import preintegrate_spans
 from stemmap.types import FloatArray, StemMap, Tree
 
 if TYPE_CHECKING:
@@ -463,7 +463,7 @@ def run_compressed(
     frames = problem.frames
     nf = len(frames)
     a, b = problem.sensor_offset
-    pre = preintegrate(problem.motion, problem.controls, frames.times, problem.initial_pose)
+    pre = preintegrate_spans(problem.motion, problem.controls, frames.times, problem.initial_pose)
     R1 = np.diag([cfg.sigma_range**2, cfg.sigma_bearing**2])
     use_d = cfg.sigma_diameter is not None
     sd2 = (cfg.sigma_diameter or 1.0) ** 2

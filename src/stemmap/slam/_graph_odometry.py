@@ -8,13 +8,10 @@ docs/algorithms/slam.md "Odometry self-calibration").
 
 from __future__ import annotations
 
-import itertools
-from typing import Any
-
 import numpy as np
 
 from stemmap.slam.base import SlamProblem
-from stemmap.slam.motion import Preintegrated, between, preintegrate
+from stemmap.slam.motion import between, preintegrate, preintegrate_spans
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -23,39 +20,6 @@ __all__ = [
     "_sensor_between",
     "preintegrate_spans",
 ]
-
-
-def preintegrate_spans(
-    model: Any, controls: Any, times: FloatArray, initial_pose: Any, *, span_s: float = 2000.0
-) -> Preintegrated:
-    """:func:`~stemmap.slam.motion.preintegrate` over consecutive spans of at most ``span_s``
-    seconds, each starting at the previous span's last pose, joined into one result.
-
-    ``preintegrate``'s working memory grows with the control samples of one call (its (S, 3, 3)
-    noise and Jacobian stacks): on the 10x Victoria Park soak one call over the whole drive
-    peaked at +320 MB, the run's peak. Joined spans give the same increments and covariances
-    (each interval is integrated on its own) and the same poses up to rounding; a drive
-    shorter than ``span_s`` (the 1,550 s Victoria Park log) is one call, bit for bit.
-    """
-    tq = np.asarray(times, dtype=np.float64).reshape(-1)
-    if tq.size < 2 or tq[-1] - tq[0] <= span_s:
-        return preintegrate(model, controls, tq, initial_pose)
-    cuts = [0]
-    while cuts[-1] < tq.size - 1:
-        nxt = int(np.searchsorted(tq, tq[cuts[-1]] + span_s, side="right")) - 1
-        cuts.append(min(max(nxt, cuts[-1] + 1), tq.size - 1))
-    parts = []
-    p0 = np.asarray(initial_pose, dtype=np.float64)
-    for a, b in itertools.pairwise(cuts):
-        parts.append(preintegrate(model, controls, tq[a : b + 1], p0))
-        p0 = parts[-1].poses[-1]
-    return Preintegrated(
-        tq,
-        np.concatenate([parts[0].poses[:1]] + [q.poses[1:] for q in parts]),
-        np.concatenate([q.deltas for q in parts]),
-        np.concatenate([q.covs for q in parts]),
-        np.concatenate([q.distance for q in parts]),
-    )
 
 
 def _sensor_between(

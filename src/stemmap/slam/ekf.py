@@ -55,7 +55,7 @@ from stemmap.slam._ekf_compressed import (
 )
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
-from stemmap.slam.motion import preintegrate
+from stemmap.slam.motion import preintegrate_spans
 from stemmap.types import FloatArray, StemMap, Tree
 
 __all__ = ["EkfConfig", "EkfSlam"]
@@ -182,7 +182,9 @@ class EkfSlam:
         frames = problem.frames
         nf = len(frames)
         a, b = problem.sensor_offset
-        pre = preintegrate(problem.motion, problem.controls, frames.times, problem.initial_pose)
+        pre = preintegrate_spans(
+            problem.motion, problem.controls, frames.times, problem.initial_pose
+        )
         R1 = np.diag([cfg.sigma_range**2, cfg.sigma_bearing**2])
         use_d = cfg.sigma_diameter is not None
         sd2 = (cfg.sigma_diameter or 1.0) ** 2

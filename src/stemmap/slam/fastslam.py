@@ -339,7 +339,7 @@ class FastSlam:
     ) -> SlamResult:
         """Run the particle filter over ``problem``; see the module docstring."""
         from stemmap.slam.base import SlamResult, frame_trajectory
-        from stemmap.slam.motion import compose, preintegrate
+        from stemmap.slam.motion import compose, preintegrate_spans
 
         t_start = _time.perf_counter()
         rng = np.random.default_rng(self.seed)
@@ -347,7 +347,7 @@ class FastSlam:
         nf = len(frames)
         P = int(self.n_particles)
         off = problem.sensor_offset
-        pre = preintegrate(
+        pre = preintegrate_spans(
             problem.motion, problem.controls, frames.times, np.asarray(problem.initial_pose)
         )
         R = np.diag([self.sigma_range**2, self.sigma_bearing**2])

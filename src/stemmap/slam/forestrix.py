@@ -377,14 +377,14 @@ class _RunState:
     """Mutable state of one :meth:`ForestrixSlam.run` (front-end, loop closures, relaxation)."""
 
     def __init__(self, cfg: ForestrixSlam, problem: SlamProblem) -> None:
-        from stemmap.slam.motion import preintegrate
+        from stemmap.slam.motion import preintegrate_spans
 
         self.cfg = cfg
         self.problem = problem
         fr = problem.frames
         self.frames = fr
         self.off = problem.sensor_offset
-        self.pre = preintegrate(
+        self.pre = preintegrate_spans(
             problem.motion,
             problem.controls,
             fr.times,

@@ -502,12 +502,12 @@ class TreeDbSlam:
     ) -> SlamResult:
         """Run the tree DB over ``problem``; see the class docstring."""
         from stemmap.slam.base import SlamResult, frame_trajectory, observation_to_world
-        from stemmap.slam.motion import compose, preintegrate
+        from stemmap.slam.motion import compose, preintegrate_spans
 
         t0 = _time.perf_counter()
         frames = problem.frames
         nf = len(frames)
-        pre = preintegrate(
+        pre = preintegrate_spans(
             problem.motion, problem.controls, frames.times, np.asarray(problem.initial_pose)
         )
         off = problem.sensor_offset
