@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.eval.trajectory import align_se2
 from stemmap.slam.motion import between, compose
 from stemmap.types import FloatArray, wrap_angle
 
@@ -284,8 +285,8 @@ def fit_rigid_robust(
     for _ in range(int(iterations)):
         if keep.size < need:
             return RigidFit(reason=f"{keep.size} agreeing pairs, need {min_inliers}")
-        dth, t = _lsq_rigid(a[keep], b[keep])
-        res = _residuals(a, b, dth, t)
+        al = align_se2(a[keep], b[keep])
+        res = np.hypot(*(al.apply(a) - b).T)
         new = np.flatnonzero(res <= max(inlier_dist, 3.0 * float(np.median(res[keep]))))
         if np.array_equal(new, keep):
             break
@@ -294,34 +295,15 @@ def fit_rigid_robust(
     for _ in range(2):
         if keep.size < need:
             return RigidFit(reason=f"{keep.size} agreeing pairs, need {min_inliers}")
-        dth, t = _lsq_rigid(a[keep], b[keep])
-        res = _residuals(a, b, dth, t)
+        al = align_se2(a[keep], b[keep])
+        res = np.hypot(*(al.apply(a) - b).T)
         keep = np.flatnonzero(res <= inlier_dist)
     if keep.size < need:
         return RigidFit(reason=f"{keep.size} agreeing pairs, need {min_inliers}")
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
-    tt = (float(t[0]), float(t[1]))
     if rms > max_rms:
-        return RigidFit(dth, tt, keep, rms, f"rms {rms:.2f} m > {max_rms}")
-    return RigidFit(dth, tt, keep, rms)
-
-
-def _lsq_rigid(a: FloatArray, b: FloatArray) -> tuple[float, FloatArray]:
-    """Least-squares rotation angle and translation moving points ``a`` onto ``b``."""
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    qa, qb = a - ca, b - cb
-    cross = np.sum(qa[:, 0] * qb[:, 1] - qa[:, 1] * qb[:, 0])
-    dot = np.sum(qa[:, 0] * qb[:, 0] + qa[:, 1] * qb[:, 1])
-    dth = float(math.atan2(cross, dot))
-    c, s = math.cos(dth), math.sin(dth)
-    t: FloatArray = cb - ca @ np.array([[c, s], [-s, c]])
-    return dth, t
-
-
-def _residuals(a: FloatArray, b: FloatArray, dth: float, t: FloatArray) -> FloatArray:
-    c, s = math.cos(dth), math.sin(dth)
-    out: FloatArray = np.hypot(*(a @ np.array([[c, s], [-s, c]]) + t - b).T)
-    return out
+        return RigidFit(al.theta, al.t, keep, rms, f"rms {rms:.2f} m > {max_rms}")
+    return RigidFit(al.theta, al.t, keep, rms)
 
 
 def remap_trees(
