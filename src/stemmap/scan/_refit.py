@@ -51,15 +51,14 @@ def outlier_returns(
     ends_only: bool = False,
 ) -> NDArray[np.bool_]:
     """Per return, whether it is an outlier of its segment's circle: ``|e_i - median(e)| >
-    max(k x 1.4826 MAD(e), floor)`` with ``e_i = |p_i - c| - r`` (medians of sorted values, the
-    mean of the two middle ones for an even count)."""
+    max(k x 1.4826 MAD(e), floor)`` with ``e_i = |p_i - c| - r`` (medians: the mean of the two
+    middle values for an even count)."""
     p = segs.points
     out = np.zeros(len(p), dtype=bool)
     for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
         e = np.hypot(p.x[a:b] - centers[j, 0], p.y[a:b] - centers[j, 1]) - radii[j]
-        med = _median(np.sort(e))
-        dev = np.abs(e - med)
-        scale = 1.4826 * _median(np.sort(dev))
+        dev = np.abs(e - np.median(e))
+        scale = 1.4826 * float(np.median(dev))
         bad = dev > max(k * scale, floor[j])
         if ends_only:  # only the runs of outliers at either end (a fillet, a stub)
             lo = int(np.argmin(bad)) if not bad.all() else bad.shape[0]
@@ -69,12 +68,6 @@ def outlier_returns(
             bad[bad.shape[0] - hi :] = True
         out[a:b] = bad
     return out
-
-
-def _median(s: FloatArray) -> float:
-    m = s.shape[0]
-    h = m // 2
-    return float(s[h] if m % 2 == 1 else 0.5 * (s[h - 1] + s[h]))
 
 
 def refit_pieces(
