@@ -35,7 +35,6 @@ from stemmap.cli._map_motion import (
 from stemmap.cli._map_prior import (
     continue_from_map,
     false_trees_report,
-    keep_information,
     write_information,
 )
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
@@ -687,8 +686,7 @@ def map_command(
                 result = be.run(problem, progress=tick, scans=ctx.get("scans"))  # type: ignore[call-arg]
             else:
                 result = be.run(problem, progress=tick)
-        annotated, unc = annotate_uncertainty(result, problem)
-        result.stem_map = keep_information(annotated, result.stem_map)
+        result.stem_map, unc = annotate_uncertainty(result, problem)
         dr = dead_reckoning(problem)  # once, for the metrics and the figure
         metrics, gps_map, truth_xy = slam_metrics(problem, result, ctx, dr)
         if reloc is not None:

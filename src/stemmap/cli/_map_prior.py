@@ -10,7 +10,7 @@ from typing import Any
 
 from stemmap.errors import ConfigError
 
-__all__ = ["continue_from_map", "false_trees_report", "keep_information", "write_information"]
+__all__ = ["continue_from_map", "false_trees_report", "write_information"]
 
 
 def continue_from_map(
@@ -47,17 +47,6 @@ def continue_from_map(
         }
     problem, reloc = continue_session(problem, prior, g)
     return problem, reloc, note
-
-
-def keep_information(annotated: Any, original: Any) -> Any:
-    """``annotated`` (the map after uncertainty annotation, same trees in the same order) with
-    the joint information of the back-end's ``original`` map."""
-    from dataclasses import replace
-
-    info = getattr(original, "information", None)
-    if info is None or [t.id for t in annotated] != [t.id for t in original]:
-        return annotated
-    return replace(annotated, information=info)
 
 
 def write_information(stage: Path, stem_map: Any) -> list[str]:

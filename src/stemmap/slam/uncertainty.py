@@ -413,7 +413,8 @@ def annotate_uncertainty(
         gate_m=gate,
         run_length_frames=mix.run_length,
     )
-    return StemMap(tuple(trees), frame=sm.frame, crs=sm.crs), report
+    # replace keeps every other field of the map (frame, CRS, iSAM2's joint information)
+    return replace(sm, trees=tuple(trees)), report
 
 
 def _mean_covariance(z: NDArray[np.float64]) -> FloatArray:
