@@ -1,0 +1,78 @@
+"""The ground raster of a buffered chunk equals the whole cloud's near a data edge."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stemmap.cloud.ground import GroundAccumulator, fit_ground
+
+
+def _terrain(seed: int) -> np.ndarray:
+    """A rough 30 x 30 m slope (ground returns, a few stems' worth of raised points) with
+    its top-right part missing: an inner data edge at x = 20 for y >= 10."""
+    rng = np.random.default_rng(seed)
+    n = 60_000
+    x, y = rng.uniform(0, 30, n), rng.uniform(0, 30, n)
+    z = 0.15 * x - 0.08 * y + 0.3 * np.sin(x / 3.0) * np.cos(y / 4.0) + rng.normal(0, 0.02, n)
+    up = rng.random(n) < 0.2
+    z[up] += rng.uniform(0.2, 3.0, up.sum())  # vegetation above the ground
+    keep = ~((x >= 20.0) & (y >= 10.0))
+    return np.column_stack((x, y, z))[keep]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_chunk_ground_equals_the_whole_clouds_near_an_inner_edge(seed: int) -> None:
+    """Chunks of 7 and 10 m with a 5 m buffer: with the catalog's box as the raster extent
+    the ground at the points within 1 m of a chunk's owned square is the whole cloud's (to
+    rounding: the plane fits run in coordinates relative to each raster's corner); without
+    it, chunks whose buffer holds no point beyond the edge clamp the ground there."""
+    p = _terrain(seed)
+    # the catalog's box: its header bounds, i.e. the extreme coordinates
+    box = (p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max())
+    acc = GroundAccumulator(1.0)
+    acc.update(p)
+    whole = acc.model(extent=box)
+    assert whole.z.shape == (30, 30)
+    worst = {True: 0.0, False: 0.0}
+    for size in (7.0, 10.0):
+        for i in range(5):
+            for j in range(5):
+                own = (i * size, j * size, (i + 1) * size, (j + 1) * size)
+                buf = (own[0] - 5, own[1] - 5, own[2] + 5, own[3] + 5)
+                inside = (
+                    (p[:, 0] >= buf[0])
+                    & (p[:, 0] <= buf[2])
+                    & (p[:, 1] >= buf[1])
+                    & (p[:, 1] <= buf[3])
+                )
+                near = (
+                    (p[:, 0] >= own[0] - 1)
+                    & (p[:, 0] < own[2] + 1)
+                    & (p[:, 1] >= own[1] - 1)
+                    & (p[:, 1] < own[3] + 1)
+                )
+                if not near.any():
+                    continue
+                a = GroundAccumulator(1.0)
+                a.update(p[inside])
+                window = (max(box[0], buf[0]), max(box[1], buf[1]))
+                window += (min(box[2], buf[2]), min(box[3], buf[3]))
+                for use in (True, False):
+                    g = a.model(extent=window if use else None)
+                    d = np.abs(g.ground_at(p[near, :2]) - whole.ground_at(p[near, :2])).max()
+                    worst[use] = max(worst[use], float(d))
+    assert worst[True] < 1e-9
+    assert worst[False] > 1e-3  # the case the extent exists for does occur here
+
+
+def test_extent_only_grows_the_raster() -> None:
+    p = _terrain(2)
+    inner = fit_ground(p)
+    acc = GroundAccumulator(1.0)
+    acc.update(p)
+    grown = acc.model(extent=(-3.2, 1.0, 33.5, 20.0))
+    assert grown.origin == (-4.0, 0.0) and grown.z.shape == (38, 30)
+    assert inner.origin == (0.0, 0.0) and inner.z.shape == (30, 30)
+    assert grown.observed is not None and not grown.observed[:4].any()
+
