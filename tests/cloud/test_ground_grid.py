@@ -1,10 +1,13 @@
-"""The ground raster of a buffered chunk equals the whole cloud's near a data edge."""
+"""The ground raster of a buffered chunk equals the whole cloud's near a data edge; the
+bilinear kernel equals scipy's map_coordinates bit for bit."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
+from stemmap.cloud._grid_kernel import bilinear_nearest
 from stemmap.cloud.ground import GroundAccumulator, fit_ground
 
 
@@ -76,3 +79,24 @@ def test_extent_only_grows_the_raster() -> None:
     assert inner.origin == (0.0, 0.0) and inner.z.shape == (30, 30)
     assert grown.observed is not None and not grown.observed[:4].any()
 
+
+@pytest.mark.parametrize("seed", range(4))
+def test_bilinear_kernel_is_scipys_map_coordinates(seed: int) -> None:
+    """Same bits as map_coordinates(order=1, mode="nearest") inside, on cell centres and
+    edges, and outside the grid (clamped), for grids down to one cell."""
+    rng = np.random.default_rng(seed)
+    for _ in range(50):
+        nx, ny = (int(v) for v in rng.integers(1, 30, 2))
+        z = rng.normal(size=(nx, ny)) * 10 ** rng.uniform(-3, 3)
+        ox, oy = rng.uniform(-1e5, 1e5, 2)
+        cell = float(rng.choice([0.3, 0.5, 1.0, 2.0]))
+        x = ox + rng.uniform(-3, nx * cell + 3, 2000)
+        y = oy + rng.uniform(-3, ny * cell + 3, 2000)
+        x[:300] = ox + (rng.integers(-2, nx + 2, 300) + 0.5) * cell
+        y[300:600] = oy + rng.integers(-2, ny + 2, 300) * cell
+        got = bilinear_nearest(z, (ox, oy), cell, x, y)
+        fi, fj = (x - ox) / cell - 0.5, (y - oy) / cell - 0.5
+        want = ndimage.map_coordinates(z, [fi, fj], order=1, mode="nearest")
+        assert got is not None
+        np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
+    assert bilinear_nearest(z, (0.0, 0.0), 1.0, np.array([np.nan]), np.array([0.0])) is None

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from stemmap.cloud._grid_kernel import lowest_per_cell
+from stemmap.cloud._grid_kernel import bilinear_nearest, lowest_per_cell
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
 
@@ -70,6 +70,9 @@ class GroundModel:
     def ground_at(self, xy: ArrayLike) -> FloatArray:
         """Ground z at (N, 2) positions."""
         q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        fast = bilinear_nearest(self.z, self.origin, self.cell, q[:, 0], q[:, 1])
+        if fast is not None:
+            return fast
         fi = (q[:, 0] - self.origin[0]) / self.cell - 0.5
         fj = (q[:, 1] - self.origin[1]) / self.cell - 0.5
         return np.asarray(
