@@ -103,7 +103,9 @@ def test_pilot_statistics_make_chunkings_agree_on_a_large_catalog(
     here = catalog_statistics(cat, StemConfig(slice_mode="never"), max_points=budget)
     assert here == a.config
     # set by the user: kept as given
-    mine = StemConfig(spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0))
+    mine = StemConfig(
+        spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0), ground_extent=(0.0, 0.0, 9, 9)
+    )
     assert catalog_statistics(cat, mine) == mine
 
 
