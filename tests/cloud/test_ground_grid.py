@@ -100,3 +100,30 @@ def test_bilinear_kernel_is_scipys_map_coordinates(seed: int) -> None:
         assert got is not None
         np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
     assert bilinear_nearest(z, (0.0, 0.0), 1.0, np.array([np.nan]), np.array([0.0])) is None
+
+
+def test_nearest_cell_fill_is_local() -> None:
+    """The ground fills an empty cell from its nearest observed cell (scipy's
+    distance_transform_edt). A chunk's raster is a window of the whole one: a cell whose
+    nearest observed cell is closer than the window's border gets the same one (also among
+    ties, which integer grids have plenty of), so the fill is the whole cloud's."""
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(100):
+        valid = rng.random((50, 50)) < rng.uniform(0.05, 0.6)
+        if rng.random() < 0.5:
+            valid[:, 25:] = False  # a data edge
+        a, b = (int(v) for v in rng.integers(0, 15, 2))
+        c, e = a + int(rng.integers(12, 35)), b + int(rng.integers(12, 35))
+        sub = valid[a:c, b:e]
+        if not valid.any() or not sub.any():
+            continue
+        d, (fi, fj) = ndimage.distance_transform_edt(~valid, return_indices=True)
+        _, (gi, gj) = ndimage.distance_transform_edt(~sub, return_indices=True)
+        ii, jj = np.indices(sub.shape)
+        border = np.minimum.reduce([ii, jj, sub.shape[0] - 1 - ii, sub.shape[1] - 1 - jj])
+        inner = d[a:c, b:e] < border - 0.5
+        np.testing.assert_array_equal((fi[a:c, b:e] - a)[inner], gi[inner])
+        np.testing.assert_array_equal((fj[a:c, b:e] - b)[inner], gj[inner])
+        checked += int(inner.sum())
+    assert checked > 10_000
