@@ -21,15 +21,26 @@ from stemmap.types import FloatArray
 __all__ = ["bilinear_nearest", "dense_span", "lowest_per_cell", "max_per_cell"]
 
 
+@njit(cache=True)
+def _extremes(x: FloatArray, y: FloatArray) -> tuple[float, float, float, float]:
+    x0 = x1 = x[0]
+    y0 = y1 = y[0]
+    for k in range(1, x.shape[0]):
+        x0, x1 = min(x0, x[k]), max(x1, x[k])
+        y0, y1 = min(y0, y[k]), max(y1, y[k])
+    return x0, x1, y0, y1
+
+
 def _bounds(x: FloatArray, y: FloatArray, cell: float) -> tuple[int, int, int, int]:
     # floor(v / cell) is non-decreasing in v (IEEE division and floor are monotonic), so the
     # extreme cells are those of the extreme coordinates: the same cells as flooring every
-    # point, from numpy's vectorised min / max
+    # point, in one pass over both columns without a division per point
+    x0, x1, y0, y1 = _extremes(x, y)
     return (
-        int(np.floor(x.min() / cell)),
-        int(np.floor(x.max() / cell)),
-        int(np.floor(y.min() / cell)),
-        int(np.floor(y.max() / cell)),
+        int(np.floor(x0 / cell)),
+        int(np.floor(x1 / cell)),
+        int(np.floor(y0 / cell)),
+        int(np.floor(y1 / cell)),
     )
 
 
@@ -160,10 +171,12 @@ def _axis(c: float, n: int) -> tuple[int, int, float, float]:
 @njit(cache=True)
 def _bilinear(
     grid: FloatArray, ox: float, oy: float, cell: float, x: FloatArray, y: FloatArray
-) -> FloatArray:
+) -> FloatArray | None:
     nx, ny = grid.shape
     out = np.empty(x.shape[0])
     for k in range(x.shape[0]):
+        if not (np.isfinite(x[k]) and np.isfinite(y[k])):
+            return None
         fi = (x[k] - ox) / cell - 0.5
         fj = (y[k] - oy) / cell - 0.5
         i0, i1, a0, a1 = _axis(fi, nx)
@@ -187,6 +200,5 @@ def bilinear_nearest(
     without the index arrays. None when a coordinate is not finite (the caller uses
     scipy, whose result for NaN coordinates is its own)."""
     g = np.ascontiguousarray(grid, dtype=np.float64)
-    if x.shape[0] and not (np.isfinite(x.min() + x.max()) and np.isfinite(y.min() + y.max())):
-        return None
-    return np.asarray(_bilinear(g, float(origin[0]), float(origin[1]), float(cell), x, y))
+    out = _bilinear(g, float(origin[0]), float(origin[1]), float(cell), x, y)
+    return None if out is None else np.asarray(out)
