@@ -126,19 +126,14 @@ def _vp_terms(seeds: list[int]) -> tuple[float, list[dict[str, np.ndarray]], dic
     from scipy.spatial import cKDTree
 
     from stemmap.datasets.victoria_park import load_victoria_park
-    from stemmap.eval.trajectory import align_se2, ate, point_track, screen_gps
-    from stemmap.slam.base import make_backend, sensor_poses
-    from stemmap.slam.motion import preintegrate
+    from stemmap.eval.trajectory import align_se2, ate, point_track
+    from stemmap.slam.base import make_backend
     from stemmap.types import wrap_angle
 
     vp = load_victoria_park(None)
     problem = vp.problem()
     off = vp.model.sensor_offset
-    pre = preintegrate(vp.model, vp.controls, vp.gps_times)
-    sp = sensor_poses(pre.poses, off)
-    keep = screen_gps(
-        vp.gps_times, vp.gps_xy, sp[:, :2], np.concatenate(([0.0], np.cumsum(pre.distance)))
-    ).keep
+    keep = vp.screened_gps()
     t = problem.frames.times
     m = keep & (vp.gps_times >= t[0]) & (vp.gps_times <= t[-1])
     gt, gxy = vp.gps_times[m], vp.gps_xy[m]

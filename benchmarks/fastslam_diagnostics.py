@@ -47,11 +47,9 @@ def main() -> None:
     from scipy.spatial import cKDTree
 
     from stemmap.datasets.victoria_park import load_victoria_park
-    from stemmap.eval.trajectory import ate, screen_gps
+    from stemmap.eval.trajectory import ate
     from stemmap.slam.base import duplicate_pairs, make_backend, observation_to_world
-    from stemmap.slam.base import sensor_poses as _sensor_poses
     from stemmap.slam.fastslam import FastSlam
-    from stemmap.slam.motion import preintegrate
     from stemmap.types import wrap_angle
 
     ap = argparse.ArgumentParser(description=__doc__)
@@ -69,11 +67,7 @@ def main() -> None:
         vp = vp.slice(0.0, a.t_end)
     problem = vp.problem()
     off = vp.model.sensor_offset
-    pre = preintegrate(vp.model, vp.controls, vp.gps_times)
-    sp = _sensor_poses(pre.poses, off)
-    keep = screen_gps(
-        vp.gps_times, vp.gps_xy, sp[:, :2], np.concatenate(([0.0], np.cumsum(pre.distance)))
-    ).keep
+    keep = vp.screened_gps()
     cfg = {"seed": a.seed, **_settings(a.set)}
     fs = FastSlam(record_diagnostics=True, **cfg)
     c0 = time.process_time()
