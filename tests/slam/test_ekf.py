@@ -97,7 +97,7 @@ def test_merge_decisions():
     """One tree twice: fused when the filter agrees (Mahalanobis), dropped when it does not but
     the trunks overlap or the two were never matched in one scan; two trees seen together
     and not overlapping stay."""
-    from stemmap.slam._ekf_compressed import decide_merges
+    from stemmap.slam._ekf_merge import decide_merges
 
     xy = np.array([[0.0, 0.0], [0.05, 0.0], [10.0, 0.0], [10.2, 0.0], [20.0, 0.0], [20.8, 0.0]])
     pi, pj = np.array([0, 2, 4]), np.array([1, 3, 5])

@@ -22,7 +22,7 @@ Guivant & Nebot 2001 for Victoria Park). Per laser frame:
 6. **Merge** duplicates (same pass): landmarks closer than ``merge_radius`` that are one tree
    (Mahalanobis-compatible, overlapping trunks, or never matched in the same scan) are joined
    by the constraint ``m_i = m_j`` and the less-observed one is marginalised
-   (:func:`stemmap.slam._ekf_compressed.decide_merges`).
+   (:func:`stemmap.slam._ekf_merge.decide_merges`).
 
 The default ``update="compressed"`` runs the same steps on the compressed filter of Guivant &
 Nebot 2001 (:mod:`stemmap.slam._ekf_compressed`): per frame only the local submap is updated,
@@ -48,11 +48,10 @@ from stemmap.slam._ekf_compressed import (
     _blocks,
     augment_landmark_covariance,
     block_diag_noise,
-    close_pairs,
-    decide_merges,
     grow_buffers,
     run_compressed,
 )
+from stemmap.slam._ekf_merge import close_pairs, decide_merges
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.motion import preintegrate_spans
