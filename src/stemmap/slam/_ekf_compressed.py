@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from scipy.linalg.lapack import dtrtri
 
 from stemmap.slam._ekf_merge import close_pairs, decide_merges, inv2_quad
+from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
 from stemmap.slam.association import chi2_gate, jcbb, nearest_neighbour
 from stemmap.slam.base import IntArray, SlamProblem, SlamResult, frame_trajectory
 from stemmap.slam.motion import preintegrate_spans
@@ -402,6 +403,7 @@ def run_compressed(
     n_sync_moved = 0
     n_merged = n_fused = 0
     coseen: set[tuple[int, int]] = set()  # landmark pairs matched in one scan
+    olog = ObservationLog() if cfg.smooth else None
 
     def sensor() -> tuple[float, float, float, float, float, float, float]:
         x, y, th = st.xA[0], st.xA[1], st.xA[2]
@@ -592,6 +594,8 @@ def run_compressed(
                             coseen.add((a_, b_) if a_ < b_ else (b_, a_))
                     nobs[jid] += 1
                     last[jid] = f
+                    if olog is not None:
+                        olog.add(f, jid, r[mi], bear[mi])
                     dm_ = diam[mi]
                     fin = np.isfinite(dm_)
                     d_sum[jid[fin]] += dm_[fin]
@@ -680,6 +684,8 @@ def run_compressed(
                     if compatible or cfg.merge_constraint:
                         st.fuse(3 + 2 * keep, 3 + 2 * drop)
                     ki, di = int(pid[keep]), int(pid[drop])
+                    if olog is not None:
+                        olog.merged(di, ki)
                     nobs[ki] += nobs[di]
                     d_sum[ki] += d_sum[di]
                     d_sq[ki] += d_sq[di]
@@ -719,6 +725,12 @@ def run_compressed(
             )
         )
     nl = len(trees)
+    smooth_stats: dict[str, float | int] = {}
+    if olog is not None:
+        lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
+        poses, smooth_stats = smooth_path(
+            poses, pre.deltas, pre.covs, olog.resolve(st.g_ids), L.copy(), lm_cov, (a, b), R1
+        )
     runtime = time.perf_counter() - t_start
     stats: dict[str, float | int | str] = {
         "backend": name,
@@ -736,6 +748,7 @@ def run_compressed(
         "full_updates": st.n_sync,
         "full_updates_moved": n_sync_moved,
         "nis_per_dof": nis_sum / nis_dof if nis_dof else math.nan,
+        **smooth_stats,
         "runtime_s": runtime,
     }
     return SlamResult(frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats)

@@ -24,6 +24,11 @@ Guivant & Nebot 2001 for Victoria Park). Per laser frame:
    by the constraint ``m_i = m_j`` and the less-observed one is marginalised
    (:func:`stemmap.slam._ekf_merge.decide_merges`).
 
+7. **Smooth** the path (``smooth=True``, after the last frame): every pose is re-estimated on
+   the final map from the odometry and the associations the filter made
+   (:func:`stemmap.slam._ekf_smooth.smooth_path`), so that a loop closure corrects the poses
+   before it as well, not only the map and the current pose.
+
 The default ``update="compressed"`` runs the same steps on the compressed filter of Guivant &
 Nebot 2001 (:mod:`stemmap.slam._ekf_compressed`): per frame only the local submap is updated,
 the rest once on leaving the area; the result equals this full filter (``update="full"``,
@@ -52,6 +57,7 @@ from stemmap.slam._ekf_compressed import (
     run_compressed,
 )
 from stemmap.slam._ekf_merge import close_pairs, decide_merges
+from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.motion import preintegrate_spans
@@ -94,6 +100,10 @@ class EkfConfig:
         when the pair is not Mahalanobis-compatible; False: such pairs are only marginalised
     local_move : m, compressed filter: a full update also happens when the sensor is this far
         from where the current local period began (run time only)
+    smooth : the trajectory returned is the whole path re-estimated on the final map
+        (:mod:`stemmap.slam._ekf_smooth`: the filter's odometry and associations, the map
+        fixed), so that the poses before a loop closure get its correction too; False returns
+        the filtered poses (each from the data up to its own frame)
     """
 
     sigma_range: float = 0.30
@@ -113,6 +123,7 @@ class EkfConfig:
     local_move: float = 20.0
     merge_radius: float = 1.0
     merge_constraint: bool = True
+    smooth: bool = True
 
     def __post_init__(self) -> None:
         if self.association not in ("jcbb", "nn"):
@@ -202,6 +213,7 @@ class EkfSlam:
         lm_last: list[int] = []
         lm_id: list[int] = []  # permanent id (slots shift when landmarks are removed)
         coseen: set[tuple[int, int]] = set()  # ids of landmark pairs matched in one scan
+        olog = ObservationLog() if cfg.smooth else None
         n_merged = n_fused = 0
         poses = np.zeros((nf, 3))
         n_matched = n_new = n_pruned = n_ambiguous = 0
@@ -315,6 +327,8 @@ class EkfSlam:
                             for u, w in zip(uu.tolist(), ww.tolist(), strict=True):
                                 a_, b_ = lm_id[ms[u]], lm_id[ms[w]]
                                 coseen.add((a_, b_) if a_ < b_ else (b_, a_))
+                        if olog is not None:
+                            olog.add(f, np.array([lm_id[j] for j in cand[mj]]), r[mi], bear[mi])
                         for i, j in zip(mi, cand[mj], strict=True):
                             lm_nobs[j] += 1
                             lm_last[j] = f
@@ -394,6 +408,8 @@ class EkfSlam:
                         n_fused += int(compatible)
                         if compatible or cfg.merge_constraint:
                             self._fuse(3 + 2 * kp, 3 + 2 * dr)
+                        if olog is not None:
+                            olog.merged(lm_id[dr], lm_id[kp])
                         lm_nobs[kp] += lm_nobs[dr]
                         lm_d_sum[kp] += lm_d_sum[dr]
                         lm_d_sq[kp] += lm_d_sq[dr]
@@ -431,6 +447,13 @@ class EkfSlam:
                     diameter_std=dstd,
                 )
             )
+        smooth_stats: dict[str, float | int] = {}
+        if olog is not None:
+            lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
+            poses, smooth_stats = smooth_path(
+                poses, pre.deltas, pre.covs, olog.resolve(np.asarray(lm_id, dtype=np.int64)),
+                L.copy(), lm_cov, (a, b), R1,
+            )  # fmt: skip
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,
@@ -446,6 +469,7 @@ class EkfSlam:
             "landmarks": nl,
             # normalised innovation squared per degree of freedom: ~1 for a consistent filter
             "nis_per_dof": nis_sum / nis_dof if nis_dof else math.nan,
+            **smooth_stats,
             "runtime_s": runtime,
         }
         log.info("EKF-SLAM: %s", stats)
