@@ -67,6 +67,11 @@ def test_observation_log_follows_merges_and_drops_removed_landmarks():
     np.testing.assert_array_equal(idx, [1, 1, 1, 1])  # all of 1, 3, 5 are landmark 1
     np.testing.assert_array_equal(r, [10.0, 11.0, 12.0, 14.0])
     np.testing.assert_array_equal(b, [0.1, 0.2, 0.3, 0.5])
+    assert log.resolve(np.zeros(0, dtype=np.int64))[0].size == 0  # every landmark pruned
+    assert ObservationLog().resolve(np.array([1, 2]))[0].size == 0  # nothing associated
+    for k in range(3000):  # the buffers grow past their first capacity
+        log.add(2 + k, np.array([7]), np.array([1.0]), np.array([0.0]))
+    assert log.resolve(np.array([7]))[0].size == 3000
 
 
 def test_smoothing_corrects_the_path_before_the_loop_closure():

@@ -29,6 +29,7 @@ an association that fitted the map of its time may not fit the final one.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from scipy.linalg import solveh_banded
@@ -43,6 +44,13 @@ __all__ = ["ObservationLog", "smooth_path"]
 # 2.4e-6 m²); 1 mm / 1e-4 rad is below every noise the model does describe
 _ODO_FLOOR = np.diag([1e-6, 1e-6, 1e-8])
 _PRIOR_INFO = 1e10  # the first pose: the filter starts it with zero covariance
+_CHUNK = 20_000  # measurements per block of the normal-equation assembly (memory bound)
+
+
+def _grown(buf: Any, n: int, cap: int) -> Any:
+    out = np.zeros(cap, dtype=buf.dtype)
+    out[:n] = buf[:n]
+    return out
 
 
 class ObservationLog:
@@ -50,17 +58,27 @@ class ObservationLog:
     merges are recorded so that a dropped landmark's detections follow the kept one."""
 
     def __init__(self) -> None:
-        self._f: list[IntArray] = []
-        self._id: list[IntArray] = []
-        self._r: list[FloatArray] = []
-        self._b: list[FloatArray] = []
+        # one growing buffer per field (a list of per-frame arrays costs ~100 B per frame)
+        self._n = 0
+        self._f = np.zeros(1024, dtype=np.int64)
+        self._id = np.zeros(1024, dtype=np.int64)
+        self._r = np.zeros(1024)
+        self._b = np.zeros(1024)
         self._alias: dict[int, int] = {}
 
     def add(self, frame: int, ids: IntArray, rng: FloatArray, brg: FloatArray) -> None:
-        self._f.append(np.full(ids.size, frame, dtype=np.int64))
-        self._id.append(np.asarray(ids, dtype=np.int64).copy())
-        self._r.append(np.asarray(rng, dtype=np.float64).copy())
-        self._b.append(np.asarray(brg, dtype=np.float64).copy())
+        k, n = int(np.size(ids)), self._n
+        if n + k > self._f.size:
+            cap = max(2 * self._f.size, n + k)
+            self._f = _grown(self._f, n, cap)
+            self._id = _grown(self._id, n, cap)
+            self._r = _grown(self._r, n, cap)
+            self._b = _grown(self._b, n, cap)
+        self._f[n : n + k] = frame
+        self._id[n : n + k] = ids
+        self._r[n : n + k] = rng
+        self._b[n : n + k] = brg
+        self._n = n + k
 
     def merged(self, drop: int, keep: int) -> None:
         self._alias[int(drop)] = int(keep)
@@ -68,11 +86,8 @@ class ObservationLog:
     def resolve(self, final_ids: IntArray) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
         """``(frame, index into final_ids, range, bearing)`` of every logged detection whose
         landmark (after following merges) is in the final map."""
-        if not self._f:
-            e = np.zeros(0, dtype=np.int64)
-            return e, e, np.zeros(0), np.zeros(0)
-        f = np.concatenate(self._f)
-        ids = np.concatenate(self._id)
+        n = self._n
+        f, ids = self._f[:n], self._id[:n].copy()
         if self._alias:
             top: dict[int, int] = {}
             for d in self._alias:
@@ -80,16 +95,64 @@ class ObservationLog:
                 while k in self._alias:
                     k = self._alias[k]
                 top[d] = k
-            ids = np.array([top.get(int(i), int(i)) for i in ids], dtype=np.int64)
-        pos = {int(j): t for t, j in enumerate(np.asarray(final_ids).tolist())}
-        idx = np.array([pos.get(int(i), -1) for i in ids], dtype=np.int64)
-        ok = idx >= 0
-        return f[ok], idx[ok], np.concatenate(self._r)[ok], np.concatenate(self._b)[ok]
+            src = np.fromiter(top.keys(), dtype=np.int64, count=len(top))
+            dst = np.fromiter(top.values(), dtype=np.int64, count=len(top))
+            order = np.argsort(src)
+            src, dst = src[order], dst[order]
+            at = np.minimum(np.searchsorted(src, ids), src.size - 1)
+            hit = src[at] == ids
+            ids[hit] = dst[at[hit]]
+        fid = np.asarray(final_ids, dtype=np.int64)
+        if not fid.size:  # every landmark was pruned
+            e = np.zeros(0, dtype=np.int64)
+            return e, e, np.zeros(0), np.zeros(0)
+        order = np.argsort(fid)
+        at = np.minimum(np.searchsorted(fid[order], ids), fid.size - 1)
+        ok = fid[order][at] == ids
+        idx = order[at]
+        return f[ok].copy(), idx[ok], self._r[:n][ok].copy(), self._b[:n][ok].copy()
 
 
 def _wrap(a: FloatArray) -> FloatArray:
     out: FloatArray = (a + math.pi) % (2 * math.pi) - math.pi
     return out
+
+
+def _measurement_terms(
+    xs: FloatArray,
+    L: FloatArray,
+    Pl: FloatArray,
+    rz: FloatArray,
+    bz: FloatArray,
+    a: float,
+    b: float,
+    R1: FloatArray,
+    huber_k: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per measurement: ``w Jᵀ W J`` (m, 3, 3), ``w Jᵀ W e`` (m, 3) and the whitened ``e``²
+    of the range-bearing of landmarks ``L`` (covariances ``Pl``) from vehicle poses ``xs``."""
+    c, s = np.cos(xs[:, 2]), np.sin(xs[:, 2])
+    sx, sy = xs[:, 0] + a * c - b * s, xs[:, 1] + a * s + b * c
+    dsx, dsy = -a * s - b * c, a * c - b * s
+    ex, ey = L[:, 0] - sx, L[:, 1] - sy
+    q = ex * ex + ey * ey
+    rr = np.sqrt(q)
+    m = xs.shape[0]
+    Jv = np.empty((m, 2, 3))
+    Jv[:, 0, 0], Jv[:, 0, 1] = -ex / rr, -ey / rr
+    Jv[:, 0, 2] = -(ex * dsx + ey * dsy) / rr
+    Jv[:, 1, 0], Jv[:, 1, 1] = ey / q, -ex / q
+    Jv[:, 1, 2] = (-ex * dsy + ey * dsx) / q - 1.0
+    Jl = np.empty((m, 2, 2))
+    Jl[:, 0, 0], Jl[:, 0, 1] = ex / rr, ey / rr
+    Jl[:, 1, 0], Jl[:, 1, 1] = -ey / q, ex / q
+    Wm = np.linalg.inv(R1[None] + Jl @ Pl @ Jl.transpose(0, 2, 1))
+    em = np.column_stack((rz - rr, _wrap(bz - (np.arctan2(ey, ex) - xs[:, 2]))))
+    d2: FloatArray = np.einsum("mi,mij,mj->m", em, Wm, em)
+    dn = np.sqrt(d2)
+    w = np.where(dn <= huber_k, 1.0, huber_k / np.maximum(dn, 1e-12))
+    JvT_W = w[:, None, None] * (Jv.transpose(0, 2, 1) @ Wm)
+    return JvT_W @ Jv, np.einsum("mij,mj->mi", JvT_W, em), d2
 
 
 def smooth_path(
@@ -125,8 +188,6 @@ def smooth_path(
     stats: dict[str, float | int] = {"smoother_measurements": int(fr.size)}
     if n < 2:
         return x, stats
-    L = lm_xy[lj]
-    Pl = lm_cov[lj]
     it = 0
     for it in range(1, iterations + 1):
         diag = np.zeros((n, 3, 3))
@@ -158,33 +219,19 @@ def smooth_path(
         off += JbT_om @ Ja
         g[:-1] += np.einsum("nij,nj->ni", JaT_om, e)
         g[1:] += np.einsum("nij,nj->ni", JbT_om, e)
-        # ---- measurement factors (range, bearing of a fixed landmark from the sensor)
-        xs = x[fr]
-        c, s = np.cos(xs[:, 2]), np.sin(xs[:, 2])
-        sx, sy = xs[:, 0] + a * c - b * s, xs[:, 1] + a * s + b * c
-        dsx, dsy = -a * s - b * c, a * c - b * s
-        ex, ey = L[:, 0] - sx, L[:, 1] - sy
-        q = ex * ex + ey * ey
-        rr = np.sqrt(q)
-        Jv = np.empty((fr.size, 2, 3))
-        Jv[:, 0, 0], Jv[:, 0, 1] = -ex / rr, -ey / rr
-        Jv[:, 0, 2] = -(ex * dsx + ey * dsy) / rr
-        Jv[:, 1, 0], Jv[:, 1, 1] = ey / q, -ex / q
-        Jv[:, 1, 2] = (-ex * dsy + ey * dsx) / q - 1.0
-        Jl = np.empty((fr.size, 2, 2))
-        Jl[:, 0, 0], Jl[:, 0, 1] = ex / rr, ey / rr
-        Jl[:, 1, 0], Jl[:, 1, 1] = -ey / q, ex / q
-        Rm = R1[None] + Jl @ Pl @ Jl.transpose(0, 2, 1)
-        Wm = np.linalg.inv(Rm)
-        em = np.column_stack((rz - rr, _wrap(bz - (np.arctan2(ey, ex) - xs[:, 2]))))
-        d2 = np.einsum("mi,mij,mj->m", em, Wm, em)
-        dn = np.sqrt(d2)
-        w = np.where(dn <= huber_k, 1.0, huber_k / np.maximum(dn, 1e-12))
+        # ---- measurement factors, in chunks (bounded memory on long drives)
+        d2_sum, n_huber = 0.0, 0
+        for lo in range(0, fr.size, _CHUNK):
+            sl = slice(lo, lo + _CHUNK)
+            H_m, g_m, d2 = _measurement_terms(
+                x[fr[sl]], lm_xy[lj[sl]], lm_cov[lj[sl]], rz[sl], bz[sl], a, b, R1, huber_k
+            )
+            np.add.at(diag, fr[sl], H_m)
+            np.add.at(g, fr[sl], g_m)
+            d2_sum += float(d2.sum())
+            n_huber += int((d2 > huber_k * huber_k).sum())
         if it == 1:
-            stats["smoother_meas_d2_before"] = float(d2.mean()) if d2.size else math.nan
-        JvT_W = w[:, None, None] * (Jv.transpose(0, 2, 1) @ Wm)
-        np.add.at(diag, fr, JvT_W @ Jv)
-        np.add.at(g, fr, np.einsum("mij,mj->mi", JvT_W, em))
+            stats["smoother_meas_d2_before"] = d2_sum / fr.size if fr.size else math.nan
         # ---- banded Cholesky solve of the block-tridiagonal normal equations
         ab = np.zeros((6, 3 * n))
         for i in range(3):
@@ -198,6 +245,6 @@ def smooth_path(
         if np.abs(step[:, :2]).max() < 1e-4 and np.abs(step[:, 2]).max() < 1e-6:
             break
     stats["smoother_iterations"] = it
-    stats["smoother_meas_d2_after"] = float(d2.mean()) if d2.size else math.nan
-    stats["smoother_huber_share"] = float((w < 1.0).mean()) if w.size else 0.0
+    stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
+    stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
     return x, stats
