@@ -84,6 +84,7 @@ from stemmap.slam._graph_odometry import (
     preintegrate_spans,
 )
 from stemmap.slam._graph_revisits import (
+    LeftOutMeasurements,
     PlaceCounter,
     compose_increments,
     localise_skipped,
@@ -304,7 +305,7 @@ class Isam2Slam:
         kf_init = np.zeros((nk, 3))  # the front-end's sensor pose of every keyframe
         kf_init[0] = (s0.x(), s0.y(), s0.theta())
         # measurements of the keyframes left out of the graph (_graph_revisits)
-        skipped: dict[int, tuple[np.ndarray, FloatArray, FloatArray, FloatArray]] = {}
+        skipped = LeftOutMeasurements()
 
         # landmark bookkeeping (numpy, grown geometrically; filled by the numba tracker)
         cap = 1024
@@ -469,7 +470,7 @@ class Isam2Slam:
                 and kc >= force_until
                 and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors, settled)
             ):
-                skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
+                skipped.add(kc, window[0], window[1], window[2], window[3])
                 n_single_skipped += n_skip_w
                 return
             if revisits:  # why it entered
@@ -758,9 +759,10 @@ class Isam2Slam:
             except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
                 log.warning("iSAM2: marginal covariances unavailable: %s", exc)
         # the keyframes left out of the graph: localised on the final map, run by run
+        skipped.remap_trees(alias)
         n_localised = localise_skipped(
             gtsam,
-            {k_: (alias[m_[0]], *m_[1:]) for k_, m_ in skipped.items()},
+            skipped,
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK),
         )  # fmt: skip
