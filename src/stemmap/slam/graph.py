@@ -161,6 +161,10 @@ class Isam2Slam:
             problem.motion, problem.controls, frames.times, problem.initial_pose
         )  # (bounded working memory on long drives)
         _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+        # of the per-frame odometry only the poses and distances are used from here on: the
+        # increments and their (F, 3, 3) covariances (96 bytes per scan) are dropped
+        pre_poses, pre_dist = pre.poses, pre.distance
+        del pre
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
@@ -175,6 +179,7 @@ class Isam2Slam:
             if problem.gnss is None
             else plan_gnss(problem, problem.gnss, frames.times[kf_frames], pre_k.poses, cov_k)
         )
+        del pre_k  # (d_k and cov_k carry what the factors need)
         # odometry self-calibration (steering / yaw-rate offset, speed scale), see
         # _calibration_lsq: c_used[i] is the calibration inside the factor of keyframes (i, i+1)
         calibrate = cfg.calibrate and nk > 2
@@ -222,9 +227,10 @@ class Isam2Slam:
             return between(odo_measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
 
         # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
-        rel_v = between(pre.poses[kf_frames[kf_of]], pre.poses)
+        rel_v = between(pre_poses[kf_frames[kf_of]], pre_poses)
         rel_s, _ = _sensor_between(rel_v, np.zeros((nf, 3, 3)), (a, b))
-        cum_dist = np.concatenate(([0.0], np.cumsum(pre.distance)))
+        del rel_v
+        cum_dist = np.concatenate(([0.0], np.cumsum(pre_dist)))
         cum_xy = np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1]))))
         cum_th = np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2])))
 
@@ -373,11 +379,12 @@ class Isam2Slam:
         # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
         sp_dr = np.column_stack(
             (
-                pre.poses[:, 0] + np.cos(pre.poses[:, 2]) * a - np.sin(pre.poses[:, 2]) * b,
-                pre.poses[:, 1] + np.sin(pre.poses[:, 2]) * a + np.cos(pre.poses[:, 2]) * b,
-                np.unwrap(pre.poses[:, 2]),
+                pre_poses[:, 0] + np.cos(pre_poses[:, 2]) * a - np.sin(pre_poses[:, 2]) * b,
+                pre_poses[:, 1] + np.sin(pre_poses[:, 2]) * a + np.cos(pre_poses[:, 2]) * b,
+                np.unwrap(pre_poses[:, 2]),
             )
         )
+        del pre_poses, pre_dist
         ptr = np.ascontiguousarray(frames.ptr, dtype=np.int64)
         f_rng = np.ascontiguousarray(frames.ranges, dtype=np.float64)
         f_brg = np.ascontiguousarray(frames.bearings, dtype=np.float64)
@@ -633,6 +640,9 @@ class Isam2Slam:
 
         t_inc = time.perf_counter() - t_start
         result = isam.calculateEstimate()
+        # iSAM2's Bayes tree is not used after this (the batch steps work on graph_all): freed
+        # before they build their own (on the 10x soak the two together were the run's peak)
+        del isam, new_f, new_v
         n_lm_iters = 0
         # merge duplicated trees (two landmarks of one trunk, e.g. first seen far away and
         # initialised apart): closer than merge_dist with compatible diameters -> one key;
