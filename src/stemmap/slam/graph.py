@@ -247,7 +247,7 @@ class Isam2Slam:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
         params.relinearizeSkip = cfg.relinearize_skip
-        isam = gtsam.ISAM2(params)
+        isam: Any = gtsam.ISAM2(params)  # (freed after the incremental phase)
         graph_all = gtsam.NonlinearFactorGraph()
         new_f = gtsam.NonlinearFactorGraph()
         new_v = gtsam.Values()
@@ -642,7 +642,7 @@ class Isam2Slam:
         result = isam.calculateEstimate()
         # iSAM2's Bayes tree is not used after this (the batch steps work on graph_all): freed
         # before they build their own (on the 10x soak the two together were the run's peak)
-        del isam, new_f, new_v
+        isam = None
         n_lm_iters = 0
         # merge duplicated trees (two landmarks of one trunk, e.g. first seen far away and
         # initialised apart): closer than merge_dist with compatible diameters -> one key;
