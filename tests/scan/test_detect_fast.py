@@ -75,6 +75,16 @@ CONFIGS = {
     # issue 11: sigma raised to the measured roughness, robust residual-scale RMS test
     "data_sigma_robust": {"sigma_from_data": True, "roughness_max_factor": 3.0, "rms_robust": True},
     "data_sigma": {"sigma_from_data": True, "roughness_max_factor": 2.0, "sigma": 0.005},
+    # issue 11: sigma raised to the scan's own noise estimate (alone, with corners and gaps)
+    "scan_sigma": {"sigma_from_scan": True, "sigma": 0.002},
+    "scan_sigma_corners_gaps": {
+        "sigma_from_scan": True,
+        "sigma": 0.003,
+        "split_corners": True,
+        "gap_splits": 2,
+        "gap_sigmas": 2.0,
+        "min_depth": 0.01,
+    },
     # issue 11: concave-corner cuts (with and without the splitting median filter), bark term
     "corners_bark": {
         "split_corners": True,
