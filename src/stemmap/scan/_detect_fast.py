@@ -135,6 +135,43 @@ def _range_roughness(r: FloatArray) -> float:
     return _ROUGH * med
 
 
+@njit(cache=True, error_model="numpy")
+def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
+    """Median of ``d[:m]`` (mean of the two middle values for even ``m``, as ``np.median``)
+    by quickselect (Hoare partition) in place: no allocation, ``d[:m]`` is reordered."""
+    k = m // 2
+    lo = 0
+    hi = m - 1
+    while lo < hi:
+        pivot = d[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while d[i] < pivot:
+                i += 1
+            while d[j] > pivot:
+                j -= 1
+            if i <= j:
+                t = d[i]
+                d[i] = d[j]
+                d[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    upper = d[k]
+    if m % 2 == 1:
+        return upper
+    lower = d[0]  # every value left of k is <= d[k] now: the lower middle is their largest
+    for i in range(1, k):
+        lower = max(lower, d[i])
+    return 0.5 * (lower + upper)
+
+
 #: plausibility.SCAN_NOISE_MIN_TRIPLES (the same value on both paths)
 _SCAN_NOISE_MIN_TRIPLES = 16
 
@@ -165,10 +202,10 @@ def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> fl
             run = 0
     if m < _SCAN_NOISE_MIN_TRIPLES or 2 * longest > m:  # one surface must not decide
         return 0.0
-    med = np.median(d[:m])
+    med = _median_inplace(d, m)
     for i in range(m):
         d[i] = abs(d[i] - med)
-    e = _ROUGH * np.median(d[:m])
+    e = _ROUGH * _median_inplace(d, m)
     return math.sqrt(max(e * e - surface * surface, 0.0))
 
 

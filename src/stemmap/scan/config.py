@@ -510,7 +510,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # held out); gap_splits, refit_pieces stay off (scan-detection.md)
         # sixth round: sigma_from_scan (the scan's own noise estimate) stays off: chosen
         # leave-one-dataset-out for 4 of 5 held-out datasets, but the `stemmap demo` precision
-        # falls to 0.938 (< 0.95) and the compiled speed to ~24.5 k scans/s (scan-detection.md)
+        # falls to 0.938 (< 0.95) (scan-detection.md)
         "bark_roughness": 0.03,
         "straight_depth_sigmas": 3.0,
     },
