@@ -128,3 +128,49 @@ def test_arc_replace_must_exceed_one():
 def test_arc_thresholds_are_validated(field, value):
     with pytest.raises(ConfigError, match=field):
         DetectorConfig.preset("stemmap", **{field: value})
+
+
+def _four_return_stem_and_a_nearer_one(step):
+    """A 20 cm stem at 5.45 m seen by exactly 4 beams of 0.5 deg, and three returns of another
+    object beside it, ``step`` then ``step`` + 15 cm nearer than its last return: one segment
+    (the range-adaptive threshold is 0.1 + 3 r dtheta = 0.24 m there) that is not convex (the
+    TreeLS plot's merged 4-return stems, scan-detection.md, fifth round)."""
+    batch = _circles_scan([(5.45, 0.02, 0.10)])
+    r = batch.ranges[0].copy()
+    on = np.flatnonzero(np.isfinite(r))
+    assert on.size == 4
+    for j, d in enumerate((step, step + 0.15, step + 0.15), start=1):
+        r[on[-1] + j] = r[on[-1]] - d
+    return ScanBatch(
+        ranges=r[None, :],
+        times=batch.times,
+        angle_min=batch.angle_min,
+        angle_increment=batch.angle_increment,
+        range_max=batch.range_max,
+    )
+
+
+def test_a_short_arc_set_off_by_a_range_step_is_found_with_arc_short_steps():
+    batch = _four_return_stem_and_a_nearer_one(0.16)
+    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0))
+    # 4 returns < min_points_partial (5): the fourth round's arcs drop it
+    assert len(plain.detect_batch(batch)) == 0
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_short_steps=True)
+    )
+    obs = det.detect_batch(batch)
+    assert len(obs) == 1
+    # noise-free, but only 4 returns over ~60 deg of the stem: within 1 cm of the radius
+    assert obs.radii[0] == pytest.approx(0.10, abs=0.01)
+    assert np.hypot(*(obs.centers[0] - (5.45, 0.02))) < 0.02
+
+
+def test_a_short_arc_without_a_range_step_is_not_a_candidate():
+    # the other object starts 8 cm nearer (< max_jump = 10 cm): a smooth run, as at the end of
+    # a wall or bush, is not set off from its segment
+    batch = _four_return_stem_and_a_nearer_one(0.08)
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_short_steps=True)
+    )
+    assert len(det.detect_batch(batch)) == 0
+    assert det.rejected(batch)["reason"] == ["depth"]

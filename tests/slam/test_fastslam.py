@@ -307,3 +307,51 @@ def test_in_place_resampling_and_compaction_match_fancy_indexing():
             for p in range(P):
                 np.testing.assert_array_equal(a[p, : nlm[p]], w[p, : nlm[p]])
         nlm = np.minimum(nlm + rng.integers(0, 4, P), C).astype(np.int64)
+
+
+def test_weighted_pose_covariance_matches_numpy_and_wraps_headings():
+    from stemmap.slam.fastslam import weighted_pose_covariance
+
+    rng = np.random.default_rng(5)
+    X = np.column_stack((rng.normal(3, 2, 50), rng.normal(-1, 0.5, 50), rng.normal(0, 0.1, 50)))
+    w = rng.dirichlet(np.ones(50))
+    want = np.cov(X.T, aweights=w, bias=True)
+    np.testing.assert_allclose(weighted_pose_covariance(X, w), want, atol=1e-12)
+    # the same cloud turned to face west: headings straddle +-pi, the covariance must not see it
+    Y = X.copy()
+    Y[:, 2] = np.pi - np.mod(np.pi - (X[:, 2] + np.pi), 2 * np.pi)
+    assert np.ptp(Y[:, 2]) > np.pi  # wrapped values on both sides
+    np.testing.assert_allclose(weighted_pose_covariance(Y, w), want, atol=1e-12)
+
+
+def test_fastslam_pose_and_tree_covariances_are_the_inflated_particle_spread(sim):
+    from stemmap.slam.fastslam import POSE_COV_INFLATION, TREE_COV_INFLATION
+
+    problem, _ = sim
+    sub = _first_frames(problem, 250)
+    fs = FastSlam(n_particles=20, seed=7, record_diagnostics=True)
+    res = fs.run(sub)
+    raw = FastSlam(n_particles=20, seed=7, pose_cov_inflation=1.0, tree_cov_inflation=1.0).run(sub)
+    d = fs.diagnostics
+    P = fs.n_particles
+    assert res.pose_covs is not None and res.pose_covs.shape == (len(sub.frames), 3, 3)
+    np.testing.assert_array_equal(res.pose_covs, POSE_COV_INFLATION * d["pose_cov_spread"])
+    np.testing.assert_allclose(res.pose_covs, POSE_COV_INFLATION * raw.pose_covs, rtol=1e-12)
+    np.testing.assert_allclose(res.pose_covs, np.swapaxes(res.pose_covs, 1, 2), atol=0)
+    assert np.all(np.linalg.eigvalsh(res.pose_covs[1:]) > -1e-12)
+    # the particles start at one pose and spread with the motion noise
+    assert np.all(res.pose_covs[0] == 0) and np.all(np.diag(res.pose_covs[-1]) > 0)
+    np.testing.assert_array_equal(res.trajectory.poses, raw.trajectory.poses)
+    np.testing.assert_allclose(
+        np.array([t.cov for t in res.stem_map]),
+        TREE_COV_INFLATION * np.array([t.cov for t in raw.stem_map]),
+        rtol=1e-12,
+    )
+    # adaptive systematic resampling: exactly in the frames whose ESS fell below P / 2
+    ess = d["ess"]
+    seen = np.isfinite(ess)
+    assert np.all((ess[seen] > 1.0 - 1e-9) & (ess[seen] <= P + 1e-9))
+    np.testing.assert_array_equal(d["resampled"], seen & (ess < fs.resample_threshold * P))
+    assert res.stats["resamples"] == int(d["resampled"].sum()) > 0
+    with pytest.raises(ConfigError, match="inflation"):
+        FastSlam(pose_cov_inflation=0.0)

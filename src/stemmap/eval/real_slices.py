@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +46,7 @@ __all__ = [
     "cluster_grid",
     "load_slice",
     "noisy_batch",
+    "reference_jackknife",
     "ring_reference",
     "surface_point_radius",
     "virtual_scans",
@@ -213,6 +214,33 @@ def _read_xyz(path: Path) -> FloatArray:
         )
     las = laspy.read(path)
     return np.column_stack((las.x, las.y, las.z)).astype(np.float64)
+
+
+def reference_jackknife(sl: RealSlice, t: int, sector_deg: float = 30.0) -> dict[str, Any]:
+    """How far the reference diameter of trunk ``t`` can be trusted (issue 11, fifth round):
+    its ring RMS, coverage, the sectors filled with the reference circle itself, and the
+    smallest / largest change of the diameter (cm) when the ring is refitted
+    (:func:`ring_reference`) with each ``sector_deg`` sector of its own points left out
+    (jackknife; Efron & Tibshirani 1993 ch. 11). A ring that is a circle moves by millimetres;
+    a sparse, lobed outline seen over little more than the coverage bound moves by
+    centimetres, and so does any diameter measured against it."""
+    ref = sl.refs[t]
+    n_own = int(ref["n_points"])
+    pts = sl.xy[sl.labels == t][:n_own]  # the ring's inliers; the filled sectors come after
+    q = pts - np.array([ref["x"], ref["y"]])
+    sector = np.floor((np.degrees(np.arctan2(q[:, 1], q[:, 0])) + 180.0) / sector_deg).astype(int)
+    d = []
+    for s in np.unique(sector):
+        got = ring_reference(pts[sector != s])
+        if got is not None:
+            d.append(100.0 * (got[0]["diameter"] - ref["diameter"]))
+    return {
+        "ring_rms_mm": round(1000.0 * ref["ring_rms_m"], 1),
+        "coverage_deg": ref["coverage_deg"],
+        "filled_deg": ref.get("filled_sectors_deg", 0.0),
+        "ring_points": n_own,
+        "jackknife_change_cm": [round(min(d), 2), round(max(d), 2)] if d else None,
+    }
 
 
 def load_slice(datasets_dir: Path | str, name: str) -> RealSlice:

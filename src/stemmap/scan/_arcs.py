@@ -136,7 +136,9 @@ def largest_arc(
 def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
     """Per return of ``segs``, whether it lies on its segment's largest consistent arc
     (:func:`largest_arc`, seed ``max(min_points, 4)`` returns, ``arc_sigmas``, floor the RMS
-    ``arc_floor_sigmas`` x the segment's range noise)."""
+    ``arc_floor_sigmas`` x the segment's range noise), holding at least ``min_points_partial``
+    returns (with ``arc_short_steps``: ``min_points`` when a range step sets the arc off at
+    every cut end) and a quarter of the segment's."""
     p = segs.points
     keep = np.zeros(len(p), dtype=bool)
     if len(segs) == 0:
@@ -144,6 +146,8 @@ def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
     mean_r = segment_sum(p.r, segs) / segs.counts
     sigma = cfg.sigma + cfg.sigma_rel * mean_r
     seed = max(cfg.min_points, 4)
+    # arc_short_steps: a shorter arc counts when a range step sets it off (_stepped)
+    least = cfg.min_points if cfg.arc_short_steps else cfg.min_points_partial
     for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
         # the noise only, not the bark allowance of the RMS test: a fillet leaves the circle
         # gradually and its first returns lie within a few cm of it
@@ -154,9 +158,22 @@ def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
         if got is None:
             continue
         lo, hi = got
-        if max(cfg.min_points_partial, _MIN_SHARE * (b - a)) <= hi - lo < b - a:
+        if max(least, _MIN_SHARE * (b - a)) <= hi - lo < b - a and (
+            hi - lo >= cfg.min_points_partial or _stepped(p.r[a:b], lo, hi, cfg.max_jump)
+        ):
             keep[a + lo : a + hi] = True
     return keep
+
+
+def _stepped(r: FloatArray, lo: int, hi: int, step: float) -> bool:
+    """Whether the run ``[lo, hi)`` of a segment's ranges ``r`` is separated from the rest of
+    the segment by a range step larger than ``step`` at every cut end (``arc_short_steps``)."""
+    cuts = []
+    if lo > 0:
+        cuts.append(abs(float(r[lo - 1] - r[lo])))
+    if hi < r.shape[0]:
+        cuts.append(abs(float(r[hi] - r[hi - 1])))
+    return bool(cuts) and min(cuts) > step
 
 
 def _cut_flags(sub: Segments, pieces: Segments, idx: NDArray[np.int64], margin: float) -> Segments:

@@ -206,6 +206,14 @@ class DetectorConfig:
         the arc's fit RMS and the range noise (a fillet or stub at one end pulled the fit; on
         lidR, accepted trunks with one branch return at an end were 5-10 cm too wide).
         inf = off.
+    arc_short_steps : bool
+        With ``arc_refit``: an arc of ``min_points`` to ``min_points_partial - 1`` returns
+        counts too when a range step larger than ``max_jump`` separates it from the rest of
+        its segment at every cut end (ours, issue 11, fifth round: a 4-return stem merged with
+        a stem or branch at another range by the range-adaptive threshold; the short runs at
+        the end of a wall or bush continue at the same range). The piece is then tested as any
+        candidate (partial where the return across a cut is nearer by more than
+        ``occlusion_margin``). False: every arc needs ``min_points_partial`` returns.
     """
 
     name: str = "custom"
@@ -266,6 +274,7 @@ class DetectorConfig:
     arc_sigmas: float = 3.0
     arc_floor_sigmas: float = 1.0
     arc_replace: float = math.inf
+    arc_short_steps: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:

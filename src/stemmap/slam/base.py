@@ -303,6 +303,9 @@ class SlamResult:
     trajectory: Trajectory
     stem_map: StemMap
     stats: dict[str, float | int | str] = field(default_factory=dict)
+    #: (N, 3, 3) covariance of every trajectory pose (x, y, theta) where the back-end gives one
+    #: (FastSLAM: the particle spread, docs/algorithms/slam.md), else None
+    pose_covs: FloatArray | None = None
 
 
 @runtime_checkable
