@@ -43,6 +43,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dtrtri
 
+from stemmap.slam._ekf_merge import close_pairs, decide_merges, inv2_quad
+from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
 from stemmap.slam.association import chi2_gate, jcbb, nearest_neighbour
 from stemmap.slam.base import IntArray, SlamProblem, SlamResult, frame_trajectory
 from stemmap.slam.motion import preintegrate_spans
@@ -124,94 +126,6 @@ def _blocks(P: FloatArray, ri: IntArray, rj: IntArray) -> FloatArray:
     out = np.empty((ri.size, 2, 2))
     out[:, 0, 0], out[:, 0, 1] = P[ri, rj], P[ri, rj + 1]
     out[:, 1, 0], out[:, 1, 1] = P[ri + 1, rj], P[ri + 1, rj + 1]
-    return out
-
-
-def _inv2_quad(T: FloatArray, x: FloatArray, y: FloatArray) -> FloatArray:
-    """``[x y] T⁻¹ [x y]ᵀ`` for stacked 2x2 ``T`` (same closed form as
-    :func:`stemmap.slam.association.individual_compatibility`)."""
-    a, b, d = T[..., 0, 0], 0.5 * (T[..., 0, 1] + T[..., 1, 0]), T[..., 1, 1]
-    det = a * d - b * b
-    out: FloatArray = (d * x * x - 2.0 * b * x * y + a * y * y) / det
-    return out
-
-
-def close_pairs(
-    xy: FloatArray, recent: NDArray[np.bool_], radius: float
-) -> tuple[IntArray, IntArray]:
-    """Landmark pairs closer than ``radius`` with at least one member seen recently (sorted)."""
-    from scipy.spatial import cKDTree
-
-    if xy.shape[0] < 2:
-        e = np.zeros(0, dtype=np.int64)
-        return e, e
-    pr = cKDTree(xy).query_pairs(radius, output_type="ndarray")
-    if pr.shape[0]:
-        pr = pr[recent[pr[:, 0]] | recent[pr[:, 1]]]
-        pr = pr[np.lexsort((pr[:, 1], pr[:, 0]))]
-    return pr[:, 0].astype(np.int64), pr[:, 1].astype(np.int64)
-
-
-def decide_merges(
-    pi: IntArray,
-    pj: IntArray,
-    xy: FloatArray,
-    Pii: FloatArray,
-    Pjj: FloatArray,
-    Pij: FloatArray,
-    d_mean: FloatArray,
-    d_n: IntArray,
-    nobs: IntArray,
-    together: NDArray[np.bool_],
-    *,
-    sd2: float | None,
-    alpha: float,
-) -> list[tuple[int, int, bool]]:
-    """Which close pairs are one tree: ``[(keep, drop, compatible), ...]`` (greedy, one merge
-    per landmark per pass; the kept landmark is the more-observed one).
-
-    * **compatible** -- the pair is statistically one point: ``d² = Δᵀ S⁻¹ Δ`` with the joint
-      ``S = P_ii + P_jj - P_ij - P_ji`` (plus the diameter cue ``(d̄_i - d̄_j)² / (σ²/n_i +
-      σ²/n_j)``, one more dof) below ``chi2(alpha)``;
-    * or the filter is too confident to call them one point but the data say they are one
-      tree: the trunk circles overlap, ``|Δ| < (d̄_i + d̄_j) / 2`` (two real trunks cannot),
-      or the two were never matched in the same scan (``together`` False: a laser scan shows
-      two trunks 1 m apart as two detections, one trunk as one).
-
-    The filter then applies the constraint ``m_i - m_j = 0`` and marginalises ``m_drop`` out
-    (``EkfConfig.merge_constraint``; without it, incompatible pairs are only marginalised).
-    """
-    if not pi.size:
-        return []
-    S = Pii + Pjj - Pij - Pij.transpose(0, 2, 1)
-    D = xy[pi] - xy[pj]
-    d2 = _inv2_quad(S, D[:, 0], D[:, 1])
-    has = (d_n[pi] > 0) & (d_n[pj] > 0)
-    dof = np.full(pi.size, 2)
-    if sd2 is not None:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            e = (d_mean[pi] - d_mean[pj]) ** 2 / (sd2 / d_n[pi] + sd2 / d_n[pj])
-        d2 = d2 + np.where(has, e, 0.0)
-        dof[has] = 3
-    gate = np.array([chi2_gate(alpha, int(k)) for k in dof])
-    fuse = d2 < gate
-    dist = np.hypot(D[:, 0], D[:, 1])
-    with np.errstate(invalid="ignore"):
-        overlap = has & (dist < 0.5 * (d_mean[pi] + d_mean[pj]))
-    same = ~fuse & (overlap | ~together)
-    order = np.concatenate(
-        (np.flatnonzero(fuse)[np.argsort(d2[fuse], kind="stable")],
-         np.flatnonzero(same)[np.argsort(dist[same], kind="stable")])
-    )  # fmt: skip
-    used: set[int] = set()
-    out = []
-    for t in order:
-        i, j = int(pi[t]), int(pj[t])
-        if i in used or j in used:
-            continue
-        used.update((i, j))
-        keep, drop = (i, j) if nobs[i] >= nobs[j] else (j, i)
-        out.append((keep, drop, bool(fuse[t])))
     return out
 
 
@@ -489,6 +403,7 @@ def run_compressed(
     n_sync_moved = 0
     n_merged = n_fused = 0
     coseen: set[tuple[int, int]] = set()  # landmark pairs matched in one scan
+    olog = ObservationLog() if cfg.smooth else None
 
     def sensor() -> tuple[float, float, float, float, float, float, float]:
         x, y, th = st.xA[0], st.xA[1], st.xA[2]
@@ -540,7 +455,7 @@ def run_compressed(
         T += 2.0 * (Jl @ Pjj @ Jl.transpose(0, 2, 1))
         T += R1
         nu = innovations(r, bear, rr, hb)
-        lb = _inv2_quad(T[None], nu[..., 0], nu[..., 1])
+        lb = inv2_quad(T[None], nu[..., 0], nu[..., 1])
         return np.asarray((lb <= thr_relevant).any(axis=0), dtype=bool)
 
     def passive_d2(r: FloatArray, bear: FloatArray, diam: FloatArray) -> FloatArray | None:
@@ -562,7 +477,7 @@ def run_compressed(
         S += X + X.transpose(0, 2, 1)
         S += Jl @ Pjj @ JlT
         nu = innovations(r, bear, rr, hb)
-        d2 = _inv2_quad(S[None] + R1, nu[..., 0], nu[..., 1])
+        d2 = inv2_quad(S[None] + R1, nu[..., 0], nu[..., 1])
         extra = diameter_d2(diam, st.b_ids[loc])
         return d2 if extra is None else d2 + extra
 
@@ -638,7 +553,7 @@ def run_compressed(
                 Sd += Jl @ Pll @ JlT
                 nu = innovations(r, bear, rr, hb)
                 extra = diameter_d2(diam, st.a_ids[cand])
-                d2 = _inv2_quad(Sd[None] + R1, nu[..., 0], nu[..., 1])
+                d2 = inv2_quad(Sd[None] + R1, nu[..., 0], nu[..., 1])
                 if extra is not None:
                     d2 = d2 + extra
                 d2min = np.minimum(d2min, d2.min(axis=1))
@@ -679,6 +594,8 @@ def run_compressed(
                             coseen.add((a_, b_) if a_ < b_ else (b_, a_))
                     nobs[jid] += 1
                     last[jid] = f
+                    if olog is not None:
+                        olog.add(f, jid, r[mi], bear[mi])
                     dm_ = diam[mi]
                     fin = np.isfinite(dm_)
                     d_sum[jid[fin]] += dm_[fin]
@@ -767,6 +684,8 @@ def run_compressed(
                     if compatible or cfg.merge_constraint:
                         st.fuse(3 + 2 * keep, 3 + 2 * drop)
                     ki, di = int(pid[keep]), int(pid[drop])
+                    if olog is not None:
+                        olog.merged(di, ki)
                     nobs[ki] += nobs[di]
                     d_sum[ki] += d_sum[di]
                     d_sq[ki] += d_sq[di]
@@ -806,6 +725,12 @@ def run_compressed(
             )
         )
     nl = len(trees)
+    smooth_stats: dict[str, float | int] = {}
+    if olog is not None:
+        lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
+        poses, smooth_stats = smooth_path(
+            poses, pre.deltas, pre.covs, olog.resolve(st.g_ids), L.copy(), lm_cov, (a, b), R1
+        )
     runtime = time.perf_counter() - t_start
     stats: dict[str, float | int | str] = {
         "backend": name,
@@ -823,6 +748,7 @@ def run_compressed(
         "full_updates": st.n_sync,
         "full_updates_moved": n_sync_moved,
         "nis_per_dof": nis_sum / nis_dof if nis_dof else math.nan,
+        **smooth_stats,
         "runtime_s": runtime,
     }
     return SlamResult(frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats)

@@ -1,0 +1,250 @@
+"""Fixed-interval smoothing of the EKF-SLAM path on the final map (ours; docs/algorithms/slam.md).
+
+An EKF's pose at frame ``k`` uses the data up to ``k`` only; a loop closure later corrects the
+map and the current pose (through the correlations in ``P``) but never the poses already
+reported. On Victoria Park that is most of the EKF's remaining error: the path through new
+ground before the closure at ~1,110 s keeps the drift it had then, while the map it delivers
+has been corrected (docs/algorithms/slam.md, "EKF" item 8).
+
+Here, after the filter, the whole path is re-estimated with the map held fixed: the maximum a
+posteriori path given
+
+* the pre-integrated odometry between consecutive frames (the increments and covariances the
+  filter predicted with, :func:`stemmap.slam.motion.preintegrate_spans`), and
+* every detection the filter associated with a landmark that is in the final map (merged
+  landmarks follow their survivor), as a range-bearing measurement of the landmark's final
+  position with the noise ``R + J_l P_jj J_lᵀ`` (the filter's detection noise plus the
+  landmark's own final marginal; the map's cross-correlations are left out),
+
+with the first pose fixed where the filter started it. The normal equations of this chain are
+block-tridiagonal, so each Gauss-Newton step is one banded Cholesky solve, O(frames). For a
+linear-Gaussian chain this least-squares solution is the Rauch-Tung-Striebel smoother (Rauch,
+Tung & Striebel, AIAA J. 3(8), 1965); iterating it on the linearised models is the
+Gauss-Newton form of the iterated smoother (Bell, "The iterated Kalman smoother as a
+Gauss-Newton method", SIAM J. Optim. 4(3), 1994). The measurements carry a Huber weight on
+their whitened norm (width 1.345, as :func:`stemmap.slam._graph_localise.localise_on_map`):
+an association that fitted the map of its time may not fit the final one.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from scipy.linalg import solveh_banded
+
+from stemmap.slam.base import IntArray
+from stemmap.types import FloatArray
+
+__all__ = ["ObservationLog", "smooth_path"]
+
+# floor added to the odometry covariances: the Ackermann model has no lateral slip, so the
+# increment covariance is singular (smallest eigenvalue ~1e-20 m² on Victoria Park; median
+# 2.4e-6 m²); 1 mm / 1e-4 rad is below every noise the model does describe
+_ODO_FLOOR = np.diag([1e-6, 1e-6, 1e-8])
+_PRIOR_INFO = 1e10  # the first pose: the filter starts it with zero covariance
+_CHUNK = 20_000  # measurements per block of the normal-equation assembly (memory bound)
+
+
+def _grown(buf: Any, n: int, cap: int) -> Any:
+    out = np.zeros(cap, dtype=buf.dtype)
+    out[:n] = buf[:n]
+    return out
+
+
+class ObservationLog:
+    """The associations a filter made: frame, landmark id, range, bearing per matched detection;
+    merges are recorded so that a dropped landmark's detections follow the kept one."""
+
+    def __init__(self) -> None:
+        # one growing buffer per field (a list of per-frame arrays costs ~100 B per frame)
+        self._n = 0
+        self._f = np.zeros(1024, dtype=np.int64)
+        self._id = np.zeros(1024, dtype=np.int64)
+        self._r = np.zeros(1024)
+        self._b = np.zeros(1024)
+        self._alias: dict[int, int] = {}
+
+    def add(self, frame: int, ids: IntArray, rng: FloatArray, brg: FloatArray) -> None:
+        k, n = int(np.size(ids)), self._n
+        if n + k > self._f.size:
+            cap = max(2 * self._f.size, n + k)
+            self._f = _grown(self._f, n, cap)
+            self._id = _grown(self._id, n, cap)
+            self._r = _grown(self._r, n, cap)
+            self._b = _grown(self._b, n, cap)
+        self._f[n : n + k] = frame
+        self._id[n : n + k] = ids
+        self._r[n : n + k] = rng
+        self._b[n : n + k] = brg
+        self._n = n + k
+
+    def merged(self, drop: int, keep: int) -> None:
+        self._alias[int(drop)] = int(keep)
+
+    def resolve(self, final_ids: IntArray) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+        """``(frame, index into final_ids, range, bearing)`` of every logged detection whose
+        landmark (after following merges) is in the final map."""
+        n = self._n
+        f, ids = self._f[:n], self._id[:n].copy()
+        if self._alias:
+            top: dict[int, int] = {}
+            for d in self._alias:
+                k = d
+                while k in self._alias:
+                    k = self._alias[k]
+                top[d] = k
+            src = np.fromiter(top.keys(), dtype=np.int64, count=len(top))
+            dst = np.fromiter(top.values(), dtype=np.int64, count=len(top))
+            order = np.argsort(src)
+            src, dst = src[order], dst[order]
+            at = np.minimum(np.searchsorted(src, ids), src.size - 1)
+            hit = src[at] == ids
+            ids[hit] = dst[at[hit]]
+        fid = np.asarray(final_ids, dtype=np.int64)
+        if not fid.size:  # every landmark was pruned
+            e = np.zeros(0, dtype=np.int64)
+            return e, e, np.zeros(0), np.zeros(0)
+        order = np.argsort(fid)
+        at = np.minimum(np.searchsorted(fid[order], ids), fid.size - 1)
+        ok = fid[order][at] == ids
+        idx = order[at]
+        return f[ok].copy(), idx[ok], self._r[:n][ok].copy(), self._b[:n][ok].copy()
+
+
+def _wrap(a: FloatArray) -> FloatArray:
+    out: FloatArray = (a + math.pi) % (2 * math.pi) - math.pi
+    return out
+
+
+def _measurement_terms(
+    xs: FloatArray,
+    L: FloatArray,
+    Pl: FloatArray,
+    rz: FloatArray,
+    bz: FloatArray,
+    a: float,
+    b: float,
+    R1: FloatArray,
+    huber_k: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per measurement: ``w Jᵀ W J`` (m, 3, 3), ``w Jᵀ W e`` (m, 3) and the whitened ``e``²
+    of the range-bearing of landmarks ``L`` (covariances ``Pl``) from vehicle poses ``xs``."""
+    c, s = np.cos(xs[:, 2]), np.sin(xs[:, 2])
+    sx, sy = xs[:, 0] + a * c - b * s, xs[:, 1] + a * s + b * c
+    dsx, dsy = -a * s - b * c, a * c - b * s
+    ex, ey = L[:, 0] - sx, L[:, 1] - sy
+    q = ex * ex + ey * ey
+    rr = np.sqrt(q)
+    m = xs.shape[0]
+    Jv = np.empty((m, 2, 3))
+    Jv[:, 0, 0], Jv[:, 0, 1] = -ex / rr, -ey / rr
+    Jv[:, 0, 2] = -(ex * dsx + ey * dsy) / rr
+    Jv[:, 1, 0], Jv[:, 1, 1] = ey / q, -ex / q
+    Jv[:, 1, 2] = (-ex * dsy + ey * dsx) / q - 1.0
+    Jl = np.empty((m, 2, 2))
+    Jl[:, 0, 0], Jl[:, 0, 1] = ex / rr, ey / rr
+    Jl[:, 1, 0], Jl[:, 1, 1] = -ey / q, ex / q
+    Wm = np.linalg.inv(R1[None] + Jl @ Pl @ Jl.transpose(0, 2, 1))
+    em = np.column_stack((rz - rr, _wrap(bz - (np.arctan2(ey, ex) - xs[:, 2]))))
+    d2: FloatArray = np.einsum("mi,mij,mj->m", em, Wm, em)
+    dn = np.sqrt(d2)
+    w = np.where(dn <= huber_k, 1.0, huber_k / np.maximum(dn, 1e-12))
+    JvT_W = w[:, None, None] * (Jv.transpose(0, 2, 1) @ Wm)
+    return JvT_W @ Jv, np.einsum("mij,mj->mi", JvT_W, em), d2
+
+
+def smooth_path(
+    poses: FloatArray,
+    deltas: FloatArray,
+    covs: FloatArray,
+    obs: tuple[IntArray, IntArray, FloatArray, FloatArray],
+    lm_xy: FloatArray,
+    lm_cov: FloatArray,
+    sensor_offset: tuple[float, float],
+    R1: FloatArray,
+    *,
+    huber_k: float = 1.345,
+    iterations: int = 20,
+) -> tuple[FloatArray, dict[str, float | int]]:
+    """The vehicle path (N, 3) re-estimated on the fixed final map (module docstring).
+
+    poses : (N, 3) the filter's vehicle poses (start of the iteration; ``poses[0]`` is fixed)
+    deltas, covs : (N-1, 3) / (N-1, 3, 3) odometry increments between consecutive frames in the
+        earlier frame's vehicle frame and their covariances
+    obs : ``(frame, landmark, range, bearing)`` per associated detection
+    lm_xy, lm_cov : (L, 2) / (L, 2, 2) final landmark positions and marginal covariances
+    sensor_offset : (a, b) of the sensor in the vehicle frame; R1 : (2, 2) detection noise
+
+    Returns the path and stats (iterations, measurements used, mean whitened residual² of the
+    measurements before and after, the share down-weighted by Huber at the end).
+    """
+    x = np.array(poses, dtype=np.float64)
+    n = x.shape[0]
+    a, b = sensor_offset
+    fr, lj, rz, bz = obs
+    om = np.linalg.inv(covs + _ODO_FLOOR)  # (N-1, 3, 3)
+    stats: dict[str, float | int] = {"smoother_measurements": int(fr.size)}
+    if n < 2:
+        return x, stats
+    it = 0
+    for it in range(1, iterations + 1):
+        diag = np.zeros((n, 3, 3))
+        off = np.zeros((n - 1, 3, 3))  # block (f, f-1)
+        g = np.zeros((n, 3))
+        diag[0] += _PRIOR_INFO * np.eye(3)
+        e0 = np.asarray(poses[0], dtype=np.float64) - x[0]
+        e0[2] = _wrap(e0[2:])[0]
+        g[0] += _PRIOR_INFO * e0
+        # ---- odometry factors: h = [R(θa)ᵀ (p_b - p_a), θb - θa]
+        pa, pb = x[:-1], x[1:]
+        c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
+        dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
+        h = np.column_stack((c * dx + s * dy, -s * dx + c * dy, pb[:, 2] - pa[:, 2]))
+        e = deltas - h
+        e[:, 2] = _wrap(e[:, 2])
+        Ja = np.zeros((n - 1, 3, 3))
+        Ja[:, 0, 0], Ja[:, 0, 1], Ja[:, 0, 2] = -c, -s, -s * dx + c * dy
+        Ja[:, 1, 0], Ja[:, 1, 1], Ja[:, 1, 2] = s, -c, -c * dx - s * dy
+        Ja[:, 2, 2] = -1.0
+        Jb = np.zeros((n - 1, 3, 3))
+        Jb[:, 0, 0], Jb[:, 0, 1] = c, s
+        Jb[:, 1, 0], Jb[:, 1, 1] = -s, c
+        Jb[:, 2, 2] = 1.0
+        JaT_om = Ja.transpose(0, 2, 1) @ om
+        JbT_om = Jb.transpose(0, 2, 1) @ om
+        diag[:-1] += JaT_om @ Ja
+        diag[1:] += JbT_om @ Jb
+        off += JbT_om @ Ja
+        g[:-1] += np.einsum("nij,nj->ni", JaT_om, e)
+        g[1:] += np.einsum("nij,nj->ni", JbT_om, e)
+        # ---- measurement factors, in chunks (bounded memory on long drives)
+        d2_sum, n_huber = 0.0, 0
+        for lo in range(0, fr.size, _CHUNK):
+            sl = slice(lo, lo + _CHUNK)
+            H_m, g_m, d2 = _measurement_terms(
+                x[fr[sl]], lm_xy[lj[sl]], lm_cov[lj[sl]], rz[sl], bz[sl], a, b, R1, huber_k
+            )
+            np.add.at(diag, fr[sl], H_m)
+            np.add.at(g, fr[sl], g_m)
+            d2_sum += float(d2.sum())
+            n_huber += int((d2 > huber_k * huber_k).sum())
+        if it == 1:
+            stats["smoother_meas_d2_before"] = d2_sum / fr.size if fr.size else math.nan
+        # ---- banded Cholesky solve of the block-tridiagonal normal equations
+        ab = np.zeros((6, 3 * n))
+        for i in range(3):
+            for k in range(i + 1):
+                ab[i - k, k::3] = diag[:, i, k]
+            for k in range(3):
+                ab[3 + i - k, k : 3 * (n - 1) : 3] = off[:, i, k]
+        step = solveh_banded(ab, g.reshape(-1), lower=True).reshape(n, 3)
+        x += step
+        x[:, 2] = _wrap(x[:, 2])
+        if np.abs(step[:, :2]).max() < 1e-4 and np.abs(step[:, 2]).max() < 1e-6:
+            break
+    stats["smoother_iterations"] = it
+    stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
+    stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
+    return x, stats
