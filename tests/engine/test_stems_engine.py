@@ -186,8 +186,9 @@ def test_failed_tile_is_reported_and_the_rest_finish(
 def test_one_worker_thread_reads_the_pilot_from_the_stage(
     stand_tiles: tuple[Path, np.ndarray], reference: CloudStems, tmp_path: Path
 ) -> None:
-    """With one worker thread the pilot region is staged with the chunks (no second decode)
-    rather than read directly: the same statistics and stems, nothing left in the stage."""
+    """The pilot region is staged with the chunks (no second decode), here with one worker
+    thread (the ``client`` fixture's runs have two): the same statistics and stems, nothing
+    left in the stage."""
     from distributed import Client, LocalCluster
 
     cat = Catalog.from_inputs([stand_tiles[0]])

@@ -549,16 +549,17 @@ def run_stems_catalog(
     # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
     # to do; the pilot measures the catalog statistics on a worker; each chunk's ground step
     # (prepare) runs as soon as its tiles are staged, the rest of the detector once the
-    # pilot is done too. With one worker thread the pilot reads staged fragments as well
-    # (no second decode); with more it reads its tiles itself and starts at once, decoding
-    # them a second time on a core that would otherwise wait: the pilot is the longest task
-    # and every chunk's second step waits for it.
+    # pilot is done too. The pilot reads staged fragments like a chunk (its tiles are
+    # decoded once, by the stage tasks); its stage tasks run first among ready tasks, so
+    # with several workers it starts after a few tiles' decoding and costs no second decode
+    # (reading its tiles itself cost 1.6 CPU-s more at 101 M points; docs/algorithms/engine.md).
     per_tile: dict[int, list[Chunk]] = {}
+    first: dict[str, int] = {}
 
-    def build(threads: int) -> list[tuple[str, Callable[..., Any], tuple[Any, ...]]]:
-        direct = threads > 1
+    def build() -> list[tuple[str, Callable[..., Any], tuple[Any, ...]]]:
         per_tile.clear()
-        readers = [*todo, *([pilot] if pilot is not None and todo and not direct else [])]
+        first.clear()
+        readers = [*todo, *([pilot] if pilot is not None and todo else [])]
         for ch in readers:
             for k in ch.tiles:
                 if not catalog.tiles[k].copc:
@@ -573,10 +574,11 @@ def run_stems_catalog(
 
         stats: Any = None
         if pilot is not None and todo:
-            where = None if direct else stage
-            pilot_args = (catalog, pilot, cfg, sensor, time_field, where, *deps(pilot))
+            pilot_args = (catalog, pilot, cfg, sensor, time_field, stage, *deps(pilot))
             graph.append(("pilot", pilot_statistics, pilot_args))
             stats = Dep("pilot")
+            # every chunk's second step waits for the pilot: it and its tiles go first
+            first.update({d.key: 1 for d in deps(pilot)}, pilot=2)
         for ch in todo:
             path = str(man.result_path(ch.id))
             if stats is None:
@@ -643,13 +645,12 @@ def run_stems_catalog(
 
     def execute(cl: Any) -> None:
         nonlocal n_stage
-        graph = build(sum(cl.nthreads().values()))
+        graph = build()
         n_stage = len(per_tile)
         if on_progress is not None:
             on_progress("reading tiles", 0, n_stage)
             on_progress("chunks", len(done), len(chunks))
-        # the pilot first among ready tasks: every chunk's second step waits for it
-        run_graph(cl, graph, retries=retries, priorities={"pilot": 1}, on_done=task_done)
+        run_graph(cl, graph, retries=retries, priorities=first, on_done=task_done)
 
     if not todo and on_progress is not None:
         on_progress("chunks", len(done), len(chunks))
