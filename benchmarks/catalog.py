@@ -84,23 +84,12 @@ def _peak_rss() -> int:
 
 
 def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float) -> dict[str, Any]:
-    from distributed import Client, LocalCluster
-
     from stemmap.cloud import StemConfig
-    from stemmap.engine import Catalog, run_stems_catalog
+    from stemmap.engine import Catalog, dask_client, run_stems_catalog
 
     shutil.rmtree(work, ignore_errors=True)
     t0 = time.perf_counter()
-    with (
-        LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=None,
-        ) as cluster,
-        Client(cluster) as client,
-    ):
+    with dask_client(workers) as client:  # the CLI's local cluster (`--workers N`)
         startup = time.perf_counter() - t0
         load0 = os.getloadavg()[0]
         t1 = time.perf_counter()

@@ -20,6 +20,18 @@ __all__ = ["Dep", "TaskOutcome", "dask_client", "run_graph", "run_tasks"]
 
 log = logging.getLogger(__name__)
 
+#: Dask settings of the local cluster. Its workers' monitoring is for a dashboard the
+#: engine does not start: the statistical profiler (a stack sample every 10 ms), the 20 ms
+#: event-loop tick and the 0.5 s system monitor cost an idle worker ~22 ms of CPU a second
+#: (0.43 CPU-s in 20 s; 0.13 without them), more while it works, i.e. 2-4 CPU-s per worker
+#: in a 100 M-point run (docs/algorithms/engine.md, "Fifth pass"). The memory monitor (which
+#: enforces ``memory_limit``) is kept. A cluster at ``--scheduler`` keeps its own settings.
+LOCAL_CLUSTER_CONFIG: dict[str, Any] = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+
 
 @dataclass(frozen=True)
 class TaskOutcome:
@@ -53,6 +65,7 @@ def dask_client(
         divided among the workers).
     """
     try:
+        import dask
         from distributed import Client, LocalCluster
     except ImportError as exc:  # pragma: no cover - a main dependency
         raise ConfigError(
@@ -78,14 +91,15 @@ def dask_client(
     n = workers if workers is not None else (os.cpu_count() or 1)
     if n < 1:
         raise ConfigError(f"--workers must be >= 1, got {n}.")
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=None,
-        memory_limit=memory_limit,
-    )
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):  # the nannies pass it on to their workers
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            memory_limit=memory_limit,
+        )
     try:
         client = Client(cluster)
         # a failed task is reported by run_tasks (with its error) in the client: the local
