@@ -199,7 +199,9 @@ def run_demo(
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_observations_csv(out_dir / "detections.csv", obs)
-    write_map_products(out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg)
+    write_map_products(
+        out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, pose_covs=result.pose_covs
+    )
     with atomic_write(out_dir / "truth_trees.csv") as fh:
         fh.write("id,x,y,diameter\n")
         for i, ((x, y), d) in enumerate(zip(stand.trees_xy, stand.diameters, strict=True)):

@@ -713,7 +713,13 @@ def map_command(
             run.add_input(ctx["odometry"])
         fmt = trajectory_format.value
         names = write_map_products(
-            stage, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
+            stage,
+            result.stem_map,
+            result.trajectory,
+            crs=crs,
+            gpkg=gpkg,
+            trajectory_format=fmt,
+            pose_covs=result.pose_covs,
         )
         names += write_information(stage, result.stem_map)
         if "alignment" in ctx:
@@ -725,6 +731,7 @@ def map_command(
                 sensor_offset=problem.sensor_offset,
                 gpkg=gpkg,
                 trajectory_format=fmt,
+                pose_covs=result.pose_covs,
             )
         names += ["metrics.json", "map.png"]
         with atomic_write(stage / "metrics.json") as fh:
