@@ -75,12 +75,14 @@ from stemmap.slam._graph_marginals import (
     _fit_diagnostics,
     _merge_duplicates,
     _point_marginals,
+    _tree_and_pose_marginals,
     _tree_joint_information,
 )
 from stemmap.slam._graph_odometry import (
     _calibration_jacobians,
     _calibration_lsq,
     _sensor_between,
+    frame_covariances,
     preintegrate_spans,
 )
 from stemmap.slam._graph_revisits import (
@@ -159,7 +161,7 @@ class Isam2Slam:
         pre = preintegrate_spans(
             problem.motion, problem.controls, frames.times, problem.initial_pose
         )  # (bounded working memory on long drives)
-        _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+        d_f, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
@@ -747,10 +749,21 @@ class Isam2Slam:
         n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
         covs = np.full((n_lm, 2, 2), np.nan)
+        kf_cov = np.full((nk, 3, 3), np.nan)  # graph keyframes' sensor-pose marginals
         info_j = None  # joint information of the kept trees (cfg.joint_information)
+        tree_keys = [LK(int(q_)) for q_ in keep] if cfg.marginals else []
+        if cfg.pose_marginals:  # trees and poses from one linearisation
+            try:
+                covs_k, kf_cov[gk] = _tree_and_pose_marginals(
+                    graph_all, result, tree_keys, [XK(int(k_)) for k_ in gk]
+                )
+                covs[keep] = covs_k if tree_keys else covs[keep]
+            except (ValueError, np.linalg.LinAlgError) as exc:  # GNSS keys break the chain
+                log.warning("iSAM2: pose covariances unavailable: %s", exc)
         if cfg.marginals and keep.size:
             try:
-                covs[keep] = _point_marginals(graph_all, result, [LK(int(q_)) for q_ in keep])
+                if not np.isfinite(covs[keep]).all():
+                    covs[keep] = _point_marginals(graph_all, result, tree_keys)
                 if cfg.joint_information:
                     info_j = _tree_joint_information(
                         graph_all, result, [LK(int(q_)) for q_ in keep]
@@ -767,6 +780,11 @@ class Isam2Slam:
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
         veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
+        pose_covs = (
+            frame_covariances(kf_cov, kf_of, kf_frames, d_f, cov_f, (a, b), veh[:, 2])
+            if cfg.pose_marginals
+            else None
+        )
         trees = []
         for jk in keep.tolist():
             n_d = int(lm_dn[jk])
@@ -835,4 +853,4 @@ class Isam2Slam:
                 stats[f"{name_c}_max"] = float(cal[:, i_c].max())
         log.info("iSAM2: %s", stats)
         stem_map = StemMap(tuple(trees), information=info_j)
-        return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats)
+        return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats, pose_covs)
