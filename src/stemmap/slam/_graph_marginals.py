@@ -141,8 +141,6 @@ def _tree_and_pose_marginals(
 
         Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
     """
-    from scipy.linalg import lapack
-
     from stemmap.slam._ekf_smooth import chain_marginals
 
     h_ll, h_pl, h_pp, solve, pt_keys, ps_keys = _information_blocks(graph, values)
@@ -162,15 +160,8 @@ def _tree_and_pose_marginals(
     if h_pl.shape[1]:
         x_mat = solve(h_pl.toarray())
         s_mat = h_ll - h_pl.T @ x_mat
-        u, info = lapack.dpotrf(s_mat, lower=0, clean=1)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"tree information not positive definite (dpotrf {info})")
-        u_inv, info = lapack.dtrtri(u, lower=0)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"singular tree information (dtrtri {info})")
-        pos = np.searchsorted(pt_keys, np.array(tree_keys, dtype=np.uint64))
-        rows = u_inv.reshape(-1, 2, u_inv.shape[1])[pos]
-        tree_cov = np.einsum("jak,jbk->jab", rows, rows)
+        u_inv = _inverse_factor(s_mat)
+        tree_cov = _tree_blocks(u_inv, pt_keys, tree_keys)
         x3 = x_mat.reshape(n_p, 3, -1)
         for r0 in range(0, pp.size, 256):  # rows of X U⁻¹ in chunks (no second n_P x n_L)
             y = x3[pp[r0 : r0 + 256]] @ u_inv
@@ -199,16 +190,27 @@ def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
 
     Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
     """
+    s_mat, pt_keys = _tree_schur(graph, values)
+    return _tree_blocks(_inverse_factor(s_mat), pt_keys, keys)
+
+
+def _inverse_factor(s_mat: FloatArray) -> FloatArray:
+    """``U⁻¹`` of the Cholesky factor ``S = UᵀU`` (so ``S⁻¹ = U⁻¹U⁻ᵀ``); LinAlgError if ``S``
+    is not positive definite."""
     from scipy.linalg import lapack
 
-    s_mat, pt_keys = _tree_schur(graph, values)
     u, info = lapack.dpotrf(s_mat, lower=0, clean=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"tree information not positive definite (dpotrf {info})")
     u_inv, info = lapack.dtrtri(u, lower=0)
     if info != 0:
         raise np.linalg.LinAlgError(f"singular tree information (dtrtri {info})")
-    # row of each requested key in the L block (points in sorted-key order)
+    return np.asarray(u_inv, dtype=np.float64)
+
+
+def _tree_blocks(u_inv: FloatArray, pt_keys: np.ndarray, keys: list[int]) -> FloatArray:
+    """The 2x2 diagonal blocks of ``S⁻¹ = U⁻¹U⁻ᵀ`` of the tree ``keys``: products of row pairs
+    of ``U⁻¹`` (rows of each key in the L block: points in sorted-key order)."""
     pos = np.searchsorted(pt_keys, np.array(keys, dtype=np.uint64))
     rows = u_inv.reshape(-1, 2, u_inv.shape[1])[pos]
     return np.asarray(np.einsum("jak,jbk->jab", rows, rows), dtype=np.float64)
