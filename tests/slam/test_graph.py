@@ -11,6 +11,7 @@ from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir
 from stemmap.errors import ConfigError
 from stemmap.eval.matching import match_points
 from stemmap.eval.trajectory import loop_closure_error
+from stemmap.slam._graph_marginals import _tree_and_pose_marginals
 from stemmap.slam.base import dead_reckoning, duplicate_pairs, make_backend
 from stemmap.slam.graph import (
     Isam2Config,
@@ -20,7 +21,6 @@ from stemmap.slam.graph import (
     _merge_duplicates,
     _point_marginals,
     _sensor_between,
-    _tree_and_pose_marginals,
 )
 from stemmap.slam.motion import between, compose
 

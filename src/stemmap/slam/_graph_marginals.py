@@ -9,6 +9,7 @@ GPS-free fit diagnostics at the optimum (:func:`_fit_diagnostics`).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -17,6 +18,8 @@ import numpy as np
 from stemmap.slam._isam2_track import band_cho_solve
 from stemmap.types import FloatArray, wrap_angle
 
+log = logging.getLogger("stemmap.slam.graph")
+
 __all__ = [
     "_fit_diagnostics",
     "_merge_duplicates",
@@ -24,6 +27,7 @@ __all__ = [
     "_tree_and_pose_marginals",
     "_tree_joint_information",
     "_tree_schur",
+    "final_marginals",
 ]
 
 
@@ -272,3 +276,37 @@ def _tree_joint_information(graph: Any, values: Any, keys: list[int]) -> FloatAr
     cov = sla.cho_solve(sla.cho_factor(s_mat), np.eye(s_mat.shape[0])[:, idx])[idx]
     cov = 0.5 * (cov + cov.T)
     return np.asarray(sla.cho_solve(sla.cho_factor(cov), np.eye(idx.size)), dtype=np.float64)
+
+
+def final_marginals(
+    graph: Any, values: Any, tree_keys: list[int], pose_keys: list[int], cfg: Any
+) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    """The end-of-run covariances of :class:`~stemmap.slam.graph.Isam2Slam` (its ``cfg``):
+    the trees' 2x2 marginals (``cfg.marginals``), the keyframes' 3x3 pose marginals
+    (``cfg.pose_marginals``, both from one linearisation, :func:`_tree_and_pose_marginals`)
+    and the trees' joint information (``cfg.joint_information``), NaN / None where not asked
+    or not available (a warning says why: GNSS keys break the pose chain, an indeterminant
+    system)."""
+    tree_cov = np.full((len(tree_keys), 2, 2), np.nan)
+    pose_cov = np.full((len(pose_keys), 3, 3), np.nan)
+    info_j = None
+    want_trees = bool(cfg.marginals and tree_keys)
+    if cfg.pose_marginals:
+        try:
+            t_c, pose_cov = _tree_and_pose_marginals(
+                graph, values, tree_keys if want_trees else [], pose_keys
+            )
+            tree_cov = t_c if want_trees else tree_cov
+        except ValueError as exc:  # expected with GNSS: said once, not a problem
+            log.info("iSAM2: no pose covariances: %s", exc)
+        except np.linalg.LinAlgError as exc:
+            log.warning("iSAM2: pose covariances unavailable: %s", exc)
+    if want_trees:
+        try:
+            if not np.isfinite(tree_cov).all():
+                tree_cov = _point_marginals(graph, values, tree_keys)
+            if cfg.joint_information:
+                info_j = _tree_joint_information(graph, values, tree_keys)
+        except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
+            log.warning("iSAM2: marginal covariances unavailable: %s", exc)
+    return tree_cov, pose_cov, info_j
