@@ -8,7 +8,7 @@ simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 * ``detections.csv`` -- every trunk seen in every scan (the ``stemmap detect`` format, sensor
   frame);
 * ``trees.csv``, ``trees.geojson`` -- the stem map (world frame, metres);
-* ``trajectory.csv`` -- the estimated path (time_s,x,y,theta);
+* ``trajectory.csv`` -- the estimated path (time_s,x,y,theta, pose covariance columns);
 * ``truth_trees.csv`` -- the simulator's trees (id,x,y,diameter);
 * ``metrics.json`` -- detection precision/recall and DBH error, map and path errors, scenario;
 * ``demo.png`` -- the map over the truth, and the per-scan DBH error against range.
