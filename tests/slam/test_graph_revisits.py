@@ -14,6 +14,7 @@ from stemmap.slam._graph_localise import localise_on_map
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
+    TreeVisits,
     compose_increments,
     redundant,
 )
@@ -285,6 +286,35 @@ def test_place_counter_tells_visits_by_distance_not_time():
     assert pc.full(np.zeros(2), 55.0)  # back after 50 m of driving: a revisit
     with pytest.raises(ConfigError, match="revisit_after_m"):
         Isam2Config(revisit_after_m=-1.0)
+
+
+def test_tree_visits_settle_after_factors_on_earlier_visits():
+    """A tree is settled once it got graph factors on ``settle`` visits before its current
+    one; visits are told apart by ``after_m`` of driving between measurements."""
+    tv = TreeVisits(after_m=50.0, settle=1, capacity=2)  # grows past 2 trees
+    a, b, c = np.array([0]), np.array([1]), np.array([4])
+    for s in (0.0, 10.0, 30.0, 79.0):  # one visit of tree 0: gaps < 50 m
+        tv.see(a, s)
+        tv.factored(a)
+    tv.see(c, 79.0)  # tree 4: seen, never in the graph
+    assert not tv.settled(5).any()  # tree 0 is on its first visit
+    tv.see(np.array([0, 1]), 140.0)  # 61 m later: tree 0's second visit, tree 1's first
+    s5 = tv.settled(5)
+    assert s5[0] and not s5[1:].any()
+    tv.factored(b)
+    tv.see(b, 150.0)
+    assert not tv.settled(5)[1]  # still tree 1's first visit
+    tv.see(np.array([0, 1, 4]), 300.0)  # 4 revisited without a factor: never settled
+    assert tv.settled(8).tolist() == [True, True, False, False, False, False, False, False]
+    two = TreeVisits(after_m=50.0, settle=2)
+    for s in (0.0, 100.0, 200.0):  # factors on visits 1, 2, 3
+        two.see(a, s)
+        assert two.settled(1)[0] == (s == 200.0)
+        two.factored(a)
+    assert two.settled(1)[0]  # a factor on the current visit does not unsettle it
+    assert TreeVisits(50.0, 0).settled(3) is None  # off
+    with pytest.raises(ConfigError, match="revisit_settle_visits"):
+        Isam2Config(revisit_settle_visits=-1)
 
 
 def test_restart_covariance_covers_the_disagreement():

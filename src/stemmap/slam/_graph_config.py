@@ -62,6 +62,11 @@ class Isam2Config:
         than ``revisit_factors`` factors (only a new tree or a lost tracker brings it in).
         Visits are told apart by path distance, not time: a vehicle that drives slowly or
         stops is still on its first visit (docs/algorithms/slam.md "Revisits")
+    revisit_settle_visits : the bound by tree: a tree that got measurement factors on this
+        many earlier visits (a visit: measured again after ``revisit_after_m`` m of driving
+        without it) pulls no keyframe into the graph, even with fewer than ``revisit_factors``
+        factors (:class:`stemmap.slam._graph_revisits.TreeVisits`; 0 = off). Default 2
+        (docs/reliability.md "iSAM2 memory per pass": 1 lost the 1x drive's loop closures)
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -112,6 +117,7 @@ class Isam2Config:
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
     revisit_after_m: float = 50.0
+    revisit_settle_visits: int = 2
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
@@ -172,6 +178,11 @@ class Isam2Config:
         if self.revisit_keyframes < 1:
             raise ConfigError(
                 f"Isam2Config.revisit_keyframes must be >= 1, got {self.revisit_keyframes}."
+            )
+        if self.revisit_settle_visits < 0:
+            raise ConfigError(
+                f"Isam2Config.revisit_settle_visits must be >= 0 (0 = off), got "
+                f"{self.revisit_settle_visits}."
             )
         if self.revisit_factors < 0:
             raise ConfigError(

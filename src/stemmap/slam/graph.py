@@ -86,6 +86,7 @@ from stemmap.slam._graph_odometry import (
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
+    TreeVisits,
     compose_increments,
     localise_skipped,
     redundant,
@@ -429,6 +430,7 @@ class Isam2Slam:
                 graph_all.add(fac)
                 meas_fac.append(fac)
             lm_nfac[trees_w] += 1
+            visits.factored(trees_w)
             sbl, srl = sig[:, 0].tolist(), sig[:, 1].tolist()
             meas_rec.extend(zip([k] * len(js), js, bl, rl, sbl, srl, strict=True))
             n_factors_meas += len(js)
@@ -438,6 +440,7 @@ class Isam2Slam:
         entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
         places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_m)
         places.add(kf_init[0, :2], 0.0)
+        visits = TreeVisits(cfg.revisit_after_m, cfg.revisit_settle_visits)
 
         def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
@@ -471,7 +474,9 @@ class Isam2Slam:
             # tracker forces keyframes in
             s_kc = float(cum_dist[kf_frames[kc]])  # path distance (m): visits by distance
             full = revisits and places.full(kf_init[kc, :2], s_kc)
-            settled = lm_in_graph if full else None
+            if window:
+                visits.see(window[0], s_kc)
+            settled = lm_in_graph if full else visits.settled(lm_in_graph.shape[0])
             if (
                 revisits
                 and kc >= force_until
