@@ -91,6 +91,25 @@ def test_revisits_do_not_grow_the_graph(five_laps):
     assert reduced.stats["factors"] < 0.6 * full.stats["factors"]
 
 
+def test_tree_bound_keeps_young_trees_from_growing_the_graph(five_laps):
+    """``revisit_settle_visits = 2``: a tree with factors on two earlier laps pulls no keyframe
+    in. With ``revisit_factors = 40`` (trees stay "young" for several laps) and the area bound
+    off, every lap would otherwise bring its keyframes in; path and map stay as good."""
+    truth, trees, _reduced, _full = five_laps
+    problem = loop_problem(2, laps=5.0)[0]
+    cfg = {"revisit_factors": 40, "revisit_keyframes": 10**6}  # area bound off
+    res = {s: Isam2Slam(**cfg, revisit_settle_visits=s).run(problem) for s in (0, 2)}
+    k0, k2 = (res[s].stats["keyframes_in_graph"] for s in (0, 2))
+    assert k2 < 0.6 * k0, (k0, k2)  # measured 262 -> 118
+    rms = {}
+    for s, r in res.items():
+        rms[s] = math.sqrt(np.mean(np.hypot(*(r.trajectory.xy - truth[:, :2]).T) ** 2))
+        m = match_points(r.stem_map.xy, trees, gate=0.5)
+        assert m.n_matched >= 0.9 * len(r.stem_map)
+    assert rms[2] < 0.15 and rms[2] < 1.3 * rms[0] + 0.01  # measured 0.070 -> 0.077 m
+    assert abs(len(res[2].stem_map) - len(res[0].stem_map)) <= 0.05 * len(res[0].stem_map) + 1
+
+
 def test_localisation_mode_bounds_the_graph_by_area(five_laps):
     """Laps 3-5 revisit full places: the graph grows far less than in laps 1-2 (the area bound),
     and the tracker is localised on the map between updates without getting lost."""

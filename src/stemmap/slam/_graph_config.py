@@ -65,8 +65,10 @@ class Isam2Config:
     revisit_settle_visits : the bound by tree: a tree that got measurement factors on this
         many earlier visits (a visit: measured again after ``revisit_after_m`` m of driving
         without it) pulls no keyframe into the graph, even with fewer than ``revisit_factors``
-        factors (:class:`stemmap.slam._graph_revisits.TreeVisits`; 0 = off). Default 2
-        (docs/reliability.md "iSAM2 memory per pass": 1 lost the 1x drive's loop closures)
+        factors (:class:`stemmap.slam._graph_revisits.TreeVisits`; 0 = off). Default 0: 2
+        bounds the 10x Victoria Park soak's graph (1,265 keyframes instead of 2,014, every
+        pass 1.24-1.27 m) but the full log started at 6.0 s loses its path (11.6 m; 1.30 m
+        off), docs/reliability.md "iSAM2 memory per pass"; 1 lost the 1x drive's loop closures
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
@@ -117,7 +119,7 @@ class Isam2Config:
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
     revisit_after_m: float = 50.0
-    revisit_settle_visits: int = 2
+    revisit_settle_visits: int = 0
     marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True

@@ -38,7 +38,8 @@ driving is one visit), a keyframe whose trees are all in the graph stays out eve
 have fewer than ``revisit_factors`` factors. A fourth session bounded it **by tree** too
 (:class:`TreeVisits`): a tree that got factors on ``revisit_settle_visits`` earlier visits
 no longer pulls keyframes in (trunks at the edge of range gained a few factors on every pass
-and kept the 10x soak's graph growing). On by
+and kept the 10x soak's graph growing; off by default: it cost one start time of the single
+Victoria Park drive its path). The mode is on by
 default (``revisit_factors = 15``); measured on the Victoria Park log replayed 10x as
 revisits in docs/reliability.md "Soak".
 
