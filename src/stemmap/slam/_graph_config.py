@@ -70,6 +70,9 @@ class Isam2Config:
         pass 1.24-1.27 m) but the full log started at 6.0 s loses its path (11.6 m; 1.30 m
         off), docs/reliability.md "iSAM2 memory per pass"; 1 lost the 1x drive's loop closures
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
+    pose_marginals : also the marginal covariance of every graph keyframe, carried to every
+        frame (``SlamResult.pose_covs``, :func:`_tree_and_pose_marginals`; docs/outputs.md
+        "trajectory.csv"); NaN for the frames of keyframes left out of the graph
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
         correction (:func:`_calibration_lsq`); online over the last ``calib_window``
@@ -121,6 +124,7 @@ class Isam2Config:
     revisit_after_m: float = 50.0
     revisit_settle_visits: int = 0
     marginals: bool = True
+    pose_marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
     calib_prior_sigmas: tuple[float, float] = (0.02, 0.05)
