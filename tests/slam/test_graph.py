@@ -359,7 +359,7 @@ def _track_one_scan(trees, lm_inc, det_xy, nobs=20):
         np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1e-3]), np.array([0.0, 0.0, 30.0]),
         np.zeros(3), np.diag([0.05, 0.05, 0.005]) ** 2, np.array([2], dtype=np.int64),
         lm_xy, lm_dsum, lm_dn, lm_nobs, np.zeros(cap, dtype=np.int64),
-        np.zeros(cap, dtype=np.int64), inc, np.zeros((cap, 3)), n0, params, *out, counters,
+        np.zeros(cap, dtype=np.int64), inc, n0, params, *out, counters,
     )  # fmt: skip
     # the window's measurements are one per associated tree (min_window_obs = 1 here)
     np.testing.assert_array_equal(trees_w, np.unique(out[0][:n_out]))

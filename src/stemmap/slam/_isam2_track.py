@@ -66,7 +66,6 @@ def track_keyframe(
     lm_first: np.ndarray,
     lm_last: np.ndarray,
     lm_inc: np.ndarray,
-    lm_pcov: np.ndarray,
     n_lm_in: int,
     params: np.ndarray,
     out_j: np.ndarray,
@@ -87,12 +86,9 @@ def track_keyframe(
     (world frame, heading error about the sensor), the landmark arrays (grown by the caller:
     room for every detection of the keyframe), ``counters``. ``f_upd`` is the first frame of the
     keyframe of the last iSAM2 update; ``lm_inc[j]`` the last frame of tree ``j`` whose
-    observation is in iSAM2 (-1: none yet); ``lm_pcov[j]`` = (xx, xy, yy) the covariance of a
-    tree of a prior map (an earlier session's marginal; all 0 for the session's own trees): a
-    prior tree is gated and weighted with it in place of the count-based variance. Scratch per
-    associated detection (``out_*``, room for every detection of the keyframe): tree, position
-    in the keyframe's sensor frame ``kf_frame`` (dead reckoning within the window) and the
-    window's odometry variances; they
+    observation is in iSAM2 (-1: none yet). Scratch per associated detection (``out_*``,
+    room for every detection of the keyframe): tree, position in the keyframe's sensor frame
+    ``kf_frame`` (dead reckoning within the window) and the window's odometry variances; they
     are merged per tree by :func:`merge_window` (called here: one compiled function to load
     per process instead of two, ~0.07 s). ``params``: vr, vb, sd2, use_diameter, gate,
     new_chi2, new_min_dist, max_range, max_drift², local_drift², consensus_chi2, drift_scale,
@@ -182,18 +178,12 @@ def track_keyframe(
         hdrift = np.empty(near_cnt)
         dmean = np.empty(near_cnt)
         dvar = np.empty(near_cnt)
-        pcx = np.empty(near_cnt)  # prior-map covariance of the tree (0: a tree of the session)
-        pcxy = np.empty(near_cnt)
-        pcy = np.empty(near_cnt)
         q = 0
         for j in range(n_lm):
             ex, ey = lm_xy[j, 0] - px0, lm_xy[j, 1] - py0
             if ex * ex + ey * ey < lim:
                 near[q] = j
                 tvar[q] = (vr + 400.0 * vb) / max(lm_nobs[j], 1)
-                pcx[q], pcxy[q], pcy[q] = lm_pcov[j, 0], lm_pcov[j, 1], lm_pcov[j, 2]
-                if pcx[q] > 0.0:
-                    tvar[q] = 0.0
                 f0 = lm_inc[j]
                 if f0 < 0 or f0 >= f_upd:
                     drift[q] = 0.0
@@ -234,9 +224,9 @@ def track_keyframe(
                     syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2]
                     sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2]
                     lv = tvar[qq] + drift[qq]
-                    sxx += mxx[i] + lv + pcx[qq]
-                    syy += myy[i] + lv + pcy[qq]
-                    sxy += mxy[i] + pcxy[qq]
+                    sxx += mxx[i] + lv
+                    syy += myy[i] + lv
+                    sxy += mxy[i]
                     ia, ib, ic, det = _inv2(sxx, sxy, syy)
                     d2 = ia * ex * ex + 2 * ib * ex * ey + ic * ey * ey
                     if use_d and math.isfinite(dd[i]) and math.isfinite(dmean[qq]):
@@ -274,9 +264,7 @@ def track_keyframe(
                 ox, oy = px0 + r[i] * ca, py0 + r[i] * sa
                 ex, ey = lm_xy[j, 0] - ox, lm_xy[j, 1] - oy
                 lv = tvar[qq] + drift[qq]
-                ia, ib, ic, det = _inv2(
-                    mxx[i] + lv + pcx[qq], mxy[i] + pcxy[qq], myy[i] + lv + pcy[qq]
-                )
+                ia, ib, ic, det = _inv2(mxx[i] + lv, mxy[i], myy[i] + lv)
                 jx, jy = -(oy - py0), ox - px0
                 # H = [[1, 0, jx], [0, 1, jy]]; Lam += H^T W H; eta += H^T W e
                 Hm = np.zeros((2, 3))
@@ -323,9 +311,9 @@ def track_keyframe(
                 ex = lm_xy[j, 0] - wx[i]
                 ey = lm_xy[j, 1] - wy[i]
                 jx, jy = -(wy[i] - trk[1]), wx[i] - trk[0]
-                sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2] + mxx[i] + tvar[qq] + pcx[qq]
-                syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2] + myy[i] + tvar[qq] + pcy[qq]
-                sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2] + mxy[i] + pcxy[qq]
+                sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2] + mxx[i] + tvar[qq]
+                syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2] + myy[i] + tvar[qq]
+                sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2] + mxy[i]
                 extra = 0.0
                 if use_d and math.isfinite(dd[i]) and math.isfinite(dmean[qq]):
                     extra = (dd[i] - dmean[qq]) ** 2 / dvar[qq]
@@ -416,16 +404,9 @@ def track_keyframe(
                         break
                     jx, jy = -(wy[i] - trk[1]), wx[i] - trk[0]
                     lv = tvar[qq] + drift[qq]
-                    sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2] + mxx[i] + lv + pcx[qq]
-                    syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2] + myy[i] + lv + pcy[qq]
-                    sxy = (
-                        P[0, 1]
-                        + jx * P[1, 2]
-                        + jy * P[0, 2]
-                        + jx * jy * P[2, 2]
-                        + mxy[i]
-                        + pcxy[qq]
-                    )
+                    sxx = P[0, 0] + 2 * jx * P[0, 2] + jx * jx * P[2, 2] + mxx[i] + lv
+                    syy = P[1, 1] + 2 * jy * P[1, 2] + jy * jy * P[2, 2] + myy[i] + lv
+                    sxy = P[0, 1] + jx * P[1, 2] + jy * P[0, 2] + jx * jy * P[2, 2] + mxy[i]
                     ia, ib, ic, det = _inv2(sxx, sxy, syy)
                     d2 = ia * ex * ex + 2 * ib * ex * ey + ic * ey * ey
                     if use_d and math.isfinite(dd[i]) and math.isfinite(dmean[qq]):

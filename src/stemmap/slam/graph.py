@@ -108,7 +108,7 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose
-from stemmap.slam.relocalise import joint_prior_factor, prior_gate_cov, prior_tree_factors
+from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -316,7 +316,6 @@ class Isam2Slam:
         lm_last = np.zeros(cap, dtype=np.int64)
         lm_inc = np.full(cap, -1, dtype=np.int64)  # last frame whose observation is in iSAM2
         lm_in_graph = np.zeros(cap, dtype=bool)
-        lm_pcov = np.zeros((cap, 3))  # (xx, xy, yy) of the prior-map trees (track_keyframe)
         n_lm = 0
         map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
         joint_fac: Any = None  # or one joint prior over them (StemMap.information)
@@ -332,8 +331,6 @@ class Isam2Slam:
                 np.zeros(cap, dtype=np.int64), np.full(cap, -1, dtype=np.int64),
                 np.zeros(cap, dtype=bool),
             )  # fmt: skip
-            lm_pcov = np.zeros((cap, 3))
-            prior_trees = list(problem.prior_map)
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
                 prior_tree_factors(problem.prior_map, LK, cfg.min_obs)
             ):
@@ -342,7 +339,6 @@ class Isam2Slam:
                     lm_dsum[j_p], lm_dn[j_p] = d_p * n_p, n_p
                 lm_nobs[j_p] = n_p
                 lm_in_graph[j_p] = True
-                lm_pcov[j_p] = prior_gate_cov(prior_trees[j_p])
                 new_v.insert(LK(j_p), xy_p.copy())
                 if fac_p is not None:
                     new_f.add(fac_p)
@@ -604,15 +600,14 @@ class Isam2Slam:
             need = n_lm + int(ptr[f1] - ptr[f0])
             if need > lm_xy.shape[0]:
                 (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph, lm_ref,
-                 lm_nfac, lm_pcov) = grow_landmarks(
+                 lm_nfac) = grow_landmarks(
                     need, (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc,
-                           lm_in_graph, lm_ref, lm_nfac, lm_pcov),
-                    (0, 0, 0, 0, 0, 0, -1, False, 0, 0, 0),
+                           lm_in_graph, lm_ref, lm_nfac), (0, 0, 0, 0, 0, 0, -1, False, 0, 0),
                 )  # fmt: skip
             n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
                 cum_dist, trk, P_trk, fc, lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last,
-                lm_inc, lm_pcov, n_lm, kparams, out_j, out_kx, out_ky, out_wxy, out_wth, counters,
+                lm_inc, n_lm, kparams, out_j, out_kx, out_ky, out_wxy, out_wth, counters,
             )  # fmt: skip
             if progress is not None:
                 progress(f1, nf)

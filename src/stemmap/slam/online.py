@@ -184,7 +184,6 @@ class OnlineMapper:
         self.lm_inc = _Grow((), np.int64, -1)
         self.lm_in_graph = _Grow((), np.bool_)
         self.lm_cov = _Grow((2, 2), np.float64, math.nan)
-        self.lm_pcov = _Grow((3,))  # prior-map covariances (track_keyframe): none online
         self.n_lm = 0
         self.kparams = np.array(
             [
@@ -347,8 +346,7 @@ class OnlineMapper:
             self._new_keyframe(f)
         # front-end on this scan (room for every detection becoming a tree)
         for arr in (self.lm_xy, self.lm_dsum, self.lm_dn, self.lm_nobs, self.lm_first,
-                    self.lm_last, self.lm_inc, self.lm_in_graph, self.lm_cov,
-                    self.lm_pcov):  # fmt: skip
+                    self.lm_last, self.lm_inc, self.lm_in_graph, self.lm_cov):  # fmt: skip
             arr.room(r.shape[0])
         cap = r.shape[0] + 1
         o_j = np.zeros(cap, dtype=np.int64)
@@ -358,12 +356,11 @@ class OnlineMapper:
             self.dia.a, self.sp_dr.a, self.cov_f.a, self.cum_xy.a, self.cum_th.a,
             self.cum_dist.a, self.trk, self.P, self.fc, self.lm_xy.a, self.lm_dsum.a,
             self.lm_dn.a, self.lm_nobs.a, self.lm_first.a, self.lm_last.a, self.lm_inc.a,
-            self.lm_pcov.a, self.n_lm, self.kparams, o_j, o_kx, o_ky, o_wxy, o_wth, self.counters,
+            self.n_lm, self.kparams, o_j, o_kx, o_ky, o_wxy, o_wth, self.counters,
         )  # fmt: skip
         out = (o_j, o_kx, o_ky, o_wxy, o_wth)
         for arr in (self.lm_xy, self.lm_dsum, self.lm_dn, self.lm_nobs, self.lm_first,
-                    self.lm_last, self.lm_inc, self.lm_in_graph, self.lm_cov,
-                    self.lm_pcov):  # fmt: skip
+                    self.lm_last, self.lm_inc, self.lm_in_graph, self.lm_cov):  # fmt: skip
             arr.n = n_lm
         self.n_lm = n_lm
         self._win.append(tuple(o[:n_out].copy() for o in out))

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from stemmap.errors import ConfigError, InputError
 from stemmap.slam.base import SlamProblem, sensor_poses
 from stemmap.slam.motion import preintegrate
-from stemmap.types import FloatArray, StemMap, Tree
+from stemmap.types import FloatArray, StemMap
 
 __all__ = [
     "RelocConfig",
@@ -51,7 +51,6 @@ __all__ = [
     "continue_session",
     "local_trees",
     "match_to_map",
-    "prior_gate_cov",
     "prior_tree_factors",
     "relocalise",
 ]
@@ -348,19 +347,6 @@ def prior_tree_factors(
         fac = gtsam.PriorFactorPoint2(key(j), xy, gtsam.noiseModel.Gaussian.Covariance(cov))
         out.append((xy, float(t.diameter), max(int(t.n_obs), min_obs), fac))
     return out
-
-
-def prior_gate_cov(tree: Tree, default_sigma: float = 0.1) -> FloatArray:
-    """``(xx, xy, yy)``: the covariance a prior-map tree is gated and weighted with by the
-    front-end (``track_keyframe``'s ``lm_pcov``): its marginal from the earlier session (the
-    prior factor's covariance, same ``default_sigma`` where unknown and 1e-6 m² floor), in
-    place of the count-based variance of the session's own trees (docs/algorithms/slam.md,
-    "Maps reused across sessions")."""
-    cov = np.asarray(tree.cov, dtype=np.float64)
-    if not (np.isfinite(cov).all() and np.linalg.eigvalsh(cov).min() > 0):
-        cov = np.eye(2) * default_sigma**2
-    cov = cov + np.eye(2) * 1e-6
-    return np.array([cov[0, 0], cov[0, 1], cov[1, 1]])
 
 
 def _joint_sqrt_information(prior_map: StemMap) -> FloatArray | None:
