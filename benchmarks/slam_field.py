@@ -234,7 +234,7 @@ def _gnss(data: str | None, csv_out: str | None) -> dict[str, Any]:
 def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any) -> dict[str, Any]:
     """Why session 2 on the prior map differs from the single run (docs/algorithms/slam.md
     "Maps reused across sessions"): the keyframe-phase spread of both (session 2 started at
-    800.0-800.7 s, the full run at 0-2 s; fixes after 801 s, own alignment), session 2 started
+    800.0-801.1 s, the full run at 0-2.6 s; fixes after 801 s, own alignment), session 2 started
     from the full run's own pose (relocalisation error carried?), the prior's information
     scaled by 0.25 / 4 (too tight or loose?), and the joint prior's chi2 at session 2's optimum
     (prior trees within 0.5 m of a merged-map tree vs all)."""
@@ -253,14 +253,14 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
 
     out: dict[str, Any] = {}
     s2_ph, full_ph = [], []
-    for t0 in (800.0, 800.4, 800.6, 800.7):
+    for t0 in (800.0, 800.4, 800.6, 800.7, 800.9, 801.1):
         p2 = vp.slice(t0, 1549.0).problem()
         t1l, t2f = float(r1.trajectory.times[-1]), float(p2.frames.times[0])
         d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
         rel = relocalise(p2, r1.stem_map, guess=tuple(compose(r1.trajectory.poses[-1], d)))
         p2r = dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map)
         s2_ph.append([round(t2f, 3), score(Isam2Slam().run(with_calibration(p2r, *cal)), 801.0)])
-    for t0 in (0.0, 1.0, 1.2, 1.6, 2.0):
+    for t0 in (0.0, 1.0, 1.2, 1.6, 2.0, 2.3, 2.6):
         pf = vp.slice(t0, 1549.0).problem()
         full_ph.append([round(float(pf.frames.times[0]), 3), score(Isam2Slam().run(pf), 801.0)])
     out["phase_session2_first_scan_ate"] = s2_ph
