@@ -133,6 +133,26 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # than max_jump at every cut end (simulated precision, benchmark / demo drive seed 1:
     # 0.969 / 0.952; recall and DBH RMSE <= 5 m unchanged)
     _setting(straight_depth_sigmas=3.0, arc_refit=True, arc_sigmas=2.0, arc_short_steps=True),
+    # sixth round: sigma at least the scan's own range-noise estimate (sigma_from_scan,
+    # plausibility.scan_noise; simulated precision, benchmark / demo drive seed 1: 0.961 /
+    # 0.938 on the default: the demo drive breaks the 0.95 target, so it is in the grid to
+    # measure what the real slices choose, and becomes a default only if the target holds)
+    _setting(straight_depth_sigmas=3.0, sigma_from_scan=True),
+    _setting(bark=0.03, sigma_from_scan=True),
+    _setting(
+        straight_depth_sigmas=3.0,
+        arc_refit=True,
+        arc_sigmas=2.0,
+        arc_replace=3.0,
+        sigma_from_scan=True,
+    ),
+    _setting(
+        straight_depth_sigmas=3.0,
+        arc_refit=True,
+        arc_sigmas=2.0,
+        arc_short_steps=True,
+        sigma_from_scan=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
@@ -503,6 +523,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="--loo: train on every dataset, also those whose reference is not trusted",
     )
+    ap.add_argument(
+        "--set",
+        type=json.loads,
+        default=None,
+        help="also run the stemmap preset with these overrides, e.g. '{\"sigma_from_scan\": true}'"
+        ' (detector "stemmap+set")',
+    )
     args = ap.parse_args(argv)
     ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
     if ddir is None:
@@ -510,6 +537,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     scanners = QUICK_SCANNERS if args.quick else FULL_SCANNERS
     dets = detectors(full=not args.quick)
+    if args.set:
+        dets["stemmap+set"] = DetectorConfig.preset("stemmap", **args.set)
     n_vantage = args.vantage or (20 if args.quick else 40)
     names = args.only or list(SLICES)
     t0 = time.perf_counter()

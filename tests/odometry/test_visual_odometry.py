@@ -156,3 +156,33 @@ def test_planar_from_camera_recovers_the_vehicle_path(drive):
     np.testing.assert_allclose(
         est.poses[:, 2], drive.truth.poses[:, 2] - drive.truth.poses[0, 2], atol=1e-9
     )
+
+
+def test_source_noise_scales_with_the_inlier_count():
+    """``inlier_exponent``: each interval's noise is ``sigma (n / n_ref) ** -p`` with ``n`` the
+    fewer PnP inliers of its two frames; the first keyframe (no PnP, 0 inliers) does not limit
+    its interval, and ``p = 0`` keeps the constant."""
+    from stemmap.odometry.visual import VisualOdometryResult
+
+    n = 4
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 2, 3] = 0.1 * np.arange(n)  # camera z = forward
+    res = VisualOdometryResult(
+        np.arange(n) * 0.2,
+        poses,
+        np.array([VoStatus.KEYFRAME, VoStatus.TRACKED, VoStatus.TRACKED, VoStatus.KEYFRAME]),
+        np.array([0, 220, 60, 130]),
+        np.array([0, 200, 50, 120]),
+    )
+    vfc = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
+    src = visual_odometry_source(
+        res, vfc, sigma_speed=0.05, sigma_yaw_rate=0.01, inlier_exponent=2.0
+    )
+    expect = (np.array([200.0, 50.0, 50.0]) / 100.0) ** -2.0
+    assert np.allclose(src.sigma_speed, 0.05 * expect)
+    assert np.allclose(src.sigma_yaw_rate, 0.01 * expect)
+    assert np.allclose(src.speed, 0.5)
+    const = visual_odometry_source(res, vfc, sigma_speed=0.05, sigma_yaw_rate=0.01)
+    assert np.allclose(const.sigma_speed, 0.05)
+    with pytest.raises(ConfigError):
+        visual_odometry_source(res, vfc, sigma_speed=0.05, sigma_yaw_rate=0.01, inlier_exponent=-1)

@@ -75,6 +75,16 @@ CONFIGS = {
     # issue 11: sigma raised to the measured roughness, robust residual-scale RMS test
     "data_sigma_robust": {"sigma_from_data": True, "roughness_max_factor": 3.0, "rms_robust": True},
     "data_sigma": {"sigma_from_data": True, "roughness_max_factor": 2.0, "sigma": 0.005},
+    # issue 11: sigma raised to the scan's own noise estimate (alone, with corners and gaps)
+    "scan_sigma": {"sigma_from_scan": True, "sigma": 0.002},
+    "scan_sigma_corners_gaps": {
+        "sigma_from_scan": True,
+        "sigma": 0.003,
+        "split_corners": True,
+        "gap_splits": 2,
+        "gap_sigmas": 2.0,
+        "min_depth": 0.01,
+    },
     # issue 11: concave-corner cuts (with and without the splitting median filter), bark term
     "corners_bark": {
         "split_corners": True,
@@ -217,3 +227,15 @@ def test_algebraic_floor_is_the_kasa_minimum_and_bounds_every_circle() -> None:
             assert np.sum((d**2 - rr**2) ** 2) >= floor * (1 - 1e-9)
             m = float(np.max(d + rr))
             assert np.sum((d - rr) ** 2) >= floor / m**2 * (1 - 1e-9)
+
+
+def test_inplace_median_equals_numpy_median():
+    # the scan-noise estimate's quickselect must return np.median exactly (odd and even counts,
+    # ties), or the compiled path would drift from the numpy reference
+    rng = np.random.default_rng(0)
+    for t in range(2000):
+        m = int(rng.integers(1, 80))
+        v = rng.normal(size=m)
+        if t % 3 == 0:
+            v = np.round(v, 1)  # ties
+        assert _detect_fast._median_inplace(v.copy(), m) == np.median(v)

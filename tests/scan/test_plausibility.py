@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
-from stemmap.scan.plausibility import REASONS, range_roughness, robust_residual_scale
+from stemmap.scan.plausibility import REASONS, range_roughness, robust_residual_scale, scan_noise
 from stemmap.sim.forest import Stand
 from stemmap.sim.scanner import cast_rays
 from stemmap.types import ScanBatch
@@ -115,3 +115,84 @@ def test_rms_limit_adds_relative_bark_roughness_in_quadrature():
     )
     with pytest.raises(Exception, match="bark_roughness"):
         DetectorConfig.preset("stemmap", bark_roughness=-0.1)
+
+
+# ---- the scan's own range-noise estimate (issue 11, sixth round) ----
+
+
+def _stand_scan(sigma, rng, extra=()):
+    """Ranges of eight trunks of 20-60 cm at 3-12 m (plus ``extra``) at 0.1 deg, with
+    Gaussian range noise ``sigma``."""
+    trees = [(3.0 + 1.2 * k, -4.0 + k, 0.1 + 0.025 * k) for k in range(8)] + list(extra)
+    r = _ranges(trees)
+    return np.where(np.isfinite(r), r + rng.normal(0, sigma, r.shape), np.inf)
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.03])
+def test_scan_noise_recovers_the_sensor_noise(sigma):
+    # every trunk's returns vote together: ~220 returns, ~200 second differences; the MAD
+    # scale's relative std is ~1 / sqrt(2 x 0.37 n) ~ 8 % per scan (0.37: the MAD's Gaussian
+    # efficiency), ~2 % for the mean of 20 scans; the trunks' own curvature adds a few mm in
+    # quadrature at most (noise-free below)
+    rng = np.random.default_rng(7)
+    r = np.stack([_stand_scan(sigma, rng) for _ in range(20)])
+    est = scan_noise(r, 0.2)
+    assert np.mean(est) == pytest.approx(sigma, rel=0.08)
+    assert est == pytest.approx(np.full(20, sigma), rel=0.3)  # ~3.5 std per scan
+    # noise-free: the surfaces' shape alone, far below a sensor's noise
+    assert scan_noise(_stand_scan(0.0, rng)[None, :], 0.2)[0] < 0.003
+    # the surfaces' share is taken out in quadrature
+    net = scan_noise(r, 0.2, surface=0.005)
+    np.testing.assert_allclose(net, np.sqrt(est**2 - 0.005**2), rtol=1e-12)
+
+
+def test_scan_noise_is_not_decided_by_one_rough_trunk():
+    rng = np.random.default_rng(9)
+    # a 1 m trunk at 3 m whose returns carry 4 cm of "bark" beyond the 1 cm noise: it holds
+    # about 40 % of the scan's continuous triples; the median moves by a third of the noise
+    # (the upper ~40 % of the |d| distribution is the trunk's), not to the bark's 4 cm
+    r = _stand_scan(0.01, rng, extra=[(3.0, 3.0, 0.5)])
+    rough = _ranges([(3.0, 3.0, 0.5)])
+    on = np.isfinite(rough)
+    assert on.sum() > 100
+    r[on] += rng.normal(0, 0.04, on.sum())
+    est = scan_noise(r[None, :], 0.2)[0]
+    assert 0.008 < est < 0.016
+    segs = _segments(r, max_jump=0.3)
+    assert range_roughness(segs)[int(np.argmax(segs.counts))] > 0.03  # the trunk's own
+    # alone in the scan it would decide the estimate (a segment's own estimate, or a single-
+    # tree scan, measures the bark): no estimate, the configured sigma stands
+    alone = np.where(on, r, np.inf)
+    assert scan_noise(alone[None, :], 0.2)[0] == 0.0
+    assert range_roughness(_segments(alone, max_jump=0.3)).max() > 0.03
+
+
+def test_compiled_scan_noise_equals_numpy():
+    from stemmap.scan._detect_fast import _scan_noise
+
+    rng = np.random.default_rng(2)
+    for sigma in (0.0, 0.005, 0.02):
+        r = _stand_scan(sigma, rng)
+        g = np.where(np.isfinite(r), r, np.nan)
+        for surface in (0.0, 0.01):
+            assert (
+                _scan_noise(g, 0.2, surface, np.empty(g.size))
+                == scan_noise(g[None, :], 0.2, surface)[0]
+            )
+
+
+def test_sigma_from_scan_raises_sigma_where_the_configured_one_is_too_small():
+    # 3 cm noise, sigma configured 1 cm: the RMS test (2 sigma) rejects most trunks; with the
+    # scan's own estimate it does not
+    rng = np.random.default_rng(4)
+    r = np.stack([_stand_scan(0.03, rng) for _ in range(6)])
+    b = _batch(r)
+    n = {}
+    for on in (False, True):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", sigma_from_scan=on))
+        n[on] = len(det.detect_batch(b))
+    assert n[True] >= n[False] + 12  # of 48 trunk views
+    with pytest.raises(Exception, match="scan_noise_jump"):
+        DetectorConfig(scan_noise_jump=0.0)
+    with pytest.raises(Exception, match="scan_noise_surface"):
+        DetectorConfig(scan_noise_surface=-0.01)

@@ -11,7 +11,12 @@ from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir
 from stemmap.errors import ConfigError
 from stemmap.eval.matching import match_points
 from stemmap.slam._graph_localise import localise_on_map
-from stemmap.slam._graph_revisits import PlaceCounter, compose_increments, redundant
+from stemmap.slam._graph_revisits import (
+    LeftOutMeasurements,
+    PlaceCounter,
+    compose_increments,
+    redundant,
+)
 from stemmap.slam.base import duplicate_pairs
 from stemmap.slam.graph import Isam2Config, Isam2Slam
 from stemmap.slam.motion import compose, preintegrate, preintegrate_spans
@@ -210,6 +215,32 @@ def test_place_counter():
     assert not pc.full(np.zeros(2), 65.0)  # only (0, 0) is 60 m back at s = 65 m
     assert pc.full(np.zeros(2), 75.0)
     assert not pc.full(np.array([10.0, 10.0]), 1e9)  # one keyframe there
+
+
+def test_left_out_measurements_store(rng):
+    """The flat store returns exactly what was added, per keyframe, across its growth (it
+    starts with room for 2 keyframes and 8 measurements), remaps merged trees, and holds
+    keyframes in increasing order only."""
+    store = LeftOutMeasurements(capacity=2)
+    added = {}
+    for k in (3, 4, 7, 8, 9, 15, 40):
+        m = int(rng.integers(0, 9))
+        w = (rng.integers(0, 50, m), rng.normal(size=m), rng.uniform(1, 30, m), rng.random((m, 2)))
+        store.add(k, *w)
+        added[k] = w
+    assert len(store) == 7 and list(store) == [3, 4, 7, 8, 9, 15, 40]
+    assert 7 in store and 5 not in store and 41 not in store and "7" not in store
+    for k, w in added.items():
+        for got, want in zip(store[k], w, strict=True):
+            np.testing.assert_array_equal(got, want)
+    with pytest.raises(KeyError):
+        store[5]
+    with pytest.raises(ValueError, match="increasing"):
+        store.add(15, *added[15])
+    alias = np.arange(50)[::-1].copy()
+    store.remap_trees(alias)
+    for k, w in added.items():
+        np.testing.assert_array_equal(store[k][0], alias[w[0]])
 
 
 def test_redundant_settled_trees():

@@ -53,6 +53,14 @@ class MunjerConfig:
         enters the box, its rings swallow the trunk bases in DBSCAN. On flat ground both agree.
         Default False (the published box): it helps on sloped simulated stands (5 -> 8 of 10
         trees) but a real-cloud check was inconclusive (docs/algorithms/cloud.md).
+    window : int, >= 1 -- lidar frames clustered together by
+        :func:`stemmap.slam.munjer.eb_lidar_observations`: each frame's pass-through points
+        joined with those of the ``window - 1`` frames before it, moved into its lidar frame
+        with the motion source's poses. The paper is silent (it clusters "the filtered point
+        cloud P'" of a moving robot); 1 = strictly per frame, the Munjer pipeline's default:
+        5 frames gain trees on the simulator but add false ones on a real plot
+        (docs/algorithms/cloud.md, "Accumulated frames"). :func:`detect_stems_munjer` itself
+        always takes one cloud.
     """
 
     box_x: tuple[float, float] | None = (0.0, 10.0)
@@ -67,10 +75,13 @@ class MunjerConfig:
     fit_method: str = "kasa"
     eccentricity_axes: str = "major_minor"
     ground_relative: bool = False
+    window: int = 1
 
     def __post_init__(self) -> None:
         if not (self.voxel > 0 and self.eps > 0 and self.min_points >= 1):
             raise ConfigError("munjer2025 needs voxel > 0, eps > 0 and min_points >= 1.")
+        if self.window < 1:
+            raise ConfigError(f"window must be >= 1 frame, got {self.window}.")
         lo, hi = self.eccentricity_range
         if not hi >= lo >= 1:
             raise ConfigError(f"eccentricity_range must satisfy 1 <= lo <= hi, got {lo}, {hi}.")
@@ -99,7 +110,8 @@ def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> C
     -----
     Pipeline: pass-through box (§3.2) -> voxel-grid averaging, eq. (2) -> DBSCAN(eps, minPts)
     (§3.3) -> covariance of each cluster, eq. (3), and eccentricity ``e = lambda1 / lambda2``,
-    eq. (4), over the two largest eigenvalues of the 3D covariance -> keep ``10 <= e <= 20``
+    eq. (4), over the eigenvalues ``config.eccentricity_axes`` names (default the largest over
+    the smallest of the 3D covariance) -> keep ``10 <= e <= 20``
     (§3.3: "between 10 and 20"; Table 1 names 20 the cutoff) -> circle fit of the cluster's 2D
     projection, rejected when the residual standard deviation exceeds 0.1 m (Table 1).
     """

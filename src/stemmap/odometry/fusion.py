@@ -141,12 +141,21 @@ class PoseSource:
     poses : ndarray (N, 3), m, m, rad
     covs : ndarray (N, 3, 3); a row with a NaN is skipped (no measurement)
     name : str
+    drift : ndarray (N, 3, 3), optional
+        For an odometry whose frame drifts (a scan-to-map odometry: its pose error is jitter
+        ``covs`` about a slowly drifting path, not a white error about the truth): the
+        covariance of the drift the source's frame takes on between pose ``k - 1`` and
+        ``k``, as a body-frame increment error ``(dx, dy, dθ)`` at pose ``k``.
+        :func:`fuse_sources` then estimates the source's frame offset (3 states, a random walk
+        with this noise) and the velocity sources can correct the source's drift; None = the
+        poses are absolute (the offset is fixed at the identity).
     """
 
     times: FloatArray
     poses: FloatArray
     covs: FloatArray
     name: str = ""
+    drift: FloatArray | None = None
 
     def __post_init__(self) -> None:
         label = self.name or "pose source"
@@ -161,6 +170,11 @@ class PoseSource:
             raise InputError(f"{label}: times must be finite and strictly increasing.")
         for name, arr in (("times", t), ("poses", p), ("covs", c)):
             object.__setattr__(self, name, arr)
+        if self.drift is not None:
+            d = np.broadcast_to(np.asarray(self.drift, dtype=np.float64), c.shape)
+            if not np.all(np.isfinite(d)) or np.any(np.linalg.eigvalsh(d) < -1e-15):
+                raise ConfigError(f"{label}: drift must be finite positive semi-definite.")
+            object.__setattr__(self, "drift", np.array(d))
 
     def __len__(self) -> int:
         return int(self.times.shape[0])
@@ -256,8 +270,10 @@ class FusedOdometry:
     calibration : ndarray (C,)
         Final estimates of the augmented calibration states, named by ``calibration_names``
         (``"<source>.yaw_rate_bias"`` in rad/s, ``"<source>.speed_scale"`` as the relative
-        error ``k``: the source reads ``(1 + k) v``). :func:`fuse_odometry` always returns
-        ``[bias of A, scale error of the non-reference source]`` (zeros unless calibrating).
+        error ``k``: the source reads ``(1 + k) v``; then ``"<pose source>.frame_offset_x"``,
+        ``_y`` (m), ``_theta`` (rad) of each drifting pose source). :func:`fuse_odometry`
+        always returns ``[bias of A, scale error of the non-reference source]`` (zeros unless
+        calibrating).
     calibration_names : tuple of str
     """
 
@@ -286,6 +302,42 @@ def _ekf_update(
     P -= K @ S @ K.T
     P[:] = 0.5 * (P + P.T)
     return True
+
+
+def _offset_pose(o: FloatArray, p: FloatArray) -> FloatArray:
+    """``o ⊕ p``: a pose of the output frame seen in a pose source's drifted frame."""
+    c, s = math.cos(o[2]), math.sin(o[2])
+    return np.array([o[0] + c * p[0] - s * p[1], o[1] + s * p[0] + c * p[1], o[2] + p[2]])
+
+
+def _drift_step(
+    x: FloatArray, P: FloatArray, oi: int, z: FloatArray, drift: FloatArray, dim: int
+) -> FloatArray:
+    """Random-walk step of a pose source's frame offset ``o`` (state ``x[oi:oi+3]``) and the
+    Jacobian of its measurement ``z = o ⊕ p``.
+
+    The source's drift since its previous pose is a body-frame increment error ``δ`` at its
+    pose ``z``: ``(o + Δo) ⊕ p = z ⊕ δ``, to first order ``Δo = J_o⁻¹ diag(R(z_θ), 1) δ`` with
+    ``J_o = ∂(o ⊕ p)/∂o``, so ``P_oo += G drift Gᵀ``. Returns ``H`` (3, dim) at the state.
+    """
+    o = x[oi : oi + 3]
+    p = x[:3]
+    c, s = math.cos(o[2]), math.sin(o[2])
+    h = _offset_pose(o, p)
+    if np.any(drift):
+        cz, sz = math.cos(z[2]), math.sin(z[2])
+        G = np.array(
+            [
+                [cz, -sz, z[1] - o[1]],
+                [sz, cz, -(z[0] - o[0])],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        P[oi : oi + 3, oi : oi + 3] += G @ drift @ G.T
+    H = np.zeros((3, dim))
+    H[:, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    H[:, oi : oi + 3] = [[1.0, 0.0, -(h[1] - o[1])], [0.0, 1.0, h[0] - o[0]], [0.0, 0.0, 1.0]]
+    return H
 
 
 def _flags(flags: Sequence[bool] | None, n: int, what: str) -> list[bool]:
@@ -330,7 +382,11 @@ def fuse_sources(
     Pose sources (a scan-to-map lidar odometry) update the pose directly: ``z = (x, y, θ)``,
     ``H = [I₃ 0]``, the heading innovation wrapped to (-π, π], gated with 3 degrees of freedom.
     Such a source defines the odometry frame; the velocity sources bridge its gaps and smooth
-    between its frames.
+    between its frames. A pose source with ``drift`` (:class:`PoseSource`) does not: it
+    measures ``z = o ⊕ p``, its frame offset ``o`` (3 augmented states, starting at the
+    identity) a random walk with the source's drift, so the velocity sources correct its
+    drift as well as its jitter (ours: an absolute pose whose error in fact drifts makes the
+    filter overconfident, its covariance stuck at the jitter; docs/algorithms/slam-frontends.md).
 
     Parameters
     ----------
@@ -402,6 +458,15 @@ def fuse_sources(
         if fk[i]:
             scale_idx[i] = 5 + len(names)
             names.append(f"{label}.speed_scale")
+    n_cal = len(names)
+    # frame offset (x, y, θ) of each drifting pose source (PoseSource.drift), after the
+    # calibration states; -1 = absolute poses
+    off_idx = np.full(len(psrcs), -1, dtype=np.int64)
+    for j, ps in enumerate(psrcs):
+        if ps.drift is not None:
+            off_idx[j] = 5 + len(names)
+            label = ps.name or f"poses{j}"
+            names.extend(f"{label}.frame_offset_{c}" for c in ("x", "y", "theta"))
     dim = 5 + len(names)
 
     # merge the streams by time (stable: lower source index first at equal times)
@@ -440,17 +505,26 @@ def fuse_sources(
     thr2 = chi2.ppf(gate_prob, 2) if gate_prob is not None else math.inf
     thr3 = chi2.ppf(gate_prob, 3) if gate_prob is not None else math.inf
     qa, qw = accel_noise**2, yaw_accel_noise**2
-    q_aug = np.array([bias_walk**2 if n.endswith("bias") else scale_walk**2 for n in names])
+    q_aug = np.array([bias_walk**2 if n.endswith("bias") else scale_walk**2 for n in names[:n_cal]])
+    dp = np.concatenate([p.drift for p in psrcs if p.drift is not None] or [np.zeros((0, 3, 3))])
+    drift_all = np.full((zp.shape[0], 3, 3), np.nan)
+    if dp.shape[0]:
+        has = np.concatenate([np.full(len(p), p.drift is not None) for p in psrcs])
+        drift_all[has] = dp
+    pose_src = np.concatenate([np.full(len(p), j) for j, p in enumerate(psrcs)] or [z0]).astype(
+        np.int64
+    )
 
     x = np.zeros(dim)
     x[:3] = np.asarray(initial_pose, dtype=np.float64).reshape(3)
-    p_aug = [bias_prior**2 if n.endswith("bias") else scale_prior**2 for n in names]
+    p_aug = [bias_prior**2 if n.endswith("bias") else scale_prior**2 for n in names[:n_cal]]
+    p_aug += [0.0] * (dim - 5 - n_cal)  # every pose source starts in the output frame
     P = np.diag([0.0, 0.0, 0.0, 1e2, 1e2, *p_aug])
     n = t_all.shape[0]
     out_x = np.empty((n, 5))
     out_P = np.empty((n, 3, 3))
     rejected = np.zeros(n_src + len(psrcs), dtype=np.int64)
-    Hp = np.zeros((3, dim))
+    Hp = Hp_abs = np.zeros((3, dim))
     Hp[:, :3] = np.eye(3)
     t_prev = float(t_all[0])
     F = np.eye(dim)
@@ -475,18 +549,25 @@ def fuse_sources(
             P = F @ P @ F.T
             P[3, 3] += qa * dt
             P[4, 4] += qw * dt
-            P[5:, 5:] += np.diag(q_aug * dt)
+            P[5 : 5 + n_cal, 5 : 5 + n_cal] += np.diag(q_aug * dt)
         s_i = int(src[i])
         if s_i < 0:  # output epoch only
             pass
         elif s_i >= n_src:  # pose measurement
-            Rm = rp[row[i]]
+            r_i = int(row[i])
+            Rm = rp[r_i]
+            oi = int(off_idx[pose_src[r_i]])
+            if oi >= 0:
+                Hp = _drift_step(x, P, oi, zp[r_i], drift_all[r_i], dim)
             if np.all(np.isfinite(Rm)):
-                y = zp[row[i]] - x[:3]
+                h = x[:3] if oi < 0 else _offset_pose(x[oi : oi + 3], x[:3])
+                y = zp[r_i] - h
                 y[2] = math.remainder(y[2], 2.0 * math.pi)
                 thr = thr3 if gate_poses else math.inf
                 if not _ekf_update(x, P, Hp, y, Rm, thr):
                     rejected[s_i] += 1
+            if oi >= 0:
+                Hp = Hp_abs
         else:
             z = z_all[row[i]]
             have = np.isfinite(z)

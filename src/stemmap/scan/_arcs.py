@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from stemmap.scan._refit import Refitted, fit_passes
 from stemmap.scan.features import footprint_correct, segment_features, segment_sum
-from stemmap.scan.plausibility import segment_reasons
+from stemmap.scan.plausibility import segment_reasons, segment_sigma
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
 
@@ -144,7 +144,7 @@ def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
     if len(segs) == 0:
         return keep
     mean_r = segment_sum(p.r, segs) / segs.counts
-    sigma = cfg.sigma + cfg.sigma_rel * mean_r
+    sigma = segment_sigma(cfg, segs, mean_r)
     seed = max(cfg.min_points, 4)
     # arc_short_steps: a shorter arc counts when a range step sets it off (_stepped)
     least = cfg.min_points if cfg.arc_short_steps else cfg.min_points_partial

@@ -103,6 +103,9 @@ PARAM_NAMES = (
     "gap_ratio",  # ... if it exceeds this multiple of the segment's median gap
     "gap_sigmas",  # ... and the median gap by this many range-noise sigmas
     "straight_depth_sigmas",  # a sagitta of this many sigmas is never straight
+    "sigma_from_scan",  # 1: sigma >= the scan's own range-noise estimate (plausibility.scan_noise)
+    "scan_noise_jump",  # ... over triples of adjacent beams with range steps <= this
+    "scan_noise_surface",  # ... less the surfaces' own share, in quadrature
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -130,6 +133,80 @@ def _range_roughness(r: FloatArray) -> float:
     h = m // 2
     med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
     return _ROUGH * med
+
+
+@njit(cache=True, error_model="numpy")
+def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
+    """Median of ``d[:m]`` (mean of the two middle values for even ``m``, as ``np.median``)
+    by quickselect (Hoare partition) in place: no allocation, ``d[:m]`` is reordered."""
+    k = m // 2
+    lo = 0
+    hi = m - 1
+    while lo < hi:
+        pivot = d[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while d[i] < pivot:
+                i += 1
+            while d[j] > pivot:
+                j -= 1
+            if i <= j:
+                t = d[i]
+                d[i] = d[j]
+                d[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    upper = d[k]
+    if m % 2 == 1:
+        return upper
+    lower = d[0]  # every value left of k is <= d[k] now: the lower middle is their largest
+    for i in range(1, k):
+        lower = max(lower, d[i])
+    return 0.5 * (lower + upper)
+
+
+#: plausibility.SCAN_NOISE_MIN_TRIPLES (the same value on both paths)
+_SCAN_NOISE_MIN_TRIPLES = 16
+
+
+@njit(cache=True, error_model="numpy")
+def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> float:
+    """Range-noise scale of one gated scan ``g`` from its continuous beam triples (numba twin
+    of :func:`stemmap.scan.plausibility.scan_noise`, same arithmetic; ``d`` is scratch)."""
+    m = 0
+    run = 0
+    longest = 0
+    for k in range(1, g.shape[0] - 1):
+        a = g[k - 1]
+        b = g[k]
+        c = g[k + 1]
+        if (
+            math.isfinite(a)
+            and math.isfinite(b)
+            and math.isfinite(c)
+            and abs(b - a) <= jump
+            and abs(c - b) <= jump
+        ):
+            d[m] = a - 2.0 * b + c
+            m += 1
+            run += 1
+            longest = max(longest, run)
+        else:
+            run = 0
+    if m < _SCAN_NOISE_MIN_TRIPLES or 2 * longest > m:  # one surface must not decide
+        return 0.0
+    med = _median_inplace(d, m)
+    for i in range(m):
+        d[i] = abs(d[i] - med)
+    e = _ROUGH * _median_inplace(d, m)
+    return math.sqrt(max(e * e - surface * surface, 0.0))
 
 
 @njit(cache=True, error_model="numpy")
@@ -365,6 +442,10 @@ def _detect_kernel(
     gap_ratio = prm[50]
     gap_sigmas = prm[51]
     straight_depth_sigmas = prm[52]
+    # sigma_from_scan acts only where a sigma is configured (segment_sigma)
+    scan_on = prm[53] > 0.0 and fit_sigma_given
+    scan_jump = prm[54]
+    scan_surface = prm[55]
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -402,6 +483,7 @@ def _detect_kernel(
     wv = np.empty((8, 3))
     mdl = np.empty(10)
     jtj = np.empty((3, 3))
+    dnoise = np.empty(n)
     cap = max(16, 2 * s_count)
     rows = np.empty((cap, OUT_COLUMNS))
     scans = np.empty(cap, dtype=np.int64)
@@ -412,6 +494,8 @@ def _detect_kernel(
         for k in range(n):
             v = ranges[s, k]
             g0[k] = v if (v > lo and v < hi and fov_in[k]) else np.nan
+        # ---- the scan's own range-noise scale (plausibility.scan_noise, ours) ----
+        noise_s = _scan_noise(g0, scan_jump, scan_surface, dnoise) if scan_on else 0.0
         # ---- three-neighbour median filter (preprocess.median_filter3, Xue 2018 §2.2) ----
         if median and n >= 3:
             grid[0] = g0[0]
@@ -546,7 +630,7 @@ def _detect_kernel(
                 a = st[j]
                 b = sp[j]
                 thr = corner_depth if sagitta(px, py, a, b) < convex_min else corner_convex
-                sig = sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a))
+                sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a)), noise_s)
                 wid[j] = max(thr, corner_sigmas * sig)
         if (
             corners_on
@@ -565,7 +649,8 @@ def _detect_kernel(
             for j in range(ns):  # least excess of the gap over the median (wid is free here)
                 a = st[j]
                 b = sp[j]
-                wid[j] = gap_sigmas * (sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a)))
+                sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / float(b - a)), noise_s)
+                wid[j] = gap_sigmas * sig
             if ns == 0 or not gap_cut_flags(
                 px, py, st, sp, ns, convex_min, gap_ratio, wid, keep, corner
             ):
@@ -619,7 +704,7 @@ def _detect_kernel(
                 det = sxx * syy - sxy * sxy
                 lam_min = tr / 2.0 - math.sqrt(max(tr * tr / 4.0 - det, 0.0))
                 line_rms = math.sqrt(max(lam_min, 0.0))
-                sig = sigma0 + sigma_rel * (_seg_sum(pr, a, b) / nf)
+                sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / nf), noise_s)
                 if straight_chi2:
                     dof = max(nf - 2.0, 1.0)
                     stat = nf * line_rms * line_rms / (sig * sig)
@@ -647,7 +732,7 @@ def _detect_kernel(
             b = sp[j]
             cnt_i = b - a
             mean_r = _seg_sum(pr, a, b) / cnt_i
-            sig = sigma0 + sigma_rel * mean_r
+            sig = max(sigma0 + sigma_rel * mean_r, noise_s)
             if sigma_from_data and fit_sigma_given:  # sigma 0: the fit estimates its scale
                 sig = max(sig, min(_range_roughness(pr[a:b]), rough_max * sig))
             sil[:] = np.nan

@@ -49,7 +49,9 @@ from stemmap.scan.plausibility import (
     range_roughness,
     rejected_candidates,
     robust_residual_scale,
+    scan_noise,
     segment_reasons,
+    segment_sigma,
 )
 from stemmap.scan.preprocess import (
     check_gate,
@@ -493,6 +495,12 @@ class ScanTrunkDetector:
         if cfg.fov_deg is not None:
             a_lo, a_hi = math.radians(cfg.fov_deg[0]), math.radians(cfg.fov_deg[1])
             r = fov_window(r, wrap_angle(angles), a_lo, a_hi)
+        # the sensor's range noise from the raw returns of each scan (before tilt and filters)
+        noise = (
+            scan_noise(r, cfg.scan_noise_jump, cfg.scan_noise_surface)
+            if cfg.sigma_from_scan
+            else None
+        )
         bearing: FloatArray = angles
         if roll is not None or pitch is not None:
             rr = 0.0 if roll is None else roll
@@ -510,6 +518,8 @@ class ScanTrunkDetector:
             r = roll_beams(r, shift)
             bearing = roll_beams(bearing, shift)
         pts = extract_points(r, bearing, angle_increment)
+        if noise is not None:
+            pts = replace(pts, noise=noise)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
         else:
@@ -544,7 +554,7 @@ class ScanTrunkDetector:
             # ours (issue 11): a non-convex segment is cut at its largest gap, once per pass
             if len(segs) == 0:
                 break
-            sigma = cfg.sigma + cfg.sigma_rel * (segment_sum(segs.points.r, segs) / segs.counts)
+            sigma = segment_sigma(cfg, segs, segment_sum(segs.points.r, segs) / segs.counts)
             segs = split_largest_gap(
                 segs,
                 sagitta_depth(segs) < max(cfg.min_depth, 0.0),
@@ -663,6 +673,9 @@ class ScanTrunkDetector:
             "sigma_from_data": cfg.sigma_from_data,
             "roughness_max_factor": cfg.roughness_max_factor,
             "rms_robust": cfg.rms_robust,
+            "sigma_from_scan": cfg.sigma_from_scan,
+            "scan_noise_jump": cfg.scan_noise_jump,
+            "scan_noise_surface": cfg.scan_noise_surface,
             "bark_roughness": cfg.bark_roughness,
             "corners_on": cfg.split_corners,
             "corner_span": cfg.corner_span,
@@ -736,7 +749,7 @@ class ScanTrunkDetector:
         p = segs.points
         n = segs.counts
         mean_r = segment_sum(p.r, segs) / n
-        sigma = cfg.sigma + cfg.sigma_rel * mean_r  # per-segment range noise
+        sigma = segment_sigma(cfg, segs, mean_r)  # per-segment range noise
         if cfg.sigma_from_data and (cfg.sigma > 0 or cfg.sigma_rel > 0):
             # (sigma 0: the fit estimates its own scale, nothing to raise)
             sigma = np.maximum(
@@ -935,7 +948,7 @@ def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:
     thr = np.where(
         sagitta_depth(segs) < max(cfg.min_depth, 0.0), cfg.corner_depth, cfg.corner_depth_convex
     )
-    sigma = cfg.sigma + cfg.sigma_rel * (segment_sum(segs.points.r, segs) / segs.counts)
+    sigma = segment_sigma(cfg, segs, segment_sum(segs.points.r, segs) / segs.counts)
     thr = np.maximum(thr, cfg.corner_sigmas * sigma)
     cuts = concave_corners(segs, cfg.corner_span, thr[segs.labels])
     if not np.any(cuts):

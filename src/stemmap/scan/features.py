@@ -407,6 +407,7 @@ def footprint_correct(segs: Segments, footprint: float) -> Segments:
         p.n_scans,
         p.n_beams,
         p.angle_increment,
+        p.noise,
     )
     return replace(segs, points=pts)
 

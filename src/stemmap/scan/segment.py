@@ -55,6 +55,9 @@ class ScanPoints:
     x, y : ndarray of shape (M,), metres, sensor frame
     n_scans, n_beams : int
     angle_increment : float, radians (signed)
+    noise : ndarray of shape (n_scans,), metres, or None
+        Range-noise scale of each scan estimated from all its returns
+        (:func:`stemmap.scan.plausibility.scan_noise`; set with ``sigma_from_scan``).
     """
 
     scan: IntArray
@@ -65,6 +68,7 @@ class ScanPoints:
     n_scans: int
     n_beams: int
     angle_increment: float
+    noise: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
@@ -81,6 +85,7 @@ class ScanPoints:
             self.n_scans,
             self.n_beams,
             self.angle_increment,
+            self.noise,
         )
 
 

@@ -129,10 +129,16 @@ class MunjerDrive:
         o = self.odometry
         return Controls(o.times, o.speed, o.yaw_rate, "unicycle")
 
-    def score(self, stem_map: StemMap, gate: float = 1.0) -> tuple[DetectionMetrics, MapMetrics]:
+    def score(
+        self, stem_map: StemMap, gate: float = 1.0, *, eligible: NDArray[np.bool_] | None = None
+    ) -> tuple[DetectionMetrics, MapMetrics]:
         """Score a stem map in the world frame as Munjer et al. 2025 Table 2 (TA/TR/FA/FR
         against the trees and the non-tree objects) and as a map (position RMSE, pairwise
-        inter-tree distance error), one-to-one matching within ``gate`` m (Table 1: 1.0 m)."""
+        inter-tree distance error), one-to-one matching within ``gate`` m (Table 1: 1.0 m).
+
+        ``eligible`` (T,) bool: only these trees count for TA / FR (a map tree on an ineligible
+        tree is neither TA nor FA; :func:`~stemmap.eval.detection.detection_metrics`'s
+        ``truth_eligible``); default all. The map metrics always use every tree."""
         from stemmap.eval.detection import detection_metrics
         from stemmap.eval.maps import map_metrics
 
@@ -143,6 +149,7 @@ class MunjerDrive:
             st.trees_xy,
             st.diameters,
             gate=gate,
+            truth_eligible=eligible,
             nontree_xy=st.clutter_objects_xy,
             nontree_extent=st.clutter_objects_extent,
         )
@@ -152,11 +159,16 @@ class MunjerDrive:
         self,
         box_x: tuple[float, float] | None = (0.0, 10.0),
         box_y: tuple[float, float] | None = (-10.0, 10.0),
+        *,
+        max_range: float | None = None,
     ) -> NDArray[np.bool_]:
         """(T,) bool: trees whose centre lies strictly inside the lidar-frame box ``box_x`` x
         ``box_y`` (default Munjer et al. 2025 Table 1's pass-through x in (0, 10), y in
         (-10, 10) m; ``None`` = open) in at least one frame -- the trees EB-LiDAR could see.
         The lidar frame is the vehicle pose of the frame (the sensor sits on the vehicle axis).
+        ``max_range`` (m): in that frame the centre must also lie within this distance of the
+        sensor (e.g. the range a 16-beam lidar resolves a trunk at with DBSCAN's eps,
+        ``eps / tan(2 deg)`` = 7.2 m; docs/algorithms/cloud.md).
         """
         (x0, x1) = box_x or (-np.inf, np.inf)
         (y0, y1) = box_y or (-np.inf, np.inf)
@@ -165,7 +177,10 @@ class MunjerDrive:
         s = np.sin(self.poses[:, 2])[:, None]
         x = c * d[..., 0] + s * d[..., 1]
         y = -s * d[..., 0] + c * d[..., 1]
-        return np.asarray(((x > x0) & (x < x1) & (y > y0) & (y < y1)).any(axis=0))
+        inside = (x > x0) & (x < x1) & (y > y0) & (y < y1)
+        if max_range is not None:
+            inside &= np.hypot(x, y) < max_range
+        return np.asarray(inside.any(axis=0))
 
     def motion_model(self) -> UnicycleModel:
         """Motion noise from the odometry's own error spec (nothing read from the truth): white

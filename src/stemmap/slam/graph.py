@@ -84,6 +84,7 @@ from stemmap.slam._graph_odometry import (
     preintegrate_spans,
 )
 from stemmap.slam._graph_revisits import (
+    LeftOutMeasurements,
     PlaceCounter,
     compose_increments,
     localise_skipped,
@@ -160,6 +161,10 @@ class Isam2Slam:
             problem.motion, problem.controls, frames.times, problem.initial_pose
         )  # (bounded working memory on long drives)
         _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+        # of the per-frame odometry only the poses and distances are used from here on: the
+        # increments and their (F, 3, 3) covariances (96 bytes per scan) are dropped
+        pre_poses, pre_dist = pre.poses, pre.distance
+        del pre
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
@@ -174,6 +179,7 @@ class Isam2Slam:
             if problem.gnss is None
             else plan_gnss(problem, problem.gnss, frames.times[kf_frames], pre_k.poses, cov_k)
         )
+        del pre_k  # (d_k and cov_k carry what the factors need)
         # odometry self-calibration (steering / yaw-rate offset, speed scale), see
         # _calibration_lsq: c_used[i] is the calibration inside the factor of keyframes (i, i+1)
         calibrate = cfg.calibrate and nk > 2
@@ -221,9 +227,10 @@ class Isam2Slam:
             return between(odo_measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
 
         # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
-        rel_v = between(pre.poses[kf_frames[kf_of]], pre.poses)
+        rel_v = between(pre_poses[kf_frames[kf_of]], pre_poses)
         rel_s, _ = _sensor_between(rel_v, np.zeros((nf, 3, 3)), (a, b))
-        cum_dist = np.concatenate(([0.0], np.cumsum(pre.distance)))
+        del rel_v
+        cum_dist = np.concatenate(([0.0], np.cumsum(pre_dist)))
         cum_xy = np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1]))))
         cum_th = np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2])))
 
@@ -240,7 +247,7 @@ class Isam2Slam:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(cfg.relinearize_threshold)
         params.relinearizeSkip = cfg.relinearize_skip
-        isam = gtsam.ISAM2(params)
+        isam: Any = gtsam.ISAM2(params)  # (freed after the incremental phase)
         graph_all = gtsam.NonlinearFactorGraph()
         new_f = gtsam.NonlinearFactorGraph()
         new_v = gtsam.Values()
@@ -304,7 +311,7 @@ class Isam2Slam:
         kf_init = np.zeros((nk, 3))  # the front-end's sensor pose of every keyframe
         kf_init[0] = (s0.x(), s0.y(), s0.theta())
         # measurements of the keyframes left out of the graph (_graph_revisits)
-        skipped: dict[int, tuple[np.ndarray, FloatArray, FloatArray, FloatArray]] = {}
+        skipped = LeftOutMeasurements()
 
         # landmark bookkeeping (numpy, grown geometrically; filled by the numba tracker)
         cap = 1024
@@ -372,11 +379,12 @@ class Isam2Slam:
         # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
         sp_dr = np.column_stack(
             (
-                pre.poses[:, 0] + np.cos(pre.poses[:, 2]) * a - np.sin(pre.poses[:, 2]) * b,
-                pre.poses[:, 1] + np.sin(pre.poses[:, 2]) * a + np.cos(pre.poses[:, 2]) * b,
-                np.unwrap(pre.poses[:, 2]),
+                pre_poses[:, 0] + np.cos(pre_poses[:, 2]) * a - np.sin(pre_poses[:, 2]) * b,
+                pre_poses[:, 1] + np.sin(pre_poses[:, 2]) * a + np.cos(pre_poses[:, 2]) * b,
+                np.unwrap(pre_poses[:, 2]),
             )
         )
+        del pre_poses, pre_dist
         ptr = np.ascontiguousarray(frames.ptr, dtype=np.int64)
         f_rng = np.ascontiguousarray(frames.ranges, dtype=np.float64)
         f_brg = np.ascontiguousarray(frames.bearings, dtype=np.float64)
@@ -469,7 +477,7 @@ class Isam2Slam:
                 and kc >= force_until
                 and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors, settled)
             ):
-                skipped[kc] = (window[0].copy(), window[1].copy(), window[2].copy(), window[3])
+                skipped.add(kc, window[0], window[1], window[2], window[3])
                 n_single_skipped += n_skip_w
                 return
             if revisits:  # why it entered
@@ -632,6 +640,9 @@ class Isam2Slam:
 
         t_inc = time.perf_counter() - t_start
         result = isam.calculateEstimate()
+        # iSAM2's Bayes tree is not used after this (the batch steps work on graph_all): freed
+        # before they build their own (on the 10x soak the two together were the run's peak)
+        isam = None
         n_lm_iters = 0
         # merge duplicated trees (two landmarks of one trunk, e.g. first seen far away and
         # initialised apart): closer than merge_dist with compatible diameters -> one key;
@@ -758,9 +769,10 @@ class Isam2Slam:
             except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
                 log.warning("iSAM2: marginal covariances unavailable: %s", exc)
         # the keyframes left out of the graph: localised on the final map, run by run
+        skipped.remap_trees(alias)
         n_localised = localise_skipped(
             gtsam,
-            {k_: (alias[m_[0]], *m_[1:]) for k_, m_ in skipped.items()},
+            skipped,
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK),
         )  # fmt: skip

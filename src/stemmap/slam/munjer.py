@@ -27,10 +27,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from stemmap.cloud.munjer import MunjerConfig, detect_stems_munjer
+from stemmap.cloud.filters import pass_through
+from stemmap.cloud.munjer import MunjerConfig, detect_stems_munjer, level_to_ground
 from stemmap.errors import ConfigError, InputError
 from stemmap.slam.base import Controls, SlamProblem, SlamResult, TreeFrames
-from stemmap.slam.motion import UnicycleModel
+from stemmap.slam.motion import UnicycleModel, between
 from stemmap.types import FloatArray, PointCloud, StemObservations, Trajectory
 
 if TYPE_CHECKING:
@@ -39,6 +40,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MunjerMapConfig",
+    "accumulate_frames",
     "controls_from_trajectory",
     "daim_observations",
     "eb_lidar_observations",
@@ -119,16 +121,84 @@ def lidar_observations(
     return _stack(parts, source, "lidar")
 
 
+def accumulate_frames(
+    frames: Sequence[PointCloud | FloatArray],
+    poses: ArrayLike,
+    config: MunjerConfig | None = None,
+) -> list[FloatArray]:
+    """Per frame, the pass-through points of it and the ``config.window - 1`` frames before it,
+    in its own lidar frame (our decision where Munjer et al. 2025 are silent; see
+    docs/algorithms/cloud.md, "Accumulated frames").
+
+    Parameters
+    ----------
+    frames : F lidar frames, sensor frame (x forward, z up), metres, each taken at one instant
+        (de-skewed: the simulator's frames are; a real sensor's need the odometry's de-skew)
+    poses : (F, 3) -- the motion source's planar pose (x, y, theta) of the lidar at each frame,
+        in any fixed odometry frame (only poses relative to each other are used)
+    config : MunjerConfig -- its box (applied to each frame in its own lidar frame, as §3.2
+        prescribes), ``ground_relative`` and ``window``
+
+    Returns
+    -------
+    list of F arrays (N_f, 3): frame f's box points joined with the earlier frames' box points
+    moved by :func:`~stemmap.slam.motion.between` (planar: z is kept, the lidar is assumed level).
+    """
+    cfg = config or MunjerConfig()
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if p.shape[0] != len(frames):
+        raise InputError(f"{len(frames)} lidar frames but {p.shape[0]} poses.")
+    boxed = []
+    for fr in frames:
+        xyz = fr.xyz if isinstance(fr, PointCloud) else np.asarray(fr, dtype=np.float64)
+        zb = level_to_ground(xyz) if cfg.ground_relative else xyz
+        boxed.append(xyz[pass_through(zb, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)])
+    out = []
+    for f in range(len(boxed)):
+        lo = max(0, f - cfg.window + 1)
+        rel = between(p[f], p[lo : f + 1])
+        parts = []
+        for (dx, dy, dth), q in zip(rel, boxed[lo : f + 1], strict=True):
+            c, s = math.cos(dth), math.sin(dth)
+            parts.append(
+                np.column_stack(
+                    (c * q[:, 0] - s * q[:, 1] + dx, s * q[:, 0] + c * q[:, 1] + dy, q[:, 2])
+                )
+            )
+        out.append(np.vstack(parts))
+    return out
+
+
 def eb_lidar_observations(
     frames: Sequence[PointCloud | FloatArray],
     times: ArrayLike,
     config: MunjerConfig | None = None,
+    *,
+    poses: ArrayLike | None = None,
 ) -> StemObservations:
     """EB-LiDAR (:func:`~stemmap.cloud.munjer.detect_stems_munjer`, Munjer et al. 2025,
-    §3.2-3.3, Table 1 by default) on every lidar frame; see :func:`lidar_observations`."""
+    §3.2-3.3, Table 1 by default) on every lidar frame; see :func:`lidar_observations`.
+
+    With ``config.window > 1`` each frame's cloud is :func:`accumulate_frames` (its box points
+    and those of the frames before it, moved with ``poses``, the motion source's (F, 3) lidar
+    poses) and the detections stay in that frame's lidar frame.
+    """
+    from dataclasses import replace
+
     cfg = config or MunjerConfig()
+    if cfg.window == 1:
+        return lidar_observations(
+            frames, times, lambda xyz: detect_stems_munjer(xyz, cfg), "cloud:munjer2025"
+        )
+    if poses is None:
+        raise ConfigError(
+            f"EB-LiDAR with window={cfg.window} joins frames and needs the motion source's poses "
+            "(poses=...); use window=1 for strictly per-frame detection."
+        )
+    clouds = accumulate_frames(frames, poses, cfg)
+    opened = replace(cfg, box_x=None, box_y=None, box_z=None, ground_relative=False)
     return lidar_observations(
-        frames, times, lambda xyz: detect_stems_munjer(xyz, cfg), "cloud:munjer2025"
+        clouds, times, lambda xyz: detect_stems_munjer(xyz, opened), "cloud:munjer2025"
     )
 
 

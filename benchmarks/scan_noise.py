@@ -1,0 +1,109 @@
+"""How well a scan's own range-noise estimate recovers the sensor noise on real geometry
+(issue 11, sixth round): :func:`stemmap.scan.plausibility.scan_noise` on the virtual 2D scans
+of ``benchmarks/real_geometry.py`` (same slices, vantage points and seeds as ``--loo``).
+
+For every slice with reference trunks, scanner model (nearest-return / SICK-class averaging),
+resolution (0.25 / 0.5 / 1 deg) and added Gaussian range noise (0 / 1 / 3 cm): the median and
+the 10th / 90th percentiles over the vantage points of the per-scan estimate, cm (raw, and
+less the surfaces' share ``--surface`` in quadrature as the detector's ``scan_noise_surface``
+does), the number of continuous beam triples it used, and (with noise) the ratio of the raw
+median estimate to the added noise. Noise-free scans show what the geometry and the bark
+add on their own.
+
+Usage::
+
+    python benchmarks/scan_noise.py --vantage 20
+    python benchmarks/scan_noise.py --jump 0.1
+
+One JSON object on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from real_geometry import FULL_SCANNERS, vantage_points
+from stemmap.datasets import find_datasets_dir
+from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
+from stemmap.scan.plausibility import scan_noise
+
+
+def _triples(r: np.ndarray, jump: float) -> np.ndarray:
+    """Continuous beam triples per scan (the estimate's sample size)."""
+    a, b, c = r[:, :-2], r[:, 1:-1], r[:, 2:]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
+        ok &= (np.abs(b - a) <= jump) & (np.abs(c - b) <= jump)
+    out: np.ndarray = ok.sum(axis=1)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--datasets", type=Path, default=None, help="shared datasets folder")
+    ap.add_argument("--vantage", type=int, default=20, help="vantage points per dataset")
+    ap.add_argument("--jump", type=float, default=0.2, help="continuity step, metres")
+    ap.add_argument("--surface", type=float, default=0.01, help="surface share, metres")
+    ap.add_argument("--seed", type=int, default=11)
+    args = ap.parse_args(argv)
+    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+    if ddir is None:
+        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    out: dict[str, Any] = {}
+    for i, name in enumerate(SLICES):
+        sl = load_slice(ddir, name)
+        if not sl.refs:
+            continue
+        rng = np.random.default_rng(args.seed + i)
+        vp = vantage_points(sl, args.vantage, rng)
+        geometry: dict[tuple[str, float], np.ndarray] = {}
+        res_out: dict[str, Any] = {}
+        for model, res, noise in FULL_SCANNERS:
+            if (model, res) not in geometry:
+                geometry[(model, res)] = virtual_scans(
+                    sl.xy, sl.labels, vp, resolution_deg=res, model=model, centers=sl.centers
+                )[0]
+            r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
+            r = np.where(r < 30.0, r, np.nan)  # the benchmark's range_max
+            est = 100.0 * scan_noise(r, args.jump)
+            net = 100.0 * scan_noise(r, args.jump, args.surface)
+            p10, p50, p90 = np.percentile(est, [10, 50, 90])
+            res_out[f"{model}_{res:g}deg_noise{100 * noise:g}cm"] = {
+                "estimate_cm_p10_p50_p90": [round(float(v), 3) for v in (p10, p50, p90)],
+                "ratio_median_to_noise": round(float(p50) / (100 * noise), 3) if noise else None,
+                "less_surface_cm_p10_p50_p90": [
+                    round(float(v), 3) for v in np.percentile(net, [10, 50, 90])
+                ],
+                "triples_median": int(np.median(_triples(r, args.jump))),
+            }
+        out[name] = res_out
+    print(
+        json.dumps(
+            {
+                "benchmark": "scan_noise",
+                "scenario": {
+                    "vantage_points_per_dataset": args.vantage,
+                    "jump_m": args.jump,
+                    "surface_m": args.surface,
+                    "seed": args.seed,
+                    "scanners_model_res_deg_noise_m": [list(s) for s in FULL_SCANNERS],
+                },
+                "datasets": out,
+                "runtime_s": round(time.perf_counter() - t0, 1),
+            }
+        )
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
