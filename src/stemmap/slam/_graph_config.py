@@ -88,6 +88,10 @@ class Isam2Config:
         fixes fix the frame; this only keeps the first updates well-posed)
     reloc_prior_sigmas : (m, m, rad) prior on the first pose when the problem has a
         ``prior_map`` (the relocalised start: the map's trees fix the frame)
+    prior_map_robust : "none" (default), "huber" or "cauchy" (width ``robust_k``): with a
+        ``prior_map``, hold each of its trees by its own prior with this robust loss instead of
+        the joint prior (docs/algorithms/slam.md "Maps reused across sessions"; measured, not
+        the default)
     joint_information : also return the trees' joint information matrix
         (:attr:`stemmap.types.StemMap.information`, needs ``marginals``): a later session on
         this map then continues from the correlated prior of all its trees instead of
@@ -137,9 +141,10 @@ class Isam2Config:
     gnss_prior_sigmas: tuple[float, float, float] = (10.0, 10.0, 0.5)
     reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
     joint_information: bool = False
+    prior_map_robust: str = "none"
 
     def __post_init__(self) -> None:
-        for name in ("robust", "gnss_robust"):
+        for name in ("robust", "gnss_robust", "prior_map_robust"):
             if getattr(self, name) not in ("huber", "cauchy", "none"):
                 raise ConfigError(
                     f"Isam2Config.{name} must be 'huber', 'cauchy' or 'none', "

@@ -241,6 +241,7 @@ class Isam2Slam:
         kernel = robust_kernel(gtsam, cfg.robust, cfg.robust_k)
 
         gnss_kernel = robust_kernel(gtsam, cfg.gnss_robust, cfg.gnss_robust_k)
+        prior_kernel = robust_kernel(gtsam, cfg.prior_map_robust, cfg.robust_k)
 
         def meas_noise(sigmas: FloatArray) -> Any:
             """Noise of one bearing-range factor, ``sigmas`` = (sigma_bearing, sigma_range)."""
@@ -342,7 +343,7 @@ class Isam2Slam:
                 np.zeros(cap, dtype=bool),
             )  # fmt: skip
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
-                prior_tree_factors(problem.prior_map, LK, cfg.min_obs)
+                prior_tree_factors(problem.prior_map, LK, cfg.min_obs, kernel=prior_kernel)
             ):
                 lm_xy[j_p] = xy_p
                 if math.isfinite(d_p):
@@ -354,7 +355,8 @@ class Isam2Slam:
                     new_f.add(fac_p)
                     graph_all.add(fac_p)
                 map_fac.append(fac_p)
-            joint_fac = joint_prior_factor(problem.prior_map, LK)  # None: per-tree priors above
+            if prior_kernel is None:  # None: per-tree priors above
+                joint_fac = joint_prior_factor(problem.prior_map, LK)
             if joint_fac is not None:
                 new_f.add(joint_fac)
                 graph_all.add(joint_fac)
