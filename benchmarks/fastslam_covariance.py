@@ -29,8 +29,19 @@ The factor k (on the covariance) makes the median z^2 over the fixes / trees of 
 second half is then scored with it (median z^2 and shares below 1 / 4 / 9; calibrated:
 1.386, 0.39 / 0.86 / 0.99).
 
+``--vp-pose BACKEND ...``: the same pose check for other back-ends' ``SlamResult.pose_covs``
+as reported (no factor): z^2 of the laser point against every screened GPS fix after the
+ATE's SE(2) fit, per half of the run, and over the whole run with the GPS's own error (1.1 m
+RMS, isotropic) added to the covariance (docs/outputs.md, trajectory.csv).
+
+``--sim-pose BACKEND ...``: on the simulator (the demo scenario, ``--seeds``), z^2 of each
+reported vehicle pose (x, y) against the true pose (the map frame is the true one: the run
+starts at the true initial pose) and of the heading alone.
+
 Usage: python benchmarks/fastslam_covariance.py --seeds 1 2 3 4 5 6 [--vp]
+       python benchmarks/fastslam_covariance.py --seeds 1 2 3 --sim-pose ekf treedb fastslam
        python benchmarks/fastslam_covariance.py --seeds 0 1 2 3 4 --vp-calibration
+       python benchmarks/fastslam_covariance.py --vp-pose ekf
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -90,6 +101,53 @@ def simulated(seed: int) -> dict[str, Any]:
         pre = preintegrate(problem.motion, problem.controls, [t[0], t[k]], problem.initial_pose)
         out[f"dr_sigma_model_{span:g}s_m"] = float(np.sqrt(np.trace(pre.covs[0][:2, :2])))
         out[f"dr_error_actual_{span:g}s_m"] = float(np.hypot(*(dr[k] - true_xy[k])))
+    return out
+
+
+def sim_pose(seeds: list[int], backends: list[str]) -> dict[str, Any]:
+    """Reported pose covariances against the simulator's true poses (module doc)."""
+    from stemmap.cli._demo import _stand_and_run
+    from stemmap.cli._map import sim_problem
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import make_backend
+    from stemmap.types import wrap_angle
+
+    out: dict[str, Any] = {}
+    for name in backends:
+        e_all, c_all, eth, vth = [], [], [], []
+        per_seed = []
+        for seed in seeds:
+            run = _stand_and_run(seed, 120)
+            problem, _ = sim_problem(run, ScanTrunkDetector().detect_batch(run.scans))
+            res = make_backend(name).run(problem)
+            if res.pose_covs is None:
+                break
+            t = res.trajectory.times
+            true = run.vehicle_poses.interpolate(t)
+            ok = np.all(np.isfinite(res.pose_covs), axis=(1, 2))
+            ok[0] = False  # the start pose is fixed (zero covariance)
+            e = res.trajectory.poses[ok, :2] - true[ok, :2]
+            C = res.pose_covs[ok][:, :2, :2]
+            e_all.append(e)
+            c_all.append(C)
+            eth.append(wrap_angle(res.trajectory.poses[ok, 2] - true[ok, 2]))
+            vth.append(res.pose_covs[ok][:, 2, 2])
+            per_seed.append(round(float(np.median(_z2(e, C))), 2))
+        if not e_all:
+            out[name] = {"pose_covs": None}
+            continue
+        e, C = np.concatenate(e_all), np.concatenate(c_all)
+        zt = np.concatenate(eth) ** 2 / np.concatenate(vth)
+        out[name] = {
+            "rows_with_covariance": int(e.shape[0]),
+            "median_error_m": round(float(np.median(np.hypot(*e.T))), 3),
+            "median_std_m": round(
+                float(np.median(np.sqrt(0.5 * np.trace(C, axis1=1, axis2=2)))), 3
+            ),
+            **_z2_stats(e, C),
+            "z2_median_per_seed": per_seed,
+            "heading_z2_median (calibrated 0.455)": round(float(np.median(zt)), 3),
+        }
     return out
 
 
@@ -192,6 +250,69 @@ def _vp_terms(seeds: list[int]) -> tuple[float, list[dict[str, np.ndarray]], dic
     return float(0.5 * (t[0] + t[-1])), out, info
 
 
+def _pose_terms(res: Any, vp: Any, keep: np.ndarray) -> tuple[np.ndarray, ...]:
+    """GPS fix times, laser-point errors after the ATE's SE(2) fit and the pose covariances
+    carried to the laser point and rotated by the fit (the pose part of :func:`_vp_terms`)."""
+    from stemmap.eval.trajectory import ate, point_track
+
+    off = vp.model.sensor_offset
+    t = res.trajectory.times
+    m = keep & (vp.gps_times >= t[0]) & (vp.gps_times <= t[-1])
+    gt, gxy = vp.gps_times[m], vp.gps_xy[m]
+    al = ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=keep).alignment
+    assert al is not None
+    est = point_track(res.trajectory, gt, off)
+    fi = np.clip(np.searchsorted(t, gt), 0, len(t) - 1)
+    J = _lever(res.trajectory.interpolate(gt), est)
+    C = al.rotation @ (J @ res.pose_covs[fi] @ np.swapaxes(J, 1, 2)) @ al.rotation.T
+    return gt, al.apply(est) - gxy, C
+
+
+def vp_pose(backends: list[str]) -> dict[str, Any]:
+    """z^2 of each back-end's reported pose covariance against the GPS on Victoria Park."""
+    import time
+
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.slam.base import make_backend
+
+    vp = load_victoria_park(None)
+    problem = vp.problem()
+    keep = vp.screened_gps()
+    t_mid = 0.5 * (problem.frames.times[0] + problem.frames.times[-1])
+    out: dict[str, Any] = {"t_split_s": round(float(t_mid), 1)}
+    for name in backends:
+        c0 = time.process_time()
+        res = make_backend(name).run(problem)
+        cpu = time.process_time() - c0
+        if res.pose_covs is None:
+            out[name] = {"pose_covs": None}
+            continue
+        gt, e, C = _pose_terms(res, vp, keep)
+        ok = np.all(np.isfinite(C), axis=(1, 2))
+        ok[ok] = np.linalg.eigvalsh(C[ok])[:, 0] > 0  # e.g. the fixed start pose
+        row: dict[str, Any] = {
+            "fixes": int(gt.size),
+            "fixes_with_covariance": int(ok.sum()),
+            "median_error_m": round(float(np.median(np.hypot(*e[ok].T))), 3),
+            "median_std_m": round(
+                float(np.median(np.sqrt(0.5 * np.trace(C[ok], axis1=1, axis2=2)))), 3
+            ),
+            "run_cpu_s": round(cpu, 1),
+        }
+        for label, sel in (("all", ok), ("first_half", ok & (gt < t_mid)),
+                           ("second_half", ok & (gt >= t_mid))):  # fmt: skip
+            row[label] = _z2_stats(e[sel], C[sel])
+        # the GPS's own error (1.06-1.2 m RMS, README: revisits and fix-to-fix consistency)
+        # as an isotropic covariance added to the reported one
+        G = np.eye(2) * (1.1**2 / 2.0)
+        row["with_gps_noise_1p1m"] = _z2_stats(e[ok], C[ok] + G)
+        row["factor_for_median_on_first_half"] = round(
+            _fit_inflation(e[ok & (gt < t_mid)], C[ok & (gt < t_mid)]), 2
+        )
+        out[name] = row
+    return out
+
+
 def _fit_inflation(e: np.ndarray, C: np.ndarray, base: np.ndarray | None = None) -> float:
     """k with median(e^T (k C + base)^-1 e) = 2 ln 2 (bisection on log k)."""
     from scipy.optimize import brentq
@@ -251,7 +372,27 @@ def main() -> None:
         action="store_true",
         help="only the Victoria Park choice / check of the inflation factors (module doc)",
     )
+    ap.add_argument(
+        "--vp-pose",
+        nargs="+",
+        default=None,
+        metavar="BACKEND",
+        help="only the Victoria Park pose check of these back-ends (module doc)",
+    )
+    ap.add_argument(
+        "--sim-pose",
+        nargs="+",
+        default=None,
+        metavar="BACKEND",
+        help="only the simulated pose check of these back-ends (module doc)",
+    )
     a = ap.parse_args()
+    if a.sim_pose:
+        print(json.dumps(sim_pose(a.seeds, a.sim_pose), indent=1))
+        return
+    if a.vp_pose:
+        print(json.dumps(vp_pose(a.vp_pose), indent=1))
+        return
     if a.vp_calibration:
         print(json.dumps(vp_calibration(a.seeds), indent=1))
         return

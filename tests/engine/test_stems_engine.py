@@ -103,7 +103,9 @@ def test_pilot_statistics_make_chunkings_agree_on_a_large_catalog(
     here = catalog_statistics(cat, StemConfig(slice_mode="never"), max_points=budget)
     assert here == a.config
     # set by the user: kept as given
-    mine = StemConfig(spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0))
+    mine = StemConfig(
+        spacing=0.03, noise_floor=0.004, grid_origin=(0.0, 0.0), ground_extent=(0.0, 0.0, 9, 9)
+    )
     assert catalog_statistics(cat, mine) == mine
 
 
@@ -206,3 +208,44 @@ def test_one_worker_thread_reads_the_pilot_from_the_stage(
     assert set(run.phases) == {"stage", "pilot", "prepare", "stems"}
     assert run.phases["prepare"]["tasks"] == len(run.chunks)
     assert not (tmp_path / "stage").exists()
+
+
+def test_chunk_sizes_agree_at_an_inner_data_edge(
+    stand_tiles: tuple[Path, np.ndarray], client: Any, tmp_path: Path
+) -> None:
+    """An L-shaped catalog whose inner data edge runs 0.3 m east of a stem, the corner 8 m
+    south of it. A 7 m chunk's buffer there holds no point east of the edge, a 10 m chunk's
+    does: without the catalog-wide ground extent the first chunk's ground raster ended at the
+    edge (heights of the stem's points east of the last cell centre clamped) while the
+    second's and the whole cloud's continued into the empty, filled cells beyond it
+    (extrapolated). Both chunk sizes and one process over the whole cloud give the same
+    stems."""
+    from tiles import write_tiles
+
+    whole = stand_tiles[1]
+    tx, ty = 13.46, 23.91  # a stem of the stand (detect_stems on the whole stand)
+    xyz = whole[~((whole[:, 0] >= tx + 0.3) & (whole[:, 1] >= ty - 8.0))]
+    write_tiles(tmp_path / "tiles", xyz, 10.0)
+    cat = Catalog.from_inputs([tmp_path / "tiles"])
+    runs = [
+        run_stems_catalog(
+            cat, StemConfig(), tmp_path / str(size), chunk_size=size, buffer=5.0, client=client
+        )
+        for size in (7.0, 10.0)
+    ]
+    assert all(not r.failed and r.stems is not None for r in runs)
+    a, b = runs
+    assert a.config == b.config and isinstance(a.config, StemConfig)
+    assert a.config.ground_extent == cat.bounds
+    # the stem at the edge is found
+    assert np.hypot(*(a.stems.xy - (tx, ty)).T).min() < 0.1  # type: ignore[union-attr]
+    # one process over the whole cloud, in the catalog's point order
+    import laspy
+
+    ordered = []
+    for t in cat.tiles:
+        las = laspy.read(t.path)
+        ordered.append(np.column_stack((las.x, las.y, las.z)))
+    single = detect_stems(np.concatenate(ordered), a.config)
+    assert_same_stems(single, a.stems)  # type: ignore[arg-type]
+    assert_same_stems(single, b.stems)  # type: ignore[arg-type]

@@ -24,6 +24,7 @@ from stemmap.io import (
     lonlat_to_local,
     read_observations_csv,
     read_trajectory_csv,
+    read_trajectory_csv_with_covariance,
     read_trajectory_tum,
     read_trees_csv,
     read_trees_geojson,
@@ -358,6 +359,46 @@ def test_trajectory_csv_round_trip(tmp_path: Path, rng: np.random.Generator) -> 
     np.testing.assert_array_equal(back.times, tr.times)
     np.testing.assert_array_equal(back.poses, tr.poses)
     assert back.frame == "odom"
+
+
+def _spd(rng: np.random.Generator, n: int) -> np.ndarray:
+    a = rng.normal(size=(n, 3, 3)) * np.array([0.3, 0.3, 0.01])[None, :, None]
+    return a @ np.swapaxes(a, 1, 2)
+
+
+def test_trajectory_csv_covariance_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
+    tr = _traj(rng)
+    covs = _spd(rng, len(tr))
+    covs[[3, 7]] = np.nan  # rows without a covariance (e.g. poses a loop relaxation moved)
+    p = tmp_path / "path.csv"
+    write_trajectory_csv(p, tr, covs=covs)
+    assert p.read_text().splitlines()[0].split(",") == [
+        *traj_mod.TRAJECTORY_CSV_COLUMNS,
+        *traj_mod.TRAJECTORY_COV_COLUMNS,
+    ]
+    back, bc = read_trajectory_csv_with_covariance(p, frame="odom")
+    np.testing.assert_array_equal(back.poses, tr.poses)
+    assert bc is not None
+    np.testing.assert_array_equal(bc, covs)  # exact: shortest round-trip floats, NaN kept
+    np.testing.assert_array_equal(read_trajectory_csv(p).poses, tr.poses)  # plain reader
+
+
+def test_trajectory_csv_without_covariance(tmp_path: Path, rng: np.random.Generator) -> None:
+    tr = _traj(rng, n=5)
+    p = tmp_path / "path.csv"
+    write_trajectory_csv(p, tr, covs=np.full((5, 3, 3), np.nan))  # none known: no columns
+    assert p.read_text().splitlines()[0] == "time_s,x,y,theta"
+    assert read_trajectory_csv_with_covariance(p)[1] is None
+    # an empty covariance field (a hand-edited or other tool's file) reads as NaN
+    head = ",".join((*traj_mod.TRAJECTORY_CSV_COLUMNS, *traj_mod.TRAJECTORY_COV_COLUMNS))
+    p.write_text(f"{head}\n0,1,2,0.5,,,,,,\n1,1,2,0.5,1,0,1,0,0,0.01\n")
+    _, c = read_trajectory_csv_with_covariance(p)
+    assert c is not None and np.isnan(c[0]).all() and c[1, 2, 2] == 0.01
+    p.write_text("time_s,x,y,theta,cov_xx_m2\n0,1,2,0.5,1\n")
+    with pytest.raises(InputError, match="lacks cov_xy_m2"):
+        read_trajectory_csv_with_covariance(p)
+    with pytest.raises(InputError, match="shape"):
+        write_trajectory_csv(p, tr, covs=np.zeros((4, 3, 3)))
 
 
 def test_trajectory_tum_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:

@@ -148,7 +148,8 @@ def test_map_products_documented(tmp_path: Path) -> None:
         k for f in feats for k in f if k != "type"
     }
     assert _undocumented(props - {"geometry", "properties"}, "trees.csv") == []
-    write_trajectory_csv(tmp_path / "tr.csv", _trajectory())
+    write_trajectory_csv(tmp_path / "tr.csv", _trajectory(), covs=np.stack([np.eye(3)] * 4))
+    assert len(_header(tmp_path / "tr.csv")) == 10  # with the covariance columns
     assert _undocumented(_header(tmp_path / "tr.csv"), "trajectory.csv") == []
     info = np.eye(2 * len(m)) * 100.0
     write_trees_information(tmp_path / "ti.npz", replace(m, information=info))

@@ -7,7 +7,7 @@ import math
 import numpy as np
 from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir-less mode)
 
-from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
+from stemmap.slam._ekf_smooth import ObservationLog, chain_marginals, smooth_path
 from stemmap.slam.ekf import EkfSlam
 
 
@@ -16,6 +16,24 @@ def _relative(pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
     dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
     dth = (pb[:, 2] - pa[:, 2] + math.pi) % (2 * math.pi) - math.pi
     return np.column_stack((c * dx + s * dy, -s * dx + c * dy, dth))
+
+
+def _observe(poses, lm, offset, max_range, per_frame, rng=None, sigmas=(0.0, 0.0)):
+    """(frame, landmark, range, bearing) of the first ``per_frame`` landmarks within
+    ``max_range`` of the sensor at each pose, with Gaussian noise of ``sigmas`` if ``rng``."""
+    a, b = offset
+    fr, lj, rz, bz = [], [], [], []
+    for f, (x, y, th) in enumerate(poses):
+        c, s = math.cos(th), math.sin(th)
+        sx, sy = x + a * c - b * s, y + a * s + b * c
+        d = np.hypot(lm[:, 0] - sx, lm[:, 1] - sy)
+        for j in np.flatnonzero(d < max_range)[:per_frame]:
+            noise = (0.0, 0.0) if rng is None else rng.normal(0.0, sigmas)
+            fr.append(f)
+            lj.append(j)
+            rz.append(d[j] + noise[0])
+            bz.append(math.atan2(lm[j, 1] - sy, lm[j, 0] - sx) - th + noise[1])
+    return np.array(fr), np.array(lj), np.array(rz), np.array(bz)
 
 
 def test_smooth_path_recovers_the_true_path_from_a_drifted_start():
@@ -29,17 +47,8 @@ def test_smooth_path_recovers_the_true_path_from_a_drifted_start():
     true = np.column_stack((xy, th))
     lm = rng.uniform(-30, 50, size=(60, 2))
     a, b = 3.78, 0.5
-    fr, lj, rz, bz = [], [], [], []
-    for f in range(n):
-        c, s = math.cos(th[f]), math.sin(th[f])
-        sx, sy = xy[f, 0] + a * c - b * s, xy[f, 1] + a * s + b * c
-        d = np.hypot(lm[:, 0] - sx, lm[:, 1] - sy)
-        for j in np.flatnonzero(d < 25)[:4]:
-            fr.append(f)
-            lj.append(j)
-            rz.append(d[j])
-            bz.append(math.atan2(lm[j, 1] - sy, lm[j, 0] - sx) - th[f])
-    obs = (np.array(fr), np.array(lj), np.array(rz), np.array(bz))
+    obs = _observe(true, lm, (a, b), 25.0, 4)
+    fr = obs[0]
     deltas = _relative(true[:-1], true[1:])
     covs = np.broadcast_to(np.diag([0.05**2, 0.01**2, 0.01**2]), (n - 1, 3, 3)).copy()
     drift = np.radians(np.linspace(0.0, 6.0, n))
@@ -47,10 +56,11 @@ def test_smooth_path_recovers_the_true_path_from_a_drifted_start():
     start[:, 2] += drift
     start[:, :2] += np.cumsum(np.column_stack((np.zeros(n), np.sin(drift) * 0.15)), axis=0)
     R1 = np.diag([0.3**2, math.radians(1.0) ** 2])
-    out, stats = smooth_path(
+    out, pcov, stats = smooth_path(
         start, deltas, covs, obs, lm, np.zeros((lm.shape[0], 2, 2)), (a, b), R1
     )
-    assert stats["smoother_measurements"] == len(fr) > 3 * n
+    assert pcov.shape == (n, 3, 3) and np.all(np.linalg.eigvalsh(pcov) > 0)
+    assert stats["smoother_measurements"] == fr.size > 3 * n
     np.testing.assert_allclose(out[:, :2], true[:, :2], atol=1e-6)
     np.testing.assert_allclose(out[:, 2], true[:, 2], atol=1e-8)
     assert stats["smoother_meas_d2_after"] < 1e-9 < stats["smoother_meas_d2_before"]
@@ -89,3 +99,71 @@ def test_smoothing_corrects_the_path_before_the_loop_closure():
     np.testing.assert_array_equal(sm.stem_map.xy, filt.stem_map.xy)
     assert sm.stats["smoother_meas_d2_after"] <= sm.stats["smoother_meas_d2_before"]
     assert "smoother_iterations" not in filt.stats
+    # the smoothed path has a covariance per row (its own normal equations); the filtered path
+    # reports none (the filter's running covariance is not kept per frame)
+    assert filt.pose_covs is None
+    assert sm.pose_covs is not None and sm.pose_covs.shape == (len(sm.trajectory), 3, 3)
+    assert np.all(np.linalg.eigvalsh(sm.pose_covs[1:]) > 0)
+    assert np.all(np.diag(sm.pose_covs[0]) < 1e-9)  # the start pose is fixed
+
+
+def test_smoothed_covariances_reach_trajectory_csv(tmp_path):
+    from stemmap.cli._geo import write_map_products
+    from stemmap.io.trajectory import read_trajectory_csv_with_covariance
+
+    problem, _truth, _trees, _ = loop_problem(1, laps=1.0)
+    res = EkfSlam().run(problem)
+    write_map_products(tmp_path, res.stem_map, res.trajectory, crs=None, gpkg=False,
+                       pose_covs=res.pose_covs)  # fmt: skip
+    tr, covs = read_trajectory_csv_with_covariance(tmp_path / "trajectory.csv")
+    np.testing.assert_array_equal(tr.poses, res.trajectory.poses)
+    np.testing.assert_array_equal(covs, res.pose_covs)
+    # a back-end without pose covariances (None) writes the plain four columns
+    write_map_products(tmp_path, res.stem_map, res.trajectory, crs=None, gpkg=False)
+    assert read_trajectory_csv_with_covariance(tmp_path / "trajectory.csv")[1] is None
+
+
+def test_chain_marginals_equal_the_dense_inverse():
+    rng = np.random.default_rng(5)
+    n = 40
+    m = rng.normal(size=(n, 3, 3))
+    diag = m @ m.transpose(0, 2, 1) + 6.0 * np.eye(3)  # diagonally dominant: SPD
+    off = rng.normal(size=(n - 1, 3, 3))
+    H = np.zeros((3 * n, 3 * n))
+    for k in range(n):
+        H[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = diag[k]
+    for k in range(n - 1):
+        H[3 * k + 3 : 3 * k + 6, 3 * k : 3 * k + 3] = off[k]
+        H[3 * k : 3 * k + 3, 3 * k + 3 : 3 * k + 6] = off[k].T
+    assert np.linalg.eigvalsh(H).min() > 0
+    inv = np.linalg.inv(H).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)[np.arange(n), np.arange(n)]
+    np.testing.assert_allclose(chain_marginals(diag, off), inv, rtol=1e-9, atol=1e-14)
+
+
+def test_smoothed_pose_covariance_is_calibrated_on_its_own_model():
+    """Data drawn from the smoother's own model (odometry and range-bearing noise as stated,
+    exact landmarks, Huber off): the reported covariance of each smoothed pose matches the
+    spread of its error, z² = eᵀ Σ⁻¹ e averages 3 (3 dof). 150 draws x 30 poses: the mean of
+    4,500 correlated chi²(3) values; its sampling sd is below ~0.1 even with the chain's
+    correlation (each draw's 30 poses count as ~5 independent ones), tolerance 0.35."""
+    rng = np.random.default_rng(11)
+    n = 30
+    th = np.linspace(0.0, 0.6, n)
+    true = np.column_stack((15 * np.sin(th), 15 * (1 - np.cos(th)), th))
+    lm = rng.uniform(-20, 30, size=(25, 2))
+    a, b = 1.0, 0.0
+    Q = np.diag([0.05**2, 0.02**2, 0.01**2])
+    R1 = np.diag([0.2**2, math.radians(1.0) ** 2])
+    exact = _relative(true[:-1], true[1:])
+    z2 = []
+    for _ in range(150):
+        obs = _observe(true, lm, (a, b), 12.0, 2, rng, (0.2, math.radians(1.0)))
+        deltas = exact + rng.multivariate_normal(np.zeros(3), Q, size=n - 1)
+        covs = np.broadcast_to(Q - np.diag([1e-6, 1e-6, 1e-8]), (n - 1, 3, 3)).copy()
+        out, pcov, _ = smooth_path(
+            true, deltas, covs, obs, lm, np.zeros((25, 2, 2)), (a, b), R1, huber_k=1e9
+        )
+        e = out[1:] - true[1:]
+        e[:, 2] = (e[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        z2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(pcov[1:]), e))
+    assert abs(float(np.mean(z2)) - 3.0) < 0.35  # measured: 3.07 (median 2.39; chi²(3): 2.37)

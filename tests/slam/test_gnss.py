@@ -79,6 +79,10 @@ def test_map_and_path_come_out_in_the_gnss_frame(sim, robust_run):
     tt = _to_gnss(trees)
     d = np.array([np.hypot(*(tt - p).T).min() for p in res.stem_map.xy])
     assert np.median(d) < 0.3
+    # the fixes' keys break the pose chain of the pose marginals: no pose covariances (NaN,
+    # trajectory.csv then has no covariance columns), the tree marginals are still there
+    assert res.pose_covs is not None and np.isnan(res.pose_covs).all()
+    assert all(np.isfinite(t.cov).all() for t in res.stem_map)
 
 
 def test_gnss_jumps_are_rejected_by_the_robust_loss(sim, robust_run):

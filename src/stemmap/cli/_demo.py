@@ -8,7 +8,7 @@ simulated stand + drive (2D laser scans, wheel odometry, ground truth)
 * ``detections.csv`` -- every trunk seen in every scan (the ``stemmap detect`` format, sensor
   frame);
 * ``trees.csv``, ``trees.geojson`` -- the stem map (world frame, metres);
-* ``trajectory.csv`` -- the estimated path (time_s,x,y,theta);
+* ``trajectory.csv`` -- the estimated path (time_s,x,y,theta, pose covariance columns);
 * ``truth_trees.csv`` -- the simulator's trees (id,x,y,diameter);
 * ``metrics.json`` -- detection precision/recall and DBH error, map and path errors, scenario;
 * ``demo.png`` -- the map over the truth, and the per-scan DBH error against range.
@@ -199,7 +199,9 @@ def run_demo(
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_observations_csv(out_dir / "detections.csv", obs)
-    write_map_products(out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg)
+    write_map_products(
+        out_dir, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, pose_covs=result.pose_covs
+    )
     with atomic_write(out_dir / "truth_trees.csv") as fh:
         fh.write("id,x,y,diameter\n")
         for i, ((x, y), d) in enumerate(zip(stand.trees_xy, stand.diameters, strict=True)):

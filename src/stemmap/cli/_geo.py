@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 
 __all__ = ["CrsOption", "GpkgFlag", "checked_crs", "write_gps_frame", "write_map_products"]
@@ -50,9 +51,12 @@ def write_map_products(
     gpkg: bool,
     trajectory_format: str = "csv",
     prefix: str = "",
+    pose_covs: Any = None,
 ) -> list[str]:
     """Write ``{prefix}trees.csv``, ``trees.geojson``, the trajectory (``trajectory.csv`` or
-    TUM ``trajectory.tum``) and optionally ``map.gpkg``; return the file names written."""
+    TUM ``trajectory.tum``) and optionally ``map.gpkg``; return the file names written.
+    ``pose_covs`` (N, 3, 3), the back-end's pose covariances (``SlamResult.pose_covs``), go
+    into trajectory.csv's covariance columns (the TUM format has no place for them)."""
     from dataclasses import replace
 
     from stemmap.io.geo import write_map_gpkg
@@ -68,7 +72,7 @@ def write_map_products(
         write_trajectory_tum(out_dir / names[-1], trajectory)
     else:
         names.append(f"{prefix}trajectory.csv")
-        write_trajectory_csv(out_dir / names[-1], trajectory)
+        write_trajectory_csv(out_dir / names[-1], trajectory, covs=pose_covs)
     if gpkg:
         names.append(f"{prefix}map.gpkg")
         write_map_gpkg(out_dir / names[-1], sm, trajectory)
@@ -84,9 +88,11 @@ def write_gps_frame(
     sensor_offset: tuple[float, float],
     gpkg: bool,
     trajectory_format: str = "csv",
+    pose_covs: Any = None,
 ) -> list[str]:
     """Victoria Park: the map and path moved into the GPS frame by the ATE alignment
-    (``gps_`` products) and the alignment itself (``gps_alignment.json``)."""
+    (``gps_`` products, pose covariances rotated with the path) and the alignment itself
+    (``gps_alignment.json``)."""
     from dataclasses import replace
 
     from stemmap.io.atomic import atomic_write
@@ -98,8 +104,20 @@ def write_gps_frame(
         trees.append(replace(t, x=float(x), y=float(y), cov=r @ t.cov @ r.T))
     sm = StemMap(tuple(trees), frame="gps", crs=None)
     tr = Trajectory(trajectory.times, alignment.apply_poses(trajectory.poses), frame="gps")
+    covs = None
+    if pose_covs is not None:
+        rot3 = np.eye(3)
+        rot3[:2, :2] = r
+        covs = rot3 @ np.asarray(pose_covs) @ rot3.T
     names = write_map_products(
-        out_dir, sm, tr, crs=None, gpkg=gpkg, trajectory_format=trajectory_format, prefix="gps_"
+        out_dir,
+        sm,
+        tr,
+        crs=None,
+        gpkg=gpkg,
+        trajectory_format=trajectory_format,
+        prefix="gps_",
+        pose_covs=covs,
     )
     doc = {
         "from_frame": stem_map.frame,

@@ -1,7 +1,8 @@
 """``stemmap map``: tree-landmark SLAM on a dataset, a simulated run or a ROS bag.
 
 Writes to ``--out DIR``: ``trees.csv`` (id,x,y,diameter,std_x,std_y,n_obs,...),
-``trees.geojson``, ``trajectory.csv`` (time_s,x,y,theta), ``metrics.json`` and ``map.png``.
+``trees.geojson``, ``trajectory.csv`` (time_s,x,y,theta and, where the back-end reports them,
+the pose covariance columns), ``metrics.json`` and ``map.png``.
 """
 
 from __future__ import annotations
@@ -571,7 +572,10 @@ def map_command(
     gpkg: GpkgFlag = False,
     trajectory_format: Annotated[
         TrajectoryFormat,
-        typer.Option(help="trajectory.csv (time_s,x,y,theta) or TUM trajectory.tum for evo."),
+        typer.Option(
+            help="trajectory.csv (time_s,x,y,theta + pose covariance columns where the back-end "
+            "has them: fastslam, ekf, isam2) or TUM trajectory.tum for evo (no covariances)."
+        ),
     ] = TrajectoryFormat.csv,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
@@ -730,7 +734,13 @@ def map_command(
             run.add_input(ctx["odometry"])
         fmt = trajectory_format.value
         names = write_map_products(
-            stage, result.stem_map, result.trajectory, crs=crs, gpkg=gpkg, trajectory_format=fmt
+            stage,
+            result.stem_map,
+            result.trajectory,
+            crs=crs,
+            gpkg=gpkg,
+            trajectory_format=fmt,
+            pose_covs=result.pose_covs,
         )
         names += write_information(stage, result.stem_map)
         if "alignment" in ctx:
@@ -742,6 +752,7 @@ def map_command(
                 sensor_offset=problem.sensor_offset,
                 gpkg=gpkg,
                 trajectory_format=fmt,
+                pose_covs=result.pose_covs,
             )
         names += ["metrics.json", "map.png"]
         with atomic_write(stage / "metrics.json") as fh:

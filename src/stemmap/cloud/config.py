@@ -50,6 +50,11 @@ class StemConfig:
     grid_origin : (x, y), optional -- anchor the clustering and vertical-filter grids at this
         point (cell edges at origin + k x cell) instead of at the band's minimum; the tile
         engine sets one for the whole catalog so every chunk uses the same cells
+    ground_extent : (xmin, ymin, xmax, ymax), optional -- the ground raster spans (at least)
+        the cells of this box, not only the occupied cells' bounding box; the tile engine sets
+        the catalog's box and each chunk builds the part its buffer covers
+        (``prepare_cloud(ground_window=)``), so the ground near a data edge inside the
+        catalog (a corner) does not depend on where chunks are cut
     fit_method : str -- circle fit (``scan.circle.FIT_METHODS``); "ours" is the robust
         geometric fit
     estimate_height : bool -- also estimate stem height (highest point within 1 m of the axis)
@@ -76,6 +81,7 @@ class StemConfig:
     spacing: float | None = None
     noise_floor: float | None = None
     grid_origin: tuple[float, float] | None = None
+    ground_extent: tuple[float, float, float, float] | None = None
     fit_method: str = "ours"
     estimate_height: bool = False
     slice_mode: str = "auto"

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from stemmap.cloud._grid_kernel import lowest_per_cell
+from stemmap.cloud._grid_kernel import bilinear_nearest, lowest_per_cell
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
 
@@ -70,6 +70,9 @@ class GroundModel:
     def ground_at(self, xy: ArrayLike) -> FloatArray:
         """Ground z at (N, 2) positions."""
         q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        fast = bilinear_nearest(self.z, self.origin, self.cell, q[:, 0], q[:, 1])
+        if fast is not None:
+            return fast
         fi = (q[:, 0] - self.origin[0]) / self.cell - 0.5
         fj = (q[:, 1] - self.origin[1]) / self.cell - 0.5
         return np.asarray(
@@ -233,12 +236,24 @@ class GroundAccumulator:
         """A flat 'ground' at ``z`` (one cell; ``base`` says what it is)."""
         return GroundModel((0.0, 0.0), self.cell, np.full((1, 1), float(z)), base)
 
-    def model(self, *, max_step: float = 0.5) -> GroundModel:
+    def model(
+        self,
+        *,
+        max_step: float = 0.5,
+        extent: tuple[float, float, float, float] | None = None,
+    ) -> GroundModel:
         """Clean and fill the minima raster.
 
         A cell more than ``max_step`` metres above the median of its 3 x 3 neighbourhood holds
         no ground (trunk, shrub) and one more than ``max_step`` below it is a low outlier: both
         take the neighbourhood median.
+
+        The raster spans the occupied cells' bounding box, grown to the cells of ``extent``
+        ((xmin, ymin, xmax, ymax), metres) when given: a tile engine's chunk passes the part
+        of the catalog's box its buffer covers, so near a data edge inside that box (a
+        catalog corner) its raster holds the same empty, filled cells as the whole cloud's
+        and the ground there does not depend on where the chunk was cut
+        (docs/algorithms/engine.md).
         """
         if self._keys.size == 0:
             raise InputError("cannot build a ground model from an empty cloud.")
@@ -256,16 +271,19 @@ class GroundAccumulator:
                 self.cell,
             )
             i, j, low = i[core], j[core], low[core]
-        nx_, ny_ = int(i.max() - i.min() + 1), int(j.max() - j.min() + 1)
+        i0, j0, i1, j1 = int(i.min()), int(j.min()), int(i.max()), int(j.max())
+        if extent is not None:
+            e = np.floor(np.asarray(extent, dtype=np.float64) / self.cell)
+            i0, j0 = min(i0, int(e[0])), min(j0, int(e[1]))
+            i1, j1 = max(i1, int(e[2])), max(j1, int(e[3]))
+        nx, ny = i1 - i0 + 1, j1 - j0 + 1
         raster_guard(
-            nx_ * ny_,
+            nx * ny,
             _GROUND_BYTES_PER_CELL,
             self.max_memory,
-            f"the ground raster ({nx_} x {ny_} cells of {self.cell:g} m)",
+            f"the ground raster ({nx} x {ny} cells of {self.cell:g} m)",
             "tile the cloud into smaller plots, or raise --max-memory.",
         )
-        i0, j0 = int(i.min()), int(j.min())
-        nx, ny = int(i.max() - i0 + 1), int(j.max() - j0 + 1)
         ox, oy = i0 * self.cell, j0 * self.cell
         grid = np.full((3, nx, ny), np.nan)
         grid[:, i - i0, j - j0] = (low - [ox, oy, 0.0]).T

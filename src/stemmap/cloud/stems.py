@@ -247,9 +247,14 @@ def prepare_cloud(
     *,
     ground: GroundModel | None = None,
     origins: ArrayLike | None = None,
+    ground_window: tuple[float, float, float, float] | None = None,
 ) -> PreparedCloud:
     """Our detector's ground step on an in-memory cloud (:class:`PreparedCloud`; the
-    parameters are :func:`detect_stems`'s)."""
+    parameters are :func:`detect_stems`'s).
+
+    ``ground_window`` (xmin, ymin, xmax, ymax): the cloud is the part of a larger one within
+    this box (a tile engine's buffered chunk); the ground raster spans the cells of
+    ``config.ground_extent`` within it (:meth:`GroundAccumulator.model`)."""
     cfg = config or StemConfig()
     p = as_xyz(xyz)
     if p.shape[0] == 0:
@@ -277,7 +282,7 @@ def prepare_cloud(
     if is_slice:
         band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o, base=BASE_SLICE)
     else:
-        g = ground or _ground_of([p], cfg)
+        g = ground or _ground_of([p], cfg, _raster_extent(cfg.ground_extent, ground_window))
         h = g.height_of(p)
         lo, hi = cfg.band
         m = (h >= lo) & (h <= hi)
@@ -287,14 +292,36 @@ def prepare_cloud(
     return PreparedCloud(band, zmin, zmax, is_slice)
 
 
-def _ground_of(chunks: Iterable[FloatArray], cfg: StemConfig) -> GroundModel:
+def _raster_extent(
+    extent: tuple[float, float, float, float] | None,
+    window: tuple[float, float, float, float] | None,
+) -> tuple[float, float, float, float] | None:
+    """The box the ground raster must span: ``extent`` cut to ``window`` (None: no box)."""
+    if extent is None:
+        return None
+    if window is None:
+        return extent
+    x0, y0 = max(extent[0], window[0]), max(extent[1], window[1])
+    x1, y1 = min(extent[2], window[2]), min(extent[3], window[3])
+    return (x0, y0, x1, y1) if x0 <= x1 and y0 <= y1 else None
+
+
+def _ground_of(
+    chunks: Iterable[FloatArray],
+    cfg: StemConfig,
+    extent: tuple[float, float, float, float] | None = None,
+) -> GroundModel:
     acc = GroundAccumulator(cfg.ground_cell, cfg.max_memory)
     for c in chunks:
         acc.update(c)
-    return _ground_model(acc, cfg)
+    return _ground_model(acc, cfg, extent)
 
 
-def _ground_model(acc: GroundAccumulator, cfg: StemConfig) -> GroundModel:
+def _ground_model(
+    acc: GroundAccumulator,
+    cfg: StemConfig,
+    extent: tuple[float, float, float, float] | None = None,
+) -> GroundModel:
     """The ground raster, or for a cloud without ground (one segmented tree) a flat base at
     its stem's lowest points (:meth:`GroundAccumulator.stem_base`)."""
     z_base = acc.stem_base(cfg.max_diameter)
@@ -306,7 +333,7 @@ def _ground_model(acc: GroundAccumulator, cfg: StemConfig) -> GroundModel:
             z_base,
         )
         return acc.flat(z_base, BASE_STEM)
-    return acc.model()
+    return acc.model(extent=extent)
 
 
 def detect_stems_file(
@@ -359,7 +386,7 @@ def detect_stems_file(
             z = cloud.xyz[:, 2]
             flat = len(z) == 0 or cfg.slice_mode == "always"
             flat = flat or (cfg.slice_mode == "auto" and float(z.max() - z.min()) < 1.0)
-            on_ground(None if flat else _ground_of([cloud.xyz], cfg))
+            on_ground(None if flat else _ground_of([cloud.xyz], cfg, cfg.ground_extent))
         origins = None
         if sensor is not None:
             times = None
@@ -390,7 +417,7 @@ def detect_stems_file(
         raise InputError(f"{src} holds no points.")
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     cfg = _slice_setup(cfg, zmin, zmax, is_slice)
-    ground = None if is_slice else _ground_model(acc, cfg)
+    ground = None if is_slice else _ground_model(acc, cfg, cfg.ground_extent)
     if on_ground is not None:
         on_ground(ground)
     lo, hi = cfg.band

@@ -434,7 +434,7 @@ def read_chunk(
     chunk: Chunk,
     *,
     fields: Sequence[str] = (),
-    read_points: int = 1_000_000,
+    read_points: int = 250_000,
 ) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
     """The points of ``chunk``'s buffered box from its tiles, in tile then file order.
 

@@ -85,7 +85,7 @@ def _detect(
 
     if isinstance(cfg, MunjerConfig):
         return detect_stems_munjer(xyz, cfg)
-    prep = prepare_cloud(xyz, cfg, origins=origins)
+    prep = prepare_cloud(xyz, cfg, origins=origins, ground_window=chunk.buffered)
     return detect_prepared(prep, cfg, region=chunk.owned_region)
 
 
@@ -136,11 +136,15 @@ def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, f
 def _anchored(catalog: Catalog, config: StemConfig) -> StemConfig:
     """``config`` with its grids anchored at the catalog's lower-left header corner (one
     anchor for every chunk; without it each chunk would anchor them at its own points'
-    minimum). A grid origin already set is kept."""
-    if config.grid_origin is not None:
-        return config
-    x0, y0, _, _ = catalog.bounds
-    return replace(config, grid_origin=(x0, y0))
+    minimum) and its ground raster spanning the catalog's header box (each chunk builds the
+    part its buffer covers; without it a chunk's raster would end at its own points). Values
+    already set are kept."""
+    x0, y0, x1, y1 = catalog.bounds
+    if config.grid_origin is None:
+        config = replace(config, grid_origin=(x0, y0))
+    if config.ground_extent is None:
+        config = replace(config, ground_extent=(x0, y0, x1, y1))
+    return config
 
 
 def pilot_chunk(catalog: Catalog, max_points: int) -> Chunk:
@@ -186,7 +190,9 @@ def pilot_statistics(
         if sensor is not None:
             times = extra[time_field] if time_field else None
             origins = sensor.origins(n, times, "the pilot region")
-        st = detect_statistics(xyz, config, origins=origins)
+        # the pilot's ground raster spans its own points, as before the catalog-wide
+        # ground extent (a centred pilot box inside a large catalog is no chunk)
+        st = detect_statistics(xyz, replace(config, ground_extent=None), origins=origins)
     except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
         return {**nan, "reason": f"pilot region unreadable: {exc}", **task_spent(c0)}
     return {
@@ -305,7 +311,11 @@ def prepare_chunk(
     if sensor is not None and n:
         times = extra[time_field] if time_field else None
         origins = sensor.origins(n, times, f"chunk {chunk.id}")
-    prep = prepare_cloud(xyz, config, origins=origins) if n else PreparedCloud(None)
+    prep = (
+        prepare_cloud(xyz, config, origins=origins, ground_window=chunk.buffered)
+        if n
+        else PreparedCloud(None)
+    )
     path = _prepared_path(stage, chunk.id)
     save_columns(path, prep.to_columns())
     return {"n_points": n, "path": str(path), **task_spent(c0)}

@@ -44,6 +44,7 @@ from stemmap.io.scans import (
 )
 from stemmap.io.trajectory import (
     read_trajectory_csv,
+    read_trajectory_csv_with_covariance,
     read_trajectory_tum,
     write_trajectory_csv,
     write_trajectory_tum,
@@ -74,6 +75,7 @@ __all__ = [
     "read_scans",
     "read_scans_indexed",
     "read_trajectory_csv",
+    "read_trajectory_csv_with_covariance",
     "read_trajectory_tum",
     "read_trees_csv",
     "read_trees_geojson",

@@ -1,5 +1,10 @@
 """Trajectory files: stemmap CSV (``time,x,y,theta``) and the TUM RGB-D format.
 
+The CSV optionally carries each pose's 3x3 covariance as six columns
+(:data:`TRAJECTORY_COV_COLUMNS`; docs/outputs.md "trajectory.csv"): written when the back-end
+gives one (``SlamResult.pose_covs``), an empty-valued ``nan`` on rows without one, absent
+altogether otherwise; :func:`read_trajectory_csv_with_covariance` reads them back.
+
 Both are written atomically. The TUM format (Sturm et al. 2012, used by evo and most SLAM
 benchmarks) stores one pose per line as ``t x y z qx qy qz qw``; stemmap's planar poses are
 written with ``z = 0`` and a yaw-only quaternion, and read back by taking the yaw of the
@@ -26,8 +31,10 @@ from stemmap.io.atomic import atomic_write
 from stemmap.types import FloatArray, Trajectory, wrap_angle
 
 __all__ = [
+    "TRAJECTORY_COV_COLUMNS",
     "TRAJECTORY_CSV_COLUMNS",
     "read_trajectory_csv",
+    "read_trajectory_csv_with_covariance",
     "read_trajectory_tum",
     "write_trajectory_csv",
     "write_trajectory_tum",
@@ -39,6 +46,19 @@ log = logging.getLogger(__name__)
 
 #: Columns of the stemmap trajectory CSV, in order.
 TRAJECTORY_CSV_COLUMNS = ("time_s", "x", "y", "theta")
+
+#: Optional covariance columns of the trajectory CSV, in order: the (x, y, theta) covariance's
+#: entries xx, xy, yy (m²), x-theta, y-theta (m·rad), theta-theta (rad²).
+TRAJECTORY_COV_COLUMNS = (
+    "cov_xx_m2",
+    "cov_xy_m2",
+    "cov_yy_m2",
+    "cov_xt_m_rad",
+    "cov_yt_m_rad",
+    "cov_tt_rad2",
+)
+# (row, col) of each covariance column in the 3x3 matrix
+_COV_IJ = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2))
 
 _TILT_WARN_RAD = math.radians(5.0)
 
@@ -71,8 +91,11 @@ def yaw_from_quaternion(q: FloatArray) -> FloatArray:
     return wrap_if_needed(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
 
 
-def write_trajectory_csv(path: PathLike, trajectory: Trajectory) -> None:
-    """Write ``time_s,x,y,theta`` rows (s, m, m, rad), atomically.
+def write_trajectory_csv(
+    path: PathLike, trajectory: Trajectory, *, covs: FloatArray | None = None
+) -> None:
+    """Write ``time_s,x,y,theta`` rows (s, m, m, rad), atomically; with ``covs`` also the
+    pose covariance columns :data:`TRAJECTORY_COV_COLUMNS`.
 
     Parameters
     ----------
@@ -80,6 +103,9 @@ def write_trajectory_csv(path: PathLike, trajectory: Trajectory) -> None:
         Output file; parent folders are created.
     trajectory : Trajectory
         Poses in any frame (the frame name is not stored; keep it in the file name).
+    covs : ndarray (N, 3, 3), optional
+        Covariance of each pose (x, y, theta); rows that have none are NaN (written ``nan``).
+        Columns are written only when at least one row has a finite covariance.
 
     Examples
     --------
@@ -91,10 +117,22 @@ def write_trajectory_csv(path: PathLike, trajectory: Trajectory) -> None:
     >>> p.read_text().splitlines()[1]
     '0.0,0.0,0.0,0.0'
     """
+    cols = list(TRAJECTORY_CSV_COLUMNS)
+    table = np.column_stack((trajectory.times, trajectory.poses))
+    if covs is not None:
+        c = np.asarray(covs, dtype=np.float64)
+        if c.shape != (len(trajectory), 3, 3):
+            raise InputError(
+                f"pose covariances must have shape ({len(trajectory)}, 3, 3), got {c.shape}."
+            )
+        entries = np.column_stack([c[:, i, j] for i, j in _COV_IJ])
+        if np.isfinite(entries).any():
+            cols += TRAJECTORY_COV_COLUMNS
+            table = np.column_stack((table, entries))
     with atomic_write(path) as fh:
-        fh.write(",".join(TRAJECTORY_CSV_COLUMNS) + "\n")
-        for t, (x, y, th) in zip(trajectory.times, trajectory.poses, strict=True):
-            fh.write(fmt_row((t, x, y, th)) + "\n")
+        fh.write(",".join(cols) + "\n")
+        for row in table:
+            fh.write(fmt_row(row) + "\n")
 
 
 def read_trajectory_csv(path: PathLike, *, frame: str = "map") -> Trajectory:
@@ -118,15 +156,42 @@ def read_trajectory_csv(path: PathLike, *, frame: str = "map") -> Trajectory:
         If the file is missing or empty, lacks a column, has a malformed row, a non-finite
         value, or times that do not strictly increase.
     """
+    return read_trajectory_csv_with_covariance(path, frame=frame)[0]
+
+
+def read_trajectory_csv_with_covariance(
+    path: PathLike, *, frame: str = "map"
+) -> tuple[Trajectory, FloatArray | None]:
+    """:func:`read_trajectory_csv` plus the pose covariances (N, 3, 3) of the
+    :data:`TRAJECTORY_COV_COLUMNS` (NaN on rows without one), or None when the file has none
+    of those columns (all six or none: a partial set is an InputError).
+    """
     p = existing_file(path, "trajectory CSV")
     table = parse_numeric_csv(
-        p, read_text(p, "trajectory CSV"), TRAJECTORY_CSV_COLUMNS, (), "trajectory CSV"
+        p,
+        read_text(p, "trajectory CSV"),
+        TRAJECTORY_CSV_COLUMNS,
+        TRAJECTORY_COV_COLUMNS,
+        "trajectory CSV",
     )
     for c in TRAJECTORY_CSV_COLUMNS:
         require_finite(p, "trajectory CSV", table, c)
     cols = table.columns
     poses = np.column_stack((cols["x"], cols["y"], wrap_if_needed(cols["theta"])))
-    return _trajectory(p, cols["time_s"], poses, frame, table.lines)
+    traj = _trajectory(p, cols["time_s"], poses, frame, table.lines)
+    have = [c for c in TRAJECTORY_COV_COLUMNS if c in cols]
+    if not have:
+        return traj, None
+    if len(have) != len(TRAJECTORY_COV_COLUMNS):
+        missing = [c for c in TRAJECTORY_COV_COLUMNS if c not in cols]
+        raise InputError(
+            f"trajectory CSV file {str(p)!r} has covariance column(s) {', '.join(have)} but "
+            f"lacks {', '.join(missing)}; write all six or none."
+        )
+    covs = np.empty((len(traj), 3, 3))
+    for name, (i, j) in zip(TRAJECTORY_COV_COLUMNS, _COV_IJ, strict=True):
+        covs[:, i, j] = covs[:, j, i] = cols[name]
+    return traj, covs
 
 
 def _trajectory(

@@ -726,9 +726,10 @@ def run_compressed(
         )
     nl = len(trees)
     smooth_stats: dict[str, float | int] = {}
+    pose_covs = None
     if olog is not None:
         lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
-        poses, smooth_stats = smooth_path(
+        poses, pose_covs, smooth_stats = smooth_path(
             poses, pre.deltas, pre.covs, olog.resolve(st.g_ids), L.copy(), lm_cov, (a, b), R1
         )
     runtime = time.perf_counter() - t_start
@@ -751,4 +752,6 @@ def run_compressed(
         **smooth_stats,
         "runtime_s": runtime,
     }
-    return SlamResult(frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats)
+    return SlamResult(
+        frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats, pose_covs=pose_covs
+    )

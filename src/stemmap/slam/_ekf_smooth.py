@@ -24,6 +24,13 @@ Gauss-Newton form of the iterated smoother (Bell, "The iterated Kalman smoother 
 Gauss-Newton method", SIAM J. Optim. 4(3), 1994). The measurements carry a Huber weight on
 their whitened norm (width 1.345, as :func:`stemmap.slam._graph_localise.localise_on_map`):
 an association that fitted the map of its time may not fit the final one.
+
+The covariance of each smoothed pose (issue 14, ``SlamResult.pose_covs``) is the diagonal
+3x3 block of the inverse of the last Gauss-Newton information (the smoother's own normal
+equations, Huber weights included), computed in O(frames) by the block form of the RTS
+backward pass (:func:`chain_marginals`). It is the covariance of the path *given the final map*
+with each detection's landmark uncertainty counted as independent noise, so it leaves out the
+map's correlations (docs/algorithms/slam.md, "Pose covariances of the other back-ends").
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ from scipy.linalg import solveh_banded
 from stemmap.slam.base import IntArray
 from stemmap.types import FloatArray
 
-__all__ = ["ObservationLog", "smooth_path"]
+__all__ = ["ObservationLog", "chain_marginals", "smooth_path"]
 
 # floor added to the odometry covariances: the Ackermann model has no lateral slip, so the
 # increment covariance is singular (smallest eigenvalue ~1e-20 m² on Victoria Park; median
@@ -155,6 +162,34 @@ def _measurement_terms(
     return JvT_W @ Jv, np.einsum("mij,mj->mi", JvT_W, em), d2
 
 
+def chain_marginals(diag: FloatArray, off: FloatArray) -> FloatArray:
+    """Diagonal blocks (N, 3, 3) of ``H⁻¹`` for a block-tridiagonal SPD information ``H`` with
+    diagonal blocks ``diag`` (N, 3, 3) and sub-diagonal blocks ``off`` (N-1, 3, 3) (``off[k]``
+    = ``H[k+1, k]``).
+
+    Forward elimination ``D_0 = H_00``, ``D_k = H_kk - B_k D_(k-1)⁻¹ B_kᵀ`` (the information of
+    pose k given the measurements up to k), then the backward pass of the Rauch-Tung-Striebel
+    smoother in information form (Rauch, Tung & Striebel 1965): ``Σ_(N-1) = D_(N-1)⁻¹``,
+    ``Σ_k = D_k⁻¹ + G_k Σ_(k+1) G_kᵀ`` with ``G_k = D_k⁻¹ B_(k+1)ᵀ`` (the conditional of pose k
+    given pose k+1 has mean ``-G_k x_(k+1)`` and covariance ``D_k⁻¹``).
+    """
+    n = diag.shape[0]
+    d_inv = np.empty((n, 3, 3))
+    d = diag[0]
+    for k in range(n):
+        if k:
+            b = off[k - 1]
+            d = diag[k] - b @ d_inv[k - 1] @ b.T
+        d_inv[k] = np.linalg.inv(0.5 * (d + d.T))
+    out = np.empty((n, 3, 3))
+    out[-1] = d_inv[-1]
+    for k in range(n - 2, -1, -1):
+        g = d_inv[k] @ off[k].T
+        out[k] = d_inv[k] + g @ out[k + 1] @ g.T
+    out = 0.5 * (out + out.transpose(0, 2, 1))
+    return out
+
+
 def smooth_path(
     poses: FloatArray,
     deltas: FloatArray,
@@ -167,8 +202,9 @@ def smooth_path(
     *,
     huber_k: float = 1.345,
     iterations: int = 20,
-) -> tuple[FloatArray, dict[str, float | int]]:
-    """The vehicle path (N, 3) re-estimated on the fixed final map (module docstring).
+) -> tuple[FloatArray, FloatArray, dict[str, float | int]]:
+    """The vehicle path (N, 3) re-estimated on the fixed final map and the covariance of each
+    pose (N, 3, 3) from the last step's normal equations (module docstring).
 
     poses : (N, 3) the filter's vehicle poses (start of the iteration; ``poses[0]`` is fixed)
     deltas, covs : (N-1, 3) / (N-1, 3, 3) odometry increments between consecutive frames in the
@@ -177,8 +213,9 @@ def smooth_path(
     lm_xy, lm_cov : (L, 2) / (L, 2, 2) final landmark positions and marginal covariances
     sensor_offset : (a, b) of the sensor in the vehicle frame; R1 : (2, 2) detection noise
 
-    Returns the path and stats (iterations, measurements used, mean whitened residual² of the
-    measurements before and after, the share down-weighted by Huber at the end).
+    Returns the path, its covariances and stats (iterations, measurements used, mean whitened
+    residual² of the measurements before and after, the share down-weighted by Huber at the
+    end).
     """
     x = np.array(poses, dtype=np.float64)
     n = x.shape[0]
@@ -186,8 +223,8 @@ def smooth_path(
     fr, lj, rz, bz = obs
     om = np.linalg.inv(covs + _ODO_FLOOR)  # (N-1, 3, 3)
     stats: dict[str, float | int] = {"smoother_measurements": int(fr.size)}
-    if n < 2:
-        return x, stats
+    if n < 2:  # the first pose is fixed where the filter started it
+        return x, np.full((n, 3, 3), 1.0 / _PRIOR_INFO) * np.eye(3), stats
     it = 0
     for it in range(1, iterations + 1):
         diag = np.zeros((n, 3, 3))
@@ -247,4 +284,4 @@ def smooth_path(
     stats["smoother_iterations"] = it
     stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
     stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
-    return x, stats
+    return x, chain_marginals(diag, off), stats

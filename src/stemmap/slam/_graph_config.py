@@ -63,6 +63,9 @@ class Isam2Config:
         Visits are told apart by path distance, not time: a vehicle that drives slowly or
         stops is still on its first visit (docs/algorithms/slam.md "Revisits")
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
+    pose_marginals : also the marginal covariance of every graph keyframe, carried to every
+        frame (``SlamResult.pose_covs``, :func:`_tree_and_pose_marginals`; docs/outputs.md
+        "trajectory.csv"); NaN for the frames of keyframes left out of the graph
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
         correction (:func:`_calibration_lsq`); online over the last ``calib_window``
@@ -113,6 +116,7 @@ class Isam2Config:
     revisit_keyframes: int = 3
     revisit_after_m: float = 50.0
     marginals: bool = True
+    pose_marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     calibrate: bool = True
     calib_prior_sigmas: tuple[float, float] = (0.02, 0.05)

@@ -9,6 +9,7 @@ GPS-free fit diagnostics at the optimum (:func:`_fit_diagnostics`).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -17,12 +18,16 @@ import numpy as np
 from stemmap.slam._isam2_track import band_cho_solve
 from stemmap.types import FloatArray, wrap_angle
 
+log = logging.getLogger("stemmap.slam.graph")
+
 __all__ = [
     "_fit_diagnostics",
     "_merge_duplicates",
     "_point_marginals",
+    "_tree_and_pose_marginals",
     "_tree_joint_information",
     "_tree_schur",
+    "final_marginals",
 ]
 
 
@@ -63,9 +68,12 @@ def _merge_duplicates(
     return np.array([find(i) for i in range(n)], dtype=np.int64)
 
 
-def _tree_schur(graph: Any, values: Any) -> tuple[FloatArray, np.ndarray]:
-    """The trees' joint information ``S = H_LL - H_LP H_PP⁻¹ H_PL`` (dense, 2 rows per tree) and
-    the tree keys in its order (sorted), see :func:`_point_marginals`."""
+def _information_blocks(
+    graph: Any, values: Any
+) -> tuple[FloatArray, Any, Any, Callable[[FloatArray], FloatArray], np.ndarray, np.ndarray]:
+    """The Gauss-Newton information ``H = AᵀA`` of GTSAM's whitened linearisation split into
+    trees ``L`` and poses ``P``: ``(H_LL dense, H_PL sparse, H_PP COO, solve(H_PP, ·), tree
+    keys, pose keys)`` (keys sorted, as the columns), see :func:`_point_marginals`."""
     import scipy.linalg as sla
     import scipy.sparse as sp
 
@@ -104,13 +112,68 @@ def _tree_schur(graph: Any, values: Any) -> tuple[FloatArray, np.ndarray]:
         from scipy.sparse.linalg import splu
 
         solve = splu(h_pp.tocsc()).solve
+    return h_ll, h_pl, h_pp, solve, all_keys[is_pt], all_keys[~is_pt]
+
+
+def _tree_schur(graph: Any, values: Any) -> tuple[FloatArray, np.ndarray]:
+    """The trees' joint information ``S = H_LL - H_LP H_PP⁻¹ H_PL`` (dense, 2 rows per tree) and
+    the tree keys in its order (sorted), see :func:`_point_marginals`."""
+    s_mat, h_pl, _, solve, pt_keys, _ = _information_blocks(graph, values)
     # S = H_LL - H_LP H_PP⁻¹ H_PL, 128 tree columns at a time (a dense n_P x n_L right side
     # would add ~60 MB to the peak memory of the full run)
-    s_mat = h_ll
-    for c0 in range(0, i_l.size, 128):
+    for c0 in range(0, s_mat.shape[0], 128):
         h_c = h_pl[:, c0 : c0 + 128]
         s_mat[:, c0 : c0 + 128] -= h_pl.T @ solve(h_c.toarray())
-    return s_mat, all_keys[is_pt]
+    return s_mat, pt_keys
+
+
+def _tree_and_pose_marginals(
+    graph: Any, values: Any, tree_keys: list[int], pose_keys: list[int]
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`_point_marginals` of ``tree_keys`` and the (m, 3, 3) marginal covariances of the
+        Pose2 variables ``pose_keys`` (GTSAM's tangent: right perturbation, (x, y) in the pose's own
+        frame), from one linearisation (ours).
+
+        ``Σ_PP = (H_PP - H_PL H_LL⁻¹ H_LP)⁻¹ = H_PP⁻¹ + X S⁻¹ Xᵀ`` with ``X = H_PP⁻¹ H_PL`` and
+        ``S`` the trees' Schur complement (the block-inverse identity): the diagonal blocks of
+        ``H_PP⁻¹`` by the block RTS recursion of the pose chain
+        (:func:`stemmap.slam._ekf_smooth.chain_marginals`), those of ``X S⁻¹ Xᵀ = (X U⁻¹)(X U⁻¹)ᵀ``
+        from rows of ``X U⁻¹`` (``S = UᵀU``). ``X`` is held whole (n_P x n_L doubles: ~29 MB on the
+    full Victoria Park run, which the tree-only path avoids by chunks). Needs the poses to
+        form a chain (3x3 blocks, block-tridiagonal ``H_PP``, as :class:`Isam2Slam` builds it
+        without GNSS); otherwise ValueError.
+
+        Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
+    """
+    from stemmap.slam._ekf_smooth import chain_marginals
+
+    h_ll, h_pl, h_pp, solve, pt_keys, ps_keys = _information_blocks(graph, values)
+    n_p = ps_keys.size
+    if h_pp.nnz and int(np.abs(h_pp.row // 3 - h_pp.col // 3).max()) > 1:
+        raise ValueError("the poses do not form a chain: no pose marginals")
+    blocks = np.zeros((n_p, 3, 3))
+    off = np.zeros((max(n_p - 1, 0), 3, 3))
+    r, c, v = h_pp.row, h_pp.col, h_pp.data
+    on = r // 3 == c // 3
+    blocks[r[on] // 3, r[on] % 3, c[on] % 3] = v[on]
+    lo = r // 3 == c // 3 + 1
+    off[c[lo] // 3, r[lo] % 3, c[lo] % 3] = v[lo]
+    pp = np.searchsorted(ps_keys, np.array(pose_keys, dtype=np.uint64))
+    pose_cov = chain_marginals(blocks, off)[pp] if n_p else np.zeros((0, 3, 3))
+    tree_cov = np.zeros((0, 2, 2))
+    if h_pl.shape[1]:
+        x_mat = solve(h_pl.toarray())
+        s_mat = h_ll - h_pl.T @ x_mat
+        u_inv = _inverse_factor(s_mat)
+        tree_cov = _tree_blocks(u_inv, pt_keys, tree_keys)
+        x3 = x_mat.reshape(n_p, 3, -1)
+        for r0 in range(0, pp.size, 256):  # rows of X U⁻¹ in chunks (no second n_P x n_L)
+            y = x3[pp[r0 : r0 + 256]] @ u_inv
+            pose_cov[r0 : r0 + 256] += np.einsum("jak,jbk->jab", y, y)
+    return (
+        np.asarray(tree_cov, dtype=np.float64),
+        np.asarray(0.5 * (pose_cov + pose_cov.transpose(0, 2, 1)), dtype=np.float64),
+    )
 
 
 def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
@@ -131,16 +194,27 @@ def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
 
     Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
     """
+    s_mat, pt_keys = _tree_schur(graph, values)
+    return _tree_blocks(_inverse_factor(s_mat), pt_keys, keys)
+
+
+def _inverse_factor(s_mat: FloatArray) -> FloatArray:
+    """``U⁻¹`` of the Cholesky factor ``S = UᵀU`` (so ``S⁻¹ = U⁻¹U⁻ᵀ``); LinAlgError if ``S``
+    is not positive definite."""
     from scipy.linalg import lapack
 
-    s_mat, pt_keys = _tree_schur(graph, values)
     u, info = lapack.dpotrf(s_mat, lower=0, clean=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"tree information not positive definite (dpotrf {info})")
     u_inv, info = lapack.dtrtri(u, lower=0)
     if info != 0:
         raise np.linalg.LinAlgError(f"singular tree information (dtrtri {info})")
-    # row of each requested key in the L block (points in sorted-key order)
+    return np.asarray(u_inv, dtype=np.float64)
+
+
+def _tree_blocks(u_inv: FloatArray, pt_keys: np.ndarray, keys: list[int]) -> FloatArray:
+    """The 2x2 diagonal blocks of ``S⁻¹ = U⁻¹U⁻ᵀ`` of the tree ``keys``: products of row pairs
+    of ``U⁻¹`` (rows of each key in the L block: points in sorted-key order)."""
     pos = np.searchsorted(pt_keys, np.array(keys, dtype=np.uint64))
     rows = u_inv.reshape(-1, 2, u_inv.shape[1])[pos]
     return np.asarray(np.einsum("jak,jbk->jab", rows, rows), dtype=np.float64)
@@ -202,3 +276,37 @@ def _tree_joint_information(graph: Any, values: Any, keys: list[int]) -> FloatAr
     cov = sla.cho_solve(sla.cho_factor(s_mat), np.eye(s_mat.shape[0])[:, idx])[idx]
     cov = 0.5 * (cov + cov.T)
     return np.asarray(sla.cho_solve(sla.cho_factor(cov), np.eye(idx.size)), dtype=np.float64)
+
+
+def final_marginals(
+    graph: Any, values: Any, tree_keys: list[int], pose_keys: list[int], cfg: Any
+) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    """The end-of-run covariances of :class:`~stemmap.slam.graph.Isam2Slam` (its ``cfg``):
+    the trees' 2x2 marginals (``cfg.marginals``), the keyframes' 3x3 pose marginals
+    (``cfg.pose_marginals``, both from one linearisation, :func:`_tree_and_pose_marginals`)
+    and the trees' joint information (``cfg.joint_information``), NaN / None where not asked
+    or not available (a warning says why: GNSS keys break the pose chain, an indeterminant
+    system)."""
+    tree_cov = np.full((len(tree_keys), 2, 2), np.nan)
+    pose_cov = np.full((len(pose_keys), 3, 3), np.nan)
+    info_j = None
+    want_trees = bool(cfg.marginals and tree_keys)
+    if cfg.pose_marginals:
+        try:
+            t_c, pose_cov = _tree_and_pose_marginals(
+                graph, values, tree_keys if want_trees else [], pose_keys
+            )
+            tree_cov = t_c if want_trees else tree_cov
+        except ValueError as exc:  # expected with GNSS: said once, not a problem
+            log.info("iSAM2: no pose covariances: %s", exc)
+        except np.linalg.LinAlgError as exc:
+            log.warning("iSAM2: pose covariances unavailable: %s", exc)
+    if want_trees:
+        try:
+            if not np.isfinite(tree_cov).all():
+                tree_cov = _point_marginals(graph, values, tree_keys)
+            if cfg.joint_information:
+                info_j = _tree_joint_information(graph, values, tree_keys)
+        except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
+            log.warning("iSAM2: marginal covariances unavailable: %s", exc)
+    return tree_cov, pose_cov, info_j

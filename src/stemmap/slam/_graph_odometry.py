@@ -18,6 +18,7 @@ __all__ = [
     "_calibration_jacobians",
     "_calibration_lsq",
     "_sensor_between",
+    "frame_covariances",
     "preintegrate_spans",
 ]
 
@@ -46,6 +47,45 @@ def _sensor_between(
     G = Ad[None] @ M
     cov = G @ covs @ np.swapaxes(G, 1, 2)
     return ds, cov
+
+
+def frame_covariances(
+    kf_cov: FloatArray,
+    kf_of: np.ndarray,
+    kf_frames: np.ndarray,
+    d_f: FloatArray,
+    cov_f: FloatArray,
+    offset: tuple[float, float],
+    veh_theta: FloatArray,
+) -> FloatArray:
+    """(N, 3, 3) covariance of every frame's vehicle pose (x, y, θ in the map frame) from the
+    keyframes' sensor-pose marginals ``kf_cov`` (nk, 3, 3; GTSAM tangent; NaN where none).
+
+    A frame's sensor pose is its keyframe's composed with the dead-reckoned sensor increments
+    ``d_f`` (frame f-1 -> f, covariances ``cov_f``, :func:`_sensor_between`) since it, as
+    :class:`~stemmap.slam.graph.Isam2Slam` builds the trajectory: covariance
+    ``C ← Ad(d⁻¹) C Ad(d⁻¹)ᵀ + cov`` per step (:func:`compose_increments`, first order; the
+    increments are independent of the keyframe's estimate). The vehicle pose is the sensor
+    pose composed with the fixed mounting ``T_sv``: ``Ad(T_vs)`` carries the tangent; last,
+    the right-perturbation tangent goes to map-frame (x, y, θ) with the heading's rotation.
+    """
+    from stemmap.slam._graph_revisits import _adjoint_inv
+
+    nf = kf_of.size
+    C = np.array(kf_cov[kf_of], dtype=np.float64)
+    step = np.arange(nf) - kf_frames[kf_of]  # frames since the keyframe
+    for j in range(1, int(step.max(initial=0)) + 1):
+        f = np.flatnonzero(step == j)
+        A = _adjoint_inv(d_f[f - 1])
+        C[f] = A @ C[f - 1] @ np.swapaxes(A, 1, 2) + cov_f[f - 1]
+    a, b = offset
+    ad_vs = np.array([[1.0, 0.0, b], [0.0, 1.0, -a], [0.0, 0.0, 1.0]])  # Ad(T_vs), T_vs=(a,b,0)
+    c, s = np.cos(veh_theta), np.sin(veh_theta)
+    B = np.zeros((nf, 3, 3))
+    B[:, 0, 0], B[:, 0, 1], B[:, 1, 0], B[:, 1, 1], B[:, 2, 2] = c, -s, s, c, 1.0
+    B = B @ ad_vs
+    out = B @ C @ np.swapaxes(B, 1, 2)
+    return np.asarray(0.5 * (out + np.swapaxes(out, 1, 2)), dtype=np.float64)
 
 
 def _calibration_jacobians(

@@ -68,10 +68,14 @@ __all__ = [
 
 
 def _adjoint_inv(d: FloatArray) -> FloatArray:
-    """GTSAM's ``Pose2.AdjointMap`` of ``d⁻¹`` for ``d = (x, y, θ)``: [[R, (y', -x')], [0, 1]]."""
-    c, s = np.cos(d[2]), np.sin(d[2])
-    xi, yi = -c * d[0] - s * d[1], s * d[0] - c * d[1]  # translation of d⁻¹
-    return np.array([[c, s, yi], [-s, c, -xi], [0.0, 0.0, 1.0]])
+    """GTSAM's ``Pose2.AdjointMap`` of ``d⁻¹`` for ``d = (x, y, θ)``: [[R, (y', -x')], [0, 1]];
+    ``d`` (3,) -> (3, 3) or (n, 3) -> (n, 3, 3)."""
+    d = np.asarray(d, dtype=np.float64)
+    c, s = np.cos(d[..., 2]), np.sin(d[..., 2])
+    xi, yi = -c * d[..., 0] - s * d[..., 1], s * d[..., 0] - c * d[..., 1]  # translation of d⁻¹
+    z, o = np.zeros_like(c), np.ones_like(c)
+    rows = (np.stack((c, s, yi), -1), np.stack((-s, c, -xi), -1), np.stack((z, z, o), -1))
+    return np.stack(rows, -2)
 
 
 def compose_increments(d: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:

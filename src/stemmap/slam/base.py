@@ -303,8 +303,10 @@ class SlamResult:
     trajectory: Trajectory
     stem_map: StemMap
     stats: dict[str, float | int | str] = field(default_factory=dict)
-    #: (N, 3, 3) covariance of every trajectory pose (x, y, theta) where the back-end gives one
-    #: (FastSLAM: the particle spread, docs/algorithms/slam.md), else None
+    #: (N, 3, 3) covariance of every trajectory pose (x, y, theta; map frame) where the back-end
+    #: gives one, NaN rows where it has none for that frame, else None (FastSLAM: the particle
+    #: spread, calibrated; EKF: the smoothed path's; iSAM2: keyframe marginals; docs/outputs.md
+    #: "trajectory.csv")
     pose_covs: FloatArray | None = None
 
 

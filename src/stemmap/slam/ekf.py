@@ -452,9 +452,10 @@ class EkfSlam:
                 )
             )
         smooth_stats: dict[str, float | int] = {}
+        pose_covs = None
         if olog is not None:
             lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
-            poses, smooth_stats = smooth_path(
+            poses, pose_covs, smooth_stats = smooth_path(
                 poses, pre.deltas, pre.covs, olog.resolve(np.asarray(lm_id, dtype=np.int64)),
                 L.copy(), lm_cov, (a, b), R1,
             )  # fmt: skip
@@ -477,7 +478,9 @@ class EkfSlam:
             "runtime_s": runtime,
         }
         log.info("EKF-SLAM: %s", stats)
-        return SlamResult(frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats)
+        return SlamResult(
+            frame_trajectory(frames.times, poses), StemMap(tuple(trees)), stats, pose_covs=pose_covs
+        )
 
     def _add_landmark(
         self, mx: float, my: float, rng_: float, ang: float, R1: FloatArray, a: float, b: float

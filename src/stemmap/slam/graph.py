@@ -74,13 +74,14 @@ from stemmap.slam._graph_localise import localise_windows, restart_covariance
 from stemmap.slam._graph_marginals import (
     _fit_diagnostics,
     _merge_duplicates,
-    _point_marginals,
-    _tree_joint_information,
+    _point_marginals,  # noqa: F401  (re-exported: stemmap.slam.online, tests)
+    final_marginals,
 )
 from stemmap.slam._graph_odometry import (
     _calibration_jacobians,
     _calibration_lsq,
     _sensor_between,
+    frame_covariances,
     preintegrate_spans,
 )
 from stemmap.slam._graph_revisits import (
@@ -160,9 +161,10 @@ class Isam2Slam:
         pre = preintegrate_spans(
             problem.motion, problem.controls, frames.times, problem.initial_pose
         )  # (bounded working memory on long drives)
-        _, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
-        # of the per-frame odometry only the poses and distances are used from here on: the
-        # increments and their (F, 3, 3) covariances (96 bytes per scan) are dropped
+        d_f, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+        # of the per-frame odometry only the poses and distances are used from here on (and
+        # the sensor increments, for the pose covariances): the vehicle increments and their
+        # (F, 3, 3) covariances (96 bytes per scan) are dropped
         pre_poses, pre_dist = pre.poses, pre.distance
         del pre
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
@@ -758,16 +760,10 @@ class Isam2Slam:
         n_odo, n_meas = 3 * len(odo_fac), 2 * len(meas_fac)
         keep = np.flatnonzero((lm_nobs[:n_lm] >= cfg.min_obs) & lm_in_graph[:n_lm])
         covs = np.full((n_lm, 2, 2), np.nan)
-        info_j = None  # joint information of the kept trees (cfg.joint_information)
-        if cfg.marginals and keep.size:
-            try:
-                covs[keep] = _point_marginals(graph_all, result, [LK(int(q_)) for q_ in keep])
-                if cfg.joint_information:
-                    info_j = _tree_joint_information(
-                        graph_all, result, [LK(int(q_)) for q_ in keep]
-                    )
-            except np.linalg.LinAlgError as exc:  # indeterminant system: leave NaN, say why
-                log.warning("iSAM2: marginal covariances unavailable: %s", exc)
+        kf_cov = np.full((nk, 3, 3), np.nan)  # graph keyframes' sensor-pose marginals
+        covs[keep], kf_cov[gk], info_j = final_marginals(
+            graph_all, result, [LK(int(q_)) for q_ in keep], [XK(int(k_)) for k_ in gk], cfg
+        )
         # the keyframes left out of the graph: localised on the final map, run by run
         skipped.remap_trees(alias)
         n_localised = localise_skipped(
@@ -779,6 +775,11 @@ class Isam2Slam:
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
         veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
+        pose_covs = (
+            frame_covariances(kf_cov, kf_of, kf_frames, d_f, cov_f, (a, b), veh[:, 2])
+            if cfg.pose_marginals
+            else None
+        )
         trees = []
         for jk in keep.tolist():
             n_d = int(lm_dn[jk])
@@ -847,4 +848,4 @@ class Isam2Slam:
                 stats[f"{name_c}_max"] = float(cal[:, i_c].max())
         log.info("iSAM2: %s", stats)
         stem_map = StemMap(tuple(trees), information=info_j)
-        return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats)
+        return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats, pose_covs)
