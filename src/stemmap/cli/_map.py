@@ -236,7 +236,7 @@ def slam_metrics(
         "backend_stats": result.stats,
         "n_trees": len(result.stem_map),
         "duplicates_1m": duplicate_pairs(result.stem_map, 1.0),
-        "frames": len(problem.frames),
+        "n_frames": len(problem.frames),  # "frames" holds the frame facts (frames_metadata)
         "detections": problem.frames.n_detections,
     }
     if "front_end" in ctx:  # a frames bundle's trunk detector (and EB-LiDAR's frame window)
