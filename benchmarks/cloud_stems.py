@@ -14,6 +14,7 @@ Prints ONE JSON object (with --json) holding every parameter of every scenario a
   that has it installed (``--dendromatics-python``), with its stems, DBH and time.
 
 Usage: python benchmarks/cloud_stems.py --json [--quick] [--no-big] [--dendromatics-python P]
+       [--methods munjer2025 ...] [--sim-only]
 """
 
 from __future__ import annotations
@@ -174,7 +175,10 @@ def munjer_multi(
     return associate_proximity(parts, cfg.association_distance)
 
 
-def run_sim(quick: bool) -> dict[str, Any]:
+METHODS = ("munjer2025", "ours", "ours_kasa", "ours_origins")
+
+
+def run_sim(quick: bool, methods: tuple[str, ...] = METHODS) -> dict[str, Any]:
     seeds = [1, 2] if quick else [1, 2, 3]
     stand_kw = {"n_trees": 30, "size": (25.0, 25.0)}
     tls_model = lidar_preset("tls")
@@ -219,7 +223,6 @@ def run_sim(quick: bool) -> dict[str, Any]:
             "the mobile scan the pose of the point's revolution): slice fits refined along rays",
         }
     }
-    methods = ("munjer2025", "ours", "ours_kasa", "ours_origins")
     for scen in ("terrestrial", "terrestrial_multi", "mobile"):
         rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
         dets: dict[str, list[tuple[CloudStems, Stand3D, np.ndarray]]] = {m: [] for m in methods}
@@ -499,6 +502,18 @@ def main() -> None:
         default=os.environ.get("DENDROMATICS_PYTHON"),
         help="a Python interpreter with dendromatics installed (optional)",
     )
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        choices=METHODS,
+        default=list(METHODS),
+        help="simulated-stand methods to run (default all)",
+    )
+    ap.add_argument(
+        "--sim-only",
+        action="store_true",
+        help="only the simulated stands (no density sweep, big cloud or real clouds)",
+    )
     args = ap.parse_args()
     t0 = time.perf_counter()
     result: dict[str, Any] = {
@@ -509,7 +524,11 @@ def main() -> None:
             "note": "shared 2-core machine, loaded by other jobs: times are noisy",
         },
     }
-    result["simulated"] = run_sim(args.quick)
+    result["simulated"] = run_sim(args.quick, tuple(args.methods))
+    if args.sim_only:
+        result["total_time_s"] = _r(time.perf_counter() - t0, 1)
+        print(json.dumps(result, indent=1 if not args.json else None))
+        return
     result["density_sweep_ours"] = run_density(args.quick)
     if not args.no_big:
         n = 5_000_000 if args.quick else args.big_points

@@ -234,10 +234,11 @@ def _gnss(data: str | None, csv_out: str | None) -> dict[str, Any]:
 def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any) -> dict[str, Any]:
     """Why session 2 on the prior map differs from the single run (docs/algorithms/slam.md
     "Maps reused across sessions"): the keyframe-phase spread of both (session 2 started at
-    800.0-800.7 s, the full run at 0-2 s; fixes after 801 s, own alignment), session 2 started
+    800.0-801.1 s, the full run at 0-2.6 s; fixes after 801 s, own alignment), session 2 started
     from the full run's own pose (relocalisation error carried?), the prior's information
-    scaled by 0.25 / 4 (too tight or loose?), and the joint prior's chi2 at session 2's optimum
-    (prior trees within 0.5 m of a merged-map tree vs all)."""
+    scaled by 0.25 / 4 (too tight or loose?), the joint prior's chi2 at session 2's optimum
+    (prior trees within 0.5 m of a merged-map tree vs all), and the phases again with every
+    prior tree held by its own Huber prior (``prior_map_robust="huber"``)."""
     from scipy.spatial import cKDTree
 
     from stemmap.eval.trajectory import ate
@@ -252,21 +253,28 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
         return round(ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=m).rmse, 3)
 
     out: dict[str, Any] = {}
-    s2_ph, full_ph = [], []
-    for t0 in (800.0, 800.4, 800.6, 800.7):
+    s2_ph, full_ph, hub_ph = [], [], []
+    for t0 in (800.0, 800.4, 800.6, 800.7, 800.9, 801.1):
         p2 = vp.slice(t0, 1549.0).problem()
         t1l, t2f = float(r1.trajectory.times[-1]), float(p2.frames.times[0])
         d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
         rel = relocalise(p2, r1.stem_map, guess=tuple(compose(r1.trajectory.poses[-1], d)))
         p2r = dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map)
         s2_ph.append([round(t2f, 3), score(Isam2Slam().run(with_calibration(p2r, *cal)), 801.0)])
-    for t0 in (0.0, 1.0, 1.2, 1.6, 2.0):
+        # each prior tree held by its own Huber prior instead of the joint one
+        r2h = Isam2Slam(prior_map_robust="huber").run(with_calibration(p2r, *cal))
+        hub_ph.append([round(t2f, 3), score(r2h, 801.0)])
+        if t0 == 800.0:
+            out["session2_prior_map_huber_ate_after_800s_m"] = score(r2h, t2f)
+    for t0 in (0.0, 1.0, 1.2, 1.6, 2.0, 2.3, 2.6):
         pf = vp.slice(t0, 1549.0).problem()
         full_ph.append([round(float(pf.frames.times[0]), 3), score(Isam2Slam().run(pf), 801.0)])
     out["phase_session2_first_scan_ate"] = s2_ph
     out["phase_full_first_scan_ate"] = full_ph
     out["phase_session2_mean_m"] = round(float(np.mean([a for _, a in s2_ph])), 3)
     out["phase_full_mean_m"] = round(float(np.mean([a for _, a in full_ph])), 3)
+    out["phase_session2_huber_first_scan_ate"] = hub_ph
+    out["phase_session2_huber_mean_m"] = round(float(np.mean([a for _, a in hub_ph])), 3)
     p2 = vp.slice(800.0, 1549.0).problem()
     t2f = float(p2.frames.times[0])
     base = dataclasses.replace(p2, initial_pose=first.pose, prior_map=r1.stem_map)

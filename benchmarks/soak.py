@@ -23,7 +23,9 @@ Reported per back-end and repeat count:
   and for the whole run under ONE alignment (drift between passes shows there), tree count,
   mapped trees first seen in each pass, and pairs of trees closer than 1 m (revisits must
   not create duplicates), compared with a 1x run of the same back-end;
-* the back-end's graph counters (iSAM2: keyframes in the graph, localisation-mode counters).
+* the back-end's graph counters (iSAM2: keyframes in the graph, localisation-mode counters),
+  and for iSAM2 per pass the graph keyframes and measurement factors added and the RSS at the
+  pass's end (``VmRSS``: the current size, where ``peak_rss_mb`` is the peak).
 
 A warm-up run on the first 60 s compiles the numba kernels before timing. Absolute times are
 from a loaded shared machine (2 cores, ~8 users): compare the ratios.
@@ -105,6 +107,44 @@ def revisit_drive(vp: Any, passes: int) -> tuple[Any, list[tuple[float, float]]]
     return rep, spans
 
 
+def _rss_now_mb() -> float:
+    """Resident set size now (``VmRSS``; 0 where /proc is missing)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return round(int(line.split()[1]) / 1024.0, 1)
+    except OSError:
+        pass
+    return 0.0
+
+
+def _count_graph_growth() -> list[int]:
+    """[graph keyframes, measurement factors] added so far by :class:`Isam2Slam`, live.
+
+    Counted through the two bookkeeping classes the back-end calls for exactly these events
+    (:class:`~stemmap.slam._graph_revisits.PlaceCounter` ``add``: one per graph keyframe
+    after the first; :class:`~stemmap.slam._graph_revisits.TreeVisits` ``factored``: the
+    trees of one keyframe's measurement factors), wrapped for this process only.
+    """
+    import stemmap.slam.graph as graph
+
+    n = [0, 0]
+
+    class Places(graph.PlaceCounter):
+        def add(self, xy: Any, s: float = 0.0) -> None:
+            n[0] += 1
+            super().add(xy, s)
+
+    class Visits(graph.TreeVisits):
+        def factored(self, trees: Any) -> None:
+            n[1] += int(trees.size)
+            super().factored(trees)
+
+    graph.PlaceCounter = Places  # type: ignore[misc]
+    graph.TreeVisits = Visits  # type: ignore[misc]
+    return n
+
+
 def _per_100(marks: list[tuple[int, float]], n: int) -> dict[str, Any]:
     """Seconds per 100 scans in the first and last tenth, from (frames done, time) marks."""
     f = np.array([0] + [m[0] for m in marks], dtype=float)
@@ -133,6 +173,8 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
     rss_load = _rss_mb()
     marks: list[tuple[int, float]] = []
     seen: dict[str, Any] = {}
+    graph_marks: list[tuple[int, int, int, float]] = []  # frames, keyframes, factors, RSS
+    grown = _count_graph_growth() if backend == "isam2" else None
 
     class Timed:
         def __init__(self, inner: Any) -> None:
@@ -143,6 +185,8 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
 
             def tick(done: int, total: int) -> None:
                 marks.append((done, time.perf_counter() - t_start))
+                if grown is not None:
+                    graph_marks.append((done, grown[0], grown[1], _rss_now_mb()))
                 if progress is not None:
                     progress(done, total)
 
@@ -180,8 +224,21 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
         r = ate(res.trajectory, rep.gps_times, rep.gps_xy, offset=off, keep=in_pass)
         fa, fb = ends[k], ends[k + 1]
         ta, tb = np.interp([fa, fb], [0] + [m[0] for m in marks], [0.0] + [m[1] for m in marks])
+        graph_pass: dict[str, Any] = {}
+        if graph_marks:
+            # the back-end's graph growth in this pass (iSAM2) and the RSS at its end
+            gm = np.array(graph_marks)
+            ia = int(np.searchsorted(gm[:, 0], fa)) - 1
+            ib = min(int(np.searchsorted(gm[:, 0], fb)), len(gm) - 1)
+            prev = gm[ia] if ia >= 0 else np.zeros(4)
+            graph_pass = {
+                "graph_keyframes_added": int(gm[ib, 1] - prev[1]),
+                "measurement_factors_added": int(gm[ib, 2] - prev[2]),
+                "rss_at_end_mb": round(float(gm[ib, 3]), 1),
+            }
         per_pass.append(
             {
+                **graph_pass,
                 "direction": "forward" if k % 2 == 0 else "backward",
                 "ate_rmse_m": round(float(r.rmse), 3) if r else None,
                 "s_per_100_scans": round(100.0 * (tb - ta) / max(fb - fa, 1), 4),

@@ -107,3 +107,44 @@ def test_map_frames_errors(drive: Path, tmp_path: Path) -> None:
         read_frames_npz(bad)
     with pytest.raises(InputError, match="does not exist"):
         read_frames_npz(tmp_path / "none.npz")
+
+
+def _length(xy: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(xy, axis=0).T).sum())
+
+
+def test_map_frames_eb_window(drive: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--eb-window N`` reaches ``MunjerConfig.window`` with the motion source's own poses
+    (here the wheel odometry dead-reckoned: its path length is the true one within the
+    simulated odometry's noise), and is recorded in metrics.json; N < 1 is a usage error."""
+    import json
+
+    import stemmap.slam.munjer as sm
+
+    seen: dict[str, object] = {}
+    real = sm.eb_lidar_observations
+
+    def spy(frames, times, config=None, *, poses=None):  # type: ignore[no-untyped-def]
+        seen["window"], seen["poses"] = config.window, poses
+        return real(frames, times, config, poses=poses)
+
+    monkeypatch.setattr(sm, "eb_lidar_observations", spy)
+    out = tmp_path / "eb3"
+    res = runner.invoke(
+        app, ["map", str(drive), "--eb-window", "3", "--out", str(out), "--no-progress"]
+    )
+    assert res.exit_code == 0, res.output
+    assert seen["window"] == 3
+    poses = np.asarray(seen["poses"])
+    assert poses.shape == (61, 3)
+    truth = np.loadtxt(drive.with_name("drive_poses.csv"), delimiter=",", skiprows=1)
+    walked, driven = _length(poses[:, :2]), _length(truth[:, 1:3])
+    # 6 s at 4 m/s; the wheel odometry's speed noise is a few cm/s: well inside 5 %
+    assert abs(walked - driven) < 0.05 * driven, (walked, driven)
+    m = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    assert m["front_end"] == {"name": "eb-lidar", "eb_window": 3}
+    assert len(_trees(out / "trees.csv")) >= 2
+
+    for bad in (["--eb-window", "0"], ["--eb-window", "2", "--frontend", "ours"]):
+        res = runner.invoke(app, ["map", str(drive), *bad, "--out", str(tmp_path / "bad")])
+        assert res.exit_code == 2 and "--eb-window" in res.output, res.output

@@ -108,6 +108,34 @@ def test_map_many_logs(logs: Path, tmp_path: Path) -> None:
     assert (out / "run1" / "run.json").is_file() and (out / "run1" / "metrics.json").is_file()
     n_trees = len((single / "trees.csv").read_text().splitlines()) - 1
     assert int(summary["run2"]["n_trees"]) == n_trees
+    # the EKF has no false-tree removal: the column is empty, not 0
+    assert summary["run2"]["backend"] == "ekf" and summary["run2"]["false_trees_removed"] == ""
     # one odometry file cannot serve several logs
     res2 = run.invoke(app, [*args, "--odometry", str(logs / "run1_odometry.csv")])
     assert res2.exit_code == 2 and "--odometry" in res2.output
+
+
+def test_map_summary_false_trees(logs: Path, tmp_path: Path) -> None:
+    """forestrix on raw scans runs Öhman's ray-cast false-tree removal: summary.csv carries
+    its count and the other per-log metrics, equal to each log's own metrics.json."""
+    import json
+
+    out = tmp_path / "fx"
+    args = ["map", str(logs / "run1.npz"), str(logs / "run2.npz"), "--backend", "forestrix"]
+    res = CliRunner().invoke(app, [*args, "--out", str(out), "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    summary = _summary(out / "summary.csv")
+    assert set(summary) == {"run1", "run2"}
+    for name, row in summary.items():
+        m = json.loads((out / name / "metrics.json").read_text(encoding="utf-8"))
+        assert m["false_trees"]["ran"] is True
+        assert row["backend"] == "forestrix"
+        assert int(row["false_trees_removed"]) == m["false_trees"]["removed"] >= 0
+        assert (
+            int(row["n_trees"]) == m["n_trees"] and int(row["duplicates_1m"]) == m["duplicates_1m"]
+        )
+        assert row["motion_source"] == "wheel"
+        assert float(row["distance_m"]) == m["motion"]["distance_m"] > 0
+        assert float(row["drift_estimate_percent"]) == m["motion"]["drift_estimate_percent"]
+        frac = float(row["associated_fraction"])
+        assert frac == m["uncertainty"]["associated_fraction"] and 0 < frac <= 1

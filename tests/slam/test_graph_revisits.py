@@ -14,6 +14,7 @@ from stemmap.slam._graph_localise import localise_on_map
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
+    TreeVisits,
     compose_increments,
     redundant,
 )
@@ -88,6 +89,25 @@ def test_revisits_do_not_grow_the_graph(five_laps):
     assert reduced.stats["keyframes_in_graph"] < 0.5 * nk
     assert reduced.stats["keyframes_localised"] == nk - reduced.stats["keyframes_in_graph"]
     assert reduced.stats["factors"] < 0.6 * full.stats["factors"]
+
+
+def test_tree_bound_keeps_young_trees_from_growing_the_graph(five_laps):
+    """``revisit_settle_visits = 2``: a tree with factors on two earlier laps pulls no keyframe
+    in. With ``revisit_factors = 40`` (trees stay "young" for several laps) and the area bound
+    off, every lap would otherwise bring its keyframes in; path and map stay as good."""
+    truth, trees, _reduced, _full = five_laps
+    problem = loop_problem(2, laps=5.0)[0]
+    cfg = {"revisit_factors": 40, "revisit_keyframes": 10**6}  # area bound off
+    res = {s: Isam2Slam(**cfg, revisit_settle_visits=s).run(problem) for s in (0, 2)}
+    k0, k2 = (res[s].stats["keyframes_in_graph"] for s in (0, 2))
+    assert k2 < 0.6 * k0, (k0, k2)  # measured 262 -> 118
+    rms = {}
+    for s, r in res.items():
+        rms[s] = math.sqrt(np.mean(np.hypot(*(r.trajectory.xy - truth[:, :2]).T) ** 2))
+        m = match_points(r.stem_map.xy, trees, gate=0.5)
+        assert m.n_matched >= 0.9 * len(r.stem_map)
+    assert rms[2] < 0.15 and rms[2] < 1.3 * rms[0] + 0.01  # measured 0.070 -> 0.077 m
+    assert abs(len(res[2].stem_map) - len(res[0].stem_map)) <= 0.05 * len(res[0].stem_map) + 1
 
 
 def test_localisation_mode_bounds_the_graph_by_area(five_laps):
@@ -285,6 +305,35 @@ def test_place_counter_tells_visits_by_distance_not_time():
     assert pc.full(np.zeros(2), 55.0)  # back after 50 m of driving: a revisit
     with pytest.raises(ConfigError, match="revisit_after_m"):
         Isam2Config(revisit_after_m=-1.0)
+
+
+def test_tree_visits_settle_after_factors_on_earlier_visits():
+    """A tree is settled once it got graph factors on ``settle`` visits before its current
+    one; visits are told apart by ``after_m`` of driving between measurements."""
+    tv = TreeVisits(after_m=50.0, settle=1, capacity=2)  # grows past 2 trees
+    a, b, c = np.array([0]), np.array([1]), np.array([4])
+    for s in (0.0, 10.0, 30.0, 79.0):  # one visit of tree 0: gaps < 50 m
+        tv.see(a, s)
+        tv.factored(a)
+    tv.see(c, 79.0)  # tree 4: seen, never in the graph
+    assert not tv.settled(5).any()  # tree 0 is on its first visit
+    tv.see(np.array([0, 1]), 140.0)  # 61 m later: tree 0's second visit, tree 1's first
+    s5 = tv.settled(5)
+    assert s5[0] and not s5[1:].any()
+    tv.factored(b)
+    tv.see(b, 150.0)
+    assert not tv.settled(5)[1]  # still tree 1's first visit
+    tv.see(np.array([0, 1, 4]), 300.0)  # 4 revisited without a factor: never settled
+    assert tv.settled(8).tolist() == [True, True, False, False, False, False, False, False]
+    two = TreeVisits(after_m=50.0, settle=2)
+    for s in (0.0, 100.0, 200.0):  # factors on visits 1, 2, 3
+        two.see(a, s)
+        assert two.settled(1)[0] == (s == 200.0)
+        two.factored(a)
+    assert two.settled(1)[0]  # a factor on the current visit does not unsettle it
+    assert TreeVisits(50.0, 0).settled(3) is None  # off
+    with pytest.raises(ConfigError, match="revisit_settle_visits"):
+        Isam2Config(revisit_settle_visits=-1)
 
 
 def test_restart_covariance_covers_the_disagreement():

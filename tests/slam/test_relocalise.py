@@ -11,7 +11,7 @@ from _synthetic import loop_problem
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.slam.base import SlamProblem, duplicate_pairs
-from stemmap.slam.graph import Isam2Slam
+from stemmap.slam.graph import Isam2Config, Isam2Slam
 from stemmap.slam.relocalise import (
     RelocConfig,
     continue_session,
@@ -221,6 +221,31 @@ def test_joint_prior_factor_is_the_gaussian_of_the_information(rng):
     assert joint_prior_factor(StemMap(m.trees), LK) is None
     with pytest.raises(InputError, match="information"):
         _map_with_information(xy, np.eye(4))
+
+
+def test_robust_per_tree_priors_replace_the_joint_prior(rng):
+    """With a kernel every tree gets its own prior on its marginal (the map's information is
+    not used): near the prior the error is the Gaussian's, far out the Huber loss grows only
+    linearly (a tree 10 sigma off costs ~k x 10 instead of 50)."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import L as LK
+
+    from stemmap.slam.gnss import robust_kernel
+    from stemmap.slam.relocalise import prior_tree_factors
+
+    xy = rng.uniform(0, 20, (3, 2))
+    m = _map_with_information(xy, np.eye(6) * 4.0)  # Tree.cov = I: sigma 1 m per axis
+    facs = prior_tree_factors(m, LK, 3, kernel=robust_kernel(gtsam, "huber", 1.345))
+    assert all(f is not None for *_, f in facs)
+    fac = facs[1][3]
+    for off, expect in ((0.5, 0.5 * 0.5**2), (10.0, 1.345 * (10.0 - 0.5 * 1.345))):
+        v = gtsam.Values()
+        v.insert(LK(1), xy[1] + np.array([off, 0.0]))
+        # 1e-6 m² floor on the 1 m² marginal: relative 1e-6
+        assert fac.error(v) == pytest.approx(expect, rel=1e-5)
+    # the graph option validates its name
+    with pytest.raises(ConfigError):
+        Isam2Config(prior_map_robust="l1")
 
 
 def test_second_session_on_the_joint_information_of_the_first(sessions):

@@ -66,6 +66,16 @@ def detect(
             help="Override the sensor range noise, metres.", callback=bounded("--sigma", gt=0)
         ),
     ] = None,
+    sigma_from_scan: Annotated[
+        bool | None,
+        typer.Option(
+            "--sigma-from-scan/--no-sigma-from-scan",
+            help="Estimate each scan's range noise from its own returns (robust scale of the "
+            "second differences of neighbouring ranges inside continuous surfaces, run ends "
+            "left out) and use it wherever it exceeds the configured sensor noise (--sigma). "
+            "Helps noisy scanners; default: the preset's setting (off).",
+        ),
+    ] = None,
     footprint: Annotated[
         float | None,
         typer.Option(
@@ -120,6 +130,8 @@ def detect(
             overrides["sigma"] = sigma
         if footprint is not None:
             overrides["beam_footprint_deg"] = footprint
+        if sigma_from_scan is not None:
+            overrides["sigma_from_scan"] = sigma_from_scan
         detector = ScanTrunkDetector(DetectorConfig.preset(preset, **overrides))
         if imu_topic is not None and rejected is not None:
             raise ConfigError(

@@ -236,9 +236,11 @@ def slam_metrics(
         "backend_stats": result.stats,
         "n_trees": len(result.stem_map),
         "duplicates_1m": duplicate_pairs(result.stem_map, 1.0),
-        "frames": len(problem.frames),
+        "n_frames": len(problem.frames),  # "frames" holds the frame facts (frames_metadata)
         "detections": problem.frames.n_detections,
     }
+    if "front_end" in ctx:  # a frames bundle's trunk detector (and EB-LiDAR's frame window)
+        m["front_end"] = ctx["front_end"]
     if dr is None:
         dr = dead_reckoning(problem)
     gps_map = None
@@ -449,6 +451,18 @@ def map_command(
             "detector on the lidar frames) [default: eb-lidar].",
         ),
     ] = None,
+    eb_window: Annotated[
+        int,
+        typer.Option(
+            "--eb-window",
+            metavar="N",
+            help="--frontend eb-lidar: cluster each lidar frame with the N - 1 frames before it, "
+            "moved with the motion source's poses. Default 1 = strictly per frame, the paper's "
+            "pipeline; N > 1 trades precision for recall (more trees on the simulator, false "
+            "ones on a real plot: docs/algorithms/cloud.md, 'Accumulated frames').",
+            callback=bounded("--eb-window", ge=1),
+        ),
+    ] = 1,
     model: Annotated[
         Path | None,
         typer.Option(
@@ -617,6 +631,8 @@ def map_command(
         is_frames = bag is not None and is_frames_npz(bag)
         if frontend is not None and not is_frames:
             raise ConfigError("--frontend needs a frames bundle (.npz with lidar or RGB-D frames).")
+        if eb_window != 1 and not is_frames:
+            raise ConfigError("--eb-window needs a frames bundle (.npz with lidar frames).")
         if bag is None and (motion_src != Motion.wheel or motion_sigma is not None):
             raise ConfigError(
                 "--motion and --motion-sigma are for a log input (bag, scans, frames)."
@@ -639,6 +655,7 @@ def map_command(
                 sigma_speed=sv,
                 sigma_yaw_rate=sw,
                 motion=motion_run,
+                eb_window=eb_window,
             )
         elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)

@@ -77,6 +77,17 @@ def odometry_controls(
     return Controls(t, v, w, "unicycle"), model, "velocities", None
 
 
+def motion_poses(controls: Any, motion_model: Any, traj: Any, times: Any) -> Any:
+    """(F, 3) poses of the motion source at ``times``: the pose trajectory interpolated, or the
+    velocities dead-reckoned from the origin (:func:`stemmap.slam.motion.rollout`); only poses
+    relative to each other are used by :func:`stemmap.slam.munjer.accumulate_frames`."""
+    from stemmap.slam.motion import rollout
+
+    if traj is not None:
+        return traj.interpolate(times)
+    return rollout(motion_model, controls, times)
+
+
 def frames_problem(
     source: Path,
     odometry: Path | None,
@@ -86,14 +97,19 @@ def frames_problem(
     sigma_speed: float,
     sigma_yaw_rate: float,
     motion: tuple[Any, dict[str, Any]] | None = None,
+    eb_window: int = 1,
 ) -> tuple[Any, dict[str, Any]]:
     """A SLAM problem from a frames bundle: motion source + per-frame detections.
 
     ``motion`` is a (trajectory, record) from :func:`stemmap.cli._map_motion.motion_trajectory`;
     None = ``odometry``, a velocity or pose CSV (None = the ``<stem>_odometry.csv`` beside
-    ``source``).
+    ``source``). ``eb_window`` is :attr:`stemmap.cloud.munjer.MunjerConfig.window` of the
+    EB-LiDAR front end (1 = per frame, as published; K > 1 clusters each frame with the K - 1
+    before it, moved with the motion source's own poses: docs/algorithms/cloud.md,
+    "Accumulated frames").
     """
     from stemmap.cli._map_inputs import odometry_path
+    from stemmap.cloud.munjer import MunjerConfig
     from stemmap.io.frames import read_frames_npz
     from stemmap.slam.munjer import (
         daim_observations,
@@ -102,6 +118,11 @@ def frames_problem(
         ours_lidar_observations,
     )
 
+    eb_cfg = MunjerConfig(window=eb_window)  # ConfigError for a window < 1
+    if eb_window != 1 and frontend != Frontend.eb_lidar:
+        raise ConfigError(
+            "--eb-window is the EB-LiDAR frame window; use it with --frontend eb-lidar."
+        )
     bundle = read_frames_npz(source)
     sig = {"sigma_speed": sigma_speed, "sigma_yaw_rate": sigma_yaw_rate}
     if motion is not None:
@@ -143,7 +164,10 @@ def frames_problem(
         if bundle.lidar is None:
             raise ConfigError(f"--frontend {frontend.value} needs lidar frames; {source} has none.")
         if frontend == Frontend.eb_lidar:
-            obs = eb_lidar_observations(bundle.lidar, t)
+            poses = None
+            if eb_window > 1:  # the motion source's own poses at the frames (never the truth)
+                poses = motion_poses(controls, motion_model, traj, t)
+            obs = eb_lidar_observations(bundle.lidar, t, eb_cfg, poses=poses)
             max_range = 10.0  # the pass-through box
         else:
             obs = ours_lidar_observations(bundle.lidar, t)
@@ -162,4 +186,7 @@ def frames_problem(
         name=f"{source} ({frontend.value})",
     )
     ctx: dict[str, Any] = {"kind": "frames", "odometry": str(odo), "motion_source": kind}
+    ctx["front_end"] = {"name": frontend.value}
+    if frontend == Frontend.eb_lidar:
+        ctx["front_end"]["eb_window"] = eb_window
     return problem, ctx

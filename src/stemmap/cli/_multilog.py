@@ -67,6 +67,13 @@ SUMMARY_COLUMNS = (
     "n_scans",
     "n_observations",
     "n_trees",
+    "backend",
+    "false_trees_removed",
+    "duplicates_1m",
+    "associated_fraction",
+    "motion_source",
+    "distance_m",
+    "drift_estimate_percent",
     "error",
 )
 #: Per command: the parameter holding the inputs and the one holding ``--out``.
@@ -125,7 +132,20 @@ def _product_counts(command: str, product: Path) -> dict[str, Any]:
         obs = read_observations_csv(product)
         return {"n_observations": len(obs), "n_scans": len(np.unique(obs.index))}
     m = json.loads((product / "metrics.json").read_text(encoding="utf-8"))
-    return {"n_trees": m.get("n_trees"), "n_observations": m.get("detections")}
+    ft = m.get("false_trees") or {}
+    motion = m.get("motion") or {}
+    return {
+        "n_trees": m.get("n_trees"),
+        "n_observations": m.get("detections"),
+        "backend": (m.get("backend_stats") or {}).get("backend"),
+        # the ray-cast false-tree removal's count only where it ran (forestrix on raw scans)
+        "false_trees_removed": ft.get("removed") if ft.get("ran") else None,
+        "duplicates_1m": m.get("duplicates_1m"),
+        "associated_fraction": (m.get("uncertainty") or {}).get("associated_fraction"),
+        "motion_source": motion.get("source"),
+        "distance_m": motion.get("distance_m"),
+        "drift_estimate_percent": motion.get("drift_estimate_percent"),
+    }
 
 
 def run_log_command(command: str, params: dict[str, Any]) -> dict[str, Any]:
@@ -188,7 +208,7 @@ def _print_summary(command: str, rows: list[dict[str, Any]], out_dir: Path) -> N
 
     t = Table(title=f"stemmap {command}: {len(rows)} logs -> {out_dir}")
     cols = ["log", "status", "seconds", "n_observations"]
-    cols += ["n_scans"] if command == "detect" else ["n_trees"]
+    cols += ["n_scans"] if command == "detect" else ["n_trees", "false_trees_removed"]
     cols.append("error")
     for c in cols:
         t.add_column(c, overflow="fold")

@@ -183,23 +183,30 @@ def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> fl
     m = 0
     run = 0
     longest = 0
+    prev2 = False  # the triple centred at k - 2 is continuous
+    prev = False  # ... at k - 1
+    dprev = 0.0  # its second difference
     for k in range(1, g.shape[0] - 1):
         a = g[k - 1]
         b = g[k]
         c = g[k + 1]
-        if (
+        cont = (
             math.isfinite(a)
             and math.isfinite(b)
             and math.isfinite(c)
             and abs(b - a) <= jump
             and abs(c - b) <= jump
-        ):
-            d[m] = a - 2.0 * b + c
+        )
+        if prev2 and prev and cont:  # the triple centred at k - 1 is interior
+            d[m] = dprev
             m += 1
             run += 1
             longest = max(longest, run)
         else:
             run = 0
+        prev2 = prev
+        prev = cont
+        dprev = a - 2.0 * b + c if cont else 0.0
     if m < _SCAN_NOISE_MIN_TRIPLES or 2 * longest > m:  # one surface must not decide
         return 0.0
     med = _median_inplace(d, m)

@@ -62,6 +62,13 @@ class Isam2Config:
         than ``revisit_factors`` factors (only a new tree or a lost tracker brings it in).
         Visits are told apart by path distance, not time: a vehicle that drives slowly or
         stops is still on its first visit (docs/algorithms/slam.md "Revisits")
+    revisit_settle_visits : the bound by tree: a tree that got measurement factors on this
+        many earlier visits (a visit: measured again after ``revisit_after_m`` m of driving
+        without it) pulls no keyframe into the graph, even with fewer than ``revisit_factors``
+        factors (:class:`stemmap.slam._graph_revisits.TreeVisits`; 0 = off). Default 0: 2
+        bounds the 10x Victoria Park soak's graph (1,265 keyframes instead of 2,014, every
+        pass 1.24-1.27 m) but the full log started at 6.0 s loses its path (11.6 m; 1.30 m
+        off), docs/reliability.md "iSAM2 memory per pass"; 1 lost the 1x drive's loop closures
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     pose_marginals : also the marginal covariance of every graph keyframe, carried to every
         frame (``SlamResult.pose_covs``, :func:`_tree_and_pose_marginals`; docs/outputs.md
@@ -81,6 +88,10 @@ class Isam2Config:
         fixes fix the frame; this only keeps the first updates well-posed)
     reloc_prior_sigmas : (m, m, rad) prior on the first pose when the problem has a
         ``prior_map`` (the relocalised start: the map's trees fix the frame)
+    prior_map_robust : "none" (default), "huber" or "cauchy" (width ``robust_k``): with a
+        ``prior_map``, hold each of its trees by its own prior with this robust loss instead of
+        the joint prior (docs/algorithms/slam.md "Maps reused across sessions"; measured, not
+        the default)
     joint_information : also return the trees' joint information matrix
         (:attr:`stemmap.types.StemMap.information`, needs ``marginals``): a later session on
         this map then continues from the correlated prior of all its trees instead of
@@ -115,6 +126,7 @@ class Isam2Config:
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
     revisit_after_m: float = 50.0
+    revisit_settle_visits: int = 0
     marginals: bool = True
     pose_marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -129,9 +141,10 @@ class Isam2Config:
     gnss_prior_sigmas: tuple[float, float, float] = (10.0, 10.0, 0.5)
     reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
     joint_information: bool = False
+    prior_map_robust: str = "none"
 
     def __post_init__(self) -> None:
-        for name in ("robust", "gnss_robust"):
+        for name in ("robust", "gnss_robust", "prior_map_robust"):
             if getattr(self, name) not in ("huber", "cauchy", "none"):
                 raise ConfigError(
                     f"Isam2Config.{name} must be 'huber', 'cauchy' or 'none', "
@@ -176,6 +189,11 @@ class Isam2Config:
         if self.revisit_keyframes < 1:
             raise ConfigError(
                 f"Isam2Config.revisit_keyframes must be >= 1, got {self.revisit_keyframes}."
+            )
+        if self.revisit_settle_visits < 0:
+            raise ConfigError(
+                f"Isam2Config.revisit_settle_visits must be >= 0 (0 = off), got "
+                f"{self.revisit_settle_visits}."
             )
         if self.revisit_factors < 0:
             raise ConfigError(

@@ -35,7 +35,11 @@ the graph), and the graph is **bounded by area**: where a place already holds
 ``revisit_keyframes`` graph keyframes of an earlier visit within ``revisit_radius``
 (:class:`PlaceCounter`: added ``revisit_after_m`` or more of driving before; a stop or slow
 driving is one visit), a keyframe whose trees are all in the graph stays out even if some
-have fewer than ``revisit_factors`` factors. On by
+have fewer than ``revisit_factors`` factors. A fourth session bounded it **by tree** too
+(:class:`TreeVisits`): a tree that got factors on ``revisit_settle_visits`` earlier visits
+no longer pulls keyframes in (trunks at the edge of range gained a few factors on every pass
+and kept the 10x soak's graph growing; off by default: it cost one start time of the single
+Victoria Park drive its path). The mode is on by
 default (``revisit_factors = 15``); measured on the Victoria Park log replayed 10x as
 revisits in docs/reliability.md "Soak".
 
@@ -61,6 +65,7 @@ from stemmap.types import FloatArray
 __all__ = [
     "LeftOutMeasurements",
     "PlaceCounter",
+    "TreeVisits",
     "compose_increments",
     "localise_skipped",
     "redundant",
@@ -109,7 +114,8 @@ def redundant(
     """True when a keyframe whose window measures ``trees`` adds nothing the graph needs.
 
     Every tree is in the graph with at least ``min_f`` measurement factors, or is ``settled``
-    (a bool per tree: no longer allowed to pull keyframes in, see ``Isam2Config.revisit_young_s``)
+    (a bool per tree: no longer allowed to pull keyframes in: at a place the graph already
+    covers, :class:`PlaceCounter`, or on a later visit of the tree, :class:`TreeVisits`)
     -- vacuously true with no tree; ``min_f <= 0`` disables the rule (every keyframe enters
     the graph).
     """
@@ -235,6 +241,63 @@ class PlaceCounter:
                     if ps <= upto and (px - x) ** 2 + (py - y) ** 2 <= r2:
                         n += 1
         return n
+
+
+class TreeVisits:
+    """Visits of every tree, by path distance, and in how many of them it got graph factors.
+
+    Bounds the graph on revisits by tree (``Isam2Config.revisit_settle_visits``): a tree that
+    got measurement factors on ``settle`` earlier visits pulls no keyframe into the graph on a
+    later visit, whatever its factor count (a trunk at the edge of range, seen in a few
+    keyframes of every pass, otherwise pulls keyframes in on every pass: the 10x Victoria Park
+    soak's graph kept growing with them, docs/reliability.md "iSAM2 memory per pass"). A new
+    visit of a tree starts when it is measured ``after_m`` m of driving (or more) after its
+    last measurement (as :class:`PlaceCounter`: a stop is still one visit). Its measurements
+    on later visits still serve the tracker and the final localisation of the left-out
+    keyframes (the left-out store), only not the graph. ``settle = 0``: off.
+    """
+
+    def __init__(self, after_m: float, settle: int, capacity: int = 1024) -> None:
+        self.after_m = float(after_m)
+        self.settle = int(settle)
+        self._seen_s = np.full(capacity, -np.inf)  # path distance of the last measurement
+        self._visit = np.zeros(capacity, dtype=np.int64)  # current visit (1 = first)
+        self._fac_visits = np.zeros(capacity, dtype=np.int64)  # visits with a graph factor
+        self._fac_last = np.zeros(capacity, dtype=np.int64)  # visit of the last graph factor
+
+    def _room(self, n: int) -> None:
+        cap = self._seen_s.shape[0]
+        if n <= cap:
+            return
+        g = max(n, 2 * cap) - cap
+        self._seen_s = np.concatenate((self._seen_s, np.full(g, -np.inf)))
+        for name in ("_visit", "_fac_visits", "_fac_last"):
+            setattr(self, name, np.concatenate((getattr(self, name), np.zeros(g, np.int64))))
+
+    def see(self, trees: np.ndarray, s: float) -> None:
+        """``trees`` measured at path distance ``s`` (m; non-decreasing between calls)."""
+        if trees.size == 0:
+            return
+        self._room(int(trees.max()) + 1)
+        new = s - self._seen_s[trees] >= self.after_m  # also the first measurement (-inf)
+        self._visit[trees] += new
+        self._seen_s[trees] = s
+
+    def factored(self, trees: np.ndarray) -> None:
+        """``trees`` (seen, :meth:`see`) got a measurement factor in the graph."""
+        if trees.size == 0:
+            return
+        self._fac_visits[trees] += self._fac_last[trees] != self._visit[trees]
+        self._fac_last[trees] = self._visit[trees]
+
+    def settled(self, n: int) -> np.ndarray | None:
+        """Bool per tree ``0..n-1``: graph factors on ``settle`` visits before its current one
+        (None when off)."""
+        if self.settle <= 0:
+            return None
+        self._room(n)
+        done = self._fac_visits[:n] - (self._fac_last[:n] == self._visit[:n])
+        return done >= self.settle
 
 
 def localise_skipped(

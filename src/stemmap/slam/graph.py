@@ -87,6 +87,7 @@ from stemmap.slam._graph_odometry import (
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
+    TreeVisits,
     compose_increments,
     localise_skipped,
     redundant,
@@ -240,6 +241,7 @@ class Isam2Slam:
         kernel = robust_kernel(gtsam, cfg.robust, cfg.robust_k)
 
         gnss_kernel = robust_kernel(gtsam, cfg.gnss_robust, cfg.gnss_robust_k)
+        prior_kernel = robust_kernel(gtsam, cfg.prior_map_robust, cfg.robust_k)
 
         def meas_noise(sigmas: FloatArray) -> Any:
             """Noise of one bearing-range factor, ``sigmas`` = (sigma_bearing, sigma_range)."""
@@ -341,7 +343,7 @@ class Isam2Slam:
                 np.zeros(cap, dtype=bool),
             )  # fmt: skip
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
-                prior_tree_factors(problem.prior_map, LK, cfg.min_obs)
+                prior_tree_factors(problem.prior_map, LK, cfg.min_obs, kernel=prior_kernel)
             ):
                 lm_xy[j_p] = xy_p
                 if math.isfinite(d_p):
@@ -353,7 +355,8 @@ class Isam2Slam:
                     new_f.add(fac_p)
                     graph_all.add(fac_p)
                 map_fac.append(fac_p)
-            joint_fac = joint_prior_factor(problem.prior_map, LK)  # None: per-tree priors above
+            if prior_kernel is None:  # None: per-tree priors above
+                joint_fac = joint_prior_factor(problem.prior_map, LK)
             if joint_fac is not None:
                 new_f.add(joint_fac)
                 graph_all.add(joint_fac)
@@ -431,6 +434,7 @@ class Isam2Slam:
                 graph_all.add(fac)
                 meas_fac.append(fac)
             lm_nfac[trees_w] += 1
+            visits.factored(trees_w)
             sbl, srl = sig[:, 0].tolist(), sig[:, 1].tolist()
             meas_rec.extend(zip([k] * len(js), js, bl, rl, sbl, srl, strict=True))
             n_factors_meas += len(js)
@@ -440,6 +444,7 @@ class Isam2Slam:
         entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
         places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_m)
         places.add(kf_init[0, :2], 0.0)
+        visits = TreeVisits(cfg.revisit_after_m, cfg.revisit_settle_visits)
 
         def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
@@ -473,7 +478,9 @@ class Isam2Slam:
             # tracker forces keyframes in
             s_kc = float(cum_dist[kf_frames[kc]])  # path distance (m): visits by distance
             full = revisits and places.full(kf_init[kc, :2], s_kc)
-            settled = lm_in_graph if full else None
+            if window:
+                visits.see(window[0], s_kc)
+            settled = lm_in_graph if full else visits.settled(lm_in_graph.shape[0])
             if (
                 revisits
                 and kc >= force_until

@@ -319,7 +319,7 @@ def relocalise(
 
 
 def prior_tree_factors(
-    prior_map: StemMap, key: Any, min_obs: int, default_sigma: float = 0.1
+    prior_map: StemMap, key: Any, min_obs: int, default_sigma: float = 0.1, kernel: Any = None
 ) -> list[tuple[FloatArray, float, int, Any]]:
     """``(xy, diameter, n_obs, PriorFactorPoint2)`` per tree of a prior map, landmark keys
     ``key(0..n-1)`` in map order.
@@ -328,12 +328,16 @@ def prior_tree_factors(
     trees CSV's ``std_x, std_y, cov_xy``); trees without one get ``default_sigma`` (m). A
     tree's observation count is at least ``min_obs`` so it stays in the merged map. When the
     map carries its joint information (:attr:`StemMap.information`) the factor is ``None``:
-    :func:`joint_prior_factor` holds all trees at once instead.
+    :func:`joint_prior_factor` holds all trees at once instead -- unless ``kernel`` (a GTSAM
+    m-estimator, ``Isam2Config.prior_map_robust``) is given: then every tree gets its own
+    prior with that robust loss on its marginal (the correlations are dropped), so a tree
+    whose earlier estimate this session's data contradict moves without dragging the poses
+    (docs/algorithms/slam.md, "Maps reused across sessions").
     """
     import gtsam
 
     out: list[tuple[FloatArray, float, int, Any]] = []
-    joint = _joint_sqrt_information(prior_map) is not None
+    joint = kernel is None and _joint_sqrt_information(prior_map) is not None
     for j, t in enumerate(prior_map):
         if joint:
             xy = np.array([t.x, t.y], dtype=np.float64)
@@ -344,7 +348,10 @@ def prior_tree_factors(
             cov = np.eye(2) * default_sigma**2
         cov = cov + np.eye(2) * 1e-6  # a floor: a 0-variance prior is a constraint
         xy = np.array([t.x, t.y], dtype=np.float64)
-        fac = gtsam.PriorFactorPoint2(key(j), xy, gtsam.noiseModel.Gaussian.Covariance(cov))
+        noise: Any = gtsam.noiseModel.Gaussian.Covariance(cov)
+        if kernel is not None:
+            noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+        fac = gtsam.PriorFactorPoint2(key(j), xy, noise)
         out.append((xy, float(t.diameter), max(int(t.n_obs), min_obs), fac))
     return out
 
