@@ -29,6 +29,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import shutil
 import signal
 import subprocess
@@ -83,11 +84,19 @@ def _peak_rss() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
+def _tree_cpu_s() -> float:
+    """User + system CPU seconds of this process and of its reaped children."""
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + ch.ru_utime + ch.ru_stime
+
+
 def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float) -> dict[str, Any]:
     from stemmap.cloud import StemConfig
     from stemmap.engine import Catalog, dask_client, run_stems_catalog
 
     shutil.rmtree(work, ignore_errors=True)
+    tree0 = _tree_cpu_s()
     t0 = time.perf_counter()
     with dask_client(workers) as client:  # the CLI's local cluster (`--workers N`)
         startup = time.perf_counter() - t0
@@ -101,6 +110,9 @@ def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float)
         rss = client.run(_peak_rss)
         cpu = client.run(_cpu_s)  # fresh workers: their whole CPU time is this run's
         load1 = os.getloadavg()[0]
+    # this process + every child reaped when the cluster closed (workers, nannies): scheduler,
+    # Dask's own work and worker start-up included
+    tree_cpu = _tree_cpu_s() - tree0
     assert run.stems is not None and not run.failed, run.failed
     n = cat.n_points
     return {
@@ -118,6 +130,8 @@ def run_once(tiles: Path, work: Path, workers: int, chunk: float, buffer: float)
         # detecting); what one worker does end to end on an otherwise idle core
         "points_per_cpu_s_per_worker": round(n / sum(cpu.values())),
         "worker_cpu_s": sorted(round(v, 1) for v in cpu.values()),
+        "process_tree_cpu_s": round(tree_cpu, 1),
+        "points_per_process_tree_cpu_s": round(n / tree_cpu) if tree_cpu > 0 else None,
         "peak_rss_per_worker_gb": sorted(round(v / 1e9, 3) for v in rss.values()),
         "load_1min_before_after": [round(load0, 2), round(load1, 2)],
         # where the workers' time went: tasks, wall and CPU seconds per phase (stage: LAZ
