@@ -38,8 +38,9 @@ covariance (``P' = F P Fᵀ + Q``), and every frame is associated in three steps
 
 iSAM2 is updated every ``update_every`` keyframes (the tracker bridges the gap); after the last
 frame duplicate trees are merged, one Levenberg-Marquardt batch optimisation refines
-everything, and each tree's 2x2 marginal covariance is the Schur complement of the information
-over the pose chain (:func:`_point_marginals`, equal to :class:`gtsam.Marginals`).
+everything (:mod:`stemmap.slam._graph_batch`), and each tree's 2x2 marginal covariance is the
+Schur complement of the information over the pose chain (:func:`_point_marginals`, equal to
+:class:`gtsam.Marginals`).
 
 Localisation mode on revisits (ours; docs/algorithms/slam.md "Revisits"): a keyframe that only
 re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area);
@@ -69,11 +70,12 @@ from typing import Any
 import numpy as np
 
 from stemmap.errors import ConfigError
+from stemmap.slam._graph_batch import Calibration, batch_rounds
 from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_localise import localise_windows, restart_covariance
 from stemmap.slam._graph_marginals import (
     _fit_diagnostics,
-    _merge_duplicates,
+    _merge_duplicates,  # noqa: F401  (re-exported: forestrix, loop_closure)
     _point_marginals,  # noqa: F401  (re-exported: stemmap.slam.online, tests)
     final_marginals,
 )
@@ -652,109 +654,20 @@ class Isam2Slam:
         # iSAM2's Bayes tree is not used after this (the batch steps work on graph_all): freed
         # before they build their own (on the 10x soak the two together were the run's peak)
         isam = None
-        n_lm_iters = 0
-        # merge duplicated trees (two landmarks of one trunk, e.g. first seen far away and
-        # initialised apart): closer than merge_dist with compatible diameters -> one key;
-        # the rebuilt graph is optimised again (this also closes the loops they imply). The
-        # first round looks at the iSAM2 estimate, so when it merges, the batch step runs once,
-        # on the merged graph (a separate batch before merging cost ~15 % of the run)
-        # With calibration, each round also re-estimates the per-segment calibration from the
-        # current poses (_calibration_lsq) and, if it moved the increments by more than 0.1
-        # sigma, rebuilds the odometry factors with it: block-coordinate descent on (poses,
-        # calibration), alternated with the LM steps the merging needs anyway.
-        batch_done = False
-        n_merged = 0
-        n_cal_rounds = 0
-        alias = np.arange(n_lm)  # landmark slot each slot's factors now point to
-        merging = cfg.merge_dist > 0 and n_lm > 1
-        for _round in range(cfg.calib_rounds if calibrate else 3 if merging else 0):
-            ing = np.flatnonzero(lm_in_graph[:n_lm])
-            est_xy = gtsam.utilities.extractPoint2(result)
-            remap = np.arange(n_lm)
-            n_new_merges = 0
-            if merging and _round < 3:
-                # merging moves trees; repeat until no close compatible pair is left
-                rep = _merge_duplicates(
-                    est_xy,
-                    lm_dsum[ing] / np.maximum(lm_dn[ing], 1),
-                    lm_nobs[ing],
-                    cfg.merge_dist,
-                    3.0 * (cfg.sigma_diameter or math.inf) * math.sqrt(2.0),
-                )
-                n_new_merges = int((rep != np.arange(ing.size)).sum())
-                remap[ing] = ing[rep]  # landmark slot each slot maps to
-            cal_moved = False
-            if calibrate:
-                c_seg = _calibration_lsq(
-                    odo_residuals(kf_poses(result), one_step), J_k[one_step], info_k[one_step],
-                    c_used[one_step], seg_k[one_step], n_seg, dur_seg, cfg.calib_prior_sigmas,
-                    cfg.calib_walk_sigmas,
-                )  # fmt: skip
-                dc = (J_k @ (c_seg[seg_k] - c_used)[:, :, None])[:, :, 0]
-                moved = np.sqrt(np.einsum("ki,kij,kj->k", dc, info_k, dc))
-                cal_moved = bool(moved.max() > 0.1)
-                if cal_moved:
-                    c_used = c_seg[seg_k]
-                    n_cal_rounds += 1
-            if n_new_merges == 0 and not cal_moved:
-                break
-            n_merged += n_new_merges
-            # compose with earlier rounds: a factor of a tree merged before follows it
-            alias = remap[alias]
-            g2 = gtsam.NonlinearFactorGraph()
-            g2.add(pf)
-            odo_fac = [odo_factor(ka_, kb_) for ka_, kb_ in edges]
-            for j_p, fac_p in enumerate(map_fac):  # a merged prior tree: on its representative
-                if alias[j_p] != j_p and fac_p is not None:
-                    map_fac[j_p] = gtsam.PriorFactorPoint2(
-                        LK(int(alias[j_p])), fac_p.prior(), fac_p.noiseModel()
-                    )
-            if joint_fac is not None and problem.prior_map is not None:
-                # the joint prior over the map's trees: on the representatives
-                joint_fac = joint_prior_factor(problem.prior_map, LK, alias)
-                g2.add(joint_fac)
-            for fac_o in odo_fac + gnss_fac + [f_ for f_ in map_fac if f_ is not None]:
-                g2.add(fac_o)
-            for i_m, (k_, j_, b_, r_, sb_, sr_) in enumerate(meas_rec):
-                if alias[j_] != j_:  # the tree was merged: a factor on its representative
-                    noise_m = meas_noise(np.array([sb_, sr_]))
-                    meas_fac[i_m] = gtsam.BearingRangeFactor2D(
-                        XK(k_), LK(int(alias[j_])), gtsam.Rot2(b_), r_, noise_m
-                    )
-                g2.add(meas_fac[i_m])
-            v2 = gtsam.Values()
-            for k_ in gk.tolist():
-                v2.insert(XK(k_), result.atPose2(XK(k_)))
-            for key_g in gnss_keys:
-                v2.insert(key_g, result.atPose2(key_g))
-            gone = np.zeros(n_lm, dtype=bool)
-            for t_, j_ in enumerate(ing.tolist()):
-                if remap[j_] == j_:
-                    v2.insert(LK(j_), est_xy[t_])
-                else:
-                    gone[j_] = True
-                    tgt = int(remap[j_])
-                    lm_nobs[tgt] += lm_nobs[j_]
-                    lm_dsum[tgt] += lm_dsum[j_]
-                    lm_dn[tgt] += lm_dn[j_]
-                    lm_first[tgt] = min(lm_first[tgt], lm_first[j_])
-                    lm_last[tgt] = max(lm_last[tgt], lm_last[j_])
-            lm_in_graph[:n_lm] &= ~gone
-            graph_all = g2
-            lm_params = gtsam.LevenbergMarquardtParams()
-            lm_params.setMaxIterations(max(cfg.batch_iterations, 5))
-            lm_params.setRelativeErrorTol(cfg.batch_rel_tol)
-            opt = gtsam.LevenbergMarquardtOptimizer(graph_all, v2, lm_params)
-            result = opt.optimize()
-            n_lm_iters += int(opt.iterations())
-            batch_done = True
-        if cfg.batch_iterations > 0 and not batch_done:
-            lm_params = gtsam.LevenbergMarquardtParams()
-            lm_params.setMaxIterations(cfg.batch_iterations)
-            lm_params.setRelativeErrorTol(cfg.batch_rel_tol)
-            opt = gtsam.LevenbergMarquardtOptimizer(graph_all, result, lm_params)
-            result = opt.optimize()
-            n_lm_iters += int(opt.iterations())
+        # merge duplicated trees and re-estimate the odometry calibration, alternated with
+        # batch LM on the rebuilt graph (stemmap.slam._graph_batch)
+        batch = batch_rounds(
+            gtsam, cfg, result, graph_all, keys=(XK, LK), n_lm=n_lm,
+            lm=(lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_in_graph), pf=pf,
+            odo_factor=odo_factor, edges=edges, odo_fac=odo_fac, map_fac=map_fac,
+            joint_fac=joint_fac, gnss_fac=gnss_fac, gnss_keys=gnss_keys, meas_rec=meas_rec,
+            meas_fac=meas_fac, meas_noise=meas_noise, gk=gk, prior_map=problem.prior_map,
+            calib=Calibration(
+                odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
+            ) if calibrate else None,
+        )  # fmt: skip
+        result, graph_all, odo_fac, alias = batch.result, batch.graph, batch.odo_fac, batch.alias
+        n_merged, n_cal_rounds, n_lm_iters = batch.n_merged, batch.n_cal_rounds, batch.n_lm_iters
         kf_s = kf_poses(result)  # sensor poses of the graph keyframes
         pts = np.zeros((n_lm, 2))
         ing = np.flatnonzero(lm_in_graph[:n_lm])
