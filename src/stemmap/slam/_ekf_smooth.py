@@ -42,7 +42,8 @@ import numpy as np
 from scipy.linalg import solveh_banded
 
 from stemmap.slam.base import IntArray
-from stemmap.types import FloatArray
+from stemmap.slam.treedb import range_bearing_jacobians
+from stemmap.types import FloatArray, wrap_angle
 
 __all__ = ["ObservationLog", "chain_marginals", "smooth_path"]
 
@@ -120,11 +121,6 @@ class ObservationLog:
         return f[ok].copy(), idx[ok], self._r[:n][ok].copy(), self._b[:n][ok].copy()
 
 
-def _wrap(a: FloatArray) -> FloatArray:
-    out: FloatArray = (a + math.pi) % (2 * math.pi) - math.pi
-    return out
-
-
 def _measurement_terms(
     xs: FloatArray,
     L: FloatArray,
@@ -137,24 +133,11 @@ def _measurement_terms(
     huber_k: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per measurement: ``w Jᵀ W J`` (m, 3, 3), ``w Jᵀ W e`` (m, 3) and the whitened ``e``²
-    of the range-bearing of landmarks ``L`` (covariances ``Pl``) from vehicle poses ``xs``."""
-    c, s = np.cos(xs[:, 2]), np.sin(xs[:, 2])
-    sx, sy = xs[:, 0] + a * c - b * s, xs[:, 1] + a * s + b * c
-    dsx, dsy = -a * s - b * c, a * c - b * s
-    ex, ey = L[:, 0] - sx, L[:, 1] - sy
-    q = ex * ex + ey * ey
-    rr = np.sqrt(q)
-    m = xs.shape[0]
-    Jv = np.empty((m, 2, 3))
-    Jv[:, 0, 0], Jv[:, 0, 1] = -ex / rr, -ey / rr
-    Jv[:, 0, 2] = -(ex * dsx + ey * dsy) / rr
-    Jv[:, 1, 0], Jv[:, 1, 1] = ey / q, -ex / q
-    Jv[:, 1, 2] = (-ex * dsy + ey * dsx) / q - 1.0
-    Jl = np.empty((m, 2, 2))
-    Jl[:, 0, 0], Jl[:, 0, 1] = ex / rr, ey / rr
-    Jl[:, 1, 0], Jl[:, 1, 1] = -ey / q, ex / q
+    of the range-bearing of landmarks ``L`` (covariances ``Pl``) from vehicle poses ``xs``
+    (observation model and Jacobians: :func:`stemmap.slam.treedb.range_bearing_jacobians`)."""
+    z, Jv, Jl = range_bearing_jacobians(xs, L, (a, b))
     Wm = np.linalg.inv(R1[None] + Jl @ Pl @ Jl.transpose(0, 2, 1))
-    em = np.column_stack((rz - rr, _wrap(bz - (np.arctan2(ey, ex) - xs[:, 2]))))
+    em = np.column_stack((rz - z[:, 0], wrap_angle(bz - z[:, 1])))
     d2: FloatArray = np.einsum("mi,mij,mj->m", em, Wm, em)
     dn = np.sqrt(d2)
     w = np.where(dn <= huber_k, 1.0, huber_k / np.maximum(dn, 1e-12))
@@ -232,7 +215,7 @@ def smooth_path(
         g = np.zeros((n, 3))
         diag[0] += _PRIOR_INFO * np.eye(3)
         e0 = np.asarray(poses[0], dtype=np.float64) - x[0]
-        e0[2] = _wrap(e0[2:])[0]
+        e0[2] = wrap_angle(e0[2])
         g[0] += _PRIOR_INFO * e0
         # ---- odometry factors: h = [R(θa)ᵀ (p_b - p_a), θb - θa]
         pa, pb = x[:-1], x[1:]
@@ -240,7 +223,7 @@ def smooth_path(
         dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
         h = np.column_stack((c * dx + s * dy, -s * dx + c * dy, pb[:, 2] - pa[:, 2]))
         e = deltas - h
-        e[:, 2] = _wrap(e[:, 2])
+        e[:, 2] = wrap_angle(e[:, 2])
         Ja = np.zeros((n - 1, 3, 3))
         Ja[:, 0, 0], Ja[:, 0, 1], Ja[:, 0, 2] = -c, -s, -s * dx + c * dy
         Ja[:, 1, 0], Ja[:, 1, 1], Ja[:, 1, 2] = s, -c, -c * dx - s * dy
@@ -278,7 +261,7 @@ def smooth_path(
                 ab[3 + i - k, k : 3 * (n - 1) : 3] = off[:, i, k]
         step = solveh_banded(ab, g.reshape(-1), lower=True).reshape(n, 3)
         x += step
-        x[:, 2] = _wrap(x[:, 2])
+        x[:, 2] = wrap_angle(x[:, 2])
         if np.abs(step[:, :2]).max() < 1e-4 and np.abs(step[:, 2]).max() < 1e-6:
             break
     stats["smoother_iterations"] = it
