@@ -60,7 +60,13 @@ from stemmap.slam._tree_groups import (
     pose_from_matches,
     relax_tree_graph,
 )
-from stemmap.slam.loop_closure import LoopCloser, LoopConfig, close_duplicates, relabel
+from stemmap.slam.loop_closure import (
+    LoopCloser,
+    LoopConfig,
+    close_duplicates,
+    output_pose_covariances,
+    relabel,
+)
 from stemmap.slam.relaxation import remap_trees
 from stemmap.types import FloatArray, ScanBatch, StemMap, Tree
 
@@ -81,6 +87,11 @@ log = logging.getLogger(__name__)
 IntArray = NDArray[np.int64]
 
 #: The paper's method: mean-angle pose (Öhman 2007 §2.1); group sizes 6..11 were tested.
+#: Variance factor from the pose graph's marginals (:func:`~stemmap.slam.loop_closure.
+#: output_pose_covariances`) to the reported ``SlamResult.pose_covs``, chosen on the first half
+#: of Victoria Park (docs/algorithms/slam.md, "Pose covariances of the other back-ends").
+FORESTRIX_POSE_COV_INFLATION = 1.0
+
 PRESETS: dict[str, dict[str, int | str]] = {
     "ohman2007": {"group_size": 8, "pose_method": "ohman2007"},
     "ohman2007_g6": {"group_size": 6, "pose_method": "ohman2007"},
@@ -288,7 +299,12 @@ class ForestrixSlam:
         stem_map = self._remove_false_trees(stem_map, st, problem, scans, stats)
         stats["trees_mapped"] = len(stem_map)
         stats["runtime_s"] = float(_time.perf_counter() - t_start)
-        return SlamResult(frame_trajectory(frames.times, st.poses), stem_map, stats)
+        pose_covs = output_pose_covariances(
+            st.poses, frames.times, st.closer, st.dr_cov, FORESTRIX_POSE_COV_INFLATION
+        )
+        return SlamResult(
+            frame_trajectory(frames.times, st.poses), stem_map, stats, pose_covs=pose_covs
+        )
 
     # ---- output ------------------------------------------------------------------------
 

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.slam.loop_closure import LoopConfig
+from stemmap.slam.loop_closure import LoopConfig, output_pose_covariances
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -142,6 +142,11 @@ class TreeDbConfig:
 
 
 #: Published parameter sets. ``"visual_lidar"``: the paper's count threshold 20 and our 0.5 m gate.
+#: Variance factor from the pose graph's marginals (:func:`~stemmap.slam.loop_closure.
+#: output_pose_covariances`) to the reported ``SlamResult.pose_covs``, chosen on the first half
+#: of Victoria Park (docs/algorithms/slam.md, "Pose covariances of the other back-ends").
+TREEDB_POSE_COV_INFLATION = 1.0
+
 PRESETS: dict[str, TreeDbConfig] = {
     "visual_lidar": TreeDbConfig(gate=0.5, promote_count=20),
 }
@@ -624,7 +629,14 @@ class TreeDbSlam:
             "runtime_s": _time_since(t0),
         }
         log.info("treedb: %d DB entries, %d landmarks", len(db), len(stem_map))
-        return SlamResult(frame_trajectory(frames.times, poses), stem_map, stats)
+        return SlamResult(
+            frame_trajectory(frames.times, poses),
+            stem_map,
+            stats,
+            pose_covs=output_pose_covariances(
+                poses, frames.times, closer, dr_cov, TREEDB_POSE_COV_INFLATION
+            ),
+        )
 
     def _relax(
         self,
