@@ -23,6 +23,7 @@ GPS's error alone explains the median) with the second half scored at it.
 
 Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
        python benchmarks/pose_covariance.py --vp [--backends isam2 treedb]
+       python benchmarks/pose_covariance.py --vp-gnss
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -35,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from fastslam_covariance import _fit_inflation, _pose_terms, _z2
+from fastslam_covariance import _fit_inflation, _lever, _pose_terms, _z2
 
 BACKENDS = ("isam2", "ekf", "fastslam", "treedb", "forestrix")
 
@@ -195,12 +196,50 @@ def vp(backends: list[str], dump: str | None = None) -> dict[str, Any]:
     return out
 
 
+def vp_gnss() -> dict[str, Any]:
+    """iSAM2 with every 10th screened fix fused (``VictoriaPark.gnss_split``): the laser point
+    (= the antenna) against the fixes NOT fused, no alignment (the map is in the GPS frame);
+    covariance = the pose covariance carried to the laser point + the GPS's own ``G``."""
+    import dataclasses
+
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.gps_noise import gps_revisit_error
+    from stemmap.eval.trajectory import point_track
+    from stemmap.slam.base import make_backend
+
+    vpd = load_victoria_park(None)
+    fx, unused = vpd.gnss_split()
+    problem = dataclasses.replace(vpd.problem(), gnss=fx)
+    res = make_backend("isam2").run(problem)
+    t = res.trajectory.times
+    m = unused & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
+    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
+    est = point_track(res.trajectory, gt, vpd.model.sensor_offset)
+    fi = np.clip(np.searchsorted(t, gt), 0, len(t) - 1)
+    J = _lever(res.trajectory.interpolate(gt), est)
+    P = np.asarray(res.pose_covs)
+    C = J @ P[fi] @ np.swapaxes(J, 1, 2)
+    gps = gps_revisit_error(gt, gxy, est)
+    G = np.eye(2) * gps.rms_2d**2 / 2.0
+    e = est - gxy
+    return {
+        "rows": len(t),
+        "rows_with_covariance": int(np.all(np.isfinite(P), axis=(1, 2)).sum()),
+        "fixes_scored": int(gt.size),
+        "gps_rms_2d_m": round(gps.rms_2d, 3),
+        "median_error_m": round(float(np.median(np.hypot(*e.T))), 3),
+        "median_std_m": round(float(np.median(np.sqrt(0.5 * np.trace(C, axis1=1, axis2=2)))), 3),
+        "with_gps_noise": _stats(_z2(e, C + G), 2),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--backends", nargs="+", default=list(BACKENDS))
     ap.add_argument("--sim", action="store_true", help="the simulator check (module doc)")
     ap.add_argument("--vp", action="store_true", help="the Victoria Park check (module doc)")
+    ap.add_argument("--vp-gnss", action="store_true", help="iSAM2 with GNSS on VP (vp_gnss)")
     ap.add_argument("--dump", default=None, help="with --vp: save PREFIX_BACKEND.npz (t, e, C, G)")
     a = ap.parse_args()
     out: dict[str, Any] = {}
@@ -208,6 +247,8 @@ def main() -> None:
         out["simulator"] = sim(a.seeds, a.backends)
     if a.vp:
         out["victoria_park"] = vp(a.backends, a.dump)
+    if a.vp_gnss:
+        out["victoria_park_isam2_gnss"] = vp_gnss()
     print(json.dumps(out, indent=1))
 
 
