@@ -72,7 +72,8 @@ class Isam2Config:
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     pose_marginals : also the marginal covariance of every graph keyframe, carried to every
         frame (``SlamResult.pose_covs``, :func:`_tree_and_pose_marginals`; docs/outputs.md
-        "trajectory.csv"); NaN for the frames of keyframes left out of the graph
+        "trajectory.csv"); the frames of keyframes left out of the graph bridged from their
+        graph neighbours (:func:`~stemmap.slam._graph_odometry.frame_covariances`)
     calibrate : estimate the odometry calibration from the graph's own poses: a steering
         offset (rad; yaw-rate offset in rad/s for unicycle controls) and a speed-scale
         correction (:func:`_calibration_lsq`); online over the last ``calib_window``

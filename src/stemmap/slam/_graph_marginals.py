@@ -323,8 +323,8 @@ def final_marginals(
     the trees' 2x2 marginals (``cfg.marginals``), the keyframes' 3x3 pose marginals
     (``cfg.pose_marginals``, both from one linearisation, :func:`_tree_and_pose_marginals`)
     and the trees' joint information (``cfg.joint_information``), NaN / None where not asked
-    or not available (a warning says why: GNSS keys break the pose chain, an indeterminant
-    system)."""
+    or not available (a warning says why: poses that are not a chain with leaves
+    (:func:`_chain_blocks`), an indeterminant system)."""
     tree_cov = np.full((len(tree_keys), 2, 2), np.nan)
     pose_cov = np.full((len(pose_keys), 3, 3), np.nan)
     info_j = None
