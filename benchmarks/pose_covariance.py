@@ -24,6 +24,7 @@ GPS's error alone explains the median) with the second half scored at it.
 Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
        python benchmarks/pose_covariance.py --vp [--backends isam2 treedb]
        python benchmarks/pose_covariance.py --vp-gnss
+       python benchmarks/pose_covariance.py --vp-chain-factor
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -233,6 +234,65 @@ def vp_gnss() -> dict[str, Any]:
     }
 
 
+def vp_chain_factor() -> dict[str, Any]:
+    """The tree DB / Forestrix chain variance factor (``TREEDB_POSE_COV_INFLATION``,
+    ``FORESTRIX_POSE_COV_INFLATION``) chosen on the first half of Victoria Park: one run of
+    each, the arguments of their ``output_pose_covariances`` captured, the covariances
+    recomputed for any factor ``k``; ``k`` puts 86.5 % of the two back-ends' first-half fixes
+    (pooled) inside the 2-sigma ellipse of ``C(k) + G``; the second half is scored at it."""
+    import dataclasses
+
+    from scipy.optimize import brentq
+
+    import stemmap.slam.forestrix as fx
+    import stemmap.slam.treedb as tdb
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.gps_noise import gps_revisit_error
+    from stemmap.eval.trajectory import align_se2, point_track
+    from stemmap.slam.base import make_backend
+    from stemmap.slam.loop_closure import output_pose_covariances
+
+    vpd = load_victoria_park(None)
+    problem = vpd.problem()
+    keep = vpd.screened_gps()
+    t = problem.frames.times
+    t_mid = 0.5 * (t[0] + t[-1])
+    captured: dict[str, tuple[Any, ...]] = {}
+    for mod, name in ((tdb, "treedb"), (fx, "forestrix")):
+
+        def cap(*args: Any, _n: str = name) -> Any:
+            captured[_n] = args[:4]
+            return output_pose_covariances(*args)
+
+        mod.output_pose_covariances = cap  # type: ignore[attr-defined]
+    results = {b: make_backend(b).run(problem) for b in ("treedb", "forestrix")}
+    ref = make_backend("isam2").run(problem)
+    m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
+    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
+    ref_xy = point_track(ref.trajectory, gt, vpd.model.sensor_offset)
+    gps = gps_revisit_error(gt, gxy, align_se2(ref_xy, gxy).apply(ref_xy))
+    G = np.eye(2) * gps.rms_2d**2 / 2.0
+
+    def z2_at(k: float, b: str) -> tuple[np.ndarray, np.ndarray]:
+        res = dataclasses.replace(results[b], pose_covs=output_pose_covariances(*captured[b], k))
+        ft, e, C = _pose_terms(res, vpd, keep)
+        return ft, _z2(e, C + G)
+
+    def coverage_first(lk: float) -> float:
+        z = np.concatenate([z2[ft < t_mid] for ft, z2 in (z2_at(np.exp(lk), b) for b in results)])
+        return float(np.mean(z < 4.0)) - 0.865
+
+    k = float(np.exp(brentq(coverage_first, np.log(1e-4), np.log(10.0), xtol=1e-3)))
+    out: dict[str, Any] = {"gps_rms_2d_m": round(gps.rms_2d, 3), "factor": round(k, 4)}
+    for b in results:
+        ft, z2 = z2_at(k, b)
+        out[b] = {
+            "first_half": _stats(z2[ft < t_mid], 2),
+            "second_half": _stats(z2[ft >= t_mid], 2),
+        }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
@@ -240,6 +300,9 @@ def main() -> None:
     ap.add_argument("--sim", action="store_true", help="the simulator check (module doc)")
     ap.add_argument("--vp", action="store_true", help="the Victoria Park check (module doc)")
     ap.add_argument("--vp-gnss", action="store_true", help="iSAM2 with GNSS on VP (vp_gnss)")
+    ap.add_argument(
+        "--vp-chain-factor", action="store_true", help="choose the tree DB / Forestrix factor"
+    )
     ap.add_argument("--dump", default=None, help="with --vp: save PREFIX_BACKEND.npz (t, e, C, G)")
     a = ap.parse_args()
     out: dict[str, Any] = {}
@@ -247,6 +310,8 @@ def main() -> None:
         out["simulator"] = sim(a.seeds, a.backends)
     if a.vp:
         out["victoria_park"] = vp(a.backends, a.dump)
+    if a.vp_chain_factor:
+        out["victoria_park_chain_factor"] = vp_chain_factor()
     if a.vp_gnss:
         out["victoria_park_isam2_gnss"] = vp_gnss()
     print(json.dumps(out, indent=1))

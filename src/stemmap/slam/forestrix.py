@@ -87,13 +87,15 @@ log = logging.getLogger(__name__)
 IntArray = NDArray[np.int64]
 
 #: The paper's method: mean-angle pose (Öhman 2007 §2.1); group sizes 6..11 were tested.
-#: Variance factor from the pose graph's marginals (:func:`~stemmap.slam.loop_closure.
-#: output_pose_covariances`) to the reported ``SlamResult.pose_covs``: the tree DB and Forestrix
-#: share the chain model, so one factor, chosen on the first half of Victoria Park (both
-#: back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so that 86.5 % of the
-#: fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose covariances of the
-#: other back-ends"; ``python benchmarks/pose_covariance.py --vp --dump PREFIX``).
-FORESTRIX_POSE_COV_INFLATION = 0.023
+#: Factor on the variances of the relaxation chain (``RelaxNoise``) in the pose graph whose
+#: marginals are the reported ``SlamResult.pose_covs`` (:func:`~stemmap.slam.loop_closure.
+#: output_pose_covariances`; the dead-reckoned frames' odometry covariance is not scaled): the
+#: tree DB and Forestrix share the chain model, so one factor, chosen on the first half of
+#: Victoria Park (both back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so
+#: that 86.5 % of the fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose
+#: covariances of the other back-ends"; ``python benchmarks/pose_covariance.py
+#: --vp-chain-factor``).
+FORESTRIX_POSE_COV_INFLATION = 0.0038
 
 PRESETS: dict[str, dict[str, int | str]] = {
     "ohman2007": {"group_size": 8, "pose_method": "ohman2007"},

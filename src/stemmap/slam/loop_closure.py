@@ -334,14 +334,14 @@ def output_pose_covariances(
     times: ArrayLike,
     closer: LoopCloser | None,
     odometry_cov: FloatArray | None,
-    inflation: float,
+    chain_variance_factor: float,
 ) -> FloatArray:
     """The ``SlamResult.pose_covs`` of the back-ends that relax with :class:`LoopCloser` (tree
     DB, Forestrix; issue 14): :func:`~stemmap.slam.relaxation.relaxed_pose_covariances` of the
-    final ``poses`` with the run's keyframes, loops and chain noise, times ``inflation`` (the
-    back-end's factor, chosen on Victoria Park). Without a closer (loop closure off) the
-    keyframes follow the default :class:`LoopConfig` rule and there are no loops: the chain's
-    open-loop drift."""
+    final ``poses`` with the run's keyframes, loops and chain noise, the chain's variances times
+    ``chain_variance_factor`` (the back-end's factor, chosen on Victoria Park). Without a
+    closer (loop closure off) the keyframes follow the default :class:`LoopConfig` rule and
+    there are no loops: the chain's open-loop drift."""
     if closer is None:
         closer = LoopCloser(LoopConfig(), times)
         for f in range(poses.shape[0]):
@@ -352,5 +352,5 @@ def output_pose_covariances(
         closer.loops,
         noise=closer.cfg.noise,
         odometry_cov=odometry_cov,
-        inflation=inflation,
+        chain_variance_factor=chain_variance_factor,
     )

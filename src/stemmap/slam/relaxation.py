@@ -31,6 +31,7 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -232,7 +233,7 @@ def relaxed_pose_covariances(
     *,
     noise: RelaxNoise | None = None,
     odometry_cov: ArrayLike | None = None,
-    inflation: float = 1.0,
+    chain_variance_factor: float = 1.0,
 ) -> FloatArray:
     """(F, 3, 3) covariance of each frame's pose (x, y, θ in the map frame) in the pose graph
     of :func:`relax_trajectory`, at the final ``poses`` (ours; issue 14).
@@ -245,9 +246,11 @@ def relaxed_pose_covariances(
     from the fixed start and pulled in by every loop closure: open stretches grow, closed loops
     shrink. A frame between keyframes carries its keyframe's covariance with the partial
     chain noise of its offset ``r`` from it: ``Ad(r⁻¹) C Ad(r⁻¹)ᵀ + Q(r)`` (GTSAM's right
-    perturbation), then rotated to the map frame. ``inflation`` scales the result (chosen
-    per back-end on real data, docs/algorithms/slam.md). Without loops the chain alone: the
-    open-loop drift.
+    perturbation), then rotated to the map frame. ``chain_variance_factor`` scales the
+    variances of the :class:`RelaxNoise` chain only (a drift model for weighting the
+    relaxation, not a calibrated noise: the factor is chosen per back-end on real data,
+    docs/algorithms/slam.md); the dead-reckoned frames' ``odometry_cov`` (the motion model's)
+    and the loop constraints keep theirs. Without loops the chain alone: the open-loop drift.
     """
     import gtsam
 
@@ -255,7 +258,16 @@ def relaxed_pose_covariances(
 
     p = np.array(poses, dtype=np.float64).reshape(-1, 3)
     kf = _check_keyframes(keyframes, p.shape[0])
-    nz = noise or RelaxNoise()
+    r = math.sqrt(chain_variance_factor)
+    nz0 = noise or RelaxNoise()
+    nz = dataclasses.replace(
+        nz0,
+        xy_base=r * nz0.xy_base,
+        xy_per_m=r * nz0.xy_per_m,
+        theta_base=r * nz0.theta_base,
+        theta_per_rad=r * nz0.theta_per_rad,
+        theta_per_m=r * nz0.theta_per_m,
+    )
     graph, init, kp = _relax_graph(p, kf, loops, nz, odometry_cov)
     marg = gtsam.Marginals(graph, init)
     kc = np.array([marg.marginalCovariance(k) for k in range(kp.shape[0])])
@@ -273,7 +285,7 @@ def relaxed_pose_covariances(
     c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
     R = np.zeros_like(C)
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
-    out = inflation * (R @ C @ np.swapaxes(R, 1, 2))
+    out = R @ C @ np.swapaxes(R, 1, 2)
     return np.asarray(0.5 * (out + np.swapaxes(out, 1, 2)), dtype=np.float64)
 
 

@@ -142,13 +142,15 @@ class TreeDbConfig:
 
 
 #: Published parameter sets. ``"visual_lidar"``: the paper's count threshold 20 and our 0.5 m gate.
-#: Variance factor from the pose graph's marginals (:func:`~stemmap.slam.loop_closure.
-#: output_pose_covariances`) to the reported ``SlamResult.pose_covs``: the tree DB and Forestrix
-#: share the chain model, so one factor, chosen on the first half of Victoria Park (both
-#: back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so that 86.5 % of the
-#: fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose covariances of the
-#: other back-ends"; ``python benchmarks/pose_covariance.py --vp --dump PREFIX``).
-TREEDB_POSE_COV_INFLATION = 0.023
+#: Factor on the variances of the relaxation chain (``RelaxNoise``) in the pose graph whose
+#: marginals are the reported ``SlamResult.pose_covs`` (:func:`~stemmap.slam.loop_closure.
+#: output_pose_covariances`; the dead-reckoned frames' odometry covariance is not scaled): the
+#: tree DB and Forestrix share the chain model, so one factor, chosen on the first half of
+#: Victoria Park (both back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so
+#: that 86.5 % of the fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose
+#: covariances of the other back-ends"; ``python benchmarks/pose_covariance.py
+#: --vp-chain-factor``).
+TREEDB_POSE_COV_INFLATION = 0.0038
 
 PRESETS: dict[str, TreeDbConfig] = {
     "visual_lidar": TreeDbConfig(gate=0.5, promote_count=20),
