@@ -118,9 +118,7 @@ def gps_variogram(
         ``gamma(tau) = ¼ mean |(g_j - g_i) - (p_j - p_i)|²`` (per axis).
     """
     t, g, p = _inputs(gps_times, gps_xy, path_xy, "gps_variogram")
-    lg = np.asarray(lags, dtype=np.float64).reshape(-1)
-    if np.any(~np.isfinite(lg)) or np.any(lg <= 0):
-        raise InputError(f"gps_variogram: lags must be positive seconds, got {lg}.")
+    lg = _lags(lags, "gps_variogram")
     r = g - p
     gam = np.full(lg.shape, np.nan)
     cnt = np.zeros(lg.shape)
@@ -131,6 +129,13 @@ def gps_variogram(
             d = r[j] - r[i]
             gam[k] = 0.25 * float(np.mean(np.sum(d * d, axis=1)))
     return GpsVariogram(lg, gam, cnt)
+
+
+def _lags(lags: ArrayLike, name: str) -> FloatArray:
+    lg = np.asarray(lags, dtype=np.float64).reshape(-1)
+    if np.any(~np.isfinite(lg)) or np.any(lg <= 0):
+        raise InputError(f"{name}: lags must be positive seconds, got {lg}.")
+    return lg
 
 
 def _lag_pairs(
@@ -162,9 +167,7 @@ def gps_autocorrelation(
     shows as correlation at long lags.
     """
     t, g, p = _inputs(gps_times, gps_xy, path_xy, "gps_autocorrelation")
-    lg = np.asarray(lags, dtype=np.float64).reshape(-1)
-    if np.any(~np.isfinite(lg)) or np.any(lg <= 0):
-        raise InputError(f"gps_autocorrelation: lags must be positive seconds, got {lg}.")
+    lg = _lags(lags, "gps_autocorrelation")
     e = g - p
     e = e - e.mean(axis=0)
     var = float(np.mean(np.sum(e * e, axis=1)))
