@@ -24,10 +24,14 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   guesses off by U(-20, 20) m in x and y and U(-30, 30) deg (``--trials``, seed 0); success =
   accepted within 30 s of driving, within 1 m and 2 deg of session 1's end pose carried over
   the gap by odometry (``reloc_success_rate``, ``reloc_time_s_*``). Session 2 is then mapped on
-  the prior map (its trees held jointly by session 1's tree information, session 1's odometry
-  calibration carried over) and scored on the screened fixes after 800 s with its own
-  alignment, next to the same session on per-tree priors without the calibration, without
-  the prior map, and to the full single run on the same fixes.
+  the prior map (default: each tree held by its own Huber prior on its marginal; session 1's
+  odometry calibration carried over) and scored on the screened fixes after 800 s with its
+  own alignment, next to the same with the trees held jointly by session 1's tree information
+  (``session2_prior_map_joint``), on Gaussian per-tree priors without the calibration,
+  without the prior map, and to the full single run on the same fixes.
+  ``--reloc-per-trial``: session 2 mapped from every accepted trial's pose, joint vs Huber;
+  ``--reloc-splits 400,600``: other session pairs (map 0-s, relocalise and map s-1549 s),
+  joint vs Huber vs the full run.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
@@ -36,7 +40,8 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
 Usage::
 
     python benchmarks/slam_field.py --json [--data DIR] [--parts gnss,reloc,online]
-        [--trials 20] [--write-gnss-csv FILE] [--reloc-diagnosis]
+        [--trials 20] [--write-gnss-csv FILE] [--reloc-diagnosis] [--reloc-per-trial]
+        [--reloc-splits 400,600]
 
 ``--write-gnss-csv`` writes the fused fixes as the CSV ``stemmap map --gnss`` reads (to repeat
 the GNSS part from the command line). The machine is shared and loaded: latency is wall time
@@ -314,7 +319,12 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
         d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
         rel = relocalise(p2, r1.stem_map, guess=tuple(compose(r1.trajectory.poses[-1], d)))
         p2r = dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map)
-        s2_ph.append([round(t2f, 3), score(Isam2Slam().run(with_calibration(p2r, *cal)), 801.0)])
+        s2_ph.append(
+            [
+                round(t2f, 3),
+                score(Isam2Slam(prior_map_robust="none").run(with_calibration(p2r, *cal)), 801.0),
+            ]
+        )
         # each prior tree held by its own Huber prior instead of the joint one
         r2h = Isam2Slam(prior_map_robust="huber").run(with_calibration(p2r, *cal))
         hub_ph.append([round(t2f, 3), score(r2h, 801.0)])
@@ -333,12 +343,16 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
     t2f = float(p2.frames.times[0])
     base = dataclasses.replace(p2, initial_pose=first.pose, prior_map=r1.stem_map)
     start = tuple(full.trajectory.interpolate([t2f])[0])
-    res = Isam2Slam().run(with_calibration(dataclasses.replace(base, initial_pose=start), *cal))
+    res = Isam2Slam(prior_map_robust="none").run(
+        with_calibration(dataclasses.replace(base, initial_pose=start), *cal)
+    )
     out["start_from_full_run_pose_ate_m"] = score(res, t2f)
     info = r1.stem_map.information
     for f in (0.25, 4.0):
         pm = dataclasses.replace(r1.stem_map, information=info * f)
-        res = Isam2Slam().run(with_calibration(dataclasses.replace(base, prior_map=pm), *cal))
+        res = Isam2Slam(prior_map_robust="none").run(
+            with_calibration(dataclasses.replace(base, prior_map=pm), *cal)
+        )
         out[f"prior_information_x{f:g}_ate_m"] = score(res, t2f)
     m1, xy2 = r1.stem_map, r2.stem_map.xy
     dist, j = cKDTree(xy2).query(m1.xy)
@@ -499,20 +513,23 @@ def _reloc(
         "+-20 m, +-30 deg), seed 0",
     }
     if first is not None:
-        # session 2 on the prior map: all its trees held by their joint information, the
-        # odometry calibration of session 1 carried over (same vehicle)
+        # session 2 on the prior map (default: each prior tree held by its own Huber prior),
+        # the odometry calibration of session 1 carried over (same vehicle); and the same with
+        # all its trees held by their joint information
         cal = (float(r1.stats["calib_offset_mean"]), float(r1.stats["calib_scale_mean"]))
         p2r = dataclasses.replace(p2, initial_pose=first.pose, prior_map=r1.stem_map)
         r2 = Isam2Slam().run(with_calibration(p2r, *cal))
+        r2j = Isam2Slam(prior_map_robust="none").run(with_calibration(p2r, *cal))
         # as before: independent per-tree priors (the map without its joint information), no
         # calibration carried over
         diag_map = dataclasses.replace(r1.stem_map, information=None)
-        r2d = Isam2Slam().run(dataclasses.replace(p2r, prior_map=diag_map))
+        r2d = Isam2Slam(prior_map_robust="none").run(dataclasses.replace(p2r, prior_map=diag_map))
         m2 = keep & (vp.gps_times >= t2f)
         alone = Isam2Slam().run(p2)
         full = Isam2Slam().run(vp.problem())
         for name, res in (
             ("session2_prior_map", r2),
+            ("session2_prior_map_joint", r2j),
             ("session2_prior_map_per_tree", r2d),
             ("session2_alone", alone),
             ("full", full),
