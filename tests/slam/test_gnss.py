@@ -243,9 +243,7 @@ def test_gnss_offset_gauss_markov_bridge_and_smoother():
     from stemmap.slam.gnss import GnssOffset, gnss_frame_trajectory, gnss_offset
     from stemmap.types import Trajectory
 
-    off = GnssOffset(
-        np.array([0.0, 100.0]), np.array([[1.0, 0.0], [1.0, -2.0]]), np.ones(2), 10.0
-    )
+    off = GnssOffset(np.array([0.0, 100.0]), np.array([[1.0, 0.0], [1.0, -2.0]]), np.ones(2), 10.0)
     got = off.at([0.0, 50.0, 100.0, 110.0, -10.0])
     mid = 2.0 * math.sinh(5.0) / math.sinh(10.0) / 2.0
     np.testing.assert_allclose(got[0], [1.0, 0.0], atol=1e-12)
