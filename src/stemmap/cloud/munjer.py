@@ -56,11 +56,13 @@ class MunjerConfig:
     window : int, >= 1 -- lidar frames clustered together by
         :func:`stemmap.slam.munjer.eb_lidar_observations`: each frame's pass-through points
         joined with those of the ``window - 1`` frames before it, moved into its lidar frame
-        with the motion source's poses. The paper is silent (it clusters "the filtered point
-        cloud P'" of a moving robot); 1 = strictly per frame, the Munjer pipeline's default:
-        5 frames gain trees on the simulator but add false ones on a real plot
-        (docs/algorithms/cloud.md, "Accumulated frames"). :func:`detect_stems_munjer` itself
-        always takes one cloud.
+        with the motion source's poses, its detections (minPts from one frame) added to the
+        frame's own. The paper is silent (it clusters "the filtered point cloud P'" of a
+        moving robot); 1 = strictly per frame, the Munjer pipeline's default (as published):
+        5 frames gain trees on the simulator and on virtual frames of a real plot, with no
+        false tree on either (docs/algorithms/cloud.md, "Accumulated frames").
+        :func:`detect_stems_munjer` itself takes one cloud (with ``frame_ids`` for a joined
+        one).
     """
 
     box_x: tuple[float, float] | None = (0.0, 10.0)
