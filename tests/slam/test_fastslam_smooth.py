@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from test_ekf_smooth import _observe, _relative  # tests/slam is on sys.path
+from test_ekf_smooth import _drifted_chain, _observe, _relative  # tests/slam on sys.path
 from test_fastslam import _first_frames
 from test_treedb import sim_problem
 
@@ -28,7 +28,6 @@ def test_smooth_joint_recovers_path_and_trees_from_a_drifted_start():
     and the trees were mapped from that drifted path -- FastSLAM's state after a drift."""
     rng = np.random.default_rng(5)
     true = _turn()
-    n = true.shape[0]
     lm = rng.uniform(-30, 50, size=(50, 2))
     a, b = 3.78, 0.5
     obs = _observe(true, lm, (a, b), 25.0, 4)
@@ -37,12 +36,7 @@ def test_smooth_joint_recovers_path_and_trees_from_a_drifted_start():
     remap = np.searchsorted(seen, obs[1][keep])
     obs = (obs[0][keep], remap, obs[2][keep], obs[3][keep])
     lm = lm[seen]
-    deltas = _relative(true[:-1], true[1:])
-    covs = np.broadcast_to(np.diag([0.05**2, 0.01**2, 0.01**2]), (n - 1, 3, 3)).copy()
-    drift = np.radians(np.linspace(0.0, 6.0, n))
-    start = true.copy()
-    start[:, 2] += drift
-    start[:, :2] += np.cumsum(np.column_stack((np.zeros(n), np.sin(drift) * 0.15)), axis=0)
+    deltas, covs, drift, start = _drifted_chain(true)
     # each tree where the drifted path at its first sighting put it
     first = np.array([obs[0][obs[1] == j].min() for j in range(lm.shape[0])])
     rot = drift[first]
