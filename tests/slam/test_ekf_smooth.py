@@ -36,6 +36,19 @@ def _observe(poses, lm, offset, max_range, per_frame, rng=None, sigmas=(0.0, 0.0
     return np.array(fr), np.array(lj), np.array(rz), np.array(bz)
 
 
+def _drifted_chain(true: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Exact odometry increments of the path ``true`` (N, 3), their covariances, a heading
+    drift growing to 6 degrees and the path dead-reckoned with that drift."""
+    n = true.shape[0]
+    deltas = _relative(true[:-1], true[1:])
+    covs = np.broadcast_to(np.diag([0.05**2, 0.01**2, 0.01**2]), (n - 1, 3, 3)).copy()
+    drift = np.radians(np.linspace(0.0, 6.0, n))
+    start = true.copy()
+    start[:, 2] += drift
+    start[:, :2] += np.cumsum(np.column_stack((np.zeros(n), np.sin(drift) * 0.15)), axis=0)
+    return deltas, covs, drift, start
+
+
 def test_smooth_path_recovers_the_true_path_from_a_drifted_start():
     """Exact odometry and exact range-bearing measurements of exact landmarks: the least-squares
     path is the true one, whatever drift the starting path has (here a heading error growing
@@ -49,12 +62,7 @@ def test_smooth_path_recovers_the_true_path_from_a_drifted_start():
     a, b = 3.78, 0.5
     obs = _observe(true, lm, (a, b), 25.0, 4)
     fr = obs[0]
-    deltas = _relative(true[:-1], true[1:])
-    covs = np.broadcast_to(np.diag([0.05**2, 0.01**2, 0.01**2]), (n - 1, 3, 3)).copy()
-    drift = np.radians(np.linspace(0.0, 6.0, n))
-    start = true.copy()
-    start[:, 2] += drift
-    start[:, :2] += np.cumsum(np.column_stack((np.zeros(n), np.sin(drift) * 0.15)), axis=0)
+    deltas, covs, _, start = _drifted_chain(true)
     R1 = np.diag([0.3**2, math.radians(1.0) ** 2])
     out, pcov, stats = smooth_path(
         start, deltas, covs, obs, lm, np.zeros((lm.shape[0], 2, 2)), (a, b), R1

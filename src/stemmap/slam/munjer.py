@@ -404,6 +404,7 @@ def map_munjer(problem: SlamProblem, config: MunjerMapConfig | None = None) -> S
         sigma_bearing=cfg.sigma_bearing,
         min_observations=cfg.min_observations,
         seed=cfg.seed,
+        smooth=False,  # the paper's FastSLAM: no joint smoothing afterwards (ours)
     )
     result = fs.run(problem)
     if cfg.refine and len(result.stem_map):
