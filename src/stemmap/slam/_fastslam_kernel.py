@@ -189,7 +189,7 @@ def associate_update(
                     win = False
                     break
             assoc[p, k] = jb[k] if win else -2
-        # 5. EKF update of the winners (distinct landmarks): fastslam._ekf_update per pair
+        # 5. EKF update of the winners (distinct landmarks): _fastslam_particles._ekf_update
         for k in range(K):
             j = assoc[p, k]
             if j < 0:
