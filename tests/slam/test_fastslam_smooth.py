@@ -10,7 +10,7 @@ from test_fastslam import _first_frames
 from test_treedb import sim_problem
 
 from stemmap.slam._ekf_smooth import _ODO_FLOOR, _PRIOR_INFO
-from stemmap.slam._fastslam_smooth import smooth_joint
+from stemmap.slam._fastslam_smooth import nearest_tree_association, smooth_joint
 from stemmap.slam.base import dead_reckoning
 from stemmap.slam.fastslam import FastSlam
 from stemmap.slam.treedb import range_bearing_jacobians
@@ -105,10 +105,36 @@ def test_smooth_joint_tree_covariance_is_the_marginal_of_the_information():
     np.testing.assert_allclose(C, want, rtol=1e-5, atol=1e-12)
 
 
+def test_nearest_tree_association_finds_the_tree_each_detection_came_from():
+    """Noisy detections (0.2 m, 1 deg) of trees >= 4 m apart from the true path: each goes to
+    the tree it came from; a detection in empty ground (10 m from every tree) and the second
+    detection of one tree in a frame (the worse fit) go to none."""
+    rng = np.random.default_rng(3)
+    true = _turn(60)
+    g = np.arange(-20.0, 45.0, 5.0)
+    lm = np.array([(x, y) for x in g for y in g]) + rng.uniform(-0.5, 0.5, (g.size**2, 2))
+    a, b = 3.78, 0.5
+    R1 = np.diag([0.2**2, math.radians(1.0) ** 2])
+    fr, lj, rz, bz = _observe(true, lm, (a, b), 20.0, 6, rng, (0.2, math.radians(1.0)))
+    got, d2 = nearest_tree_association(true, lm, fr, rz, bz, (a, b), R1, 13.8)
+    np.testing.assert_array_equal(got, lj)
+    assert np.all(d2 < 13.8) and 1.0 < d2.mean() < 3.0  # chi-square with 2 dof: mean 2
+    # frame 0: a duplicate of its first detection (range + 0.5 m) and one in empty ground
+    far = np.array([100.0, 100.0])
+    c, s_ = math.cos(true[0, 2]), math.sin(true[0, 2])
+    sx, sy = true[0, 0] + a * c - b * s_, true[0, 1] + a * s_ + b * c
+    fr2 = np.r_[fr, 0, 0]
+    rz2 = np.r_[rz, rz[0] + 0.5, math.hypot(far[0] - sx, far[1] - sy)]
+    bz2 = np.r_[bz, bz[0], math.atan2(far[1] - sy, far[0] - sx) - true[0, 2]]
+    got2, _ = nearest_tree_association(true, lm, fr2, rz2, bz2, (a, b), R1, 13.8)
+    np.testing.assert_array_equal(got2[:-2], lj)
+    assert got2[-2] == -1 and got2[-1] == -1
+
+
 def test_fastslam_smoothing_uses_the_best_lineage_associations_and_closes_the_loop():
-    """Every detection the best particle's lineage put into a mapped tree is one smoother
-    measurement (so their count per tree is the tree's n_obs), and the smoothed loop is at
-    least as good as the raw filter's."""
+    """Every detection the smoothing associates with a mapped tree (the best particle's
+    lineage's, then re-associated) is one smoother measurement (so their count per tree is the
+    tree's n_obs), and the smoothed loop is at least as good as the raw filter's."""
     problem, run = sim_problem(seed=2, laps=1.2)
     truth = run.vehicle_poses.poses
     fs = FastSlam(n_particles=30, seed=3, record_diagnostics=True)

@@ -26,6 +26,15 @@ problem of a pose-landmark graph (Thrun & Montemerlo, "The GraphSLAM algorithm",
 2006) with the data association taken from the particle filter; Gauss-Newton, each step one
 sparse LU solve (SuperLU, minimum-degree ordering on H + Hᵀ) of the normal equations.
 
+With ``FastSlam.reassociate`` (ours), the filter's association is only the start: after each
+solve, every detection of the run is re-assigned to the smoothed tree it fits best (smallest
+whitened range-bearing residual under ``R`` at the smoothed pose, below the filter's
+new-landmark gate ``new_landmark_chi2``, one detection per tree per frame), trees left with
+fewer than ``min_observations`` detections are dropped, and the problem is solved again --
+the alternation of association and least squares of batch graph SLAM (Thrun & Montemerlo
+2006, §3.4, "data association" by correspondence tests), done with the smoothed map instead
+of the particle's.
+
 The covariance of each smoothed tree is the 2x2 block of the inverse of the last Gauss-Newton
 information (the Laplace approximation of the joint posterior, Huber weights included).
 """
@@ -40,6 +49,7 @@ import numpy as np
 from scipy.linalg import solveh_banded
 from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import splu
+from scipy.spatial import cKDTree
 
 from stemmap.slam._ekf_smooth import (
     _ODO_FLOOR,
@@ -57,7 +67,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from stemmap.slam.base import SlamProblem
     from stemmap.slam.fastslam import FastSlam
 
-__all__ = ["smooth_fastslam", "smooth_joint"]
+__all__ = ["nearest_tree_association", "smooth_fastslam", "smooth_joint"]
 
 
 def _block_coo(
@@ -183,6 +193,76 @@ def smooth_joint(
     return x, L, lm_cov, stats
 
 
+def nearest_tree_association(
+    x: FloatArray,
+    L: FloatArray,
+    fr: IntArray,
+    rz: FloatArray,
+    bz: FloatArray,
+    sensor_offset: tuple[float, float],
+    R1: FloatArray,
+    gate: float,
+    k: int = 4,
+) -> tuple[IntArray, FloatArray]:
+    """Each detection ``(fr, rz, bz)`` (K,) assigned to the tree of ``L`` (L, 2) it fits best
+    from pose ``x[fr]``: among its ``k`` nearest trees (Euclidean, around the detection's world
+    point) the smallest whitened residual ``d2 = e^T R1^-1 e`` of the range-bearing
+    measurement, if below ``gate``; one detection per tree per frame (the smaller ``d2`` wins).
+
+    Returns the tree per detection (K,) (-1: none) and the best ``d2`` (K,) (before the gate
+    and the one-per-frame rule)."""
+    K, m = fr.size, L.shape[0]
+    if K == 0 or m == 0:
+        return np.full(K, -1, np.int64), np.full(K, math.inf)
+    a, b = sensor_offset
+    th = x[fr, 2]
+    c, s = np.cos(th), np.sin(th)
+    wx = x[fr, 0] + a * c - b * s + rz * np.cos(th + bz)
+    wy = x[fr, 1] + a * s + b * c + rz * np.sin(th + bz)
+    kk = min(k, m)
+    _, cand = cKDTree(L).query(np.column_stack((wx, wy)), k=kk)
+    cand = np.asarray(cand, dtype=np.int64).reshape(K, kk)
+    z, _, _ = range_bearing_jacobians(x[fr][:, None, :], L[cand], sensor_offset)
+    e = np.stack((rz[:, None] - z[..., 0], wrap_angle(bz[:, None] - z[..., 1])), axis=-1)
+    d2c = np.einsum("kci,ij,kcj->kc", e, np.linalg.inv(R1), e)
+    jb = np.argmin(d2c, axis=1)
+    d2 = d2c[np.arange(K), jb]
+    lj = np.where(d2 < gate, cand[np.arange(K), jb], -1)
+    hit = np.flatnonzero(lj >= 0)
+    key = fr[hit] * m + lj[hit]
+    order = np.lexsort((d2[hit], key))
+    first = np.r_[True, key[order][1:] != key[order][:-1]]
+    lj[hit[order[~first]]] = -1
+    return lj, d2
+
+
+def _reassociated_trees(
+    trees: list[Tree], lj: IntArray, t_det: FloatArray, d_det: FloatArray
+) -> list[Tree]:
+    """``trees`` (re-numbered) with ``n_obs``, first / last time and mean diameter from the
+    detections assigned to them (``lj`` indexes ``trees``; NaN diameters are skipped)."""
+    m = len(trees)
+    n = np.bincount(lj, minlength=m)
+    t0 = np.full(m, math.inf)
+    t1 = np.full(m, -math.inf)
+    np.minimum.at(t0, lj, t_det)
+    np.maximum.at(t1, lj, t_det)
+    fin = np.isfinite(d_det)
+    dn = np.bincount(lj[fin], minlength=m)
+    ds = np.bincount(lj[fin], weights=d_det[fin], minlength=m)
+    return [
+        replace(
+            t,
+            id=i,
+            n_obs=int(n[i]),
+            first_time=float(t0[i]),
+            last_time=float(t1[i]),
+            diameter=float(ds[i] / dn[i]) if dn[i] else t.diameter,
+        )
+        for i, t in enumerate(trees)
+    ]
+
+
 def smooth_fastslam(
     fs: FastSlam,
     problem: SlamProblem,
@@ -197,10 +277,14 @@ def smooth_fastslam(
     on the detections of the best particle's lineage: ``lineage_ids`` holds, per frame with
     detections, the landmark id each detection went to in the ancestor of the final best
     particle at that frame (-1: none); ``ids`` are the ids of ``trees``. Trees the smoothing
-    brings within ``fs.merge_dist`` are merged (iSAM2's rule) and the problem solved again, up
-    to ``fs.merge_rounds`` times. Returns the path, the trees, the pose covariances (the
-    smoothed path given the smoothed map: :func:`stemmap.slam._ekf_smooth.smooth_path`'s chain
-    marginals at that path, one linearisation, no step) times ``fs.pose_cov_inflation``, with
+    brings within ``fs.merge_dist`` are merged (iSAM2's rule) and, with ``fs.reassociate``,
+    every detection of the run re-assigned to the smoothed trees
+    (:func:`nearest_tree_association`, gate ``fs.new_landmark_chi2``; trees left with fewer
+    than ``fs.min_observations`` detections dropped); the problem is solved again after each
+    such round that changed something, up to ``fs.merge_rounds`` times. Returns the path, the
+    trees, the pose covariances (the smoothed path given the smoothed map:
+    :func:`stemmap.slam._ekf_smooth.smooth_path`'s chain marginals at that path, one
+    linearisation, no step) times ``fs.pose_cov_inflation``, with
     the trees' joint marginals times ``fs.tree_cov_inflation``, and stats."""
     frames = problem.frames
     fr = np.concatenate([np.full(v.size, f, np.int64) for f, v in lineage_ids])
@@ -210,47 +294,84 @@ def smooth_fastslam(
     at = np.minimum(np.searchsorted(ids[order], li), ids.size - 1)
     ok = (li >= 0) & (ids[order][at] == li)
     fr, det, lj = fr[ok], det[ok], order[at[ok]]
-    start = np.asarray(frames.ptr[fr], dtype=np.int64)
-    rz = np.asarray(frames.ranges)[start + det]
-    bz = np.asarray(frames.bearings)[start + det]
+    # every detection of the run (re-association and the GPS-free score use them all)
+    ptr = np.asarray(frames.ptr, dtype=np.int64)
+    fr_all = np.repeat(np.arange(ptr.size - 1, dtype=np.int64), np.diff(ptr))
+    rz_all = np.asarray(frames.ranges, dtype=np.float64)
+    bz_all = np.asarray(frames.bearings, dtype=np.float64)
+    cur = np.full(fr_all.size, -1, np.int64)  # tree of each detection (-1: none)
+    cur[ptr[fr] + det] = lj
     L = np.array([[t.x, t.y] for t in trees])
     off = problem.sensor_offset
-    x, n_merged = traj, 0
+    gate = float(fs.new_landmark_chi2)
+    x, n_merged, n_reassoc, n_moved = traj, 0, 0, 0
     st: dict[str, float | int] = {}
     for round_ in range(fs.merge_rounds + 1):
-        x, L, lm_cov, st_r = smooth_joint(x, pre.deltas, pre.covs, (fr, lj, rz, bz), L, off, R)
+        use = np.flatnonzero(cur >= 0)
+        obs = (fr_all[use], cur[use], rz_all[use], bz_all[use])
+        x, L, lm_cov, st_r = smooth_joint(x, pre.deltas, pre.covs, obs, L, off, R)
         if round_:
             st_r["smoother_meas_d2_before"] = st["smoother_meas_d2_before"]
             st_r["smoother_iterations"] += st["smoother_iterations"]
         st = st_r
-        if round_ == fs.merge_rounds or fs.merge_dist <= 0:
+        if round_ == fs.merge_rounds:
             break
-        # trees the smoothing brought together: one trunk mapped twice (iSAM2's rule)
-        cnt = np.array([t.n_obs for t in trees], dtype=np.float64)
-        dia = np.array([t.diameter for t in trees])
-        rep = _merge_duplicates(L, np.nan_to_num(dia, nan=0.0), cnt, fs.merge_dist, fs.merge_ddiam)
-        groups, inv = np.unique(rep, return_inverse=True)
-        if groups.size == len(trees):
-            break
-        n_merged += len(trees) - groups.size
-        w = np.bincount(inv, weights=cnt)
-        L = np.column_stack([np.bincount(inv, weights=cnt * L[:, i]) / w for i in (0, 1)])
-        fin = np.isfinite(dia)
-        wd = np.bincount(inv, weights=np.where(fin, cnt, 0.0))
-        ds = np.bincount(inv, weights=np.where(fin, cnt * np.nan_to_num(dia), 0.0))
-        trees = [
-            replace(
-                trees[int(g)],
-                id=i,
-                diameter=float(ds[i] / wd[i]) if wd[i] > 0 else math.nan,
-                n_obs=int(w[i]),
-                first_time=min(t.first_time for t, m in zip(trees, inv, strict=True) if m == i),
-                last_time=max(t.last_time for t, m in zip(trees, inv, strict=True) if m == i),
+        changed = False
+        if fs.merge_dist > 0:
+            # trees the smoothing brought together: one trunk mapped twice (iSAM2's rule)
+            cnt = np.array([t.n_obs for t in trees], dtype=np.float64)
+            dia = np.array([t.diameter for t in trees])
+            rep = _merge_duplicates(
+                L, np.nan_to_num(dia, nan=0.0), cnt, fs.merge_dist, fs.merge_ddiam
             )
-            for i, g in enumerate(groups)
-        ]
-        lj = inv[lj]
-    obs = (fr, lj, rz, bz)
+            groups, inv = np.unique(rep, return_inverse=True)
+            if groups.size < len(trees):
+                changed = True
+                n_merged += len(trees) - groups.size
+                w = np.bincount(inv, weights=cnt)
+                L = np.column_stack([np.bincount(inv, weights=cnt * L[:, i]) / w for i in (0, 1)])
+                fin = np.isfinite(dia)
+                wd = np.bincount(inv, weights=np.where(fin, cnt, 0.0))
+                ds = np.bincount(inv, weights=np.where(fin, cnt * np.nan_to_num(dia), 0.0))
+                trees = [
+                    replace(
+                        trees[int(g)],
+                        id=i,
+                        diameter=float(ds[i] / wd[i]) if wd[i] > 0 else math.nan,
+                        n_obs=int(w[i]),
+                        first_time=min(
+                            t.first_time for t, m in zip(trees, inv, strict=True) if m == i
+                        ),
+                        last_time=max(
+                            t.last_time for t, m in zip(trees, inv, strict=True) if m == i
+                        ),
+                    )
+                    for i, g in enumerate(groups)
+                ]
+                cur = np.where(cur >= 0, inv[np.maximum(cur, 0)], -1)
+        if fs.reassociate:
+            new, _ = nearest_tree_association(x, L, fr_all, rz_all, bz_all, off, R, gate)
+            n_det = np.bincount(new[new >= 0], minlength=L.shape[0])
+            kept = n_det >= fs.min_observations
+            moved = int(np.count_nonzero(new != cur))  # tree indices before any drop
+            remap = np.cumsum(kept) - 1
+            new = np.where((new >= 0) & kept[np.maximum(new, 0)], remap[np.maximum(new, 0)], -1)
+            if not kept.all() or moved:
+                changed = True
+                n_reassoc += 1
+                n_moved = moved
+                cur = new
+                L = L[kept]
+                trees = _reassociated_trees(
+                    [t for t, k_ in zip(trees, kept, strict=True) if k_],
+                    cur[cur >= 0],
+                    np.asarray(frames.times, dtype=np.float64)[fr_all[cur >= 0]],
+                    np.asarray(frames.diameters, dtype=np.float64)[cur >= 0],
+                )
+        if not changed:
+            break
+    use = np.flatnonzero(cur >= 0)
+    obs = (fr_all[use], cur[use], rz_all[use], bz_all[use])
     _, pose_covs, _ = smooth_path(x, pre.deltas, pre.covs, obs, L, lm_cov, off, R, iterations=1)
     pose_covs *= float(fs.pose_cov_inflation or 1.0)
     lm_cov *= float(fs.tree_cov_inflation or 1.0)
@@ -258,4 +379,12 @@ def smooth_fastslam(
         replace(t, x=float(L[i, 0]), y=float(L[i, 1]), cov=lm_cov[i]) for i, t in enumerate(trees)
     ]
     st["smoother_merged"] = n_merged
+    st["smoother_reassociations"] = n_reassoc
+    st["smoother_reassoc_last_changed"] = n_moved  # detections re-assigned in the last round
+    # GPS-free score of the result: every detection of the run against its best-fitting tree
+    # of the output map from the output path, d2 capped at the gate (an unexplained detection
+    # costs the gate), and the share explained within it
+    _, d2_all = nearest_tree_association(x, L, fr_all, rz_all, bz_all, off, R, gate)
+    st["smoother_all_det_d2"] = float(np.minimum(d2_all, gate).mean()) if d2_all.size else 0.0
+    st["smoother_all_det_explained"] = float((d2_all < gate).mean()) if d2_all.size else 0.0
     return x, out, pose_covs, st

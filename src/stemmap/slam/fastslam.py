@@ -163,7 +163,15 @@ class FastSlam:
         ``merge_ddiam`` (or overlapping trunks) are one tree (iSAM2's rule and values,
         :func:`stemmap.slam._graph_marginals._merge_duplicates`). 0 disables.
     merge_rounds : int
-        Merge-and-smooth-again rounds after the first smoothing.
+        Rounds of merging and (with ``reassociate``) re-association, each followed by a new
+        solve, after the first smoothing; they stop early when a round changes nothing.
+        Default 4 (was 2 before the re-association), chosen on Victoria Park seeds 0-4 by a
+        GPS-free score (docs/algorithms/slam.md, "FastSLAM joint smoothing").
+    reassociate : bool
+        Ours, with ``smooth``: after each solve, every detection of the run is re-assigned to
+        the smoothed tree it fits best under ``R`` within the ``new_landmark_chi2`` gate
+        (:func:`stemmap.slam._fastslam_smooth.nearest_tree_association`) and the problem
+        solved again (docs/algorithms/slam.md, "FastSLAM joint smoothing").
     pose_cov_inflation, tree_cov_inflation : float or None
         Variance factors to ``SlamResult.pose_covs`` and each tree's ``cov``: without
         ``smooth``, from the particle set's pose covariance and the landmark mixture
@@ -198,7 +206,8 @@ class FastSlam:
     smooth: bool = True
     merge_dist: float = 1.0
     merge_ddiam: float = 0.42
-    merge_rounds: int = 2
+    merge_rounds: int = 4
+    reassociate: bool = True
     pose_cov_inflation: float | None = None
     tree_cov_inflation: float | None = None
     record_diagnostics: bool = False
