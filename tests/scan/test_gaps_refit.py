@@ -100,6 +100,12 @@ def test_refit_pieces_recover_a_trunk_whose_segment_fails_the_rms_test():
     # bias is ~-1.6 cm at 0.5 deg without the footprint model)
     alone = base.detect_batch(_scan([(5.0, 0.0, 0.12)]))
     assert len(alone) == 1 and abs(obs.radii[0] - alone.radii[0]) < 0.0025
+    # validated: the stem's piece is too short to be judged, so the trunk's piece stands
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", refit_pieces=True, refit_validate=True, **cfg)
+    )
+    got = det.detect_batch(batch)
+    assert len(got) == 1 and np.allclose(got.centers, obs.centers)
     # outlier trimming instead of the gap cut keeps the same trunk here
     det = ScanTrunkDetector(
         DetectorConfig.preset("stemmap", refit_pieces=True, refit_split="outliers", **cfg)
