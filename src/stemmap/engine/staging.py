@@ -187,29 +187,37 @@ class _Splitter:
         """(offsets, rows, indices): group g's rows are ``rows[offsets[g]:offsets[g + 1]]``
         and ``indices`` their positions in the block (filled only with ``want_idx``)."""
         sc = np.array([float(v.scale) for v in views[:2]] + [float(v.offset) for v in views[:2]])
-        args = (raw[0], raw[1], sc, self.xr, self.ystart, self.yr)
-        counts = _count_in_boxes(*args)
-        offs = np.zeros(counts.size + 1, dtype=np.int64)
+        x, y, z = raw
+        offs = np.zeros(self.yr.shape[0] + 1, dtype=np.int64)
+        grid = (sc, self.xr, self.ystart, self.yr)
+        counts = _into_boxes(x, y, z, *grid, offs, self.buf, self.idx, False, False)
         np.cumsum(counts, out=offs[1:])
         total = int(offs[-1])
         if total > self.buf.shape[0]:
             self.buf = np.empty((total, 3), dtype=np.int32)
             self.idx = np.empty(total if want_idx else 0, dtype=np.int64)
-        _copy_into_boxes(*args, raw[2], offs, self.buf, self.idx, want_idx)
+        _into_boxes(x, y, z, *grid, offs, self.buf, self.idx, True, want_idx)
         return offs, self.buf, self.idx
 
 
 @njit(cache=True)
-def _count_in_boxes(
+def _into_boxes(
     xi: NDArray[np.int32],
     yi: NDArray[np.int32],
+    zi: NDArray[np.int32],
     sc: FloatArray,
     xr: FloatArray,
     ystart: NDArray[np.int64],
     yr: FloatArray,
+    offs: NDArray[np.int64],
+    buf: NDArray[np.int32],
+    idx: NDArray[np.int64],
+    fill: bool,
+    want_idx: bool,
 ) -> NDArray[np.int64]:
-    # x = float64(X) * scale + offset: laspy's scaled coordinate, bit for bit (no fused
-    # multiply-add: numba compiles without fastmath); the boxes are closed, as before
+    # the points of each box group; with ``fill`` also copied to buf[offs[g]:] (and their
+    # positions to idx). x = float64(X) * scale + offset: laspy's scaled coordinate, bit for
+    # bit (no fused multiply-add: numba compiles without fastmath); the boxes are closed
     counts = np.zeros(yr.shape[0], dtype=np.int64)
     for k in range(xi.shape[0]):
         x = float(xi[k]) * sc[0] + sc[2]
@@ -218,39 +226,15 @@ def _count_in_boxes(
             if x >= xr[a, 0] and x <= xr[a, 1]:
                 for g in range(ystart[a], ystart[a + 1]):
                     if y >= yr[g, 0] and y <= yr[g, 1]:
+                        if fill:
+                            r = offs[g] + counts[g]
+                            buf[r, 0] = xi[k]
+                            buf[r, 1] = yi[k]
+                            buf[r, 2] = zi[k]
+                            if want_idx:
+                                idx[r] = k
                         counts[g] += 1
     return counts
-
-
-@njit(cache=True)
-def _copy_into_boxes(
-    xi: NDArray[np.int32],
-    yi: NDArray[np.int32],
-    sc: FloatArray,
-    xr: FloatArray,
-    ystart: NDArray[np.int64],
-    yr: FloatArray,
-    zi: NDArray[np.int32],
-    offs: NDArray[np.int64],
-    buf: NDArray[np.int32],
-    idx: NDArray[np.int64],
-    want_idx: bool,
-) -> None:
-    at = offs[:-1].copy()
-    for k in range(xi.shape[0]):
-        x = float(xi[k]) * sc[0] + sc[2]
-        y = float(yi[k]) * sc[1] + sc[3]
-        for a in range(xr.shape[0]):
-            if x >= xr[a, 0] and x <= xr[a, 1]:
-                for g in range(ystart[a], ystart[a + 1]):
-                    if y >= yr[g, 0] and y <= yr[g, 1]:
-                        r = at[g]
-                        buf[r, 0] = xi[k]
-                        buf[r, 1] = yi[k]
-                        buf[r, 2] = zi[k]
-                        if want_idx:
-                            idx[r] = k
-                        at[g] = r + 1
 
 
 def _one_thread_laz() -> Any:
