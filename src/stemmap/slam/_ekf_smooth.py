@@ -30,7 +30,9 @@ The covariance of each smoothed pose (issue 14, ``SlamResult.pose_covs``) is the
 equations, Huber weights included), computed in O(frames) by the block form of the RTS
 backward pass (:func:`chain_marginals`). It is the covariance of the path *given the final map*
 with each detection's landmark uncertainty counted as independent noise, so it leaves out the
-map's correlations (docs/algorithms/slam.md, "Pose covariances of the other back-ends").
+map's correlations; the map's local error is then added back, its landmarks taken as fully
+correlated (:func:`map_error_covariance`; docs/algorithms/slam.md, "Pose covariances of the
+other back-ends").
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from stemmap.slam.base import IntArray
 from stemmap.slam.treedb import range_bearing_jacobians
 from stemmap.types import FloatArray, wrap_angle
 
-__all__ = ["ObservationLog", "chain_marginals", "smooth_path"]
+__all__ = ["ObservationLog", "chain_marginals", "map_error_covariance", "smooth_path"]
 
 # floor added to the odometry covariances: the Ackermann model has no lateral slip, so the
 # increment covariance is singular (smallest eigenvalue ~1e-20 m² on Victoria Park; median
@@ -267,4 +269,34 @@ def smooth_path(
     stats["smoother_iterations"] = it
     stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
     stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
-    return x, chain_marginals(diag, off), stats
+    cov = chain_marginals(diag, off)
+    cov[1:, :2, :2] += map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
+    return x, cov, stats
+
+
+def map_error_covariance(n: int, frame: IntArray, seen_cov: FloatArray) -> FloatArray:
+    """(n, 2, 2) position covariance the map's own error adds to a pose localised on it (ours,
+    issue 14): the mean marginal covariance of the landmarks each frame detected (``frame`` and
+    ``seen_cov``, one per detection); frames without detections interpolate between the
+    nearest frames with (constant beyond the ends; zero without any detection).
+
+    The smoother's information counts each detection's landmark uncertainty as independent
+    noise, so many detections average it away; but the landmarks one pose sees were mapped
+    from the same drifting poses and share their error. Taking them as fully correlated in
+    translation, a common map shift ``δ`` shifts the pose by ``δ`` (``J Σ_LL Jᵀ`` with the
+    sensitivity of a rigid fit to a translation of all its points = the identity): the pose's
+    error relative to the world is its error relative to the map plus the map's local error.
+    The heading's share (a map rotation) is left out; the start pose, which defines the map
+    frame, gets none (the caller skips row 0). Measured in docs/outputs.md.
+    """
+    out = np.zeros((n, 2, 2))
+    if frame.size == 0:
+        return out
+    cnt = np.bincount(frame, minlength=n).astype(np.float64)
+    have = np.flatnonzero(cnt > 0)
+    fi = np.arange(n)
+    for i, j in ((0, 0), (0, 1), (1, 1)):
+        m = np.bincount(frame, weights=seen_cov[:, i, j], minlength=n)[have] / cnt[have]
+        out[:, i, j] = np.interp(fi, have, m)
+    out[:, 1, 0] = out[:, 0, 1]
+    return out
