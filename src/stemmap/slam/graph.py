@@ -45,7 +45,10 @@ Schur complement of the information over the pose chain (:func:`_point_marginals
 Localisation mode on revisits (ours; docs/algorithms/slam.md "Revisits"): a keyframe that only
 re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area);
 the tracker is then localised on the map at each restart (:mod:`stemmap.slam._graph_localise`),
-and a tracker the map contradicts puts the next keyframes back into the graph.
+and a tracker the map contradicts puts the next keyframes back into the graph. A keyframe that
+enters after a long left-out run is anchored by a prior at its tracked pose instead of an
+odometry factor to the remote last graph keyframe (``revisit_anchor_after``,
+:func:`~stemmap.slam._graph_revisits.anchor_prior`).
 
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
@@ -99,6 +102,7 @@ from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
     TreeVisits,
+    anchor_prior,
     compose_increments,
     localise_skipped,
     redundant,
@@ -319,6 +323,7 @@ class Isam2Slam:
         meas_fac: list[Any] = []  # the factor of each meas_rec entry (reused when rebuilding)
         odo_fac: list[Any] = []  # the odometry factors of the graph, in keyframe order
         edges: list[tuple[int, int]] = []  # the graph keyframes each odometry factor links
+        anchor_fac: list[Any] = []  # priors of keyframes after long left-out runs (kept)
         new_v.insert(XK(0), s0)
         in_graph_k = np.zeros(nk, dtype=bool)  # keyframes with a pose in the graph
         in_graph_k[0] = True
@@ -467,11 +472,20 @@ class Isam2Slam:
                     "forced" if kc < force_until else "new_tree" if new_t else "young_tree"
                 ] += 1
             if kc > 0:
-                bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
+                if 0 < cfg.revisit_anchor_after < kc - g_last:
+                    # after a long left-out run: anchored at its tracked pose, not linked to
+                    # the remote graph keyframe (anchor_prior)
+                    bf = anchor_prior(
+                        gtsam, XK(kc), kf_init[kc], odo_measured(slice(g_last, kc)),
+                        cov_k[g_last:kc],
+                    )  # fmt: skip
+                    anchor_fac.append(bf)
+                else:
+                    bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
+                    odo_fac.append(bf)
+                    edges.append((g_last, kc))
                 new_f.add(bf)
                 graph_all.add(bf)
-                odo_fac.append(bf)
-                edges.append((g_last, kc))
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
@@ -630,8 +644,9 @@ class Isam2Slam:
             gtsam, cfg, result, graph_all, keys=(XK, LK), n_lm=n_lm,
             lm=(lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_in_graph), pf=pf,
             odo_factor=odo_factor, edges=edges, odo_fac=odo_fac, map_fac=map_fac,
-            joint_fac=joint_fac, gnss_fac=gnss_fac, gnss_keys=gnss_keys, meas_rec=meas_rec,
-            meas_fac=meas_fac, meas_noise=meas_noise, gk=gk, prior_map=problem.prior_map,
+            joint_fac=joint_fac, gnss_fac=gnss_fac, anchor_fac=anchor_fac, gnss_keys=gnss_keys,
+            meas_rec=meas_rec, meas_fac=meas_fac, meas_noise=meas_noise, gk=gk,
+            prior_map=problem.prior_map,
             calib=Calibration(
                 odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
             ) if calibrate else None,
@@ -688,6 +703,7 @@ class Isam2Slam:
             "keyframes": int(nk),
             "keyframes_in_graph": int(gk.size),
             "keyframes_localised": len(skipped),
+            "keyframes_anchored": len(anchor_fac),
             "localisation_runs": n_localised,
             "tracker_map_fixes": n_map_fix,
             "tracker_lost": n_map_lost,
