@@ -264,7 +264,7 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
             ia = int(np.searchsorted(gm[:, 0], fa)) - 1
             ib = min(int(np.searchsorted(gm[:, 0], fb)), len(gm) - 1)
             prev = gm[ia] if ia >= 0 else np.zeros(4)
-            graph_pass = {
+            graph_pass |= {
                 "graph_keyframes_added": int(gm[ib, 1] - prev[1]),
                 "measurement_factors_added": int(gm[ib, 2] - prev[2]),
                 "rss_at_end_mb": round(float(gm[ib, 3]), 1),
