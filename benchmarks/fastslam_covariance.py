@@ -12,7 +12,9 @@ back-ends: trees of two back-ends paired within 2 m, z^2 of their difference wit
 covariances summed (chi-square with 2 dof if both are calibrated).
 
 ``--vp-calibration``: the inflation factors of FastSLAM's reported covariances
-(:data:`stemmap.slam.fastslam.POSE_COV_INFLATION`, ``TREE_COV_INFLATION``), chosen on the
+(:data:`stemmap.slam.fastslam.SMOOTHED_POSE_COV_INFLATION`, ``SMOOTHED_TREE_COV_INFLATION``
+with the default ``smooth=True``; ``POSE_COV_INFLATION``, ``TREE_COV_INFLATION`` of the
+filter's own covariances with ``smooth=False``), chosen on the
 first half of the Victoria Park run and checked on the second (``--seeds`` are the filter
 seeds). Per seed, one FastSLAM run with both factors 1 (the raw particle-set covariances):
 
@@ -332,11 +334,13 @@ def _z2(e: np.ndarray, C: np.ndarray) -> np.ndarray:
 
 def vp_calibration(seeds: list[int]) -> dict[str, Any]:
     """Choose the inflation factors on the first half of Victoria Park, score the second."""
-    from stemmap.slam.fastslam import POSE_COV_INFLATION, TREE_COV_INFLATION
+    from stemmap.slam.fastslam import FastSlam
 
+    fs = FastSlam()  # the default (smoothed or not) decides which factors are in the code
+    pose_fac, tree_fac = fs.pose_cov_inflation, fs.tree_cov_inflation
     t_mid, runs, info = _vp_terms(seeds)
     out: dict[str, Any] = {"t_split_s": round(t_mid, 1), **info}
-    for kind, in_code in (("pose", POSE_COV_INFLATION), ("tree", TREE_COV_INFLATION)):
+    for kind, in_code in (("pose", pose_fac), ("tree", tree_fac)):
         # (time, error, FastSLAM covariance, reference covariance: iSAM2's for trees, 0 for GPS)
         parts = [(r[f"{kind}_t"], r[f"{kind}_e"], r[f"{kind}_C"], r[f"{kind}_Cref"]) for r in runs]
 

@@ -8,14 +8,17 @@ line; each frame keeps, per VLP-16 beam (16 beams, -15..15 degrees, 2 degrees ap
 counts for a beam within +-0.3 degrees of it) and 0.2 degree azimuth bin, the nearest point (what
 the sensor would see first). Three lines run between the tree rows (x = 1.9, 4.9, 7.8 m) from
 y = -8 to 18 m. EB-LiDAR (:func:`stemmap.slam.munjer.eb_lidar_observations`, the paper's Table 1
-values) runs with ``window`` 1 (per frame) and the windows in ``--windows``; detections go to the
+values, the principal-axis tilt check ``MunjerConfig.max_tilt_deg`` at ``--max-tilt``, and beside it
+without that check: rows ``window_K_no_tilt_check``) runs with ``window`` 1 (per frame) and the
+windows in ``--windows``; detections go to the
 world with the (exact) virtual poses and are associated at 1.0 m
 (:func:`stemmap.cloud.munjer.associate_proximity`); a tree needs 3 detections (the Munjer map's
 ``min_observations``). Reference: stemmap's own detector on the full plot (17 stems); a confirmed
 tree within 0.5 m of a reference stem is ``matched``, else ``unmatched`` (a false tree: the rows
 are 3 m apart, nothing between them is a trunk).
 
-Usage: python benchmarks/munjer2025_real_frames.py [--windows 3 5 10] [--ground-relative].
+Usage: python benchmarks/munjer2025_real_frames.py [--windows 3 5 10] [--ground-relative]
+       [--max-tilt 45].
 Prints one JSON object.
 Caveat: virtual frames re-sample one static TLS cloud, so joined frames add fewer independent
 points on a trunk than a real sensor's frames would.
@@ -24,6 +27,7 @@ points on a trunk than a real sensor's frames would.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import time
@@ -83,7 +87,12 @@ def _to_world(obs: StemObservations, poses: np.ndarray) -> list[Any]:
 
 
 def run_line(
-    xyz: np.ndarray, ref_xy: np.ndarray, x_line: float, windows: list[int], ground_relative: bool
+    xyz: np.ndarray,
+    ref_xy: np.ndarray,
+    x_line: float,
+    windows: list[int],
+    ground_relative: bool,
+    max_tilt: float | None,
 ) -> dict:
     ys = np.arange(-8.0, 18.0, 0.4)
     poses = np.column_stack((np.full_like(ys, x_line), ys, np.full_like(ys, math.pi / 2)))
@@ -92,14 +101,15 @@ def run_line(
         "frames": len(frames),
         "median_points": int(np.median([len(f) for f in frames])),
     }
-    for w in [1, *windows]:
-        obs = eb_lidar_observations(
-            frames, ys / 4.0, MunjerConfig(window=w, ground_relative=ground_relative), poses=poses
-        )
+    for w, (key, tilt) in itertools.product(
+        [1, *windows], [("", max_tilt), ("_no_tilt_check", None)]
+    ):
+        cfg = MunjerConfig(window=w, ground_relative=ground_relative, max_tilt_deg=tilt)
+        obs = eb_lidar_observations(frames, ys / 4.0, cfg, poses=poses)
         trees = associate_proximity(_to_world(obs, poses), 1.0) if len(obs) else None
         xy = trees.xy[trees.n_slices >= 3] if trees is not None else np.zeros((0, 2))
         m = match_points(xy, ref_xy, 0.5)
-        out[f"window_{w}"] = {
+        out[f"window_{w}{key}"] = {
             "frame_detections": len(obs),
             "confirmed_trees": len(xy),
             "matched": int(m.n_matched),
@@ -114,6 +124,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument(
         "--ground-relative", action="store_true", help="MunjerConfig(ground_relative=True) box"
     )
+    ap.add_argument(
+        "--max-tilt",
+        type=float,
+        default=MunjerConfig().max_tilt_deg,
+        help="MunjerConfig.max_tilt_deg of the main rows (degrees; default the library's)",
+    )
     a = ap.parse_args(argv)
     t0 = time.process_time()
     path = find_datasets_dir() / "treels" / "pine_plot.laz"
@@ -123,15 +139,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "cloud": "treels/pine_plot.laz",
         "reference_stems": len(ref),
         "ground_relative": a.ground_relative,
+        "max_tilt_deg": a.max_tilt,
     }
     for x in LINES_X:
-        res[f"line_x{x}"] = run_line(xyz, ref.xy, x, a.windows, a.ground_relative)
+        res[f"line_x{x}"] = run_line(xyz, ref.xy, x, a.windows, a.ground_relative, a.max_tilt)
     res["total"] = {
-        f"window_{w}": {
-            k: sum(res[f"line_x{x}"][f"window_{w}"][k] for x in LINES_X)
+        f"window_{w}{key}": {
+            k: sum(res[f"line_x{x}"][f"window_{w}{key}"][k] for x in LINES_X)
             for k in ("confirmed_trees", "matched", "unmatched")
         }
         for w in [1, *a.windows]
+        for key in ("", "_no_tilt_check")
     }
     res["cpu_seconds"] = round(time.process_time() - t0, 1)
     print(json.dumps(res, indent=1))

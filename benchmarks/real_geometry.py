@@ -95,6 +95,8 @@ def _setting(
         "corner_depth_convex": convex,
         "bark_roughness": bark,
         "straight_depth_sigmas": math.inf,
+        # the preset's default since the eighth round; a grid point without it means off
+        "sigma_from_scan": False,
         **extra,
     }
 

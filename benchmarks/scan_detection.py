@@ -8,6 +8,7 @@ a tree counts if it has >= 5 returns, DBH >= 10 cm and lies within 15 m; detecti
 centre lies beyond 15.5 m are not scored.
 
 Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--quick]
+       python benchmarks/scan_detection.py --speed-set '{"sigma_from_scan": true}' --rounds 5
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import hashlib
 import importlib.util
 import json
 import math
@@ -188,15 +190,7 @@ def timed_both(fn: Any, repeats: int) -> tuple[float, float]:
 def speed(run: Any, n_batch: int, seed: int) -> dict[str, Any]:
     det = ScanTrunkDetector("stemmap")
     scans = run.scans
-    reps = math.ceil(n_batch / len(scans))
-    big = ScanBatch(
-        np.tile(scans.ranges, (reps, 1))[:n_batch],
-        np.arange(n_batch, dtype=np.float64),
-        scans.angle_min,
-        scans.angle_increment,
-        scans.range_min,
-        scans.range_max,
-    )
+    big = _batch_of(run, n_batch)
     det.detect_batch(ScanBatch.from_scans([big[0]]))  # JIT warm-up
     load_before = os.getloadavg()[0]
     t_batch, c_batch = timed_both(lambda: det.detect_batch(big), 3)
@@ -244,6 +238,63 @@ def speed(run: Any, n_batch: int, seed: int) -> dict[str, Any]:
         "method": "best of 3 (batch) / best of 20 per scan, median over scans (latency); "
         "_cpu: process CPU time (batch: best of 3; latency: mean over 20 rounds of all scans)",
     }
+
+
+def _batch_of(run: Any, n_batch: int) -> ScanBatch:
+    """The drive's scans tiled to ``n_batch`` scans (the speed batch)."""
+    scans = run.scans
+    reps = math.ceil(n_batch / len(scans))
+    return ScanBatch(
+        np.tile(scans.ranges, (reps, 1))[:n_batch],
+        np.arange(n_batch, dtype=np.float64),
+        scans.angle_min,
+        scans.angle_increment,
+        scans.range_min,
+        scans.range_max,
+    )
+
+
+def detections_digest(obs: StemObservations) -> str:
+    """SHA-256 of every detection's arrays (bit for bit): equal digests = identical output."""
+    h = hashlib.sha256()
+    for a in (obs.centers, obs.radii, obs.covs, obs.n_points, obs.arc_deg, obs.widths):
+        h.update(np.ascontiguousarray(a).tobytes())
+    for a in (obs.quality, obs.index, obs.times):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def speed_compare(run: Any, n_batch: int, overrides: dict[str, Any], rounds: int) -> dict[str, Any]:
+    """The stemmap preset against the preset with ``overrides`` on the same batch, in one
+    process, alternating, ``rounds`` rounds of best-of-3 process-CPU times: on a loaded machine
+    only the ratio within a round is comparable. Also the digest of each one's detections."""
+    big = _batch_of(run, n_batch)
+    dets = {
+        "default": ScanTrunkDetector("stemmap"),
+        "set": ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides)),
+    }
+    out: dict[str, Any] = {"overrides": overrides, "batch_scans": n_batch, "rounds": rounds}
+    for name, det in dets.items():
+        obs = det.detect_batch(big)  # JIT warm-up, and the output compared
+        out[f"{name}_detections"] = len(obs)
+        out[f"{name}_digest"] = detections_digest(obs)
+    load_before = os.getloadavg()[0]
+    sps: dict[str, list[int]] = {"default": [], "set": []}
+    for _ in range(rounds):
+        for name, det in dets.items():
+            _, cpu = timed_both(lambda det=det: det.detect_batch(big), 3)
+            sps[name].append(round(n_batch / cpu))
+    ratio = [round(a / b, 4) for a, b in zip(sps["set"], sps["default"], strict=True)]
+    out.update(
+        {
+            "default_scans_per_cpu_second": sps["default"],
+            "set_scans_per_cpu_second": sps["set"],
+            "ratio_set_to_default": ratio,
+            "median_ratio": float(np.median(ratio)),
+            "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        }
+    )
+    return out
 
 
 REAL: dict[str, Any] = {
@@ -494,9 +545,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--crlb", action="store_true", help="only the Cramer-Rao bound of the drive's geometry"
     )
+    ap.add_argument(
+        "--speed-set",
+        type=json.loads,
+        default=None,
+        help="only time the stemmap preset against it with these overrides, alternating in one "
+        "process, e.g. '{\"sigma_from_scan\": true}' ('{}': the preset against itself)",
+    )
+    ap.add_argument("--rounds", type=int, default=3, help="--speed-set: rounds")
     args = ap.parse_args(argv)
 
     run = make_run(args.scans, args.seed)
+    if args.speed_set is not None:
+        out = {
+            "benchmark": "scan_detection_speed_compare",
+            "seed": args.seed,
+            **speed_compare(run, args.batch, args.speed_set, args.rounds),
+        }
+        print(json.dumps(out))
+        return 0
     if args.crlb:
         out = {"benchmark": "scan_detection_crlb", "seed": args.seed, **(benchmark_crlb(run) or {})}
         print(json.dumps(out))

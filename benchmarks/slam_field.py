@@ -10,7 +10,11 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   best-fit SE(2) alignment (``no_gnss_ate_unused_aligned_m``). ``gnss_track_ate_unused_m``:
   the GNSS-frame track (the path + the fused fixes' random-walk-smoothed offset,
   :func:`stemmap.slam.gnss.gnss_offset`; it follows the GPS's own slowly varying error), its
-  settings chosen by the same CV. Where the score comes from: the chosen run's score on the
+  settings chosen by the same CV; ``gnss_track_gm_ate_unused_m``: the same track with a
+  first-order Gauss-Markov offset whose parameters are fitted to the GPS error's
+  semivariogram against the no-GNSS path over the first half of the run only
+  (``gnss_gm_model_first_half``, with the error's autocorrelation; no score chooses them),
+  scored per half and whole. Where the score comes from: the chosen run's score on the
   first and second half of the run, the GPS's own error (``gps_error_floor``: revisits and the
   semivariogram of fix-to-fix consistency with the no-GNSS path, ``stemmap.eval.gps_noise``),
   the GPS-free chi2 per dof of the odometry and tree factors, and plain Gaussian GNSS factors
@@ -20,10 +24,14 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   guesses off by U(-20, 20) m in x and y and U(-30, 30) deg (``--trials``, seed 0); success =
   accepted within 30 s of driving, within 1 m and 2 deg of session 1's end pose carried over
   the gap by odometry (``reloc_success_rate``, ``reloc_time_s_*``). Session 2 is then mapped on
-  the prior map (its trees held jointly by session 1's tree information, session 1's odometry
-  calibration carried over) and scored on the screened fixes after 800 s with its own
-  alignment, next to the same session on per-tree priors without the calibration, without
-  the prior map, and to the full single run on the same fixes.
+  the prior map (default: each tree held by its own Huber prior on its marginal; session 1's
+  odometry calibration carried over) and scored on the screened fixes after 800 s with its
+  own alignment, next to the same with the trees held jointly by session 1's tree information
+  (``session2_prior_map_joint``), on Gaussian per-tree priors without the calibration,
+  without the prior map, and to the full single run on the same fixes.
+  ``--reloc-per-trial``: session 2 mapped from every accepted trial's pose, joint vs Huber;
+  ``--reloc-splits 400,600``: other session pairs (map 0-s, relocalise and map s-1549 s),
+  joint vs Huber vs the full run.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
@@ -32,7 +40,8 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
 Usage::
 
     python benchmarks/slam_field.py --json [--data DIR] [--parts gnss,reloc,online]
-        [--trials 20] [--write-gnss-csv FILE] [--reloc-diagnosis]
+        [--trials 20] [--write-gnss-csv FILE] [--reloc-diagnosis] [--reloc-per-trial]
+        [--reloc-splits 400,600]
 
 ``--write-gnss-csv`` writes the fused fixes as the CSV ``stemmap map --gnss`` reads (to repeat
 the GNSS part from the command line). The machine is shared and loaded: latency is wall time
@@ -104,6 +113,8 @@ def _gnss_cv(vp: Any, fused: Any) -> tuple[list[dict[str, Any]], dict[str, Any]]
 #: GNSS sigmas (m) of the plain Gaussian (no robust kernel) runs that show what chasing the
 #: reference does: the path follows the fused fixes' error at the cost of tree consistency
 TIGHT_SIGMAS = (0.05, 0.1)
+#: lags (s) of the Gauss-Markov fit of the GPS error (first half; fitted on those <= 60 s)
+GM_LAGS = (0.2, 0.5, 1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0)
 #: lags (s) of the GPS error's semivariogram (fix-to-fix consistency with the no-GNSS path)
 FLOOR_LAGS = (0.5, 2.0, 8.0, 15.0, 30.0, 60.0, 120.0)
 
@@ -166,6 +177,52 @@ def _gnss_evidence(vp: Any, fused: Any, unused: Any, res: Any, base: Any) -> dic
     }
 
 
+def _gnss_track_gm(vp: Any, unused: Any, fx: Any, res: Any, base: Any) -> dict[str, Any]:
+    """The GNSS-frame track with a first-order Gauss-Markov offset whose parameters come from
+    the GPS error's semivariogram against the no-GNSS path over the FIRST half of the run only
+    (:func:`stemmap.eval.gps_noise.fit_gauss_markov`; no score chooses anything), on the
+    chosen path and fixes; scored on the unused fixes per half and whole, without alignment."""
+    from stemmap.eval.gps_noise import fit_gauss_markov, gps_autocorrelation, gps_variogram
+    from stemmap.eval.trajectory import align_se2, ate, point_track
+    from stemmap.slam.gnss import gnss_frame_trajectory, gnss_offset
+
+    t, g, off = vp.gps_times, vp.gps_xy, vp.model.sensor_offset
+    half = 0.5 * float(vp.frames.times[0] + vp.frames.times[-1])
+    tb = base.trajectory.times
+    k = np.flatnonzero(vp.screened_gps() & (t >= tb[0] + 0.1) & (t <= tb[-1] - 0.1) & (t < half))
+    p = point_track(base.trajectory, t[k], off)
+    p = align_se2(p, g[k]).apply(p)
+    fit = fit_gauss_markov(gps_variogram(t[k], g[k], p, GM_LAGS), 60.0)
+    ac = gps_autocorrelation(t[k], g[k], p, GM_LAGS)
+    o = gnss_offset(
+        res.trajectory,
+        fx,
+        fix_sigma=fit.white_sigma,
+        prior_sigma=fit.bias_sigma,
+        time_constant=fit.time_constant,
+    )
+    tr = gnss_frame_trajectory(res.trajectory, o)
+    sc = {
+        lab: ate(tr, t, g, offset=off, keep=unused & m, align=False)
+        for lab, m in (("all", t >= 0), ("first_half", t < half), ("second_half", t >= half))
+    }
+    return {
+        "gnss_track_gm_ate_unused_m": round(sc["all"].rmse, 3),
+        "gnss_track_gm_ate_unused_p95_m": round(sc["all"].p95, 3),
+        "gnss_track_gm_ate_unused_halves_m": {
+            "first_half": round(sc["first_half"].rmse, 3),
+            "second_half": round(sc["second_half"].rmse, 3),
+        },
+        "gnss_gm_model_first_half": {
+            "white_sigma_per_axis_m": round(fit.white_sigma, 3),
+            "bias_sigma_per_axis_m": round(fit.bias_sigma, 3),
+            "time_constant_s": round(fit.time_constant, 1),
+            "lags_s": list(GM_LAGS),
+            "autocorrelation": [round(float(v), 3) for v in ac],
+        },
+    }
+
+
 def _gnss(data: str | None, csv_out: str | None) -> dict[str, Any]:
     from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
@@ -205,6 +262,7 @@ def _gnss(data: str | None, csv_out: str | None) -> dict[str, Any]:
     base = Isam2Slam().run(vp.problem())
     rb = ate(base.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=unused)
     evidence = _gnss_evidence(vp, fused, unused, res, base)
+    gm = _gnss_track_gm(vp, unused, chosen, res, base)
     return {
         "gnss_ate_unused_m": round(r.rmse, 3),
         "gnss_ate_unused_p95_m": round(r.p95, 3),
@@ -220,6 +278,7 @@ def _gnss(data: str | None, csv_out: str | None) -> dict[str, Any]:
         "gnss_chosen_by_cv": ch,
         "gnss_cv": cv_rows,
         "gnss_default_ate_unused_m": round(rd.rmse, 3),
+        **gm,
         **evidence,
         "gnss_data": "Victoria Park full run; fused = every 10th screened fix, antenna at the "
         "laser; kernel and sigma chosen by 2-fold CV inside the fused fixes (default: Cauchy "
@@ -260,7 +319,12 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
         d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
         rel = relocalise(p2, r1.stem_map, guess=tuple(compose(r1.trajectory.poses[-1], d)))
         p2r = dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map)
-        s2_ph.append([round(t2f, 3), score(Isam2Slam().run(with_calibration(p2r, *cal)), 801.0)])
+        s2_ph.append(
+            [
+                round(t2f, 3),
+                score(Isam2Slam(prior_map_robust="none").run(with_calibration(p2r, *cal)), 801.0),
+            ]
+        )
         # each prior tree held by its own Huber prior instead of the joint one
         r2h = Isam2Slam(prior_map_robust="huber").run(with_calibration(p2r, *cal))
         hub_ph.append([round(t2f, 3), score(r2h, 801.0)])
@@ -279,12 +343,16 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
     t2f = float(p2.frames.times[0])
     base = dataclasses.replace(p2, initial_pose=first.pose, prior_map=r1.stem_map)
     start = tuple(full.trajectory.interpolate([t2f])[0])
-    res = Isam2Slam().run(with_calibration(dataclasses.replace(base, initial_pose=start), *cal))
+    res = Isam2Slam(prior_map_robust="none").run(
+        with_calibration(dataclasses.replace(base, initial_pose=start), *cal)
+    )
     out["start_from_full_run_pose_ate_m"] = score(res, t2f)
     info = r1.stem_map.information
     for f in (0.25, 4.0):
         pm = dataclasses.replace(r1.stem_map, information=info * f)
-        res = Isam2Slam().run(with_calibration(dataclasses.replace(base, prior_map=pm), *cal))
+        res = Isam2Slam(prior_map_robust="none").run(
+            with_calibration(dataclasses.replace(base, prior_map=pm), *cal)
+        )
         out[f"prior_information_x{f:g}_ate_m"] = score(res, t2f)
     m1, xy2 = r1.stem_map, r2.stem_map.xy
     dist, j = cKDTree(xy2).query(m1.xy)
@@ -308,7 +376,93 @@ def _reloc_diagnosis(vp: Any, r1: Any, cal: Any, first: Any, r2: Any, full: Any)
     return out
 
 
-def _reloc(data: str | None, trials: int, diagnose: bool = False) -> dict[str, Any]:
+def _reloc_per_trial(
+    vp: Any, p2: Any, r1: Any, cal: Any, rels: list[Any], t2f: float
+) -> dict[str, Any]:
+    """Session 2 mapped from every accepted trial's relocalised pose, once per way of holding
+    the prior trees (``prior_map_robust``: "none" = the joint prior, "huber" = per-tree Huber
+    priors), scored on the screened fixes after 800 s with its own alignment; process CPU per
+    run. The prior map's robust loss does not enter :func:`relocalise`, so the success rate and
+    the relocalisation time are the same for both by construction."""
+    from stemmap.eval.trajectory import ate
+    from stemmap.slam.graph import Isam2Slam
+    from stemmap.slam.relocalise import with_calibration
+
+    keep = vp.screened_gps() & (vp.gps_times >= t2f)
+    out: dict[str, Any] = {}
+    for kind in ("none", "huber"):
+        ates, cpus = [], []
+        for rel in rels:
+            p2r = dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map)
+            c0 = time.process_time()
+            res = Isam2Slam(prior_map_robust=kind).run(with_calibration(p2r, *cal))
+            cpus.append(time.process_time() - c0)
+            a = ate(
+                res.trajectory, vp.gps_times, vp.gps_xy, offset=vp.model.sensor_offset, keep=keep
+            )
+            ates.append(round(a.rmse, 3))
+        out[kind] = {
+            "ate_after_800s_m": ates,
+            "mean_m": round(float(np.mean(ates)), 3),
+            "max_m": round(float(np.max(ates)), 3),
+            "cpu_s_mean": round(float(np.mean(cpus)), 2),
+        }
+    return out
+
+
+def _reloc_splits(vp: Any, splits: list[float], full: Any) -> dict[str, Any]:
+    """Other session pairs: map 0-``s`` s, relocalise the ``s``-1549 s session from session
+    1's end pose (odometry over the gap) off by (+15 m, -10 m, +20 deg), map it on the prior
+    map held jointly ("none") or by per-tree Huber priors ("huber"), session 1's calibration
+    carried over; ATE on the screened fixes after the session's first scan (own alignment),
+    next to the full single run on the same fixes; process CPU of each session-2 run."""
+    from stemmap.eval.trajectory import ate
+    from stemmap.slam.graph import Isam2Slam
+    from stemmap.slam.motion import compose, preintegrate
+    from stemmap.slam.relocalise import relocalise, with_calibration
+
+    keep, off = vp.screened_gps(), vp.model.sensor_offset
+    out: dict[str, Any] = {}
+    for split in splits:
+        r1 = Isam2Slam(joint_information=True).run(vp.slice(0.0, split).problem())
+        p2 = vp.slice(split, 1549.0).problem()
+        t1l, t2f = float(r1.trajectory.times[-1]), float(p2.frames.times[0])
+        d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
+        want = compose(r1.trajectory.poses[-1], d)
+        guess = (want[0] + 15.0, want[1] - 10.0, want[2] + math.radians(20.0))
+        rel = relocalise(p2, r1.stem_map, guess=guess)
+        m2 = keep & (vp.gps_times >= t2f)
+        row: dict[str, Any] = {
+            "reloc_ok": bool(rel.ok),
+            "reloc_time_s": rel.time_s,
+            "reloc_error_m": round(math.hypot(rel.pose[0] - want[0], rel.pose[1] - want[1]), 3),
+            "full_m": round(
+                ate(full.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=m2).rmse, 3
+            ),
+        }
+        if rel.ok:
+            cal = (float(r1.stats["calib_offset_mean"]), float(r1.stats["calib_scale_mean"]))
+            p2r = with_calibration(
+                dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map), *cal
+            )
+            for kind in ("none", "huber"):
+                c0 = time.process_time()
+                res = Isam2Slam(prior_map_robust=kind).run(p2r)
+                cpu = time.process_time() - c0
+                a = ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=m2)
+                row[f"{kind}_m"] = round(a.rmse, 3)
+                row[f"{kind}_cpu_s"] = round(cpu, 2)
+        out[f"{split:g}"] = row
+    return out
+
+
+def _reloc(
+    data: str | None,
+    trials: int,
+    diagnose: bool = False,
+    per_trial: bool = False,
+    splits: list[float] | None = None,
+) -> dict[str, Any]:
     from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
     from stemmap.slam.base import duplicate_pairs
@@ -328,6 +482,7 @@ def _reloc(data: str | None, trials: int, diagnose: bool = False) -> dict[str, A
     rng = np.random.default_rng(0)
     good, times, errs, cpus = [], [], [], []
     first = None
+    accepted = []
     for _ in range(trials):
         dx, dy = rng.uniform(-20.0, 20.0, 2)
         dth = math.radians(rng.uniform(-30.0, 30.0))
@@ -344,6 +499,8 @@ def _reloc(data: str | None, trials: int, diagnose: bool = False) -> dict[str, A
             errs.append(e)
         if ok and first is None:
             first = rel
+        if ok:
+            accepted.append(rel)
     out: dict[str, Any] = {
         "reloc_success_rate": round(float(np.mean(good)), 3),
         "reloc_trials": trials,
@@ -356,20 +513,23 @@ def _reloc(data: str | None, trials: int, diagnose: bool = False) -> dict[str, A
         "+-20 m, +-30 deg), seed 0",
     }
     if first is not None:
-        # session 2 on the prior map: all its trees held by their joint information, the
-        # odometry calibration of session 1 carried over (same vehicle)
+        # session 2 on the prior map (default: each prior tree held by its own Huber prior),
+        # the odometry calibration of session 1 carried over (same vehicle); and the same with
+        # all its trees held by their joint information
         cal = (float(r1.stats["calib_offset_mean"]), float(r1.stats["calib_scale_mean"]))
         p2r = dataclasses.replace(p2, initial_pose=first.pose, prior_map=r1.stem_map)
         r2 = Isam2Slam().run(with_calibration(p2r, *cal))
+        r2j = Isam2Slam(prior_map_robust="none").run(with_calibration(p2r, *cal))
         # as before: independent per-tree priors (the map without its joint information), no
         # calibration carried over
         diag_map = dataclasses.replace(r1.stem_map, information=None)
-        r2d = Isam2Slam().run(dataclasses.replace(p2r, prior_map=diag_map))
+        r2d = Isam2Slam(prior_map_robust="none").run(dataclasses.replace(p2r, prior_map=diag_map))
         m2 = keep & (vp.gps_times >= t2f)
         alone = Isam2Slam().run(p2)
         full = Isam2Slam().run(vp.problem())
         for name, res in (
             ("session2_prior_map", r2),
+            ("session2_prior_map_joint", r2j),
             ("session2_prior_map_per_tree", r2d),
             ("session2_alone", alone),
             ("full", full),
@@ -382,6 +542,10 @@ def _reloc(data: str | None, trials: int, diagnose: bool = False) -> dict[str, A
         out["session1_calibration"] = {"steer_offset_rad": cal[0], "speed_scale": cal[1]}
         if diagnose:
             out["reloc_diagnosis"] = _reloc_diagnosis(vp, r1, cal, first, r2, full)
+        if per_trial:
+            out["reloc_per_trial_session2"] = _reloc_per_trial(vp, p2, r1, cal, accepted, t2f)
+        if splits:
+            out["reloc_other_splits"] = _reloc_splits(vp, splits, full)
     return out
 
 
@@ -419,6 +583,16 @@ def main() -> None:
         action="store_true",
         help="reloc part: also the keyframe-phase spread and the prior-map checks (~10 runs)",
     )
+    ap.add_argument(
+        "--reloc-per-trial",
+        action="store_true",
+        help="reloc part: map session 2 from every trial's pose, joint vs Huber prior (~40 runs)",
+    )
+    ap.add_argument(
+        "--reloc-splits",
+        default="",
+        help="reloc part: also these session splits (s, comma list), joint vs Huber prior",
+    )
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--passes", type=int, default=1, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -426,7 +600,8 @@ def main() -> None:
         if args.worker == "gnss":
             r = _gnss(args.data, args.write_gnss_csv)
         elif args.worker == "reloc":
-            r = _reloc(args.data, args.trials, args.reloc_diagnosis)
+            splits = [float(x) for x in args.reloc_splits.split(",") if x]
+            r = _reloc(args.data, args.trials, args.reloc_diagnosis, args.reloc_per_trial, splits)
         else:
             r = _online(args.data, args.passes)
         print(json.dumps(r))
@@ -446,6 +621,10 @@ def main() -> None:
             cmd += ["--data", args.data]
         if args.reloc_diagnosis and name == "reloc":
             cmd += ["--reloc-diagnosis"]
+        if args.reloc_per_trial and name == "reloc":
+            cmd += ["--reloc-per-trial"]
+        if args.reloc_splits and name == "reloc":
+            cmd += ["--reloc-splits", args.reloc_splits]
         if args.write_gnss_csv and name == "gnss":
             cmd += ["--write-gnss-csv", args.write_gnss_csv]
         t0 = time.perf_counter()
@@ -458,6 +637,7 @@ def main() -> None:
     summary: dict[str, Any] = {}
     for key, part in (
         ("gnss_ate_unused_m", "gnss"),
+        ("gnss_track_gm_ate_unused_m", "gnss"),
         ("reloc_success_rate", "reloc"),
         ("latency_ms_p99", "online"),
     ):

@@ -59,8 +59,18 @@ def test_fallback_without_numba_internals(tmp_path: Path) -> None:
 
 def test_the_detector_kernel_records_its_dependencies() -> None:
     """The real module: numba's cache location is found and the record matches the files the
-    kernel compiles in (so a later edit of either is noticed)."""
-    from stemmap.scan import _corners, _detect_fast, _fit_geometric, _gaps, features
+    kernel compiles in (so a later edit of either is noticed): every stemmap module
+    _detect_fast imports kernels or constants from, and theirs in turn."""
+    from stemmap.scan import (
+        _corners,
+        _detect_fast,
+        _fast_robust,
+        _fast_segments,
+        _fit_geometric,
+        _fit_lm,
+        _gaps,
+        features,
+    )
 
     cache = _numba_cache._cache_dir(_detect_fast._detect_kernel, Path(_detect_fast.__file__))
     record = cache / "_detect_fast.deps-sha256"
@@ -73,4 +83,51 @@ def test_the_detector_kernel_records_its_dependencies() -> None:
         features.__file__,
         _corners.__file__,
         _gaps.__file__,
+        _fast_robust.__file__,
+        _fast_segments.__file__,
+        _fit_lm.__file__,
     )
+
+
+def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
+    """The fit's kernels compile in its Levenberg-Marquardt core (_fit_lm), the gap cuts the
+    corners' sagitta: each module's record matches those files."""
+    from stemmap.scan import _corners, _fit_geometric, _fit_lm, _gaps
+
+    for mod, disp, deps in (
+        (_fit_geometric, _fit_geometric._fit_segments, (_fit_lm.__file__,)),
+        (_gaps, _gaps.gap_cut_flags, (_corners.__file__,)),
+    ):
+        cache = _numba_cache._cache_dir(disp, Path(mod.__file__))
+        if not (cache / f"{Path(mod.__file__).stem}.deps-sha256").exists():
+            continue  # a read-only install
+        assert not drop_stale_cache(disp, mod.__file__, *deps)
+
+
+def test_the_dependency_lists_cover_every_imported_kernel_module() -> None:
+    """Every stemmap.scan module whose names _detect_fast, _fit_geometric or _gaps import is in
+    that module's drop_stale_cache call (read from the source, so a new split is not missed)."""
+    import ast
+
+    from stemmap.scan import _detect_fast, _fit_geometric, _gaps
+
+    for mod in (_detect_fast, _fit_geometric, _gaps):
+        tree = ast.parse(Path(mod.__file__).read_text())
+        imported: set[str] = set()
+        for node in tree.body:
+            if isinstance(node, ast.ImportFrom) and node.module:
+                if node.module == "stemmap.scan":
+                    imported |= {a.name for a in node.names}
+                elif node.module.startswith("stemmap.scan."):
+                    imported.add(node.module.rsplit(".", 1)[1])
+        listed: set[str] = set()
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Attribute)
+                and node.func.attr == "drop_stale_cache"
+            ):
+                for arg in node.args[2:]:
+                    if isinstance(arg, ast.Attribute) and isinstance(arg.value, ast.Name):
+                        listed.add(arg.value.id)
+        assert imported <= listed, (mod.__name__, imported - listed)

@@ -120,15 +120,33 @@ def test_prior_map_uses_the_joint_information(
     second = sim_log / "m_isam2_prior"
     args = ["map", str(sim_log / "run.npz"), "--prior-map", str(first), "--out", str(second)]
     args += ["--start-guess", "0,0,0"]
+    # the default (Isam2Config.prior_map_robust = "huber"): per-tree robust priors, the joint
+    # information is not used, and metrics.json says so
     res = run.invoke(app, args)
     assert res.exit_code == 0, res.output
-    assert used and used[0]  # the joint prior factor reached the graph
-    assert _metrics(second)["relocalisation"]["prior"] == "joint"
+    assert not any(used)  # no joint prior factor built
+    rl = _metrics(second)["relocalisation"]
+    assert rl["prior"] == "per-tree huber" and "not used" in rl["note"]
 
-    npz.unlink()  # without it: per-tree priors, and said so
+    # with prior_map_robust = "none" (the iSAM2 settings' default swapped for this test): the
+    # joint prior factor reaches the graph
+    import functools
+
+    monkeypatch.setattr(
+        graph, "Isam2Config", functools.partial(graph.Isam2Config, prior_map_robust="none")
+    )
+    used.clear()
+    joint = sim_log / "m_isam2_joint"
+    args[args.index(str(second))] = str(joint)
+    res = run.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert used and used[0]
+    assert _metrics(joint)["relocalisation"]["prior"] == "joint"
+
+    npz.unlink()  # without it: per-tree Gaussian priors, and said so
     used.clear()
     third = sim_log / "m_isam2_pertree"
-    args[args.index(str(second))] = str(third)
+    args[args.index(str(joint))] = str(third)
     res = run.invoke(app, args)
     assert res.exit_code == 0, res.output
     assert used and not any(used)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -10,7 +12,12 @@ from hypothesis import strategies as st
 from stemmap.cloud.cluster import dbscan, grid_components
 from stemmap.cloud.filters import pass_through, point_spacing, voxel_downsample
 from stemmap.cloud.ground import GroundAccumulator, fit_ground
-from stemmap.cloud.shape import arc_coverage_deg, cluster_covariances, pca_eccentricity
+from stemmap.cloud.shape import (
+    arc_coverage_deg,
+    cluster_covariances,
+    major_axis_tilt_deg,
+    pca_eccentricity,
+)
 from stemmap.errors import ConfigError, InputError
 
 
@@ -68,6 +75,26 @@ def test_cluster_covariances_and_eccentricity() -> None:
     assert e[0] == pytest.approx(16.0, rel=0.1)
     assert e[1] == pytest.approx(1.0, rel=0.15)
     np.testing.assert_allclose(cov[0], np.cov(a.T, bias=True), atol=1e-12)
+
+
+def test_major_axis_tilt() -> None:
+    """Angle of the principal axis from vertical: 0 for a stem, 90 for a horizontal strip, the
+    rotation angle for a stem leaning in the xz plane (sign and axis order do not matter)."""
+    lean = math.radians(30.0)
+    rot = np.array(
+        [[math.cos(lean), 0, math.sin(lean)], [0, 1, 0], [-math.sin(lean), 0, math.cos(lean)]]
+    )
+    covs = np.stack(
+        (
+            np.diag([0.01, 0.02, 1.0]),
+            np.diag([1.0, 0.02, 0.01]),
+            rot @ np.diag([0.01, 0.02, 1.0]) @ rot.T,
+        )
+    )
+    np.testing.assert_allclose(major_axis_tilt_deg(covs), [0.0, 90.0, 30.0], atol=1e-9)
+    assert float(major_axis_tilt_deg(covs[1])) == pytest.approx(90.0)
+    with pytest.raises(InputError):
+        major_axis_tilt_deg(np.eye(2))
 
 
 def test_arc_coverage() -> None:

@@ -204,10 +204,12 @@ def test_mobile_vlp16() -> None:
 def test_munjer_eccentricity_window() -> None:
     """A partial trunk seen by three lidar rings is a thin curved sheet: largest over smallest
     eigenvalue (the default reading) puts it in [10, 20]; a leafy blob (e ~ 1) and a flat board
-    (e >> 20) are rejected. The two-largest reading keeps a thin one-ring arc instead."""
+    (e >> 20) are rejected. The two-largest reading keeps a thin one-ring arc instead -- a
+    horizontal curve, which the principal-axis tilt check (the paper's "vertically elongated")
+    rejects."""
     rng = np.random.default_rng(4)
     t = rng.uniform(-0.9, 0.9, 600)
-    rings = rng.choice([-0.35, -0.25, -0.15], 600)
+    rings = rng.choice([-0.4, -0.275, -0.15], 600)  # VLP-16 rings 0.125 m apart: ~3.6 m
     rr = 0.2 + rng.normal(0, 0.01, 600)  # 1 cm range noise
     sheet = np.column_stack((5.0 - rr * np.cos(t), rr * np.sin(t), rings))
     blob = rng.normal([3.0, -4.0, -0.25], 0.08, (400, 3))
@@ -223,10 +225,35 @@ def test_munjer_eccentricity_window() -> None:
     arc = np.column_stack(
         (5.0 - 0.2 * np.cos(t[:400]), 0.2 * np.sin(t[:400]), -0.3 + rng.normal(0, 0.015, 400))
     )
-    old = detect_stems_munjer(np.vstack((arc, blob)), MunjerConfig(eccentricity_axes="largest"))
+    old = detect_stems_munjer(
+        np.vstack((arc, blob)), MunjerConfig(eccentricity_axes="largest", max_tilt_deg=None)
+    )
     assert len(old) == 1 and 10 <= old.eccentricity[0] <= 20
+    # the same arc, the same eccentricity: lying flat, its principal axis is 90 deg from vertical
+    assert len(detect_stems_munjer(arc, MunjerConfig(eccentricity_axes="largest"))) == 0
+    # the trunk sheet's principal axis leans toward its height (rings 0.25 m tall against a
+    # 0.3 m chord: measured 17 deg from vertical), far from the arc's 90
+    assert len(detect_stems_munjer(sheet, MunjerConfig(max_tilt_deg=30.0))) == 1
+    with pytest.raises(ConfigError):
+        MunjerConfig(max_tilt_deg=0.0)
     with pytest.raises(ConfigError):
         MunjerConfig(eccentricity_axes="smallest")
+
+
+def test_munjer_joined_frames_need_one_dense_frame() -> None:
+    """On frames joined by a window (``frame_ids``), minPts is per capture: the same trunk
+    sheet is kept when one capture holds >= 20 of its points, rejected when 40 captures hold 15
+    each (sparse returns made dense only by joining), and kept again without frame ids."""
+    rng = np.random.default_rng(4)
+    t = rng.uniform(-0.9, 0.9, 600)
+    rings = rng.choice([-0.4, -0.275, -0.15], 600)
+    rr = 0.2 + rng.normal(0, 0.01, 600)
+    sheet = np.column_stack((5.0 - rr * np.cos(t), rr * np.sin(t), rings))
+    assert len(detect_stems_munjer(sheet, frame_ids=np.arange(600) % 2)) == 1
+    assert len(detect_stems_munjer(sheet, frame_ids=np.arange(600) % 40)) == 0
+    assert len(detect_stems_munjer(sheet)) == 1
+    with pytest.raises(InputError):
+        detect_stems_munjer(sheet, frame_ids=np.zeros(5, dtype=int))
 
 
 def test_level_to_ground_removes_the_slope() -> None:

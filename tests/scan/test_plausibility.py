@@ -181,6 +181,39 @@ def test_compiled_scan_noise_equals_numpy():
             )
 
 
+def test_compiled_scan_noise_equals_numpy_on_broken_runs():
+    # the compiled twin counts interior triples by runs of continuous range steps, branch-free
+    # (scan-detection.md, eighth round): every way a run can be cut (no return as NaN, inf or
+    # -inf, a range jump), runs of exactly 4-6 returns around the interior-triple threshold,
+    # scans shorter than 5 beams, one run holding half the triples or just more, an infinite
+    # jump (finiteness alone): the same value bit for bit, and a non-zero estimate often enough
+    # that the medians are compared too
+    from stemmap.scan._detect_fast import _scan_noise
+
+    rng = np.random.default_rng(11)
+    nonzero = 0
+    for _ in range(3000):
+        n = int(rng.integers(0, 200))
+        r = 5.0 + np.cumsum(rng.normal(0.0, rng.choice([0.01, 0.05, 0.15]), n))
+        r += rng.normal(0.0, 0.01, n)
+        cut = rng.random(n) < rng.choice([0.0, 0.03, 0.15, 0.3])
+        r[cut] = rng.choice([np.nan, np.inf, -np.inf], int(cut.sum()))
+        jump = float(rng.choice([0.05, 0.2, np.inf]))
+        surface = float(rng.choice([0.0, 0.006]))
+        got = _scan_noise(r.copy(), jump, surface, np.empty(max(n, 1)))
+        ref = scan_noise(r.reshape(1, n), jump, surface)[0]
+        assert got == ref
+        nonzero += ref > 0
+    assert nonzero > 600
+    # the breakdown rule at its edge: a run of L returns holds L - 3 interior triples; one run
+    # of 16 alone is not enough, two of 16 hold exactly half each (kept), 16 and 15 not
+    for lengths, kept in (((19,), False), ((19, 19), True), ((19, 18), False)):
+        r = np.concatenate([np.append(4.0 + rng.normal(0.0, 0.01, k), np.nan) for k in lengths])
+        got = _scan_noise(r, 0.2, 0.0, np.empty(r.size))
+        assert got == scan_noise(r[None, :], 0.2)[0]
+        assert (got > 0) == kept
+
+
 def test_sigma_from_scan_raises_sigma_where_the_configured_one_is_too_small():
     # 3 cm noise, sigma configured 1 cm: the RMS test (2 sigma) rejects most trunks; with the
     # scan's own estimate it does not

@@ -16,6 +16,7 @@ from stemmap.slam.relaxation import (
     fit_rigid_robust,
     loop_constraint,
     relax_trajectory,
+    relaxed_pose_covariances,
     remap_trees,
 )
 
@@ -199,3 +200,40 @@ def test_close_duplicates_and_remap():
     np.testing.assert_allclose(out[0], [2.0, 0.0])
     np.testing.assert_allclose(out[1], [4.0, 0.0])
     assert np.isnan(out[2]).all() and cnt.tolist() == [2, 1, 0]
+
+
+def test_relaxed_pose_covariances_propagate_the_chain_and_shrink_at_a_loop():
+    """Issue 14, tree DB / Forestrix pose covariance: the marginals of the relaxation's pose
+    graph. Straight drive along x, keyframes 2 m apart, a frame halfway between: without
+    loops the along-track variance is the prior plus the chain's sigma² per edge
+    ((0.05 + 0.02 * 2)² m²), the frame between carries its keyframe's plus the partial edge
+    ((0.05 + 0.02 * 1)²); the cross-track variance grows faster (heading lever arm). A loop
+    constraint from the last keyframe back to the first pulls the end's covariance down to
+    about the constraint's own (0.3 m, 1 deg). ``chain_variance_factor`` scales the chain
+    alone: a dead-reckoned frame's odometry covariance (0.5 m² along track, frame 3) is
+    added unscaled."""
+    nk = 15
+    xs = np.arange(0.0, 2.0 * nk - 1.0, 1.0)  # frames every 1 m, keyframes every 2 m
+    poses = np.column_stack((xs, np.zeros_like(xs), np.zeros_like(xs)))
+    kf = np.arange(0, xs.size, 2)
+    cov = relaxed_pose_covariances(poses, kf, [])
+    assert np.isfinite(cov).all() and np.all(np.linalg.eigvalsh(cov) > 0)
+    edge = (0.05 + 0.02 * 2.0) ** 2
+    for k, f in enumerate(kf):
+        assert cov[f, 0, 0] == pytest.approx(1e-8 + k * edge, rel=1e-6)
+        if f + 1 < xs.size:
+            assert cov[f + 1, 0, 0] == pytest.approx(1e-8 + k * edge + 0.07**2, rel=1e-6)
+    assert np.all(np.diff(cov[kf, 1, 1]) > 0) and cov[kf[-1], 1, 1] > cov[kf[-1], 0, 0]
+    loop = LoopClosure(0, int(kf[-1]), tuple(between(poses[0], poses[kf[-1]])))
+    closed = relaxed_pose_covariances(poses, kf, [loop])
+    end = int(kf[-1])
+    assert closed[end, 1, 1] < 0.2 * cov[end, 1, 1]
+    assert closed[end, 0, 0] < 0.3**2 and closed[end, 1, 1] < 2 * 0.3**2
+    assert np.all(closed[kf, 0, 0] <= cov[kf, 0, 0] + 1e-12)
+    # the factor scales the chain's variances only, not the dead-reckoned odometry's
+    odo = np.zeros((xs.size, 3, 3))
+    odo[3, 0, 0] = 0.5
+    c4 = relaxed_pose_covariances(poses, kf, [], odometry_cov=odo, chain_variance_factor=4.0)
+    assert c4[kf[-1], 0, 0] == pytest.approx(1e-8 + 4 * (nk - 1) * edge + 0.5, rel=1e-6)
+    assert c4[kf[1], 0, 0] == pytest.approx(1e-8 + 4 * edge, rel=1e-6)  # before frame 3
+    assert c4[kf[2], 0, 0] == pytest.approx(1e-8 + 8 * edge + 0.5, rel=1e-6)

@@ -73,7 +73,8 @@ def detect(
             help="Estimate each scan's range noise from its own returns (robust scale of the "
             "second differences of neighbouring ranges inside continuous surfaces, run ends "
             "left out) and use it wherever it exceeds the configured sensor noise (--sigma). "
-            "Helps noisy scanners; default: the preset's setting (off).",
+            "Helps noisy scanners; default: the preset's setting (on for stemmap, off for "
+            "the paper presets).",
         ),
     ] = None,
     footprint: Annotated[

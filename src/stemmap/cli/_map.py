@@ -458,8 +458,9 @@ def map_command(
             metavar="N",
             help="--frontend eb-lidar: cluster each lidar frame with the N - 1 frames before it, "
             "moved with the motion source's poses. Default 1 = strictly per frame, the paper's "
-            "pipeline; N > 1 trades precision for recall (more trees on the simulator, false "
-            "ones on a real plot: docs/algorithms/cloud.md, 'Accumulated frames').",
+            "pipeline; N > 1 adds the joined cloud's trunks (20 points from one frame) to each "
+            "frame's own: more trees on the simulator and on a real plot, no false ones there "
+            "(docs/algorithms/cloud.md, 'Accumulated frames').",
             callback=bounded("--eb-window", ge=1),
         ),
     ] = 1,

@@ -18,10 +18,13 @@ def continue_from_map(
 ) -> tuple[Any, Any, dict[str, Any]]:
     """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call).
 
-    The map's joint information (``trees_information.npz`` beside trees.csv) becomes one joint
-    prior over its trees; without it each tree gets its own prior (said in the returned note).
+    Each prior tree is held by its own prior on its marginal with the robust loss of
+    ``Isam2Config.prior_map_robust`` (Huber by default); with ``"none"`` the map's joint
+    information (``trees_information.npz`` beside trees.csv) becomes one joint prior over its
+    trees, without it each tree gets its own Gaussian prior (said in the returned note).
     """
     from stemmap.io.maps import TREES_INFORMATION_NPZ, read_trees_csv, read_trees_information
+    from stemmap.slam.graph import Isam2Config
     from stemmap.slam.relocalise import continue_session
 
     if backend != "isam2":
@@ -36,7 +39,14 @@ def continue_from_map(
     csv = folder / "trees.csv" if folder.is_dir() else folder
     prior = read_trees_csv(csv)
     npz = csv.with_name(TREES_INFORMATION_NPZ)
-    if npz.is_file():
+    robust = Isam2Config().prior_map_robust
+    if robust != "none":
+        note = {
+            "prior": f"per-tree {robust}",
+            "note": f"each prior tree held by its own robust ({robust}) prior on its marginal "
+            f"(Isam2Config.prior_map_robust); {TREES_INFORMATION_NPZ}, if present, is not used",
+        }
+    elif npz.is_file():
         prior = read_trees_information(npz, prior)
         note = {"prior": "joint", "information": str(npz)}
     else:

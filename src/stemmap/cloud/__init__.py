@@ -16,7 +16,12 @@ from stemmap.cloud.cluster import dbscan, grid_components
 from stemmap.cloud.filters import pass_through, point_spacing, voxel_downsample
 from stemmap.cloud.ground import GroundAccumulator, GroundModel, fit_ground, normalize_heights
 from stemmap.cloud.sensor import SensorPositions
-from stemmap.cloud.shape import arc_coverage_deg, cluster_covariances, pca_eccentricity
+from stemmap.cloud.shape import (
+    arc_coverage_deg,
+    cluster_covariances,
+    major_axis_tilt_deg,
+    pca_eccentricity,
+)
 from stemmap.cloud.stems import (
     PRESETS,
     CloudStems,
@@ -54,6 +59,7 @@ __all__ = [
     "fit_ground",
     "get_preset",
     "grid_components",
+    "major_axis_tilt_deg",
     "normalize_heights",
     "pass_through",
     "pca_eccentricity",

@@ -12,8 +12,8 @@ from numpy.typing import ArrayLike
 from stemmap.cloud.cluster import dbscan
 from stemmap.cloud.filters import as_xyz, pass_through, voxel_downsample
 from stemmap.cloud.result import CloudStems
-from stemmap.cloud.shape import cluster_covariances, pca_eccentricity
-from stemmap.errors import ConfigError
+from stemmap.cloud.shape import cluster_covariances, major_axis_tilt_deg, pca_eccentricity
+from stemmap.errors import ConfigError, InputError
 from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
@@ -56,11 +56,13 @@ class MunjerConfig:
     window : int, >= 1 -- lidar frames clustered together by
         :func:`stemmap.slam.munjer.eb_lidar_observations`: each frame's pass-through points
         joined with those of the ``window - 1`` frames before it, moved into its lidar frame
-        with the motion source's poses. The paper is silent (it clusters "the filtered point
-        cloud P'" of a moving robot); 1 = strictly per frame, the Munjer pipeline's default:
-        5 frames gain trees on the simulator but add false ones on a real plot
-        (docs/algorithms/cloud.md, "Accumulated frames"). :func:`detect_stems_munjer` itself
-        always takes one cloud.
+        with the motion source's poses, its detections (minPts from one frame) added to the
+        frame's own. The paper is silent (it clusters "the filtered point cloud P'" of a
+        moving robot); 1 = strictly per frame, the Munjer pipeline's default (as published):
+        5 frames gain trees on the simulator and on virtual frames of a real plot, with no
+        false tree on either (docs/algorithms/cloud.md, "Accumulated frames").
+        :func:`detect_stems_munjer` itself takes one cloud (with ``frame_ids`` for a joined
+        one).
     """
 
     box_x: tuple[float, float] | None = (0.0, 10.0)
@@ -74,6 +76,7 @@ class MunjerConfig:
     association_distance: float = 1.0
     fit_method: str = "kasa"
     eccentricity_axes: str = "major_minor"
+    max_tilt_deg: float | None = 45.0
     ground_relative: bool = False
     window: int = 1
 
@@ -85,6 +88,10 @@ class MunjerConfig:
         lo, hi = self.eccentricity_range
         if not hi >= lo >= 1:
             raise ConfigError(f"eccentricity_range must satisfy 1 <= lo <= hi, got {lo}, {hi}.")
+        if self.max_tilt_deg is not None and not 0 < self.max_tilt_deg <= 90:
+            raise ConfigError(
+                f"max_tilt_deg must lie in (0, 90] or be None, got {self.max_tilt_deg}."
+            )
         if self.eccentricity_axes not in ("largest", "major_minor"):
             raise ConfigError(
                 "eccentricity_axes must be 'major_minor' or 'largest', got "
@@ -92,13 +99,22 @@ class MunjerConfig:
             )
 
 
-def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> CloudStems:
+def detect_stems_munjer(
+    xyz: ArrayLike, config: MunjerConfig | None = None, *, frame_ids: ArrayLike | None = None
+) -> CloudStems:
     """EB-LiDAR stem detection in one lidar frame (Munjer et al. 2025, §3.2-3.3).
 
     Parameters
     ----------
     xyz : array_like (N, 3), metres, lidar frame (x forward, z up, origin at the sensor)
     config : MunjerConfig, default the published Table 1 values
+    frame_ids : array_like (N,) int, optional -- when ``xyz`` joins several captures
+        (:func:`stemmap.slam.munjer.accumulate_frames`), the capture of each point. Then the
+        voxel grid, eq. (2), averages within a capture only, and a cluster is kept only if
+        ``config.min_points`` of its points come from one capture: minPts stays a per-capture
+        density, as the paper applies it; joining captures may sharpen a cluster's shape but
+        may not make sparse returns (ground, understory) dense enough (ours; without it joined
+        frames add false trees on a real plot, docs/algorithms/cloud.md, "Accumulated frames").
 
     Returns
     -------
@@ -112,28 +128,50 @@ def detect_stems_munjer(xyz: ArrayLike, config: MunjerConfig | None = None) -> C
     (§3.3) -> covariance of each cluster, eq. (3), and eccentricity ``e = lambda1 / lambda2``,
     eq. (4), over the eigenvalues ``config.eccentricity_axes`` names (default the largest over
     the smallest of the 3D covariance) -> keep ``10 <= e <= 20``
-    (§3.3: "between 10 and 20"; Table 1 names 20 the cutoff) -> circle fit of the cluster's 2D
-    projection, rejected when the residual standard deviation exceeds 0.1 m (Table 1).
+    (§3.3: "between 10 and 20"; Table 1 names 20 the cutoff) whose principal axis is within
+    ``config.max_tilt_deg`` of vertical (the abstract's "vertically elongated") -> circle fit
+    of the cluster's 2D projection, rejected when the residual standard deviation exceeds
+    0.1 m (Table 1).
     """
     cfg = config or MunjerConfig()
     p = as_xyz(xyz)
     zb = level_to_ground(p) if cfg.ground_relative else p
-    p = p[pass_through(zb, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)]
+    inside = pass_through(zb, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)
+    p = p[inside]
     if p.shape[0] < cfg.min_points:
         return CloudStems.empty(
             "munjer2025", reason=f"fewer than {cfg.min_points} points inside the pass-through box"
         )
-    v = np.asarray(voxel_downsample(p, cfg.voxel))
+    if frame_ids is None:
+        v = np.asarray(voxel_downsample(p, cfg.voxel))
+    else:
+        fid = np.asarray(frame_ids).reshape(-1)
+        if fid.shape[0] != inside.shape[0]:
+            raise InputError(f"{fid.shape[0]} frame ids for {inside.shape[0]} points.")
+        _, fid = np.unique(fid[inside], return_inverse=True)
+        fid = fid.reshape(-1)
+        per = [np.asarray(voxel_downsample(p[fid == k], cfg.voxel)) for k in range(fid.max() + 1)]
+        v = np.vstack(per)
+        vid = np.repeat(np.arange(len(per)), [len(q) for q in per])
     lab = dbscan(v, cfg.eps, cfg.min_points)
     if lab.size == 0 or lab.max() < 0:
         return CloudStems.empty("munjer2025", reason="DBSCAN found no cluster")
     cen, cov, sizes = cluster_covariances(v, lab)
     ecc = pca_eccentricity(cov, cfg.eccentricity_axes)
     lo, hi = cfg.eccentricity_range
-    cand = np.flatnonzero((ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points))
+    keep = (ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points)
+    if frame_ids is not None:
+        ok = lab >= 0
+        n_f = int(vid.max()) + 1
+        per_frame = np.bincount(lab[ok] * n_f + vid[ok], minlength=sizes.size * n_f)
+        keep &= per_frame.reshape(sizes.size, n_f).max(axis=1) >= cfg.min_points
+    if cfg.max_tilt_deg is not None:
+        keep &= major_axis_tilt_deg(cov) <= cfg.max_tilt_deg
+    cand = np.flatnonzero(keep)
     if cand.size == 0:
+        tilt = "" if cfg.max_tilt_deg is None else f" and a tilt <= {cfg.max_tilt_deg} deg"
         return CloudStems.empty(
-            "munjer2025", reason=f"no cluster has an eccentricity in [{lo}, {hi}]"
+            "munjer2025", reason=f"no cluster has an eccentricity in [{lo}, {hi}]{tilt}"
         )
     sel = np.isin(lab, cand)
     fits = fit_circles_batch(v[sel, :2], lab[sel], cfg.fit_method, edges=None)

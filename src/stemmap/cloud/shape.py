@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 from stemmap.errors import InputError
 from stemmap.types import FloatArray
 
-__all__ = ["arc_coverage_deg", "cluster_covariances", "pca_eccentricity"]
+__all__ = ["arc_coverage_deg", "cluster_covariances", "major_axis_tilt_deg", "pca_eccentricity"]
 
 
 def cluster_covariances(
@@ -52,6 +52,12 @@ def cluster_covariances(
     return cen.reshape(k, d), cov, sizes
 
 
+def _cov_stack(cov: ArrayLike) -> tuple[FloatArray, bool]:
+    """(K, D, D) float array of ``cov`` ((K, D, D) or one (D, D)) and whether it was one."""
+    c = np.asarray(cov, dtype=np.float64)
+    return c.reshape(-1, c.shape[-2], c.shape[-1]), c.ndim == 2
+
+
 def pca_eccentricity(cov: ArrayLike, axes: str = "largest") -> FloatArray:
     """Eccentricity ``e = lambda1 / lambda2`` of covariance matrices (Munjer et al. 2025, eq. 4).
 
@@ -65,9 +71,7 @@ def pca_eccentricity(cov: ArrayLike, axes: str = "largest") -> FloatArray:
     >>> float(pca_eccentricity(np.diag([4.0, 1.0, 0.5])))
     4.0
     """
-    c = np.asarray(cov, dtype=np.float64)
-    single = c.ndim == 2
-    c = c.reshape(-1, c.shape[-2], c.shape[-1])
+    c, single = _cov_stack(cov)
     if axes not in ("largest", "major_minor"):
         raise InputError(f"axes must be 'largest' or 'major_minor', got {axes!r}.")
     w = np.linalg.eigvalsh(c)  # ascending
@@ -75,6 +79,27 @@ def pca_eccentricity(cov: ArrayLike, axes: str = "largest") -> FloatArray:
     with np.errstate(divide="ignore", invalid="ignore"):
         e = np.where(l2 > 0, l1 / np.where(l2 > 0, l2, 1.0), np.inf)
     return e[0] if single else e
+
+
+def major_axis_tilt_deg(cov: ArrayLike) -> FloatArray:
+    """Angle (degrees, 0-90) between the principal axis of 3D covariance matrices (the
+    eigenvector of the largest eigenvalue) and the vertical z axis.
+
+    0 for a vertical stem, 90 for a cluster elongated horizontally (a ring arc, a ground strip).
+    Used for Munjer et al. (2025)'s "vertically elongated clusters" (abstract, §1), which
+    eq. (4) alone does not test; see :class:`stemmap.cloud.munjer.MunjerConfig`.
+
+    Examples
+    --------
+    >>> float(major_axis_tilt_deg(np.diag([1.0, 0.5, 4.0])))
+    0.0
+    """
+    c, single = _cov_stack(cov)
+    if c.shape[-1] != 3:
+        raise InputError(f"major_axis_tilt_deg needs 3 x 3 covariances, got {c.shape[-2:]}.")
+    _, vec = np.linalg.eigh(c)  # ascending: last column = principal axis
+    t = np.degrees(np.arccos(np.clip(np.abs(vec[:, 2, -1]), 0.0, 1.0)))
+    return t[0] if single else t
 
 
 def arc_coverage_deg(points: ArrayLike, center: ArrayLike) -> float:

@@ -18,6 +18,13 @@ absolute position):
   from": they overlay to ~0.1 m on Victoria Park), so ``(g_j - g_i) - (p_j - p_i) = e_j - e_i``
   and, for independent visits, ``E|e|² = ½ E|e_j - e_i|²``.
 
+Its time structure (:func:`gps_autocorrelation`, :func:`fit_gauss_markov`): the correlation of
+the error with itself over a lag, and a first-order Gauss-Markov model of it (white fix noise
+plus a bias with an exponential autocovariance, the usual GNSS error model of loosely coupled
+GNSS/INS fusion, e.g. Groves, *Principles of GNSS, Inertial, and Multisensor Integrated
+Navigation Systems*, 2nd ed. 2013, its Kalman-filter system models) fitted to the
+semivariogram: it says how much of an unused fix's error a fused fix ``tau`` away shares.
+
 Both are the usual geostatistical / GNSS-noise estimates (e.g. the Allan-variance view of a
 GNSS position error: white noise plus a slowly varying bias); the decision to score against
 them is ours.
@@ -34,7 +41,15 @@ from scipy.spatial import cKDTree
 from stemmap.errors import InputError
 from stemmap.types import FloatArray
 
-__all__ = ["GpsErrorEstimate", "GpsVariogram", "gps_revisit_error", "gps_variogram"]
+__all__ = [
+    "GaussMarkovFit",
+    "GpsErrorEstimate",
+    "GpsVariogram",
+    "fit_gauss_markov",
+    "gps_autocorrelation",
+    "gps_revisit_error",
+    "gps_variogram",
+]
 
 
 def _inputs(
@@ -103,23 +118,107 @@ def gps_variogram(
         ``gamma(tau) = ¼ mean |(g_j - g_i) - (p_j - p_i)|²`` (per axis).
     """
     t, g, p = _inputs(gps_times, gps_xy, path_xy, "gps_variogram")
-    lg = np.asarray(lags, dtype=np.float64).reshape(-1)
-    if np.any(~np.isfinite(lg)) or np.any(lg <= 0):
-        raise InputError(f"gps_variogram: lags must be positive seconds, got {lg}.")
+    lg = _lags(lags, "gps_variogram")
     r = g - p
     gam = np.full(lg.shape, np.nan)
     cnt = np.zeros(lg.shape)
     for k, tau in enumerate(lg):
-        j = np.searchsorted(t, t + tau)
-        i = np.flatnonzero(j < t.shape[0])
-        j = j[i]
-        ok = np.abs(t[j] - t[i] - tau) < max(abs_tol, rel_tol * tau)
-        i, j = i[ok], j[ok]
+        i, j = _lag_pairs(t, float(tau), rel_tol, abs_tol)
         cnt[k] = i.size
         if i.size:
             d = r[j] - r[i]
             gam[k] = 0.25 * float(np.mean(np.sum(d * d, axis=1)))
     return GpsVariogram(lg, gam, cnt)
+
+
+def _lags(lags: ArrayLike, name: str) -> FloatArray:
+    lg = np.asarray(lags, dtype=np.float64).reshape(-1)
+    if np.any(~np.isfinite(lg)) or np.any(lg <= 0):
+        raise InputError(f"{name}: lags must be positive seconds, got {lg}.")
+    return lg
+
+
+def _lag_pairs(
+    t: FloatArray, tau: float, rel_tol: float, abs_tol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fix pairs ``(i, j)``, ``j`` the first fix at or after ``t_i + tau``, kept when
+    ``|t_j - t_i - tau| < max(abs_tol, rel_tol tau)``."""
+    j = np.searchsorted(t, t + tau)
+    i = np.flatnonzero(j < t.shape[0])
+    j = j[i]
+    ok = np.abs(t[j] - t[i] - tau) < max(abs_tol, rel_tol * tau)
+    return i[ok], j[ok]
+
+
+def gps_autocorrelation(
+    gps_times: ArrayLike,
+    gps_xy: ArrayLike,
+    path_xy: ArrayLike,
+    lags: ArrayLike,
+    *,
+    rel_tol: float = 0.1,
+    abs_tol: float = 0.2,
+) -> FloatArray:
+    """(L,) autocorrelation of the GPS error ``e = g - p`` (centred) at each lag: ``mean(e_i .
+    e_j) / mean |e|²`` over the fix pairs of :func:`gps_variogram` (nan: no pair).
+
+    Unlike the semivariogram it needs the path *aligned* to the fixes (``path_xy`` in their
+    frame, e.g. by :func:`stemmap.eval.trajectory.align_se2`): the path's own slow drift then
+    shows as correlation at long lags.
+    """
+    t, g, p = _inputs(gps_times, gps_xy, path_xy, "gps_autocorrelation")
+    lg = _lags(lags, "gps_autocorrelation")
+    e = g - p
+    e = e - e.mean(axis=0)
+    var = float(np.mean(np.sum(e * e, axis=1)))
+    out = np.full(lg.shape, np.nan)
+    if var <= 0:
+        return out
+    for k, tau in enumerate(lg):
+        i, j = _lag_pairs(t, float(tau), rel_tol, abs_tol)
+        if i.size:
+            out[k] = float(np.mean(np.sum(e[i] * e[j], axis=1))) / var
+    return out
+
+
+@dataclass(frozen=True)
+class GaussMarkovFit:
+    """Result of :func:`fit_gauss_markov`, per axis: ``white_sigma`` (m) the fix noise,
+    ``bias_sigma`` (m) the bias's stationary std, ``time_constant`` (s) its correlation time
+    (autocovariance ``bias_sigma² exp(-|tau| / time_constant)``)."""
+
+    white_sigma: float
+    bias_sigma: float
+    time_constant: float
+
+
+def fit_gauss_markov(variogram: GpsVariogram, max_lag: float = 60.0) -> GaussMarkovFit:
+    """First-order Gauss-Markov model of the GPS error fitted to its semivariogram.
+
+    Per axis ``gamma(tau) = s_w² + s_b² (1 - exp(-tau / T))``: ``s_w²`` is the semivariance at
+    the shortest lag (the nugget; an upper bound, the bias adds ~``s_b² tau / T`` there), then
+    ``s_b², T`` by least squares on the other lags up to ``max_lag`` s (a grid of 600 ``T``
+    from 0.5 to 500 s, log-spaced, linear in ``s_b²`` for each). Beyond ``max_lag`` the path's
+    own drift enters the semivariogram. Needs at least three finite lags <= ``max_lag``.
+    """
+    ok = np.isfinite(variogram.gamma) & (variogram.lags <= max_lag)
+    lags, gam = variogram.lags[ok], variogram.gamma[ok]
+    if lags.size < 3:
+        raise InputError(
+            f"fit_gauss_markov: need >= 3 lags <= {max_lag} s with fix pairs, got {lags.size}."
+        )
+    order = np.argsort(lags)
+    lags, gam = lags[order], gam[order]
+    nug = float(gam[0])
+    x, y = lags[1:], gam[1:] - nug
+    best = (np.inf, 0.0, 1.0)
+    for tc in np.geomspace(0.5, 500.0, 600):
+        a = 1.0 - np.exp(-x / tc)
+        sb2 = max(float(a @ y) / float(a @ a), 0.0)
+        cost = float(np.sum((a * sb2 - y) ** 2))
+        if cost < best[0]:
+            best = (cost, sb2, float(tc))
+    return GaussMarkovFit(float(np.sqrt(max(nug, 0.0))), float(np.sqrt(best[1])), best[2])
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,6 +1,6 @@
 """Odometry front ends feeding slam/: lidar scan matching (:mod:`.lidar`), wheel + IMU sources
 (:mod:`.inertial`), visual odometry from stereo / RGB-D frames (:mod:`.visual`), and their
-loosely coupled EKF fusion (:mod:`.fusion`).
+loosely coupled EKF fusion (:mod:`.fusion`) and fusion by relative motion (:mod:`.increments`).
 
 Submodules are imported on first use of a name (``from stemmap.odometry import fuse_sources``
 loads only :mod:`.fusion`), so a front end's heavy dependency (KISS-ICP, OpenCV) is paid only
@@ -21,6 +21,8 @@ _LAZY: dict[str, str] = {
     "fuse_odometry": "fusion",
     "fuse_sources": "fusion",
     "velocities_from_poses": "fusion",
+    "IncrementSource": "increments",
+    "fuse_increments": "increments",
     "LidarOdometry": "lidar",
     "LidarOdometryConfig": "lidar",
     "LidarOdometryResult": "lidar",

@@ -20,6 +20,9 @@ A source that outputs poses (a SLAM odometry) is turned into velocities by
 :func:`velocities_from_poses` (differencing consecutive poses in the body frame), which is what
 "loosely coupled" means here.
 
+Pose-output odometries can also be fused by their increments alone, without this filter:
+:mod:`stemmap.odometry.increments` (each source's relative motion with its own error model).
+
 Ours, on top of the papers: an optional chi-square innovation gate (``gate_prob``) rejects
 measurements inconsistent with the other source -- wheel slip shows up as an encoder speed far
 from the visual speed and is dropped instead of averaged in.

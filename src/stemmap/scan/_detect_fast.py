@@ -23,12 +23,19 @@ Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "o
 first-echo footprint correction, no tilt compensation to apply. Everything else runs the numpy
 pipeline.
 
+The kernel's helpers live in :mod:`stemmap.scan._fast_robust` (medians and robust scales:
+range roughness, the scan's own noise estimate, the fit's residual scale) and
+:mod:`stemmap.scan._fast_segments` (numpy's pairwise sums, the segment table's select / drop,
+the pre-fit algebraic floor, the covariance fallback).
+
 numba's on-disk cache (``cache=True``) of this module is keyed on this file alone, but the
-kernel compiles in ``_fit_one`` of :mod:`stemmap.scan._fit_geometric` and the constant
+kernel compiles in those helpers, ``_fit_one`` of :mod:`stemmap.scan._fit_geometric` (with
+its Levenberg-Marquardt core, :mod:`stemmap.scan._fit_lm`), the corner and gap cuts
+(:mod:`stemmap.scan._corners`, :mod:`stemmap.scan._gaps`) and the constant
 ``MIXED_FRACTION_STD`` of :mod:`stemmap.scan.features`; at import
-:func:`stemmap._numba_cache.drop_stale_cache` drops this module's cache entries when either
-file changed (an edit, or a ``git pull`` into an editable install), so the stale fit cannot
-keep running.
+:func:`stemmap._numba_cache.drop_stale_cache` drops this module's cache entries when any of
+those files changed (an edit, or a ``git pull`` into an editable install), so the stale code
+cannot keep running (tests/test_numba_cache.py lists the same files).
 """
 
 from __future__ import annotations
@@ -39,8 +46,26 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
-from stemmap.scan import _corners, _fit_geometric, _gaps, features
+from stemmap.scan import (
+    _corners,
+    _fast_robust,
+    _fast_segments,
+    _fit_geometric,
+    _fit_lm,
+    _gaps,
+    features,
+)
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
+from stemmap.scan._fast_robust import _interior_triples as _interior_triples
+from stemmap.scan._fast_robust import _median, _range_roughness, _robust_residual_scale, _scan_noise
+from stemmap.scan._fast_robust import _median_inplace as _median_inplace
+from stemmap.scan._fast_segments import (
+    _algebraic_floor,
+    _drop,
+    _geometric_cov,
+    _seg_sum,
+    _select_min,
+)
 from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan._gaps import gap_cut_flags, gap_cut_occlusion
 from stemmap.scan.features import MIXED_FRACTION_STD
@@ -113,224 +138,7 @@ N_PARAMS = len(PARAM_NAMES)
 #: Output columns of the kernel, one row per detection.
 OUT_COLUMNS = 16  # cx, cy, r, cov (9, row-major over cx, cy, r), arc_deg, width, quality, n
 _RAD2DEG = 180.0 / math.pi
-#: 1.4826 MAD -> sigma for a Gaussian, / sqrt(6): the std of a second difference of iid noise
-#: (plausibility.range_roughness; the same constant on both paths)
-_ROUGH = 1.4826 / math.sqrt(6.0)
 _SQRT12 = math.sqrt(12.0)
-
-
-@njit(cache=True, error_model="numpy")
-def _range_roughness(r: FloatArray) -> float:
-    """Robust range-noise + bark-roughness scale of consecutive returns (numba twin of
-    :func:`stemmap.scan.plausibility.range_roughness`, same arithmetic)."""
-    m = r.shape[0] - 2
-    if m < 1:
-        return 0.0
-    d = np.empty(m)
-    for i in range(m):
-        d[i] = abs(r[i] - 2.0 * r[i + 1] + r[i + 2])
-    d.sort()
-    h = m // 2
-    med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
-    return _ROUGH * med
-
-
-@njit(cache=True, error_model="numpy")
-def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
-    """Median of ``d[:m]`` (mean of the two middle values for even ``m``, as ``np.median``)
-    by quickselect (Hoare partition) in place: no allocation, ``d[:m]`` is reordered."""
-    k = m // 2
-    lo = 0
-    hi = m - 1
-    while lo < hi:
-        pivot = d[(lo + hi) // 2]
-        i = lo
-        j = hi
-        while i <= j:
-            while d[i] < pivot:
-                i += 1
-            while d[j] > pivot:
-                j -= 1
-            if i <= j:
-                t = d[i]
-                d[i] = d[j]
-                d[j] = t
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    upper = d[k]
-    if m % 2 == 1:
-        return upper
-    lower = d[0]  # every value left of k is <= d[k] now: the lower middle is their largest
-    for i in range(1, k):
-        lower = max(lower, d[i])
-    return 0.5 * (lower + upper)
-
-
-#: plausibility.SCAN_NOISE_MIN_TRIPLES (the same value on both paths)
-_SCAN_NOISE_MIN_TRIPLES = 16
-
-
-@njit(cache=True, error_model="numpy")
-def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> float:
-    """Range-noise scale of one gated scan ``g`` from its continuous beam triples (numba twin
-    of :func:`stemmap.scan.plausibility.scan_noise`, same arithmetic; ``d`` is scratch)."""
-    m = 0
-    run = 0
-    longest = 0
-    prev2 = False  # the triple centred at k - 2 is continuous
-    prev = False  # ... at k - 1
-    dprev = 0.0  # its second difference
-    for k in range(1, g.shape[0] - 1):
-        a = g[k - 1]
-        b = g[k]
-        c = g[k + 1]
-        cont = (
-            math.isfinite(a)
-            and math.isfinite(b)
-            and math.isfinite(c)
-            and abs(b - a) <= jump
-            and abs(c - b) <= jump
-        )
-        if prev2 and prev and cont:  # the triple centred at k - 1 is interior
-            d[m] = dprev
-            m += 1
-            run += 1
-            longest = max(longest, run)
-        else:
-            run = 0
-        prev2 = prev
-        prev = cont
-        dprev = a - 2.0 * b + c if cont else 0.0
-    if m < _SCAN_NOISE_MIN_TRIPLES or 2 * longest > m:  # one surface must not decide
-        return 0.0
-    med = _median_inplace(d, m)
-    for i in range(m):
-        d[i] = abs(d[i] - med)
-    e = _ROUGH * _median_inplace(d, m)
-    return math.sqrt(max(e * e - surface * surface, 0.0))
-
-
-@njit(cache=True, error_model="numpy")
-def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r: float) -> float:
-    """1.4826 x the median absolute orthogonal residual (numba twin of
-    :func:`stemmap.scan.plausibility.robust_residual_scale`, same arithmetic)."""
-    m = x.shape[0]
-    d = np.empty(m)
-    for i in range(m):
-        d[i] = abs(math.hypot(x[i] - cx, y[i] - cy) - r)
-    d.sort()
-    h = m // 2
-    med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
-    return 1.4826 * med
-
-
-@njit(cache=True, error_model="numpy")
-def _pairwise(a: FloatArray, lo: int, n: int) -> float:  # pragma: no cover - numba
-    """numpy's pairwise summation of ``a[lo:lo + n]`` (``DOUBLE_pairwise_sum``: blocks of 128,
-    eight accumulators), so the sums below equal ``np.add.reduceat`` bit for bit."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[lo + i]
-        return res
-    if n <= 128:
-        r0 = a[lo]
-        r1 = a[lo + 1]
-        r2 = a[lo + 2]
-        r3 = a[lo + 3]
-        r4 = a[lo + 4]
-        r5 = a[lo + 5]
-        r6 = a[lo + 6]
-        r7 = a[lo + 7]
-        i = 8
-        end = n - n % 8
-        while i < end:
-            j = lo + i
-            r0 += a[j]
-            r1 += a[j + 1]
-            r2 += a[j + 2]
-            r3 += a[j + 3]
-            r4 += a[j + 4]
-            r5 += a[j + 5]
-            r6 += a[j + 6]
-            r7 += a[j + 7]
-            i += 8
-        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-        while i < n:
-            res += a[lo + i]
-            i += 1
-        return res
-    n2 = n // 2
-    n2 -= n2 % 8
-    return _pairwise(a, lo, n2) + _pairwise(a, lo + n2, n - n2)
-
-
-@njit(cache=True, error_model="numpy")
-def _seg_sum(a: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
-    """``np.add.reduceat(a, starts)`` for one segment: the first value plus the pairwise sum of
-    the rest (numpy's reduction order)."""
-    return a[start] + _pairwise(a, start + 1, stop - start - 1)
-
-
-@njit(cache=True, error_model="numpy")
-def _algebraic_floor(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma: no cover
-    """Minimum over all circles of the Kasa (algebraic) cost ``sum (|p - c|^2 - r^2)^2`` of the
-    points ``a..b-1`` (a linear least-squares problem in (2c, r^2 - |c|^2), solved in centred
-    coordinates; the residuals are summed explicitly). 0.0 when the points are collinear (no
-    useful bound)."""
-    nf = float(b - a)
-    mx = 0.0
-    my = 0.0
-    for i in range(a, b):
-        mx += px[i]
-        my += py[i]
-    mx /= nf
-    my /= nf
-    zm = 0.0
-    for i in range(a, b):
-        zm += (px[i] - mx) ** 2 + (py[i] - my) ** 2
-    zm /= nf
-    suu = 0.0
-    svv = 0.0
-    suv = 0.0
-    suz = 0.0
-    svz = 0.0
-    for i in range(a, b):
-        u = px[i] - mx
-        v = py[i] - my
-        z = u * u + v * v - zm
-        suu += u * u
-        svv += v * v
-        suv += u * v
-        suz += u * z
-        svz += v * z
-    det = suu * svv - suv * suv
-    if not det > 1e-12 * (suu + svv) ** 2:
-        return 0.0
-    ca = (svv * suz - suv * svz) / det
-    cb = (suu * svz - suv * suz) / det
-    res = 0.0
-    for i in range(a, b):
-        u = px[i] - mx
-        v = py[i] - my
-        e = u * u + v * v - zm - ca * u - cb * v
-        res += e * e
-    return res
-
-
-@njit(cache=True, error_model="numpy")
-def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
-    """Median of ``v[start:stop]`` (mean of the two middle values for even counts), as
-    :func:`stemmap.scan.features._segment_median`."""
-    s = np.sort(v[start:stop])
-    c = stop - start
-    return 0.5 * (s[(c - 1) // 2] + s[c // 2])
 
 
 @njit(cache=True, error_model="numpy")
@@ -859,117 +667,6 @@ def _detect_kernel(
     return rows[:n_out], scans[:n_out], n_cand
 
 
-@njit(cache=True, error_model="numpy")
-def _select_min(
-    st: np.ndarray,
-    sp: np.ndarray,
-    oc0: np.ndarray,
-    oc1: np.ndarray,
-    tr0: np.ndarray,
-    tr1: np.ndarray,
-    pb: np.ndarray,
-    pr: FloatArray,
-    px: FloatArray,
-    py: FloatArray,
-    keep: np.ndarray,
-    ns: int,
-    min_points: float,
-) -> tuple[int, int]:  # pragma: no cover - numba
-    """``Segments.select(counts >= min_points)`` in place: (segments, returns) left."""
-    for j in range(ns):
-        big = sp[j] - st[j] >= min_points
-        for i in range(st[j], sp[j]):
-            keep[i] = big
-    return _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
-
-
-@njit(cache=True, error_model="numpy")
-def _drop(
-    st: np.ndarray,
-    sp: np.ndarray,
-    oc0: np.ndarray,
-    oc1: np.ndarray,
-    tr0: np.ndarray,
-    tr1: np.ndarray,
-    pb: np.ndarray,
-    pr: FloatArray,
-    px: FloatArray,
-    py: FloatArray,
-    keep: np.ndarray,
-    ns: int,
-) -> tuple[int, int]:  # pragma: no cover - numba
-    """``Segments.drop(keep)`` in place: returns not kept removed, emptied segments gone."""
-    nk = 0
-    w = 0
-    for j in range(ns):
-        start = w
-        for i in range(st[j], sp[j]):
-            if keep[i]:
-                pb[w] = pb[i]
-                pr[w] = pr[i]
-                px[w] = px[i]
-                py[w] = py[i]
-                w += 1
-        if w == start:
-            continue
-        st[nk] = start
-        sp[nk] = w
-        oc0[nk] = oc0[j]
-        oc1[nk] = oc1[j]
-        tr0[nk] = tr0[j]
-        tr1[nk] = tr1[j]
-        nk += 1
-    return nk, w
-
-
-@njit(cache=True, error_model="numpy")
-def _geometric_cov(
-    px: FloatArray,
-    py: FloatArray,
-    a: int,
-    b: int,
-    cx: float,
-    cy: float,
-    rad: float,
-    sig: float,
-    tmp: FloatArray,
-    jtj: FloatArray,
-    out: FloatArray,
-) -> None:  # pragma: no cover - numba
-    """``detect._geometric_cov`` for one segment, written to ``out[3:12]`` (NaN if singular).
-    Only reached when the fit's Hessian was singular (rare); numba's LAPACK may differ from
-    numpy's in the last bits here."""
-    nf = float(b - a)
-    for i in range(a, b):
-        dx = px[i] - cx
-        dy = py[i] - cy
-        d = math.hypot(dx, dy)
-        res = d - rad
-        tmp[i] = res * res
-    rss = _seg_sum(tmp, a, b)
-    s2 = max(sig * sig, rss / max(nf - 3.0, 1.0) if nf > 3.0 else 0.0)
-    for u, v in ((0, 0), (1, 1), (0, 1), (0, 2), (1, 2)):
-        for i in range(a, b):
-            dx = px[i] - cx
-            dy = py[i] - cy
-            d = math.hypot(dx, dy)
-            ds = d if d > 0 else 1.0
-            e = (dx / ds, dy / ds, 1.0)
-            tmp[i] = e[u] * e[v]
-        jtj[u, v] = _seg_sum(tmp, a, b)
-        jtj[v, u] = jtj[u, v]
-    jtj[2, 2] = nf
-    det = np.linalg.det(jtj)
-    if math.isfinite(det) and abs(det) > 1e-12 * max(nf, 1.0) ** 3:
-        inv = np.linalg.inv(jtj)
-        for u in range(3):
-            for v in range(3):
-                out[3 + 3 * u + v] = inv[u, v] * s2
-    else:
-        for q in range(9):
-            out[3 + q] = np.nan
-
-
 def detect_scans(
     ranges: FloatArray,
     cos_bearing: FloatArray,
@@ -1009,4 +706,7 @@ _numba_cache.drop_stale_cache(
     features.__file__,
     _corners.__file__,
     _gaps.__file__,
+    _fast_robust.__file__,
+    _fast_segments.__file__,
+    _fit_lm.__file__,
 )

@@ -1,6 +1,8 @@
 """Compiled twin of the largest-gap cuts (:func:`stemmap.scan.segment.split_largest_gap`, ours,
 issue 11) for the detection kernel (:mod:`stemmap.scan._detect_fast`): the same decisions in
-the same arithmetic, on the kernel's segment tables."""
+the same arithmetic, on the kernel's segment tables. Its kernels compile in
+:func:`stemmap.scan._corners.sagitta`: this module drops its numba cache when that file
+changes (:func:`stemmap._numba_cache.drop_stale_cache`, at the end)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,8 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap import _numba_cache
+from stemmap.scan import _corners
 from stemmap.scan._corners import sagitta
 from stemmap.types import FloatArray
 
@@ -85,3 +89,7 @@ def gap_cut_occlusion(
             oc0[j] = pr[a - 1] < pr[a] - margin
         if b < m and cut[b]:
             oc1[j] = pr[b] < pr[b - 1] - margin
+
+
+# after every kernel is defined, before the first call loads the cache (stemmap._numba_cache)
+_numba_cache.drop_stale_cache(gap_cut_flags, __file__, _corners.__file__)

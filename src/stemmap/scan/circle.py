@@ -9,14 +9,16 @@ Registered methods (``FIT_METHODS``): ``kasa`` (Kasa 1976), ``fletcher_reeves`` 
 §3.3), ``three_point`` (Munjer 2025 eqs. 5-8), ``chord_width`` (Xue 2018 eq. 12) and ``ours``
 (silhouette-constrained robust geometric fit with covariance). :func:`fit_circles_batch` fits
 many segments at once (compiled loop for ours, vectorised numpy for the others). Methods,
-decisions and measured accuracy: docs/algorithms/scan-fits.md.
+decisions and measured accuracy: docs/algorithms/scan-fits.md. The result type and the input
+checks live in :mod:`stemmap.scan._circle_base`, the single-segment ours fit in
+:mod:`stemmap.scan._circle_ours` (both re-exported here).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,6 +26,21 @@ from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan import _fit_batch as _fb
+from stemmap.scan._circle_base import (
+    CircleFit,
+    _by_bearing,
+    _check_divergence,
+    _check_increment,
+    _check_residuals,
+    _check_silhouette,
+    _origin,
+    _per_segment,
+    _rank_deficient,
+    _single_from_batch,
+    _with_rms,
+    as_points,
+)
+from stemmap.scan._circle_ours import fit_circle_ours
 from stemmap.scan._fit_geometric import STATUS_MESSAGES, fit_ours_segments
 from stemmap.types import FloatArray
 
@@ -42,68 +59,6 @@ __all__ = [
     "fit_circle_three_point",
     "fit_circles_batch",
 ]
-
-
-@dataclass(frozen=True, eq=False)
-class CircleFit:
-    """Result of a circle fit.
-
-    Attributes
-    ----------
-    center : ndarray of shape (2,), metres
-    radius : float, metres
-    cov : ndarray of shape (3, 3)
-        Covariance over (cx, cy, r); NaN-filled when the method does not estimate it.
-    rms : float, metres
-        Root-mean-square orthogonal distance of the points to the circle.
-    n_points : int
-    method : str
-    ok : bool
-    reason : str
-        Why the fit failed (empty when ``ok``).
-    """
-
-    center: FloatArray
-    radius: float
-    cov: FloatArray = field(default_factory=lambda: np.full((3, 3), np.nan))
-    rms: float = math.nan
-    n_points: int = 0
-    method: str = ""
-    ok: bool = True
-    reason: str = ""
-
-    def __bool__(self) -> bool:
-        return self.ok
-
-    @property
-    def diameter(self) -> float:
-        return 2.0 * self.radius
-
-    @classmethod
-    def failed(cls, reason: str, method: str, n_points: int = 0) -> CircleFit:
-        return cls(
-            center=np.full(2, np.nan),
-            radius=math.nan,
-            n_points=n_points,
-            method=method,
-            ok=False,
-            reason=reason,
-        )
-
-    def residuals(self, points: ArrayLike) -> FloatArray:
-        """Signed orthogonal distances of ``points`` (N, 2) to the circle (outside positive)."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        return np.hypot(p[:, 0] - self.center[0], p[:, 1] - self.center[1]) - self.radius
-
-
-def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
-    """Validate and promote to a float64 (N, 2) array; raise InputError otherwise."""
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise InputError(f"{name} must have shape (N, 2), got {p.shape}.")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"{name} contains NaN or inf values.")
-    return p
 
 
 def fit_circle_kasa(
@@ -176,136 +131,6 @@ def fit_circle_kasa(
 # --------------------------------------------------------------------------------------------
 # Helpers shared by the fits
 # --------------------------------------------------------------------------------------------
-
-
-def _origin(origin: ArrayLike | None) -> FloatArray:
-    if origin is None:
-        return np.zeros(2)
-    o = np.asarray(origin, dtype=np.float64)
-    if o.shape != (2,) or not np.all(np.isfinite(o)):
-        raise InputError(f"origin must be a finite (x, y) pair in metres, got {o!r}.")
-    return o
-
-
-def _check_sigma(sigma: float | None) -> float:
-    """``sigma`` as a float, 0.0 meaning "unknown"; raise InputError if negative or not finite."""
-    if sigma is None:
-        return 0.0
-    s = float(sigma)
-    if not (math.isfinite(s) and s >= 0.0):
-        raise InputError(f"sigma (range noise std, metres) must be finite and >= 0, got {sigma!r}.")
-    return s
-
-
-def _check_increment(angle_increment: float | None) -> float:
-    """``angle_increment`` as a positive float, 0.0 meaning "estimate from the bearings"."""
-    if angle_increment is None:
-        return 0.0
-    a = abs(float(angle_increment))
-    if not (math.isfinite(a) and a > 0.0):
-        raise InputError(
-            f"angle_increment (radians between beams) must be finite and non-zero, "
-            f"got {angle_increment!r}."
-        )
-    return a
-
-
-def _check_divergence(beam_divergence: float | None) -> float:
-    """``beam_divergence`` (full footprint width, radians) as a float >= 0 (0 = thin beam)."""
-    if beam_divergence is None:
-        return 0.0
-    b = float(beam_divergence)
-    if not (math.isfinite(b) and 0.0 <= b < 0.5):
-        raise InputError(
-            f"beam_divergence (full angular width of the beam footprint, radians) must be finite, "
-            f">= 0 and < 0.5 rad, got {beam_divergence!r}."
-        )
-    return b
-
-
-_RESIDUALS = ("range", "orthogonal")
-
-
-def _check_residuals(residuals: str) -> bool:
-    """True for range residuals; raise ConfigError for an unknown name."""
-    if residuals not in _RESIDUALS:
-        raise ConfigError(f"residuals must be one of {_RESIDUALS}, got {residuals!r}.")
-    return residuals == "range"
-
-
-def _check_silhouette(silhouette: ArrayLike | None, k: int) -> FloatArray:
-    """Per-segment silhouette priors as a (k, 4) array (lo offset, lo std, hi offset, hi std) in
-    beam spacings; NaN = default. Accepts (2, 2) (shared) or (k, 2, 2)."""
-    if silhouette is None:
-        return np.full((k, 4), np.nan)
-    a = np.asarray(silhouette, dtype=np.float64)
-    if a.shape == (2, 2):
-        a = np.broadcast_to(a, (k, 2, 2))
-    if a.shape != (k, 2, 2):
-        raise InputError(
-            f"silhouette must have shape (2, 2) or ({k}, 2, 2): per side (first, last) the "
-            f"(offset, std) of the tangent beyond the edge return, in beam spacings; got "
-            f"{a.shape}."
-        )
-    flat = a.reshape(k, 4)
-    off, std = flat[:, [0, 2]], flat[:, [1, 3]]
-    if np.any(np.isinf(flat)) or np.any(std <= 0) or np.any(off < -1e3):
-        raise InputError(
-            "silhouette offsets must be finite (NaN = default) and stds finite and > 0 "
-            "(beam spacings)."
-        )
-    return np.ascontiguousarray(flat)
-
-
-def _by_bearing(p: FloatArray, o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Points sorted by bearing from ``o`` (bearings relative to their mean direction, so an
-    arc straddling +-pi sorts correctly). Returns sorted points, bearings and ranges."""
-    q = p - o
-    rho = np.hypot(q[:, 0], q[:, 1])
-    safe = np.where(rho > 0, rho, 1.0)
-    mean_dir = math.atan2(float(np.sum(q[:, 1] / safe)), float(np.sum(q[:, 0] / safe)))
-    c, s = math.cos(mean_dir), math.sin(mean_dir)
-    th = np.arctan2(-s * q[:, 0] + c * q[:, 1], c * q[:, 0] + s * q[:, 1])
-    # bearings quantised to 1e-12 rad so that round-off cannot reorder returns that share a
-    # bearing; ties broken by range (nearest first)
-    order = np.lexsort((rho, np.round(th * 1e12)))
-    return p[order], th[order] + mean_dir, rho[order]
-
-
-_AT_ORIGIN = "a point coincides with the sensor origin, so its bearing is undefined"
-_COLLINEAR_EIG = 1e-14  # smallest / largest eigenvalue of A^T A (= singular value ratio 1e-7)
-
-
-def _rank_deficient(M: FloatArray) -> bool:
-    """Collinearity test on the 3x3 normal matrix A^T A of the centred, scaled points (the
-    same test as the batch fits, so single and batch decide alike)."""
-    return not float(_fb.eig_ratio_sym3(M[None])[0]) >= _COLLINEAR_EIG
-
-
-def _single_from_batch(p: FloatArray, o: FloatArray, method: str) -> CircleFit:
-    """One segment through the vectorised implementation (so single and batch agree exactly)."""
-    n = p.shape[0]
-    starts = np.zeros(1, dtype=np.int64)
-    counts = np.array([n], dtype=np.int64)
-    fn = _fb.three_point_batch if method == "three_point" else _fb.chord_width_batch
-    centers, radii, why = fn(p, starts, counts, o[None, :])
-    if not np.isfinite(radii[0]):
-        return CircleFit.failed(str(why[0]), method, n)
-    return _with_rms(p, centers[0].copy(), float(radii[0]), method)
-
-
-def _with_rms(
-    p: FloatArray, center: FloatArray, radius: float, method: str, cov: FloatArray | None = None
-) -> CircleFit:
-    rms = float(np.sqrt(np.mean((np.hypot(*(p - center).T) - radius) ** 2)))
-    return CircleFit(
-        center=center,
-        radius=float(radius),
-        cov=np.full((3, 3), np.nan) if cov is None else cov,
-        rms=rms,
-        n_points=p.shape[0],
-        method=method,
-    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -561,161 +386,6 @@ def fit_circle_chord_width(
 # --------------------------------------------------------------------------------------------
 
 
-def fit_circle_ours(
-    points: ArrayLike,
-    *,
-    origin: ArrayLike | None = None,
-    sigma: float | None = None,
-    angle_increment: float | None = None,
-    edges: tuple[bool, bool] = (True, True),
-    beam_divergence: float | None = None,
-    silhouette: ArrayLike | None = None,
-    residuals: str = "range",
-) -> CircleFit:
-    """Silhouette-constrained robust geometric circle fit for one-sided laser arcs (ours).
-
-    Minimises over (cx, cy, r)
-
-    ``sum_i huber((rho_i - rho_hat_i(c, r)) / sigma)``
-    ``+ sum_{edge} ((beta +- asin(r / D) - t_edge) / s_edge)^2 / 2``
-
-    where ``D = |c - origin|`` and ``beta`` is the bearing of the centre. The first term is the
-    range-noise model of a laser scanner: ``rho_hat_i`` is the range at which return i's beam
-    first meets the circle (``b - sqrt(r^2 - s^2)`` with ``b``, ``s`` the centre's coordinates
-    along and across the beam; a beam that misses adds the miss distance as a second residual).
-    For the two edge returns of an averaging scanner (``beam_divergence`` > 0) it is the mean
-    range over the part of the beam footprint that hits the circle (closed form), which is
-    where a beam that grazes the trunk really returns. With ``residuals="orthogonal"`` the
-    first term is the former orthogonal-distance fit ``(|p_i - c| - r) / sigma``. Either is made
-    robust to a mixed pixel or outlier by a Huber loss (k = 1.5 sigma) followed, for N >= 6, by
-    rejecting up to N // 4 returns beyond 4 sigma and refitting (``rms`` is then over the
-    inliers). The second term is the beam-width-aware silhouette: a beam returns only if it
-    hits the trunk, so the tangent bearing of each side lies between the edge beam and the
-    neighbouring beam that missed; by default ``t_edge`` is the middle of that interval (edge
-    bearing -+ angle_increment / 2) and ``s_edge = angle_increment / sqrt(12)`` the standard
-    deviation of a uniform interval of that width; ``silhouette`` replaces both per side (the
-    detector narrows them when the neighbouring beam saw the background or a mixed pixel).
-    With a silhouette, steps are only accepted while the centre stays behind the visible arc
-    (``D > r`` and ``D`` beyond the nearest return).
-    Solved by Levenberg-Marquardt from a silhouette-based start; the covariance is the inverse
-    Gauss-Newton Hessian of the normalised residuals (so it is scaled by ``sigma`` if given,
-    else by the residual RMS with ``N - 3`` degrees of freedom, floored at 0.2 mm). With both
-    edges used, the Gaussian tangent terms are then replaced by the uniform intervals they
-    stand for (width ``sqrt(12) * s_edge``): one expectation-propagation sweep on that Gaussian
-    posterior, whose mean and covariance are returned (docs/algorithms/scan-fits.md, "Uniform
-    tangent intervals").
-
-    Parameters
-    ----------
-    points : array_like of shape (N, 2), metres
-        Returns of one segment, any order.
-    origin : array_like of shape (2,), metres, optional
-        Sensor position in the points' frame (default (0, 0)).
-    sigma : float, metres, optional
-        Range noise standard deviation; estimated from the residuals when omitted.
-    angle_increment : float, radians, optional
-        Beam spacing; estimated as the median bearing gap of the points when omitted.
-    edges : (bool, bool)
-        Whether the first / last return (in bearing order) is a true silhouette edge. Pass
-        False for a side occluded by a nearer object (a partial segment): that side's term is
-        dropped. With both False, or when the points are not all within +-90 deg of their mean
-        bearing from ``origin`` (no visible side, e.g. a full ring around the sensor), the fit is
-        a plain robust geometric (orthogonal-distance) fit started from Kasa.
-    beam_divergence : float, radians, optional
-        Full angular width of the beam footprint of an averaging scanner (one that reports the
-        mean range of what its footprint hits: mixed pixels). 0 / None: thin beams.
-    silhouette : array_like of shape (2, 2), optional
-        Rows (first, last return in bearing order): ``(offset, std)`` of the tangent bearing
-        beyond the edge return, in units of ``angle_increment``; NaN keeps the default
-        ``(0.5, 1 / sqrt(12))``.
-    residuals : {"range", "orthogonal"}
-        Noise model of the returns (see above); "range" by default.
-
-    Returns
-    -------
-    CircleFit
-        With ``cov`` over (cx, cy, r). Falsy with a reason for fewer than 3 points, coincident
-        or collinear points without a silhouette, a partial arc (one edge occluded) with only 3
-        returns, or when no valid circle behind the arc exists.
-
-    Raises
-    ------
-    InputError
-        If ``points`` is not a finite (N, 2) array, or ``origin``/``sigma``/``angle_increment``/
-        ``beam_divergence``/``silhouette`` are invalid.
-    ConfigError
-        If ``residuals`` is unknown.
-
-    Notes
-    -----
-    Why it is needed: on a short arc seen from one side, the algebraic fits (Kasa, and
-    Fletcher-Reeves which converges to the same solution) shrink the radius toward the chord,
-    and any unconstrained fit has a near-flat cost along "bigger circle further away"; the
-    silhouette pins r / D to within a beam, the points pin the front surface, and the
-    geometric residual has no algebraic bias. See docs/algorithms/scan-fits.md for numbers
-    (simulated arcs by range, real TLS trunk geometry) and the known small negative bias.
-
-    References
-    ----------
-    This project (issue 2). Geometric vs algebraic circle fits and the short-arc bias of Kasa:
-    Chernov N. (2010), "Circular and Linear Regression: Fitting Circles and Lines by Least
-    Squares", CRC Press.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> a = np.radians(np.arange(-1.5, 1.51, 0.5))
-    >>> u = np.column_stack((np.cos(a), np.sin(a)))
-    >>> b = u @ [5.0, 0.0]
-    >>> pts = u * (b - np.sqrt(b * b - (25.0 - 0.15**2)))[:, None]
-    >>> fit = fit_circle_ours(pts, angle_increment=np.radians(0.5), sigma=0.005)
-    >>> bool(fit), abs(fit.radius - 0.15) < 0.01
-    (True, True)
-    >>> fit_circle_ours(pts[:2]).reason
-    'need at least 3 points for a circle fit'
-    """
-    p = as_points(points)
-    o = _origin(origin)
-    n = p.shape[0]
-    if n < 3:
-        return CircleFit.failed(STATUS_MESSAGES[1], "ours", n)
-    sig = _check_sigma(sigma)
-    inc = _check_increment(angle_increment)
-    e = np.asarray(edges)
-    if e.shape != (2,):
-        raise InputError(f"edges must be a pair of booleans (first, last), got {edges!r}.")
-    lo, hi = bool(e[0]), bool(e[1])
-    foot = _check_divergence(beam_divergence)
-    sil = _check_silhouette(silhouette, 1)
-    use_range = _check_residuals(residuals)
-    out, status = fit_ours_segments(
-        p[:, 0],
-        p[:, 1],
-        np.zeros(1, dtype=np.int64),
-        np.array([n], dtype=np.int64),
-        o[:1],
-        o[1:],
-        np.array([sig]),
-        np.array([inc]),
-        np.array([lo]),
-        np.array([hi]),
-        sil,
-        foot,
-        use_range,
-    )
-    if status[0] != 0:
-        return CircleFit.failed(STATUS_MESSAGES[int(status[0])], "ours", n)
-    row = out[0]
-    return CircleFit(
-        center=row[:2].copy(),
-        radius=float(row[2]),
-        cov=row[3:12].reshape(3, 3).copy(),
-        rms=float(row[12]),
-        n_points=n,
-        method="ours",
-    )
-
-
 #: Registry of fit methods by name; ``fit_circle`` dispatches on it. Every registered function
 #: takes ``points`` (N, 2) and the keyword-only ``origin`` (sensor position in the points'
 #: frame, (2,), default (0, 0)), ``sigma`` (range noise std, metres, optional),
@@ -803,19 +473,6 @@ class CircleFits:
 
 
 _STATUS_TEXT = np.array([STATUS_MESSAGES[k] for k in range(max(STATUS_MESSAGES) + 1)], dtype=object)
-
-
-def _per_segment(value: ArrayLike | None, k: int, name: str, default: float) -> FloatArray:
-    if value is None:
-        return np.full(k, default)
-    v = np.asarray(value, dtype=np.float64)
-    if v.ndim == 0:
-        v = np.full(k, float(v))
-    if v.shape != (k,):
-        raise InputError(
-            f"{name} must be a scalar or have shape ({k},) (one per segment), got {v.shape}."
-        )
-    return v
 
 
 def fit_circles_batch(

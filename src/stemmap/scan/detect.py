@@ -11,7 +11,9 @@ in one batched 3x3 solve.
 
 Presets (``DetectorConfig.preset(name)``) reproduce each paper's published parameters; values a
 paper does not publish are marked in :data:`PRESET_NOTES` and in
-docs/algorithms/scan-detection.md.
+docs/algorithms/scan-detection.md. The numpy pipeline's per-segment fits and the columns
+derived from them are :mod:`stemmap.scan._segment_fits`; the compiled pipeline is
+:mod:`stemmap.scan._detect_fast`.
 """
 
 from __future__ import annotations
@@ -31,6 +33,13 @@ from stemmap.scan import circle as _circle
 from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
 from stemmap.scan._refit import refit_pieces
+from stemmap.scan._segment_fits import (
+    _fit_rms,
+    _fit_segments,
+    _Fitted,
+    _output_columns,
+    fit_kasa_segments,
+)
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
     _chi2_upper,
@@ -90,188 +99,9 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------
 
 
-def fit_kasa_segments(segs: Segments) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Kasa algebraic circle fit of every segment at once (same algebra as
-    :func:`stemmap.scan.circle.fit_circle_kasa`, solved as one batched 3x3 system).
-
-    Each segment is centred and scaled (RMS distance 1) before forming the normal equations of
-    ``x^2 + y^2 + D x + E y + F = 0``.
-
-    Returns
-    -------
-    centers : ndarray of shape (K, 2), metres (NaN where the fit failed)
-    radii : ndarray of shape (K,), metres (NaN where the fit failed)
-    ok : ndarray of shape (K,), bool -- False for < 3 returns, collinear or degenerate segments
-    """
-    k = len(segs)
-    if k == 0:
-        return np.zeros((0, 2)), np.zeros(0), np.zeros(0, dtype=bool)
-    p = segs.points
-    lab = segs.labels
-    n = segs.counts.astype(np.float64)
-    mx = segment_sum(p.x, segs) / n
-    my = segment_sum(p.y, segs) / n
-    qx = p.x - mx[lab]
-    qy = p.y - my[lab]
-    q2 = qx * qx + qy * qy
-    s2 = segment_sum(q2, segs) / n
-    scale = np.sqrt(s2)
-    good = (segs.counts >= 3) & (scale > 0)
-    sc = np.where(good, scale, 1.0)
-    qx = qx / sc[lab]
-    qy = qy / sc[lab]
-    q2 = qx * qx + qy * qy
-    sxx = segment_sum(qx * qx, segs)
-    syy = segment_sum(qy * qy, segs)
-    sxy = segment_sum(qx * qy, segs)
-    bx = -segment_sum(qx * q2, segs)
-    by = -segment_sum(qy * q2, segs)
-    bz = -segment_sum(q2, segs)
-    # centred: sum qx = sum qy = 0, so the system decouples into a 2x2 for (D, E) and F = bz / n
-    det = sxx * syy - sxy * sxy
-    tr = sxx + syy
-    good &= det > 1e-9 * np.maximum(tr, 1e-300) ** 2
-    dsafe = np.where(good, det, 1.0)
-    D = (syy * bx - sxy * by) / dsafe
-    E = (sxx * by - sxy * bx) / dsafe
-    F = bz / n
-    cx, cy = -D / 2.0, -E / 2.0
-    r2 = cx * cx + cy * cy - F
-    good &= r2 > 0
-    radius = np.where(good, np.sqrt(np.where(good, r2, 1.0)) * sc, np.nan)
-    centers = np.column_stack(
-        (np.where(good, cx * sc + mx, np.nan), np.where(good, cy * sc + my, np.nan))
-    )
-    return centers, radius, good
-
-
-def _fit_rms(segs: Segments, centers: FloatArray, radii: FloatArray) -> FloatArray:
-    """RMS orthogonal residual of every segment's returns to its fitted circle, metres."""
-    p = segs.points
-    lab = segs.labels
-    res = np.hypot(p.x - centers[lab, 0], p.y - centers[lab, 1]) - radii[lab]
-    out: FloatArray = np.sqrt(segment_sum(res * res, segs) / segs.counts)
-    return out
-
-
-def _geometric_cov(
-    segs: Segments, centers: FloatArray, radii: FloatArray, sigma: float | FloatArray
-) -> FloatArray:
-    """Covariance over (x, y, r) of every fitted circle from the orthogonal-distance Jacobian,
-    ``s^2 (J^T J)^-1`` with ``s^2 = max(sigma^2, sum res^2 / (n - 3))`` (NaN if singular)."""
-    k = len(segs)
-    p = segs.points
-    lab = segs.labels
-    dx = p.x - centers[lab, 0]
-    dy = p.y - centers[lab, 1]
-    d = np.hypot(dx, dy)
-    dsafe = np.where(d > 0, d, 1.0)
-    ux, uy = dx / dsafe, dy / dsafe
-    res = d - radii[lab]
-    n = segs.counts.astype(np.float64)
-    rss = segment_sum(res * res, segs)
-    sig = np.asarray(sigma, dtype=np.float64)
-    s2 = np.maximum(sig * sig, np.where(n > 3, rss / np.maximum(n - 3, 1), 0.0))
-    JtJ = np.empty((k, 3, 3))
-    JtJ[:, 0, 0] = segment_sum(ux * ux, segs)
-    JtJ[:, 1, 1] = segment_sum(uy * uy, segs)
-    JtJ[:, 0, 1] = JtJ[:, 1, 0] = segment_sum(ux * uy, segs)
-    JtJ[:, 0, 2] = JtJ[:, 2, 0] = segment_sum(ux, segs)
-    JtJ[:, 1, 2] = JtJ[:, 2, 1] = segment_sum(uy, segs)
-    JtJ[:, 2, 2] = n
-    cov = np.full((k, 3, 3), np.nan)
-    detj = np.linalg.det(JtJ) if k else np.zeros(0)
-    inv_ok = np.isfinite(detj) & (np.abs(detj) > 1e-12 * np.maximum(n, 1.0) ** 3)
-    if np.any(inv_ok):
-        cov[inv_ok] = np.linalg.inv(JtJ[inv_ok]) * s2[inv_ok, None, None]
-    return cov
-
-
-def _fit_segments(
-    segs: Segments,
-    method: str,
-    sigma: FloatArray,
-    *,
-    silhouette: FloatArray | None = None,
-    beam_divergence: float = 0.0,
-    residuals: str = "range",
-) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
-    """Fit every segment with ``method``: centers (K, 2), radii (K,), covs (K, 3, 3), ok (K,).
-
-    Kasa runs as one vectorised solve (:func:`fit_kasa_segments`); every other method goes
-    through :func:`stemmap.scan.circle.fit_circles_batch` (compiled loop for "ours"), with the
-    sensor at the origin, the beam spacing, and each end flagged as a true silhouette edge
-    unless it is occluded or truncated. ``silhouette`` (K, 2, 2) (segment start, end: offset,
-    std in beams; :func:`~stemmap.scan.features.edge_silhouette`), ``beam_divergence`` (rad)
-    and ``residuals`` are passed to "ours". The fits take the ends in bearing order, so with a
-    negative angle increment the start is the *last* end.
-    """
-    k = len(segs)
-    covs = np.full((k, 3, 3), np.nan)
-    if method == "kasa":
-        centers, radii, ok = fit_kasa_segments(segs)
-        return centers, radii, covs, ok
-    p = segs.points
-    edges = np.column_stack(
-        (~(segs.occluded_start | segs.truncated_start), ~(segs.occluded_end | segs.truncated_end))
-    )
-    if p.angle_increment < 0:  # bearing order is the reverse of beam order
-        edges = edges[:, ::-1]
-        if silhouette is not None:
-            silhouette = silhouette[:, ::-1]
-    batch_fn = getattr(_circle, "fit_circles_batch", None)
-    if batch_fn is not None:
-        extra: dict[str, Any] = {}
-        if method == "ours":
-            extra = {
-                "silhouette": silhouette,
-                "beam_divergence": beam_divergence,
-                "residuals": residuals,
-            }
-        res = batch_fn(
-            np.column_stack((p.x, p.y)),
-            segs.labels,
-            method,
-            origin=np.zeros(2),
-            sigma=sigma if np.all(sigma > 0) else None,
-            angle_increment=abs(p.angle_increment),
-            edges=edges,
-            **extra,
-        )
-        centers = np.asarray(res.centers, dtype=np.float64).reshape(k, 2)
-        radii = np.asarray(res.radii, dtype=np.float64).reshape(k)
-        ok = np.asarray(res.ok, dtype=bool).reshape(k)
-        covs = np.asarray(res.covs, dtype=np.float64).reshape(k, 3, 3).copy()
-        return centers, radii, covs, ok
-    centers = np.full((k, 2), np.nan)  # pragma: no cover - only before circle.py had a batch API
-    radii = np.full(k, np.nan)
-    ok = np.zeros(k, dtype=bool)
-    xy = np.column_stack((p.x, p.y))
-    for j in range(k):
-        fit = _circle.fit_circle(xy[segs.start[j] : segs.stop[j]], method=method)
-        if fit:
-            centers[j], radii[j], ok[j] = fit.center, fit.radius, True
-    return centers, radii, covs, ok
-
-
 # ----------------------------------------------------------------------------------------------
 # detector
 # ----------------------------------------------------------------------------------------------
-
-
-class _Fitted(NamedTuple):
-    """Circle fits of candidate segments and what the plausibility tests read."""
-
-    centers: FloatArray  # (K, 2)
-    radii: FloatArray
-    covs: FloatArray  # (K, 3, 3)
-    ok: NDArray[np.bool_]  # the fit converged
-    sigma: FloatArray  # per-segment range noise
-    mean_r: FloatArray  # mean range of the returns
-    width: FloatArray  # edge-beam chord
-    sil_width: FloatArray  # silhouette width (chord widened by mixed-pixel neighbours)
-    rms: FloatArray  # RMS orthogonal residual
-    test_rms: FloatArray  # what the RMS test reads (the RMS or the robust residual scale)
 
 
 class _BeamGeometry(NamedTuple):
@@ -905,38 +735,6 @@ class ScanTrunkDetector:
 _DEPTH = REASONS.index("depth")
 
 
-def _output_columns(
-    segs: Segments, fitted: _Fitted, ok: NDArray[np.bool_]
-) -> dict[str, np.ndarray]:
-    """The output columns of the kept candidates (``ok``): the fit's covariance (or the
-    geometric one where the fit gave none), arc extent, quality."""
-    centers, radii, covs, sigma, rms = (
-        fitted.centers,
-        fitted.radii,
-        fitted.covs.copy(),
-        fitted.sigma,
-        fitted.rms,
-    )
-    n = segs.counts
-    missing = ok & ~np.all(np.isfinite(covs), axis=(1, 2))
-    if np.any(missing):
-        sub = segs.select(missing)
-        covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], sigma[missing])
-    with np.errstate(invalid="ignore"):
-        arc = _arc_deg(segs, centers)
-        quality = _quality(n, rms, sigma, segs.partial)
-    return {
-        "centers": centers[ok],
-        "radii": radii[ok],
-        "covs": covs[ok],
-        "n_points": n[ok],
-        "arc_deg": arc[ok],
-        "widths": fitted.width[ok],
-        "quality": quality[ok],
-        "index": segs.scan[ok],
-    }
-
-
 def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:
     """Cut trunks merged with a branch, bush or second stem at the junctions (ours, issue 11):
     at the concave corners (:func:`~stemmap.scan.segment.concave_corners`) deeper than
@@ -956,26 +754,3 @@ def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:
     # the junction return itself belongs to neither piece (the same cut in either beam order)
     segs = segs.cut(np.cumsum(cuts) % 2 == 1).drop(~cuts)
     return segs.select(segs.counts >= cfg.min_points)
-
-
-def _arc_deg(segs: Segments, centers: FloatArray) -> FloatArray:
-    """Angular extent of each segment's returns around its fitted centre, degrees."""
-    p = segs.points
-    lab = segs.labels
-    ref = np.arctan2(-centers[:, 1], -centers[:, 0])  # direction centre -> sensor
-    phi = np.arctan2(p.y - centers[lab, 1], p.x - centers[lab, 0]) - ref[lab]
-    phi = np.pi - np.mod(np.pi - phi, 2.0 * np.pi)
-    out: FloatArray = np.degrees(
-        np.maximum.reduceat(phi, segs.start) - np.minimum.reduceat(phi, segs.start)
-    )
-    return out
-
-
-def _quality(n: np.ndarray, rms: FloatArray, sigma: FloatArray, partial: np.ndarray) -> FloatArray:
-    """Heuristic quality in [0, 1]: support (n / 10, capped), fit residual against the noise,
-    halved for partial (occluded or truncated) segments."""
-    support = np.minimum(n / 10.0, 1.0)
-    s = np.maximum(sigma, 1e-6)
-    fit = np.exp(-np.square(np.maximum(rms - s, 0.0) / (3.0 * s)))
-    out: FloatArray = support * fit * np.where(partial, 0.5, 1.0)
-    return out

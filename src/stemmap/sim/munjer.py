@@ -182,6 +182,28 @@ class MunjerDrive:
             inside &= np.hypot(x, y) < max_range
         return np.asarray(inside.any(axis=0))
 
+    def trees_visible(
+        self,
+        min_points: int = 20,
+        box_x: tuple[float, float] | None = (0.0, 10.0),
+        box_y: tuple[float, float] | None = (-10.0, 10.0),
+        box_z: tuple[float, float] | None = (-0.5, 0.0),
+    ) -> NDArray[np.bool_]:
+        """(T,) bool: trees with at least ``min_points`` lidar returns (the frames' ``label``
+        field) inside the pass-through box (default Munjer et al. 2025 Table 1's, lidar frame)
+        in at least one frame -- what the sensor data offers any detector with DBSCAN's minPts
+        (Table 1: 20), whatever it then does with it; occlusion and range are in the count.
+        """
+        from stemmap.cloud.filters import pass_through
+
+        t = self.stand2d.n_trees
+        best = np.zeros(t, dtype=np.int64)
+        for fr in self.frames:
+            lab = fr.fields["label"][pass_through(fr.xyz, x=box_x, y=box_y, z=box_z)]
+            lab = lab.astype(np.int64)
+            best = np.maximum(best, np.bincount(lab[(lab >= 0) & (lab < t)], minlength=t))
+        return np.asarray(best >= min_points)
+
     def motion_model(self) -> UnicycleModel:
         """Motion noise from the odometry's own error spec (nothing read from the truth): white
         noise averaged over one second plus the scale error at the drive speed and the bias."""

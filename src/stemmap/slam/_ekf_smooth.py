@@ -30,7 +30,9 @@ The covariance of each smoothed pose (issue 14, ``SlamResult.pose_covs``) is the
 equations, Huber weights included), computed in O(frames) by the block form of the RTS
 backward pass (:func:`chain_marginals`). It is the covariance of the path *given the final map*
 with each detection's landmark uncertainty counted as independent noise, so it leaves out the
-map's correlations (docs/algorithms/slam.md, "Pose covariances of the other back-ends").
+map's correlations; the map's local error is then added back, its landmarks taken as fully
+correlated (:func:`map_error_covariance`; docs/algorithms/slam.md, "Pose covariances of the
+other back-ends").
 """
 
 from __future__ import annotations
@@ -45,7 +47,14 @@ from stemmap.slam.base import IntArray
 from stemmap.slam.treedb import range_bearing_jacobians
 from stemmap.types import FloatArray, wrap_angle
 
-__all__ = ["ObservationLog", "chain_marginals", "smooth_path"]
+__all__ = [
+    "ObservationLog",
+    "banded_lower",
+    "chain_marginals",
+    "map_error_covariance",
+    "odometry_terms",
+    "smooth_path",
+]
 
 # floor added to the odometry covariances: the Ackermann model has no lateral slip, so the
 # increment covariance is singular (smallest eigenvalue ~1e-20 m² on Victoria Park; median
@@ -145,6 +154,53 @@ def _measurement_terms(
     return JvT_W @ Jv, np.einsum("mij,mj->mi", JvT_W, em), d2
 
 
+def odometry_terms(
+    x: FloatArray, deltas: FloatArray, om: np.ndarray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Normal-equation blocks of the odometry factors between consecutive poses ``x`` (N, 3):
+    ``h = [R(θa)ᵀ (p_b - p_a), θb - θa]`` against the increments ``deltas`` (N-1, 3) with
+    information ``om`` (N-1, 3, 3). Returns ``Jaᵀ Ω Ja``, ``Jbᵀ Ω Jb``, ``Jbᵀ Ω Ja`` (N-1, 3, 3)
+    and ``Jaᵀ Ω e``, ``Jbᵀ Ω e`` (N-1, 3), ``e = deltas - h`` (heading wrapped)."""
+    pa, pb = x[:-1], x[1:]
+    c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
+    dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
+    h = np.column_stack((c * dx + s * dy, -s * dx + c * dy, pb[:, 2] - pa[:, 2]))
+    e = deltas - h
+    e[:, 2] = wrap_angle(e[:, 2])
+    m = x.shape[0] - 1
+    Ja = np.zeros((m, 3, 3))
+    Ja[:, 0, 0], Ja[:, 0, 1], Ja[:, 0, 2] = -c, -s, -s * dx + c * dy
+    Ja[:, 1, 0], Ja[:, 1, 1], Ja[:, 1, 2] = s, -c, -c * dx - s * dy
+    Ja[:, 2, 2] = -1.0
+    Jb = np.zeros((m, 3, 3))
+    Jb[:, 0, 0], Jb[:, 0, 1] = c, s
+    Jb[:, 1, 0], Jb[:, 1, 1] = -s, c
+    Jb[:, 2, 2] = 1.0
+    JaT_om = Ja.transpose(0, 2, 1) @ om
+    JbT_om = Jb.transpose(0, 2, 1) @ om
+    return (
+        JaT_om @ Ja,
+        JbT_om @ Jb,
+        JbT_om @ Ja,
+        np.einsum("nij,nj->ni", JaT_om, e),
+        np.einsum("nij,nj->ni", JbT_om, e),
+    )
+
+
+def banded_lower(diag: FloatArray, off: FloatArray) -> FloatArray:
+    """Lower banded storage (6, 3N) (:func:`scipy.linalg.solveh_banded`, ``lower=True``) of the
+    block-tridiagonal symmetric matrix with diagonal blocks ``diag`` (N, 3, 3) and sub-diagonal
+    blocks ``off`` (N-1, 3, 3) (``off[k]`` = block ``(k+1, k)``)."""
+    n = diag.shape[0]
+    ab = np.zeros((6, 3 * n))
+    for i in range(3):
+        for k in range(i + 1):
+            ab[i - k, k::3] = diag[:, i, k]
+        for k in range(3):
+            ab[3 + i - k, k : 3 * (n - 1) : 3] = off[:, i, k]
+    return ab
+
+
 def chain_marginals(diag: FloatArray, off: FloatArray) -> FloatArray:
     """Diagonal blocks (N, 3, 3) of ``H⁻¹`` for a block-tridiagonal SPD information ``H`` with
     diagonal blocks ``diag`` (N, 3, 3) and sub-diagonal blocks ``off`` (N-1, 3, 3) (``off[k]``
@@ -217,28 +273,12 @@ def smooth_path(
         e0 = np.asarray(poses[0], dtype=np.float64) - x[0]
         e0[2] = wrap_angle(e0[2])
         g[0] += _PRIOR_INFO * e0
-        # ---- odometry factors: h = [R(θa)ᵀ (p_b - p_a), θb - θa]
-        pa, pb = x[:-1], x[1:]
-        c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
-        dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
-        h = np.column_stack((c * dx + s * dy, -s * dx + c * dy, pb[:, 2] - pa[:, 2]))
-        e = deltas - h
-        e[:, 2] = wrap_angle(e[:, 2])
-        Ja = np.zeros((n - 1, 3, 3))
-        Ja[:, 0, 0], Ja[:, 0, 1], Ja[:, 0, 2] = -c, -s, -s * dx + c * dy
-        Ja[:, 1, 0], Ja[:, 1, 1], Ja[:, 1, 2] = s, -c, -c * dx - s * dy
-        Ja[:, 2, 2] = -1.0
-        Jb = np.zeros((n - 1, 3, 3))
-        Jb[:, 0, 0], Jb[:, 0, 1] = c, s
-        Jb[:, 1, 0], Jb[:, 1, 1] = -s, c
-        Jb[:, 2, 2] = 1.0
-        JaT_om = Ja.transpose(0, 2, 1) @ om
-        JbT_om = Jb.transpose(0, 2, 1) @ om
-        diag[:-1] += JaT_om @ Ja
-        diag[1:] += JbT_om @ Jb
-        off += JbT_om @ Ja
-        g[:-1] += np.einsum("nij,nj->ni", JaT_om, e)
-        g[1:] += np.einsum("nij,nj->ni", JbT_om, e)
+        Haa, Hbb, Hba, ga, gb = odometry_terms(x, deltas, om)
+        diag[:-1] += Haa
+        diag[1:] += Hbb
+        off += Hba
+        g[:-1] += ga
+        g[1:] += gb
         # ---- measurement factors, in chunks (bounded memory on long drives)
         d2_sum, n_huber = 0.0, 0
         for lo in range(0, fr.size, _CHUNK):
@@ -253,13 +293,7 @@ def smooth_path(
         if it == 1:
             stats["smoother_meas_d2_before"] = d2_sum / fr.size if fr.size else math.nan
         # ---- banded Cholesky solve of the block-tridiagonal normal equations
-        ab = np.zeros((6, 3 * n))
-        for i in range(3):
-            for k in range(i + 1):
-                ab[i - k, k::3] = diag[:, i, k]
-            for k in range(3):
-                ab[3 + i - k, k : 3 * (n - 1) : 3] = off[:, i, k]
-        step = solveh_banded(ab, g.reshape(-1), lower=True).reshape(n, 3)
+        step = solveh_banded(banded_lower(diag, off), g.reshape(-1), lower=True).reshape(n, 3)
         x += step
         x[:, 2] = wrap_angle(x[:, 2])
         if np.abs(step[:, :2]).max() < 1e-4 and np.abs(step[:, 2]).max() < 1e-6:
@@ -267,4 +301,34 @@ def smooth_path(
     stats["smoother_iterations"] = it
     stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
     stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
-    return x, chain_marginals(diag, off), stats
+    cov = chain_marginals(diag, off)
+    cov[1:, :2, :2] += map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
+    return x, cov, stats
+
+
+def map_error_covariance(n: int, frame: IntArray, seen_cov: FloatArray) -> FloatArray:
+    """(n, 2, 2) position covariance the map's own error adds to a pose localised on it (ours,
+    issue 14): the mean marginal covariance of the landmarks each frame detected (``frame`` and
+    ``seen_cov``, one per detection); frames without detections interpolate between the
+    nearest frames with (constant beyond the ends; zero without any detection).
+
+    The smoother's information counts each detection's landmark uncertainty as independent
+    noise, so many detections average it away; but the landmarks one pose sees were mapped
+    from the same drifting poses and share their error. Taking them as fully correlated in
+    translation, a common map shift ``δ`` shifts the pose by ``δ`` (``J Σ_LL Jᵀ`` with the
+    sensitivity of a rigid fit to a translation of all its points = the identity): the pose's
+    error relative to the world is its error relative to the map plus the map's local error.
+    The heading's share (a map rotation) is left out; the start pose, which defines the map
+    frame, gets none (the caller skips row 0). Measured in docs/outputs.md.
+    """
+    out = np.zeros((n, 2, 2))
+    if frame.size == 0:
+        return out
+    cnt = np.bincount(frame, minlength=n).astype(np.float64)
+    have = np.flatnonzero(cnt > 0)
+    fi = np.arange(n)
+    for i, j in ((0, 0), (0, 1), (1, 1)):
+        m = np.bincount(frame, weights=seen_cov[:, i, j], minlength=n)[have] / cnt[have]
+        out[:, i, j] = np.interp(fi, have, m)
+    out[:, 1, 0] = out[:, 0, 1]
+    return out

@@ -140,33 +140,26 @@ def _tree_and_pose_marginals(
         (:func:`stemmap.slam._ekf_smooth.chain_marginals`), those of ``X S⁻¹ Xᵀ = (X U⁻¹)(X U⁻¹)ᵀ``
         from rows of ``X U⁻¹`` (``S = UᵀU``). ``X`` is held whole (n_P x n_L doubles: ~29 MB on the
     full Victoria Park run, which the tree-only path avoids by chunks). Needs the poses to
-        form a chain (3x3 blocks, block-tridiagonal ``H_PP``, as :class:`Isam2Slam` builds it
-        without GNSS); otherwise ValueError.
+        form a chain (3x3 blocks, block-tridiagonal ``H_PP``, as :class:`Isam2Slam` builds it),
+        GNSS antenna poses eliminated first (:func:`_chain_blocks`); otherwise ValueError.
 
         Raises ``numpy.linalg.LinAlgError`` when the information is not positive definite.
     """
     from stemmap.slam._ekf_smooth import chain_marginals
 
     h_ll, h_pl, h_pp, solve, pt_keys, ps_keys = _information_blocks(graph, values)
-    n_p = ps_keys.size
-    if h_pp.nnz and int(np.abs(h_pp.row // 3 - h_pp.col // 3).max()) > 1:
-        raise ValueError("the poses do not form a chain: no pose marginals")
-    blocks = np.zeros((n_p, 3, 3))
-    off = np.zeros((max(n_p - 1, 0), 3, 3))
-    r, c, v = h_pp.row, h_pp.col, h_pp.data
-    on = r // 3 == c // 3
-    blocks[r[on] // 3, r[on] % 3, c[on] % 3] = v[on]
-    lo = r // 3 == c // 3 + 1
-    off[c[lo] // 3, r[lo] % 3, c[lo] % 3] = v[lo]
+    blocks, off, cpos = _chain_blocks(h_pp, ps_keys)
     pp = np.searchsorted(ps_keys, np.array(pose_keys, dtype=np.uint64))
-    pose_cov = chain_marginals(blocks, off)[pp] if n_p else np.zeros((0, 3, 3))
+    if np.any(cpos[pp] < 0):
+        raise ValueError("pose marginals asked for a pose outside the keyframe chain")
+    pose_cov = chain_marginals(blocks, off)[cpos[pp]] if blocks.shape[0] else np.zeros((0, 3, 3))
     tree_cov = np.zeros((0, 2, 2))
     if h_pl.shape[1]:
         x_mat = solve(h_pl.toarray())
         s_mat = h_ll - h_pl.T @ x_mat
         u_inv = _inverse_factor(s_mat)
         tree_cov = _tree_blocks(u_inv, pt_keys, tree_keys)
-        x3 = x_mat.reshape(n_p, 3, -1)
+        x3 = x_mat.reshape(ps_keys.size, 3, -1)
         for r0 in range(0, pp.size, 256):  # rows of X U⁻¹ in chunks (no second n_P x n_L)
             y = x3[pp[r0 : r0 + 256]] @ u_inv
             pose_cov[r0 : r0 + 256] += np.einsum("jak,jbk->jab", y, y)
@@ -174,6 +167,51 @@ def _tree_and_pose_marginals(
         np.asarray(tree_cov, dtype=np.float64),
         np.asarray(0.5 * (pose_cov + pose_cov.transpose(0, 2, 1)), dtype=np.float64),
     )
+
+
+def _chain_blocks(h_pp: Any, ps_keys: np.ndarray) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """The keyframe chain's block-tridiagonal information with the other Pose2 variables
+    eliminated: ``(diagonal blocks, sub-diagonal blocks, chain position of each pose key or
+    -1)`` (ours).
+
+    Chain = the ``'x'`` keys (keyframe sensor poses). Any other Pose2 variable must be a leaf
+    tied to one keyframe (a GNSS fix's antenna pose ``Z(i)``: a between factor to its keyframe
+    and a prior of its own, :mod:`stemmap.slam.gnss`); it is eliminated exactly by the Schur
+    complement ``H_cc - H_cz H_zz⁻¹ H_zc``, which only adds to its keyframe's diagonal block,
+    so the chain stays block-tridiagonal and the marginals of the keyframes are those of the
+    whole graph. Any other structure: ValueError.
+    """
+    n_b = ps_keys.size
+    leaf = (ps_keys >> np.uint64(56)) != np.uint64(ord("x"))
+    cpos = np.full(n_b, -1, dtype=np.int64)
+    cpos[~leaf] = np.arange(int((~leaf).sum()))
+    n_c = int((~leaf).sum())
+    r, c, v = h_pp.row, h_pp.col, h_pp.data
+    rb, cb = r // 3, c // 3
+    cc = ~leaf[rb] & ~leaf[cb]
+    if np.any(np.abs(cpos[rb[cc]] - cpos[cb[cc]]) > 1) or np.any(leaf[rb] & leaf[cb] & (rb != cb)):
+        raise ValueError("the poses do not form a chain: no pose marginals")
+    blocks = np.zeros((n_c, 3, 3))
+    off = np.zeros((max(n_c - 1, 0), 3, 3))
+    on = cc & (rb == cb)
+    blocks[cpos[rb[on]], r[on] % 3, c[on] % 3] = v[on]
+    lo = cc & (cpos[rb] == cpos[cb] + 1)
+    off[cpos[cb[lo]], r[lo] % 3, c[lo] % 3] = v[lo]
+    if leaf.any():
+        h_zz = np.zeros((n_b, 3, 3))
+        zz = leaf[rb] & (rb == cb)
+        h_zz[rb[zz], r[zz] % 3, c[zz] % 3] = v[zz]
+        zc = leaf[rb] & ~leaf[cb]  # rows of a leaf, columns of its keyframe
+        partner = np.full(n_b, -1, dtype=np.int64)
+        partner[rb[zc]] = cb[zc]
+        if np.any(partner[rb[zc]] != cb[zc]):
+            raise ValueError("a non-keyframe pose is tied to two keyframes: no pose marginals")
+        h_zc = np.zeros((n_b, 3, 3))
+        h_zc[rb[zc], r[zc] % 3, c[zc] % 3] = v[zc]
+        z = np.flatnonzero(leaf & (partner >= 0))
+        corr = np.swapaxes(h_zc[z], 1, 2) @ np.linalg.solve(h_zz[z], h_zc[z])
+        np.add.at(blocks, cpos[partner[z]], -corr)
+    return blocks, off, cpos
 
 
 def _point_marginals(graph: Any, values: Any, keys: list[int]) -> FloatArray:
@@ -285,8 +323,8 @@ def final_marginals(
     the trees' 2x2 marginals (``cfg.marginals``), the keyframes' 3x3 pose marginals
     (``cfg.pose_marginals``, both from one linearisation, :func:`_tree_and_pose_marginals`)
     and the trees' joint information (``cfg.joint_information``), NaN / None where not asked
-    or not available (a warning says why: GNSS keys break the pose chain, an indeterminant
-    system)."""
+    or not available (a warning says why: poses that are not a chain with leaves
+    (:func:`_chain_blocks`), an indeterminant system)."""
     tree_cov = np.full((len(tree_keys), 2, 2), np.nan)
     pose_cov = np.full((len(pose_keys), 3, 3), np.nan)
     info_j = None

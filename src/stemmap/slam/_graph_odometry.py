@@ -68,16 +68,54 @@ def frame_covariances(
     increments are independent of the keyframe's estimate). The vehicle pose is the sensor
     pose composed with the fixed mounting ``T_sv``: ``Ad(T_vs)`` carries the tangent; last,
     the right-perturbation tangent goes to map-frame (x, y, θ) with the heading's rotation.
+
+    Keyframes without a marginal (left out of the graph in localisation mode, issue 14): their
+    frames get ``(1 - w) C_fwd + w C_bwd`` -- ``C_fwd`` propagated forward from the last graph
+    keyframe before them, ``C_bwd`` backward from the next one (``C ← Ad(d) (C + cov) Ad(d)ᵀ``,
+    the same increments inverted), ``w`` the share of the gap's odometry variance (trace of the
+    position block) already driven. The two neighbours' errors are nearly the same (the map
+    holds both), so this weighs them as fully correlated: at the middle of a gap the
+    odometry part is twice a Brownian bridge's ``w (1 - w) Q``, conservative (the localisation
+    on the map, which the bridge ignores, also holds these poses; docs/algorithms/slam.md).
+    Frames after the last graph keyframe get ``C_fwd`` alone.
     """
     from stemmap.slam._graph_revisits import _adjoint_inv
 
     nf = kf_of.size
-    C = np.array(kf_cov[kf_of], dtype=np.float64)
-    step = np.arange(nf) - kf_frames[kf_of]  # frames since the keyframe
-    for j in range(1, int(step.max(initial=0)) + 1):
-        f = np.flatnonzero(step == j)
-        A = _adjoint_inv(d_f[f - 1])
-        C[f] = A @ C[f - 1] @ np.swapaxes(A, 1, 2) + cov_f[f - 1]
+    fr = np.arange(nf)
+    has = np.all(np.isfinite(kf_cov), axis=(1, 2))
+    anchors = np.asarray(kf_frames, dtype=np.int64)[has]  # frames of the graph keyframes
+    C = np.full((nf, 3, 3), np.nan)
+    if anchors.size:
+        C[anchors] = kf_cov[has]
+        i_prev = np.searchsorted(anchors, fr, side="right") - 1
+        prev = np.where(i_prev >= 0, anchors[np.clip(i_prev, 0, None)], -1)
+        step = np.where(prev >= 0, fr - prev, -1)  # frames since the last graph keyframe
+        for j in range(1, int(step.max(initial=0)) + 1):
+            f = np.flatnonzero(step == j)
+            A = _adjoint_inv(d_f[f - 1])
+            C[f] = A @ C[f - 1] @ np.swapaxes(A, 1, 2) + cov_f[f - 1]
+        i_next = np.searchsorted(anchors, fr, side="left")
+        gap = ~has[kf_of] & (prev >= 0) & (i_next < anchors.size)
+        if gap.any():
+            nxt = np.where(i_next < anchors.size, anchors[np.clip(i_next, 0, anchors.size - 1)], -1)
+            back = np.where(gap, nxt - fr, -1)  # frames to the next graph keyframe
+            Cb = np.full((nf, 3, 3), np.nan)
+            Cb[anchors] = kf_cov[has]
+            d_inv = between(d_f, np.zeros(3))  # Ad(d) = Ad((d⁻¹)⁻¹)
+            for j in range(1, int(back.max(initial=0)) + 1):
+                f = np.flatnonzero(back == j)
+                A = _adjoint_inv(d_inv[f])
+                Cb[f] = A @ (Cb[f + 1] + cov_f[f]) @ np.swapaxes(A, 1, 2)
+            q = np.concatenate(([0.0], np.cumsum(cov_f[:, 0, 0] + cov_f[:, 1, 1])))
+            g = np.flatnonzero(gap)
+            span = q[nxt[g]] - q[prev[g]]
+            w = np.where(
+                span > 0,
+                (q[g] - q[prev[g]]) / np.where(span > 0, span, 1.0),
+                (g - prev[g]) / (nxt[g] - prev[g]),
+            )[:, None, None]
+            C[g] = (1.0 - w) * C[g] + w * Cb[g]
     a, b = offset
     ad_vs = np.array([[1.0, 0.0, b], [0.0, 1.0, -a], [0.0, 0.0, 1.0]])  # Ad(T_vs), T_vs=(a,b,0)
     c, s = np.cos(veh_theta), np.sin(veh_theta)

@@ -57,6 +57,8 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "POSE_COV_INFLATION",
     "PRESETS",
+    "SMOOTHED_POSE_COV_INFLATION",
+    "SMOOTHED_TREE_COV_INFLATION",
     "TREE_COV_INFLATION",
     "FastSlam",
     "particle_landmark_covariance",
@@ -79,6 +81,16 @@ log = logging.getLogger(__name__)
 #: --vp-calibration). A std factor of ~30 (pose) and ~41 (trees).
 POSE_COV_INFLATION = 930.0
 TREE_COV_INFLATION = 1670.0
+
+#: The same for the jointly smoothed output (``smooth=True``, the default): variance factors
+#: from the smoothed pose's covariance given the smoothed map (the EKF smoother's chain
+#: marginals, :func:`stemmap.slam._ekf_smooth.chain_marginals`) and from each tree's joint
+#: marginal (:func:`stemmap.slam._fastslam_smooth.smooth_joint`), chosen the same way (first
+#: half of Victoria Park, seeds 0-4, checked on the second half; docs/algorithms/slam.md,
+#: "FastSLAM joint smoothing"; benchmarks/fastslam_covariance.py --vp-calibration: second half
+#: median z^2 2.33 (pose) / 0.90 (trees)). A std factor of ~16 (pose) and ~3.7 (trees).
+SMOOTHED_POSE_COV_INFLATION = 253.0
+SMOOTHED_TREE_COV_INFLATION = 13.5
 
 #: Published parameter sets: ``"munjer2025"`` = 100 particles (Munjer et al. 2025, Table 1).
 PRESETS: dict[str, dict[str, float | int]] = {"munjer2025": {"n_particles": 100}}
@@ -322,11 +334,29 @@ class FastSlam:
         1 = FastSLAM 1.0 (motion-model proposal; Munjer cites Montemerlo's FastSLAM), 2 = ours:
         the FastSLAM 2.0 proposal (pose sampled from the motion prediction fused with this
         frame's matched detections, batch form), for odometry much noisier than the laser.
-    pose_cov_inflation, tree_cov_inflation : float
-        Variance factors from the particle set's pose covariance to ``SlamResult.pose_covs``
-        and from the landmark mixture covariance to each tree's ``cov`` (defaults
-        :data:`POSE_COV_INFLATION`, :data:`TREE_COV_INFLATION`, chosen on the first half of
-        Victoria Park; 1 gives the raw particle-set covariances).
+    smooth : bool
+        Ours (docs/algorithms/slam.md, "FastSLAM joint smoothing"): after the filter, the path
+        and the trees are re-estimated jointly by least squares on the odometry and on the
+        detections the best particle's lineage associated with a mapped tree
+        (:mod:`stemmap.slam._fastslam_smooth`), so that a loop closure corrects the trees and
+        poses of the stretch before it; trees the smoothing brings within ``merge_dist`` are
+        merged and the problem solved again (up to ``merge_rounds`` times). The raw filter
+        path is in ``diagnostics["raw_trajectory"]`` with ``record_diagnostics``. False: the
+        filter's output (Munjer's pipeline, :mod:`stemmap.slam.munjer`).
+    merge_dist, merge_ddiam : float, m
+        With ``smooth``: smoothed trees closer than ``merge_dist`` with diameters within
+        ``merge_ddiam`` (or overlapping trunks) are one tree (iSAM2's rule and values,
+        :func:`stemmap.slam._graph_marginals._merge_duplicates`). 0 disables.
+    merge_rounds : int
+        Merge-and-smooth-again rounds after the first smoothing.
+    pose_cov_inflation, tree_cov_inflation : float or None
+        Variance factors to ``SlamResult.pose_covs`` and each tree's ``cov``: without
+        ``smooth``, from the particle set's pose covariance and the landmark mixture
+        covariance (defaults :data:`POSE_COV_INFLATION`, :data:`TREE_COV_INFLATION`); with
+        ``smooth``, from the smoothed pose's covariance given the smoothed map and the trees'
+        joint marginals (defaults :data:`SMOOTHED_POSE_COV_INFLATION`,
+        :data:`SMOOTHED_TREE_COV_INFLATION`). All chosen on the first half of Victoria Park;
+        1 gives the raw covariances.
     record_diagnostics : bool
         Keep per-frame diagnostics in ``self.diagnostics`` after ``run`` (effective sample
         size, resampling flags, parent indices, particle poses, association counts, raw pose
@@ -350,8 +380,12 @@ class FastSlam:
     tentative_timeout_s: float = 5.0
     min_new_separation: float = 1.0
     version: int = 1
-    pose_cov_inflation: float = POSE_COV_INFLATION
-    tree_cov_inflation: float = TREE_COV_INFLATION
+    smooth: bool = True
+    merge_dist: float = 1.0
+    merge_ddiam: float = 0.42
+    merge_rounds: int = 2
+    pose_cov_inflation: float | None = None
+    tree_cov_inflation: float | None = None
     record_diagnostics: bool = False
     seed: int = 0
     name: str = "fastslam"
@@ -382,6 +416,14 @@ class FastSlam:
             raise ConfigError(f"FastSlam.version must be 1 or 2, got {self.version}.")
         if not self.new_landmark_chi2 > 0:
             raise ConfigError("FastSlam.new_landmark_chi2 must be > 0.")
+        if self.pose_cov_inflation is None:
+            self.pose_cov_inflation = (
+                SMOOTHED_POSE_COV_INFLATION if self.smooth else POSE_COV_INFLATION
+            )
+        if self.tree_cov_inflation is None:
+            self.tree_cov_inflation = (
+                SMOOTHED_TREE_COV_INFLATION if self.smooth else TREE_COV_INFLATION
+            )
         if not (self.pose_cov_inflation > 0 and self.tree_cov_inflation > 0):
             raise ConfigError("FastSlam: pose_cov_inflation and tree_cov_inflation must be > 0.")
 
@@ -390,6 +432,7 @@ class FastSlam:
         self, problem: SlamProblem, *, progress: Callable[[int, int], None] | None = None
     ) -> SlamResult:
         """Run the particle filter over ``problem``; see the module docstring."""
+        from stemmap.slam._fastslam_smooth import smooth_fastslam
         from stemmap.slam.base import SlamResult, frame_trajectory
         from stemmap.slam.motion import compose, preintegrate_spans
 
@@ -416,6 +459,11 @@ class FastSlam:
         tfirst = np.zeros((P, cap))
         tlast = np.zeros((P, cap))
         nlm = np.zeros(P, dtype=np.int64)
+        # smoothing: a landmark id per slot (inherited through resampling, kept by compaction)
+        # and per frame the id each particle's detections went to (-1: none)
+        lid = np.full((P, cap), -1, dtype=np.int64)
+        next_lid = 0
+        obs_lid: dict[int, np.ndarray] = {}
         logw = np.zeros(P)
         pose_hist = np.empty((nf, P, 3))
         parents = np.empty((nf, P), dtype=np.int64)
@@ -600,6 +648,11 @@ class FastSlam:
                     np.count_nonzero(assoc == -2) / P,
                 )
                 n_new = new.sum(axis=1)
+                if self.smooth:
+                    rec = np.full((P, k), -1, dtype=np.int32)
+                    mt = assoc >= 0
+                    rec[mt] = lid[np.nonzero(mt)[0], assoc[mt]]
+                    obs_lid[f] = rec
                 if np.any(n_new):
                     need = int((nlm + n_new).max())
                     if need > mu.shape[1]:
@@ -611,6 +664,7 @@ class FastSlam:
                         dcnt = np.concatenate((dcnt, np.zeros((P, grow), np.int64)), axis=1)
                         tfirst = np.concatenate((tfirst, np.zeros((P, grow))), axis=1)
                         tlast = np.concatenate((tlast, np.zeros((P, grow))), axis=1)
+                        lid = np.concatenate((lid, np.full((P, grow), -1, np.int64)), axis=1)
                     np_, nk = np.nonzero(new)
                     slot = nlm[np_] + (np.cumsum(new, axis=1) - 1)[np_, nk]
                     Xp = X[np_]
@@ -630,6 +684,11 @@ class FastSlam:
                     dcnt[np_, slot] = okd.astype(np.int64)
                     tfirst[np_, slot] = tf
                     tlast[np_, slot] = tf
+                    if self.smooth:
+                        ids = next_lid + np.arange(np_.size)
+                        next_lid += np_.size
+                        lid[np_, slot] = ids
+                        obs_lid[f][np_, nk] = ids
                     nlm = nlm + n_new
                 # resample on low effective sample size
                 logw -= logw.max()
@@ -645,6 +704,9 @@ class FastSlam:
                     X = X[idx]
                     # in place, landmarks in use only; the capacity is kept (no regrowth)
                     resample_inplace(idx, nlm, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
+                    if self.smooth:
+                        ch = idx != ident
+                        lid[ch] = lid[idx[ch]]
                     logw = np.zeros(P)
                     n_resample += 1
                     resampled[f] = True
@@ -662,6 +724,10 @@ class FastSlam:
                 )
                 if not np.all(keep == (slots < nlm[:, None])):
                     n_pruned += int(nlm.sum() - keep.sum())
+                    if self.smooth:
+                        for p_ in range(P):
+                            kp = keep[p_, : nlm[p_]]
+                            lid[p_, : int(kp.sum())] = lid[p_, : nlm[p_]][kp]
                     compact_inplace(keep, nlm, mu, Sig, nobs, dsum, dcnt, tfirst, tlast)
             if not k:
                 pose_cov[f] = weighted_pose_covariance(X, w_cur)
@@ -673,12 +739,18 @@ class FastSlam:
         # back-track the ancestry of the best particle
         traj = np.empty((nf, 3))
         cur = best
+        lineage_ids: list[tuple[int, np.ndarray]] = []  # (frame, landmark id per detection)
         for f in range(nf - 1, -1, -1):
             traj[f] = pose_hist[f, cur]
             cur = int(parents[f, cur])
+            if f in obs_lid:  # the associations of the particle before this frame's resampling
+                lineage_ids.append((f, obs_lid[f][cur]))
         n_best = int(nlm[best])
         mapped = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
         w_final = np.exp(logw - logw.max())
+        # the filter's own covariances (replaced by the smoothed ones with ``smooth``)
+        pf_fac = float(POSE_COV_INFLATION if self.smooth else self.pose_cov_inflation or 1.0)
+        tf_fac = float(TREE_COV_INFLATION if self.smooth else self.tree_cov_inflation or 1.0)
         trees = []
         for new_id, j in enumerate(mapped):
             dia = dsum[best, j] / dcnt[best, j] if dcnt[best, j] > 0 else math.nan
@@ -688,12 +760,18 @@ class FastSlam:
                     x=float(mu[best, j, 0]),
                     y=float(mu[best, j, 1]),
                     diameter=float(dia),
-                    cov=self.tree_cov_inflation
-                    * particle_landmark_covariance(mu, Sig, nlm, w_final, best, int(j)),
+                    cov=tf_fac * particle_landmark_covariance(mu, Sig, nlm, w_final, best, int(j)),
                     n_obs=int(nobs[best, j]),
                     first_time=float(tfirst[best, j]),
                     last_time=float(tlast[best, j]),
                 )
+            )
+        pose_covs = pf_fac * pose_cov
+        raw_traj = traj.copy()
+        smooth_stats: dict[str, float | int] = {}
+        if self.smooth and trees:
+            traj, trees, pose_covs, smooth_stats = smooth_fastslam(
+                self, problem, pre, traj, trees, lid[best, mapped], lineage_ids, R
             )
         stats: dict[str, float | int | str] = {
             "backend": self.name,
@@ -703,6 +781,7 @@ class FastSlam:
             "resamples": n_resample,
             "ess_median": float(np.nanmedian(ess_hist)) if np.any(np.isfinite(ess_hist)) else P,
             "tentative_pruned_total": n_pruned,
+            **smooth_stats,
             "runtime_s": float(_time.perf_counter() - t_start),
         }
         if self.record_diagnostics:
@@ -714,10 +793,11 @@ class FastSlam:
                 "best": best,
                 "assoc_counts": assoc_counts,
                 "pose_cov_spread": pose_cov,
+                "raw_trajectory": raw_traj,
             }
         return SlamResult(
             frame_trajectory(frames.times, traj),
             StemMap(tuple(trees)),
             stats,
-            pose_covs=self.pose_cov_inflation * pose_cov,
+            pose_covs=pose_covs,
         )

@@ -60,7 +60,13 @@ from stemmap.slam._tree_groups import (
     pose_from_matches,
     relax_tree_graph,
 )
-from stemmap.slam.loop_closure import LoopCloser, LoopConfig, close_duplicates, relabel
+from stemmap.slam.loop_closure import (
+    LoopCloser,
+    LoopConfig,
+    close_duplicates,
+    output_pose_covariances,
+    relabel,
+)
 from stemmap.slam.relaxation import remap_trees
 from stemmap.types import FloatArray, ScanBatch, StemMap, Tree
 
@@ -81,6 +87,16 @@ log = logging.getLogger(__name__)
 IntArray = NDArray[np.int64]
 
 #: The paper's method: mean-angle pose (Öhman 2007 §2.1); group sizes 6..11 were tested.
+#: Factor on the variances of the relaxation chain (``RelaxNoise``) in the pose graph whose
+#: marginals are the reported ``SlamResult.pose_covs`` (:func:`~stemmap.slam.loop_closure.
+#: output_pose_covariances`; the dead-reckoned frames' odometry covariance is not scaled): the
+#: tree DB and Forestrix share the chain model, so one factor, chosen on the first half of
+#: Victoria Park (both back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so
+#: that 86.5 % of the fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose
+#: covariances of the other back-ends"; ``python benchmarks/pose_covariance.py
+#: --vp-chain-factor``).
+FORESTRIX_POSE_COV_INFLATION = 0.0038
+
 PRESETS: dict[str, dict[str, int | str]] = {
     "ohman2007": {"group_size": 8, "pose_method": "ohman2007"},
     "ohman2007_g6": {"group_size": 6, "pose_method": "ohman2007"},
@@ -288,7 +304,12 @@ class ForestrixSlam:
         stem_map = self._remove_false_trees(stem_map, st, problem, scans, stats)
         stats["trees_mapped"] = len(stem_map)
         stats["runtime_s"] = float(_time.perf_counter() - t_start)
-        return SlamResult(frame_trajectory(frames.times, st.poses), stem_map, stats)
+        pose_covs = output_pose_covariances(
+            st.poses, frames.times, st.closer, st.dr_cov, FORESTRIX_POSE_COV_INFLATION
+        )
+        return SlamResult(
+            frame_trajectory(frames.times, st.poses), stem_map, stats, pose_covs=pose_covs
+        )
 
     # ---- output ------------------------------------------------------------------------
 
@@ -389,10 +410,10 @@ class _RunState:
             problem.controls,
             fr.times,
             np.asarray(problem.initial_pose),
-            with_covariance=self.windowed_cfg(cfg),
         )
-        # covariance of the increments the map did not correct (dead-reckoned frames)
-        self.dr_cov = np.zeros((len(fr), 3, 3)) if self.windowed_cfg(cfg) else None
+        # covariance of the increments the map did not correct (dead-reckoned frames): the
+        # relaxation's edge noise and, with every relaxation setting, the pose covariance
+        self.dr_cov: FloatArray = np.zeros((len(fr), 3, 3))
         self.pose = np.asarray(problem.initial_pose, dtype=np.float64).copy()
         self.poses = np.empty((len(fr), 3))
         self.graph = TreeGraph()
@@ -482,10 +503,6 @@ class _RunState:
             self._tree_graph_step(echo, ids, loop, tf)
         self._end_frame(f, tf)
 
-    @staticmethod
-    def windowed_cfg(cfg: ForestrixSlam) -> bool:
-        return cfg.relaxation == "pose_graph"
-
     def _active(self, tf: float) -> IntArray:
         g = self.graph
         if not len(g):
@@ -515,7 +532,7 @@ class _RunState:
 
     def _end_frame(self, f: int, tf: float) -> None:
         self.poses[f] = self.pose
-        if self.dr_cov is not None and f > 0 and not self.corrected:
+        if f > 0 and not self.corrected:
             self.dr_cov[f] = self.pre.covs[f - 1]
         lc = self.closer
         if lc is None:

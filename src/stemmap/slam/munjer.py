@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -53,24 +53,24 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+_COLUMNS = (
+    "centers",
+    "radii",
+    "covs",
+    "n_points",
+    "arc_deg",
+    "widths",
+    "quality",
+    "index",
+    "times",
+)
+
+
 def _stack(parts: list[StemObservations], source: str, frame: str) -> StemObservations:
     parts = [p for p in parts if len(p)]
     if not parts:
         return StemObservations.empty(source=source, frame=frame)
-    cat = {
-        k: np.concatenate([getattr(p, k) for p in parts])
-        for k in (
-            "centers",
-            "radii",
-            "covs",
-            "n_points",
-            "arc_deg",
-            "widths",
-            "quality",
-            "index",
-            "times",
-        )
-    }
+    cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in _COLUMNS}
     return StemObservations(**cat, source=source, frame=frame)
 
 
@@ -96,10 +96,17 @@ def lidar_observations(
     t = np.asarray(times, dtype=np.float64).reshape(-1)
     if t.shape[0] != len(frames):
         raise InputError(f"{len(frames)} lidar frames but {t.shape[0]} times.")
+    dets = (
+        detect(fr.xyz if isinstance(fr, PointCloud) else np.asarray(fr, dtype=np.float64))
+        for fr in frames
+    )
+    return _observations(dets, t, source)
+
+
+def _observations(dets: Iterable[CloudStems], t: FloatArray, source: str) -> StemObservations:
+    """Per-frame detections (frame ``f`` = the ``f``-th item, lidar frame) as observations."""
     parts = []
-    for f, fr in enumerate(frames):
-        xyz = fr.xyz if isinstance(fr, PointCloud) else np.asarray(fr, dtype=np.float64)
-        det = detect(xyz)
+    for f, det in enumerate(dets):
         k = len(det)
         if k == 0:
             continue
@@ -144,7 +151,13 @@ def accumulate_frames(
     list of F arrays (N_f, 3): frame f's box points joined with the earlier frames' box points
     moved by :func:`~stemmap.slam.motion.between` (planar: z is kept, the lidar is assumed level).
     """
-    cfg = config or MunjerConfig()
+    return [xyz for xyz, _ in _accumulate(frames, poses, config or MunjerConfig())]
+
+
+def _accumulate(
+    frames: Sequence[PointCloud | FloatArray], poses: ArrayLike, cfg: MunjerConfig
+) -> list[tuple[FloatArray, NDArray[np.int64]]]:
+    """:func:`accumulate_frames` with, per joined cloud, the frame index of every point."""
     p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     if p.shape[0] != len(frames):
         raise InputError(f"{len(frames)} lidar frames but {p.shape[0]} poses.")
@@ -165,7 +178,8 @@ def accumulate_frames(
                     (c * q[:, 0] - s * q[:, 1] + dx, s * q[:, 0] + c * q[:, 1] + dy, q[:, 2])
                 )
             )
-        out.append(np.vstack(parts))
+        ids = np.repeat(np.arange(lo, f + 1), [len(q) for q in parts])
+        out.append((np.vstack(parts), ids))
     return out
 
 
@@ -179,27 +193,54 @@ def eb_lidar_observations(
     """EB-LiDAR (:func:`~stemmap.cloud.munjer.detect_stems_munjer`, Munjer et al. 2025,
     §3.2-3.3, Table 1 by default) on every lidar frame; see :func:`lidar_observations`.
 
-    With ``config.window > 1`` each frame's cloud is :func:`accumulate_frames` (its box points
-    and those of the frames before it, moved with ``poses``, the motion source's (F, 3) lidar
-    poses) and the detections stay in that frame's lidar frame.
+    With ``config.window > 1`` each frame keeps its own detections and adds those of
+    :func:`accumulate_frames` (its box points and those of the ``window - 1`` frames before it,
+    moved with ``poses``, the motion source's (F, 3) lidar poses) that lie farther than
+    ``config.association_distance`` from all of them. On the joined cloud a cluster needs
+    ``min_points`` points from one frame (``detect_stems_munjer(..., frame_ids=...)``): the
+    window can sharpen the shape of a trunk already dense in one frame, not create density.
+    All detections stay in that frame's lidar frame (docs/algorithms/cloud.md,
+    "Accumulated frames").
     """
     from dataclasses import replace
 
     cfg = config or MunjerConfig()
-    if cfg.window == 1:
-        return lidar_observations(
-            frames, times, lambda xyz: detect_stems_munjer(xyz, cfg), "cloud:munjer2025"
-        )
-    if poses is None:
+    if cfg.window > 1 and poses is None:
         raise ConfigError(
             f"EB-LiDAR with window={cfg.window} joins frames and needs the motion source's poses "
             "(poses=...); use window=1 for strictly per-frame detection."
         )
-    clouds = accumulate_frames(frames, poses, cfg)
-    opened = replace(cfg, box_x=None, box_y=None, box_z=None, ground_relative=False)
-    return lidar_observations(
-        clouds, times, lambda xyz: detect_stems_munjer(xyz, opened), "cloud:munjer2025"
+    single = lidar_observations(
+        frames, times, lambda xyz: detect_stems_munjer(xyz, cfg), "cloud:munjer2025"
     )
+    if cfg.window == 1 or poses is None:
+        return single
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    opened = replace(cfg, box_x=None, box_y=None, box_z=None, ground_relative=False)
+    joined = _observations(
+        (
+            detect_stems_munjer(xyz, opened, frame_ids=ids)
+            for xyz, ids in _accumulate(frames, poses, cfg)
+        ),
+        t,
+        "cloud:munjer2025",
+    )
+    new_obs = np.ones(len(joined), dtype=bool)
+    for f in np.intersect1d(joined.index, single.index):
+        j, k = joined.index == f, single.index == f
+        d = np.hypot(
+            *(joined.centers[j][:, None, :] - single.centers[k][None, :, :]).transpose(2, 0, 1)
+        )
+        new_obs[np.flatnonzero(j)[d.min(axis=1) <= cfg.association_distance]] = False
+    both = _stack([single, _select(joined, new_obs)], "cloud:munjer2025", "lidar")
+    return _select(both, np.argsort(both.index, kind="stable"))
+
+
+def _select(obs: StemObservations, idx: NDArray[np.bool_] | NDArray[np.int64]) -> StemObservations:
+    """Rows ``idx`` of an observation batch."""
+    from dataclasses import replace
+
+    return replace(obs, **{k: getattr(obs, k)[idx] for k in _COLUMNS})
 
 
 def ours_lidar_observations(
@@ -363,6 +404,7 @@ def map_munjer(problem: SlamProblem, config: MunjerMapConfig | None = None) -> S
         sigma_bearing=cfg.sigma_bearing,
         min_observations=cfg.min_observations,
         seed=cfg.seed,
+        smooth=False,  # the paper's FastSLAM: no joint smoothing afterwards (ours)
     )
     result = fs.run(problem)
     if cfg.refine and len(result.stem_map):

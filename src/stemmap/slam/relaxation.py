@@ -31,8 +31,10 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -49,6 +51,7 @@ __all__ = [
     "fit_rigid_robust",
     "loop_constraint",
     "relax_trajectory",
+    "relaxed_pose_covariances",
     "remap_trees",
 ]
 
@@ -134,24 +137,56 @@ def relax_trajectory(
     InputError
         If the keyframes do not start at 0, are not increasing or are out of range.
     """
+    p = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    kf = _check_keyframes(keyframes, p.shape[0])
+    if not loops:
+        return p
+    graph, init, kp = _relax_graph(p, kf, loops, noise or RelaxNoise(), odometry_cov)
     import gtsam
 
-    p = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(max_iterations))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, init, params).optimize()
+    new_kp = np.array([[*_pose_xyt(result.atPose2(k))] for k in range(kp.shape[0])])
+    # every frame follows its keyframe rigidly
+    owner = np.searchsorted(kf, np.arange(p.shape[0]), side="right") - 1
+    local = between(kp[owner], p)
+    return compose(new_kp[owner], local)
+
+
+def _check_keyframes(keyframes: ArrayLike, nf: int) -> IntArray:
     kf = np.asarray(keyframes, dtype=np.int64).reshape(-1)
-    nf = p.shape[0]
     if kf.size == 0 or kf[0] != 0 or np.any(np.diff(kf) <= 0) or kf[-1] >= nf:
         raise InputError(
             f"relax_trajectory: keyframes must be increasing frame indices starting at 0 and "
             f"below {nf}, got {kf[:5].tolist()}...{kf[-1:].tolist()}."
         )
-    if not loops:
-        return p
-    nz = noise or RelaxNoise()
-    kp = p[kf]
-    rel = between(kp[:-1], kp[1:])
+    return kf
+
+
+def _chain_sigmas(rel: FloatArray, nz: RelaxNoise) -> FloatArray:
+    """(n, 3) sigmas (x, y, theta) of the soft chain for relative motions ``rel`` (n, 3)."""
     dist = np.hypot(rel[:, 0], rel[:, 1])
     s_xy = nz.xy_base + nz.xy_per_m * dist
     s_th = nz.theta_base + nz.theta_per_rad * np.abs(rel[:, 2]) + nz.theta_per_m * dist
+    return np.column_stack((s_xy, s_xy, s_th))
+
+
+def _relax_graph(
+    p: FloatArray,
+    kf: IntArray,
+    loops: list[LoopClosure],
+    nz: RelaxNoise,
+    odometry_cov: ArrayLike | None,
+) -> tuple[Any, Any, FloatArray]:
+    """The pose graph of :func:`relax_trajectory` (keys 0..N-1 = the keyframes) linearised
+    about ``p``: (graph, initial values, keyframe poses)."""
+    import gtsam
+
+    nf = p.shape[0]
+    kp = p[kf]
+    rel = between(kp[:-1], kp[1:])
+    sig_all = _chain_sigmas(rel, nz)
     extra = None
     if odometry_cov is not None:
         oc = np.asarray(odometry_cov, dtype=np.float64).reshape(-1, 3, 3)
@@ -166,7 +201,7 @@ def relax_trajectory(
     for k in range(kp.shape[0]):
         init.insert(k, gtsam.Pose2(*kp[k]))
     for k in range(rel.shape[0]):
-        sig = np.array([s_xy[k], s_xy[k], s_th[k]])
+        sig = sig_all[k]
         if extra is not None and np.any(extra[k]):
             cov = np.diag(sig**2) + 0.5 * (extra[k] + extra[k].T)
             nm = gtsam.noiseModel.Gaussian.Covariance(cov)
@@ -188,14 +223,70 @@ def relax_trajectory(
         base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(lc.sigmas, dtype=np.float64))
         robust = gtsam.noiseModel.Robust.Create(cauchy, base)
         graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*meas), robust))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(int(max_iterations))
-    result = gtsam.LevenbergMarquardtOptimizer(graph, init, params).optimize()
-    new_kp = np.array([[*_pose_xyt(result.atPose2(k))] for k in range(kp.shape[0])])
-    # every frame follows its keyframe rigidly
-    owner = np.searchsorted(kf, np.arange(nf), side="right") - 1
+    return graph, init, kp
+
+
+def relaxed_pose_covariances(
+    poses: ArrayLike,
+    keyframes: ArrayLike,
+    loops: list[LoopClosure],
+    *,
+    noise: RelaxNoise | None = None,
+    odometry_cov: ArrayLike | None = None,
+    chain_variance_factor: float = 1.0,
+) -> FloatArray:
+    """(F, 3, 3) covariance of each frame's pose (x, y, θ in the map frame) in the pose graph
+    of :func:`relax_trajectory`, at the final ``poses`` (ours; issue 14).
+
+    The graph is the front-end's odometry between corrections -- the soft chain whose sigma
+    grows with the distance and the turn (:class:`RelaxNoise`: the drift of scan-to-map /
+    tree-DB odometry, plus the dead-reckoned frames' ``odometry_cov``) -- and the loop
+    constraints (robust weights at ``poses``). Its marginals (``gtsam.Marginals``: the inverse
+    of the Gauss-Newton information, Kaess et al. 2008) are the odometry covariance propagated
+    from the fixed start and pulled in by every loop closure: open stretches grow, closed loops
+    shrink. A frame between keyframes carries its keyframe's covariance with the partial
+    chain noise of its offset ``r`` from it: ``Ad(r⁻¹) C Ad(r⁻¹)ᵀ + Q(r)`` (GTSAM's right
+    perturbation), then rotated to the map frame. ``chain_variance_factor`` scales the
+    variances of the :class:`RelaxNoise` chain only (a drift model for weighting the
+    relaxation, not a calibrated noise: the factor is chosen per back-end on real data,
+    docs/algorithms/slam.md); the dead-reckoned frames' ``odometry_cov`` (the motion model's)
+    and the loop constraints keep theirs. Without loops the chain alone: the open-loop drift.
+    """
+    import gtsam
+
+    from stemmap.slam._graph_revisits import _adjoint_inv
+
+    p = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    kf = _check_keyframes(keyframes, p.shape[0])
+    r = math.sqrt(chain_variance_factor)
+    nz0 = noise or RelaxNoise()
+    nz = dataclasses.replace(
+        nz0,
+        xy_base=r * nz0.xy_base,
+        xy_per_m=r * nz0.xy_per_m,
+        theta_base=r * nz0.theta_base,
+        theta_per_rad=r * nz0.theta_per_rad,
+        theta_per_m=r * nz0.theta_per_m,
+    )
+    graph, init, kp = _relax_graph(p, kf, loops, nz, odometry_cov)
+    marg = gtsam.Marginals(graph, init)
+    kc = np.array([marg.marginalCovariance(k) for k in range(kp.shape[0])])
+    owner = np.searchsorted(kf, np.arange(p.shape[0]), side="right") - 1
     local = between(kp[owner], p)
-    return compose(new_kp[owner], local)
+    A = _adjoint_inv(local)
+    q = np.zeros((p.shape[0], 3, 3))
+    sub = np.flatnonzero(local.any(axis=1))  # frames off their keyframe
+    q[sub] = np.einsum("ni,ij->nij", _chain_sigmas(local[sub], nz) ** 2, np.eye(3))
+    if odometry_cov is not None:
+        oc = np.asarray(odometry_cov, dtype=np.float64).reshape(-1, 3, 3)[: p.shape[0]]
+        csum = np.cumsum(oc, axis=0)
+        q += csum - csum[kf[owner]]  # dead-reckoned frames since the keyframe
+    C = A @ kc[owner] @ np.swapaxes(A, 1, 2) + q
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    R = np.zeros_like(C)
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    out = R @ C @ np.swapaxes(R, 1, 2)
+    return np.asarray(0.5 * (out + np.swapaxes(out, 1, 2)), dtype=np.float64)
 
 
 def _pose_xyt(pose: object) -> tuple[float, float, float]:

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.slam.loop_closure import LoopConfig
+from stemmap.slam.loop_closure import LoopConfig, output_pose_covariances
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -142,6 +142,16 @@ class TreeDbConfig:
 
 
 #: Published parameter sets. ``"visual_lidar"``: the paper's count threshold 20 and our 0.5 m gate.
+#: Factor on the variances of the relaxation chain (``RelaxNoise``) in the pose graph whose
+#: marginals are the reported ``SlamResult.pose_covs`` (:func:`~stemmap.slam.loop_closure.
+#: output_pose_covariances`; the dead-reckoned frames' odometry covariance is not scaled): the
+#: tree DB and Forestrix share the chain model, so one factor, chosen on the first half of
+#: Victoria Park (both back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so
+#: that 86.5 % of the fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose
+#: covariances of the other back-ends"; ``python benchmarks/pose_covariance.py
+#: --vp-chain-factor``).
+TREEDB_POSE_COV_INFLATION = 0.0038
+
 PRESETS: dict[str, TreeDbConfig] = {
     "visual_lidar": TreeDbConfig(gate=0.5, promote_count=20),
 }
@@ -624,7 +634,14 @@ class TreeDbSlam:
             "runtime_s": _time_since(t0),
         }
         log.info("treedb: %d DB entries, %d landmarks", len(db), len(stem_map))
-        return SlamResult(frame_trajectory(frames.times, poses), stem_map, stats)
+        return SlamResult(
+            frame_trajectory(frames.times, poses),
+            stem_map,
+            stats,
+            pose_covs=output_pose_covariances(
+                poses, frames.times, closer, dr_cov, TREEDB_POSE_COV_INFLATION
+            ),
+        )
 
     def _relax(
         self,

@@ -1,0 +1,321 @@
+"""Calibration of every back-end's pose covariance (trajectory.csv, ``SlamResult.pose_covs``).
+
+Issue 14: every back-end writes a pose covariance on every row; this measures what it is worth.
+
+``--sim`` (the ``stemmap demo`` scenario, ``--seeds``; the map frame is the true frame: the
+run starts at the true initial pose): each reported vehicle pose against the true one, the
+first row (fixed, zero covariance) left out. Position ``z² = eᵀ C⁻¹ e`` (2 dof: calibrated
+mean 2, median 1.386, 86.5 % inside the 2-sigma ellipse ``z² < 4``), the full pose's NEES
+(x, y, θ; calibrated mean 3) and the heading's ``z²`` (median 0.455). These test the code: the
+simulator is not used to choose any factor.
+
+``--vp`` (the full Victoria Park run, every back-end at its defaults): the laser point at every
+screened GPS fix after the ATE's SE(2) fit against the fix (the pose covariance carried to the
+laser point and rotated by the fit, ``fastslam_covariance._pose_terms``). The GPS has an error
+of its own: its RMS is estimated from the fixes' disagreement with themselves at revisits of
+the iSAM2 path (:func:`stemmap.eval.gps_noise.gps_revisit_error`) and added to the reported
+covariance as an isotropic ``G = rms² / 2 I``. Per half of the run (split at its middle time):
+median / mean ``z²`` of ``e`` under ``C + G`` and the share inside 2 sigma; and the variance
+factor ``k`` that makes the first half's median ``z²`` under ``k C + G`` equal 2 ln 2 (the
+factor a back-end would need; the second half checks the factor in the code), and the
+maximum-likelihood factor of ``e ~ N(0, k C + G)`` on the first half (defined also where the
+GPS's error alone explains the median) with the second half scored at it.
+
+Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
+       python benchmarks/pose_covariance.py --vp [--backends isam2 treedb]
+       python benchmarks/pose_covariance.py --vp-gnss
+       python benchmarks/pose_covariance.py --vp-chain-factor
+Prints JSON. The machine is shared; times are not reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+import numpy as np
+
+from fastslam_covariance import _fit_inflation, _lever, _pose_terms, _z2
+
+BACKENDS = ("isam2", "ekf", "fastslam", "treedb", "forestrix")
+
+
+def _stats(z2: np.ndarray, dof: int) -> dict[str, float]:
+    from scipy.stats import chi2
+
+    return {
+        "z2_mean": round(float(np.mean(z2)), 3),
+        "z2_median": round(float(np.median(z2)), 3),
+        "calibrated_median": round(float(chi2.ppf(0.5, dof)), 3),
+        "share_in_2sigma": round(float(np.mean(z2 < 4.0)), 3),
+        "calibrated_share_in_2sigma": round(float(chi2.cdf(4.0, dof)), 3),
+    }
+
+
+def sim_rows(seed: int, backend: str) -> dict[str, Any]:
+    """One simulated run: (position error, covariance, heading error, full-pose NEES) per row."""
+    from stemmap.cli._demo import _stand_and_run
+    from stemmap.cli._map import sim_problem
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import make_backend
+    from stemmap.types import wrap_angle
+
+    run = _stand_and_run(seed, 120)
+    problem, _ = sim_problem(run, ScanTrunkDetector().detect_batch(run.scans))
+    res = make_backend(backend).run(problem)
+    n = len(res.trajectory)
+    if res.pose_covs is None:
+        return {"rows": n, "rows_with_covariance": 0}
+    P = np.asarray(res.pose_covs)
+    ok = np.all(np.isfinite(P), axis=(1, 2))
+    n_fin = int(ok.sum())
+    ok[0] = False  # the fixed start pose
+    ok[ok] = np.linalg.eigvalsh(P[ok])[:, 0] > 0
+    true = run.vehicle_poses.interpolate(res.trajectory.times)
+    e = np.column_stack(
+        (
+            res.trajectory.poses[:, :2] - true[:, :2],
+            wrap_angle(res.trajectory.poses[:, 2] - true[:, 2]),
+        )
+    )[ok]
+    P = P[ok]
+    return {
+        "rows": n,
+        "rows_with_covariance": n_fin,
+        "e": e,
+        "z2_pos": _z2(e[:, :2], P[:, :2, :2]),
+        "z2_th": e[:, 2] ** 2 / P[:, 2, 2],
+        "nees": _z2(e, P),
+        "std": np.sqrt(0.5 * np.trace(P[:, :2, :2], axis1=1, axis2=2)),
+    }
+
+
+def sim(seeds: list[int], backends: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {"scenario": "stemmap demo, 120 trees", "seeds": seeds}
+    for b in backends:
+        runs = [sim_rows(s, b) for s in seeds]
+        row: dict[str, Any] = {
+            "rows": sum(r["rows"] for r in runs),
+            "rows_with_covariance": sum(r["rows_with_covariance"] for r in runs),
+        }
+        if all("e" in r for r in runs):
+            cat = {k: np.concatenate([r[k] for r in runs]) for k in ("e", "z2_pos", "z2_th")}
+            nees = np.concatenate([r["nees"] for r in runs])
+            std = np.concatenate([r["std"] for r in runs])
+            row |= {
+                "median_position_error_m": round(float(np.median(np.hypot(*cat["e"][:, :2].T))), 3),
+                "median_position_std_m": round(float(np.median(std)), 3),
+                "position": _stats(cat["z2_pos"], 2),
+                "position_z2_median_per_seed": [
+                    round(float(np.median(r["z2_pos"])), 3) for r in runs
+                ],
+                "heading": _stats(cat["z2_th"], 1),
+                "pose_nees_mean (calibrated 3)": round(float(np.mean(nees)), 3),
+            }
+        out[b] = row
+    return out
+
+
+def ml_factor(e: np.ndarray, C: np.ndarray, G: np.ndarray) -> float:
+    """Maximum-likelihood variance factor ``k`` of ``e ~ N(0, k C + G)`` (fixes independent;
+    ``G`` the reference's own noise): well defined also where ``G`` alone explains the median,
+    where :func:`fastslam_covariance._fit_inflation` has no root."""
+    from scipy.optimize import minimize_scalar
+
+    def nll(lk: float) -> float:
+        S = np.exp(lk) * C + G
+        return float(np.sum(np.log(np.linalg.det(S))) + np.sum(_z2(e, S)))
+
+    r = minimize_scalar(nll, bounds=(-15.0, 8.0), method="bounded")
+    return float(np.exp(r.x))
+
+
+def vp(backends: list[str], dump: str | None = None) -> dict[str, Any]:
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.gps_noise import gps_revisit_error
+    from stemmap.eval.trajectory import point_track
+    from stemmap.slam.base import make_backend
+
+    vpd = load_victoria_park(None)
+    problem = vpd.problem()
+    keep = vpd.screened_gps()
+    t = problem.frames.times
+    t_mid = 0.5 * (t[0] + t[-1])
+    results = {b: make_backend(b).run(problem) for b in backends}
+    # the GPS's own error: revisits of a locally right path (iSAM2's, run here if not asked)
+    ref = results.get("isam2") or make_backend("isam2").run(problem)
+    m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
+    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
+    from stemmap.eval.trajectory import align_se2
+
+    ref_xy = point_track(ref.trajectory, gt, vpd.model.sensor_offset)
+    al = align_se2(ref_xy, gxy)
+    gps = gps_revisit_error(gt, gxy, al.apply(ref_xy))
+    G = np.eye(2) * gps.rms_2d**2 / 2.0
+    out: dict[str, Any] = {
+        "t_split_s": round(float(t_mid), 1),
+        "screened_fixes": int(gt.size),
+        "gps_rms_2d_m (revisits of the iSAM2 path)": round(gps.rms_2d, 3),
+        "gps_revisit_pairs": gps.pairs,
+    }
+    for b, res in results.items():
+        n = len(res.trajectory)
+        if res.pose_covs is None:
+            out[b] = {"rows": n, "rows_with_covariance": 0}
+            continue
+        fin = np.all(np.isfinite(res.pose_covs), axis=(1, 2))
+        ft, e, C = _pose_terms(res, vpd, keep)
+        ok = np.all(np.isfinite(C), axis=(1, 2))
+        row: dict[str, Any] = {
+            "rows": n,
+            "rows_with_covariance": int(fin.sum()),
+            "fixes_with_covariance": int(ok.sum()),
+            "median_error_m": round(float(np.median(np.hypot(*e[ok].T))), 3),
+            "median_std_m": round(
+                float(np.median(np.sqrt(0.5 * np.trace(C[ok], axis1=1, axis2=2)))), 3
+            ),
+        }
+        first, second = ok & (ft < t_mid), ok & (ft >= t_mid)
+        for label, sel in (("first_half", first), ("second_half", second), ("all", ok)):
+            row[label + "_with_gps_noise"] = _stats(_z2(e[sel], C[sel] + G), 2)
+        try:
+            k = round(_fit_inflation(e[first], C[first], np.broadcast_to(G, C[first].shape)), 3)
+        except ValueError:  # no factor reaches the median: the GPS's own error alone does
+            k = None
+        row["factor_for_median_on_first_half"] = k
+        k_ml = ml_factor(e[first], C[first], G)
+        row["factor_ml_on_first_half"] = round(k_ml, 4)
+        row["second_half_with_gps_noise_at_ml_factor"] = _stats(
+            _z2(e[second], k_ml * C[second] + G), 2
+        )
+        if dump:
+            np.savez(f"{dump}_{b}.npz", t=ft, e=e, C=C, G=G, t_mid=t_mid)
+        out[b] = row
+        print(json.dumps({b: row}), file=sys.stderr, flush=True)
+    return out
+
+
+def vp_gnss() -> dict[str, Any]:
+    """iSAM2 with every 10th screened fix fused (``VictoriaPark.gnss_split``): the laser point
+    (= the antenna) against the fixes NOT fused, no alignment (the map is in the GPS frame);
+    covariance = the pose covariance carried to the laser point + the GPS's own ``G``."""
+    import dataclasses
+
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.gps_noise import gps_revisit_error
+    from stemmap.eval.trajectory import point_track
+    from stemmap.slam.base import make_backend
+
+    vpd = load_victoria_park(None)
+    fx, unused = vpd.gnss_split()
+    problem = dataclasses.replace(vpd.problem(), gnss=fx)
+    res = make_backend("isam2").run(problem)
+    t = res.trajectory.times
+    m = unused & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
+    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
+    est = point_track(res.trajectory, gt, vpd.model.sensor_offset)
+    fi = np.clip(np.searchsorted(t, gt), 0, len(t) - 1)
+    J = _lever(res.trajectory.interpolate(gt), est)
+    P = np.asarray(res.pose_covs)
+    C = J @ P[fi] @ np.swapaxes(J, 1, 2)
+    gps = gps_revisit_error(gt, gxy, est)
+    G = np.eye(2) * gps.rms_2d**2 / 2.0
+    e = est - gxy
+    return {
+        "rows": len(t),
+        "rows_with_covariance": int(np.all(np.isfinite(P), axis=(1, 2)).sum()),
+        "fixes_scored": int(gt.size),
+        "gps_rms_2d_m": round(gps.rms_2d, 3),
+        "median_error_m": round(float(np.median(np.hypot(*e.T))), 3),
+        "median_std_m": round(float(np.median(np.sqrt(0.5 * np.trace(C, axis1=1, axis2=2)))), 3),
+        "with_gps_noise": _stats(_z2(e, C + G), 2),
+    }
+
+
+def vp_chain_factor() -> dict[str, Any]:
+    """The tree DB / Forestrix chain variance factor (``TREEDB_POSE_COV_INFLATION``,
+    ``FORESTRIX_POSE_COV_INFLATION``) chosen on the first half of Victoria Park: one run of
+    each, the arguments of their ``output_pose_covariances`` captured, the covariances
+    recomputed for any factor ``k``; ``k`` puts 86.5 % of the two back-ends' first-half fixes
+    (pooled) inside the 2-sigma ellipse of ``C(k) + G``; the second half is scored at it."""
+    import dataclasses
+
+    from scipy.optimize import brentq
+
+    import stemmap.slam.forestrix as fx
+    import stemmap.slam.treedb as tdb
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.gps_noise import gps_revisit_error
+    from stemmap.eval.trajectory import align_se2, point_track
+    from stemmap.slam.base import make_backend
+    from stemmap.slam.loop_closure import output_pose_covariances
+
+    vpd = load_victoria_park(None)
+    problem = vpd.problem()
+    keep = vpd.screened_gps()
+    t = problem.frames.times
+    t_mid = 0.5 * (t[0] + t[-1])
+    captured: dict[str, tuple[Any, ...]] = {}
+    for mod, name in ((tdb, "treedb"), (fx, "forestrix")):
+
+        def cap(*args: Any, _n: str = name) -> Any:
+            captured[_n] = args[:4]
+            return output_pose_covariances(*args)
+
+        mod.output_pose_covariances = cap  # type: ignore[attr-defined]
+    results = {b: make_backend(b).run(problem) for b in ("treedb", "forestrix")}
+    ref = make_backend("isam2").run(problem)
+    m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
+    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
+    ref_xy = point_track(ref.trajectory, gt, vpd.model.sensor_offset)
+    gps = gps_revisit_error(gt, gxy, align_se2(ref_xy, gxy).apply(ref_xy))
+    G = np.eye(2) * gps.rms_2d**2 / 2.0
+
+    def z2_at(k: float, b: str) -> tuple[np.ndarray, np.ndarray]:
+        res = dataclasses.replace(results[b], pose_covs=output_pose_covariances(*captured[b], k))
+        ft, e, C = _pose_terms(res, vpd, keep)
+        return ft, _z2(e, C + G)
+
+    def coverage_first(lk: float) -> float:
+        z = np.concatenate([z2[ft < t_mid] for ft, z2 in (z2_at(np.exp(lk), b) for b in results)])
+        return float(np.mean(z < 4.0)) - 0.865
+
+    k = float(np.exp(brentq(coverage_first, np.log(1e-4), np.log(10.0), xtol=1e-3)))
+    out: dict[str, Any] = {"gps_rms_2d_m": round(gps.rms_2d, 3), "factor": round(k, 4)}
+    for b in results:
+        ft, z2 = z2_at(k, b)
+        out[b] = {
+            "first_half": _stats(z2[ft < t_mid], 2),
+            "second_half": _stats(z2[ft >= t_mid], 2),
+        }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--backends", nargs="+", default=list(BACKENDS))
+    ap.add_argument("--sim", action="store_true", help="the simulator check (module doc)")
+    ap.add_argument("--vp", action="store_true", help="the Victoria Park check (module doc)")
+    ap.add_argument("--vp-gnss", action="store_true", help="iSAM2 with GNSS on VP (vp_gnss)")
+    ap.add_argument(
+        "--vp-chain-factor", action="store_true", help="choose the tree DB / Forestrix factor"
+    )
+    ap.add_argument("--dump", default=None, help="with --vp: save PREFIX_BACKEND.npz (t, e, C, G)")
+    a = ap.parse_args()
+    out: dict[str, Any] = {}
+    if a.sim:
+        out["simulator"] = sim(a.seeds, a.backends)
+    if a.vp:
+        out["victoria_park"] = vp(a.backends, a.dump)
+    if a.vp_chain_factor:
+        out["victoria_park_chain_factor"] = vp_chain_factor()
+    if a.vp_gnss:
+        out["victoria_park_isam2_gnss"] = vp_gnss()
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,155 @@
+"""Robust scales of the compiled detector (:mod:`stemmap.scan._detect_fast`): medians,
+the range roughness of a segment, the scan's own range-noise estimate and the robust residual
+scale of a fit. Each is the numba twin of a numpy function of :mod:`stemmap.scan.plausibility`
+or :mod:`stemmap.scan.features` with the same arithmetic (tests/scan/test_plausibility.py,
+tests/scan/test_detect_fast.py). Kept free of other modules' kernels: numba's cache of this
+file depends on this file alone."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from stemmap.types import FloatArray
+
+#: 1.4826 MAD -> sigma for a Gaussian, / sqrt(6): the std of a second difference of iid noise
+#: (plausibility.range_roughness; the same constant on both paths)
+_ROUGH = 1.4826 / math.sqrt(6.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _range_roughness(r: FloatArray) -> float:
+    """Robust range-noise + bark-roughness scale of consecutive returns (numba twin of
+    :func:`stemmap.scan.plausibility.range_roughness`, same arithmetic)."""
+    m = r.shape[0] - 2
+    if m < 1:
+        return 0.0
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = abs(r[i] - 2.0 * r[i + 1] + r[i + 2])
+    d.sort()
+    h = m // 2
+    med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
+    return _ROUGH * med
+
+
+@njit(cache=True, error_model="numpy")
+def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
+    """Median of ``d[:m]`` (mean of the two middle values for even ``m``, as ``np.median``)
+    by quickselect (Hoare partition) in place: no allocation, ``d[:m]`` is reordered."""
+    k = m // 2
+    lo = 0
+    hi = m - 1
+    while lo < hi:
+        pivot = d[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while d[i] < pivot:
+                i += 1
+            while d[j] > pivot:
+                j -= 1
+            if i <= j:
+                t = d[i]
+                d[i] = d[j]
+                d[j] = t
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    upper = d[k]
+    if m % 2 == 1:
+        return upper
+    lower = d[0]  # every value left of k is <= d[k] now: the lower middle is their largest
+    for i in range(1, k):
+        lower = max(lower, d[i])
+    return 0.5 * (lower + upper)
+
+
+#: plausibility.SCAN_NOISE_MIN_TRIPLES (the same value on both paths)
+_SCAN_NOISE_MIN_TRIPLES = 16
+
+
+@njit(cache=True, error_model="numpy")
+def _interior_triples(g: FloatArray, jump: float, d: FloatArray) -> tuple[int, int]:
+    """Second differences of the interior continuous beam triples of ``g`` (``n >= 4`` beams),
+    written to ``d[:m]`` in beam order; returns ``m`` and the longest run of consecutive ones.
+
+    One branch-free pass over the range steps ``g[k] - g[k-1]``: a step is continuous when
+    ``|g[k] - g[k-1]| <= jump``, false for NaN and, ``jump`` being finite, for any infinite
+    return (so all returns of a counted triple are finite, as the reference checks); ``run``
+    counts the continuous steps ending at beam ``k``. The triple centred at ``k - 2`` is
+    continuous with both neighbouring triples (interior, the reference's ``ok``) exactly when
+    the four steps ``k-3 .. k`` are, i.e. ``run >= 4``; a run of ``L`` continuous steps holds
+    ``L - 3`` consecutive interior triples. Every second difference is written and the count
+    advances only for interior ones: nothing to mispredict (the branching loop this replaced
+    cost ~0.8 us per 361-beam scan, this one ~0.3; scan-detection.md, eighth round). Kept
+    apart from :func:`_scan_noise`'s medians: compiled into one function, this loop ran at the
+    old speed."""
+    n = g.shape[0]
+    last_bad = 0  # last beam whose step from the previous beam is not continuous (0: none)
+    for k in range(1, 4):
+        if not abs(g[k] - g[k - 1]) <= jump:
+            last_bad = k
+    m = 0
+    longest = 0
+    for k in range(4, n):
+        cont = abs(g[k] - g[k - 1]) <= jump
+        last_bad = last_bad if cont else k
+        run = k - last_bad
+        d[m] = g[k - 3] - 2.0 * g[k - 2] + g[k - 1]
+        m += run >= 4
+        longest = max(longest, run)
+    return m, max(longest - 3, 0)
+
+
+#: The largest finite float: ``jump`` is clamped to it, so an infinite ``jump`` (every finite
+#: step continuous, as in the reference) still rejects infinite returns.
+_FLOAT_MAX = float(np.finfo(np.float64).max)
+
+
+@njit(cache=True, error_model="numpy")
+def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> float:
+    """Range-noise scale of one gated scan ``g`` from its interior continuous beam triples
+    (numba twin of :func:`stemmap.scan.plausibility.scan_noise`, same statistic and
+    arithmetic, bit for bit; ``d`` is scratch of at least ``g.shape[0]`` values; the triples
+    from :func:`_interior_triples`)."""
+    if g.shape[0] < 5:  # no interior triple
+        return 0.0
+    m, longest = _interior_triples(g, min(jump, _FLOAT_MAX), d)
+    if m < _SCAN_NOISE_MIN_TRIPLES or 2 * longest > m:  # one surface must not decide
+        return 0.0
+    med = _median_inplace(d, m)
+    for i in range(m):
+        d[i] = abs(d[i] - med)
+    e = _ROUGH * _median_inplace(d, m)
+    return math.sqrt(max(e * e - surface * surface, 0.0))
+
+
+@njit(cache=True, error_model="numpy")
+def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r: float) -> float:
+    """1.4826 x the median absolute orthogonal residual (numba twin of
+    :func:`stemmap.scan.plausibility.robust_residual_scale`, same arithmetic)."""
+    m = x.shape[0]
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = abs(math.hypot(x[i] - cx, y[i] - cy) - r)
+    d.sort()
+    h = m // 2
+    med = d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h])
+    return 1.4826 * med
+
+
+@njit(cache=True, error_model="numpy")
+def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
+    """Median of ``v[start:stop]`` (mean of the two middle values for even counts), as
+    :func:`stemmap.scan.features._segment_median`."""
+    s = np.sort(v[start:stop])
+    c = stop - start
+    return 0.5 * (s[(c - 1) // 2] + s[c // 2])
