@@ -264,3 +264,35 @@ def test_propagated_map_covariance_is_calibrated_when_the_map_is_wrong():
     assert abs(float(np.mean(z_joint[:, 0])) - 3.0) < 0.6
     assert abs(float(np.mean(z_joint[:, 1])) - 1.0) < 0.35
     assert float(np.mean(z_marg[:, 1])) > 1.6
+
+
+def test_map_propagated_covariance_equals_the_dense_product():
+    """The diagonal 3x3 blocks of ``H⁻¹ B Σ_LL Bᵀ H⁻¹`` (dense, on a small chain), with
+    repeated (frame, landmark) pairs summed, a frame without detections and ``Σ_LL`` spanning
+    more than one column block."""
+    from stemmap.slam._ekf_smooth import map_propagated_covariance
+
+    rng = np.random.default_rng(3)
+    n, nl = 12, 5
+    m = rng.normal(size=(n, 3, 3))
+    diag = m @ m.transpose(0, 2, 1) + 6.0 * np.eye(3)
+    off = rng.normal(size=(n - 1, 3, 3))
+    H = np.zeros((3 * n, 3 * n))
+    for k in range(n):
+        H[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = diag[k]
+    for k in range(n - 1):
+        H[3 * k + 3 : 3 * k + 6, 3 * k : 3 * k + 3] = off[k]
+        H[3 * k : 3 * k + 3, 3 * k + 3 : 3 * k + 6] = off[k].T
+    frame = np.array([1, 1, 2, 4, 4, 4, 7, 11, 11])
+    lm = np.array([0, 0, 3, 1, 2, 4, 4, 0, 2])
+    Bm = rng.normal(size=(frame.size, 3, 2))
+    A = rng.normal(size=(2 * nl, 2 * nl))
+    S = A @ A.T
+    B = np.zeros((3 * n, 2 * nl))
+    for f, j, blk in zip(frame, lm, Bm, strict=True):
+        B[3 * f : 3 * f + 3, 2 * j : 2 * j + 2] += blk
+    Hi = np.linalg.inv(H)
+    dense = (Hi @ B @ S @ B.T @ Hi).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    want = dense[np.arange(n), np.arange(n)]
+    got = map_propagated_covariance(diag, off, frame, lm, Bm, S, columns=4)
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-12)

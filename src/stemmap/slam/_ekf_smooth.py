@@ -30,9 +30,11 @@ The covariance of each smoothed pose (issue 14, ``SlamResult.pose_covs``) is the
 equations, Huber weights included), computed in O(frames) by the block form of the RTS
 backward pass (:func:`chain_marginals`). It is the covariance of the path *given the final map*
 with each detection's landmark uncertainty counted as independent noise, so it leaves out the
-map's correlations; the map's local error is then added back, its landmarks taken as fully
-correlated (:func:`map_error_covariance`; docs/algorithms/slam.md, "Pose covariances of the
-other back-ends").
+map's correlations; the map's joint error (the filter's landmark covariance, cross-terms
+included) is then propagated through the smoother's normal equations and added
+(:func:`map_propagated_covariance`, position and heading; without the joint covariance the
+older approximation :func:`map_error_covariance`; docs/algorithms/slam.md, "Pose covariances of
+the other back-ends").
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ __all__ = [
     "banded_lower",
     "chain_marginals",
     "map_error_covariance",
+    "map_propagated_covariance",
     "odometry_terms",
     "smooth_path",
 ]
@@ -337,12 +340,14 @@ def map_propagated_covariance(
     "Factorization Methods for Discrete Sequential Estimation", 1977, ch. VIII). Its diagonal
     3x3 blocks are computed column block by column block: ``Σ_LL = U Uᵀ`` (Cholesky), ``M =
     H⁻¹ (B U)`` by one banded Cholesky of ``H`` (the block-tridiagonal information of
-    :func:`smooth_path`), ``Σ_k += M_k M_kᵀ``. A common shift *and rotation* of the landmarks a
+    :func:`smooth_path`), ``Σ_k += M_k M_kᵀ`` (an eigen-factor where ``Σ_LL`` is not
+    numerically positive definite). A common shift *and rotation* of the landmarks a
     pose sees reach its position and heading with the lever arms of the geometry. The map's
     error is taken as independent of the detections' noise (the landmarks were estimated from
     the same detections, which would make the sum slightly smaller: conservative).
     """
     from scipy.linalg import cho_solve_banded, cholesky_banded
+    from scipy.sparse import csr_matrix
 
     n = diag.shape[0]
     out = np.zeros((n, 3, 3))
@@ -350,16 +355,18 @@ def map_propagated_covariance(
     if frame.size == 0 or m2 == 0:
         return out
     S = 0.5 * (map_cov + map_cov.T)
-    w, V = np.linalg.eigh(S)  # the filter's P may be marginally indefinite
-    U = V * np.sqrt(np.clip(w, 0.0, None))  # S = U Uᵀ
+    try:
+        U = np.linalg.cholesky(S)  # S = U Uᵀ
+    except np.linalg.LinAlgError:  # the filter's P may be marginally indefinite
+        w, V = np.linalg.eigh(S)
+        U = V * np.sqrt(np.clip(w, 0.0, None))
+    # B (3n, 2L) sparse: block (frame, landmark) += Bm; duplicates are summed
+    rows = (3 * frame[:, None, None] + np.arange(3)[None, :, None]) + np.zeros((1, 1, 2), int)
+    cols = (2 * lm[:, None, None] + np.arange(2)[None, None, :]) + np.zeros((1, 3, 1), int)
+    B = csr_matrix((Bm.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * n, m2))
     cb = cholesky_banded(banded_lower(diag, off), lower=True)
     for c0 in range(0, m2, columns):
-        Uc = U[:, c0 : c0 + columns].reshape(m2 // 2, 2, -1)
-        rhs = np.zeros((n, 3, Uc.shape[2]))
-        for lo in range(0, frame.size, _CHUNK):
-            sl = slice(lo, lo + _CHUNK)
-            np.add.at(rhs, frame[sl], Bm[sl] @ Uc[lm[sl]])
-        M = cho_solve_banded((cb, True), rhs.reshape(3 * n, -1)).reshape(n, 3, -1)
+        M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
         out += M @ M.transpose(0, 2, 1)
     return out
 
