@@ -140,9 +140,9 @@ def test_smoothed_covariances_reach_trajectory_csv(tmp_path):
     assert read_trajectory_csv_with_covariance(tmp_path / "trajectory.csv")[1] is None
 
 
-def test_chain_marginals_equal_the_dense_inverse():
-    rng = np.random.default_rng(5)
-    n = 40
+def _random_chain(rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
+    """A random SPD block-tridiagonal information: diagonal blocks (n, 3, 3), sub-diagonal
+    blocks (n-1, 3, 3) and the dense (3n, 3n) matrix."""
     m = rng.normal(size=(n, 3, 3))
     diag = m @ m.transpose(0, 2, 1) + 6.0 * np.eye(3)  # diagonally dominant: SPD
     off = rng.normal(size=(n - 1, 3, 3))
@@ -152,6 +152,12 @@ def test_chain_marginals_equal_the_dense_inverse():
     for k in range(n - 1):
         H[3 * k + 3 : 3 * k + 6, 3 * k : 3 * k + 3] = off[k]
         H[3 * k : 3 * k + 3, 3 * k + 3 : 3 * k + 6] = off[k].T
+    return diag, off, H
+
+
+def test_chain_marginals_equal_the_dense_inverse():
+    n = 40
+    diag, off, H = _random_chain(np.random.default_rng(5), n)
     assert np.linalg.eigvalsh(H).min() > 0
     inv = np.linalg.inv(H).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)[np.arange(n), np.arange(n)]
     np.testing.assert_allclose(chain_marginals(diag, off), inv, rtol=1e-9, atol=1e-14)
@@ -274,15 +280,7 @@ def test_map_propagated_covariance_equals_the_dense_product():
 
     rng = np.random.default_rng(3)
     n, nl = 12, 5
-    m = rng.normal(size=(n, 3, 3))
-    diag = m @ m.transpose(0, 2, 1) + 6.0 * np.eye(3)
-    off = rng.normal(size=(n - 1, 3, 3))
-    H = np.zeros((3 * n, 3 * n))
-    for k in range(n):
-        H[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = diag[k]
-    for k in range(n - 1):
-        H[3 * k + 3 : 3 * k + 6, 3 * k : 3 * k + 3] = off[k]
-        H[3 * k : 3 * k + 3, 3 * k + 3 : 3 * k + 6] = off[k].T
+    diag, off, H = _random_chain(rng, n)
     frame = np.array([1, 1, 2, 4, 4, 4, 7, 11, 11])
     lm = np.array([0, 0, 3, 1, 2, 4, 4, 0, 2])
     Bm = rng.normal(size=(frame.size, 3, 2))
