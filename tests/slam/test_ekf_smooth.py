@@ -113,12 +113,13 @@ def test_smoothing_corrects_the_path_before_the_loop_closure():
     assert sm.pose_covs is not None and sm.pose_covs.shape == (len(sm.trajectory), 3, 3)
     assert np.all(np.linalg.eigvalsh(sm.pose_covs[1:]) > 0)
     assert np.all(np.diag(sm.pose_covs[0]) < 1e-9)  # the start pose is fixed
-    # against the truth (issue 14): with the map's local error added (map_error_covariance)
-    # the position covariance is not overconfident on this loop, median z² below the
-    # calibrated 1.39, nor uselessly wide (std within ~10x the error: median z² > 0.01);
-    # measured 0.044 / 0.077 / 0.18 on seeds 0 / 1 / 2 (std 0.08-0.11 m against 0.02-0.035 m
-    # errors: the landmark marginals dominate). The demo scenario's biased wheel odometry
-    # gives 3.7 (docs/outputs.md, trajectory.csv)
+    # against the truth (issue 14): with the map's joint error propagated
+    # (map_propagated_covariance) the position covariance is not overconfident on this loop,
+    # median z² below the calibrated 1.39, nor uselessly wide (std within ~10x the error:
+    # median z² > 0.01); measured 0.076 / 0.15 / 0.16 on seeds 0 / 1 / 2 (std 0.07-0.10 m
+    # against 0.02-0.035 m errors: the map's error dominates; 0.044 / 0.077 / 0.18 with the
+    # older marginal term). The demo scenario's biased wheel odometry gives 4.6
+    # (docs/outputs.md, trajectory.csv: its motion model understates the drift)
     e = sm.trajectory.xy[1:] - truth[1:, :2]
     z2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(sm.pose_covs[1:, :2, :2]), e)
     assert 0.01 < np.median(z2) < 1.386
