@@ -100,10 +100,12 @@ TREE_COV_INFLATION = 1670.0
 #: marginals, :func:`stemmap.slam._ekf_smooth.chain_marginals`) and from each tree's joint
 #: marginal (:func:`stemmap.slam._fastslam_smooth.smooth_joint`), chosen the same way (first
 #: half of Victoria Park, seeds 0-4, checked on the second half; docs/algorithms/slam.md,
-#: "FastSLAM joint smoothing"; benchmarks/fastslam_covariance.py --vp-calibration: second half
-#: median z^2 2.33 (pose) / 0.90 (trees)). A std factor of ~16 (pose) and ~3.7 (trees).
-SMOOTHED_POSE_COV_INFLATION = 253.0
-SMOOTHED_TREE_COV_INFLATION = 13.5
+#: "FastSLAM joint smoothing"; benchmarks/fastslam_covariance.py --vp-calibration, re-run on
+#: branch fslam18b with the re-association and the map term that ``smooth_path`` now adds:
+#: second half median z^2 1.10 (pose) / 1.14 (trees)). A std factor of ~4.6 (pose) and ~3.5
+#: (trees).
+SMOOTHED_POSE_COV_INFLATION = 21.4
+SMOOTHED_TREE_COV_INFLATION = 12.5
 
 #: Published parameter sets: ``"munjer2025"`` = 100 particles (Munjer et al. 2025, Table 1).
 PRESETS: dict[str, dict[str, float | int]] = {"munjer2025": {"n_particles": 100}}
