@@ -128,7 +128,7 @@ def test_online_pose_covariance_on_every_scan(loop, tmp_path):
     from stemmap.cli._map import _realtime
     from stemmap.io.trajectory import read_trajectory_csv_with_covariance, write_trajectory_csv
 
-    problem, truth, _, _ = loop
+    problem = loop[0]
     res = _realtime(problem, "isam2", lambda *a: None, None)
     P = res.pose_covs
     assert P.shape == (len(problem.frames), 3, 3)
