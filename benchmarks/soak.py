@@ -18,7 +18,10 @@ Reported per back-end and repeat count:
 * ``peak_rss_mb`` (``ru_maxrss``) and ``rss_after_load_mb`` (before SLAM);
 * time per 100 scans from the back-end's progress calls (every keyframe for iSAM2, every 50
   scans for the EKF): first tenth vs last tenth of the run (``growth_last_vs_first``), and
-  per pass;
+  per pass; per pass also the process CPU time per scan of those progress intervals (median
+  and 99th percentile, ms: CPU time, so usable on a loaded machine) and the RSS (``VmRSS``)
+  at the pass's end, with ``rss_mb_per_pass_from_3`` the least-squares slope of the latter
+  over passes 3 to N (the memory growth per pass once the map is built);
 * map quality: ATE against the screened GPS for every pass (each pass aligned on its own)
   and for the whole run under ONE alignment (drift between passes shows there), tree count,
   mapped trees first seen in each pass, and pairs of trees closer than 1 m (revisits must
@@ -159,6 +162,33 @@ def _per_100(marks: list[tuple[int, float]], n: int) -> dict[str, Any]:
     }
 
 
+def _cpu_pass(
+    marks: list[tuple[int, float]], cpu: list[tuple[float, float]], fa: int, fb: int
+) -> dict[str, Any]:
+    """CPU time per scan (ms) of the progress intervals ending in frames ``(fa, fb]``: median,
+    99th percentile and total; and the RSS (MB, ``VmRSS``) at the pass's last progress call."""
+    f = np.array([0] + [m[0] for m in marks], dtype=float)
+    c = np.array([0.0] + [m[0] for m in cpu])
+    rss = np.array([0.0] + [m[1] for m in cpu])
+    i = np.flatnonzero((f[1:] > fa) & (f[1:] <= fb)) + 1
+    if i.size == 0:
+        return {}
+    per_scan = 1000.0 * (c[i] - c[i - 1]) / np.maximum(f[i] - f[i - 1], 1.0)
+    return {
+        "cpu_ms_per_scan_p50": round(float(np.percentile(per_scan, 50)), 3),
+        "cpu_ms_per_scan_p99": round(float(np.percentile(per_scan, 99)), 3),
+        "cpu_s": round(float(c[i[-1]] - c[i[0] - 1]), 2),
+        "rss_end_mb": round(float(rss[i[-1]]), 1),
+    }
+
+
+def _slope(y: list[float]) -> float | None:
+    """Least-squares slope of ``y`` per step (None with fewer than 2 values)."""
+    if len(y) < 2:
+        return None
+    return round(float(np.polyfit(np.arange(len(y)), np.asarray(y, dtype=float), 1)[0]), 2)
+
+
 def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
     import stemmap.cli._map as cli_map
     import stemmap.slam.base as slam_base
@@ -172,6 +202,7 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
     rep, spans = revisit_drive(vp, repeats)
     rss_load = _rss_mb()
     marks: list[tuple[int, float]] = []
+    cpu_marks: list[tuple[float, float]] = []  # process CPU time and RSS now, per progress call
     seen: dict[str, Any] = {}
     graph_marks: list[tuple[int, int, int, float]] = []  # frames, keyframes, factors, RSS
     grown = _count_graph_growth() if backend == "isam2" else None
@@ -182,9 +213,11 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
 
         def run(self, problem: Any, progress: Any = None) -> Any:
             t_start = time.perf_counter()
+            c_start = time.process_time()
 
             def tick(done: int, total: int) -> None:
                 marks.append((done, time.perf_counter() - t_start))
+                cpu_marks.append((time.process_time() - c_start, _rss_now_mb()))
                 if grown is not None:
                     graph_marks.append((done, grown[0], grown[1], _rss_now_mb()))
                 if progress is not None:
@@ -224,14 +257,14 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
         r = ate(res.trajectory, rep.gps_times, rep.gps_xy, offset=off, keep=in_pass)
         fa, fb = ends[k], ends[k + 1]
         ta, tb = np.interp([fa, fb], [0] + [m[0] for m in marks], [0.0] + [m[1] for m in marks])
-        graph_pass: dict[str, Any] = {}
+        graph_pass: dict[str, Any] = _cpu_pass(marks, cpu_marks, fa, fb)
         if graph_marks:
             # the back-end's graph growth in this pass (iSAM2) and the RSS at its end
             gm = np.array(graph_marks)
             ia = int(np.searchsorted(gm[:, 0], fa)) - 1
             ib = min(int(np.searchsorted(gm[:, 0], fb)), len(gm) - 1)
             prev = gm[ia] if ia >= 0 else np.zeros(4)
-            graph_pass = {
+            graph_pass |= {
                 "graph_keyframes_added": int(gm[ib, 1] - prev[1]),
                 "measurement_factors_added": int(gm[ib, 2] - prev[2]),
                 "rss_at_end_mb": round(float(gm[ib, 3]), 1),
@@ -266,6 +299,9 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
             if len(per_pass) > 2
             else None
         ),
+        # RSS growth per pass from the third on (least-squares slope of the RSS at the passes'
+        # ends): ~0 when nothing but the per-scan state grows
+        "rss_mb_per_pass_from_3": _slope([p_["rss_end_mb"] for p_ in per_pass][2:]),
         "ate_rmse_m_one_alignment": metrics.get("ate_rmse_m"),
         "gps_fixes_kept": metrics.get("gps_fixes_kept"),
         "per_pass": per_pass,

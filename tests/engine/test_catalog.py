@@ -95,6 +95,39 @@ def test_bad_chunk_options(stand_tiles: tuple[Path, np.ndarray]) -> None:
         plan_chunks(cat, 10.0, -1.0)
 
 
+def test_staged_extra_fields_follow_their_points(tmp_path: Path) -> None:
+    """Staging with an extra field (GPS time, for sensor positions): each chunk gets its
+    points' own values, in the order of a direct read, for overlapping buffers (a point in up
+    to four boxes) and several LAZ blocks a tile."""
+    import laspy
+
+    rng = np.random.default_rng(4)
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    for i in range(2):
+        for j in range(2):
+            xyz = np.round(rng.uniform(0, 10, (3000, 3)) * 1000) / 1000 + [10 * i, 10 * j, 0]
+            header = laspy.LasHeader(point_format=6, version="1.4")
+            header.scales = np.array([0.001, 0.001, 0.001])
+            header.offsets = np.floor(xyz.min(axis=0))
+            las = laspy.LasData(header)
+            las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            las.gps_time = rng.permutation(3000) + 10_000.0 * (2 * i + j)  # unique per point
+            las.write(folder / f"t_{i}_{j}.laz")
+    cat = Catalog.from_inputs([folder])
+    for size, buf in ((7.0, 2.0), (5.0, 6.0)):  # buffers under and over half a chunk
+        chunks = plan_chunks(cat, size, buf)
+        stage = str(tmp_path / f"stage{size:g}")
+        for k in range(len(cat.tiles)):
+            mine = [c for c in chunks if k in c.tiles]
+            stage_tile(cat, k, mine, stage, ("gps_time",), read_points=700)
+        for ch in chunks:
+            direct, dx = read_chunk(cat, ch, fields=("gps_time",))
+            staged, sx = chunk_points(cat, ch, stage, ("gps_time",))
+            np.testing.assert_array_equal(staged, direct)
+            np.testing.assert_array_equal(sx["gps_time"], dx["gps_time"])
+
+
 def test_read_chunk_and_staging_read_exactly_the_buffered_box(
     stand_tiles: tuple[Path, np.ndarray], tmp_path: Path
 ) -> None:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from stemmap.errors import ConfigError
+from stemmap.scan._refit import corner_cut_pieces, validate_pieces
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.segment import ScanPoints, Segments, largest_gap_cuts, split_largest_gap
 from stemmap.types import ScanBatch
@@ -99,6 +100,12 @@ def test_refit_pieces_recover_a_trunk_whose_segment_fails_the_rms_test():
     # bias is ~-1.6 cm at 0.5 deg without the footprint model)
     alone = base.detect_batch(_scan([(5.0, 0.0, 0.12)]))
     assert len(alone) == 1 and abs(obs.radii[0] - alone.radii[0]) < 0.0025
+    # validated: the stem's piece is too short to be judged, so the trunk's piece stands
+    det = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", refit_pieces=True, refit_validate=True, **cfg)
+    )
+    got = det.detect_batch(batch)
+    assert len(got) == 1 and np.allclose(got.centers, obs.centers)
     # outlier trimming instead of the gap cut keeps the same trunk here
     det = ScanTrunkDetector(
         DetectorConfig.preset("stemmap", refit_pieces=True, refit_split="outliers", **cfg)
@@ -136,3 +143,84 @@ def test_a_near_arc_bulging_many_sigmas_is_not_straight():
     fw = segment_features(wall)
     loose = DetectorConfig.preset("stemmap", straight_depth_sigmas=3.0)
     assert REASONS[segment_reasons(wall, fw, loose)[0]] in ("straight", "depth")
+
+
+def _scan_with_branch(circle, p, q, n=121):
+    """:func:`_scan` of one circle plus a straight branch from ``p`` to ``q`` (thin beams)."""
+    b = _scan([circle], n)
+    r = b.ranges[0].copy()
+    ang = b.angle_min + INC * np.arange(n)
+    p, q = np.asarray(p, dtype=float), np.asarray(q, dtype=float)
+    e = q - p
+    for i, a in enumerate(ang):
+        d = np.array([math.cos(a), math.sin(a)])
+        m = np.column_stack((d, -e))
+        t, s = np.linalg.solve(m, p)
+        if t > 0 and 0 <= s <= 1:
+            r[i] = min(r[i], t)
+    return ScanBatch(
+        ranges=r[None, :],
+        times=np.zeros(1),
+        angle_min=b.angle_min,
+        angle_increment=INC,
+        range_max=30.0,
+    )
+
+
+_CORNERS = {"refit_pieces": True, "refit_split": "corners", "refit_validate": True}
+
+
+def test_validated_corner_split_finds_a_trunk_merged_with_a_branch():
+    # a 30 cm trunk at 3 m and a branch leaving its side towards the sensor: one segment,
+    # concave at the junction, rejected as not convex
+    batch = _scan_with_branch((3.0, 0.0, 0.15), (3.0, 0.149), (2.7, 0.4))
+    cfg = {"beam_divergence_deg": 0.0}
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg))
+    assert len(base.detect_batch(batch)) == 0
+    assert base.rejected(batch)["reason"] == ["depth"]
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))
+    assert not det._compiled(None, None)  # numpy path only
+    obs = det.detect_batch(batch)
+    assert len(obs) == 1
+    # the trunk's own circle: centre and radius within 5 mm (thin-beam edge bias ~-3 mm)
+    np.testing.assert_allclose(obs.centers[0], [3.0, 0.0], atol=0.005)
+    assert abs(obs.radii[0] - 0.15) < 0.005
+
+
+def test_validated_corner_split_keeps_the_verdict_of_two_lobes():
+    # two overlapping lobes (a forked stem, a rock's two faces): cut at the notch, both
+    # pieces pass as circles on their own; validated, the candidate stays rejected
+    batch = _scan([(3.0, 0.0, 0.15), (3.0, 0.22, 0.13)])
+    cfg = {
+        "beam_divergence_deg": 0.0,
+        "sigma": 0.002,
+        "corner_depth": 0.01,
+        "corner_depth_convex": 0.01,
+    }
+    loose = {k: v for k, v in _CORNERS.items() if k != "refit_validate"}
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **loose))
+    assert len(det.detect_batch(batch)) == 2
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))
+    assert len(det.detect_batch(batch)) == 0
+
+
+def test_validate_pieces_rules():
+    # parent 0: one passing piece and a 2-return piece (min_points) -> accepted;
+    # parent 1: a passing piece and a circle-like piece that fails its fit -> vetoed;
+    # parent 2: two passing pieces -> vetoed; parent 3: a passing piece and a straight one
+    parent = np.array([0, 0, 1, 1, 2, 2, 3, 3])
+    codes = np.array([0, 1, 0, 0, 0, 0, 0, 7], dtype=np.int8)
+    fit_ok = np.array([True, False, True, False, True, True, True, False])
+    ok = validate_pieces(parent, codes, fit_ok)
+    assert ok.tolist() == [True, False, False, False, False, False, True, False]
+
+
+def test_corner_cut_pieces_name_their_parent():
+    cfg = DetectorConfig.preset("stemmap", sigma=0.002, corner_depth=0.01)
+    flat = _segment([5.0, 5.0, 5.0, 5.0, 5.0, 5.0])
+    pieces, parent = corner_cut_pieces(flat, cfg)
+    assert pieces.counts.tolist() == [6] and parent.tolist() == [0]
+    # a V opening towards the sensor: the deepest return goes, two pieces of the same parent
+    notch = _segment([5.0, 5.03, 5.06, 5.09, 5.12, 5.09, 5.06, 5.03, 5.0])
+    pieces, parent = corner_cut_pieces(notch, cfg)
+    assert pieces.counts.tolist() == [4, 4] and parent.tolist() == [0, 0]

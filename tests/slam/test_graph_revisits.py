@@ -15,6 +15,7 @@ from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
     TreeVisits,
+    anchor_prior,
     compose_increments,
     redundant,
 )
@@ -108,6 +109,46 @@ def test_tree_bound_keeps_young_trees_from_growing_the_graph(five_laps):
         assert m.n_matched >= 0.9 * len(r.stem_map)
     assert rms[2] < 0.15 and rms[2] < 1.3 * rms[0] + 0.01  # measured 0.070 -> 0.077 m
     assert abs(len(res[2].stem_map) - len(res[0].stem_map)) <= 0.05 * len(res[0].stem_map) + 1
+
+
+def test_anchor_prior_holds_the_tracked_pose_with_the_composed_covariance(rng):
+    import gtsam
+
+    steps = np.column_stack(
+        (rng.uniform(0.5, 1.5, 12), rng.normal(0, 0.05, 12), rng.normal(0, 0.05, 12))
+    )
+    cov = np.tile(np.diag([0.02, 0.01, 0.002]) ** 2, (12, 1, 1))
+    pose = np.array([3.0, -2.0, 0.7])
+    fac = anchor_prior(gtsam, 7, pose, steps, cov)
+    np.testing.assert_allclose(fac.prior().x(), 3.0)
+    np.testing.assert_allclose(fac.prior().theta(), 0.7)
+    np.testing.assert_allclose(fac.noiseModel().covariance(), compose_increments(steps, cov)[1])
+    v = gtsam.Values()
+    v.insert(7, gtsam.Pose2(*pose))
+    assert fac.error(v) == pytest.approx(0.0, abs=1e-12)
+    # as weak as the run it replaces: wider than any single step of it
+    assert np.all(np.diag(fac.noiseModel().covariance()) > np.diag(cov[0]))
+    with pytest.raises(ConfigError, match="revisit_anchor_after"):
+        Isam2Config(revisit_anchor_after=-1)
+
+
+def test_anchored_keyframes_keep_path_and_map_quality(five_laps):
+    """Every keyframe that enters after a left-out run of more than one keyframe is anchored
+    (``revisit_anchor_after = 1``, far more than the default): the laps still close (every
+    frame within the gates below of the truth) and the map holds the same trees."""
+    truth, trees, reduced, _full = five_laps
+    problem = loop_problem(2, laps=5.0)[0]
+    anch = Isam2Slam(revisit_factors=15, revisit_anchor_after=1).run(problem)
+    assert anch.stats["keyframes_anchored"] > 0
+    assert anch.stats["keyframes_anchored"] >= reduced.stats["keyframes_anchored"]
+    rms = {}
+    for name, r in (("default", reduced), ("anchored", anch)):
+        rms[name] = math.sqrt(np.mean(np.hypot(*(r.trajectory.xy - truth[:, :2]).T) ** 2))
+        m = match_points(r.stem_map.xy, trees, gate=0.5)
+        assert m.n_matched >= 0.9 * len(r.stem_map)
+        assert duplicate_pairs(r.stem_map, 1.0) <= 0.02 * len(r.stem_map) + 1
+    assert rms["anchored"] < 0.15 and rms["anchored"] < 1.3 * rms["default"] + 0.01, rms
+    assert abs(len(anch.stem_map) - len(reduced.stem_map)) <= 0.05 * len(reduced.stem_map) + 1
 
 
 def test_localisation_mode_bounds_the_graph_by_area(five_laps):

@@ -60,9 +60,9 @@ def stage_tile(
     t = catalog.tiles[tile]
     root = Path(stage)
     boxes = [(c.id, c.buffered) for c in chunks]
-    by_x: dict[tuple[float, float], dict[tuple[float, float], list[str]]] = {}
-    for cid, bx in boxes:
-        by_x.setdefault((bx[0], bx[2]), {}).setdefault((bx[1], bx[3]), []).append(cid)
+    groups = _box_groups(boxes)
+    cids_of = [cids for _, _, cids in groups]
+    split = _Splitter(groups)
     what = ("xyz", *fields)
     handles: dict[tuple[str, str], IO[bytes]] = {}
     counts = {c.id: 0 for c in chunks}
@@ -94,28 +94,20 @@ def stage_tile(
                             handles[(cid, "xyz")].write(head)
                     elif _frag_header(views) != head:
                         raise InputError(f"tile {t.path!r} changes its scales mid-file.")
-                    x, y = np.asarray(views[0]), np.asarray(views[1])
-                    xyz: NDArray[np.int32] | None = None
-                    for (x0, x1), by_y in by_x.items():
-                        # chunks on a grid share their x ranges: select each range once,
-                        # then test y on its points only
-                        ix = np.flatnonzero((x >= x0) & (x <= x1))
-                        if ix.size == 0:
+                    raw = [_raw(v) for v in views]
+                    offs, buf, idx = split.run(views, raw, bool(fields))
+                    vals = [np.asarray(pts[f], dtype=np.float64) for f in fields]
+                    for g, cids in enumerate(cids_of):
+                        a, b = int(offs[g]), int(offs[g + 1])
+                        if a == b:
                             continue
-                        ys = y[ix]
-                        for (y0, y1), cids in by_y.items():
-                            idx = ix[(ys >= y0) & (ys <= y1)]
-                            if idx.size == 0:
-                                continue
-                            if xyz is None:
-                                xyz = np.column_stack([_raw(v) for v in views])
-                            sel = np.take(xyz, idx, axis=0)  # C-contiguous: written as is
-                            vals = [np.asarray(pts[f], dtype=np.float64)[idx] for f in fields]
-                            for cid in cids:
-                                handles[(cid, "xyz")].write(sel.data)
-                                for f, v in zip(fields, vals, strict=True):
-                                    handles[(cid, f)].write(v.data)
-                                counts[cid] += idx.size
+                        sel = buf[a:b]  # C-contiguous rows: written as they are
+                        got = [v[idx[a:b]] for v in vals]
+                        for cid in cids:
+                            handles[(cid, "xyz")].write(sel.data)
+                            for f, v in zip(fields, got, strict=True):
+                                handles[(cid, f)].write(v.data)
+                            counts[cid] += b - a
             if head is None:  # no point: the header of an empty fragment
                 head = _frag_header(None)
                 for cid, _ in boxes:
@@ -159,6 +151,90 @@ def _raw(view: Any) -> NDArray[np.int32]:
     if a.dtype != np.int32:
         raise InputError(f"unexpected LAS coordinate type {a.dtype}.")
     return a
+
+
+def _box_groups(
+    boxes: Sequence[tuple[str, tuple[float, float, float, float]]],
+) -> list[tuple[tuple[float, float], tuple[float, float], list[str]]]:
+    """The distinct buffered boxes as ((x0, x1), (y0, y1), chunk ids), grouped by x range:
+    chunks on a grid share their x ranges, so a point's x is tested once per range and its
+    y only against the boxes of the ranges that hold it."""
+    by_x: dict[tuple[float, float], dict[tuple[float, float], list[str]]] = {}
+    for cid, bx in boxes:
+        by_x.setdefault((bx[0], bx[2]), {}).setdefault((bx[1], bx[3]), []).append(cid)
+    return [(xr, yr, cids) for xr, by_y in by_x.items() for yr, cids in by_y.items()]
+
+
+class _Splitter:
+    """Splits LAZ blocks into the box groups of :func:`_box_groups` in two passes of one
+    numba kernel (count, then copy), into one buffer reused from block to block: the
+    block's raw X, Y, Z rows of each group, in point order."""
+
+    def __init__(self, groups: Sequence[tuple[Any, Any, Any]]) -> None:
+        xs = list(dict.fromkeys(xr for xr, _, _ in groups))  # groups are contiguous per x
+        self.xr = np.array(xs, dtype=np.float64).reshape(-1, 2)
+        self.yr = np.array([yr for _, yr, _ in groups], dtype=np.float64).reshape(-1, 2)
+        starts = [0]
+        for xr in xs:
+            starts.append(starts[-1] + sum(1 for g in groups if g[0] == xr))
+        self.ystart = np.array(starts, dtype=np.int64)
+        self.buf = np.empty((0, 3), dtype=np.int32)
+        self.idx = np.empty(0, dtype=np.int64)
+
+    def run(
+        self, views: Sequence[Any], raw: Sequence[NDArray[np.int32]], want_idx: bool
+    ) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int64]]:
+        """(offsets, rows, indices): group g's rows are ``rows[offsets[g]:offsets[g + 1]]``
+        and ``indices`` their positions in the block (filled only with ``want_idx``)."""
+        sc = np.array([float(v.scale) for v in views[:2]] + [float(v.offset) for v in views[:2]])
+        x, y, z = raw
+        offs = np.zeros(self.yr.shape[0] + 1, dtype=np.int64)
+        grid = (sc, self.xr, self.ystart, self.yr)
+        counts = _into_boxes(x, y, z, *grid, offs, self.buf, self.idx, False, False)
+        np.cumsum(counts, out=offs[1:])
+        total = int(offs[-1])
+        if total > self.buf.shape[0]:
+            self.buf = np.empty((total, 3), dtype=np.int32)
+            self.idx = np.empty(total if want_idx else 0, dtype=np.int64)
+        _into_boxes(x, y, z, *grid, offs, self.buf, self.idx, True, want_idx)
+        return offs, self.buf, self.idx
+
+
+@njit(cache=True)
+def _into_boxes(
+    xi: NDArray[np.int32],
+    yi: NDArray[np.int32],
+    zi: NDArray[np.int32],
+    sc: FloatArray,
+    xr: FloatArray,
+    ystart: NDArray[np.int64],
+    yr: FloatArray,
+    offs: NDArray[np.int64],
+    buf: NDArray[np.int32],
+    idx: NDArray[np.int64],
+    fill: bool,
+    want_idx: bool,
+) -> NDArray[np.int64]:
+    # the points of each box group; with ``fill`` also copied to buf[offs[g]:] (and their
+    # positions to idx). x = float64(X) * scale + offset: laspy's scaled coordinate, bit for
+    # bit (no fused multiply-add: numba compiles without fastmath); the boxes are closed
+    counts = np.zeros(yr.shape[0], dtype=np.int64)
+    for k in range(xi.shape[0]):
+        x = float(xi[k]) * sc[0] + sc[2]
+        y = float(yi[k]) * sc[1] + sc[3]
+        for a in range(xr.shape[0]):
+            if x >= xr[a, 0] and x <= xr[a, 1]:
+                for g in range(ystart[a], ystart[a + 1]):
+                    if y >= yr[g, 0] and y <= yr[g, 1]:
+                        if fill:
+                            r = offs[g] + counts[g]
+                            buf[r, 0] = xi[k]
+                            buf[r, 1] = yi[k]
+                            buf[r, 2] = zi[k]
+                            if want_idx:
+                                idx[r] = k
+                        counts[g] += 1
+    return counts
 
 
 def _one_thread_laz() -> Any:

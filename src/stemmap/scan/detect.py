@@ -32,7 +32,7 @@ from stemmap.errors import ConfigError, InputError
 from stemmap.scan import circle as _circle
 from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
-from stemmap.scan._refit import refit_pieces
+from stemmap.scan._refit import corner_cut_pieces, refit_pieces, split_refit
 from stemmap.scan._segment_fits import (
     _fit_rms,
     _fit_segments,
@@ -75,7 +75,6 @@ from stemmap.scan.preprocess import tilt_compensate as _tilt_eq1
 from stemmap.scan.segment import (
     Segments,
     build_segments,
-    concave_corners,
     euclidean_breaks,
     extract_points,
     range_jump_breaks,
@@ -379,7 +378,7 @@ class ScanTrunkDetector:
                 segs = segs.cut(keep) if cfg.split_merged else segs.drop(keep)
             segs = segs.select(segs.counts >= cfg.min_points)
         if cfg.split_corners and len(segs):
-            segs = _corner_cuts(segs, cfg)
+            segs = corner_cut_pieces(segs, cfg)[0]
         for _ in range(cfg.gap_splits):
             # ours (issue 11): a non-convex segment is cut at its largest gap, once per pass
             if len(segs) == 0:
@@ -626,7 +625,8 @@ class ScanTrunkDetector:
         """The pipeline step by step through the named functions of the preprocess, segment,
         features and circle modules (the reference the compiled path is tested against)."""
         cfg = self.config
-        arcs = cfg.arc_refit
+        corners = cfg.refit_pieces and cfg.refit_split == "corners"
+        arcs = cfg.arc_refit or corners  # every candidate is needed, before the filters
         segs, grid, wrap = self._candidates(
             ranges,
             angle_min,
@@ -651,14 +651,23 @@ class ScanTrunkDetector:
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
         order_key = 2 * pos[ok]
-        if cfg.refit_pieces:
+        if corners and len(every):
+            # not convex (depth) or failed the RMS test: a trunk merged with its neighbour
+            which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
+            which[pos[codes == _RMS]] = True
+            got = split_refit(self, every, which, grid, wrap)
+            if got is not None and np.any(got.ok):
+                more = _output_columns(got.segs, got.fitted, got.ok)
+                cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
+                order_key = np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
+        elif cfg.refit_pieces:
             got = refit_pieces(self, segs, fitted, codes, grid, wrap)
             if got is not None and np.any(got.ok):
                 more = _output_columns(got.segs, got.fitted, got.ok)
                 # a piece takes its parent's place in the output (the parent failed)
                 cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
                 order_key = np.concatenate((order_key, 2 * pos[got.parent[got.ok]] + 1))
-        if arcs and len(every):
+        if cfg.arc_refit and len(every):
             cols, order_key = self._arc_candidates(
                 every, cols, order_key, fitted.rms[ok], grid, wrap
             )
@@ -733,24 +742,4 @@ class ScanTrunkDetector:
 
 
 _DEPTH = REASONS.index("depth")
-
-
-def _corner_cuts(segs: Segments, cfg: DetectorConfig) -> Segments:
-    """Cut trunks merged with a branch, bush or second stem at the junctions (ours, issue 11):
-    at the concave corners (:func:`~stemmap.scan.segment.concave_corners`) deeper than
-    ``corner_depth`` in a segment that is not a convex arc (sagitta below ``max(min_depth,
-    0)``), deeper than ``corner_depth_convex`` in a convex one (the dents of rough bark on a
-    trunk's own arc are not junctions), and at least ``corner_sigmas`` range-noise sigmas deep
-    (noise alone makes no corner); the corner return is dropped and pieces with fewer than
-    ``min_points`` returns go."""
-    thr = np.where(
-        sagitta_depth(segs) < max(cfg.min_depth, 0.0), cfg.corner_depth, cfg.corner_depth_convex
-    )
-    sigma = segment_sigma(cfg, segs, segment_sum(segs.points.r, segs) / segs.counts)
-    thr = np.maximum(thr, cfg.corner_sigmas * sigma)
-    cuts = concave_corners(segs, cfg.corner_span, thr[segs.labels])
-    if not np.any(cuts):
-        return segs
-    # the junction return itself belongs to neither piece (the same cut in either beam order)
-    segs = segs.cut(np.cumsum(cuts) % 2 == 1).drop(~cuts)
-    return segs.select(segs.counts >= cfg.min_points)
+_RMS = REASONS.index("rms")

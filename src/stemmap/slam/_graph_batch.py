@@ -73,6 +73,7 @@ def batch_rounds(
     map_fac: list[Any],
     joint_fac: Any,
     gnss_fac: list[Any],
+    anchor_fac: list[Any],
     gnss_keys: list[int],
     meas_rec: list[tuple[int, int, float, float, float, float]],
     meas_fac: list[Any],
@@ -92,6 +93,9 @@ def batch_rounds(
     it: block-coordinate descent on (poses, calibration), alternated with the LM steps the
     merging needs anyway. Without a round that changed anything, ``batch_iterations`` of LM run
     on ``graph_all`` as it is.
+
+    ``anchor_fac``: the priors of keyframes that entered after a long left-out run
+    (:func:`~stemmap.slam._graph_revisits.anchor_prior`), kept as they are when rebuilding.
 
     ``lm`` = (lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_in_graph), the landmark
     bookkeeping, updated in place for merged trees (and so are ``map_fac`` and ``meas_fac``).
@@ -153,7 +157,7 @@ def batch_rounds(
             # the joint prior over the map's trees: on the representatives
             joint_fac = joint_prior_factor(prior_map, LK, alias)
             g2.add(joint_fac)
-        for fac_o in odo_fac + gnss_fac + [f_ for f_ in map_fac if f_ is not None]:
+        for fac_o in odo_fac + gnss_fac + anchor_fac + [f_ for f_ in map_fac if f_ is not None]:
             g2.add(fac_o)
         for i_m, (k_, j_, b_, r_, sb_, sr_) in enumerate(meas_rec):
             if alias[j_] != j_:  # the tree was merged: a factor on its representative

@@ -69,6 +69,11 @@ class Isam2Config:
         bounds the 10x Victoria Park soak's graph (1,265 keyframes instead of 2,014, every
         pass 1.24-1.27 m) but the full log started at 6.0 s loses its path (11.6 m; 1.30 m
         off), docs/reliability.md "iSAM2 memory per pass"; 1 lost the 1x drive's loop closures
+    revisit_anchor_after : a keyframe that enters the graph after more than this many left-out
+        keyframes gets a prior at its tracked pose (covariance of the composed odometry,
+        :func:`stemmap.slam._graph_revisits.anchor_prior`) instead of an odometry factor to the
+        last graph keyframe (0 = always the odometry factor). Default 15 (docs/reliability.md
+        "iSAM2: long left-out runs anchored": bounds iSAM2's memory on the 10x soak)
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     pose_marginals : also the marginal covariance of every graph keyframe, carried to every
         frame (``SlamResult.pose_covs``, :func:`_tree_and_pose_marginals`; docs/outputs.md
@@ -132,6 +137,7 @@ class Isam2Config:
     revisit_keyframes: int = 3
     revisit_after_m: float = 50.0
     revisit_settle_visits: int = 0
+    revisit_anchor_after: int = 15
     marginals: bool = True
     pose_marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -199,6 +205,11 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.revisit_settle_visits must be >= 0 (0 = off), got "
                 f"{self.revisit_settle_visits}."
+            )
+        if self.revisit_anchor_after < 0:
+            raise ConfigError(
+                f"Isam2Config.revisit_anchor_after must be >= 0 (0 = off), got "
+                f"{self.revisit_anchor_after}."
             )
         if self.revisit_factors < 0:
             raise ConfigError(

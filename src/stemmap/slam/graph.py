@@ -45,7 +45,10 @@ Schur complement of the information over the pose chain (:func:`_point_marginals
 Localisation mode on revisits (ours; docs/algorithms/slam.md "Revisits"): a keyframe that only
 re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area);
 the tracker is then localised on the map at each restart (:mod:`stemmap.slam._graph_localise`),
-and a tracker the map contradicts puts the next keyframes back into the graph.
+and a tracker the map contradicts puts the next keyframes back into the graph. A keyframe that
+enters after a long left-out run is anchored by a prior at its tracked pose instead of an
+odometry factor to the remote last graph keyframe (``revisit_anchor_after``,
+:func:`~stemmap.slam._graph_revisits.anchor_prior`).
 
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
@@ -86,10 +89,20 @@ from stemmap.slam._graph_odometry import (
     frame_covariances,
     preintegrate_spans,
 )
+from stemmap.slam._graph_result import (
+    LANDMARK_FILL,
+    calibration_stats,
+    gnss_stats,
+    map_trees,
+    new_landmarks,
+    sensor_dead_reckoning,
+    tracker_params,
+)
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
     TreeVisits,
+    anchor_prior,
     compose_increments,
     localise_skipped,
     redundant,
@@ -107,14 +120,13 @@ from stemmap.slam._isam2_track import (
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.gnss import (
     gnss_factors,
-    gnss_residuals,
     plan_gnss,
     robust_kernel,
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose
 from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
-from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
+from stemmap.types import FloatArray, StemMap, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
 
@@ -311,6 +323,7 @@ class Isam2Slam:
         meas_fac: list[Any] = []  # the factor of each meas_rec entry (reused when rebuilding)
         odo_fac: list[Any] = []  # the odometry factors of the graph, in keyframe order
         edges: list[tuple[int, int]] = []  # the graph keyframes each odometry factor links
+        anchor_fac: list[Any] = []  # priors of keyframes after long left-out runs (kept)
         new_v.insert(XK(0), s0)
         in_graph_k = np.zeros(nk, dtype=bool)  # keyframes with a pose in the graph
         in_graph_k[0] = True
@@ -320,15 +333,9 @@ class Isam2Slam:
         skipped = LeftOutMeasurements()
 
         # landmark bookkeeping (numpy, grown geometrically; filled by the numba tracker)
-        cap = 1024
-        lm_xy = np.zeros((cap, 2))
-        lm_dsum = np.zeros(cap)
-        lm_dn = np.zeros(cap, dtype=np.int64)
-        lm_nobs = np.zeros(cap, dtype=np.int64)
-        lm_first = np.zeros(cap, dtype=np.int64)
-        lm_last = np.zeros(cap, dtype=np.int64)
-        lm_inc = np.full(cap, -1, dtype=np.int64)  # last frame whose observation is in iSAM2
-        lm_in_graph = np.zeros(cap, dtype=bool)
+        n_prior = 0 if problem.prior_map is None else len(problem.prior_map)
+        (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph, lm_ref,
+         lm_nfac) = new_landmarks(n_prior + 1024 if n_prior else 1024)  # fmt: skip
         n_lm = 0
         map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
         joint_fac: Any = None  # or one joint prior over them (StemMap.information)
@@ -336,14 +343,7 @@ class Isam2Slam:
             # a map of an earlier session (relocalised into: problem.initial_pose is in its
             # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
             # prior, so this session updates them and adds new ones (one merged map)
-            n_lm = len(problem.prior_map)
-            cap = n_lm + 1024
-            lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph = (
-                np.zeros((cap, 2)), np.zeros(cap), np.zeros(cap, dtype=np.int64),
-                np.zeros(cap, dtype=np.int64), np.zeros(cap, dtype=np.int64),
-                np.zeros(cap, dtype=np.int64), np.full(cap, -1, dtype=np.int64),
-                np.zeros(cap, dtype=bool),
-            )  # fmt: skip
+            n_lm = n_prior
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
                 prior_tree_factors(problem.prior_map, LK, cfg.min_obs, kernel=prior_kernel)
             ):
@@ -362,35 +362,10 @@ class Isam2Slam:
             if joint_fac is not None:
                 new_f.add(joint_fac)
                 graph_all.add(joint_fac)
-        lm_nfac = np.zeros(lm_xy.shape[0], dtype=np.int64)  # measurement factors per tree
-        lm_ref = np.zeros(lm_xy.shape[0], dtype=np.int64)  # iSAM2 updates at the last refresh
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
-        sd2 = (cfg.sigma_diameter or 1.0) ** 2
-        kparams = np.array(
-            [
-                vr,
-                vb,
-                sd2,
-                1.0 if cfg.sigma_diameter is not None else 0.0,
-                cfg.gate_chi2,
-                cfg.new_chi2,
-                cfg.new_min_dist,
-                cfg.max_range,
-                cfg.max_drift_sigma**2,
-                cfg.local_drift_sigma**2,
-                cfg.consensus_chi2,
-                cfg.drift_scale,
-                cfg.min_window_obs,
-            ]
-        )
+        kparams = tracker_params(cfg)
         # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
-        sp_dr = np.column_stack(
-            (
-                pre_poses[:, 0] + np.cos(pre_poses[:, 2]) * a - np.sin(pre_poses[:, 2]) * b,
-                pre_poses[:, 1] + np.sin(pre_poses[:, 2]) * a + np.cos(pre_poses[:, 2]) * b,
-                np.unwrap(pre_poses[:, 2]),
-            )
-        )
+        sp_dr = sensor_dead_reckoning(pre_poses, a, b)
         del pre_poses, pre_dist
         ptr = np.ascontiguousarray(frames.ptr, dtype=np.int64)
         f_rng = np.ascontiguousarray(frames.ranges, dtype=np.float64)
@@ -497,11 +472,20 @@ class Isam2Slam:
                     "forced" if kc < force_until else "new_tree" if new_t else "young_tree"
                 ] += 1
             if kc > 0:
-                bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
+                if 0 < cfg.revisit_anchor_after < kc - g_last:
+                    # after a long left-out run: anchored at its tracked pose, not linked to
+                    # the remote graph keyframe (anchor_prior)
+                    bf = anchor_prior(
+                        gtsam, XK(kc), kf_init[kc], odo_measured(slice(g_last, kc)),
+                        cov_k[g_last:kc],
+                    )  # fmt: skip
+                    anchor_fac.append(bf)
+                else:
+                    bf = odo_factor(g_last, kc, d_last if g_last == kc - 1 else None)
+                    odo_fac.append(bf)
+                    edges.append((g_last, kc))
                 new_f.add(bf)
                 graph_all.add(bf)
-                odo_fac.append(bf)
-                edges.append((g_last, kc))
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
@@ -621,7 +605,7 @@ class Isam2Slam:
                 (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph, lm_ref,
                  lm_nfac) = grow_landmarks(
                     need, (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc,
-                           lm_in_graph, lm_ref, lm_nfac), (0, 0, 0, 0, 0, 0, -1, False, 0, 0),
+                           lm_in_graph, lm_ref, lm_nfac), LANDMARK_FILL,
                 )  # fmt: skip
             n_lm, _, *window = track_keyframe(
                 f0, f1, f0, f_upd, ptr, f_rng, f_brg, f_dia, sp_dr, cov_fc, cum_xy, cum_th,
@@ -660,8 +644,9 @@ class Isam2Slam:
             gtsam, cfg, result, graph_all, keys=(XK, LK), n_lm=n_lm,
             lm=(lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_in_graph), pf=pf,
             odo_factor=odo_factor, edges=edges, odo_fac=odo_fac, map_fac=map_fac,
-            joint_fac=joint_fac, gnss_fac=gnss_fac, gnss_keys=gnss_keys, meas_rec=meas_rec,
-            meas_fac=meas_fac, meas_noise=meas_noise, gk=gk, prior_map=problem.prior_map,
+            joint_fac=joint_fac, gnss_fac=gnss_fac, anchor_fac=anchor_fac, gnss_keys=gnss_keys,
+            meas_rec=meas_rec, meas_fac=meas_fac, meas_noise=meas_noise, gk=gk,
+            prior_map=problem.prior_map,
             calib=Calibration(
                 odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
             ) if calibrate else None,
@@ -700,31 +685,9 @@ class Isam2Slam:
             if cfg.pose_marginals
             else None
         )
-        trees = []
-        for jk in keep.tolist():
-            n_d = int(lm_dn[jk])
-            trees.append(
-                Tree(
-                    id=jk,
-                    x=float(pts[jk, 0]),
-                    y=float(pts[jk, 1]),
-                    diameter=float(lm_dsum[jk] / n_d) if n_d else math.nan,
-                    cov=covs[jk],
-                    n_obs=int(lm_nobs[jk]),
-                    first_time=float(frames.times[lm_first[jk]]),
-                    last_time=float(frames.times[lm_last[jk]]),
-                )
-            )
-        gnss_stats: dict[str, float | int] = {}
-        if gnss_plan is not None and gnss_keys:
-            # fixes the robust loss set aside: normalised residual > 3 at the optimum
-            ant = np.array([result.atPose2(k_g).translation() for k_g in gnss_keys])
-            r_g = gnss_residuals(gnss_plan, ant)
-            gnss_stats = {
-                "gnss_fixes_fused": len(gnss_keys),
-                "gnss_fixes_outliers": int(np.count_nonzero(r_g > 3.0)),
-                "gnss_residual_rms_m": float(np.sqrt(np.mean((r_g * gnss_plan.sigma) ** 2))),
-            }
+        trees = map_trees(
+            keep, pts, covs, (lm_dsum, lm_dn, lm_nobs, lm_first, lm_last), frames.times
+        )
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,
@@ -740,6 +703,7 @@ class Isam2Slam:
             "keyframes": int(nk),
             "keyframes_in_graph": int(gk.size),
             "keyframes_localised": len(skipped),
+            "keyframes_anchored": len(anchor_fac),
             "localisation_runs": n_localised,
             "tracker_map_fixes": n_map_fix,
             "tracker_lost": n_map_lost,
@@ -754,18 +718,12 @@ class Isam2Slam:
             "measurement_outlier_fraction": n_outlier / len(meas_rec) if meas_rec else math.nan,
             "calibration_segments": n_seg,
             "calibration_rounds": n_cal_rounds,
-            **gnss_stats,
+            **gnss_stats(result, gnss_plan, gnss_keys),
             "incremental_s": t_inc,
             "runtime_s": runtime,
         }
         if n_seg:
-            # estimated odometry calibration (GPS-free diagnostic): offset in rad (rad/s for
-            # unicycle controls), speed-scale correction; over the odometry factors
-            cal = c_used
-            for i_c, name_c in enumerate(("calib_offset", "calib_scale")):
-                stats[f"{name_c}_mean"] = float(cal[:, i_c].mean())
-                stats[f"{name_c}_min"] = float(cal[:, i_c].min())
-                stats[f"{name_c}_max"] = float(cal[:, i_c].max())
+            stats.update(calibration_stats(c_used))
         log.info("iSAM2: %s", stats)
         stem_map = StemMap(tuple(trees), information=info_j)
         return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats, pose_covs)
