@@ -730,8 +730,9 @@ def run_compressed(
     if olog is not None:
         lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
         poses, pose_covs, smooth_stats = smooth_path(
-            poses, pre.deltas, pre.covs, olog.resolve(st.g_ids), L.copy(), lm_cov, (a, b), R1
-        )
+            poses, pre.deltas, pre.covs, olog.resolve(st.g_ids), L.copy(), lm_cov, (a, b), R1,
+            map_cov=st.Pg[3:, 3:].copy(),
+        )  # fmt: skip
     runtime = time.perf_counter() - t_start
     stats: dict[str, float | int | str] = {
         "backend": name,

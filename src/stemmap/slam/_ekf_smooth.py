@@ -30,9 +30,11 @@ The covariance of each smoothed pose (issue 14, ``SlamResult.pose_covs``) is the
 equations, Huber weights included), computed in O(frames) by the block form of the RTS
 backward pass (:func:`chain_marginals`). It is the covariance of the path *given the final map*
 with each detection's landmark uncertainty counted as independent noise, so it leaves out the
-map's correlations; the map's local error is then added back, its landmarks taken as fully
-correlated (:func:`map_error_covariance`; docs/algorithms/slam.md, "Pose covariances of the
-other back-ends").
+map's correlations; the map's joint error (the filter's landmark covariance, cross-terms
+included) is then propagated through the smoother's normal equations and added
+(:func:`map_propagated_covariance`, position and heading; without the joint covariance the
+older approximation :func:`map_error_covariance`; docs/algorithms/slam.md, "Pose covariances of
+the other back-ends").
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ __all__ = [
     "banded_lower",
     "chain_marginals",
     "map_error_covariance",
+    "map_propagated_covariance",
     "odometry_terms",
     "smooth_path",
 ]
@@ -140,9 +143,10 @@ def _measurement_terms(
     b: float,
     R1: FloatArray,
     huber_k: float,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per measurement: ``w Jᵀ W J`` (m, 3, 3), ``w Jᵀ W e`` (m, 3) and the whitened ``e``²
-    of the range-bearing of landmarks ``L`` (covariances ``Pl``) from vehicle poses ``xs``
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per measurement: ``w Jᵀ W J`` (m, 3, 3), ``w Jᵀ W e`` (m, 3), the whitened ``e``² and
+    ``w J_vᵀ W J_l`` (m, 3, 2) (the gradient's sensitivity to the landmark) of the
+    range-bearing of landmarks ``L`` (covariances ``Pl``) from vehicle poses ``xs``
     (observation model and Jacobians: :func:`stemmap.slam.treedb.range_bearing_jacobians`)."""
     z, Jv, Jl = range_bearing_jacobians(xs, L, (a, b))
     Wm = np.linalg.inv(R1[None] + Jl @ Pl @ Jl.transpose(0, 2, 1))
@@ -151,7 +155,7 @@ def _measurement_terms(
     dn = np.sqrt(d2)
     w = np.where(dn <= huber_k, 1.0, huber_k / np.maximum(dn, 1e-12))
     JvT_W = w[:, None, None] * (Jv.transpose(0, 2, 1) @ Wm)
-    return JvT_W @ Jv, np.einsum("mij,mj->mi", JvT_W, em), d2
+    return JvT_W @ Jv, np.einsum("mij,mj->mi", JvT_W, em), d2, JvT_W @ Jl
 
 
 def odometry_terms(
@@ -241,6 +245,7 @@ def smooth_path(
     *,
     huber_k: float = 1.345,
     iterations: int = 20,
+    map_cov: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, dict[str, float | int]]:
     """The vehicle path (N, 3) re-estimated on the fixed final map and the covariance of each
     pose (N, 3, 3) from the last step's normal equations (module docstring).
@@ -251,6 +256,10 @@ def smooth_path(
     obs : ``(frame, landmark, range, bearing)`` per associated detection
     lm_xy, lm_cov : (L, 2) / (L, 2, 2) final landmark positions and marginal covariances
     sensor_offset : (a, b) of the sensor in the vehicle frame; R1 : (2, 2) detection noise
+    map_cov : (2L, 2L), optional, the filter's joint covariance of the final landmarks (order of
+        ``lm_xy``); with it the map's error is propagated through the smoother
+        (:func:`map_propagated_covariance`), without it approximated from the marginals
+        (:func:`map_error_covariance`)
 
     Returns the path, its covariances and stats (iterations, measurements used, mean whitened
     residual² of the measurements before and after, the share down-weighted by Huber at the
@@ -281,9 +290,10 @@ def smooth_path(
         g[1:] += gb
         # ---- measurement factors, in chunks (bounded memory on long drives)
         d2_sum, n_huber = 0.0, 0
+        Bm = np.zeros((fr.size, 3, 2))
         for lo in range(0, fr.size, _CHUNK):
             sl = slice(lo, lo + _CHUNK)
-            H_m, g_m, d2 = _measurement_terms(
+            H_m, g_m, d2, Bm[sl] = _measurement_terms(
                 x[fr[sl]], lm_xy[lj[sl]], lm_cov[lj[sl]], rz[sl], bz[sl], a, b, R1, huber_k
             )
             np.add.at(diag, fr[sl], H_m)
@@ -302,8 +312,63 @@ def smooth_path(
     stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
     stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
     cov = chain_marginals(diag, off)
-    cov[1:, :2, :2] += map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
+    if map_cov is not None:
+        cov[1:] += map_propagated_covariance(diag, off, fr, lj, Bm, map_cov)[1:]
+    else:
+        cov[1:, :2, :2] += map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
     return x, cov, stats
+
+
+def map_propagated_covariance(
+    diag: FloatArray,
+    off: FloatArray,
+    frame: IntArray,
+    lm: IntArray,
+    Bm: FloatArray,
+    map_cov: FloatArray,
+    *,
+    columns: int = 128,
+) -> FloatArray:
+    """(N, 3, 3) covariance the map's joint error adds to the smoothed path (ours, issue 14).
+
+    The smoother's step solves ``H δx = g(L)`` on the fixed map ``L``; to first order an error
+    ``δL`` of the map moves the solution by ``δx = -H⁻¹ B δL``, ``B = ∂g/∂L`` stacked from the
+    per-measurement blocks ``Bm = w J_vᵀ W J_l`` (3x2, at landmark ``lm``, frame ``frame``),
+    so with the filter's joint landmark covariance ``Σ_LL`` (``map_cov``, cross-correlations
+    included) the path's covariance gains ``H⁻¹ B Σ_LL Bᵀ H⁻¹`` (the standard propagation of a
+    "consider" parameter's covariance through a least-squares estimate, e.g. Bierman,
+    "Factorization Methods for Discrete Sequential Estimation", 1977, ch. VIII). Its diagonal
+    3x3 blocks are computed column block by column block: ``Σ_LL = U Uᵀ`` (Cholesky), ``M =
+    H⁻¹ (B U)`` by one banded Cholesky of ``H`` (the block-tridiagonal information of
+    :func:`smooth_path`), ``Σ_k += M_k M_kᵀ`` (an eigen-factor where ``Σ_LL`` is not
+    numerically positive definite). A common shift *and rotation* of the landmarks a
+    pose sees reach its position and heading with the lever arms of the geometry. The map's
+    error is taken as independent of the detections' noise (the landmarks were estimated from
+    the same detections, which would make the sum slightly smaller: conservative).
+    """
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+    from scipy.sparse import csr_matrix
+
+    n = diag.shape[0]
+    out = np.zeros((n, 3, 3))
+    m2 = map_cov.shape[0]
+    if frame.size == 0 or m2 == 0:
+        return out
+    S = 0.5 * (map_cov + map_cov.T)
+    try:
+        U = np.linalg.cholesky(S)  # S = U Uᵀ
+    except np.linalg.LinAlgError:  # the filter's P may be marginally indefinite
+        w, V = np.linalg.eigh(S)
+        U = V * np.sqrt(np.clip(w, 0.0, None))
+    # B (3n, 2L) sparse: block (frame, landmark) += Bm; duplicates are summed
+    rows = (3 * frame[:, None, None] + np.arange(3)[None, :, None]) + np.zeros((1, 1, 2), int)
+    cols = (2 * lm[:, None, None] + np.arange(2)[None, None, :]) + np.zeros((1, 3, 1), int)
+    B = csr_matrix((Bm.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * n, m2))
+    cb = cholesky_banded(banded_lower(diag, off), lower=True)
+    for c0 in range(0, m2, columns):
+        M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
+        out += M @ M.transpose(0, 2, 1)
+    return out
 
 
 def map_error_covariance(n: int, frame: IntArray, seen_cov: FloatArray) -> FloatArray:

@@ -457,7 +457,7 @@ class EkfSlam:
             lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
             poses, pose_covs, smooth_stats = smooth_path(
                 poses, pre.deltas, pre.covs, olog.resolve(np.asarray(lm_id, dtype=np.int64)),
-                L.copy(), lm_cov, (a, b), R1,
+                L.copy(), lm_cov, (a, b), R1, map_cov=self.P[3 : self.n, 3 : self.n].copy(),
             )  # fmt: skip
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
