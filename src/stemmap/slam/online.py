@@ -33,9 +33,9 @@ observation from cumulative sums).
 (``ISAM2.marginalCovariance``: the newest key sits at the Bayes tree's root, Kaess et al. 2012,
 so the recovery touches few cliques; with the carrying +0.04 ms CPU per scan at the median,
 +0.17 ms at p99, ~1.1x: ``benchmarks/slam_field.py --parts online --worker online`` on VP,
-before / after alternated twice) is carried scan by scan with the dead-reckoned sensor increments' covariance (``C <- Ad(d⁻¹) C Ad(d⁻¹)ᵀ + Q``, the
-propagation of :func:`~stemmap.slam._graph_odometry.frame_covariances`): O(1) per scan. A
-re-anchor's prior is the marginal with its sigmas capped; the part the cap leaves out (the
+before / after alternated twice) is carried scan by scan with the dead-reckoned sensor
+increments' covariance (``C <- Ad(d⁻¹) C Ad(d⁻¹)ᵀ + Q``, the propagation of
+:func:`~stemmap.slam._graph_odometry.frame_covariances`): O(1) per scan. A re-anchor's prior is the marginal with its sigmas capped; the part the cap leaves out (the
 PSD part of the difference) is carried from the anchor on the next window's marginals, so the
 covariance does not reset. The tracker's per-scan corrections between updates are not in it
 (conservative there). The reported covariance is ``pose_cov_factor`` (8.6, chosen on Victoria
