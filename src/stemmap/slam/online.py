@@ -28,19 +28,20 @@ trees (growing with the mapped area, not with time on a revisited area) and ~50 
 scan of dead-reckoning bookkeeping (the front-end reads drift since a tree's last
 observation from cumulative sums).
 
-**Pose covariance** (issue 14; :attr:`OnlineMapper.pose_covs`, ``trajectory.csv`` of
-``stemmap map --realtime``): at every iSAM2 update the latest keyframe's marginal
+**Pose covariance** (issue 14; :attr:`OnlineMapper.pose_covs`, ``trajectory.csv`` of ``stemmap
+map --realtime``): at every iSAM2 update the latest keyframe's marginal
 (``ISAM2.marginalCovariance``: the newest key sits at the Bayes tree's root, Kaess et al. 2012,
 so the recovery touches few cliques; with the carrying +0.04 ms CPU per scan at the median,
 +0.17 ms at p99, ~1.1x: ``benchmarks/slam_field.py --parts online --worker online`` on VP,
 before / after alternated twice) is carried scan by scan with the dead-reckoned sensor
 increments' covariance (``C <- Ad(d⁻¹) C Ad(d⁻¹)ᵀ + Q``, the propagation of
-:func:`~stemmap.slam._graph_odometry.frame_covariances`): O(1) per scan. A re-anchor's prior is the marginal with its sigmas capped; the part the cap leaves out (the
-PSD part of the difference) is carried from the anchor on the next window's marginals, so the
-covariance does not reset. The tracker's per-scan corrections between updates are not in it
-(conservative there). The reported covariance is ``pose_cov_factor`` (8.6, chosen on Victoria
-Park's first half against the GPS) times this: without the batch's odometry self-calibration
-the odometry's bias is outside the model (docs/outputs.md, "Pose covariance columns").
+:func:`~stemmap.slam._graph_odometry.frame_covariances`): O(1) per scan. A re-anchor's prior is
+the marginal with its sigmas capped; the part the cap leaves out (the PSD part of the
+difference) is carried from the anchor on the next window's marginals, so the covariance does
+not reset. The tracker's per-scan corrections between updates are not in it (conservative
+there). The reported covariance is ``pose_cov_factor`` (8.6, chosen on Victoria Park's first
+half against the GPS) times this: without the batch's odometry self-calibration the odometry's
+bias is outside the model (docs/outputs.md, "Pose covariance columns").
 
 Not done online (the batch back-end does them at the end of a run): the odometry
 self-calibration, the duplicate merge and the final Levenberg-Marquardt pass. With GNSS, the
