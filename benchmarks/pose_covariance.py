@@ -22,7 +22,8 @@ maximum-likelihood factor of ``e ~ N(0, k C + G)`` on the first half (defined al
 GPS's error alone explains the median) with the second half scored at it.
 
 Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
-       python benchmarks/pose_covariance.py --vp [--backends isam2 treedb]
+       python benchmarks/pose_covariance.py --vp [--backends isam2 treedb online]
+       (``online``: the realtime iSAM2 mapper of ``stemmap map --realtime``)
        python benchmarks/pose_covariance.py --vp-gnss
        python benchmarks/pose_covariance.py --vp-chain-factor
 Prints JSON. The machine is shared; times are not reported.
@@ -54,17 +55,28 @@ def _stats(z2: np.ndarray, dof: int) -> dict[str, float]:
     }
 
 
+def _run(backend: str, problem: Any) -> Any:
+    """``backend`` on ``problem``; ``online``: the realtime iSAM2 mapper (``--realtime``)."""
+    from stemmap.slam.base import SlamResult, make_backend
+
+    if backend != "online":
+        return make_backend(backend).run(problem)
+    from stemmap.slam.online import replay
+
+    st = replay(problem)
+    return SlamResult(st["trajectory"], st["stem_map"], pose_covs=st["pose_covs"])
+
+
 def sim_rows(seed: int, backend: str) -> dict[str, Any]:
     """One simulated run: (position error, covariance, heading error, full-pose NEES) per row."""
     from stemmap.cli._demo import _stand_and_run
     from stemmap.cli._map import sim_problem
     from stemmap.scan.detect import ScanTrunkDetector
-    from stemmap.slam.base import make_backend
     from stemmap.types import wrap_angle
 
     run = _stand_and_run(seed, 120)
     problem, _ = sim_problem(run, ScanTrunkDetector().detect_batch(run.scans))
-    res = make_backend(backend).run(problem)
+    res = _run(backend, problem)
     n = len(res.trajectory)
     if res.pose_covs is None:
         return {"rows": n, "rows_with_covariance": 0}
@@ -143,7 +155,7 @@ def vp(backends: list[str], dump: str | None = None) -> dict[str, Any]:
     keep = vpd.screened_gps()
     t = problem.frames.times
     t_mid = 0.5 * (t[0] + t[-1])
-    results = {b: make_backend(b).run(problem) for b in backends}
+    results = {b: _run(b, problem) for b in backends}
     # the GPS's own error: revisits of a locally right path (iSAM2's, run here if not asked)
     ref = results.get("isam2") or make_backend("isam2").run(problem)
     m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])

@@ -31,7 +31,8 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   without the prior map, and to the full single run on the same fixes.
   ``--reloc-per-trial``: session 2 mapped from every accepted trial's pose, joint vs Huber;
   ``--reloc-splits 400,600``: other session pairs (map 0-s, relocalise and map s-1549 s),
-  joint vs Huber vs the full run.
+  joint vs Huber vs the full run; per split the success rate over ``--trials`` start offsets,
+  false relocalisations, and acceptances from guesses whose 30-m search excludes the truth.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
@@ -410,18 +411,23 @@ def _reloc_per_trial(
     return out
 
 
-def _reloc_splits(vp: Any, splits: list[float], full: Any) -> dict[str, Any]:
+def _reloc_splits(vp: Any, splits: list[float], full: Any, trials: int) -> dict[str, Any]:
     """Other session pairs: map 0-``s`` s, relocalise the ``s``-1549 s session from session
-    1's end pose (odometry over the gap) off by (+15 m, -10 m, +20 deg), map it on the prior
-    map held jointly ("none") or by per-tree Huber priors ("huber"), session 1's calibration
-    carried over; ATE on the screened fixes after the session's first scan (own alignment),
-    next to the full single run on the same fixes; process CPU of each session-2 run."""
+    1's end pose (odometry over the gap) off by (+15 m, -10 m, +20 deg) and by ``trials - 1``
+    more offsets U(+-20 m, +-20 m, +-30 deg) (seed 1; success = accepted within 30 s, within
+    1 m and 2 deg; false = accepted farther off), and from ``trials`` guesses 45-90 m away
+    (the true start outside the 30-m search: any acceptance is false, ``outside_accepted``);
+    map it on the prior map from the (+15, -10, +20) relocalisation held jointly ("none") or
+    by per-tree Huber priors ("huber"), session 1's calibration carried over; ATE on the
+    screened fixes after the session's first scan (own alignment), next to the full single run
+    on the same fixes; process CPU of each session-2 run."""
     from stemmap.eval.trajectory import ate
     from stemmap.slam.graph import Isam2Slam
     from stemmap.slam.motion import compose, preintegrate
     from stemmap.slam.relocalise import relocalise, with_calibration
 
     keep, off = vp.screened_gps(), vp.model.sensor_offset
+    rng = np.random.default_rng(1)
     out: dict[str, Any] = {}
     for split in splits:
         r1 = Isam2Slam(joint_information=True).run(vp.slice(0.0, split).problem())
@@ -429,13 +435,43 @@ def _reloc_splits(vp: Any, splits: list[float], full: Any) -> dict[str, Any]:
         t1l, t2f = float(r1.trajectory.times[-1]), float(p2.frames.times[0])
         d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
         want = compose(r1.trajectory.poses[-1], d)
-        guess = (want[0] + 15.0, want[1] - 10.0, want[2] + math.radians(20.0))
-        rel = relocalise(p2, r1.stem_map, guess=guess)
+        offs = [(15.0, -10.0, 20.0)] + [
+            (*rng.uniform(-20.0, 20.0, 2), rng.uniform(-30.0, 30.0)) for _ in range(trials - 1)
+        ]
+        good, false, times, rel = 0, 0, [], None
+        for dx, dy, dth in offs:
+            guess = (want[0] + dx, want[1] + dy, want[2] + math.radians(dth))
+            r = relocalise(p2, r1.stem_map, guess=guess)
+            rel = rel or r
+            e = math.hypot(r.pose[0] - want[0], r.pose[1] - want[1])
+            eth = abs(math.degrees(math.remainder(r.pose[2] - want[2], 2 * math.pi)))
+            good += int(r.ok and r.time_s <= 30.0 and e < 1.0 and eth < 2.0)
+            false += int(r.ok and not (e < 1.0 and eth < 2.0))
+            if r.ok:
+                times.append(r.time_s)
+        outside = 0
+        for _ in range(trials):
+            a, dist = rng.uniform(0.0, 2 * math.pi), rng.uniform(45.0, 90.0)
+            guess = (
+                want[0] + dist * math.cos(a),
+                want[1] + dist * math.sin(a),
+                want[2] + math.radians(rng.uniform(-30.0, 30.0)),
+            )
+            outside += int(relocalise(p2, r1.stem_map, guess=guess).ok)
+        assert rel is not None
         m2 = keep & (vp.gps_times >= t2f)
         row: dict[str, Any] = {
             "reloc_ok": bool(rel.ok),
-            "reloc_time_s": rel.time_s,
+            "reloc_time_s": round(rel.time_s, 2),
             "reloc_error_m": round(math.hypot(rel.pose[0] - want[0], rel.pose[1] - want[1]), 3),
+            "reloc_heading_error_deg": round(
+                math.degrees(math.remainder(rel.pose[2] - want[2], 2 * math.pi)), 2
+            ),
+            "reloc_success_rate": round(good / len(offs), 3),
+            "reloc_false": false,
+            "reloc_time_s_max": round(max(times), 2) if times else None,
+            "outside_accepted": outside,
+            "trials": len(offs),
             "full_m": round(
                 ate(full.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=m2).rmse, 3
             ),
@@ -480,7 +516,7 @@ def _reloc(
     d = preintegrate(vp.model, vp.controls, [t1l, t2f], with_covariance=False).deltas[0]
     truth = compose(r1.trajectory.poses[-1], d)
     rng = np.random.default_rng(0)
-    good, times, errs, cpus = [], [], [], []
+    good, times, errs, cpus, false = [], [], [], [], 0
     first = None
     accepted = []
     for _ in range(trials):
@@ -494,6 +530,7 @@ def _reloc(
         eth = abs(math.degrees(math.remainder(rel.pose[2] - truth[2], 2 * math.pi)))
         ok = rel.ok and rel.time_s <= 30.0 and e < 1.0 and eth < 2.0
         good.append(ok)
+        false += int(rel.ok and not (e < 1.0 and eth < 2.0))
         if rel.ok:
             times.append(rel.time_s)
             errs.append(e)
@@ -504,6 +541,7 @@ def _reloc(
     out: dict[str, Any] = {
         "reloc_success_rate": round(float(np.mean(good)), 3),
         "reloc_trials": trials,
+        "reloc_false": false,
         "reloc_time_s_mean": round(float(np.mean(times)), 2) if times else None,
         "reloc_time_s_max": round(float(np.max(times)), 2) if times else None,
         "reloc_pose_error_m_max": round(float(np.max(errs)), 3) if errs else None,
@@ -545,7 +583,7 @@ def _reloc(
         if per_trial:
             out["reloc_per_trial_session2"] = _reloc_per_trial(vp, p2, r1, cal, accepted, t2f)
         if splits:
-            out["reloc_other_splits"] = _reloc_splits(vp, splits, full)
+            out["reloc_other_splits"] = _reloc_splits(vp, splits, full, trials)
     return out
 
 

@@ -197,7 +197,7 @@ def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
     for q in (50, 90, 99):
         stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
     stats["latency_ms_max"] = float(lat.max())
-    return SlamResult(st["trajectory"], st["stem_map"], stats)
+    return SlamResult(st["trajectory"], st["stem_map"], stats, pose_covs=st["pose_covs"])
 
 
 def _motion_sigma(text: str | None) -> tuple[float, float] | None:
