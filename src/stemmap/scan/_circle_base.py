@@ -171,9 +171,6 @@ def _by_bearing(p: FloatArray, o: FloatArray) -> tuple[FloatArray, FloatArray, F
     return p[order], th[order] + mean_dir, rho[order]
 
 
-_AT_ORIGIN = "a point coincides with the sensor origin, so its bearing is undefined"
-
-
 _COLLINEAR_EIG = 1e-14  # smallest / largest eigenvalue of A^T A (= singular value ratio 1e-7)
 
 
