@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
-import numpy as np
 import typer
 
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
@@ -38,11 +36,18 @@ from stemmap.cli._map_prior import (
     false_trees_report,
     write_information,
 )
+from stemmap.cli._map_problems import motion_sigma as _motion_sigma
+from stemmap.cli._map_problems import realtime as _realtime
+from stemmap.cli._map_problems import sim_problem
+from stemmap.cli._map_problems import simulated as _simulated
+from stemmap.cli._map_problems import victoria_park as _victoria_park
+from stemmap.cli._map_problems import vp_inputs as _vp_inputs
+from stemmap.cli._map_problems import with_gnss as _with_gnss
+from stemmap.cli._map_report import frames_metadata, headline, slam_metrics, summary_rows
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
     announce_compile,
-    fmt,
     print_summary,
     write_run_report,
 )
@@ -69,312 +74,6 @@ class TrajectoryFormat(StrEnum):
 
 class Dataset(StrEnum):
     victoria_park = "victoria-park"
-
-
-def _vp_inputs(data: Path | None) -> list[Path]:
-    """The Victoria Park files a run reads (recorded and protected by the run manifest)."""
-    from stemmap.datasets import find_datasets_dir
-
-    if data is None:
-        root = find_datasets_dir()
-        if root is None:
-            return []
-        data = root / "victoria_park"
-    return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
-
-
-def _victoria_park(
-    data: Path | None, t_end: float | None, t_start: float = 0.0
-) -> tuple[Any, dict[str, Any]]:
-    from stemmap.datasets.victoria_park import load_victoria_park
-
-    vp = load_victoria_park(data)
-    if t_end is not None or t_start > 0:
-        vp = vp.slice(t_start, math.inf if t_end is None else t_end)
-    return vp.problem(), {"kind": "victoria-park", "vp": vp}
-
-
-def _simulated(seed: int, n_trees: int, size: float) -> tuple[Any, dict[str, Any]]:
-    from stemmap.sim.forest import random_stand
-    from stemmap.sim.trajectory import loop_path, simulate_run
-
-    stand = random_stand(n_trees, (size, size), rng=seed)
-    path = loop_path((size / 2, size / 2), (0.35 * size, 0.35 * size), laps=1.0)
-    run = simulate_run(stand, path, speed=1.0, rate_hz=5.0, corridor_half_width=2.0, rng=seed)
-    return sim_problem(run, name=f"sim(seed={seed}, trees={n_trees}, size={size} m)")
-
-
-def sim_problem(
-    run: Any, obs: Any = None, *, name: str = "simulated run"
-) -> tuple[Any, dict[str, Any]]:
-    """A :class:`~stemmap.slam.base.SlamProblem` from a simulated run (and its context).
-
-    ``obs`` are the run's per-scan trunk detections (default: the default detector on
-    ``run.scans``). The motion noise comes from the simulator's own odometry spec, so nothing
-    is tuned on the ground truth.
-    """
-    from stemmap.scan.detect import ScanTrunkDetector
-    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
-    from stemmap.slam.motion import UnicycleModel
-
-    if obs is None:
-        obs = ScanTrunkDetector().detect_batch(run.scans)
-    frames = TreeFrames.from_observations(obs, run.scans.times)
-    odo = run.odometry
-    controls = Controls(odo.times, odo.speed, odo.yaw_rate, "unicycle")
-    off = run.sensor_offset
-    v0 = run.vehicle_poses.poses[0]
-    # per-sample white noise at the odometry rate -> one-second average, plus the bias /
-    # scale error as a 1-s equivalent
-    on = run.params.get("odometry_noise") or {}
-    rate = float(run.params.get("odom_rate_hz", 50.0))
-    sig_v = float(on.get("speed_noise", 0.05)) / math.sqrt(rate) + abs(
-        float(on.get("speed_scale", 1.0)) - 1.0
-    )
-    sig_w = float(on.get("yaw_rate_noise", 0.0175)) / math.sqrt(rate) + abs(
-        float(on.get("yaw_rate_bias", 0.0))
-    )
-    problem = SlamProblem(
-        controls,
-        frames,
-        UnicycleModel(sigma_speed=max(sig_v, 1e-3), sigma_steer=max(sig_w, 1e-4)),
-        sensor_offset=(off.x, off.y),
-        initial_pose=(float(v0[0]), float(v0[1]), float(v0[2])),
-        name=name,
-        max_range=run.scanner.range_max if hasattr(run.scanner, "range_max") else math.inf,
-    )
-    return problem, {"kind": "sim", "run": run, "params": run.params, "scans": run.scans}
-
-
-def _with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
-    """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
-    import dataclasses
-
-    from stemmap.slam.gnss import read_gnss_csv
-
-    if backend != "isam2":
-        raise ConfigError(f"--gnss is fused by the isam2 back-end only; got --backend {backend}.")
-    if not (math.isfinite(sigma) and sigma > 0):
-        raise ConfigError(f"--gnss-sigma must be a positive number of metres, got {sigma}.")
-    if lever is None:  # Victoria Park: the antenna is at the laser (docs/algorithms/slam.md)
-        arm = problem.sensor_offset if problem.name.startswith("victoria_park") else (0.0, 0.0)
-    else:
-        try:
-            lx, ly = (float(v) for v in lever.split(","))
-        except ValueError as exc:
-            raise ConfigError(f"--gnss-lever must be 'x,y' in metres, got {lever!r}.") from exc
-        arm = (lx, ly)
-    fixes = read_gnss_csv(path, lever_arm=arm, default_sigma=sigma)
-    return dataclasses.replace(problem, gnss=fixes)
-
-
-def _realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
-    """``--realtime``: the log through :func:`stemmap.slam.online.replay` (latency in stats),
-    logged to a Rerun recording with ``--rerun``."""
-    from stemmap.slam.base import SlamResult
-    from stemmap.slam.online import replay
-
-    if backend != "isam2" or problem.gnss is not None or problem.prior_map is not None:
-        raise ConfigError("--realtime runs the isam2 online mapper without --gnss/--prior-map.")
-    rec = None
-    if rrd is not None:
-        from stemmap.viz.live import RerunRecorder
-
-        rec = RerunRecorder(rrd)
-
-    def on_scan(m: Any, f: int) -> None:
-        if rec is not None:
-            rec(m, f)
-        tick(f + 1, len(problem.frames))
-
-    try:
-        st = replay(problem, on_scan=on_scan)
-    finally:
-        if rec is not None:
-            rec.close()
-    lat = np.asarray(st["latency_s"]) * 1e3
-    stats = {"backend": "isam2-online", **st["stats"], "rss_mb": st["rss_mb_by_pass"][-1]}
-    for q in (50, 90, 99):
-        stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
-    stats["latency_ms_max"] = float(lat.max())
-    return SlamResult(st["trajectory"], st["stem_map"], stats, pose_covs=st["pose_covs"])
-
-
-def _motion_sigma(text: str | None) -> tuple[float, float] | None:
-    """``--motion-sigma 'speed,yaw_rate'`` -> (m/s, rad/s); None when not given."""
-    if text is None:
-        return None
-    try:
-        sv, sw = (float(v) for v in text.split(","))
-    except ValueError as exc:
-        raise ConfigError(
-            f"--motion-sigma must be 'speed,yaw_rate' (m/s, rad/s), got {text!r}."
-        ) from exc
-    if not (sv > 0 and sw > 0 and math.isfinite(sv) and math.isfinite(sw)):
-        raise ConfigError(f"--motion-sigma values must be finite and > 0, got {text!r}.")
-    return sv, sw
-
-
-RPE_DELTA_M = 10.0
-"""Path length (m) of the relative pose error's stretches on simulated runs (evo's --delta)."""
-
-
-def slam_metrics(
-    problem: Any, result: Any, ctx: dict[str, Any], dr: Any = None
-) -> tuple[dict[str, Any], Any, Any]:
-    """Metrics for the run and (gps_xy_in_map, truth_xy) for the figure.
-
-    ``dr`` is the run's dead reckoning (:func:`~stemmap.slam.base.dead_reckoning`), computed
-    here when not given.
-    """
-    from stemmap.eval.trajectory import ate, loop_closure_error, rpe, screen_gps
-    from stemmap.slam.base import dead_reckoning, duplicate_pairs, sensor_poses
-    from stemmap.slam.motion import preintegrate
-
-    m: dict[str, Any] = {
-        "problem": problem.name,
-        "backend_stats": result.stats,
-        "n_trees": len(result.stem_map),
-        "duplicates_1m": duplicate_pairs(result.stem_map, 1.0),
-        "n_frames": len(problem.frames),  # "frames" holds the frame facts (frames_metadata)
-        "detections": problem.frames.n_detections,
-    }
-    if "front_end" in ctx:  # a frames bundle's trunk detector (and EB-LiDAR's frame window)
-        m["front_end"] = ctx["front_end"]
-    if dr is None:
-        dr = dead_reckoning(problem)
-    gps_map = None
-    truth_xy = None
-    if ctx["kind"] == "victoria-park":
-        vp = ctx["vp"]
-        # poses and distances only: the covariance of every control segment would be the
-        # command's largest allocation on a long drive (9 doubles x 4 arrays per segment)
-        pre = preintegrate(vp.model, vp.controls, vp.gps_times, with_covariance=False)
-        sp = sensor_poses(pre.poses, vp.model.sensor_offset)
-        scr = screen_gps(
-            vp.gps_times, vp.gps_xy, sp[:, :2], np.concatenate(([0.0], np.cumsum(pre.distance)))
-        )
-        off = vp.model.sensor_offset
-        r = ate(result.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep)
-        rd = ate(dr, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep)
-        if problem.gnss is not None:  # map in the GPS frame: also scored as it is
-            m.update(ate(result.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=scr.keep,
-                         align=False).as_dict("ate_unaligned_"))  # fmt: skip
-        m["gps_fixes_kept"] = scr.n_kept
-        m["gps_fixes_total"] = scr.n_total
-        m["gps_screening"] = scr.rule
-        if r:
-            m.update(r.as_dict("ate_"))
-            al = r.alignment
-            assert al is not None
-            ctx["alignment"] = al
-            # GPS into the map frame (inverse of the map->GPS alignment) for the figure
-            g = vp.gps_xy[scr.keep] - np.asarray(al.t)
-            gps_map = g @ al.rotation
-        else:
-            m["ate_error"] = r.reason
-        if rd:
-            m.update(rd.as_dict("dead_reckoning_ate_"))
-    elif ctx["kind"] == "sim":
-        from stemmap.eval.maps import map_metrics
-
-        run = ctx["run"]
-        truth = run.vehicle_poses
-        err = np.hypot(*(result.trajectory.interpolate(truth.times)[:, :2] - truth.xy).T)
-        m["trajectory_rmse_m"] = float(np.sqrt(np.mean(err**2)))
-        m["trajectory_max_m"] = float(err.max())
-        r_rel = rpe(result.trajectory, truth, delta=RPE_DELTA_M)  # full poses: evo's RPE
-        m.update(r_rel.as_dict("rpe_") if r_rel else {"rpe_error": r_rel.reason})
-        true_disp = truth.xy[-1] - truth.xy[0]
-        th0 = float(truth.poses[0, 2])
-        c, s = math.cos(th0), math.sin(th0)
-        body = (c * true_disp[0] + s * true_disp[1], -s * true_disp[0] + c * true_disp[1])
-        m["loop_closure_error_m"] = loop_closure_error(result.trajectory, body)
-        m["dead_reckoning_loop_closure_error_m"] = loop_closure_error(dr, body)
-        truth_xy = run.stand.trees_xy
-        mm = map_metrics(result.stem_map, None, truth_xy, run.stand.diameters, gate=1.0)
-        m["map"] = mm.to_dict()
-        m["scenario"] = ctx["params"]
-    return m, gps_map, truth_xy
-
-
-def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]:
-    """The terminal summary of a map run: (quantity, value, metrics.json key)."""
-    rows = [
-        ("trees mapped", fmt(m.get("n_trees")), "n_trees"),
-        ("tree pairs closer than 1 m", fmt(m.get("duplicates_1m")), "duplicates_1m"),
-    ]
-    if "ate_rmse_m" in m:
-        rows.append(("path error vs GPS (ATE RMSE)", fmt(m["ate_rmse_m"], " m"), "ate_rmse_m"))
-        dr = m.get("dead_reckoning_ate_rmse_m")
-        rows.append(("dead reckoning ATE RMSE", fmt(dr, " m"), "dead_reckoning_ate_rmse_m"))
-    if "trajectory_rmse_m" in m:
-        rows.append(("path RMSE vs truth", fmt(m["trajectory_rmse_m"], " m"), "trajectory_rmse_m"))
-        lc = m.get("loop_closure_error_m")
-        rows.append(("loop-closure error", fmt(lc, " m"), "loop_closure_error_m"))
-    if "rpe_trans_rmse_m" in m:
-        per = f"per {m['rpe_delta']:g} {m['rpe_delta_unit']}"
-        rows.append((f"RPE translation RMSE ({per})", fmt(m["rpe_trans_rmse_m"], " m"),
-                     "rpe_trans_rmse_m"))  # fmt: skip
-        rows.append((f"RPE rotation RMSE ({per})", fmt(m["rpe_rot_rmse_deg"], " deg"),
-                     "rpe_rot_rmse_deg"))  # fmt: skip
-    ft = m.get("false_trees")
-    if isinstance(ft, dict) and "method" in ft:  # forestrix: Öhman's ray-cast removal
-        if ft.get("ran"):
-            rows.append(("false trees removed (ray casting)", fmt(ft.get("removed")),
-                         "false_trees.removed"))  # fmt: skip
-        else:
-            rows.append(("false-tree removal", f"skipped: {ft.get('reason')}", "false_trees"))
-    rl = m.get("relocalisation")
-    if isinstance(rl, dict) and "prior" in rl:
-        rows.append(("prior map trees held by", f"{rl['prior']} prior", "relocalisation.prior"))
-    mm = m.get("map")
-    if isinstance(mm, dict):
-        rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))
-        rows.append(("map precision", fmt(mm.get("precision")), "map.precision"))
-        pr = mm.get("position_rmse")
-        rows.append(("tree position RMSE", fmt(pr, " cm", 100, 1), "map.position_rmse"))
-        dr_ = mm.get("diameter_rmse")
-        rows.append(("DBH RMSE", fmt(dr_, " cm", 100, 2), "map.diameter_rmse"))
-    if len(stem_map):
-        import numpy as np
-
-        ds = np.array([t.diameter_std for t in stem_map])
-        conf = np.array([t.confidence for t in stem_map])
-        med = float(np.nanmedian(ds)) if np.isfinite(ds).any() else math.nan
-        rows.append(("median DBH standard error", fmt(med, " cm", 100, 2), "trees.csv"))
-        rows.append(("trees with confidence >= 0.5", fmt(int(np.sum(conf >= 0.5))), "trees.csv"))
-    return rows
-
-
-def headline(m: dict[str, Any]) -> str:
-    """One line of the run's key numbers (figure titles, the terminal summary)."""
-    parts = [f"{m.get('n_trees', 0)} trees"]
-    mm = m.get("map")
-    if isinstance(mm, dict):
-        parts.append(f"recall {mm.get('recall', math.nan):.2f}")
-        parts.append(f"precision {mm.get('precision', math.nan):.2f}")
-    if "ate_rmse_m" in m:
-        parts.append(f"ATE RMSE {m['ate_rmse_m']:.2f} m vs GPS")
-    if "trajectory_rmse_m" in m:
-        parts.append(f"path RMSE {m['trajectory_rmse_m']:.2f} m")
-    return ", ".join(parts)
-
-
-def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
-    """What the map and trajectory coordinates mean (recorded in metrics.json)."""
-    a, b = problem.sensor_offset
-    return {
-        "map_frame": "the frame of the initial pose (x, y metres; odometry frame, the "
-        "simulator's world frame for --sim and demo)",
-        "crs": crs,
-        "georeferenced": crs is not None,
-        "trajectory_point": "the vehicle reference point of the motion model (Victoria Park: "
-        "the rear-axle centre), sensor_offset_m behind the laser",
-        "sensor_offset_m": [a, b],
-        "sensor_offset_meaning": f"the laser is {a} m ahead and {b} m left of the trajectory "
-        "point, in the vehicle frame",
-    }
 
 
 def map_command(

@@ -1,0 +1,167 @@
+"""Problems of ``stemmap map`` that do not come from a log file: Victoria Park, the simulator,
+and the options that change a problem (``--gnss``, ``--motion-sigma``) or how it is run
+(``--realtime``)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.errors import ConfigError
+
+__all__ = [
+    "motion_sigma",
+    "realtime",
+    "sim_problem",
+    "simulated",
+    "victoria_park",
+    "vp_inputs",
+    "with_gnss",
+]
+
+
+def vp_inputs(data: Path | None) -> list[Path]:
+    """The Victoria Park files a run reads (recorded and protected by the run manifest)."""
+    from stemmap.datasets import find_datasets_dir
+
+    if data is None:
+        root = find_datasets_dir()
+        if root is None:
+            return []
+        data = root / "victoria_park"
+    return [data / n for n in ("inputs.dat", "measurements.dat", "gps.dat")]
+
+
+def victoria_park(
+    data: Path | None, t_end: float | None, t_start: float = 0.0
+) -> tuple[Any, dict[str, Any]]:
+    from stemmap.datasets.victoria_park import load_victoria_park
+
+    vp = load_victoria_park(data)
+    if t_end is not None or t_start > 0:
+        vp = vp.slice(t_start, math.inf if t_end is None else t_end)
+    return vp.problem(), {"kind": "victoria-park", "vp": vp}
+
+
+def simulated(seed: int, n_trees: int, size: float) -> tuple[Any, dict[str, Any]]:
+    from stemmap.sim.forest import random_stand
+    from stemmap.sim.trajectory import loop_path, simulate_run
+
+    stand = random_stand(n_trees, (size, size), rng=seed)
+    path = loop_path((size / 2, size / 2), (0.35 * size, 0.35 * size), laps=1.0)
+    run = simulate_run(stand, path, speed=1.0, rate_hz=5.0, corridor_half_width=2.0, rng=seed)
+    return sim_problem(run, name=f"sim(seed={seed}, trees={n_trees}, size={size} m)")
+
+
+def sim_problem(
+    run: Any, obs: Any = None, *, name: str = "simulated run"
+) -> tuple[Any, dict[str, Any]]:
+    """A :class:`~stemmap.slam.base.SlamProblem` from a simulated run (and its context).
+
+    ``obs`` are the run's per-scan trunk detections (default: the default detector on
+    ``run.scans``). The motion noise comes from the simulator's own odometry spec, so nothing
+    is tuned on the ground truth.
+    """
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
+    from stemmap.slam.motion import UnicycleModel
+
+    if obs is None:
+        obs = ScanTrunkDetector().detect_batch(run.scans)
+    frames = TreeFrames.from_observations(obs, run.scans.times)
+    odo = run.odometry
+    controls = Controls(odo.times, odo.speed, odo.yaw_rate, "unicycle")
+    off = run.sensor_offset
+    v0 = run.vehicle_poses.poses[0]
+    # per-sample white noise at the odometry rate -> one-second average, plus the bias /
+    # scale error as a 1-s equivalent
+    on = run.params.get("odometry_noise") or {}
+    rate = float(run.params.get("odom_rate_hz", 50.0))
+    sig_v = float(on.get("speed_noise", 0.05)) / math.sqrt(rate) + abs(
+        float(on.get("speed_scale", 1.0)) - 1.0
+    )
+    sig_w = float(on.get("yaw_rate_noise", 0.0175)) / math.sqrt(rate) + abs(
+        float(on.get("yaw_rate_bias", 0.0))
+    )
+    problem = SlamProblem(
+        controls,
+        frames,
+        UnicycleModel(sigma_speed=max(sig_v, 1e-3), sigma_steer=max(sig_w, 1e-4)),
+        sensor_offset=(off.x, off.y),
+        initial_pose=(float(v0[0]), float(v0[1]), float(v0[2])),
+        name=name,
+        max_range=run.scanner.range_max if hasattr(run.scanner, "range_max") else math.inf,
+    )
+    return problem, {"kind": "sim", "run": run, "params": run.params, "scans": run.scans}
+
+
+def with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
+    """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
+    import dataclasses
+
+    from stemmap.slam.gnss import read_gnss_csv
+
+    if backend != "isam2":
+        raise ConfigError(f"--gnss is fused by the isam2 back-end only; got --backend {backend}.")
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise ConfigError(f"--gnss-sigma must be a positive number of metres, got {sigma}.")
+    if lever is None:  # Victoria Park: the antenna is at the laser (docs/algorithms/slam.md)
+        arm = problem.sensor_offset if problem.name.startswith("victoria_park") else (0.0, 0.0)
+    else:
+        try:
+            lx, ly = (float(v) for v in lever.split(","))
+        except ValueError as exc:
+            raise ConfigError(f"--gnss-lever must be 'x,y' in metres, got {lever!r}.") from exc
+        arm = (lx, ly)
+    fixes = read_gnss_csv(path, lever_arm=arm, default_sigma=sigma)
+    return dataclasses.replace(problem, gnss=fixes)
+
+
+def realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
+    """``--realtime``: the log through :func:`stemmap.slam.online.replay` (latency in stats),
+    logged to a Rerun recording with ``--rerun``."""
+    from stemmap.slam.base import SlamResult
+    from stemmap.slam.online import replay
+
+    if backend != "isam2" or problem.gnss is not None or problem.prior_map is not None:
+        raise ConfigError("--realtime runs the isam2 online mapper without --gnss/--prior-map.")
+    rec = None
+    if rrd is not None:
+        from stemmap.viz.live import RerunRecorder
+
+        rec = RerunRecorder(rrd)
+
+    def on_scan(m: Any, f: int) -> None:
+        if rec is not None:
+            rec(m, f)
+        tick(f + 1, len(problem.frames))
+
+    try:
+        st = replay(problem, on_scan=on_scan)
+    finally:
+        if rec is not None:
+            rec.close()
+    lat = np.asarray(st["latency_s"]) * 1e3
+    stats = {"backend": "isam2-online", **st["stats"], "rss_mb": st["rss_mb_by_pass"][-1]}
+    for q in (50, 90, 99):
+        stats[f"latency_ms_p{q}"] = float(np.percentile(lat, q))
+    stats["latency_ms_max"] = float(lat.max())
+    return SlamResult(st["trajectory"], st["stem_map"], stats, pose_covs=st["pose_covs"])
+
+
+def motion_sigma(text: str | None) -> tuple[float, float] | None:
+    """``--motion-sigma 'speed,yaw_rate'`` -> (m/s, rad/s); None when not given."""
+    if text is None:
+        return None
+    try:
+        sv, sw = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise ConfigError(
+            f"--motion-sigma must be 'speed,yaw_rate' (m/s, rad/s), got {text!r}."
+        ) from exc
+    if not (sv > 0 and sw > 0 and math.isfinite(sv) and math.isfinite(sw)):
+        raise ConfigError(f"--motion-sigma values must be finite and > 0, got {text!r}.")
+    return sv, sw
