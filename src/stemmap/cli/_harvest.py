@@ -49,6 +49,28 @@ def harvest_sim(
             help="Give up after this many cycles.", callback=bounded("--max-cycles", ge=1)
         ),
     ] = 40,
+    roll_deg: Annotated[
+        float,
+        typer.Option(
+            help="Scan-plane roll of the crane-mounted scanner (degrees; machine on a slope).",
+            callback=bounded("--roll-deg", ge=-30, le=30),
+        ),
+    ] = 0.0,
+    pitch_deg: Annotated[
+        float,
+        typer.Option(
+            help="Scan-plane pitch of the scanner (degrees; the boom's attitude).",
+            callback=bounded("--pitch-deg", ge=-30, le=30),
+        ),
+    ] = 0.0,
+    imu: Annotated[
+        bool,
+        typer.Option(
+            "--imu/--no-imu",
+            help="Give the detector the AHRS roll and pitch (Zheng 2012 §2, eq. 1); "
+            "--no-imu detects on the tilted ranges as if level.",
+        ),
+    ] = True,
     png: Annotated[Path, typer.Option(help="Top-view figure to write.")] = Path("harvest.png"),
 ) -> None:
     """Simulate a crane-mounted 2D laser guiding the harvesting head to a trunk.
@@ -57,11 +79,12 @@ def harvest_sim(
     trunks, composes the trunk pose relative to the head (eq. 11), plans 10 < k < 100 Cartesian
     set-points within the joint velocity and acceleration limits, executes the first ten, and
     re-scans, until the head is within the capture tolerance. Prints the cycle log and writes a
-    PNG.
+    PNG. ``--roll-deg`` / ``--pitch-deg`` tilt the scan plane; the AHRS reading (true tilt
+    plus 0.2 deg noise) goes to the detector unless ``--no-imu``.
 
     Example: stemmap harvest-sim --seed 3 --target bearing --bearing 30 --png capture.png
     """
-    from stemmap.harvester.capture import warm_up_planner
+    from stemmap.harvester.capture import ScannerMount, warm_up_planner
     from stemmap.harvester.kinematics import ForestryCrane
     from stemmap.harvester.simulate import harvester_stand, simulate_capture
     from stemmap.io.products import run_products
@@ -87,6 +110,8 @@ def harvest_sim(
             index=index,
             bearing=None if bearing is None else math.radians(bearing),
             max_cycles=max_cycles,
+            mount=ScannerMount(roll=math.radians(roll_deg), pitch=math.radians(pitch_deg)),
+            use_imu=imu,
             rng=seed + 1000,
         )
         table = Table(title="capture cycles")
