@@ -33,8 +33,8 @@ odometry's own drift (``odometry_drift_percent``: final position error / distanc
 putting its first pose on the true one).
 
 Two scorings, each labelled (``scoring``). ``map`` (every top-level count and rate, the paper's:
-§4 / Table 2 score the final map, N_det = 7 trees for EB-LiDAR; docs/algorithms/cloud.md, "Which
-output the paper scores") and ``per_frame`` (a sub-dict of the lidar methods in
+§4 / Table 2 score the final map, N_det = 7 trees for EB-LiDAR; docs/algorithms/cloud.md, "Why
+EB-LiDAR stays at F1 0.70") and ``per_frame`` (a sub-dict of the lidar methods in
 :data:`PER_FRAME`): the frame detections before any mapping, scored frame by frame by
 :meth:`MunjerDrive.score_frames` (true poses, the trees with >= 20 returns inside the box of that
 frame, one-to-one within 1.0 m) and pooled, TA / FA / FR over (frame, tree) pairs, no TR.
