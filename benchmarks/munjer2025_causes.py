@@ -25,7 +25,7 @@ tree by what they lie on; ``resolvable_pairs_by_diameter`` splits the pairs with
 trunk diameter (the eccentricity window acts as a diameter filter).
 
 Usage: python benchmarks/munjer2025_causes.py [--seeds 0 1 2] [--layout park] [--speed 4]
-       [--range-noise 0.03] [--window 1]
+       [--range-noise 0.03]
 Prints one JSON object. The drives are those of benchmarks/munjer2025.py (same seeds; the RGB-D
 frames are not rendered, which changes nothing of the lidar frames or the stand).
 """
