@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -13,6 +13,11 @@ from stemmap.cli._common import fail_on_stemmap_error, out
 from stemmap.cli._validate import bounded
 
 __all__ = ["register"]
+
+
+def _tilt_option(flag: str, what: str) -> Any:
+    """A scan-plane tilt option in degrees, -30..30."""
+    return typer.Option(help=f"Scan-plane {what}, degrees.", callback=bounded(flag, ge=-30, le=30))
 
 
 def harvest_sim(
@@ -50,18 +55,10 @@ def harvest_sim(
         ),
     ] = 40,
     roll_deg: Annotated[
-        float,
-        typer.Option(
-            help="Scan-plane roll of the crane-mounted scanner (degrees; machine on a slope).",
-            callback=bounded("--roll-deg", ge=-30, le=30),
-        ),
+        float, _tilt_option("--roll-deg", "roll of the crane-mounted scanner (machine on a slope)")
     ] = 0.0,
     pitch_deg: Annotated[
-        float,
-        typer.Option(
-            help="Scan-plane pitch of the scanner (degrees; the boom's attitude).",
-            callback=bounded("--pitch-deg", ge=-30, le=30),
-        ),
+        float, _tilt_option("--pitch-deg", "pitch of the scanner (the boom's attitude)")
     ] = 0.0,
     imu: Annotated[
         bool,
