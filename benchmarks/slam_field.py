@@ -25,14 +25,16 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   accepted within 30 s of driving, within 1 m and 2 deg of session 1's end pose carried over
   the gap by odometry (``reloc_success_rate``, ``reloc_time_s_*``). Session 2 is then mapped on
   the prior map (default: each tree held by its own Huber prior on its marginal inflated x4,
-  ``Isam2Config.prior_map_inflation``; session 1's odometry calibration carried over) and scored on the screened fixes after 800 s with its
-  own alignment, next to the same with the trees held jointly by session 1's tree information
+  ``Isam2Config.prior_map_inflation``; session 1's odometry calibration carried over) and
+  scored on the screened fixes after 800 s with its own alignment, next to the same with the
+  trees held jointly by session 1's tree information
   (``session2_prior_map_joint``), on Gaussian per-tree priors without the calibration,
   without the prior map, and to the full single run on the same fixes.
   ``--reloc-per-trial``: session 2 mapped from every accepted trial's pose, joint vs Huber;
   ``--reloc-splits 400,600``: other session pairs (map 0-s, relocalise and map s-1549 s),
-  Huber (inflated / not) vs joint vs the full run, and the prior's consistency; per split the success rate over ``--trials`` start offsets,
-  false relocalisations, and acceptances from guesses whose 30-m search excludes the truth.
+  Huber (inflated / not) vs joint vs the full run, and the prior's consistency; per split
+  the success rate over ``--trials`` start offsets, false relocalisations, and acceptances
+  from guesses whose 30-m search excludes the truth.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
