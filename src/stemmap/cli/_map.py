@@ -37,6 +37,7 @@ from stemmap.cli._map_prior import (
     false_trees_report,
     write_information,
 )
+from stemmap.cli._map_problems import calibrates_odometry as _calibrates_odometry
 from stemmap.cli._map_problems import motion_sigma as _motion_sigma
 from stemmap.cli._map_problems import realtime as _realtime
 from stemmap.cli._map_problems import sim_problem
@@ -370,7 +371,13 @@ def map_command(
         elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
-            problem, ctx = _simulated(seed, sim_trees, sim_size)
+            online = realtime or rerun is not None  # the realtime mapper does not calibrate
+            problem, ctx = _simulated(
+                seed,
+                sim_trees,
+                sim_size,
+                odometry_calibrated=not online and _calibrates_odometry(backend.value),
+            )
         else:
             assert bag is not None
             if odometry is not None and is_bag(bag):
