@@ -66,10 +66,10 @@ class Isam2Config:
         vehicle drove past this many times before (keyframes in or out of the graph count;
         visits told apart by ``revisit_after_m``) is full as above, so a keyframe there whose
         trees are all in the graph stays out (:class:`stemmap.slam._graph_revisits.PlaceVisits`;
-        0 = off). Default 3: on the 10x Victoria Park soak iSAM2's memory growth per pass
-        6.2 -> 1.8 MB, single drive 1.303 -> 1.315 m; 2-8 keep the single drive within 1 %,
-        1 loses its second traversals (1.70 m); docs/algorithms/slam.md "Revisits: the place
-        bound counts every visit"
+        0 = off). Default 3: on the 10x Victoria Park soak through ``stemmap map`` the
+        memory growth per pass 6.37 -> 2.0 MB, single drive 1.303 -> 1.315 m; 2-8 keep the
+        single drive within 1 %, 1 loses its second traversals (1.70 m);
+        docs/algorithms/slam.md "The place bound counts every visit"
     revisit_keep_loops : a keyframe that closes a loop enters even where the bounds above
         leave it out: linked by odometry to a graph chain not tied to the map for
         ``revisit_after_m`` m, it measures a tree whose last graph factor lies

@@ -55,7 +55,7 @@ pass (docs/reliability.md "iSAM2: long left-out runs anchored"). An eighth count
 a place by every keyframe, in or out of the graph (:class:`PlaceVisits`,
 ``revisit_place_visits = 3``): a place whose revisits were all left out still fills, so
 trunks at the edge of range stop pulling keyframes in after three visits; the 10x soak's
-growth fell from 6.2 to 1.6 MB per pass, the late passes add 6-14 keyframes (new trees, a
+growth fell from 6.37 to 2.0 MB per pass, the late passes add 6-14 keyframes (new trees, a
 lost tracker). :class:`RevisitGate` holds every decision, and keeps a keyframe that closes
 a loop whatever the bounds say (docs/algorithms/slam.md "The place bound counts every
 visit").
