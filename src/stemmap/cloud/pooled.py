@@ -1,0 +1,188 @@
+"""The pooled band fit (ours, docs/algorithms/cloud.md "Ours" step 8, "Pooled band fit"): one
+tilted circular cylinder over the whole slice band for trunks with too few points per slice
+for a circle per slice (a trunk partly hidden behind a nearer one, a sparse cloud)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.cloud.config import StemConfig
+from stemmap.cloud.slicefit import _normal_matrices, _segment_arcs
+from stemmap.scan.circle import fit_circles_batch
+from stemmap.types import FloatArray
+
+POOL_MAX_LEAN = math.tan(math.radians(10.0))
+POOL_RESIDUAL_FACTOR = 1.5
+
+
+def _pooled_stems(
+    pts: FloatArray,
+    hts: FloatArray,
+    cid: NDArray[np.int64],
+    sli: NDArray[np.int64],
+    todo: NDArray[np.bool_],
+    cfg: StemConfig,
+    centers_h: FloatArray,
+    noise_floor: float,
+) -> list[tuple[float, ...]]:
+    """One tilted-cylinder fit over the whole band for trunks with too few points per slice.
+
+    A trunk partly hidden behind a nearer one, or in a sparse cloud, shows a few returns per
+    slice: too few (< ``cfg.min_slice_points``) for a circle per slice, but together dozens
+    of points on one cylinder. Candidates (``todo``) are the clusters the per-slice path
+    could not judge: fewer than ``cfg.min_slices`` slices with ``cfg.min_slice_points``
+    points (clusters with enough points per slice that failed the slice tests failed on
+    shape and get no second chance). Those with >= 3 points in at least ``cfg.min_slices``
+    slices spanning ``cfg.min_vertical_extent`` and >= 2 x ``cfg.min_slice_points`` points
+    are fitted at once by a tilted circular cylinder (centre at breast height, lean,
+    radius; taper ignored: over the 1.2 m band a taper of 1 cm/m moves the radius by < 6 mm
+    at the band's ends and ~1 mm at its centre): damped Gauss-Newton batched over the
+    candidates, Huber weights (scale 2 x the noise floor), trimming of |res| > 3 x 1.4826
+    MAD, refit. One fit replaces the per-slice consistency checks, so the tests are
+    stricter, all on the inliers:
+
+    * RMS <= ``POOL_RESIDUAL_FACTOR`` (1.5) x the band's noise floor (a cylinder through
+      many points must fit as well as the median slice circle), DBH in the window;
+    * lean <= 10 degrees (a branch is >= 50 degrees from vertical); arc >=
+      ``cfg.min_arc_deg``;
+    * >= 2 x ``cfg.min_slice_points`` inliers, at least half of the cluster's points;
+    * vertical consistency: >= ``cfg.min_slices`` + 1 slices holding >= 3 inliers, spanning
+      ``cfg.min_vertical_extent``, and in every one of them the median residual within 3
+      standard errors (1.25 x noise floor / sqrt(n)) or 5 % of r: stacked leaf blobs or a
+      bush change radius from slice to slice.
+
+    Returns rows like the band's ``(x, y, dbh, n_points, quality, arc, rms, n_slices, taper)``
+    (taper NaN: not estimated). Pinned by ``test_pooled_fit_finds_sparse_trunks``.
+    """
+    ns = centers_h.shape[0]
+    bh = cfg.breast_height
+    kc = todo.shape[0]
+    cnt_cs = np.bincount(cid * ns + sli, minlength=kc * ns).reshape(kc, ns)
+    has = cnt_cs >= 3
+    span = np.where(has, centers_h[None, :], -np.inf).max(axis=1) - np.where(
+        has, centers_h[None, :], np.inf
+    ).min(axis=1)
+    ok_c = (
+        todo
+        & (has.sum(axis=1) >= cfg.min_slices)
+        & (span >= cfg.min_vertical_extent - 1e-9)
+        & (cnt_cs.sum(axis=1) >= 2 * cfg.min_slice_points)
+    )
+    if not ok_c.any():
+        return []
+    sel = ok_c[cid]
+    p, hh, ids_old = pts[sel], hts[sel] - bh, cid[sel]
+    cl, ids = np.unique(ids_old, return_inverse=True)
+    ids = ids.astype(np.int64)
+    k = cl.shape[0]
+    s_i = sli[sel]
+    first = fit_circles_batch(p, ids, "kasa")
+    th = np.zeros((k, 5))
+    th[:, 4] = np.nan
+    th[first.segment_ids, :2] = first.centers
+    th[first.segment_ids, 4] = first.radii
+    alive = np.isfinite(th[:, 4]) & (th[:, 4] > 0)
+    th[~alive, 4] = 0.1
+    keep = alive[ids]
+    f_scale = max(2.0 * noise_floor, 1e-3)
+
+    def resid(t: FloatArray) -> tuple[FloatArray, FloatArray]:
+        cx = t[ids, 0] + t[ids, 2] * hh
+        cy = t[ids, 1] + t[ids, 3] * hh
+        v = np.column_stack((p[:, 0] - cx, p[:, 1] - cy))
+        dist = np.maximum(np.hypot(v[:, 0], v[:, 1]), 1e-9)
+        return dist - t[ids, 4], v / dist[:, None]
+
+    for rnd in range(2):
+        for _ in range(10):
+            d, n = resid(th)
+            w = np.where(keep, np.minimum(1.0, f_scale / np.maximum(np.abs(d), 1e-12)), 0.0)
+            J = np.column_stack(
+                (-n[:, 0], -n[:, 1], -n[:, 0] * hh, -n[:, 1] * hh, -np.ones_like(d))
+            )
+            A = np.zeros((k, 5, 5))
+            g = np.zeros((k, 5))
+            for a in range(5):
+                g[:, a] = np.bincount(ids, w * J[:, a] * d, minlength=k)
+                for b in range(a, 5):
+                    A[:, a, b] = A[:, b, a] = np.bincount(ids, w * J[:, a] * J[:, b], minlength=k)
+            A += 1e-3 * np.einsum("kii->ki", A)[:, :, None] * np.eye(5)[None] + 1e-12 * np.eye(5)
+            step = np.linalg.solve(A, -g[:, :, None])[:, :, 0]
+            th = np.where(alive[:, None] & np.isfinite(step).all(axis=1)[:, None], th + step, th)
+        if rnd == 0:
+            d, _ = resid(th)
+            ad = np.abs(d)
+            mad = np.full(k, np.inf)
+            order = np.lexsort((ad, ids))
+            s_ids = ids[order]
+            starts = np.flatnonzero(np.r_[True, s_ids[1:] != s_ids[:-1]])
+            cnts = np.diff(np.r_[starts, s_ids.size])
+            mad[s_ids[starts]] = ad[order][starts + cnts // 2]
+            keep = alive[ids] & (ad <= np.maximum(3.0 * 1.4826 * mad, 0.001)[ids])
+    d, n = resid(th)
+    r = th[:, 4]
+    nin = np.bincount(ids[keep], minlength=k)
+    rms = np.sqrt(np.bincount(ids[keep], d[keep] ** 2, minlength=k) / np.maximum(nin, 1))
+    # covariance of (cx, cy, lean x, lean y, r): s^2 (J^T J)^-1 over the inliers
+    Jk = np.column_stack((-n[:, 0], -n[:, 1], -n[:, 0] * hh, -n[:, 1] * hh, -np.ones_like(d)))
+    AJ = _normal_matrices(Jk[keep], ids[keep], k)
+    pcov = np.full((k, 5, 5), np.nan)
+    inv_ok = np.abs(np.linalg.det(AJ)) > 1e-30
+    if inv_ok.any():
+        pcov[inv_ok] = np.linalg.inv(AJ[inv_ok]) * (rms[inv_ok] ** 2)[:, None, None]
+    cxy = th[:, :2]
+    # arc: the directions of the points seen from the axis at their heights
+    arcs = _segment_arcs(n[keep], ids[keep], k, np.zeros((k, 2)))
+    seg = ids * ns + s_i
+    n_sl = np.bincount(seg[keep], minlength=k * ns).reshape(k, ns)
+    has_in = n_sl >= 3
+    rows: list[tuple[float, ...]] = []
+    for j in np.flatnonzero(alive):
+        rj = float(r[j])
+        tol_r = POOL_RESIDUAL_FACTOR * noise_floor
+        if not (cfg.min_diameter / 2 <= rj <= cfg.max_diameter / 2 and rms[j] <= tol_r):
+            continue
+        if math.hypot(th[j, 2], th[j, 3]) > POOL_MAX_LEAN or arcs[j] < cfg.min_arc_deg:
+            continue
+        n_all = int(cnt_cs[cl[j]].sum())
+        if nin[j] < 2 * cfg.min_slice_points or nin[j] < 0.5 * n_all:
+            continue
+        hs = has_in[j]
+        if not hs[-1]:
+            continue  # a stem goes on above the band; a shrub or a stack of leaf blobs ends
+        if hs.sum() < cfg.min_slices + 1 or np.ptp(centers_h[hs]) < cfg.min_vertical_extent - 1e-9:
+            continue
+        mine = keep & (ids == j)
+        # each slice's median residual must vanish within its standard error (1.25 sigma /
+        # sqrt(n) for a median) x 3, or 5 % of r (taper over the band)
+        bad = False
+        for s in np.flatnonzero(hs):
+            rs = d[mine & (s_i == s)]
+            tol_s = max(3.0 * 1.25 * noise_floor / math.sqrt(rs.size), 0.05 * rj)
+            bad |= abs(float(np.median(rs))) > tol_s
+        if bad:
+            continue
+        frac = float(hs.sum()) / max(int((cnt_cs[cl[j]] > 0).sum()), 1)
+        q = frac * min(1.0, arcs[j] / 120.0) * min(1.0, noise_floor / max(rms[j], 1e-6))
+        rows.append(
+            (
+                float(cxy[j, 0]),
+                float(cxy[j, 1]),
+                2 * rj,
+                int(nin[j]),
+                q,
+                float(arcs[j]),
+                float(rms[j]),
+                int(hs.sum()),
+                math.nan,
+                2 * math.sqrt(pcov[j, 4, 4]) if np.isfinite(pcov[j, 4, 4]) else math.nan,
+                float(pcov[j, 0, 0]),
+                float(pcov[j, 0, 1]),
+                float(pcov[j, 1, 1]),
+                bh,
+            )
+        )
+    return rows
