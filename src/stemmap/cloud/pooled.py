@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.slicefit import _normal_matrices, _segment_arcs
+from stemmap.cloud.slicefit import _damped_normal_equations, _normal_matrices, _segment_arcs
 from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
@@ -174,14 +174,7 @@ def _fit_cylinders(
         for _ in range(10):
             d, n = _cylinder_residuals(th, p, hh, ids)
             w = np.where(keep, np.minimum(1.0, f_scale / np.maximum(np.abs(d), 1e-12)), 0.0)
-            J = _cylinder_jacobian(n, hh)
-            A = np.zeros((k, 5, 5))
-            g = np.zeros((k, 5))
-            for a in range(5):
-                g[:, a] = np.bincount(ids, w * J[:, a] * d, minlength=k)
-                for b in range(a, 5):
-                    A[:, a, b] = A[:, b, a] = np.bincount(ids, w * J[:, a] * J[:, b], minlength=k)
-            A += 1e-3 * np.einsum("kii->ki", A)[:, :, None] * np.eye(5)[None] + 1e-12 * np.eye(5)
+            A, g = _damped_normal_equations(_cylinder_jacobian(n, hh), w, d, ids, k)
             step = np.linalg.solve(A, -g[:, :, None])[:, :, 0]
             th = np.where(alive[:, None] & np.isfinite(step).all(axis=1)[:, None], th + step, th)
         if rnd == 0:
