@@ -102,6 +102,14 @@ class Isam2Config:
         rest relocalised and mapped on) session 2 scored 1.304 / 1.355 / 1.451 m against the
         joint prior's 1.340 / 1.433 / 1.529 m at 1.5-3.2x less CPU, relocalisation unchanged
         (docs/algorithms/slam.md "Maps reused across sessions")
+    prior_map_inflation : factor (> 0) on the prior map's tree covariances (its joint
+        information divided by it) as this session holds them
+        (:func:`stemmap.slam.relocalise.inflate_prior`). 4 by default: chosen on the 400-s and
+        800-s Victoria Park session pairs (session 2 1.303 / 1.451 m -> 1.261 / 1.446 m; 2, 8,
+        30: 2.730 / 2.720 / 2.715 m summed vs 2.707), reported on 600 / 1000 / 1200 s (1.355
+        / 1.438 / 0.834 -> 1.306 / 1.440 / 0.845 m); the bulk of the prior is near consistent
+        with session 2, its tail is not (:func:`stemmap.slam.relocalise.prior_consistency`;
+        docs/algorithms/slam.md "Prior inflation")
     joint_information : also return the trees' joint information matrix
         (:attr:`stemmap.types.StemMap.information`, needs ``marginals``): a later session on
         this map then continues from the correlated prior of all its trees instead of
@@ -153,6 +161,7 @@ class Isam2Config:
     reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
     joint_information: bool = False
     prior_map_robust: str = "huber"
+    prior_map_inflation: float = 4.0
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust", "prior_map_robust"):
@@ -168,6 +177,7 @@ class Isam2Config:
             "gnss_robust_k",
             "gate_chi2",
             "new_chi2",
+            "prior_map_inflation",
             "max_range",
             "relinearize_threshold",
             "batch_rel_tol",

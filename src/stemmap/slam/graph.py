@@ -125,7 +125,7 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose
-from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
+from stemmap.slam.relocalise import inflate_prior, joint_prior_factor, prior_tree_factors
 from stemmap.types import FloatArray, StemMap, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -339,13 +339,19 @@ class Isam2Slam:
         n_lm = 0
         map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
         joint_fac: Any = None  # or one joint prior over them (StemMap.information)
-        if problem.prior_map is not None and len(problem.prior_map):
+        # the prior map as this session holds it (covariances x prior_map_inflation)
+        pmap = (
+            None
+            if problem.prior_map is None
+            else inflate_prior(problem.prior_map, cfg.prior_map_inflation)
+        )
+        if pmap is not None and len(pmap):
             # a map of an earlier session (relocalised into: problem.initial_pose is in its
             # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
             # prior, so this session updates them and adds new ones (one merged map)
             n_lm = n_prior
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
-                prior_tree_factors(problem.prior_map, LK, cfg.min_obs, kernel=prior_kernel)
+                prior_tree_factors(pmap, LK, cfg.min_obs, kernel=prior_kernel)
             ):
                 lm_xy[j_p] = xy_p
                 if math.isfinite(d_p):
@@ -358,7 +364,7 @@ class Isam2Slam:
                     graph_all.add(fac_p)
                 map_fac.append(fac_p)
             if prior_kernel is None:  # None: per-tree priors above
-                joint_fac = joint_prior_factor(problem.prior_map, LK)
+                joint_fac = joint_prior_factor(pmap, LK)
             if joint_fac is not None:
                 new_f.add(joint_fac)
                 graph_all.add(joint_fac)
@@ -646,7 +652,7 @@ class Isam2Slam:
             odo_factor=odo_factor, edges=edges, odo_fac=odo_fac, map_fac=map_fac,
             joint_fac=joint_fac, gnss_fac=gnss_fac, anchor_fac=anchor_fac, gnss_keys=gnss_keys,
             meas_rec=meas_rec, meas_fac=meas_fac, meas_noise=meas_noise, gk=gk,
-            prior_map=problem.prior_map,
+            prior_map=pmap,
             calib=Calibration(
                 odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
             ) if calibrate else None,
