@@ -570,10 +570,11 @@ def run_stems_catalog(
     # to do; the pilot measures the catalog statistics on a worker; each chunk is one task
     # once its tiles are staged and the pilot is done -- or, when the pilot is a large part
     # of the catalog (PREPARE_APART_FRACTION), two: its ground step (prepare) as soon as its
-    # tiles are staged, the rest of the detector once the pilot is done too. The pilot reads staged fragments like a chunk (its tiles are
-    # decoded once, by the stage tasks); its stage tasks run first among ready tasks, so
-    # with several workers it starts after a few tiles' decoding and costs no second decode
-    # (reading its tiles itself cost 1.6 CPU-s more at 101 M points; docs/algorithms/engine.md).
+    # tiles are staged, the rest of the detector once the pilot is done too. The pilot
+    # reads staged fragments like a chunk (its tiles are decoded once, by the stage tasks);
+    # its stage tasks run first among ready tasks, so with several workers it starts after
+    # a few tiles' decoding and costs no second decode (reading its tiles itself cost
+    # 1.6 CPU-s more at 101 M points; docs/algorithms/engine.md).
     per_tile: dict[int, list[Chunk]] = {}
     first: dict[str, int] = {}
 
@@ -604,13 +605,12 @@ def run_stems_catalog(
             first.update({d.key: 1 for d in deps(pilot)}, pilot=2)
         for ch in todo:
             path = str(man.result_path(ch.id))
+            args: tuple[Any, ...] = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
             if not apart:  # one task: read, ground and stems (after the pilot, if any)
-                args = (catalog, ch, cfg, path, sensor, time_field, stage, stats, None)
-                args += (*deps(ch),)
+                args += (None, *deps(ch))
             else:  # the ground step runs while the pilot is measured; the rest after it
                 prep = (catalog, ch, cfg, stage, sensor, time_field, *deps(ch))
                 graph.append((f"prepare-chunk-{ch.id}", prepare_chunk, prep))
-                args = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
                 args += (Dep(f"prepare-chunk-{ch.id}"),)
             graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
         return graph
