@@ -239,3 +239,29 @@ def test_inplace_median_equals_numpy_median():
         if t % 3 == 0:
             v = np.round(v, 1)  # ties
         assert _detect_fast._median_inplace(v.copy(), m) == np.median(v)
+
+
+def test_kernel_codes_and_parameter_positions_match_their_names():
+    # the kernels read reason codes and parameters by position (numba has no name lookup)
+    from stemmap.scan import _fast_candidates as fc
+    from stemmap.scan.plausibility import REASONS
+
+    codes = {"depth": fc._DEPTH, "fit_failed": fc._FIT_FAILED, "radius": fc._RADIUS}
+    codes |= {"radius_width_ratio": fc._RATIO, "centre_in_front": fc._CENTRE, "rms": fc._RMS}
+    for name, code in codes.items():
+        assert REASONS[code] == name
+    assert fc._PREFIT < 0  # never a REASONS code
+    used = {
+        "wrap": 3, "occlusion_margin": 10, "min_points": 16, "min_points_partial": 17,
+        "max_points": 18, "min_width": 19, "max_width": 20, "min_depth": 21,
+        "min_curvature": 22, "max_curvature": 23, "reject_straight": 24, "straight_chi2": 25,
+        "straight_ratio": 26, "straight_min_points": 27, "drop_partial": 28, "sigma": 29,
+        "sigma_rel": 30, "fit_sigma_given": 31, "min_radius": 32, "max_radius": 33,
+        "max_radius_width_ratio": 34, "max_rms_sigma": 35, "divergence": 36,
+        "use_silhouette": 37, "range_model": 38, "angle_increment": 39, "sigma_from_data": 40,
+        "roughness_max_factor": 41, "rms_robust": 42, "bark_roughness": 43, "corner_span": 45,
+        "corner_depth": 46, "corner_depth_convex": 47, "corner_sigmas": 48,
+        "straight_depth_sigmas": 52, "refit_corners": 56, "refit_validate": 57,
+    }  # fmt: skip
+    for name, i in used.items():
+        assert _detect_fast.PARAM_INDEX[name] == i, name
