@@ -121,6 +121,22 @@ CONFIGS = {
         "median_filter": True,
     },
     "strict": {"max_points": 40, "drop_partial": True, "min_depth": 0.01, "min_width": 0.05},
+    # issue 11: validated corner split of rejected candidates (compiled since the tenth round;
+    # the real merges: test_detect_fast_real.py), and unvalidated with convex cuts
+    "corner_split": {
+        "refit_pieces": True,
+        "refit_split": "corners",
+        "refit_validate": True,
+        "corner_depth": 0.015,
+        "corner_depth_convex": 0.03,
+    },
+    "corner_split_all_pieces": {
+        "refit_pieces": True,
+        "refit_split": "corners",
+        "corner_depth": 0.01,
+        "corner_depth_convex": 0.03,
+        "min_depth": 0.01,
+    },
 }
 
 
@@ -175,6 +191,10 @@ def test_public_api_uses_the_compiled_path_and_single_equals_batch(stand):
         None, None
     )
     assert not det._compiled(0.01, None)  # tilt compensation runs the numpy pipeline
+    for numpy_only in ({"refit_pieces": True}, {"arc_refit": True}):
+        assert not ScanTrunkDetector(DetectorConfig.preset("stemmap", **numpy_only))._compiled(
+            None, None
+        )
     whole = det.detect_batch(batch)
     _, ref = _both(det, batch)
     assert_same(whole, ref)

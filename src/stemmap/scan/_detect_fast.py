@@ -8,7 +8,8 @@ eq. 2) or adaptive Euclidean segmentation, occlusion flags, single-point curvatu
 segment features and filters (Xue eq. 12 width, Zheng §3.2 depth and curvature, chi-square
 straightness test), the edge-silhouette priors, the "ours" circle fit (the same compiled
 ``_fit_one`` of :mod:`stemmap.scan._fit_geometric`), the plausibility checks, arc extent and
-quality. The named pure functions in :mod:`~stemmap.scan.preprocess`,
+quality, and with ``refit_split="corners"`` the validated corner split of rejected candidates
+(ours, issue 11). The named pure functions in :mod:`~stemmap.scan.preprocess`,
 :mod:`~stemmap.scan.segment` and :mod:`~stemmap.scan.features` remain the reference: this
 kernel evaluates the same expressions in the same order, and every per-segment sum replicates
 numpy's pairwise summation of ``np.add.reduceat`` (:func:`_seg_sum`), so its results equal the
@@ -20,22 +21,25 @@ of a single scan (~1 ms) and a third of the batch time; the kernel touches each 
 times in cache and allocates nothing per scan on the common path.
 
 Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "ours", no
-first-echo footprint correction, no tilt compensation to apply. Everything else runs the numpy
-pipeline.
+first-echo footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
+pieces only as corner splits. Everything else runs the numpy pipeline.
 
-The kernel's helpers live in :mod:`stemmap.scan._fast_robust` (medians and robust scales:
-range roughness, the scan's own noise estimate, the fit's residual scale) and
-:mod:`stemmap.scan._fast_segments` (numpy's pairwise sums, the segment table's select / drop,
-the pre-fit algebraic floor, the covariance fallback).
+The kernel's helpers live in :mod:`stemmap.scan._fast_candidates` (per candidate: segment
+filters as a reason code, fit and plausibility tests, arc and quality, the corner split),
+:mod:`stemmap.scan._fast_robust` (medians and robust scales: range roughness, the scan's own
+noise estimate, the fit's residual scale) and :mod:`stemmap.scan._fast_segments` (numpy's
+pairwise sums, the segment table's select / drop, the pre-fit algebraic floor, the covariance
+fallback); its parameter vector is :mod:`stemmap.scan._kernel_params`.
 
 numba's on-disk cache (``cache=True``) of this module is keyed on this file alone, but the
-kernel compiles in those helpers, ``_fit_one`` of :mod:`stemmap.scan._fit_geometric` (with
-its Levenberg-Marquardt core, :mod:`stemmap.scan._fit_lm`), the corner and gap cuts
-(:mod:`stemmap.scan._corners`, :mod:`stemmap.scan._gaps`) and the constant
-``MIXED_FRACTION_STD`` of :mod:`stemmap.scan.features`; at import
-:func:`stemmap._numba_cache.drop_stale_cache` drops this module's cache entries when any of
-those files changed (an edit, or a ``git pull`` into an editable install), so the stale code
-cannot keep running (tests/test_numba_cache.py lists the same files).
+kernel compiles in those helpers and constants, ``_fit_one`` of
+:mod:`stemmap.scan._fit_geometric` (with its Levenberg-Marquardt core,
+:mod:`stemmap.scan._fit_lm`), the corner and gap cuts (:mod:`stemmap.scan._corners`,
+:mod:`stemmap.scan._gaps`) and the constant ``MIXED_FRACTION_STD`` of
+:mod:`stemmap.scan.features`; at import :func:`stemmap._numba_cache.drop_stale_cache` drops
+this module's cache entries when any of those files changed (an edit, or a ``git pull`` into an
+editable install), so the stale code cannot keep running (tests/test_numba_cache.py lists the
+same files).
 """
 
 from __future__ import annotations
@@ -61,17 +65,27 @@ from stemmap.scan._corners import corner_parity, cut_tables, sagitta
 from stemmap.scan._fast_candidates import (
     _DEPTH,
     _PREFIT,
-    _RMS,
-    _emit,
-    _fit_candidate,
-    _segment_code,
-    _split_parent,
+    _RAD2DEG,
+    _edge_prior,
+    _split_emit,
+    has_corners,
 )
 from stemmap.scan._fast_robust import _interior_triples as _interior_triples
-from stemmap.scan._fast_robust import _median, _scan_noise
+from stemmap.scan._fast_robust import (
+    _median,
+    _range_roughness,
+    _robust_residual_scale,
+    _scan_noise,
+)
 from stemmap.scan._fast_robust import _median_inplace as _median_inplace
-from stemmap.scan._fast_segments import _algebraic_floor as _algebraic_floor
-from stemmap.scan._fast_segments import _drop, _seg_sum, _select_min
+from stemmap.scan._fast_segments import (
+    _algebraic_floor,
+    _drop,
+    _geometric_cov,
+    _seg_sum,
+    _select_min,
+)
+from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan._gaps import gap_cut_flags, gap_cut_occlusion
 from stemmap.scan._kernel_params import N_PARAMS as N_PARAMS
 from stemmap.scan._kernel_params import OUT_COLUMNS
@@ -112,10 +126,33 @@ def _detect_kernel(
     rmed = prm[14]
     split = prm[15] > 0.0
     min_points = prm[16]
+    min_points_partial = prm[17]
+    max_points = prm[18]
+    min_width = prm[19]
+    max_width = prm[20]
     min_depth = prm[21]
+    min_curv = prm[22]
+    max_curv = prm[23]
+    reject_straight = prm[24] > 0.0
+    straight_chi2 = prm[25] > 0.0
+    straight_ratio = prm[26]
+    straight_min_points = prm[27]
+    drop_partial = prm[28] > 0.0
     sigma0 = prm[29]
     sigma_rel = prm[30]
     fit_sigma_given = prm[31] > 0.0
+    min_radius = prm[32]
+    max_radius = prm[33]
+    max_rw = prm[34]
+    max_rms_sigma = prm[35]
+    divergence = prm[36]
+    use_sil_cfg = prm[37] > 0.0
+    range_model = prm[38] > 0.0
+    inc = prm[39]
+    sigma_from_data = prm[40] > 0.0
+    rough_max = prm[41]
+    rms_robust = prm[42] > 0.0
+    bark = prm[43]
     corners_on = prm[44] > 0.0
     corner_span = int(prm[45])
     corner_depth = prm[46]
@@ -124,13 +161,17 @@ def _detect_kernel(
     gap_splits = int(prm[49])
     gap_ratio = prm[50]
     gap_sigmas = prm[51]
+    straight_depth_sigmas = prm[52]
     # sigma_from_scan acts only where a sigma is configured (segment_sigma)
     scan_on = prm[53] > 0.0 and fit_sigma_given
     scan_jump = prm[54]
     scan_surface = prm[55]
-    refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners"
+    refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
-    absinc = abs(prm[39])
+    absinc = abs(inc)
+    h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
+    use_sil = use_sil_cfg and 0.0 < h_sil < 0.5
+    rms_check = math.isfinite(max_rms_sigma)
     # scratch, reused by every scan
     g0 = np.empty(n)
     grid = np.empty(n)
@@ -158,7 +199,6 @@ def _detect_kernel(
     dep = np.empty(n)
     ccode = np.empty(n, dtype=np.int64)
     feat = np.empty(2)
-    res = np.empty(OUT_COLUMNS + 1)
     pres = np.empty((n, OUT_COLUMNS + 1))
     sil = np.empty(4)
     sil_fit = np.empty(4)
@@ -347,48 +387,224 @@ def _detect_kernel(
             )
             gap_cut_occlusion(pr, st, sp, oc0, oc1, ns, m, corner, margin)
             ns, m = _select_min(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns, min_points)
-        # ---- segment features and filters (detect._filter, plausibility.segment_reasons) ----
-        # (with refit_corners the candidates rejected as not convex stay, to be cut below)
+        # ---- segment features and filters (detect._filter, features.segment_features) ----
         nk = 0
         for j in range(ns):
             a = st[j]
             b = sp[j]
+            i1 = b - 1
+            cnt = float(b - a)
             partial = oc0[j] or oc1[j] or tr0[j] or tr1[j]
-            code = _segment_code(px, py, pr, tmp, a, b, partial, prm, chi2, noise_s, feat)
-            if code == 0 or (refit_on and code == _DEPTH):  # Segments.select: compacted
+            cross = px[a] * py[i1] - py[a] * px[i1]
+            dot = px[a] * px[i1] + py[a] * py[i1]
+            theta = abs(math.atan2(cross, dot))
+            hh = math.sin(theta / 2.0)
+            ra = pr[a]
+            rb = pr[i1]
+            width = math.sqrt((ra - rb) * (ra - rb) + 4.0 * ra * rb * hh * hh)
+            depth = sagitta(px, py, a, b)  # features.sagitta_depth, Zheng §3.2 criterion 4
+            den = width * width / 4.0 + depth * depth
+            curv = 2.0 * depth / den if den > 0 else 0.0
+            ok = cnt >= min_points
+            ok &= (not partial) or cnt >= min_points_partial
+            ok &= cnt <= max_points
+            ok &= width >= min_width and width <= max_width
+            # the first test failed is depth: a candidate for the corner split (refit_corners)
+            cut_me = refit_on and ok and not depth >= min_depth
+            ok &= depth >= min_depth
+            ok &= curv >= min_curv and curv <= max_curv
+            if ok and reject_straight:
+                # line_fit_rms + is_straight (chi-square or ratio test)
+                nf = float(b - a)
+                mx = _seg_sum(px, a, b) / nf
+                my = _seg_sum(py, a, b) / nf
+                for i in range(a, b):
+                    qx = px[i] - mx
+                    tmp[i] = qx * qx
+                sxx = _seg_sum(tmp, a, b) / nf
+                for i in range(a, b):
+                    qy = py[i] - my
+                    tmp[i] = qy * qy
+                syy = _seg_sum(tmp, a, b) / nf
+                for i in range(a, b):
+                    tmp[i] = (px[i] - mx) * (py[i] - my)
+                sxy = _seg_sum(tmp, a, b) / nf
+                tr = sxx + syy
+                det = sxx * syy - sxy * sxy
+                lam_min = tr / 2.0 - math.sqrt(max(tr * tr / 4.0 - det, 0.0))
+                line_rms = math.sqrt(max(lam_min, 0.0))
+                sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / nf), noise_s)
+                if straight_chi2:
+                    dof = max(nf - 2.0, 1.0)
+                    stat = nf * line_rms * line_rms / (sig * sig)
+                    straight = stat <= chi2[int(dof)]
+                else:
+                    excess = math.sqrt(max(line_rms * line_rms - sig * sig, 0.0))
+                    straight = excess < straight_ratio * width
+                straight &= not (depth > straight_depth_sigmas * sig)
+                ok &= not (straight and cnt >= straight_min_points)
+            if drop_partial:
+                ok &= not partial
+            if ok or cut_me:  # Segments.select(keep): the table is compacted in place below
                 st[nk] = a
                 sp[nk] = b
                 oc0[nk] = oc0[j]
                 oc1[nk] = oc1[j]
                 tr0[nk] = tr0[j]
                 tr1[nk] = tr1[j]
-                wid[nk] = feat[0]
-                dep[nk] = feat[1]
-                ccode[nk] = code
+                wid[nk] = width
+                dep[nk] = depth
+                ccode[nk] = 0 if ok else _DEPTH
+                n_cand += ok
                 nk += 1
-                n_cand += code == 0
         # ---- fit, plausibility, arc and quality (detect.ScanTrunkDetector._run) ----
         for j in range(nk):
             a = st[j]
             b = sp[j]
-            code = ccode[j]
-            if code == 0:
-                code = _fit_candidate(
-                    px, py, pr, pb, a, b, oc0[j], oc1[j], tr0[j], tr1[j], wid[j], grid,
-                    noise_s, prm, False, scratch, ws, res,
-                )  # fmt: skip
-                if code == 0:
-                    rows, scans, n_out = _emit(rows, scans, n_out, s, res)
+            if ccode[j] == _DEPTH:  # rejected as not convex: cut without a fit
+                if not has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
                     continue
-            if refit_on and code in (_DEPTH, _RMS, _PREFIT):
-                # a trunk merged with a branch, bush or stem: its pieces take its place
-                k = _split_parent(
-                    px, py, pr, pb, a, b, (oc0[j], oc1[j], tr0[j], tr1[j]), wid[j], dep[j],
-                    code, grid, noise_s, prm, chi2, scratch, ws, corner,
+                rows, scans, n_out = _split_emit(
+                    rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1, wid,
+                    dep, _DEPTH, grid, noise_s, prm, chi2, scratch, ws, corner,
                     (st2, sp2, oc02, oc12, tr02, tr12), pres,
                 )  # fmt: skip
-                for q in range(k):
-                    rows, scans, n_out = _emit(rows, scans, n_out, s, pres[q])
+                continue
+            cnt_i = b - a
+            mean_r = _seg_sum(pr, a, b) / cnt_i
+            sig = max(sigma0 + sigma_rel * mean_r, noise_s)
+            if sigma_from_data and fit_sigma_given:  # sigma 0: the fit estimates its scale
+                sig = max(sig, min(_range_roughness(pr[a:b]), rough_max * sig))
+            sil[:] = np.nan
+            if use_sil:
+                _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
+                _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
+            sil_width = wid[j]
+            if use_sil:
+                beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)
+                beyond += 0.0 if math.isnan(sil[2]) else max(sil[2] - 0.5, 0.0)
+                sil_width = wid[j] + beyond * mean_r * absinc
+            if rms_check and not rms_robust:  # (the bound holds for the plain RMS only)
+                # Exact early reject (docs/algorithms/scan-detection.md, "pre-fit bound"): a
+                # circle the checks below accept has r <= r_cap and RMS <= k sigma, so every
+                # |d_i - r| <= sqrt(N) k sigma and d_i + r <= 2 r_cap + sqrt(N) k sigma = M;
+                # with (d - r) = (d^2 - r^2) / (d + r), N RMS^2 >= kasa_min / M^2. If even that
+                # floor exceeds the RMS limit, no fit can pass: skip the (costly) fit.
+                r_cap = min(max_radius, max_rw * max(sil_width, 1e-9))
+                lim = max_rms_sigma * sig
+                if bark > 0.0:  # the bound grows with the radius: take it at r_cap
+                    lim = max_rms_sigma * math.sqrt(sig * sig + (bark * r_cap) * (bark * r_cap))
+                m_cap = 2.0 * r_cap + math.sqrt(cnt_i) * lim
+                floor = _algebraic_floor(px, py, a, b) / (m_cap * m_cap)
+                if floor > 1.001 * cnt_i * lim * lim:  # margin: round-off of the floor
+                    if refit_on and has_corners(
+                        px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner
+                    ):
+                        # a fit test failed: which one, _split_parent re-fits to tell
+                        rows, scans, n_out = _split_emit(
+                            rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
+                            wid, dep, _PREFIT, grid, noise_s, prm, chi2, scratch, ws, corner,
+                            (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                        )  # fmt: skip
+                    continue
+            e_start = not (oc0[j] or tr0[j])
+            e_end = not (oc1[j] or tr1[j])
+            if inc < 0:  # the fit takes the ends in bearing order
+                use_lo, use_hi = e_end, e_start
+                sil_fit[0] = sil[2]
+                sil_fit[1] = sil[3]
+                sil_fit[2] = sil[0]
+                sil_fit[3] = sil[1]
+            else:
+                use_lo, use_hi = e_start, e_end
+                sil_fit[:] = sil
+            fit_out[:] = np.nan
+            status = _fit_one(
+                px[a:b],
+                py[a:b],
+                0.0,
+                0.0,
+                sig if fit_sigma_given else 0.0,
+                absinc,
+                use_lo,
+                use_hi,
+                sil_fit,
+                divergence,
+                range_model,
+                fit_out,
+                buf,
+                ws3,
+                wv,
+                mdl,
+                1.0,  # the fit's default stopping thresholds
+                True,  # uniform tangent intervals on two-tangent arcs (the fit's default)
+            )
+            if status != OK:
+                continue
+            cx = fit_out[0]
+            cy = fit_out[1]
+            rad = fit_out[2]
+            good = rad >= min_radius and rad <= max_radius
+            good &= rad <= max_rw * max(sil_width, 1e-9)
+            good &= math.hypot(cx, cy) > mean_r
+            for i in range(a, b):
+                res = math.hypot(px[i] - cx, py[i] - cy) - rad
+                tmp[i] = res * res
+            rms = math.sqrt(_seg_sum(tmp, a, b) / cnt_i)
+            if rms_check:
+                lim = max_rms_sigma * sig
+                if bark > 0.0:  # plausibility.rms_limit
+                    lim = max_rms_sigma * math.sqrt(sig * sig + (bark * rad) * (bark * rad))
+                if rms_robust:
+                    good &= _robust_residual_scale(px[a:b], py[a:b], cx, cy, rad) <= lim
+                else:
+                    good &= rms <= lim
+            if not good:
+                if refit_on and has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
+                    # a fit test failed: which one, _split_parent re-fits to tell
+                    rows, scans, n_out = _split_emit(
+                        rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
+                        wid, dep, _PREFIT, grid, noise_s, prm, chi2, scratch, ws, corner,
+                        (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                    )  # fmt: skip
+                continue
+            cov_ok = True
+            for q in range(9):
+                cov_ok &= math.isfinite(fit_out[3 + q])
+            if not cov_ok:
+                _geometric_cov(px, py, a, b, cx, cy, rad, sig, tmp, jtj, fit_out)
+            # arc extent around the centre (detect._arc_deg)
+            ref = math.atan2(-cy, -cx)
+            pmax = -math.inf
+            pmin = math.inf
+            for i in range(a, b):
+                phi = math.atan2(py[i] - cy, px[i] - cx) - ref
+                # numba's float % is CPython's (fmod, then the divisor's sign), i.e. np.mod
+                phi = math.pi - (math.pi - phi) % (2.0 * math.pi)
+                pmax = max(pmax, phi)
+                pmin = min(pmin, phi)
+            # quality (detect._quality)
+            support = min(cnt_i / 10.0, 1.0)
+            sq = max(sig, 1e-6)
+            e = max(rms - sq, 0.0) / (3.0 * sq)
+            partial = oc0[j] or oc1[j] or tr0[j] or tr1[j]
+            qual = support * math.exp(-(e * e)) * (0.5 if partial else 1.0)
+            if n_out == rows.shape[0]:
+                rows2 = np.empty((2 * n_out, OUT_COLUMNS))
+                rows2[:n_out] = rows
+                rows = rows2
+                scans2 = np.empty(2 * n_out, dtype=np.int64)
+                scans2[:n_out] = scans
+                scans = scans2
+            row = rows[n_out]
+            for q in range(12):
+                row[q] = fit_out[q]
+            row[12] = (pmax - pmin) * _RAD2DEG
+            row[13] = wid[j]
+            row[14] = qual
+            row[15] = cnt_i
+            scans[n_out] = s
+            n_out += 1
     return rows[:n_out], scans[:n_out], n_cand
 
 

@@ -110,7 +110,7 @@ def _edge_prior(
         out[o + 1] = 2.0 * h * MIXED_FRACTION_STD
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _segment_code(
     px: FloatArray,
     py: FloatArray,
@@ -188,7 +188,7 @@ def _segment_code(
     return 0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _fit_candidate(
     px: FloatArray,
     py: FloatArray,
@@ -205,10 +205,15 @@ def _fit_candidate(
     noise_s: float,
     prm: FloatArray,
     exact: bool,
-    scratch: tuple[
-        FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray, FloatArray, FloatArray
-    ],
-    ws: _Work,
+    sil: FloatArray,
+    sil_fit: FloatArray,
+    fit_out: FloatArray,
+    tmp: FloatArray,
+    buf: FloatArray,
+    jtj: FloatArray,
+    ws3: FloatArray,
+    wv: FloatArray,
+    mdl: FloatArray,
     res: FloatArray,
 ) -> int:  # pragma: no cover - numba
     """Fit, plausibility tests, arc extent and quality of the candidate ``a:b``
@@ -217,8 +222,6 @@ def _fit_candidate(
     ``res[:OUT_COLUMNS]`` is its output row, ``res[OUT_COLUMNS]`` its sigma), or ``_PREFIT``
     when the pre-fit bound shows that no fit can pass (unless ``exact``: then the fit runs and
     the code is the test's)."""
-    sil, sil_fit, fit_out, tmp, buf, jtj, _ = scratch
-    ws3, wv, mdl = ws
     n = grid.shape[0]
     wrap = prm[3] > 0.0
     margin = prm[10]
@@ -350,6 +353,27 @@ def _fit_candidate(
     return 0
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def corner_threshold(
+    pr: FloatArray, a: int, b: int, depth: float, noise_s: float, prm: FloatArray
+) -> float:  # pragma: no cover - numba
+    """Least concave depth of a corner of candidate ``a:b`` with sagitta ``depth``
+    (:func:`~stemmap.scan._refit.corner_cut_pieces`): ``corner_depth`` if the candidate is
+    not a convex arc, else ``corner_depth_convex``, at least ``corner_sigmas`` range-noise
+    sigmas; ``inf`` where no return has ``corner_span`` neighbours on both sides. The
+    split's pre-test: a convex candidate with ``corner_depth_convex`` infinite (every
+    candidate that reached the RMS test, with ``min_depth`` >= 0) has no corner and costs
+    no look at its returns."""
+    span = int(prm[45])
+    if b - a < 2 * span + 1:
+        return math.inf
+    thr = prm[46] if depth < max(prm[21], 0.0) else prm[47]
+    if not thr < math.inf:
+        return math.inf
+    sig = max(prm[29] + prm[30] * (_seg_sum(pr, a, b) / float(b - a)), noise_s)
+    return max(thr, prm[48] * sig)
+
+
 @njit(cache=True, error_model="numpy")
 def _split_parent(
     px: FloatArray,
@@ -360,53 +384,38 @@ def _split_parent(
     b: int,
     flags: tuple[bool, bool, bool, bool],
     width: float,
-    depth: float,
     code: int,
     grid: FloatArray,
     noise_s: float,
     prm: FloatArray,
     chi2: FloatArray,
-    scratch: tuple[
-        FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray, FloatArray, FloatArray
-    ],
+    scratch: _Scratch,
     ws: _Work,
     corner: np.ndarray,
     table: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     pres: FloatArray,
 ) -> int:  # pragma: no cover - numba
     """``refit_split="corners"`` for one rejected candidate ``a:b`` (reason ``code``: depth,
-    rms or ``_PREFIT``; :func:`stemmap.scan._refit.split_refit`): cut at its concave corners
-    (:func:`~stemmap.scan._refit.corner_cut_pieces` thresholds), every piece judged by the
-    segment filters and fitted; with ``refit_validate`` accepted only as the candidate's one
-    passing piece, no circle-like sibling failing its fit, no return of the candidate more
-    than 3 sigma inside its circle (``_refit.validate_pieces``, ``_returns_inside``). Writes
-    the accepted pieces' output rows to ``pres`` and returns their number.
-
-    Costs (almost) nothing without a corner: a convex candidate with ``corner_depth_convex``
-    infinite (every candidate that reached the RMS test, with ``min_depth`` >= 0) has none
-    and returns before looking at its returns; a concave one is scanned once."""
-    span = int(prm[45])
-    if b - a < 2 * span + 1:  # no return has a chord on both sides
-        return 0
-    thr = prm[46] if depth < max(prm[21], 0.0) else prm[47]  # corner_depth (_convex)
-    sig = max(prm[29] + prm[30] * (_seg_sum(pr, a, b) / float(b - a)), noise_s)
-    thr = max(thr, prm[48] * sig)  # corner_sigmas
-    if not thr < math.inf:
-        return 0
-    tmp = scratch[3]
-    if segment_corners(px, py, a, b, span, thr, tmp, corner) == 0:
-        return 0
+    rms or ``_PREFIT``; :func:`stemmap.scan._refit.split_refit`) with concave corners
+    ``corner`` (:func:`corner_threshold`,
+    :func:`~stemmap.scan._corners.segment_corners`): cut there, every piece judged by
+    the segment filters and fitted; with ``refit_validate`` accepted only as the
+    candidate's one passing piece, no circle-like sibling failing its fit, no return of
+    the candidate more than 3 sigma inside its circle (``_refit.validate_pieces``,
+    ``_returns_inside``). Writes the accepted pieces' output rows to ``pres`` and
+    returns their number."""
+    sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
+    ws3, wv, mdl = ws
     oc0, oc1, tr0, tr1 = flags
     if code == _PREFIT:  # rejected by the pre-fit bound: which fit test, only a fit tells
         code = _fit_candidate(
             px, py, pr, pb, a, b, oc0, oc1, tr0, tr1, width, grid, noise_s, prm, True,
-            scratch, ws, pres[0],
+            sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, pres[0],
         )  # fmt: skip
         if code != _RMS:
             return 0
     pst, psp, poc0, poc1, ptr0, ptr1 = table
     k = piece_table(a, b, corner, oc0, oc1, tr0, tr1, pst, psp, poc0, poc1, ptr0, ptr1)
-    feat = scratch[6]
     n_pass = 0
     n_fail = 0  # circle-like (passed the segment filters) pieces whose fit fails
     for q in range(k):
@@ -419,7 +428,7 @@ def _split_parent(
         w = feat[0]
         c = _fit_candidate(
             px, py, pr, pb, qa, qb, poc0[q], poc1[q], ptr0[q], ptr1[q], w, grid, noise_s,
-            prm, False, scratch, ws, pres[q],
+            prm, False, sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, pres[q],
         )  # fmt: skip
         if c == 0:
             n_pass += 1
@@ -447,7 +456,7 @@ def _split_parent(
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _emit(
     rows: FloatArray, scans: np.ndarray, n_out: int, s: int, res: FloatArray
 ) -> tuple[FloatArray, np.ndarray, int]:  # pragma: no cover - numba
@@ -463,6 +472,72 @@ def _emit(
         rows[n_out, q] = res[q]
     scans[n_out] = s
     return rows, scans, n_out + 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def has_corners(
+    px: FloatArray,
+    py: FloatArray,
+    pr: FloatArray,
+    a: int,
+    b: int,
+    depth: float,
+    noise_s: float,
+    prm: FloatArray,
+    tmp: FloatArray,
+    corner: np.ndarray,
+) -> bool:  # pragma: no cover - numba
+    """The corner split's pre-test, inline in the kernel: whether candidate ``a:b`` (sagitta
+    ``depth``) has a concave corner (:func:`corner_threshold`,
+    :func:`~stemmap.scan._corners.segment_corners`, flags left in ``corner``). Costs no look
+    at the returns where the threshold is infinite and allocates nothing."""
+    thr = corner_threshold(pr, a, b, depth, noise_s, prm)
+    return thr < math.inf and segment_corners(px, py, a, b, int(prm[45]), thr, tmp, corner) > 0
+
+
+@njit(cache=True, error_model="numpy")
+def _split_emit(
+    rows: FloatArray,
+    scans: np.ndarray,
+    n_out: int,
+    s: int,
+    px: FloatArray,
+    py: FloatArray,
+    pr: FloatArray,
+    pb: np.ndarray,
+    j: int,
+    st: np.ndarray,
+    sp: np.ndarray,
+    oc0: np.ndarray,
+    oc1: np.ndarray,
+    tr0: np.ndarray,
+    tr1: np.ndarray,
+    wid: FloatArray,
+    dep: FloatArray,
+    code: int,
+    grid: FloatArray,
+    noise_s: float,
+    prm: FloatArray,
+    chi2: FloatArray,
+    scratch: _Scratch,
+    ws: _Work,
+    corner: np.ndarray,
+    table: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    pres: FloatArray,
+) -> tuple[FloatArray, np.ndarray, int]:  # pragma: no cover - numba
+    """:func:`_split_parent` for candidate ``j`` of the table ``st, sp, ...`` of scan ``s``,
+    rejected with ``code`` (``_DEPTH``, or ``_PREFIT``: some fit test failed) and with a
+    concave corner (:func:`has_corners`, flags in ``corner``); the accepted pieces are
+    appended to the output ``rows, scans`` (its place in the output: the candidate's)."""
+    a = st[j]
+    b = sp[j]
+    k = _split_parent(
+        px, py, pr, pb, a, b, (oc0[j], oc1[j], tr0[j], tr1[j]), wid[j], code, grid,
+        noise_s, prm, chi2, scratch, ws, corner, table, pres,
+    )  # fmt: skip
+    for q in range(k):
+        rows, scans, n_out = _emit(rows, scans, n_out, s, pres[q])
+    return rows, scans, n_out
 
 
 # after every kernel is defined, before the first call loads the cache (see the module notes)

@@ -195,8 +195,9 @@ class DetectorConfig:
         every piece with ``min_points`` returns that passes the segment filters once more
         (ours, issue 11; :func:`~stemmap.scan._refit.refit_pieces`): a trunk with a stem,
         branch fillet or bush beside it in one segment is rejected as a whole although most of
-        its returns lie on a circle. Runs on the numpy path only (the compiled path is not
-        used while it is on).
+        its returns lie on a circle. With ``refit_split="corners"`` the compiled path runs it
+        too (:mod:`stemmap.scan._fast_candidates`, the same results); the other splits run
+        on the numpy path only.
     refit_sigmas : float, > 0
         Outlier threshold of ``refit_pieces`` in robust residual scales (1.4826 MAD).
     refit_split : {"gap", "outliers", "outlier_ends", "corners"}
@@ -209,8 +210,10 @@ class DetectorConfig:
         (:func:`~stemmap.scan._refit.split_refit`).
     refit_validate : bool
         With ``refit_pieces``: the pieces of a candidate are accepted only together, when
-        every piece with enough returns to be judged passes every test and their circles are
-        disjoint (:func:`~stemmap.scan._refit.validate_pieces`); otherwise the candidate
+        exactly one piece passes every test and no other piece that passed the segment
+        filters (a circle-like piece) fails its fit (:func:`~stemmap.scan._refit.
+        validate_pieces`); with ``refit_split="corners"`` also only when no return of the
+        candidate lies more than 3 sigma inside the piece's circle. Otherwise the candidate
         keeps its verdict. Off: each passing piece counts on its own.
     arc_refit : bool
         Fit the largest consistent arc of a candidate rejected as not convex (``depth``) as a
