@@ -285,3 +285,26 @@ def test_kernel_codes_and_parameter_positions_match_their_names():
     }  # fmt: skip
     for name, i in used.items():
         assert _detect_fast.PARAM_INDEX[name] == i, name
+
+
+def test_squared_corner_pretest_never_misses_a_corner():
+    # the split's pre-test may say "maybe" wrongly, never "no" where segment_corners finds one
+    from stemmap.scan._corners import may_have_corner, segment_corners
+
+    rng = np.random.default_rng(3)
+    hits = 0
+    for _ in range(3000):
+        n = int(rng.integers(3, 30))
+        t = np.linspace(-1.0, 1.0, n)
+        # an arc or a notched outline 2-8 m away, cm-scale noise
+        y = rng.uniform(2.0, 8.0) + rng.choice([-1.0, 1.0]) * 0.05 * np.abs(t)
+        x = rng.uniform(0.2, 1.0) * t
+        y = y + rng.normal(0.0, rng.uniform(0.0, 0.02), n)
+        px, py = np.ascontiguousarray(x), np.ascontiguousarray(y)
+        span = int(rng.integers(1, 3))
+        thr = float(rng.uniform(0.005, 0.04))
+        d, corner = np.empty(n), np.empty(n, dtype=bool)
+        found = segment_corners(px, py, 0, n, span, thr, d, corner)
+        hits += found > 0
+        assert may_have_corner(px, py, 0, n, span, thr) or found == 0
+    assert hits > 100  # corners were present in the draws

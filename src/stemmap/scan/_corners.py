@@ -16,7 +16,14 @@ from numba import njit
 
 from stemmap.types import FloatArray
 
-__all__ = ["corner_parity", "cut_tables", "piece_table", "sagitta", "segment_corners"]
+__all__ = [
+    "corner_parity",
+    "cut_tables",
+    "may_have_corner",
+    "piece_table",
+    "sagitta",
+    "segment_corners",
+]
 
 
 @njit(cache=True, error_model="numpy")
@@ -82,6 +89,29 @@ def segment_corners(
         corner[i] = d[i] > thr and d[i] >= prev and d[i] > nxt
         found += corner[i]
     return found
+
+
+@njit(cache=True, error_model="numpy")
+def may_have_corner(
+    px: FloatArray, py: FloatArray, a: int, b: int, span: int, thr: float
+) -> bool:  # pragma: no cover - numba
+    """Whether any return of segment ``a:b`` lies behind the chord of its ``span``-th
+    neighbours by more than about ``thr``: the squared test ``s^2 > 0.99 thr^2 |c|^2`` on
+    the signed cross product ``s`` of :func:`segment_corners` (``d = s / |c|``), without its
+    square root per return. False means no corner of :func:`segment_corners` deeper than
+    ``thr`` (the 1 % slack covers the rounding of the exact test); True decides nothing."""
+    lim = 0.99 * thr * thr
+    for i in range(a + span, b - span):
+        lo = i - span
+        c = i + span
+        cx = px[c] - px[lo]
+        cy = py[c] - py[lo]
+        side_p = cx * (py[i] - py[lo]) - cy * (px[i] - px[lo])
+        side_o = cy * px[lo] - cx * py[lo]
+        sd = -side_p if side_o > 0.0 else side_p
+        if sd > 0.0 and sd * sd > lim * (cx * cx + cy * cy):
+            return True
+    return False
 
 
 @njit(cache=True, error_model="numpy")

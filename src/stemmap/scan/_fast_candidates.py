@@ -33,7 +33,7 @@ from stemmap.scan import (
     _kernel_params,
     features,
 )
-from stemmap.scan._corners import piece_table, sagitta, segment_corners
+from stemmap.scan._corners import may_have_corner, piece_table, sagitta, segment_corners
 from stemmap.scan._fast_robust import _range_roughness, _robust_residual_scale
 from stemmap.scan._fast_segments import _algebraic_floor, _geometric_cov, _seg_sum
 from stemmap.scan._fit_geometric import OK, _fit_one
@@ -490,9 +490,16 @@ def has_corners(
     """The corner split's pre-test, inline in the kernel: whether candidate ``a:b`` (sagitta
     ``depth``) has a concave corner (:func:`corner_threshold`,
     :func:`~stemmap.scan._corners.segment_corners`, flags left in ``corner``). Costs no look
-    at the returns where the threshold is infinite and allocates nothing."""
+    at the returns where the threshold is infinite, runs the exact test only where the
+    squared one (:func:`~stemmap.scan._corners.may_have_corner`) finds a deep return, and
+    allocates nothing."""
     thr = corner_threshold(pr, a, b, depth, noise_s, prm)
-    return thr < math.inf and segment_corners(px, py, a, b, int(prm[45]), thr, tmp, corner) > 0
+    if not thr < math.inf:
+        return False
+    span = int(prm[45])
+    if not may_have_corner(px, py, a, b, span, thr):  # no square root per return
+        return False
+    return segment_corners(px, py, a, b, span, thr, tmp, corner) > 0
 
 
 @njit(cache=True, error_model="numpy")
