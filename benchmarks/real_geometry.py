@@ -97,6 +97,10 @@ def _setting(
         "straight_depth_sigmas": math.inf,
         # the preset's default since the eighth round; a grid point without it means off
         "sigma_from_scan": False,
+        # ... and the validated corner split since the tenth round
+        "refit_pieces": False,
+        "refit_split": "gap",
+        "refit_validate": False,
         **extra,
     }
 

@@ -191,7 +191,7 @@ def test_public_api_uses_the_compiled_path_and_single_equals_batch(stand):
         None, None
     )
     assert not det._compiled(0.01, None)  # tilt compensation runs the numpy pipeline
-    for numpy_only in ({"refit_pieces": True}, {"arc_refit": True}):
+    for numpy_only in ({"refit_split": "gap"}, {"arc_refit": True}):
         assert not ScanTrunkDetector(DetectorConfig.preset("stemmap", **numpy_only))._compiled(
             None, None
         )
