@@ -18,7 +18,7 @@ tree within 0.5 m of a reference stem is ``matched``, else ``unmatched`` (a fals
 are 3 m apart, nothing between them is a trunk).
 
 Usage: python benchmarks/munjer2025_real_frames.py [--windows 3 5 10] [--ground-relative]
-       [--max-tilt 45].
+       [--max-tilt 45] [--ecc-range 10 20].
 Prints one JSON object.
 Caveat: virtual frames re-sample one static TLS cloud, so joined frames add fewer independent
 points on a trunk than a real sensor's frames would.
@@ -93,6 +93,7 @@ def run_line(
     windows: list[int],
     ground_relative: bool,
     max_tilt: float | None,
+    ecc_range: tuple[float, float] = (10.0, 20.0),
 ) -> dict:
     ys = np.arange(-8.0, 18.0, 0.4)
     poses = np.column_stack((np.full_like(ys, x_line), ys, np.full_like(ys, math.pi / 2)))
@@ -104,7 +105,12 @@ def run_line(
     for w, (key, tilt) in itertools.product(
         [1, *windows], [("", max_tilt), ("_no_tilt_check", None)]
     ):
-        cfg = MunjerConfig(window=w, ground_relative=ground_relative, max_tilt_deg=tilt)
+        cfg = MunjerConfig(
+            window=w,
+            ground_relative=ground_relative,
+            max_tilt_deg=tilt,
+            eccentricity_range=ecc_range,
+        )
         obs = eb_lidar_observations(frames, ys / 4.0, cfg, poses=poses)
         trees = associate_proximity(_to_world(obs, poses), 1.0) if len(obs) else None
         xy = trees.xy[trees.n_slices >= 3] if trees is not None else np.zeros((0, 2))
@@ -130,7 +136,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=MunjerConfig().max_tilt_deg,
         help="MunjerConfig.max_tilt_deg of the main rows (degrees; default the library's)",
     )
+    ap.add_argument(
+        "--ecc-range",
+        type=float,
+        nargs=2,
+        default=list(MunjerConfig().eccentricity_range),
+        metavar=("LO", "HI"),
+        help="MunjerConfig.eccentricity_range of every row (default the paper's 10 20)",
+    )
     a = ap.parse_args(argv)
+    ecc = (float(a.ecc_range[0]), float(a.ecc_range[1]))
     t0 = time.process_time()
     path = find_datasets_dir() / "treels" / "pine_plot.laz"
     xyz = read_cloud(path).xyz
@@ -140,9 +155,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "reference_stems": len(ref),
         "ground_relative": a.ground_relative,
         "max_tilt_deg": a.max_tilt,
+        "eccentricity_range": list(ecc),
     }
     for x in LINES_X:
-        res[f"line_x{x}"] = run_line(xyz, ref.xy, x, a.windows, a.ground_relative, a.max_tilt)
+        res[f"line_x{x}"] = run_line(xyz, ref.xy, x, a.windows, a.ground_relative, a.max_tilt, ecc)
     res["total"] = {
         f"window_{w}{key}": {
             k: sum(res[f"line_x{x}"][f"window_{w}{key}"][k] for x in LINES_X)

@@ -26,6 +26,7 @@ Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
        (``online``: the realtime iSAM2 mapper of ``stemmap map --realtime``)
        python benchmarks/pose_covariance.py --vp-gnss
        python benchmarks/pose_covariance.py --vp-chain-factor
+       python benchmarks/pose_covariance.py --vp-ekf-map-factor
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -72,11 +73,18 @@ def sim_rows(seed: int, backend: str) -> dict[str, Any]:
     from stemmap.cli._demo import _stand_and_run
     from stemmap.cli._map import sim_problem
     from stemmap.scan.detect import ScanTrunkDetector
-    from stemmap.types import wrap_angle
 
     run = _stand_and_run(seed, 120)
     problem, _ = sim_problem(run, ScanTrunkDetector().detect_batch(run.scans))
-    res = _run(backend, problem)
+    return pose_errors(run, _run(backend, problem))
+
+
+def pose_errors(run: Any, res: Any) -> dict[str, Any]:
+    """Errors of ``res``'s reported poses against the simulated ``run``'s true vehicle poses
+    (the first row, fixed with zero covariance, left out) and their ``z²`` under
+    ``res.pose_covs``; only ``rows`` / ``rows_with_covariance`` when it has none."""
+    from stemmap.types import wrap_angle
+
     n = len(res.trajectory)
     if res.pose_covs is None:
         return {"rows": n, "rows_with_covariance": 0}
@@ -144,10 +152,23 @@ def ml_factor(e: np.ndarray, C: np.ndarray, G: np.ndarray) -> float:
     return float(np.exp(r.x))
 
 
+def _vp_gps_cov(vpd: Any, problem: Any, keep: np.ndarray, ref: Any) -> tuple[np.ndarray, Any]:
+    """The GPS's own error as an isotropic covariance ``G = rms² / 2 I`` (m²), from the fixes'
+    disagreement at revisits of the locally right path ``ref`` (an iSAM2 result); with the
+    :func:`stemmap.eval.gps_noise.gps_revisit_error` report."""
+    from stemmap.eval.gps_noise import gps_revisit_error
+    from stemmap.eval.trajectory import align_se2, point_track
+
+    t = problem.frames.times
+    m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
+    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
+    ref_xy = point_track(ref.trajectory, gt, vpd.model.sensor_offset)
+    gps = gps_revisit_error(gt, gxy, align_se2(ref_xy, gxy).apply(ref_xy))
+    return np.eye(2) * gps.rms_2d**2 / 2.0, gps
+
+
 def vp(backends: list[str], dump: str | None = None) -> dict[str, Any]:
     from stemmap.datasets.victoria_park import load_victoria_park
-    from stemmap.eval.gps_noise import gps_revisit_error
-    from stemmap.eval.trajectory import point_track
     from stemmap.slam.base import make_backend
 
     vpd = load_victoria_park(None)
@@ -158,17 +179,11 @@ def vp(backends: list[str], dump: str | None = None) -> dict[str, Any]:
     results = {b: _run(b, problem) for b in backends}
     # the GPS's own error: revisits of a locally right path (iSAM2's, run here if not asked)
     ref = results.get("isam2") or make_backend("isam2").run(problem)
-    m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
-    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
-    from stemmap.eval.trajectory import align_se2
-
-    ref_xy = point_track(ref.trajectory, gt, vpd.model.sensor_offset)
-    al = align_se2(ref_xy, gxy)
-    gps = gps_revisit_error(gt, gxy, al.apply(ref_xy))
-    G = np.eye(2) * gps.rms_2d**2 / 2.0
+    G, gps = _vp_gps_cov(vpd, problem, keep, ref)
+    n_fixes = int((keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])).sum())
     out: dict[str, Any] = {
         "t_split_s": round(float(t_mid), 1),
-        "screened_fixes": int(gt.size),
+        "screened_fixes": n_fixes,
         "gps_rms_2d_m (revisits of the iSAM2 path)": round(gps.rms_2d, 3),
         "gps_revisit_pairs": gps.pairs,
     }
@@ -259,8 +274,6 @@ def vp_chain_factor() -> dict[str, Any]:
     import stemmap.slam.forestrix as fx
     import stemmap.slam.treedb as tdb
     from stemmap.datasets.victoria_park import load_victoria_park
-    from stemmap.eval.gps_noise import gps_revisit_error
-    from stemmap.eval.trajectory import align_se2, point_track
     from stemmap.slam.base import make_backend
     from stemmap.slam.loop_closure import output_pose_covariances
 
@@ -278,12 +291,7 @@ def vp_chain_factor() -> dict[str, Any]:
 
         mod.output_pose_covariances = cap  # type: ignore[attr-defined]
     results = {b: make_backend(b).run(problem) for b in ("treedb", "forestrix")}
-    ref = make_backend("isam2").run(problem)
-    m = keep & (vpd.gps_times >= t[0]) & (vpd.gps_times <= t[-1])
-    gt, gxy = vpd.gps_times[m], vpd.gps_xy[m]
-    ref_xy = point_track(ref.trajectory, gt, vpd.model.sensor_offset)
-    gps = gps_revisit_error(gt, gxy, align_se2(ref_xy, gxy).apply(ref_xy))
-    G = np.eye(2) * gps.rms_2d**2 / 2.0
+    G, gps = _vp_gps_cov(vpd, problem, keep, make_backend("isam2").run(problem))
 
     def z2_at(k: float, b: str) -> tuple[np.ndarray, np.ndarray]:
         res = dataclasses.replace(results[b], pose_covs=output_pose_covariances(*captured[b], k))
@@ -305,6 +313,63 @@ def vp_chain_factor() -> dict[str, Any]:
     return out
 
 
+def vp_ekf_map_factor() -> dict[str, Any]:
+    """The EKF's map-term factor (``EkfConfig.map_cov_inflation``) chosen on the first half of
+    Victoria Park and scored on the second: the EKF run with the factor 0 (the path given the
+    map) and 1 (the default) -- the same estimate, the reported covariance ``C(F) = C0 + F Cm``
+    linear in ``F`` -- and ``F`` the maximum-likelihood factor of ``e ~ N(0, C(F) + G)`` on
+    the first half (the GPS's error ``G`` as in ``--vp``), and the factor putting 86.5 % of the
+    first half inside 2 sigma (the ``--vp-chain-factor`` criterion); the median criterion is
+    reported too (None where a criterion has no root)."""
+    from scipy.optimize import brentq
+
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.slam.base import make_backend
+
+    vpd = load_victoria_park(None)
+    problem = vpd.problem()
+    keep = vpd.screened_gps()
+    t = problem.frames.times
+    t_mid = 0.5 * (t[0] + t[-1])
+    G, gps = _vp_gps_cov(vpd, problem, keep, make_backend("isam2").run(problem))
+    ft, e, C0 = _pose_terms(make_backend("ekf", map_cov_inflation=0.0).run(problem), vpd, keep)
+    _, e1, C1 = _pose_terms(make_backend("ekf").run(problem), vpd, keep)
+    assert np.allclose(e, e1)  # the factor changes the covariance only
+    ok = np.all(np.isfinite(C0), axis=(1, 2)) & np.all(np.isfinite(C1), axis=(1, 2))
+    first, second = ok & (ft < t_mid), ok & (ft >= t_mid)
+    Cm = C1 - C0
+    base = C0 + G
+    try:  # no root when the GPS's own error explains the first half's median ("--vp")
+        f_med: float | None = round(_fit_inflation(e[first], Cm[first], base[first]), 2)
+    except ValueError:
+        f_med = None
+    f = ml_factor(e[first], Cm[first], base[first])
+
+    def coverage(lk: float) -> float:  # the tree DB / Forestrix criterion (--vp-chain-factor)
+        return float(np.mean(_z2(e[first], np.exp(lk) * Cm[first] + base[first]) < 4.0)) - 0.865
+
+    try:
+        f_cov: float | None = float(np.exp(brentq(coverage, np.log(1e-3), np.log(1e5), xtol=1e-3)))
+    except ValueError:
+        f_cov = None
+    out: dict[str, Any] = {
+        "t_split_s": round(float(t_mid), 1),
+        "gps_rms_2d_m": round(gps.rms_2d, 3),
+        "factor_for_median_on_first_half": f_med,
+        "factor_ml_on_first_half": round(f, 2),
+        "factor_for_coverage_on_first_half": None if f_cov is None else round(f_cov, 2),
+    }
+    factors = {"factor_1": 1.0, "factor_0": 0.0, "ml_factor": f}
+    if f_cov is not None:
+        factors["coverage_factor"] = f_cov
+    for label, k in factors.items():
+        out[label] = {
+            "first_half": _stats(_z2(e[first], k * Cm[first] + base[first]), 2),
+            "second_half": _stats(_z2(e[second], k * Cm[second] + base[second]), 2),
+        }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
@@ -315,6 +380,9 @@ def main() -> None:
     ap.add_argument(
         "--vp-chain-factor", action="store_true", help="choose the tree DB / Forestrix factor"
     )
+    ap.add_argument(
+        "--vp-ekf-map-factor", action="store_true", help="choose the EKF map-term factor on VP"
+    )
     ap.add_argument("--dump", default=None, help="with --vp: save PREFIX_BACKEND.npz (t, e, C, G)")
     a = ap.parse_args()
     out: dict[str, Any] = {}
@@ -324,6 +392,8 @@ def main() -> None:
         out["victoria_park"] = vp(a.backends, a.dump)
     if a.vp_chain_factor:
         out["victoria_park_chain_factor"] = vp_chain_factor()
+    if a.vp_ekf_map_factor:
+        out["victoria_park_ekf_map_factor"] = vp_ekf_map_factor()
     if a.vp_gnss:
         out["victoria_park_isam2_gnss"] = vp_gnss()
     print(json.dumps(out, indent=1))

@@ -24,15 +24,17 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   guesses off by U(-20, 20) m in x and y and U(-30, 30) deg (``--trials``, seed 0); success =
   accepted within 30 s of driving, within 1 m and 2 deg of session 1's end pose carried over
   the gap by odometry (``reloc_success_rate``, ``reloc_time_s_*``). Session 2 is then mapped on
-  the prior map (default: each tree held by its own Huber prior on its marginal; session 1's
-  odometry calibration carried over) and scored on the screened fixes after 800 s with its
-  own alignment, next to the same with the trees held jointly by session 1's tree information
+  the prior map (default: each tree held by its own Huber prior on its marginal inflated x4,
+  ``Isam2Config.prior_map_inflation``; session 1's odometry calibration carried over) and
+  scored on the screened fixes after 800 s with its own alignment, next to the same with the
+  trees held jointly by session 1's tree information
   (``session2_prior_map_joint``), on Gaussian per-tree priors without the calibration,
   without the prior map, and to the full single run on the same fixes.
   ``--reloc-per-trial``: session 2 mapped from every accepted trial's pose, joint vs Huber;
   ``--reloc-splits 400,600``: other session pairs (map 0-s, relocalise and map s-1549 s),
-  joint vs Huber vs the full run; per split the success rate over ``--trials`` start offsets,
-  false relocalisations, and acceptances from guesses whose 30-m search excludes the truth.
+  Huber (inflated / not) vs joint vs the full run, and the prior's consistency; per split
+  the success rate over ``--trials`` start offsets, false relocalisations, and acceptances
+  from guesses whose 30-m search excludes the truth.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
@@ -411,20 +413,40 @@ def _reloc_per_trial(
     return out
 
 
+#: session 2 on the prior map in ``--reloc-splits``: the default (per-tree Huber priors on the
+#: inflated marginals, ``Isam2Config.prior_map_inflation``), the same without inflation, the
+#: joint prior (inflated), and the prior held weakly (x100: session 2's own estimates of the
+#: prior trees, for ``prior_consistency``)
+SPLIT_PRIORS: list[tuple[str, dict[str, Any]]] = [
+    ("huber", {}),
+    ("huber_f1", {"prior_map_inflation": 1.0}),
+    ("joint", {"prior_map_robust": "none"}),
+    ("weak", {"prior_map_inflation": 100.0}),
+]
+
+
 def _reloc_splits(vp: Any, splits: list[float], full: Any, trials: int) -> dict[str, Any]:
     """Other session pairs: map 0-``s`` s, relocalise the ``s``-1549 s session from session
     1's end pose (odometry over the gap) off by (+15 m, -10 m, +20 deg) and by ``trials - 1``
     more offsets U(+-20 m, +-20 m, +-30 deg) (seed 1; success = accepted within 30 s, within
     1 m and 2 deg; false = accepted farther off), and from ``trials`` guesses 45-90 m away
     (the true start outside the 30-m search: any acceptance is false, ``outside_accepted``);
-    map it on the prior map from the (+15, -10, +20) relocalisation held jointly ("none") or
-    by per-tree Huber priors ("huber"), session 1's calibration carried over; ATE on the
-    screened fixes after the session's first scan (own alignment), next to the full single run
-    on the same fixes; process CPU of each session-2 run."""
+    map it on the prior map from the (+15, -10, +20) relocalisation, the prior held each way of
+    ``SPLIT_PRIORS`` (keys ``huber_m`` = the default, ``huber_f1_m``, ``joint_m``, ``weak_m``),
+    session 1's calibration carried over; ATE on the screened fixes after the session's first
+    scan (own alignment), next to the full single run on the same fixes; process CPU of each
+    session-2 run; ``prior_consistency`` (:func:`stemmap.slam.relocalise.prior_consistency` of
+    the weak run) and ``cover_dist_m`` (the relocalisation's default, the map's spacing)."""
     from stemmap.eval.trajectory import ate
     from stemmap.slam.graph import Isam2Slam
     from stemmap.slam.motion import compose, preintegrate
-    from stemmap.slam.relocalise import relocalise, with_calibration
+    from stemmap.slam.relocalise import (
+        RelocConfig,
+        map_spacing,
+        prior_consistency,
+        relocalise,
+        with_calibration,
+    )
 
     keep, off = vp.screened_gps(), vp.model.sensor_offset
     rng = np.random.default_rng(1)
@@ -476,18 +498,27 @@ def _reloc_splits(vp: Any, splits: list[float], full: Any, trials: int) -> dict[
                 ate(full.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=m2).rmse, 3
             ),
         }
+        row["cover_dist_m"] = round(map_spacing(r1.stem_map.xy, RelocConfig().inlier_dist), 2)
         if rel.ok:
             cal = (float(r1.stats["calib_offset_mean"]), float(r1.stats["calib_scale_mean"]))
             p2r = with_calibration(
                 dataclasses.replace(p2, initial_pose=rel.pose, prior_map=r1.stem_map), *cal
             )
-            for kind in ("none", "huber"):
+            for name, kw in SPLIT_PRIORS:
                 c0 = time.process_time()
-                res = Isam2Slam(prior_map_robust=kind).run(p2r)
+                res = Isam2Slam(**kw).run(p2r)
                 cpu = time.process_time() - c0
                 a = ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=m2)
-                row[f"{kind}_m"] = round(a.rmse, 3)
-                row[f"{kind}_cpu_s"] = round(cpu, 2)
+                row[f"{name}_m"] = round(a.rmse, 3)
+                row[f"{name}_cpu_s"] = round(cpu, 2)
+                if name == "weak":  # the prior's consistency with session 2's own estimates
+                    pc = prior_consistency(r1.stem_map, res.stem_map)
+                    row["prior_consistency"] = {
+                        "trees": pc.n_trees,
+                        "ratio_median": round(pc.ratio_median, 2),
+                        "ratio_mean": round(pc.ratio_mean, 2),
+                        "inflation_fit": round(pc.inflation, 2),
+                    }
         out[f"{split:g}"] = row
     return out
 
@@ -629,7 +660,7 @@ def main() -> None:
     ap.add_argument(
         "--reloc-splits",
         default="",
-        help="reloc part: also these session splits (s, comma list), joint vs Huber prior",
+        help="reloc part: also these session splits (s, comma list), the priors of SPLIT_PRIORS",
     )
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--passes", type=int, default=1, help=argparse.SUPPRESS)

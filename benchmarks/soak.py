@@ -33,7 +33,9 @@ Reported per back-end and repeat count:
 A warm-up run on the first 60 s compiles the numba kernels before timing. Absolute times are
 from a loaded shared machine (2 cores, ~8 users): compare the ratios.
 
-Usage: ``python benchmarks/soak.py --json [--repeats 10] [--backends isam2,ekf]``
+Usage: ``python benchmarks/soak.py --json [--repeats 10] [--backends isam2,ekf] [--set
+KEY=VALUE ...]`` (``--set`` overrides one setting of the back-end's config, as in
+``benchmarks/slam_victoria_park.py``, for A/B runs; echoed in the output)
 """
 
 from __future__ import annotations
@@ -124,27 +126,25 @@ def _rss_now_mb() -> float:
 def _count_graph_growth() -> list[int]:
     """[graph keyframes, measurement factors] added so far by :class:`Isam2Slam`, live.
 
-    Counted through the two bookkeeping classes the back-end calls for exactly these events
-    (:class:`~stemmap.slam._graph_revisits.PlaceCounter` ``add``: one per graph keyframe
-    after the first; :class:`~stemmap.slam._graph_revisits.TreeVisits` ``factored``: the
-    trees of one keyframe's measurement factors), wrapped for this process only.
+    Counted through the calls the back-end makes for exactly these events on its
+    :class:`~stemmap.slam._graph_revisits.RevisitGate` (``entered``: one per graph keyframe
+    after the first; ``factored``: the trees of one keyframe's measurement factors), wrapped
+    for this process only.
     """
     import stemmap.slam.graph as graph
 
     n = [0, 0]
 
-    class Places(graph.PlaceCounter):
-        def add(self, xy: Any, s: float = 0.0) -> None:
+    class Gate(graph.RevisitGate):
+        def entered(self, xy: Any, s: float, anchored: bool = False) -> None:
             n[0] += 1
-            super().add(xy, s)
+            super().entered(xy, s, anchored)
 
-    class Visits(graph.TreeVisits):
-        def factored(self, trees: Any) -> None:
+        def factored(self, trees: Any, s: float = 0.0) -> None:
             n[1] += int(trees.size)
-            super().factored(trees)
+            super().factored(trees, s)
 
-    graph.PlaceCounter = Places  # type: ignore[misc]
-    graph.TreeVisits = Visits  # type: ignore[misc]
+    graph.RevisitGate = Gate  # type: ignore[misc]
     return n
 
 
@@ -189,7 +189,9 @@ def _slope(y: list[float]) -> float | None:
     return round(float(np.polyfit(np.arange(len(y)), np.asarray(y, dtype=float), 1)[0]), 2)
 
 
-def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
+def _worker(
+    backend: str, repeats: int, data: str | None, settings: dict[str, Any]
+) -> dict[str, Any]:
     import stemmap.cli._map as cli_map
     import stemmap.slam.base as slam_base
     from stemmap.cli import app
@@ -230,7 +232,7 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
             return res
 
     def timed_make(name: str, **cfg: Any) -> Any:
-        return Timed(make(name, **cfg))
+        return Timed(make(name, **(cfg | settings)))
 
     def replayed(data_: Any, t_end: Any, t_start: float = 0.0) -> Any:
         return rep.problem(name=f"victoria_park x{repeats}"), {"kind": "victoria-park", "vp": rep}
@@ -282,6 +284,7 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
     return {
         "backend": backend,
         "repeats": repeats,
+        "settings": settings,
         "scans": len(rep.frames),
         "drive_s": round(spans[-1][1] - spans[0][0], 1),
         "peak_rss_mb": _rss_mb(),
@@ -317,19 +320,42 @@ def _worker(backend: str, repeats: int, data: str | None) -> dict[str, Any]:
     }
 
 
+def _parse_settings(ap: argparse.ArgumentParser, items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` overrides (values parsed as JSON, else kept as strings)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            ap.error(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key.strip()] = raw
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--data", default=None, help="Victoria Park folder (default: shared)")
     ap.add_argument("--repeats", type=int, default=10, help="passes over the log (default 10)")
     ap.add_argument("--backends", default="isam2,ekf", help="comma list")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a back-end config setting (repeatable; value parsed as JSON; give one "
+        "back-end with --backends when the setting exists only in its config)",
+    )
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--result", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.repeats < 1:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    settings = _parse_settings(ap, args.set)
     if args.worker:
-        r = _worker(args.worker, args.repeats, args.data)
+        r = _worker(args.worker, args.repeats, args.data, settings)
         Path(args.result).write_text(json.dumps(r))
         return
     results: dict[str, Any] = {}
@@ -340,6 +366,8 @@ def main() -> None:
                 res_path = Path(tmp) / f"{name}.json"
                 cmd = [sys.executable, __file__, "--worker", be, "--repeats", str(n)]
                 cmd += ["--result", str(res_path)] + (["--data", args.data] if args.data else [])
+                for item in args.set:
+                    cmd += ["--set", item]
                 t0 = time.perf_counter()
                 proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
                 if proc.returncode != 0 or not res_path.exists():
@@ -350,6 +378,7 @@ def main() -> None:
     out = {
         "benchmark": "soak",
         "repeats": args.repeats,
+        "settings": settings,
         "results": results,
         "scenario": {
             "dataset": "ACFR Victoria Park (text redistribution), passes alternately forward "

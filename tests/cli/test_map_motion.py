@@ -103,7 +103,7 @@ def test_lidar_motion_beats_a_scaled_wheel_odometry(log: Path, tmp_path: Path) -
 def test_visual_and_fused_motion(log: Path, tmp_path: Path) -> None:
     """The visual source alone follows its 3 % scale and 0.3 deg/s drift (measured path RMSE
     of its treedb map 0.52 m); fused with the lidar the path is within 0.10 m of the truth
-    (measured 0.031 m; the lidar's scan-to-map poses anchor it, lidar alone 0.023 m), and it
+    (measured 0.037 m; the lidar's scan-to-map poses anchor it, lidar alone 0.022 m), and it
     is not the lidar alone (the camera changes it). 0.10 m: 3x the measured value, and 5x
     below the visual-only error, so a fused path that ignored the lidar would fail."""
     vo = str(log.with_name("vo.csv"))
@@ -124,7 +124,11 @@ def test_visual_and_fused_motion(log: Path, tmp_path: Path) -> None:
     assert fused <= 0.10, fused
     a = read_trajectory_csv(tmp_path / "f" / "trajectory.csv").poses
     b = read_trajectory_csv(tmp_path / "l" / "trajectory.csv").poses
-    assert np.max(np.abs(a - b)) > 1e-4  # the visual source took part
+    # the visual source took part: the fused path is 0.030 m RMS from the lidar-only path
+    # (measured); with the camera dropped from the EKF (lidar poses through the same filter)
+    # it is 0.018 m, so a small difference alone would not show the camera was fused
+    rms = float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+    assert rms > 0.024, rms
 
 
 def test_deprecated_odometry_lidar_still_works(log: Path, tmp_path: Path) -> None:

@@ -128,20 +128,17 @@ def test_prior_map_uses_the_joint_information(
     rl = _metrics(second)["relocalisation"]
     assert rl["prior"] == "per-tree huber" and "not used" in rl["note"]
 
-    # with prior_map_robust = "none" (the iSAM2 settings' default swapped for this test): the
-    # joint prior factor reaches the graph
-    import functools
-
-    monkeypatch.setattr(
-        graph, "Isam2Config", functools.partial(graph.Isam2Config, prior_map_robust="none")
-    )
+    # --prior-type joint (Isam2Config.prior_map_robust = "none"): the joint prior factor
+    # reaches the graph
     used.clear()
     joint = sim_log / "m_isam2_joint"
     args[args.index(str(second))] = str(joint)
+    args += ["--prior-type", "joint"]
     res = run.invoke(app, args)
     assert res.exit_code == 0, res.output
     assert used and used[0]
-    assert _metrics(joint)["relocalisation"]["prior"] == "joint"
+    rl = _metrics(joint)["relocalisation"]
+    assert rl["prior"] == "joint" and rl["prior_map_inflation"] == 4.0
 
     npz.unlink()  # without it: per-tree Gaussian priors, and said so
     used.clear()
@@ -152,3 +149,10 @@ def test_prior_map_uses_the_joint_information(
     assert used and not any(used)
     rl = _metrics(third)["relocalisation"]
     assert rl["prior"] == "per-tree" and "trees_information.npz" in rl["note"]
+
+
+def test_prior_type_needs_a_prior_map(sim_log: Path) -> None:
+    args = ["map", str(sim_log / "run.npz"), "--prior-type", "cauchy"]
+    res = CliRunner().invoke(app, [*args, "--out", str(sim_log / "m_no_prior")])
+    assert res.exit_code != 0
+    assert "--prior-type needs --prior-map" in res.output

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 import stemmap.cloud.slicefit as slicefit
 from stemmap.cli import app
-from stemmap.cloud.munjer import level_to_ground
+from stemmap.cloud.munjer import CLUSTER_STAGES, level_to_ground, munjer_clusters
 from stemmap.cloud.stems import (
     CloudStems,
     MunjerConfig,
@@ -238,6 +238,42 @@ def test_munjer_eccentricity_window() -> None:
         MunjerConfig(max_tilt_deg=0.0)
     with pytest.raises(ConfigError):
         MunjerConfig(eccentricity_axes="smallest")
+
+
+def test_munjer_clusters_is_the_detector_path() -> None:
+    """:func:`munjer_clusters` keeps every DBSCAN cluster with the first stage it failed, and
+    :func:`detect_stems_munjer` returns exactly its accepted clusters (one code path for the
+    detector and benchmarks/munjer2025_causes.py): the trunk sheet is accepted, the leafy blob
+    is too round (e < 10), the flat board too flat (e > 20), and with the 0.1 m circle-fit limit
+    replaced by 1 mm the sheet fails at the fit."""
+    rng = np.random.default_rng(4)
+    t = rng.uniform(-0.9, 0.9, 600)
+    rings = rng.choice([-0.4, -0.275, -0.15], 600)
+    rr = 0.2 + rng.normal(0, 0.01, 600)
+    sheet = np.column_stack((5.0 - rr * np.cos(t), rr * np.sin(t), rings))
+    blob = rng.normal([3.0, -4.0, -0.25], 0.08, (400, 3))
+    board = np.column_stack(
+        (np.full(400, 7.0), rng.uniform(2.0, 3.0, 400), rng.uniform(-0.45, -0.05, 400))
+    )
+    xyz = np.vstack((sheet, blob, board))
+    cl = munjer_clusters(xyz)
+    assert len(cl) == 3 and cl.points.shape[0] == cl.labels.shape[0]
+    stage = dict(zip(np.round(cl.centroid[:, 0]).astype(int), cl.stage(), strict=True))
+    assert stage == {5: "accepted", 3: "eccentricity_low", 7: "eccentricity_high"}
+    assert set(cl.stage()) <= set(CLUSTER_STAGES)
+    det = detect_stems_munjer(xyz)
+    k = np.flatnonzero(cl.accepted)
+    np.testing.assert_array_equal(det.xy, cl.center[k])
+    np.testing.assert_array_equal(det.eccentricity, cl.eccentricity[k])
+    # unfitted clusters carry no circle
+    assert np.isnan(cl.center[~(cl.dense & cl.in_window & cl.vertical)]).all()
+    strict = munjer_clusters(xyz, MunjerConfig(fit_std_max=0.001))
+    assert sorted(strict.stage()) == sorted(["circle_fit", "eccentricity_low", "eccentricity_high"])
+    assert len(detect_stems_munjer(xyz, MunjerConfig(fit_std_max=0.001))) == 0
+    # joined captures: minPts from one capture (40 captures of 15 points each fail it)
+    sparse = munjer_clusters(sheet, frame_ids=np.arange(600) % 40)
+    assert list(sparse.stage()) == ["min_points"]
+    assert "pass-through" in munjer_clusters(np.zeros((3, 3))).reason
 
 
 def test_munjer_joined_frames_need_one_dense_frame() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -117,6 +118,12 @@ def test_gate_rejects_a_slip_event():
     assert abs(gated.trajectory.poses[-1, 0] - x_true) < 0.1
     assert abs(plain.trajectory.poses[-1, 0] - x_true) > 0.3
     assert gated.n_rejected[0] >= 40  # ~50 slipping samples
+    # every rejection count carries its source's label (unnamed sources: source<i>)
+    assert gated.source_names == ("source0", "source1")
+    named = fuse_odometry(
+        dataclasses.replace(wheel, name="wheel"), dataclasses.replace(visual, name="camera")
+    )
+    assert dict(zip(named.source_names, named.n_rejected.tolist(), strict=True))["wheel"] >= 40
 
 
 def test_velocities_from_poses_on_a_circle():

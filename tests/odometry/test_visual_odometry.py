@@ -186,3 +186,37 @@ def test_source_noise_scales_with_the_inlier_count():
     assert np.allclose(const.sigma_speed, 0.05)
     with pytest.raises(ConfigError):
         visual_odometry_source(res, vfc, sigma_speed=0.05, sigma_yaw_rate=0.01, inlier_exponent=-1)
+
+
+@pytest.mark.parametrize("mode", ["stereo", "rgbd"])
+def test_keyframe_points_have_the_true_depth(drive, mode):
+    """Triangulation itself (stereo disparity, or the depth image): keyframe 3D points made at
+    frames 0, 10 and 25 against the renderer's true depth at their (rounded) pixels. Measured:
+    stereo median z / z_true 1.012-1.018 per frame (quartiles 0.96-1.07: 0.1 px of disparity
+    is 2.6 % at 4.5 m), RGB-D exactly 1 (bilinear on the true depth, 85-134 points). A 5 %
+    baseline or depth-scale error fails here; the RGB-D drive test above does not see the
+    latter (that path is 2.2 % short, and 5 % longer depths make it 2.7 % long). Every point
+    back-projects to its pixel."""
+    ratios = []
+    for k in (0, 10, 25):
+        f = drive.frames[k]
+        if mode == "stereo":
+            cal, frame = drive.stereo, VisualFrame(f.time, f.left, f.right)
+        else:
+            cal, frame = drive.rgbd, VisualFrame(f.time, f.left, depth=f.depth)
+        vo = VisualOdometry(cal)
+        assert vo.process(frame) == VoStatus.KEYFRAME
+        pts, uv = vo._kf_pts, vo._uv  # the keyframe's points (no public accessor)
+        assert pts.shape[0] >= 80
+        iu, iv = np.rint(uv).astype(int).T
+        z_true = f.depth[iv, iu]
+        ok = np.isfinite(z_true)
+        ratios.append(pts[ok, 2] / z_true[ok])
+        np.testing.assert_allclose(pts[:, 0] / pts[:, 2] * cal.fx + cal.cx, uv[:, 0], atol=1e-3)
+        np.testing.assert_allclose(pts[:, 1] / pts[:, 2] * cal.fy + cal.cy, uv[:, 1], atol=1e-3)
+    r = np.concatenate(ratios)
+    if mode == "stereo":
+        assert abs(np.median(r) - 1.0) < 0.03
+        assert np.median(np.abs(r - 1.0)) < 0.08
+    else:
+        assert np.median(np.abs(r - 1.0)) < 1e-3

@@ -167,3 +167,64 @@ def test_false_alarms_skip_references_partial_rings_far_and_incomplete_slices():
     rows = [(3.0, 0.3, 0.5), (4.0, 0.3, math.nan)]
     assert bench.score(rows, 2, 2, 1)["all"]["precision"] == 0.5
     assert bench.score(rows, 2, 2, -1)["all"]["precision"] is None
+
+
+def _diagnose_bench():
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    _real_geometry_bench()  # the diagnosis imports it as ``real_geometry``
+    sys.modules.setdefault("real_geometry", sys.modules["real_geometry_bench"])
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "real_geometry_diagnose.py"
+    spec = importlib.util.spec_from_file_location("real_geometry_diagnose_bench", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _slice_of(ring):
+    from stemmap.eval.real_slices import RealSlice
+
+    got = ring_reference(ring)
+    assert got is not None
+    ref, inl = got
+    lab = np.where(inl, 0, -1).astype(np.int64)
+    return RealSlice("test", ring, lab, [ref], [])
+
+
+def test_reference_check_agrees_on_a_circle_and_not_on_an_ellipse():
+    diag = _diagnose_bench()
+    circ = diag.reference_check(_slice_of(_ring((1.0, 2.0), 0.15, 0.002)), 0)
+    assert circ["girth_diameter_cm"] == pytest.approx(30.0, abs=0.1)
+    assert circ["area_diameter_cm"] == pytest.approx(30.0, abs=0.1)
+    assert circ["ring_diameter_cm"] == pytest.approx(30.0, abs=0.05)
+    # a 4-lobed outline r = 15 + 1.5 cos(4 phi) cm (every point within the ring fit's
+    # tolerance): girth diameter (perimeter / pi) 31.17 cm, area diameter 30.07 cm; the
+    # 36-sector polygon cuts the lobes' curvature short by ~0.1 cm
+    phi = np.linspace(-math.pi, math.pi, 4000, endpoint=False)
+    rr = 0.15 + 0.015 * np.cos(4.0 * phi)
+    lobed = np.column_stack((rr * np.cos(phi), rr * np.sin(phi)))
+    got = diag.reference_check(_slice_of(lobed), 0)
+    assert got["girth_diameter_cm"] == pytest.approx(31.17, abs=0.4)
+    assert got["girth_diameter_cm"] > got["area_diameter_cm"] + 0.6
+    assert got["area_diameter_cm"] == pytest.approx(30.07, abs=0.15)
+    lo, hi = got["sector_radius_off_ring_cm"]
+    assert lo < -1.2 and hi > 1.2
+
+
+def test_found_cause_and_cause_table_shares_add_up_to_the_bias():
+    diag = _diagnose_bench()
+    assert diag._found_cause(2.0, 9.0, True, 0.0) == "ok"
+    assert diag._found_cause(6.0, 0.5, True, 0.0) == "merge_bias"  # the extra return widened it
+    assert diag._found_cause(6.0, math.nan, True, 0.0) == "merge_bias"
+    assert diag._found_cause(6.0, 5.5, True, 0.002) == "fit_bias:partial_arc"  # same alone
+    assert diag._found_cause(-6.0, -6.0, False, 0.02) == "fit_bias:bark"
+    rows = [("ok", 3.0, 1.0), ("merge_bias", 5.0, 7.0), ("merge:depth", 4.0, math.nan)]
+    rows.append(("ok", 12.0, 2.0))  # beyond 10 m: counted, not in the error
+    tab = diag.cause_table(rows)
+    assert tab["merge:depth"] == {"n": 1}
+    assert tab["ok"]["n"] == 2 and tab["ok"]["within_10m"]["n"] == 1
+    shares = tab["ok"]["bias_share_cm"] + tab["merge_bias"]["bias_share_cm"]
+    assert shares == pytest.approx((1.0 + 7.0) / 2)

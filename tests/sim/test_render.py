@@ -78,6 +78,13 @@ def test_textures_are_fixed_in_the_world_and_stereo_is_consistent(scene):
     same = np.median(np.abs(a - b))
     shuffled = np.median(np.abs(a - np.roll(b, 997, axis=0)))
     assert same < 0.3 * shuffled
+    # the texture itself, not only the shading, is the same: 90 % of the warped pixels within
+    # 2 grey levels (measured; nearest-pixel warping); a texture drawn anew per render (white
+    # noise in place of the world-hashed lattice) gives 12 and passes the medians above
+    d90 = np.percentile(np.abs(a - b), 90)
+    assert d90 < 0.3 * np.mean(np.abs(a - np.roll(b, 997, axis=0)))  # 2 against 0.3 * 14.2
+    again = render_stereo(s3, traj, CAM, rng=0)[1]
+    np.testing.assert_array_equal(again.left, f1.left)  # deterministic for one pose
     # right image: the same point at u - fx B / z
     ur = np.rint(u - CAM.fx * CAM.baseline / z).astype(int)
     ok = ur >= 0

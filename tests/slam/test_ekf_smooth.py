@@ -295,3 +295,35 @@ def test_map_propagated_covariance_equals_the_dense_product():
     want = dense[np.arange(n), np.arange(n)]
     got = map_propagated_covariance(diag, off, frame, lm, Bm, S, columns=4)
     np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-12)
+
+
+def test_map_cov_inflation_scales_only_the_map_term():
+    """``map_cov_inflation`` (EkfConfig, default 1) multiplies the map's share of the pose
+    covariance and nothing else: the path is the same, ``C(F) = C(0) + F (C(1) - C(0))``, for
+    the joint map term and the marginal fallback alike; a negative factor is a ConfigError."""
+    import pytest
+
+    from stemmap.errors import ConfigError
+    from stemmap.slam.ekf import EkfConfig
+
+    rng = np.random.default_rng(5)
+    n = 20
+    th = np.linspace(0.0, 0.5, n)
+    true = np.column_stack((12 * np.sin(th), 12 * (1 - np.cos(th)), th))
+    lm = rng.uniform(-15, 25, size=(12, 2))
+    S = 0.1**2 * np.eye(24) + 0.05**2  # correlated map error
+    marg = np.array([S[2 * j : 2 * j + 2, 2 * j : 2 * j + 2] for j in range(12)])
+    obs = _observe(true, lm, (1.0, 0.0), 12.0, 2, rng, (0.2, math.radians(1.0)))
+    deltas = _relative(true[:-1], true[1:])
+    covs = np.broadcast_to(np.diag([0.05**2, 0.02**2, 0.01**2]), (n - 1, 3, 3)).copy()
+    R1 = np.diag([0.2**2, math.radians(1.0) ** 2])
+    for joint in (S, None):
+        args = (true, deltas, covs, obs, lm, marg, (1.0, 0.0), R1)
+        runs = {f: smooth_path(*args, map_cov=joint, map_cov_inflation=f) for f in (0.0, 1.0, 3.0)}
+        np.testing.assert_array_equal(runs[0.0][0], runs[3.0][0])
+        c0, c1, c3 = (runs[f][1] for f in (0.0, 1.0, 3.0))
+        assert np.abs(c1 - c0).max() > 1e-4  # the map term is there
+        np.testing.assert_allclose(c3, c0 + 3.0 * (c1 - c0), rtol=1e-9, atol=1e-12)
+    assert EkfConfig().map_cov_inflation == 1.0
+    with pytest.raises(ConfigError, match="map_cov_inflation"):
+        EkfConfig(map_cov_inflation=-1.0)

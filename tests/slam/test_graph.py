@@ -244,13 +244,15 @@ def test_isam2_and_ekf_close_the_loop_on_the_simulator():
     """The full chain on the project's simulator: ray-cast scans of a random stand, the scan
     trunk detector, noisy unicycle odometry (1 % speed scale, 0.2 deg/s yaw bias), one lap."""
     from stemmap.cli._map import _simulated
+    from stemmap.cli._map_problems import calibrates_odometry
 
-    problem, ctx = _simulated(1, 150, 60.0)
-    truth = ctx["run"].vehicle_poses
-    true_disp = between(truth.poses[0], truth.poses[-1])[:2]
-    lc_dr = loop_closure_error(dead_reckoning(problem), true_disp)
-    assert lc_dr > 3.0  # measured 8.3 m
     for name in ("isam2", "ekf"):
+        # the motion noise each back-end is handed by `stemmap map --sim`
+        problem, ctx = _simulated(1, 150, 60.0, odometry_calibrated=calibrates_odometry(name))
+        truth = ctx["run"].vehicle_poses
+        true_disp = between(truth.poses[0], truth.poses[-1])[:2]
+        lc_dr = loop_closure_error(dead_reckoning(problem), true_disp)
+        assert lc_dr > 3.0  # measured 8.3 m
         res = make_backend(name).run(problem)
         lc = loop_closure_error(res.trajectory, true_disp)
         # issue target: >= 3x smaller than dead reckoning (measured ~0.1-0.2 m)
@@ -480,19 +482,22 @@ def test_calibration_lsq_recovers_a_slowly_varying_calibration(rng):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1, 3, 4, 6])
+@pytest.mark.parametrize("seed", [0, 1, 3, 4, 6])
 def test_isam2_closes_the_demo_loop_with_biased_wheel_odometry(seed):
     """The demo scenario (cli/_demo.py): 'wheel' odometry with a 0.2 deg/s yaw-rate bias and a
     1 % speed-scale error. Without the odometry calibration the graph treated the bias as
     white noise and seed 4 ended 1.25 m from the truth (seed 6: 0.90 m; EKF 0.02 / 0.12 m).
-    Measured with it, seeds 1, 3, 4, 6: loop-closure error 0.006 / 0.017 / 0.018 / 0.129 m,
-    trajectory RMSE 0.08 / 0.08 / 0.03 / 0.18 m. Tolerances: 0.3 m loop error / 0.3 m RMSE
-    (~2x the worst seed, 4x below the failure)."""
+    With it and the generator's white part as the motion noise (`sim_problem(...,
+    odometry_calibrated=True)`, Dec 3), seeds 0, 1, 3, 4, 6: loop-closure error 0.006 / 0.009 /
+    0.027 / 0.022 / 0.135 m, trajectory RMSE 0.11 / 0.08 / 0.09 / 0.04 / 0.17 m. Seed 0 guards
+    the double count of the bias (handed the bias as white noise too it lost the loop: 1.87 m
+    RMSE, docs/algorithms/slam.md "Motion noise of simulated runs"). Tolerances: 0.3 m loop
+    error / 0.3 m RMSE (~2x the worst seed, 4x below the failure)."""
     from stemmap.cli._demo import _stand_and_run
     from stemmap.cli._map import sim_problem, slam_metrics
 
     run = _stand_and_run(seed, 120)
-    problem, ctx = sim_problem(run)
+    problem, ctx = sim_problem(run, odometry_calibrated=True)  # as `stemmap demo` runs it
     res = make_backend("isam2").run(problem)
     m, _, _ = slam_metrics(problem, res, ctx)
     assert m["loop_closure_error_m"] < 0.3

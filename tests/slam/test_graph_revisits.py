@@ -14,6 +14,8 @@ from stemmap.slam._graph_localise import localise_on_map
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     PlaceCounter,
+    PlaceVisits,
+    RevisitGate,
     TreeVisits,
     anchor_prior,
     compose_increments,
@@ -98,7 +100,8 @@ def test_tree_bound_keeps_young_trees_from_growing_the_graph(five_laps):
     off, every lap would otherwise bring its keyframes in; path and map stay as good."""
     truth, trees, _reduced, _full = five_laps
     problem = loop_problem(2, laps=5.0)[0]
-    cfg = {"revisit_factors": 40, "revisit_keyframes": 10**6}  # area bound off
+    cfg = {"revisit_factors": 40, "revisit_keyframes": 10**6, "revisit_place_visits": 0}
+    # (the area bounds off)
     res = {s: Isam2Slam(**cfg, revisit_settle_visits=s).run(problem) for s in (0, 2)}
     k0, k2 = (res[s].stats["keyframes_in_graph"] for s in (0, 2))
     assert k2 < 0.6 * k0, (k0, k2)  # measured 262 -> 118
@@ -109,6 +112,25 @@ def test_tree_bound_keeps_young_trees_from_growing_the_graph(five_laps):
         assert m.n_matched >= 0.9 * len(r.stem_map)
     assert rms[2] < 0.15 and rms[2] < 1.3 * rms[0] + 0.01  # measured 0.070 -> 0.077 m
     assert abs(len(res[2].stem_map) - len(res[0].stem_map)) <= 0.05 * len(res[0].stem_map) + 1
+
+
+def test_visit_bound_keeps_young_trees_from_growing_the_graph(five_laps):
+    """``revisit_place_visits``: where the laps drove past 2 / 3 times before, young trees
+    (``revisit_factors = 40``: young for several laps) pull no keyframe in, though no place
+    holds graph keyframes enough for the keyframe bound (off here): the graph stops growing
+    after the first laps, path and map stay as good."""
+    truth, trees, _reduced, _full = five_laps
+    problem = loop_problem(2, laps=5.0)[0]
+    cfg = {"revisit_factors": 40, "revisit_keyframes": 10**6}
+    res = {n: Isam2Slam(**cfg, revisit_place_visits=n).run(problem) for n in (0, 2, 3)}
+    k = {n: r.stats["keyframes_in_graph"] for n, r in res.items()}
+    assert k[0] == res[0].stats["keyframes"]  # off: every keyframe, young trees everywhere
+    assert k[2] < k[3] < 0.7 * k[0], k  # measured 262 / 105 / 157 of 262
+    for r in res.values():
+        rms = math.sqrt(np.mean(np.hypot(*(r.trajectory.xy - truth[:, :2]).T) ** 2))
+        assert rms < 0.1, rms  # measured 0.070 / 0.075 / 0.077 m
+        assert match_points(r.stem_map.xy, trees, gate=0.5).n_matched >= 0.9 * len(r.stem_map)
+        assert abs(len(r.stem_map) - len(res[0].stem_map)) <= 0.05 * len(res[0].stem_map) + 1
 
 
 def test_anchor_prior_holds_the_tracked_pose_with_the_composed_covariance(rng):
@@ -138,7 +160,10 @@ def test_anchored_keyframes_keep_path_and_map_quality(five_laps):
     frame within the gates below of the truth) and the map holds the same trees."""
     truth, trees, reduced, _full = five_laps
     problem = loop_problem(2, laps=5.0)[0]
-    anch = Isam2Slam(revisit_factors=15, revisit_anchor_after=1).run(problem)
+    # (the visit bound off: on these laps it leaves every revisit out, nothing to anchor)
+    anch = Isam2Slam(revisit_factors=15, revisit_anchor_after=1, revisit_place_visits=0).run(
+        problem
+    )
     assert anch.stats["keyframes_anchored"] > 0
     assert anch.stats["keyframes_anchored"] >= reduced.stats["keyframes_anchored"]
     rms = {}
@@ -346,6 +371,80 @@ def test_place_counter_tells_visits_by_distance_not_time():
     assert pc.full(np.zeros(2), 55.0)  # back after 50 m of driving: a revisit
     with pytest.raises(ConfigError, match="revisit_after_m"):
         Isam2Config(revisit_after_m=-1.0)
+
+
+def test_place_visits_count_every_keyframe_by_visit():
+    """Keyframes in or out of the graph count; keyframes of one visit (a stop, a slow pass,
+    several keyframes within the disc) are one visit; storage stops at ``cap`` visits."""
+    pv = PlaceVisits(2.0, after_m=50.0, cap=3)
+    for s in (0.0, 1.5, 3.0, 3.0, 3.0):  # one pass, a stop
+        pv.add(np.array([s / 3.0, 0.0]), s)
+    assert pv.count(np.zeros(2)) == 1
+    assert not pv.visited(np.zeros(2), 40.0, 1)  # still that visit (< 50 m driven)
+    assert pv.visited(np.zeros(2), 53.0, 1)  # it ended >= 50 m back
+    pv.add(np.array([0.5, 0.3]), 200.0)  # second visit
+    pv.add(np.array([2.5, 0.0]), 400.0)  # third visit, 2.5 m from (0, 0): outside the disc
+    assert pv.count(np.zeros(2)) == 2 and pv.count(np.array([1.0, 0.0])) == 3
+    assert not pv.visited(np.zeros(2), 500.0, 3)
+    assert not pv.visited(np.array([1.0, 0.0]), 420.0, 3)  # the third visit is too recent
+    assert pv.visited(np.array([1.0, 0.0]), 450.0, 3)
+    assert not pv.visited(np.array([1.0, 0.0]), 1e9, 0)  # 0 = off
+    n_stored = sum(len(c) for c in pv._cells.values())
+    pv.add(np.array([1.0, 0.0]), 600.0)  # the place holds cap = 3 visits: not stored
+    assert sum(len(c) for c in pv._cells.values()) == n_stored
+    assert pv.count(np.array([-30.0, 7.0])) == 0
+    with pytest.raises(ConfigError, match="revisit_place_visits"):
+        Isam2Config(revisit_place_visits=-1)
+
+
+def test_revisit_gate_visits_bound_young_trees():
+    """A keyframe at a place driven past ``revisit_place_visits`` times before stays out with
+    a young tree (in the graph, few factors); a new tree still brings it in; with the bound
+    off the young tree brings it in on every visit."""
+    in_graph = np.array([True, True, False])
+    n_f = np.array([30, 2, 0])
+    young, new = np.array([0, 1]), np.array([0, 2])
+    xy = np.array([5.0, 5.0])
+    for n_visits, want in ((2, [False, False, True]), (0, [False, False, False])):
+        gate = RevisitGate(Isam2Config(revisit_place_visits=n_visits), np.zeros(2))
+        got = [gate.leave_out(xy, s, young, in_graph, n_f) for s in (100.0, 300.0, 500.0)]
+        assert got == want, (n_visits, got)
+        assert not gate.leave_out(xy, 700.0, new, in_graph, n_f)
+        assert not gate.leave_out(xy, 900.0, young, in_graph, n_f, allowed=False)
+
+
+def test_revisit_gate_keeps_the_keyframe_that_closes_a_loop():
+    """A graph chain that mapped 80 m of new ground (fresh trees only) comes back to tree 0,
+    last factored 90 m of driving back: the keyframe enters although tree 0 is well mapped
+    (redundant); anchored, or once the chain is tied, or with the rule off, it stays out."""
+    in_graph = np.ones(3, dtype=bool)
+    n_f = np.array([30, 30, 30])
+    back = np.array([0])
+
+    def excursion(cfg):
+        gate = RevisitGate(cfg, np.zeros(2))
+        gate.factored(back, 0.0)
+        for s in np.arange(10.0, 81.0, 10.0):  # a chain on new ground: tree 1 kept fresh
+            gate.entered(np.array([s, 0.0]), s)
+            gate.factored(np.array([1]), s)
+        return gate
+
+    gate = excursion(Isam2Config(revisit_place_visits=1))
+    far = np.array([-300.0, 0.0])  # a place without visits: only the loop rule decides
+    assert gate.leave_out(far, 90.0, back, in_graph, n_f, linked=False)  # anchored: no loop
+    assert not gate.leave_out(far, 90.0, back, in_graph, n_f)  # the loop closure enters
+    assert gate.n_loops == 1
+    gate.entered(far, 90.0)
+    gate.factored(back, 90.0)  # tree 0 measured from the chain: tied
+    assert gate.leave_out(far, 95.0, back, in_graph, n_f)
+    off = excursion(Isam2Config(revisit_place_visits=1, revisit_keep_loops=False))
+    assert off.leave_out(far, 90.0, back, in_graph, n_f) and off.n_loops == 0
+    # a short chain (tied at its start, 40 m of graph keyframes) is no loop
+    short = RevisitGate(Isam2Config(), np.zeros(2))
+    short.factored(back, 0.0)
+    short.entered(np.array([40.0, 0.0]), 40.0)
+    short.factored(np.array([1]), 40.0)
+    assert short.leave_out(far, 90.0, back, in_graph, n_f)
 
 
 def test_tree_visits_settle_after_factors_on_earlier_visits():

@@ -132,11 +132,19 @@ def test_a_session_driving_out_of_the_map_relocalises_on_few_trees():
     edge = stand[np.argsort(-stand[:, 0])[:5]]  # the 5 easternmost mapped trees
     beyond = np.random.default_rng(5).uniform((120.0, 20.0), (140.0, 80.0), (8, 2))
     local = _to_local(T, np.vstack((edge, beyond)))
-    cfg = RelocConfig(search_radius=None, search_angle=None)
+    # a global search with the 8-m cover distance of the earlier default (this stand's median
+    # spacing, the default now, 5.2 m, leaves a rival 4-inlier placement uncontradicted: the
+    # global search calls it ambiguous, 4 vs 5; docs/algorithms/slam.md)
+    cfg = RelocConfig(search_radius=None, search_angle=None, cover_dist=8.0)
     Tb, n_in, _, why = match_to_map(local, stand, cfg)
     assert Tb is not None, why
     assert n_in == 5
     np.testing.assert_allclose(Tb, T, atol=1e-6)
+    # with the default (map spacing) and a start guess 10 m / 15 deg off: found
+    guess = (T[0] + 8.0, T[1] - 6.0, T[2] + math.radians(15.0))
+    Tg, n_g, _, why_g = match_to_map(local, stand, RelocConfig(), guess)
+    assert Tg is not None and n_g == 5, why_g
+    np.testing.assert_allclose(Tg, T, atol=1e-6)
     # with the conflict test's cover distance larger than the gap to the outside trees, they
     # would count as contradictions and the same match is refused
     far = RelocConfig(search_radius=None, search_angle=None, cover_dist=60.0)
@@ -384,3 +392,89 @@ def test_with_calibration_corrects_the_controls(sessions):
     np.testing.assert_allclose(q.controls.speed, np.asarray(p2.controls.speed) * 1.02)
     with pytest.raises(InputError, match="finite"):
         with_calibration(p2, math.nan, 0.0)
+
+
+def test_map_spacing_sets_the_cover_distance():
+    """The default ``cover_dist`` is the map's median nearest-neighbour spacing (at least
+    2 ``inlier_dist``). Trees just beyond the stand's edge, farther from every map tree than
+    the stand's spacing (5.2 m here) but nearer than 8 m, are outside the map for the default
+    and conflicts for a fixed 8 m, which refuses the true match."""
+    from stemmap.slam.relocalise import map_spacing
+
+    grid = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0)), -1).reshape(-1, 2) * 5.0
+    assert map_spacing(grid) == pytest.approx(5.0)
+    assert map_spacing(grid * 0.2, inlier_dist=0.8) == pytest.approx(1.6)  # the floor
+    assert map_spacing(grid[:1], inlier_dist=0.8) == pytest.approx(1.6)
+    stand = _stand(4)
+    T = np.array([90.0, 50.0, 0.4])
+    edge = stand[np.argsort(-stand[:, 0])[:5]]
+    x0 = stand[:, 0].max()
+    beyond = np.random.default_rng(5).uniform((x0 + 5.5, 20.0), (x0 + 7.5, 80.0), (8, 2))
+    gap = np.hypot(*(beyond[:, None] - stand[None]).transpose(2, 0, 1)).min(axis=1)
+    spacing = map_spacing(stand, 0.8)
+    assert spacing < gap.min() and gap.min() < 8.0  # the premise
+    local = _to_local(T, np.vstack((edge, beyond)))
+    cfg = RelocConfig()  # searched around a start guess 10 m / 15 deg off
+    guess = (T[0] + 8.0, T[1] - 6.0, T[2] + math.radians(15.0))
+    Tb, n_in, _, why = match_to_map(local, stand, cfg, guess)
+    assert Tb is not None, why
+    assert n_in == 5
+    np.testing.assert_allclose(Tb, T, atol=1e-6)
+    fixed = dataclasses.replace(cfg, cover_dist=8.0)
+    T8, _, _, why8 = match_to_map(local, stand, fixed, guess)
+    assert T8 is None and ("contradicted" in why8 or "mapped stand" in why8), why8
+
+
+def test_inflate_prior_scales_covariances_and_information(rng):
+    from stemmap.slam.relocalise import inflate_prior
+
+    xy = rng.uniform(0, 20, (3, 2))
+    m = _map_with_information(xy, np.eye(6) * 4.0)
+    m4 = inflate_prior(m, 4.0)
+    assert inflate_prior(m, 1.0) is m
+    np.testing.assert_allclose(m4.xy, m.xy)
+    for t, t4 in zip(m, m4, strict=True):
+        np.testing.assert_allclose(t4.cov, 4.0 * np.asarray(t.cov))
+        assert t4.n_obs == t.n_obs and t4.id == t.id
+    np.testing.assert_allclose(m4.information, np.eye(6))
+    with pytest.raises(InputError):
+        inflate_prior(m, 0.0)
+
+
+def test_prior_consistency_recovers_the_scale_of_an_overconfident_prior(rng):
+    """Session trees drawn around the prior ones with covariance ``k P1 + P2``: the median
+    normalised innovation over the chi-squared(2) median is ~k and the fitted inflation ~k
+    (k = 1: consistent); trees the session saw fewer than 3 more times, or new trees
+    (ids past the prior map), are not compared."""
+    from stemmap.slam.relocalise import prior_consistency
+    from stemmap.types import Tree
+
+    n = 600
+    xy = rng.uniform(0, 200, (n, 2))
+
+    def spd(scale: float) -> np.ndarray:
+        a = rng.normal(0.0, scale, (n, 2, 2))
+        return np.einsum("nij,nkj->nik", a, a) + np.eye(2) * (0.2 * scale) ** 2
+
+    p1, p2 = spd(0.2), spd(0.1)
+    prior = StemMap(
+        tuple(
+            Tree(id=j, x=float(p[0]), y=float(p[1]), diameter=0.3, cov=p1[j], n_obs=10)
+            for j, p in enumerate(xy)
+        )
+    )
+    for k in (1.0, 4.0):
+        s = k * p1 + p2
+        d = np.einsum("nij,nj->ni", np.linalg.cholesky(s), rng.normal(size=(n, 2)))
+        trees = [
+            Tree(id=j, x=float(xy[j, 0] + d[j, 0]), y=float(xy[j, 1] + d[j, 1]),
+                 diameter=0.3, cov=p2[j], n_obs=10 + (3 if j % 10 else 2))
+            for j in range(n)
+        ]  # fmt: skip
+        trees.append(Tree(id=n, x=500.0, y=500.0, diameter=0.3, cov=np.eye(2), n_obs=50))
+        pc = prior_consistency(prior, StemMap(tuple(trees)))
+        assert pc.n_trees == n - n // 10
+        assert pc.ratio_median == pytest.approx(k, rel=0.35)
+        assert pc.inflation == pytest.approx(k, rel=0.25)
+    empty = prior_consistency(prior, StemMap(()))
+    assert empty.n_trees == 0 and math.isnan(empty.inflation)

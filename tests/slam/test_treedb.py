@@ -121,12 +121,20 @@ def test_known_association_overrides_the_gate():
 def test_promotion_at_count_threshold_paper_20():
     assert PRESETS["visual_lidar"].promote_count == 20
     db = TreeDb()
-    for k in range(25):
+    for k in range(20):
         db, _ = treedb_update(db, [[5.0, 5.0], [9.0, 9.0]] if k < 19 else [[5.0, 5.0]], None)
-    # tree 0 seen 25 times, tree 1 only 19 times: only tree 0 is a landmark
+    # tree 0 seen exactly 20 times, tree 1 only 19 times: only tree 0 is a landmark (the
+    # boundary: we promote at count >= 20, docs/algorithms/slam-frontends.md "Tree DB")
+    assert db.count.tolist() == [20, 19]
     assert db.landmarks(20).tolist() == [0]
     m = db.to_stem_map(20)
-    assert len(m) == 1 and m.trees[0].n_obs == 25
+    assert len(m) == 1 and m.trees[0].n_obs == 20
+    # one more sighting of tree 1 promotes it too
+    db, _ = treedb_update(db, [[9.0, 9.0]], None)
+    assert db.landmarks(20).tolist() == [0, 1]
+    # TreeDbSlam uses the preset's threshold: with it at 21 nothing built above is a landmark
+    # after 20 sightings (the count is what promotes, not the number of frames)
+    assert db.landmarks(21).tolist() == []
 
 
 @settings(max_examples=30, deadline=None)
@@ -252,6 +260,21 @@ def test_treedb_open_loop_is_the_papers_odometry_pipeline(sim):
     # without landmark feedback the poses are exactly the odometry (paper's §2.5 mapping)
     np.testing.assert_allclose(res.trajectory.poses, dr.poses, atol=1e-9)
     assert res.stats["frames_localized"] == 0
+
+
+def test_visual_lidar_preset_maps_only_trees_seen_20_times(sim):
+    """The back-end publishes the DB entries promoted at the preset's count (20, §2.5): every
+    mapped tree carries >= 20 sightings, and the same run with a count of 1 maps more trees,
+    some seen fewer than 20 times (so the threshold, not the simulation, removed them)."""
+    problem, _ = sim
+    paper = TreeDbSlam(preset="visual_lidar", localize=False).run(problem).stem_map
+    loose = TreeDbSlam(gate=PRESETS["visual_lidar"].gate, promote_count=1, localize=False)
+    every = loose.run(problem).stem_map
+    n_paper = [t.n_obs for t in paper.trees]
+    n_every = [t.n_obs for t in every.trees]
+    assert len(n_paper) >= 10 and min(n_paper) >= 20
+    assert len(n_every) > len(n_paper) and min(n_every) < 20
+    assert sum(n >= 20 for n in n_every) == len(n_paper)
 
 
 @pytest.mark.slow

@@ -28,6 +28,7 @@ import typer
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
 from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
+from stemmap.cli._map_problems import calibrates_odometry
 from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.cli._validate import bounded
 
@@ -157,7 +158,12 @@ def run_demo(
     )
 
     t0 = time.perf_counter()
-    problem, ctx = sim_problem(run, obs, name=f"demo(seed={seed}, trees={n_trees})")
+    problem, ctx = sim_problem(
+        run,
+        obs,
+        name=f"demo(seed={seed}, trees={n_trees})",
+        odometry_calibrated=calibrates_odometry(backend),
+    )
     be = make_backend(backend)
     with progress(show_progress) as bar:
         task = bar.add_task(f"{backend} SLAM", total=len(problem.frames))

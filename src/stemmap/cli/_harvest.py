@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -13,6 +13,11 @@ from stemmap.cli._common import fail_on_stemmap_error, out
 from stemmap.cli._validate import bounded
 
 __all__ = ["register"]
+
+
+def _tilt_option(flag: str, what: str) -> Any:
+    """A scan-plane tilt option in degrees, -30..30."""
+    return typer.Option(help=f"Scan-plane {what}, degrees.", callback=bounded(flag, ge=-30, le=30))
 
 
 def harvest_sim(
@@ -49,6 +54,20 @@ def harvest_sim(
             help="Give up after this many cycles.", callback=bounded("--max-cycles", ge=1)
         ),
     ] = 40,
+    roll_deg: Annotated[
+        float, _tilt_option("--roll-deg", "roll of the crane-mounted scanner (machine on a slope)")
+    ] = 0.0,
+    pitch_deg: Annotated[
+        float, _tilt_option("--pitch-deg", "pitch of the scanner (the boom's attitude)")
+    ] = 0.0,
+    imu: Annotated[
+        bool,
+        typer.Option(
+            "--imu/--no-imu",
+            help="Give the detector the AHRS roll and pitch (Zheng 2012 §2, eq. 1); "
+            "--no-imu detects on the tilted ranges as if level.",
+        ),
+    ] = True,
     png: Annotated[Path, typer.Option(help="Top-view figure to write.")] = Path("harvest.png"),
 ) -> None:
     """Simulate a crane-mounted 2D laser guiding the harvesting head to a trunk.
@@ -57,11 +76,12 @@ def harvest_sim(
     trunks, composes the trunk pose relative to the head (eq. 11), plans 10 < k < 100 Cartesian
     set-points within the joint velocity and acceleration limits, executes the first ten, and
     re-scans, until the head is within the capture tolerance. Prints the cycle log and writes a
-    PNG.
+    PNG. ``--roll-deg`` / ``--pitch-deg`` tilt the scan plane; the AHRS reading (true tilt
+    plus 0.2 deg noise) goes to the detector unless ``--no-imu``.
 
     Example: stemmap harvest-sim --seed 3 --target bearing --bearing 30 --png capture.png
     """
-    from stemmap.harvester.capture import warm_up_planner
+    from stemmap.harvester.capture import ScannerMount, warm_up_planner
     from stemmap.harvester.kinematics import ForestryCrane
     from stemmap.harvester.simulate import harvester_stand, simulate_capture
     from stemmap.io.products import run_products
@@ -87,6 +107,8 @@ def harvest_sim(
             index=index,
             bearing=None if bearing is None else math.radians(bearing),
             max_cycles=max_cycles,
+            mount=ScannerMount(roll=math.radians(roll_deg), pitch=math.radians(pitch_deg)),
+            use_imu=imu,
             rng=seed + 1000,
         )
         table = Table(title="capture cycles")

@@ -32,10 +32,12 @@ from stemmap.cli._map_motion import (
     wheel_drift_estimate,
 )
 from stemmap.cli._map_prior import (
+    PriorType,
     continue_from_map,
     false_trees_report,
     write_information,
 )
+from stemmap.cli._map_problems import calibrates_odometry as _calibrates_odometry
 from stemmap.cli._map_problems import motion_sigma as _motion_sigma
 from stemmap.cli._map_problems import realtime as _realtime
 from stemmap.cli._map_problems import sim_problem
@@ -243,6 +245,15 @@ def map_command(
             "relocalise in it, map on, write the merged map; isam2.",
         ),
     ] = None,
+    prior_type: Annotated[
+        PriorType | None,
+        typer.Option(
+            "--prior-type",
+            help="With --prior-map: how its trees enter the graph -- huber (default) or "
+            "cauchy (each tree's own robust prior), joint (one prior over all trees from "
+            "trees_information.npz).",
+        ),
+    ] = None,
     start_guess: Annotated[
         str | None,
         typer.Option(
@@ -360,7 +371,13 @@ def map_command(
         elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)
         elif sim:
-            problem, ctx = _simulated(seed, sim_trees, sim_size)
+            online = realtime or rerun is not None  # the realtime mapper does not calibrate
+            problem, ctx = _simulated(
+                seed,
+                sim_trees,
+                sim_size,
+                odometry_calibrated=not online and _calibrates_odometry(backend.value),
+            )
         else:
             assert bag is not None
             if odometry is not None and is_bag(bag):
@@ -384,12 +401,17 @@ def map_command(
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None
         isam2 = backend == Backend.isam2 and not (realtime or rerun is not None)
+        be_cfg: dict[str, object] = {"joint_information": True} if isam2 else {}
         if prior_map is not None:
             problem, reloc, prior_note = continue_from_map(
-                problem, prior_map, start_guess, backend.value
+                problem, prior_map, start_guess, backend.value, prior_type
             )
+            if prior_type is not None:
+                be_cfg["prior_map_robust"] = prior_type.robust
+        elif prior_type is not None:
+            raise ConfigError("--prior-type needs --prior-map.")
         # isam2 keeps the trees' joint information (trees_information.npz, for --prior-map)
-        be = make_backend(backend.value, **({"joint_information": True} if isam2 else {}))
+        be = make_backend(backend.value, **be_cfg)
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
 

@@ -5,23 +5,44 @@ joint information written beside trees.csv, and the ray-cast false-tree removal'
 from __future__ import annotations
 
 import math
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
 from stemmap.errors import ConfigError
 
-__all__ = ["continue_from_map", "false_trees_report", "write_information"]
+__all__ = ["PriorType", "continue_from_map", "false_trees_report", "write_information"]
+
+
+class PriorType(StrEnum):
+    """``--prior-type``: how the prior map's trees enter the graph
+    (``Isam2Config.prior_map_robust``)."""
+
+    huber = "huber"
+    cauchy = "cauchy"
+    joint = "joint"
+
+    @property
+    def robust(self) -> str:
+        """The ``Isam2Config.prior_map_robust`` value: ``"none"`` for the joint prior."""
+        return "none" if self is PriorType.joint else self.value
 
 
 def continue_from_map(
-    problem: Any, folder: Path, guess: str | None, backend: str
+    problem: Any,
+    folder: Path,
+    guess: str | None,
+    backend: str,
+    prior_type: PriorType | None = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call).
 
-    Each prior tree is held by its own prior on its marginal with the robust loss of
-    ``Isam2Config.prior_map_robust`` (Huber by default); with ``"none"`` the map's joint
-    information (``trees_information.npz`` beside trees.csv) becomes one joint prior over its
-    trees, without it each tree gets its own Gaussian prior (said in the returned note).
+    ``prior_type`` (default: ``Isam2Config.prior_map_robust``, Huber): ``huber`` / ``cauchy``
+    hold each prior tree by its own prior on its marginal with that robust loss; ``joint``
+    makes the map's joint information (``trees_information.npz`` beside trees.csv) one joint
+    prior over its trees, or without it each tree gets its own Gaussian prior (said in the
+    returned note). The back-end must be built with ``prior_map_robust = prior_type.robust``.
+    Either way the covariances are inflated by ``Isam2Config.prior_map_inflation``.
     """
     from stemmap.io.maps import TREES_INFORMATION_NPZ, read_trees_csv, read_trees_information
     from stemmap.slam.graph import Isam2Config
@@ -39,12 +60,13 @@ def continue_from_map(
     csv = folder / "trees.csv" if folder.is_dir() else folder
     prior = read_trees_csv(csv)
     npz = csv.with_name(TREES_INFORMATION_NPZ)
-    robust = Isam2Config().prior_map_robust
+    cfg = Isam2Config()
+    robust = cfg.prior_map_robust if prior_type is None else prior_type.robust
     if robust != "none":
-        note = {
+        note: dict[str, Any] = {
             "prior": f"per-tree {robust}",
             "note": f"each prior tree held by its own robust ({robust}) prior on its marginal "
-            f"(Isam2Config.prior_map_robust); {TREES_INFORMATION_NPZ}, if present, is not used",
+            f"(--prior-type); {TREES_INFORMATION_NPZ}, if present, is not used",
         }
     elif npz.is_file():
         prior = read_trees_information(npz, prior)
@@ -55,6 +77,7 @@ def continue_from_map(
             "note": f"no {TREES_INFORMATION_NPZ} beside {csv.name}: independent per-tree priors "
             "(the correlations between the prior map's trees are lost)",
         }
+    note["prior_map_inflation"] = cfg.prior_map_inflation
     problem, reloc = continue_session(problem, prior, g)
     return problem, reloc, note
 

@@ -263,9 +263,7 @@ def lidar_front_end(
         "imu": inertial is not None,
     }
     if fused is not None:
-        summary["rejected"] = dict(
-            zip(_source_names(inertial, extra), fused.n_rejected.tolist(), strict=False)
-        )
+        summary["rejected"] = dict(zip(fused.source_names, fused.n_rejected.tolist(), strict=True))
         summary["calibration"] = dict(
             zip(fused.calibration_names, np.round(fused.calibration, 6).tolist(), strict=True)
         )
@@ -278,15 +276,6 @@ def lidar_front_end(
             markup=False,
         )
     return traj, lidar, fused, summary
-
-
-def _source_names(inertial: Any, extra: Sequence[OdometrySource]) -> list[str]:
-    names = []
-    if inertial is not None and inertial.has_gyro:
-        names.append("gyro")
-    if inertial is not None and inertial.has_wheel:
-        names.append("wheel")
-    return [*names, *(s.name or "extra" for s in extra), "lidar"]
 
 
 def _write(path: Path, traj: Any) -> None:

@@ -61,8 +61,8 @@ class StemConfig:
     slice_mode : "auto" | "always" | "never" -- treat the cloud as an already cut, height-
         normalised slice (auto: when its z extent is below 1 m)
     pooled_fallback : bool -- clusters the per-slice fits reject get one tilted-cylinder fit
-        over the whole band with stricter tests (:func:`_pooled_stems`): trunks with few
-        returns per slice (partly occluded, sparse clouds)
+        over the whole band with stricter tests (:func:`~stemmap.cloud.pooled._pooled_stems`):
+        trunks with few returns per slice (partly occluded, sparse clouds)
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     """

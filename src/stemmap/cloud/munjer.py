@@ -7,7 +7,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from stemmap.cloud.cluster import dbscan
 from stemmap.cloud.filters import as_xyz, pass_through, voxel_downsample
@@ -18,10 +18,13 @@ from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
 __all__ = [
+    "CLUSTER_STAGES",
+    "MunjerClusters",
     "MunjerConfig",
     "associate_proximity",
     "detect_stems_munjer",
     "level_to_ground",
+    "munjer_clusters",
 ]
 
 
@@ -99,6 +102,200 @@ class MunjerConfig:
             )
 
 
+@dataclass(frozen=True, eq=False)
+class MunjerClusters:
+    """Every DBSCAN cluster of one EB-LiDAR input and the stage that kept or rejected it
+    (:func:`munjer_clusters`; the detector and the cause table share it).
+
+    Attributes
+    ----------
+    points : (M, 3) metres -- the voxel-averaged pass-through points (lidar frame), eq. (2)
+    labels : (M,) int -- DBSCAN cluster of each point, -1 for noise (§3.3)
+    point_frames : (M,) int or None -- capture of each point (joined frames only)
+    centroid : (K, 3) metres; n_points : (K,) int -- cluster centroids and sizes
+    eccentricity : (K,) -- eq. (4) over ``config.eccentricity_axes``
+    tilt_deg : (K,) -- principal axis from vertical (0-90 degrees)
+    dense : (K,) bool -- ``min_points`` points (from one capture when frames are joined)
+    in_window : (K,) bool -- ``lo <= eccentricity <= hi``
+    vertical : (K,) bool -- ``tilt_deg <= max_tilt_deg`` (all True when the check is off)
+    center : (K, 2) metres, radius : (K,) metres, rms : (K,) metres -- circle fit of the xy
+        projection, NaN for clusters that did not reach it (only dense, in-window, vertical
+        clusters are fitted: the pipeline's order)
+    fit_ok : (K,) bool -- fitted, and the residual std <= ``fit_std_max`` (Table 1)
+    eccentricity_range : the window ``in_window`` was tested against
+    reason : str -- why there is no cluster at all ("" otherwise)
+    """
+
+    points: FloatArray
+    labels: NDArray[np.int64]
+    point_frames: NDArray[np.int64] | None
+    centroid: FloatArray
+    n_points: NDArray[np.int64]
+    eccentricity: FloatArray
+    tilt_deg: FloatArray
+    dense: NDArray[np.bool_]
+    in_window: NDArray[np.bool_]
+    vertical: NDArray[np.bool_]
+    center: FloatArray
+    radius: FloatArray
+    rms: FloatArray
+    fit_ok: NDArray[np.bool_]
+    eccentricity_range: tuple[float, float] = (10.0, 20.0)
+    reason: str = ""
+
+    def __len__(self) -> int:
+        return int(self.n_points.shape[0])
+
+    @property
+    def accepted(self) -> NDArray[np.bool_]:
+        """(K,) bool: clusters EB-LiDAR reports as stems (every stage passed)."""
+        return self.dense & self.in_window & self.vertical & self.fit_ok
+
+    def stage(self) -> NDArray[np.str_]:
+        """(K,) the first stage each cluster failed, in the pipeline's order -- one of
+        :data:`CLUSTER_STAGES` (``"accepted"`` when none failed)."""
+        out = np.full(len(self), "accepted", dtype="<U17")
+        out[~self.fit_ok] = "circle_fit"
+        out[~self.vertical] = "tilt"
+        low = self.eccentricity < self.eccentricity_range[0]
+        out[~self.in_window] = np.where(low, "eccentricity_low", "eccentricity_high")[
+            ~self.in_window
+        ]
+        out[~self.dense] = "min_points"
+        return out
+
+    def stems(self) -> CloudStems:
+        """The accepted clusters as :class:`CloudStems` (what :func:`detect_stems_munjer`
+        returns)."""
+        if len(self) == 0:
+            return CloudStems.empty("munjer2025", reason=self.reason)
+        ids = np.flatnonzero(self.accepted)
+        if ids.size == 0 and not (self.dense & self.in_window & self.vertical).any():
+            return CloudStems.empty("munjer2025", reason=self.reason)
+        return CloudStems.from_columns(
+            xy=self.center[ids],
+            z=self.centroid[ids, 2],
+            diameter=2 * self.radius[ids],
+            n_points=self.n_points[ids],
+            rms=self.rms[ids],
+            eccentricity=self.eccentricity[ids],
+            method="munjer2025",
+            frame="lidar",
+        )
+
+
+#: Stages of :meth:`MunjerClusters.stage`, in the pipeline's order.
+CLUSTER_STAGES = (
+    "min_points",
+    "eccentricity_low",
+    "eccentricity_high",
+    "tilt",
+    "circle_fit",
+    "accepted",
+)
+
+
+def _no_clusters(points: FloatArray, reason: str) -> MunjerClusters:
+    z, zb, zi = np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int64)
+    return MunjerClusters(
+        points=points,
+        labels=np.full(points.shape[0], -1, dtype=np.int64),
+        point_frames=None,
+        centroid=np.zeros((0, 3)),
+        n_points=zi,
+        eccentricity=z,
+        tilt_deg=z,
+        dense=zb,
+        in_window=zb,
+        vertical=zb,
+        center=np.zeros((0, 2)),
+        radius=z,
+        rms=z,
+        fit_ok=zb,
+        reason=reason,
+    )
+
+
+def munjer_clusters(
+    xyz: ArrayLike, config: MunjerConfig | None = None, *, frame_ids: ArrayLike | None = None
+) -> MunjerClusters:
+    """EB-LiDAR's stages on one lidar frame, every cluster kept with its outcome (Munjer et
+    al. 2025, §3.2-3.3): pass-through box -> voxel grid, eq. (2) -> DBSCAN(eps, minPts) ->
+    covariance, eq. (3), and eccentricity, eq. (4) -> tilt -> circle fit of the projection.
+    :func:`detect_stems_munjer` is ``munjer_clusters(...).stems()``; parameters as there.
+    """
+    cfg = config or MunjerConfig()
+    p = as_xyz(xyz)
+    zb = level_to_ground(p) if cfg.ground_relative else p
+    inside = pass_through(zb, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)
+    p = p[inside]
+    if p.shape[0] < cfg.min_points:
+        return _no_clusters(
+            np.zeros((0, 3)), f"fewer than {cfg.min_points} points inside the pass-through box"
+        )
+    vid = None
+    if frame_ids is None:
+        v: FloatArray = np.asarray(voxel_downsample(p, cfg.voxel), dtype=np.float64)
+    else:
+        fid = np.asarray(frame_ids).reshape(-1)
+        if fid.shape[0] != inside.shape[0]:
+            raise InputError(f"{fid.shape[0]} frame ids for {inside.shape[0]} points.")
+        _, fid = np.unique(fid[inside], return_inverse=True)
+        fid = fid.reshape(-1)
+        per = [np.asarray(voxel_downsample(p[fid == k], cfg.voxel)) for k in range(fid.max() + 1)]
+        v = np.vstack(per).astype(np.float64)
+        vid = np.repeat(np.arange(len(per)), [len(q) for q in per])
+    lab = dbscan(v, cfg.eps, cfg.min_points).astype(np.int64)
+    if lab.size == 0 or lab.max() < 0:
+        return _no_clusters(v, "DBSCAN found no cluster")
+    cen, cov, sizes = cluster_covariances(v, lab)
+    ecc = pca_eccentricity(cov, cfg.eccentricity_axes)
+    tilt = major_axis_tilt_deg(cov)
+    lo, hi = cfg.eccentricity_range
+    dense = sizes >= cfg.min_points
+    if vid is not None:
+        ok = lab >= 0
+        n_f = int(vid.max()) + 1
+        per_frame = np.bincount(lab[ok] * n_f + vid[ok], minlength=sizes.size * n_f)
+        dense &= per_frame.reshape(sizes.size, n_f).max(axis=1) >= cfg.min_points
+    in_window = (ecc >= lo) & (ecc <= hi)
+    vertical = (
+        np.ones(sizes.size, dtype=bool) if cfg.max_tilt_deg is None else tilt <= cfg.max_tilt_deg
+    )
+    k = sizes.size
+    center, radius, rms = np.full((k, 2), np.nan), np.full(k, np.nan), np.full(k, np.nan)
+    fit_ok = np.zeros(k, dtype=bool)
+    cand = np.flatnonzero(dense & in_window & vertical)
+    reason = ""
+    if cand.size == 0:
+        t = "" if cfg.max_tilt_deg is None else f" and a tilt <= {cfg.max_tilt_deg} deg"
+        reason = f"no cluster has an eccentricity in [{lo}, {hi}]{t}"
+    else:
+        sel = np.isin(lab, cand)
+        fits = fit_circles_batch(v[sel, :2], lab[sel], cfg.fit_method, edges=None)
+        ids = fits.segment_ids
+        center[ids], radius[ids], rms[ids] = fits.centers, fits.radii, fits.rms
+        fit_ok[ids] = fits.ok & (fits.rms <= cfg.fit_std_max)
+    return MunjerClusters(
+        points=v,
+        labels=lab,
+        point_frames=vid,
+        centroid=cen,
+        n_points=sizes,
+        eccentricity=ecc,
+        tilt_deg=tilt,
+        dense=dense,
+        in_window=in_window,
+        vertical=vertical,
+        center=center,
+        radius=radius,
+        rms=rms,
+        fit_ok=fit_ok,
+        eccentricity_range=(float(lo), float(hi)),
+        reason=reason,
+    )
+
+
 def detect_stems_munjer(
     xyz: ArrayLike, config: MunjerConfig | None = None, *, frame_ids: ArrayLike | None = None
 ) -> CloudStems:
@@ -131,62 +328,10 @@ def detect_stems_munjer(
     (§3.3: "between 10 and 20"; Table 1 names 20 the cutoff) whose principal axis is within
     ``config.max_tilt_deg`` of vertical (the abstract's "vertically elongated") -> circle fit
     of the cluster's 2D projection, rejected when the residual standard deviation exceeds
-    0.1 m (Table 1).
+    0.1 m (Table 1). The stages run in :func:`munjer_clusters`, which keeps every cluster's
+    outcome (the cause table, ``benchmarks/munjer2025_causes.py``, reads it).
     """
-    cfg = config or MunjerConfig()
-    p = as_xyz(xyz)
-    zb = level_to_ground(p) if cfg.ground_relative else p
-    inside = pass_through(zb, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)
-    p = p[inside]
-    if p.shape[0] < cfg.min_points:
-        return CloudStems.empty(
-            "munjer2025", reason=f"fewer than {cfg.min_points} points inside the pass-through box"
-        )
-    if frame_ids is None:
-        v = np.asarray(voxel_downsample(p, cfg.voxel))
-    else:
-        fid = np.asarray(frame_ids).reshape(-1)
-        if fid.shape[0] != inside.shape[0]:
-            raise InputError(f"{fid.shape[0]} frame ids for {inside.shape[0]} points.")
-        _, fid = np.unique(fid[inside], return_inverse=True)
-        fid = fid.reshape(-1)
-        per = [np.asarray(voxel_downsample(p[fid == k], cfg.voxel)) for k in range(fid.max() + 1)]
-        v = np.vstack(per)
-        vid = np.repeat(np.arange(len(per)), [len(q) for q in per])
-    lab = dbscan(v, cfg.eps, cfg.min_points)
-    if lab.size == 0 or lab.max() < 0:
-        return CloudStems.empty("munjer2025", reason="DBSCAN found no cluster")
-    cen, cov, sizes = cluster_covariances(v, lab)
-    ecc = pca_eccentricity(cov, cfg.eccentricity_axes)
-    lo, hi = cfg.eccentricity_range
-    keep = (ecc >= lo) & (ecc <= hi) & (sizes >= cfg.min_points)
-    if frame_ids is not None:
-        ok = lab >= 0
-        n_f = int(vid.max()) + 1
-        per_frame = np.bincount(lab[ok] * n_f + vid[ok], minlength=sizes.size * n_f)
-        keep &= per_frame.reshape(sizes.size, n_f).max(axis=1) >= cfg.min_points
-    if cfg.max_tilt_deg is not None:
-        keep &= major_axis_tilt_deg(cov) <= cfg.max_tilt_deg
-    cand = np.flatnonzero(keep)
-    if cand.size == 0:
-        tilt = "" if cfg.max_tilt_deg is None else f" and a tilt <= {cfg.max_tilt_deg} deg"
-        return CloudStems.empty(
-            "munjer2025", reason=f"no cluster has an eccentricity in [{lo}, {hi}]{tilt}"
-        )
-    sel = np.isin(lab, cand)
-    fits = fit_circles_batch(v[sel, :2], lab[sel], cfg.fit_method, edges=None)
-    ok = fits.ok & (fits.rms <= cfg.fit_std_max)
-    ids = fits.segment_ids[ok]
-    return CloudStems.from_columns(
-        xy=fits.centers[ok],
-        z=cen[ids, 2],
-        diameter=2 * fits.radii[ok],
-        n_points=sizes[ids],
-        rms=fits.rms[ok],
-        eccentricity=ecc[ids],
-        method="munjer2025",
-        frame="lidar",
-    )
+    return munjer_clusters(xyz, config, frame_ids=frame_ids).stems()
 
 
 def level_to_ground(xyz: ArrayLike, cell: float = 1.0, max_residual: float = 0.15) -> FloatArray:

@@ -324,13 +324,7 @@ def _refine_along_rays(
             else:
                 rr += hstep
             J[:, j] = (_range_errors(pts, ids, u, cc, rr) - e) / hstep
-        A = np.zeros((k, 3, 3))
-        g = np.zeros((k, 3))
-        for a in range(3):
-            g[:, a] = np.bincount(ids, w * J[:, a] * e, minlength=k)
-            for b in range(a, 3):
-                A[:, a, b] = A[:, b, a] = np.bincount(ids, w * J[:, a] * J[:, b], minlength=k)
-        A += 1e-3 * np.einsum("kii->ki", A)[:, :, None] * np.eye(3)[None] + 1e-12 * np.eye(3)
+        A, g = _damped_normal_equations(J, w, e, ids, k)
         good = ok & (cnt >= 3)
         if not good.any():
             break
@@ -354,6 +348,24 @@ def _theil_sen(x: FloatArray, y: FloatArray) -> tuple[float, float]:
     ok = np.abs(dx) > 1e-9
     b = float(np.median((y[j] - y[i])[ok] / dx[ok])) if ok.any() else 0.0
     return float(np.median(y - b * x)), b
+
+
+def _damped_normal_equations(
+    J: FloatArray, w: FloatArray, res: FloatArray, ids: NDArray[np.int64], k: int
+) -> tuple[FloatArray, FloatArray]:
+    """Per-segment weighted Gauss-Newton system of stacked rows (Jacobian ``J`` (N, P),
+    weights ``w``, residuals ``res``): ``A = J^T W J`` with Levenberg damping (1e-3 x its
+    diagonal, + 1e-12 I) (K, P, P) and the gradient ``g = J^T W res`` (K, P); the step is
+    ``-A^-1 g``."""
+    npar = J.shape[1]
+    A = np.zeros((k, npar, npar))
+    g = np.zeros((k, npar))
+    for a in range(npar):
+        g[:, a] = np.bincount(ids, w * J[:, a] * res, minlength=k)
+        for b in range(a, npar):
+            A[:, a, b] = A[:, b, a] = np.bincount(ids, w * J[:, a] * J[:, b], minlength=k)
+    A += 1e-3 * np.einsum("kii->ki", A)[:, :, None] * np.eye(npar)[None] + 1e-12 * np.eye(npar)
+    return A, g
 
 
 def _normal_matrices(J: FloatArray, ids: NDArray[np.int64], k: int) -> FloatArray:

@@ -13,8 +13,9 @@ Two methods, both returning a columnar :class:`CloudStems`:
   evaluated at 1.3 m, and optional stem height. Every threshold derives from the measured point
   spacing or the measured residual noise floor: no per-cloud tuning. Preset ``"ours"``.
   Clusters with too few points per slice get one pooled tilted-cylinder fit over the band
-  (:func:`_pooled_stems`); given each point's sensor position (``origins``), slice fits are
-  refined with residuals along the rays (:func:`_refine_along_rays`).
+  (:func:`~stemmap.cloud.pooled._pooled_stems`); given each point's sensor position
+  (``origins``), slice fits are refined with residuals along the rays
+  (:func:`~stemmap.cloud.slicefit._refine_along_rays`).
 
 :func:`detect_stems_file` streams a LAS/LAZ file in chunks (two passes: ground, then band), so
 a 20-million-point cloud is processed in bounded memory; with
@@ -23,7 +24,9 @@ stamps) it gets the along-ray refinement too.
 
 The pieces live in :mod:`~stemmap.cloud.result` (CloudStems), :mod:`~stemmap.cloud.config`
 (StemConfig), :mod:`~stemmap.cloud.munjer`, :mod:`~stemmap.cloud.slicefit` (circle fits of
-slices) and :mod:`~stemmap.cloud.measure` (per-stem measurement); this module orchestrates them
+slices) and :mod:`~stemmap.cloud.measure` (per-stem measurement, with its steps in
+:mod:`~stemmap.cloud.band`, :mod:`~stemmap.cloud.slicestem`, :mod:`~stemmap.cloud.uncertainty`,
+:mod:`~stemmap.cloud.pooled` and :mod:`~stemmap.cloud.heights`); this module orchestrates them
 and re-exports the public names.
 """
 
@@ -39,10 +42,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stemmap.cloud.band import _Band
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.filters import as_xyz
 from stemmap.cloud.ground import BASE_STEM, GroundAccumulator, GroundModel
-from stemmap.cloud.measure import _Band, _canopy_update, _stems_from_band
+from stemmap.cloud.heights import _canopy_update
+from stemmap.cloud.measure import _stems_from_band
 from stemmap.cloud.munjer import MunjerConfig, associate_proximity, detect_stems_munjer
 from stemmap.cloud.result import BASE_SLICE, BREAST_HEIGHT, CloudStems
 from stemmap.cloud.sensor import SensorPositions

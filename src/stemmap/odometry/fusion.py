@@ -278,6 +278,9 @@ class FusedOdometry:
         always returns ``[bias of A, scale error of the non-reference source]`` (zeros unless
         calibrating).
     calibration_names : tuple of str
+    source_names : tuple of str
+        Label of each entry of ``n_rejected`` (a source's ``name``, else ``source<i>`` /
+        ``poses<j>``), so rejection counts are never paired with the wrong source.
     """
 
     trajectory: Trajectory
@@ -286,6 +289,7 @@ class FusedOdometry:
     n_rejected: NDArray[np.int64]
     calibration: FloatArray
     calibration_names: tuple[str, ...] = ()
+    source_names: tuple[str, ...] = ()
 
 
 _SIGMAS = ("sigma_speed", "sigma_yaw_rate")
@@ -603,6 +607,10 @@ def fuse_sources(
         rejected,
         calibration=x[5:].copy(),
         calibration_names=tuple(names),
+        source_names=tuple(
+            [s.name or f"source{i}" for i, s in enumerate(srcs)]
+            + [ps.name or f"poses{j}" for j, ps in enumerate(psrcs)]
+        ),
     )
 
 

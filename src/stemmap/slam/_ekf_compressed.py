@@ -731,7 +731,7 @@ def run_compressed(
         lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
         poses, pose_covs, smooth_stats = smooth_path(
             poses, pre.deltas, pre.covs, olog.resolve(st.g_ids), L.copy(), lm_cov, (a, b), R1,
-            map_cov=st.Pg[3:, 3:].copy(),
+            map_cov=st.Pg[3:, 3:].copy(), map_cov_inflation=cfg.map_cov_inflation,
         )  # fmt: skip
     runtime = time.perf_counter() - t_start
     stats: dict[str, float | int | str] = {

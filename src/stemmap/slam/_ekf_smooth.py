@@ -246,6 +246,7 @@ def smooth_path(
     huber_k: float = 1.345,
     iterations: int = 20,
     map_cov: FloatArray | None = None,
+    map_cov_inflation: float = 1.0,
 ) -> tuple[FloatArray, FloatArray, dict[str, float | int]]:
     """The vehicle path (N, 3) re-estimated on the fixed final map and the covariance of each
     pose (N, 3, 3) from the last step's normal equations (module docstring).
@@ -260,6 +261,8 @@ def smooth_path(
         ``lm_xy``); with it the map's error is propagated through the smoother
         (:func:`map_propagated_covariance`), without it approximated from the marginals
         (:func:`map_error_covariance`)
+    map_cov_inflation : factor (>= 0) on that map term of the covariance (not on the path); 1
+        is the model's own (``EkfConfig.map_cov_inflation``)
 
     Returns the path, its covariances and stats (iterations, measurements used, mean whitened
     residual² of the measurements before and after, the share down-weighted by Huber at the
@@ -312,10 +315,13 @@ def smooth_path(
     stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
     stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
     cov = chain_marginals(diag, off)
+    k_map = float(map_cov_inflation)
     if map_cov is not None:
-        cov[1:] += map_propagated_covariance(diag, off, fr, lj, Bm, map_cov)[1:]
+        cov[1:] += k_map * map_propagated_covariance(diag, off, fr, lj, Bm, map_cov)[1:]
     else:
-        cov[1:, :2, :2] += map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
+        cov[1:, :2, :2] += (
+            k_map * map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
+        )
     return x, cov, stats
 
 

@@ -62,6 +62,18 @@ class Isam2Config:
         than ``revisit_factors`` factors (only a new tree or a lost tracker brings it in).
         Visits are told apart by path distance, not time: a vehicle that drives slowly or
         stops is still on its first visit (docs/algorithms/slam.md "Revisits")
+    revisit_place_visits : the area bound by visits: a place (``revisit_radius``) the
+        vehicle drove past this many times before (keyframes in or out of the graph count;
+        visits told apart by ``revisit_after_m``) is full as above, so a keyframe there whose
+        trees are all in the graph stays out (:class:`stemmap.slam._graph_revisits.PlaceVisits`;
+        0 = off). Default 3: on the 10x Victoria Park soak through ``stemmap map`` the
+        memory growth per pass 6.37 -> 2.0 MB, single drive 1.303 -> 1.315 m; 2-8 keep the
+        single drive within 1 %, 1 loses its second traversals (1.70 m);
+        docs/algorithms/slam.md "The place bound counts every visit"
+    revisit_keep_loops : a keyframe that closes a loop enters even where the bounds above
+        leave it out: linked by odometry to a graph chain not tied to the map for
+        ``revisit_after_m`` m, it measures a tree whose last graph factor lies
+        ``revisit_after_m`` m or more back (:class:`stemmap.slam._graph_revisits.RevisitGate`)
     revisit_settle_visits : the bound by tree: a tree that got measurement factors on this
         many earlier visits (a visit: measured again after ``revisit_after_m`` m of driving
         without it) pulls no keyframe into the graph, even with fewer than ``revisit_factors``
@@ -102,6 +114,14 @@ class Isam2Config:
         rest relocalised and mapped on) session 2 scored 1.304 / 1.355 / 1.451 m against the
         joint prior's 1.340 / 1.433 / 1.529 m at 1.5-3.2x less CPU, relocalisation unchanged
         (docs/algorithms/slam.md "Maps reused across sessions")
+    prior_map_inflation : factor (> 0) on the prior map's tree covariances (its joint
+        information divided by it) as this session holds them
+        (:func:`stemmap.slam.relocalise.inflate_prior`). 4 by default: chosen on the 400-s and
+        800-s Victoria Park session pairs (session 2 1.303 / 1.451 m -> 1.261 / 1.446 m; 2, 8,
+        30: 2.730 / 2.720 / 2.715 m summed vs 2.707), reported on 600 / 1000 / 1200 s (1.355
+        / 1.438 / 0.834 -> 1.306 / 1.440 / 0.845 m); the bulk of the prior is near consistent
+        with session 2, its tail is not (:func:`stemmap.slam.relocalise.prior_consistency`;
+        docs/algorithms/slam.md "Prior inflation")
     joint_information : also return the trees' joint information matrix
         (:attr:`stemmap.types.StemMap.information`, needs ``marginals``): a later session on
         this map then continues from the correlated prior of all its trees instead of
@@ -136,7 +156,9 @@ class Isam2Config:
     revisit_radius: float = 2.0
     revisit_keyframes: int = 3
     revisit_after_m: float = 50.0
+    revisit_place_visits: int = 3
     revisit_settle_visits: int = 0
+    revisit_keep_loops: bool = True
     revisit_anchor_after: int = 15
     marginals: bool = True
     pose_marginals: bool = True
@@ -153,6 +175,7 @@ class Isam2Config:
     reloc_prior_sigmas: tuple[float, float, float] = (1.0, 1.0, 0.05)
     joint_information: bool = False
     prior_map_robust: str = "huber"
+    prior_map_inflation: float = 4.0
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust", "prior_map_robust"):
@@ -168,6 +191,7 @@ class Isam2Config:
             "gnss_robust_k",
             "gate_chi2",
             "new_chi2",
+            "prior_map_inflation",
             "max_range",
             "relinearize_threshold",
             "batch_rel_tol",
@@ -200,6 +224,11 @@ class Isam2Config:
         if self.revisit_keyframes < 1:
             raise ConfigError(
                 f"Isam2Config.revisit_keyframes must be >= 1, got {self.revisit_keyframes}."
+            )
+        if self.revisit_place_visits < 0:
+            raise ConfigError(
+                f"Isam2Config.revisit_place_visits must be >= 0 (0 = off), got "
+                f"{self.revisit_place_visits}."
             )
         if self.revisit_settle_visits < 0:
             raise ConfigError(

@@ -51,7 +51,14 @@ bytes per scan, plus 16 bytes per left-out keyframe and 40 per measurement in
 the graph still gains 25-60 keyframes per late pass (young and new trees); a seventh session
 anchors a keyframe that enters after a long left-out run by a prior at its tracked pose
 (:func:`anchor_prior`) instead of a long odometry edge, which halved iSAM2's memory growth per
-pass (docs/reliability.md "iSAM2: long left-out runs anchored"); it is not yet zero.
+pass (docs/reliability.md "iSAM2: long left-out runs anchored"). An eighth counts *visits* of
+a place by every keyframe, in or out of the graph (:class:`PlaceVisits`,
+``revisit_place_visits = 3``): a place whose revisits were all left out still fills, so
+trunks at the edge of range stop pulling keyframes in after three visits; the 10x soak's
+growth fell from 6.37 to 2.0 MB per pass, the late passes add 6-14 keyframes (new trees, a
+lost tracker). :class:`RevisitGate` holds every decision, and keeps a keyframe that closes
+a loop whatever the bounds say (docs/algorithms/slam.md "The place bound counts every
+visit").
 """
 
 from __future__ import annotations
@@ -67,6 +74,8 @@ from stemmap.types import FloatArray
 __all__ = [
     "LeftOutMeasurements",
     "PlaceCounter",
+    "PlaceVisits",
+    "RevisitGate",
     "TreeVisits",
     "anchor_prior",
     "compose_increments",
@@ -327,6 +336,160 @@ class TreeVisits:
         self._room(n)
         done = self._fac_visits[:n] - (self._fac_last[:n] == self._visit[:n])
         return done >= self.settle
+
+
+class PlaceVisits:
+    """Visits of every place by keyframes in or out of the graph: how many times the vehicle
+    came within ``radius`` (m) of a point, visits told apart by ``after_m`` m of driving.
+
+    The area bound by visits (``Isam2Config.revisit_place_visits``): unlike
+    :class:`PlaceCounter` (graph keyframes only), a left-out keyframe counts too, so a place
+    whose revisits were all left out still fills up. A keyframe is stored with its path
+    distance ``s`` (m driven since the start); the stored distances within ``radius`` of a
+    point, sorted, split into visits wherever two are ``after_m`` or more apart (one visit
+    spans a few metres of path: a 2 m disc on a straight road, a stop, a slow turn). Storage is
+    bounded by area: a keyframe is not stored where the place already holds ``cap`` visits
+    (counting them again cannot change a decision).
+    """
+
+    def __init__(self, radius: float, after_m: float, cap: int) -> None:
+        self.radius = float(radius)
+        self.after_m = float(after_m)
+        self.cap = int(cap)
+        self._cells: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
+
+    def _near(self, x: float, y: float) -> list[float]:
+        cx, cy = int(np.floor(x / self.radius)), int(np.floor(y / self.radius))
+        r2 = self.radius * self.radius
+        out = []
+        for i in (cx - 1, cx, cx + 1):
+            for j in (cy - 1, cy, cy + 1):
+                for px, py, ps in self._cells.get((i, j), ()):
+                    if (px - x) ** 2 + (py - y) ** 2 <= r2:
+                        out.append(ps)
+        return out
+
+    def count(self, xy: FloatArray, upto: float = np.inf) -> int:
+        """Visits within ``radius`` of ``xy`` (2,) by keyframes at path distance <= ``upto``."""
+        s = np.sort([q for q in self._near(float(xy[0]), float(xy[1])) if q <= upto])
+        if s.size == 0:
+            return 0
+        return 1 + int(np.count_nonzero(np.diff(s) >= self.after_m))
+
+    def add(self, xy: FloatArray, s: float) -> None:
+        """A keyframe (in or out of the graph) at ``xy`` (2,), path distance ``s`` (m)."""
+        x, y = float(xy[0]), float(xy[1])
+        if self.count(xy) >= self.cap:
+            return
+        key = int(np.floor(x / self.radius)), int(np.floor(y / self.radius))
+        self._cells.setdefault(key, []).append((x, y, float(s)))
+
+    def visited(self, xy: FloatArray, s: float, n: int) -> bool:
+        """At path distance ``s``, ``xy`` had ``n`` or more earlier visits (ended ``after_m``
+        or more of driving before ``s``)."""
+        return n > 0 and self.count(xy, s - self.after_m) >= n
+
+
+class RevisitGate:
+    """Which keyframe stays out of the graph on revisits: the area, visit and tree bounds of
+    the localisation mode, and the loop closures they must not drop, in one place
+    (:class:`stemmap.slam.graph.Isam2Slam` asks it once per keyframe, :meth:`leave_out`, and
+    tells it which keyframes and factors entered).
+
+    A keyframe stays out when :func:`redundant` says so, with a young tree (fewer than
+    ``revisit_factors`` factors) counted as settled where the place is *full*: it holds
+    ``revisit_keyframes`` graph keyframes of an earlier visit (:class:`PlaceCounter`), or was
+    driven past ``revisit_place_visits`` times before by keyframes in or out of the graph
+    (:class:`PlaceVisits`), or the tree is settled by visits (:class:`TreeVisits`). Whatever
+    those say, a **loop closure** enters (``revisit_keep_loops``): the keyframe would be
+    linked to the graph by odometry (``linked``: not anchored, :func:`anchor_prior`), the
+    graph keyframes since the chain was last tied to the map span ``revisit_after_m`` m of
+    driving or more, and it measures a tree whose last graph factor lies ``revisit_after_m``
+    m or more of driving back. That measurement is the constraint that pulls the drift of
+    the chain (and of the trees it mapped) back onto the map; a graph keyframe *ties* the
+    chain when it measures such a tree or is anchored. The bounds above count visits and
+    factors, not whether the chain needs it. In localisation mode the graph keyframes are
+    sparse and each one measures the map's trees (it ties itself), so the rule stays quiet
+    there; it fires where the vehicle maps new ground and comes back.
+
+    ``config`` is the back-end's :class:`~stemmap.slam._graph_config.Isam2Config`; ``xy0`` the
+    first keyframe's position (always in the graph).
+    """
+
+    def __init__(self, config: Any, xy0: FloatArray, capacity: int = 1024) -> None:
+        c = config
+        self.min_f = int(c.revisit_factors)
+        self.after_m = float(c.revisit_after_m)
+        self.places = PlaceCounter(c.revisit_radius, c.revisit_keyframes, c.revisit_after_m)
+        self.places.add(xy0, 0.0)
+        self.n_visits = int(c.revisit_place_visits)
+        self.visits = PlaceVisits(c.revisit_radius, c.revisit_after_m, self.n_visits + 1)
+        self.visits.add(xy0, 0.0)
+        self.trees = TreeVisits(c.revisit_after_m, c.revisit_settle_visits)
+        self.keep_loops = bool(c.revisit_keep_loops)
+        self._fac_s = np.full(capacity, np.inf)  # path distance of each tree's last factor
+        self._s_tie = 0.0  # the graph chain was last tied to the map here (m)
+        self._s_graph = 0.0  # the last graph keyframe (m)
+        self.n_loops = 0  # keyframes kept as loop closures (only)
+
+    def _stale(self, trees: np.ndarray, s: float) -> bool:
+        """One of ``trees`` got its last graph factor ``after_m`` or more of driving before
+        ``s`` (trees without a factor are not stale)."""
+        if trees.size == 0:
+            return False
+        n = int(trees.max()) + 1
+        if n > self._fac_s.shape[0]:
+            g = max(n, 2 * self._fac_s.shape[0]) - self._fac_s.shape[0]
+            self._fac_s = np.concatenate((self._fac_s, np.full(g, np.inf)))
+        return bool(np.any(s - self._fac_s[trees] >= self.after_m))
+
+    def leave_out(
+        self,
+        xy: FloatArray,
+        s: float,
+        trees: np.ndarray,
+        in_graph: np.ndarray,
+        n_factors: np.ndarray,
+        allowed: bool = True,
+        linked: bool = True,
+    ) -> bool:
+        """True when the keyframe at ``xy`` (its front-end position), path distance ``s`` (m),
+        measuring ``trees`` stays out of the graph; ``allowed = False`` (the first keyframes,
+        a GNSS fix, a lost tracker) records the keyframe and keeps it in; ``linked``: it
+        would enter with an odometry factor to the last graph keyframe (not anchored)."""
+        full = self.places.full(xy, s) or self.visits.visited(xy, s, self.n_visits)
+        self.visits.add(xy, s)
+        self.trees.see(trees, s)
+        if not allowed:
+            return False
+        settled = in_graph if full else self.trees.settled(in_graph.shape[0])
+        if not redundant(trees, in_graph, n_factors, self.min_f, settled):
+            return False
+        if (
+            self.keep_loops
+            and linked
+            and self._s_graph - self._s_tie >= self.after_m
+            and self._stale(trees[in_graph[trees]], s)
+        ):
+            self.n_loops += 1
+            return False
+        return True
+
+    def entered(self, xy: FloatArray, s: float, anchored: bool = False) -> None:
+        """A keyframe at ``xy``, path distance ``s``, entered the graph (after the first);
+        ``anchored``: by a prior at its tracked pose (:func:`anchor_prior`), which ties it."""
+        self.places.add(xy, s)
+        self._s_graph = s
+        if anchored:
+            self._s_tie = s
+
+    def factored(self, trees: np.ndarray, s: float = 0.0) -> None:
+        """``trees`` got one measurement factor each in the graph, from a keyframe at path
+        distance ``s``."""
+        self.trees.factored(trees)
+        if self._stale(trees, s):
+            self._s_tie = s  # a stale tree measured from the chain: tied to the map
+        self._fac_s[trees] = s
 
 
 def localise_skipped(

@@ -43,7 +43,8 @@ Schur complement of the information over the pose chain (:func:`_point_marginals
 :class:`gtsam.Marginals`).
 
 Localisation mode on revisits (ours; docs/algorithms/slam.md "Revisits"): a keyframe that only
-re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area);
+re-observes well-mapped trees adds no pose (:mod:`stemmap.slam._graph_revisits`, bounded by area
+and by the visits of each place: ``RevisitGate``);
 the tracker is then localised on the map at each restart (:mod:`stemmap.slam._graph_localise`),
 and a tracker the map contradicts puts the next keyframes back into the graph. A keyframe that
 enters after a long left-out run is anchored by a prior at its tracked pose instead of an
@@ -100,12 +101,10 @@ from stemmap.slam._graph_result import (
 )
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
-    PlaceCounter,
-    TreeVisits,
+    RevisitGate,
     anchor_prior,
     compose_increments,
     localise_skipped,
-    redundant,
 )
 from stemmap.slam._isam2_track import (
     C_AMBIG,
@@ -125,7 +124,7 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose
-from stemmap.slam.relocalise import joint_prior_factor, prior_tree_factors
+from stemmap.slam.relocalise import inflate_prior, joint_prior_factor, prior_tree_factors
 from stemmap.types import FloatArray, StemMap, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -339,13 +338,19 @@ class Isam2Slam:
         n_lm = 0
         map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
         joint_fac: Any = None  # or one joint prior over them (StemMap.information)
-        if problem.prior_map is not None and len(problem.prior_map):
+        # the prior map as this session holds it (covariances x prior_map_inflation)
+        pmap = (
+            None
+            if problem.prior_map is None
+            else inflate_prior(problem.prior_map, cfg.prior_map_inflation)
+        )
+        if pmap is not None and len(pmap):
             # a map of an earlier session (relocalised into: problem.initial_pose is in its
             # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
             # prior, so this session updates them and adds new ones (one merged map)
             n_lm = n_prior
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
-                prior_tree_factors(problem.prior_map, LK, cfg.min_obs, kernel=prior_kernel)
+                prior_tree_factors(pmap, LK, cfg.min_obs, kernel=prior_kernel)
             ):
                 lm_xy[j_p] = xy_p
                 if math.isfinite(d_p):
@@ -358,7 +363,7 @@ class Isam2Slam:
                     graph_all.add(fac_p)
                 map_fac.append(fac_p)
             if prior_kernel is None:  # None: per-tree priors above
-                joint_fac = joint_prior_factor(problem.prior_map, LK)
+                joint_fac = joint_prior_factor(pmap, LK)
             if joint_fac is not None:
                 new_f.add(joint_fac)
                 graph_all.add(joint_fac)
@@ -411,7 +416,7 @@ class Isam2Slam:
                 graph_all.add(fac)
                 meas_fac.append(fac)
             lm_nfac[trees_w] += 1
-            visits.factored(trees_w)
+            gate.factored(trees_w, float(cum_dist[kf_frames[k]]))
             sbl, srl = sig[:, 0].tolist(), sig[:, 1].tolist()
             meas_rec.extend(zip([k] * len(js), js, bl, rl, sbl, srl, strict=True))
             n_factors_meas += len(js)
@@ -419,9 +424,7 @@ class Isam2Slam:
         g_last = 0  # the last keyframe in the graph
         # why keyframes entered the graph (a revisit that enters is one of these)
         entered = {"forced": 0, "new_tree": 0, "young_tree": 0}
-        places = PlaceCounter(cfg.revisit_radius, cfg.revisit_keyframes, cfg.revisit_after_m)
-        places.add(kf_init[0, :2], 0.0)
-        visits = TreeVisits(cfg.revisit_after_m, cfg.revisit_settle_visits)
+        gate = RevisitGate(cfg, kf_init[0, :2])  # which keyframes stay out (_graph_revisits)
 
         def fix_tracker(k: int, d_step: FloatArray) -> tuple[Any, FloatArray]:
             """Keyframe ``k``'s sensor pose from the left-out keyframes before it localised on
@@ -451,18 +454,15 @@ class Isam2Slam:
             nonlocal g_last, n_single_skipped
             n_skip_w = int(window[4]) if window else 0
             revisits = cfg.revisit_factors > 0 and kc > 0 and bool(window) and not must_keep[kc]
-            # at a place visited before (PlaceCounter) young trees pull no keyframe in; a lost
+            # at a place visited before (RevisitGate) young trees pull no keyframe in; a lost
             # tracker forces keyframes in
             s_kc = float(cum_dist[kf_frames[kc]])  # path distance (m): visits by distance
-            full = revisits and places.full(kf_init[kc, :2], s_kc)
-            if window:
-                visits.see(window[0], s_kc)
-            settled = lm_in_graph if full else visits.settled(lm_in_graph.shape[0])
-            if (
-                revisits
-                and kc >= force_until
-                and redundant(window[0], lm_in_graph, lm_nfac, cfg.revisit_factors, settled)
-            ):
+            trees_w = window[0] if window else np.zeros(0, dtype=np.int64)
+            anchored = 0 < cfg.revisit_anchor_after < kc - g_last
+            if gate.leave_out(
+                kf_init[kc, :2], s_kc, trees_w, lm_in_graph, lm_nfac,
+                allowed=revisits and kc >= force_until, linked=not anchored,
+            ):  # fmt: skip
                 skipped.add(kc, window[0], window[1], window[2], window[3])
                 n_single_skipped += n_skip_w
                 return
@@ -472,7 +472,7 @@ class Isam2Slam:
                     "forced" if kc < force_until else "new_tree" if new_t else "young_tree"
                 ] += 1
             if kc > 0:
-                if 0 < cfg.revisit_anchor_after < kc - g_last:
+                if anchored:
                     # after a long left-out run: anchored at its tracked pose, not linked to
                     # the remote graph keyframe (anchor_prior)
                     bf = anchor_prior(
@@ -489,7 +489,7 @@ class Isam2Slam:
                 new_v.insert(XK(kc), gtsam.Pose2(*(float(q) for q in kf_init[kc])))
                 in_graph_k[kc] = True
                 g_last = kc
-                places.add(kf_init[kc, :2], s_kc)
+                gate.entered(kf_init[kc, :2], s_kc, anchored)
             flush(kc)
 
         d_last = np.zeros(3)  # the calibrated increment of the last step (keyframe k-1 -> k)
@@ -646,7 +646,7 @@ class Isam2Slam:
             odo_factor=odo_factor, edges=edges, odo_fac=odo_fac, map_fac=map_fac,
             joint_fac=joint_fac, gnss_fac=gnss_fac, anchor_fac=anchor_fac, gnss_keys=gnss_keys,
             meas_rec=meas_rec, meas_fac=meas_fac, meas_noise=meas_noise, gk=gk,
-            prior_map=problem.prior_map,
+            prior_map=pmap,
             calib=Calibration(
                 odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
             ) if calibrate else None,

@@ -18,7 +18,8 @@ detections, and matches it to the prior map:
    of a map tree (one k-d tree query for all hypotheses at once); the best is refined by the
    closed-form SE(2) fit (:func:`stemmap.eval.trajectory.align_se2`) over its inliers.
 4. **Acceptance**: at least ``min_inliers`` inliers; at most ``max_conflict_frac`` of the
-   local trees that land inside the mapped stand (a map tree within ``cover_dist``) may land
+   local trees that land inside the mapped stand (a map tree within ``cover_dist``, by
+   default the map's own median tree spacing, :func:`map_spacing`) may land
    off every map tree (negative evidence: the earlier session would have mapped a tree there;
    local trees beyond ``cover_dist`` are outside the map and say nothing -- a session that
    drives out of the mapped area sees few mapped trees but no contradiction); and no
@@ -28,6 +29,11 @@ detections, and matches it to the prior map:
    the best is chosen.
 5. **Start pose**: the accepted transform is refitted to the detections of the first
    ``anchor_s`` seconds only (dead-reckoning error grows with the time since the start).
+
+Mapping on the prior map (:func:`continue_session`, :class:`stemmap.slam.graph.Isam2Slam`):
+its trees become landmarks held by priors on their earlier covariances, inflated
+(:func:`inflate_prior`); :func:`prior_consistency` checks those covariances against what the
+new session sees.
 
 Öhman et al. match groups of a tree and its nearest neighbours with the pose predicted by
 odometry (their matcher, :func:`stemmap.slam.forestrix.match_tree_groups`, assumes the
@@ -54,11 +60,15 @@ from stemmap.slam.motion import preintegrate
 from stemmap.types import FloatArray, StemMap
 
 __all__ = [
+    "PriorConsistency",
     "RelocConfig",
     "Relocalisation",
     "continue_session",
+    "inflate_prior",
     "local_trees",
+    "map_spacing",
     "match_to_map",
+    "prior_consistency",
     "prior_tree_factors",
     "relocalise",
 ]
@@ -77,7 +87,9 @@ class RelocConfig:
     inlier_dist : m; min_inliers : local trees that must land on map trees
     ambiguity_ratio : a distinct second hypothesis must score below this fraction of the best
     cover_dist : m, a local tree landing off every map tree (> ``inlier_dist``) but within this
-        of one is a conflict (inside the mapped stand); max_conflict_frac : at most this
+        of one is a conflict (inside the mapped stand); ``None`` (default): the map's own
+        spacing, the median nearest-neighbour distance of the map trees the search can reach
+        (:func:`map_spacing`), at least ``2 inlier_dist``; max_conflict_frac : at most this
         fraction of the local trees inside the mapped stand may conflict
     anchor_s : s, the start pose is refitted to the detections of this first part of the run
     search_radius, search_angle : m, rad around the start guess (None: global)
@@ -93,7 +105,7 @@ class RelocConfig:
     inlier_dist: float = 0.8
     min_inliers: int = 5
     ambiguity_ratio: float = 0.7
-    cover_dist: float = 8.0
+    cover_dist: float | None = None
     anchor_s: float = 0.5
     max_conflict_frac: float = 0.25
     search_radius: float | None = 30.0
@@ -105,6 +117,8 @@ class RelocConfig:
             "cover_dist", "anchor_s",
         ):  # fmt: skip
             v = getattr(self, name)
+            if name == "cover_dist" and v is None:  # from the map's spacing
+                continue
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"RelocConfig.{name} must be a positive number, got {v}.")
         if self.min_inliers < 3 or self.min_cluster < 1 or self.max_pairs < 1:
@@ -113,7 +127,8 @@ class RelocConfig:
             raise ConfigError(
                 f"RelocConfig.ambiguity_ratio must be in (0, 1), got {self.ambiguity_ratio}."
             )
-        if not 0 <= self.max_conflict_frac < 1 or self.cover_dist <= self.inlier_dist:
+        cover_ok = self.cover_dist is None or self.cover_dist > self.inlier_dist
+        if not 0 <= self.max_conflict_frac < 1 or not cover_ok:
             raise ConfigError(
                 "RelocConfig: max_conflict_frac in [0, 1) and cover_dist > inlier_dist."
             )
@@ -223,6 +238,22 @@ def _apply(T: FloatArray, xy: FloatArray) -> FloatArray:
     )  # fmt: skip
 
 
+def map_spacing(map_xy: FloatArray, inlier_dist: float = 0.0) -> float:
+    """Median nearest-neighbour distance (m) of the trees ``map_xy`` (n, 2), at least
+    ``2 inlier_dist``: the default ``RelocConfig.cover_dist``.
+
+    A point farther than this from every mapped tree lies in a gap wider than half the
+    stand's; nearer, the earlier session would most likely have mapped a tree there. The floor
+    keeps a band between an inlier (<= ``inlier_dist``) and the stand's spacing in a very dense
+    map (or one of fewer than 2 trees, which has no spacing).
+    """
+    floor = 2.0 * inlier_dist
+    if map_xy.shape[0] < 2:
+        return floor if floor > 0 else math.inf
+    d, _ = cKDTree(map_xy).query(map_xy, k=2)
+    return max(float(np.median(d[:, 1])), floor)
+
+
 def match_to_map(
     local_xy: FloatArray,
     map_xy: FloatArray,
@@ -292,12 +323,13 @@ def match_to_map(
     # inliers (within inlier_dist of a map tree) and conflicts (no map tree within inlier_dist,
     # but one within cover_dist: inside the mapped stand where the earlier session would have
     # mapped the tree) of every hypothesis, one bounded k-d tree query
+    cover = cfg.cover_dist if cfg.cover_dist is not None else map_spacing(map_use, cfg.inlier_dist)
     full_t = cKDTree(map_xy)
     score = np.zeros(T.shape[0], dtype=np.int64)
     conf = np.zeros(T.shape[0], dtype=np.int64)
     for h0 in range(0, T.shape[0], 4096):  # bounded memory
         pts = _apply(T[h0 : h0 + 4096], local_xy)
-        d, _ = full_t.query(pts.reshape(-1, 2), distance_upper_bound=cfg.cover_dist)
+        d, _ = full_t.query(pts.reshape(-1, 2), distance_upper_bound=cover)
         d = d.reshape(pts.shape[:2])
         score[h0 : h0 + 4096] = (d <= cfg.inlier_dist).sum(axis=1)
         conf[h0 : h0 + 4096] = ((d > cfg.inlier_dist) & np.isfinite(d)).sum(axis=1)
@@ -319,7 +351,7 @@ def match_to_map(
         al = align_se2(local_xy[inl], map_xy[j[inl]])
         Tb = np.array([al.t[0], al.t[1], al.theta])
         n_in = int(inl.sum())
-    d, _ = full_t.query(_apply(Tb[None], local_xy)[0], distance_upper_bound=cfg.cover_dist)
+    d, _ = full_t.query(_apply(Tb[None], local_xy)[0], distance_upper_bound=cover)
     n_conf = int(((d > cfg.inlier_dist) & np.isfinite(d)).sum())
     # ambiguity: best score among hypotheses distinct from the best (and not contradicted)
     c_b = _apply(Tb[None], cen[None])[0, 0]
@@ -437,6 +469,107 @@ def prior_tree_factors(
         fac = gtsam.PriorFactorPoint2(key(j), xy, noise)
         out.append((xy, float(t.diameter), max(int(t.n_obs), min_obs), fac))
     return out
+
+
+def inflate_prior(prior_map: StemMap, factor: float) -> StemMap:
+    """``prior_map`` with every tree's covariance multiplied by ``factor`` (and its joint
+    information, when it has one, divided by it): how a later session holds the map
+    (``Isam2Config.prior_map_inflation``). Positions and everything else unchanged; ``factor``
+    1 returns the map itself.
+
+    Why (docs/algorithms/slam.md "Prior inflation"): an earlier session's tree marginals
+    are conditioned on its own linearisation, data association and approximate noise model;
+    on Victoria Park the bulk of them is within 0.8-2x of consistent with a later session's
+    own estimates, but the mean normalised innovation is 3.4-12x (:func:`prior_consistency`),
+    and session 2 scored best with the prior x4 on the splits the factor was chosen on.
+    """
+    if not (math.isfinite(factor) and factor > 0):
+        raise InputError(f"inflate_prior: factor must be a positive number, got {factor}.")
+    if factor == 1.0:
+        return prior_map
+    trees = tuple(dataclasses.replace(t, cov=np.asarray(t.cov) * factor) for t in prior_map)
+    info = None if prior_map.information is None else prior_map.information / factor
+    return dataclasses.replace(prior_map, trees=trees, information=info)
+
+
+@dataclass(frozen=True)
+class PriorConsistency:
+    """Result of :func:`prior_consistency`.
+
+    n_trees : prior trees the session re-observed (compared); nis : (n_trees,) normalised
+    innovations ``dᵀ (P1 + P2)⁻¹ d``, chi-squared with 2 dof when both covariances are right;
+    ratio_median : ``median(nis) / 1.386`` (the chi-squared(2) median), ratio_mean :
+    ``mean(nis) / 2`` (1 when consistent; the mean is dominated by the few trees the data
+    contradict, the median by the bulk); inflation : the factor ``f`` on ``P1`` for which the
+    median of ``dᵀ (f P1 + P2)⁻¹ d`` is the chi-squared(2) median (``nan`` without trees)
+    """
+
+    n_trees: int
+    nis: FloatArray
+    ratio_median: float
+    ratio_mean: float
+    inflation: float
+
+
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+
+
+def prior_consistency(
+    prior_map: StemMap, session_map: StemMap, min_new_obs: int = 3
+) -> PriorConsistency:
+    """Are a prior map's tree covariances consistent with what a later session sees?
+
+    ``session_map`` is the later session's map made on ``prior_map`` with the prior held
+    *weakly* (``Isam2Slam(prior_map_inflation=...)`` with a large factor, e.g. 100: the prior
+    trees then only tie the session into the map's frame, and each one's estimate and
+    marginal ``P2`` come from the session's own observations). A prior tree ``j`` (landmark
+    ``j``, so ``Tree.id == j`` in the session's map) that the session observed at least
+    ``min_new_obs`` more times gives the innovation ``d = x2 - x1`` between the two independent
+    estimates and its normalised square ``dᵀ (P1 + P2)⁻¹ d`` -- the normalised innovation
+    squared of Bar-Shalom, Li & Kirubarajan (2001), *Estimation with Applications to Tracking
+    and Navigation*, §5.4.2, chi-squared with 2 dof for consistent covariances. The median is
+    compared with the chi-squared median (robust to the few trees the data contradict, which
+    a robust prior handles); ``inflation`` solves ``median_j dᵀ (f P1 + P2)⁻¹ d = 1.386`` for
+    ``f`` (bisection in log f over [1e-3, 1e4]).
+    """
+    n1 = len(prior_map)
+    p1 = list(prior_map)
+    d_l, p1_l, p2_l = [], [], []
+    for t in session_map:
+        j = int(t.id)
+        if not 0 <= j < n1:
+            continue
+        t1 = p1[j]
+        if int(t.n_obs) - int(t1.n_obs) < min_new_obs:
+            continue
+        c1, c2 = np.asarray(t1.cov, np.float64), np.asarray(t.cov, np.float64)
+        if not (np.isfinite(c1).all() and np.isfinite(c2).all()):
+            continue
+        d_l.append([t.x - t1.x, t.y - t1.y])
+        p1_l.append(c1)
+        p2_l.append(c2)
+    if not d_l:
+        return PriorConsistency(0, np.zeros(0), math.nan, math.nan, math.nan)
+    d, c1a, c2a = np.asarray(d_l), np.asarray(p1_l), np.asarray(p2_l)
+
+    def nis(f: float) -> FloatArray:
+        s = f * c1a + c2a + np.eye(2) * 1e-9
+        return np.asarray(np.einsum("ni,ni->n", d, np.linalg.solve(s, d[:, :, None])[:, :, 0]))
+
+    lo, hi = math.log(1e-3), math.log(1e4)
+    if np.median(nis(math.exp(hi))) > _CHI2_2_MEDIAN:
+        f_hat = math.exp(hi)
+    elif np.median(nis(math.exp(lo))) < _CHI2_2_MEDIAN:
+        f_hat = math.exp(lo)
+    else:
+        for _ in range(60):  # the median NIS decreases with f
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.median(nis(math.exp(mid))) > _CHI2_2_MEDIAN else (lo, mid)
+        f_hat = math.exp(0.5 * (lo + hi))
+    q = nis(1.0)
+    return PriorConsistency(
+        int(q.size), q, float(np.median(q) / _CHI2_2_MEDIAN), float(q.mean() / 2.0), f_hat
+    )
 
 
 def _joint_sqrt_information(prior_map: StemMap) -> FloatArray | None:

@@ -1,0 +1,152 @@
+"""Every SLAM back-end on the ``stemmap demo`` scenario: accuracy and covariance calibration.
+
+Issue 14 ("a confidence that means something"): the motion noise handed to the back-ends by
+:func:`stemmap.cli._map_problems.sim_problem` comes from the simulator's odometry generator
+(:mod:`stemmap.sim.odometry_model`); this measures, per back-end over the demo seeds, what the
+back-ends make of it:
+
+* accuracy: path RMSE against the true vehicle path and the loop-closure error
+  (:func:`stemmap.cli._map_report.slam_metrics`, as ``stemmap demo`` reports them);
+* pose covariance (every reported row after the fixed first one, as
+  ``benchmarks/pose_covariance.py --sim`` scores it): the median position ``z² = eᵀ C⁻¹ e``
+  (2 dof, calibrated median 1.386), the median heading ``z²`` (1 dof, calibrated 0.455) and
+  the pose NEES mean divided by its 3 dof (calibrated 1);
+* tree covariance (the map ``stemmap demo`` writes, after
+  :func:`stemmap.slam.uncertainty.annotate_uncertainty`; trees matched to the stand within
+  1 m): median position ``z²`` (2 dof, calibrated 1.386) and mean ``z²`` / 2 (calibrated 1).
+
+``--motion-sigma SPEED,YAW_RATE`` replaces the problem's UnicycleModel sigmas (m/s, rad/s,
+one-second white-equivalent) to compare against another noise model on the same runs;
+``--legacy-sigmas`` uses the pre-issue-14 formula (per-sample noise / sqrt(rate) + |scale - 1|
++ |bias|). The simulator tests code here; nothing is chosen on it.
+
+Usage: python benchmarks/sim_demo_backends.py [--seeds 0 1 2 3 4 5 6] [--backends isam2 ekf]
+Prints JSON. The machine is shared; times are not reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from typing import Any
+
+import numpy as np
+
+from pose_covariance import BACKENDS, pose_errors
+
+N_TREES = 120
+
+
+def legacy_sigmas(params: dict[str, Any]) -> tuple[float, float]:
+    """The motion sigmas ``sim_problem`` used before issue 14 (for the before/after table)."""
+    on = params.get("odometry_noise") or {}
+    rate = float(params.get("odom_rate_hz", 50.0))
+    sv = float(on.get("speed_noise", 0.05)) / math.sqrt(rate) + abs(
+        float(on.get("speed_scale", 1.0)) - 1.0
+    )
+    sw = float(on.get("yaw_rate_noise", 0.0175)) / math.sqrt(rate) + abs(
+        float(on.get("yaw_rate_bias", 0.0))
+    )
+    return max(sv, 1e-3), max(sw, 1e-4)
+
+
+def one(seed: int, backend: str, sigmas: str | tuple[float, float] | None) -> dict[str, Any]:
+    """One seed and back-end: accuracy, pose and tree z² arrays."""
+    from stemmap.cli._demo import _stand_and_run
+    from stemmap.cli._map import sim_problem, slam_metrics
+    from stemmap.cli._map_problems import calibrates_odometry
+    from stemmap.eval.matching import match_points
+    from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.slam.base import make_backend
+    from stemmap.slam.uncertainty import annotate_uncertainty
+
+    run = _stand_and_run(seed, N_TREES)
+    problem, ctx = sim_problem(
+        run,
+        ScanTrunkDetector().detect_batch(run.scans),
+        odometry_calibrated=calibrates_odometry(backend),
+    )
+    if sigmas == "legacy":
+        sigmas = legacy_sigmas(run.params)
+    if isinstance(sigmas, tuple):
+        motion = dataclasses.replace(problem.motion, sigma_speed=sigmas[0], sigma_steer=sigmas[1])
+        problem = dataclasses.replace(problem, motion=motion)
+    res = make_backend(backend).run(problem)
+    sm, _ = annotate_uncertainty(res, problem)
+    m, _, _ = slam_metrics(problem, res, ctx)
+    out: dict[str, Any] = {
+        "path_rmse_m": m["trajectory_rmse_m"],
+        "loop_error_m": m["loop_closure_error_m"],
+        "sigmas": (problem.motion.sigma_speed, problem.motion.sigma_steer),
+    }
+    out |= pose_errors(run, res)
+    match = match_points(sm.xy, run.stand.trees_xy, gate=1.0)
+    z2 = []
+    for i, t in match.pairs:
+        c = sm.trees[int(i)].cov
+        if np.all(np.isfinite(c)) and np.linalg.det(c) > 0:
+            e = sm.xy[int(i)] - run.stand.trees_xy[int(t)]
+            z2.append(float(e @ np.linalg.solve(c, e)))
+    out["z2_tree"] = np.asarray(z2)
+    return out
+
+
+def _r(x: float) -> float:
+    return round(float(x), 3)
+
+
+def summarise(runs: list[dict[str, Any]], seeds: list[int]) -> dict[str, Any]:
+    row: dict[str, Any] = {
+        "path_rmse_m_per_seed": dict(zip(seeds, (_r(r["path_rmse_m"]) for r in runs), strict=True)),
+        "loop_error_m_per_seed": dict(
+            zip(seeds, (_r(r["loop_error_m"]) for r in runs), strict=True)
+        ),
+    }
+    if all("e" in r for r in runs):
+        pos = np.concatenate([r["z2_pos"] for r in runs])
+        th = np.concatenate([r["z2_th"] for r in runs])
+        nees = np.concatenate([r["nees"] for r in runs])
+        row |= {
+            "pose_position_z2_median (calibrated 1.386)": _r(np.median(pos)),
+            "pose_heading_z2_median (calibrated 0.455)": _r(np.median(th)),
+            "pose_nees_mean_per_dof (calibrated 1)": _r(np.mean(nees) / 3.0),
+        }
+    tz = np.concatenate([r["z2_tree"] for r in runs])
+    if tz.size:
+        row |= {
+            "n_matched_trees": int(tz.size),
+            "tree_z2_median (calibrated 1.386)": _r(np.median(tz)),
+            "tree_z2_mean_per_dof (calibrated 1)": _r(np.mean(tz) / 2.0),
+        }
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(range(7)))
+    ap.add_argument("--backends", nargs="+", default=[b for b in BACKENDS if b != "online"])
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--motion-sigma", default=None, help="SPEED,YAW_RATE (m/s, rad/s)")
+    g.add_argument("--legacy-sigmas", action="store_true", help="the pre-issue-14 formula")
+    a = ap.parse_args()
+    sig: str | tuple[float, float] | None = None
+    if a.legacy_sigmas:
+        sig = "legacy"
+    elif a.motion_sigma:
+        sv, sw = (float(x) for x in a.motion_sigma.split(","))
+        sig = (sv, sw)
+    out: dict[str, Any] = {"scenario": f"stemmap demo, {N_TREES} trees", "seeds": a.seeds}
+    for b in a.backends:
+        runs = [one(s, b, sig) for s in a.seeds]
+        sv, sw = runs[0]["sigmas"]  # seed 0's (the horizon follows each run's detections)
+        out[b] = {"motion_sigmas_seed0 (m/s, deg/s)": [round(sv, 4), round(math.degrees(sw), 3)]}
+        out[b] |= summarise(runs, a.seeds)
+        print(json.dumps({b: out[b]}), flush=True, file=sys.stderr)
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()

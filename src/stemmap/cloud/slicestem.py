@@ -1,0 +1,293 @@
+"""One stem from its slice fits (ours, docs/algorithms/cloud.md "Ours" step 8): the slices
+that agree on a radius and a centre line, a buttress below breast height, and the Theil-Sen
+line (Theil 1950, Sen 1968) through the slices that gives DBH, centre, taper and lean at the
+measurement height."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from stemmap.cloud.band import _Band
+from stemmap.cloud.config import StemConfig
+from stemmap.cloud.result import RULE_BH
+from stemmap.cloud.slicefit import _theil_sen
+from stemmap.cloud.uncertainty import _line_uncertainty, _mean_uncertainty
+from stemmap.types import FloatArray
+
+BUTTRESS_CLEARANCE = 0.3  # m above the top of a buttress where the diameter is taken
+BUTTRESS_OUTSIDE = 0.1  # fraction of a slice's points on fins outside the fitted circle
+
+
+@dataclass(frozen=True)
+class _SliceFits:
+    """The circle fits of the candidate clusters, one row per cluster, one column per slice.
+
+    ``passed``: the fit passed the per-slice quality tests (step 7); ``fitted``: a fit with a
+    positive radius exists; ``centers`` (K, S, 2), ``radii``, ``rms``, ``arcs`` (degrees),
+    ``n_in`` (inliers), ``weights`` (inliers / rms^2), ``cov`` (K, S, 3, 3) over (cx, cy, r);
+    ``present`` (K,): slices with at least ``min_slice_points`` points."""
+
+    passed: NDArray[np.bool_]
+    fitted: NDArray[np.bool_]
+    centers: FloatArray
+    radii: FloatArray
+    rms: FloatArray
+    arcs: FloatArray
+    n_in: NDArray[np.int64]
+    weights: FloatArray
+    cov: FloatArray
+    present: NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class _BandContext:
+    """What the per-stem tests read besides the fits: the band before the vertical filter
+    (a cKDTree of its xy, or None, and each point's slice), the slice centres' heights, the
+    noise floor, and whether the cloud is a pre-cut slice."""
+
+    band: _Band
+    tree: Any
+    band_sl: NDArray[np.int64]
+    centers_h: FloatArray
+    noise_floor: float
+    slice_cloud: bool
+
+
+def _radius_consensus(
+    r: FloatArray, m: NDArray[np.bool_], tol: float, sig_r: float
+) -> tuple[float, NDArray[np.bool_]]:
+    """Radius most slices agree on, and the slices that agree.
+
+    The median of all passing slices is right when most slices see the stem. In a spruce
+    whose whorls hide the stem in some slices, those slices fit large circles through the
+    branches and the median lands between stem and clutter, rejecting both. The consensus is
+    the slice radius with the most slices within its tolerance (15 % of it, or 5 sigma of a
+    slice radius); when every slice agrees with the median, the median is kept (the common
+    case, unchanged).
+    """
+    idx = np.flatnonzero(m)
+    r_med = float(np.median(r[idx]))
+    if np.all(np.abs(r[idx] - r_med) <= tol):
+        return r_med, m
+    tols = np.maximum(0.15 * r[idx], 5.0 * sig_r)
+    support = (np.abs(r[idx][None, :] - r[idx][:, None]) <= tols[:, None]).sum(axis=1)
+    best = support == support.max()
+    # among equally supported radii, the smallest: clutter makes circles larger, not smaller
+    j = idx[best][int(np.argmin(r[idx][best]))]
+    agree = m & (np.abs(r - r[j]) <= max(0.15 * r[j], 5.0 * sig_r))
+    return float(np.median(r[agree])), agree
+
+
+def _consistent_slices(
+    fits: _SliceFits, c: int, centers_h: FloatArray
+) -> tuple[NDArray[np.bool_], float, float, FloatArray]:
+    """The passing slices of cluster ``c`` that agree on the radius and the centre line.
+
+    Radii within max(15 % of r, 5 sigma_r) of the median -- or of the consensus radius
+    (:func:`_radius_consensus`) when not all slices agree with the median -- where
+    sigma_r = 2 rms / sqrt(n) x max(1, 180 deg / arc)^2 approximates a slice fit's radius
+    noise; centres within max(that, 0.3 r) of a Theil-Sen line through them (>= 3 slices) or
+    of their median. Returns the slices kept, the radius they agree on, its tolerance, and
+    the predicted centre (S, 2) at every slice height.
+    """
+    radii, cen, arcs = fits.radii[c], fits.centers[c], fits.arcs[c]
+    m = fits.passed[c]
+    # consistency: drop slices whose radius or centre is far from the median
+    r_med = float(np.median(radii[m]))
+    # tolerance: 15 % of the radius, or 5 sigma of a slice radius, whichever is larger.
+    # sigma_r is the fit's parameter noise, not the points': ~2 rms / sqrt(n) on a half
+    # arc, growing like (180 deg / arc)^2 on shorter arcs (partly occluded trunks)
+    short = np.maximum(1.0, 180.0 / np.maximum(arcs[m], 1.0)) ** 2
+    sig_r = float(np.median(2.0 * fits.rms[c, m] / np.sqrt(np.maximum(fits.n_in[c, m], 1)) * short))
+    tol = max(0.15 * r_med, 5.0 * sig_r)
+    r_med, m = _radius_consensus(radii, m, tol, sig_r)
+    tol = max(0.15 * r_med, 5.0 * sig_r)
+    c_med = np.median(cen[m], axis=0)
+    # centres are compared with a robust line through them (a leaning stem's centre
+    # moves with height), radii with their median
+    if m.sum() >= 3:
+        hm = centers_h[m]
+        lx, ly = _theil_sen(hm, cen[m, 0]), _theil_sen(hm, cen[m, 1])
+        pred = np.column_stack((lx[0] + lx[1] * centers_h, ly[0] + ly[1] * centers_h))
+    else:
+        pred = np.broadcast_to(c_med, cen.shape)
+    m = m & (np.abs(radii - r_med) <= tol) & (np.hypot(*(cen - pred).T) <= max(tol, 0.3 * r_med))
+    return m, r_med, tol, pred
+
+
+def _outside_fraction(
+    band: _Band,
+    tree: Any,
+    sl: NDArray[np.int64],
+    c: FloatArray,
+    r: FloatArray,
+    rms: FloatArray,
+) -> FloatArray:
+    """Per slice of one stem: the fraction of the band's points within two radii of the
+    slice circle's centre that lie outside it by more than max(3 RMS, 2 cm) and less than one
+    radius -- buttress fins and root flare, which the robust fit trims as outliers (it
+    measures the round core between the fins). All band points, before the vertical filter
+    (a fin shrinks with height, so the filter removes much of it)."""
+    ns = r.shape[0]
+    out = np.zeros(ns)
+    if tree is None or not np.isfinite(r).any():
+        return out
+    k = int(np.nanargmax(r))
+    idx = np.asarray(tree.query_ball_point(c[k], 2.0 * float(np.nanmax(r))), dtype=np.int64)
+    if idx.size == 0:
+        return out
+    for s in range(ns):
+        if not np.isfinite(r[s]):
+            continue
+        q = idx[sl[idx] == s]
+        d = np.hypot(*(band.xy[q] - c[s]).T)
+        q_in = d <= 2 * r[s]
+        if q_in.sum() < 8:
+            continue
+        res = d[q_in] - r[s]
+        thr = max(3 * float(rms[s]) if np.isfinite(rms[s]) else 0.0, 0.02)
+        out[s] = float(np.mean((res > thr) & (res < r[s])))
+    return out
+
+
+def _measurement_height(
+    fits: _SliceFits,
+    c: int,
+    m: NDArray[np.bool_],
+    r_med: float,
+    tol: float,
+    pred: FloatArray,
+    ctx: _BandContext,
+    cfg: StemConfig,
+) -> tuple[float, str]:
+    """Where the DBH of cluster ``c`` is measured, and why: breast height, or
+    :data:`BUTTRESS_CLEARANCE` (0.3 m) above the top of a buttress that reaches above
+    ``breast_height - 0.3`` (forestry convention: the diameter is taken 0.3 m above the top of
+    the swelling when it reaches above 1.0 m).
+
+    A buttress or root flare is the run of slices from the lowest up, below breast height,
+    centred on the stem, whose fit is too large for the stem's tolerance or whose band points
+    lie outside the circle (:func:`_outside_fraction` > :data:`BUTTRESS_OUTSIDE`), with a
+    clean stem above it (outside fraction < half of that: a spruce's whorls put branch points
+    around the stem at every height, which is not a buttress). Never for a pre-cut slice.
+    """
+    centers_h = ctx.centers_h
+    radii, cen, fitted = fits.radii[c], fits.centers[c], fits.fitted[c]
+    out_f = _outside_fraction(ctx.band, ctx.tree, ctx.band_sl, cen, radii, fits.rms[c])
+    flare = (
+        fitted
+        & (centers_h < cfg.breast_height)
+        & (np.hypot(*(cen - pred).T) <= r_med + radii)
+        & ((~m & (radii > r_med + tol)) | (out_f > BUTTRESS_OUTSIDE))
+    )
+    # a buttress starts at the ground: only the run of flared slices from the lowest up;
+    # and above it the stem is clean (a spruce's whorls put branch points around the
+    # stem at every height, which is not a buttress)
+    flare &= np.cumprod(flare | (centers_h < centers_h[fitted].min())).astype(bool)
+    above = fitted & ~flare & (centers_h > centers_h[flare].max() if flare.any() else False)
+    if flare.any() and (not above.any() or out_f[above].max() > BUTTRESS_OUTSIDE / 2):
+        flare[:] = False
+    h_meas = cfg.breast_height
+    rule = RULE_BH
+    if flare.any() and not ctx.slice_cloud:
+        top = float(centers_h[flare].max() + cfg.slice_thickness / 2)
+        if top + BUTTRESS_CLEARANCE > cfg.breast_height:
+            h_meas = top + BUTTRESS_CLEARANCE
+            rule = f"above buttress (swelling to {top:.2f} m)"
+    return h_meas, rule
+
+
+def _stem_at(
+    fits: _SliceFits, c: int, m: NDArray[np.bool_], hh: FloatArray, cfg: StemConfig
+) -> tuple[float, FloatArray, float, float, FloatArray] | None:
+    """Radius, centre (2,), taper (dr/dh, NaN when not estimated), radius variance and
+    centre covariance (2, 2) of cluster ``c`` at ``hh = 0`` (``hh``: the kept slices'
+    heights relative to the measurement height); None when the taper is too steep for a stem.
+
+    With >= 3 slices spanning >= 0.3 m: robust Theil-Sen lines (Theil 1950, Sen 1968) through
+    the slices' radii and centres (taper, lean), rejected if |dr/dh| > ``cfg.max_taper`` (a
+    sphere or a bush changes radius fast with height), uncertainty by
+    :func:`~stemmap.cloud.uncertainty._line_uncertainty`; the radius is corrected for lean
+    (the horizontal section of a stem leaning by theta is an ellipse with axes d / cos(theta)
+    and d; a circle fit returns about their mean, so the diameter across the axis is
+    2 cos(theta) / (1 + cos(theta)) of it, first order). Otherwise the slices' weighted mean
+    (weights inliers / rms^2), uncertainty by
+    :func:`~stemmap.cloud.uncertainty._mean_uncertainty`.
+    """
+    radii, cen = fits.radii[c, m], fits.centers[c, m]
+    cov_i = fits.cov[c, m]
+    if m.sum() >= 3 and np.ptp(hh) >= 0.3:
+        # robust (Theil-Sen) line through the slices (taper, lean), at breast height: one
+        # slice spoilt by a branch or a shrub does not tilt it
+        coef_r = _theil_sen(hh, radii)
+        coef_x = _theil_sen(hh, cen[:, 0])
+        coef_y = _theil_sen(hh, cen[:, 1])
+        taper = float(coef_r[1])
+        if abs(taper) > cfg.max_taper:
+            return None  # radius changes too fast with height for a stem (bush, boulder)
+        r_bh = float(coef_r[0])
+        cxy = np.array([coef_x[0], coef_y[0]])
+        var_r, cov_xy = _line_uncertainty(hh, radii, cen, (coef_r, coef_x, coef_y), cov_i)
+        # lean: the horizontal slice of a stem leaning by theta is an ellipse with axes
+        # d / cos(theta) and d; a circle fit returns about their mean, so the diameter
+        # across the axis is 2 cos(theta) / (1 + cos(theta)) of it (first order)
+        cos_t = 1.0 / math.sqrt(1.0 + coef_x[1] ** 2 + coef_y[1] ** 2)
+        r_bh *= 2 * cos_t / (1 + cos_t)
+    else:
+        w = fits.weights[c, m]
+        r_bh = float(np.average(radii, weights=w))
+        cxy = np.average(cen, axis=0, weights=w)
+        taper = math.nan
+        var_r, cov_xy = _mean_uncertainty(cov_i)
+    return r_bh, cxy, taper, var_r, cov_xy
+
+
+def _slice_stem(
+    fits: _SliceFits, c: int, ctx: _BandContext, cfg: StemConfig
+) -> tuple[tuple[float, ...], str] | None:
+    """Step 8 for cluster ``c``: its row ``(x, y, dbh, n_points, quality, arc, rms,
+    n_slices, taper, dbh_std, cov_xx, cov_xy, cov_yy, dbh_height)`` and DBH rule, or None
+    when it is no stem.
+
+    Tests, in order: >= ``cfg.min_slices`` consistent slices (:func:`_consistent_slices`)
+    spanning >= ``cfg.min_vertical_extent`` (not a bush, a boulder or a branch stub; not
+    for a pre-cut slice), the taper (:func:`_stem_at`). Quality = fraction of the present
+    slices kept x min(1, arc / 120 deg) x min(1, noise floor / RMS).
+    """
+    centers_h = ctx.centers_h
+    m, r_med, tol, pred = _consistent_slices(fits, c, centers_h)
+    if m.sum() < cfg.min_slices:
+        return None
+    if not ctx.slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent - 1e-9:
+        return None  # not a vertical structure (a bush, a boulder, a branch stub)
+    h_meas, rule = _measurement_height(fits, c, m, r_med, tol, pred, ctx, cfg)
+    at = _stem_at(fits, c, m, centers_h[m] - h_meas, cfg)
+    if at is None:
+        return None
+    r_bh, cxy, taper, var_r, cov_xy = at
+    frac = float(m.sum()) / max(int(fits.present[c]), 1)
+    arc = float(np.mean(fits.arcs[c, m]))
+    rr = float(np.mean(fits.rms[c, m]))
+    q = frac * min(1.0, arc / 120.0) * min(1.0, ctx.noise_floor / max(rr, 1e-6))
+    row = (
+        cxy[0],
+        cxy[1],
+        2 * r_bh,
+        int(fits.n_in[c, m].sum()),
+        q,
+        arc,
+        rr,
+        int(m.sum()),
+        taper,
+        2 * math.sqrt(var_r),
+        cov_xy[0, 0],
+        cov_xy[0, 1],
+        cov_xy[1, 1],
+        h_meas,
+    )
+    return row, rule
