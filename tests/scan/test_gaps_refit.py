@@ -213,7 +213,7 @@ def test_validated_corner_split_keeps_the_verdict_of_two_lobes():
         "corner_depth": 0.01,
         "corner_depth_convex": 0.01,
     }
-    loose = {k: v for k, v in _CORNERS.items() if k != "refit_validate"}
+    loose = {**_CORNERS, "refit_validate": False}
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **loose))
     assert len(det.detect_batch(batch)) == 2
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))

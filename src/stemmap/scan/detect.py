@@ -648,6 +648,9 @@ class ScanTrunkDetector:
         # and passed as trunks on the simulator's bushes (precision 0.975 -> 0.947)
         cfg = self.config
         which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
+        # a candidate whose corner split (refit_split="corners") gave a trunk is done: its arc
+        # would be the same trunk twice
+        which[order_key[order_key % 2 == 1] // 2] = False
         replace = math.isfinite(cfg.arc_replace)
         if replace:
             # accepted candidates too: kept (output row) ones at even keys
