@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan.test_detect_fast import _both
 
 from stemmap.errors import ConfigError
 from stemmap.scan._refit import corner_cut_pieces, validate_pieces
@@ -181,21 +182,9 @@ def test_validated_corner_split_finds_a_trunk_merged_with_a_branch():
     assert len(base.detect_batch(batch)) == 0
     assert base.rejected(batch)["reason"] == ["depth"]
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))
-    assert det._compiled(None, None)  # the stemmap default since the tenth round
+    assert det._compiled(None, None)  # the stemmap default since the eleventh round
     assert ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg)).config == det.config
-    obs = det.detect_batch(batch)
-    # the numpy reference agrees
-    ref = det._run_numpy(
-        batch.ranges,
-        batch.times,
-        batch.angle_min,
-        batch.angle_increment,
-        batch.range_min,
-        batch.range_max,
-        batch.frame,
-        None,
-        None,
-    )
+    obs, ref = _both(det, batch)  # the compiled path and the numpy reference agree
     np.testing.assert_array_equal(obs.radii, ref.radii)
     assert len(obs) == 1
     # the trunk's own circle: centre and radius within 5 mm (thin-beam edge bias ~-3 mm)

@@ -54,6 +54,20 @@ def sagitta(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma:
     return depth
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _behind_chord(
+    px: FloatArray, py: FloatArray, lo: int, i: int, c: int
+) -> tuple[float, float, float]:  # pragma: no cover - numba
+    """``|c| d`` for return ``i`` and the chord from return ``lo`` to ``c`` (``d``: its
+    distance behind the chord, positive on the far side from the sensor at the origin), and
+    the chord ``(cx, cy)``."""
+    cx = px[c] - px[lo]
+    cy = py[c] - py[lo]
+    side_p = cx * (py[i] - py[lo]) - cy * (px[i] - px[lo])
+    side_o = cy * px[lo] - cx * py[lo]
+    return (-side_p if side_o > 0.0 else side_p), cx, cy
+
+
 @njit(cache=True, error_model="numpy")
 def segment_corners(
     px: FloatArray,
@@ -71,15 +85,10 @@ def segment_corners(
     for i in range(a, b):
         d[i] = -math.inf
         if i - span >= a and i + span < b:
-            lo = i - span
-            c = i + span
-            cx = px[c] - px[lo]
-            cy = py[c] - py[lo]
-            side_p = cx * (py[i] - py[lo]) - cy * (px[i] - px[lo])
-            side_o = cy * px[lo] - cx * py[lo]
+            sd, cx, cy = _behind_chord(px, py, i - span, i, i + span)
             length = math.hypot(cx, cy)
             if length > 0.0:
-                d[i] = (-side_p if side_o > 0.0 else side_p) / length
+                d[i] = sd / length
             else:
                 d[i] = 0.0
     found = 0
@@ -102,13 +111,7 @@ def may_have_corner(
     ``thr`` (the 1 % slack covers the rounding of the exact test); True decides nothing."""
     lim = 0.99 * thr * thr
     for i in range(a + span, b - span):
-        lo = i - span
-        c = i + span
-        cx = px[c] - px[lo]
-        cy = py[c] - py[lo]
-        side_p = cx * (py[i] - py[lo]) - cy * (px[i] - px[lo])
-        side_o = cy * px[lo] - cx * py[lo]
-        sd = -side_p if side_o > 0.0 else side_p
+        sd, cx, cy = _behind_chord(px, py, i - span, i, i + span)
         if sd > 0.0 and sd * sd > lim * (cx * cx + cy * cy):
             return True
     return False
