@@ -1,5 +1,6 @@
 """The ground raster of a buffered chunk equals the whole cloud's near a data edge; the
-bilinear kernel equals scipy's map_coordinates bit for bit."""
+bilinear kernel equals scipy's map_coordinates bit for bit, and the one-pass heights and slice
+band equal the height-then-mask computation."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 from scipy import ndimage
 
 from stemmap.cloud._grid_kernel import bilinear_nearest
-from stemmap.cloud.ground import GroundAccumulator, fit_ground
+from stemmap.cloud.ground import GroundAccumulator, GroundModel, fit_ground
 
 
 def _terrain(seed: int) -> np.ndarray:
@@ -100,6 +101,37 @@ def test_bilinear_kernel_is_scipys_map_coordinates(seed: int) -> None:
         assert got is not None
         np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
     assert bilinear_nearest(z, (0.0, 0.0), 1.0, np.array([np.nan]), np.array([0.0])) is None
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_band_of_is_height_then_mask(seed: int) -> None:
+    """``GroundModel.band_of``: the heights of ``height_of`` and the indices of
+    ``(h >= lo) & (h <= hi)``, bit for bit, inside and outside the raster, on the band's
+    limits, with NaN heights and on strided input; the numpy path where a coordinate is
+    not finite."""
+    rng = np.random.default_rng(seed)
+    g = fit_ground(_terrain(seed), cell=1.0)
+    xyz = np.asfortranarray(_terrain(seed + 10))  # column-major: strided rows
+    xyz[:50, :2] += rng.uniform(-40, 40, (50, 2))  # outside the raster: clamped
+    want_h = g.height_of(xyz)
+    lo, hi = 0.5, 2.0
+    xyz[50:60, 2] += lo - want_h[50:60]  # heights on the lower limit
+    xyz[60:70, 2] += hi - want_h[60:70]  # and on the upper one
+    xyz[70, 2] = np.nan
+    want_h = g.height_of(xyz)
+    h, idx = g.band_of(xyz, lo, hi)
+    np.testing.assert_array_equal(h.view(np.int64), want_h.view(np.int64))
+    np.testing.assert_array_equal(idx, np.flatnonzero((want_h >= lo) & (want_h <= hi)))
+    assert idx.dtype == np.int64 and 70 not in idx and idx.size > 1000
+    bad = np.ascontiguousarray(xyz)
+    bad[3, 0] = np.inf  # not finite: scipy's interpolation, as height_of
+    h2, idx2 = g.band_of(bad, lo, hi)
+    want2 = g.height_of(bad)
+    np.testing.assert_array_equal(h2.view(np.int64), want2.view(np.int64))
+    np.testing.assert_array_equal(idx2, np.flatnonzero((want2 >= lo) & (want2 <= hi)))
+    flat = GroundModel((0.0, 0.0), 1.0, np.full((1, 1), 0.25), "lowest stem points")
+    h3, idx3 = flat.band_of(np.array([[5.0, 5.0, 1.0], [0.0, 0.0, 0.0]]), 0.5, 2.0)
+    assert h3.tolist() == [0.75, -0.25] and idx3.tolist() == [0]
 
 
 def test_nearest_cell_fill_is_local() -> None:

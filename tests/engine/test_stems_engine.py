@@ -146,6 +146,16 @@ def test_resume_redoes_only_missing_or_changed_chunks(
     man.path.write_text("\n".join(lines[:3] + lines[4:]) + "\n")
     third = run_stems_catalog(cat, StemConfig(), work, chunk_size=10.0, resume=True, client=client)
     assert third.computed == [dropped]
+    # result files are not fsynced: one that a power loss left torn or empty, although its
+    # line says done, fails the hash check and is redone, only it
+    torn = first.chunks[5].id
+    res = man.result_path(torn)
+    res.write_bytes(res.read_bytes()[:-1])
+    empty = first.chunks[1].id
+    man.result_path(empty).write_bytes(b"")
+    fixed = run_stems_catalog(cat, StemConfig(), work, chunk_size=10.0, resume=True, client=client)
+    assert sorted(fixed.computed) == sorted([torn, empty])
+    assert_same_stems(first.stems, fixed.stems)  # type: ignore[arg-type]
     # a changed tile invalidates exactly the chunks whose buffered box reads it
     changed = cat.tiles[4]
     Path(changed.path).write_bytes(Path(changed.path).read_bytes())  # same bytes: still done
@@ -250,3 +260,52 @@ def test_chunk_sizes_agree_at_an_inner_data_edge(
     single = detect_stems(np.concatenate(ordered), a.config)
     assert_same_stems(single, a.stems)  # type: ignore[arg-type]
     assert_same_stems(single, b.stems)  # type: ignore[arg-type]
+
+
+def test_small_pilot_runs_one_task_per_chunk(
+    stand_tiles: tuple[Path, np.ndarray],
+    client: Any,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A pilot region holding a small part of the catalog: each chunk is one task (read,
+    ground, stems) instead of a prepare task and a stems task; the same stems, bit for bit,
+    as the two-task split, and as one process with the run's statistics. Only the manifest
+    lines are fsynced (stage fragments, prepared bands and chunk results are scratch)."""
+    import os
+
+    import stemmap.engine.stems as engine_stems
+
+    cat = Catalog.from_inputs([stand_tiles[0]])
+    budget = cat.n_points // 5
+    assert engine_stems.pilot_chunk(cat, budget).expected_points <= (
+        engine_stems.PREPARE_APART_FRACTION * cat.n_points
+    )
+    real_fsync = os.fsync
+    synced: list[int] = []
+
+    def counting(fd: int) -> None:
+        synced.append(fd)
+        real_fsync(fd)
+
+    def run(work: Path) -> Any:
+        return run_stems_catalog(
+            cat, StemConfig(), work, chunk_size=10.0, buffer=4.0, max_points=budget, client=client
+        )
+
+    monkeypatch.setattr(os, "fsync", counting)
+    one = run(tmp_path / "one")
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    assert len(synced) == len(one.chunks)  # one per manifest line
+    monkeypatch.setattr(engine_stems, "PREPARE_APART_FRACTION", 0.0)
+    two = run(tmp_path / "two")
+    assert set(one.phases) == {"stage", "pilot", "stems"}
+    assert one.phases["stems"]["tasks"] == len(one.chunks)
+    assert set(two.phases) == {"stage", "pilot", "prepare", "stems"}
+    assert two.phases["prepare"]["tasks"] == len(two.chunks)
+    assert one.config == two.config and isinstance(one.config, StemConfig)
+    assert one.stems is not None and two.stems is not None
+    for k in ("xy", "diameter", "z", "n_slices", "n_points", "quality"):
+        np.testing.assert_array_equal(getattr(one.stems, k), getattr(two.stems, k))
+    assert_same_stems(detect_stems(stand_tiles[1], one.config), one.stems)
+    assert not (tmp_path / "one" / "stage").exists()

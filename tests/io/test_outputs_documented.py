@@ -186,7 +186,9 @@ def test_detect_products_documented(tmp_path: Path) -> None:
 def test_catalog_manifest_documented(tmp_path: Path) -> None:
     man = Manifest(tmp_path / "work")
     man.append("c0_0", "failed", {"a.laz": "00"}, "ff", seconds=1.0, error="boom")
-    man.append("c0_0", "done", {"a.laz": "00"}, "ff", seconds=1.0, n_points=10, n_stems=1)
+    man.append(
+        "c0_0", "done", {"a.laz": "00"}, "ff", seconds=1.0, n_points=10, n_stems=1, result="ab"
+    )
     lines = (tmp_path / "work" / "manifest.jsonl").read_text().splitlines()
     keys = {k for ln in lines for k in json.loads(ln)}
     assert _undocumented(keys, "stems catalog work folder") == []

@@ -45,16 +45,22 @@ TRUNK_AND_BRANCH = [TRUNK, *_branch((5.0, 0.17), (4.6, 0.8))]
 
 
 def test_the_merged_segment_is_rejected_as_not_convex_without_arcs():
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap"))
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))
     batch = _scan(TRUNK_AND_BRANCH)
     assert len(det.detect_batch(batch)) == 0
     assert "depth" in det.rejected(batch)["reason"]
+    # the default's validated corner split (eleventh round) cuts the branch off
+    assert len(ScanTrunkDetector("stemmap").detect_batch(batch)) == 1
 
 
 def test_the_arc_of_the_trunk_is_found_with_its_radius():
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0))
+    arcs = {"arc_refit": True, "arc_sigmas": 2.0}
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False, **arcs))
     obs = det.detect_batch(_scan(TRUNK_AND_BRANCH))
     assert len(obs) == 1
+    # with the default's corner split too: one trunk, not the split's piece and the arc
+    both = ScanTrunkDetector(DetectorConfig.preset("stemmap", **arcs))
+    assert len(both.detect_batch(_scan(TRUNK_AND_BRANCH))) == 1
     # noise-free returns on an exact circle: the arc's fit recovers it to a millimetre
     assert obs.radii[0] == pytest.approx(TRUNK[2], abs=0.002)
     assert np.hypot(*(obs.centers[0] - TRUNK[:2])) < 0.003

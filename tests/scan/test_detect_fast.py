@@ -121,6 +121,22 @@ CONFIGS = {
         "median_filter": True,
     },
     "strict": {"max_points": 40, "drop_partial": True, "min_depth": 0.01, "min_width": 0.05},
+    # issue 11: validated corner split of rejected candidates (compiled since the tenth round;
+    # the real merges: test_detect_fast_real.py), and unvalidated with convex cuts
+    "corner_split": {
+        "refit_pieces": True,
+        "refit_split": "corners",
+        "refit_validate": True,
+        "corner_depth": 0.015,
+        "corner_depth_convex": 0.03,
+    },
+    "corner_split_all_pieces": {
+        "refit_pieces": True,
+        "refit_split": "corners",
+        "corner_depth": 0.01,
+        "corner_depth_convex": 0.03,
+        "min_depth": 0.01,
+    },
 }
 
 
@@ -175,6 +191,10 @@ def test_public_api_uses_the_compiled_path_and_single_equals_batch(stand):
         None, None
     )
     assert not det._compiled(0.01, None)  # tilt compensation runs the numpy pipeline
+    for numpy_only in ({"refit_split": "gap"}, {"arc_refit": True}):
+        assert not ScanTrunkDetector(DetectorConfig.preset("stemmap", **numpy_only))._compiled(
+            None, None
+        )
     whole = det.detect_batch(batch)
     _, ref = _both(det, batch)
     assert_same(whole, ref)
@@ -239,3 +259,52 @@ def test_inplace_median_equals_numpy_median():
         if t % 3 == 0:
             v = np.round(v, 1)  # ties
         assert _detect_fast._median_inplace(v.copy(), m) == np.median(v)
+
+
+def test_kernel_codes_and_parameter_positions_match_their_names():
+    # the kernels read reason codes and parameters by position (numba has no name lookup)
+    from stemmap.scan import _fast_candidates as fc
+    from stemmap.scan.plausibility import REASONS
+
+    codes = {"depth": fc._DEPTH, "fit_failed": fc._FIT_FAILED, "radius": fc._RADIUS}
+    codes |= {"radius_width_ratio": fc._RATIO, "centre_in_front": fc._CENTRE, "rms": fc._RMS}
+    for name, code in codes.items():
+        assert REASONS[code] == name
+    assert fc._PREFIT < 0  # never a REASONS code
+    used = {
+        "wrap": 3, "occlusion_margin": 10, "min_points": 16, "min_points_partial": 17,
+        "max_points": 18, "min_width": 19, "max_width": 20, "min_depth": 21,
+        "min_curvature": 22, "max_curvature": 23, "reject_straight": 24, "straight_chi2": 25,
+        "straight_ratio": 26, "straight_min_points": 27, "drop_partial": 28, "sigma": 29,
+        "sigma_rel": 30, "fit_sigma_given": 31, "min_radius": 32, "max_radius": 33,
+        "max_radius_width_ratio": 34, "max_rms_sigma": 35, "divergence": 36,
+        "use_silhouette": 37, "range_model": 38, "angle_increment": 39, "sigma_from_data": 40,
+        "roughness_max_factor": 41, "rms_robust": 42, "bark_roughness": 43, "corner_span": 45,
+        "corner_depth": 46, "corner_depth_convex": 47, "corner_sigmas": 48,
+        "straight_depth_sigmas": 52, "refit_corners": 56, "refit_validate": 57,
+    }  # fmt: skip
+    for name, i in used.items():
+        assert _detect_fast.PARAM_INDEX[name] == i, name
+
+
+def test_squared_corner_pretest_never_misses_a_corner():
+    # the split's pre-test may say "maybe" wrongly, never "no" where segment_corners finds one
+    from stemmap.scan._corners import may_have_corner, segment_corners
+
+    rng = np.random.default_rng(3)
+    hits = 0
+    for _ in range(3000):
+        n = int(rng.integers(3, 30))
+        t = np.linspace(-1.0, 1.0, n)
+        # an arc or a notched outline 2-8 m away, cm-scale noise
+        y = rng.uniform(2.0, 8.0) + rng.choice([-1.0, 1.0]) * 0.05 * np.abs(t)
+        x = rng.uniform(0.2, 1.0) * t
+        y = y + rng.normal(0.0, rng.uniform(0.0, 0.02), n)
+        px, py = np.ascontiguousarray(x), np.ascontiguousarray(y)
+        span = int(rng.integers(1, 3))
+        thr = float(rng.uniform(0.005, 0.04))
+        d, corner = np.empty(n), np.empty(n, dtype=bool)
+        found = segment_corners(px, py, 0, n, span, thr, d, corner)
+        hits += found > 0
+        assert may_have_corner(px, py, 0, n, span, thr) or found == 0
+    assert hits > 100  # corners were present in the draws

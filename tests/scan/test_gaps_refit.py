@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan.test_detect_fast import _both
 
 from stemmap.errors import ConfigError
 from stemmap.scan._refit import corner_cut_pieces, validate_pieces
@@ -87,12 +88,14 @@ def test_gap_splits_find_a_trunk_merged_with_a_stem_in_front():
 
 def test_refit_pieces_recover_a_trunk_whose_segment_fails_the_rms_test():
     batch = _scan([(5.0, 0.0, 0.12), (5.12, 0.19, 0.05)])
-    cfg = {"beam_divergence_deg": 0.0}
-    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg))
+    # (the default's corner split leaves this convex candidate alone: no concave corner)
+    cfg = {"beam_divergence_deg": 0.0, "refit_split": "gap", "refit_validate": False}
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, refit_pieces=False))
     assert len(base.detect_batch(batch)) == 0
     assert base.rejected(batch)["reason"] == ["rms"]
+    assert len(ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg)).detect_batch(batch)) == 1
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=True, **cfg))
-    assert not det._compiled(None, None)  # numpy path only
+    assert not det._compiled(None, None)  # the gap split: numpy path only
     obs = det.detect_batch(batch)
     assert len(obs) == 1 and obs.index.tolist() == [0]
     np.testing.assert_allclose(obs.centers[0], [5.0, 0.0], atol=0.015)
@@ -102,13 +105,13 @@ def test_refit_pieces_recover_a_trunk_whose_segment_fails_the_rms_test():
     assert len(alone) == 1 and abs(obs.radii[0] - alone.radii[0]) < 0.0025
     # validated: the stem's piece is too short to be judged, so the trunk's piece stands
     det = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", refit_pieces=True, refit_validate=True, **cfg)
+        DetectorConfig.preset("stemmap", refit_pieces=True, **{**cfg, "refit_validate": True})
     )
     got = det.detect_batch(batch)
     assert len(got) == 1 and np.allclose(got.centers, obs.centers)
     # outlier trimming instead of the gap cut keeps the same trunk here
     det = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", refit_pieces=True, refit_split="outliers", **cfg)
+        DetectorConfig.preset("stemmap", refit_pieces=True, **{**cfg, "refit_split": "outliers"})
     )
     assert len(det.detect_batch(batch)) <= 1
 
@@ -175,12 +178,14 @@ def test_validated_corner_split_finds_a_trunk_merged_with_a_branch():
     # concave at the junction, rejected as not convex
     batch = _scan_with_branch((3.0, 0.0, 0.15), (3.0, 0.149), (2.7, 0.4))
     cfg = {"beam_divergence_deg": 0.0}
-    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg))
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, refit_pieces=False))
     assert len(base.detect_batch(batch)) == 0
     assert base.rejected(batch)["reason"] == ["depth"]
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))
-    assert not det._compiled(None, None)  # numpy path only
-    obs = det.detect_batch(batch)
+    assert det._compiled(None, None)  # the stemmap default since the eleventh round
+    assert ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg)).config == det.config
+    obs, ref = _both(det, batch)  # the compiled path and the numpy reference agree
+    np.testing.assert_array_equal(obs.radii, ref.radii)
     assert len(obs) == 1
     # the trunk's own circle: centre and radius within 5 mm (thin-beam edge bias ~-3 mm)
     np.testing.assert_allclose(obs.centers[0], [3.0, 0.0], atol=0.005)
@@ -197,7 +202,7 @@ def test_validated_corner_split_keeps_the_verdict_of_two_lobes():
         "corner_depth": 0.01,
         "corner_depth_convex": 0.01,
     }
-    loose = {k: v for k, v in _CORNERS.items() if k != "refit_validate"}
+    loose = {**_CORNERS, "refit_validate": False}
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **loose))
     assert len(det.detect_batch(batch)) == 2
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))

@@ -18,7 +18,13 @@ from numba import njit
 
 from stemmap.types import FloatArray
 
-__all__ = ["bilinear_nearest", "dense_span", "lowest_per_cell", "max_per_cell"]
+__all__ = [
+    "bilinear_nearest",
+    "dense_span",
+    "heights_in_band",
+    "lowest_per_cell",
+    "max_per_cell",
+]
 
 
 @njit(cache=True)
@@ -169,25 +175,91 @@ def _axis(c: float, n: int) -> tuple[int, int, float, float]:
 
 
 @njit(cache=True)
+def _at(grid: FloatArray, ox: float, oy: float, cell: float, x: float, y: float) -> float:
+    # the interpolated value at one finite point (scipy's operations, in its order)
+    nx, ny = grid.shape
+    fi = (x - ox) / cell - 0.5
+    fj = (y - oy) / cell - 0.5
+    i0, i1, a0, a1 = _axis(fi, nx)
+    j0, j1, b0, b1 = _axis(fj, ny)
+    t = 0.0
+    t += grid[i0, j0] * a0 * b0
+    t += grid[i0, j1] * a0 * b1
+    t += grid[i1, j0] * a1 * b0
+    t += grid[i1, j1] * a1 * b1
+    return t
+
+
+@njit(cache=True)
 def _bilinear(
     grid: FloatArray, ox: float, oy: float, cell: float, x: FloatArray, y: FloatArray
 ) -> FloatArray | None:
-    nx, ny = grid.shape
     out = np.empty(x.shape[0])
     for k in range(x.shape[0]):
         if not (np.isfinite(x[k]) and np.isfinite(y[k])):
             return None
-        fi = (x[k] - ox) / cell - 0.5
-        fj = (y[k] - oy) / cell - 0.5
-        i0, i1, a0, a1 = _axis(fi, nx)
-        j0, j1, b0, b1 = _axis(fj, ny)
-        t = 0.0
-        t += grid[i0, j0] * a0 * b0
-        t += grid[i0, j1] * a0 * b1
-        t += grid[i1, j0] * a1 * b0
-        t += grid[i1, j1] * a1 * b1
-        out[k] = t
+        out[k] = _at(grid, ox, oy, cell, x[k], y[k])
     return out
+
+
+@njit(cache=True)
+def _heights(
+    grid: FloatArray,
+    ox: float,
+    oy: float,
+    cell: float,
+    x: FloatArray,
+    y: FloatArray,
+    z: FloatArray,
+    lo: float,
+    hi: float,
+    h: FloatArray,
+) -> int:
+    # h = z - ground (numpy's subtraction of the interpolated ground); returns how many lie
+    # in [lo, hi], or -1 at a non-finite coordinate
+    cnt = 0
+    for k in range(x.shape[0]):
+        if not (np.isfinite(x[k]) and np.isfinite(y[k])):
+            return -1
+        v = z[k] - _at(grid, ox, oy, cell, x[k], y[k])
+        h[k] = v
+        if v >= lo and v <= hi:
+            cnt += 1
+    return cnt
+
+
+@njit(cache=True)
+def _in_range(h: FloatArray, lo: float, hi: float, cnt: int) -> np.ndarray:
+    idx = np.empty(cnt, dtype=np.int64)
+    c = 0
+    for k in range(h.shape[0]):
+        if h[k] >= lo and h[k] <= hi:
+            idx[c] = k
+            c += 1
+    return idx
+
+
+def heights_in_band(
+    grid: FloatArray,
+    origin: tuple[float, float],
+    cell: float,
+    xyz: FloatArray,
+    lo: float,
+    hi: float,
+) -> tuple[FloatArray, np.ndarray] | None:
+    """Heights ``z - ground(x, y)`` of the (N, 3) points (the ground interpolated as
+    :func:`bilinear_nearest`) and the indices, in point order, of those with
+    ``lo <= h <= hi``: bit for bit ``h = z - bilinear_nearest(...)`` and
+    ``flatnonzero((h >= lo) & (h <= hi))``, in two passes without the temporaries (the
+    interpolated ground, the masks). None when a coordinate is not finite."""
+    g = np.ascontiguousarray(grid, dtype=np.float64)
+    h = np.empty(xyz.shape[0])
+    ox, oy, c = float(origin[0]), float(origin[1]), float(cell)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    cnt = _heights(g, ox, oy, c, x, y, z, float(lo), float(hi), h)
+    if cnt < 0:
+        return None
+    return h, _in_range(h, float(lo), float(hi), cnt)
 
 
 def bilinear_nearest(

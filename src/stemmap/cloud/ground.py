@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from stemmap.cloud._grid_kernel import bilinear_nearest, lowest_per_cell
+from stemmap.cloud._grid_kernel import bilinear_nearest, heights_in_band, lowest_per_cell
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
 
@@ -66,6 +66,17 @@ class GroundModel:
         """Height above ground of (N, 3) points (bilinear between cell centres, clamped)."""
         p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         return np.asarray(p[:, 2] - self.ground_at(p[:, :2]), dtype=np.float64)
+
+    def band_of(self, xyz: ArrayLike, lo: float, hi: float) -> tuple[FloatArray, NDArray[np.int64]]:
+        """Heights of (N, 3) points (:meth:`height_of`) and the indices, in point order, of
+        those with ``lo <= h <= hi`` (the detector's slice band) -- in one compiled pass
+        (:func:`~stemmap.cloud._grid_kernel.heights_in_band`), the same values."""
+        p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        fast = heights_in_band(self.z, self.origin, self.cell, p, lo, hi)
+        if fast is not None:
+            return fast
+        h = self.height_of(p)
+        return h, np.flatnonzero((h >= lo) & (h <= hi))
 
     def ground_at(self, xy: ArrayLike) -> FloatArray:
         """Ground z at (N, 2) positions."""

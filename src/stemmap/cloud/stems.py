@@ -288,9 +288,7 @@ def prepare_cloud(
         band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o, base=BASE_SLICE)
     else:
         g = ground or _ground_of([p], cfg, _raster_extent(cfg.ground_extent, ground_window))
-        h = g.height_of(p)
-        lo, hi = cfg.band
-        m = (h >= lo) & (h <= hi)
+        h, m = g.band_of(p, *cfg.band)  # heights, and the indices of the band's points
         band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m], base=g.base)
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
@@ -432,17 +430,17 @@ def detect_stems_file(
         xyz = chunk.xyz
         if ground is None:
             h = xyz[:, 2]
+            m = np.flatnonzero((h >= lo) & (h <= hi))
         else:
-            h = ground.height_of(xyz)
+            h, m = ground.band_of(xyz, lo, hi)  # heights, and the indices of the band's points
             if cfg.estimate_height:
                 canopy = _canopy_update(canopy, xyz[:, :2], h)
-        m = (h >= lo) & (h <= hi)
         xs.append(xyz[m, :2])
         hs.append(h[m])
         zs.append(xyz[m, 2])
         if sensor is not None:  # only the band's points need a sensor position
             times = None if tfield is None else chunk.fields[tfield][m]
-            os_.append(sensor.origins(int(m.sum()), times, src))
+            os_.append(sensor.origins(int(m.size), times, src))
         done += xyz.shape[0]
         if on_chunk:
             on_chunk(done, 2 * n_total)

@@ -7,9 +7,15 @@ Layout of a run's work folder::
 
 A manifest line holds ``chunk``, ``status`` (``done`` / ``failed``), ``inputs`` (path -> content
 hash of every tile the buffered chunk reads), ``params`` (hash of the detector configuration
-and the chunk geometry), ``seconds``, ``time`` (UTC, ISO 8601) and, for a failed chunk,
-``error``. A chunk is *done* for ``--resume`` when its last line says ``done`` with the same
-inputs and params and its result file exists.
+and the chunk geometry), ``seconds``, ``time`` (UTC, ISO 8601), for a done chunk ``result``
+(the hash of its result file, :func:`result_hash`) and for a failed chunk ``error``. A chunk
+is *done* for ``--resume`` when its last line says ``done`` with the same inputs and params
+and its result file exists with the recorded hash.
+
+The manifest is durable (each line fsynced); the result files are not (written atomically,
+without fsync): after a power loss a result may be missing, empty or torn although its
+line says done, and the hash check sends such a chunk back to be computed
+(docs/reliability.md, "Scale-out engine").
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from typing import Any
 from stemmap.errors import InputError
 from stemmap.io.atomic import atomic_write
 
-__all__ = ["Manifest", "params_hash"]
+__all__ = ["Manifest", "params_hash", "result_hash"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +53,19 @@ def params_hash(obj: Any) -> str:
 
     text = json.dumps(norm(obj), sort_keys=True, default=repr)
     return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def result_hash(path: str | os.PathLike[str]) -> str:
+    """BLAKE2b (128 bit, hex) of a chunk result file's bytes; ``""`` when it is missing or
+    unreadable (never equal to a recorded hash)."""
+    h = hashlib.blake2b(digest_size=16)
+    try:
+        with open(path, "rb") as fh:
+            while block := fh.read(1 << 20):
+                h.update(block)
+    except OSError:
+        return ""
+    return h.hexdigest()
 
 
 class Manifest:
@@ -75,27 +94,29 @@ class Manifest:
                 log.warning("%s line %d is not a manifest record; ignored", self.path, k + 1)
         return out
 
-    def is_done(self, chunk_id: str, inputs: dict[str, str], params: str) -> bool:
-        rec = self.entries().get(chunk_id)
+    def _done(
+        self, chunk_id: str, rec: dict[str, Any] | None, inputs: dict[str, str], params: str
+    ) -> bool:
         return (
             rec is not None
             and rec.get("status") == "done"
             and rec.get("inputs") == inputs
             and rec.get("params") == params
-            and self.result_path(chunk_id).exists()
+            and bool(rec.get("result"))
+            and rec.get("result") == result_hash(self.result_path(chunk_id))
         )
 
+    def is_done(self, chunk_id: str, inputs: dict[str, str], params: str) -> bool:
+        return self._done(chunk_id, self.entries().get(chunk_id), inputs, params)
+
     def done_set(self, wanted: dict[str, tuple[dict[str, str], str]]) -> set[str]:
-        """Ids among ``wanted`` (id -> (inputs, params)) already done with matching hashes."""
+        """Ids among ``wanted`` (id -> (inputs, params)) already done with matching hashes
+        (inputs, parameters and the result file's bytes)."""
         ent = self.entries()
         return {
             cid
             for cid, (inputs, params) in wanted.items()
-            if (rec := ent.get(cid)) is not None
-            and rec.get("status") == "done"
-            and rec.get("inputs") == inputs
-            and rec.get("params") == params
-            and self.result_path(cid).exists()
+            if self._done(cid, ent.get(cid), inputs, params)
         }
 
     def append(
@@ -133,11 +154,12 @@ class Manifest:
             self.path.unlink()
 
 
-def save_columns(path: Path, columns: dict[str, Any]) -> None:
-    """Write named arrays as an .npz atomically (no pickled objects)."""
+def save_columns(path: Path, columns: dict[str, Any], *, durable: bool = True) -> None:
+    """Write named arrays as an .npz atomically (no pickled objects); ``durable``: fsynced
+    (:func:`~stemmap.io.atomic.atomic_write`)."""
     import numpy as np
 
-    with atomic_write(path, "wb") as fh:
+    with atomic_write(path, "wb", durable=durable) as fh:
         arrays: dict[str, Any] = {k: np.asarray(v) for k, v in columns.items()}
         np.savez(fh, **arrays)
 

@@ -116,9 +116,10 @@ def stage_tile(
             raise
         except Exception as exc:
             raise InputError(f"reading tile {t.path!r} failed: {exc}") from exc
+        # closed, not fsynced: fragments are scratch, read by this run's chunk tasks through
+        # the page cache (or the shared file system, which close() flushes to) and rewritten
+        # by a resumed run (docs/reliability.md, "Scale-out engine")
         for h in handles.values():
-            h.flush()
-            os.fsync(h.fileno())
             h.close()
         for cid, _ in boxes:
             for w in what:

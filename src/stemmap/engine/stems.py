@@ -33,7 +33,13 @@ import numpy as np
 from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
 from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
 from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph
-from stemmap.engine.manifest import Manifest, load_columns, params_hash, save_columns
+from stemmap.engine.manifest import (
+    Manifest,
+    load_columns,
+    params_hash,
+    result_hash,
+    save_columns,
+)
 from stemmap.engine.staging import (
     chunk_points,
     clear_stage,
@@ -46,6 +52,7 @@ from stemmap.errors import InputError, StemmapError
 __all__ = [
     "DEFAULT_BUFFER",
     "MIN_EXACT_BUFFER",
+    "PREPARE_APART_FRACTION",
     "CatalogRun",
     "catalog_statistics",
     "merge_chunk_results",
@@ -63,6 +70,17 @@ DEFAULT_BUFFER = 5.0
 #: Smallest buffer (m) for which chunked results equal one process over the whole cloud with
 #: the default detector: max DBH / 2 (0.75 m) + 3 ground cells of 1 m.
 MIN_EXACT_BUFFER = 3.75
+
+#: The chunks' ground step (:func:`prepare_chunk`) runs as tasks of its own, while the pilot
+#: region measures the catalog statistics, only when the pilot holds more than this fraction
+#: of the catalog's points (expected from the headers). Otherwise each chunk is one task
+#: (read, ground, stems; it waits for the pilot): with a small pilot the other workers
+#: still have tiles to stage while it runs -- the pilot costs ~0.4 CPU-s per million
+#: points, staging ~0.22 --, and the split's cost is gone: a second task per chunk and the
+#: slice band written to and read back from the stage (101 M points, 20 m chunks: 451 ->
+#: 251 tasks; docs/algorithms/engine.md, "Seventh pass"). With a pilot covering most of the
+#: catalog (up to 8 M points) the split lets chunks be prepared while it runs.
+PREPARE_APART_FRACTION = 0.25
 
 #: the scalar (per-cloud) fields of a CloudStems; every other field is a per-stem column
 _SCALARS = ("method", "frame", "spacing", "reason", "base", "noise_floor")
@@ -317,7 +335,7 @@ def prepare_chunk(
         else PreparedCloud(None)
     )
     path = _prepared_path(stage, chunk.id)
-    save_columns(path, prep.to_columns())
+    save_columns(path, prep.to_columns(), durable=False)  # scratch: read by stems_chunk
     return {"n_points": n, "path": str(path), **task_spent(c0)}
 
 
@@ -368,10 +386,12 @@ def stems_chunk(
     cols["spacing"] = np.array(own.spacing)
     cols["noise_floor"] = np.array(own.noise_floor)
     cols["base"] = np.array(getattr(own, "base", ""))
-    save_columns(Path(result_path), cols)
+    # not fsynced: the manifest line records its hash and a resume checks it
+    save_columns(Path(result_path), cols, durable=False)
     return {
         "n_points": n,
         "n_stems": len(own),
+        "result": result_hash(result_path),
         "n_found": len(stems),
         "seconds": before + time.perf_counter() - c0[0],
         "spacing": getattr(config, "spacing", None),
@@ -547,12 +567,14 @@ def run_stems_catalog(
     stage = str(Path(work) / "stage")
     fields = (time_field,) if time_field else ()
     # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
-    # to do; the pilot measures the catalog statistics on a worker; each chunk's ground step
-    # (prepare) runs as soon as its tiles are staged, the rest of the detector once the
-    # pilot is done too. The pilot reads staged fragments like a chunk (its tiles are
-    # decoded once, by the stage tasks); its stage tasks run first among ready tasks, so
-    # with several workers it starts after a few tiles' decoding and costs no second decode
-    # (reading its tiles itself cost 1.6 CPU-s more at 101 M points; docs/algorithms/engine.md).
+    # to do; the pilot measures the catalog statistics on a worker; each chunk is one task
+    # once its tiles are staged and the pilot is done -- or, when the pilot is a large part
+    # of the catalog (PREPARE_APART_FRACTION), two: its ground step (prepare) as soon as its
+    # tiles are staged, the rest of the detector once the pilot is done too. The pilot
+    # reads staged fragments like a chunk (its tiles are decoded once, by the stage tasks);
+    # its stage tasks run first among ready tasks, so with several workers it starts after
+    # a few tiles' decoding and costs no second decode (reading its tiles itself cost
+    # 1.6 CPU-s more at 101 M points; docs/algorithms/engine.md).
     per_tile: dict[int, list[Chunk]] = {}
     first: dict[str, int] = {}
 
@@ -573,7 +595,9 @@ def run_stems_catalog(
             return [Dep(f"stage-tile-{k}") for k in ch.tiles if k in per_tile]
 
         stats: Any = None
+        apart = False
         if pilot is not None and todo:
+            apart = pilot.expected_points > PREPARE_APART_FRACTION * catalog.n_points
             pilot_args = (catalog, pilot, cfg, sensor, time_field, stage, *deps(pilot))
             graph.append(("pilot", pilot_statistics, pilot_args))
             stats = Dep("pilot")
@@ -581,12 +605,12 @@ def run_stems_catalog(
             first.update({d.key: 1 for d in deps(pilot)}, pilot=2)
         for ch in todo:
             path = str(man.result_path(ch.id))
-            if stats is None:
-                args = (catalog, ch, cfg, path, sensor, time_field, stage, None, None, *deps(ch))
+            args: tuple[Any, ...] = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
+            if not apart:  # one task: read, ground and stems (after the pilot, if any)
+                args += (None, *deps(ch))
             else:  # the ground step runs while the pilot is measured; the rest after it
                 prep = (catalog, ch, cfg, stage, sensor, time_field, *deps(ch))
                 graph.append((f"prepare-chunk-{ch.id}", prepare_chunk, prep))
-                args = (catalog, ch, cfg, path, sensor, time_field, stage, stats)
                 args += (Dep(f"prepare-chunk-{ch.id}"),)
             graph.append((f"stems-chunk-{ch.id}", stems_chunk, args))
         return graph
@@ -630,6 +654,7 @@ def run_stems_catalog(
                 n_stems=oc.value["n_stems"],
                 spacing=oc.value["spacing"],
                 noise_floor=oc.value["noise_floor"],
+                result=oc.value["result"],
             )
             run.computed.append(cid)
             run.n_points += int(oc.value["n_points"])

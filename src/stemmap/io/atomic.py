@@ -1,6 +1,9 @@
 """Atomic file writes: write to a temporary file beside the target, then rename over it.
 
-An interrupted run never leaves a half-written product behind.
+An interrupted run never leaves a half-written product behind. Products are also durable
+(the data is fsynced before the rename, so after a power loss the file holds either the old
+or the new content); scratch files that a later step re-checks may skip that
+(``durable=False``, docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -16,10 +19,18 @@ __all__ = ["atomic_write"]
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike[str], mode: str = "w", **kwargs: Any) -> Iterator[IO[Any]]:
+def atomic_write(
+    path: str | os.PathLike[str], mode: str = "w", *, durable: bool = True, **kwargs: Any
+) -> Iterator[IO[Any]]:
     """Open a temporary file for writing; on success rename it to ``path``, on error delete it.
 
     ``mode`` is ``"w"`` (text, UTF-8 by default) or ``"wb"``. Parent folders are created.
+    ``durable``: fsync the data before the rename (the default, for products). Without it
+    the rename still makes the file appear whole to every reader while the system runs, but
+    after a power loss or kernel crash it may be missing, empty or old: only for scratch
+    files that are deleted, rewritten or verified by hash before they are trusted again
+    (the scale-out engine's chunk results and stage files). It saves the write-back a
+    fsync forces -- data that is deleted soon may never reach the disk.
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write supports modes 'w' and 'wb', got {mode!r}.")
@@ -42,7 +53,8 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "w", **kwargs: Any) -
         with os.fdopen(fd, mode, **kwargs) as fh:
             yield fh
             fh.flush()
-            os.fsync(fh.fileno())
+            if durable:
+                os.fsync(fh.fileno())
         os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -16,7 +16,14 @@ from numba import njit
 
 from stemmap.types import FloatArray
 
-__all__ = ["corner_parity", "cut_tables", "sagitta"]
+__all__ = [
+    "corner_parity",
+    "cut_tables",
+    "may_have_corner",
+    "piece_table",
+    "sagitta",
+    "segment_corners",
+]
 
 
 @njit(cache=True, error_model="numpy")
@@ -47,6 +54,69 @@ def sagitta(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma:
     return depth
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _behind_chord(
+    px: FloatArray, py: FloatArray, lo: int, i: int, c: int
+) -> tuple[float, float, float]:  # pragma: no cover - numba
+    """``|c| d`` for return ``i`` and the chord from return ``lo`` to ``c`` (``d``: its
+    distance behind the chord, positive on the far side from the sensor at the origin), and
+    the chord ``(cx, cy)``."""
+    cx = px[c] - px[lo]
+    cy = py[c] - py[lo]
+    side_p = cx * (py[i] - py[lo]) - cy * (px[i] - px[lo])
+    side_o = cy * px[lo] - cx * py[lo]
+    return (-side_p if side_o > 0.0 else side_p), cx, cy
+
+
+@njit(cache=True, error_model="numpy")
+def segment_corners(
+    px: FloatArray,
+    py: FloatArray,
+    a: int,
+    b: int,
+    span: int,
+    thr: float,
+    d: FloatArray,
+    corner: np.ndarray,
+) -> int:  # pragma: no cover - numba
+    """``corner[i]`` for the returns ``a:b`` of one segment: return ``i`` is a concave corner
+    of :func:`~stemmap.scan.segment.concave_corners` deeper than ``thr``. Returns the number
+    of corners. ``d`` is scratch."""
+    for i in range(a, b):
+        d[i] = -math.inf
+        if i - span >= a and i + span < b:
+            sd, cx, cy = _behind_chord(px, py, i - span, i, i + span)
+            length = math.hypot(cx, cy)
+            if length > 0.0:
+                d[i] = sd / length
+            else:
+                d[i] = 0.0
+    found = 0
+    for i in range(a, b):
+        prev = d[i - 1] if i > a else -math.inf
+        nxt = d[i + 1] if i + 1 < b else -math.inf
+        corner[i] = d[i] > thr and d[i] >= prev and d[i] > nxt
+        found += corner[i]
+    return found
+
+
+@njit(cache=True, error_model="numpy")
+def may_have_corner(
+    px: FloatArray, py: FloatArray, a: int, b: int, span: int, thr: float
+) -> bool:  # pragma: no cover - numba
+    """Whether any return of segment ``a:b`` lies behind the chord of its ``span``-th
+    neighbours by more than about ``thr``: the squared test ``s^2 > 0.99 thr^2 |c|^2`` on
+    the signed cross product ``s`` of :func:`segment_corners` (``d = s / |c|``), without its
+    square root per return. False means no corner of :func:`segment_corners` deeper than
+    ``thr`` (the 1 % slack covers the rounding of the exact test); True decides nothing."""
+    lim = 0.99 * thr * thr
+    for i in range(a + span, b - span):
+        sd, cx, cy = _behind_chord(px, py, i - span, i, i + span)
+        if sd > 0.0 and sd * sd > lim * (cx * cx + cy * cy):
+            return True
+    return False
+
+
 @njit(cache=True, error_model="numpy")
 def corner_parity(
     px: FloatArray,
@@ -61,38 +131,58 @@ def corner_parity(
     corner: np.ndarray,
 ) -> bool:  # pragma: no cover - numba
     """``keep[i]`` = parity of the concave corners up to return ``i`` of its segment (flips at
-    every corner of :func:`~stemmap.scan.segment.concave_corners` deeper than the segment's
-    ``thresholds[j]``, starts False in every segment; detect._corner_cuts), ``corner[i]``:
-    return ``i`` is a corner. Returns whether any corner was found. ``d`` is scratch."""
+    every corner of :func:`segment_corners` deeper than the segment's ``thresholds[j]``,
+    starts False in every segment; ``_refit.corner_cut_pieces``), ``corner[i]``: return ``i``
+    is a corner. Returns whether any corner was found. ``d`` is scratch."""
     found = False
     for j in range(ns):
         a0 = st[j]
         b0 = sp[j]
-        thr = thresholds[j]
-        for i in range(a0, b0):
-            d[i] = -math.inf
-            if i - span >= a0 and i + span < b0:
-                a = i - span
-                c = i + span
-                cx = px[c] - px[a]
-                cy = py[c] - py[a]
-                side_p = cx * (py[i] - py[a]) - cy * (px[i] - px[a])
-                side_o = cy * px[a] - cx * py[a]
-                length = math.hypot(cx, cy)
-                if length > 0.0:
-                    d[i] = (-side_p if side_o > 0.0 else side_p) / length
-                else:
-                    d[i] = 0.0
+        found |= segment_corners(px, py, a0, b0, span, thresholds[j], d, corner) > 0
         flag = False
         for i in range(a0, b0):
-            prev = d[i - 1] if i > a0 else -math.inf
-            nxt = d[i + 1] if i + 1 < b0 else -math.inf
-            corner[i] = d[i] > thr and d[i] >= prev and d[i] > nxt
             if corner[i]:
                 flag = not flag
-                found = True
             keep[i] = flag
     return found
+
+
+@njit(cache=True, error_model="numpy")
+def piece_table(
+    a: int,
+    b: int,
+    corner: np.ndarray,
+    oc0: bool,
+    oc1: bool,
+    tr0: bool,
+    tr1: bool,
+    pst: np.ndarray,
+    psp: np.ndarray,
+    poc0: np.ndarray,
+    poc1: np.ndarray,
+    ptr0: np.ndarray,
+    ptr1: np.ndarray,
+) -> int:  # pragma: no cover - numba
+    """The pieces of segment ``a:b`` (occlusion / truncation flags ``oc0, oc1, tr0, tr1``)
+    between its ``corner`` returns, which belong to no piece: what
+    ``segs.cut(np.cumsum(corner) % 2 == 1).drop(~corner)`` gives
+    (``_refit.corner_cut_pieces``), inner ends occluded, the outer ends the segment's. Writes
+    the piece table ``pst, psp`` (return ranges) and its flags; returns the number of pieces."""
+    k = 0
+    start = a
+    for i in range(a, b + 1):
+        if i < b and not corner[i]:
+            continue
+        if i > start:  # a non-empty piece start:i
+            pst[k] = start
+            psp[k] = i
+            poc0[k] = oc0 if start == a else True
+            ptr0[k] = tr0 and start == a
+            poc1[k] = oc1 if i == b else True
+            ptr1[k] = tr1 and i == b
+            k += 1
+        start = i + 1
+    return k
 
 
 @njit(cache=True, error_model="numpy")

@@ -8,7 +8,8 @@ eq. 2) or adaptive Euclidean segmentation, occlusion flags, single-point curvatu
 segment features and filters (Xue eq. 12 width, Zheng §3.2 depth and curvature, chi-square
 straightness test), the edge-silhouette priors, the "ours" circle fit (the same compiled
 ``_fit_one`` of :mod:`stemmap.scan._fit_geometric`), the plausibility checks, arc extent and
-quality. The named pure functions in :mod:`~stemmap.scan.preprocess`,
+quality, and with ``refit_split="corners"`` the validated corner split of rejected candidates
+(ours, issue 11). The named pure functions in :mod:`~stemmap.scan.preprocess`,
 :mod:`~stemmap.scan.segment` and :mod:`~stemmap.scan.features` remain the reference: this
 kernel evaluates the same expressions in the same order, and every per-segment sum replicates
 numpy's pairwise summation of ``np.add.reduceat`` (:func:`_seg_sum`), so its results equal the
@@ -20,22 +21,25 @@ of a single scan (~1 ms) and a third of the batch time; the kernel touches each 
 times in cache and allocates nothing per scan on the common path.
 
 Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "ours", no
-first-echo footprint correction, no tilt compensation to apply. Everything else runs the numpy
-pipeline.
+first-echo footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
+pieces only as corner splits. Everything else runs the numpy pipeline.
 
-The kernel's helpers live in :mod:`stemmap.scan._fast_robust` (medians and robust scales:
-range roughness, the scan's own noise estimate, the fit's residual scale) and
-:mod:`stemmap.scan._fast_segments` (numpy's pairwise sums, the segment table's select / drop,
-the pre-fit algebraic floor, the covariance fallback).
+The kernel's helpers live in :mod:`stemmap.scan._fast_candidates` (per candidate: segment
+filters as a reason code, fit and plausibility tests, arc and quality, the corner split),
+:mod:`stemmap.scan._fast_robust` (medians and robust scales: range roughness, the scan's own
+noise estimate, the fit's residual scale) and :mod:`stemmap.scan._fast_segments` (numpy's
+pairwise sums, the segment table's select / drop, the pre-fit algebraic floor, the covariance
+fallback); its parameter vector is :mod:`stemmap.scan._kernel_params`.
 
 numba's on-disk cache (``cache=True``) of this module is keyed on this file alone, but the
-kernel compiles in those helpers, ``_fit_one`` of :mod:`stemmap.scan._fit_geometric` (with
-its Levenberg-Marquardt core, :mod:`stemmap.scan._fit_lm`), the corner and gap cuts
-(:mod:`stemmap.scan._corners`, :mod:`stemmap.scan._gaps`) and the constant
-``MIXED_FRACTION_STD`` of :mod:`stemmap.scan.features`; at import
-:func:`stemmap._numba_cache.drop_stale_cache` drops this module's cache entries when any of
-those files changed (an edit, or a ``git pull`` into an editable install), so the stale code
-cannot keep running (tests/test_numba_cache.py lists the same files).
+kernel compiles in those helpers and constants, ``_fit_one`` of
+:mod:`stemmap.scan._fit_geometric` (with its Levenberg-Marquardt core,
+:mod:`stemmap.scan._fit_lm`), the corner and gap cuts (:mod:`stemmap.scan._corners`,
+:mod:`stemmap.scan._gaps`) and the constant ``MIXED_FRACTION_STD`` of
+:mod:`stemmap.scan.features`; at import :func:`stemmap._numba_cache.drop_stale_cache` drops
+this module's cache entries when any of those files changed (an edit, or a ``git pull`` into an
+editable install), so the stale code cannot keep running (tests/test_numba_cache.py lists the
+same files).
 """
 
 from __future__ import annotations
@@ -48,16 +52,31 @@ from numba import njit
 from stemmap import _numba_cache
 from stemmap.scan import (
     _corners,
+    _fast_candidates,
     _fast_robust,
     _fast_segments,
     _fit_geometric,
     _fit_lm,
     _gaps,
+    _kernel_params,
     features,
 )
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
+from stemmap.scan._fast_candidates import (
+    _DEPTH,
+    _PREFIT,
+    _RAD2DEG,
+    _edge_prior,
+    _split_emit,
+    has_corners,
+)
 from stemmap.scan._fast_robust import _interior_triples as _interior_triples
-from stemmap.scan._fast_robust import _median, _range_roughness, _robust_residual_scale, _scan_noise
+from stemmap.scan._fast_robust import (
+    _median,
+    _range_roughness,
+    _robust_residual_scale,
+    _scan_noise,
+)
 from stemmap.scan._fast_robust import _median_inplace as _median_inplace
 from stemmap.scan._fast_segments import (
     _algebraic_floor,
@@ -68,127 +87,13 @@ from stemmap.scan._fast_segments import (
 )
 from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan._gaps import gap_cut_flags, gap_cut_occlusion
-from stemmap.scan.features import MIXED_FRACTION_STD
+from stemmap.scan._kernel_params import N_PARAMS as N_PARAMS
+from stemmap.scan._kernel_params import OUT_COLUMNS
+from stemmap.scan._kernel_params import PARAM_INDEX as PARAM_INDEX
+from stemmap.scan._kernel_params import PARAM_NAMES as PARAM_NAMES
 from stemmap.types import FloatArray
 
 __all__ = ["N_PARAMS", "PARAM_INDEX", "detect_scans"]
-
-#: Names of the entries of the kernel's parameter vector, in order (see ``detect.py``).
-PARAM_NAMES = (
-    "lo",  # range gate, exclusive, metres
-    "hi",
-    "median",  # 1: three-neighbour median filter
-    "wrap",  # 1: 360-degree scan, cut at the seam
-    "first_beam",  # first / last beam of the field of view (-1 / N when wrapping)
-    "last_beam",
-    "euclidean",  # 1: Euclidean segmentation, 0: range jump
-    "max_jump",
-    "range_factor",
-    "max_skip",
-    "occlusion_margin",
-    "pcur_on",  # single-point curvature filter
-    "pcur_min",
-    "rmed_on",  # radius median filter
-    "rmed",
-    "split",  # split_merged
-    "min_points",
-    "min_points_partial",
-    "max_points",  # inf = none
-    "min_width",
-    "max_width",
-    "min_depth",
-    "min_curvature",
-    "max_curvature",
-    "reject_straight",
-    "straight_chi2",  # 1: chi-square test, 0: residual/width ratio
-    "straight_ratio",
-    "straight_min_points",
-    "drop_partial",
-    "sigma",
-    "sigma_rel",
-    "fit_sigma_given",  # 1: pass the per-segment sigma to the fit, 0: let it estimate
-    "min_radius",
-    "max_radius",
-    "max_radius_width_ratio",
-    "max_rms_sigma",
-    "divergence",  # radians, full footprint of an averaging scanner
-    "use_silhouette",  # 1: priors from the beams beyond each end
-    "range_model",  # 1: range residuals, 0: orthogonal
-    "angle_increment",  # signed, radians
-    "sigma_from_data",  # 1: per-segment sigma >= the robust range roughness of the returns
-    "roughness_max_factor",  # ... but at most this multiple of the configured sigma
-    "rms_robust",  # 1: the RMS test reads 1.4826 x the median absolute residual
-    "bark_roughness",  # RMS bound sqrt(sigma^2 + (bark x radius)^2) when > 0
-    "corners_on",  # 1: cut segments at concave corners
-    "corner_span",
-    "corner_depth",
-    "corner_depth_convex",  # inf: convex segments are never cut
-    "corner_sigmas",  # corners at least this many sigma deep
-    "gap_splits",  # passes of cutting non-convex segments at their largest gap
-    "gap_ratio",  # ... if it exceeds this multiple of the segment's median gap
-    "gap_sigmas",  # ... and the median gap by this many range-noise sigmas
-    "straight_depth_sigmas",  # a sagitta of this many sigmas is never straight
-    "sigma_from_scan",  # 1: sigma >= the scan's own range-noise estimate (plausibility.scan_noise)
-    "scan_noise_jump",  # ... over triples of adjacent beams with range steps <= this
-    "scan_noise_surface",  # ... less the surfaces' own share, in quadrature
-)
-PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
-N_PARAMS = len(PARAM_NAMES)
-
-#: Output columns of the kernel, one row per detection.
-OUT_COLUMNS = 16  # cx, cy, r, cov (9, row-major over cx, cy, r), arc_deg, width, quality, n
-_RAD2DEG = 180.0 / math.pi
-_SQRT12 = math.sqrt(12.0)
-
-
-@njit(cache=True, error_model="numpy")
-def _grid_at(grid: FloatArray, beam: int, n: int, wrap: bool) -> float:  # pragma: no cover
-    """Range of ``beam`` in the scan's grid, inf for no return or outside the scan (the
-    ``at`` helper of :func:`stemmap.scan.features.edge_silhouette`)."""
-    if wrap:
-        v = grid[beam % n]
-    elif 0 <= beam < n:
-        v = grid[beam]
-    else:
-        return math.inf
-    return v if math.isfinite(v) else math.inf
-
-
-@njit(cache=True, error_model="numpy")
-def _edge_prior(
-    grid: FloatArray,
-    edge_r: float,
-    b_edge: int,
-    step: int,
-    n: int,
-    wrap: bool,
-    h: float,
-    margin: float,
-    out: FloatArray,
-    o: int,
-) -> None:  # pragma: no cover - numba
-    """One end of :func:`stemmap.scan.features.edge_silhouette` (with ``mixed_fraction``):
-    writes (offset, std) in beam spacings to ``out[o:o + 2]``, NaN for the default."""
-    out[o] = np.nan
-    out[o + 1] = np.nan
-    r1 = _grid_at(grid, b_edge + step, n, wrap)
-    r2 = _grid_at(grid, b_edge + 2 * step, n, wrap)
-    bg = math.isfinite(r1) and r1 > edge_r + margin
-    if not (bg and math.isfinite(r2)):
-        return
-    if abs(r2 - r1) <= margin:
-        out[o] = 0.5
-        out[o + 1] = (1.0 - 2.0 * h) / _SQRT12
-    elif r2 > r1 + margin:
-        m = r1
-        a = 1.0 / edge_r
-        b = 1.0 / r2
-        f = b * (1.0 - m * b) / ((a - b) * (m * (a + b) - 1.0))
-        if not (edge_r < m and m < r2) or not math.isfinite(f):
-            return
-        f = min(max(f, 0.0), 1.0)
-        out[o] = 1.0 - h + 2.0 * h * f
-        out[o + 1] = 2.0 * h * MIXED_FRACTION_STD
 
 
 @njit(cache=True, error_model="numpy")
@@ -261,6 +166,7 @@ def _detect_kernel(
     scan_on = prm[53] > 0.0 and fit_sigma_given
     scan_jump = prm[54]
     scan_surface = prm[55]
+    refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -290,6 +196,10 @@ def _detect_kernel(
     tr02 = np.empty(n, dtype=np.bool_)
     tr12 = np.empty(n, dtype=np.bool_)
     wid = np.empty(n)
+    dep = np.empty(n)
+    ccode = np.empty(n, dtype=np.int64)
+    feat = np.empty(2)
+    pres = np.empty((n, OUT_COLUMNS + 1))
     sil = np.empty(4)
     sil_fit = np.empty(4)
     fit_out = np.empty(14)
@@ -299,6 +209,8 @@ def _detect_kernel(
     mdl = np.empty(10)
     jtj = np.empty((3, 3))
     dnoise = np.empty(n)
+    scratch = (sil, sil_fit, fit_out, tmp, buf, jtj, feat)  # _fast_candidates' scratch
+    ws = (ws3, wv, mdl)
     cap = max(16, 2 * s_count)
     rows = np.empty((cap, OUT_COLUMNS))
     scans = np.empty(cap, dtype=np.int64)
@@ -497,6 +409,8 @@ def _detect_kernel(
             ok &= (not partial) or cnt >= min_points_partial
             ok &= cnt <= max_points
             ok &= width >= min_width and width <= max_width
+            # the first test failed is depth: a candidate for the corner split (refit_corners)
+            cut_me = refit_on and ok and not depth >= min_depth
             ok &= depth >= min_depth
             ok &= curv >= min_curv and curv <= max_curv
             if ok and reject_straight:
@@ -531,7 +445,7 @@ def _detect_kernel(
                 ok &= not (straight and cnt >= straight_min_points)
             if drop_partial:
                 ok &= not partial
-            if ok:  # Segments.select(keep): the table is compacted in place below
+            if ok or cut_me:  # Segments.select(keep): the table is compacted in place below
                 st[nk] = a
                 sp[nk] = b
                 oc0[nk] = oc0[j]
@@ -539,12 +453,23 @@ def _detect_kernel(
                 tr0[nk] = tr0[j]
                 tr1[nk] = tr1[j]
                 wid[nk] = width
+                dep[nk] = depth
+                ccode[nk] = 0 if ok else _DEPTH
+                n_cand += ok
                 nk += 1
-        n_cand += nk
         # ---- fit, plausibility, arc and quality (detect.ScanTrunkDetector._run) ----
         for j in range(nk):
             a = st[j]
             b = sp[j]
+            if ccode[j] == _DEPTH:  # rejected as not convex: cut without a fit
+                if not has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
+                    continue
+                rows, scans, n_out = _split_emit(
+                    rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1, wid,
+                    dep, _DEPTH, grid, noise_s, prm, chi2, scratch, ws, corner,
+                    (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                )  # fmt: skip
+                continue
             cnt_i = b - a
             mean_r = _seg_sum(pr, a, b) / cnt_i
             sig = max(sigma0 + sigma_rel * mean_r, noise_s)
@@ -572,6 +497,15 @@ def _detect_kernel(
                 m_cap = 2.0 * r_cap + math.sqrt(cnt_i) * lim
                 floor = _algebraic_floor(px, py, a, b) / (m_cap * m_cap)
                 if floor > 1.001 * cnt_i * lim * lim:  # margin: round-off of the floor
+                    if refit_on and has_corners(
+                        px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner
+                    ):
+                        # a fit test failed: which one, _split_parent re-fits to tell
+                        rows, scans, n_out = _split_emit(
+                            rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
+                            wid, dep, _PREFIT, grid, noise_s, prm, chi2, scratch, ws, corner,
+                            (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                        )  # fmt: skip
                     continue
             e_start = not (oc0[j] or tr0[j])
             e_end = not (oc1[j] or tr1[j])
@@ -626,6 +560,13 @@ def _detect_kernel(
                 else:
                     good &= rms <= lim
             if not good:
+                if refit_on and has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
+                    # a fit test failed: which one, _split_parent re-fits to tell
+                    rows, scans, n_out = _split_emit(
+                        rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
+                        wid, dep, _PREFIT, grid, noise_s, prm, chi2, scratch, ws, corner,
+                        (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                    )  # fmt: skip
                 continue
             cov_ok = True
             for q in range(9):
@@ -705,8 +646,10 @@ _numba_cache.drop_stale_cache(
     _fit_geometric.__file__,
     features.__file__,
     _corners.__file__,
+    _fast_candidates.__file__,
     _gaps.__file__,
     _fast_robust.__file__,
     _fast_segments.__file__,
     _fit_lm.__file__,
+    _kernel_params.__file__,
 )

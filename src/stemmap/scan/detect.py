@@ -29,9 +29,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import chdtri
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.scan import circle as _circle
 from stemmap.scan._arcs import arc_pieces
-from stemmap.scan._detect_fast import N_PARAMS, PARAM_INDEX, detect_scans
+from stemmap.scan._detect_fast import detect_scans
+from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._refit import corner_cut_pieces, refit_pieces, split_refit
 from stemmap.scan._segment_fits import (
     _fit_rms,
@@ -414,14 +414,15 @@ class ScanTrunkDetector:
 
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
-        fit, no footprint correction, no tilt compensation to apply."""
+        fit, no footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
+        pieces only as corner splits (``refit_split="corners"``)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
             cfg.fit_method == "ours"
             and cfg.beam_footprint_deg == 0
             and no_tilt
-            and not cfg.refit_pieces
+            and (not cfg.refit_pieces or cfg.refit_split == "corners")
             and not cfg.arc_refit
         )
 
@@ -446,80 +447,13 @@ class ScanTrunkDetector:
         )
 
     def _kernel_params(self, geo: _BeamGeometry, lo: float, hi: float, inc: float) -> FloatArray:
-        """The config as the compiled kernel's parameter vector (``_detect_fast.PARAM_NAMES``);
-        cached per scan layout."""
+        """The config as the compiled kernel's parameter vector
+        (:func:`stemmap.scan._kernel_params.kernel_params`); cached per scan layout."""
         key = (self.config, lo, hi, inc, geo.first_beam, geo.last_beam, geo.wrap)
         cached = self._params_cache.get(key)
         if cached is not None:
             return cached
-        cfg = self.config
-        # decisions the numpy path takes per batch, resolved once: the chi-square straightness
-        # test and the fit's given sigma need sigma + sigma_rel * mean range > 0, which holds
-        # for every segment exactly when sigma > 0 or sigma_rel > 0 (ranges are > 0)
-        sigma_pos = cfg.sigma > 0 or cfg.sigma_rel > 0
-        divergence = math.radians(cfg.beam_divergence_deg)
-        values: dict[str, float] = {
-            "lo": lo,
-            "hi": hi,
-            "median": cfg.median_filter,
-            "wrap": geo.wrap,
-            "first_beam": geo.first_beam,
-            "last_beam": geo.last_beam,
-            "euclidean": cfg.segmentation == "euclidean",
-            "max_jump": cfg.max_jump,
-            "range_factor": cfg.range_factor,
-            "max_skip": cfg.max_skip,
-            "occlusion_margin": cfg.occlusion_margin,
-            "pcur_on": cfg.point_curvature_min is not None,
-            "pcur_min": cfg.point_curvature_min or 0.0,
-            "rmed_on": cfg.radius_median is not None,
-            "rmed": cfg.radius_median or 0.0,
-            "split": cfg.split_merged,
-            "min_points": cfg.min_points,
-            "min_points_partial": cfg.min_points_partial,
-            "max_points": math.inf if cfg.max_points is None else cfg.max_points,
-            "min_width": cfg.min_width,
-            "max_width": cfg.max_width,
-            "min_depth": cfg.min_depth,
-            "min_curvature": cfg.min_curvature,
-            "max_curvature": cfg.max_curvature,
-            "reject_straight": cfg.reject_straight,
-            "straight_chi2": cfg.straight_test == "chi2" and sigma_pos,
-            "straight_ratio": cfg.straight_ratio,
-            "straight_min_points": cfg.straight_min_points,
-            "drop_partial": cfg.drop_partial,
-            "sigma": cfg.sigma,
-            "sigma_rel": cfg.sigma_rel,
-            "fit_sigma_given": sigma_pos,
-            "min_radius": cfg.min_radius,
-            "max_radius": cfg.max_radius,
-            "max_radius_width_ratio": cfg.max_radius_width_ratio,
-            "max_rms_sigma": cfg.max_rms_sigma,
-            "divergence": divergence,
-            "use_silhouette": cfg.neighbour_silhouette and divergence > 0,
-            "range_model": _circle._check_residuals(cfg.fit_residuals),
-            "angle_increment": inc,
-            "sigma_from_data": cfg.sigma_from_data,
-            "roughness_max_factor": cfg.roughness_max_factor,
-            "rms_robust": cfg.rms_robust,
-            "sigma_from_scan": cfg.sigma_from_scan,
-            "scan_noise_jump": cfg.scan_noise_jump,
-            "scan_noise_surface": cfg.scan_noise_surface,
-            "bark_roughness": cfg.bark_roughness,
-            "corners_on": cfg.split_corners,
-            "corner_span": cfg.corner_span,
-            "corner_depth": cfg.corner_depth,
-            "corner_depth_convex": cfg.corner_depth_convex,
-            "corner_sigmas": cfg.corner_sigmas,
-            "gap_splits": cfg.gap_splits,
-            "gap_ratio": cfg.gap_ratio,
-            "gap_sigmas": cfg.gap_sigmas,
-            "straight_depth_sigmas": cfg.straight_depth_sigmas,
-        }
-        prm = np.empty(N_PARAMS)
-        for name, v in values.items():
-            prm[PARAM_INDEX[name]] = float(v)
-        prm.setflags(write=False)
+        prm = kernel_params(self.config, lo, hi, inc, geo.first_beam, geo.last_beam, geo.wrap)
         self._params_cache[key] = prm
         return prm
 
@@ -714,6 +648,9 @@ class ScanTrunkDetector:
         # and passed as trunks on the simulator's bushes (precision 0.975 -> 0.947)
         cfg = self.config
         which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
+        # a candidate whose corner split (refit_split="corners") gave a trunk is done: its arc
+        # would be the same trunk twice
+        which[order_key[order_key % 2 == 1] // 2] = False
         replace = math.isfinite(cfg.arc_replace)
         if replace:
             # accepted candidates too: kept (output row) ones at even keys

@@ -68,6 +68,7 @@ from stemmap.slam.loop_closure import (
     relabel,
 )
 from stemmap.slam.relaxation import remap_trees
+from stemmap.slam.tree_covariance import with_tree_covariances
 from stemmap.types import FloatArray, ScanBatch, StemMap, Tree
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -122,6 +123,10 @@ class ForestrixSlam:
     relaxed poses (``relaxation="pose_graph"``, default). ``relaxation="tree_graph"`` is the
     older behaviour: one map, matched whole, and the paper's spring iteration on the tree graph
     (:func:`relax_tree_graph`) when an old tree is re-matched; it moves map nodes only.
+    Every tree's reported covariance is that of the mean of its detections with the reported
+    pose covariances (``SlamResult.pose_covs``) propagated into each detection and correlated
+    between the frames that saw it (:func:`~stemmap.slam.tree_covariance.with_tree_covariances`;
+    issue 14; the paper gives none).
 
     Parameters
     ----------
@@ -179,6 +184,9 @@ class ForestrixSlam:
         Map position error the ray casting tolerates
         (:func:`~stemmap.slam.negative.ray_pass_through` ``position_tol``); false trees thinner
         than twice this are never judged.
+    sigma_range : float, m; sigma_bearing : float, rad
+        Detection noise of the reported tree covariances only (the estimate does not use
+        them; default 0.3 m and 1°, the other back-ends' detection noise).
     """
 
     preset: str | None = None
@@ -207,6 +215,8 @@ class ForestrixSlam:
     merge_ddiam: float = 0.42
     false_trees: Literal["none", "rays", "detections"] = "rays"
     ray_position_tol: float = 0.05
+    sigma_range: float = 0.30
+    sigma_bearing: float = math.radians(1.0)
     name: str = "forestrix"
 
     def __post_init__(self) -> None:
@@ -242,6 +252,8 @@ class ForestrixSlam:
             )
         if int(self.loop_min_matches) < 3:
             raise ConfigError("ForestrixSlam.loop_min_matches must be >= 3.")
+        if not (self.sigma_range > 0 and self.sigma_bearing > 0):
+            raise ConfigError("ForestrixSlam: sigma_range and sigma_bearing must be > 0.")
         if not (self.merge_dist >= 0 and self.merge_ddiam >= 0):
             raise ConfigError(
                 f"ForestrixSlam: merge_dist and merge_ddiam must be >= 0 m, got "
@@ -306,6 +318,17 @@ class ForestrixSlam:
         stats["runtime_s"] = float(_time.perf_counter() - t_start)
         pose_covs = output_pose_covariances(
             st.poses, frames.times, st.closer, st.dr_cov, FORESTRIX_POSE_COV_INFLATION
+        )
+        # issue 14: the reported pose covariances propagated, correlated between frames
+        stem_map = with_tree_covariances(
+            stem_map,
+            st.poses,
+            pose_covs,
+            frames,
+            sigma_range=self.sigma_range,
+            sigma_bearing=self.sigma_bearing,
+            sensor_offset=st.off,
+            gate=self.new_tree_gate,
         )
         return SlamResult(
             frame_trajectory(frames.times, st.poses), stem_map, stats, pose_covs=pose_covs

@@ -34,7 +34,46 @@ __all__ = [
     "kalman_refine_trees",
     "refine_stem_map",
     "world_observation_covariance",
+    "world_observation_jacobians",
 ]
+
+
+def world_observation_jacobians(
+    poses: ArrayLike,
+    ranges: ArrayLike,
+    bearings: ArrayLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> tuple[FloatArray, FloatArray]:
+    """``J_p`` (K, 2, 3) and ``J_z`` (K, 2, 2) of :func:`world_observation_covariance`: the
+    map-frame detection's derivatives by the vehicle pose and by (range, bearing)."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(ranges, dtype=np.float64).reshape(-1)
+    b = np.asarray(bearings, dtype=np.float64).reshape(-1)
+    if not (p.shape[0] == r.shape[0] == b.shape[0]):
+        raise InputError(
+            f"world_observation_covariance: {p.shape[0]} poses, {r.shape[0]} ranges and "
+            f"{b.shape[0]} bearings must agree."
+        )
+    a, bb = sensor_offset
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    sx = p[:, 0] + a * c - bb * s
+    sy = p[:, 1] + a * s + bb * c
+    ang = p[:, 2] + b
+    ca, sa = np.cos(ang), np.sin(ang)
+    tx = sx + r * ca
+    ty = sy + r * sa
+    k = p.shape[0]
+    Jp = np.zeros((k, 2, 3))
+    Jp[:, 0, 0] = 1.0
+    Jp[:, 1, 1] = 1.0
+    Jp[:, 0, 2] = -(ty - p[:, 1])
+    Jp[:, 1, 2] = tx - p[:, 0]
+    Jz = np.empty((k, 2, 2))
+    Jz[:, 0, 0] = ca
+    Jz[:, 0, 1] = -r * sa
+    Jz[:, 1, 0] = sa
+    Jz[:, 1, 1] = r * ca
+    return Jp, Jz
 
 
 def world_observation_covariance(
@@ -67,36 +106,10 @@ def world_observation_covariance(
     sigma_bearing : float, rad, >= 0
     sensor_offset : (a, b), m
     """
-    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    r = np.asarray(ranges, dtype=np.float64).reshape(-1)
-    b = np.asarray(bearings, dtype=np.float64).reshape(-1)
-    if not (p.shape[0] == r.shape[0] == b.shape[0]):
-        raise InputError(
-            f"world_observation_covariance: {p.shape[0]} poses, {r.shape[0]} ranges and "
-            f"{b.shape[0]} bearings must agree."
-        )
-    S = np.nan_to_num(np.broadcast_to(np.asarray(pose_covs, dtype=np.float64), (p.shape[0], 3, 3)))
     if sigma_range < 0 or sigma_bearing < 0:
         raise ConfigError("sigma_range and sigma_bearing must be >= 0.")
-    a, bb = sensor_offset
-    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
-    sx = p[:, 0] + a * c - bb * s
-    sy = p[:, 1] + a * s + bb * c
-    ang = p[:, 2] + b
-    ca, sa = np.cos(ang), np.sin(ang)
-    tx = sx + r * ca
-    ty = sy + r * sa
-    k = p.shape[0]
-    Jp = np.zeros((k, 2, 3))
-    Jp[:, 0, 0] = 1.0
-    Jp[:, 1, 1] = 1.0
-    Jp[:, 0, 2] = -(ty - p[:, 1])
-    Jp[:, 1, 2] = tx - p[:, 0]
-    Jz = np.empty((k, 2, 2))
-    Jz[:, 0, 0] = ca
-    Jz[:, 0, 1] = -r * sa
-    Jz[:, 1, 0] = sa
-    Jz[:, 1, 1] = r * ca
+    Jp, Jz = world_observation_jacobians(poses, ranges, bearings, sensor_offset)
+    S = np.nan_to_num(np.broadcast_to(np.asarray(pose_covs, dtype=np.float64), (Jp.shape[0], 3, 3)))
     Rz = np.diag([sigma_range**2, sigma_bearing**2])
     out: FloatArray = Jp @ S @ np.swapaxes(Jp, 1, 2) + Jz @ Rz @ np.swapaxes(Jz, 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
@@ -276,16 +289,9 @@ def refine_stem_map(
         sigma_bearing=sigma_bearing,
         sensor_offset=sensor_offset,
     )
-    from scipy.spatial import cKDTree
+    from stemmap.slam.tree_covariance import associate_per_frame
 
-    d, j = cKDTree(stem_map.xy).query(z, k=1, distance_upper_bound=gate)
-    j = np.where(np.isfinite(d), j, -1).astype(np.int64)
-    # one detection per tree and frame: keep the closest
-    ok = np.flatnonzero(j >= 0)
-    order = ok[np.lexsort((d[ok], j[ok], frame[ok]))]
-    key = frame[order] * (len(stem_map) + 1) + j[order]
-    dup = np.r_[False, key[1:] == key[:-1]]
-    j[order[dup]] = -1
+    j = associate_per_frame(stem_map.xy, z, frame, gate)
     # keep time order for the sequential filter
     out = kalman_refine_trees(z, R, j, len(stem_map), process_noise=process_noise)
     trees = []

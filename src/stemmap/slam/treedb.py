@@ -30,7 +30,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.slam._treedb_localize import compose_jacobian, landmark_covariances, localize_pose
 from stemmap.slam.loop_closure import LoopConfig, output_pose_covariances
+from stemmap.slam.tree_covariance import with_tree_covariances
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -195,7 +197,9 @@ class TreeDb:
         """The promoted entries as a :class:`~stemmap.types.StemMap`.
 
         Tree covariance is the scatter of the averaged detections divided by their number
-        (standard error of the mean), floored at 1 cm^2 /n so a single sighting is not certain.
+        (standard error of the mean), floored at 1 cm^2 /n so a single sighting is not certain:
+        the DB's own, for the localisation gate; :class:`TreeDbSlam` reports the pose-propagated
+        one of :mod:`stemmap.slam.tree_covariance` instead.
         """
         idx = self.landmarks(promote_count)
         trees = []
@@ -424,6 +428,10 @@ class TreeDbSlam:
     nearest-neighbour Mahalanobis association, landmarks held fixed but their scatter added to
     the measurement noise), then map the frame's detections at that pose and feed them to
     :func:`treedb_update`. The stem map holds the entries promoted at ``promote_count``.
+    Every tree's reported covariance is that of the average of its detections with the
+    reported pose covariances (``SlamResult.pose_covs``) propagated into each detection and
+    correlated between the frames that saw it
+    (:func:`~stemmap.slam.tree_covariance.mapped_tree_covariances`; issue 14).
 
     Parameters
     ----------
@@ -449,9 +457,10 @@ class TreeDbSlam:
         fixed gate splits one tree into many entries.
     refine : bool
         Re-estimate the landmarks with the Kalman refinement of Munjer §3.6
-        (:func:`~stemmap.slam.refine.refine_stem_map`) using the per-frame pose covariance, which
-        gives every tree a covariance with the pose uncertainty propagated. False = the paper's
-        eq. (2) averages and a scatter covariance.
+        (:func:`~stemmap.slam.refine.refine_stem_map`) weighting each detection by the filter's
+        pose covariance of its frame. False = the paper's eq. (2) averages. Either way the
+        reported covariance is the class doc's (the refinement's own covariance treated the
+        frames' pose errors as independent, so it shrank like 1/n: simulator z² median 267).
     loop_closure : bool
         Ours, after the paper's use of the tree DB's landmarks for loop closure (§2.5; its
         T-SLAM closes loops, the DB supplies the landmarks). With ``localize``: localise and
@@ -547,7 +556,7 @@ class TreeDbSlam:
             tf = float(frames.times[f])
             if f > 0:
                 delta = pre.deltas[f - 1]
-                Fx = _compose_jacobian(pose, delta)
+                Fx = compose_jacobian(pose, delta)
                 c, s = math.cos(pose[2]), math.sin(pose[2])
                 Rw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
                 P = Fx @ P @ Fx.T + Rw @ pre.covs[f - 1] @ Rw.T
@@ -566,8 +575,16 @@ class TreeDbSlam:
                 if active is not None and self.localize_recent_only:
                     lm = lm[active[lm]]
                 if lm.size:
-                    pose, P, matched = _localize(
-                        pose, P, r, b, db.xy[lm], _lm_cov(db, lm), R, off, self.chi2_gate
+                    pose, P, matched = localize_pose(
+                        pose,
+                        P,
+                        r,
+                        b,
+                        db.xy[lm],
+                        landmark_covariances(db, lm),
+                        R,
+                        off,
+                        self.chi2_gate,
                     )
                     n_updates += int(np.any(matched >= 0))
                     corrected = bool(np.any(matched >= 0))
@@ -624,6 +641,21 @@ class TreeDbSlam:
                 pose_covs=pose_covs,
                 gate=self.gate,
             )
+        out_covs = output_pose_covariances(
+            poses, frames.times, closer, dr_cov, TREEDB_POSE_COV_INFLATION
+        )
+        # issue 14: the reported pose covariances propagated, correlated between frames
+        stem_map = with_tree_covariances(
+            stem_map,
+            poses,
+            out_covs,
+            frames,
+            sigma_range=self.sigma_range,
+            sigma_bearing=self.sigma_bearing,
+            sensor_offset=off,
+            gate=self.gate,
+            information_pose_covs=pose_covs if self.refine else None,
+        )
         stats: dict[str, float | int | str] = {
             "backend": self.name,
             "db_entries": len(db),
@@ -638,9 +670,7 @@ class TreeDbSlam:
             frame_trajectory(frames.times, poses),
             stem_map,
             stats,
-            pose_covs=output_pose_covariances(
-                poses, frames.times, closer, dr_cov, TREEDB_POSE_COV_INFLATION
-            ),
+            pose_covs=out_covs,
         )
 
     def _relax(
@@ -707,78 +737,3 @@ class TreeDbSlam:
 def _time_since(t0: float) -> float:
     """Seconds elapsed since ``t0`` (``time.perf_counter`` value)."""
     return float(_time.perf_counter() - t0)
-
-
-def _compose_jacobian(pose: FloatArray, delta: FloatArray) -> FloatArray:
-    """d (pose ⊕ delta) / d pose."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.array(
-        [
-            [1.0, 0.0, -s * delta[0] - c * delta[1]],
-            [0.0, 1.0, c * delta[0] - s * delta[1]],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-
-
-def _lm_cov(db: TreeDb, idx: IntArray) -> FloatArray:
-    n = db.count[idx].astype(np.float64)
-    cov: FloatArray = db.sq_dev[idx] / np.maximum(n - 1.0, 1.0)[:, None, None] / n[:, None, None]
-    return cov + np.eye(2) * (1e-4 / n)[:, None, None]
-
-
-def _localize(
-    pose: FloatArray,
-    P: FloatArray,
-    ranges: FloatArray,
-    bearings: FloatArray,
-    lm_xy: FloatArray,
-    lm_cov: FloatArray,
-    R: FloatArray,
-    offset: tuple[float, float],
-    chi2_gate: float,
-) -> tuple[FloatArray, FloatArray, IntArray]:
-    """Pose-only EKF update from detections matched to fixed landmarks (nearest, gated).
-
-    Returns the updated pose and covariance and, per detection, the matched landmark (index into
-    ``lm_xy``) or -1.
-    """
-    z_pred, Hx, Hm = range_bearing_jacobians(pose[None, :], lm_xy, offset)  # (L, ...)
-    S = np.einsum("lij,jk,lmk->lim", Hx, P, Hx)
-    S = S + Hm @ lm_cov @ np.swapaxes(Hm, 1, 2) + R
-    Sinv = np.linalg.inv(S)  # (L, 2, 2)
-    z = np.column_stack((ranges, bearings))  # (K, 2)
-    nu = z[:, None, :] - z_pred[None, :, :]  # (K, L, 2)
-    nu[..., 1] = wrap_angle(nu[..., 1])
-    d2 = np.einsum("kli,lij,klj->kl", nu, Sinv, nu)
-    j = np.argmin(d2, axis=1)
-    best = d2[np.arange(z.shape[0]), j]
-    ok = best <= chi2_gate
-    # one detection per landmark: keep the closest
-    if np.any(ok):
-        order = np.argsort(best)
-        seen: set[int] = set()
-        for k in order:
-            if ok[k]:
-                if int(j[k]) in seen:
-                    ok[k] = False
-                else:
-                    seen.add(int(j[k]))
-    kk = np.flatnonzero(ok)
-    matched = np.where(ok, j, -1).astype(np.int64)
-    if kk.size == 0:
-        return pose, P, matched
-    jj = j[kk]
-    H = Hx[jj].reshape(-1, 3)
-    y = nu[kk, jj].reshape(-1)
-    Rb = np.zeros((2 * kk.size, 2 * kk.size))
-    Rl = Hm[jj] @ lm_cov[jj] @ np.swapaxes(Hm[jj], 1, 2) + R
-    for i in range(kk.size):
-        Rb[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = Rl[i]
-    S_all = H @ P @ H.T + Rb
-    K = np.linalg.solve(S_all, H @ P).T
-    new_pose = pose + K @ y
-    new_pose[2] = wrap_angle(new_pose[2])
-    I_KH = np.eye(3) - K @ H
-    P_new = I_KH @ P @ I_KH.T + K @ Rb @ K.T  # Joseph form
-    return new_pose, 0.5 * (P_new + P_new.T), matched

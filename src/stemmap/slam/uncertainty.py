@@ -15,8 +15,11 @@ covariance but no diameter spread, FastSLAM per-particle landmark EKFs, Forestri
    one trunk's per-scan diameter errors: the design effect of clustered samples (Kish 1965,
    "Survey Sampling", §5.4) -- scans of one trunk share part of their error (same side seen,
    same bark), which does not average out as 1 / sqrt(n). NaN with fewer than 2 diameters.
-3. **Position covariance** (``cov``), only where the back-end gave none (Forestrix): the
-   covariance of the associated map-frame detections over ``n``.
+3. **Position covariance** (``cov``), only where the back-end gave none (a fallback: every
+   registered back-end now reports one; Forestrix's and the tree DB's come from
+   :mod:`stemmap.slam.tree_covariance`): the covariance of the associated map-frame detections
+   over ``n`` (no pose uncertainty: far too small, docs/algorithms/slam.md "Tree covariances of
+   the tree DB and Forestrix").
 4. **Confidence** (``confidence`` in [0, 1]): the posterior probability that the landmark is a
    real, repeatedly detectable object rather than a spurious landmark, from how often it was
    detected when it should have been (:func:`expected_detections`: in view, not occluded by a
