@@ -61,6 +61,7 @@ import math
 import platform
 import sys
 import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +69,7 @@ import numpy as np
 
 from stemmap.sim.lidar import lidar_preset
 from stemmap.sim.munjer import MunjerDrive, simulate_munjer_drive
+from stemmap.slam.base import SlamResult
 from stemmap.slam.motion import rollout
 from stemmap.slam.munjer import (
     MunjerMapConfig,
@@ -84,6 +86,17 @@ GATE = 1.0
 #: EB-LiDAR's pass-through box, which is not the camera's field of view, so DAIM is left out).
 PER_FRAME = ("eb_lidar", "eb_lidar_no_tilt_check", "eb_lidar_accumulated", "ours")
 PF_RATES = ("precision", "recall", "f1")
+RATES = ("precision", "recall", "f1", "accuracy")
+COUNTS = ("n_real", "n_real_in_box", "n_det", "ta", "tr", "fa", "fr")
+VIEW_COUNTS = ("n_real", "ta", "tr", "fa", "fr")
+#: Map metrics averaged over the FastSLAM draws (with their spread).
+MAP_KEYS = ("position_rmse", "pairwise_percent_error", "diameter_rmse")
+#: FastSLAM's detection range (m).
+MAX_RANGE = 12.0
+SPREAD = ("", "_sd", "_min", "_max")
+FASTSLAM_KEYS = tuple(
+    f"{k}{s}" for k in ("position_rmse", "pairwise_percent_error") for s in SPREAD
+)
 #: Range (m) within which two VLP-16 rings (2 deg apart) on a trunk are closer than DBSCAN's
 #: eps = 0.25 m (Table 1), so one cluster spans more than one ring: eps / tan(2 deg) = 7.16 m.
 RESOLVABLE_RANGE = 0.25 / math.tan(math.radians(2.0))
@@ -124,52 +137,86 @@ def _lidar_imu_motion(drive: MunjerDrive, seed: int) -> tuple[Any, Any, float, n
     return controls, motion, 100.0 * err / dist, at_frames
 
 
-def _score(
-    drive: MunjerDrive, obs: StemObservations, seed: int, motion: tuple[Any, Any] | None = None
-) -> dict[str, Any]:
-    """One map's Table 2 row; ``resolvable``: the same counts over the trees a 16-beam lidar
-    resolves with EB-LiDAR's eps (:data:`RESOLVABLE_RANGE`, trees beyond it ignored)."""
-    t0 = time.perf_counter()
+def map_draws(
+    drive: MunjerDrive,
+    obs: StemObservations,
+    draws: int,
+    motion: tuple[Any, Any] | None = None,
+) -> Iterator[tuple[int, SlamResult, float]]:
+    """FastSLAM (100 particles) + the Kalman refinement on one drive's detections, once per
+    particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``: yields ``(d,
+    result, seconds)``. ``motion`` is ``(controls, model)``, default the drive's simulated
+    odometry and :meth:`MunjerDrive.motion_model`. The drive starts at the true pose and
+    detections beyond :data:`MAX_RANGE` are dropped (Munjer et al. 2025, §3.6)."""
     controls, model = motion or (drive.controls(), drive.motion_model())
-    problem = munjer_problem(
-        obs,
-        drive.times,
-        controls,
-        model,
-        initial_pose=(float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2])),
-        max_range=12.0,
-    )
-    result = map_munjer(problem, MunjerMapConfig(seed=seed))
-    sm = result.stem_map
-    st = drive.stand2d
-    m, mm = drive.score(sm, GATE)
-    ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
-    mr, _ = drive.score(sm, GATE, eligible=ok)
-    vis = drive.trees_visible()
-    mv, _ = drive.score(sm, GATE, eligible=vis)
-    traj = np.hypot(*(result.trajectory.poses[:, :2] - drive.poses[:, :2]).T)
+    p0 = (float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2]))
+    for d in range(draws):
+        t0 = time.perf_counter()
+        problem = munjer_problem(
+            obs, drive.times, controls, model, initial_pose=p0, max_range=MAX_RANGE
+        )
+        result = map_munjer(problem, MunjerMapConfig(seed=d))
+        yield d, result, time.perf_counter() - t0
+
+
+def spread(values: Sequence[float], key: str) -> dict[str, float]:
+    """``key``: the mean of the finite ``values``; ``key_sd`` (population sd), ``key_min``,
+    ``key_max``: their spread (NaN when none is finite)."""
+    x = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
+    if not x.size:
+        return {
+            key: math.nan,
+            f"{key}_sd": math.nan,
+            f"{key}_min": math.nan,
+            f"{key}_max": math.nan,
+        }
     return {
-        "scoring": "map",
-        "n_real": st.n_trees,
-        "n_real_in_box": int(drive.trees_in_box().sum()),
-        "n_det": len(sm),
-        "ta": m.ta,
-        "tr": m.tr,
-        "fa": m.fa,
-        "fr": m.fr,
-        "precision": m.precision,
-        "recall": m.recall,
-        "f1": m.f1,
-        "accuracy": m.accuracy,
-        "position_rmse": mm.position_rmse,
-        "pairwise_percent_error": mm.pairwise.mean_percent_error,
-        "diameter_rmse": mm.diameter_rmse,
-        "trajectory_error_max": float(traj.max()),
-        "n_frame_detections": len(obs),
-        "resolvable": {"n_real": int(ok.sum()), "ta": mr.ta, "tr": mr.tr, "fa": mr.fa, "fr": mr.fr},
-        "visible": {"n_real": int(vis.sum()), "ta": mv.ta, "tr": mv.tr, "fa": mv.fa, "fr": mv.fr},
-        "slam_seconds": round(time.perf_counter() - t0, 2),
+        key: float(x.mean()),
+        f"{key}_sd": float(x.std()),
+        f"{key}_min": float(x.min()),
+        f"{key}_max": float(x.max()),
     }
+
+
+def _score(
+    drive: MunjerDrive, obs: StemObservations, draws: int, motion: tuple[Any, Any] | None = None
+) -> list[dict[str, Any]]:
+    """One Table 2 row per FastSLAM draw (:func:`map_draws`); ``resolvable``: the same counts
+    over the trees a 16-beam lidar resolves with EB-LiDAR's eps (:data:`RESOLVABLE_RANGE`,
+    trees beyond it ignored)."""
+    st = drive.stand2d
+    ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
+    vis = drive.trees_visible()
+    rows = []
+    for d, result, sec in map_draws(drive, obs, draws, motion):
+        sm = result.stem_map
+        m, mm = drive.score(sm, GATE)
+        mr, _ = drive.score(sm, GATE, eligible=ok)
+        mv, _ = drive.score(sm, GATE, eligible=vis)
+        traj = np.hypot(*(result.trajectory.poses[:, :2] - drive.poses[:, :2]).T)
+        rows.append(
+            {
+                "draw": d,
+                "n_real": st.n_trees,
+                "n_real_in_box": int(drive.trees_in_box().sum()),
+                "n_det": len(sm),
+                "ta": m.ta,
+                "tr": m.tr,
+                "fa": m.fa,
+                "fr": m.fr,
+                "position_rmse": mm.position_rmse,
+                "pairwise_percent_error": mm.pairwise.mean_percent_error,
+                "diameter_rmse": mm.diameter_rmse,
+                "trajectory_error_max": float(traj.max()),
+                "n_frame_detections": len(obs),
+                "resolvable": {"n_real": int(ok.sum()), "ta": mr.ta, "tr": mr.tr, "fa": mr.fa,
+                               "fr": mr.fr},
+                "visible": {"n_real": int(vis.sum()), "ta": mv.ta, "tr": mv.tr, "fa": mv.fa,
+                            "fr": mv.fr},
+                "slam_seconds": round(sec, 2),
+            }
+        )  # fmt: skip
+    return rows
 
 
 def _per_frame(drive: MunjerDrive, obs: StemObservations) -> dict[str, int]:
@@ -187,24 +234,56 @@ def _rates(s: dict[str, int]) -> dict[str, float]:
     return {"precision": p, "recall": r, "f1": f1, "accuracy": acc}
 
 
+def _mean(values: Sequence[float]) -> float:
+    """A count's mean over the draws (an int when every draw agrees on the total)."""
+    v = float(np.mean(values))
+    return int(v) if v.is_integer() else v
+
+
 def _pool(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    keys = ("n_real", "n_real_in_box", "n_det", "ta", "tr", "fa", "fr")
-    s = {k: int(sum(r[k] for r in runs)) for k in keys}
+    """Table 2 over ``runs`` (one per seed: ``draws``, the per-draw rows of :func:`_score`, and
+    ``per_frame``): counts summed over the seeds and averaged over the draws, rates from them;
+    ``<rate>_sd/_min/_max`` the spread of the rate over the draws (counts pooled over the seeds
+    of each draw); the map metrics the mean over the draws of the seeds' mean, with its spread
+    over the draws (:func:`spread`)."""
+    n = len(runs[0]["draws"])
+    by_draw = [[r["draws"][d] for r in runs] for d in range(n)]
+
+    def counts(rows: list[dict[str, Any]], keys: Sequence[str], view: str = "") -> dict[str, int]:
+        return {k: int(sum((x[view] if view else x)[k] for x in rows)) for k in keys}
+
+    s = {k: _mean([counts(rows, COUNTS)[k] for rows in by_draw]) for k in COUNTS}
+    rates = _rates(s)
+    per_draw = [_rates(counts(rows, COUNTS)) for rows in by_draw]
+    spreads: dict[str, float] = {}
+    for k in RATES:
+        spreads |= {**spread([r[k] for r in per_draw], k), k: rates[k]}
+    for k in MAP_KEYS:
+        seed_means = [spread([float(x[k]) for x in rows], k)[k] for rows in by_draw]
+        spreads |= spread(seed_means, k)
+    views = {}
+    for v in ("resolvable", "visible"):
+        c = {k: _mean([counts(rows, VIEW_COUNTS, v)[k] for rows in by_draw]) for k in VIEW_COUNTS}
+        views[v] = {**c, **_rates(c)}
     pf = {}
     if all("per_frame" in r for r in runs):
         c = {k: int(sum(r["per_frame"][k] for r in runs)) for k in ("n_frames", "ta", "fa", "fr")}
         r = _rates({**c, "tr": 0})
         pf = {"per_frame": {"scoring": "per_frame", **c, **{k: r[k] for k in PF_RATES}}}
-    view = {
-        v: {k: int(sum(r[v][k] for r in runs)) for k in ("n_real", "ta", "tr", "fa", "fr")}
-        for v in ("resolvable", "visible")
-    }
-    mean = {}
-    for k in ("position_rmse", "pairwise_percent_error", "diameter_rmse"):
-        v = [float(x[k]) for x in runs if math.isfinite(float(x[k]))]
-        mean[k] = float(np.mean(v)) if v else math.nan
-    views = {v: {**c, **_rates(c)} for v, c in view.items()}
-    return {"scoring": "map", **s, **_rates(s), **mean, **views, **pf}
+    return {"scoring": "map", "draws": n, **s, **spreads, **views, **pf}
+
+
+def _per_seed(runs: dict[str, list[dict[str, Any]]]) -> dict[str, list[dict[str, Any]]]:
+    """Per method and seed: :func:`_pool` of that seed alone (means and spread over its draws),
+    its per-draw rows under ``per_draw``."""
+    return {
+        name: [
+            {"seed": r["seed"], "sim_seconds": r.get("sim_seconds"), **_pool([r]),
+             "per_draw": r["draws"]}
+            for r in rs
+        ]
+        for name, rs in runs.items()
+    }  # fmt: skip
 
 
 def _clean(v: Any) -> Any:
@@ -237,6 +316,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         type=int,
         default=5,
         help="frames the eb_lidar_accumulated row clusters together (default 5 = 0.5 s)",
+    )
+    ap.add_argument(
+        "--draws",
+        type=int,
+        default=10,
+        help="FastSLAM particle-filter seeds per drive (MunjerMapConfig(seed=0..N-1)); the map "
+        "and detection numbers are their mean (default 10)",
     )
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
@@ -295,30 +381,26 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             motions, [("eb_lidar_accumulated", None), *obs.items()]
         ):
             o = eb[mo] if o is None else o
+            run: dict[str, Any] = {"seed": seed, "sim_seconds": round(t_sim, 1)}
+            if name in PER_FRAME:
+                run["per_frame"] = _per_frame(drive, o)
             if len(o) == 0:
                 st = drive.stand2d
                 ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
                 vis = drive.trees_visible()
-                runs[mo][name].append(
-                    {"n_real": st.n_trees, "n_real_in_box": int(drive.trees_in_box().sum()),
-                     "n_det": 0, "ta": 0, "fa": 0, "fr": st.n_trees,
-                     "tr": st.n_clutter_objects, "position_rmse": math.nan,
-                     "pairwise_percent_error": math.nan, "diameter_rmse": math.nan,
-                     "n_frame_detections": 0, "seed": seed,
-                     "resolvable": {"n_real": int(ok.sum()), "ta": 0, "fa": 0,
-                                    "fr": int(ok.sum()), "tr": st.n_clutter_objects},
-                     "visible": {"n_real": int(vis.sum()), "ta": 0, "fa": 0,
-                                 "fr": int(vis.sum()), "tr": st.n_clutter_objects}}
-                )  # fmt: skip
-                if name in PER_FRAME:
-                    runs[mo][name][-1]["per_frame"] = _per_frame(drive, o)
-                continue
-            r = _score(drive, o, seed, motion[mo])
-            if name in PER_FRAME:
-                r["per_frame"] = _per_frame(drive, o)
-            r["seed"] = seed
-            r["sim_seconds"] = round(t_sim, 1)
-            runs[mo][name].append(r)
+                empty = {"n_real": st.n_trees, "n_real_in_box": int(drive.trees_in_box().sum()),
+                         "n_det": 0, "ta": 0, "fa": 0, "fr": st.n_trees,
+                         "tr": st.n_clutter_objects, "position_rmse": math.nan,
+                         "pairwise_percent_error": math.nan, "diameter_rmse": math.nan,
+                         "n_frame_detections": 0,
+                         "resolvable": {"n_real": int(ok.sum()), "ta": 0, "fa": 0,
+                                        "fr": int(ok.sum()), "tr": st.n_clutter_objects},
+                         "visible": {"n_real": int(vis.sum()), "ta": 0, "fa": 0,
+                                     "fr": int(vis.sum()), "tr": st.n_clutter_objects}}  # fmt: skip
+                run["draws"] = [{"draw": d, **empty} for d in range(a.draws)]
+            else:
+                run["draws"] = _score(drive, o, a.draws, motion[mo])
+            runs[mo][name].append(run)
     main_runs = runs[motions[0]]
     out: dict[str, Any] = {name: _pool(v) for name, v in main_runs.items()}
     if motions[0] == "lidar":
@@ -328,15 +410,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out["motion_lidar_imu"] = {
             **lid,
             "fastslam": {
-                n: {k: lid[n][k] for k in ("position_rmse", "pairwise_percent_error")}
-                for n in ("eb_lidar", "daim", "ours")
+                n: {k: lid[n][k] for k in FASTSLAM_KEYS} for n in ("eb_lidar", "daim", "ours")
             },
             "odometry_drift_percent": drift,
-            "per_seed": runs["lidar"],
+            "per_seed": _per_seed(runs["lidar"]),
         }
     out["fastslam"] = {
-        name: {k: out[name][k] for k in ("position_rmse", "pairwise_percent_error")}
-        for name in ("eb_lidar", "daim", "ours")
+        name: {k: out[name][k] for k in FASTSLAM_KEYS} for name in ("eb_lidar", "daim", "ours")
     }
     out["paper_table2"] = PAPER
     out["targets"] = {
@@ -355,7 +435,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     if drift:
         out["targets"]["odometry_drift_le_1_percent"] = max(drift) <= 1.0
-    out["per_seed"] = main_runs
+    out["per_seed"] = _per_seed(main_runs)
     out["scenario"] = {
         **scen,
         "seeds": a.seeds,
@@ -363,6 +443,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "detector": "onnx:" + str(a.model) if a.model else "SegmentationDetector",
         "gate_m": GATE,
         "eb_lidar_window": a.window,
+        "fastslam_draws": a.draws,
         "resolvable_range_m": RESOLVABLE_RANGE,
         "motion": a.motion,
         "back_end": MunjerMapConfig().__dict__,

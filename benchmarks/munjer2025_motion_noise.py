@@ -9,11 +9,12 @@ within FastSLAM's 12 m), as ``stemmap map --sim`` derives it
 (:func:`stemmap.cli._map_problems.sim_motion_sigmas`; FastSLAM does not calibrate the scale
 and bias, so it gets the full generator). Each method's detections go through FastSLAM (100
 particles) + the Kalman refinement with ``MunjerMapConfig(seed=d)`` for ``d`` in
-``range(draws)``; ``benchmarks/munjer2025.py`` runs the single draw ``d = seed``.
+``range(draws)`` (the draw loop of ``benchmarks/munjer2025.py``, :func:`munjer2025.map_draws`,
+which scores the first ``--draws`` of the same seeds, default 10, with ``formula``).
 
 Usage: python benchmarks/munjer2025_motion_noise.py [--seeds 0 1 2] [--draws 10]
 Prints one JSON object: per method and model, the sigmas and per drive the map position RMSE
-and pairwise inter-tree distance error (mean and sd over the draws, and the benchmark's draw).
+and pairwise inter-tree distance error (mean and population sd over the draws).
 Same drives as benchmarks/munjer2025.py (same seeds and defaults).
 """
 
@@ -25,20 +26,12 @@ from typing import Any
 
 import numpy as np
 
+from munjer2025 import MAX_RANGE, map_draws, spread
 from stemmap.cli._map_problems import sim_motion_sigmas
 from stemmap.sim.munjer import simulate_munjer_drive
 from stemmap.slam.motion import UnicycleModel
-from stemmap.slam.munjer import (
-    MunjerMapConfig,
-    daim_observations,
-    eb_lidar_observations,
-    map_munjer,
-    munjer_problem,
-    ours_lidar_observations,
-)
+from stemmap.slam.munjer import daim_observations, eb_lidar_observations, ours_lidar_observations
 from stemmap.vision.detector import SegmentationDetector
-
-MAX_RANGE = 12.0  # FastSLAM's detection range in benchmarks/munjer2025.py
 
 
 def main() -> None:
@@ -50,7 +43,6 @@ def main() -> None:
     out: dict[str, Any] = {}
     for seed in a.seeds:
         d = simulate_munjer_drive(rng=seed)
-        p0 = (float(d.poses[0, 0]), float(d.poses[0, 1]), float(d.poses[0, 2]))
         obs = {
             "eb_lidar": eb_lidar_observations(d.frames, d.times),
             "daim": daim_observations(
@@ -67,26 +59,20 @@ def main() -> None:
             }
             for label, model in models.items():
                 rmse, pair = [], []
-                for draw in range(a.draws):
-                    problem = munjer_problem(
-                        o, d.times, d.controls(), model, initial_pose=p0, max_range=MAX_RANGE
-                    )
-                    sm = map_munjer(problem, MunjerMapConfig(seed=draw)).stem_map
-                    _, mm = d.score(sm, 1.0)
+                for _, result, _ in map_draws(d, o, a.draws, (d.controls(), model)):
+                    _, mm = d.score(result.stem_map, 1.0)
                     rmse.append(mm.position_rmse)
                     pair.append(mm.pairwise.mean_percent_error)
+                r, pp = spread(rmse, "rmse"), spread(pair, "pair")
                 row = out.setdefault(name, {}).setdefault(label, {"per_seed": []})
                 row["sigma_speed"] = round(model.sigma_speed, 4)
                 row["sigma_steer"] = round(model.sigma_steer, 5)
                 row["per_seed"].append(
                     {
                         "seed": seed,
-                        "position_rmse_mean": round(float(np.nanmean(rmse)), 4),
-                        "position_rmse_sd": round(float(np.nanstd(rmse)), 4),
-                        "pairwise_percent_mean": round(float(np.nanmean(pair)), 3),
-                        "benchmark_draw_rmse": (
-                            round(float(rmse[seed]), 4) if seed < a.draws else None
-                        ),
+                        "position_rmse_mean": round(r["rmse"], 4),
+                        "position_rmse_sd": round(r["rmse_sd"], 4),
+                        "pairwise_percent_mean": round(pp["pair"], 3),
                     }
                 )
     for rows in out.values():
