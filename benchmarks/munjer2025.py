@@ -20,9 +20,9 @@ map metric ``k`` has ``k_sd`` (population sd), ``k_min``, ``k_max``: its spread 
 ``fastslam`` repeats the map numbers and their spread per method; ``eb_lidar`` is the
 published per-frame pipeline, ``eb_lidar_accumulated`` clusters ``--window`` frames together
 (joined with the motion source's own poses; not the default: it adds false trees on a real plot,
-docs/algorithms/cloud.md); ``eb_lidar_no_tilt_check`` is per frame without the principal-axis tilt check
-(``MunjerConfig(max_tilt_deg=None)``: eq. (4) alone, the literal reading)
-and ``eb_lidar_largest_two`` is per frame with the eccentricity over the two largest eigenvalues
+docs/algorithms/cloud.md); ``eb_lidar_no_tilt_check`` is per frame without the principal-axis
+tilt check (``MunjerConfig(max_tilt_deg=None)``: eq. (4) alone, the literal reading) and
+``eb_lidar_largest_two`` is per frame with the eccentricity over the two largest eigenvalues
 (the reading that collapsed recall); ``per_seed`` has, per method and seed, the same keys over
 that drive's draws alone and its per-draw rows (``per_draw``); ``scenario`` every parameter.
 Every method also carries ``resolvable``: the same Table 2 counts and rates over the trees whose
