@@ -145,3 +145,38 @@ def test_read_chunk_and_staging_read_exactly_the_buffered_box(
         # same points in the same order (tile order, then file order)
         np.testing.assert_array_equal(direct, xyz[m])
         np.testing.assert_array_equal(staged, xyz[m])
+
+
+def test_staging_tolerates_a_chunk_cleared_while_a_rerun_stages_its_tile(
+    stand_tiles: tuple[Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stage task Dask re-runs after a worker was killed can still be writing the fragments
+    of a chunk that finished meanwhile and whose folder the run cleared (`clear_stage`); that
+    chunk needs nothing more, so the task must not fail (it did: FileNotFoundError on the
+    rename, failing every chunk that waited for the tile), and the other chunks' fragments
+    must be complete."""
+    import os
+
+    from stemmap.engine import staging
+
+    folder, _ = stand_tiles
+    cat = Catalog.from_inputs([folder])
+    chunks = plan_chunks(cat, 12.0, 3.0)
+    stage = tmp_path / "stage"
+    mine = [c for c in chunks if 0 in c.tiles]
+    assert len(mine) >= 2
+    done = mine[0].id
+    real_replace = os.replace
+
+    def clear_then_replace(src: str, dst: str) -> None:
+        if Path(src).parent.name == done:
+            staging.clear_stage(stage, done)  # the run finishing chunk `done` meanwhile
+        real_replace(src, dst)
+
+    monkeypatch.setattr(staging.os, "replace", clear_then_replace)
+    staging.stage_tile(cat, 0, mine, str(stage), read_points=50_000)
+    monkeypatch.setattr(staging.os, "replace", real_replace)
+    assert not (stage / done).exists()
+    for ch in mine[1:]:
+        assert (stage / ch.id / "0.xyz").is_file()
+        assert not list((stage / ch.id).glob("*.tmp*"))  # no temporary file left behind

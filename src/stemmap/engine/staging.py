@@ -24,6 +24,7 @@ import contextlib
 import os
 import shutil
 import time
+import uuid
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -66,7 +67,9 @@ def stage_tile(
     what = ("xyz", *fields)
     handles: dict[tuple[str, str], IO[bytes]] = {}
     counts = {c.id: 0 for c in chunks}
-    tmp_suffix = f".tmp{os.getpid()}"
+    # unique per call, not per process: two runs of one stage task (Dask re-runs a task whose
+    # result was lost with a worker) never share a temporary file
+    tmp_suffix = f".tmp{os.getpid()}-{uuid.uuid4().hex[:12]}"
     head: bytes | None = None
     try:
         for cid, _ in boxes:
@@ -123,7 +126,14 @@ def stage_tile(
             h.close()
         for cid, _ in boxes:
             for w in what:
-                os.replace(_frag(root, cid, tile, w + tmp_suffix), _frag(root, cid, tile, w))
+                try:
+                    os.replace(_frag(root, cid, tile, w + tmp_suffix), _frag(root, cid, tile, w))
+                except FileNotFoundError:
+                    # the chunk finished and the run cleared its folder (`clear_stage`) while
+                    # this task -- a re-run of a tile whose result was lost with a killed
+                    # worker -- was staging it: nothing needs these points any more
+                    if (root / cid).is_dir() and not (root / cid / f"{tile}.{w}").exists():
+                        raise
     finally:
         for h in handles.values():
             h.close()
