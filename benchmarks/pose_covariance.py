@@ -72,7 +72,6 @@ def sim_rows(seed: int, backend: str) -> dict[str, Any]:
     """One simulated run: (position error, covariance, heading error, full-pose NEES) per row."""
     from stemmap.cli._demo import _stand_and_run
     from stemmap.cli._map import sim_problem
-    from stemmap.cli._map_problems import calibrates_odometry
     from stemmap.scan.detect import ScanTrunkDetector
 
     run = _stand_and_run(seed, 120)
@@ -80,7 +79,7 @@ def sim_rows(seed: int, backend: str) -> dict[str, Any]:
     problem, _ = sim_problem(
         run,
         ScanTrunkDetector().detect_batch(run.scans),
-        odometry_calibrated=calibrates_odometry(backend),
+        backend=backend,
     )
     return pose_errors(run, _run(backend, problem))
 

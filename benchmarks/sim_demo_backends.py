@@ -58,7 +58,6 @@ def one(seed: int, backend: str, sigmas: str | tuple[float, float] | None) -> di
     """One seed and back-end: accuracy, pose and tree z² arrays."""
     from stemmap.cli._demo import _stand_and_run
     from stemmap.cli._map import sim_problem, slam_metrics
-    from stemmap.cli._map_problems import calibrates_odometry
     from stemmap.eval.matching import match_points
     from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.slam.base import make_backend
@@ -68,7 +67,7 @@ def one(seed: int, backend: str, sigmas: str | tuple[float, float] | None) -> di
     problem, ctx = sim_problem(
         run,
         ScanTrunkDetector().detect_batch(run.scans),
-        odometry_calibrated=calibrates_odometry(backend),
+        backend=backend,
     )
     if sigmas == "legacy":
         sigmas = legacy_sigmas(run.params)

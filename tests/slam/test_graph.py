@@ -244,11 +244,10 @@ def test_isam2_and_ekf_close_the_loop_on_the_simulator():
     """The full chain on the project's simulator: ray-cast scans of a random stand, the scan
     trunk detector, noisy unicycle odometry (1 % speed scale, 0.2 deg/s yaw bias), one lap."""
     from stemmap.cli._map import _simulated
-    from stemmap.cli._map_problems import calibrates_odometry
 
     for name in ("isam2", "ekf"):
         # the motion noise each back-end is handed by `stemmap map --sim`
-        problem, ctx = _simulated(1, 150, 60.0, odometry_calibrated=calibrates_odometry(name))
+        problem, ctx = _simulated(1, 150, 60.0, backend=name)
         truth = ctx["run"].vehicle_poses
         true_disp = between(truth.poses[0], truth.poses[-1])[:2]
         lc_dr = loop_closure_error(dead_reckoning(problem), true_disp)
@@ -488,7 +487,7 @@ def test_isam2_closes_the_demo_loop_with_biased_wheel_odometry(seed):
     1 % speed-scale error. Without the odometry calibration the graph treated the bias as
     white noise and seed 4 ended 1.25 m from the truth (seed 6: 0.90 m; EKF 0.02 / 0.12 m).
     With it and the generator's white part as the motion noise (`sim_problem(...,
-    odometry_calibrated=True)`, Dec 3), seeds 0, 1, 3, 4, 6: loop-closure error 0.006 / 0.009 /
+    backend="isam2")`, Dec 3), seeds 0, 1, 3, 4, 6: loop-closure error 0.006 / 0.009 /
     0.027 / 0.022 / 0.135 m, trajectory RMSE 0.11 / 0.08 / 0.09 / 0.04 / 0.17 m. Seed 0 guards
     the double count of the bias (handed the bias as white noise too it lost the loop: 1.87 m
     RMSE, docs/algorithms/slam.md "Motion noise of simulated runs"). Tolerances: 0.3 m loop
@@ -497,7 +496,7 @@ def test_isam2_closes_the_demo_loop_with_biased_wheel_odometry(seed):
     from stemmap.cli._map import sim_problem, slam_metrics
 
     run = _stand_and_run(seed, 120)
-    problem, ctx = sim_problem(run, odometry_calibrated=True)  # as `stemmap demo` runs it
+    problem, ctx = sim_problem(run, backend="isam2")  # as `stemmap demo` runs it
     res = make_backend("isam2").run(problem)
     m, _, _ = slam_metrics(problem, res, ctx)
     assert m["loop_closure_error_m"] < 0.3

@@ -123,10 +123,9 @@ def test_diameter_standard_errors() -> None:
 def test_every_backend_gets_uncertainty(backend: str) -> None:
     """iSAM2 and FastSLAM used to leave diameter_std empty and confidence at 1."""
     from stemmap.cli._map import _simulated
-    from stemmap.cli._map_problems import calibrates_odometry
     from stemmap.slam.base import make_backend
 
-    problem, _ = _simulated(3, 40, 30.0, odometry_calibrated=calibrates_odometry(backend))
+    problem, _ = _simulated(3, 40, 30.0, backend=backend)
     result = make_backend(backend).run(problem)
     sm, rep = annotate_uncertainty(result, problem)
     assert len(sm) == len(result.stem_map)

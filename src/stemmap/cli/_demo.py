@@ -28,7 +28,6 @@ import typer
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
 from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
-from stemmap.cli._map_problems import calibrates_odometry
 from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.cli._validate import bounded
 
@@ -162,7 +161,7 @@ def run_demo(
         run,
         obs,
         name=f"demo(seed={seed}, trees={n_trees})",
-        odometry_calibrated=calibrates_odometry(backend),
+        backend=backend,
     )
     be = make_backend(backend)
     with progress(show_progress) as bar:

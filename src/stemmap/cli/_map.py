@@ -37,7 +37,6 @@ from stemmap.cli._map_prior import (
     false_trees_report,
     write_information,
 )
-from stemmap.cli._map_problems import calibrates_odometry as _calibrates_odometry
 from stemmap.cli._map_problems import motion_sigma as _motion_sigma
 from stemmap.cli._map_problems import realtime as _realtime
 from stemmap.cli._map_problems import sim_problem
@@ -373,10 +372,7 @@ def map_command(
         elif sim:
             online = realtime or rerun is not None  # the realtime mapper does not calibrate
             problem, ctx = _simulated(
-                seed,
-                sim_trees,
-                sim_size,
-                odometry_calibrated=not online and _calibrates_odometry(backend.value),
+                seed, sim_trees, sim_size, backend="online" if online else backend.value
             )
         else:
             assert bag is not None

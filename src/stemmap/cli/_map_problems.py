@@ -61,7 +61,7 @@ def calibrates_odometry(backend: str) -> bool:
 
 
 def simulated(
-    seed: int, n_trees: int, size: float, *, odometry_calibrated: bool = False
+    seed: int, n_trees: int, size: float, *, backend: str | None = None
 ) -> tuple[Any, dict[str, Any]]:
     from stemmap.sim.forest import random_stand
     from stemmap.sim.trajectory import loop_path, simulate_run
@@ -72,20 +72,21 @@ def simulated(
     return sim_problem(
         run,
         name=f"sim(seed={seed}, trees={n_trees}, size={size} m)",
-        odometry_calibrated=odometry_calibrated,
+        backend=backend,
     )
 
 
 def sim_problem(
-    run: Any, obs: Any = None, *, name: str = "simulated run", odometry_calibrated: bool = False
+    run: Any, obs: Any = None, *, name: str = "simulated run", backend: str | None = None
 ) -> tuple[Any, dict[str, Any]]:
     """A :class:`~stemmap.slam.base.SlamProblem` from a simulated run (and its context).
 
     ``obs`` are the run's per-scan trunk detections (default: the default detector on
     ``run.scans``). The motion noise is derived from the simulator's own odometry error
-    generator (:func:`sim_motion_sigmas`; ``odometry_calibrated`` for a back-end that
-    estimates the speed scale and yaw-rate offset itself, :func:`calibrates_odometry`), so
-    nothing is tuned on the ground truth.
+    generator (:func:`sim_motion_sigmas`), so nothing is tuned on the ground truth.
+    ``backend`` is the back-end that will run the problem (``"online"`` for the
+    ``--realtime`` mapper): one that estimates the speed scale and yaw-rate offset itself
+    (:func:`calibrates_odometry`) is handed only the rest of the odometry noise.
     """
     from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.slam.base import Controls, SlamProblem, TreeFrames
@@ -98,7 +99,8 @@ def sim_problem(
     controls = Controls(odo.times, odo.speed, odo.yaw_rate, "unicycle")
     off = run.sensor_offset
     v0 = run.vehicle_poses.poses[0]
-    sig_v, sig_w = sim_motion_sigmas(run, frames.ranges, odometry_calibrated=odometry_calibrated)
+    calibrated = backend is not None and calibrates_odometry(backend)
+    sig_v, sig_w = sim_motion_sigmas(run, frames.ranges, odometry_calibrated=calibrated)
     problem = SlamProblem(
         controls,
         frames,
