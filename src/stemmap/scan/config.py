@@ -574,7 +574,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         # Tenth round: the split runs in the compiled path (same results), at 0.99-1.05x the
         # speed of the default without it (interleaved with main, benchmarks/scan_detection
         # speed); leave-one-dataset-out among the settings the compiled path runs chooses it
-        # for 4 of 5 held-out datasets (not lidR, the one it helps): on
+        # for 4 of 5 held-out datasets (not lidR, the one it helps): on. Twelfth round: the
+        # relaxed RMS tests (rms_noise_from_fit: a candidate's own noise on scans without
+        # their own estimate; lobe_roughness: smooth lobed outlines) stay off: chosen for 1 /
+        # 0 of 5 held-out datasets (scan-detection.md)
         "refit_pieces": True,
         "refit_split": "corners",
         "refit_validate": True,
