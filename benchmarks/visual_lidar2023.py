@@ -111,6 +111,7 @@ from visual_lidar2023_diagnostics import (  # noqa: E402
     consistency,
     increment_errors,
     scale_and_yaw_bias,
+    true_displacement,
 )
 
 
@@ -417,15 +418,6 @@ def ekf_fused(
     return fused, src_visual, ps_cal
 
 
-def _true_displacement(truth: Any, est: Any) -> tuple[float, float]:
-    """True end-minus-start displacement over the estimate's time span, in its start frame."""
-    tp = truth.poses
-    i, j = np.searchsorted(truth.times, est.times[[0, -1]] - 1e-9)
-    c, s = math.cos(tp[i, 2]), math.sin(tp[i, 2])
-    d = tp[j, :2] - tp[i, :2]
-    return (c * d[0] + s * d[1], -s * d[0] + c * d[1])
-
-
 def tune(seeds: list[int], cache: Path | None) -> dict[str, Any]:
     """Choose the relative-motion fusion's settings (:data:`TUNE_GRID`) by the mean
     loop-closure error over the calibration drive and the loops of ``seeds`` (loop ``k`` of
@@ -444,14 +436,14 @@ def tune(seeds: list[int], cache: Path | None) -> dict[str, Any]:
         L = prepare_loop(name, wp, seed, cache)
         names.append(f"{name} ({seed})")
         row = {
-            k: loop_closure_error(L[k], _true_displacement(L["truth"], L[k]))
+            k: loop_closure_error(L[k], true_displacement(L["truth"], L[k]))
             for k in ("visual", "lidar")
         }
         for k, v in row.items():
             errs[k].append(v)
         for f in TUNE_EKF_FACTORS:
             ekf = ekf_fused(L, noise, f)[0].trajectory
-            e = loop_closure_error(ekf, _true_displacement(L["truth"], ekf))
+            e = loop_closure_error(ekf, true_displacement(L["truth"], ekf))
             errs.setdefault(f"ekf/{f:g}", []).append(e)
             wins[f"ekf/{f:g}"] = wins.get(f"ekf/{f:g}", 0) + int(e < min(row.values()))
         for lm in TUNE_GRID["lidar_model"]:
@@ -459,7 +451,7 @@ def tune(seeds: list[int], cache: Path | None) -> dict[str, Any]:
                 srcs = increment_sources(L, noise, lm, a)
                 for sp in TUNE_GRID["span"]:
                     tr = fuse_increments(srcs, span=sp, initial_pose=L["truth"].poses[0])[0]
-                    e = loop_closure_error(tr, _true_displacement(L["truth"], tr))
+                    e = loop_closure_error(tr, true_displacement(L["truth"], tr))
                     key = f"{lm}/{a:g}/{sp}"
                     errs.setdefault(key, []).append(e)
                     wins[key] = wins.get(key, 0) + int(e < min(row.values()))
@@ -596,7 +588,7 @@ def run_loop(
     lidar_step_err = increment_errors(lidar, truth, 1)
 
     def true_disp(est: Any) -> tuple[float, float]:
-        return _true_displacement(truth, est)
+        return true_displacement(truth, est)
 
     vs, vb = scale_and_yaw_bias(visual, truth)
     ls, lb = scale_and_yaw_bias(lidar, truth)

@@ -68,3 +68,12 @@ def consistency(
         zf = np.einsum("ni,nij,nj->n", ef, np.linalg.inv(Cf), ef) / 2.0
         out[f"nees.{key}_position"] = float(np.mean(zf[len(zf) // 10 :]))
     return out
+
+
+def true_displacement(truth: Any, est: Any) -> tuple[float, float]:
+    """True end-minus-start displacement over the estimate's time span, in its start frame."""
+    tp = truth.poses
+    i, j = np.searchsorted(truth.times, est.times[[0, -1]] - 1e-9)
+    c, s = math.cos(tp[i, 2]), math.sin(tp[i, 2])
+    d = tp[j, :2] - tp[i, :2]
+    return (c * d[0] + s * d[1], -s * d[0] + c * d[1])

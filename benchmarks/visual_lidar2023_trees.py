@@ -200,13 +200,7 @@ def tune_counts(drives: list[tuple[str, Any, Any, Any, int]]) -> dict[str, Any]:
     """Choose the recognition count of each real detector (:data:`COUNT_GRID`) by the mean
     loop-closure error over held-out ``drives`` (``(name, run, fused, truth, seed)``)."""
     from stemmap.eval.trajectory import loop_closure_error
-
-    def disp(truth: Any, est: Any) -> tuple[float, float]:
-        tp = truth.poses
-        i, j = np.searchsorted(truth.times, est.times[[0, -1]] - 1e-9)
-        c, s = math.cos(tp[i, 2]), math.sin(tp[i, 2])
-        d = tp[j, :2] - tp[i, :2]
-        return (c * d[0] + s * d[1], -s * d[0] + c * d[1])
+    from visual_lidar2023_diagnostics import true_displacement as disp
 
     errs: dict[str, list[float]] = {"fused": []}
     frames: dict[str, list[float]] = {}
