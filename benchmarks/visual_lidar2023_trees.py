@@ -189,11 +189,39 @@ def tree_rows(
         st = detection_stats(run, obs)
         diag[f"trees_mapped.{key}"] = n_trees
         diag.update({f"detections.{key}.{k}": v for k, v in st.items()})
-    from stemmap.scan.detect import ScanTrunkDetector
-
-    published = ScanTrunkDetector("visual_lidar2023").detect_batch(run.scans)
-    diag["detections.paper_as_published_per_frame"] = len(published) / len(run)
+    diag.update({f"detections.paper_stage.{k}": v for k, v in paper_filter_stages(run).items()})
     return est, diag
+
+
+def paper_filter_stages(run: Any) -> dict[str, float]:
+    """Where the paper's filter (preset ``visual_lidar2023``) loses the trunks of a run, per
+    frame: true trunks inside its window (5 m, ±50°) hit by any beam, those with at least
+    :func:`paper_min_points` returns and with the published 40, the largest return count of
+    any trunk in the window, and the detections of the preset as published and converted.
+    (The detector's segments are the trunks' returns here: nothing else in the window.)"""
+    from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+    from stemmap.sim.observations import returns_per_tree, trees_in_sensor_frame
+
+    cfg = DetectorConfig.preset("visual_lidar2023")
+    loc = trees_in_sensor_frame(run)
+    bearing = np.degrees(np.arctan2(loc[..., 1], loc[..., 0]))
+    lo, hi = cfg.fov_deg or (-180.0, 180.0)
+    inside = (np.hypot(loc[..., 0], loc[..., 1]) <= (cfg.range_max or math.inf)) & (
+        (bearing >= lo) & (bearing <= hi)
+    )
+    n_ret = np.where(inside, returns_per_tree(run), 0)
+    mp = paper_min_points(run.scans.angle_increment)
+    n = len(run)
+    published = ScanTrunkDetector(cfg).detect_batch(run.scans)
+    converted = tree_observations(run, "visual_lidar2023", 0)
+    return {
+        "window_trunks_hit": float(np.sum(n_ret > 0)) / n,
+        "window_trunks_min_points_converted": float(np.sum(n_ret >= mp)) / n,
+        "window_trunks_40_returns": float(np.sum(n_ret >= PAPER_MIN_POINTS)) / n,
+        "window_max_returns": float(n_ret.max()),
+        "detections_as_published": len(published) / n,
+        "detections_converted": len(converted) / n,
+    }
 
 
 def tune_counts(drives: list[tuple[str, Any, Any, Any, int]]) -> dict[str, Any]:
