@@ -1,0 +1,414 @@
+"""The GNSS-frame track: the path as the GNSS receiver reads it (ours).
+
+A fused GNSS fix disagrees with the tree-consistent path by ``r_i = fix_i - antenna(t_i)``. On
+a real receiver most of that is not white noise but a slowly varying error of the receiver's
+own solution (multipath, satellite geometry; docs/algorithms/slam.md "GNSS fusion": on
+Victoria Park ~1 m with a correlation time of ~18 s). A path held by the trees cannot follow
+it, and should not: the map has to stay consistent. But a user driving to a GNSS waypoint with
+that same receiver wants the path *as the receiver reads it*. This module estimates the
+receiver's error as a first-order Gauss-Markov process (the GNSS error model of loosely coupled
+GNSS/INS fusion; Groves, *Principles of GNSS, Inertial, and Multisensor Integrated Navigation
+Systems*, 2nd ed. 2013, ch. 14, the first-order Gauss-Markov bias states) and adds it to the
+path:
+
+* :func:`fit_gnss_offset_model` -- the model's time constant ``T``, bias std ``s_b`` and white
+  fix noise ``s_w`` from the run's own fused fixes: the autocorrelation of their residuals from
+  the path (:func:`stemmap.eval.gps_noise.gps_autocorrelation`) fitted with
+  ``rho(tau) = s_b² / (s_b² + s_w²) exp(-tau / T)``.
+* :func:`gnss_offset` -- the bias ``b(t)`` at the fixes by a Kalman filter (``causal=True``:
+  the online estimate, each time from the fixes up to it) or a Kalman filter + Rauch-Tung-
+  Striebel smoother (default: the offline estimate, from the fixes on both sides; Rauch, Tung
+  & Striebel, AIAA J. 3(8), 1965); :meth:`GnssOffset.at` / :meth:`GnssOffset.std_at` between
+  the fixes (the Ornstein-Uhlenbeck bridge).
+* :func:`gnss_frame_trajectory` -- ``path + b(t)``, headings kept.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from stemmap.errors import InputError
+from stemmap.types import FloatArray, Trajectory
+
+if TYPE_CHECKING:
+    from stemmap.slam.gnss import GnssFixes
+
+__all__ = [
+    "GnssOffset",
+    "GnssOffsetModel",
+    "fit_gnss_offset_model",
+    "gnss_frame_trajectory",
+    "gnss_offset",
+]
+
+log = logging.getLogger(__name__)
+
+#: fewest fixes inside the run :func:`fit_gnss_offset_model` estimates a model from
+MIN_FIXES = 30
+#: fewest fix pairs at a lag for the lag to enter the fit
+MIN_PAIRS = 10
+
+
+@dataclass(frozen=True)
+class GnssOffsetModel:
+    """First-order Gauss-Markov model of the fixes' offset from a path (per axis).
+
+    Attributes
+    ----------
+    time_constant : float, s, the bias's correlation time ``T``
+    bias_sigma : float, m, its stationary std ``s_b``
+    white_sigma : float, m, the white fix noise ``s_w``
+    n_fixes : int, fixes the model was estimated from
+    lags : tuple of float, s, lags of the fitted autocorrelation
+    autocorrelation : tuple of float, its value at ``lags`` (nan: no pair)
+    resolved : bool, False when ``T`` is longer than a quarter of the fixes' time span (the
+        run is too short to see the bias decorrelate; the track then follows the fixes as a
+        slowly varying offset, which is still right, but ``T`` itself is uncertain)
+    """
+
+    time_constant: float
+    bias_sigma: float
+    white_sigma: float
+    n_fixes: int
+    lags: tuple[float, ...] = ()
+    autocorrelation: tuple[float, ...] = ()
+    resolved: bool = True
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready record (metrics.json ``gnss_track.model``)."""
+        return {
+            "time_constant_s": round(self.time_constant, 3),
+            "bias_sigma_per_axis_m": round(self.bias_sigma, 4),
+            "white_sigma_per_axis_m": round(self.white_sigma, 4),
+            "n_fixes": self.n_fixes,
+            "lags_s": [round(v, 3) for v in self.lags],
+            "autocorrelation": [
+                round(v, 4) if math.isfinite(v) else None for v in self.autocorrelation
+            ],
+            "time_constant_resolved": self.resolved,
+        }
+
+
+def _residuals(trajectory: Trajectory, fixes: GnssFixes) -> tuple[FloatArray, FloatArray]:
+    """Times (M,) and residuals ``fix - antenna`` (M, 2) of the fixes inside the path's span."""
+    from stemmap.eval.trajectory import point_track
+
+    use = (fixes.times >= trajectory.times[0]) & (fixes.times <= trajectory.times[-1])
+    t = np.asarray(fixes.times[use], dtype=np.float64)
+    return t, fixes.xy[use] - point_track(trajectory, t, fixes.lever_arm)
+
+
+def fit_gnss_offset_model(
+    trajectory: Trajectory,
+    fixes: GnssFixes,
+    *,
+    min_fixes: int = MIN_FIXES,
+) -> GnssOffsetModel:
+    """Estimate the Gauss-Markov model of the fixes' offset from ``trajectory`` (module docs).
+
+    The residuals ``r_i = fix_i - antenna(t_i)`` of the fixes inside the trajectory's span are
+    centred; their per-axis variance is ``s_w² + s_b²``, their autocorrelation at lag ``tau > 0``
+    is ``rho(tau) = c exp(-tau / T)`` with ``c = s_b² / (s_w² + s_b²)``. The autocorrelation is
+    measured (:func:`stemmap.eval.gps_noise.gps_autocorrelation`, pairs within 10 % of the lag)
+    at multiples 1, 2, 3, 4, 6, 8, 12, ... of the median fix interval ``dt`` up to a window,
+    and ``(c, T)`` fitted by least squares weighted by each lag's pair count (``T`` on a
+    log grid of 400 values from ``dt / 4`` to 20x the span, ``c`` in closed form, clipped to
+    [0, 1]). The window starts at a quarter of the fixes' span and is then set to ``3 T``
+    (at least 8 ``dt``, at most a quarter of the span) and the fit repeated twice: beyond a few
+    correlation times the measured autocorrelation is noise (and the sample mean biases it).
+
+    Parameters
+    ----------
+    trajectory : Trajectory, the path (in the fixes' frame; the fused run's own path)
+    fixes : GnssFixes, the fixes fused into it
+    min_fixes : int, fewest fixes inside the path's span to estimate from
+
+    Returns
+    -------
+    GnssOffsetModel
+
+    Raises
+    ------
+    InputError
+        Fewer than ``min_fixes`` fixes inside the path's span, or fewer than 3 lags with at
+        least 10 fix pairs (the message says how many there are and what to give).
+    """
+    from stemmap.eval.gps_noise import gps_autocorrelation, gps_variogram
+
+    t, r = _residuals(trajectory, fixes)
+    n = int(t.shape[0])
+    if n < min_fixes:
+        raise InputError(
+            f"GNSS offset model: {n} fixes inside the run, need at least {min_fixes} to estimate "
+            "the GNSS error's time constant from their autocorrelation; give more fixes (a "
+            "longer run or a higher fix rate)."
+        )
+    gaps = np.diff(t)
+    gaps = gaps[gaps > 0]
+    dt = float(np.median(gaps)) if gaps.size else 0.0
+    span = float(t[-1] - t[0])
+    if not (dt > 0 and span > 0):
+        raise InputError("GNSS offset model: the fixes inside the run share one time.")
+    e = r - r.mean(axis=0)
+    var_axis = 0.5 * float(np.mean(np.sum(e * e, axis=1)))
+    base = np.array([1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512])
+    window = 0.25 * span
+    fit: tuple[float, float] | None = None
+    lags_used = np.zeros(0)
+    rho_used = np.zeros(0)
+    for _ in range(3):
+        lags = dt * base[dt * base <= max(window, dt)]
+        rho = gps_autocorrelation(t, r, np.zeros_like(r), lags)
+        cnt = gps_variogram(t, r, np.zeros_like(r), lags).pairs
+        ok = np.isfinite(rho) & (cnt >= MIN_PAIRS)
+        if ok.sum() < 3:
+            raise InputError(
+                f"GNSS offset model: only {int(ok.sum())} lags (multiples of the median fix "
+                f"interval {dt:.3g} s up to {window:.3g} s) have >= {MIN_PAIRS} fix pairs; need "
+                "3. Give more fixes or a longer run."
+            )
+        x, y, w = lags[ok], rho[ok], cnt[ok]
+        best = (np.inf, 0.0, 1.0)
+        for tc in np.geomspace(0.25 * dt, 20.0 * span, 400):
+            a = np.exp(-x / tc)
+            c = float(np.clip(np.sum(w * a * y) / np.sum(w * a * a), 0.0, 1.0))
+            cost = float(np.sum(w * (c * a - y) ** 2))
+            if cost < best[0]:
+                best = (cost, c, float(tc))
+        fit = (best[1], best[2])
+        lags_used, rho_used = lags, rho
+        window = float(np.clip(3.0 * best[2], 8.0 * dt, 0.25 * span))
+    assert fit is not None
+    c, tc = fit
+    resolved = tc <= 0.25 * span
+    if not resolved:
+        log.warning(
+            "GNSS offset model: fitted time constant %.1f s exceeds a quarter of the fixes' "
+            "span (%.1f s); the run is too short to resolve it",
+            tc,
+            span,
+        )
+    return GnssOffsetModel(
+        time_constant=tc,
+        bias_sigma=math.sqrt(max(c * var_axis, 0.0)),
+        white_sigma=math.sqrt(max((1.0 - c) * var_axis, 0.0)),
+        n_fixes=n,
+        lags=tuple(float(v) for v in lags_used),
+        autocorrelation=tuple(float(v) for v in rho_used),
+        resolved=resolved,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class GnssOffset:
+    """The fixes' slowly varying offset from a trajectory (from :func:`gnss_offset`).
+
+    times : (M,) s, the fixes' times; offset : (M, 2) m, the estimated ``fix - antenna`` bias
+    there (smoothed, or filtered when ``causal``); std : (M,) m, its 1-sigma per axis;
+    time_constant : s, the first-order Gauss-Markov model's correlation time (None: a random
+    walk); prior_sigma : m, the Gauss-Markov bias's stationary std (the random walk's start
+    std); walk_sigma : m/sqrt(s), the random walk's intensity; cross : (M-1,) m², the smoothed
+    covariance between consecutive fixes' bias (RTS lag-one covariance; None: not known, the
+    interpolated std then counts the two ends as independent); causal : the filter estimate
+    (between fixes only the fix before counts).
+    """
+
+    times: FloatArray
+    offset: FloatArray
+    std: FloatArray
+    time_constant: float | None = None
+    prior_sigma: float = 3.0
+    walk_sigma: float = 1.0
+    cross: FloatArray | None = None
+    causal: bool = False
+
+    def _ends(self, t: FloatArray) -> tuple[np.ndarray, FloatArray, FloatArray, FloatArray]:
+        """Per ``t``: index ``k`` of the fix at or before it (clipped to [0, M-2]; 0 when
+        M = 1), time ``c`` since fix ``k``, ``a`` to fix ``k + 1``, and ``d = c + a``."""
+        tf = self.times
+        m = tf.shape[0]
+        k = np.clip(np.searchsorted(tf, t, side="right") - 1, 0, max(m - 2, 0))
+        if m == 1:
+            z = np.zeros_like(t)
+            return k, z, z, z
+        c = np.clip(t - tf[k], 0.0, None)
+        a = np.clip(tf[k + 1] - t, 0.0, None)
+        return k, c, a, np.maximum(tf[k + 1] - tf[k], 1e-12)
+
+    def _decay(self, dt: FloatArray) -> FloatArray:
+        """Mean carried over ``dt`` >= 0 s: ``exp(-dt / T)`` (Gauss-Markov) or 1 (walk)."""
+        if self.time_constant is None:
+            return np.ones_like(dt)
+        return np.exp(-dt / float(self.time_constant))
+
+    def _grow(self, var: FloatArray, dt: FloatArray) -> FloatArray:
+        """Variance carried over ``dt`` >= 0 s from ``var`` (the model's prediction step)."""
+        if self.time_constant is None:
+            return var + self.walk_sigma**2 * dt
+        phi2 = np.exp(-2.0 * dt / float(self.time_constant))
+        return phi2 * var + self.prior_sigma**2 * (1.0 - phi2)
+
+    def _bridge(self, c: FloatArray, a: FloatArray, d: FloatArray) -> tuple[FloatArray, ...]:
+        """Weights ``w0, w1`` of the bias at the fixes before / after and the variance of the
+        bias given both (the Ornstein-Uhlenbeck or Brownian bridge)."""
+        if self.time_constant is None:
+            return a / d, c / d, self.walk_sigma**2 * c * a / d
+        tau = float(self.time_constant)
+        # sinh(x)/sinh(d) with exp(-...) only: no overflow for long outages
+        den = -np.expm1(-2.0 * d / tau)
+
+        def ratio(x: FloatArray) -> FloatArray:
+            return np.asarray((np.exp((x - d) / tau) - np.exp((-x - d) / tau)) / den)
+
+        w0, w1 = ratio(np.minimum(a, d)), ratio(np.minimum(c, d))
+        var = self.prior_sigma**2 * np.expm1(-2.0 * c / tau) * np.expm1(-2.0 * a / tau) / den
+        return w0, w1, var
+
+    def _moments(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Mean (N, 2) and per-axis variance (N,) of the bias at ``times``."""
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        tf, b, p = self.times, self.offset, np.asarray(self.std) ** 2
+        lo, hi = t < tf[0], t > tf[-1]
+        if self.causal:  # the fix at or before t, carried forward; the prior before any fix
+            k = np.clip(np.searchsorted(tf, t, side="right") - 1, 0, tf.shape[0] - 1)
+            dt = np.clip(t - tf[k], 0.0, None)
+            mean = b[k] * self._decay(dt)[:, None]
+            var = self._grow(p[k], dt)
+            mean[lo] = 0.0
+            var[lo] = self.prior_sigma**2
+            return mean, var
+        k, c, a, d = self._ends(t)
+        if tf.shape[0] == 1:
+            dt = np.abs(t - tf[0])
+            return b[0] * self._decay(dt)[:, None], self._grow(np.full(dt.shape, p[0]), dt)
+        else:
+            w0, w1, bv = self._bridge(c, a, d)
+            x = np.zeros(tf.shape[0] - 1) if self.cross is None else np.asarray(self.cross)
+            mean = w0[:, None] * b[k] + w1[:, None] * b[k + 1]
+            var = bv + w0**2 * p[k] + w1**2 * p[k + 1] + 2.0 * w0 * w1 * x[k]
+        for m, j in ((lo, 0), (hi, -1)):  # outside the fixes: carried from the end fix
+            dt = np.abs(t[m] - tf[j])
+            mean[m] = b[j] * self._decay(dt)[:, None]
+            var[m] = self._grow(np.full(dt.shape, p[j]), dt)
+        return mean, var
+
+    def at(self, times: ArrayLike) -> FloatArray:
+        """(N, 2) offset at ``times``.
+
+        Smoothed (default): between fixes at ``t0``, ``t1`` the bridge mean, ``E[b(t) | b0,
+        b1]`` -- exact for the smoothed mean since no fix lies in between: random walk linear;
+        Gauss-Markov with time constant ``T`` ``b0 sinh((t1 - t)/T) / sinh(Δ/T) + b1 sinh((t -
+        t0)/T) / sinh(Δ/T)`` (linear for ``Δ << T``). Outside the fixes' span the end fix's
+        offset, held (random walk) or decaying as ``exp(-|t - t_end| / T)`` towards 0 (the
+        path's own frame). Causal: the offset of the last fix at or before ``t``, carried
+        forward the same way; 0 before the first fix.
+        """
+        return self._moments(times)[0]
+
+    def std_at(self, times: ArrayLike) -> FloatArray:
+        """(N,) 1-sigma per axis (m) of :meth:`at`: the bridge variance plus the end fixes'
+        (smoothed: with their lag-one covariance ``cross``), or the filtered variance grown
+        by the model since the last fix (causal)."""
+        return np.sqrt(np.maximum(self._moments(times)[1], 0.0))
+
+
+def gnss_offset(
+    trajectory: Trajectory,
+    fixes: GnssFixes,
+    *,
+    walk_sigma: float = 1.0,
+    fix_sigma: float = 0.1,
+    prior_sigma: float = 3.0,
+    time_constant: float | None = None,
+    model: GnssOffsetModel | None = None,
+    causal: bool = False,
+) -> GnssOffset:
+    """Estimate the fixes' offset from ``trajectory`` as a GNSS bias: a 2-D random walk or a
+    first-order Gauss-Markov process (as in loosely coupled GNSS/INS fusion).
+
+    ``r_i = fix_i - antenna(t_i)`` (antenna = the lever-arm point of the trajectory) is modelled
+    as ``r_i = b(t_i) + w_i``, ``w_i`` white with std ``fix_sigma`` (m), and ``b``:
+
+    * ``time_constant=None``: a random walk of intensity ``walk_sigma`` (m/sqrt(s)), start
+      ``N(0, prior_sigma²)``. A long outage lets the variance grow by ``walk_sigma² Δt``: a
+      jump after it is followed.
+    * ``time_constant=T`` (s): a first-order Gauss-Markov (Ornstein-Uhlenbeck) process with
+      stationary std ``prior_sigma`` per axis, ``b(t+Δ) = φ b(t) + η``, ``φ = exp(-Δ/T)``,
+      ``var η = prior_sigma² (1 - φ²)``, i.e. autocovariance ``prior_sigma² exp(-|τ|/T)``
+      (``walk_sigma`` is not used). Across a long outage the bias forgets towards 0 (the
+      trajectory's own frame) instead of holding the last offset.
+    * ``model`` (from :func:`fit_gnss_offset_model`): the Gauss-Markov process with its
+      ``time_constant``, ``bias_sigma`` (as ``prior_sigma``) and ``white_sigma`` (as
+      ``fix_sigma``, at least 1 mm); the three keywords are then ignored.
+
+    A Kalman filter per axis (the model is isotropic) gives ``b`` at each fix from the fixes up
+    to it (``causal=True``: what a machine online can know); by default a Rauch-Tung-Striebel
+    smoother then uses the fixes on both sides (the offline product: between two fixes the
+    smoothed bias interpolates, the filtered one can only hold or decay the last fix's). The
+    random-walk defaults are the 2-fold CV choice inside the fused fixes on Victoria Park
+    (every 10th screened fix, ~2 s apart; benchmarks/slam_field.py).
+
+    Why: on Victoria Park the GPS error is a slowly varying offset (~1 m RMS, correlation time
+    ~18 s, docs/algorithms/slam.md "GNSS fusion"). A path held by the trees cannot follow it;
+    ``trajectory + b`` (:func:`gnss_frame_trajectory`) is the track *as the GNSS reports it*,
+    not a better position of the vehicle.
+    """
+    if model is not None:
+        time_constant = model.time_constant
+        prior_sigma = max(model.bias_sigma, 1e-3)
+        fix_sigma = max(model.white_sigma, 1e-3)
+    for name, v in (("walk_sigma", walk_sigma), ("fix_sigma", fix_sigma)):
+        if not (math.isfinite(v) and v > 0):
+            raise InputError(f"gnss_offset: {name} must be > 0 (m), got {v}.")
+    if not (math.isfinite(prior_sigma) and prior_sigma > 0):
+        raise InputError(f"gnss_offset: prior_sigma must be > 0 (m), got {prior_sigma}.")
+    if time_constant is not None and not (math.isfinite(time_constant) and time_constant > 0):
+        raise InputError(
+            f"gnss_offset: time_constant must be > 0 (s) or None, got {time_constant}."
+        )
+    t, r = _residuals(trajectory, fixes)
+    n = t.shape[0]
+    if n == 0:
+        raise InputError("gnss_offset: no fix inside the trajectory's time span.")
+    m, p = np.zeros((n, 2)), np.zeros(n)
+    mp, pp = np.zeros((n, 2)), np.zeros(n)
+    ph = np.ones(n)  # transition factor from fix i-1 to fix i (1 for a random walk)
+    q2, w2, p0 = walk_sigma**2, fix_sigma**2, prior_sigma**2
+    for i in range(n):
+        if i == 0:
+            mp[i], pp[i] = 0.0, p0
+        else:
+            dt = t[i] - t[i - 1]
+            if time_constant is None:
+                mp[i], pp[i] = m[i - 1], p[i - 1] + q2 * dt
+            else:
+                ph[i] = math.exp(-dt / time_constant)
+                mp[i] = ph[i] * m[i - 1]
+                pp[i] = ph[i] ** 2 * p[i - 1] + p0 * (1.0 - ph[i] ** 2)
+        k = pp[i] / (pp[i] + w2)
+        m[i] = mp[i] + k * (r[i] - mp[i])
+        p[i] = (1.0 - k) * pp[i]
+    common = {"time_constant": time_constant, "prior_sigma": prior_sigma, "walk_sigma": walk_sigma}
+    if causal:
+        return GnssOffset(t, m, np.sqrt(np.maximum(p, 0.0)), causal=True, **common)
+    cross = np.zeros(max(n - 1, 0))
+    for i in range(n - 2, -1, -1):
+        c = p[i] * ph[i + 1] / pp[i + 1] if pp[i + 1] > 0 else 0.0
+        m[i] = m[i] + c * (m[i + 1] - mp[i + 1])
+        p[i] = p[i] + c * c * (p[i + 1] - pp[i + 1])
+        cross[i] = c * p[i + 1]  # P_{i,i+1|N} = C_i P_{i+1|N} (p[i + 1] already smoothed)
+    return GnssOffset(t, m, np.sqrt(np.maximum(p, 0.0)), cross=cross, **common)
+
+
+def gnss_frame_trajectory(trajectory: Trajectory, offset: GnssOffset) -> Trajectory:
+    """``trajectory`` shifted at every pose by the fixes' estimated offset (headings kept): the
+    vehicle track in the frame the GNSS reports at each moment (:func:`gnss_offset`)."""
+    poses = np.array(trajectory.poses, dtype=np.float64)
+    poses[:, :2] += offset.at(trajectory.times)
+    return Trajectory(trajectory.times, poses, frame=trajectory.frame)
