@@ -41,6 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "GnssOffset",
+    "GnssOffsetFilter",
     "GnssOffsetModel",
     "fit_gnss_offset_model",
     "gnss_frame_trajectory",
@@ -466,16 +467,65 @@ def gnss_offset(
         k = pp[i] / (pp[i] + w2)
         m[i] = mp[i] + k * (r[i] - mp[i])
         p[i] = (1.0 - k) * pp[i]
-    common = {"time_constant": time_constant, "prior_sigma": prior_sigma, "walk_sigma": walk_sigma}
     if causal:
-        return GnssOffset(t, m, np.sqrt(np.maximum(p, 0.0)), causal=True, **common)
+        return GnssOffset(
+            t, m, np.sqrt(np.maximum(p, 0.0)), time_constant, prior_sigma, walk_sigma, causal=True
+        )
     cross = np.zeros(max(n - 1, 0))
     for i in range(n - 2, -1, -1):
         c = p[i] * ph[i + 1] / pp[i + 1] if pp[i + 1] > 0 else 0.0
         m[i] = m[i] + c * (m[i + 1] - mp[i + 1])
         p[i] = p[i] + c * c * (p[i + 1] - pp[i + 1])
         cross[i] = c * p[i + 1]  # P_{i,i+1|N} = C_i P_{i+1|N} (p[i + 1] already smoothed)
-    return GnssOffset(t, m, np.sqrt(np.maximum(p, 0.0)), cross=cross, **common)
+    return GnssOffset(
+        t, m, np.sqrt(np.maximum(p, 0.0)), time_constant, prior_sigma, walk_sigma, cross=cross
+    )
+
+
+class GnssOffsetFilter:
+    """The causal offset online, one fix at a time (the forward pass of
+    :func:`gnss_offset` with ``causal=True`` and ``model``; the same numbers).
+
+    ``update(t, residual)`` takes a fix's ``fix - antenna`` (m) at time ``t`` (s, not
+    decreasing); ``at(t)`` gives the offset (2,) and its per-axis std (m) at ``t`` from the
+    fixes so far: the prior (0, ``bias_sigma``) before any fix, then the last filtered value
+    decayed by ``exp(-(t - t_k) / T)``. Used by :class:`stemmap.slam.online.OnlineMapper`
+    (``pose_gnss``).
+    """
+
+    def __init__(self, model: GnssOffsetModel) -> None:
+        self.model = model
+        self._sb = max(model.bias_sigma, 1e-3)
+        self._w2 = max(model.white_sigma, 1e-3) ** 2
+        self._last: GnssOffset | None = None
+
+    def _state(self, t: float) -> tuple[FloatArray, float]:
+        if self._last is None:
+            return np.zeros(2), self._sb**2
+        mean, var = self._last._moments([t])
+        return mean[0], float(var[0])
+
+    def update(self, t: float, residual: ArrayLike) -> None:
+        """Fuse one fix's residual (Kalman update per axis, white noise ``white_sigma``)."""
+        if self._last is not None and t < float(self._last.times[0]):
+            raise InputError(f"GnssOffsetFilter: fix at {t} s is before the last one.")
+        mp, pp = self._state(t)
+        k = pp / (pp + self._w2)
+        m = mp + k * (np.asarray(residual, dtype=np.float64).reshape(2) - mp)
+        self._last = GnssOffset(
+            np.array([float(t)]), m[None], np.array([math.sqrt((1.0 - k) * pp)]),
+            time_constant=self.model.time_constant, prior_sigma=self._sb, causal=True,
+        )  # fmt: skip
+
+    @property
+    def last_time(self) -> float:
+        """Time (s) of the last fix fused (-inf before any)."""
+        return -math.inf if self._last is None else float(self._last.times[0])
+
+    def at(self, t: float) -> tuple[FloatArray, float]:
+        """Offset (2,) m and its per-axis 1-sigma (m) at ``t`` from the fixes so far."""
+        mean, var = self._state(float(t))
+        return mean, math.sqrt(max(var, 0.0))
 
 
 def gnss_frame_trajectory(trajectory: Trajectory, offset: GnssOffset) -> Trajectory:
