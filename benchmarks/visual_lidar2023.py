@@ -45,9 +45,10 @@ landmarks vs 0.656 m without on its first run, 0.3-0.5 m on four runs. Here, per
   them), trunk detections by the library's scan detector (preset ``stemmap``, what
   ``stemmap detect`` runs) on the benchmark's own simulated 2D scans;
   **fused_trees_paper**: the same with the paper's filter (preset ``visual_lidar2023``, its
-  40-point minimum converted to the 0.25° beams); **fused_trees_oracle**: the upper bound, with
-  ORACLE detections (every trunk with >= 10 beams on it within 6 m, 3 cm noise). Sources,
-  counts and why: benchmarks/visual_lidar2023_trees.py.
+  40-point minimum converted to the 0.25° beams); **fused_trees_oracle**: the detection upper
+  bound, with ORACLE detections (every trunk with >= 10 beams on it within 6 m, 3 cm noise).
+  Each at its recognition count chosen on held-out drives (``--tune-trees``). Sources, counts
+  and why: benchmarks/visual_lidar2023_trees.py.
 
 Keys: ``loop_closure_error_m.{visual,lidar,fused,fused_increments,fused_inlier_noise,fused_drift,
 fused_default,fused_velocities,fused_trees,fused_trees_paper,fused_trees_oracle}`` (mean over

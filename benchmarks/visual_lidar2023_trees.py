@@ -12,8 +12,8 @@ Detection sources (:data:`SOURCES`), each a row ``fused_trees*`` of the benchmar
   converted to the simulated scanner's beam spacing (:func:`paper_min_points`): the paper's
   40 points are returns of an RPLIDAR S2 at 0.12° (its Table 1), i.e. a trunk at least 4.8°
   wide; at the benchmark's 0.25° that is 20 returns. As published (40 returns at 0.25°) it
-  detects nothing on these scans (:func:`detection_stats` reports it as
-  ``paper_as_published_per_frame``);
+  detects nothing on these scans (:func:`paper_filter_stages`, reported as
+  ``detections.paper_stage.detections_as_published``);
 * ``fused_trees_oracle``: the detection upper bound, ORACLE detections
   (:func:`stemmap.sim.observations.oracle_observations`: every trunk with >= 10 beams on it
   within :data:`TREE_RANGE`, 360°, 3 cm noise): every trunk a detector could see, none
