@@ -127,6 +127,10 @@ class Isam2Config:
         this map then continues from the correlated prior of all its trees instead of
         independent per-tree priors (docs/algorithms/slam.md "Prior maps"). Off by default:
         (2N)² floats (~12 MB for the ~600 trees of the full Victoria Park run)
+    export_graph : also return the session's factor graph (``SlamResult.graph``,
+        :mod:`stemmap.slam._graph_continue`; ``graph.npz`` beside the map) so that a later
+        session can continue it (``SlamProblem.prior_graph``). Not for a session held by a
+        marginal prior map or fused with GNSS (their priors are not in the saved graph): None
     """
 
     sigma_range: float = 0.10
@@ -176,6 +180,8 @@ class Isam2Config:
     joint_information: bool = False
     prior_map_robust: str = "huber"
     prior_map_inflation: float = 4.0
+    export_graph: bool = False
+    prior_graph_inflation: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust", "prior_map_robust"):
@@ -192,6 +198,7 @@ class Isam2Config:
             "gate_chi2",
             "new_chi2",
             "prior_map_inflation",
+            "prior_graph_inflation",
             "max_range",
             "relinearize_threshold",
             "batch_rel_tol",
