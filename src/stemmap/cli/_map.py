@@ -240,17 +240,20 @@ def map_command(
         Path | None,
         typer.Option(
             "--prior-map",
-            help="Map folder of an earlier session (its trees.csv): "
-            "relocalise in it, map on, write the merged map; isam2.",
+            help="Map folder of an earlier session (trees.csv [+ graph.npz]): "
+            "relocalise in it, map on (continuing its graph.npz when present), write the "
+            "merged map; isam2.",
         ),
     ] = None,
     prior_type: Annotated[
         PriorType | None,
         typer.Option(
             "--prior-type",
-            help="With --prior-map: how its trees enter the graph -- huber (default) or "
-            "cauchy (each tree's own robust prior), joint (one prior over all trees from "
-            "trees_information.npz).",
+            help="With --prior-map: how it enters the graph -- graph (default when the "
+            "folder has graph.npz: the earlier session's poses, trees and factors continued; "
+            "Victoria Park 5 session splits: see docs/algorithms/slam.md), huber (default "
+            "without graph.npz) or cauchy (each tree's own robust prior on its marginal), "
+            "joint (one prior over all trees from trees_information.npz).",
         ),
     ] = None,
     start_guess: Annotated[
@@ -397,7 +400,9 @@ def map_command(
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None
         isam2 = backend == Backend.isam2 and not (realtime or rerun is not None)
-        be_cfg: dict[str, object] = {"joint_information": True} if isam2 else {}
+        be_cfg: dict[str, object] = (
+            {"joint_information": True, "export_graph": True} if isam2 else {}
+        )
         if prior_map is not None:
             problem, reloc, prior_note = continue_from_map(
                 problem, prior_map, start_guess, backend.value, prior_type
@@ -460,7 +465,7 @@ def map_command(
             trajectory_format=fmt,
             pose_covs=result.pose_covs,
         )
-        names += write_information(stage, result.stem_map)
+        names += write_information(stage, result.stem_map, result.graph)
         if "alignment" in ctx:
             names += write_gps_frame(
                 stage,
