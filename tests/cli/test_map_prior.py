@@ -155,10 +155,10 @@ def test_prior_map_uses_the_joint_information(
 
 @pytest.mark.slow
 def test_prior_map_continues_the_saved_graph(sim_log: Path) -> None:
-    """The map folder carries graph.npz (in the manifest); --prior-map continues it by default
-    (metrics.json says so), writes the merged map and the merged graph; a damaged or
-    mismatched graph.npz is one clear error line; an old folder without it still loads (the
-    marginal prior)."""
+    """The map folder carries graph.npz (in the manifest); --prior-type graph continues it
+    (metrics.json says so) and writes the merged map and the merged graph; the default (the
+    marginal prior) says it left graph.npz unused; a damaged or mismatched graph.npz is one
+    clear error line; an old folder without it still loads (the marginal prior)."""
     from stemmap.slam._graph_continue import read_graph
 
     run = CliRunner()
@@ -169,10 +169,14 @@ def test_prior_map_continues_the_saved_graph(sim_log: Path) -> None:
     assert "graph.npz" in outputs
     m1 = read_trees_csv(first / "trees.csv")
     g1 = read_graph(first / "graph.npz", m1)
-    second = sim_log / "g_second"
-    args = ["map", str(sim_log / "run.npz"), "--prior-map", str(first), "--start-guess", "0,0,0"]
-    res = run.invoke(app, [*args, "--out", str(second)])
+
+    def cont(prior: Path, out: str, *extra: str) -> Any:
+        args = ["map", str(sim_log / "run.npz"), "--prior-map", str(prior), "--start-guess"]
+        return run.invoke(app, [*args, "0,0,0", *extra, "--out", str(sim_log / out)])
+
+    res = cont(first, "g_second", "--prior-type", "graph")
     assert res.exit_code == 0, res.output
+    second = sim_log / "g_second"
     rl = _metrics(second)["relocalisation"]
     assert rl["ok"] and rl["prior"] == "graph" and rl["graph_poses"] == g1.n_poses
     m2 = read_trees_csv(second / "trees.csv")
@@ -180,27 +184,27 @@ def test_prior_map_continues_the_saved_graph(sim_log: Path) -> None:
     g2 = read_graph(second / "graph.npz", m2)  # the merged graph: both sessions' poses
     assert g2.n_poses > g1.n_poses
 
+    res = cont(second, "g_default")  # the default: the marginal prior, graph.npz unused
+    assert res.exit_code == 0, res.output
+    rl = _metrics(sim_log / "g_default")["relocalisation"]
+    assert rl["prior"] == "per-tree huber" and "graph.npz present" in rl["graph_unused"]
+
     (second / "graph.npz").write_bytes(b"not an archive")
-    res = run.invoke(app, ["map", str(sim_log / "run.npz"), "--prior-map", str(second),
-                           "--start-guess", "0,0,0", "--out", str(sim_log / "g_bad")])  # fmt: skip
+    res = cont(second, "g_bad", "--prior-type", "graph")
     assert res.exit_code != 0
     err = [ln for ln in res.output.splitlines() if ln.startswith("error:")]
     assert len(err) == 1 and "graph.npz" in err[0] and "damaged" in err[0], res.output
     # a graph.npz beside another map's trees.csv (ids differ)
     (second / "graph.npz").write_bytes((first / "graph.npz").read_bytes())
-    res = run.invoke(app, ["map", str(sim_log / "run.npz"), "--prior-map", str(second),
-                           "--start-guess", "0,0,0", "--out", str(sim_log / "g_bad2")])  # fmt: skip
+    res = cont(second, "g_bad2", "--prior-type", "graph")
     assert res.exit_code != 0 and "ids differ" in res.output, res.output
 
     (second / "graph.npz").unlink()  # an old map folder: the marginal prior, said so
-    third = sim_log / "g_third"
-    res = run.invoke(app, ["map", str(sim_log / "run.npz"), "--prior-map", str(second),
-                           "--start-guess", "0,0,0", "--out", str(third)])  # fmt: skip
+    res = cont(second, "g_third")
     assert res.exit_code == 0, res.output
-    rl = _metrics(third)["relocalisation"]
+    rl = _metrics(sim_log / "g_third")["relocalisation"]
     assert rl["prior"] == "per-tree huber" and "no graph.npz" in rl["graph_unused"]
-    res = run.invoke(app, ["map", str(sim_log / "run.npz"), "--prior-map", str(second),
-                           "--prior-type", "graph", "--out", str(sim_log / "g_bad3")])  # fmt: skip
+    res = cont(second, "g_bad3", "--prior-type", "graph")
     assert res.exit_code != 0 and "no graph.npz" in res.output, res.output
 
 

@@ -249,11 +249,12 @@ def map_command(
         PriorType | None,
         typer.Option(
             "--prior-type",
-            help="With --prior-map: how it enters the graph -- graph (default when the "
-            "folder has graph.npz: the earlier session's poses, trees and factors continued; "
-            "Victoria Park 5 session splits: see docs/algorithms/slam.md), huber (default "
-            "without graph.npz) or cauchy (each tree's own robust prior on its marginal), "
-            "joint (one prior over all trees from trees_information.npz).",
+            help="With --prior-map: how it enters the graph -- huber (default) or cauchy "
+            "(each tree's own robust prior on its marginal), joint (one prior over all trees "
+            "from trees_information.npz), graph (the earlier session's graph.npz continued: "
+            "its poses and trees stay variables; Victoria Park, 5 session splits 400-1200 s: "
+            "session 2 ATE 1.282 / 1.367 / 1.446 / 1.448 / 0.855 m vs huber's 1.256 / 1.306 / "
+            "1.444 / 1.441 / 0.834 m, per-keyframe CPU p99 17-33 vs 7-11 ms).",
         ),
     ] = None,
     start_guess: Annotated[

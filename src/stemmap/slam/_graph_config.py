@@ -131,6 +131,12 @@ class Isam2Config:
         :mod:`stemmap.slam._graph_continue`; ``graph.npz`` beside the map) so that a later
         session can continue it (``SlamProblem.prior_graph``). Not for a session held by a
         marginal prior map or fused with GNSS (their priors are not in the saved graph): None
+    prior_graph_inflation : factor (> 0) on the covariances of a continued graph's odometry
+        and measurement factors (``SlamProblem.prior_graph``; its gauge prior as saved): the
+        earlier session's information / factor, as ``prior_map_inflation`` for the marginal
+        prior. 4 by default: chosen on the 400-s and 800-s Victoria Park session pairs
+        (session 2 1.335 / 1.482 m at 1, 1.288 / 1.464 at 2, **1.282 / 1.446** at 4, 1.265 /
+        1.485 at 8, 1.272 / 1.509 at 16); docs/algorithms/slam.md "Continuing the saved graph"
     """
 
     sigma_range: float = 0.10
@@ -181,7 +187,7 @@ class Isam2Config:
     prior_map_robust: str = "huber"
     prior_map_inflation: float = 4.0
     export_graph: bool = False
-    prior_graph_inflation: float = 1.0
+    prior_graph_inflation: float = 4.0
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust", "prior_map_robust"):

@@ -27,7 +27,7 @@ session's (:func:`stemmap.slam._graph_marginals._chain_blocks`).
 This is the smoothing formulation of multi-session SLAM: one graph over all sessions, the
 sessions linked by shared landmarks (McDonald, Kaess, Cadena, Neira & Leonard 2013,
 "Real-time 6-DOF multi-session visual SLAM over large-scale environments", Robotics and
-Autonomous Systems 61(10), §3, with anchor nodes; here the relocalisation puts the new session
+Autonomous Systems 61(10), with anchor nodes; here the relocalisation puts the new session
 in the earlier frame, so no anchor variable is needed). docs/algorithms/slam.md "Continuing
 the saved graph".
 """

@@ -51,6 +51,12 @@ enters after a long left-out run is anchored by a prior at its tracked pose inst
 odometry factor to the remote last graph keyframe (``revisit_anchor_after``,
 :func:`~stemmap.slam._graph_revisits.anchor_prior`).
 
+Sessions (docs/algorithms/slam.md "Maps reused across sessions"): with ``problem.prior_map``
+its trees start as landmarks held by marginal priors (:mod:`stemmap.slam.relocalise`), or,
+with ``problem.prior_graph``, the earlier session's whole graph is continued (its poses
+``W(i)`` and trees stay variables, :mod:`stemmap.slam._graph_continue`); ``export_graph``
+returns this session's graph for the next one.
+
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
 order, ``δ(c) = δ0 Exp(J c)``. They are estimated from the graph's own poses
