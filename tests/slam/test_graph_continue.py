@@ -9,33 +9,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _synthetic import loop_problem
+from _synthetic import loop_problem, split_problem
 
 from stemmap.errors import InputError
 from stemmap.slam._graph_continue import SavedGraph, read_graph, write_graph
-from stemmap.slam.base import SlamProblem, duplicate_pairs
+from stemmap.slam.base import duplicate_pairs
 from stemmap.slam.graph import Isam2Slam
 from stemmap.slam.relocalise import continue_session
 from stemmap.types import StemMap
-
-
-def _split(problem: SlamProblem, t_split: float) -> tuple[SlamProblem, SlamProblem]:
-    def part(t0: float, t1: float) -> SlamProblem:
-        return dataclasses.replace(
-            problem,
-            controls=problem.controls.slice(t0, t1),
-            frames=problem.frames.slice(t0, t1),
-            initial_pose=(0.0, 0.0, 0.0),
-        )
-
-    return part(0.0, t_split), part(t_split, math.inf)
 
 
 @pytest.fixture(scope="module")
 def sessions():
     """1.6 laps of the synthetic loop: session 1 (the first lap) mapped with its graph."""
     problem, truth, trees, _ = loop_problem(1, laps=1.6)
-    p1, p2 = _split(problem, 52.0)
+    p1, p2 = split_problem(problem, 52.0)
     r1 = Isam2Slam(export_graph=True).run(p1)
     f2 = int(np.searchsorted(problem.frames.times, p2.frames.times[0]))
     return p2, r1, truth, trees, f2

@@ -268,29 +268,6 @@ class ContinuedGraph:
             )
         return out
 
-    def meas_factors(
-        self,
-        gtsam: Any,
-        lkey: Callable[[int], int],
-        meas_noise: Callable[[FloatArray], Any],
-        alias: np.ndarray | None = None,
-    ) -> list[Any]:
-        """The saved bearing-range factors on ``W(i)`` / ``L(slot)``; ``alias`` maps a
-        landmark slot to the slot its factors now point to (merged trees)."""
-        wk, lk, g = self.wkey, lkey, self.saved
-        f = np.sqrt(self.inflation)
-        slots = self.slot[g.meas_tree]
-        if alias is not None:
-            slots = np.asarray(alias, dtype=np.int64)[slots]
-        return [
-            gtsam.BearingRangeFactor2D(
-                wk(i), lk(j), gtsam.Rot2(b), r, meas_noise(np.array([sb, sr]) * f)
-            )
-            for i, j, (b, r, sb, sr) in zip(
-                g.meas_pose.tolist(), slots.tolist(), g.meas.tolist(), strict=True
-            )
-        ]
-
     def factors(
         self,
         gtsam: Any,
@@ -298,8 +275,21 @@ class ContinuedGraph:
         meas_noise: Callable[[FloatArray], Any],
         alias: np.ndarray | None = None,
     ) -> list[Any]:
-        """Every saved factor (:meth:`pose_factors` + :meth:`meas_factors`)."""
-        return self.pose_factors(gtsam) + self.meas_factors(gtsam, lkey, meas_noise, alias)
+        """Every saved factor: :meth:`pose_factors`, then the bearing-range factors on
+        ``W(i)`` / ``L(slot)``; ``alias`` maps a landmark slot to the slot its factors now
+        point to (merged trees)."""
+        g, f = self.saved, np.sqrt(self.inflation)
+        slots = self.slot[g.meas_tree]
+        if alias is not None:
+            slots = np.asarray(alias, dtype=np.int64)[slots]
+        return self.pose_factors(gtsam) + [
+            gtsam.BearingRangeFactor2D(
+                self.wkey(i), lkey(j), gtsam.Rot2(b), r, meas_noise(np.array([sb, sr]) * f)
+            )
+            for i, j, (b, r, sb, sr) in zip(
+                g.meas_pose.tolist(), slots.tolist(), g.meas.tolist(), strict=True
+            )
+        ]
 
 
 def _gaussian_cov(noise: Any) -> FloatArray:
