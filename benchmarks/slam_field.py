@@ -32,9 +32,12 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   without the prior map, and to the full single run on the same fixes.
   ``--reloc-per-trial``: session 2 mapped from every accepted trial's pose, joint vs Huber;
   ``--reloc-splits 400,600``: other session pairs (map 0-s, relocalise and map s-1549 s),
-  Huber (inflated / not) vs joint vs the full run, and the prior's consistency; per split
-  the success rate over ``--trials`` start offsets, false relocalisations, and acceptances
-  from guesses whose 30-m search excludes the truth.
+  Huber (inflated / not) vs joint vs session 1's saved graph continued (``graph_m``,
+  inflation 4; ``graph_f1_m``: 1) vs the full run, the prior's consistency, and the process
+  CPU per keyframe step of session 2 for Huber and graph (``*_step``: p50 / p99 / max); per
+  split the success rate over ``--trials`` start offsets, false relocalisations, and
+  acceptances from guesses whose 30-m search excludes the truth. ``--reloc-splits-only``:
+  only those rows (and the full run). The code is in slam_field_reloc.py.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
