@@ -2,7 +2,8 @@
 
 Writes to ``--out DIR``: ``trees.csv`` (id,x,y,diameter,std_x,std_y,n_obs,...),
 ``trees.geojson``, ``trajectory.csv`` (time_s,x,y,theta and, where the back-end reports them,
-the pose covariance columns), ``metrics.json`` and ``map.png``.
+the pose covariance columns), ``metrics.json`` and ``map.png``; with ``--gnss`` also the
+GNSS-frame track (:mod:`stemmap.cli._map_gnss`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from stemmap.cli._geo import (
     write_map_products,
 )
 from stemmap.cli._map_frames import Frontend
+from stemmap.cli._map_gnss import gnss_track, gnss_track_layers, write_gnss_track
 from stemmap.cli._map_motion import (
     Motion,
     motion_trajectory,
@@ -223,7 +225,13 @@ def map_command(
     ] = "0,0",
     gnss: Annotated[
         Path | None,
-        typer.Option("--gnss", help="GNSS fixes CSV 'time_s,x,y[,sigma]' (metric frame); isam2."),
+        typer.Option(
+            "--gnss",
+            help="GNSS fixes CSV 'time_s,x,y[,sigma]' (metric frame); isam2. Fused as robust "
+            "priors: trajectory.csv is then the tree-consistent path in the GNSS frame (use it "
+            "with the map); also writes trajectory_gnss.csv, the path as the receiver would "
+            "read it (follows its correlated error; use it to drive to GNSS waypoints).",
+        ),
     ] = None,
     gnss_lever: Annotated[
         str | None,
@@ -299,7 +307,10 @@ def map_command(
     Writes to --out: trees.csv, trees.geojson, trajectory.csv (--trajectory-format tum:
     trajectory.tum), metrics.json, map.png, report.html, and with --gpkg map.gpkg; Victoria
     Park also gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json
-    (the map in the GPS frame). Every column: docs/outputs.md.
+    (the map in the GPS frame). With --gnss also trajectory_gnss.csv (or .tum; with --crs
+    trajectory_gnss.geojson; in map.gpkg layers trajectory_gnss, poses_gnss): the path as the
+    GNSS receiver reads it, its error model estimated from the run's own fixes (metrics.json
+    gnss_track). Every column: docs/outputs.md.
 
     Example: stemmap map --dataset victoria-park --out vp
 
@@ -457,6 +468,9 @@ def map_command(
         ):
             run.add_input(ctx["odometry"])
         fmt = trajectory_format.value
+        track = None
+        if problem.gnss is not None:  # the path as the receiver reads it (cli/_map_gnss.py)
+            track, metrics["gnss_track"] = gnss_track(problem, result)
         names = write_map_products(
             stage,
             result.stem_map,
@@ -465,7 +479,12 @@ def map_command(
             gpkg=gpkg,
             trajectory_format=fmt,
             pose_covs=result.pose_covs,
+            gpkg_layers=gnss_track_layers(track) if track is not None else (),
         )
+        if track is not None:
+            names += write_gnss_track(
+                stage, track, crs=crs, frame=result.stem_map.frame, trajectory_format=fmt
+            )
         names += write_information(stage, result.stem_map, result.graph)
         if "alignment" in ctx:
             names += write_gps_frame(
