@@ -4,14 +4,14 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
 
 * ``gnss`` (benchmarks/slam_field_gnss.py): iSAM2 fusing every 10th GPS fix kept by
   ``screen_gps``, scored on the screened fixes NOT fused, without any alignment. Both products
-  of ``stemmap map --gnss``: ``gnss_ate_unused_m`` the tree-consistent path (trajectory.csv;
-  kernel and sigma by 2-fold CV inside the fused fixes; the command's default
-  ``gnss_default_ate_unused_m``) and ``gnss_track_ate_unused_m`` the GNSS-frame track
-  (trajectory_gnss.csv: the path as the receiver reads it, its Gauss-Markov error model
-  estimated from the run's own fused fixes), each per half, the track also with the model of
-  the first half only (``gnss_track_heldout``) and causal; ``gnss_never_worse_than_without``
-  against the no-GNSS path (aligned); where the score comes from (``gps_error_floor``,
-  ``gnss_tight_gaussian``, chi2 per dof).
+  of ``stemmap map --gnss``: ``gnss_ate_unused_m`` the GNSS-frame track (trajectory_gnss.csv,
+  the trajectory in the GNSS frame: the path as the receiver reads it, its Gauss-Markov error
+  model estimated from the run's own fused fixes) and ``gnss_path_ate_unused_m`` the
+  tree-consistent path (trajectory.csv, the command's default; kernel and sigma by 2-fold CV
+  inside the fused fixes: ``gnss_path_cv_ate_unused_m``), each per half, the track also with
+  the model of the first half only (``gnss_track_heldout``) and causal;
+  ``gnss_never_worse_than_without`` against the no-GNSS path (aligned); where the score comes
+  from (``gps_error_floor``, ``gnss_tight_gaussian``, chi2 per dof).
 * ``reloc``: map 0-800 s, then relocalise the 800-1549 s session in that map from start
   guesses off by U(-20, 20) m in x and y and U(-30, 30) deg (``--trials``, seed 0); success =
   accepted within 30 s of driving, within 1 m and 2 deg of session 1's end pose carried over
@@ -161,7 +161,7 @@ def main() -> None:
     summary: dict[str, Any] = {}
     for key, part in (
         ("gnss_ate_unused_m", "gnss"),
-        ("gnss_track_ate_unused_m", "gnss"),
+        ("gnss_path_ate_unused_m", "gnss"),
         ("gnss_never_worse_than_without", "gnss"),
         ("reloc_success_rate", "reloc"),
         ("latency_ms_p99", "online"),
