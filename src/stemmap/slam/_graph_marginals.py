@@ -111,7 +111,10 @@ def _information_blocks(
     else:
         from scipy.sparse.linalg import splu
 
-        solve = splu(h_pp.tocsc()).solve
+        try:
+            solve = splu(h_pp.tocsc()).solve
+        except RuntimeError as exc:  # SuperLU: "Factor is exactly singular" (e.g. a bare key)
+            raise np.linalg.LinAlgError(f"pose information is singular: {exc}") from exc
     return h_ll, h_pl, h_pp, solve, all_keys[is_pt], all_keys[~is_pt]
 
 
