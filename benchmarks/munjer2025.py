@@ -6,8 +6,9 @@ Usage: python benchmarks/munjer2025.py [--seeds 0 1 2] [--layout park] [--speed 
        [--out result.json]
 
 Each drive's detections are mapped ``--draws`` times (default 10), once per FastSLAM
-particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)`` (:func:`map_draws`):
-one draw's map RMSE varies by 0.02-0.07 m on the same drive (docs/algorithms/slam-frontends.md,
+particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``
+(:func:`_munjer_draws.map_draws`, shared with ``munjer2025_motion_noise.py``): one draw's map
+RMSE varies by 0.02-0.07 m on the same drive (docs/algorithms/slam-frontends.md,
 "Motion noise"), so every map-scored number is a mean over the draws.
 
 Prints one JSON object. Top-level keys ``eb_lidar``, ``daim``, ``ours`` hold, pooled over the
@@ -71,22 +72,20 @@ import math
 import platform
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _munjer_draws import map_draws, spread  # shared with munjer2025_motion_noise
 from stemmap.sim.lidar import lidar_preset
 from stemmap.sim.munjer import MunjerDrive, simulate_munjer_drive
-from stemmap.slam.base import SlamResult
 from stemmap.slam.motion import rollout
 from stemmap.slam.munjer import (
     MunjerMapConfig,
     daim_observations,
     eb_lidar_observations,
-    map_munjer,
-    munjer_problem,
     ours_lidar_observations,
 )
 from stemmap.types import StemObservations
@@ -101,8 +100,6 @@ COUNTS = ("n_real", "n_real_in_box", "n_det", "ta", "tr", "fa", "fr")
 VIEW_COUNTS = ("n_real", "ta", "tr", "fa", "fr")
 #: Map metrics averaged over the FastSLAM draws (with their spread).
 MAP_KEYS = ("position_rmse", "pairwise_percent_error", "diameter_rmse")
-#: FastSLAM's detection range (m).
-MAX_RANGE = 12.0
 SPREAD = ("", "_sd", "_min", "_max")
 FASTSLAM_KEYS = tuple(
     f"{k}{s}" for k in ("position_rmse", "pairwise_percent_error") for s in SPREAD
@@ -145,47 +142,6 @@ def _lidar_imu_motion(drive: MunjerDrive, seed: int) -> tuple[Any, Any, float, n
     )
     at_frames = Trajectory(traj.times, world, frame="world").interpolate(drive.times)
     return controls, motion, 100.0 * err / dist, at_frames
-
-
-def map_draws(
-    drive: MunjerDrive,
-    obs: StemObservations,
-    draws: int,
-    motion: tuple[Any, Any] | None = None,
-) -> Iterator[tuple[int, SlamResult, float]]:
-    """FastSLAM (100 particles) + the Kalman refinement on one drive's detections, once per
-    particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``: yields ``(d,
-    result, seconds)``. ``motion`` is ``(controls, model)``, default the drive's simulated
-    odometry and :meth:`MunjerDrive.motion_model`. The drive starts at the true pose and
-    detections beyond :data:`MAX_RANGE` are dropped (Munjer et al. 2025, §3.6)."""
-    controls, model = motion or (drive.controls(), drive.motion_model())
-    p0 = (float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2]))
-    for d in range(draws):
-        t0 = time.perf_counter()
-        problem = munjer_problem(
-            obs, drive.times, controls, model, initial_pose=p0, max_range=MAX_RANGE
-        )
-        result = map_munjer(problem, MunjerMapConfig(seed=d))
-        yield d, result, time.perf_counter() - t0
-
-
-def spread(values: Sequence[float], key: str) -> dict[str, float]:
-    """``key``: the mean of the finite ``values``; ``key_sd`` (population sd), ``key_min``,
-    ``key_max``: their spread (NaN when none is finite)."""
-    x = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
-    if not x.size:
-        return {
-            key: math.nan,
-            f"{key}_sd": math.nan,
-            f"{key}_min": math.nan,
-            f"{key}_max": math.nan,
-        }
-    return {
-        key: float(x.mean()),
-        f"{key}_sd": float(x.std()),
-        f"{key}_min": float(x.min()),
-        f"{key}_max": float(x.max()),
-    }
 
 
 def _score(

@@ -11,7 +11,7 @@ simulator is not used to choose any factor.
 
 ``--vp`` (the full Victoria Park run, every back-end at its defaults): the laser point at every
 screened GPS fix after the ATE's SE(2) fit against the fix (the pose covariance carried to the
-laser point and rotated by the fit, ``fastslam_covariance._pose_terms``). The GPS has an error
+laser point and rotated by the fit, ``_pose_cov.pose_terms``). The GPS has an error
 of its own: its RMS is estimated from the fixes' disagreement with themselves at revisits of
 the iSAM2 path (:func:`stemmap.eval.gps_noise.gps_revisit_error`) and added to the reported
 covariance as an isotropic ``G = rms² / 2 I``. Per half of the run (split at its middle time):
@@ -39,9 +39,11 @@ from typing import Any
 
 import numpy as np
 
-from fastslam_covariance import _fit_inflation, _lever, _pose_terms, _z2
-
-BACKENDS = ("isam2", "ekf", "fastslam", "treedb", "forestrix")
+from _pose_cov import BACKENDS, pose_errors
+from _pose_cov import fit_inflation as _fit_inflation
+from _pose_cov import lever as _lever
+from _pose_cov import pose_terms as _pose_terms
+from _pose_cov import z2 as _z2
 
 
 def _stats(z2: np.ndarray, dof: int) -> dict[str, float]:
@@ -84,39 +86,6 @@ def sim_rows(seed: int, backend: str) -> dict[str, Any]:
     return pose_errors(run, _run(backend, problem))
 
 
-def pose_errors(run: Any, res: Any) -> dict[str, Any]:
-    """Errors of ``res``'s reported poses against the simulated ``run``'s true vehicle poses
-    (the first row, fixed with zero covariance, left out) and their ``z²`` under
-    ``res.pose_covs``; only ``rows`` / ``rows_with_covariance`` when it has none."""
-    from stemmap.types import wrap_angle
-
-    n = len(res.trajectory)
-    if res.pose_covs is None:
-        return {"rows": n, "rows_with_covariance": 0}
-    P = np.asarray(res.pose_covs)
-    ok = np.all(np.isfinite(P), axis=(1, 2))
-    n_fin = int(ok.sum())
-    ok[0] = False  # the fixed start pose
-    ok[ok] = np.linalg.eigvalsh(P[ok])[:, 0] > 0
-    true = run.vehicle_poses.interpolate(res.trajectory.times)
-    e = np.column_stack(
-        (
-            res.trajectory.poses[:, :2] - true[:, :2],
-            wrap_angle(res.trajectory.poses[:, 2] - true[:, 2]),
-        )
-    )[ok]
-    P = P[ok]
-    return {
-        "rows": n,
-        "rows_with_covariance": n_fin,
-        "e": e,
-        "z2_pos": _z2(e[:, :2], P[:, :2, :2]),
-        "z2_th": e[:, 2] ** 2 / P[:, 2, 2],
-        "nees": _z2(e, P),
-        "std": np.sqrt(0.5 * np.trace(P[:, :2, :2], axis1=1, axis2=2)),
-    }
-
-
 def sim(seeds: list[int], backends: list[str]) -> dict[str, Any]:
     out: dict[str, Any] = {"scenario": "stemmap demo, 120 trees", "seeds": seeds}
     for b in backends:
@@ -146,7 +115,7 @@ def sim(seeds: list[int], backends: list[str]) -> dict[str, Any]:
 def ml_factor(e: np.ndarray, C: np.ndarray, G: np.ndarray) -> float:
     """Maximum-likelihood variance factor ``k`` of ``e ~ N(0, k C + G)`` (fixes independent;
     ``G`` the reference's own noise): well defined also where ``G`` alone explains the median,
-    where :func:`fastslam_covariance._fit_inflation` has no root."""
+    where :func:`_pose_cov.fit_inflation` has no root."""
     from scipy.optimize import minimize_scalar
 
     def nll(lk: float) -> float:

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from pose_covariance import BACKENDS, pose_errors
+from _pose_cov import BACKENDS, pose_errors  # shared with pose_covariance.py
 
 N_TREES = 120
 
