@@ -229,7 +229,7 @@ def test_treedb_slam_registered_and_localizing_beats_dead_reckoning(sim):
 def test_treedb_pose_covariance_on_every_row(sim):
     """Issue 14: every row has a finite, positive-definite pose covariance, the derived one
     (no factor), growing from the fixed start; the run closes loops, so it is the linear
-    graph's marginals (:meth:`TreeDbErrors.pose_covariances`). Against the truth it is not
+    graph's marginals (:meth:`TreeMapErrors.pose_covariances`). Against the truth it is not
     overconfident on this loop, whose detections (3 cm / 0.3 deg) are ten times better than
     the back-end's default noise model (0.3 m / 1 deg): median z² 0.01-0.04 (seeds 1-2),
     bound the calibrated 1.39."""
@@ -325,16 +325,16 @@ def test_treedb_pose_covariance_on_the_demo_drives():
     assert 1.386 / 2 < np.median(np.concatenate(z2)) < 2 * 1.386
 
 
-def test_treedb_errors_graph_is_the_forward_analysis_without_loops_and_shrinks_with_one():
-    """:meth:`TreeDbErrors.pose_covariances`: the Gauss-Markov chain over the keyframes
+def test_tree_map_errors_graph_is_the_forward_analysis_without_loops_and_shrinks_with_one():
+    """:meth:`TreeMapErrors.pose_covariances`: the Gauss-Markov chain over the keyframes
     reproduces the recorded covariances exactly when there is no loop (its regression is exact
     for the marginals); a loop constraint between the last keyframe and the start shrinks the
     end's covariance to about the constraint's own."""
-    from stemmap.slam._treedb_errors import TreeDbErrors
+    from stemmap.slam._tree_map_errors import TreeMapErrors
     from stemmap.slam.relaxation import LoopClosure
 
     n, kf = 60, list(range(0, 60, 6))
-    err = TreeDbErrors(n, np.diag([0.3**2, math.radians(1.0) ** 2]))
+    err = TreeMapErrors(n, np.diag([0.3**2, math.radians(1.0) ** 2]))
     poses = np.column_stack((np.arange(n) * 0.5, np.zeros(n), np.zeros(n)))
     Q = np.diag([0.02**2, 0.01**2, 0.003**2])
     for f in range(n):
