@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_treedb import _mc_drive, sim_problem  # shared simulated drives (test_treedb.py)
+from test_treedb import demo_position_z2, mc_pose_scores, sim_problem  # shared drives
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.eval.matching import match_points
@@ -20,7 +20,6 @@ from stemmap.slam.forestrix import (
     pose_from_matches,
     relax_tree_graph,
 )
-from stemmap.types import wrap_angle
 
 
 def _rigid(xy, dth, shift, centre=(0.0, 0.0)):
@@ -233,6 +232,12 @@ def test_forestrix_on_simulated_loop(sim3, preset):
     np.testing.assert_allclose(res.stem_map.diameters[m.pairs[:, 0]], d_true, atol=1e-9)
 
 
+def _checked(backend, problem):
+    res = backend.run(problem)
+    assert res.stats["frames_corrected"] >= 110  # localised on its own trees
+    return res
+
+
 def test_forestrix_pose_covariance_is_calibrated_on_simulated_drives():
     """Issue 14: the reported pose covariance is Forestrix's actual error covariance, with no
     factor (:class:`~stemmap.slam._tree_map_errors.TreeMapErrors` with the rigid fit's
@@ -246,20 +251,9 @@ def test_forestrix_pose_covariance_is_calibrated_on_simulated_drives():
     std); position z² median within 1.5x. The VP-fitted chain factor it replaced (0.0038) gave
     NEES 99.6 / 108 / 97 and z² median 20.4 / 23.9 / 23.5 on the three blocks: fails both
     (the chain is a drift model, far below this drive's detection-driven jitter)."""
-    rng0 = np.random.default_rng(0)
-    trees = np.column_stack((rng0.uniform(-5, 30, 40), rng0.uniform(-8, 20, 40)))
-    sigmas = (0.05, 0.01, 0.05, 0.01)
-    nees, z2 = [], []
-    for k in range(40):
-        problem, truth = _mc_drive(np.random.default_rng(100 + k), trees, sigmas)
-        res = ForestrixSlam(sigma_range=sigmas[2], sigma_bearing=sigmas[3]).run(problem)
-        assert res.stats["loop_closures"] == 0  # no loops: the forward analysis itself
-        assert res.stats["frames_corrected"] >= 110  # localised on its own trees
-        e = res.trajectory.poses[10:] - truth[10:]
-        e[:, 2] = wrap_angle(e[:, 2])
-        P = res.pose_covs[10:]
-        nees.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e))
-        z2.append(np.einsum("ni,nij,nj->n", e[:, :2], np.linalg.inv(P[:, :2, :2]), e[:, :2]))
+    nees, z2 = mc_pose_scores(
+        lambda problem, sg: _checked(ForestrixSlam(sigma_range=sg[2], sigma_bearing=sg[3]), problem)
+    )
     assert abs(np.mean(nees) / 3.0 - 1.0) < 0.25
     assert 1.386 / 1.5 < np.median(z2) < 1.386 * 1.5
 
@@ -273,18 +267,8 @@ def test_forestrix_pose_covariance_on_the_demo_drives():
     fails with the tree DB's detection noise 0.3 m / 1° as the model (0.075: the simulated
     detections are better than Victoria Park's measured 0.10 m / 0.5°, so the default is
     conservative here)."""
-    from stemmap.cli._demo import _stand_and_run
-    from stemmap.cli._map import sim_problem as demo_problem
-
-    z2 = []
-    for seed in range(7):
-        run = _stand_and_run(seed, 120)
-        problem, _ = demo_problem(run, backend="forestrix")
-        res = ForestrixSlam().run(problem)
-        true = run.vehicle_poses.interpolate(res.trajectory.times)
-        e = res.trajectory.poses[1:, :2] - true[1:, :2]
-        z2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(res.pose_covs[1:, :2, :2]), e))
-    assert 1.386 / 9 < np.median(np.concatenate(z2)) < 1.386
+    z2 = demo_position_z2("forestrix", ForestrixSlam)
+    assert 1.386 / 9 < np.median(z2) < 1.386
 
 
 def test_forestrix_config_errors():
