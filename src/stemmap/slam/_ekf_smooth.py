@@ -355,7 +355,7 @@ def map_propagated_covariance(
 
     A column block holds ``3 N x columns`` doubles, twice (``B U`` and its solve): at most
     ``columns`` columns, fewer where that would pass ``block_mb`` MB (on the 10x Victoria Park
-    soak, N = 72,490 frames, 128 columns were 223 MB a copy and made this the EKF's peak,
+    soak, N = 72,490 frames, 128 columns were ~220 MB a copy and made this the EKF's peak,
     1.24 GB; docs/reliability.md "Soak"). The result does not depend on the block size (up to
     the order of a floating-point sum).
     """
