@@ -163,6 +163,32 @@ def test_map_products_documented(tmp_path: Path) -> None:
         assert _undocumented(fields, where) == [], layer
 
 
+def test_gnss_track_documented(tmp_path: Path) -> None:
+    """``stemmap map --gnss``: trajectory_gnss.csv, its GeoJSON and its map.gpkg layers."""
+    from stemmap.cli._map_gnss import (
+        GnssTrack,
+        gnss_track_layers,
+        write_gnss_track,
+    )
+
+    tr = _trajectory()
+    track = GnssTrack(tr, np.full(4, 0.3), np.stack([np.eye(3)] * 4), {})
+    names = write_gnss_track(
+        tmp_path, track, crs="EPSG:32633", frame="map", trajectory_format="csv"
+    )
+    assert names == ["trajectory_gnss.csv", "trajectory_gnss.geojson"]
+    assert _undocumented(_header(tmp_path / names[0]), "trajectory_gnss.csv") == []
+    feats = json.loads((tmp_path / names[1]).read_text())["features"]
+    props = {k for f in feats for k in f["properties"]}
+    assert _undocumented(props, "trajectory_gnss.csv") == []
+    write_map_gpkg(tmp_path / "m.gpkg", _stem_map(), tr, extra_layers=gnss_track_layers(track))
+    for layer, _ in list_layers(tmp_path / "m.gpkg"):
+        fields = list(read_info(tmp_path / "m.gpkg", layer=layer)["fields"])
+        where = "trees.csv" if layer == "trees" else "map.gpkg"
+        assert _undocumented([layer], "map.gpkg") == []
+        assert _undocumented(fields, where) == [], layer
+
+
 def test_detect_products_documented(tmp_path: Path) -> None:
     k = 2
     obs = StemObservations(

@@ -162,3 +162,36 @@ def test_online_pose_covariance_against_truth(biased):
     z2 = _pos_z2(xy[1:] - truth[1:, :2], P[1:, :2, :2])
     lo = 0.05 if biased else 0.01
     assert lo < np.median(z2) < 1.39
+
+
+def test_online_pose_gnss_follows_the_receivers_slow_error(loop):
+    """Fixes with a slowly varying receiver error (1.5 m x sin(2 pi t / 60 s) in x, 0.05 m
+    noise) and the error's model given: pose_gnss (pose + the causal offset) is nearer to what
+    the receiver reads than the tree-consistent pose, by > 2x after the first 20 s."""
+    from stemmap.slam.gnss_track import GnssOffsetModel
+
+    problem, truth, _, _ = loop
+    rng = np.random.default_rng(6)
+    model = GnssOffsetModel(time_constant=20.0, bias_sigma=1.0, white_sigma=0.05, n_fixes=0)
+    m = OnlineMapper(problem.motion, problem.sensor_offset, gnss_offset_model=model)
+    with pytest.raises(ConfigError, match="gnss_offset_model"):
+        _ = OnlineMapper(problem.motion, problem.sensor_offset).pose_gnss
+    ctl, fr = problem.controls, problem.frames
+    ci, next_fix = 0, 1.0
+    bias = lambda t: np.array([1.5 * math.sin(2 * math.pi * t / 60.0), 0.0])  # noqa: E731
+    path_err, track_err = [], []
+    for f in range(len(fr)):
+        t = float(fr.times[f])
+        while ci < len(ctl) and ctl.times[ci] <= t:
+            m.add_odometry(float(ctl.times[ci]), float(ctl.speed[ci]), float(ctl.steer[ci]))
+            ci += 1
+        if t >= next_fix:
+            g = truth[f, :2] + bias(t) + rng.normal(0, 0.05, 2)
+            m.add_gnss(t, float(g[0]), float(g[1]), 0.5)
+            next_fix += 1.0
+        m.add_scan(t, *fr.frame(f))
+        if t > 20.0:
+            reads = truth[f, :2] + bias(t)
+            path_err.append(np.hypot(*(np.array(m.pose[:2]) - reads)))
+            track_err.append(np.hypot(*(np.array(m.pose_gnss[:2]) - reads)))
+    assert math.sqrt(np.mean(np.square(track_err))) < 0.5 * math.sqrt(np.mean(np.square(path_err)))

@@ -52,9 +52,11 @@ def write_map_products(
     trajectory_format: str = "csv",
     prefix: str = "",
     pose_covs: Any = None,
+    gpkg_layers: Any = (),
 ) -> list[str]:
     """Write ``{prefix}trees.csv``, ``trees.geojson``, the trajectory (``trajectory.csv`` or
-    TUM ``trajectory.tum``) and optionally ``map.gpkg``; return the file names written.
+    TUM ``trajectory.tum``) and optionally ``map.gpkg`` (with ``gpkg_layers`` added, e.g. the
+    GNSS-frame track); return the file names written.
     ``pose_covs`` (N, 3, 3), the back-end's pose covariances (``SlamResult.pose_covs``), go
     into trajectory.csv's covariance columns (the TUM format has no place for them)."""
     from dataclasses import replace
@@ -75,7 +77,7 @@ def write_map_products(
         write_trajectory_csv(out_dir / names[-1], trajectory, covs=pose_covs)
     if gpkg:
         names.append(f"{prefix}map.gpkg")
-        write_map_gpkg(out_dir / names[-1], sm, trajectory)
+        write_map_gpkg(out_dir / names[-1], sm, trajectory, extra_layers=gpkg_layers)
     return names
 
 

@@ -332,10 +332,12 @@ def write_map_gpkg(
     stem_map: Any,
     trajectory: Any = None,
     crs: str | None = None,
+    extra_layers: Sequence[GeoLayer] = (),
 ) -> None:
     """A GeoPackage of a stem map in its native CRS: layer ``trees`` (Points, the trees CSV
     columns as fields) and, with a trajectory, ``trajectory`` (one LineString with its start
-    and end time) and ``poses`` (Points: time_s, theta).
+    and end time) and ``poses`` (Points: time_s, theta); then ``extra_layers`` (e.g. the
+    GNSS-frame track of ``stemmap map --gnss``).
 
     ``crs`` overrides ``stem_map.crs``; neither means a local engineering CRS (module doc).
     """
@@ -360,4 +362,5 @@ def write_map_gpkg(
         layers.append(
             GeoLayer("poses", trajectory.xy, {"time_s": t, "theta": trajectory.poses[:, 2]})
         )
+    layers += list(extra_layers)
     write_gpkg(path, layers, crs if crs is not None else stem_map.crs, stem_map.frame)

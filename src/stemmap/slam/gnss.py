@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike
 
 from stemmap.errors import InputError
 from stemmap.slam.motion import between, compose, preintegrate
-from stemmap.types import FloatArray, Trajectory
+from stemmap.types import FloatArray
 
 if TYPE_CHECKING:
     from stemmap.slam.base import SlamProblem
@@ -43,7 +43,9 @@ if TYPE_CHECKING:
 __all__ = [
     "GnssFixes",
     "GnssOffset",
+    "GnssOffsetModel",
     "GnssPlan",
+    "fit_gnss_offset_model",
     "gnss_factors",
     "gnss_frame_trajectory",
     "gnss_initial_pose",
@@ -343,137 +345,11 @@ def gnss_residuals(plan: GnssPlan, antenna_xy: FloatArray) -> FloatArray:
     return np.asarray(np.hypot(*(antenna_xy - plan.xy).T) / plan.sigma, dtype=np.float64)
 
 
-@dataclass(frozen=True, eq=False)
-class GnssOffset:
-    """The fixes' slowly varying offset from a trajectory (from :func:`gnss_offset`).
-
-    times : (M,) s, the fixes' times; offset : (M, 2) m, smoothed ``fix - antenna`` there;
-    std : (M,) m, its 1-sigma per axis; time_constant : s, the first-order Gauss-Markov
-    model's correlation time (None: a random walk).
-    """
-
-    times: FloatArray
-    offset: FloatArray
-    std: FloatArray
-    time_constant: float | None = None
-
-    def at(self, times: ArrayLike) -> FloatArray:
-        """(N, 2) offset at ``times``: the smoothed mean of the model between two fixes.
-
-        Random walk: linear between the fixes, held before the first and after the last.
-        Gauss-Markov (Ornstein-Uhlenbeck) with time constant ``T``: between fixes at ``t0``,
-        ``t1`` the bridge mean ``b0 sinh((t1 - t)/T) / sinh(Δ/T) + b1 sinh((t - t0)/T) /
-        sinh(Δ/T)`` (``E[b(t) | b0, b1]``, exact for the smoothed mean since no fix lies in
-        between; linear for ``Δ << T``), decaying as ``exp(-|t - t_end| / T)`` towards 0
-        outside the fixes' span.
-        """
-        t = np.asarray(times, dtype=np.float64).reshape(-1)
-        if self.time_constant is None:
-            return np.column_stack([np.interp(t, self.times, self.offset[:, i]) for i in (0, 1)])
-        tau, tf, b = float(self.time_constant), self.times, self.offset
-        j = np.clip(np.searchsorted(tf, t, side="right"), 1, max(tf.shape[0] - 1, 1))
-        out = np.empty((t.shape[0], 2))
-        if tf.shape[0] == 1:
-            return b[0] * np.exp(-np.abs(t - tf[0]) / tau)[:, None]
-        t0, t1 = tf[j - 1], tf[j]
-        d = np.maximum(t1 - t0, 1e-12) / tau
-        a = np.clip(t1 - t, 0.0, None) / tau
-        c = np.clip(t - t0, 0.0, None) / tau
-        # sinh(x)/sinh(d) written with exp(-...) only: no overflow for long outages
-        den = 1.0 - np.exp(-2.0 * d)
-
-        def ratio(x: FloatArray) -> FloatArray:
-            return np.asarray((np.exp(x - d) - np.exp(-x - d)) / den)
-
-        w0, w1 = ratio(np.minimum(a, d)), ratio(np.minimum(c, d))
-        out = w0[:, None] * b[j - 1] + w1[:, None] * b[j]
-        lo, hi = t < tf[0], t > tf[-1]
-        out[lo] = b[0] * np.exp(-(tf[0] - t[lo]) / tau)[:, None]
-        out[hi] = b[-1] * np.exp(-(t[hi] - tf[-1]) / tau)[:, None]
-        return out
-
-
-def gnss_offset(
-    trajectory: Trajectory,
-    fixes: GnssFixes,
-    *,
-    walk_sigma: float = 1.0,
-    fix_sigma: float = 0.1,
-    prior_sigma: float = 3.0,
-    time_constant: float | None = None,
-) -> GnssOffset:
-    """Smooth the fixes' offset from ``trajectory`` as a GNSS bias: a 2-D random walk or a
-    first-order Gauss-Markov process (as in loosely coupled GNSS/INS fusion).
-
-    ``r_i = fix_i - antenna(t_i)`` (antenna = the lever-arm point of the trajectory) is modelled
-    as ``r_i = b(t_i) + w_i``, ``w_i`` white with std ``fix_sigma`` (m), and ``b``:
-
-    * ``time_constant=None``: a random walk of intensity ``walk_sigma`` (m/sqrt(s)), start
-      ``N(0, prior_sigma²)``. A long outage lets the variance grow by ``walk_sigma² Δt``: a
-      jump after it is followed.
-    * ``time_constant=T`` (s): a first-order Gauss-Markov (Ornstein-Uhlenbeck) process with
-      stationary std ``prior_sigma`` per axis, ``b(t+Δ) = φ b(t) + η``, ``φ = exp(-Δ/T)``,
-      ``var η = prior_sigma² (1 - φ²)``, i.e. autocovariance ``prior_sigma² exp(-|τ|/T)``
-      (``walk_sigma`` is not used). Across a long outage the bias forgets towards 0 (the
-      trajectory's own frame) instead of holding the last offset.
-
-    A Kalman filter and Rauch-Tung-Striebel smoother per axis (the model is isotropic) give
-    ``b`` at the fixes; :meth:`GnssOffset.at` interpolates it. The random-walk defaults are the
-    2-fold CV choice inside the fused fixes on Victoria Park (every 10th screened fix, ~2 s
-    apart; benchmarks/slam_field.py); the Gauss-Markov parameters there come from the GPS
-    error's measured autocorrelation (docs/algorithms/slam.md "GNSS fusion").
-
-    Why: on Victoria Park the GPS error is a slowly varying offset (~1.1 m RMS, correlation
-    time ~15-30 s against the tree-consistent path, docs/algorithms/slam.md "GNSS fusion"). A
-    path held by the trees cannot follow it; ``trajectory + b`` (see
-    :func:`gnss_frame_trajectory`) is the track *as the GNSS reports it*, not a better position
-    of the vehicle.
-    """
-    for name, v in (("walk_sigma", walk_sigma), ("fix_sigma", fix_sigma)):
-        if not (math.isfinite(v) and v > 0):
-            raise InputError(f"gnss_offset: {name} must be > 0 (m), got {v}.")
-    if not (math.isfinite(prior_sigma) and prior_sigma > 0):
-        raise InputError(f"gnss_offset: prior_sigma must be > 0 (m), got {prior_sigma}.")
-    if time_constant is not None and not (math.isfinite(time_constant) and time_constant > 0):
-        raise InputError(
-            f"gnss_offset: time_constant must be > 0 (s) or None, got {time_constant}."
-        )
-    from stemmap.eval.trajectory import point_track
-
-    use = (fixes.times >= trajectory.times[0]) & (fixes.times <= trajectory.times[-1])
-    if not use.any():
-        raise InputError("gnss_offset: no fix inside the trajectory's time span.")
-    t = fixes.times[use]
-    r = fixes.xy[use] - point_track(trajectory, t, fixes.lever_arm)
-    n = t.shape[0]
-    m, p = np.zeros((n, 2)), np.zeros(n)
-    mp, pp = np.zeros((n, 2)), np.zeros(n)
-    ph = np.ones(n)  # transition factor from fix i-1 to fix i (1 for a random walk)
-    q2, w2, p0 = walk_sigma**2, fix_sigma**2, prior_sigma**2
-    for i in range(n):
-        if i == 0:
-            mp[i], pp[i] = 0.0, p0
-        else:
-            dt = t[i] - t[i - 1]
-            if time_constant is None:
-                mp[i], pp[i] = m[i - 1], p[i - 1] + q2 * dt
-            else:
-                ph[i] = math.exp(-dt / time_constant)
-                mp[i] = ph[i] * m[i - 1]
-                pp[i] = ph[i] ** 2 * p[i - 1] + p0 * (1.0 - ph[i] ** 2)
-        k = pp[i] / (pp[i] + w2)
-        m[i] = mp[i] + k * (r[i] - mp[i])
-        p[i] = (1.0 - k) * pp[i]
-    for i in range(n - 2, -1, -1):
-        c = p[i] * ph[i + 1] / pp[i + 1] if pp[i + 1] > 0 else 0.0
-        m[i] = m[i] + c * (m[i + 1] - mp[i + 1])
-        p[i] = p[i] + c * c * (p[i + 1] - pp[i + 1])
-    return GnssOffset(t, m, np.sqrt(np.maximum(p, 0.0)), time_constant)
-
-
-def gnss_frame_trajectory(trajectory: Trajectory, offset: GnssOffset) -> Trajectory:
-    """``trajectory`` shifted at every pose by the fixes' smoothed offset (headings kept): the
-    vehicle track in the frame the GNSS reports at each moment (:func:`gnss_offset`)."""
-    poses = np.array(trajectory.poses, dtype=np.float64)
-    poses[:, :2] += offset.at(trajectory.times)
-    return Trajectory(trajectory.times, poses, frame=trajectory.frame)
+# the GNSS-frame track lives in its own module; its names stay importable from here
+from stemmap.slam.gnss_track import (  # noqa: E402
+    GnssOffset,
+    GnssOffsetModel,
+    fit_gnss_offset_model,
+    gnss_frame_trajectory,
+    gnss_offset,
+)

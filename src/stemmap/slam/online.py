@@ -72,6 +72,7 @@ from stemmap.slam._isam2_track import (
 )
 from stemmap.slam.base import Controls, SlamProblem, frame_trajectory, single_threaded_blas
 from stemmap.slam.gnss import GnssPlan, gnss_factors, robust_kernel
+from stemmap.slam.gnss_track import GnssOffsetFilter, GnssOffsetModel
 from stemmap.slam.graph import Isam2Config, _point_marginals
 from stemmap.slam.motion import between, compose, preintegrate
 from stemmap.types import FloatArray, StemMap, Tree
@@ -157,6 +158,9 @@ class OnlineMapper:
     initial_pose : vehicle pose at the first scan (in the GNSS frame when fixes are given)
     config : OnlineConfig
     gnss_lever_arm : (x, y), m, GNSS antenna in the vehicle frame
+    gnss_offset_model : GnssOffsetModel, optional, the receiver's error model (e.g. a previous
+        run's, metrics.json ``gnss_track.model``): enables :attr:`pose_gnss`, the pose as the
+        receiver reads it (causal: from the fixes fused so far)
     """
 
     def __init__(
@@ -167,6 +171,7 @@ class OnlineMapper:
         config: OnlineConfig | None = None,
         *,
         gnss_lever_arm: tuple[float, float] = (0.0, 0.0),
+        gnss_offset_model: GnssOffsetModel | None = None,
     ) -> None:
         import gtsam
 
@@ -177,6 +182,9 @@ class OnlineMapper:
         self.kind = motion.kind
         self.offset = (float(sensor_offset[0]), float(sensor_offset[1]))
         self.lever = (float(gnss_lever_arm[0]), float(gnss_lever_arm[1]))
+        self._gnss_track = (
+            None if gnss_offset_model is None else GnssOffsetFilter(gnss_offset_model)
+        )
         a, b = self.offset
         self.T_vs = gtsam.Pose2(a, b, 0.0)
         self.T_sv = self.T_vs.inverse()
@@ -432,6 +440,18 @@ class OnlineMapper:
         v = compose(s, np.array([-self.offset[0], -self.offset[1], 0.0]))
         return (float(v[0]), float(v[1]), float(math.remainder(v[2], 2 * math.pi)))
 
+    @property
+    def pose_gnss(self) -> tuple[float, float, float, float]:
+        """Current pose as the GNSS receiver reads it, ``(x, y, theta, std_m)``: :attr:`pose`
+        + the causal offset of the fused fixes (:class:`~stemmap.slam.gnss_track.
+        GnssOffsetFilter`; ``std_m`` its per-axis 1-sigma). Needs ``gnss_offset_model``."""
+        if self._gnss_track is None:
+            raise ConfigError("OnlineMapper.pose_gnss needs gnss_offset_model.")
+        x, y, th = self.pose
+        t = float(self.times.a[self.times.n - 1]) if self.times.n else 0.0
+        off, std = self._gnss_track.at(t)
+        return (x + float(off[0]), y + float(off[1]), th, std)
+
     # ------------------------------------------------------------------ keyframes
     def _new_keyframe(self, f: int) -> None:
         """Frame ``f`` starts keyframe k+1: close keyframe k (factors, odometry, update)."""
@@ -559,6 +579,9 @@ class OnlineMapper:
             for fac in facs:
                 self._add(fac)
             self.new_v.insert(key, val)
+            gt = self._gnss_track  # the fix against the antenna as estimated now
+            if gt is not None and t >= gt.last_time:
+                gt.update(t, np.array([x - val.x(), y - val.y()]))
             self.n_gnss += 1
         self._gnss_q = rest
 
