@@ -3,8 +3,9 @@
 
 The motion source is pluggable: anything that yields :class:`~stemmap.slam.base.Controls`.
 Wheel odometry CSVs give them directly; a pose-output odometry (the paper's ICP + IMU EKF, or
-any SLAM front end writing ``time_s,x,y,theta``) is turned into body-frame velocities by
-:func:`controls_from_trajectory` (:func:`~stemmap.slam.odometry.velocities_from_poses`).
+any SLAM front end writing ``time_s,x,y,theta``) is turned into controls that dead-reckon
+through every one of its poses by :func:`controls_from_trajectory`
+(:meth:`~stemmap.slam.base.Controls.from_trajectory`).
 
 * :func:`eb_lidar_observations` -- EB-LiDAR (:func:`~stemmap.cloud.munjer.detect_stems_munjer`)
   on every lidar frame, as sensor-frame :class:`~stemmap.types.StemObservations`;
@@ -321,17 +322,16 @@ def controls_from_trajectory(
     trajectory: Trajectory, *, sigma_speed: float = 0.05, sigma_yaw_rate: float = 0.01
 ) -> tuple[Controls, UnicycleModel]:
     """Unicycle controls and motion noise from any pose-output odometry (the pluggable motion
-    source: lidar + IMU odometry, visual odometry, a SLAM front end).
+    source: the lidar + IMU odometry that stands in for the paper's ICP + IMU EKF, §3.5;
+    visual odometry; the fused visual + lidar EKF; a SLAM front end).
 
-    Each interval's body-frame velocity is the pose difference over its duration
-    (:func:`~stemmap.slam.odometry.velocities_from_poses`), held from the interval's start.
-    ``sigma_speed`` / ``sigma_yaw_rate`` (one-second averages) become the motion model's noise.
+    The controls dead-reckon exactly through every pose, lateral steps included
+    (:meth:`~stemmap.slam.base.Controls.from_trajectory`: an arc per interval, plus a short
+    turn on the spot where the increment is not an arc), so every back-end with no landmark
+    returns the odometry's own path. ``sigma_speed`` / ``sigma_yaw_rate`` (one-second
+    averages) become the motion model's noise.
     """
-    from stemmap.slam.odometry import velocities_from_poses
-
-    src = velocities_from_poses(trajectory, sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate)
-    assert src.interval_start is not None  # set by velocities_from_poses: the intervals' starts
-    controls = Controls(src.interval_start, src.speed, src.yaw_rate, "unicycle")
+    controls = Controls.from_trajectory(trajectory)
     return controls, UnicycleModel(sigma_speed=sigma_speed, sigma_steer=sigma_yaw_rate)
 
 
