@@ -1,7 +1,7 @@
-"""Controls from a pose-output odometry (:meth:`Controls.from_trajectory`, the motion input of
-``stemmap map --motion lidar|visual|fused`` and of the Munjer pipeline): they dead-reckon
-through every pose, lateral steps included, and every back-end with no landmark returns the
-odometry's own path."""
+"""Controls from a pose-output odometry that dead-reckon through every pose, lateral steps
+included (:meth:`Controls.from_trajectory`; ``controls_from_trajectory(lateral="keep")``, the
+motion input a pose odometry can give every back-end), and every back-end with no landmark
+returns the odometry's own path."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.odometry.fusion import dead_reckon_source, velocities_from_poses
 from stemmap.slam.base import BACKENDS, Controls, SlamProblem, TreeFrames, make_backend
 from stemmap.slam.motion import compose, rollout
 from stemmap.slam.munjer import controls_from_trajectory
@@ -53,15 +52,18 @@ def _pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 @pytest.mark.parametrize("t0", [0.0, 1.7e9])  # Unix time stamps too
 def test_controls_dead_reckon_through_every_pose(t0: float) -> None:
     traj = _ekf_like_path(t0)
-    controls, model = controls_from_trajectory(traj)
+    controls, model = controls_from_trajectory(traj, lateral="keep")
     poses = rollout(model, controls, traj.times, traj.poses[0])
     pos, ang = _pose_error(poses, traj.poses)
     assert pos < 1e-9 and ang < 1e-9, (pos, ang)
-    # what speed-and-yaw-rate controls of the same path reach: the sideways part is lost
-    plain = dead_reckon_source(
-        velocities_from_poses(traj, sigma_speed=0.05, sigma_yaw_rate=0.01), traj.poses[0]
-    )
-    assert np.hypot(*(plain.poses[-1, :2] - traj.poses[-1, :2])) > 0.1
+    assert model.sigma_lateral == model.sigma_speed  # the steps' sideways error is modelled
+    # the default, speed and yaw rate per interval, loses the sideways part
+    drop, plain_model = controls_from_trajectory(traj)
+    plain = rollout(plain_model, drop, traj.times, traj.poses[0])
+    assert plain_model.sigma_lateral == 0.0
+    assert np.hypot(*(plain[-1, :2] - traj.poses[-1, :2])) > 0.1
+    with pytest.raises(ConfigError):
+        controls_from_trajectory(traj, lateral="sideways")  # type: ignore[arg-type]
 
 
 def test_an_arc_path_keeps_one_control_per_interval() -> None:
@@ -102,7 +104,9 @@ def test_every_backend_without_landmarks_returns_the_odometry_path(name: str) ->
     with zero motion noise, so that its particles do not spread)."""
     traj = _ekf_like_path()
     sigma = (0.0, 0.0) if name == "fastslam" else (0.05, math.radians(1.0))
-    controls, model = controls_from_trajectory(traj, sigma_speed=sigma[0], sigma_yaw_rate=sigma[1])
+    controls, model = controls_from_trajectory(
+        traj, sigma_speed=sigma[0], sigma_yaw_rate=sigma[1], lateral="keep"
+    )
     problem = SlamProblem(
         controls,
         TreeFrames.empty_frames(traj.times),

@@ -5,8 +5,8 @@ Motion source, pluggable (``--motion``, :mod:`stemmap.cli._map_motion`):
 
 * ``wheel`` with ``--odometry``: a velocity CSV ``time_s,speed,yaw_rate`` (wheel odometry,
   ``stemmap sim munjer`` writes one) or a pose CSV ``time_s,x,y,theta`` (any pose-output
-  odometry: ``stemmap odometry --out traj.csv``, a SLAM front end), turned into controls that
-  dead-reckon through every pose (:func:`stemmap.slam.munjer.controls_from_trajectory`);
+  odometry: ``stemmap odometry --out traj.csv``, a SLAM front end), differenced into body-frame
+  velocities (:func:`stemmap.slam.munjer.controls_from_trajectory`);
 * ``lidar`` / ``visual`` / ``fused``: the trajectory of
   :func:`stemmap.cli._map_motion.motion_trajectory` (the paper's ICP + IMU EKF odometry on the
   bundle's own lidar frames with ``lidar``), then as a pose CSV.

@@ -18,8 +18,7 @@ objects placed to test false accepts. :func:`simulate_munjer_drive` renders such
   ``camera_every``-th lidar frame;
 * the motion source: wheel odometry (speed, yaw rate) with scale error, gyro bias and noise
   (:class:`~stemmap.sim.trajectory.OdometryNoise`); any pose-output odometry (e.g. lidar + IMU)
-  can replace it, see :func:`stemmap.slam.munjer.controls_from_trajectory` (controls through
-  every one of its poses).
+  can replace it, see :func:`stemmap.slam.munjer.controls_from_trajectory`.
 
 Truth: tree positions and diameters (``stand2d.trees_xy`` / ``diameters``, equal to the 3D
 stand's), the non-tree objects (``stand2d.clutter_objects_xy``), the true poses of every frame.
