@@ -3,13 +3,14 @@ screened fix fused, the other screened fixes scored without alignment.
 
 Two estimates, both products of ``stemmap map --gnss`` (docs/outputs.md):
 
-* the **tree-consistent path** (``trajectory.csv``): ``gnss_ate_unused_m`` is that path with
-  the kernel and sigma chosen by 2-fold CV inside the fused fixes; the command's default
-  (Cauchy, sigma 1.0 m) scores ``gnss_default_ate_unused_m``.
+* the **tree-consistent path** (``trajectory.csv``): the command's default (Cauchy, sigma
+  1.0 m) scores ``gnss_path_ate_unused_m``; the kernel and sigma chosen by 2-fold CV inside
+  the fused fixes ``gnss_path_cv_ate_unused_m``.
 * the **GNSS-frame track** (``trajectory_gnss.csv``: the default path + the fused fixes'
   offset, its Gauss-Markov model estimated from the run's own fused fixes,
   :func:`stemmap.slam.gnss_track.fit_gnss_offset_model`, RTS-smoothed):
-  ``gnss_track_ate_unused_m``; ``gnss_track_heldout`` the same with the model fitted on the
+  ``gnss_ate_unused_m`` (the issue's key: the trajectory the command writes in the GNSS
+  frame); ``gnss_track_heldout`` the same with the model fitted on the
   first half's fused fixes only, scored on the second half; ``gnss_track_causal`` the online
   (filter-only) estimate. Older variants: ``gnss_track_rw_cv_ate_unused_m`` (random walk, CV)
   and ``gnss_track_gm_ate_unused_m`` (model from the first half's semivariogram against the
@@ -124,7 +125,7 @@ def _gnss_evidence(vp: Any, fused: Any, unused: Any, res: Any, base: Any) -> dic
         tight.append({"sigma_m": sig, "ate_unused_m": round(a.rmse, 3), **halves(rt.trajectory)})
         tight[-1].update(chi2(rt))
     return {
-        "gnss_ate_unused_halves_m": {"split_s": round(half, 1), **halves(res.trajectory)},
+        "gnss_path_cv_ate_unused_halves_m": {"split_s": round(half, 1), **halves(res.trajectory)},
         "gnss_consistency": chi2(res),
         "no_gnss_consistency": chi2(base),
         "gnss_tight_gaussian": tight,
@@ -241,7 +242,7 @@ def _gnss_products(
         for name, r in rows.items()
     }
     return {
-        "gnss_track_ate_unused_m": rows["track"]["all"],
+        "gnss_ate_unused_m": rows["track"]["all"],
         "gnss_track_ate_unused_halves_m": rows["track"],
         "gnss_track_model": model.to_dict(),
         "gnss_track_cpu_s": round(cpu, 3),
@@ -310,9 +311,9 @@ def gnss_part(data: str | None, csv_out: str | None) -> dict[str, Any]:
     gm = _gnss_track_gm(vp, unused, chosen, res, base)
     products = _gnss_products(vp, fused, unused, default, base, res)
     return {
-        "gnss_ate_unused_m": round(r.rmse, 3),
-        "gnss_ate_unused_p95_m": round(r.p95, 3),
-        "gnss_ate_unused_max_m": round(r.max, 3),
+        "gnss_path_cv_ate_unused_m": round(r.rmse, 3),
+        "gnss_path_cv_ate_unused_p95_m": round(r.p95, 3),
+        "gnss_path_cv_ate_unused_max_m": round(r.max, 3),
         **products,
         "gnss_track_rw_cv_ate_unused_m": round(rt.rmse, 3),
         "gnss_track_rw_cv_ate_unused_p95_m": round(rt.p95, 3),
@@ -324,16 +325,18 @@ def gnss_part(data: str | None, csv_out: str | None) -> dict[str, Any]:
         "no_gnss_ate_unused_aligned_m": round(rb.rmse, 3),
         "gnss_chosen_by_cv": ch,
         "gnss_cv": cv_rows,
-        "gnss_default_ate_unused_m": round(rd.rmse, 3),
+        "gnss_path_ate_unused_m": round(rd.rmse, 3),
         **gm,
         **evidence,
         "gnss_estimates": {
-            "gnss_ate_unused_m": "the tree-consistent path (trajectory.csv of stemmap map "
-            "--gnss) with the CV-chosen kernel/sigma; the command's default (Cauchy 1.0 m) "
-            "path is gnss_default_ate_unused_m",
-            "gnss_track_ate_unused_m": "the GNSS-frame track (trajectory_gnss.csv of stemmap "
-            "map --gnss, default settings): the path as the receiver reads it, following its "
-            "correlated error; model from the run's own fused fixes, smoothed",
+            "gnss_ate_unused_m": "the trajectory stemmap map --gnss writes in the GNSS frame "
+            "(trajectory_gnss.csv, default settings): the path as the receiver reads it, "
+            "following its correlated error; model from the run's own fused fixes, smoothed",
+            "gnss_path_ate_unused_m": "the tree-consistent path (trajectory.csv of stemmap map "
+            "--gnss, default Cauchy 1.0 m): right where the map is, scored against a receiver "
+            "whose own ~1 m error is slowly varying",
+            "gnss_path_cv_ate_unused_m": "the same path with the kernel/sigma chosen by 2-fold "
+            "CV inside the fused fixes (not a command option)",
         },
         "gnss_data": "Victoria Park full run; fused = every 10th screened fix, antenna at the "
         "laser; scored = the other screened fixes, no alignment",

@@ -120,13 +120,15 @@ def test_prior_map_uses_the_joint_information(
     second = sim_log / "m_isam2_prior"
     args = ["map", str(sim_log / "run.npz"), "--prior-map", str(first), "--out", str(second)]
     args += ["--start-guess", "0,0,0"]
-    # the default (Isam2Config.prior_map_robust = "huber"): per-tree robust priors, the joint
-    # information is not used, and metrics.json says so
-    res = run.invoke(app, args)
+    # --prior-type huber (Isam2Config.prior_map_robust = "huber"; the default without a
+    # graph.npz): per-tree robust priors, the joint information and the graph are not used,
+    # and metrics.json says so
+    res = run.invoke(app, [*args, "--prior-type", "huber"])
     assert res.exit_code == 0, res.output
     assert not any(used)  # no joint prior factor built
     rl = _metrics(second)["relocalisation"]
     assert rl["prior"] == "per-tree huber" and "not used" in rl["note"]
+    assert "graph.npz present" in rl["graph_unused"]
 
     # --prior-type joint (Isam2Config.prior_map_robust = "none"): the joint prior factor
     # reaches the graph
@@ -149,6 +151,61 @@ def test_prior_map_uses_the_joint_information(
     assert used and not any(used)
     rl = _metrics(third)["relocalisation"]
     assert rl["prior"] == "per-tree" and "trees_information.npz" in rl["note"]
+
+
+@pytest.mark.slow
+def test_prior_map_continues_the_saved_graph(sim_log: Path) -> None:
+    """The map folder carries graph.npz (in the manifest); --prior-type graph continues it
+    (metrics.json says so) and writes the merged map and the merged graph; the default (the
+    marginal prior) says it left graph.npz unused; a damaged or mismatched graph.npz is one
+    clear error line; an old folder without it still loads (the marginal prior)."""
+    from stemmap.slam._graph_continue import read_graph
+
+    run = CliRunner()
+    first = sim_log / "g_first"
+    res = run.invoke(app, ["map", str(sim_log / "run.npz"), "--out", str(first)])
+    assert res.exit_code == 0, res.output
+    outputs = {o["path"] for o in json.loads((first / "run.json").read_text())["outputs"]}
+    assert "graph.npz" in outputs
+    m1 = read_trees_csv(first / "trees.csv")
+    g1 = read_graph(first / "graph.npz", m1)
+
+    def cont(prior: Path, out: str, *extra: str) -> Any:
+        args = ["map", str(sim_log / "run.npz"), "--prior-map", str(prior), "--start-guess"]
+        return run.invoke(app, [*args, "0,0,0", *extra, "--out", str(sim_log / out)])
+
+    res = cont(first, "g_second", "--prior-type", "graph")
+    assert res.exit_code == 0, res.output
+    second = sim_log / "g_second"
+    rl = _metrics(second)["relocalisation"]
+    assert rl["ok"] and rl["prior"] == "graph" and rl["graph_poses"] == g1.n_poses
+    m2 = read_trees_csv(second / "trees.csv")
+    assert len(m2) >= len(m1)  # the merged map: session 1's trees kept, updated
+    g2 = read_graph(second / "graph.npz", m2)  # the merged graph: both sessions' poses
+    assert g2.n_poses > g1.n_poses
+
+    res = cont(second, "g_default")  # the default: the marginal prior, graph.npz unused
+    assert res.exit_code == 0, res.output
+    rl = _metrics(sim_log / "g_default")["relocalisation"]
+    assert rl["prior"] == "per-tree huber" and "graph.npz present" in rl["graph_unused"]
+
+    (second / "graph.npz").write_bytes(b"not an archive")
+    res = cont(second, "g_bad", "--prior-type", "graph")
+    assert res.exit_code != 0
+    err = [ln for ln in res.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "graph.npz" in err[0] and "damaged" in err[0], res.output
+    # a graph.npz beside another map's trees.csv (ids differ)
+    (second / "graph.npz").write_bytes((first / "graph.npz").read_bytes())
+    res = cont(second, "g_bad2", "--prior-type", "graph")
+    assert res.exit_code != 0 and "ids differ" in res.output, res.output
+
+    (second / "graph.npz").unlink()  # an old map folder: the marginal prior, said so
+    res = cont(second, "g_third")
+    assert res.exit_code == 0, res.output
+    rl = _metrics(sim_log / "g_third")["relocalisation"]
+    assert rl["prior"] == "per-tree huber" and "no graph.npz" in rl["graph_unused"]
+    res = cont(second, "g_bad3", "--prior-type", "graph")
+    assert res.exit_code != 0 and "no graph.npz" in res.output, res.output
 
 
 def test_prior_type_needs_a_prior_map(sim_log: Path) -> None:

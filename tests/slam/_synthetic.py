@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -64,3 +65,17 @@ def loop_problem(
         meas_c, frames, m, sensor_offset=m.sensor_offset, max_range=30.0, name="synthetic loop"
     )
     return problem, truth, trees, diam
+
+
+def split_problem(problem: SlamProblem, t_split: float) -> tuple[SlamProblem, SlamProblem]:
+    """Two sessions of one run: before and after ``t_split`` (s), each from the origin."""
+
+    def part(t0: float, t1: float) -> SlamProblem:
+        return dataclasses.replace(
+            problem,
+            controls=problem.controls.slice(t0, t1),
+            frames=problem.frames.slice(t0, t1),
+            initial_pose=(0.0, 0.0, 0.0),
+        )
+
+    return part(0.0, t_split), part(t_split, math.inf)

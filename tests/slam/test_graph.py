@@ -147,6 +147,38 @@ def test_point_marginals_equal_gtsam_marginals(rng, loop, perturb, gnss):
     np.testing.assert_allclose(p_cov, want_p, rtol=1e-7, atol=1e-15)
 
 
+def test_singular_pose_information_is_reported_not_raised():
+    """A pose key no factor touches makes H_PP singular; on the general (non-banded: a loop)
+    path SuperLU raises RuntimeError, which must reach the caller as LinAlgError so that
+    ``final_marginals`` leaves NaN with a warning instead of failing the run."""
+    from types import SimpleNamespace
+
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    from stemmap.slam._graph_marginals import _information_blocks, final_marginals
+
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.1, 0.01]))
+    graph.add(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(0.0, 0.0, 0.0), odo))
+    for i in range(10):
+        values.insert(X(i), gtsam.Pose2(float(i), 0.0, 0.0))
+        if i:
+            graph.add(gtsam.BetweenFactorPose2(X(i - 1), X(i), gtsam.Pose2(1.0, 0.0, 0.0), odo))
+    graph.add(gtsam.BetweenFactorPose2(X(0), X(9), gtsam.Pose2(9.0, 0.0, 0.0), odo))  # a loop
+    values.insert(X(10), gtsam.Pose2(10.0, 0.0, 0.0))  # no factor touches it
+    values.insert(L(0), gtsam.Point2(1.0, 1.0))
+    br = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.1]))
+    for i, (bearing, rng_m) in enumerate(((math.pi / 2, 1.0), (3 * math.pi / 4, math.sqrt(2)))):
+        rot = gtsam.Rot2.fromAngle(bearing)
+        graph.add(gtsam.BearingRangeFactor2D(X(i + 1), L(0), rot, rng_m, br))
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        _information_blocks(graph, values)
+    cfg = SimpleNamespace(marginals=True, pose_marginals=False, joint_information=False)
+    tree_cov, _, _ = final_marginals(graph, values, [L(0)], [], cfg)
+    assert np.isnan(tree_cov).all()
+
+
 def test_sensor_between_matches_composition(rng):
     off = (3.78, 0.5)
     T = np.array([off[0], off[1], 0.0])

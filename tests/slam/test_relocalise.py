@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
-from _synthetic import loop_problem
+from _synthetic import loop_problem, split_problem
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.slam.base import SlamProblem, duplicate_pairs
+from stemmap.slam.base import duplicate_pairs
 from stemmap.slam.graph import Isam2Config, Isam2Slam
 from stemmap.slam.relocalise import (
     RelocConfig,
@@ -21,25 +21,13 @@ from stemmap.slam.relocalise import (
 from stemmap.types import StemMap
 
 
-def _split(problem: SlamProblem, t_split: float) -> tuple[SlamProblem, SlamProblem]:
-    def part(t0: float, t1: float) -> SlamProblem:
-        return dataclasses.replace(
-            problem,
-            controls=problem.controls.slice(t0, t1),
-            frames=problem.frames.slice(t0, t1),
-            initial_pose=(0.0, 0.0, 0.0),
-        )
-
-    return part(0.0, t_split), part(t_split, math.inf)
-
-
 @pytest.fixture(scope="module")
 def sessions():
     """1.6 laps of the synthetic loop: session 1 = the first lap, session 2 = the rest (it
     drives through the mapped area again, starting where session 1 stopped)."""
     problem, truth, trees, _ = loop_problem(1, laps=1.6)
     t_split = 52.0  # one lap at 3 m/s on a 25 m circle takes 52.4 s
-    p1, p2 = _split(problem, t_split)
+    p1, p2 = split_problem(problem, t_split)
     r1 = Isam2Slam().run(p1)
     f2 = int(np.searchsorted(problem.frames.times, p2.frames.times[0]))
     return p1, p2, r1, truth, trees, f2

@@ -21,7 +21,7 @@ from stemmap.slam.base import (
     make_backend,
     observe,
 )
-from stemmap.slam.motion import UnicycleModel
+from stemmap.slam.motion import UnicycleModel, preintegrate
 from stemmap.slam.negative import SensorFov, expected_visibility
 from stemmap.slam.treedb import (
     PRESETS,
@@ -30,6 +30,7 @@ from stemmap.slam.treedb import (
     range_bearing_jacobians,
     treedb_update,
 )
+from stemmap.types import wrap_angle
 
 FOV = SensorFov(-math.pi / 2, math.pi / 2, 0.5, 15.0)
 
@@ -225,32 +226,128 @@ def test_treedb_slam_registered_and_localizing_beats_dead_reckoning(sim):
     assert len(res.trajectory) == len(problem.frames)
 
 
-def test_treedb_pose_covariance_on_every_row(sim, monkeypatch):
-    """Issue 14: every row has a pose covariance, the relaxation pose graph's marginals
-    (:func:`~stemmap.slam.relaxation.relaxed_pose_covariances`) times the factor chosen on
-    Victoria Park. The simulator tests the code, not the factor: the raw marginals (factor 1)
-    must not be overconfident against the truth, median z² below the calibrated 1.39 (they are
-    wide by design: a drift model for runs with sparse corrections; measured 0.003 on this
-    loop, whose wheel odometry is corrected by the trees every frame). The factor (< 1) scales
-    the chain's variances only, so the reported covariance is below the raw one (PSD order:
-    smaller noise, more information)."""
-    import stemmap.slam.treedb as tdb
-
+def test_treedb_pose_covariance_on_every_row(sim):
+    """Issue 14: every row has a finite, positive-definite pose covariance, the derived one
+    (no factor), growing from the fixed start; the run closes loops, so it is the linear
+    graph's marginals (:meth:`TreeDbErrors.pose_covariances`). Against the truth it is not
+    overconfident on this loop, whose detections (3 cm / 0.3 deg) are ten times better than
+    the back-end's default noise model (0.3 m / 1 deg): median z² 0.01-0.04 (seeds 1-2),
+    bound the calibrated 1.39."""
     problem, run = sim
     res = TreeDbSlam().run(problem)
-    k = tdb.TREEDB_POSE_COV_INFLATION
-    monkeypatch.setattr(tdb, "TREEDB_POSE_COV_INFLATION", 1.0)
-    raw = TreeDbSlam().run(problem).pose_covs
     P = res.pose_covs
-    assert P is not None and raw is not None and P.shape == (len(problem.frames), 3, 3)
-    assert np.isfinite(P).all() and np.all(np.linalg.eigvalsh(P) > 0)
-    assert k < 1 and np.all(np.linalg.eigvalsh(raw - P) > -1e-12)
-    assert np.median(np.trace(P[:, :2, :2], axis1=1, axis2=2)) < np.median(
-        np.trace(raw[:, :2, :2], axis1=1, axis2=2)
-    )
+    assert res.stats["loop_closures"] >= 1
+    assert P is not None and P.shape == (len(problem.frames), 3, 3)
+    assert np.isfinite(P).all() and np.all(np.linalg.eigvalsh(P[1:]) > 0)
+    np.testing.assert_allclose(P, np.swapaxes(P, 1, 2), atol=1e-12)
+    assert np.trace(P[0, :2, :2]) < 1e-4 < np.trace(P[len(P) // 2, :2, :2])
     e = res.trajectory.poses[1:, :2] - run.vehicle_poses.poses[1:, :2]
-    z2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(raw[1:, :2, :2]), e)
+    z2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(P[1:, :2, :2]), e)
     assert np.median(z2) < 1.386
+
+
+def _mc_drive(rng, trees, sigmas, n=120, dt=0.2, r_max=12.0):
+    """A 24 m arc through ``trees`` whose odometry and detections carry exactly the noise the
+    back-end is told (``sigmas`` = speed m/s, yaw rate rad/s, range m, bearing rad; the
+    odometry's one-second white equivalents): (problem, true poses)."""
+    sv, sw, sr, sb = sigmas
+    t = np.arange(n) * dt
+    v, w = np.full(n, 1.0), np.full(n, 0.04)
+    model = UnicycleModel(sigma_speed=sv, sigma_steer=sw)
+    truth = preintegrate(model, Controls(t, v, w, "unicycle"), t, (0.0, 0.0, 0.0)).poses
+    vm = v + rng.normal(0.0, sv / math.sqrt(dt), n)  # sample-and-hold: density sv² per second
+    wm = w + rng.normal(0.0, sw / math.sqrt(dt), n)
+    ptr, rr, bb = [0], [], []
+    for p in truth:
+        d = trees - p[:2]
+        r = np.hypot(d[:, 0], d[:, 1])
+        b = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - p[2])
+        seen = (r < r_max) & (np.abs(b) < math.pi / 2)
+        rr.append(r[seen] + rng.normal(0.0, sr, seen.sum()))
+        bb.append(b[seen] + rng.normal(0.0, sb, seen.sum()))
+        ptr.append(ptr[-1] + int(seen.sum()))
+    frames = TreeFrames(
+        t, np.array(ptr), np.concatenate(rr), np.concatenate(bb), np.full(ptr[-1], 0.3)
+    )
+    problem = SlamProblem(
+        Controls(t, vm, wm, "unicycle"), frames, model, initial_pose=(0.0, 0.0, 0.0),
+        max_range=r_max,
+    )  # fmt: skip
+    return problem, truth
+
+
+def test_treedb_pose_covariance_is_calibrated_on_simulated_drives():
+    """Issue 14: the reported pose covariance is the tree DB's actual error covariance, with no
+    factor. 40 simulated drives (seeds 100-139) whose odometry and detection noise follow the
+    models the back-end is given, trees handed over as the vehicle drives (the pose drifts
+    with the map it localises on); every row after the first 2 s scored against the truth.
+
+    Calibrated: pose NEES mean 3 (3 dof), position z² median 1.386. Measured 3.11 / 1.35 here
+    (seeds 200-239: 3.13 / 1.34; 300-339: 3.29 / 1.53). The per-drive mean NEES scatters with
+    std 1.5-2.0, so the pooled mean of 40 drives has std ~0.3: bound |NEES/3 - 1| < 0.25 (2.5
+    std); position z² median within 1.5x. The VP-fitted chain factor it replaced (0.0038) gave
+    NEES 4.53 / 4.98 / 4.59 and z² median 0.75 / 0.72 / 0.83 on the same seeds: fails both."""
+    rng0 = np.random.default_rng(0)
+    trees = np.column_stack((rng0.uniform(-5, 30, 40), rng0.uniform(-8, 20, 40)))
+    sigmas = (0.05, 0.01, 0.05, 0.01)
+    nees, z2 = [], []
+    for k in range(40):
+        problem, truth = _mc_drive(np.random.default_rng(100 + k), trees, sigmas)
+        res = TreeDbSlam(sigma_range=sigmas[2], sigma_bearing=sigmas[3], refine=False).run(problem)
+        assert res.stats["loop_closures"] == 0  # no loops: the forward analysis itself
+        e = res.trajectory.poses[10:] - truth[10:]
+        e[:, 2] = wrap_angle(e[:, 2])
+        P = res.pose_covs[10:]
+        nees.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e))
+        z2.append(np.einsum("ni,nij,nj->n", e[:, :2], np.linalg.inv(P[:, :2, :2]), e[:, :2]))
+    assert abs(np.mean(nees) / 3.0 - 1.0) < 0.25
+    assert 1.386 / 1.5 < np.median(z2) < 1.386 * 1.5
+
+
+@pytest.mark.slow
+def test_treedb_pose_covariance_on_the_demo_drives():
+    """Issue 14: on the ``stemmap demo`` drives (seeds 0-6, the scan detector's detections, the
+    motion noise ``stemmap demo`` hands the tree DB; nothing matches the back-end's models by
+    construction) the derived pose covariance is within 2x of calibrated: pooled position z²
+    median 0.89 (per seed 0.58-1.18; calibrated 1.386), where the VP-fitted chain factor
+    (0.0038) gave 3.39 (per seed 2.8-8.4; docs/outputs.md)."""
+    from stemmap.cli._demo import _stand_and_run
+    from stemmap.cli._map import sim_problem as demo_problem
+
+    z2 = []
+    for seed in range(7):
+        run = _stand_and_run(seed, 120)
+        problem, _ = demo_problem(run, backend="treedb")
+        res = TreeDbSlam().run(problem)
+        true = run.vehicle_poses.interpolate(res.trajectory.times)
+        e = res.trajectory.poses[1:, :2] - true[1:, :2]
+        z2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(res.pose_covs[1:, :2, :2]), e))
+    assert 1.386 / 2 < np.median(np.concatenate(z2)) < 2 * 1.386
+
+
+def test_treedb_errors_graph_is_the_forward_analysis_without_loops_and_shrinks_with_one():
+    """:meth:`TreeDbErrors.pose_covariances`: the Gauss-Markov chain over the keyframes
+    reproduces the recorded covariances exactly when there is no loop (its regression is exact
+    for the marginals); a loop constraint between the last keyframe and the start shrinks the
+    end's covariance to about the constraint's own."""
+    from stemmap.slam._treedb_errors import TreeDbErrors
+    from stemmap.slam.relaxation import LoopClosure
+
+    n, kf = 60, list(range(0, 60, 6))
+    err = TreeDbErrors(n, np.diag([0.3**2, math.radians(1.0) ** 2]))
+    poses = np.column_stack((np.arange(n) * 0.5, np.zeros(n), np.zeros(n)))
+    Q = np.diag([0.02**2, 0.01**2, 0.003**2])
+    for f in range(n):
+        if f:
+            err.predict(np.array([[1, 0, 0], [0, 1, 0.5], [0, 0, 1.0]]), Q)
+        err.record(f, f in kf and f > 0)
+    out = err.pose_covariances(poses, kf, [], 2.385)
+    # up to the graph's 1 mm floor added per chain step (10 steps: 1e-5 m²)
+    np.testing.assert_allclose(out[1:], err.abs_cov[1:], rtol=1e-6, atol=1.1e-5)
+    loop = LoopClosure(0, kf[-1], (float(poses[kf[-1], 0]), 0.0, 0.0), (0.05, 0.05, 0.002))
+    closed = err.pose_covariances(poses, kf, [loop], 2.385)
+    assert closed[kf[-1], 1, 1] < 0.1 * out[kf[-1], 1, 1]
+    assert closed[kf[-1], 1, 1] < 2 * 0.05**2 and np.all(np.linalg.eigvalsh(closed[1:]) > 0)
 
 
 def test_treedb_open_loop_is_the_papers_odometry_pipeline(sim):

@@ -248,17 +248,21 @@ def map_command(
         Path | None,
         typer.Option(
             "--prior-map",
-            help="Map folder of an earlier session (its trees.csv): "
-            "relocalise in it, map on, write the merged map; isam2.",
+            help="Map folder of an earlier session (trees.csv [+ graph.npz]): "
+            "relocalise in it, map on (continuing its graph.npz when present), write the "
+            "merged map; isam2.",
         ),
     ] = None,
     prior_type: Annotated[
         PriorType | None,
         typer.Option(
             "--prior-type",
-            help="With --prior-map: how its trees enter the graph -- huber (default) or "
-            "cauchy (each tree's own robust prior), joint (one prior over all trees from "
-            "trees_information.npz).",
+            help="With --prior-map: how it enters the graph -- huber (default) or cauchy "
+            "(each tree's own robust prior on its marginal), joint (one prior over all trees "
+            "from trees_information.npz), graph (the earlier session's graph.npz continued: "
+            "its poses and trees stay variables; Victoria Park, 5 session splits 400-1200 s: "
+            "session 2 ATE 1.282 / 1.367 / 1.446 / 1.448 / 0.855 m vs huber's 1.256 / 1.306 / "
+            "1.444 / 1.441 / 0.834 m, per-keyframe CPU p99 17-33 vs 7-11 ms).",
         ),
     ] = None,
     start_guess: Annotated[
@@ -408,7 +412,9 @@ def map_command(
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None
         isam2 = backend == Backend.isam2 and not (realtime or rerun is not None)
-        be_cfg: dict[str, object] = {"joint_information": True} if isam2 else {}
+        be_cfg: dict[str, object] = (
+            {"joint_information": True, "export_graph": True} if isam2 else {}
+        )
         if prior_map is not None:
             problem, reloc, prior_note = continue_from_map(
                 problem, prior_map, start_guess, backend.value, prior_type
@@ -479,7 +485,7 @@ def map_command(
             names += write_gnss_track(
                 stage, track, crs=crs, frame=result.stem_map.frame, trajectory_format=fmt
             )
-        names += write_information(stage, result.stem_map)
+        names += write_information(stage, result.stem_map, result.graph)
         if "alignment" in ctx:
             names += write_gps_frame(
                 stage,

@@ -194,6 +194,8 @@ class _Fitted(NamedTuple):
     sil_width: FloatArray  # silhouette width (chord widened by mixed-pixel neighbours)
     rms: FloatArray  # RMS orthogonal residual
     test_rms: FloatArray  # what the RMS test reads (the RMS or the robust residual scale)
+    smooth: FloatArray | None = None  # residuals' high-frequency scale (lobe_roughness only)
+    own_noise: FloatArray | None = None  # the relaxed RMS test's noise (rms_noise_from_fit)
 
 
 def _output_columns(

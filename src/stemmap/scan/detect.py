@@ -55,8 +55,10 @@ from stemmap.scan.features import (
 from stemmap.scan.plausibility import (
     REASONS,
     fitted_reasons,
+    own_noise,
     range_roughness,
     rejected_candidates,
+    residual_smoothness,
     robust_residual_scale,
     scan_noise,
     segment_reasons,
@@ -326,7 +328,13 @@ class ScanTrunkDetector:
             r = fov_window(r, wrap_angle(angles), a_lo, a_hi)
         # the sensor's range noise from the raw returns of each scan (before tilt and filters)
         noise = (
-            scan_noise(r, cfg.scan_noise_jump, cfg.scan_noise_surface)
+            # (NaN where a scan has no estimate: rms_noise_from_fit reads the candidate's own)
+            scan_noise(
+                r,
+                cfg.scan_noise_jump,
+                cfg.scan_noise_surface,
+                math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
+            )
             if cfg.sigma_from_scan
             else None
         )
@@ -424,6 +432,8 @@ class ScanTrunkDetector:
             and no_tilt
             and (not cfg.refit_pieces or cfg.refit_split == "corners")
             and not cfg.arc_refit
+            and cfg.lobe_roughness == 0.0
+            and cfg.rms_noise_from_fit == 0.0
         )
 
     def _run(
@@ -542,7 +552,14 @@ class ScanTrunkDetector:
             rms = _fit_rms(segs, centers, radii)
             # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
             test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
-        return _Fitted(centers, radii, covs, ok, sigma, mean_r, f_width, sil_width, rms, test_rms)
+        smooth = own = None
+        if cfg.lobe_roughness > 0 or cfg.rms_noise_from_fit > 0:
+            smooth = residual_smoothness(segs, centers, radii)
+            if cfg.rms_noise_from_fit > 0:
+                own = own_noise(cfg, segs, sigma, smooth)
+        return _Fitted(
+            centers, radii, covs, ok, sigma, mean_r, f_width, sil_width, rms, test_rms, smooth, own
+        )
 
     def _run_numpy(
         self,

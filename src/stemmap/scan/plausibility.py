@@ -32,8 +32,10 @@ __all__ = [
     "REASONS",
     "fit_reasons",
     "fitted_reasons",
+    "own_noise",
     "range_roughness",
     "rejected_candidates",
+    "residual_smoothness",
     "rms_limit",
     "robust_residual_scale",
     "scan_noise",
@@ -74,7 +76,9 @@ def range_roughness(segs: Segments) -> FloatArray:
 SCAN_NOISE_MIN_TRIPLES = 16
 
 
-def scan_noise(ranges: ArrayLike, jump: float, surface: float = 0.0) -> FloatArray:
+def scan_noise(
+    ranges: ArrayLike, jump: float, surface: float = 0.0, missing: float = 0.0
+) -> FloatArray:
     """Range-noise scale of every scan from all its returns, metres (ours, issue 11).
 
     ``1.4826 MAD(d) / sqrt(6)``, ``MAD(d) = median |d_k - median d|``, of the second
@@ -99,6 +103,8 @@ def scan_noise(ranges: ArrayLike, jump: float, surface: float = 0.0) -> FloatArr
     single object decides the estimate (a single-tree scan of a rough trunk would measure
     its bark, as a segment's own estimate does). Last, the share ``surface`` of the surfaces'
     own shape and roughness is taken out in quadrature, ``sqrt(max(e^2 - surface^2, 0))``.
+    ``missing`` is returned where there is no estimate (NaN tells "no estimate" from "less
+    than ``surface``"; ``rms_noise_from_fit``).
 
     Parameters
     ----------
@@ -107,7 +113,7 @@ def scan_noise(ranges: ArrayLike, jump: float, surface: float = 0.0) -> FloatArr
     surface : float, metres, >= 0 -- the surfaces' own share of the estimate
     """
     r = np.atleast_2d(np.asarray(ranges, dtype=np.float64))
-    out = np.zeros(r.shape[0])
+    out = np.full(r.shape[0], missing)
     if r.shape[1] < 5:
         return out
     a, b, c = r[:, :-2], r[:, 1:-1], r[:, 2:]
@@ -136,7 +142,7 @@ def segment_sigma(cfg: DetectorConfig, segs: Segments, mean_r: FloatArray) -> Fl
     sigma: FloatArray = cfg.sigma + cfg.sigma_rel * mean_r
     noise = segs.points.noise
     if cfg.sigma_from_scan and noise is not None and (cfg.sigma > 0 or cfg.sigma_rel > 0):
-        sigma = np.maximum(sigma, noise[segs.scan])
+        sigma = np.fmax(sigma, noise[segs.scan])  # (NaN: no estimate, rms_noise_from_fit)
     return sigma
 
 
@@ -172,6 +178,56 @@ def robust_residual_scale(segs: Segments, centers: FloatArray, radii: FloatArray
         m = d.shape[0]
         h = m // 2
         out[j] = 1.4826 * (d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h]))
+    return out
+
+
+#: Fewest returns of a candidate whose residual smoothness is measured (three second
+#: differences; fewer: NaN, and the lobe allowance of the RMS test does not apply).
+SMOOTH_MIN_POINTS = 8
+
+
+def residual_smoothness(segs: Segments, centers: FloatArray, radii: FloatArray) -> FloatArray:
+    """High-frequency scale of a circle fit's residuals along the arc, metres (ours, issue 11).
+
+    ``1.4826 median_i |e_{i-1} - 2 e_i + e_{i+1}| / sqrt(6)`` of the orthogonal residuals
+    ``e_i = |p_i - c| - r`` in beam order, the statistic of :func:`range_roughness` on the
+    residuals instead of the ranges: for i.i.d. noise of std s it estimates s, while a smooth
+    deviation from the circle (a lobe, an ellipse, a buttress flank) that changes little from
+    one return to the next adds almost nothing to it (a sinusoid of amplitude A and k returns
+    per period adds ``2 (1 - cos(2 pi / k)) A``, 0.38 A at k = 10). Scattered returns (a bush,
+    twigs, a clump of stems) raise it as much as their RMS. NaN for fewer than
+    :data:`SMOOTH_MIN_POINTS` returns or a failed fit."""
+    p = segs.points
+    out = np.full(len(segs), np.nan)
+    for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
+        m = int(b - a) - 2
+        if m + 2 < SMOOTH_MIN_POINTS or not np.isfinite(radii[j]):
+            continue
+        e = np.hypot(p.x[a:b] - centers[j, 0], p.y[a:b] - centers[j, 1]) - radii[j]
+        d = np.sort(np.abs(e[:-2] - 2.0 * e[1:-1] + e[2:]))
+        h = m // 2
+        out[j] = _ROUGH * (d[h] if m % 2 == 1 else 0.5 * (d[h - 1] + d[h]))
+    return out
+
+
+def own_noise(
+    cfg: DetectorConfig, segs: Segments, sigma: FloatArray, smooth: FloatArray
+) -> FloatArray:
+    """The candidate's own range noise with ``rms_noise_from_fit`` (ours, issue 11, twelfth
+    round): ``smooth`` (:func:`residual_smoothness`) where it lies in ``(sigma,
+    rms_noise_from_fit x sigma]`` on a scan without its own noise estimate (:func:`scan_noise`
+    NaN, or ``sigma_from_scan`` off), ``sigma`` elsewhere. Where the scan measured its noise
+    on its walls, ground and trunks, a candidate rougher than that is rough itself (a rock, a
+    bush), not a trunk in a noisy scan; and one rougher than the cap is no noisy trunk either
+    (the simulated demo's rocks read 2-13 cm, the real slices' trunks at 3 cm of range noise
+    1.7-4.8 cm, one 7.1; scan-detection.md, twelfth round)."""
+    noise = segs.points.noise
+    unknown = np.ones(len(segs), dtype=bool)
+    if cfg.sigma_from_scan and noise is not None:
+        unknown = ~np.isfinite(noise[segs.scan])
+    with np.errstate(invalid="ignore"):
+        use = unknown & (smooth > sigma) & (smooth <= cfg.rms_noise_from_fit * sigma)
+    out: FloatArray = np.where(use, smooth, sigma)
     return out
 
 
@@ -222,10 +278,16 @@ def fit_reasons(
     mean_r: FloatArray,
     rms: FloatArray,
     sigma: FloatArray,
+    smooth: FloatArray | None = None,
+    own: FloatArray | None = None,
 ) -> NDArray[np.int8]:
     """Reason code per fitted segment of the fit plausibility tests (ours): radius bounds, not
     near-flat (radius <= ratio x silhouette width), centre behind the visible surface, outline a
-    circle within the noise (RMS <= max_rms_sigma x sigma). Failed fits carry NaN."""
+    circle within the noise (RMS <= max_rms_sigma x sigma; with ``rms_noise_from_fit`` the
+    candidate's own noise ``own``, :func:`own_noise`), or with ``lobe_roughness`` a
+    smooth lobed outline (the residuals' high-frequency scale ``smooth``,
+    :func:`residual_smoothness`, within ``lobe_smooth_sigmas`` sigma and the RMS within the
+    lobe allowance). Failed fits carry NaN."""
     codes = np.zeros(centers.shape[0], dtype=np.int8)
     with np.errstate(invalid="ignore"):
         _first_failure(codes, ~fit_ok, "fit_failed")
@@ -237,8 +299,41 @@ def fit_reasons(
         )
         _first_failure(codes, ~(np.hypot(centers[:, 0], centers[:, 1]) > mean_r), "centre_in_front")
         if math.isfinite(cfg.max_rms_sigma):
-            _first_failure(codes, ~(rms <= rms_limit(cfg, sigma, radii)), "rms")
+            fails = ~(rms <= rms_limit(cfg, sigma, radii))
+            if smooth is not None or own is not None:
+                fails &= ~_relaxed_rms(cfg, radii, sil_width, rms, sigma, smooth, own)
+            _first_failure(codes, fails, "rms")
     return codes
+
+
+def _relaxed_rms(
+    cfg: DetectorConfig,
+    radii: FloatArray,
+    sil_width: FloatArray,
+    rms: FloatArray,
+    sigma: FloatArray,
+    smooth: FloatArray | None,
+    own: FloatArray | None,
+) -> NDArray[np.bool_]:
+    """Candidates that fail the RMS test but pass it as a noisy or lobed trunk
+    (``rms_noise_from_fit``, ``lobe_roughness``): residuals that are the white noise the
+    candidate's own noise ``own`` (:func:`own_noise`) measures, ``RMS <= rms_own_sigmas x
+    sqrt(own^2 + (bark_roughness r)^2)`` where ``own`` exceeds ``sigma`` (white noise of scale s
+    has RMS ~ s, a lobe or a rock's face adds to the RMS more than to ``own``), or a smooth
+    outline (``smooth <= lobe_smooth_sigmas x sigma``) within the lobe allowance; and in both
+    cases a silhouette no wider than the circle, ``sil_width <= 2 r + 2 max_rms_sigma x own``
+    (a circle's outline cannot be wider than its diameter: a bark ridge or a flat face fitted
+    as a small circle is)."""
+    s = sigma if own is None else own
+    ok = np.zeros(rms.shape[0], dtype=bool)
+    if own is not None:
+        br = cfg.bark_roughness * radii
+        ok |= (own > sigma) & (rms <= cfg.rms_own_sigmas * np.sqrt(own * own + br * br))
+    if cfg.lobe_roughness > 0.0 and smooth is not None:
+        lobed = rms <= rms_limit(cfg, sigma, radii, cfg.lobe_roughness)
+        ok |= lobed & (smooth <= cfg.lobe_smooth_sigmas * sigma)
+    out: NDArray[np.bool_] = ok & (sil_width <= 2.0 * radii + 2.0 * cfg.max_rms_sigma * s)
+    return out
 
 
 def fitted_reasons(cfg: DetectorConfig, fitted: _Fitted) -> NDArray[np.int8]:
@@ -252,18 +347,24 @@ def fitted_reasons(cfg: DetectorConfig, fitted: _Fitted) -> NDArray[np.int8]:
         fitted.mean_r,
         fitted.test_rms,
         fitted.sigma,
+        fitted.smooth,
+        fitted.own_noise,
     )
 
 
-def rms_limit(cfg: DetectorConfig, sigma: FloatArray, radii: FloatArray) -> FloatArray:
+def rms_limit(
+    cfg: DetectorConfig, sigma: FloatArray, radii: FloatArray, roughness: float | None = None
+) -> FloatArray:
     """Largest residual scale the RMS test accepts: ``max_rms_sigma x sigma`` or, with
     ``bark_roughness`` b > 0, ``max_rms_sigma x sqrt(sigma^2 + (b r)^2)`` (ours, issue 11): a
     real trunk's outline deviates from its best circle by a roughly constant fraction of its
     radius (bark ridges, ellipticity; the ring references of the real slices: 2.5-8 %), so a
-    large trunk may be rougher than the sensor noise. Same arithmetic as the compiled path."""
+    large trunk may be rougher than the sensor noise. ``roughness`` replaces b (the lobe
+    allowance, ``lobe_roughness``). Same arithmetic as the compiled path."""
     k = cfg.max_rms_sigma
-    if cfg.bark_roughness > 0.0:
-        br = cfg.bark_roughness * radii
+    b = cfg.bark_roughness if roughness is None else roughness
+    if b > 0.0:
+        br = b * radii
         out: FloatArray = k * np.sqrt(sigma * sigma + br * br)
         return out
     return k * sigma

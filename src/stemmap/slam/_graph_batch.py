@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from stemmap.slam._graph_continue import ContinuedGraph
 from stemmap.slam._graph_marginals import _merge_duplicates
 from stemmap.slam._graph_odometry import _calibration_lsq
 from stemmap.slam.relocalise import joint_prior_factor
@@ -81,6 +82,7 @@ def batch_rounds(
     gk: np.ndarray,
     prior_map: StemMap | None,
     calib: Calibration | None,
+    cont: ContinuedGraph | None = None,
 ) -> BatchOutcome:
     """Merge duplicates and re-estimate the calibration, alternated with batch LM.
 
@@ -96,6 +98,9 @@ def batch_rounds(
 
     ``anchor_fac``: the priors of keyframes that entered after a long left-out run
     (:func:`~stemmap.slam._graph_revisits.anchor_prior`), kept as they are when rebuilding.
+
+    ``cont``: a continued earlier session graph (:mod:`stemmap.slam._graph_continue`), its
+    factors and poses kept when rebuilding (its measurements of merged trees re-keyed).
 
     ``lm`` = (lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_in_graph), the landmark
     bookkeeping, updated in place for merged trees (and so are ``map_fac`` and ``meas_fac``).
@@ -167,6 +172,11 @@ def batch_rounds(
                 )
             g2.add(meas_fac[i_m])
         v2 = gtsam.Values()
+        if cont is not None:
+            for fac_c in cont.factors(gtsam, LK, meas_noise, alias):
+                g2.add(fac_c)
+            for key_c, val_c in cont.values(gtsam, result):
+                v2.insert(key_c, val_c)
         for k_ in gk.tolist():
             v2.insert(XK(k_), result.atPose2(XK(k_)))
         for key_g in gnss_keys:

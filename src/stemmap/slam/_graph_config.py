@@ -127,6 +127,16 @@ class Isam2Config:
         this map then continues from the correlated prior of all its trees instead of
         independent per-tree priors (docs/algorithms/slam.md "Prior maps"). Off by default:
         (2N)² floats (~12 MB for the ~600 trees of the full Victoria Park run)
+    export_graph : also return the session's factor graph (``SlamResult.graph``,
+        :mod:`stemmap.slam._graph_continue`; ``graph.npz`` beside the map) so that a later
+        session can continue it (``SlamProblem.prior_graph``). Not for a session held by a
+        marginal prior map or fused with GNSS (their priors are not in the saved graph): None
+    prior_graph_inflation : factor (> 0) on the covariances of a continued graph's odometry
+        and measurement factors (``SlamProblem.prior_graph``; its gauge prior as saved): the
+        earlier session's information / factor, as ``prior_map_inflation`` for the marginal
+        prior. 4 by default: chosen on the 400-s and 800-s Victoria Park session pairs
+        (session 2 1.335 / 1.482 m at 1, 1.288 / 1.464 at 2, **1.282 / 1.446** at 4, 1.265 /
+        1.485 at 8, 1.272 / 1.509 at 16); docs/algorithms/slam.md "Continuing the saved graph"
     """
 
     sigma_range: float = 0.10
@@ -176,6 +186,8 @@ class Isam2Config:
     joint_information: bool = False
     prior_map_robust: str = "huber"
     prior_map_inflation: float = 4.0
+    export_graph: bool = False
+    prior_graph_inflation: float = 4.0
 
     def __post_init__(self) -> None:
         for name in ("robust", "gnss_robust", "prior_map_robust"):
@@ -192,6 +204,7 @@ class Isam2Config:
             "gate_chi2",
             "new_chi2",
             "prior_map_inflation",
+            "prior_graph_inflation",
             "max_range",
             "relinearize_threshold",
             "batch_rel_tol",

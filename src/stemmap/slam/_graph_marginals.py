@@ -111,7 +111,10 @@ def _information_blocks(
     else:
         from scipy.sparse.linalg import splu
 
-        solve = splu(h_pp.tocsc()).solve
+        try:
+            solve = splu(h_pp.tocsc()).solve
+        except RuntimeError as exc:  # SuperLU: "Factor is exactly singular" (e.g. a bare key)
+            raise np.linalg.LinAlgError(f"pose information is singular: {exc}") from exc
     return h_ll, h_pl, h_pp, solve, all_keys[is_pt], all_keys[~is_pt]
 
 
@@ -174,7 +177,9 @@ def _chain_blocks(h_pp: Any, ps_keys: np.ndarray) -> tuple[FloatArray, FloatArra
     eliminated: ``(diagonal blocks, sub-diagonal blocks, chain position of each pose key or
     -1)`` (ours).
 
-    Chain = the ``'x'`` keys (keyframe sensor poses). Any other Pose2 variable must be a leaf
+    Chain = the ``'x'`` keys (keyframe sensor poses), after the ``'w'`` keys of a continued
+    earlier session (:mod:`stemmap.slam._graph_continue`; its own chain, no factor links the
+    two, so the block between them is zero). Any other Pose2 variable must be a leaf
     tied to one keyframe (a GNSS fix's antenna pose ``Z(i)``: a between factor to its keyframe
     and a prior of its own, :mod:`stemmap.slam.gnss`); it is eliminated exactly by the Schur
     complement ``H_cc - H_cz H_zz⁻¹ H_zc``, which only adds to its keyframe's diagonal block,
@@ -182,7 +187,8 @@ def _chain_blocks(h_pp: Any, ps_keys: np.ndarray) -> tuple[FloatArray, FloatArra
     whole graph. Any other structure: ValueError.
     """
     n_b = ps_keys.size
-    leaf = (ps_keys >> np.uint64(56)) != np.uint64(ord("x"))
+    sym = ps_keys >> np.uint64(56)
+    leaf = (sym != np.uint64(ord("x"))) & (sym != np.uint64(ord("w")))
     cpos = np.full(n_b, -1, dtype=np.int64)
     cpos[~leaf] = np.arange(int((~leaf).sum()))
     n_c = int((~leaf).sum())

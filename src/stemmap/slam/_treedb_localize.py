@@ -16,6 +16,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from stemmap.slam.treedb import TreeDb
 
 IntArray = NDArray[np.int64]
+#: (K, H_x, H_m, matched detections, their landmarks) of one update; :func:`localize_pose`
+Gain = tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray]
 
 
 def compose_jacobian(pose: FloatArray, delta: FloatArray) -> FloatArray:
@@ -48,11 +50,14 @@ def localize_pose(
     R: FloatArray,
     offset: tuple[float, float],
     chi2_gate: float,
-) -> tuple[FloatArray, FloatArray, IntArray]:
+) -> tuple[FloatArray, FloatArray, IntArray, Gain | None]:
     """Pose-only EKF update from detections matched to fixed landmarks (nearest, gated).
 
-    Returns the updated pose and covariance and, per detection, the matched landmark (index into
-    ``lm_xy``) or -1.
+    Returns the updated pose and covariance, per detection the matched landmark (index into
+    ``lm_xy``) or -1, and the update's linear form (None without a match): the gain ``K``
+    (3, 2m) over the matched detections' stacked (range, bearing) innovations, their pose and
+    landmark Jacobians ``H_x`` (2m, 3) and ``H_m`` (m, 2, 2), the matched detections' indices
+    and their landmarks' (for :class:`~stemmap.slam._treedb_errors.TreeDbErrors`).
     """
     from stemmap.slam.treedb import range_bearing_jacobians
 
@@ -80,7 +85,7 @@ def localize_pose(
     kk = np.flatnonzero(ok)
     matched = np.where(ok, j, -1).astype(np.int64)
     if kk.size == 0:
-        return pose, P, matched
+        return pose, P, matched, None
     jj = j[kk]
     H = Hx[jj].reshape(-1, 3)
     y = nu[kk, jj].reshape(-1)
@@ -94,4 +99,5 @@ def localize_pose(
     new_pose[2] = wrap_angle(new_pose[2])
     I_KH = np.eye(3) - K @ H
     P_new = I_KH @ P @ I_KH.T + K @ Rb @ K.T  # Joseph form
-    return new_pose, 0.5 * (P_new + P_new.T), matched
+    gain = (K, H, Hm[jj], kk.astype(np.int64), jj.astype(np.int64))
+    return new_pose, 0.5 * (P_new + P_new.T), matched, gain

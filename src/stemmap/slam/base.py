@@ -353,6 +353,11 @@ class SlamProblem:
         A map of an earlier session, in whose frame ``initial_pose`` is given (e.g. from
         :func:`stemmap.slam.relocalise.relocalise`); ``isam2`` starts from its trees (with
         their covariances as priors) and returns the merged map.
+    prior_graph : SavedGraph or None
+        With ``prior_map``: that session's factor graph
+        (:class:`stemmap.slam._graph_continue.SavedGraph`, its trees the map's); ``isam2``
+        then continues it (the earlier poses and trees stay variables) instead of holding the
+        trees by marginal priors. Other back-ends ignore it.
     """
 
     controls: Controls
@@ -365,6 +370,7 @@ class SlamProblem:
     fov: tuple[float, float] = (-math.pi, math.pi)
     gnss: GnssFixes | None = None
     prior_map: StemMap | None = None
+    prior_graph: Any = None
 
     def __post_init__(self) -> None:
         if len(self.frames) == 0:
@@ -383,6 +389,9 @@ class SlamResult:
     #: spread, calibrated; EKF: the smoothed path's; iSAM2: keyframe marginals; docs/outputs.md
     #: "trajectory.csv")
     pose_covs: FloatArray | None = None
+    #: the session's factor graph (:class:`stemmap.slam._graph_continue.SavedGraph`; iSAM2 with
+    #: ``export_graph``), for ``graph.npz`` beside the map; else None
+    graph: Any = None
 
 
 @runtime_checkable

@@ -51,6 +51,12 @@ enters after a long left-out run is anchored by a prior at its tracked pose inst
 odometry factor to the remote last graph keyframe (``revisit_anchor_after``,
 :func:`~stemmap.slam._graph_revisits.anchor_prior`).
 
+Sessions (docs/algorithms/slam.md "Maps reused across sessions"): with ``problem.prior_map``
+its trees start as landmarks held by marginal priors (:mod:`stemmap.slam.relocalise`), or,
+with ``problem.prior_graph``, the earlier session's whole graph is continued (its poses
+``W(i)`` and trees stay variables, :mod:`stemmap.slam._graph_continue`); ``export_graph``
+returns this session's graph for the next one.
+
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
 order, ``δ(c) = δ0 Exp(J c)``. They are estimated from the graph's own poses
@@ -76,6 +82,7 @@ import numpy as np
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_batch import Calibration, batch_rounds
 from stemmap.slam._graph_config import Isam2Config
+from stemmap.slam._graph_continue import ContinuedGraph, export_graph, graph_stats
 from stemmap.slam._graph_localise import localise_windows, restart_covariance
 from stemmap.slam._graph_marginals import (
     _fit_diagnostics,
@@ -161,6 +168,7 @@ class Isam2Slam:
     def _run(self, problem: SlamProblem, progress: Callable[[int, int], None] | None) -> SlamResult:
         import gtsam
         from gtsam.symbol_shorthand import L as LK
+        from gtsam.symbol_shorthand import W as WK
         from gtsam.symbol_shorthand import X as XK
 
         cfg = self.config
@@ -344,11 +352,22 @@ class Isam2Slam:
             if problem.prior_map is None
             else inflate_prior(problem.prior_map, cfg.prior_map_inflation)
         )
+        # or that session's whole graph, continued (_graph_continue): its poses W(i), its
+        # trees these landmarks, its factors instead of the marginal priors
+        cont = None
+        if pmap is not None and problem.prior_graph is not None:
+            cont = ContinuedGraph(problem.prior_graph, pmap, WK, cfg.prior_graph_inflation)
+            for key_w, val_w in cont.values(gtsam):
+                new_v.insert(key_w, val_w)
+            for fac_w in cont.factors(gtsam, LK, meas_noise):
+                new_f.add(fac_w)
+                graph_all.add(fac_w)
         if pmap is not None and len(pmap):
             # a map of an earlier session (relocalised into: problem.initial_pose is in its
             # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
             # prior, so this session updates them and adds new ones (one merged map)
             n_lm = n_prior
+            cont_xy = None if cont is None else cont.tree_xy(n_prior)
             for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
                 prior_tree_factors(pmap, LK, cfg.min_obs, kernel=prior_kernel)
             ):
@@ -357,12 +376,15 @@ class Isam2Slam:
                     lm_dsum[j_p], lm_dn[j_p] = d_p * n_p, n_p
                 lm_nobs[j_p] = n_p
                 lm_in_graph[j_p] = True
+                if cont_xy is not None:  # held by the continued graph, not by a prior
+                    xy_p = lm_xy[j_p] = cont_xy[j_p]
+                    fac_p = None
                 new_v.insert(LK(j_p), xy_p.copy())
                 if fac_p is not None:
                     new_f.add(fac_p)
                     graph_all.add(fac_p)
                 map_fac.append(fac_p)
-            if prior_kernel is None:  # None: per-tree priors above
+            if prior_kernel is None and cont is None:  # None: per-tree priors above
                 joint_fac = joint_prior_factor(pmap, LK)
             if joint_fac is not None:
                 new_f.add(joint_fac)
@@ -625,7 +647,8 @@ class Isam2Slam:
         def kf_poses(values: Any) -> FloatArray:
             """(nk, 3) sensor poses of the graph keyframes in ``values`` (NaN elsewhere)."""
             out = np.full((nk, 3), np.nan)
-            out[gk] = gtsam.utilities.extractPose2(values)[: gk.size]
+            n_w = 0 if cont is None else cont.n_poses  # (W sorts before X)
+            out[gk] = gtsam.utilities.extractPose2(values)[n_w : n_w + gk.size]
             return out
 
         n_matched = int(counters[C_LOCAL] + counters[C_REACQ] + counters[C_SINGLE])
@@ -646,7 +669,7 @@ class Isam2Slam:
             odo_factor=odo_factor, edges=edges, odo_fac=odo_fac, map_fac=map_fac,
             joint_fac=joint_fac, gnss_fac=gnss_fac, anchor_fac=anchor_fac, gnss_keys=gnss_keys,
             meas_rec=meas_rec, meas_fac=meas_fac, meas_noise=meas_noise, gk=gk,
-            prior_map=pmap,
+            prior_map=pmap, cont=cont,
             calib=Calibration(
                 odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
             ) if calibrate else None,
@@ -677,6 +700,7 @@ class Isam2Slam:
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK),
         )  # fmt: skip
+        skipped.close()  # (its spill file, _graph_leftout)
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
         veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
@@ -688,6 +712,13 @@ class Isam2Slam:
         trees = map_trees(
             keep, pts, covs, (lm_dsum, lm_dn, lm_nobs, lm_first, lm_last), frames.times
         )
+        saved = None
+        if cfg.export_graph and not (map_fac and cont is None) and not gnss_fac:
+            # (on a marginal prior or with GNSS fixes the graph is not the whole story)
+            saved = export_graph(
+                gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep, alias=alias,
+                odo_fac=odo_fac, pose_priors=[pf, *anchor_fac], meas_rec=meas_rec, cont=cont,
+            )  # fmt: skip
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,
@@ -719,6 +750,7 @@ class Isam2Slam:
             "calibration_segments": n_seg,
             "calibration_rounds": n_cal_rounds,
             **gnss_stats(result, gnss_plan, gnss_keys),
+            **graph_stats(cont),
             "incremental_s": t_inc,
             "runtime_s": runtime,
         }
@@ -726,4 +758,6 @@ class Isam2Slam:
             stats.update(calibration_stats(c_used))
         log.info("iSAM2: %s", stats)
         stem_map = StemMap(tuple(trees), information=info_j)
-        return SlamResult(frame_trajectory(frames.times, veh), stem_map, stats, pose_covs)
+        return SlamResult(
+            frame_trajectory(frames.times, veh), stem_map, stats, pose_covs, graph=saved
+        )

@@ -50,6 +50,7 @@ __all__ = [
     "RigidFit",
     "fit_rigid_robust",
     "loop_constraint",
+    "loop_measurements",
     "relax_trajectory",
     "relaxed_pose_covariances",
     "remap_trees",
@@ -209,21 +210,32 @@ def _relax_graph(
             nm = gtsam.noiseModel.Diagonal.Sigmas(sig)
         graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*rel[k]), nm))
     cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(nz.loop_robust_k)
+    for a, b, meas, lc in loop_measurements(p, kf, loops):
+        base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(lc.sigmas, dtype=np.float64))
+        robust = gtsam.noiseModel.Robust.Create(cauchy, base)
+        graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*meas), robust))
+    return graph, init, kp
+
+
+def loop_measurements(
+    p: FloatArray, kf: IntArray, loops: list[LoopClosure]
+) -> list[tuple[int, int, FloatArray, LoopClosure]]:
+    """The loops as constraints between keyframes ``(a, b, measured kp[a]⁻¹ ⊕ kp[b], loop)``:
+    endpoints snapped to the keyframe at or before them, the measured delta carried over the
+    sub-keyframe offsets at ``p``; loops within one keyframe dropped."""
+    nf = p.shape[0]
+    out = []
     for lc in loops:
         if not (0 <= lc.j < nf and 0 <= lc.i < nf):
             raise InputError(f"relax_trajectory: loop {lc} refers to frames outside 0..{nf - 1}.")
-        # snap to keyframes; carry the measured delta over the sub-keyframe offsets
         a = int(np.searchsorted(kf, lc.j, side="right")) - 1
         b = int(np.searchsorted(kf, lc.i, side="right")) - 1
         if a == b:
             continue
         off_a = between(p[kf[a]], p[lc.j])
         off_b = between(p[kf[b]], p[lc.i])
-        meas = compose(compose(off_a, np.asarray(lc.delta)), _inverse(off_b))
-        base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(lc.sigmas, dtype=np.float64))
-        robust = gtsam.noiseModel.Robust.Create(cauchy, base)
-        graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*meas), robust))
-    return graph, init, kp
+        out.append((a, b, compose(compose(off_a, np.asarray(lc.delta)), _inverse(off_b)), lc))
+    return out
 
 
 def relaxed_pose_covariances(

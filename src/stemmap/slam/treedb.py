@@ -30,8 +30,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.slam._treedb_errors import TreeDbErrors
 from stemmap.slam._treedb_localize import compose_jacobian, landmark_covariances, localize_pose
-from stemmap.slam.loop_closure import LoopConfig, output_pose_covariances
+from stemmap.slam.loop_closure import LoopConfig
 from stemmap.slam.tree_covariance import with_tree_covariances
 from stemmap.types import FloatArray, StemMap, Tree, wrap_angle
 
@@ -144,16 +145,6 @@ class TreeDbConfig:
 
 
 #: Published parameter sets. ``"visual_lidar"``: the paper's count threshold 20 and our 0.5 m gate.
-#: Factor on the variances of the relaxation chain (``RelaxNoise``) in the pose graph whose
-#: marginals are the reported ``SlamResult.pose_covs`` (:func:`~stemmap.slam.loop_closure.
-#: output_pose_covariances`; the dead-reckoned frames' odometry covariance is not scaled): the
-#: tree DB and Forestrix share the chain model, so one factor, chosen on the first half of
-#: Victoria Park (both back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so
-#: that 86.5 % of the fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose
-#: covariances of the other back-ends"; ``python benchmarks/pose_covariance.py
-#: --vp-chain-factor``).
-TREEDB_POSE_COV_INFLATION = 0.0038
-
 PRESETS: dict[str, TreeDbConfig] = {
     "visual_lidar": TreeDbConfig(gate=0.5, promote_count=20),
 }
@@ -428,10 +419,17 @@ class TreeDbSlam:
     nearest-neighbour Mahalanobis association, landmarks held fixed but their scatter added to
     the measurement noise), then map the frame's detections at that pose and feed them to
     :func:`treedb_update`. The stem map holds the entries promoted at ``promote_count``.
-    Every tree's reported covariance is that of the average of its detections with the
-    reported pose covariances (``SlamResult.pose_covs``) propagated into each detection and
-    correlated between the frames that saw it
-    (:func:`~stemmap.slam.tree_covariance.mapped_tree_covariances`; issue 14).
+    The reported pose covariance (``SlamResult.pose_covs``; issue 14) is derived from the
+    estimator itself, with no factor fitted to data: the first-order error covariance of the
+    pose *and of the DB entries it localises on*, propagated with the gains the filter used
+    (odometry prediction, localisation against landmarks mapped from earlier poses, eq. (2)
+    averaging of the detections into the DB; :class:`~stemmap.slam._treedb_errors.
+    TreeDbErrors`), and, with loop closure, pulled in by the loop constraints of the
+    relaxation (:meth:`~stemmap.slam._treedb_errors.TreeDbErrors.pose_covariances`). The
+    filter's own ``P`` treats the map as known and is only its gain. Every tree's reported
+    covariance is that of the average of its detections with the reported pose covariances
+    propagated into each detection and correlated between the frames that saw it
+    (:func:`~stemmap.slam.tree_covariance.mapped_tree_covariances`).
 
     Parameters
     ----------
@@ -446,7 +444,8 @@ class TreeDbSlam:
     localize : bool
         False = the paper's open-loop pipeline (poses are pure odometry).
     sigma_range : float, m; sigma_bearing : float, rad
-        Detection noise for the localisation update.
+        Detection noise for the localisation update, and of every detection in the derived
+        pose and tree covariances.
     chi2_gate : float
         Squared Mahalanobis gate for landmark association (2 dof; 9.21 = 99 %).
     landmark_association : bool
@@ -550,6 +549,8 @@ class TreeDbSlam:
                 ),
                 frames.times,
             )
+        # issue 14: the error covariance of this estimator as it runs (module doc)
+        errs = TreeDbErrors(nf, R)
         n_updates = 0
         n_loop_merged = 0
         for f in range(nf):
@@ -560,6 +561,7 @@ class TreeDbSlam:
                 c, s = math.cos(pose[2]), math.sin(pose[2])
                 Rw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
                 P = Fx @ P @ Fx.T + Rw @ pre.covs[f - 1] @ Rw.T
+                errs.predict(Fx, Rw @ pre.covs[f - 1] @ Rw.T)
                 pose = compose(pose, delta)
             r, b, d = frames.frame(f)
             use = r <= self.max_range
@@ -568,14 +570,17 @@ class TreeDbSlam:
             known = None
             active = None
             corrected = False
+            gain = None
             if closer is not None and len(db):
                 active = (db.count > 0) & (tf - db.last_time <= self.loop_gap_s)
+                if self.localize_recent_only:
+                    errs.drop(np.flatnonzero(~active))
             if self.localize and r.size and len(db):
                 lm = db.landmarks(self.promote_count)
                 if active is not None and self.localize_recent_only:
                     lm = lm[active[lm]]
                 if lm.size:
-                    pose, P, matched = localize_pose(
+                    pose, P, matched, gain = localize_pose(
                         pose,
                         P,
                         r,
@@ -590,18 +595,27 @@ class TreeDbSlam:
                     corrected = bool(np.any(matched >= 0))
                     if self.landmark_association:
                         known = np.where(matched >= 0, lm[np.clip(matched, 0, None)], -1)
+                    if gain is not None:
+                        gain = (*gain[:4], lm[gain[4]])
             poses[f] = pose
             pose_covs[f] = P
             if f > 0 and not corrected:
                 dr_cov[f] = pre.covs[f - 1]
             if r.size:
                 xy = observation_to_world(pose, r, b, off)
+                n_old, cnt_old = len(db), db.count
                 db, idx = treedb_update(
                     db, xy, d, tf, gate=self.gate, known=known, candidates=active
                 )
                 det_entry[frames.ptr[f] : frames.ptr[f + 1]][use] = idx
+                c_before = np.zeros(idx.size, dtype=np.int64)
+                c_before[idx < n_old] = cnt_old[idx[idx < n_old]]
+                errs.frame(pose, r, b, off, gain, idx, c_before)
             if closer is not None:
+                n_kf = len(closer.keyframes)
                 closer.on_frame(f, poses)
+                errs.record(f, len(closer.keyframes) > n_kf)
+                n_kf = len(closer.keyframes)
                 if closer.due(tf) and len(db) >= 2 * closer.cfg.min_matches:
                     sp = observation_to_world(pose, [0.0], [0.0], off)[0]
                     alive = db.count > 0
@@ -617,10 +631,17 @@ class TreeDbSlam:
                         min_count=self.promote_count,
                         old_min_count=self.promote_count,
                     )
+                    if len(closer.keyframes) > n_kf:  # a loop's endpoint became a keyframe
+                        errs.promote(f)
                     if found is not None:
                         n_loop_merged += found[0].size
-                        db = self._relax(closer, found, poses, det_entry, f, frames, off, dr_cov)
+                        errs.merge(found[0], found[1], db.count)
+                        db = self._relax(
+                            closer, found, poses, det_entry, f, frames, off, dr_cov, errs.merge
+                        )
                         pose = poses[f].copy()
+            else:
+                errs.record(f, False)
             if progress is not None and (f % 200 == 0 or f == nf - 1):
                 progress(f + 1, nf)
         if closer is not None and self.merge_dist > 0 and len(db):
@@ -641,8 +662,12 @@ class TreeDbSlam:
                 pose_covs=pose_covs,
                 gate=self.gate,
             )
-        out_covs = output_pose_covariances(
-            poses, frames.times, closer, dr_cov, TREEDB_POSE_COV_INFLATION
+        out_covs = (
+            errs.abs_cov
+            if closer is None
+            else errs.pose_covariances(
+                poses, closer.keyframes, closer.loops, closer.cfg.noise.loop_robust_k
+            )
         )
         # issue 14: the reported pose covariances propagated, correlated between frames
         stem_map = with_tree_covariances(
@@ -683,9 +708,11 @@ class TreeDbSlam:
         frames: TreeFrames,
         off: tuple[float, float],
         dr_cov: FloatArray,
+        on_merge: Callable[[IntArray, IntArray, IntArray], None] | None = None,
     ) -> TreeDb:
         """Merge the revisited entries, relax the trajectory, rebuild the DB from the relaxed
-        poses and merge the entries that now lie on top of each other."""
+        poses and merge the entries that now lie on top of each other (``on_merge(src, dst,
+        counts)`` told of the latter)."""
         from stemmap.slam.base import observation_to_world
         from stemmap.slam.loop_closure import relabel
 
@@ -699,7 +726,7 @@ class TreeDbSlam:
         args = (frames.diameters[:k_end], frames.times[fi])
         db = treedb_from_detections(xy, *args, ent, n)
         if self.merge_dist > 0:
-            db = self._merge_close(db, det_entry, poses, f, frames, off)
+            db = self._merge_close(db, det_entry, poses, f, frames, off, on_merge)
         return db
 
     def _merge_close(
@@ -710,6 +737,7 @@ class TreeDbSlam:
         f: int,
         frames: TreeFrames,
         off: tuple[float, float],
+        on_merge: Callable[[IntArray, IntArray, IntArray], None] | None = None,
     ) -> TreeDb:
         """Merge entries closer than ``merge_dist`` with compatible diameters (iSAM2's rule)
         and rebuild the DB from the detections of frames ``0..f`` at ``poses``."""
@@ -726,6 +754,8 @@ class TreeDbSlam:
         )
         if src.size == 0:
             return db
+        if on_merge is not None:
+            on_merge(src, dst, db.count)
         k_end = int(frames.ptr[f + 1])
         ent = det_entry[:k_end]
         relabel(ent, src, dst, len(db))
