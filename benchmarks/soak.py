@@ -30,6 +30,10 @@ Reported per back-end and repeat count:
   and for iSAM2 per pass the graph keyframes and measurement factors added and the RSS at the
   pass's end (``VmRSS``: the current size, where ``peak_rss_mb`` is the peak).
 
+The progress log is flat doubles (48 bytes per progress call; a list of tuples grew this
+process by ~0.6 MB per pass, which the RSS slope counted as the back-end's). Where the memory
+goes part by part: ``benchmarks/soak_memory.py``.
+
 A warm-up run on the first 60 s compiles the numba kernels before timing. Absolute times are
 from a loaded shared machine (2 cores, ~8 users): compare the ratios.
 
@@ -41,7 +45,7 @@ KEY=VALUE ...]`` (``--set`` overrides one setting of the back-end's config, as i
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import array
 import json
 import os
 import resource
@@ -54,73 +58,13 @@ from typing import Any
 
 import numpy as np
 
-GAP_S = 1.0  # standstill between passes
+from _soak_common import GAP_S, revisit_drive  # shared with soak_memory.py
+from _soak_common import parse_settings as _parse_settings
+from _soak_common import rss_now_mb as _rss_now_mb
 
 
 def _rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
-
-
-def revisit_drive(vp: Any, passes: int) -> tuple[Any, list[tuple[float, float]]]:
-    """``vp`` driven ``passes`` times, forward and backward alternately (see module doc).
-
-    Returns the new :class:`~stemmap.datasets.victoria_park.VictoriaPark` and the time span
-    (s) of every pass.
-    """
-    from stemmap.slam.base import Controls, TreeFrames
-
-    c, fr = vp.controls, vp.frames
-    t0 = float(min(c.times[0], fr.times[0], vp.gps_times[0]))
-    t1 = float(max(c.times[-1], fr.times[-1], vp.gps_times[-1]))
-    span = t1 - t0
-    det = [fr.frame(f) for f in range(len(fr))]
-    ct, cv, cs, ft, fd, gt, gx, spans = [], [], [], [], [], [], [], []
-    for p in range(passes):
-        base = t0 + p * (span + GAP_S)
-        spans.append((base, base + span))
-        if p % 2 == 0:
-            ct.append(c.times - t0 + base)
-            cv.append(c.speed)
-            cs.append(c.steer)
-            ft.append(fr.times - t0 + base)
-            fd += det
-            gt.append(vp.gps_times - t0 + base)
-            gx.append(vp.gps_xy)
-        else:
-            # control i holds on [t_i, t_i+1): backwards it holds from the image of t_i+1
-            ct.append(base + (t1 - c.times[1:][::-1]))
-            cv.append(-c.speed[:-1][::-1])
-            cs.append(c.steer[:-1][::-1])
-            ft.append(base + (t1 - fr.times[::-1]))
-            fd += det[::-1]
-            gt.append(base + (t1 - vp.gps_times[::-1]))
-            gx.append(vp.gps_xy[::-1])
-    counts = [len(d[0]) for d in fd]
-    frames = TreeFrames(
-        np.concatenate(ft),
-        np.concatenate(([0], np.cumsum(counts))).astype(np.int64),
-        *(np.concatenate([d[k] for d in fd]) for k in range(3)),
-    )
-    controls = Controls(np.concatenate(ct), np.concatenate(cv), np.concatenate(cs), c.kind)
-    rep = dataclasses.replace(
-        vp,
-        controls=controls,
-        frames=frames,
-        gps_times=np.concatenate(gt),
-        gps_xy=np.concatenate(gx),
-    )
-    return rep, spans
-
-
-def _rss_now_mb() -> float:
-    """Resident set size now (``VmRSS``; 0 where /proc is missing)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return round(int(line.split()[1]) / 1024.0, 1)
-    except OSError:
-        pass
-    return 0.0
 
 
 def _count_graph_growth() -> list[int]:
@@ -148,10 +92,10 @@ def _count_graph_growth() -> list[int]:
     return n
 
 
-def _per_100(marks: list[tuple[int, float]], n: int) -> dict[str, Any]:
+def _per_100(marks: np.ndarray, n: int) -> dict[str, Any]:
     """Seconds per 100 scans in the first and last tenth, from (frames done, time) marks."""
-    f = np.array([0] + [m[0] for m in marks], dtype=float)
-    t = np.array([0.0] + [m[1] for m in marks])
+    f = np.concatenate(([0.0], marks[:, 0]))
+    t = np.concatenate(([0.0], marks[:, 1]))
     a, b = np.interp([0.1 * n, 0.9 * n], f, t)
     first = 100.0 * a / (0.1 * n)
     last = 100.0 * (t[-1] - b) / (f[-1] - 0.9 * n)
@@ -162,14 +106,12 @@ def _per_100(marks: list[tuple[int, float]], n: int) -> dict[str, Any]:
     }
 
 
-def _cpu_pass(
-    marks: list[tuple[int, float]], cpu: list[tuple[float, float]], fa: int, fb: int
-) -> dict[str, Any]:
+def _cpu_pass(marks: np.ndarray, cpu: np.ndarray, fa: int, fb: int) -> dict[str, Any]:
     """CPU time per scan (ms) of the progress intervals ending in frames ``(fa, fb]``: median,
     99th percentile and total; and the RSS (MB, ``VmRSS``) at the pass's last progress call."""
-    f = np.array([0] + [m[0] for m in marks], dtype=float)
-    c = np.array([0.0] + [m[0] for m in cpu])
-    rss = np.array([0.0] + [m[1] for m in cpu])
+    f = np.concatenate(([0.0], marks[:, 0]))
+    c = np.concatenate(([0.0], cpu[:, 0]))
+    rss = np.concatenate(([0.0], cpu[:, 1]))
     i = np.flatnonzero((f[1:] > fa) & (f[1:] <= fb)) + 1
     if i.size == 0:
         return {}
@@ -203,10 +145,11 @@ def _worker(
     make(backend).run(vp.slice(0.0, 60.0).problem())  # compile numba kernels before timing
     rep, spans = revisit_drive(vp, repeats)
     rss_load = _rss_mb()
-    marks: list[tuple[int, float]] = []
-    cpu_marks: list[tuple[float, float]] = []  # process CPU time and RSS now, per progress call
+    # per progress call: frames done, wall time, process CPU time, RSS now, graph keyframes and
+    # measurement factors added so far (iSAM2); flat doubles (8 bytes each: a list of tuples
+    # grew this process by ~0.6 MB per pass of 1,450 progress calls, which the RSS slope saw)
+    log = array.array("d")
     seen: dict[str, Any] = {}
-    graph_marks: list[tuple[int, int, int, float]] = []  # frames, keyframes, factors, RSS
     grown = _count_graph_growth() if backend == "isam2" else None
 
     class Timed:
@@ -218,10 +161,8 @@ def _worker(
             c_start = time.process_time()
 
             def tick(done: int, total: int) -> None:
-                marks.append((done, time.perf_counter() - t_start))
-                cpu_marks.append((time.process_time() - c_start, _rss_now_mb()))
-                if grown is not None:
-                    graph_marks.append((done, grown[0], grown[1], _rss_now_mb()))
+                log.extend((done, time.perf_counter() - t_start, time.process_time() - c_start))
+                log.extend((_rss_now_mb(), *(grown if grown is not None else (0, 0))))
                 if progress is not None:
                     progress(done, total)
 
@@ -249,6 +190,8 @@ def _worker(
         rss_map = _rss_mb()
         metrics = json.loads((out / "metrics.json").read_text())
     res = seen["result"]
+    lg = np.frombuffer(log, dtype=np.float64).reshape(-1, 6)
+    marks, cpu_marks = lg[:, :2], lg[:, 2:4]
     keep = rep.screened_gps()
     off = rep.model.sensor_offset
     per_pass: list[dict[str, Any]] = []
@@ -258,11 +201,11 @@ def _worker(
         in_pass = keep & (rep.gps_times >= a) & (rep.gps_times <= b)
         r = ate(res.trajectory, rep.gps_times, rep.gps_xy, offset=off, keep=in_pass)
         fa, fb = ends[k], ends[k + 1]
-        ta, tb = np.interp([fa, fb], [0] + [m[0] for m in marks], [0.0] + [m[1] for m in marks])
+        ta, tb = np.interp([fa, fb], np.r_[0.0, marks[:, 0]], np.r_[0.0, marks[:, 1]])
         graph_pass: dict[str, Any] = _cpu_pass(marks, cpu_marks, fa, fb)
-        if graph_marks:
+        if grown is not None:
             # the back-end's graph growth in this pass (iSAM2) and the RSS at its end
-            gm = np.array(graph_marks)
+            gm = lg[:, [0, 4, 5, 3]]  # frames, keyframes, factors, RSS
             ia = int(np.searchsorted(gm[:, 0], fa)) - 1
             ib = min(int(np.searchsorted(gm[:, 0], fb)), len(gm) - 1)
             prev = gm[ia] if ia >= 0 else np.zeros(4)
@@ -318,20 +261,6 @@ def _worker(
             or k in ("factors", "isam2_updates")
         },
     }
-
-
-def _parse_settings(ap: argparse.ArgumentParser, items: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` overrides (values parsed as JSON, else kept as strings)."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        try:
-            out[key.strip()] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key.strip()] = raw
-    return out
 
 
 def main() -> None:

@@ -295,6 +295,9 @@ def test_map_propagated_covariance_equals_the_dense_product():
     want = dense[np.arange(n), np.arange(n)]
     got = map_propagated_covariance(diag, off, frame, lm, Bm, S, columns=4)
     np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-12)
+    # a memory budget below one column block of 4 (3 n x 4 doubles): blocks of 1 column
+    small = map_propagated_covariance(diag, off, frame, lm, Bm, S, columns=4, block_mb=1e-4)
+    np.testing.assert_allclose(small, want, rtol=1e-8, atol=1e-12)
 
 
 def test_map_cov_inflation_scales_only_the_map_term():

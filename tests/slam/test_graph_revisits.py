@@ -303,20 +303,23 @@ def test_place_counter():
     assert not pc.full(np.array([10.0, 10.0]), 1e9)  # one keyframe there
 
 
-def test_left_out_measurements_store(rng):
-    """The flat store returns exactly what was added, per keyframe, across its growth (it
-    starts with room for 2 keyframes and 8 measurements), remaps merged trees, and holds
-    keyframes in increasing order only."""
-    store = LeftOutMeasurements(capacity=2)
+@pytest.mark.parametrize("resident_rows", [1 << 16, 6])
+def test_left_out_measurements_store(rng, resident_rows):
+    """The store returns exactly what was added, per keyframe, across its growth (it starts
+    with room for 2 keyframes and 8 measurements) and, with ``resident_rows = 6``, across its
+    spill file; remaps merged trees (twice: composed); holds keyframes in increasing order."""
+    store = LeftOutMeasurements(capacity=2, resident_rows=resident_rows, keep_recent=1)
     added = {}
     for k in (3, 4, 7, 8, 9, 15, 40):
         m = int(rng.integers(0, 9))
         w = (rng.integers(0, 50, m), rng.normal(size=m), rng.uniform(1, 30, m), rng.random((m, 2)))
         store.add(k, *w)
         added[k] = w
+    assert (store.spilled > 0) == (resident_rows == 6)
     assert len(store) == 7 and list(store) == [3, 4, 7, 8, 9, 15, 40]
     assert 7 in store and 5 not in store and 41 not in store and "7" not in store
-    for k, w in added.items():
+    assert 2 not in store and 10 not in store
+    for k, w in reversed(added.items()):  # (out of order: chunks re-read)
         for got, want in zip(store[k], w, strict=True):
             np.testing.assert_array_equal(got, want)
     with pytest.raises(KeyError):
@@ -327,6 +330,72 @@ def test_left_out_measurements_store(rng):
     store.remap_trees(alias)
     for k, w in added.items():
         np.testing.assert_array_equal(store[k][0], alias[w[0]])
+    alias2 = np.roll(np.arange(50), 1)
+    store.remap_trees(alias2)
+    for k, w in added.items():
+        np.testing.assert_array_equal(store[k][0], alias2[alias[w[0]]])
+    store.close()
+    assert len(store) == 7
+    with pytest.raises(ValueError, match="closed"):
+        store[40]
+
+
+def test_left_out_store_memory_is_bounded_by_resident_rows(rng):
+    """Resident memory stops growing at ``resident_rows`` while the drive goes on: the same
+    bytes after 2,000 keyframes as after 500 (it grew linearly before the spill file), also
+    with transit keyframes (no measurements); every keyframe reads back."""
+    store = LeftOutMeasurements(resident_rows=512, keep_recent=4)
+    sizes, added = [], {}
+    for k in range(2000):
+        m = 0 if k % 7 == 0 else int(rng.integers(1, 12))
+        w = (rng.integers(0, 900, m), rng.normal(size=m), rng.uniform(1, 30, m), rng.random((m, 2)))
+        store.add(2 * k, *w)
+        added[2 * k] = w
+        if k in (499, 999, 1999):
+            sizes.append(store.resident_nbytes)
+    assert sizes[0] == sizes[1] == sizes[2], sizes
+    assert sizes[0] <= 2 * (512 * 40 + 16 * 512 // 4 + 64)  # ~40 bytes per resident row
+    assert store.spilled > 1900 and len(store) == 2000
+    for k in range(4):  # the recent keyframes stay in memory (the tracker reads them)
+        assert 2 * (1999 - k) in store
+    for k in sorted(added):  # in keyframe order, as localise_skipped reads
+        for got, want in zip(store[k], added[k], strict=True):
+            np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="resident_rows"):
+        LeftOutMeasurements(resident_rows=0)
+
+
+def test_left_out_store_spill_leaves_the_result_unchanged(monkeypatch):
+    """Isam2Slam with the left-out store spilling after 64 measurements: the same path and map
+    as all in memory, and the store's resident memory within the same bound after 6 laps as
+    after 3 (all in memory it grows with every lap: 1,109 and 4,521 measurements, 86 and 332
+    kB)."""
+    import stemmap.slam.graph as graph_mod
+
+    made: list[LeftOutMeasurements] = []
+
+    class Small(LeftOutMeasurements):
+        def __init__(self) -> None:
+            super().__init__(resident_rows=64, keep_recent=3)
+            made.append(self)
+
+    problem = loop_problem(2, laps=3.0)[0]
+    ref = Isam2Slam().run(problem)
+    monkeypatch.setattr(graph_mod, "LeftOutMeasurements", Small)
+    got = Isam2Slam().run(problem)
+    np.testing.assert_array_equal(got.trajectory.poses, ref.trajectory.poses)
+    np.testing.assert_array_equal(got.stem_map.xy, ref.stem_map.xy)
+    for key in ("keyframes_localised", "localisation_runs", "keyframes_in_graph"):
+        assert got.stats[key] == ref.stats[key]
+    assert got.stats["keyframes_localised"] == len(made[-1]) > 0  # (counted after closing)
+    assert made[-1].spilled > 0 and got.stats["keyframes_localised"] > 40  # measured 36 of 53
+    Isam2Slam().run(loop_problem(2, laps=6.0)[0])
+    assert made[-1].spilled > 2 * made[0].spilled
+    # in memory: 256 keyframes (the initial capacity, 16 bytes each) and 64 rows (40 bytes)
+    # plus what the 3 recent keyframes hold beyond (measured 109 rows after 3 laps, 103
+    # after 6)
+    for store in (made[0], made[-1]):
+        assert store.resident_nbytes <= 257 * 16 + 8 + 128 * 40, store.resident_nbytes
 
 
 def test_redundant_settled_trees():

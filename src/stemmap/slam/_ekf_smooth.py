@@ -334,6 +334,7 @@ def map_propagated_covariance(
     map_cov: FloatArray,
     *,
     columns: int = 128,
+    block_mb: float = 32.0,
 ) -> FloatArray:
     """(N, 3, 3) covariance the map's joint error adds to the smoothed path (ours, issue 14).
 
@@ -351,6 +352,12 @@ def map_propagated_covariance(
     pose sees reach its position and heading with the lever arms of the geometry. The map's
     error is taken as independent of the detections' noise (the landmarks were estimated from
     the same detections, which would make the sum slightly smaller: conservative).
+
+    A column block holds ``3 N x columns`` doubles, twice (``B U`` and its solve): at most
+    ``columns`` columns, fewer where that would pass ``block_mb`` MB (on the 10x Victoria Park
+    soak, N = 72,490 frames, 128 columns were ~220 MB a copy and made this the EKF's peak,
+    1.24 GB; docs/reliability.md "Soak"). The result does not depend on the block size (up to
+    the order of a floating-point sum).
     """
     from scipy.linalg import cho_solve_banded, cholesky_banded
     from scipy.sparse import csr_matrix
@@ -371,6 +378,7 @@ def map_propagated_covariance(
     cols = (2 * lm[:, None, None] + np.arange(2)[None, None, :]) + np.zeros((1, 3, 1), int)
     B = csr_matrix((Bm.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * n, m2))
     cb = cholesky_banded(banded_lower(diag, off), lower=True)
+    columns = max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
     for c0 in range(0, m2, columns):
         M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
         out += M @ M.transpose(0, 2, 1)

@@ -46,8 +46,9 @@ revisits in docs/reliability.md "Soak".
 What this is meant to bound: the graph, iSAM2's memory and per-update work, the final batch and
 marginals grow with the mapped area (and with trees still below ``revisit_factors``), not
 with drive time. Per-frame bookkeeping (trajectory, dead reckoning, drift variances: ~230
-bytes per scan, plus 16 bytes per left-out keyframe and 40 per measurement in
-:class:`LeftOutMeasurements`) stays linear in the drive, as for every back-end. On the 10x soak
+bytes per scan) stays linear in the drive, as for every back-end; the left-out keyframes'
+measurements (:class:`~stemmap.slam._graph_leftout.LeftOutMeasurements`, 40 bytes each) are
+held in memory up to a bound and spilled to a temporary file beyond it. On the 10x soak
 the graph still gains 25-60 keyframes per late pass (young and new trees); a seventh session
 anchors a keyframe that enters after a long left-out run by a prior at its tracked pose
 (:func:`anchor_prior`) instead of a long odometry edge, which halved iSAM2's memory growth per
@@ -63,11 +64,12 @@ visit").
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from stemmap.slam._graph_leftout import LeftOutMeasurements
 from stemmap.slam.motion import between, compose
 from stemmap.types import FloatArray
 
@@ -165,76 +167,6 @@ def redundant(
     if settled is not None:
         enough |= settled[trees]
     return bool(np.all(in_graph[trees]) and np.all(enough))
-
-
-class LeftOutMeasurements:
-    """The window measurements of the keyframes left out of the graph, in flat arrays.
-
-    A mapping ``keyframe -> (trees, bearing, range, sigmas (m, 2))`` (read-only views) for
-    :func:`localise_skipped` and the tracker's localisation, filled in increasing keyframe
-    order. On a long drive nearly every keyframe is left out (the 10x Victoria Park soak:
-    12,484 of 14,498), so the store grows with the drive: here by 16 bytes per keyframe and
-    40 per measurement (grown geometrically), where a dict of four small arrays per keyframe
-    cost ~560 bytes per keyframe (tracemalloc, same soak).
-    """
-
-    def __init__(self, capacity: int = 256) -> None:
-        self._kf = np.zeros(capacity, dtype=np.int64)
-        self._ptr = np.zeros(capacity + 1, dtype=np.int64)
-        self._tree = np.zeros(4 * capacity, dtype=np.int64)
-        self._val = np.zeros((4 * capacity, 4))  # bearing, range, sigma_b, sigma_r
-        self._n = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    def add(
-        self, k: int, trees: np.ndarray, brg: FloatArray, rng: FloatArray, sig: FloatArray
-    ) -> None:
-        """Keyframe ``k`` (larger than every one added before) with its ``m`` measurements."""
-        n, m = self._n, int(trees.shape[0])
-        if n and k <= self._kf[n - 1]:
-            raise ValueError(
-                f"keyframes are added in increasing order: {k} after {self._kf[n - 1]}"
-            )
-        if n == self._kf.shape[0]:
-            self._kf = np.concatenate((self._kf, np.zeros(n, dtype=np.int64)))
-            self._ptr = np.concatenate((self._ptr, np.zeros(n, dtype=np.int64)))
-        a = int(self._ptr[n])
-        if a + m > self._tree.shape[0]:
-            grow = max(a + m, 2 * self._tree.shape[0]) - self._tree.shape[0]
-            self._tree = np.concatenate((self._tree, np.zeros(grow, dtype=np.int64)))
-            self._val = np.concatenate((self._val, np.zeros((grow, 4))))
-        self._tree[a : a + m] = trees
-        self._val[a : a + m, 0] = brg
-        self._val[a : a + m, 1] = rng
-        self._val[a : a + m, 2:] = sig
-        self._kf[n] = k
-        self._ptr[n + 1] = a + m
-        self._n = n + 1
-
-    def _index(self, k: int) -> int:
-        i = int(np.searchsorted(self._kf[: self._n], k))
-        return i if i < self._n and self._kf[i] == k else -1
-
-    def __contains__(self, k: object) -> bool:
-        return isinstance(k, (int, np.integer)) and self._index(int(k)) >= 0
-
-    def __getitem__(self, k: int) -> tuple[np.ndarray, FloatArray, FloatArray, FloatArray]:
-        i = self._index(int(k))
-        if i < 0:
-            raise KeyError(k)
-        a, b = int(self._ptr[i]), int(self._ptr[i + 1])
-        v = self._val[a:b]
-        return self._tree[a:b], v[:, 0], v[:, 1], v[:, 2:]
-
-    def __iter__(self) -> Iterator[int]:
-        return iter(self._kf[: self._n].tolist())
-
-    def remap_trees(self, alias: np.ndarray) -> None:
-        """Point every measurement at ``alias[tree]`` (the representatives of merged trees)."""
-        b = int(self._ptr[self._n])
-        self._tree[:b] = alias[self._tree[:b]]
 
 
 class PlaceCounter:

@@ -700,6 +700,7 @@ class Isam2Slam:
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK),
         )  # fmt: skip
+        skipped.close()  # (its spill file, _graph_leftout)
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
         veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
