@@ -322,8 +322,8 @@ def demo(
     """
     from stemmap.io.products import run_products
 
-    announce_compile("scan", "slam")
     with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
+        announce_compile("scan", "slam")  # after the output folder is checked, not before
         m = run_demo(
             run.dir,
             seed=seed,
