@@ -55,6 +55,10 @@ from typing import Any
 
 import numpy as np
 
+from _pose_cov import fit_inflation as _fit_inflation
+from _pose_cov import lever as _lever
+from _pose_cov import pose_terms as _pose_terms
+from _pose_cov import z2 as _z2
 from stemmap.eval.matching import match_points
 from stemmap.types import StemMap
 
@@ -172,15 +176,6 @@ def victoria_park() -> dict[str, Any]:
     return out
 
 
-def _lever(poses: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """d(point)/d(x, y, theta) (N, 2, 3) of points ``xy`` rigidly attached to vehicle poses."""
-    J = np.zeros((len(xy), 2, 3))
-    J[:, 0, 0] = J[:, 1, 1] = 1.0
-    J[:, 0, 2] = -(xy[:, 1] - poses[:, 1])
-    J[:, 1, 2] = xy[:, 0] - poses[:, 0]
-    return J
-
-
 def _vp_terms(seeds: list[int]) -> tuple[float, list[dict[str, np.ndarray]], dict[str, Any]]:
     """Per seed: pose / tree errors and raw covariances on Victoria Park (module doc)."""
     from scipy.spatial import cKDTree
@@ -252,24 +247,6 @@ def _vp_terms(seeds: list[int]) -> tuple[float, list[dict[str, np.ndarray]], dic
     return float(0.5 * (t[0] + t[-1])), out, info
 
 
-def _pose_terms(res: Any, vp: Any, keep: np.ndarray) -> tuple[np.ndarray, ...]:
-    """GPS fix times, laser-point errors after the ATE's SE(2) fit and the pose covariances
-    carried to the laser point and rotated by the fit (the pose part of :func:`_vp_terms`)."""
-    from stemmap.eval.trajectory import ate, point_track
-
-    off = vp.model.sensor_offset
-    t = res.trajectory.times
-    m = keep & (vp.gps_times >= t[0]) & (vp.gps_times <= t[-1])
-    gt, gxy = vp.gps_times[m], vp.gps_xy[m]
-    al = ate(res.trajectory, vp.gps_times, vp.gps_xy, offset=off, keep=keep).alignment
-    assert al is not None
-    est = point_track(res.trajectory, gt, off)
-    fi = np.clip(np.searchsorted(t, gt), 0, len(t) - 1)
-    J = _lever(res.trajectory.interpolate(gt), est)
-    C = al.rotation @ (J @ res.pose_covs[fi] @ np.swapaxes(J, 1, 2)) @ al.rotation.T
-    return gt, al.apply(est) - gxy, C
-
-
 def vp_pose(backends: list[str]) -> dict[str, Any]:
     """z^2 of each back-end's reported pose covariance against the GPS on Victoria Park."""
     import time
@@ -313,23 +290,6 @@ def vp_pose(backends: list[str]) -> dict[str, Any]:
         )
         out[name] = row
     return out
-
-
-def _fit_inflation(e: np.ndarray, C: np.ndarray, base: np.ndarray | None = None) -> float:
-    """k with median(e^T (k C + base)^-1 e) = 2 ln 2 (bisection on log k)."""
-    from scipy.optimize import brentq
-
-    b = np.zeros_like(C) if base is None else base
-
-    def f(lk: float) -> float:
-        S = np.exp(lk) * C + b
-        return float(np.median(np.einsum("ni,nij,nj->n", e, np.linalg.inv(S), e))) - 2 * np.log(2)
-
-    return float(np.exp(brentq(f, -30.0, 30.0)))
-
-
-def _z2(e: np.ndarray, C: np.ndarray) -> np.ndarray:
-    return np.einsum("ni,nij,nj->n", e, np.linalg.inv(C), e)
 
 
 def vp_calibration(seeds: list[int]) -> dict[str, Any]:

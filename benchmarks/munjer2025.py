@@ -3,11 +3,12 @@ own cloud detector through the same FastSLAM (100 particles) + Kalman refinement
 
 Usage: python benchmarks/munjer2025.py [--seeds 0 1 2] [--layout park] [--speed 4]
        [--model trunks.onnx] [--motion sim|lidar|both] [--window 5] [--draws 10]
-       [--out result.json]
+       [--lateral drop|keep] [--sigma-lateral 0.0] [--out result.json]
 
 Each drive's detections are mapped ``--draws`` times (default 10), once per FastSLAM
-particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)`` (:func:`map_draws`):
-one draw's map RMSE varies by 0.02-0.07 m on the same drive (docs/algorithms/slam-frontends.md,
+particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``
+(:func:`_munjer_draws.map_draws`, shared with ``munjer2025_motion_noise.py``): one draw's map
+RMSE varies by 0.02-0.07 m on the same drive (docs/algorithms/slam-frontends.md,
 "Motion noise"), so every map-scored number is a mean over the draws.
 
 Prints one JSON object. Top-level keys ``eb_lidar``, ``daim``, ``ours`` hold, pooled over the
@@ -40,7 +41,11 @@ front end itself on the drive's lidar frames and a simulated XSens IMU + wheel l
 ``stemmap map drive.npz --odometry lidar --imu drive_imu.csv``); ``both`` adds, next to the
 ``sim`` rows, ``motion_lidar_imu`` with the same Table 2 / map numbers per method and the
 odometry's own drift (``odometry_drift_percent``: final position error / distance, %, after
-putting its first pose on the true one).
+putting its first pose on the true one). ``--lateral keep`` gives FastSLAM controls through
+every pose of that odometry, its sideways steps included, with ``--sigma-lateral`` (m/s, default
+the speed noise) as sideways motion noise; the default ``drop`` gives speed and yaw rate
+(:func:`stemmap.slam.munjer.controls_from_trajectory`; docs/algorithms/slam.md, "Controls from
+a pose trajectory").
 
 Two scorings, each labelled (``scoring``). ``map`` (every top-level count and rate, the paper's:
 §4 / Table 2 score the final map, N_det = 7 trees for EB-LiDAR; docs/algorithms/cloud.md, "Why
@@ -71,22 +76,20 @@ import math
 import platform
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _munjer_draws import map_draws, spread  # shared with munjer2025_motion_noise
 from stemmap.sim.lidar import lidar_preset
 from stemmap.sim.munjer import MunjerDrive, simulate_munjer_drive
-from stemmap.slam.base import SlamResult
 from stemmap.slam.motion import rollout
 from stemmap.slam.munjer import (
     MunjerMapConfig,
     daim_observations,
     eb_lidar_observations,
-    map_munjer,
-    munjer_problem,
     ours_lidar_observations,
 )
 from stemmap.types import StemObservations
@@ -101,8 +104,6 @@ COUNTS = ("n_real", "n_real_in_box", "n_det", "ta", "tr", "fa", "fr")
 VIEW_COUNTS = ("n_real", "ta", "tr", "fa", "fr")
 #: Map metrics averaged over the FastSLAM draws (with their spread).
 MAP_KEYS = ("position_rmse", "pairwise_percent_error", "diameter_rmse")
-#: FastSLAM's detection range (m).
-MAX_RANGE = 12.0
 SPREAD = ("", "_sd", "_min", "_max")
 FASTSLAM_KEYS = tuple(
     f"{k}{s}" for k in ("position_rmse", "pairwise_percent_error") for s in SPREAD
@@ -118,10 +119,14 @@ PAPER = {
 }  # fmt: skip
 
 
-def _lidar_imu_motion(drive: MunjerDrive, seed: int) -> tuple[Any, Any, float, np.ndarray]:
+def _lidar_imu_motion(
+    drive: MunjerDrive, seed: int, lateral: str = "drop", sigma_lateral: float | None = None
+) -> tuple[Any, Any, float, np.ndarray]:
     """Controls + motion model from the lidar + IMU odometry on the drive's own frames, its
     drift (% of distance) and its poses at the frame times. The trajectory's frame (first lidar
-    pose at the origin) is put on the true start pose, as the sim motion source's map frame is."""
+    pose at the origin) is put on the true start pose, as the sim motion source's map frame is.
+    ``lateral`` / ``sigma_lateral``: :func:`stemmap.slam.munjer.controls_from_trajectory`'s
+    (``--lateral``, ``--sigma-lateral``)."""
     from stemmap.odometry.inertial import lidar_inertial_odometry
     from stemmap.odometry.lidar import LidarOdometryConfig
     from stemmap.sim.imu import simulate_imu
@@ -141,51 +146,14 @@ def _lidar_imu_motion(drive: MunjerDrive, seed: int) -> tuple[Any, Any, float, n
     dist = float(np.hypot(*np.diff(drive.poses[:, :2], axis=0).T).sum())
     # the CLI's default --motion-sigma (m/s, rad/s)
     controls, motion = controls_from_trajectory(
-        Trajectory(traj.times, world, frame="world"), sigma_speed=0.05, sigma_yaw_rate=0.002
+        Trajectory(traj.times, world, frame="world"),
+        sigma_speed=0.05,
+        sigma_yaw_rate=0.002,
+        lateral=lateral,  # type: ignore[arg-type]
+        sigma_lateral=sigma_lateral,
     )
     at_frames = Trajectory(traj.times, world, frame="world").interpolate(drive.times)
     return controls, motion, 100.0 * err / dist, at_frames
-
-
-def map_draws(
-    drive: MunjerDrive,
-    obs: StemObservations,
-    draws: int,
-    motion: tuple[Any, Any] | None = None,
-) -> Iterator[tuple[int, SlamResult, float]]:
-    """FastSLAM (100 particles) + the Kalman refinement on one drive's detections, once per
-    particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``: yields ``(d,
-    result, seconds)``. ``motion`` is ``(controls, model)``, default the drive's simulated
-    odometry and :meth:`MunjerDrive.motion_model`. The drive starts at the true pose and
-    detections beyond :data:`MAX_RANGE` are dropped (Munjer et al. 2025, §3.6)."""
-    controls, model = motion or (drive.controls(), drive.motion_model())
-    p0 = (float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2]))
-    for d in range(draws):
-        t0 = time.perf_counter()
-        problem = munjer_problem(
-            obs, drive.times, controls, model, initial_pose=p0, max_range=MAX_RANGE
-        )
-        result = map_munjer(problem, MunjerMapConfig(seed=d))
-        yield d, result, time.perf_counter() - t0
-
-
-def spread(values: Sequence[float], key: str) -> dict[str, float]:
-    """``key``: the mean of the finite ``values``; ``key_sd`` (population sd), ``key_min``,
-    ``key_max``: their spread (NaN when none is finite)."""
-    x = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
-    if not x.size:
-        return {
-            key: math.nan,
-            f"{key}_sd": math.nan,
-            f"{key}_min": math.nan,
-            f"{key}_max": math.nan,
-        }
-    return {
-        key: float(x.mean()),
-        f"{key}_sd": float(x.std()),
-        f"{key}_min": float(x.min()),
-        f"{key}_max": float(x.max()),
-    }
 
 
 def _score(
@@ -334,6 +302,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="FastSLAM particle-filter seeds per drive (MunjerMapConfig(seed=0..N-1)); the map "
         "and detection numbers are their mean (default 10)",
     )
+    ap.add_argument(
+        "--lateral",
+        choices=["drop", "keep"],
+        default="drop",
+        help="the lidar + IMU odometry's sideways steps in the controls (controls_from_trajectory)",
+    )
+    ap.add_argument(
+        "--sigma-lateral",
+        type=float,
+        default=None,
+        help="with --lateral keep: sideways motion noise, m/s (default the speed noise)",
+    )
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
     motions = {"sim": ["sim"], "lidar": ["lidar"], "both": ["sim", "lidar"]}[a.motion]
@@ -381,7 +361,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         eb_cfg = MunjerConfig(window=a.window)
         eb = {"sim": eb_lidar_observations(drive.frames, drive.times, eb_cfg, poses=sim_poses)}
         if "lidar" in motions:
-            ctl, mdl, dr, lidar_poses = _lidar_imu_motion(drive, seed)
+            ctl, mdl, dr, lidar_poses = _lidar_imu_motion(drive, seed, a.lateral, a.sigma_lateral)
             motion["lidar"] = (ctl, mdl)
             drift.append(dr)
             eb["lidar"] = eb_lidar_observations(
@@ -456,6 +436,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "fastslam_draws": a.draws,
         "resolvable_range_m": RESOLVABLE_RANGE,
         "motion": a.motion,
+        "lateral": a.lateral,
+        "sigma_lateral": a.sigma_lateral,
         "back_end": MunjerMapConfig().__dict__,
     }
     out["machine"] = {

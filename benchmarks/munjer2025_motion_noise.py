@@ -9,7 +9,7 @@ within FastSLAM's 12 m), as ``stemmap map --sim`` derives it
 (:func:`stemmap.cli._map_problems.sim_motion_sigmas`; FastSLAM does not calibrate the scale
 and bias, so it gets the full generator). Each method's detections go through FastSLAM (100
 particles) + the Kalman refinement with ``MunjerMapConfig(seed=d)`` for ``d`` in
-``range(draws)`` (the draw loop of ``benchmarks/munjer2025.py``, :func:`munjer2025.map_draws`,
+``range(draws)`` (the draw loop of ``benchmarks/munjer2025.py``, :func:`_munjer_draws.map_draws`,
 which scores the first ``--draws`` of the same seeds, default 10, with ``formula``).
 
 Usage: python benchmarks/munjer2025_motion_noise.py [--seeds 0 1 2] [--draws 10]
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from munjer2025 import MAX_RANGE, map_draws, spread
+from _munjer_draws import MAX_RANGE, map_draws, spread  # shared with munjer2025
 from stemmap.cli._map_problems import sim_motion_sigmas
 from stemmap.sim.munjer import simulate_munjer_drive
 from stemmap.slam.motion import UnicycleModel

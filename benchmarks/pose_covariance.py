@@ -11,7 +11,7 @@ simulator is not used to choose any factor.
 
 ``--vp`` (the full Victoria Park run, every back-end at its defaults): the laser point at every
 screened GPS fix after the ATE's SE(2) fit against the fix (the pose covariance carried to the
-laser point and rotated by the fit, ``fastslam_covariance._pose_terms``). The GPS has an error
+laser point and rotated by the fit, ``_pose_cov.pose_terms``). The GPS has an error
 of its own: its RMS is estimated from the fixes' disagreement with themselves at revisits of
 the iSAM2 path (:func:`stemmap.eval.gps_noise.gps_revisit_error`) and added to the reported
 covariance as an isotropic ``G = rms² / 2 I``. Per half of the run (split at its middle time):
@@ -25,7 +25,6 @@ Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
        python benchmarks/pose_covariance.py --vp [--backends isam2 treedb online]
        (``online``: the realtime iSAM2 mapper of ``stemmap map --realtime``)
        python benchmarks/pose_covariance.py --vp-gnss
-       python benchmarks/pose_covariance.py --vp-chain-factor
        python benchmarks/pose_covariance.py --vp-ekf-map-factor
 Prints JSON. The machine is shared; times are not reported.
 """
@@ -39,9 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from fastslam_covariance import _fit_inflation, _lever, _pose_terms, _z2
-
-BACKENDS = ("isam2", "ekf", "fastslam", "treedb", "forestrix")
+from _pose_cov import BACKENDS, pose_errors
+from _pose_cov import fit_inflation as _fit_inflation
+from _pose_cov import lever as _lever
+from _pose_cov import pose_terms as _pose_terms
+from _pose_cov import z2 as _z2
 
 
 def _stats(z2: np.ndarray, dof: int) -> dict[str, float]:
@@ -84,39 +85,6 @@ def sim_rows(seed: int, backend: str) -> dict[str, Any]:
     return pose_errors(run, _run(backend, problem))
 
 
-def pose_errors(run: Any, res: Any) -> dict[str, Any]:
-    """Errors of ``res``'s reported poses against the simulated ``run``'s true vehicle poses
-    (the first row, fixed with zero covariance, left out) and their ``z²`` under
-    ``res.pose_covs``; only ``rows`` / ``rows_with_covariance`` when it has none."""
-    from stemmap.types import wrap_angle
-
-    n = len(res.trajectory)
-    if res.pose_covs is None:
-        return {"rows": n, "rows_with_covariance": 0}
-    P = np.asarray(res.pose_covs)
-    ok = np.all(np.isfinite(P), axis=(1, 2))
-    n_fin = int(ok.sum())
-    ok[0] = False  # the fixed start pose
-    ok[ok] = np.linalg.eigvalsh(P[ok])[:, 0] > 0
-    true = run.vehicle_poses.interpolate(res.trajectory.times)
-    e = np.column_stack(
-        (
-            res.trajectory.poses[:, :2] - true[:, :2],
-            wrap_angle(res.trajectory.poses[:, 2] - true[:, 2]),
-        )
-    )[ok]
-    P = P[ok]
-    return {
-        "rows": n,
-        "rows_with_covariance": n_fin,
-        "e": e,
-        "z2_pos": _z2(e[:, :2], P[:, :2, :2]),
-        "z2_th": e[:, 2] ** 2 / P[:, 2, 2],
-        "nees": _z2(e, P),
-        "std": np.sqrt(0.5 * np.trace(P[:, :2, :2], axis1=1, axis2=2)),
-    }
-
-
 def sim(seeds: list[int], backends: list[str]) -> dict[str, Any]:
     out: dict[str, Any] = {"scenario": "stemmap demo, 120 trees", "seeds": seeds}
     for b in backends:
@@ -146,7 +114,7 @@ def sim(seeds: list[int], backends: list[str]) -> dict[str, Any]:
 def ml_factor(e: np.ndarray, C: np.ndarray, G: np.ndarray) -> float:
     """Maximum-likelihood variance factor ``k`` of ``e ~ N(0, k C + G)`` (fixes independent;
     ``G`` the reference's own noise): well defined also where ``G`` alone explains the median,
-    where :func:`fastslam_covariance._fit_inflation` has no root."""
+    where :func:`_pose_cov.fit_inflation` has no root."""
     from scipy.optimize import minimize_scalar
 
     def nll(lk: float) -> float:
@@ -266,65 +234,14 @@ def vp_gnss() -> dict[str, Any]:
     }
 
 
-def vp_chain_factor() -> dict[str, Any]:
-    """Forestrix's chain variance factor (``FORESTRIX_POSE_COV_INFLATION``) on the first half
-    of Victoria Park: one run, the arguments of its ``output_pose_covariances`` captured, the
-    covariances recomputed for any factor ``k``; ``k`` puts 86.5 % of the first-half fixes
-    inside the 2-sigma ellipse of ``C(k) + G``; the second half is scored at it. (The 0.0038
-    in the code was chosen with the tree DB's fixes pooled in, when the tree DB shared the
-    chain model; since Dec 3 the tree DB derives its covariance, ``slam._treedb_errors``.)"""
-    import dataclasses
-
-    from scipy.optimize import brentq
-
-    import stemmap.slam.forestrix as fx
-    from stemmap.datasets.victoria_park import load_victoria_park
-    from stemmap.slam.base import make_backend
-    from stemmap.slam.loop_closure import output_pose_covariances
-
-    vpd = load_victoria_park(None)
-    problem = vpd.problem()
-    keep = vpd.screened_gps()
-    t = problem.frames.times
-    t_mid = 0.5 * (t[0] + t[-1])
-    captured: dict[str, tuple[Any, ...]] = {}
-
-    def cap(*args: Any) -> Any:
-        captured["forestrix"] = args[:4]
-        return output_pose_covariances(*args)
-
-    fx.output_pose_covariances = cap  # type: ignore[attr-defined]
-    results = {"forestrix": make_backend("forestrix").run(problem)}
-    G, gps = _vp_gps_cov(vpd, problem, keep, make_backend("isam2").run(problem))
-
-    def z2_at(k: float, b: str) -> tuple[np.ndarray, np.ndarray]:
-        res = dataclasses.replace(results[b], pose_covs=output_pose_covariances(*captured[b], k))
-        ft, e, C = _pose_terms(res, vpd, keep)
-        return ft, _z2(e, C + G)
-
-    def coverage_first(lk: float) -> float:
-        z = np.concatenate([z2[ft < t_mid] for ft, z2 in (z2_at(np.exp(lk), b) for b in results)])
-        return float(np.mean(z < 4.0)) - 0.865
-
-    k = float(np.exp(brentq(coverage_first, np.log(1e-4), np.log(10.0), xtol=1e-3)))
-    out: dict[str, Any] = {"gps_rms_2d_m": round(gps.rms_2d, 3), "factor": round(k, 4)}
-    for b in results:
-        ft, z2 = z2_at(k, b)
-        out[b] = {
-            "first_half": _stats(z2[ft < t_mid], 2),
-            "second_half": _stats(z2[ft >= t_mid], 2),
-        }
-    return out
-
-
 def vp_ekf_map_factor() -> dict[str, Any]:
     """The EKF's map-term factor (``EkfConfig.map_cov_inflation``) chosen on the first half of
     Victoria Park and scored on the second: the EKF run with the factor 0 (the path given the
     map) and 1 (the default) -- the same estimate, the reported covariance ``C(F) = C0 + F Cm``
     linear in ``F`` -- and ``F`` the maximum-likelihood factor of ``e ~ N(0, C(F) + G)`` on
     the first half (the GPS's error ``G`` as in ``--vp``), and the factor putting 86.5 % of the
-    first half inside 2 sigma (the ``--vp-chain-factor`` criterion); the median criterion is
-    reported too (None where a criterion has no root)."""
+    first half inside 2 sigma (the criterion of the tree DB / Forestrix chain factor, gone
+    since Dec 3); the median criterion is reported too (None where a criterion has no root)."""
     from scipy.optimize import brentq
 
     from stemmap.datasets.victoria_park import load_victoria_park
@@ -349,7 +266,7 @@ def vp_ekf_map_factor() -> dict[str, Any]:
         f_med = None
     f = ml_factor(e[first], Cm[first], base[first])
 
-    def coverage(lk: float) -> float:  # the Forestrix criterion (--vp-chain-factor)
+    def coverage(lk: float) -> float:  # the criterion of the former chain factor
         return float(np.mean(_z2(e[first], np.exp(lk) * Cm[first] + base[first]) < 4.0)) - 0.865
 
     try:
@@ -382,9 +299,6 @@ def main() -> None:
     ap.add_argument("--vp", action="store_true", help="the Victoria Park check (module doc)")
     ap.add_argument("--vp-gnss", action="store_true", help="iSAM2 with GNSS on VP (vp_gnss)")
     ap.add_argument(
-        "--vp-chain-factor", action="store_true", help="choose the Forestrix chain factor"
-    )
-    ap.add_argument(
         "--vp-ekf-map-factor", action="store_true", help="choose the EKF map-term factor on VP"
     )
     ap.add_argument("--dump", default=None, help="with --vp: save PREFIX_BACKEND.npz (t, e, C, G)")
@@ -394,8 +308,6 @@ def main() -> None:
         out["simulator"] = sim(a.seeds, a.backends)
     if a.vp:
         out["victoria_park"] = vp(a.backends, a.dump)
-    if a.vp_chain_factor:
-        out["victoria_park_chain_factor"] = vp_chain_factor()
     if a.vp_ekf_map_factor:
         out["victoria_park_ekf_map_factor"] = vp_ekf_map_factor()
     if a.vp_gnss:

@@ -34,12 +34,22 @@ import json
 import math
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_noise.py
+    FULL_SCANNERS,
+    QUICK_SCANNERS,
+    TEXTBOOK,
+    matched,
+    vantage_points,
+)
+from _real_scanning import error_stats as _stats
+from _real_scanning import greedy_match as _match
+from _scan_sim import make_run as scan_detection_run  # shared with scan_detection.py
+from _scan_sim import score as scan_detection_score
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
@@ -54,27 +64,6 @@ from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
 
 RANGE_BANDS = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 15.0))
 DIAMETER_CLASSES = ((0.10, 0.20), (0.20, 0.30), (0.30, 0.50), (0.50, 1.00))
-
-#: A textbook 2D trunk detector: range-jump segmentation (Zheng et al. 2012 eq. 2, 0.2 m),
-#: >= 3 returns, the Kasa (1976) fit, radius 2 cm - 1 m; no plausibility test.
-TEXTBOOK = DetectorConfig(
-    name="textbook_kasa",
-    segmentation="range_jump",
-    max_jump=0.2,
-    min_points=3,
-    fit_method="kasa",
-    min_radius=0.02,
-    max_radius=1.0,
-)
-
-QUICK_SCANNERS = (("nearest", 0.5, 0.0), ("averaging", 0.5, 0.01))
-FULL_SCANNERS = tuple(
-    (m, res, noise)
-    for m in ("nearest", "averaging")
-    for res in (0.25, 0.5, 1.0)
-    for noise in (0.0, 0.01, 0.03)
-)
-
 
 #: Largest-gap cuts of non-convex segments (two passes, gap > 2 x the median gap).
 _GAPS: dict[str, Any] = {"gap_splits": 2, "gap_ratio": 2.0}
@@ -219,14 +208,12 @@ def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, A
     simulated drives the grid is admitted on: ``benchmarks/scan_detection.py``'s (400 scans,
     its scoring) and the ``stemmap demo`` drive (120 trees, the demo's scoring), seed
     ``seed``; ``admitted`` when both precisions are >= :data:`SIM_PRECISION_MIN`."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import scan_detection
     from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
     from stemmap.eval.detection import scan_detection_metrics
 
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
-    run = scan_detection.make_run(400, seed)
-    bench = scan_detection.score(det.detect_batch(run.scans), run)
+    run = scan_detection_run(400, seed)
+    bench = scan_detection_score(det.detect_batch(run.scans), run)
     demo_run = _stand_and_run(seed, 120)
     sc = DEMO_SCENARIO["scoring"]
     m = scan_detection_metrics(
@@ -243,15 +230,6 @@ def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, A
         "demo": demo,
         "admitted": min(bench["precision"], demo["precision"]) >= SIM_PRECISION_MIN,
     }
-
-
-def matched(cfg: DetectorConfig, model: str, res: float) -> DetectorConfig:
-    """``cfg`` set up for the scanner as a user does (``stemmap detect --footprint``): a
-    first-echo (nearest-return) scanner whose beam fills the angular step has a footprint of
-    one step (corrected before fitting); an averaging scanner keeps the preset's edge model."""
-    if model == "nearest" and cfg.fit_method == "ours":
-        return replace(cfg, beam_footprint_deg=res)
-    return cfg
 
 
 def detectors(full: bool) -> dict[str, DetectorConfig]:
@@ -271,28 +249,6 @@ def detectors(full: bool) -> dict[str, DetectorConfig]:
     return out
 
 
-def vantage_points(
-    sl: RealSlice, n: int, rng: np.random.Generator, r_lo: float = 1.0, r_hi: float = 15.0
-) -> np.ndarray:
-    """``n`` vantage points, each at a uniform range in [r_lo, r_hi] and a uniform bearing from
-    a random reference trunk, >= 0.3 m from every slice point (not inside a trunk or bush)."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(sl.xy)
-    c = sl.centers
-    out: list[np.ndarray] = []
-    tries = 0
-    while len(out) < n and tries < 100 * n:
-        tries += 1
-        t = int(rng.integers(c.shape[0]))
-        d = float(rng.uniform(r_lo, r_hi))
-        b = float(rng.uniform(-math.pi, math.pi))
-        p = c[t] + d * np.array([math.cos(b), math.sin(b)])
-        if tree.query(p)[0] >= 0.3:
-            out.append(p)
-    return np.asarray(out).reshape(-1, 2)
-
-
 def _in_gate(cfg: DetectorConfig, rel: np.ndarray) -> np.ndarray:
     """Whether each trunk centre (sensor frame) lies inside the detector's range gate and field
     of view (recall is counted only over what the detector is set up to look at)."""
@@ -302,32 +258,6 @@ def _in_gate(cfg: DetectorConfig, rel: np.ndarray) -> np.ndarray:
         a = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]))
         ok &= (a >= cfg.fov_deg[0]) & (a <= cfg.fov_deg[1])
     return ok
-
-
-def _match(det: np.ndarray, truth: np.ndarray, gate: np.ndarray) -> np.ndarray:
-    """Greedy nearest-first matching; returns for each truth the matched detection or -1."""
-    out = np.full(truth.shape[0], -1, dtype=np.int64)
-    if det.shape[0] == 0 or truth.shape[0] == 0:
-        return out
-    dist = np.hypot(*(truth[:, None, :] - det[None, :, :]).transpose(2, 0, 1))
-    used = np.zeros(det.shape[0], dtype=bool)
-    for flat in np.argsort(dist, axis=None):
-        t, k = divmod(int(flat), det.shape[0])
-        if out[t] >= 0 or used[k] or dist[t, k] > gate[t]:
-            continue
-        out[t], used[k] = k, True
-    return out
-
-
-def _stats(err_cm: np.ndarray) -> dict[str, Any]:
-    e = err_cm[np.isfinite(err_cm)]
-    if e.size == 0:
-        return {"n": 0, "rmse_cm": None, "bias_cm": None}
-    return {
-        "n": int(e.size),
-        "rmse_cm": round(float(np.sqrt(np.mean(e * e))), 2),
-        "bias_cm": round(float(np.mean(e)), 2),
-    }
 
 
 def score(

@@ -64,6 +64,9 @@ from typing import Any
 
 import numpy as np
 
+from _real_scanning import TEXTBOOK, matched, vantage_points  # shared with real_geometry.py
+from _real_scanning import error_stats as _stats
+from _real_scanning import greedy_match as _match
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
@@ -75,9 +78,6 @@ from stemmap.eval.real_slices import (
 )
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_geometry import TEXTBOOK, _match, _stats, matched, vantage_points
 
 
 def _over(rej: dict[str, Any], rows: np.ndarray, rel: np.ndarray, diam: float) -> np.ndarray:

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from real_geometry import FULL_SCANNERS, vantage_points
+from _real_scanning import FULL_SCANNERS, vantage_points  # shared with real_geometry.py
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan.plausibility import scan_noise

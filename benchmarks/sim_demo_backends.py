@@ -19,9 +19,16 @@ back-ends make of it:
 ``--motion-sigma SPEED,YAW_RATE`` replaces the problem's UnicycleModel sigmas (m/s, rad/s,
 one-second white-equivalent) to compare against another noise model on the same runs;
 ``--legacy-sigmas`` uses the pre-issue-14 formula (per-sample noise / sqrt(rate) + |scale - 1|
-+ |bias|). The simulator tests code here; nothing is chosen on it.
++ |bias|). ``--variant NAME`` runs a non-default variant of one back-end instead of
+``--backends`` (docs/outputs.md "Pose covariance" table): ``fastslam-unsmoothed``
+(``FastSlamConfig(smooth=False)``: the filter's path and the particles' pose spread x
+``POSE_COV_INFLATION``) or ``ekf-marginal-map-term`` (the EKF smoother's map term from the
+landmarks' marginals, :func:`stemmap.slam._ekf_smooth.map_error_covariance`, as before the
+joint term: ``smooth_path`` called without ``map_cov``). The simulator tests code here; nothing
+is chosen on it.
 
 Usage: python benchmarks/sim_demo_backends.py [--seeds 0 1 2 3 4 5 6] [--backends isam2 ekf]
+       [--variant fastslam-unsmoothed]
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -36,9 +43,32 @@ from typing import Any
 
 import numpy as np
 
-from pose_covariance import BACKENDS, pose_errors
+from _pose_cov import BACKENDS, pose_errors  # shared with pose_covariance.py
 
 N_TREES = 120
+
+
+def _marginal_map_term() -> None:
+    """EKF variant ``ekf-marginal-map-term``: the smoother without the filter's joint landmark
+    covariance, so it adds the marginal-based map term (``map_error_covariance``)."""
+    import stemmap.slam._ekf_compressed as ekf_c
+    import stemmap.slam.ekf as ekf
+
+    orig = ekf.smooth_path
+
+    def smooth_path(*args: Any, **kw: Any) -> Any:
+        kw.pop("map_cov", None)
+        return orig(*args, **kw)
+
+    ekf.smooth_path = smooth_path  # type: ignore[assignment]
+    ekf_c.smooth_path = smooth_path  # type: ignore[assignment]
+
+
+#: ``--variant``: name -> (back-end, its config, setup run before the first run)
+VARIANTS: dict[str, tuple[str, dict[str, Any], Any]] = {
+    "fastslam-unsmoothed": ("fastslam", {"smooth": False}, None),
+    "ekf-marginal-map-term": ("ekf", {}, _marginal_map_term),
+}
 
 
 def legacy_sigmas(params: dict[str, Any]) -> tuple[float, float]:
@@ -54,7 +84,12 @@ def legacy_sigmas(params: dict[str, Any]) -> tuple[float, float]:
     return max(sv, 1e-3), max(sw, 1e-4)
 
 
-def one(seed: int, backend: str, sigmas: str | tuple[float, float] | None) -> dict[str, Any]:
+def one(
+    seed: int,
+    backend: str,
+    sigmas: str | tuple[float, float] | None,
+    config: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """One seed and back-end: accuracy, pose and tree z² arrays."""
     from stemmap.cli._demo import _stand_and_run
     from stemmap.cli._map import sim_problem, slam_metrics
@@ -74,7 +109,7 @@ def one(seed: int, backend: str, sigmas: str | tuple[float, float] | None) -> di
     if isinstance(sigmas, tuple):
         motion = dataclasses.replace(problem.motion, sigma_speed=sigmas[0], sigma_steer=sigmas[1])
         problem = dataclasses.replace(problem, motion=motion)
-    res = make_backend(backend).run(problem)
+    res = make_backend(backend, **(config or {})).run(problem)
     sm, _ = annotate_uncertainty(res, problem)
     m, _, _ = slam_metrics(problem, res, ctx)
     out: dict[str, Any] = {
@@ -109,9 +144,16 @@ def summarise(runs: list[dict[str, Any]], seeds: list[int]) -> dict[str, Any]:
         pos = np.concatenate([r["z2_pos"] for r in runs])
         th = np.concatenate([r["z2_th"] for r in runs])
         nees = np.concatenate([r["nees"] for r in runs])
+        err = np.concatenate([np.hypot(*r["e"][:, :2].T) for r in runs])
+        std = np.concatenate([r["std"] for r in runs])
         row |= {
+            "pose_rows": int(pos.size),
+            "pose_position_error_median_m": _r(np.median(err)),
+            "pose_position_std_median_m": _r(np.median(std)),
             "pose_position_z2_median (calibrated 1.386)": _r(np.median(pos)),
+            "pose_share_in_2sigma (calibrated 0.865)": _r(np.mean(pos < 4.0)),
             "pose_heading_z2_median (calibrated 0.455)": _r(np.median(th)),
+            "pose_nees_mean (calibrated 3)": _r(np.mean(nees)),
             "pose_nees_mean_per_dof (calibrated 1)": _r(np.mean(nees) / 3.0),
         }
     tz = np.concatenate([r["z2_tree"] for r in runs])
@@ -132,6 +174,9 @@ def main() -> None:
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--motion-sigma", default=None, help="SPEED,YAW_RATE (m/s, rad/s)")
     g.add_argument("--legacy-sigmas", action="store_true", help="the pre-issue-14 formula")
+    ap.add_argument(
+        "--variant", choices=sorted(VARIANTS), default=None, help="a non-default back-end variant"
+    )
     a = ap.parse_args()
     sig: str | tuple[float, float] | None = None
     if a.legacy_sigmas:
@@ -140,8 +185,14 @@ def main() -> None:
         sv, sw = (float(x) for x in a.motion_sigma.split(","))
         sig = (sv, sw)
     out: dict[str, Any] = {"scenario": f"stemmap demo, {N_TREES} trees", "seeds": a.seeds}
-    for b in a.backends:
-        runs = [one(s, b, sig) for s in a.seeds]
+    todo: list[tuple[str, str, dict[str, Any]]] = [(b, b, {}) for b in a.backends]
+    if a.variant is not None:
+        backend, config, setup = VARIANTS[a.variant]
+        if setup is not None:
+            setup()
+        todo = [(a.variant, backend, config)]
+    for b, backend, config in todo:
+        runs = [one(s, backend, sig, config) for s in a.seeds]
         sv, sw = runs[0]["sigmas"]  # seed 0's (the horizon follows each run's detections)
         out[b] = {"motion_sigmas_seed0 (m/s, deg/s)": [round(sv, 4), round(math.degrees(sw), 3)]}
         out[b] |= summarise(runs, a.seeds)

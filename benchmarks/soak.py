@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import argparse
 import array
-import dataclasses
 import json
 import os
 import resource
@@ -59,73 +58,13 @@ from typing import Any
 
 import numpy as np
 
-GAP_S = 1.0  # standstill between passes
+from _soak_common import GAP_S, revisit_drive  # shared with soak_memory.py
+from _soak_common import parse_settings as _parse_settings
+from _soak_common import rss_now_mb as _rss_now_mb
 
 
 def _rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
-
-
-def revisit_drive(vp: Any, passes: int) -> tuple[Any, list[tuple[float, float]]]:
-    """``vp`` driven ``passes`` times, forward and backward alternately (see module doc).
-
-    Returns the new :class:`~stemmap.datasets.victoria_park.VictoriaPark` and the time span
-    (s) of every pass.
-    """
-    from stemmap.slam.base import Controls, TreeFrames
-
-    c, fr = vp.controls, vp.frames
-    t0 = float(min(c.times[0], fr.times[0], vp.gps_times[0]))
-    t1 = float(max(c.times[-1], fr.times[-1], vp.gps_times[-1]))
-    span = t1 - t0
-    det = [fr.frame(f) for f in range(len(fr))]
-    ct, cv, cs, ft, fd, gt, gx, spans = [], [], [], [], [], [], [], []
-    for p in range(passes):
-        base = t0 + p * (span + GAP_S)
-        spans.append((base, base + span))
-        if p % 2 == 0:
-            ct.append(c.times - t0 + base)
-            cv.append(c.speed)
-            cs.append(c.steer)
-            ft.append(fr.times - t0 + base)
-            fd += det
-            gt.append(vp.gps_times - t0 + base)
-            gx.append(vp.gps_xy)
-        else:
-            # control i holds on [t_i, t_i+1): backwards it holds from the image of t_i+1
-            ct.append(base + (t1 - c.times[1:][::-1]))
-            cv.append(-c.speed[:-1][::-1])
-            cs.append(c.steer[:-1][::-1])
-            ft.append(base + (t1 - fr.times[::-1]))
-            fd += det[::-1]
-            gt.append(base + (t1 - vp.gps_times[::-1]))
-            gx.append(vp.gps_xy[::-1])
-    counts = [len(d[0]) for d in fd]
-    frames = TreeFrames(
-        np.concatenate(ft),
-        np.concatenate(([0], np.cumsum(counts))).astype(np.int64),
-        *(np.concatenate([d[k] for d in fd]) for k in range(3)),
-    )
-    controls = Controls(np.concatenate(ct), np.concatenate(cv), np.concatenate(cs), c.kind)
-    rep = dataclasses.replace(
-        vp,
-        controls=controls,
-        frames=frames,
-        gps_times=np.concatenate(gt),
-        gps_xy=np.concatenate(gx),
-    )
-    return rep, spans
-
-
-def _rss_now_mb() -> float:
-    """Resident set size now (``VmRSS``; 0 where /proc is missing)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return round(int(line.split()[1]) / 1024.0, 1)
-    except OSError:
-        pass
-    return 0.0
 
 
 def _count_graph_growth() -> list[int]:
@@ -322,20 +261,6 @@ def _worker(
             or k in ("factors", "isam2_updates")
         },
     }
-
-
-def _parse_settings(ap: argparse.ArgumentParser, items: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` overrides (values parsed as JSON, else kept as strings)."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        try:
-            out[key.strip()] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key.strip()] = raw
-    return out
 
 
 def main() -> None:

@@ -32,16 +32,15 @@ import collections
 import ctypes
 import gc
 import json
-import sys
 import time
 import tracemalloc
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from soak import _parse_settings, _rss_now_mb, revisit_drive
+from _soak_common import parse_settings as _parse_settings  # shared with soak.py
+from _soak_common import revisit_drive
+from _soak_common import rss_now_mb as _rss_now_mb
 
 
 class _MallInfo2(ctypes.Structure):

@@ -95,6 +95,15 @@ from typing import Any
 
 import numpy as np
 
+# this benchmark's parts (helper modules beside it, no command line of their own)
+import visual_lidar2023_trees as trees
+from visual_lidar2023_diagnostics import (
+    consistency,
+    increment_errors,
+    scale_and_yaw_bias,
+    true_displacement,
+)
+
 #: Loop waypoints around the orchard rows (rows at y = 0, 4, 8; trees at x = 0..18 m).
 LOOPS: dict[str, list[tuple[float, float]]] = {
     "around_row_2": [(5, 2), (21, 2), (21, 6), (-3, 6), (-3, 2), (5, 2)],
@@ -105,15 +114,6 @@ LOOPS: dict[str, list[tuple[float, float]]] = {
 
 #: Fused rows counted against both sources per loop (``<variant>_better_than_both``).
 FUSED_VARIANTS = ("fused", "fused_increments", "fused_inlier_noise", "fused_drift")
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import visual_lidar2023_trees as trees  # noqa: E402
-from visual_lidar2023_diagnostics import (  # noqa: E402
-    consistency,
-    increment_errors,
-    scale_and_yaw_bias,
-    true_displacement,
-)
 
 
 def _lidar_odometry(run: Any) -> tuple[Any, Any]:

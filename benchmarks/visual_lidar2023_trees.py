@@ -133,48 +133,20 @@ def detection_stats(run: Any, obs: Any) -> dict[str, float]:
     }
 
 
-def path_controls(traj: Any) -> Any:
-    """Unicycle controls that dead-reckon exactly through every pose of ``traj``: each interval
-    ``[t_k, t_k+1]`` as three equal sub-intervals, turn on the spot, straight line, turn on
-    the spot (forward or backward, the turns within ±90°), composing to the full body-frame
-    increment ``between(p_k, p_k+1)`` -- its lateral part included.
-
-    The library's :func:`stemmap.slam.munjer.controls_from_trajectory` (speed and yaw rate
-    per interval) drops the lateral part, and the fused EKF's path has one: each lidar pose
-    update moves the position sideways too (seed 0, ``around_row_2``: 0.55 m of lateral
-    increments over 54 m; the fused path's loop error 0.065 m, its re-integrated controls'
-    0.184 m). The tree DB on those controls would be compared with another path than
-    ``fused``; on these it is ``fused`` until a landmark corrects it."""
-    from stemmap.slam.base import Controls
-    from stemmap.slam.motion import between
-
-    t, p = traj.times, traj.poses
-    d = between(p[:-1], p[1:])
-    a1 = np.arctan2(d[:, 1], d[:, 0])
-    back = np.abs(a1) > 0.5 * math.pi  # drive backwards rather than turn round
-    a1 = np.where(back, a1 - np.copysign(math.pi, a1), a1)
-    dist = np.where(back, -1.0, 1.0) * np.hypot(d[:, 0], d[:, 1])
-    a2 = np.remainder(d[:, 2] - a1 + math.pi, 2.0 * math.pi) - math.pi
-    h = np.diff(t) / 3.0
-    times = np.column_stack((t[:-1], t[:-1] + h, t[:-1] + 2.0 * h)).ravel()
-    zero = np.zeros_like(h)
-    speed = np.column_stack((zero, dist / h, zero)).ravel()
-    yaw = np.column_stack((a1 / h, zero, a2 / h)).ravel()
-    return Controls(times, speed, yaw, "unicycle")
-
-
 def tree_db_trajectory(
     fused: Any, obs: Any, scan_times: Any, pose0: Any, promote_count: int
 ) -> tuple[Any, int]:
     """The tree DB (visual_lidar gate 0.5 m, eq. (2), ``promote_count``, landmarks correcting
-    the pose and closing loops) on the fused odometry's path (:func:`path_controls`: with no
-    landmark it returns that path). Returns the trajectory and the trees mapped."""
-    from stemmap.slam.base import SlamProblem, TreeFrames
+    the pose and closing loops) on the fused odometry's path
+    (:meth:`stemmap.slam.base.Controls.from_trajectory`: controls through every pose, the
+    lateral part of the EKF's pose updates included, so with no landmark it returns that
+    path). Returns the trajectory and the trees mapped."""
+    from stemmap.slam.base import Controls, SlamProblem, TreeFrames
     from stemmap.slam.motion import UnicycleModel
     from stemmap.slam.treedb import PRESETS, TreeDbSlam
 
     problem = SlamProblem(
-        path_controls(fused.trajectory),
+        Controls.from_trajectory(fused.trajectory),
         TreeFrames.from_observations(obs, scan_times),
         UnicycleModel(sigma_speed=0.05, sigma_steer=math.radians(1.0)),
         initial_pose=tuple(pose0),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,13 @@ import pytest
 from stemmap.datasets import find_datasets_dir
 
 DATASETS = find_datasets_dir(Path(__file__).resolve().parent)
+
+# Tests load benchmark scripts by path (importlib); those import their shared helper modules
+# (benchmarks/_*.py) by name, as Python allows when a script runs from its own folder.
+# Appended, so a benchmark's name never shadows a test helper or an installed module.
+_BENCHMARKS = str(Path(__file__).resolve().parents[1] / "benchmarks")
+if _BENCHMARKS not in sys.path:
+    sys.path.append(_BENCHMARKS)
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,7 @@ from _synthetic import loop_problem
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.eval.trajectory import ate, point_track
-from stemmap.slam.gnss import GnssFixes, gnss_initial_pose, read_gnss_csv
+from stemmap.slam.gnss import GnssFixes, gnss_initial_pose, read_gnss_csv, with_gnss_frame
 from stemmap.slam.graph import Isam2Slam
 
 # the GNSS frame of the synthetic tests: rotated 40 deg and shifted like projected coordinates
@@ -126,6 +126,21 @@ def test_initial_pose_from_fixes(sim):
     # odometry is biased (2 % scale, steering bias) over the first 30 m: ~1 m / a few deg
     assert math.hypot(x - w[0], y - w[1]) < 2.0
     assert abs(math.remainder(th - w[2], 2 * math.pi)) < math.radians(6.0)
+
+
+def test_gnss_frame_keeps_a_prior_maps_relocalised_start(sim):
+    """Without a prior map the start moves into the fixes' frame; with one the (relocalised)
+    initial pose stays: the prior trees fix the frame (docs "Prior map and GNSS")."""
+    from stemmap.types import StemMap, Tree
+
+    problem, _, _, fixes, _ = sim
+    p = dataclasses.replace(problem, gnss=fixes)
+    moved = with_gnss_frame(p).initial_pose
+    assert math.hypot(moved[0] - SHIFT[0], moved[1] - SHIFT[1]) < 50.0  # in the GNSS frame
+    pm = StemMap((Tree(id=0, x=1.0, y=2.0, diameter=0.3),))
+    start = (5.0, -3.0, 0.4)
+    p2 = dataclasses.replace(p, prior_map=pm, initial_pose=start)
+    assert with_gnss_frame(p2).initial_pose == start
 
 
 def test_read_gnss_csv(tmp_path):

@@ -199,3 +199,23 @@ def test_steer_offset_is_added_to_the_measured_angle():
     np.testing.assert_allclose(Fu, nFu, atol=1e-7)
     with pytest.raises(ConfigError):
         AckermannModel(steer_offset=1.0)
+
+
+def test_unicycle_lateral_noise_is_a_sideways_random_walk() -> None:
+    """``sigma_lateral``: a straight drive of T seconds at heading 0.7 rad gains ``σ² T`` of
+    variance across its heading and none along it or in heading (speed and yaw noise off);
+    the default (0) leaves the wheeled model unchanged."""
+    t = np.linspace(0.0, 10.0, 51)
+    c = Controls(t, np.ones(51), np.zeros(51), "unicycle")
+    lat = UnicycleModel(sigma_speed=0.0, sigma_steer=0.0, sigma_lateral=0.05)
+    cov = preintegrate(lat, c, [0.0, 10.0], (3.0, -1.0, 0.7)).covs[0]  # start pose's body frame
+    np.testing.assert_allclose(cov, np.diag([0.0, 0.05**2 * 10.0, 0.0]), atol=1e-15)
+    q = lat.noise([1.0, 0.0], 0.2, [0.0, 0.0, math.pi / 2])
+    np.testing.assert_allclose(q, np.diag([0.05**2 * 0.2, 0.0, 0.0]), atol=1e-15)
+    plain = UnicycleModel()
+    with_zero = UnicycleModel(sigma_lateral=0.0)
+    np.testing.assert_array_equal(
+        preintegrate(plain, c, t, (0, 0, 0.7)).covs, preintegrate(with_zero, c, t, (0, 0, 0.7)).covs
+    )
+    with pytest.raises(ConfigError):
+        UnicycleModel(sigma_lateral=-0.1)

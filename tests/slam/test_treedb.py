@@ -229,7 +229,7 @@ def test_treedb_slam_registered_and_localizing_beats_dead_reckoning(sim):
 def test_treedb_pose_covariance_on_every_row(sim):
     """Issue 14: every row has a finite, positive-definite pose covariance, the derived one
     (no factor), growing from the fixed start; the run closes loops, so it is the linear
-    graph's marginals (:meth:`TreeDbErrors.pose_covariances`). Against the truth it is not
+    graph's marginals (:meth:`TreeMapErrors.pose_covariances`). Against the truth it is not
     overconfident on this loop, whose detections (3 cm / 0.3 deg) are ten times better than
     the back-end's default noise model (0.3 m / 1 deg): median z² 0.01-0.04 (seeds 1-2),
     bound the calibrated 1.39."""
@@ -276,6 +276,45 @@ def _mc_drive(rng, trees, sigmas, n=120, dt=0.2, r_max=12.0):
     return problem, truth
 
 
+def mc_pose_scores(run_backend, seeds=range(100, 140)):
+    """Pose NEES and position z² (each (frames,) per drive) of every row after the first 2 s
+    of the Monte-Carlo drives (:func:`_mc_drive`, seeds ``seeds``, one tree layout; noise
+    models matching: speed 0.05 m/s, yaw rate 0.01 rad/s, range 0.05 m, bearing 0.01 rad).
+    ``run_backend(problem, sigmas) -> SlamResult``; a drive that closes a loop fails (the
+    forward analysis alone is what these drives check)."""
+    rng0 = np.random.default_rng(0)
+    trees = np.column_stack((rng0.uniform(-5, 30, 40), rng0.uniform(-8, 20, 40)))
+    sigmas = (0.05, 0.01, 0.05, 0.01)
+    nees, z2 = [], []
+    for k in seeds:
+        problem, truth = _mc_drive(np.random.default_rng(k), trees, sigmas)
+        res = run_backend(problem, sigmas)
+        assert res.stats["loop_closures"] == 0  # no loops: the forward analysis itself
+        e = res.trajectory.poses[10:] - truth[10:]
+        e[:, 2] = wrap_angle(e[:, 2])
+        P = res.pose_covs[10:]
+        nees.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e))
+        z2.append(np.einsum("ni,nij,nj->n", e[:, :2], np.linalg.inv(P[:, :2, :2]), e[:, :2]))
+    return nees, z2
+
+
+def demo_position_z2(backend, make):
+    """Position z² of every reported row after the first on the ``stemmap demo`` drives
+    (seeds 0-6, the motion noise ``stemmap demo`` hands ``backend``), run with ``make()``."""
+    from stemmap.cli._demo import _stand_and_run
+    from stemmap.cli._map import sim_problem as demo_problem
+
+    z2 = []
+    for seed in range(7):
+        run = _stand_and_run(seed, 120)
+        problem, _ = demo_problem(run, backend=backend)
+        res = make().run(problem)
+        true = run.vehicle_poses.interpolate(res.trajectory.times)
+        e = res.trajectory.poses[1:, :2] - true[1:, :2]
+        z2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(res.pose_covs[1:, :2, :2]), e))
+    return np.concatenate(z2)
+
+
 def test_treedb_pose_covariance_is_calibrated_on_simulated_drives():
     """Issue 14: the reported pose covariance is the tree DB's actual error covariance, with no
     factor. 40 simulated drives (seeds 100-139) whose odometry and detection noise follow the
@@ -287,19 +326,11 @@ def test_treedb_pose_covariance_is_calibrated_on_simulated_drives():
     std 1.5-2.0, so the pooled mean of 40 drives has std ~0.3: bound |NEES/3 - 1| < 0.25 (2.5
     std); position z² median within 1.5x. The VP-fitted chain factor it replaced (0.0038) gave
     NEES 4.53 / 4.98 / 4.59 and z² median 0.75 / 0.72 / 0.83 on the same seeds: fails both."""
-    rng0 = np.random.default_rng(0)
-    trees = np.column_stack((rng0.uniform(-5, 30, 40), rng0.uniform(-8, 20, 40)))
-    sigmas = (0.05, 0.01, 0.05, 0.01)
-    nees, z2 = [], []
-    for k in range(40):
-        problem, truth = _mc_drive(np.random.default_rng(100 + k), trees, sigmas)
-        res = TreeDbSlam(sigma_range=sigmas[2], sigma_bearing=sigmas[3], refine=False).run(problem)
-        assert res.stats["loop_closures"] == 0  # no loops: the forward analysis itself
-        e = res.trajectory.poses[10:] - truth[10:]
-        e[:, 2] = wrap_angle(e[:, 2])
-        P = res.pose_covs[10:]
-        nees.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e))
-        z2.append(np.einsum("ni,nij,nj->n", e[:, :2], np.linalg.inv(P[:, :2, :2]), e[:, :2]))
+    nees, z2 = mc_pose_scores(
+        lambda problem, sg: TreeDbSlam(sigma_range=sg[2], sigma_bearing=sg[3], refine=False).run(
+            problem
+        )
+    )
     assert abs(np.mean(nees) / 3.0 - 1.0) < 0.25
     assert 1.386 / 1.5 < np.median(z2) < 1.386 * 1.5
 
@@ -311,30 +342,20 @@ def test_treedb_pose_covariance_on_the_demo_drives():
     construction) the derived pose covariance is within 2x of calibrated: pooled position z²
     median 0.89 (per seed 0.58-1.18; calibrated 1.386), where the VP-fitted chain factor
     (0.0038) gave 3.39 (per seed 2.8-8.4; docs/outputs.md)."""
-    from stemmap.cli._demo import _stand_and_run
-    from stemmap.cli._map import sim_problem as demo_problem
-
-    z2 = []
-    for seed in range(7):
-        run = _stand_and_run(seed, 120)
-        problem, _ = demo_problem(run, backend="treedb")
-        res = TreeDbSlam().run(problem)
-        true = run.vehicle_poses.interpolate(res.trajectory.times)
-        e = res.trajectory.poses[1:, :2] - true[1:, :2]
-        z2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(res.pose_covs[1:, :2, :2]), e))
-    assert 1.386 / 2 < np.median(np.concatenate(z2)) < 2 * 1.386
+    z2 = demo_position_z2("treedb", TreeDbSlam)
+    assert 1.386 / 2 < np.median(z2) < 2 * 1.386
 
 
-def test_treedb_errors_graph_is_the_forward_analysis_without_loops_and_shrinks_with_one():
-    """:meth:`TreeDbErrors.pose_covariances`: the Gauss-Markov chain over the keyframes
+def test_tree_map_errors_graph_is_the_forward_analysis_without_loops_and_shrinks_with_one():
+    """:meth:`TreeMapErrors.pose_covariances`: the Gauss-Markov chain over the keyframes
     reproduces the recorded covariances exactly when there is no loop (its regression is exact
     for the marginals); a loop constraint between the last keyframe and the start shrinks the
     end's covariance to about the constraint's own."""
-    from stemmap.slam._treedb_errors import TreeDbErrors
+    from stemmap.slam._tree_map_errors import TreeMapErrors
     from stemmap.slam.relaxation import LoopClosure
 
     n, kf = 60, list(range(0, 60, 6))
-    err = TreeDbErrors(n, np.diag([0.3**2, math.radians(1.0) ** 2]))
+    err = TreeMapErrors(n, np.diag([0.3**2, math.radians(1.0) ** 2]))
     poses = np.column_stack((np.arange(n) * 0.5, np.zeros(n), np.zeros(n)))
     Q = np.diag([0.02**2, 0.01**2, 0.003**2])
     for f in range(n):

@@ -105,39 +105,6 @@ def trees_bench() -> ModuleType:
         sys.path.remove(str(BENCHMARKS))
 
 
-def test_path_controls_dead_reckon_through_every_pose(trees_bench):
-    """The benchmark's tree DB motion input: controls that reproduce a path with sideways and
-    backward steps (an EKF path after pose updates); speed-and-yaw-rate controls of the same
-    path (the library's ``controls_from_trajectory``) miss the sideways part."""
-    from stemmap.slam.motion import rollout
-    from stemmap.slam.munjer import controls_from_trajectory
-    from stemmap.types import Trajectory
-
-    rng = np.random.default_rng(4)
-    n = 200
-    t = np.arange(n) * 0.2
-    steps = np.column_stack(
-        (
-            0.2 + rng.normal(0.0, 0.01, n - 1),
-            rng.normal(0.0, 0.01, n - 1),  # sideways: 1 cm per step
-            rng.normal(0.02, 0.01, n - 1),
-        )
-    )
-    steps[50, 0] = -0.05  # one backward step
-    poses = np.zeros((n, 3))
-    for k in range(n - 1):
-        c, s = math.cos(poses[k, 2]), math.sin(poses[k, 2])
-        dx, dy, dth = steps[k]
-        poses[k + 1] = poses[k] + (c * dx - s * dy, s * dx + c * dy, dth)
-    traj = Trajectory(t, poses)
-    model = UnicycleModel(sigma_speed=0.05, sigma_steer=0.01)
-    exact = rollout(model, trees_bench.path_controls(traj), t, poses[0])
-    assert np.max(np.hypot(*(exact[:, :2] - poses[:, :2]).T)) < 1e-9
-    assert np.max(np.abs(np.angle(np.exp(1j * (exact[:, 2] - poses[:, 2]))))) < 1e-9
-    plain = rollout(model, controls_from_trajectory(traj)[0], t, poses[0])
-    assert np.hypot(*(plain[-1, :2] - poses[-1, :2])) > 0.1
-
-
 def test_paper_point_minimum_keeps_its_angular_width(trees_bench):
     """visual-lidar §2.3: 40 points at the RPLIDAR S2's 0.12° (a trunk >= 4.8° wide)."""
     assert trees_bench.paper_min_points(math.radians(0.12)) == 40

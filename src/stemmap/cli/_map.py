@@ -35,8 +35,11 @@ from stemmap.cli._map_motion import (
 )
 from stemmap.cli._map_prior import (
     PriorType,
+    check_gnss_frame,
     continue_from_map,
     false_trees_report,
+    gnss_start_check,
+    prior_map_frame,
     write_information,
 )
 from stemmap.cli._map_problems import motion_sigma as _motion_sigma
@@ -250,7 +253,8 @@ def map_command(
             "--prior-map",
             help="Map folder of an earlier session (trees.csv [+ graph.npz]): "
             "relocalise in it, map on (continuing its graph.npz when present), write the "
-            "merged map; isam2.",
+            "merged map, in the map's frame; isam2. With --gnss the map must have been made "
+            "in the fixes' frame (with --gnss, same --crs), else an error.",
         ),
     ] = None,
     prior_type: Annotated[
@@ -415,10 +419,18 @@ def map_command(
         be_cfg: dict[str, object] = (
             {"joint_information": True, "export_graph": True} if isam2 else {}
         )
+        gnss_frame = problem.gnss is not None
         if prior_map is not None:
+            # the prior map's frame rules: with --gnss it must be the fixes' frame
+            if problem.gnss is not None:
+                check_gnss_frame(prior_map, crs)
+            else:
+                gnss_frame = bool(prior_map_frame(prior_map)["gnss_frame"])
             problem, reloc, prior_note = continue_from_map(
                 problem, prior_map, start_guess, backend.value, prior_type
             )
+            if problem.gnss is not None:
+                prior_note.update(gnss_start_check(problem))
             if prior_type is not None:
                 be_cfg["prior_map_robust"] = prior_type.robust
         elif prior_type is not None:
@@ -449,7 +461,7 @@ def map_command(
             metrics["relocalisation"] = {**reloc.__dict__, **prior_note}
         metrics["false_trees"] = false_trees_report(backend.value, result.stats, ctx["kind"])
         metrics["uncertainty"] = unc.to_dict()
-        metrics["frames"] = frames_metadata(problem, crs)
+        metrics["frames"] = frames_metadata(problem, crs, gnss_frame=gnss_frame)
         if bag is not None:
             metrics["motion"] = (
                 motion_run[1]

@@ -14,7 +14,9 @@
   :func:`stemmap.odometry.inertial.fuse_front_ends`.
 
 The chosen trajectory becomes the mapper's controls (body-frame velocities of each interval,
-:func:`stemmap.slam.munjer.controls_from_trajectory`). ``--odometry lidar`` (the word), the
+:func:`stemmap.slam.munjer.controls_from_trajectory` with its default ``lateral="drop"``: the
+sideways part of each step is left out; docs/algorithms/slam.md, "Controls from a pose
+trajectory"). ``--odometry lidar`` (the word), the
 earlier spelling of ``--motion lidar``, still works with a deprecation warning.
 
 Every run records ``motion`` in metrics.json and run.json: the source, what fed it, the path

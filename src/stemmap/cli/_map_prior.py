@@ -6,6 +6,7 @@ joint information written beside trees.csv, and the ray-cast false-tree removal'
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from enum import StrEnum
 from pathlib import Path
@@ -16,8 +17,11 @@ from stemmap.errors import ConfigError, InputError
 __all__ = [
     "DEFAULT_PRIOR",
     "PriorType",
+    "check_gnss_frame",
     "continue_from_map",
     "false_trees_report",
+    "gnss_start_check",
+    "prior_map_frame",
     "write_information",
 ]
 
@@ -128,6 +132,87 @@ def continue_from_map(
     )
     problem, reloc = continue_session(problem, prior, g)
     return problem, reloc, note
+
+
+def prior_map_frame(folder: Path) -> dict[str, Any]:
+    """What the map folder records about its frame: ``{"gnss_frame": bool | None, "crs": str
+    | None, "from": file}``. ``metrics.json`` ``frames.gnss_frame`` (written since this check
+    existed: true when the run fused ``--gnss`` or mapped on a GNSS-frame prior map) first,
+    else ``run.json`` ``parameters.gnss`` (older maps: made with ``--gnss``), else unknown
+    (``None``: a folder with neither, e.g. a hand-made trees.csv)."""
+    d = folder if folder.is_dir() else folder.parent
+    try:
+        frames = json.loads((d / "metrics.json").read_text()).get("frames", {})
+        if isinstance(frames, dict) and "gnss_frame" in frames:
+            return {
+                "gnss_frame": bool(frames["gnss_frame"]),
+                "crs": frames.get("crs"),
+                "from": str(d / "metrics.json"),
+            }
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        par = json.loads((d / "run.json").read_text()).get("parameters", {})
+        if isinstance(par, dict) and "gnss" in par:
+            return {
+                "gnss_frame": par["gnss"] is not None,
+                "crs": par.get("crs"),
+                "from": str(d / "run.json"),
+            }
+    except (OSError, ValueError, AttributeError):
+        pass
+    return {"gnss_frame": None, "crs": None, "from": None}
+
+
+def check_gnss_frame(folder: Path, crs: str | None) -> dict[str, Any]:
+    """``--gnss`` with ``--prior-map``: the prior map must be in the fixes' frame (its trees
+    pin the graph in the map's frame; the relocalised start is kept,
+    :func:`stemmap.slam.gnss.with_gnss_frame`). Return :func:`prior_map_frame` of ``folder``,
+    or raise :class:`ConfigError` when it records no GNSS frame or another CRS than
+    ``crs``."""
+    rec = prior_map_frame(folder)
+    if not folder.exists():  # continue_from_map names the missing map
+        return rec
+    fix = (
+        "Make the prior map with --gnss (fixes in the same frame), or drop --gnss (the map's "
+        "frame rules), or drop --prior-map."
+    )
+    if rec["gnss_frame"] is None:
+        raise ConfigError(
+            f"--gnss with --prior-map {folder}: the map folder records no frame (no metrics.json "
+            f"frames.gnss_frame, no run.json), so the fixes cannot be known to share it. {fix}"
+        )
+    if not rec["gnss_frame"]:
+        raise ConfigError(
+            f"--gnss with --prior-map {folder}: that map was made without --gnss ({rec['from']}), "
+            f"in its own odometry frame, not the fixes'. {fix}"
+        )
+    if rec["crs"] != crs:
+        there = "no CRS (a local frame)" if rec["crs"] is None else f"CRS {rec['crs']}"
+        here = "no --crs" if crs is None else f"--crs {crs}"
+        want = "no --crs" if rec["crs"] is None else f"--crs {rec['crs']}"
+        raise ConfigError(
+            f"--gnss with --prior-map {folder}: the map has {there} ({rec['from']}), this run "
+            f"{here}; the fixes must be in the map's frame: give {want} and fixes in it."
+        )
+    return rec
+
+
+def gnss_start_check(problem: Any) -> dict[str, float]:
+    """How far the relocalised start of ``problem`` (prior map + GNSS) is from the start
+    aligned to its first fixes (:func:`stemmap.slam.gnss.gnss_initial_pose`): metrics.json
+    ``relocalisation.gnss_start_offset_m`` / ``gnss_start_heading_deg``. Diagnostic only (the
+    relocalised start is the one used); metres-large values mean the fixes and the map do not
+    share a frame after all."""
+    from stemmap.slam.gnss import gnss_initial_pose
+
+    g = gnss_initial_pose(problem, problem.gnss)
+    p = problem.initial_pose
+    dth = math.remainder(float(g[2]) - float(p[2]), math.tau)
+    return {
+        "gnss_start_offset_m": round(math.hypot(g[0] - p[0], g[1] - p[1]), 3),
+        "gnss_start_heading_deg": round(math.degrees(dth), 2),
+    }
 
 
 def write_information(stage: Path, stem_map: Any, graph: Any = None) -> list[str]:

@@ -159,12 +159,17 @@ def headline(m: dict[str, Any]) -> str:
     return ", ".join(parts)
 
 
-def frames_metadata(problem: Any, crs: str | None) -> dict[str, Any]:
-    """What the map and trajectory coordinates mean (recorded in metrics.json)."""
+def frames_metadata(problem: Any, crs: str | None, *, gnss_frame: bool = False) -> dict[str, Any]:
+    """What the map and trajectory coordinates mean (recorded in metrics.json); ``gnss_frame``:
+    the map is in the GNSS fixes' frame (``--gnss``, or a prior map in it), read back by
+    ``--prior-map`` (:func:`stemmap.cli._map_prior.prior_map_frame`)."""
     a, b = problem.sensor_offset
     return {
-        "map_frame": "the frame of the initial pose (x, y metres; odometry frame, the "
-        "simulator's world frame for --sim and demo)",
+        "map_frame": "the GNSS fixes' frame (x, y metres)"
+        if gnss_frame
+        else "the frame of the initial pose (x, y metres; odometry frame, the simulator's "
+        "world frame for --sim and demo; with --prior-map the prior map's frame)",
+        "gnss_frame": gnss_frame,
         "crs": crs,
         "georeferenced": crs is not None,
         "trajectory_point": "the vehicle reference point of the motion model (Victoria Park: "

@@ -26,6 +26,7 @@ __all__ = [
     "PoseFit",
     "TreeGraph",
     "match_tree_groups",
+    "pose_fit_jacobians",
     "pose_from_matches",
     "relax_tree_graph",
 ]
@@ -243,6 +244,91 @@ def pose_from_matches(
         dth = float(np.arctan2(cross, dot))
     shift = ct - ce
     return PoseFit(dth, (float(ce[0]), float(ce[1])), (float(shift[0]), float(shift[1])), m)
+
+
+def pose_fit_jacobians(
+    echo_xy: ArrayLike,
+    tree_xy: ArrayLike,
+    pose: ArrayLike,
+    *,
+    method: Literal["ohman2007", "procrustes"] = "ohman2007",
+    fit: PoseFit | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Jacobians of the corrected pose ``pose_from_matches(echo_xy, tree_xy).apply_pose(pose)``.
+
+    The linear form of Forestrix's localisation for its error analysis (issue 14,
+    :mod:`stemmap.slam._tree_map_errors`): how the corrected pose moves with the predicted
+    ``pose``, each echo and each tree.
+
+    Parameters
+    ----------
+    echo_xy, tree_xy : ndarray (M, 2), m -- matched pairs, row by row
+    pose : ndarray (3,) -- the predicted vehicle pose the echoes were projected with
+    method : {"ohman2007", "procrustes"} -- as in :func:`pose_from_matches`
+    fit : PoseFit, optional -- that fit of these pairs, if already computed
+
+    Returns
+    -------
+    J_pose : ndarray (3, 3)
+    J_echo, J_tree : ndarray (3, 2M)
+        Columns ``2i, 2i + 1``: echo / tree ``i``'s (x, y).
+
+    Raises
+    ------
+    InputError
+        When :func:`pose_from_matches` cannot fit the pairs.
+
+    Notes
+    -----
+    With ``c_e``, ``c_t`` the centres and ``dθ`` the fitted rotation, the corrected pose is
+    ``p'_xy = R(dθ) (p_xy - c_e) + c_t``, ``θ' = θ + dθ``: ``∂p'/∂p = diag(R(dθ), 1)``; an
+    echo moves ``p'`` by ``-R(dθ)/M`` through ``c_e``, a tree by ``I/M`` through ``c_t``, and
+    both through ``dθ`` about ``c_t`` (``J (p'_xy - c_t) ∂dθ``, ``J`` the 90° rotation).
+    Procrustes: ``dθ = atan2(C, D)``, ``C = Σ q_e × q_t``, ``D = Σ q_e · q_t`` (centred
+    points); mean angle: ``dθ = atan2(mean sin α_i, mean cos α_i)``, ``α_i = ∠q_t,i - ∠q_e,i``.
+    Centring adds ``-mean_i ∂dθ/∂q_i`` to each point's derivative (zero for Procrustes).
+    Since the fit is rigid-equivariant, ``J_pose + J_echo ∂echo/∂pose = 0``.
+    """
+    e = np.asarray(echo_xy, dtype=np.float64).reshape(-1, 2)
+    t = np.asarray(tree_xy, dtype=np.float64).reshape(-1, 2)
+    p = np.asarray(pose, dtype=np.float64).reshape(3)
+    if fit is None:
+        fit = pose_from_matches(e, t, method=method)
+    if not fit:
+        raise InputError(f"pose_fit_jacobians: {fit.reason}.")
+    m = e.shape[0]
+    qe, qt = e - e.mean(axis=0), t - t.mean(axis=0)
+    perp_e = np.column_stack((-qe[:, 1], qe[:, 0]))  # J q
+    perp_t = np.column_stack((-qt[:, 1], qt[:, 0]))
+    if method == "procrustes":
+        C = float(np.sum(qe[:, 0] * qt[:, 1] - qe[:, 1] * qt[:, 0]))
+        D = float(np.sum(qe * qt))
+        n2 = C * C + D * D
+        g_t = (D * perp_e - C * qe) / n2  # ∂dθ/∂q_t,i
+        g_e = (-D * perp_t - C * qt) / n2  # ∂dθ/∂q_e,i
+    else:
+        ne2, nt2 = np.sum(qe * qe, axis=1), np.sum(qt * qt, axis=1)
+        good = (ne2 > 1e-18) & (nt2 > 1e-18)
+        ang = np.arctan2(qt[:, 1], qt[:, 0]) - np.arctan2(qe[:, 1], qe[:, 0])
+        n = int(good.sum())
+        S, Co = np.mean(np.sin(ang[good])), np.mean(np.cos(ang[good]))
+        w = np.where(good, (Co * np.cos(ang) + S * np.sin(ang)) / (n * (S * S + Co * Co)), 0.0)
+        g_t = (w / np.where(good, nt2, 1.0))[:, None] * perp_t
+        g_e = -(w / np.where(good, ne2, 1.0))[:, None] * perp_e
+    g_t = g_t - g_t.mean(axis=0)
+    g_e = g_e - g_e.mean(axis=0)
+    c, s = math.cos(fit.dtheta), math.sin(fit.dtheta)
+    rot = np.array([[c, -s], [s, c]])
+    u = rot @ (p[:2] - np.asarray(fit.centre))
+    v = np.array([-u[1], u[0]])  # ∂p'_xy/∂dθ
+    J_pose = np.eye(3)
+    J_pose[:2, :2] = rot
+    J_echo = np.zeros((3, 2 * m))
+    J_tree = np.zeros((3, 2 * m))
+    J_echo[:2] = np.outer(v, g_e.reshape(-1)) - np.tile(rot, m) / m
+    J_tree[:2] = np.outer(v, g_t.reshape(-1)) + np.tile(np.eye(2), m) / m
+    J_echo[2], J_tree[2] = g_e.reshape(-1), g_t.reshape(-1)
+    return J_pose, J_echo, J_tree
 
 
 # --------------------------------------------------------------------------------------------

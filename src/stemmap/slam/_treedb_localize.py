@@ -57,7 +57,7 @@ def localize_pose(
     ``lm_xy``) or -1, and the update's linear form (None without a match): the gain ``K``
     (3, 2m) over the matched detections' stacked (range, bearing) innovations, their pose and
     landmark Jacobians ``H_x`` (2m, 3) and ``H_m`` (m, 2, 2), the matched detections' indices
-    and their landmarks' (for :class:`~stemmap.slam._treedb_errors.TreeDbErrors`).
+    and their landmarks' (for :class:`~stemmap.slam._tree_map_errors.TreeMapErrors`).
     """
     from stemmap.slam.treedb import range_bearing_jacobians
 

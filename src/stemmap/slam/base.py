@@ -119,6 +119,81 @@ class Controls:
     def __len__(self) -> int:
         return int(self.times.shape[0])
 
+    @classmethod
+    def from_trajectory(cls, trajectory: Trajectory, *, turn_fraction: float = 0.1) -> Controls:
+        """Unicycle controls that dead-reckon exactly through every pose of a pose-output
+        odometry (lidar + IMU, visual, fused, a SLAM front end), its lateral steps included.
+
+        Each interval ``[t_k, t_k+1]`` carries the body-frame increment
+        ``(dx, dy, dθ) = between(p_k, p_k+1)`` (:func:`~stemmap.slam.motion.between`). The
+        unicycle's chord model (:mod:`stemmap.slam.motion`: ``x' = x + ds cos(θ + γ / 2)``) has
+        two controls per step, so an increment is an arc only when its chord points along the
+        mid heading, ``atan2(dy, dx) = dθ / 2``; an EKF path after a pose update (the fused
+        visual + lidar odometry, the lidar + IMU odometry of Munjer et al. 2025 §3.5) also
+        steps sideways. The interval is then split in two: an arc over the first
+        ``1 - turn_fraction`` of it, whose chord lands on ``(dx, dy)`` (``ds = ±|(dx, dy)|``,
+        ``γ = 2 atan2(dy, dx)``, driven backwards when the chord points behind), and a turn on
+        the spot by the rest, ``dθ - γ``, over the last ``turn_fraction``. An arc increment
+        (wheel odometry, the speed-and-yaw-rate path) stays one control, the same as its
+        velocity; a pure rotation is one turn. After the last pose the last interval's mean
+        velocity ``(ds, dθ) / dt`` is held, as a velocity source is.
+
+        The poses at ``trajectory.times`` are exact for any ``turn_fraction`` in (0, 1); it
+        shapes only the poses between them (a frame inside an interval) and how the interval's
+        control noise is split: the unicycle noise is per second of driving, independent of
+        the control values (``UnicycleModel.arc_jacobian = diag(dt, dt)``), so the interval's
+        speed and yaw-rate variance stays ``σ² dt`` and the turn takes ``turn_fraction`` of it
+        (docs/algorithms/slam.md, "Controls from a pose trajectory").
+
+        Parameters
+        ----------
+        trajectory : Trajectory
+            At least 2 poses, strictly increasing times.
+        turn_fraction : float, in (0, 1)
+            Share of a split interval given to the turn on the spot.
+
+        Raises
+        ------
+        InputError
+            If the trajectory has fewer than 2 poses.
+        ConfigError
+            If ``turn_fraction`` is outside (0, 1).
+        """
+        from stemmap.slam.motion import between
+
+        if not (0.0 < turn_fraction < 1.0):
+            raise ConfigError(f"turn_fraction must lie in (0, 1), got {turn_fraction}.")
+        t = np.asarray(trajectory.times, dtype=np.float64)
+        p = np.asarray(trajectory.poses, dtype=np.float64)
+        if t.shape[0] < 2:
+            raise InputError(f"Controls.from_trajectory needs at least 2 poses, got {t.shape[0]}.")
+        d = between(p[:-1], p[1:])
+        dist = np.hypot(d[:, 0], d[:, 1])
+        chord = np.arctan2(d[:, 1], d[:, 0])
+        back = np.abs(chord) > 0.5 * math.pi  # drive backwards rather than turn round
+        chord = np.where(back, chord - np.copysign(math.pi, chord), chord)
+        chord = np.where(dist > 0.0, chord, 0.5 * d[:, 2])  # standing still: one turn
+        ds = np.where(back, -dist, dist)
+        arc = 2.0 * chord
+        turn = wrap_angle(d[:, 2] - arc)
+        t_mid = t[:-1] + (1.0 - turn_fraction) * np.diff(t)
+        split = (np.abs(turn) > 1e-12) & (t_mid > t[:-1]) & (t_mid < t[1:])
+        t_mid = np.where(split, t_mid, t[1:])
+        h_arc = t_mid - t[:-1]  # the same float differences preintegrate() takes
+        h_turn = np.where(split, t[1:] - t_mid, 1.0)
+        arc = np.where(split, arc, d[:, 2])
+        rows = np.stack(
+            (
+                np.column_stack((t[:-1], ds / h_arc, arc / h_arc)),
+                np.column_stack((t_mid, np.zeros_like(ds), turn / h_turn)),
+            ),
+            axis=1,
+        )[np.column_stack((np.ones_like(split), split))]
+        dt = t[-1] - t[-2]
+        last = np.array([[t[-1], ds[-1] / dt, d[-1, 2] / dt]])
+        u = np.concatenate((rows, last))
+        return cls(u[:, 0], u[:, 1], u[:, 2], "unicycle")
+
     def slice(self, t0: float, t1: float) -> Controls:
         """Controls with ``t0 <= time <= t1`` plus the last one before ``t0`` (the hold value)."""
         i0 = max(int(np.searchsorted(self.times, t0, side="right")) - 1, 0)

@@ -57,16 +57,13 @@ from stemmap.slam._tree_groups import (
     TreeGraph,
     _neighbours,
     match_tree_groups,
+    pose_fit_jacobians,
     pose_from_matches,
     relax_tree_graph,
 )
-from stemmap.slam.loop_closure import (
-    LoopCloser,
-    LoopConfig,
-    close_duplicates,
-    output_pose_covariances,
-    relabel,
-)
+from stemmap.slam._tree_map_errors import Localisation, TreeMapErrors
+from stemmap.slam._treedb_localize import compose_jacobian
+from stemmap.slam.loop_closure import LoopCloser, LoopConfig, close_duplicates, relabel
 from stemmap.slam.relaxation import remap_trees
 from stemmap.slam.tree_covariance import with_tree_covariances
 from stemmap.types import FloatArray, ScanBatch, StemMap, Tree
@@ -88,15 +85,6 @@ log = logging.getLogger(__name__)
 IntArray = NDArray[np.int64]
 
 #: The paper's method: mean-angle pose (Öhman 2007 §2.1); group sizes 6..11 were tested.
-#: Factor on the variances of the relaxation chain (``RelaxNoise``) in the pose graph whose
-#: marginals are the reported ``SlamResult.pose_covs`` (:func:`~stemmap.slam.loop_closure.
-#: output_pose_covariances`; the dead-reckoned frames' odometry covariance is not scaled): the
-#: tree DB and Forestrix share the chain model, so one factor, chosen on the first half of
-#: Victoria Park (both back-ends' screened GPS fixes pooled, the GPS's own 1.14 m RMS added) so
-#: that 86.5 % of the fixes fall inside the 2-sigma ellipse (docs/algorithms/slam.md, "Pose
-#: covariances of the other back-ends"; ``python benchmarks/pose_covariance.py
-#: --vp-chain-factor``).
-FORESTRIX_POSE_COV_INFLATION = 0.0038
 
 PRESETS: dict[str, dict[str, int | str]] = {
     "ohman2007": {"group_size": 8, "pose_method": "ohman2007"},
@@ -185,8 +173,13 @@ class ForestrixSlam:
         (:func:`~stemmap.slam.negative.ray_pass_through` ``position_tol``); false trees thinner
         than twice this are never judged.
     sigma_range : float, m; sigma_bearing : float, rad
-        Detection noise of the reported tree covariances only (the estimate does not use
-        them; default 0.3 m and 1°, the other back-ends' detection noise).
+        Detection noise of the reported pose and tree covariances only (the estimate does not
+        use them). Default 0.10 m and 0.5°: the detection noise measured on Victoria Park from
+        the detections alone (lag-1 re-observations, no GPS; iSAM2's defaults,
+        docs/algorithms/slam.md "Noise parameters"). The tree DB's and EKF's 0.3 m / 1° made
+        the derived pose covariance 4x too wide in std (demo drives, seeds 0-6: z² median
+        0.075; Victoria Park second half 0.12): the fit takes its pose from the detections
+        alone, so their noise model is all of its covariance between odometry steps.
     """
 
     preset: str | None = None
@@ -215,8 +208,8 @@ class ForestrixSlam:
     merge_ddiam: float = 0.42
     false_trees: Literal["none", "rays", "detections"] = "rays"
     ray_position_tol: float = 0.05
-    sigma_range: float = 0.30
-    sigma_bearing: float = math.radians(1.0)
+    sigma_range: float = 0.10
+    sigma_bearing: float = math.radians(0.5)
     name: str = "forestrix"
 
     def __post_init__(self) -> None:
@@ -316,8 +309,15 @@ class ForestrixSlam:
         stem_map = self._remove_false_trees(stem_map, st, problem, scans, stats)
         stats["trees_mapped"] = len(stem_map)
         stats["runtime_s"] = float(_time.perf_counter() - t_start)
-        pose_covs = output_pose_covariances(
-            st.poses, frames.times, st.closer, st.dr_cov, FORESTRIX_POSE_COV_INFLATION
+        # issue 14: the error covariance of this estimator as it ran (TreeMapErrors), with the
+        # relaxation's loop constraints when it closed loops
+        lc = st.closer
+        pose_covs = (
+            st.errs.abs_cov
+            if lc is None
+            else st.errs.pose_covariances(
+                st.poses, lc.keyframes, lc.loops, lc.cfg.noise.loop_robust_k
+            )
         )
         # issue 14: the reported pose covariances propagated, correlated between frames
         stem_map = with_tree_covariances(
@@ -450,6 +450,8 @@ class _RunState:
         self.corrected = False
         self.windowed = cfg.relaxation == "pose_graph"
         self.closer = LoopCloser(cfg.loop_config(), fr.times) if self.windowed else None
+        R = np.diag([cfg.sigma_range**2, cfg.sigma_bearing**2])
+        self.errs = TreeMapErrors(len(fr), R)
 
     # ---- per frame -----------------------------------------------------------------------
 
@@ -457,12 +459,21 @@ class _RunState:
         from stemmap.slam.base import observation_to_world
         from stemmap.slam.motion import compose
 
-        cfg, graph = self.cfg, self.graph
+        cfg, graph, errs = self.cfg, self.graph, self.errs
         self.corrected = False
         if f > 0:
-            self.pose = compose(self.pose, self.pre.deltas[f - 1])
+            delta = self.pre.deltas[f - 1]
+            c, s = math.cos(self.pose[2]), math.sin(self.pose[2])
+            Rw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            errs.predict(compose_jacobian(self.pose, delta), Rw @ self.pre.covs[f - 1] @ Rw.T)
+            self.pose = compose(self.pose, delta)
         r, b, d = self.frames.frame(f)
         tf = float(self.frames.times[f])
+        active = self._active(tf)
+        if self.windowed:  # trees the matcher can no longer see leave the error state
+            gone = np.ones(len(graph), dtype=bool)
+            gone[active] = False
+            errs.drop(np.flatnonzero(gone))
         use = r <= cfg.max_range
         if not use.all():
             r, b, d = r[use], b[use], d[use]
@@ -474,7 +485,7 @@ class _RunState:
         order = np.argsort(r)
         match = np.full(r.size, -1, dtype=np.int64)
         txy = graph.positions()
-        active = self._active(tf)
+        lin: Localisation | None = None  # the correction as a linear map (issue 14)
         if active.size:
             sp = observation_to_world(self.pose, [0.0], [0.0], off)[0]
             reach = float(r.max()) + cfg.search_radius + 5.0
@@ -494,12 +505,17 @@ class _RunState:
             if mm.size >= cfg.min_matches:
                 fit = pose_from_matches(echo[mm], txy[match[mm]], method=cfg.pose_method)
                 if fit:
+                    Lp, Lm, Lv, _, _ = _fit_localisation(
+                        self.pose, r[mm], b[mm], echo[mm], txy[match[mm]], fit, cfg.pose_method
+                    )
+                    lin = (Lp, Lm, Lv, mm, match[mm])
                     self.pose = fit.apply_pose(self.pose)
                     echo = observation_to_world(self.pose, r, b, off)
                     self.n_corrected += 1
                     self.corrected = True
         # classify echoes as old or new trees; accumulate
         ids = np.empty(r.size, dtype=np.int64)
+        c_before = np.zeros(r.size, dtype=np.int64)  # each tree's count before this frame
         w_d = 1.0 / np.maximum(r, 0.5) ** 2
         loop = False
         taken = {int(j) for j in match if j >= 0}
@@ -516,12 +532,14 @@ class _RunState:
             if j >= 0:
                 if tf - graph.last_time[j] > cfg.loop_gap_s:
                     loop = True
+                c_before[k] = graph.count[j]
                 graph.update_tree(j, echo[k], float(d[k]), float(w_d[k]), tf)
             else:
                 j = graph.add_tree(echo[k], float(d[k]), float(w_d[k]), tf)
             ids[k] = j
         p0 = int(self.frames.ptr[f])
         self.det_tree[p0 : p0 + use.size][use] = ids
+        errs.frame(self.pose, r, b, off, lin, ids, c_before)
         if cfg.relaxation == "tree_graph":
             self._tree_graph_step(echo, ids, loop, tf)
         self._end_frame(f, tf)
@@ -559,10 +577,14 @@ class _RunState:
             self.dr_cov[f] = self.pre.covs[f - 1]
         lc = self.closer
         if lc is None:
+            self.errs.record(f, False)
             return
+        n_kf = len(lc.keyframes)
         lc.on_frame(f, self.poses)
+        self.errs.record(f, len(lc.keyframes) > n_kf)
         if not lc.due(tf) or len(self.graph) < 2 * lc.cfg.min_matches:
             return
+        n_kf = len(lc.keyframes)
         from stemmap.slam.base import observation_to_world
 
         g = self.graph
@@ -570,6 +592,8 @@ class _RunState:
         found = lc.detect(
             f, self.poses, sp, g.positions(), g.first_time, g.last_time, g.count, g.alive
         )
+        if len(lc.keyframes) > n_kf:  # a loop's endpoint became a keyframe
+            self.errs.promote(f)
         if found is None:
             return
         self._merge(f, *found)
@@ -580,6 +604,7 @@ class _RunState:
 
     def _merge(self, f: int, src: IntArray, dst: IntArray) -> None:
         g = self.graph
+        self.errs.merge(src, dst, g.count)
         pos = g.positions()
         for s_, d_ in zip(src.tolist(), dst.tolist(), strict=True):
             cs, cd = float(g.count[s_]), float(g.count[d_])
@@ -617,3 +642,33 @@ class _RunState:
             if src.size:
                 self._merge(f, src, dst)
                 self.n_close_merged += src.size
+
+
+def _fit_localisation(
+    pose: FloatArray,
+    r: FloatArray,
+    b: FloatArray,
+    echo: FloatArray,
+    trees: FloatArray,
+    fit: PoseFit,
+    method: Literal["ohman2007", "procrustes"],
+) -> Localisation:
+    """Forestrix's pose correction as a linear map of the errors (issue 14;
+    :data:`~stemmap.slam._tree_map_errors.Localisation`, matched detections numbered 0..m-1):
+    the rigid ``fit`` of the echoes ``echo`` (projected with the predicted ``pose``) onto
+    their ``trees`` differentiated (:func:`~stemmap.slam._tree_groups.pose_fit_jacobians`), chained
+    with each echo's dependence on the predicted pose (``[I, J (e - p_xy)]``) and on its
+    (range ``r``, bearing ``b``) noise."""
+    Jp, Je, Jt = pose_fit_jacobians(echo, trees, pose, method=method, fit=fit)
+    m = r.size
+    ca, sa = np.cos(pose[2] + b), np.sin(pose[2] + b)
+    Hw = np.zeros((m, 2, 3))
+    Hw[:, 0, 0] = Hw[:, 1, 1] = 1.0
+    Hw[:, 0, 2] = pose[1] - echo[:, 1]
+    Hw[:, 1, 2] = echo[:, 0] - pose[0]
+    Jz = np.stack((np.column_stack((ca, -r * sa)), np.column_stack((sa, r * ca))), axis=1)
+    Je3 = Je.reshape(3, m, 2)
+    Lp = Jp + np.einsum("iak,akj->ij", Je3, Hw)
+    Lv = np.einsum("iak,akj->iaj", Je3, Jz).reshape(3, 2 * m)
+    idx = np.arange(m, dtype=np.int64)
+    return Lp, Jt, Lv, idx, idx

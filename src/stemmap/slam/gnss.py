@@ -15,7 +15,8 @@ each fix at time ``t`` becomes
 
 The graph then lives in the GNSS frame: the run's initial pose is replaced by the dead-reckoned
 start aligned to the first fixes (:func:`gnss_initial_pose`) and held only by a weak prior, so the
-trajectory and the map come out in the frame of the fixes.
+trajectory and the map come out in the frame of the fixes. With a prior map the relocalised
+initial pose is kept (:func:`with_gnss_frame`): the map must be in the fixes' frame.
 
 Why an auxiliary variable and not a custom factor: the lever arm and the sub-keyframe timing are
 exact this way with GTSAM's compiled factors; a Python ``CustomFactor`` made the iSAM2 run 3-4x
@@ -299,8 +300,16 @@ def plan_gnss(
 
 
 def with_gnss_frame(problem: SlamProblem) -> SlamProblem:
-    """``problem`` with its initial pose moved into the GNSS frame (no-op without GNSS)."""
-    if problem.gnss is None:
+    """``problem`` with its initial pose moved into the GNSS frame (no-op without GNSS).
+
+    Also a no-op with a ``prior_map``: its trees pin the graph in the map's frame and the
+    initial pose is the relocalised one in that frame (:func:`stemmap.slam.relocalise.
+    continue_session`), which the fixes must then share -- the caller's to check (``stemmap
+    map`` refuses a prior map not made in the GNSS frame, docs/algorithms/slam.md "Prior map
+    and GNSS"). Replacing the relocalised pose by the one aligned to the first fixes would
+    throw away the map's (tighter) start for a dead-reckoned fit to a few metres-noisy fixes.
+    """
+    if problem.gnss is None or problem.prior_map is not None:
         return problem
     return dataclasses.replace(problem, initial_pose=gnss_initial_pose(problem, problem.gnss))
 

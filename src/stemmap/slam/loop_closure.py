@@ -36,7 +36,6 @@ from stemmap.slam.relaxation import (
     fit_rigid_robust,
     loop_constraint,
     relax_trajectory,
-    relaxed_pose_covariances,
 )
 from stemmap.types import FloatArray
 
@@ -46,7 +45,6 @@ __all__ = [
     "LoopMatch",
     "close_duplicates",
     "find_loop_closure",
-    "output_pose_covariances",
 ]
 
 IntArray = NDArray[np.int64]
@@ -327,30 +325,3 @@ def relabel(labels: IntArray, src: ArrayLike, dst: ArrayLike, n: int) -> None:
     remap[np.asarray(src, dtype=np.int64)] = np.asarray(dst, dtype=np.int64)
     ok = labels >= 0
     labels[ok] = remap[labels[ok]]
-
-
-def output_pose_covariances(
-    poses: FloatArray,
-    times: ArrayLike,
-    closer: LoopCloser | None,
-    odometry_cov: FloatArray | None,
-    chain_variance_factor: float,
-) -> FloatArray:
-    """The ``SlamResult.pose_covs`` of the back-ends that relax with :class:`LoopCloser` (tree
-    DB, Forestrix; issue 14): :func:`~stemmap.slam.relaxation.relaxed_pose_covariances` of the
-    final ``poses`` with the run's keyframes, loops and chain noise, the chain's variances times
-    ``chain_variance_factor`` (the back-end's factor, chosen on Victoria Park). Without a
-    closer (loop closure off) the keyframes follow the default :class:`LoopConfig` rule and
-    there are no loops: the chain's open-loop drift."""
-    if closer is None:
-        closer = LoopCloser(LoopConfig(), times)
-        for f in range(poses.shape[0]):
-            closer.on_frame(f, poses)
-    return relaxed_pose_covariances(
-        poses,
-        closer.keyframes,
-        closer.loops,
-        noise=closer.cfg.noise,
-        odometry_cov=odometry_cov,
-        chain_variance_factor=chain_variance_factor,
-    )

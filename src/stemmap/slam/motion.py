@@ -175,7 +175,18 @@ class _ArcModel:
         _, F_u = self.jacobians(st, u, dt)
         C = self.control_cov(u, dt).reshape(2, 2)
         Q: FloatArray = F_u @ C @ F_u.T
-        return Q
+        _, dth = self.arc(u, dt)
+        return Q + self._lateral_cov(st[2] + 0.5 * np.asarray(dth).reshape(()), dt)
+
+    def _lateral_cov(self, heading: ArrayLike, dt: ArrayLike) -> FloatArray:
+        """``σ_lat² dt n nᵀ`` with ``n = (-sin, cos, 0)`` of ``heading``: a sideways velocity
+        error (white, ``sigma_lateral`` its one-second average), zero for a wheeled vehicle."""
+        m = np.asarray(heading, dtype=np.float64)
+        sig = float(getattr(self, "sigma_lateral", 0.0))
+        var = sig**2 * np.maximum(np.asarray(dt, dtype=np.float64), 0.0)
+        n = np.stack((-np.sin(m), np.cos(m), np.zeros_like(m)), axis=-1)
+        out: FloatArray = np.asarray(var)[..., None, None] * n[..., :, None] * n[..., None, :]
+        return out
 
     def noise_batch(self, u: ArrayLike, dt: ArrayLike, headings: ArrayLike) -> FloatArray:
         """World-frame noise (N, 3, 3) of many steps at once (used by :func:`preintegrate`)."""
@@ -190,6 +201,8 @@ class _ArcModel:
         G[..., 2, 1] = 1.0
         F_u = G @ self.arc_jacobian(uu, d)
         out: FloatArray = F_u @ self.control_cov(uu, d) @ np.swapaxes(F_u, -1, -2)
+        if getattr(self, "sigma_lateral", 0.0) > 0.0:
+            out = out + self._lateral_cov(m, d)
         return out
 
 
@@ -299,15 +312,20 @@ class UnicycleModel(_ArcModel):
     """Differential-drive / unicycle vehicle: controls ``u = (v, omega)`` in m/s and rad/s.
 
     ``ds = v dt``, ``dtheta = omega dt``; ``sigma_steer`` is the yaw-rate error (rad/s, one-second
-    average) and ``sigma_speed`` the speed error (m/s, one-second average).
+    average) and ``sigma_speed`` the speed error (m/s, one-second average). ``sigma_lateral``
+    (m/s, one-second average) is a sideways velocity error, perpendicular to the mid heading:
+    0 for a wheeled vehicle's own odometry (it cannot slide); a pose-output odometry's position
+    error has no preferred direction, so :func:`stemmap.slam.munjer.controls_from_trajectory`
+    sets it to ``sigma_speed`` (docs/algorithms/slam.md, "Controls from a pose trajectory").
     """
 
     sigma_speed: float = 0.05
     sigma_steer: float = 0.01
     kind: str = "unicycle"
+    sigma_lateral: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("sigma_speed", "sigma_steer"):
+        for name in ("sigma_speed", "sigma_steer", "sigma_lateral"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"UnicycleModel.{name} must be >= 0, got {v}.")

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.slam._treedb_errors import TreeDbErrors
+from stemmap.slam._tree_map_errors import TreeMapErrors, ekf_localisation
 from stemmap.slam._treedb_localize import compose_jacobian, landmark_covariances, localize_pose
 from stemmap.slam.loop_closure import LoopConfig
 from stemmap.slam.tree_covariance import with_tree_covariances
@@ -423,9 +423,9 @@ class TreeDbSlam:
     estimator itself, with no factor fitted to data: the first-order error covariance of the
     pose *and of the DB entries it localises on*, propagated with the gains the filter used
     (odometry prediction, localisation against landmarks mapped from earlier poses, eq. (2)
-    averaging of the detections into the DB; :class:`~stemmap.slam._treedb_errors.
-    TreeDbErrors`), and, with loop closure, pulled in by the loop constraints of the
-    relaxation (:meth:`~stemmap.slam._treedb_errors.TreeDbErrors.pose_covariances`). The
+    averaging of the detections into the DB; :class:`~stemmap.slam._tree_map_errors.
+    TreeMapErrors`), and, with loop closure, pulled in by the loop constraints of the
+    relaxation (:meth:`~stemmap.slam._tree_map_errors.TreeMapErrors.pose_covariances`). The
     filter's own ``P`` treats the map as known and is only its gain. Every tree's reported
     covariance is that of the average of its detections with the reported pose covariances
     propagated into each detection and correlated between the frames that saw it
@@ -550,7 +550,7 @@ class TreeDbSlam:
                 frames.times,
             )
         # issue 14: the error covariance of this estimator as it runs (module doc)
-        errs = TreeDbErrors(nf, R)
+        errs = TreeMapErrors(nf, R)
         n_updates = 0
         n_loop_merged = 0
         for f in range(nf):
@@ -570,7 +570,7 @@ class TreeDbSlam:
             known = None
             active = None
             corrected = False
-            gain = None
+            loc = None
             if closer is not None and len(db):
                 active = (db.count > 0) & (tf - db.last_time <= self.loop_gap_s)
                 if self.localize_recent_only:
@@ -596,7 +596,7 @@ class TreeDbSlam:
                     if self.landmark_association:
                         known = np.where(matched >= 0, lm[np.clip(matched, 0, None)], -1)
                     if gain is not None:
-                        gain = (*gain[:4], lm[gain[4]])
+                        loc = ekf_localisation(*gain[:4], lm[gain[4]])
             poses[f] = pose
             pose_covs[f] = P
             if f > 0 and not corrected:
@@ -610,7 +610,7 @@ class TreeDbSlam:
                 det_entry[frames.ptr[f] : frames.ptr[f + 1]][use] = idx
                 c_before = np.zeros(idx.size, dtype=np.int64)
                 c_before[idx < n_old] = cnt_old[idx[idx < n_old]]
-                errs.frame(pose, r, b, off, gain, idx, c_before)
+                errs.frame(pose, r, b, off, loc, idx, c_before)
             if closer is not None:
                 n_kf = len(closer.keyframes)
                 closer.on_frame(f, poses)

@@ -1,40 +1,47 @@
-"""First-order error covariance of the tree DB back-end as it really runs (issue 14; ours).
+"""First-order error covariance of the tree-map back-ends as they really run (issue 14; ours).
 
-:class:`~stemmap.slam.treedb.TreeDbSlam` localises each frame on landmarks it mapped itself
-from earlier poses, with a pose-only EKF that takes the map as (almost) known. Its running
-covariance ``P`` is therefore the pose's error *relative to the map* (centimetres), while the
-map carries the error of the poses that mapped it: the pose drifts as the trees in view are
-handed over to newly mapped ones. This module tracks the joint error covariance of the pose,
-every live DB entry and the last keyframe's pose under the gains the back-end actually used --
-the covariance analysis of a suboptimal filter (Gelb 1974, ch. 7 "Suboptimal filter design and
-sensitivity analysis": the true error covariance is propagated with the filter's own gains, not
-the ones an optimal filter would use). With ``δp`` the pose error, ``δm_e`` entry ``e``'s,
-``w`` the odometry noise and ``v`` a detection's noise (range, bearing; covariance ``R``, the
-back-end's detection noise model), all linear to first order:
+The tree DB (:class:`~stemmap.slam.treedb.TreeDbSlam`) and Forestrix
+(:class:`~stemmap.slam.forestrix.ForestrixSlam`) are the same kind of estimator: each frame's
+pose is corrected against trees the back-end mapped itself from earlier poses (the map taken as
+known), and the frame's detections are then averaged into that map at the corrected pose. A
+filter covariance of such an estimator is the pose's error *relative to the map* (centimetres),
+while the map carries the error of the poses that mapped it: the pose drifts as the trees in
+view are handed over to newly mapped ones. This module tracks the joint error covariance of the
+pose, every live map tree and the last keyframe's pose under the gains the back-end actually
+used -- the covariance analysis of a suboptimal filter (Gelb 1974, ch. 7 "Suboptimal filter
+design and sensitivity analysis": the true error covariance is propagated with the filter's own
+gains, not the ones an optimal filter would use). With ``δp`` the pose error, ``δm_e`` tree
+``e``'s, ``w`` the odometry noise and ``v`` a detection's noise (range, bearing; covariance
+``R``, the back-end's detection noise model), all linear to first order:
 
 * prediction ``p ⊕ u``: ``δp ← F δp + w`` (``F`` the compose Jacobian, ``Cov w`` the
   preintegrated increment's covariance rotated to the map);
-* localisation (EKF gain ``K`` over the matched detections, Jacobians ``H_x``, ``H_m``):
-  ``δp ← (I - K H_x) δp - K H_m δm_matched + K v_matched``;
-* mapping at the corrected pose (eq. 2 of the visual-lidar paper: a matched entry seen ``c``
-  times becomes the average ``(c m + x)/(c + 1)``; an unmatched detection a new entry ``x``)
-  with ``δx = J_p δp + J_z v``: ``δm_e ← (c δm_e + δx)/(c + 1)``, or ``δm_new = δx``.
+* localisation, in the linear form :data:`Localisation` ``δp ← L_p δp + L_m δm_matched +
+  L_v v_matched``: the tree DB's pose-only EKF (gain ``K``, Jacobians ``H_x``, ``H_m``;
+  :func:`ekf_localisation`: ``L_p = I - K H_x``, ``L_m = -K H_m``, ``L_v = K``), Forestrix's
+  rigid fit of the matched echoes onto their trees (the fit's Jacobians,
+  :func:`~stemmap.slam._tree_groups.pose_fit_jacobians`; ``L_p`` is zero to first order: the
+  fit is equivariant, so the corrected pose is the map's and the detections' alone);
+* mapping at the corrected pose (a running mean: eq. 2 of the visual-lidar paper, Forestrix's
+  position update; a tree seen ``c`` times becomes ``(c m + x)/(c + 1)``; an unmatched
+  detection a new tree ``x``) with ``δx = J_p δp + J_z v``: ``δm_e ← (c δm_e + δx)/(c + 1)``,
+  or ``δm_new = δx``.
 
 The same detection noise ``v`` enters the localisation and the mapping of that frame, so the
-frame's ``v`` are carried as extra state rows for the two steps. Entries merged by the loop
-closure or the duplicate rule become the count-weighted mean of their errors. Entries the
+frame's ``v`` are carried as extra state rows for the two steps. Trees merged by the loop
+closure or the duplicate rule become the count-weighted mean of their errors. Trees the
 back-end can no longer match (not seen for ``LoopConfig.gap_s`` with recent-only localisation)
-are dropped from the state; a later merge with one keeps the live entry's error.
+are dropped from the state; a later merge with one keeps the live tree's error.
 
-The relaxation after a loop closure is not modelled in the forward recursion (an entry merged
-with one already dropped keeps the live entry's error, so the loop's information is not in it).
-It enters in :meth:`TreeDbErrors.pose_covariances`: the recorded covariances as a Gauss-Markov
+The relaxation after a loop closure is not modelled in the forward recursion (a tree merged
+with one already dropped keeps the live tree's error, so the loop's information is not in it).
+It enters in :meth:`TreeMapErrors.pose_covariances`: the recorded covariances as a Gauss-Markov
 chain over the relaxation's keyframes plus the relaxation's loop constraints, whose marginals
 are the reported pose covariances. Without loops they are the forward analysis itself.
 
-Checked against Monte Carlo (tests/slam/test_treedb.py: drives whose odometry and detection
-noise follow the back-end's models; pose NEES mean 3.1 against 3, the chain factor it replaced
-4.5-5.0).
+Checked against Monte Carlo (tests/slam/test_treedb.py, tests/slam/test_forestrix.py: drives
+whose odometry and detection noise follow the back-end's models; tree DB pose NEES mean 3.1
+against 3, the chain factor it replaced 4.5-5.0).
 
 References
 ----------
@@ -66,8 +73,25 @@ _TWO = np.arange(2)
 _FLOOR = np.array([1e-3, 1e-3, math.radians(1e-3)])
 
 
-class TreeDbErrors:
-    """Joint error covariance of (pose, last keyframe's pose, live DB entries); module doc.
+#: A frame's localisation as a linear map of the errors (module doc): ``L_p`` (3, 3) on the
+#: predicted pose's, ``L_m`` (3, 2m) on the matched trees' (x, y pairs), ``L_v`` (3, 2m) on the
+#: matched detections' (range, bearing) noise; the matched detections' indices in the frame
+#: and their map trees (m,).
+Localisation = tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray]
+
+
+def ekf_localisation(
+    K: FloatArray, Hx: FloatArray, Hm: FloatArray, kk: IntArray, ent: IntArray
+) -> Localisation:
+    """:data:`Localisation` of an EKF update ``p + K (z - h(p, m))`` with gain ``K`` (3, 2m)
+    and Jacobians ``H_x`` (2m, 3), ``H_m`` (m, 2, 2): ``(I - K H_x, -K H_m, K)``."""
+    Kb = K.reshape(3, -1, 2).transpose(1, 0, 2)  # (m, 3, 2) per matched detection
+    Lm = -np.einsum("aij,ajk->iak", Kb, Hm).reshape(3, -1)
+    return np.eye(3) - K @ Hx, Lm, K, kk, ent
+
+
+class TreeMapErrors:
+    """Joint error covariance of (pose, last keyframe's pose, live map trees); module doc.
 
     Parameters
     ----------
@@ -80,7 +104,7 @@ class TreeDbErrors:
         self.R = np.asarray(detection_cov, dtype=np.float64).reshape(2, 2)
         self.S = np.zeros((64, 64))
         self.n = 6  # used rows: pose, clone, then slots
-        self.slot = np.full(0, -1, dtype=np.int64)  # DB entry -> state row (-1: none)
+        self.slot = np.full(0, -1, dtype=np.int64)  # map tree -> state row (-1: none)
         self.free: list[int] = []
         self.abs_cov = np.zeros((n_frames, 3, 3))
         self.cross = np.zeros((n_frames, 3, 3))  # Cov(δp_f, δp of the keyframe before f)
@@ -109,7 +133,7 @@ class TreeDbErrors:
         self.free.extend(int(r) for r in firsts)
 
     def _entry_rows(self, entries: IntArray) -> IntArray:
-        """State rows (2 per entry) of DB entries that have a slot."""
+        """State rows (2 per tree) of map trees that have a slot."""
         return _pairs(self.slot[entries])
 
     def _apply(
@@ -137,15 +161,14 @@ class TreeDbErrors:
         ranges: FloatArray,
         bearings: FloatArray,
         offset: tuple[float, float],
-        gain: tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray] | None,
+        loc: Localisation | None,
         entries: IntArray,
         counts_before: IntArray,
     ) -> None:
-        """One frame's localisation (``gain``: ``K`` (3, 2m), ``H_x`` (2m, 3), ``H_m`` (m, 2,
-        2), matched detections, their DB entries; None = no correction) and mapping of its
-        detections at the corrected ``pose`` into DB ``entries`` (``counts_before``: each
-        entry's count before the frame; 0 = a new entry), as one linear map of the state and
-        the frame's detection noise ``v`` (which enters both steps)."""
+        """One frame's localisation (``loc``, :data:`Localisation`; None = no correction) and
+        mapping of its detections at the corrected ``pose`` into map trees ``entries``
+        (``counts_before``: each tree's count before the frame; 0 = a new tree), as one linear
+        map of the state and the frame's detection noise ``v`` (which enters both steps)."""
         k = int(ranges.size)
         if self.slot.size < int(entries.max(initial=-1)) + 1:
             grown = np.full(int(entries.max()) + 1, -1, dtype=np.int64)
@@ -158,22 +181,20 @@ class TreeDbErrors:
         self.slot[new_e] = self._new_pairs(new_e.size)
         orows = self._entry_rows(entries[old])
         mrows = np.zeros(0, dtype=np.int64)
-        if gain is not None:
-            K, Hx, Hm, kk, ent = gain
+        if loc is not None:
+            Lp, Lm, Lv, kk, ent = loc
             have = self.slot[ent] >= 0
             mrows = self._entry_rows(ent[have])
         cols = np.unique(np.concatenate((_POSE, mrows, orows)))
-        # localisation: δp' = Lp δp + Σ Lm_i δm_i + K v_matched  (rows 0-2 of Ms, Mv)
+        # localisation: δp' = L_p δp + L_m δm_matched + L_v v_matched  (rows 0-2 of Ms, Mv)
         Ms = np.zeros((3 + 2 * k, cols.size))
         Mv = np.zeros((3 + 2 * k, 2 * k))
         Ms[:3, :3] = np.eye(3)  # cols starts with the pose rows 0-2
-        if gain is not None:
-            Ms[:3, :3] -= K @ Hx
-            Kb = K.reshape(3, -1, 2).transpose(1, 0, 2)  # (m, 3, 2) per matched detection
+        if loc is not None:
+            Ms[:3, :3] = Lp
             if have.any():
-                KHm = -np.einsum("aij,ajk->aik", Kb[have], Hm[have])
-                Ms[:3, np.searchsorted(cols, mrows)] += np.concatenate(list(KHm), axis=1)
-            Mv[:3, _pairs(2 * kk)] = K
+                Ms[:3, np.searchsorted(cols, mrows)] += Lm[:, _pairs(2 * np.flatnonzero(have))]
+            Mv[:3, _pairs(2 * kk)] = Lv
         # mapping at the corrected pose: δm' = w (J_p δp' + J_z v) + (1 - w) δm
         c, s = math.cos(pose[2]), math.sin(pose[2])
         sx = pose[0] + offset[0] * c - offset[1] * s
@@ -222,7 +243,7 @@ class TreeDbErrors:
             self.slot[a] = -1
 
     def drop(self, entries: IntArray) -> None:
-        """Forget entries the back-end can no longer match."""
+        """Forget trees the back-end can no longer match."""
         e = entries[entries < self.slot.size]
         e = e[self.slot[e] >= 0]
         if e.size:

@@ -1,0 +1,107 @@
+"""Pieces of ``real_geometry.py`` shared with ``real_geometry_diagnose.py`` and
+``scan_noise.py``: the textbook detector, the virtual scanner settings, the detector set up
+for a scanner, the vantage points on a real slice, greedy matching and error statistics. A
+helper module, not a script; each benchmark imports it explicitly (the script's own folder is
+on ``sys.path`` when it runs, from any working directory)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from stemmap.eval.real_slices import RealSlice
+from stemmap.scan.detect import DetectorConfig
+
+__all__ = [
+    "FULL_SCANNERS",
+    "QUICK_SCANNERS",
+    "TEXTBOOK",
+    "error_stats",
+    "greedy_match",
+    "matched",
+    "vantage_points",
+]
+
+
+#: A textbook 2D trunk detector: range-jump segmentation (Zheng et al. 2012 eq. 2, 0.2 m),
+#: >= 3 returns, the Kasa (1976) fit, radius 2 cm - 1 m; no plausibility test.
+TEXTBOOK = DetectorConfig(
+    name="textbook_kasa",
+    segmentation="range_jump",
+    max_jump=0.2,
+    min_points=3,
+    fit_method="kasa",
+    min_radius=0.02,
+    max_radius=1.0,
+)
+
+
+QUICK_SCANNERS = (("nearest", 0.5, 0.0), ("averaging", 0.5, 0.01))
+
+
+FULL_SCANNERS = tuple(
+    (m, res, noise)
+    for m in ("nearest", "averaging")
+    for res in (0.25, 0.5, 1.0)
+    for noise in (0.0, 0.01, 0.03)
+)
+
+
+def matched(cfg: DetectorConfig, model: str, res: float) -> DetectorConfig:
+    """``cfg`` set up for the scanner as a user does (``stemmap detect --footprint``): a
+    first-echo (nearest-return) scanner whose beam fills the angular step has a footprint of
+    one step (corrected before fitting); an averaging scanner keeps the preset's edge model."""
+    if model == "nearest" and cfg.fit_method == "ours":
+        return replace(cfg, beam_footprint_deg=res)
+    return cfg
+
+
+def vantage_points(
+    sl: RealSlice, n: int, rng: np.random.Generator, r_lo: float = 1.0, r_hi: float = 15.0
+) -> np.ndarray:
+    """``n`` vantage points, each at a uniform range in [r_lo, r_hi] and a uniform bearing from
+    a random reference trunk, >= 0.3 m from every slice point (not inside a trunk or bush)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(sl.xy)
+    c = sl.centers
+    out: list[np.ndarray] = []
+    tries = 0
+    while len(out) < n and tries < 100 * n:
+        tries += 1
+        t = int(rng.integers(c.shape[0]))
+        d = float(rng.uniform(r_lo, r_hi))
+        b = float(rng.uniform(-math.pi, math.pi))
+        p = c[t] + d * np.array([math.cos(b), math.sin(b)])
+        if tree.query(p)[0] >= 0.3:
+            out.append(p)
+    return np.asarray(out).reshape(-1, 2)
+
+
+def greedy_match(det: np.ndarray, truth: np.ndarray, gate: np.ndarray) -> np.ndarray:
+    """Greedy nearest-first matching; returns for each truth the matched detection or -1."""
+    out = np.full(truth.shape[0], -1, dtype=np.int64)
+    if det.shape[0] == 0 or truth.shape[0] == 0:
+        return out
+    dist = np.hypot(*(truth[:, None, :] - det[None, :, :]).transpose(2, 0, 1))
+    used = np.zeros(det.shape[0], dtype=bool)
+    for flat in np.argsort(dist, axis=None):
+        t, k = divmod(int(flat), det.shape[0])
+        if out[t] >= 0 or used[k] or dist[t, k] > gate[t]:
+            continue
+        out[t], used[k] = k, True
+    return out
+
+
+def error_stats(err_cm: np.ndarray) -> dict[str, Any]:
+    e = err_cm[np.isfinite(err_cm)]
+    if e.size == 0:
+        return {"n": 0, "rmse_cm": None, "bias_cm": None}
+    return {
+        "n": int(e.size),
+        "rmse_cm": round(float(np.sqrt(np.mean(e * e))), 2),
+        "bias_cm": round(float(np.mean(e)), 2),
+    }
