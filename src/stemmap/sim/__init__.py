@@ -4,12 +4,8 @@ See docs/algorithms/sim-eval.md for the models and the decisions behind them.
 """
 
 from stemmap.sim.forest import (
-    CLUTTER_KINDS,
     Stand,
-    add_clutter,
-    add_understory,
     clustered_stand,
-    make_trunks_noncircular,
     random_stand,
     row_stand,
     sample_dbh,
@@ -30,6 +26,12 @@ from stemmap.sim.scanner import (
     scanner_preset,
     simulate_scan,
     simulate_scans,
+)
+from stemmap.sim.stand_features import (
+    CLUTTER_KINDS,
+    add_clutter,
+    add_understory,
+    make_trunks_noncircular,
 )
 from stemmap.sim.trajectory import (
     ODOMETRY_PRESETS,

@@ -2,7 +2,7 @@
 out-of-roundness, cm-scale bark ridges, elliptic and leaning stems, buttress lobes.
 
 Pure geometry: :func:`trunk_outline` returns the polygon of one trunk's outline around its
-centre; :func:`stemmap.sim.forest.make_trunks_noncircular` places them in a stand. Used to
+centre; :func:`stemmap.sim.stand_features.make_trunks_noncircular` places them in a stand. Used to
 *test* the detectors on what real stands have and the perfect circles of the simulator lack,
 never to tune them (defaults are chosen on the real slices, docs/algorithms/scan-detection.md).
 """
