@@ -29,19 +29,11 @@ scan of dead-reckoning bookkeeping (the front-end reads drift since a tree's las
 observation from cumulative sums).
 
 **Pose covariance** (issue 14; :attr:`OnlineMapper.pose_covs`, ``trajectory.csv`` of ``stemmap
-map --realtime``): at every iSAM2 update the latest keyframe's marginal
-(``ISAM2.marginalCovariance``: the newest key sits at the Bayes tree's root, Kaess et al. 2012,
-so the recovery touches few cliques; with the carrying +0.04 ms CPU per scan at the median,
-+0.17 ms at p99, ~1.1x: ``benchmarks/slam_field.py --parts online --worker online`` on VP,
-before / after alternated twice) is carried scan by scan with the dead-reckoned sensor
-increments' covariance (``C <- Ad(d⁻¹) C Ad(d⁻¹)ᵀ + Q``, the propagation of
-:func:`~stemmap.slam._graph_odometry.frame_covariances`): O(1) per scan. A re-anchor's prior is
-the marginal with its sigmas capped; the part the cap leaves out (the PSD part of the
-difference) is carried from the anchor on the next window's marginals, so the covariance does
-not reset. The tracker's per-scan corrections between updates are not in it (conservative
-there). The reported covariance is ``pose_cov_factor`` (8.6, chosen on Victoria Park's first
-half against the GPS) times this: without the batch's odometry self-calibration the odometry's
-bias is outside the model (docs/outputs.md, "Pose covariance columns").
+map --realtime``): iSAM2's marginal of the latest keyframe at every update, carried scan by scan
+and across re-anchors (:mod:`stemmap.slam._online_covariance`), times ``pose_cov_factor``.
+
+Replaying a recorded log through the mapper: :func:`replay`
+(:mod:`stemmap.slam._online_replay`).
 
 Not done online (the batch back-end does them at the end of a run): the odometry
 self-calibration, the duplicate merge and the final Levenberg-Marquardt pass. With GNSS, the
@@ -60,8 +52,8 @@ from typing import Any
 import numpy as np
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.slam._graph_odometry import _sensor_between, frame_covariances
-from stemmap.slam._graph_revisits import _adjoint_inv
+from stemmap.slam._graph_odometry import _sensor_between
+from stemmap.slam._grow import _Grow
 from stemmap.slam._isam2_track import (
     C_LOCAL,
     C_NEW,
@@ -70,7 +62,9 @@ from stemmap.slam._isam2_track import (
     merge_window,
     track_keyframe,
 )
-from stemmap.slam.base import Controls, SlamProblem, frame_trajectory, single_threaded_blas
+from stemmap.slam._online_covariance import PoseCovarianceCarry
+from stemmap.slam._online_replay import replay
+from stemmap.slam.base import Controls
 from stemmap.slam.gnss import GnssPlan, gnss_factors, robust_kernel
 from stemmap.slam.gnss_track import GnssOffsetFilter, GnssOffsetModel
 from stemmap.slam.graph import Isam2Config, _point_marginals
@@ -117,35 +111,6 @@ class OnlineConfig:
             raise ConfigError(
                 f"OnlineConfig.pose_cov_factor must be > 0, got {self.pose_cov_factor}."
             )
-
-
-class _Grow:
-    """A growable float/int array with amortised O(1) append along axis 0."""
-
-    def __init__(self, shape: tuple[int, ...], dtype: Any = np.float64, fill: float = 0.0):
-        self.a = np.full((256, *shape), fill, dtype=dtype)
-        self.n = 0
-        self.fill = fill
-
-    def room(self, extra: int) -> None:
-        need = self.n + extra
-        if need > self.a.shape[0]:
-            b = np.full(
-                (max(need, 2 * self.a.shape[0]), *self.a.shape[1:]), self.fill, self.a.dtype
-            )
-            b[: self.n] = self.a[: self.n]
-            self.a = b
-
-    def append(self, v: Any) -> None:
-        self.room(1)
-        self.a[self.n] = v
-        self.n += 1
-
-    def extend(self, v: Any) -> None:
-        v = np.asarray(v)
-        self.room(v.shape[0])
-        self.a[self.n : self.n + v.shape[0]] = v
-        self.n += v.shape[0]
 
 
 class OnlineMapper:
@@ -248,13 +213,7 @@ class OnlineMapper:
         self.k_meas = 0  # last keyframe with a tree measurement
         self._kd = np.zeros(3)  # vehicle increment since the keyframe's first scan
         self._kc = np.zeros((3, 3))
-        # pose covariance (module docs): the current scan's sensor pose (GTSAM tangent), the
-        # covariance a re-anchor's capped prior left out (tangent at the anchor) and the anchor
-        self._C = np.diag(np.array(c.prior_sigmas) ** 2)
-        self._C_out = np.zeros((3, 3))
-        self._anchor = np.zeros(3)
-        self._Cs = _Grow((3, 3))  # self._C at every scan
-        self._th = _Grow(())  # reported vehicle heading at every scan
+        self._cov = PoseCovarianceCarry(c.prior_sigmas)  # pose covariance (module docs)
 
     # ------------------------------------------------------------------ smoother life cycle
     def _new_isam(self) -> None:
@@ -385,8 +344,7 @@ class OnlineMapper:
         self.dia.extend(d)
         self.ptr.append(self.ptr.a[f] + r.shape[0])
         if sp_prev is not None:  # carry the covariance with this scan's sensor increment
-            A = _adjoint_inv(between(sp_prev, self.sp_dr.a[f]))
-            self._C = A @ self._C @ A.T + self.cov_f.a[f - 1]
+            self._cov.carry(sp_prev, self.sp_dr.a[f], self.cov_f.a[f - 1])
         if f % c.keyframe_every == 0:
             self._new_keyframe(f)
         # front-end on this scan (room for every detection becoming a tree)
@@ -410,8 +368,7 @@ class OnlineMapper:
         self.n_lm = n_lm
         self._win.append(tuple(o[:n_out].copy() for o in out))
         pose = self.pose
-        self._Cs.append(self._C)
-        self._th.append(pose[2])
+        self._cov.record(pose[2])
         return pose
 
     @property
@@ -421,12 +378,7 @@ class OnlineMapper:
         mounting and rotated, as :func:`~stemmap.slam._graph_odometry.frame_covariances` does
         with every frame its own anchor (done here, not per scan), times
         ``pose_cov_factor``."""
-        n = self._Cs.n
-        fr = np.arange(n)
-        return self.cfg.pose_cov_factor * frame_covariances(
-            self._Cs.a[:n], fr, fr, np.zeros((n, 3)), np.zeros((n, 3, 3)), self.offset,
-            self._th.a[:n],
-        )  # fmt: skip
+        return self._cov.pose_covs(self.cfg.pose_cov_factor, self.offset)
 
     @property
     def pose(self) -> tuple[float, float, float]:
@@ -600,7 +552,7 @@ class OnlineMapper:
         init = compose(self.trk, rel)
         dth = math.remainder(p.theta() - init[2], 2 * math.pi)
         self.trk[:] = (p.x(), p.y(), init[2] + dth)
-        self._C = self._marginal(k, p)
+        self._cov.update(self.isam, XK(k), p)
         self.P[:, :] = self.P_floor
         self.fc[0] = f
         self.f_upd = f
@@ -617,23 +569,6 @@ class OnlineMapper:
             idle and k - self.k_anchor >= self.cfg.idle_keyframes
         ):
             self._reanchor(k)
-
-    def _marginal(self, k: int, p: Any) -> FloatArray:
-        """Map-frame covariance of keyframe ``k``'s sensor pose ``p`` (GTSAM tangent): iSAM2's
-        marginal (Kaess et al. 2012, iSAM2, Alg. 7: the latest key sits near the Bayes tree's
-        root, so recovering it touches few cliques) plus what the re-anchors' capped priors
-        left out, carried from the anchor (``Ad(rel⁻¹) C Ad(rel⁻¹)ᵀ``)."""
-        from gtsam.symbol_shorthand import X as XK
-
-        try:
-            cov = np.asarray(self.isam.marginalCovariance(XK(k)), dtype=np.float64)
-        except RuntimeError as exc:  # an indeterminate system: keep the dead-reckoned one
-            log.warning("online: pose marginal unavailable (%s)", exc)
-            return self._C
-        if self._C_out.any():
-            A = _adjoint_inv(between(self._anchor, np.array([p.x(), p.y(), p.theta()])))
-            cov = cov + A @ self._C_out @ A.T
-        return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
 
     def _reanchor(self, k: int) -> None:
         """Start a new smoother at keyframe ``k`` (module docs: bounded work and memory)."""
@@ -654,20 +589,8 @@ class OnlineMapper:
             self.lm_cov.a[ing] = covs
             self.lm_xy.a[ing] = np.array([est.atPoint2(LK(int(j))) for j in ing])
         pk = est.atPose2(XK(k))
-        # the pose's marginal, its sigmas capped at reloc_prior_sigmas (1 m, 0.05 rad), the
-        # correlations kept: after a stretch without trees (a transit) the absolute uncertainty
-        # reaches tens of metres, and a prior that weak only sets the gauge while GTSAM rejects
-        # the ill-conditioned system (as for a weak first-pose prior, see graph.py / GNSS)
-        cov_k = np.asarray(self.isam.marginalCovariance(XK(k)), dtype=np.float64)
-        sd = np.sqrt(np.maximum(np.diag(cov_k), 1e-20))
-        scale = np.minimum(1.0, np.asarray(self.cfg.isam2.reloc_prior_sigmas) / sd)
-        cov_full = self._C  # this window's marginal of keyframe k + what earlier caps left out
-        cov_k = cov_k * np.outer(scale, scale)
-        # the part of the full covariance the capped prior leaves out (its PSD part): carried
-        # on the new window's poses by _marginal, so the reported covariance does not reset
-        w, V = np.linalg.eigh(cov_full - cov_k)
-        self._C_out = (V * np.maximum(w, 0.0)) @ V.T
-        self._anchor = np.array([pk.x(), pk.y(), pk.theta()])
+        # the pose's marginal with its sigmas capped (1 m, 0.05 rad; _online_covariance)
+        cov_k = self._cov.reanchor(self.isam, XK(k), pk, self.cfg.isam2.reloc_prior_sigmas)
         self.lm_in_graph.a[:n] = False
         self._new_isam()
         self.pf = g.PriorFactorPose2(XK(k), pk, g.noiseModel.Gaussian.Covariance(cov_k))
@@ -716,74 +639,3 @@ class OnlineMapper:
             "new": int(self.counters[C_NEW]),
             "gnss_fused": self.n_gnss,
         }
-
-
-def replay(
-    problem: SlamProblem,
-    *,
-    passes: int = 1,
-    transit_s: float = 200.0,
-    config: OnlineConfig | None = None,
-    on_scan: Any = None,
-) -> dict[str, Any]:
-    """Feed ``problem``'s log to an :class:`OnlineMapper` in time order (odometry samples up to
-    each scan, then the scan) and return per-scan latency, the path and the map.
-
-    ``passes`` > 1 drives the log again and again, each pass after ``transit_s`` of straight
-    driving at 3 m/s without detections (the machine moving to the next stand, 600 m), so the
-    replay is ``passes`` times longer and the map grows with new area (a memory test).
-    ``on_scan(mapper, frame_index)`` is called after every scan (e.g. a live viewer).
-    """
-    import resource
-
-    with single_threaded_blas():  # once: threadpoolctl costs ~10 ms per call
-        return _replay(problem, passes, transit_s, config, on_scan, resource)
-
-
-def _replay(
-    problem: SlamProblem,
-    passes: int,
-    transit_s: float,
-    config: OnlineConfig | None,
-    on_scan: Any,
-    resource: Any,
-) -> dict[str, Any]:
-    ctl, fr = problem.controls, problem.frames
-    m = OnlineMapper(problem.motion, problem.sensor_offset, problem.initial_pose, config)
-    span = float(max(ctl.times[-1], fr.times[-1]) - min(ctl.times[0], fr.times[0]))
-    poses, rss = [], []
-    t_shift = 0.0
-    for p_ in range(passes):
-        if p_ > 0:  # transit: straight at 3 m/s, odometry at 10 Hz, empty scans at 5 Hz
-            t_a = float(max(ctl.times[-1], fr.times[-1])) + t_shift
-            empty = np.zeros(0)
-            for q in range(int(transit_s * 10)):
-                tq = t_a + 0.1 * (q + 1)
-                m.add_odometry(tq, 3.0, 0.0)
-                if q % 2 == 1:
-                    m.add_scan(tq, empty, empty, empty)
-            t_shift += span + transit_s + 1.0
-        ci = 0
-        for f in range(len(fr)):
-            t = float(fr.times[f])
-            while ci < len(ctl) and ctl.times[ci] <= t:
-                m.add_odometry(
-                    float(ctl.times[ci]) + t_shift, float(ctl.speed[ci]), float(ctl.steer[ci])
-                )
-                ci += 1
-            rr, bb, dd = fr.frame(f)
-            poses.append((t + t_shift, *m.add_scan(t + t_shift, rr, bb, dd)))
-            if on_scan is not None:
-                on_scan(m, f)
-        rss.append(round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1))
-    arr = np.asarray(poses)
-    return {
-        "latency_s": m.latency_s,
-        "cpu_s": m.cpu_s,
-        "trajectory": frame_trajectory(arr[:, 0], arr[:, 1:]),
-        "pose_covs": m.pose_covs,
-        "stem_map": m.stem_map(),
-        "trees": len(m.stem_map()),
-        "rss_mb_by_pass": rss,
-        "stats": m.stats,
-    }
