@@ -2,7 +2,7 @@
 
 Prints one JSON object with ``--json``. Parts (``--parts``, default all):
 
-* ``gnss`` (benchmarks/slam_field_gnss.py): iSAM2 fusing every 10th GPS fix kept by
+* ``gnss`` (benchmarks/_slam_field_gnss.py): iSAM2 fusing every 10th GPS fix kept by
   ``screen_gps``, scored on the screened fixes NOT fused, without any alignment. Both products
   of ``stemmap map --gnss``: ``gnss_ate_unused_m`` the GNSS-frame track (trajectory_gnss.csv,
   the trajectory in the GNSS frame: the path as the receiver reads it, its Gauss-Markov error
@@ -29,7 +29,7 @@ Prints one JSON object with ``--json``. Parts (``--parts``, default all):
   CPU per keyframe step of session 2 for Huber and graph (``*_step``: p50 / p99 / max); per
   split the success rate over ``--trials`` start offsets, false relocalisations, and
   acceptances from guesses whose 30-m search excludes the truth. ``--reloc-splits-only``:
-  only those rows (and the full run). The code is in slam_field_reloc.py.
+  only those rows (and the full run). The code is in _slam_field_reloc.py.
 * ``online``: :class:`stemmap.slam.online.OnlineMapper` replaying the log at sensor rate
   (``latency_ms_p50/p99`` per scan, process CPU time per scan) and a 10x-length replay (the
   log driven ten times, each pass shifted in time and placed 1 km apart so the map keeps
@@ -59,8 +59,8 @@ from typing import Any
 
 import numpy as np
 
-from slam_field_gnss import gnss_part
-from slam_field_reloc import _reloc
+from _slam_field_gnss import gnss_part
+from _slam_field_reloc import _reloc
 
 
 def _online(data: str | None, passes: int) -> dict[str, Any]:

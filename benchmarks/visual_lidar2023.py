@@ -48,7 +48,7 @@ landmarks vs 0.656 m without on its first run, 0.3-0.5 m on four runs. Here, per
   40-point minimum converted to the 0.25° beams); **fused_trees_oracle**: the detection upper
   bound, with ORACLE detections (every trunk with >= 10 beams on it within 6 m, 3 cm noise).
   Each at its recognition count chosen on held-out drives (``--tune-trees``). Sources, counts
-  and why: benchmarks/visual_lidar2023_trees.py.
+  and why: benchmarks/_visual_lidar2023_trees.py.
 
 Keys: ``loop_closure_error_m.{visual,lidar,fused,fused_increments,fused_inlier_noise,fused_drift,
 fused_default,fused_velocities,fused_trees,fused_trees_paper,fused_trees_oracle}`` (mean over
@@ -62,7 +62,7 @@ for every fused variant under ``better_than_both_loops``), ``fused_better_than_b
 row: loops where it is below ``fused``), ``tree_detections`` (per source, mean over loops),
 ``loops`` (per-loop table, with diagnostics against the truth: scale errors, yaw-rate
 biases, step error stds, and ``nees.*``: mean z^2 per degree of freedom of each source's errors
-under the noise the EKF is given, :func:`visual_lidar2023_diagnostics.consistency`).
+under the noise the EKF is given, :func:`_visual_lidar2023_diagnostics.consistency`).
 Everything is simulated: these numbers test the code; they do not reproduce the paper's field
 result.
 
@@ -96,8 +96,8 @@ from typing import Any
 import numpy as np
 
 # this benchmark's parts (helper modules beside it, no command line of their own)
-import visual_lidar2023_trees as trees
-from visual_lidar2023_diagnostics import (
+import _visual_lidar2023_trees as trees
+from _visual_lidar2023_diagnostics import (
     consistency,
     increment_errors,
     scale_and_yaw_bias,
@@ -474,7 +474,7 @@ def tune(seeds: list[int], cache: Path | None) -> dict[str, Any]:
 
 def tune_tree_counts(seeds: list[int], cache: Path | None) -> dict[str, Any]:
     """Choose the tree DB's recognition count per real detector
-    (:func:`visual_lidar2023_trees.tune_counts`) on the calibration drive and the loops of
+    (:func:`_visual_lidar2023_trees.tune_counts`) on the calibration drive and the loops of
     ``seeds`` (held out, as :func:`tune`), each with its ``fused`` odometry."""
     noise = calibrate_noise(cache)
     drives = [CALIBRATION_LOOP] + [

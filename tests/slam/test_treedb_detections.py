@@ -97,10 +97,10 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 @pytest.fixture(scope="module")
 def trees_bench() -> ModuleType:
-    """benchmarks/visual_lidar2023_trees.py (the benchmarks folder is not a package)."""
+    """benchmarks/_visual_lidar2023_trees.py (the benchmarks folder is not a package)."""
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        return importlib.import_module("visual_lidar2023_trees")
+        return importlib.import_module("_visual_lidar2023_trees")
     finally:
         sys.path.remove(str(BENCHMARKS))
 

@@ -209,8 +209,8 @@ def paper_filter_stages(run: Any) -> dict[str, float]:
 def tune_counts(drives: list[tuple[str, Any, Any, Any, int]]) -> dict[str, Any]:
     """Choose the recognition count of each detection source (:data:`COUNT_GRID`) by the mean
     loop-closure error over held-out ``drives`` (``(name, run, fused, truth, seed)``)."""
+    from _visual_lidar2023_diagnostics import true_displacement as disp
     from stemmap.eval.trajectory import loop_closure_error
-    from visual_lidar2023_diagnostics import true_displacement as disp
 
     errs: dict[str, list[float]] = {"fused": []}
     frames: dict[str, list[float]] = {}
