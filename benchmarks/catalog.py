@@ -40,9 +40,7 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "engine"))
-
-from tiles import stand_cloud, write_laz
+from _laz_tiles import stand_cloud, write_laz
 
 TILE = 40.0
 

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from _ros_bags import BagFactory  # writes real bags (shared with tests/io)
 from stemmap.io import (
     decode_pointcloud2,
     read_scans,
@@ -48,9 +49,6 @@ from stemmap.io import (
 )
 from stemmap.io.clouds import read_ply
 from stemmap.types import ScanBatch, StemMap, Tree
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "io"))
-from io_bagfactory import BagFactory  # test helper that writes real bags
 
 
 def _median_time(fn: Callable[[], Any], repeat: int) -> float:

@@ -34,12 +34,10 @@ from typing import Any
 
 import numpy as np
 
+from _mobile_files import point_times, vehicle_trajectory, write_las, write_trajectory
 from stemmap.cloud.stems import detect_stems
 from stemmap.eval.matching import match_points
 from stemmap.sim.lidar import lidar_preset, random_stand3d, simulate_mobile
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "cloud"))
-from cloud_files import point_times, vehicle_trajectory, write_las, write_trajectory
 
 GATE = 0.5  # m, as benchmarks/cloud_stems.py
 IN_MEMORY = (

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from tests.cloud.cloud_files import write_las
 from typer.testing import CliRunner
 
+from _mobile_files import write_las
 from stemmap.cli import app
 from stemmap.cloud.dtm import DTM_NODATA, ground_of_file, write_dtm
 from stemmap.errors import InputError

@@ -14,10 +14,10 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from tests.cloud.cloud_files import write_las
 from typer.testing import CliRunner
 
 import stemmap
+from _mobile_files import write_las
 from stemmap.cli import app
 from stemmap.cloud.result import RULE_BH
 from stemmap.cloud.stems import StemConfig, detect_stems

@@ -10,15 +10,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cloud_files import (
+from typer.testing import CliRunner
+
+from _mobile_files import (
     point_times,
     vehicle_trajectory,
     write_las,
     write_ply,
     write_trajectory,
 )
-from typer.testing import CliRunner
-
 from stemmap.cli import app
 from stemmap.cloud.sensor import SensorPositions
 from stemmap.cloud.stems import CloudStems, detect_stems, detect_stems_file

@@ -16,7 +16,8 @@ from stemmap.engine import Catalog, plan_chunks, read_chunk, run_stems_catalog
 pytest.importorskip("copclib")
 
 from test_stems_engine import assert_same_stems
-from tiles import write_copc
+
+from _laz_tiles import write_copc
 
 
 def _rows(a: np.ndarray) -> np.ndarray:

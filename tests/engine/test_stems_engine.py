@@ -231,7 +231,7 @@ def test_chunk_sizes_agree_at_an_inner_data_edge(
     second's and the whole cloud's continued into the empty, filled cells beyond it
     (extrapolated). Both chunk sizes and one process over the whole cloud give the same
     stems."""
-    from tiles import write_tiles
+    from _laz_tiles import write_tiles
 
     whole = stand_tiles[1]
     tx, ty = 13.46, 23.91  # a stem of the stand (detect_stems on the whole stand)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import pytest
-from io_bagfactory import BagFactory
+
+from _ros_bags import BagFactory
 
 
 @pytest.fixture(params=["ros1", "ros2-sqlite3", "ros2-mcap"])

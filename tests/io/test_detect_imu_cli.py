@@ -7,9 +7,9 @@ import math
 from pathlib import Path
 
 import numpy as np
-from io_bagfactory import BagFactory
 from typer.testing import CliRunner
 
+from _ros_bags import BagFactory
 from stemmap.cli import app
 from stemmap.harvester.simulate import zheng2012_scanner
 from stemmap.sim.forest import Stand

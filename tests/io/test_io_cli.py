@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from io_bagfactory import BagFactory
 from typer.testing import CliRunner
 
+from _ros_bags import BagFactory
 from stemmap.cli import app
 from stemmap.io import read_scans, write_scans_npz
 from stemmap.types import ScanBatch

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from io_bagfactory import BagFactory
 
+from _ros_bags import BagFactory
 from stemmap.errors import InputError
 from stemmap.io import (
     SkippedFrame,

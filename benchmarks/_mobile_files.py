@@ -1,4 +1,4 @@
-"""Test helpers (also used by benchmarks/stems_sensor_positions.py): a simulated mobile scan
+"""Helpers for tests/cloud and benchmarks/stems_sensor_positions.py: a simulated mobile scan
 written the way a mobile-mapping system delivers it -- a LAS file whose points carry
 ``gps_time``, and the machine's trajectory as a separate file."""
 

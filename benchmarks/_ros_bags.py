@@ -1,4 +1,5 @@
-"""Bag-writing helpers for the io tests: real ROS1/ROS2 bags written with rosbags' own writers."""
+"""Bag-writing helpers for the io tests and benchmarks/io_readers.py: real ROS1/ROS2 bags
+written with rosbags' own writers (tests import it through tests/conftest.py's sys.path)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Test and benchmark helpers: a simulated TLS stand cut into square LAZ tiles."""
+"""Helpers for tests/engine and benchmarks/catalog.py: a simulated TLS stand cut into square
+LAZ tiles (tests import it through tests/conftest.py's sys.path)."""
 
 from __future__ import annotations
 
