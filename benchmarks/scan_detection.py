@@ -21,7 +21,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import hashlib
-import importlib.util
 import json
 import math
 import platform
@@ -32,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from _scan_fits import crlb_diameter_var, load_rings, run_real_geometry  # of scan_fits_real.py
 from _scan_sim import SCENARIO, make_run, score  # shared with real_geometry.py
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.matching import match_points
@@ -197,18 +197,6 @@ REAL: dict[str, Any] = {
 }
 
 
-def _load_fits_real() -> Any:
-    path = Path(__file__).resolve().parent / "scan_fits_real.py"
-    if not path.exists():
-        return None
-    spec = importlib.util.spec_from_file_location("scan_fits_real", path)
-    if spec is None or spec.loader is None:
-        return None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def virtual_laser_scan(
     xy: np.ndarray,
     vantage: np.ndarray,
@@ -242,13 +230,10 @@ def virtual_laser_scan(
     return scan, src
 
 
-def run_real_detection(datasets_dir: Path, seed: int) -> dict[str, Any] | None:
+def run_real_detection(datasets_dir: Path, seed: int) -> dict[str, Any]:
     """End-to-end detection on virtual scans of the real TLS slice, per fit method, without and
     with the footprint correction; DBH error against each trunk's full-ring reference."""
-    mod = _load_fits_real()
-    if mod is None or not hasattr(mod, "load_rings"):
-        return None
-    xy, labels, refs = mod.load_rings(datasets_dir)
+    xy, labels, refs = load_rings(datasets_dir)
     ref = np.array([[r["x"], r["y"], r["diameter"]] for r in refs])
     inc = math.radians(REAL["angle_increment_deg"])
     foot = math.radians(REAL["footprint_deg"])
@@ -313,18 +298,14 @@ def run_real_detection(datasets_dir: Path, seed: int) -> dict[str, Any] | None:
 
 
 def real_geometry(seed: int) -> dict[str, Any] | None:
-    mod = _load_fits_real()
     ddir = find_datasets_dir(Path(__file__).resolve().parent)
-    if mod is None or ddir is None:
+    if ddir is None:
         return None
-    fn = getattr(mod, "run_real_geometry", None)
-    if fn is None:
-        return None
-    res: dict[str, Any] = fn(ddir)
+    res: dict[str, Any] = run_real_geometry(ddir)
     return res
 
 
-def benchmark_crlb(run: Any) -> dict[str, Any] | None:
+def benchmark_crlb(run: Any) -> dict[str, Any]:
     """Cramer-Rao bound on the DBH error for this drive's own geometry (docs: scan-fits.md).
 
     For every eligible tree of every scan (the scorer's rules) the returns are the beams whose
@@ -338,9 +319,6 @@ def benchmark_crlb(run: Any) -> dict[str, Any] | None:
     ``crlb_footprint_edges`` keys (with background narrowing) model the two edge returns as the
     footprint-averaged ranges the scanner reports (the ours fit's edge model) instead of thin
     rays, whose grazing range overstates what an averaging scanner's edge return tells."""
-    mod = _load_fits_real()
-    if mod is None or not hasattr(mod, "crlb_diameter_var"):
-        return None
     sc = SCENARIO["scoring"]
     scans = run.scans
     inc = abs(scans.angle_increment)
@@ -391,9 +369,9 @@ def benchmark_crlb(run: Any) -> dict[str, Any] | None:
             th = th[np.abs(scans.ranges[k, beams] - rho_true) < 0.1]
             if th.shape[0] < 3:
                 continue
-            var[key].append(mod.crlb_diameter_var(c, r, th, sigma, std))
-            var_bg[key].append(mod.crlb_diameter_var(c, r, th, sigma, std_bg))
-            var_fp[key].append(mod.crlb_diameter_var(c, r, th, sigma, std_bg, footprint=foot))
+            var[key].append(crlb_diameter_var(c, r, th, sigma, std))
+            var_bg[key].append(crlb_diameter_var(c, r, th, sigma, std_bg))
+            var_fp[key].append(crlb_diameter_var(c, r, th, sigma, std_bg, footprint=foot))
             whole[key].append(bool(np.all(np.isfinite(std))))
 
     def rms(v: list[float], sel: list[bool] | None = None) -> float | None:
@@ -448,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out))
         return 0
     if args.crlb:
-        out = {"benchmark": "scan_detection_crlb", "seed": args.seed, **(benchmark_crlb(run) or {})}
+        out = {"benchmark": "scan_detection_crlb", "seed": args.seed, **benchmark_crlb(run)}
         print(json.dumps(out))
         return 0
     result: dict[str, Any] = {

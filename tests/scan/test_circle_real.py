@@ -1,7 +1,8 @@
 """Circle fits against the benchmark scenarios of ``benchmarks/scan_fits_real.py``.
 
-* real trunk geometry (FORTLS TLS slice, virtual 2D scans): ``run_real_geometry`` on a reduced
-  set of vantage points (one bearing per distance, ~80 arcs, ~1-2 s);
+* real trunk geometry (FORTLS TLS slice, virtual 2D scans): ``run_real_geometry`` (in
+  ``benchmarks/_scan_fits.py``, shared with scan_detection.py) on a reduced set of vantage
+  points (one bearing per distance, ~80 arcs, ~1-2 s);
 * the project's scanner simulator (beam divergence, mixed pixels): ``run_project_simulator``
   with 50 scans (~1 s).
 """
@@ -33,7 +34,8 @@ def _bench() -> ModuleType:
 
 @pytest.fixture(scope="module")
 def bench_and_cache(datasets_dir: Path) -> tuple[ModuleType, dict[str, Any]]:
-    mod = _bench()
+    import _scan_fits as mod  # benchmarks/_scan_fits.py (tests/conftest.py's sys.path)
+
     return mod, {"rings": mod.load_rings(datasets_dir)}
 
 
