@@ -53,7 +53,11 @@ N_PATH = 60
 def _cli(args: list[str]) -> float:
     """Run `python -m stemmap` with args; return the child's CPU time (user + system)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent)}
+    # the checkout's own src first: the child must run the code being benchmarked, not
+    # whatever stemmap happens to be installed
+    here = Path(__file__).resolve().parent
+    paths = [str(here.parent / "src"), str(here), os.environ.get("PYTHONPATH", "")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in paths if p)}
     subprocess.run(
         [sys.executable, "-m", "stemmap", *args],
         check=True,
