@@ -405,7 +405,7 @@ class SlamBackend(Protocol):
 
 #: name -> "module:Class"; instantiated with keyword config (each class has sensible defaults).
 BACKENDS: dict[str, str] = {
-    "treedb": "stemmap.slam.treedb:TreeDbSlam",
+    "treedb": "stemmap.slam._treedb_slam:TreeDbSlam",
     "ekf": "stemmap.slam.ekf:EkfSlam",
     "fastslam": "stemmap.slam.fastslam:FastSlam",
     "forestrix": "stemmap.slam.forestrix:ForestrixSlam",
