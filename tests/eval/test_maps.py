@@ -100,6 +100,9 @@ def test_empty_map():
     m = map_metrics(np.zeros((0, 2)), np.zeros(0), [[0.0, 0.0]], [0.3])
     assert m.n_matched == 0 and m.n_missed == 1 and math.isnan(m.precision)
     assert math.isnan(m.pairwise.mean_percent_error)
+    # no matched tree: (0, 0) matrices (M = 0), not a 1 x 1 distance "matrix" of nothing
+    assert m.pairwise.estimated.shape == (0, 0) and m.pairwise.true.shape == (0, 0)
+    assert m.pairwise.percent_error.shape == (0, 0) and m.pairwise.truth_index.shape == (0,)
 
 
 def test_pairwise_distance_errors_every_field():
@@ -258,3 +261,87 @@ def test_map_metrics_alignment_with_shuffled_rows_and_extra_trees():
     shifted = truth[:2] + np.array([0.5, -0.4])
     two = map_metrics(shifted[::-1], [0.3, 0.3], truth[:2], [0.3, 0.3], gate=0.3, align=True)
     assert two.n_matched == 2 and two.position_max < 1e-6
+
+
+def test_map_metrics_stemmap_with_map_diam_uses_the_given_diameters():
+    """A ``map_diam`` given with a StemMap overrides the map's own diameters (any shape of
+    M values, as for arrays)."""
+    sm = StemMap((Tree(0, 1.0, 2.0, 0.3), Tree(1, 5.0, 2.0, 0.4)))
+    truth, tdiam = [[1.0, 2.0], [5.0, 2.0]], [0.3, 0.5]
+    m = map_metrics(sm, [0.2, 0.6], truth, tdiam, gate=0.5)
+    assert m.diameter_bias == pytest.approx(0.0)  # (-0.1 + 0.1) / 2, not the StemMap's -0.05
+    assert m.diameter_rmse == pytest.approx(0.1)
+    col = map_metrics(sm, [[0.2], [0.6]], truth, tdiam, gate=0.5)  # a column of M values
+    assert col.diameter_rmse == pytest.approx(0.1) and col.diameter_bias == pytest.approx(0.0)
+    ints = map_metrics(sm, [1, 0], truth, tdiam, gate=0.5)  # integers promoted to float
+    assert ints.diameter_bias == pytest.approx(((1 - 0.3) + (0 - 0.5)) / 2)
+    with pytest.raises(InputError, match="map has 2 positions and 3 diameters; truth has 2"):
+        map_metrics(sm, [0.2, 0.6, 0.4], truth, tdiam, gate=0.5)
+
+
+def test_map_metrics_count_mismatch_message_names_every_count():
+    with pytest.raises(
+        InputError,
+        match=r"^map has 3 positions and 3 diameters; truth has 1 positions and 4 diameters\.$",
+    ):
+        map_metrics(np.zeros((3, 2)), np.zeros(3), [[0.0, 0.0]], np.zeros(4))
+    with pytest.raises(
+        InputError,
+        match=r"^map has 1 positions and 2 diameters; truth has 3 positions and 3 diameters\.$",
+    ):
+        map_metrics([[0.0, 0.0]], [0.3, 0.3], np.zeros((3, 2)), np.zeros(3))
+
+
+def test_map_metrics_empty_truth():
+    """No truth tree: every mapped tree is spurious, precision 0, recall undefined (NaN)."""
+    m = map_metrics([[0.0, 0.0], [3.0, 0.0]], [0.3, 0.3], np.zeros((0, 2)), np.zeros(0))
+    assert (m.n_map, m.n_truth, m.n_matched) == (2, 0, 0)
+    assert (m.n_duplicates, m.n_spurious, m.n_missed) == (0, 2, 0)
+    assert m.precision == 0.0 and math.isnan(m.recall) and m.duplicate_rate == 0.0
+    assert math.isnan(m.position_rmse) and math.isnan(m.diameter_bias)
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["recall"] is None and d["precision"] == 0.0
+    al = map_metrics(
+        [[0.0, 0.0], [3.0, 0.0]], [0.3, 0.3], np.zeros((0, 2)), np.zeros(0), align=True
+    )
+    assert al.n_spurious == 2 and math.isnan(al.recall)
+    np.testing.assert_array_equal(al.rotation, np.eye(2))
+
+
+def test_map_metrics_pairwise_is_labelled_by_the_matched_truth_ids():
+    """Truth trees 0 and 2 missed: the pairwise matrix rows are truth 3 and truth 1, in the
+    map's row order, and their distance is compared with the true one."""
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [30.0, 30.0], [10.0, 8.0]])
+    mxy = np.array([[10.0, 8.4], [10.0, 0.0]])  # truth 3 (0.4 m north), truth 1
+    m = map_metrics(mxy, [0.3, 0.3], truth, np.full(4, 0.3))
+    assert m.pairwise.truth_index.tolist() == [3, 1]
+    assert m.pairwise.true[0, 1] == pytest.approx(8.0)
+    assert m.pairwise.abs_error[0, 1] == pytest.approx(0.4)
+    assert m.pairwise.to_dict()["truth_index"] == [3, 1]
+
+
+def test_pairwise_truth_index_is_integer_whatever_its_input():
+    p = pairwise_distance_errors([[0.0, 0.0], [3.0, 4.0]], [[0.0, 0.0], [3.0, 4.0]], [7.0, 3.0])
+    assert p.truth_index.dtype == np.int64
+    assert json.dumps(p.to_dict()["truth_index"]) == "[7, 3]"
+
+
+def test_map_metrics_alignment_that_finds_no_two_pairs_keeps_the_identity():
+    """Map and truth too far apart for any match, even in the widened first rounds: the
+    alignment gives up, the result is the unaligned one (identity transform, nothing matched)."""
+    truth = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]])
+    m = map_metrics(truth + 100.0, np.full(3, 0.3), truth, np.full(3, 0.3), align=True)
+    assert m.aligned and (m.n_matched, m.n_spurious, m.n_missed) == (0, 3, 3)
+    np.testing.assert_array_equal(m.rotation, np.eye(2))
+    np.testing.assert_array_equal(m.translation, [0.0, 0.0])
+    # one pair within the widened gate is not enough to align either
+    one = map_metrics(
+        truth + np.array([[0.5, 0.0], [100.0, 0.0], [0.0, 100.0]]),
+        np.full(3, 0.3),
+        truth,
+        np.full(3, 0.3),
+        gate=0.3,
+        align=True,
+    )
+    np.testing.assert_array_equal(one.rotation, np.eye(2))
+    assert one.n_matched == 0

@@ -217,7 +217,8 @@ def map_metrics(
     map_xy : array_like of shape (M, 2) or StemMap
         Mapped tree positions (metres). A :class:`~stemmap.types.StemMap` also supplies the
         diameters (pass ``map_diam=None``).
-    map_diam : array_like of shape (M,), metres, or None
+    map_diam : array_like of M values, metres, or None
+        Required for an array ``map_xy``; with a StemMap it replaces the map's diameters.
     truth_xy : array_like of shape (T, 2), metres
     truth_diam : array_like of shape (T,), metres
     gate : float, metres, > 0
@@ -239,13 +240,15 @@ def map_metrics(
     (2, 1, 1, 0.071)
     """
     if isinstance(map_xy, StemMap):
-        mdiam = map_xy.diameters if map_diam is None else np.asarray(map_diam, dtype=np.float64)
         mxy = map_xy.xy
+        if map_diam is None:
+            map_diam = map_xy.diameters
     else:
         mxy = np.asarray(map_xy, dtype=np.float64).reshape(-1, 2)
         if map_diam is None:
             raise InputError("map_diam is required unless map_xy is a StemMap.")
-        mdiam = np.asarray(map_diam, dtype=np.float64).reshape(-1)
+    # flattened in both branches: an (M, 1) column would broadcast against the truth's (T,)
+    mdiam = np.asarray(map_diam, dtype=np.float64).reshape(-1)
     txy = np.asarray(truth_xy, dtype=np.float64).reshape(-1, 2)
     tdiam = np.asarray(truth_diam, dtype=np.float64).reshape(-1)
     if mdiam.shape[0] != mxy.shape[0] or tdiam.shape[0] != txy.shape[0]:
