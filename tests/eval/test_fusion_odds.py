@@ -68,3 +68,37 @@ def test_bad_arguments() -> None:
         p_fused_beats_both(1.0, dim=0)
     with pytest.raises(ConfigError, match="weight"):
         p_fused_beats_both(1.0, weight=1.5)
+
+
+def test_weight_limits_are_one_source_and_never_beat_both() -> None:
+    """``w = 0`` and ``w = 1`` (both allowed: ``weight`` in [0, 1]) make the fusion equal to one
+    source, which is never *strictly* smaller than itself: P = 0 exactly."""
+    for w in (0.0, 1.0):
+        for dim in (1, 2):
+            assert p_fused_beats_both(1.5, dim=dim, weight=w, n_samples=5_000, rng=2) == 0.0
+
+
+def test_default_is_a_two_dimensional_error_and_a_seed_repeats() -> None:
+    n = 20_000
+    p = p_fused_beats_both(2.0, n_samples=n, rng=7)
+    assert p == p_fused_beats_both(2.0, dim=2, n_samples=n, rng=7)  # dim defaults to 2
+    assert p != p_fused_beats_both(2.0, dim=3, n_samples=n, rng=7)
+    assert p_fused_beats_both(2.0, n_samples=n) == p_fused_beats_both(2.0, n_samples=n)
+    g1, g2 = np.random.default_rng(4), np.random.default_rng(4)  # a Generator is used as given
+    assert p_fused_beats_both(2.0, n_samples=n, rng=g1) == p_fused_beats_both(
+        2.0, n_samples=n, rng=g2
+    )
+
+
+def test_argument_limits_and_messages() -> None:
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ConfigError, match=r"^sigma_ratio must be > 0, got "):
+            p_fused_beats_both(bad)
+        with pytest.raises(ConfigError, match=r"^sigma_ratio must be > 0, got "):
+            p_fused_beats_both_1d(bad)
+    with pytest.raises(ConfigError, match=r"^dim must be >= 1, got 0$"):
+        p_fused_beats_both(1.0, dim=0)
+    for w in (-0.01, 1.01, math.nan):
+        with pytest.raises(ConfigError, match=r"^weight must be in \[0, 1\], got "):
+            p_fused_beats_both(1.0, weight=w)
+    assert 0.0 < p_fused_beats_both(1.0, dim=1, n_samples=2_000) < 0.5  # dim = 1 is allowed

@@ -247,8 +247,9 @@ def gps_revisit_error(
     """Per-fix GPS error from its disagreement with itself where the path revisits a place.
 
     Pairs of fixes at least ``min_dt`` apart whose path positions lie within ``radius``; one
-    pair per (``block_s`` x ``block_s``) block of the two times, so that a long stretch driven
-    twice counts once per block and not once per fix pair. ``rms_2d = sqrt(½ mean |d|²)`` with
+    pair per (``block_s`` x ``block_s``) block of the two times (the pair with the earliest
+    first fix, then the earliest second), so that a long stretch driven twice counts once per
+    block and not once per fix pair. ``rms_2d = sqrt(½ mean |d|²)`` with
     ``d = (g_j - g_i) - (p_j - p_i)`` (the path's relative position at a revisit is taken as
     right: check it, e.g. by overlaying the trees seen at both times).
     """
