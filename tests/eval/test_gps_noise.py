@@ -296,3 +296,23 @@ def test_revisit_error_argument_limits() -> None:
         gps_revisit_error(t, g, p, min_dt=-1.0)
     for kw in ({"min_dt": 0.0}, {"min_dt": 0.5}, {"block_s": 0.5}, {"radius": 0.6}):
         assert gps_revisit_error(t, g, p, **kw).pairs == 1
+
+
+def test_revisit_blocks_hold_for_absolute_times() -> None:
+    """GPS logs carry absolute times (UNIX or GPS-week seconds, ~1.7e9 s): shifting every time
+    by a whole number of blocks keeps the pairs apart exactly as from t = 0 (the block key of
+    two ~1.7e8 block numbers must not lose either to rounding)."""
+    p = [[0.0, 0.0], [10.0, 0.0], [0.0, 0.2], [10.0, 0.2]]  # fix 2 revisits 0, fix 3 revisits 1
+    e = [[0.0, 0.0], [0.0, 0.0], [0.0, 0.6], [0.0, 0.2]]
+    q = [[0.0, 0.0], [10.0, 0.0], [10.0, 0.2], [0.0, 0.2]]  # fix 2 revisits 1, fix 3 revisits 0
+    cases = (
+        ([9.5, 9.6, 110.5, 120.5], p),  # one first block, two second blocks
+        ([9.5, 10.5, 110.5, 111.5], q),  # two first blocks, one second block
+    )
+    for times, pos in cases:
+        t, g, pp = _revisits(times, pos, e)
+        ref = gps_revisit_error(t, g, pp)
+        assert ref.pairs == 2
+        for t0 in (1.7e9, 1.4e9 + 10.0):
+            got = gps_revisit_error(t + t0, g, pp)
+            assert (got.pairs, got.rms_2d) == (ref.pairs, pytest.approx(ref.rms_2d))
