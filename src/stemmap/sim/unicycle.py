@@ -1,10 +1,10 @@
 """Pose algebra and the exact unicycle: the motion model of the simulated drives.
 
 :func:`compose_poses` and :func:`relative_poses` are the SE(2) product and the relative pose on
-``(..., 3)`` arrays ``(x, y, theta)``; :func:`integrate_unicycle` integrates piecewise-constant
-speed and yaw-rate controls exactly (arc form), which is how
-:func:`stemmap.sim.trajectory.simulate_run` turns its controls into the true path and how
-noise-free odometry reproduces the truth to rounding.
+``(..., 3)`` arrays ``(x, y, theta)`` (:func:`stemmap.slam.motion.compose` and ``between``);
+:func:`integrate_unicycle` integrates piecewise-constant speed and yaw-rate controls exactly
+(arc form), which is how :func:`stemmap.sim.trajectory.simulate_run` turns its controls into
+the true path and how noise-free odometry reproduces the truth to rounding.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stemmap.slam.motion import between, compose
 from stemmap.types import FloatArray, Trajectory, wrap_angle
 
 if TYPE_CHECKING:
@@ -22,26 +23,11 @@ if TYPE_CHECKING:
 __all__ = ["compose_poses", "integrate_unicycle", "relative_poses"]
 
 
-def compose_poses(a: ArrayLike, b: ArrayLike) -> FloatArray:
-    """``a * b`` for (..., 3) pose arrays: ``b`` given in ``a``'s frame, mapped to a's parent."""
-    pa = np.asarray(a, dtype=np.float64)
-    pb = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(pa[..., 2]), np.sin(pa[..., 2])
-    x = pa[..., 0] + c * pb[..., 0] - s * pb[..., 1]
-    y = pa[..., 1] + s * pb[..., 0] + c * pb[..., 1]
-    return np.stack((x, y, wrap_angle(pa[..., 2] + pb[..., 2])), axis=-1)
-
-
-def relative_poses(a: ArrayLike, b: ArrayLike) -> FloatArray:
-    """``a^-1 * b`` for (..., 3) pose arrays: pose ``b`` expressed in the frame of pose ``a``."""
-    pa = np.asarray(a, dtype=np.float64)
-    pb = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(pa[..., 2]), np.sin(pa[..., 2])
-    dx = pb[..., 0] - pa[..., 0]
-    dy = pb[..., 1] - pa[..., 1]
-    return np.stack(
-        (c * dx + s * dy, -s * dx + c * dy, wrap_angle(pb[..., 2] - pa[..., 2])), axis=-1
-    )
+# The simulator's pose algebra is the SLAM one (one copy): ``compose_poses(a, b)`` is ``a * b``
+# (``b`` given in ``a``'s frame, mapped to ``a``'s parent), ``relative_poses(a, b)`` is
+# ``a^-1 * b`` (pose ``b`` in the frame of pose ``a``); both take (..., 3) arrays.
+compose_poses = compose
+relative_poses = between
 
 
 def _arc_step(theta: FloatArray, v: FloatArray, w: FloatArray, dt: FloatArray) -> FloatArray:
