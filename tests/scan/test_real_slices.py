@@ -6,14 +6,17 @@ import numpy as np
 import pytest
 
 from stemmap.datasets import find_datasets_dir
+from stemmap.errors import InputError
 from stemmap.eval.real_slices import (
     SLICES,
     load_slice,
+    noisy_batch,
     reference_jackknife,
     ring_reference,
     surface_point_radius,
     virtual_scans,
 )
+from stemmap.types import ScanBatch
 
 
 def _ring(c, r, spacing, rng=None, rough=0.0):
@@ -228,3 +231,133 @@ def test_found_cause_and_cause_table_shares_add_up_to_the_bias():
     assert tab["ok"]["n"] == 2 and tab["ok"]["within_10m"]["n"] == 1
     shares = tab["ok"]["bias_share_cm"] + tab["merge_bias"]["bias_share_cm"]
     assert shares == pytest.approx((1.0 + 7.0) / 2)
+
+
+def test_noisy_batch_adds_gaussian_range_noise_floored_at_5_cm_and_keeps_no_returns():
+    """``noisy_batch``: the virtual scans as a ScanBatch (beam k at -pi + k resolution, scan v
+    at time v, 30 m range), plus N(0, noise^2) per beam, kept >= 5 cm; inf stays inf."""
+    r0 = np.full((3, 720), 10.0)
+    r0[:, :5] = np.inf
+    clean = noisy_batch(r0, 0.5, 0.0, np.random.default_rng(0))
+    assert isinstance(clean, ScanBatch)
+    np.testing.assert_array_equal(clean.ranges, r0)  # no noise: the ranges as they are
+    assert clean.times.tolist() == [0.0, 1.0, 2.0] and clean.angle_min == -math.pi
+    assert clean.angle_increment == pytest.approx(math.radians(0.5)) and clean.range_max == 30.0
+    noisy = noisy_batch(r0, 0.5, 0.02, np.random.default_rng(1))
+    fin = np.isfinite(r0)
+    assert np.all(np.isinf(noisy.ranges[~fin]))
+    expect = r0 + np.random.default_rng(1).normal(0.0, 0.02, r0.shape)  # the same draws
+    np.testing.assert_allclose(noisy.ranges[fin], expect[fin], rtol=0, atol=1e-12)
+    assert np.std(noisy.ranges[fin] - 10.0) == pytest.approx(0.02, rel=0.05)
+    # the 5 cm floor: a return at 6 cm with 1 m of noise
+    near = noisy_batch(np.full((1, 720), 0.06), 0.5, 1.0, np.random.default_rng(2))
+    assert near.ranges.min() == 0.05 and near.ranges.max() > 0.06
+    assert np.count_nonzero(near.ranges == 0.05) > 300  # about half the beams
+
+
+@pytest.mark.slow
+def test_every_real_slice_is_centred_labelled_and_filled_as_documented():
+    """``load_slice``'s documented layout: the slice's own points (bounding-box centre at the
+    origin), then per reference trunk the points filling its unseen sectors, on its circle;
+    ``labels`` -1 or the reference's index, its first ``n_points`` the ring's inliers (at
+    ``ring_rms_m`` from the circle); ``filled_sectors_deg = 360 - coverage_deg``."""
+    ddir = find_datasets_dir()
+    if ddir is None:
+        pytest.skip("shared datasets not found")
+    with pytest.raises(InputError, match=r"^unknown real slice 'nope'; choose one of \['archi"):
+        load_slice(ddir, "nope")
+    with pytest.raises(InputError, match=r"not found; set STEMMAP_DATASETS"):
+        load_slice(ddir / "missing", "lidr_dbh")
+    for name in SLICES:
+        sl = load_slice(ddir, name)
+        assert sl.name == name and sl.xy.dtype == np.float64 and sl.labels.dtype == np.int64
+        n = sl.xy.shape[0]
+        assert sl.xy.shape == (n, 2) and sl.labels.shape == (n,)
+        assert sl.labels.min() >= -1 and sl.labels.max() < len(sl.refs)
+        n_fill = 0
+        for t, r in enumerate(sl.refs):
+            idx = np.flatnonzero(sl.labels == t)
+            ring, fill = sl.xy[idx[: r["n_points"]]], sl.xy[idx[r["n_points"] :]]
+            c = np.array([r["x"], r["y"]])
+            res = np.hypot(*(ring - c).T) - 0.5 * r["diameter"]
+            assert float(np.sqrt(np.mean(res**2))) == pytest.approx(r["ring_rms_m"], rel=1e-9)
+            assert r["filled_sectors_deg"] == 360.0 - r["coverage_deg"]
+            assert (fill.shape[0] > 0) == (r["coverage_deg"] < 360.0), name
+            np.testing.assert_allclose(np.hypot(*(fill - c).T), 0.5 * r["diameter"], atol=1e-9)
+            n_fill += fill.shape[0]
+        own = sl.xy[: n - n_fill]
+        np.testing.assert_allclose(0.5 * (own.min(axis=0) + own.max(axis=0)), 0.0, atol=1e-9)
+        assert np.all(sl.labels[n - n_fill :] >= 0)
+        np.testing.assert_array_equal(
+            sl.centers, [[r["x"], r["y"]] for r in sl.refs] or np.zeros((0, 2))
+        )
+        np.testing.assert_array_equal(sl.diameters, [r["diameter"] for r in sl.refs])
+
+
+def test_ransac_circle_inliers_are_the_exact_ring_among_branch_points():
+    """The 3-point circle with the most inliers: on points exactly on a 15 cm circle (plus a
+    branch) every triple from the ring gives that circle, so the inliers are the ring points
+    and no branch point farther than ``tol`` from it; circles outside 2 cm - 1 m never win."""
+    from stemmap.eval.real_slices import _ransac_circle
+
+    c, r = np.array([3.0, -2.0]), 0.15
+    ring = _ring(c, r, 0.01)
+    branch = np.column_stack((np.linspace(3.2, 4.0, 60), np.full(60, -2.0)))
+    pts = np.vstack((ring, branch))
+    inl = _ransac_circle(pts, 0.005, np.random.default_rng(0))
+    expect = np.abs(np.hypot(*(pts - c).T) - r) <= 0.005
+    np.testing.assert_array_equal(inl, expect)
+    assert inl[: ring.shape[0]].all() and inl.dtype == bool
+    # a 1.5 m ring and a 1 cm one are outside the accepted radii: no circle, every point kept
+    for big in (_ring(c, 1.5, 0.02), _ring(c, 0.01, 0.001)):
+        got = _ransac_circle(big, 0.005, np.random.default_rng(0), n_trials=50)
+        assert got.shape == (big.shape[0],) and got.all()
+
+
+def test_surface_point_radius_is_half_the_90th_percentile_spacing_of_distinct_points():
+    line = np.column_stack((np.arange(50) * 0.02, np.zeros(50)))
+    assert surface_point_radius(line) == pytest.approx(0.01)
+    assert surface_point_radius(np.vstack((line, line))) == pytest.approx(0.01)  # duplicates
+    assert surface_point_radius([[0.0, 0.0], [0.1, 0.0]]) == pytest.approx(0.05)
+    assert surface_point_radius([[0.0, 0.0], [0.0, 0.0]]) == 0.002  # one distinct point
+    assert surface_point_radius(line * 0.1) == 0.002  # 1 mm spacing: the 2 mm floor
+
+
+def test_virtual_scans_from_vantages_off_the_origin():
+    """Beam k points at -pi + k res from each vantage (N = 360 deg / res beams); the range is
+    measured from the vantage; label 0 is a trunk; nothing beyond ``max_range`` (30 m)."""
+    trunk = _ring((5.0, 1.0), 0.2, 0.002)
+    lab = np.zeros(trunk.shape[0], dtype=np.int64)
+    vant = np.array([[1.0, 1.0], [5.0, 5.0]])  # trunk due east of the first, due south of the 2nd
+    for centers in (None, [[5.0, 1.0]]):
+        r, hit = virtual_scans(trunk, lab, vant, resolution_deg=0.5, centers=centers)
+        assert r.shape == hit.shape == (2, 720) and hit.dtype == np.int64
+        assert r[0, _beam(0.5, 0.0)] == pytest.approx(3.8, abs=0.005)
+        assert r[1, _beam(0.5, -90.0)] == pytest.approx(3.8, abs=0.005)
+        assert hit[0, _beam(0.5, 0.0)] == 0 and hit[1, _beam(0.5, -90.0)] == 0
+        assert hit[0, _beam(0.5, 90.0)] == -1 and np.isinf(r[0, _beam(0.5, 90.0)])
+        assert set(np.unique(hit)) == {-1, 0}
+    r, _ = virtual_scans(trunk, lab, [[-24.0, 1.0]], resolution_deg=1.0)  # front at 28.8 m
+    assert r.shape == (1, 360) and r[0, _beam(1.0, 0.0)] == pytest.approx(28.8, abs=0.01)
+    r, _ = virtual_scans(trunk, lab, [[-26.0, 1.0]], resolution_deg=1.0)  # points at 30.8+ m
+    assert np.all(np.isinf(r))
+    # centred discs: the silhouette is the sampled surface, the far side is culled
+    pr = surface_point_radius(trunk)
+    r, _ = virtual_scans(trunk, lab, vant[:1], resolution_deg=0.5, centers=[[5.0, 1.0]])
+    assert r[0, _beam(0.5, 0.0)] == pytest.approx(3.8, abs=0.1 * pr + 1e-4)
+    with pytest.raises(InputError, match=r"^scanner model must be 'nearest' or 'averaging', got"):
+        virtual_scans(trunk, lab, vant, resolution_deg=0.5, model="sick")  # type: ignore[arg-type]
+
+
+def test_reference_jackknife_fields():
+    rng = np.random.default_rng(5)
+    ring = _ring((0.0, 0.0), 0.14, 0.003, rng, rough=0.004)
+    sl = _slice_of(ring)
+    ref = sl.refs[0]
+    jk = reference_jackknife(sl, 0)
+    assert jk["ring_rms_mm"] == round(1000.0 * ref["ring_rms_m"], 1)
+    assert jk["ring_points"] == ref["n_points"] and jk["filled_deg"] == 0.0
+    lo, hi = jk["jackknife_change_cm"]
+    assert lo == round(lo, 2) and hi == round(hi, 2) and lo <= hi
+    ref["filled_sectors_deg"] = 40.0
+    assert reference_jackknife(sl, 0)["filled_deg"] == 40.0
