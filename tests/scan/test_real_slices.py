@@ -82,6 +82,11 @@ def test_ring_reference_finds_a_rough_trunk_among_branch_points():
     assert ref["ring_rms_m"] == pytest.approx(0.004, rel=0.25)
     assert ref["coverage_deg"] == 360.0
     assert inl[ring.shape[0] :].mean() < 0.1  # the branch is trimmed
+    keys = {"x", "y", "diameter", "ring_rms_m", "inlier_fraction", "coverage_deg", "n_points"}
+    assert set(ref) == keys
+    assert ref["inlier_fraction"] == inl.mean() and ref["n_points"] == inl.sum()
+    again, inl2 = ring_reference(np.vstack((ring, branch)))  # a fixed seed: the same result
+    assert again == ref and np.array_equal(inl2, inl)
 
 
 def _slice_of(ring):
@@ -268,6 +273,7 @@ def test_every_real_slice_is_centred_labelled_and_filled_as_documented():
         load_slice(ddir, "nope")
     with pytest.raises(InputError, match=r"not found; set STEMMAP_DATASETS"):
         load_slice(ddir / "missing", "lidr_dbh")
+    counts = {}
     for name in SLICES:
         sl = load_slice(ddir, name)
         assert sl.name == name and sl.xy.dtype == np.float64 and sl.labels.dtype == np.int64
@@ -292,6 +298,14 @@ def test_every_real_slice_is_centred_labelled_and_filled_as_documented():
             sl.centers, [[r["x"], r["y"]] for r in sl.refs] or np.zeros((0, 2))
         )
         np.testing.assert_array_equal(sl.diameters, [r["diameter"] for r in sl.refs])
+        # partial rings: ring fits like the references, seen over less than the bound
+        min_cov = SLICES[name].min_coverage_deg
+        for p in sl.partial:
+            assert p["coverage_deg"] < min_cov and p["diameter"] > 0.0
+        assert all(r["coverage_deg"] >= min_cov for r in sl.refs)
+        counts[name] = (len(sl.refs), len(sl.partial))
+    # every cluster is scored, also after a partial ring (the plot's 3 partials)
+    assert counts["treels_pine_plot"] == (10, 3) and counts["treels_spruce"] == (0, 1)
 
 
 def test_ransac_circle_inliers_are_the_exact_ring_among_branch_points():
@@ -309,9 +323,14 @@ def test_ransac_circle_inliers_are_the_exact_ring_among_branch_points():
     np.testing.assert_array_equal(inl, expect)
     assert inl[: ring.shape[0]].all() and inl.dtype == bool
     # a 1.5 m ring and a 1 cm one are outside the accepted radii: no circle, every point kept
-    for big in (_ring(c, 1.5, 0.02), _ring(c, 0.01, 0.001)):
-        got = _ransac_circle(big, 0.005, np.random.default_rng(0), n_trials=50)
-        assert got.shape == (big.shape[0],) and got.all()
+    for other in (_ring(c, 1.5, 0.02), _ring(c, 0.01, 0.001)):
+        got = _ransac_circle(other, 0.005, np.random.default_rng(0), n_trials=50)
+        assert got.shape == (other.shape[0],) and got.dtype == bool and got.all()
+    # mostly collinear points: a collinear triple is skipped, the search goes on
+    line = np.column_stack((np.linspace(0.0, 3.0, 600), np.full(600, -2.0)))
+    pts = np.vstack((ring, line))
+    inl = _ransac_circle(pts, 0.005, np.random.default_rng(1))
+    np.testing.assert_array_equal(inl, np.abs(np.hypot(*(pts - c).T) - r) <= 0.005)
 
 
 def test_surface_point_radius_is_half_the_90th_percentile_spacing_of_distinct_points():
@@ -355,9 +374,39 @@ def test_reference_jackknife_fields():
     sl = _slice_of(ring)
     ref = sl.refs[0]
     jk = reference_jackknife(sl, 0)
+    # the sectors are taken about the reference centre: the same ring elsewhere, the same result
+    far = reference_jackknife(_slice_of(ring + np.array([30.0, -20.0])), 0)
+    assert far["jackknife_change_cm"] == pytest.approx(jk["jackknife_change_cm"], abs=0.011)
     assert jk["ring_rms_mm"] == round(1000.0 * ref["ring_rms_m"], 1)
     assert jk["ring_points"] == ref["n_points"] and jk["filled_deg"] == 0.0
     lo, hi = jk["jackknife_change_cm"]
     assert lo == round(lo, 2) and hi == round(hi, 2) and lo <= hi
     ref["filled_sectors_deg"] = 40.0
     assert reference_jackknife(sl, 0)["filled_deg"] == 40.0
+
+
+def test_fill_unseen_sectors_puts_points_every_5_mm_on_the_circle_where_the_ring_has_none():
+    from stemmap.eval.real_slices import _fill_unseen_sectors
+
+    c, r = np.array([2.0, 1.0]), 0.15
+    phi = np.linspace(-math.pi + 0.01, -0.01, 200)  # the ring seen over the lower half only
+    ring = c + r * np.column_stack((np.cos(phi), np.sin(phi)))
+    fill = _fill_unseen_sectors(ring, {"x": 2.0, "y": 1.0, "diameter": 2 * r})
+    q = fill - c
+    np.testing.assert_allclose(np.hypot(*q.T), r, atol=1e-12)
+    ang = np.arctan2(q[:, 1], q[:, 0])
+    assert np.all(ang >= 0.0)  # only the unseen upper half
+    # it covers the upper half at a 5 mm step (arc length) and 18 sectors of 10 deg
+    assert fill.shape[0] == pytest.approx(math.pi * r / 0.005, abs=2)
+    gaps = np.diff(np.sort(ang)) * r
+    np.testing.assert_allclose(gaps, 0.005, rtol=1e-9)
+    assert np.unique(np.floor(np.degrees(ang) / 10.0)).size == 18
+
+
+def test_cluster_grid_labels_8_connected_cells_from_0():
+    from stemmap.eval.real_slices import cluster_grid
+
+    xy = np.array([[0.0, 0.0], [0.07, 0.07], [0.12, 0.12], [1.0, 1.0], [1.02, 1.01]])
+    lab = cluster_grid(xy, 0.05)
+    assert lab.dtype == np.int64
+    assert lab.tolist() == [0, 0, 0, 1, 1]  # diagonal neighbours are connected
