@@ -535,14 +535,9 @@ def map_propagated_covariance(
 
 
 def _map_term(
-    diag: FloatArray,
-    off: FloatArray,
-    B: csr_matrix,
-    map_cov: FloatArray,
-    *,
-    columns: int = 128,
+    diag: FloatArray, off: FloatArray, B: csr_matrix, map_cov: FloatArray, *, columns: int = 128,
     block_mb: float = 32.0,
-) -> FloatArray:
+) -> FloatArray:  # fmt: skip
     """:func:`map_propagated_covariance` given the sparse ``B`` (3N, 2L)."""
     n = diag.shape[0]
     out = np.zeros((n, 3, 3))
