@@ -521,7 +521,8 @@ def map_propagated_covariance(
     error is taken as independent of the detections' noise (the landmarks were estimated from
     the same detections, which would make the sum slightly smaller: conservative).
 
-    A column block holds ``3 N x columns`` doubles, twice (``B U`` and its solve): at most
+    A column block holds ``3 N x columns`` doubles, two copies alive at a time (``B U`` and
+    the solve's Fortran-ordered copy, then the solution and its C-ordered reshape): at most
     ``columns`` columns, fewer where that would pass ``block_mb`` MB (on the 10x Victoria Park
     soak, N = 72,490 frames, 128 columns were ~220 MB a copy and made this the EKF's peak,
     1.24 GB; docs/reliability.md "Soak"). The result does not depend on the block size (up to
@@ -555,6 +556,7 @@ def _map_term(
     for c0 in range(0, m2, columns):
         M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
         out += M @ M.transpose(0, 2, 1)
+        del M  # (freed before the next block's B U: two blocks alive at a time, not three)
     return out
 
 
