@@ -357,9 +357,9 @@ def smooth_path(
     residual² of the measurements before and after, the share down-weighted by Huber at the
     end).
 
-    Memory: the normal equations are O(N) (~0.7 kB per frame with the banded factor and the
+    Memory: the normal equations are O(N) (~0.85 kB per frame with the banded factor and the
     chain marginals); the measurements are assembled ``_CHUNK`` at a time and the odometry
-    ``_ODO_CHUNK`` frames at a time, and the map term's sparse ``B`` holds 96 bytes per
+    ``_ODO_CHUNK`` frames at a time, and the map term's sparse ``B`` holds 72 bytes per
     measurement (docs/reliability.md "Soak").
     """
     x = np.array(poses, dtype=np.float64)
