@@ -15,12 +15,20 @@ range step is below its threshold at that range (8-35 cm at 5-9 m) and which pul
 
 :func:`trim_behind` tests each end of every fitted candidate against the circle fitted
 *without* that end return (a deletion test: the circle fitted with it is pulled towards it):
-the end goes when its range exceeds the tangent range of that circle by more than
-``behind_sigmas`` noise scales ``sqrt(sigma^2 + (bark_roughness r)^2)`` (the RMS test's
-scale), and the test repeats on the new ends until no end is behind or the candidate is down
-to ``max(min_points, min_points_partial)`` returns. A trimmed end is a true silhouette edge
-(what was next to it is farther), so it is marked neither occluded nor truncated. The trimmed
-candidates are fitted again and judged by the usual tests.
+the end goes when that circle passes every fit test (only a credible trunk says what lies
+behind it) and the end's range exceeds its tangent range by more than ``behind_sigmas`` noise
+scales ``sqrt(sigma^2 + (bark_roughness r)^2)`` (the RMS test's scale); the test repeats on
+the new ends until no end is behind or the candidate is down to ``max(min_points,
+min_points_partial)`` returns. A trimmed end is a true silhouette edge (what was next to it is
+farther), so it is marked neither occluded nor truncated. The trimmed candidates are fitted
+again and judged by the usual tests; one that fails keeps its returns and fit. Only accepted
+candidates are trimmed (the detector's main fit and the validated corner split's pieces): the
+trimmed remainder of a rejected one passed as a false trunk (aRchi's lobed trunk, 0.5 deg: a
+7-return bark ridge trimmed to a 6 cm "stem").
+
+The rule is one-sided: a return *nearer* than the tangent range may be the trunk's own, so
+the fillet of a branch coming towards the sensor is not cut by it (``arc_replace`` is the
+tool for that).
 
 Cost: two extra fits per candidate and trimming step (numpy path only; the compiled kernel
 fits each candidate once).
