@@ -455,10 +455,12 @@ class Isam2Slam:
             ks = [i for i in range(max(k - cfg.update_every, 0), k) if i in skipped]
             fl = int(kf_frames[k - 1])
             prior_p = compose(trk[None], between(sp_dr[int(fc[0])][None], sp_dr[fl][None]))[0]
+            fk = kf_frames[ks]  # (the dead reckoning's drift from each to fl, below)
             fix = localise_windows(
                 prior_p, P_trk + P_floor, [skipped[i] for i in ks],
-                between(sp_dr[fl][None], sp_dr[kf_frames[ks]]), lm_xy,
+                between(sp_dr[fl][None], sp_dr[fk]), lm_xy,
                 (vr + 400.0 * vb) / np.maximum(lm_nobs, 1),
+                np.abs(np.column_stack((cum_xy[fl] - cum_xy[fk], cum_th[fl] - cum_th[fk]))),
             )  # fmt: skip
             if fix.lost:
                 log.debug("iSAM2: tracker not localised at keyframe %d: %s", k - 1, fix.reason)
