@@ -35,7 +35,8 @@ majority the tracker is **lost** as far as the map can tell, and the caller puts
 keyframes into the graph (mapping mode: iSAM2 with its wide re-acquisition and the full graph
 to restart from) until a fit is accepted again. A majority that fits but is fewer than
 ``min_trees`` (2 of 3 trees) is no contradiction: the tracker dead-reckons on (on the 10x
-soak these were 2 trees fitting the tracker's pose to 0.05-0.1 m and one young tree 1-3 m off).
+soak these were 2 well-mapped trees fitting the tracker's pose and 1-2 young trees
+0.5-3 m off: a mis-association, not a lost tracker).
 """
 
 from __future__ import annotations

@@ -59,11 +59,16 @@ trunks at the edge of range stop pulling keyframes in after three visits; the 10
 growth fell from 6.37 to 2.0 MB per pass, the late passes add 6-14 keyframes (new trees, a
 lost tracker). :class:`RevisitGate` holds every decision, and keeps a keyframe that closes
 a loop whatever the bounds say (docs/algorithms/slam.md "The place bound counts every
-visit").
+visit"). A tenth session made most lost-tracker events go away (false alarms of the map fit,
+:mod:`stemmap.slam._graph_localise`) and added, as an option (``revisit_hold_new``), new
+trees on well-visited ground held out of the graph and mapped at the end from the left-out
+keyframes' poses (:func:`map_held`): 1-5 graph keyframes per late pass instead of 4-18, but
+1-1.6 % of path on the single drive at some start times (docs/reliability.md "Soak").
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -346,6 +351,11 @@ class RevisitGate:
     sparse and each one measures the map's trees (it ties itself), so the rule stays quiet
     there; it fires where the vehicle maps new ground and comes back.
 
+    With ``revisit_hold_new = N``, a tree first measured (in a keyframe that may stay out)
+    where the place had N or more earlier visits is *held*: it counts as in the graph there
+    (pulls no keyframe in) until a graph keyframe measures it (:meth:`factored`); the
+    back-end maps the held trees at the end (:func:`held_into_map`).
+
     ``config`` is the back-end's :class:`~stemmap.slam._graph_config.Isam2Config`; ``xy0`` the
     first keyframe's position (always in the graph).
     """
@@ -533,7 +543,7 @@ def held_into_map(
     kf_pose: FloatArray,
     held: np.ndarray,
     visits: np.ndarray,
-    nobs: np.ndarray,
+    lm: tuple[np.ndarray, np.ndarray, np.ndarray],
     cfg: Any,
     keep: np.ndarray,
     pts: FloatArray,
@@ -543,11 +553,26 @@ def held_into_map(
     """The held trees that are confirmed -- measured on ``cfg.revisit_hold_confirm`` visits and
     in ``cfg.min_obs`` scans -- mapped by :func:`map_held` into ``pts`` / ``covs`` (in place);
     returns ``keep`` with them appended and the trees' joint information extended block-
-    diagonally (they are independent of the graph's trees in this estimate)."""
+    diagonally (they are independent of the graph's trees in this estimate). ``lm`` = (dsum,
+    dn, nobs) landmark bookkeeping. A held tree that is a duplicate of a mapped tree (the
+    batch step's merge rule, :func:`~stemmap.slam._graph_marginals._merge_duplicates`, over
+    the mapped and the held trees: a group with a graph tree keeps only that one, a group of
+    held trees its most-observed) is dropped, as the batch step merges the graph's own."""
+    from stemmap.slam._graph_marginals import _merge_duplicates
+
+    dsum, dn, nobs = lm
     xy, cov, _ = map_held(skipped, kf_pose, held, cfg.track_floor_sigmas)
     idx = np.flatnonzero(held)
     ok = (visits[idx] >= cfg.revisit_hold_confirm) & (nobs[idx] >= cfg.min_obs)
     ok &= np.isfinite(xy).all(axis=1)
+    if cfg.merge_dist > 0 and ok.any():
+        both = np.concatenate((keep, idx[ok]))
+        xy_b = np.concatenate((pts[keep], xy[ok]))
+        diam = dsum[both] / np.maximum(dn[both], 1)
+        nob = nobs[both] + np.where(np.arange(both.size) < keep.size, 10**9, 0)  # graph first
+        sd = cfg.sigma_diameter or math.inf
+        rep = _merge_duplicates(xy_b, diam, nob, cfg.merge_dist, 3.0 * sd * math.sqrt(2.0))
+        ok[np.flatnonzero(ok)] = rep[keep.size :] == np.arange(keep.size, both.size)
     pts[idx[ok]], covs[idx[ok]] = xy[ok], cov[ok]
     if info_j is not None and ok.any():
         import scipy.linalg

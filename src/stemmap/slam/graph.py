@@ -707,8 +707,8 @@ class Isam2Slam:
         keep_g = keep  # (the graph's trees)
         if held.any():  # held trees: mapped from the left-out poses when confirmed
             keep, info_j = held_into_map(
-                skipped, kf_s, held, gate.tree_visits(n_lm), lm_nobs[:n_lm], cfg, keep, pts, covs,
-                info_j,
+                skipped, kf_s, held, gate.tree_visits(n_lm), (lm_dsum, lm_dn, lm_nobs), cfg,
+                keep, pts, covs, info_j,
             )  # fmt: skip
         skipped.close()  # (its spill file, _graph_leftout)
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
