@@ -52,6 +52,7 @@ from numba import njit
 from stemmap import _numba_cache
 from stemmap.scan import (
     _corners,
+    _fast_arcs,
     _fast_candidates,
     _fast_robust,
     _fast_segments,
@@ -62,11 +63,13 @@ from stemmap.scan import (
     features,
 )
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
+from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_candidate
 from stemmap.scan._fast_candidates import (
     _DEPTH,
     _PREFIT,
     _RAD2DEG,
     _edge_prior,
+    _emit,
     _split_emit,
     has_corners,
 )
@@ -167,6 +170,9 @@ def _detect_kernel(
     scan_jump = prm[54]
     scan_surface = prm[55]
     refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
+    arcs_on = prm[58] > 0.0  # arc_refit (_fast_arcs)
+    arc_replace = prm[61]
+    replace_on = arcs_on and arc_replace < math.inf
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -199,7 +205,7 @@ def _detect_kernel(
     dep = np.empty(n)
     ccode = np.empty(n, dtype=np.int64)
     feat = np.empty(2)
-    pres = np.empty((n, OUT_COLUMNS + 1))
+    pres = np.empty((n, OUT_COLUMNS + 2))
     sil = np.empty(4)
     sil_fit = np.empty(4)
     fit_out = np.empty(14)
@@ -211,6 +217,12 @@ def _detect_kernel(
     dnoise = np.empty(n)
     scratch = (sil, sil_fit, fit_out, tmp, buf, jtj, feat)  # _fast_candidates' scratch
     ws = (ws3, wv, mdl)
+    # arc_refit: the arc's own fit output (an accepted parent's stays in fit_out), the arc
+    # search's work rows, the parameters without the bark allowance (the arc's RMS test)
+    scratch_arc = (sil, sil_fit, np.empty(14), tmp, buf, jtj, feat)
+    arc_work = np.empty((ARC_WORK_ROWS, max(n, 9)))
+    prm_arc = prm.copy()
+    prm_arc[43] = 0.0  # bark_roughness
     cap = max(16, 2 * s_count)
     rows = np.empty((cap, OUT_COLUMNS))
     scans = np.empty(cap, dtype=np.int64)
@@ -410,7 +422,8 @@ def _detect_kernel(
             ok &= cnt <= max_points
             ok &= width >= min_width and width <= max_width
             # the first test failed is depth: a candidate for the corner split (refit_corners)
-            cut_me = refit_on and ok and not depth >= min_depth
+            # and the arc re-fit (arc_refit)
+            cut_me = (refit_on or arcs_on) and ok and not depth >= min_depth
             ok &= depth >= min_depth
             ok &= curv >= min_curv and curv <= max_curv
             if ok and reject_straight:
@@ -462,13 +475,19 @@ def _detect_kernel(
             a = st[j]
             b = sp[j]
             if ccode[j] == _DEPTH:  # rejected as not convex: cut without a fit
-                if not has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
-                    continue
-                rows, scans, n_out = _split_emit(
-                    rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1, wid,
-                    dep, _DEPTH, grid, noise_s, prm, chi2, scratch, ws, corner,
-                    (st2, sp2, oc02, oc12, tr02, tr12), pres,
-                )  # fmt: skip
+                n_before = n_out
+                if refit_on and has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
+                    rows, scans, n_out = _split_emit(
+                        rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
+                        wid, dep, _DEPTH, grid, noise_s, prm, chi2, scratch, ws, corner,
+                        (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                    )  # fmt: skip
+                # its largest consistent arc, unless its corner split gave the trunk
+                if arcs_on and n_out == n_before and arc_candidate(
+                    px, py, pr, pb, a, b, (oc0[j], oc1[j], tr0[j], tr1[j]), grid, noise_s,
+                    prm_arc, chi2, scratch_arc, ws, arc_work, pres[0],
+                ):  # fmt: skip
+                    rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
                 continue
             cnt_i = b - a
             mean_r = _seg_sum(pr, a, b) / cnt_i
@@ -568,6 +587,20 @@ def _detect_kernel(
                         (st2, sp2, oc02, oc12, tr02, tr12), pres,
                     )  # fmt: skip
                 continue
+            # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
+            # arc_replace x the arc's and the arc's sigma (detect._arc_candidates); that sigma
+            # is at least max(sigma, the scan's noise), so below it no arc is looked for
+            if (
+                replace_on
+                and rms > max(sigma0, noise_s)
+                and arc_candidate(
+                    px, py, pr, pb, a, b, (oc0[j], oc1[j], tr0[j], tr1[j]), grid, noise_s,
+                    prm_arc, chi2, scratch_arc, ws, arc_work, pres[0],
+                )
+                and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
+            ):  # fmt: skip
+                rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
+                continue
             cov_ok = True
             for q in range(9):
                 cov_ok &= math.isfinite(fit_out[3 + q])
@@ -646,6 +679,7 @@ _numba_cache.drop_stale_cache(
     _fit_geometric.__file__,
     features.__file__,
     _corners.__file__,
+    _fast_arcs.__file__,
     _fast_candidates.__file__,
     _gaps.__file__,
     _fast_robust.__file__,
