@@ -63,7 +63,7 @@ from stemmap.scan import (
     features,
 )
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
-from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_candidate
+from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_candidate, arc_run
 from stemmap.scan._fast_candidates import (
     _DEPTH,
     _PREFIT,
@@ -483,11 +483,14 @@ def _detect_kernel(
                         (st2, sp2, oc02, oc12, tr02, tr12), pres,
                     )  # fmt: skip
                 # its largest consistent arc, unless its corner split gave the trunk
-                if arcs_on and n_out == n_before and arc_candidate(
-                    px, py, pr, pb, a, b, (oc0[j], oc1[j], tr0[j], tr1[j]), grid, noise_s,
-                    prm_arc, chi2, scratch_arc, ws, arc_work, pres[0],
-                ):  # fmt: skip
-                    rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
+                if arcs_on and n_out == n_before:
+                    sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / (b - a)), noise_s)
+                    lo_a, hi_a = arc_run(px, py, pr, a, b, sig, prm, arc_work)
+                    if lo_a >= 0 and arc_candidate(
+                        px, py, pr, pb, a, b, lo_a, hi_a, (oc0[j], oc1[j], tr0[j], tr1[j]),
+                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0],
+                    ):  # fmt: skip
+                        rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
                 continue
             cnt_i = b - a
             mean_r = _seg_sum(pr, a, b) / cnt_i
@@ -590,17 +593,19 @@ def _detect_kernel(
             # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
             # arc_replace x the arc's and the arc's sigma (detect._arc_candidates); that sigma
             # is at least max(sigma, the scan's noise), so below it no arc is looked for
-            if (
-                replace_on
-                and rms > max(sigma0, noise_s)
-                and arc_candidate(
-                    px, py, pr, pb, a, b, (oc0[j], oc1[j], tr0[j], tr1[j]), grid, noise_s,
-                    prm_arc, chi2, scratch_arc, ws, arc_work, pres[0],
-                )
-                and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
-            ):  # fmt: skip
-                rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
-                continue
+            if replace_on and rms > max(sigma0, noise_s):
+                sig_a = max(sigma0 + sigma_rel * mean_r, noise_s)  # (segment_sigma)
+                lo_a, hi_a = arc_run(px, py, pr, a, b, sig_a, prm, arc_work)
+                if (
+                    lo_a >= 0
+                    and arc_candidate(
+                        px, py, pr, pb, a, b, lo_a, hi_a, (oc0[j], oc1[j], tr0[j], tr1[j]),
+                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0],
+                    )
+                    and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
+                ):  # fmt: skip
+                    rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
+                    continue
             cov_ok = True
             for q in range(9):
                 cov_ok &= math.isfinite(fit_out[3 + q])

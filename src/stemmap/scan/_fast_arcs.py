@@ -38,7 +38,6 @@ from stemmap.scan import (
 )
 from stemmap.scan._fast_candidates import _fit_candidate, _Scratch, _segment_code, _Work
 from stemmap.scan._fast_robust import _median_inplace
-from stemmap.scan._fast_segments import _seg_sum
 from stemmap.types import FloatArray
 
 __all__ = ["ARC_WORK_ROWS", "MAX_SEEDS", "MIN_SHARE", "arc_candidate", "arc_run", "largest_arc"]
@@ -287,6 +286,8 @@ def arc_candidate(
     pb: np.ndarray,
     a: int,
     b: int,
+    lo: int,
+    hi: int,
     flags: tuple[bool, bool, bool, bool],
     grid: FloatArray,
     noise_s: float,
@@ -294,24 +295,17 @@ def arc_candidate(
     chi2: FloatArray,
     scratch: _Scratch,
     ws: _Work,
-    work: FloatArray,
     res: FloatArray,
 ) -> bool:  # pragma: no cover - numba
     """``arc_refit`` for the candidate ``a:b`` with end flags ``flags`` (occluded start / end,
-    truncated start / end), as :func:`stemmap.scan._arcs.arc_pieces` does it: the segment's
-    arc (:func:`arc_run`, sigma from the segment's mean range and the scan's noise
-    ``noise_s``), its cut ends occluded only where the return across is nearer by more than
-    ``occlusion_margin``, the segment filters and the fit with its plausibility tests.
-    ``prm`` must carry ``bark_roughness`` 0 (the arc's RMS test has no bark allowance).
-    True when the arc passes: ``res[:OUT_COLUMNS]`` is its output row, then its sigma and
-    its fit RMS."""
+    truncated start / end) and its arc ``[lo, hi)`` (:func:`arc_run`, relative to ``a``), as
+    :func:`stemmap.scan._arcs.arc_pieces` judges it: its cut ends occluded only where the
+    return across is nearer by more than ``occlusion_margin``, the segment filters, the fit
+    and its plausibility tests. ``prm`` must carry ``bark_roughness`` 0 (the arc's RMS test
+    has no bark allowance). True when the arc passes: ``res[:OUT_COLUMNS]`` is its output
+    row, then its sigma and its fit RMS."""
     sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
     ws3, wv, mdl = ws
-    mean_r = _seg_sum(pr, a, b) / (b - a)
-    sigma = max(prm[29] + prm[30] * mean_r, noise_s)  # plausibility.segment_sigma
-    lo, hi = arc_run(px, py, pr, a, b, sigma, prm, work)
-    if lo < 0:
-        return False
     margin = prm[10]
     oc0, oc1, tr0, tr1 = flags
     qa = a + lo
