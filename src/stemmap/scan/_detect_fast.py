@@ -173,6 +173,8 @@ def _detect_kernel(
     arcs_on = prm[58] > 0.0  # arc_refit (_fast_arcs)
     arc_replace = prm[61]
     replace_on = arcs_on and arc_replace < math.inf
+    # an arc holds fewer returns than its segment and at least this many (_fast_arcs.arc_run)
+    arc_least = min_points if prm[62] > 0.0 else min_points_partial
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -483,7 +485,7 @@ def _detect_kernel(
                         (st2, sp2, oc02, oc12, tr02, tr12), pres,
                     )  # fmt: skip
                 # its largest consistent arc, unless its corner split gave the trunk
-                if arcs_on and n_out == n_before:
+                if arcs_on and n_out == n_before and b - a > arc_least:
                     sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / (b - a)), noise_s)
                     lo_a, hi_a = arc_run(px, py, pr, a, b, sig, prm, arc_work)
                     if lo_a >= 0 and arc_candidate(
@@ -593,7 +595,7 @@ def _detect_kernel(
             # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
             # arc_replace x the arc's and the arc's sigma (detect._arc_candidates); that sigma
             # is at least max(sigma, the scan's noise), so below it no arc is looked for
-            if replace_on and rms > max(sigma0, noise_s):
+            if replace_on and rms > max(sigma0, noise_s) and cnt_i > arc_least:
                 sig_a = max(sigma0 + sigma_rel * mean_r, noise_s)  # (segment_sigma)
                 lo_a, hi_a = arc_run(px, py, pr, a, b, sig_a, prm, arc_work)
                 if (

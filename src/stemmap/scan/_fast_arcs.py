@@ -257,6 +257,8 @@ def arc_run(
     mpp = prm[17]
     seed = max(int(min_points), 4)
     least = min_points if prm[62] > 0.0 else mpp  # arc_short_steps
+    if not b - a > least:  # no room for an arc of >= least returns, fewer than the segment's
+        return -1, -1
     floor = prm[60] * sigma  # arc_floor_sigmas
     lo, hi = largest_arc(px, py, a, b, floor, prm[59], seed, prm[32], prm[33], True, work)
     if lo < 0:

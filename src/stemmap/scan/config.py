@@ -247,8 +247,8 @@ class DetectorConfig:
         sigmas) of the circle so far; only an arc that reaches one end of the segment, with
         ``min_points_partial`` returns and a quarter of the segment's, tested without the
         bark allowance -- a trunk whose
-        segment runs on into a branch, fillet or stem. Numpy path only (the compiled path is
-        not used while it is on).
+        segment runs on into a branch, fillet or stem. Compiled
+        (:mod:`stemmap.scan._fast_arcs`) since the thirteenth round; off in every preset.
     arc_sigmas : float, > 0
         Consensus threshold of ``arc_refit`` in robust residual scales (1.4826 MAD).
     arc_floor_sigmas : float, > 0
