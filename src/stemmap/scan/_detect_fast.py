@@ -8,8 +8,9 @@ eq. 2) or adaptive Euclidean segmentation, occlusion flags, single-point curvatu
 segment features and filters (Xue eq. 12 width, Zheng §3.2 depth and curvature, chi-square
 straightness test), the edge-silhouette priors, the "ours" circle fit (the same compiled
 ``_fit_one`` of :mod:`stemmap.scan._fit_geometric`), the plausibility checks, arc extent and
-quality, and with ``refit_split="corners"`` the validated corner split of rejected candidates
-(ours, issue 11). The named pure functions in :mod:`~stemmap.scan.preprocess`,
+quality, with ``refit_split="corners"`` the validated corner split of rejected candidates and
+with ``arc_refit`` the largest consistent arc of a candidate (ours, issue 11;
+:mod:`stemmap.scan._fast_arcs`). The named pure functions in :mod:`~stemmap.scan.preprocess`,
 :mod:`~stemmap.scan.segment` and :mod:`~stemmap.scan.features` remain the reference: this
 kernel evaluates the same expressions in the same order, and every per-segment sum replicates
 numpy's pairwise summation of ``np.add.reduceat`` (:func:`_seg_sum`), so its results equal the
@@ -21,8 +22,8 @@ of a single scan (~1 ms) and a third of the batch time; the kernel touches each 
 times in cache and allocates nothing per scan on the common path.
 
 Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "ours", no
-first-echo footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
-pieces only as corner splits. Everything else runs the numpy pipeline.
+first-echo footprint correction, no tilt compensation to apply, re-fitted pieces only as corner
+splits, no relaxed RMS tests. Everything else runs the numpy pipeline.
 
 The kernel's helpers live in :mod:`stemmap.scan._fast_candidates` (per candidate: segment
 filters as a reason code, fit and plausibility tests, arc and quality, the corner split),
