@@ -48,19 +48,26 @@ def real_batches(datasets_dir):
     return out
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("split", sorted(SPLITS))
-def test_compiled_corner_split_equals_numpy_on_real_slices(real_batches, split):
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **SPLITS[split]))
-    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))
+def _same_on_every_batch(det, batches):
+    """Assert the compiled path equals the numpy path on every batch; yield (numpy result,
+    batch)."""
     assert det._compiled(None, None)
-    gained = 0
-    for label, batch in real_batches:
+    for label, batch in batches:
         fast, ref = _both(det, batch)
         try:
             assert_same(fast, ref)
         except AssertionError as err:
             raise AssertionError(label) from err
+        yield ref, batch
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("split", sorted(SPLITS))
+def test_compiled_corner_split_equals_numpy_on_real_slices(real_batches, split):
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **SPLITS[split]))
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))
+    gained = 0
+    for ref, batch in _same_on_every_batch(det, real_batches):
         gained += len(ref) - len(_both(base, batch)[1])
     assert gained > 0  # the split found trunks the default rejects: the path was exercised
 
@@ -82,14 +89,8 @@ def test_compiled_arcs_equal_numpy_on_real_slices(real_batches, arcs):
     base = ScanTrunkDetector(
         DetectorConfig.preset("stemmap", refit_pieces=ARC_SETTINGS[arcs].get("refit_pieces", True))
     )
-    assert det._compiled(None, None)
     changed = 0
-    for label, batch in real_batches:
-        fast, ref = _both(det, batch)
-        try:
-            assert_same(fast, ref)
-        except AssertionError as err:
-            raise AssertionError(label) from err
+    for ref, batch in _same_on_every_batch(det, real_batches):
         plain = _both(base, batch)[1]
         changed += len(ref) != len(plain) or not np.array_equal(ref.radii, plain.radii)
     assert changed > 0  # the arcs changed detections: the path was exercised
