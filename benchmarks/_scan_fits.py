@@ -108,7 +108,7 @@ def virtual_scan(
 def stats_cm(err_cm: np.ndarray) -> dict[str, float]:
     e = err_cm[np.isfinite(err_cm)]
     if e.size == 0:
-        return {"n": 0, "rmse_cm": math.nan, "bias_cm": math.nan, "mae_cm": math.nan}
+        return {"n": 0, "rmse_cm": math.nan, "bias_cm": math.nan, "median_abs_cm": math.nan}
     return {
         "n": int(e.size),
         "rmse_cm": round(float(np.sqrt(np.mean(e * e))), 3),

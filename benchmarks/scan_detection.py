@@ -182,7 +182,7 @@ def speed_compare(run: Any, n_batch: int, overrides: dict[str, Any], rounds: int
 
 REAL: dict[str, Any] = {
     "dataset": "fortls_slice/diameters.laz (TLS slice 1.2-1.4 m, ~20 trunks as full rings)",
-    "reference": "ring fit of scan_fits_real.load_rings (full ring, geometric)",
+    "reference": "ring fit of _scan_fits.load_rings (full ring, geometric)",
     "scanner": "virtual nearest-return scanner: 360 deg, one beam per bin, the nearest slice "
     "point whose bearing lies within the beam footprint, reported at the beam's nominal bearing",
     "angle_increment_deg": 0.5,

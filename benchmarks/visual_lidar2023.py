@@ -12,27 +12,31 @@ landmarks vs 0.656 m without on its first run, 0.3-0.5 m on four runs. Here, per
   0.25 deg, the scans the tree detections come from), lidar only (no IMU prior); each step's
   registration covariance (divided by the frame interval) is its EKF noise;
 * **fused**: the paper's loosely coupled EKF of the two outputs
-  (:func:`stemmap.odometry.fusion.fuse_sources`, plain filter, no calibration states, no
-  gate): the visual odometry as body-frame velocities (each applied to the interval it was
-  measured over), the lidar odometry's scan-to-map poses as absolute pose measurements; both
-  noises from the sources' residuals on a calibration drive that is not scored
-  (:data:`CALIBRATION_LOOP`, :func:`calibrate_noise`; :data:`EKF_LIDAR_SIGMA_FACTOR`);
+  (:func:`stemmap.odometry.fusion.fuse_sources`, plain filter, no calibration states, no gate): the
+  visual odometry as body-frame velocities (each applied to the interval it was measured over), the
+  lidar odometry's scan-to-map poses as absolute pose measurements; both noises from the sources'
+  residuals on a calibration drive that is not scored
+  (:data:`_visual_lidar2023_noise.CALIBRATION_LOOP`,
+  :func:`_visual_lidar2023_noise.calibrate_noise`;
+  :data:`_visual_lidar2023_fusion.EKF_LIDAR_SIGMA_FACTOR`);
 * **fused_increments**: the loose coupling by relative motion
-  (:func:`stemmap.odometry.increments.fuse_increments`): each source's increments with its own
-  error model, information-weighted -- the lidar's jitter (at both ends of an increment) and
-  random-walk drift per frame fitted on the calibration drive (:func:`_fit_lidar_drift`), the
-  VO's per-step noise from its PnP inlier count (:func:`_fit_inlier_model`); the VO's variance
-  factor, the lidar model and the span chosen on held-out seeds (``--tune 30 40``,
-  :data:`FUSED_VO_SCALE`, :func:`increment_sources`). On those it is no better than the
-  lidar alone and worse than ``fused`` (docs/algorithms/slam-frontends.md), so ``fused``
-  stays the EKF;
+  (:func:`stemmap.odometry.increments.fuse_increments`): each source's increments with its own error
+  model, information-weighted -- the lidar's jitter (at both ends of an increment) and random-walk
+  drift per frame fitted on the calibration drive (:func:`_visual_lidar2023_noise.fit_lidar_drift`),
+  the VO's per-step noise from its PnP inlier count
+  (:func:`_visual_lidar2023_noise.fit_inlier_model`); the VO's variance factor, the lidar model and
+  the span chosen on held-out seeds (``--tune 30 40``,
+  :data:`_visual_lidar2023_fusion.FUSED_VO_SCALE`,
+  :func:`_visual_lidar2023_fusion.increment_sources`). On those it is no better than the lidar alone
+  and worse than ``fused`` (docs/algorithms/slam-frontends.md), so ``fused`` stays the EKF;
 * **fused_inlier_noise**: ``fused`` with the VO's noise per interval from its PnP inlier count
   (``sigma = c (n / 100) ** -p``, ``c`` and ``p`` fitted on the calibration drive,
-  :func:`_fit_inlier_model`; ``visual_odometry_source(inlier_exponent=p)``);
+  :func:`_visual_lidar2023_noise.fit_inlier_model`; ``visual_odometry_source(inlier_exponent=p)``);
 * **fused_drift**: that, and the lidar's poses as jitter about a drifting frame
-  (``PoseSource(drift=...)``: the lidar's frame offset is a random walk the VO can correct;
-  jitter and drift per frame fitted on the calibration drive, :func:`_fit_lidar_drift`). The
-  model the z^2 checks call consistent; reported to show what it does;
+  (``PoseSource(drift=...)``: the lidar's frame offset is a random walk the VO can correct; jitter
+  and drift per frame fitted on the calibration drive,
+  :func:`_visual_lidar2023_noise.fit_lidar_drift`). The model the z^2 checks call consistent;
+  reported to show what it does;
 * **fused_default**: the same with the library's noise (``VISUAL_STEP_SIGMA``, the lidar's
   registration covariances), what ``stemmap map --motion fused`` uses;
 * **fused_velocities**: the same filter with the lidar odometry also differenced into
@@ -103,6 +107,15 @@ from _visual_lidar2023_diagnostics import (
     scale_and_yaw_bias,
     true_displacement,
 )
+from _visual_lidar2023_drive import prepare_loop
+from _visual_lidar2023_fusion import (
+    FUSED_SPAN,
+    TUNE_EKF_FACTORS,
+    TUNE_GRID,
+    ekf_fused,
+    increment_sources,
+)
+from _visual_lidar2023_noise import CALIBRATION_LOOP, calibrate_noise
 
 #: Loop waypoints around the orchard rows (rows at y = 0, 4, 8; trees at x = 0..18 m).
 LOOPS: dict[str, list[tuple[float, float]]] = {
@@ -114,309 +127,6 @@ LOOPS: dict[str, list[tuple[float, float]]] = {
 
 #: Fused rows counted against both sources per loop (``<variant>_better_than_both``).
 FUSED_VARIANTS = ("fused", "fused_increments", "fused_inlier_noise", "fused_drift")
-
-
-def _lidar_odometry(run: Any) -> tuple[Any, Any]:
-    """KISS-ICP on the run's 2D scans, as the vehicle trajectory in the world frame and the
-    result (for its covariances)."""
-    from stemmap.odometry.lidar import LidarOdometryConfig, lidar_odometry
-    from stemmap.sim.trajectory import compose_poses
-    from stemmap.types import Trajectory
-
-    sensor = run.true_poses
-    cfg = LidarOdometryConfig(max_range=run.scanner.range_max, min_range=0.1)
-    res = lidar_odometry(
-        zip(sensor.times, run.scans, strict=True), cfg, initial_pose=sensor.poses[0]
-    )
-    o = run.sensor_offset.as_array()  # sensor = vehicle * offset
-    c, s = math.cos(o[2]), math.sin(o[2])
-    inv = np.array([-(c * o[0] + s * o[1]), s * o[0] - c * o[1], -o[2]])
-    vehicle = Trajectory(res.times, compose_poses(res.trajectory().poses, inv), frame="world")
-    return vehicle, res
-
-
-def _world(traj: Any, pose0: np.ndarray) -> Any:
-    """A trajectory given in the frame of its first pose, placed at ``pose0`` in the world."""
-    from stemmap.sim.trajectory import compose_poses
-    from stemmap.types import Trajectory
-
-    return Trajectory(traj.times, compose_poses(pose0, traj.poses), frame="world")
-
-
-def prepare_loop(
-    name: str, waypoints: list[tuple[float, float]], seed: int, cache: Path | None = None
-) -> dict[str, Any]:
-    """Simulate the drive, run (or load) the visual odometry and run the lidar odometry."""
-    from stemmap.odometry.visual import (
-        StereoCalibration,
-        VisualFrame,
-        VisualOdometryResult,
-        planar_from_camera,
-        run_visual_odometry,
-    )
-    from stemmap.sim.forest import row_stand
-    from stemmap.sim.render import (
-        StereoCamera,
-        iter_stereo,
-        stand3d_from_stand,
-        with_forest_edge,
-    )
-    from stemmap.sim.scanner import scanner_preset
-    from stemmap.sim.trajectory import simulate_run
-
-    rng = np.random.default_rng(seed)
-    rows = row_stand(3, 7, row_spacing=4.0, tree_spacing=3.0, jitter=0.1, rng=rng)
-    stand = with_forest_edge(rows, rng=rng)
-    cam = StereoCamera(rate_hz=5.0)
-    run = simulate_run(
-        stand,
-        np.array(waypoints, dtype=np.float64),
-        scanner=scanner_preset("rplidar", angle_increment=math.radians(0.25)),
-        speed=1.0,
-        rate_hz=cam.rate_hz,
-        odometry_noise="wheel",
-        rng=seed,
-    )
-    truth = run.vehicle_poses
-    pose0 = truth.poses[0]
-    t0 = time.perf_counter()
-    cached = None if cache is None else cache / f"vo_{name}_{seed}.npz"
-    if cached is not None and cached.is_file():
-        z = np.load(cached)
-        vo = VisualOdometryResult(
-            z["times"], z["poses"], z["status"], z["n_tracks"], z["n_inliers"]
-        )
-    else:
-        frames = iter_stereo(stand3d_from_stand(run.stand, rng=seed), truth, cam, rng=seed)
-        cal = StereoCalibration(
-            cam.fx, cam.fx, cam.K[0, 2], cam.K[1, 2], cam.width, cam.height, cam.baseline
-        )
-        # rendering and odometry interleave (frames are rendered on demand)
-        vo = run_visual_odometry((VisualFrame(f.time, f.left, f.right) for f in frames), cal)
-        if cache is not None and cached is not None:
-            cache.mkdir(parents=True, exist_ok=True)
-            np.savez(
-                cached,
-                times=vo.times,
-                poses=vo.poses,
-                status=vo.status,
-                n_tracks=vo.n_tracks,
-                n_inliers=vo.n_inliers,
-            )
-    t_render_vo = time.perf_counter() - t0
-    visual = _world(planar_from_camera(vo, cam.vehicle_from_camera()), pose0)
-    t0 = time.perf_counter()
-    lidar, lres = _lidar_odometry(run)
-    t_lidar = time.perf_counter() - t0
-    return {
-        "name": name,
-        "seed": seed,
-        "run": run,
-        "truth": truth,
-        "cam": cam,
-        "vo": vo,
-        "visual": visual,
-        "lidar": lidar,
-        "lres": lres,
-        "t_render_vo": t_render_vo,
-        "t_lidar": t_lidar,
-    }
-
-
-#: The calibration drive: a loop the benchmark does not score (around row 1, seed 100), from
-#: whose residuals the fused filter's noise is chosen (:func:`calibrate_noise`).
-CALIBRATION_LOOP = ("calibration_around_row_1", [(5, -2), (21, -2), (21, 2), (-3, 2), (-3, -2),
-                                                 (5, -2)], 100)  # fmt: skip
-
-#: Window (frames, 1.6-4 s at 5 Hz) over which the lidar's increment error has levelled off
-#: on the calibration drive (its pose error is jitter about a slowly drifting path there).
-LIDAR_PLATEAU_FRAMES = range(8, 21)
-
-
-def calibrate_noise(cache: Path | None) -> dict[str, Any]:
-    """Noise of the fused filter from the residuals of the two sources on the calibration
-    drive (never the scored loops):
-
-    * visual: the std of its frame-to-frame forward and heading errors (per frame, at the
-      camera rate; :data:`stemmap.odometry.visual.VISUAL_STEP_SIGMA` was measured at 10 Hz on
-      another drive and is 3.5x smaller than the 5 Hz steps' error here);
-    * lidar: its scan-to-map poses enter as pose measurements; their sigma is the level of its
-      k-frame increment error over :data:`LIDAR_PLATEAU_FRAMES` divided by sqrt 2 (two
-      independent pose errors per increment): the jitter of each pose about its slowly
-      drifting path. (Its registration covariance, floored at 0.02 m, is 2x smaller.)
-    """
-    name, wp, seed = CALIBRATION_LOOP
-    L = prepare_loop(name, wp, seed, cache)
-    truth = L["truth"]
-    v1 = np.std(increment_errors(L["visual"], truth, 1), axis=0)
-    lid = np.array(
-        [np.std(increment_errors(L["lidar"], truth, k), axis=0) for k in LIDAR_PLATEAU_FRAMES]
-    )
-    lp = np.median(lid, axis=0) / math.sqrt(2.0)
-    p, c_m, c_rad = _fit_inlier_model(L["vo"], L["visual"], truth)
-    jit, drift = _fit_lidar_drift(L["lidar"], truth)
-    return {
-        "drive": f"{name} (seed {seed})",
-        "visual_step_sigma_m": float(v1[0]),
-        "visual_step_sigma_deg": math.degrees(float(v1[2])),
-        "lidar_pose_sigma_m": float(math.hypot(lp[0], lp[1]) / math.sqrt(2.0)),
-        "lidar_pose_sigma_deg": math.degrees(float(lp[2])),
-        "visual_inlier_exponent": p,
-        "visual_step_sigma_at_100_inliers_m": c_m,
-        "visual_step_sigma_at_100_inliers_deg": math.degrees(c_rad),
-        "lidar_jitter_sigma_m": float(jit[0]),
-        "lidar_jitter_sigma_deg": math.degrees(float(jit[1])),
-        "lidar_drift_sigma_per_frame_m": float(drift[0]),
-        "lidar_drift_sigma_per_frame_deg": math.degrees(float(drift[1])),
-    }
-
-
-def _step_inliers(vo: Any) -> Any:
-    """Per interval, the fewer PnP inliers of its two frames (a frame without a PnP, the first
-    keyframe, does not count), as :func:`stemmap.odometry.visual.visual_odometry_source`."""
-    ni = np.where(vo.n_inliers > 0, vo.n_inliers.astype(float), np.inf)
-    n = np.minimum(ni[1:], ni[:-1])
-    return np.where(np.isfinite(n), n, 100.0)
-
-
-def _fit_inlier_model(vo: Any, visual: Any, truth: Any) -> tuple[float, float, float]:
-    """Maximum-likelihood fit of the VO step noise ``sigma = c (n / 100) ** -p`` (``n``:
-    :func:`_step_inliers`) to its frame-to-frame errors on the calibration drive: ``p`` on a
-    0.1 grid (shared by the forward and heading errors), ``c`` in closed form per component.
-    Returns ``(p, c_m, c_rad)``."""
-    e = increment_errors(visual, truth, 1)
-    ok = vo.ok[1:] & vo.ok[:-1]
-    e, n = e[ok], _step_inliers(vo)[ok] / 100.0
-    best = (math.inf, 0.0, 0.0, 0.0)
-    for p in np.arange(0.0, 4.01, 0.1):
-        w = n ** (2.0 * p)  # 1 / scale**2
-        c2 = [float(np.mean(e[:, j] ** 2 * w)) for j in (0, 2)]
-        nll = sum(float(np.sum(np.log(c / w) + 1.0)) for c in c2)
-        if nll < best[0]:
-            best = (nll, float(p), math.sqrt(c2[0]), math.sqrt(c2[1]))
-    return best[1], best[2], best[3]
-
-
-#: Lags (frames, 1.6-12 s at 5 Hz) over which the lidar's increment error variance is fitted
-#: as jitter + random walk (:func:`_fit_lidar_drift`).
-LIDAR_DRIFT_FRAMES = range(8, 61)
-
-
-def _fit_lidar_drift(lidar: Any, truth: Any) -> tuple[Any, Any]:
-    """The lidar odometry's pose error as jitter about a drifting path: its k-frame increment
-    error variance fitted as ``2 J**2 + k q`` over :data:`LIDAR_DRIFT_FRAMES` (least squares;
-    x and y pooled). Returns ``((J_m, J_rad), (sqrt q_m, sqrt q_rad))``: the jitter sigma of
-    a pose and the drift sigma per frame (a body-frame increment error, the random walk of
-    the lidar's frame offset in :class:`stemmap.odometry.fusion.PoseSource` ``drift``)."""
-    ks = np.array(list(LIDAR_DRIFT_FRAMES), dtype=float)
-    v = np.array([np.var(increment_errors(lidar, truth, int(k)), axis=0) for k in ks])
-    A = np.column_stack((np.ones_like(ks), ks))
-    jit, drift = np.zeros(2), np.zeros(2)
-    for j, col in enumerate((0.5 * (v[:, 0] + v[:, 1]), v[:, 2])):
-        (a, b), *_ = np.linalg.lstsq(A, col, rcond=None)
-        jit[j], drift[j] = math.sqrt(max(a, 0.0) / 2.0), math.sqrt(max(b, 0.0))
-    return jit, drift
-
-
-#: Settings of the relative-motion fusion (``fused_increments``), chosen with
-#: ``--tune 30 40`` on the loops of seeds 30 and 40 and the calibration drive (none of them
-#: scored): the lidar's error model (``"drift"``: jitter + random walk fitted on the
-#: calibration drive, :func:`_fit_lidar_drift`; ``"registration"``: its per-step registration
-#: covariance), the factor on the VO's inlier-count variance (:func:`_fit_inlier_model`) and
-#: the span (steps; None = the whole drive). See :func:`increment_sources`. The held-out loop
-#: error falls monotonically as the VO's factor grows (1: 0.191 m, 16: 0.091, 256: 0.0876,
-#: 1024: 0.0875 = the lidar alone); 256 keeps the VO in at all, within 0.1 mm of the grid's
-#: best.
-FUSED_LIDAR_MODEL = "drift"
-FUSED_VO_SCALE = 256.0
-FUSED_SPAN: int | None = 80
-
-#: The grid ``--tune`` searches.
-TUNE_GRID = {
-    "lidar_model": ("drift", "registration"),
-    "vo_scale": (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0),
-    "span": (5, 10, 20, 40, 80, None),
-}
-
-
-def increment_sources(
-    L: dict[str, Any],
-    noise: dict[str, Any],
-    lidar_model: str = FUSED_LIDAR_MODEL,
-    vo_scale: float = FUSED_VO_SCALE,
-) -> list[Any]:
-    """The lidar and visual odometry of a loop as :class:`stemmap.odometry.increments
-    .IncrementSource`: the lidar with its jitter (both ends of an increment) and random-walk
-    drift per frame fitted on the calibration drive, or with its registration covariance per
-    step; the VO with its per-step noise from the PnP inlier count, ``c (n / 100) ** -p``
-    (forward and lateral alike), its variance times ``vo_scale``. Unmeasured steps (lost VO
-    frames, held lidar frames) are NaN."""
-    from stemmap.odometry.increments import IncrementSource
-
-    vo, lres, n = L["vo"], L["lres"], len(L["truth"])
-    scale = (_step_inliers(vo) / 100.0) ** -noise["visual_inlier_exponent"]
-    cm = noise["visual_step_sigma_at_100_inliers_m"]
-    cr = math.radians(noise["visual_step_sigma_at_100_inliers_deg"])
-    vc = np.zeros((n - 1, 3, 3))
-    vc[:, 0, 0] = vc[:, 1, 1] = vo_scale * (cm * scale) ** 2
-    vc[:, 2, 2] = vo_scale * (cr * scale) ** 2
-    vc[~(vo.ok[1:] & vo.ok[:-1])] = np.nan
-    held = ~np.isfinite(lres.increment_cov[1:, 0, 0])
-    if lidar_model == "registration":
-        lc, jit = lres.increment_cov[1:].copy(), None
-    elif lidar_model == "drift":
-        q = [noise["lidar_drift_sigma_per_frame_m"]] * 2
-        q.append(math.radians(noise["lidar_drift_sigma_per_frame_deg"]))
-        j = [noise["lidar_jitter_sigma_m"]] * 2 + [math.radians(noise["lidar_jitter_sigma_deg"])]
-        lc, jit = np.repeat(np.diag(np.square(q))[None], n - 1, axis=0), np.diag(np.square(j))
-    else:
-        raise ValueError(f"unknown lidar model {lidar_model!r}")
-    lc[held] = np.nan
-    return [
-        IncrementSource(L["lidar"], lc, jitter=jit, name="lidar odometry"),
-        IncrementSource(L["visual"], vc, name="visual odometry"),
-    ]
-
-
-#: Factor on the calibration drive's lidar pose sigma in the EKF (``fused``). ``--tune 30 40``
-#: tries :data:`TUNE_EKF_FACTORS` on the held-out drives: 0.125 gave 0.0748 m mean loop error
-#: there against 0.0782 m at 1, but 0.117 against 0.113 m on the 12 scored loops, with the
-#: fused position's z^2 up from 45-315 to 2,000-18,000 (the EKF's unicycle model has no
-#: lateral process noise, so a tighter lidar only follows the lidar's heading and forward
-#: jitter more closely). A difference within the noise of 9 drives; the calibrated sigma stays.
-EKF_LIDAR_SIGMA_FACTOR = 1.0
-
-#: The factors ``--tune`` tries for :data:`EKF_LIDAR_SIGMA_FACTOR`.
-TUNE_EKF_FACTORS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
-
-
-def ekf_fused(
-    L: dict[str, Any], noise: dict[str, Any], factor: float = EKF_LIDAR_SIGMA_FACTOR
-) -> tuple[Any, Any, Any]:
-    """The EKF loose coupling with the lidar's poses as absolute measurements (``fused``):
-    the visual odometry as velocities,
-    the lidar's scan-to-map poses as pose measurements, both noises from the calibration
-    drive, the lidar's times ``factor``. Returns the
-    :class:`~stemmap.odometry.fusion.FusedOdometry`, the VO source and the lidar pose source."""
-    from stemmap.odometry.fusion import PoseSource, fuse_sources
-    from stemmap.odometry.visual import visual_odometry_source
-
-    dt = 1.0 / L["cam"].rate_hz
-    src_visual = visual_odometry_source(
-        L["vo"],
-        L["cam"].vehicle_from_camera(),
-        sigma_speed=noise["visual_step_sigma_m"] / dt,
-        sigma_yaw_rate=math.radians(noise["visual_step_sigma_deg"]) / dt,
-    )
-    ps = L["lres"].pose_source("lidar odometry")
-    sig = factor * np.array(
-        [noise["lidar_pose_sigma_m"]] * 2 + [math.radians(noise["lidar_pose_sigma_deg"])]
-    )
-    covs = np.where(np.isfinite(ps.covs[:, :1, :1]), np.diag(sig**2)[None], np.nan)
-    ps_cal = PoseSource(ps.times, ps.poses, covs, name="lidar odometry")
-    pose0 = L["truth"].poses[0]
-    fused = fuse_sources([src_visual], poses=[ps_cal], initial_pose=pose0, gate_prob=None)
-    return fused, src_visual, ps_cal
 
 
 def tune(seeds: list[int], cache: Path | None) -> dict[str, Any]:

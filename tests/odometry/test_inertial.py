@@ -20,7 +20,7 @@ from stemmap.odometry.fusion import PoseSource, fuse_sources
 from stemmap.odometry.inertial import motion_prior
 from stemmap.sim import random_stand, simulate_run
 from stemmap.sim.imu import IMU_PRESETS, ImuNoise, simulate_imu
-from stemmap.sim.trajectory import Odometry
+from stemmap.sim.motion_sensors import Odometry
 
 
 def _controls(duration: float = 60.0, rate: float = 100.0) -> Odometry:
@@ -159,7 +159,7 @@ def scan_drive(tmp_path_factory):
 
 def _end_error(traj, run) -> float:
     """Position error at the last pose, in the first pose's frame (the command starts at 0)."""
-    from stemmap.sim.trajectory import relative_poses
+    from stemmap.sim.unicycle import relative_poses
 
     truth = relative_poses(run.true_poses.poses[0], run.true_poses.poses[: len(traj)])
     return float(np.hypot(*(traj.poses[-1, :2] - truth[-1, :2])))

@@ -119,7 +119,7 @@ def test_an_arc_in_the_middle_of_a_segment_does_not_count():
 
 
 def test_arc_refit_runs_on_the_compiled_path():
-    # compiled since the thirteenth round (tests/scan/test_detect_fast.py: same detections)
+    # compiled since the fourteenth round (tests/scan/test_detect_fast.py: same detections)
     for extra in ({}, {"arc_replace": 3.0}, {"arc_short_steps": True}):
         det = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, **extra))
         assert det._compiled(None, None)

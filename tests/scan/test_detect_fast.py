@@ -138,7 +138,7 @@ CONFIGS = {
         "min_depth": 0.01,
     },
     # issue 11: the largest consistent arc of a non-convex candidate (compiled since the
-    # thirteenth round; the real trunks merged with branches: test_detect_fast_real.py), with
+    # fourteenth round; the real trunks merged with branches: test_detect_fast_real.py), with
     # and without the corner split, replacing accepted fits, short stepped arcs
     "arcs": {"arc_refit": True, "arc_sigmas": 2.0, "refit_pieces": False},
     "arcs_replace": {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace": 3.0},

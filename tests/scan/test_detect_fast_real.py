@@ -74,7 +74,7 @@ def test_compiled_corner_split_equals_numpy_on_real_slices(real_batches, split):
 
 ARCS = {"arc_refit": True, "arc_sigmas": 2.0}
 ARC_SETTINGS = {
-    # the leave-one-dataset-out choices (scan-detection.md, fifth and thirteenth rounds)
+    # the leave-one-dataset-out choices (scan-detection.md, fifth and fourteenth rounds)
     "replace3": {**ARCS, "arc_replace": 3.0},
     "replace2_short_steps": {**ARCS, "arc_replace": 2.0, "arc_short_steps": True},
     # without the corner split: every non-convex merge goes to the arc

@@ -6,12 +6,17 @@ import numpy as np
 import pytest
 
 from stemmap.errors import ConfigError
+from stemmap.sim.motion_sensors import (
+    ODOMETRY_PRESETS,
+    Odometry,
+    OdometryNoise,
+    _noisy_odometry,
+)
 from stemmap.sim.odometry_model import (
     dead_reckoning_horizon,
     increment_error_moments,
     white_equivalent_sigmas,
 )
-from stemmap.sim.trajectory import ODOMETRY_PRESETS, Odometry, OdometryNoise, _noisy_odometry
 
 RATE = 50.0
 SPEED, YAW = 1.2, 0.1

@@ -319,7 +319,7 @@ def blind_revisit(seed: int = 3, t0: float = 100.0, t1: float = 125.0):
     the first lap's trees 3-6 m off (beyond its 2 m scan-to-map search)."""
     import dataclasses
 
-    from stemmap.sim.trajectory import OdometryNoise
+    from stemmap.sim.motion_sensors import OdometryNoise
     from stemmap.slam.base import TreeFrames
 
     noise = OdometryNoise(

@@ -19,9 +19,9 @@ from stemmap.cloud.munjer import MunjerConfig
 from stemmap.errors import ConfigError, InputError
 from stemmap.eval.detection import DetectionMetrics
 from stemmap.eval.maps import MapMetrics
+from stemmap.sim.motion_sensors import OdometryNoise
 from stemmap.sim.munjer import D435_DEPTH_K, MunjerDrive, simulate_munjer_drive
 from stemmap.sim.odometry_model import increment_error_moments
-from stemmap.sim.trajectory import OdometryNoise
 from stemmap.slam.base import dead_reckoning
 from stemmap.slam.motion import rollout
 from stemmap.slam.munjer import (

@@ -133,8 +133,8 @@ def sim_motion_sigmas(
     (docs/algorithms/slam.md "Motion noise of simulated runs").
     """
 
+    from stemmap.sim.motion_sensors import OdometryNoise
     from stemmap.sim.odometry_model import dead_reckoning_horizon, white_equivalent_sigmas
-    from stemmap.sim.trajectory import OdometryNoise
 
     noise = OdometryNoise(**(run.params.get("odometry_noise") or {}))
     if odometry_calibrated:

@@ -10,12 +10,22 @@ from stemmap.sim.forest import (
     row_stand,
     sample_dbh,
 )
+from stemmap.sim.motion_sensors import (
+    ODOMETRY_PRESETS,
+    Gnss,
+    GnssNoise,
+    Odometry,
+    OdometryNoise,
+    RelativeOdometry,
+    VisualOdometryNoise,
+)
 from stemmap.sim.observations import (
     oracle_observations,
     returns_per_tree,
     trees_in_sensor_frame,
 )
 from stemmap.sim.outline import trunk_outline
+from stemmap.sim.paths import clear_corridor, lawnmower_path, loop_path, straight_path
 from stemmap.sim.scanner import (
     HIT_CLUTTER,
     HIT_NONE,
@@ -33,24 +43,8 @@ from stemmap.sim.stand_features import (
     add_understory,
     make_trunks_noncircular,
 )
-from stemmap.sim.trajectory import (
-    ODOMETRY_PRESETS,
-    Gnss,
-    GnssNoise,
-    Odometry,
-    OdometryNoise,
-    RelativeOdometry,
-    SimRun,
-    VisualOdometryNoise,
-    clear_corridor,
-    compose_poses,
-    integrate_unicycle,
-    lawnmower_path,
-    loop_path,
-    relative_poses,
-    simulate_run,
-    straight_path,
-)
+from stemmap.sim.trajectory import SimRun, simulate_run
+from stemmap.sim.unicycle import compose_poses, integrate_unicycle, relative_poses
 
 __all__ = [
     "CLUTTER_KINDS",

@@ -2,7 +2,7 @@
 
 Munjer et al. (2025, §2) carry an XSens IMU and wheel encoders on a differential-drive robot;
 the paper gives no sensor error figures, so the presets below take theirs from data sheets
-and from the wheel-odometry presets of :mod:`stemmap.sim.trajectory`:
+and from the wheel-odometry presets of :mod:`stemmap.sim.motion_sensors`:
 
 * gyro ``z``: ``ω + b(t) + n``, a turn-on bias ``b0`` plus a random walk (bias instability),
   white noise per sample;
@@ -10,7 +10,7 @@ and from the wheel-odometry presets of :mod:`stemmap.sim.trajectory`:
   ``dv/dt``, centripetal ``v ω``, gravity ``+g``, each with a constant bias and white noise
   (planar drive: no roll or pitch);
 * wheel speed at its own rate: ``v * scale * (1 + slip_excess during slips) + n``, slips a
-  Poisson process as in :class:`stemmap.sim.trajectory.OdometryNoise`.
+  Poisson process as in :class:`stemmap.sim.motion_sensors.OdometryNoise`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from stemmap.errors import ConfigError
 from stemmap.io.imu import InertialLog
-from stemmap.sim.trajectory import Odometry
+from stemmap.sim.motion_sensors import Odometry
 
 __all__ = ["IMU_PRESETS", "ImuNoise", "ImuSim", "simulate_imu"]
 

@@ -17,7 +17,7 @@ objects placed to test false accepts. :func:`simulate_munjer_drive` renders such
   z-depth, rendered by :func:`~stemmap.sim.camera.render_scene` from the same stand, on every
   ``camera_every``-th lidar frame;
 * the motion source: wheel odometry (speed, yaw rate) with scale error, gyro bias and noise
-  (:class:`~stemmap.sim.trajectory.OdometryNoise`); any pose-output odometry (e.g. lidar + IMU)
+  (:class:`~stemmap.sim.motion_sensors.OdometryNoise`); any pose-output odometry (e.g. lidar + IMU)
   can replace it, see :func:`stemmap.slam.munjer.controls_from_trajectory`.
 
 Truth: tree positions and diameters (``stand2d.trees_xy`` / ``diameters``, equal to the 3D
@@ -37,7 +37,7 @@ from stemmap.errors import ConfigError
 from stemmap.sim.camera import CameraRig, render_scene, xue2018_rig
 from stemmap.sim.forest import Stand, random_stand
 from stemmap.sim.lidar import LidarModel, Stand3D, lidar_preset, simulate_mobile
-from stemmap.sim.trajectory import Odometry, OdometryNoise, _noisy_odometry
+from stemmap.sim.motion_sensors import Odometry, OdometryNoise, _noisy_odometry
 from stemmap.slam.base import Controls
 from stemmap.slam.motion import UnicycleModel
 from stemmap.types import FloatArray, PointCloud, Pose2, StemMap, StemObservations, wrap_angle

@@ -1,7 +1,7 @@
 """The simulator's wheel-odometry error, as the motion noise a SLAM back-end models (ours).
 
 :func:`stemmap.sim.trajectory.simulate_run` corrupts every odometry sample (rate ``r``, each
-held ``1/r`` s) with the :class:`~stemmap.sim.trajectory.OdometryNoise` model::
+held ``1/r`` s) with the :class:`~stemmap.sim.motion_sensors.OdometryNoise` model::
 
     v_k = v s (1 + eps I_k) + sigma_v n_k,        w_k = w + b + sigma_w m_k,
 
@@ -42,7 +42,7 @@ import numpy as np
 from stemmap.errors import ConfigError
 
 if TYPE_CHECKING:
-    from stemmap.sim.trajectory import OdometryNoise
+    from stemmap.sim.motion_sensors import OdometryNoise
 
 __all__ = [
     "IncrementErrorMoments",
@@ -110,7 +110,7 @@ def increment_error_moments(
     Parameters
     ----------
     noise : OdometryNoise
-        The generator's error model (:data:`stemmap.sim.trajectory.ODOMETRY_PRESETS`).
+        The generator's error model (:data:`stemmap.sim.motion_sensors.ODOMETRY_PRESETS`).
     duration : float, s, > 0
         Interval length; rounded to a whole number (>= 1) of odometry samples.
     rate_hz : float, Hz, > 0
@@ -135,7 +135,7 @@ def increment_error_moments(
 
     Examples
     --------
-    >>> from stemmap.sim.trajectory import ODOMETRY_PRESETS
+    >>> from stemmap.sim.motion_sensors import ODOMETRY_PRESETS
     >>> m = increment_error_moments(ODOMETRY_PRESETS["wheel"], duration=1.0, rate_hz=50.0,
     ...                             speed=1.0)
     >>> round(m.distance_mean, 4), round(math.sqrt(m.heading_var), 5)
@@ -172,7 +172,7 @@ def white_equivalent_sigmas(
 
     Examples
     --------
-    >>> from stemmap.sim.trajectory import ODOMETRY_PRESETS
+    >>> from stemmap.sim.motion_sensors import ODOMETRY_PRESETS
     >>> sv, sw = white_equivalent_sigmas(ODOMETRY_PRESETS["wheel"], rate_hz=50.0, speed=1.0,
     ...                                  horizon=9.0)
     >>> round(sv, 4), round(math.degrees(sw), 3)
