@@ -30,6 +30,7 @@ from scipy.special import chdtri
 
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan._arcs import arc_pieces
+from stemmap.scan._behind import trim_behind
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._refit import corner_cut_pieces, refit_pieces, split_refit
@@ -422,8 +423,9 @@ class ScanTrunkDetector:
 
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
-        fit, no footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
-        pieces only as corner splits (``refit_split="corners"``)."""
+        fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
+        corner splits (``refit_split="corners"``), no relaxed RMS tests, no ``behind_sigmas``
+        trim (arc re-fits are compiled since the fourteenth round of issue 11)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
@@ -431,9 +433,9 @@ class ScanTrunkDetector:
             and cfg.beam_footprint_deg == 0
             and no_tilt
             and (not cfg.refit_pieces or cfg.refit_split == "corners")
-            and not cfg.arc_refit
             and cfg.lobe_roughness == 0.0
             and cfg.rms_noise_from_fit == 0.0
+            and math.isinf(cfg.behind_sigmas)
         )
 
     def _run(
@@ -599,6 +601,10 @@ class ScanTrunkDetector:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
         fitted = self._fit_candidates(segs, grid, wrap)
         codes = fitted_reasons(cfg, fitted)
+        if math.isfinite(cfg.behind_sigmas) and np.any(codes == 0):
+            # accepted candidates only: a rejected one's remainder can pass as a false trunk
+            # (aRchi: a 7-return bark ridge trimmed to a 6 cm "stem" on the 55 cm trunk)
+            segs, fitted = trim_behind(self, segs, fitted, codes == 0, grid, wrap)
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
         order_key = 2 * pos[ok]
@@ -607,6 +613,9 @@ class ScanTrunkDetector:
             which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
             which[pos[codes == _RMS]] = True
             got = split_refit(self, every, which, grid, wrap)
+            if got is not None and np.any(got.ok) and math.isfinite(cfg.behind_sigmas):
+                p_segs, p_fit = trim_behind(self, got.segs, got.fitted, got.ok, grid, wrap)
+                got = got._replace(segs=p_segs, fitted=p_fit)
             if got is not None and np.any(got.ok):
                 more = _output_columns(got.segs, got.fitted, got.ok)
                 cols = {k: np.concatenate((cols[k], more[k])) for k in cols}

@@ -86,6 +86,16 @@ class Isam2Config:
         :func:`stemmap.slam._graph_revisits.anchor_prior`) instead of an odometry factor to the
         last graph keyframe (0 = always the odometry factor). Default 15 (docs/reliability.md
         "iSAM2: long left-out runs anchored": bounds iSAM2's memory on the 10x soak)
+    revisit_hold_new : a tree first measured where the vehicle drove past this many times
+        before (:class:`stemmap.slam._graph_revisits.PlaceVisits`) stays out of the graph: its
+        measurements wait in the left-out store with their keyframes, it pulls no keyframe
+        in, and at the end it is mapped from the left-out keyframes' localised poses
+        (:func:`stemmap.slam._graph_revisits.map_held`) when measured on
+        ``revisit_hold_confirm`` visits (and ``min_obs`` scans); measured from a keyframe that
+        enters the graph anyway (a lost tracker, new ground) it enters the graph there. 0 =
+        off (default; docs/reliability.md "Soak", tenth session)
+    revisit_hold_confirm : visits (by path distance, ``revisit_after_m``) on which a held
+        tree must be measured to be mapped (>= 1)
     marginals : compute per-tree covariances (:func:`_point_marginals`) at the end
     pose_marginals : also the marginal covariance of every graph keyframe, carried to every
         frame (``SlamResult.pose_covs``, :func:`_tree_and_pose_marginals`; docs/outputs.md
@@ -170,6 +180,8 @@ class Isam2Config:
     revisit_settle_visits: int = 0
     revisit_keep_loops: bool = True
     revisit_anchor_after: int = 15
+    revisit_hold_new: int = 0
+    revisit_hold_confirm: int = 2
     marginals: bool = True
     pose_marginals: bool = True
     prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -252,6 +264,14 @@ class Isam2Config:
             raise ConfigError(
                 f"Isam2Config.revisit_anchor_after must be >= 0 (0 = off), got "
                 f"{self.revisit_anchor_after}."
+            )
+        if self.revisit_hold_new < 0:
+            raise ConfigError(
+                f"Isam2Config.revisit_hold_new must be >= 0 (0 = off), got {self.revisit_hold_new}."
+            )
+        if self.revisit_hold_confirm < 1:
+            raise ConfigError(
+                f"Isam2Config.revisit_hold_confirm must be >= 1, got {self.revisit_hold_confirm}."
             )
         if self.revisit_factors < 0:
             raise ConfigError(

@@ -14,9 +14,13 @@ keyframe, with
 
 * every tree measurement of the left-out keyframes since the last restart (their windows'
   merged bearing-range measurements, already associated by the tracker, locals and re-acquired
-  alike), moved into that keyframe's sensor frame with the dead-reckoned motion between (a few
-  metres: its error is far below the measurement noise), as 2D points with the covariance of
-  the bearing-range noise plus the tree's own variance;
+  alike), moved into that keyframe's sensor frame with the dead-reckoned motion between, as 2D
+  points with the covariance of the bearing-range noise plus the tree's own variance plus the
+  dead reckoning's drift over that motion (its heading variance through the range: a few
+  metres of driving, but in a sharp turn the odometry's heading error over two keyframes is
+  ~2.6 degrees (1 sigma; 1.1 m at 25 m), and the 10x Victoria Park soak's turn at 733 s put
+  the other keyframes' trees 2-3 m from the map even at the final pose, while the keyframe's
+  own fitted to 0.2 m: docs/reliability.md "Soak", tenth session);
 * the tracker's pose with its own covariance as the prior (it already holds the trees the
   tracker matched scan by scan: counting them twice only makes the map's pull stronger);
 * a Huber weight per point and, after the first step, points beyond ``gate_chi2`` dropped
@@ -26,10 +30,13 @@ Fewer than ``min_trees`` trees measured (a transit, an edge of the stand) is no 
 way: the tracker dead-reckons on, as it did before.
 
 The fit is **accepted** (the tracker restarts from it, as from an iSAM2 estimate) when at least
-``min_trees`` trees remain and they are the majority of those measured; otherwise the tracker is
-**lost** as far as the map can tell, and the caller puts the next keyframes into the graph
-(mapping mode: iSAM2 with its wide re-acquisition and the full graph to restart from) until a fit
-is accepted again.
+``min_trees`` trees remain and they are the majority of those measured. When they are not the
+majority the tracker is **lost** as far as the map can tell, and the caller puts the next
+keyframes into the graph (mapping mode: iSAM2 with its wide re-acquisition and the full graph
+to restart from) until a fit is accepted again. A majority that fits but is fewer than
+``min_trees`` (2 of 3 trees) is no contradiction: the tracker dead-reckons on (on the 10x
+soak these were 2 well-mapped trees fitting the tracker's pose and 1-2 young trees
+0.5-3 m off: a mis-association, not a lost tracker).
 """
 
 from __future__ import annotations
@@ -91,6 +98,7 @@ def localise_on_map(
     tree_var: FloatArray,
     prior_cov: FloatArray,
     *,
+    rel_var: FloatArray | None = None,
     huber_k: float = 1.345,
     gate_chi2: float = 13.8,
     min_trees: int = 3,
@@ -107,6 +115,9 @@ def localise_on_map(
     brg, rng : (m,) bearing (rad) and range (m); sig : (m, 2) their sigmas (σ_b, σ_r)
     tree_xy : (n, 2) tree positions (world, m); tree_var : (n,) their isotropic variances (m²)
     prior_cov : (3, 3) covariance of ``prior`` (the tracker's own, from the trees it tracked)
+    rel_var : (m, 2) per measurement, the variances of ``rel`` (m² per axis, rad²: the dead
+        reckoning's drift between the two keyframes, ``Isam2Slam``'s ``cum_xy`` / ``cum_th``),
+        added to the point's covariance (the heading's through the range); None: exact
     huber_k : Huber width (in sigmas) of each point's Mahalanobis norm
     gate_chi2 : points whose d² exceeds this after the first step are dropped (2 dof;
         13.8 = chi²(0.999, 2))
@@ -124,6 +135,14 @@ def localise_on_map(
         return MapFix(False, False, prior, prior_cov, n_trees, 0, f"only {n_trees} trees measured")
     pts, cov = _points(rel, brg, rng, sig)
     cov = cov + tree_var[trees][:, None, None] * np.eye(2)[None]
+    if rel_var is not None:  # the dead-reckoned motion's drift (module doc)
+        ang = rel[:, 2] + brg
+        tx, ty = -np.sin(ang), np.cos(ang)  # tangential direction
+        vt = rel_var[:, 1] * rng * rng
+        cov[:, 0, 0] += rel_var[:, 0] + vt * tx * tx
+        cov[:, 1, 1] += rel_var[:, 0] + vt * ty * ty
+        cov[:, 0, 1] += vt * tx * ty
+        cov[:, 1, 0] += vt * tx * ty
     info = np.linalg.inv(cov)
     lm = tree_xy[trees]
     x = prior.copy()
@@ -154,8 +173,10 @@ def localise_on_map(
             break
     n_in = int(np.unique(trees[use & (d2 <= gate_chi2)]).size)
     cov_x = np.linalg.inv(lam)
-    if n_in < min_trees or 2 * n_in <= n_trees:
+    if 2 * n_in <= n_trees:  # the map contradicts the tracker
         return MapFix(False, True, prior, cov_x, n_trees, n_in, f"{n_in} of {n_trees} trees fit")
+    if n_in < min_trees:  # the majority fits, too few to restart from: dead-reckon on
+        return MapFix(False, False, prior, prior_cov, n_trees, n_in, f"only {n_in} trees fit")
     return MapFix(True, False, x, cov_x, n_trees, n_in)
 
 
@@ -166,11 +187,18 @@ def localise_windows(
     kf_rel: FloatArray,
     tree_xy: FloatArray,
     tree_var: FloatArray,
+    kf_var: FloatArray | None = None,
 ) -> MapFix:
     """:func:`localise_on_map` from whole keyframe windows: ``windows[i]`` = ``(trees, bearing,
     range, sigmas)`` measured from the keyframe whose pose in the target keyframe's frame is
-    ``kf_rel[i]`` ((len(windows), 3))."""
+    ``kf_rel[i]`` ((len(windows), 3)), with the variances ``kf_var[i]`` = (m², rad²) of that
+    relative pose (``rel_var``)."""
     n = [w[0].size for w in windows]
+    rel_var = (
+        None
+        if kf_var is None
+        else np.repeat(np.asarray(kf_var, dtype=np.float64).reshape(-1, 2), n, axis=0)
+    )
     return localise_on_map(
         prior,
         np.repeat(np.asarray(kf_rel, dtype=np.float64).reshape(-1, 3), n, axis=0),
@@ -181,6 +209,7 @@ def localise_windows(
         tree_xy,
         tree_var,
         prior_cov,
+        rel_var=rel_var,
     )
 
 

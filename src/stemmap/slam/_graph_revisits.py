@@ -59,11 +59,16 @@ trunks at the edge of range stop pulling keyframes in after three visits; the 10
 growth fell from 6.37 to 2.0 MB per pass, the late passes add 6-14 keyframes (new trees, a
 lost tracker). :class:`RevisitGate` holds every decision, and keeps a keyframe that closes
 a loop whatever the bounds say (docs/algorithms/slam.md "The place bound counts every
-visit").
+visit"). A tenth session made most lost-tracker events go away (false alarms of the map fit,
+:mod:`stemmap.slam._graph_localise`) and added, as an option (``revisit_hold_new``), new
+trees on well-visited ground held out of the graph and mapped at the end from the left-out
+keyframes' poses (:func:`map_held`): 1-5 graph keyframes per late pass instead of 4-18, but
+1-1.6 % of path on the single drive at some start times (docs/reliability.md "Soak").
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -81,7 +86,9 @@ __all__ = [
     "TreeVisits",
     "anchor_prior",
     "compose_increments",
+    "held_into_map",
     "localise_skipped",
+    "map_held",
     "redundant",
 ]
 
@@ -344,6 +351,11 @@ class RevisitGate:
     sparse and each one measures the map's trees (it ties itself), so the rule stays quiet
     there; it fires where the vehicle maps new ground and comes back.
 
+    With ``revisit_hold_new = N``, a tree first measured (in a keyframe that may stay out)
+    where the place had N or more earlier visits is *held*: it counts as in the graph there
+    (pulls no keyframe in) until a graph keyframe measures it (:meth:`factored`); the
+    back-end maps the held trees at the end (:func:`held_into_map`).
+
     ``config`` is the back-end's :class:`~stemmap.slam._graph_config.Isam2Config`; ``xy0`` the
     first keyframe's position (always in the graph).
     """
@@ -359,6 +371,11 @@ class RevisitGate:
         self.visits.add(xy0, 0.0)
         self.trees = TreeVisits(c.revisit_after_m, c.revisit_settle_visits)
         self.keep_loops = bool(c.revisit_keep_loops)
+        self.hold = int(c.revisit_hold_new)
+        # (PlaceVisits stores up to cap visits per place: enough for either bound)
+        self.visits.cap = max(self.visits.cap, self.hold + 1)
+        self._held = np.zeros(capacity, dtype=bool)  # new trees held out of the graph
+        self.n_held = 0  # trees ever held
         self._fac_s = np.full(capacity, np.inf)  # path distance of each tree's last factor
         self._s_tie = 0.0  # the graph chain was last tied to the map here (m)
         self._s_graph = 0.0  # the last graph keyframe (m)
@@ -390,10 +407,20 @@ class RevisitGate:
         a GNSS fix, a lost tracker) records the keyframe and keeps it in; ``linked``: it
         would enter with an odometry factor to the last graph keyframe (not anchored)."""
         full = self.places.full(xy, s) or self.visits.visited(xy, s, self.n_visits)
+        hold = self.hold > 0 and self.visits.visited(xy, s, self.hold)
         self.visits.add(xy, s)
         self.trees.see(trees, s)
         if not allowed:
             return False
+        if hold and trees.size:
+            # new trees on full ground wait outside the graph (held, see the class doc)
+            n = in_graph.shape[0]
+            if n > self._held.shape[0]:
+                self._held = np.concatenate((self._held, np.zeros(n - self._held.shape[0], bool)))
+            new = trees[~in_graph[trees] & ~self._held[trees]]
+            self._held[new] = True
+            self.n_held += int(new.size)
+            in_graph = in_graph | self._held[:n]
         settled = in_graph if full else self.trees.settled(in_graph.shape[0])
         if not redundant(trees, in_graph, n_factors, self.min_f, settled):
             return False
@@ -419,9 +446,139 @@ class RevisitGate:
         """``trees`` got one measurement factor each in the graph, from a keyframe at path
         distance ``s``."""
         self.trees.factored(trees)
+        if self.hold:  # a held tree measured from a graph keyframe is in the graph now
+            self._held[trees[trees < self._held.shape[0]]] = False
         if self._stale(trees, s):
             self._s_tie = s  # a stale tree measured from the chain: tied to the map
         self._fac_s[trees] = s
+
+    def held(self, n: int) -> np.ndarray:
+        """Bool per tree ``0..n-1``: held out of the graph (never measured from a graph
+        keyframe since it was first seen on full ground)."""
+        out = np.zeros(n, dtype=bool)
+        m = min(n, self._held.shape[0])
+        out[:m] = self._held[:m]
+        return out
+
+    def tree_visits(self, n: int) -> np.ndarray:
+        """Visits (by path distance, :class:`TreeVisits`) of every tree ``0..n-1`` so far."""
+        self.trees._room(n)
+        return self.trees._visit[:n].copy()
+
+
+def map_held(
+    skipped: Mapping[int, tuple[np.ndarray, FloatArray, FloatArray, FloatArray]]
+    | LeftOutMeasurements,
+    kf_pose: FloatArray,
+    held: np.ndarray,
+    floor: Sequence[float],
+    gate_chi2: float = 13.8,
+) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """Positions of the held trees from the left-out keyframes' final poses (their only
+    measurements): per tree the information-weighted mean of its measurements projected from
+    ``kf_pose`` (nk, 3; sensor poses after :func:`localise_skipped`), each with the
+    bearing-range covariance (as :func:`stemmap.slam._graph_localise._points`) plus the pose
+    uncertainty ``floor`` = (σ_x, σ_y, σ_θ) (m, m, rad; the tracker's floor: the keyframes
+    are localised on the map), one re-weighting with measurements beyond ``gate_chi2``
+    dropped. The covariance is the mean's plus the position floor (the poses' errors are
+    shared between the measurements, they do not average out). Triangulation with known
+    poses (Thrun, Burgard and Fox 2005, Probabilistic Robotics, sec. 10.2, the landmark
+    initialisation of EKF SLAM, as a least-squares mean).
+
+    Returns ``(xy (n, 2), cov (n, 2, 2), n_meas (n,))`` for the trees ``held`` (bool per
+    tree, n = ``held.sum()``, in tree order); NaN for a tree never measured.
+    """
+    idx = np.flatnonzero(held)
+    pos = np.full(held.shape[0], -1, dtype=np.int64)
+    pos[idx] = np.arange(idx.size)
+    pts: list[FloatArray] = []
+    infos: list[FloatArray] = []
+    owner: list[np.ndarray] = []
+    sxy2 = float(floor[0]) ** 2 + float(floor[1]) ** 2
+    for k in skipped:
+        trees, brg, rng, sig = skipped[k]
+        sel = trees < held.shape[0]
+        sel[sel] = held[trees[sel]]
+        if not np.any(sel):
+            continue
+        x, y, th = kf_pose[k]
+        ang = th + brg[sel]
+        r = rng[sel]
+        ca, sa = np.cos(ang), np.sin(ang)
+        pts.append(np.column_stack((x + r * ca, y + r * sa)))
+        vr = sig[sel, 1] ** 2 + 0.5 * sxy2
+        vt = (r * sig[sel, 0]) ** 2 + (r * float(floor[2])) ** 2 + 0.5 * sxy2
+        cov = np.empty((r.size, 2, 2))
+        cov[:, 0, 0] = ca * ca * vr + sa * sa * vt
+        cov[:, 1, 1] = sa * sa * vr + ca * ca * vt
+        cov[:, 0, 1] = cov[:, 1, 0] = ca * sa * (vr - vt)
+        infos.append(np.linalg.inv(cov))
+        owner.append(pos[trees[sel]])
+    xy = np.full((idx.size, 2), np.nan)
+    out_cov = np.full((idx.size, 2, 2), np.nan)
+    n_meas = np.zeros(idx.size, dtype=np.int64)
+    if not pts:
+        return xy, out_cov, n_meas
+    p, w, o = np.concatenate(pts), np.concatenate(infos), np.concatenate(owner)
+    use = np.ones(o.size, dtype=bool)
+    for it in range(2):
+        lam = np.zeros((idx.size, 2, 2))
+        eta = np.zeros((idx.size, 2))
+        np.add.at(lam, o[use], w[use])
+        np.add.at(eta, o[use], np.einsum("mij,mj->mi", w[use], p[use]))
+        ok = np.linalg.det(lam) > 0
+        xy[ok] = np.linalg.solve(lam[ok], eta[ok][:, :, None])[:, :, 0]
+        if it == 0:  # drop the measurements the others contradict
+            e = p - xy[o]
+            use = np.einsum("mi,mij,mj->m", e, w, e) <= gate_chi2
+    n_meas = np.bincount(o[use], minlength=idx.size)
+    ok = n_meas > 0
+    xy[~ok] = np.nan
+    out_cov[ok] = np.linalg.inv(lam[ok]) + 0.5 * sxy2 * np.eye(2)
+    return xy, out_cov, n_meas
+
+
+def held_into_map(
+    skipped: Any,
+    kf_pose: FloatArray,
+    held: np.ndarray,
+    visits: np.ndarray,
+    lm: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cfg: Any,
+    keep: np.ndarray,
+    pts: FloatArray,
+    covs: FloatArray,
+    info_j: FloatArray | None,
+) -> tuple[np.ndarray, FloatArray | None]:
+    """The held trees that are confirmed -- measured on ``cfg.revisit_hold_confirm`` visits and
+    in ``cfg.min_obs`` scans -- mapped by :func:`map_held` into ``pts`` / ``covs`` (in place);
+    returns ``keep`` with them appended and the trees' joint information extended block-
+    diagonally (they are independent of the graph's trees in this estimate). ``lm`` = (dsum,
+    dn, nobs) landmark bookkeeping. A held tree that is a duplicate of a mapped tree (the
+    batch step's merge rule, :func:`~stemmap.slam._graph_marginals._merge_duplicates`, over
+    the mapped and the held trees: a group with a graph tree keeps only that one, a group of
+    held trees its most-observed) is dropped, as the batch step merges the graph's own."""
+    from stemmap.slam._graph_marginals import _merge_duplicates
+
+    dsum, dn, nobs = lm
+    xy, cov, _ = map_held(skipped, kf_pose, held, cfg.track_floor_sigmas)
+    idx = np.flatnonzero(held)
+    ok = (visits[idx] >= cfg.revisit_hold_confirm) & (nobs[idx] >= cfg.min_obs)
+    ok &= np.isfinite(xy).all(axis=1)
+    if cfg.merge_dist > 0 and ok.any():
+        both = np.concatenate((keep, idx[ok]))
+        xy_b = np.concatenate((pts[keep], xy[ok]))
+        diam = dsum[both] / np.maximum(dn[both], 1)
+        nob = nobs[both] + np.where(np.arange(both.size) < keep.size, 10**9, 0)  # graph first
+        sd = cfg.sigma_diameter or math.inf
+        rep = _merge_duplicates(xy_b, diam, nob, cfg.merge_dist, 3.0 * sd * math.sqrt(2.0))
+        ok[np.flatnonzero(ok)] = rep[keep.size :] == np.arange(keep.size, both.size)
+    pts[idx[ok]], covs[idx[ok]] = xy[ok], cov[ok]
+    if info_j is not None and ok.any():
+        import scipy.linalg
+
+        info_j = scipy.linalg.block_diag(info_j, *np.linalg.inv(cov[ok]))
+    return np.concatenate((keep, idx[ok])), info_j
 
 
 def localise_skipped(
@@ -438,6 +595,7 @@ def localise_skipped(
     keys: tuple[Callable[[int], int], Callable[[int], int]],
     anchor_sigmas: Sequence[float] = (1e-3, 1e-3, 1e-4),
     iterations: int = 10,
+    held: np.ndarray | None = None,
 ) -> int:
     """Fill ``kf_pose`` (in place) at the left-out keyframes: each run localised on the map.
 
@@ -447,7 +605,9 @@ def localise_skipped(
     overwritten); ``init`` (nk, 3) the front-end's poses (initial values); ``steps`` /
     ``step_cov`` the odometry increments of keyframe ``k`` to ``k + 1`` and their covariances;
     ``tree_xy`` / ``tree_cov`` the trees' final estimates and marginal covariances (NaN:
-    0.1 m). Keyframe 0 is always in the graph. Returns the number of LM problems solved.
+    0.1 m). Keyframe 0 is always in the graph. ``held`` (bool per tree): trees without a
+    graph estimate (:class:`RevisitGate`'s held trees), whose measurements are not used.
+    Returns the number of LM problems solved.
     """
     XK, LK = keys
     nk = kf_pose.shape[0]
@@ -488,6 +648,8 @@ def localise_skipped(
         for k in range(s, e + 1):
             trees, brg, rng, sig = skipped[k]
             for t, j in enumerate(trees.tolist()):
+                if held is not None and j < held.shape[0] and held[j]:
+                    continue
                 g.add(
                     gtsam.BearingRangeFactor2D(
                         XK(k), LK(j), gtsam.Rot2(float(brg[t])), float(rng[t]), meas_noise(sig[t])

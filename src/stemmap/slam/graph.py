@@ -111,6 +111,7 @@ from stemmap.slam._graph_revisits import (
     RevisitGate,
     anchor_prior,
     compose_increments,
+    held_into_map,
     localise_skipped,
 )
 from stemmap.slam._isam2_track import (
@@ -455,10 +456,12 @@ class Isam2Slam:
             ks = [i for i in range(max(k - cfg.update_every, 0), k) if i in skipped]
             fl = int(kf_frames[k - 1])
             prior_p = compose(trk[None], between(sp_dr[int(fc[0])][None], sp_dr[fl][None]))[0]
+            fk = kf_frames[ks]  # (the dead reckoning's drift from each to fl, below)
             fix = localise_windows(
                 prior_p, P_trk + P_floor, [skipped[i] for i in ks],
-                between(sp_dr[fl][None], sp_dr[kf_frames[ks]]), lm_xy,
+                between(sp_dr[fl][None], sp_dr[fk]), lm_xy,
                 (vr + 400.0 * vb) / np.maximum(lm_nobs, 1),
+                np.abs(np.column_stack((cum_xy[fl] - cum_xy[fk], cum_th[fl] - cum_th[fk]))),
             )  # fmt: skip
             if fix.lost:
                 log.debug("iSAM2: tracker not localised at keyframe %d: %s", k - 1, fix.reason)
@@ -694,12 +697,19 @@ class Isam2Slam:
         )
         # the keyframes left out of the graph: localised on the final map, run by run
         skipped.remap_trees(alias)
+        held = gate.held(n_lm) & ~lm_in_graph[:n_lm]
         n_localised = localise_skipped(
             gtsam,
             skipped,
             kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
-            (XK, LK),
+            (XK, LK), held=held,
         )  # fmt: skip
+        keep_g = keep  # (the graph's trees)
+        if held.any():  # held trees: mapped from the left-out poses when confirmed
+            keep, info_j = held_into_map(
+                skipped, kf_s, held, gate.tree_visits(n_lm), (lm_dsum, lm_dn, lm_nobs), cfg,
+                keep, pts, covs, info_j,
+            )  # fmt: skip
         skipped.close()  # (its spill file, _graph_leftout)
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
@@ -716,7 +726,7 @@ class Isam2Slam:
         if cfg.export_graph and not (map_fac and cont is None) and not gnss_fac:
             # (on a marginal prior or with GNSS fixes the graph is not the whole story)
             saved = export_graph(
-                gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep, alias=alias,
+                gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep_g, alias=alias,
                 odo_fac=odo_fac, pose_priors=[pf, *anchor_fac], meas_rec=meas_rec, cont=cont,
             )  # fmt: skip
         runtime = time.perf_counter() - t_start
@@ -738,6 +748,8 @@ class Isam2Slam:
             "localisation_runs": n_localised,
             "tracker_map_fixes": n_map_fix,
             "tracker_lost": n_map_lost,
+            "trees_held": gate.n_held,
+            "trees_held_mapped": len(keep) - len(keep_g),
             **{f"keyframes_entered_{k_e}": v_e for k_e, v_e in entered.items()},
             "isam2_updates": n_updates,
             "measurement_factors": n_factors_meas,
