@@ -1,16 +1,20 @@
 """Give freed heap memory back to the operating system during long runs (glibc only).
 
-glibc's ``malloc`` keeps memory that was freed inside its arenas: below the top of the heap
-(only the top is released, past ``M_TRIM_THRESHOLD``) and in the other threads' arenas. On a
-long SLAM run (issue 13's 10x Victoria Park replay) the resident set size then grows in
-steps that do not follow the bytes in use (``mallinfo2``). ``malloc_trim(0)`` releases every
-free page of every arena (``madvise(MADV_DONTNEED)``, glibc >= 2.8), so RSS follows the heap
-in use. It changes no value the program computes, only which pages stay resident.
+glibc's ``malloc`` keeps memory that was freed inside its arenas: below chunks still in use,
+and at the top of the heap up to ``M_TRIM_THRESHOLD``, which glibc raises (to twice the
+block) whenever a large mmapped block is freed (dynamic thresholds). On a long SLAM run
+(issue 13's 10x Victoria Park replay) the resident set size then follows the arenas' size,
+which keeps every transient peak, in steps, not the bytes in use (``mallinfo2``).
+``malloc_trim(0)`` releases every free page of every arena (``madvise(MADV_DONTNEED)``,
+glibc >= 2.8), so RSS follows the heap in use. It changes no value the program computes,
+only which pages stay resident.
 
-:class:`HeapTrimmer` calls it at most once per ``min_interval_s`` seconds (monotonic clock),
-from a callback the caller already makes often (``stemmap map`` wraps the back-end's
-progress callback). Where ``malloc_trim`` is missing (not Linux, musl, macOS, Windows)
-:func:`malloc_trim` is a no-op returning False.
+:class:`HeapTrimmer` calls it at most once per ``min_interval_s`` seconds of the process's
+CPU time (:func:`time.process_time`: the cost stays a fixed share of the work, however
+loaded the machine), from a callback the caller already makes often (``stemmap map`` wraps
+the back-end's progress callback). One trim of the 10x soak's ~230 MB heap costs ~1 ms.
+Where ``malloc_trim`` is missing (not Linux, musl, macOS, Windows) :func:`malloc_trim` is a
+no-op returning False.
 
 References: glibc manual, "Memory Allocation Tunables" and ``malloc_trim(3)``.
 """
@@ -59,10 +63,11 @@ class HeapTrimmer:
     Parameters
     ----------
     min_interval_s : float, >= 0, seconds
-        Least time between two trims (the first call trims only once this much time has
-        passed since construction). 0 trims on every call.
+        Least time on ``clock`` between two trims (the first call trims only once this much
+        time has passed since construction). 0 trims on every call.
     clock : callable, optional
-        Monotonic seconds (default :func:`time.monotonic`; a test passes its own).
+        Non-decreasing seconds (default :func:`time.process_time`, CPU time of the process;
+        a test passes its own).
     trim : callable, optional
         The trim itself (default :func:`malloc_trim`).
 
@@ -87,9 +92,9 @@ class HeapTrimmer:
 
     def __init__(
         self,
-        min_interval_s: float = 10.0,
+        min_interval_s: float = 0.2,
         *,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = time.process_time,
         trim: Callable[[], bool] = malloc_trim,
     ) -> None:
         if not min_interval_s >= 0.0 or min_interval_s == float("inf"):
