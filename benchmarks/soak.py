@@ -28,7 +28,9 @@ Reported per back-end and repeat count:
   not create duplicates), compared with a 1x run of the same back-end;
 * the back-end's graph counters (iSAM2: keyframes in the graph, localisation-mode counters),
   and for iSAM2 per pass the graph keyframes and measurement factors added and the RSS at the
-  pass's end (``VmRSS``: the current size, where ``peak_rss_mb`` is the peak).
+  pass's end (``VmRSS``: the current size, where ``peak_rss_mb`` is the peak);
+* ``heap_trims`` and ``heap_trim_cpu_s``: the map command's ``malloc_trim`` calls during SLAM
+  (:class:`stemmap._memory.HeapTrimmer`) and the CPU time spent in them.
 
 The progress log is flat doubles (48 bytes per progress call; a list of tuples grew this
 process by ~0.6 MB per pass, which the RSS slope counted as the back-end's). Where the memory
@@ -90,6 +92,32 @@ def _count_graph_growth() -> list[int]:
 
     graph.RevisitGate = Gate  # type: ignore[misc]
     return n
+
+
+def _time_heap_trims(cli_map: Any) -> list[float]:
+    """[trims, CPU s in them] of the map command's :class:`~stemmap._memory.HeapTrimmer`,
+    live (wrapped for this process only; stays [0, 0] with code that has no trimmer)."""
+    out = [0.0, 0.0]
+    base = getattr(cli_map, "HeapTrimmer", None)
+    if base is None:
+        return out
+
+    class Timed(base):  # type: ignore[misc, valid-type]
+        def __init__(self, *a: Any, **k: Any) -> None:
+            super().__init__(*a, **k)
+            inner = self._trim
+
+            def timed() -> bool:
+                c = time.process_time()
+                r = bool(inner())
+                out[0] += 1
+                out[1] += time.process_time() - c
+                return r
+
+            self._trim = timed
+
+    cli_map.HeapTrimmer = Timed
+    return out
 
 
 def _per_100(marks: np.ndarray, n: int) -> dict[str, Any]:
@@ -178,6 +206,7 @@ def _worker(
     def replayed(data_: Any, t_end: Any, t_start: float = 0.0) -> Any:
         return rep.problem(name=f"victoria_park x{repeats}"), {"kind": "victoria-park", "vp": rep}
 
+    trims = _time_heap_trims(cli_map)
     slam_base.make_backend = timed_make
     cli_map._victoria_park = replayed  # type: ignore[assignment]
     with tempfile.TemporaryDirectory() as tmp:
@@ -237,6 +266,9 @@ def _worker(
         "peak_rss_after_slam_mb": seen["peak_rss_after_slam_mb"],
         "peak_rss_after_map_command_mb": rss_map,
         "slam_s": round(seen["slam_s"], 1),
+        # the map command's heap trims during SLAM (malloc_trim(0); none before they existed)
+        "heap_trims": trims[0],
+        "heap_trim_cpu_s": round(trims[1], 4),
         "map_command_s": round(cli_s, 1),
         **_per_100(marks, len(rep.frames)),
         # pass 1 builds the map (cost grows with it); from pass 2 on the map is complete

@@ -6,7 +6,10 @@ and at the end of every pass (the back-end's progress call) records:
 
 * ``rss_mb`` (``VmRSS``) and glibc's heap (``mallinfo2``): bytes in use (``malloc_inuse_mb``,
   which sees GTSAM's C++ and numba's allocations as well as Python's), free bytes kept in the
-  arenas (``malloc_free_mb``: fragmentation) and mmapped blocks;
+  arenas (``malloc_free_mb``: fragmentation), mmapped blocks, the arenas' total
+  (``malloc_arena_mb``) and the releasable top chunk (``malloc_keepcost_mb``);
+* with ``--trim``: then ``malloc_trim(0)`` and the RSS and heap after it (what the allocator
+  kept beyond the heap in use; the trims change the later passes' RSS, not their values);
 * with ``--trace``: ``tracemalloc``'s traced bytes (Python objects and numpy arrays) and the
   12 source lines whose allocations grew most since the previous pass (slow: ~5x);
 * EKF (``--backend ekf``): the filter's per-drive state part by part, read from the
@@ -29,7 +32,7 @@ swapped in for this process only (they record, they change nothing). Numbers fro
 machine: memory is deterministic up to the allocator, times are not.
 
 Usage: ``python benchmarks/soak_memory.py --json [--backend isam2|ekf] [--repeats 10]
-[--trace] [--data DIR] [--set KEY=VALUE ...]``
+[--trace] [--trim] [--data DIR] [--set KEY=VALUE ...]``
 """
 
 from __future__ import annotations
@@ -75,7 +78,19 @@ def _heap() -> dict[str, float]:
         "malloc_inuse_mb": round(mi.uordblks * mb, 2),
         "malloc_free_mb": round(mi.fordblks * mb, 2),
         "malloc_mmap_mb": round(mi.hblkhd * mb, 2),
+        # the arenas' total (sbrk heap + other arenas' mmapped heaps), and the releasable
+        # top-of-heap chunk of the main arena
+        "malloc_arena_mb": round(mi.arena * mb, 2),
+        "malloc_keepcost_mb": round(mi.keepcost * mb, 2),
     }
+
+
+def _trim() -> bool:
+    """``malloc_trim(0)`` (glibc): True when memory was returned to the system."""
+    try:
+        return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
 
 
 def _instrument(box: dict[str, Any], why: collections.Counter[str]) -> None:
@@ -203,7 +218,14 @@ def _slope(rows: list[dict[str, Any]], key: str) -> float | None:
     return round(float(np.polyfit(np.arange(len(y)), y, 1)[0]), 3)
 
 
-def run(backend: str, repeats: int, data: str | None, trace: bool, settings: dict[str, Any]):  # type: ignore[no-untyped-def]
+def run(  # type: ignore[no-untyped-def]
+    backend: str,
+    repeats: int,
+    data: str | None,
+    trace: bool,
+    settings: dict[str, Any],
+    trim: bool = False,
+):
     from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
     from stemmap.slam.base import make_backend
@@ -229,6 +251,11 @@ def run(backend: str, repeats: int, data: str | None, trace: bool, settings: dic
         row |= dict(why) | _sizes(box)
         if backend == "ekf":
             row |= _ekf_parts(caller)
+        if trim:
+            # what the allocator keeps: RSS and arenas after giving free pages back
+            row["trimmed"] = _trim()
+            row["rss_after_trim_mb"] = _rss_now_mb()
+            row |= {f"{k}_after_trim": v for k, v in _heap().items()}
         if trace:
             snap = tracemalloc.take_snapshot()
             row["traced_mb"] = round(tracemalloc.get_traced_memory()[0] / 2**20, 2)
@@ -263,6 +290,8 @@ def run(backend: str, repeats: int, data: str | None, trace: bool, settings: dic
         # least-squares slopes over passes 3..N (MB per pass)
         "rss_mb_per_pass_from_3": _slope(rows, "rss_mb"),
         "malloc_inuse_mb_per_pass_from_3": _slope(rows, "malloc_inuse_mb"),
+        "malloc_arena_mb_per_pass_from_3": _slope(rows, "malloc_arena_mb"),
+        "rss_after_trim_mb_per_pass_from_3": _slope(rows, "rss_after_trim_mb"),
         "traced_mb_per_pass_from_3": _slope(rows, "traced_mb"),
         **{
             f"{k}_per_pass_from_3": _slope(rows, k)
@@ -290,11 +319,15 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10, help="passes over the log (default 10)")
     ap.add_argument("--trace", action="store_true", help="tracemalloc at every pass end")
     ap.add_argument("--data", default=None, help="Victoria Park folder (default: shared)")
+    ap.add_argument(
+        "--trim", action="store_true", help="malloc_trim(0) at every pass end (after measuring)"
+    )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
     if args.repeats < 1:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
-    out = run(args.backend, args.repeats, args.data, args.trace, _parse_settings(ap, args.set))
+    settings = _parse_settings(ap, args.set)
+    out = run(args.backend, args.repeats, args.data, args.trace, settings, trim=args.trim)
     print(json.dumps(out, indent=1 if args.json else None))
 
 

@@ -16,6 +16,7 @@ from typing import Annotated
 
 import typer
 
+from stemmap._memory import HeapTrimmer
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
 from stemmap.cli._geo import (
     CrsOption,
@@ -63,6 +64,9 @@ from stemmap.errors import ConfigError
 __all__ = ["register", "sim_problem", "slam_metrics"]
 
 log = logging.getLogger(__name__)
+
+#: least CPU seconds between two heap trims during SLAM (``malloc_trim(0)``, glibc only)
+TRIM_INTERVAL_S = 0.2
 
 
 class Backend(StrEnum):
@@ -439,9 +443,14 @@ def map_command(
         be = make_backend(backend.value, **be_cfg)
         with progress(show_progress) as bar:
             task = bar.add_task(f"{backend.value} SLAM", total=len(problem.frames))
+            # freed heap back to the OS during long runs, at most every 0.2 s of CPU time
+            # (glibc; no-op elsewhere): RSS then follows the heap in use (docs/reliability.md,
+            # "Soak", "The RSS staircase is the allocator")
+            trim = HeapTrimmer(TRIM_INTERVAL_S)
 
             def tick(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
+                trim()
 
             if realtime or rerun is not None:
                 result = _realtime(problem, backend.value, tick, rerun)
