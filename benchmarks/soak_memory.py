@@ -9,6 +9,13 @@ and at the end of every pass (the back-end's progress call) records:
   arenas (``malloc_free_mb``: fragmentation) and mmapped blocks;
 * with ``--trace``: ``tracemalloc``'s traced bytes (Python objects and numpy arrays) and the
   12 source lines whose allocations grew most since the previous pass (slow: ~5x);
+* EKF (``--backend ekf``): the filter's per-drive state part by part, read from the
+  back-end's own frame at the progress call (``sys._getframe``; nothing is changed): the
+  smoother's association log (rows, rows spilled to its file, resident bytes, merge aliases),
+  the co-seen landmark pairs (a Python set of tuples; bytes estimated from ``sys.getsizeof``),
+  the landmark ids issued (the per-id bookkeeping arrays touched, 49 bytes per id), the
+  filter poses written (24 bytes per frame), the compressed filter's state arrays and the
+  pre-integrated odometry (allocated before the loop);
 * iSAM2: the sizes of the ISAM2 object (factors, variables, cliques, Bayes tree non-zeros,
   cached separator marginals), the left-out store (keyframes, those spilled to its file,
   resident measurements and bytes), the revisit gate's place entries, and the keyframes by why
@@ -32,6 +39,8 @@ import collections
 import ctypes
 import gc
 import json
+import resource
+import sys
 import time
 import tracemalloc
 from typing import Any
@@ -144,6 +153,49 @@ def _sizes(box: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _ekf_parts(fr: Any) -> dict[str, Any]:
+    """The EKF back-end's per-drive state, from its run frame's locals (module docstring)."""
+    if fr is None:
+        return {}
+    loc = fr.f_locals
+    mb = 1.0 / 2**20
+    out: dict[str, Any] = {}
+    olog = loc.get("olog")
+    if olog is not None:
+        if hasattr(olog, "resident_nbytes"):
+            res, n, spilled = olog.resident_nbytes, len(olog), olog.spilled
+        else:  # before the log spilled: four growing arrays
+            res = sum(getattr(olog, k).nbytes for k in ("_f", "_id", "_r", "_b"))
+            n, spilled = olog._n, 0
+        out |= {
+            "olog_rows": n,
+            "olog_spilled_rows": spilled,
+            "olog_resident_mb": round(res * mb, 3),
+            "olog_alias_entries": len(olog._alias),
+        }
+    coseen = loc.get("coseen")
+    if coseen is not None:
+        per = sys.getsizeof((0, 0)) + 2 * sys.getsizeof(10**6)  # a tuple of two large ints
+        out["coseen_pairs"] = len(coseen)
+        out["coseen_mb_est"] = round((sys.getsizeof(coseen) + len(coseen) * per) * mb, 3)
+    if "n_ids" in loc:  # compressed filter: arrays indexed by landmark id
+        out["landmark_ids"] = int(loc["n_ids"])
+        out["landmark_ids_touched_mb"] = round(int(loc["n_ids"]) * 49 * mb, 3)
+    elif "lm_id" in loc:  # full filter: Python lists per alive landmark
+        out["landmarks_alive"] = len(loc["lm_id"])
+    if "f" in loc and "poses" in loc:
+        out["poses_written_mb"] = round((int(loc["f"]) + 1) * 24 * mb, 3)
+    st = loc.get("st")
+    if st is not None:
+        arrs = [v for v in vars(st).values() if isinstance(v, np.ndarray)]
+        out["compressed_state_mb"] = round(sum(a.nbytes for a in arrs) * mb, 3)
+        out["compressed_active_rows"] = int(st.nA)
+    pre = loc.get("pre")
+    if pre is not None:
+        out["preintegrated_mb"] = round((pre.deltas.nbytes + pre.covs.nbytes) * mb, 2)
+    return out
+
+
 def _slope(rows: list[dict[str, Any]], key: str) -> float | None:
     y = [r[key] for r in rows[2:] if key in r]
     if len(y) < 2:
@@ -170,11 +222,13 @@ def run(backend: str, repeats: int, data: str | None, trace: bool, settings: dic
     if trace:
         tracemalloc.start(1)
 
-    def measure(p: int) -> None:
+    def measure(p: int, caller: Any) -> None:
         gc.collect()
         row: dict[str, Any] = {"pass": p + 1, "rss_mb": _rss_now_mb(), **_heap()}
         row["cpu_s"] = round(time.process_time() - c0, 1)
         row |= dict(why) | _sizes(box)
+        if backend == "ekf":
+            row |= _ekf_parts(caller)
         if trace:
             snap = tracemalloc.take_snapshot()
             row["traced_mb"] = round(tracemalloc.get_traced_memory()[0] / 2**20, 2)
@@ -190,7 +244,7 @@ def run(backend: str, repeats: int, data: str | None, trace: bool, settings: dic
 
     def progress(done: int, total: int) -> None:
         while nxt[0] < len(ends) and done >= ends[nxt[0]]:
-            measure(nxt[0])
+            measure(nxt[0], sys._getframe(1))  # the back-end's run (EKF parts)
             nxt[0] += 1
 
     res = make_backend(backend, **settings).run(rep.problem(name="replay"), progress=progress)
@@ -210,6 +264,18 @@ def run(backend: str, repeats: int, data: str | None, trace: bool, settings: dic
         "rss_mb_per_pass_from_3": _slope(rows, "rss_mb"),
         "malloc_inuse_mb_per_pass_from_3": _slope(rows, "malloc_inuse_mb"),
         "traced_mb_per_pass_from_3": _slope(rows, "traced_mb"),
+        **{
+            f"{k}_per_pass_from_3": _slope(rows, k)
+            for k in (
+                "olog_resident_mb",
+                "coseen_mb_est",
+                "landmark_ids_touched_mb",
+                "poses_written_mb",
+                "compressed_state_mb",
+            )
+            if backend == "ekf" and any(k in r for r in rows)
+        },
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
         "rss_end_mb": _rss_now_mb(),
         "ate_rmse_m_one_alignment": round(float(r1.rmse), 3) if r1 else None,
         "n_trees": len(res.stem_map.trees),

@@ -137,6 +137,19 @@ CONFIGS = {
         "corner_depth_convex": 0.03,
         "min_depth": 0.01,
     },
+    # issue 11: the largest consistent arc of a non-convex candidate (compiled since the
+    # fourteenth round; the real trunks merged with branches: test_detect_fast_real.py), with
+    # and without the corner split, replacing accepted fits, short stepped arcs
+    "arcs": {"arc_refit": True, "arc_sigmas": 2.0, "refit_pieces": False},
+    "arcs_replace": {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace": 3.0},
+    "arcs_replace_loose": {
+        "arc_refit": True,
+        "arc_sigmas": 3.0,
+        "arc_floor_sigmas": 2.0,
+        "arc_replace": 1.2,
+        "arc_short_steps": True,
+        "bark_roughness": 0.08,
+    },
 }
 
 
@@ -191,7 +204,7 @@ def test_public_api_uses_the_compiled_path_and_single_equals_batch(stand):
         None, None
     )
     assert not det._compiled(0.01, None)  # tilt compensation runs the numpy pipeline
-    for numpy_only in ({"refit_split": "gap"}, {"arc_refit": True}):
+    for numpy_only in ({"refit_split": "gap"}, {"rms_noise_from_fit": 3.0}):
         assert not ScanTrunkDetector(DetectorConfig.preset("stemmap", **numpy_only))._compiled(
             None, None
         )

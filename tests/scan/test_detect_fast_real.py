@@ -1,7 +1,8 @@
 """The compiled detector against the numpy pipeline on virtual 2D scans of the real slices
 (../shared/datasets), with the validated concave-corner split of rejected candidates
-(``refit_split="corners"``, issue 11) that the simulator rarely triggers: the real merges
-(a trunk with a branch or a second stem in one segment) are what it is for.
+(``refit_split="corners"``, issue 11) and the largest consistent arc (``arc_refit``) that the
+simulator rarely triggers: the real merges (a trunk with a branch or a second stem in one
+segment) are what they are for.
 
 Without a footprint correction (the compiled path needs none), both scanner models, range
 noise 0 and 1 cm; every detection must match (tests/scan/test_detect_fast.py's rule).
@@ -47,18 +48,49 @@ def real_batches(datasets_dir):
     return out
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("split", sorted(SPLITS))
-def test_compiled_corner_split_equals_numpy_on_real_slices(real_batches, split):
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **SPLITS[split]))
-    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))
+def _same_on_every_batch(det, batches):
+    """Assert the compiled path equals the numpy path on every batch; yield (numpy result,
+    batch)."""
     assert det._compiled(None, None)
-    gained = 0
-    for label, batch in real_batches:
+    for label, batch in batches:
         fast, ref = _both(det, batch)
         try:
             assert_same(fast, ref)
         except AssertionError as err:
             raise AssertionError(label) from err
+        yield ref, batch
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("split", sorted(SPLITS))
+def test_compiled_corner_split_equals_numpy_on_real_slices(real_batches, split):
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **SPLITS[split]))
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))
+    gained = 0
+    for ref, batch in _same_on_every_batch(det, real_batches):
         gained += len(ref) - len(_both(base, batch)[1])
     assert gained > 0  # the split found trunks the default rejects: the path was exercised
+
+
+ARCS = {"arc_refit": True, "arc_sigmas": 2.0}
+ARC_SETTINGS = {
+    # the leave-one-dataset-out choices (scan-detection.md, fifth and fourteenth rounds)
+    "replace3": {**ARCS, "arc_replace": 3.0},
+    "replace2_short_steps": {**ARCS, "arc_replace": 2.0, "arc_short_steps": True},
+    # without the corner split: every non-convex merge goes to the arc
+    "no_split": {**ARCS, "refit_pieces": False},
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("arcs", sorted(ARC_SETTINGS))
+def test_compiled_arcs_equal_numpy_on_real_slices(real_batches, arcs):
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **ARC_SETTINGS[arcs]))
+    base = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", refit_pieces=ARC_SETTINGS[arcs].get("refit_pieces", True))
+    )
+    changed = 0
+    for ref, batch in _same_on_every_batch(det, real_batches):
+        plain = _both(base, batch)[1]
+        changed += len(ref) != len(plain) or not np.array_equal(ref.radii, plain.radii)
+    assert changed > 0  # the arcs changed detections: the path was exercised

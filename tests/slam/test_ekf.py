@@ -172,7 +172,7 @@ def test_compressed_ekf_equals_the_full_ekf_on_victoria_park(datasets_dir):
 
 
 def test_block_diag_noise_is_kron():
-    from stemmap.slam._ekf_compressed import block_diag_noise
+    from stemmap.slam._ekf_algebra import block_diag_noise
 
     R1 = np.array([[0.01, 0.002], [0.002, 7.6e-5]])
     for m in range(5):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir-less mode)
 
 from stemmap.slam._ekf_smooth import ObservationLog, chain_marginals, smooth_path
@@ -90,6 +91,76 @@ def test_observation_log_follows_merges_and_drops_removed_landmarks():
     for k in range(3000):  # the buffers grow past their first capacity
         log.add(2 + k, np.array([7]), np.array([1.0]), np.array([0.0]))
     assert log.resolve(np.array([7]))[0].size == 3000
+
+
+@pytest.mark.parametrize("update", ["compressed", "full"])
+def test_observation_log_spill_leaves_the_result_unchanged(monkeypatch, update):
+    """EkfSlam on a 2.2-lap drive with the association log spilling after 64 rows (~100
+    chunks in its temporary file): the same path, pose covariances, map and statistics bit
+    for bit as with the whole log in memory; the resident log stays within the bound."""
+    import stemmap.slam._ekf_compressed as ekf_c
+    import stemmap.slam.ekf as ekf_mod
+
+    problem, *_ = loop_problem(1, laps=2.2)
+    ref = EkfSlam(update=update).run(problem)
+    made: list[ObservationLog] = []
+
+    class Small(ObservationLog):
+        def __init__(self) -> None:
+            super().__init__(resident_rows=64)
+            made.append(self)
+
+    monkeypatch.setattr(ekf_c, "ObservationLog", Small)
+    monkeypatch.setattr(ekf_mod, "ObservationLog", Small)
+    got = EkfSlam(update=update).run(problem)
+    assert len(made) == 1 and made[0].spilled > 50 * 64
+    assert made[0].resident_nbytes <= 64 * 32
+    np.testing.assert_array_equal(got.trajectory.poses, ref.trajectory.poses)
+    np.testing.assert_array_equal(got.pose_covs, ref.pose_covs)
+    np.testing.assert_array_equal(got.stem_map.xy, ref.stem_map.xy)
+    drop = ("runtime_s",)
+    assert {k: v for k, v in got.stats.items() if k not in drop} == {
+        k: v for k, v in ref.stats.items() if k not in drop
+    }
+
+
+def test_smooth_path_reads_a_stream_as_it_reads_arrays(monkeypatch):
+    """``smooth_path`` on an :class:`ObservationLog` stream (spilled every 50 rows) gives the
+    bytes it gives on the same four arrays; so it does with the measurements assembled 37 and
+    the odometry 16 at a time (blocks cut across the log's chunks and between frames)."""
+    import stemmap.slam._ekf_smooth as sm
+
+    rng = np.random.default_rng(4)
+    n = 120
+    th = np.linspace(0.0, 1.0, n)
+    true = np.column_stack((20 * np.sin(th), 20 * (1 - np.cos(th)), th))
+    lm = rng.uniform(-20, 40, size=(30, 2))
+    obs = _observe(true, lm, (1.0, 0.2), 20.0, 3, rng, (0.2, math.radians(1.0)))
+    deltas, covs, _, start = _drifted_chain(true)
+    R1 = np.diag([0.2**2, math.radians(1.0) ** 2])
+    marg = np.broadcast_to(0.01 * np.eye(2), (lm.shape[0], 2, 2)).copy()
+    S = 0.1**2 * np.eye(2 * lm.shape[0]) + 0.02**2
+    log = ObservationLog(resident_rows=50)
+    ids = np.arange(100, 100 + lm.shape[0])  # landmark ids != indices
+    for f in range(n):
+        at = obs[0] == f
+        log.add(f, ids[obs[1][at]], obs[2][at], obs[3][at])
+    assert log.spilled > 0
+    stream = log.stream(ids)
+    np.testing.assert_array_equal(stream.arrays()[1], obs[1])
+    for mc in (S, None):
+        want = smooth_path(start, deltas, covs, obs, lm, marg, (1.0, 0.2), R1, map_cov=mc)
+        got = smooth_path(start, deltas, covs, stream, lm, marg, (1.0, 0.2), R1, map_cov=mc)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        assert got[2] == want[2]
+        with monkeypatch.context() as m:
+            m.setattr(sm, "_CHUNK", 37)
+            m.setattr(sm, "_ODO_CHUNK", 16)
+            small = smooth_path(start, deltas, covs, stream, lm, marg, (1.0, 0.2), R1, map_cov=mc)
+        np.testing.assert_array_equal(small[0], want[0])
+        np.testing.assert_array_equal(small[1], want[1])
+        assert small[2]["smoother_iterations"] == want[2]["smoother_iterations"]
 
 
 def test_smoothing_corrects_the_path_before_the_loop_closure():

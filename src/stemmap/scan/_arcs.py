@@ -1,4 +1,5 @@
-"""The largest consistent arc of a candidate segment (ours, issue 11; numpy path only).
+"""The largest consistent arc of a candidate segment (ours, issue 11): the numpy pipeline's
+arc candidates.
 
 A real trunk's segment often runs on into a branch, its fillet or a stem touching it (lidR's
 single tree: 7 of 9 trunks at 0.5 deg merged with a branch into one 85-98 cm segment that is
@@ -12,7 +13,9 @@ becomes a candidate of its own (:func:`arc_pieces`): the same segment filters, f
 plausibility tests as any candidate.
 
 The growing fit is Kasa's (1976) algebraic circle, updated from running sums (one 3x3 solve per
-step); the arc's final circle is the detector's own fit.
+step); the arc's final circle is the detector's own fit. The search itself is compiled
+(:mod:`stemmap.scan._fast_arcs`) and shared with the compiled detector, which judges the arc
+with the same tests (tests/scan/test_detect_fast.py compares the two paths).
 """
 
 from __future__ import annotations
@@ -24,6 +27,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_run
+from stemmap.scan._fast_arcs import largest_arc as _largest_arc
+from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._refit import Refitted, fit_passes
 from stemmap.scan.features import footprint_correct, segment_features, segment_sum
 from stemmap.scan.plausibility import segment_reasons, segment_sigma
@@ -35,36 +41,6 @@ if TYPE_CHECKING:
     from stemmap.scan.detect import ScanTrunkDetector
 
 __all__ = ["arc_pieces", "consensus_arcs", "largest_arc"]
-
-#: At most this many seed windows per segment (evenly spaced): bounds the cost of long segments.
-_MAX_SEEDS = 24
-#: An arc must hold at least this share of its segment's returns: a trunk that runs on into a
-#: branch fills a third or more of the segment (lidR at 0.25-1 deg: 26 of 78 returns at 1.3 m,
-#: 5-8 of 11-20 at 5-9 m); a 2 cm bark ridge or stub at the end of a 150-return trunk does not
-#: (aRchi at 2 m, 0.25 deg: 6 of ~150 returns fitted as a 5 cm stem inside the 55 cm trunk).
-_MIN_SHARE = 0.25
-
-
-def _kasa(s: FloatArray) -> tuple[float, float, float] | None:
-    """Kasa circle from the running sums ``s`` = (n, Sx, Sy, Sxx, Syy, Sxy, Sz, Sxz, Syz) with
-    z = x^2 + y^2 (coordinates relative to a local origin); None when degenerate."""
-    n, sx, sy, sxx, syy, sxy, sz, sxz, syz = s
-    a = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, n]])
-    rhs = np.array([sxz, syz, sz])
-    try:
-        u, v, w = np.linalg.solve(a, rhs)
-    except np.linalg.LinAlgError:
-        return None
-    cx, cy = 0.5 * u, 0.5 * v
-    r2 = w + cx * cx + cy * cy
-    if not (r2 > 0 and math.isfinite(r2)):
-        return None
-    return float(cx), float(cy), math.sqrt(r2)
-
-
-def _terms(x: FloatArray, y: FloatArray) -> FloatArray:
-    z = x * x + y * y
-    return np.stack((np.ones_like(x), x, y, x * x, y * y, x * y, z, x * z, y * z), axis=1)
 
 
 def largest_arc(
@@ -79,58 +55,18 @@ def largest_arc(
     ends_only: bool = True,
 ) -> tuple[int, int] | None:
     """The largest run ``[a, b)`` of consecutive returns (sensor frame, origin = sensor) that
-    one circle explains: grown from every ``seed``-return window whose circle has a radius in
-    [r_min, r_max] and lies beyond the returns (convex towards the sensor); a neighbour joins
-    when its residual is within ``max(k x 1.4826 MAD, floor)`` of the arc's current circle.
-    ``ends_only``: only arcs that reach the first or the last return count (a trunk whose
-    segment runs on into a branch or stem on one side; a run in the middle of a long segment
-    is far more often a piece of a bush or wall that happens to be round -- on the simulator's
-    clutter, 178 of 179 passing arcs were). None when no seed window qualifies."""
+    one circle explains (:func:`stemmap.scan._fast_arcs.largest_arc`, the compiled search
+    both detector paths run): grown from every ``seed``-return window whose circle has a
+    radius in [r_min, r_max] and lies beyond the returns (convex towards the sensor); a
+    neighbour joins when its residual is within ``max(k x 1.4826 MAD, floor)`` of the arc's
+    current circle. ``ends_only``: only arcs that reach the first or the last return count.
+    None when no seed window qualifies."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    y = np.ascontiguousarray(y, dtype=np.float64)
     n = x.shape[0]
-    if n < seed:
-        return None
-    ox, oy = float(x.mean()), float(y.mean())
-    lx, ly = x - ox, y - oy
-    t = _terms(lx, ly)
-    starts = range(n - seed + 1)
-    if len(starts) > _MAX_SEEDS:
-        starts = range(0, n - seed + 1, math.ceil((n - seed + 1) / _MAX_SEEDS))
-    best: tuple[int, float, int, int] | None = None
-    for a0 in starts:
-        a, b = a0, a0 + seed
-        s = t[a:b].sum(axis=0)
-        c = _kasa(s)
-        if c is None or not (r_min <= c[2] <= r_max):
-            continue
-        if math.hypot(c[0] + ox, c[1] + oy) <= math.hypot(lx[a:b].mean() + ox, ly[a:b].mean() + oy):
-            continue  # centre not beyond the returns: concave towards the sensor
-        while True:
-            e = np.hypot(lx[a:b] - c[0], ly[a:b] - c[1]) - c[2]
-            dev = np.abs(e - np.median(e))
-            tol = max(k * 1.4826 * float(np.median(dev)), floor)
-            cand = []
-            for i in (a - 1, b):
-                if 0 <= i < n:
-                    ei = abs(math.hypot(lx[i] - c[0], ly[i] - c[1]) - c[2])
-                    if ei <= tol:
-                        cand.append((ei, i))
-            if not cand:
-                break
-            _, i = min(cand)
-            s2 = s + t[i]
-            c2 = _kasa(s2)
-            if c2 is None or not (r_min <= c2[2] <= r_max):
-                break
-            s, c = s2, c2
-            a, b = (i, b) if i < a else (a, i + 1)
-        if ends_only and a > 0 and b < n:
-            continue  # not at an end: a trunk runs on into a branch on one side
-        e = np.hypot(lx[a:b] - c[0], ly[a:b] - c[1]) - c[2]
-        rms = float(np.sqrt(np.mean(e * e)))
-        key = (b - a, -rms)
-        if best is None or key > (best[0], -best[1]):
-            best = (b - a, rms, a, b)
-    return None if best is None else (best[2], best[3])
+    work = np.empty((ARC_WORK_ROWS, max(n, 9)))
+    lo, hi = _largest_arc(x, y, 0, n, floor, k, seed, r_min, r_max, ends_only, work)
+    return None if lo < 0 else (int(lo), int(hi))
 
 
 def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
@@ -138,42 +74,25 @@ def consensus_arcs(segs: Segments, cfg: DetectorConfig) -> NDArray[np.bool_]:
     (:func:`largest_arc`, seed ``max(min_points, 4)`` returns, ``arc_sigmas``, floor the RMS
     ``arc_floor_sigmas`` x the segment's range noise), holding at least ``min_points_partial``
     returns (with ``arc_short_steps``: ``min_points`` when a range step sets the arc off at
-    every cut end) and a quarter of the segment's."""
+    every cut end) and a quarter of the segment's (:func:`stemmap.scan._fast_arcs.arc_run`,
+    which the compiled path calls too)."""
     p = segs.points
     keep = np.zeros(len(p), dtype=bool)
     if len(segs) == 0:
         return keep
     mean_r = segment_sum(p.r, segs) / segs.counts
     sigma = segment_sigma(cfg, segs, mean_r)
-    seed = max(cfg.min_points, 4)
-    # arc_short_steps: a shorter arc counts when a range step sets it off (_stepped)
-    least = cfg.min_points if cfg.arc_short_steps else cfg.min_points_partial
+    # the arc's parameters as the kernel reads them (the scan layout does not matter here)
+    prm = kernel_params(cfg, 0.0, math.inf, 1.0, -1, len(p), False)
+    px = np.ascontiguousarray(p.x)
+    py = np.ascontiguousarray(p.y)
+    pr = np.ascontiguousarray(p.r)
+    work = np.empty((ARC_WORK_ROWS, max(int(segs.counts.max()), 9)))
     for j, (a, b) in enumerate(zip(segs.start, segs.stop, strict=True)):
-        # the noise only, not the bark allowance of the RMS test: a fillet leaves the circle
-        # gradually and its first returns lie within a few cm of it
-        floor = cfg.arc_floor_sigmas * float(sigma[j])
-        got = largest_arc(
-            p.x[a:b], p.y[a:b], floor, cfg.arc_sigmas, seed, cfg.min_radius, cfg.max_radius
-        )
-        if got is None:
-            continue
-        lo, hi = got
-        if max(least, _MIN_SHARE * (b - a)) <= hi - lo < b - a and (
-            hi - lo >= cfg.min_points_partial or _stepped(p.r[a:b], lo, hi, cfg.max_jump)
-        ):
+        lo, hi = arc_run(px, py, pr, int(a), int(b), float(sigma[j]), prm, work)
+        if lo >= 0:
             keep[a + lo : a + hi] = True
     return keep
-
-
-def _stepped(r: FloatArray, lo: int, hi: int, step: float) -> bool:
-    """Whether the run ``[lo, hi)`` of a segment's ranges ``r`` is separated from the rest of
-    the segment by a range step larger than ``step`` at every cut end (``arc_short_steps``)."""
-    cuts = []
-    if lo > 0:
-        cuts.append(abs(float(r[lo - 1] - r[lo])))
-    if hi < r.shape[0]:
-        cuts.append(abs(float(r[hi] - r[hi - 1])))
-    return bool(cuts) and min(cuts) > step
 
 
 def _cut_flags(sub: Segments, pieces: Segments, idx: NDArray[np.int64], margin: float) -> Segments:

@@ -8,8 +8,9 @@ eq. 2) or adaptive Euclidean segmentation, occlusion flags, single-point curvatu
 segment features and filters (Xue eq. 12 width, Zheng §3.2 depth and curvature, chi-square
 straightness test), the edge-silhouette priors, the "ours" circle fit (the same compiled
 ``_fit_one`` of :mod:`stemmap.scan._fit_geometric`), the plausibility checks, arc extent and
-quality, and with ``refit_split="corners"`` the validated corner split of rejected candidates
-(ours, issue 11). The named pure functions in :mod:`~stemmap.scan.preprocess`,
+quality, with ``refit_split="corners"`` the validated corner split of rejected candidates and
+with ``arc_refit`` the largest consistent arc of a candidate (ours, issue 11;
+:mod:`stemmap.scan._fast_arcs`). The named pure functions in :mod:`~stemmap.scan.preprocess`,
 :mod:`~stemmap.scan.segment` and :mod:`~stemmap.scan.features` remain the reference: this
 kernel evaluates the same expressions in the same order, and every per-segment sum replicates
 numpy's pairwise summation of ``np.add.reduceat`` (:func:`_seg_sum`), so its results equal the
@@ -21,8 +22,8 @@ of a single scan (~1 ms) and a third of the batch time; the kernel touches each 
 times in cache and allocates nothing per scan on the common path.
 
 Which calls take this path is decided by ``ScanTrunkDetector._compiled``: fit "ours", no
-first-echo footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
-pieces only as corner splits. Everything else runs the numpy pipeline.
+first-echo footprint correction, no tilt compensation to apply, re-fitted pieces only as corner
+splits, no relaxed RMS tests. Everything else runs the numpy pipeline.
 
 The kernel's helpers live in :mod:`stemmap.scan._fast_candidates` (per candidate: segment
 filters as a reason code, fit and plausibility tests, arc and quality, the corner split),
@@ -52,6 +53,7 @@ from numba import njit
 from stemmap import _numba_cache
 from stemmap.scan import (
     _corners,
+    _fast_arcs,
     _fast_candidates,
     _fast_robust,
     _fast_segments,
@@ -62,11 +64,13 @@ from stemmap.scan import (
     features,
 )
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
+from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_candidate, arc_run
 from stemmap.scan._fast_candidates import (
     _DEPTH,
     _PREFIT,
     _RAD2DEG,
     _edge_prior,
+    _emit,
     _split_emit,
     has_corners,
 )
@@ -167,6 +171,11 @@ def _detect_kernel(
     scan_jump = prm[54]
     scan_surface = prm[55]
     refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
+    arcs_on = prm[58] > 0.0  # arc_refit (_fast_arcs)
+    arc_replace = prm[61]
+    replace_on = arcs_on and arc_replace < math.inf
+    # an arc holds fewer returns than its segment and at least this many (_fast_arcs.arc_run)
+    arc_least = min_points if prm[62] > 0.0 else min_points_partial
     convex_min = max(min_depth, 0.0)  # segments with a smaller sagitta: cut at corner_depth
     absinc = abs(inc)
     h_sil = divergence / (2.0 * absinc) if absinc > 0.0 else 0.0
@@ -199,7 +208,7 @@ def _detect_kernel(
     dep = np.empty(n)
     ccode = np.empty(n, dtype=np.int64)
     feat = np.empty(2)
-    pres = np.empty((n, OUT_COLUMNS + 1))
+    pres = np.empty((n, OUT_COLUMNS + 2))
     sil = np.empty(4)
     sil_fit = np.empty(4)
     fit_out = np.empty(14)
@@ -211,6 +220,12 @@ def _detect_kernel(
     dnoise = np.empty(n)
     scratch = (sil, sil_fit, fit_out, tmp, buf, jtj, feat)  # _fast_candidates' scratch
     ws = (ws3, wv, mdl)
+    # arc_refit: the arc's own fit output (an accepted parent's stays in fit_out), the arc
+    # search's work rows, the parameters without the bark allowance (the arc's RMS test)
+    scratch_arc = (sil, sil_fit, np.empty(14), tmp, buf, jtj, feat)
+    arc_work = np.empty((ARC_WORK_ROWS, max(n, 9)))
+    prm_arc = prm.copy()
+    prm_arc[43] = 0.0  # bark_roughness
     cap = max(16, 2 * s_count)
     rows = np.empty((cap, OUT_COLUMNS))
     scans = np.empty(cap, dtype=np.int64)
@@ -410,7 +425,8 @@ def _detect_kernel(
             ok &= cnt <= max_points
             ok &= width >= min_width and width <= max_width
             # the first test failed is depth: a candidate for the corner split (refit_corners)
-            cut_me = refit_on and ok and not depth >= min_depth
+            # and the arc re-fit (arc_refit)
+            cut_me = (refit_on or arcs_on) and ok and not depth >= min_depth
             ok &= depth >= min_depth
             ok &= curv >= min_curv and curv <= max_curv
             if ok and reject_straight:
@@ -462,13 +478,22 @@ def _detect_kernel(
             a = st[j]
             b = sp[j]
             if ccode[j] == _DEPTH:  # rejected as not convex: cut without a fit
-                if not has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
-                    continue
-                rows, scans, n_out = _split_emit(
-                    rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1, wid,
-                    dep, _DEPTH, grid, noise_s, prm, chi2, scratch, ws, corner,
-                    (st2, sp2, oc02, oc12, tr02, tr12), pres,
-                )  # fmt: skip
+                n_before = n_out
+                if refit_on and has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
+                    rows, scans, n_out = _split_emit(
+                        rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
+                        wid, dep, _DEPTH, grid, noise_s, prm, chi2, scratch, ws, corner,
+                        (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                    )  # fmt: skip
+                # its largest consistent arc, unless its corner split gave the trunk
+                if arcs_on and n_out == n_before and b - a > arc_least:
+                    sig = max(sigma0 + sigma_rel * (_seg_sum(pr, a, b) / (b - a)), noise_s)
+                    lo_a, hi_a = arc_run(px, py, pr, a, b, sig, prm, arc_work)
+                    if lo_a >= 0 and arc_candidate(
+                        px, py, pr, pb, a, b, lo_a, hi_a, (oc0[j], oc1[j], tr0[j], tr1[j]),
+                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0],
+                    ):  # fmt: skip
+                        rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
                 continue
             cnt_i = b - a
             mean_r = _seg_sum(pr, a, b) / cnt_i
@@ -568,6 +593,22 @@ def _detect_kernel(
                         (st2, sp2, oc02, oc12, tr02, tr12), pres,
                     )  # fmt: skip
                 continue
+            # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
+            # arc_replace x the arc's and the arc's sigma (detect._arc_candidates); that sigma
+            # is at least max(sigma, the scan's noise), so below it no arc is looked for
+            if replace_on and rms > max(sigma0, noise_s) and cnt_i > arc_least:
+                sig_a = max(sigma0 + sigma_rel * mean_r, noise_s)  # (segment_sigma)
+                lo_a, hi_a = arc_run(px, py, pr, a, b, sig_a, prm, arc_work)
+                if (
+                    lo_a >= 0
+                    and arc_candidate(
+                        px, py, pr, pb, a, b, lo_a, hi_a, (oc0[j], oc1[j], tr0[j], tr1[j]),
+                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0],
+                    )
+                    and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
+                ):  # fmt: skip
+                    rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
+                    continue
             cov_ok = True
             for q in range(9):
                 cov_ok &= math.isfinite(fit_out[3 + q])
@@ -646,6 +687,7 @@ _numba_cache.drop_stale_cache(
     _fit_geometric.__file__,
     features.__file__,
     _corners.__file__,
+    _fast_arcs.__file__,
     _fast_candidates.__file__,
     _gaps.__file__,
     _fast_robust.__file__,

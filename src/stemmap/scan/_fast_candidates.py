@@ -219,7 +219,8 @@ def _fit_candidate(
     """Fit, plausibility tests, arc extent and quality of the candidate ``a:b``
     (detect.ScanTrunkDetector._run: ``_fit_candidates``, ``fitted_reasons``,
     ``_output_columns``). Returns the reason code of the first fit test it fails (0 = kept:
-    ``res[:OUT_COLUMNS]`` is its output row, ``res[OUT_COLUMNS]`` its sigma), or ``_PREFIT``
+    ``res[:OUT_COLUMNS]`` is its output row, ``res[OUT_COLUMNS]`` its sigma and
+    ``res[OUT_COLUMNS + 1]`` its fit RMS), or ``_PREFIT``
     when the pre-fit bound shows that no fit can pass (unless ``exact``: then the fit runs and
     the code is the test's)."""
     n = grid.shape[0]
@@ -350,6 +351,7 @@ def _fit_candidate(
     res[14] = support * math.exp(-(e * e)) * (0.5 if partial else 1.0)
     res[15] = cnt_i
     res[OUT_COLUMNS] = sig
+    res[OUT_COLUMNS + 1] = rms
     return 0
 
 

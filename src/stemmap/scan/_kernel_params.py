@@ -82,6 +82,11 @@ PARAM_NAMES = (
     "scan_noise_surface",  # ... less the surfaces' own share, in quadrature
     "refit_corners",  # 1: refit_pieces with refit_split="corners" (_refit.split_refit)
     "refit_validate",  # 1: ... accepted only as the parent's one passing piece
+    "arc_refit",  # 1: the largest consistent arc of a non-convex candidate (_fast_arcs)
+    "arc_sigmas",  # ... grown while a return is within this many robust residual scales
+    "arc_floor_sigmas",  # ... but at least this many range-noise sigmas
+    "arc_replace",  # an accepted candidate gives way to its arc at this RMS ratio (inf: off)
+    "arc_short_steps",  # 1: arcs of min_points returns set off by a range step count
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -166,6 +171,11 @@ def kernel_params(
         "straight_depth_sigmas": cfg.straight_depth_sigmas,
         "refit_corners": cfg.refit_pieces and cfg.refit_split == "corners",
         "refit_validate": cfg.refit_validate,
+        "arc_refit": cfg.arc_refit,
+        "arc_sigmas": cfg.arc_sigmas,
+        "arc_floor_sigmas": cfg.arc_floor_sigmas,
+        "arc_replace": cfg.arc_replace,
+        "arc_short_steps": cfg.arc_short_steps,
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

@@ -247,8 +247,8 @@ class DetectorConfig:
         sigmas) of the circle so far; only an arc that reaches one end of the segment, with
         ``min_points_partial`` returns and a quarter of the segment's, tested without the
         bark allowance -- a trunk whose
-        segment runs on into a branch, fillet or stem. Numpy path only (the compiled path is
-        not used while it is on).
+        segment runs on into a branch, fillet or stem. Compiled
+        (:mod:`stemmap.scan._fast_arcs`) since the fourteenth round; off in every preset.
     arc_sigmas : float, > 0
         Consensus threshold of ``arc_refit`` in robust residual scales (1.4826 MAD).
     arc_floor_sigmas : float, > 0
@@ -588,7 +588,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         # for 4 of 5 held-out datasets (not lidR, the one it helps): on. Twelfth round: the
         # relaxed RMS tests (rms_noise_from_fit: a candidate's own noise on scans without
         # their own estimate; lobe_roughness: smooth lobed outlines) stay off: chosen for 1 /
-        # 0 of 5 held-out datasets (scan-detection.md)
+        # 0 of 5 held-out datasets (scan-detection.md). Fourteenth round: the largest
+        # consistent arcs (arc_refit) run in the compiled path, but stay off: on this default
+        # they take the demo precision to 0.949 (< 0.95); the best admitted LOO setting (the
+        # arcs without sigma_from_scan and the corner split) loses most trunks of a noisier
+        # scanner (simulated RPLIDAR orchard: 276 vs 1 593 detections) (scan-detection.md)
         "refit_pieces": True,
         "refit_split": "corners",
         "refit_validate": True,

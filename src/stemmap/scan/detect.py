@@ -423,8 +423,9 @@ class ScanTrunkDetector:
 
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
-        fit, no footprint correction, no tilt compensation to apply, no arc re-fits, re-fitted
-        pieces only as corner splits (``refit_split="corners"``)."""
+        fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
+        corner splits (``refit_split="corners"``), no relaxed RMS tests, no ``behind_sigmas``
+        trim (arc re-fits are compiled since the fourteenth round of issue 11)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
@@ -432,7 +433,6 @@ class ScanTrunkDetector:
             and cfg.beam_footprint_deg == 0
             and no_tilt
             and (not cfg.refit_pieces or cfg.refit_split == "corners")
-            and not cfg.arc_refit
             and cfg.lobe_roughness == 0.0
             and cfg.rms_noise_from_fit == 0.0
             and math.isinf(cfg.behind_sigmas)

@@ -40,11 +40,13 @@ the other back-ends").
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Iterator
 
 import numpy as np
-from scipy.linalg import solveh_banded
+from scipy.linalg import cho_solve_banded, cholesky_banded, solveh_banded
+from scipy.sparse import csr_matrix
 
+from stemmap.slam._spill import SpilledRows
 from stemmap.slam.base import IntArray
 from stemmap.slam.treedb import range_bearing_jacobians
 from stemmap.types import FloatArray, wrap_angle
@@ -65,72 +67,157 @@ __all__ = [
 _ODO_FLOOR = np.diag([1e-6, 1e-6, 1e-8])
 _PRIOR_INFO = 1e10  # the first pose: the filter starts it with zero covariance
 _CHUNK = 20_000  # measurements per block of the normal-equation assembly (memory bound)
+_ODO_CHUNK = 8_192  # odometry factors per block of the normal-equation assembly
 
 
-def _grown(buf: Any, n: int, cap: int) -> Any:
-    out = np.zeros(cap, dtype=buf.dtype)
-    out[:n] = buf[:n]
-    return out
+_OBS_ROW = np.dtype(
+    [("frame", np.int64), ("id", np.int64), ("range", np.float64), ("bearing", np.float64)]
+)
 
 
 class ObservationLog:
     """The associations a filter made: frame, landmark id, range, bearing per matched detection;
-    merges are recorded so that a dropped landmark's detections follow the kept one."""
+    merges are recorded so that a dropped landmark's detections follow the kept one.
 
-    def __init__(self) -> None:
-        # one growing buffer per field (a list of per-frame arrays costs ~100 B per frame)
-        self._n = 0
-        self._f = np.zeros(1024, dtype=np.int64)
-        self._id = np.zeros(1024, dtype=np.int64)
-        self._r = np.zeros(1024)
-        self._b = np.zeros(1024)
+    32 bytes per association in a :class:`~stemmap.slam._spill.SpilledRows` table: at most
+    ``resident_rows`` of them in memory (default 65,536: 2 MB), older ones in a temporary file
+    read back block by block by :meth:`stream` (the 10x Victoria Park soak logs ~490,000;
+    docs/reliability.md "Soak").
+    """
+
+    def __init__(self, *, resident_rows: int = 1 << 16) -> None:
+        self._rows = SpilledRows(_OBS_ROW, resident_rows=resident_rows, prefix="stemmap-obs-")
         self._alias: dict[int, int] = {}
 
     def add(self, frame: int, ids: IntArray, rng: FloatArray, brg: FloatArray) -> None:
-        k, n = int(np.size(ids)), self._n
-        if n + k > self._f.size:
-            cap = max(2 * self._f.size, n + k)
-            self._f = _grown(self._f, n, cap)
-            self._id = _grown(self._id, n, cap)
-            self._r = _grown(self._r, n, cap)
-            self._b = _grown(self._b, n, cap)
-        self._f[n : n + k] = frame
-        self._id[n : n + k] = ids
-        self._r[n : n + k] = rng
-        self._b[n : n + k] = brg
-        self._n = n + k
+        self._rows.append(frame=frame, id=ids, range=rng, bearing=brg)
 
     def merged(self, drop: int, keep: int) -> None:
         self._alias[int(drop)] = int(keep)
 
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    @property
+    def spilled(self) -> int:
+        """Associations written to the temporary file."""
+        return self._rows.spilled
+
+    @property
+    def resident_nbytes(self) -> int:
+        return self._rows.resident_nbytes
+
+    def close(self) -> None:
+        """Remove the temporary file (after the smoother)."""
+        self._rows.close()
+
+    def stream(self, final_ids: IntArray) -> ResolvedObservations:
+        """The logged detections whose landmark (after following merges) is in the final map,
+        as ``(frame, index into final_ids, range, bearing)`` read block by block."""
+        top: dict[int, int] = {}
+        for d in self._alias:
+            k = d
+            while k in self._alias:
+                k = self._alias[k]
+            top[d] = k
+        src = np.fromiter(top.keys(), dtype=np.int64, count=len(top))
+        dst = np.fromiter(top.values(), dtype=np.int64, count=len(top))
+        order = np.argsort(src)
+        return ResolvedObservations(
+            self._rows, src[order], dst[order], np.asarray(final_ids, dtype=np.int64)
+        )
+
     def resolve(self, final_ids: IntArray) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
-        """``(frame, index into final_ids, range, bearing)`` of every logged detection whose
-        landmark (after following merges) is in the final map."""
-        n = self._n
-        f, ids = self._f[:n], self._id[:n].copy()
-        if self._alias:
-            top: dict[int, int] = {}
-            for d in self._alias:
-                k = d
-                while k in self._alias:
-                    k = self._alias[k]
-                top[d] = k
-            src = np.fromiter(top.keys(), dtype=np.int64, count=len(top))
-            dst = np.fromiter(top.values(), dtype=np.int64, count=len(top))
-            order = np.argsort(src)
-            src, dst = src[order], dst[order]
-            at = np.minimum(np.searchsorted(src, ids), src.size - 1)
-            hit = src[at] == ids
-            ids[hit] = dst[at[hit]]
-        fid = np.asarray(final_ids, dtype=np.int64)
-        if not fid.size:  # every landmark was pruned
-            e = np.zeros(0, dtype=np.int64)
-            return e, e, np.zeros(0), np.zeros(0)
-        order = np.argsort(fid)
+        """:meth:`stream`'s rows as four whole arrays (``(frame, index into final_ids, range,
+        bearing)``)."""
+        return self.stream(final_ids).arrays()
+
+
+Observations = tuple[IntArray, IntArray, FloatArray, FloatArray]
+
+
+class ResolvedObservations:
+    """``(frame, landmark index, range, bearing)`` of an :class:`ObservationLog`'s detections
+    on the final map, resolved chunk by chunk as the log is read (never all in memory)."""
+
+    def __init__(
+        self, rows: SpilledRows, src: IntArray, dst: IntArray, final_ids: IntArray
+    ) -> None:
+        self._rows, self._src, self._dst, self._fid = rows, src, dst, final_ids
+        self._order = np.argsort(final_ids)
+        self._size: int | None = None
+
+    def _resolve(self, chunk: np.ndarray) -> Observations:
+        ids = chunk["id"].copy()
+        if self._src.size:
+            at = np.minimum(np.searchsorted(self._src, ids), self._src.size - 1)
+            hit = self._src[at] == ids
+            ids[hit] = self._dst[at[hit]]
+        fid, order = self._fid, self._order
         at = np.minimum(np.searchsorted(fid[order], ids), fid.size - 1)
         ok = fid[order][at] == ids
-        idx = order[at]
-        return f[ok].copy(), idx[ok], self._r[:n][ok].copy(), self._b[:n][ok].copy()
+        return chunk["frame"][ok], order[at][ok], chunk["range"][ok], chunk["bearing"][ok]
+
+    def blocks(self, size: int) -> Iterator[Observations]:
+        """The resolved rows in log order, ``size`` at a time (the last block shorter)."""
+        if not self._fid.size:  # every landmark was pruned
+            return
+        yield from _reblock((self._resolve(c) for c in self._rows.chunks()), size)
+
+    @property
+    def size(self) -> int:
+        """Number of resolved rows (counted once by reading the log)."""
+        if self._size is None:
+            self._size = sum(int(b[0].size) for b in self.blocks(1 << 20))
+        return self._size
+
+    def arrays(self) -> Observations:
+        """Every resolved row as four arrays (copies)."""
+        parts = list(self.blocks(1 << 62))
+        if not parts:
+            e = np.zeros(0, dtype=np.int64)
+            return e, e.copy(), np.zeros(0), np.zeros(0)
+        return tuple(np.array(a) for a in parts[0])  # type: ignore[return-value]
+
+
+class _ArrayObservations:
+    """Four whole arrays with :class:`ResolvedObservations`' interface."""
+
+    def __init__(self, obs: Observations) -> None:
+        self._obs = obs
+        self.size = int(obs[0].size)
+
+    def blocks(self, size: int) -> Iterator[Observations]:
+        for lo in range(0, self.size, size):
+            sl = slice(lo, lo + size)
+            yield self._obs[0][sl], self._obs[1][sl], self._obs[2][sl], self._obs[3][sl]
+
+    def arrays(self) -> Observations:
+        return self._obs
+
+
+def _reblock(parts: Iterator[Observations], size: int) -> Iterator[Observations]:
+    """Blocks of exactly ``size`` rows (the last one shorter, none empty) from parts of any
+    length, in order."""
+    held: list[Observations] = []
+    n = 0
+    for p in parts:
+        while p[0].size:
+            take = min(size - n, p[0].size)
+            held.append(tuple(a[:take] for a in p))  # type: ignore[arg-type]
+            p = tuple(a[take:] for a in p)  # type: ignore[assignment]
+            n += take
+            if n == size:
+                yield _join(held)
+                held, n = [], 0
+    if n:
+        yield _join(held)
+
+
+def _join(parts: list[Observations]) -> Observations:
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(cols) for cols in zip(*parts, strict=True))  # type: ignore[return-value]
 
 
 def _measurement_terms(
@@ -237,7 +324,7 @@ def smooth_path(
     poses: FloatArray,
     deltas: FloatArray,
     covs: FloatArray,
-    obs: tuple[IntArray, IntArray, FloatArray, FloatArray],
+    obs: Observations | ResolvedObservations,
     lm_xy: FloatArray,
     lm_cov: FloatArray,
     sensor_offset: tuple[float, float],
@@ -254,7 +341,9 @@ def smooth_path(
     poses : (N, 3) the filter's vehicle poses (start of the iteration; ``poses[0]`` is fixed)
     deltas, covs : (N-1, 3) / (N-1, 3, 3) odometry increments between consecutive frames in the
         earlier frame's vehicle frame and their covariances
-    obs : ``(frame, landmark, range, bearing)`` per associated detection
+    obs : ``(frame, landmark, range, bearing)`` per associated detection: four arrays, or an
+        :class:`ObservationLog`'s :meth:`~ObservationLog.stream` (read block by block at every
+        step, so the measurements are never all in memory; the same result)
     lm_xy, lm_cov : (L, 2) / (L, 2, 2) final landmark positions and marginal covariances
     sensor_offset : (a, b) of the sensor in the vehicle frame; R1 : (2, 2) detection noise
     map_cov : (2L, 2L), optional, the filter's joint covariance of the final landmarks (order of
@@ -267,17 +356,24 @@ def smooth_path(
     Returns the path, its covariances and stats (iterations, measurements used, mean whitened
     residual² of the measurements before and after, the share down-weighted by Huber at the
     end).
+
+    Memory: the normal equations are O(N) (~0.85 kB per frame with the banded factor and the
+    chain marginals); the measurements are assembled ``_CHUNK`` at a time and the odometry
+    ``_ODO_CHUNK`` frames at a time, and the map term's sparse ``B`` holds 72 bytes per
+    measurement (docs/reliability.md "Soak").
     """
     x = np.array(poses, dtype=np.float64)
     n = x.shape[0]
     a, b = sensor_offset
-    fr, lj, rz, bz = obs
-    om = np.linalg.inv(covs + _ODO_FLOOR)  # (N-1, 3, 3)
-    stats: dict[str, float | int] = {"smoother_measurements": int(fr.size)}
+    ob = _ArrayObservations(obs) if isinstance(obs, tuple) else obs
+    n_obs = ob.size
+    stats: dict[str, float | int] = {"smoother_measurements": n_obs}
     if n < 2:  # the first pose is fixed where the filter started it
         return x, np.full((n, 3, 3), 1.0 / _PRIOR_INFO) * np.eye(3), stats
     it = 0
+    x_lin = x
     for it in range(1, iterations + 1):
+        x_lin = x.copy()  # the linearisation point of this step (the map term's, below)
         diag = np.zeros((n, 3, 3))
         off = np.zeros((n - 1, 3, 3))  # block (f, f-1)
         g = np.zeros((n, 3))
@@ -285,26 +381,29 @@ def smooth_path(
         e0 = np.asarray(poses[0], dtype=np.float64) - x[0]
         e0[2] = wrap_angle(e0[2])
         g[0] += _PRIOR_INFO * e0
-        Haa, Hbb, Hba, ga, gb = odometry_terms(x, deltas, om)
-        diag[:-1] += Haa
-        diag[1:] += Hbb
-        off += Hba
-        g[:-1] += ga
-        g[1:] += gb
-        # ---- measurement factors, in chunks (bounded memory on long drives)
+        # ---- odometry factors, in blocks of frames (bounded temporaries; each of diag[k],
+        # g[k] gets at most two terms on a zero, so the block cuts do not change a bit)
+        for lo in range(0, n - 1, _ODO_CHUNK):
+            hi = min(lo + _ODO_CHUNK, n - 1)
+            om = np.linalg.inv(covs[lo:hi] + _ODO_FLOOR)
+            Haa, Hbb, Hba, ga, gb = odometry_terms(x[lo : hi + 1], deltas[lo:hi], om)
+            diag[lo:hi] += Haa
+            diag[lo + 1 : hi + 1] += Hbb
+            off[lo:hi] += Hba
+            g[lo:hi] += ga
+            g[lo + 1 : hi + 1] += gb
+        # ---- measurement factors, in blocks (bounded memory on long drives)
         d2_sum, n_huber = 0.0, 0
-        Bm = np.zeros((fr.size, 3, 2))
-        for lo in range(0, fr.size, _CHUNK):
-            sl = slice(lo, lo + _CHUNK)
-            H_m, g_m, d2, Bm[sl] = _measurement_terms(
-                x[fr[sl]], lm_xy[lj[sl]], lm_cov[lj[sl]], rz[sl], bz[sl], a, b, R1, huber_k
+        for fr, lj, rz, bz in ob.blocks(_CHUNK):
+            H_m, g_m, d2, _ = _measurement_terms(
+                x[fr], lm_xy[lj], lm_cov[lj], rz, bz, a, b, R1, huber_k
             )
-            np.add.at(diag, fr[sl], H_m)
-            np.add.at(g, fr[sl], g_m)
+            np.add.at(diag, fr, H_m)
+            np.add.at(g, fr, g_m)
             d2_sum += float(d2.sum())
             n_huber += int((d2 > huber_k * huber_k).sum())
         if it == 1:
-            stats["smoother_meas_d2_before"] = d2_sum / fr.size if fr.size else math.nan
+            stats["smoother_meas_d2_before"] = d2_sum / n_obs if n_obs else math.nan
         # ---- banded Cholesky solve of the block-tridiagonal normal equations
         step = solveh_banded(banded_lower(diag, off), g.reshape(-1), lower=True).reshape(n, 3)
         x += step
@@ -312,17 +411,86 @@ def smooth_path(
         if np.abs(step[:, :2]).max() < 1e-4 and np.abs(step[:, 2]).max() < 1e-6:
             break
     stats["smoother_iterations"] = it
-    stats["smoother_meas_d2_after"] = d2_sum / fr.size if fr.size else math.nan
-    stats["smoother_huber_share"] = n_huber / fr.size if fr.size else 0.0
+    stats["smoother_meas_d2_after"] = d2_sum / n_obs if n_obs else math.nan
+    stats["smoother_huber_share"] = n_huber / n_obs if n_obs else 0.0
     cov = chain_marginals(diag, off)
     k_map = float(map_cov_inflation)
     if map_cov is not None:
-        cov[1:] += k_map * map_propagated_covariance(diag, off, fr, lj, Bm, map_cov)[1:]
+        # the gradient's sensitivity to the map at the last step's linearisation point,
+        # recomputed block by block (not kept over the iterations)
+        def sensitivities() -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
+            for fr, lj, rz, bz in ob.blocks(_CHUNK):
+                *_, Bm = _measurement_terms(
+                    x_lin[fr], lm_xy[lj], lm_cov[lj], rz, bz, a, b, R1, huber_k
+                )
+                yield fr, lj, Bm
+
+        B = _map_jacobian(n, map_cov.shape[0], n_obs, sensitivities())
+        term = _map_term(diag, off, B, map_cov)
+        cov[1:] += k_map * term[1:]
     else:
+        fr, lj, _, _ = ob.arrays()
         cov[1:, :2, :2] += (
             k_map * map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
         )
     return x, cov, stats
+
+
+def _map_jacobian(
+    n: int, m2: int, size: int, blocks: Iterator[tuple[IntArray, IntArray, FloatArray]]
+) -> csr_matrix:
+    """``B = ∂g/∂L`` (3n, m2) in scipy's canonical CSR form (columns sorted per row,
+    duplicates summed) from ``size`` per-measurement 3x2 blocks ``Bm`` at (frame, landmark),
+    given block by block in non-decreasing frame order.
+
+    Each block, cut at a frame boundary, is one CSR of its own rows (a row's entries are those
+    of one frame: the canonical form of the whole, row by row); the parts are copied into the
+    preallocated arrays of the whole (72 bytes per measurement).
+    """
+    data = np.empty(6 * size)
+    indices = np.empty(6 * size, dtype=np.int32)
+    counts = np.zeros(3 * n + 1, dtype=np.int64)  # entries per row, at row + 1
+    nnz = 0
+    for frame, lm, Bm in _frame_aligned(blocks):
+        f0, f1 = int(frame[0]), int(frame[-1])
+        r = 3 * (frame - f0)[:, None, None] + np.arange(3)[None, :, None]
+        c = 2 * lm[:, None, None] + np.arange(2)[None, None, :]
+        shape = (3 * (f1 - f0 + 1), m2)
+        part = csr_matrix(
+            (
+                Bm.reshape(-1),
+                (np.broadcast_to(r, Bm.shape).ravel(), np.broadcast_to(c, Bm.shape).ravel()),
+            ),
+            shape=shape,
+        )
+        k = part.nnz
+        data[nnz : nnz + k] = part.data
+        indices[nnz : nnz + k] = part.indices
+        counts[3 * f0 + 1 : 3 * f1 + 4] = np.diff(part.indptr)
+        nnz += k
+    indptr = np.cumsum(counts)
+    return csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(3 * n, m2))
+
+
+def _frame_aligned(
+    blocks: Iterator[tuple[IntArray, IntArray, FloatArray]],
+) -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
+    """The same rows (frames non-decreasing) cut only between frames: each block's rows of
+    its last frame are held back and lead the next block."""
+    held: tuple[IntArray, IntArray, FloatArray] | None = None
+    for blk in blocks:
+        if held is not None:
+            blk = tuple(np.concatenate(p) for p in zip(held, blk, strict=True))  # type: ignore[assignment]
+        frame = blk[0]
+        if not frame.size:
+            held = None
+            continue
+        cut = int(np.searchsorted(frame, frame[-1]))
+        if cut:
+            yield tuple(p[:cut] for p in blk)  # type: ignore[misc]
+        held = tuple(p[cut:] for p in blk)  # type: ignore[assignment]
+    if held is not None and held[0].size:
+        yield held
 
 
 def map_propagated_covariance(
@@ -353,19 +521,29 @@ def map_propagated_covariance(
     error is taken as independent of the detections' noise (the landmarks were estimated from
     the same detections, which would make the sum slightly smaller: conservative).
 
-    A column block holds ``3 N x columns`` doubles, twice (``B U`` and its solve): at most
+    A column block holds ``3 N x columns`` doubles, two copies alive at a time (``B U`` and
+    the solve's Fortran-ordered copy, then the solution and its C-ordered reshape): at most
     ``columns`` columns, fewer where that would pass ``block_mb`` MB (on the 10x Victoria Park
     soak, N = 72,490 frames, 128 columns were ~220 MB a copy and made this the EKF's peak,
     1.24 GB; docs/reliability.md "Soak"). The result does not depend on the block size (up to
     the order of a floating-point sum).
     """
-    from scipy.linalg import cho_solve_banded, cholesky_banded
-    from scipy.sparse import csr_matrix
+    n = diag.shape[0]
+    order = np.argsort(frame, kind="stable")  # (the rows' entries keep their order)
+    blocks = iter([(frame[order], lm[order], Bm[order])]) if frame.size else iter([])
+    B = _map_jacobian(n, map_cov.shape[0], frame.size, blocks)
+    return _map_term(diag, off, B, map_cov, columns=columns, block_mb=block_mb)
 
+
+def _map_term(
+    diag: FloatArray, off: FloatArray, B: csr_matrix, map_cov: FloatArray, *, columns: int = 128,
+    block_mb: float = 32.0,
+) -> FloatArray:  # fmt: skip
+    """:func:`map_propagated_covariance` given the sparse ``B`` (3N, 2L)."""
     n = diag.shape[0]
     out = np.zeros((n, 3, 3))
     m2 = map_cov.shape[0]
-    if frame.size == 0 or m2 == 0:
+    if B.nnz == 0 or m2 == 0:
         return out
     S = 0.5 * (map_cov + map_cov.T)
     try:
@@ -373,15 +551,12 @@ def map_propagated_covariance(
     except np.linalg.LinAlgError:  # the filter's P may be marginally indefinite
         w, V = np.linalg.eigh(S)
         U = V * np.sqrt(np.clip(w, 0.0, None))
-    # B (3n, 2L) sparse: block (frame, landmark) += Bm; duplicates are summed
-    rows = (3 * frame[:, None, None] + np.arange(3)[None, :, None]) + np.zeros((1, 1, 2), int)
-    cols = (2 * lm[:, None, None] + np.arange(2)[None, None, :]) + np.zeros((1, 3, 1), int)
-    B = csr_matrix((Bm.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * n, m2))
     cb = cholesky_banded(banded_lower(diag, off), lower=True)
     columns = max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
     for c0 in range(0, m2, columns):
         M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
         out += M @ M.transpose(0, 2, 1)
+        del M  # (freed before the next block's B U: two blocks alive at a time, not three)
     return out
 
 

@@ -17,19 +17,15 @@ pass (5,000 measurements) never touches the file.
 
 from __future__ import annotations
 
-import tempfile
-import weakref
 from collections.abc import Iterator
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
+from stemmap.slam._spill import SpillFile
 from stemmap.types import FloatArray
 
 __all__ = ["LeftOutMeasurements"]
-
-_I8 = np.dtype(np.int64)
-_F8 = np.dtype(np.float64)
 
 
 class LeftOutMeasurements:
@@ -41,9 +37,9 @@ class LeftOutMeasurements:
     would take the resident measurements past ``resident_rows`` (or the resident keyframes
     past ``resident_rows // 4``: transit keyframes have none), every resident keyframe but
     the last ``keep_recent`` (the tracker's localisation reads the last few) is appended to a
-    temporary file (:func:`tempfile.TemporaryFile`: unnamed, removed when closed) as one chunk;
-    only the chunk's first and last keyframe and its place in the file stay in memory (five
-    integers per chunk). Reads of spilled keyframes load their whole chunk, cached one at a
+    temporary file (:class:`stemmap.slam._spill.SpillFile`: unnamed, removed when closed) as
+    one chunk; only the chunk's first and last keyframe and its place in the file stay in
+    memory. Reads of spilled keyframes load their whole chunk, cached one at a
     time, so reading in keyframe order reads the file once. ``resident_rows`` bounds the
     memory (~40 bytes each; default 65,536: ~2.6 MB); a keyframe with more measurements than
     that is held whole.
@@ -69,10 +65,9 @@ class LeftOutMeasurements:
         self._val = np.zeros((rows, 4))  # bearing, range, sigma_b, sigma_r
         self._n = 0  # resident keyframes
         self._n_spilled = 0  # keyframes in the file
-        # per chunk in the file: first keyframe, last keyframe, byte offset, keyframes, rows
-        self._chunks: list[tuple[int, int, int, int, int]] = []
-        self._file: IO[bytes] | None = None
-        self._end = 0  # bytes written
+        # per chunk in the file (same index): first keyframe, last keyframe
+        self._chunks: list[tuple[int, int]] = []
+        self._file = SpillFile("stemmap-leftout-")
         self._cached: tuple[int, Any] | None = None  # (chunk, (kf, ptr, tree, val))
         self._alias: np.ndarray | None = None
         self._last = -1  # the last keyframe added (order check)
@@ -112,17 +107,9 @@ class LeftOutMeasurements:
 
     def _spill(self, q: int) -> None:
         """The oldest ``q`` resident keyframes to the file (one chunk); the rest move up."""
-        if self._file is None:
-            # (kept open across calls, closed by close() or when the store is collected)
-            self._file = tempfile.TemporaryFile(prefix="stemmap-leftout-")  # noqa: SIM115
-            weakref.finalize(self, self._file.close)
         b = int(self._ptr[q])
-        f = self._file
-        f.seek(self._end)
-        for arr in (self._kf[:q], self._ptr[: q + 1], self._tree[:b], self._val[:b]):
-            f.write(np.ascontiguousarray(arr).tobytes())
-        self._chunks.append((int(self._kf[0]), int(self._kf[q - 1]), self._end, q, b))
-        self._end = f.tell()
+        self._file.append((self._kf[:q], self._ptr[: q + 1], self._tree[:b], self._val[:b]))
+        self._chunks.append((int(self._kf[0]), int(self._kf[q - 1])))
         self._n_spilled += q
         n, e = self._n, int(self._ptr[self._n])
         self._kf[: n - q] = self._kf[q:n]
@@ -134,9 +121,7 @@ class LeftOutMeasurements:
     def close(self) -> None:
         """Remove the spill file; the store keeps its length (a count for the back-end's
         statistics) but can no longer be read or added to."""
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        self._file.close()
         self._cached = None
         self._closed = True
 
@@ -164,14 +149,7 @@ class LeftOutMeasurements:
         """Chunk ``c`` as ``(kf, ptr, tree, val)`` arrays (read once, cached one at a time)."""
         if self._cached is not None and self._cached[0] == c:
             return self._cached[1]
-        assert self._file is not None
-        _, _, off, q, b = self._chunks[c]
-        self._file.seek(off)
-        kf = np.fromfile(self._file, dtype=_I8, count=q)
-        ptr = np.fromfile(self._file, dtype=_I8, count=q + 1)
-        tree = np.fromfile(self._file, dtype=_I8, count=b)
-        val = np.fromfile(self._file, dtype=_F8, count=4 * b).reshape(b, 4)
-        data = (kf, ptr, tree, val)
+        data = self._file.read(c)
         self._cached = (c, data)
         return data
 

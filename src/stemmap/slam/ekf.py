@@ -49,13 +49,13 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from stemmap.errors import ConfigError
-from stemmap.slam._ekf_compressed import (
+from stemmap.slam._ekf_algebra import (
     _blocks,
     augment_landmark_covariance,
     block_diag_noise,
     grow_buffers,
-    run_compressed,
 )
+from stemmap.slam._ekf_compressed import run_compressed
 from stemmap.slam._ekf_merge import close_pairs, decide_merges
 from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
@@ -470,10 +470,11 @@ class EkfSlam:
         if olog is not None:
             lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
             poses, pose_covs, smooth_stats = smooth_path(
-                poses, pre.deltas, pre.covs, olog.resolve(np.asarray(lm_id, dtype=np.int64)),
+                poses, pre.deltas, pre.covs, olog.stream(np.asarray(lm_id, dtype=np.int64)),
                 L.copy(), lm_cov, (a, b), R1, map_cov=self.P[3 : self.n, 3 : self.n].copy(),
                 map_cov_inflation=cfg.map_cov_inflation,
             )  # fmt: skip
+            olog.close()  # (its temporary file, if it spilled)
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,

@@ -1,0 +1,344 @@
+"""The largest consistent arc of a candidate segment, compiled (ours, issue 11): the arc search
+of ``arc_refit`` shared by both detector paths, and the compiled path's arc candidate.
+
+:func:`largest_arc` grows a circle from every short convex seed window of a segment's returns,
+adding the neighbouring return (the side with the smaller residual) while its residual to the
+circle so far is within ``max(k x 1.4826 MAD, floor)`` of the arc's residuals, re-fitting
+Kasa's (1976) algebraic circle from running sums after each addition; the largest run wins
+(ties: the smaller residual RMS). :func:`arc_run` adds the conditions under which that run is
+a candidate of its own (scan-detection.md, "Fourth round" and "Fifth round"). The numpy
+pipeline (:func:`stemmap.scan._arcs.consensus_arcs`) and the compiled kernel
+(:mod:`stemmap.scan._detect_fast`) call the same two functions, so the arcs they find are the
+same run of returns; :func:`arc_candidate` then judges that run in the kernel as
+:func:`stemmap.scan._arcs.arc_pieces` does with numpy (cut-end flags, segment filters, fit and
+plausibility tests without the bark allowance), through the same per-candidate blocks as the
+corner split (:mod:`stemmap.scan._fast_candidates`).
+
+numba's cache of this module is dropped when a file whose kernels it compiles in changes
+(:func:`stemmap._numba_cache.drop_stale_cache`, as for ``_detect_fast``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from stemmap import _numba_cache
+from stemmap.scan import (
+    _corners,
+    _fast_candidates,
+    _fast_robust,
+    _fast_segments,
+    _fit_geometric,
+    _fit_lm,
+    _kernel_params,
+    features,
+)
+from stemmap.scan._fast_candidates import _fit_candidate, _Scratch, _segment_code, _Work
+from stemmap.scan._fast_robust import _median_inplace
+from stemmap.types import FloatArray
+
+__all__ = ["ARC_WORK_ROWS", "MAX_SEEDS", "MIN_SHARE", "arc_candidate", "arc_run", "largest_arc"]
+
+#: At most this many seed windows per segment (evenly spaced): bounds the cost of long segments.
+MAX_SEEDS = 24
+#: An arc must hold at least this share of its segment's returns: a trunk that runs on into a
+#: branch fills a third or more of the segment (lidR at 0.25-1 deg: 26 of 78 returns at 1.3 m,
+#: 5-8 of 11-20 at 5-9 m); a 2 cm bark ridge or stub at the end of a 150-return trunk does not
+#: (aRchi at 2 m, 0.25 deg: 6 of ~150 returns fitted as a 5 cm stem inside the 55 cm trunk).
+MIN_SHARE = 0.25
+#: Rows of the work array of :func:`largest_arc`: per return 9 Kasa terms and 2 buffers, then
+#: the 3 x 4 elimination tableau and two running-sum rows (work shape: (ARC_WORK_ROWS,
+#: max(N, 9)) for segments of up to N returns).
+ARC_WORK_ROWS = 16
+_MAD = 1.4826
+
+
+@njit(cache=True, error_model="numpy")
+def _kasa(s: FloatArray, m: FloatArray) -> tuple[bool, float, float, float]:  # pragma: no cover
+    """Kasa circle from the running sums ``s`` = (n, Sx, Sy, Sxx, Syy, Sxy, Sz, Sxz, Syz) with
+    z = x^2 + y^2 (local coordinates): the normal equations solved by Gaussian elimination
+    with partial pivoting in the 3 x 4 tableau ``m``; (False, ...) when a pivot is zero or the
+    squared radius is not positive and finite."""
+    m[0, 0] = s[3]
+    m[0, 1] = s[5]
+    m[0, 2] = s[1]
+    m[0, 3] = s[7]
+    m[1, 0] = s[5]
+    m[1, 1] = s[4]
+    m[1, 2] = s[2]
+    m[1, 3] = s[8]
+    m[2, 0] = s[1]
+    m[2, 1] = s[2]
+    m[2, 2] = s[0]
+    m[2, 3] = s[6]
+    for c in range(3):
+        p = c
+        for i in range(c + 1, 3):
+            if abs(m[i, c]) > abs(m[p, c]):
+                p = i
+        if m[p, c] == 0.0:
+            return False, 0.0, 0.0, 0.0
+        if p != c:
+            for q in range(c, 4):
+                tq = m[c, q]
+                m[c, q] = m[p, q]
+                m[p, q] = tq
+        for i in range(c + 1, 3):
+            f = m[i, c] / m[c, c]
+            for q in range(c, 4):
+                m[i, q] -= f * m[c, q]
+    w = m[2, 3] / m[2, 2]
+    v = (m[1, 3] - m[1, 2] * w) / m[1, 1]
+    u = (m[0, 3] - m[0, 1] * v - m[0, 2] * w) / m[0, 0]
+    cx = 0.5 * u
+    cy = 0.5 * v
+    r2 = w + cx * cx + cy * cy
+    if not (r2 > 0.0 and math.isfinite(r2)):
+        return False, 0.0, 0.0, 0.0
+    return True, cx, cy, math.sqrt(r2)
+
+
+@njit(cache=True, error_model="numpy")
+def largest_arc(
+    px: FloatArray,
+    py: FloatArray,
+    a: int,
+    b: int,
+    floor: float,
+    k: float,
+    seed: int,
+    r_min: float,
+    r_max: float,
+    ends_only: bool,
+    work: FloatArray,
+) -> tuple[int, int]:  # pragma: no cover - numba
+    """The largest run ``[lo, hi)`` (relative to ``a``) of the consecutive returns ``a:b``
+    (sensor frame, origin = sensor) that one circle explains: grown from every
+    ``seed``-return window (at most :data:`MAX_SEEDS`, evenly spaced) whose Kasa circle has a
+    radius in [r_min, r_max] and lies beyond the returns (convex towards the sensor); a
+    neighbour joins when its residual is within ``max(k x 1.4826 MAD, floor)`` of the arc's
+    current circle, the side with the smaller residual first (the start side on a tie).
+    ``ends_only``: only arcs that reach the first or the last return count (a trunk whose
+    segment runs on into a branch or stem on one side; a run in the middle of a long segment
+    is far more often a piece of a bush or wall that happens to be round -- on the
+    simulator's clutter, 178 of 179 passing arcs were). ``work``: scratch of shape
+    (:data:`ARC_WORK_ROWS`, >= max(b - a, 9)). (-1, -1) when no seed window qualifies."""
+    n = b - a
+    if n < seed:
+        return -1, -1
+    t = work[:9]  # per return: 1, x, y, xx, yy, xy, z, xz, yz (local coordinates)
+    e = work[9]
+    d = work[10]
+    m = work[11:14, :4]
+    s = work[14]
+    s2 = work[15]
+    ox = 0.0
+    oy = 0.0
+    for i in range(n):
+        ox += px[a + i]
+        oy += py[a + i]
+    ox /= n
+    oy /= n
+    for i in range(n):
+        lx = px[a + i] - ox
+        ly = py[a + i] - oy
+        z = lx * lx + ly * ly
+        t[0, i] = 1.0
+        t[1, i] = lx
+        t[2, i] = ly
+        t[3, i] = lx * lx
+        t[4, i] = ly * ly
+        t[5, i] = lx * ly
+        t[6, i] = z
+        t[7, i] = lx * z
+        t[8, i] = ly * z
+    n_start = n - seed + 1
+    step = 1 if n_start <= MAX_SEEDS else -(-n_start // MAX_SEEDS)
+    best_n = -1
+    best_rms = math.inf
+    best_lo = -1
+    best_hi = -1
+    for a0 in range(0, n_start, step):
+        lo = a0
+        hi = a0 + seed
+        for q in range(9):
+            acc = 0.0
+            for i in range(lo, hi):
+                acc += t[q, i]
+            s[q] = acc
+        ok, cx, cy, r = _kasa(s, m)
+        if not ok or not (r_min <= r <= r_max):
+            continue
+        mx = 0.0
+        my = 0.0
+        for i in range(lo, hi):
+            mx += t[1, i]
+            my += t[2, i]
+        mx /= hi - lo
+        my /= hi - lo
+        if math.hypot(cx + ox, cy + oy) <= math.hypot(mx + ox, my + oy):
+            continue  # centre not beyond the returns: concave towards the sensor
+        while True:
+            cnt = hi - lo
+            for i in range(lo, hi):
+                ei = math.hypot(t[1, i] - cx, t[2, i] - cy) - r
+                e[i - lo] = ei
+                d[i - lo] = ei
+            med = _median_inplace(d, cnt)
+            for i in range(cnt):
+                d[i] = abs(e[i] - med)
+            tol = max(k * _MAD * _median_inplace(d, cnt), floor)
+            pick = -1
+            e_pick = math.inf
+            if lo > 0:
+                ei = abs(math.hypot(t[1, lo - 1] - cx, t[2, lo - 1] - cy) - r)
+                if ei <= tol:
+                    pick = lo - 1
+                    e_pick = ei
+            if hi < n:
+                ei = abs(math.hypot(t[1, hi] - cx, t[2, hi] - cy) - r)
+                if ei <= tol and ei < e_pick:
+                    pick = hi
+            if pick < 0:
+                break
+            for q in range(9):
+                s2[q] = s[q] + t[q, pick]
+            ok, cx2, cy2, r2 = _kasa(s2, m)
+            if not ok or not (r_min <= r2 <= r_max):
+                break
+            for q in range(9):
+                s[q] = s2[q]
+            cx = cx2
+            cy = cy2
+            r = r2
+            if pick < lo:
+                lo = pick
+            else:
+                hi = pick + 1
+        if ends_only and lo > 0 and hi < n:
+            continue  # not at an end: a trunk runs on into a branch on one side
+        cnt = hi - lo
+        ss = 0.0
+        for i in range(cnt):  # e holds the residuals of the final arc
+            ss += e[i] * e[i]
+        rms = math.sqrt(ss / cnt)
+        if cnt > best_n or (cnt == best_n and rms < best_rms):
+            best_n = cnt
+            best_rms = rms
+            best_lo = lo
+            best_hi = hi
+    return best_lo, best_hi
+
+
+@njit(cache=True, error_model="numpy")
+def arc_run(
+    px: FloatArray,
+    py: FloatArray,
+    pr: FloatArray,
+    a: int,
+    b: int,
+    sigma: float,
+    prm: FloatArray,
+    work: FloatArray,
+) -> tuple[int, int]:  # pragma: no cover - numba
+    """The arc of ``arc_refit`` in the segment of returns ``a:b`` with range noise ``sigma``
+    (:func:`stemmap.scan._arcs.consensus_arcs`): :func:`largest_arc` with seed
+    ``max(min_points, 4)``, ``arc_sigmas``, floor ``arc_floor_sigmas`` x ``sigma`` (the
+    noise only, not the bark allowance: a fillet leaves the circle gradually), radii of the
+    config; kept when it holds at least ``min_points_partial`` returns (with
+    ``arc_short_steps``: ``min_points`` when a range step larger than ``max_jump`` sets it off
+    at every cut end) and :data:`MIN_SHARE` of the segment's, and not all of them. ``prm``:
+    the kernel's parameter vector (:data:`stemmap.scan._kernel_params.PARAM_NAMES`). Returns
+    ``[lo, hi)`` relative to ``a``, (-1, -1) for none."""
+    min_points = prm[16]
+    mpp = prm[17]
+    seed = max(int(min_points), 4)
+    least = min_points if prm[62] > 0.0 else mpp  # arc_short_steps
+    if not b - a > least:  # no room for an arc of >= least returns, fewer than the segment's
+        return -1, -1
+    floor = prm[60] * sigma  # arc_floor_sigmas
+    lo, hi = largest_arc(px, py, a, b, floor, prm[59], seed, prm[32], prm[33], True, work)
+    if lo < 0:
+        return -1, -1
+    n = b - a
+    got = hi - lo
+    if not (max(least, MIN_SHARE * n) <= got and got < n):
+        return -1, -1
+    if got >= mpp:
+        return lo, hi
+    # a short arc counts only where a range step sets it off at every cut end
+    step = math.inf
+    if lo > 0:
+        step = min(step, abs(pr[a + lo - 1] - pr[a + lo]))
+    if hi < n:
+        step = min(step, abs(pr[a + hi] - pr[a + hi - 1]))
+    if step < math.inf and step > prm[7]:  # max_jump
+        return lo, hi
+    return -1, -1
+
+
+@njit(cache=True, error_model="numpy")
+def arc_candidate(
+    px: FloatArray,
+    py: FloatArray,
+    pr: FloatArray,
+    pb: np.ndarray,
+    a: int,
+    b: int,
+    lo: int,
+    hi: int,
+    flags: tuple[bool, bool, bool, bool],
+    grid: FloatArray,
+    noise_s: float,
+    prm: FloatArray,
+    chi2: FloatArray,
+    scratch: _Scratch,
+    ws: _Work,
+    res: FloatArray,
+) -> bool:  # pragma: no cover - numba
+    """``arc_refit`` for the candidate ``a:b`` with end flags ``flags`` (occluded start / end,
+    truncated start / end) and its arc ``[lo, hi)`` (:func:`arc_run`, relative to ``a``), as
+    :func:`stemmap.scan._arcs.arc_pieces` judges it: its cut ends occluded only where the
+    return across is nearer by more than ``occlusion_margin``, the segment filters, the fit
+    and its plausibility tests. ``prm`` must carry ``bark_roughness`` 0 (the arc's RMS test
+    has no bark allowance). True when the arc passes: ``res[:OUT_COLUMNS]`` is its output
+    row, then its sigma and its fit RMS."""
+    sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
+    ws3, wv, mdl = ws
+    margin = prm[10]
+    oc0, oc1, tr0, tr1 = flags
+    qa = a + lo
+    qb = a + hi
+    if qa > a:  # a cut end: occluded only by a nearer return across it
+        oc0 = pr[qa - 1] < pr[qa] - margin
+        tr0 = False
+    if qb < b:
+        oc1 = pr[qb] < pr[qb - 1] - margin
+        tr1 = False
+    partial = oc0 or oc1 or tr0 or tr1
+    if _segment_code(px, py, pr, tmp, qa, qb, partial, prm, chi2, noise_s, feat) != 0:
+        return False
+    w = feat[0]
+    code = _fit_candidate(
+        px, py, pr, pb, qa, qb, oc0, oc1, tr0, tr1, w, grid, noise_s, prm, False,
+        sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, res,
+    )  # fmt: skip
+    return code == 0
+
+
+# after every kernel is defined, before the first call loads the cache (see the module notes)
+_numba_cache.drop_stale_cache(
+    arc_candidate,
+    __file__,
+    _fast_candidates.__file__,
+    _fit_geometric.__file__,
+    features.__file__,
+    _corners.__file__,
+    _fast_robust.__file__,
+    _fast_segments.__file__,
+    _fit_lm.__file__,
+    _kernel_params.__file__,
+)
