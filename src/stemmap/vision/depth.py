@@ -246,7 +246,8 @@ def daim_trunks(
     -------
     StemObservations in the body frame (``frame="laser"`` if ``camera_to_body`` is given,
     else "camera_level"), ``source="vision:munjer2025:<fit>"``; boxes where no cluster or arc
-    or fit was found are skipped (logged at debug level). ``index`` is the box index.
+    or fit was found are skipped (logged at debug level); a fit failing the width check
+    (``params.max_width_ratio``) keeps its centre with radius NaN. ``index`` is the box index.
     """
     b = boxes_xywh(boxes)
     centers, radii, npts, arcs, idx = [], [], [], [], []
