@@ -345,3 +345,15 @@ def test_map_metrics_alignment_that_finds_no_two_pairs_keeps_the_identity():
     )
     np.testing.assert_array_equal(one.rotation, np.eye(2))
     assert one.n_matched == 0
+
+
+def test_map_trees_without_a_diameter_are_left_out_of_the_diameter_rmse():
+    """A map tree with NaN diameter (DAIM's width check dropped every fit) still counts as a
+    match; the diameter RMSE / bias are over the trees that have one, NaN when none has."""
+    txy = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]])
+    td = np.array([0.3, 0.2, 0.4])
+    m = map_metrics(txy + 0.1, np.array([0.32, np.nan, 0.37]), txy, td)
+    assert m.n_matched == 3
+    assert m.diameter_rmse == pytest.approx(math.sqrt((0.02**2 + 0.03**2) / 2))
+    assert m.diameter_bias == pytest.approx((0.02 - 0.03) / 2)
+    assert math.isnan(map_metrics(txy, np.full(3, np.nan), txy, td).diameter_rmse)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +13,17 @@ from onnx import TensorProto, helper
 from stemmap.errors import ConfigError, InputError
 from stemmap.sim.camera import render_scene, xue2018_rig
 from stemmap.sim.forest import Stand
+from stemmap.sim.munjer import realsense_rig
 from stemmap.types import Pose2
-from stemmap.vision.depth import DaimParams, base_arc, daim_trunks, depth_to_points
+from stemmap.vision.depth import (
+    D435_DEPTH_NOISE_K,
+    MUNJER2025,
+    DaimParams,
+    arc_width,
+    base_arc,
+    daim_trunks,
+    depth_to_points,
+)
 from stemmap.vision.detector import OnnxDetector, SegmentationDetector, TrunkDetector
 
 RIG = xue2018_rig(width=640, height=360)
@@ -99,6 +109,73 @@ def test_daim_median_arc_point_beats_nearest_at_close_range(scene) -> None:  # t
     assert err["median"].max() < err["nearest"].max()
     with pytest.raises(InputError):
         base_arc(np.zeros((5, 3)), [0, 0], point="mean")
+
+
+D435_XY = np.array([[4.0, 0.8], [7.0, -1.2], [10.5, 1.5]])
+D435_DBH = np.array([0.30, 0.22, 0.25])
+
+
+@pytest.fixture(scope="module")
+def d435_frames():  # type: ignore[no-untyped-def]
+    """A Munjer-like RGB-D frame (640 x 480, 69 deg) at 4, 7 and 10.5 m with the D435's depth
+    noise sigma = k z^2 (0.06 / 0.18 / 0.39 m), three noise draws."""
+    rig = realsense_rig()
+    sc = render_scene(Stand(D435_XY, D435_DBH), Pose2(0, 0, 0), rig, laser_height=0.8,
+                      trunk_height=6.0, rng=3)  # fmt: skip
+    out = []
+    for seed in range(3):
+        noise = np.random.default_rng(seed).normal(0, 1, sc.depth.shape)
+        out.append(sc.depth + noise * D435_DEPTH_NOISE_K * sc.depth**2)
+    return rig, sc.truth.tree_uv_box, out
+
+
+def _daim(d435_frames, params: DaimParams):  # type: ignore[no-untyped-def]
+    rig, boxes, depths = d435_frames
+    to_body = rig.laser_to_camera.inverse()
+    return [
+        daim_trunks(d, rig.camera, boxes, camera_to_body=to_body, params=params) for d in depths
+    ]
+
+
+def test_noise_scaled_clustering_finds_the_far_trunk(d435_frames) -> None:  # type: ignore[no-untyped-def]
+    """At 10.5 m the D435's depth noise (0.39 m) leaves no two points within a fixed 0.1 m:
+    DBSCAN finds no cluster (the orchard drives' main miss, docs/algorithms/vision-fusion.md).
+    The option ``depth_noise_k`` (radius max(eps, 2 k z^2)) clusters it in every draw, centre
+    within 0.3 m (measured 0.06-0.28 m)."""
+    noise_eps = replace(MUNJER2025, depth_noise_k=D435_DEPTH_NOISE_K)
+    for fixed, scaled in zip(
+        _daim(d435_frames, MUNJER2025), _daim(d435_frames, noise_eps), strict=True
+    ):
+        assert 2 not in fixed.index
+        assert 2 in scaled.index
+        k = int(np.flatnonzero(scaled.index == 2)[0])
+        assert np.hypot(*(scaled.centers[k] - D435_XY[2])) < 0.3
+
+
+def test_width_check_drops_implausible_diameters_keeps_centres(d435_frames) -> None:  # type: ignore[no-untyped-def]
+    """Three points on a 7-10 m arc with 0.2-0.4 m depth noise give circles up to 2 m wide
+    (measured); the width check (2 r <= 1.5 x the arc's visible width) sets those radii to NaN
+    and leaves every centre as the three-point fit gave it."""
+    noise_eps = replace(MUNJER2025, depth_noise_k=D435_DEPTH_NOISE_K)  # the 10.5 m trunk too
+    free = _daim(d435_frames, replace(noise_eps, max_width_ratio=None))
+    checked = _daim(d435_frames, noise_eps)
+    err_free, err_checked = [], []
+    for a, b in zip(free, checked, strict=True):
+        np.testing.assert_array_equal(a.index, b.index)
+        np.testing.assert_array_equal(a.centers, b.centers)
+        err_free += list(np.abs(a.diameters - D435_DBH[a.index]))
+        ok = np.isfinite(b.diameters)
+        err_checked += list(np.abs(b.diameters[ok] - D435_DBH[b.index[ok]]))
+    assert max(err_free) > 0.2 and len(err_checked) >= 3
+    assert max(err_checked) < 0.06  # measured 0.04 m
+
+
+def test_arc_width_is_the_visible_chord() -> None:
+    t = np.linspace(np.pi / 2, 3 * np.pi / 2, 50)  # the half facing the origin
+    arc = np.column_stack((6.0 + 0.15 * np.cos(t), 0.15 * np.sin(t)))
+    # bearing span x median range: the median point lies ~0.1 m nearer than the centre, 2 % less
+    assert arc_width(arc, [0.0, 0.0]) == pytest.approx(0.30, rel=0.03)
+    assert arc_width(arc[:25], [0.0, 0.0]) == pytest.approx(0.15, rel=0.05)
 
 
 def test_segmentation_detector_is_a_trunk_detector(scene) -> None:  # type: ignore[no-untyped-def]

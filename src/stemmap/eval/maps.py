@@ -219,6 +219,9 @@ def map_metrics(
         diameters (pass ``map_diam=None``).
     map_diam : array_like of M values, metres, or None
         Required for an array ``map_xy``; with a StemMap it replaces the map's diameters.
+        NaN = no diameter measured (e.g. DAIM's width check dropped every fit of the tree):
+        such a tree counts for position and detection, not for ``diameter_rmse`` / ``_bias``
+        (NaN when no matched tree has one).
     truth_xy : array_like of shape (T, 2), metres
     truth_diam : array_like of shape (T,), metres
     gate : float, metres, > 0
@@ -277,6 +280,7 @@ def map_metrics(
     di, ti = m.pairs[:, 0], m.pairs[:, 1]
     pos_err = np.hypot(*(aligned_xy[di] - txy[ti]).T) if di.size else np.zeros(0)
     d_err = mdiam[di] - tdiam[ti]
+    d_err = d_err[np.isfinite(d_err)]
     # duplicates: unmatched map trees within the gate of a matched truth tree
     um = m.unmatched_detections
     if um.size and ti.size:
@@ -299,8 +303,8 @@ def map_metrics(
         position_rmse=float(np.sqrt(np.mean(pos_err**2))) if n_match else math.nan,
         position_mean=float(pos_err.mean()) if n_match else math.nan,
         position_max=float(pos_err.max()) if n_match else math.nan,
-        diameter_rmse=float(np.sqrt(np.mean(d_err**2))) if n_match else math.nan,
-        diameter_bias=float(d_err.mean()) if n_match else math.nan,
+        diameter_rmse=float(np.sqrt(np.mean(d_err**2))) if d_err.size else math.nan,
+        diameter_bias=float(d_err.mean()) if d_err.size else math.nan,
         aligned=bool(align),
         rotation=R,
         translation=t,

@@ -41,6 +41,7 @@ from stemmap.sim.motion_sensors import Odometry, OdometryNoise, _noisy_odometry
 from stemmap.slam.base import Controls
 from stemmap.slam.motion import UnicycleModel
 from stemmap.types import FloatArray, PointCloud, Pose2, StemMap, StemObservations, wrap_angle
+from stemmap.vision.depth import D435_DEPTH_NOISE_K
 
 if TYPE_CHECKING:
     from stemmap.eval.detection import DetectionMetrics
@@ -67,8 +68,9 @@ WHEEL_ODOMETRY_NOISE = OdometryNoise(
 )
 
 #: RealSense D435 depth RMS error ``sigma = k z^2``: subpixel 0.08 / (focal 447 px x baseline
-#: 0.05 m) at 848 x 480 (Intel's depth-camera tuning guide formula).
-D435_DEPTH_K = 0.08 / (447.0 * 0.05)
+#: 0.05 m) at 848 x 480 (Intel's depth-camera tuning guide formula); the same constant DAIM's
+#: Munjer preset scales its clustering radius with.
+D435_DEPTH_K = D435_DEPTH_NOISE_K
 
 
 def realsense_rig(

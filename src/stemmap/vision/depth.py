@@ -27,7 +27,10 @@ from stemmap.vision.camera import CameraModel, RigidTransform
 from stemmap.vision.detector import boxes_xywh
 
 __all__ = [
+    "D435_DEPTH_NOISE_K",
+    "MUNJER2025",
     "DaimParams",
+    "arc_width",
     "base_arc",
     "cluster_trunk_points",
     "daim_trunks",
@@ -53,6 +56,16 @@ class DaimParams:
         nearest point (the surface when depth is exact, but biased towards the camera by ~2
         sigma of the noise). Munjer 2025 says only "three boundary points are extracted".
     fit : str -- "three_point" (Munjer) or any name in ``stemmap.scan.circle.FIT_METHODS``
+    max_width_ratio : float or None -- a fit whose diameter exceeds this multiple of the arc's
+        visible width (its bearing span times its median range) keeps its centre but gets no
+        radius (NaN): a cylinder's visible arc is as wide as the trunk, so a much larger circle
+        is the depth noise flattening the arc (three points, D435 noise 0.18 m at 7 m against
+        a 0.1 m sagitta), not the trunk. None keeps every radius. Ours: Munjer 2025 prints no
+        check and reports no diameters.
+    depth_noise_k : float or None -- the sensor's depth noise ``sigma = k z^2`` (m); with it the
+        DBSCAN radius of a box is ``max(eps, 2 k z^2)`` at the box's median depth z, so a far
+        trunk's scattered depth still forms one cluster. None: ``eps`` at every depth. Ours:
+        Munjer 2025 prints no clustering parameters.
     """
 
     stride: int = 2
@@ -64,9 +77,17 @@ class DaimParams:
     arc_bins: int = 24
     arc_point: str = "median"
     fit: str = "three_point"
+    max_width_ratio: float | None = None
+    depth_noise_k: float | None = None
 
 
-MUNJER2025 = DaimParams()
+#: RealSense D435 depth RMS error ``sigma = k z^2`` (m): subpixel 0.08 / (focal 447 px x
+#: baseline 0.05 m) at 848 x 480 (Intel's depth-camera tuning guide formula), the paper's camera.
+D435_DEPTH_NOISE_K = 0.08 / (447.0 * 0.05)
+#: DAIM as run in the Munjer pipeline: implausibly wide three-point circles carry no diameter.
+#: The noise-scaled clustering radius (``depth_noise_k=D435_DEPTH_NOISE_K``) is an option, not
+#: the default: it maps the far trees too, with a worse map RMSE (docs/algorithms/vision-fusion.md).
+MUNJER2025 = DaimParams(max_width_ratio=1.5)
 
 
 def depth_to_points(
@@ -185,6 +206,22 @@ def base_arc(
     return np.asarray(sl[pick, :2])
 
 
+def arc_width(arc: ArrayLike, origin_xy: ArrayLike) -> float:
+    """Visible width (m) of an arc seen from ``origin_xy``: its bearing span (rad) times its
+    median range. A cylinder of diameter D at range rho shows an arc D sqrt(1 - (D / 2 rho)^2)
+    wide, and a circle through the arc's ends is at least that wide.
+
+    Examples
+    --------
+    >>> a = np.array([[5.0, -0.1], [4.9, 0.0], [5.0, 0.1]])
+    >>> round(arc_width(a, [0.0, 0.0]), 3)
+    0.2
+    """
+    rel = np.asarray(arc, dtype=np.float64).reshape(-1, 2) - np.asarray(origin_xy, float)
+    bear = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
+    return float(np.ptp(bear) * np.median(np.hypot(rel[:, 0], rel[:, 1])))
+
+
 def daim_trunks(
     depth: ArrayLike,
     camera: CameraModel,
@@ -209,7 +246,8 @@ def daim_trunks(
     -------
     StemObservations in the body frame (``frame="laser"`` if ``camera_to_body`` is given,
     else "camera_level"), ``source="vision:munjer2025:<fit>"``; boxes where no cluster or arc
-    or fit was found are skipped (logged at debug level). ``index`` is the box index.
+    or fit was found are skipped (logged at debug level); a fit failing the width check
+    (``params.max_width_ratio``) keeps its centre with radius NaN. ``index`` is the box index.
     """
     b = boxes_xywh(boxes)
     centers, radii, npts, arcs, idx = [], [], [], [], []
@@ -222,7 +260,10 @@ def daim_trunks(
             body = camera_to_body.apply(pc)
         else:  # level camera: x right, y down, z forward -> x forward, y left, z up
             body = np.column_stack((pc[:, 2], -pc[:, 0], -pc[:, 1]))
-        body = body[cluster_trunk_points(body, eps=params.eps, min_samples=params.min_samples)]
+        eps = params.eps
+        if params.depth_noise_k is not None:
+            eps = max(eps, 2.0 * params.depth_noise_k * float(np.median(pc[:, 2])) ** 2)
+        body = body[cluster_trunk_points(body, eps=eps, min_samples=params.min_samples)]
         arc = base_arc(
             body,
             origin,
@@ -236,10 +277,16 @@ def daim_trunks(
         fit = fit_circle(arc, params.fit, origin=origin)
         if not fit:
             continue
+        radius = fit.radius
+        wide = params.max_width_ratio is not None and (
+            2.0 * radius > params.max_width_ratio * arc_width(arc, origin)
+        )
+        if wide:
+            radius = math.nan
         rel = arc - fit.center
         ang = np.degrees(np.ptp(np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))))
         centers.append(fit.center)
-        radii.append(fit.radius)
+        radii.append(radius)
         npts.append(arc.shape[0])
         arcs.append(ang)
         idx.append(i)
