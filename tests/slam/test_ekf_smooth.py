@@ -127,8 +127,9 @@ def test_observation_log_spill_leaves_the_result_unchanged(monkeypatch, update):
 def test_smooth_path_reads_a_stream_as_it_reads_arrays(monkeypatch):
     """``smooth_path`` on an :class:`ObservationLog` stream (spilled every 50 rows) gives the
     bytes it gives on the same four arrays; so it does with the measurements assembled 37 and
-    the odometry 16 at a time (blocks cut across the log's chunks and between frames)."""
+    the frames swept 16 at a time (blocks cut across the log's chunks and between frames)."""
     import stemmap.slam._ekf_smooth as sm
+    import stemmap.slam._ekf_stream as st
 
     rng = np.random.default_rng(4)
     n = 120
@@ -156,7 +157,7 @@ def test_smooth_path_reads_a_stream_as_it_reads_arrays(monkeypatch):
         assert got[2] == want[2]
         with monkeypatch.context() as m:
             m.setattr(sm, "_CHUNK", 37)
-            m.setattr(sm, "_ODO_CHUNK", 16)
+            m.setattr(st, "_SEG", 16)
             small = smooth_path(start, deltas, covs, stream, lm, marg, (1.0, 0.2), R1, map_cov=mc)
         np.testing.assert_array_equal(small[0], want[0])
         np.testing.assert_array_equal(small[1], want[1])

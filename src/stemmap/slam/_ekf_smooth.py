@@ -40,13 +40,13 @@ the other back-ends").
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded, solveh_banded
+from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.sparse import csr_matrix
 
-from stemmap.slam._spill import SpilledRows
+from stemmap.slam._spill import SpilledRanges, SpilledRows
 from stemmap.slam.base import IntArray
 from stemmap.slam.treedb import range_bearing_jacobians
 from stemmap.types import FloatArray, wrap_angle
@@ -55,9 +55,12 @@ __all__ = [
     "ObservationLog",
     "banded_lower",
     "chain_marginals",
+    "eliminate_chain",
+    "jacobian_rows",
     "map_error_covariance",
     "map_propagated_covariance",
     "odometry_terms",
+    "rts_backward",
     "smooth_path",
 ]
 
@@ -67,7 +70,6 @@ __all__ = [
 _ODO_FLOOR = np.diag([1e-6, 1e-6, 1e-8])
 _PRIOR_INFO = 1e10  # the first pose: the filter starts it with zero covariance
 _CHUNK = 20_000  # measurements per block of the normal-equation assembly (memory bound)
-_ODO_CHUNK = 8_192  # odometry factors per block of the normal-equation assembly
 
 
 _OBS_ROW = np.dtype(
@@ -281,14 +283,15 @@ def odometry_terms(
 def banded_lower(diag: FloatArray, off: FloatArray) -> FloatArray:
     """Lower banded storage (6, 3N) (:func:`scipy.linalg.solveh_banded`, ``lower=True``) of the
     block-tridiagonal symmetric matrix with diagonal blocks ``diag`` (N, 3, 3) and sub-diagonal
-    blocks ``off`` (N-1, 3, 3) (``off[k]`` = block ``(k+1, k)``)."""
+    blocks ``off`` (N-1, 3, 3) (``off[k]`` = block ``(k+1, k)``; N of them: the last one leads
+    to the frame after the block, as a block of a longer chain stores it)."""
     n = diag.shape[0]
     ab = np.zeros((6, 3 * n))
     for i in range(3):
         for k in range(i + 1):
             ab[i - k, k::3] = diag[:, i, k]
         for k in range(3):
-            ab[3 + i - k, k : 3 * (n - 1) : 3] = off[:, i, k]
+            ab[3 + i - k, k : 3 * off.shape[0] : 3] = off[:, i, k]
     return ab
 
 
@@ -303,20 +306,42 @@ def chain_marginals(diag: FloatArray, off: FloatArray) -> FloatArray:
     ``Σ_k = D_k⁻¹ + G_k Σ_(k+1) G_kᵀ`` with ``G_k = D_k⁻¹ B_(k+1)ᵀ`` (the conditional of pose k
     given pose k+1 has mean ``-G_k x_(k+1)`` and covariance ``D_k⁻¹``).
     """
+    out = rts_backward(eliminate_chain(diag, off), off)
+    return 0.5 * (out + out.transpose(0, 2, 1))
+
+
+def eliminate_chain(
+    diag: FloatArray, off: FloatArray, d_prev: FloatArray | None = None,
+    b_prev: FloatArray | None = None,
+) -> FloatArray:  # fmt: skip
+    """:func:`chain_marginals`' forward elimination ``D_k⁻¹`` (N, 3, 3) of a block of the
+    chain; ``d_prev``, ``b_prev``: the previous block's last ``D⁻¹`` and the block linking
+    it to this one's first frame (None at the start of the chain)."""
     n = diag.shape[0]
     d_inv = np.empty((n, 3, 3))
-    d = diag[0]
+    d = diag[0] if d_prev is None or b_prev is None else diag[0] - b_prev @ d_prev @ b_prev.T
     for k in range(n):
         if k:
             b = off[k - 1]
             d = diag[k] - b @ d_inv[k - 1] @ b.T
         d_inv[k] = np.linalg.inv(0.5 * (d + d.T))
+    return d_inv
+
+
+def rts_backward(d_inv: FloatArray, off: FloatArray, after: FloatArray | None = None) -> FloatArray:
+    """:func:`chain_marginals`' backward pass over a block (not yet symmetrised); ``after``:
+    the next block's first marginal (None at the end of the chain; ``off`` then has one block
+    per frame, the last leading to the next block's first frame)."""
+    n = d_inv.shape[0]
     out = np.empty((n, 3, 3))
-    out[-1] = d_inv[-1]
+    if after is None:
+        out[-1] = d_inv[-1]
+    else:
+        g = d_inv[-1] @ off[n - 1].T
+        out[-1] = d_inv[-1] + g @ after @ g.T
     for k in range(n - 2, -1, -1):
         g = d_inv[k] @ off[k].T
         out[k] = d_inv[k] + g @ out[k + 1] @ g.T
-    out = 0.5 * (out + out.transpose(0, 2, 1))
     return out
 
 
@@ -357,82 +382,87 @@ def smooth_path(
     residual² of the measurements before and after, the share down-weighted by Huber at the
     end).
 
-    Memory: the normal equations are O(N) (~0.85 kB per frame with the banded factor and the
-    chain marginals); the measurements are assembled ``_CHUNK`` at a time and the odometry
-    ``_ODO_CHUNK`` frames at a time, and the map term's sparse ``B`` holds 72 bytes per
-    measurement (docs/reliability.md "Soak").
+    Memory: every Gauss-Newton step is a forward sweep over the frames in order and a
+    backward sweep in reverse blocks (:mod:`stemmap.slam._ekf_stream`): the normal equations,
+    their factor, the iterates and the chain marginals' elimination go to temporary files
+    ``_SEG`` frames at a time and the measurements are read ``_CHUNK`` at a time, so beside
+    the inputs and the returned path and covariances the working set does not grow with the
+    drive; the result is the whole-band solve's bit for bit (docs/reliability.md "Soak").
     """
-    x = np.array(poses, dtype=np.float64)
-    n = x.shape[0]
+    from stemmap.slam import _ekf_stream as st
+
+    x0 = np.asarray(poses, dtype=np.float64)
+    n = x0.shape[0]
     a, b = sensor_offset
     ob = _ArrayObservations(obs) if isinstance(obs, tuple) else obs
     n_obs = ob.size
     stats: dict[str, float | int] = {"smoother_measurements": n_obs}
     if n < 2:  # the first pose is fixed where the filter started it
-        return x, np.full((n, 3, 3), 1.0 / _PRIOR_INFO) * np.eye(3), stats
-    it = 0
-    x_lin = x
+        return x0.copy(), np.full((n, 3, 3), 1.0 / _PRIOR_INFO) * np.eye(3), stats
+
+    def terms(
+        fr: IntArray, lj: IntArray, rz: FloatArray, bz: FloatArray, xs: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        return _measurement_terms(xs, lm_xy[lj], lm_cov[lj], rz, bz, a, b, R1, huber_k)
+
+    def reader(store: SpilledRanges | None) -> Callable[[int, int], FloatArray]:
+        if store is None:
+            return lambda lo, hi: x0[lo:hi].copy()
+        return lambda lo, hi: store.get(lo, hi)[0]
+
+    cur: SpilledRanges | None = None  # the iterate (None: the filter's poses)
+    lin: SpilledRanges | None = None  # the iterate the last step was linearised at
+    step: st.StreamedStep | None = None
+    it, d2_sum, n_huber = 0, 0.0, 0
     for it in range(1, iterations + 1):
-        x_lin = x.copy()  # the linearisation point of this step (the map term's, below)
-        diag = np.zeros((n, 3, 3))
-        off = np.zeros((n - 1, 3, 3))  # block (f, f-1)
-        g = np.zeros((n, 3))
-        diag[0] += _PRIOR_INFO * np.eye(3)
-        e0 = np.asarray(poses[0], dtype=np.float64) - x[0]
-        e0[2] = wrap_angle(e0[2])
-        g[0] += _PRIOR_INFO * e0
-        # ---- odometry factors, in blocks of frames (bounded temporaries; each of diag[k],
-        # g[k] gets at most two terms on a zero, so the block cuts do not change a bit)
-        for lo in range(0, n - 1, _ODO_CHUNK):
-            hi = min(lo + _ODO_CHUNK, n - 1)
-            om = np.linalg.inv(covs[lo:hi] + _ODO_FLOOR)
-            Haa, Hbb, Hba, ga, gb = odometry_terms(x[lo : hi + 1], deltas[lo:hi], om)
-            diag[lo:hi] += Haa
-            diag[lo + 1 : hi + 1] += Hbb
-            off[lo:hi] += Hba
-            g[lo:hi] += ga
-            g[lo + 1 : hi + 1] += gb
-        # ---- measurement factors, in blocks (bounded memory on long drives)
-        d2_sum, n_huber = 0.0, 0
-        for fr, lj, rz, bz in ob.blocks(_CHUNK):
-            H_m, g_m, d2, _ = _measurement_terms(
-                x[fr], lm_xy[lj], lm_cov[lj], rz, bz, a, b, R1, huber_k
-            )
-            np.add.at(diag, fr, H_m)
-            np.add.at(g, fr, g_m)
-            d2_sum += float(d2.sum())
-            n_huber += int((d2 > huber_k * huber_k).sum())
+        if step is not None:
+            step.close()
+        if lin is not None:
+            lin.close()
+        lin, at = cur, reader(cur)
+        step = st.StreamedStep(n, at, x0[0], deltas, covs, st._SEG)
+        d2_sum, n_huber = step.assemble(ob, terms, huber_k)
         if it == 1:
             stats["smoother_meas_d2_before"] = d2_sum / n_obs if n_obs else math.nan
-        # ---- banded Cholesky solve of the block-tridiagonal normal equations
-        step = solveh_banded(banded_lower(diag, off), g.reshape(-1), lower=True).reshape(n, 3)
-        x += step
-        x[:, 2] = wrap_angle(x[:, 2])
-        if np.abs(step[:, :2]).max() < 1e-4 and np.abs(step[:, 2]).max() < 1e-6:
+        cur = SpilledRanges("stemmap-path-")
+        big_xy = big_th = 0.0
+        for lo, hi, dx in step.solution():
+            xs = at(lo, hi) + dx
+            xs[:, 2] = wrap_angle(xs[:, 2])
+            cur.put(lo, (xs,))
+            big_xy = max(big_xy, float(np.abs(dx[:, :2]).max()))
+            big_th = max(big_th, float(np.abs(dx[:, 2]).max()))
+        if big_xy < 1e-4 and big_th < 1e-6:
             break
+    assert step is not None and cur is not None
     stats["smoother_iterations"] = it
     stats["smoother_meas_d2_after"] = d2_sum / n_obs if n_obs else math.nan
     stats["smoother_huber_share"] = n_huber / n_obs if n_obs else 0.0
-    cov = chain_marginals(diag, off)
+    cov = st.chain_marginals_streamed(step)
     k_map = float(map_cov_inflation)
     if map_cov is not None:
-        # the gradient's sensitivity to the map at the last step's linearisation point,
-        # recomputed block by block (not kept over the iterations)
+        # the gradient's sensitivity to the map at the last step's linearisation point
+        at = reader(lin)
+
         def sensitivities() -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
             for fr, lj, rz, bz in ob.blocks(_CHUNK):
-                *_, Bm = _measurement_terms(
-                    x_lin[fr], lm_xy[lj], lm_cov[lj], rz, bz, a, b, R1, huber_k
-                )
+                f0 = int(fr[0])
+                *_, Bm = terms(fr, lj, rz, bz, at(f0, int(fr[-1]) + 1)[fr - f0])
                 yield fr, lj, Bm
 
-        B = _map_jacobian(n, map_cov.shape[0], n_obs, sensitivities())
-        term = _map_term(diag, off, B, map_cov)
+        term = st.map_term_streamed(step, sensitivities(), map_cov)
         cov[1:] += k_map * term[1:]
     else:
         fr, lj, _, _ = ob.arrays()
         cov[1:, :2, :2] += (
             k_map * map_error_covariance(n, fr, lm_cov[lj] if lj.size else lm_cov[:0])[1:]
         )
+    x = np.empty((n, 3))
+    for lo, hi in step.spans:
+        x[lo:hi] = cur.get(lo, hi)[0]
+    for done in (step, cur, lin):
+        if done is not None:
+            done.close()
     return x, cov, stats
 
 
@@ -453,16 +483,7 @@ def _map_jacobian(
     nnz = 0
     for frame, lm, Bm in _frame_aligned(blocks):
         f0, f1 = int(frame[0]), int(frame[-1])
-        r = 3 * (frame - f0)[:, None, None] + np.arange(3)[None, :, None]
-        c = 2 * lm[:, None, None] + np.arange(2)[None, None, :]
-        shape = (3 * (f1 - f0 + 1), m2)
-        part = csr_matrix(
-            (
-                Bm.reshape(-1),
-                (np.broadcast_to(r, Bm.shape).ravel(), np.broadcast_to(c, Bm.shape).ravel()),
-            ),
-            shape=shape,
-        )
+        part = jacobian_rows(frame - f0, lm, Bm, f1 - f0 + 1, m2)
         k = part.nnz
         data[nnz : nnz + k] = part.data
         indices[nnz : nnz + k] = part.indices
@@ -470,6 +491,16 @@ def _map_jacobian(
         nnz += k
     indptr = np.cumsum(counts)
     return csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(3 * n, m2))
+
+
+def jacobian_rows(frame: IntArray, lm: IntArray, Bm: FloatArray, n: int, m2: int) -> csr_matrix:
+    """Rows ``3 frame .. 3 frame + 2`` (``frame`` in ``[0, n)``, non-decreasing) of ``B``
+    (:func:`_map_jacobian`) from the 3x2 blocks ``Bm`` at landmarks ``lm``, canonical CSR
+    (a row's entries are its frame's, so any cut between frames gives the same rows)."""
+    r = 3 * frame[:, None, None] + np.arange(3)[None, :, None]
+    c = 2 * lm[:, None, None] + np.arange(2)[None, None, :]
+    rc = (np.broadcast_to(r, Bm.shape).ravel(), np.broadcast_to(c, Bm.shape).ravel())
+    return csr_matrix((Bm.reshape(-1), rc), shape=(3 * n, m2))
 
 
 def _frame_aligned(

@@ -14,13 +14,17 @@ so a result computed from them does not depend on where the chunks were cut.
 * :class:`SpilledRows`: an append-only table of fixed-size records (a structured dtype) with
   at most ``resident_rows`` in memory; :meth:`SpilledRows.chunks` yields every row in order
   (or in reverse), chunk by chunk.
+* :class:`SpilledRanges`: a table whose row ranges are written in any order (a backward pass
+  writes its blocks last first) and read back by row range.
 
-Used by :class:`stemmap.slam._ekf_smooth.ObservationLog` and
-:class:`stemmap.slam._graph_leftout.LeftOutMeasurements` (docs/reliability.md "Soak").
+Used by :class:`stemmap.slam._ekf_smooth.ObservationLog`, the EKF smoother's streamed solves
+(:mod:`stemmap.slam._ekf_stream`) and :class:`stemmap.slam._graph_leftout.LeftOutMeasurements`
+(docs/reliability.md "Soak").
 """
 
 from __future__ import annotations
 
+import bisect
 import tempfile
 import weakref
 from collections.abc import Iterator, Sequence
@@ -29,7 +33,7 @@ from typing import IO
 import numpy as np
 from numpy.typing import DTypeLike
 
-__all__ = ["SpillFile", "SpilledRows"]
+__all__ = ["SpillFile", "SpilledRanges", "SpilledRows"]
 
 
 class SpillFile:
@@ -166,4 +170,50 @@ class SpilledRows:
 
     def close(self) -> None:
         """Remove the spill file (the resident rows stay readable; nothing more is spilled)."""
+        self._file.close()
+
+
+class SpilledRanges:
+    """Rows of a table written as blocks ``[lo, lo + len)`` in any order, read back by range.
+
+    Each block is one :class:`SpillFile` chunk (a tuple of arrays with the rows on axis 0);
+    memory holds the blocks' ranges and the last block read (sequential reads of a range at a
+    time read each block once).
+    """
+
+    def __init__(self, prefix: str = "stemmap-ranges-") -> None:
+        self._file = SpillFile(prefix)
+        self._lo: list[int] = []
+        self._hi: list[int] = []
+        self._idx: list[int] = []
+        self._last: tuple[int, tuple[np.ndarray, ...]] | None = None
+
+    def put(self, lo: int, arrays: Sequence[np.ndarray]) -> None:
+        """Write rows ``[lo, lo + len(arrays[0]))`` (ranges must not overlap)."""
+        hi = lo + int(np.shape(arrays[0])[0])
+        at = bisect.bisect(self._lo, lo)
+        self._lo.insert(at, lo)
+        self._hi.insert(at, hi)
+        self._idx.insert(at, self._file.append(arrays))
+
+    def get(self, lo: int, hi: int) -> tuple[np.ndarray, ...]:
+        """Rows ``[lo, hi)`` of every array (copies; the range must have been written)."""
+        parts: list[tuple[np.ndarray, ...]] = []
+        at = bisect.bisect(self._lo, lo) - 1
+        while lo < hi:
+            b0, b1, c = self._lo[at], self._hi[at], self._idx[at]
+            if not b0 <= lo < b1:
+                raise KeyError(f"row {lo} was not written")
+            if self._last is None or self._last[0] != c:
+                self._last = (c, self._file.read(c))
+            parts.append(tuple(a[lo - b0 : min(hi, b1) - b0] for a in self._last[1]))
+            lo = min(hi, b1)
+            at += 1
+        if len(parts) == 1:
+            return tuple(a.copy() for a in parts[0])
+        return tuple(np.concatenate(cols) for cols in zip(*parts, strict=True))
+
+    def close(self) -> None:
+        """Remove the temporary file."""
+        self._last = None
         self._file.close()

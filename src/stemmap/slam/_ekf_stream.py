@@ -1,0 +1,352 @@
+"""The EKF path smoother's normal equations solved frame block by frame block (ours).
+
+:func:`stemmap.slam._ekf_smooth.smooth_path` solves, at every Gauss-Newton step, ``H δ = g``
+with ``H`` block-tridiagonal (3x3 blocks per frame: the odometry chain plus the measurements;
+lower half-bandwidth ``KD = 5`` in LAPACK's banded storage), then takes the chain marginals of
+the last ``H`` (the Rauch-Tung-Striebel backward pass in information form; Rauch, Tung &
+Striebel, AIAA J. 3(8), 1965) and propagates the map's joint covariance through it. Held
+whole, that is ~0.85 kB per frame (the band, its factor, ``diag``/``off``, the iterates, the
+marginals) plus 72 bytes per measurement: 95 MB at 10x Victoria Park. Here every pass is a
+forward sweep over the frames in order (assembly, Cholesky factor, forward substitution, the
+elimination of the chain marginals), ``_SEG`` frames at a time, whose per-frame results go to
+a temporary file (:class:`stemmap.slam._spill.SpilledRanges`), and a backward sweep reading
+them back last block first (back substitution, the RTS pass, the map term). The working set
+is a few blocks whatever the drive length, beside the products (path, covariances, the map
+term's (N, 3, 3) sum) and the map term's forward solution of one column block (3 N x columns
+doubles, at most ``block_mb`` = 32 MB: the same bound, and the same column blocks, as the whole
+solve's); the estimates are those of the whole-band solve **bit for bit**:
+
+* **Factor.** For ``KD`` below LAPACK's block size ``dpbtrf`` is the unblocked right-looking
+  ``dpbtf2``: column ``j`` is scaled by ``1/√a_jj`` and its outer product subtracted from the
+  next ``KD`` columns. A block ``[s, m)`` is factored by ``dpbtrf`` itself; its last ``KD``
+  columns then have seen their scaling and updates only up to row ``m - 1``, so the entries
+  they owe rows ``m..m+KD-1`` are scaled and updated here in LAPACK's order and with its
+  operations (``x * (1/a_jj)``, ``a + x_p * (-x_q)``, one rounding each: the BLAS build has no
+  fused multiply-add there, checked by ``tests/slam/test_ekf_stream.py`` against one call over
+  the whole band) and carried into the next block.
+* **Substitutions** (``dpbtrs`` is ``dtbsv`` forward then transposed per right-hand side):
+  ``dtbtrs`` (the same ``dtbsv`` per right-hand side) over the block plus ``KD`` identity
+  columns, so the block's columns run with their full length and the identity columns leave
+  the carried values as they are (``x / 1``, ``x - y * 0``).
+* **Assembly.** Each diagonal block gets at most two odometry terms on a zero (their order
+  does not change a bit) and then the measurement terms in the log's order (``np.add.at`` on
+  the same rows); the measurements are read in the same ``_CHUNK`` blocks as before (the
+  residual sums are taken per block).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import numpy as np
+from scipy.linalg.lapack import dpbtrf, dtbtrs
+from scipy.sparse import csr_matrix
+
+import stemmap.slam._ekf_smooth as sm
+from stemmap.slam._spill import SpilledRanges, SpillFile
+from stemmap.slam.base import IntArray
+from stemmap.types import FloatArray, wrap_angle
+
+__all__ = [
+    "KD",
+    "StreamedStep",
+    "band_backward",
+    "band_forward",
+    "chain_marginals_streamed",
+    "map_term_streamed",
+]
+
+KD = 5  # lower half-bandwidth of a 3x3 block-tridiagonal matrix
+_SEG = 1024  # frames per block of the sweeps
+_ID = np.zeros((KD + 1, KD))
+_ID[0] = 1.0  # KD identity columns in banded storage
+
+
+def band_forward(
+    ab: FloatArray, rhs: FloatArray, m: int, *, factor: bool, last: bool
+) -> tuple[FloatArray, FloatArray]:
+    """Factor (``factor``) and forward-substitute the leading ``m`` columns of a banded block.
+
+    ab : (KD+1, c) lower banded storage of columns ``[s, s + c)``, ``c >= m + KD`` unless the
+        block is the ``last`` of the matrix (``c = m``); the first ``KD`` columns (and rows of
+        ``rhs``) hold what the previous block carried
+    rhs : (c, r) right-hand sides (the first ``m + KD`` rows are read)
+
+    Returns the band (the factor if ``factor``) with columns ``[0, m)`` final and ``[m, m +
+    KD)`` carried, and the forward solution ``L⁻¹ rhs`` likewise (rows ``[0, m + KD)``).
+    """
+    t = np.array(ab, order="F")
+    if factor:
+        t[:, :m], info = dpbtrf(t[:, :m], lower=1)
+        if info:
+            raise np.linalg.LinAlgError(f"smoother information not positive definite ({info})")
+        for j in range(max(0, m - KD), 0 if last else m):  # what dpbtf2 owes rows >= m
+            x = t[1:, j]
+            x[m - j - 1 :] = x[m - j - 1 :] * (1.0 / t[0, j])
+            for q in range(KD):
+                for p in range(max(q, m - j - 1), KD):
+                    t[p - q, j + 1 + q] = t[p - q, j + 1 + q] + x[p] * (-x[q])
+    a = t[:, :m] if last else np.concatenate((t[:, :m], _ID), axis=1)
+    y, info = dtbtrs(np.asfortranarray(a), rhs[: a.shape[1]], uplo="L", trans="N")
+    if info:
+        raise np.linalg.LinAlgError(f"singular smoother factor ({info})")
+    return t, y
+
+
+def band_backward(t: FloatArray, y: FloatArray, after: FloatArray | None) -> FloatArray:
+    """Back substitution ``L⁻ᵀ y`` of one block (factor ``t`` (KD+1, m), forward solution
+    ``y`` (m, r)) given the solution's first ``KD`` rows of the next block (``after``; None
+    for the last block)."""
+    m = t.shape[1]
+    if after is not None:
+        t = np.concatenate((t, _ID), axis=1)
+        y = np.concatenate((y, after[:KD]), axis=0)
+    x, info = dtbtrs(np.asfortranarray(t), y, uplo="L", trans="T")
+    if info:
+        raise np.linalg.LinAlgError(f"singular smoother factor ({info})")
+    return x[:m]
+
+
+class StreamedStep:
+    """One Gauss-Newton step of :func:`~stemmap.slam._ekf_smooth.smooth_path`, streamed.
+
+    ``x_at(lo, hi)`` gives the current iterate's poses ``[lo, hi)``; ``deltas``/``covs`` slice
+    like arrays. :meth:`assemble` reads the measurements once, builds the normal equations as
+    frames complete and factors / forward-solves them ``seg`` frames at a time into a
+    temporary file (per frame: the factor's 3 columns, the forward solution, ``diag``,
+    ``off``); :meth:`solution` yields the step last block first.
+    """
+
+    def __init__(
+        self, n: int, x_at: Callable[[int, int], FloatArray], prior: FloatArray, deltas: FloatArray,
+        covs: FloatArray, seg: int,
+    ) -> None:  # fmt: skip
+        self.n, self.x_at, self.prior = n, x_at, np.asarray(prior, dtype=np.float64)
+        self.deltas, self.covs, self.seg = deltas, covs, max(2, int(seg))
+        self.factor = SpilledRanges("stemmap-factor-")  # per frame: 3 factor columns, L⁻¹g
+        self.chain = SpilledRanges("stemmap-chain-")  # per frame: diag, off
+        self.spans: list[tuple[int, int]] = []
+        self._w0 = self._e = 0  # window: frames [w0, e) entered
+        self._diag = np.zeros((0, 3, 3))
+        self._off = np.zeros((0, 3, 3))
+        self._g = np.zeros((0, 3))
+        self._ahead: tuple[FloatArray, FloatArray] | None = None  # next frame's Hbb, gb
+        self._carry: tuple[FloatArray, FloatArray] | None = None
+
+    def _enter(self, upto: int) -> None:
+        """Frames ``[e, upto)`` (at most ``seg`` more) with their prior / odometry terms."""
+        e, hi = self._e, upto
+        if hi <= e:
+            return
+        cnt = hi - e
+        Z, Zo, G = np.zeros((cnt, 3, 3)), np.zeros((cnt, 3, 3)), np.zeros((cnt, 3))
+        if e == 0:
+            Z[0] += sm._PRIOR_INFO * np.eye(3)
+            e0 = self.prior - self.x_at(0, 1)[0]
+            e0[2] = wrap_angle(e0[2])
+            G[0] += sm._PRIOR_INFO * e0
+        elif self._ahead is not None:
+            Z[0] += self._ahead[0]
+            G[0] += self._ahead[1]
+        k1 = min(hi, self.n - 1)  # odometry factors [e, k1); factor k: frames k, k + 1
+        if k1 > e:
+            om = np.linalg.inv(self.covs[e:k1] + sm._ODO_FLOOR)
+            Haa, Hbb, Hba, ga, gb = sm.odometry_terms(self.x_at(e, k1 + 1), self.deltas[e:k1], om)
+            nk, inside = k1 - e, min(k1 - e, cnt - 1)
+            Z[:nk] += Haa
+            Zo[:nk] += Hba
+            G[:nk] += ga
+            Z[1 : 1 + inside] += Hbb[:inside]
+            G[1 : 1 + inside] += gb[:inside]
+            self._ahead = (Hbb[-1], gb[-1]) if nk > inside else None
+        self._diag = np.concatenate((self._diag, Z))
+        self._off = np.concatenate((self._off, Zo))
+        self._g = np.concatenate((self._g, G))
+        self._e = hi
+
+    def _advance(self, to: int) -> None:
+        """Enter the frames before ``to`` (none of them gets more terms), ``seg`` at a time,
+        factoring as blocks complete."""
+        while self._e < to:
+            self._enter(min(to, self._e + self.seg))
+            self._push(self._e)
+        self._push(to)
+
+    def _push(self, complete: int, *, final: bool = False) -> None:
+        """Factor the window's frames before ``complete``: all of them if ``final``, else all
+        but the two the carry reaches into, once there are ``seg`` of those."""
+        k = complete - self._w0
+        nf = k if final else k - 2
+        if nf < (1 if final else self.seg):
+            return
+        ab = sm.banded_lower(self._diag[:k], self._off[:k])
+        rhs = self._g[:k].reshape(-1, 1).copy()
+        if self._carry is not None:
+            ab[:, :KD], rhs[:KD] = self._carry
+        m = 3 * nf
+        t, y = band_forward(ab, rhs, m, factor=True, last=final)
+        w0 = self._w0
+        band = t[:, :m].T.reshape(nf, 3, KD + 1)
+        self.factor.put(w0, (band, y[:m].reshape(nf, 3)))
+        self.chain.put(w0, (self._diag[:nf], self._off[:nf]))
+        self.spans.append((w0, w0 + nf))
+        self._carry = None if final else (t[:, m : m + KD].copy(), y[m : m + KD].copy())
+        self._diag, self._off, self._g = self._diag[nf:], self._off[nf:], self._g[nf:]
+        self._w0 = w0 + nf
+
+    def assemble(
+        self, ob: sm.ResolvedObservations | sm._ArrayObservations, terms: MeasTerms, huber_k: float
+    ) -> tuple[float, int]:
+        """Build, factor and forward-solve the step's normal equations; ``terms(fr, lj, rz, bz,
+        xs)`` are a measurement block's ``_measurement_terms`` at poses ``xs``. Returns the
+        sum of the whitened residuals² and the number of Huber-weighted measurements."""
+        d2_sum, n_huber = 0.0, 0
+        for fr, lj, rz, bz in ob.blocks(sm._CHUNK):
+            f0 = int(fr[0])
+            H_m, g_m, d2, _ = terms(fr, lj, rz, bz, self.x_at(f0, int(fr[-1]) + 1)[fr - f0])
+            d2_sum += float(d2.sum())
+            n_huber += int((d2 > huber_k * huber_k).sum())
+            i = 0
+            while i < fr.size:  # (np.add.at row by row: the same sums in any cut)
+                j = int(np.searchsorted(fr, fr[i] + self.seg))
+                self._advance(int(fr[i]))
+                self._enter(int(fr[j - 1]) + 1)
+                w = fr[i:j] - self._w0
+                np.add.at(self._diag, w, H_m[i:j])
+                np.add.at(self._g, w, g_m[i:j])
+                i = j
+        self._advance(self.n)
+        self._push(self.n, final=True)
+        return d2_sum, n_huber
+
+    def solution(self) -> Iterator[tuple[int, int, FloatArray]]:
+        """``(lo, hi, step (hi - lo, 3))`` per block, last block first."""
+        after = None
+        for lo, hi in reversed(self.spans):
+            band, y = self.factor.get(lo, hi)
+            after = band_backward(_band(band), y.reshape(-1, 1), after)
+            yield lo, hi, after.reshape(-1, 3)
+
+    def close(self) -> None:
+        self.factor.close()
+        self.chain.close()
+
+
+MeasTerms = Callable[
+    [IntArray, IntArray, FloatArray, FloatArray, FloatArray],
+    tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+]
+
+
+def _band(rows: FloatArray) -> FloatArray:
+    """(nf, 3, KD+1) per-frame factor rows -> (KD+1, 3 nf) banded storage."""
+    return rows.reshape(-1, KD + 1).T
+
+
+def chain_marginals_streamed(step: StreamedStep) -> FloatArray:
+    """:func:`~stemmap.slam._ekf_smooth.chain_marginals` of the step's ``diag``/``off``
+    (read block by block; the (N, 3, 3) result is the product)."""
+    d_inv = SpilledRanges("stemmap-chain-")
+    d_prev = b_prev = None
+    for lo, hi in step.spans:
+        diag, off = step.chain.get(lo, hi)
+        di = sm.eliminate_chain(diag, off, d_prev, b_prev)
+        d_inv.put(lo, (di,))
+        d_prev, b_prev = di[-1], off[-1]
+    out = np.empty((step.n, 3, 3))
+    nxt = None
+    for lo, hi in reversed(step.spans):
+        _, off = step.chain.get(lo, hi)
+        (di,) = d_inv.get(lo, hi)
+        blk = sm.rts_backward(di, off, nxt)
+        nxt = blk[0]
+        out[lo:hi] = 0.5 * (blk + blk.transpose(0, 2, 1))
+    d_inv.close()
+    return out
+
+
+def map_term_streamed(
+    step: StreamedStep, sens: Iterator[tuple[IntArray, IntArray, FloatArray]], map_cov: FloatArray,
+    *, columns: int = 128, block_mb: float = 32.0,
+) -> FloatArray:  # fmt: skip
+    """:func:`~stemmap.slam._ekf_smooth.map_propagated_covariance` streamed: ``B`` (the
+    per-measurement sensitivities ``sens``, frames non-decreasing) kept per block in a
+    temporary file, ``H⁻¹ B U`` solved block by block on the step's factor for each column
+    block of ``U`` (the same column blocks as the whole solve: the same sums)."""
+    n, m2 = step.n, map_cov.shape[0]
+    out = np.zeros((n, 3, 3))
+    store = SpillFile("stemmap-mapterm-")
+    chunks, nnz = _b_parts(step.spans, sens, m2, store)
+    if nnz == 0 or m2 == 0:
+        store.close()
+        return out
+    S = 0.5 * (map_cov + map_cov.T)
+    try:
+        U = np.linalg.cholesky(S)  # S = U Uᵀ
+    except np.linalg.LinAlgError:  # the filter's P may be marginally indefinite
+        w, V = np.linalg.eigh(S)
+        U = V * np.sqrt(np.clip(w, 0.0, None))
+    columns = max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
+    spans = step.spans
+
+    def bu(i: int, Uc: np.ndarray) -> FloatArray:
+        lo, hi = spans[i]
+        data, indices, indptr = store.read(chunks[i])
+        return csr_matrix((data, indices, indptr), shape=(3 * (hi - lo), m2)) @ Uc
+
+    for c0 in range(0, m2, columns):
+        Uc = U[:, c0 : c0 + columns]
+        ys: list[FloatArray] = []  # L⁻¹ B U_c: 3 N x columns doubles at most (block_mb)
+        carry, nxt = None, bu(0, Uc)
+        for i, (lo, hi) in enumerate(spans):
+            rhs, last = nxt, i == len(spans) - 1
+            if carry is not None:
+                rhs[:KD] = carry
+            if not last:
+                nxt = bu(i + 1, Uc)
+                rhs = np.concatenate((rhs, nxt[:KD]), axis=0)
+            band, _ = step.factor.get(lo, hi)
+            m = 3 * (hi - lo)
+            _, y = band_forward(_band(band), rhs, m, factor=False, last=last)
+            ys.append(y[:m])
+            carry = y[m : m + KD]
+        after = None
+        for lo, hi in reversed(spans):
+            band, _ = step.factor.get(lo, hi)
+            after = band_backward(_band(band), ys.pop(), after)
+            M = after.reshape(hi - lo, 3, -1)
+            out[lo:hi] += M @ M.transpose(0, 2, 1)
+    store.close()
+    return out
+
+
+def _b_parts(
+    spans: list[tuple[int, int]], sens: Iterator[tuple[IntArray, IntArray, FloatArray]], m2: int,
+    store: SpillFile,
+) -> tuple[list[int], int]:  # fmt: skip
+    """``B``'s rows of each block ``[lo, hi)`` of ``spans`` as a CSR (data, indices, indptr)
+    chunk of ``store`` (:func:`~stemmap.slam._ekf_smooth.jacobian_rows`: the rows of the whole
+    ``B``). Returns the chunk indices and the number of entries."""
+    chunks: list[int] = []
+    nnz = 0
+    held: list[tuple[IntArray, IntArray, FloatArray]] = []
+
+    def emit(lo: int, hi: int) -> None:
+        nonlocal held, nnz
+        fr, lm, Bm = (np.concatenate(p) for p in zip(*held, strict=True)) if held else _NONE
+        k = int(np.searchsorted(fr, hi))
+        part = sm.jacobian_rows(fr[:k] - lo, lm[:k], Bm[:k], hi - lo, m2)
+        chunks.append(store.append((part.data, part.indices, part.indptr)))
+        nnz += part.nnz
+        held = [(fr[k:], lm[k:], Bm[k:])] if k < fr.size else []
+
+    for blk in sens:
+        held.append(blk)
+        while len(chunks) < len(spans) and blk[0][-1] >= spans[len(chunks)][1]:
+            emit(*spans[len(chunks)])
+    while len(chunks) < len(spans):
+        emit(*spans[len(chunks)])
+    return chunks, nnz
+
+
+_NONE = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3, 2)))

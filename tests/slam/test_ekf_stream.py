@@ -1,0 +1,107 @@
+"""The EKF smoother's normal equations solved block by block (stemmap.slam._ekf_stream)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import tracemalloc
+
+import numpy as np
+import pytest
+from scipy.linalg import cho_solve_banded, cholesky_banded, solveh_banded
+from test_ekf_smooth import _drifted_chain, _observe, _random_chain
+
+import stemmap.slam._ekf_smooth as sm
+import stemmap.slam._ekf_stream as st
+from stemmap.slam._ekf_smooth import banded_lower, smooth_path
+
+
+def _blocked(ab: np.ndarray, rhs: np.ndarray, cuts: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Factor and solve the banded system frame block by frame block (blocks end at ``cuts``,
+    in frames), as :class:`~stemmap.slam._ekf_stream.StreamedStep` does."""
+    nc = ab.shape[1]
+    bands, ys, spans = [], [], []
+    carry = None
+    edges = [0, *cuts, nc // 3]
+    for lo, hi in itertools.pairwise(edges):
+        last = hi == nc // 3
+        end = 3 * hi if last else 3 * hi + st.KD
+        a, r = ab[:, 3 * lo : end].copy(), rhs[3 * lo : end].copy()
+        if carry is not None:
+            a[:, : st.KD], r[: st.KD] = carry
+        m = 3 * (hi - lo)
+        t, y = st.band_forward(a, r, m, factor=True, last=last)
+        bands.append(t[:, :m])
+        ys.append(y[:m])
+        spans.append((lo, hi))
+        carry = None if last else (t[:, m : m + st.KD], y[m : m + st.KD])
+    x, after = [], None
+    for band, y in zip(reversed(bands), reversed(ys), strict=True):
+        after = st.band_backward(band, y, after)
+        x.append(after)
+    return np.concatenate(bands, axis=1), np.concatenate(x[::-1])
+
+
+@pytest.mark.parametrize("cuts", [[2], [2, 4, 9], [5, 7, 9, 20, 22, 24], [45]])
+def test_blocks_give_the_bytes_of_one_lapack_call(cuts):
+    """Factor and solution of a block-tridiagonal SPD system cut into frame blocks of 2-45
+    frames equal ``cholesky_banded`` and ``solveh_banded`` over the whole band bit for bit
+    (one and three right-hand sides): the carried LAPACK arithmetic (``x * (1/a_jj)``,
+    ``a + x_p * (-x_q)``, dtbsv per column) is the arithmetic of one call."""
+    rng = np.random.default_rng(11)
+    n = 47
+    diag, off, _ = _random_chain(rng, n)
+    diag[:, 0, 0] *= rng.uniform(0.5, 2e3, n)  # a spread of scales (rounding is exercised)
+    ab = banded_lower(diag, off)
+    for r in (1, 3):
+        rhs = rng.normal(size=(3 * n, r)) * 10.0 ** rng.integers(-3, 4, (3 * n, 1))
+        factor, x = _blocked(ab, rhs, cuts)
+        np.testing.assert_array_equal(factor, cholesky_banded(ab, lower=True))
+        if r == 1:
+            np.testing.assert_array_equal(x, solveh_banded(ab, rhs, lower=True))
+        np.testing.assert_array_equal(x, cho_solve_banded((factor, True), rhs))
+
+
+def _long_drive(n: int, seed: int = 2) -> tuple:
+    """A slow arc of ``n`` frames past 6 landmarks, each frame seeing up to 2 (smooth_path's
+    arguments, a drifted start)."""
+    rng = np.random.default_rng(seed)
+    th = np.linspace(0.0, 1.2, n)
+    true = np.column_stack((60 * np.sin(th), 60 * (1 - np.cos(th)), th))
+    lm = np.column_stack((60 * np.sin(np.linspace(0, 1.2, 6)) * 1.1, np.linspace(0, 25, 6)))
+    obs = _observe(true, lm, (1.0, 0.2), 30.0, 2, rng, (0.2, math.radians(1.0)))
+    deltas, covs, _, start = _drifted_chain(true)
+    R1 = np.diag([0.2**2, math.radians(1.0) ** 2])
+    marg = np.broadcast_to(0.01 * np.eye(2), (lm.shape[0], 2, 2)).copy()
+    S = 0.1**2 * np.eye(2 * lm.shape[0]) + 0.02**2
+    return (start, deltas, covs, obs, lm, marg, (1.0, 0.2), R1), S
+
+
+def test_tiny_blocks_keep_the_working_set_bounded_and_the_result_unchanged(monkeypatch):
+    """``smooth_path`` on 8,000 frames with the frames swept 64 at a time and the
+    measurements assembled 500 at a time: the same path, covariances and statistics bit for
+    bit as one block over the whole drive (``_SEG`` above the frame count: the whole-band
+    solve), and beside its inputs and the (N, 3) + (N, 3, 3) result it allocates at most
+    ~1.1 MB more (peak, tracemalloc), where the whole-band solve held the band, its factor,
+    ``diag``/``off``, the iterates and the marginals: ~0.9 kB per frame, 7 MB here."""
+    args, S = _long_drive(8_000)
+    n = args[0].shape[0]
+    monkeypatch.setattr(sm, "_CHUNK", 500)
+    peaks, outs = {}, {}
+    for seg in (64, n + 1):
+        monkeypatch.setattr(st, "_SEG", seg)
+        tracemalloc.start()
+        outs[seg] = smooth_path(*args, map_cov=S)
+        peaks[seg] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    small, whole = outs[64], outs[n + 1]
+    np.testing.assert_array_equal(small[0], whole[0])
+    np.testing.assert_array_equal(small[1], whole[1])
+    assert small[2] == whole[2] and small[2]["smoother_iterations"] > 1
+    # the path and covariances returned, the map term summed over its column blocks (N x 3 x
+    # 3) and its forward solution (3 N x 2L doubles: bounded by block_mb, as the whole
+    # solve's), then a few blocks' working arrays
+    result = n * 8 * (3 + 9 + 9)
+    ys = 3 * n * S.shape[0] * 8
+    assert peaks[64] < result + ys + 1.1e6
+    assert peaks[n + 1] > result + ys + 5e6  # (the bound is not trivially met)
