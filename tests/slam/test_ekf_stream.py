@@ -105,3 +105,39 @@ def test_tiny_blocks_keep_the_working_set_bounded_and_the_result_unchanged(monke
     ys = 3 * n * S.shape[0] * 8
     assert peaks[64] < result + ys + 1.1e6
     assert peaks[n + 1] > result + ys + 5e6  # (the bound is not trivially met)
+
+
+@pytest.mark.parametrize("update", ["compressed", "full"])
+@pytest.mark.parametrize("smooth", [True, False])
+def test_filter_inputs_on_disk_leave_the_result_unchanged(monkeypatch, update, smooth):
+    """EkfSlam with the pre-integrated odometry and the filtered poses kept 7 rows in memory
+    (the rest in their temporary files) and the smoother sweeping 5 frames at a time: the
+    same path, covariances, map and statistics bit for bit as with the defaults."""
+    from _synthetic import loop_problem
+
+    import stemmap.slam._ekf_compressed as ekf_c
+    import stemmap.slam.ekf as ekf_mod
+    from stemmap.slam.ekf import EkfSlam
+
+    problem, *_ = loop_problem(1, laps=1.3)
+    ref = EkfSlam(update=update, smooth=smooth).run(problem)
+    made: list[st.FrameInputs] = []
+
+    class Small(st.FrameInputs):
+        def __init__(self, deltas: np.ndarray, covs: np.ndarray) -> None:
+            super().__init__(deltas, covs, resident_rows=7)
+            made.append(self)
+
+    monkeypatch.setattr(ekf_c, "FrameInputs", Small)
+    monkeypatch.setattr(ekf_mod, "FrameInputs", Small)
+    monkeypatch.setattr(st, "_SEG", 5)
+    got = EkfSlam(update=update, smooth=smooth).run(problem)
+    assert len(made) == 1 and made[0]._odo.spilled > 20 * 7 and made[0]._path.spilled > 20 * 7
+    np.testing.assert_array_equal(got.trajectory.poses, ref.trajectory.poses)
+    if smooth:
+        np.testing.assert_array_equal(got.pose_covs, ref.pose_covs)
+    np.testing.assert_array_equal(got.stem_map.xy, ref.stem_map.xy)
+    drop = ("runtime_s",)
+    assert {k: v for k, v in got.stats.items() if k not in drop} == {
+        k: v for k, v in ref.stats.items() if k not in drop
+    }

@@ -73,3 +73,20 @@ def test_spilled_rows_resident_memory_stops_growing():
     assert sizes[0] == sizes[1] == 512 * _ROW.itemsize
     assert t.spilled >= 20_000 - 512
     assert sum(c.shape[0] for c in t.chunks()) == 20_000
+
+
+def test_spilled_rows_read_by_range_and_by_column(rng):
+    """``rows(lo, hi)`` and a column's slices give the rows appended, across the spilled
+    chunks and the resident buffer, in any order of reads."""
+    t = SpilledRows(_ROW, resident_rows=5, capacity=2)
+    vals = rng.normal(size=23)
+    for lo in range(0, 23, 3):
+        t.append(frame=np.arange(lo, min(lo + 3, 23)), value=vals[lo : lo + 3])
+    assert t.spilled > 10
+    col = t.column("value")
+    assert len(col) == 23
+    for lo, hi in ((0, 23), (4, 17), (20, 23), (9, 10), (0, 0), (16, 4)):
+        np.testing.assert_array_equal(t.rows(lo, hi)["frame"], np.arange(lo, max(lo, hi)))
+        np.testing.assert_array_equal(col[lo:hi], vals[lo:hi])
+    with pytest.raises(IndexError):
+        col[::2]

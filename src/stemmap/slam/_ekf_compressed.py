@@ -52,6 +52,7 @@ from stemmap.slam._ekf_algebra import (
 )
 from stemmap.slam._ekf_merge import close_pairs, decide_merges, inv2_quad
 from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
+from stemmap.slam._ekf_stream import FrameInputs
 from stemmap.slam.association import chi2_gate, jcbb, nearest_neighbour
 from stemmap.slam.base import IntArray, SlamProblem, SlamResult, frame_trajectory
 from stemmap.slam.motion import preintegrate_spans
@@ -310,6 +311,9 @@ def run_compressed(
     nf = len(frames)
     a, b = problem.sensor_offset
     pre = preintegrate_spans(problem.motion, problem.controls, frames.times, problem.initial_pose)
+    inputs = FrameInputs(pre.deltas, pre.covs)  # (on disk beyond a few thousand frames)
+    del pre
+    odometry = inputs.odometry()
     R1 = np.diag([cfg.sigma_range**2, cfg.sigma_bearing**2])
     use_d = cfg.sigma_diameter is not None
     sd2 = (cfg.sigma_diameter or 1.0) ** 2
@@ -329,7 +333,6 @@ def run_compressed(
     last = np.zeros(cap, dtype=np.int64)
     alive = np.zeros(cap, dtype=bool)
     n_ids = 0
-    poses = np.zeros((nf, 3))
     n_matched = n_new = n_pruned = n_ambiguous = 0
     nis_sum, nis_dof = 0.0, 0
     n_sync_moved = 0
@@ -440,7 +443,7 @@ def run_compressed(
 
     for f in range(nf):
         if f > 0:
-            st.predict(pre.deltas[f - 1], pre.covs[f - 1])
+            st.predict(*next(odometry))
         r, bear, diam = frames.frame(f)
         k = r.shape[0]
         if k:
@@ -630,7 +633,7 @@ def run_compressed(
                     st.remove(dr)
                     alive[dr] = False
                     n_merged += dr.size
-        poses[f] = st.xA[:3]
+        inputs.add_pose(st.xA[:3])
         if progress is not None and (f % 50 == 0 or f == nf - 1):
             progress(f + 1, nf)
 
@@ -662,10 +665,13 @@ def run_compressed(
     if olog is not None:
         lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
         poses, pose_covs, smooth_stats = smooth_path(
-            poses, pre.deltas, pre.covs, olog.stream(st.g_ids), L.copy(), lm_cov, (a, b), R1,
-            map_cov=st.Pg[3:, 3:].copy(), map_cov_inflation=cfg.map_cov_inflation,
+            inputs.poses, inputs.deltas, inputs.covs, olog.stream(st.g_ids), L.copy(), lm_cov,
+            (a, b), R1, map_cov=st.Pg[3:, 3:].copy(), map_cov_inflation=cfg.map_cov_inflation,
         )  # fmt: skip
         olog.close()  # (its temporary file, if it spilled)
+    else:
+        poses = inputs.path()
+    inputs.close()
     runtime = time.perf_counter() - t_start
     stats: dict[str, float | int | str] = {
         "backend": name,

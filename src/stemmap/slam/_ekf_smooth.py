@@ -46,7 +46,7 @@ import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.sparse import csr_matrix
 
-from stemmap.slam._spill import SpilledRanges, SpilledRows
+from stemmap.slam._spill import SpilledColumn, SpilledRanges, SpilledRows
 from stemmap.slam.base import IntArray
 from stemmap.slam.treedb import range_bearing_jacobians
 from stemmap.types import FloatArray, wrap_angle
@@ -346,9 +346,9 @@ def rts_backward(d_inv: FloatArray, off: FloatArray, after: FloatArray | None = 
 
 
 def smooth_path(
-    poses: FloatArray,
-    deltas: FloatArray,
-    covs: FloatArray,
+    poses: FloatArray | SpilledColumn,
+    deltas: FloatArray | SpilledColumn,
+    covs: FloatArray | SpilledColumn,
     obs: Observations | ResolvedObservations,
     lm_xy: FloatArray,
     lm_cov: FloatArray,
@@ -365,7 +365,8 @@ def smooth_path(
 
     poses : (N, 3) the filter's vehicle poses (start of the iteration; ``poses[0]`` is fixed)
     deltas, covs : (N-1, 3) / (N-1, 3, 3) odometry increments between consecutive frames in the
-        earlier frame's vehicle frame and their covariances
+        earlier frame's vehicle frame and their covariances (these three: arrays, or columns
+        of a table on disk, :class:`stemmap.slam._ekf_stream.FrameInputs`; read by slices)
     obs : ``(frame, landmark, range, bearing)`` per associated detection: four arrays, or an
         :class:`ObservationLog`'s :meth:`~ObservationLog.stream` (read block by block at every
         step, so the measurements are never all in memory; the same result)
@@ -391,14 +392,14 @@ def smooth_path(
     """
     from stemmap.slam import _ekf_stream as st
 
-    x0 = np.asarray(poses, dtype=np.float64)
-    n = x0.shape[0]
+    n = len(poses)
     a, b = sensor_offset
     ob = _ArrayObservations(obs) if isinstance(obs, tuple) else obs
     n_obs = ob.size
     stats: dict[str, float | int] = {"smoother_measurements": n_obs}
     if n < 2:  # the first pose is fixed where the filter started it
-        return x0.copy(), np.full((n, 3, 3), 1.0 / _PRIOR_INFO) * np.eye(3), stats
+        first = np.full((n, 3, 3), 1.0 / _PRIOR_INFO) * np.eye(3)
+        return np.array(poses[0:n], dtype=np.float64), first, stats
 
     def terms(
         fr: IntArray, lj: IntArray, rz: FloatArray, bz: FloatArray, xs: FloatArray
@@ -407,9 +408,10 @@ def smooth_path(
 
     def reader(store: SpilledRanges | None) -> Callable[[int, int], FloatArray]:
         if store is None:
-            return lambda lo, hi: x0[lo:hi].copy()
+            return lambda lo, hi: np.array(poses[lo:hi], dtype=np.float64)
         return lambda lo, hi: store.get(lo, hi)[0]
 
+    prior = np.array(poses[0:1], dtype=np.float64)[0]
     cur: SpilledRanges | None = None  # the iterate (None: the filter's poses)
     lin: SpilledRanges | None = None  # the iterate the last step was linearised at
     step: st.StreamedStep | None = None
@@ -420,7 +422,7 @@ def smooth_path(
         if lin is not None:
             lin.close()
         lin, at = cur, reader(cur)
-        step = st.StreamedStep(n, at, x0[0], deltas, covs, st._SEG)
+        step = st.StreamedStep(n, at, prior, deltas, covs, st._SEG)
         d2_sum, n_huber = step.assemble(ob, terms, huber_k)
         if it == 1:
             stats["smoother_meas_d2_before"] = d2_sum / n_obs if n_obs else math.nan

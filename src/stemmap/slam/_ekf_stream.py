@@ -43,12 +43,13 @@ from scipy.linalg.lapack import dpbtrf, dtbtrs
 from scipy.sparse import csr_matrix
 
 import stemmap.slam._ekf_smooth as sm
-from stemmap.slam._spill import SpilledRanges, SpillFile
+from stemmap.slam._spill import SpilledColumn, SpilledRanges, SpilledRows, SpillFile
 from stemmap.slam.base import IntArray
 from stemmap.types import FloatArray, wrap_angle
 
 __all__ = [
     "KD",
+    "FrameInputs",
     "StreamedStep",
     "band_backward",
     "band_forward",
@@ -118,8 +119,8 @@ class StreamedStep:
     """
 
     def __init__(
-        self, n: int, x_at: Callable[[int, int], FloatArray], prior: FloatArray, deltas: FloatArray,
-        covs: FloatArray, seg: int,
+        self, n: int, x_at: Callable[[int, int], FloatArray], prior: FloatArray,
+        deltas: FloatArray | SpilledColumn, covs: FloatArray | SpilledColumn, seg: int,
     ) -> None:  # fmt: skip
         self.n, self.x_at, self.prior = n, x_at, np.asarray(prior, dtype=np.float64)
         self.deltas, self.covs, self.seg = deltas, covs, max(2, int(seg))
@@ -350,3 +351,47 @@ def _b_parts(
 
 
 _NONE = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3, 2)))
+
+
+_ODO_ROW = np.dtype([("delta", np.float64, (3,)), ("cov", np.float64, (3, 3))])
+_POSE_ROW = np.dtype([("pose", np.float64, (3,))])
+
+
+class FrameInputs:
+    """The smoother's per-frame inputs in bounded memory: the pre-integrated odometry between
+    consecutive frames (96 bytes per frame, :func:`stemmap.slam.motion.preintegrate_spans`)
+    and the filter's poses (24 bytes per frame, appended as the filter goes), each at most
+    ``resident_rows`` rows in memory and the rest in a temporary file
+    (:class:`~stemmap.slam._spill.SpilledRows`; the same bytes read back).
+
+    :meth:`odometry` yields the increments in frame order (the filter's prediction);
+    :attr:`poses`, :attr:`deltas`, :attr:`covs` slice like arrays (the smoother's reads).
+    """
+
+    def __init__(self, deltas: FloatArray, covs: FloatArray, *, resident_rows: int = 4096) -> None:
+        self._odo = SpilledRows(_ODO_ROW, resident_rows=resident_rows, prefix="stemmap-odo-")
+        for lo in range(0, deltas.shape[0], resident_rows):
+            hi = lo + resident_rows
+            self._odo.append(delta=deltas[lo:hi], cov=covs[lo:hi])
+        self._path = SpilledRows(_POSE_ROW, resident_rows=resident_rows, prefix="stemmap-poses-")
+        self.deltas: SpilledColumn = self._odo.column("delta")
+        self.covs: SpilledColumn = self._odo.column("cov")
+        self.poses: SpilledColumn = self._path.column("pose")
+
+    def odometry(self) -> Iterator[tuple[FloatArray, FloatArray]]:
+        """``(delta, cov)`` from frame f to f + 1, for f = 0, 1, ..."""
+        for chunk in self._odo.chunks():
+            d, c = chunk["delta"], chunk["cov"]
+            for i in range(d.shape[0]):
+                yield d[i], c[i]
+
+    def add_pose(self, pose: FloatArray) -> None:
+        self._path.append(pose=np.asarray(pose)[None])
+
+    def path(self) -> FloatArray:
+        """(N, 3) every pose added."""
+        return self._path.rows(0, len(self._path))["pose"]
+
+    def close(self) -> None:
+        self._odo.close()
+        self._path.close()

@@ -14,6 +14,8 @@ so a result computed from them does not depend on where the chunks were cut.
 * :class:`SpilledRows`: an append-only table of fixed-size records (a structured dtype) with
   at most ``resident_rows`` in memory; :meth:`SpilledRows.chunks` yields every row in order
   (or in reverse), chunk by chunk.
+  :meth:`SpilledRows.rows` reads a range of rows, :meth:`SpilledRows.column` one field by
+  slices (:class:`SpilledColumn`).
 * :class:`SpilledRanges`: a table whose row ranges are written in any order (a backward pass
   writes its blocks last first) and read back by row range.
 
@@ -33,7 +35,7 @@ from typing import IO
 import numpy as np
 from numpy.typing import DTypeLike
 
-__all__ = ["SpillFile", "SpilledRanges", "SpilledRows"]
+__all__ = ["SpillFile", "SpilledColumn", "SpilledRanges", "SpilledRows"]
 
 
 class SpillFile:
@@ -121,6 +123,8 @@ class SpilledRows:
         self._n = 0  # resident rows
         self._n_spilled = 0
         self._file = SpillFile(prefix)
+        self._starts: list[int] = []  # first row of each spilled chunk
+        self._last: tuple[int, np.ndarray] | None = None  # the chunk last read by rows()
 
     def append(self, **columns: np.ndarray | float | int) -> None:
         """Append ``k`` rows given as one array (or scalar, broadcast) per field; ``k`` is the
@@ -134,6 +138,7 @@ class SpilledRows:
         n = self._n
         if n + k > self.resident_rows and n:
             self._file.append((self._buf[:n],))
+            self._starts.append(self._n_spilled)
             self._n_spilled += n
             n = self._n = 0
         if n + k > self._buf.shape[0]:
@@ -168,9 +173,46 @@ class SpilledRows:
             if rows.shape[0]:
                 yield rows[::-1] if reverse else rows
 
+    def rows(self, lo: int, hi: int) -> np.ndarray:
+        """Rows ``[lo, hi)`` (a new record array; one chunk is read per call that leaves the
+        chunk read last, so reading the table in order reads each chunk once)."""
+        parts = []
+        while lo < hi:
+            if lo >= self._n_spilled:
+                parts.append(self._buf[lo - self._n_spilled : hi - self._n_spilled])
+                break
+            c = bisect.bisect(self._starts, lo) - 1
+            if self._last is None or self._last[0] != c:
+                self._last = (c, self._file.read(c)[0])
+            chunk, c0 = self._last[1], self._starts[c]
+            parts.append(chunk[lo - c0 : hi - c0])
+            lo = c0 + chunk.shape[0]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=self.dtype)
+
+    def column(self, name: str) -> SpilledColumn:
+        """Field ``name`` as a read-only array-like (``len``, slices)."""
+        return SpilledColumn(self, name)
+
     def close(self) -> None:
         """Remove the spill file (the resident rows stay readable; nothing more is spilled)."""
+        self._last = None
         self._file.close()
+
+
+class SpilledColumn:
+    """One field of a :class:`SpilledRows` read by slices (``col[lo:hi]``, step 1)."""
+
+    def __init__(self, rows: SpilledRows, name: str) -> None:
+        self._rows, self._name = rows, name
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def __getitem__(self, sl: slice) -> np.ndarray:
+        lo, hi, step = sl.indices(len(self._rows))
+        if step != 1:
+            raise IndexError("SpilledColumn reads slices with step 1 only")
+        return self._rows.rows(lo, max(lo, hi))[self._name]
 
 
 class SpilledRanges:

@@ -58,6 +58,7 @@ from stemmap.slam._ekf_algebra import (
 from stemmap.slam._ekf_compressed import run_compressed
 from stemmap.slam._ekf_merge import close_pairs, decide_merges
 from stemmap.slam._ekf_smooth import ObservationLog, smooth_path
+from stemmap.slam._ekf_stream import FrameInputs
 from stemmap.slam.association import chi2_gate, individual_compatibility, jcbb, nearest_neighbour
 from stemmap.slam.base import SlamProblem, SlamResult, frame_trajectory, single_threaded_blas
 from stemmap.slam.motion import preintegrate_spans
@@ -213,6 +214,9 @@ class EkfSlam:
         pre = preintegrate_spans(
             problem.motion, problem.controls, frames.times, problem.initial_pose
         )
+        inputs = FrameInputs(pre.deltas, pre.covs)  # (on disk beyond a few thousand frames)
+        del pre
+        odometry = inputs.odometry()
         R1 = np.diag([cfg.sigma_range**2, cfg.sigma_bearing**2])
         use_d = cfg.sigma_diameter is not None
         sd2 = (cfg.sigma_diameter or 1.0) ** 2
@@ -233,7 +237,6 @@ class EkfSlam:
         coseen: set[tuple[int, int]] = set()  # ids of landmark pairs matched in one scan
         olog = ObservationLog() if cfg.smooth else None
         n_merged = n_fused = 0
-        poses = np.zeros((nf, 3))
         n_matched = n_new = n_pruned = n_ambiguous = 0
 
         def compact(kl: list[bool]) -> None:
@@ -248,7 +251,7 @@ class EkfSlam:
         for f in range(nf):
             # ---------------- predict
             if f > 0:
-                d = pre.deltas[f - 1]
+                d, d_cov = next(odometry)
                 th = self.x[2]
                 c, s = math.cos(th), math.sin(th)
                 dxw = c * d[0] - s * d[1]
@@ -258,7 +261,7 @@ class EkfSlam:
                 self.x[2] = (th + d[2] + math.pi) % (2 * math.pi) - math.pi
                 F = np.array([[1.0, 0.0, -dyw], [0.0, 1.0, dxw], [0.0, 0.0, 1.0]])
                 Rw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-                Q = Rw @ pre.covs[f - 1] @ Rw.T
+                Q = Rw @ d_cov @ Rw.T
                 n = self.n
                 P = self.P
                 P[:3, :3] = F @ P[:3, :3] @ F.T + Q
@@ -439,7 +442,7 @@ class EkfSlam:
                         self._remove_landmarks(keep_l)
                         compact(keep_l.tolist())
                         n_merged += len(plan)
-            poses[f] = self.x[:3]
+            inputs.add_pose(self.x[:3])
             if progress is not None and (f % 50 == 0 or f == nf - 1):
                 progress(f + 1, nf)
 
@@ -470,11 +473,15 @@ class EkfSlam:
         if olog is not None:
             lm_cov = np.array([t.cov for t in trees]).reshape(-1, 2, 2)
             poses, pose_covs, smooth_stats = smooth_path(
-                poses, pre.deltas, pre.covs, olog.stream(np.asarray(lm_id, dtype=np.int64)),
-                L.copy(), lm_cov, (a, b), R1, map_cov=self.P[3 : self.n, 3 : self.n].copy(),
+                inputs.poses, inputs.deltas, inputs.covs,
+                olog.stream(np.asarray(lm_id, dtype=np.int64)), L.copy(), lm_cov, (a, b), R1,
+                map_cov=self.P[3 : self.n, 3 : self.n].copy(),
                 map_cov_inflation=cfg.map_cov_inflation,
             )  # fmt: skip
             olog.close()  # (its temporary file, if it spilled)
+        else:
+            poses = inputs.path()
+        inputs.close()
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,
