@@ -568,6 +568,23 @@ def map_propagated_covariance(
     return _map_term(diag, off, B, map_cov, columns=columns, block_mb=block_mb)
 
 
+def map_factor(map_cov: FloatArray) -> FloatArray:
+    """``U`` with ``U Uᵀ`` = the symmetrised ``map_cov`` (Cholesky; an eigen-factor where the
+    filter's ``P`` is marginally indefinite)."""
+    S = 0.5 * (map_cov + map_cov.T)
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(S)
+        return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def map_columns(n: int, columns: int, block_mb: float) -> int:
+    """Columns of ``U`` per block of the map term: at most ``columns``, fewer where one block
+    (3 ``n`` x columns doubles) would pass ``block_mb`` MB."""
+    return max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
+
+
 def _map_term(
     diag: FloatArray, off: FloatArray, B: csr_matrix, map_cov: FloatArray, *, columns: int = 128,
     block_mb: float = 32.0,
@@ -578,14 +595,9 @@ def _map_term(
     m2 = map_cov.shape[0]
     if B.nnz == 0 or m2 == 0:
         return out
-    S = 0.5 * (map_cov + map_cov.T)
-    try:
-        U = np.linalg.cholesky(S)  # S = U Uᵀ
-    except np.linalg.LinAlgError:  # the filter's P may be marginally indefinite
-        w, V = np.linalg.eigh(S)
-        U = V * np.sqrt(np.clip(w, 0.0, None))
+    U = map_factor(map_cov)
     cb = cholesky_banded(banded_lower(diag, off), lower=True)
-    columns = max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
+    columns = map_columns(n, columns, block_mb)
     for c0 in range(0, m2, columns):
         M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
         out += M @ M.transpose(0, 2, 1)

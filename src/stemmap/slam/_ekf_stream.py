@@ -281,13 +281,8 @@ def map_term_streamed(
     if nnz == 0 or m2 == 0:
         store.close()
         return out
-    S = 0.5 * (map_cov + map_cov.T)
-    try:
-        U = np.linalg.cholesky(S)  # S = U Uᵀ
-    except np.linalg.LinAlgError:  # the filter's P may be marginally indefinite
-        w, V = np.linalg.eigh(S)
-        U = V * np.sqrt(np.clip(w, 0.0, None))
-    columns = max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
+    U = sm.map_factor(map_cov)
+    columns = sm.map_columns(n, columns, block_mb)
     spans = step.spans
 
     def bu(i: int, Uc: np.ndarray) -> FloatArray:
