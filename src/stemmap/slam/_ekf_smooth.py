@@ -573,10 +573,11 @@ def map_factor(map_cov: FloatArray) -> FloatArray:
     filter's ``P`` is marginally indefinite)."""
     S = 0.5 * (map_cov + map_cov.T)
     try:
-        return np.linalg.cholesky(S)
+        U: FloatArray = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
         w, V = np.linalg.eigh(S)
-        return V * np.sqrt(np.clip(w, 0.0, None))
+        U = V * np.sqrt(np.clip(w, 0.0, None))
+    return U
 
 
 def map_columns(n: int, columns: int, block_mb: float) -> int:
