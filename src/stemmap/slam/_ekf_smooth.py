@@ -573,7 +573,7 @@ def map_factor(map_cov: FloatArray) -> FloatArray:
     filter's ``P`` is marginally indefinite)."""
     S = 0.5 * (map_cov + map_cov.T)
     try:
-        U: FloatArray = np.linalg.cholesky(S)
+        U: FloatArray = np.linalg.cholesky(S)  # type: ignore[assignment]
     except np.linalg.LinAlgError:
         w, V = np.linalg.eigh(S)
         U = V * np.sqrt(np.clip(w, 0.0, None))
