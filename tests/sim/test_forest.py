@@ -59,6 +59,27 @@ def test_clustered_stand_is_more_clumped_than_random():
     assert mean_nn(c) < 0.8 * mean_nn(r)
 
 
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda **kw: random_stand(**kw, min_spacing=0.8),
+         r"could place only \d+ of 300 trees in 12.0 x 10.0 m with spacing 0.8 m; enlarge"),
+        (lambda **kw: clustered_stand(**kw, n_clusters=4, cluster_std=3.0),
+         r"could place only \d+ of 300 clustered trees \(n_clusters=4, cluster_std=3.0 m"),
+    ],
+)  # fmt: skip
+def test_random_and_clustered_stands_share_dbh_spacing_and_bounds(make, match):
+    """Both layouts draw the DBH in the window asked for, keep the surface gap, span the stand
+    from the origin, and say how many trees fit when they do not."""
+    s = make(n_trees=40, size=(40.0, 30.0), dbh_min=0.2, dbh_max=0.35, rng=12)
+    assert s.n_trees == 40 and s.bounds == (0.0, 0.0, 40.0, 30.0)
+    assert s.diameters.min() >= 0.2 and s.diameters.max() <= 0.35
+    assert _min_gap(s) >= 0.8
+    assert np.all((s.trees_xy >= 0.0) & (s.trees_xy <= (40.0, 30.0)))
+    with pytest.raises(ConfigError, match=match):
+        make(n_trees=300, size=(12.0, 10.0), rng=12)
+
+
 def test_row_stand_geometry():
     s = row_stand(4, 10, row_spacing=4.0, tree_spacing=3.0, jitter=0.0, heading=0.0, rng=4)
     assert s.n_trees == 40

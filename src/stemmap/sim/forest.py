@@ -300,6 +300,29 @@ def _place_with_spacing(
     return np.asarray(keep, dtype=np.int64)
 
 
+def _spaced_stand(
+    candidates: FloatArray,
+    size: tuple[float, float],
+    n_trees: int,
+    *,
+    min_spacing: float,
+    dbh: Mapping[str, Any],
+    rng: np.random.Generator,
+    too_dense: str,
+) -> Stand:
+    """A stand of the first ``n_trees`` candidate positions that keep ``min_spacing``, each with
+    a DBH from :func:`sample_dbh` (``dbh``: its keyword arguments; one draw per candidate).
+
+    Raises ConfigError "could place only k of n_trees <too_dense>" when fewer fit.
+    """
+    diam = sample_dbh(candidates.shape[0], rng=rng, **dbh)
+    idx = _place_with_spacing(candidates, diam, min_spacing, n_trees)
+    if idx.size < n_trees:
+        raise ConfigError(f"could place only {idx.size} of {n_trees} {too_dense}")
+    w, h = size
+    return Stand(candidates[idx], diam[idx], bounds=(0.0, 0.0, w, h))
+
+
 def random_stand(
     n_trees: int = 60,
     size: tuple[float, float] = (40.0, 40.0),
@@ -328,22 +351,15 @@ def random_stand(
     w, h = size
     n_cand = 200 * max(n_trees, 1)
     cand = gen.uniform((0.0, 0.0), (w, h), size=(n_cand, 2))
-    dbh = sample_dbh(
-        n_cand,
-        distribution=dbh_distribution,
-        mean=dbh_mean,
-        std=dbh_std,
-        dbh_min=dbh_min,
-        dbh_max=dbh_max,
-        rng=gen,
+    dbh = {"distribution": dbh_distribution, "mean": dbh_mean, "std": dbh_std,
+           "dbh_min": dbh_min, "dbh_max": dbh_max}  # fmt: skip
+    too_dense = (
+        f"trees in {w} x {h} m with spacing {min_spacing} m; enlarge the stand or reduce "
+        "min_spacing."
     )
-    idx = _place_with_spacing(cand, dbh, min_spacing, n_trees)
-    if idx.size < n_trees:
-        raise ConfigError(
-            f"could place only {idx.size} of {n_trees} trees in {w} x {h} m with spacing "
-            f"{min_spacing} m; enlarge the stand or reduce min_spacing."
-        )
-    return Stand(cand[idx], dbh[idx], bounds=(0.0, 0.0, w, h))
+    return _spaced_stand(
+        cand, (w, h), n_trees, min_spacing=min_spacing, dbh=dbh, rng=gen, too_dense=too_dense
+    )
 
 
 def clustered_stand(
@@ -383,24 +399,16 @@ def clustered_stand(
     n_cand = 200 * max(n_trees, 1)
     cand = parents[gen.integers(0, n_clusters, n_cand)] + gen.normal(0, cluster_std, (n_cand, 2))
     inside = (cand[:, 0] >= 0) & (cand[:, 0] <= w) & (cand[:, 1] >= 0) & (cand[:, 1] <= h)
-    cand = cand[inside]
-    dbh = sample_dbh(
-        cand.shape[0],
-        distribution=dbh_distribution,
-        mean=dbh_mean,
-        std=dbh_std,
-        dbh_min=dbh_min,
-        dbh_max=dbh_max,
-        rng=gen,
+    dbh = {"distribution": dbh_distribution, "mean": dbh_mean, "std": dbh_std,
+           "dbh_min": dbh_min, "dbh_max": dbh_max}  # fmt: skip
+    too_dense = (
+        f"clustered trees (n_clusters={n_clusters}, cluster_std={cluster_std} m, "
+        f"min_spacing={min_spacing} m); use more or wider clusters."
     )
-    idx = _place_with_spacing(cand, dbh, min_spacing, n_trees)
-    if idx.size < n_trees:
-        raise ConfigError(
-            f"could place only {idx.size} of {n_trees} clustered trees (n_clusters="
-            f"{n_clusters}, cluster_std={cluster_std} m, min_spacing={min_spacing} m); "
-            "use more or wider clusters."
-        )
-    return Stand(cand[idx], dbh[idx], bounds=(0.0, 0.0, w, h))
+    return _spaced_stand(
+        cand[inside], (w, h), n_trees, min_spacing=min_spacing, dbh=dbh, rng=gen,
+        too_dense=too_dense,
+    )  # fmt: skip
 
 
 def row_stand(
