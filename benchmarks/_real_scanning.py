@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from stemmap.eval.real_slices import Mount, RealSlice, Relief, virtual_scans
+from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD
 from stemmap.scan.detect import DetectorConfig
 
 __all__ = [
@@ -119,13 +120,22 @@ MOUNT = Mount(height=1.3, pitch_deg=3.0, band=0.1)
 
 
 def scene_scans(
-    sl: RealSlice, vp: np.ndarray, model: str, res: float, background: str, seed: int
+    sl: RealSlice,
+    vp: np.ndarray,
+    model: str,
+    res: float,
+    background: str,
+    seed: int,
+    mount: Mount = MOUNT,
+    relief_std: float = RELIEF_STD,
+    relief_corr: float = RELIEF_CORR,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free virtual scans (ranges, hit trunk) of ``sl`` from ``vp``. ``background``
-    ``"ground"``: the scan plane (:data:`MOUNT`) pitched towards a uniform random heading per
-    vantage also returns from the slice's ground and understory (:attr:`RealSlice.ground`)
-    and from the ground plane with the TreeLS plot's micro-relief
-    (:meth:`stemmap.eval.scan_background.Relief.random`); headings and relief come from their
+    ``"ground"``: the scan plane (``mount``, default :data:`MOUNT`) pitched towards a uniform
+    random heading per vantage also returns from the slice's ground and understory
+    (:attr:`RealSlice.ground`) and from the ground plane with a micro-relief (``relief_std``,
+    ``relief_corr``: the TreeLS plot's by default,
+    :meth:`stemmap.eval.scan_background.Relief.random`); headings and relief come from their
     own generators (``seed``), so the vantage points and the noise are those of ``"none"``."""
     extra: dict[str, Any] = {}
     if background == "ground":
@@ -133,9 +143,9 @@ def scene_scans(
         extra = {
             "background": "ground",
             "ground": sl.ground,
-            "mount": MOUNT,
+            "mount": mount,
             "headings": heads,
-            "relief": Relief.random(60.0, seed),
+            "relief": Relief.random(60.0, seed, relief_std, relief_corr),
         }
     return virtual_scans(
         sl.xy, sl.labels, vp, resolution_deg=res, model=model, centers=sl.centers, **extra

@@ -39,11 +39,12 @@ from _real_scanning import (  # shared with real_geometry.py
     FULL_SCANNERS,
     MOUNT,
     scene_note,
+    scene_scans,
     vantage_points,
 )
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
-from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD, Mount, Relief
+from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
+from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD, Mount
 from stemmap.scan.plausibility import scan_noise
 
 
@@ -84,26 +85,18 @@ def main(argv: list[str] | None = None) -> int:
         vp = vantage_points(sl, args.vantage, rng)
         geometry: dict[tuple[str, float], np.ndarray] = {}
         res_out: dict[str, Any] = {}
-        extra: dict[str, Any] = {}
-        if args.background == "ground":  # as _real_scanning.scene_scans, mount and relief set
-            seed = args.seed + i
-            extra = {
-                "background": "ground",
-                "ground": sl.ground,
-                "mount": mount,
-                "headings": np.random.default_rng((seed, 1)).uniform(-np.pi, np.pi, len(vp)),
-                "relief": Relief.random(60.0, seed, args.relief_std, args.relief_corr),
-            }
         for model, res, noise in FULL_SCANNERS:
             if (model, res) not in geometry:
-                geometry[(model, res)] = virtual_scans(
-                    sl.xy,
-                    sl.labels,
+                geometry[(model, res)] = scene_scans(
+                    sl,
                     vp,
-                    resolution_deg=res,
-                    model=model,  # type: ignore[arg-type]
-                    centers=sl.centers,
-                    **extra,
+                    model,
+                    res,
+                    args.background,
+                    args.seed + i,
+                    mount,
+                    args.relief_std,
+                    args.relief_corr,
                 )[0]
             r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
             r = np.where(r < 30.0, r, np.nan)  # the benchmark's range_max
