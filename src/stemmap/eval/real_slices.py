@@ -517,7 +517,12 @@ def noisy_batch(
     ranges0: FloatArray, resolution_deg: float, noise: float, rng: np.random.Generator
 ) -> ScanBatch:
     """The virtual scans ``ranges0`` (V, N) of :func:`virtual_scans` as a ScanBatch, with
-    Gaussian range noise of ``noise`` metres per beam (kept >= 5 cm; no return stays inf)."""
+    Gaussian range noise of ``noise`` metres per beam (kept >= 5 cm; no return stays inf).
+
+    ``noise == 0`` draws nothing from ``rng``, so later draws from the same generator differ
+    from a run with noise > 0. Kept on purpose: the seeded real-slice benchmarks
+    (``QUICK_SCANNERS`` / ``FULL_SCANNERS`` put a noise-free level before the noisy ones) and
+    ``tests/scan/test_detect_fast_real.py`` depend on this stream."""
     ranges = ranges0 + (rng.normal(0.0, noise, ranges0.shape) if noise > 0 else 0.0)
     ranges = np.where(np.isfinite(ranges0), np.maximum(ranges, 0.05), np.inf)
     return ScanBatch(
