@@ -15,9 +15,11 @@ Four measurements, one JSON object on stdout:
   centre and radius, ``cos kθ, sin kθ`` for k = 2, 3) on arcs of 60-180 degrees facing the
   sensor, 20 returns: condition number (unit columns), the std of r0 per unit range noise
   without and with the prior, and r0's largest correlation with a harmonic coefficient.
-- ``arcs``: the real rings cut into one-sided arcs (60 / 90 / 120 / 180 degrees, 8 view
-  directions, 20 returns evenly in angle) fitted by the circle (``fit_circle_ours``) and the
-  lobed model: radius error against the reference radius, residual RMS.
+- ``arcs``: the real rings cut into one-sided arcs (60 / 90 / 120 / 180 degrees around the
+  centre, 8 view directions, 20 returns evenly in angle) fitted by the circle
+  (``fit_circle_ours`` without edges) and the lobed model without the silhouette term (the
+  ends are cuts, as for an arc whose ends are occluded): radius error against the reference
+  radius, residual RMS.
 - ``rocks``: the simulator's rocks (``sim.stand_features``: 24-vertex polygons, radius
   profile :func:`stemmap.sim.outline.rough_radius` with roughness 0.3, harmonics 2-8): the
   same harmonic amplitudes, for comparison with the real rings.
@@ -25,7 +27,7 @@ Four measurements, one JSON object on stdout:
 Usage::
 
     python benchmarks/lobed_outlines.py            # every slice with references
-    python benchmarks/lobed_outlines.py --prior 0.03
+    python benchmarks/lobed_outlines.py --prior 0.03   # the prior of the conditioning and arcs
 """
 
 from __future__ import annotations
@@ -127,7 +129,7 @@ def conditioning(prior: float, n: int = 20) -> list[dict[str, Any]]:
             out[f"cond_{tag}"] = float(f"{np.linalg.cond(u):.3g}")
             cov = np.linalg.pinv(a.T @ a)
             out[f"sd_r0_{tag}"] = round(float(math.sqrt(cov[2, 2])), 3)
-        # with the prior: sigma = 1, coefficient std = prior x r, r = 0.276 m, sigma 1 cm
+        # with the prior: coefficient std = prior x r, r = 0.276 m, sigma 1 cm (units: cm)
         lam = (0.01 / (prior * 0.276)) ** 2
         cov = np.linalg.inv(full.T @ full + np.diag([0, 0, 0, lam, lam, lam, lam]))
         out["sd_r0_lobed_prior"] = round(float(math.sqrt(cov[2, 2])), 3)
@@ -171,9 +173,7 @@ def arcs(slices: dict[str, RealSlice], prior: float, n: int = 20) -> list[dict[s
                     if not fit:
                         continue
                     e = np.hypot(*(arc - fit.center).T) - fit.radius
-                    lob = fit_lobed(
-                        arc[:, 0], arc[:, 1], fit.center, fit.radius, 0.005, 3, prior
-                    )
+                    lob = fit_lobed(arc[:, 0], arc[:, 1], fit.center, fit.radius, 0.005, 3, prior)
                     if not lob.ok:
                         continue
                     res[span]["circle"].append(100 * (fit.radius - r))
@@ -241,7 +241,7 @@ def fraction_rocks_below(bound: float, n: int = 2000, seed: int = 1) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", type=Path, default=None)
-    ap.add_argument("--prior", type=float, default=0.03, help="coefficient std / radius")
+    ap.add_argument("--prior", type=float, default=0.045, help="coefficient std / radius")
     args = ap.parse_args(argv)
     ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
     if ddir is None:

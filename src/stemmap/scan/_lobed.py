@@ -2,8 +2,8 @@
 
 A real trunk at breast height is not a circle: its outline departs from the best circle in a
 few smooth lobes (aRchi tree 1: ±2-3 cm on a 27.6 cm radius). A 2D scan sees one side of it,
-and the circle fitted to that side is biased and fails the RMS test although the outline is a
-trunk's. The model is the truncated Fourier series of the radius around the centre,
+and the circle fitted to that side is biased and may fail the RMS test although the outline is
+a trunk's. The model is the truncated Fourier series of the radius around the centre,
 
     r(theta) = r0 + sum_{k=2..K} a_k cos(k theta) + b_k sin(k theta),
 
@@ -11,18 +11,23 @@ a polar Fourier descriptor of a closed outline (Zahn & Roskies 1972, "Fourier de
 plane closed curves", IEEE Trans. Computers C-21(3)) applied to the stem's cross-section, the
 radius as a function of direction of Matérn (1956, "On the geometry of the cross-section of a
 stem", Meddelanden från Statens Skogsforskningsinstitut 46(11)): its mean is the mean radius,
-and its harmonic k = 1 is only the choice of centre, so the model starts at k = 2. The harmonics k >= 2 are fitted jointly with the centre (Gauss-Newton on the
-orthogonal residuals ``e_i = |p_i - c| - r(theta_i)``), with a Gaussian prior on each
-coefficient of std ``lobe_prior x r`` (Tikhonov regularisation toward the circle): on a
-partial arc the low harmonics are almost collinear with the centre and r0 (scan-detection.md,
-fifteenth round, conditioning), and the prior, measured on the real rings' full outlines, is
-what decides how much of the arc's departure from a circle is called a lobe.
+and its harmonic k = 1 is only the choice of centre, so the model starts at k = 2.
 
-Reported: ``r0`` as the area-equivalent radius ``sqrt(r0^2 + sum (a_k^2 + b_k^2) / 2)`` (the
-basal-area convention; the mean radius r0 differs by < 0.2 % at the real rings' lobe sizes),
-the residual RMS to the lobed outline (what the RMS test then judges) and the lobe amplitude
-``sqrt(sum (a_k^2 + b_k^2) / 2) / r0`` (the RMS of the lobe profile relative to the radius, a
-bounded quantity: ``lobe_max``).
+The harmonics are fitted jointly with the centre (:func:`fit_lobed`: orthogonal residuals
+``e_i = |p_i - c| - r(theta_i)``, the silhouette's two tangent bearings as in the circle fit,
+and a Gaussian prior of std ``lobe_prior x r`` on each coefficient, i.e. Tikhonov
+regularisation toward the circle). On a partial arc the low harmonics are almost collinear
+with the centre and r0 (condition number 1e3-1e5 on 60-120 degree arcs, scan-detection.md,
+fifteenth round): the prior, measured on the real rings' full outlines
+(``benchmarks/lobed_outlines.py``), decides how much of the arc's departure from a circle is
+called a lobe, and the silhouette keeps r0 from sliding along the near-null direction.
+
+Reported: the area-equivalent radius ``sqrt(r0^2 + sum (a_k^2 + b_k^2) / 2)`` (the basal-area
+convention; the mean radius r0 differs by < 0.5 % at the real rings' lobe sizes), the residual
+RMS to the lobed outline (what the RMS test then judges, with the degrees of freedom the
+harmonics take) and the lobe amplitude ``sqrt(sum (a_k^2 + b_k^2) / 2) / r0`` (the RMS of the
+lobe profile relative to the radius, bounded by ``lobe_max``). On a partial arc the fitted
+amplitude is shrunk by the prior: it bounds what the arc shows, not the whole outline's lobes.
 """
 
 from __future__ import annotations
@@ -202,7 +207,7 @@ def fit_lobed(
     ok = ok and r0 > 0 and math.isfinite(rms)
     try:
         inv = np.linalg.inv(jtj)
-        cov = inv[:3, :3] * max(1.0, rms * rms / (sigma * sigma))
+        cov = np.asarray(inv[:3, :3] * max(1.0, rms * rms / (sigma * sigma)), dtype=np.float64)
         n_params = 3 + m - float(np.trace(inv[3:, 3:])) / (tau * tau)
     except np.linalg.LinAlgError:
         cov = np.full((3, 3), np.nan)
