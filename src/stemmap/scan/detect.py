@@ -33,6 +33,7 @@ from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._behind import trim_behind
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
+from stemmap.scan._lobed import lobed_refit
 from stemmap.scan._refit import corner_cut_pieces, refit_pieces, split_refit
 from stemmap.scan._segment_fits import (
     _fit_rms,
@@ -424,7 +425,8 @@ class ScanTrunkDetector:
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
-        corner splits (``refit_split="corners"``), no relaxed RMS tests, no ``behind_sigmas``
+        corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
+        (``lobe_harmonics``), no ``behind_sigmas``
         trim (arc re-fits are compiled since the fourteenth round of issue 11)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
@@ -435,6 +437,7 @@ class ScanTrunkDetector:
             and (not cfg.refit_pieces or cfg.refit_split == "corners")
             and cfg.lobe_roughness == 0.0
             and cfg.rms_noise_from_fit == 0.0
+            and cfg.lobe_harmonics == 0
             and math.isinf(cfg.behind_sigmas)
         )
 
@@ -554,6 +557,12 @@ class ScanTrunkDetector:
             rms = _fit_rms(segs, centers, radii)
             # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
             test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
+        if cfg.lobe_harmonics:
+            # a candidate that fails the RMS test as a circle may pass it as a lobed outline
+            centers, radii, covs, test_rms, lobed = lobed_refit(
+                cfg, segs, centers, radii, covs, ok, test_rms, sigma, sil_width
+            )
+            rms = np.where(lobed, test_rms, rms)
         smooth = own = None
         if cfg.lobe_roughness > 0 or cfg.rms_noise_from_fit > 0:
             smooth = residual_smoothness(segs, centers, radii)
