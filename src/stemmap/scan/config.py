@@ -293,6 +293,15 @@ class DetectorConfig:
         min_points_partial)`` returns, and fit the rest again (ours, issue 11, thirteenth
         round; :func:`~stemmap.scan._behind.trim_behind`): a branch or stub behind the
         stem's silhouette joined to the trunk's segment. Numpy path only. inf = off.
+    split_search : bool
+        Cut a candidate rejected as not convex (``depth``) or by the RMS test, whose
+        validated corner split (if on) gave no trunk, where the Bayesian information
+        criterion over one, two and three pieces of ``min_points`` returns or more, scored
+        from running Kasa (1976) moments, says; accept a piece as the corner split's pieces
+        are accepted, and only if no return of the candidate was seen through its circle
+        (ours, issue 11, fifteenth round; :func:`~stemmap.scan._split_search.search_refit`):
+        a trunk merged with a branch or stub where the junction is no concave corner. Numpy
+        path only; off in every preset (it fails the simulated precision target).
     """
 
     name: str = "custom"
@@ -366,6 +375,7 @@ class DetectorConfig:
     arc_replace: float = math.inf
     arc_short_steps: bool = False
     behind_sigmas: float = math.inf
+    split_search: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
