@@ -94,11 +94,18 @@ def _setting(
         # twelfth round: the relaxed RMS tests
         "rms_noise_from_fit": 0.0,
         "lobe_roughness": 0.0,
+        # ... and the largest consistent arcs with their tests since the fifteenth round
+        "arc_refit": False,
+        "arc_sigmas": 3.0,
+        "arc_replace": math.inf,
+        "arc_tangent_sigmas": math.inf,
+        "arc_chi2": False,
         **extra,
     }
 
 
-#: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides.
+#: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
+#: preset since the fifteenth round: these and the arcs of grid 33).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
@@ -208,6 +215,22 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # the corner split)
     _setting(**_DEFAULT_11, arc_refit=True, arc_sigmas=2.0, arc_replace=3.0),
     _setting(**_DEFAULT_11, arc_refit=True, arc_sigmas=2.0, arc_replace=2.0),
+    # fifteenth round: grid 29's arcs (k 2, replace 3 on the current default) that pass only
+    # when no return lies behind the circle's tangent range by more than 3 noise-and-bark
+    # scales (arc_tangent_sigmas) / whose residuals pass the upper 1 % chi-square test
+    # (arc_chi2) / both (simulated precision, demo drive seed 1: 0.950 / 0.951 / 0.952)
+    _setting(
+        **_DEFAULT_11, arc_refit=True, arc_sigmas=2.0, arc_replace=3.0, arc_tangent_sigmas=3.0
+    ),
+    _setting(**_DEFAULT_11, arc_refit=True, arc_sigmas=2.0, arc_replace=3.0, arc_chi2=True),
+    _setting(
+        **_DEFAULT_11,
+        arc_refit=True,
+        arc_sigmas=2.0,
+        arc_replace=3.0,
+        arc_tangent_sigmas=3.0,
+        arc_chi2=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
