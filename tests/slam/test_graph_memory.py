@@ -5,7 +5,9 @@ from __future__ import annotations
 import tracemalloc
 
 import numpy as np
+from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir-less mode)
 
+import stemmap.slam.graph as graph
 from stemmap.slam._graph_odometry import frame_covariances
 
 
@@ -62,3 +64,23 @@ def test_frame_covariances_in_blocks_are_the_same_bytes_in_bounded_memory(rng):
     # the result, the drive-long variance sum (8 B per frame) and blocks of <= 256 frames
     # (the longest left-out run here is 205 frames)
     assert peak_blocked < 1.25 * result_bytes + 8 * nf + 1_000_000
+
+
+def test_isam2_trims_the_heap_when_used_as_a_library(monkeypatch):
+    """``Isam2Slam.run`` trims the heap from its keyframe loop (not only under ``stemmap
+    map``), at most once per interval of CPU time; the trims change no value."""
+    problem, *_ = loop_problem(3, laps=0.5)
+    counts = []
+
+    class Counting(graph.HeapTrimmer):
+        def __init__(self, *a, **k):
+            super().__init__(*a, trim=lambda: counts.append(1) or True, **k)
+
+    off = graph.Isam2Slam().run(problem)  # (interval 0.2 s of CPU: a few trims at most)
+    monkeypatch.setattr(graph, "HeapTrimmer", Counting)
+    monkeypatch.setattr(graph, "TRIM_INTERVAL_S", 0.0)  # every keyframe
+    on = graph.Isam2Slam().run(problem)
+    assert len(counts) == on.stats["keyframes"]
+    assert np.array_equal(on.trajectory.poses, off.trajectory.poses)
+    assert np.array_equal(on.pose_covs, off.pose_covs)
+    assert np.array_equal(on.stem_map.xy, off.stem_map.xy)
