@@ -314,7 +314,8 @@ def demo(
     from stemmap.io.products import run_products
 
     with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
-        announce_compile("scan", "slam")  # after the output folder is checked, not before
+        # after the output folder is checked, not before
+        announce_compile("scan", backend=backend.value)
         m = run_demo(
             run.dir,
             seed=seed,
