@@ -157,7 +157,11 @@ def _lidar_imu_motion(
 
 
 def _score(
-    drive: MunjerDrive, obs: StemObservations, draws: int, motion: tuple[Any, Any] | None = None
+    drive: MunjerDrive,
+    obs: StemObservations,
+    draws: int,
+    motion: tuple[Any, Any] | None = None,
+    config: MunjerMapConfig | None = None,
 ) -> list[dict[str, Any]]:
     """One Table 2 row per FastSLAM draw (:func:`map_draws`); ``resolvable``: the same counts
     over the trees a 16-beam lidar resolves with EB-LiDAR's eps (:data:`RESOLVABLE_RANGE`,
@@ -166,7 +170,7 @@ def _score(
     ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
     vis = drive.trees_visible()
     rows = []
-    for d, result, sec in map_draws(drive, obs, draws, motion):
+    for d, result, sec in map_draws(drive, obs, draws, motion, config):
         sm = result.stem_map
         m, mm = drive.score(sm, GATE)
         mr, _ = drive.score(sm, GATE, eligible=ok)
