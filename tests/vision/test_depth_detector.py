@@ -140,11 +140,13 @@ def _daim(d435_frames, params: DaimParams):  # type: ignore[no-untyped-def]
 def test_noise_scaled_clustering_finds_the_far_trunk(d435_frames) -> None:  # type: ignore[no-untyped-def]
     """At 10.5 m the D435's depth noise (0.39 m) leaves no two points within a fixed 0.1 m:
     DBSCAN finds no cluster (the orchard drives' main miss, docs/algorithms/vision-fusion.md).
-    The option ``depth_noise_k`` (radius max(eps, 2 k z^2)) clusters it in every draw, centre
-    within 0.3 m (measured 0.06-0.28 m)."""
+    ``depth_noise_k`` (radius max(eps, 2 k z^2); in ``MUNJER2025`` since the per-detection
+    noise) clusters it in every draw, centre within 0.3 m (measured 0.06-0.28 m)."""
     noise_eps = replace(MUNJER2025, depth_noise_k=D435_DEPTH_NOISE_K)
+    assert noise_eps == MUNJER2025
+    fixed_eps = replace(MUNJER2025, depth_noise_k=None)
     for fixed, scaled in zip(
-        _daim(d435_frames, MUNJER2025), _daim(d435_frames, noise_eps), strict=True
+        _daim(d435_frames, fixed_eps), _daim(d435_frames, noise_eps), strict=True
     ):
         assert 2 not in fixed.index
         assert 2 in scaled.index
