@@ -280,6 +280,16 @@ def _clean(v: Any) -> Any:
     return v
 
 
+def _emit(out: dict[str, Any], path: Path | None) -> dict[str, Any]:
+    """``out`` made JSON-safe (:func:`_clean`), printed, written to ``path`` if given."""
+    res: dict[str, Any] = _clean(out)
+    text = json.dumps(res, indent=1)
+    if path:
+        path.write_text(text)
+    print(text)
+    return res
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -450,12 +460,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "total_seconds": round(time.perf_counter() - t_all, 1),
         "note": "shared, loaded machine: times are indicative only",
     }
-    res = _clean(out)
-    text = json.dumps(res, indent=1)
-    if a.out:
-        a.out.write_text(text)
-    print(text)
-    return res
+    return _emit(out, a.out)
 
 
 if __name__ == "__main__":

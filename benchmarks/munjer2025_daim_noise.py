@@ -30,7 +30,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from munjer2025 import _clean, _pool, _score  # benchmark helpers (same folder)
+from munjer2025 import _clean, _emit, _pool, _score  # benchmark helpers (same folder)
 from stemmap.sim.munjer import simulate_munjer_drive
 from stemmap.slam.munjer import MunjerMapConfig, daim_observations
 from stemmap.vision.depth import D435_DEPTH_NOISE_K, MUNJER2025
@@ -89,12 +89,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "depth_noise_k": D435_DEPTH_NOISE_K,
         "cpu_seconds": time.process_time() - t_all,
     }
-    res_all = _clean(out)
-    text = json.dumps(res_all, indent=1)
-    if a.out:
-        a.out.write_text(text)
-    print(text)
-    return res_all
+    return _emit(out, a.out)
 
 
 if __name__ == "__main__":
