@@ -12,16 +12,20 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.eval.real_slices import RealSlice
+from stemmap.eval.real_slices import Mount, RealSlice, Relief, virtual_scans
+from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD
 from stemmap.scan.detect import DetectorConfig
 
 __all__ = [
+    "BACKGROUNDS",
     "FULL_SCANNERS",
     "QUICK_SCANNERS",
     "TEXTBOOK",
     "error_stats",
     "greedy_match",
     "matched",
+    "scene_note",
+    "scene_scans",
     "vantage_points",
 ]
 
@@ -105,3 +109,57 @@ def error_stats(err_cm: np.ndarray) -> dict[str, Any]:
         "rmse_cm": round(float(np.sqrt(np.mean(e * e))), 2),
         "bias_cm": round(float(np.mean(e)), 2),
     }
+
+
+#: What the virtual scans see besides the trunks (``--background``): ``ground`` (the
+#: default since the fifteenth round) or ``none`` (trunks only, the first fourteen rounds).
+BACKGROUNDS = ("ground", "none")
+
+#: The mount of the ``ground`` scans: 1.3 m above the ground, pitched down 3 degrees.
+MOUNT = Mount(height=1.3, pitch_deg=3.0, band=0.1)
+
+
+def scene_scans(
+    sl: RealSlice,
+    vp: np.ndarray,
+    model: str,
+    res: float,
+    background: str,
+    seed: int,
+    mount: Mount = MOUNT,
+    relief_std: float = RELIEF_STD,
+    relief_corr: float = RELIEF_CORR,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free virtual scans (ranges, hit trunk) of ``sl`` from ``vp``. ``background``
+    ``"ground"``: the scan plane (``mount``, default :data:`MOUNT`) pitched towards a uniform
+    random heading per vantage also returns from the slice's ground and understory
+    (:attr:`RealSlice.ground`) and from the ground plane with a micro-relief (``relief_std``,
+    ``relief_corr``: the TreeLS plot's by default,
+    :meth:`stemmap.eval.scan_background.Relief.random`); headings and relief come from their
+    own generators (``seed``), so the vantage points and the noise are those of ``"none"``."""
+    extra: dict[str, Any] = {}
+    if background == "ground":
+        heads = np.random.default_rng((seed, 1)).uniform(-math.pi, math.pi, vp.shape[0])
+        extra = {
+            "background": "ground",
+            "ground": sl.ground,
+            "mount": mount,
+            "headings": heads,
+            "relief": Relief.random(60.0, seed, relief_std, relief_corr),
+        }
+    return virtual_scans(
+        sl.xy, sl.labels, vp, resolution_deg=res, model=model, centers=sl.centers, **extra
+    )
+
+
+def scene_note(background: str) -> str:
+    """The scenario's words for ``background`` (echoed in the benchmarks' JSON)."""
+    if background == "none":
+        return "trunks only: the breast-height slice"
+    return (
+        f"ground: scan plane {MOUNT.height} m above the ground, pitched down"
+        f" {MOUNT.pitch_deg} deg towards a random heading per vantage; the cloud's own ground"
+        f" and understory within {MOUNT.band / 2} m of the beam where it has them (TreeLS"
+        " plot, pine, spruce), a ground plane (the cloud's, else flat) with micro-relief"
+        " (std 4 cm, 0.3 m correlation: the TreeLS plot's) everywhere"
+    )

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from stemmap.eval.detection import scan_detection_metrics
-from stemmap.sim.forest import add_clutter, random_stand
+from stemmap.sim.forest import stand_from_spec
 from stemmap.sim.scanner import scanner_preset
 from stemmap.sim.trajectory import lawnmower_path, simulate_run
 from stemmap.types import StemObservations
@@ -65,17 +65,7 @@ SCENARIO: dict[str, Any] = {
 def make_run(n_scans: int, seed: int) -> Any:
     s = SCENARIO
     rng = np.random.default_rng(seed)
-    st = s["stand"]
-    stand = random_stand(
-        st["n_trees"],
-        tuple(st["size_m"]),
-        dbh_mean=st["dbh_mean_m"],
-        dbh_std=st["dbh_std_m"],
-        dbh_min=st["dbh_min_m"],
-        min_spacing=st["min_spacing_m"],
-        rng=rng,
-    )
-    stand = add_clutter(stand, **s["clutter"], rng=rng)
+    stand = stand_from_spec(s["stand"], s["clutter"], rng=rng)
     sc = s["scanner"]
     model = scanner_preset(sc["preset"], range_max=sc["range_max_m"])
     dr = s["drive"]

@@ -6,7 +6,11 @@ For every real cloud in ../shared/datasets (:data:`stemmap.eval.real_slices.SLIC
 is reported), and 360-degree virtual 2D scans of the whole slice from many vantage points at
 1-15 m from a reference trunk (every trunk, branch and bush occludes what is behind it). Scanner
 models: first-echo ``nearest`` and footprint-averaging ``averaging`` (SICK LMS2xx class, mixed
-pixels), 0.25 / 0.5 / 1.0 degrees, Gaussian range noise 0 / 1 / 3 cm.
+pixels), 0.25 / 0.5 / 1.0 degrees, Gaussian range noise 0 / 1 / 3 cm. By default
+(``--background none``) the scans hold the slice only, as the issue specifies and every round
+reported; ``--background ground`` (fifteenth round) adds what a scanner pitched 3 degrees down
+sees besides the trunks: the cloud's own ground and understory where it has them and a ground
+plane with micro-relief beyond (:func:`_real_scanning.scene_scans`), a robustness view.
 
 Each detector (every preset with its own fit, the ``stemmap`` preset with every fit, and a
 textbook detector: range-jump segmentation, >= 3 returns, Kasa fit, no plausibility test) runs
@@ -40,10 +44,13 @@ from typing import Any
 import numpy as np
 
 from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_noise.py
+    BACKGROUNDS,
     FULL_SCANNERS,
     QUICK_SCANNERS,
     TEXTBOOK,
     matched,
+    scene_note,
+    scene_scans,
     vantage_points,
 )
 from _real_scanning import error_stats as _stats
@@ -57,7 +64,6 @@ from stemmap.eval.real_slices import (
     load_slice,
     noisy_batch,
     reference_jackknife,
-    virtual_scans,
 )
 from stemmap.scan.circle import FIT_METHODS
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
@@ -94,6 +100,8 @@ def _setting(
         # twelfth round: the relaxed RMS tests
         "rms_noise_from_fit": 0.0,
         "lobe_roughness": 0.0,
+        # fifteenth round: the lobed outline
+        "lobe_harmonics": 0,
         **extra,
     }
 
@@ -208,6 +216,18 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # the corner split)
     _setting(**_DEFAULT_11, arc_refit=True, arc_sigmas=2.0, arc_replace=3.0),
     _setting(**_DEFAULT_11, arc_refit=True, arc_sigmas=2.0, arc_replace=2.0),
+    # fifteenth round, on the current default (grid 21): a candidate that fails the RMS test
+    # re-fitted as a lobed outline (lobe_harmonics 3: k = 2, 3 with the centre; prior 4.5 % of
+    # the radius per coefficient and lobe bound 10 %, both measured on the real bark rings,
+    # benchmarks/lobed_outlines.py; simulated precision, benchmark / demo drive seed 1: 0.971
+    # / 0.950)
+    _setting(**_DEFAULT_11, lobe_harmonics=3),
+    # fifteenth round, on the current default (grid 21): a candidate rejected as not convex or
+    # by the RMS test whose corner split gave no trunk is cut where the BIC over one, two and
+    # three pieces (each >= min_points returns), scored from running Kasa moments, says, and
+    # its pieces validated as the corner split's (split_search, numpy path; simulated
+    # precision, benchmark / demo drive seed 1: 0.954 / 0.943, not admitted)
+    _setting(**_DEFAULT_11, split_search=True),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
@@ -346,8 +366,10 @@ def run_dataset(
     n_vantage: int,
     min_returns: int,
     seed: int,
+    background: str = "none",
 ) -> dict[str, Any]:
-    """Every scanner configuration x detector on one slice."""
+    """Every scanner configuration x detector on one slice (``background``: the virtual
+    scans' scene besides the trunks, :func:`_real_scanning.scene_scans`)."""
     rng = np.random.default_rng(seed)
     vp = vantage_points(sl, n_vantage, rng)
     centers, diam = sl.centers, sl.diameters
@@ -356,14 +378,7 @@ def run_dataset(
     for model, res, noise in scanners:
         key = (model, res)
         if key not in geometry:
-            geometry[key] = virtual_scans(
-                sl.xy,
-                sl.labels,
-                vp,
-                resolution_deg=res,
-                model=model,  # type: ignore[arg-type]
-                centers=sl.centers,
-            )
+            geometry[key] = scene_scans(sl, vp, model, res, background, seed)
         ranges0, hit = geometry[key]
         batch = noisy_batch(ranges0, res, noise, rng)
         n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
@@ -463,6 +478,7 @@ def leave_one_out(
     train_all: bool = False,
     sim_check: bool = True,
     baseline: int | None = None,
+    background: str = "none",
 ) -> dict[str, Any]:
     """Choose :data:`LOO_GRID` on all datasets but one (mean :func:`_objective` over the other
     datasets and the scanner configurations), report the choice on the held-out one. A dataset
@@ -490,7 +506,13 @@ def leave_one_out(
             dets[f"x{x}"] = DetectorConfig.preset("stemmap", **extra)
         dets["textbook_kasa"] = TEXTBOOK
         res = run_dataset(
-            sl, scanners, dets, n_vantage=n_vantage, min_returns=min_returns, seed=seed + i
+            sl,
+            scanners,
+            dets,
+            n_vantage=n_vantage,
+            min_returns=min_returns,
+            seed=seed + i,
+            background=background,
         )
         per[name] = {
             g: {sc: conf[str(g)] for sc, conf in res.items()} for g in range(len(LOO_GRID))
@@ -640,6 +662,14 @@ def main(argv: list[str] | None = None) -> int:
         help="--loo: also choose among the first N grid settings (before a round's additions)",
     )
     ap.add_argument(
+        "--background",
+        choices=BACKGROUNDS,
+        default="none",
+        help="what the virtual scans see besides the trunks: ground = the pitched scan plane"
+        " meets the cloud's ground and understory (fifteenth round, a robustness view); none ="
+        " the slice only (default: the issue's benchmark, every round's target row)",
+    )
+    ap.add_argument(
         "--grid-precision",
         action="store_true",
         help="only check every LOO_GRID setting's simulated precision (SIM_PRECISION_MIN)",
@@ -673,9 +703,11 @@ def main(argv: list[str] | None = None) -> int:
             args.train_all,
             sim_check=not args.no_sim_check,
             baseline=args.baseline_grid,
+            background=args.background,
         )
         loo["scenario"] = {
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
+            "background": scene_note(args.background),
             "vantage_points_per_dataset": n_vantage,
             "grid": list(LOO_GRID),
             "outside_grid": list(LOO_EXTRA),
@@ -699,6 +731,7 @@ def main(argv: list[str] | None = None) -> int:
             "mode": "quick" if args.quick else "full",
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
             "averaging_footprint_deg": 0.25,
+            "background": scene_note(args.background),
             "vantage_points_per_dataset": n_vantage,
             "vantage_range_m": [1.0, 15.0],
             "min_returns_visible": args.min_returns,
@@ -736,6 +769,7 @@ def main(argv: list[str] | None = None) -> int:
                 n_vantage=n_vantage,
                 min_returns=args.min_returns,
                 seed=args.seed + i,
+                background=args.background,
             )
         result["datasets"][name] = info
     result["runtime_s"] = round(time.perf_counter() - t0, 1)

@@ -10,10 +10,16 @@ does), the number of continuous beam triples it used, and (with noise) the ratio
 median estimate to the added noise. Noise-free scans show what the geometry and the bark
 add on their own.
 
+``--background ground`` (fifteenth round) estimates on the scans with the ground and
+understory of ``real_geometry.py``'s default (:func:`_real_scanning.scene_scans`), with the
+micro-relief ``--relief-std`` / ``--relief-corr`` and the pitch ``--pitch``; ``none`` (the
+default here, as the sixth round measured) on the trunks-only scans.
+
 Usage::
 
     python benchmarks/scan_noise.py --vantage 20
     python benchmarks/scan_noise.py --jump 0.1
+    python benchmarks/scan_noise.py --background ground --relief-std 0.01
 
 One JSON object on stdout.
 """
@@ -29,9 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import FULL_SCANNERS, vantage_points  # shared with real_geometry.py
+from _real_scanning import (  # shared with real_geometry.py
+    FULL_SCANNERS,
+    MOUNT,
+    scene_note,
+    scene_scans,
+    vantage_points,
+)
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
+from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
+from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD, Mount
 from stemmap.scan.plausibility import scan_noise
 
 
@@ -52,7 +65,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jump", type=float, default=0.2, help="continuity step, metres")
     ap.add_argument("--surface", type=float, default=0.01, help="surface share, metres")
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--background", choices=("none", "ground"), default="none")
+    ap.add_argument("--relief-std", type=float, default=RELIEF_STD, help="metres")
+    ap.add_argument("--relief-corr", type=float, default=RELIEF_CORR, help="metres")
+    ap.add_argument("--pitch", type=float, default=MOUNT.pitch_deg, help="degrees down")
     args = ap.parse_args(argv)
+    mount = Mount(MOUNT.height, args.pitch, MOUNT.band)
     ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
     if ddir is None:
         print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
@@ -69,8 +87,16 @@ def main(argv: list[str] | None = None) -> int:
         res_out: dict[str, Any] = {}
         for model, res, noise in FULL_SCANNERS:
             if (model, res) not in geometry:
-                geometry[(model, res)] = virtual_scans(
-                    sl.xy, sl.labels, vp, resolution_deg=res, model=model, centers=sl.centers
+                geometry[(model, res)] = scene_scans(
+                    sl,
+                    vp,
+                    model,
+                    res,
+                    args.background,
+                    args.seed + i,
+                    mount,
+                    args.relief_std,
+                    args.relief_corr,
                 )[0]
             r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
             r = np.where(r < 30.0, r, np.nan)  # the benchmark's range_max
@@ -80,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
             res_out[f"{model}_{res:g}deg_noise{100 * noise:g}cm"] = {
                 "estimate_cm_p10_p50_p90": [round(float(v), 3) for v in (p10, p50, p90)],
                 "ratio_median_to_noise": round(float(p50) / (100 * noise), 3) if noise else None,
+                "no_estimate_share": round(float(np.mean(est == 0.0)), 3),
                 "less_surface_cm_p10_p50_p90": [
                     round(float(v), 3) for v in np.percentile(net, [10, 50, 90])
                 ],
@@ -95,6 +122,10 @@ def main(argv: list[str] | None = None) -> int:
                     "jump_m": args.jump,
                     "surface_m": args.surface,
                     "seed": args.seed,
+                    "background": scene_note(args.background),
+                    "relief_std_m": args.relief_std if args.background == "ground" else None,
+                    "relief_corr_m": args.relief_corr if args.background == "ground" else None,
+                    "pitch_deg": args.pitch if args.background == "ground" else None,
                     "scanners_model_res_deg_noise_m": [list(s) for s in FULL_SCANNERS],
                 },
                 "datasets": out,

@@ -13,6 +13,7 @@ from stemmap.sim import (
     random_stand,
     row_stand,
     sample_dbh,
+    stand_from_spec,
 )
 
 
@@ -56,6 +57,27 @@ def test_clustered_stand_is_more_clumped_than_random():
 
     # clumping shortens nearest-neighbour distances (Clark-Evans ratio < 1)
     assert mean_nn(c) < 0.8 * mean_nn(r)
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda **kw: random_stand(**kw, min_spacing=0.8),
+         r"could place only \d+ of 300 trees in 12.0 x 10.0 m with spacing 0.8 m; enlarge"),
+        (lambda **kw: clustered_stand(**kw, n_clusters=4, cluster_std=3.0),
+         r"could place only \d+ of 300 clustered trees \(n_clusters=4, cluster_std=3.0 m"),
+    ],
+)  # fmt: skip
+def test_random_and_clustered_stands_share_dbh_spacing_and_bounds(make, match):
+    """Both layouts draw the DBH in the window asked for, keep the surface gap, span the stand
+    from the origin, and say how many trees fit when they do not."""
+    s = make(n_trees=40, size=(40.0, 30.0), dbh_min=0.2, dbh_max=0.35, rng=12)
+    assert s.n_trees == 40 and s.bounds == (0.0, 0.0, 40.0, 30.0)
+    assert s.diameters.min() >= 0.2 and s.diameters.max() <= 0.35
+    assert _min_gap(s) >= 0.8
+    assert np.all((s.trees_xy >= 0.0) & (s.trees_xy <= (40.0, 30.0)))
+    with pytest.raises(ConfigError, match=match):
+        make(n_trees=300, size=(12.0, 10.0), rng=12)
 
 
 def test_row_stand_geometry():
@@ -124,3 +146,60 @@ def test_to_stem_map_carries_the_truth():
     np.testing.assert_allclose(sm.xy, s.trees_xy)
     np.testing.assert_allclose(sm.diameters, s.diameters)
     assert [t.id for t in sm] == list(range(12))
+
+
+def _same_stand(a: Stand, b: Stand) -> bool:
+    fields = ("trees_xy", "diameters", "clutter_xy", "clutter_radius", "segments")
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in fields) and (
+        a.clutter_kinds == b.clutter_kinds and a.bounds == b.bounds
+    )
+
+
+def test_stand_from_spec_is_random_stand_then_clutter_from_one_generator():
+    """The spec reads as the explicit calls (same draws, same order), the scalar size is a
+    square, ``n_trees=`` overrides the spec, and a Generator passed in is advanced as if the
+    caller had made the calls (the demo and the benchmarks draw the drive from it next)."""
+    spec = {"layout": "random", "n_trees": 40, "size_m": [35.0, 30.0], "dbh_mean_m": 0.25,
+            "dbh_std_m": 0.05, "dbh_min_m": 0.1, "min_spacing_m": 1.0}  # fmt: skip
+    clutter = {"n_bushes": 2, "n_branches": 1, "n_walls": 1, "n_fences": 0, "n_rocks": 3}
+    g1, g2 = np.random.default_rng(5), np.random.default_rng(5)
+    got = stand_from_spec(spec, clutter, rng=g1)
+    ref = random_stand(40, (35.0, 30.0), dbh_mean=0.25, dbh_std=0.05, dbh_min=0.1,
+                       min_spacing=1.0, rng=g2)  # fmt: skip
+    ref = add_clutter(ref, **clutter, rng=g2)
+    assert _same_stand(got, ref)
+    assert got.clutter_kinds.count("rock") == 3
+    assert g1.random() == g2.random()  # both streams are at the same place afterwards
+
+    square = stand_from_spec({**spec, "size_m": 35.0}, n_trees=12, rng=3)
+    assert square.n_trees == 12 and square.bounds == (0.0, 0.0, 35.0, 35.0)
+    assert square.clutter_kinds == ()  # no clutter spec: no clutter
+    # absent DBH / spacing keys take random_stand's defaults
+    plain = stand_from_spec({"size_m": 30.0, "n_trees": 10}, rng=4)
+    assert _same_stand(plain, random_stand(10, (30.0, 30.0), rng=4))
+
+
+@pytest.mark.parametrize(
+    ("spec", "match"),
+    [
+        ({"layout": "rows", "size_m": 30.0, "n_trees": 5}, "layout 'rows'"),
+        (
+            {"size_m": 30.0, "n_trees": 5, "dbh_mean": 0.3},
+            r"unknown stand spec keys \['dbh_mean'\]",
+        ),
+        ({"size_m": 30.0}, "no 'n_trees'"),
+        ({"size_m": 5.0, "n_trees": 50, "min_spacing_m": 2.0}, "could place only"),
+    ],
+)
+def test_stand_from_spec_rejects_what_it_cannot_build(spec, match):
+    with pytest.raises(ConfigError, match=match):
+        stand_from_spec(spec, rng=0)
+
+
+def test_forest_docstring_examples_run():
+    import doctest
+
+    import stemmap.sim.forest as forest_mod
+
+    res = doctest.testmod(forest_mod, optionflags=doctest.ELLIPSIS)
+    assert res.attempted >= 4 and res.failed == 0

@@ -72,23 +72,14 @@ DEMO_SCENARIO: dict[str, Any] = {
 
 
 def _stand_and_run(seed: int, n_trees: int) -> Any:
-    from stemmap.sim.forest import add_clutter, random_stand
+    from stemmap.sim.forest import stand_from_spec
     from stemmap.sim.trajectory import loop_path, simulate_run
 
     s = DEMO_SCENARIO
-    st, dr = s["stand"], s["drive"]
+    dr = s["drive"]
     rng = np.random.default_rng(seed)
-    size = float(st["size_m"])
-    stand = random_stand(
-        n_trees,
-        (size, size),
-        dbh_mean=st["dbh_mean_m"],
-        dbh_std=st["dbh_std_m"],
-        dbh_min=st["dbh_min_m"],
-        min_spacing=st["min_spacing_m"],
-        rng=rng,
-    )
-    stand = add_clutter(stand, **s["clutter"], rng=rng)
+    stand = stand_from_spec(s["stand"], s["clutter"], n_trees=n_trees, rng=rng)
+    size = float(s["stand"]["size_m"])
     f = float(dr["radii_fraction"])
     path = loop_path((size / 2, size / 2), (f * size, f * size), laps=float(dr["laps"]))
     return simulate_run(
@@ -323,7 +314,8 @@ def demo(
     from stemmap.io.products import run_products
 
     with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
-        announce_compile("scan", "slam")  # after the output folder is checked, not before
+        # after the output folder is checked, not before
+        announce_compile("scan", backend=backend.value)
         m = run_demo(
             run.dir,
             seed=seed,

@@ -37,7 +37,7 @@ def detect(
             "--out",
             "-o",
             help="Observations CSV to write (one row per trunk); with several logs a folder: "
-            "OUT/<log>/observations.csv per log and OUT/summary.csv.",
+            "OUT/LOG/observations.csv per log and OUT/summary.csv.",
         ),
     ],
     preset: Annotated[
@@ -117,6 +117,7 @@ def detect(
     ``scan_index`` is the frame's position in the file, so skipped frames leave gaps.
 
     Example: stemmap detect run.npz --out stems.csv --preset stemmap
+
     --rejected FILE lists every candidate the detector dropped with the test that dropped it
     (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md).
 

@@ -17,7 +17,9 @@ __all__ = ["register"]
 
 def _tilt_option(flag: str, what: str) -> Any:
     """A scan-plane tilt option in degrees, -30..30."""
-    return typer.Option(help=f"Scan-plane {what}, degrees.", callback=bounded(flag, ge=-30, le=30))
+    return typer.Option(
+        help=f"Scan-plane {what}, degrees, -30..30.", callback=bounded(flag, ge=-30, le=30)
+    )
 
 
 def harvest_sim(

@@ -371,7 +371,8 @@ def map_command(
                 "--motion and --motion-sigma are for a log input (bag, scans, frames)."
             )
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
-        announce_compile("slam") if dataset is not None else announce_compile("scan", "slam")
+        areas = () if dataset is not None else ("scan",)
+        announce_compile(*areas, backend=backend.value)
         motion_run = None
         if bag is not None and motion_src != Motion.wheel:
             motion_run = motion_trajectory(

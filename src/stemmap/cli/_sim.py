@@ -110,10 +110,10 @@ def scans(
         str, typer.Option(help="Wheel-odometry noise preset: none, wheel, forest.")
     ] = "wheel",
     trees_out: Annotated[
-        Path | None, typer.Option(help="Truth trees CSV (default: <out>_trees.csv).")
+        Path | None, typer.Option(help="Truth trees CSV (default: OUT's stem + _trees.csv).")
     ] = None,
     poses_out: Annotated[
-        Path | None, typer.Option(help="True sensor poses CSV (default: <out>_poses.csv).")
+        Path | None, typer.Option(help="True sensor poses CSV (default: OUT's stem + _poses.csv).")
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
 ) -> None:

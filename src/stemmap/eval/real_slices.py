@@ -23,6 +23,12 @@ of the whole slice (every trunk, branch and bush occludes what is behind it):
 
 Gaussian range noise can be added per beam. Each beam also carries the index of the
 reference trunk it hit (-1 = anything else), which tells which trunks are visible.
+
+``background="ground"`` (fifteenth round) adds what a real scanner at breast height sees
+besides the trunks: the scan plane pitched down by a few degrees (:class:`Mount`) cuts the
+same cloud's ground and understory below the slice and meets the ground plane ahead
+(:mod:`stemmap.eval.scan_background`; a flat plane for the clouds without ground).
+``background="none"`` (the default) is the trunks-only scan of the first fourteen rounds.
 """
 
 from __future__ import annotations
@@ -37,11 +43,22 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from stemmap.errors import InputError
+from stemmap.eval.scan_background import (
+    GroundSurface,
+    Mount,
+    Relief,
+    band_points,
+    ground_ranges,
+    ground_surface,
+)
 from stemmap.types import FloatArray, ScanBatch
 
 __all__ = [
     "SLICES",
+    "GroundSurface",
+    "Mount",
     "RealSlice",
+    "Relief",
     "SliceSpec",
     "cluster_grid",
     "load_slice",
@@ -65,7 +82,10 @@ class SliceSpec:
     so a detection on anything else is a false alarm (single trees: one stem among branches and
     needles; the FORTLS slice: its 20 circles only). False for the single-scan TreeLS plot,
     where 8 further stems are seen by 5-30 points or over < 250 degrees (clusters the
-    detectors find at stem-like radii of 4-15 cm): no precision is scored there."""
+    detectors find at stem-like radii of 4-15 cm): no precision is scored there.
+    ``ground_points``: the cloud holds its ground (the TreeLS plot, 10 x 10 m; TreeLS pine and
+    spruce, a 2.3 x 1.9 m patch around the stem base), which gives the virtual scans'
+    ground plane and understory (:func:`stemmap.eval.scan_background.ground_surface`)."""
 
     path: str
     heights: Literal["as_is", "ground", "lowest"]
@@ -75,16 +95,21 @@ class SliceSpec:
     cell: float = 0.05
     min_coverage_deg: float = 250.0
     reference_complete: bool = True
+    ground_points: bool = False
 
 
 #: Every real cloud of the shared datasets that has trunks at breast height.
 SLICES: dict[str, SliceSpec] = {
     "fortls_slice": SliceSpec("fortls_slice/diameters.laz", "as_is", min_ring_points=500),
     "treels_pine_plot": SliceSpec(
-        "treels/pine_plot.laz", "ground", min_ring_points=30, reference_complete=False
+        "treels/pine_plot.laz",
+        "ground",
+        min_ring_points=30,
+        reference_complete=False,
+        ground_points=True,
     ),
-    "treels_pine": SliceSpec("treels/pine.laz", "lowest"),
-    "treels_spruce": SliceSpec("treels/spruce.laz", "lowest"),
+    "treels_pine": SliceSpec("treels/pine.laz", "lowest", ground_points=True),
+    "treels_spruce": SliceSpec("treels/spruce.laz", "lowest", ground_points=True),
     "lidr_dbh": SliceSpec("lidr_dbh/dbh.laz", "as_is"),
     "archi_tree1": SliceSpec(
         "archi/Tree_1_point_cloud.las", "lowest", min_ring_points=30, cell=0.1
@@ -99,13 +124,16 @@ class RealSlice:
     (-1 = not a reference trunk), ``refs`` one dict per reference trunk (x, y, diameter,
     ring_rms_m, inlier_fraction, coverage_deg, n_points); ``partial`` the ring fits of
     clusters seen over less than the spec's ``min_coverage_deg`` (no reference: they stay in
-    the scans as occluders and are neither hits nor false alarms)."""
+    the scans as occluders and are neither hits nor false alarms); ``ground`` the ground
+    plane and understory below the slice (:class:`GroundSurface`; a flat plane without
+    understory where the cloud has no ground)."""
 
     name: str
     xy: FloatArray
     labels: NDArray[np.int64]
     refs: list[dict[str, float]]
     partial: list[dict[str, float]]
+    ground: GroundSurface | None = None
 
     @property
     def centers(self) -> FloatArray:
@@ -254,6 +282,7 @@ def load_slice(datasets_dir: Path | str, name: str) -> RealSlice:
         raise InputError(f"unknown real slice {name!r}; choose one of {sorted(SLICES)}.") from None
     xyz = _read_xyz(Path(datasets_dir) / spec.path)
     base_xy = None
+    h = np.zeros(0)
     if spec.heights == "as_is":
         keep = np.ones(xyz.shape[0], dtype=bool)
     else:
@@ -291,7 +320,22 @@ def load_slice(datasets_dir: Path | str, name: str) -> RealSlice:
         xy = np.vstack((xy, fill))
         labels = np.concatenate((labels, np.full(fill.shape[0], len(refs), dtype=np.int64)))
         refs.append(ref)
-    return RealSlice(name=name, xy=xy, labels=labels, refs=refs, partial=partial)
+    ground = GroundSurface.flat(
+        "flat model: the file is a breast-height slice (no ground)"
+        if spec.heights == "as_is"
+        else "flat model: a segmented tree without ground"
+    )
+    if spec.ground_points:
+        stems = [(r["x"], r["y"], 0.5 * r["diameter"]) for r in (*refs, *partial)]
+        pts = np.column_stack((xyz[:, :2] - shift, xyz[:, 2]))
+        if base_xy is None:  # a ground raster: its points within 10 cm
+            on_ground = np.abs(h) <= 0.1
+        else:  # a single tree: the lowest 15 cm away from the stem base
+            b = base_xy - shift
+            stems.append((float(b[0]), float(b[1]), 0.3))
+            on_ground = (h < 0.15) & (np.hypot(*(pts[:, :2] - b).T) > 0.3)
+        ground = ground_surface(pts, h, on_ground, spec.z_lo, np.array(stems).reshape(-1, 3))
+    return RealSlice(name=name, xy=xy, labels=labels, refs=refs, partial=partial, ground=ground)
 
 
 def _fill_unseen_sectors(ring: FloatArray, ref: dict[str, float]) -> FloatArray:
@@ -336,6 +380,11 @@ def virtual_scans(
     max_range: float = 30.0,
     point_radius: float | None = None,
     centers: FloatArray | None = None,
+    background: Literal["none", "ground"] = "none",
+    ground: GroundSurface | None = None,
+    mount: Mount | None = None,
+    headings: FloatArray | None = None,
+    relief: Relief | None = None,
 ) -> tuple[FloatArray, NDArray[np.int64]]:
     """Noise-free 360-degree 2D scans of a slice from each vantage point.
 
@@ -352,6 +401,17 @@ def virtual_scans(
     point_radius of diameter in the detectors' estimates: +1.6 cm on the TreeLS pine plot,
     8 mm discs; issue 11 diagnosis).
 
+    ``background="ground"``: the scan plane of ``mount`` (default :class:`Mount`: 1.3 m,
+    pitched down 3 degrees) pitched towards ``headings[v]`` (radians, default 0) from each
+    vantage also returns from the points of ``ground`` (default a flat plane without
+    understory) below the slice that it passes through (:func:`band_points`, discs like the
+    slice's, each trunk still hides them) and, on every (sub-)ray, from the ground plane where
+    it meets it first (:func:`ground_ranges`; with ``relief`` the first bump of that
+    micro-relief the beam grazes, else the plane itself): a beam that misses the trunks hits
+    the ground or the understory, and a trunk behind the ground's line is hidden. The trunks
+    themselves stay the breast-height slice (the pitch moves the beam by <= 0.8 m of height at
+    15 m; the slice stands for the stem there). Ranges are horizontal, as the slice's.
+
     Returns
     -------
     ranges : ndarray (V, N), metres (inf = no return within ``max_range``)
@@ -360,6 +420,8 @@ def virtual_scans(
     """
     if model not in ("nearest", "averaging"):
         raise InputError(f"scanner model must be 'nearest' or 'averaging', got {model!r}.")
+    if background not in ("none", "ground"):
+        raise InputError(f"background must be 'none' or 'ground', got {background!r}.")
     res = math.radians(resolution_deg)
     n_beams = round(2.0 * math.pi / res)
     vantages = np.atleast_2d(np.asarray(vantages, dtype=np.float64))
@@ -383,13 +445,27 @@ def virtual_scans(
         nrm = np.hypot(out[:, 0], out[:, 1])
         xy = xy.copy()
         xy[t] -= point_radius * out / np.maximum(nrm, 1e-12)[:, None]
+    with_ground = background == "ground"
+    surface = ground if ground is not None else GroundSurface.flat("flat model")
+    mount = mount if mount is not None else Mount()
+    heads = np.zeros(vantages.shape[0]) if headings is None else np.asarray(headings, float)
+    # bearing of every (sub-)ray: beam k's sub-cell j is centred at -pi + (k step + j + 1/2)
+    # sub - width / 2
+    cells = np.arange(n_beams)[:, None] * step + np.arange(n_sub)[None, :]
+    sub_bearing = np.asarray((cells + 0.5) * sub - 0.5 * width - math.pi, dtype=np.float64)
     for v, o in enumerate(vantages):
-        q = xy - o
+        xy_v, lab_v = xy, labels
+        if with_ground:
+            extra = band_points(surface, o, float(heads[v]), mount)
+            xy_v = np.vstack((xy, extra))
+            lab_v = np.concatenate((labels, np.full(extra.shape[0], -1, dtype=np.int64)))
+        q = xy_v - o
         rho = np.hypot(q[:, 0], q[:, 1])
         near = (rho <= max_range) & (rho > point_radius)
         if centers is not None:
-            near[t] &= np.einsum("ij,ij->i", out, -q[t]) > 0.0
-        q, rho, lab = q[near], rho[near], labels[near]
+            tv = np.flatnonzero(t)  # the trunk points come first: the band points are -1
+            near[tv] &= np.einsum("ij,ij->i", out, -q[tv]) > 0.0
+        q, rho, lab = q[near], rho[near], lab_v[near]
         order = np.argsort(rho, kind="stable")
         q, rho, lab = q[order], rho[order], lab[order]
         th = np.arctan2(q[:, 1], q[:, 0]) + math.pi  # [0, 2 pi]
@@ -419,6 +495,12 @@ def virtual_scans(
         sub_l = np.full((n_beams, n_sub), -1, dtype=np.int64)
         sub_r.reshape(-1)[f] = enter[first]
         sub_l.reshape(-1)[f] = lab[idx[first]]
+        if with_ground:  # the ground plane where the (sub-)ray meets it first
+            g = ground_ranges(
+                surface, sub_bearing.ravel(), float(heads[v]), mount, max_range, o, relief
+            ).reshape(n_beams, n_sub)
+            sub_l = np.where(g < sub_r, -1, sub_l)
+            sub_r = np.minimum(sub_r, g)
         if n_sub == 1:
             ranges[v] = sub_r[:, 0]
             hit[v] = sub_l[:, 0]
@@ -435,7 +517,12 @@ def noisy_batch(
     ranges0: FloatArray, resolution_deg: float, noise: float, rng: np.random.Generator
 ) -> ScanBatch:
     """The virtual scans ``ranges0`` (V, N) of :func:`virtual_scans` as a ScanBatch, with
-    Gaussian range noise of ``noise`` metres per beam (kept >= 5 cm; no return stays inf)."""
+    Gaussian range noise of ``noise`` metres per beam (kept >= 5 cm; no return stays inf).
+
+    ``noise == 0`` draws nothing from ``rng``, so later draws from the same generator differ
+    from a run with noise > 0. Kept on purpose: the seeded real-slice benchmarks
+    (``QUICK_SCANNERS`` / ``FULL_SCANNERS`` put a noise-free level before the noisy ones) and
+    ``tests/scan/test_detect_fast_real.py`` depend on this stream."""
     ranges = ranges0 + (rng.normal(0.0, noise, ranges0.shape) if noise > 0 else 0.0)
     ranges = np.where(np.isfinite(ranges0), np.maximum(ranges, 0.05), np.inf)
     return ScanBatch(

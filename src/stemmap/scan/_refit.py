@@ -51,6 +51,7 @@ __all__ = [
     "Refitted",
     "corner_cut_pieces",
     "fit_passes",
+    "judge_pieces",
     "outlier_returns",
     "refit_pieces",
     "split_refit",
@@ -189,7 +190,30 @@ def split_refit(
     sel = cut[local]
     if not np.any(sel):
         return None
-    pieces, local = pieces.select(sel), local[sel]
+    return judge_pieces(
+        detector, sub, pieces.select(sel), local[sel], which, grid, wrap, cfg.refit_validate
+    )
+
+
+def judge_pieces(
+    detector: ScanTrunkDetector,
+    sub: Segments,
+    pieces: Segments,
+    local: NDArray[np.int64],
+    which: NDArray[np.bool_],
+    grid: FloatArray,
+    wrap: bool,
+    validate: bool,
+    accept: NDArray[np.bool_] | None = None,
+) -> Refitted | None:
+    """The pieces of the candidates ``sub`` (= ``every.select(which)``; ``local`` indexes
+    ``sub``) judged as any candidate: segment filters, fit, fit tests; with ``validate`` a
+    candidate's pieces are accepted only together (:func:`validate_pieces`) and a piece whose
+    circle holds a return of its parent more than 3 sigma inside is rejected. ``parent`` of
+    the result indexes ``every``; None when no piece passed the segment filters. ``accept``
+    (per piece): a further condition of acceptance, applied after the validation (a piece it
+    refuses still vetoes its siblings)."""
+    cfg = detector.config
     codes = segment_reasons(pieces, segment_features(pieces), cfg)
     good = codes == 0
     if not np.any(good):
@@ -199,11 +223,13 @@ def split_refit(
     fitted = detector._fit_candidates(pieces.select(good), grid, wrap)
     fit_ok = np.zeros(len(pieces), dtype=bool)
     fit_ok[good] = fit_passes(cfg, fitted)
-    if cfg.refit_validate:
+    if validate:
         ok = validate_pieces(local, codes, fit_ok)[good]
         ok &= ~_returns_inside(sub, local[good], fitted, ok)
     else:
         ok = fit_ok[good]
+    if accept is not None:
+        ok &= accept[good]
     parent = np.flatnonzero(which)[local[good]].astype(np.int64)
     return Refitted(pieces.select(good), fitted, ok, parent)
 

@@ -33,7 +33,8 @@ from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._behind import trim_behind
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
-from stemmap.scan._refit import corner_cut_pieces, refit_pieces, split_refit
+from stemmap.scan._lobed import lobed_refit
+from stemmap.scan._refit import Refitted, corner_cut_pieces, refit_pieces, split_refit
 from stemmap.scan._segment_fits import (
     _fit_rms,
     _fit_segments,
@@ -41,6 +42,7 @@ from stemmap.scan._segment_fits import (
     _output_columns,
     fit_kasa_segments,
 )
+from stemmap.scan._split_search import search_refit
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
     _chi2_upper,
@@ -424,8 +426,9 @@ class ScanTrunkDetector:
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
-        corner splits (``refit_split="corners"``), no relaxed RMS tests, no ``behind_sigmas``
-        trim (arc re-fits are compiled since the fourteenth round of issue 11)."""
+        corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
+        (``lobe_harmonics``), no ``behind_sigmas`` trim, no ``split_search`` (arc re-fits are
+        compiled since the fourteenth round of issue 11)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
@@ -435,7 +438,9 @@ class ScanTrunkDetector:
             and (not cfg.refit_pieces or cfg.refit_split == "corners")
             and cfg.lobe_roughness == 0.0
             and cfg.rms_noise_from_fit == 0.0
+            and cfg.lobe_harmonics == 0
             and math.isinf(cfg.behind_sigmas)
+            and not cfg.split_search
         )
 
     def _run(
@@ -554,6 +559,12 @@ class ScanTrunkDetector:
             rms = _fit_rms(segs, centers, radii)
             # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
             test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
+        if cfg.lobe_harmonics:
+            # a candidate that fails the RMS test as a circle may pass it as a lobed outline
+            centers, radii, covs, test_rms, lobed = lobed_refit(
+                cfg, segs, centers, radii, covs, ok, test_rms, sigma, sil_width
+            )
+            rms = np.where(lobed, test_rms, rms)
         smooth = own = None
         if cfg.lobe_roughness > 0 or cfg.rms_noise_from_fit > 0:
             smooth = residual_smoothness(segs, centers, radii)
@@ -579,7 +590,9 @@ class ScanTrunkDetector:
         features and circle modules (the reference the compiled path is tested against)."""
         cfg = self.config
         corners = cfg.refit_pieces and cfg.refit_split == "corners"
-        arcs = cfg.arc_refit or corners  # every candidate is needed, before the filters
+        search = cfg.split_search
+        # every candidate is needed, before the filters
+        arcs = cfg.arc_refit or corners or search
         segs, grid, wrap = self._candidates(
             ranges,
             angle_min,
@@ -608,18 +621,18 @@ class ScanTrunkDetector:
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
         order_key = 2 * pos[ok]
-        if corners and len(every):
+        if (corners or search) and len(every):
             # not convex (depth) or failed the RMS test: a trunk merged with its neighbour
             which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
             which[pos[codes == _RMS]] = True
-            got = split_refit(self, every, which, grid, wrap)
-            if got is not None and np.any(got.ok) and math.isfinite(cfg.behind_sigmas):
-                p_segs, p_fit = trim_behind(self, got.segs, got.fitted, got.ok, grid, wrap)
-                got = got._replace(segs=p_segs, fitted=p_fit)
-            if got is not None and np.any(got.ok):
-                more = _output_columns(got.segs, got.fitted, got.ok)
-                cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
-                order_key = np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
+            got = split_refit(self, every, which, grid, wrap) if corners else None
+            if search:
+                # the candidates whose corner split gave no trunk: search every cut
+                if got is not None:
+                    which[got.parent[got.ok]] = False
+                cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap)
+                got = search_refit(self, every, which, grid, wrap)
+            cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap)
         elif cfg.refit_pieces:
             got = refit_pieces(self, segs, fitted, codes, grid, wrap)
             if got is not None and np.any(got.ok):
@@ -655,6 +668,26 @@ class ScanTrunkDetector:
             source=self.source,
             frame=frame,
         )
+
+    def _add_pieces(
+        self,
+        cols: dict[str, np.ndarray],
+        order_key: np.ndarray,
+        got: Refitted | None,
+        grid: FloatArray,
+        wrap: bool,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The accepted pieces of a split (``got``, parents indexing every candidate) added to
+        the output; each takes its parent's place (odd order key). ``behind_sigmas`` trims
+        them as it trims accepted candidates."""
+        if got is None or not np.any(got.ok):
+            return cols, order_key
+        if math.isfinite(self.config.behind_sigmas):
+            p_segs, p_fit = trim_behind(self, got.segs, got.fitted, got.ok, grid, wrap)
+            got = got._replace(segs=p_segs, fitted=p_fit)
+        more = _output_columns(got.segs, got.fitted, got.ok)
+        cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
+        return cols, np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
 
     def _arc_candidates(
         self,

@@ -9,6 +9,7 @@ from stemmap.sim.forest import (
     random_stand,
     row_stand,
     sample_dbh,
+    stand_from_spec,
 )
 from stemmap.sim.motion_sensors import (
     ODOMETRY_PRESETS,
@@ -82,6 +83,7 @@ __all__ = [
     "simulate_run",
     "simulate_scan",
     "simulate_scans",
+    "stand_from_spec",
     "straight_path",
     "trees_in_sensor_frame",
     "trunk_outline",

@@ -8,7 +8,8 @@ rejects), ``stand.clutter_objects_xy`` / ``stand.clutter_kinds``.
 
 Layouts: :func:`random_stand` (uniform with a minimum spacing), :func:`clustered_stand`
 (Thomas cluster process), :func:`row_stand` (orchard / plantation rows). DBH values come from
-:func:`sample_dbh`. :func:`add_clutter`, :func:`add_understory` and
+:func:`sample_dbh`. :func:`stand_from_spec` builds a random stand (and its clutter) from the
+declared scenario dict of a benchmark or the demo. :func:`add_clutter`, :func:`add_understory` and
 :func:`make_trunks_noncircular` transform a stand; they live in :mod:`stemmap.sim.stand_features`
 and are re-exported here.
 """
@@ -16,8 +17,9 @@ and are re-exported here.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,6 +43,7 @@ __all__ = [
     "random_stand",
     "row_stand",
     "sample_dbh",
+    "stand_from_spec",
 ]
 
 RngLike = np.random.Generator | int | None
@@ -297,6 +300,29 @@ def _place_with_spacing(
     return np.asarray(keep, dtype=np.int64)
 
 
+def _spaced_stand(
+    candidates: FloatArray,
+    size: tuple[float, float],
+    n_trees: int,
+    *,
+    min_spacing: float,
+    dbh: Mapping[str, Any],
+    rng: np.random.Generator,
+    too_dense: str,
+) -> Stand:
+    """A stand of the first ``n_trees`` candidate positions that keep ``min_spacing``, each with
+    a DBH from :func:`sample_dbh` (``dbh``: its keyword arguments; one draw per candidate).
+
+    Raises ConfigError "could place only k of n_trees <too_dense>" when fewer fit.
+    """
+    diam = sample_dbh(candidates.shape[0], rng=rng, **dbh)
+    idx = _place_with_spacing(candidates, diam, min_spacing, n_trees)
+    if idx.size < n_trees:
+        raise ConfigError(f"could place only {idx.size} of {n_trees} {too_dense}")
+    w, h = size
+    return Stand(candidates[idx], diam[idx], bounds=(0.0, 0.0, w, h))
+
+
 def random_stand(
     n_trees: int = 60,
     size: tuple[float, float] = (40.0, 40.0),
@@ -325,22 +351,15 @@ def random_stand(
     w, h = size
     n_cand = 200 * max(n_trees, 1)
     cand = gen.uniform((0.0, 0.0), (w, h), size=(n_cand, 2))
-    dbh = sample_dbh(
-        n_cand,
-        distribution=dbh_distribution,
-        mean=dbh_mean,
-        std=dbh_std,
-        dbh_min=dbh_min,
-        dbh_max=dbh_max,
-        rng=gen,
+    dbh = {"distribution": dbh_distribution, "mean": dbh_mean, "std": dbh_std,
+           "dbh_min": dbh_min, "dbh_max": dbh_max}  # fmt: skip
+    too_dense = (
+        f"trees in {w} x {h} m with spacing {min_spacing} m; enlarge the stand or reduce "
+        "min_spacing."
     )
-    idx = _place_with_spacing(cand, dbh, min_spacing, n_trees)
-    if idx.size < n_trees:
-        raise ConfigError(
-            f"could place only {idx.size} of {n_trees} trees in {w} x {h} m with spacing "
-            f"{min_spacing} m; enlarge the stand or reduce min_spacing."
-        )
-    return Stand(cand[idx], dbh[idx], bounds=(0.0, 0.0, w, h))
+    return _spaced_stand(
+        cand, (w, h), n_trees, min_spacing=min_spacing, dbh=dbh, rng=gen, too_dense=too_dense
+    )
 
 
 def clustered_stand(
@@ -380,24 +399,16 @@ def clustered_stand(
     n_cand = 200 * max(n_trees, 1)
     cand = parents[gen.integers(0, n_clusters, n_cand)] + gen.normal(0, cluster_std, (n_cand, 2))
     inside = (cand[:, 0] >= 0) & (cand[:, 0] <= w) & (cand[:, 1] >= 0) & (cand[:, 1] <= h)
-    cand = cand[inside]
-    dbh = sample_dbh(
-        cand.shape[0],
-        distribution=dbh_distribution,
-        mean=dbh_mean,
-        std=dbh_std,
-        dbh_min=dbh_min,
-        dbh_max=dbh_max,
-        rng=gen,
+    dbh = {"distribution": dbh_distribution, "mean": dbh_mean, "std": dbh_std,
+           "dbh_min": dbh_min, "dbh_max": dbh_max}  # fmt: skip
+    too_dense = (
+        f"clustered trees (n_clusters={n_clusters}, cluster_std={cluster_std} m, "
+        f"min_spacing={min_spacing} m); use more or wider clusters."
     )
-    idx = _place_with_spacing(cand, dbh, min_spacing, n_trees)
-    if idx.size < n_trees:
-        raise ConfigError(
-            f"could place only {idx.size} of {n_trees} clustered trees (n_clusters="
-            f"{n_clusters}, cluster_std={cluster_std} m, min_spacing={min_spacing} m); "
-            "use more or wider clusters."
-        )
-    return Stand(cand[idx], dbh[idx], bounds=(0.0, 0.0, w, h))
+    return _spaced_stand(
+        cand[inside], (w, h), n_trees, min_spacing=min_spacing, dbh=dbh, rng=gen,
+        too_dense=too_dense,
+    )  # fmt: skip
 
 
 def row_stand(
@@ -451,3 +462,90 @@ def row_stand(
     lo = xy.min(axis=0) - tree_spacing if xy.size else np.zeros(2)
     hi = xy.max(axis=0) + tree_spacing if xy.size else np.zeros(2)
     return Stand(xy, dbh, bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
+
+
+#: The keys of a stand spec and the :func:`random_stand` argument each one sets.
+_STAND_SPEC_ARGS = {
+    "dbh_mean_m": "dbh_mean",
+    "dbh_std_m": "dbh_std",
+    "dbh_min_m": "dbh_min",
+    "dbh_max_m": "dbh_max",
+    "min_spacing_m": "min_spacing",
+}
+
+
+def stand_from_spec(
+    spec: Mapping[str, Any],
+    clutter: Mapping[str, int] | None = None,
+    *,
+    n_trees: int | None = None,
+    rng: RngLike = None,
+) -> Stand:
+    """The stand of a declared scenario: :func:`random_stand`, then :func:`add_clutter`.
+
+    Benchmarks and ``stemmap demo`` declare every simulator parameter in one dict (the scenario,
+    written into their outputs); this reads its ``"stand"`` and ``"clutter"`` parts.
+
+    Parameters
+    ----------
+    spec : mapping
+        ``"layout"`` (only ``"random"``), ``"size_m"`` (float: a square, or ``[width, height]``,
+        metres), ``"n_trees"`` (int; may instead be given as ``n_trees``) and optionally
+        ``"dbh_mean_m"``, ``"dbh_std_m"``, ``"dbh_min_m"``, ``"dbh_max_m"``,
+        ``"min_spacing_m"`` (metres; absent keys take :func:`random_stand`'s defaults).
+    clutter : mapping of str to int, optional
+        The keyword arguments of :func:`add_clutter` (``n_bushes``, ``n_branches``, ...);
+        ``None`` adds no clutter and draws nothing for it.
+    n_trees : int, optional
+        Trees in the stand; overrides ``spec["n_trees"]``.
+    rng : numpy Generator or int seed
+        One generator draws the stand, then the clutter. A Generator passed in is used (and
+        advanced) as is, so a caller can go on drawing the drive from it.
+
+    Returns
+    -------
+    Stand
+
+    Raises
+    ------
+    ConfigError
+        On another layout, an unknown key, no tree count, or a stand :func:`random_stand` /
+        :func:`add_clutter` cannot place.
+
+    Examples
+    --------
+    >>> spec = {"layout": "random", "size_m": 30.0, "n_trees": 20, "min_spacing_m": 1.0}
+    >>> stand = stand_from_spec(spec, {"n_rocks": 2}, rng=1)
+    >>> stand.n_trees, stand.clutter_kinds
+    (20, ('rock', 'rock'))
+    >>> stand_from_spec({"layout": "rows", "size_m": 30.0, "n_trees": 20})
+    Traceback (most recent call last):
+    ...
+    stemmap.errors.ConfigError: stand layout 'rows' is not supported ...; use 'random'.
+    """
+    layout = spec.get("layout", "random")
+    if layout != "random":
+        raise ConfigError(
+            f"stand layout {layout!r} is not supported by stand_from_spec; use 'random'."
+        )
+    unknown = set(spec) - {"layout", "size_m", "n_trees", *_STAND_SPEC_ARGS}
+    if unknown:
+        raise ConfigError(
+            f"unknown stand spec keys {sorted(unknown)}; known: layout, size_m, n_trees, "
+            f"{', '.join(_STAND_SPEC_ARGS)}."
+        )
+    n = spec.get("n_trees") if n_trees is None else n_trees
+    if n is None:
+        raise ConfigError("the stand spec has no 'n_trees'; give it there or as n_trees=.")
+    size_m = spec["size_m"]
+    size = (
+        (float(size_m), float(size_m))
+        if np.ndim(size_m) == 0
+        else (float(size_m[0]), float(size_m[1]))
+    )
+    gen = np.random.default_rng(rng)
+    kwargs = {arg: spec[key] for key, arg in _STAND_SPEC_ARGS.items() if key in spec}
+    stand = random_stand(int(n), size, rng=gen, **kwargs)
+    if clutter is not None:
+        stand = add_clutter(stand, **clutter, rng=gen)
+    return stand
