@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -29,12 +30,14 @@ def map_draws(
     obs: StemObservations,
     draws: int,
     motion: tuple[Any, Any] | None = None,
+    config: MunjerMapConfig | None = None,
 ) -> Iterator[tuple[int, SlamResult, float]]:
     """FastSLAM (100 particles) + the Kalman refinement on one drive's detections, once per
     particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``: yields ``(d,
     result, seconds)``. ``motion`` is ``(controls, model)``, default the drive's simulated
     odometry and :meth:`MunjerDrive.motion_model`. The drive starts at the true pose and
-    detections beyond :data:`MAX_RANGE` are dropped (Munjer et al. 2025, §3.6)."""
+    detections beyond :data:`MAX_RANGE` are dropped (Munjer et al. 2025, §3.6). ``config``: the
+    back end's settings (default :class:`MunjerMapConfig`), its seed replaced by ``d``."""
     controls, model = motion or (drive.controls(), drive.motion_model())
     p0 = (float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2]))
     for d in range(draws):
@@ -42,7 +45,7 @@ def map_draws(
         problem = munjer_problem(
             obs, drive.times, controls, model, initial_pose=p0, max_range=MAX_RANGE
         )
-        result = map_munjer(problem, MunjerMapConfig(seed=d))
+        result = map_munjer(problem, replace(config or MunjerMapConfig(), seed=d))
         yield d, result, time.perf_counter() - t0
 
 

@@ -157,7 +157,11 @@ def _lidar_imu_motion(
 
 
 def _score(
-    drive: MunjerDrive, obs: StemObservations, draws: int, motion: tuple[Any, Any] | None = None
+    drive: MunjerDrive,
+    obs: StemObservations,
+    draws: int,
+    motion: tuple[Any, Any] | None = None,
+    config: MunjerMapConfig | None = None,
 ) -> list[dict[str, Any]]:
     """One Table 2 row per FastSLAM draw (:func:`map_draws`); ``resolvable``: the same counts
     over the trees a 16-beam lidar resolves with EB-LiDAR's eps (:data:`RESOLVABLE_RANGE`,
@@ -166,7 +170,7 @@ def _score(
     ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
     vis = drive.trees_visible()
     rows = []
-    for d, result, sec in map_draws(drive, obs, draws, motion):
+    for d, result, sec in map_draws(drive, obs, draws, motion, config):
         sm = result.stem_map
         m, mm = drive.score(sm, GATE)
         mr, _ = drive.score(sm, GATE, eligible=ok)
@@ -274,6 +278,16 @@ def _clean(v: Any) -> Any:
     if isinstance(v, np.integer):
         return int(v)
     return v
+
+
+def _emit(out: dict[str, Any], path: Path | None) -> dict[str, Any]:
+    """``out`` made JSON-safe (:func:`_clean`), printed, written to ``path`` if given."""
+    res: dict[str, Any] = _clean(out)
+    text = json.dumps(res, indent=1)
+    if path:
+        path.write_text(text)
+    print(text)
+    return res
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -446,12 +460,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "total_seconds": round(time.perf_counter() - t_all, 1),
         "note": "shared, loaded machine: times are indicative only",
     }
-    res = _clean(out)
-    text = json.dumps(res, indent=1)
-    if a.out:
-        a.out.write_text(text)
-    print(text)
-    return res
+    return _emit(out, a.out)
 
 
 if __name__ == "__main__":

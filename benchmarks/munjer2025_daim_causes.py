@@ -56,10 +56,11 @@ from stemmap.vision.detector import SegmentationDetector
 GATE = 1.0
 STAGES = ("no_box", "few_points", "no_cluster", "wrong_cluster", "arc", "fit", "mislocated",
           "accepted")  # fmt: skip
-#: ``--preset``: the Munjer pipeline's DAIM (fixed eps 0.1 m, width check), the same with the
-#: clustering radius scaled by the D435's depth noise (the option), and DaimParams() (neither).
+#: ``--preset``: the Munjer pipeline's DAIM before the noise-scaled radius became its default
+#: (fixed eps 0.1 m, width check), the same with the clustering radius scaled by the D435's
+#: depth noise (``MUNJER2025`` now), and DaimParams() (neither).
 PRESETS = {
-    "munjer2025": MUNJER2025,
+    "munjer2025": replace(MUNJER2025, depth_noise_k=None),
     "noise_eps": replace(MUNJER2025, depth_noise_k=D435_DEPTH_NOISE_K),
     "plain": DaimParams(),
 }

@@ -102,11 +102,18 @@ def _setting(
         "lobe_roughness": 0.0,
         # fifteenth round: the lobed outline
         "lobe_harmonics": 0,
+        # ... and the largest consistent arcs with their tests since the fifteenth round
+        "arc_refit": False,
+        "arc_sigmas": 3.0,
+        "arc_replace": math.inf,
+        "arc_tangent_sigmas": math.inf,
+        "arc_chi2": False,
         **extra,
     }
 
 
-#: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides.
+#: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
+#: preset since the fifteenth round: these and the arcs of grid 33).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
@@ -114,6 +121,9 @@ _DEFAULT_11: dict[str, Any] = {
     "refit_split": "corners",
     "refit_validate": True,
 }
+
+#: The fourteenth round's arcs (grid 29 on top of grid 21; the fifteenth round's tests add to it).
+_ARCS_29: dict[str, Any] = {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace": 3.0}
 
 
 #: Parameters chosen leave-one-dataset-out (``--loo``; third round of issue 11). Every setting
@@ -228,6 +238,13 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # its pieces validated as the corner split's (split_search, numpy path; simulated
     # precision, benchmark / demo drive seed 1: 0.954 / 0.943, not admitted)
     _setting(**_DEFAULT_11, split_search=True),
+    # fifteenth round: grid 29's arcs (k 2, replace 3 on the current default) that pass only
+    # when no return lies behind the circle's tangent range by more than 3 noise-and-bark
+    # scales (arc_tangent_sigmas) / whose residuals pass the upper 1 % chi-square test
+    # (arc_chi2) / both (simulated precision, demo drive seed 1: 0.950 / 0.951 / 0.952)
+    _setting(**_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0),
+    _setting(**_DEFAULT_11, **_ARCS_29, arc_chi2=True),
+    _setting(**_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

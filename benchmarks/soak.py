@@ -29,8 +29,9 @@ Reported per back-end and repeat count:
 * the back-end's graph counters (iSAM2: keyframes in the graph, localisation-mode counters),
   and for iSAM2 per pass the graph keyframes and measurement factors added and the RSS at the
   pass's end (``VmRSS``: the current size, where ``peak_rss_mb`` is the peak);
-* ``heap_trims`` and ``heap_trim_cpu_s``: the map command's ``malloc_trim`` calls during SLAM
-  (:class:`stemmap._memory.HeapTrimmer`) and the CPU time spent in them.
+* ``heap_trims`` and ``heap_trim_cpu_s``: the ``malloc_trim`` calls during SLAM (the map
+  command's :class:`stemmap._memory.HeapTrimmer` and the iSAM2 back-end's own, which share
+  one interval) and the CPU time spent in them.
 
 The progress log is flat doubles (48 bytes per progress call; a list of tuples grew this
 process by ~0.6 MB per pass, which the RSS slope counted as the back-end's). Where the memory
@@ -94,29 +95,31 @@ def _count_graph_growth() -> list[int]:
     return n
 
 
-def _time_heap_trims(cli_map: Any) -> list[float]:
-    """[trims, CPU s in them] of the map command's :class:`~stemmap._memory.HeapTrimmer`,
-    live (wrapped for this process only; stays [0, 0] with code that has no trimmer)."""
+def _time_heap_trims(*modules: Any) -> list[float]:
+    """[trims, CPU s in them] of the :class:`~stemmap._memory.HeapTrimmer` of each module
+    (the map command's, the iSAM2 back-end's own), live (wrapped for this process only; stays
+    [0, 0] with code that has no trimmer)."""
     out = [0.0, 0.0]
-    base = getattr(cli_map, "HeapTrimmer", None)
-    if base is None:
-        return out
+    for mod in modules:
+        base = getattr(mod, "HeapTrimmer", None)
+        if base is None:
+            continue
 
-    class Timed(base):  # type: ignore[misc, valid-type]
-        def __init__(self, *a: Any, **k: Any) -> None:
-            super().__init__(*a, **k)
-            inner = self._trim
+        class Timed(base):  # type: ignore[misc, valid-type]
+            def __init__(self, *a: Any, **k: Any) -> None:
+                super().__init__(*a, **k)
+                inner = self._trim
 
-            def timed() -> bool:
-                c = time.process_time()
-                r = bool(inner())
-                out[0] += 1
-                out[1] += time.process_time() - c
-                return r
+                def timed() -> bool:
+                    c = time.process_time()
+                    r = bool(inner())
+                    out[0] += 1
+                    out[1] += time.process_time() - c
+                    return r
 
-            self._trim = timed
+                self._trim = timed
 
-    cli_map.HeapTrimmer = Timed
+        mod.HeapTrimmer = Timed
     return out
 
 
@@ -164,6 +167,7 @@ def _worker(
 ) -> dict[str, Any]:
     import stemmap.cli._map as cli_map
     import stemmap.slam.base as slam_base
+    import stemmap.slam.graph as slam_graph
     from stemmap.cli import app
     from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
@@ -206,7 +210,7 @@ def _worker(
     def replayed(data_: Any, t_end: Any, t_start: float = 0.0) -> Any:
         return rep.problem(name=f"victoria_park x{repeats}"), {"kind": "victoria-park", "vp": rep}
 
-    trims = _time_heap_trims(cli_map)
+    trims = _time_heap_trims(cli_map, slam_graph)
     slam_base.make_backend = timed_make
     cli_map._victoria_park = replayed  # type: ignore[assignment]
     with tempfile.TemporaryDirectory() as tmp:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -95,3 +96,22 @@ def test_malloc_trim_on_glibc_returns_freed_pages() -> None:
     finally:
         for b in blocks[1::2]:
             libc.free(b)
+
+
+def test_trimmers_on_the_process_clock_share_their_interval() -> None:
+    """A back-end that trims its own loop (``Isam2Slam``) inside ``stemmap map``'s progress
+    callback, which trims too: together no more often than one of them alone."""
+    calls: list[str] = []
+    outer = HeapTrimmer(0.05, trim=lambda: calls.append("outer") or True)
+    inner = HeapTrimmer(0.05, trim=lambda: calls.append("inner") or True)
+    t0 = time.process_time()
+    while time.process_time() - t0 < 0.06:  # burn CPU past one interval
+        pass
+    assert inner() is True
+    assert outer() is False  # the inner trim just now counts for both
+    t0 = time.process_time()
+    while time.process_time() - t0 < 0.06:
+        pass
+    assert outer() is True
+    assert inner() is False
+    assert calls == ["inner", "outer"]

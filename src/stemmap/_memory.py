@@ -22,12 +22,22 @@ References: glibc manual, "Memory Allocation Tunables" and ``malloc_trim(3)``.
 from __future__ import annotations
 
 import ctypes
+import math
 import sys
 import time
 from collections.abc import Callable
 from functools import cache
 
-__all__ = ["HeapTrimmer", "malloc_trim"]
+__all__ = ["TRIM_INTERVAL_S", "HeapTrimmer", "malloc_trim"]
+
+#: Least CPU time (s) between two trims of the long loops that trim (``stemmap map``'s
+#: progress callback, :class:`stemmap.slam.graph.Isam2Slam`'s keyframe loop).
+TRIM_INTERVAL_S = 0.2
+
+# process CPU time of the last trim by any trimmer on the default clock (shared, so nested
+# trimmers -- a back-end's own inside ``stemmap map``'s progress callback -- trim no more
+# often than one of them would)
+_last_shared = [-math.inf]
 
 
 @cache
@@ -67,7 +77,9 @@ class HeapTrimmer:
         time has passed since construction). 0 trims on every call.
     clock : callable, optional
         Non-decreasing seconds (default :func:`time.process_time`, CPU time of the process;
-        a test passes its own).
+        a test passes its own). Trimmers on the default clock share their last trim: a
+        back-end that trims its own loop, run from a caller whose progress callback trims
+        too, trims no more often than one of them alone.
     trim : callable, optional
         The trim itself (default :func:`malloc_trim`).
 
@@ -104,15 +116,19 @@ class HeapTrimmer:
         self.min_interval_s = float(min_interval_s)
         self._clock = clock
         self._trim = trim
+        self._shared = clock is time.process_time
         self._last = clock()
         self.n_trims = 0
 
     def __call__(self) -> bool:
         """Trim if ``min_interval_s`` passed since the last trim; True if it trimmed."""
         now = self._clock()
-        if now - self._last < self.min_interval_s:
+        last = max(self._last, _last_shared[0]) if self._shared else self._last
+        if now - last < self.min_interval_s:
             return False
         self._last = now
+        if self._shared:
+            _last_shared[0] = now
         self.n_trims += 1
         self._trim()
         return True

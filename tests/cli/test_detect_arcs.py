@@ -1,5 +1,6 @@
-"""``stemmap detect --arcs`` (issue 11, fourteenth round): the largest-consistent-arc re-fit
-from the command line, the setting leave-one-dataset-out scores best on the real slices."""
+"""``stemmap detect --arcs/--no-arcs`` (issue 11, fourteenth and fifteenth rounds): the
+largest-consistent-arc re-fit from the command line, on in the stemmap preset since the
+fifteenth round."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from tests.scan.test_arcs import TRUNK, _scan
 from typer.testing import CliRunner
 
 from stemmap.cli import app
+from stemmap.cli._detect import ARC_OPTIONS
 from stemmap.io.scans import write_scans_npz
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -23,29 +25,38 @@ def _diameters(path: Path) -> list[float]:
 
 
 def test_arcs_measure_a_trunk_on_its_own_arc(tmp_path: Path) -> None:
-    # a 30 cm trunk at 5 m with a 6 cm stub touching its silhouette edge: the default's fit
-    # takes the stub in and reads the trunk > 6 cm too wide
+    # a 30 cm trunk at 5 m with a 6 cm stub touching its silhouette edge: without the arcs
+    # the fit takes the stub in and reads the trunk > 6 cm too wide
     batch = _scan([TRUNK, (5.02, 0.19, 0.03)])
     src = tmp_path / "scan.npz"
     write_scans_npz(src, batch)
-    off, on = tmp_path / "off.csv", tmp_path / "on.csv"
-    r_off = runner.invoke(app, ["detect", str(src), "--out", str(off), "-q"])
-    r_on = runner.invoke(app, ["detect", str(src), "--out", str(on), "-q", "--arcs"])
-    assert r_off.exit_code == 0, r_off.output
-    assert r_on.exit_code == 0, r_on.output
-    (d_off,), (d_on,) = _diameters(off), _diameters(on)
+    off, on, dflt = tmp_path / "off.csv", tmp_path / "on.csv", tmp_path / "default.csv"
+    for dst, flags in ((off, ["--no-arcs"]), (on, ["--arcs"]), (dflt, [])):
+        res = runner.invoke(app, ["detect", str(src), "--out", str(dst), "-q", *flags])
+        assert res.exit_code == 0, res.output
+    (d_off,), (d_on,), (d_default,) = _diameters(off), _diameters(on), _diameters(dflt)
     assert d_off > 2 * TRUNK[2] + 0.06
     # noise-free 0.5 deg beams: the arc's fit is within the ~2 mm the beams leave at the edge
     assert abs(d_on - 2 * TRUNK[2]) < 0.006
-    # the option is exactly the documented setting of the Python API
+    assert d_default == d_on  # on in the stemmap preset since the fifteenth round
+    # the option is exactly the documented setting of the Python API, the preset's
     api = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_replace=3.0)
-    ).detect_batch(batch)
-    assert abs(2 * api.radii[0] - d_on) < 1e-6
-    doc = json.loads((tmp_path / "on.csv.run.json").read_text())
-    assert doc["parameters"]["arcs"] is True
+        DetectorConfig.preset(
+            "zheng2012",
+            arc_refit=True,
+            arc_sigmas=2.0,
+            arc_replace=3.0,
+            arc_tangent_sigmas=3.0,
+            arc_chi2=True,
+        )
+    ).config
+    assert DetectorConfig.preset("zheng2012", **ARC_OPTIONS) == api
+    preset = DetectorConfig.preset("stemmap")
+    assert all(getattr(preset, k) == v for k, v in ARC_OPTIONS.items())
+    assert json.loads((tmp_path / "on.csv.run.json").read_text())["parameters"]["arcs"] is True
+    assert json.loads((tmp_path / "off.csv.run.json").read_text())["parameters"]["arcs"] is False
 
 
 def test_arcs_help_names_the_trade_off() -> None:
     res = runner.invoke(app, ["detect", "--help"], env={"COLUMNS": "200"})
-    assert "--arcs" in res.output and "rock faces" in res.output
+    assert "--no-arcs" in res.output and "lobed rocks" in res.output

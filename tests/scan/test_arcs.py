@@ -45,12 +45,13 @@ TRUNK_AND_BRANCH = [TRUNK, *_branch((5.0, 0.17), (4.6, 0.8))]
 
 
 def test_the_merged_segment_is_rejected_as_not_convex_without_arcs():
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False, arc_refit=False))
     batch = _scan(TRUNK_AND_BRANCH)
     assert len(det.detect_batch(batch)) == 0
     assert "depth" in det.rejected(batch)["reason"]
     # the default's validated corner split (eleventh round) cuts the branch off
-    assert len(ScanTrunkDetector("stemmap").detect_batch(batch)) == 1
+    no_arcs = DetectorConfig.preset("stemmap", arc_refit=False)
+    assert len(ScanTrunkDetector(no_arcs).detect_batch(batch)) == 1
 
 
 def test_the_arc_of_the_trunk_is_found_with_its_radius():
@@ -70,7 +71,9 @@ def test_an_accepted_fit_pulled_by_a_stub_gives_way_to_its_arc():
     # a 6 cm stub touching the trunk's silhouette edge: the segment stays convex and its fit
     # passes, 5 cm too wide; with arc_replace the trunk's own arc replaces it
     batch = _scan([TRUNK, (5.02, 0.19, 0.03)])
-    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0))
+    plain = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_replace=math.inf)
+    )
     assert plain.detect_batch(batch).radii[0] > TRUNK[2] + 0.03
     det = ScanTrunkDetector(
         DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_replace=2.0)

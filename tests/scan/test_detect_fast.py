@@ -65,6 +65,8 @@ def assert_same(fast: StemObservations, ref: StemObservations) -> None:
         )
 
 
+#: The fifteenth round's arc tests off (on in the stemmap preset since).
+_NO_ARC_TESTS = {"arc_tangent_sigmas": math.inf, "arc_chi2": False}
 CONFIGS = {
     "stemmap": {},
     "no_split": {"split_merged": False},
@@ -140,15 +142,39 @@ CONFIGS = {
     # issue 11: the largest consistent arc of a non-convex candidate (compiled since the
     # fourteenth round; the real trunks merged with branches: test_detect_fast_real.py), with
     # and without the corner split, replacing accepted fits, short stepped arcs
-    "arcs": {"arc_refit": True, "arc_sigmas": 2.0, "refit_pieces": False},
-    "arcs_replace": {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace": 3.0},
+    # (the tangent and chi-square tests off unless named: on in the preset since the fifteenth)
+    "arcs": {
+        "arc_refit": True,
+        "arc_sigmas": 2.0,
+        "arc_replace": math.inf,
+        "refit_pieces": False,
+        **_NO_ARC_TESTS,
+    },
+    "arcs_replace": {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace": 3.0, **_NO_ARC_TESTS},
     "arcs_replace_loose": {
+        **_NO_ARC_TESTS,
         "arc_refit": True,
         "arc_sigmas": 3.0,
         "arc_floor_sigmas": 2.0,
         "arc_replace": 1.2,
         "arc_short_steps": True,
         "bark_roughness": 0.08,
+    },
+    # fifteenth round: the arcs pass only in front of their tangent range and with residuals
+    # of the noise (the grid setting, and a tight tangent bound that rejects more)
+    "arcs_consistent": {
+        "arc_refit": True,
+        "arc_sigmas": 2.0,
+        "arc_replace": 3.0,
+        "arc_tangent_sigmas": 3.0,
+        "arc_chi2": True,
+    },
+    "arcs_tangent_tight": {
+        "arc_refit": True,
+        "arc_sigmas": 3.0,
+        "arc_replace": math.inf,
+        "arc_tangent_sigmas": 0.5,
+        "arc_chi2": False,
     },
 }
 

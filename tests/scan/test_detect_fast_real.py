@@ -10,6 +10,8 @@ noise 0 and 1 cm; every detection must match (tests/scan/test_detect_fast.py's r
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from tests.scan.test_detect_fast import _both, assert_same
@@ -72,11 +74,26 @@ def test_compiled_corner_split_equals_numpy_on_real_slices(real_batches, split):
     assert gained > 0  # the split found trunks the default rejects: the path was exercised
 
 
-ARCS = {"arc_refit": True, "arc_sigmas": 2.0}
+# the fourth round's arcs: no replacement, no tangent or chi-square test (the stemmap
+# preset's since the fifteenth round: replace3_consistent)
+ARCS = {
+    "arc_refit": True,
+    "arc_sigmas": 2.0,
+    "arc_replace": math.inf,
+    "arc_tangent_sigmas": math.inf,
+    "arc_chi2": False,
+}
 ARC_SETTINGS = {
     # the leave-one-dataset-out choices (scan-detection.md, fifth and fourteenth rounds)
     "replace3": {**ARCS, "arc_replace": 3.0},
     "replace2_short_steps": {**ARCS, "arc_replace": 2.0, "arc_short_steps": True},
+    # fifteenth round: ... in front of the tangent range, residuals of the noise
+    "replace3_consistent": {
+        **ARCS,
+        "arc_replace": 3.0,
+        "arc_tangent_sigmas": 3.0,
+        "arc_chi2": True,
+    },
     # without the corner split: every non-convex merge goes to the arc
     "no_split": {**ARCS, "refit_pieces": False},
 }
@@ -87,7 +104,11 @@ ARC_SETTINGS = {
 def test_compiled_arcs_equal_numpy_on_real_slices(real_batches, arcs):
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **ARC_SETTINGS[arcs]))
     base = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", refit_pieces=ARC_SETTINGS[arcs].get("refit_pieces", True))
+        DetectorConfig.preset(
+            "stemmap",
+            refit_pieces=ARC_SETTINGS[arcs].get("refit_pieces", True),
+            arc_refit=False,
+        )
     )
     changed = 0
     for ref, batch in _same_on_every_batch(det, real_batches):

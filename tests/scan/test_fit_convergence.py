@@ -37,7 +37,9 @@ def fit_inputs():
     model = dataclasses.replace(scanner_preset("sick_lms", range_max=30.0))
     batch, _, _ = simulate_scans(st, poses, model, rng=3)
     captured = []
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", refit_pieces=False))  # one fit call
+    det = ScanTrunkDetector(  # one fit call: no corner split, no arcs
+        DetectorConfig.preset("stemmap", refit_pieces=False, arc_refit=False)
+    )
 
     def capture(*args):
         captured.append(args)

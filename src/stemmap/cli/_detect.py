@@ -19,6 +19,14 @@ __all__ = ["detect", "register"]
 #: Scans per detect_batch call: large enough to amortise numpy overhead, small enough for a
 #: responsive progress bar.
 _CHUNK = 2000
+#: ``--arcs``: the stemmap preset's largest-consistent-arc setting (issue 11, fifteenth round)
+ARC_OPTIONS: dict[str, object] = {
+    "arc_refit": True,
+    "arc_sigmas": 2.0,
+    "arc_replace": 3.0,
+    "arc_tangent_sigmas": 3.0,
+    "arc_chi2": True,
+}
 #: Show a progress bar from this many scans on.
 _PROGRESS_MIN_SCANS = 5000
 
@@ -78,18 +86,19 @@ def detect(
         ),
     ] = None,
     arcs: Annotated[
-        bool,
+        bool | None,
         typer.Option(
-            "--arcs",
-            help="Also fit each candidate's largest consistent arc: a trunk whose returns run "
-            "on into a branch stub, fillet or neighbouring stem is measured on its own arc "
+            "--arcs/--no-arcs",
+            help="Fit each candidate's largest consistent arc: a trunk whose returns run on "
+            "into a branch stub, fillet or neighbouring stem is measured on its own arc "
             "(arc_refit, consensus at 2 robust scales, an accepted fit replaced when its RMS "
-            "exceeds 3x the arc's). The setting leave-one-dataset-out scores best on the real "
-            "slices (docs/algorithms/scan-detection.md, fourteenth round); off by default "
-            "because it also accepts smooth lobed outlines such as rock faces (simulated demo "
-            "precision 0.949 against 0.954).",
+            "exceeds 3x the arc's), kept only when no return lies behind the circle's tangent "
+            "range and its residuals are the range noise (chi-square), which keeps faces of "
+            "lobed rocks out. On in the stemmap preset since the fifteenth round "
+            "(docs/algorithms/scan-detection.md); --arcs turns it on for a paper preset, "
+            "--no-arcs off. Default: the preset's setting.",
         ),
-    ] = False,
+    ] = None,
     footprint: Annotated[
         float | None,
         typer.Option(
@@ -148,7 +157,9 @@ def detect(
         if sigma_from_scan is not None:
             overrides["sigma_from_scan"] = sigma_from_scan
         if arcs:
-            overrides.update(arc_refit=True, arc_sigmas=2.0, arc_replace=3.0)
+            overrides.update(ARC_OPTIONS)
+        elif arcs is not None:
+            overrides["arc_refit"] = False
         detector = ScanTrunkDetector(DetectorConfig.preset(preset, **overrides))
         if imu_topic is not None and rejected is not None:
             raise ConfigError(

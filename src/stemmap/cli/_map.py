@@ -16,6 +16,7 @@ from typing import Annotated
 
 import typer
 
+from stemmap._memory import TRIM_INTERVAL_S as _TRIM_S
 from stemmap._memory import HeapTrimmer
 from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
 from stemmap.cli._geo import (
@@ -66,7 +67,7 @@ __all__ = ["register", "sim_problem", "slam_metrics"]
 log = logging.getLogger(__name__)
 
 #: least CPU seconds between two heap trims during SLAM (``malloc_trim(0)``, glibc only)
-TRIM_INTERVAL_S = 0.2
+TRIM_INTERVAL_S = _TRIM_S
 
 
 class Backend(StrEnum):

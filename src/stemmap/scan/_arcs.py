@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import chdtri
 
 from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_run
 from stemmap.scan._fast_arcs import largest_arc as _largest_arc
@@ -37,10 +38,11 @@ from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
 
 if TYPE_CHECKING:
+    from stemmap.scan._segment_fits import _Fitted
     from stemmap.scan.config import DetectorConfig
     from stemmap.scan.detect import ScanTrunkDetector
 
-__all__ = ["arc_pieces", "consensus_arcs", "largest_arc"]
+__all__ = ["arc_pieces", "arc_tests", "consensus_arcs", "largest_arc"]
 
 
 def largest_arc(
@@ -155,5 +157,33 @@ def arc_pieces(
     refit = detector._fit_candidates(pieces, grid, wrap)
     # the arc holds the returns that lie on one circle within the noise: the RMS test without
     # the bark allowance (with it, round pieces of the simulator's bushes at 2-3 sigma passed)
-    ok = fit_passes(replace(cfg, bark_roughness=0.0), refit)
+    ok = fit_passes(replace(cfg, bark_roughness=0.0), refit) & arc_tests(cfg, pieces, refit)
     return Refitted(pieces, refit, ok, parent.astype(np.int64))
+
+
+def arc_tests(cfg: DetectorConfig, pieces: Segments, fitted: _Fitted) -> NDArray[np.bool_]:
+    """Whether each arc of ``pieces`` (fitted: ``fitted``) passes the fifteenth round's
+    tests (:func:`stemmap.scan._fast_arcs.arc_consistent`, the same arithmetic): with
+    ``arc_chi2`` its residuals are the range noise (``n x RMS^2 <= chi2_0.99(n - 3) x
+    sigma^2`` over its n returns); with a finite ``arc_tangent_sigmas`` k none of its returns
+    lies farther than the circle's tangent range ``sqrt(d^2 - r^2)`` (centre at range d) by
+    more than ``k sqrt(sigma^2 + (bark_roughness x r)^2)``: a first return of a convex trunk
+    comes from its visible half."""
+    ok = np.ones(len(pieces), dtype=bool)
+    if len(pieces) == 0:
+        return ok
+    n = pieces.counts
+    sig, rms, r = fitted.sigma, fitted.rms, fitted.radii
+    if cfg.arc_chi2:
+        dof = n - 3
+        limit = chdtri(np.maximum(dof, 1).astype(np.float64), 0.01)
+        ok &= ~((n > 3) & (n * rms * rms > limit * sig * sig))
+    k = cfg.arc_tangent_sigmas
+    if math.isfinite(k):
+        cx, cy = fitted.centers[:, 0], fitted.centers[:, 1]
+        d2 = cx * cx + cy * cy - r * r
+        far = np.maximum.reduceat(pieces.points.r, pieces.start)
+        br = cfg.bark_roughness * r
+        with np.errstate(invalid="ignore"):
+            ok &= (d2 > 0.0) & ~(far - np.sqrt(d2) > k * np.sqrt(sig * sig + br * br))
+    return ok

@@ -491,7 +491,7 @@ def _detect_kernel(
                     lo_a, hi_a = arc_run(px, py, pr, a, b, sig, prm, arc_work)
                     if lo_a >= 0 and arc_candidate(
                         px, py, pr, pb, a, b, lo_a, hi_a, (oc0[j], oc1[j], tr0[j], tr1[j]),
-                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0],
+                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0], bark,
                     ):  # fmt: skip
                         rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
                 continue
@@ -603,7 +603,7 @@ def _detect_kernel(
                     lo_a >= 0
                     and arc_candidate(
                         px, py, pr, pb, a, b, lo_a, hi_a, (oc0[j], oc1[j], tr0[j], tr1[j]),
-                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0],
+                        grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0], bark,
                     )
                     and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
                 ):  # fmt: skip

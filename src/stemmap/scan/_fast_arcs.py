@@ -38,9 +38,18 @@ from stemmap.scan import (
 )
 from stemmap.scan._fast_candidates import _fit_candidate, _Scratch, _segment_code, _Work
 from stemmap.scan._fast_robust import _median_inplace
+from stemmap.scan._kernel_params import OUT_COLUMNS
 from stemmap.types import FloatArray
 
-__all__ = ["ARC_WORK_ROWS", "MAX_SEEDS", "MIN_SHARE", "arc_candidate", "arc_run", "largest_arc"]
+__all__ = [
+    "ARC_WORK_ROWS",
+    "MAX_SEEDS",
+    "MIN_SHARE",
+    "arc_candidate",
+    "arc_consistent",
+    "arc_run",
+    "largest_arc",
+]
 
 #: At most this many seed windows per segment (evenly spaced): bounds the cost of long segments.
 MAX_SEEDS = 24
@@ -298,13 +307,15 @@ def arc_candidate(
     scratch: _Scratch,
     ws: _Work,
     res: FloatArray,
+    bark: float,
 ) -> bool:  # pragma: no cover - numba
     """``arc_refit`` for the candidate ``a:b`` with end flags ``flags`` (occluded start / end,
     truncated start / end) and its arc ``[lo, hi)`` (:func:`arc_run`, relative to ``a``), as
     :func:`stemmap.scan._arcs.arc_pieces` judges it: its cut ends occluded only where the
     return across is nearer by more than ``occlusion_margin``, the segment filters, the fit
     and its plausibility tests. ``prm`` must carry ``bark_roughness`` 0 (the arc's RMS test
-    has no bark allowance). True when the arc passes: ``res[:OUT_COLUMNS]`` is its output
+    has no bark allowance), then :func:`arc_consistent` (``bark``: the config's
+    ``bark_roughness``). True when the arc passes: ``res[:OUT_COLUMNS]`` is its output
     row, then its sigma and its fit RMS."""
     sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
     ws3, wv, mdl = ws
@@ -326,7 +337,50 @@ def arc_candidate(
         px, py, pr, pb, qa, qb, oc0, oc1, tr0, tr1, w, grid, noise_s, prm, False,
         sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, res,
     )  # fmt: skip
-    return code == 0
+    if code != 0:
+        return False
+    return arc_consistent(
+        pr, qa, qb, res[0], res[1], res[2], res[OUT_COLUMNS], res[OUT_COLUMNS + 1], bark, prm, chi2
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def arc_consistent(
+    pr: FloatArray,
+    qa: int,
+    qb: int,
+    cx: float,
+    cy: float,
+    r: float,
+    sig: float,
+    rms: float,
+    bark: float,
+    prm: FloatArray,
+    chi2: FloatArray,
+) -> bool:  # pragma: no cover - numba
+    """The fifteenth round's tests of an arc ``qa:qb`` (ranges ``pr``) whose fit gave the
+    circle (``cx``, ``cy``, ``r``; sensor frame), sigma ``sig`` and RMS ``rms``
+    (:func:`stemmap.scan._arcs.arc_tests` is the same on numpy arrays):
+    ``arc_chi2``: ``n x rms^2 <= chi2_0.99(n - 3) x sig^2`` (``chi2``: the kernel's upper 1 %
+    table by degrees of freedom); ``arc_tangent_sigmas`` k: no return farther than the
+    tangent range ``sqrt(cx^2 + cy^2 - r^2)`` by more than ``k sqrt(sig^2 + (bark r)^2)``
+    (``bark``: the config's ``bark_roughness``; a circle around the sensor fails)."""
+    n = qb - qa
+    if prm[64] > 0.0 and n > 3 and n * rms * rms > chi2[n - 3] * sig * sig:  # arc_chi2
+        return False
+    k = prm[63]  # arc_tangent_sigmas
+    if k < math.inf:
+        d2 = cx * cx + cy * cy - r * r
+        if not d2 > 0.0:
+            return False
+        far = pr[qa]
+        for i in range(qa + 1, qb):
+            if pr[i] > far:
+                far = pr[i]
+        br = bark * r
+        if far - math.sqrt(d2) > k * math.sqrt(sig * sig + br * br):
+            return False
+    return True
 
 
 # after every kernel is defined, before the first call loads the cache (see the module notes)

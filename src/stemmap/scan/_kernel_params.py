@@ -87,6 +87,8 @@ PARAM_NAMES = (
     "arc_floor_sigmas",  # ... but at least this many range-noise sigmas
     "arc_replace",  # an accepted candidate gives way to its arc at this RMS ratio (inf: off)
     "arc_short_steps",  # 1: arcs of min_points returns set off by a range step count
+    "arc_tangent_sigmas",  # an arc's returns no farther than its tangent range + this (inf: off)
+    "arc_chi2",  # 1: an arc's residuals pass the upper 1 % chi-square test
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -176,6 +178,8 @@ def kernel_params(
         "arc_floor_sigmas": cfg.arc_floor_sigmas,
         "arc_replace": cfg.arc_replace,
         "arc_short_steps": cfg.arc_short_steps,
+        "arc_tangent_sigmas": cfg.arc_tangent_sigmas,
+        "arc_chi2": cfg.arc_chi2,
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

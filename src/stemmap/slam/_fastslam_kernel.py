@@ -31,6 +31,32 @@ def _wrap(a: float) -> float:
     return math.pi - (math.pi - a) % (2.0 * math.pi)
 
 
+@numba.njit(cache=True, inline="always")
+def _inv_innovation(
+    t: int,
+    hs00: np.ndarray,
+    hs01: np.ndarray,
+    hs10: np.ndarray,
+    hs11: np.ndarray,
+    r00: float,
+    r11: float,
+    i00: np.ndarray,
+    i01: np.ndarray,
+    i10: np.ndarray,
+    i11: np.ndarray,
+    lnorm: np.ndarray,
+) -> None:
+    """``S = H_m Sig H_mᵀ + diag(r00, r11)`` of candidate ``t``: its inverse and
+    ``log((2 pi)² det S) / 2`` into slot ``t``."""
+    S00 = hs00[t] + r00
+    S01 = hs01[t]
+    S10 = hs10[t]
+    S11 = hs11[t] + r11
+    det = S00 * S11 - S01 * S10
+    i00[t], i01[t], i10[t], i11[t] = S11 / det, -S01 / det, -S10 / det, S00 / det
+    lnorm[t] = 0.5 * math.log(_C4 * det)
+
+
 @numba.njit(cache=True)
 def associate_update(
     X: np.ndarray,
@@ -46,9 +72,9 @@ def associate_update(
     d: np.ndarray,
     off0: float,
     off1: float,
-    r00: float,
-    r11: float,
-    log_p0: float,
+    r00: np.ndarray,
+    r11: np.ndarray,
+    log_p0: np.ndarray,
     max_cand: int,
     rmax2: float,
     sep2: float,
@@ -70,6 +96,10 @@ def associate_update(
        others are skipped (-2);
     5. EKF update of the matched landmarks, observation count, last time, diameter sums.
 
+    ``r00``, ``r11``, ``log_p0`` (K,): each detection's R = diag(r00, r11) and new-landmark
+    log-likelihood; when all detections share one R (every entry equal) the innovation
+    covariance of a candidate is inverted once, else once per (detection, candidate) pair.
+
     Fills ``assoc`` (P, K) with the landmark slot, -1 (new landmark) or -2 (skipped), and
     ``ll_best`` (P, K) with the log-likelihood of the matched candidate (-inf when none).
     """
@@ -87,6 +117,14 @@ def associate_update(
     i11 = np.empty(max_cand)
     lnorm = np.empty(max_cand)
     cnd = np.empty(max_cand, dtype=np.int64)
+    hs00 = np.empty(max_cand)
+    hs01 = np.empty(max_cand)
+    hs10 = np.empty(max_cand)
+    hs11 = np.empty(max_cand)
+    uniform = True
+    for k in range(K):
+        if r00[k] != r00[0] or r11[k] != r11[0]:
+            uniform = False
     for p in range(P):
         px, py, th = X[p, 0], X[p, 1], X[p, 2]
         c, s = math.cos(th), math.sin(th)
@@ -142,16 +180,22 @@ def associate_update(
             a01 = h00 * s01 + h01 * s11
             a10 = h10 * s00 + h11 * s10
             a11 = h10 * s01 + h11 * s11
-            S00 = a00 * h00 + a01 * h01 + r00
-            S01 = a00 * h10 + a01 * h11
-            S10 = a10 * h00 + a11 * h01
-            S11 = a10 * h10 + a11 * h11 + r11
-            det = S00 * S11 - S01 * S10
-            i00[t], i01[t], i10[t], i11[t] = S11 / det, -S01 / det, -S10 / det, S00 / det
-            lnorm[t] = 0.5 * math.log(_C4 * det)
+            hs00[t] = a00 * h00 + a01 * h01
+            hs01[t] = a00 * h10 + a01 * h11
+            hs10[t] = a10 * h00 + a11 * h01
+            hs11[t] = a10 * h10 + a11 * h11
+            if uniform:
+                _inv_innovation(
+                    t, hs00, hs01, hs10, hs11, r00[0], r11[0], i00, i01, i10, i11, lnorm
+                )
         for k in range(K):
             best = -np.inf
             jbest = -1
+            if not uniform:
+                for t in range(m_n):
+                    _inv_innovation(
+                        t, hs00, hs01, hs10, hs11, r00[k], r11[k], i00, i01, i10, i11, lnorm
+                    )
             for t in range(m_n):
                 nu0 = r[k] - zr[t]
                 nu1 = _wrap(b[k] - zb[t])
@@ -164,7 +208,7 @@ def associate_update(
                 if ll > best:
                     best = ll
                     jbest = t
-            if jbest >= 0 and best >= log_p0:
+            if jbest >= 0 and best >= log_p0[k]:
                 jb[k] = cnd[jbest]
                 ll_best[p, k] = best
             else:
@@ -208,10 +252,10 @@ def associate_update(
             t01 = h00 * s01 + h01 * s11
             t10 = h10 * s00 + h11 * s10
             t11 = h10 * s01 + h11 * s11
-            S00 = t00 * h00 + t01 * h01 + r00
+            S00 = t00 * h00 + t01 * h01 + r00[k]
             S01 = t00 * h10 + t01 * h11 + 0.0
             S10 = t10 * h00 + t11 * h01 + 0.0
-            S11 = t10 * h10 + t11 * h11 + r11
+            S11 = t10 * h10 + t11 * h11 + r11[k]
             det = S00 * S11 - S01 * S10
             j00, j01, j10, j11 = S11 / det, -S01 / det, -S10 / det, S00 / det
             u00 = s00 * h00 + s01 * h01

@@ -57,6 +57,8 @@ def frame_covariances(
     cov_f: FloatArray,
     offset: tuple[float, float],
     veh_theta: FloatArray,
+    *,
+    block: int = 8192,
 ) -> FloatArray:
     """(N, 3, 3) covariance of every frame's vehicle pose (x, y, θ in the map frame) from the
     keyframes' sensor-pose marginals ``kf_cov`` (nk, 3, 3; GTSAM tangent; NaN where none).
@@ -78,7 +80,46 @@ def frame_covariances(
     odometry part is twice a Brownian bridge's ``w (1 - w) Q``, conservative (the localisation
     on the map, which the bridge ignores, also holds these poses; docs/algorithms/slam.md).
     Frames after the last graph keyframe get ``C_fwd`` alone.
+
+    Computed in blocks of about ``block`` frames cut at graph keyframes (a frame's value
+    depends on its two neighbouring graph keyframes only; the odometry variance driven is
+    summed over the whole drive first, so every value is the same bytes as in one block):
+    the working memory is ~0.4 kB per frame of a block (a block is longer only where the
+    run between two graph keyframes is), besides the (N, 3, 3) result.
     """
+    nf = kf_of.size
+    kf_frames = np.asarray(kf_frames, dtype=np.int64)
+    has = np.all(np.isfinite(kf_cov), axis=(1, 2))
+    anchors = kf_frames[has]  # frames of the graph keyframes
+    # odometry variance driven up to each frame (the gaps' weights), over the whole drive
+    q = np.concatenate(([0.0], np.cumsum(cov_f[:, 0, 0] + cov_f[:, 1, 1])))
+    out = np.empty((nf, 3, 3))
+    lo = 0
+    while lo < nf:
+        i = int(np.searchsorted(anchors, lo + max(int(block), 1), side="left"))
+        hi = int(anchors[i]) if i < anchors.size else nf  # a graph keyframe (or the end)
+        e = min(hi + 1, nf)  # (with the next graph keyframe: the gaps' backward pass)
+        k0, k1 = int(kf_of[lo]), int(kf_of[e - 1]) + 1
+        out[lo:hi] = _frame_covariances_block(
+            kf_cov[k0:k1], kf_of[lo:e] - k0, kf_frames[k0:k1] - lo, d_f[lo:e], cov_f[lo:e],
+            q[lo:e], offset, veh_theta[lo:e],
+        )[: hi - lo]  # fmt: skip
+        lo = hi
+    return out
+
+
+def _frame_covariances_block(
+    kf_cov: FloatArray,
+    kf_of: np.ndarray,
+    kf_frames: np.ndarray,
+    d_f: FloatArray,
+    cov_f: FloatArray,
+    q: FloatArray,
+    offset: tuple[float, float],
+    veh_theta: FloatArray,
+) -> FloatArray:
+    """:func:`frame_covariances` of frames that start at a graph keyframe (or at frame 0);
+    ``q`` (n,): the odometry variance driven up to each frame, summed from the drive's start."""
     from stemmap.slam._graph_revisits import _adjoint_inv
 
     nf = kf_of.size
@@ -107,7 +148,6 @@ def frame_covariances(
                 f = np.flatnonzero(back == j)
                 A = _adjoint_inv(d_inv[f])
                 Cb[f] = A @ (Cb[f + 1] + cov_f[f]) @ np.swapaxes(A, 1, 2)
-            q = np.concatenate(([0.0], np.cumsum(cov_f[:, 0, 0] + cov_f[:, 1, 1])))
             g = np.flatnonzero(gap)
             span = q[nxt[g]] - q[prev[g]]
             w = np.where(

@@ -214,6 +214,12 @@ class TreeFrames:
     ranges : ndarray (K,), m, > 0
     bearings : ndarray (K,), rad, CCW from the sensor's forward axis, wrapped to (-pi, pi]
     diameters : ndarray (K,), m (NaN if unknown)
+    noise : ndarray (K, 2) or None
+        Each detection's own measurement noise (sigma_range m, sigma_bearing rad), NaN where
+        the detector gives none (e.g. DAIM's depth-noise model,
+        :func:`stemmap.vision.depth.daim_trunks`). Only back ends asked to use it do
+        (:class:`stemmap.slam.fastslam.FastSlam` ``detection_noise``, the Kalman refinement);
+        the others use their constant R.
     """
 
     times: FloatArray
@@ -221,6 +227,7 @@ class TreeFrames:
     ranges: FloatArray
     bearings: FloatArray
     diameters: FloatArray
+    noise: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = _ro(self.times, "TreeFrames.times")
@@ -252,6 +259,14 @@ class TreeFrames:
         bw = wrap_angle(b)
         bw = np.asarray(bw, dtype=np.float64).reshape(-1)
         bw.setflags(write=False)
+        if self.noise is not None:
+            nz = np.array(self.noise, dtype=np.float64, copy=True)
+            if nz.shape != (k, 2) or np.any(nz[np.isfinite(nz)] < 0):
+                raise InputError(
+                    f"TreeFrames.noise must be ({k}, 2) sigmas >= 0 or NaN, got shape {nz.shape}."
+                )
+            nz.setflags(write=False)
+            object.__setattr__(self, "noise", nz)
         object.__setattr__(self, "times", t)
         object.__setattr__(self, "ptr", ptr)
         object.__setattr__(self, "ranges", r)
@@ -285,6 +300,7 @@ class TreeFrames:
             self.ranges[s],
             self.bearings[s],
             self.diameters[s],
+            None if self.noise is None else self.noise[s],
         )
 
     def slice(self, t0: float, t1: float) -> TreeFrames:
@@ -298,7 +314,9 @@ class TreeFrames:
         """Build frames from a detector's batch; ``obs.index`` gives each one's frame in ``times``.
 
         Observation centres must be in the sensor frame; range and bearing are computed from
-        them, the diameter is ``2 * radius``.
+        them, the diameter is ``2 * radius``. Where ``obs.covs`` has a finite (x, y) block, its
+        polar form ``J C J^T`` (``J = d(range, bearing) / d(x, y)``) gives ``noise`` (the
+        square roots of its diagonal); ``noise`` is None when no detection has one.
         """
         t = _ro(times, "times")
         idx = np.asarray(obs.index, dtype=np.int64)
@@ -311,12 +329,23 @@ class TreeFrames:
         c = obs.centers[order]
         counts = np.bincount(idx, minlength=t.shape[0])
         ptr = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+        rng = np.hypot(c[:, 0], c[:, 1])
+        noise = None
+        cxy = np.asarray(obs.covs, dtype=np.float64)[order][:, :2, :2]
+        if cxy.size and np.any(np.all(np.isfinite(cxy), axis=(1, 2))):
+            rs = np.where(rng > 0, rng, 1.0)
+            J = np.zeros((rng.shape[0], 2, 2))
+            J[:, 0, 0], J[:, 0, 1] = c[:, 0] / rs, c[:, 1] / rs
+            J[:, 1, 0], J[:, 1, 1] = -c[:, 1] / rs**2, c[:, 0] / rs**2
+            polar = J @ cxy @ np.swapaxes(J, 1, 2)
+            noise = np.sqrt(np.clip(np.diagonal(polar, axis1=1, axis2=2), 0.0, None))
         return cls(
             t,
             ptr,
-            np.hypot(c[:, 0], c[:, 1]),
+            rng,
             np.arctan2(c[:, 1], c[:, 0]),
             2.0 * np.asarray(obs.radii)[order],
+            noise,
         )
 
     @classmethod

@@ -186,6 +186,13 @@ class FastSlam:
         Keep per-frame diagnostics in ``self.diagnostics`` after ``run`` (effective sample
         size, resampling flags, parent indices, particle poses, association counts, raw pose
         covariance; ~3 P floats per frame) for benchmarks and analysis.
+    detection_noise : bool
+        Ours: each detection's own noise (``problem.frames.noise``, e.g. DAIM's depth-noise
+        model) is added to R, ``R_k = diag(σ_r² + σ_r,k², σ_φ² + σ_φ,k²)`` (NaN: none added), in
+        the association, the landmark updates and initialisation and the weights; ``R`` stays
+        the floor for what the detector's model leaves out (pose, association, the trunk
+        centre's viewpoint error). Needs ``version=1`` and ``smooth=False``. False: R for
+        every detection (the frames' noise ignored).
     tentative_timeout_s : float, s
         Ours (standard FastSLAM landmark-existence practice, not in Munjer): a landmark seen
         fewer than ``min_observations`` times and not re-seen for this long is deleted from the
@@ -213,6 +220,7 @@ class FastSlam:
     pose_cov_inflation: float | None = None
     tree_cov_inflation: float | None = None
     record_diagnostics: bool = False
+    detection_noise: bool = False
     seed: int = 0
     name: str = "fastslam"
     #: filled by ``run`` when ``record_diagnostics`` is set
@@ -240,6 +248,11 @@ class FastSlam:
             raise ConfigError("FastSlam: max_candidates and min_observations must be >= 1.")
         if self.version not in (1, 2):
             raise ConfigError(f"FastSlam.version must be 1 or 2, got {self.version}.")
+        if self.detection_noise and (self.version != 1 or self.smooth):
+            raise ConfigError(
+                "FastSlam.detection_noise needs version=1 and smooth=False (per-detection R is "
+                "carried by the compiled FastSLAM 1.0 filter only)."
+            )
         if not self.new_landmark_chi2 > 0:
             raise ConfigError("FastSlam.new_landmark_chi2 must be > 0.")
         if self.pose_cov_inflation is None:
@@ -274,6 +287,22 @@ class FastSlam:
         R = np.diag([self.sigma_range**2, self.sigma_bearing**2])
         _, det_new = _inv2(2.0 * R)
         log_p0 = -0.5 * self.new_landmark_chi2 - 0.5 * math.log((2 * math.pi) ** 2 * det_new)
+        # per detection: R's diagonal and the new-landmark log-likelihood (constant without
+        # detection_noise)
+        kk = frames.n_detections
+        r_diag = np.tile(np.diag(R), (kk, 1))
+        if self.detection_noise and frames.noise is not None:
+            r_diag = r_diag + np.nan_to_num(frames.noise) ** 2
+        per_det = self.detection_noise and frames.noise is not None
+        lp0 = -0.5 * self.new_landmark_chi2 - 0.5 * np.log(
+            (2 * math.pi) ** 2 * 4.0 * r_diag[:, 0] * r_diag[:, 1]
+        )
+        if not per_det:
+            lp0[:] = log_p0
+        if per_det and not self._kernel:
+            raise ConfigError("FastSlam.detection_noise needs the compiled filter (_kernel).")
+        r00_all = np.ascontiguousarray(r_diag[:, 0])
+        r11_all = np.ascontiguousarray(r_diag[:, 1])
 
         X = np.tile(np.asarray(problem.initial_pose, dtype=np.float64), (P, 1))
         cap = 64
@@ -314,6 +343,8 @@ class FastSlam:
             parents[f] = ident
             r, b, d = frames.frame(f)
             k = r.shape[0]
+            rows_f = slice(int(frames.ptr[f]), int(frames.ptr[f + 1]))
+            lp0_f = lp0[rows_f]
             tf = float(frames.times[f])
             v2 = self.version == 2 and k > 0 and f > 0
             if f > 0:
@@ -340,7 +371,7 @@ class FastSlam:
                     rmax = float(r.max()) + self.window_margin
                     associate_update(
                         X, mu, Sig, nlm, nobs, tlast, dsum, dcnt, r, b, d,
-                        float(off[0]), float(off[1]), R[0, 0], R[1, 1], log_p0,
+                        float(off[0]), float(off[1]), r00_all[rows_f], r11_all[rows_f], lp0_f,
                         int(self.max_candidates), rmax * rmax, sep2, tf, assoc, ll_best,
                     )  # fmt: skip
                     M = 0
@@ -465,7 +496,7 @@ class FastSlam:
                     X = X + _sample_batch(Qw, rng)
                     X[:, 2] = wrap_angle(X[:, 2])
                 # weights: matched -> likelihood, otherwise p0
-                logw += np.sum(np.where(assoc >= 0, ll_best, log_p0), axis=1)
+                logw += np.sum(np.where(assoc >= 0, ll_best, lp0_f if per_det else log_p0), axis=1)
                 # new landmarks
                 new = assoc == -1
                 assoc_counts[f] = (
@@ -502,7 +533,12 @@ class FastSlam:
                     _, _, Hn = range_bearing_jacobians(Xp, mxy, off)
                     Hinv, _ = _inv2(Hn)
                     mu[np_, slot] = mxy
-                    Sig[np_, slot] = Hinv @ R @ np.swapaxes(Hinv, 1, 2)
+                    if per_det:
+                        Rn = np.zeros((nk.size, 2, 2))
+                        Rn[:, 0, 0], Rn[:, 1, 1] = r00_all[rows_f][nk], r11_all[rows_f][nk]
+                        Sig[np_, slot] = Hinv @ Rn @ np.swapaxes(Hinv, 1, 2)
+                    else:
+                        Sig[np_, slot] = Hinv @ R @ np.swapaxes(Hinv, 1, 2)
                     nobs[np_, slot] = 1
                     dd = d[nk]
                     okd = np.isfinite(dd)

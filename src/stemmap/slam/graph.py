@@ -79,6 +79,7 @@ from typing import Any
 
 import numpy as np
 
+from stemmap._memory import TRIM_INTERVAL_S, HeapTrimmer
 from stemmap.errors import ConfigError
 from stemmap.slam._graph_batch import Calibration, batch_rounds
 from stemmap.slam._graph_config import Isam2Config
@@ -246,9 +247,10 @@ class Isam2Slam:
                 odo_noise[(ka, kb)],
             )  # fmt: skip
 
-        def odo_residuals(kf_xyt: FloatArray, idx: np.ndarray) -> FloatArray:
-            """Residuals of the one-step odometry factors ``idx`` at keyframe poses kf_xyt."""
-            rel = between(kf_xyt[idx], kf_xyt[idx + 1])
+        def odo_residuals(kf_xyt: FloatArray, idx: np.ndarray, k0: int = 0) -> FloatArray:
+            """Residuals of the one-step odometry factors ``idx`` at keyframe poses kf_xyt
+            (row ``i - k0`` holds keyframe ``i``)."""
+            rel = between(kf_xyt[idx - k0], kf_xyt[idx + 1 - k0])
             return between(odo_measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
 
         # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
@@ -414,6 +416,10 @@ class Isam2Slam:
         out_wxy = np.zeros(out_cap)
         out_wth = np.zeros(out_cap)
         n_factors_meas = n_updates = n_single_skipped = 0
+        # freed heap back to the OS every TRIM_INTERVAL_S of CPU time (glibc; changes no
+        # value): RSS then follows the heap in use on long drives, used as a library too
+        # (docs/reliability.md "Soak"; shared with stemmap map's own trimmer)
+        trim = HeapTrimmer(TRIM_INTERVAL_S)
         window: list[Any] = []  # the last keyframe's measurements (track_keyframe)
 
         def flush(k: int) -> None:
@@ -569,17 +575,17 @@ class Isam2Slam:
                             # odometry factors of the graph only
                             cal_seg = k // cfg.calib_every
                             k0 = max(0, k - cfg.calib_window)
-                            xw = np.zeros((k + 1, 3))
+                            xw = np.zeros((k + 1 - k0, 3))  # keyframes k0..k (the window)
                             for i_ in range(k0, k):
                                 if in_graph_k[i_]:
                                     q_ = isam.calculateEstimatePose2(XK(i_))
-                                    xw[i_] = (q_.x(), q_.y(), q_.theta())
-                            xw[k] = (p.x(), p.y(), p.theta())
+                                    xw[i_ - k0] = (q_.x(), q_.y(), q_.theta())
+                            xw[k - k0] = (p.x(), p.y(), p.theta())
                             has = np.append(in_graph_k[k0:k], True)  # k: its estimate p
                             idx = k0 + np.flatnonzero(has[:-1] & has[1:])
                             if idx.size:
                                 c_cur = _calibration_lsq(
-                                    odo_residuals(xw, idx), J_k[idx], info_k[idx], c_used[idx],
+                                    odo_residuals(xw, idx, k0), J_k[idx], info_k[idx], c_used[idx],
                                     np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
                                     cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
                                 )[0]  # fmt: skip
@@ -639,6 +645,7 @@ class Isam2Slam:
             )  # fmt: skip
             if progress is not None:
                 progress(f1, nf)
+            trim()
         close_keyframe(nk - 1)
         add_gnss(nk - 1)
         if new_f.size() or new_v.size() or remove_idx:

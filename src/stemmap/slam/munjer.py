@@ -405,6 +405,14 @@ class MunjerMapConfig:
     refine : run the Kalman refinement of the trees (§3.6) after FastSLAM
     refine_gate : m -- detection-to-tree association distance of the refinement (Table 1's
         proximity threshold, 1.0 m)
+    detection_noise : bool -- ours: each detection's own noise (``TreeFrames.noise``, from
+        ``StemObservations.covs``: DAIM's depth-noise model,
+        :func:`~stemmap.vision.depth.daim_trunks`) added to ``sigma_range`` / ``sigma_bearing``
+        in FastSLAM (:class:`~stemmap.slam.fastslam.FastSlam` ``detection_noise``) and in the
+        refinement, so a far, noisy detection weighs less. Default on: detections without a
+        covariance (EB-LiDAR, ours) are unchanged by it; DAIM's are weighed by the simulator's
+        D435 model (docs/algorithms/cloud.md, "DAIM: per-detection noise"). The paper gives
+        every detection the same noise (False).
     seed : FastSLAM seed
     """
 
@@ -414,6 +422,7 @@ class MunjerMapConfig:
     min_observations: int = 3
     refine: bool = True
     refine_gate: float = 1.0
+    detection_noise: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -439,6 +448,7 @@ def map_munjer(problem: SlamProblem, config: MunjerMapConfig | None = None) -> S
         min_observations=cfg.min_observations,
         seed=cfg.seed,
         smooth=False,  # the paper's FastSLAM: no joint smoothing afterwards (ours)
+        detection_noise=cfg.detection_noise,
     )
     result = fs.run(problem)
     if cfg.refine and len(result.stem_map):
@@ -453,6 +463,7 @@ def map_munjer(problem: SlamProblem, config: MunjerMapConfig | None = None) -> S
             sigma_bearing=cfg.sigma_bearing,
             sensor_offset=problem.sensor_offset,
             gate=cfg.refine_gate,
+            noise=fr.noise if cfg.detection_noise else None,
         )
         result.stem_map = refined
         result.stats["refined"] = "kalman"

@@ -82,8 +82,8 @@ def world_observation_covariance(
     ranges: ArrayLike,
     bearings: ArrayLike,
     *,
-    sigma_range: float,
-    sigma_bearing: float,
+    sigma_range: float | ArrayLike,
+    sigma_bearing: float | ArrayLike,
     sensor_offset: tuple[float, float] = (0.0, 0.0),
 ) -> FloatArray:
     """Covariance (K, 2, 2) of range-bearing detections mapped to the world frame.
@@ -102,15 +102,24 @@ def world_observation_covariance(
     pose_covs : ndarray (K, 3, 3) or (3, 3)
         Pose covariance (NaN entries are treated as zero, i.e. a known pose).
     ranges, bearings : ndarray (K,)
-    sigma_range : float, m, >= 0
-    sigma_bearing : float, rad, >= 0
+    sigma_range : float or ndarray (K,), m, >= 0
+    sigma_bearing : float or ndarray (K,), rad, >= 0
+        One sigma for every detection, or each detection's own (e.g. the FastSLAM floor plus
+        a detector's noise model, :func:`refine_stem_map` ``noise``).
     sensor_offset : (a, b), m
     """
-    if sigma_range < 0 or sigma_bearing < 0:
+    sr = np.asarray(sigma_range, dtype=np.float64)
+    sb = np.asarray(sigma_bearing, dtype=np.float64)
+    if np.any(sr < 0) or np.any(sb < 0):
         raise ConfigError("sigma_range and sigma_bearing must be >= 0.")
     Jp, Jz = world_observation_jacobians(poses, ranges, bearings, sensor_offset)
     S = np.nan_to_num(np.broadcast_to(np.asarray(pose_covs, dtype=np.float64), (Jp.shape[0], 3, 3)))
-    Rz = np.diag([sigma_range**2, sigma_bearing**2])
+    if sr.ndim == 0 and sb.ndim == 0:
+        Rz = np.diag([float(sr) ** 2, float(sb) ** 2])
+    else:
+        Rz = np.zeros((Jz.shape[0], 2, 2))
+        Rz[:, 0, 0] = np.broadcast_to(sr, Jz.shape[:1]) ** 2
+        Rz[:, 1, 1] = np.broadcast_to(sb, Jz.shape[:1]) ** 2
     out: FloatArray = Jp @ S @ np.swapaxes(Jp, 1, 2) + Jz @ Rz @ np.swapaxes(Jz, 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
@@ -230,6 +239,7 @@ def refine_stem_map(
     pose_covs: ArrayLike | None = None,
     gate: float = 1.0,
     process_noise: float = 0.0,
+    noise: ArrayLike | None = None,
 ) -> StemMap:
     """Refine a stem map with every detection, Munjer 2025 §3.6 (post-step for any back-end).
 
@@ -253,6 +263,10 @@ def refine_stem_map(
         Pose covariance per frame (default: poses treated as exact).
     gate : float, m
     process_noise : float, m²
+    noise : ndarray (K, 2), optional
+        Each detection's own (sigma_range, sigma_bearing) (``TreeFrames.noise``), added in
+        quadrature to ``sigma_range`` / ``sigma_bearing`` (NaN: nothing added); ours, as
+        :class:`~stemmap.slam.fastslam.FastSlam` ``detection_noise``.
 
     Returns
     -------
@@ -280,13 +294,21 @@ def refine_stem_map(
     frame = np.repeat(np.arange(p.shape[0]), np.diff(ptr))
     z = observation_to_world(p[frame], r, b, sensor_offset)
     S = np.zeros((p.shape[0], 3, 3)) if pose_covs is None else np.asarray(pose_covs, np.float64)
+    s_r: float | FloatArray = sigma_range
+    s_b: float | FloatArray = sigma_bearing
+    if noise is not None:
+        nz = np.nan_to_num(np.asarray(noise, dtype=np.float64).reshape(-1, 2))
+        if nz.shape[0] != r.shape[0]:
+            raise InputError(f"refine_stem_map: noise has {nz.shape[0]} rows, not {r.shape[0]}.")
+        s_r = np.sqrt(sigma_range**2 + nz[:, 0] ** 2)
+        s_b = np.sqrt(sigma_bearing**2 + nz[:, 1] ** 2)
     R = world_observation_covariance(
         p[frame],
         S.reshape(-1, 3, 3)[frame],
         r,
         b,
-        sigma_range=sigma_range,
-        sigma_bearing=sigma_bearing,
+        sigma_range=s_r,
+        sigma_bearing=s_b,
         sensor_offset=sensor_offset,
     )
     from stemmap.slam.tree_covariance import associate_per_frame

@@ -38,6 +38,11 @@ __all__ = [
 ]
 
 
+#: RealSense D435 depth RMS error ``sigma = k z^2`` (m): subpixel 0.08 / (focal 447 px x
+#: baseline 0.05 m) at 848 x 480 (Intel's depth-camera tuning guide formula), the paper's camera.
+D435_DEPTH_NOISE_K = 0.08 / (447.0 * 0.05)
+
+
 @dataclass(frozen=True)
 class DaimParams:
     """Parameters of DAIM (Munjer 2025 prints none of these; values are ours).
@@ -66,6 +71,13 @@ class DaimParams:
         DBSCAN radius of a box is ``max(eps, 2 k z^2)`` at the box's median depth z, so a far
         trunk's scattered depth still forms one cluster. None: ``eps`` at every depth. Ours:
         Munjer 2025 prints no clustering parameters.
+    cov_noise_k : float or None -- the depth-noise model ``sigma = k z^2`` (m) each detection's
+        covariance (``StemObservations.covs``, centre x, y and radius) is propagated from
+        (:func:`stemmap.vision._daim_noise.fit_covariance`: along-ray ``k rho^2`` per arc point,
+        the pixel column across it, through the fit). Default the D435's
+        (:data:`D435_DEPTH_NOISE_K`, the paper's camera). None: NaN covariances. Ours: Munjer
+        2025 gives detections no covariance. Only a back end that asks for them uses them
+        (:class:`stemmap.slam.munjer.MunjerMapConfig` ``detection_noise``).
     """
 
     stride: int = 2
@@ -79,15 +91,18 @@ class DaimParams:
     fit: str = "three_point"
     max_width_ratio: float | None = None
     depth_noise_k: float | None = None
+    cov_noise_k: float | None = D435_DEPTH_NOISE_K
 
 
-#: RealSense D435 depth RMS error ``sigma = k z^2`` (m): subpixel 0.08 / (focal 447 px x
-#: baseline 0.05 m) at 848 x 480 (Intel's depth-camera tuning guide formula), the paper's camera.
-D435_DEPTH_NOISE_K = 0.08 / (447.0 * 0.05)
-#: DAIM as run in the Munjer pipeline: implausibly wide three-point circles carry no diameter.
-#: The noise-scaled clustering radius (``depth_noise_k=D435_DEPTH_NOISE_K``) is an option, not
-#: the default: it maps the far trees too, with a worse map RMSE (docs/algorithms/vision-fusion.md).
-MUNJER2025 = DaimParams(max_width_ratio=1.5)
+#: DAIM as run in the Munjer pipeline (our additions, the paper prints none of them):
+#: implausibly wide three-point circles carry no diameter, the clustering radius is scaled by
+#: the D435's depth-noise model (``depth_noise_k``), and every detection carries its
+#: depth-model covariance (``cov_noise_k``), which the Munjer back end weighs it by
+#: (:class:`stemmap.slam.munjer.MunjerMapConfig` ``detection_noise``). Chosen on simulated
+#: drives with the simulator's D435 model only (docs/algorithms/vision-fusion.md, item 12;
+#: docs/algorithms/cloud.md, "DAIM: per-detection noise"); ``replace(MUNJER2025,
+#: depth_noise_k=None)`` is the fixed 0.1 m radius.
+MUNJER2025 = DaimParams(max_width_ratio=1.5, depth_noise_k=D435_DEPTH_NOISE_K)
 
 
 def depth_to_points(
@@ -248,9 +263,14 @@ def daim_trunks(
     else "camera_level"), ``source="vision:munjer2025:<fit>"``; boxes where no cluster or arc
     or fit was found are skipped (logged at debug level); a fit failing the width check
     (``params.max_width_ratio``) keeps its centre with radius NaN. ``index`` is the box index.
+    ``covs`` (k, 3, 3): each fit's (centre x, centre y, radius) covariance from the depth-noise
+    model ``params.cov_noise_k`` (NaN without one), body frame.
     """
     b = boxes_xywh(boxes)
-    centers, radii, npts, arcs, idx = [], [], [], [], []
+    from stemmap.vision._daim_noise import fit_covariance
+
+    centers, radii, npts, arcs, idx, covs = [], [], [], [], [], []
+    pixel_angle = params.stride / float(camera.K[0, 0])
     origin = camera_to_body.t[:2] if camera_to_body is not None else np.zeros(2)
     for i, box in enumerate(b):
         pc = depth_to_points(depth, camera, box, stride=params.stride, max_depth=params.max_depth)
@@ -285,7 +305,18 @@ def daim_trunks(
             radius = math.nan
         rel = arc - fit.center
         ang = np.degrees(np.ptp(np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))))
+        cov = np.full((3, 3), np.nan)
+        if params.cov_noise_k is not None:
+            cov = fit_covariance(
+                arc,
+                fit.center,
+                origin,
+                params.fit,
+                depth_noise_k=params.cov_noise_k,
+                pixel_angle=pixel_angle,
+            )
         centers.append(fit.center)
+        covs.append(cov)
         radii.append(radius)
         npts.append(arc.shape[0])
         arcs.append(ang)
@@ -299,7 +330,7 @@ def daim_trunks(
     return StemObservations(
         centers=np.asarray(centers),
         radii=np.asarray(radii),
-        covs=np.full((k, 3, 3), np.nan),
+        covs=np.asarray(covs),
         n_points=np.asarray(npts),
         arc_deg=np.asarray(arcs),
         widths=np.full(k, np.nan),
