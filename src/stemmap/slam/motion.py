@@ -472,6 +472,83 @@ def _segments(
     return u, dt, interval, ends
 
 
+ROLLOUT_BLOCK = 1 << 14
+"""Grid points per block of :func:`preintegrate`'s pose-only path (at most twice this many)."""
+
+
+def _running(carry: float, w: FloatArray, started: bool) -> FloatArray:
+    """``np.cumsum`` of a whole stream, one block ``w`` at a time: the sum starts FROM the
+    previous blocks' sum ``carry`` (cumsum is sequential, so the roundings are those of the
+    whole-array sum; adding ``carry`` afterwards would round differently)."""
+    if not started:
+        return np.cumsum(w)
+    out: FloatArray = np.cumsum(np.concatenate(([carry], w)))[1:]
+    return out
+
+
+def _poses_blocked(
+    model: Any, controls: Controls, tq: FloatArray, p0: FloatArray, block: int = ROLLOUT_BLOCK
+) -> tuple[FloatArray, FloatArray]:
+    """Poses (F, 3) at ``tq`` and distance (F-1,) per interval, as :func:`preintegrate`'s
+    whole-array integration (:func:`_segments`, cumulative sums of ``dtheta`` and mid-point
+    chords) computes them, bit for bit, in memory bounded by ``block`` and F.
+
+    The grid (every control and query time) is cut at every ``block``-th control and query
+    time, so a block holds at most ``2 * block`` grid points; each block's segments start at
+    the previous block's last grid point, its running sums start from the previous block's
+    (:func:`_running`) and so does the distance of the interval it continues.
+    """
+    ct = controls.times
+    nf = tq.shape[0]
+    # ct is non-decreasing (Controls checks it): this view is ct[(ct > t0) & (ct < t1)]
+    inner = ct[np.searchsorted(ct, tq[0], side="right") : np.searchsorted(ct, tq[-1], side="left")]
+    cuts = np.union1d(inner[::block], tq[::block])
+    ii = np.append(np.searchsorted(inner, cuts, side="left"), inner.shape[0])
+    qi = np.append(np.searchsorted(tq, cuts, side="left"), nf)
+    poses = np.empty((nf, 3))
+    dist = np.zeros(nf - 1)
+    sums = [0.0, 0.0, 0.0]  # raw running sums of dtheta, chord x, chord y
+    state = [float(p0[0]), float(p0[1]), float(p0[2])]  # pose at the last grid point so far
+    started = False
+    prev_t: float | None = None
+    for k in range(cuts.shape[0]):
+        g = np.union1d(inner[ii[k] : ii[k + 1]], tq[qi[k] : qi[k + 1]])
+        pts = g if prev_t is None else np.concatenate(([prev_t], g))
+        starts = pts[:-1]
+        kk = np.searchsorted(ct, starts, side="right") - 1
+        u = np.zeros((starts.shape[0], 2))
+        ok = kk >= 0
+        u[ok, 0] = controls.speed[kk[ok]]
+        u[ok, 1] = controls.steer[kk[ok]]
+        ds, dth = model.arc(u, np.diff(pts))
+        c_th = _running(sums[0], dth, started)
+        th_end = p0[2] + c_th
+        mid = (th_end - dth) + 0.5 * dth
+        c_x = _running(sums[1], ds * np.cos(mid), started)
+        c_y = _running(sums[2], ds * np.sin(mid), started)
+        # states at pts (index 0: the pose carried in)
+        xs = np.concatenate(([state[0]], p0[0] + c_x))
+        ys = np.concatenate(([state[1]], p0[1] + c_y))
+        ths = np.concatenate(([state[2]], th_end))
+        q = slice(qi[k], qi[k + 1])
+        loc = np.searchsorted(pts, tq[q], side="left")
+        poses[q, 0], poses[q, 1], poses[q, 2] = xs[loc], ys[loc], wrap_angle(ths[loc])
+        if ds.shape[0]:
+            interval = np.searchsorted(tq, starts, side="right") - 1
+            interval = np.clip(interval, 0, max(nf - 2, 0))
+            i0 = int(interval[0])  # continue its sum: the same additions as one bincount
+            acc = np.bincount(
+                np.concatenate(([0], interval - i0)),
+                weights=np.concatenate(([dist[i0]], np.abs(ds))),
+            )
+            dist[i0 : i0 + acc.shape[0]] = acc
+            sums = [float(c_th[-1]), float(c_x[-1]), float(c_y[-1])]
+            state = [float(xs[-1]), float(ys[-1]), float(ths[-1])]
+            started = True
+        prev_t = float(pts[-1])
+    return poses, dist
+
+
 def rollout(
     model: Any,
     controls: Controls,
@@ -536,6 +613,10 @@ def preintegrate(
     if nf == 1:
         z = np.zeros(0)
         return Preintegrated(tq, p0[None, :].copy(), np.zeros((0, 3)), np.zeros((0, 3, 3)), z)
+    if not with_covariance:
+        poses, dist = _poses_blocked(model, controls, tq, p0)
+        nan = np.full((nf - 1, 3, 3), np.nan)
+        return Preintegrated(tq, poses, between(poses[:-1], poses[1:]), nan, dist)
     u, dt, interval, ends = _segments(controls, tq)
     ds, dth = model.arc(u, dt)
     th_end = p0[2] + np.cumsum(dth)
@@ -550,28 +631,26 @@ def preintegrate(
     poses = np.column_stack((xs[ends], ys[ends], wrap_angle(ths[ends])))
     deltas = between(poses[:-1], poses[1:])
     dist = np.bincount(interval, weights=np.abs(ds), minlength=nf - 1)[: nf - 1].astype(float)
-    covs = np.full((nf - 1, 3, 3), np.nan)
-    if with_covariance:
-        Q = model.noise_batch(u, dt, th_start)  # (S, 3, 3) world frame
-        end_idx = ends[interval + 1]
-        ex = xs[end_idx] - x_end
-        ey = ys[end_idx] - y_end
-        Phi = np.zeros((u.shape[0], 3, 3))
-        Phi[:, 0, 0] = Phi[:, 1, 1] = Phi[:, 2, 2] = 1.0
-        Phi[:, 0, 2] = -ey
-        Phi[:, 1, 2] = ex
-        contrib = Phi @ Q @ np.swapaxes(Phi, 1, 2)
-        flat = contrib.reshape(-1, 9)
-        acc = np.stack(
-            [np.bincount(interval, weights=flat[:, j], minlength=nf - 1) for j in range(9)],
-            axis=1,
-        )[: nf - 1].reshape(-1, 3, 3)
-        c, s = np.cos(poses[:-1, 2]), np.sin(poses[:-1, 2])
-        R = np.zeros((nf - 1, 3, 3))
-        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, s, -s, c
-        R[:, 2, 2] = 1.0
-        covs = R @ acc @ np.swapaxes(R, 1, 2)
-        covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
+    Q = model.noise_batch(u, dt, th_start)  # (S, 3, 3) world frame
+    end_idx = ends[interval + 1]
+    ex = xs[end_idx] - x_end
+    ey = ys[end_idx] - y_end
+    Phi = np.zeros((u.shape[0], 3, 3))
+    Phi[:, 0, 0] = Phi[:, 1, 1] = Phi[:, 2, 2] = 1.0
+    Phi[:, 0, 2] = -ey
+    Phi[:, 1, 2] = ex
+    contrib = Phi @ Q @ np.swapaxes(Phi, 1, 2)
+    flat = contrib.reshape(-1, 9)
+    acc = np.stack(
+        [np.bincount(interval, weights=flat[:, j], minlength=nf - 1) for j in range(9)],
+        axis=1,
+    )[: nf - 1].reshape(-1, 3, 3)
+    c, s = np.cos(poses[:-1, 2]), np.sin(poses[:-1, 2])
+    R = np.zeros((nf - 1, 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, s, -s, c
+    R[:, 2, 2] = 1.0
+    covs = R @ acc @ np.swapaxes(R, 1, 2)
+    covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
     return Preintegrated(tq, poses, deltas, covs, dist)
 
 
