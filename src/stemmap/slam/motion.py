@@ -549,6 +549,26 @@ def _poses_blocked(
     return poses, dist
 
 
+def _checked(
+    model: Any, controls: Controls, times: ArrayLike, initial_pose: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """Query times (F,) and initial pose (3,) as floats, after :func:`preintegrate`'s checks."""
+    kind = getattr(model, "kind", None)
+    if kind != controls.kind:
+        raise InputError(
+            f"controls are of kind {controls.kind!r} but the motion model is {kind!r}; "
+            "use AckermannModel for 'ackermann' controls and UnicycleModel for 'unicycle'."
+        )
+    tq = np.asarray(times, dtype=np.float64).reshape(-1)
+    if tq.shape[0] == 0:
+        raise InputError("preintegrate needs at least one query time.")
+    if np.any(np.diff(tq) < 0):
+        k = int(np.argmin(np.diff(tq)))
+        raise InputError(f"query times go backwards at index {k + 1}: {tq[k]} -> {tq[k + 1]}.")
+    p0 = np.asarray(initial_pose, dtype=np.float64).reshape(3)
+    return tq, p0
+
+
 def rollout(
     model: Any,
     controls: Controls,
@@ -560,7 +580,10 @@ def rollout(
     Controls are held constant from their timestamp until the next one (zero-order hold); before
     the first control the vehicle stands still. ``model`` is an arc model (Ackermann, unicycle).
     """
-    return preintegrate(model, controls, times, initial_pose, with_covariance=False).poses
+    tq, p0 = _checked(model, controls, times, initial_pose)
+    if tq.shape[0] == 1:
+        return p0[None, :].copy()
+    return _poses_blocked(model, controls, tq, p0)[0]  # preintegrate(..., False).poses
 
 
 def preintegrate(
@@ -596,19 +619,7 @@ def preintegrate(
     InputError
         If the kinds disagree or ``times`` is empty or decreasing.
     """
-    kind = getattr(model, "kind", None)
-    if kind != controls.kind:
-        raise InputError(
-            f"controls are of kind {controls.kind!r} but the motion model is {kind!r}; "
-            "use AckermannModel for 'ackermann' controls and UnicycleModel for 'unicycle'."
-        )
-    tq = np.asarray(times, dtype=np.float64).reshape(-1)
-    if tq.shape[0] == 0:
-        raise InputError("preintegrate needs at least one query time.")
-    if np.any(np.diff(tq) < 0):
-        k = int(np.argmin(np.diff(tq)))
-        raise InputError(f"query times go backwards at index {k + 1}: {tq[k]} -> {tq[k + 1]}.")
-    p0 = np.asarray(initial_pose, dtype=np.float64).reshape(3)
+    tq, p0 = _checked(model, controls, times, initial_pose)
     nf = tq.shape[0]
     if nf == 1:
         z = np.zeros(0)
@@ -649,7 +660,7 @@ def preintegrate(
     R = np.zeros((nf - 1, 3, 3))
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, s, -s, c
     R[:, 2, 2] = 1.0
-    covs = R @ acc @ np.swapaxes(R, 1, 2)
+    covs = np.asarray(R @ acc @ np.swapaxes(R, 1, 2), dtype=np.float64)  # (acc: float)
     covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
     return Preintegrated(tq, poses, deltas, covs, dist)
 
