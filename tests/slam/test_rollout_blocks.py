@@ -14,29 +14,16 @@ from stemmap.slam.motion import (
     AckermannModel,
     UnicycleModel,
     _poses_blocked,
-    _segments,
+    _poses_whole,
     preintegrate,
     rollout,
 )
-from stemmap.types import wrap_angle
 
 
 def _whole_array(model, controls, tq, p0):
-    """preintegrate's pose arithmetic over the whole stream at once (as before the blocks)."""
-    nf = tq.shape[0]
-    u, dt, interval, ends = _segments(controls, tq)
-    ds, dth = model.arc(u, dt)
-    th_end = p0[2] + np.cumsum(dth)
-    th_start = th_end - dth
-    mid = th_start + 0.5 * dth
-    x_end = p0[0] + np.cumsum(ds * np.cos(mid))
-    y_end = p0[1] + np.cumsum(ds * np.sin(mid))
-    xs = np.concatenate(([p0[0]], x_end))
-    ys = np.concatenate(([p0[1]], y_end))
-    ths = np.concatenate(([p0[2]], th_end))
-    poses = np.column_stack((xs[ends], ys[ends], wrap_angle(ths[ends])))
-    dist = np.bincount(interval, weights=np.abs(ds), minlength=nf - 1)[: nf - 1].astype(float)
-    return poses, dist
+    """The whole-array integration (preintegrate's covariance path, unchanged from before the
+    blocks: the same VP covariance hashes before and after)."""
+    return _poses_whole(model, controls, tq, p0)[:2]
 
 
 def _sha(*arrays):

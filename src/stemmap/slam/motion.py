@@ -549,6 +549,28 @@ def _poses_blocked(
     return poses, dist
 
 
+def _poses_whole(
+    model: Any, controls: Controls, tq: FloatArray, p0: FloatArray
+) -> tuple[FloatArray, FloatArray, tuple[Any, ...]]:
+    """:func:`_poses_blocked`'s poses and distances over every segment at once (the covariance
+    path needs the per-segment arrays: (u, dt, interval, ends, th_start, x_end, y_end, xs, ys))."""
+    nf = tq.shape[0]
+    u, dt, interval, ends = _segments(controls, tq)
+    ds, dth = model.arc(u, dt)
+    th_end = p0[2] + np.cumsum(dth)
+    th_start = th_end - dth
+    mid = th_start + 0.5 * dth
+    x_end = p0[0] + np.cumsum(ds * np.cos(mid))
+    y_end = p0[1] + np.cumsum(ds * np.sin(mid))
+    # state after each grid point (index 0 = initial)
+    xs = np.concatenate(([p0[0]], x_end))
+    ys = np.concatenate(([p0[1]], y_end))
+    ths = np.concatenate(([p0[2]], th_end))
+    poses = np.column_stack((xs[ends], ys[ends], wrap_angle(ths[ends])))
+    dist = np.bincount(interval, weights=np.abs(ds), minlength=nf - 1)[: nf - 1].astype(float)
+    return poses, dist, (u, dt, interval, ends, th_start, x_end, y_end, xs, ys)
+
+
 def _checked(
     model: Any, controls: Controls, times: ArrayLike, initial_pose: ArrayLike
 ) -> tuple[FloatArray, FloatArray]:
@@ -628,20 +650,9 @@ def preintegrate(
         poses, dist = _poses_blocked(model, controls, tq, p0)
         nan = np.full((nf - 1, 3, 3), np.nan)
         return Preintegrated(tq, poses, between(poses[:-1], poses[1:]), nan, dist)
-    u, dt, interval, ends = _segments(controls, tq)
-    ds, dth = model.arc(u, dt)
-    th_end = p0[2] + np.cumsum(dth)
-    th_start = th_end - dth
-    mid = th_start + 0.5 * dth
-    x_end = p0[0] + np.cumsum(ds * np.cos(mid))
-    y_end = p0[1] + np.cumsum(ds * np.sin(mid))
-    # state after each grid point (index 0 = initial)
-    xs = np.concatenate(([p0[0]], x_end))
-    ys = np.concatenate(([p0[1]], y_end))
-    ths = np.concatenate(([p0[2]], th_end))
-    poses = np.column_stack((xs[ends], ys[ends], wrap_angle(ths[ends])))
+    poses, dist, seg = _poses_whole(model, controls, tq, p0)
+    u, dt, interval, ends, th_start, x_end, y_end, xs, ys = seg
     deltas = between(poses[:-1], poses[1:])
-    dist = np.bincount(interval, weights=np.abs(ds), minlength=nf - 1)[: nf - 1].astype(float)
     Q = model.noise_batch(u, dt, th_start)  # (S, 3, 3) world frame
     end_idx = ends[interval + 1]
     ex = xs[end_idx] - x_end
