@@ -34,7 +34,7 @@ CLUTTER_2M = (320, [2.5343, 2.4882, 2.4665, 2.4555, 2.4484, 2.4025, 2.3428, 2.33
 
 # scan 475: the 6 returns of a true 38.3 cm trunk at 7.2 m (tree 9), fitted r = 19.1 cm with
 # an RMS of 1.06 sigma (chi-square 0.67 of its 99 % bound); its first 5 returns make a 15 cm
-# arc with a third of that RMS, which arc_replace 3 took before the sixteenth round
+# arc with a third of that RMS, which arc_replace 3 took before its chi-square condition
 TRUNK_7M = (54, [7.2238, 7.1472, 7.1365, 7.1389, 7.1897, 7.2203])
 
 

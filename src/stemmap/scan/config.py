@@ -277,8 +277,10 @@ class DetectorConfig:
         With ``arc_refit``, an *accepted* candidate is replaced by its largest consistent arc
         when the arc passes every test and the candidate's fit RMS exceeds this multiple of
         the arc's fit RMS and the range noise (a fillet or stub at one end pulled the fit; on
-        lidR, accepted trunks with one branch return at an end were 5-10 cm too wide).
-        inf = off.
+        lidR, accepted trunks with one branch return at an end were 5-10 cm too wide), and
+        (since the review of the fifteenth round) the candidate's residuals fail the upper
+        1 % chi-square test at the range noise, ``n x RMS^2 > chi2_0.99(n - 3) x sigma^2``:
+        a fit whose residuals are the noise keeps its returns. inf = off.
     arc_short_steps : bool
         With ``arc_refit``: an arc of ``min_points`` to ``min_points_partial - 1`` returns
         counts too when a range step larger than ``max_jump`` separates it from the rest of
