@@ -3,7 +3,7 @@ arc of a longer outline that is not a trunk seen from the sensor -- a return beh
 circle's tangent range, residuals larger than the range noise -- no longer passes, a trunk
 that runs on into a branch still does. The returns are the simulator's (``stemmap demo
 --seed 1``, SICK-class 0.5 deg scanner): faces of its lobed rocks and a clutter hit that the
-arcs of grid 29 (scan-detection.md, fourteenth round) passed as trunks."""
+arcs of grid 29 (scan-detection-history.md, fourteenth round) passed as trunks."""
 
 import math
 

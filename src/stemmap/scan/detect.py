@@ -703,7 +703,7 @@ class ScanTrunkDetector:
         its parent's place in the output. With a finite ``arc_replace`` also of the accepted
         candidates (``order_key`` even, fit RMS ``parent_rms`` in the same order)."""
         # rejected for not being a convex arc: a trunk that runs on into a branch (lidR,
-        # scan-detection.md); pieces of candidates that failed the RMS test were tried too
+        # scan-detection-history.md); pieces of candidates that failed the RMS test were tried too
         # and passed as trunks on the simulator's bushes (precision 0.975 -> 0.947)
         cfg = self.config
         which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
