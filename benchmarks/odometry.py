@@ -95,16 +95,16 @@ def _four_sources(
 
 
 def part_sim3d(n_frames: int, az_step: float, seed: int) -> dict[str, Any]:
+    from stemmap.sim import s_curve_path
     from stemmap.sim.drive import simulate_lidar_drive
     from stemmap.sim.lidar import lidar_preset, random_stand3d
 
-    stand = random_stand3d(150, (220.0, 70.0), min_spacing=4.0, rng=seed + 1)
-    x = np.linspace(5.0, 215.0, 20)
-    wp = np.column_stack((x, 35.0 + 12.0 * np.sin(x / 20.0)))
+    size = (220.0, 70.0)
+    stand = random_stand3d(150, size, min_spacing=4.0, rng=seed + 1)
     t0 = time.perf_counter()
     d = simulate_lidar_drive(
         stand,
-        wp,
+        s_curve_path(size, amplitude=12.0, length_scale=20.0, n_points=20),
         speed=4.0,
         lidar=lidar_preset("vlp16", azimuth_step_deg=az_step),
         max_frames=n_frames,
@@ -135,23 +135,11 @@ def part_sim3d(n_frames: int, az_step: float, seed: int) -> dict[str, Any]:
 
 
 def part_sim2d(seed: int) -> dict[str, Any]:
-    from stemmap.sim import random_stand, simulate_run
-    from stemmap.sim.imu import simulate_imu
+    from stemmap.sim.drive import simulate_s_curve_drive
 
-    stand = random_stand(300, (200.0, 70.0), min_spacing=3.0, rng=seed + 3)
-    x = np.linspace(5.0, 195.0, 16)
-    wp = np.column_stack((x, 35.0 + 12.0 * np.sin(x / 20.0)))
-    run = simulate_run(
-        stand,
-        wp,
-        speed=3.0,
-        rate_hz=10.0,
-        odom_rate_hz=100.0,
-        odometry_noise="none",
-        corridor_half_width=2.0,
-        rng=seed + 4,
+    run, imu = simulate_s_curve_drive(
+        300, (200.0, 70.0), amplitude=12.0, length_scale=20.0, n_waypoints=16, seed=seed + 3
     )
-    imu = simulate_imu(run.true_odometry, rng=seed + 5)
     cfg = LidarOdometryConfig(max_range=run.scanner.range_max, min_range=0.1)
     frames = list(zip(run.true_poses.times, run.scans, strict=True))
     res = _four_sources(frames, imu.log, run.true_poses, cfg)

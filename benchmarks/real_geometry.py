@@ -128,7 +128,7 @@ _ARCS_29: dict[str, Any] = {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace":
 
 #: Parameters chosen leave-one-dataset-out (``--loo``; third round of issue 11). Every setting
 #: kept the issue's simulated precision >= 0.95 on benchmarks/scan_detection.py seed 1 and on
-#: the `stemmap demo` drive seed 1 when it entered the grid (scan-detection.md, "Third
+#: the `stemmap demo` drive seed 1 when it entered the grid (scan-detection-history.md, "Third
 #: round"); by the tenth round bark 5 % and the two arc settings with ``sigma_from_scan`` no
 #: longer did (demo 0.919 / 0.949 / 0.948), so ``--loo`` now checks every setting on the
 #: current code and chooses among those that keep it (:func:`simulated_precision`). The

@@ -18,7 +18,7 @@ from stemmap.io.scans import write_scans_npz
 from stemmap.io.trajectory import read_trajectory_csv, read_trajectory_tum
 from stemmap.odometry.fusion import PoseSource, fuse_sources
 from stemmap.odometry.inertial import motion_prior
-from stemmap.sim import random_stand, simulate_run
+from stemmap.sim.drive import simulate_s_curve_drive
 from stemmap.sim.imu import IMU_PRESETS, ImuNoise, simulate_imu
 from stemmap.sim.motion_sensors import Odometry
 
@@ -136,21 +136,9 @@ def test_pose_source_anchors_the_filter():
 
 @pytest.fixture(scope="module")
 def scan_drive(tmp_path_factory):
-    stand = random_stand(60, (60.0, 40.0), min_spacing=3.0, rng=3)
-    x = np.linspace(5.0, 55.0, 8)
-    wp = np.column_stack((x, 20.0 + 5.0 * np.sin(x / 10.0)))
-    run = simulate_run(
-        stand,
-        wp,
-        speed=3.0,
-        rate_hz=10.0,
-        odom_rate_hz=100.0,
-        odometry_noise="none",
-        corridor_half_width=2.0,
-        max_scans=120,
-        rng=4,
+    run, imu = simulate_s_curve_drive(
+        60, (60.0, 40.0), amplitude=5.0, length_scale=10.0, n_waypoints=8, max_scans=120, seed=3
     )
-    imu = simulate_imu(run.true_odometry, rng=5)
     d = tmp_path_factory.mktemp("odo")
     write_scans_npz(d / "scans.npz", run.scans)
     write_imu_csv(d / "imu.csv", imu.log)

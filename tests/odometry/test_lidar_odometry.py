@@ -17,9 +17,8 @@ from stemmap.odometry.lidar import (
     LidarOdometryResult,
     lidar_odometry,
 )
-from stemmap.sim import random_stand, simulate_run
-from stemmap.sim.drive import LidarDrive, simulate_lidar_drive
-from stemmap.sim.imu import simulate_imu
+from stemmap.sim import s_curve_path
+from stemmap.sim.drive import LidarDrive, simulate_lidar_drive, simulate_s_curve_drive
 from stemmap.sim.lidar import lidar_preset, random_stand3d
 from stemmap.types import Trajectory
 
@@ -40,14 +39,11 @@ def drive3d() -> LidarDrive:
     """A park-like stand (trees >= 4 m apart), 4 m/s along an S curve, VLP-16 at 10 Hz with a
     0.8 deg azimuth step (a quarter of the real density, for test time), XSens-class IMU,
     wheels 2 % fast with slips: 80 frames, ~32 m."""
-    stand = random_stand3d(
-        50, (90.0, 50.0), min_spacing=4.0, branches_per_tree=2, n_shrubs=3, rng=1
-    )
-    x = np.linspace(5.0, 85.0, 10)
-    wp = np.column_stack((x, 25.0 + 8.0 * np.sin(x / 15.0)))
+    size = (90.0, 50.0)
+    stand = random_stand3d(50, size, min_spacing=4.0, branches_per_tree=2, n_shrubs=3, rng=1)
     return simulate_lidar_drive(
         stand,
-        wp,
+        s_curve_path(size, amplitude=8.0, length_scale=15.0, n_points=10),
         speed=4.0,
         lidar=lidar_preset("vlp16", azimuth_step_deg=0.8),
         max_frames=80,
@@ -127,20 +123,9 @@ def test_fused_bridges_a_lidar_blackout(drive3d):
 def drive2d():
     """2D scans (SICK LMS, 80 m) at 10 Hz along an S curve through a random stand at 3 m/s,
     with the same IMU + wheel model: ~120 m, 400 scans."""
-    stand = random_stand(150, (120.0, 60.0), min_spacing=3.0, rng=3)
-    x = np.linspace(5.0, 115.0, 12)
-    wp = np.column_stack((x, 30.0 + 10.0 * np.sin(x / 15.0)))
-    run = simulate_run(
-        stand,
-        wp,
-        speed=3.0,
-        rate_hz=10.0,
-        odom_rate_hz=100.0,
-        odometry_noise="none",
-        corridor_half_width=2.0,
-        rng=4,
+    return simulate_s_curve_drive(
+        150, (120.0, 60.0), amplitude=10.0, length_scale=15.0, n_waypoints=12, seed=3
     )
-    return run, simulate_imu(run.true_odometry, rng=5)
 
 
 def test_lidar_odometry_2d_scans(drive2d):

@@ -3,7 +3,7 @@ arc of a longer outline that is not a trunk seen from the sensor -- a return beh
 circle's tangent range, residuals larger than the range noise -- no longer passes, a trunk
 that runs on into a branch still does. The returns are the simulator's (``stemmap demo
 --seed 1``, SICK-class 0.5 deg scanner): faces of its lobed rocks and a clutter hit that the
-arcs of grid 29 (scan-detection.md, fourteenth round) passed as trunks."""
+arcs of grid 29 (scan-detection-history.md, fourteenth round) passed as trunks."""
 
 import math
 
@@ -31,6 +31,11 @@ ROCK_7M = (4, [7.1197, 7.0483, 6.982, 6.9519, 6.8928, 6.8705, 6.8755, 6.9116, 6.
                6.7866, 6.7973, 6.8259])  # fmt: skip
 # scan 454: 9 clutter returns at 2.5 m; the arc (the first 5) a 5.5 cm circle, RMS 1.4 sigma
 CLUTTER_2M = (320, [2.5343, 2.4882, 2.4665, 2.4555, 2.4484, 2.4025, 2.3428, 2.3379, 2.2063])
+
+# scan 475: the 6 returns of a true 38.3 cm trunk at 7.2 m (tree 9), fitted r = 19.1 cm with
+# an RMS of 1.06 sigma (chi-square 0.67 of its 99 % bound); its first 5 returns make a 15 cm
+# arc with a third of that RMS, which arc_replace 3 took before its chi-square condition
+TRUNK_7M = (54, [7.2238, 7.1472, 7.1365, 7.1389, 7.1897, 7.2203])
 
 
 def _one_segment(first, ranges):
@@ -89,3 +94,18 @@ def test_a_trunk_that_runs_on_into_a_branch_keeps_its_arc(noise, seed):
 def test_arc_tangent_sigmas_is_validated(value):
     with pytest.raises(ConfigError, match="arc_tangent_sigmas"):
         DetectorConfig.preset("stemmap", arc_tangent_sigmas=value)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_trunk_whose_full_fit_is_the_noise_keeps_it(compiled, monkeypatch):
+    # arc_replace: an accepted fit gives way to its arc only when its residuals fail the
+    # chi-square test at the range noise, not when a shorter arc merely fits tighter
+    if not compiled:
+        monkeypatch.setattr(ScanTrunkDetector, "_compiled", lambda self, roll, pitch: False)
+    batch = _one_segment(*TRUNK_7M)
+    obs = ScanTrunkDetector("stemmap").detect_batch(batch)
+    without = _detect(batch, arc_replace=math.inf, arc_tangent_sigmas=3.0, arc_chi2=True)
+    assert len(obs) == 1
+    assert obs.n_points[0] == 6
+    assert obs.radii[0] == without.radii[0]
+    assert abs(obs.radii[0] - 0.3830 / 2) < 0.005

@@ -40,7 +40,7 @@ def _scan(circles, noise=0.0, seed=0):
 
 
 # a trunk of 30 cm at 5 m and a branch leaving its silhouette edge towards the sensor (the
-# segment is not convex: lidR, scan-detection.md)
+# segment is not convex: lidR, scan-detection-history.md)
 TRUNK_AND_BRANCH = [TRUNK, *_branch((5.0, 0.17), (4.6, 0.8))]
 
 
@@ -236,7 +236,7 @@ def _four_return_stem_and_a_nearer_one(step):
     """A 20 cm stem at 5.45 m seen by exactly 4 beams of 0.5 deg, and three returns of another
     object beside it, ``step`` then ``step`` + 15 cm nearer than its last return: one segment
     (the range-adaptive threshold is 0.1 + 3 r dtheta = 0.24 m there) that is not convex (the
-    TreeLS plot's merged 4-return stems, scan-detection.md, fifth round)."""
+    TreeLS plot's merged 4-return stems, scan-detection-history.md, fifth round)."""
     batch = _circles_scan([(5.45, 0.02, 0.10)])
     r = batch.ranges[0].copy()
     on = np.flatnonzero(np.isfinite(r))

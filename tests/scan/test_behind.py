@@ -14,7 +14,8 @@ from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 ON = {"behind_sigmas": 2.0}
 # a 6 cm stub just beyond the 30 cm trunk's silhouette edge, 8 cm deeper than the trunk's
-# last return: the segmentation joins it (lidR's stub on the stem's flank, scan-detection.md)
+# last return: the segmentation joins it (lidR's stub on the stem's flank,
+# scan-detection-history.md, thirteenth round)
 STUB = (5.10, 0.19, 0.03)
 
 

@@ -150,7 +150,7 @@ def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     # the two trunks, still detected in every scan. (The wall's first returns, cut from it by
     # the splitting radius median filter, fit a 25 cm circle with an RMS of 2.1 sigma: the 3 %
     # bark-roughness allowance the real slices chose (issue 11) lets that piece through -- a
-    # false alarm the leave-one-dataset-out objective does not count; scan-detection.md.)
+    # false alarm the leave-one-dataset-out objective does not count; scan-detection-history.md.)
     for x, y in ((3.0, 0.0), (2.0, 2.0)):
         near = [r for r in stems if math.hypot(float(r["x"]) - x, float(r["y"]) - y) < 0.3]
         assert sorted(int(r["scan_index"]) for r in near) == [0, 1, 2]

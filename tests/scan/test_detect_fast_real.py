@@ -84,7 +84,7 @@ ARCS = {
     "arc_chi2": False,
 }
 ARC_SETTINGS = {
-    # the leave-one-dataset-out choices (scan-detection.md, fifth and fourteenth rounds)
+    # the leave-one-dataset-out choices (scan-detection-history.md, fifth and fourteenth rounds)
     "replace3": {**ARCS, "arc_replace": 3.0},
     "replace2_short_steps": {**ARCS, "arc_replace": 2.0, "arc_short_steps": True},
     # fifteenth round: ... in front of the tangent range, residuals of the noise

@@ -183,8 +183,8 @@ def test_compiled_scan_noise_equals_numpy():
 
 def test_compiled_scan_noise_equals_numpy_on_broken_runs():
     # the compiled twin counts interior triples by runs of continuous range steps, branch-free
-    # (scan-detection.md, eighth round): every way a run can be cut (no return as NaN, inf or
-    # -inf, a range jump), runs of exactly 4-6 returns around the interior-triple threshold,
+    # (scan-detection-history.md, eighth round): every way a run can be cut (no return as NaN,
+    # inf or -inf, a range jump), runs of exactly 4-6 returns around the interior-triple threshold,
     # scans shorter than 5 beams, one run holding half the triples or just more, an infinite
     # jump (finiteness alone): the same value bit for bit, and a non-zero estimate often enough
     # that the medians are compared too
@@ -236,7 +236,7 @@ def test_scan_noise_reads_the_simulated_sensor_noise_among_clutter():
     # SICK-class model (1 cm noise, footprint-averaging sub-beams): the run-end triples
     # (silhouette beams, mixed returns) left out, the median estimate over the scans reads the
     # sensor's 1 cm (1.03-1.08 cm on seeds 1-3; pooling the run ends too read 1.6 cm,
-    # scan-detection.md, seventh round); 80 scans: the median is within a few %
+    # scan-detection-history.md, seventh round); 80 scans: the median is within a few %
     import math
 
     from stemmap.sim.forest import add_clutter, random_stand

@@ -13,7 +13,7 @@ from stemmap.scan.segment import Segments
 
 ON = {"split_search": True}
 # a 30 cm trunk at 5 m and a branch leaving just beyond its silhouette edge and running away
-# behind it: one segment, no concave corner (lidR's view 2, scan-detection.md)
+# behind it: one segment, no concave corner (lidR's view 2, scan-detection-history.md)
 TRUNK_AND_BRANCH_BEHIND = [TRUNK, *_branch((5.12, 0.18), (5.5, 0.9))]
 
 

@@ -17,9 +17,11 @@ from stemmap.sim import (
     loop_path,
     random_stand,
     relative_poses,
+    s_curve_path,
     simulate_run,
     straight_path,
 )
+from stemmap.sim.drive import simulate_s_curve_drive
 from stemmap.types import Pose2, Trajectory
 
 
@@ -172,6 +174,40 @@ def test_lawnmower_path_covers_strips():
     ys = np.unique(np.round(wp[:, 1], 6))
     assert wp[:, 0].min() >= 2.0 - 1e-9 and wp[:, 0].max() <= 28.0 + 1e-9
     assert {2.0, 6.0, 10.0, 14.0, 18.0} <= set(ys.tolist())
+
+
+def test_s_curve_path_is_a_centred_sine():
+    wp = s_curve_path((50.0, 30.0), amplitude=4.0, length_scale=6.0, n_points=9)
+    np.testing.assert_allclose(wp[:, 0], np.linspace(5.0, 45.0, 9))
+    np.testing.assert_allclose(wp[:, 1], 15.0 + 4.0 * np.sin(wp[:, 0] / 6.0))
+    with pytest.raises(ConfigError, match="amplitude"):
+        s_curve_path((50.0, 30.0), amplitude=15.0, length_scale=6.0, n_points=9)
+    with pytest.raises(ConfigError, match="n_points"):
+        s_curve_path((50.0, 30.0), amplitude=4.0, length_scale=6.0, n_points=1)
+    with pytest.raises(ConfigError, match="margin"):
+        s_curve_path((8.0, 30.0), amplitude=4.0, length_scale=6.0, n_points=9)
+
+
+def test_s_curve_drive_is_an_s_and_reproducible():
+    kw = {"amplitude": 4.0, "length_scale": 6.0, "n_waypoints": 12, "max_scans": 100}
+    run, imu = simulate_s_curve_drive(40, (50.0, 30.0), seed=5, **kw)
+    again, imu2 = simulate_s_curve_drive(40, (50.0, 30.0), seed=5, **kw)
+    other, imu3 = simulate_s_curve_drive(40, (50.0, 30.0), seed=6, **kw)
+    assert len(run) == 100
+    np.testing.assert_array_equal(run.scans.ranges, again.scans.ranges)
+    np.testing.assert_array_equal(run.stand.trees_xy, again.stand.trees_xy)
+    np.testing.assert_array_equal(imu.log.gyro, imu2.log.gyro)
+    assert not np.array_equal(run.stand.trees_xy, other.stand.trees_xy)
+    assert not np.array_equal(imu.log.gyro, imu3.log.gyro)
+    # an S: the heading swings both ways by more than 15 degrees, the yaw rate changes sign
+    th = np.unwrap(run.true_poses.poses[:, 2])
+    assert th.max() > math.radians(15) and th.min() < -math.radians(15)
+    assert run.true_odometry.yaw_rate.max() > 0.1 and run.true_odometry.yaw_rate.min() < -0.1
+    # the IMU samples the drive's true controls (100 Hz), the wheels at 50 Hz
+    assert np.isfinite(imu.log.gyro[:, 2]).sum() == len(run.true_odometry)
+    # no trunk inside the 2 m corridor the vehicle drove
+    d = np.min(np.hypot(*(run.stand.trees_xy[:, None] - run.true_path.poses[None, :, :2]).T), 0)
+    assert np.all(d - run.stand.radii > 2.0 - 0.3)
 
 
 def test_clear_corridor_removes_trees_on_the_path():

@@ -6,12 +6,12 @@ returns between its nearest point (range ``d - r``) and its two tangent points, 
 first-echo (nearest-return) beam reports the nearest surface in its cell, so a trunk's own
 edge return is nearer than the tangent range even when the footprint shifts it sideways by
 up to a cell (the tangential offset that makes an edge return and a stub's return look alike
-to a residual test, scan-detection.md tenth round). A return *farther* than the tangent range
-is something behind the trunk's silhouette: on lidR's single tree (scan-detection.md,
-thirteenth round) the Y branch running away from the sensor behind the stem and a stub on
-the stem's far flank, which the range-adaptive segmentation joins to the trunk because the
-range step is below its threshold at that range (8-35 cm at 5-9 m) and which pull the fit by
-+5 to +10 cm in diameter.
+to a residual test, scan-detection-history.md tenth round). A return *farther* than the
+tangent range is something behind the trunk's silhouette: on lidR's single tree
+(scan-detection-history.md, thirteenth round) the Y branch running away from the sensor
+behind the stem and a stub on the stem's far flank, which the range-adaptive segmentation
+joins to the trunk because the range step is below its threshold at that range (8-35 cm at
+5-9 m) and which pull the fit by +5 to +10 cm in diameter.
 
 :func:`trim_behind` tests each end of every fitted candidate against the circle fitted
 *without* that end return (a deletion test: the circle fitted with it is pulled towards it):

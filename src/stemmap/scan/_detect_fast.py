@@ -594,8 +594,9 @@ def _detect_kernel(
                     )  # fmt: skip
                 continue
             # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
-            # arc_replace x the arc's and the arc's sigma (detect._arc_candidates); that sigma
-            # is at least max(sigma, the scan's noise), so below it no arc is looked for
+            # arc_replace x the arc's and the arc's sigma and its residuals fail the upper 1 %
+            # chi^2 test at that sigma (detect._arc_candidates); that sigma is at least
+            # max(sigma, the scan's noise), so below it no arc is looked for
             if replace_on and rms > max(sigma0, noise_s) and cnt_i > arc_least:
                 sig_a = max(sigma0 + sigma_rel * mean_r, noise_s)  # (segment_sigma)
                 lo_a, hi_a = arc_run(px, py, pr, a, b, sig_a, prm, arc_work)
@@ -606,6 +607,8 @@ def _detect_kernel(
                         grid, noise_s, prm_arc, chi2, scratch_arc, ws, pres[0], bark,
                     )
                     and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
+                    and cnt_i * rms * rms
+                    > chi2[cnt_i - 3] * pres[0, OUT_COLUMNS] * pres[0, OUT_COLUMNS]
                 ):  # fmt: skip
                     rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
                     continue

@@ -6,7 +6,7 @@ adding the neighbouring return (the side with the smaller residual) while its re
 circle so far is within ``max(k x 1.4826 MAD, floor)`` of the arc's residuals, re-fitting
 Kasa's (1976) algebraic circle from running sums after each addition; the largest run wins
 (ties: the smaller residual RMS). :func:`arc_run` adds the conditions under which that run is
-a candidate of its own (scan-detection.md, "Fourth round" and "Fifth round"). The numpy
+a candidate of its own (scan-detection-history.md, "Fourth round" and "Fifth round"). The numpy
 pipeline (:func:`stemmap.scan._arcs.consensus_arcs`) and the compiled kernel
 (:mod:`stemmap.scan._detect_fast`) call the same two functions, so the arcs they find are the
 same run of returns; :func:`arc_candidate` then judges that run in the kernel as

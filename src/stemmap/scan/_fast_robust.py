@@ -89,7 +89,7 @@ def _interior_triples(g: FloatArray, jump: float, d: FloatArray) -> tuple[int, i
     the four steps ``k-3 .. k`` are, i.e. ``run >= 4``; a run of ``L`` continuous steps holds
     ``L - 3`` consecutive interior triples. Every second difference is written and the count
     advances only for interior ones: nothing to mispredict (the branching loop this replaced
-    cost ~0.8 us per 361-beam scan, this one ~0.3; scan-detection.md, eighth round). Kept
+    cost ~0.8 us per 361-beam scan, this one ~0.3; scan-detection-history.md, eighth round). Kept
     apart from :func:`_scan_noise`'s medians: compiled into one function, this loop ran at the
     old speed."""
     n = g.shape[0]

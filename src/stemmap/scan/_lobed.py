@@ -17,7 +17,7 @@ The harmonics are fitted jointly with the centre (:func:`fit_lobed`: orthogonal 
 ``e_i = |p_i - c| - r(theta_i)``, the silhouette's two tangent bearings as in the circle fit,
 and a Gaussian prior of std ``lobe_prior x r`` on each coefficient, i.e. Tikhonov
 regularisation toward the circle). On a partial arc the low harmonics are almost collinear
-with the centre and r0 (condition number 1e3-1e5 on 60-120 degree arcs, scan-detection.md,
+with the centre and r0 (condition number 1e3-1e5 on 60-120 degree arcs, scan-detection-history.md,
 fifteenth round): the prior, measured on the real rings' full outlines
 (``benchmarks/lobed_outlines.py``), decides how much of the arc's departure from a circle is
 called a lobe, and the silhouette keeps r0 from sliding along the near-null direction.
@@ -151,7 +151,7 @@ def fit_lobed(
     side) per true edge, side +1 for the larger bearing; the outline's radius at the tangent
     point stands for its support function, exact for the circle and to first order in the
     lobes) and the Gaussian prior (``r`` the circle's radius, fixed). Without the edges a
-    partial arc's r0 slides along the near-null direction of the lobes (scan-detection.md,
+    partial arc's r0 slides along the near-null direction of the lobes (scan-detection-history.md,
     fifteenth round: a flank of a lobed trunk fits as a flatter, larger circle)."""
     m = 2 * (k_max - 1)
     p = np.concatenate((np.asarray(center, dtype=np.float64), [radius], np.zeros(m)))

@@ -16,7 +16,7 @@ only when it explains the whole candidate (:func:`validate_pieces`): every piece
 returns to be judged passes every test and the pieces' circles are disjoint; otherwise the
 candidate keeps its verdict (rejected). ``split_corners`` cuts every candidate before the fit
 and keeps whichever piece passes, so a bush or wall cut into pieces can pass as trunks
-(scan-detection.md, ninth round).
+(scan-detection-history.md, ninth round).
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ def validate_pieces(
     verdict: none of its pieces is accepted. The merges of the real slices are one trunk
     and a piece that is no trunk (2-3 returns of a stem, a branch leaving the bark); two
     passing arcs meeting at a concave corner were the faces of one rock or bush on the
-    simulator (scan-detection.md, ninth round)."""
+    simulator (scan-detection-history.md, ninth round)."""
     shaped = seg_codes == 0
     passed = shaped & fit_ok
     n_par = int(parent.max()) + 1 if parent.size else 0

@@ -29,7 +29,7 @@ the corner split's are: inner cut ends occluded (``Segments.cut``: a piece needs
 only together (:func:`~stemmap.scan._refit.judge_pieces` with validation: one passing piece
 whose circle-like siblings fail nothing and whose circle holds no return of the candidate)
 and only when no return of the candidate was seen through the piece's circle
-(:func:`seen_through`). Numpy path only (scan-detection.md, fifteenth round).
+(:func:`seen_through`). Numpy path only (scan-detection-history.md, fifteenth round).
 """
 
 from __future__ import annotations

@@ -132,8 +132,9 @@ class DetectorConfig:
         the detector reads the range noise (straightness, corner and gap thresholds, the fit's
         scale, the RMS test; ours, issue 11). Unlike ``sigma_from_data`` one rough trunk does
         not raise it: walls, ground, bushes and every trunk of the scan vote together. On in the
-        ``stemmap`` preset (chosen leave-one-dataset-out on the real slices; scan-detection.md,
-        eighth round), off in the paper presets and in a bare ``DetectorConfig()``.
+        ``stemmap`` preset (chosen leave-one-dataset-out on the real slices;
+        scan-detection-history.md, eighth round), off in the paper presets and in a bare
+        ``DetectorConfig()``.
     scan_noise_jump : float, metres, > 0
         With ``sigma_from_scan``: largest range step between adjacent beams that counts as one
         continuous surface.
@@ -142,7 +143,7 @@ class DetectorConfig:
         roughness, which a noise-free scan measures), taken out in quadrature. Default 6 mm:
         the largest median estimate on noise-free virtual scans of the real plots at
         0.25-0.5 deg (0.57 cm, TreeLS plot, averaging 0.25 deg; benchmarks/scan_noise.py;
-        scan-detection.md, seventh round).
+        scan-detection-history.md, seventh round).
     rms_robust : bool
         The RMS test reads ``1.4826 x median |residual|`` instead of the RMS
         (:func:`~stemmap.scan.plausibility.robust_residual_scale`): a few returns off the
@@ -277,8 +278,10 @@ class DetectorConfig:
         With ``arc_refit``, an *accepted* candidate is replaced by its largest consistent arc
         when the arc passes every test and the candidate's fit RMS exceeds this multiple of
         the arc's fit RMS and the range noise (a fillet or stub at one end pulled the fit; on
-        lidR, accepted trunks with one branch return at an end were 5-10 cm too wide).
-        inf = off.
+        lidR, accepted trunks with one branch return at an end were 5-10 cm too wide), and
+        (since the review of the fifteenth round) the candidate's residuals fail the upper
+        1 % chi-square test at the range noise, ``n x RMS^2 > chi2_0.99(n - 3) x sigma^2``:
+        a fit whose residuals are the noise keeps its returns. inf = off.
     arc_short_steps : bool
         With ``arc_refit``: an arc of ``min_points`` to ``min_points_partial - 1`` returns
         counts too when a range step larger than ``max_jump`` separates it from the rest of
@@ -619,18 +622,18 @@ PRESETS: dict[str, dict[str, Any]] = {
         # sigma_from_data / rms_robust (issue 11) stay off: leave-one-dataset-out on the real
         # slices chose them off for every held-out dataset (scan-detection.md)
         # issue 11, second round: leave-one-dataset-out on the real slices over 18 scanner
-        # models (benchmarks/real_geometry.py --loo --vantage 20; scan-detection.md) among the
-        # settings that keep the simulated precision >= 0.95: 3 % relative bark roughness in
-        # the RMS test, no concave-corner cuts (split_corners: lidR recall 0.31 -> 0.69, but
-        # simulated precision in clutter 0.979 -> 0.947-0.967 on the demo drive)
+        # models (benchmarks/real_geometry.py --loo --vantage 20; scan-detection-history.md)
+        # among the settings that keep the simulated precision >= 0.95: 3 % relative bark
+        # roughness in the RMS test, no concave-corner cuts (split_corners: lidR recall
+        # 0.31 -> 0.69, but simulated precision in clutter 0.979 -> 0.947-0.967 on the demo drive)
         # third round (false alarms on the real slices in the objective; grid with largest-gap
         # cuts, re-fitted pieces and a sagitta exemption from the straightness test, same
         # simulated constraint): bark 3 % again and no straightness rejection of a segment
         # bulging > 3 sigma towards the sensor (best on all five datasets, chosen for 3 of 5
-        # held out); gap_splits, refit_pieces stay off (scan-detection.md)
+        # held out); gap_splits, refit_pieces stay off (scan-detection-history.md)
         # sixth round: sigma_from_scan (the scan's own noise estimate) stays off: chosen
         # leave-one-dataset-out for 4 of 5 held-out datasets, but the `stemmap demo` precision
-        # falls to 0.938 (< 0.95) (scan-detection.md). Seventh round: run-end triples left
+        # falls to 0.938 (< 0.95) (scan-detection-history.md). Seventh round: run-end triples left
         # out of the estimate, demo precision 0.956 / 0.991 / 0.967 (seeds 1-3), chosen for
         # 3 of 5 held out, but 24.3-24.5 k scans/s (< 25 k): still off. Eighth round: the
         # compiled estimate counts its triples in one branch-free pass (the same value bit for
@@ -639,19 +642,19 @@ PRESETS: dict[str, dict[str, Any]] = {
         # validated concave-corner splits (refit_pieces, refit_split="corners",
         # refit_validate; lidR recall 0.31 -> 0.69 not held out, demo precision 0.954 / 0.989
         # / 0.964) stay off: chosen for no held-out dataset, numpy path only (~0.47x speed).
-        # Tenth round: the split runs in the compiled path (same results), at 0.99-1.05x the
+        # Eleventh round: the split runs in the compiled path (same results), at 0.99-1.05x the
         # speed of the default without it (interleaved with main, benchmarks/scan_detection
         # speed); leave-one-dataset-out among the settings the compiled path runs chooses it
         # for 4 of 5 held-out datasets (not lidR, the one it helps): on. Twelfth round: the
         # relaxed RMS tests (rms_noise_from_fit: a candidate's own noise on scans without
         # their own estimate; lobe_roughness: smooth lobed outlines) stay off: chosen for 1 /
-        # 0 of 5 held-out datasets (scan-detection.md). Fourteenth round: the largest
+        # 0 of 5 held-out datasets (scan-detection-history.md). Fourteenth round: the largest
         # consistent arcs (arc_refit) run in the compiled path, but stay off: on this default
         # they take the demo precision to 0.949 (< 0.95); the best admitted LOO setting (the
         # arcs without sigma_from_scan and the corner split) loses most trunks of a noisier
-        # scanner (simulated RPLIDAR orchard: 276 vs 1 593 detections) (scan-detection.md).
+        # scanner (simulated RPLIDAR orchard: 276 vs 1 593 detections) (scan-detection-history.md).
         # Fifteenth round: the lobed outline (lobe_harmonics) stays off: chosen for no
-        # held-out dataset, aRchi's recall unchanged, numpy path only (scan-detection.md)
+        # held-out dataset, aRchi's recall unchanged, numpy path only (scan-detection-history.md)
         # Fifteenth round: the same arcs on this default, passing only in front of their
         # circle's tangent range (arc_tangent_sigmas 3: a face of a lobed rock whose circle
         # runs through a return on its far side) and with residuals of the range noise

@@ -703,7 +703,7 @@ class ScanTrunkDetector:
         its parent's place in the output. With a finite ``arc_replace`` also of the accepted
         candidates (``order_key`` even, fit RMS ``parent_rms`` in the same order)."""
         # rejected for not being a convex arc: a trunk that runs on into a branch (lidR,
-        # scan-detection.md); pieces of candidates that failed the RMS test were tried too
+        # scan-detection-history.md); pieces of candidates that failed the RMS test were tried too
         # and passed as trunks on the simulator's bushes (precision 0.975 -> 0.947)
         cfg = self.config
         which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
@@ -725,8 +725,16 @@ class ScanTrunkDetector:
             par_rms = rms_of[got.parent]
             acc = np.isfinite(par_rms)
             # an accepted candidate gives way to its arc only when the arc explains its
-            # returns much better (a fillet or stub at one end pulled the whole fit)
-            better = par_rms > np.maximum(cfg.arc_replace * got.fitted.rms, got.fitted.sigma)
+            # returns much better (a fillet or stub at one end pulled the whole fit) and its
+            # own residuals are not the range noise: it fails the upper 1 % chi^2 test the
+            # arc passes (n x RMS^2 > chi2_0.99(n - 3) x sigma^2; a 5-return arc of a good
+            # 6-return fit reads a third of its RMS by chance: demo seed 1, scan 475)
+            sig = got.fitted.sigma
+            better = par_rms > np.maximum(cfg.arc_replace * got.fitted.rms, sig)
+            n_par = every.counts[got.parent]
+            limit = chdtri(np.maximum(n_par - 3, 1).astype(np.float64), 0.01)
+            with np.errstate(invalid="ignore"):
+                better &= n_par * par_rms * par_rms > limit * sig * sig
             ok &= ~acc | better
             gone = got.parent[ok & acc]
             stay = ~(np.isin(order_key // 2, gone) & (order_key % 2 == 0))

@@ -89,13 +89,13 @@ def scan_noise(
     triples hold its silhouette beam (grazing incidence, and on a footprint-averaging scanner
     a mixed return); in a scene of many short runs they are a large share and raised the
     estimate above the sensor's noise (the simulated demo: 1.6 cm read for 1 cm, 1.1 cm
-    without them; scan-detection.md, seventh round). For i.i.d. Gaussian range errors
+    without them; scan-detection-history.md, seventh round). For i.i.d. Gaussian range errors
     of std s the second difference has std sqrt(6) s (coefficients 1, -2, 1) and 1.4826 x its
     MAD estimates that std. The surfaces' own shape adds a positive part: a wall or trunk seen
     from outside is convex in range, ``d ~ r (1 + 2 tan^2 psi) dtheta^2`` (psi: incidence
     angle; 0.8 mm at 10 m, 0.5 deg, square on), steep near a trunk's silhouette; centring the
     MAD on the median removes its common part (on the real slices without noise: 0.3-1.0 cm
-    against 0.3-1.5 cm about 0, scan-detection.md, sixth round), and the median ignores the
+    against 0.3-1.5 cm about 0, scan-detection-history.md, sixth round), and the median ignores the
     edges, twigs and one rough trunk that a single segment's estimate
     (:func:`range_roughness`) cannot tell from noise. 0 (the configured sigma stands) where
     fewer than :data:`SCAN_NOISE_MIN_TRIPLES` interior triples exist or where one run of
@@ -220,7 +220,7 @@ def own_noise(
     on its walls, ground and trunks, a candidate rougher than that is rough itself (a rock, a
     bush), not a trunk in a noisy scan; and one rougher than the cap is no noisy trunk either
     (the simulated demo's rocks read 2-13 cm, the real slices' trunks at 3 cm of range noise
-    1.7-4.8 cm, one 7.1; scan-detection.md, twelfth round)."""
+    1.7-4.8 cm, one 7.1; scan-detection-history.md, twelfth round)."""
     noise = segs.points.noise
     unknown = np.ones(len(segs), dtype=bool)
     if cfg.sigma_from_scan and noise is not None:

@@ -26,7 +26,13 @@ from stemmap.sim.observations import (
     trees_in_sensor_frame,
 )
 from stemmap.sim.outline import trunk_outline
-from stemmap.sim.paths import clear_corridor, lawnmower_path, loop_path, straight_path
+from stemmap.sim.paths import (
+    clear_corridor,
+    lawnmower_path,
+    loop_path,
+    s_curve_path,
+    straight_path,
+)
 from stemmap.sim.scanner import (
     HIT_CLUTTER,
     HIT_NONE,
@@ -78,6 +84,7 @@ __all__ = [
     "relative_poses",
     "returns_per_tree",
     "row_stand",
+    "s_curve_path",
     "sample_dbh",
     "scanner_preset",
     "simulate_run",

@@ -6,6 +6,9 @@ waypoints, exact unicycle truth) run on the stand's 2D footprint; each lidar fra
 instantaneous revolution (no motion skew) from the true pose at its time, cast with
 :mod:`stemmap.sim.lidar`; the IMU and wheel speed come from :func:`stemmap.sim.imu.simulate_imu`
 on the same controls.
+
+:func:`simulate_s_curve_drive` is the planar counterpart used by the odometry tests and
+benchmark: a 2D scanner and the same IMU model along an S curve through a random stand.
 """
 
 from __future__ import annotations
@@ -16,13 +19,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stemmap.errors import ConfigError
-from stemmap.sim.forest import Stand
+from stemmap.sim.forest import Stand, random_stand
 from stemmap.sim.imu import ImuNoise, ImuSim, simulate_imu
 from stemmap.sim.lidar import LidarModel, Stand3D, _scan_from, lidar_preset
+from stemmap.sim.paths import s_curve_path
 from stemmap.sim.trajectory import SimRun, distance_to_polyline, simulate_run
 from stemmap.types import FloatArray, PointCloud, Trajectory
 
-__all__ = ["LidarDrive", "clear_corridor3d", "simulate_lidar_drive"]
+__all__ = ["LidarDrive", "clear_corridor3d", "simulate_lidar_drive", "simulate_s_curve_drive"]
 
 
 def clear_corridor3d(stand: Stand3D, path: ArrayLike, half_width: float) -> Stand3D:
@@ -145,3 +149,77 @@ def simulate_lidar_drive(
         run,
         imu,
     )
+
+
+def simulate_s_curve_drive(
+    n_trees: int,
+    size: tuple[float, float],
+    *,
+    amplitude: float,
+    length_scale: float,
+    n_waypoints: int,
+    min_spacing: float = 3.0,
+    scanner: str = "sick_lms",
+    speed: float = 3.0,
+    scan_rate_hz: float = 10.0,
+    imu_rate_hz: float = 100.0,
+    imu_noise: ImuNoise | str = "xsens",
+    corridor_half_width: float = 2.0,
+    max_scans: int | None = None,
+    seed: int = 0,
+) -> tuple[SimRun, ImuSim]:
+    """A planar odometry test drive: 2D scans, an IMU and wheel speed along an S curve through
+    a random stand, with exact truth (the 2D form of the Munjer 2025 §2, §3.5 test bed).
+
+    The stand is :func:`stemmap.sim.forest.random_stand` (``n_trees`` in ``size``, at least
+    ``min_spacing`` apart); the waypoints are :func:`stemmap.sim.paths.s_curve_path`; the
+    vehicle follows them by pure pursuit in :func:`stemmap.sim.trajectory.simulate_run`
+    (exact wheel odometry, trees within ``corridor_half_width`` of the path removed, one scan
+    per ``1 / scan_rate_hz``, controls at ``imu_rate_hz``), and
+    :func:`stemmap.sim.imu.simulate_imu` samples the gyro, accelerometer and wheel speed from
+    the true controls.
+
+    Parameters
+    ----------
+    n_trees : int
+    size : (width, height), metres
+    amplitude, length_scale : float, metres
+        The S curve: ``y = height / 2 + amplitude * sin(x / length_scale)``.
+    n_waypoints : int
+    min_spacing : float, metres
+    scanner : str
+        2D scanner preset (:data:`stemmap.sim.SCANNER_PRESETS`).
+    speed : float, m/s
+    scan_rate_hz, imu_rate_hz : float
+    imu_noise : ImuNoise or preset name (:data:`stemmap.sim.imu.IMU_PRESETS`)
+    corridor_half_width : float, metres
+    max_scans : int, optional
+        Stop after this many scans.
+    seed : int
+        The stand is drawn with ``seed``, the drive with ``seed + 1`` and the IMU with
+        ``seed + 2`` (three independent streams, so a caller can keep one fixed).
+
+    Returns
+    -------
+    run : SimRun
+        The drive (``run.stand`` is the cleared stand; ``run.scans``, ``run.true_poses``,
+        ``run.true_odometry``).
+    imu : ImuSim
+    """
+    stand = random_stand(n_trees, size, min_spacing=min_spacing, rng=seed)
+    waypoints = s_curve_path(
+        size, amplitude=amplitude, length_scale=length_scale, n_points=n_waypoints
+    )
+    run = simulate_run(
+        stand,
+        waypoints,
+        scanner=scanner,
+        speed=speed,
+        rate_hz=scan_rate_hz,
+        odom_rate_hz=imu_rate_hz,
+        odometry_noise="none",
+        corridor_half_width=corridor_half_width,
+        max_scans=max_scans,
+        rng=seed + 1,
+    )
+    return run, simulate_imu(run.true_odometry, noise=imu_noise, rng=seed + 2)

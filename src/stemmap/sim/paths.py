@@ -1,7 +1,8 @@
 """Paths for simulated drives, and the pure-pursuit controller that follows them.
 
-:func:`straight_path`, :func:`loop_path` (closed, for loop-closure tests) and
-:func:`lawnmower_path` make waypoints; :func:`clear_corridor` removes the trees the vehicle
+:func:`straight_path`, :func:`loop_path` (closed, for loop-closure tests),
+:func:`lawnmower_path` and :func:`s_curve_path` (a sine wave, for odometry drift tests) make
+waypoints; :func:`clear_corridor` removes the trees the vehicle
 would drive through; :func:`_pure_pursuit` turns waypoints into unicycle controls that
 :func:`stemmap.sim.trajectory.simulate_run` integrates exactly.
 """
@@ -23,6 +24,7 @@ __all__ = [
     "distance_to_polyline",
     "lawnmower_path",
     "loop_path",
+    "s_curve_path",
     "straight_path",
 ]
 
@@ -115,6 +117,50 @@ def lawnmower_path(
             sign = 1.0 if forward else -1.0
             pts.append(np.column_stack((cx + sign * r * np.cos(a), y + r + r * np.sin(a))))
     return np.vstack(pts)
+
+
+def s_curve_path(
+    size: tuple[float, float],
+    *,
+    amplitude: float,
+    length_scale: float,
+    n_points: int,
+    margin: float = 5.0,
+) -> FloatArray:
+    """A sine-wave drive along x across a ``size`` = (width, height) stand, centred in y.
+
+    Waypoints ``x_k`` evenly spaced over ``[margin, width - margin]`` and
+    ``y_k = height / 2 + amplitude * sin(x_k / length_scale)``: the heading swings left and
+    right (an S per 2 pi ``length_scale`` metres), so odometry tests see both turn directions
+    and a drift in yaw shows up as a position error.
+
+    Parameters
+    ----------
+    size : (width, height), metres
+    amplitude : float, metres, 0 <= amplitude < height / 2
+    length_scale : float, metres per radian, > 0
+    n_points : int, >= 2
+    margin : float, metres
+        Distance kept from the x bounds.
+
+    Returns
+    -------
+    ndarray of shape (n_points, 2)
+    """
+    width, height = (float(v) for v in size)
+    if not (
+        n_points >= 2
+        and length_scale > 0
+        and 0 <= amplitude < height / 2
+        and width - 2 * margin > 0
+    ):
+        raise ConfigError(
+            f"s_curve_path needs n_points >= 2, length_scale > 0, 0 <= amplitude < height / 2 "
+            f"and width > 2 margin; got size {size}, amplitude {amplitude}, length_scale "
+            f"{length_scale}, n_points {n_points}, margin {margin}."
+        )
+    x = np.linspace(margin, width - margin, n_points)
+    return np.column_stack((x, height / 2 + amplitude * np.sin(x / length_scale)))
 
 
 def distance_to_polyline(q: ArrayLike, path: ArrayLike) -> FloatArray:
