@@ -370,6 +370,10 @@ def test_map_propagated_covariance_equals_the_dense_product():
     # a memory budget below one column block of 4 (3 n x 4 doubles): blocks of 1 column
     small = map_propagated_covariance(diag, off, frame, lm, Bm, S, columns=4, block_mb=1e-4)
     np.testing.assert_allclose(small, want, rtol=1e-8, atol=1e-12)
+    # the chain factored in blocks of 2 and 3 frames (the streamed solve smooth_path runs)
+    for seg in (2, 3):
+        blocks = map_propagated_covariance(diag, off, frame, lm, Bm, S, columns=4, seg=seg)
+        np.testing.assert_allclose(blocks, want, rtol=1e-8, atol=1e-12)
 
 
 def test_map_cov_inflation_scales_only_the_map_term():

@@ -43,7 +43,6 @@ import math
 from collections.abc import Callable, Iterator
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.sparse import csr_matrix
 
 from stemmap.slam._spill import SpilledColumn, SpilledRanges, SpilledRows
@@ -468,62 +467,15 @@ def smooth_path(
     return x, cov, stats
 
 
-def _map_jacobian(
-    n: int, m2: int, size: int, blocks: Iterator[tuple[IntArray, IntArray, FloatArray]]
-) -> csr_matrix:
-    """``B = ∂g/∂L`` (3n, m2) in scipy's canonical CSR form (columns sorted per row,
-    duplicates summed) from ``size`` per-measurement 3x2 blocks ``Bm`` at (frame, landmark),
-    given block by block in non-decreasing frame order.
-
-    Each block, cut at a frame boundary, is one CSR of its own rows (a row's entries are those
-    of one frame: the canonical form of the whole, row by row); the parts are copied into the
-    preallocated arrays of the whole (72 bytes per measurement).
-    """
-    data = np.empty(6 * size)
-    indices = np.empty(6 * size, dtype=np.int32)
-    counts = np.zeros(3 * n + 1, dtype=np.int64)  # entries per row, at row + 1
-    nnz = 0
-    for frame, lm, Bm in _frame_aligned(blocks):
-        f0, f1 = int(frame[0]), int(frame[-1])
-        part = jacobian_rows(frame - f0, lm, Bm, f1 - f0 + 1, m2)
-        k = part.nnz
-        data[nnz : nnz + k] = part.data
-        indices[nnz : nnz + k] = part.indices
-        counts[3 * f0 + 1 : 3 * f1 + 4] = np.diff(part.indptr)
-        nnz += k
-    indptr = np.cumsum(counts)
-    return csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(3 * n, m2))
-
-
 def jacobian_rows(frame: IntArray, lm: IntArray, Bm: FloatArray, n: int, m2: int) -> csr_matrix:
     """Rows ``3 frame .. 3 frame + 2`` (``frame`` in ``[0, n)``, non-decreasing) of ``B``
-    (:func:`_map_jacobian`) from the 3x2 blocks ``Bm`` at landmarks ``lm``, canonical CSR
-    (a row's entries are its frame's, so any cut between frames gives the same rows)."""
+    (the sensitivity ``∂g/∂L`` of :func:`map_propagated_covariance`) from the 3x2 blocks
+    ``Bm`` at landmarks ``lm``, canonical CSR (a row's entries are its frame's, so any cut
+    between frames gives the same rows)."""
     r = 3 * frame[:, None, None] + np.arange(3)[None, :, None]
     c = 2 * lm[:, None, None] + np.arange(2)[None, None, :]
     rc = (np.broadcast_to(r, Bm.shape).ravel(), np.broadcast_to(c, Bm.shape).ravel())
     return csr_matrix((Bm.reshape(-1), rc), shape=(3 * n, m2))
-
-
-def _frame_aligned(
-    blocks: Iterator[tuple[IntArray, IntArray, FloatArray]],
-) -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
-    """The same rows (frames non-decreasing) cut only between frames: each block's rows of
-    its last frame are held back and lead the next block."""
-    held: tuple[IntArray, IntArray, FloatArray] | None = None
-    for blk in blocks:
-        if held is not None:
-            blk = tuple(np.concatenate(p) for p in zip(held, blk, strict=True))  # type: ignore[assignment]
-        frame = blk[0]
-        if not frame.size:
-            held = None
-            continue
-        cut = int(np.searchsorted(frame, frame[-1]))
-        if cut:
-            yield tuple(p[:cut] for p in blk)  # type: ignore[misc]
-        held = tuple(p[cut:] for p in blk)  # type: ignore[assignment]
-    if held is not None and held[0].size:
-        yield held
 
 
 def map_propagated_covariance(
@@ -536,6 +488,7 @@ def map_propagated_covariance(
     *,
     columns: int = 128,
     block_mb: float = 32.0,
+    seg: int = 1024,
 ) -> FloatArray:
     """(N, 3, 3) covariance the map's joint error adds to the smoothed path (ours, issue 14).
 
@@ -559,13 +512,20 @@ def map_propagated_covariance(
     ``columns`` columns, fewer where that would pass ``block_mb`` MB (on the 10x Victoria Park
     soak, N = 72,490 frames, 128 columns were ~220 MB a copy and made this the EKF's peak,
     1.24 GB; docs/reliability.md "Soak"). The result does not depend on the block size (up to
-    the order of a floating-point sum).
+    the order of a floating-point sum). Computed by
+    :func:`stemmap.slam._ekf_stream.map_term_streamed` (what :func:`smooth_path` runs) on a
+    step holding ``diag``/``off`` factored ``seg`` frames at a time
+    (:meth:`~stemmap.slam._ekf_stream.StreamedStep.of_chain`).
     """
-    n = diag.shape[0]
+    from stemmap.slam import _ekf_stream as st
+
+    step = st.StreamedStep.of_chain(diag, off, seg)
     order = np.argsort(frame, kind="stable")  # (the rows' entries keep their order)
-    blocks = iter([(frame[order], lm[order], Bm[order])]) if frame.size else iter([])
-    B = _map_jacobian(n, map_cov.shape[0], frame.size, blocks)
-    return _map_term(diag, off, B, map_cov, columns=columns, block_mb=block_mb)
+    sens = iter([(frame[order], lm[order], Bm[order])]) if frame.size else iter([])
+    try:
+        return st.map_term_streamed(step, sens, map_cov, columns=columns, block_mb=block_mb)
+    finally:
+        step.close()
 
 
 def map_factor(map_cov: FloatArray) -> FloatArray:
@@ -584,26 +544,6 @@ def map_columns(n: int, columns: int, block_mb: float) -> int:
     """Columns of ``U`` per block of the map term: at most ``columns``, fewer where one block
     (3 ``n`` x columns doubles) would pass ``block_mb`` MB."""
     return max(1, min(int(columns), int(block_mb * 2**20 / (3 * n * 8))))
-
-
-def _map_term(
-    diag: FloatArray, off: FloatArray, B: csr_matrix, map_cov: FloatArray, *, columns: int = 128,
-    block_mb: float = 32.0,
-) -> FloatArray:  # fmt: skip
-    """:func:`map_propagated_covariance` given the sparse ``B`` (3N, 2L)."""
-    n = diag.shape[0]
-    out = np.zeros((n, 3, 3))
-    m2 = map_cov.shape[0]
-    if B.nnz == 0 or m2 == 0:
-        return out
-    U = map_factor(map_cov)
-    cb = cholesky_banded(banded_lower(diag, off), lower=True)
-    columns = map_columns(n, columns, block_mb)
-    for c0 in range(0, m2, columns):
-        M = cho_solve_banded((cb, True), B @ U[:, c0 : c0 + columns]).reshape(n, 3, -1)
-        out += M @ M.transpose(0, 2, 1)
-        del M  # (freed before the next block's B U: two blocks alive at a time, not three)
-    return out
 
 
 def map_error_covariance(n: int, frame: IntArray, seen_cov: FloatArray) -> FloatArray:

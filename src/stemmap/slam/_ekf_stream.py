@@ -134,6 +134,22 @@ class StreamedStep:
         self._ahead: tuple[FloatArray, FloatArray] | None = None  # next frame's Hbb, gb
         self._carry: tuple[FloatArray, FloatArray] | None = None
 
+    @classmethod
+    def of_chain(cls, diag: FloatArray, off: FloatArray, seg: int = 1024) -> StreamedStep:
+        """A step that holds given block-tridiagonal normal equations (``diag``, ``off`` as
+        :func:`~stemmap.slam._ekf_smooth.banded_lower` takes them; zero gradient), factored
+        ``seg`` frames at a time: what :func:`map_term_streamed` and
+        :func:`chain_marginals_streamed` need, for an information matrix built elsewhere."""
+        n = diag.shape[0]
+        step = cls(n, lambda lo, hi: np.zeros((hi - lo, 3)), np.zeros(3), np.zeros((0, 3)),
+                   np.zeros((0, 3, 3)), seg)  # fmt: skip
+        step._diag, step._off = np.array(diag, dtype=np.float64), np.array(off, dtype=np.float64)
+        step._g, step._e = np.zeros((n, 3)), n
+        for complete in range(step.seg + 2, n, step.seg):
+            step._push(complete)
+        step._push(n, final=True)
+        return step
+
     def _enter(self, upto: int) -> None:
         """Frames ``[e, upto)`` (at most ``seg`` more) with their prior / odometry terms."""
         e, hi = self._e, upto
