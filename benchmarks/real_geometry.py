@@ -245,6 +245,12 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(**_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0),
     _setting(**_DEFAULT_11, **_ARCS_29, arc_chi2=True),
     _setting(**_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True),
+    # sixteenth round, on the current default (grid 35): arcs of min_points (4) returns set
+    # off by a range step larger than max_jump at every cut end (arc_short_steps; the TreeLS
+    # plot's 4-return stems merged with a stem or twig 0.16-0.24 m nearer)
+    _setting(
+        **_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True, arc_short_steps=True
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
