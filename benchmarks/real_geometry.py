@@ -108,12 +108,15 @@ def _setting(
         "arc_replace": math.inf,
         "arc_tangent_sigmas": math.inf,
         "arc_chi2": False,
+        # ... and their short stepped arcs since the sixteenth round
+        "arc_short_steps": False,
         **extra,
     }
 
 
 #: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
-#: preset since the fifteenth round: these and the arcs of grid 33).
+#: preset since the fifteenth round: these and the arcs of grid 35; since the sixteenth: grid
+#: 36, which adds arc_short_steps).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
