@@ -176,16 +176,9 @@ CONFIGS = {
         "arc_tangent_sigmas": 0.5,
         "arc_chi2": False,
     },
-    # sixteenth round: the current default's arcs with short stepped arcs (arc_short_steps)
-    "arcs_consistent_short_steps": {
-        "arc_refit": True,
-        "arc_sigmas": 2.0,
-        "arc_replace": 3.0,
-        "arc_tangent_sigmas": 3.0,
-        "arc_chi2": True,
-        "arc_short_steps": True,
-    },
 }
+# sixteenth round: the current default's arcs with short stepped arcs (arc_short_steps)
+CONFIGS["arcs_consistent_short_steps"] = {**CONFIGS["arcs_consistent"], "arc_short_steps": True}
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
