@@ -190,7 +190,8 @@ def compare_forest(
     """Classifier choice: the same features and samples, scikit-learn random forest (ilastik's
     classifier; 100 trees, min 5 samples per leaf) vs our gradient boosting, leave-one-image-out
     with fixed post-processing (P > 0.5, opening 3 px, min area 0.2 %); CPU seconds to classify
-    the pixels of one 1280 x 720 frame (384 x 216 working pixels)."""
+    the pixels of one 1280 x 720 frame (384 x 216 working pixels). Both with the v1 training
+    (no augmentation, raw colours), as when the choice was made."""
     from sklearn.ensemble import RandomForestClassifier
 
     from stemmap.vision.segment_classifier import _downscale, training_samples
@@ -208,7 +209,8 @@ def compare_forest(
         X, Y = training_samples([imgs[k] for k in tr], [masks[k] for k in tr])
         rf = RandomForestClassifier(n_estimators=100, min_samples_leaf=5, n_jobs=1, random_state=0)
         rf.fit(X, Y)
-        gb = train([imgs[k] for k in tr], [masks[k] for k in tr])
+        # the v1 training: the same plain samples as the forest (no augmentation, raw colours)
+        gb = train([imgs[k] for k in tr], [masks[k] for k in tr], augment=0, colour_norm="none")
         small = pixel_features(_downscale(imgs[i], 384))
         h, w, nf = small.shape
         p_rf = rf.predict_proba(small.reshape(-1, nf))[:, 1].reshape(h, w).astype(np.float32)
@@ -259,6 +261,18 @@ def speed(img: np.ndarray, model: PixelModel, reps: int) -> dict[str, Any]:
     }
 
 
+def single_threaded_mangrove() -> Path | None:
+    """One OpenCV / BLAS / OpenMP thread; the mangrove folder, or None (a "skipped" JSON
+    printed) when the shared datasets are not there."""
+    cv2.setNumThreads(1)
+    threadpool_limits(1)
+    root = find_datasets_dir()
+    if root is None or not (root / "mangrove").is_dir():
+        print(json.dumps({"skipped": "no shared/datasets/mangrove (set STEMMAP_DATASETS)"}))
+        return None
+    return root / "mangrove"
+
+
 def run_info(t0: float) -> dict[str, Any]:
     """Wall time since ``t0`` (perf_counter), Python version and machine of this run."""
     return {
@@ -279,14 +293,12 @@ def main(argv: list[str] | None = None) -> int:
         "--compare-forest", action="store_true", help="only the random-forest comparison"
     )
     args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
-    threadpool_limits(1)
-    root = find_datasets_dir()
-    if root is None or not (root / "mangrove").is_dir():
-        print(json.dumps({"skipped": "no shared/datasets/mangrove (set STEMMAP_DATASETS)"}))
+    folder = single_threaded_mangrove()
+    if folder is None:
         return 0
+    root = folder.parent
     t0 = time.perf_counter()
-    names, imgs, masks = load(root / "mangrove", args.eval_width)
+    names, imgs, masks = load(folder, args.eval_width)
     if args.compare_forest:
         print(json.dumps({"classifier_choice": compare_forest(names, imgs, masks)}, indent=2))
         return 0

@@ -42,10 +42,17 @@ from typing import Any
 
 import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
 
-from segment_real import SOURCE, fold_models, iou, load, run_info, speed, train
-from stemmap.datasets import find_datasets_dir
+from segment_real import (
+    SOURCE,
+    fold_models,
+    iou,
+    load,
+    run_info,
+    single_threaded_mangrove,
+    speed,
+    train,
+)
 from stemmap.vision import photometric as ph
 from stemmap.vision.image_io import read_image
 from stemmap.vision.segment import segment_trunks
@@ -115,14 +122,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--configs", nargs="+", default=["aug0", "aug4", "aug0gw", "aug4gw"])
     ap.add_argument("--reps", type=int, default=10)
     args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
-    threadpool_limits(1)
-    root = find_datasets_dir()
-    if root is None or not (root / "mangrove").is_dir():
-        print(json.dumps({"skipped": "no shared/datasets/mangrove (set STEMMAP_DATASETS)"}))
+    folder = single_threaded_mangrove()
+    if folder is None:
         return 0
     t0 = time.perf_counter()
-    folder = root / "mangrove"
     names, imgs, masks = load(folder, args.eval_width)
     photos = sorted((folder / "images").glob("*.jpg"))
     methods: dict[str, Callable[[int, np.ndarray], np.ndarray]] = {}
