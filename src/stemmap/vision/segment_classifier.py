@@ -1,7 +1,8 @@
 """Trainable pixel classifier for trunks (ilastik-style), the default of ``stemmap segment``.
 
 Pipeline (:func:`segment_pixels`): area-downscale the photo to the model's working width ->
-multi-scale features (:mod:`stemmap.vision.segment_features`) -> gradient-boosted trees give
+grey-world white balance if the model says so (``colour_norm``; Buchsbaum 1980) -> multi-scale
+features (:mod:`stemmap.vision.segment_features`) -> gradient-boosted trees give
 P(trunk) per pixel -> threshold, opening, removal of components smaller than a fraction of the
 image -> the working-resolution mask is upsampled (bilinear, 0.5) to the photo -> connected
 regions with Xue 2018's matching level (eq. 18) so the regions can feed the fusion.
@@ -11,6 +12,8 @@ histogram split finding; Friedman 2001 gradient boosting with the binary log-los
 training, its trees are exported into flat arrays (:class:`TreeEnsemble`) that a compiled
 predictor evaluates; a model file is an ``.npz`` of plain numeric arrays plus a JSON header,
 loaded with ``allow_pickle=False`` and validated (:func:`load_model`): no pickle anywhere.
+Training can add camera-like copies of each photo (``augment``,
+:func:`stemmap.vision.photometric.random_camera`) so the model holds under other cameras.
 """
 
 from __future__ import annotations
