@@ -327,8 +327,8 @@ class DetectorConfig:
     split_search_convex : bool
         With ``split_search``: also cut candidates that are convex towards the sensor as a
         whole and fail only the RMS test (the fifteenth round's rule). One convex outline
-        that is no circle is a lumpy object (the simulator's rocks: every false piece of the
-        simulated drives, seeds 1-3) as often as a trunk with a stub beside it (lidR);
+        that is no circle is a lumpy object (the simulator's rocks and bushes: 34 of the 35
+        false pieces of the seed-1 drives) as often as a trunk with a stub beside it (lidR);
         one scan does not tell them apart (scan-detection-history.md, sixteenth round).
     """
 
