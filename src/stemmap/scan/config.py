@@ -328,8 +328,17 @@ class DetectorConfig:
         from running Kasa (1976) moments, says; accept a piece as the corner split's pieces
         are accepted, and only if no return of the candidate was seen through its circle
         (ours, issue 11, fifteenth round; :func:`~stemmap.scan._split_search.search_refit`):
-        a trunk merged with a branch or stub where the junction is no concave corner. Numpy
-        path only; off in every preset (it fails the simulated precision target).
+        a trunk merged with a branch or stub where the junction is no concave corner. Its
+        pieces pass the tests of an arc of ``arc_refit`` (no bark allowance in the RMS test,
+        ``arc_tangent_sigmas``, ``arc_chi2``; :func:`~stemmap.scan._arcs.piece_passes`), and
+        only candidates rejected as not convex are cut unless ``split_search_convex``
+        (sixteenth round). Numpy path only; off in every preset.
+    split_search_convex : bool
+        With ``split_search``: also cut candidates that are convex towards the sensor as a
+        whole and fail only the RMS test (the fifteenth round's rule). One convex outline
+        that is no circle is a lumpy object (the simulator's rocks and bushes: 34 of the 35
+        false pieces of the seed-1 drives) as often as a trunk with a stub beside it (lidR);
+        one scan does not tell them apart (scan-detection-history.md, sixteenth round).
     """
 
     name: str = "custom"
@@ -407,6 +416,7 @@ class DetectorConfig:
     arc_chi2: bool = False
     behind_sigmas: float = math.inf
     split_search: bool = False
+    split_search_convex: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
