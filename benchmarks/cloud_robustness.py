@@ -221,6 +221,10 @@ def _score(
         "matched": len(pairs),
         "missed": len(base) - len(pairs),
         "extra": len(det) - len(pairs),
+        "missed_dbh_cm": [
+            _r(100 * base.diameter[i])
+            for i in sorted(set(range(len(base))) - {i for i, _ in pairs})
+        ],
         "dbh_change_max_cm": _r(100 * np.abs(dd).max()) if dd.size else None,
         "dbh_change_mean_cm": _r(100 * dd.mean()) if dd.size else None,
         "pos_change_max_cm": _r(100 * dp.max()) if dp.size else None,
