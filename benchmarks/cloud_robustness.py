@@ -6,7 +6,9 @@ alone, written to a temporary LAS file (0.1 mm scale unless the transform says o
 read back through stemmap's reader:
 
 * ``utm_las`` / ``utm_laz``: x + 500 000, y + 6 200 000, z + 300 m (a UTM export), stored with
-  a 1 mm scale and the offset rounded down to 1 km (LAS, then LAZ);
+  a 1 mm scale and the offset rounded down to 1 km (LAS, then LAZ); ``utm_ply_float32``: the
+  same coordinates in a float32 PLY (an export without the global shift: float32 steps are
+  3 cm at x = 500 000 and 50 cm at y = 6 200 000; the reader warns);
 * ``subsample_50|20|10``: a random 50 / 20 / 10 % of the points; ``voxel_1cm|2cm``: one point
   per voxel, the mean of its points;
 * ``noise_5mm|1cm``: isotropic Gaussian noise of that standard deviation per axis;
@@ -129,6 +131,19 @@ def _crop(level: float) -> Callable[[Context], Prepared | None]:
     return f
 
 
+def write_ply_float32(path: Path, xyz: np.ndarray) -> None:
+    """``xyz`` as a binary little-endian PLY with float32 x, y, z (Open3D's and many
+    exporters' default)."""
+    head = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {xyz.shape[0]}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    with open(path, "wb") as f:
+        f.write(head.encode("ascii"))
+        f.write(np.ascontiguousarray(xyz, dtype="<f4").tobytes())
+
+
 def _utm(suffix: str) -> Callable[[Context], Prepared]:
     def f(ctx: Context) -> Prepared:
         return Prepared(ctx.xyz + UTM, suffix=suffix, scale=1e-3, offset_round=1000.0, shift=UTM)
@@ -141,6 +156,7 @@ TRANSFORMS: dict[str, Callable[[Context], Prepared | None]] = {
     "identity_las": lambda ctx: Prepared(ctx.xyz),
     "utm_las": _utm(".las"),
     "utm_laz": _utm(".laz"),
+    "utm_ply_float32": _utm(".ply"),
     "subsample_50": _subsample(0.5),
     "subsample_20": _subsample(0.2),
     "subsample_10": _subsample(0.1),
@@ -289,7 +305,10 @@ def run_cloud(key: str, path: Path, names: list[str], tmp: Path) -> dict[str, An
         if prep is None:
             continue
         f = tmp / f"{key}_{name}{prep.suffix}"
-        write_las(f, prep.xyz, prep.scale, prep.offset_round)
+        if prep.suffix == ".ply":
+            write_ply_float32(f, prep.xyz)
+        else:
+            write_las(f, prep.xyz, prep.scale, prep.offset_round)
         t0 = time.process_time()
         det = detect_stems_file(f, cfg)
         cpu = time.process_time() - t0
