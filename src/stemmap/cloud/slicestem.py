@@ -93,17 +93,33 @@ def _radius_consensus(
     return float(np.median(r[agree])), agree
 
 
-def _consistent_slices(
-    fits: _SliceFits, c: int, centers_h: FloatArray
-) -> tuple[NDArray[np.bool_], float, float, FloatArray]:
+@dataclass(frozen=True)
+class _Agreement:
+    """The slices of one cluster that agree on a stem: ``kept`` (S,), the ``radius`` they
+    agree on, its tolerance ``tol``, and the centre ``pred`` (S, 2) the stem's line predicts
+    at every slice height."""
+
+    kept: NDArray[np.bool_]
+    radius: float
+    tol: float
+    pred: FloatArray
+
+
+def _centre_line(h: FloatArray, centers: FloatArray, at: FloatArray) -> FloatArray:
+    """Centres (len(at), 2) on the Theil-Sen lines through ``centers`` (K, 2) at heights
+    ``h``, evaluated at the heights ``at``."""
+    lx, ly = _theil_sen(h, centers[:, 0]), _theil_sen(h, centers[:, 1])
+    return np.column_stack((lx[0] + lx[1] * at, ly[0] + ly[1] * at))
+
+
+def _consistent_slices(fits: _SliceFits, c: int, centers_h: FloatArray) -> _Agreement:
     """The passing slices of cluster ``c`` that agree on the radius and the centre line.
 
     Radii within max(15 % of r, 5 sigma_r) of the median -- or of the consensus radius
     (:func:`_radius_consensus`) when not all slices agree with the median -- where
     sigma_r = 2 rms / sqrt(n) x max(1, 180 deg / arc)^2 approximates a slice fit's radius
     noise; centres within max(that, 0.3 r) of a Theil-Sen line through them (>= 3 slices) or
-    of their median. Returns the slices kept, the radius they agree on, its tolerance, and
-    the predicted centre (S, 2) at every slice height.
+    of their median.
     """
     radii, cen, arcs = fits.radii[c], fits.centers[c], fits.arcs[c]
     m = fits.passed[c]
@@ -121,13 +137,11 @@ def _consistent_slices(
     # centres are compared with a robust line through them (a leaning stem's centre
     # moves with height), radii with their median
     if m.sum() >= 3:
-        hm = centers_h[m]
-        lx, ly = _theil_sen(hm, cen[m, 0]), _theil_sen(hm, cen[m, 1])
-        pred = np.column_stack((lx[0] + lx[1] * centers_h, ly[0] + ly[1] * centers_h))
+        pred = _centre_line(centers_h[m], cen[m], centers_h)
     else:
         pred = np.broadcast_to(c_med, cen.shape)
     m = m & (np.abs(radii - r_med) <= tol) & (np.hypot(*(cen - pred).T) <= max(tol, 0.3 * r_med))
-    return m, r_med, tol, pred
+    return _Agreement(m, r_med, tol, pred)
 
 
 def _row(fits: _SliceFits, c: int) -> _SliceFits:
@@ -136,17 +150,10 @@ def _row(fits: _SliceFits, c: int) -> _SliceFits:
 
 
 def _guided_refits(
-    fits: _SliceFits,
-    c: int,
-    m: NDArray[np.bool_],
-    r_med: float,
-    tol: float,
-    pred: FloatArray,
-    ctx: _BandContext,
-    cfg: StemConfig,
+    fits: _SliceFits, c: int, agree: _Agreement, ctx: _BandContext, cfg: StemConfig
 ) -> tuple[_SliceFits, NDArray[np.bool_]] | None:
     """Refit the slices of cluster ``c`` that disagree with its stem, from the circle the
-    agreeing slices ``m`` predict there; the cluster's fits (as cluster 0) with the refits
+    agreeing slices (``agree``) predict there; the cluster's fits (as cluster 0) with the refits
     that pass and the slices refitted, or None when none passes.
 
     In a slice full of branches (a spruce's whorls) the robust fit may lock onto a circle
@@ -157,19 +164,18 @@ def _guided_refits(
     largest taper over the height difference to the agreeing slices -- are fitted again
     (:func:`~stemmap.cloud.slicefit._fit_segments`); the refit replaces the slice's fit when
     it passes the per-slice tests (inliers, arc, residual) and agrees with the stem (radius
-    within ``tol``, centre within max(``tol``, 0.3 r) of the prediction, both plus that
+    within the tolerance, centre within max(tolerance, 0.3 r) of the prediction, both plus that
     taper allowance). The predicted centre is the consistency test's line, or with two
     agreeing slices the line through them, or one slice's centre. Only for a cluster that
     would otherwise fail the slice count: stems found without it are unchanged.
     """
+    m, r_med, tol, pred = agree.kept, agree.radius, agree.tol, agree.pred
     if ctx.tree is None or not m.any():
         return None
     ch = ctx.centers_h
     h_ref = float(np.mean(ch[m]))
     if m.sum() == 2:  # a line through the two (3 or more: already the Theil-Sen line)
-        cen = fits.centers[c, m]
-        lx, ly = _theil_sen(ch[m], cen[:, 0]), _theil_sen(ch[m], cen[:, 1])
-        pred = np.column_stack((lx[0] + lx[1] * ch, ly[0] + ly[1] * ch))
+        pred = _centre_line(ch[m], fits.centers[c, m], ch)
     out = _row(fits, c)
     changed = np.zeros(m.shape[0], dtype=bool)
     for s in np.flatnonzero(~m):
@@ -246,14 +252,7 @@ def _outside_fraction(
 
 
 def _measurement_height(
-    fits: _SliceFits,
-    c: int,
-    m: NDArray[np.bool_],
-    r_med: float,
-    tol: float,
-    pred: FloatArray,
-    ctx: _BandContext,
-    cfg: StemConfig,
+    fits: _SliceFits, c: int, agree: _Agreement, ctx: _BandContext, cfg: StemConfig
 ) -> tuple[float, str]:
     """Where the DBH of cluster ``c`` is measured, and why: breast height, or
     :data:`BUTTRESS_CLEARANCE` (0.3 m) above the top of a buttress that reaches above
@@ -266,6 +265,7 @@ def _measurement_height(
     clean stem above it (outside fraction < half of that: a spruce's whorls put branch points
     around the stem at every height, which is not a buttress). Never for a pre-cut slice.
     """
+    m, r_med, tol, pred = agree.kept, agree.radius, agree.tol, agree.pred
     centers_h = ctx.centers_h
     radii, cen, fitted = fits.radii[c], fits.centers[c], fits.fitted[c]
     out_f = _outside_fraction(ctx.band, ctx.tree, ctx.band_sl, cen, radii, fits.rms[c])
@@ -351,22 +351,22 @@ def _slice_stem(
     slices kept x min(1, arc / 120 deg) x min(1, noise floor / RMS).
     """
     centers_h = ctx.centers_h
-    m, r_med, tol, pred = _consistent_slices(fits, c, centers_h)
-    if m.sum() < cfg.min_slices:
-        refit = _guided_refits(fits, c, m, r_med, tol, pred, ctx, cfg)
+    agree = _consistent_slices(fits, c, centers_h)
+    if agree.kept.sum() < cfg.min_slices:
+        refit = _guided_refits(fits, c, agree, ctx, cfg)
         if refit is None:
             return None
         # the refits passed the agreement tests against this stem: no second vote
-        fits, c, m = refit[0], 0, m | refit[1]
+        fits, c, m = refit[0], 0, agree.kept | refit[1]
         if m.sum() < cfg.min_slices:
             return None
-        r_med = float(np.median(fits.radii[0, m]))
-        lx = _theil_sen(centers_h[m], fits.centers[0, m, 0])
-        ly = _theil_sen(centers_h[m], fits.centers[0, m, 1])
-        pred = np.column_stack((lx[0] + lx[1] * centers_h, ly[0] + ly[1] * centers_h))
+        r_new = float(np.median(fits.radii[0, m]))
+        pred = _centre_line(centers_h[m], fits.centers[0, m], centers_h)
+        agree = _Agreement(m, r_new, agree.tol, pred)
+    m = agree.kept
     if not ctx.slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent - 1e-9:
         return None  # not a vertical structure (a bush, a boulder, a branch stub)
-    h_meas, rule = _measurement_height(fits, c, m, r_med, tol, pred, ctx, cfg)
+    h_meas, rule = _measurement_height(fits, c, agree, ctx, cfg)
     at = _stem_at(fits, c, m, centers_h[m] - h_meas, cfg)
     if at is None:
         return None
