@@ -110,6 +110,8 @@ def _setting(
         "arc_chi2": False,
         # ... and their short stepped arcs since the sixteenth round
         "arc_short_steps": False,
+        # sixteenth round: the batch's shared noise estimate
+        "scan_noise_pool": False,
         **extra,
     }
 
@@ -253,6 +255,17 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # plot's 4-return stems merged with a stem or twig 0.16-0.24 m nearer)
     _setting(
         **_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True, arc_short_steps=True
+    ),
+    # sixteenth round, on the current default (grid 36): the scans that have too few
+    # continuous beam triples for a range-noise estimate of their own share one from the union
+    # of their triples (scan_noise_pool; compiled)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_29,
+        arc_tangent_sigmas=3.0,
+        arc_chi2=True,
+        arc_short_steps=True,
+        scan_noise_pool=True,
     ),
 )
 

@@ -138,6 +138,14 @@ class DetectorConfig:
     scan_noise_jump : float, metres, > 0
         With ``sigma_from_scan``: largest range step between adjacent beams that counts as one
         continuous surface.
+    scan_noise_pool : bool
+        With ``sigma_from_scan``: the scans of a batch with too few continuous beam triples
+        for a noise estimate of their own share one, from the union of their triples under
+        the same rules (:func:`~stemmap.scan.plausibility.scan_noise` ``pool``; ours, issue
+        11, sixteenth round). Scans with their own estimate keep it. Off in every preset (the
+        leave-one-dataset-out chooses it for 1 of 5 held-out datasets;
+        scan-detection-history.md, sixteenth round). A scan's result then depends on the
+        other scans of its batch when it lacks an estimate.
     scan_noise_surface : float, metres, >= 0
         With ``sigma_from_scan``: the surfaces' own share of the estimate (their shape and
         roughness, which a noise-free scan measures), taken out in quadrature. Default 6 mm:
@@ -369,6 +377,7 @@ class DetectorConfig:
     sigma_from_scan: bool = False
     scan_noise_jump: float = 0.2
     scan_noise_surface: float = 0.006
+    scan_noise_pool: bool = False
     bark_roughness: float = 0.0
     lobe_roughness: float = 0.0
     lobe_smooth_sigmas: float = 2.0
