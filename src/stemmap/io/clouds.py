@@ -16,6 +16,7 @@ to install.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -69,8 +70,13 @@ def _float32_warning(xyz: NDArray[Any], path: Path, stored_float32: bool = False
     promoted them to float64 says so)."""
     if not (stored_float32 or xyz.dtype == np.float32) or xyz.size == 0:
         return
-    big = float(np.abs(xyz).max())
-    step = float(np.spacing(np.float32(big)))
+    finite = np.abs(xyz[np.isfinite(xyz)])
+    if finite.size == 0:
+        return
+    big = float(finite.max())
+    # float32 step at |big| (24-bit mantissa), computed in float64: NaN/inf coordinates (dropped
+    # later) and values a float32 cannot hold must not raise an overflow here
+    step = math.ldexp(1.0, math.frexp(big)[1] - 24)
     if step > 1e-3:
         log.warning(
             "%s: coordinates are float32 and reach %.0f m, where float32 steps are %.3f m: "
