@@ -7,17 +7,26 @@ any working directory)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from stemmap.eval.detection import scan_detection_metrics
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.sim.forest import stand_from_spec
 from stemmap.sim.scanner import scanner_preset
 from stemmap.sim.trajectory import lawnmower_path, simulate_run
 from stemmap.types import StemObservations
 
-__all__ = ["SCENARIO", "make_run", "score"]
+__all__ = [
+    "SCENARIO",
+    "SIM_PRECISION_MIN",
+    "make_run",
+    "score",
+    "simulated_precision",
+    "simulated_precision_seeds",
+]
 
 
 SCENARIO: dict[str, Any] = {
@@ -124,3 +133,57 @@ def score(obs: StemObservations, run: Any) -> dict[str, Any]:
     out["dbh_rmse_cm_5_10"] = out.get("dbh_rmse_cm_5_10")
     out["dbh_bias_cm_5_10"] = out.get("dbh_bias_cm_5_10")
     return out
+
+
+#: The issue's simulated precision target, which every ``real_geometry.py`` grid setting must keep.
+SIM_PRECISION_MIN = 0.95
+
+
+def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, Any]:
+    """Detection recall / precision of the ``stemmap`` preset with ``overrides`` on the two
+    simulated drives the ``real_geometry.py`` grid is admitted on: ``scan_detection.py``'s
+    (400 scans, its scoring) and the ``stemmap demo`` drive (120 trees, the demo's scoring),
+    seed ``seed``; ``admitted`` when both precisions are >= :data:`SIM_PRECISION_MIN`."""
+    from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
+    from stemmap.eval.detection import scan_detection_metrics
+
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
+    run = make_run(400, seed)
+    bench = score(det.detect_batch(run.scans), run)
+    demo_run = _stand_and_run(seed, 120)
+    sc = DEMO_SCENARIO["scoring"]
+    m = scan_detection_metrics(
+        det.detect_batch(demo_run.scans),
+        demo_run,
+        gate=sc["scan_gate_m"],
+        min_returns=sc["min_returns"],
+        max_range=sc["max_range_m"],
+        min_diameter=sc["min_dbh_m"],
+    )
+    demo = {"recall": round(m.recall, 4), "precision": round(m.precision, 4)}
+    return {
+        "benchmark": {"recall": bench["recall"], "precision": bench["precision"]},
+        "demo": demo,
+        "admitted": min(bench["precision"], demo["precision"]) >= SIM_PRECISION_MIN,
+    }
+
+
+def simulated_precision_seeds(overrides: dict[str, Any], seeds: Sequence[int]) -> dict[str, Any]:
+    """:func:`simulated_precision` on each of ``seeds`` (each seed draws a new stand, clutter
+    and drive): the rows per seed, the mean and the smallest precision and recall of each
+    drive, and ``admitted`` when every seed is (issue 11, sixteenth round: the default kept the
+    target on seed 1 but not on seeds 2 and 7, scan-detection-history.md)."""
+    rows = [{"seed": int(s), **simulated_precision(overrides, int(s))} for s in seeds]
+    summary: dict[str, Any] = {}
+    for drive in ("benchmark", "demo"):
+        for key in ("precision", "recall"):
+            v = [float(r[drive][key]) for r in rows]
+            summary[f"{drive}_{key}_mean"] = round(float(np.mean(v)), 4)
+            summary[f"{drive}_{key}_min"] = round(min(v), 4)
+    return {
+        "seeds": [int(s) for s in seeds],
+        "per_seed": rows,
+        **summary,
+        "failing_seeds": [r["seed"] for r in rows if not r["admitted"]],
+        "admitted": all(r["admitted"] for r in rows),
+    }

@@ -27,6 +27,7 @@ Usage::
     python benchmarks/real_geometry.py             # every scanner model, preset and fit
     python benchmarks/real_geometry.py --loo --vantage 20   # leave one dataset out (LOO_GRID)
     python benchmarks/real_geometry.py --grid-precision     # each setting's simulated precision
+    python benchmarks/real_geometry.py --sim-precision --sim-seeds 1 2 3 4 5 6 7 8  # the default's
 
 One JSON object on stdout; every parameter of the scenario is echoed in it.
 """
@@ -55,8 +56,11 @@ from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_n
 )
 from _real_scanning import error_stats as _stats
 from _real_scanning import greedy_match as _match
-from _scan_sim import make_run as scan_detection_run  # shared with scan_detection.py
-from _scan_sim import score as scan_detection_score
+from _scan_sim import (  # shared with scan_detection.py
+    SIM_PRECISION_MIN,
+    simulated_precision,
+    simulated_precision_seeds,
+)
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
@@ -291,39 +295,6 @@ LOO_EXTRA: tuple[dict[str, Any], ...] = (
     _setting(corners=0.03, convex=0.10, **_GAPS),
     _setting(corners=0.03, refit_pieces=True, **_GAPS),
 )
-
-
-#: The issue's simulated precision target, which every :data:`LOO_GRID` setting must keep.
-SIM_PRECISION_MIN = 0.95
-
-
-def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, Any]:
-    """Detection recall / precision of the ``stemmap`` preset with ``overrides`` on the two
-    simulated drives the grid is admitted on: ``benchmarks/scan_detection.py``'s (400 scans,
-    its scoring) and the ``stemmap demo`` drive (120 trees, the demo's scoring), seed
-    ``seed``; ``admitted`` when both precisions are >= :data:`SIM_PRECISION_MIN`."""
-    from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
-    from stemmap.eval.detection import scan_detection_metrics
-
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
-    run = scan_detection_run(400, seed)
-    bench = scan_detection_score(det.detect_batch(run.scans), run)
-    demo_run = _stand_and_run(seed, 120)
-    sc = DEMO_SCENARIO["scoring"]
-    m = scan_detection_metrics(
-        det.detect_batch(demo_run.scans),
-        demo_run,
-        gate=sc["scan_gate_m"],
-        min_returns=sc["min_returns"],
-        max_range=sc["max_range_m"],
-        min_diameter=sc["min_dbh_m"],
-    )
-    demo = {"recall": round(m.recall, 4), "precision": round(m.precision, 4)}
-    return {
-        "benchmark": {"recall": bench["recall"], "precision": bench["precision"]},
-        "demo": demo,
-        "admitted": min(bench["precision"], demo["precision"]) >= SIM_PRECISION_MIN,
-    }
 
 
 def detectors(full: bool) -> dict[str, DetectorConfig]:
@@ -727,12 +698,36 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only check every LOO_GRID setting's simulated precision (SIM_PRECISION_MIN)",
     )
+    ap.add_argument(
+        "--sim-precision",
+        action="store_true",
+        help="only check the stemmap preset's (with --set) simulated precision on --sim-seeds",
+    )
+    ap.add_argument(
+        "--sim-seeds",
+        type=int,
+        nargs="+",
+        default=[1],
+        help="--grid-precision / --sim-precision: simulator seeds, each a new stand and drive"
+        " (default: 1, what every round before the sixteenth checked)",
+    )
     args = ap.parse_args(argv)
+    if args.sim_precision:
+        out = simulated_precision_seeds(args.set or {}, args.sim_seeds)
+        print(json.dumps({"benchmark": "real_geometry_sim_precision", "set": args.set, **out}))
+        return 0
     if args.grid_precision:
         rows = [
-            {"setting": str(g), **simulated_precision(g, seed=1)} for g in (*LOO_GRID, *LOO_EXTRA)
+            {"setting": str(g), **simulated_precision_seeds(g, args.sim_seeds)}
+            if len(args.sim_seeds) > 1
+            else {"setting": str(g), **simulated_precision(g, seed=args.sim_seeds[0])}
+            for g in (*LOO_GRID, *LOO_EXTRA)
         ]
-        print(json.dumps({"benchmark": "real_geometry_grid_precision", "seed": 1, "grid": rows}))
+        print(
+            json.dumps(
+                {"benchmark": "real_geometry_grid_precision", "seeds": args.sim_seeds, "grid": rows}
+            )
+        )
         return 0
     ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
     if ddir is None:
