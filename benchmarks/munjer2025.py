@@ -3,7 +3,8 @@ own cloud detector through the same FastSLAM (100 particles) + Kalman refinement
 
 Usage: python benchmarks/munjer2025.py [--seeds 0 1 2] [--layout park] [--speed 4]
        [--model trunks.onnx] [--motion sim|lidar|both] [--window 5] [--draws 10]
-       [--lateral drop|keep] [--sigma-lateral 0.0] [--out result.json]
+       [--lateral drop|keep] [--sigma-lateral 0.0] [--lidar vlp16|vlp16_hires]
+       [--range-noise 0.03] [--out result.json]
 
 Each drive's detections are mapped ``--draws`` times (default 10), once per FastSLAM
 particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``
@@ -27,12 +28,13 @@ tilt check (``MunjerConfig(max_tilt_deg=None)``: eq. (4) alone, the literal read
 (the reading that collapsed recall); ``per_seed`` has, per method and seed, the same keys over
 that drive's draws alone and its per-draw rows (``per_draw``); ``scenario`` every parameter.
 Every method also carries ``resolvable``: the same Table 2 counts and rates over the trees whose
-centre comes within :data:`RESOLVABLE_RANGE` (eps / tan(2 deg) = 7.16 m, where two VLP-16 rings
-on a trunk stop being DBSCAN neighbours) inside the box in some frame; map trees on the other
-trees are ignored (neither TA nor FA); ``visible``: the same over the trees with at least 20
-lidar returns (DBSCAN's minPts) inside the box in some frame (:meth:`MunjerDrive.trees_visible`,
-what the sensor data offers: occlusion and range included), a KITTI-style "enough points" rule
-the paper does not state (it counts the "actual trees" of its test area), so not the headline.
+centre comes within :func:`resolvable_range` of the sensor (eps / tan(2 deg) = 7.16 m for the
+VLP-16, where two rings on a trunk stop being DBSCAN neighbours) inside the box in some frame;
+map trees on the other trees are ignored (neither TA nor FA); ``visible``: the same over the
+trees with at least 20 lidar returns (DBSCAN's minPts) inside the box in some frame
+(:meth:`MunjerDrive.trees_visible`, what the sensor data offers: occlusion and range included),
+a KITTI-style "enough points" rule the paper does not state (it counts the "actual trees" of its
+test area), so not the headline.
 
 Motion source (``--motion``): ``sim`` (default) feeds FastSLAM the simulator's noisy odometry
 (``LIDAR_IMU_ODOMETRY_NOISE``, a stand-in for the paper's ICP + IMU EKF); ``lidar`` runs that
@@ -62,9 +64,12 @@ the true pose), so no alignment is applied. ``n_real_in_box`` counts the trees w
 enters EB-LiDAR's pass-through box (Table 1) in at least one frame
 (:meth:`MunjerDrive.trees_in_box`): the paper scores the trees of the area the robot drove
 through, so a tree never inside the box would be a protocol error; on the default drives every
-tree enters it (35 of 35), so the all-trees scoring is the paper's. ``--range-noise`` sets the
-VLP-16 model's range noise sigma (default 0.03 m, the data sheet's "+-3 cm typical" read as one
-sigma; 0.015 m reads it as two sigma).
+tree enters it (35 of 35), so the all-trees scoring is the paper's. ``--lidar`` picks the 16-beam
+sensor (:func:`stemmap.sim.lidar.lidar_preset`): ``vlp16`` (default; rings 2 deg apart) or
+``vlp16_hires`` (Puck Hi-Res, 1.33 deg), and with it the ``resolvable`` range
+(:func:`resolvable_range`: 7.16 / 10.74 m). ``--range-noise`` sets the model's range noise sigma
+(default 0.03 m, the data sheet's "+-3 cm typical" read as one sigma; 0.015 m reads it as two
+sigma; docs/algorithms/cloud.md, ninth pass, for what real data say).
 """
 
 from __future__ import annotations
