@@ -337,6 +337,7 @@ class ScanTrunkDetector:
                 cfg.scan_noise_jump,
                 cfg.scan_noise_surface,
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
+                pool=cfg.scan_noise_pool,
             )
             if cfg.sigma_from_scan
             else None
