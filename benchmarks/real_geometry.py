@@ -108,12 +108,15 @@ def _setting(
         "arc_replace": math.inf,
         "arc_tangent_sigmas": math.inf,
         "arc_chi2": False,
+        # ... and their short stepped arcs since the sixteenth round
+        "arc_short_steps": False,
         **extra,
     }
 
 
 #: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
-#: preset since the fifteenth round: these and the arcs of grid 33).
+#: preset since the fifteenth round: these and the arcs of grid 35; since the sixteenth: grid
+#: 36, which adds arc_short_steps).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
@@ -245,6 +248,12 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(**_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0),
     _setting(**_DEFAULT_11, **_ARCS_29, arc_chi2=True),
     _setting(**_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True),
+    # sixteenth round, on the current default (grid 35): arcs of min_points (4) returns set
+    # off by a range step larger than max_jump at every cut end (arc_short_steps; the TreeLS
+    # plot's 4-return stems merged with a stem or twig 0.16-0.24 m nearer)
+    _setting(
+        **_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True, arc_short_steps=True
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

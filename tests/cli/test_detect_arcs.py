@@ -48,6 +48,7 @@ def test_arcs_measure_a_trunk_on_its_own_arc(tmp_path: Path) -> None:
             arc_replace=3.0,
             arc_tangent_sigmas=3.0,
             arc_chi2=True,
+            arc_short_steps=True,
         )
     ).config
     assert DetectorConfig.preset("zheng2012", **ARC_OPTIONS) == api

@@ -254,9 +254,13 @@ def _four_return_stem_and_a_nearer_one(step):
 
 def test_a_short_arc_set_off_by_a_range_step_is_found_with_arc_short_steps():
     batch = _four_return_stem_and_a_nearer_one(0.16)
-    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0))
+    plain = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_short_steps=False)
+    )
     # 4 returns < min_points_partial (5): the fourth round's arcs drop it
     assert len(plain.detect_batch(batch)) == 0
+    # the stemmap preset finds it since the sixteenth round
+    assert len(ScanTrunkDetector("stemmap").detect_batch(batch)) == 1
     det = ScanTrunkDetector(
         DetectorConfig.preset("stemmap", arc_refit=True, arc_sigmas=2.0, arc_short_steps=True)
     )

@@ -439,3 +439,19 @@ def test_vectorised_batch_equals_single_fits(segs) -> None:
                 np.testing.assert_allclose(fits.centers[k], single.center, rtol=1e-7, atol=1e-7)
                 assert fits.radii[k] == pytest.approx(single.radius, rel=1e-7, abs=1e-7), m
                 assert fits.rms[k] == pytest.approx(single.rms, rel=1e-6, abs=1e-9), m
+
+
+def test_chord_width_front_is_the_nearest_return_on_a_shared_bearing() -> None:
+    """Two returns on the bisecting bearing (1.41 and 2.83 m at 45 deg): the front surface is
+    the nearer one whether the segment is fitted alone or second in a batch (hypothesis found
+    the batch taking the farther one: its bearing key lost the tie's order)."""
+    seg = np.array([[0.0, 1.0], [1.0, 0.0], [1.0, 1.0], [2.0, 2.0]])
+    other = visible_arc((1.0, 0.0), 0.5, sigma=0.01, rng=np.random.default_rng(1000))
+    pts = np.vstack((other, seg))
+    ids = np.repeat([0, 1], [other.shape[0], seg.shape[0]])
+    fits = fit_circles_batch(pts, ids, "chord_width")
+    single = fit_circle(seg, "chord_width")
+    # radius = half the 1.414 m chord; centre at the nearer return's range + r along 45 deg
+    want = (math.sqrt(2.0) + math.sqrt(0.5)) * np.array([math.cos(math.pi / 4)] * 2)
+    np.testing.assert_allclose(single.center, want, atol=1e-12)
+    np.testing.assert_allclose(fits.centers[1], want, atol=1e-12)

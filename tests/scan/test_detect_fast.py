@@ -177,6 +177,8 @@ CONFIGS = {
         "arc_chi2": False,
     },
 }
+# sixteenth round: the current default's arcs with short stepped arcs (arc_short_steps)
+CONFIGS["arcs_consistent_short_steps"] = {**CONFIGS["arcs_consistent"], "arc_short_steps": True}
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))

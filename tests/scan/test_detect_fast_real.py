@@ -94,6 +94,14 @@ ARC_SETTINGS = {
         "arc_tangent_sigmas": 3.0,
         "arc_chi2": True,
     },
+    # sixteenth round: ... and short arcs set off by a range step (the TreeLS plot's merges)
+    "replace3_consistent_short_steps": {
+        **ARCS,
+        "arc_replace": 3.0,
+        "arc_tangent_sigmas": 3.0,
+        "arc_chi2": True,
+        "arc_short_steps": True,
+    },
     # without the corner split: every non-convex merge goes to the arc
     "no_split": {**ARCS, "refit_pieces": False},
 }

@@ -19,13 +19,15 @@ __all__ = ["detect", "register"]
 #: Scans per detect_batch call: large enough to amortise numpy overhead, small enough for a
 #: responsive progress bar.
 _CHUNK = 2000
-#: ``--arcs``: the stemmap preset's largest-consistent-arc setting (issue 11, fifteenth round)
+#: ``--arcs``: the stemmap preset's largest-consistent-arc setting (issue 11, fifteenth round;
+#: short arcs set off by a range step since the sixteenth)
 ARC_OPTIONS: dict[str, object] = {
     "arc_refit": True,
     "arc_sigmas": 2.0,
     "arc_replace": 3.0,
     "arc_tangent_sigmas": 3.0,
     "arc_chi2": True,
+    "arc_short_steps": True,
 }
 #: Show a progress bar from this many scans on.
 _PROGRESS_MIN_SCANS = 5000
@@ -94,7 +96,8 @@ def detect(
             "(arc_refit, consensus at 2 robust scales, an accepted fit replaced when its RMS "
             "exceeds 3x the arc's), kept only when no return lies behind the circle's tangent "
             "range and its residuals are the range noise (chi-square), which keeps faces of "
-            "lobed rocks out. On in the stemmap preset since the fifteenth round "
+            "lobed rocks out; an arc of 4 returns counts where a range step sets it off "
+            "(arc_short_steps). On in the stemmap preset since the fifteenth round "
             "(docs/algorithms/scan-detection.md); --arcs turns it on for a paper preset, "
             "--no-arcs off. Default: the preset's setting.",
         ),

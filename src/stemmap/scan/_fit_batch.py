@@ -297,13 +297,18 @@ def chord_width_batch(
     reasons[idx[one_beam]] = "all returns lie on one beam (zero angular width)"
     zero |= one_beam
     # front range along the bisector: linear interpolation between the returns either side
-    # (np.interp per segment, done at once on a key that keeps segments apart)
+    # (np.interp per segment, done at once on a key that keeps segments apart). Returns on
+    # one bearing (to bearing_order's 1e-12 rad) form a group sorted by range; the front
+    # surface on that bearing is the group's nearest return, so j and j1 are the first
+    # members of the group at or before the bisector and of the next group. The key uses the
+    # same rounded bearings as the sort, so it is monotone whatever the segment's index.
     bis_rel = 0.5 * (th[first] + th[last])
     seg = _seg_index(starts, counts)
-    key = seg * 8.0 + th  # bearings are within (-pi, pi]: segments never overlap
-    qk = idx * 8.0 + bis_rel
-    j = np.clip(np.searchsorted(key, qk, side="right") - 1, first, np.maximum(last - 1, first))
-    j1 = np.minimum(j + 1, last)
+    key = seg * 8.0 + np.round(th * 1e12) * 1e-12  # bearings in (-pi, pi]: segments apart
+    qk = idx * 8.0 + np.round(bis_rel * 1e12) * 1e-12
+    j = np.clip(np.searchsorted(key, qk, side="right") - 1, first, last)
+    j = np.searchsorted(key, key[j], side="left")  # nearest return of j's bearing
+    j1 = np.minimum(np.searchsorted(key, key[j], side="right"), last)
     span = th[j1] - th[j]
     t = np.where(span > 0, (bis_rel - th[j]) / np.where(span > 0, span, 1.0), 0.0)
     t = np.clip(t, 0.0, 1.0)
