@@ -80,7 +80,7 @@ from typing import Any
 import numpy as np
 
 from stemmap._memory import TRIM_INTERVAL_S, HeapTrimmer
-from stemmap.errors import ConfigError
+from stemmap.errors import ConfigError, StemmapError
 from stemmap.slam._graph_batch import Calibration, batch_rounds
 from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_continue import ContinuedGraph, export_graph, graph_stats
@@ -740,16 +740,19 @@ class Isam2Slam:
         if cfg.export_graph:
             # with what held the frame (GNSS fixes) and the earlier map (its priors)
             u_j = None if joint_fac is None or pmap is None else _joint_sqrt_information(pmap)
-            saved = export_graph(
-                gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep_g, alias=alias,
-                odo_fac=odo_fac, pose_priors=[pf, *anchor_fac], meas_rec=meas_rec, cont=cont,
-                map_fac=map_fac,
-                prior_robust=(
-                    cfg.prior_map_robust if prior_kernel is not None else "none", cfg.robust_k
-                ),
-                joint=None if u_j is None or pmap is None else (u_j, pmap.xy),
-                gnss_fac=gnss_fac, gnss_robust=(cfg.gnss_robust, cfg.gnss_robust_k),
-            )  # fmt: skip
+            try:
+                saved = export_graph(
+                    gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep_g, alias=alias,
+                    odo_fac=odo_fac, pose_priors=[pf, *anchor_fac], meas_rec=meas_rec, cont=cont,
+                    map_fac=map_fac,
+                    prior_robust=(
+                        cfg.prior_map_robust if prior_kernel is not None else "none", cfg.robust_k
+                    ),
+                    joint=None if u_j is None or pmap is None else (u_j, pmap.xy),
+                    gnss_fac=gnss_fac, gnss_robust=(cfg.gnss_robust, cfg.gnss_robust_k),
+                )  # fmt: skip
+            except StemmapError as exc:  # (a bookkeeping bug: the map is still written)
+                log.warning("iSAM2: session graph not exported: %s", exc)
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,

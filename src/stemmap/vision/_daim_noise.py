@@ -194,10 +194,20 @@ def surface_centre(arc: ArrayLike, origin_xy: ArrayLike, radius: float) -> Float
 
 
 def physical_bound(
-    arc: ArrayLike, origin_xy: ArrayLike, r_lim: float, *, depth_noise_k: float, pixel_angle: float
+    arc: ArrayLike,
+    origin_xy: ArrayLike,
+    r_lim: float,
+    *,
+    depth_noise_k: float,
+    pixel_angle: float,
+    keep_cross: ArrayLike | None = None,
 ) -> FloatArray:
     """Covariance (3, 3) of (centre x, centre y, radius) when the centre is the arc's middle
     point (by bearing) plus a radius with variance ``r_lim^2`` along its ray (module docstring).
+
+    ``keep_cross`` (3, 3), a fit's covariance: the bound takes its variance across the ray
+    when larger (the bearings determine it, not the ill-conditioned range: only the range and
+    radius are bounded).
 
     Examples
     --------
@@ -217,6 +227,13 @@ def physical_bound(
     s[:2, :2] = sb[0]
     s[2, 2] = r_lim**2
     out: FloatArray = j @ s @ j.T
+    if keep_cross is not None:
+        t = np.array([-u[1], u[0]])
+        more = float(t @ np.asarray(keep_cross, dtype=np.float64)[:2, :2] @ t) - float(
+            t @ out[:2, :2] @ t
+        )
+        if np.isfinite(more) and more > 0:
+            out[:2, :2] += more * np.outer(t, t)
     return out
 
 

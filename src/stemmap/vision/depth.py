@@ -338,6 +338,7 @@ def daim_trunks(
                 bound = physical_bound(
                     arc, origin, 0.5 * params.max_width_ratio * w_arc,
                     depth_noise_k=params.cov_noise_k, pixel_angle=pixel_angle,
+                    keep_cross=None if wide else cov,
                 )  # fmt: skip
                 cov = bound if wide else bound_covariance(cov, bound)
         centers.append(center)
