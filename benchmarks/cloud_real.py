@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.cloud.reference import ring_reference
+from stemmap.cloud.reference import stem_references
 from stemmap.cloud.result import BASE_SLICE
 from stemmap.cloud.stems import StemConfig, detect_stems_file
 from stemmap.datasets import find_datasets_dir
@@ -45,11 +45,7 @@ def run_one(path: str) -> dict[str, Any]:
     profs = stem_profiles(xyz, det) if det.base != BASE_SLICE else []
     stems = []
     errs_full = []
-    for i in range(len(det)):
-        z = float(det.z[i]) if det.base != BASE_SLICE else float(np.median(xyz[:, 2]))
-        # a sparse cloud (> 3 cm spacing) needs a thicker ring for 20 points
-        half = 0.05 if det.spacing < 0.03 else 0.1
-        ref = ring_reference(xyz, tuple(det.xy[i]), z, det.diameter[i] / 2, half_thickness=half)
+    for i, ref in enumerate(stem_references(xyz, det)):
         base_z = float(det.z[i] - det.dbh_height[i])
         row: dict[str, Any] = {
             "x": _r(det.xy[i, 0], 3),

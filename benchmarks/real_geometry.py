@@ -110,6 +110,8 @@ def _setting(
         "arc_chi2": False,
         # ... and their short stepped arcs since the sixteenth round
         "arc_short_steps": False,
+        # sixteenth round: the batch's shared noise estimate
+        "scan_noise_pool": False,
         **extra,
     }
 
@@ -127,6 +129,9 @@ _DEFAULT_11: dict[str, Any] = {
 
 #: The fourteenth round's arcs (grid 29 on top of grid 21; the fifteenth round's tests add to it).
 _ARCS_29: dict[str, Any] = {"arc_refit": True, "arc_sigmas": 2.0, "arc_replace": 3.0}
+
+#: ... with both tests of the fifteenth round: the arcs of the preset since then (grid 35).
+_ARCS_35: dict[str, Any] = {**_ARCS_29, "arc_tangent_sigmas": 3.0, "arc_chi2": True}
 
 
 #: Parameters chosen leave-one-dataset-out (``--loo``; third round of issue 11). Every setting
@@ -239,8 +244,10 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # by the RMS test whose corner split gave no trunk is cut where the BIC over one, two and
     # three pieces (each >= min_points returns), scored from running Kasa moments, says, and
     # its pieces validated as the corner split's (split_search, numpy path; simulated
-    # precision, benchmark / demo drive seed 1: 0.954 / 0.943, not admitted)
-    _setting(**_DEFAULT_11, split_search=True),
+    # precision, benchmark / demo drive seed 1: 0.954 / 0.943, not admitted; since the
+    # sixteenth round its pieces also pass the arcs' RMS test without bark allowance, and
+    # split_search_convex keeps the fifteenth round's convex candidates)
+    _setting(**_DEFAULT_11, split_search=True, split_search_convex=True),
     # fifteenth round: grid 29's arcs (k 2, replace 3 on the current default) that pass only
     # when no return lies behind the circle's tangent range by more than 3 noise-and-bark
     # scales (arc_tangent_sigmas) / whose residuals pass the upper 1 % chi-square test
@@ -253,6 +260,26 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # plot's 4-return stems merged with a stem or twig 0.16-0.24 m nearer)
     _setting(
         **_DEFAULT_11, **_ARCS_29, arc_tangent_sigmas=3.0, arc_chi2=True, arc_short_steps=True
+    ),
+    # sixteenth round, on the current default (grid 36): the scans that have too few
+    # continuous beam triples for a range-noise estimate of their own share one from the union
+    # of their triples (scan_noise_pool; compiled)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_29,
+        arc_tangent_sigmas=3.0,
+        arc_chi2=True,
+        arc_short_steps=True,
+        scan_noise_pool=True,
+    ),
+    # sixteenth round ("split pieces and rock faces"), on the current default (the arcs with
+    # both tests and arc_short_steps): the split search whose pieces pass the arcs' tests
+    # (piece_passes), on candidates rejected as not convex only / also on the convex ones
+    # that fail the RMS test (split_search_convex; simulated precision, benchmark / demo
+    # drive seed 1: 0.969 / 0.951, the default's, and 0.950 / 0.943)
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, split_search=True),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, split_search=True, split_search_convex=True
     ),
 )
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stemmap.cloud.reference import ring_reference
+from stemmap.cloud.reference import stem_references
 from stemmap.cloud.result import BASE_SLICE, CloudStems
 from stemmap.cloud.stems import StemConfig, detect_stems_file
 from stemmap.io.clouds import read_cloud
@@ -26,10 +26,7 @@ def _run(path: Path) -> tuple[np.ndarray, CloudStems, list[float], list[float]]:
     xyz = read_cloud(path).xyz
     det = detect_stems_file(path, replace(StemConfig(), estimate_height=True))
     errs, full = [], []
-    for i in range(len(det)):
-        z = float(det.z[i]) if det.base != BASE_SLICE else float(np.median(xyz[:, 2]))
-        half = 0.05 if det.spacing < 0.03 else 0.1
-        ref = ring_reference(xyz, tuple(det.xy[i]), z, det.diameter[i] / 2, half_thickness=half)
+    for i, ref in enumerate(stem_references(xyz, det)):
         if ref is not None:
             errs.append(float(det.diameter[i] - ref.diameter))
             if ref.full:

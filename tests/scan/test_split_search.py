@@ -5,11 +5,12 @@ silhouette (no concave corner) is found with its own radius."""
 
 import numpy as np
 import pytest
-from tests.scan.test_arcs import TRUNK, _branch, _scan
+from tests.scan.test_arcs import TRUNK, TRUNK_AND_BRANCH, _branch, _scan
 
 from stemmap.scan._split_search import best_cuts, kasa_prefix, run_score, seen_through
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.segment import Segments
+from stemmap.types import ScanBatch
 
 ON = {"split_search": True}
 # a 30 cm trunk at 5 m and a branch leaving just beyond its silhouette edge and running away
@@ -92,10 +93,52 @@ def test_the_trunk_merged_with_a_branch_behind_is_found_with_its_radius():
     # the default rejects the merged candidate (RMS test); no concave corner to cut at
     assert len(default.detect_batch(batch)) == 0
     assert "rms" in default.rejected(batch)["reason"]
-    obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", **ON)).detect_batch(batch)
+    # the merged outline is convex towards the sensor as a whole (it passed the depth
+    # filter): the search cuts it only with split_search_convex (sixteenth round)
+    assert len(ScanTrunkDetector(DetectorConfig.preset("stemmap", **ON)).detect_batch(batch)) == 0
+    convex = DetectorConfig.preset("stemmap", **ON, split_search_convex=True)
+    obs = ScanTrunkDetector(convex).detect_batch(batch)
     assert len(obs) == 1
     assert obs.radii[0] == pytest.approx(TRUNK[2], abs=0.005)
     assert np.hypot(*(obs.centers[0] - TRUNK[:2])) < 0.01
+
+
+def test_a_merge_that_is_not_convex_is_cut_without_split_search_convex():
+    # a branch leaving the silhouette edge towards the sensor: the outline turns away from
+    # the sensor at the junction (rejected as not convex, depth); without the corner split
+    # and the arcs, the search alone finds the trunk
+    batch = _scan(TRUNK_AND_BRANCH)
+    alone = {"refit_pieces": False, "arc_refit": False}
+    assert (
+        len(ScanTrunkDetector(DetectorConfig.preset("stemmap", **alone)).detect_batch(batch)) == 0
+    )
+    obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", **alone, **ON)).detect_batch(batch)
+    assert len(obs) == 1
+    assert obs.radii[0] == pytest.approx(TRUNK[2], abs=0.005)
+
+
+def test_a_piece_rougher_than_the_range_noise_fails_the_arcs_chi_square_test():
+    # the trunk's 7 returns of the merge behind it, alternately 1.8 cm nearer and farther
+    # (1 cm scanner, no scan estimate): the RMS test with its bark allowance passes the
+    # piece, the arcs' upper 1 % chi-square test over n - 3 degrees of freedom does not
+    batch = _scan(TRUNK_AND_BRANCH_BEHIND)
+    r = batch.ranges[0].copy()
+    a = batch.angle_min + batch.angle_increment * np.arange(r.size)
+    d = np.hypot(r * np.cos(a) - TRUNK[0], r * np.sin(a) - TRUNK[1]) - TRUNK[2]
+    own = np.flatnonzero(np.isfinite(r) & (np.abs(d) < 0.002))
+    assert own.size == 7
+    r[own] += 0.018 * (-1.0) ** np.arange(own.size)
+    rough = ScanBatch(
+        ranges=r[None, :],
+        times=batch.times,
+        angle_min=batch.angle_min,
+        angle_increment=batch.angle_increment,
+        range_max=batch.range_max,
+    )
+    cfg = {**ON, "split_search_convex": True, "sigma_from_scan": False}
+    assert len(ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg)).detect_batch(rough)) == 0
+    no_chi2 = DetectorConfig.preset("stemmap", **cfg, arc_chi2=False)
+    assert len(ScanTrunkDetector(no_chi2).detect_batch(rough)) == 1
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -125,5 +168,6 @@ def test_a_return_seen_through_the_circle_vetoes_the_piece():
 
 def test_the_option_is_off_by_default_and_runs_on_the_numpy_path():
     assert not DetectorConfig.preset("stemmap").split_search
+    assert not DetectorConfig.preset("stemmap").split_search_convex
     assert ScanTrunkDetector("stemmap")._compiled(None, None)
     assert not ScanTrunkDetector(DetectorConfig.preset("stemmap", **ON))._compiled(None, None)

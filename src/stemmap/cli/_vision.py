@@ -374,7 +374,11 @@ def overlay_image(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def _train_segmenter(
-    train: list[Path], labels: list[Path], model_out: Path, work_width: int, max_pixels: int
+    train: list[Path],
+    labels: list[Path],
+    model_out: Path,
+    max_pixels: int,
+    settings: dict[str, Any],
 ) -> str:
     from stemmap.vision.image_io import read_image
     from stemmap.vision.segment_classifier import (
@@ -393,7 +397,7 @@ def _train_segmenter(
         imgs.append(rgb)
         masks.append(read_label_mask(lab, rgb.shape[1], rgb.shape[0]))
     meta = {"trained_on": [im.name for im, _ in pairs]}
-    model = train_pixel_classifier(imgs, masks, work_width=work_width, meta=meta)
+    model = train_pixel_classifier(imgs, masks, meta=meta, **settings)
     save_model(model, model_out)
     return f"trained on {len(pairs)} image(s) ({model.trees.n_nodes} tree nodes)"
 
@@ -448,6 +452,29 @@ def segment(
     work_width: Annotated[
         int, typer.Option(help="Training: feature resolution (image width, pixels).")
     ] = 384,
+    augment: Annotated[
+        int,
+        typer.Option(
+            help="Training: random-camera copies per training image (white balance, exposure, "
+            "tone, hue, blur, JPEG) so the model holds under other cameras; 0 = none."
+        ),
+    ] = 4,
+    colour_norm: Annotated[
+        str,
+        typer.Option(
+            help="Training: per-image colour normalisation stored in the model (none | grey_world)."
+        ),
+    ] = "grey_world",
+    threshold: Annotated[
+        float, typer.Option(help="Training: P(trunk) threshold stored in the model.")
+    ] = 0.5,
+    open_px: Annotated[
+        int, typer.Option(help="Training: opening (pixels at the working width) in the model.")
+    ] = 3,
+    min_area: Annotated[
+        float,
+        typer.Option(help="Training: drop components below this fraction of the image."),
+    ] = 2e-3,
     max_pixels: Annotated[
         int,
         typer.Option(help="Refuse images with more pixels than this (read from the header)."),
@@ -478,7 +505,15 @@ def segment(
                 raise ConfigError(
                     f"give either an image to segment ({image}) or --train, not both."
                 )
-            msg = _train_segmenter(train, labels, run.path(model_out), work_width, max_pixels)
+            settings = {
+                "work_width": work_width,
+                "augment": augment,
+                "colour_norm": colour_norm,
+                "threshold": threshold,
+                "open_px": open_px,
+                "min_area_frac": min_area,
+            }
+            msg = _train_segmenter(train, labels, run.path(model_out), max_pixels, settings)
         out.print(f"{msg} -> {model_out}")
         return
     with (

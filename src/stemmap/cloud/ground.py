@@ -282,6 +282,7 @@ class GroundAccumulator:
                 self.cell,
             )
             i, j, low = i[core], j[core], low[core]
+        sup = self._sup if core.all() else self._sup[core]
         i0, j0, i1, j1 = int(i.min()), int(j.min()), int(i.max()), int(j.max())
         if extent is not None:
             e = np.floor(np.asarray(extent, dtype=np.float64) / self.cell)
@@ -299,7 +300,10 @@ class GroundAccumulator:
         grid = np.full((3, nx, ny), np.nan)
         grid[:, i - i0, j - j0] = (low - [ox, oy, 0.0]).T
         X, Y, Z = grid
-        valid = ~np.isnan(Z)
+        observed = ~np.isnan(Z)
+        support = np.zeros((nx, ny), dtype=np.int64)
+        support[i - i0, j - j0] = sup
+        valid = observed & ~_groundless_cells(Z, support, self.cell, max_step)
         if not valid.all():
             _, (fi, fj) = ndimage.distance_transform_edt(~valid, return_indices=True)
             Z = Z[fi, fj]
@@ -337,7 +341,49 @@ class GroundAccumulator:
         yc = (np.arange(ny)[None, :] + 0.5) * self.cell * np.ones((nx, 1))
         plane = coef[..., 0] * xc + coef[..., 1] * yc + coef[..., 2]
         z = np.where(solvable, plane, np.where(good, Z, med))
-        return GroundModel((ox, oy), self.cell, z + 0.0, observed=valid)
+        return GroundModel((ox, oy), self.cell, z + 0.0, observed=observed)
+
+
+def _groundless_cells(
+    z: FloatArray, support: NDArray[np.int64], cell: float, max_step: float
+) -> NDArray[np.bool_]:
+    """Cells of the minima raster ``z`` (NaN: empty) that hold no ground: canopy or a stem
+    overhanging the edge of the scanned ground (a plot clipped in a tilted frame, crowns
+    leaning past a plot's edge, an unlevelled scanner), whose minimum is a crown or a branch.
+
+    Grown from the ground: a cell whose minimum lies more than ``max_step`` + 1 m per metre
+    of distance (a 45 degree slope) above a neighbour's ground (8-neighbourhood) holds none;
+    it is filled from the nearest ground cell and the test is repeated until no cell
+    changes, so a strip of overhanging canopy several cells wide is found from its ground
+    side. The median test of :meth:`GroundAccumulator.model` cannot see it: along a plot edge
+    most of an edge cell's 3 x 3 neighbourhood is canopy. Lone low noise points (fewer than 3
+    points within 0.1 m above them, more than ``max_step`` below every neighbour's minimum,
+    as in :meth:`GroundAccumulator.stem_base`) are never the ground others are compared
+    with. On the real clouds of ../shared/datasets as shipped no cell is found
+    (docs/algorithms/cloud.md, "Robustness to user exports").
+    """
+    observed = ~np.isnan(z)
+    zi = np.where(observed, z, np.inf)
+    ring = np.ones((3, 3), dtype=bool)
+    ring[1, 1] = False
+    nbr = ndimage.grey_erosion(zi, footprint=ring, mode="constant", cval=np.inf)
+    lone = observed & (support < 3) & (zi < nbr - max_step)
+    ground = observed & ~lone
+    # 1 m per metre of distance to each of the 8 neighbours, 0 at the centre
+    d = cell * np.hypot(*np.mgrid[-1:2, -1:2])
+    for _ in range(z.shape[0] + z.shape[1]):
+        if not ground.any():
+            break
+        zf = z
+        if not ground.all():
+            _, (fi, fj) = ndimage.distance_transform_edt(~ground, return_indices=True)
+            zf = z[fi, fj]
+        env = ndimage.grey_erosion(zf, structure=-d, mode="nearest")
+        high = ground & (z > env + max_step)
+        if not high.any():
+            break
+        ground &= ~high
+    return np.asarray(observed & ~ground & ~lone, dtype=bool)
 
 
 def fit_ground(

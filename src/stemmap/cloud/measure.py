@@ -263,12 +263,14 @@ def _stems_from_band(
         centers_h=centers_h,
         noise_floor=noise_floor,
         slice_cloud=slice_cloud,
+        rms_max=rms_max,
     )
     # --- per stem: slice consistency, buttress, taper/lean line at breast height
     rows: list[tuple[float, ...]] = []
     rules: list[str] = []
     accepted = np.zeros(kc, dtype=bool)
-    for c in np.flatnonzero(per.passed.sum(axis=1) >= cfg.min_slices):
+    # two passing slices may be enough: the others get a guided refit (_guided_refits)
+    for c in np.flatnonzero(per.passed.sum(axis=1) >= min(2, cfg.min_slices)):
         stem = _slice_stem(per, int(c), ctx, cfg)
         if stem is None:
             continue

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stemmap.cloud.result import BASE_SLICE, CloudStems
 from stemmap.cloud.slicefit import _segment_arcs
 
-__all__ = ["RingReference", "ring_reference"]
+__all__ = ["RingReference", "ring_reference", "stem_references"]
 
 
 @dataclass(frozen=True)
@@ -84,3 +85,23 @@ def ring_reference(
     return RingReference(
         float(cx), float(cy), 2 * float(r), math.sqrt(float(np.mean(res**2))), arc, int(keep.sum())
     )
+
+
+def stem_references(xyz: ArrayLike, stems: CloudStems) -> list[RingReference | None]:
+    """The :func:`ring_reference` of every detected stem of ``xyz``: at the stem's breast
+    height (the cloud's median z for a pre-cut slice), 5 cm half thickness (10 cm when the
+    detector measured a spacing above 3 cm: a sparse cloud needs a thicker ring for 20
+    points), started from the detected circle."""
+    p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    half = 0.05 if stems.spacing < 0.03 else 0.1
+    z_slice = float(np.median(p[:, 2])) if stems.base == BASE_SLICE else math.nan
+    return [
+        ring_reference(
+            p,
+            (float(stems.xy[i, 0]), float(stems.xy[i, 1])),
+            float(stems.z[i]) if stems.base != BASE_SLICE else z_slice,
+            float(stems.diameter[i]) / 2,
+            half_thickness=half,
+        )
+        for i in range(len(stems))
+    ]

@@ -18,7 +18,10 @@ def _band_spacing(xy: FloatArray, h: FloatArray, rng: int = 0) -> float:
 
     3D, not in the xy projection: a scanner's rows stack on a trunk, so projected neighbours
     are much closer than neighbours along the arc, which is what clustering must bridge. The
-    90th percentile (not the median) speaks for the sparse, far trunks.
+    90th percentile (not the median) speaks for the sparse, far trunks. Coincident points
+    (an export that wrote every point twice, merged scans, coordinates quantised to 1 cm)
+    are one point: the distance is to the nearest of 8 neighbours that is not at the same
+    place, so duplicates do not make the spacing unmeasurable.
     """
     from scipy.spatial import cKDTree
 
@@ -28,9 +31,9 @@ def _band_spacing(xy: FloatArray, h: FloatArray, rng: int = 0) -> float:
     p = np.column_stack((xy, h))
     gen = np.random.default_rng(rng)
     q = p if n <= 20_000 else p[gen.choice(n, 20_000, replace=False)]
-    d, _ = cKDTree(p).query(q, k=2)
-    d = d[:, 1]
-    d = d[d > 1e-9]
+    d, _ = cKDTree(p).query(q, k=min(8, n))
+    d = np.where(d[:, 1:] > 1e-9, d[:, 1:], np.inf).min(axis=1)
+    d = d[np.isfinite(d)]
     return float(np.quantile(d, 0.9)) if d.size else math.nan
 
 

@@ -15,7 +15,12 @@ from numpy.typing import NDArray
 from stemmap.cloud.band import _Band
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.result import RULE_BH
-from stemmap.cloud.slicefit import _theil_sen
+from stemmap.cloud.slicefit import (
+    _fit_segments,
+    _segment_arcs,
+    _segment_covariances,
+    _theil_sen,
+)
 from stemmap.cloud.uncertainty import _line_uncertainty, _mean_uncertainty
 from stemmap.types import FloatArray
 
@@ -56,44 +61,65 @@ class _BandContext:
     centers_h: FloatArray
     noise_floor: float
     slice_cloud: bool
+    rms_max: float = math.inf  # the per-slice residual test (step 7)
 
 
 def _radius_consensus(
-    r: FloatArray, m: NDArray[np.bool_], tol: float, sig_r: float
+    r: FloatArray, m: NDArray[np.bool_], tol: float, sig_r: float, w: FloatArray
 ) -> tuple[float, NDArray[np.bool_]]:
     """Radius most slices agree on, and the slices that agree.
 
     The median of all passing slices is right when most slices see the stem. In a spruce
     whose whorls hide the stem in some slices, those slices fit large circles through the
     branches and the median lands between stem and clutter, rejecting both. The consensus is
-    the slice radius with the most slices within its tolerance (15 % of it, or 5 sigma of a
-    slice radius); when every slice agrees with the median, the median is kept (the common
-    case, unchanged).
+    the slice radius with the most support within its tolerance (15 % of it, or 5 sigma of
+    a slice radius); when every slice agrees with the median, the median is kept (the common
+    case, unchanged). Support is the slices' fit weights ``w`` (inliers / RMS^2), not their
+    count: around a spruce's whorls the circles through the branches agree with each other
+    too (a crown is round), but they fit their points with several times the RMS of the
+    bark, so three of them do not outvote one clean stem slice.
     """
     idx = np.flatnonzero(m)
     r_med = float(np.median(r[idx]))
     if np.all(np.abs(r[idx] - r_med) <= tol):
         return r_med, m
     tols = np.maximum(0.15 * r[idx], 5.0 * sig_r)
-    support = (np.abs(r[idx][None, :] - r[idx][:, None]) <= tols[:, None]).sum(axis=1)
-    best = support == support.max()
+    near = np.abs(r[idx][None, :] - r[idx][:, None]) <= tols[:, None]
+    support = near @ w[idx]
+    best = support >= support.max() * (1 - 1e-12)
     # among equally supported radii, the smallest: clutter makes circles larger, not smaller
     j = idx[best][int(np.argmin(r[idx][best]))]
     agree = m & (np.abs(r - r[j]) <= max(0.15 * r[j], 5.0 * sig_r))
     return float(np.median(r[agree])), agree
 
 
-def _consistent_slices(
-    fits: _SliceFits, c: int, centers_h: FloatArray
-) -> tuple[NDArray[np.bool_], float, float, FloatArray]:
+@dataclass(frozen=True)
+class _Agreement:
+    """The slices of one cluster that agree on a stem: ``kept`` (S,), the ``radius`` they
+    agree on, its tolerance ``tol``, and the centre ``pred`` (S, 2) the stem's line predicts
+    at every slice height."""
+
+    kept: NDArray[np.bool_]
+    radius: float
+    tol: float
+    pred: FloatArray
+
+
+def _centre_line(h: FloatArray, centers: FloatArray, at: FloatArray) -> FloatArray:
+    """Centres (len(at), 2) on the Theil-Sen lines through ``centers`` (K, 2) at heights
+    ``h``, evaluated at the heights ``at``."""
+    lx, ly = _theil_sen(h, centers[:, 0]), _theil_sen(h, centers[:, 1])
+    return np.column_stack((lx[0] + lx[1] * at, ly[0] + ly[1] * at))
+
+
+def _consistent_slices(fits: _SliceFits, c: int, centers_h: FloatArray) -> _Agreement:
     """The passing slices of cluster ``c`` that agree on the radius and the centre line.
 
     Radii within max(15 % of r, 5 sigma_r) of the median -- or of the consensus radius
     (:func:`_radius_consensus`) when not all slices agree with the median -- where
     sigma_r = 2 rms / sqrt(n) x max(1, 180 deg / arc)^2 approximates a slice fit's radius
     noise; centres within max(that, 0.3 r) of a Theil-Sen line through them (>= 3 slices) or
-    of their median. Returns the slices kept, the radius they agree on, its tolerance, and
-    the predicted centre (S, 2) at every slice height.
+    of their median.
     """
     radii, cen, arcs = fits.radii[c], fits.centers[c], fits.arcs[c]
     m = fits.passed[c]
@@ -105,19 +131,89 @@ def _consistent_slices(
     short = np.maximum(1.0, 180.0 / np.maximum(arcs[m], 1.0)) ** 2
     sig_r = float(np.median(2.0 * fits.rms[c, m] / np.sqrt(np.maximum(fits.n_in[c, m], 1)) * short))
     tol = max(0.15 * r_med, 5.0 * sig_r)
-    r_med, m = _radius_consensus(radii, m, tol, sig_r)
+    r_med, m = _radius_consensus(radii, m, tol, sig_r, fits.weights[c])
     tol = max(0.15 * r_med, 5.0 * sig_r)
     c_med = np.median(cen[m], axis=0)
     # centres are compared with a robust line through them (a leaning stem's centre
     # moves with height), radii with their median
     if m.sum() >= 3:
-        hm = centers_h[m]
-        lx, ly = _theil_sen(hm, cen[m, 0]), _theil_sen(hm, cen[m, 1])
-        pred = np.column_stack((lx[0] + lx[1] * centers_h, ly[0] + ly[1] * centers_h))
+        pred = _centre_line(centers_h[m], cen[m], centers_h)
     else:
         pred = np.broadcast_to(c_med, cen.shape)
     m = m & (np.abs(radii - r_med) <= tol) & (np.hypot(*(cen - pred).T) <= max(tol, 0.3 * r_med))
-    return m, r_med, tol, pred
+    return _Agreement(m, r_med, tol, pred)
+
+
+def _row(fits: _SliceFits, c: int) -> _SliceFits:
+    """Cluster ``c``'s fits alone (as cluster 0), as copies."""
+    return _SliceFits(*(np.array(getattr(fits, f)[c : c + 1]) for f in fits.__dataclass_fields__))
+
+
+def _guided_refits(
+    fits: _SliceFits, c: int, agree: _Agreement, ctx: _BandContext, cfg: StemConfig
+) -> tuple[_SliceFits, NDArray[np.bool_]] | None:
+    """Refit the slices of cluster ``c`` that disagree with its stem, from the circle the
+    agreeing slices (``agree``) predict there; the cluster's fits (as cluster 0) with the refits
+    that pass and the slices refitted, or None when none passes.
+
+    In a slice full of branches (a spruce's whorls) the robust fit may lock onto a circle
+    through the clutter although the stem is there too; which slices do so changes with the
+    smallest perturbation of the cloud (a 1 mm resampling, a rotation about z, a coarser
+    spacing). The band's points of such a slice (before the vertical filter) within an
+    annulus around the predicted circle -- half width max(0.3 r, 3 noise floors) plus the
+    largest taper over the height difference to the agreeing slices -- are fitted again
+    (:func:`~stemmap.cloud.slicefit._fit_segments`); the refit replaces the slice's fit when
+    it passes the per-slice tests (inliers, arc, residual) and agrees with the stem (radius
+    within the tolerance, centre within max(tolerance, 0.3 r) of the prediction, both plus that
+    taper allowance). The predicted centre is the consistency test's line, or with two
+    agreeing slices the line through them, or one slice's centre. Only for a cluster that
+    would otherwise fail the slice count: stems found without it are unchanged.
+    """
+    m, r_med, tol, pred = agree.kept, agree.radius, agree.tol, agree.pred
+    if ctx.tree is None or not m.any():
+        return None
+    ch = ctx.centers_h
+    h_ref = float(np.mean(ch[m]))
+    if m.sum() == 2:  # a line through the two (3 or more: already the Theil-Sen line)
+        pred = _centre_line(ch[m], fits.centers[c, m], ch)
+    out = _row(fits, c)
+    changed = np.zeros(m.shape[0], dtype=bool)
+    for s in np.flatnonzero(~m):
+        slack = cfg.max_taper * abs(float(ch[s]) - h_ref)
+        width = max(0.3 * r_med, 3.0 * ctx.noise_floor) + slack
+        idx = np.asarray(ctx.tree.query_ball_point(pred[s], r_med + width), dtype=np.int64)
+        idx = idx[ctx.band_sl[idx] == s]
+        q = ctx.band.xy[idx]
+        q = q[np.abs(np.hypot(*(q - pred[s]).T) - r_med) <= width]
+        if q.shape[0] < cfg.min_slice_points:
+            continue
+        ids = np.zeros(q.shape[0], dtype=np.int64)
+        cen, rad, rms, ok, nin = _fit_segments(
+            q,
+            ids,
+            1,
+            cfg.fit_method,
+            ransac_tol=max(0.5 * ctx.noise_floor, 0.005),
+            radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
+        )
+        if not ok[0] or nin[0] < cfg.min_slice_points:
+            continue
+        arc = float(_segment_arcs(q, ids, 1, cen)[0])
+        good = (
+            arc >= cfg.min_arc_deg
+            and rms[0] <= max(ctx.rms_max, 0.02 * rad[0])
+            and abs(rad[0] - r_med) <= tol + slack
+            and math.hypot(*(cen[0] - pred[s])) <= max(tol, 0.3 * r_med) + slack
+        )
+        if not good:
+            continue
+        out.passed[0, s] = out.fitted[0, s] = True
+        out.centers[0, s], out.radii[0, s], out.rms[0, s] = cen[0], rad[0], rms[0]
+        out.arcs[0, s], out.n_in[0, s] = arc, nin[0]
+        out.weights[0, s] = nin[0] / max(float(rms[0]), 1e-4) ** 2
+        out.cov[0, s] = _segment_covariances(q, ids, 1, cen, rad, rms)[0]
+        changed[s] = True
+    return (out, changed) if changed.any() else None
 
 
 def _outside_fraction(
@@ -156,14 +252,7 @@ def _outside_fraction(
 
 
 def _measurement_height(
-    fits: _SliceFits,
-    c: int,
-    m: NDArray[np.bool_],
-    r_med: float,
-    tol: float,
-    pred: FloatArray,
-    ctx: _BandContext,
-    cfg: StemConfig,
+    fits: _SliceFits, c: int, agree: _Agreement, ctx: _BandContext, cfg: StemConfig
 ) -> tuple[float, str]:
     """Where the DBH of cluster ``c`` is measured, and why: breast height, or
     :data:`BUTTRESS_CLEARANCE` (0.3 m) above the top of a buttress that reaches above
@@ -176,6 +265,7 @@ def _measurement_height(
     clean stem above it (outside fraction < half of that: a spruce's whorls put branch points
     around the stem at every height, which is not a buttress). Never for a pre-cut slice.
     """
+    m, r_med, tol, pred = agree.kept, agree.radius, agree.tol, agree.pred
     centers_h = ctx.centers_h
     radii, cen, fitted = fits.radii[c], fits.centers[c], fits.fitted[c]
     out_f = _outside_fraction(ctx.band, ctx.tree, ctx.band_sl, cen, radii, fits.rms[c])
@@ -254,18 +344,29 @@ def _slice_stem(
     n_slices, taper, dbh_std, cov_xx, cov_xy, cov_yy, dbh_height)`` and DBH rule, or None
     when it is no stem.
 
-    Tests, in order: >= ``cfg.min_slices`` consistent slices (:func:`_consistent_slices`)
+    Tests, in order: >= ``cfg.min_slices`` consistent slices (:func:`_consistent_slices`;
+    with fewer, the others refitted from the stem's predicted circle, :func:`_guided_refits`)
     spanning >= ``cfg.min_vertical_extent`` (not a bush, a boulder or a branch stub; not
     for a pre-cut slice), the taper (:func:`_stem_at`). Quality = fraction of the present
     slices kept x min(1, arc / 120 deg) x min(1, noise floor / RMS).
     """
     centers_h = ctx.centers_h
-    m, r_med, tol, pred = _consistent_slices(fits, c, centers_h)
-    if m.sum() < cfg.min_slices:
-        return None
+    agree = _consistent_slices(fits, c, centers_h)
+    if agree.kept.sum() < cfg.min_slices:
+        refit = _guided_refits(fits, c, agree, ctx, cfg)
+        if refit is None:
+            return None
+        # the refits passed the agreement tests against this stem: no second vote
+        fits, c, m = refit[0], 0, agree.kept | refit[1]
+        if m.sum() < cfg.min_slices:
+            return None
+        r_new = float(np.median(fits.radii[0, m]))
+        pred = _centre_line(centers_h[m], fits.centers[0, m], centers_h)
+        agree = _Agreement(m, r_new, agree.tol, pred)
+    m = agree.kept
     if not ctx.slice_cloud and np.ptp(centers_h[m]) < cfg.min_vertical_extent - 1e-9:
         return None  # not a vertical structure (a bush, a boulder, a branch stub)
-    h_meas, rule = _measurement_height(fits, c, m, r_med, tol, pred, ctx, cfg)
+    h_meas, rule = _measurement_height(fits, c, agree, ctx, cfg)
     at = _stem_at(fits, c, m, centers_h[m] - h_meas, cfg)
     if at is None:
         return None

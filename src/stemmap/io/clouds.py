@@ -16,6 +16,7 @@ to install.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -58,7 +59,37 @@ def _check_file(path: PathLike) -> Path:
     return p
 
 
+def _float32_warning(xyz: NDArray[Any], path: Path, stored_float32: bool = False) -> None:
+    """Warn when float32 coordinates are too coarse for stems where the cloud lies.
+
+    A float32 holds 24 bits of mantissa: at a UTM easting of 500 000 m its step is 3 cm, at
+    a northing of 6 200 000 m 50 cm (a PLY or PCD written without the exporter's global
+    shift). The points are then snapped to that grid before stemmap sees them; nothing
+    downstream can recover the lost digits (docs/algorithms/cloud.md, "Robustness to user
+    exports"). ``stored_float32``: the file stored them as float32 (a reader that already
+    promoted them to float64 says so)."""
+    if not (stored_float32 or xyz.dtype == np.float32) or xyz.size == 0:
+        return
+    finite = np.abs(xyz[np.isfinite(xyz)])
+    if finite.size == 0:
+        return
+    big = float(finite.max())
+    # float32 step at |big| (24-bit mantissa), computed in float64: NaN/inf coordinates (dropped
+    # later) and values a float32 cannot hold must not raise an overflow here
+    step = math.ldexp(1.0, math.frexp(big)[1] - 24)
+    if step > 1e-3:
+        log.warning(
+            "%s: coordinates are float32 and reach %.0f m, where float32 steps are %.3f m: "
+            "too coarse for stem diameters. Export in float64 (or LAS/LAZ), or with the "
+            "coordinates shifted near 0.",
+            path,
+            big,
+            step,
+        )
+
+
 def _finish(xyz: NDArray[Any], path: Path, fields: dict[str, NDArray[Any]]) -> PointCloud:
+    _float32_warning(xyz, path)
     xyz = np.asarray(xyz, dtype=np.float64)
     finite_xyz = np.isfinite(xyz)
     if finite_xyz.all():  # the usual case; a flat all() is ~8x faster than all(axis=1)
@@ -277,6 +308,8 @@ def read_ply(path: PathLike) -> PointCloud:
         )
     if vertex.count == 0:
         raise InputError(f"PLY file {str(p)!r} holds no vertices.")
+    f4 = any(q.name in ("x", "y", "z") and q.dtype == "f4" for q in vertex.properties)
+    _float32_warning(xyz, p, stored_float32=f4)
     return _finish(xyz, p, fields)
 
 

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from stemmap.scan.config import DetectorConfig
     from stemmap.scan.detect import ScanTrunkDetector
 
-__all__ = ["arc_pieces", "arc_tests", "consensus_arcs", "largest_arc"]
+__all__ = ["arc_pieces", "arc_tests", "consensus_arcs", "largest_arc", "piece_passes"]
 
 
 def largest_arc(
@@ -155,10 +155,17 @@ def arc_pieces(
     if not corrected and cfg.beam_footprint_deg > 0:
         pieces = footprint_correct(pieces, math.radians(cfg.beam_footprint_deg))
     refit = detector._fit_candidates(pieces, grid, wrap)
-    # the arc holds the returns that lie on one circle within the noise: the RMS test without
-    # the bark allowance (with it, round pieces of the simulator's bushes at 2-3 sigma passed)
-    ok = fit_passes(replace(cfg, bark_roughness=0.0), refit) & arc_tests(cfg, pieces, refit)
-    return Refitted(pieces, refit, ok, parent.astype(np.int64))
+    return Refitted(pieces, refit, piece_passes(cfg, pieces, refit), parent.astype(np.int64))
+
+
+def piece_passes(cfg: DetectorConfig, pieces: Segments, fitted: _Fitted) -> NDArray[np.bool_]:
+    """Whether each piece of a merged candidate (an arc of ``arc_refit``, a piece of
+    ``split_search``; fitted: ``fitted``) passes the tests of a piece: the fit plausibility
+    tests without the bark allowance (the piece holds the returns that lie on one circle
+    within the noise; with it, round pieces of the simulator's bushes at 2-3 sigma passed)
+    and :func:`arc_tests` (tangent range, chi-square)."""
+    ok: NDArray[np.bool_] = fit_passes(replace(cfg, bark_roughness=0.0), fitted)
+    return ok & arc_tests(cfg, pieces, fitted)
 
 
 def arc_tests(cfg: DetectorConfig, pieces: Segments, fitted: _Fitted) -> NDArray[np.bool_]:

@@ -74,13 +74,14 @@ from stemmap.scan._fast_candidates import (
     _split_emit,
     has_corners,
 )
-from stemmap.scan._fast_robust import _interior_triples as _interior_triples
 from stemmap.scan._fast_robust import (
+    _batch_scan_noise,
     _median,
     _range_roughness,
     _robust_residual_scale,
     _scan_noise,
 )
+from stemmap.scan._fast_robust import _interior_triples as _interior_triples
 from stemmap.scan._fast_robust import _median_inplace as _median_inplace
 from stemmap.scan._fast_segments import (
     _algebraic_floor,
@@ -170,6 +171,13 @@ def _detect_kernel(
     scan_on = prm[53] > 0.0 and fit_sigma_given
     scan_jump = prm[54]
     scan_surface = prm[55]
+    # scan_noise_pool: every scan's estimate first, those without one sharing the batch's
+    pool_on = scan_on and prm[65] > 0.0
+    noise_all = (
+        _batch_scan_noise(ranges, fov_in, lo, hi, scan_jump, scan_surface)
+        if pool_on
+        else np.zeros(1)
+    )
     refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
     arcs_on = prm[58] > 0.0  # arc_refit (_fast_arcs)
     arc_replace = prm[61]
@@ -237,7 +245,10 @@ def _detect_kernel(
             v = ranges[s, k]
             g0[k] = v if (v > lo and v < hi and fov_in[k]) else np.nan
         # ---- the scan's own range-noise scale (plausibility.scan_noise, ours) ----
-        noise_s = _scan_noise(g0, scan_jump, scan_surface, dnoise) if scan_on else 0.0
+        if pool_on:
+            noise_s = noise_all[s]
+        else:
+            noise_s = _scan_noise(g0, scan_jump, scan_surface, dnoise) if scan_on else 0.0
         # ---- three-neighbour median filter (preprocess.median_filter3, Xue 2018 §2.2) ----
         if median and n >= 3:
             grid[0] = g0[0]

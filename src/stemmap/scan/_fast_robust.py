@@ -125,6 +125,51 @@ def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> fl
     m, longest = _interior_triples(g, min(jump, _FLOAT_MAX), d)
     if m < _SCAN_NOISE_MIN_TRIPLES or 2 * longest > m:  # one surface must not decide
         return 0.0
+    return _mad_scale(d, m, surface)
+
+
+@njit(cache=True, error_model="numpy")
+def _batch_scan_noise(
+    ranges: FloatArray, fov_in: np.ndarray, lo: float, hi: float, jump: float, surface: float
+) -> FloatArray:  # pragma: no cover - numba
+    """Every scan's range-noise scale with the scans that have too few interior triples for
+    an estimate of their own sharing one from the union of their triples (numba twin of
+    :func:`stemmap.scan.plausibility.scan_noise` with ``pool``; scans gated to ``(lo, hi)``
+    and the field of view as the detector kernel gates them; the same arithmetic)."""
+    s_count, n = ranges.shape
+    out = np.zeros(s_count)
+    g = np.empty(n)
+    d = np.empty(n)
+    pool = np.empty(s_count * n)
+    lacking = np.zeros(s_count, dtype=np.bool_)
+    pool_m = 0
+    pool_longest = 0
+    jmp = min(jump, _FLOAT_MAX)
+    for s in range(s_count):
+        for k in range(n):
+            v = ranges[s, k]
+            g[k] = v if (v > lo and v < hi and fov_in[k]) else np.nan
+        if n < 5:  # no interior triple
+            continue
+        m, longest = _interior_triples(g, jmp, d)
+        if m >= _SCAN_NOISE_MIN_TRIPLES and 2 * longest <= m:
+            out[s] = _mad_scale(d, m, surface)
+        elif m < _SCAN_NOISE_MIN_TRIPLES:
+            lacking[s] = True
+            pool[pool_m : pool_m + m] = d[:m]
+            pool_m += m
+            pool_longest = max(pool_longest, longest)
+    if pool_m >= _SCAN_NOISE_MIN_TRIPLES and 2 * pool_longest <= pool_m:
+        e = _mad_scale(pool, pool_m, surface)
+        for s in range(s_count):
+            if lacking[s]:
+                out[s] = e
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _mad_scale(d: FloatArray, m: int, surface: float) -> float:  # pragma: no cover - numba
+    """``sqrt(max((1.4826 MAD / sqrt(6))^2 - surface^2, 0))`` of ``d[:m]`` (reordered)."""
     med = _median_inplace(d, m)
     for i in range(m):
         d[i] = abs(d[i] - med)

@@ -89,6 +89,7 @@ PARAM_NAMES = (
     "arc_short_steps",  # 1: arcs of min_points returns set off by a range step count
     "arc_tangent_sigmas",  # an arc's returns no farther than its tangent range + this (inf: off)
     "arc_chi2",  # 1: an arc's residuals pass the upper 1 % chi-square test
+    "scan_noise_pool",  # 1: scans without their own noise estimate share the batch's
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -180,6 +181,7 @@ def kernel_params(
         "arc_short_steps": cfg.arc_short_steps,
         "arc_tangent_sigmas": cfg.arc_tangent_sigmas,
         "arc_chi2": cfg.arc_chi2,
+        "scan_noise_pool": cfg.sigma_from_scan and cfg.scan_noise_pool,
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

@@ -22,6 +22,7 @@ and keeps whichever piece passes, so a bush or wall cut into pieces can pass as 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -205,6 +206,7 @@ def judge_pieces(
     wrap: bool,
     validate: bool,
     accept: NDArray[np.bool_] | None = None,
+    tests: Callable[[DetectorConfig, Segments, _Fitted], NDArray[np.bool_]] | None = None,
 ) -> Refitted | None:
     """The pieces of the candidates ``sub`` (= ``every.select(which)``; ``local`` indexes
     ``sub``) judged as any candidate: segment filters, fit, fit tests; with ``validate`` a
@@ -212,7 +214,9 @@ def judge_pieces(
     circle holds a return of its parent more than 3 sigma inside is rejected. ``parent`` of
     the result indexes ``every``; None when no piece passed the segment filters. ``accept``
     (per piece): a further condition of acceptance, applied after the validation (a piece it
-    refuses still vetoes its siblings)."""
+    refuses still vetoes its siblings). ``tests`` (config, fitted pieces, fit): the fit tests
+    a piece must pass (default :func:`fit_passes`; ``split_search`` passes
+    :func:`~stemmap.scan._arcs.piece_passes`, the arcs' tests)."""
     cfg = detector.config
     codes = segment_reasons(pieces, segment_features(pieces), cfg)
     good = codes == 0
@@ -222,7 +226,9 @@ def judge_pieces(
         pieces = footprint_correct(pieces, math.radians(cfg.beam_footprint_deg))
     fitted = detector._fit_candidates(pieces.select(good), grid, wrap)
     fit_ok = np.zeros(len(pieces), dtype=bool)
-    fit_ok[good] = fit_passes(cfg, fitted)
+    fit_ok[good] = (
+        fit_passes(cfg, fitted) if tests is None else tests(cfg, pieces.select(good), fitted)
+    )
     if validate:
         ok = validate_pieces(local, codes, fit_ok)[good]
         ok &= ~_returns_inside(sub, local[good], fitted, ok)

@@ -25,11 +25,16 @@ test's scale (``sigma`` the segment's range-noise sigma, ``b`` ``bark_roughness`
 larger circle radius of the best two-piece cut, clipped to ``[min_radius, max_radius]``; a
 piece scored as a line counts as ``max_radius``). Where a cut wins, its pieces are judged as
 the corner split's are: inner cut ends occluded (``Segments.cut``: a piece needs
-``min_points_partial`` returns), segment filters, the geometric fit and its tests, accepted
-only together (:func:`~stemmap.scan._refit.judge_pieces` with validation: one passing piece
-whose circle-like siblings fail nothing and whose circle holds no return of the candidate)
-and only when no return of the candidate was seen through the piece's circle
-(:func:`seen_through`). Numpy path only (scan-detection-history.md, fifteenth round).
+``min_points_partial`` returns), segment filters, the geometric fit and the tests of an arc of
+``arc_refit`` (:func:`~stemmap.scan._arcs.piece_passes`: the RMS test without the bark
+allowance, the tangent-range and chi-square tests), accepted only together
+(:func:`~stemmap.scan._refit.judge_pieces` with validation: one passing piece whose
+circle-like siblings fail nothing and whose circle holds no return of the candidate) and only
+when no return of the candidate was seen through the piece's circle (:func:`seen_through`).
+The detector cuts only candidates rejected as not convex unless ``split_search_convex``: one
+convex outline that is no circle was a lumpy rock on the simulator as often as a trunk with a
+stub (sixteenth round). Numpy path only (scan-detection-history.md, fifteenth and sixteenth
+rounds).
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from stemmap.scan._arcs import piece_passes
 from stemmap.scan._refit import Refitted, judge_pieces
 from stemmap.scan.features import segment_sum
 from stemmap.scan.plausibility import segment_sigma
@@ -183,8 +189,9 @@ def search_refit(
 ) -> Refitted | None:
     """``split_search``: the candidates of ``every`` (before footprint correction) flagged by
     ``which`` cut where :func:`best_cuts` says, the pieces judged and validated as those of
-    the corner split (:func:`~stemmap.scan._refit.judge_pieces`). ``parent`` indexes
-    ``every``; None when nothing was cut."""
+    the corner split (:func:`~stemmap.scan._refit.judge_pieces`) with the arcs' tests
+    (:func:`~stemmap.scan._arcs.piece_passes`). ``parent`` indexes ``every``; None when
+    nothing was cut."""
     cfg = detector.config
     if not np.any(which):
         return None
@@ -211,8 +218,18 @@ def search_refit(
     pieces = sub.cut(np.cumsum(cuts) % 2 == 1)
     local = sub.labels[pieces.start].astype(np.int64)
     keep = (np.bincount(local, minlength=len(sub)) > 1)[local]
+    # a piece is judged as an arc of arc_refit is (piece_passes: no bark allowance, tangent
+    # range, chi-square): both are the part of a merged candidate that one circle explains
     got = judge_pieces(
-        detector, sub, pieces.select(keep), local[keep], which, grid, wrap, validate=True
+        detector,
+        sub,
+        pieces.select(keep),
+        local[keep],
+        which,
+        grid,
+        wrap,
+        validate=True,
+        tests=piece_passes,
     )
     if got is None or not np.any(got.ok):
         return got

@@ -138,6 +138,14 @@ class DetectorConfig:
     scan_noise_jump : float, metres, > 0
         With ``sigma_from_scan``: largest range step between adjacent beams that counts as one
         continuous surface.
+    scan_noise_pool : bool
+        With ``sigma_from_scan``: the scans of a batch with too few continuous beam triples
+        for a noise estimate of their own share one, from the union of their triples under
+        the same rules (:func:`~stemmap.scan.plausibility.scan_noise` ``pool``; ours, issue
+        11, sixteenth round). Scans with their own estimate keep it. Off in every preset (the
+        leave-one-dataset-out chooses it for 1 of 5 held-out datasets;
+        scan-detection-history.md, sixteenth round). A scan's result then depends on the
+        other scans of its batch when it lacks an estimate.
     scan_noise_surface : float, metres, >= 0
         With ``sigma_from_scan``: the surfaces' own share of the estimate (their shape and
         roughness, which a noise-free scan measures), taken out in quadrature. Default 6 mm:
@@ -320,8 +328,17 @@ class DetectorConfig:
         from running Kasa (1976) moments, says; accept a piece as the corner split's pieces
         are accepted, and only if no return of the candidate was seen through its circle
         (ours, issue 11, fifteenth round; :func:`~stemmap.scan._split_search.search_refit`):
-        a trunk merged with a branch or stub where the junction is no concave corner. Numpy
-        path only; off in every preset (it fails the simulated precision target).
+        a trunk merged with a branch or stub where the junction is no concave corner. Its
+        pieces pass the tests of an arc of ``arc_refit`` (no bark allowance in the RMS test,
+        ``arc_tangent_sigmas``, ``arc_chi2``; :func:`~stemmap.scan._arcs.piece_passes`), and
+        only candidates rejected as not convex are cut unless ``split_search_convex``
+        (sixteenth round). Numpy path only; off in every preset.
+    split_search_convex : bool
+        With ``split_search``: also cut candidates that are convex towards the sensor as a
+        whole and fail only the RMS test (the fifteenth round's rule). One convex outline
+        that is no circle is a lumpy object (the simulator's rocks and bushes: 34 of the 35
+        false pieces of the seed-1 drives) as often as a trunk with a stub beside it (lidR);
+        one scan does not tell them apart (scan-detection-history.md, sixteenth round).
     """
 
     name: str = "custom"
@@ -369,6 +386,7 @@ class DetectorConfig:
     sigma_from_scan: bool = False
     scan_noise_jump: float = 0.2
     scan_noise_surface: float = 0.006
+    scan_noise_pool: bool = False
     bark_roughness: float = 0.0
     lobe_roughness: float = 0.0
     lobe_smooth_sigmas: float = 2.0
@@ -398,6 +416,7 @@ class DetectorConfig:
     arc_chi2: bool = False
     behind_sigmas: float = math.inf
     split_search: bool = False
+    split_search_convex: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:

@@ -337,6 +337,7 @@ class ScanTrunkDetector:
                 cfg.scan_noise_jump,
                 cfg.scan_noise_surface,
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
+                pool=cfg.scan_noise_pool,
             )
             if cfg.sigma_from_scan
             else None
@@ -633,11 +634,17 @@ class ScanTrunkDetector:
         order_key = 2 * pos[ok]
         if (corners or search) and len(every):
             # not convex (depth) or failed the RMS test: a trunk merged with its neighbour
-            which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
+            depth = segment_reasons(every, segment_features(every), cfg) == _DEPTH
+            which = depth.copy()
             which[pos[codes == _RMS]] = True
             got = split_refit(self, every, which, grid, wrap) if corners else None
             if search:
-                # the candidates whose corner split gave no trunk: search every cut
+                # the candidates whose corner split gave no trunk: search every cut; unless
+                # split_search_convex, only those that are not convex (depth): one convex
+                # outline that fails the RMS test is as often a lumpy object (a rock) as a
+                # trunk with a stub (sixteenth round)
+                if not cfg.split_search_convex:
+                    which &= depth
                 if got is not None:
                     which[got.parent[got.ok]] = False
                 cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)

@@ -78,7 +78,11 @@ SCAN_NOISE_MIN_TRIPLES = 16
 
 
 def scan_noise(
-    ranges: ArrayLike, jump: float, surface: float = 0.0, missing: float = 0.0
+    ranges: ArrayLike,
+    jump: float,
+    surface: float = 0.0,
+    missing: float = 0.0,
+    pool: bool = False,
 ) -> FloatArray:
     """Range-noise scale of every scan from all its returns, metres (ours, issue 11).
 
@@ -107,6 +111,15 @@ def scan_noise(
     ``missing`` is returned where there is no estimate (NaN tells "no estimate" from "less
     than ``surface``"; ``rms_noise_from_fit``).
 
+    ``pool`` (issue 11, sixteenth round): the scans of the batch with too few interior
+    triples for an estimate of their own share one, the same statistic over the union of
+    their triples, under the same two rules (at least :data:`SCAN_NOISE_MIN_TRIPLES` triples,
+    no single run holding more than half). The range noise is the sensor's, not the scan's: a
+    breast-height scan of a few trunks in the open at 0.5-1 degree steps holds 0-15 interior
+    triples, many such scans together enough. A scan refused for one surface holding most
+    of its triples is not pooled: that surface (one tree seen from many sides) would decide
+    the union too. Scans with their own estimate keep it (bit for bit).
+
     Parameters
     ----------
     ranges : array_like of shape (S, N), metres, gated (NaN / inf = no return), beam order
@@ -124,15 +137,31 @@ def scan_noise(
         d = (a - 2.0 * b + c)[:, 1:-1]
     # interior triples: both neighbouring triples continuous too (no silhouette beam)
     ok = cont[:, :-2] & cont[:, 1:-1] & cont[:, 2:]
+    lacking: list[int] = []
+    pooled: list[FloatArray] = []
+    pool_longest = 0
     for s in range(r.shape[0]):
         v = d[s][ok[s]]
         # longest run of consecutive qualifying triples
         edges = np.flatnonzero(np.diff(np.concatenate(([0], ok[s].astype(np.int8), [0]))))
         longest = int(np.max(edges[1::2] - edges[::2])) if edges.size else 0
         if v.shape[0] >= SCAN_NOISE_MIN_TRIPLES and 2 * longest <= v.shape[0]:
-            e = _ROUGH * float(np.median(np.abs(v - np.median(v))))
-            out[s] = math.sqrt(max(e * e - surface * surface, 0.0))
+            out[s] = _noise_estimate(v, surface)
+        elif pool and v.shape[0] < SCAN_NOISE_MIN_TRIPLES:
+            lacking.append(s)
+            pooled.append(v)
+            pool_longest = max(pool_longest, longest)
+    if lacking:
+        v = np.concatenate(pooled)
+        if v.shape[0] >= SCAN_NOISE_MIN_TRIPLES and 2 * pool_longest <= v.shape[0]:
+            out[lacking] = _noise_estimate(v, surface)
     return out
+
+
+def _noise_estimate(v: FloatArray, surface: float) -> float:
+    """:func:`scan_noise`'s statistic of the second differences ``v``."""
+    e = _ROUGH * float(np.median(np.abs(v - np.median(v))))
+    return math.sqrt(max(e * e - surface * surface, 0.0))
 
 
 def segment_sigma(cfg: DetectorConfig, segs: Segments, mean_r: FloatArray) -> FloatArray:

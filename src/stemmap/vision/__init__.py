@@ -13,6 +13,9 @@ segment
 segment_features, segment_classifier
     Trainable ilastik-style pixel classifier (multi-scale features, gradient-boosted trees in
     a pickle-free model file); the default of ``stemmap segment``.
+photometric
+    Camera-like colour changes (white balance, exposure, tone, hue, blur, JPEG) and grey-world
+    white balance: augmentation and robustness checks of the classifier.
 image_io
     Safe photo reading: pixel limit from the header, truncated / damaged files refused.
 edges

@@ -1,0 +1,117 @@
+"""The batch's shared range-noise estimate for scans without their own (``scan_noise_pool``;
+issue 11, sixteenth round)."""
+
+import numpy as np
+import pytest
+
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.scan.plausibility import scan_noise
+from stemmap.sim.forest import Stand
+from stemmap.sim.scanner import cast_rays
+from stemmap.types import ScanBatch
+
+ANG = np.radians(np.arange(-60.0, 60.0 + 1e-9, 0.5))
+
+
+def _scan(trees, sigma, rng):
+    xy = np.array([t[:2] for t in trees]).reshape(-1, 2)
+    r, _ = cast_rays(np.zeros(2), ANG, Stand(xy, np.array([2 * t[2] for t in trees])), 50.0)
+    return np.where(np.isfinite(r), r + rng.normal(0, sigma, r.shape), np.inf)
+
+
+def _sparse_scans(sigma, rng, n=20):
+    """``n`` 0.5-degree scans of two 30-40 cm trunks at 4.5-6 m: 6-9 returns, 3-6 interior
+    triples each, too few for a scan's own estimate."""
+    return np.stack(
+        [
+            _scan([(4.5 + 0.05 * k, -1.0 + 0.1 * np.sin(k), 0.15), (6.0, 1.5, 0.2)], sigma, rng)
+            for k in range(n)
+        ]
+    )
+
+
+def _single_tree_scans(sigma, rng, n=20):
+    """``n`` 0.5-degree scans of one 60 cm trunk at 2-2.8 m: >= 20 interior triples in one run per
+    scan, enough triples but one surface (the breakdown rule: no estimate of its own)."""
+    return np.stack([_scan([(2.0 + 0.04 * k, 0.3 * np.sin(k), 0.3)], sigma, rng) for k in range(n)])
+
+
+def _stand(sigma, rng):
+    return _scan([(3.0 + 1.2 * k, -4.0 + k, 0.25 + 0.05 * k) for k in range(6)], sigma, rng)
+
+
+def _batch(r):
+    return ScanBatch(
+        r, np.arange(r.shape[0], dtype=float), float(ANG[0]), float(ANG[1] - ANG[0]), range_max=50.0
+    )
+
+
+def test_pooled_noise_reads_the_sensor_noise_where_no_scan_has_its_own():
+    rng = np.random.default_rng(5)
+    r = _sparse_scans(0.03, rng)
+    assert np.all(scan_noise(r, 0.2) == 0.0)  # too few triples per scan: no estimate
+    pooled = scan_noise(r, 0.2, pool=True)
+    assert np.all(pooled == pooled[0])  # one shared estimate
+    # 20 scans x 3-6 interior triples: a MAD scale of ~90 values, ~12 % relative std
+    assert pooled[0] == pytest.approx(0.03, rel=0.3)
+
+
+def test_scans_with_their_own_estimate_keep_it():
+    rng = np.random.default_rng(6)
+    r = np.vstack([np.stack([_stand(0.01, rng) for _ in range(4)]), _sparse_scans(0.03, rng)])
+    own = scan_noise(r, 0.2)
+    pooled = scan_noise(r, 0.2, pool=True)
+    assert np.all(own[:4] > 0) and np.all(own[4:] == 0)
+    np.testing.assert_array_equal(pooled[:4], own[:4])
+    # the lacking scans share only their own triples: the 3 cm of the sparse scans
+    assert pooled[4] == pytest.approx(0.03, rel=0.3)
+    # the missing value stays where the pool has no estimate either
+    assert np.isnan(scan_noise(r[4:5], 0.2, missing=np.nan, pool=True)[0])
+
+
+def test_the_pool_keeps_the_breakdown_rule():
+    rng = np.random.default_rng(7)
+    # one lacking scan: its union is its own few triples, still no estimate
+    assert scan_noise(_sparse_scans(0.03, rng, n=1), 0.2, pool=True)[0] == 0.0
+    # scans with enough triples on one surface (one tree seen from many sides) are not
+    # pooled: one object would decide the estimate again (its bark read as noise)
+    one = _single_tree_scans(0.03, rng)
+    assert np.all(scan_noise(one, 0.2, pool=True) == 0.0)
+
+
+def test_compiled_pooled_noise_equals_numpy():
+    from stemmap.scan._fast_robust import _batch_scan_noise
+
+    rng = np.random.default_rng(12)
+    pooled_cases = 0
+    for _ in range(300):
+        s, n = int(rng.integers(1, 12)), int(rng.integers(0, 120))
+        r = 5.0 + np.cumsum(rng.normal(0.0, rng.choice([0.01, 0.05, 0.15]), (s, n)), axis=1)
+        r += rng.normal(0.0, 0.01, (s, n))
+        cut = rng.random((s, n)) < rng.choice([0.0, 0.1, 0.3])
+        r[cut] = rng.choice([np.nan, np.inf, -np.inf], int(cut.sum()))
+        jump = float(rng.choice([0.05, 0.2]))
+        surface = float(rng.choice([0.0, 0.006]))
+        got = _batch_scan_noise(r, np.ones(n, dtype=np.bool_), 0.0, np.inf, jump, surface)
+        own = scan_noise(r, jump, surface)
+        ref = scan_noise(r, jump, surface, pool=True)
+        np.testing.assert_array_equal(got, ref)
+        pooled_cases += bool(np.any(ref != own))
+    assert pooled_cases > 20
+
+
+def test_the_detector_finds_noisy_sparse_trunks_with_the_pool_on_both_paths():
+    # 3 cm noise, sigma configured 1 cm: without an estimate the RMS test (2 sigma + bark)
+    # rejects most views of the trunks; with the batch's shared estimate it does not
+    rng = np.random.default_rng(8)
+    b = _batch(_sparse_scans(0.03, rng))
+    found = {}
+    for pool in (False, True):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", scan_noise_pool=pool))
+        args = (b.ranges, b.times, b.angle_min, b.angle_increment, b.range_min, b.range_max)
+        fast = det._run_compiled(*args, b.frame)
+        ref = det._run_numpy(*args, b.frame, None, None)
+        np.testing.assert_array_equal(fast.index, ref.index)
+        np.testing.assert_allclose(fast.radii, ref.radii, rtol=1e-9, atol=1e-15)
+        found[pool] = len(fast)
+    assert found[True] >= found[False] + 8, found  # of 40 trunk views
