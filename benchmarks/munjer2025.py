@@ -3,7 +3,8 @@ own cloud detector through the same FastSLAM (100 particles) + Kalman refinement
 
 Usage: python benchmarks/munjer2025.py [--seeds 0 1 2] [--layout park] [--speed 4]
        [--model trunks.onnx] [--motion sim|lidar|both] [--window 5] [--draws 10]
-       [--lateral drop|keep] [--sigma-lateral 0.0] [--out result.json]
+       [--lateral drop|keep] [--sigma-lateral 0.0] [--lidar vlp16|vlp16_hires]
+       [--range-noise 0.03] [--out result.json]
 
 Each drive's detections are mapped ``--draws`` times (default 10), once per FastSLAM
 particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``
@@ -27,12 +28,13 @@ tilt check (``MunjerConfig(max_tilt_deg=None)``: eq. (4) alone, the literal read
 (the reading that collapsed recall); ``per_seed`` has, per method and seed, the same keys over
 that drive's draws alone and its per-draw rows (``per_draw``); ``scenario`` every parameter.
 Every method also carries ``resolvable``: the same Table 2 counts and rates over the trees whose
-centre comes within :data:`RESOLVABLE_RANGE` (eps / tan(2 deg) = 7.16 m, where two VLP-16 rings
-on a trunk stop being DBSCAN neighbours) inside the box in some frame; map trees on the other
-trees are ignored (neither TA nor FA); ``visible``: the same over the trees with at least 20
-lidar returns (DBSCAN's minPts) inside the box in some frame (:meth:`MunjerDrive.trees_visible`,
-what the sensor data offers: occlusion and range included), a KITTI-style "enough points" rule
-the paper does not state (it counts the "actual trees" of its test area), so not the headline.
+centre comes within :func:`resolvable_range` of the sensor (eps / tan(2 deg) = 7.16 m for the
+VLP-16, where two rings on a trunk stop being DBSCAN neighbours) inside the box in some frame;
+map trees on the other trees are ignored (neither TA nor FA); ``visible``: the same over the
+trees with at least 20 lidar returns (DBSCAN's minPts) inside the box in some frame
+(:meth:`MunjerDrive.trees_visible`, what the sensor data offers: occlusion and range included),
+a KITTI-style "enough points" rule the paper does not state (it counts the "actual trees" of its
+test area), so not the headline.
 
 Motion source (``--motion``): ``sim`` (default) feeds FastSLAM the simulator's noisy odometry
 (``LIDAR_IMU_ODOMETRY_NOISE``, a stand-in for the paper's ICP + IMU EKF); ``lidar`` runs that
@@ -62,9 +64,12 @@ the true pose), so no alignment is applied. ``n_real_in_box`` counts the trees w
 enters EB-LiDAR's pass-through box (Table 1) in at least one frame
 (:meth:`MunjerDrive.trees_in_box`): the paper scores the trees of the area the robot drove
 through, so a tree never inside the box would be a protocol error; on the default drives every
-tree enters it (35 of 35), so the all-trees scoring is the paper's. ``--range-noise`` sets the
-VLP-16 model's range noise sigma (default 0.03 m, the data sheet's "+-3 cm typical" read as one
-sigma; 0.015 m reads it as two sigma).
+tree enters it (35 of 35), so the all-trees scoring is the paper's. ``--lidar`` picks the 16-beam
+sensor (:func:`stemmap.sim.lidar.lidar_preset`): ``vlp16`` (default; rings 2 deg apart) or
+``vlp16_hires`` (Puck Hi-Res, 1.33 deg), and with it the ``resolvable`` range
+(:func:`resolvable_range`: 7.16 / 10.74 m). ``--range-noise`` sets the model's range noise sigma
+(default 0.03 m, the data sheet's "+-3 cm typical" read as one sigma; 0.015 m reads it as two
+sigma; docs/algorithms/cloud.md, ninth pass, for what real data say).
 """
 
 from __future__ import annotations
@@ -83,7 +88,7 @@ from typing import Any
 import numpy as np
 
 from _munjer_draws import map_draws, spread  # shared with munjer2025_motion_noise
-from stemmap.sim.lidar import lidar_preset
+from stemmap.sim.lidar import LidarModel, lidar_preset
 from stemmap.sim.munjer import MunjerDrive, simulate_munjer_drive
 from stemmap.slam.motion import rollout
 from stemmap.slam.munjer import (
@@ -108,9 +113,20 @@ SPREAD = ("", "_sd", "_min", "_max")
 FASTSLAM_KEYS = tuple(
     f"{k}{s}" for k in ("position_rmse", "pairwise_percent_error") for s in SPREAD
 )
-#: Range (m) within which two VLP-16 rings (2 deg apart) on a trunk are closer than DBSCAN's
-#: eps = 0.25 m (Table 1), so one cluster spans more than one ring: eps / tan(2 deg) = 7.16 m.
-RESOLVABLE_RANGE = 0.25 / math.tan(math.radians(2.0))
+#: DBSCAN's eps (Munjer et al. 2025, Table 1), m.
+EPS = 0.25
+
+
+def resolvable_range(model: LidarModel) -> float:
+    """Range (m) within which two adjacent rings of ``model`` on a trunk are closer than DBSCAN's
+    eps, so one cluster spans more than one ring: eps / tan(beam spacing); the largest gap
+    between adjacent beam elevations is the spacing (both 16-beam presets are uniform)."""
+    gap = float(np.diff(np.sort(np.asarray(model.elevations_deg))).max())
+    return EPS / math.tan(math.radians(gap))
+
+
+#: :func:`resolvable_range` of the VLP-16 (rings 2 deg apart): eps / tan(2 deg) = 7.16 m.
+RESOLVABLE_RANGE = resolvable_range(lidar_preset("vlp16"))
 PAPER = {
     "eb_lidar": {"n_real": 6, "n_det": 7, "ta": 6, "tr": 2, "fa": 1, "fr": 0, "precision": 0.86,
                  "recall": 1.0, "f1": 0.92, "accuracy": 0.89, "pairwise_percent_error": 7.13},
@@ -164,10 +180,10 @@ def _score(
     config: MunjerMapConfig | None = None,
 ) -> list[dict[str, Any]]:
     """One Table 2 row per FastSLAM draw (:func:`map_draws`); ``resolvable``: the same counts
-    over the trees a 16-beam lidar resolves with EB-LiDAR's eps (:data:`RESOLVABLE_RANGE`,
+    over the trees the drive's lidar resolves with EB-LiDAR's eps (:func:`resolvable_range`,
     trees beyond it ignored)."""
     st = drive.stand2d
-    ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
+    ok = drive.trees_in_box(max_range=resolvable_range(drive.lidar))
     vis = drive.trees_visible()
     rows = []
     for d, result, sec in map_draws(drive, obs, draws, motion, config):
@@ -297,10 +313,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--speed", type=float, default=4.0)
     ap.add_argument("--model", type=Path, default=None, help="ONNX trunk detector for DAIM")
     ap.add_argument(
+        "--lidar",
+        choices=["vlp16", "vlp16_hires"],
+        default="vlp16",
+        help="16-beam sensor (stemmap.sim.lidar.lidar_preset): VLP-16 (rings 2 deg apart, the "
+        "default) or Puck Hi-Res (1.33 deg)",
+    )
+    ap.add_argument(
         "--range-noise",
         type=float,
         default=None,
-        help="lidar range noise sigma (m); default the vlp16 preset's 0.03 (data sheet +-3 cm)",
+        help="lidar range noise sigma (m); default the preset's 0.03 (data sheet +-3 cm)",
     )
     ap.add_argument("--motion", choices=["sim", "lidar", "both"], default="sim")
     ap.add_argument(
@@ -347,10 +370,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     runs: dict[str, dict[str, list[dict[str, Any]]]] = {m: {n: [] for n in names} for m in motions}
     drift: list[float] = []
     scen: dict[str, Any] = {}
+    noise = {} if a.range_noise is None else {"range_noise": a.range_noise}
     t_all = time.perf_counter()
     for seed in a.seeds:
         t0 = time.perf_counter()
-        lidar = None if a.range_noise is None else lidar_preset("vlp16", range_noise=a.range_noise)
+        lidar = lidar_preset(a.lidar, **noise)
         drive = simulate_munjer_drive(layout=a.layout, speed=a.speed, lidar=lidar, rng=seed)
         t_sim = time.perf_counter() - t0
         scen = dict(drive.params)
@@ -390,7 +414,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 run["per_frame"] = _per_frame(drive, o)
             if len(o) == 0:
                 st = drive.stand2d
-                ok = drive.trees_in_box(max_range=RESOLVABLE_RANGE)
+                ok = drive.trees_in_box(max_range=resolvable_range(drive.lidar))
                 vis = drive.trees_visible()
                 empty = {"n_real": st.n_trees, "n_real_in_box": int(drive.trees_in_box().sum()),
                          "n_det": 0, "ta": 0, "fa": 0, "fr": st.n_trees,
@@ -443,12 +467,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out["scenario"] = {
         **scen,
         "seeds": a.seeds,
-        "lidar_range_noise": a.range_noise if a.range_noise is not None else 0.03,
+        "lidar": a.lidar,
+        "lidar_range_noise": lidar_preset(a.lidar, **noise).range_noise,
         "detector": "onnx:" + str(a.model) if a.model else "SegmentationDetector",
         "gate_m": GATE,
         "eb_lidar_window": a.window,
         "fastslam_draws": a.draws,
-        "resolvable_range_m": RESOLVABLE_RANGE,
+        "resolvable_range_m": resolvable_range(lidar_preset(a.lidar)),
         "motion": a.motion,
         "lateral": a.lateral,
         "sigma_lateral": a.sigma_lateral,

@@ -25,7 +25,9 @@ tree by what they lie on; ``resolvable_pairs_by_diameter`` splits the pairs with
 trunk diameter (the eccentricity window acts as a diameter filter).
 
 Usage: python benchmarks/munjer2025_causes.py [--seeds 0 1 2] [--layout park] [--speed 4]
-       [--range-noise 0.03]
+       [--lidar vlp16|vlp16_hires] [--range-noise 0.03]
+``--lidar vlp16_hires`` (Puck Hi-Res, rings 1.33 deg apart) moves the ring-gap range bound to
+eps / tan(1.33 deg) = 10.74 m (``resolvable_range`` of benchmarks/munjer2025.py).
 Prints one JSON object. The drives are those of benchmarks/munjer2025.py (same seeds; the RGB-D
 frames are not rendered, which changes nothing of the lidar frames or the stand).
 """
@@ -43,6 +45,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from munjer2025 import resolvable_range  # same folder
 from stemmap.cloud.filters import pass_through
 from stemmap.cloud.munjer import CLUSTER_STAGES, MunjerConfig, munjer_clusters
 from stemmap.sim.lidar import LABEL_BRANCH, LABEL_GROUND, LABEL_SHRUB, lidar_preset
@@ -51,10 +54,14 @@ from stemmap.slam.munjer import MunjerMapConfig, eb_lidar_observations, map_munj
 
 GATE = 1.0
 MIN_RETURNS = 20
-#: eps / tan(2 deg): beyond it two VLP-16 rings on a trunk are not DBSCAN neighbours.
-RESOLVABLE_RANGE = 0.25 / math.tan(math.radians(2.0))
 STAGES = ("no_cluster", *CLUSTER_STAGES[:-1], "mislocated", "accepted")
-RANGE_BINS = (0.0, 4.0, 6.0, RESOLVABLE_RANGE, 10.0, 15.0)
+
+
+def _range_bins(resolvable: float) -> tuple[float, ...]:
+    """Centre-range bins (m), one edge at the sensor's ring-gap bound ``resolvable``."""
+    return tuple(sorted({0.0, 4.0, 6.0, resolvable, 10.0, 15.0}))
+
+
 DIAMETER_BINS = (0.0, 0.25, 0.30, 0.35, 0.50)
 KINDS = {LABEL_GROUND: "ground", LABEL_BRANCH: "branch", LABEL_SHRUB: "bush"}
 
@@ -131,7 +138,8 @@ def _rates(ta: int, fa: int, fr: int) -> dict[str, float | None]:
 
 
 def run_seed(seed: int, a: argparse.Namespace) -> dict[str, Any]:
-    lidar = None if a.range_noise is None else lidar_preset("vlp16", range_noise=a.range_noise)
+    noise = {} if a.range_noise is None else {"range_noise": a.range_noise}
+    lidar = lidar_preset(a.lidar, **noise)
     drive = simulate_munjer_drive(
         layout=a.layout, speed=a.speed, lidar=lidar, camera_every=0, rng=seed
     )
@@ -167,20 +175,20 @@ def run_seed(seed: int, a: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def summarise(runs: list[dict[str, Any]], min_obs: int) -> dict[str, Any]:
+def summarise(runs: list[dict[str, Any]], min_obs: int, resolvable: float) -> dict[str, Any]:
     trees = [t for r in runs for t in r["trees"]]
     n = len(trees)
     stages = np.array([s for r in runs for s in r["pairs"]], dtype=np.int64)
     ranges = np.array([x for r in runs for x in r["pair_range"]])
     by_range = {}
-    for lo, hi in itertools.pairwise(RANGE_BINS):
+    for lo, hi in itertools.pairwise(_range_bins(resolvable)):
         m = (ranges >= lo) & (ranges < hi)
         by_range[f"{lo:.2f}-{hi:.2f} m"] = {
             "pairs": int(m.sum()),
             **{s: int((stages[m] == i).sum()) for i, s in enumerate(STAGES)},
         }
     diam = np.array([x for r in runs for x in r["pair_diameter"]])
-    near = ranges < RESOLVABLE_RANGE
+    near = ranges < resolvable
     by_diam = {}
     for lo, hi in itertools.pairwise(DIAMETER_BINS):
         m = near & (diam >= lo) & (diam < hi)
@@ -227,19 +235,25 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--layout", choices=["park", "orchard"], default="park")
     ap.add_argument("--speed", type=float, default=4.0)
+    ap.add_argument("--lidar", choices=["vlp16", "vlp16_hires"], default="vlp16")
     ap.add_argument("--range-noise", type=float, default=None)
     a = ap.parse_args(argv)
     t0 = time.process_time()
     runs = [run_seed(s, a) for s in a.seeds]
+    res_range = resolvable_range(lidar_preset(a.lidar))
     out = {
-        **summarise(runs, MunjerMapConfig().min_observations),
+        **summarise(
+            runs, MunjerMapConfig().min_observations, resolvable_range(lidar_preset(a.lidar))
+        ),
         "stages": list(STAGES),
         "per_seed": [{k: v for k, v in r.items() if not k.startswith("pair")} for r in runs],
         "scenario": {
             "seeds": a.seeds,
             "layout": a.layout,
             "speed": a.speed,
+            "lidar": a.lidar,
             "lidar_range_noise": a.range_noise if a.range_noise is not None else 0.03,
+            "resolvable_range_m": res_range,
             "config": MunjerConfig().__dict__,
             "min_returns": MIN_RETURNS,
             "gate_m": GATE,

@@ -203,7 +203,8 @@ def test_detect_products_documented(tmp_path: Path) -> None:
         "n_points": np.array([2]), "bearing_deg": np.array([10.0]), "range": np.array([3.0]),
         "width": np.array([0.05]), "partial": np.array([False]), "x": np.array([np.nan]),
         "y": np.array([np.nan]), "radius": np.array([np.nan]), "rms": np.array([np.nan]),
-        "sigma": np.array([np.nan]),
+        "sigma": np.array([np.nan]), "failed_test": ["min_points"], "pieces": np.array([0]),
+        "pieces_accepted": np.array([0]),
     }  # fmt: skip
     assert _write_rejected_csv(tmp_path / "r.csv", [part]) == 1
     assert _undocumented(_header(tmp_path / "r.csv"), "rejected candidates CSV") == []

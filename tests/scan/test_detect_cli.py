@@ -145,6 +145,8 @@ def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     assert sorted(int(r["scan_index"]) for r in walls) == [0, 1, 2]
     assert {r["reason"] for r in walls} <= {"depth", "straight"}
     assert all(r["radius"] == "nan" for r in walls)
+    # dropped outright: the reason is the test, no piece was kept
+    assert all(r["failed_test"] == r["reason"] and r["pieces_accepted"] == "0" for r in walls)
     with out.open() as fh:
         stems = list(csv.DictReader(fh))
     # the two trunks, still detected in every scan. (The wall's first returns, cut from it by
@@ -154,3 +156,31 @@ def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     for x, y in ((3.0, 0.0), (2.0, 2.0)):
         near = [r for r in stems if math.hypot(float(r["x"]) - x, float(r["y"]) - y) < 0.3]
         assert sorted(int(r["scan_index"]) for r in near) == [0, 1, 2]
+
+
+def test_detect_rejected_names_a_split_parent_and_its_pieces(tmp_path):
+    # a 30 cm trunk at 3 m merged with a branch leaving its side towards the sensor: the
+    # candidate fails as not convex, its corner split's trunk piece is detected
+    from tests.scan.test_gaps_refit import _scan_with_branch
+
+    b = _scan_with_branch((3.0, 0.0, 0.15), (3.0, 0.149), (2.7, 0.4))
+    src = tmp_path / "scans.npz"
+    np.savez(src, ranges=np.repeat(b.ranges, 2, axis=0), time=np.array([0.0, 0.1]),
+             angle_min=b.angle_min, angle_increment=b.angle_increment, range_max=30.0)  # fmt: skip
+    out, rej = tmp_path / "stems.csv", tmp_path / "rejected.csv"
+    res = runner.invoke(app, ["detect", str(src), "--out", str(out), "--rejected", str(rej)])
+    assert res.exit_code == 0, res.output
+    with out.open() as fh:
+        stems = list(csv.DictReader(fh))
+    assert sorted(int(r["scan_index"]) for r in stems) == [0, 1]
+    with rej.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0])[:13] == ["scan_index", "time", "reason", "n_points", "bearing_deg",
+                                  "range", "width", "partial", "x", "y", "radius", "rms",
+                                  "sigma"]  # fmt: skip
+    assert [(r["scan_index"], r["reason"], r["failed_test"]) for r in rows] == [
+        ("0", "split", "depth"),
+        ("1", "split", "depth"),
+    ]
+    assert all(int(r["pieces_accepted"]) >= 1 for r in rows)
+    assert "2 rejected candidates (2 of them re-fitted as pieces that were kept)" in res.output

@@ -214,6 +214,29 @@ def test_validated_corner_split_keeps_the_verdict_of_two_lobes():
     assert len(det.detect_batch(batch)) == 2
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **_CORNERS))
     assert len(det.detect_batch(batch)) == 0
+    # the rejected list says it was cut and that no piece was kept (it stays dropped)
+    rej = det.rejected(batch)
+    assert rej["reason"] == rej["failed_test"] and rej["reason"][0] in {"depth", "rms"}
+    assert rej["pieces"].tolist() == [2] and rej["pieces_accepted"].tolist() == [0]
+
+
+def test_rejected_list_names_a_split_parent_whose_pieces_were_kept():
+    # the trunk merged with a branch: the whole candidate fails (depth), its corner split's
+    # trunk piece is detected, so the parent is listed as split, not as dropped
+    batch = _scan_with_branch((3.0, 0.0, 0.15), (3.0, 0.149), (2.7, 0.4))
+    cfg = {"beam_divergence_deg": 0.0}
+    for kw, reason in (
+        ({}, "split"),  # the default: validated corner split
+        ({"refit_pieces": False}, "arc"),  # no split: its largest consistent arc
+        ({"refit_pieces": False, "arc_refit": False}, "depth"),  # nothing: dropped
+    ):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **kw))
+        n_det = len(det.detect_batch(batch))
+        rej = det.rejected(batch)
+        assert rej["failed_test"] == ["depth"]
+        kept = int(rej["pieces_accepted"][0])
+        assert (kept > 0) == (n_det == 1) and int(rej["pieces"][0]) >= kept
+        assert rej["reason"] == [reason]
 
 
 def test_validate_pieces_rules():

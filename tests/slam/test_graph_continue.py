@@ -130,3 +130,22 @@ def test_a_damaged_or_mismatched_graph_file_is_an_input_error(sessions, tmp_path
     write_graph(p, g)
     with pytest.raises(InputError, match="ids differ"):
         read_graph(p, other)
+
+
+def test_a_version_1_file_is_still_read(sessions, tmp_path: Path) -> None:
+    """Format 2 added the GNSS fixes and the prior map's tree priors; a version-1 archive
+    (without those arrays) reads as a graph with none of them. A kernel name the reader does
+    not know is an input error."""
+    from stemmap.slam._graph_continue import _V2_FIELDS, _V2_SCALARS
+
+    _, r1, _, _, _ = sessions
+    g = r1.graph
+    p = _save_bad(tmp_path, g, format_version=np.array(1))
+    with np.load(p) as z:
+        v1 = {k: z[k] for k in z.files if k not in (*_V2_FIELDS, *_V2_SCALARS)}
+    np.savez(p, **v1)
+    back = read_graph(p, r1.stem_map)
+    assert back.n_fixes == 0 and back.tprior_tree.size == 0 and back.joint_tree.size == 0
+    np.testing.assert_array_equal(back.meas, g.meas)
+    with pytest.raises(InputError, match="tprior_robust is 'tukey'"):
+        read_graph(_save_bad(tmp_path, g, tprior_robust=np.array("tukey")))

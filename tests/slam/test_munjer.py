@@ -141,6 +141,33 @@ def test_eb_lidar_ring_gap_limits_range() -> None:
     assert found == {3.0: 1, 8.0: 0}
 
 
+def test_eb_lidar_ring_gap_with_the_hires_sensor() -> None:
+    """The Puck Hi-Res (rings 1.33 deg apart) moves the ring-gap limit to eps / tan(1.33 deg) =
+    10.7 m (``benchmarks/munjer2025.py --lidar vlp16_hires``). The same noise-free 0.3 m trunk,
+    one frame: at 6 m the VLP-16's 2-ring cluster (30 points, e = 7.6) is below the window and
+    the Hi-Res's 4-ring one (60 points, e = 16.9) is a stem; at 8 m the VLP-16 gives no DBSCAN
+    cluster and the Hi-Res a 3-ring one (33 points; e = 21.1, just above the window)."""
+    from munjer2025 import resolvable_range  # benchmarks/ (tests/conftest.py's sys.path)
+    from stemmap.cloud.munjer import munjer_clusters
+    from stemmap.sim.lidar import Stand3D, lidar_preset, simulate_mobile
+
+    assert resolvable_range(lidar_preset("vlp16")) == pytest.approx(7.159, abs=1e-3)
+    assert resolvable_range(lidar_preset("vlp16_hires")) == pytest.approx(10.741, abs=1e-3)
+    got = {}
+    for name in ("vlp16", "vlp16_hires"):
+        lidar = lidar_preset(name, range_noise=0.0)
+        for r in (6.0, 8.0):
+            st = Stand3D(np.array([[r, 0.0]]), np.array([0.3]), np.array([8.0]),
+                         np.zeros((1, 2)), np.zeros(1), ground=(0.0, 0.0, 0.0))  # fmt: skip
+            mob = simulate_mobile(
+                st, np.array([[0.0, 0.0], [0.0, 0.01]]), lidar, height=0.8, yaws=[0, 0], rng=0
+            )
+            c = munjer_clusters(mob.frames[0].xyz)
+            got[name, r] = (int(c.dense.sum()), len(c.stems()))
+    assert got == {("vlp16", 6.0): (1, 0), ("vlp16", 8.0): (0, 0),
+                   ("vlp16_hires", 6.0): (1, 1), ("vlp16_hires", 8.0): (1, 0)}  # fmt: skip
+
+
 def test_eb_lidar_map_accuracy(drive: MunjerDrive) -> None:
     m, mm = _map(drive, eb_lidar_observations(drive.frames, drive.times))
     # measured: TA 8, FA 0, FR 5, TR 3. Recall is bounded by the 0.5 m band: beyond ~6 m a

@@ -16,6 +16,7 @@ from stemmap.slam.motion import (
     _poses_blocked,
     _poses_whole,
     preintegrate,
+    preintegrate_spans,
     rollout,
 )
 
@@ -64,6 +65,12 @@ def test_blocks_are_bit_identical_to_the_whole_array(kind, n, block):
         full = preintegrate(model, c, tq, p0)
         assert _sha(full.poses, full.distance, full.deltas) == _sha(*ref, pre.deltas)
         assert np.all(np.isnan(pre.covs)) and pre.covs.shape == full.covs.shape
+    # no covariance stack is allocated: a read-only view of one NaN (also across spans)
+    assert pre.covs.strides == (0, 0, 0) and not pre.covs.flags.writeable
+    spans = preintegrate_spans(model, c, tq, p0, span_s=(tq[-1] - tq[0]) / 3.0,
+                               with_covariance=False)  # fmt: skip
+    assert spans.covs.strides == (0, 0, 0) and spans.covs.shape == pre.covs.shape
+    assert np.all(np.isnan(spans.covs))
 
 
 def test_blocks_edge_streams():

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from stemmap.scan.circle import fit_circle
-from stemmap.vision._daim_noise import arc_point_covariances, fit_covariance
+from stemmap.vision._daim_noise import (
+    arc_point_covariances,
+    bound_covariance,
+    fit_covariance,
+    physical_bound,
+    surface_centre,
+)
+from stemmap.vision.depth import arc_width
 
 K = 0.08 / (447.0 * 0.05)  # the D435 model, sigma = k z^2
 
@@ -53,3 +60,47 @@ def test_flat_arc_gives_a_large_centre_sigma() -> None:
     line = np.column_stack((np.full(3, 5.0), [-0.1, 0.0, 0.1]))
     bad = fit_covariance(line, [5.0, 0.0], [0, 0], "three_point", depth_noise_k=K, pixel_angle=0)
     assert np.isnan(bad).all()
+
+
+def test_flat_arc_covariance_is_bounded_by_the_trunk_geometry() -> None:
+    """The flat 10 m arc above: its first-order centre sigma is several metres; bounded by
+    the centre being the middle arc point plus a radius of at most r_lim along the ray, it is
+    at most sqrt(0.35^2 + r_lim^2) along the ray (and below the first order everywhere). A
+    well-conditioned near arc is left within 1 %; a degenerate fit gets the bound."""
+    o = np.zeros(2)
+    arc = _arc(10.0, 0.15, 0.6, 9)
+    f = fit_circle(arc, "three_point", origin=o)
+    kw = {"depth_noise_k": K, "pixel_angle": 2 / 447.0}
+    cov = fit_covariance(arc, f.center, o, "three_point", **kw)
+    r_lim = 0.5 * 1.5 * arc_width(arc, o)  # MUNJER2025's width check
+    bound = physical_bound(arc, o, r_lim, **kw, keep_cross=cov)
+    capped = bound_covariance(cov, bound)
+    assert np.sqrt(cov[0, 0]) > 1.0  # metres
+    along = np.sqrt(capped[0, 0])
+    assert 0.05 < along <= np.sqrt((K * 9.85**2) ** 2 + r_lim**2) + 1e-9
+    # Loewner order: below the bound and below the first order
+    assert np.linalg.eigvalsh(bound - capped).min() > -1e-12
+    assert np.linalg.eigvalsh(cov - capped).min() > -1e-9 * np.abs(cov).max()
+    near = _arc(3.0, 0.2, 1.2, 9)
+    fn = fit_circle(near, "three_point", origin=o)
+    cn = fit_covariance(near, fn.center, o, "three_point", **kw)
+    bn = physical_bound(near, o, 0.5 * 1.5 * arc_width(near, o), **kw, keep_cross=cn)
+    np.testing.assert_allclose(bound_covariance(cn, bn), cn, rtol=0.01, atol=1e-9)
+    # without keep_cross the bound's cross-range part is the middle point's alone, below
+    # the fit's (7.6 mm): clipped to 3.6 mm, over-confident
+    b0 = physical_bound(near, o, 0.5 * 1.5 * arc_width(near, o), **kw)
+    assert bound_covariance(cn, b0)[1, 1] < 0.5 * cn[1, 1]
+    np.testing.assert_array_equal(bound_covariance(np.full((3, 3), np.nan), bn), bn)
+
+
+def test_a_wide_fit_is_placed_one_visible_half_width_behind_its_arc() -> None:
+    """A fit failing the width check has no trunk centre: the detection's centre is the
+    middle arc point plus half the visible width along its ray -- for a true 0.3 m trunk at
+    10 m within half its radius of its centre, where the flat three-point circle's can be metres
+    off."""
+    o = np.zeros(2)
+    arc = _arc(10.0, 0.15, 0.6, 9)
+    c = surface_centre(arc, o, 0.5 * arc_width(arc, o))
+    # (this arc shows +-0.6 rad of the trunk: 0.17 m of its 0.3 m, so 6.5 cm short)
+    assert np.hypot(*(c - [10.0, 0.0])) < 0.5 * 0.15
+    assert c[0] > arc[:, 0].min()  # behind the visible surface

@@ -141,7 +141,9 @@ def test_noise_scaled_clustering_finds_the_far_trunk(d435_frames) -> None:  # ty
     """At 10.5 m the D435's depth noise (0.39 m) leaves no two points within a fixed 0.1 m:
     DBSCAN finds no cluster (the orchard drives' main miss, docs/algorithms/vision-fusion.md).
     ``depth_noise_k`` (radius max(eps, 2 k z^2); in ``MUNJER2025`` since the per-detection
-    noise) clusters it in every draw, centre within 0.3 m (measured 0.06-0.28 m)."""
+    noise) clusters it in every draw, centre within 0.45 m (measured up to 0.38 m; a wide fit
+    is placed half its visible width behind its arc: 30 draws rms 0.21 m, max 0.50 m, against
+    0.29 / 0.92 m with the three-point centre)."""
     noise_eps = replace(MUNJER2025, depth_noise_k=D435_DEPTH_NOISE_K)
     assert noise_eps == MUNJER2025
     fixed_eps = replace(MUNJER2025, depth_noise_k=None)
@@ -151,25 +153,31 @@ def test_noise_scaled_clustering_finds_the_far_trunk(d435_frames) -> None:  # ty
         assert 2 not in fixed.index
         assert 2 in scaled.index
         k = int(np.flatnonzero(scaled.index == 2)[0])
-        assert np.hypot(*(scaled.centers[k] - D435_XY[2])) < 0.3
+        assert np.hypot(*(scaled.centers[k] - D435_XY[2])) < 0.45
 
 
 def test_width_check_drops_implausible_diameters_keeps_centres(d435_frames) -> None:  # type: ignore[no-untyped-def]
     """Three points on a 7-10 m arc with 0.2-0.4 m depth noise give circles up to 2 m wide
     (measured); the width check (2 r <= 1.5 x the arc's visible width) sets those radii to NaN
-    and leaves every centre as the three-point fit gave it."""
+    and places those detections half the arc's visible width behind its middle point (the
+    flat circle's centre is not the trunk's: docs/algorithms/cloud.md "DAIM: per-detection
+    noise"); every other centre is the three-point fit's."""
     noise_eps = replace(MUNJER2025, depth_noise_k=D435_DEPTH_NOISE_K)  # the 10.5 m trunk too
     free = _daim(d435_frames, replace(noise_eps, max_width_ratio=None))
     checked = _daim(d435_frames, noise_eps)
     err_free, err_checked = [], []
+    moved_free, moved_checked = [], []
     for a, b in zip(free, checked, strict=True):
         np.testing.assert_array_equal(a.index, b.index)
-        np.testing.assert_array_equal(a.centers, b.centers)
-        err_free += list(np.abs(a.diameters - D435_DBH[a.index]))
         ok = np.isfinite(b.diameters)
+        np.testing.assert_array_equal(a.centers[ok], b.centers[ok])
+        moved_free += list(np.hypot(*(a.centers[~ok] - D435_XY[a.index[~ok]]).T))
+        moved_checked += list(np.hypot(*(b.centers[~ok] - D435_XY[b.index[~ok]]).T))
+        err_free += list(np.abs(a.diameters - D435_DBH[a.index]))
         err_checked += list(np.abs(b.diameters[ok] - D435_DBH[b.index[ok]]))
     assert max(err_free) > 0.2 and len(err_checked) >= 3
     assert max(err_checked) < 0.06  # measured 0.04 m
+    assert moved_checked and np.mean(moved_checked) < np.mean(moved_free)
 
 
 def test_detection_covariance_grows_with_depth_and_covers_the_error(d435_frames) -> None:  # type: ignore[no-untyped-def]

@@ -114,7 +114,7 @@ def detect(
         typer.Option(
             "--rejected",
             help="Also write the rejected trunk candidates to this CSV, each with the test "
-            "that dropped it (reason column).",
+            "that dropped it (reason column; split / arc: cut into pieces that were kept).",
         ),
     ] = None,
     quiet: Annotated[
@@ -130,8 +130,10 @@ def detect(
 
     Example: stemmap detect run.npz --out stems.csv --preset stemmap
 
-    --rejected FILE lists every candidate the detector dropped with the test that dropped it
-    (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md).
+    --rejected FILE lists every candidate that failed the detector's tests with the test it
+    failed (reason: width, depth, straight, rms, radius_width_ratio, ...; docs/cli.md); a
+    merged candidate whose re-fitted pieces were kept has reason split (or arc), the test in
+    failed_test and the pieces' count in pieces / pieces_accepted.
 
     Example: stemmap detect logs/ --out det --workers 2  (one folder per log + summary.csv)
 
@@ -144,6 +146,7 @@ def detect(
     from stemmap.io.products import run_products
     from stemmap.io.scans import SkippedFrame, read_scans
     from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+    from stemmap.scan.plausibility import PIECE_REASONS
     from stemmap.types import ScanBatch, StemObservations
 
     with (
@@ -231,6 +234,7 @@ def detect(
         write_observations_csv(run.path(out_path), result)
         if rejected is not None:
             n_rejected = _write_rejected_csv(run.path(rejected), rejected_parts)
+            n_pieces = sum(sum(r in PIECE_REASONS for r in p["reason"]) for p in rejected_parts)
     if not quiet:
         n_with = len(np.unique(result.index)) if len(result) else 0
         out.print(
@@ -240,7 +244,8 @@ def detect(
             markup=False,
         )
         if rejected is not None:
-            out.print(f"{n_rejected} rejected candidates -> {rejected}", markup=False)
+            kept = f" ({n_pieces} of them re-fitted as pieces that were kept)" if n_pieces else ""
+            out.print(f"{n_rejected} rejected candidates{kept} -> {rejected}", markup=False)
 
 
 #: IMU samples may end this long before the first / after the last scan (s): an IMU at
@@ -293,6 +298,9 @@ _REJECTED_COLUMNS = (
     "radius",
     "rms",
     "sigma",
+    "failed_test",
+    "pieces",
+    "pieces_accepted",
 )
 
 

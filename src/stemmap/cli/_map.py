@@ -42,6 +42,7 @@ from stemmap.cli._map_prior import (
     false_trees_report,
     gnss_start_check,
     prior_map_frame,
+    session_graph_report,
     write_information,
 )
 from stemmap.cli._map_problems import motion_sigma as _motion_sigma
@@ -471,6 +472,9 @@ def map_command(
         if reloc is not None:
             metrics["relocalisation"] = {**reloc.__dict__, **prior_note}
         metrics["false_trees"] = false_trees_report(backend.value, result.stats, ctx["kind"])
+        metrics["session_graph"] = session_graph_report(
+            backend.value, realtime or rerun is not None, result.graph
+        )
         metrics["uncertainty"] = unc.to_dict()
         metrics["frames"] = frames_metadata(problem, crs, gnss_frame=gnss_frame)
         if bag is not None:

@@ -22,6 +22,7 @@ __all__ = [
     "false_trees_report",
     "gnss_start_check",
     "prior_map_frame",
+    "session_graph_report",
     "write_information",
 ]
 
@@ -93,8 +94,8 @@ def continue_from_map(
         if not gfile.is_file():
             raise InputError(
                 f"--prior-type graph: no {GRAPH_NPZ} beside {csv} (written by `stemmap map "
-                "--backend isam2` since format 1; not by other back-ends, --realtime, GNSS "
-                "runs or runs on a marginal prior); use --prior-type huber."
+                "--backend isam2`, also with --gnss or on a marginal prior since format 2; not "
+                "by other back-ends or --realtime); use --prior-type huber."
             )
         saved = read_graph(gfile, prior)  # InputError names the file and the problem
         problem, reloc = continue_session(problem, prior, g)
@@ -102,7 +103,8 @@ def continue_from_map(
             "prior": "graph",
             "graph": str(gfile),
             "graph_poses": saved.n_poses,
-            "graph_factors": int(saved.odo_ij.shape[0] + saved.meas_pose.shape[0]),
+            "graph_factors": saved.n_factors,
+            "graph_gnss_fixes": saved.n_fixes,
             "prior_graph_inflation": Isam2Config().prior_graph_inflation,
         }
         return dataclasses.replace(problem, prior_graph=saved), reloc, note
@@ -229,6 +231,32 @@ def write_information(stage: Path, stem_map: Any, graph: Any = None) -> list[str
         write_graph(stage / GRAPH_NPZ, graph)
         names.append(GRAPH_NPZ)
     return names
+
+
+def session_graph_report(backend: str, realtime: bool, graph: Any) -> dict[str, Any]:
+    """metrics.json ``session_graph``: whether ``graph.npz`` (the session graph a later
+    ``--prior-map ... --prior-type graph`` continues) was written, and if not why."""
+    from stemmap.slam._graph_continue import GRAPH_NPZ
+
+    if graph is not None:
+        return {
+            "written": True, "file": GRAPH_NPZ, "poses": graph.n_poses,
+            "factors": graph.n_factors, "gnss_fixes": graph.n_fixes,
+            "tree_priors": int(graph.tprior_tree.size), "joint_prior": bool(graph.joint_tree.size),
+        }  # fmt: skip
+    if backend != "isam2":
+        short = f"not written ({backend}: no factor graph)"
+        why = f"the {backend} back-end keeps no factor graph (only isam2 does)"
+    elif realtime:
+        short = "not written (--realtime: no whole-session graph)"
+        why = (
+            "the realtime mapper re-anchors its smoother every few keyframes (bounded memory), "
+            "so no graph of the whole session exists; continue this map with --prior-type "
+            "huber, cauchy or joint"
+        )
+    else:
+        short, why = "not written", "the back-end returned no graph"
+    return {"written": False, "reason": why, "summary": short}
 
 
 _NO_SCANS = {

@@ -126,6 +126,10 @@ def summary_rows(m: dict[str, Any], stem_map: Any) -> list[tuple[str, str, str]]
     rl = m.get("relocalisation")
     if isinstance(rl, dict) and "prior" in rl:
         rows.append(("prior map trees held by", f"{rl['prior']} prior", "relocalisation.prior"))
+    sg = m.get("session_graph")
+    if isinstance(sg, dict):
+        said = "written" if sg.get("written") else str(sg.get("summary", "not written"))
+        rows.append(("session graph (graph.npz)", said, "session_graph"))
     mm = m.get("map")
     if isinstance(mm, dict):
         rows.append(("map recall (matched / all true trees)", fmt(mm.get("recall")), "map.recall"))

@@ -586,9 +586,17 @@ class ScanTrunkDetector:
         frame: str,
         roll: ArrayLike | None,
         pitch: ArrayLike | None,
+        *,
+        fate: dict[str, Any] | None = None,
     ) -> StemObservations:
         """The pipeline step by step through the named functions of the preprocess, segment,
-        features and circle modules (the reference the compiled path is tested against)."""
+        features and circle modules (the reference the compiled path is tested against).
+
+        ``fate`` (a dict, filled in; for :func:`~stemmap.scan.plausibility.rejected_candidates`):
+        what became of the candidates that were cut into pieces -- ``"split"`` / ``"arc"``: a
+        list of (parent, accepted) arrays per re-fit (corner, search or gap split; largest
+        arc), one entry per piece, parents indexing every candidate before the segment filters
+        (``"filtered"`` False) or the candidates that passed them (``"filtered"`` True)."""
         cfg = self.config
         corners = cfg.refit_pieces and cfg.refit_split == "corners"
         search = cfg.split_search
@@ -609,6 +617,8 @@ class ScanTrunkDetector:
             passed = segment_reasons(every, segment_features(every), cfg) == 0
             segs = every.select(passed)
         pos = np.flatnonzero(passed) if arcs and len(every) else np.arange(len(segs))
+        if fate is not None:
+            fate.update(filtered=not arcs, split=[], arc=[])
         if len(segs) == 0 and not (arcs and len(every)):
             return StemObservations.empty(source=self.source, frame=frame)
         if cfg.beam_footprint_deg > 0:
@@ -637,11 +647,13 @@ class ScanTrunkDetector:
                     which &= depth
                 if got is not None:
                     which[got.parent[got.ok]] = False
-                cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap)
+                cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
                 got = search_refit(self, every, which, grid, wrap)
-            cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap)
+            cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
         elif cfg.refit_pieces:
             got = refit_pieces(self, segs, fitted, codes, grid, wrap)
+            if fate is not None and got is not None:
+                fate["split"].append((pos[got.parent], got.ok))
             if got is not None and np.any(got.ok):
                 more = _output_columns(got.segs, got.fitted, got.ok)
                 # a piece takes its parent's place in the output (the parent failed)
@@ -649,7 +661,7 @@ class ScanTrunkDetector:
                 order_key = np.concatenate((order_key, 2 * pos[got.parent[got.ok]] + 1))
         if cfg.arc_refit and len(every):
             cols, order_key = self._arc_candidates(
-                every, cols, order_key, fitted.rms[ok], grid, wrap
+                every, cols, order_key, fitted.rms[ok], grid, wrap, fate
             )
         log.debug(
             "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
@@ -683,10 +695,13 @@ class ScanTrunkDetector:
         got: Refitted | None,
         grid: FloatArray,
         wrap: bool,
+        fate: dict[str, Any] | None = None,
     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """The accepted pieces of a split (``got``, parents indexing every candidate) added to
         the output; each takes its parent's place (odd order key). ``behind_sigmas`` trims
-        them as it trims accepted candidates."""
+        them as it trims accepted candidates. ``fate``: :meth:`_run_numpy`."""
+        if fate is not None and got is not None:
+            fate["split"].append((got.parent, got.ok))
         if got is None or not np.any(got.ok):
             return cols, order_key
         if math.isfinite(self.config.behind_sigmas):
@@ -704,6 +719,7 @@ class ScanTrunkDetector:
         parent_rms: FloatArray,
         grid: FloatArray,
         wrap: bool,
+        fate: dict[str, Any] | None = None,
     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """``arc_refit``: the largest consistent arcs (:func:`~stemmap.scan._arcs.arc_pieces`)
         of the candidates of ``every`` rejected as not convex (``depth``); a passing arc takes
@@ -724,6 +740,8 @@ class ScanTrunkDetector:
             rms_of[order_key[order_key % 2 == 0] // 2] = parent_rms
             which |= np.isfinite(rms_of)
         got = arc_pieces(self, every, which, grid, wrap, corrected=False)
+        if fate is not None and got is not None:  # (pieces of rejected parents: as accepted)
+            fate["arc"].append((got.parent, got.ok))
         if got is None or not np.any(got.ok):
             return cols, order_key
         ok = got.ok.copy()

@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from stemmap.types import ScanBatch
 
 __all__ = [
+    "PIECE_REASONS",
     "REASONS",
     "fit_reasons",
     "fitted_reasons",
@@ -400,13 +401,20 @@ def rms_limit(
 
 
 def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[str, Any]:
-    """Every candidate segment of ``batch`` the detector drops, with the test that dropped it.
+    """Every candidate segment of ``batch`` that fails the detector's tests, with the test it
+    failed and what became of it.
 
     Runs the numpy reference pipeline (no tilt compensation). Returns columns (one entry per
-    rejected candidate): ``scan_index``, ``reason`` (a name of :data:`REASONS`), ``n_points``,
-    ``bearing_deg`` and ``range`` of the segment's mean return, ``width`` (edge-beam chord, m),
-    ``partial`` (an end occluded or truncated), and for fitted candidates ``x``, ``y``,
-    ``radius``, ``rms`` and ``sigma`` (NaN when the candidate failed a segment filter).
+    rejected candidate): ``scan_index``, ``reason``, ``n_points``, ``bearing_deg`` and
+    ``range`` of the segment's mean return, ``width`` (edge-beam chord, m), ``partial`` (an end
+    occluded or truncated), for fitted candidates ``x``, ``y``, ``radius``, ``rms`` and
+    ``sigma`` (NaN when the candidate failed a segment filter), ``failed_test`` (the name of
+    :data:`REASONS` of the first test the whole candidate failed), ``pieces`` (how many pieces
+    the detector re-fitted from it: a corner, search or gap split, or its largest consistent
+    arc; 0 when none) and ``pieces_accepted`` (how many of them it kept as trunks).
+    ``reason`` is ``failed_test`` unless a piece was kept: then :data:`PIECE_REASONS`
+    ``split`` (the candidate was a merged segment, its pieces are in the output in its place)
+    or ``arc`` (its largest arc is); the candidate was then not dropped.
     """
     from stemmap.scan.features import footprint_correct, segment_features, segment_sum
 
@@ -422,12 +430,14 @@ def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[s
     nan = np.full(k, np.nan)
     cols: dict[str, Any] = {"x": nan.copy(), "y": nan.copy(), "radius": nan.copy()}
     cols["rms"], cols["sigma"] = nan.copy(), nan.copy()
+    seg_passed = np.zeros(0, dtype=np.int64)  # candidates that passed the segment filters
     if k == 0:
         codes = np.zeros(0, dtype=np.int8)
     else:
         f = segment_features(segs)
         codes = segment_reasons(segs, f, detector.config)
         passed = np.flatnonzero(codes == 0)
+        seg_passed = passed
         if passed.size:
             sub = segs.select(codes == 0)
             if detector.config.beam_footprint_deg > 0:
@@ -439,6 +449,8 @@ def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[s
             cols["radius"][passed], cols["rms"][passed] = fitted.radii, fitted.rms
             cols["sigma"][passed] = fitted.sigma
     rej = codes != 0
+    tried, took, rescued = _piece_fates(detector, batch, k, seg_passed)
+    failed = [REASONS[c] for c in codes[rej]]
     p = segs.points
     n = np.maximum(segs.counts, 1)
     mx = segment_sum(p.x, segs) / n if k else nan
@@ -446,11 +458,44 @@ def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[s
     width = segment_features(segs).width if k else nan
     return {
         "scan_index": segs.scan[rej],
-        "reason": [REASONS[c] for c in codes[rej]],
+        "reason": [r or f for r, f in zip(rescued[rej].tolist(), failed, strict=True)],
         "n_points": segs.counts[rej],
         "bearing_deg": np.degrees(np.arctan2(my, mx))[rej],
         "range": np.hypot(mx, my)[rej],
         "width": width[rej],
         "partial": segs.partial[rej],
         **{name: v[rej] for name, v in cols.items()},
+        "failed_test": failed,
+        "pieces": tried[rej],
+        "pieces_accepted": took[rej],
     }
+
+
+#: ``reason`` of a rejected candidate whose re-fitted pieces were kept
+#: (:func:`rejected_candidates`): ``split`` (pieces of a split), ``arc`` (its largest arc).
+PIECE_REASONS: tuple[str, ...] = ("split", "arc")
+
+
+def _piece_fates(
+    detector: ScanTrunkDetector, batch: ScanBatch, n: int, seg_passed: np.ndarray
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.str_]]:
+    """Per candidate (``n``, before the segment filters; ``seg_passed``: those that passed
+    them): the pieces the detector re-fitted from it, how many it kept, and ``split`` /
+    ``arc`` / '' by which re-fit they were kept (the numpy pipeline's record,
+    :meth:`~stemmap.scan.detect.ScanTrunkDetector._run_numpy` ``fate``)."""
+    fate: dict[str, Any] = {}
+    if n:
+        detector._run_numpy(
+            batch.ranges, batch.times, batch.angle_min, batch.angle_increment,
+            batch.range_min, batch.range_max, batch.frame, None, None, fate=fate,
+        )  # fmt: skip
+    tried = np.zeros(n, dtype=np.int64)
+    took = np.zeros(n, dtype=np.int64)
+    how = np.full(n, "", dtype="<U5")
+    for name in PIECE_REASONS:
+        for parent, ok in fate.get(name, ()):
+            par = np.asarray(seg_passed, dtype=np.int64)[parent] if fate["filtered"] else parent
+            np.add.at(tried, par, 1)
+            np.add.at(took, par[ok], 1)
+            how[par[ok]] = name
+    return tried, took, how

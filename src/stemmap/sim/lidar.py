@@ -38,6 +38,7 @@ __all__ = [
     "LABEL_BRANCH",
     "LABEL_GROUND",
     "LABEL_SHRUB",
+    "LIDAR_PRESETS",
     "LidarModel",
     "Stand3D",
     "cast_rays_3d",
@@ -489,24 +490,36 @@ class LidarModel:
         )
 
 
+#: Names :func:`lidar_preset` knows.
+LIDAR_PRESETS = ("vlp16", "vlp16_hires", "tls", "tls_coarse")
+
+
 def lidar_preset(name: str, **overrides: float) -> LidarModel:
     """Named sensor models.
 
     ``"vlp16"``: 16 beams from -15 to +15 degrees every 2 degrees, 0.2 degree azimuth step
     (10 Hz), 100 m range, 3 cm noise (Velodyne VLP-16 data sheet: +-3 cm typical accuracy).
+    ``"vlp16_hires"``: Velodyne Puck Hi-Res (VLP-16 Hi-Res), the other 16-beam Velodyne: 16
+    beams over -10 to +10 degrees every 20 / 15 = 1.33 degrees (VLP-16 User Manual 63-9243 Rev D,
+    Table 9-1, "Vertical Angle Puck Hi-Res": -10.00, -8.67, ..., 8.67, 10.00), the same 0.2
+    degree azimuth step at 10 Hz, 100 m range and "+-3 cm typical" accuracy (3 cm noise) as
+    ``"vlp16"``; only the beam geometry differs.
     ``"tls"``: elevations -40 to +50 degrees every 0.1 degree, 0.1 degree azimuth step, 60 m,
     5 mm noise (a phase-shift TLS at a coarse setting). ``"tls_coarse"``: the same at 0.25 degree
     (for fast tests).
     """
     if name == "vlp16":
         m = LidarModel(tuple(float(e) for e in range(-15, 16, 2)), 0.2, 0.5, 100.0, 0.03, 0.0)
+    elif name == "vlp16_hires":
+        els = tuple(-10.0 + 20.0 * k / 15.0 for k in range(16))
+        m = LidarModel(els, 0.2, 0.5, 100.0, 0.03, 0.0)
     elif name == "tls":
         m = LidarModel(tuple(np.round(np.arange(-40.0, 50.0, 0.1), 6)), 0.1, 0.5, 60.0, 0.005)
     elif name == "tls_coarse":
         m = LidarModel(tuple(np.round(np.arange(-40.0, 50.0, 0.25), 6)), 0.25, 0.5, 60.0, 0.005)
     else:
         raise ConfigError(
-            f"unknown lidar preset {name!r}; choose one of 'vlp16', 'tls', 'tls_coarse'."
+            f"unknown lidar preset {name!r}; choose one of {', '.join(map(repr, LIDAR_PRESETS))}."
         )
     if overrides:
         from dataclasses import replace

@@ -80,7 +80,7 @@ from typing import Any
 import numpy as np
 
 from stemmap._memory import TRIM_INTERVAL_S, HeapTrimmer
-from stemmap.errors import ConfigError
+from stemmap.errors import ConfigError, StemmapError
 from stemmap.slam._graph_batch import Calibration, batch_rounds
 from stemmap.slam._graph_config import Isam2Config
 from stemmap.slam._graph_continue import ContinuedGraph, export_graph, graph_stats
@@ -133,7 +133,12 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose
-from stemmap.slam.relocalise import inflate_prior, joint_prior_factor, prior_tree_factors
+from stemmap.slam.relocalise import (
+    _joint_sqrt_information,
+    inflate_prior,
+    joint_prior_factor,
+    prior_tree_factors,
+)
 from stemmap.types import FloatArray, StemMap, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -170,6 +175,7 @@ class Isam2Slam:
     def _run(self, problem: SlamProblem, progress: Callable[[int, int], None] | None) -> SlamResult:
         import gtsam
         from gtsam.symbol_shorthand import L as LK
+        from gtsam.symbol_shorthand import V as VK
         from gtsam.symbol_shorthand import W as WK
         from gtsam.symbol_shorthand import X as XK
 
@@ -359,7 +365,7 @@ class Isam2Slam:
         # trees these landmarks, its factors instead of the marginal priors
         cont = None
         if pmap is not None and problem.prior_graph is not None:
-            cont = ContinuedGraph(problem.prior_graph, pmap, WK, cfg.prior_graph_inflation)
+            cont = ContinuedGraph(problem.prior_graph, pmap, WK, cfg.prior_graph_inflation, vkey=VK)
             for key_w, val_w in cont.values(gtsam):
                 new_v.insert(key_w, val_w)
             for fac_w in cont.factors(gtsam, LK, meas_noise):
@@ -657,7 +663,8 @@ class Isam2Slam:
         def kf_poses(values: Any) -> FloatArray:
             """(nk, 3) sensor poses of the graph keyframes in ``values`` (NaN elsewhere)."""
             out = np.full((nk, 3), np.nan)
-            n_w = 0 if cont is None else cont.n_poses  # (W sorts before X)
+            # (the continued graph's antenna poses V and poses W sort before X)
+            n_w = 0 if cont is None else cont.n_poses + cont.saved.n_fixes
             out[gk] = gtsam.utilities.extractPose2(values)[n_w : n_w + gk.size]
             return out
 
@@ -730,12 +737,22 @@ class Isam2Slam:
             keep, pts, covs, (lm_dsum, lm_dn, lm_nobs, lm_first, lm_last), frames.times
         )
         saved = None
-        if cfg.export_graph and not (map_fac and cont is None) and not gnss_fac:
-            # (on a marginal prior or with GNSS fixes the graph is not the whole story)
-            saved = export_graph(
-                gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep_g, alias=alias,
-                odo_fac=odo_fac, pose_priors=[pf, *anchor_fac], meas_rec=meas_rec, cont=cont,
-            )  # fmt: skip
+        if cfg.export_graph:
+            # with what held the frame (GNSS fixes) and the earlier map (its priors)
+            u_j = None if joint_fac is None or pmap is None else _joint_sqrt_information(pmap)
+            try:
+                saved = export_graph(
+                    gtsam, result, keys=(XK, LK, WK), gk=gk, keep=keep_g, alias=alias,
+                    odo_fac=odo_fac, pose_priors=[pf, *anchor_fac], meas_rec=meas_rec, cont=cont,
+                    map_fac=map_fac,
+                    prior_robust=(
+                        cfg.prior_map_robust if prior_kernel is not None else "none", cfg.robust_k
+                    ),
+                    joint=None if u_j is None or pmap is None else (u_j, pmap.xy),
+                    gnss_fac=gnss_fac, gnss_robust=(cfg.gnss_robust, cfg.gnss_robust_k),
+                )  # fmt: skip
+            except StemmapError as exc:  # (a bookkeeping bug: the map is still written)
+                log.warning("iSAM2: session graph not exported: %s", exc)
         runtime = time.perf_counter() - t_start
         stats: dict[str, float | int | str] = {
             "backend": self.name,

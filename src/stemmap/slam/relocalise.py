@@ -603,18 +603,27 @@ def joint_prior_factor(prior_map: StemMap, key: Any, alias: np.ndarray | None = 
     puts a merged tree's part on its representative. A :class:`gtsam.CustomFactor` (one
     dense 2N x 2N Jacobian per linearisation, ~1 ms for 200 trees).
     """
-    import gtsam
-
     u = _joint_sqrt_information(prior_map)
     if u is None:
         return None
     n = len(prior_map)
     rep = np.arange(n) if alias is None else np.asarray(alias[:n], dtype=np.int64)
-    reps, inv = np.unique(rep, return_inverse=True)
+    return joint_factor(u, prior_map.xy, rep, key)
+
+
+def joint_factor(u: FloatArray, xy: FloatArray, slots: np.ndarray, key: Any) -> Any:
+    """The Gaussian ``‖U (x - x̂)‖²`` (``U`` (2n, 2n), ``x̂ = xy`` (n, 2)) on the landmarks
+    ``key(slots[j])``; trees sharing a slot (merged) add their columns up. The factor of
+    :func:`joint_prior_factor`, also of a continued graph's joint prior
+    (:mod:`stemmap.slam._graph_continue`)."""
+    import gtsam
+
+    n = int(np.asarray(slots).size)
+    reps, inv = np.unique(np.asarray(slots, dtype=np.int64), return_inverse=True)
     a = np.zeros((2 * n, 2 * reps.size))
     for j in range(n):  # x_j = y_rep(j): columns of merged trees add up
         a[:, 2 * inv[j] : 2 * inv[j] + 2] += u[:, 2 * j : 2 * j + 2]
-    ux0 = u @ prior_map.xy.reshape(-1)
+    ux0 = u @ np.asarray(xy, dtype=np.float64).reshape(-1)
     keys = [key(int(r)) for r in reps]
     blocks = [np.ascontiguousarray(a[:, 2 * c : 2 * c + 2]) for c in range(reps.size)]
 

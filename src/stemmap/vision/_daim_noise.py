@@ -17,7 +17,21 @@ propagates the noise model through the fit to first order:
   ``(B - C).O = (|B|^2 - |C|^2) / 2`` differentiated:
   ``(C - A).dO = (C - O).dC - (A - O).dA``, ``(B - C).dO = (B - O).dB - (C - O).dC``;
   ``r`` the mean of ``|P - O|`` over A, B, C), by central differences for any other fit;
-* ``cov(O_x, O_y, r) = G Sigma_P G^T``.
+* ``cov(O_x, O_y, r) = G Sigma_P G^T``;
+* bounded by the trunk's geometry (:func:`physical_bound`, :func:`bound_covariance`): a nearly
+  collinear arc makes ``G`` ill-conditioned and the first-order sigma metres to kilometres,
+  where the linearisation no longer describes the error. The centre of a trunk is its
+  visible surface's middle point ``B`` plus one radius along the ray, and a radius above the
+  width check's limit ``r_lim`` is not a trunk's, so the centre cannot be less certain than
+  ``B + r u`` with ``r`` anywhere in ``[0, r_lim]``: ``Sigma_phys = J diag(Sigma_B, r_lim^2)
+  J^T`` with ``J = [[I, u], [0, 1]]`` (variance ``r_lim^2``: the second moment of an error up
+  to ``r_lim`` either way). The covariance is clipped to it in ``Sigma_phys``'s metric
+  (eigenvalues of ``L^-1 Sigma L^-T`` above 1 set to 1, ``Sigma_phys = L L^T``): unchanged
+  where it is already the smaller, the bound where it is not;
+* a fit that fails the width check (its circle, wider than the trunk can be, is the noise
+  flattening the arc) has no trunk centre to propagate: the detection's centre is then
+  :func:`surface_centre` (``B`` plus half the visible width along the ray, the radius of a
+  cylinder whose arc is that wide) and its covariance ``Sigma_phys``.
 """
 
 from __future__ import annotations
@@ -29,7 +43,13 @@ from stemmap.scan._circle_base import _by_bearing
 from stemmap.scan.circle import fit_circle
 from stemmap.types import FloatArray
 
-__all__ = ["arc_point_covariances", "fit_covariance"]
+__all__ = [
+    "arc_point_covariances",
+    "bound_covariance",
+    "fit_covariance",
+    "physical_bound",
+    "surface_centre",
+]
 
 
 def arc_point_covariances(
@@ -147,3 +167,96 @@ def fit_covariance(
         sp[2 * j : 2 * j + 2, 2 * j : 2 * j + 2] = pc[j]
     cov: FloatArray = g @ sp @ g.T
     return 0.5 * (cov + cov.T)
+
+
+def _middle_ray(arc: ArrayLike, origin_xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The arc's middle point by bearing (the three-point fit's ``B``) and its unit ray."""
+    srt, _, _ = _by_bearing(np.asarray(arc, dtype=np.float64).reshape(-1, 2), origin_xy)
+    b: FloatArray = srt[srt.shape[0] // 2]
+    rel = b - origin_xy
+    return b, rel / max(float(np.hypot(*rel)), 1e-12)
+
+
+def surface_centre(arc: ArrayLike, origin_xy: ArrayLike, radius: float) -> FloatArray:
+    """The centre one ``radius`` behind the arc's middle point along its ray: where a trunk
+    whose arc does not resolve its curvature (a fit failing the width check) stands, with the
+    covariance :func:`physical_bound`.
+
+    Examples
+    --------
+    >>> surface_centre([[9.9, -0.1], [9.85, 0.0], [9.9, 0.1]], [0.0, 0.0], 0.1).tolist()
+    [9.95, 0.0]
+    """
+    o = np.asarray(origin_xy, dtype=np.float64).reshape(2)
+    b, u = _middle_ray(arc, o)
+    out: FloatArray = b + radius * u
+    return out
+
+
+def physical_bound(
+    arc: ArrayLike,
+    origin_xy: ArrayLike,
+    r_lim: float,
+    *,
+    depth_noise_k: float,
+    pixel_angle: float,
+    keep_cross: ArrayLike | None = None,
+) -> FloatArray:
+    """Covariance (3, 3) of (centre x, centre y, radius) when the centre is the arc's middle
+    point (by bearing) plus a radius with variance ``r_lim^2`` along its ray (module docstring).
+
+    ``keep_cross`` (3, 3), a fit's covariance: the bound takes its variance across the ray
+    when larger (the bearings determine it, not the ill-conditioned range: only the range and
+    radius are bounded).
+
+    Examples
+    --------
+    >>> b = physical_bound([[9.9, -0.1], [9.85, 0.0], [9.9, 0.1]], [0.0, 0.0], 0.3,
+    ...                    depth_noise_k=0.0036, pixel_angle=0.0)
+    >>> round(float(np.sqrt(b[0, 0])), 3), round(float(np.sqrt(b[2, 2])), 3)
+    (0.46, 0.3)
+    """
+    o = np.asarray(origin_xy, dtype=np.float64).reshape(2)
+    b, u = _middle_ray(arc, o)
+    sb = arc_point_covariances(b[None], o, depth_noise_k=depth_noise_k, pixel_angle=pixel_angle)
+    j = np.zeros((3, 3))
+    j[:2, :2] = np.eye(2)
+    j[:2, 2] = u
+    j[2, 2] = 1.0
+    s = np.zeros((3, 3))
+    s[:2, :2] = sb[0]
+    s[2, 2] = r_lim**2
+    out: FloatArray = j @ s @ j.T
+    if keep_cross is not None:
+        t = np.array([-u[1], u[0]])
+        more = float(t @ np.asarray(keep_cross, dtype=np.float64)[:2, :2] @ t) - float(
+            t @ out[:2, :2] @ t
+        )
+        if np.isfinite(more) and more > 0:
+            out[:2, :2] += more * np.outer(t, t)
+    return out
+
+
+def bound_covariance(cov: ArrayLike, bound: ArrayLike) -> FloatArray:
+    """``cov`` clipped to ``bound`` (both (3, 3)): in the metric of ``bound = L L^T`` the
+    eigenvalues of ``L^-1 cov L^-T`` above 1 become 1, so the result is below both (Loewner
+    order) and equals ``cov`` where ``cov`` is already below ``bound``; non-finite ``cov``
+    (a degenerate fit) becomes ``bound``.
+
+    Examples
+    --------
+    >>> c = bound_covariance(np.diag([100.0, 0.01, 4.0]), np.diag([0.25, 0.25, 0.09]))
+    >>> np.round(np.diag(c), 3).tolist()
+    [0.25, 0.01, 0.09]
+    """
+    c = np.asarray(cov, dtype=np.float64).reshape(3, 3)
+    bd = np.asarray(bound, dtype=np.float64).reshape(3, 3)
+    if not np.isfinite(c).all():
+        return bd.copy()
+    ell = np.linalg.cholesky(0.5 * (bd + bd.T))
+    m = np.linalg.solve(ell, np.linalg.solve(ell, c).T)  # L^-1 C L^-T (symmetric)
+    w, v = np.linalg.eigh(0.5 * (m + m.T))
+    if w.max() <= 1.0:
+        return c
+    out: FloatArray = ell @ (v * np.minimum(w, 1.0)) @ v.T @ ell.T
+    return 0.5 * (out + out.T)

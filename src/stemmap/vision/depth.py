@@ -62,11 +62,16 @@ class DaimParams:
         sigma of the noise). Munjer 2025 says only "three boundary points are extracted".
     fit : str -- "three_point" (Munjer) or any name in ``stemmap.scan.circle.FIT_METHODS``
     max_width_ratio : float or None -- a fit whose diameter exceeds this multiple of the arc's
-        visible width (its bearing span times its median range) keeps its centre but gets no
-        radius (NaN): a cylinder's visible arc is as wide as the trunk, so a much larger circle
-        is the depth noise flattening the arc (three points, D435 noise 0.18 m at 7 m against
-        a 0.1 m sagitta), not the trunk. None keeps every radius. Ours: Munjer 2025 prints no
-        check and reports no diameters.
+        visible width (its bearing span times its median range) gets no radius (NaN): a
+        cylinder's visible arc is as wide as the trunk, so a much larger circle is the depth
+        noise flattening the arc (three points, D435 noise 0.18 m at 7 m against a 0.1 m
+        sagitta), not the trunk; its centre is then the arc's middle point plus half the
+        visible width along the ray (:func:`stemmap.vision._daim_noise.surface_centre`), and
+        with ``cov_noise_k`` every fit's covariance is bounded by the trunk's geometry (the
+        centre one radius of at most ``max_width_ratio`` x width / 2 behind the arc,
+        :func:`~stemmap.vision._daim_noise.physical_bound`). None keeps every radius and
+        three-point centre, covariances unbounded. Ours: Munjer 2025 prints no check and
+        reports no diameters.
     depth_noise_k : float or None -- the sensor's depth noise ``sigma = k z^2`` (m); with it the
         DBSCAN radius of a box is ``max(eps, 2 k z^2)`` at the box's median depth z, so a far
         trunk's scattered depth still forms one cluster. None: ``eps`` at every depth. Ours:
@@ -262,12 +267,18 @@ def daim_trunks(
     StemObservations in the body frame (``frame="laser"`` if ``camera_to_body`` is given,
     else "camera_level"), ``source="vision:munjer2025:<fit>"``; boxes where no cluster or arc
     or fit was found are skipped (logged at debug level); a fit failing the width check
-    (``params.max_width_ratio``) keeps its centre with radius NaN. ``index`` is the box index.
+    (``params.max_width_ratio``) has radius NaN and its centre half the arc's visible width
+    behind the arc's middle point (not the flat circle's). ``index`` is the box index.
     ``covs`` (k, 3, 3): each fit's (centre x, centre y, radius) covariance from the depth-noise
     model ``params.cov_noise_k`` (NaN without one), body frame.
     """
     b = boxes_xywh(boxes)
-    from stemmap.vision._daim_noise import fit_covariance
+    from stemmap.vision._daim_noise import (
+        bound_covariance,
+        fit_covariance,
+        physical_bound,
+        surface_centre,
+    )
 
     centers, radii, npts, arcs, idx, covs = [], [], [], [], [], []
     pixel_angle = params.stride / float(camera.K[0, 0])
@@ -301,6 +312,7 @@ def daim_trunks(
         wide = params.max_width_ratio is not None and (
             2.0 * radius > params.max_width_ratio * arc_width(arc, origin)
         )
+        center = fit.center
         if wide:
             radius = math.nan
         rel = arc - fit.center
@@ -315,7 +327,21 @@ def daim_trunks(
                 depth_noise_k=params.cov_noise_k,
                 pixel_angle=pixel_angle,
             )
-        centers.append(fit.center)
+        if params.max_width_ratio is not None:
+            # a trunk's centre is one radius (at most the width check's) behind its arc: the
+            # first-order covariance of a nearly collinear arc is bounded by that, and a wide
+            # fit's centre is the arc's middle point plus half its width (_daim_noise)
+            w_arc = arc_width(arc, origin)
+            if wide:
+                center = surface_centre(arc, origin, 0.5 * w_arc)
+            if params.cov_noise_k is not None:
+                bound = physical_bound(
+                    arc, origin, 0.5 * params.max_width_ratio * w_arc,
+                    depth_noise_k=params.cov_noise_k, pixel_angle=pixel_angle,
+                    keep_cross=None if wide else cov,
+                )  # fmt: skip
+                cov = bound if wide else bound_covariance(cov, bound)
+        centers.append(center)
         covs.append(cov)
         radii.append(radius)
         npts.append(arc.shape[0])
