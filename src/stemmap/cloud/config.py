@@ -63,6 +63,9 @@ class StemConfig:
     pooled_fallback : bool -- clusters the per-slice fits reject get one tilted-cylinder fit
         over the whole band with stricter tests (:func:`~stemmap.cloud.pooled._pooled_stems`):
         trunks with few returns per slice (partly occluded, sparse clouds)
+    tighter_refits : bool -- clusters the per-stem tests reject get their slices refitted with
+        halved RANSAC tolerances down to 5 mm (:func:`~stemmap.cloud.measure._tighter_refits`):
+        a sparse single tree whose slices all fit its branch whorls
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     """
@@ -89,6 +92,7 @@ class StemConfig:
     slices_per_spacing: float = 4.0
     max_taper: float = 0.05
     pooled_fallback: bool = True
+    tighter_refits: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
 
     def __post_init__(self) -> None:

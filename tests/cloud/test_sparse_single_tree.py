@@ -1,0 +1,46 @@
+"""treels spruce.laz randomly subsampled to 50 % (benchmarks/cloud_robustness.py
+``subsample_50``; docs/algorithms/cloud.md "Single trees at lower density (Dec 3)"): its band
+is mostly needles, so half the 90th-percentile spacing (66 mm) is a RANSAC tolerance in which
+circles through the branch whorls win every slice. The tighter refits of a rejected cluster
+(:func:`stemmap.cloud.measure._tighter_refits`) find the stem again."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cloud_robustness import TRANSFORMS, Context
+from stemmap.cloud.reference import stem_references
+from stemmap.cloud.stems import StemConfig, detect_stems
+from stemmap.io.clouds import read_cloud
+
+
+@pytest.mark.slow
+def test_half_density_spruce_keeps_its_stem(datasets_dir: Path) -> None:
+    xyz = read_cloud(datasets_dir / "treels/spruce.laz").xyz
+    prep = TRANSFORMS["subsample_50"](Context(xyz, None))
+    assert prep is not None
+    # without the tighter refits every slice fits a whorl: no stem
+    assert len(detect_stems(prep.xyz, StemConfig(tighter_refits=False))) == 0
+    det = detect_stems(prep.xyz, StemConfig())
+    assert len(det) == 1
+    (ref,) = stem_references(xyz, det)  # the ring of the cloud as shipped (seen all round)
+    assert ref is not None and ref.full
+    assert abs(det.diameter[0] - ref.diameter) < 0.015
+
+
+def test_tighter_refits_leave_a_clean_stem_alone() -> None:
+    """A clean synthetic stem passes at the first tolerance: identical with and without."""
+    rng = np.random.default_rng(4)
+    z = rng.uniform(0.0, 3.0, 6000)
+    a = rng.uniform(0, 2 * np.pi, z.shape[0])
+    r = 0.15 + rng.normal(0, 0.003, z.shape[0])
+    stem = np.column_stack((r * np.cos(a), r * np.sin(a), z))
+    g = rng.uniform(-3, 3, (20_000, 2))
+    cloud = np.vstack((stem, np.column_stack((g, rng.normal(0, 0.01, g.shape[0])))))
+    on = detect_stems(cloud, StemConfig())
+    off = detect_stems(cloud, StemConfig(tighter_refits=False))
+    assert len(on) == len(off) == 1
+    assert on.diameter[0] == off.diameter[0]
