@@ -12,9 +12,16 @@ import numpy as np
 import pytest
 
 from cloud_robustness import TRANSFORMS, Context
-from stemmap.cloud.reference import stem_references
+from stemmap.cloud.reference import RingReference, stem_references
 from stemmap.cloud.stems import StemConfig, detect_stems
 from stemmap.io.clouds import read_cloud
+
+
+def _ring(xyz: np.ndarray) -> RingReference:
+    """The full-ring reference of the stem in the cloud as shipped (as the benchmark)."""
+    (ref,) = stem_references(xyz, detect_stems(xyz, StemConfig()))
+    assert ref is not None and ref.full
+    return ref
 
 
 @pytest.mark.slow
@@ -26,8 +33,7 @@ def test_half_density_spruce_keeps_its_stem(datasets_dir: Path) -> None:
     assert len(detect_stems(prep.xyz, StemConfig(tighter_refits=False))) == 0
     det = detect_stems(prep.xyz, StemConfig())
     assert len(det) == 1
-    (ref,) = stem_references(xyz, det)  # the ring of the cloud as shipped (seen all round)
-    assert ref is not None and ref.full
+    ref = _ring(xyz)
     assert abs(det.diameter[0] - ref.diameter) < 0.015
 
 
@@ -44,3 +50,18 @@ def test_tighter_refits_leave_a_clean_stem_alone() -> None:
     off = detect_stems(cloud, StemConfig(tighter_refits=False))
     assert len(on) == len(off) == 1
     assert on.diameter[0] == off.diameter[0]
+
+
+@pytest.mark.slow
+def test_tenth_density_spruce_is_found_with_thin_slices(datasets_dir: Path) -> None:
+    """At 10 % (spacing 153 mm: three 0.4 m slices, the middle one all whorl) the stem is
+    found only from the default 20 cm slices. Its DBH is 1.7 cm off the ring: found, but the
+    issue's 1.5 cm target is not met there (docs/algorithms/cloud.md)."""
+    xyz = read_cloud(datasets_dir / "treels/spruce.laz").xyz
+    prep = TRANSFORMS["subsample_10"](Context(xyz, None))
+    assert prep is not None
+    assert len(detect_stems(prep.xyz, StemConfig(tighter_refits=False))) == 0
+    det = detect_stems(prep.xyz, StemConfig())
+    assert len(det) == 1
+    ref = _ring(xyz)
+    assert abs(det.diameter[0] - ref.diameter) < 0.02

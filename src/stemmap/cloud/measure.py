@@ -160,6 +160,7 @@ def _tighter_refits(
     origins: FloatArray | None,
     rms_max: float,
     stem_of: Callable[[_SliceFits, int], tuple[tuple[float, ...], str] | None],
+    first: float = 0.5,
 ) -> dict[int, tuple[tuple[float, ...], str]]:
     """Stems of the clusters ``failed`` (rejected by the per-stem tests) from their slices
     refitted with ever tighter RANSAC tolerances: half the first one, halved again down to
@@ -175,12 +176,19 @@ def _tighter_refits(
     first round's noise floor). The first tolerance that gives a stem wins; ``stem_of``
     (fits, cluster) is the per-stem test (:func:`~stemmap.cloud.slicestem._slice_stem`),
     unchanged. Clusters that pass at the first tolerance never get here, so the stems found
-    before are unchanged.
+    before are unchanged. ``first``: the first tolerance as a fraction of the default one
+    (:func:`_ransac_tolerance`; 1 when the slices themselves changed, see below).
+
+    The caller runs it twice: with the band's slices, then -- for clusters still rejected, when
+    the band's slices were thickened for a sparse cloud (:func:`~stemmap.cloud.band.
+    _adapt_slices`) -- with the default 20 cm slices, since the needles' spacing that
+    thickened them is not the stem's (treels spruce at 10 %: 0.4 m slices, the middle one
+    1.2-1.6 m all whorl, leaving 2 of 3 slices on the stem).
     """
     kc, ns = shape
     out: dict[int, tuple[tuple[float, ...], str]] = {}
     todo = np.asarray(failed, dtype=np.int64)
-    tol = 0.5 * _ransac_tolerance(spacing)
+    tol = first * _ransac_tolerance(spacing)
     while todo.size and tol >= MIN_RANSAC_TOL - 1e-12:
         sub = np.isin(seg // ns, todo)
         o_sub = None if origins is None else origins[sub]
@@ -255,6 +263,7 @@ def _stems_from_band(
             "ours", reason="point spacing could not be measured (duplicate points only?)"
         )
     cell = float(np.clip(cfg.cluster_cell_factor * sp2d, 0.01, 0.25))
+    cfg_thin = cfg
     if not slice_cloud and cfg.slices_per_spacing > 0:
         cfg = _adapt_slices(cfg, sp2d)
     centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
@@ -356,6 +365,33 @@ def _stems_from_band(
             rows.append(stem[0])
             rules.append(stem[1])
             accepted[ci] = True
+        failed = np.array([c for c in failed if int(c) not in tight], dtype=np.int64)
+        if failed.size and cfg_thin.slice_thickness < cfg.slice_thickness:
+            ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
+            sl0 = _slice_of(pts_b.h[use], ch0, cfg_thin.slice_thickness)
+            in0 = sl0 >= 0
+            ctx0 = replace(
+                ctx,
+                centers_h=ch0,
+                band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness),
+            )
+            thin = _tighter_refits(
+                pts[in0],
+                cl_inv.astype(np.int64)[in0] * ch0.shape[0] + sl0[in0],
+                failed,
+                (kc, ch0.shape[0]),
+                cfg_thin,
+                sp2d,
+                None if origins_use is None else origins_use[in0],
+                rms_max,
+                lambda f, c: _slice_stem(f, c, ctx0, cfg_thin),
+                first=1.0,
+            )
+            tight.update(thin)
+            for ci, stem in sorted(thin.items()):
+                rows.append(stem[0])
+                rules.append(stem[1])
+                accepted[ci] = True
         if tight:
             log.info("%d stem(s) from slices refitted with a tighter RANSAC tolerance", len(tight))
     if cfg.pooled_fallback and not slice_cloud:
