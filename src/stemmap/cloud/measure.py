@@ -161,6 +161,7 @@ def _tighter_refits(
     rms_max: float,
     stem_of: Callable[[_SliceFits, int], tuple[tuple[float, ...], str] | None],
     first: float = 0.5,
+    floor: float = MIN_RANSAC_TOL,
 ) -> dict[int, tuple[tuple[float, ...], str]]:
     """Stems of the clusters ``failed`` (rejected by the per-stem tests) from their slices
     refitted with ever tighter RANSAC tolerances: half the first one, halved again down to
@@ -176,7 +177,11 @@ def _tighter_refits(
     first round's noise floor). The first tolerance that gives a stem wins; ``stem_of``
     (fits, cluster) is the per-stem test (:func:`~stemmap.cloud.slicestem._slice_stem`),
     unchanged. Clusters that pass at the first tolerance never get here, so the stems found
-    before are unchanged. ``first``: the first tolerance as a fraction of the default one
+    before are unchanged. The tolerance is not taken below ``floor``, the residual scale of
+    the stems the cloud already gave (their median slice RMS): points scattered by more than
+    that cannot be told from clutter with a tighter tolerance (the simulated mobile scan,
+    3 cm range noise, stems' RMS ~2 cm: a 6 mm tolerance made a 6 cm stem of a shrub's
+    clump). ``first``: the first tolerance as a fraction of the default one
     (:func:`_ransac_tolerance`; 1 when the slices themselves changed, see below).
 
     The caller runs it twice: with the band's slices, then -- for clusters still rejected, when
@@ -189,7 +194,7 @@ def _tighter_refits(
     out: dict[int, tuple[tuple[float, ...], str]] = {}
     todo = np.asarray(failed, dtype=np.int64)
     tol = first * _ransac_tolerance(spacing)
-    while todo.size and tol >= MIN_RANSAC_TOL - 1e-12:
+    while todo.size and tol >= max(floor, MIN_RANSAC_TOL) - 1e-12:
         sub = np.isin(seg // ns, todo)
         o_sub = None if origins is None else origins[sub]
         fits = _fit_slices(pts[sub], seg[sub], kc * ns, cfg, spacing, o_sub, tol)
@@ -349,6 +354,8 @@ def _stems_from_band(
     # --- clusters whose slices all fitted clutter: tighter RANSAC tolerances
     failed = np.flatnonzero(~accepted & (per.passed.sum(axis=1) >= min(2, cfg.min_slices)))
     if failed.size and cfg.tighter_refits:
+        # the accepted stems' residual scale: no tighter tolerance than the bark shows
+        floor = float(np.median([r[6] for r in rows])) if rows else MIN_RANSAC_TOL
         origins_use = None if pts_b.origins is None else pts_b.origins[use]
         tight = _tighter_refits(
             pts,
@@ -360,6 +367,7 @@ def _stems_from_band(
             origins_use,
             rms_max,
             lambda f, c: _slice_stem(f, c, ctx, cfg),
+            floor=floor,
         )
         for ci, stem in sorted(tight.items()):
             rows.append(stem[0])
@@ -386,6 +394,7 @@ def _stems_from_band(
                 rms_max,
                 lambda f, c: _slice_stem(f, c, ctx0, cfg_thin),
                 first=1.0,
+                floor=floor,
             )
             tight.update(thin)
             for ci, stem in sorted(thin.items()):
