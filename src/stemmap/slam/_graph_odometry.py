@@ -306,6 +306,40 @@ class KeyframeOdometry:
         rel = between(kf_xyt[idx - k0], kf_xyt[idx + 1 - k0])
         return between(self.measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
 
+    def online(
+        self,
+        k: int,
+        pose_k: Any,
+        in_graph: np.ndarray,
+        estimate: Callable[[int], Any],
+        cfg: Any,
+        c: FloatArray,
+    ) -> FloatArray:
+        """The online calibration at keyframe ``k`` from the last ``cfg.calib_window``
+        keyframes (one constant over the window, :func:`_calibration_lsq`), or ``c`` when no
+        one-step odometry factor of the graph lies in the window.
+
+        ``pose_k``: keyframe ``k``'s gtsam.Pose2 estimate; ``in_graph`` (K,): keyframes with a
+        pose in the graph; ``estimate(i)``: their current gtsam.Pose2 (each read-out of iSAM2
+        costs ~50 us, so this runs once per calibration segment: the calibration varies slowly).
+        """
+        k0 = max(0, k - cfg.calib_window)
+        xw = np.zeros((k + 1 - k0, 3))  # keyframes k0..k (the window)
+        for i in range(k0, k):
+            if in_graph[i]:
+                q = estimate(i)
+                xw[i - k0] = (q.x(), q.y(), q.theta())
+        xw[k - k0] = (pose_k.x(), pose_k.y(), pose_k.theta())
+        has = np.append(in_graph[k0:k], True)  # k: its estimate pose_k
+        idx = k0 + np.flatnonzero(has[:-1] & has[1:])
+        if not idx.size:
+            return c
+        return _calibration_lsq(
+            self.residuals(xw, idx, k0), self.J_k[idx], self.info_k[idx], self.c_used[idx],
+            np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
+            cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
+        )[0]  # fmt: skip
+
     def factor(
         self, gtsam: Any, xkey: Callable[[int], int], ka: int, kb: int, d: Any = None
     ) -> Any:

@@ -93,7 +93,7 @@ from stemmap.slam._graph_marginals import (
 )
 from stemmap.slam._graph_odometry import (
     _calibration_jacobians,  # noqa: F401  (re-exported: tests)
-    _calibration_lsq,
+    _calibration_lsq,  # noqa: F401  (re-exported: tests)
     _sensor_between,
     frame_covariances,
     keyframe_odometry,
@@ -494,27 +494,13 @@ class Isam2Slam:
                                 gtsam.Pose2(float(d0_[0]), float(d0_[1]), float(d0_[2]))
                             )
                         if calibrate and restart and k // cfg.calib_every != cal_seg:
-                            # online calibration from the last calib_window keyframes (constant
-                            # over the window), once per segment (it varies slowly; each pose
-                            # read-out costs ~50 us): new odometry factors use it; one-step
-                            # odometry factors of the graph only
+                            # online calibration from the last calib_window keyframes, once
+                            # per segment (KeyframeOdometry.online): new odometry factors use it
                             cal_seg = k // cfg.calib_every
-                            k0 = max(0, k - cfg.calib_window)
-                            xw = np.zeros((k + 1 - k0, 3))  # keyframes k0..k (the window)
-                            for i_ in range(k0, k):
-                                if in_graph_k[i_]:
-                                    q_ = isam.calculateEstimatePose2(XK(i_))
-                                    xw[i_ - k0] = (q_.x(), q_.y(), q_.theta())
-                            xw[k - k0] = (p.x(), p.y(), p.theta())
-                            has = np.append(in_graph_k[k0:k], True)  # k: its estimate p
-                            idx = k0 + np.flatnonzero(has[:-1] & has[1:])
-                            if idx.size:
-                                c_cur = _calibration_lsq(
-                                    odo.residuals(xw, idx, k0), odo.J_k[idx], odo.info_k[idx],
-                                    odo.c_used[idx],
-                                    np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
-                                    cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
-                                )[0]  # fmt: skip
+                            c_cur = odo.online(
+                                k, p, in_graph_k, lambda i_: isam.calculateEstimatePose2(XK(i_)),
+                                cfg, c_cur,
+                            )  # fmt: skip
                     P_restart = P_floor
                     if not restart and (k - 1) in skipped:
                         # left out of the graph: localise the tracker on the map instead
