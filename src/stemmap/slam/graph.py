@@ -52,7 +52,8 @@ odometry factor to the remote last graph keyframe (``revisit_anchor_after``,
 :func:`~stemmap.slam._graph_revisits.anchor_prior`).
 
 Sessions (docs/algorithms/slam.md "Maps reused across sessions"): with ``problem.prior_map``
-its trees start as landmarks held by marginal priors (:mod:`stemmap.slam.relocalise`), or,
+its trees start as landmarks held by marginal priors (:mod:`stemmap.slam.relocalise`, seeded by
+:mod:`stemmap.slam._graph_session`), or,
 with ``problem.prior_graph``, the earlier session's whole graph is continued (its poses
 ``W(i)`` and trees stay variables, :mod:`stemmap.slam._graph_continue`); ``export_graph``
 returns this session's graph for the next one.
@@ -60,7 +61,8 @@ returns this session's graph for the next one.
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
 order, ``δ(c) = δ0 Exp(J c)``. They are estimated from the graph's own poses
-(:func:`_calibration_lsq`, the conditional MAP given the poses): online once per segment
+(:func:`_calibration_lsq`, the conditional MAP given the poses; the keyframe odometry and its
+calibration state: :class:`~stemmap.slam._graph_odometry.KeyframeOdometry`): online once per segment
 from the last ``calib_window`` keyframes for the new factors, and at the end per segment with a
 random walk between segments, alternated with the batch LM. A systematic odometry error is
 otherwise treated as white noise and accumulates wherever the trees constrain the heading
