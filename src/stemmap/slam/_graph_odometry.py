@@ -380,3 +380,51 @@ def keyframe_odometry(
         odo.n_seg = int(odo.seg_k[-1]) + 1
         odo.dur_seg = np.diff(kf_times[:: cfg.calib_every])[: odo.n_seg - 1]
     return odo, pre_k.poses
+
+
+@dataclass
+class FrameOdometry:
+    """The dead reckoning of every frame that :class:`~stemmap.slam.graph.Isam2Slam` uses
+    between keyframes (the tracker's prediction and drift, the trajectory and its covariances).
+
+    ``d_f`` / ``cov_f`` (F - 1): sensor-frame increment frame ``f`` -> ``f + 1`` and its GTSAM
+    tangent covariance (:func:`_sensor_between`); ``rel_s`` (F, 3): sensor motion from each
+    frame's keyframe to the frame; ``cum_dist`` / ``cum_xy`` / ``cum_th`` (F,): path length,
+    position variance (half the trace) and heading variance of the odometry summed from the
+    start; ``sp_dr`` (F, 3): dead-reckoned sensor poses (continuous heading).
+    """
+
+    d_f: FloatArray
+    cov_f: FloatArray
+    rel_s: FloatArray
+    cum_dist: FloatArray
+    cum_xy: FloatArray
+    cum_th: FloatArray
+    sp_dr: FloatArray
+
+
+def frame_odometry(problem: SlamProblem, kf_of: np.ndarray, kf_frames: np.ndarray) -> FrameOdometry:
+    """:class:`FrameOdometry` of ``problem``'s frames; ``kf_of`` the keyframe of each frame,
+    ``kf_frames`` the frame of each keyframe."""
+    from stemmap.slam._graph_result import sensor_dead_reckoning
+
+    a, b = problem.sensor_offset
+    pre = preintegrate_spans(
+        problem.motion, problem.controls, problem.frames.times, problem.initial_pose
+    )  # (bounded working memory on long drives)
+    d_f, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+    # of the per-frame odometry only the poses and distances are used from here on: the
+    # vehicle increments and their (F, 3, 3) covariances (96 bytes per scan) are dropped
+    poses, dist = pre.poses, pre.distance
+    del pre
+    # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
+    rel_s = sensor_increments(between(poses[kf_frames[kf_of]], poses), (a, b))
+    return FrameOdometry(
+        d_f,
+        cov_f,
+        rel_s,
+        cum_dist=np.concatenate(([0.0], np.cumsum(dist))),
+        cum_xy=np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1])))),
+        cum_th=np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2]))),
+        sp_dr=sensor_dead_reckoning(poses, a, b),
+    )

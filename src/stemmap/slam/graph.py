@@ -96,11 +96,10 @@ from stemmap.slam._graph_marginals import (
 from stemmap.slam._graph_odometry import (
     _calibration_jacobians,  # noqa: F401  (re-exported: tests)
     _calibration_lsq,  # noqa: F401  (re-exported: tests)
-    _sensor_between,
+    _sensor_between,  # noqa: F401  (re-exported: tests)
     frame_covariances,
+    frame_odometry,
     keyframe_odometry,
-    preintegrate_spans,
-    sensor_increments,
 )
 from stemmap.slam._graph_result import (
     LANDMARK_FILL,
@@ -108,7 +107,6 @@ from stemmap.slam._graph_result import (
     gnss_stats,
     map_trees,
     new_landmarks,
-    sensor_dead_reckoning,
     tracker_params,
 )
 from stemmap.slam._graph_revisits import (
@@ -186,19 +184,13 @@ class Isam2Slam:
         a, b = problem.sensor_offset
         T_vs = gtsam.Pose2(a, b, 0.0)
         T_sv = T_vs.inverse()
-        # odometry between consecutive frames (for association and drift) and keyframes
-        pre = preintegrate_spans(
-            problem.motion, problem.controls, frames.times, problem.initial_pose
-        )  # (bounded working memory on long drives)
-        d_f, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
-        # of the per-frame odometry only the poses and distances are used from here on (and
-        # the sensor increments, for the pose covariances): the vehicle increments and their
-        # (F, 3, 3) covariances (96 bytes per scan) are dropped
-        pre_poses, pre_dist = pre.poses, pre.distance
-        del pre
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
+        # odometry between consecutive frames (for association and drift; _graph_odometry)
+        fo = frame_odometry(problem, kf_of, kf_frames)
+        d_f, cov_f, sp_dr = fo.d_f, fo.cov_f, fo.sp_dr
+        cum_dist, cum_xy, cum_th = fo.cum_dist, fo.cum_xy, fo.cum_th
         # keyframe odometry with its self-calibration (steering / yaw-rate offset, speed
         # scale; _graph_odometry): odo.c_used[i] is the calibration inside the factor of
         # keyframes (i, i+1)
@@ -220,14 +212,6 @@ class Isam2Slam:
         def odo_factor(ka: int, kb: int, d: FloatArray | None = None) -> Any:
             """BetweenFactorPose2 of graph keyframes ``ka < kb`` (KeyframeOdometry.factor)."""
             return odo.factor(gtsam, XK, ka, kb, d)
-
-        # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
-        rel_v = between(pre_poses[kf_frames[kf_of]], pre_poses)
-        rel_s = sensor_increments(rel_v, (a, b))
-        del rel_v
-        cum_dist = np.concatenate(([0.0], np.cumsum(pre_dist)))
-        cum_xy = np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1]))))
-        cum_th = np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2])))
 
         # one (stateless) robust kernel shared by every measurement factor
         kernel = robust_kernel(gtsam, cfg.robust, cfg.robust_k)
@@ -330,9 +314,6 @@ class Isam2Slam:
         map_fac, joint_fac = earlier.map_fac, earlier.joint_fac
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         kparams = tracker_params(cfg)
-        # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
-        sp_dr = sensor_dead_reckoning(pre_poses, a, b)
-        del pre_poses, pre_dist
         ptr = np.ascontiguousarray(frames.ptr, dtype=np.int64)
         f_rng = np.ascontiguousarray(frames.ranges, dtype=np.float64)
         f_brg = np.ascontiguousarray(frames.bearings, dtype=np.float64)
@@ -636,7 +617,7 @@ class Isam2Slam:
         skipped.close()  # (its spill file, _graph_leftout)
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
-        veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
+        veh = compose(compose(kf_s[kf_of], fo.rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
         pose_covs = (
             frame_covariances(kf_cov, kf_of, kf_frames, d_f, cov_f, (a, b), veh[:, 2])
             if cfg.pose_marginals
