@@ -173,7 +173,7 @@ def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, A
     m = scan_detection_metrics(
         det.detect_batch(demo_run.scans),
         demo_run,
-        gate=sc["gate_m"],
+        gate=sc["scan_gate_m"],
         min_returns=sc["min_returns"],
         max_range=sc["max_range_m"],
         min_diameter=sc["min_dbh_m"],
