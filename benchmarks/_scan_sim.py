@@ -6,6 +6,7 @@ any working directory)."""
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -22,6 +23,8 @@ from stemmap.types import StemObservations
 __all__ = [
     "SCENARIO",
     "SIM_PRECISION_MIN",
+    "SIM_SEEDS",
+    "admitted_over_seeds",
     "make_run",
     "score",
     "simulated_precision",
@@ -138,19 +141,37 @@ def score(obs: StemObservations, run: Any) -> dict[str, Any]:
 #: The issue's simulated precision target, which every ``real_geometry.py`` grid setting must keep.
 SIM_PRECISION_MIN = 0.95
 
+#: The seeds a setting is admitted on: its mean precision over them, per drive (sixteenth
+#: round, "admission over seeds"). One drive's precision per seed has an sd of 0.020-0.027
+#: (benchmark) / 0.013-0.015 (demo) over seeds 1-10 for every grid setting (one clutter object
+#: seen in tens of scans is worth 0.02-0.04), so one seed decides a setting within 0.02-0.03
+#: of the target by chance; the mean of ten has a standard error of about 0.008 / 0.0045 and
+#: one object moves it by at most 0.004. Five seeds (0.011 / 0.006) still decided bark 5 %
+#: by 0.0001 (demo mean 0.9501 over seeds 1-5, 0.9478 over 1-10). Ten seeds cost ten times
+#: one seed's detection passes (the drives are drawn once per seed, :func:`_runs`).
+SIM_SEEDS: tuple[int, ...] = tuple(range(1, 11))
+
+
+@functools.lru_cache(maxsize=8)
+def _runs(seed: int) -> tuple[Any, Any]:
+    """The two simulated drives of ``seed`` (``scan_detection.py``'s 400 scans, the ``stemmap
+    demo`` drive of 120 trees), drawn once per process: every setting is scored on the same
+    scans, and drawing them costs more than the compiled detector's pass over them."""
+    from stemmap.cli._demo import _stand_and_run
+
+    return make_run(400, seed), _stand_and_run(seed, 120)
+
 
 def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, Any]:
     """Detection recall / precision of the ``stemmap`` preset with ``overrides`` on the two
     simulated drives the ``real_geometry.py`` grid is admitted on: ``scan_detection.py``'s
     (400 scans, its scoring) and the ``stemmap demo`` drive (120 trees, the demo's scoring),
     seed ``seed``; ``admitted`` when both precisions are >= :data:`SIM_PRECISION_MIN`."""
-    from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
-    from stemmap.eval.detection import scan_detection_metrics
+    from stemmap.cli._demo import DEMO_SCENARIO
 
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
-    run = make_run(400, seed)
+    run, demo_run = _runs(int(seed))
     bench = score(det.detect_batch(run.scans), run)
-    demo_run = _stand_and_run(seed, 120)
     sc = DEMO_SCENARIO["scoring"]
     m = scan_detection_metrics(
         det.detect_batch(demo_run.scans),
@@ -168,11 +189,24 @@ def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, A
     }
 
 
+def admitted_over_seeds(rows: Sequence[dict[str, Any]]) -> bool:
+    """The admission rule of the ``real_geometry.py`` grid (sixteenth round): the mean
+    precision over the seeds' ``rows`` (:func:`simulated_precision` results) is >=
+    :data:`SIM_PRECISION_MIN` on each drive. With one row it is that seed's own test."""
+    if not rows:
+        raise ValueError("no seeds")
+    return all(
+        float(np.mean([float(r[drive]["precision"]) for r in rows])) >= SIM_PRECISION_MIN
+        for drive in ("benchmark", "demo")
+    )
+
+
 def simulated_precision_seeds(overrides: dict[str, Any], seeds: Sequence[int]) -> dict[str, Any]:
     """:func:`simulated_precision` on each of ``seeds`` (each seed draws a new stand, clutter
     and drive): the rows per seed, the mean and the smallest precision and recall of each
-    drive, and ``admitted`` when every seed is (issue 11, sixteenth round: the default kept the
-    target on seed 1 but not on seeds 2 and 7, scan-detection-history.md)."""
+    drive, the seeds below the target, and ``admitted`` by :func:`admitted_over_seeds` (the
+    mean over seeds; ``every_seed`` says whether each seed keeps it too: the default kept the
+    target on seed 1 but not on seeds 2 and 7, scan-detection-history.md, sixteenth round)."""
     rows = [{"seed": int(s), **simulated_precision(overrides, int(s))} for s in seeds]
     summary: dict[str, Any] = {}
     for drive in ("benchmark", "demo"):
@@ -185,5 +219,6 @@ def simulated_precision_seeds(overrides: dict[str, Any], seeds: Sequence[int]) -
         "per_seed": rows,
         **summary,
         "failing_seeds": [r["seed"] for r in rows if not r["admitted"]],
-        "admitted": all(r["admitted"] for r in rows),
+        "every_seed": all(r["admitted"] for r in rows),
+        "admitted": admitted_over_seeds(rows),
     }

@@ -106,17 +106,17 @@ def test_prior_map_uses_the_joint_information(
         c = cov[2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
         assert np.allclose(np.sqrt(np.diag(c)), np.sqrt(np.diag(t.cov)), rtol=0.05)
 
-    import stemmap.slam.graph as graph
+    import stemmap.slam._graph_session as session
 
     used: list[bool] = []
-    orig = graph.joint_prior_factor
+    orig = session.joint_prior_factor
 
     def spy(*a: Any, **k: Any) -> Any:
         f = orig(*a, **k)
         used.append(f is not None)
         return f
 
-    monkeypatch.setattr(graph, "joint_prior_factor", spy)
+    monkeypatch.setattr(session, "joint_prior_factor", spy)
     second = sim_log / "m_isam2_prior"
     args = ["map", str(sim_log / "run.npz"), "--prior-map", str(first), "--out", str(second)]
     args += ["--start-guess", "0,0,0"]

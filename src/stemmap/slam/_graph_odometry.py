@@ -8,18 +8,26 @@ docs/algorithms/slam.md "Odometry self-calibration").
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
 import numpy as np
 
 from stemmap.slam.base import SlamProblem
-from stemmap.slam.motion import between, preintegrate_spans
+from stemmap.slam.motion import between, compose, preintegrate_spans
 from stemmap.types import FloatArray
 
 __all__ = [
+    "KeyframeOdometry",
     "_calibration_jacobians",
     "_calibration_lsq",
     "_sensor_between",
     "frame_covariances",
+    "keyframe_odometry",
     "preintegrate_spans",
+    "sensor_increments",
 ]
 
 
@@ -35,10 +43,7 @@ def _sensor_between(
     a, b = offset
     n = deltas.shape[0]
     c, s = np.cos(deltas[:, 2]), np.sin(deltas[:, 2])
-    # δ_s translation: T_vs^-1 δ T_vs with T_vs = (a, b, 0)
-    tx = deltas[:, 0] + c * a - s * b - a
-    ty = deltas[:, 1] + s * a + c * b - b
-    ds = np.column_stack((tx, ty, deltas[:, 2]))
+    ds = sensor_increments(deltas, offset)
     M = np.zeros((n, 3, 3))
     M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1] = c, s, -s, c
     M[:, 2, 2] = 1.0
@@ -47,6 +52,17 @@ def _sensor_between(
     G = Ad[None] @ M
     cov = G @ covs @ np.swapaxes(G, 1, 2)
     return ds, cov
+
+
+def sensor_increments(deltas: FloatArray, offset: tuple[float, float]) -> FloatArray:
+    """Vehicle-frame increments -> sensor-frame increments ``δ_s = T_vs⁻¹ δ T_vs`` (the
+    increments of :func:`_sensor_between`, without covariances)."""
+    a, b = offset
+    c, s = np.cos(deltas[:, 2]), np.sin(deltas[:, 2])
+    # δ_s translation: T_vs^-1 δ T_vs with T_vs = (a, b, 0)
+    tx = deltas[:, 0] + c * a - s * b - a
+    ty = deltas[:, 1] + s * a + c * b - b
+    return np.column_stack((tx, ty, deltas[:, 2]))
 
 
 def frame_covariances(
@@ -181,7 +197,6 @@ def _calibration_jacobians(
 
     ctl = problem.controls
     out = np.empty((d0.shape[0], 3, 2))
-    zeros = np.zeros((d0.shape[0], 3, 3))
     for i, (d_steer, d_scale) in enumerate(((eps, 0.0), (0.0, eps))):
         c2 = Controls(
             ctl.times, np.asarray(ctl.speed) * (1.0 + d_scale), np.asarray(ctl.steer) + d_steer,
@@ -192,7 +207,7 @@ def _calibration_jacobians(
         pre = preintegrate_spans(
             problem.motion, c2, times, problem.initial_pose, with_covariance=False
         )
-        d1, _ = _sensor_between(pre.deltas, zeros, problem.sensor_offset)
+        d1 = sensor_increments(pre.deltas, problem.sensor_offset)
         out[:, :, i] = between(d0, d1) / eps
     return out
 
@@ -241,3 +256,175 @@ def _calibration_lsq(
         A[i0 : i0 + 2, i1 : i1 + 2] -= W
         A[i1 : i1 + 2, i0 : i0 + 2] -= W
     return np.asarray(np.linalg.solve(A, bb), dtype=np.float64).reshape(n_seg, 2)
+
+
+@dataclass
+class KeyframeOdometry:
+    """The odometry of :class:`~stemmap.slam.graph.Isam2Slam` between consecutive keyframes,
+    with its self-calibration (docs/algorithms/slam.md "Odometry self-calibration").
+
+    ``d_k`` (K, 3) / ``cov_k`` (K, 3, 3): the sensor-frame increment of each step (keyframe
+    ``k`` -> ``k + 1``) and its GTSAM tangent covariance. With ``calibrate``: ``J_k`` (K, 3, 2),
+    :func:`_calibration_jacobians`; ``info_k`` the inverse covariances; ``c_used[k]`` the
+    calibration inside the factor of step ``k`` (set as the run goes); ``seg_k`` the segment of
+    each step, ``n_seg`` segments, ``dur_seg`` s between segment starts (:func:`_calibration_lsq`).
+    """
+
+    d_k: FloatArray
+    cov_k: FloatArray
+    calibrate: bool
+    c_used: FloatArray
+    J_k: Any = None
+    info_k: Any = None
+    seg_k: Any = None
+    n_seg: int = 0
+    dur_seg: Any = None
+    noise: dict[tuple[int, int], Any] = field(default_factory=dict)  # (GTSAM noise models)
+
+    def measured(self, idx: Any) -> FloatArray:
+        """Increments of the steps ``idx`` (keyframe k -> k + 1) with their calibration."""
+        if not self.calibrate:
+            return self.d_k[idx]
+        corr = (self.J_k[idx] @ self.c_used[idx][:, :, None])[:, :, 0]
+        return compose(self.d_k[idx], corr)  # δ0 Exp(J c) to first order (J c is small)
+
+    def step(self, k: int, c: FloatArray) -> FloatArray:
+        """The increment of step ``k`` with calibration ``c``: :meth:`measured` of one step in
+        scalars (called once per keyframe: 1,450 calls on Victoria Park)."""
+        d0 = self.d_k[k]
+        if not self.calibrate:
+            return d0
+        xi = self.J_k[k] @ c
+        cz, sz = math.cos(d0[2]), math.sin(d0[2])
+        return np.array(
+            (d0[0] + cz * xi[0] - sz * xi[1], d0[1] + sz * xi[0] + cz * xi[1], d0[2] + xi[2])
+        )
+
+    def residuals(self, kf_xyt: FloatArray, idx: np.ndarray, k0: int = 0) -> FloatArray:
+        """Residuals of the one-step odometry factors ``idx`` at keyframe poses ``kf_xyt``
+        (row ``i - k0`` holds keyframe ``i``)."""
+        rel = between(kf_xyt[idx - k0], kf_xyt[idx + 1 - k0])
+        return between(self.measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
+
+    def online(
+        self,
+        k: int,
+        pose_k: Any,
+        in_graph: np.ndarray,
+        estimate: Callable[[int], Any],
+        cfg: Any,
+        c: FloatArray,
+    ) -> FloatArray:
+        """The online calibration at keyframe ``k`` from the last ``cfg.calib_window``
+        keyframes (one constant over the window, :func:`_calibration_lsq`), or ``c`` when no
+        one-step odometry factor of the graph lies in the window.
+
+        ``pose_k``: keyframe ``k``'s gtsam.Pose2 estimate; ``in_graph`` (K,): keyframes with a
+        pose in the graph; ``estimate(i)``: their current gtsam.Pose2 (each read-out of iSAM2
+        costs ~50 us, so this runs once per calibration segment: the calibration varies slowly).
+        """
+        k0 = max(0, k - cfg.calib_window)
+        xw = np.zeros((k + 1 - k0, 3))  # keyframes k0..k (the window)
+        for i in range(k0, k):
+            if in_graph[i]:
+                q = estimate(i)
+                xw[i - k0] = (q.x(), q.y(), q.theta())
+        xw[k - k0] = (pose_k.x(), pose_k.y(), pose_k.theta())
+        has = np.append(in_graph[k0:k], True)  # k: its estimate pose_k
+        idx = k0 + np.flatnonzero(has[:-1] & has[1:])
+        if not idx.size:
+            return c
+        return _calibration_lsq(
+            self.residuals(xw, idx, k0), self.J_k[idx], self.info_k[idx], self.c_used[idx],
+            np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
+            cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
+        )[0]  # fmt: skip
+
+    def factor(
+        self, gtsam: Any, xkey: Callable[[int], int], ka: int, kb: int, d: Any = None
+    ) -> Any:
+        """BetweenFactorPose2 of graph keyframes ``ka < kb``: the steps between composed
+        (:func:`~stemmap.slam._graph_revisits.compose_increments`; one step: its own increment
+        ``d`` and covariance)."""
+        from stemmap.slam._graph_revisits import compose_increments
+
+        if kb == ka + 1:
+            d = self.measured(slice(ka, kb))[0] if d is None else d
+            cov = self.cov_k[ka]
+        else:
+            d, cov = compose_increments(self.measured(slice(ka, kb)), self.cov_k[ka:kb])
+        if (ka, kb) not in self.noise:
+            self.noise[(ka, kb)] = gtsam.noiseModel.Gaussian.Covariance(cov)
+        return gtsam.BetweenFactorPose2(
+            xkey(ka), xkey(kb), gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])),
+            self.noise[(ka, kb)],
+        )  # fmt: skip
+
+
+def keyframe_odometry(
+    problem: SlamProblem, cfg: Any, kf_times: FloatArray
+) -> tuple[KeyframeOdometry, FloatArray]:
+    """The :class:`KeyframeOdometry` of the keyframes at ``kf_times`` (settings of an
+    :class:`~stemmap.slam._graph_config.Isam2Config`), and the dead-reckoned vehicle pose of
+    each keyframe (for the GNSS plan)."""
+    pre_k = preintegrate_spans(problem.motion, problem.controls, kf_times, problem.initial_pose)
+    d_k, cov_k = _sensor_between(pre_k.deltas, pre_k.covs, problem.sensor_offset)
+    # a standing vehicle still gets a (tiny) well-posed odometry factor
+    cov_k = cov_k + np.diag([1e-3**2, 1e-3**2, 1e-4**2])[None]
+    nk = kf_times.size
+    odo = KeyframeOdometry(d_k, cov_k, cfg.calibrate and nk > 2, np.zeros((max(nk - 1, 0), 2)))
+    if odo.calibrate:
+        odo.J_k = _calibration_jacobians(problem, kf_times, d_k)
+        odo.info_k = np.asarray(np.linalg.inv(cov_k), dtype=np.float64)
+        odo.seg_k = np.arange(nk - 1) // cfg.calib_every
+        odo.n_seg = int(odo.seg_k[-1]) + 1
+        odo.dur_seg = np.diff(kf_times[:: cfg.calib_every])[: odo.n_seg - 1]
+    return odo, pre_k.poses
+
+
+@dataclass
+class FrameOdometry:
+    """The dead reckoning of every frame that :class:`~stemmap.slam.graph.Isam2Slam` uses
+    between keyframes (the tracker's prediction and drift, the trajectory and its covariances).
+
+    ``d_f`` / ``cov_f`` (F - 1): sensor-frame increment frame ``f`` -> ``f + 1`` and its GTSAM
+    tangent covariance (:func:`_sensor_between`); ``rel_s`` (F, 3): sensor motion from each
+    frame's keyframe to the frame; ``cum_dist`` / ``cum_xy`` / ``cum_th`` (F,): path length,
+    position variance (half the trace) and heading variance of the odometry summed from the
+    start; ``sp_dr`` (F, 3): dead-reckoned sensor poses (continuous heading).
+    """
+
+    d_f: FloatArray
+    cov_f: FloatArray
+    rel_s: FloatArray
+    cum_dist: FloatArray
+    cum_xy: FloatArray
+    cum_th: FloatArray
+    sp_dr: FloatArray
+
+
+def frame_odometry(problem: SlamProblem, kf_of: np.ndarray, kf_frames: np.ndarray) -> FrameOdometry:
+    """:class:`FrameOdometry` of ``problem``'s frames; ``kf_of`` the keyframe of each frame,
+    ``kf_frames`` the frame of each keyframe."""
+    from stemmap.slam._graph_result import sensor_dead_reckoning
+
+    a, b = problem.sensor_offset
+    pre = preintegrate_spans(
+        problem.motion, problem.controls, problem.frames.times, problem.initial_pose
+    )  # (bounded working memory on long drives)
+    d_f, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
+    # of the per-frame odometry only the poses and distances are used from here on: the
+    # vehicle increments and their (F, 3, 3) covariances (96 bytes per scan) are dropped
+    poses, dist = pre.poses, pre.distance
+    del pre
+    # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
+    rel_s = sensor_increments(between(poses[kf_frames[kf_of]], poses), (a, b))
+    return FrameOdometry(
+        d_f,
+        cov_f,
+        rel_s,
+        cum_dist=np.concatenate(([0.0], np.cumsum(dist))),
+        cum_xy=np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1])))),
+        cum_th=np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2]))),
+        sp_dr=sensor_dead_reckoning(poses, a, b),
+    )

@@ -52,7 +52,8 @@ odometry factor to the remote last graph keyframe (``revisit_anchor_after``,
 :func:`~stemmap.slam._graph_revisits.anchor_prior`).
 
 Sessions (docs/algorithms/slam.md "Maps reused across sessions"): with ``problem.prior_map``
-its trees start as landmarks held by marginal priors (:mod:`stemmap.slam.relocalise`), or,
+its trees start as landmarks held by marginal priors (:mod:`stemmap.slam.relocalise`, seeded by
+:mod:`stemmap.slam._graph_session`), or,
 with ``problem.prior_graph``, the earlier session's whole graph is continued (its poses
 ``W(i)`` and trees stay variables, :mod:`stemmap.slam._graph_continue`); ``export_graph``
 returns this session's graph for the next one.
@@ -60,7 +61,8 @@ returns this session's graph for the next one.
 Odometry self-calibration (ours; docs/algorithms/slam.md "Odometry self-calibration"): a
 steering (yaw-rate) offset and a speed-scale correction enter every odometry factor to first
 order, ``δ(c) = δ0 Exp(J c)``. They are estimated from the graph's own poses
-(:func:`_calibration_lsq`, the conditional MAP given the poses): online once per segment
+(:func:`_calibration_lsq`, the conditional MAP given the poses; the keyframe odometry and its
+calibration state: :class:`~stemmap.slam._graph_odometry.KeyframeOdometry`): online once per segment
 from the last ``calib_window`` keyframes for the new factors, and at the end per segment with a
 random walk between segments, alternated with the batch LM. A systematic odometry error is
 otherwise treated as white noise and accumulates wherever the trees constrain the heading
@@ -83,7 +85,7 @@ from stemmap._memory import TRIM_INTERVAL_S, HeapTrimmer
 from stemmap.errors import ConfigError, StemmapError
 from stemmap.slam._graph_batch import Calibration, batch_rounds
 from stemmap.slam._graph_config import Isam2Config
-from stemmap.slam._graph_continue import ContinuedGraph, export_graph, graph_stats
+from stemmap.slam._graph_continue import export_graph, graph_stats
 from stemmap.slam._graph_localise import localise_windows, restart_covariance
 from stemmap.slam._graph_marginals import (
     _fit_diagnostics,
@@ -92,11 +94,12 @@ from stemmap.slam._graph_marginals import (
     final_marginals,
 )
 from stemmap.slam._graph_odometry import (
-    _calibration_jacobians,
-    _calibration_lsq,
-    _sensor_between,
+    _calibration_jacobians,  # noqa: F401  (re-exported: tests)
+    _calibration_lsq,  # noqa: F401  (re-exported: tests)
+    _sensor_between,  # noqa: F401  (re-exported: tests)
     frame_covariances,
-    preintegrate_spans,
+    frame_odometry,
+    keyframe_odometry,
 )
 from stemmap.slam._graph_result import (
     LANDMARK_FILL,
@@ -104,17 +107,16 @@ from stemmap.slam._graph_result import (
     gnss_stats,
     map_trees,
     new_landmarks,
-    sensor_dead_reckoning,
     tracker_params,
 )
 from stemmap.slam._graph_revisits import (
     LeftOutMeasurements,
     RevisitGate,
     anchor_prior,
-    compose_increments,
     held_into_map,
     localise_skipped,
 )
+from stemmap.slam._graph_session import seed_earlier_session
 from stemmap.slam._isam2_track import (
     C_AMBIG,
     C_FAR,
@@ -133,12 +135,7 @@ from stemmap.slam.gnss import (
     with_gnss_frame,
 )
 from stemmap.slam.motion import between, compose
-from stemmap.slam.relocalise import (
-    _joint_sqrt_information,
-    inflate_prior,
-    joint_prior_factor,
-    prior_tree_factors,
-)
+from stemmap.slam.relocalise import _joint_sqrt_information
 from stemmap.types import FloatArray, StemMap, wrap_angle
 
 __all__ = ["Isam2Config", "Isam2Slam"]
@@ -187,85 +184,34 @@ class Isam2Slam:
         a, b = problem.sensor_offset
         T_vs = gtsam.Pose2(a, b, 0.0)
         T_sv = T_vs.inverse()
-        # odometry between consecutive frames (for association and drift) and keyframes
-        pre = preintegrate_spans(
-            problem.motion, problem.controls, frames.times, problem.initial_pose
-        )  # (bounded working memory on long drives)
-        d_f, cov_f = _sensor_between(pre.deltas, pre.covs, (a, b))
-        # of the per-frame odometry only the poses and distances are used from here on (and
-        # the sensor increments, for the pose covariances): the vehicle increments and their
-        # (F, 3, 3) covariances (96 bytes per scan) are dropped
-        pre_poses, pre_dist = pre.poses, pre.distance
-        del pre
         kf_of = np.arange(nf) // cfg.keyframe_every  # keyframe index of each frame
         kf_frames = np.arange(0, nf, cfg.keyframe_every)  # frame index of each keyframe
         nk = kf_frames.size
-        pre_k = preintegrate_spans(
-            problem.motion, problem.controls, frames.times[kf_frames], problem.initial_pose
-        )
-        d_k, cov_k = _sensor_between(pre_k.deltas, pre_k.covs, (a, b))
-        # a standing vehicle still gets a (tiny) well-posed odometry factor
-        cov_k = cov_k + np.diag([1e-3**2, 1e-3**2, 1e-4**2])[None]
+        # odometry between consecutive frames (for association and drift; _graph_odometry)
+        fo = frame_odometry(problem, kf_of, kf_frames)
+        d_f, cov_f, sp_dr = fo.d_f, fo.cov_f, fo.sp_dr
+        cum_dist, cum_xy, cum_th = fo.cum_dist, fo.cum_xy, fo.cum_th
+        # keyframe odometry with its self-calibration (steering / yaw-rate offset, speed
+        # scale; _graph_odometry): odo.c_used[i] is the calibration inside the factor of
+        # keyframes (i, i+1)
+        odo, kf_dr = keyframe_odometry(problem, cfg, frames.times[kf_frames])
+        cov_k, calibrate = odo.cov_k, odo.calibrate
         gnss_plan = (
             None
             if problem.gnss is None
-            else plan_gnss(problem, problem.gnss, frames.times[kf_frames], pre_k.poses, cov_k)
+            else plan_gnss(problem, problem.gnss, frames.times[kf_frames], kf_dr, cov_k)
         )
-        del pre_k  # (d_k and cov_k carry what the factors need)
-        # odometry self-calibration (steering / yaw-rate offset, speed scale), see
-        # _calibration_lsq: c_used[i] is the calibration inside the factor of keyframes (i, i+1)
-        calibrate = cfg.calibrate and nk > 2
-        c_used = np.zeros((max(nk - 1, 0), 2))
+        del kf_dr
         c_cur = np.zeros(2)  # online estimate, used by every new odometry factor
         cal_seg = 0  # segment of the last online estimate
-        n_seg = 0
-        if calibrate:
-            J_k = _calibration_jacobians(problem, frames.times[kf_frames], d_k)
-            info_k = np.asarray(np.linalg.inv(cov_k), dtype=np.float64)
-            seg_k = np.arange(nk - 1) // cfg.calib_every
-            n_seg = int(seg_k[-1]) + 1
-            dur_seg = np.diff(frames.times[kf_frames[:: cfg.calib_every]])[: n_seg - 1]
-        odo_noise: dict[tuple[int, int], Any] = {}
         # keyframes with a GNSS fix always enter the graph (the fix hangs from their pose)
         must_keep = np.zeros(nk, dtype=bool)
         if gnss_plan is not None:
             must_keep[np.asarray(gnss_plan.kf, dtype=np.int64)] = True
 
-        def odo_measured(idx: Any) -> FloatArray:
-            """Increments of the steps ``idx`` (keyframe k -> k + 1) with their calibration."""
-            if not calibrate:
-                return d_k[idx]
-            corr = (J_k[idx] @ c_used[idx][:, :, None])[:, :, 0]
-            return compose(d_k[idx], corr)  # δ0 Exp(J c) to first order (J c is small)
-
         def odo_factor(ka: int, kb: int, d: FloatArray | None = None) -> Any:
-            """BetweenFactorPose2 of graph keyframes ``ka < kb``: the steps between composed
-            (:func:`compose_increments`; one step: its own increment ``d`` and covariance)."""
-            if kb == ka + 1:
-                d = odo_measured(slice(ka, kb))[0] if d is None else d
-                cov = cov_k[ka]
-            else:
-                d, cov = compose_increments(odo_measured(slice(ka, kb)), cov_k[ka:kb])
-            if (ka, kb) not in odo_noise:
-                odo_noise[(ka, kb)] = gtsam.noiseModel.Gaussian.Covariance(cov)
-            return gtsam.BetweenFactorPose2(
-                XK(ka), XK(kb), gtsam.Pose2(float(d[0]), float(d[1]), float(d[2])),
-                odo_noise[(ka, kb)],
-            )  # fmt: skip
-
-        def odo_residuals(kf_xyt: FloatArray, idx: np.ndarray, k0: int = 0) -> FloatArray:
-            """Residuals of the one-step odometry factors ``idx`` at keyframe poses kf_xyt
-            (row ``i - k0`` holds keyframe ``i``)."""
-            rel = between(kf_xyt[idx - k0], kf_xyt[idx + 1 - k0])
-            return between(odo_measured(idx), rel)  # ≈ Log(δ⁻¹ X_k⁻¹ X_k+1), small
-
-        # sensor motion from each frame's keyframe to the frame (dead reckoning, short)
-        rel_v = between(pre_poses[kf_frames[kf_of]], pre_poses)
-        rel_s, _ = _sensor_between(rel_v, np.zeros((nf, 3, 3)), (a, b))
-        del rel_v
-        cum_dist = np.concatenate(([0.0], np.cumsum(pre_dist)))
-        cum_xy = np.concatenate(([0.0], np.cumsum(0.5 * (cov_f[:, 0, 0] + cov_f[:, 1, 1]))))
-        cum_th = np.concatenate(([0.0], np.cumsum(cov_f[:, 2, 2])))
+            """BetweenFactorPose2 of graph keyframes ``ka < kb`` (KeyframeOdometry.factor)."""
+            return odo.factor(gtsam, XK, ka, kb, d)
 
         # one (stateless) robust kernel shared by every measurement factor
         kernel = robust_kernel(gtsam, cfg.robust, cfg.robust_k)
@@ -352,57 +298,22 @@ class Isam2Slam:
         n_prior = 0 if problem.prior_map is None else len(problem.prior_map)
         (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_first, lm_last, lm_inc, lm_in_graph, lm_ref,
          lm_nfac) = new_landmarks(n_prior + 1024 if n_prior else 1024)  # fmt: skip
-        n_lm = 0
-        map_fac: list[Any] = []  # priors of the trees of a prior map (kept when rebuilding)
-        joint_fac: Any = None  # or one joint prior over them (StemMap.information)
-        # the prior map as this session holds it (covariances x prior_map_inflation)
-        pmap = (
-            None
-            if problem.prior_map is None
-            else inflate_prior(problem.prior_map, cfg.prior_map_inflation)
-        )
-        # or that session's whole graph, continued (_graph_continue): its poses W(i), its
-        # trees these landmarks, its factors instead of the marginal priors
-        cont = None
-        if pmap is not None and problem.prior_graph is not None:
-            cont = ContinuedGraph(problem.prior_graph, pmap, WK, cfg.prior_graph_inflation, vkey=VK)
-            for key_w, val_w in cont.values(gtsam):
-                new_v.insert(key_w, val_w)
-            for fac_w in cont.factors(gtsam, LK, meas_noise):
-                new_f.add(fac_w)
-                graph_all.add(fac_w)
-        if pmap is not None and len(pmap):
-            # a map of an earlier session (relocalised into: problem.initial_pose is in its
-            # frame): its trees start as landmarks 0..n-1 with their marginal covariance as a
-            # prior, so this session updates them and adds new ones (one merged map)
-            n_lm = n_prior
-            cont_xy = None if cont is None else cont.tree_xy(n_prior)
-            for j_p, (xy_p, d_p, n_p, fac_p) in enumerate(
-                prior_tree_factors(pmap, LK, cfg.min_obs, kernel=prior_kernel)
-            ):
-                lm_xy[j_p] = xy_p
-                if math.isfinite(d_p):
-                    lm_dsum[j_p], lm_dn[j_p] = d_p * n_p, n_p
-                lm_nobs[j_p] = n_p
-                lm_in_graph[j_p] = True
-                if cont_xy is not None:  # held by the continued graph, not by a prior
-                    xy_p = lm_xy[j_p] = cont_xy[j_p]
-                    fac_p = None
-                new_v.insert(LK(j_p), xy_p.copy())
-                if fac_p is not None:
-                    new_f.add(fac_p)
-                    graph_all.add(fac_p)
-                map_fac.append(fac_p)
-            if prior_kernel is None and cont is None:  # None: per-tree priors above
-                joint_fac = joint_prior_factor(pmap, LK)
-            if joint_fac is not None:
-                new_f.add(joint_fac)
-                graph_all.add(joint_fac)
+
+        def add_factor(fac: Any) -> None:
+            new_f.add(fac)
+            graph_all.add(fac)
+
+        # an earlier session (_graph_session): its map's trees as landmarks 0..n-1 held by
+        # marginal priors, or its whole graph continued (_graph_continue)
+        earlier = seed_earlier_session(
+            gtsam, problem, cfg, (LK, WK, VK), (lm_xy, lm_dsum, lm_dn, lm_nobs, lm_in_graph),
+            meas_noise=meas_noise, prior_kernel=prior_kernel, add_factor=add_factor,
+            add_value=new_v.insert,
+        )  # fmt: skip
+        n_lm, pmap, cont = earlier.n_lm, earlier.pmap, earlier.cont
+        map_fac, joint_fac = earlier.map_fac, earlier.joint_fac
         vr, vb = cfg.sigma_range**2, cfg.sigma_bearing**2
         kparams = tracker_params(cfg)
-        # dead-reckoned sensor poses (continuous heading) for the tracker's prediction
-        sp_dr = sensor_dead_reckoning(pre_poses, a, b)
-        del pre_poses, pre_dist
         ptr = np.ascontiguousarray(frames.ptr, dtype=np.int64)
         f_rng = np.ascontiguousarray(frames.ranges, dtype=np.float64)
         f_brg = np.ascontiguousarray(frames.bearings, dtype=np.float64)
@@ -513,7 +424,7 @@ class Isam2Slam:
                     # after a long left-out run: anchored at its tracked pose, not linked to
                     # the remote graph keyframe (anchor_prior)
                     bf = anchor_prior(
-                        gtsam, XK(kc), kf_init[kc], odo_measured(slice(g_last, kc)),
+                        gtsam, XK(kc), kf_init[kc], odo.measured(slice(g_last, kc)),
                         cov_k[g_last:kc],
                     )  # fmt: skip
                     anchor_fac.append(bf)
@@ -535,17 +446,8 @@ class Isam2Slam:
         for k in range(nk):
             f0 = int(kf_frames[k])
             if k > 0:
-                c_used[k - 1] = c_cur
-                # the step k-1 -> k with the current calibration (odo_measured for one step,
-                # in scalars: 1,450 calls on VP)
-                d0_ = d_k[k - 1]
-                if calibrate:
-                    xi = J_k[k - 1] @ c_cur
-                    cz, sz = math.cos(d0_[2]), math.sin(d0_[2])
-                    d0_ = np.array(
-                        (d0_[0] + cz * xi[0] - sz * xi[1], d0_[1] + sz * xi[0] + cz * xi[1],
-                         d0_[2] + xi[2])
-                    )  # fmt: skip
+                odo.c_used[k - 1] = c_cur
+                d0_ = odo.step(k - 1, c_cur)  # the step k-1 -> k with the current calibration
                 # close the previous keyframe (the step into it is d_last), then this one's
                 # initial value: the tracked pose carried to it by dead reckoning
                 close_keyframe(k - 1)
@@ -575,26 +477,13 @@ class Isam2Slam:
                                 gtsam.Pose2(float(d0_[0]), float(d0_[1]), float(d0_[2]))
                             )
                         if calibrate and restart and k // cfg.calib_every != cal_seg:
-                            # online calibration from the last calib_window keyframes (constant
-                            # over the window), once per segment (it varies slowly; each pose
-                            # read-out costs ~50 us): new odometry factors use it; one-step
-                            # odometry factors of the graph only
+                            # online calibration from the last calib_window keyframes, once
+                            # per segment (KeyframeOdometry.online): new odometry factors use it
                             cal_seg = k // cfg.calib_every
-                            k0 = max(0, k - cfg.calib_window)
-                            xw = np.zeros((k + 1 - k0, 3))  # keyframes k0..k (the window)
-                            for i_ in range(k0, k):
-                                if in_graph_k[i_]:
-                                    q_ = isam.calculateEstimatePose2(XK(i_))
-                                    xw[i_ - k0] = (q_.x(), q_.y(), q_.theta())
-                            xw[k - k0] = (p.x(), p.y(), p.theta())
-                            has = np.append(in_graph_k[k0:k], True)  # k: its estimate p
-                            idx = k0 + np.flatnonzero(has[:-1] & has[1:])
-                            if idx.size:
-                                c_cur = _calibration_lsq(
-                                    odo_residuals(xw, idx, k0), J_k[idx], info_k[idx], c_used[idx],
-                                    np.zeros(idx.size, dtype=np.int64), 1, np.zeros(0),
-                                    cfg.calib_prior_sigmas, cfg.calib_walk_sigmas,
-                                )[0]  # fmt: skip
+                            c_cur = odo.online(
+                                k, p, in_graph_k, lambda i_: isam.calculateEstimatePose2(XK(i_)),
+                                cfg, c_cur,
+                            )  # fmt: skip
                     P_restart = P_floor
                     if not restart and (k - 1) in skipped:
                         # left out of the graph: localise the tracker on the map instead
@@ -688,7 +577,8 @@ class Isam2Slam:
             meas_rec=meas_rec, meas_fac=meas_fac, meas_noise=meas_noise, gk=gk,
             prior_map=pmap, cont=cont,
             calib=Calibration(
-                odo_residuals, kf_poses, one_step, J_k, info_k, c_used, seg_k, n_seg, dur_seg
+                odo.residuals, kf_poses, one_step, odo.J_k, odo.info_k, odo.c_used, odo.seg_k,
+                odo.n_seg, odo.dur_seg,
             ) if calibrate else None,
         )  # fmt: skip
         result, graph_all, odo_fac, alias = batch.result, batch.graph, batch.odo_fac, batch.alias
@@ -715,7 +605,7 @@ class Isam2Slam:
         n_localised = localise_skipped(
             gtsam,
             skipped,
-            kf_s, kf_init, odo_measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
+            kf_s, kf_init, odo.measured(slice(0, nk - 1)), cov_k, pts, covs, meas_noise,
             (XK, LK), held=held,
         )  # fmt: skip
         keep_g = keep  # (the graph's trees)
@@ -727,7 +617,7 @@ class Isam2Slam:
         skipped.close()  # (its spill file, _graph_leftout)
         # every frame: keyframe sensor pose ∘ (dead-reckoned sensor motion since the keyframe),
         # then the vehicle pose = sensor pose ∘ T_sv
-        veh = compose(compose(kf_s[kf_of], rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
+        veh = compose(compose(kf_s[kf_of], fo.rel_s), np.array([T_sv.x(), T_sv.y(), T_sv.theta()]))
         pose_covs = (
             frame_covariances(kf_cov, kf_of, kf_frames, d_f, cov_f, (a, b), veh[:, 2])
             if cfg.pose_marginals
@@ -783,15 +673,15 @@ class Isam2Slam:
             "odometry_chi2_per_dof": chi_odo / n_odo if n_odo else math.nan,
             "measurement_chi2_per_dof": chi_meas / n_meas if n_meas else math.nan,
             "measurement_outlier_fraction": n_outlier / len(meas_rec) if meas_rec else math.nan,
-            "calibration_segments": n_seg,
+            "calibration_segments": odo.n_seg,
             "calibration_rounds": n_cal_rounds,
             **gnss_stats(result, gnss_plan, gnss_keys),
             **graph_stats(cont),
             "incremental_s": t_inc,
             "runtime_s": runtime,
         }
-        if n_seg:
-            stats.update(calibration_stats(c_used))
+        if odo.n_seg:
+            stats.update(calibration_stats(odo.c_used))
         log.info("iSAM2: %s", stats)
         stem_map = StemMap(tuple(trees), information=info_j)
         return SlamResult(
