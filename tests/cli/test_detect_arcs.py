@@ -12,8 +12,8 @@ from tests.scan.test_arcs import TRUNK, _scan
 from typer.testing import CliRunner
 
 from stemmap.cli import app
-from stemmap.cli._detect import ARC_OPTIONS
 from stemmap.io.scans import write_scans_npz
+from stemmap.scan.config import ARC_OPTIONS
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 runner = CliRunner()

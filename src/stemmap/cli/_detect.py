@@ -13,22 +13,13 @@ from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
+from stemmap.scan.config import ARC_OPTIONS
 
 __all__ = ["detect", "register"]
 
 #: Scans per detect_batch call: large enough to amortise numpy overhead, small enough for a
 #: responsive progress bar.
 _CHUNK = 2000
-#: ``--arcs``: the stemmap preset's largest-consistent-arc setting (issue 11, fifteenth round;
-#: short arcs set off by a range step since the sixteenth)
-ARC_OPTIONS: dict[str, object] = {
-    "arc_refit": True,
-    "arc_sigmas": 2.0,
-    "arc_replace": 3.0,
-    "arc_tangent_sigmas": 3.0,
-    "arc_chi2": True,
-    "arc_short_steps": True,
-}
 #: Show a progress bar from this many scans on.
 _PROGRESS_MIN_SCANS = 5000
 

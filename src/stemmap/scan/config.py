@@ -14,7 +14,7 @@ from typing import Any, Literal
 from stemmap.errors import ConfigError
 from stemmap.scan import circle as _circle
 
-__all__ = ["PRESETS", "PRESET_NOTES", "DetectorConfig"]
+__all__ = ["ARC_OPTIONS", "PRESETS", "PRESET_NOTES", "DetectorConfig"]
 
 
 def _fit_methods() -> dict[str, Any]:
@@ -572,6 +572,18 @@ class DetectorConfig:
 
 #: Published parameters of each paper; comments name the section. Values the paper does not
 #: publish are listed in PRESET_NOTES.
+#: The ``stemmap`` preset's largest-consistent-arc setting (issue 11: arcs since the fifteenth
+#: round, with their tangent-range and chi-square tests; short arcs set off by a range step since
+#: the sixteenth), also what ``stemmap detect --arcs`` adds to any other preset.
+ARC_OPTIONS: dict[str, Any] = {
+    "arc_refit": True,
+    "arc_sigmas": 2.0,
+    "arc_replace": 3.0,
+    "arc_tangent_sigmas": 3.0,
+    "arc_chi2": True,
+    "arc_short_steps": True,
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     "zheng2012": {
         # §2.1: LMS291, 0.25 deg, 100 deg scan (40-140 deg, 90 = forward), 8 m range
@@ -693,12 +705,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "bark_roughness": 0.03,
         "straight_depth_sigmas": 3.0,
         "sigma_from_scan": True,
-        "arc_refit": True,
-        "arc_sigmas": 2.0,
-        "arc_replace": 3.0,
-        "arc_tangent_sigmas": 3.0,
-        "arc_chi2": True,
-        "arc_short_steps": True,
+        **ARC_OPTIONS,
     },
 }
 
