@@ -205,16 +205,14 @@ def judge_pieces(
     grid: FloatArray,
     wrap: bool,
     validate: bool,
-    accept: NDArray[np.bool_] | None = None,
     tests: Callable[[DetectorConfig, Segments, _Fitted], NDArray[np.bool_]] | None = None,
 ) -> Refitted | None:
     """The pieces of the candidates ``sub`` (= ``every.select(which)``; ``local`` indexes
     ``sub``) judged as any candidate: segment filters, fit, fit tests; with ``validate`` a
     candidate's pieces are accepted only together (:func:`validate_pieces`) and a piece whose
     circle holds a return of its parent more than 3 sigma inside is rejected. ``parent`` of
-    the result indexes ``every``; None when no piece passed the segment filters. ``accept``
-    (per piece): a further condition of acceptance, applied after the validation (a piece it
-    refuses still vetoes its siblings). ``tests`` (config, fitted pieces, fit): the fit tests
+    the result indexes ``every``; None when no piece passed the segment filters. ``tests``
+    (config, fitted pieces, fit): the fit tests
     a piece must pass (default :func:`fit_passes`; ``split_search`` passes
     :func:`~stemmap.scan._arcs.piece_passes`, the arcs' tests)."""
     cfg = detector.config
@@ -234,8 +232,6 @@ def judge_pieces(
         ok &= ~_returns_inside(sub, local[good], fitted, ok)
     else:
         ok = fit_ok[good]
-    if accept is not None:
-        ok &= accept[good]
     parent = np.flatnonzero(which)[local[good]].astype(np.int64)
     return Refitted(pieces.select(good), fitted, ok, parent)
 

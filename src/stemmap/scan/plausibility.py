@@ -455,7 +455,7 @@ def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[s
     n = np.maximum(segs.counts, 1)
     mx = segment_sum(p.x, segs) / n if k else nan
     my = segment_sum(p.y, segs) / n if k else nan
-    width = segment_features(segs).width if k else nan
+    width = f.width if k else nan
     return {
         "scan_index": segs.scan[rej],
         "reason": [r or f for r, f in zip(rescued[rej].tolist(), failed, strict=True)],
