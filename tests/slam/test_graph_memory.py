@@ -7,6 +7,7 @@ import tracemalloc
 import numpy as np
 from _synthetic import loop_problem  # tests/slam is on sys.path (pytest rootdir-less mode)
 
+import stemmap.slam._graph_run as graph_run
 import stemmap.slam.graph as graph
 from stemmap.slam._graph_odometry import frame_covariances
 
@@ -72,13 +73,13 @@ def test_isam2_trims_the_heap_when_used_as_a_library(monkeypatch):
     problem, *_ = loop_problem(3, laps=0.5)
     counts = []
 
-    class Counting(graph.HeapTrimmer):
+    class Counting(graph_run.HeapTrimmer):
         def __init__(self, *a, **k):
             super().__init__(*a, trim=lambda: counts.append(1) or True, **k)
 
     off = graph.Isam2Slam().run(problem)  # (interval 0.2 s of CPU: a few trims at most)
-    monkeypatch.setattr(graph, "HeapTrimmer", Counting)
-    monkeypatch.setattr(graph, "TRIM_INTERVAL_S", 0.0)  # every keyframe
+    monkeypatch.setattr(graph_run, "HeapTrimmer", Counting)
+    monkeypatch.setattr(graph_run, "TRIM_INTERVAL_S", 0.0)  # every keyframe
     on = graph.Isam2Slam().run(problem)
     assert len(counts) == on.stats["keyframes"]
     assert np.array_equal(on.trajectory.poses, off.trajectory.poses)

@@ -427,7 +427,7 @@ def test_left_out_store_spill_leaves_the_result_unchanged(monkeypatch):
     as all in memory, and the store's resident memory within the same bound after 6 laps as
     after 3 (all in memory it grows with every lap: 1,109 and 4,521 measurements, 86 and 332
     kB)."""
-    import stemmap.slam.graph as graph_mod
+    import stemmap.slam._graph_run as graph_run
 
     made: list[LeftOutMeasurements] = []
 
@@ -438,7 +438,7 @@ def test_left_out_store_spill_leaves_the_result_unchanged(monkeypatch):
 
     problem = loop_problem(2, laps=3.0)[0]
     ref = Isam2Slam().run(problem)
-    monkeypatch.setattr(graph_mod, "LeftOutMeasurements", Small)
+    monkeypatch.setattr(graph_run, "LeftOutMeasurements", Small)
     got = Isam2Slam().run(problem)
     np.testing.assert_array_equal(got.trajectory.poses, ref.trajectory.poses)
     np.testing.assert_array_equal(got.stem_map.xy, ref.stem_map.xy)
