@@ -220,3 +220,31 @@ def test_detect_writes_a_manifest(tmp_path):
     assert verify_run(m) == []
     out.write_text("edited")
     assert "differs" in verify_run(m)[0]
+
+
+@pytest.mark.parametrize(
+    ("argv", "inputs"),
+    [
+        (["detect", "{in0}", "--out", "{out}", "--rejected", "{out}"], ["scans.npz"]),
+        (["stems", "{in0}", "--out", "{out}", "--profile", "{out}"], ["cloud.xyz"]),
+        (["segment", "{in0}", "--out", "{out}", "--overlay", "{out}"], ["frame.png"]),
+    ],
+)
+def test_two_outputs_on_one_file_are_refused(tmp_path, argv, inputs):
+    # the user audit (docs/cli.md): the second product silently replaced the first and the
+    # command reported both as written
+    _inputs(tmp_path, inputs)
+    out = tmp_path / "o.csv"
+    res = runner.invoke(app, _argv(argv, inputs, tmp_path, out))
+    assert res.exit_code == 2, res.output
+    assert "given twice" in _one_error_line(res)
+    assert not out.exists()
+
+
+def test_an_output_on_the_manifest_is_refused(tmp_path):
+    src = _scans(tmp_path)
+    out, manifest = tmp_path / "o.csv", tmp_path / "o.csv.run.json"
+    res = runner.invoke(app, ["detect", str(src), "--out", str(out), "--rejected", str(manifest)])
+    assert res.exit_code == 2, res.output
+    assert "manifest" in _one_error_line(res)
+    assert not out.exists() and not manifest.exists()
