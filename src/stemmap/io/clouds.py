@@ -30,6 +30,7 @@ from stemmap.types import PointCloud
 
 __all__ = [
     "CLOUD_EXTENSIONS",
+    "check_las_file",
     "count_points",
     "iter_cloud_chunks",
     "iter_las_chunks",
@@ -133,10 +134,15 @@ def _check_las_layout(p: Path) -> None:
             head = fh.read(104)
     except OSError as exc:
         raise InputError(f"cannot read {str(p)!r}: {exc}.") from exc
-    if len(head) < 104 or head[:4] != b"LASF":
+    if head[:4] != b"LASF":
         raise InputError(
-            f"{str(p)!r} is not a LAS/LAZ file: it lacks the 'LASF' signature or its "
-            f"{len(head)}-byte header is shorter than 104 bytes."
+            f"{str(p)!r} is not a LAS/LAZ file: it does not start with the 'LASF' signature "
+            f"(it starts with {head[:4]!r})."
+        )
+    if len(head) < 104:
+        raise InputError(
+            f"{str(p)!r} is truncated: its LAS header stops after {len(head)} bytes "
+            "(at least 104 are needed)."
         )
     header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
     size = p.stat().st_size
@@ -145,6 +151,16 @@ def _check_las_layout(p: Path) -> None:
             f"{str(p)!r}: the LAS header is corrupt: header size {header_size} B, "
             f"{n_vlrs} VLR(s) and point data at byte {offset} do not fit a {size}-byte file."
         )
+
+
+def check_las_file(path: PathLike) -> Path:
+    """InputError unless ``path`` exists, is not empty and starts with a LAS header that fits
+    the file (:func:`_check_las_layout`); call it before handing the file to laspy, which
+    loops for minutes on a damaged VLR count and reports a missing or empty file as a
+    parse error."""
+    p = _check_file(path)
+    _check_las_layout(p)
+    return p
 
 
 def _check_las_header(p: Path, header: Any) -> None:
