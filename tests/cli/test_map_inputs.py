@@ -56,3 +56,13 @@ def test_map_scans_and_detections(sim_run: Path) -> None:
 
     res = run.invoke(app, args)  # no odometry beside det.csv
     assert res.exit_code == 2 and "--odometry" in res.output
+
+
+@pytest.mark.parametrize("name", ["missing.npz", "missing.csv"])
+def test_map_missing_input_says_so(tmp_path: Path, name: str) -> None:
+    # the user audit (docs/cli.md): a mistyped input was reported as "has no odometry"
+    out = tmp_path / "m"
+    res = CliRunner().invoke(app, ["map", str(tmp_path / name), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "does not exist" in res.output and "odometry" not in res.output
+    assert not out.exists()
