@@ -192,17 +192,18 @@ def detect(
                     batch.range_max,
                     batch.frame,
                 )
-                obs = detector.detect_batch(
-                    chunk,
-                    roll=None if roll is None else roll[a:b],
-                    pitch=None if pitch is None else pitch[a:b],
-                )
-                if rejected is not None:
-                    rej = detector.rejected(chunk)
+                if rejected is not None:  # (no IMU: refused above)
+                    obs, rej = detector.detect_with_rejected(chunk)
                     local = rej["scan_index"]
                     rej["time"] = chunk.times[local]
                     rej["scan_index"] = file_index[a + local]
                     rejected_parts.append(rej)
+                else:
+                    obs = detector.detect_batch(
+                        chunk,
+                        roll=None if roll is None else roll[a:b],
+                        pitch=None if pitch is None else pitch[a:b],
+                    )
                 parts.append(
                     StemObservations(
                         centers=obs.centers,
