@@ -232,3 +232,30 @@ def test_las_zero_scale_is_an_error(tmp_path: Path, pts: np.ndarray, axis: int) 
     _patch_las_header(f, 131 + 8 * axis, "<d", 0.0)
     with pytest.raises(InputError, match=r"zero\.las.*scale factors.*finite non-zero"):
         read_cloud(f)
+
+
+def test_a_cloud_of_only_nan_points_is_an_error_not_an_empty_plot(tmp_path):
+    # the user audit (docs/cli.md): `stemmap stems nan.xyz` wrote an empty stems CSV and
+    # exited 0 ("the cloud is empty"), hiding a broken export
+    p = tmp_path / "nan.xyz"
+    np.savetxt(p, np.full((50, 3), np.nan))
+    with pytest.raises(InputError, match="no point with finite coordinates"):
+        list(iter_cloud_chunks(p))
+    assert read_cloud(p).xyz.shape == (0, 3)  # a frame reader still gets an empty frame
+    xyz = np.full((50, 3), np.nan)
+    xyz[:10] = np.arange(30.0).reshape(10, 3)
+    np.savetxt(p, xyz)
+    assert next(iter_cloud_chunks(p)).xyz.shape == (10, 3)  # NaN rows dropped, as before
+
+
+def test_stems_cli_refuses_a_cloud_of_nan(tmp_path):
+    from typer.testing import CliRunner
+
+    from stemmap.cli import app
+
+    p = tmp_path / "nan.xyz"
+    np.savetxt(p, np.full((50, 3), np.nan))
+    out = tmp_path / "s.csv"
+    res = CliRunner().invoke(app, ["stems", str(p), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "no point with finite coordinates" in res.output and not out.exists()

@@ -38,6 +38,7 @@ __all__ = [
     "read_cloud",
     "read_las",
     "read_pcd",
+    "read_plot_cloud",
     "read_ply",
     "read_xyz",
 ]
@@ -574,9 +575,24 @@ def iter_cloud_chunks(
     topic: str | None = None,
 ) -> Iterator[PointCloud]:
     """Stream any supported cloud: LAS/LAZ in chunks (carrying the extra dimensions named in
-    ``fields``), other formats as one chunk (with all their fields; ``topic`` for bags)."""
+    ``fields``), other formats as one chunk (with all their fields; ``topic`` for bags):
+    :func:`read_plot_cloud`, so a cloud of NaN is an InputError."""
     p = Path(path)
     if p.suffix.lower() in (".las", ".laz"):
         yield from iter_las_chunks(p, chunk_size, fields=fields)
     else:
-        yield read_cloud(p, topic=topic)
+        yield read_plot_cloud(p, topic=topic)
+
+
+def read_plot_cloud(path: PathLike, *, topic: str | None = None) -> PointCloud:
+    """:func:`read_cloud` of a cloud to measure stems in: InputError when not one point has
+    finite coordinates -- a whole cloud of NaN is a broken export, not an empty plot
+    (:func:`read_cloud` returns it empty: a lidar frame of a blocked sensor is all NaN in an
+    organised PCD)."""
+    cloud = read_cloud(path, topic=topic)
+    if cloud.xyz.shape[0] == 0:
+        raise InputError(
+            f"{str(path)!r} holds no point with finite coordinates (none, or all NaN / "
+            "infinite): nothing to measure. Check the export's columns and no-data value."
+        )
+    return cloud
