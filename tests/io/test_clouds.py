@@ -259,3 +259,27 @@ def test_stems_cli_refuses_a_cloud_of_nan(tmp_path):
     res = CliRunner().invoke(app, ["stems", str(p), "--out", str(out)])
     assert res.exit_code == 2, res.output
     assert "no point with finite coordinates" in res.output and not out.exists()
+
+
+def test_text_clouds_announcing_more_points_than_they_hold_are_truncated(tmp_path):
+    # the user audit (docs/cli.md): an ascii PLY announcing 4e9 vertices was "out of memory"
+    # (np.loadtxt allocated them first) and an ascii PCD announcing more points than it holds
+    # was read short without a word
+    ply = tmp_path / "huge.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4000000000\nproperty float x\n"
+        "property float y\nproperty float z\nend_header\n1 2 3\n"
+    )
+    with pytest.raises(InputError, match="truncated"):
+        read_cloud(ply)
+    head = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        "WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
+    )
+    for n in (4_000_000_000, 10):
+        pcd = tmp_path / f"short{n}.pcd"
+        pcd.write_text(head.format(n=n) + "1.000 2.000 3.000\n" * 5)
+        with pytest.raises(InputError, match="truncated"):
+            read_cloud(pcd)
+    pcd.write_text(head.format(n=5) + "1.000 2.000 3.000\n" * 5)
+    assert read_cloud(pcd).xyz.shape == (5, 3)

@@ -336,7 +336,8 @@ def read_ply(path: PathLike) -> PointCloud:
 
 
 def _check_pcd_size(p: Path) -> None:
-    """Reject a ``DATA binary`` PCD whose body is shorter than its header announces.
+    """Reject a ``DATA binary`` PCD whose body is shorter than its header announces, and a
+    ``DATA ascii`` one too short to hold its announced points (two bytes a value).
 
     (The parser would otherwise return garbage or fewer points without complaint.)
     """
@@ -357,7 +358,8 @@ def _check_pcd_size(p: Path) -> None:
                 break
     if "DATA" not in header:
         raise InputError(f"{str(p)!r} is not a PCD file: no DATA line in its header.")
-    if header["DATA"][:1] != ["binary"]:
+    data = header["DATA"][:1]
+    if data not in (["binary"], ["ascii"]):
         return
     try:
         sizes = [int(v) for v in header["SIZE"]]
@@ -365,12 +367,16 @@ def _check_pcd_size(p: Path) -> None:
         n = int(header["POINTS"][0])
     except (KeyError, ValueError, IndexError) as exc:
         raise InputError(f"PCD file {str(p)!r} has a malformed header: {exc}.") from exc
-    need = n * sum(s * c for s, c in zip(sizes, counts, strict=False))
+    if data == ["binary"]:
+        need = n * sum(s * c for s, c in zip(sizes, counts, strict=False))
+    else:  # ascii: >= one character and a separator per value
+        need = n * 2 * sum(counts)
     have = p.stat().st_size - offset
     if have < need:
         raise InputError(
             f"PCD file {str(p)!r} is truncated: its header announces {n} points "
-            f"({need} bytes) but only {have} bytes follow the header."
+            f"({need} bytes{' at least' if data == ['ascii'] else ''}) but only {have} bytes "
+            "follow the header."
         )
 
 
@@ -402,6 +408,12 @@ def read_pcd(path: PathLike) -> PointCloud:
     arr = np.asarray(arr)
     if arr.ndim != 2 or arr.shape[0] == 0:
         raise InputError(f"PCD file {str(p)!r} holds no points.")
+    announced = int(getattr(pc, "points", arr.shape[0]))
+    if arr.shape[0] < announced:
+        raise InputError(
+            f"PCD file {str(p)!r} is truncated: its header announces {announced} points but "
+            f"only {arr.shape[0]} could be read."
+        )
     idx = {n: i for i, n in enumerate(names)}
     xyz = arr[:, [idx["x"], idx["y"], idx["z"]]]
     fields = {n: arr[:, i] for n, i in idx.items() if n not in ("x", "y", "z") and i < arr.shape[1]}
