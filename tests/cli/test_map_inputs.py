@@ -66,3 +66,15 @@ def test_map_missing_input_says_so(tmp_path: Path, name: str) -> None:
     assert res.exit_code == 2, res.output
     assert "does not exist" in res.output and "odometry" not in res.output
     assert not out.exists()
+
+
+def test_map_dataset_without_a_datasets_folder_names_the_option(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the user audit (docs/cli.md): run outside the project, the error said "pass the Victoria
+    # Park folder" without saying how (--data)
+    monkeypatch.delenv("STEMMAP_DATASETS", raising=False)
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["map", "--dataset", "victoria-park", "--out", "m"])
+    assert res.exit_code == 2, res.output
+    assert "--data FOLDER" in " ".join(res.output.split())
