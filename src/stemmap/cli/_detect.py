@@ -11,6 +11,7 @@ import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
+from stemmap.cli._summary import announce_compile
 from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan.config import ARC_OPTIONS
@@ -165,6 +166,9 @@ def detect(
             )
         skipped: list[SkippedFrame] = []
         batch = read_scans(scan, topic=topic, skipped=skipped)
+        if not quiet:
+            # the first run compiles the detector for minutes before the progress bar starts
+            announce_compile("scan")
         roll, pitch = _scan_attitude(scan, imu_topic, batch.times)
         for sk in skipped:
             console.print(
