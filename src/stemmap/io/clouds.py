@@ -408,7 +408,8 @@ def read_pcd(path: PathLike) -> PointCloud:
     arr = np.asarray(arr)
     if arr.ndim != 2 or arr.shape[0] == 0:
         raise InputError(f"PCD file {str(p)!r} holds no points.")
-    announced = int(getattr(pc, "points", arr.shape[0]))
+    points = getattr(pc, "points", None)  # the header's POINTS
+    announced = points if isinstance(points, int) else arr.shape[0]
     if arr.shape[0] < announced:
         raise InputError(
             f"PCD file {str(p)!r} is truncated: its header announces {announced} points but "
