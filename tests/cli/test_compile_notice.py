@@ -41,3 +41,31 @@ def test_cached_backend_is_silent_whatever_the_other_backends(cache_dir: Path, c
     announce_compile("scan", backend="fastslam")
     err = " ".join(capsys.readouterr().err.split())
     assert "_fastslam_kernel" in err and "_isam2_track" not in err
+
+
+def test_detect_and_stems_announce_their_first_run(cache_dir: Path, tmp_path: Path) -> None:
+    # the user audit (docs/cli.md): the first `stemmap detect` compiled for minutes (3.5 min
+    # wall on the loaded machine) and the first `stemmap stems` for 80 s with no sign of life;
+    # `map` and `demo` already said so
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from stemmap.cli import app
+    from stemmap.io.scans import write_scans_npz
+    from stemmap.types import ScanBatch
+
+    src = tmp_path / "scans.npz"
+    a = np.linspace(-1.5, 1.5, 181)
+    write_scans_npz(
+        src, ScanBatch(np.full((2, a.size), 8.0), np.arange(2) * 0.1, -1.5, a[1] - a[0])
+    )
+    res = CliRunner().invoke(app, ["detect", str(src), "--out", str(tmp_path / "d.csv")])
+    assert res.exit_code == 0, res.output
+    assert "first run" in res.output and "_detect_fast" in res.output
+    res = CliRunner().invoke(app, ["detect", str(src), "--out", str(tmp_path / "e.csv"), "-q"])
+    assert res.exit_code == 0 and "first run" not in res.output
+    cloud = tmp_path / "c.xyz"
+    np.savetxt(cloud, np.random.default_rng(0).uniform(0, 5, (200, 3)))
+    res = CliRunner().invoke(app, ["stems", str(cloud), "--out", str(tmp_path / "s.csv")])
+    assert res.exit_code == 0, res.output
+    assert "first run" in res.output and "_grid_kernel" in " ".join(res.output.split())

@@ -56,3 +56,25 @@ def test_map_scans_and_detections(sim_run: Path) -> None:
 
     res = run.invoke(app, args)  # no odometry beside det.csv
     assert res.exit_code == 2 and "--odometry" in res.output
+
+
+@pytest.mark.parametrize("name", ["missing.npz", "missing.csv"])
+def test_map_missing_input_says_so(tmp_path: Path, name: str) -> None:
+    # the user audit (docs/cli.md): a mistyped input was reported as "has no odometry"
+    out = tmp_path / "m"
+    res = CliRunner().invoke(app, ["map", str(tmp_path / name), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "does not exist" in res.output and "odometry" not in res.output
+    assert not out.exists()
+
+
+def test_map_dataset_without_a_datasets_folder_names_the_option(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the user audit (docs/cli.md): run outside the project, the error said "pass the Victoria
+    # Park folder" without saying how (--data)
+    monkeypatch.delenv("STEMMAP_DATASETS", raising=False)
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["map", "--dataset", "victoria-park", "--out", "m"])
+    assert res.exit_code == 2, res.output
+    assert "--data FOLDER" in " ".join(res.output.split())

@@ -220,3 +220,68 @@ def test_detect_writes_a_manifest(tmp_path):
     assert verify_run(m) == []
     out.write_text("edited")
     assert "differs" in verify_run(m)[0]
+
+
+@pytest.mark.parametrize(
+    ("argv", "inputs"),
+    [
+        (["detect", "{in0}", "--out", "{out}", "--rejected", "{out}"], ["scans.npz"]),
+        (["stems", "{in0}", "--out", "{out}", "--profile", "{out}"], ["cloud.xyz"]),
+        (["segment", "{in0}", "--out", "{out}", "--overlay", "{out}"], ["frame.png"]),
+    ],
+)
+def test_two_outputs_on_one_file_are_refused(tmp_path, argv, inputs):
+    # the user audit (docs/cli.md): the second product silently replaced the first and the
+    # command reported both as written
+    _inputs(tmp_path, inputs)
+    out = tmp_path / "o.csv"
+    res = runner.invoke(app, _argv(argv, inputs, tmp_path, out))
+    assert res.exit_code == 2, res.output
+    assert "given twice" in _one_error_line(res)
+    assert not out.exists()
+
+
+def test_an_output_on_the_manifest_is_refused(tmp_path):
+    src = _scans(tmp_path)
+    out, manifest = tmp_path / "o.csv", tmp_path / "o.csv.run.json"
+    res = runner.invoke(app, ["detect", str(src), "--out", str(out), "--rejected", str(manifest)])
+    assert res.exit_code == 2, res.output
+    assert "manifest" in _one_error_line(res)
+    assert not out.exists() and not manifest.exists()
+
+
+_SIGTERMED = """
+import sys, time
+import stemmap.scan.detect as detect
+
+def stalled(self, *args, **kwargs):
+    print("detecting", flush=True)
+    time.sleep(120)
+
+detect.ScanTrunkDetector.detect_batch = stalled
+sys.argv = ["stemmap", "detect", sys.argv[1], "--out", sys.argv[2], "-q"]
+from stemmap.cli import main
+main()
+"""
+
+
+def test_sigterm_discards_the_staged_products(tmp_path):
+    # the user audit (docs/cli.md): SIGTERM (timeout, a job scheduler, docker stop) killed the
+    # run like SIGKILL and left its hidden staging folder behind; it now unwinds like Ctrl-C
+    import signal
+    import subprocess
+    import sys
+
+    src = _scans(tmp_path)
+    out = tmp_path / "o.csv"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2] / "src"))
+    cmd = [sys.executable, "-c", _SIGTERMED, str(src), str(out)]
+    with subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    ) as p:
+        assert p.stdout is not None and p.stdout.readline().strip() == "detecting"
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+    assert p.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "error: terminated (SIGTERM)" in err
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["scans.npz"]  # no product, no staging

@@ -232,3 +232,54 @@ def test_las_zero_scale_is_an_error(tmp_path: Path, pts: np.ndarray, axis: int) 
     _patch_las_header(f, 131 + 8 * axis, "<d", 0.0)
     with pytest.raises(InputError, match=r"zero\.las.*scale factors.*finite non-zero"):
         read_cloud(f)
+
+
+def test_a_cloud_of_only_nan_points_is_an_error_not_an_empty_plot(tmp_path):
+    # the user audit (docs/cli.md): `stemmap stems nan.xyz` wrote an empty stems CSV and
+    # exited 0 ("the cloud is empty"), hiding a broken export
+    p = tmp_path / "nan.xyz"
+    np.savetxt(p, np.full((50, 3), np.nan))
+    with pytest.raises(InputError, match="no point with finite coordinates"):
+        list(iter_cloud_chunks(p))
+    assert read_cloud(p).xyz.shape == (0, 3)  # a frame reader still gets an empty frame
+    xyz = np.full((50, 3), np.nan)
+    xyz[:10] = np.arange(30.0).reshape(10, 3)
+    np.savetxt(p, xyz)
+    assert next(iter_cloud_chunks(p)).xyz.shape == (10, 3)  # NaN rows dropped, as before
+
+
+def test_stems_cli_refuses_a_cloud_of_nan(tmp_path):
+    from typer.testing import CliRunner
+
+    from stemmap.cli import app
+
+    p = tmp_path / "nan.xyz"
+    np.savetxt(p, np.full((50, 3), np.nan))
+    out = tmp_path / "s.csv"
+    res = CliRunner().invoke(app, ["stems", str(p), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "no point with finite coordinates" in res.output and not out.exists()
+
+
+def test_text_clouds_announcing_more_points_than_they_hold_are_truncated(tmp_path):
+    # the user audit (docs/cli.md): an ascii PLY announcing 4e9 vertices was "out of memory"
+    # (np.loadtxt allocated them first) and an ascii PCD announcing more points than it holds
+    # was read short without a word
+    ply = tmp_path / "huge.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4000000000\nproperty float x\n"
+        "property float y\nproperty float z\nend_header\n1 2 3\n"
+    )
+    with pytest.raises(InputError, match="truncated"):
+        read_cloud(ply)
+    head = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        "WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
+    )
+    for n in (4_000_000_000, 10):
+        pcd = tmp_path / f"short{n}.pcd"
+        pcd.write_text(head.format(n=n) + "1.000 2.000 3.000\n" * 5)
+        with pytest.raises(InputError, match="truncated"):
+            read_cloud(pcd)
+    pcd.write_text(head.format(n=5) + "1.000 2.000 3.000\n" * 5)
+    assert read_cloud(pcd).xyz.shape == (5, 3)

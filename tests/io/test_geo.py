@@ -237,3 +237,37 @@ def test_map_cli_crs_gpkg_tum(tmp_path: Path) -> None:
     assert tum.shape[1] == 8
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"]["crs"] == "EPSG:32633"
+
+
+def test_las_crs_checks_the_file_before_laspy(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the user audit (docs/cli.md): `stems` read the CRS before the reader's checks, so a
+    # missing, empty or non-LAS file was "an unreadable CRS record", and a damaged VLR count
+    # (2^32 - 1) made laspy loop for minutes before any check ran
+    import struct
+
+    from stemmap.errors import InputError
+
+    good = tmp_path / "plot.las"
+    _rings_las(good, None, rng)
+    bad = tmp_path / "vlrs.las"
+    raw = bytearray(good.read_bytes())
+    raw[100:104] = struct.pack("<I", 0xFFFFFFFF)  # number_of_vlrs
+    bad.write_bytes(bytes(raw))
+    (tmp_path / "empty.laz").write_bytes(b"")
+    (tmp_path / "text.laz").write_text("x y z\n" * 30)
+
+    def no_laspy(*args: object, **kwargs: object) -> None:
+        raise AssertionError("laspy must not read a file the header checks refuse")
+
+    monkeypatch.setattr(laspy, "open", no_laspy)
+    for name, says in [
+        ("missing.laz", "does not exist"),
+        ("empty.laz", "is empty"),
+        ("text.laz", "not a LAS/LAZ file"),
+        ("vlrs.las", "header is corrupt"),
+    ]:
+        with pytest.raises(InputError, match=says) as err:
+            las_crs(tmp_path / name)
+        assert "CRS record" not in str(err.value)

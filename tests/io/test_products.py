@@ -185,3 +185,24 @@ def test_file_sha256_reads_an_unchanged_file_once(tmp_path, monkeypatch) -> None
     os.utime(f, ns=(1, 2))
     assert products.file_sha256(f) == hashlib.sha256(b"y" * 1001).hexdigest()
     assert len(calls) == 2
+
+
+def test_a_new_output_folder_gets_the_umask_permissions(tmp_path):
+    # the user audit (docs/cli.md): `map --out NEW` left a 0700 folder (mkdtemp's mode), so
+    # nobody but its owner could read the products
+    old = os.umask(0o022)
+    try:
+        _folder_run(tmp_path / "res", "new")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "res").stat().st_mode & 0o777 == 0o755
+
+
+def test_two_outputs_resolving_to_one_file_are_refused(tmp_path):
+    a = tmp_path / "a.csv"
+    (tmp_path / "link.csv").symlink_to(a)
+    for outs in ([a, a], [a, tmp_path / "link.csv"], [a, tmp_path / "a.csv.run.json"]):
+        with pytest.raises(OutputError), run_products("t", outputs=outs) as run:
+            run.path(outs[0]).write_text("x")
+        assert not a.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.csv"]  # no staging left

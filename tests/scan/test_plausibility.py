@@ -252,3 +252,40 @@ def test_scan_noise_reads_the_simulated_sensor_noise_among_clutter():
     est = scan_noise(r, 0.2)
     assert np.mean(est > 0) > 0.5
     assert np.median(est[est > 0]) == pytest.approx(0.01, rel=0.15)
+
+
+def test_rejections_come_from_one_numpy_pass_and_leave_the_detections_bit_identical(
+    monkeypatch,
+):
+    # `stemmap detect --rejected` ran the numpy pipeline twice per chunk on top of the
+    # detection (the user audit, docs/cli.md); now one pass records every candidate's fate,
+    # and for a config the compiled kernel does not cover the same pass gives the detections
+    rng = np.random.default_rng(3)
+    r = _ranges([(3.0, 0.0, 0.15), (5.0, -2.0, 0.3), (6.0, 1.5, 0.1)])
+    bush = np.abs(ANG - math.radians(30)) < math.radians(5)
+    r[bush] = 4.0 + rng.uniform(-0.3, 0.3, bush.sum())
+    b = _batch(np.vstack([r, r + rng.normal(0, 0.01, r.shape)]))
+    calls = {"n": 0}
+    candidates = ScanTrunkDetector._candidates
+
+    def counted(self, *args, **kwargs):
+        calls["n"] += 1
+        return candidates(self, *args, **kwargs)
+
+    for preset, numpy_passes in (("stemmap", 1), ("zheng2012", 1)):
+        det = ScanTrunkDetector(DetectorConfig.preset(preset))
+        want_obs, want_rej = det.detect_batch(b), det.rejected(b)
+        monkeypatch.setattr(ScanTrunkDetector, "_candidates", counted)
+        calls["n"] = 0
+        det.rejected(b)
+        assert calls["n"] == 1, preset  # was 2: the candidates and fits, then _run_numpy
+        calls["n"] = 0
+        obs, rej = det.detect_with_rejected(b)
+        assert calls["n"] == numpy_passes, preset
+        monkeypatch.setattr(ScanTrunkDetector, "_candidates", candidates)
+        for k in ("centers", "radii", "covs", "n_points", "arc_deg", "widths", "quality", "index"):
+            np.testing.assert_array_equal(getattr(obs, k), getattr(want_obs, k), err_msg=k)
+        assert rej.keys() == want_rej.keys()
+        for k, v in want_rej.items():
+            np.testing.assert_array_equal(np.asarray(rej[k]), np.asarray(v), err_msg=k)
+        assert len(rej["reason"]) > 0

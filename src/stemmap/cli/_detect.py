@@ -11,6 +11,7 @@ import typer
 
 from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
+from stemmap.cli._summary import announce_compile
 from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan.config import ARC_OPTIONS
@@ -165,6 +166,9 @@ def detect(
             )
         skipped: list[SkippedFrame] = []
         batch = read_scans(scan, topic=topic, skipped=skipped)
+        if not quiet:
+            # the first run compiles the detector for minutes before the progress bar starts
+            announce_compile("scan")
         roll, pitch = _scan_attitude(scan, imu_topic, batch.times)
         for sk in skipped:
             console.print(
@@ -192,17 +196,18 @@ def detect(
                     batch.range_max,
                     batch.frame,
                 )
-                obs = detector.detect_batch(
-                    chunk,
-                    roll=None if roll is None else roll[a:b],
-                    pitch=None if pitch is None else pitch[a:b],
-                )
-                if rejected is not None:
-                    rej = detector.rejected(chunk)
+                if rejected is not None:  # (no IMU: refused above)
+                    obs, rej = detector.detect_with_rejected(chunk)
                     local = rej["scan_index"]
                     rej["time"] = chunk.times[local]
                     rej["scan_index"] = file_index[a + local]
                     rejected_parts.append(rej)
+                else:
+                    obs = detector.detect_batch(
+                        chunk,
+                        roll=None if roll is None else roll[a:b],
+                        pitch=None if pitch is None else pitch[a:b],
+                    )
                 parts.append(
                     StemObservations(
                         centers=obs.centers,

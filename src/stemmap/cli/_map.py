@@ -142,7 +142,13 @@ def map_command(
         Dataset | None, typer.Option("--dataset", help="A known public dataset.")
     ] = None,
     data: Annotated[
-        Path | None, typer.Option("--data", help="Dataset folder (default: shared datasets).")
+        Path | None,
+        typer.Option(
+            "--data",
+            help="Folder of the dataset's files (victoria-park: inputs.dat, measurements.dat, "
+            "gps.dat) [default: $STEMMAP_DATASETS/victoria_park, else shared/datasets/"
+            "victoria_park in the working folder or one of its parents].",
+        ),
     ] = None,
     sim: Annotated[bool, typer.Option("--sim", help="Simulate a loop through a stand.")] = False,
     backend: Annotated[

@@ -66,6 +66,8 @@ def is_detections_csv(path: Path) -> bool:
 def odometry_path(source: Path, odometry: Path | None) -> Path:
     """``--odometry`` or the ``<stem>_odometry.csv`` that ``stemmap sim scans`` writes beside
     ``<stem>.npz``; InputError naming both options when neither exists."""
+    if not source.exists():
+        raise InputError(f"input {str(source)!r} does not exist.")
     if odometry is not None:
         return odometry
     guess = source.with_name(f"{source.stem}_odometry.csv")

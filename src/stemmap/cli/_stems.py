@@ -17,7 +17,7 @@ from stemmap.cli._catalog import (
 )
 from stemmap.cli._common import console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
-from stemmap.cli._summary import JsonFlag, fmt, print_summary
+from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.cli._validate import bounded
 from stemmap.cloud.ground import DEFAULT_MAX_MEMORY, GroundModel
 from stemmap.errors import ConfigError
@@ -316,6 +316,7 @@ def stems(
         tempfile.TemporaryDirectory() as tmp,
     ):
         crs = checked_crs(crs) if crs is not None else las_crs(in_paths[0])
+        announce_compile("cloud")  # (stderr: the --json object on stdout stays clean)
         cfg = get_preset(preset)
         if not max_memory > 0:
             raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")

@@ -31,6 +31,7 @@ JsonFlag = Annotated[
 #: measured with an empty ``NUMBA_CACHE_DIR``, Dec 3).
 _KERNEL_MODULES = {
     "scan": ("stemmap.scan._detect_fast", "stemmap.scan._fit_geometric"),
+    "cloud": ("stemmap.cloud._grid_kernel", "stemmap.cloud.slicefit"),
 }
 _BACKEND_KERNELS = {
     "isam2": ("stemmap.slam._isam2_track",),

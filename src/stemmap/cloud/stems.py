@@ -369,7 +369,13 @@ def detect_stems_file(
     from (``None`` when the cloud is read as one slice), so a caller that also wants the
     terrain (``stemmap stems --dtm``) does not stream the file again.
     """
-    from stemmap.io.clouds import count_points, iter_cloud_chunks, point_fields, read_cloud
+    from stemmap.io.clouds import (
+        count_points,
+        iter_cloud_chunks,
+        point_fields,
+        read_cloud,
+        read_plot_cloud,
+    )
 
     cfg = config or StemConfig()
     src = repr(str(path))
@@ -380,7 +386,10 @@ def detect_stems_file(
             "refinement. Drop the sensor positions or use preset 'ours'."
         )
     if isinstance(cfg, MunjerConfig) or Path(path).suffix.lower() not in (".las", ".laz"):
-        cloud = read_cloud(path, topic=topic)
+        # munjer2025 reads one lidar frame (all NaN: a blocked sensor, no stems); a plot of
+        # NaN is a broken export
+        reader = read_cloud if isinstance(cfg, MunjerConfig) else read_plot_cloud
+        cloud = reader(path, topic=topic)
         if on_chunk:
             on_chunk(len(cloud), len(cloud))
         if isinstance(cfg, MunjerConfig):

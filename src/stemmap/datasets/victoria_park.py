@@ -434,7 +434,9 @@ def load_victoria_park(
         base = find_datasets_dir()
         if base is None:
             raise InputError(
-                "no datasets folder found: pass the Victoria Park folder or set STEMMAP_DATASETS."
+                "no datasets folder found: pass the Victoria Park folder (the one holding "
+                "inputs.dat, measurements.dat and gps.dat; `stemmap map --dataset victoria-park "
+                "--data FOLDER`) or set STEMMAP_DATASETS to the folder holding victoria_park/."
             )
         folder = base / "victoria_park"
     else:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import mmap
+import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -462,9 +463,18 @@ def _read_ascii(fh: BinaryIO, path: Path, header: PlyHeader) -> dict[str, NDArra
             if elem.has_lists:
                 return _ascii_walk_vertex(text, path, elem)
             n = len(elem.properties)
+            # a record is >= n numbers of one character, each followed by a space or newline:
+            # read at most one record more than the body can hold (np.loadtxt allocates
+            # max_rows rows first: 4e9 announced vertices were an out-of-memory error); a
+            # short body is then reported as truncated below
+            room = max(os.fstat(fh.fileno()).st_size - header.data_offset, 0) // (2 * n)
             try:
                 arr = np.loadtxt(
-                    text, dtype=np.float64, comments=None, ndmin=2, max_rows=elem.count
+                    text,
+                    dtype=np.float64,
+                    comments=None,
+                    ndmin=2,
+                    max_rows=min(elem.count, room + 1),
                 )
             except ValueError as exc:
                 raise InputError(

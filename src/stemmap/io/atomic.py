@@ -15,7 +15,16 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_write"]
+__all__ = ["atomic_write", "umask_mode"]
+
+
+def umask_mode(base: int) -> int:
+    """``base`` less the process umask: the permissions ``open()`` (``base`` 0o666) or
+    ``mkdir()`` (0o777) would give a new file or folder. ``mkstemp`` / ``mkdtemp`` create
+    0600 / 0700 ones; a product renamed into place from one gets these bits instead."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return base & ~umask
 
 
 @contextlib.contextmanager
@@ -42,9 +51,7 @@ def atomic_write(
     try:
         mode_bits = target.stat().st_mode & 0o7777
     except FileNotFoundError:
-        umask = os.umask(0)
-        os.umask(umask)
-        mode_bits = 0o666 & ~umask
+        mode_bits = umask_mode(0o666)
     os.fchmod(fd, mode_bits)
     if mode == "w":
         kwargs.setdefault("encoding", "utf-8")

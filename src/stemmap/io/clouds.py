@@ -30,6 +30,7 @@ from stemmap.types import PointCloud
 
 __all__ = [
     "CLOUD_EXTENSIONS",
+    "check_las_file",
     "count_points",
     "iter_cloud_chunks",
     "iter_las_chunks",
@@ -37,6 +38,7 @@ __all__ = [
     "read_cloud",
     "read_las",
     "read_pcd",
+    "read_plot_cloud",
     "read_ply",
     "read_xyz",
 ]
@@ -133,10 +135,15 @@ def _check_las_layout(p: Path) -> None:
             head = fh.read(104)
     except OSError as exc:
         raise InputError(f"cannot read {str(p)!r}: {exc}.") from exc
-    if len(head) < 104 or head[:4] != b"LASF":
+    if head[:4] != b"LASF":
         raise InputError(
-            f"{str(p)!r} is not a LAS/LAZ file: it lacks the 'LASF' signature or its "
-            f"{len(head)}-byte header is shorter than 104 bytes."
+            f"{str(p)!r} is not a LAS/LAZ file: it does not start with the 'LASF' signature "
+            f"(it starts with {head[:4]!r})."
+        )
+    if len(head) < 104:
+        raise InputError(
+            f"{str(p)!r} is truncated: its LAS header stops after {len(head)} bytes "
+            "(at least 104 are needed)."
         )
     header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
     size = p.stat().st_size
@@ -145,6 +152,16 @@ def _check_las_layout(p: Path) -> None:
             f"{str(p)!r}: the LAS header is corrupt: header size {header_size} B, "
             f"{n_vlrs} VLR(s) and point data at byte {offset} do not fit a {size}-byte file."
         )
+
+
+def check_las_file(path: PathLike) -> Path:
+    """InputError unless ``path`` exists, is not empty and starts with a LAS header that fits
+    the file (:func:`_check_las_layout`); call it before handing the file to laspy, which
+    loops for minutes on a damaged VLR count and reports a missing or empty file as a
+    parse error."""
+    p = _check_file(path)
+    _check_las_layout(p)
+    return p
 
 
 def _check_las_header(p: Path, header: Any) -> None:
@@ -319,7 +336,8 @@ def read_ply(path: PathLike) -> PointCloud:
 
 
 def _check_pcd_size(p: Path) -> None:
-    """Reject a ``DATA binary`` PCD whose body is shorter than its header announces.
+    """Reject a ``DATA binary`` PCD whose body is shorter than its header announces, and a
+    ``DATA ascii`` one too short to hold its announced points (two bytes a value).
 
     (The parser would otherwise return garbage or fewer points without complaint.)
     """
@@ -340,7 +358,8 @@ def _check_pcd_size(p: Path) -> None:
                 break
     if "DATA" not in header:
         raise InputError(f"{str(p)!r} is not a PCD file: no DATA line in its header.")
-    if header["DATA"][:1] != ["binary"]:
+    data = header["DATA"][:1]
+    if data not in (["binary"], ["ascii"]):
         return
     try:
         sizes = [int(v) for v in header["SIZE"]]
@@ -348,12 +367,16 @@ def _check_pcd_size(p: Path) -> None:
         n = int(header["POINTS"][0])
     except (KeyError, ValueError, IndexError) as exc:
         raise InputError(f"PCD file {str(p)!r} has a malformed header: {exc}.") from exc
-    need = n * sum(s * c for s, c in zip(sizes, counts, strict=False))
+    if data == ["binary"]:
+        need = n * sum(s * c for s, c in zip(sizes, counts, strict=False))
+    else:  # ascii: >= one character and a separator per value
+        need = n * 2 * sum(counts)
     have = p.stat().st_size - offset
     if have < need:
         raise InputError(
             f"PCD file {str(p)!r} is truncated: its header announces {n} points "
-            f"({need} bytes) but only {have} bytes follow the header."
+            f"({need} bytes{' at least' if data == ['ascii'] else ''}) but only {have} bytes "
+            "follow the header."
         )
 
 
@@ -385,6 +408,13 @@ def read_pcd(path: PathLike) -> PointCloud:
     arr = np.asarray(arr)
     if arr.ndim != 2 or arr.shape[0] == 0:
         raise InputError(f"PCD file {str(p)!r} holds no points.")
+    points = getattr(pc, "points", None)  # the header's POINTS
+    announced = points if isinstance(points, int) else arr.shape[0]
+    if arr.shape[0] < announced:
+        raise InputError(
+            f"PCD file {str(p)!r} is truncated: its header announces {announced} points but "
+            f"only {arr.shape[0]} could be read."
+        )
     idx = {n: i for i, n in enumerate(names)}
     xyz = arr[:, [idx["x"], idx["y"], idx["z"]]]
     fields = {n: arr[:, i] for n, i in idx.items() if n not in ("x", "y", "z") and i < arr.shape[1]}
@@ -558,9 +588,24 @@ def iter_cloud_chunks(
     topic: str | None = None,
 ) -> Iterator[PointCloud]:
     """Stream any supported cloud: LAS/LAZ in chunks (carrying the extra dimensions named in
-    ``fields``), other formats as one chunk (with all their fields; ``topic`` for bags)."""
+    ``fields``), other formats as one chunk (with all their fields; ``topic`` for bags):
+    :func:`read_plot_cloud`, so a cloud of NaN is an InputError."""
     p = Path(path)
     if p.suffix.lower() in (".las", ".laz"):
         yield from iter_las_chunks(p, chunk_size, fields=fields)
     else:
-        yield read_cloud(p, topic=topic)
+        yield read_plot_cloud(p, topic=topic)
+
+
+def read_plot_cloud(path: PathLike, *, topic: str | None = None) -> PointCloud:
+    """:func:`read_cloud` of a cloud to measure stems in: InputError when not one point has
+    finite coordinates -- a whole cloud of NaN is a broken export, not an empty plot
+    (:func:`read_cloud` returns it empty: a lidar frame of a blocked sensor is all NaN in an
+    organised PCD)."""
+    cloud = read_cloud(path, topic=topic)
+    if cloud.xyz.shape[0] == 0:
+        raise InputError(
+            f"{str(path)!r} holds no point with finite coordinates (none, or all NaN / "
+            "infinite): nothing to measure. Check the export's columns and no-data value."
+        )
+    return cloud

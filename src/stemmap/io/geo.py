@@ -135,6 +135,9 @@ def las_crs(path: str | os.PathLike[str]) -> str | None:
         return None
     import laspy
 
+    from stemmap.io.clouds import check_las_file
+
+    check_las_file(p)  # missing, empty, not LAS, a damaged VLR count: before laspy reads it
     try:
         with laspy.open(p) as fh:
             crs = fh.header.parse_crs()

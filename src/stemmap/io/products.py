@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from stemmap.errors import StemmapError
+from stemmap.io.atomic import umask_mode
 
 __all__ = [
     "MANIFEST_NAME",
@@ -326,6 +327,7 @@ class RunProducts:
 
     # ---- setup
     def _open(self) -> None:
+        self._check_distinct()
         if self.out_dir is not None:
             self._open_dir(self.out_dir)
         for o in list(self.outputs):
@@ -355,9 +357,32 @@ class RunProducts:
                 d,
             )
             self._dir_stage = self._stage_for(d.absolute(), d)
-        if d.exists():
-            with contextlib.suppress(OSError):
-                os.chmod(self._dir_stage, d.stat().st_mode & 0o7777)
+        # mkdtemp makes a 0700 folder: the products get the old folder's mode, or for a new
+        # folder the mode mkdir would give (0777 less the umask), so others can read them
+        with contextlib.suppress(OSError):
+            bits = d.stat().st_mode & 0o7777 if d.exists() else umask_mode(0o777)
+            os.chmod(self._dir_stage, bits)
+
+    def _check_distinct(self) -> None:
+        """OutputError if two outputs, or an output and the run's manifest, are one file:
+        the later product would silently replace the earlier one (``detect --out x.csv
+        --rejected x.csv``, ``stems --out s.csv --metrics s.csv.run.json``)."""
+        manifest = (
+            None if self.out_dir is not None or not self.outputs else manifest_path(self.outputs)
+        )
+        seen: dict[Path, Path] = {}
+        for o in self.outputs:
+            if manifest is not None and o.resolve() == manifest.resolve():
+                raise OutputError(
+                    f"output {str(o)!r} is where the run's manifest goes; give it another path."
+                )
+            first = seen.setdefault(o.resolve(), o)
+            if first is not o:
+                same = "" if str(first) == str(o) else f" as {str(first)!r}"
+                raise OutputError(
+                    f"output {str(o)!r} is given twice (the same file{same}): one product "
+                    "would overwrite the other. Give each product its own path."
+                )
 
     @staticmethod
     def _mkparent(parent: Path, shown: Path) -> None:

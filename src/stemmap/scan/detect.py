@@ -417,6 +417,25 @@ class ScanTrunkDetector:
         (:func:`stemmap.scan.plausibility.rejected_candidates`)."""
         return rejected_candidates(self, batch)
 
+    def detect_with_rejected(self, batch: ScanBatch) -> tuple[StemObservations, dict[str, Any]]:
+        """:meth:`detect_batch` and :meth:`rejected` of ``batch`` (no tilt compensation), the
+        same results bit for bit, in as few passes as the config allows: where the compiled
+        kernel does not cover the config, the detections and the rejection record come from
+        one numpy pass; otherwise the kernel detects and one numpy pass records the
+        rejections (``stemmap detect --rejected``; before, the numpy pipeline ran twice)."""
+        if not isinstance(batch, ScanBatch):
+            raise InputError(
+                f"detect_with_rejected() needs a ScanBatch, got {type(batch).__name__}."
+            )
+        if self._compiled(None, None) or len(batch) == 0:
+            return self.detect_batch(batch), rejected_candidates(self, batch)
+        fate: dict[str, Any] = {}
+        obs = self._run_numpy(
+            batch.ranges, batch.times, batch.angle_min, batch.angle_increment,
+            batch.range_min, batch.range_max, batch.frame, None, None, fate=fate,
+        )  # fmt: skip
+        return obs, rejected_candidates(self, batch, fate)
+
     def _gate(self, range_min: float, range_max: float) -> tuple[float, float]:
         """The range gate: the config's limits within the scan's own."""
         cfg = self.config
@@ -592,11 +611,16 @@ class ScanTrunkDetector:
         """The pipeline step by step through the named functions of the preprocess, segment,
         features and circle modules (the reference the compiled path is tested against).
 
-        ``fate`` (a dict, filled in; for :func:`~stemmap.scan.plausibility.rejected_candidates`):
-        what became of the candidates that were cut into pieces -- ``"split"`` / ``"arc"``: a
-        list of (parent, accepted) arrays per re-fit (corner, search or gap split; largest
-        arc), one entry per piece, parents indexing every candidate before the segment filters
-        (``"filtered"`` False) or the candidates that passed them (``"filtered"`` True)."""
+        ``fate`` (a dict, filled in; for :func:`~stemmap.scan.plausibility.rejected_candidates`,
+        which reads every candidate's fate from this one pass): ``"every"`` every candidate
+        before the segment filters, ``"features"`` their features, ``"seg_codes"`` the reason
+        code of the segment filter each failed (0: passed), ``"fitted"`` and ``"fit_codes"``
+        the circle fits of those that passed and the fit test each failed (before any
+        ``behind_sigmas`` trim); and what became of the candidates that were cut into pieces
+        -- ``"split"`` / ``"arc"``: a list of (parent, accepted) arrays per re-fit (corner,
+        search or gap split; largest arc), one entry per piece, parents indexing every
+        candidate (``"filtered"`` False) or the candidates that passed the segment filters
+        (``"filtered"`` True). The detections do not depend on ``fate``."""
         cfg = self.config
         corners = cfg.refit_pieces and cfg.refit_split == "corners"
         search = cfg.split_search
@@ -610,21 +634,29 @@ class ScanTrunkDetector:
             range_max,
             roll,
             pitch,
-            apply_filters=not arcs,
+            apply_filters=not arcs and fate is None,
         )
-        every = segs  # with arc_refit: every candidate, before the segment filters
-        if arcs and len(every):
-            passed = segment_reasons(every, segment_features(every), cfg) == 0
-            segs = every.select(passed)
+        every = segs  # with arc_refit (or a fate to record): every candidate, before the filters
+        if (arcs or fate is not None) and len(every):
+            features = segment_features(every)
+            seg_codes = segment_reasons(every, features, cfg)
+            passed = seg_codes == 0
+            segs = every.select(passed)  # = self._filter(every)
         pos = np.flatnonzero(passed) if arcs and len(every) else np.arange(len(segs))
         if fate is not None:
-            fate.update(filtered=not arcs, split=[], arc=[])
+            fate.update(filtered=not arcs, split=[], arc=[], every=every, fitted=None)
+            if len(every):
+                fate.update(features=features, seg_codes=seg_codes)
+            else:
+                fate.update(features=None, seg_codes=np.zeros(0, dtype=np.int8))
         if len(segs) == 0 and not (arcs and len(every)):
             return StemObservations.empty(source=self.source, frame=frame)
         if cfg.beam_footprint_deg > 0:
             segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
         fitted = self._fit_candidates(segs, grid, wrap)
         codes = fitted_reasons(cfg, fitted)
+        if fate is not None:
+            fate.update(fitted=fitted, fit_codes=codes)
         if math.isfinite(cfg.behind_sigmas) and np.any(codes == 0):
             # accepted candidates only: a rejected one's remainder can pass as a false trunk
             # (aRchi: a 7-return bark ridge trimmed to a 6 cm "stem" on the 55 cm trunk)

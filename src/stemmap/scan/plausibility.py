@@ -400,11 +400,16 @@ def rms_limit(
     return k * sigma
 
 
-def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[str, Any]:
+def rejected_candidates(
+    detector: ScanTrunkDetector, batch: ScanBatch, fate: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Every candidate segment of ``batch`` that fails the detector's tests, with the test it
     failed and what became of it.
 
-    Runs the numpy reference pipeline (no tilt compensation). Returns columns (one entry per
+    Runs the numpy reference pipeline once (no tilt compensation) and reads every
+    candidate's fate from it; ``fate``: the record of a run that already happened
+    (:meth:`~stemmap.scan.detect.ScanTrunkDetector._run_numpy` ``fate=``, on ``batch``),
+    which is then not repeated. Returns columns (one entry per
     rejected candidate): ``scan_index``, ``reason``, ``n_points``, ``bearing_deg`` and
     ``range`` of the segment's mean return, ``width`` (edge-beam chord, m), ``partial`` (an end
     occluded or truncated), for fitted candidates ``x``, ``y``, ``radius``, ``rms`` and
@@ -416,46 +421,35 @@ def rejected_candidates(detector: ScanTrunkDetector, batch: ScanBatch) -> dict[s
     ``split`` (the candidate was a merged segment, its pieces are in the output in its place)
     or ``arc`` (its largest arc is); the candidate was then not dropped.
     """
-    from stemmap.scan.features import footprint_correct, segment_features, segment_sum
+    from stemmap.scan.features import segment_sum
 
-    segs, grid, wrap = detector._candidates(
-        batch.ranges,
-        batch.angle_min,
-        batch.angle_increment,
-        batch.range_min,
-        batch.range_max,
-        apply_filters=False,
-    )
+    if fate is None:
+        fate = {}
+        detector._run_numpy(
+            batch.ranges, batch.times, batch.angle_min, batch.angle_increment,
+            batch.range_min, batch.range_max, batch.frame, None, None, fate=fate,
+        )  # fmt: skip
+    segs: Segments = fate["every"]
     k = len(segs)
     nan = np.full(k, np.nan)
     cols: dict[str, Any] = {"x": nan.copy(), "y": nan.copy(), "radius": nan.copy()}
     cols["rms"], cols["sigma"] = nan.copy(), nan.copy()
-    seg_passed = np.zeros(0, dtype=np.int64)  # candidates that passed the segment filters
-    if k == 0:
-        codes = np.zeros(0, dtype=np.int8)
-    else:
-        f = segment_features(segs)
-        codes = segment_reasons(segs, f, detector.config)
-        passed = np.flatnonzero(codes == 0)
-        seg_passed = passed
-        if passed.size:
-            sub = segs.select(codes == 0)
-            if detector.config.beam_footprint_deg > 0:
-                sub = footprint_correct(sub, math.radians(detector.config.beam_footprint_deg))
-            fitted = detector._fit_candidates(sub, grid, wrap)
-            fcodes = fitted_reasons(detector.config, fitted)
-            codes[passed] = fcodes
-            cols["x"][passed], cols["y"][passed] = fitted.centers[:, 0], fitted.centers[:, 1]
-            cols["radius"][passed], cols["rms"][passed] = fitted.radii, fitted.rms
-            cols["sigma"][passed] = fitted.sigma
+    codes = np.array(fate["seg_codes"], dtype=np.int8)  # a copy: the fit codes go in
+    seg_passed = np.flatnonzero(codes == 0)  # candidates that passed the segment filters
+    fitted = fate["fitted"]
+    if seg_passed.size and fitted is not None:
+        codes[seg_passed] = fate["fit_codes"]
+        cols["x"][seg_passed], cols["y"][seg_passed] = fitted.centers[:, 0], fitted.centers[:, 1]
+        cols["radius"][seg_passed], cols["rms"][seg_passed] = fitted.radii, fitted.rms
+        cols["sigma"][seg_passed] = fitted.sigma
     rej = codes != 0
-    tried, took, rescued = _piece_fates(detector, batch, k, seg_passed)
+    tried, took, rescued = _piece_fates(fate, k, seg_passed)
     failed = [REASONS[c] for c in codes[rej]]
     p = segs.points
     n = np.maximum(segs.counts, 1)
     mx = segment_sum(p.x, segs) / n if k else nan
     my = segment_sum(p.y, segs) / n if k else nan
-    width = f.width if k else nan
+    width = fate["features"].width if k else nan
     return {
         "scan_index": segs.scan[rej],
         "reason": [r or f for r, f in zip(rescued[rej].tolist(), failed, strict=True)],
@@ -477,18 +471,12 @@ PIECE_REASONS: tuple[str, ...] = ("split", "arc")
 
 
 def _piece_fates(
-    detector: ScanTrunkDetector, batch: ScanBatch, n: int, seg_passed: np.ndarray
+    fate: dict[str, Any], n: int, seg_passed: np.ndarray
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.str_]]:
     """Per candidate (``n``, before the segment filters; ``seg_passed``: those that passed
     them): the pieces the detector re-fitted from it, how many it kept, and ``split`` /
     ``arc`` / '' by which re-fit they were kept (the numpy pipeline's record,
     :meth:`~stemmap.scan.detect.ScanTrunkDetector._run_numpy` ``fate``)."""
-    fate: dict[str, Any] = {}
-    if n:
-        detector._run_numpy(
-            batch.ranges, batch.times, batch.angle_min, batch.angle_increment,
-            batch.range_min, batch.range_max, batch.frame, None, None, fate=fate,
-        )  # fmt: skip
     tried = np.zeros(n, dtype=np.int64)
     took = np.zeros(n, dtype=np.int64)
     how = np.full(n, "", dtype="<U5")
