@@ -244,6 +244,8 @@ def speed_over_seeds(seeds: list[int], n_batch: int) -> dict[str, Any]:
                 "scans_per_cpu_second": round(n_batch / c),
                 "reference_scans_per_cpu_second": round(n_batch / c_ref),
                 "ratio_to_reference": round(c_ref / c, 4),
+                "detections_per_scan": round(len(det.detect_batch(big)) / n_batch, 2),
+                "returns_per_scan": round(float(np.isfinite(big.ranges).sum()) / n_batch, 1),
             }
         )
     sps = [r["scans_per_cpu_second"] for r in rows]
