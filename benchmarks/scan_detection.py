@@ -517,19 +517,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     if args.seeds is not None:
-        out = {
-            "benchmark": "scan_detection_seeds",
-            "set": args.set,
-            **accuracy_over_seeds(args.seeds, args.set or {}, args.worst),
-        }
-        print(json.dumps(out))
+        acc = accuracy_over_seeds(args.seeds, args.set or {}, args.worst)
+        print(json.dumps({"benchmark": "scan_detection_seeds", "set": args.set, **acc}))
         return 0
     if args.speed_seeds is not None:
-        out = {
-            "benchmark": "scan_detection_speed_seeds",
-            **speed_over_seeds(args.speed_seeds, args.batch),
-        }
-        print(json.dumps(out))
+        sp_seeds = speed_over_seeds(args.speed_seeds, args.batch)
+        print(json.dumps({"benchmark": "scan_detection_speed_seeds", **sp_seeds}))
         return 0
 
     run = make_run(args.scans, args.seed)
