@@ -9,6 +9,16 @@ centre lies beyond 15.5 m are not scored.
 
 Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--quick]
        python benchmarks/scan_detection.py --speed-set '{"sigma_from_scan": true}' --rounds 5
+       python benchmarks/scan_detection.py --seeds 1 2 3 [--set '{...}'] [--worst 5]
+       python benchmarks/scan_detection.py --speed-seeds 1 2 3
+
+``--seeds``: issue 11's simulated targets over seeds (each a new stand, clutter and drive; the
+400-scan drive and the ``stemmap demo`` drive of ``_scan_sim.simulated_precision_seeds``): per
+seed and mean / smallest / largest recall, precision, DBH RMSE and bias at <= 5 m, and per seed
+the DBH RMSE split into whole and partial trunks with the trees that weigh most in it.
+``--speed-seeds``: scans per CPU second of the default on each seed's drive (tiled to
+``--batch`` scans, best of 3), each next to seed 1's batch timed in the same turn (the ratio
+is what a loaded machine leaves comparable).
 """
 
 from __future__ import annotations
@@ -32,7 +42,16 @@ from typing import Any
 import numpy as np
 
 from _scan_fits import crlb_diameter_var, load_rings, run_real_geometry  # of scan_fits_real.py
-from _scan_sim import SCENARIO, make_run, score  # shared with real_geometry.py
+from _scan_sim import (  # shared with real_geometry.py
+    SCENARIO,
+    benchmark_drive,
+    edge_status,
+    make_run,
+    score,
+    simulated_precision_seeds,
+    tree_errors,
+    worst_trees,
+)
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.matching import match_points
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
@@ -178,6 +197,73 @@ def speed_compare(run: Any, n_batch: int, overrides: dict[str, Any], rounds: int
         }
     )
     return out
+
+
+def accuracy_over_seeds(
+    seeds: list[int], overrides: dict[str, Any], n_worst: int
+) -> dict[str, Any]:
+    """:func:`_scan_sim.simulated_precision_seeds` (recall, precision both drives; DBH RMSE /
+    bias <= 5 m on the benchmark drive) plus, per seed, the <= 5 m DBH RMSE split into whole
+    and partial trunks, the ``n_worst`` trees with the largest share of its squares
+    (:func:`_scan_sim.worst_trees`) and the drive's Cramér-Rao bound at <= 5 m with footprint
+    edges, all eligible trunks (``crlb_cm``) and whole trunks (``crlb_whole_cm``):
+    :func:`benchmark_crlb`, scan-fits.md."""
+    out = simulated_precision_seeds(overrides, seeds)
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
+    by_seed: dict[str, Any] = {}
+    for s in seeds:
+        run = benchmark_drive(s)
+        row = worst_trees(tree_errors(det.detect_batch(run.scans), run), n=n_worst)
+        bound = benchmark_crlb(run)
+        row["crlb_cm"] = bound["crlb_footprint_edges_dbh_rmse_cm_0_5"]
+        row["crlb_whole_cm"] = bound["crlb_footprint_edges_whole_trunks_dbh_rmse_cm_0_5"]
+        by_seed[str(s)] = row
+    out["dbh_le5_by_seed"] = by_seed
+    return out
+
+
+def speed_over_seeds(seeds: list[int], n_batch: int) -> dict[str, Any]:
+    """Scans per CPU second of the ``stemmap`` preset on each seed's 400-scan drive tiled to
+    ``n_batch`` scans (best of 3), and of seed 1's batch timed right before and right after it
+    in the same process (the reference, the better of the two: on a shared machine the ratio is
+    the comparable number, and timing it on both sides keeps the order out of the ratio)."""
+    det = ScanTrunkDetector("stemmap")
+    ref = _batch_of(benchmark_drive(1), n_batch)
+    det.detect_batch(ref)  # JIT warm-up
+    load_before = os.getloadavg()[0]
+    rows = []
+    for s in seeds:
+        big = _batch_of(benchmark_drive(s), n_batch)
+        _, c_before = timed_both(lambda: det.detect_batch(ref), 3)
+        _, c = timed_both(lambda big=big: det.detect_batch(big), 3)
+        _, c_after = timed_both(lambda: det.detect_batch(ref), 3)
+        c_ref = min(c_before, c_after)
+        rows.append(
+            {
+                "seed": int(s),
+                "scans_per_cpu_second": round(n_batch / c),
+                "reference_scans_per_cpu_second": round(n_batch / c_ref),
+                "ratio_to_reference": round(c_ref / c, 4),
+                "detections_per_scan": round(len(det.detect_batch(big)) / n_batch, 2),
+                "returns_per_scan": round(float(np.isfinite(big.ranges).sum()) / n_batch, 1),
+            }
+        )
+    sps = [r["scans_per_cpu_second"] for r in rows]
+    ref_sps = [r["reference_scans_per_cpu_second"] for r in rows]
+    return {
+        "batch_scans": n_batch,
+        "n_beams": int(ref.n_beams),
+        "per_seed": rows,
+        "scans_per_cpu_second_min": min(sps),
+        "scans_per_cpu_second_median": float(np.median(sps)),
+        "reference_scans_per_cpu_second_min": min(ref_sps),
+        "reference_scans_per_cpu_second_median": float(np.median(ref_sps)),
+        "ratio_to_reference_median": float(np.median([r["ratio_to_reference"] for r in rows])),
+        "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        "threads": 1,
+        "method": "process CPU time, best of 3 per batch; reference = seed 1's batch, timed "
+        "before and after each seed's (the better of the two)",
+    }
 
 
 REAL: dict[str, Any] = {
@@ -332,7 +418,6 @@ def benchmark_crlb(run: Any) -> dict[str, Any]:
     var_fp: dict[str, list[float]] = {"0_5": [], "5_10": []}
     foot = run.scanner.beam_divergence
     whole: dict[str, list[bool]] = {"0_5": [], "5_10": []}
-    n_beams = scans.n_beams
     for k in range(len(scans)):
         hit = run.hit_ids[k]
         for j in np.unique(hit[hit >= 0]):
@@ -348,15 +433,10 @@ def benchmark_crlb(run: Any) -> dict[str, Any]:
                 continue
             std = np.full(2, 1.0 / math.sqrt(12.0)) * inc
             std_bg = std.copy()
-            for side, (b_edge, step) in enumerate(((beams[0], -1), (beams[-1], 1))):
-                nb = b_edge + step
-                if not 0 <= nb < n_beams:
-                    std[side] = std_bg[side] = math.inf  # truncated by the field of view
-                    continue
-                rn = scans.ranges[k, nb]
-                if np.isfinite(rn) and rn < dist - dbh / 2:
-                    std[side] = std_bg[side] = math.inf  # occluded
-                elif np.isfinite(rn) and 0.0 < h < 0.5:
+            for side, st in enumerate(edge_status(scans.ranges[k], beams, dist, dbh)):
+                if st in ("fov", "occluded"):
+                    std[side] = std_bg[side] = math.inf  # no tangent seen on that side
+                elif st == "background" and 0.0 < h < 0.5:
                     std_bg[side] = (1.0 - 2.0 * h) / math.sqrt(12.0) * inc
             r = dbh / 2.0
             th = ang[beams]
@@ -414,7 +494,36 @@ def main(argv: list[str] | None = None) -> int:
         "process, e.g. '{\"sigma_from_scan\": true}' ('{}': the preset against itself)",
     )
     ap.add_argument("--rounds", type=int, default=3, help="--speed-set: rounds")
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=None,
+        help="only the simulated targets over these seeds (400-scan drive and demo drive)",
+    )
+    ap.add_argument(
+        "--set",
+        type=json.loads,
+        default=None,
+        help="--seeds: overrides of the stemmap preset, e.g. '{\"arc_refit\": false}'",
+    )
+    ap.add_argument("--worst", type=int, default=5, help="--seeds: trees listed per seed")
+    ap.add_argument(
+        "--speed-seeds",
+        type=int,
+        nargs="+",
+        default=None,
+        help="only the 361-beam speed on these seeds' drives, each against seed 1's",
+    )
     args = ap.parse_args(argv)
+    if args.seeds is not None:
+        acc = accuracy_over_seeds(args.seeds, args.set or {}, args.worst)
+        print(json.dumps({"benchmark": "scan_detection_seeds", "set": args.set, **acc}))
+        return 0
+    if args.speed_seeds is not None:
+        sp_seeds = speed_over_seeds(args.speed_seeds, args.batch)
+        print(json.dumps({"benchmark": "scan_detection_speed_seeds", **sp_seeds}))
+        return 0
 
     run = make_run(args.scans, args.seed)
     if args.speed_set is not None:
