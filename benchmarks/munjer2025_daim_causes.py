@@ -10,11 +10,13 @@ the most pixels in it (the simulator's per-pixel labels, never used by DAIM itse
 the tree shows at least ``--min-pixels`` pixels, the table records the furthest stage reached:
 
 ``no_box`` (no box holds it as its main tree) < ``few_points`` (fewer than ``min_samples``
-depth pixels within ``max_depth`` in the box) < ``no_cluster`` (DBSCAN found no cluster) <
+depth pixels within :func:`~stemmap.vision.depth.pixel_depth_limit` in the box, or the trunk
+cluster's median depth at or beyond ``max_depth``) < ``no_cluster`` (DBSCAN found no cluster) <
 ``wrong_cluster`` (the chosen cluster is mostly another object) < ``arc`` (fewer than 3 arc
 points) < ``fit`` (collinear) < ``mislocated`` (centre > 1.0 m from the tree) < ``accepted``.
-``accepted_no_diameter`` counts the accepted boxes whose circle failed the width check
-(``max_width_ratio``: centre kept, radius NaN).
+``accepted_no_diameter`` counts the accepted boxes whose circle failed the width check or
+lay on the camera's side of its arc (``max_width_ratio``: radius NaN, centre half the visible
+width behind the arc, as ``daim_trunks``).
 
 Per tree: the best stage, the frames with an accepted detection, the closest range (m) at
 which the camera shows it, and whether the map (FastSLAM 100 particles + Kalman refinement,
@@ -43,6 +45,7 @@ from _munjer_draws import map_draws
 from stemmap.scan.circle import fit_circle
 from stemmap.sim.munjer import MunjerDrive, simulate_munjer_drive
 from stemmap.slam.munjer import daim_observations
+from stemmap.vision._daim_noise import centre_behind_arc, surface_centre
 from stemmap.vision.depth import (
     D435_DEPTH_NOISE_K,
     MUNJER2025,
@@ -50,6 +53,7 @@ from stemmap.vision.depth import (
     arc_width,
     base_arc,
     cluster_trunk_points,
+    pixel_depth_limit,
 )
 from stemmap.vision.detector import SegmentationDetector
 
@@ -78,7 +82,7 @@ def _box_stage(
     y1 = min(dep.shape[0], math.ceil(box[1] + box[3]))
     vv, uu = np.mgrid[y0 : y1 : p.stride, x0 : x1 : p.stride]
     z, pl = dep[vv, uu], lab[vv, uu]
-    ok = np.isfinite(z) & (z > 0) & (z < p.max_depth)
+    ok = np.isfinite(z) & (z > 0) & (z < pixel_depth_limit(p))
     z, uu, vv, pl = z[ok], uu[ok], vv[ok], pl[ok]
     if z.size < p.min_samples:
         return "few_points", math.nan
@@ -92,6 +96,8 @@ def _box_stage(
     keep = cluster_trunk_points(body, eps=eps, min_samples=p.min_samples)
     if not keep.any():
         return "no_cluster", math.nan
+    if float(np.median(z[keep])) >= p.max_depth:  # max_depth limits the trunk
+        return "few_points", math.nan
     ids, cnt = np.unique(pl[keep], return_counts=True)
     if ids[np.argmax(cnt)] != own:
         return "wrong_cluster", math.nan
@@ -104,11 +110,15 @@ def _box_stage(
     if not fit:
         return "fit", math.nan
     radius = fit.radius
-    if p.max_width_ratio is not None and 2.0 * radius > p.max_width_ratio * arc_width(arc, origin):
+    w_arc = arc_width(arc, origin)
+    if p.max_width_ratio is not None and (
+        2.0 * radius > p.max_width_ratio * w_arc or not centre_behind_arc(arc, fit.center, origin)
+    ):
         radius = math.nan
     px, py, th = drive.poses[drive.camera_frames[ci]]
     c, s = math.cos(th), math.sin(th)
-    cx, cy = fit.center
+    # an implausible fit's detection sits half the visible width behind its arc (daim_trunks)
+    cx, cy = fit.center if math.isfinite(radius) else surface_centre(arc, origin, 0.5 * w_arc)
     w = np.array([px + c * cx - s * cy, py + s * cx + c * cy])
     if math.dist(w, drive.stand2d.trees_xy[own]) > GATE:
         return "mislocated", math.nan

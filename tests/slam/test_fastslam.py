@@ -358,3 +358,42 @@ def test_fastslam_pose_and_tree_covariances_are_the_inflated_particle_spread(sim
     assert res.stats["resamples"] == int(d["resampled"].sum()) > 0
     with pytest.raises(ConfigError, match="inflation"):
         FastSlam(pose_cov_inflation=0.0)
+
+
+def test_posterior_mean_path_averages_the_final_particles_lineages():
+    """Each final particle's path is its lineage through the resamplings; the posterior mean
+    weighs those lineages by the final weights (brute force: follow every lineage)."""
+    from stemmap.slam._fastslam_particles import posterior_mean_path
+
+    rng = np.random.default_rng(4)
+    nf, p = 6, 5
+    ph = rng.normal(size=(nf, p, 3))
+    ph[..., 2] = rng.uniform(-3.1, 3.1, size=(nf, p))
+    parents = np.tile(np.arange(p), (nf, 1))
+    parents[2] = [0, 0, 1, 3, 3]  # frame 2 resampled
+    logw = rng.normal(size=p)
+    w = np.exp(logw - logw.max())
+    w /= w.sum()
+    lineage = np.empty((p, nf, 3))
+    for q in range(p):
+        cur = q
+        for f in range(nf - 1, -1, -1):
+            lineage[q, f] = ph[f, cur]
+            cur = parents[f, cur]
+    got = posterior_mean_path(ph, parents, logw)
+    np.testing.assert_allclose(got[:, :2], np.einsum("q,qfi->fi", w, lineage[..., :2]))
+    ang = np.arctan2(w @ np.sin(lineage[..., 2]), w @ np.cos(lineage[..., 2]))
+    np.testing.assert_allclose(got[:, 2], ang)
+
+
+def test_fastslam_mean_path_option(sim):
+    """``path="mean"`` replaces only the output path (same map), and needs smooth=False."""
+    with pytest.raises(ConfigError, match="path"):
+        FastSlam(path="mean")
+    with pytest.raises(ConfigError, match="path"):
+        FastSlam(path="median", smooth=False)  # type: ignore[arg-type]
+    problem, _ = sim
+    best = FastSlam(smooth=False, seed=3).run(problem)
+    mean = FastSlam(smooth=False, seed=3, path="mean").run(problem)
+    np.testing.assert_array_equal(best.stem_map.xy, mean.stem_map.xy)
+    assert not np.array_equal(best.trajectory.poses, mean.trajectory.poses)

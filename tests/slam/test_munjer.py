@@ -249,10 +249,13 @@ def test_daim_map_accuracy_with_detector_boxes(drive: MunjerDrive) -> None:
     assert obs.source == "vision:munjer2025" and len(obs) > 30
     assert np.isfinite(obs.covs).all()
     m, mm = _map(drive, obs)
-    # measured here: TA 12, FA 0, FR 1 (fixed 0.1 m radius: TA 10, FR 3)
-    assert m.precision >= 0.9 and m.recall >= 0.85
+    # measured here: TA 11, FA 0, FR 2 (fixed 0.1 m radius: TA 10, FR 3). TA was 12 while
+    # DAIM cut pixels, not trunks, at max_depth: tree 8 is nearer than 12 m in one frame
+    # only (centre z 11.6 m; then 12.4, 13.2 ...), and was mapped from its far views' noise
+    # tails, 0.4-1.2 m short (docs/algorithms/cloud.md, "DAIM: the worst draws")
+    assert m.precision >= 0.9 and m.recall >= 0.8
     # D435 depth noise grows as z^2 (9 cm at 5 m): the three-point arc is the weak link;
-    # measured 0.194 m (FastSLAM seed 1)
+    # measured 0.187 m (FastSLAM seed 1; 0.194 m before the depth cut and the mean path)
     assert mm.position_rmse <= 0.3
     assert mm.pairwise.mean_percent_error <= 5.0
     # the width check leaves the noise-flattened three-point circles without a diameter: the
@@ -264,8 +267,11 @@ def test_daim_map_accuracy_with_detector_boxes(drive: MunjerDrive) -> None:
 def test_daim_depth_model_noise_keeps_far_trees_from_pulling_the_map(drive: MunjerDrive) -> None:
     """The noise-scaled radius adds trees seen only from afar, whose three-point centres are
     noisy; weighing each detection by its depth-model covariance (ours) keeps the map within
-    0.3 m over FastSLAM seeds 0-2 (measured 0.218 / 0.194 / 0.266 m, mean 0.226) where the
-    constant R drifts above it (0.187 / 0.311 / 0.346 m, mean 0.281); same trees mapped."""
+    0.3 m over FastSLAM seeds 0-2. Before DAIM's depth cut limited the trunk instead of its
+    pixels (the far centres were metres short), the constant R drifted above it (0.187 / 0.311
+    / 0.346 m against 0.218 / 0.194 / 0.266 m); with unbiased far centres and the posterior-mean
+    path both are within it (measured 0.167 / 0.187 / 0.162 m against 0.173 / 0.190 / 0.171
+    m), the weighing no worse; same trees mapped."""
     obs = daim_observations(
         drive.images, drive.depths, drive.camera_frames, drive.times, drive.rig,
         SegmentationDetector(),
@@ -282,7 +288,29 @@ def test_daim_depth_model_noise_keeps_far_trees_from_pulling_the_map(drive: Munj
             assert m.f1 >= 0.9
             rmse[weigh].append(mm.position_rmse)
     assert max(rmse[True]) <= 0.3
-    assert np.mean(rmse[True]) < np.mean(rmse[False]) - 0.03
+    assert np.mean(rmse[True]) <= np.mean(rmse[False]) + 0.01
+
+
+def test_daim_map_does_not_depend_on_which_particle_weighs_most(drive: MunjerDrive) -> None:
+    """On DAIM's detections FastSLAM's weights stay flat (no resampling in the lap), so the best
+    particle's path is one draw of the motion noise: over FastSLAM seeds 0-4 its maps' RMSE
+    spread over 0.093-0.252 m (measured). The refinement now maps the detections with the
+    posterior-mean path (``MunjerMapConfig.path``, default "mean"): 0.156-0.187 m."""
+    obs = daim_observations(
+        drive.images, drive.depths, drive.camera_frames, drive.times, drive.rig,
+        SegmentationDetector(),
+    )  # fmt: skip
+    p0 = (float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2]))
+    problem = munjer_problem(obs, drive.times, drive.controls(), drive.motion_model(),
+                             initial_pose=p0)  # fmt: skip
+    assert MunjerMapConfig().path == "mean"
+    rmse = []
+    for seed in range(5):
+        res = map_munjer(problem, MunjerMapConfig(seed=seed))
+        assert res.stats["resamples"] == 0
+        rmse.append(drive.score(res.stem_map)[1].position_rmse)
+    assert max(rmse) <= 0.2
+    assert max(rmse) - min(rmse) < 0.05
 
 
 def test_ours_beats_both(drive: MunjerDrive) -> None:

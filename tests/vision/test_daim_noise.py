@@ -11,6 +11,7 @@ from stemmap.scan.circle import fit_circle
 from stemmap.vision._daim_noise import (
     arc_point_covariances,
     bound_covariance,
+    centre_behind_arc,
     fit_covariance,
     physical_bound,
     surface_centre,
@@ -104,3 +105,18 @@ def test_a_wide_fit_is_placed_one_visible_half_width_behind_its_arc() -> None:
     # (this arc shows +-0.6 rad of the trunk: 0.17 m of its 0.3 m, so 6.5 cm short)
     assert np.hypot(*(c - [10.0, 0.0])) < 0.5 * 0.15
     assert c[0] > arc[:, 0].min()  # behind the visible surface
+
+
+def test_centre_behind_arc_rejects_a_circle_on_the_cameras_side() -> None:
+    """A trunk shows the camera its convex near side, so its centre lies beyond the arc's
+    middle point along the ray; noise that bends the three points the other way (middle
+    pushed back, ends pulled in) gives a circle on the camera's side, which is no trunk."""
+    o = np.zeros(2)
+    arc = _arc(8.0, 0.15, 1.2, 7)
+    fit = fit_circle(arc, "three_point", origin=o)
+    assert centre_behind_arc(arc, fit.center, o)
+    bent = arc.copy()
+    bent[3, 0] += 0.4  # the middle point 0.4 m further: the arc now bulges away
+    fit = fit_circle(bent, "three_point", origin=o)
+    assert fit and 2 * fit.radius < 1.5 * arc_width(bent, o)  # passes the width check
+    assert not centre_behind_arc(bent, fit.center, o)

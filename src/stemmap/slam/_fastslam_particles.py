@@ -18,6 +18,7 @@ from stemmap.types import FloatArray, wrap_angle
 
 __all__ = [
     "particle_landmark_covariance",
+    "posterior_mean_path",
     "systematic_resample",
     "weighted_pose_covariance",
 ]
@@ -61,6 +62,47 @@ def weighted_pose_covariance(X: FloatArray, w: FloatArray) -> FloatArray:
     dev[:, 2] -= w @ dev[:, 2]
     cov = (dev * w[:, None]).T @ dev
     return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
+
+
+def posterior_mean_path(
+    pose_hist: FloatArray, parents: np.ndarray, log_weights: FloatArray
+) -> FloatArray:
+    """The particle set's posterior-mean path (F, 3): per frame, the mean of every final
+    particle's ancestral pose, weighted by its final weight (headings by their circular mean).
+
+    Each final particle carries a sample of the whole path (its lineage through the
+    resamplings, Montemerlo et al. 2002, §3); the best particle's lineage is one sample, the
+    weighted mean over all of them the minimum-mean-square-error estimate of the path. They
+    differ where the weights stay flat (the detections hardly discriminate the particles):
+    then the best particle is an arbitrary draw of the motion noise around the odometry.
+
+    Parameters
+    ----------
+    pose_hist : (F, P, 3) -- the particles' poses at every frame (after that frame's
+        resampling, as stored by the filter)
+    parents : (F, P) int -- per frame, the particle each one was resampled from (identity
+        where the frame did not resample)
+    log_weights : (P,) -- final log weights (any offset)
+
+    Examples
+    --------
+    Two particles, never resampled, equal weights: the mean of their paths.
+
+    >>> ph = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[1.0, 0.2, 0.1], [1.0, -0.2, -0.1]]])
+    >>> posterior_mean_path(ph, np.array([[0, 1], [0, 1]]), np.zeros(2))[1].round(6).tolist()
+    [1.0, 0.0, 0.0]
+    """
+    nf, n_p, _ = pose_hist.shape
+    w = np.exp(log_weights - np.max(log_weights))
+    w /= w.sum()
+    out = np.empty((nf, 3))
+    cur = np.arange(n_p)
+    for f in range(nf - 1, -1, -1):
+        x = pose_hist[f, cur]
+        out[f, :2] = w @ x[:, :2]
+        out[f, 2] = math.atan2(float(w @ np.sin(x[:, 2])), float(w @ np.cos(x[:, 2])))
+        cur = parents[f, cur]
+    return out
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> np.ndarray:

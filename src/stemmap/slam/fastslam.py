@@ -44,7 +44,7 @@ import math
 import time as _time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -58,6 +58,7 @@ from stemmap.slam._fastslam_particles import (
     _sample_batch,
     _wrap_inplace,
     particle_landmark_covariance,
+    posterior_mean_path,
     systematic_resample,
     weighted_pose_covariance,
 )
@@ -193,6 +194,12 @@ class FastSlam:
         the floor for what the detector's model leaves out (pose, association, the trunk
         centre's viewpoint error). Needs ``version=1`` and ``smooth=False``. False: R for
         every detection (the frames' noise ignored).
+    path : {"best", "mean"}
+        The output path: the best particle's lineage ("best", Montemerlo's usual output; the
+        map is always the best particle's), or the posterior mean over the final particles'
+        lineages ("mean", ours: :func:`~stemmap.slam._fastslam_particles.posterior_mean_path`),
+        which does not depend on which near-equal weight happens to be the largest. "mean"
+        needs ``smooth=False``.
     tentative_timeout_s : float, s
         Ours (standard FastSLAM landmark-existence practice, not in Munjer): a landmark seen
         fewer than ``min_observations`` times and not re-seen for this long is deleted from the
@@ -221,6 +228,7 @@ class FastSlam:
     tree_cov_inflation: float | None = None
     record_diagnostics: bool = False
     detection_noise: bool = False
+    path: Literal["best", "mean"] = "best"
     seed: int = 0
     name: str = "fastslam"
     #: filled by ``run`` when ``record_diagnostics`` is set
@@ -252,6 +260,10 @@ class FastSlam:
             raise ConfigError(
                 "FastSlam.detection_noise needs version=1 and smooth=False (per-detection R is "
                 "carried by the compiled FastSLAM 1.0 filter only)."
+            )
+        if self.path not in ("best", "mean") or (self.path == "mean" and self.smooth):
+            raise ConfigError(
+                f"FastSlam.path must be 'best' or 'mean' (with smooth=False), got {self.path!r}."
             )
         if not self.new_landmark_chi2 > 0:
             raise ConfigError("FastSlam.new_landmark_chi2 must be > 0.")
@@ -607,6 +619,8 @@ class FastSlam:
             cur = int(parents[f, cur])
             if f in obs_lid:  # the associations of the particle before this frame's resampling
                 lineage_ids.append((f, obs_lid[f][cur]))
+        if self.path == "mean":
+            traj = posterior_mean_path(pose_hist, parents, logw)
         n_best = int(nlm[best])
         mapped = np.flatnonzero(nobs[best, :n_best] >= self.min_observations)
         w_final = np.exp(logw - logw.max())

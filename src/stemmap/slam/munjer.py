@@ -413,6 +413,14 @@ class MunjerMapConfig:
         covariance (EB-LiDAR, ours) are unchanged by it; DAIM's are weighed by the simulator's
         D435 model (docs/algorithms/cloud.md, "DAIM: per-detection noise"). The paper gives
         every detection the same noise (False).
+    path : "mean" or "best" -- the FastSLAM path the refinement maps every detection with
+        and the result's trajectory: the posterior mean over the particles' lineages (ours,
+        default; :class:`~stemmap.slam.fastslam.FastSlam` ``path``) or the best particle's
+        (Montemerlo's usual output; the paper does not say which). On the Munjer-like DAIM
+        drives the weights stay flat (no resampling in a lap), so the best particle is one draw
+        of the motion noise around the odometry, its path error about 1.6 x the odometry's,
+        and it set the worst draws' map error (docs/algorithms/cloud.md, "DAIM: the worst
+        draws")
     seed : FastSLAM seed
     """
 
@@ -423,6 +431,7 @@ class MunjerMapConfig:
     refine: bool = True
     refine_gate: float = 1.0
     detection_noise: bool = True
+    path: Literal["best", "mean"] = "mean"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -435,7 +444,7 @@ def map_munjer(problem: SlamProblem, config: MunjerMapConfig | None = None) -> S
 
     Returns the FastSLAM result with its stem map replaced by the refined one (same trees; each
     position re-estimated from every detection within ``refine_gate``, the pose uncertainty of
-    the particle cloud ignored: FastSLAM's best-particle path is taken as exact).
+    the particle cloud ignored: FastSLAM's path, ``config.path``, is taken as exact).
     """
     from stemmap.slam.fastslam import FastSlam
     from stemmap.slam.refine import refine_stem_map
@@ -449,6 +458,7 @@ def map_munjer(problem: SlamProblem, config: MunjerMapConfig | None = None) -> S
         seed=cfg.seed,
         smooth=False,  # the paper's FastSLAM: no joint smoothing afterwards (ours)
         detection_noise=cfg.detection_noise,
+        path=cfg.path,
     )
     result = fs.run(problem)
     if cfg.refine and len(result.stem_map):

@@ -29,7 +29,9 @@ propagates the noise model through the fit to first order:
   (eigenvalues of ``L^-1 Sigma L^-T`` above 1 set to 1, ``Sigma_phys = L L^T``): unchanged
   where it is already the smaller, the bound where it is not;
 * a fit that fails the width check (its circle, wider than the trunk can be, is the noise
-  flattening the arc) has no trunk centre to propagate: the detection's centre is then
+  flattening the arc) or has its centre on the camera's side of the arc
+  (:func:`centre_behind_arc`: the noise bent it the wrong way) has no trunk centre to
+  propagate: the detection's centre is then
   :func:`surface_centre` (``B`` plus half the visible width along the ray, the radius of a
   cylinder whose arc is that wide) and its covariance ``Sigma_phys``.
 """
@@ -46,6 +48,7 @@ from stemmap.types import FloatArray
 __all__ = [
     "arc_point_covariances",
     "bound_covariance",
+    "centre_behind_arc",
     "fit_covariance",
     "physical_bound",
     "surface_centre",
@@ -175,6 +178,23 @@ def _middle_ray(arc: ArrayLike, origin_xy: FloatArray) -> tuple[FloatArray, Floa
     b: FloatArray = srt[srt.shape[0] // 2]
     rel = b - origin_xy
     return b, rel / max(float(np.hypot(*rel)), 1e-12)
+
+
+def centre_behind_arc(arc: ArrayLike, center: ArrayLike, origin_xy: ArrayLike) -> bool:
+    """Whether ``center`` lies beyond the arc's middle point (by bearing) along its ray from
+    ``origin_xy``: a trunk shows the camera its near, convex side, so its centre is behind
+    the visible arc. A fit with the centre on the camera's side is the depth noise bending
+    the arc the wrong way (the middle point pushed back, the ends pulled in), not a trunk.
+
+    Examples
+    --------
+    >>> arc, o = [[9.9, -0.1], [9.85, 0.0], [9.9, 0.1]], [0.0, 0.0]
+    >>> centre_behind_arc(arc, [10.0, 0.0], o), centre_behind_arc(arc, [9.7, 0.0], o)
+    (True, False)
+    """
+    o = np.asarray(origin_xy, dtype=np.float64).reshape(2)
+    b, u = _middle_ray(arc, o)
+    return bool((np.asarray(center, dtype=np.float64).reshape(2) - b) @ u > 0.0)
 
 
 def surface_centre(arc: ArrayLike, origin_xy: ArrayLike, radius: float) -> FloatArray:

@@ -35,6 +35,7 @@ __all__ = [
     "cluster_trunk_points",
     "daim_trunks",
     "depth_to_points",
+    "pixel_depth_limit",
 ]
 
 
@@ -50,7 +51,10 @@ class DaimParams:
     Parameters
     ----------
     stride : int -- use every ``stride``-th pixel of the box (speed)
-    max_depth : float, metres -- ignore depth beyond (RealSense-class sensors: ~10 m)
+    max_depth : float, metres -- ignore trunks beyond (RealSense-class sensors: ~10 m): a
+        box's trunk cluster whose median z-depth is at or beyond it gives no detection; its
+        pixels are read up to :func:`pixel_depth_limit` (three noise sigmas further), so the
+        cut does not truncate the noise of a trunk near it
     eps, min_samples : DBSCAN radius (m) and core size
     base_band : float, metres -- height of the "arc near the base" slice above the cluster's
         lowest point
@@ -65,7 +69,11 @@ class DaimParams:
         visible width (its bearing span times its median range) gets no radius (NaN): a
         cylinder's visible arc is as wide as the trunk, so a much larger circle is the depth
         noise flattening the arc (three points, D435 noise 0.18 m at 7 m against a 0.1 m
-        sagitta), not the trunk; its centre is then the arc's middle point plus half the
+        sagitta), not the trunk; so does a fit whose centre is not behind the arc's middle
+        point (:func:`~stemmap.vision._daim_noise.centre_behind_arc`: the noise bent the arc
+        towards the camera, and the near side of a convex trunk cannot be seen hollow; 7-22 %
+        of the fits of a 0.3 m trunk at 7-11 m, their centres 0.15-0.2 m short). Such a
+        detection's centre is then the arc's middle point plus half the
         visible width along the ray (:func:`stemmap.vision._daim_noise.surface_centre`), and
         with ``cov_noise_k`` every fit's covariance is bounded by the trunk's geometry (the
         centre one radius of at most ``max_width_ratio`` x width / 2 behind the arc,
@@ -100,7 +108,8 @@ class DaimParams:
 
 
 #: DAIM as run in the Munjer pipeline (our additions, the paper prints none of them):
-#: implausibly wide three-point circles carry no diameter, the clustering radius is scaled by
+#: implausible three-point circles (too wide, or bulging away from the camera) carry no
+#: diameter, the clustering radius is scaled by
 #: the D435's depth-noise model (``depth_noise_k``), and every detection carries its
 #: depth-model covariance (``cov_noise_k``), which the Munjer back end weighs it by
 #: (:class:`stemmap.slam.munjer.MunjerMapConfig` ``detection_noise``). Chosen on simulated
@@ -108,6 +117,32 @@ class DaimParams:
 #: docs/algorithms/cloud.md, "DAIM: per-detection noise"); ``replace(MUNJER2025,
 #: depth_noise_k=None)`` is the fixed 0.1 m radius.
 MUNJER2025 = DaimParams(max_width_ratio=1.5, depth_noise_k=D435_DEPTH_NOISE_K)
+
+
+def pixel_depth_limit(params: DaimParams) -> float:
+    """Depth (m) up to which :func:`daim_trunks` reads a box's pixels: ``max_depth`` plus three
+    times the depth noise there, ``max_depth + 3 k max_depth^2`` (``k`` the params' depth-noise
+    model, ``depth_noise_k`` or else ``cov_noise_k``; ``max_depth`` without one).
+
+    ``max_depth`` limits the *trunk* (the median depth of its cluster), not its pixels: cutting
+    every pixel at ``max_depth`` keeps only the near side of the noise of a trunk near the
+    limit, so its median and arc are pulled towards the camera (D435 model, k = 0.0036: a trunk
+    at z = 12 m by -0.36 m, at 12.5 m by -0.75 m, and one at 13 m still detected -- from its
+    noise's near tail -- 1.2 m short; docs/algorithms/cloud.md, "DAIM: the depth cut"). Three
+    sigma leaves a trunk at ``max_depth`` 0.13 % of its pixels cut.
+
+    Examples
+    --------
+    >>> round(pixel_depth_limit(MUNJER2025), 2)
+    13.55
+    >>> pixel_depth_limit(DaimParams(cov_noise_k=None))
+    12.0
+    """
+    k = params.depth_noise_k if params.depth_noise_k is not None else params.cov_noise_k
+    m = params.max_depth
+    if k is None or not math.isfinite(m):
+        return m
+    return m + 3.0 * k * m**2
 
 
 def depth_to_points(
@@ -266,15 +301,18 @@ def daim_trunks(
     -------
     StemObservations in the body frame (``frame="laser"`` if ``camera_to_body`` is given,
     else "camera_level"), ``source="vision:munjer2025:<fit>"``; boxes where no cluster or arc
-    or fit was found are skipped (logged at debug level); a fit failing the width check
-    (``params.max_width_ratio``) has radius NaN and its centre half the arc's visible width
-    behind the arc's middle point (not the flat circle's). ``index`` is the box index.
+    or fit was found, and trunks whose cluster's median depth is at or beyond
+    ``params.max_depth``, are skipped; a fit failing the width check
+    (``params.max_width_ratio``) or with its centre on the camera's side of the arc has radius
+    NaN and its centre half the arc's visible width behind the arc's middle point (not the
+    fit's). ``index`` is the box index.
     ``covs`` (k, 3, 3): each fit's (centre x, centre y, radius) covariance from the depth-noise
     model ``params.cov_noise_k`` (NaN without one), body frame.
     """
     b = boxes_xywh(boxes)
     from stemmap.vision._daim_noise import (
         bound_covariance,
+        centre_behind_arc,
         fit_covariance,
         physical_bound,
         surface_centre,
@@ -282,9 +320,10 @@ def daim_trunks(
 
     centers, radii, npts, arcs, idx, covs = [], [], [], [], [], []
     pixel_angle = params.stride / float(camera.K[0, 0])
+    pixel_limit = pixel_depth_limit(params)
     origin = camera_to_body.t[:2] if camera_to_body is not None else np.zeros(2)
     for i, box in enumerate(b):
-        pc = depth_to_points(depth, camera, box, stride=params.stride, max_depth=params.max_depth)
+        pc = depth_to_points(depth, camera, box, stride=params.stride, max_depth=pixel_limit)
         if pc.shape[0] < params.min_samples:
             continue
         if camera_to_body is not None:
@@ -294,7 +333,10 @@ def daim_trunks(
         eps = params.eps
         if params.depth_noise_k is not None:
             eps = max(eps, 2.0 * params.depth_noise_k * float(np.median(pc[:, 2])) ** 2)
-        body = body[cluster_trunk_points(body, eps=eps, min_samples=params.min_samples)]
+        keep = cluster_trunk_points(body, eps=eps, min_samples=params.min_samples)
+        if not keep.any() or float(np.median(pc[keep, 2])) >= params.max_depth:
+            continue  # max_depth limits the trunk, not its pixels (see pixel_depth_limit)
+        body = body[keep]
         arc = base_arc(
             body,
             origin,
@@ -309,11 +351,15 @@ def daim_trunks(
         if not fit:
             continue
         radius = fit.radius
-        wide = params.max_width_ratio is not None and (
-            2.0 * radius > params.max_width_ratio * arc_width(arc, origin)
+        w_arc = arc_width(arc, origin)
+        # not a trunk's circle: wider than the arc allows, or on the camera's side of the arc
+        # (the visible side of a convex trunk bulges towards the camera)
+        implausible = params.max_width_ratio is not None and (
+            2.0 * radius > params.max_width_ratio * w_arc
+            or not centre_behind_arc(arc, fit.center, origin)
         )
         center = fit.center
-        if wide:
+        if implausible:
             radius = math.nan
         rel = arc - fit.center
         ang = np.degrees(np.ptp(np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))))
@@ -329,18 +375,18 @@ def daim_trunks(
             )
         if params.max_width_ratio is not None:
             # a trunk's centre is one radius (at most the width check's) behind its arc: the
-            # first-order covariance of a nearly collinear arc is bounded by that, and a wide
-            # fit's centre is the arc's middle point plus half its width (_daim_noise)
-            w_arc = arc_width(arc, origin)
-            if wide:
+            # first-order covariance of a nearly collinear arc is bounded by that, and an
+            # implausible fit's centre is the arc's middle point plus half its width
+            # (_daim_noise)
+            if implausible:
                 center = surface_centre(arc, origin, 0.5 * w_arc)
             if params.cov_noise_k is not None:
                 bound = physical_bound(
                     arc, origin, 0.5 * params.max_width_ratio * w_arc,
                     depth_noise_k=params.cov_noise_k, pixel_angle=pixel_angle,
-                    keep_cross=None if wide else cov,
+                    keep_cross=None if implausible else cov,
                 )  # fmt: skip
-                cov = bound if wide else bound_covariance(cov, bound)
+                cov = bound if implausible else bound_covariance(cov, bound)
         centers.append(center)
         covs.append(cov)
         radii.append(radius)
