@@ -6,7 +6,7 @@ import pytest
 from tests.scan.test_gaps_refit import _scan as _circles_scan
 from tests.scan.test_gaps_refit import _segment
 
-from stemmap.scan._step_split import largest_steps, step_refit
+from stemmap.scan._step_split import front_spikes, largest_steps, step_refit
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.segment import Segments
 from stemmap.types import ScanBatch
@@ -67,7 +67,9 @@ def _pieces(batch, cfg):
         apply_filters=False,
     )
     assert len(every) == 1
-    return step_refit(det, every, np.ones(1, dtype=bool), grid, wrap)
+    got = step_refit(det, every, np.ones(1, dtype=bool), grid, wrap)
+    assert len(got) <= 1
+    return got[0] if got else None
 
 
 def test_a_cut_end_is_occluded_only_by_a_nearer_return():
@@ -101,3 +103,42 @@ def test_step_split_runs_on_the_numpy_path():
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True))
     assert not det._compiled(None, None)
     assert ScanTrunkDetector("stemmap")._compiled(None, None)
+
+
+def test_a_twig_in_front_of_a_stem_is_dropped_not_cut():
+    # an 18 cm stem at 4.5 m seen by 5 beams; a twig 6 cm in front of it on the 2nd beam (the
+    # TreeLS plot, scan 1 of the sixteenth round: 5.7 cm in front, between the 2nd and 3rd)
+    stem = (4.5, 0.0, 0.09)
+    batch = _circles_scan([stem])
+    r = batch.ranges[0].copy()
+    on = np.flatnonzero(np.isfinite(r))
+    assert on.size == 5
+    r[on[1]] -= 0.06
+    batch = ScanBatch(
+        ranges=r[None, :],
+        times=batch.times,
+        angle_min=batch.angle_min,
+        angle_increment=batch.angle_increment,
+        range_max=batch.range_max,
+    )
+    plain = ScanTrunkDetector("stemmap")
+    assert len(plain.detect_batch(batch)) == 0
+    assert plain.rejected(batch)["reason"] == ["rms"]
+    obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True)).detect_batch(batch)
+    # the stem's other 4 returns, one piece: a cut at the twig would leave pieces of 2 and 2
+    assert len(obs) == 1
+    assert obs.n_points[0] == 4
+    assert obs.radii[0] == pytest.approx(stem[2], abs=0.01)
+    assert np.hypot(*(obs.centers[0] - stem[:2])) < 0.02
+
+
+def test_front_spikes_needs_both_neighbours_farther_than_the_limit():
+    segs = _segment([5.0, 5.01, 4.94, 5.02, 5.03])
+    first = largest_steps(segs)  # +8 cm after the dip
+    assert first.tolist() == [3]
+    assert np.flatnonzero(front_spikes(segs, first, np.array([0.05]))).tolist() == [2]
+    # a limit above the smaller side (7 cm): no spike
+    assert not front_spikes(segs, first, np.array([0.075])).any()
+    # a dip at the segment's end has one neighbour only
+    end = _segment([5.0, 5.01, 5.02, 4.9])
+    assert not front_spikes(end, largest_steps(end), np.array([0.01])).any()

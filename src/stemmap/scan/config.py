@@ -341,10 +341,12 @@ class DetectorConfig:
         one scan does not tell them apart (scan-detection-history.md, sixteenth round).
     step_split : bool
         Cut a candidate that fails the RMS test, whose corner split (if on) gave no trunk, at
-        its largest range step and judge the two pieces as the arcs of ``arc_refit``, a cut end
-        occluded only by a return across it nearer by ``occlusion_margin`` (ours, issue 11,
-        seventeenth round; :func:`~stemmap.scan._step_split.step_refit`): a 4-return stem
-        whose segment runs on into a branch behind its silhouette. Numpy path only.
+        its largest range step (when above 3 sqrt(2) noise sigmas) and judge the two pieces as
+        the arcs of ``arc_refit``, a cut end occluded only by a return across it nearer by
+        ``occlusion_margin`` (ours, issue 11, seventeenth round;
+        :func:`~stemmap.scan._step_split.step_refit`): a 4-return stem whose segment runs on
+        into a branch behind its silhouette; a step that isolates one return in front (a
+        twig) drops it instead, the rest judged whole. Numpy path only.
     """
 
     name: str = "custom"

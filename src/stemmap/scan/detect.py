@@ -648,7 +648,10 @@ class ScanTrunkDetector:
                     rms[got.parent[got.ok]] = False
                     which[got.parent[got.ok]] = False
                 cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
-                got = step_refit(self, every, rms, grid, wrap)
+                for g in step_refit(self, every, rms, grid, wrap):
+                    which[g.parent[g.ok]] = False
+                    cols, order_key = self._add_pieces(cols, order_key, g, grid, wrap, fate)
+                got = None
             if cfg.split_search:
                 # the candidates whose corner split gave no trunk: search every cut; unless
                 # split_search_convex, only those that are not convex (depth): one convex
