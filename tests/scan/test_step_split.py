@@ -25,6 +25,11 @@ def _stem_and_neighbour(steps):
     assert on.size == 4
     for j, s in enumerate(np.cumsum(steps), start=1):
         r[on[-1] + j] = r[on[-1]] + s
+    return _with_ranges(batch, r)
+
+
+def _with_ranges(batch, r):
+    """``batch`` (one scan) with the ranges ``r``."""
     return ScanBatch(
         ranges=r[None, :],
         times=batch.times,
@@ -114,13 +119,7 @@ def test_a_twig_in_front_of_a_stem_is_dropped_not_cut():
     on = np.flatnonzero(np.isfinite(r))
     assert on.size == 5
     r[on[1]] -= 0.06
-    batch = ScanBatch(
-        ranges=r[None, :],
-        times=batch.times,
-        angle_min=batch.angle_min,
-        angle_increment=batch.angle_increment,
-        range_max=batch.range_max,
-    )
+    batch = _with_ranges(batch, r)
     plain = ScanTrunkDetector("stemmap")
     assert len(plain.detect_batch(batch)) == 0
     assert plain.rejected(batch)["reason"] == ["rms"]

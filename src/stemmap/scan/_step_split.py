@@ -38,9 +38,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from stemmap.scan._arcs import _cut_flags, piece_passes
-from stemmap.scan._refit import Refitted, judge_pieces
-from stemmap.scan._split_search import seen_through
+from stemmap.scan._arcs import _cut_flags
+from stemmap.scan._refit import Refitted
+from stemmap.scan._split_search import judge_arcs
 from stemmap.scan.features import segment_sum
 from stemmap.scan.plausibility import segment_sigma
 from stemmap.scan.segment import Segments
@@ -51,8 +51,8 @@ if TYPE_CHECKING:
 
 __all__ = ["front_spikes", "largest_steps", "step_refit"]
 
-#: Noise sigmas of the seen-through test (as ``_split_search``) and of the step: a cut needs a
-#: step larger than this many sigmas of the difference of two returns' noise (sqrt(2) sigma).
+#: Noise sigmas of the step (as the seen-through test's): a cut needs a step larger than this
+#: many sigmas of the difference of two returns' noise (sqrt(2) sigma).
 _SIGMAS = 3.0
 
 
@@ -125,7 +125,9 @@ def step_refit(
     if np.any(spiky):
         # the spike dropped, the candidate's other returns one piece with its own end flags
         pieces = sub.drop(~spike).select(spiky)
-        out.append(_judge(detector, every, sub, pieces, np.flatnonzero(spiky), which, grid, wrap))
+        out.append(
+            judge_arcs(detector, every, sub, pieces, np.flatnonzero(spiky), which, grid, wrap)
+        )
     if np.any(first >= 0):
         mark = np.zeros(len(r), dtype=np.int64)
         mark[first[first >= 0]] = 1
@@ -135,28 +137,5 @@ def step_refit(
         local = lab[pieces.start].astype(np.int64)
         keep = first[local] >= 0
         pieces, local = pieces.select(keep), local[keep]
-        out.append(_judge(detector, every, sub, pieces, local, which, grid, wrap))
+        out.append(judge_arcs(detector, every, sub, pieces, local, which, grid, wrap))
     return [g for g in out if g is not None]
-
-
-def _judge(
-    detector: ScanTrunkDetector,
-    every: Segments,
-    sub: Segments,
-    pieces: Segments,
-    local: NDArray[np.int64],
-    which: NDArray[np.bool_],
-    grid: FloatArray,
-    wrap: bool,
-) -> Refitted | None:
-    """The pieces of ``sub`` (``local`` indexes it) judged as arcs, validated as the corner
-    split's, and vetoed when a return of the candidate was seen through the piece's circle."""
-    got = judge_pieces(
-        detector, sub, pieces, local, which, grid, wrap, validate=True, tests=piece_passes
-    )
-    if got is None or not np.any(got.ok):
-        return got
-    through = seen_through(
-        every, got.parent, got.fitted.centers, got.fitted.radii, got.fitted.sigma, got.ok, _SIGMAS
-    )
-    return got._replace(ok=got.ok & ~through)
