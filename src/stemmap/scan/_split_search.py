@@ -56,7 +56,7 @@ from stemmap.types import FloatArray
 if TYPE_CHECKING:
     from stemmap.scan.detect import ScanTrunkDetector
 
-__all__ = ["best_cuts", "kasa_prefix", "run_score", "search_refit", "seen_through"]
+__all__ = ["best_cuts", "judge_arcs", "kasa_prefix", "run_score", "search_refit", "seen_through"]
 
 #: BIC parameter counts (Schwarz 1978) of one circle, two pieces + cut, three pieces + 2 cuts.
 _K1, _K2, _K3 = 3.0, 7.0, 11.0
@@ -220,16 +220,26 @@ def search_refit(
     keep = (np.bincount(local, minlength=len(sub)) > 1)[local]
     # a piece is judged as an arc of arc_refit is (piece_passes: no bark allowance, tangent
     # range, chi-square): both are the part of a merged candidate that one circle explains
+    return judge_arcs(detector, every, sub, pieces.select(keep), local[keep], which, grid, wrap)
+
+
+def judge_arcs(
+    detector: ScanTrunkDetector,
+    every: Segments,
+    sub: Segments,
+    pieces: Segments,
+    local: NDArray[np.int64],
+    which: NDArray[np.bool_],
+    grid: FloatArray,
+    wrap: bool,
+) -> Refitted | None:
+    """The pieces of the candidates ``sub`` (= ``every.select(which)``; ``local`` indexes
+    ``sub``) judged as arcs (:func:`~stemmap.scan._arcs.piece_passes`), validated as the
+    corner split's (:func:`~stemmap.scan._refit.judge_pieces`), and vetoed when a return of
+    the candidate was seen through the piece's circle (:func:`seen_through`); the pieces of
+    ``split_search`` and of ``step_split``. ``parent`` indexes ``every``."""
     got = judge_pieces(
-        detector,
-        sub,
-        pieces.select(keep),
-        local[keep],
-        which,
-        grid,
-        wrap,
-        validate=True,
-        tests=piece_passes,
+        detector, sub, pieces, local, which, grid, wrap, validate=True, tests=piece_passes
     )
     if got is None or not np.any(got.ok):
         return got

@@ -339,6 +339,14 @@ class DetectorConfig:
         that is no circle is a lumpy object (the simulator's rocks and bushes: 34 of the 35
         false pieces of the seed-1 drives) as often as a trunk with a stub beside it (lidR);
         one scan does not tell them apart (scan-detection-history.md, sixteenth round).
+    step_split : bool
+        Cut a candidate that fails the RMS test, whose corner split (if on) gave no trunk, at
+        its largest range step (when above 3 sqrt(2) noise sigmas) and judge the two pieces as
+        the arcs of ``arc_refit``, a cut end occluded only by a return across it nearer by
+        ``occlusion_margin`` (ours, issue 11, seventeenth round;
+        :func:`~stemmap.scan._step_split.step_refit`): a 4-return stem whose segment runs on
+        into a branch behind its silhouette; a step that isolates one return in front (a
+        twig) drops it instead, the rest judged whole. Numpy path only.
     """
 
     name: str = "custom"
@@ -417,6 +425,7 @@ class DetectorConfig:
     behind_sigmas: float = math.inf
     split_search: bool = False
     split_search_convex: bool = False
+    step_split: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:

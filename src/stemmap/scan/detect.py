@@ -43,6 +43,7 @@ from stemmap.scan._segment_fits import (
     fit_kasa_segments,
 )
 from stemmap.scan._split_search import search_refit
+from stemmap.scan._step_split import step_refit
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
     _chi2_upper,
@@ -447,8 +448,8 @@ class ScanTrunkDetector:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
         corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
-        (``lobe_harmonics``), no ``behind_sigmas`` trim, no ``split_search`` (arc re-fits are
-        compiled since the fourteenth round of issue 11)."""
+        (``lobe_harmonics``), no ``behind_sigmas`` trim, no ``split_search`` or ``step_split``
+        (arc re-fits are compiled since the fourteenth round of issue 11)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
@@ -461,6 +462,7 @@ class ScanTrunkDetector:
             and cfg.lobe_harmonics == 0
             and math.isinf(cfg.behind_sigmas)
             and not cfg.split_search
+            and not cfg.step_split
         )
 
     def _run(
@@ -623,7 +625,7 @@ class ScanTrunkDetector:
         (``"filtered"`` True). The detections do not depend on ``fate``."""
         cfg = self.config
         corners = cfg.refit_pieces and cfg.refit_split == "corners"
-        search = cfg.split_search
+        search = cfg.split_search or cfg.step_split
         # every candidate is needed, before the filters
         arcs = cfg.arc_refit or corners or search
         segs, grid, wrap = self._candidates(
@@ -670,7 +672,19 @@ class ScanTrunkDetector:
             which = depth.copy()
             which[pos[codes == _RMS]] = True
             got = split_refit(self, every, which, grid, wrap) if corners else None
-            if search:
+            if cfg.step_split:
+                # failed the RMS test, no trunk from the corner split: cut at the largest step
+                rms = np.zeros(len(every), dtype=bool)
+                rms[pos[codes == _RMS]] = True
+                if got is not None:
+                    rms[got.parent[got.ok]] = False
+                    which[got.parent[got.ok]] = False
+                cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
+                for g in step_refit(self, every, rms, grid, wrap):
+                    which[g.parent[g.ok]] = False
+                    cols, order_key = self._add_pieces(cols, order_key, g, grid, wrap, fate)
+                got = None
+            if cfg.split_search:
                 # the candidates whose corner split gave no trunk: search every cut; unless
                 # split_search_convex, only those that are not convex (depth): one convex
                 # outline that fails the RMS test is as often a lumpy object (a rock) as a

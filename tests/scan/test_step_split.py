@@ -1,0 +1,143 @@
+"""Step split (``step_split``, issue 11, seventeenth round): a candidate that fails the RMS test
+cut at its largest range step, its pieces judged as the arcs of ``arc_refit``."""
+
+import numpy as np
+import pytest
+from tests.scan.test_gaps_refit import _scan as _circles_scan
+from tests.scan.test_gaps_refit import _segment
+
+from stemmap.scan._step_split import front_spikes, largest_steps, step_refit
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.scan.segment import Segments
+from stemmap.types import ScanBatch
+
+#: A 20 cm stem at 5.45 m: exactly 4 beams of 0.5 deg return from it (thin beams).
+STEM = (5.45, 0.02, 0.10)
+
+
+def _stem_and_neighbour(steps):
+    """:data:`STEM` and returns of another object on the beams after its last one, each
+    ``steps[i]`` farther than the one before (the first relative to the stem's last return):
+    one segment (the range-adaptive threshold is 0.1 + 3 r dtheta = 0.24 m there)."""
+    batch = _circles_scan([STEM])
+    r = batch.ranges[0].copy()
+    on = np.flatnonzero(np.isfinite(r))
+    assert on.size == 4
+    for j, s in enumerate(np.cumsum(steps), start=1):
+        r[on[-1] + j] = r[on[-1]] + s
+    return _with_ranges(batch, r)
+
+
+def _with_ranges(batch, r):
+    """``batch`` (one scan) with the ranges ``r``."""
+    return ScanBatch(
+        ranges=r[None, :],
+        times=batch.times,
+        angle_min=batch.angle_min,
+        angle_increment=batch.angle_increment,
+        range_max=batch.range_max,
+    )
+
+
+#: A branch behind the stem's silhouette edge: the steps of the TreeLS plot, scan 6 of the
+#: sixteenth round (+6.8, +4.0, -0.7 cm; below max_jump = 0.1 m).
+BEHIND = (0.068, 0.040, -0.007)
+
+
+def test_a_stem_with_a_branch_behind_it_is_found_with_step_split():
+    batch = _stem_and_neighbour(BEHIND)
+    plain = ScanTrunkDetector("stemmap")
+    # one candidate of 7 returns that fails the RMS test: no corner, not an arc candidate
+    assert len(plain.detect_batch(batch)) == 0
+    assert plain.rejected(batch)["reason"] == ["rms"]
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True))
+    obs = det.detect_batch(batch)
+    assert len(obs) == 1
+    assert obs.n_points[0] == 4
+    # noise-free, 4 returns over ~60 deg of the stem: within 1 cm of the radius
+    assert obs.radii[0] == pytest.approx(STEM[2], abs=0.01)
+    assert np.hypot(*(obs.centers[0] - STEM[:2])) < 0.02
+
+
+def _pieces(batch, cfg):
+    det = ScanTrunkDetector(cfg)
+    every, grid, wrap = det._candidates(
+        batch.ranges,
+        batch.angle_min,
+        batch.angle_increment,
+        batch.range_min,
+        batch.range_max,
+        None,
+        None,
+        apply_filters=False,
+    )
+    assert len(every) == 1
+    got = step_refit(det, every, np.ones(1, dtype=bool), grid, wrap)
+    assert len(got) <= 1
+    return got[0] if got else None
+
+
+def test_a_cut_end_is_occluded_only_by_a_nearer_return():
+    cfg = DetectorConfig.preset("stemmap", step_split=True)
+    # behind: the stem's 4 returns are not partial (min_points = 4 suffices)
+    got = _pieces(_stem_and_neighbour(BEHIND), cfg)
+    assert got is not None and got.ok.sum() == 1
+    i = int(np.flatnonzero(got.ok)[0])
+    assert got.segs.counts[i] == 4
+    assert not got.segs.occluded_end[i]
+    # 22 cm nearer (> occlusion_margin 0.2 m, within the segment): the stem is partial and
+    # needs min_points_partial (5) returns, as a segment of its own would
+    got = _pieces(_stem_and_neighbour((-0.22, 0.01, 0.01)), cfg)
+    assert got is None or not np.any(got.ok & (got.segs.counts == 4))
+
+
+def test_largest_steps_per_segment():
+    # one segment: the largest absolute step is the drop of 30 cm before the 4th return
+    segs = _segment([5.0, 5.02, 5.1, 4.8, 4.81])
+    assert largest_steps(segs).tolist() == [3]
+    one = _segment([5.0])
+    assert largest_steps(one).tolist() == [-1]
+    # two segments: no step across their boundary (4.8 -> 9.0 m)
+    pts = _segment([5.0, 5.02, 5.1, 4.8, 9.0, 9.05, 9.01]).points
+    z = np.zeros(2, dtype=bool)
+    two = Segments(pts, np.array([0, 4]), np.array([4, 7]), np.array([0, 0]), z, z, z, z)
+    assert largest_steps(two).tolist() == [3, 5]
+
+
+def test_step_split_runs_on_the_numpy_path():
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True))
+    assert not det._compiled(None, None)
+    assert ScanTrunkDetector("stemmap")._compiled(None, None)
+
+
+def test_a_twig_in_front_of_a_stem_is_dropped_not_cut():
+    # an 18 cm stem at 4.5 m seen by 5 beams; a twig 6 cm in front of it on the 2nd beam (the
+    # TreeLS plot, scan 1 of the sixteenth round: 5.7 cm in front, between the 2nd and 3rd)
+    stem = (4.5, 0.0, 0.09)
+    batch = _circles_scan([stem])
+    r = batch.ranges[0].copy()
+    on = np.flatnonzero(np.isfinite(r))
+    assert on.size == 5
+    r[on[1]] -= 0.06
+    batch = _with_ranges(batch, r)
+    plain = ScanTrunkDetector("stemmap")
+    assert len(plain.detect_batch(batch)) == 0
+    assert plain.rejected(batch)["reason"] == ["rms"]
+    obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True)).detect_batch(batch)
+    # the stem's other 4 returns, one piece: a cut at the twig would leave pieces of 2 and 2
+    assert len(obs) == 1
+    assert obs.n_points[0] == 4
+    assert obs.radii[0] == pytest.approx(stem[2], abs=0.01)
+    assert np.hypot(*(obs.centers[0] - stem[:2])) < 0.02
+
+
+def test_front_spikes_needs_both_neighbours_farther_than_the_limit():
+    segs = _segment([5.0, 5.01, 4.94, 5.02, 5.03])
+    first = largest_steps(segs)  # +8 cm after the dip
+    assert first.tolist() == [3]
+    assert np.flatnonzero(front_spikes(segs, first, np.array([0.05]))).tolist() == [2]
+    # a limit above the smaller side (7 cm): no spike
+    assert not front_spikes(segs, first, np.array([0.075])).any()
+    # a dip at the segment's end has one neighbour only
+    end = _segment([5.0, 5.01, 5.02, 4.9])
+    assert not front_spikes(end, largest_steps(end), np.array([0.01])).any()
