@@ -36,6 +36,7 @@ fits each candidate once).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -97,6 +98,13 @@ def _merge(fitted: _Fitted, rows: NDArray[np.int64], new: _Fitted) -> _Fitted:
     return type(fitted)._make(vals)
 
 
+#: An end test: per segment, whether its first / its last return goes (:func:`behind_ends`).
+EndTest = Callable[
+    ["ScanTrunkDetector", Segments, FloatArray, bool],
+    tuple[NDArray[np.bool_], NDArray[np.bool_]],
+]
+
+
 def trim_behind(
     detector: ScanTrunkDetector,
     segs: Segments,
@@ -104,11 +112,16 @@ def trim_behind(
     which: NDArray[np.bool_],
     grid: FloatArray,
     wrap: bool,
+    *,
+    ends: EndTest = behind_ends,
+    edge: bool = True,
 ) -> tuple[Segments, _Fitted]:
     """``segs`` without the end returns that lie behind their candidate's circle, for the
     candidates ``which`` (module docstring), and the fits of the trimmed candidates; a
     trimmed candidate that fails a test keeps its returns and fit. The same segments in the
-    same order."""
+    same order. ``ends`` replaces the test (:func:`stemmap.scan._stubs.outward_ends`: returns
+    outside the circle); ``edge`` False marks a trimmed end occluded instead of a silhouette
+    edge (the trunk may go on under what was trimmed)."""
     cfg = detector.config
     least = max(cfg.min_points, cfg.min_points_partial)
     keep = np.ones(len(segs.points), dtype=bool)
@@ -119,7 +132,7 @@ def trim_behind(
         cur = segs.drop(keep)  # every segment keeps >= least returns: same indexing
         ids = np.flatnonzero(act)
         sub = cur.select(act)
-        first, last = behind_ends(detector, sub, grid, wrap)
+        first, last = ends(detector, sub, grid, wrap)
         n = sub.counts
         # both ends behind but room for one: the first goes now, the last is tested again
         last &= ~first | (n - 2 >= least)
@@ -135,7 +148,7 @@ def trim_behind(
         return segs, fitted
     sel = np.zeros(len(segs), dtype=bool)
     sel[rows] = True
-    trimmed = _flagged(segs.drop(keep), cut_start, cut_end)
+    trimmed = _flagged(segs.drop(keep), cut_start, cut_end, edge)
     refit = detector._fit_candidates(trimmed.select(sel), grid, wrap)
     passed = fit_passes(cfg, refit)
     if not np.any(passed):
@@ -146,12 +159,26 @@ def trim_behind(
     keep |= undo[segs.labels]
     cut_start &= ~undo
     cut_end &= ~undo
-    out = _flagged(segs.drop(keep), cut_start, cut_end)
+    out = _flagged(segs.drop(keep), cut_start, cut_end, edge)
     return out, _merge(fitted, rows[passed], _take(refit, passed))
 
 
-def _flagged(segs: Segments, cut_start: NDArray[np.bool_], cut_end: NDArray[np.bool_]) -> Segments:
-    """A trimmed end is a true silhouette edge: neither occluded nor truncated."""
+def _flagged(
+    segs: Segments, cut_start: NDArray[np.bool_], cut_end: NDArray[np.bool_], edge: bool = True
+) -> Segments:
+    """A trimmed end is a true silhouette edge: neither occluded nor truncated (``edge``); or
+    (not ``edge``) occluded: the silhouette lies somewhere under what was trimmed."""
+    if not edge:
+        return Segments(
+            segs.points,
+            segs.start,
+            segs.stop,
+            segs.scan,
+            segs.occluded_start | cut_start,
+            segs.occluded_end | cut_end,
+            segs.truncated_start,
+            segs.truncated_end,
+        )
     return Segments(
         segs.points,
         segs.start,
