@@ -114,14 +114,12 @@ def trim_behind(
     wrap: bool,
     *,
     ends: EndTest = behind_ends,
-    edge: bool = True,
 ) -> tuple[Segments, _Fitted]:
     """``segs`` without the end returns that lie behind their candidate's circle, for the
     candidates ``which`` (module docstring), and the fits of the trimmed candidates; a
     trimmed candidate that fails a test keeps its returns and fit. The same segments in the
     same order. ``ends`` replaces the test (:func:`stemmap.scan._stubs.outward_ends`: returns
-    outside the circle); ``edge`` False marks a trimmed end occluded instead of a silhouette
-    edge (the trunk may go on under what was trimmed)."""
+    outside the circle)."""
     cfg = detector.config
     least = max(cfg.min_points, cfg.min_points_partial)
     keep = np.ones(len(segs.points), dtype=bool)
@@ -148,7 +146,7 @@ def trim_behind(
         return segs, fitted
     sel = np.zeros(len(segs), dtype=bool)
     sel[rows] = True
-    trimmed = _flagged(segs.drop(keep), cut_start, cut_end, edge)
+    trimmed = _flagged(segs.drop(keep), cut_start, cut_end)
     refit = detector._fit_candidates(trimmed.select(sel), grid, wrap)
     passed = fit_passes(cfg, refit)
     if not np.any(passed):
@@ -159,26 +157,12 @@ def trim_behind(
     keep |= undo[segs.labels]
     cut_start &= ~undo
     cut_end &= ~undo
-    out = _flagged(segs.drop(keep), cut_start, cut_end, edge)
+    out = _flagged(segs.drop(keep), cut_start, cut_end)
     return out, _merge(fitted, rows[passed], _take(refit, passed))
 
 
-def _flagged(
-    segs: Segments, cut_start: NDArray[np.bool_], cut_end: NDArray[np.bool_], edge: bool = True
-) -> Segments:
-    """A trimmed end is a true silhouette edge: neither occluded nor truncated (``edge``); or
-    (not ``edge``) occluded: the silhouette lies somewhere under what was trimmed."""
-    if not edge:
-        return Segments(
-            segs.points,
-            segs.start,
-            segs.stop,
-            segs.scan,
-            segs.occluded_start | cut_start,
-            segs.occluded_end | cut_end,
-            segs.truncated_start,
-            segs.truncated_end,
-        )
+def _flagged(segs: Segments, cut_start: NDArray[np.bool_], cut_end: NDArray[np.bool_]) -> Segments:
+    """A trimmed end is a true silhouette edge: neither occluded nor truncated."""
     return Segments(
         segs.points,
         segs.start,

@@ -27,7 +27,8 @@ is a mixed pixel that lies outside the circle by construction, so nothing is tri
 :func:`~stemmap.scan._behind.trim_behind` repeats the test on the new ends down to
 ``max(min_points, min_points_partial)`` returns, fits the trimmed candidate again with the
 trimmed end as a silhouette edge (as a trimmed end behind the circle: the stub's beam is the
-first that left the stem; taking it as occluded instead read lidR 4.02 cm RMSE against 3.54)
+first that left the stem; taking it as occluded instead read lidR 4.02 cm RMSE against 3.54
+with the plain 2-sigma test)
 and keeps the trim only when that fit passes every test.
 
 References: R. D. Cook and S. Weisberg, *Residuals and Influence in Regression*, Chapman and
