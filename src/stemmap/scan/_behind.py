@@ -36,6 +36,7 @@ fits each candidate once).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -97,6 +98,13 @@ def _merge(fitted: _Fitted, rows: NDArray[np.int64], new: _Fitted) -> _Fitted:
     return type(fitted)._make(vals)
 
 
+#: An end test: per segment, whether its first / its last return goes (:func:`behind_ends`).
+EndTest = Callable[
+    ["ScanTrunkDetector", Segments, FloatArray, bool],
+    tuple[NDArray[np.bool_], NDArray[np.bool_]],
+]
+
+
 def trim_behind(
     detector: ScanTrunkDetector,
     segs: Segments,
@@ -104,11 +112,14 @@ def trim_behind(
     which: NDArray[np.bool_],
     grid: FloatArray,
     wrap: bool,
+    *,
+    ends: EndTest = behind_ends,
 ) -> tuple[Segments, _Fitted]:
     """``segs`` without the end returns that lie behind their candidate's circle, for the
     candidates ``which`` (module docstring), and the fits of the trimmed candidates; a
     trimmed candidate that fails a test keeps its returns and fit. The same segments in the
-    same order."""
+    same order. ``ends`` replaces the test (:func:`stemmap.scan._stubs.outward_ends`: returns
+    outside the circle)."""
     cfg = detector.config
     least = max(cfg.min_points, cfg.min_points_partial)
     keep = np.ones(len(segs.points), dtype=bool)
@@ -119,7 +130,7 @@ def trim_behind(
         cur = segs.drop(keep)  # every segment keeps >= least returns: same indexing
         ids = np.flatnonzero(act)
         sub = cur.select(act)
-        first, last = behind_ends(detector, sub, grid, wrap)
+        first, last = ends(detector, sub, grid, wrap)
         n = sub.counts
         # both ends behind but room for one: the first goes now, the last is tested again
         last &= ~first | (n - 2 >= least)

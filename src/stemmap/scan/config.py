@@ -321,6 +321,17 @@ class DetectorConfig:
         min_points_partial)`` returns, and fit the rest again (ours, issue 11, thirteenth
         round; :func:`~stemmap.scan._behind.trim_behind`): a branch or stub behind the
         stem's silhouette joined to the trunk's segment. Numpy path only. inf = off.
+    stub_sigmas : float, >= 0
+        Drop an accepted candidate's end returns that lie *outside* the circle fitted without
+        them (that end taken as occluded) by more than this many standard deviations of the
+        deletion residual (noise scale ``sqrt(sigma^2 + (bark_roughness r)^2)`` and the
+        circle's own uncertainty at the end), when that circle passes every fit test and the
+        upper 1 % chi-square test; end by end, down to ``max(min_points,
+        min_points_partial)`` returns; the rest is fitted again (ours, issue 11, seventeenth
+        round; :func:`~stemmap.scan._stubs.outward_ends`): a branch stub on the stem's flank
+        joined to its arc. First-echo or thin-beam fits only (``beam_footprint_deg`` > 0 or
+        ``beam_divergence_deg`` 0: an averaging sensor's edge return is a mixed pixel,
+        outside the circle by construction). Numpy path. inf = off.
     split_search : bool
         Cut a candidate rejected as not convex (``depth``) or by the RMS test, whose
         validated corner split (if on) gave no trunk, where the Bayesian information
@@ -423,6 +434,7 @@ class DetectorConfig:
     arc_tangent_sigmas: float = math.inf
     arc_chi2: bool = False
     behind_sigmas: float = math.inf
+    stub_sigmas: float = math.inf
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -526,6 +538,8 @@ class DetectorConfig:
             raise bad("arc_replace", self.arc_replace, "it must be > 1 (inf: off)")
         if not self.behind_sigmas >= 0:
             raise bad("behind_sigmas", self.behind_sigmas, "it must be >= 0 (sigmas; inf: off)")
+        if not self.stub_sigmas >= 0:
+            raise bad("stub_sigmas", self.stub_sigmas, "it must be >= 0 (sigmas; inf: off)")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
             raise bad("arc_floor_sigmas", self.arc_floor_sigmas, "it must be > 0 (sigmas)")
         if not self.arc_tangent_sigmas > 0:

@@ -44,6 +44,7 @@ from stemmap.scan._segment_fits import (
 )
 from stemmap.scan._split_search import search_refit
 from stemmap.scan._step_split import step_refit
+from stemmap.scan._stubs import first_echo, trim_stubs
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
     _chi2_upper,
@@ -448,8 +449,9 @@ class ScanTrunkDetector:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
         corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
-        (``lobe_harmonics``), no ``behind_sigmas`` trim, no ``split_search`` or ``step_split``
-        (arc re-fits are compiled since the fourteenth round of issue 11)."""
+        (``lobe_harmonics``), no ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
+        (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` or ``step_split`` (arc
+        re-fits are compiled since the fourteenth round of issue 11)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
@@ -461,6 +463,7 @@ class ScanTrunkDetector:
             and cfg.rms_noise_from_fit == 0.0
             and cfg.lobe_harmonics == 0
             and math.isinf(cfg.behind_sigmas)
+            and (math.isinf(cfg.stub_sigmas) or not first_echo(cfg))
             and not cfg.split_search
             and not cfg.step_split
         )
@@ -659,10 +662,9 @@ class ScanTrunkDetector:
         codes = fitted_reasons(cfg, fitted)
         if fate is not None:
             fate.update(fitted=fitted, fit_codes=codes)
-        if math.isfinite(cfg.behind_sigmas) and np.any(codes == 0):
-            # accepted candidates only: a rejected one's remainder can pass as a false trunk
-            # (aRchi: a 7-return bark ridge trimmed to a 6 cm "stem" on the 55 cm trunk)
-            segs, fitted = trim_behind(self, segs, fitted, codes == 0, grid, wrap)
+        # accepted candidates only: a rejected one's remainder can pass as a false trunk
+        # (aRchi: a 7-return bark ridge trimmed to a 6 cm "stem" on the 55 cm trunk)
+        segs, fitted = self._trim_ends(segs, fitted, codes == 0, grid, wrap)
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
         order_key = 2 * pos[ok]
@@ -750,12 +752,30 @@ class ScanTrunkDetector:
             fate["split"].append((got.parent, got.ok))
         if got is None or not np.any(got.ok):
             return cols, order_key
-        if math.isfinite(self.config.behind_sigmas):
-            p_segs, p_fit = trim_behind(self, got.segs, got.fitted, got.ok, grid, wrap)
-            got = got._replace(segs=p_segs, fitted=p_fit)
+        p_segs, p_fit = self._trim_ends(got.segs, got.fitted, got.ok, grid, wrap)
+        got = got._replace(segs=p_segs, fitted=p_fit)
         more = _output_columns(got.segs, got.fitted, got.ok)
         cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
         return cols, np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
+
+    def _trim_ends(
+        self,
+        segs: Segments,
+        fitted: _Fitted,
+        which: NDArray[np.bool_],
+        grid: FloatArray,
+        wrap: bool,
+        behind: bool = True,
+    ) -> tuple[Segments, _Fitted]:
+        """The accepted candidates ``which`` trimmed of end returns behind their circle
+        (``behind_sigmas``, unless not ``behind``) and then of those outside it
+        (``stub_sigmas``, :func:`~stemmap.scan._stubs.trim_stubs`)."""
+        cfg = self.config
+        if behind and math.isfinite(cfg.behind_sigmas) and np.any(which):
+            segs, fitted = trim_behind(self, segs, fitted, which, grid, wrap)
+        if math.isfinite(cfg.stub_sigmas) and np.any(which):
+            segs, fitted = trim_stubs(self, segs, fitted, which, grid, wrap)
+        return segs, fitted
 
     def _arc_candidates(
         self,
@@ -811,7 +831,8 @@ class ScanTrunkDetector:
             stay = ~(np.isin(order_key // 2, gone) & (order_key % 2 == 0))
         if not np.any(ok):
             return cols, order_key
-        more = _output_columns(got.segs, got.fitted, ok)
+        g_segs, g_fit = self._trim_ends(got.segs, got.fitted, ok, grid, wrap, behind=False)
+        more = _output_columns(g_segs, g_fit, ok)
         cols = {k: np.concatenate((cols[k][stay], more[k])) for k in cols}
         return cols, np.concatenate((order_key[stay], 2 * got.parent[ok] + 1))
 
