@@ -60,13 +60,16 @@ from stemmap.types import LaserScan, ScanBatch, StemObservations
 
 FIT_METHODS = ("kasa", "fletcher_reeves", "three_point", "chord_width", "ours")
 
+#: The simulated targets. DBH RMSE at <= 5 m and the speed are issue 11's ("simulated targets
+#: keep holding": 1.2 cm, 25 000 scans/s; until Dec 3 this held the earlier 1.0 cm and 20 000);
+#: the 5-10 m, bias and latency rows are the first issue's.
 TARGETS = {
     "recall_min": 0.95,
     "precision_min": 0.95,
-    "dbh_rmse_cm_le5_max": 1.0,
+    "dbh_rmse_cm_le5_max": 1.2,
     "dbh_rmse_cm_5_10_max": 2.5,
     "abs_dbh_bias_cm_max": 0.5,
-    "scans_per_second_361_min": 20000,
+    "scans_per_second_361_min": 25000,
     "latency_ms_1081_max": 0.5,
 }
 
