@@ -7,7 +7,7 @@ on ``sys.path`` when it runs, from any working directory)."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -17,10 +17,12 @@ from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD
 from stemmap.scan.detect import DetectorConfig
 
 __all__ = [
+    "AVERAGING_SCANNERS",
     "BACKGROUNDS",
     "FULL_SCANNERS",
     "QUICK_SCANNERS",
     "TEXTBOOK",
+    "ReturnRule",
     "error_stats",
     "greedy_match",
     "matched",
@@ -51,6 +53,11 @@ FULL_SCANNERS = tuple(
     for m in ("nearest", "averaging")
     for res in (0.25, 0.5, 1.0)
     for noise in (0.0, 0.01, 0.03)
+)
+
+#: The return-threshold study (Dec 4): the averaging scanner at every resolution, noise 0 / 1 cm.
+AVERAGING_SCANNERS = tuple(
+    ("averaging", res, noise) for res in (0.25, 0.5, 1.0) for noise in (0.0, 0.01)
 )
 
 
@@ -129,6 +136,7 @@ def scene_scans(
     mount: Mount = MOUNT,
     relief_std: float = RELIEF_STD,
     relief_corr: float = RELIEF_CORR,
+    return_rule: ReturnRule | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free virtual scans (ranges, hit trunk) of ``sl`` from ``vp``. ``background``
     ``"ground"``: the scan plane (``mount``, default :data:`MOUNT`) pitched towards a uniform
@@ -136,8 +144,12 @@ def scene_scans(
     (:attr:`RealSlice.ground`) and from the ground plane with a micro-relief (``relief_std``,
     ``relief_corr``: the TreeLS plot's by default,
     :meth:`stemmap.eval.scan_background.Relief.random`); headings and relief come from their
-    own generators (``seed``), so the vantage points and the noise are those of ``"none"``."""
+    own generators (``seed``), so the vantage points and the noise are those of ``"none"``.
+    ``return_rule``: the averaging scanner's return threshold (:class:`ReturnRule`; default
+    any sub-ray of 5, every round's benchmark)."""
     extra: dict[str, Any] = {}
+    if model == "averaging" and return_rule is not None:
+        extra.update(return_rule.kwargs())
     if background == "ground":
         heads = np.random.default_rng((seed, 1)).uniform(-math.pi, math.pi, vp.shape[0])
         extra = {
@@ -150,6 +162,30 @@ def scene_scans(
     return virtual_scans(
         sl.xy, sl.labels, vp, resolution_deg=res, model=model, centers=sl.centers, **extra
     )
+
+
+@dataclass(frozen=True)
+class ReturnRule:
+    """When a virtual averaging (SICK-class) beam returns (Dec 4, "Averaging scanners: the
+    return threshold"): at least ``min_hit_fraction`` of its 0.25-degree footprint, sampled by
+    ``sub_rays`` sub-rays of a ``profile`` beam, must hit (see
+    :func:`stemmap.eval.real_slices.virtual_scans`). The default is every round's benchmark:
+    any of 5 sub-rays."""
+
+    min_hit_fraction: float = 0.0
+    profile: str = "uniform"
+    sub_rays: int = 5
+
+    def kwargs(self) -> dict[str, Any]:
+        return {
+            "min_hit_fraction": self.min_hit_fraction,
+            "beam_profile": self.profile,
+            "sub_rays": self.sub_rays,
+        }
+
+    def note(self) -> str:
+        share = "any sub-ray" if self.min_hit_fraction == 0 else f"{self.min_hit_fraction:g}"
+        return f"{share} of {self.sub_rays} {self.profile} sub-rays"
 
 
 def scene_note(background: str) -> str:

@@ -51,10 +51,12 @@ import numpy as np
 
 from _loo_grid import LOO_EXTRA, LOO_GRID
 from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_noise.py
+    AVERAGING_SCANNERS,
     BACKGROUNDS,
     FULL_SCANNERS,
     QUICK_SCANNERS,
     TEXTBOOK,
+    ReturnRule,
     matched,
     scene_note,
     scene_scans,
@@ -177,9 +179,11 @@ def run_dataset(
     min_returns: int,
     seed: int,
     background: str = "none",
+    return_rule: ReturnRule | None = None,
 ) -> dict[str, Any]:
     """Every scanner configuration x detector on one slice (``background``: the virtual
-    scans' scene besides the trunks, :func:`_real_scanning.scene_scans`)."""
+    scans' scene besides the trunks, :func:`_real_scanning.scene_scans`; ``return_rule``: the
+    averaging scanner's return threshold, default any sub-ray)."""
     rng = np.random.default_rng(seed)
     vp = vantage_points(sl, n_vantage, rng)
     centers, diam = sl.centers, sl.diameters
@@ -188,7 +192,9 @@ def run_dataset(
     for model, res, noise in scanners:
         key = (model, res)
         if key not in geometry:
-            geometry[key] = scene_scans(sl, vp, model, res, background, seed)
+            geometry[key] = scene_scans(
+                sl, vp, model, res, background, seed, return_rule=return_rule
+            )
         ranges0, hit = geometry[key]
         batch = noisy_batch(ranges0, res, noise, rng)
         n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
@@ -301,6 +307,8 @@ def leave_one_out(
     baseline: int | None = None,
     background: str = "none",
     sim_seeds: tuple[int, ...] = SIM_SEEDS,
+    return_rule: ReturnRule | None = None,
+    extra_rules: tuple[ReturnRule, ...] = (),
 ) -> dict[str, Any]:
     """Choose :data:`LOO_GRID` on all datasets but one (mean :func:`_objective` over the other
     datasets and the scanner configurations), report the choice on the held-out one. A dataset
@@ -314,7 +322,10 @@ def leave_one_out(
     Admission is checked lazily, best training score first, and cached per setting: a setting
     that ranks below every choice is never simulated (``admission["unchecked"]``). With
     ``baseline``, each held-out dataset also gets the choice among the first ``baseline``
-    settings (the grid before a round's additions: before and after from one run)."""
+    settings (the grid before a round's additions: before and after from one run).
+    ``extra_rules`` (Dec 4, ``--loo-rules``): the averaging configurations also under these
+    return thresholds, each one more scanner configuration of the objective (named
+    ``<config>@<rule>``): a choice that holds across thresholds the owner's scanner may have."""
     checked: dict[int, dict[str, Any]] = {}
 
     def admitted(g: int) -> bool:
@@ -345,7 +356,23 @@ def leave_one_out(
             min_returns=min_returns,
             seed=seed + i,
             background=background,
+            return_rule=return_rule,
         )
+        # the averaging configurations again under each further return threshold (the same
+        # vantage points: the seed is the dataset's)
+        for rule in extra_rules:
+            avg = tuple(sc for sc in scanners if sc[0] == "averaging")
+            more = run_dataset(
+                sl,
+                avg,
+                dets,
+                n_vantage=n_vantage,
+                min_returns=min_returns,
+                seed=seed + i,
+                background=background,
+                return_rule=rule,
+            )
+            res.update({f"{k}@{rule.note()}": v for k, v in more.items()})
         per[name] = {
             g: {sc: conf[str(g)] for sc, conf in res.items()} for g in range(len(LOO_GRID))
         }
@@ -471,6 +498,16 @@ def leave_one_out(
     }
 
 
+def _parse_rule(text: str) -> ReturnRule:
+    """``FRACTION[:PROFILE[:SUB_RAYS]]`` as a :class:`ReturnRule` (``--loo-rules``)."""
+    parts = text.split(":")
+    return ReturnRule(
+        float(parts[0]),
+        parts[1] if len(parts) > 1 else "uniform",
+        int(parts[2]) if len(parts) > 2 else 5,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--datasets", type=Path, default=None, help="shared datasets folder")
@@ -534,7 +571,43 @@ def main(argv: list[str] | None = None) -> int:
         f" drive (default: {' '.join(map(str, SIM_SEEDS))}; `--sim-seeds 1` is the check of"
         " every round before the sixteenth)",
     )
+    ap.add_argument(
+        "--averaging",
+        action="store_true",
+        help="only the averaging scanner at 0.25 / 0.5 / 1 deg, noise 0 / 1 cm (the return"
+        " threshold study, Dec 4; with --quick's 3 detectors)",
+    )
+    ap.add_argument(
+        "--hit-fraction",
+        type=float,
+        default=0.0,
+        help="averaging scanner's return threshold: share of the footprint that must hit"
+        " (default 0: any sub-ray, every round's benchmark; 0.5: half the footprint)",
+    )
+    ap.add_argument(
+        "--loo-rules",
+        nargs="*",
+        default=[],
+        help="--loo: the averaging configurations also under these return thresholds, each"
+        " FRACTION[:PROFILE[:SUB_RAYS]] (e.g. 0:uniform:20 0.25:uniform:20 0.5:gaussian:20),"
+        " each an extra scanner configuration of the objective and the held-out table",
+    )
+    ap.add_argument(
+        "--beam-profile",
+        choices=("uniform", "gaussian"),
+        default="uniform",
+        help="averaging scanner's beam: uniform sub-rays (default) or a Gaussian beam's energy"
+        " (the threshold and the mean range energy-weighted)",
+    )
+    ap.add_argument(
+        "--sub-rays",
+        type=int,
+        default=5,
+        help="averaging scanner's sub-rays per footprint (default 5; the threshold moves in"
+        " steps of 1/sub-rays)",
+    )
     args = ap.parse_args(argv)
+    rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)
     if args.sim_precision:
         out = simulated_precision_seeds(args.set or {}, args.sim_seeds)
         print(json.dumps({"benchmark": "real_geometry_sim_precision", "set": args.set, **out}))
@@ -557,7 +630,9 @@ def main(argv: list[str] | None = None) -> int:
         print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
         return 2
     scanners = QUICK_SCANNERS if args.quick else FULL_SCANNERS
-    dets = detectors(full=not args.quick)
+    if args.averaging:
+        scanners = AVERAGING_SCANNERS
+    dets = detectors(full=not (args.quick or args.averaging))
     if args.set:
         dets["stemmap+set"] = DetectorConfig.preset("stemmap", **args.set)
     n_vantage = args.vantage or (20 if args.quick else 40)
@@ -576,9 +651,13 @@ def main(argv: list[str] | None = None) -> int:
             baseline=args.baseline_grid,
             background=args.background,
             sim_seeds=tuple(args.sim_seeds),
+            return_rule=rule,
+            extra_rules=tuple(_parse_rule(r) for r in args.loo_rules),
         )
         loo["scenario"] = {
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
+            "averaging_return": rule.note(),
+            "averaging_return_also": [_parse_rule(r).note() for r in args.loo_rules],
             "background": scene_note(args.background),
             "vantage_points_per_dataset": n_vantage,
             "grid": list(LOO_GRID),
@@ -603,6 +682,7 @@ def main(argv: list[str] | None = None) -> int:
             "mode": "quick" if args.quick else "full",
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
             "averaging_footprint_deg": 0.25,
+            "averaging_return": rule.note(),
             "background": scene_note(args.background),
             "vantage_points_per_dataset": n_vantage,
             "vantage_range_m": [1.0, 15.0],
@@ -642,6 +722,7 @@ def main(argv: list[str] | None = None) -> int:
                 min_returns=args.min_returns,
                 seed=args.seed + i,
                 background=args.background,
+                return_rule=rule,
             )
         result["datasets"][name] = info
     result["runtime_s"] = round(time.perf_counter() - t0, 1)

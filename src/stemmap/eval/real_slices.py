@@ -19,7 +19,12 @@ of the whole slice (every trunk, branch and bush occludes what is behind it):
 - ``"averaging"``: a SICK LMS2xx-class scanner: the beam footprint (``footprint_deg``, 0.25 deg
   by default, centred on the beam) is cut into sub-rays; each sub-ray returns the nearest
   point in its sub-cell and the beam reports the mean range of the sub-rays that hit
-  (mixed pixels at silhouette edges).
+  (mixed pixels at silhouette edges). Its *return threshold* (``min_hit_fraction``, Dec 4) is
+  the share of the footprint that must hit for the beam to return: 0 (the default, every
+  round's benchmark) returns when any sub-ray hits; 0.5 when half the footprint hits (what the
+  ``stemmap`` detector's edge model assumes); ``beam_profile="gaussian"`` weights the sub-rays
+  by a Gaussian beam's energy (1/e^2 at the footprint's edges) in both the threshold and the
+  mean range: an energy threshold, as a real time-of-flight scanner's echo detection.
 
 Gaussian range noise can be added per beam. Each beam also carries the index of the
 reference trunk it hit (-1 = anything else), which tells which trunks are visible.
@@ -377,6 +382,8 @@ def virtual_scans(
     model: Literal["nearest", "averaging"] = "nearest",
     footprint_deg: float = 0.25,
     sub_rays: int = 5,
+    min_hit_fraction: float = 0.0,
+    beam_profile: Literal["uniform", "gaussian"] = "uniform",
     max_range: float = 30.0,
     point_radius: float | None = None,
     centers: FloatArray | None = None,
@@ -412,6 +419,22 @@ def virtual_scans(
     themselves stay the breast-height slice (the pitch moves the beam by <= 0.8 m of height at
     15 m; the slice stands for the stem there). Ranges are horizontal, as the slice's.
 
+    The averaging scanner's return threshold: a beam returns when the share of its footprint
+    whose sub-rays hit something is at least ``min_hit_fraction`` (0 = any sub-ray hits, the
+    default; 0.5 = half the footprint, the edge model of the ``stemmap`` detector). With
+    ``beam_profile="uniform"`` the share is the fraction of the ``sub_rays`` sub-rays that hit
+    (at least ``ceil(min_hit_fraction * sub_rays)``, and >= 1, as
+    :class:`stemmap.sim.scanner.Scanner2D`), so it moves in steps of ``1 / sub_rays`` of the
+    footprint (a sub-ray counts when anything is in its sub-cell: use ``sub_rays`` >= 20 for a
+    threshold finer than a fifth); the range is the mean of the sub-rays that hit. With
+    ``"gaussian"`` each sub-ray carries the energy of a Gaussian beam at its offset ``d`` from
+    the beam axis, ``exp(-2 (2 d / footprint)^2)`` (1/e^2 at the footprint's edge): the share
+    is the energy that hit over the beam's, the range the energy-weighted mean (the received
+    pulse's centroid). A beam that does not reach the threshold reports no return (inf, -1)
+    even where some sub-rays hit; sub-rays that hit a farther object (another trunk, the
+    ground) count towards the share and the mean as the trunk's do (mixed pixels). Ignored by
+    the ``nearest`` model.
+
     Returns
     -------
     ranges : ndarray (V, N), metres (inf = no return within ``max_range``)
@@ -422,6 +445,10 @@ def virtual_scans(
         raise InputError(f"scanner model must be 'nearest' or 'averaging', got {model!r}.")
     if background not in ("none", "ground"):
         raise InputError(f"background must be 'none' or 'ground', got {background!r}.")
+    if not 0.0 <= min_hit_fraction <= 1.0:
+        raise InputError(f"min_hit_fraction must be in [0, 1], got {min_hit_fraction!r}.")
+    if beam_profile not in ("uniform", "gaussian"):
+        raise InputError(f"beam_profile must be 'uniform' or 'gaussian', got {beam_profile!r}.")
     res = math.radians(resolution_deg)
     n_beams = round(2.0 * math.pi / res)
     vantages = np.atleast_2d(np.asarray(vantages, dtype=np.float64))
@@ -453,6 +480,11 @@ def virtual_scans(
     # sub - width / 2
     cells = np.arange(n_beams)[:, None] * step + np.arange(n_sub)[None, :]
     sub_bearing = np.asarray((cells + 0.5) * sub - 0.5 * width - math.pi, dtype=np.float64)
+    # energy of each sub-ray (gaussian: a beam of 1/e^2 full width = the footprint)
+    u_sub = ((np.arange(n_sub) + 0.5) * sub - 0.5 * width) / (0.5 * width)
+    energy = np.exp(-2.0 * u_sub * u_sub) if beam_profile == "gaussian" else np.ones(n_sub)
+    energy /= energy.sum()
+    k_min = max(math.ceil(min_hit_fraction * n_sub - 1e-9), 1)
     for v, o in enumerate(vantages):
         xy_v, lab_v = xy, labels
         if with_ground:
@@ -506,10 +538,17 @@ def virtual_scans(
             hit[v] = sub_l[:, 0]
         else:
             fin = np.isfinite(sub_r)
-            cnt_b = fin.sum(axis=1)
-            tot = np.where(fin, sub_r, 0.0).sum(axis=1)
-            ranges[v] = np.where(cnt_b > 0, tot / np.maximum(cnt_b, 1), np.inf)
-            hit[v] = sub_l[np.arange(n_beams), np.argmin(sub_r, axis=1)]
+            if beam_profile == "uniform":
+                cnt_b = fin.sum(axis=1)
+                tot = np.where(fin, sub_r, 0.0).sum(axis=1)
+                ok_b = cnt_b >= k_min
+                ranges[v] = np.where(ok_b, tot / np.maximum(cnt_b, 1), np.inf)
+            else:
+                e_b = np.where(fin, energy, 0.0).sum(axis=1)
+                tot = np.where(fin, sub_r * energy, 0.0).sum(axis=1)
+                ok_b = (e_b > 0.0) & (e_b >= min_hit_fraction - 1e-9)
+                ranges[v] = np.where(ok_b, tot / np.where(ok_b, e_b, 1.0), np.inf)
+            hit[v] = np.where(ok_b, sub_l[np.arange(n_beams), np.argmin(sub_r, axis=1)], -1)
     return ranges, hit
 
 
