@@ -54,6 +54,9 @@ def _setting(
         "scan_noise_pool": False,
         # seventeenth round: branch stubs outside the circle at the arc ends
         "stub_sigmas": math.inf,
+        # Dec 4: the averaging scanner's return threshold the edge model assumes
+        "edge_hit_min": 0.5,
+        "edge_hit_max": 0.5,
         **extra,
     }
 
@@ -245,6 +248,13 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(
         **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_pool=True, stub_sigmas=3.0
     ),
+    # Dec 4 ("Averaging scanners: the return threshold"), on the current default (grid 36):
+    # the averaging scanner's return threshold assumed unknown in [0, 0.5] of the footprint
+    # (the tangent prior of an end without neighbour information widened by half a
+    # footprint), a quarter, and any sub-ray (the virtual SICK of every earlier round)
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_hit_min=0.0, edge_hit_max=0.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_hit_min=0.25, edge_hit_max=0.25),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_hit_min=0.0, edge_hit_max=0.0),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -184,3 +184,35 @@ def test_detect_rejected_names_a_split_parent_and_its_pieces(tmp_path):
     ]
     assert all(int(r["pieces_accepted"]) >= 1 for r in rows)
     assert "2 rejected candidates (2 of them re-fitted as pieces that were kept)" in res.output
+
+
+def test_detect_edge_hit_narrows_the_averaging_edge_model(tmp_path):
+    # --edge-hit 0 0: a scanner that returns when any part of its footprint hits puts the
+    # tangent h = footprint / (2 step) beams nearer the edge return than the preset's half
+    # footprint does, so every diameter shrinks (by ~0.25 deg x range at most); a bad
+    # interval is a usage error
+    ranges, a = _ranges(3)
+    src = tmp_path / "scans.npz"
+    np.savez(
+        src,
+        ranges=ranges,
+        time=np.arange(3.0),
+        angle_min=a[0],
+        angle_increment=math.radians(0.5),
+        range_min=0.05,
+        range_max=30.0,
+    )
+    diam = {}
+    for name, extra in (("half", []), ("any", ["--edge-hit", "0", "0"])):
+        out = tmp_path / f"{name}.csv"
+        res = runner.invoke(app, ["detect", str(src), "--out", str(out), *extra])
+        assert res.exit_code == 0, res.output
+        with out.open() as fh:
+            diam[name] = sorted(float(r["diameter"]) for r in csv.DictReader(fh))
+    assert len(diam["half"]) == len(diam["any"]) == 6
+    shrink = np.subtract(diam["half"], diam["any"])
+    assert np.all(shrink > 0) and np.all(shrink < math.radians(0.25) * 3.3)
+    res = runner.invoke(
+        app, ["detect", str(src), "--out", str(tmp_path / "x.csv"), "--edge-hit", "0.6", "0.5"]
+    )
+    assert res.exit_code == 2

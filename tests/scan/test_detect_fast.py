@@ -180,6 +180,10 @@ CONFIGS = {
 # sixteenth round: the current default's arcs with short stepped arcs (arc_short_steps)
 CONFIGS["arcs_consistent_short_steps"] = {**CONFIGS["arcs_consistent"], "arc_short_steps": True}
 
+# Dec 4: the averaging scanner's return threshold assumed anywhere in [0, 0.5] / any hit
+CONFIGS["edge_hit_unknown"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.5}
+CONFIGS["edge_hit_any"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.0}
+
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 def test_compiled_pipeline_equals_numpy_pipeline(stand, name):

@@ -101,6 +101,19 @@ def detect(
             callback=bounded("--footprint", ge=0, lt=180),
         ),
     ] = None,
+    edge_hit: Annotated[
+        tuple[float, float] | None,
+        typer.Option(
+            "--edge-hit",
+            metavar="MIN MAX",
+            help="Return threshold of an averaging (SICK-class) scanner, the share of its "
+            "footprint that must hit for a beam to return, assumed to lie in [MIN, MAX]: 0.5 "
+            "0.5 (the preset's) = half the footprint, 0 0 = any part, 0 0.5 = unknown (the "
+            "tangent prior widened by half a footprint). Off by default: it costs the "
+            "simulated DBH target (docs/algorithms/scan-detection.md, 'Averaging scanners: "
+            "the return threshold').",
+        ),
+    ] = None,
     rejected: Annotated[
         Path | None,
         typer.Option(
@@ -152,6 +165,8 @@ def detect(
             overrides["sigma"] = sigma
         if footprint is not None:
             overrides["beam_footprint_deg"] = footprint
+        if edge_hit is not None:
+            overrides["edge_hit_min"], overrides["edge_hit_max"] = map(float, edge_hit)
         if sigma_from_scan is not None:
             overrides["sigma_from_scan"] = sigma_from_scan
         if arcs:

@@ -69,6 +69,7 @@ from stemmap.scan._fast_candidates import (
     _DEPTH,
     _PREFIT,
     _RAD2DEG,
+    _edge_default,
     _edge_prior,
     _emit,
     _split_emit,
@@ -515,6 +516,7 @@ def _detect_kernel(
             if use_sil:
                 _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
                 _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
+            _edge_default(sil, prm, h_sil, use_sil_cfg)
             sil_width = wid[j]
             if use_sil:
                 beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)

@@ -37,7 +37,7 @@ from stemmap.scan._corners import may_have_corner, piece_table, sagitta, segment
 from stemmap.scan._fast_robust import _range_roughness, _robust_residual_scale
 from stemmap.scan._fast_segments import _algebraic_floor, _geometric_cov, _seg_sum
 from stemmap.scan._fit_geometric import OK, _fit_one
-from stemmap.scan._kernel_params import OUT_COLUMNS
+from stemmap.scan._kernel_params import OUT_COLUMNS, PARAM_INDEX
 from stemmap.scan.features import MIXED_FRACTION_STD
 from stemmap.types import FloatArray
 
@@ -108,6 +108,29 @@ def _edge_prior(
         f = min(max(f, 0.0), 1.0)
         out[o] = 1.0 - h + 2.0 * h * f
         out[o + 1] = 2.0 * h * MIXED_FRACTION_STD
+
+
+_HIT_MIN = PARAM_INDEX["edge_hit_min"]
+_HIT_MAX = PARAM_INDEX["edge_hit_max"]
+
+
+@njit(cache=True, error_model="numpy")
+def _edge_default(
+    sil: FloatArray, prm: FloatArray, h: float, use: bool
+) -> None:  # pragma: no cover
+    """The ends :func:`_edge_prior` left at NaN get
+    :func:`stemmap.scan.features.edge_default_prior` of the configured return-threshold
+    interval (``edge_hit_min`` / ``edge_hit_max``; nothing at the default 0.5 / 0.5)."""
+    lo = prm[_HIT_MIN]
+    hi = prm[_HIT_MAX]
+    if not use or not h > 0.0 or (lo == 0.5 and hi == 0.5):
+        return
+    off = 0.5 + h * (lo + hi - 1.0)
+    std = (1.0 + 2.0 * h * (hi - lo)) / _SQRT12
+    for o in (0, 2):
+        if math.isnan(sil[o]):
+            sil[o] = off
+            sil[o + 1] = std
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -249,6 +272,7 @@ def _fit_candidate(
     if use_sil:
         _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
         _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
+    _edge_default(sil, prm, h_sil, prm[37] > 0.0)
     sil_width = width
     if use_sil:
         beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)

@@ -90,6 +90,8 @@ PARAM_NAMES = (
     "arc_tangent_sigmas",  # an arc's returns no farther than its tangent range + this (inf: off)
     "arc_chi2",  # 1: an arc's residuals pass the upper 1 % chi-square test
     "scan_noise_pool",  # 1: scans without their own noise estimate share the batch's
+    "edge_hit_min",  # the averaging scanner's return threshold (share of the footprint) ...
+    "edge_hit_max",  # ... assumed in [min, max]: the default tangent prior (edge_default_prior)
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -182,6 +184,8 @@ def kernel_params(
         "arc_tangent_sigmas": cfg.arc_tangent_sigmas,
         "arc_chi2": cfg.arc_chi2,
         "scan_noise_pool": cfg.sigma_from_scan and cfg.scan_noise_pool,
+        "edge_hit_min": cfg.edge_hit_min,
+        "edge_hit_max": cfg.edge_hit_max,
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

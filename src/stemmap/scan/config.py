@@ -113,6 +113,17 @@ class DetectorConfig:
     neighbour_silhouette : bool
         Derive the ``ours`` silhouette prior of each end from the neighbouring beams (needs
         ``beam_divergence_deg`` > 0).
+    edge_hit_min, edge_hit_max : float in [0, 1]
+        The averaging sensor's return threshold (share of the footprint that must hit for a
+        beam to return) assumed to lie in ``[edge_hit_min, edge_hit_max]`` (ours, Dec 4).
+        Where the beams beyond a segment end tell nothing
+        (:func:`~stemmap.scan.features.edge_silhouette`'s default) the tangent then lies
+        uniformly in ``(edge + (lo - 1/2) w, edge + step + (hi - 1/2) w]`` (``w`` the footprint,
+        :func:`~stemmap.scan.features.edge_default_prior`). 0.5 / 0.5 (default): a beam
+        returns when half its footprint hits, the tangent uniformly between the edge beam and
+        the next. A scanner that returns when any part of its footprint hits is 0 / 0; an
+        unknown threshold ``0 / 0.5`` (the prior widened by half a footprint). Needs
+        ``fit_method="ours"``, ``neighbour_silhouette`` and ``beam_divergence_deg`` > 0.
     fit_residuals : {"range", "orthogonal"}
         Noise model of the ``ours`` fit: range noise along each beam (default) or orthogonal
         distances (the fit before the edge model).
@@ -398,6 +409,8 @@ class DetectorConfig:
     beam_footprint_deg: float = 0.0
     beam_divergence_deg: float = 0.0
     neighbour_silhouette: bool = True
+    edge_hit_min: float = 0.5
+    edge_hit_max: float = 0.5
     fit_residuals: Literal["range", "orthogonal"] = "range"
     sigma_from_data: bool = False
     roughness_max_factor: float = 3.0
@@ -486,6 +499,12 @@ class DetectorConfig:
         if not (0.0 <= self.beam_divergence_deg < 20.0):
             raise bad(
                 "beam_divergence_deg", self.beam_divergence_deg, "it must be in [0, 20) degrees"
+            )
+        if not (0.0 <= self.edge_hit_min <= self.edge_hit_max <= 1.0):
+            raise bad(
+                "edge_hit_min",
+                (self.edge_hit_min, self.edge_hit_max),
+                "need 0 <= edge_hit_min <= edge_hit_max <= 1",
             )
         if self.fit_residuals not in ("range", "orthogonal"):
             raise bad("fit_residuals", self.fit_residuals, "choose 'range' or 'orthogonal'")

@@ -564,7 +564,14 @@ class ScanTrunkDetector:
         divergence = 0.0 if cfg.beam_footprint_deg > 0 else math.radians(cfg.beam_divergence_deg)
         sil = None
         if cfg.fit_method == "ours" and cfg.neighbour_silhouette and divergence > 0:
-            sil = edge_silhouette(segs, grid, divergence, margin=cfg.occlusion_margin, wrap=wrap)
+            sil = edge_silhouette(
+                segs,
+                grid,
+                divergence,
+                margin=cfg.occlusion_margin,
+                wrap=wrap,
+                hit_range=(cfg.edge_hit_min, cfg.edge_hit_max),
+            )
         centers, radii, covs, ok = _fit_segments(
             segs,
             cfg.fit_method,

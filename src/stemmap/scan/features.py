@@ -23,6 +23,7 @@ Paper methods
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -37,6 +38,7 @@ __all__ = [
     "SegmentFeatures",
     "chord_width",
     "cluster_curvature",
+    "edge_default_prior",
     "edge_silhouette",
     "footprint_correct",
     "is_straight",
@@ -435,6 +437,25 @@ def mixed_fraction(rho_mixed: ArrayLike, rho_near: ArrayLike, rho_far: ArrayLike
     return out
 
 
+def edge_default_prior(h: float, hit_min: float, hit_max: float) -> tuple[float, float]:
+    """The tangent prior of a segment end whose beams beyond tell nothing, for an averaging
+    scanner whose return threshold lies in ``[hit_min, hit_max]`` (ours, Dec 4).
+
+    A beam whose footprint (full width ``w = 2 h`` beam spacings) is centred at bearing
+    ``theta`` returns from a trunk whose silhouette ends at bearing ``T`` when at least a share
+    ``q`` of the footprint hits: ``T > theta - w/2 + q w``. The edge beam returned and the next
+    beam (``theta + 1``) did not, so ``T`` lies in ``(theta + (q - 1/2) w, theta + 1 +
+    (q - 1/2) w]``; over ``q`` in ``[hit_min, hit_max]`` the union is an interval of width
+    ``1 + 2 h (hit_max - hit_min)`` centred at ``1/2 + h (hit_min + hit_max - 1)`` beams beyond
+    the edge beam. Returns (offset, std) in beam spacings, std that of a uniform interval.
+    ``(0.5, 0.5)`` is the fit's own default ``(1/2, 1/sqrt(12))``; ``(0, 0)`` a scanner that
+    returns when any part of the footprint hits (the tangent ``h`` beams nearer)."""
+    return (
+        0.5 + h * (hit_min + hit_max - 1.0),
+        (1.0 + 2.0 * h * (hit_max - hit_min)) / math.sqrt(12.0),
+    )
+
+
 def edge_silhouette(
     segs: Segments,
     ranges: ArrayLike,
@@ -442,6 +463,7 @@ def edge_silhouette(
     *,
     margin: float = 0.2,
     wrap: bool = False,
+    hit_range: tuple[float, float] = (0.5, 0.5),
 ) -> FloatArray:
     """Prior on each segment end's tangent bearing from the beams beyond it (ours).
 
@@ -461,6 +483,10 @@ def edge_silhouette(
       :data:`MIXED_FRACTION_STD`).
 
     Occluded ends (``n1`` nearer) are left at the default (the fit drops them anyway).
+    ``hit_range`` (the scanner's return threshold, a share of the footprint, assumed in that
+    interval; ``DetectorConfig.edge_hit_min`` / ``edge_hit_max``) other than (0.5, 0.5) writes
+    :func:`edge_default_prior` instead of NaN at the ends without information, for any
+    footprint > 0 (also one of >= a beam spacing, where the neighbours are not read).
 
     Parameters
     ----------
@@ -483,6 +509,8 @@ def edge_silhouette(
     p = segs.points
     inc = abs(p.angle_increment)
     h = divergence / (2.0 * inc) if inc > 0 else 0.0
+    if k > 0 and h > 0 and tuple(hit_range) != (0.5, 0.5):
+        out[:, :, 0], out[:, :, 1] = edge_default_prior(h, *hit_range)
     if k == 0 or not (0.0 < h < 0.5):
         return out
     grid = np.asarray(ranges, dtype=np.float64).reshape(p.n_scans, p.n_beams)
