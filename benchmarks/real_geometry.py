@@ -348,23 +348,17 @@ def leave_one_out(
         for x, extra in enumerate(LOO_EXTRA):
             dets[f"x{x}"] = DetectorConfig.preset("stemmap", **extra)
         dets["textbook_kasa"] = TEXTBOOK
-        res = run_dataset(
-            sl,
-            scanners,
-            dets,
-            n_vantage=n_vantage,
-            min_returns=min_returns,
-            seed=seed + i,
-            background=background,
-            return_rule=return_rule,
-        )
-        # the averaging configurations again under each further return threshold (the same
-        # vantage points: the seed is the dataset's)
-        for rule in extra_rules:
-            avg = tuple(sc for sc in scanners if sc[0] == "averaging")
-            more = run_dataset(
+        # every scanner under the benchmark's return rule, then the averaging configurations
+        # again under each further return threshold (the same vantage points: the seed is the
+        # dataset's), named <config>@<rule>
+        avg = tuple(sc for sc in scanners if sc[0] == "averaging")
+        runs = [(scanners, return_rule, "")]
+        runs += [(avg, rule, f"@{rule.note()}") for rule in extra_rules]
+        res: dict[str, Any] = {}
+        for scs, rule, tag in runs:
+            one = run_dataset(
                 sl,
-                avg,
+                scs,
                 dets,
                 n_vantage=n_vantage,
                 min_returns=min_returns,
@@ -372,7 +366,7 @@ def leave_one_out(
                 background=background,
                 return_rule=rule,
             )
-            res.update({f"{k}@{rule.note()}": v for k, v in more.items()})
+            res.update({f"{k}{tag}": v for k, v in one.items()})
         per[name] = {
             g: {sc: conf[str(g)] for sc, conf in res.items()} for g in range(len(LOO_GRID))
         }

@@ -516,7 +516,7 @@ def _detect_kernel(
             if use_sil:
                 _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
                 _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
-            _edge_default(sil, prm, h_sil, use_sil_cfg)
+            _edge_default(sil, prm, h_sil, use_sil_cfg, grid, pb[a], pb[b - 1], n, wrap)
             sil_width = wid[j]
             if use_sil:
                 beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)

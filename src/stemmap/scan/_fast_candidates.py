@@ -116,21 +116,32 @@ _HIT_MAX = PARAM_INDEX["edge_hit_max"]
 
 @njit(cache=True, error_model="numpy")
 def _edge_default(
-    sil: FloatArray, prm: FloatArray, h: float, use: bool
-) -> None:  # pragma: no cover
-    """The ends :func:`_edge_prior` left at NaN get
+    sil: FloatArray,
+    prm: FloatArray,
+    h: float,
+    use: bool,
+    grid: FloatArray,
+    b_lo: int,
+    b_hi: int,
+    n: int,
+    wrap: bool,
+) -> None:  # pragma: no cover - numba
+    """The ends whose next beam beyond (``b_lo - 1``, ``b_hi + 1``) returned nothing get
     :func:`stemmap.scan.features.edge_default_prior` of the configured return-threshold
-    interval (``edge_hit_min`` / ``edge_hit_max``; nothing at the default 0.5 / 0.5)."""
+    interval (``edge_hit_min`` / ``edge_hit_max``; nothing at the default 0.5 / 0.5), as
+    :func:`stemmap.scan.features.edge_silhouette` does."""
     lo = prm[_HIT_MIN]
     hi = prm[_HIT_MAX]
     if not use or not h > 0.0 or (lo == 0.5 and hi == 0.5):
         return
     off = 0.5 + h * (lo + hi - 1.0)
     std = (1.0 + 2.0 * h * (hi - lo)) / _SQRT12
-    for o in (0, 2):
-        if math.isnan(sil[o]):
-            sil[o] = off
-            sil[o + 1] = std
+    if math.isinf(_grid_at(grid, b_lo - 1, n, wrap)):
+        sil[0] = off
+        sil[1] = std
+    if math.isinf(_grid_at(grid, b_hi + 1, n, wrap)):
+        sil[2] = off
+        sil[3] = std
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -272,7 +283,7 @@ def _fit_candidate(
     if use_sil:
         _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
         _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
-    _edge_default(sil, prm, h_sil, prm[37] > 0.0)
+    _edge_default(sil, prm, h_sil, prm[37] > 0.0, grid, pb[a], pb[b - 1], n, wrap)
     sil_width = width
     if use_sil:
         beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)

@@ -485,8 +485,10 @@ def edge_silhouette(
     Occluded ends (``n1`` nearer) are left at the default (the fit drops them anyway).
     ``hit_range`` (the scanner's return threshold, a share of the footprint, assumed in that
     interval; ``DetectorConfig.edge_hit_min`` / ``edge_hit_max``) other than (0.5, 0.5) writes
-    :func:`edge_default_prior` instead of NaN at the ends without information, for any
-    footprint > 0 (also one of >= a beam spacing, where the neighbours are not read).
+    :func:`edge_default_prior` at the ends where ``n1`` returned nothing, for any footprint >
+    0 (also one of >= a beam spacing, where the neighbours are not read otherwise): only
+    there did the threshold decide where the returns stop (a footprint whose rest hits a
+    surface behind returns a mixed pixel whatever the threshold).
 
     Parameters
     ----------
@@ -509,9 +511,7 @@ def edge_silhouette(
     p = segs.points
     inc = abs(p.angle_increment)
     h = divergence / (2.0 * inc) if inc > 0 else 0.0
-    if k > 0 and h > 0 and tuple(hit_range) != (0.5, 0.5):
-        out[:, :, 0], out[:, :, 1] = edge_default_prior(h, *hit_range)
-    if k == 0 or not (0.0 < h < 0.5):
+    if k == 0 or not h > 0.0:
         return out
     grid = np.asarray(ranges, dtype=np.float64).reshape(p.n_scans, p.n_beams)
     n = p.n_beams
@@ -526,10 +526,16 @@ def edge_silhouette(
         return np.where(np.isfinite(val), val, np.inf)
 
     ends = ((segs.start, -1), (segs.stop - 1, 1))
+    threshold = tuple(hit_range) != (0.5, 0.5)
     for side, (idx, step) in enumerate(ends):
         edge_r = p.r[idx]
         b_edge = p.beam[idx]
         r1 = at(b_edge + step)
+        if threshold:  # nothing returned beyond the end: the return threshold set the edge
+            nothing = ~np.isfinite(r1)
+            out[nothing, side, 0], out[nothing, side, 1] = edge_default_prior(h, *hit_range)
+        if not h < 0.5:
+            continue
         r2 = at(b_edge + 2 * step)
         with np.errstate(invalid="ignore"):
             bg = np.isfinite(r1) & (r1 > edge_r + margin)
