@@ -344,7 +344,11 @@ def _stems_from_band(
     thickened = cfg_thin.slice_thickness < cfg.slice_thickness
     remeasure = thickened and cfg.thin_remeasure and ns <= cfg.min_slices + 1
     ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
-    ctx0 = replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
+    ctx0 = (
+        replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
+        if thickened
+        else ctx
+    )
     # --- per stem: slice consistency, buttress, taper/lean line at breast height
     rows: list[tuple[float, ...]] = []
     rules: list[str] = []

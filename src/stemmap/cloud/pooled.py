@@ -50,7 +50,8 @@ def _pooled_stems(
     * lean <= 10 degrees (a branch is >= 50 degrees from vertical); arc >=
       ``cfg.min_arc_deg``;
     * >= 2 x ``cfg.min_slice_points`` inliers, at least half of the cluster's points;
-    * vertical consistency: >= ``cfg.min_slices`` + 1 slices holding >= 3 inliers, spanning
+    * vertical consistency: >= ``cfg.min_slices`` + 1 slices holding >= 3 inliers (all of
+      them when a sparse band has fewer, :func:`_pooled_slices_needed`), spanning
       ``cfg.min_vertical_extent``, and in every one of them the median residual within 3
       standard errors (1.25 x noise floor / sqrt(n)) or 5 % of r: stacked leaf blobs or a
       bush change radius from slice to slice.
