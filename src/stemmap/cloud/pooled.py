@@ -229,7 +229,7 @@ def _pooled_slices_needed(cfg: StemConfig, ns: int) -> int:
     _adapt_slices`: at least ``slices_per_spacing`` spacings thick, never fewer than 3): from
     a 90th-percentile spacing of 0.075 m on, 3 slices of 0.4 m. ``min_slices + 1`` = 4 of
     them cannot exist, so no pooled fit could pass where it is most needed (treels pine_plot
-    at 10 %: 5 stems of 7-15 points per slice lost although their cylinders fit at 5-8 mm
+    at 10 %: 5 stems of 5-18 points per slice lost although their cylinders fit at 5-8 mm
     RMS). Then every slice must hold inliers: 3 of 3 slices of 0.4 m cover the whole 1.2 m
     band, more height than 4 of the default 6 slices of 0.2 m (0.8 m), so the test stays at
     least as strict in height as on a dense cloud.
