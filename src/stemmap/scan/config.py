@@ -118,10 +118,12 @@ class DetectorConfig:
     edge_hit_min, edge_hit_max : float in [0, 1]
         The averaging sensor's return threshold (share of the footprint that must hit for a
         beam to return) assumed to lie in ``[edge_hit_min, edge_hit_max]`` (ours, Dec 4).
-        Where the beams beyond a segment end tell nothing
-        (:func:`~stemmap.scan.features.edge_silhouette`'s default) the tangent then lies
-        uniformly in ``(edge + (lo - 1/2) w, edge + step + (hi - 1/2) w]`` (``w`` the footprint,
-        :func:`~stemmap.scan.features.edge_default_prior`). 0.5 / 0.5 (default): a beam
+        Where the beam next to a segment end returned nothing (the threshold decided where
+        the returns stop; :func:`~stemmap.scan.features.edge_silhouette`) the tangent then
+        lies uniformly in ``(edge + (lo - 1/2) w, edge + step + (hi - 1/2) w]`` (``w`` the
+        footprint, :func:`~stemmap.scan.features.edge_default_prior`). Off by default: every
+        other setting breaks the simulated DBH target (docs/algorithms/scan-detection.md,
+        "Averaging scanners: the return threshold"). 0.5 / 0.5 (default): a beam
         returns when half its footprint hits, the tangent uniformly between the edge beam and
         the next. A scanner that returns when any part of its footprint hits is 0 / 0; an
         unknown threshold ``0 / 0.5`` (the prior widened by half a footprint). Needs
