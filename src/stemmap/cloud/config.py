@@ -93,6 +93,7 @@ class StemConfig:
     max_taper: float = 0.05
     pooled_fallback: bool = True
     tighter_refits: bool = True
+    core_refits: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
 
     def __post_init__(self) -> None:

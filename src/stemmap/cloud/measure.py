@@ -40,6 +40,7 @@ from stemmap.cloud.result import RULE_BH, CloudStems
 from stemmap.cloud.slicefit import (
     _band_spacing,
     _fit_segments,
+    _opaque_core_refits,
     _segment_arcs,
     _segment_covariances,
 )
@@ -132,6 +133,18 @@ def _fit_slices(
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
         ray_origins=None if origins is None else origins[fitmask],
     )
+    if cfg.core_refits:
+        (centers, radii, rms, ok, nin), n_core = _opaque_core_refits(
+            pts_f,
+            seg_f,
+            (centers, radii, rms, ok, nin),
+            cfg.fit_method,
+            (cfg.min_diameter / 2, cfg.max_diameter / 2),
+            cfg.min_slice_points,
+            None if origins is None else origins[fitmask],
+        )
+        if n_core:
+            log.debug("%d slice fit(s) refitted to the stem inside them", n_core)
     seg_cov = _segment_covariances(pts_f, seg_f, kseg, centers, radii, rms)
     arcs = np.zeros(kseg)
     if ok.any():
