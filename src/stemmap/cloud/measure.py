@@ -261,17 +261,24 @@ def _single_tree_stem(
     A circle of half the radius is not the same surface however rough its bark, and a stem
     inside a circle through the crown is."""
     cands: list[tuple[tuple[float, ...], str]] = []
+    tols: list[float] = []
     ladders = [(False, 0.5)] + ([(True, 1.0)] if thickened else [])
     for thin, f in ladders:
         while f * tol0 >= MIN_RANSAC_TOL - 1e-12:
             got = refit(thin, f, f * tol0)
             if got is not None:
                 cands.append(got)
+                tols.append(f * tol0)
             f /= 2
     incumbent = first_round if first_round is not None else (cands[0] if cands else None)
     if incumbent is None:
         return None
-    other = [c for c in cands if c[0][2] < SINGLE_TREE_SHRINK * incumbent[0][2]]
+    d0, rms0 = incumbent[0][2], incumbent[0][6]
+    other = [
+        c
+        for c, t in zip(cands, tols, strict=True)
+        if c[0][2] < SINGLE_TREE_SHRINK * d0 or (c[0][2] < d0 and t >= rms0)
+    ]
     best = max(other, key=_stem_weight_of, default=None)
     if best is not None and _stem_weight(best[0]) > _stem_weight(incumbent[0]):
         return best
