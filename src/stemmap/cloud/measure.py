@@ -243,23 +243,24 @@ def _single_tree_stem(
     (``first_round``, or None) and the stems its tighter refits give at every tolerance of
     the ladder (``refit(thin, first, tol)``: half of ``tol0``, halved down to
     :data:`MIN_RANSAC_TOL`, on the band's slices; and from ``tol0`` down on the default
-    20 cm slices when the band's were ``thickened``), the first round's, unless a much
-    smaller one has more support (below).
+    20 cm slices when the band's were ``thickened``), the first round's, unless a smaller
+    one has more support (below).
 
     In a cloud of many stems the noise floor (the median slice RMS) comes from all of them
     and the residual test rejects circles through clutter; with one candidate it is that
     candidate's own median RMS, so the test passes whatever its slices fitted. On treels
-    spruce.laz randomly thinned to 10 % (seeds 3, 4) the slices fitted circles of r 24-75 cm
-    through the branch whorls at RMS 17-109 mm and gave "stems" of 1.18 and 1.41 m, while
-    the ladder's tighter tolerances fit its 12 cm bark at RMS 3-8 mm. The first tolerance
-    that gives a stem (what :func:`_tighter_refits` stops at in a plot) is then the loosest,
-    the one clutter wins. Clutter makes circles larger and rougher, but a tighter tolerance
-    also carves a smaller, smoother arc out of rough bark (archi Tree_1, 54 cm, slice RMS
-    19 mm: 39-44 cm at 7 mm with twice the weight): so the first-round stem (or without one,
-    the first the ladder gives, as in a plot) is kept unless a refit of less than
-    :data:`SINGLE_TREE_SHRINK` (half) its diameter has more support (:func:`_stem_weight`).
-    A circle of half the radius is not the same surface however rough its bark, and a stem
-    inside a circle through the crown is."""
+    spruce.laz randomly thinned to 10 % (seed 3) the first round took three circles of
+    r 31-72 cm through the branch whorls at RMS 61-97 mm as a 1.41 m stem, while the
+    ladder's tighter tolerances fit its 12 cm bark at RMS 3-8 mm. The first tolerance that
+    gives a stem (what :func:`_tighter_refits` stops at in a plot) is the loosest, the one
+    clutter wins. Clutter makes circles larger and rougher, but a tighter tolerance also
+    trims any fit to a lower RMS and carves a smaller, smoother arc out of rough bark (archi
+    Tree_1, 54 cm, slice RMS 19 mm: 39-44 cm at 7 mm with twice the support). So the
+    first-round stem (or without one, the first the ladder gives, as in a plot) is kept
+    unless a smaller ladder stem has more support (:func:`_stem_weight`) and either is below
+    :data:`SINGLE_TREE_SHRINK` (half) its diameter -- a circle of half the radius is not the
+    same surface however rough its bark -- or was fitted at a tolerance not below the kept
+    stem's RMS, where the support comparison is fair."""
     cands: list[tuple[tuple[float, ...], str]] = []
     tols: list[float] = []
     ladders = [(False, 0.5)] + ([(True, 1.0)] if thickened else [])
