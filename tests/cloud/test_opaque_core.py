@@ -32,6 +32,11 @@ def _ring_with_clutter(seed: int) -> np.ndarray:
     return np.vstack((ring, np.column_stack((d * np.cos(b), d * np.sin(b)))))
 
 
+def _one_fit(cx: float, r: float, rms: float, nin: int) -> tuple[np.ndarray, ...]:
+    """One segment's fit (centres, radii, RMS, ok, inliers) with its centre at (cx, 0)."""
+    return np.array([[cx, 0.0]]), np.array([r]), np.array([rms]), np.array([True]), np.array([nin])
+
+
 def test_a_circle_holding_the_stem_is_refitted_to_it() -> None:
     """An inflated circle (centre 6 cm towards the clutter, r 18 cm: the noisy spruce's
     fits) holds the stem's far side inside; the refit finds the 12 cm stem within 3 mm (a
@@ -39,13 +44,7 @@ def test_a_circle_holding_the_stem_is_refitted_to_it() -> None:
     that touches the ring)."""
     pts = _ring_with_clutter(1)
     ids = np.zeros(pts.shape[0], dtype=np.int64)
-    fit = (
-        np.array([[0.06, 0.0]]),
-        np.array([0.18]),
-        np.array([0.02]),
-        np.array([True]),
-        np.array([150]),
-    )
+    fit = _one_fit(0.06, 0.18, 0.02, 150)
     (c, r, rms, ok, _nin), n = _opaque_core_refits(pts, ids, fit, "ours", (0.02, 0.75), 8)
     assert n == 1 and ok[0]
     assert abs(r[0] - 0.12) < 0.003
@@ -57,13 +56,7 @@ def test_a_stem_fit_is_left_alone() -> None:
     """The stem's own circle holds no returns inside: not flagged, returned unchanged."""
     pts = _ring_with_clutter(2)
     ids = np.zeros(pts.shape[0], dtype=np.int64)
-    fit = (
-        np.array([[0.0, 0.0]]),
-        np.array([0.12]),
-        np.array([0.003]),
-        np.array([True]),
-        np.array([200]),
-    )
+    fit = _one_fit(0.0, 0.12, 0.003, 200)
     out, n = _opaque_core_refits(pts, ids, fit, "ours", (0.02, 0.75), 8)
     assert n == 0
     for a, b in zip(out, fit, strict=True):
