@@ -44,7 +44,7 @@ from stemmap.cloud.slicefit import (
     _segment_arcs,
     _segment_covariances,
 )
-from stemmap.cloud.slicestem import _BandContext, _slice_stem, _SliceFits
+from stemmap.cloud.slicestem import _BandContext, _slice_stem, _SliceFits, _thin_slice_stem
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -419,6 +419,16 @@ def _stems_from_band(
         slice_cloud=slice_cloud,
         rms_max=rms_max,
     )
+    # the default thin slices, when the band's were thickened for a sparse cloud; a stem
+    # found on at most min_slices + 1 thick slices is measured again on them
+    thickened = cfg_thin.slice_thickness < cfg.slice_thickness
+    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.min_slices + 1
+    ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
+    ctx0 = (
+        replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
+        if thickened
+        else ctx
+    )
     # --- per stem: slice consistency, buttress, taper/lean line at breast height
     rows: list[tuple[float, ...]] = []
     rules: list[str] = []
@@ -428,20 +438,24 @@ def _stems_from_band(
         stem = _slice_stem(per, int(c), ctx, cfg)
         if stem is None:
             continue
+        if remeasure:
+            # found on thick slices; measured on thin ones where more of them agree
+            again = _thin_slice_stem(per, int(c), ctx, ctx0, cfg_thin)
+            if again is not None and again[0][7] > stem[0][7]:
+                stem = again
         rows.append(stem[0])
         rules.append(stem[1])
         accepted[c] = True
-    # --- clusters whose slices all fitted clutter: tighter RANSAC tolerances
-    failed = np.flatnonzero(~accepted & (per.passed.sum(axis=1) >= min(2, cfg.min_slices)))
+    # --- clusters whose slices all fitted clutter: tighter RANSAC tolerances. Counted are
+    # the plausible slices (points, radius, arc), not those that also passed the residual
+    # test: a tolerance too wide for the stem is what makes its slices fail that test
+    n_plausible = plausible.reshape(kc, ns).sum(axis=1)
+    failed = np.flatnonzero(~accepted & (n_plausible >= min(2, cfg.min_slices)))
     if cfg.tighter_refits:
         # the accepted stems' residual scale: no tighter tolerance than the bark shows
         floor = float(np.median([r[6] for r in rows])) if rows else MIN_RANSAC_TOL
         origins_use = None if pts_b.origins is None else pts_b.origins[use]
-        ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
         sl0 = _slice_of(pts_b.h[use], ch0, cfg_thin.slice_thickness)
-        ctx0 = replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
-
-        thick = cfg_thin.slice_thickness < cfg.slice_thickness
 
         def step(
             todo: NDArray[np.int64], thin: bool, first: float, floor: float
@@ -479,14 +493,14 @@ def _stems_from_band(
 
         # a single candidate's noise floor is its own slices' RMS: the residual test is void
         only = np.unique(np.flatnonzero(plausible) // ns)
-        if cfg.single_tree_ladder and only.size == 1:
-            one = int(only[0])
+        one = int(only[0]) if only.size == 1 else -1
+        if cfg.single_tree_ladder and one >= 0 and (accepted[one] or one in failed):
             i_row = int(np.flatnonzero(np.flatnonzero(accepted) == one)[0]) if accepted[one] else -1
             best = _single_tree_stem(
                 (rows[i_row], rules[i_row]) if i_row >= 0 else None,
                 lambda thin, first, tol: step(np.array([one]), thin, first, tol).get(one),
                 _ransac_tolerance(sp2d),
-                thick,
+                thickened,
             )
             if best is not None and i_row >= 0:
                 rows[i_row], rules[i_row] = best
@@ -497,7 +511,7 @@ def _stems_from_band(
             failed = failed[failed != one]
         tight = step(failed, False, 0.5, floor) if failed.size else {}
         failed = np.array([c for c in failed if int(c) not in tight], dtype=np.int64)
-        if failed.size and thick:
+        if failed.size and thickened:
             tight.update(step(failed, True, 1.0, floor))
         for ci, stem in sorted(tight.items()):
             rows.append(stem[0])
