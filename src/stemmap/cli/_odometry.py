@@ -255,6 +255,7 @@ def lidar_front_end(
     visual odometry of ``stemmap map --motion fused``); returns (trajectory, the
     :class:`~stemmap.odometry.lidar.LidarOdometryResult`, the
     :class:`~stemmap.odometry.fusion.FusedOdometry` or None, summary)."""
+    from stemmap.eval.trajectory import path_length
     from stemmap.io.lidar_frames import open_frames
     from stemmap.odometry.inertial import lidar_inertial_odometry
     from stemmap.odometry.lidar import LidarOdometryConfig
@@ -287,8 +288,7 @@ def lidar_front_end(
         summary["calibration"] = dict(
             zip(fused.calibration_names, np.round(fused.calibration, 6).tolist(), strict=True)
         )
-    step = np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)
-    summary["distance_m"] = round(float(step.sum()), 3)
+    summary["distance_m"] = round(path_length(traj), 3)
     if summary["held_frames"]:
         console.print(
             f"warning: {summary['held_frames']} of {len(lidar)} frames had too few points to "

@@ -62,6 +62,7 @@ def camera_trajectory(
     """
     from dataclasses import replace
 
+    from stemmap.eval.trajectory import path_length
     from stemmap.io.camera_bag import read_camera_bag
     from stemmap.io.camera_frames import read_camera_frames
     from stemmap.io.rosbag import is_bag
@@ -105,6 +106,6 @@ def camera_trajectory(
         "mode": "stereo" if frames.calibration.is_stereo else "RGB-D",
         "keyframes": int(np.sum(res.status == VoStatus.KEYFRAME)),
         "lost_frames": int(np.sum(~res.ok)),
-        "distance_m": float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T))),
+        "distance_m": path_length(traj),
     }
     return traj, res, summary

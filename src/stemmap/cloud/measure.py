@@ -43,7 +43,7 @@ from stemmap.cloud.slicefit import (
     _segment_arcs,
     _segment_covariances,
 )
-from stemmap.cloud.slicestem import _BandContext, _slice_stem, _SliceFits
+from stemmap.cloud.slicestem import _BandContext, _slice_stem, _SliceFits, _thin_slice_stem
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -339,6 +339,16 @@ def _stems_from_band(
         slice_cloud=slice_cloud,
         rms_max=rms_max,
     )
+    # the default thin slices, when the band's were thickened for a sparse cloud; a stem
+    # found on at most min_slices + 1 thick slices is measured again on them
+    thickened = cfg_thin.slice_thickness < cfg.slice_thickness
+    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.min_slices + 1
+    ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
+    ctx0 = (
+        replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
+        if thickened
+        else ctx
+    )
     # --- per stem: slice consistency, buttress, taper/lean line at breast height
     rows: list[tuple[float, ...]] = []
     rules: list[str] = []
@@ -348,11 +358,19 @@ def _stems_from_band(
         stem = _slice_stem(per, int(c), ctx, cfg)
         if stem is None:
             continue
+        if remeasure:
+            # found on thick slices; measured on thin ones where more of them agree
+            again = _thin_slice_stem(per, int(c), ctx, ctx0, cfg_thin)
+            if again is not None and again[0][7] > stem[0][7]:
+                stem = again
         rows.append(stem[0])
         rules.append(stem[1])
         accepted[c] = True
-    # --- clusters whose slices all fitted clutter: tighter RANSAC tolerances
-    failed = np.flatnonzero(~accepted & (per.passed.sum(axis=1) >= min(2, cfg.min_slices)))
+    # --- clusters whose slices all fitted clutter: tighter RANSAC tolerances. Counted are
+    # the plausible slices (points, radius, arc), not those that also passed the residual
+    # test: a tolerance too wide for the stem is what makes its slices fail that test
+    n_plausible = plausible.reshape(kc, ns).sum(axis=1)
+    failed = np.flatnonzero(~accepted & (n_plausible >= min(2, cfg.min_slices)))
     if failed.size and cfg.tighter_refits:
         # the accepted stems' residual scale: no tighter tolerance than the bark shows
         floor = float(np.median([r[6] for r in rows])) if rows else MIN_RANSAC_TOL
@@ -374,15 +392,9 @@ def _stems_from_band(
             rules.append(stem[1])
             accepted[ci] = True
         failed = np.array([c for c in failed if int(c) not in tight], dtype=np.int64)
-        if failed.size and cfg_thin.slice_thickness < cfg.slice_thickness:
-            ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
+        if failed.size and thickened:
             sl0 = _slice_of(pts_b.h[use], ch0, cfg_thin.slice_thickness)
             in0 = sl0 >= 0
-            ctx0 = replace(
-                ctx,
-                centers_h=ch0,
-                band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness),
-            )
             thin = _tighter_refits(
                 pts[in0],
                 cl_inv.astype(np.int64)[in0] * ch0.shape[0] + sl0[in0],
