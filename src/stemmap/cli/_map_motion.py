@@ -160,10 +160,6 @@ def _visual(camera: Path, **camera_options: Any) -> tuple[Any, Any, dict[str, An
     return traj, src, info
 
 
-def _path_length(traj: Any) -> float:
-    return float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)))
-
-
 def _random_walk_percent(step_var_xy: Any, distance: float) -> float | None:
     """100 * sqrt(sum of per-step xy variances) / distance (independent steps)."""
     v = np.asarray(step_var_xy, dtype=np.float64)
@@ -222,6 +218,7 @@ def motion_trajectory(
         (no scans to register).
     """
     from stemmap.cli._map_inputs import is_detections_csv
+    from stemmap.eval.trajectory import path_length
 
     if motion == Motion.wheel:
         raise ConfigError("motion_trajectory: the wheel source is read by the input's reader.")
@@ -236,7 +233,7 @@ def motion_trajectory(
         vtraj, vsrc, vinfo = _visual(cam, **(camera_options or {}))
         info["visual"] = vinfo
     if motion == Motion.visual:
-        dist = _path_length(vtraj)
+        dist = path_length(vtraj)
         from stemmap.odometry.visual import VISUAL_STEP_SIGMA
 
         n = len(vtraj) - 1
@@ -263,7 +260,7 @@ def motion_trajectory(
                 f"the camera frames span {t_lo:.3f}-{t_hi:.3f} s but the scans of {source} span "
                 f"{traj.times[0]:.3f}-{traj.times[-1]:.3f} s: the time bases differ."
             )
-    dist = _path_length(traj)
+    dist = path_length(traj)
     info["distance_m"] = round(dist, 3)
     c = lidar.increment_cov
     info["drift_estimate_percent"] = _random_walk_percent(c[:, 0, 0] + c[:, 1, 1], dist)
@@ -286,5 +283,5 @@ def _disagreement_percent(a: Any, b: Any, delta: float = 10.0) -> float | None:
     the worse one's drift); None when the run is shorter than ``delta``."""
     from stemmap.eval.trajectory import rpe
 
-    r = rpe(a, b, delta=delta)
+    r = rpe(a, b, delta=delta, min_step=0.5)  # b's jitter must not shorten the stretches
     return 100.0 * r.trans_mean / delta if r else None

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.cli._common import console
 from stemmap.errors import InputError
 from stemmap.types import Trajectory
 
@@ -29,23 +28,18 @@ _DEFAULT_MOUNT = np.array(
 )
 
 
-def camera_odometry(frames_dir: Path, out: Path, **options: Any) -> Trajectory:
+def camera_odometry(
+    frames_dir: Path, out: Path, **options: Any
+) -> tuple[Trajectory, dict[str, Any]]:
     """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV); ``options``
     are those of :func:`camera_trajectory` (topics, max_corners, baseline). Returns the
-    trajectory.
+    trajectory and its summary (frames, mode, keyframes, lost_frames, distance_m).
     """
     from stemmap.io.trajectory import write_trajectory_csv
 
     traj, _, summary = camera_trajectory(frames_dir, **options)
     write_trajectory_csv(out, traj)
-    console.print(
-        f"{summary['frames']} {summary['mode']} frames, {summary['keyframes']} keyframes, "
-        f"{summary['lost_frames']} lost (pose extrapolated), path {summary['distance_m']:.2f} m "
-        f"-> {out}",
-        markup=False,
-        highlight=False,
-    )
-    return traj
+    return traj, summary
 
 
 def camera_trajectory(
@@ -68,6 +62,7 @@ def camera_trajectory(
     """
     from dataclasses import replace
 
+    from stemmap.eval.trajectory import path_length
     from stemmap.io.camera_bag import read_camera_bag
     from stemmap.io.camera_frames import read_camera_frames
     from stemmap.io.rosbag import is_bag
@@ -111,6 +106,6 @@ def camera_trajectory(
         "mode": "stereo" if frames.calibration.is_stereo else "RGB-D",
         "keyframes": int(np.sum(res.status == VoStatus.KEYFRAME)),
         "lost_frames": int(np.sum(~res.ok)),
-        "distance_m": float(np.sum(np.hypot(*np.diff(traj.poses[:, :2], axis=0).T))),
+        "distance_m": path_length(traj),
     }
     return traj, res, summary

@@ -34,6 +34,10 @@ class StemConfig:
         (a stem is vertical; bushes and branch stubs are not); ignored for a pre-cut slice
     slices_per_spacing : float -- a slice is at least this many measured point spacings thick;
         sparse clouds get fewer, thicker slices over the same band (0 disables)
+    thin_remeasure : bool -- a stem found on a band thickened to at most ``min_slices`` + 1
+        slices is measured again on the default thin slices about its circle
+        (:func:`~stemmap.cloud.slicestem._thin_slice_stem`); the thin measurement replaces
+        the thick one when more thin slices agree
     max_taper : float -- largest plausible |d radius / d height| in the band, m/m; a candidate
         whose slice radii change faster is not a stem
     residual_factor : float -- a slice fit passes if its RMS is below ``residual_factor`` times
@@ -66,6 +70,14 @@ class StemConfig:
     tighter_refits : bool -- clusters the per-stem tests reject get their slices refitted with
         halved RANSAC tolerances down to 5 mm (:func:`~stemmap.cloud.measure._tighter_refits`):
         a sparse single tree whose slices all fit its branch whorls
+    core_refits : bool -- a slice circle with a stem's worth of returns inside its disc is
+        refitted to the stem inside it (a trunk is opaque;
+        :func:`~stemmap.cloud.slicefit._opaque_core_refits`): a noisy spruce's circles through
+        bark and branch stubs
+    single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
+        noise floor is its own), the stem is chosen among the first round's and the tighter
+        refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
+        _single_tree_stem`), not the first tolerance that gives one
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     """
@@ -90,9 +102,12 @@ class StemConfig:
     slice_mode: str = "auto"
     min_vertical_extent: float = 0.4
     slices_per_spacing: float = 4.0
+    thin_remeasure: bool = True
     max_taper: float = 0.05
     pooled_fallback: bool = True
     tighter_refits: bool = True
+    core_refits: bool = True
+    single_tree_ladder: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
 
     def __post_init__(self) -> None:

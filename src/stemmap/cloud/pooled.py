@@ -50,7 +50,8 @@ def _pooled_stems(
     * lean <= 10 degrees (a branch is >= 50 degrees from vertical); arc >=
       ``cfg.min_arc_deg``;
     * >= 2 x ``cfg.min_slice_points`` inliers, at least half of the cluster's points;
-    * vertical consistency: >= ``cfg.min_slices`` + 1 slices holding >= 3 inliers, spanning
+    * vertical consistency: >= ``cfg.min_slices`` + 1 slices holding >= 3 inliers (all of
+      them when a sparse band has fewer, :func:`_pooled_slices_needed`), spanning
       ``cfg.min_vertical_extent``, and in every one of them the median residual within 3
       standard errors (1.25 x noise floor / sqrt(n)) or 5 % of r: stacked leaf blobs or a
       bush change radius from slice to slice.
@@ -220,6 +221,22 @@ def _cylinder_statistics(
     return _CylinderFit(th, alive, ids, s_i, keep, d, nin, rms, pcov, arcs, n_sl)
 
 
+def _pooled_slices_needed(cfg: StemConfig, ns: int) -> int:
+    """Slices that must hold >= 3 inliers of a pooled cylinder: one more than the per-slice
+    path needs (``cfg.min_slices`` + 1), but never more than the band has.
+
+    A sparse cloud's band is cut into fewer, thicker slices (:func:`~stemmap.cloud.band.
+    _adapt_slices`: at least ``slices_per_spacing`` spacings thick, never fewer than 3): from
+    a 90th-percentile spacing of 0.075 m on, 3 slices of 0.4 m. ``min_slices + 1`` = 4 of
+    them cannot exist, so no pooled fit could pass where it is most needed (treels pine_plot
+    at 10 %: 5 stems of 5-18 points per slice lost although their cylinders fit at 5-8 mm
+    RMS). Then every slice must hold inliers: 3 of 3 slices of 0.4 m cover the whole 1.2 m
+    band, more height than 4 of the default 6 slices of 0.2 m (0.8 m), so the test stays at
+    least as strict in height as on a dense cloud.
+    """
+    return min(ns, cfg.min_slices + 1)
+
+
 def _pooled_row(
     fit: _CylinderFit,
     j: int,
@@ -244,7 +261,9 @@ def _pooled_row(
     hs = fit.slice_inliers[j] >= 3
     if not hs[-1]:
         return None  # a stem goes on above the band; a shrub or a stack of leaf blobs ends
-    if hs.sum() < cfg.min_slices + 1 or np.ptp(centers_h[hs]) < cfg.min_vertical_extent - 1e-9:
+    if hs.sum() < _pooled_slices_needed(cfg, centers_h.shape[0]):
+        return None
+    if np.ptp(centers_h[hs]) < cfg.min_vertical_extent - 1e-9:
         return None
     mine = fit.inlier & (fit.ids == j)
     # each slice's median residual must vanish within its standard error (1.25 sigma /
