@@ -36,8 +36,9 @@ _KERNEL_MODULES = {
 _BACKEND_KERNELS = {
     "isam2": ("stemmap.slam._isam2_track",),
     "forestrix": ("stemmap.slam._isam2_track",),
-    "ekf": ("stemmap.slam._association_kernel",),
-    "fastslam": ("stemmap.slam._fastslam_kernel",),
+    # (both smooth by default: the smoother's band solve, stemmap.slam._band_kernel)
+    "ekf": ("stemmap.slam._association_kernel", "stemmap.slam._band_kernel"),
+    "fastslam": ("stemmap.slam._fastslam_kernel", "stemmap.slam._band_kernel"),
     "treedb": (),
 }
 

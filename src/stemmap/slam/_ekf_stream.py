@@ -14,20 +14,21 @@ them back last block first (back substitution, the RTS pass, the map term). The 
 is a few blocks whatever the drive length, beside the products (path, covariances, the map
 term's (N, 3, 3) sum) and the map term's forward solution of one column block (3 N x columns
 doubles, at most ``block_mb`` = 32 MB: the same bound, and the same column blocks, as the whole
-solve's); the estimates are those of the whole-band solve **bit for bit**:
+solve's); the estimates are those of the whole-band solve **bit for bit**, on any CPU:
 
-* **Factor.** For ``KD`` below LAPACK's block size ``dpbtrf`` is the unblocked right-looking
-  ``dpbtf2``: column ``j`` is scaled by ``1/√a_jj`` and its outer product subtracted from the
-  next ``KD`` columns. A block ``[s, m)`` is factored by ``dpbtrf`` itself; its last ``KD``
-  columns then have seen their scaling and updates only up to row ``m - 1``, so the entries
-  they owe rows ``m..m+KD-1`` are scaled and updated here in LAPACK's order and with its
-  operations (``x * (1/a_jj)``, ``a + x_p * (-x_q)``, one rounding each: the BLAS build has no
-  fused multiply-add there, checked by ``tests/slam/test_ekf_stream.py`` against one call over
-  the whole band) and carried into the next block.
-* **Substitutions** (``dpbtrs`` is ``dtbsv`` forward then transposed per right-hand side):
-  ``dtbtrs`` (the same ``dtbsv`` per right-hand side) over the block plus ``KD`` identity
-  columns, so the block's columns run with their full length and the identity columns leave
-  the carried values as they are (``x / 1``, ``x - y * 0``).
+* **Factor and substitutions** are :mod:`stemmap.slam._band_kernel`'s (numba, no
+  ``fastmath``): the right-looking band Cholesky, column ``j`` divided by ``√a_jj`` and its
+  outer product subtracted from the next ``KD`` columns, and the column-oriented forward
+  substitution, run over the block's ``m`` columns with the band and right-hand side
+  extending ``KD`` past them: those ``KD`` columns / rows then hold every update from the
+  block's columns and nothing else, and are carried into the next block, whose loop goes on
+  with them exactly where the whole-band loop would. The back substitution of a block reads
+  the next block's first ``KD`` rows of the solution. One implementation for the whole band
+  and for the blocks, so a block and its carry are the same loop run in pieces. (Before,
+  LAPACK's ``dpbtrf`` / ``dtbtrs`` factored and solved each block and numpy re-did
+  ``dpbtf2``'s arithmetic at the seams; that matched one call over the whole band only where
+  the BLAS kernel OpenBLAS picks for the CPU rounds as the emulation did: on an AVX-512 Xeon
+  it did not, and the path changed in its 14th digit with the drive's length.)
 * **Assembly.** Each diagonal block gets at most two odometry terms on a zero (their order
   does not change a bit) and then the measurement terms in the log's order (``np.add.at`` on
   the same rows); the measurements are read in the same ``_CHUNK`` blocks as before (the
@@ -39,10 +40,11 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 
 import numpy as np
-from scipy.linalg.lapack import dpbtrf, dtbtrs
 from scipy.sparse import csr_matrix
 
+import stemmap.slam._band_kernel as bk
 import stemmap.slam._ekf_smooth as sm
+from stemmap.slam._band_kernel import KD
 from stemmap.slam._spill import SpilledColumn, SpilledRanges, SpilledRows, SpillFile
 from stemmap.slam.base import IntArray
 from stemmap.types import FloatArray, wrap_angle
@@ -57,55 +59,43 @@ __all__ = [
     "map_term_streamed",
 ]
 
-KD = 5  # lower half-bandwidth of a 3x3 block-tridiagonal matrix
 _SEG = 1024  # frames per block of the sweeps
-_ID = np.zeros((KD + 1, KD))
-_ID[0] = 1.0  # KD identity columns in banded storage
 
 
 def band_forward(
-    ab: FloatArray, rhs: FloatArray, m: int, *, factor: bool, last: bool
+    lt: FloatArray, rhs: FloatArray, m: int, *, factor: bool
 ) -> tuple[FloatArray, FloatArray]:
-    """Factor (``factor``) and forward-substitute the leading ``m`` columns of a banded block.
+    """Factor (``factor``) and forward-substitute the leading ``m`` columns of a banded block
+    (:mod:`stemmap.slam._band_kernel`).
 
-    ab : (KD+1, c) lower banded storage of columns ``[s, s + c)``, ``c >= m + KD`` unless the
-        block is the ``last`` of the matrix (``c = m``); the first ``KD`` columns (and rows of
-        ``rhs``) hold what the previous block carried
-    rhs : (c, r) right-hand sides (the first ``m + KD`` rows are read)
+    lt : (c, KD+1) band of columns ``[s, s + c)`` (``lt[j, i] = H[s + j + i, s + j]``, the
+        factor's if not ``factor``), ``c >= m + KD`` unless the block is the last of the
+        matrix (``c = m``); its first ``KD`` rows (and those of ``rhs``) hold what the
+        previous block carried
+    rhs : (rows, r) right-hand sides, ``rows >= m + KD`` unless the block is the last
+        (``rows = m``)
 
-    Returns the band (the factor if ``factor``) with columns ``[0, m)`` final and ``[m, m +
-    KD)`` carried, and the forward solution ``L⁻¹ rhs`` likewise (rows ``[0, m + KD)``).
+    Returns copies: the band (the factor if ``factor``) with rows ``[0, m)`` final and ``[m,
+    m + KD)`` carried, and the forward solution ``L⁻¹ rhs`` likewise.
     """
-    t = np.array(ab, order="F")
-    if factor:
-        t[:, :m], info = dpbtrf(t[:, :m], lower=1)
-        if info:
-            raise np.linalg.LinAlgError(f"smoother information not positive definite ({info})")
-        for j in range(max(0, m - KD), 0 if last else m):  # what dpbtf2 owes rows >= m
-            x = t[1:, j]
-            x[m - j - 1 :] = x[m - j - 1 :] * (1.0 / t[0, j])
-            for q in range(KD):
-                for p in range(max(q, m - j - 1), KD):
-                    t[p - q, j + 1 + q] = t[p - q, j + 1 + q] + x[p] * (-x[q])
-    a = t[:, :m] if last else np.concatenate((t[:, :m], _ID), axis=1)
-    y, info = dtbtrs(np.asfortranarray(a), rhs[: a.shape[1]], uplo="L", trans="N")
-    if info:
-        raise np.linalg.LinAlgError(f"singular smoother factor ({info})")
+    t = np.array(lt, dtype=np.float64, order="C")
+    if factor and (info := bk.band_factor(t, m)):
+        raise np.linalg.LinAlgError(f"smoother information not positive definite ({info})")
+    y = np.array(rhs, dtype=np.float64, order="C")
+    if bk.band_forward(t, y, m):
+        raise np.linalg.LinAlgError("singular smoother factor")
     return t, y
 
 
 def band_backward(t: FloatArray, y: FloatArray, after: FloatArray | None) -> FloatArray:
-    """Back substitution ``L⁻ᵀ y`` of one block (factor ``t`` (KD+1, m), forward solution
+    """Back substitution ``L⁻ᵀ y`` of one block (factor ``t`` (m, KD+1), forward solution
     ``y`` (m, r)) given the solution's first ``KD`` rows of the next block (``after``; None
     for the last block)."""
-    m = t.shape[1]
-    if after is not None:
-        t = np.concatenate((t, _ID), axis=1)
-        y = np.concatenate((y, after[:KD]), axis=0)
-    x, info = dtbtrs(np.asfortranarray(t), y, uplo="L", trans="T")
-    if info:
-        raise np.linalg.LinAlgError(f"singular smoother factor ({info})")
-    return x[:m]
+    m = t.shape[0]
+    z = np.array(y[:m] if after is None else np.concatenate((y[:m], after[:KD])), order="C")
+    if bk.band_back(np.ascontiguousarray(t), z, m):
+        raise np.linalg.LinAlgError("singular smoother factor")
+    return z[:m]
 
 
 class StreamedStep:
@@ -196,18 +186,17 @@ class StreamedStep:
         nf = k if final else k - 2
         if nf < (1 if final else self.seg):
             return
-        ab = sm.banded_lower(self._diag[:k], self._off[:k])
+        lt = np.ascontiguousarray(sm.banded_lower(self._diag[:k], self._off[:k]).T)
         rhs = self._g[:k].reshape(-1, 1).copy()
         if self._carry is not None:
-            ab[:, :KD], rhs[:KD] = self._carry
+            lt[:KD], rhs[:KD] = self._carry
         m = 3 * nf
-        t, y = band_forward(ab, rhs, m, factor=True, last=final)
+        t, y = band_forward(lt, rhs, m, factor=True)
         w0 = self._w0
-        band = t[:, :m].T.reshape(nf, 3, KD + 1)
-        self.factor.put(w0, (band, y[:m].reshape(nf, 3)))
+        self.factor.put(w0, (t[:m].reshape(nf, 3, KD + 1), y[:m].reshape(nf, 3)))
         self.chain.put(w0, (self._diag[:nf], self._off[:nf]))
         self.spans.append((w0, w0 + nf))
-        self._carry = None if final else (t[:, m : m + KD].copy(), y[m : m + KD].copy())
+        self._carry = None if final else (t[m : m + KD].copy(), y[m : m + KD].copy())
         self._diag, self._off, self._g = self._diag[nf:], self._off[nf:], self._g[nf:]
         self._w0 = w0 + nf
 
@@ -256,8 +245,8 @@ MeasTerms = Callable[
 
 
 def _band(rows: FloatArray) -> FloatArray:
-    """(nf, 3, KD+1) per-frame factor rows -> (KD+1, 3 nf) banded storage."""
-    return rows.reshape(-1, KD + 1).T
+    """(nf, 3, KD+1) per-frame factor rows -> (3 nf, KD+1) band (``lt``)."""
+    return rows.reshape(-1, KD + 1)
 
 
 def chain_marginals_streamed(step: StreamedStep) -> FloatArray:
@@ -319,7 +308,7 @@ def map_term_streamed(
                 rhs = np.concatenate((rhs, nxt[:KD]), axis=0)
             band, _ = step.factor.get(lo, hi)
             m = 3 * (hi - lo)
-            _, y = band_forward(_band(band), rhs, m, factor=False, last=last)
+            _, y = band_forward(_band(band), rhs, m, factor=False)
             ys.append(y[:m])
             carry = y[m : m + KD]
         after = None
