@@ -37,9 +37,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from typer.testing import CliRunner
 
-from stemmap.cli import app
+from odometry_distance import _invoke, _wheel_as_imu
 from stemmap.cli._map_motion import LIDAR_DEFAULTS, _random_walk_percent
 from stemmap.cli._odometry import lidar_front_end
 from stemmap.eval.trajectory import path_length, rpe
@@ -70,19 +69,6 @@ _MUNJER = {
     "munjer_park_1ms_20s": ["--layout", "park", "--speed", "1", "--duration", "20"],
     "munjer_orchard_0.5ms_20s": ["--layout", "orchard", "--speed", "0.5", "--duration", "20"],
 }
-
-
-def _invoke(args: list[str]) -> None:
-    res = CliRunner().invoke(app, args)
-    if res.exit_code != 0:
-        raise RuntimeError(f"stemmap {' '.join(args)} failed: {res.output}")
-
-
-def _wheel_as_imu(odometry_csv: Path, out: Path) -> Path:
-    odo = np.loadtxt(odometry_csv, delimiter=",", skiprows=1).reshape(-1, 3)
-    np.savetxt(out, odo[:, [0, 2, 1]], delimiter=",", header="time_s,gyro_z,wheel_speed",
-               comments="")  # fmt: skip
-    return out
 
 
 def _measure(log: Path, imu: Path | None) -> dict[str, float]:

@@ -422,9 +422,9 @@ class LidarOdometryResult:
 
         The scan-to-map poses drift per distance, not per frame: each frame is registered to
         the local map, so consecutive frames' errors are nearly the same error, and summing the
-        floored increment covariances as independent steps grew with the frame rate (10-25x
-        the measured end error at 75 Hz). The variance is a random walk in distance,
-        ``drift_xy_per_sqrt_m² * distance``, with each frame's share of the distance (its
+        floored increment covariances as independent steps grew with the frame rate (9-12x
+        the measured end error at 10 Hz, 17-28x at 75 Hz). The variance is a random walk in
+        distance, ``drift_xy_per_sqrt_m² * distance``, with each frame's share of the distance (its
         step) weighted by how far its Gauss-Newton x + y variance exceeds the floor's
         ``2 sigma_xy_floor²`` (1 for a well-constrained frame; large where the geometry is
         degenerate: few or badly spread correspondences). Held frames (no covariance) weigh 1.
