@@ -21,7 +21,8 @@ from stemmap.types import StemObservations
 
 __all__ = ["MAX_RANGE", "map_draws", "spread"]
 
-#: FastSLAM's detection range (m).
+#: The sensor range the problem declares (m, ``SlamProblem.max_range``): a declaration, not a
+#: filter -- FastSLAM maps every detection whatever its range (docs/algorithms/slam.md).
 MAX_RANGE = 12.0
 
 
@@ -35,8 +36,9 @@ def map_draws(
     """FastSLAM (100 particles) + the Kalman refinement on one drive's detections, once per
     particle-filter seed ``MunjerMapConfig(seed=d)``, ``d`` in ``range(draws)``: yields ``(d,
     result, seconds)``. ``motion`` is ``(controls, model)``, default the drive's simulated
-    odometry and :meth:`MunjerDrive.motion_model`. The drive starts at the true pose and
-    detections beyond :data:`MAX_RANGE` are dropped (Munjer et al. 2025, §3.6). ``config``: the
+    odometry and :meth:`MunjerDrive.motion_model`. The drive starts at the true pose and the
+    problem declares the sensor range :data:`MAX_RANGE` (Munjer et al. 2025, §3.6; no
+    detection is dropped by it, ``SlamProblem.max_range``). ``config``: the
     back end's settings (default :class:`MunjerMapConfig`), its seed replaced by ``d``."""
     controls, model = motion or (drive.controls(), drive.motion_model())
     p0 = (float(drive.poses[0, 0]), float(drive.poses[0, 1]), float(drive.poses[0, 2]))

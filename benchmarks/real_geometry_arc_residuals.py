@@ -9,8 +9,10 @@ each scan: the DBH error of its detection (or ``missed``) and, per fitted return
 order, its beam, whether the virtual scanner hit that trunk's own ring points (``own``; a
 return that is not is a branch, stub or neighbour), and its residual ``|p - c| - r`` (mm) to
 the detected circle and to the reference circle (positive: outside). The fitted returns are
-read from the rows the detector writes out (``_output_columns``), so they are those of the
-fit that made the detection (main fit, split piece or arc), after the footprint correction.
+read from the rows the detector writes out (``_output_columns``, called by
+:mod:`stemmap.scan.detect` for the main fits and by :mod:`stemmap.scan._pieces` for split pieces
+and arcs), so they are those of the fit that made the detection (main fit, split piece or arc),
+after the footprint correction.
 
 Usage::
 
@@ -31,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+import stemmap.scan._pieces as pieces_module
 import stemmap.scan.detect as detect_module
 from _loo_grid import LOO_GRID
 from _real_scanning import greedy_match, matched, scene_scans, vantage_points
@@ -40,7 +43,7 @@ from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 
 def _recording(rows: list[dict[str, Any]]) -> Any:
-    """``detect._output_columns`` that also keeps every output row's returns and circle."""
+    """``_output_columns`` that also keeps every output row's returns and circle."""
     original = detect_module._output_columns
 
     def wrapped(segs: Any, fitted: Any, ok: np.ndarray) -> Any:
@@ -72,11 +75,14 @@ def views(ddir: Path, name: str, overrides: dict[str, Any]) -> dict[str, Any]:
     cfg = matched(DetectorConfig.preset("stemmap", **overrides), "nearest", 0.5)
     rows: list[dict[str, Any]] = []
     original, wrapped = _recording(rows)
-    detect_module._output_columns = wrapped
+    writers = (detect_module, pieces_module)  # every module that writes output rows
+    for mod in writers:
+        mod._output_columns = wrapped
     try:
         obs = ScanTrunkDetector(cfg).detect_batch(batch)
     finally:
-        detect_module._output_columns = original
+        for mod in writers:
+            mod._output_columns = original
     out: list[dict[str, Any]] = []
     for s in range(vp.shape[0]):
         rel = sl.centers - vp[s]

@@ -50,6 +50,11 @@ def _inputs(tmp: Path, names: list[str]) -> dict[Path, bytes]:
     return content
 
 
+def _option(tmpl: list[str]) -> str:
+    """The option whose value is the output under test (``--out``, ``--png``, ``--json``...)."""
+    return tmpl[tmpl.index("{out}") - 1]
+
+
 def _one_error_line(res) -> str:
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     errs = [ln for ln in lines if ln.startswith("error:")]
@@ -80,6 +85,8 @@ def test_output_that_is_an_input_is_refused(tmp_path, monkeypatch, name, how):
     assert res.exit_code == 2, res.output
     line = _one_error_line(res)
     assert "refusing to overwrite an input" in line and names[0] in line
+    # the message starts with the option that gave the output path (not always "--out")
+    assert line.startswith(f"error: {_option(tmpl)} {str(out)!r} is the same file as the input ")
     for p, b in content.items():
         assert p.read_bytes() == b
     assert not list(tmp_path.glob(".stemmap-stage-*"))
@@ -106,6 +113,7 @@ def test_file_where_a_folder_should_be(tmp_path, name):
     assert res.exit_code == 2, res.output
     line = _one_error_line(res)
     assert "blocker" in line and "file where a folder should be" in line
+    assert f"cannot write {_option(tmpl)} {str(out)!r}:" in line
 
 
 @pytest.mark.parametrize("name", ["detect", "calibrate", "segment", "fuse", "stems"])

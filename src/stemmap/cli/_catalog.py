@@ -83,8 +83,11 @@ def run_catalog_stems(
     opts: EngineOptions,
     sensor: SensorPositions | None,
     out_csv: Path,
+    *,
+    quiet: bool = False,
 ) -> tuple[CloudStems, int, Any]:
-    """Run the engine with a progress bar; exit 1 listing the failed chunks if any failed.
+    """Run the engine with a progress bar and a chunk count (neither when ``quiet``); exit 1
+    listing the failed chunks if any failed.
 
     Returns the merged stems, the number of tiles and the catalog.
     """
@@ -94,7 +97,7 @@ def run_catalog_stems(
         raise ConfigError("give --workers (a local cluster) or --scheduler, not both.")
     catalog = Catalog.from_inputs(inputs)
     work = opts.work or out_csv.with_name(out_csv.stem + "_chunks")
-    with progress() as bar:
+    with progress(not quiet) as bar:
         tasks: dict[str, Any] = {}
 
         def tick(phase: str, done: int, total: int) -> None:
@@ -114,10 +117,11 @@ def run_catalog_stems(
             sensor=sensor,
             on_progress=tick,
         )
-    console.print(
-        f"{len(catalog)} tiles, {len(run.chunks)} chunks: {len(run.computed)} computed, "
-        f"{len(run.skipped)} already done, {len(run.failed)} failed (work folder {work})"
-    )
+    if not quiet or run.failed:
+        console.print(
+            f"{len(catalog)} tiles, {len(run.chunks)} chunks: {len(run.computed)} computed, "
+            f"{len(run.skipped)} already done, {len(run.failed)} failed (work folder {work})"
+        )
     if run.failed or run.stems is None:
         for cid, err in sorted(run.failed.items()):
             console.print(f"[red]error:[/red] chunk {cid}: {err}")

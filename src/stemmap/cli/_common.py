@@ -6,7 +6,7 @@ import contextlib
 import math
 import os
 from collections.abc import Iterator
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -17,6 +17,8 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from stemmap.errors import StemmapError
 
 __all__ = [
+    "ProgressFlag",
+    "QuietFlag",
     "clean_json",
     "console",
     "fail_on_stemmap_error",
@@ -30,6 +32,31 @@ __all__ = [
 console = Console(stderr=True)
 #: results (tables, summaries) go to stdout
 out = Console()
+
+
+#: ``-q/--quiet``, the same option on every command that prints progress or a summary: the
+#: command runs and writes its products as without it, but prints no progress bar, no
+#: first-run notice and no summary. Errors and warnings still go to stderr (and the exit code
+#: is unchanged); a ``--json`` object is still printed (it is the output asked for).
+QuietFlag = Annotated[
+    bool,
+    typer.Option(
+        "--quiet",
+        "-q",
+        help="Print no progress bar, first-run notice or summary. Errors and warnings still "
+        "go to stderr; a --json object is still printed.",
+    ),
+]
+
+#: ``--progress/--no-progress`` of the long-running folder commands (``map``, ``demo``):
+#: only the progress bars; ``-q`` turns them off too.
+ProgressFlag = Annotated[
+    bool,
+    typer.Option(
+        "--progress/--no-progress",
+        help="Show progress bars on stderr (-q/--quiet turns them off too).",
+    ),
+]
 
 
 def print_error(message: str) -> None:

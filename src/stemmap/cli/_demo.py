@@ -25,7 +25,14 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
+from stemmap.cli._common import (
+    ProgressFlag,
+    QuietFlag,
+    clean_json,
+    fail_on_stemmap_error,
+    json_default,
+    progress,
+)
 from stemmap.cli._geo import CrsOption, GpkgFlag, checked_crs
 from stemmap.cli._map import Backend, sim_problem, slam_metrics
 from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
@@ -298,7 +305,8 @@ def demo(
     backend: Annotated[Backend, typer.Option("--backend", help="SLAM back-end.")] = (
         _DEFAULT_BACKEND
     ),
-    show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    show_progress: ProgressFlag = True,
+    quiet: QuietFlag = False,
     as_json: JsonFlag = False,
     crs: CrsOption = None,
     gpkg: GpkgFlag = False,
@@ -315,13 +323,14 @@ def demo(
 
     with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
         # after the output folder is checked, not before
-        announce_compile("scan", backend=backend.value)
+        if not quiet:
+            announce_compile("scan", backend=backend.value)
         m = run_demo(
             run.dir,
             seed=seed,
             n_trees=n_trees,
             backend=backend.value,
-            show_progress=show_progress,
+            show_progress=show_progress and not quiet,
             crs=checked_crs(crs),
             gpkg=gpkg,
         )
@@ -358,7 +367,7 @@ def demo(
     ]  # fmt: skip
     print_summary(
         f"stemmap demo (seed {m['seed']})", rows, out_dir, files, as_json=as_json,
-        payload={"metrics": m},
+        quiet=quiet, payload={"metrics": m},
     )  # fmt: skip
 
 

@@ -9,7 +9,7 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out, progress
+from stemmap.cli._common import QuietFlag, console, fail_on_stemmap_error, out, progress
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import announce_compile
 from stemmap.cli._validate import bounded
@@ -109,9 +109,7 @@ def detect(
             "that dropped it (reason column; split / arc: cut into pieces that were kept).",
         ),
     ] = None,
-    quiet: Annotated[
-        bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
-    ] = False,
+    quiet: QuietFlag = False,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
 ) -> None:

@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out
+from stemmap.cli._common import QuietFlag, console, fail_on_stemmap_error, out
 
 __all__ = ["register"]
 
@@ -70,7 +70,7 @@ def convert_scans(
     storage: Annotated[
         str, typer.Option(help="ROS2 storage when writing a ROS2 bag: sqlite3 or mcap.")
     ] = "sqlite3",
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
+    quiet: QuietFlag = False,
 ) -> None:
     """Convert 2D laser scans between NPZ, CSV and ROS bags (dominant beam geometry kept).
 

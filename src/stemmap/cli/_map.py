@@ -18,7 +18,14 @@ import typer
 
 from stemmap._memory import TRIM_INTERVAL_S as _TRIM_S
 from stemmap._memory import HeapTrimmer
-from stemmap.cli._common import clean_json, fail_on_stemmap_error, json_default, progress
+from stemmap.cli._common import (
+    ProgressFlag,
+    QuietFlag,
+    clean_json,
+    fail_on_stemmap_error,
+    json_default,
+    progress,
+)
 from stemmap.cli._geo import (
     CrsOption,
     GpkgFlag,
@@ -304,7 +311,8 @@ def map_command(
             help="Write a Rerun recording (.rrd) of the run; implies --realtime (needs rerun-sdk).",
         ),
     ] = None,
-    show_progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    show_progress: ProgressFlag = True,
+    quiet: QuietFlag = False,
     as_json: JsonFlag = False,
     crs: CrsOption = None,
     gpkg: GpkgFlag = False,
@@ -346,6 +354,7 @@ def map_command(
     """
     if wants_logs(logs, workers, scheduler):
         return run_many_logs("map", dict(locals()), as_json=as_json)
+    show_progress = show_progress and not quiet
     bag = logs[0] if logs else None
     from stemmap.cli._map_frames import frames_problem
     from stemmap.cli._map_inputs import bag_problem, file_problem
@@ -380,7 +389,8 @@ def map_command(
             )
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         areas = () if dataset is not None else ("scan",)
-        announce_compile(*areas, backend=backend.value)
+        if not quiet:
+            announce_compile(*areas, backend=backend.value)
         motion_run = None
         if bag is not None and motion_src != Motion.wheel:
             motion_run = motion_trajectory(
@@ -563,6 +573,7 @@ def map_command(
         [*names, "run.json"],
         as_json=as_json,
         payload={"metrics": metrics},
+        quiet=quiet,
     )
 
 

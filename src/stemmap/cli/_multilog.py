@@ -187,11 +187,10 @@ def _per_log_params(
         p["out_path"] = folder / "observations.csv"
         if p.get("rejected") is not None:
             p["rejected"] = folder / Path(p["rejected"]).name
-        p["quiet"] = True
     else:
         p["out_dir"] = folder
-        p["show_progress"] = False
         p["as_json"] = False
+    p["quiet"] = True  # a log's terminal output is captured; only its error line is kept
     return p
 
 
@@ -231,6 +230,7 @@ def run_many_logs(command: str, params: dict[str, Any], *, as_json: bool = False
 
     out_dir = Path(params[_OUT_PARAM[command]])
     workers, scheduler = params.get("workers"), params.get("scheduler")
+    quiet = bool(params.get("quiet"))
     with fail_on_stemmap_error():
         if workers is not None and scheduler is not None:
             raise ConfigError("give --workers (a local cluster) or --scheduler, not both.")
@@ -248,7 +248,7 @@ def run_many_logs(command: str, params: dict[str, Any], *, as_json: bool = False
             for n, p in zip(names, logs, strict=True)
         ]
         rows: list[dict[str, Any]] = []
-        with progress(not as_json) as bar:
+        with progress(not (as_json or quiet)) as bar:
             bar_task = bar.add_task(f"{command}: logs", total=len(tasks))
             outcomes = run_logs(
                 run_log_command,
@@ -277,7 +277,7 @@ def run_many_logs(command: str, params: dict[str, Any], *, as_json: bool = False
     failed = [r for r in rows if r["status"] != "done"]
     if as_json:
         out.print_json(json.dumps({"summary": str(summary), "logs": rows}))
-    else:
+    elif not quiet:
         _print_summary(command, rows, out_dir)
         for r in failed:
             print_error(f"log {r['input']}: {r['error']}")

@@ -9,7 +9,14 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 import typer
 
-from stemmap.cli._common import console, fail_on_stemmap_error, out, print_error, progress
+from stemmap.cli._common import (
+    QuietFlag,
+    console,
+    fail_on_stemmap_error,
+    out,
+    print_error,
+    progress,
+)
 from stemmap.cli._validate import bounded
 
 if TYPE_CHECKING:
@@ -94,7 +101,6 @@ def odometry(
             "lidar's ground rings pin ICP to zero motion).",
         ),
     ] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress or summary.")] = False,
     camera: Annotated[
         Path | None,
         typer.Option(
@@ -123,6 +129,7 @@ def odometry(
         float | None,
         typer.Option(help="Camera bag: stereo baseline, m (default: the right CameraInfo's P)."),
     ] = None,
+    quiet: QuietFlag = False,
 ) -> None:
     """Odometry from lidar frames, fused with an IMU and wheel speed (Munjer 2025 §3.5).
 
@@ -153,17 +160,30 @@ def odometry(
         "info_topic": info_topic,
         "baseline": baseline,
     }
+    from stemmap.io.products import run_products
+
     if camera is not None and frames is None:
         from stemmap.cli._odometry_camera import camera_odometry
 
-        with fail_on_stemmap_error():
-            camera_odometry(camera, out_path, **cam_opts)
+        with (
+            fail_on_stemmap_error(),
+            run_products("odometry", inputs=[camera], outputs=[out_path]) as run,
+        ):
+            _, cam_summary = camera_odometry(camera, run.path(out_path), **cam_opts)
+            run.note(**cam_summary)
+        if not quiet:
+            s = cam_summary
+            out.print(
+                f"{s['frames']} {s['mode']} frames, {s['keyframes']} keyframes, "
+                f"{s['lost_frames']} lost (pose extrapolated), path {s['distance_m']:.2f} m "
+                f"-> {out_path}",
+                markup=False,
+                highlight=False,
+            )
         return
     if frames is None:
         print_error("give a sensor input: lidar FRAMES, or --camera FRAMES_DIR for a camera.")
         raise typer.Exit(code=2)
-    from stemmap.io.products import run_products
-
     lidar_opts: dict[str, Any] = {
         "topic": topic,
         "imu_topic": imu_topic,

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.cli._common import console
 from stemmap.errors import InputError
 from stemmap.types import Trajectory
 
@@ -29,23 +28,18 @@ _DEFAULT_MOUNT = np.array(
 )
 
 
-def camera_odometry(frames_dir: Path, out: Path, **options: Any) -> Trajectory:
+def camera_odometry(
+    frames_dir: Path, out: Path, **options: Any
+) -> tuple[Trajectory, dict[str, Any]]:
     """Visual odometry of a frames folder or a ROS bag, written to ``out`` (CSV); ``options``
     are those of :func:`camera_trajectory` (topics, max_corners, baseline). Returns the
-    trajectory.
+    trajectory and its summary (frames, mode, keyframes, lost_frames, distance_m).
     """
     from stemmap.io.trajectory import write_trajectory_csv
 
     traj, _, summary = camera_trajectory(frames_dir, **options)
     write_trajectory_csv(out, traj)
-    console.print(
-        f"{summary['frames']} {summary['mode']} frames, {summary['keyframes']} keyframes, "
-        f"{summary['lost_frames']} lost (pose extrapolated), path {summary['distance_m']:.2f} m "
-        f"-> {out}",
-        markup=False,
-        highlight=False,
-    )
-    return traj
+    return traj, summary
 
 
 def camera_trajectory(

@@ -28,7 +28,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from stemmap.cli._common import fail_on_stemmap_error, out
+from stemmap.cli._common import QuietFlag, fail_on_stemmap_error, out
 from stemmap.cli._validate import bounded
 from stemmap.io._util import existing_file
 
@@ -115,7 +115,7 @@ def scans(
     poses_out: Annotated[
         Path | None, typer.Option(help="True sensor poses CSV (default: OUT's stem + _poses.csv).")
     ] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
+    quiet: QuietFlag = False,
 ) -> None:
     """Simulate a drive through a stand and write scans + ground truth.
 

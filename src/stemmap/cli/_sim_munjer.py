@@ -22,7 +22,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from stemmap.cli._common import fail_on_stemmap_error, out
+from stemmap.cli._common import QuietFlag, fail_on_stemmap_error, out
 from stemmap.cli._validate import bounded
 
 __all__ = ["munjer"]
@@ -51,7 +51,7 @@ def munjer(
             callback=bounded("--camera-every", ge=0),
         ),
     ] = 1,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No summary.")] = False,
+    quiet: QuietFlag = False,
 ) -> None:
     """Simulate a Munjer et al. (2025) drive: 16-beam lidar + RGB-D frames, odometry, truth.
 

@@ -15,7 +15,7 @@ from stemmap.cli._catalog import (
     run_catalog_stems,
     wants_engine,
 )
-from stemmap.cli._common import console, fail_on_stemmap_error, progress
+from stemmap.cli._common import QuietFlag, console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
 from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.cli._validate import bounded
@@ -87,9 +87,9 @@ def stems(
             show_default=False,
         ),
     ],
-    out_csv: Annotated[Path, typer.Option("--out", help="CSV to write, one row per stem.")] = Path(
-        "stems.csv"
-    ),
+    out_csv: Annotated[
+        Path, typer.Option("--out", "-o", help="CSV to write, one row per stem.")
+    ] = Path("stems.csv"),
     preset: Annotated[
         str, typer.Option(help="Method: ours (default), ours_kasa or munjer2025.")
     ] = "ours",
@@ -256,6 +256,7 @@ def stems(
         ),
     ] = None,
     as_json: JsonFlag = False,
+    quiet: QuietFlag = False,
 ) -> None:
     """Find stems in CLOUD and write x, y, z, diameter, n_points, quality per stem (cloud frame,
     metres). LAS/LAZ files are streamed in chunks (progress bar). munjer2025 expects one lidar
@@ -316,7 +317,8 @@ def stems(
         tempfile.TemporaryDirectory() as tmp,
     ):
         crs = checked_crs(crs) if crs is not None else las_crs(in_paths[0])
-        announce_compile("cloud")  # (stderr: the --json object on stdout stays clean)
+        if not quiet:
+            announce_compile("cloud")  # (stderr: the --json object on stdout stays clean)
         cfg = get_preset(preset)
         if not max_memory > 0:
             raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
@@ -338,14 +340,14 @@ def stems(
                     "available for a tile catalog yet; run them per tile."
                 )
             result, _, catalog = run_catalog_stems(
-                [str(p) for p in in_paths], cfg, opts, sensor, out_csv
+                [str(p) for p in in_paths], cfg, opts, sensor, out_csv, quiet=quiet
             )
             name = f"{len(catalog)} tiles"
         else:
             cloud = Path(clouds[0])
             grounds: list[GroundModel | None] = []
             name = cloud.name
-            with progress() as bar:
+            with progress(not quiet) as bar:
                 task = bar.add_task(f"reading {cloud.name}", total=None)
 
                 def tick(done: int, total: int) -> None:
@@ -414,7 +416,7 @@ def stems(
             assert fig_path is not None
             _stems_report(run.path(report), fig_path, result, Path(name), crs, rows, files)
         print_summary(
-            f"stemmap stems: {name}", rows, None, files, as_json=as_json,
+            f"stemmap stems: {name}", rows, None, files, as_json=as_json, quiet=quiet,
             payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
                      "method": result.method},
         )  # fmt: skip

@@ -95,14 +95,18 @@ def print_summary(
     *,
     as_json: bool,
     payload: dict[str, Any],
+    quiet: bool = False,
 ) -> None:
     """The run's summary: ``rows`` (quantity, value, where in metrics.json) as a table, or
-    ``payload`` + ``files`` as one JSON object (``--json``)."""
+    ``payload`` + ``files`` as one JSON object (``--json``, printed with ``quiet`` too: it is
+    the output asked for); nothing when ``quiet`` without ``as_json``."""
     if as_json:
         doc = {"summary": {r[0]: r[1] for r in rows}, **payload, "files": list(files)}
         if out_dir is not None:
             doc["out_dir"] = str(out_dir)
         typer.echo(json.dumps(clean_json(doc), default=json_default))
+        return
+    if quiet:
         return
     from rich.table import Table
 

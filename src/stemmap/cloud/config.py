@@ -70,6 +70,14 @@ class StemConfig:
     tighter_refits : bool -- clusters the per-stem tests reject get their slices refitted with
         halved RANSAC tolerances down to 5 mm (:func:`~stemmap.cloud.measure._tighter_refits`):
         a sparse single tree whose slices all fit its branch whorls
+    core_refits : bool -- a slice circle with a stem's worth of returns inside its disc is
+        refitted to the stem inside it (a trunk is opaque;
+        :func:`~stemmap.cloud.slicefit._opaque_core_refits`): a noisy spruce's circles through
+        bark and branch stubs
+    single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
+        noise floor is its own), the stem is chosen among the first round's and the tighter
+        refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
+        _single_tree_stem`), not the first tolerance that gives one
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     """
@@ -98,6 +106,8 @@ class StemConfig:
     max_taper: float = 0.05
     pooled_fallback: bool = True
     tighter_refits: bool = True
+    core_refits: bool = True
+    single_tree_ladder: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
 
     def __post_init__(self) -> None:

@@ -458,3 +458,82 @@ def _segment_covariances(
     if good.any():
         cov[good] = np.linalg.inv(A[good]) * (np.maximum(rms[good], 1e-4) ** 2)[:, None, None]
     return cov
+
+
+#: a slice circle is suspect when its disc holds at least this fraction of its inliers
+CORE_INSIDE_FRACTION = 0.1
+#: the smallest inside margin / RANSAC tolerance of a core refit (m), as MIN_RANSAC_TOL
+MIN_CORE_TOL = 0.005
+
+_Fits = tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int64]]
+
+
+def _opaque_core_refits(
+    pts: FloatArray,
+    ids: NDArray[np.int64],
+    fit: _Fits,
+    method: str,
+    radius_window: tuple[float, float],
+    min_points: int,
+    ray_origins: FloatArray | None = None,
+) -> tuple[_Fits, int]:
+    """Slice circles refitted to the stem inside them: a trunk is opaque.
+
+    A circle through a stem and the clutter beside it (a spruce's branch stubs and needles,
+    merged with the bark by 1 cm of noise) is larger than the stem and holds the stem's far
+    side inside its disc. A real trunk's cross-section holds no returns beyond its surface
+    noise. A segment whose fit (centre c, radius r, residual RMS s) has at least
+    ``min_points`` and at least :data:`CORE_INSIDE_FRACTION` of its inlier count more than
+    ``3 t`` inside the circle (``t = max(s, 5 mm)``: the inside margin of
+    :func:`_ransac_circle` at tolerance t) -- enough returns inside for a circle of their own
+    -- is fitted again (:func:`_fit_segments`, RANSAC tolerance t) on its points within
+    ``r + t`` of c, radius at most r. The refit replaces the fit when it has ``min_points``
+    inliers, a residual RMS no larger than s, lies within the old circle
+    (``|c' - c| + r' <= r + 3 t``), and leaves fewer than half as many points inside its
+    own disc (margin ``3 max(s', 5 mm)``), at most :data:`CORE_INSIDE_FRACTION` of its
+    inliers. ``ray_origins`` as in :func:`_fit_segments`. Returns the fits (copies;
+    centres, radii, RMS, ok, inliers) and the number of segments replaced."""
+    centers, radii, rms = (np.array(a, dtype=np.float64) for a in fit[:3])
+    ok, nin = np.array(fit[3], dtype=bool), np.array(fit[4], dtype=np.int64)
+    if pts.shape[0] == 0 or not ok.any():
+        return (centers, radii, rms, ok, nin), 0
+    k = radii.shape[0]
+    good = ok[ids] & np.isfinite(radii[ids])
+    res = np.full(pts.shape[0], np.inf)
+    res[good] = np.hypot(*(pts[good] - centers[ids[good]]).T) - radii[ids[good]]
+    t = np.maximum(np.nan_to_num(rms, nan=0.0), MIN_CORE_TOL)
+    inside = np.bincount(ids[res < -3.0 * t[ids]], minlength=k)
+    need = np.maximum(min_points, CORE_INSIDE_FRACTION * nin)
+    flagged = np.flatnonzero(ok & (nin > 0) & (inside >= need))
+    replaced = 0
+    if flagged.size == 0:
+        return (centers, radii, rms, ok, nin), 0
+    order = np.argsort(ids, kind="stable")
+    starts = np.searchsorted(ids[order], flagged)
+    stops = np.searchsorted(ids[order], flagged, side="right")
+    for s, a, b in zip(flagged, starts, stops, strict=True):
+        seg = order[a:b]
+        sel = seg[res[seg] <= t[s]]
+        if sel.size < min_points:
+            continue
+        q = pts[sel]
+        c2, r2, s2, ok2, n2 = _fit_segments(
+            q,
+            np.zeros(q.shape[0], dtype=np.int64),
+            1,
+            method,
+            ransac_tol=float(t[s]),
+            radius_window=(radius_window[0], float(radii[s])),
+            ray_origins=None if ray_origins is None else ray_origins[sel],
+        )
+        if not (ok2[0] and n2[0] >= min_points and s2[0] <= rms[s] and r2[0] <= radii[s]):
+            continue
+        if math.hypot(*(c2[0] - centers[s])) + r2[0] > radii[s] + 3.0 * t[s]:
+            continue
+        d2 = np.hypot(*(pts[seg] - c2[0]).T) - r2[0]
+        in2 = int((d2 < -3.0 * max(float(s2[0]), MIN_CORE_TOL)).sum())
+        if in2 >= 0.5 * inside[s] or in2 > CORE_INSIDE_FRACTION * n2[0]:
+            continue
+        centers[s], radii[s], rms[s], nin[s] = c2[0], r2[0], s2[0], n2[0]
+        replaced += 1
+    return (centers, radii, rms, ok, nin), replaced

@@ -10,7 +10,9 @@ The contract (docs/reliability.md):
 
 * **Refusal.** An output that is, or resolves to (symlink, hard link, same inode), one of the
   run's inputs, or that lies inside an input folder and already exists, is refused before any
-  work with an :class:`OutputError` naming both paths. An output folder that contains an input
+  work with an :class:`OutputError` naming both paths and the command-line options that gave
+  them (``--rejected 'a.npz' is the same file as the input SCANS 'a.npz'``, by
+  :class:`~stemmap.io._cli_context.PathNames`). An output folder that contains an input
   is refused too (replacing the folder would delete it).
 * **Staging.** Every product is written into a staging folder created next to its destination
   (same file system, so the final move is a rename), never to the destination itself. An error,
@@ -57,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 from stemmap.errors import StemmapError
+from stemmap.io._cli_context import PathNames, cli_parameters
 from stemmap.io.atomic import umask_mode
 
 __all__ = [
@@ -184,14 +187,20 @@ def _within(child: Path, parent: Path) -> bool:
     return True
 
 
-def check_not_input(output: PathLike, inputs: Iterable[PathLike], option: str = "--out") -> None:
+def check_not_input(
+    output: PathLike, inputs: Iterable[PathLike], *, names: PathNames | None = None
+) -> None:
     """OutputError if ``output`` is, or resolves to, one of ``inputs`` (or a file inside one).
 
     Symlinks are resolved; an existing output is compared by device and inode
-    (:func:`os.path.samefile`), which also catches hard links.
+    (:func:`os.path.samefile`), which also catches hard links. The message names the
+    command-line option or argument that gave each path (``names``, by default the running
+    command's, :class:`~stemmap.io._cli_context.PathNames`).
     """
+    names = PathNames.from_context() if names is None else names
     out = Path(output)
     out_real = out.resolve()
+    shown = names.output(out)
     for inp in inputs:
         ip = Path(inp)
         if not ip.exists():
@@ -208,23 +217,24 @@ def check_not_input(output: PathLike, inputs: Iterable[PathLike], option: str = 
             elif out.is_symlink() or out.absolute() != out_real:
                 how = f" (it resolves to {str(out_real)!r})"
             raise OutputError(
-                f"{option} {str(out)!r} is the input {str(ip)!r}{how}; refusing to overwrite "
+                f"{shown} is the same file as {names.input(ip)}{how}; refusing to overwrite "
                 "an input. Choose another output path."
             )
         if ip.is_dir() and out.exists() and _within(out_real, in_real):
             raise OutputError(
-                f"{option} {str(out)!r} is a file of the input folder {str(ip)!r}; refusing to "
+                f"{shown} is a file of {names.input(ip, 'input folder')}; refusing to "
                 "overwrite an input. Choose another output path."
             )
         if out.is_dir() and _within(in_real, out_real):
             raise OutputError(
-                f"{option} folder {str(out)!r} contains the input {str(ip)!r}; writing the run's "
+                f"{shown} is a folder that contains {names.input(ip)}; writing the run's "
                 "products there would replace it. Choose another output folder."
             )
 
 
 def _os_error(exc: OSError, shown: str, doing: str) -> OutputError:
-    """One sentence for an OS error while ``doing`` something to ``shown``."""
+    """One sentence for an OS error while ``doing`` something to ``shown`` (a path as
+    :class:`PathNames` names it: ``--out 'x.csv'``)."""
     reason = exc.strerror or str(exc)
     hint = {
         errno.ENOSPC: " (the disk is full: free space or write elsewhere)",
@@ -235,7 +245,7 @@ def _os_error(exc: OSError, shown: str, doing: str) -> OutputError:
         errno.ENOTDIR: " (a file stands where a folder should be)",
         errno.EISDIR: " (it is a folder; give a file name)",
     }.get(exc.errno or -1, "")
-    return OutputError(f"cannot {doing} {shown!r}: {reason}{hint}.")
+    return OutputError(f"cannot {doing} {shown}: {reason}{hint}.")
 
 
 # --------------------------------------------------------------------------- atomic exchange
@@ -324,6 +334,8 @@ class RunProducts:
     _staged: dict[Path, Path] = field(default_factory=dict)  # final path -> staged path
     _dir_stage: Path | None = None
     _swap: bool = False
+    #: which command-line option gave each path (for the messages)
+    names: PathNames = field(default_factory=PathNames.from_context)
 
     # ---- setup
     def _open(self) -> None:
@@ -334,10 +346,10 @@ class RunProducts:
             self._declare(o)
 
     def _open_dir(self, d: Path) -> None:
-        check_not_input(d, self.inputs)
+        check_not_input(d, self.inputs, names=self.names)
         if d.exists() and not d.is_dir():
             raise OutputError(
-                f"--out {str(d)!r} is a file, but must be a folder; remove it or "
+                f"{self.names.output(d)} is a file, but must be a folder; remove it or "
                 "choose another path."
             )
         parent = d.absolute().parent
@@ -349,7 +361,7 @@ class RunProducts:
                     tempfile.mkdtemp(prefix=f".{d.name}{STAGE_PREFIX}", dir=parent)
                 )
             except OSError as exc:
-                raise _os_error(exc, str(d), "write the output folder") from exc
+                raise _os_error(exc, self.names.output(d), "write the output folder") from exc
         else:
             log.warning(
                 "%s holds files of other programs: products are replaced one by one "
@@ -374,34 +386,35 @@ class RunProducts:
         for o in self.outputs:
             if manifest is not None and o.resolve() == manifest.resolve():
                 raise OutputError(
-                    f"output {str(o)!r} is where the run's manifest goes; give it another path."
+                    f"{self.names.output(o)} is where the run's manifest goes (the manifest of "
+                    f"{self.names.output(self.outputs[0])}); give it another path."
                 )
             first = seen.setdefault(o.resolve(), o)
             if first is not o:
-                same = "" if str(first) == str(o) else f" as {str(first)!r}"
+                both = " and ".join(self.names.outputs([first, o]))
                 raise OutputError(
-                    f"output {str(o)!r} is given twice (the same file{same}): one product "
-                    "would overwrite the other. Give each product its own path."
+                    f"the same file is given twice, as {both}: one product would overwrite "
+                    "the other. Give each product its own path."
                 )
 
-    @staticmethod
-    def _mkparent(parent: Path, shown: Path) -> None:
+    def _mkparent(self, parent: Path, shown: Path) -> None:
         for anc in (parent, *parent.parents):
             if anc.exists() and not anc.is_dir():
                 raise OutputError(
-                    f"cannot write {str(shown)!r}: {str(anc)!r} is a file where a folder should be."
+                    f"cannot write {self.names.output(shown)}: {str(anc)!r} is a file where a "
+                    "folder should be."
                 )
         try:
             parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise _os_error(exc, str(shown), "create the folder of") from exc
+            raise _os_error(exc, self.names.output(shown), "create the folder of") from exc
 
     def _stage_for(self, parent: Path, shown: Path) -> Path:
         if parent not in self._stages:
             try:
                 self._stages[parent] = Path(tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=parent))
             except OSError as exc:
-                raise _os_error(exc, str(shown), "write") from exc
+                raise _os_error(exc, self.names.output(shown), "write") from exc
         return self._stages[parent]
 
     def _declare(self, o: Path) -> Path:
@@ -412,10 +425,12 @@ class RunProducts:
             staged.parent.mkdir(parents=True, exist_ok=True)
             self._staged[o] = staged
             return staged
-        check_not_input(o, self.inputs)
+        check_not_input(o, self.inputs, names=self.names)
         if o.is_dir() and o.suffix:
             # a folder product (a suffix-less ROS2 bag) may replace a folder; a file may not
-            raise OutputError(f"cannot write {str(o)!r}: it is a folder; give a file name.")
+            raise OutputError(
+                f"cannot write {self.names.output(o)}: it is a folder; give a file name."
+            )
         parent = o.absolute().parent
         self._mkparent(parent, o)
         staged = self._stage_for(parent, o) / o.name
@@ -443,7 +458,7 @@ class RunProducts:
         if p not in self.inputs:
             self.inputs.append(p)
             for o in self.outputs:
-                check_not_input(o, [p])
+                check_not_input(o, [p], names=self.names)
 
     def note(self, **fields: Any) -> None:
         """Extra JSON-serialisable fields for the manifest (e.g. a metrics summary)."""
@@ -453,7 +468,7 @@ class RunProducts:
     def _manifest(self, status: str, out_entries: list[dict[str, Any]]) -> dict[str, Any]:
         import stemmap
 
-        params = _cli_parameters()
+        params = cli_parameters()
         return {
             "schema": SCHEMA,
             "status": status,
@@ -583,18 +598,6 @@ class RunProducts:
         return p
 
 
-def _cli_parameters() -> dict[str, Any]:
-    """The parsed options of the running CLI command ({} outside a command)."""
-    import importlib
-
-    for mod in ("typer._click.globals", "click.globals"):  # typer >= 0.20 vendors click
-        with contextlib.suppress(ImportError, AttributeError):
-            ctx = importlib.import_module(mod).get_current_context(silent=True)
-            if ctx is not None:
-                return {k: json.loads(json.dumps(v, default=str)) for k, v in ctx.params.items()}
-    return {}
-
-
 def _within_stage(p: Path, run: RunProducts) -> bool:
     return run._dir_stage is not None and _within(p, run._dir_stage)
 
@@ -633,11 +636,13 @@ def run_products(
     OutputError
         An output is an input, or the OS refused a write (the message names the path).
     """
+    inputs, outputs = list(inputs), [*outputs, out_dir]
     run = RunProducts(
         command=command,
         inputs=[Path(p) for p in inputs if p is not None],
         out_dir=None if out_dir is None else Path(out_dir),
-        outputs=[Path(p) for p in outputs if p is not None],
+        outputs=[Path(p) for p in outputs[:-1] if p is not None],
+        names=PathNames.from_context(inputs, outputs),
     )
     try:
         run._open()
@@ -649,12 +654,14 @@ def run_products(
     except OSError as exc:
         run._abort()
         name = run._final_name(exc.filename)
-        doing = "write"
+        first = run.out_dir or (run.outputs[0] if run.outputs else None)
         if name is None:
-            name = str(run.out_dir or (run.outputs[0] if run.outputs else "the output"))
-        elif name == exc.filename and not any(str(o) == name for o in run.outputs):
-            doing = "access"  # not one of the products: an input or a temporary file
-        raise _os_error(exc, name, doing) from exc
+            shown = "the output" if first is None else run.names.output(first)
+            raise _os_error(exc, shown, "write") from exc
+        if name == exc.filename and not any(str(o) == name for o in run.outputs):
+            # not one of the products: an input or a temporary file
+            raise _os_error(exc, run.names.named(Path(name)), "access") from exc
+        raise _os_error(exc, run.names.output(Path(name)), "write") from exc
     except BaseException:
         run._abort()
         raise

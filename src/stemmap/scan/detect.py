@@ -12,8 +12,9 @@ in one batched 3x3 solve.
 Presets (``DetectorConfig.preset(name)``) reproduce each paper's published parameters; values a
 paper does not publish are marked in :data:`PRESET_NOTES` and in
 docs/algorithms/scan-detection.md. The numpy pipeline's per-segment fits and the columns
-derived from them are :mod:`stemmap.scan._segment_fits`; the compiled pipeline is
-:mod:`stemmap.scan._detect_fast`.
+derived from them are :mod:`stemmap.scan._segment_fits`; how the re-fitted pieces of merged
+candidates and their largest arcs join its output is :mod:`stemmap.scan._pieces`; the compiled
+pipeline is :mod:`stemmap.scan._detect_fast`.
 """
 
 from __future__ import annotations
@@ -29,12 +30,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import chdtri
 
 from stemmap.errors import ConfigError, InputError
-from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._behind import trim_behind
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._lobed import lobed_refit
-from stemmap.scan._refit import Refitted, corner_cut_pieces, refit_pieces, split_refit
+from stemmap.scan._pieces import arc_candidates, split_pieces
+from stemmap.scan._refit import corner_cut_pieces
 from stemmap.scan._segment_fits import (
     _fit_rms,
     _fit_segments,
@@ -42,8 +43,6 @@ from stemmap.scan._segment_fits import (
     _output_columns,
     fit_kasa_segments,
 )
-from stemmap.scan._split_search import search_refit
-from stemmap.scan._step_split import step_refit
 from stemmap.scan._stubs import first_echo, trim_stubs
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
@@ -58,7 +57,6 @@ from stemmap.scan.features import (
     segment_widths,
 )
 from stemmap.scan.plausibility import (
-    REASONS,
     fitted_reasons,
     own_noise,
     range_roughness,
@@ -98,11 +96,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-# ----------------------------------------------------------------------------------------------
-# batched fits
-# ----------------------------------------------------------------------------------------------
 
 
 # ----------------------------------------------------------------------------------------------
@@ -668,48 +661,14 @@ class ScanTrunkDetector:
         ok = codes == 0
         cols = _output_columns(segs, fitted, ok)
         order_key = 2 * pos[ok]
-        if (corners or search) and len(every):
-            # not convex (depth) or failed the RMS test: a trunk merged with its neighbour
-            depth = segment_reasons(every, segment_features(every), cfg) == _DEPTH
-            which = depth.copy()
-            which[pos[codes == _RMS]] = True
-            got = split_refit(self, every, which, grid, wrap) if corners else None
-            if cfg.step_split:
-                # failed the RMS test, no trunk from the corner split: cut at the largest step
-                rms = np.zeros(len(every), dtype=bool)
-                rms[pos[codes == _RMS]] = True
-                if got is not None:
-                    rms[got.parent[got.ok]] = False
-                    which[got.parent[got.ok]] = False
-                cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
-                for g in step_refit(self, every, rms, grid, wrap):
-                    which[g.parent[g.ok]] = False
-                    cols, order_key = self._add_pieces(cols, order_key, g, grid, wrap, fate)
-                got = None
-            if cfg.split_search:
-                # the candidates whose corner split gave no trunk: search every cut; unless
-                # split_search_convex, only those that are not convex (depth): one convex
-                # outline that fails the RMS test is as often a lumpy object (a rock) as a
-                # trunk with a stub (sixteenth round)
-                if not cfg.split_search_convex:
-                    which &= depth
-                if got is not None:
-                    which[got.parent[got.ok]] = False
-                cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
-                got = search_refit(self, every, which, grid, wrap)
-            cols, order_key = self._add_pieces(cols, order_key, got, grid, wrap, fate)
-        elif cfg.refit_pieces:
-            got = refit_pieces(self, segs, fitted, codes, grid, wrap)
-            if fate is not None and got is not None:
-                fate["split"].append((pos[got.parent], got.ok))
-            if got is not None and np.any(got.ok):
-                more = _output_columns(got.segs, got.fitted, got.ok)
-                # a piece takes its parent's place in the output (the parent failed)
-                cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
-                order_key = np.concatenate((order_key, 2 * pos[got.parent[got.ok]] + 1))
+        # a trunk merged with its neighbour: the accepted pieces of its split, then the largest
+        # consistent arcs take their parents' places (stemmap.scan._pieces)
+        cols, order_key = split_pieces(
+            self, every, segs, fitted, codes, pos, cols, order_key, grid, wrap, fate
+        )
         if cfg.arc_refit and len(every):
-            cols, order_key = self._arc_candidates(
-                every, cols, order_key, fitted.rms[ok], grid, wrap, fate
+            cols, order_key = arc_candidates(
+                self, every, cols, order_key, fitted.rms[ok], grid, wrap, fate
             )
         log.debug(
             "%d scans: %d candidate segments, %d trunks after the fit checks (%s)",
@@ -736,28 +695,6 @@ class ScanTrunkDetector:
             frame=frame,
         )
 
-    def _add_pieces(
-        self,
-        cols: dict[str, np.ndarray],
-        order_key: np.ndarray,
-        got: Refitted | None,
-        grid: FloatArray,
-        wrap: bool,
-        fate: dict[str, Any] | None = None,
-    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """The accepted pieces of a split (``got``, parents indexing every candidate) added to
-        the output; each takes its parent's place (odd order key). ``behind_sigmas`` trims
-        them as it trims accepted candidates. ``fate``: :meth:`_run_numpy`."""
-        if fate is not None and got is not None:
-            fate["split"].append((got.parent, got.ok))
-        if got is None or not np.any(got.ok):
-            return cols, order_key
-        p_segs, p_fit = self._trim_ends(got.segs, got.fitted, got.ok, grid, wrap)
-        got = got._replace(segs=p_segs, fitted=p_fit)
-        more = _output_columns(got.segs, got.fitted, got.ok)
-        cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
-        return cols, np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
-
     def _trim_ends(
         self,
         segs: Segments,
@@ -776,66 +713,3 @@ class ScanTrunkDetector:
         if math.isfinite(cfg.stub_sigmas) and np.any(which):
             segs, fitted = trim_stubs(self, segs, fitted, which, grid, wrap)
         return segs, fitted
-
-    def _arc_candidates(
-        self,
-        every: Segments,
-        cols: dict[str, np.ndarray],
-        order_key: np.ndarray,
-        parent_rms: FloatArray,
-        grid: FloatArray,
-        wrap: bool,
-        fate: dict[str, Any] | None = None,
-    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """``arc_refit``: the largest consistent arcs (:func:`~stemmap.scan._arcs.arc_pieces`)
-        of the candidates of ``every`` rejected as not convex (``depth``); a passing arc takes
-        its parent's place in the output. With a finite ``arc_replace`` also of the accepted
-        candidates (``order_key`` even, fit RMS ``parent_rms`` in the same order)."""
-        # rejected for not being a convex arc: a trunk that runs on into a branch (lidR,
-        # scan-detection-history.md); pieces of candidates that failed the RMS test were tried too
-        # and passed as trunks on the simulator's bushes (precision 0.975 -> 0.947)
-        cfg = self.config
-        which = segment_reasons(every, segment_features(every), cfg) == _DEPTH
-        # a candidate whose corner split (refit_split="corners") gave a trunk is done: its arc
-        # would be the same trunk twice
-        which[order_key[order_key % 2 == 1] // 2] = False
-        replace = math.isfinite(cfg.arc_replace)
-        if replace:
-            # accepted candidates too: kept (output row) ones at even keys
-            rms_of = np.full(len(every), np.nan)
-            rms_of[order_key[order_key % 2 == 0] // 2] = parent_rms
-            which |= np.isfinite(rms_of)
-        got = arc_pieces(self, every, which, grid, wrap, corrected=False)
-        if fate is not None and got is not None:  # (pieces of rejected parents: as accepted)
-            fate["arc"].append((got.parent, got.ok))
-        if got is None or not np.any(got.ok):
-            return cols, order_key
-        ok = got.ok.copy()
-        stay = np.ones(order_key.shape[0], dtype=bool)
-        if replace:
-            par_rms = rms_of[got.parent]
-            acc = np.isfinite(par_rms)
-            # an accepted candidate gives way to its arc only when the arc explains its
-            # returns much better (a fillet or stub at one end pulled the whole fit) and its
-            # own residuals are not the range noise: it fails the upper 1 % chi^2 test the
-            # arc passes (n x RMS^2 > chi2_0.99(n - 3) x sigma^2; a 5-return arc of a good
-            # 6-return fit reads a third of its RMS by chance: demo seed 1, scan 475)
-            sig = got.fitted.sigma
-            better = par_rms > np.maximum(cfg.arc_replace * got.fitted.rms, sig)
-            n_par = every.counts[got.parent]
-            limit = chdtri(np.maximum(n_par - 3, 1).astype(np.float64), 0.01)
-            with np.errstate(invalid="ignore"):
-                better &= n_par * par_rms * par_rms > limit * sig * sig
-            ok &= ~acc | better
-            gone = got.parent[ok & acc]
-            stay = ~(np.isin(order_key // 2, gone) & (order_key % 2 == 0))
-        if not np.any(ok):
-            return cols, order_key
-        g_segs, g_fit = self._trim_ends(got.segs, got.fitted, ok, grid, wrap, behind=False)
-        more = _output_columns(g_segs, g_fit, ok)
-        cols = {k: np.concatenate((cols[k][stay], more[k])) for k in cols}
-        return cols, np.concatenate((order_key[stay], 2 * got.parent[ok] + 1))
-
-
-_DEPTH = REASONS.index("depth")
-_RMS = REASONS.index("rms")

@@ -372,7 +372,25 @@ class SlamProblem:
         Vehicle pose at ``frames.times[0]``.
     name : str
     max_range : float, m
-        Range beyond which the detector reports nothing (used by negative information).
+        The sensor's declared range: how far the detector can report a tree (a scan file's
+        ``range_max``, Victoria Park's 80 m; default inf = not declared). A declaration, not
+        a filter of the detections: no back-end's ``run`` reads it. Which detections a
+        back-end uses is its own setting (iSAM2, Forestrix and the tree DB: their config's
+        ``max_range``, 50 m by default; the EKF: ``max_new_range`` for new trees; FastSLAM:
+        no range limit). It bounds where a tree is *expected* to be seen, and caps one
+        local map:
+
+        * :func:`~stemmap.slam.uncertainty.annotate_uncertainty` (every ``map`` / ``demo``
+          run): far end of the range window in which a mapped tree should have been detected
+          (its ``confidence``), ``min(max_range, 90th percentile of the detection ranges)``;
+        * :func:`~stemmap.slam.negative.remove_false_trees_after` (Forestrix with
+          ``false_trees="detections"``): far end of the window in which an undetected tree
+          counts against it, ``min(max_range, 30 m)``. Forestrix's default ray casting
+          (``"rays"``) does not read it;
+        * :func:`~stemmap.slam.relocalise.relocalise` (``--prior-map``): the local map it
+          matches to the prior map is built from the detections within
+          ``min(max_range, 40 m)`` only -- the one use that leaves detections out, of that
+          local map, never of the run's map.
     fov : (min, max), rad
         Bearing window of the detector in the sensor frame.
     gnss : GnssFixes or None

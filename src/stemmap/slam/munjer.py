@@ -379,7 +379,11 @@ def munjer_problem(
     max_range: float = math.inf,
     name: str = "munjer2025",
 ) -> SlamProblem:
-    """A SLAM problem from per-frame detections (sensor = vehicle frame) and a motion source."""
+    """A SLAM problem from per-frame detections (sensor = vehicle frame) and a motion source.
+
+    ``max_range`` is the sensor's declared range (``SlamProblem.max_range``): it bounds where
+    the post-steps expect a tree to be seen; it drops no detection.
+    """
     frames = TreeFrames.from_observations(observations, times)
     return SlamProblem(
         controls,
