@@ -18,7 +18,9 @@ written as ``gyro_z = yaw_rate``, ``wheel_speed = speed``. The motion record is
 Per entry: ``true_m`` (the true poses' polyline, every pose), ``before_m`` (sum of the estimated
 steps, the code before the fix), ``after_m`` (the reported ``distance_m``), their errors in % of
 the true length, ``drift_estimate_before`` / ``_after`` (``drift_estimate_percent``, which is
-inversely proportional to the distance) and ``end_drift_percent`` (the measured end-point
+inversely proportional to the square root of the distance since the Dec 4 drift estimate fix,
+docs/algorithms/odometry.md "Drift estimate"; to the distance before it, the table there)
+and ``end_drift_percent`` (the measured end-point
 error, % of the true length; the map frame put on the true first pose).
 
 Usage::
@@ -84,7 +86,7 @@ def _measure(bundle: Path, imu: Path | None) -> dict[str, Any]:
         "before_error_percent": round(100.0 * (before / true_m - 1.0), 2),
         "after_m": round(after, 3),
         "after_error_percent": round(100.0 * (after / true_m - 1.0), 2),
-        "drift_estimate_before": None if est is None else round(est * after / before, 3),
+        "drift_estimate_before": None if est is None else round(est * (after / before) ** 0.5, 3),
         "drift_estimate_after": None if est is None else round(est, 3),
         "end_drift_percent": round(100.0 * float(np.hypot(*end)) / true_m, 3),
     }

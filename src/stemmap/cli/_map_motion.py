@@ -262,10 +262,10 @@ def motion_trajectory(
             )
     dist = path_length(traj)
     info["distance_m"] = round(dist, 3)
-    c = lidar.increment_cov
-    info["drift_estimate_percent"] = _random_walk_percent(c[:, 0, 0] + c[:, 1, 1], dist)
+    info["drift_estimate_percent"] = _random_walk_percent([lidar.drift_xy_variance(dist)], dist)
     info["drift_method"] = (
-        "lidar registration covariances (Gauss-Newton, floored) as a random walk"
+        "lidar scan-to-map random walk per distance (drift_xy_per_sqrt_m, measured on "
+        "simulated drives) plus the registration covariances above their floor"
         + ("; the fused path follows the lidar's scan-to-map poses" if fused is not None else "")
     )
     if fused is not None:
