@@ -1,0 +1,168 @@
+"""Benchmark: the visual odometry's drift estimate (``drift_estimate_percent`` of ``stemmap map
+--motion visual``) against the measured drift, on rendered stereo drives at several camera
+rates.
+
+Drives: the S-curve along the middle aisle of a 3-row orchard of tests/odometry/conftest.py
+(rows 4 m apart, trees 3 m apart; :func:`stemmap.sim.render.render_stereo` with the default
+``StereoCamera``, 320 x 200 px, 2 grey levels of pixel noise), ``--length`` metres at 1 m/s,
+rendered at each ``--rates`` (Hz) for each seed (seed = the stand's jitter and the pixel
+noise). Each is run through :func:`stemmap.odometry.visual.run_visual_odometry` and
+:func:`~stemmap.odometry.visual.planar_from_camera` with the default config, as ``stemmap map
+--motion visual --camera FOLDER`` does (``stemmap.cli._odometry_camera.camera_trajectory``).
+
+Per rate (seeds pooled) it prints: ``end_rms`` (RMS over seeds of the end-point error, % of
+the true length; the odometry frame is the vehicle at the first frame), split into ``along``
+(mean and RMS of its component along the final true heading: a scale error) and ``cross_rms``
+(across it), ``length_err`` (mean error of the reported ``distance_m`` against the true
+length, %), ``step_sd`` (std of the frame-to-frame forward error, m: what
+``VISUAL_STEP_SIGMA[0]`` models), ``keyframes`` (mean count) and ``estimate`` (median of the
+reported ``drift_estimate_percent``: ``VISUAL_STEP_SIGMA[0]`` per axis per frame as independent
+steps, computed with ``_random_walk_percent`` as ``motion_trajectory`` does) with
+``estimate / end_rms``.
+
+Usage::
+
+    python benchmarks/visual_drift_calibration.py [--rates 5 10 20] [--seeds 0 1 2]
+        [--length 10] [--work DIR]
+
+``--work DIR`` keeps each run's trajectories (``vo_<rate>hz_s<seed>.npz``); with the files
+present they are re-read instead of re-rendered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stemmap.cli._map_motion import _random_walk_percent
+from stemmap.eval.trajectory import path_length
+from stemmap.odometry.visual import VISUAL_STEP_SIGMA, StereoCalibration, VoStatus
+from stemmap.types import Trajectory
+
+
+def s_curve(length: float, rate_hz: float, speed: float = 1.0) -> Trajectory:
+    """tests/odometry/conftest.py's S-curve along the aisle y = 2 m, ``length`` m long (in x)."""
+    t = np.arange(round(length / speed * rate_hz) + 1) / rate_hz
+    x = -2.0 + speed * t
+    y = 2.0 + 0.3 * np.sin(x / 4.0)
+    th = np.arctan2(0.3 / 4.0 * np.cos(x / 4.0), 1.0)
+    return Trajectory(t, np.column_stack((x, y, th)), frame="world")
+
+
+def simulate_visual_drive(
+    rate_hz: float, seed: int, length: float
+) -> tuple[Trajectory, Trajectory, int]:
+    """(visual odometry vehicle path in its odom frame, truth in the same frame, keyframes)."""
+    from stemmap.odometry.visual import VisualFrame, planar_from_camera, run_visual_odometry
+    from stemmap.sim.forest import row_stand
+    from stemmap.sim.render import StereoCamera, iter_stereo, stand3d_from_stand
+
+    stand = row_stand(3, 10, row_spacing=4.0, tree_spacing=3.0, rng=seed + 1)
+    cam = StereoCamera(rate_hz=rate_hz)
+    truth = s_curve(length, rate_hz)
+    k = cam.K
+    calib = StereoCalibration(
+        cam.fx, cam.fx, k[0, 2], k[1, 2], cam.width, cam.height, baseline=cam.baseline
+    )
+    frames = (
+        VisualFrame(f.time, f.left, f.right)
+        for f in iter_stereo(stand3d_from_stand(stand, rng=seed + 2), truth, cam, rng=seed)
+    )
+    res = run_visual_odometry(frames, calib)
+    traj = planar_from_camera(res, cam.vehicle_from_camera())
+    return traj, in_start_frame(truth), int(np.sum(res.status == VoStatus.KEYFRAME))
+
+
+def in_start_frame(truth: Trajectory) -> Trajectory:
+    """The truth in the frame of its first pose (the visual odometry's odom frame)."""
+    p = truth.poses
+    c, s = math.cos(p[0, 2]), math.sin(p[0, 2])
+    d = p[:, :2] - p[0, :2]
+    xy = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
+    return Trajectory(truth.times, np.column_stack((xy, p[:, 2] - p[0, 2])), frame="odom")
+
+
+def reported_estimate(traj: Trajectory) -> float | None:
+    """``drift_estimate_percent`` of ``stemmap map --motion visual`` for this path (as
+    :func:`stemmap.cli._map_motion.motion_trajectory`: one step of ``VISUAL_STEP_SIGMA[0]`` per
+    axis per frame, independent, over ``path_length``)."""
+    n = len(traj) - 1
+    return _random_walk_percent(np.full(n, 2.0 * VISUAL_STEP_SIGMA[0] ** 2), path_length(traj))
+
+
+def measure(traj: Trajectory, truth: Trajectory, keyframes: int) -> dict[str, float]:
+    """One run: the reported estimate and the measured end error (both % of distance)."""
+    true_m = path_length(truth, min_step=0.0)
+    err = traj.poses[-1, :2] - truth.poses[-1, :2]
+    th = float(truth.poses[-1, 2])
+    step = np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)
+    true_step = np.hypot(*np.diff(truth.poses[:, :2], axis=0).T)
+    est = reported_estimate(traj)
+    return {
+        "frames": float(len(traj)),
+        "keyframes": float(keyframes),
+        "distance_m": path_length(traj),
+        "end": 100.0 * float(np.hypot(*err)) / true_m,
+        "along": 100.0 * float(err[0] * math.cos(th) + err[1] * math.sin(th)) / true_m,
+        "cross": 100.0 * float(-err[0] * math.sin(th) + err[1] * math.cos(th)) / true_m,
+        "length_err": 100.0 * (path_length(traj) / true_m - 1.0),
+        "step_sd": float(np.std(step - true_step)),
+        "estimate": float("nan") if est is None else est,
+    }
+
+
+def _summary(runs: list[dict[str, float]]) -> dict[str, Any]:
+    g = {k: np.array([r[k] for r in runs]) for k in runs[0]}
+    end_rms = float(np.sqrt(np.mean(g["end"] ** 2)))
+    est = float(np.median(g["estimate"]))
+    return {
+        "n": len(runs),
+        "frames": float(np.mean(g["frames"])),
+        "keyframes": round(float(np.mean(g["keyframes"])), 1),
+        "distance_m": round(float(np.mean(g["distance_m"])), 2),
+        "end": [round(float(e), 3) for e in g["end"]],
+        "end_rms": round(end_rms, 3),
+        "along_mean": round(float(np.mean(g["along"])), 3),
+        "along_rms": round(float(np.sqrt(np.mean(g["along"] ** 2))), 3),
+        "cross_rms": round(float(np.sqrt(np.mean(g["cross"] ** 2))), 3),
+        "length_err": round(float(np.mean(g["length_err"])), 3),
+        "step_sd": round(float(np.median(g["step_sd"])), 4),
+        "estimate": round(est, 3),
+        "estimate_over_end": round(est / end_rms, 2),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rates", type=float, nargs="+", default=[5.0, 10.0, 20.0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--length", type=float, default=10.0)
+    ap.add_argument("--work", type=Path, default=None)
+    args = ap.parse_args(argv)
+    for rate in args.rates:
+        runs = []
+        for seed in args.seeds:
+            f = None if args.work is None else args.work / f"vo_{rate:g}hz_s{seed}.npz"
+            if f is not None and f.exists():
+                z = np.load(f)
+                traj = Trajectory(z["t"], z["vo"], frame="odom")
+                truth = Trajectory(z["t"], z["truth"], frame="odom")
+                kf = int(z["keyframes"])
+            else:
+                traj, truth, kf = simulate_visual_drive(rate, seed, args.length)
+                if f is not None:
+                    f.parent.mkdir(parents=True, exist_ok=True)
+                    np.savez(f, t=traj.times, vo=traj.poses, truth=truth.poses, keyframes=kf)
+            runs.append(measure(traj, truth, kf))
+            print(json.dumps({"rate_hz": rate, "seed": seed, **runs[-1]}), flush=True)
+        print(json.dumps({f"{rate:g}hz": _summary(runs)}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
