@@ -1,7 +1,8 @@
 """Benchmark: every real cloud in ../shared/datasets through ``detect_stems_file`` (preset ours,
-heights on), each stem against a reference circle fitted to the cloud's own ring at the
-measurement height (:func:`stemmap.cloud.reference.ring_reference`, with its RMS and arc), the
-tree height against the cloud's top above the stem's base, and the stem profile's reach.
+heights on), each stem against the fixed reference circle of the cloud's own ring at breast
+height that it pairs with (``_cloud_refs``: converged from 15 start circles about a committed
+seed, never from the detector; with its RMS, arc and spread over the starts), the tree height
+against the cloud's top above the stem's base, and the stem profile's reach.
 
 Prints ONE JSON object. Usage: python benchmarks/cloud_real.py
 """
@@ -15,37 +16,31 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.cloud.reference import stem_references
+from _cloud_refs import CLOUDS, fixed_references, load_seeds, reference_of_each
 from stemmap.cloud.result import BASE_SLICE
 from stemmap.cloud.stems import StemConfig, detect_stems_file
 from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 from stemmap.products.forestry import stem_profiles, stem_volume
 
-CLOUDS = {
-    "treels_spruce": "treels/spruce.laz",
-    "treels_pine": "treels/pine.laz",
-    "treels_pine_plot": "treels/pine_plot.laz",
-    "archi_tree_1": "archi/Tree_1_point_cloud.las",
-    "archi_tree_2": "archi/Tree_2_point_cloud.las",
-    "lidr_dbh": "lidr_dbh/dbh.laz",
-    "fortls_slice": "fortls_slice/diameters.laz",
-}
+__all__ = ["CLOUDS", "run_one"]  # CLOUDS: the clouds measured (cloud_robustness.py uses them)
 
 
 def _r(v: float, nd: int = 4) -> float | None:
     return round(float(v), nd) if np.isfinite(v) else None
 
 
-def run_one(path: str) -> dict[str, Any]:
+def run_one(path: str, key: str) -> dict[str, Any]:
     xyz = read_cloud(path).xyz
+    refs = fixed_references(xyz, load_seeds()[key])
     t0 = time.perf_counter()
     det = detect_stems_file(path, replace(StemConfig(), estimate_height=True))
     dt = time.perf_counter() - t0
     profs = stem_profiles(xyz, det) if det.base != BASE_SLICE else []
     stems = []
     errs_full = []
-    for i, ref in enumerate(stem_references(xyz, det)):
+    paired = reference_of_each(refs, det.xy)
+    for i, hit in enumerate(paired):
         base_z = float(det.z[i] - det.dbh_height[i])
         row: dict[str, Any] = {
             "x": _r(det.xy[i, 0], 3),
@@ -55,9 +50,12 @@ def run_one(path: str) -> dict[str, Any]:
             "dbh_height_m": _r(det.dbh_height[i], 2),
             "dbh_rule": str(det.dbh_rule[i]),
         }
-        if ref is not None:
+        if hit is not None:
+            k, ref = hit
             row |= {
+                "ring_id": k,
                 "ring_dbh_cm": _r(100 * ref.diameter, 2),
+                "ring_spread_cm": _r(100 * ref.spread, 2),
                 "ring_rms_cm": _r(100 * ref.rms, 2),
                 "ring_arc_deg": _r(ref.arc_deg, 0),
                 "ring_points": ref.n,
@@ -77,6 +75,7 @@ def run_one(path: str) -> dict[str, Any]:
             row["volume_m3"] = _r(vol, 4)
         stems.append(row)
     e = np.asarray(errs_full)
+    used = {h[0] for h in paired if h is not None}
     return {
         "file": path,
         "n_points": int(xyz.shape[0]),
@@ -87,6 +86,12 @@ def run_one(path: str) -> dict[str, Any]:
         "full_ring_stems": int(e.size),
         "dbh_rmse_vs_full_rings_cm": _r(100 * float(np.sqrt(np.mean(e**2))), 2) if e.size else None,
         "dbh_bias_vs_full_rings_cm": _r(100 * float(np.mean(e)), 2) if e.size else None,
+        "references": len(refs),
+        "references_unpaired": [
+            {"ring_id": k, "ring_dbh_cm": _r(100 * r.diameter, 2), "ring_full": r.full}
+            for k, r in enumerate(refs)
+            if r is not None and k not in used
+        ],
         "stems": stems,
     }
 
@@ -97,9 +102,10 @@ def main() -> None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
     out = {
         "benchmark": "cloud_real",
-        "note": "ring references share the points with the detector, not its machinery; times "
-        "from a loaded shared machine",
-        "clouds": {k: run_one(str(root / v)) for k, v in CLOUDS.items()},
+        "note": "ring references share the points with the detector, not its machinery nor "
+        "its stems (fixed seeds, benchmarks/_cloud_ring_seeds.json); ring_spread_cm = range "
+        "of the ring fits from 15 start circles; times from a loaded shared machine",
+        "clouds": {k: run_one(str(root / v), k) for k, v in CLOUDS.items()},
     }
     print(json.dumps(out, indent=1))
 
