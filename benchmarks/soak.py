@@ -78,11 +78,11 @@ def _count_graph_growth() -> list[int]:
     after the first; ``factored``: the trees of one keyframe's measurement factors), wrapped
     for this process only.
     """
-    import stemmap.slam.graph as graph
+    import stemmap.slam._graph_run as graph_run  # where Isam2Slam's run builds its gate
 
     n = [0, 0]
 
-    class Gate(graph.RevisitGate):
+    class Gate(graph_run.RevisitGate):
         def entered(self, xy: Any, s: float, anchored: bool = False) -> None:
             n[0] += 1
             super().entered(xy, s, anchored)
@@ -91,7 +91,7 @@ def _count_graph_growth() -> list[int]:
             n[1] += int(trees.size)
             super().factored(trees, s)
 
-    graph.RevisitGate = Gate  # type: ignore[misc]
+    graph_run.RevisitGate = Gate  # type: ignore[misc]
     return n
 
 
@@ -167,7 +167,7 @@ def _worker(
 ) -> dict[str, Any]:
     import stemmap.cli._map as cli_map
     import stemmap.slam.base as slam_base
-    import stemmap.slam.graph as slam_graph
+    import stemmap.slam._graph_run as slam_graph  # the iSAM2 run's HeapTrimmer
     from stemmap.cli import app
     from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
