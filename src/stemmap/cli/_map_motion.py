@@ -181,17 +181,42 @@ def vehicle_path(traj: Any, sensor_offset: tuple[float, float]) -> Any:
 
 
 def wheel_drift_estimate(controls: Any, model: Any) -> dict[str, Any]:
-    """The wheel odometry's drift estimate from the mapper's motion model: per-second speed
-    noise ``sigma_speed`` as a random walk over the run (heading noise not included)."""
+    """The wheel odometry's drift estimate: the mapper's motion model propagated to the end of
+    the run (first order, along the dead-reckoned path of the controls).
+
+    Each control interval ``k`` (``dt_k`` s, held speed and yaw rate) adds independent errors of
+    the :class:`~stemmap.slam.motion.UnicycleModel`: distance ``sigma_speed² dt_k`` along the
+    heading, sideways ``sigma_lateral² dt_k``, and heading ``sigma_steer² dt_k``. A heading
+    error made at ``p_k`` (the interval's mid point) turns the rest of the path about ``p_k``,
+    so it moves the end point by ``dtheta_k * |p_end - p_k|``. The end point's xy variance is::
+
+        sum_k dt_k (sigma_speed² + sigma_lateral² + sigma_steer² |p_end - p_k|²)
+
+    (the linearised covariance propagation of the EKF prediction, Thrun, Burgard & Fox,
+    "Probabilistic Robotics" 2005, §5.4 and §3.3, summed in closed form). On a straight drive
+    of ``T`` s at speed ``v`` the heading term is ``sigma_steer² v² T³ / 3``: the cross-track
+    error grows as ``T^1.5``, faster than the speed term's ``sqrt(T)``. The model has no scale
+    or bias term, so a wrong wheel radius or a gyro bias is not in the estimate
+    (docs/algorithms/odometry.md, "Wheel odometry").
+    """
     t = np.asarray(controls.times, dtype=np.float64)
     dt = np.diff(t)
-    dist = float(np.sum(np.abs(np.asarray(controls.speed)[:-1]) * dt))
-    var = model.sigma_speed**2 * dt  # (m/s)^2 per 1-s average, times seconds -> m^2
+    v = np.asarray(controls.speed, dtype=np.float64)[:-1]
+    w = np.asarray(controls.steer, dtype=np.float64)[:-1]  # unicycle: yaw rate, rad/s
+    dist = float(np.sum(np.abs(v) * dt))
+    heading = np.concatenate(([0.0], np.cumsum(w * dt)))[:-1] + 0.5 * w * dt  # mid heading
+    step = (v * dt)[:, None] * np.column_stack((np.cos(heading), np.sin(heading)))
+    start = np.cumsum(step, axis=0) - step  # each interval's start, the run starting at 0
+    lever2 = np.sum((start[-1] + step[-1] - (start + 0.5 * step)) ** 2, axis=1) if dt.size else dt
+    sig_lat = float(getattr(model, "sigma_lateral", 0.0))
+    var_along = (model.sigma_speed**2 + sig_lat**2) * dt  # (m/s)^2 per 1-s average * s -> m^2
+    var_heading = model.sigma_steer**2 * dt * lever2  # rad^2 * m^2
     return {
         "distance_m": round(dist, 3),
-        "drift_estimate_percent": _random_walk_percent(var, dist),
-        "drift_method": "motion-model speed noise (sigma_speed, 1-s averages) as a random walk; "
-        "heading noise and scale errors not included",
+        "drift_estimate_percent": _random_walk_percent(var_along + var_heading, dist),
+        "drift_method": "motion-model speed and yaw-rate noise (sigma_speed, sigma_yaw_rate, "
+        "1-s averages) propagated along the dead-reckoned path; scale and bias errors not "
+        "included",
     }
 
 
