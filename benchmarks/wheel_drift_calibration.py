@@ -2,8 +2,9 @@
 with ``--motion wheel``, :func:`stemmap.cli._map_motion.wheel_drift_estimate`) against the
 measured end drift of dead-reckoning the wheel odometry, on simulated logs.
 
-Runs: ``stemmap sim scans`` 2D logs (default stand and loop, 1 m/s, ``wheel`` odometry preset at
-50 Hz, scans at 10 Hz; the scans are not used), ``--length`` metres each, one per seed. Per run:
+Runs: ``stemmap sim scans`` 2D logs (default stand, ``--path`` loop by default, 1 m/s, ``wheel``
+odometry preset at 50 Hz, scans at 10 Hz; the scans are not used), ``--length`` metres each, one
+per seed. Per run:
 
 * measured: the noisy ``NAME_odometry.csv`` and the true controls (``NAME_truth.npz``
   ``true_speed``, ``true_yaw_rate``, same times) dead-reckoned by the same integrator from the
@@ -23,7 +24,8 @@ their ratios to ``end_rms``.
 
 Usage::
 
-    python benchmarks/wheel_drift_calibration.py [--seeds 0 1 2 3 4 5] [--length 30]
+    python benchmarks/wheel_drift_calibration.py [--seeds 0 1 2 3 4 5] [--length 30 60]
+        [--path loop|lawnmower|straight]
 """
 
 from __future__ import annotations
@@ -58,11 +60,11 @@ def dead_reckon(times: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray) -> n
     return np.c_[xy, theta]
 
 
-def simulate_log(work: Path, seed: int, length_m: float) -> Path:
-    """A ``stemmap sim scans`` log of ``length_m`` m at 1 m/s (10 Hz scans)."""
-    out = work / f"s{seed}_{length_m:g}m.npz"
-    args = ["sim", "scans", "--out", str(out), "--seed", str(seed), "--speed", "1",
-            "--rate-hz", "10", "--n-scans", str(round(10 * length_m)), "-q"]  # fmt: skip
+def simulate_log(work: Path, seed: int, length_m: float, path: str = "loop") -> Path:
+    """A ``stemmap sim scans`` log of ``length_m`` m at 1 m/s (10 Hz scans) along ``path``."""
+    out = work / f"{path}_s{seed}_{length_m:g}m.npz"
+    args = ["sim", "scans", "--out", str(out), "--seed", str(seed), "--speed", "1", "--path",
+            path, "--rate-hz", "10", "--n-scans", str(round(10 * length_m)), "-q"]  # fmt: skip
     res = CliRunner().invoke(app, args)
     if res.exit_code != 0:
         raise RuntimeError(f"stemmap {' '.join(args)} failed: {res.output}")
@@ -122,17 +124,31 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
     ap.add_argument("--length", type=float, nargs="+", default=[30.0, 60.0])
+    ap.add_argument("--path", default="loop", help="stemmap sim scans --path")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         for length in args.length:
             runs = []
             for seed in args.seeds:
-                r = measure(simulate_log(Path(tmp), seed, length))
+                r = measure(simulate_log(Path(tmp), seed, length, args.path))
                 runs.append(r)
-                row = {"length": length, "seed": seed, **{k: round(x, 4) for k, x in r.items()}}
+                row = {
+                    "path": args.path,
+                    "length": length,
+                    "seed": seed,
+                    **{k: round(x, 4) for k, x in r.items()},
+                }
                 print(json.dumps(row), flush=True)
             s = summary(runs)
-            print(json.dumps({"length": length, "summary": {k: round(x, 3) for k, x in s.items()}}))
+            print(
+                json.dumps(
+                    {
+                        "path": args.path,
+                        "length": length,
+                        "summary": {k: round(x, 3) for k, x in s.items()},
+                    }
+                )
+            )
     return 0
 
 
