@@ -166,8 +166,8 @@ def _worker(
     backend: str, repeats: int, data: str | None, settings: dict[str, Any]
 ) -> dict[str, Any]:
     import stemmap.cli._map as cli_map
-    import stemmap.slam.base as slam_base
     import stemmap.slam._graph_run as slam_graph  # the iSAM2 run's HeapTrimmer
+    import stemmap.slam.base as slam_base
     from stemmap.cli import app
     from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
