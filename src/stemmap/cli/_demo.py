@@ -323,8 +323,7 @@ def demo(
 
     with fail_on_stemmap_error(), run_products("demo", out_dir=out_dir) as run:
         # after the output folder is checked, not before
-        if not quiet:
-            announce_compile("scan", backend=backend.value)
+        announce_compile("scan", backend=backend.value, quiet=quiet)
         m = run_demo(
             run.dir,
             seed=seed,

@@ -179,9 +179,8 @@ def detect(
             )
         skipped: list[SkippedFrame] = []
         batch = read_scans(scan, topic=topic, skipped=skipped)
-        if not quiet:
-            # the first run compiles the detector for minutes before the progress bar starts
-            announce_compile("scan")
+        # the first run compiles the detector for minutes before the progress bar starts
+        announce_compile("scan", quiet=quiet)
         roll, pitch = _scan_attitude(scan, imu_topic, batch.times)
         for sk in skipped:
             console.print(

@@ -389,8 +389,7 @@ def map_command(
             )
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         areas = () if dataset is not None else ("scan",)
-        if not quiet:
-            announce_compile(*areas, backend=backend.value)
+        announce_compile(*areas, backend=backend.value, quiet=quiet)
         motion_run = None
         if bag is not None and motion_src != Motion.wheel:
             motion_run = motion_trajectory(

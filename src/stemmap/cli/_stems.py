@@ -317,8 +317,8 @@ def stems(
         tempfile.TemporaryDirectory() as tmp,
     ):
         crs = checked_crs(crs) if crs is not None else las_crs(in_paths[0])
-        if not quiet:
-            announce_compile("cloud")  # (stderr: the --json object on stdout stays clean)
+        # (stderr: the --json object on stdout stays clean)
+        announce_compile("cloud", quiet=quiet)
         cfg = get_preset(preset)
         if not max_memory > 0:
             raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")

@@ -54,10 +54,12 @@ def _has_cache(src: Path) -> bool:
     return any((src.parent / "__pycache__").glob(pattern))
 
 
-def announce_compile(*areas: str, backend: str | None = None) -> None:
+def announce_compile(*areas: str, backend: str | None = None, quiet: bool = False) -> None:
     """Tell the user (stderr) when the numba kernels of ``areas`` (``scan``) and of the SLAM
     ``backend`` have no on-disk cache yet: the first run then compiles them (about a minute on
-    a loaded 2-core machine) without any other sign of life."""
+    a loaded 2-core machine) without any other sign of life. Nothing under ``-q`` (``quiet``)."""
+    if quiet:
+        return
     import importlib.util
 
     missing = []
