@@ -498,6 +498,7 @@ def _stems_from_band(
             i_row = int(np.flatnonzero(np.flatnonzero(accepted) == one)[0]) if accepted[one] else -1
             best = _single_tree_stem(
                 (rows[i_row], rules[i_row]) if i_row >= 0 else None,
+                # one rung of the ladder: start at tolerance ``tol`` (= first x tol0), floor there
                 lambda thin, first, tol: step(np.array([one]), thin, first, tol).get(one),
                 _ransac_tolerance(sp2d),
                 thickened,

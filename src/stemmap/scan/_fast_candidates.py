@@ -283,7 +283,7 @@ def _fit_candidate(
     if use_sil:
         _edge_prior(grid, pr[a], pb[a], -1, n, wrap, h_sil, margin, sil, 0)
         _edge_prior(grid, pr[b - 1], pb[b - 1], 1, n, wrap, h_sil, margin, sil, 2)
-    _edge_default(sil, prm, h_sil, prm[37] > 0.0, grid, pb[a], pb[b - 1], n, wrap)
+    _edge_default(sil, prm, h_sil, prm[37] > 0.0, grid, pb[a], pb[b - 1], n, wrap)  # use_silhouette
     sil_width = width
     if use_sil:
         beyond = 0.0 if math.isnan(sil[0]) else max(sil[0] - 0.5, 0.0)
