@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from stemmap.errors import InputError
+from stemmap.io._util import check_npz_sizes
 from stemmap.io.atomic import atomic_write
 
 __all__ = ["Manifest", "params_hash", "result_hash"]
@@ -170,6 +171,7 @@ def load_columns(path: Path) -> dict[str, Any]:
 
     try:
         with np.load(path, allow_pickle=False) as z:
+            check_npz_sizes(z, path, "chunk result")
             return {k: z[k] for k in z.files}
     except (OSError, ValueError) as exc:
         raise InputError(f"chunk result {str(path)!r} is unreadable ({exc}); rerun it.") from exc

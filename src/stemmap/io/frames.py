@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import InputError
+from stemmap.io._util import check_npz_sizes
 from stemmap.types import FloatArray
 
 __all__ = ["FramesBundle", "is_frames_npz", "read_frames_npz", "write_frames_npz"]
@@ -115,7 +116,11 @@ def read_frames_npz(path: Path) -> FramesBundle:
     if not p.is_file():
         raise InputError(f"frames bundle {str(p)!r} does not exist.")
     try:
-        z = dict(np.load(p, allow_pickle=False))
+        with np.load(p, allow_pickle=False) as archive:
+            check_npz_sizes(archive, p, "frames bundle")
+            z = dict(archive)
+    except InputError:
+        raise
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"frames bundle {str(p)!r} is not a readable NPZ: {exc}") from exc
     if "times" not in z:
