@@ -68,6 +68,20 @@ def test_map_missing_input_says_so(tmp_path: Path, name: str) -> None:
     assert not out.exists()
 
 
+@pytest.mark.parametrize("name", ["plot.laz", "frame.pcd"])
+def test_map_point_cloud_points_to_stems(tmp_path: Path, name: str) -> None:
+    # the user walk (Dec 4): a point cloud given to map was "has no odometry: pass --odometry"
+    src = tmp_path / name
+    src.write_bytes(b"not read")
+    out = tmp_path / "m"
+    res = CliRunner().invoke(app, ["map", str(src), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    text = " ".join(res.output.split())
+    assert "is a point cloud" in text and f"stemmap stems {name}" in text
+    assert "odometry" not in text
+    assert not out.exists()
+
+
 def test_map_dataset_without_a_datasets_folder_names_the_option(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -68,6 +68,12 @@ def odometry_path(source: Path, odometry: Path | None) -> Path:
     ``<stem>.npz``; InputError naming both options when neither exists."""
     if not source.exists():
         raise InputError(f"input {str(source)!r} does not exist.")
+    if source.suffix.lower() in (".las", ".laz", ".ply", ".pcd", ".xyz", ".pts"):
+        raise InputError(
+            f"{source} is a point cloud; `stemmap map` maps 2D scans (.npz, .csv), a detections "
+            "CSV, a ROS bag or a frames bundle (.npz). The stems of a point cloud: `stemmap "
+            f"stems {source.name}`."
+        )
     if odometry is not None:
         return odometry
     guess = source.with_name(f"{source.stem}_odometry.csv")
