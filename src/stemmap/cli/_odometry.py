@@ -216,7 +216,7 @@ def odometry(
         run.note(**summary)
     if not quiet:
         for line in summary_lines(summary, out_path):
-            out.print(line, markup=False, highlight=False)
+            out.print(line, markup=False, highlight=False, soft_wrap=True)
 
 
 #: Unit of each calibration state by the end of its name (odometry.fusion.FusedOdometry).
