@@ -35,7 +35,8 @@ class StemConfig:
     slices_per_spacing : float -- a slice is at least this many measured point spacings thick;
         sparse clouds get fewer, thicker slices over the same band (0 disables)
     thin_remeasure : bool -- a stem found on a band thickened to at most ``min_slices`` + 1
-        slices is measured again on the default thin slices about its circle
+        slices -- in the first round, by the tighter refits, or chosen by the single-tree
+        ladder -- is measured again on the default thin slices about its circle
         (:func:`~stemmap.cloud.slicestem._thin_slice_stem`); the thin measurement replaces
         the thick one when more thin slices agree
     max_taper : float -- largest plausible |d radius / d height| in the band, m/m; a candidate
