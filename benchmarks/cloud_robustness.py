@@ -28,10 +28,15 @@ moves up, so DBH is measured higher: they are also compared with the ring of the
 at the detection's own height (converged from starts about the detected circle: that
 comparison is tied to the detection's height, so it cannot be fixed). A transform fails a
 cloud when it misses the issue-11 target there: a single tree not found or more than 1.5 cm
-off its ring; a plot or a slice with recall below 0.95 of the baseline's stems, extra stems
-above 5 %, or DBH RMSE over its full rings above 1 cm. Crops and tilts do not apply to
-pre-cut slices (fortls_slice, lidr_dbh: heights are given, there is no stem base to crop
-to, and a slice cut from a tilted scan is cut in the scanner's frame).
+off its ring; a plot or a slice with recall below 0.95 of the baseline's *checked* stems,
+extra stems above 5 %, or DBH RMSE over its full rings above 1 cm. A baseline stem is checked
+when it pairs with a fixed ring reference: a detection with no ring at breast height cannot
+be told from clutter by this benchmark (treels pine_plot's 6.3 cm edge object: no point
+within 15 cm of its axis at 1.30-1.50 m and none above 1.75 m, docs/algorithms/cloud.md
+"pine_plot's 17th stem"); losing one is listed (``missed_unchecked_dbh_cm``), not failed.
+Crops and tilts do not apply to pre-cut slices (fortls_slice, lidr_dbh: heights are given,
+there is no stem base to crop to, and a slice cut from a tilted scan is cut in the
+scanner's frame).
 
 Prints ONE JSON object. Usage: python benchmarks/cloud_robustness.py [--clouds a,b]
 [--transforms t1,t2]
@@ -209,8 +214,10 @@ def _score(
     prep: Prepared,
     xyz_t: np.ndarray,
     single: bool,
+    checked: set[int],
 ) -> dict[str, Any]:
-    """Compare one transformed run with the baseline."""
+    """Compare one transformed run with the baseline (``checked``: the baseline stems that
+    pair with a fixed reference, over which a plot's recall is counted)."""
     zbh = det.z if det.base != BASE_SLICE else np.full(len(det), np.nan)
     back = prep.back(np.column_stack((det.xy, np.nan_to_num(zbh))))
     pairs = _match(base.xy, base.diameter, back[:, :2])
@@ -227,6 +234,10 @@ def _score(
         "missed_dbh_cm": [
             _r(100 * base.diameter[i])
             for i in sorted(set(range(len(base))) - {i for i, _ in pairs})
+        ],
+        "missed_unchecked_dbh_cm": [
+            _r(100 * base.diameter[i])
+            for i in sorted(set(range(len(base))) - {i for i, _ in pairs} - checked)
         ],
         "dbh_change_max_cm": _r(100 * np.abs(dd).max()) if dd.size else None,
         "dbh_change_mean_cm": _r(100 * dd.mean()) if dd.size else None,
@@ -269,8 +280,9 @@ def _score(
             if e is not None and abs(e) > 1.5:
                 why.append(f"DBH {e} cm off the ring")
     else:
-        if len(pairs) < 0.95 * len(base):
-            why.append(f"recall {len(pairs)}/{len(base)}")
+        found = sum(1 for i, _ in pairs if i in checked)
+        if found < 0.95 * len(checked):
+            why.append(f"recall {found}/{len(checked)}")
         if row["extra"] > 0.05 * len(base):
             why.append(f"{row['extra']} extra stems")
         if err.size and np.sqrt(np.mean(err**2)) > 0.01:
@@ -317,6 +329,10 @@ def run_cloud(key: str, path: Path, names: list[str], tmp: Path) -> dict[str, An
     out["baseline"]["dbh_vs_ring_rmse_cm"] = (
         _r(100 * np.sqrt(np.mean(base_err**2))) if base_err.size else None
     )
+    checked = {i for i, h in enumerate(reference_of_each(refs, base.xy)) if h is not None}
+    out["baseline"]["unchecked_dbh_cm"] = [
+        _r(100 * base.diameter[i]) for i in range(len(base)) if i not in checked
+    ]
     ctx = Context(xyz, grounds[0] if grounds else None)
     single = len(base) == 1
     res: dict[str, Any] = {}
@@ -334,7 +350,7 @@ def run_cloud(key: str, path: Path, names: list[str], tmp: Path) -> dict[str, An
         t0 = time.process_time()
         det = detect_stems_file(f, cfg)
         cpu = time.process_time() - t0
-        row = _score(name, base, refs, seeds, det, prep, prep.xyz, single)
+        row = _score(name, base, refs, seeds, det, prep, prep.xyz, single, checked)
         row["n_points"] = int(prep.xyz.shape[0])
         row["cpu_s"] = round(cpu, 2)
         res[name] = row
