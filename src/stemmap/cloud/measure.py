@@ -423,9 +423,9 @@ def _stems_from_band(
         own_floor=only.size == 1 and cfg.noise_floor is None,
     )
     # the default thin slices, when the band's were thickened for a sparse cloud; a stem
-    # found on at most min_slices + 1 thick slices is measured again on them
+    # found on at most thin_remeasure_max_slices (4) thick slices is measured again on them
     thickened = cfg_thin.slice_thickness < cfg.slice_thickness
-    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.min_slices + 1
+    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.thin_remeasure_max_slices
     ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
     ctx0 = (
         replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
@@ -436,8 +436,9 @@ def _stems_from_band(
     def thin_again(
         f: _SliceFits, c: int, stem: tuple[tuple[float, ...], str]
     ) -> tuple[tuple[float, ...], str]:
-        """Cluster ``c``'s ``stem``, found on at most min_slices + 1 thick slices (``f``),
-        measured again on the thin ones where more of them agree; else as found."""
+        """Cluster ``c``'s ``stem``, found on at most ``thin_remeasure_max_slices`` thick
+        slices (``f``), measured again on the thin ones where more of them agree; else as
+        found."""
         if remeasure:
             again = _thin_slice_stem(f, c, ctx, ctx0, cfg_thin)
             if again is not None and again[0][7] > stem[0][7]:
