@@ -10,8 +10,10 @@ per run:
   of the replayed log) of the **filtered** path (the filter's own poses, each from the data up
   to its frame) and of the **smoothed** path (the product: the whole path re-estimated on the
   final map, :func:`stemmap.slam._ekf_smooth.smooth_path`), the NIS per degree of freedom of
-  the pass's measurement updates (merges excluded) and the median of the filter's pose
-  standard deviation (position, heading; after each frame's update);
+  the pass's measurement updates (merges excluded), the smoothed path's ATE on the first pass's
+  GPS fixes (a backward pass: the same fixes reversed, as the screening of the reversed log
+  keeps a different set) and the median of the filter's pose standard deviation (position,
+  heading; after each frame's update);
 * from one pass's end to the next, how the filter's map moved: the joint test ``Δᵀ (P_k -
   P_k+1)⁺ Δ`` per degree of freedom over the landmarks in both (about 1 or below for a filter
   whose changes its covariance reduction explains), the median move, and its split into a
@@ -233,6 +235,14 @@ def _run(
             row[f"ate_{name}_m"] = round(
                 float(ate(tr, rep.gps_times, rep.gps_xy, offset=off, keep=inp).rmse), 3
             )
+        # the smoothed path on the first pass's GPS fixes (a backward pass: the same fixes in
+        # reverse order; the screening of the reversed log keeps a different set)
+        ng = len(vp.gps_times)
+        same = np.zeros_like(keep)
+        same[p * ng : (p + 1) * ng] = keep[:ng] if p % 2 == 0 else keep[:ng][::-1]
+        row["ate_smoothed_first_pass_fixes_m"] = round(
+            float(ate(res.trajectory, rep.gps_times, rep.gps_xy, offset=off, keep=same).rmse), 3
+        )
         m = (u[:, 0] >= starts[p]) & (u[:, 0] < ends[p])
         row["nis_per_dof"] = round(float(u[m, 1].sum() / u[m, 2].sum()), 3)
         q = pv[starts[p] : max(ends[p] - 1, starts[p] + 1)]
