@@ -11,13 +11,17 @@ per seed. Per run:
   same start; the end-point distance in % of the true length, split along and across the true
   final heading;
 * ``old``: the estimate before Dec 4 (``sigma_speed² T`` only);
-* ``model``: the reported estimate with the mapper's default motion noise
+* ``random``: the random-walk part alone with the mapper's default motion noise
   (``UnicycleModel()``: 0.05 m/s, 0.01 rad/s, what ``stemmap map`` uses without
-  ``--motion-sigma``);
-* ``sim``: the same propagation with the generator's white-equivalent sigmas over the run
-  (:func:`stemmap.sim.odometry_model.white_equivalent_sigmas`, horizon = the run's duration:
-  the preset's white noise, scale and bias matched in mean square at the end), for comparison
-  -- the mapper does not know these.
+  ``--motion-sigma``): the estimate of Dec 4 - before the systematic terms;
+* ``model``: the reported estimate: ``random`` plus the default systematic terms
+  (:data:`~stemmap.cli._map_motion.WHEEL_SIGMA_SCALE`,
+  :data:`~stemmap.cli._map_motion.WHEEL_SIGMA_YAW_BIAS`, measured on Victoria Park, not on the
+  simulator);
+* ``sim``: the random-walk propagation with the generator's white-equivalent sigmas over the
+  run (:func:`stemmap.sim.odometry_model.white_equivalent_sigmas`, horizon = the run's
+  duration: the preset's white noise, scale and bias matched in mean square at the end), no
+  systematic terms, for comparison -- the mapper does not know these.
 
 It prints per run and the summary: ``end_rms`` (RMS over seeds), the median estimates and
 their ratios to ``end_rms``.
@@ -88,17 +92,22 @@ def measure(log: Path) -> dict[str, float]:
     )
     model = UnicycleModel()
     dist = float(np.sum(np.abs(v[:-1]) * np.diff(t)))
+    reported = wheel_drift_estimate(controls, model)
     return {
         "length_m": true_m,
         "end": 100.0 * float(np.hypot(*err)) / true_m,
         "along": 100.0 * float(c * err[0] + s * err[1]) / true_m,
         "across": 100.0 * float(-s * err[0] + c * err[1]) / true_m,
         "old": float(_random_walk_percent(model.sigma_speed**2 * np.diff(t), dist) or math.nan),
-        "model": float(wheel_drift_estimate(controls, model)["drift_estimate_percent"]),
+        "random": float(reported["drift_random_percent"]),
+        "model": float(reported["drift_estimate_percent"]),
         "sim": float(
-            wheel_drift_estimate(controls, UnicycleModel(sigma_speed=sv, sigma_steer=sw))[
-                "drift_estimate_percent"
-            ]
+            wheel_drift_estimate(
+                controls,
+                UnicycleModel(sigma_speed=sv, sigma_steer=sw),
+                sigma_scale=0.0,
+                sigma_bias=0.0,
+            )["drift_estimate_percent"]
         ),
         "sim_sigma_speed": sv,
         "sim_sigma_yaw_rate": sw,
@@ -113,7 +122,7 @@ def summary(runs: list[dict[str, float]]) -> dict[str, float]:
         "along_rms": float(np.sqrt(np.mean([r["along"] ** 2 for r in runs]))),
         "across_rms": float(np.sqrt(np.mean([r["across"] ** 2 for r in runs]))),
     }
-    for key in ("old", "model", "sim"):
+    for key in ("old", "random", "model", "sim"):
         med = float(np.median([r[key] for r in runs]))
         out[key] = med
         out[f"{key}/end"] = med / end

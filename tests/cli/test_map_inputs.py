@@ -10,6 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from stemmap.cli import app
+from stemmap.errors import InputError
 from stemmap.eval.matching import match_points
 from stemmap.io.maps import read_trees_csv
 
@@ -68,6 +69,20 @@ def test_map_missing_input_says_so(tmp_path: Path, name: str) -> None:
     assert not out.exists()
 
 
+@pytest.mark.parametrize("name", ["plot.laz", "frame.pcd"])
+def test_map_point_cloud_points_to_stems(tmp_path: Path, name: str) -> None:
+    # the user walk (Dec 4): a point cloud given to map was "has no odometry: pass --odometry"
+    src = tmp_path / name
+    src.write_bytes(b"not read")
+    out = tmp_path / "m"
+    res = CliRunner().invoke(app, ["map", str(src), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    text = " ".join(res.output.split())
+    assert "is a point cloud" in text and f"stemmap stems {name}" in text
+    assert "odometry" not in text
+    assert not out.exists()
+
+
 def test_map_dataset_without_a_datasets_folder_names_the_option(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -78,3 +93,23 @@ def test_map_dataset_without_a_datasets_folder_names_the_option(
     res = CliRunner().invoke(app, ["map", "--dataset", "victoria-park", "--out", "m"])
     assert res.exit_code == 2, res.output
     assert "--data FOLDER" in " ".join(res.output.split())
+
+
+@pytest.mark.parametrize(("col", "value"), [("speed", 1e5), ("yaw_rate", -1e3)])
+def test_map_odometry_row_beyond_any_vehicle_names_the_line(
+    tmp_path: Path, col: str, value: float
+) -> None:
+    # the user walk (Dec 4): one odometry row of 1e5 m/s ended the map in a GTSAM
+    # RuntimeError traceback (a k-d tree overflow with ekf / treedb at 1e300)
+    from stemmap.cli._map_inputs import read_odometry_csv
+
+    t = np.arange(0.0, 2.0, 0.1)
+    speed, yaw = np.ones_like(t), np.zeros_like(t)
+    (speed if col == "speed" else yaw)[7] = value
+    p = tmp_path / "odo.csv"
+    np.savetxt(p, np.c_[t, speed, yaw], delimiter=",", header="time_s,speed,yaw_rate", comments="")
+    with pytest.raises(InputError, match=rf"line 9: {col} .* is beyond"):
+        read_odometry_csv(p)
+    speed[7], yaw[7] = 30.0, 3.0  # a fast machine turning hard is fine
+    np.savetxt(p, np.c_[t, speed, yaw], delimiter=",", header="time_s,speed,yaw_rate", comments="")
+    assert read_odometry_csv(p)[1][7] == 30.0

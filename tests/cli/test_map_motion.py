@@ -149,6 +149,9 @@ def test_deprecated_odometry_lidar_still_works(log: Path, tmp_path: Path) -> Non
         (["--imu", "x.csv"], "--imu is fused with the lidar odometry"),
         (["--odometry", "lidar", "--motion", "visual"], "contradicts"),
         (["--motion-sigma", "0.1"], "--motion-sigma must be"),
+        (["--wheel-systematic", "0.01"], "--wheel-systematic must be"),
+        (["--wheel-systematic", "0.01,-0.1"], "--wheel-systematic values must be"),
+        (["--motion", "lidar", "--wheel-systematic", "0,0"], "--wheel-systematic is for"),
         (["--motion", "sonar"], "sonar"),
     ],
 )

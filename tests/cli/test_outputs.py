@@ -273,9 +273,8 @@ main()
 """
 
 
-def test_sigterm_discards_the_staged_products(tmp_path):
-    # the user audit (docs/cli.md): SIGTERM (timeout, a job scheduler, docker stop) killed the
-    # run like SIGKILL and left its hidden staging folder behind; it now unwinds like Ctrl-C
+def _signalled(tmp_path: Path, sig: int) -> tuple[int, str]:
+    """Run ``detect`` (stalled mid-run) in a subprocess, send it ``sig``: (exit code, stderr)."""
     import signal
     import subprocess
     import sys
@@ -285,11 +284,37 @@ def test_sigterm_discards_the_staged_products(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2] / "src"))
     cmd = [sys.executable, "-c", _SIGTERMED, str(src), str(out)]
     with subprocess.Popen(
-        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        cmd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell does
     ) as p:
         assert p.stdout is not None and p.stdout.readline().strip() == "detecting"
-        p.send_signal(signal.SIGTERM)
+        p.send_signal(sig)
         _, err = p.communicate(timeout=60)
-    assert p.returncode == 128 + signal.SIGTERM, err
+    return p.returncode, err
+
+
+def test_sigterm_discards_the_staged_products(tmp_path):
+    # the user audit (docs/cli.md): SIGTERM (timeout, a job scheduler, docker stop) killed the
+    # run like SIGKILL and left its hidden staging folder behind; it now unwinds like Ctrl-C
+    import signal
+
+    code, err = _signalled(tmp_path, signal.SIGTERM)
+    assert code == 128 + signal.SIGTERM, err
     assert "Traceback" not in err and "error: terminated (SIGTERM)" in err
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["scans.npz"]  # no product, no staging
+
+
+def test_ctrl_c_says_the_products_were_dropped(tmp_path):
+    # the user walk (Dec 4): Ctrl-C ended a run with exit code 130 and an empty line on
+    # stderr, where SIGTERM says what happened to the products
+    import signal
+
+    code, err = _signalled(tmp_path, signal.SIGINT)
+    assert code == 130, err
+    assert "Traceback" not in err
+    assert "error: interrupted (Ctrl-C); the products of this run were not written." in err
     assert sorted(q.name for q in tmp_path.iterdir()) == ["scans.npz"]  # no product, no staging

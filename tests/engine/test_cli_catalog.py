@@ -47,3 +47,49 @@ def test_cli_errors(tmp_path: Path) -> None:
         app, ["stems", str(tmp_path / "none_*.laz"), "--out", str(tmp_path / "s.csv")]
     )
     assert res.exit_code == 2 and "matches no file" in " ".join(res.output.split())
+
+
+def test_work_folder_of_other_files_is_refused_untouched(
+    stand_tiles: tuple[Path, np.ndarray], tmp_path: Path
+) -> None:
+    """``--work`` on a folder of the user's: refused before any work, nothing deleted.
+
+    A run removes ``<work>/stage`` when it is done and replaces ``<work>/manifest.jsonl``:
+    ``--work ~/data`` (or the tile folder itself) deleted a ``stage`` folder of the user's.
+    """
+    folder, _ = stand_tiles
+    mine = tmp_path / "mine"
+    (mine / "stage").mkdir(parents=True)
+    (mine / "stage" / "notes.txt").write_text("precious\n")
+    (mine / "manifest.jsonl").write_text("my own list\n")
+    for work in (mine, folder):
+        res = CliRunner().invoke(
+            app,
+            ["stems", str(folder), "--out", str(tmp_path / "s.csv"), "--work", str(work), "-q"],
+        )
+        text = " ".join(res.output.split())
+        assert res.exit_code == 2, text
+        assert "is not a stemmap work folder" in text and str(work) in text
+    assert (mine / "stage" / "notes.txt").read_text() == "precious\n"
+    assert (mine / "manifest.jsonl").read_text() == "my own list\n"
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_work_folder_accepts_new_empty_and_earlier_runs(tmp_path: Path) -> None:
+    from stemmap.engine.manifest import Manifest
+
+    Manifest(tmp_path / "new").claim()
+    (tmp_path / "empty").mkdir()
+    Manifest(tmp_path / "empty").claim()
+    old = tmp_path / "old"
+    (old / "chunks").mkdir(parents=True)
+    (old / "stage" / "x-1_y0ab").mkdir(parents=True)
+    (old / "stage" / "pilot").mkdir()
+    man = Manifest(old)
+    man.append("x-1_y0ab", "done", {}, "p", seconds=1.0)
+    man.claim()
+    with man.path.open("a") as fh:  # a line torn by a kill after a complete first line
+        fh.write('{"chunk": "x0_y0", "inp')
+    man.claim()
+    man.path.write_text('{"chunk": "x0_y0", "inp')  # the first line itself torn
+    man.claim()

@@ -3,6 +3,7 @@ and on hand-written spec-exact headers; bad and truncated files must raise Input
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -166,6 +167,12 @@ def test_xyz_bad_inputs(tmp_path: Path) -> None:
     e.write_text("")
     with pytest.raises(InputError, match="empty"):
         read_cloud(e)
+    h = tmp_path / "header_only.xyz"  # numpy's UserWarning used to precede the error
+    h.write_text("x y z\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="holds no points"):
+            read_cloud(h)
 
 
 def test_missing_and_unknown(tmp_path: Path) -> None:

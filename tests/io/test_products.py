@@ -206,3 +206,41 @@ def test_two_outputs_resolving_to_one_file_are_refused(tmp_path):
             run.path(outs[0]).write_text("x")
         assert not a.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.csv"]  # no staging left
+
+
+def _folder_product(run, final: Path, payload: str) -> None:
+    """What ``io convert-scans --out NAME`` does: a file output whose product is a folder."""
+    staged = run.path(final)
+    staged.mkdir()
+    (staged / "metadata.yaml").write_text(payload)
+
+
+def test_folder_product_never_replaces_a_folder_of_other_files(tmp_path):
+    # the user walk (Dec 4): `io convert-scans scans.npz --out myfolder` (a ROS 2 bag folder)
+    # replaced an existing folder of the user's as a whole: its files were deleted
+    mine = tmp_path / "myfolder"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    with (
+        pytest.raises(OutputError, match="folder holding files this command did not write"),
+        run_products("io convert-scans", outputs=[mine]) as run,
+    ):
+        _folder_product(run, mine, "new")
+    assert (mine / "notes.txt").read_text() == "precious"
+    assert not list(tmp_path.glob(".stemmap-stage-*"))
+
+
+def test_folder_product_replaces_its_own_earlier_output(tmp_path):
+    out = tmp_path / "bag"
+    out.mkdir()  # an empty folder is fine
+    for payload in ("first", "second"):
+        with run_products("io convert-scans", outputs=[out]) as run:
+            _folder_product(run, out, payload)
+        assert (out / "metadata.yaml").read_text() == payload
+    (out / "extra.txt").write_text("added by hand")  # no longer what the run wrote
+    with (
+        pytest.raises(OutputError, match="did not write"),
+        run_products("io convert-scans", outputs=[out]) as run,
+    ):
+        _folder_product(run, out, "third")
+    assert (out / "extra.txt").is_file() and (out / "metadata.yaml").read_text() == "second"

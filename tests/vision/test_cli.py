@@ -199,3 +199,21 @@ def test_fuse_refuses_a_truncated_image(tmp_path: Path) -> None:
     assert res.exit_code == 2, res.output
     assert "error:" in res.output and "frame.png" in res.output
     assert not out.exists()
+
+
+def test_fuse_refuses_an_image_of_another_size_than_the_calibration(tmp_path: Path) -> None:
+    """The user walk (Dec 4): a 4608 x 3456 photo fused with a 1280 x 720 calibration ran to
+    "0 pair(s): 0 trunk(s)" without a word; G and K hold only at the calibrated size."""
+    K = RIG.camera.K.tolist()
+    argv = _fuse_inputs(tmp_path)
+    h, w = cv2.imread(str(tmp_path / "frame.png")).shape[:2]
+    calib = _calib(tmp_path, {"G": G.tolist(), "camera": {"K": K, "width": 2 * w, "height": h}})
+    for method in ("xue2018", "ours"):
+        out = tmp_path / "d.csv"
+        res = RUNNER.invoke(
+            app, [*argv, "--calibration", str(calib), "--out", str(out), "--method", method]
+        )
+        text = " ".join(res.output.split())
+        assert res.exit_code == 2, res.output
+        assert f"is {w} x {h} pixels but the calibration" in text and f"{2 * w} x {h}" in text
+        assert not out.exists()

@@ -67,6 +67,17 @@ class _PlainErrorGroup(TyperGroup):
             sys.exit(1)
         sys.exit(rv if isinstance(rv, int) else 0)
 
+    def invoke(self, ctx: Any) -> Any:
+        """Ctrl-C: one ``error:`` line like SIGTERM's (typer then exits with 130); before,
+        an interrupted run ended with an empty line, not saying its products were dropped."""
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            from stemmap.cli._common import print_error
+
+            print_error("interrupted (Ctrl-C); the products of this run were not written.")
+            raise
+
 
 app = typer.Typer(
     cls=_PlainErrorGroup,

@@ -58,6 +58,7 @@ from stemmap.cli._map_problems import sim_problem
 from stemmap.cli._map_problems import simulated as _simulated
 from stemmap.cli._map_problems import victoria_park as _victoria_park
 from stemmap.cli._map_problems import vp_inputs as _vp_inputs
+from stemmap.cli._map_problems import wheel_systematic as _wheel_systematic
 from stemmap.cli._map_problems import with_gnss as _with_gnss
 from stemmap.cli._map_report import frames_metadata, headline, slam_metrics, summary_rows
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
@@ -202,6 +203,16 @@ def map_command(
             help="The motion source's error 'speed,yaw_rate' (m/s, rad/s, one-second averages) "
             "= the back-end's motion noise [default: 0.05,0.002 for a frames bundle, else "
             "0.05,0.01].",
+        ),
+    ] = None,
+    wheel_systematic: Annotated[
+        str | None,
+        typer.Option(
+            "--wheel-systematic",
+            help="--motion wheel: the odometry's 1-sigma speed scale error and yaw-rate bias "
+            "'scale,yaw_rate_bias' (fraction, rad/s; 0 leaves a term out) in the drift "
+            "estimate of metrics.json motion (a report only) [default: 0.005,0.003, measured on "
+            "Victoria Park].",
         ),
     ] = None,
     refine: Annotated[
@@ -369,6 +380,7 @@ def map_command(
     with fail_on_stemmap_error():
         motion_src, odometry = resolve_motion(motion, odometry, camera=camera, imu=imu)
         sigma = _motion_sigma(motion_sigma)
+        systematic = _wheel_systematic(wheel_systematic)
     inputs = [bag, odometry, imu, camera] if dataset is None else _vp_inputs(data)
     with fail_on_stemmap_error(), run_products("map", inputs=inputs, out_dir=out_dir) as run:
         crs = checked_crs(crs)
@@ -386,6 +398,10 @@ def map_command(
         if bag is None and (motion_src != Motion.wheel or motion_sigma is not None):
             raise ConfigError(
                 "--motion and --motion-sigma are for a log input (bag, scans, frames)."
+            )
+        if systematic is not None and (bag is None or motion_src != Motion.wheel):
+            raise ConfigError(
+                "--wheel-systematic is for the wheel odometry of a log input (--motion wheel)."
             )
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         areas = () if dataset is not None else ("scan",)
@@ -496,7 +512,15 @@ def map_command(
             metrics["motion"] = (
                 motion_run[1]
                 if motion_run is not None
-                else {"source": "wheel", **wheel_drift_estimate(problem.controls, problem.motion)}
+                else {
+                    "source": "wheel",
+                    **wheel_drift_estimate(
+                        problem.controls,
+                        problem.motion,
+                        sigma_scale=None if systematic is None else systematic[0],
+                        sigma_bias=None if systematic is None else systematic[1],
+                    ),
+                }
             )
             metrics["motion"]["sigma_speed"] = problem.motion.sigma_speed
             metrics["motion"]["sigma_yaw_rate"] = problem.motion.sigma_steer

@@ -25,6 +25,13 @@ __all__ = [
 ODOMETRY_CSV_COLUMNS = ("time_s", "speed", "yaw_rate")
 
 
+#: Bounds of a wheel-odometry row (the user walk, Dec 4: one row of 1e5 m/s ended every
+#: back-end in a traceback -- GTSAM's indeterminant system, a k-d tree overflow, a NaN
+#: matrix); far beyond any vehicle, so they refuse corrupt rows and unit errors only.
+MAX_ODOMETRY_SPEED = 1000.0
+MAX_YAW_RATE = 100.0
+
+
 def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``time_s,speed,yaw_rate`` (s, m/s, rad/s; each row held until the next) -> arrays.
 
@@ -48,6 +55,17 @@ def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise InputError(
             f"{what} {str(p)!r} line {table.lines[k + 1]}: time {t[k + 1]} goes backwards."
         )
+    for c, limit, unit in (
+        ("speed", MAX_ODOMETRY_SPEED, "m/s"),
+        ("yaw_rate", MAX_YAW_RATE, "rad/s"),
+    ):
+        v = table.columns[c]
+        if np.any(np.abs(v) > limit):
+            k = int(np.argmax(np.abs(v) > limit))
+            raise InputError(
+                f"{what} {str(p)!r} line {table.lines[k]}: {c} {v[k]:g} {unit} is beyond "
+                f"+-{limit:g} {unit}, no vehicle's: a corrupt row or another unit?"
+            )
     keep = np.concatenate(([True], np.diff(t) > 0))
     return t[keep], table.columns["speed"][keep], table.columns["yaw_rate"][keep]
 
@@ -68,6 +86,12 @@ def odometry_path(source: Path, odometry: Path | None) -> Path:
     ``<stem>.npz``; InputError naming both options when neither exists."""
     if not source.exists():
         raise InputError(f"input {str(source)!r} does not exist.")
+    if source.suffix.lower() in (".las", ".laz", ".ply", ".pcd", ".xyz", ".pts"):
+        raise InputError(
+            f"{source} is a point cloud; `stemmap map` maps 2D scans (.npz, .csv), a detections "
+            "CSV, a ROS bag or a frames bundle (.npz). The stems of a point cloud: `stemmap "
+            f"stems {source.name}`."
+        )
     if odometry is not None:
         return odometry
     guess = source.with_name(f"{source.stem}_odometry.csv")

@@ -39,12 +39,24 @@ from stemmap.errors import ConfigError, InputError
 
 __all__ = [
     "LIDAR_WORD",
+    "WHEEL_SIGMA_SCALE",
+    "WHEEL_SIGMA_YAW_BIAS",
     "Motion",
     "motion_trajectory",
     "resolve_motion",
     "vehicle_path",
     "wheel_drift_estimate",
 ]
+
+#: 1-sigma speed scale error of wheel odometry (fraction, 0.5 %): Victoria Park's encoder
+#: against its iSAM2 path over 30-60 m windows (robust RMS 0.50-0.57 %; straight 10-30 m
+#: chords 0.3-0.45 %); its GPS resolves it only over 200 m (0.25 % after its own noise).
+#: docs/algorithms/odometry.md, "Wheel odometry" (benchmarks/wheel_drift_victoria_park.py).
+WHEEL_SIGMA_SCALE = 0.005
+#: 1-sigma constant yaw-rate bias of wheel odometry (rad/s, 0.17 deg/s): Victoria Park against
+#: its GPS over 100-200 m windows (robust RMS 0.0031-0.0034 after the GPS's own noise; iSAM2
+#: path 0.0023-0.0031 over 30-200 m). Same doc and benchmark.
+WHEEL_SIGMA_YAW_BIAS = 0.003
 
 #: ``--odometry lidar``: the deprecated spelling of ``--motion lidar``.
 LIDAR_WORD = "lidar"
@@ -180,25 +192,57 @@ def vehicle_path(traj: Any, sensor_offset: tuple[float, float]) -> Any:
     return Trajectory(traj.times, compose(traj.poses, np.array([-a, -b, 0.0])), frame=traj.frame)
 
 
-def wheel_drift_estimate(controls: Any, model: Any) -> dict[str, Any]:
+def wheel_drift_estimate(
+    controls: Any,
+    model: Any,
+    *,
+    sigma_scale: float | None = None,
+    sigma_bias: float | None = None,
+) -> dict[str, Any]:
     """The wheel odometry's drift estimate: the mapper's motion model propagated to the end of
-    the run (first order, along the dead-reckoned path of the controls).
+    the run (first order, along the dead-reckoned path of the controls), plus an unknown but
+    constant speed scale error and yaw-rate bias.
 
-    Each control interval ``k`` (``dt_k`` s, held speed and yaw rate) adds independent errors of
-    the :class:`~stemmap.slam.motion.UnicycleModel`: distance ``sigma_speed² dt_k`` along the
+    **Random walk** (the motion model's white noise). Each control interval ``k`` (``dt_k`` s,
+    held speed and yaw rate) adds independent errors of the
+    :class:`~stemmap.slam.motion.UnicycleModel`: distance ``sigma_speed² dt_k`` along the
     heading, sideways ``sigma_lateral² dt_k``, and heading ``sigma_steer² dt_k``. A heading
     error made at ``p_k`` (the interval's mid point) turns the rest of the path about ``p_k``,
     so it moves the end point by ``dtheta_k * |p_end - p_k|``. The end point's xy variance is::
 
-        sum_k dt_k (sigma_speed² + sigma_lateral² + sigma_steer² |p_end - p_k|²)
+        V_rw = sum_k dt_k (sigma_speed² + sigma_lateral² + sigma_steer² |p_end - p_k|²)
 
     (the linearised covariance propagation of the EKF prediction, Thrun, Burgard & Fox,
     "Probabilistic Robotics" 2005, §5.4 and §3.3, summed in closed form). On a straight drive
     of ``T`` s at speed ``v`` the heading term is ``sigma_steer² v² T³ / 3``: the cross-track
-    error grows as ``T^1.5``, faster than the speed term's ``sqrt(T)``. The model has no scale
-    or bias term, so a wrong wheel radius or a gyro bias is not in the estimate
-    (docs/algorithms/odometry.md, "Wheel odometry").
+    error grows as ``T^1.5``, faster than the speed term's ``sqrt(T)``.
+
+    **Systematic** (the same first-order propagation, but one error for the whole run, so the
+    steps add coherently, as vectors, not as variances). A speed scale error ``s`` (speed read
+    ``(1 + s)`` times too large, e.g. a wrong wheel radius) moves the end point by
+    ``s (p_end - p_0)``; a constant yaw-rate bias ``b`` (rad/s, a gyro or steering offset)
+    adds ``b (t - t_0)`` to the heading, which moves the end point by ``b J sum_k dt_k (p_end -
+    p_k)`` (``J`` the 90° rotation). With ``s ~ N(0, sigma_scale²)`` and ``b ~ N(0,
+    sigma_bias²)`` independent::
+
+        V_sys = sigma_scale² |p_end - p_0|² + sigma_bias² |sum_k dt_k (p_end - p_k)|²
+
+    On a straight drive these are ``sigma_scale v T`` (linear in the distance) and
+    ``sigma_bias v T² / 2`` (quadratic); on a closed loop the scale term vanishes at the end
+    (first order). The reported estimate is ``100 sqrt(V_rw + V_sys) / distance``; the
+    random-walk part alone is ``drift_random_percent``.
+
+    ``sigma_scale`` and ``sigma_bias`` default to :data:`WHEEL_SIGMA_SCALE` and
+    :data:`WHEEL_SIGMA_YAW_BIAS`, measured on real wheel odometry (Victoria Park against its GPS,
+    docs/algorithms/odometry.md "Wheel odometry"); 0 leaves a term out.
     """
+    sig_s = WHEEL_SIGMA_SCALE if sigma_scale is None else float(sigma_scale)
+    sig_b = WHEEL_SIGMA_YAW_BIAS if sigma_bias is None else float(sigma_bias)
+    if not (math.isfinite(sig_s) and sig_s >= 0 and math.isfinite(sig_b) and sig_b >= 0):
+        raise ConfigError(
+            f"wheel drift estimate: sigma_scale and sigma_bias must be finite and >= 0, got "
+            f"{sig_s}, {sig_b}."
+        )
     t = np.asarray(controls.times, dtype=np.float64)
     dt = np.diff(t)
     v = np.asarray(controls.speed, dtype=np.float64)[:-1]
@@ -207,16 +251,27 @@ def wheel_drift_estimate(controls: Any, model: Any) -> dict[str, Any]:
     heading = np.concatenate(([0.0], np.cumsum(w * dt)))[:-1] + 0.5 * w * dt  # mid heading
     step = (v * dt)[:, None] * np.column_stack((np.cos(heading), np.sin(heading)))
     start = np.cumsum(step, axis=0) - step  # each interval's start, the run starting at 0
-    lever2 = np.sum((start[-1] + step[-1] - (start + 0.5 * step)) ** 2, axis=1) if dt.size else dt
+    end = start[-1] + step[-1] if dt.size else np.zeros(2)
+    arm = end - (start + 0.5 * step)  # p_end - p_k
+    lever2 = np.sum(arm**2, axis=1)
     sig_lat = float(getattr(model, "sigma_lateral", 0.0))
     var_along = (model.sigma_speed**2 + sig_lat**2) * dt  # (m/s)^2 per 1-s average * s -> m^2
     var_heading = model.sigma_steer**2 * dt * lever2  # rad^2 * m^2
+    random = _random_walk_percent(var_along + var_heading, dist)
+    var_sys = sig_s**2 * float(end @ end) + sig_b**2 * float(
+        np.sum((dt[:, None] * arm).sum(0) ** 2)
+    )
+    total = None if random is None else math.hypot(random, 100.0 * math.sqrt(var_sys) / dist)
     return {
         "distance_m": round(dist, 3),
-        "drift_estimate_percent": _random_walk_percent(var_along + var_heading, dist),
+        "drift_estimate_percent": total,
+        "drift_random_percent": random,
         "drift_method": "motion-model speed and yaw-rate noise (sigma_speed, sigma_yaw_rate, "
-        "1-s averages) propagated along the dead-reckoned path; scale and bias errors not "
-        "included",
+        "1-s averages) propagated along the dead-reckoned path, plus a constant speed scale "
+        "error (sigma_scale) and yaw-rate bias (sigma_yaw_rate_bias, rad/s; defaults measured "
+        "on real wheel odometry, Victoria Park)",
+        "sigma_scale": sig_s,
+        "sigma_yaw_rate_bias": sig_b,
     }
 
 

@@ -1,6 +1,6 @@
 """Problems of ``stemmap map`` that do not come from a log file: Victoria Park, the simulator,
 and the options that change a problem (``--gnss``, ``--motion-sigma``) or how it is run
-(``--realtime``)."""
+(``--realtime``), or what it reports (``--wheel-systematic``)."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ __all__ = [
     "simulated",
     "victoria_park",
     "vp_inputs",
+    "wheel_systematic",
     "with_gnss",
 ]
 
@@ -201,16 +202,33 @@ def realtime(problem: Any, backend: str, tick: Any, rrd: Path | None) -> Any:
     return SlamResult(st["trajectory"], st["stem_map"], stats, pose_covs=st["pose_covs"])
 
 
+def _pair(text: str, option: str, form: str, *, zero_ok: bool) -> tuple[float, float]:
+    """``'a,b'`` -> two finite floats, > 0 (>= 0 with ``zero_ok``); ConfigError naming
+    ``option`` and its ``form`` otherwise."""
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise ConfigError(f"{option} must be {form}, got {text!r}.") from exc
+    lo_ok = (a >= 0 and b >= 0) if zero_ok else (a > 0 and b > 0)
+    if not (lo_ok and math.isfinite(a) and math.isfinite(b)):
+        bound = ">= 0" if zero_ok else "> 0"
+        raise ConfigError(f"{option} values must be finite and {bound}, got {text!r}.")
+    return a, b
+
+
 def motion_sigma(text: str | None) -> tuple[float, float] | None:
     """``--motion-sigma 'speed,yaw_rate'`` -> (m/s, rad/s); None when not given."""
     if text is None:
         return None
-    try:
-        sv, sw = (float(v) for v in text.split(","))
-    except ValueError as exc:
-        raise ConfigError(
-            f"--motion-sigma must be 'speed,yaw_rate' (m/s, rad/s), got {text!r}."
-        ) from exc
-    if not (sv > 0 and sw > 0 and math.isfinite(sv) and math.isfinite(sw)):
-        raise ConfigError(f"--motion-sigma values must be finite and > 0, got {text!r}.")
-    return sv, sw
+    return _pair(text, "--motion-sigma", "'speed,yaw_rate' (m/s, rad/s)", zero_ok=False)
+
+
+def wheel_systematic(text: str | None) -> tuple[float, float] | None:
+    """``--wheel-systematic 'scale,yaw_rate_bias'`` -> (fraction, rad/s), 0 leaves a term out;
+    None when not given (the measured defaults,
+    :data:`stemmap.cli._map_motion.WHEEL_SIGMA_SCALE` and ``WHEEL_SIGMA_YAW_BIAS``)."""
+    if text is None:
+        return None
+    return _pair(
+        text, "--wheel-systematic", "'scale,yaw_rate_bias' (fraction, rad/s)", zero_ok=True
+    )

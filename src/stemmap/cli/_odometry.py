@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
     from stemmap.odometry.fusion import OdometrySource
 
-__all__ = ["lidar_front_end", "lidar_trajectory", "odometry", "register"]
+__all__ = ["lidar_front_end", "lidar_trajectory", "odometry", "register", "summary_lines"]
 
 _TUM_SUFFIXES = (".tum", ".txt")
 
@@ -215,8 +215,59 @@ def odometry(
         _write(run.path(out_path), traj)
         run.note(**summary)
     if not quiet:
-        for k, v in summary.items():
-            out.print(f"{k}: {v}", markup=False, highlight=False)
+        for line in summary_lines(summary, out_path):
+            out.print(line, markup=False, highlight=False, soft_wrap=True)
+
+
+#: Unit of each calibration state by the end of its name (odometry.fusion.FusedOdometry).
+_CALIBRATION_UNITS = (
+    ("yaw_rate_bias", "rad/s"),
+    ("speed_scale", "relative: the source reads (1 + k) v"),
+    ("_theta", "rad"),
+    ("_x", "m"),
+    ("_y", "m"),
+)
+
+
+def summary_lines(summary: dict[str, Any], out_path: Path) -> list[str]:
+    """The lidar odometry's summary (``lidar_front_end``'s, or ``motion_trajectory``'s for a
+    fused run) as sentences with units, the written file on the first line."""
+    lid = summary.get("lidar", summary)
+    imu = " + IMU/wheels" if lid.get("imu") else ""
+    lines = [
+        f"{lid['frames']} lidar frames{imu}, {lid['held_frames']} held (too few points to "
+        f"register) -> {out_path}"
+    ]
+    vis = summary.get("visual")
+    if vis:
+        lines.append(
+            f"camera ({vis.get('kind', vis.get('mode', '?'))}): {vis['frames']} frames"
+            + (
+                f", {vis['keyframes']} keyframes, {vis['lost_frames']} lost"
+                if "keyframes" in vis
+                else ""
+            )
+        )
+    if lid.get("rejected"):
+        lines.append(
+            "measurements rejected by the EKF gate: "
+            + ", ".join(f"{k} {v}" for k, v in lid["rejected"].items())
+        )
+    if lid.get("calibration"):
+        parts = []
+        for name, v in lid["calibration"].items():
+            unit = next((u for end, u in _CALIBRATION_UNITS if name.endswith(end)), "")
+            parts.append(f"{name} {v:+.6g}" + (f" ({unit})" if unit else ""))
+        lines.append("learned calibration: " + ", ".join(parts))
+    lines.append(f"distance travelled: {summary['distance_m']:.3f} m (chords >= 0.5 m)")
+    for key, text in (
+        ("drift_estimate_percent", "drift estimate (1 sigma): {:.3g} % of the distance"),
+        ("ekf_final_position_std_m", "EKF position std at the end: {:.3g} m"),
+        ("visual_vs_lidar_percent", "visual vs lidar disagreement: {:.3g} % over 10 m"),
+    ):
+        if summary.get(key) is not None:
+            lines.append(text.format(summary[key]))
+    return lines
 
 
 def _read_inertial(imu: Path | None, imu_topic: str | None, odom_topic: str | None) -> Any:

@@ -30,7 +30,7 @@ import typer
 
 from stemmap.cli._common import QuietFlag, fail_on_stemmap_error, out
 from stemmap.cli._validate import bounded
-from stemmap.io._util import existing_file
+from stemmap.io._util import check_npz_sizes, existing_file
 
 __all__ = ["register"]
 
@@ -358,9 +358,12 @@ def score(
         existing_file(truth_path, "truth NPZ")
         try:
             with np.load(truth_path, allow_pickle=False) as z:
+                check_npz_sizes(z, truth_path, "truth NPZ")
                 hit_ids = np.asarray(z["hit_ids"], dtype=np.int64)
                 clutter_xy = np.asarray(z["clutter_xy"], dtype=np.float64).reshape(-1, 2)
                 clutter_ext = np.asarray(z["clutter_extent"], dtype=np.float64)
+        except InputError:
+            raise
         except (KeyError, *NPZ_ERRORS) as exc:
             raise InputError(f"truth NPZ {str(truth_path)!r} is unreadable: {exc}") from exc
         if hit_ids.shape != batch.ranges.shape or poses.shape[0] != len(batch):

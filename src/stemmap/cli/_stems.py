@@ -210,8 +210,9 @@ def stems(
     work: Annotated[
         Path | None,
         typer.Option(
-            help="Work folder for chunk results and the manifest [default: OUT's name + "
-            "'_chunks' beside it].",
+            help="Work folder for chunk results and the manifest: new, empty or an earlier "
+            "run's (a folder holding other files is refused) [default: OUT's name + '_chunks' "
+            "beside it].",
             rich_help_panel="Tile catalogs (Dask engine)",
         ),
     ] = None,

@@ -595,6 +595,14 @@ def fuse(
                 f"{scan} has {len(batch)} scan(s); --scan-index {scan_index} is out of range."
             )
         rgb = read_image(image)  # header pixel limit and truncation checks, as in segment
+        if "camera" in doc and (rgb.shape[1], rgb.shape[0]) != doc["camera"][1:3]:
+            cw, ch = doc["camera"][1:3]
+            raise InputError(
+                f"image {str(image)!r} is {rgb.shape[1]} x {rgb.shape[0]} pixels but the "
+                f"calibration {str(calibration)!r} is for a {cw} x {ch} camera: G and the "
+                "intrinsics hold only at that size; resize the image to it, or calibrate at "
+                "the image's size."
+            )
         if not np.any(np.isfinite(batch.ranges[scan_index])):
             console.print(
                 f"[yellow]warning:[/yellow] scan {scan_index} of {escape(str(scan))} has no "

@@ -34,10 +34,14 @@ class StemConfig:
         (a stem is vertical; bushes and branch stubs are not); ignored for a pre-cut slice
     slices_per_spacing : float -- a slice is at least this many measured point spacings thick;
         sparse clouds get fewer, thicker slices over the same band (0 disables)
-    thin_remeasure : bool -- a stem found on a band thickened to at most ``min_slices`` + 1
-        slices is measured again on the default thin slices about its circle
-        (:func:`~stemmap.cloud.slicestem._thin_slice_stem`); the thin measurement replaces
-        the thick one when more thin slices agree
+    thin_remeasure : bool -- a stem found on a band thickened to at most
+        ``thin_remeasure_max_slices`` slices is measured again on the default thin slices
+        about its circle (:func:`~stemmap.cloud.slicestem._thin_slice_stem`); the thin
+        measurement replaces the thick one when more thin slices agree
+    thin_remeasure_max_slices : int -- the thin re-measure applies to bands thickened to at
+        most this many slices (4, ``min_slices`` + 1; a thickened band has 3-5 slices; partly
+        chosen on real clouds, docs/algorithms/cloud.md "Plots at lower density (Dec 4)" and
+        "Leave-one-dataset-out check of the cloud defaults")
     max_taper : float -- largest plausible |d radius / d height| in the band, m/m; a candidate
         whose slice radii change faster is not a stem
     residual_factor : float -- a slice fit passes if its RMS is below ``residual_factor`` times
@@ -103,6 +107,7 @@ class StemConfig:
     min_vertical_extent: float = 0.4
     slices_per_spacing: float = 4.0
     thin_remeasure: bool = True
+    thin_remeasure_max_slices: int = 4
     max_taper: float = 0.05
     pooled_fallback: bool = True
     tighter_refits: bool = True

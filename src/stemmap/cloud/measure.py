@@ -420,9 +420,9 @@ def _stems_from_band(
         rms_max=rms_max,
     )
     # the default thin slices, when the band's were thickened for a sparse cloud; a stem
-    # found on at most min_slices + 1 thick slices is measured again on them
+    # found on at most thin_remeasure_max_slices (4) thick slices is measured again on them
     thickened = cfg_thin.slice_thickness < cfg.slice_thickness
-    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.min_slices + 1
+    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.thin_remeasure_max_slices
     ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
     ctx0 = (
         replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))

@@ -25,11 +25,13 @@ import hashlib
 import json
 import logging
 import os
+import re
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
 from stemmap.errors import InputError
+from stemmap.io._util import check_npz_sizes
 from stemmap.io.atomic import atomic_write
 
 __all__ = ["Manifest", "params_hash", "result_hash"]
@@ -68,6 +70,13 @@ def result_hash(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
+#: What a run keeps in its work folder.
+_WORK_ENTRIES = frozenset({"manifest.jsonl", "chunks", "stage"})
+#: A chunk id (:func:`~stemmap.engine.catalog.plan_chunks`: ``x3_y-1``, split ``x3_y-1ab``)
+#: or the statistics pilot's.
+_CHUNK_ID = re.compile(r"pilot|x-?\d+_y-?\d+[a-d]*")
+
+
 class Manifest:
     """The append-only chunk manifest of one work folder (written by the client only)."""
 
@@ -75,6 +84,60 @@ class Manifest:
         self.work = Path(work)
         self.path = self.work / "manifest.jsonl"
         self.chunks = self.work / "chunks"
+
+    def claim(self) -> None:
+        """Refuse a work folder that holds anything a run would not have written there.
+
+        A run replaces ``manifest.jsonl``, overwrites ``chunks/<id>.npz`` and removes
+        ``stage/`` when it is done, so ``--work ~/data`` or ``--work .`` would delete a
+        ``stage`` folder or a ``manifest.jsonl`` of the user's. A new folder, an empty one, or
+        an earlier run's work folder (only those three entries, the manifest's first line a
+        chunk record, ``stage/`` holding only chunk folders) is accepted.
+
+        Raises
+        ------
+        InputError
+            Naming the folder and what in it is not a work folder's.
+        """
+        w = self.work
+        if not w.exists():
+            return
+        if not w.is_dir():
+            raise InputError(f"work folder {str(w)!r} is a file; give --work a folder.")
+        foreign = sorted(p.name for p in w.iterdir() if p.name not in _WORK_ENTRIES)
+        stage = w / "stage"
+        if stage.is_dir():
+            foreign += [
+                f"stage/{p.name}"
+                for p in sorted(stage.iterdir())
+                if not (p.is_dir() and _CHUNK_ID.fullmatch(p.name))
+            ]
+        elif stage.exists():
+            foreign.append("stage")
+        if self.path.exists() and not self._is_manifest():
+            foreign.append("manifest.jsonl")
+        if foreign:
+            shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+            raise InputError(
+                f"work folder {str(w)!r} is not a stemmap work folder: it holds {shown}. A run "
+                "replaces its manifest.jsonl, writes chunks/ and removes stage/ when done; give "
+                "--work a new or empty folder (or the work folder of an earlier run)."
+            )
+
+    def _is_manifest(self) -> bool:
+        """The file is empty or its first line is a chunk record (a torn line from a kill too)."""
+        try:
+            with open(self.path, encoding="utf-8") as fh:
+                first = fh.readline(1 << 20)
+        except (OSError, UnicodeDecodeError):
+            return False
+        if not first.strip():
+            return True
+        try:
+            rec = json.loads(first)
+        except ValueError:
+            return first.startswith('{"chunk": ')  # a line torn by a kill
+        return isinstance(rec, dict) and "chunk" in rec
 
     def result_path(self, chunk_id: str) -> Path:
         return self.chunks / f"{chunk_id}.npz"
@@ -170,6 +233,7 @@ def load_columns(path: Path) -> dict[str, Any]:
 
     try:
         with np.load(path, allow_pickle=False) as z:
+            check_npz_sizes(z, path, "chunk result")
             return {k: z[k] for k in z.files}
     except (OSError, ValueError) as exc:
         raise InputError(f"chunk result {str(path)!r} is unreadable ({exc}); rerun it.") from exc

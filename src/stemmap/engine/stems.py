@@ -512,6 +512,7 @@ def run_stems_catalog(
         )
     chunks = plan_chunks(catalog, chunk_size, buffer, max_points=max_points)
     man = Manifest(work)
+    man.claim()
     time_field: str | None = None
     if sensor is not None and sensor.needs_time:
         import laspy

@@ -196,3 +196,78 @@ def require_integer(path: Path, what: str, table: CsvTable, name: str) -> None:
             f"{what} file {str(path)!r} line {table.lines[k]}: column {name!r} is {values[k]}, "
             "but must be a whole number."
         )
+
+
+#: The most a deflate stream can expand (RFC 1951: a 258-byte match per 2 bits is ~1032:1).
+_DEFLATE_MAX_RATIO = 1032
+
+
+def _human_bytes(n: int) -> str:
+    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n} bytes"
+
+
+def check_npz_sizes(archive: Any, path: PathLike, what: str) -> None:
+    """Refuse an NPZ whose member headers announce more data than the member can hold.
+
+    ``archive`` is what ``np.load`` returned. numpy allocates every array at the shape its
+    ``.npy`` header announces before reading a byte of it, so a damaged or hostile header
+    (shape ``(10**6, 10**6)`` in a 1 kB file) ends in "out of memory" rather than in an error
+    naming the file. A member holds at most its uncompressed size, and at most
+    :data:`_DEFLATE_MAX_RATIO` times its compressed size (which itself fits in the file), so
+    an announced size above either is damage. Members whose header cannot be read are left to
+    numpy's own reader, whose error the caller reports.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the member, the announced shape and dtype, and both sizes.
+    """
+    import zipfile
+    import zlib
+
+    from numpy.lib import format as npy_format
+
+    zf = getattr(archive, "zip", None)
+    if not isinstance(zf, zipfile.ZipFile):
+        return
+    try:
+        file_size = os.path.getsize(path)
+    except OSError:
+        return
+    for info in zf.infolist():
+        if not info.filename.endswith(".npy"):
+            continue
+        try:
+            with zf.open(info) as fh:
+                version = npy_format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = npy_format.read_array_header_1_0(fh)
+                elif version == (2, 0):
+                    shape, _, dtype = npy_format.read_array_header_2_0(fh)
+                else:
+                    continue
+                header_len = fh.tell()
+        except (
+            ValueError,
+            OSError,
+            EOFError,
+            zipfile.BadZipFile,
+            zlib.error,
+            NotImplementedError,
+            RuntimeError,
+        ):
+            continue  # damage that numpy's own reader reports to the caller
+        announced = math.prod(int(s) for s in shape) * int(dtype.itemsize)
+        stored = min(info.compress_size, file_size)
+        if info.compress_type != zipfile.ZIP_STORED:
+            stored *= _DEFLATE_MAX_RATIO
+        room = max(min(info.file_size, stored) - header_len, 0)
+        if announced > room:
+            raise InputError(
+                f"{what} {os.fspath(path)!r} field {info.filename.removesuffix('.npy')!r} "
+                f"announces shape {tuple(shape)} of {dtype} ({_human_bytes(announced)}) but "
+                f"holds at most {_human_bytes(room)}: the file is damaged or truncated."
+            )

@@ -63,15 +63,16 @@ class CameraFrames:
         return len(self.left)
 
     def __iter__(self) -> Iterator[VisualFrame]:
+        size = (self.calibration.width, self.calibration.height)
         for k, lp in enumerate(self.left):
-            left = _read_image(lp)
-            right = _read_image(self.right[k]) if self.right is not None else None
+            left = _read_image(lp, size)
+            right = _read_image(self.right[k], size) if self.right is not None else None
             depth = None
             if self.depth is not None:
                 dp = self.depth[k]
                 # float metres for the odometry: PNG units scaled, .npy already in metres
                 scale = 1.0 if dp.suffix == ".npy" else self.depth_scale
-                depth = _read_depth(dp).astype(np.float64) * scale
+                depth = _read_depth(dp, size).astype(np.float64) * scale
                 depth[depth <= 0] = np.nan
             yield VisualFrame(float(self.times[k]), left, right, depth)
 
@@ -107,8 +108,34 @@ def _images(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMG or p.suffix == ".npy")
 
 
-def _read_image(path: Path) -> NDArray[np.uint8]:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def _decode(path: Path, size: tuple[int, int]) -> NDArray[Any] | None:
+    """Decode an image file, its size checked against camera.json's before decoding.
+
+    PNG, JPEG and BMP headers are read first (:func:`stemmap.vision.image_io.image_header`): a
+    frame of another size than ``size`` (width, height) is refused before it is decoded (a
+    2.6 MB PNG announcing 30000 x 30000 pixels decoded to 5.5 GB first), and a file cut short
+    is an error (OpenCV decodes half a JPEG into grey rows). Other formats (TIFF, PGM, PPM)
+    are left to OpenCV, whose own limit is 2^30 pixels.
+    """
+    from stemmap.vision.image_io import check_complete, image_header
+
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read {path}: {exc}.") from exc
+    if data[:2] in (b"\x89P", b"\xff\xd8", b"BM"):
+        fmt, w, h = image_header(data, path)
+        if (w, h) != size:
+            raise InputError(
+                f"{path}: image is {w} x {h}, camera.json says {size[0]} x {size[1]} (every "
+                "frame must have the calibrated size)."
+            )
+        check_complete(data, fmt, path)
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def _read_image(path: Path, size: tuple[int, int]) -> NDArray[np.uint8]:
+    img = _decode(path, size)
     if img is None:
         raise InputError(f"{path}: not a readable image.")
     if img.ndim == 3:
@@ -116,10 +143,19 @@ def _read_image(path: Path) -> NDArray[np.uint8]:
     return np.asarray(img)
 
 
-def _read_depth(path: Path) -> NDArray[np.generic]:
+def _read_depth(path: Path, size: tuple[int, int]) -> NDArray[np.generic]:
     if path.suffix == ".npy":
-        return np.asarray(np.load(path))
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        try:  # memory-mapped: the shape is checked before a byte is read
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise InputError(f"{path}: not a readable .npy depth image ({exc}).") from exc
+        if arr.shape != (size[1], size[0]):
+            raise InputError(
+                f"{path}: depth array has shape {arr.shape}, camera.json says "
+                f"{size[1]} x {size[0]} (rows x columns)."
+            )
+        return np.array(arr)
+    img = _decode(path, size)
     if img is None or img.ndim != 2:
         raise InputError(f"{path}: not a single-channel depth image.")
     return np.asarray(img)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -456,7 +457,9 @@ def read_xyz(path: PathLike) -> PointCloud:
     except ValueError:
         skip = 1
     try:
-        arr = np.loadtxt(p, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
+        with warnings.catch_warnings():  # numpy's "input contained no data": reported below
+            warnings.simplefilter("ignore", UserWarning)
+            arr = np.loadtxt(p, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
     except ValueError as exc:
         raise InputError(
             f"{str(p)!r} has a malformed line (every line needs the same number of numeric "

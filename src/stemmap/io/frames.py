@@ -19,11 +19,13 @@ import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import InputError
+from stemmap.io._util import check_npz_sizes
 from stemmap.types import FloatArray
 
 __all__ = ["FramesBundle", "is_frames_npz", "read_frames_npz", "write_frames_npz"]
@@ -103,6 +105,42 @@ def is_frames_npz(path: Path) -> bool:
         return False  # not a bundle: the caller's own reader reports the damage
 
 
+#: Each bundle field: allowed dtype kinds and the shape rule, checked before any cast (a
+#: string or 2-column ``points`` array ended in a ValueError traceback; float frame indices
+#: were truncated, float images cast to black).
+_FIELDS: dict[str, tuple[str, str]] = {
+    "times": ("fiu", "(F,)"),
+    "points": ("fiu", "(N, 3)"),
+    "frame_ptr": ("iu", "(F + 1,)"),
+    "images": ("u", "(C, H, W, 3) uint8"),
+    "depths": ("fiu", "(C, H, W)"),
+    "image_frames": ("iu", "(C,)"),
+    "camera_K": ("fiu", "(3, 3)"),
+    "camera_to_body": ("fiu", "(4, 4)"),
+}
+_SHAPES = {"points": (None, 3), "camera_K": (3, 3), "camera_to_body": (4, 4)}
+
+
+def _check_fields(z: dict[str, Any], p: Path) -> None:
+    """InputError naming the field whose dtype or shape is not what the format says."""
+    for key, (kinds, shape) in _FIELDS.items():
+        if key not in z:
+            continue
+        a = z[key]
+        ok = a.dtype.kind in kinds and (key != "images" or a.dtype.itemsize == 1)
+        want = _SHAPES.get(key)
+        if ok and want is not None:
+            ok = a.ndim == len(want) and all(
+                w is None or n == w for n, w in zip(a.shape, want, strict=True)
+            )
+        if not ok:
+            raise InputError(
+                f"frames bundle {str(p)!r}: field {key!r} must be {shape} "
+                f"({'whole numbers' if kinds == 'iu' else 'numbers'}), got {a.dtype} {a.shape}; "
+                "docs/outputs.md 'Frames bundle'."
+            )
+
+
 def read_frames_npz(path: Path) -> FramesBundle:
     """Read and check a frames bundle.
 
@@ -115,11 +153,16 @@ def read_frames_npz(path: Path) -> FramesBundle:
     if not p.is_file():
         raise InputError(f"frames bundle {str(p)!r} does not exist.")
     try:
-        z = dict(np.load(p, allow_pickle=False))
+        with np.load(p, allow_pickle=False) as archive:
+            check_npz_sizes(archive, p, "frames bundle")
+            z = dict(archive)
+    except InputError:
+        raise
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"frames bundle {str(p)!r} is not a readable NPZ: {exc}") from exc
     if "times" not in z:
         raise InputError(f"frames bundle {str(p)!r} has no 'times' array.")
+    _check_fields(z, p)
     t = np.asarray(z["times"], dtype=np.float64).reshape(-1)
     if t.size == 0 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
         raise InputError(f"frames bundle {str(p)!r}: 'times' must be finite and increasing.")
@@ -147,6 +190,12 @@ def read_frames_npz(path: Path) -> FramesBundle:
         frames = np.asarray(z["image_frames"], dtype=np.int64).reshape(-1)
         K = np.asarray(z["camera_K"], dtype=np.float64).reshape(3, 3)
         T = np.asarray(z["camera_to_body"], dtype=np.float64).reshape(4, 4)
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+            raise InputError(
+                f"frames bundle {str(p)!r}: camera_K must be finite with focal lengths > 0."
+            )
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"frames bundle {str(p)!r}: camera_to_body must be finite.")
         if images.ndim != 4 or images.shape[3] != 3 or depths.shape != images.shape[:3]:
             raise InputError(
                 f"frames bundle {str(p)!r}: images (C, H, W, 3) and depths (C, H, W) must agree; "

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from stemmap.errors import InputError
-from stemmap.io._util import PathLike
+from stemmap.io._util import PathLike, check_npz_sizes
 from stemmap.io.clouds import CLOUD_EXTENSIONS, read_cloud
 from stemmap.types import LaserScan, PointCloud
 
@@ -221,6 +221,7 @@ def open_frames(
 
     if is_frames_npz(p):
         with np.load(p, allow_pickle=False) as z:
+            check_npz_sizes(z, p, "frames bundle")
             if "points" not in z.files:
                 raise InputError(
                     f"frames bundle {str(p)!r} holds RGB-D frames but no lidar frames."

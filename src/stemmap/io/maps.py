@@ -29,6 +29,7 @@ import numpy as np
 from stemmap.errors import InputError
 from stemmap.io._util import (
     PathLike,
+    check_npz_sizes,
     existing_file,
     fmt_row,
     parse_numeric_csv,
@@ -253,8 +254,11 @@ def read_trees_information(path: PathLike, stem_map: StemMap) -> StemMap:
     p = existing_file(path, what)
     try:
         with np.load(p, allow_pickle=False) as z:
+            check_npz_sizes(z, p, what)
             ids = np.asarray(z["tree_ids"], dtype=np.int64)
             info = np.asarray(z["information"], dtype=np.float64)
+    except InputError:
+        raise
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(
             f"{what} {str(p)!r} is unreadable or lacks 'tree_ids' / 'information': {exc}."

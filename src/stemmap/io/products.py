@@ -319,6 +319,36 @@ def _owned(folder: Path) -> bool:
     return entries <= listed | {MANIFEST_NAME}
 
 
+def _replaceable_folder(folder: Path) -> bool:
+    """True if a folder *product* (``io convert-scans --out NAME``: a ROS 2 bag folder) may
+    replace ``folder``: it is empty, or it is still what an earlier run wrote -- the manifest
+    beside it (``NAME.run.json``) lists it as a folder output with the same file count and
+    size. Anything else (``--out ~/data``, a bag recorded by ros2 bag) would be deleted."""
+    try:
+        if not any(folder.iterdir()):
+            return True
+    except OSError:
+        return False
+    m = folder.with_name(folder.name + ".run.json")
+    try:
+        doc = json.loads(m.read_text(encoding="utf-8"))
+        for o in doc.get("outputs", []):
+            p = Path(o["path"])
+            p = p if p.is_absolute() else m.absolute().parent / p
+            if o.get("kind") == "folder" and p.absolute() == folder.absolute():
+                now = _describe_counts(folder)
+                return now == (o.get("files"), o.get("size"))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
+    return False
+
+
+def _describe_counts(folder: Path) -> tuple[int, int]:
+    """(files, bytes) of a folder, as :func:`_describe` counts them, without hashing."""
+    files = [p for p in folder.rglob("*") if p.is_file()]
+    return len(files), sum(p.stat().st_size for p in files)
+
+
 @dataclass
 class RunProducts:
     """The staged products of one run (use :func:`run_products`, not this class directly)."""
@@ -430,6 +460,12 @@ class RunProducts:
             # a folder product (a suffix-less ROS2 bag) may replace a folder; a file may not
             raise OutputError(
                 f"cannot write {self.names.output(o)}: it is a folder; give a file name."
+            )
+        if o.is_dir() and not _replaceable_folder(o):
+            raise OutputError(
+                f"cannot write {self.names.output(o)}: it is a folder holding files this "
+                "command did not write there (the product would replace the whole folder); "
+                "give a new folder name, or remove the folder first."
             )
         parent = o.absolute().parent
         self._mkparent(parent, o)

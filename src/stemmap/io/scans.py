@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import InputError
-from stemmap.io._util import PathLike, SkippedFrame, existing_file, fmt_float
+from stemmap.io._util import PathLike, SkippedFrame, check_npz_sizes, existing_file, fmt_float
 from stemmap.io.atomic import atomic_write
 from stemmap.io.rosbag import indexed_laser_scans, is_bag
 from stemmap.types import FloatArray, LaserScan, ScanBatch
@@ -134,6 +134,7 @@ def _npz_arrays(path: PathLike) -> dict[str, NDArray[Any]]:
         )
     out: dict[str, NDArray[Any]] = {}
     with z:
+        check_npz_sizes(z, p, "scan NPZ")
         keys = set(z.files)
         if "time" not in keys and "times" in keys:
             keys.add("time")

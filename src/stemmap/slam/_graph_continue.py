@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from stemmap.errors import InputError
+from stemmap.io._util import check_npz_sizes
 from stemmap.types import FloatArray, StemMap
 
 __all__ = [
@@ -235,6 +236,7 @@ def read_graph(path: str | Path, stem_map: StemMap | None = None) -> SavedGraph:
     where = f"session graph {str(p)!r}"
     try:
         with np.load(p, allow_pickle=False) as z:
+            check_npz_sizes(z, p, "session graph")
             fmt, ver = str(z["format"]), int(z["format_version"])
             if fmt != GRAPH_FORMAT or ver not in _READ_VERSIONS:
                 raise InputError(

@@ -342,7 +342,15 @@ def with_params(base: SegmentParams | str, **changes: object) -> SegmentParams:
 
 def read_yolo_polygons(path: str | Path, width: int, height: int) -> list[NDArray[np.bool_]]:
     """Rasterise the class-0 polygons of a YOLO-seg label file (``0 x1 y1 x2 y2 ...``,
-    normalised) into one (height, width) bool mask per polygon."""
+    normalised) into one (height, width) bool mask per polygon.
+
+    Raises
+    ------
+    InputError
+        Naming the file and line: a class id that is not a whole number, coordinates that are
+        not finite numbers in 0..1 (1 % slack for exports that overshoot the border), or an
+        odd count or fewer than three vertices.
+    """
     masks: list[NDArray[np.bool_]] = []
     text = Path(path).read_text(encoding="utf-8")
     for lineno, line in enumerate(text.splitlines(), start=1):
@@ -350,15 +358,30 @@ def read_yolo_polygons(path: str | Path, width: int, height: int) -> list[NDArra
         if not parts:
             continue
         try:
+            cls = float(parts[0])
             vals = np.array([float(v) for v in parts[1:]])
         except ValueError as exc:
-            raise InputError(f"{path}:{lineno}: polygon coordinates must be numbers.") from exc
-        if int(float(parts[0])) != 0:
+            raise InputError(
+                f"{path}:{lineno}: a label line is a class id and polygon coordinates, all "
+                f"numbers; got {line[:60]!r}."
+            ) from exc
+        if not (math.isfinite(cls) and cls.is_integer() and cls >= 0):
+            raise InputError(
+                f"{path}:{lineno}: the class id must be a whole number >= 0 (0 = trunk), got "
+                f"{parts[0]!r}."
+            )
+        if cls != 0:
             continue
         if vals.size < 6 or vals.size % 2:
             raise InputError(
                 f"{path}:{lineno}: a polygon needs an even number (>= 6) of coordinates, "
                 f"got {vals.size}."
+            )
+        bad = vals[~(np.isfinite(vals) & (vals >= -0.01) & (vals <= 1.01))]
+        if bad.size:
+            raise InputError(
+                f"{path}:{lineno}: polygon coordinates are normalised to the image (0..1); got "
+                f"{bad[0]:g}."
             )
         v = np.rint(vals.reshape(-1, 2) * [width, height]).astype(np.int32)
         m = np.zeros((height, width), np.uint8)

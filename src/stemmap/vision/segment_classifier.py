@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.io._util import check_npz_sizes
 from stemmap.io.atomic import atomic_write
 from stemmap.vision.segment import Segmentation, label_regions, read_yolo_polygons
 from stemmap.vision.segment_features import (
@@ -526,6 +527,7 @@ def load_model(path: str | Path) -> PixelModel:
         if not isinstance(loaded, np.lib.npyio.NpzFile):
             raise InputError(f"{p} is a single .npy array, not a .npz model file.")
         with loaded as z:
+            check_npz_sizes(z, p, "model file")
             files = set(z.files)
             missing = ({"header"} | set(_ARRAYS)) - files
             if missing:
