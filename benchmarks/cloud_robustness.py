@@ -28,10 +28,15 @@ moves up, so DBH is measured higher: they are also compared with the ring of the
 at the detection's own height (converged from starts about the detected circle: that
 comparison is tied to the detection's height, so it cannot be fixed). A transform fails a
 cloud when it misses the issue-11 target there: a single tree not found or more than 1.5 cm
-off its ring; a plot or a slice with recall below 0.95 of the baseline's stems, extra stems
-above 5 %, or DBH RMSE over its full rings above 1 cm. Crops and tilts do not apply to
-pre-cut slices (fortls_slice, lidr_dbh: heights are given, there is no stem base to crop
-to, and a slice cut from a tilted scan is cut in the scanner's frame).
+off its ring; a plot or a slice with recall below 0.95 of the baseline's *checked* stems,
+extra stems above 5 %, or DBH RMSE over its full rings above 1 cm. A baseline stem is checked
+when it pairs with a fixed ring reference: a detection with no ring at breast height cannot
+be told from clutter by this benchmark (treels pine_plot's 6.3 cm edge object: no return
+within 15 cm of its axis at 1.30-1.50 m and none within 50 cm at 1.71-2.88 m,
+docs/algorithms/cloud.md "pine_plot's 17th stem"); losing one is listed
+(``missed_unchecked_dbh_cm``), not failed. Crops and tilts do not apply to pre-cut slices
+(fortls_slice, lidr_dbh: heights are given, there is no stem base to crop to, and a slice cut
+from a tilted scan is cut in the scanner's frame).
 
 Prints ONE JSON object. Usage: python benchmarks/cloud_robustness.py [--clouds a,b]
 [--transforms t1,t2]
@@ -209,8 +214,11 @@ def _score(
     prep: Prepared,
     xyz_t: np.ndarray,
     single: bool,
+    checked: frozenset[int] | None = None,
 ) -> dict[str, Any]:
-    """Compare one transformed run with the baseline."""
+    """Compare one transformed run with the baseline (``checked``: the baseline stems a
+    plot's recall is counted over, by default all)."""
+    checked = frozenset(range(len(base))) if checked is None else checked
     zbh = det.z if det.base != BASE_SLICE else np.full(len(det), np.nan)
     back = prep.back(np.column_stack((det.xy, np.nan_to_num(zbh))))
     pairs = _match(base.xy, base.diameter, back[:, :2])
@@ -227,6 +235,10 @@ def _score(
         "missed_dbh_cm": [
             _r(100 * base.diameter[i])
             for i in sorted(set(range(len(base))) - {i for i, _ in pairs})
+        ],
+        "missed_unchecked_dbh_cm": [
+            _r(100 * base.diameter[i])
+            for i in sorted(set(range(len(base))) - {i for i, _ in pairs} - checked)
         ],
         "dbh_change_max_cm": _r(100 * np.abs(dd).max()) if dd.size else None,
         "dbh_change_mean_cm": _r(100 * dd.mean()) if dd.size else None,
@@ -269,8 +281,9 @@ def _score(
             if e is not None and abs(e) > 1.5:
                 why.append(f"DBH {e} cm off the ring")
     else:
-        if len(pairs) < 0.95 * len(base):
-            why.append(f"recall {len(pairs)}/{len(base)}")
+        found = sum(1 for i, _ in pairs if i in checked)
+        if found < 0.95 * len(checked):
+            why.append(f"recall {found}/{len(checked)}")
         if row["extra"] > 0.05 * len(base):
             why.append(f"{row['extra']} extra stems")
         if err.size and np.sqrt(np.mean(err**2)) > 0.01:
@@ -282,7 +295,8 @@ def _score(
 @dataclass(frozen=True)
 class Baseline:
     """One cloud as shipped: its points, the detector's stems on it (what every transform is
-    matched against), the ground model the crops cut at, the fixed ring references."""
+    matched against), the ground model the crops cut at, the fixed ring references, and the
+    stems that pair with one (``checked``: a plot's recall is counted over them)."""
 
     key: str
     xyz: np.ndarray
@@ -291,6 +305,7 @@ class Baseline:
     seeds: list[RingSeed]
     refs: list[RingReference | None]
     cpu_s: float
+    checked: frozenset[int]
 
 
 def run_baseline(key: str, path: Path, cfg: StemConfig | None = None) -> Baseline:
@@ -301,9 +316,9 @@ def run_baseline(key: str, path: Path, cfg: StemConfig | None = None) -> Baselin
     det = detect_stems_file(path, cfg or StemConfig(), on_ground=grounds.append)
     cpu = time.process_time() - t0
     seeds = load_seeds()[key]
-    return Baseline(
-        key, xyz, det, grounds[0] if grounds else None, seeds, fixed_references(xyz, seeds), cpu
-    )
+    refs = fixed_references(xyz, seeds)
+    checked = frozenset(i for i, h in enumerate(reference_of_each(refs, det.xy)) if h)
+    return Baseline(key, xyz, det, grounds[0] if grounds else None, seeds, refs, cpu, checked)
 
 
 def transformed_files(
@@ -332,7 +347,9 @@ def transformed_files(
 def score_run(name: str, bl: Baseline, det: CloudStems, prep: Prepared) -> dict[str, Any]:
     """One transformed run against the baseline's stems and the fixed references
     (:func:`_score`; ``fails`` lists the issue-11 targets it misses)."""
-    return _score(name, bl.det, bl.refs, bl.seeds, det, prep, prep.xyz, len(bl.det) == 1)
+    return _score(
+        name, bl.det, bl.refs, bl.seeds, det, prep, prep.xyz, len(bl.det) == 1, bl.checked
+    )
 
 
 def run_cloud(key: str, path: Path, names: list[str], tmp: Path) -> dict[str, Any]:
@@ -369,6 +386,9 @@ def run_cloud(key: str, path: Path, names: list[str], tmp: Path) -> dict[str, An
     out["baseline"]["dbh_vs_ring_rmse_cm"] = (
         _r(100 * np.sqrt(np.mean(base_err**2))) if base_err.size else None
     )
+    out["baseline"]["unchecked_dbh_cm"] = [
+        _r(100 * base.diameter[i]) for i in range(len(base)) if i not in bl.checked
+    ]
     res: dict[str, Any] = {}
     for name, prep, f in transformed_files(bl, names, tmp):
         t0 = time.process_time()
@@ -405,7 +425,8 @@ def main() -> None:
     out = {
         "benchmark": "cloud_robustness",
         "note": "preset ours through detect_stems_file; every transform written to LAS and read "
-        "back; fails = issue-11 cloud targets missed relative to the baseline's stems",
+        "back; fails = issue-11 cloud targets missed relative to the baseline's stems (a "
+        "plot's recall over those with a fixed ring reference)",
         "cpu_s": round(time.process_time() - t0, 1),
         "fails": fails,
         "clouds": clouds,

@@ -35,7 +35,8 @@ class StemConfig:
     slices_per_spacing : float -- a slice is at least this many measured point spacings thick;
         sparse clouds get fewer, thicker slices over the same band (0 disables)
     thin_remeasure : bool -- a stem found on a band thickened to at most
-        ``thin_remeasure_max_slices`` slices is measured again on the default thin slices
+        ``thin_remeasure_max_slices`` slices -- in the first round, by the tighter refits, or
+        chosen by the single-tree ladder -- is measured again on the default thin slices
         about its circle (:func:`~stemmap.cloud.slicestem._thin_slice_stem`); the thin
         measurement replaces the thick one when more thin slices agree
     thin_remeasure_max_slices : int -- the thin re-measure applies to bands thickened to at

@@ -410,6 +410,8 @@ def _stems_from_band(
 
     # the band before the vertical filter (which removes fins: they shrink with height)
     band_tree = cKDTree(band.xy) if not slice_cloud else None
+    # a single candidate cluster: the noise floor is its own slices' RMS, not pooled
+    only = np.unique(np.flatnonzero(plausible) // ns)
     ctx = _BandContext(
         band=band,
         tree=band_tree,
@@ -418,6 +420,7 @@ def _stems_from_band(
         noise_floor=noise_floor,
         slice_cloud=slice_cloud,
         rms_max=rms_max,
+        own_floor=only.size == 1 and cfg.noise_floor is None,
     )
     # the default thin slices, when the band's were thickened for a sparse cloud; a stem
     # found on at most thin_remeasure_max_slices (4) thick slices is measured again on them
@@ -429,20 +432,46 @@ def _stems_from_band(
         if thickened
         else ctx
     )
+
+    def thin_again(
+        f: _SliceFits, c: int, stem: tuple[tuple[float, ...], str]
+    ) -> tuple[tuple[float, ...], str]:
+        """Cluster ``c``'s ``stem``, found on at most ``thin_remeasure_max_slices`` thick
+        slices (``f``), measured again on the thin ones where more of them agree; else as
+        found."""
+        if remeasure:
+            again = _thin_slice_stem(f, c, ctx, ctx0, cfg_thin)
+            if again is not None and again[0][7] > stem[0][7]:
+                return again
+        return stem
+
+    def band_stem(f: _SliceFits, c: int) -> tuple[tuple[float, ...], str] | None:
+        """Step 8 on the band's slices, the stem measured again on thin ones
+        (:func:`thin_again`): every stem found on thick slices, in the first round or by
+        the tighter refits of a plot, which take the first tolerance that gives one."""
+        stem = _slice_stem(f, c, ctx, cfg)
+        return None if stem is None else thin_again(f, c, stem)
+
+    # the single-tree ladder's own thick-slice stems enter its choice as found (a re-measure
+    # changes their support, and so the choice: archi Tree_1 at 10 %, seed 2, 52.7 -> 49.0
+    # cm); the chosen one is measured again. The fits that gave each of them:
+    found_on: list[tuple[tuple[float, ...], _SliceFits, int]] = []
+
+    def ladder_stem(f: _SliceFits, c: int) -> tuple[tuple[float, ...], str] | None:
+        stem = _slice_stem(f, c, ctx, cfg)
+        if stem is not None:
+            found_on.append((stem[0], f, c))
+        return stem
+
     # --- per stem: slice consistency, buttress, taper/lean line at breast height
     rows: list[tuple[float, ...]] = []
     rules: list[str] = []
     accepted = np.zeros(kc, dtype=bool)
     # two passing slices may be enough: the others get a guided refit (_guided_refits)
     for c in np.flatnonzero(per.passed.sum(axis=1) >= min(2, cfg.min_slices)):
-        stem = _slice_stem(per, int(c), ctx, cfg)
+        stem = band_stem(per, int(c))
         if stem is None:
             continue
-        if remeasure:
-            # found on thick slices; measured on thin ones where more of them agree
-            again = _thin_slice_stem(per, int(c), ctx, ctx0, cfg_thin)
-            if again is not None and again[0][7] > stem[0][7]:
-                stem = again
         rows.append(stem[0])
         rules.append(stem[1])
         accepted[c] = True
@@ -458,10 +487,14 @@ def _stems_from_band(
         sl0 = _slice_of(pts_b.h[use], ch0, cfg_thin.slice_thickness)
 
         def step(
-            todo: NDArray[np.int64], thin: bool, first: float, floor: float
+            todo: NDArray[np.int64],
+            thin: bool,
+            first: float,
+            floor: float,
+            stem_of: Callable[[_SliceFits, int], tuple[tuple[float, ...], str] | None] = band_stem,
         ) -> dict[int, tuple[tuple[float, ...], str]]:
-            """:func:`_tighter_refits` of the clusters ``todo`` on the band's slices, or on
-            the default 20 cm slices (``thin``)."""
+            """:func:`_tighter_refits` of the clusters ``todo`` on the band's slices (stems
+            by ``stem_of``), or on the default 20 cm slices (``thin``)."""
             if not thin:
                 return _tighter_refits(
                     pts,
@@ -472,7 +505,7 @@ def _stems_from_band(
                     sp2d,
                     origins_use,
                     rms_max,
-                    lambda f, c: _slice_stem(f, c, ctx, cfg),
+                    stem_of,
                     first=first,
                     floor=floor,
                 )
@@ -492,17 +525,22 @@ def _stems_from_band(
             )
 
         # a single candidate's noise floor is its own slices' RMS: the residual test is void
-        only = np.unique(np.flatnonzero(plausible) // ns)
         one = int(only[0]) if only.size == 1 else -1
         if cfg.single_tree_ladder and one >= 0 and (accepted[one] or one in failed):
             i_row = int(np.flatnonzero(np.flatnonzero(accepted) == one)[0]) if accepted[one] else -1
             best = _single_tree_stem(
                 (rows[i_row], rules[i_row]) if i_row >= 0 else None,
                 # one rung of the ladder: start at tolerance ``tol`` (= first x tol0), floor there
-                lambda thin, first, tol: step(np.array([one]), thin, first, tol).get(one),
+                lambda thin, first, tol: step(np.array([one]), thin, first, tol, ladder_stem).get(
+                    one
+                ),
                 _ransac_tolerance(sp2d),
                 thickened,
             )
+            # the chosen stem, if the ladder found it on thick slices, measured on thin ones
+            for row, f_row, c_row in found_on:
+                if best is not None and best[0] is row:
+                    best = thin_again(f_row, c_row, best)
             if best is not None and i_row >= 0:
                 rows[i_row], rules[i_row] = best
             elif best is not None:

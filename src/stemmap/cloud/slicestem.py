@@ -62,6 +62,8 @@ class _BandContext:
     noise_floor: float
     slice_cloud: bool
     rms_max: float = math.inf  # the per-slice residual test (step 7)
+    # the noise floor is one candidate's own slice RMS, not pooled over stems (_annulus_noise)
+    own_floor: bool = False
 
 
 def _radius_consensus(
@@ -149,6 +151,35 @@ def _row(fits: _SliceFits, c: int) -> _SliceFits:
     return _SliceFits(*(np.array(getattr(fits, f)[c : c + 1]) for f in fits.__dataclass_fields__))
 
 
+def _annulus_noise(
+    fits: _SliceFits, c: int, kept: NDArray[np.bool_], ctx: _BandContext, cfg: StemConfig
+) -> float | None:
+    """The residual scale of the annulus about cluster ``c``'s stem (:func:`_annulus_fit`):
+    None (the cloud's noise floor), or the mean RMS of the stem's agreeing slices ``kept``
+    when the floor is not a measure of this stem's scatter.
+
+    The annulus half width (3 noise floors) and its RANSAC tolerance (half a floor) stand
+    for the scatter of a stem's surface: range noise and bark. Pooled over a plot's stems,
+    the median slice RMS measures that. A cloud with a single candidate cluster
+    (``ctx.own_floor``) has the median over that candidate's own slices, and on a sparse
+    spruce most of those fit its branch whorls: treels spruce.laz at 20 / 10 % has floors
+    of 71 / 124 mm against 3-9 mm on its stem slices, so the annulus about its 12 cm stem
+    reached 21-37 cm out and its refits fit the whorls (docs/algorithms/cloud.md "Single
+    trees: the annulus about a found stem"). The stem's own scale replaces the floor when
+    the floor exceeds it by more than ``cfg.residual_factor`` -- the ratio at which the
+    residual test calls a slice fit too rough for the floor, here read the other way: a
+    floor that far above the stem's slices is not their noise (archi Tree_1's rough bark,
+    floor 20 mm against 10 mm: kept). It needs two agreeing slices: the RMS of one fit is
+    that fit's, and a stem seen in one slice only is not yet established (one flared slice
+    would set both the annulus and its scale). In a plot the pooled floor stays: a shrub's
+    two slices fit with less RMS than the scan's noise (the simulated mobile scan, 3 cm
+    range noise: with its own 10 mm a clump of spheres became a 5.7 cm stem)."""
+    if not ctx.own_floor or kept.sum() < 2:
+        return None
+    own = float(np.mean(fits.rms[c, kept]))
+    return own if ctx.noise_floor > cfg.residual_factor * own else None
+
+
 def _guided_refits(
     fits: _SliceFits, c: int, agree: _Agreement, ctx: _BandContext, cfg: StemConfig
 ) -> tuple[_SliceFits, NDArray[np.bool_]] | None:
@@ -160,8 +191,9 @@ def _guided_refits(
     through the clutter although the stem is there too; which slices do so changes with the
     smallest perturbation of the cloud (a 1 mm resampling, a rotation about z, a coarser
     spacing). The band's points of such a slice (before the vertical filter) within an
-    annulus around the predicted circle -- half width max(0.3 r, 3 noise floors) plus the
-    largest taper over the height difference to the agreeing slices -- are fitted again
+    annulus around the predicted circle -- half width max(0.3 r, 3 noise floors; the stem's
+    own scale where the floor is not its noise, :func:`_annulus_noise`) plus the largest
+    taper over the height difference to the agreeing slices -- are fitted again
     (:func:`_annulus_fit`); the refit replaces the slice's fit when
     it passes the per-slice tests (inliers, arc, residual) and agrees with the stem (radius
     within the tolerance, centre within max(tolerance, 0.3 r) of the prediction, both plus that
@@ -176,11 +208,12 @@ def _guided_refits(
     h_ref = float(np.mean(ch[m]))
     if m.sum() == 2:  # a line through the two (3 or more: already the Theil-Sen line)
         pred = _centre_line(ch[m], fits.centers[c, m], ch)
+    noise = _annulus_noise(fits, c, m, ctx, cfg)
     out = _row(fits, c)
     changed = np.zeros(m.shape[0], dtype=bool)
     for s in map(int, np.flatnonzero(~m)):
         slack = cfg.max_taper * abs(float(ch[s]) - h_ref)
-        fit = _annulus_fit(ctx, s, pred[s], r_med, tol, slack, cfg)
+        fit = _annulus_fit(ctx, s, pred[s], r_med, tol, slack, cfg, noise)
         if fit is None:
             continue
         _set_slice(out, s, fit)
@@ -208,6 +241,7 @@ def _annulus_fit(
     tol: float,
     slack: float,
     cfg: StemConfig,
+    noise: float | None = None,
 ) -> _AnnulusFit | None:
     """The circle of slice ``s`` (of ``ctx.band_sl``) fitted to the band's points (before the
     vertical filter) within an annulus about the predicted circle (``center``, ``radius``),
@@ -218,9 +252,11 @@ def _annulus_fit(
     noise floor (>= 5 mm). The fit must have ``cfg.min_slice_points`` inliers, an arc of
     ``cfg.min_arc_deg``, RMS within the per-slice residual test (``ctx.rms_max``, or 2 % of
     r), a radius within ``tol`` + slack of the prediction and a centre within max(tol, 0.3 r)
-    + slack of it.
+    + slack of it. ``noise`` replaces the noise floor in the width and the tolerance
+    (:func:`_annulus_noise`; None: the floor).
     """
-    width = max(0.3 * radius, 3.0 * ctx.noise_floor) + slack
+    nf = ctx.noise_floor if noise is None else noise
+    width = max(0.3 * radius, 3.0 * nf) + slack
     idx = np.asarray(ctx.tree.query_ball_point(center, radius + width), dtype=np.int64)
     idx = idx[ctx.band_sl[idx] == s]
     q = ctx.band.xy[idx]
@@ -233,7 +269,7 @@ def _annulus_fit(
         ids,
         1,
         cfg.fit_method,
-        ransac_tol=max(0.5 * ctx.noise_floor, 0.005),
+        ransac_tol=max(0.5 * nf, 0.005),
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
     )
     if not ok[0] or nin[0] < cfg.min_slice_points:
@@ -456,7 +492,8 @@ def _thin_slice_stem(
     20 % the ten full-ring stems came out 1.0 cm too large on average (0.35 cm on the cloud
     as shipped). Once the stem is known, clutter no longer competes: each thin slice is fitted
     to the band's points about the circle the thick slices predict there
-    (:func:`_annulus_fit`, the guided refit's test), and the stem is measured from the thin
+    (:func:`_annulus_fit`, the guided refit's test, with its scale: :func:`_annulus_noise`),
+    and the stem is measured from the thin
     slices that pass as on a dense cloud (:func:`_slice_stem`: consistency, buttress,
     Theil-Sen line, lean). Only the measurement changes, not which stems are found.
     """
@@ -467,6 +504,7 @@ def _thin_slice_stem(
     ch, ch_thin = ctx.centers_h, ctx_thin.centers_h
     pred = _centre_line(ch[m], fits.centers[c, m], ch_thin)
     h_ref = float(np.mean(ch[m]))
+    noise = _annulus_noise(fits, c, m, ctx, cfg_thin)
     ns = ch_thin.shape[0]
     out = _SliceFits(
         passed=np.zeros((1, ns), dtype=bool),
@@ -482,7 +520,7 @@ def _thin_slice_stem(
     )
     for s in range(ns):
         slack = cfg_thin.max_taper * abs(float(ch_thin[s]) - h_ref)
-        fit = _annulus_fit(ctx_thin, s, pred[s], agree.radius, agree.tol, slack, cfg_thin)
+        fit = _annulus_fit(ctx_thin, s, pred[s], agree.radius, agree.tol, slack, cfg_thin, noise)
         if fit is not None:
             _set_slice(out, s, fit)
     out.present[0] = int(out.passed[0].sum())
