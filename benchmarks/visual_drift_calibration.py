@@ -15,10 +15,13 @@ the true length; the odometry frame is the vehicle at the first frame), split in
 (mean and RMS of its component along the final true heading: a scale error) and ``cross_rms``
 (across it), ``length_err`` (mean error of the reported ``distance_m`` against the true
 length, %), ``step_sd`` (std of the frame-to-frame forward error, m: what
-``VISUAL_STEP_SIGMA[0]`` models), ``keyframes`` (mean count) and ``estimate`` (median of the
-reported ``drift_estimate_percent``: ``VISUAL_STEP_SIGMA[0]`` per axis per frame as independent
-steps, computed with ``_random_walk_percent`` as ``motion_trajectory`` does) with
-``estimate / end_rms``.
+``VISUAL_STEP_SIGMA[0]`` models), ``keyframes`` (mean count), ``estimate`` (median of the
+reported ``drift_estimate_percent``, :func:`stemmap.cli._map_motion.visual_drift_estimate`: a
+random walk of ``VISUAL_DRIFT_XY_PER_SQRT_M`` per sqrt(metre)) with ``estimate / end_rms``, and
+``old`` with ``old / end_rms`` (the estimate until Dec 4: ``VISUAL_STEP_SIGMA[0]`` per axis per
+frame as independent steps, which grew with the frame rate). ``c_fit`` is the random-walk
+constant these runs alone give, ``sqrt(mean(|e|² / d))`` (m per sqrt(m); ``e`` the end error,
+``d`` the reported distance): how ``VISUAL_DRIFT_XY_PER_SQRT_M`` was measured.
 
 Usage::
 
@@ -44,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from stemmap.cli._map_motion import _random_walk_percent
+from stemmap.cli._map_motion import _random_walk_percent, visual_drift_estimate
 from stemmap.eval.trajectory import path_length
 from stemmap.odometry.visual import VISUAL_STEP_SIGMA, StereoCalibration, VoStatus
 from stemmap.types import Trajectory
@@ -158,9 +161,14 @@ def in_start_frame(truth: Trajectory) -> Trajectory:
 
 
 def reported_estimate(traj: Trajectory) -> float | None:
-    """``drift_estimate_percent`` of ``stemmap map --motion visual`` for this path (as
-    :func:`stemmap.cli._map_motion.motion_trajectory`: one step of ``VISUAL_STEP_SIGMA[0]`` per
-    axis per frame, independent, over ``path_length``)."""
+    """``drift_estimate_percent`` of ``stemmap map --motion visual`` for this path."""
+    est = visual_drift_estimate(traj)["drift_estimate_percent"]
+    return None if est is None else float(est)
+
+
+def old_estimate(traj: Trajectory) -> float | None:
+    """The estimate until Dec 4: one step of ``VISUAL_STEP_SIGMA[0]`` per axis per frame,
+    independent, over ``path_length``."""
     n = len(traj) - 1
     return _random_walk_percent(np.full(n, 2.0 * VISUAL_STEP_SIGMA[0] ** 2), path_length(traj))
 
@@ -172,7 +180,7 @@ def measure(traj: Trajectory, truth: Trajectory, keyframes: int) -> dict[str, fl
     th = float(truth.poses[-1, 2])
     step = np.hypot(*np.diff(traj.poses[:, :2], axis=0).T)
     true_step = np.hypot(*np.diff(truth.poses[:, :2], axis=0).T)
-    est = reported_estimate(traj)
+    est, old = reported_estimate(traj), old_estimate(traj)
     return {
         "frames": float(len(traj)),
         "keyframes": float(keyframes),
@@ -183,6 +191,8 @@ def measure(traj: Trajectory, truth: Trajectory, keyframes: int) -> dict[str, fl
         "length_err": 100.0 * (path_length(traj) / true_m - 1.0),
         "step_sd": float(np.std(step - true_step)),
         "estimate": float("nan") if est is None else est,
+        "old": float("nan") if old is None else old,
+        "e2_over_d": float(err @ err) / path_length(traj),
     }
 
 
@@ -190,6 +200,7 @@ def _summary(runs: list[dict[str, float]]) -> dict[str, Any]:
     g = {k: np.array([r[k] for r in runs]) for k in runs[0]}
     end_rms = float(np.sqrt(np.mean(g["end"] ** 2)))
     est = float(np.median(g["estimate"]))
+    old = float(np.median(g["old"]))
     return {
         "n": len(runs),
         "frames": float(np.mean(g["frames"])),
@@ -204,6 +215,9 @@ def _summary(runs: list[dict[str, float]]) -> dict[str, Any]:
         "step_sd": round(float(np.median(g["step_sd"])), 4),
         "estimate": round(est, 3),
         "estimate_over_end": round(est / end_rms, 2),
+        "old": round(old, 3),
+        "old_over_end": round(old / end_rms, 2),
+        "c_fit": round(float(np.sqrt(np.mean(g["e2_over_d"]))), 4),
     }
 
 

@@ -45,6 +45,7 @@ __all__ = [
     "motion_trajectory",
     "resolve_motion",
     "vehicle_path",
+    "visual_drift_estimate",
     "wheel_drift_estimate",
 ]
 
@@ -181,6 +182,28 @@ def _random_walk_percent(step_var_xy: Any, distance: float) -> float | None:
     return 100.0 * math.sqrt(float(v.sum())) / distance
 
 
+def visual_drift_estimate(traj: Any) -> dict[str, Any]:
+    """The visual odometry's drift estimate for its path ``traj``: a random walk in the distance
+    travelled (:func:`stemmap.odometry.drift.distance_random_walk_variance` with
+    :data:`stemmap.odometry.visual.VISUAL_DRIFT_XY_PER_SQRT_M`), so ``100 c / sqrt(d)`` % of
+    ``d`` metres whatever the frame rate. Until Dec 4 every frame was one independent step of
+    ``VISUAL_STEP_SIGMA[0]`` per axis, which grew with the square root of the frame count
+    (0.79x the measured end drift at 5 Hz, 1.98x at 40 Hz; docs/algorithms/visual-odometry.md
+    "Drift estimate")."""
+    from stemmap.eval.trajectory import path_length
+    from stemmap.odometry.drift import distance_random_walk_variance
+    from stemmap.odometry.visual import VISUAL_DRIFT_XY_PER_SQRT_M
+
+    dist = path_length(traj)
+    var = distance_random_walk_variance(VISUAL_DRIFT_XY_PER_SQRT_M, dist)
+    return {
+        "distance_m": round(dist, 3),
+        "drift_estimate_percent": _random_walk_percent([var], dist),
+        "drift_method": "visual odometry random walk per distance (VISUAL_DRIFT_XY_PER_SQRT_M, "
+        "measured on simulated stereo drives only); scale error not included",
+    }
+
+
 def vehicle_path(traj: Any, sensor_offset: tuple[float, float]) -> Any:
     """The vehicle reference point's path from the lidar's (``sensor = vehicle * offset``)."""
     a, b = sensor_offset
@@ -313,18 +336,7 @@ def motion_trajectory(
         vtraj, vsrc, vinfo = _visual(cam, **(camera_options or {}))
         info["visual"] = vinfo
     if motion == Motion.visual:
-        dist = path_length(vtraj)
-        from stemmap.odometry.visual import VISUAL_STEP_SIGMA
-
-        n = len(vtraj) - 1
-        info.update(
-            distance_m=round(dist, 3),
-            drift_estimate_percent=_random_walk_percent(
-                np.full(n, 2.0 * VISUAL_STEP_SIGMA[0] ** 2), dist
-            ),
-            drift_method="visual step sigma (VISUAL_STEP_SIGMA, measured on a simulated "
-            "drive) as a random walk; heading error not included",
-        )
+        info.update(visual_drift_estimate(vtraj))
         return vtraj, info
     from stemmap.cli._odometry import lidar_front_end
 

@@ -48,6 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.odometry.drift import distance_random_walk_variance
 from stemmap.odometry.fusion import PoseSource
 from stemmap.types import FloatArray, LaserScan, PointCloud, Trajectory, wrap_angle
 
@@ -428,19 +429,18 @@ class LidarOdometryResult:
         step) weighted by how far its Gauss-Newton x + y variance exceeds the floor's
         ``2 sigma_xy_floor²`` (1 for a well-constrained frame; large where the geometry is
         degenerate: few or badly spread correspondences). Held frames (no covariance) weigh 1.
-        Blind to scale errors, like any covariance. Measurements: docs/algorithms/odometry.md
+        Blind to scale errors, like any covariance. The random walk is
+        :func:`stemmap.odometry.drift.distance_random_walk_variance`, shared with the visual
+        odometry's estimate. Measurements: docs/algorithms/odometry.md
         "Drift estimate".
         """
         cfg = self.config
-        base = cfg.drift_xy_per_sqrt_m**2 * max(float(distance), 0.0)
         if len(self) < 2:
-            return base
+            return distance_random_walk_variance(cfg.drift_xy_per_sqrt_m, distance)
         step = np.hypot(*np.diff(self.planar[:, :2], axis=0).T)
         c = self.increment_cov[1:]
-        infl = (c[:, 0, 0] + c[:, 1, 1]) / (2.0 * cfg.sigma_xy_floor**2)
-        infl = np.where(np.isfinite(infl), np.maximum(infl, 1.0), 1.0)
-        total = float(step.sum())
-        return base * float(np.sum(step * infl)) / total if total > 0 else base
+        infl = np.maximum((c[:, 0, 0] + c[:, 1, 1]) / (2.0 * cfg.sigma_xy_floor**2), 1.0)
+        return distance_random_walk_variance(cfg.drift_xy_per_sqrt_m, distance, step, infl)
 
     def trajectory(self) -> Trajectory:
         """The planar sensor trajectory (frame ``"odom"``)."""

@@ -61,6 +61,7 @@ from stemmap.slam.odometry import OdometrySource
 from stemmap.types import FloatArray, Trajectory
 
 __all__ = [
+    "VISUAL_DRIFT_XY_PER_SQRT_M",
     "VISUAL_STEP_SIGMA",
     "StereoCalibration",
     "VisualFrame",
@@ -81,6 +82,17 @@ log = logging.getLogger(__name__)
 #: 0.1 m steps: frame-to-frame speed error std 0.041 m/s, yaw-rate error 0.29 deg/s) -- not on
 #: the benchmark loops it is used on.
 VISUAL_STEP_SIGMA = (0.0041, math.radians(0.029))
+
+#: The visual odometry's position random walk per distance travelled (m per sqrt(m): 1-sigma of
+#: the x, y end error's norm after 1 m, ``sqrt(d)`` times that after ``d`` m), the drift
+#: estimate of ``stemmap map --motion visual`` through
+#: :func:`stemmap.odometry.drift.distance_random_walk_variance`. Each frame's pose is tracked
+#: from its keyframe, so the error accrues per keyframe, whose spacing follows the motion, not
+#: the frame rate. Simulated only (no real stereo log): the RMS of ``|e|² / d`` over the
+#: rendered 10 m S-curves of benchmarks/visual_drift_calibration.py at 5, 10, 20 and 40 Hz,
+#: seeds 0-4, was 0.0179 (seeds 5-8: 0.0193; docs/algorithms/visual-odometry.md "Drift
+#: estimate").
+VISUAL_DRIFT_XY_PER_SQRT_M = 0.018
 
 
 @dataclass(frozen=True)
