@@ -1,6 +1,7 @@
 """Odometry front ends feeding slam/: lidar scan matching (:mod:`.lidar`), wheel + IMU sources
 (:mod:`.inertial`), visual odometry from stereo / RGB-D frames (:mod:`.visual`), and their
-loosely coupled EKF fusion (:mod:`.fusion`) and fusion by relative motion (:mod:`.increments`).
+loosely coupled EKF fusion (:mod:`.fusion`) and fusion by relative motion (:mod:`.increments`);
+their drift estimate as a random walk in distance (:mod:`.drift`).
 
 Submodules are imported on first use of a name (``from stemmap.odometry import fuse_sources``
 loads only :mod:`.fusion`), so a front end's heavy dependency (KISS-ICP, OpenCV) is paid only
