@@ -23,10 +23,15 @@ steps, computed with ``_random_walk_percent`` as ``motion_trajectory`` does) wit
 Usage::
 
     python benchmarks/visual_drift_calibration.py [--rates 5 10 20] [--seeds 0 1 2]
-        [--length 10] [--work DIR]
+        [--length 10] [--work DIR] [--render-cache DIR [--base-rate HZ]]
 
 ``--work DIR`` keeps each run's trajectories (``vo_<rate>hz_s<seed>.npz``); with the files
-present they are re-read instead of re-rendered.
+present they are re-read instead of re-rendered. ``--render-cache DIR`` renders each seed's
+drive once, noise-free, at the highest rate (every rate must divide it), stores the images
+(float32, ``clean_s<seed>_<length>m_<rate>hz.npz``, ~0.7 GB per seed for 10 m at 40 Hz) and
+makes each rate's frames from every k-th of them, adding the pixel noise as
+:func:`~stemmap.sim.render.iter_stereo` does (same generator, seed and order): the same drives
+as without the cache, rendered once, so the odometry can be re-run on them after a change.
 """
 
 from __future__ import annotations
@@ -54,25 +59,90 @@ def s_curve(length: float, rate_hz: float, speed: float = 1.0) -> Trajectory:
     return Trajectory(t, np.column_stack((x, y, th)), frame="world")
 
 
-def simulate_visual_drive(
-    rate_hz: float, seed: int, length: float
-) -> tuple[Trajectory, Trajectory, int]:
-    """(visual odometry vehicle path in its odom frame, truth in the same frame, keyframes)."""
-    from stemmap.odometry.visual import VisualFrame, planar_from_camera, run_visual_odometry
+def _stand(seed: int) -> Any:
     from stemmap.sim.forest import row_stand
-    from stemmap.sim.render import StereoCamera, iter_stereo, stand3d_from_stand
+    from stemmap.sim.render import stand3d_from_stand
 
     stand = row_stand(3, 10, row_spacing=4.0, tree_spacing=3.0, rng=seed + 1)
+    return stand3d_from_stand(stand, rng=seed + 2)
+
+
+def clean_frames(seed: int, length: float, rate_hz: float, cache: Path) -> dict[str, np.ndarray]:
+    """Noise-free left / right images (float32) of the drive at ``rate_hz``, rendered once
+    into ``cache`` (``--render-cache``)."""
+    from stemmap.sim.render import StereoCamera, camera_poses, render_view
+
+    f = cache / f"clean_s{seed}_{length:g}m_{rate_hz:g}hz.npz"
+    if f.exists():
+        z = np.load(f)
+        return {k: z[k] for k in ("t", "left", "right")}
+    stand, cam, truth = _stand(seed), StereoCamera(rate_hz=rate_hz), s_curve(length, rate_hz)
+    T_wc = camera_poses(truth, cam)
+    T_lr = np.eye(4)
+    T_lr[0, 3] = cam.baseline
+    views = [
+        [render_view(stand, T, cam)[0].astype(np.float32) for T in (T_wc[k], T_wc[k] @ T_lr)]
+        for k in range(len(truth))
+    ]
+    out = {
+        "t": truth.times,
+        "left": np.array([v[0] for v in views]),
+        "right": np.array([v[1] for v in views]),
+    }
+    cache.mkdir(parents=True, exist_ok=True)
+    np.savez(f, **out)
+    return out
+
+
+def simulate_visual_drive(
+    rate_hz: float,
+    seed: int,
+    length: float,
+    *,
+    render_cache: Path | None = None,
+    base_rate: float | None = None,
+) -> tuple[Trajectory, Trajectory, int]:
+    """(visual odometry vehicle path in its odom frame, truth in the same frame, keyframes).
+
+    With ``render_cache`` the frames are every ``base_rate / rate_hz``-th noise-free image of
+    :func:`clean_frames` at ``base_rate``, with the pixel noise of :func:`iter_stereo` added.
+    """
+    from stemmap.odometry.visual import VisualFrame, planar_from_camera, run_visual_odometry
+    from stemmap.sim.render import StereoCamera, iter_stereo
+
     cam = StereoCamera(rate_hz=rate_hz)
     truth = s_curve(length, rate_hz)
     k = cam.K
     calib = StereoCalibration(
         cam.fx, cam.fx, k[0, 2], k[1, 2], cam.width, cam.height, baseline=cam.baseline
     )
-    frames = (
-        VisualFrame(f.time, f.left, f.right)
-        for f in iter_stereo(stand3d_from_stand(stand, rng=seed + 2), truth, cam, rng=seed)
-    )
+    frames: Any
+    if render_cache is None:
+        frames = (
+            VisualFrame(f.time, f.left, f.right)
+            for f in iter_stereo(_stand(seed), truth, cam, rng=seed)
+        )
+    else:
+        base = base_rate or rate_hz
+        stride = round(base / rate_hz)
+        if abs(stride * rate_hz - base) > 1e-9 * base:
+            raise SystemExit(f"--render-cache: {rate_hz:g} Hz does not divide {base:g} Hz.")
+        z = clean_frames(seed, length, base, render_cache)
+        idx = np.arange(0, len(z["t"]), stride)
+        if len(idx) != len(truth) or not np.allclose(z["t"][idx], truth.times):
+            raise SystemExit("--render-cache: cached frame times do not match the drive.")
+        gen = np.random.default_rng(seed)
+
+        def noisy(img: np.ndarray) -> np.ndarray:
+            a = img.astype(np.float64)
+            if cam.pixel_noise > 0:
+                a = a + gen.normal(0.0, cam.pixel_noise, a.shape)
+            return np.clip(np.rint(a), 0, 255).astype(np.uint8)
+
+        frames = (
+            VisualFrame(float(truth.times[j]), noisy(z["left"][i]), noisy(z["right"][i]))
+            for j, i in enumerate(idx)
+        )
     res = run_visual_odometry(frames, calib)
     traj = planar_from_camera(res, cam.vehicle_from_camera())
     return traj, in_start_frame(truth), int(np.sum(res.status == VoStatus.KEYFRAME))
@@ -143,7 +213,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--length", type=float, default=10.0)
     ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--render-cache", type=Path, default=None)
+    ap.add_argument("--base-rate", type=float, default=None, help="default: the highest rate")
     args = ap.parse_args(argv)
+    base_rate = args.base_rate or max(args.rates)
     for rate in args.rates:
         runs = []
         for seed in args.seeds:
@@ -154,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
                 truth = Trajectory(z["t"], z["truth"], frame="odom")
                 kf = int(z["keyframes"])
             else:
-                traj, truth, kf = simulate_visual_drive(rate, seed, args.length)
+                traj, truth, kf = simulate_visual_drive(
+                    rate, seed, args.length, render_cache=args.render_cache, base_rate=base_rate
+                )
                 if f is not None:
                     f.parent.mkdir(parents=True, exist_ok=True)
                     np.savez(f, t=traj.times, vo=traj.poses, truth=truth.poses, keyframes=kf)

@@ -117,3 +117,12 @@ def test_forest_edge_surrounds_the_stand_and_keeps_its_trees():
     gaps = np.hypot(*(new[:, None] - new[None]).transpose(2, 0, 1)) + np.eye(len(new)) * 99
     assert gaps.min() > 1.5
     assert st.bounds == (x0 - 16, y0 - 16, x1 + 16, y1 + 16)
+
+
+def test_positive_pitch_tilts_the_camera_up():
+    """``pitch_deg`` > 0 tilts the optical axis above the horizontal, as its docstring says
+    (it once said "down"; every render and number was made with the upward tilt)."""
+    axis = StereoCamera(pitch_deg=5.0).vehicle_from_camera()[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(
+        axis, [np.cos(np.radians(5.0)), 0.0, np.sin(np.radians(5.0))], atol=1e-12
+    )

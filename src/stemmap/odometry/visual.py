@@ -11,9 +11,18 @@ odometry front end that the issue asks for, built on OpenCV:
    2000), kept when the row difference is under ``stereo_max_dy``, the disparity ``d`` over
    ``min_disparity`` and the right-to-left track returns to the corner; ``Z = fx B / d``.
    RGB-D: ``Z`` read from the depth image, rejected at depth edges.
-2. **Tracking**: every frame, the surviving corners are tracked from the previous left image
-   into the new one (pyramidal KLT), with a forward-backward check (track back, keep if it
-   returns within ``fb_max_error`` px; Kalal et al. 2010).
+2. **Tracking**: every frame, the surviving corners are tracked from the *keyframe's* left
+   image into the new one (pyramidal KLT started at the constant-velocity prediction), with a
+   forward-backward check (track back, keep if it returns within ``fb_max_error`` px; Kalal
+   et al. 2010). The template is never updated between keyframes: chaining KLT from the
+   previous image adds each step's small bias to the track (the "template update problem",
+   Matthews, Ishikawa & Baker 2004, IEEE TPAMI 26(6) 810-815: a template re-taken every frame
+   drifts; alignment against the first template does not; SVO, Forster et al. 2014, aligns
+   its features against the keyframe's patches for the same reason). Each step's KLT
+   displacement is short of the true one (4-5 % on the simulated drives, 10-25 % for steps
+   under 0.5 px), so the chained track, and the distance, fell short by more the more frames a
+   keyframe spanned: 0.4 % at 5 Hz, 3 % at 40 Hz (docs/algorithms/visual-odometry.md,
+   "Distance shortfall at high frame rates").
 3. **Pose**: the keyframe's 3D points and their tracked pixels give the camera pose relative to
    the keyframe by PnP in a RANSAC loop (``cv2.solvePnPRansac``, P3P hypotheses,
    ``ransac_reprojection`` px), refined by Levenberg-Marquardt on the inliers; outliers are
@@ -316,7 +325,9 @@ class VisualOdometry:
         self._velocity = np.eye(4)  # last frame-to-frame motion, prev_from_cur
         self._kf_pose: FloatArray | None = None
         self._kf_pts = np.zeros((0, 3))
-        self._uv = np.zeros((0, 2), np.float32)
+        self._kf_uv = np.zeros((0, 2), np.float32)  # the points' corners in the keyframe image
+        self._kf_img: NDArray[np.uint8] | None = None
+        self._uv = np.zeros((0, 2), np.float32)  # their last tracked pixels
         self._prev: NDArray[np.uint8] | None = None
         self._rvec = np.zeros(3)
         self._tvec = np.zeros(3)
@@ -368,11 +379,13 @@ class VisualOdometry:
     def _make_keyframe(self, left: NDArray[np.uint8], frame: VisualFrame) -> bool:
         pts, uv = self._triangulate(left, frame)
         if pts.shape[0] < self.cfg.min_inliers:
-            self._kf_pose = None
+            self._kf_pose = self._kf_img = None
             self._kf_pts, self._uv = np.zeros((0, 3)), np.zeros((0, 2), np.float32)
+            self._kf_uv = self._uv
             return False
         self._kf_pose = self.pose.copy()
-        self._kf_pts, self._uv = pts, uv
+        self._kf_img = left
+        self._kf_pts, self._uv, self._kf_uv = pts, uv, uv.copy()
         self._kf_n = pts.shape[0]
         self._rvec, self._tvec = np.zeros(3), np.zeros(3)
         return True
@@ -399,12 +412,15 @@ class VisualOdometry:
         return guess
 
     def _track(self, left: NDArray[np.uint8]) -> None:
-        assert self._prev is not None
+        """KLT of the keyframe's corners from the keyframe image (not the previous image: see
+        the module docstring), started at the predicted pixels (the last tracked ones where a
+        point does not project)."""
+        assert self._kf_img is not None
         if self._uv.shape[0] == 0:
             return
-        p0 = self._uv
-        q, st = _klt(self._prev, left, p0, self._predict(p0), self.cfg)
-        pb, stb = _klt(left, self._prev, q, p0, self.cfg)
+        p0 = self._kf_uv
+        q, st = _klt(self._kf_img, left, p0, self._predict(self._uv), self.cfg)
+        pb, stb = _klt(left, self._kf_img, q, p0, self.cfg)
         fb = np.linalg.norm(pb - p0, axis=1)
         h, w = left.shape
         ok = (
@@ -417,6 +433,7 @@ class VisualOdometry:
             & (q[:, 1] <= h - 1)
         )
         self._kf_pts = self._kf_pts[ok]
+        self._kf_uv = self._kf_uv[ok]
         self._uv = q[ok].astype(np.float32)
 
     def _solve(self) -> FloatArray | None:
@@ -454,6 +471,7 @@ class VisualOdometry:
         self._rvec = np.asarray(rvec, np.float64).ravel()
         self._tvec = np.asarray(tvec, np.float64).ravel()
         self._kf_pts = self._kf_pts[idx]
+        self._kf_uv = self._kf_uv[idx]
         self._uv = self._uv[idx]
         self.n_inliers = int(idx.shape[0])
         return T

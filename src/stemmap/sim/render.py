@@ -80,7 +80,10 @@ class StereoCamera:
     mount : (x, y, z), metres
         Left camera centre in the vehicle frame (x forward, y left, z up above the ground).
     pitch_deg : float, degrees
-        Downward tilt of the optical axis (positive looks down).
+        Tilt of the optical axis above the horizontal (positive looks UP: the default 5 deg
+        axis is (0.996, 0, +0.087) in the vehicle frame). Until Dec 4 this said "positive looks
+        down"; the code has always tilted up, and every rendered drive and number measured on
+        one was made with the upward tilt, so the docstring was corrected, not the code.
     pixel_noise : float, grey levels (0-255), >= 0
         1-sigma Gaussian noise added to every channel of every image.
     rate_hz : float, > 0
@@ -122,7 +125,8 @@ class StereoCamera:
     def vehicle_from_camera(self) -> FloatArray:
         """4x4 pose of the left camera in the vehicle frame."""
         p = math.radians(self.pitch_deg)
-        # pitch down = rotation about the camera x axis (right) by -p in camera coordinates
+        # rotation about the camera x axis (right); rx.T @ (0, 0, 1) = (0, -sin p, cos p): the
+        # optical axis tilts towards camera -y, which is up (camera y points down)
         rx = np.array(
             [[1.0, 0.0, 0.0], [0.0, math.cos(p), math.sin(p)], [0.0, -math.sin(p), math.cos(p)]]
         )
