@@ -8,7 +8,9 @@ and report:
   standard error gives median |z| = 0.674 and 68 % of |z| < 1. Also the intra-trunk
   correlation ``rho`` that would make median |z| = 0.674 (solved per run, then pooled);
 * position: z^2 = e^T cov^-1 e (chi-square with 2 dof if calibrated: median 1.386, 39 % < 1);
-* confidence: per bin of confidence, the share of map trees matched to a real tree.
+* confidence: per bin of confidence, the share of map trees matched to a real tree; the log
+  loss and Brier score of confidence as the probability of that match; how many trees with
+  >= 50 detections have confidence < 0.01 (and how many of those are real).
 
 Usage: python benchmarks/uncertainty_calibration.py --seeds 1 2 3 --backends isam2 ekf
 Prints JSON. The machine is shared; times are not reported.
@@ -63,6 +65,7 @@ def run_one(seed: int, backend: str) -> dict[str, object]:
         "pos_z2": pos_z2,
         "conf": conf.tolist(),
         "real": real.tolist(),
+        "n_obs": [t.n_obs for t in sm.trees],
         "report": rep.to_dict(),
     }
 
@@ -89,7 +92,8 @@ def main() -> None:
         z2 = np.concatenate([np.asarray(r["pos_z2"]) for r in rs])
         conf = np.concatenate([np.asarray(r["conf"]) for r in rs])
         real = np.concatenate([np.asarray(r["real"]) for r in rs])
-        bins = [0.0, 0.5, 0.9, 0.99, 1.0001]
+        nobs = np.concatenate([np.asarray(r["n_obs"]) for r in rs])
+        bins = [0.0, 0.01, 0.5, 0.9, 0.99, 1.0001]
         cal = []
         for lo, hi in itertools.pairwise(bins):
             sel = (conf >= lo) & (conf < hi)
@@ -120,6 +124,15 @@ def main() -> None:
             "position_z2_median": float(np.median(z2)) if z2.size else math.nan,
             "position_share_z2_below_1": float(np.mean(z2 < 1)) if z2.size else math.nan,
             "confidence_calibration": cal,
+            # proper scores of confidence as the probability of matching a stand tree
+            "confidence_log_loss": float(
+                -np.mean(np.log(np.clip(np.where(real, conf, 1 - conf), 1e-12, 1.0)))
+            ),
+            "confidence_brier": float(np.mean((conf - real) ** 2)),
+            "real_trees_n_obs_50_confidence_below_0.01": int(
+                np.sum(real & (nobs >= 50) & (conf < 0.01))
+            ),
+            "trees_n_obs_50_confidence_below_0.01": int(np.sum((nobs >= 50) & (conf < 0.01))),
             "mixture": [r["report"] for r in rs],
         }
     print(json.dumps(out, indent=1))

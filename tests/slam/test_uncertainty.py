@@ -100,10 +100,42 @@ def test_counts_equal_the_per_row_em(rng: np.random.Generator) -> None:
     pd = np.clip((num + 5 * glob) / (den + 5), 1e-4, 1 - 1e-4)
     pf = min(np.sum(0.1 * hh) / np.sum(np.full(ti.size, 0.1)), 0.9 * pd.min())
     k = run_length_factor(ti, hh)
-    lr = np.bincount(ti, np.where(hh, np.log(pd[bins]), np.log1p(-pd[bins]))) / k + math.log(0.9)
-    lf = np.bincount(ti, np.where(hh, math.log(pf), math.log1p(-pf))) / k + math.log1p(-0.9)
+    # design effect of the overdispersion: weighted median of per-tree moment estimates
+    n, h = np.bincount(ti).astype(float), np.bincount(ti, hh.astype(float))
+    e, v = np.bincount(ti, pd[bins]), np.bincount(ti, pd[bins] * (1 - pd[bins]))
+    rj = np.sort(((h - e) ** 2 / (v * k) - 1) / (n / k - 1))  # equal weights 0.9
+    rho = float(np.clip(rj[np.searchsorted(np.arange(1, rj.size + 1), 0.5 * rj.size)], 0, 1))
+    assert fit.overdispersion == pytest.approx(rho, rel=1e-9, abs=1e-12)
+    t = k * (1 + (n / k - 1) * rho)
+    lr = np.bincount(ti, np.where(hh, np.log(pd[bins]), np.log1p(-pd[bins]))) / t + math.log(0.9)
+    lf = np.bincount(ti, np.where(hh, math.log(pf), math.log1p(-pf))) / t + math.log1p(-0.9)
     assert fit.confidence == pytest.approx(1 / (1 + np.exp(lf - lr)), rel=1e-9, abs=1e-12)
     assert fit.p_false == pytest.approx(pf, rel=1e-12)
+
+
+def test_thin_real_trees_seen_often_are_not_called_spurious(rng: np.random.Generator) -> None:
+    """Real trees whose detection rate differs from the others' (a thin trunk returns too
+    few points at range; here a quarter of the real trees at half the rate) are not called
+    spurious with near certainty after hundreds of frames: before the overdispersion
+    tempering such trees got 1e-9..1e-35 on the simulator. Spurious landmarks (p_f = 0.05)
+    stay below the real ones."""
+    real = rng.random(200) < 0.8
+    thin = real & (rng.random(200) < 0.25)
+    ti, rr, hh = [], [], []
+    for j in range(real.size):
+        r = rng.uniform(2, 14, 300)
+        p = (0.9 - 0.04 * r) * (0.5 if thin[j] else 1.0) if real[j] else np.full(300, 0.05)
+        ti.append(np.full(300, j))
+        rr.append(r)
+        hh.append(rng.random(300) < p)
+    fit = detection_confidence(np.concatenate(ti), np.concatenate(rr), np.concatenate(hh), 200)
+    c = fit.confidence
+    assert fit.overdispersion > 0.0
+    # no real tree near 0 (the prior is ~0.8: a thin tree is less sure, not impossible)
+    assert c[thin].min() > 0.05
+    # the ordering still separates: every spurious landmark below every thick real tree
+    assert c[~real].max() < c[real & ~thin].min()
+    assert c[~real].mean() < 0.5
 
 
 def test_diameter_standard_errors() -> None:

@@ -27,7 +27,10 @@ covariance but no diameter spread, FastSLAM per-particle landmark EKFs, Forestri
    of real landmarks detected with a range-dependent probability and spurious ones detected
    with a constant lower one, fitted by EM to the whole map (:func:`detection_confidence`),
    with the per-frame evidence tempered by the measured run length of hits and misses
-   (:func:`run_length_factor`). The EM needs only per-(tree, range bin) counts of expected
+   (:func:`run_length_factor`) and by the overdispersion of real trees' detection rates
+   (:func:`overdispersion`: without it one tree's evidence grew with its frame count, and
+   real thin trunks seen 100-400 times got posteriors of 1e-9 to 1e-35 on the simulator,
+   1e-130 on Victoria Park). The EM needs only per-(tree, range bin) counts of expected
    frames and hits and per-tree counts of runs (:class:`DetectionCounts`), which
    :func:`annotate_uncertainty` accumulates a block of frames at a time: its memory does not
    grow with the length of the drive (the (tree, frame) rows do: 1.5 million on a 10x Victoria
@@ -62,6 +65,7 @@ __all__ = [
     "detection_confidence",
     "diameter_standard_errors",
     "expected_detections",
+    "overdispersion",
     "run_length_factor",
 ]
 
@@ -83,7 +87,8 @@ CHUNK = 65536
 @dataclass(frozen=True)
 class MixtureFit:
     """Binomial mixture of :func:`detection_confidence`: per-tree ``confidence`` and the fitted
-    ``p_detect`` (real), ``p_false`` (spurious), ``prior_real`` and EM ``iterations``."""
+    ``p_detect`` (real), ``p_false`` (spurious), ``prior_real``, EM ``iterations``, the
+    ``run_length`` factor and the ``overdispersion`` ``rho`` (:func:`overdispersion`)."""
 
     confidence: FloatArray
     p_detect: float
@@ -91,6 +96,7 @@ class MixtureFit:
     prior_real: float
     iterations: int
     run_length: float = 1.0
+    overdispersion: float = 0.0
 
 
 class DetectionCounts:
@@ -202,6 +208,7 @@ def confidence_from_counts(
     if not np.any(has):
         return MixtureFit(w, math.nan, math.nan, 0.9, 0, 1.0)
     k_eff = counts.run_length()
+    rho = 0.0
     prev = -math.inf
     it = 0
     pd_bin = np.full(nt.shape[1], 0.5)
@@ -217,9 +224,11 @@ def confidence_from_counts(
         pf = float(np.sum((1 - w) * h_j) / max(float(np.sum((1 - w) * n_j)), eps))
         pf = float(np.clip(pf, eps, 0.9 * float(pd_bin.min())))
         pi = float(np.clip(w[has].mean(), eps, 1 - eps))
-        # E-step
-        lr = (ht @ np.log(pd_bin) + mt @ np.log1p(-pd_bin)) / k_eff + math.log(pi)
-        lf = (h_j * math.log(pf) + (n_j - h_j) * math.log1p(-pf)) / k_eff + math.log1p(-pi)
+        # E-step, tempered per tree by the run length and the between-tree overdispersion
+        rho = overdispersion(h_j, nt @ pd_bin, nt @ (pd_bin * (1 - pd_bin)), n_j, w, k_eff)
+        temper = k_eff * (1.0 + np.maximum(n_j / k_eff - 1.0, 0.0) * rho)
+        lr = (ht @ np.log(pd_bin) + mt @ np.log1p(-pd_bin)) / temper + math.log(pi)
+        lf = (h_j * math.log(pf) + (n_j - h_j) * math.log1p(-pf)) / temper + math.log1p(-pi)
         top = np.maximum(lr, lf)
         ll = float(np.sum((top + np.log(np.exp(lr - top) + np.exp(lf - top)))[has]))
         w = np.where(has, 1.0 / (1.0 + np.exp(np.clip(lf - lr, -700, 700))), pi)
@@ -227,7 +236,46 @@ def confidence_from_counts(
             break
         prev = ll
     p_det = float(np.sum(w @ (nt * pd_bin)) / max(float(np.sum(w * n_j)), eps))
-    return MixtureFit(w, p_det, pf, pi, it, k_eff)
+    return MixtureFit(w, p_det, pf, pi, it, k_eff, rho)
+
+
+def overdispersion(
+    hits: FloatArray,
+    expected: FloatArray,
+    var: FloatArray,
+    n: FloatArray,
+    w: FloatArray,
+    k_eff: float = 1.0,
+) -> float:
+    """Intra-tree correlation ``rho`` of the detections of real trees (method of moments).
+
+    Real trees do not share one detection rate: a thin trunk returns too few points beyond a
+    shorter range than a thick one, a trunk behind an unmapped bush is missed for the whole
+    pass. Their hit counts are then overdispersed against the binomial of the fitted
+    ``p_d(range)``: with ``m = n / k_eff`` effective trials the Pearson statistic
+    ``X_j = (h_j - E_j)^2 / (V_j k_eff)`` has expectation ``1 + (m_j - 1) rho`` (the
+    beta-binomial variance, e.g. Williams 1982, Appl. Statist. 31, eq. 1). ``rho`` is the
+    median of the per-tree moment estimates ``(X_j - 1) / (m_j - 1)``, weighted by each tree's
+    responsibility ``w_j`` of being real, clipped to [0, 1]: the median, because a few real
+    trees hidden for a whole pass (or spurious ones still weighted as real) would set a mean
+    and temper every tree as much as them (on 6 simulated runs the weighted mean, 0.1-0.16,
+    left spurious landmarks at confidence ~0.8; benchmarks/confidence_sim_scans.py and
+    docs/outputs.md). Dividing a tree's log-likelihoods
+    by its design effect ``1 + (m_j - 1) rho`` (Kish 1965, §5.4) bounds the evidence one tree
+    can give at about ``1 / rho`` independent trials, instead of growing with its frame count
+    (a real 12 cm trunk seen 187 times at half the rate of the thick ones got posterior 1e-32).
+    """
+    m = n / k_eff
+    ok = (m > 1.0) & (var > 0)
+    den = float(np.sum(w[ok] * (m[ok] - 1.0)))
+    if den <= 0:
+        return 0.0
+    x = (hits[ok] - expected[ok]) ** 2 / (var[ok] * k_eff)
+    rj = (x - 1.0) / (m[ok] - 1.0)
+    o = np.argsort(rj)
+    cw = np.cumsum(w[ok][o])
+    med = rj[o][np.searchsorted(cw, 0.5 * cw[-1])]
+    return float(np.clip(med, 0.0, 1.0))
 
 
 def _run_length(n: FloatArray, hits: ArrayLike, runs: ArrayLike) -> float:
@@ -351,6 +399,7 @@ class UncertaintyReport:
     expected_range_m: float
     gate_m: float
     run_length_frames: float
+    overdispersion: float = 0.0
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in self.__dict__.items()}
@@ -415,6 +464,7 @@ def annotate_uncertainty(
         expected_range_m=r_hi,
         gate_m=gate,
         run_length_frames=mix.run_length,
+        overdispersion=mix.overdispersion,
     )
     # replace keeps every other field of the map (frame, CRS, iSAM2's joint information)
     return replace(sm, trees=tuple(trees)), report
