@@ -95,3 +95,30 @@ def test_cli_odometry_errors(tmp_path):
     assert res.exit_code == 2 and "error:" in res.output and "nope" in res.output
     res = CliRunner().invoke(app, ["odometry"])
     assert res.exit_code == 2 and "--camera" in res.output
+
+
+def test_cli_odometry_camera_warns_about_lost_frames(tmp_path, drive):
+    """Frames the VO cannot track (here three blank images: no corners) are extrapolated at
+    constant velocity; the command says so instead of reporting a path as if it were seen."""
+    frames = [VisualFrame(f.time, f.left, f.right) for f in drive.frames[:12]]
+    for i in (8, 9, 10):
+        blank = np.full_like(frames[i].left, 128)
+        frames[i] = VisualFrame(frames[i].time, blank, blank.copy())
+    write_camera_frames(tmp_path / "frames", frames, drive.stereo)
+    out = tmp_path / "traj.csv"
+    res = CliRunner().invoke(
+        app, ["odometry", "--camera", str(tmp_path / "frames"), "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    assert "warning: the visual odometry lost" in res.output
+    assert "extrapolated at constant velocity" in res.output
+    # a drive it tracks throughout gets no warning
+    ok = tmp_path / "ok"
+    write_camera_frames(
+        ok, [VisualFrame(f.time, f.left, f.right) for f in drive.frames[:8]], drive.stereo
+    )
+    res = CliRunner().invoke(
+        app, ["odometry", "--camera", str(ok), "--out", str(tmp_path / "t2.csv")]
+    )
+    assert res.exit_code == 0, res.output
+    assert "warning: the visual odometry lost" not in res.output

@@ -108,4 +108,15 @@ def camera_trajectory(
         "lost_frames": int(np.sum(~res.ok)),
         "distance_m": path_length(traj),
     }
+    if summary["lost_frames"]:
+        from stemmap.cli._common import console
+
+        # as the lidar odometry's held frames: the path there is a guess, say so once
+        console.print(
+            f"warning: the visual odometry lost {summary['lost_frames']} of {len(res)} camera "
+            "frames (too few corners tracked or PnP failed); their poses are extrapolated at "
+            "constant velocity. Many lost frames mean images too far apart for the speed (a "
+            "higher frame rate) or too little texture or light.",
+            markup=False,
+        )
     return traj, res, summary
