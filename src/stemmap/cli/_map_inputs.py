@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from stemmap.errors import InputError
+from stemmap.io.clouds import CLOUD_EXTENSIONS
 
 __all__ = [
     "bag_problem",
@@ -24,6 +25,9 @@ __all__ = [
 #: an older header's ``time`` is read as ``time_s``).
 ODOMETRY_CSV_COLUMNS = ("time_s", "speed", "yaw_rate")
 
+
+#: Point-cloud file types that are nothing else (.txt and .csv are also scans or detections).
+_CLOUD_ONLY = frozenset(CLOUD_EXTENSIONS) - {".txt", ".csv"}
 
 #: Bounds of a wheel-odometry row (the user walk, Dec 4: one row of 1e5 m/s ended every
 #: back-end in a traceback -- GTSAM's indeterminant system, a k-d tree overflow, a NaN
@@ -86,7 +90,7 @@ def odometry_path(source: Path, odometry: Path | None) -> Path:
     ``<stem>.npz``; InputError naming both options when neither exists."""
     if not source.exists():
         raise InputError(f"input {str(source)!r} does not exist.")
-    if source.suffix.lower() in (".las", ".laz", ".ply", ".pcd", ".xyz", ".pts"):
+    if source.suffix.lower() in _CLOUD_ONLY:
         raise InputError(
             f"{source} is a point cloud; `stemmap map` maps 2D scans (.npz, .csv), a detections "
             "CSV, a ROS bag or a frames bundle (.npz). The stems of a point cloud: `stemmap "

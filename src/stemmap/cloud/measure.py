@@ -538,9 +538,10 @@ def _stems_from_band(
                 thickened,
             )
             # the chosen stem, if the ladder found it on thick slices, measured on thin ones
-            for row, f_row, c_row in found_on:
-                if best is not None and best[0] is row:
-                    best = thin_again(f_row, c_row, best)
+            if best is not None:
+                on = next(((f, c) for row, f, c in found_on if row is best[0]), None)
+                if on is not None:
+                    best = thin_again(on[0], on[1], best)
             if best is not None and i_row >= 0:
                 rows[i_row], rules[i_row] = best
             elif best is not None:

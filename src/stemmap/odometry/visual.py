@@ -340,7 +340,7 @@ class VisualOdometry:
         self._kf_uv = np.zeros((0, 2), np.float32)  # the points' corners in the keyframe image
         self._kf_img: NDArray[np.uint8] | None = None
         self._uv = np.zeros((0, 2), np.float32)  # their last tracked pixels
-        self._prev: NDArray[np.uint8] | None = None
+        self._started = False  # a frame was processed (the velocity and pose have a past)
         self._rvec = np.zeros(3)
         self._tvec = np.zeros(3)
         self.n_tracks = 0
@@ -507,15 +507,15 @@ class VisualOdometry:
             )
         prev_pose = self.pose.copy()
         status: VoStatus
-        if self._prev is None or self._kf_pose is None:
-            if self._prev is not None:
+        if not self._started or self._kf_pose is None:
+            if self._started:
                 self.pose = self.pose @ self._velocity
             self.n_tracks = self.n_inliers = 0
             made = self._make_keyframe(left, frame)
             if not made:
                 status = VoStatus.NO_KEYFRAME
             else:  # the first frame, or a recovery whose pose was extrapolated
-                status = VoStatus.KEYFRAME if self._prev is None else VoStatus.LOST
+                status = VoStatus.LOST if self._started else VoStatus.KEYFRAME
         else:
             self._track(left)
             T_ck = self._solve()
@@ -535,9 +535,9 @@ class VisualOdometry:
                     )
                     if self._kf_pose is None:  # could not re-triangulate: keep extrapolating
                         status = VoStatus.NO_KEYFRAME
-        if self._prev is not None and status in (VoStatus.TRACKED, VoStatus.KEYFRAME):
+        if self._started and status in (VoStatus.TRACKED, VoStatus.KEYFRAME):
             self._velocity = _inv(prev_pose) @ self.pose
-        self._prev = left
+        self._started = True
         return status
 
 
