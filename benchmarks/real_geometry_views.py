@@ -41,12 +41,10 @@ from typing import Any
 
 import numpy as np
 
-import stemmap.scan._pieces as pieces_module
-import stemmap.scan.detect as detect_module
 from _loo_grid import LOO_GRID
 from _real_scanning import error_stats, greedy_match, matched, scene_scans, vantage_points
-from real_geometry_arc_residuals import _recording
-from real_geometry_diagnose import _over
+from real_geometry_arc_residuals import detect_recording
+from real_geometry_diagnose import _over, own_beams_only
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, RealSlice, load_slice, noisy_batch
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -94,16 +92,7 @@ def views(
     ranges0, hit = scene_scans(sl, vp, "nearest", 0.5, "none", seed)
     batch = noisy_batch(ranges0, 0.5, noise, rng)
     det = ScanTrunkDetector(matched(DetectorConfig.preset("stemmap", **overrides), "nearest", 0.5))
-    rows: list[dict[str, Any]] = []
-    original, wrapped = _recording(rows)
-    writers = (detect_module, pieces_module)  # every module that writes output rows
-    for mod in writers:
-        mod._output_columns = wrapped
-    try:
-        obs = det.detect_batch(batch)
-    finally:
-        for mod in writers:
-            mod._output_columns = original
+    obs, rows = detect_recording(det, batch)
     rej = det.rejected(batch)
     rej_scan = np.asarray(rej["scan_index"])
     listed: list[dict[str, Any]] = []
@@ -119,15 +108,7 @@ def views(
             if not (own.size >= 4 and dist[t] <= 15.0 and 0.1 <= sl.diameters[t] <= 1.0):
                 continue
             n_vis += 1
-            solo = ScanBatch(
-                ranges=np.where(hit[s] == t, batch.ranges[s], np.inf)[None, :],
-                times=batch.times[s : s + 1],
-                angle_min=batch.angle_min,
-                angle_increment=batch.angle_increment,
-                range_min=batch.range_min,
-                range_max=batch.range_max,
-            )
-            o = det.detect_batch(solo)
+            o = det.detect_batch(own_beams_only(batch, hit, s, t))
             k = greedy_match(o.centers, rel[t : t + 1], sl.diameters[t : t + 1] / 2.0 + 0.05)[0]
             e_solo = 100.0 * (2.0 * o.radii[k] - sl.diameters[t]) if k >= 0 else math.nan
             view: dict[str, Any] = {
