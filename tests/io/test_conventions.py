@@ -99,3 +99,16 @@ def test_scan_start_angle_in_degrees_is_refused(tmp_path) -> None:
     write_scans_npz(path, _batch(np.full((2, 50), 5.0), angle_min=-90.0))
     with pytest.raises(InputError, match="degrees"):
         read_scans(path)
+
+
+def test_semicolon_text_with_decimal_commas(tmp_path, rng: np.random.Generator) -> None:
+    # "X;Y;Z;Intensity" with decimal commas, as spreadsheet / CloudCompare exports write it in
+    # many locales (before: "has a malformed line ... could not convert '101,10200'")
+    xyz = rng.uniform(-50, 50, size=(30, 3))
+    for header in ("X;Y;Z;Intensity\n", ""):
+        path = tmp_path / f"comma{len(header)}.csv"
+        body = "".join(f"{x:.5f};{y:.5f};{z:.5f};{i}\n" for i, (x, y, z) in enumerate(xyz))
+        path.write_text(header + body.replace(".", ","))
+        cloud = read_cloud(path)
+        assert np.allclose(cloud.xyz, xyz, atol=1e-5)
+        assert np.array_equal(cloud.fields["col3"], np.arange(30.0))

@@ -15,6 +15,7 @@ to install.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import os
@@ -435,24 +436,32 @@ def read_xyz(path: PathLike) -> PointCloud:
 
     Columns may be separated by whitespace, commas or semicolons; lines starting with ``#`` and
     a single non-numeric header line are skipped. Extra columns become fields ``col3``, ``col4``...
+    Semicolon-separated files may use decimal commas (``12,5;3,25;1,3``, as spreadsheet and
+    CloudCompare exports in many locales write them): with ``;`` as the separator a comma can
+    only be a decimal sign.
     """
     p = _check_file(path)
     try:
         with p.open("r", encoding="utf-8", errors="strict") as fh:
-            first = ""
+            lines: list[str] = []
             for line in fh:
                 if line.strip() and not line.lstrip().startswith("#"):
-                    first = line
-                    break
+                    lines.append(line)
+                    if len(lines) == 2:
+                        break
     except UnicodeDecodeError as exc:
         raise InputError(f"{str(p)!r} is not a text point file (binary content).") from exc
-    if not first:
+    if not lines:
         raise InputError(f"{str(p)!r} holds no points.")
+    first = lines[0]
     delim: str | None = None
-    for d in (",", ";"):
+    for d in (";", ","):
         if d in first:
             delim = d
             break
+    decimal_comma = delim == ";" and any("," in ln for ln in lines)
+    if decimal_comma:
+        first = first.replace(",", ".")
     tokens = [t for t in (first.split(delim) if delim else first.split()) if t.strip()]
     try:
         [float(t) for t in tokens]
@@ -462,7 +471,10 @@ def read_xyz(path: PathLike) -> PointCloud:
     try:
         with warnings.catch_warnings():  # numpy's "input contained no data": reported below
             warnings.simplefilter("ignore", UserWarning)
-            arr = np.loadtxt(p, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
+            src: Any = p
+            if decimal_comma:
+                src = io.StringIO(p.read_text(encoding="utf-8").replace(",", "."))
+            arr = np.loadtxt(src, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
     except ValueError as exc:
         raise InputError(
             f"{str(p)!r} has a malformed line (every line needs the same number of numeric "
