@@ -1,4 +1,5 @@
-"""The ``stemmap`` command-line interface (typer).
+"""The ``stemmap`` typer application: every command registered (imported by
+:func:`stemmap.cli.main` once its signal handling is in place).
 
 Each area registers its commands from its own module (``cli/_<area>.py``, a ``register(app)``
 function), so the entry point stays small and areas do not edit each other's code.
@@ -14,7 +15,7 @@ from typing import Any
 import typer
 from typer.core import TyperGroup
 
-__all__ = ["app", "main"]
+__all__ = ["app"]
 
 
 def _click_exception() -> type[Exception]:
@@ -118,38 +119,3 @@ def _root(
 
 for _name in _COMMAND_MODULES:
     importlib.import_module(_name).register(app)
-
-
-class _Terminated(SystemExit):
-    """SIGTERM as an exception, so every ``with`` unwinds: run_products discards its staging
-    folders (a job scheduler, ``timeout`` or ``docker stop`` end a run with SIGTERM; by default
-    Python dies at once and left a hidden ``.stemmap-stage-*`` folder, like SIGKILL)."""
-
-
-def _on_sigterm(signum: int, frame: Any) -> None:
-    import signal
-
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the cleanup
-    raise _Terminated(128 + signum)
-
-
-def main() -> None:
-    """Console-script entry point (``stemmap``, ``python -m stemmap``).
-
-    SIGTERM ends the run like Ctrl-C: products are discarded, exit code 143.
-    """
-    import signal
-    import threading
-
-    if (
-        threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
-    ):
-        signal.signal(signal.SIGTERM, _on_sigterm)
-    try:
-        app()
-    except _Terminated:
-        from stemmap.cli._common import print_error
-
-        print_error("terminated (SIGTERM); the products of this run were not written.")
-        raise
