@@ -188,6 +188,8 @@ def read_camera_frames(folder: str | Path) -> CameraFrames:
         d = json.loads(cfg_path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"{cfg_path}: not valid JSON ({exc}).") from exc
+    except RecursionError:  # json's C scanner recurses per nested array or object
+        raise InputError(f"{cfg_path}: nests arrays or objects too deeply.") from None
     cal = calibration_from_dict(d, str(cfg_path))
     if (root / "left").is_dir():
         left = _images(root / "left")
