@@ -153,3 +153,91 @@ def check_read_budget(nbytes: float, path: str | os.PathLike[str], what: str, de
         f"the machine has the memory, raise the limit: {BUDGET_ENV}={need_gb:g} (gigabytes; "
         "0 turns it off)."
     )
+
+
+#: The longest line a line-oriented numeric text file (CSV, XYZ) may have: 1 MB (a scan CSV
+#: row of 10,000 beams is ~100 kB). A longer line is not a row of numbers a reader can use,
+#: and splitting it into fields allocated ~30x its size (one Python str per field).
+MAX_LINE_BYTES = 1 << 20
+
+_BLOCK = 1 << 24
+
+
+class TextStats:
+    """Size, line count and longest line of a text file, from one streaming pass."""
+
+    __slots__ = ("lines", "longest", "longest_line", "size")
+
+    def __init__(self, size: int, lines: int, longest: int, longest_line: int) -> None:
+        self.size = size
+        self.lines = lines
+        self.longest = longest
+        self.longest_line = longest_line
+
+
+def text_stats(path: str | os.PathLike[str]) -> TextStats:
+    """One pass over ``path`` in 16 MB blocks (no more memory than that): its size, number of
+    lines and the length and 1-based number of its longest line."""
+    import numpy as np
+
+    size = lines = longest = longest_line = 0
+    run = 0  # length of the line in progress at the end of the previous block
+    with open(path, "rb") as fh:
+        while block := fh.read(_BLOCK):
+            size += len(block)
+            nl = np.flatnonzero(np.frombuffer(block, np.uint8) == 10)
+            if nl.size == 0:
+                run += len(block)
+                continue
+            first = run + int(nl[0])
+            gaps = np.diff(nl) - 1
+            if first >= longest:
+                longest, longest_line = first, lines + 1
+            if gaps.size and int(gaps.max()) > longest:
+                k = int(np.argmax(gaps))
+                longest, longest_line = int(gaps[k]), lines + k + 2
+            lines += int(nl.size)
+            run = len(block) - int(nl[-1]) - 1
+    if run:
+        lines += 1
+        if run > longest:
+            longest, longest_line = run, lines
+    return TextStats(size, lines, longest, longest_line)
+
+
+def check_text_budget(
+    path: str | os.PathLike[str],
+    what: str,
+    *,
+    per_byte: float,
+    per_line: float,
+    max_line: int | None = MAX_LINE_BYTES,
+) -> TextStats:
+    """Refuse a text file whose parse would exceed the read budget, or with a line longer
+    than ``max_line`` bytes (None: no line limit, e.g. JSON), before reading it.
+
+    The parse's memory is estimated as ``per_byte`` x the file size + ``per_line`` x its line
+    count: each reader's Python objects per line (a str, a tuple, list slots: ~200 B for
+    :func:`stemmap.io._util.parse_numeric_csv`) dominate a file of short lines, its text and
+    numbers a file of long ones.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the line (too long) or the estimate and the limit (too large).
+    """
+    st = text_stats(path)
+    if max_line is not None and st.longest > max_line:
+        raise InputError(
+            f"{what} {os.fspath(path)!r} line {st.longest_line} is {human_bytes(st.longest)} "
+            f"long; a line of this file holds a few numbers (at most {human_bytes(max_line)}): "
+            "is it the right file, or binary data?"
+        )
+    need = per_byte * st.size + per_line * st.lines
+    check_read_budget(
+        need,
+        path,
+        what,
+        f"{human_bytes(st.size)} in {st.lines:,} lines needs ~{human_bytes(need)} to parse",
+    )
+    return st

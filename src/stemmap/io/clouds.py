@@ -427,13 +427,22 @@ def read_pcd(path: PathLike) -> PointCloud:
 # --------------------------------------------------------------------------------------------
 
 
+#: Most columns a text point file may have (x y z and fields such as intensity, RGB, normals,
+#: time: real exports have 3-20). Each extra column becomes a field array.
+_MAX_XYZ_COLUMNS = 256
+
+
 def read_xyz(path: PathLike) -> PointCloud:
     """Read a text file of points, one per line: ``x y z [more columns]``.
 
     Columns may be separated by whitespace, commas or semicolons; lines starting with ``#`` and
     a single non-numeric header line are skipped. Extra columns become fields ``col3``, ``col4``...
     """
+    from stemmap.io._budget import check_text_budget
+
     p = _check_file(path)
+    # numpy's C parser: float64 per number (~1 B per byte of text), plus its row buffers
+    check_text_budget(p, "point file", per_byte=4.0, per_line=0.0)
     try:
         with p.open("r", encoding="utf-8", errors="strict") as fh:
             first = ""
@@ -451,6 +460,11 @@ def read_xyz(path: PathLike) -> PointCloud:
             delim = d
             break
     tokens = [t for t in (first.split(delim) if delim else first.split()) if t.strip()]
+    if len(tokens) > _MAX_XYZ_COLUMNS:
+        raise InputError(
+            f"{str(p)!r} has {len(tokens):,} columns on its first line; a point line holds "
+            f"x y z and a few fields (at most {_MAX_XYZ_COLUMNS}): is it the right file?"
+        )
     try:
         [float(t) for t in tokens]
         skip = 0

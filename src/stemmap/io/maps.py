@@ -468,7 +468,7 @@ def read_trees_geojson(path: PathLike) -> StemMap:
     """
     p = existing_file(path, "trees GeoJSON")
     try:
-        doc = json.loads(read_text(p, "trees GeoJSON"))
+        doc = json.loads(read_text(p, "trees GeoJSON", json=True))
     except json.JSONDecodeError as exc:
         raise InputError(f"trees GeoJSON {str(p)!r} is not valid JSON: {exc}.") from exc
     except RecursionError:  # json's C scanner recurses per nested array or object
