@@ -71,17 +71,16 @@ def test_detect_and_stems_announce_their_first_run(cache_dir: Path, tmp_path: Pa
     assert "first run" in res.output and "_grid_kernel" in " ".join(res.output.split())
 
 
+_ODO = ["--odometry", "{d}/good_odo.csv"]
 _BAD_INPUTS = {
     "truncated PLY": ["stems", "{d}/bad.ply", "--out", "{d}/s.csv"],
     "bad --origin": ["stems", "{d}/c.xyz", "--out", "{d}/s.csv", "--origin", "1,2,3,4"],
     "--imu-topic on an NPZ": ["detect", "{d}/s.npz", "--out", "{d}/d.csv", "--imu-topic", "/i"],
-    "odometry CSV lacking a column": ["map", "{d}/s.npz", "--odometry", "{d}/o.csv", "--out", "{d}/m"],
-    "bad --sensor-offset": [
-        "map", "{d}/s.npz", "--odometry", "{d}/good_odo.csv", "--sensor-offset", "x", "--out", "{d}/m",
+    "odometry CSV lacking a column": [
+        "map", "{d}/s.npz", "--odometry", "{d}/o.csv", "--out", "{d}/m",
     ],
-    "missing --gnss file": [
-        "map", "{d}/s.npz", "--odometry", "{d}/good_odo.csv", "--gnss", "{d}/no.csv", "--out", "{d}/m",
-    ],
+    "bad --sensor-offset": ["map", "{d}/s.npz", *_ODO, "--sensor-offset", "x", "--out", "{d}/m"],
+    "missing --gnss file": ["map", "{d}/s.npz", *_ODO, "--gnss", "{d}/no.csv", "--out", "{d}/m"],
     "odometry not covering the scans": [
         "map", "{d}/s.npz", "--odometry", "{d}/short_odo.csv", "--out", "{d}/m",
     ],

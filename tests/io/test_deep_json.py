@@ -29,7 +29,7 @@ def test_camera_json(tmp_path: Path) -> None:
     from stemmap.io.camera_frames import read_camera_frames
 
     (tmp_path / "camera.json").write_text('{"K": ' + DEEP)
-    with pytest.raises(InputError, match="camera.json: nests arrays or objects too deeply"):
+    with pytest.raises(InputError, match=r"camera\.json: nests arrays or objects too deeply"):
         read_camera_frames(tmp_path)
 
 

@@ -110,7 +110,7 @@ def test_geojson_over_the_budget(tmp_path: Path, monkeypatch) -> None:
     write_trees_geojson(p, StemMap(tuple(Tree(k, k, -k, 0.3) for k in range(2000))))
     size = p.stat().st_size
     monkeypatch.setenv(BUDGET_ENV, str(20 * size / 1e9))  # json.loads needs ~25 B per byte
-    with pytest.raises(InputError, match="trees GeoJSON .* needs ~"):
+    with pytest.raises(InputError, match=r"trees GeoJSON .* needs ~"):
         read_trees_geojson(p)
     monkeypatch.delenv(BUDGET_ENV)
     assert len(read_trees_geojson(p)) == 2000
