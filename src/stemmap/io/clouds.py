@@ -279,7 +279,21 @@ def read_las(path: PathLike, *, fields: tuple[str, ...] = _LAS_FIELDS) -> PointC
     Extra dimensions present in the file and named in ``fields`` (default: intensity,
     return_number, classification, gps_time) are kept in ``PointCloud.fields``.
     """
+    from stemmap.io._budget import check_read_budget, human_bytes
+
     all_fields = tuple(fields)
+    n = count_points(path)  # header checks; the count is what the chunks will add up to
+    if n:
+        # the whole cloud is held as float64 xyz + one 8-byte column per field, twice while
+        # the chunks are concatenated (a LAZ file is ~10x smaller than that)
+        need = 2 * n * (24 + 8 * len(all_fields))
+        check_read_budget(
+            need,
+            path,
+            "point cloud",
+            f"its header announces {n:,} points, ~{human_bytes(need)} to load whole (a "
+            "command that streams LAS, `stemmap stems`, does not hold it)",
+        )
     parts = list(iter_las_chunks(path, chunk_size=5_000_000, fields=all_fields))
     p = Path(path)
     if not parts:
@@ -564,10 +578,12 @@ def count_points(path: PathLike) -> int | None:
     _check_file(p)
     _check_las_layout(p)
     try:
-        with laspy.open(p) as reader:
-            return int(reader.header.point_count)
+        reader = laspy.open(p)
     except Exception as exc:
         raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
+    with reader:
+        _check_las_header(p, reader.header)  # a count the file cannot hold is damage
+        return int(reader.header.point_count)
 
 
 def point_fields(path: PathLike) -> tuple[str, ...] | None:
