@@ -170,6 +170,12 @@ def _bag_huge_scan(path: Path) -> Path:
     return path
 
 
+def _map_with_odometry(d: Path, odometry: Path) -> list[str]:
+    """``stemmap map`` of a small scan NPZ with ``odometry`` as its wheel odometry CSV."""
+    scans = _scan_npz(d / "s.npz", 40)
+    return ["map", str(scans), "--odometry", str(odometry), "--out", str(d / "m")]
+
+
 # name -> (builder(tmp, args) -> argv after "stemmap")
 CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
     "npz_bomb": lambda d, a: [
@@ -202,22 +208,10 @@ CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
         "--out",
         str(d / "s.csv"),
     ],
-    "odometry_one_line": lambda d, a: [
-        "map",
-        str(_scan_npz(d / "s.npz", 40)),
-        "--odometry",
-        str(_text(d / "o.csv", a.text_mb, b"1,")),
-        "--out",
-        str(d / "m"),
-    ],
-    "odometry_short_lines": lambda d, a: [
-        "map",
-        str(_scan_npz(d / "s.npz", 40)),
-        "--odometry",
-        str(_text(d / "o.csv", a.text_mb, b"0,0,0\n")),
-        "--out",
-        str(d / "m"),
-    ],
+    "odometry_one_line": lambda d, a: _map_with_odometry(d, _text(d / "o.csv", a.text_mb, b"1,")),
+    "odometry_short_lines": lambda d, a: _map_with_odometry(
+        d, _text(d / "o.csv", a.text_mb, b"0,0,0\n")
+    ),
     "bag_huge_scan": lambda d, a: [
         "detect",
         str(_bag_huge_scan(d / "b.bag")),

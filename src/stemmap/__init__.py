@@ -24,23 +24,9 @@ if TYPE_CHECKING:
         Tree,
     )
 
-_TYPES = frozenset(
-    {
-        "LaserScan",
-        "PointCloud",
-        "Pose2",
-        "ScanBatch",
-        "StemMap",
-        "StemObservation",
-        "StemObservations",
-        "Trajectory",
-        "Tree",
-    }
-)
-
 
 def __getattr__(name: str) -> Any:
-    if name in _TYPES:
+    if name in _TYPES:  # (the names of __all__ that stemmap.types defines)
         from stemmap import types
 
         return getattr(types, name)
@@ -64,3 +50,5 @@ __all__ = [
     "Tree",
     "__version__",
 ]
+
+_TYPES = frozenset(__all__) - {"ConfigError", "InputError", "StemmapError", "__version__"}
