@@ -57,6 +57,8 @@ def _setting(
         # Dec 4: the averaging scanner's return threshold the edge model assumes
         "edge_hit_min": 0.5,
         "edge_hit_max": 0.5,
+        # Dec 4: the protrusions of a real outline at a first-echo silhouette
+        "edge_protrusion": 0.0,
         **extra,
     }
 
@@ -255,6 +257,19 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_hit_min=0.0, edge_hit_max=0.5),
     _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_hit_min=0.25, edge_hit_max=0.25),
     _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_hit_min=0.0, edge_hit_max=0.0),
+    # Dec 4 ("Per-trunk diagnosis of the held-out misses"), on the current default (grid 36),
+    # on grid 37 (scan_noise_pool) and on grid 41 (stub_sigmas 2): a first-echo edge return may
+    # have caught a bark flake, twig or stub 1 / 2 cm out of the mean circle, so each end's
+    # tangent prior reaches that far inside the edge footprint (edge_protrusion; first-echo
+    # fits only, numpy path: the nearest-return rows; the simulator is unchanged)
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_protrusion=0.01),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, edge_protrusion=0.02),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_pool=True, edge_protrusion=0.01
+    ),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, stub_sigmas=2.0, edge_protrusion=0.01
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -40,6 +40,7 @@ from _real_scanning import greedy_match, matched, scene_scans, vantage_points
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.types import StemObservations
 
 
 def _recording(rows: list[dict[str, Any]]) -> Any:
@@ -64,6 +65,24 @@ def _recording(rows: list[dict[str, Any]]) -> Any:
     return original, wrapped
 
 
+def detect_recording(
+    det: ScanTrunkDetector, batch: Any
+) -> tuple[StemObservations, list[dict[str, Any]]]:
+    """``det.detect_batch(batch)`` and, per output row, its returns and circle
+    (:func:`_recording` on every module that writes output rows)."""
+    rows: list[dict[str, Any]] = []
+    original, wrapped = _recording(rows)
+    writers = (detect_module, pieces_module)
+    for mod in writers:
+        mod._output_columns = wrapped
+    try:
+        obs = det.detect_batch(batch)
+    finally:
+        for mod in writers:
+            mod._output_columns = original
+    return obs, rows
+
+
 def views(ddir: Path, name: str, overrides: dict[str, Any]) -> dict[str, Any]:
     """Every visible trunk view of slice ``name`` (module docstring)."""
     i = list(SLICES).index(name)
@@ -73,16 +92,7 @@ def views(ddir: Path, name: str, overrides: dict[str, Any]) -> dict[str, Any]:
     ranges0, hit = scene_scans(sl, vp, "nearest", 0.5, "none", 11 + i)
     batch = noisy_batch(ranges0, 0.5, 0.0, rng)
     cfg = matched(DetectorConfig.preset("stemmap", **overrides), "nearest", 0.5)
-    rows: list[dict[str, Any]] = []
-    original, wrapped = _recording(rows)
-    writers = (detect_module, pieces_module)  # every module that writes output rows
-    for mod in writers:
-        mod._output_columns = wrapped
-    try:
-        obs = ScanTrunkDetector(cfg).detect_batch(batch)
-    finally:
-        for mod in writers:
-            mod._output_columns = original
+    obs, rows = detect_recording(ScanTrunkDetector(cfg), batch)
     out: list[dict[str, Any]] = []
     for s in range(vp.shape[0]):
         rel = sl.centers - vp[s]

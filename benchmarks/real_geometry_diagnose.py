@@ -94,6 +94,19 @@ def _over(rej: dict[str, Any], rows: np.ndarray, rel: np.ndarray, diam: float) -
     return rows[ok]
 
 
+def own_beams_only(batch: ScanBatch, hit: np.ndarray, s: int, t: int) -> ScanBatch:
+    """Scan ``s`` of ``batch`` with only trunk ``t``'s own beams (``hit``, every other beam
+    masked): what the detector gives under perfect segmentation."""
+    return ScanBatch(
+        ranges=np.where(hit[s] == t, batch.ranges[s], np.inf)[None, :],
+        times=batch.times[s : s + 1],
+        angle_min=batch.angle_min,
+        angle_increment=batch.angle_increment,
+        range_min=batch.range_min,
+        range_max=batch.range_max,
+    )
+
+
 def diagnose(
     sl: RealSlice,
     cfg: DetectorConfig,
@@ -137,15 +150,7 @@ def diagnose(
             own = int((hit[s] == t).sum())
             if not (own >= min_returns and rng_t[t] <= 15.0 and 0.1 <= diam[t] <= 1.0):
                 continue
-            # perfect segmentation: only the trunk's own beams
-            solo = ScanBatch(
-                ranges=np.where(hit[s] == t, batch.ranges[s], np.inf)[None, :],
-                times=batch.times[s : s + 1],
-                angle_min=batch.angle_min,
-                angle_increment=batch.angle_increment,
-                range_min=batch.range_min,
-                range_max=batch.range_max,
-            )
+            solo = own_beams_only(batch, hit, s, t)  # perfect segmentation
             solo_err = math.nan
             for name, d in dets.items():
                 o = d.detect_batch(solo)

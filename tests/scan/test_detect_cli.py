@@ -119,6 +119,10 @@ def test_detect_reads_a_ros1_bag_topic(tmp_path):
     assert res.exit_code == 2 and "/scan_rear" in " ".join(res.output.split())
 
 
+#: A Unix time in 2023 (s): scan times as ROS bags and GNSS-stamped logs give them.
+_EPOCH = 1_700_000_000.123
+
+
 def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     ranges, a = _ranges(3)
     # a wall x = 5 m seen at bearings 20-40 deg: a straight segment the stemmap preset drops
@@ -128,7 +132,7 @@ def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     np.savez(
         src,
         ranges=ranges,
-        time=np.array([0.0, 0.1, 0.2]),
+        time=_EPOCH + np.array([0.0, 0.1, 0.2]),
         angle_min=a[0],
         angle_increment=math.radians(0.5),
         range_min=0.05,
@@ -143,6 +147,8 @@ def test_detect_rejected_lists_dropped_candidates_with_their_test(tmp_path):
     # one wall candidate per scan, dropped as flat (sagitta <= 0 or a line within the noise)
     # before any fit
     assert sorted(int(r["scan_index"]) for r in walls) == [0, 1, 2]
+    # epoch times read back exactly (they were printed to 6 digits: 1.70000e+09 for all three)
+    assert sorted(float(r["time"]) for r in walls) == list(_EPOCH + np.array([0.0, 0.1, 0.2]))
     assert {r["reason"] for r in walls} <= {"depth", "straight"}
     assert all(r["radius"] == "nan" for r in walls)
     # dropped outright: the reason is the test, no piece was kept

@@ -317,6 +317,7 @@ def _write_rejected_csv(path: Path, parts: list[dict[str, Any]]) -> int:
     """Write the rejected candidates (one row each, :data:`_REJECTED_COLUMNS`); NaN = not
     fitted (dropped by a segment filter). Returns the row count."""
     from stemmap.errors import InputError
+    from stemmap.io._util import fmt_float
 
     n = 0
     try:
@@ -326,9 +327,11 @@ def _write_rejected_csv(path: Path, parts: list[dict[str, Any]]) -> int:
             for part in parts:
                 cols = [part[c] for c in _REJECTED_COLUMNS]
                 for row in zip(*cols, strict=True):
+                    # floats exactly as the observations CSV writes them (fmt_float): a
+                    # 6-digit format turned epoch times (1.7e9 s) into whole 1000 s steps
                     w.writerow(
                         [
-                            f"{v:.6g}"
+                            fmt_float(float(v))
                             if isinstance(v, float | np.floating)
                             else (int(v) if isinstance(v, np.bool_ | bool) else v)
                             for v in row

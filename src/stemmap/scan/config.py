@@ -347,6 +347,15 @@ class DetectorConfig:
         joined to its arc. First-echo or thin-beam fits only (``beam_footprint_deg`` > 0 or
         ``beam_divergence_deg`` 0: an averaging sensor's edge return is a mixed pixel,
         outside the circle by construction). Numpy path. inf = off.
+    edge_protrusion : float, metres, >= 0
+        First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours") only: the height
+        of the bark flakes, twigs, needles and stubs that stand out of a real stem's mean
+        circle (ours, issue 11, Dec 4; :func:`~stemmap.scan.features.first_echo_edge_prior`).
+        A first-echo beam returns from whatever is nearest in its footprint, so at the
+        silhouette the last beam that returns may be one that caught only a protrusion: the
+        mean circle's tangent then lies up to ``edge_protrusion / range`` radians inside the
+        edge beam's footprint, and each end's tangent prior is widened inward by that much.
+        0 = the outline is the circle (the tangent anywhere in the edge footprint).
     split_search : bool
         Cut a candidate rejected as not convex (``depth``) or by the RMS test, whose
         validated corner split (if on) gave no trunk, where the Bayesian information
@@ -452,6 +461,7 @@ class DetectorConfig:
     arc_chi2: bool = False
     behind_sigmas: float = math.inf
     stub_sigmas: float = math.inf
+    edge_protrusion: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -563,6 +573,8 @@ class DetectorConfig:
             raise bad("behind_sigmas", self.behind_sigmas, "it must be >= 0 (sigmas; inf: off)")
         if not self.stub_sigmas >= 0:
             raise bad("stub_sigmas", self.stub_sigmas, "it must be >= 0 (sigmas; inf: off)")
+        if not (self.edge_protrusion >= 0 and math.isfinite(self.edge_protrusion)):
+            raise bad("edge_protrusion", self.edge_protrusion, "it must be >= 0 m and finite")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
             raise bad("arc_floor_sigmas", self.arc_floor_sigmas, "it must be > 0 (sigmas)")
         if not self.arc_tangent_sigmas > 0:

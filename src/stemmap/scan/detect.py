@@ -48,6 +48,7 @@ from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
     _chi2_upper,
     edge_silhouette,
+    first_echo_edge_prior,
     footprint_correct,
     point_curvature,
     radius_median_filter,
@@ -565,6 +566,9 @@ class ScanTrunkDetector:
                 wrap=wrap,
                 hit_range=(cfg.edge_hit_min, cfg.edge_hit_max),
             )
+        elif cfg.fit_method == "ours" and cfg.beam_footprint_deg > 0 and cfg.edge_protrusion > 0:
+            # first echo: the last beam that returns may have caught a bark flake or twig
+            sil = first_echo_edge_prior(segs, cfg.edge_protrusion)
         centers, radii, covs, ok = _fit_segments(
             segs,
             cfg.fit_method,

@@ -40,6 +40,7 @@ __all__ = [
     "cluster_curvature",
     "edge_default_prior",
     "edge_silhouette",
+    "first_echo_edge_prior",
     "footprint_correct",
     "is_straight",
     "line_fit_rms",
@@ -454,6 +455,49 @@ def edge_default_prior(h: float, hit_min: float, hit_max: float) -> tuple[float,
         0.5 + h * (hit_min + hit_max - 1.0),
         (1.0 + 2.0 * h * (hit_max - hit_min)) / math.sqrt(12.0),
     )
+
+
+def first_echo_edge_prior(segs: Segments, protrusion: float) -> FloatArray:
+    """Tangent prior of each segment end of a first-echo scan on a stem whose outline carries
+    protrusions up to ``protrusion`` metres high (ours, issue 11, Dec 4).
+
+    After :func:`footprint_correct` a first-echo edge return sits at the side of its footprint
+    nearest the apex, and the fit's default prior puts the silhouette tangent uniformly in the
+    rest of that footprint (offset 1/2, width 1 beam spacing beyond the return): the tangent
+    of the *outline*. A real stem's outline is its mean circle plus bark flakes, twigs, needles
+    and stubs (on the real slices of docs/algorithms/scan-detection.md, points 1.7-3.3 cm
+    outside the reference ring), and a first-echo beam returns from whatever is nearest in its
+    footprint, so the last beam that returns may have caught a protrusion only. The mean
+    circle's tangent then lies up to ``protrusion / rho`` radians (``rho`` the edge return's
+    range) inside the outline's: uniform over ``[edge - s, edge + 1]`` beam spacings with
+    ``s = protrusion / (rho * spacing)``, i.e. offset ``(1 - s) / 2`` and standard deviation
+    ``(1 + s) / sqrt(12)`` (a uniform interval's, as the fit's default).
+
+    Parameters
+    ----------
+    segs : Segments
+        Segments of one batch (their ends are the edge returns).
+    protrusion : float, metres, >= 0
+
+    Returns
+    -------
+    ndarray of shape (K, 2, 2)
+        Per segment, rows (start, end) in beam order: (offset, std) in beam spacings (the
+        layout of :func:`edge_silhouette`); NaN (the fit's default) everywhere for 0.
+    """
+    if protrusion < 0 or not np.isfinite(protrusion):
+        raise ConfigError(f"protrusion must be finite and >= 0 m, got {protrusion}.")
+    k = len(segs)
+    out = np.full((k, 2, 2), np.nan)
+    p = segs.points
+    inc = abs(p.angle_increment)
+    if k == 0 or protrusion == 0 or not inc > 0:
+        return out
+    for side, idx in enumerate((segs.start, segs.stop - 1)):
+        s = protrusion / (np.maximum(p.r[idx], 1e-9) * inc)
+        out[:, side, 0] = 0.5 * (1.0 - s)
+        out[:, side, 1] = (1.0 + s) / math.sqrt(12.0)
+    return out
 
 
 def edge_silhouette(
