@@ -152,13 +152,15 @@ def scene_scans(
         extra.update(return_rule.kwargs())
     if background == "ground":
         heads = np.random.default_rng((seed, 1)).uniform(-math.pi, math.pi, vp.shape[0])
-        extra = {
-            "background": "ground",
-            "ground": sl.ground,
-            "mount": mount,
-            "headings": heads,
-            "relief": Relief.random(60.0, seed, relief_std, relief_corr),
-        }
+        extra.update(  # keeps the return rule (an assignment here dropped it)
+            {
+                "background": "ground",
+                "ground": sl.ground,
+                "mount": mount,
+                "headings": heads,
+                "relief": Relief.random(60.0, seed, relief_std, relief_corr),
+            }
+        )
     return virtual_scans(
         sl.xy, sl.labels, vp, resolution_deg=res, model=model, centers=sl.centers, **extra
     )

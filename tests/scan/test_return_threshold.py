@@ -161,3 +161,26 @@ def test_the_assumed_threshold_moves_the_dbh_as_the_scanner_s_does():
     assert any_on_half < half_on_half - 0.5
     assert any_on_any < unk_on_any < half_on_any
     assert any_on_half < unk_on_half < half_on_half
+
+
+def test_scene_scans_keeps_the_return_rule_with_a_ground_background():
+    """``_real_scanning.scene_scans(background="ground")`` used to replace the return rule's
+    arguments with the ground's: every threshold scanned as any-of-5. With the ground the
+    rule must still narrow the disc as it does without."""
+    from _real_scanning import ReturnRule, scene_scans
+    from stemmap.eval.real_slices import RealSlice
+
+    sl = RealSlice("disc", DISC, LABELS, [{"x": D, "y": 0.0, "diameter": 2 * R}], [], ground=None)
+    vp = VANTAGES[:40]
+    width = {}
+    for bg in ("none", "ground"):
+        for q in (0.0, 1.0):
+            r, _ = scene_scans(
+                sl, vp, "averaging", RES, bg, 0, return_rule=ReturnRule(q, "uniform", 20)
+            )
+            near = np.isfinite(r) & (r < D + 1.0)  # the disc, not the ground beyond it
+            width[bg, q] = near.sum(axis=1).mean()
+    for bg in ("none", "ground"):
+        # any-hit vs full footprint: (1 - 2 q_eff) footprints, ~1.9 beams of 0.25 deg apart
+        assert width[bg, 0.0] - width[bg, 1.0] > 1.5, width
+    assert abs(width["ground", 1.0] - width["none", 1.0]) < 0.3, width

@@ -122,6 +122,13 @@ def detect(
             "that dropped it (reason column; split / arc: cut into pieces that were kept).",
         ),
     ] = None,
+    range_unit: Annotated[
+        str | None,
+        typer.Option(
+            help="Unit of the ranges: m, cm, mm, ft or us-ft, converted to metres [default: "
+            "m; scans whose median return is beyond 500 m are refused without it]."
+        ),
+    ] = None,
     quiet: QuietFlag = False,
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
@@ -178,7 +185,7 @@ def detect(
                 "--imu-topic yet. Run once without --imu-topic for the rejected list."
             )
         skipped: list[SkippedFrame] = []
-        batch = read_scans(scan, topic=topic, skipped=skipped)
+        batch = read_scans(scan, topic=topic, skipped=skipped, range_unit=range_unit)
         roll, pitch = _scan_attitude(scan, imu_topic, batch.times)
         # the first run compiles the detector for minutes before the progress bar starts
         # (said once every input is read: a bad input is reported, not a compile first)

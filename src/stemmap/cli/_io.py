@@ -70,6 +70,13 @@ def convert_scans(
     storage: Annotated[
         str, typer.Option(help="ROS2 storage when writing a ROS2 bag: sqlite3 or mcap.")
     ] = "sqlite3",
+    range_unit: Annotated[
+        str | None,
+        typer.Option(
+            help="Unit of the input's ranges: m, cm, mm, ft or us-ft; the output is in metres "
+            "[default: m; scans whose median return is beyond 500 m are refused without it]."
+        ),
+    ] = None,
     quiet: QuietFlag = False,
 ) -> None:
     """Convert 2D laser scans between NPZ, CSV and ROS bags (dominant beam geometry kept).
@@ -93,7 +100,7 @@ def convert_scans(
                 f"(a ROS2 bag folder); got {ext!r}."
             )
         skipped: list[SkippedFrame] = []
-        batch = read_scans(src, topic=topic, skipped=skipped)
+        batch = read_scans(src, topic=topic, skipped=skipped, range_unit=range_unit)
         for sk in skipped:
             console.print(
                 f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"

@@ -22,6 +22,7 @@ from stemmap.cli._common import (
     ProgressFlag,
     QuietFlag,
     clean_json,
+    console,
     fail_on_stemmap_error,
     json_default,
     progress,
@@ -462,6 +463,12 @@ def map_command(
                 problem, ctx = file_problem(
                     bag, odometry, off, motion=vpath, motion_sigma=sigma, before_compute=notice
                 )
+            if vpath is None:  # a wheel odometry: do the scans turn the way it turns?
+                from stemmap.cli._map_handedness import mirror_warning
+
+                mirrored = mirror_warning(problem, ctx.get("scans"))
+                if mirrored is not None:
+                    console.print(f"[yellow]warning:[/yellow] {mirrored}")
         if gnss is not None:
             problem = _with_gnss(problem, gnss, gnss_lever, gnss_sigma, backend.value)
         reloc = None

@@ -256,6 +256,24 @@ def stems(
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = None,
+    units: Annotated[
+        str | None,
+        typer.Option(
+            help="Length unit of the cloud's coordinates: m, cm, mm, ft or us-ft (US survey "
+            "foot); converted to metres as read, results in metres [default: m; a LAS CRS "
+            "in another unit is refused without it].",
+            rich_help_panel="Input conventions",
+        ),
+    ] = None,
+    up_axis: Annotated[
+        str,
+        typer.Option(
+            help="The cloud's axis that points up: z (LAS, most lidar tools), y "
+            "(photogrammetry, Unity, some SLAM exports) or x; results in the turned frame "
+            "(y up: file (x, y, z) -> (x, -z, y)).",
+            rich_help_panel="Input conventions",
+        ),
+    ] = "z",
     as_json: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -318,6 +336,17 @@ def stems(
         tempfile.TemporaryDirectory() as tmp,
     ):
         crs = checked_crs(crs) if crs is not None else las_crs(in_paths[0])
+        convention = _convention(units, up_axis, crs, engine=engine)
+        _refuse_with_convention(
+            convention,
+            {
+                "--geojson": geojson,
+                "--gpkg": gpkg,
+                "--dtm": dtm,
+                "--origin": origin,
+                "--trajectory": trajectory,
+            },
+        )
         # (stderr: the --json object on stdout stays clean) said once the options are checked
         # and the input read (a non-LAS cloud is read whole before the first kernel call; a
         # LAS file's header checks are count_points'), so a bad input is reported instead
@@ -369,6 +398,7 @@ def stems(
                     sensor=sensor,
                     topic=topic,
                     on_ground=None if dtm is None else grounds.append,
+                    convention=convention,
                 )
         write_stems_csv(run.path(out_csv), result)
         if geojson is not None:
@@ -388,7 +418,9 @@ def stems(
                 bg = np.concatenate(
                     [
                         c.xyz[:: max(1, (total or len(c)) // 200_000), :2]
-                        for c in iter_cloud_chunks(cloud, read_points, topic=topic)
+                        for c in iter_cloud_chunks(
+                            cloud, read_points, topic=topic, convention=convention
+                        )
                     ]
                 )
             plot_stems(fig_path, result, background_xy=bg, title=name)
@@ -403,6 +435,7 @@ def stems(
                 profile=None if profile is None else run.path(profile),
                 metrics=None if metrics is None else run.path(metrics),
                 labels=None if labels is None else run.path(labels),
+                convention=convention,
             )
         if dtm is not None:
             from stemmap.cloud.dtm import require_terrain, write_dtm
@@ -418,6 +451,8 @@ def stems(
             ("method", result.method + (", along-ray fits" if sensor is not None else ""), ""),
             ("CRS", crs[:40] if crs else "none (local frame)", ""),
         ]
+        if not convention.is_identity:
+            rows.append(("input convention", convention.describe(), "--units / --up-axis"))
         if catalog is not None:
             rows.append(("tiles", fmt(len(catalog)), f"{fmt(catalog.n_points)} points"))
         if report is not None:
@@ -430,6 +465,72 @@ def stems(
         )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
+        for line in convention_hints(result, convention, user_set=units is not None):
+            console.print(f"[yellow]warning:[/yellow] {line}")
+
+
+#: Median DBH (m) above which a run's stems are more likely a cloud in feet than real trees:
+#: feet make every diameter x3.28 (the real plots here: 0.17 m and 0.30 m median in metres,
+#: 0.82 m and 0.97 m read as feet). A warning, not a refusal: old-growth plots can exceed it.
+FEET_SUSPECT_MEDIAN_DBH = 0.6
+
+
+def _convention(units: str | None, up_axis: str, crs: str | None, *, engine: bool) -> Any:
+    """The input convention of the options; ConfigError for a CRS whose unit is not the
+    metre when --units is not given (its coordinates would be measured as metres), and for
+    a convention on a tile catalog (not supported there)."""
+    from stemmap.io.conventions import CloudConvention, crs_unit, unit_for_factor
+
+    convention = CloudConvention(units or "m", up_axis)
+    if units is None:
+        unit = crs_unit(crs)
+        if unit is not None and abs(unit[1] - 1.0) > 1e-9:
+            name = unit_for_factor(unit[1])
+            hint = f"pass --units {name}" if name else "convert the cloud to metres"
+            raise ConfigError(
+                f"the cloud's CRS ({crs if len(crs or '') < 40 else 'given'}) measures in "
+                f"{unit[0]} ({unit[1]:g} m), but stemmap measures stems in metres: {hint} "
+                "(the results are then in metres)."
+            )
+    if engine and not convention.is_identity:
+        raise ConfigError(
+            "--units / --up-axis apply to one cloud, not yet to a tile catalog: convert the "
+            "tiles to metres, z up (e.g. PDAL, las2las) first."
+        )
+    return convention
+
+
+def _refuse_with_convention(convention: Any, options: dict[str, object]) -> None:
+    """ConfigError when a converted cloud is combined with an option whose positions must be
+    in the file's own frame (georeferenced products, sensor positions)."""
+    used = [name for name, value in options.items() if value is not None]
+    if used and not convention.is_identity:
+        raise ConfigError(
+            f"{', '.join(used)} cannot be combined with --units / --up-axis yet: the stems are "
+            "in the converted frame (metres, z up), not in the cloud's CRS. Write the CSV, or "
+            "convert the cloud to metres, z up first."
+        )
+
+
+def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[str]:
+    """Warnings for a run whose result suggests the wrong units or up axis (none when the
+    user set --units or --up-axis)."""
+    import numpy as np
+
+    if user_set or not convention.is_identity:
+        return []
+    if len(result) == 0:
+        return [
+            "if the cloud is not in metres (millimetres, feet) or not z up (y up: "
+            "photogrammetry, Unity), pass --units or --up-axis y (docs/cli.md, stems)."
+        ]
+    med = float(np.nanmedian(result.diameter))
+    if med > FEET_SUSPECT_MEDIAN_DBH:
+        return [
+            f"the median DBH is {med:.2f} m, large for a plot: if the cloud is in feet, pass "
+            "--units ft (or us-ft); a cloud in feet reads every diameter x3.28."
+        ]
+    return []
 
 
 def _stems_report(

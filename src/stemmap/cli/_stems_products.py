@@ -7,11 +7,15 @@ import json
 import logging
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stemmap.cloud.result import CloudStems
 from stemmap.io.atomic import atomic_write
+
+if TYPE_CHECKING:
+    from stemmap.io.conventions import CloudConvention
 
 __all__ = ["write_forestry_products"]
 
@@ -33,6 +37,7 @@ def write_forestry_products(
     profile: Path | None = None,
     metrics: Path | None = None,
     labels: Path | None = None,
+    convention: CloudConvention | None = None,
 ) -> None:
     """Read the cloud's xyz once more (streamed) and write the requested products.
 
@@ -41,7 +46,8 @@ def write_forestry_products(
     (:func:`~stemmap.products.forestry.plot_summary` over the occupied 1 m cells of the cloud)
     and per-tree DBH, DBH std, height and stem volume. ``labels``: LAS with a ``tree_id``
     extra dimension (:func:`~stemmap.products.forestry.tree_labels`), all other fields of a
-    LAS/LAZ input kept.
+    LAS/LAZ input kept (in the file's own coordinates). ``convention``: the cloud's units
+    and up axis, as for the stems (the profiles and metrics are in metres, z up).
     """
     from stemmap.io.clouds import iter_cloud_chunks
     from stemmap.products.forestry import (
@@ -52,7 +58,9 @@ def write_forestry_products(
         tree_labels,
     )
 
-    xyz = np.concatenate([c.xyz for c in iter_cloud_chunks(cloud, chunk_size, topic=topic)])
+    xyz = np.concatenate(
+        [c.xyz for c in iter_cloud_chunks(cloud, chunk_size, topic=topic, convention=convention)]
+    )
     profs = stem_profiles(xyz, stems) if (profile or metrics) else []
     if profile is not None:
         with atomic_write(profile, "w") as fh:

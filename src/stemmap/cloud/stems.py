@@ -37,7 +37,7 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -53,6 +53,9 @@ from stemmap.cloud.result import BASE_SLICE, BREAST_HEIGHT, CloudStems
 from stemmap.cloud.sensor import SensorPositions
 from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray
+
+if TYPE_CHECKING:
+    from stemmap.io.conventions import CloudConvention
 
 __all__ = [
     "BREAST_HEIGHT",
@@ -348,6 +351,7 @@ def detect_stems_file(
     sensor: SensorPositions | None = None,
     topic: str | None = None,
     on_ground: Callable[[GroundModel | None], None] | None = None,
+    convention: CloudConvention | None = None,
 ) -> CloudStems:
     """Run a detector on a cloud file, streaming LAS/LAZ in chunks.
 
@@ -368,6 +372,10 @@ def detect_stems_file(
     ``on_ground(model)`` (``ours`` only) receives the ground model the heights were measured
     from (``None`` when the cloud is read as one slice), so a caller that also wants the
     terrain (``stemmap stems --dtm``) does not stream the file again.
+
+    ``convention`` (:class:`stemmap.io.conventions.CloudConvention`): the file's length unit
+    and up axis; every chunk is converted to metres, z up as it is read, and the stems come
+    out in that converted frame.
     """
     from stemmap.io.clouds import (
         count_points,
@@ -389,7 +397,7 @@ def detect_stems_file(
         # munjer2025 reads one lidar frame (all NaN: a blocked sensor, no stems); a plot of
         # NaN is a broken export
         reader = read_cloud if isinstance(cfg, MunjerConfig) else read_plot_cloud
-        cloud = reader(path, topic=topic)
+        cloud = reader(path, topic=topic, convention=convention)
         if on_chunk:
             on_chunk(len(cloud), len(cloud))
         if isinstance(cfg, MunjerConfig):
@@ -414,7 +422,7 @@ def detect_stems_file(
     acc = GroundAccumulator(cfg.ground_cell, cfg.max_memory)
     zmin, zmax = math.inf, -math.inf
     n_total = 0
-    for chunk in iter_cloud_chunks(path, chunk_size):
+    for chunk in iter_cloud_chunks(path, chunk_size, convention=convention):
         xyz = chunk.xyz
         if xyz.shape[0] == 0:
             continue
@@ -435,7 +443,9 @@ def detect_stems_file(
     lo, hi = cfg.band
     xs, hs, zs, os_ = [], [], [], []
     canopy: dict[str, Any] = {}
-    for chunk in iter_cloud_chunks(path, chunk_size, fields=(tfield,) if tfield else ()):
+    for chunk in iter_cloud_chunks(
+        path, chunk_size, fields=(tfield,) if tfield else (), convention=convention
+    ):
         xyz = chunk.xyz
         if ground is None:
             h = xyz[:, 2]

@@ -15,19 +15,23 @@ to install.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import InputError
 from stemmap.types import PointCloud
+
+if TYPE_CHECKING:
+    from stemmap.io.conventions import CloudConvention
 
 __all__ = [
     "CLOUD_EXTENSIONS",
@@ -451,6 +455,9 @@ def read_xyz(path: PathLike) -> PointCloud:
 
     Columns may be separated by whitespace, commas or semicolons; lines starting with ``#`` and
     a single non-numeric header line are skipped. Extra columns become fields ``col3``, ``col4``...
+    Semicolon-separated files may use decimal commas (``12,5;3,25;1,3``, as spreadsheet and
+    CloudCompare exports in many locales write them): with ``;`` as the separator a comma can
+    only be a decimal sign.
     """
     from stemmap.io._budget import check_text_budget
 
@@ -459,20 +466,25 @@ def read_xyz(path: PathLike) -> PointCloud:
     check_text_budget(p, "point file", per_byte=4.0, per_line=0.0)
     try:
         with p.open("r", encoding="utf-8", errors="strict") as fh:
-            first = ""
+            lines: list[str] = []
             for line in fh:
                 if line.strip() and not line.lstrip().startswith("#"):
-                    first = line
-                    break
+                    lines.append(line)
+                    if len(lines) == 2:
+                        break
     except UnicodeDecodeError as exc:
         raise InputError(f"{str(p)!r} is not a text point file (binary content).") from exc
-    if not first:
+    if not lines:
         raise InputError(f"{str(p)!r} holds no points.")
+    first = lines[0]
     delim: str | None = None
-    for d in (",", ";"):
+    for d in (";", ","):
         if d in first:
             delim = d
             break
+    decimal_comma = delim == ";" and any("," in ln for ln in lines)
+    if decimal_comma:
+        first = first.replace(",", ".")
     tokens = [t for t in (first.split(delim) if delim else first.split()) if t.strip()]
     if len(tokens) > _MAX_XYZ_COLUMNS:
         raise InputError(
@@ -487,7 +499,10 @@ def read_xyz(path: PathLike) -> PointCloud:
     try:
         with warnings.catch_warnings():  # numpy's "input contained no data": reported below
             warnings.simplefilter("ignore", UserWarning)
-            arr = np.loadtxt(p, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
+            src: Any = p
+            if decimal_comma:
+                src = io.StringIO(p.read_text(encoding="utf-8").replace(",", "."))
+            arr = np.loadtxt(src, delimiter=delim, comments="#", skiprows=skip, ndmin=2)
     except ValueError as exc:
         raise InputError(
             f"{str(p)!r} has a malformed line (every line needs the same number of numeric "
@@ -528,20 +543,27 @@ def _read_bag(path: Path, topic: str | None) -> PointCloud:
     return PointCloud(xyz, time=clouds[0].time, frame=clouds[0].frame)
 
 
-def read_cloud(path: PathLike, *, topic: str | None = None) -> PointCloud:
+def read_cloud(
+    path: PathLike, *, topic: str | None = None, convention: CloudConvention | None = None
+) -> PointCloud:
     """Read a point cloud, choosing the reader from the file extension.
 
     ``.las``/``.laz`` -> :func:`read_las`; ``.ply`` -> :func:`read_ply`; ``.pcd`` ->
     :func:`read_pcd`; ``.xyz``/``.txt``/``.csv``/``.pts`` -> :func:`read_xyz`; ROS bags
     (``.bag``, ``.db3``, ``.mcap`` or a ROS2 bag folder) -> every PointCloud2 message of ``topic``
-    (or of all topics) stacked in the sensor frame (no motion compensation).
+    (or of all topics) stacked in the sensor frame (no motion compensation). ``convention``:
+    the file's units and up axis, converted to metres, z up
+    (:class:`stemmap.io.conventions.CloudConvention`).
 
     Raises
     ------
     InputError
         Unknown extension, missing/empty/truncated file, or no x/y/z coordinates.
     """
-    p = Path(path)
+    return _converted(_read_any(Path(path), topic), convention)
+
+
+def _read_any(p: Path, topic: str | None) -> PointCloud:
     ext = p.suffix.lower()
     if p.is_dir() or ext in _BAG_EXTENSIONS:
         if not p.exists():
@@ -619,23 +641,37 @@ def iter_cloud_chunks(
     *,
     fields: tuple[str, ...] = (),
     topic: str | None = None,
+    convention: CloudConvention | None = None,
 ) -> Iterator[PointCloud]:
     """Stream any supported cloud: LAS/LAZ in chunks (carrying the extra dimensions named in
     ``fields``), other formats as one chunk (with all their fields; ``topic`` for bags):
-    :func:`read_plot_cloud`, so a cloud of NaN is an InputError."""
+    :func:`read_plot_cloud`, so a cloud of NaN is an InputError. ``convention``: the file's
+    units and up axis (:class:`stemmap.io.conventions.CloudConvention`), converted to metres,
+    z up as each chunk is read."""
     p = Path(path)
     if p.suffix.lower() in (".las", ".laz"):
-        yield from iter_las_chunks(p, chunk_size, fields=fields)
+        for chunk in iter_las_chunks(p, chunk_size, fields=fields):
+            yield _converted(chunk, convention)
     else:
-        yield read_plot_cloud(p, topic=topic)
+        yield read_plot_cloud(p, topic=topic, convention=convention)
 
 
-def read_plot_cloud(path: PathLike, *, topic: str | None = None) -> PointCloud:
+def _converted(cloud: PointCloud, convention: CloudConvention | None) -> PointCloud:
+    if convention is None or convention.is_identity:
+        return cloud
+    return PointCloud(
+        convention.apply(cloud.xyz), time=cloud.time, frame=cloud.frame, fields=cloud.fields
+    )
+
+
+def read_plot_cloud(
+    path: PathLike, *, topic: str | None = None, convention: CloudConvention | None = None
+) -> PointCloud:
     """:func:`read_cloud` of a cloud to measure stems in: InputError when not one point has
     finite coordinates -- a whole cloud of NaN is a broken export, not an empty plot
     (:func:`read_cloud` returns it empty: a lidar frame of a blocked sensor is all NaN in an
-    organised PCD)."""
-    cloud = read_cloud(path, topic=topic)
+    organised PCD). ``convention`` as in :func:`iter_cloud_chunks`."""
+    cloud = read_cloud(path, topic=topic, convention=convention)
     if cloud.xyz.shape[0] == 0:
         raise InputError(
             f"{str(path)!r} holds no point with finite coordinates (none, or all NaN / "

@@ -285,6 +285,7 @@ def _iter_csv(
     check_text_budget(p, "scan CSV", per_byte=3.0, per_line=500.0)
     frame = "laser"
     header: list[str] | None = None
+    n_beams = 0
     k = -1
     for lineno, ln in _csv_lines(p):
         s = ln.strip()
@@ -303,6 +304,7 @@ def _iter_csv(
                     f"{','.join(SCAN_CSV_FIXED_COLUMNS)} followed by one column per beam "
                     f"(r0,r1,...); got {s[:120]!r}."
                 )
+            n_beams = _csv_beam_columns(header, p, lineno)
             continue
         k += 1
         fields = s.split(",")
@@ -323,7 +325,7 @@ def _iter_csv(
             continue
         try:
             scan = LaserScan(
-                v[5:],
+                v[5 : 5 + n_beams],
                 v[1],
                 v[2],
                 time=v[0],
@@ -337,6 +339,40 @@ def _iter_csv(
             yield k, scan
     if header is None:
         raise InputError(f"scan CSV {str(p)!r} is empty (no header line).")
+
+
+_INTENSITY_RE = re.compile(r"(i|intensity|intensities)_?(\d+)$", re.IGNORECASE)
+
+
+def _csv_beam_columns(header: list[str], p: Path, lineno: int) -> int:
+    """Number of range columns of a scans CSV header: ``r0..r{N-1}`` right after the fixed
+    columns, optionally followed by as many intensity columns (``i0..``, ``intensity0..``),
+    which are ignored. Any other column is an InputError: read as ranges, a LaserScan CSV
+    exported with its intensities gave twice the beams, the second half spread past the
+    scanner's field of view (a 180-degree scan became a 360-degree one without a word)."""
+    rest = header[5:]
+    n = 0
+    while n < len(rest) and rest[n] == f"r{n}":
+        n += 1
+    extra = rest[n:]
+    if n == 0:
+        raise InputError(
+            f"scan CSV {str(p)!r} line {lineno}: the beam columns must be named r0,r1,... "
+            f"after {','.join(SCAN_CSV_FIXED_COLUMNS)}; got {','.join(rest[:3])},..."
+        )
+    if not extra:
+        return n
+    idx = [_INTENSITY_RE.match(c) for c in extra]
+    if len(extra) == n and all(m is not None and int(m.group(2)) == i for i, m in enumerate(idx)):
+        log.info("%s: ignoring the %d intensity columns %s..", p, n, extra[0])
+        return n
+    raise InputError(
+        f"scan CSV {str(p)!r} line {lineno}: after the {n} beam columns r0..r{n - 1} the header "
+        f"has {len(extra)} other column(s) ({','.join(extra[:3])}"
+        f"{',...' if len(extra) > 3 else ''}); "
+        f"only {n} intensity columns i0..i{n - 1} may follow the ranges. Rename the beam "
+        "columns r0,r1,... or drop the extra columns."
+    )
 
 
 def _fmt_block(a: FloatArray) -> list[str]:
@@ -521,7 +557,11 @@ def _stack(
 
 
 def read_scans(
-    path: PathLike, *, topic: str | None = None, skipped: list[SkippedFrame] | None = None
+    path: PathLike,
+    *,
+    topic: str | None = None,
+    skipped: list[SkippedFrame] | None = None,
+    range_unit: str | None = None,
 ) -> ScanBatch:
     """Read every scan of a file into one :class:`ScanBatch`.
 
@@ -536,6 +576,11 @@ def read_scans(
     skipped : list, optional
         Receives a :class:`SkippedFrame` (index, time, reason) per damaged or mismatched frame;
         each is also logged as a warning.
+    range_unit : str, optional
+        The ranges' unit (``m``, ``cm``, ``mm``, ``ft``, ``us-ft``), converted to metres.
+        Without it, scans whose median return lies beyond 500 m are refused (millimetres or
+        centimetres read as metres gave no trunks without a word): see
+        :mod:`stemmap.io.conventions`.
 
     Returns
     -------
@@ -546,7 +591,8 @@ def read_scans(
     ------
     InputError
         Missing file, unknown format, truncated or malformed NPZ (wrong fields, shapes or
-        dtypes), CSV without a valid header, unreadable bag, or no usable scan at all.
+        dtypes), CSV without a valid header, unreadable bag, no usable scan at all, an
+        ``angle_min`` beyond one turn (degrees), ranges that cannot be metres.
 
     Examples
     --------
@@ -562,15 +608,55 @@ def read_scans(
     ...
     stemmap.errors.InputError: scan CSV file '...scans.csv' does not exist.
     """
-    return read_scans_indexed(path, topic=topic, skipped=skipped)[0]
+    return read_scans_indexed(path, topic=topic, skipped=skipped, range_unit=range_unit)[0]
 
 
 def read_scans_indexed(
-    path: PathLike, *, topic: str | None = None, skipped: list[SkippedFrame] | None = None
+    path: PathLike,
+    *,
+    topic: str | None = None,
+    skipped: list[SkippedFrame] | None = None,
+    range_unit: str | None = None,
 ) -> tuple[ScanBatch, NDArray[np.int64]]:
     """:func:`read_scans` plus the position in the file (row / message index, 0-based) of
     every scan in the batch, so that results can be reported against the original frames
     when damaged or mismatched frames were skipped."""
+    batch, rows = _read_indexed(path, topic, skipped)
+    return _checked_conventions(batch, str(path), range_unit), rows
+
+
+def _checked_conventions(batch: ScanBatch, source: str, range_unit: str | None) -> ScanBatch:
+    """The batch in metres and radians: InputError for an ``angle_min`` beyond one turn (a
+    start angle in degrees, e.g. -90) and, without ``range_unit``, for ranges that cannot be
+    metres (:func:`stemmap.io.conventions.check_scan_ranges`); ``range_unit`` (a key of
+    :data:`stemmap.io.conventions.UNIT_SCALES`) scales the ranges and the range window."""
+    from stemmap.io.conventions import check_scan_ranges, unit_scale
+
+    if abs(batch.angle_min) > 2.0 * math.pi + 1e-9:
+        raise InputError(
+            f"{source}: angle_min is {batch.angle_min:g} rad, beyond one turn: is it in "
+            "degrees? Scan angles are radians (angle_min, angle_increment)."
+        )
+    if range_unit is None:
+        check_scan_ranges(batch.ranges, source)
+        return batch
+    scale = unit_scale(range_unit, "--range-unit")
+    if scale == 1.0:
+        return batch
+    return ScanBatch(
+        batch.ranges * scale,
+        batch.times,
+        batch.angle_min,
+        batch.angle_increment,
+        batch.range_min * scale,
+        batch.range_max * scale,
+        batch.frame,
+    )
+
+
+def _read_indexed(
+    path: PathLike, topic: str | None, skipped: list[SkippedFrame] | None
+) -> tuple[ScanBatch, NDArray[np.int64]]:
     kind = scan_file_kind(path)
     if kind == "npz":
         return _read_npz(path, skipped)
