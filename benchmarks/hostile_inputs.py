@@ -113,7 +113,7 @@ def _tiff(w: int, h: int) -> bytes:
     return b"II*\0" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0) + strip
 
 
-def _las(path: Path, count: int) -> Path:
+def las_announcing(path: Path, count: int) -> Path:
     """A 10-point LAS/LAZ (by suffix) whose header then announces ``count`` points."""
     import laspy
 
@@ -199,8 +199,18 @@ CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
         "--out",
         str(d / "t.csv"),
     ],
-    "las_2e9": lambda d, a: ["stems", str(_las(d / "c.las", 2 * 10**9)), "--out", str(d / "s.csv")],
-    "laz_2e9": lambda d, a: ["stems", str(_las(d / "c.laz", 2 * 10**9)), "--out", str(d / "s.csv")],
+    "las_2e9": lambda d, a: [
+        "stems",
+        str(las_announcing(d / "c.las", 2 * 10**9)),
+        "--out",
+        str(d / "s.csv"),
+    ],
+    "laz_2e9": lambda d, a: [
+        "stems",
+        str(las_announcing(d / "c.laz", 2 * 10**9)),
+        "--out",
+        str(d / "s.csv"),
+    ],
     "ply_4e9": lambda d, a: ["stems", str(_ply(d / "c.ply", 4 * 10**9)), "--out", str(d / "s.csv")],
     "xyz_one_line": lambda d, a: [
         "stems",

@@ -40,19 +40,10 @@ main()
     ],
 )
 def test_signal_during_imports_is_one_error_line(sig: int, code: int, line: str) -> None:
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2] / "src"))
-    with subprocess.Popen(
-        [sys.executable, "-c", _STALLED_IMPORT],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell does
-    ) as p:
-        assert p.stdout is not None and p.stdout.readline().strip() == "importing"
-        p.send_signal(sig)
-        _, err = p.communicate(timeout=60)
-    assert p.returncode == code, err
+    from _signals import run_and_signal
+
+    returncode, err = run_and_signal(_STALLED_IMPORT, [], sig, "importing")
+    assert returncode == code, err
     assert "Traceback" not in err and line in err
     assert err.strip().count("\n") == 0  # one line
 

@@ -114,34 +114,15 @@ def test_cli_refuses_with_one_error_line_and_writes_nothing(tmp_path: Path, monk
     assert not out.exists()
 
 
-def _laz_announcing(path: Path, count: int) -> Path:
-    """A 10-point LAZ whose header announces ``count`` points (LAZ is compressed, so the file
-    size cannot show that the count is a lie)."""
-    import struct
-
-    import laspy
-
-    hdr = laspy.LasHeader(point_format=0, version="1.4")
-    hdr.scales = np.array([0.01, 0.01, 0.01])
-    las = laspy.LasData(hdr)
-    xyz = np.random.default_rng(0).uniform(0, 10, (10, 3))
-    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    las.write(str(path))
-    data = bytearray(path.read_bytes())
-    struct.pack_into("<I", data, 107, 0)  # legacy count: 0 when above 2^32-1 (LAS 1.4)
-    struct.pack_into("<Q", data, 247, count)
-    path.write_bytes(bytes(data))
-    return path
-
-
 def test_whole_cloud_read_of_a_laz_announcing_billions_is_refused_first(
     tmp_path: Path,
 ) -> None:
     # read_las (map / odometry frames, library use) concatenates every chunk: a LAZ header
     # announcing 2e10 points asked laspy for them chunk by chunk and failed only after the
     # first chunk; the budget refuses from the header (xyz + 4 fields, twice: 2.24 TB)
+    from hostile_inputs import las_announcing  # benchmarks/ (tests/conftest.py)
     from stemmap.io.clouds import read_las
 
-    p = _laz_announcing(tmp_path / "c.laz", 2 * 10**10)
+    p = las_announcing(tmp_path / "c.laz", 2 * 10**10)
     with pytest.raises(InputError, match=r"announces 20,000,000,000 points, ~2\.24 TB"):
         read_las(p)
