@@ -1,11 +1,12 @@
 """Benchmark: leave-one-dataset-out check of the cloud defaults chosen on real clouds (issue 11).
 
-Four :class:`~stemmap.cloud.config.StemConfig` options were added after failures seen on the
+Five :class:`~stemmap.cloud.config.StemConfig` options were added after failures seen on the
 real clouds of ../shared/datasets and are reported on the same clouds
 (docs/algorithms/cloud.md): ``tighter_refits`` (treels spruce at 50 %), ``thin_remeasure``
 with its bound ``thin_remeasure_max_slices`` (treels pine_plot at 50 / 20 / 10 %, archi Tree_1
-for the bound), ``core_refits`` (spruce with 1 cm noise) and ``single_tree_ladder`` (spruce at
-10 %). Here each candidate value of each option (the others at their defaults) is run on
+for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder`` (spruce at
+10 %) and ``continues_above`` (treels pine_plot's non-stems ending inside the band). Here
+each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY, which destroys the coordinates for every value alike; the random ones --
 subsamples, noise -- with several seeds), through that benchmark's LAS round trip and its
@@ -69,6 +70,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "single_tree_ladder": (
         ("off", {"single_tree_ladder": False}),
         ("on", {"single_tree_ladder": True}),
+    ),
+    "continues_above": (
+        ("off", {"continues_above": False}),
+        ("on", {"continues_above": True}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

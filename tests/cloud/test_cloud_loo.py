@@ -81,6 +81,7 @@ def test_each_option_lists_its_current_default() -> None:
         "thin_remeasure": "<=4 slices",
         "core_refits": "on",
         "single_tree_ladder": "on",
+        "continues_above": "on",
     }
     # the off values really switch something off
     for opt, vals in OPTIONS.items():

@@ -72,9 +72,11 @@ def test_lidr_slice(datasets_dir: Path) -> None:
 
 def test_pine_plot(datasets_dir: Path) -> None:
     xyz, det, _, full = _run(datasets_dir / "treels" / "pine_plot.laz")
-    # 17 trunks pass through 1.3 m (the 1.3 m slice, docs/algorithms/cloud.md; the other
-    # blobs in it are shrubs and debris below 1.5 m)
-    assert len(det) == 17
+    # 16 trunks pass through 1.3 m (the 1.3 m slice, docs/algorithms/cloud.md; the other
+    # blobs in it are shrubs and debris below 1.5 m, and a 1.7 m sapling at (1.09, 9.68) m
+    # with no return at 1.30-1.50 m: "pine_plot's 17th stem", no stem since the
+    # continues-above test)
+    assert len(det) == 16
     assert len(full) >= 8
     assert float(np.sqrt(np.mean(np.square(full)))) <= 0.01
     _height_ok(xyz, det)

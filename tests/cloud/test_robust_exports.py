@@ -103,7 +103,8 @@ def test_tilted_plot_keeps_its_ground(datasets_dir: Path, tmp_path: Path) -> Non
     h1 = fit_ground(prep.xyz).height_of(prep.xyz)
     low = h0 < 2.5  # the band and below (crowns move over other ground when tilted)
     assert np.quantile(np.abs(h1 - h0)[low], 0.99) < 0.15
-    assert len(detect_stems_file(f, StemConfig())) >= 17
+    assert len(detect_stems_file(f, StemConfig())) >= 16  # every trunk (16; 17 before the
+    # continues-above test dropped a 1.7 m sapling, docs/algorithms/cloud.md)
 
 
 @pytest.mark.slow

@@ -83,6 +83,11 @@ class StemConfig:
         noise floor is its own), the stem is chosen among the first round's and the tighter
         refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
         _single_tree_stem`), not the first tolerance that gives one
+    continues_above : bool -- a stem whose agreeing slices end below the band's top slice
+        needs at least one band return about its circle above them (a trunk goes on above
+        the band; a shrub, a sapling's clump or stacked debris ends:
+        :func:`~stemmap.cloud.slicestem._ends_in_band`); the pooled fit has its own,
+        stricter top-slice test
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     """
@@ -114,6 +119,7 @@ class StemConfig:
     tighter_refits: bool = True
     core_refits: bool = True
     single_tree_ladder: bool = True
+    continues_above: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
 
     def __post_init__(self) -> None:
