@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stemmap.cloud.ground import DEFAULT_MAX_MEMORY
+from stemmap.cloud.quantisation import MAX_COORDINATE_STEP
 from stemmap.cloud.result import BREAST_HEIGHT
 from stemmap.errors import ConfigError
 
@@ -90,6 +91,10 @@ class StemConfig:
         stricter top-slice test
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
+    max_coordinate_step : float or None, metres -- a cloud whose x or y coordinates near the
+        stems are rounded to a coarser step (float32 at UTM values, a 0.1 m LAS scale) is
+        refused with an InputError saying why and how to re-export
+        (:mod:`~stemmap.cloud.quantisation`, 0.02 m; None: measure anyway)
     """
 
     breast_height: float = BREAST_HEIGHT
@@ -121,6 +126,7 @@ class StemConfig:
     single_tree_ladder: bool = True
     continues_above: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
+    max_coordinate_step: float | None = MAX_COORDINATE_STEP
 
     def __post_init__(self) -> None:
         if not self.slice_centers or self.slice_thickness <= 0:
@@ -138,6 +144,10 @@ class StemConfig:
             raise ConfigError(f"spacing must be > 0 m, got {self.spacing}.")
         if self.noise_floor is not None and not self.noise_floor > 0:
             raise ConfigError(f"noise_floor must be > 0 m, got {self.noise_floor}.")
+        if self.max_coordinate_step is not None and not self.max_coordinate_step > 0:
+            raise ConfigError(
+                f"max_coordinate_step must be > 0 m (or None), got {self.max_coordinate_step}."
+            )
 
     @property
     def band(self) -> tuple[float, float]:

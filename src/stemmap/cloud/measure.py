@@ -36,6 +36,7 @@ from stemmap.cloud.band import (
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.heights import _CANOPY_CELL, _breast_height_z, _canopy_update, _stem_heights
 from stemmap.cloud.pooled import _pooled_stems
+from stemmap.cloud.quantisation import check_coordinate_step
 from stemmap.cloud.result import RULE_BH, CloudStems
 from stemmap.cloud.slicefit import (
     _band_spacing,
@@ -341,6 +342,8 @@ def _stems_from_band(
         return CloudStems.empty(
             "ours", reason=f"fewer than {cfg.min_slice_points} points in the slice band"
         )
+    # --- coordinates rounded too coarsely for a diameter (float32 at UTM values): refused
+    check_coordinate_step(band.xy, cfg.max_coordinate_step)
     # --- spacing -> clustering cell (measured, not tuned)
     sp2d = cfg.spacing if cfg.spacing is not None else _band_spacing(band.xy, band.h)
     if not math.isfinite(sp2d):

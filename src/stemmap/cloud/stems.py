@@ -49,6 +49,7 @@ from stemmap.cloud.ground import BASE_STEM, GroundAccumulator, GroundModel
 from stemmap.cloud.heights import _canopy_update
 from stemmap.cloud.measure import _stems_from_band
 from stemmap.cloud.munjer import MunjerConfig, associate_proximity, detect_stems_munjer
+from stemmap.cloud.quantisation import naming_the_source
 from stemmap.cloud.result import BASE_SLICE, BREAST_HEIGHT, CloudStems
 from stemmap.cloud.sensor import SensorPositions
 from stemmap.errors import ConfigError, InputError
@@ -413,7 +414,8 @@ def detect_stems_file(
             if sensor.needs_time:
                 times = cloud.fields[sensor.pick_time_field(cloud.fields, src)]
             origins = sensor.origins(len(cloud), times, src)
-        return detect_stems(cloud.xyz, cfg, origins=origins)
+        with naming_the_source(src):
+            return detect_stems(cloud.xyz, cfg, origins=origins)
     tfield: str | None = None
     if sensor is not None and sensor.needs_time:
         tfield = sensor.pick_time_field(point_fields(path) or (), src)
@@ -472,4 +474,5 @@ def detect_stems_file(
         base=BASE_SLICE if ground is None else ground.base,
     )
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
-    return _stems_from_band(band, cfg, slice_cloud=is_slice)
+    with naming_the_source(src):
+        return _stems_from_band(band, cfg, slice_cloud=is_slice)

@@ -73,8 +73,9 @@ def _float32_warning(xyz: NDArray[Any], path: Path, stored_float32: bool = False
     a northing of 6 200 000 m 50 cm (a PLY or PCD written without the exporter's global
     shift). The points are then snapped to that grid before stemmap sees them; nothing
     downstream can recover the lost digits (docs/algorithms/cloud.md, "Robustness to user
-    exports"). ``stored_float32``: the file stored them as float32 (a reader that already
-    promoted them to float64 says so)."""
+    exports"); the stem detector measures the step on the points themselves and refuses a
+    cloud coarser than 2 cm (:mod:`stemmap.cloud.quantisation`). ``stored_float32``: the
+    file stored them as float32 (a reader that already promoted them to float64 says so)."""
     if not (stored_float32 or xyz.dtype == np.float32) or xyz.size == 0:
         return
     finite = np.abs(xyz[np.isfinite(xyz)])
@@ -85,13 +86,17 @@ def _float32_warning(xyz: NDArray[Any], path: Path, stored_float32: bool = False
     # later) and values a float32 cannot hold must not raise an overflow here
     step = math.ldexp(1.0, math.frexp(big)[1] - 24)
     if step > 1e-3:
+        from stemmap.cloud.quantisation import MAX_COORDINATE_STEP
+
         log.warning(
             "%s: coordinates are float32 and reach %.0f m, where float32 steps are %.3f m: "
-            "too coarse for stem diameters. Export in float64 (or LAS/LAZ), or with the "
+            "the digits below that step are lost (`stemmap stems` refuses steps above "
+            "%.2f m near the stems). Export in float64 (or LAS/LAZ), or with the "
             "coordinates shifted near 0.",
             path,
             big,
             step,
+            MAX_COORDINATE_STEP,
         )
 
 
