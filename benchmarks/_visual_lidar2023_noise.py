@@ -29,8 +29,9 @@ def calibrate_noise(cache: Path | None) -> dict[str, Any]:
     drive (never the scored loops):
 
     * visual: the std of its frame-to-frame forward and heading errors (per frame, at the
-      camera rate; :data:`stemmap.odometry.visual.VISUAL_STEP_SIGMA` was measured at 10 Hz on
-      another drive and is 3.5x smaller than the 5 Hz steps' error here);
+      camera rate; the library's :func:`stemmap.odometry.visual.visual_velocity_sigma`, measured
+      on other drives, gives 0.0057 m per 5 Hz step, 2.3x smaller than the 0.0128 m here with
+      the tracking from the keyframe image, Dec 4);
     * lidar: its scan-to-map poses enter as pose measurements; their sigma is the level of its
       k-frame increment error over :data:`LIDAR_PLATEAU_FRAMES` divided by sqrt 2 (two
       independent pose errors per increment): the jitter of each pose about its slowly

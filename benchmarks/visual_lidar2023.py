@@ -37,7 +37,7 @@ landmarks vs 0.656 m without on its first run, 0.3-0.5 m on four runs. Here, per
   and drift per frame fitted on the calibration drive,
   :func:`_visual_lidar2023_noise.fit_lidar_drift`). The model the z^2 checks call consistent;
   reported to show what it does;
-* **fused_default**: the same with the library's noise (``VISUAL_STEP_SIGMA``, the lidar's
+* **fused_default**: the same with the library's noise (``visual_velocity_sigma``, the lidar's
   registration covariances), what ``stemmap map --motion fused`` uses;
 * **fused_velocities**: the same filter with the lidar odometry also differenced into
   velocities (:func:`~stemmap.odometry.fusion.fuse_odometry`). KISS-ICP's pose error is jitter
@@ -212,7 +212,7 @@ def run_loop(
         velocities_from_poses,
     )
     from stemmap.odometry.increments import fuse_increments
-    from stemmap.odometry.visual import VISUAL_STEP_SIGMA, VoStatus, visual_odometry_source
+    from stemmap.odometry.visual import VoStatus, visual_odometry_source, visual_velocity_sigma
     from stemmap.types import Trajectory
 
     noise = noise or calibrate_noise(cache)
@@ -235,9 +235,9 @@ def run_loop(
         name="lidar odometry",
     ).take(~held)
 
-    def visual_source(step_m: float, step_rad: float) -> Any:
+    def visual_source(sigma_speed: float, sigma_yaw_rate: float) -> Any:
         return visual_odometry_source(
-            vo, cam.vehicle_from_camera(), sigma_speed=step_m / dt, sigma_yaw_rate=step_rad / dt
+            vo, cam.vehicle_from_camera(), sigma_speed=sigma_speed, sigma_yaw_rate=sigma_yaw_rate
         )
 
     # the paper's loose coupling with the lidar's poses as absolute measurements (fused)
@@ -278,7 +278,7 @@ def run_loop(
     fused_inl = fuse_sources([src_visual_n], poses=[ps_cal], initial_pose=pose0, gate_prob=None)
     fused_drift = fuse_sources([src_visual_n], poses=[ps_drift], initial_pose=pose0, gate_prob=None)
     fused_default = fuse_sources(
-        [visual_source(*VISUAL_STEP_SIGMA)], poses=[ps], initial_pose=pose0, gate_prob=None
+        [visual_source(*visual_velocity_sigma(dt))], poses=[ps], initial_pose=pose0, gate_prob=None
     )
     fused_vel = fuse_odometry(src_lidar, src_visual, initial_pose=pose0, gate_prob=None)
     # tree database on the fused odometry: real detections (stemmap, the paper's filter) and

@@ -139,7 +139,7 @@ def _camera_source(source: Path, camera: Path | None) -> Path:
 def _visual(camera: Path, **camera_options: Any) -> tuple[Any, Any, dict[str, Any]]:
     """The visual odometry's vehicle path, its velocity source for the EKF and a summary."""
     from stemmap.odometry.fusion import velocities_from_poses
-    from stemmap.odometry.visual import VISUAL_STEP_SIGMA
+    from stemmap.odometry.visual import visual_velocity_sigma
 
     keep = None
     if camera.is_file() and camera.suffix.lower() == ".csv":
@@ -159,13 +159,8 @@ def _visual(camera: Path, **camera_options: Any) -> tuple[Any, Any, dict[str, An
         keep = res.ok[1:] & res.ok[:-1]  # as visual_odometry_source: drop lost-frame steps
     if len(traj) < 2:
         raise InputError(f"the visual odometry of {camera} has {len(traj)} frame(s); need 2.")
-    dt = float(np.median(np.diff(traj.times)))
-    src = velocities_from_poses(
-        traj,
-        sigma_speed=VISUAL_STEP_SIGMA[0] / dt,
-        sigma_yaw_rate=VISUAL_STEP_SIGMA[1] / dt,
-        name="visual odometry",
-    )
+    sv, sw = visual_velocity_sigma(float(np.median(np.diff(traj.times))))
+    src = velocities_from_poses(traj, sigma_speed=sv, sigma_yaw_rate=sw, name="visual odometry")
     if keep is not None:
         if not keep.any():
             raise InputError(f"the visual odometry of {camera} lost every frame.")

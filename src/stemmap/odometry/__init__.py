@@ -36,6 +36,7 @@ _LAZY: dict[str, str] = {
     "wheel_source": "inertial",
     "StereoCalibration": "visual",
     "VISUAL_DRIFT_XY_PER_SQRT_M": "visual",
+    "VISUAL_STEP_RATE_HZ": "visual",
     "VISUAL_STEP_SIGMA": "visual",
     "VisualFrame": "visual",
     "VisualOdometry": "visual",
@@ -44,6 +45,7 @@ _LAZY: dict[str, str] = {
     "VoStatus": "visual",
     "planar_from_camera": "visual",
     "run_visual_odometry": "visual",
+    "visual_velocity_sigma": "visual",
 }
 
 __all__ = sorted(_LAZY)

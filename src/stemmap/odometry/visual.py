@@ -62,6 +62,7 @@ from stemmap.types import FloatArray, Trajectory
 
 __all__ = [
     "VISUAL_DRIFT_XY_PER_SQRT_M",
+    "VISUAL_STEP_RATE_HZ",
     "VISUAL_STEP_SIGMA",
     "StereoCalibration",
     "VisualFrame",
@@ -72,16 +73,25 @@ __all__ = [
     "planar_from_camera",
     "run_visual_odometry",
     "visual_odometry_source",
+    "visual_velocity_sigma",
 ]
 
 log = logging.getLogger(__name__)
 
-#: 1-sigma error of one visual odometry step (m along the path, rad of heading) at the frame
-#: rate it was measured at; divided by the frame interval it is the EKF noise of
-#: :func:`visual_odometry_source`. Measured on the S-curve drive of tests/odometry (10 Hz,
-#: 0.1 m steps: frame-to-frame speed error std 0.041 m/s, yaw-rate error 0.29 deg/s) -- not on
-#: the benchmark loops it is used on.
-VISUAL_STEP_SIGMA = (0.0041, math.radians(0.029))
+#: 1-sigma error of one visual odometry step (m along the path, rad of heading) at
+#: :data:`VISUAL_STEP_RATE_HZ`; at another frame interval ``dt`` a step's error is
+#: ``sqrt(dt * VISUAL_STEP_RATE_HZ)`` times it (white velocity noise: the EKF's VO noise,
+#: :func:`visual_velocity_sigma`). Simulated only (no real stereo log): maximum likelihood over
+#: the frame-to-frame speed and yaw-rate errors of the rendered 10 m S-curves of
+#: benchmarks/visual_drift_calibration.py at 5, 10, 20 and 40 Hz, seeds 0-4, with the exponent
+#: of ``dt`` fixed at 0.5 (fitted freely: 0.45 on these seeds, 0.5 on the held-out seeds 5-8);
+#: docs/algorithms/visual-odometry.md "VO step noise". Until Dec 4 it was
+#: (0.0041 m, 0.029 deg) per step at any rate, measured at 10 Hz on one 4.9 m drive with the
+#: tracking from the previous image.
+VISUAL_STEP_SIGMA = (0.0040, math.radians(0.030))
+
+#: The frame rate (Hz) whose one-step error :data:`VISUAL_STEP_SIGMA` is.
+VISUAL_STEP_RATE_HZ = 10.0
 
 #: The visual odometry's position random walk per distance travelled (m per sqrt(m): 1-sigma of
 #: the x, y end error's norm after 1 m, ``sqrt(d)`` times that after ``d`` m), the drift
@@ -599,6 +609,25 @@ def planar_from_camera(
     T = np.einsum("ij,njk,kl->nil", T_vc, rel, _inv(T_vc))
     yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
     return Trajectory(result.times, np.column_stack((T[:, 0, 3], T[:, 1, 3], yaw)), frame=frame)
+
+
+def visual_velocity_sigma(dt: float) -> tuple[float, float]:
+    """The EKF noise (m/s, rad/s) of a visual odometry velocity over an interval of ``dt``
+    seconds: white velocity noise, a step's error ``VISUAL_STEP_SIGMA * sqrt(dt *
+    VISUAL_STEP_RATE_HZ)`` divided by ``dt``.
+
+    On the rendered drives a step's error falls with the frame interval as ``sqrt(dt)``; it
+    does not stay the same (speed error 0.029 m/s at 5 Hz, 0.039 at 10, 0.052 at 20, 0.082 at
+    40 Hz; docs/algorithms/visual-odometry.md "VO step noise"), so the position variance the
+    filter adds per second is the same at every camera rate, as the VO's measured drift is
+    (:data:`VISUAL_DRIFT_XY_PER_SQRT_M`). Until Dec 4 the noise was ``VISUAL_STEP_SIGMA / dt``
+    (one 10 Hz step's error at every rate: 1.4x too small in sigma at 5 Hz, 2x too large at
+    40 Hz).
+    """
+    if not (dt > 0 and math.isfinite(dt)):
+        raise ConfigError(f"the frame interval must be finite and > 0, got {dt}.")
+    f = math.sqrt(dt * VISUAL_STEP_RATE_HZ) / dt
+    return VISUAL_STEP_SIGMA[0] * f, VISUAL_STEP_SIGMA[1] * f
 
 
 def visual_odometry_source(
