@@ -69,3 +69,53 @@ def test_detect_and_stems_announce_their_first_run(cache_dir: Path, tmp_path: Pa
     res = CliRunner().invoke(app, ["stems", str(cloud), "--out", str(tmp_path / "s.csv")])
     assert res.exit_code == 0, res.output
     assert "first run" in res.output and "_grid_kernel" in " ".join(res.output.split())
+
+
+_ODO = ["--odometry", "{d}/good_odo.csv"]
+_BAD_INPUTS = {
+    "truncated PLY": ["stems", "{d}/bad.ply", "--out", "{d}/s.csv"],
+    "bad --origin": ["stems", "{d}/c.xyz", "--out", "{d}/s.csv", "--origin", "1,2,3,4"],
+    "--imu-topic on an NPZ": ["detect", "{d}/s.npz", "--out", "{d}/d.csv", "--imu-topic", "/i"],
+    "odometry CSV lacking a column": [
+        "map", "{d}/s.npz", "--odometry", "{d}/o.csv", "--out", "{d}/m",
+    ],
+    "bad --sensor-offset": ["map", "{d}/s.npz", *_ODO, "--sensor-offset", "x", "--out", "{d}/m"],
+    "missing --gnss file": ["map", "{d}/s.npz", *_ODO, "--gnss", "{d}/no.csv", "--out", "{d}/m"],
+    "odometry not covering the scans": [
+        "map", "{d}/s.npz", "--odometry", "{d}/short_odo.csv", "--out", "{d}/m",
+    ],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(_BAD_INPUTS))
+def test_bad_input_is_reported_before_the_first_run_notice(
+    cache_dir: Path, tmp_path: Path, case: str
+) -> None:
+    # the user walk (Dec 4): "first run: compiling numba kernels ..." was printed, and for a
+    # scans file the detector compiled, before an input or option error that needed no kernel
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from stemmap.cli import app
+
+    d = tmp_path / "in"
+    d.mkdir()
+    (d / "bad.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nend_header\n1\n"
+    )
+    np.savetxt(d / "c.xyz", np.random.default_rng(0).uniform(0, 5, (50, 3)))
+    np.savez(
+        d / "s.npz",
+        ranges=np.full((3, 10), 5.0),
+        time=np.arange(3.0),
+        angle_min=0.0,
+        angle_increment=0.01,
+    )
+    (d / "o.csv").write_text("time_s,speed\n0,1\n")
+    (d / "good_odo.csv").write_text("time_s,speed,yaw_rate\n0,1,0\n1,1,0\n2,1,0\n3,1,0\n")
+    (d / "short_odo.csv").write_text("time_s,speed,yaw_rate\n10,1,0\n11,1,0\n")
+    argv = [a.format(d=d) for a in _BAD_INPUTS[case]]
+    res = CliRunner().invoke(app, argv)
+    assert res.exit_code == 2, res.output
+    assert "error:" in res.output
+    assert "first run" not in res.output

@@ -275,26 +275,10 @@ main()
 
 def _signalled(tmp_path: Path, sig: int) -> tuple[int, str]:
     """Run ``detect`` (stalled mid-run) in a subprocess, send it ``sig``: (exit code, stderr)."""
-    import signal
-    import subprocess
-    import sys
+    from _signals import run_and_signal
 
     src = _scans(tmp_path)
-    out = tmp_path / "o.csv"
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2] / "src"))
-    cmd = [sys.executable, "-c", _SIGTERMED, str(src), str(out)]
-    with subprocess.Popen(
-        cmd,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell does
-    ) as p:
-        assert p.stdout is not None and p.stdout.readline().strip() == "detecting"
-        p.send_signal(sig)
-        _, err = p.communicate(timeout=60)
-    return p.returncode, err
+    return run_and_signal(_SIGTERMED, [str(src), str(tmp_path / "o.csv")], sig, "detecting")
 
 
 def test_sigterm_discards_the_staged_products(tmp_path):

@@ -1,123 +1,33 @@
 """The ``stemmap`` command-line interface (typer).
 
-Each area registers its commands from its own module (``cli/_<area>.py``, a ``register(app)``
-function), so the entry point stays small and areas do not edit each other's code.
+This module is the console-script entry point and is kept light on purpose: the commands
+(:mod:`stemmap.cli._app`, ~0.9 s of imports: typer, rich, numpy, every command module) are
+imported by :func:`main` only after it has installed its signal handling, so a Ctrl-C or a
+SIGTERM that arrives while the program is still starting ends it with one ``error:`` line
+and exit code 130 / 143, like one that arrives during the run -- not with a traceback of the
+import that happened to be running. ``stemmap.cli.app`` still gives the typer app (loaded on
+first use, PEP 562).
 """
 
 from __future__ import annotations
 
-import importlib
-import logging
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import typer
-from typer.core import TyperGroup
+if TYPE_CHECKING:
+    import typer
+
+    app: typer.Typer
 
 __all__ = ["app", "main"]
 
 
-def _click_exception() -> type[Exception]:
-    """click's ClickException (typer >= 0.20 vendors click as ``typer._click``)."""
-    for mod in ("typer._click.exceptions", "click.exceptions"):
-        try:
-            cls: type[Exception] = importlib.import_module(mod).ClickException
-        except (ImportError, AttributeError):
-            continue
-        return cls
-    raise ImportError("click's ClickException not found")  # pragma: no cover
+def __getattr__(name: str) -> Any:
+    if name == "app":
+        from stemmap.cli._app import app
 
-
-class _PlainErrorGroup(TyperGroup):
-    """typer's group, but a usage error is one unwrapped ``error:`` line (not a rich panel).
-
-    A rich panel wraps a long message over several boxed lines, which breaks ``grep
-    '^error:'`` and copy-paste of paths (issue 13). Help output keeps rich formatting.
-    """
-
-    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
-        kwargs["standalone_mode"] = False
-        if not standalone_mode:
-            return super().main(*args, **kwargs)
-        from stemmap.cli._common import console, print_error
-
-        try:
-            rv = super().main(*args, **kwargs)
-        except _click_exception() as caught:
-            exc: Any = caught
-            if type(exc).__name__ == "NoArgsIsHelpError":  # help was asked for: typer shows it
-                from typer import rich_utils
-
-                rich_utils.rich_format_error(exc)
-                sys.exit(exc.exit_code)
-            ctx = getattr(exc, "ctx", None)
-            if ctx is not None:
-                console.print(ctx.get_usage(), markup=False, soft_wrap=True, highlight=False)
-                if ctx.command.get_help_option(ctx) is not None:
-                    console.print(
-                        f"Try '{ctx.command_path} {ctx.help_option_names[0]}' for help.",
-                        markup=False,
-                        soft_wrap=True,
-                        highlight=False,
-                    )
-            print_error(exc.format_message())
-            sys.exit(exc.exit_code)
-        except typer.Abort:
-            console.print("Aborted!", markup=False)
-            sys.exit(1)
-        sys.exit(rv if isinstance(rv, int) else 0)
-
-    def invoke(self, ctx: Any) -> Any:
-        """Ctrl-C: one ``error:`` line like SIGTERM's (typer then exits with 130); before,
-        an interrupted run ended with an empty line, not saying its products were dropped."""
-        try:
-            return super().invoke(ctx)
-        except KeyboardInterrupt:
-            from stemmap.cli._common import print_error
-
-            print_error("interrupted (Ctrl-C); the products of this run were not written.")
-            raise
-
-
-app = typer.Typer(
-    cls=_PlainErrorGroup,
-    name="stemmap",
-    help=(
-        "Tree stem maps from 2D laser scans, 3D point clouds, camera images and odometry.\n\n"
-        "Start with `stemmap demo`: it simulates a forest, detects every trunk and writes a map."
-    ),
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-    rich_markup_mode="markdown",
-)
-
-#: Modules under stemmap.cli that define ``register(app)``; one per area.
-_COMMAND_MODULES: tuple[str, ...] = (
-    "stemmap.cli._demo",
-    "stemmap.cli._harvest",
-    "stemmap.cli._detect",
-    "stemmap.cli._sim",
-    "stemmap.cli._io",
-    "stemmap.cli._stems",
-    "stemmap.cli._vision",
-    "stemmap.cli._map",
-    "stemmap.cli._odometry",
-)
-
-
-@app.callback()
-def _root(
-    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
-) -> None:
-    logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-
-
-for _name in _COMMAND_MODULES:
-    importlib.import_module(_name).register(app)
+        return app
+    raise AttributeError(f"module 'stemmap.cli' has no attribute {name!r}")
 
 
 class _Terminated(SystemExit):
@@ -133,10 +43,18 @@ def _on_sigterm(signum: int, frame: Any) -> None:
     raise _Terminated(128 + signum)
 
 
+def _starting_error(message: str) -> None:
+    """``error: ...`` on stderr without rich (which may be what was being imported)."""
+    sys.stderr.write(f"error: {message}\n")
+    sys.stderr.flush()
+
+
 def main() -> None:
     """Console-script entry point (``stemmap``, ``python -m stemmap``).
 
-    SIGTERM ends the run like Ctrl-C: products are discarded, exit code 143.
+    SIGTERM ends the run like Ctrl-C: products are discarded, exit code 143. Either signal
+    while the commands are still being imported ends the program with one ``error:`` line
+    (nothing has been read or written yet), exit code 130 (Ctrl-C) or 143 (SIGTERM).
     """
     import signal
     import threading
@@ -147,7 +65,15 @@ def main() -> None:
     ):
         signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        app()
+        from stemmap.cli._app import app as typer_app
+    except KeyboardInterrupt:
+        _starting_error("interrupted (Ctrl-C) while starting; nothing was read or written.")
+        sys.exit(130)
+    except _Terminated:
+        _starting_error("terminated (SIGTERM) while starting; nothing was read or written.")
+        raise
+    try:
+        typer_app()
     except _Terminated:
         from stemmap.cli._common import print_error
 

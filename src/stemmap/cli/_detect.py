@@ -186,9 +186,10 @@ def detect(
             )
         skipped: list[SkippedFrame] = []
         batch = read_scans(scan, topic=topic, skipped=skipped, range_unit=range_unit)
-        # the first run compiles the detector for minutes before the progress bar starts
-        announce_compile("scan", quiet=quiet)
         roll, pitch = _scan_attitude(scan, imu_topic, batch.times)
+        # the first run compiles the detector for minutes before the progress bar starts
+        # (said once every input is read: a bad input is reported, not a compile first)
+        announce_compile("scan", quiet=quiet)
         for sk in skipped:
             console.print(
                 f"[yellow]skipped frame {sk.frame_index}[/yellow] (t={sk.time:.3f} s): {sk.reason}"

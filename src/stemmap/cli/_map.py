@@ -53,9 +53,9 @@ from stemmap.cli._map_prior import (
     session_graph_report,
     write_information,
 )
+from stemmap.cli._map_problems import check_gnss, sim_problem
 from stemmap.cli._map_problems import motion_sigma as _motion_sigma
 from stemmap.cli._map_problems import realtime as _realtime
-from stemmap.cli._map_problems import sim_problem
 from stemmap.cli._map_problems import simulated as _simulated
 from stemmap.cli._map_problems import victoria_park as _victoria_park
 from stemmap.cli._map_problems import vp_inputs as _vp_inputs
@@ -65,7 +65,7 @@ from stemmap.cli._map_report import frames_metadata, headline, slam_metrics, sum
 from stemmap.cli._multilog import SchedulerOption, WorkersOption, run_many_logs, wants_logs
 from stemmap.cli._summary import (
     JsonFlag,
-    announce_compile,
+    compile_notice,
     print_summary,
     write_run_report,
 )
@@ -406,7 +406,21 @@ def map_command(
             )
         backend = backend or (Backend.fastslam if is_frames else Backend.isam2)
         areas = () if dataset is not None else ("scan",)
-        announce_compile(*areas, backend=backend.value, quiet=quiet)
+        # said right before the first kernel call, once the inputs are read and checked
+        notice = compile_notice(*areas, backend=backend.value, quiet=quiet)
+        if gnss is not None:
+            check_gnss(gnss, gnss_lever, gnss_sigma, backend.value)
+        off = (0.0, 0.0)
+        if bag is not None and not is_frames:
+            try:
+                a_str, b_str = sensor_offset.split(",")
+                off = (float(a_str), float(b_str))
+            except ValueError as exc:
+                raise ConfigError(
+                    f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
+                ) from exc
+            if odometry is not None and is_bag(bag):
+                raise ConfigError("--odometry is for scan / detection files; a bag has its own.")
         motion_run = None
         if bag is not None and motion_src != Motion.wheel:
             motion_run = motion_trajectory(
@@ -424,33 +438,31 @@ def map_command(
                 sigma_yaw_rate=sw,
                 motion=motion_run,
                 eb_window=eb_window,
+                before_compute=notice,
             )
         elif dataset is not None:
             problem, ctx = _victoria_park(data, t_end, t_start)
+            notice()
         elif sim:
+            notice()
             online = realtime or rerun is not None  # the realtime mapper does not calibrate
             problem, ctx = _simulated(
                 seed, sim_trees, sim_size, backend="online" if online else backend.value
             )
         else:
             assert bag is not None
-            if odometry is not None and is_bag(bag):
-                raise ConfigError("--odometry is for scan / detection files; a bag has its own.")
-            try:
-                a_str, b_str = sensor_offset.split(",")
-                off = (float(a_str), float(b_str))
-            except ValueError as exc:
-                raise ConfigError(
-                    f"--sensor-offset must be 'a,b' in metres, got {sensor_offset!r}."
-                ) from exc
             vpath = None
             if motion_run is not None:  # the lidar's path -> the vehicle reference point's
                 src = motion_run[1]["source"]
                 vpath = motion_run[0] if src == "visual" else vehicle_path(motion_run[0], off)
             if is_bag(bag):
-                problem, ctx = bag_problem(bag, off, motion=vpath, motion_sigma=sigma)
+                problem, ctx = bag_problem(
+                    bag, off, motion=vpath, motion_sigma=sigma, before_compute=notice
+                )
             else:
-                problem, ctx = file_problem(bag, odometry, off, motion=vpath, motion_sigma=sigma)
+                problem, ctx = file_problem(
+                    bag, odometry, off, motion=vpath, motion_sigma=sigma, before_compute=notice
+                )
             if vpath is None:  # a wheel odometry: do the scans turn the way it turns?
                 from stemmap.cli._map_handedness import mirror_warning
 

@@ -19,6 +19,7 @@ depth; ``--model`` an ONNX detector, default the segmentation detector; never tr
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -98,6 +99,7 @@ def frames_problem(
     sigma_yaw_rate: float,
     motion: tuple[Any, dict[str, Any]] | None = None,
     eb_window: int = 1,
+    before_compute: Callable[[], None] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """A SLAM problem from a frames bundle: motion source + per-frame detections.
 
@@ -106,7 +108,8 @@ def frames_problem(
     ``source``). ``eb_window`` is :attr:`stemmap.cloud.munjer.MunjerConfig.window` of the
     EB-LiDAR front end (1 = per frame, as published; K > 1 clusters each frame with the K - 1
     before it, moved with the motion source's own poses: docs/algorithms/cloud.md,
-    "Accumulated frames").
+    "Accumulated frames"). ``before_compute`` is called once the bundle and the motion
+    source are read and checked, before the front end runs (the first-run compile notice).
     """
     from stemmap.cli._map_inputs import odometry_path
     from stemmap.cloud.munjer import MunjerConfig
@@ -142,13 +145,24 @@ def frames_problem(
             f"the frames of {source} span {t[0]:.3f}-{t[-1]:.3f} s but the odometry {odo} spans "
             f"{controls.times[0]:.3f}-{controls.times[-1]:.3f} s: the time bases differ."
         )
+    if frontend == Frontend.daim and bundle.images is None:
+        raise ConfigError(f"--frontend daim needs RGB-D frames; {source} has none.")
+    if frontend != Frontend.daim:
+        if model is not None:
+            raise ConfigError("--model is the DAIM trunk detector; use it with --frontend daim.")
+        if bundle.lidar is None:
+            raise ConfigError(f"--frontend {frontend.value} needs lidar frames; {source} has none.")
+    if before_compute is not None:
+        before_compute()
     if frontend == Frontend.daim:
-        if bundle.images is None:
-            raise ConfigError(f"--frontend daim needs RGB-D frames; {source} has none.")
         from stemmap.vision.detector import OnnxDetector, SegmentationDetector
 
         detector = OnnxDetector(model) if model is not None else SegmentationDetector()
-        assert bundle.depths is not None and bundle.image_frames is not None
+        assert (
+            bundle.images is not None
+            and bundle.depths is not None
+            and bundle.image_frames is not None
+        )
         obs = daim_observations(
             list(bundle.images),
             list(bundle.depths),
@@ -159,10 +173,7 @@ def frames_problem(
         )
         max_range = 12.0
     else:
-        if model is not None:
-            raise ConfigError("--model is the DAIM trunk detector; use it with --frontend daim.")
-        if bundle.lidar is None:
-            raise ConfigError(f"--frontend {frontend.value} needs lidar frames; {source} has none.")
+        assert bundle.lidar is not None
         if frontend == Frontend.eb_lidar:
             poses = None
             if eb_window > 1:  # the motion source's own poses at the frames (never the truth)

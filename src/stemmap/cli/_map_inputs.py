@@ -5,6 +5,7 @@ Odometry); or any of them with a trajectory from ``--motion lidar|visual|fused``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -114,6 +115,7 @@ def file_problem(
     *,
     motion: Any = None,
     motion_sigma: tuple[float, float] | None = None,
+    before_compute: Callable[[], None] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """A :class:`~stemmap.slam.base.SlamProblem` from scans or detections plus a motion source.
 
@@ -122,7 +124,9 @@ def file_problem(
     CSV ``odometry`` (default ``<stem>_odometry.csv``), or ``motion``, a vehicle trajectory
     (``stemmap map --motion lidar|visual|fused``) differenced into body-frame velocities. The
     motion noise is ``motion_sigma`` (speed m/s, yaw rate rad/s, 1-s averages), default the
-    :class:`~stemmap.slam.motion.UnicycleModel` default.
+    :class:`~stemmap.slam.motion.UnicycleModel` default. ``before_compute`` is called once
+    every input is read and checked, before the first detection (the first-run compile
+    notice).
     """
     from dataclasses import replace
 
@@ -164,16 +168,17 @@ def file_problem(
         kind = "detections"
     else:
         batch = read_scans(source)
-        obs = ScanTrunkDetector().detect_batch(batch)
         times = batch.times
+        _check_time_bases(source, "scans", times, odo_file, t_odo)
+        if before_compute is not None:
+            before_compute()
+        obs = ScanTrunkDetector().detect_batch(batch)
         max_range = float(batch.range_max)
         kind = "scans"
     frames = TreeFrames.from_observations(obs, times)
-    if times[0] < t_odo[0] or times[-1] > t_odo[-1] + 1.0:
-        raise InputError(
-            f"the {kind} of {source} span {times[0]:.3f}-{times[-1]:.3f} s but the odometry "
-            f"{odo_file} spans {t_odo[0]:.3f}-{t_odo[-1]:.3f} s: the time bases differ."
-        )
+    _check_time_bases(source, kind, times, odo_file, t_odo)
+    if before_compute is not None:
+        before_compute()
     problem = SlamProblem(
         controls,
         frames,
@@ -189,15 +194,27 @@ def file_problem(
     return problem, ctx
 
 
+def _check_time_bases(
+    source: Path, kind: str, times: Any, odo_file: Path | str, t_odo: Any
+) -> None:
+    if times[0] < t_odo[0] or times[-1] > t_odo[-1] + 1.0:
+        raise InputError(
+            f"the {kind} of {source} span {times[0]:.3f}-{times[-1]:.3f} s but the odometry "
+            f"{odo_file} spans {t_odo[0]:.3f}-{t_odo[-1]:.3f} s: the time bases differ."
+        )
+
+
 def bag_problem(
     path: Path,
     sensor_offset: tuple[float, float],
     *,
     motion: Any = None,
     motion_sigma: tuple[float, float] | None = None,
+    before_compute: Callable[[], None] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """A problem from a bag's LaserScan topic; motion from its Odometry topic, or ``motion``
-    (a vehicle trajectory from ``--motion lidar|visual|fused``)."""
+    (a vehicle trajectory from ``--motion lidar|visual|fused``). ``before_compute`` is called
+    once both are read, before the first detection."""
     from stemmap.io.rosbag import iter_laser_scans, read_odometry
     from stemmap.scan.detect import ScanTrunkDetector
     from stemmap.slam.base import Controls, SlamProblem, TreeFrames
@@ -208,8 +225,6 @@ def bag_problem(
     if not scans:
         raise InputError(f"bag {path} has no usable LaserScan messages.")
     batch = ScanBatch.from_scans(scans)
-    obs = ScanTrunkDetector().detect_batch(batch)
-    frames = TreeFrames.from_observations(obs, batch.times)
     sig = motion_sigma or (UnicycleModel().sigma_speed, UnicycleModel().sigma_steer)
     model = UnicycleModel(sigma_speed=sig[0], sigma_steer=sig[1])
     ctx: dict[str, Any] = {"kind": "bag", "scans": batch}
@@ -236,6 +251,10 @@ def bag_problem(
             motion, sigma_speed=sig[0], sigma_yaw_rate=sig[1]
         )
         p0 = motion.interpolate([float(batch.times[0])])[0]
+    if before_compute is not None:
+        before_compute()
+    obs = ScanTrunkDetector().detect_batch(batch)
+    frames = TreeFrames.from_observations(obs, batch.times)
     problem = SlamProblem(
         controls,
         frames,

@@ -151,7 +151,7 @@ def prior_map_frame(folder: Path) -> dict[str, Any]:
                 "crs": frames.get("crs"),
                 "from": str(d / "metrics.json"),
             }
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         pass
     try:
         par = json.loads((d / "run.json").read_text()).get("parameters", {})
@@ -161,7 +161,7 @@ def prior_map_frame(folder: Path) -> dict[str, Any]:
                 "crs": par.get("crs"),
                 "from": str(d / "run.json"),
             }
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         pass
     return {"gnss_frame": None, "crs": None, "from": None}
 

@@ -15,6 +15,7 @@ from stemmap.errors import ConfigError
 
 __all__ = [
     "calibrates_odometry",
+    "check_gnss",
     "motion_sigma",
     "realtime",
     "sim_motion_sigmas",
@@ -150,22 +151,37 @@ def sim_motion_sigmas(
     return max(sv, 1e-3), max(sw, 1e-4)
 
 
-def with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
-    """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
-    from stemmap.slam.gnss import read_gnss_csv
-
+def _gnss_lever(lever: str | None, sigma: float, backend: str) -> tuple[float, float] | None:
+    """The ``--gnss`` options checked: the ``--gnss-lever`` arm, or None when not given."""
     if backend != "isam2":
         raise ConfigError(f"--gnss is fused by the isam2 back-end only; got --backend {backend}.")
     if not (math.isfinite(sigma) and sigma > 0):
         raise ConfigError(f"--gnss-sigma must be a positive number of metres, got {sigma}.")
-    if lever is None:  # Victoria Park: the antenna is at the laser (docs/algorithms/slam.md)
+    if lever is None:
+        return None
+    try:
+        lx, ly = (float(v) for v in lever.split(","))
+    except ValueError as exc:
+        raise ConfigError(f"--gnss-lever must be 'x,y' in metres, got {lever!r}.") from exc
+    return (lx, ly)
+
+
+def check_gnss(path: Path, lever: str | None, sigma: float, backend: str) -> None:
+    """The ``--gnss`` options and file checked before any work (the file is read again by
+    :func:`with_gnss` once the lever arm is known; a fixes CSV is small)."""
+    from stemmap.slam.gnss import read_gnss_csv
+
+    _gnss_lever(lever, sigma, backend)
+    read_gnss_csv(path, lever_arm=(0.0, 0.0), default_sigma=sigma)
+
+
+def with_gnss(problem: Any, path: Path, lever: str | None, sigma: float, backend: str) -> Any:
+    """``problem`` with the fixes of ``path`` (``--gnss``); lever arm from ``--gnss-lever``."""
+    from stemmap.slam.gnss import read_gnss_csv
+
+    arm = _gnss_lever(lever, sigma, backend)
+    if arm is None:  # Victoria Park: the antenna is at the laser (docs/algorithms/slam.md)
         arm = problem.sensor_offset if problem.name.startswith("victoria_park") else (0.0, 0.0)
-    else:
-        try:
-            lx, ly = (float(v) for v in lever.split(","))
-        except ValueError as exc:
-            raise ConfigError(f"--gnss-lever must be 'x,y' in metres, got {lever!r}.") from exc
-        arm = (lx, ly)
     fixes = read_gnss_csv(path, lever_arm=arm, default_sigma=sigma)
     return dataclasses.replace(problem, gnss=fixes)
 

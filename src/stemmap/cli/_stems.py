@@ -17,7 +17,7 @@ from stemmap.cli._catalog import (
 )
 from stemmap.cli._common import QuietFlag, console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
-from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
+from stemmap.cli._summary import JsonFlag, compile_notice, fmt, print_summary
 from stemmap.cli._validate import bounded
 from stemmap.cloud.ground import DEFAULT_MAX_MEMORY, GroundModel
 from stemmap.errors import ConfigError
@@ -347,8 +347,10 @@ def stems(
                 "--trajectory": trajectory,
             },
         )
-        # (stderr: the --json object on stdout stays clean)
-        announce_compile("cloud", quiet=quiet)
+        # (stderr: the --json object on stdout stays clean) said once the options are checked
+        # and the input read (a non-LAS cloud is read whole before the first kernel call; a
+        # LAS file's header checks are count_points'), so a bad input is reported instead
+        notice = compile_notice("cloud", quiet=quiet)
         cfg = get_preset(preset)
         if not max_memory > 0:
             raise ConfigError(f"--max-memory must be > 0 GB, got {max_memory}.")
@@ -369,6 +371,7 @@ def stems(
                     "--profile, --metrics, --labels and --dtm read the whole cloud: not "
                     "available for a tile catalog yet; run them per tile."
                 )
+            notice()
             result, _, catalog = run_catalog_stems(
                 [str(p) for p in in_paths], cfg, opts, sensor, out_csv, quiet=quiet
             )
@@ -377,10 +380,14 @@ def stems(
             cloud = Path(clouds[0])
             grounds: list[GroundModel | None] = []
             name = cloud.name
+            if cloud.suffix.lower() in (".las", ".laz"):  # streamed: header checks first
+                count_points(cloud)
+                notice()
             with progress(not quiet) as bar:
                 task = bar.add_task(f"reading {cloud.name}", total=None)
 
                 def tick(done: int, total: int) -> None:
+                    notice()
                     bar.update(task, completed=done, total=total)
 
                 result = detect_stems_file(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -14,7 +14,7 @@ import typer
 
 from stemmap.cli._common import clean_json, console, json_default, out
 
-__all__ = ["JsonFlag", "announce_compile", "fmt", "print_summary"]
+__all__ = ["JsonFlag", "announce_compile", "compile_notice", "fmt", "print_summary"]
 
 JsonFlag = Annotated[
     bool,
@@ -77,6 +77,22 @@ def announce_compile(*areas: str, backend: str | None = None, quiet: bool = Fals
             f"[cyan]first run:[/cyan] compiling numba kernels ({', '.join(missing)}); this takes "
             "about a minute once and is cached for later runs."
         )
+
+
+def compile_notice(
+    *areas: str, backend: str | None = None, quiet: bool = False
+) -> Callable[[], None]:
+    """:func:`announce_compile` as a callable that speaks at most once: a command calls it
+    right before its first kernel call, once its inputs are read and its options checked, so
+    a bad input or option is reported before (and instead of) the first-run notice."""
+    done: list[bool] = []
+
+    def notice() -> None:
+        if not done:
+            done.append(True)
+            announce_compile(*areas, backend=backend, quiet=quiet)
+
+    return notice
 
 
 def fmt(v: Any, unit: str = "", scale: float = 1.0, digits: int = 2) -> str:

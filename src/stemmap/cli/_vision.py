@@ -127,6 +127,10 @@ def read_calibration(path: Path) -> dict[str, Any]:
         ) from exc
     except ValueError as exc:
         raise InputError(f"calibration JSON {str(path)!r} is not valid JSON: {exc}.") from exc
+    except RecursionError:  # json's C scanner recurses per nested array or object
+        raise InputError(
+            f"calibration JSON {str(path)!r} nests arrays or objects too deeply."
+        ) from None
     except OSError as exc:
         raise InputError(f"cannot read calibration JSON {str(path)!r}: {exc}.") from exc
     if not isinstance(doc, dict):

@@ -44,8 +44,32 @@ def existing_file(path: PathLike, what: str) -> Path:
     return p
 
 
-def read_text(path: Path, what: str) -> str:
-    """Read a UTF-8 text file; InputError naming the file on decode/OS errors."""
+#: Parse memory of a line-oriented text table, per byte of file and per line (measured with
+#: tracemalloc on :func:`parse_numeric_csv`: 1 M lines of ``0,0,0`` peak at 210 MB, 1 M lines
+#: of three 12-digit numbers (40 MB) at 310 MB; the estimate gives 218 and 320 MB).
+TABLE_PER_BYTE, TABLE_PER_LINE = 3.0, 200.0
+#: Parse memory of JSON per byte of file: ``json.loads`` makes a Python object per number,
+#: list or dict (``[1,`` = 3 bytes -> a 32-byte float and its slot; ``{},`` -> a 72-byte dict).
+JSON_PER_BYTE = 25.0
+
+
+def read_text(path: Path, what: str, *, json: bool = False) -> str:
+    """Read a UTF-8 text file; InputError naming the file on decode/OS errors.
+
+    Before reading, the file is checked against the read budget
+    (:func:`stemmap.io._budget.check_text_budget`): a line-oriented table (the default) may
+    not have a line over 1 MB and its parse (~3 B per byte + ~200 B per line) must fit the
+    budget; ``json`` files are estimated at :data:`JSON_PER_BYTE` per byte, with no line limit.
+    """
+    from stemmap.io._budget import check_text_budget
+
+    try:
+        if json:
+            check_text_budget(path, what, per_byte=JSON_PER_BYTE, per_line=0.0, max_line=None)
+        else:
+            check_text_budget(path, what, per_byte=TABLE_PER_BYTE, per_line=TABLE_PER_LINE)
+    except OSError as exc:
+        raise InputError(f"cannot read {what} file {str(path)!r}: {exc}.") from exc
     try:
         return path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -202,33 +226,36 @@ def require_integer(path: Path, what: str, table: CsvTable, name: str) -> None:
 _DEFLATE_MAX_RATIO = 1032
 
 
-def _human_bytes(n: int) -> str:
-    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
-        if n >= size:
-            return f"{n / size:.3g} {unit}"
-    return f"{n} bytes"
-
-
 def check_npz_sizes(archive: Any, path: PathLike, what: str) -> None:
-    """Refuse an NPZ whose member headers announce more data than the member can hold.
+    """Refuse an NPZ whose arrays are damaged or too large to load, before numpy allocates.
 
     ``archive`` is what ``np.load`` returned. numpy allocates every array at the shape its
-    ``.npy`` header announces before reading a byte of it, so a damaged or hostile header
-    (shape ``(10**6, 10**6)`` in a 1 kB file) ends in "out of memory" rather than in an error
-    naming the file. A member holds at most its uncompressed size, and at most
-    :data:`_DEFLATE_MAX_RATIO` times its compressed size (which itself fits in the file), so
-    an announced size above either is damage. Members whose header cannot be read are left to
-    numpy's own reader, whose error the caller reports.
+    ``.npy`` header announces before reading a byte of it. Two checks, per member and then for
+    the whole archive:
+
+    * **damage**: a member holds at most its uncompressed size, and a deflated member at most
+      :data:`_DEFLATE_MAX_RATIO` times its compressed size (which itself fits in the file), so
+      an announced size above either is a damaged or hostile header (shape ``(10**6, 10**6)``
+      in a 1 kB file);
+    * **budget**: the arrays' total announced size must fit the read budget
+      (:func:`stemmap.io._budget.check_read_budget`): an honest zip bomb (20 MB of deflated
+      zeros holding 20 GB of array; bzip2 and LZMA members expand further still) is
+      consistent, and is refused only because loading it would exhaust the machine.
+
+    Members whose header cannot be read are left to numpy's own reader, whose error the
+    caller reports.
 
     Raises
     ------
     InputError
-        Naming the file, the member, the announced shape and dtype, and both sizes.
+        Naming the file, the member, the announced shape and dtype, and the sizes.
     """
     import zipfile
     import zlib
 
     from numpy.lib import format as npy_format
+
+    from stemmap.io._budget import check_read_budget, human_bytes
 
     zf = getattr(archive, "zip", None)
     if not isinstance(zf, zipfile.ZipFile):
@@ -237,6 +264,8 @@ def check_npz_sizes(archive: Any, path: PathLike, what: str) -> None:
         file_size = os.path.getsize(path)
     except OSError:
         return
+    total = 0
+    largest: tuple[int, str, tuple[int, ...], Any] = (0, "", (), None)
     for info in zf.infolist():
         if not info.filename.endswith(".npy"):
             continue
@@ -262,12 +291,29 @@ def check_npz_sizes(archive: Any, path: PathLike, what: str) -> None:
             continue  # damage that numpy's own reader reports to the caller
         announced = math.prod(int(s) for s in shape) * int(dtype.itemsize)
         stored = min(info.compress_size, file_size)
-        if info.compress_type != zipfile.ZIP_STORED:
-            stored *= _DEFLATE_MAX_RATIO
-        room = max(min(info.file_size, stored) - header_len, 0)
+        room = info.file_size
+        if info.compress_type == zipfile.ZIP_STORED:
+            room = min(room, stored)
+        elif info.compress_type == zipfile.ZIP_DEFLATED:
+            room = min(room, stored * _DEFLATE_MAX_RATIO)
+        # (bzip2 and LZMA expand without a useful bound: the budget below catches those)
+        room = max(room - header_len, 0)
+        name = info.filename.removesuffix(".npy")
         if announced > room:
             raise InputError(
-                f"{what} {os.fspath(path)!r} field {info.filename.removesuffix('.npy')!r} "
-                f"announces shape {tuple(shape)} of {dtype} ({_human_bytes(announced)}) but "
-                f"holds at most {_human_bytes(room)}: the file is damaged or truncated."
+                f"{what} {os.fspath(path)!r} field {name!r} "
+                f"announces shape {tuple(shape)} of {dtype} ({human_bytes(announced)}) but "
+                f"holds at most {human_bytes(room)}: the file is damaged or truncated."
             )
+        total += announced
+        if announced >= largest[0]:
+            largest = (announced, name, tuple(int(s) for s in shape), dtype)
+    if total:
+        _, name, shape, dtype = largest
+        check_read_budget(
+            total,
+            path,
+            what,
+            f"its arrays hold {human_bytes(total)} when decompressed ({human_bytes(file_size)} "
+            f"on disk; the largest, {name!r}, is {shape} of {dtype})",
+        )

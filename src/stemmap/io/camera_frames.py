@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from stemmap.errors import InputError
 from stemmap.odometry.visual import StereoCalibration, VisualFrame
 from stemmap.types import FloatArray
+from stemmap.vision.image_io import DEFAULT_MAX_PIXELS
 
 __all__ = ["CameraFrames", "calibration_from_dict", "read_camera_frames", "write_camera_frames"]
 
@@ -99,6 +100,11 @@ def calibration_from_dict(d: dict[str, Any], where: str = "camera.json") -> Ster
             'Example: {"fx": 160, "fy": 160, "cx": 159.5, "cy": 99.5, "width": 320, '
             '"height": 200, "baseline": 0.12}'
         ) from exc
+    if width < 1 or height < 1 or width * height > DEFAULT_MAX_PIXELS:
+        raise InputError(
+            f"{where}: width x height = {width} x {height}, but a camera frame must have 1 to "
+            f"{DEFAULT_MAX_PIXELS:,} pixels (the limit of every image stemmap reads)."
+        )
     return StereoCalibration(
         float(fx), float(fy), float(cx), float(cy), width, height, float(baseline), depth_scale
     )
@@ -111,11 +117,14 @@ def _images(folder: Path) -> list[Path]:
 def _decode(path: Path, size: tuple[int, int]) -> NDArray[Any] | None:
     """Decode an image file, its size checked against camera.json's before decoding.
 
-    PNG, JPEG and BMP headers are read first (:func:`stemmap.vision.image_io.image_header`): a
+    The width and height are read from the header first
+    (:func:`stemmap.vision.image_io.image_header`: PNG, JPEG, BMP, TIFF, PGM/PPM/PBM/PAM): a
     frame of another size than ``size`` (width, height) is refused before it is decoded (a
-    2.6 MB PNG announcing 30000 x 30000 pixels decoded to 5.5 GB first), and a file cut short
-    is an error (OpenCV decodes half a JPEG into grey rows). Other formats (TIFF, PGM, PPM)
-    are left to OpenCV, whose own limit is 2^30 pixels.
+    2.6 MB PNG announcing 30000 x 30000 pixels decoded to 5.5 GB first; a 200-byte TIFF or
+    a 20-byte PGM announcing 30000 x 30000 made OpenCV allocate 0.9-2.7 GB, its own limit
+    being 2^30 pixels), and a PNG, JPEG or BMP cut short is an error (OpenCV decodes half a
+    JPEG into grey rows). Any other content (WebP, JPEG 2000, OpenEXR, ... under an image
+    name) is refused: OpenCV would decode it without a size check of ours.
     """
     from stemmap.vision.image_io import check_complete, image_header
 
@@ -123,14 +132,13 @@ def _decode(path: Path, size: tuple[int, int]) -> NDArray[Any] | None:
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read {path}: {exc}.") from exc
-    if data[:2] in (b"\x89P", b"\xff\xd8", b"BM"):
-        fmt, w, h = image_header(data, path)
-        if (w, h) != size:
-            raise InputError(
-                f"{path}: image is {w} x {h}, camera.json says {size[0]} x {size[1]} (every "
-                "frame must have the calibrated size)."
-            )
-        check_complete(data, fmt, path)
+    fmt, w, h = image_header(data, path, frames=True)
+    if (w, h) != size:
+        raise InputError(
+            f"{path}: image is {w} x {h}, camera.json says {size[0]} x {size[1]} (every "
+            "frame must have the calibrated size)."
+        )
+    check_complete(data, fmt, path)
     return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
 
 
@@ -180,6 +188,8 @@ def read_camera_frames(folder: str | Path) -> CameraFrames:
         d = json.loads(cfg_path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"{cfg_path}: not valid JSON ({exc}).") from exc
+    except RecursionError:  # json's C scanner recurses per nested array or object
+        raise InputError(f"{cfg_path}: nests arrays or objects too deeply.") from None
     cal = calibration_from_dict(d, str(cfg_path))
     if (root / "left").is_dir():
         left = _images(root / "left")

@@ -288,7 +288,21 @@ def read_las(path: PathLike, *, fields: tuple[str, ...] = _LAS_FIELDS) -> PointC
     Extra dimensions present in the file and named in ``fields`` (default: intensity,
     return_number, classification, gps_time) are kept in ``PointCloud.fields``.
     """
+    from stemmap.io._budget import check_read_budget, human_bytes
+
     all_fields = tuple(fields)
+    n = count_points(path)  # header checks; the count is what the chunks will add up to
+    if n:
+        # the whole cloud is held as float64 xyz + one 8-byte column per field, twice while
+        # the chunks are concatenated (a LAZ file is ~10x smaller than that)
+        need = 2 * n * (24 + 8 * len(all_fields))
+        check_read_budget(
+            need,
+            path,
+            "point cloud",
+            f"its header announces {n:,} points, ~{human_bytes(need)} to load whole (a "
+            "command that streams LAS, `stemmap stems`, does not hold it)",
+        )
     parts = list(iter_las_chunks(path, chunk_size=5_000_000, fields=all_fields))
     p = Path(path)
     if not parts:
@@ -436,6 +450,11 @@ def read_pcd(path: PathLike) -> PointCloud:
 # --------------------------------------------------------------------------------------------
 
 
+#: Most columns a text point file may have (x y z and fields such as intensity, RGB, normals,
+#: time: real exports have 3-20). Each extra column becomes a field array.
+_MAX_XYZ_COLUMNS = 256
+
+
 def read_xyz(path: PathLike) -> PointCloud:
     """Read a text file of points, one per line: ``x y z [more columns]``.
 
@@ -445,7 +464,11 @@ def read_xyz(path: PathLike) -> PointCloud:
     CloudCompare exports in many locales write them): with ``;`` as the separator a comma can
     only be a decimal sign.
     """
+    from stemmap.io._budget import check_text_budget
+
     p = _check_file(path)
+    # numpy's C parser: float64 per number (~1 B per byte of text), plus its row buffers
+    check_text_budget(p, "point file", per_byte=4.0, per_line=0.0)
     try:
         with p.open("r", encoding="utf-8", errors="strict") as fh:
             lines: list[str] = []
@@ -468,6 +491,11 @@ def read_xyz(path: PathLike) -> PointCloud:
     if decimal_comma:
         first = first.replace(",", ".")
     tokens = [t for t in (first.split(delim) if delim else first.split()) if t.strip()]
+    if len(tokens) > _MAX_XYZ_COLUMNS:
+        raise InputError(
+            f"{str(p)!r} has {len(tokens):,} columns on its first line; a point line holds "
+            f"x y z and a few fields (at most {_MAX_XYZ_COLUMNS}): is it the right file?"
+        )
     try:
         [float(t) for t in tokens]
         skip = 0
@@ -577,10 +605,12 @@ def count_points(path: PathLike) -> int | None:
     _check_file(p)
     _check_las_layout(p)
     try:
-        with laspy.open(p) as reader:
-            return int(reader.header.point_count)
+        reader = laspy.open(p)
     except Exception as exc:
         raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
+    with reader:
+        _check_las_header(p, reader.header)  # a count the file cannot hold is damage
+        return int(reader.header.point_count)
 
 
 def point_fields(path: PathLike) -> tuple[str, ...] | None:

@@ -369,6 +369,27 @@ def _read_image_cli(p: Path) -> Any:
     return res.exit_code
 
 
+_FRAME_SIZE = (32, 24)  # (width, height) of the camera frame seeds
+
+
+def _seed_frame(p: Path) -> None:
+    """A camera frame (TIFF or PPM by suffix) of the size :func:`_read_frame` expects."""
+    import cv2
+
+    w, h = _FRAME_SIZE
+    img = np.random.default_rng(0).integers(0, 255, (h, w, 3), dtype=np.uint8)
+    ok, buf = cv2.imencode(p.suffix, img)
+    assert ok
+    p.write_bytes(buf.tobytes())
+
+
+def _read_frame(p: Path) -> Any:
+    """A camera frames folder's decode path (header checked against camera.json's size)."""
+    from stemmap.io.camera_frames import _read_image
+
+    return _read_image(p, _FRAME_SIZE)
+
+
 @dataclass(frozen=True)
 class FuzzTarget:
     """A reader under test, its file suffix and a writer of one valid seed file."""
@@ -403,6 +424,8 @@ TARGETS: dict[str, FuzzTarget] = {
         FuzzTarget("pairs_csv", ".csv", _seed_pairs, _read_pairs),
         FuzzTarget("image_png", ".png", _seed_png, _read_image_cli),
         FuzzTarget("image_jpg", ".jpg", _seed_png, _read_image_cli),
+        FuzzTarget("frame_tiff", ".tif", _seed_frame, _read_frame),
+        FuzzTarget("frame_ppm", ".ppm", _seed_frame, _read_frame),
     )
 }
 

@@ -468,9 +468,13 @@ def read_trees_geojson(path: PathLike) -> StemMap:
     """
     p = existing_file(path, "trees GeoJSON")
     try:
-        doc = json.loads(read_text(p, "trees GeoJSON"))
+        doc = json.loads(read_text(p, "trees GeoJSON", json=True))
     except json.JSONDecodeError as exc:
         raise InputError(f"trees GeoJSON {str(p)!r} is not valid JSON: {exc}.") from exc
+    except RecursionError:  # json's C scanner recurses per nested array or object
+        raise InputError(
+            f"trees GeoJSON {str(p)!r} nests arrays or objects too deeply to be a tree map."
+        ) from None
     if not isinstance(doc, Mapping) or doc.get("type") != "FeatureCollection":
         raise InputError(f"trees GeoJSON {str(p)!r} is not a FeatureCollection.")
     feats = doc.get("features")

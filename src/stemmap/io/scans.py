@@ -279,6 +279,10 @@ def _iter_csv(
     path: PathLike, skipped: list[SkippedFrame] | None
 ) -> Iterator[tuple[int, LaserScan]]:
     p = existing_file(path, "scan CSV")
+    from stemmap.io._budget import check_text_budget
+
+    # one LaserScan (~0.5 kB of objects) per line, float64 ranges (~1 B per byte of text)
+    check_text_budget(p, "scan CSV", per_byte=3.0, per_line=500.0)
     frame = "laser"
     header: list[str] | None = None
     n_beams = 0

@@ -9,6 +9,9 @@ complaint. :func:`read_image` therefore
 2. checks the container is complete: PNG chunks walked to IEND with their CRCs, JPEG entropy
    data followed by its EOI marker, BMP file size against its header;
 3. decodes and checks the decoded size equals the header's.
+
+:func:`image_header` also reads TIFF (IFD 0) and Netpbm headers for camera frame folders
+(:mod:`stemmap.io.camera_frames`), where frames are checked against camera.json's size.
 """
 
 from __future__ import annotations
@@ -23,7 +26,13 @@ from numpy.typing import NDArray
 
 from stemmap.errors import InputError
 
-__all__ = ["DEFAULT_MAX_PIXELS", "check_complete", "image_header", "read_image"]
+__all__ = [
+    "DEFAULT_MAX_PIXELS",
+    "check_complete",
+    "image_format",
+    "image_header",
+    "read_image",
+]
 
 #: Default pixel limit (100 Mpx: a 12-24 Mpx phone photo passes; 400 Mpx bombs do not).
 DEFAULT_MAX_PIXELS = 100_000_000
@@ -33,14 +42,82 @@ _PNG_SIG = b"\x89PNG\r\n\x1a\n"
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
-def _fmt(data: bytes) -> str:
+def image_format(data: bytes) -> str:
+    """'png', 'jpeg', 'bmp', 'tiff', 'pnm' (Netpbm) or 'unknown', from the first bytes."""
     if data.startswith(_PNG_SIG):
         return "png"
     if data.startswith(b"\xff\xd8"):
         return "jpeg"
     if data.startswith(b"BM"):
         return "bmp"
+    if data[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
+        return "tiff"
+    if len(data) >= 2 and data[0:1] == b"P" and data[1:2] in b"1234567":
+        return "pnm"
     return "unknown"
+
+
+# TIFF field types whose value is an unsigned integer: SHORT, LONG, LONG8 (BigTIFF)
+_TIFF_UINT = {3: "H", 4: "I", 16: "Q"}
+
+
+def _tiff_size(data: bytes, path: Path) -> tuple[int, int]:
+    """(width, height) of a TIFF's first image: ImageWidth (256) and ImageLength (257) of
+    IFD 0 (TIFF 6.0, section 2; BigTIFF: 8-byte offsets and counts, 20-byte entries).
+    What OpenCV decodes is that first image."""
+    bo = "<" if data[:2] == b"II" else ">"
+    big = data[2:4] in (b"+\0", b"\0+")
+    try:
+        if big:
+            (ifd,) = struct.unpack_from(bo + "Q", data, 8)
+            (n,) = struct.unpack_from(bo + "Q", data, ifd)
+            first, entry, cfmt, vfmt = ifd + 8, 20, "HHQ", 8
+        else:
+            (ifd,) = struct.unpack_from(bo + "I", data, 4)
+            (n,) = struct.unpack_from(bo + "H", data, ifd)
+            first, entry, cfmt, vfmt = ifd + 2, 12, "HHI", 4
+        if first + n * entry > len(data):
+            raise struct.error("IFD past the end")
+        size: dict[int, int] = {}
+        for k in range(n):
+            at = first + k * entry
+            tag, ftype, count = struct.unpack_from(bo + cfmt, data, at)
+            if tag in (256, 257) and ftype in _TIFF_UINT and count == 1:
+                code = _TIFF_UINT[ftype]
+                if struct.calcsize(code) <= vfmt:  # the value sits in the entry itself
+                    (size[tag],) = struct.unpack_from(bo + code, data, at + 4 + vfmt)
+    except struct.error:
+        raise InputError(
+            f"{path}: damaged or truncated TIFF (its first IFD is unreadable)."
+        ) from None
+    if 256 not in size or 257 not in size:
+        raise InputError(f"{path}: damaged TIFF (no ImageWidth / ImageLength in its first IFD).")
+    return size[256], size[257]
+
+
+def _pnm_size(data: bytes, path: Path) -> tuple[int, int]:
+    """(width, height) of a Netpbm image: P1-P6 (whitespace-separated width and height after
+    the magic, ``#`` comments to the end of a line) or P7 (PAM, ``WIDTH`` / ``HEIGHT`` lines)."""
+    head = data[:4096]
+    if head[1:2] == b"7":
+        fields = dict(
+            ln.split(None, 1)
+            for ln in head.split(b"ENDHDR")[0].splitlines()[1:]
+            if len(ln.split(None, 1)) == 2 and not ln.startswith(b"#")
+        )
+        try:
+            return int(fields[b"WIDTH"]), int(fields[b"HEIGHT"])
+        except (KeyError, ValueError):
+            raise InputError(f"{path}: damaged PAM header (no WIDTH / HEIGHT).") from None
+    tokens: list[bytes] = []
+    for ln in head[2:].splitlines():
+        tokens += ln.split(b"#", 1)[0].split()
+        if len(tokens) >= 2:
+            break
+    try:
+        return int(tokens[0]), int(tokens[1])
+    except (IndexError, ValueError):
+        raise InputError(f"{path}: damaged Netpbm header (no width and height).") from None
 
 
 def _jpeg_frame(data: bytes, path: Path) -> tuple[int, int, int]:
@@ -105,9 +182,12 @@ def _png_size_and_check(data: bytes, path: Path, *, full: bool) -> tuple[int, in
         pos = end
 
 
-def image_header(data: bytes, path: Path) -> tuple[str, int, int]:
-    """(format, width, height) from the header bytes, without decoding."""
-    fmt = _fmt(data)
+def image_header(data: bytes, path: Path, *, frames: bool = False) -> tuple[str, int, int]:
+    """(format, width, height) from the header bytes, without decoding.
+
+    PNG, JPEG and BMP; with ``frames`` (camera frame folders) also TIFF and Netpbm (PGM, PPM,
+    PBM, PAM), which :func:`read_image` does not take."""
+    fmt = image_format(data)
     if fmt == "png":
         w, h = _png_size_and_check(data, path, full=False)
     elif fmt == "jpeg":
@@ -117,10 +197,14 @@ def image_header(data: bytes, path: Path) -> tuple[str, int, int]:
             raise InputError(f"{path}: truncated BMP header.")
         w, h = struct.unpack("<ii", data[18:26])
         w, h = abs(w), abs(h)
+    elif fmt == "tiff" and frames:
+        w, h = _tiff_size(data, path)
+    elif fmt == "pnm" and frames:
+        w, h = _pnm_size(data, path)
     else:
+        kinds = "PNG, JPEG, BMP, TIFF or Netpbm (PGM/PPM)" if frames else "PNG, JPEG or BMP"
         raise InputError(
-            f"{path}: not a PNG, JPEG or BMP image (first bytes {data[:8]!r}); convert it to PNG "
-            "or JPEG."
+            f"{path}: not a {kinds} image (first bytes {data[:8]!r}); convert it to PNG or JPEG."
         )
     if w < 1 or h < 1:
         raise InputError(f"{path}: header gives an empty image ({w} x {h}).")

@@ -541,7 +541,15 @@ def load_model(path: str | Path) -> PixelModel:
         raise
     except FileNotFoundError:
         raise InputError(f"model file {p} does not exist.") from None
-    except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError, zipfile.BadZipFile) as exc:
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        UnicodeDecodeError,
+        EOFError,
+        zipfile.BadZipFile,
+        RecursionError,
+    ) as exc:
         raise InputError(f"{p} is not a readable .npz model file: {exc}") from exc
     if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
         raise InputError(f"{p}: header format is not {MODEL_FORMAT!r}.")
