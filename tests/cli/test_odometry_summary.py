@@ -92,3 +92,23 @@ def test_fused_summary_names_units_of_every_part() -> None:
         "1.5 % over 10 m",
     ):
         assert part in text, part
+
+
+def test_odometry_refuses_scans_that_are_not_metres_and_radians(tmp_path: Path) -> None:
+    """`odometry` streams its scans (io.lidar_frames), past read_scans' unit checks: ranges in
+    millimetres gave a standing-still trajectory (all 40 frames "held: too few points", 0 m)
+    instead of naming the unit; a start angle in degrees went unnoticed."""
+    scans = tmp_path / "scans.npz"
+    _corridor(scans)
+    with np.load(scans) as z:
+        fields = dict(z)
+    for name, change, expected in (
+        ("mm.npz", {"ranges": fields["ranges"] * 1000.0}, "--range-unit"),
+        ("deg.npz", {"angle_min": np.float64(-90.0)}, "degrees"),
+    ):
+        bad = tmp_path / name
+        np.savez(bad, **{**fields, **change})
+        res = runner.invoke(app, ["odometry", str(bad), "--out", str(tmp_path / f"{name}.csv")])
+        assert res.exit_code == 2, res.output
+        assert expected in " ".join(res.output.split())
+        assert not (tmp_path / f"{name}.csv").exists()

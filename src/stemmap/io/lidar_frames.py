@@ -78,21 +78,27 @@ class FrameSequence:
             assert b.lidar is not None
             for t, xyz in zip(b.times.tolist(), b.lidar, strict=True):
                 yield t, PointCloud(xyz, time=t, frame="lidar")
-        elif self.kind == "scans":
-            from stemmap.io.scans import iter_scans
+        elif self.kind == "scans" or self.msgtype == "laserscan":
+            from stemmap.io.scans import check_scan_conventions
 
-            for scan in iter_scans(self.path):
-                yield scan.time, scan
-        elif self.msgtype == "laserscan":
-            from stemmap.io.rosbag import iter_laser_scans
-
-            for scan in iter_laser_scans(self.path, self.topic):
+            for k, scan in enumerate(self._laser_scans()):
+                if k == 0:  # the units and angles `read_scans` checks on a whole batch
+                    check_scan_conventions(scan.angle_min, scan.ranges, str(self.path))
                 yield scan.time, scan
         else:
             from stemmap.io.rosbag import read_pointclouds
 
             for cloud in read_pointclouds(self.path, self.topic):
                 yield cloud.time, cloud
+
+    def _laser_scans(self) -> Iterator[LaserScan]:
+        if self.kind == "scans":
+            from stemmap.io.scans import iter_scans
+
+            return iter_scans(self.path)
+        from stemmap.io.rosbag import iter_laser_scans
+
+        return iter_laser_scans(self.path, self.topic)
 
 
 def _sidecar_times(folder: Path, sidecar: Path) -> list[tuple[float, Path]]:

@@ -625,21 +625,36 @@ def read_scans_indexed(
     return _checked_conventions(batch, str(path), range_unit), rows
 
 
+def _check_angle_min(angle_min: float, source: str) -> None:
+    if abs(angle_min) > 2.0 * math.pi + 1e-9:
+        raise InputError(
+            f"{source}: angle_min is {angle_min:g} rad, beyond one turn: is it in "
+            "degrees? Scan angles are radians (angle_min, angle_increment)."
+        )
+
+
+def check_scan_conventions(angle_min: float, ranges: NDArray[Any], source: str) -> None:
+    """InputError for scans that cannot be metres and radians: an ``angle_min`` beyond one
+    turn (degrees) or a median return beyond 500 m (millimetres or centimetres;
+    :func:`stemmap.io.conventions.check_scan_ranges`). :func:`read_scans` applies it to the
+    whole batch; the streaming readers of ``stemmap odometry`` to the first scan."""
+    from stemmap.io.conventions import check_scan_ranges
+
+    _check_angle_min(angle_min, source)
+    check_scan_ranges(ranges, source)
+
+
 def _checked_conventions(batch: ScanBatch, source: str, range_unit: str | None) -> ScanBatch:
     """The batch in metres and radians: InputError for an ``angle_min`` beyond one turn (a
     start angle in degrees, e.g. -90) and, without ``range_unit``, for ranges that cannot be
     metres (:func:`stemmap.io.conventions.check_scan_ranges`); ``range_unit`` (a key of
     :data:`stemmap.io.conventions.UNIT_SCALES`) scales the ranges and the range window."""
-    from stemmap.io.conventions import check_scan_ranges, unit_scale
+    from stemmap.io.conventions import unit_scale
 
-    if abs(batch.angle_min) > 2.0 * math.pi + 1e-9:
-        raise InputError(
-            f"{source}: angle_min is {batch.angle_min:g} rad, beyond one turn: is it in "
-            "degrees? Scan angles are radians (angle_min, angle_increment)."
-        )
     if range_unit is None:
-        check_scan_ranges(batch.ranges, source)
+        check_scan_conventions(batch.angle_min, batch.ranges, source)
         return batch
+    _check_angle_min(batch.angle_min, source)
     scale = unit_scale(range_unit, "--range-unit")
     if scale == 1.0:
         return batch
