@@ -114,3 +114,18 @@ def test_geojson_over_the_budget(tmp_path: Path, monkeypatch) -> None:
         read_trees_geojson(p)
     monkeypatch.delenv(BUDGET_ENV)
     assert len(read_trees_geojson(p)) == 2000
+
+
+def test_a_scan_csv_streams_past_a_budget_that_stops_holding_it(tmp_path: Path, monkeypatch):
+    """read_scans holds every scan, so the whole parse is budgeted; iter_scans (what
+    `stemmap odometry` streams) holds one line at a time, so only the line length is."""
+    from stemmap.io.scans import iter_scans, read_scans
+
+    p = tmp_path / "s.csv"
+    rows = "".join(f"{0.1 * k:.1f},-1.0,0.5,0.05,30.0,4.0,4.1,4.2\n" for k in range(2000))
+    p.write_text("time,angle_min,angle_increment,range_min,range_max,r0,r1,r2\n" + rows)
+    # 1 MB: below the ~1.2 MB a held parse is estimated at (3 B per byte + 500 B per line)
+    monkeypatch.setenv(BUDGET_ENV, "0.001")
+    with pytest.raises(InputError, match=r"scan CSV .* needs ~"):
+        read_scans(p)
+    assert sum(1 for _ in iter_scans(p)) == 2000

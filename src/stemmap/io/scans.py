@@ -276,13 +276,16 @@ def _parse_float_fields(fields: Sequence[str]) -> FloatArray:
 
 
 def _iter_csv(
-    path: PathLike, skipped: list[SkippedFrame] | None
+    path: PathLike, skipped: list[SkippedFrame] | None, *, held: bool = False
 ) -> Iterator[tuple[int, LaserScan]]:
+    """The scans of a scans CSV, one by one; ``held``: the caller keeps every one (read_scans),
+    so the whole parse is checked against the read budget, not only the line length."""
     p = existing_file(path, "scan CSV")
     from stemmap.io._budget import check_text_budget
 
-    # one LaserScan (~0.5 kB of objects) per line, float64 ranges (~1 B per byte of text)
-    check_text_budget(p, "scan CSV", per_byte=3.0, per_line=500.0)
+    # held: one LaserScan (~0.5 kB of objects) per line, float64 ranges (~1 B per byte of
+    # text); streamed (iter_scans, `stemmap odometry`): one line at a time, bounded by its length
+    check_text_budget(p, "scan CSV", per_byte=3.0 if held else 0.0, per_line=500.0 if held else 0.0)
     frame = "laser"
     header: list[str] | None = None
     n_beams = 0
@@ -448,13 +451,13 @@ def iter_scans(
 
 
 def _indexed(
-    path: PathLike, topic: str | None, skipped: list[SkippedFrame] | None
+    path: PathLike, topic: str | None, skipped: list[SkippedFrame] | None, *, held: bool = False
 ) -> Iterator[tuple[int, LaserScan]]:
     kind = scan_file_kind(path)
     if kind == "bag":
         yield from indexed_laser_scans(path, topic, skipped=skipped)
     elif kind == "csv":
-        yield from _iter_csv(path, skipped)
+        yield from _iter_csv(path, skipped, held=held)
     else:
         batch, rows = _read_npz(path, skipped)
         for k, i in enumerate(rows):
@@ -676,7 +679,7 @@ def _read_indexed(
     if kind == "npz":
         return _read_npz(path, skipped)
     local: list[SkippedFrame] = []
-    pairs = list(_indexed(path, topic, local))
+    pairs = list(_indexed(path, topic, local, held=True))
     if skipped is not None:
         skipped.extend(local)
     if not pairs:
