@@ -82,8 +82,8 @@ def mirror_evidence(problem: Any, centre_bearing: float = 0.0) -> MirrorEvidence
     times = np.asarray(frames.times)
     ptr = np.asarray(frames.ptr)
     heading = np.unwrap(poses[:, 2])
-    n = times.shape[0]
-    starts = np.flatnonzero(np.diff(ptr) > 0)
+    seen = np.diff(ptr) > 0  # frames with at least one tree
+    starts = np.flatnonzero(seen)
     if starts.size > _MAX_PAIRS:
         starts = starts[np.linspace(0, starts.size - 1, _MAX_PAIRS).astype(np.int64)]
     pairs = hits = hits_m = 0
@@ -93,7 +93,7 @@ def mirror_evidence(problem: Any, centre_bearing: float = 0.0) -> MirrorEvidence
             (turn >= _TURN_MIN)
             & (turn <= _TURN_MAX)
             & (times[i + 1 :] - times[i] <= _GAP_MAX_S)
-            & (np.diff(ptr)[i + 1 : n] > 0)
+            & seen[i + 1 :]
         )
         if later.size == 0:
             continue

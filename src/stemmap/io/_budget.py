@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import resource
+from dataclasses import dataclass
 from pathlib import Path
 
 from stemmap.errors import ConfigError, InputError
@@ -163,16 +164,15 @@ MAX_LINE_BYTES = 1 << 20
 _BLOCK = 1 << 24
 
 
+@dataclass(frozen=True, slots=True)
 class TextStats:
-    """Size, line count and longest line of a text file, from one streaming pass."""
+    """Size, line count and longest line (length, 1-based number) of a text file, from one
+    streaming pass."""
 
-    __slots__ = ("lines", "longest", "longest_line", "size")
-
-    def __init__(self, size: int, lines: int, longest: int, longest_line: int) -> None:
-        self.size = size
-        self.lines = lines
-        self.longest = longest
-        self.longest_line = longest_line
+    size: int
+    lines: int
+    longest: int
+    longest_line: int
 
 
 def text_stats(path: str | os.PathLike[str]) -> TextStats:

@@ -9,7 +9,7 @@ a 25.5 cm pine came out 8.6 cm). docs/reliability.md, "Input conventions", lists
 measured on the real clouds.
 
 :class:`CloudConvention` converts coordinates as they are read (the readers of
-:mod:`stemmap.io.clouds` take it); :func:`las_crs_unit` reads the linear unit a LAS CRS
+:mod:`stemmap.io.clouds` take it); :func:`crs_unit` reads the linear unit a LAS CRS
 declares, so that a cloud in feet is refused rather than measured as metres;
 :func:`check_scan_ranges` refuses 2D scans whose returns can only be millimetres or
 centimetres.
