@@ -36,8 +36,9 @@ odometry front end that the issue asks for, built on OpenCV:
    trunk's patch grows by ``t / Z``), which KLT's translation-only model does not fit; the
    forward-backward check drops the worst tracks, the survivors keep a bias that depends on
    the scene, so it differs between the legs of a drive. The fraction (0.7, 0.5 until Dec 4)
-   refreshes the keyframe once 30 % of its tracks have failed: on the 12 ``visual_lidar2023``
-   loops (5 Hz) the VO's loop-closure error fell from 0.46 to 0.31 m on the mean
+   refreshes the keyframe once 30 % of its tracks have failed: on the 12 simulated
+   ``visual_lidar2023`` loops (5 Hz; no real stereo log exists in ../shared/datasets) the
+   VO's loop-closure error fell from 0.45 to 0.31 m on the mean
    (docs/algorithms/visual-odometry.md, "Loop-closure error and the keyframe fraction").
 
 **Failure handling** (documented behaviour, never an exception on a bad frame): when fewer than
