@@ -76,6 +76,7 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"continues_above": False}),
         ("on", {"continues_above": True}),
     ),
+    "axis_fallback": (("off", {"axis_fallback": False}), ("on", {"axis_fallback": True})),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")

@@ -35,6 +35,7 @@ from stemmap.cloud.band import (
 )
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.heights import _CANOPY_CELL, _breast_height_z, _canopy_update, _stem_heights
+from stemmap.cloud.axisfit import _axis_stems
 from stemmap.cloud.pooled import _pooled_stems
 from stemmap.cloud.quantisation import check_coordinate_step
 from stemmap.cloud.result import RULE_BH, CloudStems
@@ -577,6 +578,22 @@ def _stems_from_band(
             log.info("%d stem(s) from the pooled band fit", len(pooled))
             rows.extend(pooled)
             rules.extend([RULE_BH] * len(pooled))
+    if cfg.axis_fallback and not slice_cloud:
+        # judged by the per-slice path (enough points per slice for it) and failed, but sparse
+        axis = _axis_stems(
+            pts,
+            pts_b.h[use],
+            cl_inv.astype(np.int64),
+            sl[use],
+            ~accepted & (per.present >= cfg.min_slices),
+            cfg,
+            centers_h,
+            noise_floor,
+        )
+        if axis:
+            log.info("%d stem(s) from the shared-axis band fit", len(axis))
+            rows.extend(axis)
+            rules.extend([RULE_BH] * len(axis))
     if not rows:
         return replace(
             CloudStems.empty(
