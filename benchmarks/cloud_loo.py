@@ -76,7 +76,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"continues_above": False}),
         ("on", {"continues_above": True}),
     ),
-    "axis_fallback": (("off", {"axis_fallback": False}), ("on", {"axis_fallback": True})),
+    "axis_fallback": (
+        ("off", {"axis_fallback": False}),
+        ("band", {"axis_fallback": True, "axis_reach": False}),
+        ("0.5-3 m", {"axis_fallback": True}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")

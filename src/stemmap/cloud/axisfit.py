@@ -14,10 +14,10 @@ a stem narrowing 1 cm in diameter per metre, +-2 cm/m: Larson 1963's butt-log ta
 conifers and broadleaves lies inside): a pseudo-observation ``(k - k0) s / sigma_k`` with
 ``s`` the noise floor, added to the Gauss-Newton normal equations. The covariance is the
 posterior one, ``(J^T J / rms^2 + e_k e_k^T / sigma_k^2)^-1`` (Chernov 2010, §6.4 for the
-data term; the prior adds its information), so the DBH standard error is honest for independent residuals; the
-standard error used is the larger of it and a delete-one-slice jackknife (:func:`_jackknife_var_r`),
-which sees bark and one-sided arcs that fit different radii at different heights. A stem whose
-DBH standard error exceeds :data:`AXIS_MAX_DBH_STD` is not reported.
+data term; the prior adds its information): honest for independent residuals. The standard
+error used is the larger of it and a delete-one-slice jackknife (:func:`_jackknife_var_r`),
+which sees bark and one-sided arcs that fit different radii at different heights. A stem
+whose DBH standard error exceeds :data:`AXIS_MAX_DBH_STD` is not reported.
 """
 
 from __future__ import annotations
@@ -42,6 +42,11 @@ AXIS_MAX_DBH_STD = 0.015
 #: a cluster is sparse when its fullest slice holds fewer than this many times
 #: ``cfg.min_slice_points`` points (the switching rule, docs "Sparse stems")
 AXIS_SPARSE_FACTOR = 3.0
+#: heights (m above the ground) whose returns the fit may use with ``reach``: below and above
+#: the band, where a sparse trunk still shows (docs "Sparse stems")
+AXIS_RANGE = (0.5, 3.0)
+#: test bins over ``AXIS_RANGE`` (m; the sparse band's slice thickness)
+AXIS_BIN = 0.4
 _NPAR = 6  # cx, cy, lean x, lean y, r at breast height, taper
 
 
@@ -202,15 +207,21 @@ def _axis_stems(
     cfg: StemConfig,
     centers_h: FloatArray,
     noise_floor: float,
+    reach: tuple[FloatArray, FloatArray] | None = None,
 ) -> list[tuple[float, ...]]:
     """Stems of the sparse clusters ``todo`` from one shared-axis fit each
     (:func:`_sparse_clusters`, :func:`_fit_axes`, :func:`_axis_row`).
 
     ``pts`` (N, 2), ``hts`` heights, ``cid`` cluster and ``sli`` slice of each clustered band
-    point (as for :func:`~stemmap.cloud.pooled._pooled_stems`). Returns the band's stem rows
-    ``(x, y, dbh, n_points, quality, arc, rms, n_slices, taper, dbh_std, cov_xx, cov_xy,
-    cov_yy, dbh_height)``."""
+    point (as for :func:`~stemmap.cloud.pooled._pooled_stems`). With ``reach`` (xy, heights
+    of the returns in :data:`AXIS_RANGE` outside the band) each candidate also takes the
+    returns of the reach about its cluster (:func:`_with_reach`) and the tests read bins of
+    :data:`AXIS_BIN` m over the whole range instead of the band's slices. Returns the band's
+    stem rows ``(x, y, dbh, n_points, quality, arc, rms, n_slices, taper, dbh_std, cov_xx,
+    cov_xy, cov_yy, dbh_height)``."""
     ns = centers_h.shape[0]
+    if reach is not None and reach[0].shape[0]:
+        return _axis_stems_reach(pts, hts, cid, sli, todo, cfg, centers_h, noise_floor, reach)
     cnt, ok = _sparse_clusters(cid, sli, todo, cfg, ns)
     if not ok.any():
         return []
@@ -227,6 +238,112 @@ def _axis_stems(
     return rows
 
 
+def _axis_stems_reach(
+    pts: FloatArray,
+    hts: FloatArray,
+    cid: NDArray[np.int64],
+    sli: NDArray[np.int64],
+    todo: NDArray[np.bool_],
+    cfg: StemConfig,
+    centers_h: FloatArray,
+    noise_floor: float,
+    reach: tuple[FloatArray, FloatArray],
+) -> list[tuple[float, ...]]:
+    """:func:`_axis_stems` over :data:`AXIS_RANGE`, in two stages. 1: the sparse clusters
+    of ``todo`` with >= 2 x ``cfg.min_slice_points`` band points (no per-slice count) are
+    fitted on the band alone (:func:`_fit_axes`): a provisional axis, radius and taper.
+    2: each takes the reach's returns within :func:`_reach_tolerance` of its provisional
+    ring at their height (the reach was not through the vertical filter: branches, crowns
+    and understory are there, so only returns about the predicted ring are taken) and the
+    whole stack is fitted again; the tests read the bins (:func:`_bins`) as slices."""
+    ns = centers_h.shape[0]
+    kc = todo.shape[0]
+    cnt_b = np.bincount(cid * ns + sli, minlength=kc * ns).reshape(kc, ns)
+    ok_c = (
+        todo
+        & (cnt_b.max(axis=1) < AXIS_SPARSE_FACTOR * cfg.min_slice_points)
+        & (cnt_b.sum(axis=1) >= 2 * cfg.min_slice_points)
+    )
+    if not ok_c.any():
+        return []
+    sel = ok_c[cid]
+    cand, ids0 = np.unique(cid[sel], return_inverse=True)
+    hh0 = hts[sel] - cfg.breast_height
+    first = _fit_axes(pts[sel], hh0, ids0.astype(np.int64), sli[sel], ns, noise_floor)
+    lo_b, hi_b = cfg.band
+    lo, hi = min(AXIS_RANGE[0], lo_b), max(AXIS_RANGE[1], hi_b)
+    bc, th_b = _bins(lo, hi)
+    nb = bc.size
+    from scipy.spatial import cKDTree
+
+    rxy, rh = reach
+    tree = cKDTree(rxy)
+    far = max(lo_b - lo, hi - hi_b)
+    ps, hs_, idl = [pts[sel]], [hts[sel]], [ids0.astype(np.int64)]
+    for j in np.flatnonzero(first.alive):
+        t = first.params[j]
+        if not (0 < t[4] <= cfg.max_diameter / 2):
+            continue
+        tol_far = _reach_tolerance(float(t[4]), noise_floor, far)
+        near = np.asarray(
+            tree.query_ball_point(t[:2], t[4] + POOL_MAX_LEAN * far + tol_far), dtype=np.int64
+        )
+        if near.size == 0:
+            continue
+        dh = np.maximum(lo_b - rh[near], rh[near] - hi_b).clip(min=0.0)
+        d, _ = _axis_residuals(
+            t[None, :], rxy[near], rh[near] - cfg.breast_height, np.zeros(near.size, np.int64)
+        )
+        near = near[np.abs(d) <= _reach_tolerance(float(t[4]), noise_floor, dh)]
+        ps.append(rxy[near])
+        hs_.append(rh[near])
+        idl.append(np.full(near.size, j, dtype=np.int64))
+    p_all, h_all, ids = np.vstack(ps), np.concatenate(hs_), np.concatenate(idl)
+    b_all = np.clip(((h_all - lo) // th_b).astype(np.int64), 0, nb - 1)
+    cnt = np.bincount(ids * nb + b_all, minlength=cand.size * nb).reshape(cand.size, nb)
+    ok = first.alive & ((cnt >= 3).sum(axis=1) >= _bins_needed(nb))
+    if not ok.any():
+        return []
+    sel2 = ok[ids]
+    kk, ids2 = np.unique(ids[sel2], return_inverse=True)
+    fit = _fit_axes(
+        p_all[sel2],
+        h_all[sel2] - cfg.breast_height,
+        ids2.astype(np.int64),
+        b_all[sel2],
+        nb,
+        noise_floor,
+    )
+    rows: list[tuple[float, ...]] = []
+    for j in np.flatnonzero(fit.alive):
+        row = _axis_row(fit, int(j), cnt[kk[j]], cfg, bc, noise_floor, _bins_needed(nb))
+        if row is not None:
+            rows.append(row)
+    return rows
+
+
+def _reach_tolerance(r: float, noise_floor: float, dh: FloatArray | float) -> FloatArray:
+    """Largest |distance to the provisional ring| of a reach return ``dh`` m beyond the
+    band: max(3 noise floors, 10 % of r) -- the band's own spread -- plus 3 degrees of lean
+    error and :data:`TAPER_PRIOR`'s 2 standard deviations of taper error over ``dh``."""
+    base = max(3.0 * noise_floor, 0.1 * r)
+    return np.asarray(base + (math.tan(math.radians(3.0)) + 2 * TAPER_PRIOR[1]) * np.asarray(dh))
+
+
+def _bins(lo: float, hi: float) -> tuple[FloatArray, float]:
+    """Centres and thickness of the equal bins of about :data:`AXIS_BIN` m (at least 3)
+    over [``lo``, ``hi``]."""
+    nb = max(3, round((hi - lo) / AXIS_BIN))
+    th = (hi - lo) / nb
+    return np.asarray(lo + th * (np.arange(nb) + 0.5), dtype=np.float64), th
+
+
+def _bins_needed(nb: int) -> int:
+    """Bins of the reach that must hold >= 3 inliers: three quarters of them, rounded up
+    (3 of 3 as the pooled fit on a sparse band; 5 of 6 over 0.5-3.0 m)."""
+    return max(3, math.ceil(0.75 * nb))
+
+
 def _axis_row(
     fit: _AxisFit,
     j: int,
@@ -234,6 +351,7 @@ def _axis_row(
     cfg: StemConfig,
     centers_h: FloatArray,
     noise_floor: float,
+    needed: int | None = None,
 ) -> tuple[float, ...] | None:
     """The stem row of fit ``j`` (``cnt``: its cluster's points per slice), or None.
 
@@ -258,7 +376,9 @@ def _axis_row(
     if not (math.isfinite(var_r) and 2 * math.sqrt(var_r) <= AXIS_MAX_DBH_STD):
         return None
     hs = fit.slice_inliers[j] >= 3
-    if not hs[-1] or hs.sum() < _pooled_slices_needed(cfg, centers_h.shape[0]):
+    if needed is None:
+        needed = _pooled_slices_needed(cfg, centers_h.shape[0])
+    if not hs[-1] or hs.sum() < needed:
         return None
     if np.ptp(centers_h[hs]) < cfg.min_vertical_extent - 1e-9:
         return None
@@ -288,3 +408,26 @@ def _axis_row(
         float(c[1, 1]),
         cfg.breast_height,
     )
+
+
+def _reach_range(cfg: StemConfig) -> tuple[float, float]:
+    """Heights the band is read over: the band, widened to :data:`AXIS_RANGE` when the
+    shared-axis fit will use the reach (``cfg.axis_fallback`` and ``cfg.axis_reach``)."""
+    lo, hi = cfg.band
+    if not (cfg.axis_fallback and cfg.axis_reach):
+        return lo, hi
+    return min(lo, AXIS_RANGE[0]), max(hi, AXIS_RANGE[1])
+
+
+def _split_reach(
+    xyz: FloatArray, h: FloatArray, m: NDArray[np.int64], lo: float, hi: float
+) -> tuple[NDArray[np.int64], tuple[FloatArray, FloatArray] | None]:
+    """The indices ``m`` (points read with heights ``h``) split into the band's, those with
+    ``lo <= h <= hi`` in point order (the same as reading the band alone), and the reach's
+    (xy, heights), None when nothing was read outside the band."""
+    hm = h[m]
+    inb = (hm >= lo) & (hm <= hi)
+    if inb.all():
+        return m, None
+    out = m[~inb]
+    return m[inb], (np.ascontiguousarray(xyz[out, :2]), hm[~inb])

@@ -93,6 +93,9 @@ class StemConfig:
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`; off: measured on
         the real clouds, docs/algorithms/cloud.md "Sparse stems: one fit over the band")
+    axis_reach : bool -- the shared-axis fit also uses the returns at 0.5-3.0 m outside the
+        band (:data:`~stemmap.cloud.axisfit.AXIS_RANGE`; read from files and in-memory
+        clouds, not by the tile engine's prepared chunks)
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     max_coordinate_step : float or None, metres -- a cloud whose x or y coordinates near the
@@ -130,6 +133,7 @@ class StemConfig:
     single_tree_ladder: bool = True
     continues_above: bool = True
     axis_fallback: bool = False
+    axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
     max_coordinate_step: float | None = MAX_COORDINATE_STEP
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from stemmap.cloud.axisfit import _axis_stems
 from stemmap.cloud.band import (
     REGION_MARGIN,
     _adapt_slices,
@@ -35,7 +36,6 @@ from stemmap.cloud.band import (
 )
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.heights import _CANOPY_CELL, _breast_height_z, _canopy_update, _stem_heights
-from stemmap.cloud.axisfit import _axis_stems
 from stemmap.cloud.pooled import _pooled_stems
 from stemmap.cloud.quantisation import check_coordinate_step
 from stemmap.cloud.result import RULE_BH, CloudStems
@@ -589,6 +589,7 @@ def _stems_from_band(
             cfg,
             centers_h,
             noise_floor,
+            band.reach if cfg.axis_reach else None,
         )
         if axis:
             log.info("%d stem(s) from the shared-axis band fit", len(axis))
