@@ -6,6 +6,8 @@
 * :mod:`~stemmap.cloud.slicestem`: one stem from its slice fits (consistency, buttress, the
   taper/lean line at breast height), with :mod:`~stemmap.cloud.uncertainty`;
 * :mod:`~stemmap.cloud.pooled`: the pooled tilted-cylinder fallback;
+* :mod:`~stemmap.cloud.axisfit`: the shared-axis ring-stack fit of sparse failed clusters
+  (option ``axis_fallback``, off);
 * :mod:`~stemmap.cloud.heights`: canopy raster, stem heights, breast-height z.
 
 The band's names are re-exported here (``from stemmap.cloud.measure import _Band`` keeps
