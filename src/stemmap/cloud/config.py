@@ -91,8 +91,9 @@ class StemConfig:
         stricter top-slice test
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
-        its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`; off: measured on
-        the real clouds, docs/algorithms/cloud.md "Sparse stems: one fit over the band")
+        its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
+        clouds' leave-one-dataset-out check it changes no cell (docs/algorithms/cloud.md
+        "Sparse stems: one fit over the band")
     axis_reach : bool -- the shared-axis fit also uses the returns at 0.5-3.0 m outside the
         band (:data:`~stemmap.cloud.axisfit.AXIS_RANGE`; read from files and in-memory
         clouds, not by the tile engine's prepared chunks)
