@@ -82,6 +82,7 @@ def test_each_option_lists_its_current_default() -> None:
         "core_refits": "on",
         "single_tree_ladder": "on",
         "continues_above": "on",
+        "axis_fallback": "off",
     }
     # the off values really switch something off
     for opt, vals in OPTIONS.items():

@@ -29,8 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.pooled import POOL_MAX_LEAN, POOL_RESIDUAL_FACTOR, _pooled_slices_needed
-from stemmap.cloud.slicefit import _damped_normal_equations, _normal_matrices, _segment_arcs
+from stemmap.cloud.pooled import (
+    POOL_MAX_LEAN,
+    POOL_RESIDUAL_FACTOR,
+    _pooled_slices_needed,
+    _robust_gauss_newton,
+)
+from stemmap.cloud.slicefit import _normal_matrices, _segment_arcs
 from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
@@ -136,28 +141,15 @@ def _fit_axes(
     th[first.segment_ids, 4] = first.radii
     alive = np.isfinite(th[:, 4]) & (th[:, 4] > 0)
     th[~alive, 4] = 0.1
-    keep = alive[ids]
-    f_scale = max(2.0 * noise_floor, 1e-3)
     w_prior = (max(noise_floor, 1e-4) / sk) ** 2  # information of the prior, in data units
-    for rnd in range(2):
-        for _ in range(10):
-            d, n = _axis_residuals(th, p, hh, ids)
-            w = np.where(keep, np.minimum(1.0, f_scale / np.maximum(np.abs(d), 1e-12)), 0.0)
-            A, g = _damped_normal_equations(_axis_jacobian(n, hh), w, d, ids, k)
-            A[:, 5, 5] += w_prior
-            g[:, 5] += w_prior * (th[:, 5] - k0)
-            step = np.linalg.solve(A, -g[:, :, None])[:, :, 0]
-            th = np.where(alive[:, None] & np.isfinite(step).all(axis=1)[:, None], th + step, th)
-        if rnd == 0:
-            d, _ = _axis_residuals(th, p, hh, ids)
-            ad = np.abs(d)
-            mad = np.full(k, np.inf)
-            order = np.lexsort((ad, ids))
-            s_ids = ids[order]
-            starts = np.flatnonzero(np.r_[True, s_ids[1:] != s_ids[:-1]])
-            cnts = np.diff(np.r_[starts, s_ids.size])
-            mad[s_ids[starts]] = ad[order][starts + cnts // 2]
-            keep = alive[ids] & (ad <= np.maximum(3.0 * 1.4826 * mad, 0.001)[ids])
+
+    def taper_prior(A: FloatArray, g: FloatArray, t: FloatArray) -> None:
+        A[:, 5, 5] += w_prior
+        g[:, 5] += w_prior * (t[:, 5] - k0)
+
+    th, keep = _robust_gauss_newton(
+        th, alive, p, hh, ids, noise_floor, _axis_residuals, _axis_jacobian, taper_prior
+    )
     d, n = _axis_residuals(th, p, hh, ids)
     nin = np.bincount(ids[keep], minlength=k)
     rms = np.sqrt(np.bincount(ids[keep], d[keep] ** 2, minlength=k) / np.maximum(nin, 1))
