@@ -39,30 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import FULL_SCANNERS, scene_scans, vantage_points
+from _real_scanning import slice_scan_batches
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan.config import DetectorConfig
-from stemmap.scan.plausibility import SCAN_NOISE_MIN_TRIPLES, scan_noise
+from stemmap.scan.plausibility import SCAN_NOISE_MIN_TRIPLES, interior_triples, scan_noise
 
 _ROUGH = 1.4826 / np.sqrt(6.0)
-
-
-def interior(r: np.ndarray, jump: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """Per scan, the second differences of its interior continuous triples, and the longest
-    run of consecutive ones (as :func:`stemmap.scan.plausibility.scan_noise` counts them)."""
-    a, b, c = r[:, :-2], r[:, 1:-1], r[:, 2:]
-    with np.errstate(invalid="ignore"):
-        cont = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
-        cont &= (np.abs(b - a) <= jump) & (np.abs(c - b) <= jump)
-        d = (a - 2.0 * b + c)[:, 1:-1]
-    ok = cont[:, :-2] & cont[:, 1:-1] & cont[:, 2:]
-    vals, longest = [], np.zeros(r.shape[0], dtype=int)
-    for s in range(r.shape[0]):
-        vals.append(d[s][ok[s]])
-        e = np.flatnonzero(np.diff(np.concatenate(([0], ok[s].astype(np.int8), [0]))))
-        longest[s] = int(np.max(e[1::2] - e[::2])) if e.size else 0
-    return vals, longest
 
 
 def mad(v: np.ndarray) -> float:
@@ -106,59 +88,47 @@ def main(argv: list[str] | None = None) -> int:
     jump, surface, sigma = cfg.scan_noise_jump, cfg.scan_noise_surface, cfg.sigma
     t0 = time.perf_counter()
     out: dict[str, Any] = {}
-    for i, name in enumerate(SLICES):
-        sl = load_slice(ddir, name)
-        if not sl.refs:
-            continue
-        # the draws of real_geometry.run_dataset (seed + dataset index, vantage first)
-        rng = np.random.default_rng(args.seed + i)
-        vp = vantage_points(sl, args.vantage, rng)
-        geometry: dict[tuple[str, float], np.ndarray] = {}
-        res_out: dict[str, Any] = {}
-        for model, res, noise in FULL_SCANNERS:
-            if (model, res) not in geometry:
-                geometry[(model, res)] = scene_scans(sl, vp, model, res, "none", args.seed + i)[0]
-            r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
-            lo, hi = cfg.range_min or 0.0, cfg.range_max or np.inf
-            r = np.where((r > lo) & (r < hi), r, np.nan)
-            vals, longest = interior(r, jump)
-            m = np.array([v.size for v in vals])
-            few = m < SCAN_NOISE_MIN_TRIPLES
-            dominated = ~few & (2 * longest > m)
-            own = np.array(
-                [
-                    mad(v) if not (f or d) else np.nan
-                    for v, f, d in zip(vals, few, dominated, strict=True)
-                ]
-            )
-            det = scan_noise(r, jump, surface)
-            lacking = [v for v, f in zip(vals, few, strict=True) if f]
-            pool_raw = np.concatenate(lacking) if lacking else np.zeros(0)
-            lng = int(longest[few].max()) if few.any() else 0
-            pool_ok = pool_raw.size >= SCAN_NOISE_MIN_TRIPLES and 2 * lng <= pool_raw.size
-            # the batch's estimate (every scan's triples, less the surface share), unfloored
-            every = scan_noise(r, jump, surface, batch_min=0.0)
-            batch = float(every[det == 0][0]) if np.any(det == 0) else None
-            floored = scan_noise(r, jump, surface, batch_min=args.floor * sigma)
-            win = window_estimates(vals, longest, args.window)
-            res_out[f"{model}_{res:g}deg_noise{100 * noise:g}cm"] = {
-                "triples_p10_p50_p90": pct(m.astype(float), 1.0),
-                "share_own_few_dominated": [
-                    round(float(np.mean(~few & ~dominated)), 2),
-                    round(float(np.mean(few)), 2),
-                    round(float(np.mean(dominated)), 2),
-                ],
-                "own_cm": pct(own),
-                "pool_cm": round(100 * mad(pool_raw), 2) if pool_ok else None,
-                "pool_triples": int(pool_raw.size),
-                "batch_cm": None if batch is None else round(100 * batch, 2),
-                "batch_triples": int(m.sum()),
-                "window_cm": pct(win),
-                "window_share": round(float(np.mean(np.isfinite(win))), 2),
-                "sigma_cm_default": pct(np.fmax(sigma, det)),
-                "sigma_cm_batch": pct(np.fmax(sigma, floored)),
-            }
-        out[name] = res_out
+    lo, hi = cfg.range_min or 0.0, cfg.range_max or np.inf
+    for name, config, ranges in slice_scan_batches(ddir, args.vantage, args.seed):
+        r = np.where((ranges > lo) & (ranges < hi), ranges, np.nan)
+        vals, runs = interior_triples(r, jump)
+        longest = np.array(runs, dtype=int)
+        m = np.array([v.size for v in vals])
+        few = m < SCAN_NOISE_MIN_TRIPLES
+        dominated = ~few & (2 * longest > m)
+        own = np.array(
+            [
+                mad(v) if not (f or d) else np.nan
+                for v, f, d in zip(vals, few, dominated, strict=True)
+            ]
+        )
+        det = scan_noise(r, jump, surface)
+        lacking = [v for v, f in zip(vals, few, strict=True) if f]
+        pool_raw = np.concatenate(lacking) if lacking else np.zeros(0)
+        lng = int(longest[few].max()) if few.any() else 0
+        pool_ok = pool_raw.size >= SCAN_NOISE_MIN_TRIPLES and 2 * lng <= pool_raw.size
+        # the batch's estimate (every scan's triples, less the surface share), unfloored
+        every = scan_noise(r, jump, surface, batch_min=0.0)
+        batch = float(every[det == 0][0]) if np.any(det == 0) else None
+        floored = scan_noise(r, jump, surface, batch_min=args.floor * sigma)
+        win = window_estimates(vals, longest, args.window)
+        out.setdefault(name, {})[config] = {
+            "triples_p10_p50_p90": pct(m.astype(float), 1.0),
+            "share_own_few_dominated": [
+                round(float(np.mean(~few & ~dominated)), 2),
+                round(float(np.mean(few)), 2),
+                round(float(np.mean(dominated)), 2),
+            ],
+            "own_cm": pct(own),
+            "pool_cm": round(100 * mad(pool_raw), 2) if pool_ok else None,
+            "pool_triples": int(pool_raw.size),
+            "batch_cm": None if batch is None else round(100 * batch, 2),
+            "batch_triples": int(m.sum()),
+            "window_cm": pct(win),
+            "window_share": round(float(np.mean(np.isfinite(win))), 2),
+            "sigma_cm_default": pct(np.fmax(sigma, det)),
+            "sigma_cm_batch": pct(np.fmax(sigma, floored)),
+        }
     print(
         json.dumps(
             {

@@ -88,7 +88,7 @@ def detect(
             "deg) take the estimate over every scan of their batch of 2000 (a stretch of the "
             "file) where it is at least FACTOR x --sigma: a scanner clearly noisier than "
             "configured is then not rejected for it (scan_noise_batch, with --sigma-from-scan; "
-            "e.g. 2). Off by default (docs/algorithms/scan-detection.md, 'Range noise on "
+            "e.g. 2.5). Off by default (docs/algorithms/scan-detection.md, 'Range noise on "
             "sparse scans').",
             callback=bounded("--noise-batch", ge=1),
         ),

@@ -33,6 +33,7 @@ __all__ = [
     "REASONS",
     "fit_reasons",
     "fitted_reasons",
+    "interior_triples",
     "own_noise",
     "range_roughness",
     "rejected_candidates",
@@ -145,24 +146,13 @@ def scan_noise(
     out = np.full(r.shape[0], missing)
     if r.shape[1] < 5:
         return out
-    a, b, c = r[:, :-2], r[:, 1:-1], r[:, 2:]
-    with np.errstate(invalid="ignore"):
-        cont = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
-        cont &= (np.abs(b - a) <= jump) & (np.abs(c - b) <= jump)
-        d = (a - 2.0 * b + c)[:, 1:-1]
-    # interior triples: both neighbouring triples continuous too (no silhouette beam)
-    ok = cont[:, :-2] & cont[:, 1:-1] & cont[:, 2:]
     lacking: list[int] = []
     pooled: list[FloatArray] = []
     pool_longest = 0
     unset = np.ones(r.shape[0], dtype=bool)
     every: list[FloatArray] = []
     every_longest = 0
-    for s in range(r.shape[0]):
-        v = d[s][ok[s]]
-        # longest run of consecutive qualifying triples
-        edges = np.flatnonzero(np.diff(np.concatenate(([0], ok[s].astype(np.int8), [0]))))
-        longest = int(np.max(edges[1::2] - edges[::2])) if edges.size else 0
+    for s, (v, longest) in enumerate(zip(*interior_triples(r, jump), strict=True)):
         every.append(v)
         every_longest = max(every_longest, longest)
         if v.shape[0] >= SCAN_NOISE_MIN_TRIPLES and 2 * longest <= v.shape[0]:
@@ -184,6 +174,30 @@ def scan_noise(
             if e >= batch_min:
                 out[unset] = e
     return out
+
+
+def interior_triples(ranges: FloatArray, jump: float) -> tuple[list[FloatArray], list[int]]:
+    """Per scan of ``ranges`` (S, N >= 5), the second differences of its interior continuous
+    beam triples in beam order and the longest run of consecutive ones: the sample
+    :func:`scan_noise` estimates from (a triple is continuous when its three returns are
+    finite and its two range steps at most ``jump``; interior when the triples on both sides
+    are continuous too)."""
+    r = ranges
+    a, b, c = r[:, :-2], r[:, 1:-1], r[:, 2:]
+    with np.errstate(invalid="ignore"):
+        cont = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
+        cont &= (np.abs(b - a) <= jump) & (np.abs(c - b) <= jump)
+        d = (a - 2.0 * b + c)[:, 1:-1]
+    # interior triples: both neighbouring triples continuous too (no silhouette beam)
+    ok = cont[:, :-2] & cont[:, 1:-1] & cont[:, 2:]
+    values: list[FloatArray] = []
+    runs: list[int] = []
+    for s in range(r.shape[0]):
+        values.append(d[s][ok[s]])
+        # longest run of consecutive qualifying triples
+        edges = np.flatnonzero(np.diff(np.concatenate(([0], ok[s].astype(np.int8), [0]))))
+        runs.append(int(np.max(edges[1::2] - edges[::2])) if edges.size else 0)
+    return values, runs
 
 
 def _noise_estimate(v: FloatArray, surface: float) -> float:
