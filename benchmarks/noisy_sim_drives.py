@@ -25,9 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from _scan_sim import _runs, score
-from stemmap.cli._demo import DEMO_SCENARIO
-from stemmap.eval.detection import scan_detection_metrics
+from _scan_sim import _runs, demo_score, score
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.plausibility import scan_noise
 from stemmap.types import ScanBatch
@@ -61,23 +59,10 @@ def drive_row(run: Any, scans: ScanBatch, demo: bool, dets: dict[str, Any]) -> d
         "own_median_cm": round(100 * float(np.median(own[~lack])), 2) if (~lack).any() else None,
         "batch_cm": round(100 * float(every[lack][0]), 2) if lack.any() else None,
     }
-    sc = DEMO_SCENARIO["scoring"]
     for name, det in dets.items():
         obs = det.detect_batch(scans)
-        if demo:
-            m = scan_detection_metrics(
-                obs,
-                run,
-                gate=sc["scan_gate_m"],
-                min_returns=sc["min_returns"],
-                max_range=sc["max_range_m"],
-                min_diameter=sc["min_dbh_m"],
-            )
-            rec, prec = round(m.recall, 4), round(m.precision, 4)
-        else:
-            s = score(obs, run)
-            rec, prec = s["recall"], s["precision"]
-        row[name] = {"recall": rec, "precision": prec, "detections": len(obs)}
+        s: dict[str, Any] = demo_score(obs, run) if demo else score(obs, run)
+        row[name] = {"recall": s["recall"], "precision": s["precision"], "detections": len(obs)}
     return row
 
 
