@@ -112,7 +112,11 @@ def step_refit(
     sub = every.select(which)
     r = sub.points.r
     lab = sub.labels
-    limit = _SIGMAS * math.sqrt(2.0) * segment_sigma(cfg, sub, segment_sum(r, sub) / sub.counts)
+    sigma = segment_sigma(cfg, sub, segment_sum(r, sub) / sub.counts)
+    if sub.points.step_noise is not None:
+        # step_noise_pool: a scan without its own noise estimate reads the batch's pooled one
+        sigma = np.fmax(sigma, sub.points.step_noise[sub.scan])
+    limit = _SIGMAS * math.sqrt(2.0) * sigma
     first = largest_steps(sub)
     has = np.flatnonzero(first >= 0)
     noise = np.abs(r[first[has]] - r[first[has] - 1]) <= limit[has]
