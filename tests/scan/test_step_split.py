@@ -59,9 +59,9 @@ def test_a_stem_with_a_branch_behind_it_is_found_with_step_split():
     assert np.hypot(*(obs.centers[0] - STEM[:2])) < 0.02
 
 
-def _pieces(batch, cfg):
-    det = ScanTrunkDetector(cfg)
-    every, grid, wrap = det._candidates(
+def _every(det, batch):
+    """Every candidate of ``batch`` before the segment filters, the range grid, wrap."""
+    return det._candidates(
         batch.ranges,
         batch.angle_min,
         batch.angle_increment,
@@ -71,6 +71,11 @@ def _pieces(batch, cfg):
         None,
         apply_filters=False,
     )
+
+
+def _pieces(batch, cfg):
+    det = ScanTrunkDetector(cfg)
+    every, grid, wrap = _every(det, batch)
     assert len(every) == 1
     got = step_refit(det, every, np.ones(1, dtype=bool), grid, wrap)
     assert len(got) <= 1
@@ -174,16 +179,7 @@ def test_step_noise_pool_reads_the_step_against_the_batch_noise():
     batch = _with_walls(_stem_and_neighbour(BEHIND))
     on = DetectorConfig.preset("stemmap", step_split=True, step_noise_pool=True)
     det = ScanTrunkDetector(on)
-    every = det._candidates(
-        batch.ranges,
-        batch.angle_min,
-        batch.angle_increment,
-        batch.range_min,
-        batch.range_max,
-        None,
-        None,
-        apply_filters=False,
-    )[0]
+    every = _every(det, batch)[0]
     pts = every.points
     assert pts.noise is not None and pts.step_noise is not None
     # no scan's own estimate (the configured sigma stands); the pooled one near the walls' 3 cm
@@ -194,16 +190,7 @@ def test_step_noise_pool_reads_the_step_against_the_batch_noise():
     assert int(np.sum(det.detect_batch(batch).index == 0)) == 0
     # off unless step_split: the points carry no step noise
     plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_noise_pool=True))
-    got = plain._candidates(
-        batch.ranges,
-        batch.angle_min,
-        batch.angle_increment,
-        batch.range_min,
-        batch.range_max,
-        None,
-        None,
-        apply_filters=False,
-    )[0]
+    got = _every(plain, batch)[0]
     assert got.points.step_noise is None
 
 
