@@ -389,7 +389,7 @@ class DetectorConfig:
         ``pool``), for the threshold only (the fits and tests keep the scan's sigma; ours,
         issue 11, Dec 4, "step split, fold by fold"). A cut needs a step the noise does not
         make, and the configured sigma is a guess: on the single TreeLS pine at 0.25 deg with
-        3 cm noise, a 4-return circle of 2.6 cm was cut from a 16-return trunk at an 11 cm
+        3 cm noise, a 4-return circle of radius 2.6 cm was cut from a 16-return trunk at an 11 cm
         noise step read against 1 cm. Numpy path only (as ``step_split``).
     """
 
