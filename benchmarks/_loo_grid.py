@@ -293,6 +293,22 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=1.5),
     _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.5),
     _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=3.0),
+    # Dec 5 ("Step split, fold by fold": the step read against every scan's noise), grids 51 /
+    # 52 with the step threshold of a scan without its own estimate read against the estimate
+    # over every scan's interior triples (step_noise_pool="batch") instead of the sparse scans'
+    # pool (numpy path)
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, step_split=True, step_noise_pool="batch"
+    ),
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        arc_short_steps=True,
+        edge_hit_min=0.0,
+        edge_hit_max=0.0,
+        step_split=True,
+        step_noise_pool="batch",
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

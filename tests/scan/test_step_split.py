@@ -8,6 +8,7 @@ from tests.scan.test_gaps_refit import _segment
 
 from stemmap.scan._step_split import front_spikes, largest_steps, step_refit
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+from stemmap.scan.plausibility import scan_noise
 from stemmap.scan.segment import Segments
 from stemmap.types import ScanBatch
 
@@ -236,3 +237,57 @@ def test_twigs_on_several_beams_are_no_one_return_spike():
         det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=on_off))
         assert len(det.detect_batch(batch)) == 0
         assert det.rejected(batch)["reason"] == ["rms"]
+
+
+def _with_noisy_scans(batch, n_scans=3, noise=0.03, seed=2):
+    """``batch`` (one scan) followed by ``n_scans`` scans of two flat walls each (14 beams at
+    ~6 m, Gaussian range noise ``noise``): 10 interior beam triples per wall, 20 per scan, no
+    run holding more than half of them, so each scan has a noise estimate of its own."""
+    rng = np.random.default_rng(seed)
+    n = batch.ranges.shape[1]
+    rows = [batch.ranges[0]]
+    for k in range(n_scans):
+        r = np.full(n, np.inf)
+        for lo in (10 + 10 * k, 50 + 10 * k):
+            r[lo : lo + 14] = 6.0 + rng.normal(0.0, noise, 14)
+        rows.append(r)
+    return ScanBatch(
+        ranges=np.vstack(rows),
+        times=np.arange(len(rows), dtype=np.float64),
+        angle_min=batch.angle_min,
+        angle_increment=batch.angle_increment,
+        range_max=batch.range_max,
+    )
+
+
+def test_step_noise_pool_batch_reads_the_step_against_every_scans_noise():
+    # the stem with the branch behind (a 6.8 cm step) is the only scan without a noise
+    # estimate of its own; the three wall scans (3 cm noise) have theirs. The sparse scans'
+    # pool (True) holds the stem's 3 noise-free triples only (< 16): no estimate, the step is
+    # read against the configured 1 cm and cut. "batch" reads the estimate over every scan's
+    # interior triples (60 wall triples, 3 of the stem), near the walls' 3 cm: the step is below
+    # 3 sqrt(2) sigma (> 7 cm for any sigma above 1.7 cm) and may be noise: no cut.
+    batch = _with_noisy_scans(_stem_and_neighbour(BEHIND))
+    cfg = DetectorConfig.preset("stemmap", step_split=True, step_noise_pool="batch")
+    det = ScanTrunkDetector(cfg)
+    pts = _every(det, batch)[0].points
+    assert pts.noise is not None and pts.step_noise is not None
+    # the stem's scan has no estimate of its own, the wall scans have theirs (kept)
+    assert pts.noise[0] == 0.0 and np.all(pts.noise[1:] > 0.0)
+    np.testing.assert_array_equal(pts.step_noise[1:], pts.noise[1:])
+    # the stem's scan reads the batch's estimate (scan_noise's batch path, no floor)
+    want = scan_noise(batch.ranges, cfg.scan_noise_jump, cfg.scan_noise_surface, batch_min=0.0)
+    assert pts.step_noise[0] == want[0]
+    assert 0.017 < pts.step_noise[0] < 0.045
+    assert int(np.sum(det.detect_batch(batch).index == 0)) == 0
+    # the sparse scans' pool has no estimate for it: cut at the configured sigma and found
+    pool = ScanTrunkDetector(
+        DetectorConfig.preset("stemmap", step_split=True, step_noise_pool=True)
+    )
+    assert _every(pool, batch)[0].points.step_noise[0] == 0.0
+    assert int(np.sum(pool.detect_batch(batch).index == 0)) == 1
+
+
+def test_step_noise_pool_takes_false_true_or_batch():
+    with pytest.raises(ValueError, match="step_noise_pool"):
+        DetectorConfig.preset("stemmap", step_noise_pool="sparse")

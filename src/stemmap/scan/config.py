@@ -406,7 +406,11 @@ class DetectorConfig:
         issue 11, Dec 4, "step split, fold by fold"). A cut needs a step the noise does not
         make, and the configured sigma is a guess: on the single TreeLS pine at 0.25 deg with
         3 cm noise, a 4-return circle of radius 2.6 cm was cut from a 16-return trunk at an 11 cm
-        noise step read against 1 cm. Numpy path only (as ``step_split``).
+        noise step read against 1 cm. ``"batch"``: the estimate over the interior triples of
+        *every* scan of the batch instead (``scan_noise`` ``batch_min=0``, no floor; the union
+        is dominated by the scans with many triples, whose second differences hold the least
+        bark curvature: issue 11, Dec 5, "step split, fold by fold"), for every scan without
+        an estimate of its own. Numpy path only (as ``step_split``).
     """
 
     name: str = "custom"
@@ -491,7 +495,7 @@ class DetectorConfig:
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
-    step_noise_pool: bool = False
+    step_noise_pool: bool | Literal["batch"] = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
@@ -555,6 +559,8 @@ class DetectorConfig:
             raise bad("scan_noise_jump", self.scan_noise_jump, "it must be > 0 m")
         if not (self.scan_noise_surface >= 0 and math.isfinite(self.scan_noise_surface)):
             raise bad("scan_noise_surface", self.scan_noise_surface, "it must be >= 0 m")
+        if self.step_noise_pool not in (False, True, "batch"):
+            raise bad("step_noise_pool", self.step_noise_pool, "choose false, true or 'batch'")
         b = self.scan_noise_batch
         if not (b == 0.0 or (b >= 1.0 and math.isfinite(b))):
             raise bad("scan_noise_batch", b, "it must be 0 (off) or >= 1 (a multiple of sigma)")

@@ -407,18 +407,22 @@ class ScanTrunkDetector:
     def _step_noise(self, r: FloatArray, noise: FloatArray) -> FloatArray | None:
         """``step_noise_pool``: the noise of every scan for the step threshold of
         ``step_split``, the batch's pooled estimate where a scan has none of its own (``r``:
-        the gated ranges ``noise`` was estimated from); None when the option is off."""
+        the gated ranges ``noise`` was estimated from): over the sparse scans' triples
+        (``True``, :func:`scan_noise` ``pool``) or over every scan's (``"batch"``,
+        :func:`scan_noise` ``batch_min=0``); None when the option is off."""
         cfg = self.config
         if not (cfg.step_split and cfg.step_noise_pool):
             return None
-        if cfg.scan_noise_pool:
+        batch = cfg.step_noise_pool == "batch"
+        if cfg.scan_noise_pool and not batch:
             return noise
         pooled: FloatArray = scan_noise(
             r,
             cfg.scan_noise_jump,
             cfg.scan_noise_surface,
             math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
-            pool=True,
+            pool=not batch,
+            batch_min=0.0 if batch else math.inf,
         )
         return pooled
 
