@@ -286,6 +286,26 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         step_split=True,
         step_noise_pool=True,
     ),
+    # Dec 5 ("twigs on several beams"), on grids 51 and 52: step_twigs drops every one-return
+    # dip in front of a candidate that fails the RMS test, not only the largest step's
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        arc_short_steps=True,
+        edge_hit_min=0.0,
+        edge_hit_max=0.0,
+        step_split=True,
+        step_noise_pool=True,
+        step_twigs=True,
+    ),
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        arc_short_steps=True,
+        step_split=True,
+        step_noise_pool=True,
+        step_twigs=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
