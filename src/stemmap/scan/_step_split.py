@@ -32,9 +32,12 @@ instead of being cut. Numpy path only.
 With ``step_twigs`` (Dec 5) *every* such dip of the candidate is dropped (:func:`front_dips`),
 not only the one at its largest step, and a segment end nearer than its one neighbour counts
 when no nearer return lies beyond the end: a stem seen through twigs on several of its beams
-(the TreeLS plot's held-out misses, "twigs in front on several beams"). A dip this drops needs
-the same evidence as the spike: a range below both neighbours by more than the noise step. The
-remaining returns are judged whole with the same tests.
+(meant for the TreeLS plot's held-out miss "twigs in front on several beams", which turned out
+to be a run of three returns and a dip within the noise step in a ``depth`` reject: no real row
+changes, and on the simulator it accepts a few more clutter pieces; docs/algorithms/
+scan-detection.md, "Twigs on several beams"). A dip this drops needs the same evidence as the
+spike: a range below both neighbours by more than the noise step. The remaining returns are
+judged whole with the same tests.
 
 With ``step_noise_pool`` (Dec 4) the noise sigma of the threshold is at least the batch's
 pooled estimate where a scan has no estimate of its own (``ScanPoints.step_noise``): on a

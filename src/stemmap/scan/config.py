@@ -397,7 +397,9 @@ class DetectorConfig:
         neighbours by more than the step threshold; at a segment end, nearer than its one
         neighbour with no nearer return beyond the end), not only the one at its largest step,
         and judge the rest whole with the same tests (ours, issue 11, Dec 5, "twigs on several
-        beams"): a stem seen through twigs on several of its beams. Numpy path only.
+        beams"): a stem seen through twigs on several of its beams. Changes no row of the
+        real slices and adds clutter pieces on the simulator (a negative result kept as an
+        option). Numpy path only.
     """
 
     name: str = "custom"
