@@ -188,20 +188,12 @@ def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, A
     simulated drives the ``real_geometry.py`` grid is admitted on: ``scan_detection.py``'s
     (400 scans, its scoring) and the ``stemmap demo`` drive (120 trees, the demo's scoring),
     seed ``seed``; ``admitted`` when both precisions are >= :data:`SIM_PRECISION_MIN`."""
-    from stemmap.cli._demo import DEMO_SCENARIO
+    from stemmap.cli._demo import demo_detection_metrics
 
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
     run, demo_run = _runs(int(seed))
     bench = score(det.detect_batch(run.scans), run)
-    sc = DEMO_SCENARIO["scoring"]
-    m = scan_detection_metrics(
-        det.detect_batch(demo_run.scans),
-        demo_run,
-        gate=sc["scan_gate_m"],
-        min_returns=sc["min_returns"],
-        max_range=sc["max_range_m"],
-        min_diameter=sc["min_dbh_m"],
-    )
+    m = demo_detection_metrics(det.detect_batch(demo_run.scans), demo_run)
     demo = {"recall": round(m.recall, 4), "precision": round(m.precision, 4)}
     keys = ("recall", "precision", *(f"{k}_{b}" for b in BANDS for k in BAND_KEYS))
     return {

@@ -52,13 +52,10 @@ from typing import Any
 import numpy as np
 
 from _scan_fits import crlb_diameter_var
-from _scan_sim import SCENARIO, edge_status, make_run, tree_errors
-from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
-from stemmap.eval.detection import scan_detection_metrics
+from _scan_sim import edge_status, make_run, score, tree_errors
+from stemmap.cli._demo import _stand_and_run, demo_detection_metrics
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.features import MIXED_FRACTION_STD, edge_silhouette
-from stemmap.sim.forest import stand_from_spec
-from stemmap.sim.trajectory import loop_path, simulate_run
 
 NEAR_M = 5.0
 
@@ -116,21 +113,17 @@ def detector(overrides: dict[str, Any]) -> ScanTrunkDetector:
 
 
 def metrics(run: Any, obs: Any, which: str) -> dict[str, Any]:
-    """The drive's own scoring (the demo's, or ``scan_detection.py``'s)."""
-    sc = DEMO_SCENARIO["scoring"] if which == "demo" else None
+    """The drive's own scoring: the demo's (``run_demo``) or ``scan_detection.py``'s."""
     if which != "demo":
-        keep = np.hypot(obs.centers[:, 0], obs.centers[:, 1]) <= float(
-            SCENARIO["scoring"]["detections_scored_within_m"]
-        )
-        obs = obs.select(keep)
-    m = scan_detection_metrics(
-        obs,
-        run,
-        gate=sc["scan_gate_m"] if sc else SCENARIO["scoring"]["gate_m"],
-        min_returns=sc["min_returns"] if sc else SCENARIO["scoring"]["min_returns"],
-        max_range=sc["max_range_m"] if sc else SCENARIO["scoring"]["max_range_m"],
-        min_diameter=sc["min_dbh_m"] if sc else SCENARIO["scoring"]["min_dbh_m"],
-    )
+        s = score(obs, run)
+        return {
+            "precision": s["precision"],
+            "recall": s["recall"],
+            "dbh_rmse_cm_le5": s["dbh_rmse_cm_le5"],
+            "dbh_bias_cm_le5": s["dbh_bias_cm_le5"],
+            "n_le5": s["n_0_5"],
+        }
+    m = demo_detection_metrics(obs, run)
     b = m.by_range[0]
     return {
         "precision": round(m.precision, 4),
@@ -185,28 +178,12 @@ def seed_breakdown(which: str, seed: int, overrides: dict[str, Any], gross_cm: f
 
 def redraw(seed: int, draws: int, overrides: dict[str, Any]) -> dict[str, Any]:
     """The demo drive of ``seed`` with its own noise draw, then ``draws`` new scanner-noise
-    draws of the same stand and drive."""
-    s = DEMO_SCENARIO
-    dr = s["drive"]
-    rng = np.random.default_rng(seed)
-    stand = stand_from_spec(s["stand"], s["clutter"], n_trees=120, rng=rng)
-    size = float(s["stand"]["size_m"])
-    f = float(dr["radii_fraction"])
-    path = loop_path((size / 2, size / 2), (f * size, f * size), laps=float(dr["laps"]))
+    draws of the same stand and drive (``_stand_and_run``'s ``drive_rng``)."""
     det = detector(overrides)
     rows = []
     for d in range(draws + 1):
-        gen = rng if d == 0 else np.random.default_rng((seed, d, 777))
-        run = simulate_run(
-            stand,
-            path,
-            scanner=s["scanner"],
-            speed=dr["speed_m_s"],
-            rate_hz=dr["scan_rate_hz"],
-            corridor_half_width=dr["corridor_half_width_m"],
-            odometry_noise=dr["odometry_noise"],
-            rng=gen,
-        )
+        gen = None if d == 0 else np.random.default_rng((seed, d, 777))
+        run = _stand_and_run(seed, 120, drive_rng=gen)
         rows.append(metrics(run, det.detect_batch(run.scans), "demo")["dbh_rmse_cm_le5"])
     new = np.array(rows[1:])
     return {
