@@ -19,8 +19,9 @@ diameter the scan plane cuts. Per seed (``--seeds``):
 * the gross pairs (|error| > ``--gross`` cm) with their bound, and the RMSE without them.
 
 ``--redraw N`` (demo drive): the same stand and drive with ``N`` new draws of the scanner noise
-(``simulate_run`` with another generator; the path is deterministic), the RMSE of each: what
-the seed's geometry gives against what its one noise draw gave.
+(``_stand_and_run``'s ``drive_rng``: the stand and the path are the seed's, the scanner and
+odometry noise another generator's), the RMSE of each: what the seed's geometry gives against
+what its one noise draw gave.
 
 ``--edges`` (demo drive): the tangent priors of ``stemmap.scan.features.edge_silhouette`` (the
 default's neighbour silhouette, on the detector's own candidate segments) at every segment end
