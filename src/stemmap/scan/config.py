@@ -382,6 +382,15 @@ class DetectorConfig:
         :func:`~stemmap.scan._step_split.step_refit`): a 4-return stem whose segment runs on
         into a branch behind its silhouette; a step that isolates one return in front (a
         twig) drops it instead, the rest judged whole. Numpy path only.
+    step_noise_pool : bool
+        With ``step_split`` and ``sigma_from_scan``: the step threshold's noise sigma of a
+        scan without a range-noise estimate of its own (too few continuous beam triples) is
+        the batch's pooled estimate (:func:`~stemmap.scan.plausibility.scan_noise` with
+        ``pool``), for the threshold only (the fits and tests keep the scan's sigma; ours,
+        issue 11, Dec 4, "step split, fold by fold"). A cut needs a step the noise does not
+        make, and the configured sigma is a guess: on the single TreeLS pine at 0.25 deg with
+        3 cm noise, a 4-return circle of radius 2.6 cm was cut from a 16-return trunk at an 11 cm
+        noise step read against 1 cm. Numpy path only (as ``step_split``).
     """
 
     name: str = "custom"
@@ -465,6 +474,7 @@ class DetectorConfig:
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
+    step_noise_pool: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
