@@ -286,6 +286,13 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         step_split=True,
         step_noise_pool=True,
     ),
+    # Dec 4 ("Range noise on sparse scans"), on the current default (grid 36): a scan without
+    # its own noise estimate takes the estimate over every scan's interior triples where that
+    # is at least 2 / 1.5 / 2.5 / 3 sigma (scan_noise_batch; both paths)
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.0),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=1.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=3.0),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
