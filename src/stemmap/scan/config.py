@@ -411,6 +411,15 @@ class DetectorConfig:
         is dominated by the scans with many triples, whose second differences hold the least
         bark curvature: issue 11, Dec 5, "step split, fold by fold"), for every scan without
         an estimate of its own. Numpy path only (as ``step_split``).
+    step_twigs : bool
+        With ``step_split``: drop *every* one-return dip in front of a candidate that fails the
+        RMS test (:func:`~stemmap.scan._step_split.front_dips`: a return nearer than both its
+        neighbours by more than the step threshold; at a segment end, nearer than its one
+        neighbour with no nearer return beyond the end), not only the one at its largest step,
+        and judge the rest whole with the same tests (ours, issue 11, Dec 5, "twigs on several
+        beams"): a stem seen through twigs on several of its beams. Changes no row of the
+        real slices and adds clutter pieces on the simulator (a negative result kept as an
+        option). Numpy path only.
     """
 
     name: str = "custom"
@@ -496,6 +505,7 @@ class DetectorConfig:
     split_search_convex: bool = False
     step_split: bool = False
     step_noise_pool: bool | Literal["batch"] = False
+    step_twigs: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
