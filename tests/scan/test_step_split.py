@@ -337,8 +337,8 @@ def test_step_noise_pool_batch_reads_the_step_against_every_scans_noise():
     # estimate of its own; the three wall scans (3 cm noise) have theirs. The sparse scans'
     # pool (True) holds the stem's 3 noise-free triples only (< 16): no estimate, the step is
     # read against the configured 1 cm and cut. "batch" reads the estimate over every scan's
-    # interior triples (60 wall triples, 3 of the stem), near the walls' 3 cm: the step is below
-    # 3 sqrt(2) sigma (> 7 cm for any sigma above 1.7 cm) and may be noise: no cut.
+    # interior triples (60 wall triples, 3 of the stem), near the walls' 3 cm (3.05 cm): the
+    # step is below 3 sqrt(2) sigma (> 7 cm for any sigma above 1.7 cm), may be noise: no cut.
     batch = _with_noisy_scans(_stem_and_neighbour(BEHIND))
     cfg = DetectorConfig.preset("stemmap", step_split=True, step_noise_pool="batch")
     det = ScanTrunkDetector(cfg)
