@@ -102,6 +102,13 @@ _TWIGS_57: dict[str, Any] = {
     "step_twigs": True,
 }
 
+#: Grids 59 / 60 (Dec 5): step split with the step read against every scan's pooled noise.
+_STEP_BATCH_59: dict[str, Any] = {
+    "arc_short_steps": True,
+    "step_split": True,
+    "step_noise_pool": "batch",
+}
+
 LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(bark=0.03),  # the default of the second round (straightness test unchanged)
     _setting(bark=0.0),
@@ -309,18 +316,8 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # 52 with the step threshold of a scan without its own estimate read against the estimate
     # over every scan's interior triples (step_noise_pool="batch") instead of the sparse scans'
     # pool (numpy path)
-    _setting(
-        **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, step_split=True, step_noise_pool="batch"
-    ),
-    _setting(
-        **_DEFAULT_11,
-        **_ARCS_35,
-        arc_short_steps=True,
-        edge_hit_min=0.0,
-        edge_hit_max=0.0,
-        step_split=True,
-        step_noise_pool="batch",
-    ),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, edge_hit_min=0.0, edge_hit_max=0.0),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -149,17 +149,19 @@ def test_front_spikes_needs_both_neighbours_farther_than_the_limit():
     assert not front_spikes(end, largest_steps(end), np.array([0.01])).any()
 
 
-def _with_walls(batch, n_walls=5, noise=0.03, seed=1):
-    """``batch`` (one scan) followed by ``n_walls`` scans of one flat wall each (12 beams at
-    ~6 m, Gaussian range noise ``noise``): 8 interior beam triples per scan, too few for a
-    noise estimate of its own (16), enough together (the batch's pooled estimate)."""
+def _with_walls(batch, n_walls=5, noise=0.03, seed=1, per_scan=1):
+    """``batch`` (one scan) followed by ``n_walls`` scans of ``per_scan`` flat walls each (12
+    beams at ~6 m, Gaussian range noise ``noise``). One wall: 8 interior beam triples per scan,
+    too few for a noise estimate of its own (16), enough together (the batch's pooled
+    estimate). Two: 16 per scan, no run holding more than half, an estimate of its own."""
     rng = np.random.default_rng(seed)
     n = batch.ranges.shape[1]
     rows = [batch.ranges[0]]
     for k in range(n_walls):
         r = np.full(n, np.inf)
-        lo = 10 + 20 * k
-        r[lo : lo + 12] = 6.0 + rng.normal(0.0, noise, 12)
+        for w in range(per_scan):
+            lo = 10 + 20 * k + 50 * w
+            r[lo : lo + 12] = 6.0 + rng.normal(0.0, noise, 12)
         rows.append(r)
     return ScanBatch(
         ranges=np.vstack(rows),
@@ -311,35 +313,14 @@ def test_front_dips_interior_and_unoccluded_ends():
     assert not front_dips(run, np.array([0.042])).any()
 
 
-def _with_noisy_scans(batch, n_scans=3, noise=0.03, seed=2):
-    """``batch`` (one scan) followed by ``n_scans`` scans of two flat walls each (14 beams at
-    ~6 m, Gaussian range noise ``noise``): 10 interior beam triples per wall, 20 per scan, no
-    run holding more than half of them, so each scan has a noise estimate of its own."""
-    rng = np.random.default_rng(seed)
-    n = batch.ranges.shape[1]
-    rows = [batch.ranges[0]]
-    for k in range(n_scans):
-        r = np.full(n, np.inf)
-        for lo in (10 + 10 * k, 50 + 10 * k):
-            r[lo : lo + 14] = 6.0 + rng.normal(0.0, noise, 14)
-        rows.append(r)
-    return ScanBatch(
-        ranges=np.vstack(rows),
-        times=np.arange(len(rows), dtype=np.float64),
-        angle_min=batch.angle_min,
-        angle_increment=batch.angle_increment,
-        range_max=batch.range_max,
-    )
-
-
 def test_step_noise_pool_batch_reads_the_step_against_every_scans_noise():
     # the stem with the branch behind (a 6.8 cm step) is the only scan without a noise
     # estimate of its own; the three wall scans (3 cm noise) have theirs. The sparse scans'
     # pool (True) holds the stem's 3 noise-free triples only (< 16): no estimate, the step is
     # read against the configured 1 cm and cut. "batch" reads the estimate over every scan's
-    # interior triples (60 wall triples, 3 of the stem), near the walls' 3 cm (3.05 cm): the
+    # interior triples (48 wall triples, 3 of the stem), near the walls' 3 cm: the
     # step is below 3 sqrt(2) sigma (> 7 cm for any sigma above 1.7 cm), may be noise: no cut.
-    batch = _with_noisy_scans(_stem_and_neighbour(BEHIND))
+    batch = _with_walls(_stem_and_neighbour(BEHIND), n_walls=3, seed=2, per_scan=2)
     cfg = DetectorConfig.preset("stemmap", step_split=True, step_noise_pool="batch")
     det = ScanTrunkDetector(cfg)
     pts = _every(det, batch)[0].points
