@@ -172,3 +172,31 @@ def test_units_contradicting_the_crs_and_up_axis_on_tiles_are_refused(
     )  # fmt: skip
     assert res.exit_code == 2
     assert "filters.transformation" in " ".join(res.output.split())
+
+
+def test_y_up_single_tree_is_warned_and_the_axis_assumed_is_stated(
+    tmp_path: Path, datasets_dir: Path
+) -> None:
+    """A real single tree (archi Tree_1) written Y up as (x, z, y) gave 2 "stems" and no
+    word before Dec 5; now a warning names --up-axis y, and the summary (--json) states the
+    up axis the run assumed. Its Z-up original gives no warning."""
+    import json
+
+    import laspy
+
+    las = laspy.read(datasets_dir / "archi" / "Tree_1_point_cloud.las")
+    xyz = np.column_stack((las.x, las.y, las.z))
+    for name, pts, warned in (
+        ("zup.xyz", xyz, False),
+        ("yup.xyz", xyz[:, [0, 2, 1]], True),
+    ):
+        path = tmp_path / name
+        np.savetxt(path, pts, fmt="%.4f")
+        res = runner.invoke(
+            app, ["stems", str(path), "-o", str(tmp_path / f"{name}.csv"), "-q", "--json"]
+        )
+        assert res.exit_code == 0, res.output
+        text = " ".join(res.output.split())
+        assert ("pass --up-axis y" in text) == warned, text
+        payload = json.loads(res.stdout)
+        assert payload["up_axis"] == "z" and payload["units"] == "m"

@@ -341,7 +341,7 @@ def stems(
     )
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.engine import expand_inputs
-    from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.clouds import count_points
     from stemmap.io.geo import las_crs
     from stemmap.io.products import run_products
 
@@ -432,6 +432,7 @@ def stems(
             write_stems_geojson(run.path(geojson), geo, crs=crs)
         if gpkg is not None:
             write_stems_gpkg(run.path(gpkg), geo, crs=crs)
+        sample = None  # every k-th point of the cloud, once read for the PNG or a hint
         fig_path = None if png is None else run.path(png)
         if report is not None and png is None:
             fig_path = Path(tmp) / "figure.png"
@@ -439,17 +440,8 @@ def stems(
             if catalog is not None:
                 bg = catalog_background(catalog)
             else:
-                # background: every k-th point of the whole file (one more streaming pass; the
-                # size of a non-LAS file is known only once it is read, as one chunk)
-                total = count_points(cloud)
-                bg = np.concatenate(
-                    [
-                        c.xyz[:: max(1, (total or len(c)) // 200_000), :2]
-                        for c in iter_cloud_chunks(
-                            cloud, read_points, topic=topic, convention=convention
-                        )
-                    ]
-                )
+                sample = _cloud_sample(cloud, read_points, topic, convention)
+                bg = sample[:, :2]
             plot_stems(fig_path, result, background_xy=bg, title=name)
         if profile or metrics or labels:
             from stemmap.cli._stems_products import write_forestry_products
@@ -493,11 +485,20 @@ def stems(
         print_summary(
             f"stemmap stems: {name}", rows, None, files, as_json=as_json, quiet=quiet,
             payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
-                     "method": result.method},
+                     "method": result.method, "units": convention.units,
+                     "up_axis": convention.up_axis},
         )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
-        for line in convention_hints(result, convention, user_set=units is not None):
+        hints = convention_hints(result, convention, user_set=units is not None)
+        if not hints and catalog is None and up_axis_wanted(result, convention, units):
+            from stemmap.io.conventions import up_axis_hint
+
+            if sample is None:  # one more streaming pass, only for a run of few stems
+                sample = _cloud_sample(cloud, read_points, topic, convention)
+            hint = up_axis_hint(sample, len(result))
+            hints += [] if hint is None else [hint]
+        for line in hints:
             console.print(f"[yellow]warning:[/yellow] {line}")
 
 
@@ -576,6 +577,34 @@ def in_file_units(result: Any, convention: Any) -> Any:
     return replace(result, xy=result.xy / convention.scale)
 
 
+def _cloud_sample(cloud: Path, read_points: int, topic: str | None, convention: Any) -> Any:
+    """Every k-th point (about 200 000) of the whole file, converted: one more streaming pass
+    (the size of a non-LAS file is known only once it is read, as one chunk)."""
+    import numpy as np
+
+    from stemmap.io.clouds import count_points, iter_cloud_chunks
+
+    total = count_points(cloud)
+    return np.concatenate(
+        [
+            c.xyz[:: max(1, (total or len(c)) // 200_000)]
+            for c in iter_cloud_chunks(cloud, read_points, topic=topic, convention=convention)
+        ]
+    )
+
+
+#: A run of at most this many stems, without --up-axis, has its cloud's shape checked for
+#: another up axis (:func:`stemmap.io.conventions.up_axis_hint`): single trees, and plots read
+#: with the wrong axis (a simulated Y-up plot gave 3 stems, the real pine_plot 0).
+UP_AXIS_CHECK_MAX_STEMS = 5
+
+
+def up_axis_wanted(result: Any, convention: Any, units: str | None) -> bool:
+    """Whether the cloud's shape is checked for another up axis (a run of 1 to
+    :data:`UP_AXIS_CHECK_MAX_STEMS` stems, no --units / --up-axis given)."""
+    return units is None and convention.is_identity and 0 < len(result) <= UP_AXIS_CHECK_MAX_STEMS
+
+
 def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[str]:
     """Warnings for a run whose result suggests the wrong units or up axis (none when the
     user set --units or --up-axis)."""
@@ -592,7 +621,8 @@ def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[st
     if med > FEET_SUSPECT_MEDIAN_DBH:
         return [
             f"the median DBH is {med:.2f} m, large for a plot: if the cloud is in feet, pass "
-            "--units ft (or us-ft); a cloud in feet reads every diameter x3.28."
+            "--units ft (or us-ft); a cloud in feet reads every diameter x3.28. If it is a "
+            "slice or a tree whose y points up, pass --up-axis y."
         ]
     return []
 
