@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests.cli.test_map_handedness import _imu_csv, _loop_log
 from typer.testing import CliRunner
 
 from stemmap.cli import app
@@ -15,8 +16,6 @@ from stemmap.cli._map_inputs import read_odometry_csv
 from stemmap.errors import InputError
 from stemmap.io.imu import read_imu_csv
 from stemmap.io.scans import read_scans
-
-from tests.cli.test_map_handedness import _imu_csv, _loop_log
 
 runner = CliRunner()
 

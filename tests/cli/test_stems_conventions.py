@@ -117,10 +117,9 @@ def test_georeferenced_products_of_a_cloud_in_feet_are_in_its_crs(
     CRS's feet. Before Dec 5 these were refused with --units."""
     import json
 
+    import laspy
     import pyproj
     import rasterio
-
-    import laspy
 
     pine = laspy.read(datasets_dir / "treels" / "pine.laz")  # a real tree with its ground
     path, xyz = _feet_las(tmp_path, np.column_stack((pine.x, pine.y, pine.z)))

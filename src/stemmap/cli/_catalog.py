@@ -143,7 +143,5 @@ def catalog_background(catalog: Any, n: int = 200_000) -> Any:
 
     k = max(1, catalog.n_points // n)
     u = catalog.unit_scale
-    parts = [
-        c.xyz[::k, :2] * u for t in catalog.tiles for c in iter_las_chunks(t.path, 1_000_000)
-    ]
+    parts = [c.xyz[::k, :2] * u for t in catalog.tiles for c in iter_las_chunks(t.path, 1_000_000)]
     return np.concatenate(parts) if parts else np.zeros((0, 2))

@@ -378,7 +378,7 @@ def _rostopic_columns(header: list[str], p: Path, lineno: int) -> tuple[list[int
     integer nanoseconds: read as seconds, a log 10 scans a second would span 3 years a scan."""
     at = {c: i for i, c in enumerate(header)}
     missing = [c for c in _ROSTOPIC_FIXED if c not in at]
-    ranges = []
+    ranges: list[int] = []
     while f"field.ranges{len(ranges)}" in at:
         ranges.append(at[f"field.ranges{len(ranges)}"])
     if missing or not ranges:
