@@ -136,7 +136,8 @@ def map_command(
         typer.Option(
             "--imu",
             help="--motion lidar|fused: IMU + wheel-speed CSV or bag fused with the lidar "
-            "odometry (as `stemmap odometry --imu`).",
+            "odometry (as `stemmap odometry --imu`); its gyro also checks that the scans turn "
+            "its way (a warning for mirrored scans or a z-down gyro).",
         ),
     ] = None,
     camera: Annotated[

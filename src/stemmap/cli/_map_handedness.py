@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from stemmap.types import FloatArray
 
@@ -70,6 +71,21 @@ class MirrorEvidence:
         return self.matches_mirrored >= 20 and self.matches_mirrored >= 2 * self.matches + 10
 
 
+def _turned_pair(
+    heading: FloatArray, times: FloatArray, ok: NDArray[np.bool_], i: int
+) -> int | None:
+    """The first pose after ``i`` (among ``ok``) turned by 15-90 degrees from it within
+    :data:`_GAP_MAX_S` seconds (``heading`` unwrapped), or None."""
+    turn = np.abs(heading[i + 1 :] - heading[i])
+    later = np.flatnonzero(
+        (turn >= _TURN_MIN)
+        & (turn <= _TURN_MAX)
+        & (times[i + 1 :] - times[i] <= _GAP_MAX_S)
+        & ok[i + 1 :]
+    )
+    return None if later.size == 0 else int(i + 1 + later[0])
+
+
 def _world(pose: FloatArray, ranges: FloatArray, bearings: FloatArray) -> FloatArray:
     a = pose[2] + bearings
     return np.column_stack((pose[0] + ranges * np.cos(a), pose[1] + ranges * np.sin(a)))
@@ -103,16 +119,9 @@ def mirror_evidence(problem: Any, centre_bearing: float = 0.0) -> MirrorEvidence
         starts = starts[np.linspace(0, starts.size - 1, _MAX_PAIRS).astype(np.int64)]
     pairs = hits = hits_m = 0
     for i in starts:
-        turn = np.abs(heading[i + 1 :] - heading[i])
-        later = np.flatnonzero(
-            (turn >= _TURN_MIN)
-            & (turn <= _TURN_MAX)
-            & (times[i + 1 :] - times[i] <= _GAP_MAX_S)
-            & seen[i + 1 :]
-        )
-        if later.size == 0:
+        j = _turned_pair(heading, times, seen, int(i))
+        if j is None:
             continue
-        j = int(i + 1 + later[0])
         si, sj = slice(ptr[i], ptr[i + 1]), slice(ptr[j], ptr[j + 1])
         ri, bi = frames.ranges[si], frames.bearings[si]
         rj, bj = frames.ranges[sj], frames.bearings[sj]
@@ -170,16 +179,9 @@ def turn_sense(
         starts = starts[np.linspace(0, starts.size - 1, _MAX_PAIRS).astype(np.int64)]
     same = opposite = 0
     for i in starts:
-        turn = np.abs(h[i + 1 :] - h[i])
-        later = np.flatnonzero(
-            (turn >= _TURN_MIN)
-            & (turn <= _TURN_MAX)
-            & (t[i + 1 :] - t[i] <= _GAP_MAX_S)
-            & inside[i + 1 :]
-        )
-        if later.size == 0:
+        j = _turned_pair(h, t, inside, int(i))
+        if j is None:
             continue
-        j = int(i + 1 + later[0])
         dr = r[j] - r[i]
         if abs(dr) < _TURN_OTHER_MIN:
             continue

@@ -53,7 +53,8 @@ def odometry(
         Path | None,
         typer.Option(
             help="IMU + wheel-speed CSV (time_s,gyro_z[,wheel_speed,...]; docs/cli.md) or a ROS "
-            "bag with a sensor_msgs/Imu topic. Without it: lidar-only odometry.",
+            "bag with a sensor_msgs/Imu topic (times in s, gyro_z in rad/s counter-clockwise: "
+            "a warning when the scans turn against it). Without it: lidar-only odometry.",
         ),
     ] = None,
     topic: Annotated[

@@ -288,9 +288,10 @@ def stems(
         typer.Option(
             help="The cloud's axis that points up: z (LAS, most lidar tools), y "
             "(photogrammetry, Unity, some SLAM exports) or x; results in the turned frame "
-            "(y up: file (x, y, z) -> (x, -z, y)). Not guessed: a Y-up single tree read "
-            "z up gives a wrong diameter without a warning (the summary states the axis "
-            "assumed). One file only (tiles are refused: turn them first).",
+            "(y up: file (x, y, z) -> (x, -z, y)). Not guessed: a run of 1-5 stems whose "
+            "cloud is shaped like a turned one (a tree lying on its side, a ground plane "
+            "standing up) gets a warning; the summary and --json state the axis assumed. "
+            "One file only (tiles are refused: turn them first).",
             rich_help_panel="Input conventions",
         ),
     ] = "z",
