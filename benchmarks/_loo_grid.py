@@ -270,6 +270,29 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(
         **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, stub_sigmas=2.0, edge_protrusion=0.01
     ),
+    # Dec 4 ("step split, fold by fold"), on the current default (grid 36) and on grid 46 (the
+    # averaging "edge any", every fold's choice): step_split with its step read against the
+    # batch's pooled noise where a scan has no estimate of its own (step_noise_pool; the
+    # single TreeLS pine's 0.25 deg 3 cm row lost grid 40 every fold; numpy path)
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, arc_short_steps=True, step_split=True, step_noise_pool=True
+    ),
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        arc_short_steps=True,
+        edge_hit_min=0.0,
+        edge_hit_max=0.0,
+        step_split=True,
+        step_noise_pool=True,
+    ),
+    # Dec 4 ("Range noise on sparse scans"), on the current default (grid 36): a scan without
+    # its own noise estimate takes the estimate over every scan's interior triples where that
+    # is at least 2 / 1.5 / 2.5 / 3 sigma (scan_noise_batch; both paths)
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.0),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=1.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=3.0),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -170,6 +170,41 @@ def false_alarms(
     return int(cand.sum())
 
 
+def score_scans(
+    sl: RealSlice,
+    vp: np.ndarray,
+    n_hits: np.ndarray,
+    cfg: DetectorConfig,
+    obs: Any,
+    min_returns: int,
+) -> dict[str, Any]:
+    """:func:`score` of the detections ``obs`` (StemObservations, scan ``index`` = vantage
+    point) of detector ``cfg`` in the scans from the vantage points ``vp`` of ``sl``
+    (``n_hits``: returns per scan and reference trunk of the noise-free scan): visibility,
+    greedy matching and false alarms as the benchmark counts them (shared with
+    ``learned_acceptance.py``)."""
+    centers, diam = sl.centers, sl.diameters
+    rows: list[tuple[float, float, float]] = []
+    unmatched = n_false = 0
+    for s in range(vp.shape[0]):
+        rel = centers - vp[s]
+        rng_t = np.hypot(rel[:, 0], rel[:, 1])
+        vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
+        vis &= _in_gate(cfg, rel)
+        m = obs.index == s
+        det_c, det_d = obs.centers[m], 2.0 * obs.radii[m]
+        # every reference trunk takes part in matching (a detection on a non-visible
+        # reference trunk is neither a hit nor a false alarm)
+        match = _match(det_c, rel, diam / 2.0 + 0.05)
+        unmatched += int(m.sum()) - int((match >= 0).sum())
+        fa = false_alarms(sl, vp[s], det_c, match, _in_gate(cfg, det_c))
+        n_false = -1 if fa < 0 else n_false + fa
+        for t in np.flatnonzero(vis):
+            err = (det_d[match[t]] - diam[t]) * 100.0 if match[t] >= 0 else math.nan
+            rows.append((float(rng_t[t]), float(diam[t]), err))
+    return score(rows, vp.shape[0], unmatched, n_false)
+
+
 def run_dataset(
     sl: RealSlice,
     scanners: tuple[tuple[str, float, float], ...],
@@ -186,7 +221,6 @@ def run_dataset(
     averaging scanner's return threshold, default any sub-ray)."""
     rng = np.random.default_rng(seed)
     vp = vantage_points(sl, n_vantage, rng)
-    centers, diam = sl.centers, sl.diameters
     out: dict[str, Any] = {}
     geometry: dict[tuple[str, float], tuple[np.ndarray, np.ndarray]] = {}
     for model, res, noise in scanners:
@@ -203,26 +237,8 @@ def run_dataset(
             t0 = time.perf_counter()
             obs = ScanTrunkDetector(matched(cfg, model, res)).detect_batch(batch)
             dt = time.perf_counter() - t0
-            rows: list[tuple[float, float, float]] = []
-            unmatched = n_false = 0
-            for s in range(vp.shape[0]):
-                rel = centers - vp[s]
-                rng_t = np.hypot(rel[:, 0], rel[:, 1])
-                vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-                vis &= _in_gate(cfg, rel)
-                m = obs.index == s
-                det_c, det_d = obs.centers[m], 2.0 * obs.radii[m]
-                # every reference trunk takes part in matching (a detection on a non-visible
-                # reference trunk is neither a hit nor a false alarm)
-                match = _match(det_c, rel, diam / 2.0 + 0.05)
-                unmatched += int(m.sum()) - int((match >= 0).sum())
-                fa = false_alarms(sl, vp[s], det_c, match, _in_gate(cfg, det_c))
-                n_false = -1 if fa < 0 else n_false + fa
-                for t in np.flatnonzero(vis):
-                    err = (det_d[match[t]] - diam[t]) * 100.0 if match[t] >= 0 else math.nan
-                    rows.append((float(rng_t[t]), float(diam[t]), err))
             conf[name] = {
-                **score(rows, vp.shape[0], unmatched, n_false),
+                **score_scans(sl, vp, n_hits, cfg, obs, min_returns),
                 "scans_per_s": round(vp.shape[0] / dt),
             }
         out[f"{model}_{res:g}deg_noise{100 * noise:g}cm"] = conf

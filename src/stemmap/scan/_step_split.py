@@ -28,6 +28,10 @@ the noise step (:func:`front_spikes`; the TreeLS plot, scan 1: a twig 5.7 cm in 
 4-return stem, between its 2nd and 3rd returns). A solid surface seen from outside makes no
 such dip; the return is an occluder, and the candidate is judged whole without it (same tests)
 instead of being cut. Numpy path only.
+
+With ``step_noise_pool`` (Dec 4) the noise sigma of the threshold is at least the batch's
+pooled estimate where a scan has no estimate of its own (``ScanPoints.step_noise``): on a
+single-tree scan the configured 1 cm stood for 3 cm noise, and a noise step was cut.
 """
 
 from __future__ import annotations
@@ -112,7 +116,11 @@ def step_refit(
     sub = every.select(which)
     r = sub.points.r
     lab = sub.labels
-    limit = _SIGMAS * math.sqrt(2.0) * segment_sigma(cfg, sub, segment_sum(r, sub) / sub.counts)
+    sigma = segment_sigma(cfg, sub, segment_sum(r, sub) / sub.counts)
+    if sub.points.step_noise is not None:
+        # step_noise_pool: a scan without its own noise estimate reads the batch's pooled one
+        sigma = np.fmax(sigma, sub.points.step_noise[sub.scan])
+    limit = _SIGMAS * math.sqrt(2.0) * sigma
     first = largest_steps(sub)
     has = np.flatnonzero(first >= 0)
     noise = np.abs(r[first[has]] - r[first[has] - 1]) <= limit[has]

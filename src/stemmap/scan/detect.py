@@ -326,6 +326,7 @@ class ScanTrunkDetector:
             a_lo, a_hi = math.radians(cfg.fov_deg[0]), math.radians(cfg.fov_deg[1])
             r = fov_window(r, wrap_angle(angles), a_lo, a_hi)
         # the sensor's range noise from the raw returns of each scan (before tilt and filters)
+        raw = r
         noise = (
             # (NaN where a scan has no estimate: rms_noise_from_fit reads the candidate's own)
             scan_noise(
@@ -334,6 +335,7 @@ class ScanTrunkDetector:
                 cfg.scan_noise_surface,
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
                 pool=cfg.scan_noise_pool,
+                batch_min=cfg.scan_noise_batch_min(),
             )
             if cfg.sigma_from_scan
             else None
@@ -356,7 +358,7 @@ class ScanTrunkDetector:
             bearing = roll_beams(bearing, shift)
         pts = extract_points(r, bearing, angle_increment)
         if noise is not None:
-            pts = replace(pts, noise=noise)
+            pts = replace(pts, noise=noise, step_noise=self._step_noise(raw, noise))
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
         else:
@@ -401,6 +403,24 @@ class ScanTrunkDetector:
             )
             segs = segs.select(segs.counts >= cfg.min_points)
         return (self._filter(segs) if apply_filters else segs), r, wrap
+
+    def _step_noise(self, r: FloatArray, noise: FloatArray) -> FloatArray | None:
+        """``step_noise_pool``: the noise of every scan for the step threshold of
+        ``step_split``, the batch's pooled estimate where a scan has none of its own (``r``:
+        the gated ranges ``noise`` was estimated from); None when the option is off."""
+        cfg = self.config
+        if not (cfg.step_split and cfg.step_noise_pool):
+            return None
+        if cfg.scan_noise_pool:
+            return noise
+        pooled: FloatArray = scan_noise(
+            r,
+            cfg.scan_noise_jump,
+            cfg.scan_noise_surface,
+            math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
+            pool=True,
+        )
+        return pooled
 
     def _filter(self, segs: Segments) -> Segments:
         """The segment filters (:func:`~stemmap.scan.plausibility.segment_reasons`)."""

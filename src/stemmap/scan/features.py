@@ -411,6 +411,7 @@ def footprint_correct(segs: Segments, footprint: float) -> Segments:
         p.n_beams,
         p.angle_increment,
         p.noise,
+        p.step_noise,
     )
     return replace(segs, points=pts)
 

@@ -58,6 +58,10 @@ class ScanPoints:
     noise : ndarray of shape (n_scans,), metres, or None
         Range-noise scale of each scan estimated from all its returns
         (:func:`stemmap.scan.plausibility.scan_noise`; set with ``sigma_from_scan``).
+    step_noise : ndarray of shape (n_scans,), metres, or None
+        The same with the batch's pooled estimate where a scan has none of its own (set with
+        ``step_split`` and ``step_noise_pool``: the step threshold of
+        :func:`stemmap.scan._step_split.step_refit`).
     """
 
     scan: IntArray
@@ -69,6 +73,7 @@ class ScanPoints:
     n_beams: int
     angle_increment: float
     noise: FloatArray | None = None
+    step_noise: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
@@ -86,6 +91,7 @@ class ScanPoints:
             self.n_beams,
             self.angle_increment,
             self.noise,
+            self.step_noise,
         )
 
 
