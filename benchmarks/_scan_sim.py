@@ -185,18 +185,11 @@ def benchmark_drive(seed: int) -> Any:
 
 def demo_score(obs: StemObservations, run: Any) -> dict[str, float]:
     """Detection recall and precision of ``obs`` on the ``stemmap demo`` drive ``run``, scored
-    as the demo scores them (its ``DEMO_SCENARIO`` gate, returns, range and diameter)."""
-    from stemmap.cli._demo import DEMO_SCENARIO
+    as the demo scores them (``cli._demo.demo_detection_metrics``: its ``DEMO_SCENARIO`` gate,
+    returns, range and diameter)."""
+    from stemmap.cli._demo import demo_detection_metrics
 
-    sc = DEMO_SCENARIO["scoring"]
-    m = scan_detection_metrics(
-        obs,
-        run,
-        gate=sc["scan_gate_m"],
-        min_returns=sc["min_returns"],
-        max_range=sc["max_range_m"],
-        min_diameter=sc["min_dbh_m"],
-    )
+    m = demo_detection_metrics(obs, run)
     return {"recall": round(m.recall, 4), "precision": round(m.precision, 4)}
 
 
