@@ -407,6 +407,15 @@ class DetectorConfig:
         make, and the configured sigma is a guess: on the single TreeLS pine at 0.25 deg with
         3 cm noise, a 4-return circle of radius 2.6 cm was cut from a 16-return trunk at an 11 cm
         noise step read against 1 cm. Numpy path only (as ``step_split``).
+    step_twigs : bool
+        With ``step_split``: drop *every* one-return dip in front of a candidate that fails the
+        RMS test (:func:`~stemmap.scan._step_split.front_dips`: a return nearer than both its
+        neighbours by more than the step threshold; at a segment end, nearer than its one
+        neighbour with no nearer return beyond the end), not only the one at its largest step,
+        and judge the rest whole with the same tests (ours, issue 11, Dec 5, "twigs on several
+        beams"): a stem seen through twigs on several of its beams. Changes no row of the
+        real slices and adds clutter pieces on the simulator (a negative result kept as an
+        option). Numpy path only.
     """
 
     name: str = "custom"
@@ -492,6 +501,7 @@ class DetectorConfig:
     split_search_convex: bool = False
     step_split: bool = False
     step_noise_pool: bool = False
+    step_twigs: bool = False
 
     def __post_init__(self) -> None:
         def bad(field: str, value: Any, need: str) -> ConfigError:
