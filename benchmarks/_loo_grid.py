@@ -94,6 +94,14 @@ _ARCS_35: dict[str, Any] = {**_ARCS_29, "arc_tangent_sigmas": 3.0, "arc_chi2": T
 #: and left out for breaking it (demo precision): concave-corner cuts 0.947, with convex cuts
 #: 0.898, gap cuts + corners 0.947, gap-split re-fits 0.929. Each value is a method switch or
 #: a bound, not a per-dataset constant.
+#: Grids 57 / 58 (Dec 5): step split with the pooled step noise and every one-return dip dropped.
+_TWIGS_57: dict[str, Any] = {
+    "arc_short_steps": True,
+    "step_split": True,
+    "step_noise_pool": True,
+    "step_twigs": True,
+}
+
 LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(bark=0.03),  # the default of the second round (straightness test unchanged)
     _setting(bark=0.0),
@@ -286,6 +294,17 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         step_split=True,
         step_noise_pool=True,
     ),
+    # Dec 4 ("Range noise on sparse scans"), on the current default (grid 36): a scan without
+    # its own noise estimate takes the estimate over every scan's interior triples where that
+    # is at least 2 / 1.5 / 2.5 / 3 sigma (scan_noise_batch; both paths)
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.0),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=1.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=2.5),
+    _setting(**_DEFAULT_11, **_ARCS_35, arc_short_steps=True, scan_noise_batch=3.0),
+    # Dec 5 ("twigs on several beams"), on grids 51 and 52: step_twigs drops every one-return
+    # dip in front of a candidate that fails the RMS test, not only the largest step's
+    _setting(**_DEFAULT_11, **_ARCS_35, **_TWIGS_57, edge_hit_min=0.0, edge_hit_max=0.0),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_TWIGS_57),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -7,12 +7,22 @@ on ``sys.path`` when it runs, from any working directory)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from stemmap.eval.real_slices import Mount, RealSlice, Relief, virtual_scans
+from stemmap.eval.real_slices import (
+    SLICES,
+    Mount,
+    RealSlice,
+    Relief,
+    load_slice,
+    noisy_batch,
+    virtual_scans,
+)
 from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD
 from stemmap.scan.detect import DetectorConfig
 
@@ -28,6 +38,7 @@ __all__ = [
     "matched",
     "scene_note",
     "scene_scans",
+    "slice_scan_batches",
     "vantage_points",
 ]
 
@@ -201,3 +212,32 @@ def scene_note(background: str) -> str:
         " plot, pine, spruce), a ground plane (the cloud's, else flat) with micro-relief"
         " (std 4 cm, 0.3 m correlation: the TreeLS plot's) everywhere"
     )
+
+
+def slice_scan_batches(
+    ddir: Path,
+    n_vantage: int,
+    seed: int,
+    background: str = "none",
+    mount: Mount = MOUNT,
+    relief_std: float = RELIEF_STD,
+    relief_corr: float = RELIEF_CORR,
+) -> Iterator[tuple[str, str, np.ndarray]]:
+    """Every slice with reference trunks x :data:`FULL_SCANNERS` configuration: (slice name,
+    configuration name ``<model>_<step>deg_noise<cm>cm``, noisy ranges (V, N)), with the
+    vantage points, seeds and noise draws of ``real_geometry.run_dataset`` (``seed`` + the
+    slice's index; vantage points first, then one noise draw per configuration in order)."""
+    for i, name in enumerate(SLICES):
+        sl = load_slice(ddir, name)
+        if not sl.refs:
+            continue
+        rng = np.random.default_rng(seed + i)
+        vp = vantage_points(sl, n_vantage, rng)
+        geometry: dict[tuple[str, float], np.ndarray] = {}
+        for model, res, noise in FULL_SCANNERS:
+            if (model, res) not in geometry:
+                geometry[(model, res)] = scene_scans(
+                    sl, vp, model, res, background, seed + i, mount, relief_std, relief_corr
+                )[0]
+            r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
+            yield name, f"{model}_{res:g}deg_noise{100 * noise:g}cm", r

@@ -183,26 +183,25 @@ def benchmark_drive(seed: int) -> Any:
     return _runs(int(seed))[0]
 
 
+def demo_score(obs: StemObservations, run: Any) -> dict[str, float]:
+    """Detection recall and precision of ``obs`` on the ``stemmap demo`` drive ``run``, scored
+    as the demo scores them (``cli._demo.demo_detection_metrics``: its ``DEMO_SCENARIO`` gate,
+    returns, range and diameter)."""
+    from stemmap.cli._demo import demo_detection_metrics
+
+    m = demo_detection_metrics(obs, run)
+    return {"recall": round(m.recall, 4), "precision": round(m.precision, 4)}
+
+
 def simulated_precision(overrides: dict[str, Any], seed: int = 1) -> dict[str, Any]:
     """Detection recall / precision of the ``stemmap`` preset with ``overrides`` on the two
     simulated drives the ``real_geometry.py`` grid is admitted on: ``scan_detection.py``'s
     (400 scans, its scoring) and the ``stemmap demo`` drive (120 trees, the demo's scoring),
     seed ``seed``; ``admitted`` when both precisions are >= :data:`SIM_PRECISION_MIN`."""
-    from stemmap.cli._demo import DEMO_SCENARIO
-
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
     run, demo_run = _runs(int(seed))
     bench = score(det.detect_batch(run.scans), run)
-    sc = DEMO_SCENARIO["scoring"]
-    m = scan_detection_metrics(
-        det.detect_batch(demo_run.scans),
-        demo_run,
-        gate=sc["scan_gate_m"],
-        min_returns=sc["min_returns"],
-        max_range=sc["max_range_m"],
-        min_diameter=sc["min_dbh_m"],
-    )
-    demo = {"recall": round(m.recall, 4), "precision": round(m.precision, 4)}
+    demo = demo_score(det.detect_batch(demo_run.scans), demo_run)
     keys = ("recall", "precision", *(f"{k}_{b}" for b in BANDS for k in BAND_KEYS))
     return {
         "benchmark": {k: bench[k] for k in keys},

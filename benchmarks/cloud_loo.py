@@ -1,11 +1,13 @@
 """Benchmark: leave-one-dataset-out check of the cloud defaults chosen on real clouds (issue 11).
 
-Five :class:`~stemmap.cloud.config.StemConfig` options were added after failures seen on the
+Six :class:`~stemmap.cloud.config.StemConfig` options were added after failures seen on the
 real clouds of ../shared/datasets and are reported on the same clouds
 (docs/algorithms/cloud.md): ``tighter_refits`` (treels spruce at 50 %), ``thin_remeasure``
 with its bound ``thin_remeasure_max_slices`` (treels pine_plot at 50 / 20 / 10 %, archi Tree_1
 for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder`` (spruce at
-10 %) and ``continues_above`` (treels pine_plot's non-stems ending inside the band). Here
+10 %), ``continues_above`` (treels pine_plot's non-stems ending inside the band) and
+``axis_fallback`` (pine_plot's sparse stems at 20 / 10 %: one shared-axis fit over the band,
+or over 0.5-3.0 m with ``axis_reach``; default off). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -75,6 +77,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "continues_above": (
         ("off", {"continues_above": False}),
         ("on", {"continues_above": True}),
+    ),
+    "axis_fallback": (
+        ("off", {"axis_fallback": False}),
+        ("band", {"axis_fallback": True, "axis_reach": False}),
+        ("0.5-3 m", {"axis_fallback": True}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

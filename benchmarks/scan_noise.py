@@ -39,11 +39,9 @@ from _real_scanning import (  # shared with real_geometry.py
     FULL_SCANNERS,
     MOUNT,
     scene_note,
-    scene_scans,
-    vantage_points,
+    slice_scan_batches,
 )
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD, Mount
 from stemmap.scan.plausibility import scan_noise
 
@@ -77,42 +75,24 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     t0 = time.perf_counter()
     out: dict[str, Any] = {}
-    for i, name in enumerate(SLICES):
-        sl = load_slice(ddir, name)
-        if not sl.refs:
-            continue
-        rng = np.random.default_rng(args.seed + i)
-        vp = vantage_points(sl, args.vantage, rng)
-        geometry: dict[tuple[str, float], np.ndarray] = {}
-        res_out: dict[str, Any] = {}
-        for model, res, noise in FULL_SCANNERS:
-            if (model, res) not in geometry:
-                geometry[(model, res)] = scene_scans(
-                    sl,
-                    vp,
-                    model,
-                    res,
-                    args.background,
-                    args.seed + i,
-                    mount,
-                    args.relief_std,
-                    args.relief_corr,
-                )[0]
-            r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
-            r = np.where(r < 30.0, r, np.nan)  # the benchmark's range_max
-            est = 100.0 * scan_noise(r, args.jump)
-            net = 100.0 * scan_noise(r, args.jump, args.surface)
-            p10, p50, p90 = np.percentile(est, [10, 50, 90])
-            res_out[f"{model}_{res:g}deg_noise{100 * noise:g}cm"] = {
-                "estimate_cm_p10_p50_p90": [round(float(v), 3) for v in (p10, p50, p90)],
-                "ratio_median_to_noise": round(float(p50) / (100 * noise), 3) if noise else None,
-                "no_estimate_share": round(float(np.mean(est == 0.0)), 3),
-                "less_surface_cm_p10_p50_p90": [
-                    round(float(v), 3) for v in np.percentile(net, [10, 50, 90])
-                ],
-                "triples_median": int(np.median(_triples(r, args.jump))),
-            }
-        out[name] = res_out
+    batches = slice_scan_batches(
+        ddir, args.vantage, args.seed, args.background, mount, args.relief_std, args.relief_corr
+    )
+    for name, config, r in batches:
+        r = np.where(r < 30.0, r, np.nan)  # the benchmark's range_max
+        est = 100.0 * scan_noise(r, args.jump)
+        net = 100.0 * scan_noise(r, args.jump, args.surface)
+        p10, p50, p90 = np.percentile(est, [10, 50, 90])
+        noise = float(config.split("noise")[1].removesuffix("cm")) / 100.0
+        out.setdefault(name, {})[config] = {
+            "estimate_cm_p10_p50_p90": [round(float(v), 3) for v in (p10, p50, p90)],
+            "ratio_median_to_noise": round(float(p50) / (100 * noise), 3) if noise else None,
+            "no_estimate_share": round(float(np.mean(est == 0.0)), 3),
+            "less_surface_cm_p10_p50_p90": [
+                round(float(v), 3) for v in np.percentile(net, [10, 50, 90])
+            ],
+            "triples_median": int(np.median(_triples(r, args.jump))),
+        }
     print(
         json.dumps(
             {

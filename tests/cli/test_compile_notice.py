@@ -84,6 +84,15 @@ _BAD_INPUTS = {
     "odometry not covering the scans": [
         "map", "{d}/s.npz", "--odometry", "{d}/short_odo.csv", "--out", "{d}/m",
     ],
+    # (Dec 5) the prior map was read after the scans' detection had compiled and run
+    "missing --prior-map": ["map", "{d}/s.npz", *_ODO, "--prior-map", "{d}/nomap", "--out",
+                            "{d}/m"],
+    "damaged --prior-map": ["map", "{d}/s.npz", *_ODO, "--prior-map", "{d}/bad_map", "--out",
+                            "{d}/m"],
+    "--prior-type graph without graph.npz": [
+        "map", "{d}/s.npz", *_ODO, "--prior-map", "{d}/map", "--prior-type", "graph", "--out",
+        "{d}/m",
+    ],
 }  # fmt: skip
 
 
@@ -114,6 +123,9 @@ def test_bad_input_is_reported_before_the_first_run_notice(
     (d / "o.csv").write_text("time_s,speed\n0,1\n")
     (d / "good_odo.csv").write_text("time_s,speed,yaw_rate\n0,1,0\n1,1,0\n2,1,0\n3,1,0\n")
     (d / "short_odo.csv").write_text("time_s,speed,yaw_rate\n10,1,0\n11,1,0\n")
+    for name, rows in (("map", "0,1.0,2.0,0.3\n"), ("bad_map", "0,1.0,x,0.3\n")):
+        (d / name).mkdir()
+        (d / name / "trees.csv").write_text("id,x,y,diameter\n" + rows)
     argv = [a.format(d=d) for a in _BAD_INPUTS[case]]
     res = CliRunner().invoke(app, argv)
     assert res.exit_code == 2, res.output

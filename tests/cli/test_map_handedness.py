@@ -69,3 +69,48 @@ def test_mirrored_scans_are_reported(tmp_path: Path, datasets_dir: Path) -> None
     assert "against the odometry" not in res.output
     trees = np.genfromtxt(tmp_path / "c" / "trees.csv", delimiter=",", names=True)
     assert 15 <= trees.size <= 25  # the slice's ~20 trunks (203 "trees" when mirrored)
+
+
+def _imu_csv(path: Path, sign: float) -> Path:
+    """The loop's gyro (yaw rate 1/3 rad/s counter-clockwise, ``sign`` -1: an FRD IMU whose z
+    points down) and wheel speed at 50 Hz."""
+    t = np.arange(0.0, 2 * np.pi * 3 * 1.1, 0.02)
+    rows = np.column_stack((t, 0 * t, 0 * t, np.full_like(t, sign / 3.0), 0 * t, 0 * t + 1 / 3,
+                            np.full_like(t, 9.81), np.ones_like(t)))  # fmt: skip
+    head = "time_s,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,wheel_speed"
+    np.savetxt(path, rows, delimiter=",", comments="", fmt="%.6f", header=head)
+    return path
+
+
+def test_lidar_motion_checks_the_scans_turns_against_the_gyro(
+    tmp_path: Path, datasets_dir: Path
+) -> None:
+    """`--motion lidar` takes the motion from the scans: a mirrored log is consistent with
+    itself (its map is the mirror image, 20 trees). With `--imu` the gyro tells: the scan
+    matcher turned against it in every turn (193 of 193, docs/reliability.md). Before Dec 5:
+    no word."""
+    logs = _loop_log(datasets_dir, tmp_path)
+    imu = _imu_csv(tmp_path / "imu.csv", 1.0)
+    for name, warned in (("mirrored", True), ("loop", False)):
+        res = runner.invoke(
+            app,
+            ["map", str(logs[name]), "--motion", "lidar", "--imu", str(imu), "--out",
+             str(tmp_path / name), "-q"],
+        )  # fmt: skip
+        assert res.exit_code == 0, res.output
+        assert ("turn against the IMU's gyro" in " ".join(res.output.split())) == warned, name
+
+
+def test_turn_sense_counts_turns_of_each_sense() -> None:
+    from stemmap.cli._map_handedness import turn_sense
+    from stemmap.types import Trajectory
+
+    t = np.arange(0.0, 60.0, 0.1)
+    heading = 0.3 * t  # a steady left turn
+    path = Trajectory(t, np.column_stack((0 * t, 0 * t, heading)))
+    same, opposite = turn_sense(path.times, path.poses[:, 2], t, heading)
+    assert same > 100 and opposite == 0
+    same, opposite = turn_sense(path.times, path.poses[:, 2], t, -heading)
+    assert opposite > 100 and same == 0
+    # a reference that does not turn counts nothing (its sign would be noise)
+    assert turn_sense(path.times, path.poses[:, 2], t, 0 * t) == (0, 0)

@@ -88,9 +88,114 @@ def test_las_in_state_plane_feet_is_refused_without_units(
     assert "--units us-ft" in " ".join(res.output.split())
     rows, _ = _stems(tmp_path, path, "--units", "us-ft")
     assert float(rows[0]["diameter"]) == pytest.approx(float(metres[0]["diameter"]), abs=2e-4)
+
+
+def _feet_las(tmp_path: Path, xyz: np.ndarray) -> tuple[Path, np.ndarray]:
+    """A real cloud moved to a State Plane position and written in US survey feet with the
+    CRS EPSG:2264 in its header; returns the path and the points as written (feet)."""
+    import laspy
+    import pyproj
+
+    usft = 1200.0 / 3937.0
+    xyz = (xyz - xyz.mean(axis=0) + [600_000.0, 200_000.0, 100.0]) / usft
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.scales = np.array([1e-4, 1e-4, 1e-4])
+    header.offsets = np.floor(xyz.min(axis=0))
+    header.add_crs(pyproj.CRS.from_epsg(2264))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    path = tmp_path / "stateplane.las"
+    las.write(path)
+    return path, np.column_stack((las.x, las.y, las.z))
+
+
+def test_georeferenced_products_of_a_cloud_in_feet_are_in_its_crs(
+    tmp_path: Path, datasets_dir: Path
+) -> None:
+    """`--units us-ft --geojson --gpkg --dtm` on a LAS in EPSG:2264: the CSV in metres, the
+    GeoJSON's lon/lat those of the stem's position in feet, the GeoPackage and DTM in the
+    CRS's feet. Before Dec 5 these were refused with --units."""
+    import json
+
+    import laspy
+    import pyproj
+    import rasterio
+
+    pine = laspy.read(datasets_dir / "treels" / "pine.laz")  # a real tree with its ground
+    path, xyz = _feet_las(tmp_path, np.column_stack((pine.x, pine.y, pine.z)))
+    out = tmp_path / "s.csv"
     res = runner.invoke(
         app,
-        ["stems", str(path), "-o", str(tmp_path / "g.csv"), "--units", "us-ft", "--geojson",
-         str(tmp_path / "g.geojson")],
+        ["stems", str(path), "-o", str(out), "--units", "us-ft", "-q",
+         "--geojson", str(tmp_path / "s.geojson"), "--gpkg", str(tmp_path / "s.gpkg"),
+         "--dtm", str(tmp_path / "dtm.tif")],
     )  # fmt: skip
-    assert res.exit_code == 2 and "--geojson" in res.output
+    assert res.exit_code == 0, res.output
+    with out.open() as fh:
+        (row,) = list(csv.DictReader(fh))
+    usft = 1200.0 / 3937.0
+    x_ft, y_ft = float(row["x"]) / usft, float(row["y"]) / usft
+    # the stem lies inside the cloud's footprint in feet (the CSV is in metres)
+    assert xyz[:, 0].min() < x_ft < xyz[:, 0].max()
+    feat = json.loads((tmp_path / "s.geojson").read_text())["features"][0]
+    lon, lat = pyproj.Transformer.from_crs(2264, 4326, always_xy=True).transform(x_ft, y_ft)
+    # 1e-8 degrees ~ 1 mm: the GeoJSON's point is the CSV's, in the CRS's feet
+    assert feat["geometry"]["coordinates"] == pytest.approx([lon, lat], abs=1e-8)
+    with rasterio.open(tmp_path / "dtm.tif") as ds:
+        assert ds.crs.to_epsg() == 2264
+        b = ds.bounds  # in feet: around the cloud, one ground cell (1 m = 3.3 ft) of slack
+        assert b.left <= xyz[:, 0].min() + 3.3 and b.right >= xyz[:, 0].max() - 3.3
+        band = ds.read(1)
+        z = band[band != ds.nodata]
+        # ground heights in feet, as the cloud's z (not metres: those would be 30 % of it)
+        assert z.size and xyz[:, 2].min() - 3.3 <= float(np.median(z)) <= xyz[:, 2].max()
+    import sqlite3
+
+    con = sqlite3.connect(tmp_path / "s.gpkg")
+    minx, maxx = con.execute("select min_x, max_x from gpkg_contents").fetchone()
+    con.close()
+    assert minx == pytest.approx(x_ft, abs=1e-3) and maxx == pytest.approx(x_ft, abs=1e-3)
+
+
+def test_units_contradicting_the_crs_and_up_axis_on_tiles_are_refused(
+    tmp_path: Path, datasets_dir: Path
+) -> None:
+    path, _ = _feet_las(tmp_path, _xyz(datasets_dir))
+    res = runner.invoke(app, ["stems", str(path), "-o", str(tmp_path / "s.csv"), "--units", "mm"])
+    assert res.exit_code == 2
+    assert "contradicts the cloud's CRS" in " ".join(res.output.split())
+    res = runner.invoke(
+        app,
+        ["stems", str(tmp_path), "-o", str(tmp_path / "t.csv"), "--up-axis", "y", "--units",
+         "us-ft"],
+    )  # fmt: skip
+    assert res.exit_code == 2
+    assert "filters.transformation" in " ".join(res.output.split())
+
+
+def test_y_up_single_tree_is_warned_and_the_axis_assumed_is_stated(
+    tmp_path: Path, datasets_dir: Path
+) -> None:
+    """A real single tree (archi Tree_1) written Y up as (x, z, y) gave 2 "stems" and no
+    word before Dec 5; now a warning names --up-axis y, and the summary (--json) states the
+    up axis the run assumed. Its Z-up original gives no warning."""
+    import json
+
+    import laspy
+
+    las = laspy.read(datasets_dir / "archi" / "Tree_1_point_cloud.las")
+    xyz = np.column_stack((las.x, las.y, las.z))
+    for name, pts, warned in (
+        ("zup.xyz", xyz, False),
+        ("yup.xyz", xyz[:, [0, 2, 1]], True),
+    ):
+        path = tmp_path / name
+        np.savetxt(path, pts, fmt="%.4f")
+        res = runner.invoke(
+            app, ["stems", str(path), "-o", str(tmp_path / f"{name}.csv"), "-q", "--json"]
+        )
+        assert res.exit_code == 0, res.output
+        text = " ".join(res.output.split())
+        assert ("pass --up-axis y" in text) == warned, text
+        payload = json.loads(res.stdout)
+        assert payload["up_axis"] == "z" and payload["units"] == "m"

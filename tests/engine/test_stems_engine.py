@@ -309,3 +309,38 @@ def test_small_pilot_runs_one_task_per_chunk(
         np.testing.assert_array_equal(getattr(one.stems, k), getattr(two.stems, k))
     assert_same_stems(detect_stems(stand_tiles[1], one.config), one.stems)
     assert not (tmp_path / "one" / "stage").exists()
+
+
+def test_tiles_in_millimetres_with_unit_scale_equal_the_metre_tiles(
+    stand_tiles: tuple[Path, np.ndarray],
+    reference: CloudStems,
+    client: Any,
+    tmp_path: Path,
+) -> None:
+    """``stemmap stems tiles/ --units mm``: the catalog reads every tile's coordinates as
+    millimetres and works in metres (bounds, chunks, points), so the same stems as the
+    tiles in metres. Before Dec 5 `--units` was refused on a tile catalog."""
+    import laspy
+
+    mm = tmp_path / "mm"
+    mm.mkdir()
+    for p in sorted(Path(stand_tiles[0]).glob("*.laz")):
+        las = laspy.read(p)
+        header = laspy.LasHeader(point_format=las.header.point_format, version="1.4")
+        header.scales = las.header.scales * 1000.0  # the same integers, read as mm
+        header.offsets = las.header.offsets * 1000.0
+        out = laspy.LasData(header)
+        out.X, out.Y, out.Z = las.X, las.Y, las.Z
+        out.write(mm / p.name)
+    cat = Catalog.from_inputs([mm], unit_scale=0.001)
+    ref_cat = Catalog.from_inputs([stand_tiles[0]])
+    np.testing.assert_allclose(
+        np.array([t.bounds for t in cat.tiles]),
+        np.array([t.bounds for t in ref_cat.tiles]),
+        rtol=0,
+        atol=1e-9,
+    )
+    run = run_stems_catalog(cat, StemConfig(), tmp_path / "w", chunk_size=10.0, client=client)
+    assert not run.failed and run.stems is not None
+    # (X * s * 1000 + o * 1000) * 0.001 differs from X * s + o by rounding only (~1e-15 m)
+    assert_same_stems(reference, run.stems)

@@ -80,38 +80,98 @@ def test_the_pool_keeps_the_breakdown_rule():
 
 
 def test_compiled_pooled_noise_equals_numpy():
+    # the pool, the batch (scan_noise_batch: floors inf = off, 0, 2 cm) and both together
     from stemmap.scan._fast_robust import _batch_scan_noise
 
     rng = np.random.default_rng(12)
-    pooled_cases = 0
+    changed = {"pool": 0, "batch": 0}
     for _ in range(300):
         s, n = int(rng.integers(1, 12)), int(rng.integers(0, 120))
         r = 5.0 + np.cumsum(rng.normal(0.0, rng.choice([0.01, 0.05, 0.15]), (s, n)), axis=1)
-        r += rng.normal(0.0, 0.01, (s, n))
+        r += rng.normal(0.0, rng.choice([0.01, 0.03]), (s, n))
         cut = rng.random((s, n)) < rng.choice([0.0, 0.1, 0.3])
         r[cut] = rng.choice([np.nan, np.inf, -np.inf], int(cut.sum()))
         jump = float(rng.choice([0.05, 0.2]))
         surface = float(rng.choice([0.0, 0.006]))
-        got = _batch_scan_noise(r, np.ones(n, dtype=np.bool_), 0.0, np.inf, jump, surface)
         own = scan_noise(r, jump, surface)
-        ref = scan_noise(r, jump, surface, pool=True)
-        np.testing.assert_array_equal(got, ref)
-        pooled_cases += bool(np.any(ref != own))
-    assert pooled_cases > 20
+        fov = np.ones(n, dtype=np.bool_)
+        for pool in (False, True):
+            for floor in (np.inf, 0.0, 0.02):
+                got = _batch_scan_noise(r, fov, 0.0, np.inf, jump, surface, pool, floor)
+                ref = scan_noise(r, jump, surface, pool=pool, batch_min=floor)
+                np.testing.assert_array_equal(got, ref)
+                if floor == np.inf:
+                    changed["pool"] += bool(pool and np.any(ref != own))
+                else:
+                    changed["batch"] += bool(np.any(ref != scan_noise(r, jump, surface, pool=pool)))
+    assert changed["pool"] > 20 and changed["batch"] > 50, changed
 
 
-def test_the_detector_finds_noisy_sparse_trunks_with_the_pool_on_both_paths():
+@pytest.mark.parametrize("option", [{"scan_noise_pool": True}, {"scan_noise_batch": 2.0}])
+def test_the_detector_finds_noisy_sparse_trunks_with_the_shared_noise_on_both_paths(option):
     # 3 cm noise, sigma configured 1 cm: without an estimate the RMS test (2 sigma + bark)
-    # rejects most views of the trunks; with the batch's shared estimate it does not
+    # rejects most views of the trunks; with the batch's shared estimate (the pool of the
+    # sparse scans, or every scan's with scan_noise_batch) it does not
     rng = np.random.default_rng(8)
     b = _batch(_sparse_scans(0.03, rng))
-    found = {}
-    for pool in (False, True):
-        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", scan_noise_pool=pool))
+    found = []
+    for overrides in ({}, option):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
         args = (b.ranges, b.times, b.angle_min, b.angle_increment, b.range_min, b.range_max)
         fast = det._run_compiled(*args, b.frame)
         ref = det._run_numpy(*args, b.frame, None, None)
         np.testing.assert_array_equal(fast.index, ref.index)
         np.testing.assert_allclose(fast.radii, ref.radii, rtol=1e-9, atol=1e-15)
-        found[pool] = len(fast)
-    assert found[True] >= found[False] + 8, found  # of 40 trunk views
+        found.append(len(fast))
+    assert found[1] >= found[0] + 8, found  # of 40 trunk views
+
+
+# ``scan_noise_batch`` (issue 11, Dec 4, "Range noise on sparse scans"): scans without an
+# estimate take the one over every scan's triples, where it is at least a floor
+
+
+def test_batch_noise_reads_the_sensor_noise_for_sparse_and_single_surface_scans():
+    rng = np.random.default_rng(21)
+    sparse = _sparse_scans(0.03, rng)
+    one = _single_tree_scans(0.03, rng)
+    for r in (sparse, one):
+        assert np.all(scan_noise(r, 0.2) == 0.0)  # no scan has its own estimate
+        got = scan_noise(r, 0.2, batch_min=0.02)
+        assert np.all(got == got[0])  # one shared estimate
+        # 20 scans x 3-30 interior triples: a MAD scale of >= 90 values, ~12 % relative std
+        assert got[0] == pytest.approx(0.03, rel=0.3)
+    # single-surface scans are left out of the pool (one tree would decide it), not of the
+    # batch: over 20 scans no run holds half the triples, and the floor guards the bark
+    assert np.all(scan_noise(one, 0.2, pool=True) == 0.0)
+
+
+def test_batch_noise_below_the_floor_changes_nothing():
+    rng = np.random.default_rng(22)
+    for sigma in (0.0, 0.01):  # a scanner as quiet as configured (1 cm), or quieter
+        r = np.vstack([_sparse_scans(sigma, rng), _single_tree_scans(sigma, rng)])
+        np.testing.assert_array_equal(scan_noise(r, 0.2, batch_min=0.02), scan_noise(r, 0.2))
+        np.testing.assert_array_equal(
+            scan_noise(r, 0.2, missing=np.nan, batch_min=0.02),
+            scan_noise(r, 0.2, missing=np.nan),
+        )
+
+
+def test_scans_with_their_own_estimate_keep_it_under_the_batch():
+    rng = np.random.default_rng(23)
+    r = np.vstack([np.stack([_stand(0.03, rng) for _ in range(4)]), _sparse_scans(0.03, rng)])
+    own = scan_noise(r, 0.2)
+    got = scan_noise(r, 0.2, batch_min=0.02)
+    assert np.all(own[:4] > 0) and np.all(own[4:] == 0)
+    np.testing.assert_array_equal(got[:4], own[:4])
+    assert np.all(got[4:] == got[4]) and got[4] == pytest.approx(0.03, rel=0.3)
+
+
+def test_batch_noise_setting_is_checked():
+    from stemmap.errors import ConfigError
+
+    for bad in (0.5, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ConfigError, match="scan_noise_batch"):
+            DetectorConfig.preset("stemmap", scan_noise_batch=bad)
+    assert DetectorConfig.preset("stemmap").scan_noise_batch_min() == np.inf
+    on = DetectorConfig.preset("stemmap", scan_noise_batch=2.0)
+    assert on.scan_noise_batch_min() == pytest.approx(2.0 * on.sigma)

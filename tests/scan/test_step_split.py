@@ -6,7 +6,7 @@ import pytest
 from tests.scan.test_gaps_refit import _scan as _circles_scan
 from tests.scan.test_gaps_refit import _segment
 
-from stemmap.scan._step_split import front_spikes, largest_steps, step_refit
+from stemmap.scan._step_split import front_dips, front_spikes, largest_steps, step_refit
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.segment import Segments
 from stemmap.types import ScanBatch
@@ -226,13 +226,85 @@ def test_twigs_on_several_beams_are_no_one_return_spike():
     # rule drops one return nearer than both neighbours at the candidate's largest step;
     # with twigs 6 cm in front on the 1st, 3rd and 5th of 5 beams the largest step's dip is
     # the 3rd return, the other two twig returns stay, and the candidate fails as before.
+    # step_twigs does not help either: the stem's edge returns lie 3.7 cm beyond their
+    # neighbours, so an end twig 6 cm in front lies 2.4 cm before its neighbour (below the
+    # 4.2 cm noise step: no dip), and dropping all three would leave 2 returns.
     stem = (4.5, 0.0, 0.09)
     batch = _circles_scan([stem])
     r = batch.ranges[0].copy()
     on = np.flatnonzero(np.isfinite(r))
     r[on[[0, 2, 4]]] -= 0.06
     batch = _with_ranges(batch, r)
-    for on_off in (False, True):
-        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=on_off))
+    for extra in ({}, {"step_split": True}, {"step_split": True, "step_twigs": True}):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **extra))
         assert len(det.detect_batch(batch)) == 0
         assert det.rejected(batch)["reason"] == ["rms"]
+
+
+#: A 30 cm stem at 3 m: 11 beams of 0.5 deg return from it (thin beams).
+WIDE = (3.0, 0.0, 0.15)
+
+
+def _wide_with_twigs(beams, front=0.06):
+    """:data:`WIDE` with twigs ``front`` metres in front of its returns on ``beams`` (indices
+    among its 11 beams): each twig takes the place of the stem's return on its beam."""
+    batch = _circles_scan([WIDE])
+    r = batch.ranges[0].copy()
+    on = np.flatnonzero(np.isfinite(r))
+    assert on.size == 11
+    r[on[list(beams)]] -= front
+    return _with_ranges(batch, r)
+
+
+def test_twigs_on_several_beams_are_dropped_with_step_twigs():
+    # twigs 6 cm in front on the 3rd, 6th and 9th of 11 beams: each return nearer than both
+    # its neighbours by more than the noise step (3 sqrt(2) x 1 cm = 4.2 cm). The spike rule
+    # drops the largest step's one; the other two stay and the candidate fails the RMS test.
+    # With step_twigs all three go and the stem's other 8 returns are one trunk.
+    batch = _wide_with_twigs((2, 5, 8))
+    for extra in ({}, {"step_split": True}):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **extra))
+        assert len(det.detect_batch(batch)) == 0
+        assert det.rejected(batch)["reason"] == ["rms"]
+    on = DetectorConfig.preset("stemmap", step_split=True, step_twigs=True)
+    obs = ScanTrunkDetector(on).detect_batch(batch)
+    assert len(obs) == 1
+    assert obs.n_points[0] == 8
+    # noise-free returns on the circle: radius and centre within 5 mm
+    assert obs.radii[0] == pytest.approx(WIDE[2], abs=0.005)
+    assert np.hypot(*(obs.centers[0] - WIDE[:2])) < 0.005
+    # off unless step_split (the dips are read at the step threshold of step_split)
+    alone = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_twigs=True))
+    assert len(alone.detect_batch(batch)) == 0
+
+
+def test_a_stem_without_twigs_has_no_front_dip():
+    # a solid circle seen from outside: the range rises from its nearest return outwards,
+    # so no return lies in front of both neighbours (at the centre the dip is about 2 R / n^2
+    # for n returns: < 1 cm here), nor an end in front of its neighbour
+    for stem in (WIDE, (4.5, 0.0, 0.09), (2.0, 0.3, 0.4), (8.0, -0.5, 0.3)):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True))
+        every = _every(det, _circles_scan([stem]))[0]
+        assert len(every) == 1 and every.counts[0] >= 4
+        assert not front_dips(every, np.array([0.01])).any()
+
+
+def test_front_dips_interior_and_unoccluded_ends():
+    # dips of 6 cm at the 2nd and 4th returns, below both neighbours: both (the spike rule
+    # takes one, at the largest step)
+    segs = _segment([5.0, 4.94, 5.01, 4.95, 5.02, 5.03])
+    assert np.flatnonzero(front_dips(segs, np.array([0.042]))).tolist() == [1, 3]
+    assert np.flatnonzero(front_spikes(segs, largest_steps(segs), np.array([0.042]))).size == 1
+    # a 5 cm dip under a 5.5 cm limit is none
+    assert not front_dips(segs, np.array([0.065])).any()
+    # an end nearer than its one neighbour: a dip when nothing nearer lies beyond the end
+    end = _segment([5.0, 5.01, 5.02, 4.95])
+    assert np.flatnonzero(front_dips(end, np.array([0.042]))).tolist() == [3]
+    # ... and none when the end is occluded (a nearer return across it) or truncated
+    z, t = np.zeros(1, dtype=bool), np.ones(1, dtype=bool)
+    for flags in ((z, t, z, z), (z, z, z, t)):
+        shut = Segments(end.points, end.start, end.stop, end.scan, *flags)
+        assert not front_dips(shut, np.array([0.042])).any()
+    # two twigs on consecutive beams are no one-return dip (runs are not dropped)
+    run = _segment([5.0, 5.01, 4.95, 4.95, 5.02, 5.03])
+    assert not front_dips(run, np.array([0.042])).any()

@@ -85,17 +85,19 @@ def run_catalog_stems(
     out_csv: Path,
     *,
     quiet: bool = False,
+    unit_scale: float = 1.0,
 ) -> tuple[CloudStems, int, Any]:
     """Run the engine with a progress bar and a chunk count (neither when ``quiet``); exit 1
     listing the failed chunks if any failed.
 
+    ``unit_scale``: metres per unit of the tiles' coordinates (``--units``).
     Returns the merged stems, the number of tiles and the catalog.
     """
     from stemmap.engine import DEFAULT_BUFFER, Catalog, run_stems_catalog
 
     if opts.workers is not None and opts.scheduler is not None:
         raise ConfigError("give --workers (a local cluster) or --scheduler, not both.")
-    catalog = Catalog.from_inputs(inputs)
+    catalog = Catalog.from_inputs(inputs, unit_scale)
     work = opts.work or out_csv.with_name(out_csv.stem + "_chunks")
     with progress(not quiet) as bar:
         tasks: dict[str, Any] = {}
@@ -140,5 +142,6 @@ def catalog_background(catalog: Any, n: int = 200_000) -> Any:
     from stemmap.io.clouds import iter_las_chunks
 
     k = max(1, catalog.n_points // n)
-    parts = [c.xyz[::k, :2] for t in catalog.tiles for c in iter_las_chunks(t.path, 1_000_000)]
+    u = catalog.unit_scale
+    parts = [c.xyz[::k, :2] * u for t in catalog.tiles for c in iter_las_chunks(t.path, 1_000_000)]
     return np.concatenate(parts) if parts else np.zeros((0, 2))

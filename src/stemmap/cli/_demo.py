@@ -20,7 +20,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
@@ -38,7 +38,12 @@ from stemmap.cli._map import Backend, sim_problem, slam_metrics
 from stemmap.cli._summary import JsonFlag, announce_compile, fmt, print_summary
 from stemmap.cli._validate import bounded
 
-__all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "register", "run_demo"]
+if TYPE_CHECKING:
+    from stemmap.eval.detection import DetectionMetrics
+    from stemmap.sim.trajectory import SimRun
+    from stemmap.types import StemObservations
+
+__all__ = ["DEMO_BACKEND", "DEMO_SCENARIO", "demo_detection_metrics", "register", "run_demo"]
 
 #: Default SLAM back-end of the demo: ours, GTSAM iSAM2 with odometry self-calibration. On this
 #: simulated loop, seeds 1-6, trajectory RMSE 0.03-0.18 m and loop-closure error <= 0.13 m (EKF
@@ -78,7 +83,10 @@ DEMO_SCENARIO: dict[str, Any] = {
 }
 
 
-def _stand_and_run(seed: int, n_trees: int) -> Any:
+def _stand_and_run(seed: int, n_trees: int, drive_rng: np.random.Generator | None = None) -> Any:
+    """The demo's stand (from ``seed``) and drive. ``drive_rng``: draw the drive's noise
+    (scanner, odometry) from this generator instead of ``seed``'s stream after the stand (the
+    same stand and path, another noise draw; benchmarks/sim_dbh_causes.py ``--redraw``)."""
     from stemmap.sim.forest import stand_from_spec
     from stemmap.sim.trajectory import loop_path, simulate_run
 
@@ -97,7 +105,24 @@ def _stand_and_run(seed: int, n_trees: int) -> Any:
         rate_hz=dr["scan_rate_hz"],
         corridor_half_width=dr["corridor_half_width_m"],
         odometry_noise=dr["odometry_noise"],
-        rng=rng,
+        rng=rng if drive_rng is None else drive_rng,
+    )
+
+
+def demo_detection_metrics(obs: StemObservations, run: SimRun) -> DetectionMetrics:
+    """Per-scan detection metrics of ``obs`` on a demo drive ``run`` by the demo's scoring
+    (``DEMO_SCENARIO["scoring"]``): :func:`run_demo`'s, and the benchmarks' that score the
+    demo drive (benchmarks/_scan_sim.py, benchmarks/sim_dbh_causes.py)."""
+    from stemmap.eval.detection import scan_detection_metrics
+
+    sc = DEMO_SCENARIO["scoring"]
+    return scan_detection_metrics(
+        obs,
+        run,
+        gate=sc["scan_gate_m"],
+        min_returns=sc["min_returns"],
+        max_range=sc["max_range_m"],
+        min_diameter=sc["min_dbh_m"],
     )
 
 
@@ -126,7 +151,6 @@ def run_demo(
     from stemmap.cli._geo import write_map_products
     from stemmap.cli._map import frames_metadata
     from stemmap.cli._summary import write_run_report
-    from stemmap.eval.detection import scan_detection_metrics
     from stemmap.eval.maps import map_metrics
     from stemmap.io.atomic import atomic_write
     from stemmap.io.maps import write_observations_csv
@@ -144,15 +168,8 @@ def run_demo(
     detector = ScanTrunkDetector()
     obs = detector.detect_batch(run.scans)
     timings["detect_s"] = time.perf_counter() - t0
+    det = demo_detection_metrics(obs, run)
     sc = DEMO_SCENARIO["scoring"]
-    det = scan_detection_metrics(
-        obs,
-        run,
-        gate=sc["scan_gate_m"],
-        min_returns=sc["min_returns"],
-        max_range=sc["max_range_m"],
-        min_diameter=sc["min_dbh_m"],
-    )
 
     t0 = time.perf_counter()
     problem, ctx = sim_problem(

@@ -79,6 +79,20 @@ def detect(
             "the paper presets).",
         ),
     ] = None,
+    noise_batch: Annotated[
+        float | None,
+        typer.Option(
+            "--noise-batch",
+            metavar="FACTOR",
+            help="Scans too sparse for their own range-noise estimate (a few trunks at 0.5-1 "
+            "deg) take the estimate over every scan of their batch of 2000 (a stretch of the "
+            "file) where it is at least FACTOR x --sigma: a scanner clearly noisier than "
+            "configured is then not rejected for it (scan_noise_batch, with --sigma-from-scan; "
+            "e.g. 2.5). Off by default (docs/algorithms/scan-detection.md, 'Range noise on "
+            "sparse scans').",
+            callback=bounded("--noise-batch", ge=1),
+        ),
+    ] = None,
     arcs: Annotated[
         bool | None,
         typer.Option(
@@ -174,6 +188,8 @@ def detect(
             overrides["edge_hit_min"], overrides["edge_hit_max"] = map(float, edge_hit)
         if sigma_from_scan is not None:
             overrides["sigma_from_scan"] = sigma_from_scan
+        if noise_batch is not None:
+            overrides["scan_noise_batch"] = noise_batch
         if arcs:
             overrides.update(ARC_OPTIONS)
         elif arcs is not None:

@@ -50,6 +50,7 @@ from stemmap.cli._map_prior import (
     false_trees_report,
     gnss_start_check,
     prior_map_frame,
+    read_prior_map,
     session_graph_report,
     write_information,
 )
@@ -135,7 +136,8 @@ def map_command(
         typer.Option(
             "--imu",
             help="--motion lidar|fused: IMU + wheel-speed CSV or bag fused with the lidar "
-            "odometry (as `stemmap odometry --imu`).",
+            "odometry (as `stemmap odometry --imu`); its gyro also checks that the scans turn "
+            "its way (a warning for mirrored scans or a z-down gyro).",
         ),
     ] = None,
     camera: Annotated[
@@ -410,6 +412,14 @@ def map_command(
         notice = compile_notice(*areas, backend=backend.value, quiet=quiet)
         if gnss is not None:
             check_gnss(gnss, gnss_lever, gnss_sigma, backend.value)
+        # the prior map is read and checked with the other inputs, before any slow work
+        loaded_prior = None
+        if prior_map is not None:
+            if gnss is not None:  # with --gnss the map must be in the fixes' frame
+                check_gnss_frame(prior_map, crs)
+            loaded_prior = read_prior_map(prior_map, start_guess, backend.value, prior_type)
+        elif prior_type is not None:
+            raise ConfigError("--prior-type needs --prior-map.")
         off = (0.0, 0.0)
         if bag is not None and not is_frames:
             try:
@@ -477,21 +487,15 @@ def map_command(
             {"joint_information": True, "export_graph": True} if isam2 else {}
         )
         gnss_frame = problem.gnss is not None
-        if prior_map is not None:
-            # the prior map's frame rules: with --gnss it must be the fixes' frame
-            if problem.gnss is not None:
-                check_gnss_frame(prior_map, crs)
-            else:
+        if prior_map is not None and loaded_prior is not None:
+            # the prior map's frame rules: with --gnss it is the fixes' frame (checked above)
+            if problem.gnss is None:
                 gnss_frame = bool(prior_map_frame(prior_map)["gnss_frame"])
-            problem, reloc, prior_note = continue_from_map(
-                problem, prior_map, start_guess, backend.value, prior_type
-            )
+            problem, reloc, prior_note = continue_from_map(problem, loaded_prior)
             if problem.gnss is not None:
                 prior_note.update(gnss_start_check(problem))
             if prior_type is not None:
                 be_cfg["prior_map_robust"] = prior_type.robust
-        elif prior_type is not None:
-            raise ConfigError("--prior-type needs --prior-map.")
         # isam2 keeps the trees' joint information (trees_information.npz, for --prior-map)
         be = make_backend(backend.value, **be_cfg)
         with progress(show_progress) as bar:

@@ -35,6 +35,10 @@ _CLOUD_ONLY = frozenset(CLOUD_EXTENSIONS) - {".txt", ".csv"}
 #: matrix); far beyond any vehicle, so they refuse corrupt rows and unit errors only.
 MAX_ODOMETRY_SPEED = 1000.0
 MAX_YAW_RATE = 100.0
+#: Largest 99th percentile of |yaw_rate| (rad/s) an odometry in rad/s can have: half a turn
+#: per second, for 1 % of the drive. A yaw rate in deg/s turning at 10-30 deg/s reads 10-30
+#: "rad/s"; a slow turn in deg/s (under 3.1 deg/s) is not caught (docs/reliability.md).
+MAX_SUSTAINED_YAW_RATE = math.pi
 
 
 def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -71,6 +75,16 @@ def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 f"{what} {str(p)!r} line {table.lines[k]}: {c} {v[k]:g} {unit} is beyond "
                 f"+-{limit:g} {unit}, no vehicle's: a corrupt row or another unit?"
             )
+    from stemmap.io.conventions import check_times
+
+    check_times(t, f"{what} {str(p)!r}", "time_s")
+    w = np.abs(table.columns["yaw_rate"])
+    if float(np.percentile(w, 99)) > MAX_SUSTAINED_YAW_RATE:
+        raise InputError(
+            f"{what} {str(p)!r}: 1 % of the yaw rates exceed {np.percentile(w, 99):.3g} rad/s "
+            f"(over half a turn per second, {MAX_SUSTAINED_YAW_RATE:.3g} rad/s): is yaw_rate in "
+            "degrees per second? stemmap reads rad/s: multiply it by pi/180."
+        )
     keep = np.concatenate(([True], np.diff(t) > 0))
     return t[keep], table.columns["speed"][keep], table.columns["yaw_rate"][keep]
 

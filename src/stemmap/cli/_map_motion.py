@@ -361,6 +361,13 @@ def motion_trajectory(
         )
     if motion == Motion.fused:
         info["visual_vs_lidar_percent"] = _disagreement_percent(vtraj, lidar.trajectory())
+        from stemmap.cli._map_handedness import turn_sense_warning
+
+        what = "the camera's visual odometry"
+        warning = turn_sense_warning(lidar.trajectory(), vtraj.times, vtraj.poses[:, 2], what)
+        if warning is not None:
+            info["turn_sense_warning"] = warning
+            console.print(f"[yellow]warning:[/yellow] {warning}")
     return traj, info
 
 

@@ -16,12 +16,14 @@ from stemmap.errors import ConfigError, InputError
 
 __all__ = [
     "DEFAULT_PRIOR",
+    "PriorMap",
     "PriorType",
     "check_gnss_frame",
     "continue_from_map",
     "false_trees_report",
     "gnss_start_check",
     "prior_map_frame",
+    "read_prior_map",
     "session_graph_report",
     "write_information",
 ]
@@ -51,14 +53,26 @@ class PriorType(StrEnum):
 DEFAULT_PRIOR = PriorType.huber
 
 
-def continue_from_map(
-    problem: Any,
+@dataclasses.dataclass(frozen=True)
+class PriorMap:
+    """A ``--prior-map`` read and checked (:func:`read_prior_map`), ready for
+    :func:`continue_from_map`: its trees (with their joint information when used), the saved
+    session graph (``--prior-type graph``), the start guess and the note for metrics.json."""
+
+    prior: Any
+    guess: tuple[float, float, float] | None
+    graph: Any
+    note: dict[str, Any]
+
+
+def read_prior_map(
     folder: Path,
     guess: str | None,
     backend: str,
     prior_type: PriorType | None = None,
-) -> tuple[Any, Any, dict[str, Any]]:
-    """``--prior-map``: relocalise ``problem`` in the map of ``folder`` (library call).
+) -> PriorMap:
+    """``--prior-map``: read and check the map of ``folder`` (a map folder or its trees.csv)
+    before any slow work (the command reads it before its first kernel call).
 
     ``prior_type`` ``graph``: the earlier session's graph (``graph.npz`` beside trees.csv) is
     continued (``SlamProblem.prior_graph``; a missing, damaged or mismatched ``graph.npz`` is
@@ -67,13 +81,12 @@ def continue_from_map(
     hold each prior tree by its own prior on its marginal with that robust loss; ``joint``
     makes the map's joint information (``trees_information.npz`` beside trees.csv) one joint
     prior over its trees, or without it each tree gets its own Gaussian prior (said in the
-    returned note). The back-end must be built with ``prior_map_robust = prior_type.robust``.
+    note). The back-end must be built with ``prior_map_robust = prior_type.robust``.
     Either way the covariances are inflated by ``Isam2Config.prior_map_inflation``.
     """
     from stemmap.io.maps import TREES_INFORMATION_NPZ, read_trees_csv, read_trees_information
     from stemmap.slam._graph_continue import GRAPH_NPZ, read_graph
     from stemmap.slam.graph import Isam2Config
-    from stemmap.slam.relocalise import continue_session
 
     if backend != "isam2":
         raise ConfigError(f"--prior-map is used by the isam2 back-end only; got {backend}.")
@@ -98,7 +111,6 @@ def continue_from_map(
                 "by other back-ends or --realtime); use --prior-type huber."
             )
         saved = read_graph(gfile, prior)  # InputError names the file and the problem
-        problem, reloc = continue_session(problem, prior, g)
         note: dict[str, Any] = {
             "prior": "graph",
             "graph": str(gfile),
@@ -107,7 +119,7 @@ def continue_from_map(
             "graph_gnss_fixes": saved.n_fixes,
             "prior_graph_inflation": Isam2Config().prior_graph_inflation,
         }
-        return dataclasses.replace(problem, prior_graph=saved), reloc, note
+        return PriorMap(prior, g, saved, note)
     cfg = Isam2Config()
     robust = prior_type.robust
     if robust != "none":
@@ -132,8 +144,19 @@ def continue_from_map(
         if gfile.is_file()
         else f"no {GRAPH_NPZ} beside {csv.name}: marginal prior"
     )
-    problem, reloc = continue_session(problem, prior, g)
-    return problem, reloc, note
+    return PriorMap(prior, g, None, note)
+
+
+def continue_from_map(problem: Any, prior_map: PriorMap) -> tuple[Any, Any, dict[str, Any]]:
+    """Relocalise ``problem`` in ``prior_map`` (:func:`read_prior_map`): the problem (with
+    the saved graph to continue, for ``--prior-type graph``), the relocalisation and a copy
+    of the note."""
+    from stemmap.slam.relocalise import continue_session
+
+    problem, reloc = continue_session(problem, prior_map.prior, prior_map.guess)
+    if prior_map.graph is not None:
+        problem = dataclasses.replace(problem, prior_graph=prior_map.graph)
+    return problem, reloc, dict(prior_map.note)
 
 
 def prior_map_frame(folder: Path) -> dict[str, Any]:

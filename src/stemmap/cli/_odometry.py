@@ -53,7 +53,8 @@ def odometry(
         Path | None,
         typer.Option(
             help="IMU + wheel-speed CSV (time_s,gyro_z[,wheel_speed,...]; docs/cli.md) or a ROS "
-            "bag with a sensor_msgs/Imu topic. Without it: lidar-only odometry.",
+            "bag with a sensor_msgs/Imu topic (times in s, gyro_z in rad/s counter-clockwise: "
+            "a warning when the scans turn against it). Without it: lidar-only odometry.",
         ),
     ] = None,
     topic: Annotated[
@@ -340,6 +341,14 @@ def lidar_front_end(
             zip(fused.calibration_names, np.round(fused.calibration, 6).tolist(), strict=True)
         )
     summary["distance_m"] = round(path_length(traj), 3)
+    if inertial is not None:  # do the scans turn the way the gyro turns?
+        from stemmap.cli._map_handedness import gyro_heading, turn_sense_warning
+
+        gt, gh = gyro_heading(inertial)
+        warning = turn_sense_warning(lidar.trajectory(), gt, gh, "the IMU's gyro")
+        if warning is not None:
+            summary["turn_sense_warning"] = warning
+            console.print(f"[yellow]warning:[/yellow] {warning}")
     if summary["held_frames"]:
         console.print(
             f"warning: {summary['held_frames']} of {len(lidar)} frames had too few points to "

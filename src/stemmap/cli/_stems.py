@@ -45,8 +45,11 @@ def _sensor(
     time_field: str | None,
     time_offset: float,
     sensor_offset: str | None,
+    convention: Any = None,
 ) -> SensorPositions | None:
-    """The sensor positions the options describe (None without --origin / --trajectory)."""
+    """The sensor positions the options describe (None without --origin / --trajectory).
+    ``convention``: the cloud's units and up axis; --origin is in the file's own frame and
+    units and is converted with the cloud (three values when the up axis is not z)."""
     from stemmap.cloud.sensor import SensorPositions
 
     if origin is not None and trajectory is not None:
@@ -65,7 +68,19 @@ def _sensor(
             raise ConfigError(f"{', '.join(used)} only apply with --trajectory.")
         if origin is None:
             return None
-        return SensorPositions(station=_floats(origin, "--origin", "'X,Y' or 'X,Y,Z'", (2, 3)))
+        station = _floats(origin, "--origin", "'X,Y' or 'X,Y,Z'", (2, 3))
+        if convention is not None and not convention.is_identity:
+            import numpy as np
+
+            if len(station) == 2 and convention.up_axis != "z":
+                raise ConfigError(
+                    f"--origin needs 'X,Y,Z' (the file's frame) with --up-axis "
+                    f"{convention.up_axis}: the file's x, y are not both horizontal."
+                )
+            pad = station if len(station) == 3 else (*station, 0.0)
+            turned = convention.apply(np.array([pad], dtype=np.float64))[0]
+            station = tuple(float(v) for v in turned[: len(station)])
+        return SensorPositions(station=station)
     from stemmap.io.trajectory import read_trajectory_csv, read_trajectory_tum
 
     reader = read_trajectory_csv if trajectory.suffix.lower() == ".csv" else read_trajectory_tum
@@ -112,7 +127,8 @@ def stems(
         str | None,
         typer.Option(
             help="CRS of the cloud's x, y (EPSG code, WKT, PROJ) [default: the LAS/LAZ "
-            "header's CRS; none: a local frame].",
+            "header's CRS; none: a local frame]. With --up-axis y or x: the CRS of the "
+            "turned frame's x, y (a header's CRS is then not used).",
             rich_help_panel="Georeferencing",
         ),
     ] = None,
@@ -219,8 +235,9 @@ def stems(
     origin: Annotated[
         str | None,
         typer.Option(
-            help="Scanner position 'X,Y[,Z]' (m, cloud frame) of a single-station scan: fits "
-            "along the rays (ours).",
+            help="Scanner position 'X,Y[,Z]' of a single-station scan, in the cloud file's "
+            "own coordinates (converted with --units / --up-axis; 'X,Y,Z' when the up axis "
+            "is not z): fits along the rays (ours).",
             rich_help_panel="Sensor positions (along-ray fits)",
         ),
     ] = None,
@@ -260,8 +277,9 @@ def stems(
         str | None,
         typer.Option(
             help="Length unit of the cloud's coordinates: m, cm, mm, ft or us-ft (US survey "
-            "foot); converted to metres as read, results in metres [default: m; a LAS CRS "
-            "in another unit is refused without it].",
+            "foot); converted to metres as read. The CSV, profiles and metrics are in "
+            "metres; --geojson, --gpkg and --dtm keep the CRS's own units; tiles are "
+            "converted too [default: m; a LAS CRS in another unit is refused without it].",
             rich_help_panel="Input conventions",
         ),
     ] = None,
@@ -270,7 +288,10 @@ def stems(
         typer.Option(
             help="The cloud's axis that points up: z (LAS, most lidar tools), y "
             "(photogrammetry, Unity, some SLAM exports) or x; results in the turned frame "
-            "(y up: file (x, y, z) -> (x, -z, y)).",
+            "(y up: file (x, y, z) -> (x, -z, y)). Not guessed: a run of 1-5 stems whose "
+            "cloud is shaped like a turned one (a tree lying on its side, a ground plane "
+            "standing up) gets a warning; the summary and --json state the axis assumed. "
+            "One file only (tiles are refused: turn them first).",
             rich_help_panel="Input conventions",
         ),
     ] = "z",
@@ -321,7 +342,7 @@ def stems(
     )
     from stemmap.cloud.stems import StemConfig, detect_stems_file, get_preset
     from stemmap.engine import expand_inputs
-    from stemmap.io.clouds import count_points, iter_cloud_chunks
+    from stemmap.io.clouds import count_points
     from stemmap.io.geo import las_crs
     from stemmap.io.products import run_products
 
@@ -335,18 +356,17 @@ def stems(
         run_products("stems", inputs=[*in_paths, trajectory], outputs=outputs) as run,
         tempfile.TemporaryDirectory() as tmp,
     ):
-        crs = checked_crs(crs) if crs is not None else las_crs(in_paths[0])
+        crs_given = crs is not None
+        crs = checked_crs(crs) if crs_given else las_crs(in_paths[0])
         convention = _convention(units, up_axis, crs, engine=engine)
-        _refuse_with_convention(
-            convention,
-            {
-                "--geojson": geojson,
-                "--gpkg": gpkg,
-                "--dtm": dtm,
-                "--origin": origin,
-                "--trajectory": trajectory,
-            },
+        crs, crs_note = output_crs(
+            convention, crs, given=crs_given, georeferenced=any((geojson, gpkg, dtm))
         )
+        if trajectory is not None and not convention.is_identity:
+            raise ConfigError(
+                "--trajectory cannot be combined with --units / --up-axis yet (the trajectory's "
+                "units and axes are not known): convert the cloud to metres, z up first."
+            )
         # (stderr: the --json object on stdout stays clean) said once the options are checked
         # and the input read (a non-LAS cloud is read whole before the first kernel call; a
         # LAS file's header checks are count_points'), so a bad input is reported instead
@@ -361,7 +381,7 @@ def stems(
                 "--profile, --metrics, --labels and --dtm need preset ours (munjer2025 works "
                 "on one lidar frame, not a plot)."
             )
-        sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset)
+        sensor = _sensor(origin, trajectory, time_field, time_offset, sensor_offset, convention)
         catalog = None
         if engine:
             if topic is not None:
@@ -373,7 +393,13 @@ def stems(
                 )
             notice()
             result, _, catalog = run_catalog_stems(
-                [str(p) for p in in_paths], cfg, opts, sensor, out_csv, quiet=quiet
+                [str(p) for p in in_paths],
+                cfg,
+                opts,
+                sensor,
+                out_csv,
+                quiet=quiet,
+                unit_scale=convention.scale,
             )
             name = f"{len(catalog)} tiles"
         else:
@@ -401,10 +427,13 @@ def stems(
                     convention=convention,
                 )
         write_stems_csv(run.path(out_csv), result)
+        # georeferenced products in the CRS's units: the stems are in metres (--units)
+        geo = in_file_units(result, convention) if crs else result
         if geojson is not None:
-            write_stems_geojson(run.path(geojson), result, crs=crs)
+            write_stems_geojson(run.path(geojson), geo, crs=crs)
         if gpkg is not None:
-            write_stems_gpkg(run.path(gpkg), result, crs=crs)
+            write_stems_gpkg(run.path(gpkg), geo, crs=crs)
+        sample = None  # every k-th point of the cloud, once read for the PNG or a hint
         fig_path = None if png is None else run.path(png)
         if report is not None and png is None:
             fig_path = Path(tmp) / "figure.png"
@@ -412,17 +441,8 @@ def stems(
             if catalog is not None:
                 bg = catalog_background(catalog)
             else:
-                # background: every k-th point of the whole file (one more streaming pass; the
-                # size of a non-LAS file is known only once it is read, as one chunk)
-                total = count_points(cloud)
-                bg = np.concatenate(
-                    [
-                        c.xyz[:: max(1, (total or len(c)) // 200_000), :2]
-                        for c in iter_cloud_chunks(
-                            cloud, read_points, topic=topic, convention=convention
-                        )
-                    ]
-                )
+                sample = _cloud_sample(cloud, read_points, topic, convention)
+                bg = sample[:, :2]
             plot_stems(fig_path, result, background_xy=bg, title=name)
         if profile or metrics or labels:
             from stemmap.cli._stems_products import write_forestry_products
@@ -442,17 +462,22 @@ def stems(
 
             # the ground the detector measured heights from (no second pass over the file)
             ground = require_terrain(grounds[0], cloud)
-            write_dtm(run.path(dtm), ground, crs, frame=cloud.name)
+            write_dtm(
+                run.path(dtm),
+                ground,
+                crs,
+                frame=cloud.name,
+                unit=(convention.units, convention.scale) if crs else ("m", 1.0),
+            )
         files = [str(p) for p in outputs if p is not None]
         med = float(np.nanmedian(result.diameter)) if len(result) else math.nan
         rows = [
             ("stems", fmt(len(result)), "rows of the CSV"),
             ("median DBH", fmt(med, " cm", 100, 1), "diameter"),
             ("method", result.method + (", along-ray fits" if sensor is not None else ""), ""),
-            ("CRS", crs[:40] if crs else "none (local frame)", ""),
+            ("CRS", crs[:40] if crs else "none (local frame)", crs_note),
         ]
-        if not convention.is_identity:
-            rows.append(("input convention", convention.describe(), "--units / --up-axis"))
+        rows.append(("input convention", convention.describe(), "--units / --up-axis"))
         if catalog is not None:
             rows.append(("tiles", fmt(len(catalog)), f"{fmt(catalog.n_points)} points"))
         if report is not None:
@@ -461,11 +486,20 @@ def stems(
         print_summary(
             f"stemmap stems: {name}", rows, None, files, as_json=as_json, quiet=quiet,
             payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
-                     "method": result.method},
+                     "method": result.method, "units": convention.units,
+                     "up_axis": convention.up_axis},
         )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
-        for line in convention_hints(result, convention, user_set=units is not None):
+        hints = convention_hints(result, convention, user_set=units is not None)
+        if not hints and catalog is None and up_axis_wanted(result, convention, units):
+            from stemmap.io.conventions import up_axis_hint
+
+            if sample is None:  # one more streaming pass, only for a run of few stems
+                sample = _cloud_sample(cloud, read_points, topic, convention)
+            hint = up_axis_hint(sample, len(result))
+            hints += [] if hint is None else [hint]
+        for line in hints:
             console.print(f"[yellow]warning:[/yellow] {line}")
 
 
@@ -477,39 +511,99 @@ FEET_SUSPECT_MEDIAN_DBH = 0.6
 
 def _convention(units: str | None, up_axis: str, crs: str | None, *, engine: bool) -> Any:
     """The input convention of the options; ConfigError for a CRS whose unit is not the
-    metre when --units is not given (its coordinates would be measured as metres), and for
-    a convention on a tile catalog (not supported there)."""
+    metre when --units is not given (its coordinates would be measured as metres), for
+    --units that contradict the CRS's unit, and for --up-axis on a tile catalog."""
     from stemmap.io.conventions import CloudConvention, crs_unit, unit_for_factor
 
     convention = CloudConvention(units or "m", up_axis)
-    if units is None:
-        unit = crs_unit(crs)
-        if unit is not None and abs(unit[1] - 1.0) > 1e-9:
-            name = unit_for_factor(unit[1])
-            hint = f"pass --units {name}" if name else "convert the cloud to metres"
-            raise ConfigError(
-                f"the cloud's CRS ({crs if len(crs or '') < 40 else 'given'}) measures in "
-                f"{unit[0]} ({unit[1]:g} m), but stemmap measures stems in metres: {hint} "
-                "(the results are then in metres)."
-            )
-    if engine and not convention.is_identity:
+    unit = crs_unit(crs)
+    shown = crs if len(crs or "") < 40 else "given"
+    if unit is not None and units is None and abs(unit[1] - 1.0) > 1e-9:
+        name = unit_for_factor(unit[1])
+        hint = f"pass --units {name}" if name else "convert the cloud to metres"
         raise ConfigError(
-            "--units / --up-axis apply to one cloud, not yet to a tile catalog: convert the "
-            "tiles to metres, z up (e.g. PDAL, las2las) first."
+            f"the cloud's CRS ({shown}) measures in {unit[0]} ({unit[1]:g} m), but stemmap "
+            f"measures stems in metres: {hint} (the results are then in metres)."
+        )
+    # ft against us-ft is 2 ppm (a diameter error of 0.0002 mm): only a real contradiction
+    if unit is not None and units is not None and abs(unit[1] / convention.scale - 1) > 0.01:
+        raise ConfigError(
+            f"--units {units} contradicts the cloud's CRS ({shown}), which measures in "
+            f"{unit[0]} ({unit[1]:g} m): pass the CRS's unit, or --crs with the CRS the "
+            "coordinates are really in."
+        )
+    if engine and up_axis != "z":
+        raise ConfigError(
+            f"--up-axis {up_axis} applies to one cloud, not to a tile catalog: tiles are cut "
+            "on their x, y, which must be horizontal. Turn the tiles z up first (PDAL: "
+            "filters.transformation with matrix '1 0 0 0 0 0 -1 0 0 1 0 0 0 0 0 1' for y up), "
+            "or run each file on its own with --up-axis."
         )
     return convention
 
 
-def _refuse_with_convention(convention: Any, options: dict[str, object]) -> None:
-    """ConfigError when a converted cloud is combined with an option whose positions must be
-    in the file's own frame (georeferenced products, sensor positions)."""
-    used = [name for name, value in options.items() if value is not None]
-    if used and not convention.is_identity:
-        raise ConfigError(
-            f"{', '.join(used)} cannot be combined with --units / --up-axis yet: the stems are "
-            "in the converted frame (metres, z up), not in the cloud's CRS. Write the CSV, or "
-            "convert the cloud to metres, z up first."
+def output_crs(
+    convention: Any, crs: str | None, *, given: bool, georeferenced: bool
+) -> tuple[str | None, str]:
+    """The CRS the products are written in, and a note for the summary.
+
+    A CRS describes the file's x, y (horizontal). With ``--up-axis y`` (or x) the file's y is
+    vertical, so a LAS header's CRS cannot describe the turned frame: it is not used (the
+    products are declared a local frame) unless ``--crs`` is given, which then names the CRS
+    of the turned frame's x, y. With ``--units`` the georeferenced products are written in the
+    CRS's own units (:func:`in_file_units`); the CSV stays in metres.
+    """
+    if convention.up_axis != "z" and crs is not None and not given:
+        note = (
+            f"the LAS header's {crs[:40]} is not used: it describes the file's x, y, and the "
+            f"file's {convention.up_axis} is up (pass --crs for the turned frame's CRS)"
         )
+        if georeferenced:
+            from stemmap.cli._common import console
+
+            console.print(f"[yellow]warning:[/yellow] {note}; the products are in a local frame.")
+        return None, note
+    if crs is not None and convention.scale != 1.0:
+        return crs, f"GeoJSON / GPKG / DTM in its units ({convention.units}); CSV in metres"
+    return crs, ""
+
+
+def in_file_units(result: Any, convention: Any) -> Any:
+    """``result`` with its positions back in the file's (the CRS's) units: the georeferenced
+    products' geometry (attributes such as diameter and z stay in metres)."""
+    from dataclasses import replace
+
+    if convention.scale == 1.0:
+        return result
+    return replace(result, xy=result.xy / convention.scale)
+
+
+def _cloud_sample(cloud: Path, read_points: int, topic: str | None, convention: Any) -> Any:
+    """Every k-th point (about 200 000) of the whole file, converted: one more streaming pass
+    (the size of a non-LAS file is known only once it is read, as one chunk)."""
+    import numpy as np
+
+    from stemmap.io.clouds import count_points, iter_cloud_chunks
+
+    total = count_points(cloud)
+    return np.concatenate(
+        [
+            c.xyz[:: max(1, (total or len(c)) // 200_000)]
+            for c in iter_cloud_chunks(cloud, read_points, topic=topic, convention=convention)
+        ]
+    )
+
+
+#: A run of at most this many stems, without --up-axis, has its cloud's shape checked for
+#: another up axis (:func:`stemmap.io.conventions.up_axis_hint`): single trees, and plots read
+#: with the wrong axis (a simulated Y-up plot gave 3 stems, the real pine_plot 0).
+UP_AXIS_CHECK_MAX_STEMS = 5
+
+
+def up_axis_wanted(result: Any, convention: Any, units: str | None) -> bool:
+    """Whether the cloud's shape is checked for another up axis (a run of 1 to
+    :data:`UP_AXIS_CHECK_MAX_STEMS` stems, no --units / --up-axis given)."""
+    return units is None and convention.is_identity and 0 < len(result) <= UP_AXIS_CHECK_MAX_STEMS
 
 
 def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[str]:
@@ -528,7 +622,8 @@ def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[st
     if med > FEET_SUSPECT_MEDIAN_DBH:
         return [
             f"the median DBH is {med:.2f} m, large for a plot: if the cloud is in feet, pass "
-            "--units ft (or us-ft); a cloud in feet reads every diameter x3.28."
+            "--units ft (or us-ft); a cloud in feet reads every diameter x3.28. If it is a "
+            "slice or a tree whose y points up, pass --up-axis y."
         ]
     return []
 

@@ -35,6 +35,9 @@ class _Band:
     canopy: dict[str, Any] = field(default_factory=dict)
     origins: FloatArray | None = None  # (N, 2) horizontal sensor position of each point
     base: str = BASE_GROUND  # what the heights h are measured from (GroundModel.base)
+    # xy and heights of the returns in the shared-axis fit's range outside the band (only
+    # with StemConfig.axis_fallback and axis_reach: :mod:`~stemmap.cloud.axisfit`)
+    reach: tuple[FloatArray, FloatArray] | None = None
 
 
 @dataclass(frozen=True)

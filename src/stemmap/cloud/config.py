@@ -89,6 +89,14 @@ class StemConfig:
         the band; a shrub, a sapling's clump or stacked debris ends:
         :func:`~stemmap.cloud.slicestem._ends_in_band`); the pooled fit has its own,
         stricter top-slice test
+    axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
+        fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
+        its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
+        clouds' leave-one-dataset-out check it changes no cell (docs/algorithms/cloud.md
+        "Sparse stems: one fit over the band")
+    axis_reach : bool -- the shared-axis fit also uses the returns at 0.5-3.0 m outside the
+        band (:data:`~stemmap.cloud.axisfit.AXIS_RANGE`; read from files and in-memory
+        clouds, not by the tile engine's prepared chunks)
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     max_coordinate_step : float or None, metres -- a cloud whose x or y coordinates near the
@@ -125,6 +133,8 @@ class StemConfig:
     core_refits: bool = True
     single_tree_ladder: bool = True
     continues_above: bool = True
+    axis_fallback: bool = False
+    axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
     max_coordinate_step: float | None = MAX_COORDINATE_STEP
 

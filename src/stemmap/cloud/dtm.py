@@ -111,10 +111,19 @@ def _rasterio_crs(crs: str | None, frame: str) -> Any:
 
 
 def write_dtm(
-    path: str | os.PathLike[str], ground: GroundModel, crs: str | None, *, frame: str = "cloud"
+    path: str | os.PathLike[str],
+    ground: GroundModel,
+    crs: str | None,
+    *,
+    frame: str = "cloud",
+    unit: tuple[str, float] = ("m", 1.0),
 ) -> None:
     """Write ``ground`` as a float32 GeoTIFF (module doc): north-up, pixel = ground cell,
-    value = ground z at the pixel centre, :data:`DTM_NODATA` where no point fell."""
+    value = ground z at the pixel centre, :data:`DTM_NODATA` where no point fell.
+
+    ``unit``: (name, metres per unit) of the CRS the raster is written in, when the cloud was
+    read in another unit (``stemmap stems --units us-ft``): the ground model is in metres; the
+    raster's grid and heights are written in that unit, as the cloud's own coordinates."""
     import rasterio
     from affine import Affine
 
@@ -122,15 +131,17 @@ def write_dtm(
         raise InputError(
             f"the ground model is a flat base ({ground.base}), not a terrain: no DTM to write."
         )
-    z = np.asarray(ground.z, dtype=np.float64)
+    u = float(unit[1])
+    z = np.asarray(ground.z, dtype=np.float64) / u
     obs = np.ones(z.shape, dtype=bool) if ground.observed is None else ground.observed
     band = np.where(obs, z, DTM_NODATA).astype(np.float32)
     # GroundModel z is indexed [i (x), j (y)] from the lower-left corner; a GeoTIFF's rows run
     # from north to south
     img = band.T[::-1, :]
     nx, ny = z.shape
-    ox, oy = ground.origin
-    transform = Affine(ground.cell, 0.0, ox, 0.0, -ground.cell, oy + ny * ground.cell)
+    ox, oy = ground.origin[0] / u, ground.origin[1] / u
+    cell = ground.cell / u
+    transform = Affine(cell, 0.0, ox, 0.0, -cell, oy + ny * cell)
     with rasterio.open(
         Path(path),
         "w",
@@ -145,7 +156,7 @@ def write_dtm(
         compress="deflate",
     ) as dst:
         dst.write(img, 1)
-        dst.set_band_description(1, "ground height z (m)")
+        dst.set_band_description(1, f"ground height z ({unit[0]})")
         dst.update_tags(AREA_OR_POINT="Area", source="stemmap stems --dtm")
     log.info("DTM %s: %d x %d cells of %.2f m, %d without points", path, nx, ny, ground.cell,
              int((~obs).sum()))  # fmt: skip

@@ -6,6 +6,8 @@
 * :mod:`~stemmap.cloud.slicestem`: one stem from its slice fits (consistency, buttress, the
   taper/lean line at breast height), with :mod:`~stemmap.cloud.uncertainty`;
 * :mod:`~stemmap.cloud.pooled`: the pooled tilted-cylinder fallback;
+* :mod:`~stemmap.cloud.axisfit`: the shared-axis ring-stack fit of sparse failed clusters
+  (option ``axis_fallback``, off);
 * :mod:`~stemmap.cloud.heights`: canopy raster, stem heights, breast-height z.
 
 The band's names are re-exported here (``from stemmap.cloud.measure import _Band`` keeps
@@ -21,6 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from stemmap.cloud.axisfit import _axis_stems
 from stemmap.cloud.band import (
     REGION_MARGIN,
     _adapt_slices,
@@ -577,6 +580,23 @@ def _stems_from_band(
             log.info("%d stem(s) from the pooled band fit", len(pooled))
             rows.extend(pooled)
             rules.extend([RULE_BH] * len(pooled))
+    if cfg.axis_fallback and not slice_cloud:
+        # judged by the per-slice path (enough points per slice for it) and failed, but sparse
+        axis = _axis_stems(
+            pts,
+            pts_b.h[use],
+            cl_inv.astype(np.int64),
+            sl[use],
+            ~accepted & (per.present >= cfg.min_slices),
+            cfg,
+            centers_h,
+            noise_floor,
+            band.reach if cfg.axis_reach else None,
+        )
+        if axis:
+            log.info("%d stem(s) from the shared-axis band fit", len(axis))
+            rows.extend(axis)
+            rules.extend([RULE_BH] * len(axis))
     if not rows:
         return replace(
             CloudStems.empty(

@@ -5,6 +5,7 @@ for a circle per slice (a trunk partly hidden behind a nearer one, a sparse clou
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -158,9 +159,8 @@ def _fit_cylinders(
     ns: int,
     noise_floor: float,
 ) -> _CylinderFit:
-    """Batched tilted-cylinder fits: a Kasa circle start per cluster, 10 damped Gauss-Newton
-    steps (Levenberg damping 1e-3 x the diagonal) with Huber weights at 2 x the noise floor,
-    trimming of |residual| > 3 x 1.4826 MAD (the median |residual|), 10 more steps."""
+    """Batched tilted-cylinder fits: a Kasa circle start per cluster, then
+    :func:`_robust_gauss_newton` (Huber weights, MAD trimming, refit)."""
     k = int(ids.max()) + 1
     first = fit_circles_batch(p, ids, "kasa")
     th = np.zeros((k, 5))
@@ -169,17 +169,47 @@ def _fit_cylinders(
     th[first.segment_ids, 4] = first.radii
     alive = np.isfinite(th[:, 4]) & (th[:, 4] > 0)
     th[~alive, 4] = 0.1
+    th, keep = _robust_gauss_newton(
+        th, alive, p, hh, ids, noise_floor, _cylinder_residuals, _cylinder_jacobian
+    )
+    return _cylinder_statistics(th, alive, p, hh, ids, s_i, ns, keep)
+
+
+def _robust_gauss_newton(
+    th: FloatArray,
+    alive: NDArray[np.bool_],
+    p: FloatArray,
+    hh: FloatArray,
+    ids: NDArray[np.int64],
+    noise_floor: float,
+    residuals: Callable[
+        [FloatArray, FloatArray, FloatArray, NDArray[np.int64]], tuple[FloatArray, FloatArray]
+    ],
+    jacobian: Callable[[FloatArray, FloatArray], FloatArray],
+    prior: Callable[[FloatArray, FloatArray, FloatArray], None] | None = None,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The robust batched fit of the band's axis models (this module's tilted cylinder, the
+    ring stack of :mod:`~stemmap.cloud.axisfit`) from the start ``th`` (K, P): 10 damped
+    Gauss-Newton steps (Levenberg damping 1e-3 x the diagonal) with Huber weights at 2 x the
+    noise floor, trimming of |residual| > 3 x 1.4826 MAD (the median |residual|), 10 more
+    steps. ``residuals(th, p, hh, ids)`` gives the signed residuals and the unit directions
+    from the axis, ``jacobian(n, hh)`` their derivative; ``prior(A, g, th)`` may add a
+    prior's information to the normal equations in place. Returns the parameters and the
+    inlier mask."""
+    k = th.shape[0]
     keep = alive[ids]
     f_scale = max(2.0 * noise_floor, 1e-3)
     for rnd in range(2):
         for _ in range(10):
-            d, n = _cylinder_residuals(th, p, hh, ids)
+            d, n = residuals(th, p, hh, ids)
             w = np.where(keep, np.minimum(1.0, f_scale / np.maximum(np.abs(d), 1e-12)), 0.0)
-            A, g = _damped_normal_equations(_cylinder_jacobian(n, hh), w, d, ids, k)
+            A, g = _damped_normal_equations(jacobian(n, hh), w, d, ids, k)
+            if prior is not None:
+                prior(A, g, th)
             step = np.linalg.solve(A, -g[:, :, None])[:, :, 0]
             th = np.where(alive[:, None] & np.isfinite(step).all(axis=1)[:, None], th + step, th)
         if rnd == 0:
-            d, _ = _cylinder_residuals(th, p, hh, ids)
+            d, _ = residuals(th, p, hh, ids)
             ad = np.abs(d)
             mad = np.full(k, np.inf)
             order = np.lexsort((ad, ids))
@@ -188,7 +218,7 @@ def _fit_cylinders(
             cnts = np.diff(np.r_[starts, s_ids.size])
             mad[s_ids[starts]] = ad[order][starts + cnts // 2]
             keep = alive[ids] & (ad <= np.maximum(3.0 * 1.4826 * mad, 0.001)[ids])
-    return _cylinder_statistics(th, alive, p, hh, ids, s_i, ns, keep)
+    return th, keep
 
 
 def _cylinder_statistics(

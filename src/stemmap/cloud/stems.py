@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from stemmap.cloud.axisfit import _reach_range, _split_reach
 from stemmap.cloud.band import _Band
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.filters import as_xyz
@@ -292,8 +293,12 @@ def prepare_cloud(
         band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o, base=BASE_SLICE)
     else:
         g = ground or _ground_of([p], cfg, _raster_extent(cfg.ground_extent, ground_window))
-        h, m = g.band_of(p, *cfg.band)  # heights, and the indices of the band's points
+        lo, hi = cfg.band
+        r_lo, r_hi = _reach_range(cfg)
+        h, m = g.band_of(p, r_lo, r_hi)  # heights, and the indices of the band's points
+        m, reach = _split_reach(p, h, m, lo, hi)
         band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m], base=g.base)
+        band.reach = reach
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
     return PreparedCloud(band, zmin, zmax, is_slice)
@@ -443,7 +448,10 @@ def detect_stems_file(
     if on_ground is not None:
         on_ground(ground)
     lo, hi = cfg.band
+    r_lo, r_hi = _reach_range(cfg) if ground is not None else (lo, hi)
     xs, hs, zs, os_ = [], [], [], []
+    rxs: list[FloatArray] = []
+    rhs: list[FloatArray] = []
     canopy: dict[str, Any] = {}
     for chunk in iter_cloud_chunks(
         path, chunk_size, fields=(tfield,) if tfield else (), convention=convention
@@ -453,7 +461,11 @@ def detect_stems_file(
             h = xyz[:, 2]
             m = np.flatnonzero((h >= lo) & (h <= hi))
         else:
-            h, m = ground.band_of(xyz, lo, hi)  # heights, and the indices of the band's points
+            h, m = ground.band_of(xyz, r_lo, r_hi)  # heights, indices of the band's points
+            m, reach = _split_reach(xyz, h, m, lo, hi)
+            if reach is not None:
+                rxs.append(reach[0])
+                rhs.append(reach[1])
             if cfg.estimate_height:
                 canopy = _canopy_update(canopy, xyz[:, :2], h)
         xs.append(xyz[m, :2])
@@ -473,6 +485,8 @@ def detect_stems_file(
         origins=np.concatenate(os_) if sensor is not None else None,
         base=BASE_SLICE if ground is None else ground.base,
     )
+    if rxs:
+        band.reach = (np.concatenate(rxs), np.concatenate(rhs))
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
     with naming_the_source(src):
         return _stems_from_band(band, cfg, slice_cloud=is_slice)

@@ -55,7 +55,8 @@ class Tile:
     Attributes
     ----------
     path : str -- absolute path
-    bounds : (xmin, ymin, zmin, xmax, ymax, zmax), metres (header bounds)
+    bounds : (xmin, ymin, zmin, xmax, ymax, zmax), metres (header bounds, times the
+        catalog's ``unit_scale``)
     n_points : int -- header point count
     copc : bool -- a COPC file (spatial queries via laspy's CopcReader)
     size : int -- file size, bytes
@@ -103,8 +104,9 @@ def _is_copc(header: Any) -> bool:
     )
 
 
-def read_tile(path: str | os.PathLike[str]) -> Tile:
-    """Index one LAS/LAZ file from its header (no point is read).
+def read_tile(path: str | os.PathLike[str], unit_scale: float = 1.0) -> Tile:
+    """Index one LAS/LAZ file from its header (no point is read); ``unit_scale``: metres per
+    file unit (the bounds are returned in metres).
 
     Raises
     ------
@@ -128,6 +130,8 @@ def read_tile(path: str | os.PathLike[str]) -> Tile:
         raise InputError(f"{str(p)!r} is not a readable LAS/LAZ file: {exc}") from exc
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise InputError(f"{str(p)!r}: its header bounds are not finite ({lo}, {hi}).")
+    if unit_scale != 1.0:
+        lo, hi = lo * unit_scale, hi * unit_scale
     return Tile(
         str(p.resolve()),
         (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2])),
@@ -238,17 +242,25 @@ def expand_inputs(
 
 @dataclass(frozen=True)
 class Catalog:
-    """Indexed LAS/LAZ tiles (headers only)."""
+    """Indexed LAS/LAZ tiles (headers only).
+
+    ``unit_scale``: metres per unit of the tiles' coordinates (``stemmap stems --units``; 1 for
+    tiles in metres). Everything the engine computes is in metres: the tile bounds, chunks and
+    boxes, and the points read (the file's ``X * scale + offset``, times ``unit_scale``).
+    """
 
     tiles: tuple[Tile, ...]
+    unit_scale: float = 1.0
 
     @classmethod
-    def from_inputs(cls, inputs: Iterable[str | os.PathLike[str]]) -> Catalog:
+    def from_inputs(
+        cls, inputs: Iterable[str | os.PathLike[str]], unit_scale: float = 1.0
+    ) -> Catalog:
         """Index files, folders, globs and list files (:func:`expand_inputs`)."""
-        tiles = tuple(read_tile(p) for p in expand_inputs(inputs))
+        tiles = tuple(read_tile(p, unit_scale) for p in expand_inputs(inputs))
         if not tiles:
             raise InputError("no tile to process.")
-        return cls(tiles)
+        return cls(tiles, unit_scale)
 
     def __len__(self) -> int:
         return len(self.tiles)
@@ -452,6 +464,7 @@ def read_chunk(
     import laspy
 
     bx = chunk.buffered
+    u = catalog.unit_scale
     parts: list[FloatArray] = []
     extra: dict[str, list[NDArray[Any]]] = {f: [] for f in fields}
     for k in chunk.tiles:
@@ -459,15 +472,17 @@ def read_chunk(
         src = repr(tile.path)
         try:
             if tile.copc:
+                # the query in the file's units, one ulp wider (the box test is in metres)
+                lo, hi = np.array([bx[0], bx[1]]) / u, np.array([bx[2], bx[3]]) / u
                 bounds = laspy.copc.Bounds(
-                    mins=np.array([bx[0], bx[1]]), maxs=np.array([bx[2], bx[3]])
+                    mins=np.nextafter(lo, -np.inf), maxs=np.nextafter(hi, np.inf)
                 )
                 with laspy.CopcReader.open(tile.path) as rd:
                     blocks: Iterable[Any] = [rd.query(bounds=bounds)]
-                    _keep_box(blocks, bx, fields, parts, extra, src)
+                    _keep_box(blocks, bx, fields, parts, extra, src, u)
             else:
                 with laspy.open(tile.path) as rd:
-                    _keep_box(rd.chunk_iterator(read_points), bx, fields, parts, extra, src)
+                    _keep_box(rd.chunk_iterator(read_points), bx, fields, parts, extra, src, u)
         except InputError:
             raise
         except Exception as exc:
@@ -484,15 +499,18 @@ def _keep_box(
     parts: list[FloatArray],
     extra: dict[str, list[NDArray[Any]]],
     src: str,
+    unit_scale: float = 1.0,
 ) -> None:
     for pts in blocks:
         if len(pts) == 0:
             continue
-        x, y = np.asarray(pts.x), np.asarray(pts.y)
+        x, y, z = np.asarray(pts.x), np.asarray(pts.y), np.asarray(pts.z)
+        if unit_scale != 1.0:  # to metres, as CloudConvention.apply: (X * scale + offset) * u
+            x, y, z = x * unit_scale, y * unit_scale, z * unit_scale
         m = (x >= bx[0]) & (x <= bx[2]) & (y >= bx[1]) & (y <= bx[3])
         if not m.any():
             continue
-        parts.append(np.column_stack((x[m], y[m], np.asarray(pts.z)[m])))
+        parts.append(np.column_stack((x[m], y[m], z[m])))
         names = set(pts.point_format.dimension_names)
         for f in fields:
             if f not in names:

@@ -63,7 +63,7 @@ def stage_tile(
     boxes = [(c.id, c.buffered) for c in chunks]
     groups = _box_groups(boxes)
     cids_of = [cids for _, _, cids in groups]
-    split = _Splitter(groups)
+    split = _Splitter(groups, catalog.unit_scale)
     what = ("xyz", *fields)
     handles: dict[tuple[str, str], IO[bytes]] = {}
     counts = {c.id: 0 for c in chunks}
@@ -181,7 +181,8 @@ class _Splitter:
     numba kernel (count, then copy), into one buffer reused from block to block: the
     block's raw X, Y, Z rows of each group, in point order."""
 
-    def __init__(self, groups: Sequence[tuple[Any, Any, Any]]) -> None:
+    def __init__(self, groups: Sequence[tuple[Any, Any, Any]], unit_scale: float = 1.0) -> None:
+        self.unit_scale = float(unit_scale)
         xs = list(dict.fromkeys(xr for xr, _, _ in groups))  # groups are contiguous per x
         self.xr = np.array(xs, dtype=np.float64).reshape(-1, 2)
         self.yr = np.array([yr for _, yr, _ in groups], dtype=np.float64).reshape(-1, 2)
@@ -197,7 +198,11 @@ class _Splitter:
     ) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int64]]:
         """(offsets, rows, indices): group g's rows are ``rows[offsets[g]:offsets[g + 1]]``
         and ``indices`` their positions in the block (filled only with ``want_idx``)."""
-        sc = np.array([float(v.scale) for v in views[:2]] + [float(v.offset) for v in views[:2]])
+        sc = np.array(
+            [float(v.scale) for v in views[:2]]
+            + [float(v.offset) for v in views[:2]]
+            + [self.unit_scale]
+        )
         x, y, z = raw
         offs = np.zeros(self.yr.shape[0] + 1, dtype=np.int64)
         grid = (sc, self.xr, self.ystart, self.yr)
@@ -228,11 +233,12 @@ def _into_boxes(
 ) -> NDArray[np.int64]:
     # the points of each box group; with ``fill`` also copied to buf[offs[g]:] (and their
     # positions to idx). x = float64(X) * scale + offset: laspy's scaled coordinate, bit for
-    # bit (no fused multiply-add: numba compiles without fastmath); the boxes are closed
+    # bit (no fused multiply-add: numba compiles without fastmath), times sc[4], the
+    # catalog's metres per file unit (exact when 1); the boxes are closed
     counts = np.zeros(yr.shape[0], dtype=np.int64)
     for k in range(xi.shape[0]):
-        x = float(xi[k]) * sc[0] + sc[2]
-        y = float(yi[k]) * sc[1] + sc[3]
+        x = (float(xi[k]) * sc[0] + sc[2]) * sc[4]
+        y = (float(yi[k]) * sc[1] + sc[3]) * sc[4]
         for a in range(xr.shape[0]):
             if x >= xr[a, 0] and x <= xr[a, 1]:
                 for g in range(ystart[a], ystart[a + 1]):
@@ -316,10 +322,15 @@ def check_staged(outcomes: Sequence[dict[str, Any]]) -> None:
 
 
 def read_staged(
-    stage: str, chunk: Chunk, tiles: Sequence[int], fields: Sequence[str] = ()
+    stage: str,
+    chunk: Chunk,
+    tiles: Sequence[int],
+    fields: Sequence[str] = (),
+    unit_scale: float = 1.0,
 ) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
-    """A chunk's points from the fragments of ``tiles`` (in that order)."""
-    return _gather(stage, chunk, [(k, True) for k in tiles], fields, None)
+    """A chunk's points from the fragments of ``tiles`` (in that order), times
+    ``unit_scale`` (metres per file unit)."""
+    return _gather(stage, chunk, [(k, True) for k in tiles], fields, None, unit_scale)
 
 
 def _frag_points(root: Path, chunk: Chunk, k: int) -> int:
@@ -353,24 +364,25 @@ def _read_into(path: Path, out: NDArray[Any], what: str, skip: int = 0) -> bytes
     return head
 
 
-def _read_xyz(path: Path, out: FloatArray, what: str) -> None:
+def _read_xyz(path: Path, out: FloatArray, what: str, unit_scale: float = 1.0) -> None:
     """A staged xyz fragment into the (m, 3) float64 rows ``out``: its integers times their
     scale plus their offset, laspy's ``X * scale + offset`` (the same float64 operations on
-    the same values, so the same coordinates bit for bit)."""
+    the same values, so the same coordinates bit for bit), times ``unit_scale`` (metres per
+    file unit, :class:`~stemmap.io.conventions.CloudConvention`'s product; exact when 1)."""
     raw = np.empty(out.shape, dtype=np.int32)
     head = np.frombuffer(_read_into(path, raw, what, _HEAD), dtype=np.float64)
-    _scale_into(raw, head[:3].copy(), head[3:].copy(), out)
+    _scale_into(raw, head[:3].copy(), head[3:].copy(), float(unit_scale), out)
 
 
 @njit(cache=True)
 def _scale_into(
-    raw: NDArray[np.int32], scale: FloatArray, offset: FloatArray, out: FloatArray
+    raw: NDArray[np.int32], scale: FloatArray, offset: FloatArray, unit: float, out: FloatArray
 ) -> None:
-    # float64(X) * scale, then + offset: two roundings, as numpy's (no fused multiply-add:
-    # numba compiles without fastmath)
+    # float64(X) * scale, then + offset, then * unit: three roundings, as numpy's (no fused
+    # multiply-add: numba compiles without fastmath)
     for k in range(raw.shape[0]):
         for c in range(3):
-            out[k, c] = float(raw[k, c]) * scale[c] + offset[c]
+            out[k, c] = (float(raw[k, c]) * scale[c] + offset[c]) * unit
 
 
 def _gather(
@@ -379,6 +391,7 @@ def _gather(
     sources: Sequence[tuple[int, bool]],
     fields: Sequence[str],
     direct: Any,
+    unit_scale: float = 1.0,
 ) -> tuple[FloatArray, dict[str, NDArray[Any]]]:
     """Concatenate the points of ``sources`` ((tile, staged?) in order) into arrays
     allocated once: staged fragments are read straight into their rows, the other tiles by
@@ -403,7 +416,7 @@ def _gather(
         rows = slice(at, at + m)
         if isinstance(v, int):
             what = f"staged points of tile {k} for chunk {chunk.id}"
-            _read_xyz(_frag(root, chunk.id, k, "xyz"), xyz[rows], what)
+            _read_xyz(_frag(root, chunk.id, k, "xyz"), xyz[rows], what, unit_scale)
             for f in fields:
                 fp = _frag(root, chunk.id, k, f)
                 if not fp.exists() or fp.stat().st_size != 8 * m:
@@ -439,4 +452,4 @@ def chunk_points(
         return read_chunk(catalog, replace(chunk, tiles=(k,)), fields=fields)
 
     sources = [(k, stage is not None and not catalog.tiles[k].copc) for k in chunk.tiles]
-    return _gather(stage, chunk, sources, fields, direct)
+    return _gather(stage, chunk, sources, fields, direct, catalog.unit_scale)

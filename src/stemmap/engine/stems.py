@@ -541,6 +541,8 @@ def run_stems_catalog(
             "sensor": sensor,
             "time_field": time_field,
             "pilot": None if pilot is None else [pilot.box, inputs_of(pilot)],
+            # tiles not in metres (--units): the same files give other points
+            **({"unit_scale": catalog.unit_scale} if catalog.unit_scale != 1.0 else {}),
         }
     )
     wanted = {

@@ -31,9 +31,11 @@ __all__ = [
     "UP_AXES",
     "CloudConvention",
     "check_scan_ranges",
+    "check_times",
     "crs_unit",
     "unit_for_factor",
     "unit_scale",
+    "up_axis_hint",
 ]
 
 #: Metres per unit of each length unit a user may name (``--units``, ``--range-unit``).
@@ -116,7 +118,7 @@ class CloudConvention:
         if self.up_axis != "z":
             turn = "(x, -z, y)" if self.up_axis == "y" else "(-z, y, x)"
             parts.append(f"{self.up_axis} up -> z up: file (x, y, z) -> {turn}")
-        return "; ".join(parts) or "metres, z up (as read)"
+        return "; ".join(parts) or "metres, z up (as read; not guessed: --units, --up-axis)"
 
 
 def crs_unit(crs: str | None) -> tuple[str, float] | None:
@@ -180,3 +182,99 @@ def check_scan_ranges(ranges: NDArray[Any], source: str) -> None:
             "(millimetres? centimetres?). Pass --range-unit mm (or cm) to `stemmap detect`, or "
             "convert the file for `stemmap map` with `stemmap io convert-scans --range-unit mm`."
         )
+
+
+#: Thresholds of :func:`up_axis_hint`, chosen on the real clouds (docs/reliability.md, "Input
+#: conventions"): the Z-up single trees have their first principal axis within 14 degrees of
+#: vertical (|cos| >= 0.97) and the Z-up plots' ground plane its normal vertical; turned Y up,
+#: the trees' first axis is within 8 degrees of horizontal (|cos| <= 0.13) and 2.4-15x longer
+#: than the second.
+_LYING_COS = 0.5
+_LYING_ELONGATION = 2.0
+_LYING_MAX_STEMS = 5
+_WALL_COS = 0.3
+_WALL_FLATNESS = 0.35
+
+
+def up_axis_hint(xyz: NDArray[Any], n_stems: int) -> str | None:
+    """A warning when a cloud read z up has the shape of one whose up axis is another, else
+    None. ``xyz``: the cloud's points (a sample of up to a few 100 000 is enough), metres,
+    as read; ``n_stems``: the stems found.
+
+    Two shapes, each a warning only (the up axis is never guessed):
+
+    * a tree lying on its side: the cloud's first principal axis within 60 degrees of
+      horizontal and at least twice as long (standard deviation) as the second, with at most
+      :data:`_LYING_MAX_STEMS` stems, and no level dominant plane (a single tree is tallest
+      along its stem; a long strip of a mobile drive is long horizontally too, but holds many
+      stems and lies on its level ground);
+    * a standing plane: the third principal axis (the normal of a dominant plane, the ground
+      of a plot) within 17 degrees of horizontal, its deviation under 0.35 of the second's.
+
+    A cloud under 1 m tall (a slice) is not judged: it is flat by construction.
+    """
+    a = np.asarray(xyz, dtype=np.float64)
+    a = a[np.all(np.isfinite(a), axis=1)]
+    if a.shape[0] < 100:
+        return None
+    z = a[:, 2]
+    if float(np.percentile(z, 99.5) - np.percentile(z, 0.5)) < 1.0:
+        return None
+    w, v = np.linalg.eigh(np.cov((a - a.mean(axis=0)).T))
+    sd = np.sqrt(np.maximum(w[::-1], 0.0))
+    v = v[:, ::-1]
+    if not sd[1] > 0:
+        return None
+    first, third = v[:, 0], v[:, 2]
+    axis = "xyz"[int(np.argmax(np.abs(first[:2])))]
+    flat = sd[2] <= _WALL_FLATNESS * sd[1]  # a dominant plane (a plot's ground)
+    if (
+        abs(first[2]) < _LYING_COS
+        and sd[0] >= _LYING_ELONGATION * sd[1]
+        and n_stems <= _LYING_MAX_STEMS
+        and not (flat and abs(third[2]) >= 1.0 - _WALL_COS)
+    ):
+        return (
+            f"the cloud is longest along a horizontal axis ({axis}: {sd[0]:.1f} m std against "
+            f"{sd[1]:.1f} m across; z: {abs(first[2]):.2f} of it), like a tree lying on its "
+            f"side: if its {axis} axis points up (photogrammetry, Unity), pass --up-axis {axis}; "
+            "read z up, a Y-up tree gives a wrong diameter or none."
+        )
+    if abs(third[2]) < _WALL_COS and flat:
+        normal = "xyz"[int(np.argmax(np.abs(third)))]
+        return (
+            f"the cloud's dominant plane (its ground?) stands vertical, facing {normal}: if "
+            f"its {normal} axis points up (photogrammetry, Unity), pass --up-axis {normal}."
+        )
+    return None
+
+
+#: Largest time (s) a log in seconds can hold: 1e11 s after the Unix epoch is the year 5138.
+#: Unix times in ms, us and ns are 1.7e12, 1.7e15 and 1.7e18.
+MAX_TIME_S = 1e11
+#: Largest median step (s) between consecutive records a log in seconds can have here: a
+#: record a day apart; relative times in us or ns step by 1e4-1e8 per record.
+MAX_MEDIAN_STEP_S = 86_400.0
+
+
+def check_times(times: NDArray[Any], source: str, what: str = "time") -> None:
+    """InputError for times that cannot be seconds: a value past :data:`MAX_TIME_S` (Unix
+    time in ms, us or ns) or a median step past :data:`MAX_MEDIAN_STEP_S` (relative times in
+    us or ns). Read as seconds, such a log's dead reckoning integrates each speed over
+    1e8 "seconds": `stemmap map` on a real loop log stamped in ns gave 0 trees, exit 0."""
+    t = np.asarray(times, dtype=np.float64)
+    t = t[np.isfinite(t)]
+    if t.size == 0:
+        return
+    big = float(np.max(np.abs(t)))
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    med = float(np.median(steps)) if steps.size else 0.0
+    if big <= MAX_TIME_S and med <= MAX_MEDIAN_STEP_S:
+        return
+    guess = "nanoseconds" if (big > 1e17 or med > 1e6) else "microseconds or milliseconds"
+    shown = f"reach {big:.6g}" if big > MAX_TIME_S else f"step by a median of {med:.6g}"
+    raise InputError(
+        f"{source}: the {what} values {shown}, which cannot be seconds ({guess}?). stemmap "
+        "reads times in seconds: divide them (by 1e9 for ns, 1e6 for us, 1e3 for ms)."
+    )

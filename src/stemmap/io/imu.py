@@ -168,6 +168,9 @@ def read_imu_csv(path: PathLike) -> InertialLog:
             f"IMU CSV file {str(p)!r} line {table.lines[k]}: time_s {t[k]} does not increase "
             f"(previous row {t[k - 1]}); sort the file by time and drop duplicate rows."
         )
+    from stemmap.io.conventions import check_times
+
+    check_times(t, f"IMU CSV file {str(p)!r}", "time_s")
     log = InertialLog(
         t,
         np.column_stack((col("gyro_x"), col("gyro_y"), col("gyro_z"))),

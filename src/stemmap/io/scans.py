@@ -288,6 +288,8 @@ def _iter_csv(
     check_text_budget(p, "scan CSV", per_byte=3.0 if held else 0.0, per_line=500.0 if held else 0.0)
     frame = "laser"
     header: list[str] | None = None
+    pick: list[int] | None = None  # a rostopic CSV's columns, in the stemmap layout's order
+    frame_col: int | None = None
     n_beams = 0
     k = -1
     for lineno, ln in _csv_lines(p):
@@ -301,6 +303,10 @@ def _iter_csv(
             continue
         if header is None:
             header = [h.strip() for h in s.split(",")]
+            if header[0] == "%time":  # `rostopic echo -p` of a LaserScan topic
+                pick, frame_col = _rostopic_columns(header, p, lineno)
+                n_beams = len(pick) - 5
+                continue
             if tuple(header[:5]) != SCAN_CSV_FIXED_COLUMNS or len(header) < 6:
                 raise InputError(
                     f"scan CSV {str(p)!r} line {lineno}: the header must start with "
@@ -322,10 +328,17 @@ def _iter_csv(
             )
             continue
         try:
-            v = _parse_float_fields(fields)
+            if pick is not None:
+                row_frame = fields[frame_col] if frame_col is not None else ""
+                v = _parse_float_fields([fields[i] for i in pick])
+                v[0] = _ns_to_s(fields[pick[0]], fields[0])
+            else:
+                v = _parse_float_fields(fields)
         except ValueError as exc:
             _record(skipped, p, k, math.nan, f"line {lineno} holds a non-number ({exc})")
             continue
+        if pick is not None and row_frame:
+            frame = row_frame
         try:
             scan = LaserScan(
                 v[5 : 5 + n_beams],
@@ -345,6 +358,46 @@ def _iter_csv(
 
 
 _INTENSITY_RE = re.compile(r"(i|intensity|intensities)_?(\d+)$", re.IGNORECASE)
+
+#: The ``rostopic echo -p`` columns of a sensor_msgs/LaserScan that give the stemmap layout's
+#: fixed columns (the time is the header stamp, integer nanoseconds).
+_ROSTOPIC_FIXED = (
+    "field.header.stamp",
+    "field.angle_min",
+    "field.angle_increment",
+    "field.range_min",
+    "field.range_max",
+)
+
+
+def _rostopic_columns(header: list[str], p: Path, lineno: int) -> tuple[list[int], int | None]:
+    """The columns of a ``rostopic echo -p /scan`` CSV (``%time,field.header.seq,
+    field.header.stamp,field.header.frame_id,field.angle_min,...,field.ranges0,...,
+    field.intensities0,...``) in the stemmap layout's order (stamp, angle_min,
+    angle_increment, range_min, range_max, ranges...), and the frame_id column. Its times are
+    integer nanoseconds: read as seconds, a log 10 scans a second would span 3 years a scan."""
+    at = {c: i for i, c in enumerate(header)}
+    missing = [c for c in _ROSTOPIC_FIXED if c not in at]
+    ranges: list[int] = []
+    while f"field.ranges{len(ranges)}" in at:
+        ranges.append(at[f"field.ranges{len(ranges)}"])
+    if missing or not ranges:
+        raise InputError(
+            f"scan CSV {str(p)!r} line {lineno}: a `rostopic echo -p` header (%time,...) "
+            "without the sensor_msgs/LaserScan columns "
+            f"{', '.join(missing) if missing else 'field.ranges0..'}: is it a LaserScan topic?"
+        )
+    return [at[c] for c in _ROSTOPIC_FIXED] + ranges, at.get("field.header.frame_id")
+
+
+def _ns_to_s(stamp: str, receipt: str) -> float:
+    """Integer nanoseconds (a ROS stamp as rostopic writes it) -> seconds, exactly as a float
+    allows; the receipt time (``%time``) when the stamp is 0 (an unstamped message)."""
+    text = stamp.strip()
+    if not text.lstrip("-").isdigit() or int(text) == 0:
+        text = receipt.strip()
+    ns = int(text) if text.lstrip("-").isdigit() else int(float(text))
+    return ns // 1_000_000_000 + (ns % 1_000_000_000) / 1e9
 
 
 def _csv_beam_columns(header: list[str], p: Path, lineno: int) -> int:
@@ -652,8 +705,9 @@ def _checked_conventions(batch: ScanBatch, source: str, range_unit: str | None) 
     start angle in degrees, e.g. -90) and, without ``range_unit``, for ranges that cannot be
     metres (:func:`stemmap.io.conventions.check_scan_ranges`); ``range_unit`` (a key of
     :data:`stemmap.io.conventions.UNIT_SCALES`) scales the ranges and the range window."""
-    from stemmap.io.conventions import unit_scale
+    from stemmap.io.conventions import check_times, unit_scale
 
+    check_times(batch.times, source, "scan time")
     if range_unit is None:
         check_scan_conventions(batch.angle_min, batch.ranges, source)
         return batch

@@ -101,6 +101,8 @@ from stemmap.types import FloatArray
 
 __all__ = ["N_PARAMS", "PARAM_INDEX", "detect_scans"]
 
+_BATCH_MIN = PARAM_INDEX["scan_noise_batch_min"]
+
 
 @njit(cache=True, error_model="numpy")
 def _detect_kernel(
@@ -172,10 +174,12 @@ def _detect_kernel(
     scan_on = prm[53] > 0.0 and fit_sigma_given
     scan_jump = prm[54]
     scan_surface = prm[55]
-    # scan_noise_pool: every scan's estimate first, those without one sharing the batch's
-    pool_on = scan_on and prm[65] > 0.0
+    # scan_noise_pool: every scan's estimate first, those without one sharing the batch's;
+    # scan_noise_batch: those still without one taking every scan's pooled estimate
+    batch_min = prm[_BATCH_MIN]
+    pool_on = scan_on and (prm[65] > 0.0 or batch_min < math.inf)
     noise_all = (
-        _batch_scan_noise(ranges, fov_in, lo, hi, scan_jump, scan_surface)
+        _batch_scan_noise(ranges, fov_in, lo, hi, scan_jump, scan_surface, prm[65] > 0.0, batch_min)
         if pool_on
         else np.zeros(1)
     )

@@ -130,20 +130,33 @@ def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> fl
 
 @njit(cache=True, error_model="numpy")
 def _batch_scan_noise(
-    ranges: FloatArray, fov_in: np.ndarray, lo: float, hi: float, jump: float, surface: float
+    ranges: FloatArray,
+    fov_in: np.ndarray,
+    lo: float,
+    hi: float,
+    jump: float,
+    surface: float,
+    pool: bool = True,
+    batch_min: float = math.inf,
 ) -> FloatArray:  # pragma: no cover - numba
     """Every scan's range-noise scale with the scans that have too few interior triples for
-    an estimate of their own sharing one from the union of their triples (numba twin of
-    :func:`stemmap.scan.plausibility.scan_noise` with ``pool``; scans gated to ``(lo, hi)``
-    and the field of view as the detector kernel gates them; the same arithmetic)."""
+    an estimate of their own sharing one from the union of their triples (``pool``), and the
+    scans still without one taking the estimate over every scan's triples where it is at least
+    ``batch_min`` (numba twin of :func:`stemmap.scan.plausibility.scan_noise` with ``pool`` and
+    ``batch_min``; scans gated to ``(lo, hi)`` and the field of view as the detector kernel
+    gates them; the same arithmetic)."""
     s_count, n = ranges.shape
     out = np.zeros(s_count)
     g = np.empty(n)
     d = np.empty(n)
-    pool = np.empty(s_count * n)
+    pool_v = np.empty(s_count * n)
+    every = np.empty(s_count * n) if batch_min < math.inf else np.empty(0)
     lacking = np.zeros(s_count, dtype=np.bool_)
+    unset = np.ones(s_count, dtype=np.bool_)
     pool_m = 0
     pool_longest = 0
+    every_m = 0
+    every_longest = 0
     jmp = min(jump, _FLOAT_MAX)
     for s in range(s_count):
         for k in range(n):
@@ -152,18 +165,30 @@ def _batch_scan_noise(
         if n < 5:  # no interior triple
             continue
         m, longest = _interior_triples(g, jmp, d)
+        if batch_min < math.inf:
+            every[every_m : every_m + m] = d[:m]
+            every_m += m
+            every_longest = max(every_longest, longest)
         if m >= _SCAN_NOISE_MIN_TRIPLES and 2 * longest <= m:
             out[s] = _mad_scale(d, m, surface)
-        elif m < _SCAN_NOISE_MIN_TRIPLES:
+            unset[s] = False
+        elif pool and m < _SCAN_NOISE_MIN_TRIPLES:
             lacking[s] = True
-            pool[pool_m : pool_m + m] = d[:m]
+            pool_v[pool_m : pool_m + m] = d[:m]
             pool_m += m
             pool_longest = max(pool_longest, longest)
     if pool_m >= _SCAN_NOISE_MIN_TRIPLES and 2 * pool_longest <= pool_m:
-        e = _mad_scale(pool, pool_m, surface)
+        e = _mad_scale(pool_v, pool_m, surface)
         for s in range(s_count):
             if lacking[s]:
                 out[s] = e
+                unset[s] = False
+    if every_m >= _SCAN_NOISE_MIN_TRIPLES and 2 * every_longest <= every_m:
+        e = _mad_scale(every, every_m, surface)
+        if e >= batch_min:
+            for s in range(s_count):
+                if unset[s]:
+                    out[s] = e
     return out
 
 

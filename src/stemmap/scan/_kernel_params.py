@@ -92,6 +92,7 @@ PARAM_NAMES = (
     "scan_noise_pool",  # 1: scans without their own noise estimate share the batch's
     "edge_hit_min",  # the averaging scanner's return threshold (share of the footprint) ...
     "edge_hit_max",  # ... assumed in [min, max]: the default tangent prior (edge_default_prior)
+    "scan_noise_batch_min",  # scans without an estimate take the batch's when >= this (inf: off)
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -186,6 +187,7 @@ def kernel_params(
         "scan_noise_pool": cfg.sigma_from_scan and cfg.scan_noise_pool,
         "edge_hit_min": cfg.edge_hit_min,
         "edge_hit_max": cfg.edge_hit_max,
+        "scan_noise_batch_min": cfg.scan_noise_batch_min(),
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

@@ -335,6 +335,7 @@ class ScanTrunkDetector:
                 cfg.scan_noise_surface,
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
                 pool=cfg.scan_noise_pool,
+                batch_min=cfg.scan_noise_batch_min(),
             )
             if cfg.sigma_from_scan
             else None
