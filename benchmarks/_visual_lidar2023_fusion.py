@@ -19,8 +19,11 @@ from _visual_lidar2023_noise import step_inliers
 #: covariance), the factor on the VO's inlier-count variance
 #: (:func:`_visual_lidar2023_noise.fit_inlier_model`) and the span (steps; None = the whole drive).
 #: See :func:`increment_sources`. The held-out loop error falls monotonically as the VO's factor
-#: grows (1: 0.191 m, 16: 0.091, 256: 0.0876, 1024: 0.0875 = the lidar alone); 256 keeps the VO in
-#: at all, within 0.1 mm of the grid's best.
+#: grows (1: 0.191 m, 16: 0.091, 256: 0.0876, 1024: 0.0875 = the lidar alone; VO before Dec 4);
+#: 256 keeps the VO in at all, within 0.1 mm of the grid's best. Re-run Dec 5 with the VO's
+#: keyframe fraction 0.7 (1: 0.211, 16: 0.100, 256: 0.0878, 1024: 0.0874-0.0877; the grid's best
+#: 0.0873 m with the registration model at span 5): not re-tuned (docs/algorithms/
+#: slam-frontends.md, "Relative-motion fusion").
 FUSED_LIDAR_MODEL = "drift"
 FUSED_VO_SCALE = 256.0
 FUSED_SPAN: int | None = 80
@@ -75,7 +78,9 @@ def increment_sources(
 #: Factor on the calibration drive's lidar pose sigma in the EKF (``fused``). ``--tune 30 40``
 #: tries :data:`TUNE_EKF_FACTORS` on the held-out drives: 0.125 gave 0.0748 m mean loop error
 #: there against 0.0782 m at 1, but 0.117 against 0.113 m on the 12 scored loops, with the
-#: fused position's z^2 up from 45-315 to 2,000-18,000 (the EKF's unicycle model has no
+#: fused position's z^2 up from 45-315 to 2,000-18,000 (VO before Dec 4; Dec 5, keyframe
+#: fraction 0.7: 0.0743 against 0.0750 m held out, 0.117 against 0.106 m scored, z^2 59-357 ->
+#: 2,200-18,200) (the EKF's unicycle model has no
 #: lateral process noise, so a tighter lidar only follows the lidar's heading and forward
 #: jitter more closely). A difference within the noise of 9 drives; the calibrated sigma stays.
 EKF_LIDAR_SIGMA_FACTOR = 1.0
