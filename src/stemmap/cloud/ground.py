@@ -119,6 +119,9 @@ def raster_guard(n_cells: int, bytes_per_cell: float, budget: float, what: str, 
 
 
 _SUPPORT = 0.1  # m: points this close above a cell's minimum support it
+# a stem base lies inside the middle of its cloud: beyond the 10 % quantile of the occupied
+# cells (grown by one stem footprint) on no side (docs/algorithms/cloud.md "Thinned plots")
+_EDGE = 0.1
 _OFF = 1 << 30  # cell indices are shifted to be non-negative before packing into int64 keys
 
 
@@ -214,7 +217,14 @@ class GroundAccumulator:
         lone noise point below the ground) are left out. A tree exported without ground
         (3DFin, TreeQSM, ITSMe) has only its stem's cut there: they fit inside one stem
         footprint, ``max_width`` (the largest plausible DBH). Then the base is that lowest
-        point, and heights are measured from it.
+        point, and heights are measured from it -- if it lies inside its cloud: a tree's
+        crown and branches spread around its stem (archi Tree_1 / Tree_2, treels pine cut
+        above its ground: at least 17 % of the occupied cells on every side of the base, at
+        every thinning), while the lowest returns of a sloped plot lie at its downhill edge,
+        where a thinned or distant scan can leave one pair of sparse points that fits in a
+        footprint (the simulated single-scan plot at 10 %: 2 % of the cells beyond it). A
+        base more than ``max_width`` outside the 10-90 % quantile box of the occupied cells
+        is such an edge: the cloud has ground.
         """
         if self._keys.size == 0:
             return None
@@ -240,6 +250,11 @@ class GroundAccumulator:
         z0 = float(cells[:, 2].min())
         low = cells[cells[:, 2] <= z0 + slab, :2]
         if float(np.max(np.ptp(low, axis=0))) > max_width:
+            return None
+        # a tree's points lie around its stem; a plot's lowest points can be a pair of sparse
+        # returns at its downhill edge (a thinned scan of a sloped plot, docs "thinned plots")
+        lo, hi = np.quantile(cells[:, :2], [_EDGE, 1.0 - _EDGE], axis=0)
+        if np.any(low.min(axis=0) < lo - max_width) or np.any(low.max(axis=0) > hi + max_width):
             return None
         return z0
 

@@ -242,13 +242,31 @@ def detect_prepared(
     if prepared.band is None:
         return CloudStems.empty("ours", reason="the cloud is empty")
     cfg = _slice_setup(config or StemConfig(), prepared.zmin, prepared.zmax, prepared.is_slice)
-    return _stems_from_band(
-        prepared.band,
-        cfg,
-        slice_cloud=prepared.is_slice,
-        statistics_only=statistics_only,
-        region=region,
+    return _said_of_base(
+        _stems_from_band(
+            prepared.band,
+            cfg,
+            slice_cloud=prepared.is_slice,
+            statistics_only=statistics_only,
+            region=region,
+        ),
+        prepared.band.base,
     )
+
+
+def _said_of_base(result: CloudStems, base: str) -> CloudStems:
+    """An empty result of a cloud taken for a tree without ground says so in its reason:
+    its heights were measured from its lowest points, and if those were not a stem's cut
+    (a plot's sparse lowest returns) the band was cut at the wrong height
+    (docs/algorithms/cloud.md "Thinned plots: the ground, not a stem base")."""
+    if len(result) or base != BASE_STEM or result.reason == "statistics only":
+        return result
+    note = (
+        "; no ground was found, so heights were measured from the cloud's lowest points as "
+        "a segmented tree's stem base (if this is a plot, its lowest returns were too sparse "
+        "to show its ground; detect_stems(ground=...) takes a ground model)"
+    )
+    return replace(result, reason=result.reason + note, base=base)
 
 
 def prepare_cloud(
@@ -489,4 +507,4 @@ def detect_stems_file(
         band.reach = (np.concatenate(rxs), np.concatenate(rhs))
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
     with naming_the_source(src):
-        return _stems_from_band(band, cfg, slice_cloud=is_slice)
+        return _said_of_base(_stems_from_band(band, cfg, slice_cloud=is_slice), band.base)
