@@ -83,7 +83,7 @@ MIN_EXACT_BUFFER = 3.75
 PREPARE_APART_FRACTION = 0.25
 
 #: the scalar (per-cloud) fields of a CloudStems; every other field is a per-stem column
-_SCALARS = ("method", "frame", "spacing", "reason", "base", "noise_floor")
+_SCALARS = ("method", "frame", "spacing", "reason", "base", "noise_floor", "base_z")
 #: the per-stem (array) columns of a CloudStems, as stored in a chunk result
 _COLUMNS = tuple(f.name for f in fields(CloudStems) if f.name not in _SCALARS)
 
