@@ -17,6 +17,12 @@ from stemmap.cli._catalog import (
 )
 from stemmap.cli._common import QuietFlag, console, fail_on_stemmap_error, progress
 from stemmap.cli._geo import checked_crs
+from stemmap.cli._stems_base import (
+    base_warning,
+    empty_result_notes,
+    height_payload,
+    height_reference,
+)
 from stemmap.cli._summary import JsonFlag, compile_notice, fmt, print_summary
 from stemmap.cli._validate import bounded
 from stemmap.cloud.ground import DEFAULT_MAX_MEMORY, GroundModel
@@ -478,6 +484,9 @@ def stems(
             ("CRS", crs[:40] if crs else "none (local frame)", crs_note),
         ]
         rows.append(("input convention", convention.describe(), "--units / --up-axis"))
+        said = height_reference(result)
+        if said is not None:
+            rows.append(("heights from", *said))
         if catalog is not None:
             rows.append(("tiles", fmt(len(catalog)), f"{fmt(catalog.n_points)} points"))
         if report is not None:
@@ -487,20 +496,28 @@ def stems(
             f"stemmap stems: {name}", rows, None, files, as_json=as_json, quiet=quiet,
             payload={"n_stems": len(result), "median_dbh_m": med, "crs": crs,
                      "method": result.method, "units": convention.units,
-                     "up_axis": convention.up_axis},
+                     "up_axis": convention.up_axis, **height_payload(result)},
         )  # fmt: skip
         if len(result) == 0:
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
         hints = convention_hints(result, convention, user_set=units is not None)
+        notes: list[str] = []
         if not hints and catalog is None and up_axis_wanted(result, convention, units):
             from stemmap.io.conventions import up_axis_hint
 
-            if sample is None:  # one more streaming pass, only for a run of few stems
+            if sample is None:  # one more streaming pass, only for a run of few (or no) stems
                 sample = _cloud_sample(cloud, read_points, topic, convention)
             hint = up_axis_hint(sample, len(result))
-            hints += [] if hint is None else [hint]
+            if len(result):
+                hints += [] if hint is None else [hint]
+            else:  # the causes the run has evidence for, not a guess at the convention
+                hints, notes = empty_result_notes(sample, hint)
+        doubt = base_warning(result)
+        hints += [] if doubt is None else [doubt]
         for line in hints:
             console.print(f"[yellow]warning:[/yellow] {line}")
+        for line in notes:
+            console.print(f"note: {line}")
 
 
 #: Median DBH (m) above which a run's stems are more likely a cloud in feet than real trees:
@@ -601,9 +618,9 @@ UP_AXIS_CHECK_MAX_STEMS = 5
 
 
 def up_axis_wanted(result: Any, convention: Any, units: str | None) -> bool:
-    """Whether the cloud's shape is checked for another up axis (a run of 1 to
-    :data:`UP_AXIS_CHECK_MAX_STEMS` stems, no --units / --up-axis given)."""
-    return units is None and convention.is_identity and 0 < len(result) <= UP_AXIS_CHECK_MAX_STEMS
+    """Whether the cloud's shape is checked for another up axis (a run of at most
+    :data:`UP_AXIS_CHECK_MAX_STEMS` stems, none included, no --units / --up-axis given)."""
+    return units is None and convention.is_identity and len(result) <= UP_AXIS_CHECK_MAX_STEMS
 
 
 def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[str]:
@@ -611,13 +628,8 @@ def convention_hints(result: Any, convention: Any, *, user_set: bool) -> list[st
     user set --units or --up-axis)."""
     import numpy as np
 
-    if user_set or not convention.is_identity:
-        return []
-    if len(result) == 0:
-        return [
-            "if the cloud is not in metres (millimetres, feet) or not z up (y up: "
-            "photogrammetry, Unity), pass --units or --up-axis y (docs/cli.md, stems)."
-        ]
+    if user_set or not convention.is_identity or len(result) == 0:
+        return []  # an empty result: the evidence of its cloud (empty_result_notes)
     med = float(np.nanmedian(result.diameter))
     if med > FEET_SUSPECT_MEDIAN_DBH:
         return [

@@ -5,6 +5,7 @@ branches and foliage, and the grid clustering of what is left into stem candidat
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -35,6 +36,7 @@ class _Band:
     canopy: dict[str, Any] = field(default_factory=dict)
     origins: FloatArray | None = None  # (N, 2) horizontal sensor position of each point
     base: str = BASE_GROUND  # what the heights h are measured from (GroundModel.base)
+    base_z: float = math.nan  # z of a flat base (GroundModel.flat_z), NaN for a ground raster
     # xy and heights of the returns in the shared-axis fit's range outside the band (only
     # with StemConfig.axis_fallback and axis_reach: :mod:`~stemmap.cloud.axisfit`)
     reach: tuple[FloatArray, FloatArray] | None = None

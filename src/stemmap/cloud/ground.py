@@ -9,6 +9,7 @@ chunks (:class:`GroundAccumulator`), so a 20-million-point file never sits in me
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +62,12 @@ class GroundModel:
     z: FloatArray
     base: str = BASE_GROUND
     observed: NDArray[np.bool_] | None = None
+
+    @property
+    def flat_z(self) -> float:
+        """z of the flat base of a cloud without ground (base ``"lowest stem points"``), NaN
+        for a ground raster: what the summary of a run states its heights came from."""
+        return float(self.z.flat[0]) if self.base == BASE_STEM else math.nan
 
     def height_of(self, xyz: ArrayLike) -> FloatArray:
         """Height above ground of (N, 3) points (bilinear between cell centres, clamped)."""

@@ -48,6 +48,8 @@ class CloudStems:
         ...)
     base : str -- what heights are measured from: ``"ground"``, ``"lowest stem points"`` (a
         cloud without ground) or ``"slice heights as given"``
+    base_z : float, metres -- z (cloud frame) of the flat base of a cloud without ground (base
+        ``"lowest stem points"``: its stem's lowest points); NaN for a ground model or a slice
     method : str
     frame : str
     spacing : float, metres -- point spacing used (measured, or ``StemConfig.spacing``; NaN
@@ -78,6 +80,7 @@ class CloudStems:
     reason: str = ""
     base: str = ""
     noise_floor: float = math.nan
+    base_z: float = math.nan
 
     def __post_init__(self) -> None:
         k = int(self.xy.shape[0])
@@ -162,6 +165,7 @@ class CloudStems:
             spacing=float(d.get("spacing", math.nan)),
             base=str(d.get("base", "")),
             noise_floor=float(d.get("noise_floor", math.nan)),
+            base_z=float(d.get("base_z", math.nan)),
         )
 
     def select(self, idx: ArrayLike) -> CloudStems:

@@ -195,6 +195,7 @@ class PreparedCloud:
             "h": b.h,
             "z": b.z,
             "base": np.array(b.base),
+            "base_z": np.array(b.base_z),
             "zrange": np.array([self.zmin, self.zmax]),
             "is_slice": np.array(self.is_slice),
         }
@@ -218,6 +219,7 @@ class PreparedCloud:
             canopy,
             origins=cols.get("origins"),
             base=str(cols["base"]),
+            base_z=float(cols.get("base_z", math.nan)),
         )
         z0, z1 = (float(v) for v in cols["zrange"])
         return cls(band, z0, z1, bool(cols["is_slice"]))
@@ -250,23 +252,26 @@ def detect_prepared(
             statistics_only=statistics_only,
             region=region,
         ),
-        prepared.band.base,
+        prepared.band,
     )
 
 
-def _said_of_base(result: CloudStems, base: str) -> CloudStems:
-    """An empty result of a cloud taken for a tree without ground says so in its reason:
+def _said_of_base(result: CloudStems, band: _Band) -> CloudStems:
+    """``result`` with the base its heights were measured from (``base``, and ``base_z`` for
+    a flat base: the run's summary states it). An empty result of a cloud taken for a tree
+    without ground also says so in its reason:
     its heights were measured from its lowest points, and if those were not a stem's cut
     (a plot's sparse lowest returns) the band was cut at the wrong height
     (docs/algorithms/cloud.md "Thinned plots: the ground, not a stem base")."""
-    if len(result) or base != BASE_STEM or result.reason == "statistics only":
+    result = replace(result, base=band.base, base_z=band.base_z)
+    if len(result) or band.base != BASE_STEM or result.reason == "statistics only":
         return result
     note = (
         "; no ground was found, so heights were measured from the cloud's lowest points as "
         "a segmented tree's stem base (if this is a plot, its lowest returns were too sparse "
         "to show its ground; detect_stems(ground=...) takes a ground model)"
     )
-    return replace(result, reason=result.reason + note, base=base)
+    return replace(result, reason=result.reason + note)
 
 
 def prepare_cloud(
@@ -315,7 +320,8 @@ def prepare_cloud(
         r_lo, r_hi = _reach_range(cfg)
         h, m = g.band_of(p, r_lo, r_hi)  # heights, and the indices of the band's points
         m, reach = _split_reach(p, h, m, lo, hi)
-        band = _Band(p[m, :2], h[m], p[m, 2], origins=None if o is None else o[m], base=g.base)
+        o_m = None if o is None else o[m]
+        band = _Band(p[m, :2], h[m], p[m, 2], origins=o_m, base=g.base, base_z=g.flat_z)
         band.reach = reach
         if cfg.estimate_height:
             band.canopy = _canopy_update({}, p[:, :2], h)
@@ -502,9 +508,10 @@ def detect_stems_file(
         canopy,
         origins=np.concatenate(os_) if sensor is not None else None,
         base=BASE_SLICE if ground is None else ground.base,
+        base_z=math.nan if ground is None else ground.flat_z,
     )
     if rxs:
         band.reach = (np.concatenate(rxs), np.concatenate(rhs))
     log.info("%s: %d points, %d in the slice band", path, n_total, band.xy.shape[0])
     with naming_the_source(src):
-        return _said_of_base(_stems_from_band(band, cfg, slice_cloud=is_slice), band.base)
+        return _said_of_base(_stems_from_band(band, cfg, slice_cloud=is_slice), band)
