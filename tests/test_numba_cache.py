@@ -68,6 +68,7 @@ def test_the_detector_kernel_records_its_dependencies() -> None:
         _fast_candidates,
         _fast_robust,
         _fast_segments,
+        _fast_step_split,
         _fit_geometric,
         _fit_lm,
         _gaps,
@@ -90,6 +91,7 @@ def test_the_detector_kernel_records_its_dependencies() -> None:
         _gaps.__file__,
         _fast_robust.__file__,
         _fast_segments.__file__,
+        _fast_step_split.__file__,
         _fit_lm.__file__,
         _kernel_params.__file__,
     )
@@ -105,6 +107,7 @@ def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
         _fast_candidates,
         _fast_robust,
         _fast_segments,
+        _fast_step_split,
         _fit_geometric,
         _fit_lm,
         _gaps,
@@ -126,6 +129,11 @@ def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
         (_gaps, _gaps.gap_cut_flags, (_corners.__file__,)),
         (_fast_candidates, _fast_candidates._fit_candidate, candidate_deps),
         (_fast_arcs, _fast_arcs.arc_candidate, (_fast_candidates.__file__, *candidate_deps)),
+        (
+            _fast_step_split,
+            _fast_step_split.step_emit,
+            (_fast_arcs.__file__, _fast_candidates.__file__, *candidate_deps),
+        ),
     ):
         cache = _numba_cache._cache_dir(disp, Path(mod.__file__))
         if not (cache / f"{Path(mod.__file__).stem}.deps-sha256").exists():
@@ -135,13 +143,21 @@ def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
 
 def test_the_dependency_lists_cover_every_imported_kernel_module() -> None:
     """Every stemmap.scan module whose names _detect_fast, _fast_candidates, _fast_arcs,
-    _fit_geometric or _gaps import is in that module's drop_stale_cache call (read from the
-    source, so a new split is not missed)."""
+    _fast_step_split, _fit_geometric or _gaps import is in that module's drop_stale_cache call
+    (read from the source, so a new split is not missed)."""
     import ast
 
-    from stemmap.scan import _detect_fast, _fast_arcs, _fast_candidates, _fit_geometric, _gaps
+    from stemmap.scan import (
+        _detect_fast,
+        _fast_arcs,
+        _fast_candidates,
+        _fast_step_split,
+        _fit_geometric,
+        _gaps,
+    )
 
-    for mod in (_detect_fast, _fast_arcs, _fast_candidates, _fit_geometric, _gaps):
+    kernels = (_detect_fast, _fast_arcs, _fast_candidates, _fast_step_split, _fit_geometric, _gaps)
+    for mod in kernels:
         tree = ast.parse(Path(mod.__file__).read_text())
         imported: set[str] = set()
         for node in tree.body:

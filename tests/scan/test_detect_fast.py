@@ -185,6 +185,14 @@ CONFIGS["edge_hit_unknown"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.5}
 CONFIGS["edge_hit_any"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.0}
 
 
+# Dec 5: the step split (compiled since: _fast_step_split) with the step read against the
+# configured sigma, the sparse scans' pooled noise and every scan's (grid 59)
+STEP = {"step_split": True, "arc_short_steps": True}
+CONFIGS["step_split"] = STEP
+CONFIGS["step_split_pool"] = {**STEP, "step_noise_pool": True}
+CONFIGS["step_split_batch"] = {**STEP, "step_noise_pool": "batch"}
+
+
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 def test_compiled_pipeline_equals_numpy_pipeline(stand, name):
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **CONFIGS[name]))
@@ -353,3 +361,17 @@ def test_squared_corner_pretest_never_misses_a_corner():
         hits += found > 0
         assert may_have_corner(px, py, 0, n, span, thr) or found == 0
     assert hits > 100  # corners were present in the draws
+
+
+@pytest.mark.parametrize("pool", [True, "batch"])
+def test_compiled_step_split_equals_numpy_at_3_cm_noise(stand, pool):
+    # 3 cm range noise: candidates fail the RMS test and their largest steps are read
+    # against the (pooled) noise; the step split must change detections (path exercised)
+    batch = _scans(stand, range_noise=0.03)
+    cfg = DetectorConfig.preset("stemmap", **STEP, step_noise_pool=pool)
+    det = ScanTrunkDetector(cfg)
+    assert det._compiled(None, None)
+    fast, ref = _both(det, batch)
+    assert_same(fast, ref)
+    plain = _both(ScanTrunkDetector(dataclasses.replace(cfg, step_split=False)), batch)[1]
+    assert len(ref) > len(plain)

@@ -123,3 +123,21 @@ def test_compiled_arcs_equal_numpy_on_real_slices(real_batches, arcs):
         plain = _both(base, batch)[1]
         changed += len(ref) != len(plain) or not np.array_equal(ref.radii, plain.radii)
     assert changed > 0  # the arcs changed detections: the path was exercised
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("pool", [False, True, "batch"])
+def test_compiled_step_split_equals_numpy_on_real_slices(real_batches, pool):
+    # Dec 5: the step split (grid 59 with pool "batch": the leave-one-dataset-out choice) on
+    # every real slice's virtual scans (the TreeLS plot's stems with a branch behind or a twig
+    # in front are what it is for)
+    cfg = DetectorConfig.preset(
+        "stemmap", step_split=True, step_noise_pool=pool, arc_short_steps=True
+    )
+    det = ScanTrunkDetector(cfg)
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", arc_short_steps=True))
+    changed = 0
+    for ref, batch in _same_on_every_batch(det, real_batches):
+        plain = _both(base, batch)[1]
+        changed += len(ref) != len(plain) or not np.array_equal(ref.radii, plain.radii)
+    assert changed > 0  # the step split changed detections: the path was exercised

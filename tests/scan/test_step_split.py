@@ -110,10 +110,40 @@ def test_largest_steps_per_segment():
     assert largest_steps(two).tolist() == [3, 5]
 
 
-def test_step_split_runs_on_the_numpy_path():
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True))
-    assert not det._compiled(None, None)
+def test_step_split_runs_compiled_but_step_twigs_on_the_numpy_path():
+    # the step split and its pooled step noise are compiled (_fast_step_split); dropping every
+    # dip (step_twigs) is numpy-only
+    for pool in (False, True, "batch"):
+        cfg = DetectorConfig.preset("stemmap", step_split=True, step_noise_pool=pool)
+        assert ScanTrunkDetector(cfg)._compiled(None, None)
+    twigs = DetectorConfig.preset("stemmap", step_split=True, step_twigs=True)
+    assert not ScanTrunkDetector(twigs)._compiled(None, None)
     assert ScanTrunkDetector("stemmap")._compiled(None, None)
+
+
+@pytest.mark.parametrize("pool", [False, True, "batch"])
+def test_compiled_step_split_equals_numpy_on_the_pooled_noise_batches(pool):
+    # the batches whose pooled step noise decides whether the stem is cut (the two tests
+    # above and below), a twig in front (the spike dropped) and the stem alone with its branch
+    # behind: the compiled kernel's detections are the numpy pipeline's, bit for bit
+    from tests.scan.test_detect_fast import _both, assert_same
+
+    twig = _circles_scan([(4.5, 0.0, 0.09)])
+    r = twig.ranges[0].copy()
+    r[np.flatnonzero(np.isfinite(r))[1]] -= 0.06
+    batches = [
+        _with_walls(_stem_and_neighbour(BEHIND)),
+        _with_walls(_stem_and_neighbour(BEHIND), n_walls=3, seed=2, per_scan=2),
+        _with_ranges(twig, r),
+        _stem_and_neighbour(BEHIND),
+    ]
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True, step_noise_pool=pool))
+    found = 0
+    for batch in batches:
+        fast, ref = _both(det, batch)
+        assert_same(fast, ref)
+        found += int(np.sum(ref.index == 0))
+    assert found >= 2  # the step split's pieces were found (the twig, the stem alone)
 
 
 def test_a_twig_in_front_of_a_stem_is_dropped_not_cut():

@@ -10,8 +10,10 @@ straightness test), the edge-silhouette priors, the "ours" circle fit (the same 
 ``_fit_one`` of :mod:`stemmap.scan._fit_geometric`), the plausibility checks, arc extent and
 quality, with ``refit_split="corners"`` the validated corner split of rejected candidates and
 with ``arc_refit`` the largest consistent arc of a candidate (ours, issue 11;
-:mod:`stemmap.scan._fast_arcs`). The named pure functions in :mod:`~stemmap.scan.preprocess`,
-:mod:`~stemmap.scan.segment` and :mod:`~stemmap.scan.features` remain the reference: this
+:mod:`stemmap.scan._fast_arcs`) and with ``step_split`` the cut of a candidate that fails the
+RMS test at its largest range step (:mod:`stemmap.scan._fast_step_split`). The named pure
+functions in :mod:`~stemmap.scan.preprocess`, :mod:`~stemmap.scan.segment` and
+:mod:`~stemmap.scan.features` remain the reference: this
 kernel evaluates the same expressions in the same order, and every per-segment sum replicates
 numpy's pairwise summation of ``np.add.reduceat`` (:func:`_seg_sum`), so its results equal the
 reference pipeline's bit for bit on this machine (tests/scan/test_detect_fast.py compares them;
@@ -57,6 +59,7 @@ from stemmap.scan import (
     _fast_candidates,
     _fast_robust,
     _fast_segments,
+    _fast_step_split,
     _fit_geometric,
     _fit_lm,
     _gaps,
@@ -91,6 +94,7 @@ from stemmap.scan._fast_segments import (
     _seg_sum,
     _select_min,
 )
+from stemmap.scan._fast_step_split import step_emit
 from stemmap.scan._fit_geometric import OK, _fit_one
 from stemmap.scan._gaps import gap_cut_flags, gap_cut_occlusion
 from stemmap.scan._kernel_params import N_PARAMS as N_PARAMS
@@ -102,6 +106,10 @@ from stemmap.types import FloatArray
 __all__ = ["N_PARAMS", "PARAM_INDEX", "detect_scans"]
 
 _BATCH_MIN = PARAM_INDEX["scan_noise_batch_min"]
+_STEP = PARAM_INDEX["step_split"]
+_STEP_NOISE = PARAM_INDEX["step_noise_on"]
+_STEP_POOL = PARAM_INDEX["step_noise_pool"]
+_STEP_BATCH_MIN = PARAM_INDEX["step_noise_batch_min"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -183,6 +191,22 @@ def _detect_kernel(
         if pool_on
         else np.zeros(1)
     )
+    # step_split (_fast_step_split), with step_noise_pool every scan's step noise
+    step_on = prm[_STEP] > 0.0
+    step_all = (
+        _batch_scan_noise(
+            ranges,
+            fov_in,
+            lo,
+            hi,
+            scan_jump,
+            scan_surface,
+            prm[_STEP_POOL] > 0.0,
+            prm[_STEP_BATCH_MIN],
+        )
+        if step_on and prm[_STEP_NOISE] > 0.0
+        else np.zeros(s_count)
+    )
     refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
     arcs_on = prm[58] > 0.0  # arc_refit (_fast_arcs)
     arc_replace = prm[61]
@@ -239,6 +263,7 @@ def _detect_kernel(
     arc_work = np.empty((ARC_WORK_ROWS, max(n, 9)))
     prm_arc = prm.copy()
     prm_arc[43] = 0.0  # bark_roughness
+    step_copy = (np.empty(n), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64))
     cap = max(16, 2 * s_count)
     rows = np.empty((cap, OUT_COLUMNS))
     scans = np.empty(cap, dtype=np.int64)
@@ -539,6 +564,7 @@ def _detect_kernel(
                 m_cap = 2.0 * r_cap + math.sqrt(cnt_i) * lim
                 floor = _algebraic_floor(px, py, a, b) / (m_cap * m_cap)
                 if floor > 1.001 * cnt_i * lim * lim:  # margin: round-off of the floor
+                    n_before = n_out
                     if refit_on and has_corners(
                         px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner
                     ):
@@ -547,6 +573,12 @@ def _detect_kernel(
                             rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
                             wid, dep, _PREFIT, grid, noise_s, prm, chi2, scratch, ws, corner,
                             (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                        )  # fmt: skip
+                    if step_on and n_out == n_before:  # which fit test: step_emit re-fits
+                        rows, scans, n_out = step_emit(
+                            rows, scans, n_out, s, px, py, pr, pb, a, b,
+                            (oc0[j], oc1[j], tr0[j], tr1[j]), wid[j], False, grid, noise_s,
+                            step_all[s], prm, prm_arc, chi2, scratch_arc, ws, pres, step_copy,
                         )  # fmt: skip
                     continue
             e_start = not (oc0[j] or tr0[j])
@@ -589,6 +621,7 @@ def _detect_kernel(
             good = rad >= min_radius and rad <= max_radius
             good &= rad <= max_rw * max(sil_width, 1e-9)
             good &= math.hypot(cx, cy) > mean_r
+            shaped = good  # the tests before the RMS test passed
             for i in range(a, b):
                 res = math.hypot(px[i] - cx, py[i] - cy) - rad
                 tmp[i] = res * res
@@ -602,12 +635,19 @@ def _detect_kernel(
                 else:
                     good &= rms <= lim
             if not good:
+                n_before = n_out
                 if refit_on and has_corners(px, py, pr, a, b, dep[j], noise_s, prm, tmp, corner):
                     # a fit test failed: which one, _split_parent re-fits to tell
                     rows, scans, n_out = _split_emit(
                         rows, scans, n_out, s, px, py, pr, pb, j, st, sp, oc0, oc1, tr0, tr1,
                         wid, dep, _PREFIT, grid, noise_s, prm, chi2, scratch, ws, corner,
                         (st2, sp2, oc02, oc12, tr02, tr12), pres,
+                    )  # fmt: skip
+                if step_on and shaped and n_out == n_before:  # failed the RMS test
+                    rows, scans, n_out = step_emit(
+                        rows, scans, n_out, s, px, py, pr, pb, a, b,
+                        (oc0[j], oc1[j], tr0[j], tr1[j]), wid[j], True, grid, noise_s,
+                        step_all[s], prm, prm_arc, chi2, scratch_arc, ws, pres, step_copy,
                     )  # fmt: skip
                 continue
             # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
@@ -712,6 +752,7 @@ _numba_cache.drop_stale_cache(
     _gaps.__file__,
     _fast_robust.__file__,
     _fast_segments.__file__,
+    _fast_step_split.__file__,
     _fit_lm.__file__,
     _kernel_params.__file__,
 )

@@ -93,6 +93,10 @@ PARAM_NAMES = (
     "edge_hit_min",  # the averaging scanner's return threshold (share of the footprint) ...
     "edge_hit_max",  # ... assumed in [min, max]: the default tangent prior (edge_default_prior)
     "scan_noise_batch_min",  # scans without an estimate take the batch's when >= this (inf: off)
+    "step_split",  # 1: a candidate failing the RMS test cut at its largest step (_fast_step_split)
+    "step_noise_on",  # 1: ... the step read against the scans' pooled noise (step_noise_pool)
+    "step_noise_pool",  # ... scans without an estimate share their pooled one (scan_noise pool)
+    "step_noise_batch_min",  # ... still without one take every scan's when >= this (inf: off)
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -188,9 +192,23 @@ def kernel_params(
         "edge_hit_min": cfg.edge_hit_min,
         "edge_hit_max": cfg.edge_hit_max,
         "scan_noise_batch_min": cfg.scan_noise_batch_min(),
+        "step_split": cfg.step_split,
+        "step_noise_on": cfg.step_split and bool(cfg.step_noise_pool) and cfg.sigma_from_scan,
+        "step_noise_pool": cfg.step_noise_pool != "batch",
+        "step_noise_batch_min": _step_batch_min(cfg),
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():
         prm[PARAM_INDEX[name]] = float(v)
     prm.setflags(write=False)
     return prm
+
+
+def _step_batch_min(cfg: DetectorConfig) -> float:
+    """``batch_min`` of the step noise (``ScanTrunkDetector._step_noise``): 0 with
+    ``step_noise_pool="batch"`` (every scan's pooled estimate where a scan has none), else the
+    scan noise's own (``step_noise_pool=True`` with ``scan_noise_pool``: the step noise is the
+    scan noise) or none (inf)."""
+    if cfg.step_noise_pool == "batch":
+        return 0.0
+    return cfg.scan_noise_batch_min() if cfg.scan_noise_pool else math.inf

@@ -27,7 +27,9 @@ A step may instead isolate one return *in front*: nearer than both its neighbour
 the noise step (:func:`front_spikes`; the TreeLS plot, scan 1: a twig 5.7 cm in front of a
 4-return stem, between its 2nd and 3rd returns). A solid surface seen from outside makes no
 such dip; the return is an occluder, and the candidate is judged whole without it (same tests)
-instead of being cut. Numpy path only.
+instead of being cut. The compiled path runs the same rule
+(:mod:`stemmap.scan._fast_step_split`; both paths' detections agree, tests/scan/
+test_detect_fast.py).
 
 With ``step_twigs`` (Dec 5) *every* such dip of the candidate is dropped (:func:`front_dips`),
 not only the one at its largest step, and a segment end nearer than its one neighbour counts
@@ -37,7 +39,7 @@ to be a run of three returns and a dip within the noise step in a ``depth`` reje
 changes, and on the simulator it accepts a few more clutter pieces; docs/algorithms/
 scan-detection.md, "Twigs on several beams"). A dip this drops needs the same evidence as the
 spike: a range below both neighbours by more than the noise step. The remaining returns are
-judged whole with the same tests.
+judged whole with the same tests. Numpy path only (the detector takes the numpy path).
 
 With ``step_noise_pool`` (Dec 4) the noise sigma of the threshold is at least the batch's
 pooled estimate where a scan has no estimate of its own (``ScanPoints.step_noise``): on a

@@ -397,7 +397,8 @@ class DetectorConfig:
         ``occlusion_margin`` (ours, issue 11, seventeenth round;
         :func:`~stemmap.scan._step_split.step_refit`): a 4-return stem whose segment runs on
         into a branch behind its silhouette; a step that isolates one return in front (a
-        twig) drops it instead, the rest judged whole. Numpy path only.
+        twig) drops it instead, the rest judged whole. Compiled since Dec 5
+        (:mod:`~stemmap.scan._fast_step_split`; with ``step_twigs``: numpy path only).
     step_noise_pool : bool
         With ``step_split`` and ``sigma_from_scan``: the step threshold's noise sigma of a
         scan without a range-noise estimate of its own (too few continuous beam triples) is
@@ -410,7 +411,7 @@ class DetectorConfig:
         *every* scan of the batch instead (``scan_noise`` ``batch_min=0``, no floor; the union
         is dominated by the scans with many triples, whose second differences hold the least
         bark curvature: issue 11, Dec 5, "step split, fold by fold"), for every scan without
-        an estimate of its own. Numpy path only (as ``step_split``).
+        an estimate of its own. Compiled with ``step_split``.
     step_twigs : bool
         With ``step_split``: drop *every* one-return dip in front of a candidate that fails the
         RMS test (:func:`~stemmap.scan._step_split.front_dips`: a return nearer than both its

@@ -468,8 +468,9 @@ class ScanTrunkDetector:
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
         corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
         (``lobe_harmonics``), no ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
-        (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` or ``step_split`` (arc
-        re-fits are compiled since the fourteenth round of issue 11)."""
+        (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
+        ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
+        step split with ``step_noise_pool`` since Dec 5: :mod:`stemmap.scan._fast_step_split`)."""
         cfg = self.config
         no_tilt = (roll is None and pitch is None) or cfg.tilt == "none"
         return (
@@ -483,7 +484,7 @@ class ScanTrunkDetector:
             and math.isinf(cfg.behind_sigmas)
             and (math.isinf(cfg.stub_sigmas) or not first_echo(cfg))
             and not cfg.split_search
-            and not cfg.step_split
+            and not (cfg.step_split and cfg.step_twigs)
         )
 
     def _run(
