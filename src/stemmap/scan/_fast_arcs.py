@@ -290,6 +290,64 @@ def arc_run(
 
 
 @njit(cache=True, error_model="numpy")
+def arc_verdict(
+    px: FloatArray,
+    py: FloatArray,
+    pr: FloatArray,
+    pb: np.ndarray,
+    a: int,
+    b: int,
+    lo: int,
+    hi: int,
+    flags: tuple[bool, bool, bool, bool],
+    grid: FloatArray,
+    noise_s: float,
+    prm: FloatArray,
+    chi2: FloatArray,
+    scratch: _Scratch,
+    ws: _Work,
+    res: FloatArray,
+    bark: float,
+) -> int:  # pragma: no cover - numba
+    """``arc_refit`` for the candidate ``a:b`` with end flags ``flags`` (occluded start / end,
+    truncated start / end) and its arc ``[lo, hi)`` (:func:`arc_run`, relative to ``a``), as
+    :func:`stemmap.scan._arcs.arc_pieces` judges it: its cut ends occluded only where the
+    return across is nearer by more than ``occlusion_margin``, the segment filters, the fit
+    and its plausibility tests. ``prm`` must carry ``bark_roughness`` 0 (the arc's RMS test
+    has no bark allowance), then :func:`arc_consistent` (``bark``: the config's
+    ``bark_roughness``). 1 when the arc passes (``res[:OUT_COLUMNS]`` is its output row,
+    then its sigma and its fit RMS), 0 when it is circle-like (passes the segment filters)
+    but fails the fit or its tests, -1 when it fails the segment filters (the three verdicts
+    of ``_arcs.piece_passes``, which the step split's validation reads)."""
+    sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
+    ws3, wv, mdl = ws
+    margin = prm[10]
+    oc0, oc1, tr0, tr1 = flags
+    qa = a + lo
+    qb = a + hi
+    if qa > a:  # a cut end: occluded only by a nearer return across it
+        oc0 = pr[qa - 1] < pr[qa] - margin
+        tr0 = False
+    if qb < b:
+        oc1 = pr[qb] < pr[qb - 1] - margin
+        tr1 = False
+    partial = oc0 or oc1 or tr0 or tr1
+    if _segment_code(px, py, pr, tmp, qa, qb, partial, prm, chi2, noise_s, feat) != 0:
+        return -1
+    w = feat[0]
+    code = _fit_candidate(
+        px, py, pr, pb, qa, qb, oc0, oc1, tr0, tr1, w, grid, noise_s, prm, False,
+        sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, res,
+    )  # fmt: skip
+    if code != 0:
+        return 0
+    ok = arc_consistent(
+        pr, qa, qb, res[0], res[1], res[2], res[OUT_COLUMNS], res[OUT_COLUMNS + 1], bark, prm, chi2
+    )
+    return 1 if ok else 0
+
+
+@njit(cache=True, error_model="numpy")
 def arc_candidate(
     px: FloatArray,
     py: FloatArray,
@@ -309,39 +367,11 @@ def arc_candidate(
     res: FloatArray,
     bark: float,
 ) -> bool:  # pragma: no cover - numba
-    """``arc_refit`` for the candidate ``a:b`` with end flags ``flags`` (occluded start / end,
-    truncated start / end) and its arc ``[lo, hi)`` (:func:`arc_run`, relative to ``a``), as
-    :func:`stemmap.scan._arcs.arc_pieces` judges it: its cut ends occluded only where the
-    return across is nearer by more than ``occlusion_margin``, the segment filters, the fit
-    and its plausibility tests. ``prm`` must carry ``bark_roughness`` 0 (the arc's RMS test
-    has no bark allowance), then :func:`arc_consistent` (``bark``: the config's
-    ``bark_roughness``). True when the arc passes: ``res[:OUT_COLUMNS]`` is its output
-    row, then its sigma and its fit RMS."""
-    sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
-    ws3, wv, mdl = ws
-    margin = prm[10]
-    oc0, oc1, tr0, tr1 = flags
-    qa = a + lo
-    qb = a + hi
-    if qa > a:  # a cut end: occluded only by a nearer return across it
-        oc0 = pr[qa - 1] < pr[qa] - margin
-        tr0 = False
-    if qb < b:
-        oc1 = pr[qb] < pr[qb - 1] - margin
-        tr1 = False
-    partial = oc0 or oc1 or tr0 or tr1
-    if _segment_code(px, py, pr, tmp, qa, qb, partial, prm, chi2, noise_s, feat) != 0:
-        return False
-    w = feat[0]
-    code = _fit_candidate(
-        px, py, pr, pb, qa, qb, oc0, oc1, tr0, tr1, w, grid, noise_s, prm, False,
-        sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, res,
-    )  # fmt: skip
-    if code != 0:
-        return False
-    return arc_consistent(
-        pr, qa, qb, res[0], res[1], res[2], res[OUT_COLUMNS], res[OUT_COLUMNS + 1], bark, prm, chi2
+    """Whether the arc ``[lo, hi)`` of the candidate ``a:b`` passes (:func:`arc_verdict` 1)."""
+    v = arc_verdict(
+        px, py, pr, pb, a, b, lo, hi, flags, grid, noise_s, prm, chi2, scratch, ws, res, bark
     )
+    return v == 1
 
 
 @njit(cache=True, error_model="numpy")

@@ -8,7 +8,7 @@ largest absolute range step (:func:`largest_step`); a step within ``3 sqrt(2)`` 
 A step that isolates a one-return spike towards the sensor drops that return and the rest is
 judged whole; any other step cuts the candidate into two pieces, their cut ends occluded only
 by a nearer return across the cut (``_arcs._cut_flags``). Every piece is judged as an arc of
-``arc_refit`` (:func:`~stemmap.scan._fast_arcs.arc_candidate`'s blocks: segment filters, fit,
+``arc_refit`` (:func:`~stemmap.scan._fast_arcs.arc_verdict`: segment filters, fit,
 the fit tests without the bark allowance, :func:`~stemmap.scan._fast_arcs.arc_consistent`),
 validated as the corner split's pieces (``_refit.validate_pieces``: the one passing piece, no
 circle-like sibling failing; no return of the candidate 3 sigma inside its circle) and vetoed
@@ -40,13 +40,12 @@ from stemmap.scan import (
     _kernel_params,
     features,
 )
-from stemmap.scan._fast_arcs import arc_consistent
+from stemmap.scan._fast_arcs import arc_verdict
 from stemmap.scan._fast_candidates import (
     _RMS,
     _emit,
     _fit_candidate,
     _Scratch,
-    _segment_code,
     _Work,
 )
 from stemmap.scan._fast_segments import _seg_sum
@@ -132,45 +131,6 @@ def _seen_through(
 
 
 @njit(cache=True, error_model="numpy")
-def _judge(
-    px: FloatArray,
-    py: FloatArray,
-    pr: FloatArray,
-    pb: np.ndarray,
-    qa: int,
-    qb: int,
-    flags: tuple[bool, bool, bool, bool],
-    grid: FloatArray,
-    noise_s: float,
-    prm_arc: FloatArray,
-    chi2: FloatArray,
-    scratch: _Scratch,
-    ws: _Work,
-    res: FloatArray,
-    bark: float,
-) -> int:  # pragma: no cover - numba
-    """One piece ``qa:qb`` judged as an arc (``_arcs.piece_passes``): -1 it fails the
-    segment filters (not circle-like), 0 it fails a fit test, 1 it passes (its row in
-    ``res``). ``prm_arc``: the parameters with ``bark_roughness`` 0."""
-    sil, sil_fit, fit_out, tmp, buf, jtj, feat = scratch
-    ws3, wv, mdl = ws
-    oc0, oc1, tr0, tr1 = flags
-    partial = oc0 or oc1 or tr0 or tr1
-    if _segment_code(px, py, pr, tmp, qa, qb, partial, prm_arc, chi2, noise_s, feat) != 0:
-        return -1
-    code = _fit_candidate(
-        px, py, pr, pb, qa, qb, oc0, oc1, tr0, tr1, feat[0], grid, noise_s, prm_arc, False,
-        sil, sil_fit, fit_out, tmp, buf, jtj, ws3, wv, mdl, res,
-    )  # fmt: skip
-    if code != 0:
-        return 0
-    sig = res[OUT_COLUMNS]
-    rms = res[OUT_COLUMNS + 1]
-    ok = arc_consistent(pr, qa, qb, res[0], res[1], res[2], sig, rms, bark, prm_arc, chi2)
-    return 1 if ok else 0
-
-
-@njit(cache=True, error_model="numpy")
 def step_emit(
     rows: FloatArray,
     scans: np.ndarray,
@@ -220,22 +180,21 @@ def step_emit(
                 cr[m] = pr[i]
                 cb[m] = pb[i]
                 m += 1
-        v = _judge(
-            cx, cy, cr, cb, 0, m, flags, grid, noise_s, prm_arc, chi2, scratch, ws, pres[0], bark
-        )
+        v = arc_verdict(
+            cx, cy, cr, cb, 0, m, 0, m, flags, grid, noise_s, prm_arc, chi2, scratch, ws, pres[0],
+            bark,
+        )  # fmt: skip
         if v == 1:
             got = 0
     else:
-        # cut at the step: a cut end occluded only by a nearer return across it (_cut_flags)
-        margin = prm[10]
-        oc0, oc1, tr0, tr1 = flags
-        cut_end = (oc0, pr[f] < pr[f - 1] - margin, tr0, False)
-        cut_start = (pr[f - 1] < pr[f] - margin, oc1, False, tr1)
+        # cut at the step, each piece judged as an arc (arc_verdict: a cut end occluded only
+        # by a nearer return across it, as _arcs._cut_flags)
         for q in range(2):
-            qa, qb, fl = (a, f, cut_end) if q == 0 else (f, b, cut_start)
-            v = _judge(
-                px, py, pr, pb, qa, qb, fl, grid, noise_s, prm_arc, chi2, scratch, ws, pres[q], bark
-            )
+            lo, hi = (0, f - a) if q == 0 else (f - a, b - a)
+            v = arc_verdict(
+                px, py, pr, pb, a, b, lo, hi, flags, grid, noise_s, prm_arc, chi2, scratch, ws,
+                pres[q], bark,
+            )  # fmt: skip
             if v == 1:
                 n_pass += 1
                 got = q
