@@ -59,13 +59,18 @@ def _setting(
         "edge_hit_max": 0.5,
         # Dec 4: the protrusions of a real outline at a first-echo silhouette
         "edge_protrusion": 0.0,
+        # Dec 5: the step split with the step read against every scan's noise, the preset's
+        # since Dec 5 (grid 59); a grid point without it means off, as before that day
+        "step_split": False,
+        "step_noise_pool": False,
         **extra,
     }
 
 
 #: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
 #: preset since the fifteenth round: these and the arcs of grid 35; since the sixteenth: grid
-#: 36, which adds arc_short_steps).
+#: 36, which adds arc_short_steps; since Dec 5: grid 59, which adds the step split,
+#: :data:`_STEP_BATCH_59`).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
@@ -103,6 +108,8 @@ _TWIGS_57: dict[str, Any] = {
 }
 
 #: Grids 59 / 60 (Dec 5): step split with the step read against every scan's pooled noise.
+#: Grid 59 (= grid 36 + these) is the ``stemmap`` preset since Dec 5 ("the default" below
+#: means grid 36 in the comments of the rounds before: the preset when they were added).
 _STEP_BATCH_59: dict[str, Any] = {
     "arc_short_steps": True,
     "step_split": True,

@@ -20,12 +20,18 @@ def test_step_split_finds_the_stem_with_a_branch_behind_it(tmp_path: Path) -> No
     # plot's scan 6 steps): one 7-return candidate that fails the RMS test without the split
     src = tmp_path / "scan.npz"
     write_scans_npz(src, _stem_and_neighbour(BEHIND))
-    off, on = tmp_path / "off.csv", tmp_path / "on.csv"
-    r_off = runner.invoke(app, ["detect", str(src), "--out", str(off), "-q"])
+    off, on, default = tmp_path / "off.csv", tmp_path / "on.csv", tmp_path / "default.csv"
+    r_off = runner.invoke(app, ["detect", str(src), "--out", str(off), "-q", "--no-step-split"])
     r_on = runner.invoke(app, ["detect", str(src), "--out", str(on), "-q", "--step-split"])
+    # the stemmap preset's default since Dec 5: the same as --step-split
+    r_def = runner.invoke(app, ["detect", str(src), "--out", str(default), "-q"])
     assert r_off.exit_code == 0, r_off.output
     assert r_on.exit_code == 0, r_on.output
+    assert r_def.exit_code == 0, r_def.output
     assert len(off.read_text().splitlines()) == 1  # header only
+    assert default.read_text() == on.read_text()
+    off_doc = json.loads((tmp_path / "off.csv.run.json").read_text())
+    assert off_doc["parameters"]["step_split"] is False
     rows = on.read_text().splitlines()
     assert len(rows) == 2
     head = rows[0].split(",")

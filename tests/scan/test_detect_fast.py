@@ -186,9 +186,11 @@ CONFIGS["edge_hit_any"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.0}
 
 
 # Dec 5: the step split (compiled since: _fast_step_split) with the step read against the
-# configured sigma, the sparse scans' pooled noise and every scan's (grid 59)
-STEP = {"step_split": True, "arc_short_steps": True}
+# configured sigma, the sparse scans' pooled noise and every scan's (grid 59, the preset's
+# since Dec 5: the "default" config runs it too; the off case is "step_split_off")
+STEP = {"step_split": True, "step_noise_pool": False, "arc_short_steps": True}
 CONFIGS["step_split"] = STEP
+CONFIGS["step_split_off"] = {"step_split": False}
 CONFIGS["step_split_pool"] = {**STEP, "step_noise_pool": True}
 CONFIGS["step_split_batch"] = {**STEP, "step_noise_pool": "batch"}
 
@@ -368,7 +370,7 @@ def test_compiled_step_split_equals_numpy_at_3_cm_noise(stand, pool):
     # 3 cm range noise: candidates fail the RMS test and their largest steps are read
     # against the (pooled) noise; the step split must change detections (path exercised)
     batch = _scans(stand, range_noise=0.03)
-    cfg = DetectorConfig.preset("stemmap", **STEP, step_noise_pool=pool)
+    cfg = DetectorConfig.preset("stemmap", **{**STEP, "step_noise_pool": pool})
     det = ScanTrunkDetector(cfg)
     assert det._compiled(None, None)
     fast, ref = _both(det, batch)

@@ -47,12 +47,15 @@ BEHIND = (0.068, 0.040, -0.007)
 
 def test_a_stem_with_a_branch_behind_it_is_found_with_step_split():
     batch = _stem_and_neighbour(BEHIND)
-    plain = ScanTrunkDetector("stemmap")
+    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=False))
     # one candidate of 7 returns that fails the RMS test: no corner, not an arc candidate
     assert len(plain.detect_batch(batch)) == 0
     assert plain.rejected(batch)["reason"] == ["rms"]
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True))
     obs = det.detect_batch(batch)
+    # the stemmap preset's step split since Dec 5 (step_noise_pool="batch": this one scan has
+    # no noise estimate, so the configured sigma stands, as with step_split alone)
+    assert len(ScanTrunkDetector("stemmap").detect_batch(batch)) == 1
     assert len(obs) == 1
     assert obs.n_points[0] == 4
     # noise-free, 4 returns over ~60 deg of the stem: within 1 cm of the radius
@@ -156,7 +159,7 @@ def test_a_twig_in_front_of_a_stem_is_dropped_not_cut():
     assert on.size == 5
     r[on[1]] -= 0.06
     batch = _with_ranges(batch, r)
-    plain = ScanTrunkDetector("stemmap")
+    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=False))
     assert len(plain.detect_batch(batch)) == 0
     assert plain.rejected(batch)["reason"] == ["rms"]
     obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True)).detect_batch(batch)
@@ -218,11 +221,13 @@ def test_step_noise_pool_reads_the_step_against_the_batch_noise():
     # no scan's own estimate (the configured sigma stands); the pooled one near the walls' 3 cm
     assert np.all(pts.noise == 0.0)
     assert 0.017 < pts.step_noise[0] < 0.04
-    found = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=True)).detect_batch(batch)
+    configured = DetectorConfig.preset("stemmap", step_split=True, step_noise_pool=False)
+    found = ScanTrunkDetector(configured).detect_batch(batch)
     assert int(np.sum(found.index == 0)) == 1
     assert int(np.sum(det.detect_batch(batch).index == 0)) == 0
     # off unless step_split: the points carry no step noise
-    plain = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_noise_pool=True))
+    off = DetectorConfig.preset("stemmap", step_split=False, step_noise_pool=True)
+    plain = ScanTrunkDetector(off)
     got = _every(plain, batch)[0]
     assert got.points.step_noise is None
 
@@ -307,7 +312,7 @@ def test_twigs_on_several_beams_are_dropped_with_step_twigs():
     assert obs.radii[0] == pytest.approx(WIDE[2], abs=0.005)
     assert np.hypot(*(obs.centers[0] - WIDE[:2])) < 0.005
     # off unless step_split (the dips are read at the step threshold of step_split)
-    alone = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_twigs=True))
+    alone = ScanTrunkDetector(DetectorConfig.preset("stemmap", step_split=False, step_twigs=True))
     assert len(alone.detect_batch(batch)) == 0
 
 
