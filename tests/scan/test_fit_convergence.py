@@ -37,8 +37,8 @@ def fit_inputs():
     model = dataclasses.replace(scanner_preset("sick_lms", range_max=30.0))
     batch, _, _ = simulate_scans(st, poses, model, rng=3)
     captured = []
-    det = ScanTrunkDetector(  # one fit call: no corner split, no arcs
-        DetectorConfig.preset("stemmap", refit_pieces=False, arc_refit=False)
+    det = ScanTrunkDetector(  # one fit call: no corner split, no arcs, no step split
+        DetectorConfig.preset("stemmap", refit_pieces=False, arc_refit=False, step_split=False)
     )
 
     def capture(*args):

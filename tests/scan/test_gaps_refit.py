@@ -93,8 +93,14 @@ def test_gap_splits_find_a_trunk_merged_with_a_stem_in_front():
 
 def test_refit_pieces_recover_a_trunk_whose_segment_fails_the_rms_test():
     batch = _scan([(5.0, 0.0, 0.12), (5.12, 0.19, 0.05)])
-    # (the default's corner split leaves this convex candidate alone: no concave corner)
-    cfg = {"beam_divergence_deg": 0.0, "refit_split": "gap", "refit_validate": False}
+    # (the default's corner split leaves this convex candidate alone: no concave corner; the
+    # default's step split, since Dec 5, would cut it at its largest step: off here)
+    cfg = {
+        "beam_divergence_deg": 0.0,
+        "refit_split": "gap",
+        "refit_validate": False,
+        "step_split": False,
+    }
     base = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, refit_pieces=False))
     assert len(base.detect_batch(batch)) == 0
     assert base.rejected(batch)["reason"] == ["rms"]
@@ -208,6 +214,7 @@ def test_validated_corner_split_keeps_the_verdict_of_two_lobes():
         "sigma": 0.002,
         "corner_depth": 0.01,
         "corner_depth_convex": 0.01,
+        "step_split": False,  # the default's since Dec 5: its pieces would count in "pieces"
     }
     loose = {**_CORNERS, "refit_validate": False}
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **cfg, **loose))
