@@ -74,3 +74,20 @@ def test_scan_times_in_milliseconds_warned(datasets_dir: Path) -> None:
     assert check_scan_period(t, "scans") is None
     msg = check_scan_period(t * 1e3, "scans")
     assert msg is not None and "milliseconds" in msg and "divide them by 1e3" in msg
+
+
+def test_imu_gyro_in_milliseconds_refused(tmp_path: Path) -> None:
+    """A 100 Hz gyro turning at up to 0.5 rad/s, stamped in ms from the start: 5 rad between
+    samples read as seconds. In seconds it is read."""
+    from stemmap.io.imu import read_imu_csv
+
+    t = np.arange(0.0, 60.0, 0.01)
+    gz = 0.5 * np.sin(2 * np.pi * t / 20.0)
+    rows = np.column_stack((t, gz))
+    path = tmp_path / "imu_s.csv"
+    np.savetxt(path, rows, delimiter=",", header="time_s,gyro_z", comments="", fmt="%.9g")
+    assert read_imu_csv(path).times.size == t.size
+    rows[:, 0] *= 1e3
+    np.savetxt(path, rows, delimiter=",", header="time_s,gyro_z", comments="", fmt="%.9g")
+    with pytest.raises(InputError, match="milliseconds"):
+        read_imu_csv(path)
