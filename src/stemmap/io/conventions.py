@@ -329,20 +329,27 @@ MAX_TURN_PER_ROW = math.pi
 MAX_LATERAL_ACCELERATION = 9.81
 
 
+def _many(bad: NDArray[np.bool_]) -> bool:
+    """Over 1 % of the rows, and at least 3: a unit, not one odd row (a short log's 99th
+    percentile is its largest value)."""
+    k = int(np.count_nonzero(bad))
+    return k >= 3 and k > 0.01 * bad.size
+
+
 def check_turns(
     times: NDArray[Any], speed: NDArray[Any], yaw_rate: NDArray[Any], source: str
 ) -> None:
     """InputError for an odometry log (``time_s`` s, ``speed`` m/s, ``yaw_rate`` rad/s, each
     row held until the next) that no vehicle can have driven:
 
-    * the 99th percentile of the heading change between consecutive rows, ``|yaw_rate| x
-      dt``, above :data:`MAX_TURN_PER_ROW` (half a turn): times in milliseconds counted from
-      the log's start (absolute ones are refused by :func:`check_times`), or a yaw rate in
-      deg/s;
-    * the 99th percentile of the lateral acceleration ``|speed x yaw_rate|`` above
-      :data:`MAX_LATERAL_ACCELERATION` (1 g): a yaw rate in deg/s -- a slow turn in deg/s
-      (under 3.1 deg/s, which the yaw rate bound cannot see) is caught when the vehicle
-      drives faster than ~3.2 m/s while turning; slower, it is not.
+    * the heading change between consecutive rows, ``|yaw_rate| x dt``, above
+      :data:`MAX_TURN_PER_ROW` (half a turn) in over 1 % of the rows (and at least 3): times
+      in milliseconds counted from the log's start (absolute ones are refused by
+      :func:`check_times`), or a yaw rate in deg/s;
+    * the lateral acceleration ``|speed x yaw_rate|`` above :data:`MAX_LATERAL_ACCELERATION`
+      (1 g) in over 1 % of the rows (and at least 3): a yaw rate in deg/s -- a slow turn in
+      deg/s (under 3.1 deg/s, which the yaw rate bound cannot see) is caught when the
+      vehicle drives faster than ~3.2 m/s while turning; slower, it is not.
     """
     t = np.asarray(times, dtype=np.float64)
     v = np.abs(np.asarray(speed, dtype=np.float64))
@@ -351,7 +358,7 @@ def check_turns(
         return
     turn = w[:-1] * np.diff(t)
     p_turn = float(np.percentile(turn, 99))
-    if p_turn > MAX_TURN_PER_ROW:
+    if _many(turn > MAX_TURN_PER_ROW):
         raise InputError(
             f"{source}: 1 % of the rows turn by more than {p_turn:.3g} rad before the next "
             f"row (yaw_rate x the time step), over half a turn ({MAX_TURN_PER_ROW:.3g} rad), "
@@ -359,7 +366,7 @@ def check_turns(
             "by 1e3) or the yaw rates in deg/s (multiply yaw_rate by pi/180)?"
         )
     p_acc = float(np.percentile(v * w, 99))
-    if p_acc > MAX_LATERAL_ACCELERATION:
+    if _many(v * w > MAX_LATERAL_ACCELERATION):
         raise InputError(
             f"{source}: 1 % of the rows turn with a lateral acceleration (speed x yaw_rate) "
             f"above {p_acc:.3g} m/s^2, beyond the 1 g ({MAX_LATERAL_ACCELERATION:g} m/s^2) "
