@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
-from stemmap.cloud.ground import BASE_STEM
+from stemmap.cloud.ground import BASE_GROUND, BASE_STEM
 from stemmap.cloud.stems import STEM_BASE_NOTE
 from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
 from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph
@@ -134,8 +134,6 @@ def catalog_base(statistics: dict[str, Any] | None) -> tuple[str, float] | None:
     nan)`` or ``("lowest stem points", z)``, :func:`stemmap.cloud.prepare_cloud`'s
     ``base``), or None (no pilot, an unreadable one, a slice catalog): each chunk decides
     on its own points."""
-    from stemmap.cloud.ground import BASE_GROUND, BASE_STEM
-
     what = str((statistics or {}).get("base") or "")
     if what == BASE_GROUND:
         return (BASE_GROUND, math.nan)
