@@ -19,8 +19,11 @@ run goes at the *smallest* m for which
   :func:`~stemmap.scan._stubs.outward_ends`, ``s`` from the same noise).
 
 The smallest m: a larger one would delete the stem's own returns as well once the branch is
-gone (they lie on the rest's circle, so the second condition stops the run at the stem). Each
-end is judged on the whole candidate; both ends' runs then go together. The new end is
+gone (they lie on the rest's circle, so the second condition stops the run at the stem). The
+rest keeps more than half of the candidate's returns (both runs together too): the deletion
+test takes the rest as the stem, and a rest of a branch's few returns judged against 1 cm
+passed once and made the stem's twenty the "run" (lidR scan 19 without ``fit_noise_floor``:
+-22 cm). Each end is judged on the whole candidate; both ends' runs then go together. The new end is
 occluded when the return just beyond it lies in front of the rest's circle (nearer than the
 range at which its beam meets the circle: a branch in front hides the stem's silhouette, lidR
 scan 19) and a silhouette edge otherwise (the beam missed the stem or met something behind
@@ -91,8 +94,10 @@ def outward_runs(
         occ = np.zeros(k, dtype=bool)
         open_ = segs.counts > least
         m = 1
-        while np.any(open_ & (segs.counts - m >= least)):
-            act = open_ & (segs.counts - m >= least)
+        # the rest must hold more than half of the returns: the stem is the majority of its
+        # candidate (else a branch's few returns become the reference and the stem the run)
+        while np.any(open_ & (segs.counts - m >= least) & (2 * m < segs.counts)):
+            act = open_ & (segs.counts - m >= least) & (2 * m < segs.counts)
             mm = np.where(act, m, 0).astype(np.int64)
             run = _run_mask(segs, mm, first)
             rest = _flags(segs.drop(~run), act & first, act & (not first))
@@ -166,8 +171,9 @@ def trim_runs(
     sub = segs.select(which)
     m_first, m_last, occ_first, occ_last = outward_runs(detector, sub, grid, wrap)
     least = max(detector.config.min_points, detector.config.min_points_partial)
-    # both ends: keep at least `least` returns (the first end's run wins a conflict)
-    m_last = np.where(sub.counts - m_first - m_last >= least, m_last, 0)
+    # both ends: keep at least `least` returns and more than half (the first end's run wins)
+    rest = sub.counts - m_first - m_last
+    m_last = np.where((rest >= least) & (2 * rest > sub.counts), m_last, 0)
     occ_last &= m_last > 0
     cut = (m_first > 0) | (m_last > 0)
     if not np.any(cut):

@@ -376,8 +376,9 @@ class DetectorConfig:
         With a finite ``stub_sigmas``, first-echo fits: the deletion unit of the stub test is
         a run of end returns, not one return (ours, issue 11, Dec 5, "lidR view by view";
         :func:`~stemmap.scan._stub_runs.trim_runs`): at each end the smallest run of m
-        returns whose rest passes every test and the chi-square test, and all of which lie
-        outside the rest's circle by more than ``stub_sigmas`` deletion deviations, goes; the
+        returns whose rest (more than half of the returns) passes every test and the
+        chi-square test, and all of which lie outside the rest's circle by more than
+        ``stub_sigmas`` deletion deviations, goes; the
         new end is occluded where the run lay in front of the stem. A branch leaving the
         flank over several beams. Numpy path. False = one return at a time.
     fit_noise_floor : float, metres, >= 0
