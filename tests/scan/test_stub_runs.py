@@ -14,15 +14,14 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan.test_edge_protrusion import STEP, first_echo_scan
 
 from stemmap.errors import ConfigError
-from stemmap.eval.real_slices import noisy_batch, virtual_scans
 from stemmap.scan._segment_fits import fit_sigma
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.segment import build_segments, extract_points, range_jump_breaks
 
 R = 0.15  # stem radius, m
-STEP = 0.5  # degrees
 RUNS = {"fit_noise_floor": 0.003, "stub_sigmas": 2.0, "stub_runs": True}
 
 
@@ -45,15 +44,8 @@ def _scan(d: float, bearing: float, branch: float):
         xy = np.vstack((xy, bar))
         lab = np.concatenate((lab, np.full(bar.shape[0], -1)))  # not the stem's
     sensor = np.array([d * math.cos(bearing), d * math.sin(bearing)])
-    ranges, hit = virtual_scans(
-        xy - sensor,
-        lab,
-        np.zeros((1, 2)),
-        resolution_deg=STEP,
-        model="nearest",
-        centers=-sensor[None, :],
-    )
-    return noisy_batch(ranges, STEP, 0.0, np.random.default_rng(0)), -sensor, hit
+    batch, hit = first_echo_scan(xy, lab, sensor)
+    return batch, -sensor, hit
 
 
 @functools.cache

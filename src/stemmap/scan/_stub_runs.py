@@ -53,20 +53,6 @@ if TYPE_CHECKING:
 __all__ = ["outward_runs", "trim_runs"]
 
 
-def _flags(segs: Segments, occ_start: NDArray[np.bool_], occ_end: NDArray[np.bool_]) -> Segments:
-    """``segs`` with the given ends occluded (added to the flags it has)."""
-    return Segments(
-        segs.points,
-        segs.start,
-        segs.stop,
-        segs.scan,
-        segs.occluded_start | occ_start,
-        segs.occluded_end | occ_end,
-        segs.truncated_start,
-        segs.truncated_end,
-    )
-
-
 def _run_mask(segs: Segments, m: NDArray[np.int64], first: bool) -> NDArray[np.bool_]:
     """Per return of ``segs``, whether it is among the ``m`` first (or last) of its segment."""
     p_idx = np.arange(len(segs.points))
@@ -100,7 +86,8 @@ def outward_runs(
             act = open_ & (segs.counts - m >= least) & (2 * m < segs.counts)
             mm = np.where(act, m, 0).astype(np.int64)
             run = _run_mask(segs, mm, first)
-            rest = _flags(segs.drop(~run), act & first, act & (not first))
+            c_s, c_e = act & first, act & (not first)
+            rest = _trimmed_flags(segs.drop(~run), c_s, c_e, c_s, c_e)  # that end occluded
             sub = rest.select(act)
             f = detector._fit_candidates(sub, grid, wrap)
             sig = fit_sigma(cfg.fit_noise_floor, sub, f.sigma)
