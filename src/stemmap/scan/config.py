@@ -391,15 +391,17 @@ class DetectorConfig:
     fit_noise_floor : float, metres, >= 0
         First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours") only: the circle
         fits weight the returns by the range noise measured on the data instead of the
-        tests' sigma (ours, issue 11, Dec 5, "lidR view by view"): the scan's own estimate
+        tests' sigma (ours, issue 11, Dec 5, "lidR view by view";
+        :func:`~stemmap.scan._segment_fits.fit_sigma`): the scan's own estimate
         (:func:`~stemmap.scan.plausibility.scan_noise`), or the estimate over every scan of
-        the batch where it has none (``batch_min`` 0), at least ``fit_noise_floor`` and at
-        most the segment's sigma. The plausibility tests keep the segment's sigma (the
-        configured floor, for bark and outlines); only the fit's Huber scale, its 4-sigma
-        outlier rejection and the weight of the returns against the silhouette tangents
-        change. A stem whose scans hold millimetres of range noise then follows its returns
-        rather than one edge return on a stub or twig. 0 = off (the fit uses the tests'
-        sigma). Numpy path (as every first-echo fit).
+        the batch where it has none (``batch_min`` 0), combined with the footprint's share
+        (the segment's median absolute range step between adjacent returns over sqrt(12)), at
+        least ``fit_noise_floor`` and at most the segment's sigma. The plausibility tests
+        keep the segment's sigma (the configured floor, for bark and outlines); only the
+        fit's Huber scale, its 4-sigma outlier rejection and the weight of the returns
+        against the silhouette tangents change. A stem whose scans hold millimetres of range
+        noise then follows its returns rather than one edge return on a stub or twig. 0 =
+        off (the fit uses the tests' sigma). Numpy path (as every first-echo fit).
     split_search : bool
         Cut a candidate rejected as not convex (``depth``) or by the RMS test, whose
         validated corner split (if on) gave no trunk, where the Bayesian information
