@@ -24,6 +24,7 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit
 from stemmap.scan import (
     _corners,
     _fast_robust,
@@ -60,7 +61,7 @@ _RAD2DEG = 180.0 / math.pi
 _SQRT12 = math.sqrt(12.0)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _grid_at(grid: FloatArray, beam: int, n: int, wrap: bool) -> float:  # pragma: no cover
     """Range of ``beam`` in the scan's grid, inf for no return or outside the scan (the
     ``at`` helper of :func:`stemmap.scan.features.edge_silhouette`)."""
@@ -73,7 +74,7 @@ def _grid_at(grid: FloatArray, beam: int, n: int, wrap: bool) -> float:  # pragm
     return v if math.isfinite(v) else math.inf
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _edge_prior(
     grid: FloatArray,
     edge_r: float,
@@ -114,7 +115,7 @@ _HIT_MIN = PARAM_INDEX["edge_hit_min"]
 _HIT_MAX = PARAM_INDEX["edge_hit_max"]
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _edge_default(
     sil: FloatArray,
     prm: FloatArray,

@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap._leaf_jit import leaf_njit
 from stemmap.types import FloatArray
 
 #: 1.4826 MAD -> sigma for a Gaussian, / sqrt(6): the std of a second difference of iid noise
@@ -76,7 +77,7 @@ def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
 _SCAN_NOISE_MIN_TRIPLES = 16
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _interior_triples(g: FloatArray, jump: float, d: FloatArray) -> tuple[int, int]:
     """Second differences of the interior continuous beam triples of ``g`` (``n >= 4`` beams),
     written to ``d[:m]`` in beam order; returns ``m`` and the longest run of consecutive ones.

@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit
 from stemmap.scan import _fit_lm
 from stemmap.scan._fit_lm import _footprint_range as _footprint_range
 from stemmap.scan._fit_lm import _inv3, _lm, _range_residual, _solve3, _valid
@@ -60,7 +61,7 @@ _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _abs_residual(
     i: int,
     lx: FloatArray,
@@ -82,7 +83,7 @@ def _abs_residual(
     return abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _truncated_moments(
     m: float, v: float, lo: float, hi: float
 ) -> tuple[float, float, bool]:  # pragma: no cover - numba
@@ -103,7 +104,7 @@ def _truncated_moments(
     return m + s * dm, var, True
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _box_tangents(
     p: FloatArray, C: FloatArray, mdl: FloatArray, work: FloatArray
 ) -> bool:  # pragma: no cover - numba

@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit
 from stemmap.scan import _corners
 from stemmap.scan._corners import sagitta
 from stemmap.types import FloatArray
@@ -67,7 +68,7 @@ def gap_cut_flags(
     return any_cut
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def gap_cut_occlusion(
     pr: FloatArray,
     st: np.ndarray,
