@@ -15,8 +15,10 @@ such kernels without the NRT (numba's ``_nrt=False`` flag): the machine code of 
 is the same, so results are the same to the bit (tests/scan/test_detect_fast.py's digests).
 A kernel compiled this way must not allocate (numba refuses to compile it) and must not return
 an array or store one where it outlives the call (the caller would release a reference it was
-never given). Where numba lacks the flag (a private option), the kernels compile as ordinary
-``njit`` ones: the same results, slower.
+never given). numba compiles a callee with its caller's setting unless the callee states its
+own: a kernel that allocates and is called from a leaf kernel is compiled with
+:func:`nrt_njit`, which keeps the runtime. Where numba lacks the flag (a private option), the
+kernels compile as ordinary ``njit`` ones: the same results, slower.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from typing import Any
 from numba import njit
 from numba.core import options as _options
 
-__all__ = ["leaf_njit"]
+__all__ = ["leaf_njit", "nrt_njit"]
 
 #: numba accepts the (private) ``_nrt`` target option
 HAS_NRT_FLAG = hasattr(_options.DefaultOptions, "_nrt")
@@ -37,4 +39,12 @@ def leaf_njit(*, inline: str = "never") -> Callable[[Any], Any]:
     """``njit(cache=True, error_model="numpy", inline=inline)`` without reference counting
     (see the module docstring for the kernels it is meant for)."""
     extra: dict[str, Any] = {"_nrt": False} if HAS_NRT_FLAG else {}
+    return njit(cache=True, error_model="numpy", inline=inline, **extra)  # type: ignore[no-any-return]
+
+
+def nrt_njit(*, inline: str = "never") -> Callable[[Any], Any]:
+    """``njit(cache=True, error_model="numpy", inline=inline)`` with reference counting stated
+    explicitly: for kernels that allocate and are called from a :func:`leaf_njit` kernel (numba
+    would otherwise compile them without the runtime, as their caller, and refuse)."""
+    extra: dict[str, Any] = {"_nrt": True} if HAS_NRT_FLAG else {}
     return njit(cache=True, error_model="numpy", inline=inline, **extra)  # type: ignore[no-any-return]

@@ -148,7 +148,7 @@ def corner_parity(
     return found
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def piece_table(
     a: int,
     b: int,

@@ -145,7 +145,7 @@ def _edge_default(
         sil[3] = std
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _segment_code(
     px: FloatArray,
     py: FloatArray,
@@ -223,7 +223,7 @@ def _segment_code(
     return 0
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _fit_candidate(
     px: FloatArray,
     py: FloatArray,
@@ -314,7 +314,8 @@ def _fit_candidate(
         sil_fit[3] = sil[1]
     else:
         use_lo, use_hi = e_start, e_end
-        sil_fit[:] = sil
+        for q in range(4):  # (element by element: an array copy would need the NRT)
+            sil_fit[q] = sil[q]
     fit_out[:] = np.nan
     status = _fit_one(
         px[a:b],
@@ -391,7 +392,7 @@ def _fit_candidate(
     return 0
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def corner_threshold(
     pr: FloatArray, a: int, b: int, depth: float, noise_s: float, prm: FloatArray
 ) -> float:  # pragma: no cover - numba
@@ -412,7 +413,7 @@ def corner_threshold(
     return max(thr, prm[48] * sig)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _split_parent(
     px: FloatArray,
     py: FloatArray,
@@ -488,8 +489,9 @@ def _split_parent(
                 inside |= math.hypot(px[i] - pres[q, 0], py[i] - pres[q, 1]) < lim
             if inside:
                 continue
-        if out != q:
-            pres[out, :] = pres[q, :]
+        if out != q:  # (element by element: an array copy would need the NRT)
+            for col in range(pres.shape[1]):
+                pres[out, col] = pres[q, col]
         out += 1
     return out
 
@@ -512,7 +514,7 @@ def _emit(
     return rows, scans, n_out + 1
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def has_corners(
     px: FloatArray,
     py: FloatArray,

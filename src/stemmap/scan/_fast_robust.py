@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from stemmap._leaf_jit import leaf_njit
+from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.types import FloatArray
 
 #: 1.4826 MAD -> sigma for a Gaussian, / sqrt(6): the std of a second difference of iid noise
@@ -20,7 +20,7 @@ from stemmap.types import FloatArray
 _ROUGH = 1.4826 / math.sqrt(6.0)
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _range_roughness(r: FloatArray) -> float:
     """Robust range-noise + bark-roughness scale of consecutive returns (numba twin of
     :func:`stemmap.scan.plausibility.range_roughness`, same arithmetic)."""
@@ -36,7 +36,7 @@ def _range_roughness(r: FloatArray) -> float:
     return _ROUGH * med
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
     """Median of ``d[:m]`` (mean of the two middle values for even ``m``, as ``np.median``)
     by quickselect (Hoare partition) in place: no allocation, ``d[:m]`` is reordered."""
@@ -115,7 +115,7 @@ def _interior_triples(g: FloatArray, jump: float, d: FloatArray) -> tuple[int, i
 _FLOAT_MAX = float(np.finfo(np.float64).max)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> float:
     """Range-noise scale of one gated scan ``g`` from its interior continuous beam triples
     (numba twin of :func:`stemmap.scan.plausibility.scan_noise`, same statistic and
@@ -193,7 +193,7 @@ def _batch_scan_noise(
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _mad_scale(d: FloatArray, m: int, surface: float) -> float:  # pragma: no cover - numba
     """``sqrt(max((1.4826 MAD / sqrt(6))^2 - surface^2, 0))`` of ``d[:m]`` (reordered)."""
     med = _median_inplace(d, m)
@@ -203,7 +203,7 @@ def _mad_scale(d: FloatArray, m: int, surface: float) -> float:  # pragma: no co
     return math.sqrt(max(e * e - surface * surface, 0.0))
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r: float) -> float:
     """1.4826 x the median absolute orthogonal residual (numba twin of
     :func:`stemmap.scan.plausibility.robust_residual_scale`, same arithmetic)."""
@@ -217,7 +217,7 @@ def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r
     return 1.4826 * med
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
     """Median of ``v[start:stop]`` (mean of the two middle values for even counts), as
     :func:`stemmap.scan.features._segment_median`."""

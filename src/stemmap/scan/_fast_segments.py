@@ -10,9 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from stemmap._leaf_jit import leaf_njit
+from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.types import FloatArray
 
 
@@ -173,7 +172,7 @@ def _drop(
     return nk, w
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _geometric_cov(
     px: FloatArray,
     py: FloatArray,

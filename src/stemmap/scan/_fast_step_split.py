@@ -101,7 +101,7 @@ def largest_step(
     return f, spike
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _seen_through(
     px: FloatArray, py: FloatArray, pr: FloatArray, a: int, b: int, res: FloatArray
 ) -> bool:  # pragma: no cover - numba
