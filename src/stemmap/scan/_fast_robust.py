@@ -139,15 +139,21 @@ def _batch_scan_noise(
     surface: float,
     pool: bool = True,
     batch_min: float = math.inf,
+    own: FloatArray | None = None,
 ) -> FloatArray:  # pragma: no cover - numba
     """Every scan's range-noise scale with the scans that have too few interior triples for
     an estimate of their own sharing one from the union of their triples (``pool``), and the
     scans still without one taking the estimate over every scan's triples where it is at least
     ``batch_min`` (numba twin of :func:`stemmap.scan.plausibility.scan_noise` with ``pool`` and
     ``batch_min``; scans gated to ``(lo, hi)`` and the field of view as the detector kernel
-    gates them; the same arithmetic)."""
+    gates them; the same arithmetic). ``own`` (shape (S,)), if given, receives every scan's own
+    estimate before any pooling (0 where it has none): :func:`_scan_noise` of the scan, the
+    same numbers, so the detector kernel reads its scan noise there instead of estimating it
+    twice when the step split pools its own."""
     s_count, n = ranges.shape
     out = np.zeros(s_count)
+    if own is not None:
+        own[:] = 0.0
     g = np.empty(n)
     d = np.empty(n)
     pool_v = np.empty(s_count * n)
@@ -173,6 +179,8 @@ def _batch_scan_noise(
         if m >= _SCAN_NOISE_MIN_TRIPLES and 2 * longest <= m:
             out[s] = _mad_scale(d, m, surface)
             unset[s] = False
+            if own is not None:
+                own[s] = out[s]
         elif pool and m < _SCAN_NOISE_MIN_TRIPLES:
             lacking[s] = True
             pool_v[pool_m : pool_m + m] = d[:m]
