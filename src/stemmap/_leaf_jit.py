@@ -35,16 +35,23 @@ __all__ = ["leaf_njit", "nrt_njit"]
 HAS_NRT_FLAG = hasattr(_options.DefaultOptions, "_nrt")
 
 
+def _jit(inline: str, nrt: bool) -> Callable[[Any], Any]:
+    """``njit`` with this module's options (typed loosely: ``_nrt`` is not in numba's stubs)."""
+    options: dict[str, Any] = {"cache": True, "error_model": "numpy", "inline": inline}
+    if HAS_NRT_FLAG:
+        options["_nrt"] = nrt
+    jit: Any = njit
+    return jit(**options)
+
+
 def leaf_njit(*, inline: str = "never") -> Callable[[Any], Any]:
     """``njit(cache=True, error_model="numpy", inline=inline)`` without reference counting
     (see the module docstring for the kernels it is meant for)."""
-    extra: dict[str, Any] = {"_nrt": False} if HAS_NRT_FLAG else {}
-    return njit(cache=True, error_model="numpy", inline=inline, **extra)  # type: ignore[no-any-return]
+    return _jit(inline, False)
 
 
 def nrt_njit(*, inline: str = "never") -> Callable[[Any], Any]:
     """``njit(cache=True, error_model="numpy", inline=inline)`` with reference counting stated
     explicitly: for kernels that allocate and are called from a :func:`leaf_njit` kernel (numba
     would otherwise compile them without the runtime, as their caller, and refuse)."""
-    extra: dict[str, Any] = {"_nrt": True} if HAS_NRT_FLAG else {}
-    return njit(cache=True, error_model="numpy", inline=inline, **extra)  # type: ignore[no-any-return]
+    return _jit(inline, True)
