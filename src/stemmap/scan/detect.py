@@ -42,7 +42,9 @@ from stemmap.scan._segment_fits import (
     _Fitted,
     _output_columns,
     fit_kasa_segments,
+    fit_sigma,
 )
+from stemmap.scan._stub_runs import trim_runs
 from stemmap.scan._stubs import first_echo, trim_stubs
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
@@ -359,6 +361,12 @@ class ScanTrunkDetector:
         pts = extract_points(r, bearing, angle_increment)
         if noise is not None:
             pts = replace(pts, noise=noise, step_noise=self._step_noise(raw, noise))
+        if self._fit_noise_on():
+            # the noise the fits weight by: each scan's own estimate, else the batch's
+            fit_noise = scan_noise(
+                raw, cfg.scan_noise_jump, cfg.scan_noise_surface, 0.0, batch_min=0.0
+            )
+            pts = replace(pts, fit_noise=fit_noise)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
         else:
@@ -403,6 +411,11 @@ class ScanTrunkDetector:
             )
             segs = segs.select(segs.counts >= cfg.min_points)
         return (self._filter(segs) if apply_filters else segs), r, wrap
+
+    def _fit_noise_on(self) -> bool:
+        """Whether the circle fits weight by the measured noise (``fit_noise_floor``)."""
+        cfg = self.config
+        return cfg.fit_noise_floor > 0 and cfg.beam_footprint_deg > 0 and cfg.fit_method == "ours"
 
     def _step_noise(self, r: FloatArray, noise: FloatArray) -> FloatArray | None:
         """``step_noise_pool``: the noise of every scan for the step threshold of
@@ -466,8 +479,9 @@ class ScanTrunkDetector:
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
-        corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
-        (``lobe_harmonics``), no ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
+        corner splits (``refit_split="corners"``), no relaxed RMS tests, lobed outlines
+        (``lobe_harmonics``) or RMS test over the fit's degrees of freedom (``rms_dof``), no
+        ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
         step split with ``step_noise_pool`` since Dec 5: :mod:`stemmap.scan._fast_step_split`)."""
@@ -485,6 +499,7 @@ class ScanTrunkDetector:
             and (math.isinf(cfg.stub_sigmas) or not first_echo(cfg))
             and not cfg.split_search
             and not (cfg.step_split and cfg.step_twigs)
+            and not cfg.rms_dof
         )
 
     def _run(
@@ -594,10 +609,12 @@ class ScanTrunkDetector:
         elif cfg.fit_method == "ours" and cfg.beam_footprint_deg > 0 and cfg.edge_protrusion > 0:
             # first echo: the last beam that returns may have caught a bark flake or twig
             sil = first_echo_edge_prior(segs, cfg.edge_protrusion)
+        # fit_noise_floor: the fit weights by the measured noise, the tests keep sigma
+        f_sigma = fit_sigma(cfg.fit_noise_floor, segs, sigma)
         centers, radii, covs, ok = _fit_segments(
             segs,
             cfg.fit_method,
-            sigma,
+            sigma if f_sigma is None else f_sigma,
             silhouette=sil,
             beam_divergence=divergence,
             residuals=cfg.fit_residuals,
@@ -613,6 +630,10 @@ class ScanTrunkDetector:
             rms = _fit_rms(segs, centers, radii)
             # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
             test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
+            if cfg.rms_dof:
+                # the residual scale over the fit's n - 3 degrees of freedom
+                n = segs.counts.astype(np.float64)
+                test_rms = test_rms * np.sqrt(n / np.maximum(n - 3.0, 1.0))
         if cfg.lobe_harmonics:
             # a candidate that fails the RMS test as a circle may pass it as a lobed outline
             centers, radii, covs, test_rms, lobed = lobed_refit(
@@ -747,5 +768,8 @@ class ScanTrunkDetector:
         if behind and math.isfinite(cfg.behind_sigmas) and np.any(which):
             segs, fitted = trim_behind(self, segs, fitted, which, grid, wrap)
         if math.isfinite(cfg.stub_sigmas) and np.any(which):
-            segs, fitted = trim_stubs(self, segs, fitted, which, grid, wrap)
+            if cfg.stub_runs and first_echo(cfg):
+                segs, fitted = trim_runs(self, segs, fitted, which, grid, wrap)
+            else:
+                segs, fitted = trim_stubs(self, segs, fitted, which, grid, wrap)
         return segs, fitted
