@@ -157,7 +157,7 @@ def scene_scans(
     :meth:`stemmap.eval.scan_background.Relief.random`); headings and relief come from their
     own generators (``seed``), so the vantage points and the noise are those of ``"none"``.
     ``return_rule``: the averaging scanner's return threshold (:class:`ReturnRule`; default
-    any sub-ray of 5, every round's benchmark)."""
+    any sub-ray of 25; of 5 before Dec 5)."""
     extra: dict[str, Any] = {}
     if model == "averaging" and return_rule is not None:
         extra.update(return_rule.kwargs())
@@ -182,12 +182,13 @@ class ReturnRule:
     """When a virtual averaging (SICK-class) beam returns (Dec 4, "Averaging scanners: the
     return threshold"): at least ``min_hit_fraction`` of its 0.25-degree footprint, sampled by
     ``sub_rays`` sub-rays of a ``profile`` beam, must hit (see
-    :func:`stemmap.eval.real_slices.virtual_scans`). The default is every round's benchmark:
-    any of 5 sub-rays."""
+    :func:`stemmap.eval.real_slices.virtual_scans`; the range model is the simulator's,
+    :mod:`stemmap.sim.footprint`). The default is every round's benchmark threshold, any
+    sub-ray, with 25 sub-rays (5 before Dec 5, "Mixed pixels: one footprint model")."""
 
     min_hit_fraction: float = 0.0
     profile: str = "uniform"
-    sub_rays: int = 5
+    sub_rays: int = 25
 
     def kwargs(self) -> dict[str, Any]:
         return {

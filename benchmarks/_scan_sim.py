@@ -58,7 +58,7 @@ SCENARIO: dict[str, Any] = {
         "range_max_m": 30.0,
         "range_noise_m": 0.01,
         "beam_divergence_deg": 0.25,
-        "sub_beams": 5,
+        "sub_beams": 25,
         "mixed_pixels": True,
         "dropout": 0.0,
     },

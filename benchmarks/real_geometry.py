@@ -607,14 +607,14 @@ def main(argv: list[str] | None = None) -> int:
         choices=("uniform", "gaussian"),
         default="uniform",
         help="averaging scanner's beam: uniform sub-rays (default) or a Gaussian beam's energy"
-        " (the threshold and the mean range energy-weighted)",
+        " (the threshold and the power-weighted mean range weighted by the energy too)",
     )
     ap.add_argument(
         "--sub-rays",
         type=int,
-        default=5,
-        help="averaging scanner's sub-rays per footprint (default 5; the threshold moves in"
-        " steps of 1/sub-rays)",
+        default=25,
+        help="averaging scanner's sub-rays per footprint (default 25 since Dec 5, 5 before; the"
+        " threshold moves in steps of 1/sub-rays)",
     )
     args = ap.parse_args(argv)
     rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)

@@ -17,14 +17,17 @@ of the whole slice (every trunk, branch and bush occludes what is behind it):
 - ``"nearest"``: a first-echo scanner whose beam fills the angular step: the nearest slice
   point within the beam's angular cell (width = the angular resolution).
 - ``"averaging"``: a SICK LMS2xx-class scanner: the beam footprint (``footprint_deg``, 0.25 deg
-  by default, centred on the beam) is cut into sub-rays; each sub-ray returns the nearest
-  point in its sub-cell and the beam reports the mean range of the sub-rays that hit
-  (mixed pixels at silhouette edges). Its *return threshold* (``min_hit_fraction``, Dec 4) is
-  the share of the footprint that must hit for the beam to return: 0 (the default, every
-  round's benchmark) returns when any sub-ray hits; 0.5 when half the footprint hits (what the
-  ``stemmap`` detector's edge model assumes); ``beam_profile="gaussian"`` weights the sub-rays
-  by a Gaussian beam's energy (1/e^2 at the footprint's edges) in both the threshold and the
-  mean range: an energy threshold, as a real time-of-flight scanner's echo detection.
+  by default, centred on the beam) is cut into sub-rays (25 by default: 5 before Dec 5); each
+  sub-ray returns the nearest point in its sub-cell and the beam reports the power-weighted
+  (``1/r^2``) mean range of the sub-rays that hit, the simulator's mixed-pixel model
+  (:mod:`stemmap.sim.footprint`; the plain mean before Dec 5). Its *return threshold*
+  (``min_hit_fraction``, Dec 4) is the share of the footprint that must hit for the beam to
+  return: 0 (the default, every round's benchmark) returns when any sub-ray hits; 0.5 when half
+  the footprint hits (what the ``stemmap`` detector's edge model assumes);
+  ``beam_profile="gaussian"`` weights the sub-rays by a Gaussian beam's energy (1/e^2 at the
+  footprint's edges) in both the threshold and the mean range: an energy threshold, as a real
+  time-of-flight scanner's echo detection (the distance a SICK LMS200 reports depends on the
+  blocked radiant power rather than the blocked area: Sanz-Cortiella et al. 2011).
 
 Gaussian range noise can be added per beam. Each beam also carries the index of the
 reference trunk it hit (-1 = anything else), which tells which trunks are visible.
@@ -56,6 +59,7 @@ from stemmap.eval.scan_background import (
     ground_ranges,
     ground_surface,
 )
+from stemmap.sim.footprint import footprint_ranges
 from stemmap.types import FloatArray, ScanBatch
 
 __all__ = [
@@ -381,7 +385,7 @@ def virtual_scans(
     resolution_deg: float,
     model: Literal["nearest", "averaging"] = "nearest",
     footprint_deg: float = 0.25,
-    sub_rays: int = 5,
+    sub_rays: int = 25,
     min_hit_fraction: float = 0.0,
     beam_profile: Literal["uniform", "gaussian"] = "uniform",
     max_range: float = 30.0,
@@ -424,16 +428,16 @@ def virtual_scans(
     default; 0.5 = half the footprint, the edge model of the ``stemmap`` detector). With
     ``beam_profile="uniform"`` the share is the fraction of the ``sub_rays`` sub-rays that hit
     (at least ``ceil(min_hit_fraction * sub_rays)``, and >= 1, as
-    :class:`stemmap.sim.scanner.Scanner2D`), so it moves in steps of ``1 / sub_rays`` of the
-    footprint (a sub-ray counts when anything is in its sub-cell: use ``sub_rays`` >= 20 for a
-    threshold finer than a fifth); the range is the mean of the sub-rays that hit. With
-    ``"gaussian"`` each sub-ray carries the energy of a Gaussian beam at its offset ``d`` from
-    the beam axis, ``exp(-2 (2 d / footprint)^2)`` (1/e^2 at the footprint's edge): the share
-    is the energy that hit over the beam's, the range the energy-weighted mean (the received
-    pulse's centroid). A beam that does not reach the threshold reports no return (inf, -1)
-    even where some sub-rays hit; sub-rays that hit a farther object (another trunk, the
-    ground) count towards the share and the mean as the trunk's do (mixed pixels). Ignored by
-    the ``nearest`` model.
+    :class:`stemmap.sim.scanner.ScannerModel`), so it moves in steps of ``1 / sub_rays`` of the
+    footprint (a sub-ray counts when anything is in its sub-cell); the range is the
+    ``1/r^2``-weighted mean of the sub-rays that hit
+    (:func:`stemmap.sim.footprint.footprint_ranges`, the simulator's model). With ``"gaussian"``
+    each sub-ray carries the energy of a Gaussian beam at its offset ``d`` from the beam axis,
+    ``exp(-2 (2 d / footprint)^2)`` (1/e^2 at the footprint's edge): the share is the energy
+    that hit over the beam's, the range weighted by energy / r^2 (the received power). A beam
+    that does not reach the threshold reports no return (inf, -1) even where some sub-rays hit;
+    sub-rays that hit a farther object (another trunk, the ground) count towards the share and
+    the mean as the trunk's do (mixed pixels). Ignored by the ``nearest`` model.
 
     Returns
     -------
@@ -484,7 +488,6 @@ def virtual_scans(
     u_sub = ((np.arange(n_sub) + 0.5) * sub - 0.5 * width) / (0.5 * width)
     energy = np.exp(-2.0 * u_sub * u_sub) if beam_profile == "gaussian" else np.ones(n_sub)
     energy /= energy.sum()
-    k_min = max(math.ceil(min_hit_fraction * n_sub - 1e-9), 1)
     for v, o in enumerate(vantages):
         xy_v, lab_v = xy, labels
         if with_ground:
@@ -536,18 +539,9 @@ def virtual_scans(
         if n_sub == 1:
             ranges[v] = sub_r[:, 0]
             hit[v] = sub_l[:, 0]
-        else:
-            fin = np.isfinite(sub_r)
-            if beam_profile == "uniform":
-                cnt_b = fin.sum(axis=1)
-                tot = np.where(fin, sub_r, 0.0).sum(axis=1)
-                ok_b = cnt_b >= k_min
-                ranges[v] = np.where(ok_b, tot / np.maximum(cnt_b, 1), np.inf)
-            else:
-                e_b = np.where(fin, energy, 0.0).sum(axis=1)
-                tot = np.where(fin, sub_r * energy, 0.0).sum(axis=1)
-                ok_b = (e_b > 0.0) & (e_b >= min_hit_fraction - 1e-9)
-                ranges[v] = np.where(ok_b, tot / np.where(ok_b, e_b, 1.0), np.inf)
+        else:  # the shared footprint model (stemmap.sim.footprint), as the simulator's
+            ranges[v] = footprint_ranges(sub_r, energy, min_hit_fraction)
+            ok_b = np.isfinite(ranges[v])
             hit[v] = np.where(ok_b, sub_l[np.arange(n_beams), np.argmin(sub_r, axis=1)], -1)
     return ranges, hit
 

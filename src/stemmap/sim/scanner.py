@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.sim.footprint import beam_range, sub_ray_offsets
 from stemmap.sim.forest import Stand
 from stemmap.types import FloatArray, LaserScan, Pose2, ScanBatch
 
@@ -66,7 +67,12 @@ class ScannerModel:
     beam_divergence : float, radians, >= 0
         Full angular width of the beam footprint. ``0`` is an ideal thin ray.
     sub_beams : int, >= 1
-        Rays sampled uniformly across the footprint when ``beam_divergence > 0``.
+        Thin rays sampling the footprint when ``beam_divergence > 0``: the centres of
+        ``sub_beams`` equal cells tiling it (:func:`stemmap.sim.footprint.sub_ray_offsets`).
+        Default 25 (5 before Dec 5): the outermost sub-beams sit ``divergence / (2 K)``
+        inside the footprint's edges, which widens the gap between neighbouring footprints by
+        ``divergence / K``: 0.02 beam steps for the SICK preset (0.1 with 5), and the covered
+        share moves in steps of 1/K (the detector's mixed-pixel prior has a std of 0.2).
     min_hit_fraction : float in (0, 1]
         Fraction of the footprint that must hit a surface for the beam to return (an energy
         threshold). 0.5 keeps silhouette edges unbiased on average.
@@ -77,10 +83,11 @@ class ScannerModel:
     -----
     **Mixed pixels.** When the footprint straddles a trunk edge, part of the sub-beams hit
     the trunk and part the background. The returned range is the mean of the sub-beams that
-    hit, weighted by ``1 / r^2`` (returned energy of a diffuse target); it therefore lies
-    between the two ranges, as the "mixed pixels" (phantom points) that real time-of-flight
-    scanners report at edges. Ground truth of such a beam is the object that covers most
-    sub-beams (ties: the nearest).
+    hit, weighted by ``1 / r^2`` (returned energy of a diffuse target; the model, its sources
+    and what it leaves out: :mod:`stemmap.sim.footprint`, shared with the real-geometry
+    benchmark); it therefore lies between the two ranges, as the "mixed pixels" (phantom
+    points) that real time-of-flight scanners report at edges. Ground truth of such a beam is
+    the object that covers most sub-beams (ties: the nearest).
     """
 
     angle_min: float = -math.pi / 2
@@ -92,7 +99,7 @@ class ScannerModel:
     dropout: float = 0.0
     range_noise_rel: float = 0.0
     beam_divergence: float = 0.0
-    sub_beams: int = 5
+    sub_beams: int = 25
     min_hit_fraction: float = 0.5
     scan_rate_hz: float = 10.0
 
@@ -133,9 +140,7 @@ class ScannerModel:
     def sub_beam_offsets(self) -> FloatArray:
         """Angular offsets (rad) of the sub-beams from the beam centre, shape (K,)."""
         k = int(self.sub_beams) if self.beam_divergence > 0 else 1
-        if k == 1:
-            return np.zeros(1)
-        return self.beam_divergence * ((np.arange(k) + 0.5) / k - 0.5)
+        return sub_ray_offsets(self.beam_divergence, k)
 
     def range_sigma(self, ranges: ArrayLike) -> FloatArray:
         """1-sigma range noise (m) at the given true ranges."""
@@ -156,7 +161,7 @@ SCANNER_PRESETS: dict[str, ScannerModel] = {
         range_noise=0.01,
         range_noise_rel=0.0,
         beam_divergence=math.radians(0.25),
-        sub_beams=5,
+        sub_beams=25,
         dropout=0.0,
         scan_rate_hz=75.0,
     ),
@@ -528,7 +533,8 @@ def cast_scans(
 def _combine_kernel(
     sub_r: FloatArray,
     sub_id: NDArray[np.int64],
-    k_min: int,
+    weight: FloatArray,
+    min_share: float,
     out_r: FloatArray,
     out_id: NDArray[np.int64],
     out_mixed: NDArray[np.bool_],
@@ -536,22 +542,13 @@ def _combine_kernel(
     n_s, n_b, k = sub_r.shape
     for s in range(n_s):
         for i in range(n_b):
-            n_hit = 0
-            wsum = 0.0
-            rsum = 0.0
-            for j in range(k):
-                r = sub_r[s, i, j]
-                if r < np.inf:
-                    n_hit += 1
-                    w = 1.0 / (r * r)
-                    wsum += w
-                    rsum += w * r
-            if n_hit < k_min or n_hit == 0:
+            r_b = beam_range(sub_r[s, i], weight, min_share)
+            if not r_b < np.inf:
                 out_r[s, i] = np.inf
                 out_id[s, i] = -1
                 out_mixed[s, i] = False
                 continue
-            out_r[s, i] = rsum / wsum
+            out_r[s, i] = r_b
             best_id = -1
             best_count = 0
             best_range = np.inf
@@ -579,9 +576,11 @@ def _combine_sub_beams(
 ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
     """Mixed-pixel model: (S, N, K) sub-beam ranges -> (S, N) range, hit id, mixed flag.
 
-    Range: ``1/r^2``-weighted mean of the sub-beams that hit, if at least
-    ``ceil(min_hit_fraction * K)`` hit, else no return. Ground truth: the id covering most
-    sub-beams (ties: the one with the nearest sub-beam). Mixed: the sub-beams disagree.
+    Range: :func:`stemmap.sim.footprint.beam_range` (the ``1/r^2``-weighted mean of the
+    sub-beams that hit, each carrying ``1/K`` of the beam's power, if at least
+    ``min_hit_fraction`` of them hit, else no return; the model the real-geometry benchmark's
+    virtual scanner uses too). Ground truth: the id covering most sub-beams (ties: the one
+    with the nearest sub-beam). Mixed: the sub-beams disagree.
     """
     k = sub_r.shape[-1]
     if k == 1:
@@ -589,9 +588,14 @@ def _combine_sub_beams(
     out_r = np.empty(sub_r.shape[:-1])
     out_id = np.empty(sub_r.shape[:-1], dtype=np.int64)
     out_mixed = np.empty(sub_r.shape[:-1], dtype=bool)
-    k_min = math.ceil(min_hit_fraction * k - 1e-9)
     _combine_kernel(
-        np.ascontiguousarray(sub_r), np.ascontiguousarray(sub_id), k_min, out_r, out_id, out_mixed
+        np.ascontiguousarray(sub_r),
+        np.ascontiguousarray(sub_id),
+        np.ones(k),
+        float(min_hit_fraction),
+        out_r,
+        out_id,
+        out_mixed,
     )
     return out_r, out_id, out_mixed
 
