@@ -333,8 +333,9 @@ def map_command(
     trajectory_format: Annotated[
         TrajectoryFormat,
         typer.Option(
-            help="trajectory.csv (time_s,x,y,theta + pose covariance columns where the back-end "
-            "has them: fastslam, ekf, isam2) or TUM trajectory.tum for evo (no covariances)."
+            help="trajectory.csv (time_s,x,y,theta in s, m, m, rad + the pose covariance "
+            "columns, which every back-end writes: docs/outputs.md) or TUM trajectory.tum for "
+            "evo (no covariances)."
         ),
     ] = TrajectoryFormat.csv,
     workers: WorkersOption = None,
