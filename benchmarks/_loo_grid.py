@@ -318,6 +318,17 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # pool (numpy path)
     _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59),
     _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, edge_hit_min=0.0, edge_hit_max=0.0),
+    # Dec 5 ("The default's false alarms on the simulator, by class"), grids 59 / 60 with the
+    # RMS test over the fit's n - 3 degrees of freedom (rms_dof; numpy path)
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, rms_dof=True),
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        edge_hit_min=0.0,
+        edge_hit_max=0.0,
+        rms_dof=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -266,17 +266,7 @@ DETS = _obs([0, 0, 0], [[3.4, 0.0], [0.0, 6.6], [0.0, -3.7]], [0.3, 0.1, 0.2])
 
 
 def _score(**kw):
-    args = {
-        "trees_xy": TREES,
-        "diameters": DIAMS,
-        "sensor_poses": [[0.0, 0.0, 0.0]],
-        "hit_ids": HITS,
-        "nontree_xy": BUSHES,
-        "nontree_extent": EXTENT,
-        "fov": FOV,
-    }
-    args.update(kw)
-    return score_scan_detections(DETS, **args)
+    return _score_dets(DETS, **kw)
 
 
 def test_score_scan_detections_defaults_and_non_tree_rules():
@@ -414,3 +404,30 @@ def test_scan_detection_metrics_passes_the_run_and_defaults_through():
     m2 = scan_detection_metrics(DETS, run, range_bins=bins, **kw)  # type: ignore[arg-type]
     assert m2.to_dict() == _score(range_bins=bins, **kw).to_dict()
     assert m2.to_dict() != ref.to_dict()
+
+
+def test_a_detection_beyond_the_scored_domain_is_neither_true_nor_false():
+    # the scored domain is max_range + gate (15.5 m here) on both sides of precision: a
+    # detection on the 15.5 m tree T2 (not eligible) was always ignored; one on the 20 m bush
+    # B2 is now ignored too (it counted as a false alarm before Dec 5)
+    xy = np.vstack((DETS.centers, [[20.0, 0.2], [15.4, 0.0]]))
+    dets = _obs([0] * 5, xy, np.concatenate((DETS.diameters, [0.4, 0.3])))
+    m = _score_dets(dets)
+    assert (m.ta, m.fa, m.n_ignored, m.n_detections) == (1, 2, 2, 5)
+    # a wider domain (max_range 20 m: T2 eligible, the bush detection within 20.5 m) counts both
+    m20 = _score_dets(dets, max_range=20.0)
+    assert (m20.ta, m20.fa, m20.n_ignored) == (2, 3, 0)
+
+
+def _score_dets(dets, **kw):
+    args = {
+        "trees_xy": TREES,
+        "diameters": DIAMS,
+        "sensor_poses": [[0.0, 0.0, 0.0]],
+        "hit_ids": HITS,
+        "nontree_xy": BUSHES,
+        "nontree_extent": EXTENT,
+        "fov": FOV,
+    }
+    args.update(kw)
+    return score_scan_detections(dets, **args)

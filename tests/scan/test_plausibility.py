@@ -289,3 +289,37 @@ def test_rejections_come_from_one_numpy_pass_and_leave_the_detections_bit_identi
         for k, v in want_rej.items():
             np.testing.assert_array_equal(np.asarray(rej[k]), np.asarray(v), err_msg=k)
         assert len(rej["reason"]) > 0
+
+
+def test_rms_dof_reads_the_residual_scale_over_the_fits_degrees_of_freedom():
+    # a 26 cm stem at 6 m seen by 5 beams (0.5 deg), its three middle returns moved +2 / -2 /
+    # +2 cm: the plain RMS over 5 returns (1.46 cm) passes the 2-sigma limit (2.1 cm: 1 cm
+    # configured sigma, 3 % bark), the scale over the fit's 2 degrees of freedom,
+    # sqrt(5 / 2) x RMS (2.3 cm), does not; noise-free otherwise
+    ang = np.radians(np.arange(-30.0, 30.0 + 1e-9, 0.5))
+    r = _ranges([(6.0, 0.05, 0.13)], ang)
+    hit = np.flatnonzero(np.isfinite(r))
+    assert hit.size == 5
+    r[hit] += 0.02 * np.array([0.0, 1.0, -1.0, 1.0, 0.0])
+    b = _batch(r, ang)
+    fates = []
+    for dof in (False, True):
+        det = ScanTrunkDetector(DetectorConfig.preset("stemmap", rms_dof=dof))
+        assert det._compiled(None, None) is not dof  # the option runs the numpy path
+        fate: dict = {}
+        det._run_numpy(
+            b.ranges, b.times, b.angle_min, b.angle_increment, b.range_min, b.range_max,
+            b.frame, None, None, fate=fate,
+        )  # fmt: skip
+        fates.append(fate)
+        found = len(det.detect_batch(b))
+        assert found == (0 if dof else 1)
+        if dof:
+            assert list(det.rejected(b)["reason"]) == ["rms"]
+    plain, dof_fit = fates[0]["fitted"], fates[1]["fitted"]
+    n = fates[1]["every"].counts[0]
+    assert n == 5
+    assert dof_fit.rms[0] == pytest.approx(plain.rms[0])  # the reported RMS is unchanged
+    assert dof_fit.test_rms[0] == pytest.approx(plain.rms[0] * math.sqrt(n / (n - 3)))
+    lim = 2.0 * math.hypot(0.01, 0.03 * plain.radii[0])
+    assert plain.rms[0] < lim < dof_fit.test_rms[0]

@@ -315,7 +315,10 @@ def score(
         float,
         typer.Option(
             "--max-range",
-            help="Trees farther than this are don't-care, m.",
+            help=(
+                "Trees farther than this are don't-care, and detections farther than it plus "
+                "--gate are not scored (neither true nor false), m."
+            ),
             callback=bounded("--max-range", gt=0),
         ),
     ] = 15.0,

@@ -165,6 +165,7 @@ class _Pooled:
         gate: float,
         nontree_xy: FloatArray,
         nontree_extent: FloatArray,
+        scored_within: float = math.inf,
     ) -> None:
         m = match_points(det_xy, truth_xy, gate)
         di, ti = m.pairs[:, 0], m.pairs[:, 1]
@@ -179,7 +180,11 @@ class _Pooled:
         missed = np.flatnonzero(not_found)
         self.miss_range.append(truth_range[missed])
         fa_idx = m.unmatched_detections
-        self.fa += int(fa_idx.size)
+        # an unmatched detection outside the scored domain is not a false alarm, as a match
+        # to an ineligible tree is not a true one (score_scan_detections)
+        far = np.hypot(*det_xy[fa_idx].T) > scored_within if fa_idx.size else np.zeros(0, bool)
+        self.n_ignored += int(np.sum(far))
+        self.fa += int(fa_idx.size - np.sum(far))
         self.n_det += int(det_xy.shape[0])
         if nontree_xy.shape[0]:
             if fa_idx.size:
@@ -432,6 +437,15 @@ def scan_detection_metrics(
     beams, within ``max_range``, DBH ``>= min_diameter``). Non-tree objects count for TR if
     their centre is within ``max_range`` and inside the scanner's field of view.
 
+    The scored domain is the same for both sides of precision: a detection matched to a tree
+    that is not eligible is ignored (neither TA nor FA), and so is an unmatched detection
+    whose centre lies beyond ``max_range + gate`` from the sensor (the farthest a match to an
+    eligible tree can lie); both are counted in ``n_ignored``. Unmatched detections within it
+    are false alarms. (Before Dec 5 an unmatched detection counted as a false alarm at any
+    range while a correct one beyond ``max_range`` was ignored; the benchmark drive of
+    benchmarks/scan_detection.py already dropped detections beyond 15.5 m, so only the demo
+    drive's scores change: docs/algorithms/sim-eval.md.)
+
     Parameters
     ----------
     detections : StemObservations
@@ -571,5 +585,6 @@ def score_scan_detections(
             float(gate),
             o_local[k][o_ok[k]],
             next_[o_ok[k]],
+            scored_within=float(max_range + gate),
         )
     return pool.summary(float(gate), bins)

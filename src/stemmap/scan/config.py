@@ -187,6 +187,13 @@ class DetectorConfig:
         The RMS test reads ``1.4826 x median |residual|`` instead of the RMS
         (:func:`~stemmap.scan.plausibility.robust_residual_scale`): a few returns off the
         circle (branch stub, mixed pixel, bark ridge) do not reject a trunk (ours, issue 11).
+    rms_dof : bool
+        The RMS test reads the residual scale over the fit's ``n - 3`` degrees of freedom,
+        ``sqrt(sum residual^2 / (n - 3))`` (``sqrt(n / (n - 3))`` x the RMS over the n returns),
+        instead of the RMS (ours, issue 11, Dec 5): the circle's three parameters absorb three
+        dimensions of the residuals, so the plain RMS of a 4-return fit reads half the noise
+        that made it (``E[sum residual^2] = (n - 3) sigma^2``) and ``max_rms_sigma`` 2 lets its
+        residual scale reach 4 sigma (5 returns 3.2, 8: 2.5, 30: 2.1). False: the plain RMS.
     bark_roughness : float, >= 0
         RMS of a real trunk's outline about its best circle as a fraction of the radius (bark
         ridges, elliptic and irregular stems). The RMS test bound becomes ``max_rms_sigma x
@@ -467,6 +474,7 @@ class DetectorConfig:
     sigma_from_data: bool = False
     roughness_max_factor: float = 3.0
     rms_robust: bool = False
+    rms_dof: bool = False
     sigma_from_scan: bool = False
     scan_noise_jump: float = 0.2
     scan_noise_surface: float = 0.006

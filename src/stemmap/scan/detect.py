@@ -466,8 +466,9 @@ class ScanTrunkDetector:
     def _compiled(self, roll: ArrayLike | None, pitch: ArrayLike | None) -> bool:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
-        corner splits (``refit_split="corners"``), no relaxed RMS tests or lobed outlines
-        (``lobe_harmonics``), no ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
+        corner splits (``refit_split="corners"``), no relaxed RMS tests, lobed outlines
+        (``lobe_harmonics``) or RMS test over the fit's degrees of freedom (``rms_dof``), no
+        ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
         step split with ``step_noise_pool`` since Dec 5: :mod:`stemmap.scan._fast_step_split`)."""
@@ -485,6 +486,7 @@ class ScanTrunkDetector:
             and (math.isinf(cfg.stub_sigmas) or not first_echo(cfg))
             and not cfg.split_search
             and not (cfg.step_split and cfg.step_twigs)
+            and not cfg.rms_dof
         )
 
     def _run(
@@ -613,6 +615,10 @@ class ScanTrunkDetector:
             rms = _fit_rms(segs, centers, radii)
             # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
             test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
+            if cfg.rms_dof:
+                # the residual scale over the fit's n - 3 degrees of freedom
+                n = segs.counts.astype(np.float64)
+                test_rms = test_rms * np.sqrt(n / np.maximum(n - 3.0, 1.0))
         if cfg.lobe_harmonics:
             # a candidate that fails the RMS test as a circle may pass it as a lobed outline
             centers, radii, covs, test_rms, lobed = lobed_refit(
