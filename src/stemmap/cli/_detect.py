@@ -107,10 +107,10 @@ def detect(
             "step is beyond the noise (read against every scan's pooled noise where a scan "
             "has no estimate of its own): a thin stem whose segment runs on into a branch "
             "behind it. The leave-one-dataset-out choice on real trunk geometry (TreeLS plot "
-            "held out: recall 0.90 -> 0.95); off by default because it costs ~8 % of the "
-            "speed and lowers the simulated demo precision 0.951 -> 0.944 (step_split, "
-            "step_noise_pool='batch'; docs/algorithms/scan-detection.md, 'Step split, fold "
-            "by fold').",
+            "held out: recall 0.90 -> 0.95); off by default: it costs ~8 % of the speed "
+            "and lowers the simulated precision on seed 1 (benchmark drive 0.969 -> 0.949, "
+            "demo drive 0.979 -> 0.973; step_split, step_noise_pool='batch'; "
+            "docs/algorithms/scan-detection.md, 'Step split, fold by fold').",
         ),
     ] = False,
     arcs: Annotated[
