@@ -108,6 +108,10 @@ _STEP_BATCH_59: dict[str, Any] = {
     "step_split": True,
     "step_noise_pool": "batch",
 }
+#: Grid 60 (the LOO's choice since Dec 5) on top of _DEFAULT_11 and _ARCS_35.
+_GRID_60: dict[str, Any] = {**_STEP_BATCH_59, "edge_hit_min": 0.0, "edge_hit_max": 0.0}
+#: Dec 5, "lidR view by view": the fit's measured noise and the stub test by runs.
+_RUNS_63: dict[str, Any] = {"fit_noise_floor": 0.003, "stub_sigmas": 2.0, "stub_runs": True}
 
 LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(bark=0.03),  # the default of the second round (straightness test unchanged)
@@ -329,6 +333,14 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         edge_hit_max=0.0,
         rms_dof=True,
     ),
+    # Dec 5 ("lidR view by view"), grids 63-66 on grid 60 (the LOO's choice): first-echo fits
+    # weight the returns by the measured noise (fit_noise_floor 3 / 5 mm), the stub test
+    # deletes runs of end returns (stub_runs, stub_sigmas 2), both and each alone (numpy path:
+    # the nearest-return rows)
+    _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **_RUNS_63),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **{**_RUNS_63, "fit_noise_floor": 0.005}),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, fit_noise_floor=0.003),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, stub_sigmas=2.0, stub_runs=True),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

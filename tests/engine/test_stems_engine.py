@@ -27,10 +27,11 @@ DBH_TOL = 1e-6
 
 @pytest.fixture(scope="module")
 def reference(stand_tiles: tuple[Path, np.ndarray]) -> CloudStems:
-    """One process over the whole cloud, points in the catalog's order, grids anchored where
-    the engine anchors them (the catalog's lower-left corner)."""
-    x0, y0, _, _ = Catalog.from_inputs([stand_tiles[0]]).bounds
-    return detect_stems(stand_tiles[1], StemConfig(grid_origin=(x0, y0)))
+    """One process over the whole cloud, points in the catalog's order, default settings:
+    a catalog within the pilot's budget gets a single run's grid anchors (the band's
+    minimum, the filtered points'), noise floor and base (since Dec 5; before, its grids
+    were anchored at the catalog's lower-left corner and so was this reference)."""
+    return detect_stems(stand_tiles[1], StemConfig())
 
 
 def assert_same_stems(a: CloudStems, b: CloudStems) -> None:
@@ -114,8 +115,7 @@ def test_detect_statistics_are_the_full_detectors(
 ) -> None:
     """The pilot's shortcut (stop at the noise floor, no canopy raster) measures exactly what
     the full detector measures, heights on or off."""
-    x0, y0, _, _ = Catalog.from_inputs([stand_tiles[0]]).bounds
-    cfg = StemConfig(grid_origin=(x0, y0), estimate_height=True)
+    cfg = StemConfig(estimate_height=True)
     st = detect_statistics(stand_tiles[1], cfg)
     assert len(st) == 0
     assert st.spacing == reference.spacing and st.noise_floor == reference.noise_floor

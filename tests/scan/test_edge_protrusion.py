@@ -36,7 +36,14 @@ def _scan(d: float, bearing: float, flake: float):
         xy = np.vstack((xy, f))
         lab = np.concatenate((lab, np.full(f.shape[0], -1)))  # not the trunk's reference
     sensor = np.array([d * math.cos(bearing), d * math.sin(bearing)])
-    ranges, _ = virtual_scans(
+    return first_echo_scan(xy, lab, sensor)[0], -sensor
+
+
+def first_echo_scan(xy: np.ndarray, lab: np.ndarray, sensor: np.ndarray):
+    """The benchmark's noise-free first-echo scan (0.5 deg) of points ``xy`` (labels
+    ``lab``: 0 the trunk centred at the origin, -1 anything else) from ``sensor``: the batch
+    and each beam's hit label."""
+    ranges, hit = virtual_scans(
         xy - sensor,
         lab,
         np.zeros((1, 2)),
@@ -44,7 +51,7 @@ def _scan(d: float, bearing: float, flake: float):
         model="nearest",
         centers=-sensor[None, :],
     )
-    return noisy_batch(ranges, STEP, 0.0, np.random.default_rng(0)), -sensor
+    return noisy_batch(ranges, STEP, 0.0, np.random.default_rng(0)), hit
 
 
 @functools.cache

@@ -135,13 +135,22 @@ def run_catalog_stems(
     return run.stems, len(catalog), catalog
 
 
-def catalog_background(catalog: Any, n: int = 200_000) -> Any:
-    """Every k-th point (xy) of the catalog for a PNG background (one streaming pass)."""
+def catalog_sample(catalog: Any, n: int = 200_000) -> Any:
+    """Every k-th point (about ``n``; xyz, metres) of the catalog's tiles, one streaming pass:
+    a PNG background (its xy) and the shape check of a run with few or no stems
+    (:func:`stemmap.io.conventions.up_axis_hint`)."""
     import numpy as np
 
     from stemmap.io.clouds import iter_las_chunks
 
     k = max(1, catalog.n_points // n)
     u = catalog.unit_scale
-    parts = [c.xyz[::k, :2] * u for t in catalog.tiles for c in iter_las_chunks(t.path, 1_000_000)]
-    return np.concatenate(parts) if parts else np.zeros((0, 2))
+    parts = [c.xyz[::k] * u for t in catalog.tiles for c in iter_las_chunks(t.path, 1_000_000)]
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+#: Added to a shape warning of a tile catalog: --up-axis applies to one file only.
+CATALOG_UP_AXIS_NOTE = (
+    " A tile catalog takes no --up-axis (tiles are cut on their x, y): turn the tiles z up "
+    "first (PDAL filters.transformation), or run each file on its own with --up-axis."
+)

@@ -37,7 +37,8 @@ MAX_ODOMETRY_SPEED = 1000.0
 MAX_YAW_RATE = 100.0
 #: Largest 99th percentile of |yaw_rate| (rad/s) an odometry in rad/s can have: half a turn
 #: per second, for 1 % of the drive. A yaw rate in deg/s turning at 10-30 deg/s reads 10-30
-#: "rad/s"; a slow turn in deg/s (under 3.1 deg/s) is not caught (docs/reliability.md).
+#: "rad/s"; a slow turn in deg/s (under 3.1 deg/s) is caught only by the lateral
+#: acceleration it implies (:func:`stemmap.io.conventions.check_turns`, docs/reliability.md).
 MAX_SUSTAINED_YAW_RATE = math.pi
 
 
@@ -75,7 +76,7 @@ def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 f"{what} {str(p)!r} line {table.lines[k]}: {c} {v[k]:g} {unit} is beyond "
                 f"+-{limit:g} {unit}, no vehicle's: a corrupt row or another unit?"
             )
-    from stemmap.io.conventions import check_times
+    from stemmap.io.conventions import check_times, check_turns
 
     check_times(t, f"{what} {str(p)!r}", "time_s")
     w = np.abs(table.columns["yaw_rate"])
@@ -86,7 +87,9 @@ def read_odometry_csv(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             "degrees per second? stemmap reads rad/s: multiply it by pi/180."
         )
     keep = np.concatenate(([True], np.diff(t) > 0))
-    return t[keep], table.columns["speed"][keep], table.columns["yaw_rate"][keep]
+    t, speed, yaw = t[keep], table.columns["speed"][keep], table.columns["yaw_rate"][keep]
+    check_turns(t, speed, yaw, f"{what} {str(p)!r}")  # ms times, slow turns in deg/s
+    return t, speed, yaw
 
 
 def is_detections_csv(path: Path) -> bool:

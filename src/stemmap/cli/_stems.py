@@ -10,8 +10,9 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from stemmap.cli._catalog import (
+    CATALOG_UP_AXIS_NOTE,
     EngineOptions,
-    catalog_background,
+    catalog_sample,
     run_catalog_stems,
     wants_engine,
 )
@@ -447,10 +448,10 @@ def stems(
             fig_path = Path(tmp) / "figure.png"
         if fig_path is not None:
             if catalog is not None:
-                bg = catalog_background(catalog)
+                sample = catalog_sample(catalog)
             else:
                 sample = _cloud_sample(cloud, read_points, topic, convention)
-                bg = sample[:, :2]
+            bg = sample[:, :2]
             plot_stems(fig_path, result, background_xy=bg, title=name)
         if profile or metrics or labels:
             from stemmap.cli._stems_products import write_forestry_products
@@ -504,16 +505,22 @@ def stems(
             console.print(f"[yellow]warning:[/yellow] no stems found: {result.reason}.")
         hints = convention_hints(result, convention, user_set=units is not None)
         notes: list[str] = []
-        if not hints and catalog is None and up_axis_wanted(result, convention, units):
+        if not hints and up_axis_wanted(result, convention, units):
             from stemmap.io.conventions import up_axis_hint
 
             if sample is None:  # one more streaming pass, only for a run of few (or no) stems
-                sample = _cloud_sample(cloud, read_points, topic, convention)
+                sample = (
+                    catalog_sample(catalog)
+                    if catalog is not None
+                    else _cloud_sample(cloud, read_points, topic, convention)
+                )
             hint = up_axis_hint(sample, len(result))
+            if hint is not None and catalog is not None:
+                hint += CATALOG_UP_AXIS_NOTE
             if len(result):
                 hints += [] if hint is None else [hint]
             else:  # the causes the run has evidence for, not a guess at the convention
-                hints, notes = empty_result_notes(sample, hint)
+                hints, notes = empty_result_notes(sample, hint, catalog=catalog is not None)
         doubt = base_warning(result)
         hints += [] if doubt is None else [doubt]
         for line in hints:

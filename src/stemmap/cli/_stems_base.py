@@ -68,7 +68,9 @@ def base_warning(result: Any) -> str | None:
     )
 
 
-def empty_result_notes(sample: Any, up_axis_hint: str | None) -> tuple[list[str], list[str]]:
+def empty_result_notes(
+    sample: Any, up_axis_hint: str | None, *, catalog: bool = False
+) -> tuple[list[str], list[str]]:
     """(warnings, notes) for a run without stems whose --units / --up-axis were not given.
 
     A warning names --up-axis only when the cloud's shape says so (``up_axis_hint``, from
@@ -77,7 +79,8 @@ def empty_result_notes(sample: Any, up_axis_hint: str | None) -> tuple[list[str]
     note with the measured evidence: the size of the cloud read as metres, z up, which the
     user can compare with the real one (a cloud in mm reads 1000 x too large, in ft 3.28 x;
     treels pine_plot written Y up, which the shape check misses, reads 10 x 20.3 m across
-    and 10 m tall for a 10 x 10 m plot of 20 m trees).
+    and 10 m tall for a 10 x 10 m plot of 20 m trees). For a tile ``catalog`` (which takes
+    no --up-axis) the note says to turn the tiles instead.
     """
     warnings = [] if up_axis_hint is None else [up_axis_hint]
     notes: list[str] = []
@@ -91,9 +94,10 @@ def empty_result_notes(sample: Any, up_axis_hint: str | None) -> tuple[list[str]
             f"and {span[2]:.1f} m tall"
         )
         if up_axis_hint is None:  # the shape check saw nothing: the user judges the size
+            axis = "turn the tiles z up" if catalog else "pass --up-axis (y, x)"
             notes.append(
                 f"{size} (the shape check saw nothing amiss); if that is not its size or "
-                "its up axis, pass --units (mm, cm, ft) or --up-axis (y, x)."
+                f"its up axis, pass --units (mm, cm, ft) or {axis}."
             )
         else:
             notes.append(f"{size}; if that is not its size, pass --units (mm, cm, ft).")

@@ -35,6 +35,7 @@ from stemmap.cloud.stems import (
     detect_stems_file,
     detect_stems_munjer,
     get_preset,
+    grid_anchors,
     prepare_cloud,
 )
 
@@ -58,6 +59,7 @@ __all__ = [
     "detect_stems_munjer",
     "fit_ground",
     "get_preset",
+    "grid_anchors",
     "grid_components",
     "major_axis_tilt_deg",
     "normalize_heights",

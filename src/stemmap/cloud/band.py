@@ -137,20 +137,44 @@ def _sliced_points(
     sl_all = _slice_of(band.h, centers_h, cfg.slice_thickness)
     keep = sl_all >= 0
     if not slice_cloud and ns >= 3:
-        keep &= _vertical_filter(
-            band.xy, sl_all, ns, float(np.clip(cell, 0.03, 0.1)), cfg.grid_origin
-        )
+        origin = cfg.filter_origin if cfg.filter_origin is not None else cfg.grid_origin
+        keep &= _vertical_filter(band.xy, sl_all, ns, float(np.clip(cell, 0.03, 0.1)), origin)
     return _BandPoints(band.xy, band.h, sl_all, band.origins).take(keep)
 
 
-def _drop_strays(pts: _BandPoints) -> _BandPoints:
+def _drop_strays(pts: _BandPoints, *, quiet: bool = False) -> _BandPoints:
     """Stray band points far outside the cloud (outside :func:`~stemmap.cloud.ground.
     core_cells` of 1 m cells) cannot hold a stem and must not stretch the clustering grid."""
     core = core_cells(np.floor(pts.xy / 1.0).astype(np.int64))
     if core.all():
         return pts
-    log.warning("%d stray band point(s) far outside the cloud ignored", int((~core).sum()))
+    if not quiet:
+        log.warning("%d stray band point(s) far outside the cloud ignored", int((~core).sum()))
     return pts.take(core)
+
+
+def _grid_anchors(
+    band: _Band, cfg: StemConfig, spacing: float, slice_cloud: bool
+) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The points a run without ``grid_origin`` anchors its grids at (:func:`_grid_cells`):
+    the vertical filter's at the band's minimum, the clustering grid's at the minimum of
+    the points the filter keeps (strays dropped) -- the steps of
+    :func:`~stemmap.cloud.measure._stems_from_band` up to the clustering, with the measured
+    ``spacing``. None when no point is left. Passed as ``StemConfig.filter_origin`` and
+    ``grid_origin`` of a part of the cloud (a tile engine's chunk) they give it the whole
+    cloud's cells (:func:`stemmap.engine.pilot_statistics`)."""
+    if band.xy.shape[0] == 0 or not math.isfinite(spacing):
+        return None
+    cell = float(np.clip(cfg.cluster_cell_factor * spacing, 0.01, 0.25))
+    if not slice_cloud and cfg.slices_per_spacing > 0:
+        cfg = _adapt_slices(cfg, spacing)
+    cfg = replace(cfg, grid_origin=None, filter_origin=None)
+    centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
+    pts = _drop_strays(_sliced_points(band, cfg, centers_h, cell, slice_cloud), quiet=True)
+    if pts.xy.shape[0] == 0:
+        return None
+    lo_f, lo_c = band.xy.min(axis=0), pts.xy.min(axis=0)
+    return (float(lo_f[0]), float(lo_f[1])), (float(lo_c[0]), float(lo_c[1]))
 
 
 def _label_clusters(xy: FloatArray, cell: float, cfg: StemConfig) -> tuple[NDArray[np.int64], int]:

@@ -60,6 +60,11 @@ class StemConfig:
     grid_origin : (x, y), optional -- anchor the clustering and vertical-filter grids at this
         point (cell edges at origin + k x cell) instead of at the band's minimum; the tile
         engine sets one for the whole catalog so every chunk uses the same cells
+    filter_origin : (x, y), optional -- anchor of the vertical-filter grid when it differs
+        from ``grid_origin`` (None: ``grid_origin``). A run without either anchors the filter
+        at the band's minimum and the clustering at the filtered points' minimum; the tile
+        engine passes both minima of the whole catalog when its pilot region covers it, so a
+        chunk's cells are a single run's (docs/algorithms/engine.md)
     ground_extent : (xmin, ymin, xmax, ymax), optional -- the ground raster spans (at least)
         the cells of this box, not only the occupied cells' bounding box; the tile engine sets
         the catalog's box and each chunk builds the part its buffer covers
@@ -95,8 +100,8 @@ class StemConfig:
         clouds' leave-one-dataset-out check it changes no cell (docs/algorithms/cloud.md
         "Sparse stems: one fit over the band")
     axis_reach : bool -- the shared-axis fit also uses the returns at 0.5-3.0 m outside the
-        band (:data:`~stemmap.cloud.axisfit.AXIS_RANGE`; read from files and in-memory
-        clouds, not by the tile engine's prepared chunks)
+        band (:data:`~stemmap.cloud.axisfit.AXIS_RANGE`; read from files, in-memory clouds
+        and the tile engine's chunks)
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     max_coordinate_step : float or None, metres -- a cloud whose x or y coordinates near the
@@ -119,6 +124,7 @@ class StemConfig:
     spacing: float | None = None
     noise_floor: float | None = None
     grid_origin: tuple[float, float] | None = None
+    filter_origin: tuple[float, float] | None = None
     ground_extent: tuple[float, float, float, float] | None = None
     fit_method: str = "ours"
     estimate_height: bool = False

@@ -43,10 +43,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from stemmap.cloud.axisfit import _reach_range, _split_reach
-from stemmap.cloud.band import _Band
+from stemmap.cloud.band import _Band, _grid_anchors
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.filters import as_xyz
-from stemmap.cloud.ground import BASE_STEM, GroundAccumulator, GroundModel
+from stemmap.cloud.ground import BASE_GROUND, BASE_STEM, GroundAccumulator, GroundModel
 from stemmap.cloud.heights import _canopy_update
 from stemmap.cloud.measure import _stems_from_band
 from stemmap.cloud.munjer import MunjerConfig, associate_proximity, detect_stems_munjer
@@ -73,6 +73,7 @@ __all__ = [
     "detect_stems_file",
     "detect_stems_munjer",
     "get_preset",
+    "grid_anchors",
     "prepare_cloud",
 ]
 
@@ -166,6 +167,20 @@ def detect_statistics(
     return detect_prepared(prepare_cloud(xyz, cfg, origins=origins), cfg, statistics_only=True)
 
 
+def grid_anchors(
+    prepared: PreparedCloud, config: StemConfig, spacing: float
+) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """(vertical-filter anchor, clustering anchor) of :func:`detect_prepared` on this cloud
+    without ``grid_origin``, given its measured point ``spacing`` (``CloudStems.spacing``);
+    None for an empty band. A part of the cloud run with ``StemConfig(filter_origin=,
+    grid_origin=)`` set to them uses the same grid cells as the whole
+    (:func:`~stemmap.cloud.band._grid_anchors`; the tile engine's pilot region)."""
+    if prepared.band is None:
+        return None
+    cfg = _slice_setup(config, prepared.zmin, prepared.zmax, prepared.is_slice)
+    return _grid_anchors(prepared.band, cfg, spacing, prepared.is_slice)
+
+
 @dataclass
 class PreparedCloud:
     """A cloud after our detector's ground step: its slice band (points with heights above
@@ -203,6 +218,8 @@ class PreparedCloud:
             cols["canopy_keys"], cols["canopy_h"] = b.canopy["keys"], b.canopy["h"]
         if b.origins is not None:
             cols["origins"] = np.ascontiguousarray(b.origins)
+        if b.reach is not None:  # the 0.5-3 m returns of the shared-axis fit (axis_reach)
+            cols["reach_xy"], cols["reach_h"] = b.reach
         return cols
 
     @classmethod
@@ -221,6 +238,8 @@ class PreparedCloud:
             base=str(cols["base"]),
             base_z=float(cols.get("base_z", math.nan)),
         )
+        if "reach_xy" in cols:
+            band.reach = (cols["reach_xy"], cols["reach_h"])
         z0, z1 = (float(v) for v in cols["zrange"])
         return cls(band, z0, z1, bool(cols["is_slice"]))
 
@@ -256,6 +275,14 @@ def detect_prepared(
     )
 
 
+#: What an empty result of a cloud taken for a tree without ground adds to its reason.
+STEM_BASE_NOTE = (
+    "; no ground was found, so heights were measured from the cloud's lowest points as "
+    "a segmented tree's stem base (if this is a plot, its lowest returns were too sparse "
+    "to show its ground; detect_stems(ground=...) takes a ground model)"
+)
+
+
 def _said_of_base(result: CloudStems, band: _Band) -> CloudStems:
     """``result`` with the base its heights were measured from (``base``, and ``base_z`` for
     a flat base: the run's summary states it). An empty result of a cloud taken for a tree
@@ -266,12 +293,7 @@ def _said_of_base(result: CloudStems, band: _Band) -> CloudStems:
     result = replace(result, base=band.base, base_z=band.base_z)
     if len(result) or band.base != BASE_STEM or result.reason == "statistics only":
         return result
-    note = (
-        "; no ground was found, so heights were measured from the cloud's lowest points as "
-        "a segmented tree's stem base (if this is a plot, its lowest returns were too sparse "
-        "to show its ground; detect_stems(ground=...) takes a ground model)"
-    )
-    return replace(result, reason=result.reason + note)
+    return replace(result, reason=result.reason + STEM_BASE_NOTE)
 
 
 def prepare_cloud(
@@ -281,13 +303,26 @@ def prepare_cloud(
     ground: GroundModel | None = None,
     origins: ArrayLike | None = None,
     ground_window: tuple[float, float, float, float] | None = None,
+    base: tuple[str, float] | None = None,
+    z_range: tuple[float, float] | None = None,
 ) -> PreparedCloud:
     """Our detector's ground step on an in-memory cloud (:class:`PreparedCloud`; the
     parameters are :func:`detect_stems`'s).
 
     ``ground_window`` (xmin, ymin, xmax, ymax): the cloud is the part of a larger one within
     this box (a tile engine's buffered chunk); the ground raster spans the cells of
-    ``config.ground_extent`` within it (:meth:`GroundAccumulator.model`)."""
+    ``config.ground_extent`` within it (:meth:`GroundAccumulator.model`).
+
+    ``base`` (what, z): the larger cloud's height reference, decided on all of it
+    (:func:`_ground_model`), instead of deciding it on these points -- ``("ground", nan)``
+    for a ground raster, ``("lowest stem points", z)`` for the flat base at z of a tree
+    without ground. A tile engine's chunk holding only crown points (or a sliver of a plot)
+    would otherwise take its own lowest points for a stem base, or a ground-less tree's
+    crown for ground.
+
+    ``z_range`` (zmin, zmax): the larger cloud's z extent, which decides the slice mode
+    (``"auto"``) and lays out the sub-slices of a pre-cut slice (:func:`_slice_setup`):
+    a chunk of a slice holds only part of its z range."""
     cfg = config or StemConfig()
     p = as_xyz(xyz)
     if p.shape[0] == 0:
@@ -311,11 +346,13 @@ def prepare_cloud(
         if not np.all(np.isfinite(o)):
             raise InputError("origins hold non-finite values.")
     zmin, zmax = float(p[:, 2].min()), float(p[:, 2].max())
+    if z_range is not None:
+        zmin, zmax = (float(v) for v in z_range)
     is_slice = cfg.slice_mode == "always" or (cfg.slice_mode == "auto" and zmax - zmin < 1.0)
     if is_slice:
         band = _Band(p[:, :2], p[:, 2], p[:, 2], origins=o, base=BASE_SLICE)
     else:
-        g = ground or _ground_of([p], cfg, _raster_extent(cfg.ground_extent, ground_window))
+        g = ground or _ground_of([p], cfg, _raster_extent(cfg.ground_extent, ground_window), base)
         lo, hi = cfg.band
         r_lo, r_hi = _reach_range(cfg)
         h, m = g.band_of(p, r_lo, r_hi)  # heights, and the indices of the band's points
@@ -346,20 +383,30 @@ def _ground_of(
     chunks: Iterable[FloatArray],
     cfg: StemConfig,
     extent: tuple[float, float, float, float] | None = None,
+    base: tuple[str, float] | None = None,
 ) -> GroundModel:
     acc = GroundAccumulator(cfg.ground_cell, cfg.max_memory)
     for c in chunks:
         acc.update(c)
-    return _ground_model(acc, cfg, extent)
+    return _ground_model(acc, cfg, extent, base)
 
 
 def _ground_model(
     acc: GroundAccumulator,
     cfg: StemConfig,
     extent: tuple[float, float, float, float] | None = None,
+    base: tuple[str, float] | None = None,
 ) -> GroundModel:
     """The ground raster, or for a cloud without ground (one segmented tree) a flat base at
-    its stem's lowest points (:meth:`GroundAccumulator.stem_base`)."""
+    its stem's lowest points (:meth:`GroundAccumulator.stem_base`). ``base``: the decision
+    made on a larger cloud this one is part of (:func:`prepare_cloud`)."""
+    if base is not None:
+        what, z = base
+        if what == BASE_STEM:
+            return acc.flat(z, BASE_STEM)
+        if what != BASE_GROUND:
+            raise ConfigError(f"base must be {BASE_GROUND!r} or {BASE_STEM!r}, got {what!r}.")
+        return acc.model(extent=extent)
     z_base = acc.stem_base(cfg.max_diameter)
     if z_base is not None:
         log.info(

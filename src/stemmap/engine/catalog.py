@@ -280,6 +280,12 @@ class Catalog:
             float(b[:, 4].max()),
         )
 
+    @property
+    def z_range(self) -> tuple[float, float]:
+        """(zmin, zmax) of all tiles, metres (header bounds)."""
+        b = np.array([t.bounds for t in self.tiles])
+        return (float(b[:, 2].min()), float(b[:, 5].max()))
+
     def expected_points(self, box: tuple[float, float, float, float]) -> float:
         return sum(t.points_in(box) for t in self.tiles)
 

@@ -31,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from stemmap.cloud import CloudStems, MunjerConfig, SensorPositions, StemConfig
+from stemmap.cloud.ground import BASE_GROUND, BASE_STEM
+from stemmap.cloud.stems import STEM_BASE_NOTE
 from stemmap.engine.catalog import Catalog, Chunk, plan_chunks
 from stemmap.engine.cluster import Dep, TaskOutcome, dask_client, run_graph
 from stemmap.engine.manifest import (
@@ -95,20 +97,55 @@ def _storable(v: Any) -> Any:
 
 
 def _detect(
-    xyz: np.ndarray, cfg: StemConfig | MunjerConfig, origins: np.ndarray | None, chunk: Chunk
+    xyz: np.ndarray,
+    cfg: StemConfig | MunjerConfig,
+    origins: np.ndarray | None,
+    chunk: Chunk,
+    base: tuple[str, float] | None = None,
+    z_range: tuple[float, float] | None = None,
 ) -> CloudStems:
     """The detector on a buffered chunk; ours fits only the clusters near the owned area
-    (``detect_prepared(region=)``: the owned stems are the same)."""
+    (``detect_prepared(region=)``: the owned stems are the same), with the catalog's height
+    reference ``base`` (:func:`catalog_base`; None: decided on the chunk's points) and, for
+    a slice catalog, its z range (:func:`_slice_range`)."""
     from stemmap.cloud import detect_prepared, detect_stems_munjer, prepare_cloud
 
     if isinstance(cfg, MunjerConfig):
         return detect_stems_munjer(xyz, cfg)
-    prep = prepare_cloud(xyz, cfg, origins=origins, ground_window=chunk.buffered)
+    prep = prepare_cloud(
+        xyz, cfg, origins=origins, ground_window=chunk.buffered, base=base, z_range=z_range
+    )
     return detect_prepared(prep, cfg, region=chunk.owned_region)
 
 
+def _slice_range(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> tuple[float, float] | None:
+    """The catalog's header z range for a slice catalog (``slice_mode="always"``, decided by
+    :func:`_catalog_config`): a pre-cut slice's sub-slices and breast height are laid out on
+    its whole z extent (:func:`stemmap.cloud.stems._slice_setup`), which a chunk's points
+    may not reach (a tilted slice: the stem's z, the slice's middle, would be the chunk's).
+    None otherwise."""
+    if isinstance(cfg, StemConfig) and cfg.slice_mode == "always":
+        return catalog.z_range
+    return None
+
+
+def catalog_base(statistics: dict[str, Any] | None) -> tuple[str, float] | None:
+    """The height reference the pilot region decided for the whole catalog (``("ground",
+    nan)`` or ``("lowest stem points", z)``, :func:`stemmap.cloud.prepare_cloud`'s
+    ``base``), or None (no pilot, an unreadable one, a slice catalog): each chunk decides
+    on its own points."""
+    what = str((statistics or {}).get("base") or "")
+    if what == BASE_GROUND:
+        return (BASE_GROUND, math.nan)
+    z = float((statistics or {}).get("base_z") or math.nan)
+    return (BASE_STEM, z) if what == BASE_STEM and math.isfinite(z) else None
+
+
+_NO_POINTS = "the buffered chunk holds no point"
+
+
 def _no_points(method: str) -> CloudStems:
-    return CloudStems.empty(method, reason="the buffered chunk holds no point")
+    return CloudStems.empty(method, reason=_NO_POINTS)
 
 
 def _chunk_stems(
@@ -118,6 +155,7 @@ def _chunk_stems(
     sensor: SensorPositions | None,
     time_field: str | None,
     stage: str | None,
+    base: tuple[str, float] | None = None,
 ) -> tuple[CloudStems, int]:
     """All stems the detector finds in the buffered chunk (owned or not), and its points."""
     fields = (time_field,) if time_field else ()
@@ -129,7 +167,7 @@ def _chunk_stems(
     if sensor is not None:
         times = extra[time_field] if time_field else None
         origins = sensor.origins(n, times, f"chunk {chunk.id}")
-    return _detect(xyz, config, origins, chunk), n
+    return _detect(xyz, config, origins, chunk, base, _slice_range(catalog, config)), n
 
 
 def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, float]:
@@ -143,7 +181,7 @@ def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, f
         return (cx - f * hw, cy - f * hh, cx + f * hw, cy + f * hh)
 
     if catalog.expected_points(box(1.0)) <= max_points:
-        return box(1.0)
+        return (x0, y0, x1, y1)  # exactly: the pilot is the whole catalog
     lo, hi = 0.0, 1.0
     for _ in range(40):  # expected points grow monotonically with f
         mid = (lo + hi) / 2
@@ -151,18 +189,23 @@ def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, f
     return box(lo)
 
 
-def _anchored(catalog: Catalog, config: StemConfig) -> StemConfig:
-    """``config`` with its grids anchored at the catalog's lower-left header corner (one
-    anchor for every chunk; without it each chunk would anchor them at its own points'
-    minimum) and its ground raster spanning the catalog's header box (each chunk builds the
-    part its buffer covers; without it a chunk's raster would end at its own points). Values
-    already set are kept."""
+def _anchored(catalog: Catalog, config: StemConfig, *, pilot: bool = False) -> StemConfig:
+    """``config`` with its ground raster spanning the catalog's header box (each chunk
+    builds the part its buffer covers; without it a chunk's raster would end at its own
+    points) and, unless a ``pilot`` region will measure them (:func:`pilot_statistics`), its
+    grids anchored at the catalog's lower-left header corner (one anchor for every chunk;
+    without it each chunk would anchor them at its own points' minimum). Values already set
+    are kept."""
     x0, y0, x1, y1 = catalog.bounds
-    if config.grid_origin is None:
+    if config.grid_origin is None and not pilot:
         config = replace(config, grid_origin=(x0, y0))
     if config.ground_extent is None:
         config = replace(config, ground_extent=(x0, y0, x1, y1))
     return config
+
+
+def _corner(catalog: Catalog) -> tuple[float, float]:
+    return (catalog.bounds[0], catalog.bounds[1])
 
 
 def pilot_chunk(catalog: Catalog, max_points: int) -> Chunk:
@@ -184,7 +227,18 @@ def pilot_statistics(
 ) -> dict[str, Any]:
     """The point spacing and slice noise floor our detector measures on the pilot region
     (:func:`stemmap.cloud.detect_statistics`: the detector's steps up to the noise floor,
-    exactly; no canopy raster, no stem measurement).
+    exactly; no canopy raster, no stem measurement), its height reference (``base``,
+    ``base_z``: ground, or the flat base of a tree without ground) and the anchors of the
+    detector's grids (``grid_origin``, ``filter_origin``).
+
+    When the pilot region is the whole catalog (``whole``: it holds at most the point
+    budget) these are a single process's over the whole cloud: the grids anchored as
+    :func:`stemmap.cloud.detect_stems` anchors them (:func:`stemmap.cloud.grid_anchors`:
+    the band's minimum and the filtered points'), so every chunk gets the same cells, slice
+    noise floor and base as one process and finds the same stems. A pilot that is part of a
+    larger catalog anchors the grids at the catalog's lower-left header corner (the band's
+    minimum is not known) and decides the base on its own points. A ``config`` with a
+    ``grid_origin`` keeps it.
 
     Runs on a worker (or in the client with ``stage=None``: a direct read). ``staged`` are
     the staging outcomes of its tiles (:func:`~stemmap.engine.staging.stage_tile_outcome`).
@@ -192,11 +246,12 @@ def pilot_statistics(
     fragments stay (a pilot rescheduled after its worker died reads them again): the client
     removes them.
     """
-    from stemmap.cloud import detect_statistics
+    from stemmap.cloud import detect_prepared, grid_anchors, prepare_cloud
     from stemmap.engine.staging import check_staged
 
     c0 = task_clock()
-    nan = {"spacing": math.nan, "noise_floor": math.nan, "n_points": 0}
+    whole = tuple(pilot.box) == tuple(catalog.bounds)
+    nan = {"spacing": math.nan, "noise_floor": math.nan, "n_points": 0, "whole": whole}
     try:
         check_staged(staged)
         fields = (time_field,) if time_field else ()
@@ -209,22 +264,47 @@ def pilot_statistics(
             times = extra[time_field] if time_field else None
             origins = sensor.origins(n, times, "the pilot region")
         # the pilot's ground raster spans its own points, as before the catalog-wide
-        # ground extent (a centred pilot box inside a large catalog is no chunk)
-        st = detect_statistics(xyz, replace(config, ground_extent=None), origins=origins)
+        # ground extent (a centred pilot box inside a large catalog is no chunk); the
+        # steps of stemmap.cloud.detect_statistics, keeping the band for the anchors
+        cfg = replace(config, ground_extent=None, estimate_height=False)
+        own = config.grid_origin is None
+        if own and not whole:
+            cfg = replace(cfg, grid_origin=_corner(catalog))
+        prep = prepare_cloud(xyz, cfg, origins=origins, z_range=_slice_range(catalog, cfg))
+        st = detect_prepared(prep, cfg, statistics_only=True)
+        anchors = grid_anchors(prep, cfg, float(st.spacing)) if own and whole else None
     except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
         return {**nan, "reason": f"pilot region unreadable: {exc}", **task_spent(c0)}
+    origin = cfg.grid_origin if anchors is None else anchors[1]
     return {
         "spacing": float(st.spacing),
         "noise_floor": float(st.noise_floor),
         "n_points": n,
+        "whole": whole,
         "reason": st.reason,
+        "base": st.base,
+        "base_z": float(st.base_z) if math.isfinite(st.base_z) else None,
+        "grid_origin": None if origin is None else list(origin),
+        "filter_origin": None if anchors is None else list(anchors[0]),
         **task_spent(c0),
     }
 
 
-def _with_statistics(config: StemConfig, stats: dict[str, Any] | None) -> StemConfig:
+def _with_statistics(
+    config: StemConfig, stats: dict[str, Any] | None, corner: tuple[float, float]
+) -> StemConfig:
     """``config`` with the pilot's spacing and noise floor filled in where unset (a
-    non-finite or non-positive value stays unset: each chunk then measures its own)."""
+    non-finite or non-positive value stays unset: each chunk then measures its own), and
+    its grid anchors (:func:`pilot_statistics`; without them, the catalog's lower-left
+    ``corner``)."""
+    if config.grid_origin is None:
+        got = (stats or {}).get("grid_origin")
+        fo = (stats or {}).get("filter_origin")
+        config = replace(
+            config,
+            grid_origin=corner if not got else (float(got[0]), float(got[1])),
+            filter_origin=None if not (got and fo) else (float(fo[0]), float(fo[1])),
+        )
     if stats is None:
         return config
 
@@ -241,7 +321,9 @@ def _with_statistics(config: StemConfig, stats: dict[str, Any] | None) -> StemCo
     )
 
 
-def _log_statistics(config: StemConfig, pilot: Chunk, stats: dict[str, Any]) -> None:
+def _log_statistics(
+    config: StemConfig, pilot: Chunk, stats: dict[str, Any], catalog_points: int
+) -> None:
     sp = config.spacing if config.spacing is not None else float(stats["spacing"])
     nf = config.noise_floor if config.noise_floor is not None else float(stats["noise_floor"])
     log.info(
@@ -252,6 +334,15 @@ def _log_statistics(config: StemConfig, pilot: Chunk, stats: dict[str, Any]) -> 
         sp,
         nf,
     )
+    if stats.get("base") == BASE_STEM and not stats.get("whole", True):
+        log.warning(
+            "the pilot region (%d of the catalog's %d points) holds no ground: heights "
+            "are measured from its lowest points, z = %.3f, in every chunk, as for one tree "
+            "exported without ground; a single process decides that on the whole cloud.",
+            int(stats.get("n_points", 0)),
+            catalog_points,
+            float(stats.get("base_z") or math.nan),
+        )
     if not (math.isfinite(sp) and math.isfinite(nf)):
         log.warning(
             "the pilot region could not measure the catalog's point spacing / noise floor "
@@ -287,13 +378,14 @@ def catalog_statistics(
     measures nothing (no band points, no plausible slice fit) the value stays unset and each
     chunk measures its own (logged as a warning).
     """
-    config = _anchored(catalog, config)
-    if config.spacing is not None and config.noise_floor is not None:
+    need = config.spacing is None or config.noise_floor is None
+    config = _anchored(catalog, config, pilot=need)
+    if not need:
         return config
     pilot = pilot_chunk(catalog, max_points)
     stats = pilot_statistics(catalog, pilot, config, sensor, time_field, None)
-    _log_statistics(config, pilot, stats)
-    return _with_statistics(config, stats)
+    _log_statistics(config, pilot, stats, catalog.n_points)
+    return _with_statistics(config, stats, _corner(catalog))
 
 
 def _prepared_path(stage: str, chunk_id: str) -> Path:
@@ -330,7 +422,13 @@ def prepare_chunk(
         times = extra[time_field] if time_field else None
         origins = sensor.origins(n, times, f"chunk {chunk.id}")
     prep = (
-        prepare_cloud(xyz, config, origins=origins, ground_window=chunk.buffered)
+        prepare_cloud(
+            xyz,
+            config,
+            origins=origins,
+            ground_window=chunk.buffered,
+            z_range=_slice_range(catalog, config),
+        )
         if n
         else PreparedCloud(None)
     )
@@ -367,18 +465,24 @@ def stems_chunk(
 
     c0 = task_clock()
     check_staged(staged)
+    base = None
     if isinstance(config, StemConfig):
-        config = _with_statistics(config, statistics)
+        config = _with_statistics(config, statistics, _corner(catalog))
+        base = catalog_base(statistics)
     before = 0.0  # the preparation's seconds (the manifest records the chunk's total)
+    prep = None
     if prepared is not None and isinstance(config, StemConfig):
         prep = PreparedCloud.from_columns(load_columns(Path(prepared["path"])))
+        before = float(prepared["task_s"])
+        if not _same_base(prep, base):  # prepared before the pilot decided: again
+            prep = None
+    if prep is not None and prepared is not None and isinstance(config, StemConfig):
         n = int(prepared["n_points"])
         stems = (
             detect_prepared(prep, config, region=chunk.owned_region) if n else _no_points("ours")
         )
-        before = float(prepared["task_s"])
     else:
-        stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage)
+        stems, n = _chunk_stems(catalog, chunk, config, sensor, time_field, stage, base)
     method = "munjer2025" if isinstance(config, MunjerConfig) else "ours"
     own = stems.select(np.flatnonzero(chunk.owns(stems.xy))) if len(stems) else stems
     cols: dict[str, Any] = {k: _storable(getattr(own, k)) for k in _COLUMNS}
@@ -386,6 +490,8 @@ def stems_chunk(
     cols["spacing"] = np.array(own.spacing)
     cols["noise_floor"] = np.array(own.noise_floor)
     cols["base"] = np.array(getattr(own, "base", ""))
+    cols["base_z"] = np.array(float(getattr(own, "base_z", math.nan)))
+    cols["reason"] = np.array(str(stems.reason or ""))  # why the chunk found none
     # not fsynced: the manifest line records its hash and a resume checks it
     save_columns(Path(result_path), cols, durable=False)
     return {
@@ -396,17 +502,53 @@ def stems_chunk(
         "seconds": before + time.perf_counter() - c0[0],
         "spacing": getattr(config, "spacing", None),
         "noise_floor": getattr(config, "noise_floor", None),
+        "grid_origin": _listed(getattr(config, "grid_origin", None)),
+        "filter_origin": _listed(getattr(config, "filter_origin", None)),
+        "base": getattr(stems, "base", ""),
+        "base_z": _finite(getattr(stems, "base_z", math.nan)),
         **task_spent(c0),
     }
+
+
+def _listed(v: Any) -> list[float] | None:
+    return None if v is None else [float(x) for x in v]
+
+
+def _finite(v: Any) -> float | None:
+    return float(v) if v is not None and math.isfinite(float(v)) else None
+
+
+def _same_base(prep: Any, base: tuple[str, float] | None) -> bool:
+    """Whether a chunk prepared on its own points (:func:`prepare_chunk`, before the pilot
+    decided the catalog's base) measured its heights from the catalog's ``base``."""
+    band = prep.band
+    if base is None or band is None:
+        return True
+    if band.base != base[0]:
+        return False
+    return base[0] != BASE_STEM or band.base_z == base[1]
 
 
 def merge_chunk_results(paths: list[Path], method: str = "ours") -> CloudStems:
     """Concatenate chunk results into one CloudStems sorted by x, then y (independent of the
     chunking)."""
-    parts = [load_columns(p) for p in paths]
-    parts = [p for p in parts if np.asarray(p["xy"]).size]
-    if not parts:
-        return CloudStems.empty(method, reason="no chunk found a stem")
+    loaded = [load_columns(p) for p in paths]
+    # the height reference: every chunk's, those without stems too (the catalog's base is
+    # one decision, catalog_base; a flat base's z is stated when all chunks share it)
+    bases = sorted({str(p["base"]) for p in loaded if "base" in p} - {""})
+    zs = {float(p["base_z"]) for p in loaded if "base_z" in p and str(p["base"]) == BASE_STEM}
+    base_z = zs.pop() if bases == [BASE_STEM] and len(zs) == 1 else math.nan
+    parts = [p for p in loaded if np.asarray(p["xy"]).size]
+    if not parts:  # why: the chunks' own reasons (a chunk without points says so too)
+        why = sorted(
+            {str(p["reason"]).replace(STEM_BASE_NOTE, "") for p in loaded if "reason" in p}
+        )
+        why = [w for w in why if w and w != _NO_POINTS]
+        reason = "no chunk found a stem" + (f" ({'; '.join(why)})" if why else "")
+        if bases == [BASE_STEM]:
+            reason += STEM_BASE_NOTE
+        empty = CloudStems.empty(method, reason=reason)
+        return replace(empty, base=", ".join(bases), base_z=base_z)
     cols = {k: np.concatenate([np.asarray(p[k]) for p in parts if k in p]) for k in _COLUMNS}
     xy = cols["xy"].reshape(-1, 2)
     order = np.lexsort((xy[:, 1], xy[:, 0]))
@@ -414,10 +556,10 @@ def merge_chunk_results(paths: list[Path], method: str = "ours") -> CloudStems:
     sp = [float(p["spacing"]) for p in parts if math.isfinite(float(p["spacing"]))]
     nf = [float(p.get("noise_floor", math.nan)) for p in parts]
     nf = [v for v in nf if math.isfinite(v)]
-    bases = sorted({str(p["base"]) for p in parts if "base" in p})
     return CloudStems.from_columns(
         **merged,
         base=", ".join(bases),
+        base_z=base_z,
         method=str(parts[0]["method"]),
         frame="cloud",
         spacing=float(np.median(sp)) if sp else math.nan,
@@ -522,8 +664,9 @@ def run_stems_catalog(
         time_field = sensor.pick_time_field(names, repr(catalog.tiles[0].path))
     pilot: Chunk | None = None
     if isinstance(cfg, StemConfig):
-        cfg = _anchored(catalog, cfg)
-        if cfg.spacing is None or cfg.noise_floor is None:
+        need = cfg.spacing is None or cfg.noise_floor is None
+        cfg = _anchored(catalog, cfg, pilot=need)
+        if need:
             pilot = pilot_chunk(catalog, max_points)
     hashes: dict[int, str] = {}
 
@@ -566,7 +709,7 @@ def run_stems_catalog(
     )
     if isinstance(cfg, StemConfig) and pilot is not None and not todo and chunks:
         # every chunk done before: the statistics they ran with
-        run.config = _with_statistics(cfg, man.entries()[chunks[0].id])
+        run.config = _with_statistics(cfg, man.entries()[chunks[0].id], _corner(catalog))
     stage = str(Path(work) / "stage")
     fields = (time_field,) if time_field else ()
     # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
@@ -638,8 +781,8 @@ def run_stems_catalog(
         if oc.key == "pilot":
             assert pilot is not None and isinstance(cfg, StemConfig)
             value = oc.value if oc.ok else {"spacing": math.nan, "noise_floor": math.nan}
-            _log_statistics(cfg, pilot, {"reason": oc.error, **value})
-            run.config = _with_statistics(cfg, value)
+            _log_statistics(cfg, pilot, {"reason": oc.error, **value}, catalog.n_points)
+            run.config = _with_statistics(cfg, value, _corner(catalog))
             clear_stage(stage, pilot.id)
             return
         if oc.key.startswith("prepare-chunk-"):
@@ -657,6 +800,10 @@ def run_stems_catalog(
                 n_stems=oc.value["n_stems"],
                 spacing=oc.value["spacing"],
                 noise_floor=oc.value["noise_floor"],
+                grid_origin=oc.value.get("grid_origin"),
+                filter_origin=oc.value.get("filter_origin"),
+                base=oc.value.get("base"),
+                base_z=oc.value.get("base_z"),
                 result=oc.value["result"],
             )
             run.computed.append(cid)

@@ -17,6 +17,7 @@ centimetres.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -26,12 +27,16 @@ from numpy.typing import NDArray
 
 from stemmap.errors import ConfigError, InputError
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "UNIT_SCALES",
     "UP_AXES",
     "CloudConvention",
+    "check_scan_period",
     "check_scan_ranges",
     "check_times",
+    "check_turns",
     "crs_unit",
     "unit_for_factor",
     "unit_scale",
@@ -278,3 +283,93 @@ def check_times(times: NDArray[Any], source: str, what: str = "time") -> None:
         f"{source}: the {what} values {shown}, which cannot be seconds ({guess}?). stemmap "
         "reads times in seconds: divide them (by 1e9 for ns, 1e6 for us, 1e3 for ms)."
     )
+
+
+#: Longest median step (s) between consecutive scans of a 2D laser scanner read in seconds:
+#: 2D scanners turn at 5-100 Hz (0.01-0.2 s; the slowest here, Victoria Park's SICK LMS200,
+#: 0.21 s between scans), so a median step of 5 s is 23 x that period. Times counted in
+#: milliseconds from the log's start step by 10-200 per scan (Victoria Park's raw scan times
+#: by 214): read as seconds, each looks 10-200 s long. A log thinned to one scan per 5 s also
+#: passes the bound, so this warns and does not refuse.
+MAX_SCAN_PERIOD_S = 5.0
+
+
+def check_scan_period(times: NDArray[Any], source: str) -> str | None:
+    """A warning (also logged) when the scans' median step exceeds
+    :data:`MAX_SCAN_PERIOD_S`: relative times in milliseconds (absolute ones are refused by
+    :func:`check_times`); None otherwise."""
+    t = np.asarray(times, dtype=np.float64)
+    t = t[np.isfinite(t)]
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if steps.size == 0:
+        return None
+    med = float(np.median(steps))
+    if med <= MAX_SCAN_PERIOD_S:
+        return None
+    text = (
+        f"{source}: the scans are a median of {med:.6g} s apart, but 2D laser scanners scan at "
+        f"5-100 Hz (0.01-0.2 s): are the times milliseconds (a 10 Hz log counted in ms steps "
+        "by 100)? stemmap reads seconds: divide them by 1e3. (A log thinned to one scan per "
+        f"{MAX_SCAN_PERIOD_S:g} s or more is read as it is.)"
+    )
+    log.warning("%s", text)
+    return text
+
+
+#: Largest 99th percentile of the heading change between consecutive odometry rows (rad):
+#: dead reckoning holds each row's yaw rate until the next, so a turn of over half a turn
+#: between two rows cannot be followed (its sense is ambiguous, as a wheel filmed at the
+#: frame rate). Victoria Park's odometry (40 Hz, seconds): 0.012 rad; its raw dead reckoning
+#: stamped in milliseconds (aa3_dr.mat, relative ms): 11.9 rad.
+MAX_TURN_PER_ROW = math.pi
+#: Largest 99th percentile of the lateral acceleration |speed x yaw_rate| (m/s^2) of a
+#: ground vehicle: 1 g, the friction limit of tyres and tracks (mu <= ~1). Victoria Park's
+#: utility car: 1.27 m/s^2 (max 2.0). A yaw rate in deg/s reads 57.3 x the acceleration.
+MAX_LATERAL_ACCELERATION = 9.81
+
+
+def _many(bad: NDArray[np.bool_]) -> bool:
+    """Over 1 % of the rows, and at least 3: a unit, not one odd row (a short log's 99th
+    percentile is its largest value)."""
+    k = int(np.count_nonzero(bad))
+    return k >= 3 and k > 0.01 * bad.size
+
+
+def check_turns(
+    times: NDArray[Any], speed: NDArray[Any], yaw_rate: NDArray[Any], source: str
+) -> None:
+    """InputError for an odometry log (``time_s`` s, ``speed`` m/s, ``yaw_rate`` rad/s, each
+    row held until the next) that no vehicle can have driven:
+
+    * the heading change between consecutive rows, ``|yaw_rate| x dt``, above
+      :data:`MAX_TURN_PER_ROW` (half a turn) in over 1 % of the rows (and at least 3): times
+      in milliseconds counted from the log's start (absolute ones are refused by
+      :func:`check_times`), or a yaw rate in deg/s;
+    * the lateral acceleration ``|speed x yaw_rate|`` above :data:`MAX_LATERAL_ACCELERATION`
+      (1 g) in over 1 % of the rows (and at least 3): a yaw rate in deg/s -- a slow turn in
+      deg/s (under 3.1 deg/s, which the yaw rate bound cannot see) is caught when the
+      vehicle drives faster than ~3.2 m/s while turning; slower, it is not.
+    """
+    t = np.asarray(times, dtype=np.float64)
+    v = np.abs(np.asarray(speed, dtype=np.float64))
+    w = np.abs(np.asarray(yaw_rate, dtype=np.float64))
+    if t.size < 2:
+        return
+    turn = w[:-1] * np.diff(t)
+    p_turn = float(np.percentile(turn, 99))
+    if _many(turn > MAX_TURN_PER_ROW):
+        raise InputError(
+            f"{source}: 1 % of the rows turn by more than {p_turn:.3g} rad before the next "
+            f"row (yaw_rate x the time step), over half a turn ({MAX_TURN_PER_ROW:.3g} rad), "
+            "which dead reckoning cannot follow: are the times milliseconds (divide time_s "
+            "by 1e3) or the yaw rates in deg/s (multiply yaw_rate by pi/180)?"
+        )
+    p_acc = float(np.percentile(v * w, 99))
+    if _many(v * w > MAX_LATERAL_ACCELERATION):
+        raise InputError(
+            f"{source}: 1 % of the rows turn with a lateral acceleration (speed x yaw_rate) "
+            f"above {p_acc:.3g} m/s^2, beyond the 1 g ({MAX_LATERAL_ACCELERATION:g} m/s^2) "
+            "any ground vehicle can hold: is yaw_rate in degrees per second? stemmap reads "
+            "rad/s: multiply it by pi/180 (or is speed not in m/s?)."
+        )

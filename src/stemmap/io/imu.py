@@ -179,7 +179,26 @@ def read_imu_csv(path: PathLike) -> InertialLog:
     )
     if not (log.has_gyro or log.has_wheel):
         raise InputError(f"IMU CSV file {str(p)!r} has no gyro_z or wheel_speed value.")
+    _check_gyro_turns(log, f"IMU CSV file {str(p)!r}")
     return log
+
+
+def _check_gyro_turns(log: InertialLog, source: str) -> None:
+    """The odometry's unit checks on the gyro's z rate (:func:`stemmap.io.conventions.
+    check_turns`: half a turn between samples -- relative times in ms --, or over 1 g
+    sideways at the wheel speed, held from its last sample: deg/s)."""
+    from stemmap.io.conventions import check_turns
+
+    g = np.flatnonzero(np.isfinite(log.gyro[:, 2]))
+    if g.size < 2:
+        return
+    tg = log.times[g]
+    w = np.flatnonzero(np.isfinite(log.wheel_speed))
+    speed = np.zeros(g.size)
+    if w.size:  # the wheel speed of the last sample at or before each gyro sample
+        k = np.searchsorted(log.times[w], tg, side="right") - 1
+        speed = np.where(k >= 0, log.wheel_speed[w][np.maximum(k, 0)], 0.0)
+    check_turns(tg, speed, log.gyro[g, 2], source)
 
 
 def inertial_from_bag(

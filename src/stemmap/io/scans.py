@@ -705,9 +705,10 @@ def _checked_conventions(batch: ScanBatch, source: str, range_unit: str | None) 
     start angle in degrees, e.g. -90) and, without ``range_unit``, for ranges that cannot be
     metres (:func:`stemmap.io.conventions.check_scan_ranges`); ``range_unit`` (a key of
     :data:`stemmap.io.conventions.UNIT_SCALES`) scales the ranges and the range window."""
-    from stemmap.io.conventions import check_times, unit_scale
+    from stemmap.io.conventions import check_scan_period, check_times, unit_scale
 
     check_times(batch.times, source, "scan time")
+    check_scan_period(batch.times, source)  # relative ms: a warning
     if range_unit is None:
         check_scan_conventions(batch.angle_min, batch.ranges, source)
         return batch

@@ -198,6 +198,41 @@ class _Fitted(NamedTuple):
     own_noise: FloatArray | None = None  # the relaxed RMS test's noise (rms_noise_from_fit)
 
 
+def fit_sigma(floor: float, segs: Segments, sigma: FloatArray) -> FloatArray | None:
+    """``fit_noise_floor``: the range noise the fits of ``segs`` weight the returns by (ours,
+    issue 11, Dec 5), None when the option is off (the fits use ``sigma``).
+
+    Per segment ``sqrt(n^2 + m^2 / 12)`` between ``floor`` and the tests' ``sigma``: ``n``
+    the measured range noise of its scan (``segs.points.fit_noise``) and ``m`` the median
+    absolute range step between its adjacent returns. A first-echo return lies anywhere in
+    its beam's footprint (one beam spacing) and the footprint correction puts it at one side,
+    so its range is off by up to the range step across a beam: uniformly, a standard
+    deviation of step / sqrt(12). On a near stem that is millimetres; on a 4-return arc far
+    away, centimetres (there the fit keeps ``sigma``). The median, not the RMS: the steep
+    silhouette steps are two of many on a long arc (measured: docs/algorithms/
+    scan-detection.md, "lidR view by view")."""
+    noise = segs.points.fit_noise
+    if noise is None:
+        return None
+    lab = segs.labels
+    same = lab[1:] == lab[:-1]
+    step = np.abs(np.diff(segs.points.r))[same]
+    owner = lab[1:][same]
+    med = np.zeros(len(segs))
+    if step.size:
+        order = np.lexsort((step, owner))
+        step, owner = step[order], owner[order]
+        cnt = np.bincount(owner, minlength=len(segs))
+        first = np.concatenate(([0], np.cumsum(cnt)[:-1]))
+        has = cnt > 0
+        mid_lo = first[has] + (cnt[has] - 1) // 2
+        mid_hi = first[has] + cnt[has] // 2
+        med[has] = 0.5 * (step[mid_lo] + step[mid_hi])
+    scale = np.sqrt(noise[segs.scan] ** 2 + med * med / 12.0)
+    out: FloatArray = np.minimum(sigma, np.maximum(floor, scale))
+    return out
+
+
 def _output_columns(
     segs: Segments, fitted: _Fitted, ok: NDArray[np.bool_]
 ) -> dict[str, np.ndarray]:

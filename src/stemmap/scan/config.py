@@ -379,6 +379,29 @@ class DetectorConfig:
         mean circle's tangent then lies up to ``edge_protrusion / range`` radians inside the
         edge beam's footprint, and each end's tangent prior is widened inward by that much.
         0 = the outline is the circle (the tangent anywhere in the edge footprint).
+    stub_runs : bool
+        With a finite ``stub_sigmas``, first-echo fits: the deletion unit of the stub test is
+        a run of end returns, not one return (ours, issue 11, Dec 5, "lidR view by view";
+        :func:`~stemmap.scan._stub_runs.trim_runs`): at each end the smallest run of m
+        returns whose rest (more than half of the returns) passes every test and the
+        chi-square test, and all of which lie outside the rest's circle by more than
+        ``stub_sigmas`` deletion deviations, goes; the
+        new end is occluded where the run lay in front of the stem. A branch leaving the
+        flank over several beams. Numpy path. False = one return at a time.
+    fit_noise_floor : float, metres, >= 0
+        First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours") only: the circle
+        fits weight the returns by the range noise measured on the data instead of the
+        tests' sigma (ours, issue 11, Dec 5, "lidR view by view";
+        :func:`~stemmap.scan._segment_fits.fit_sigma`): the scan's own estimate
+        (:func:`~stemmap.scan.plausibility.scan_noise`), or the estimate over every scan of
+        the batch where it has none (``batch_min`` 0), combined with the footprint's share
+        (the segment's median absolute range step between adjacent returns over sqrt(12)), at
+        least ``fit_noise_floor`` and at most the segment's sigma. The plausibility tests
+        keep the segment's sigma (the configured floor, for bark and outlines); only the
+        fit's Huber scale, its 4-sigma outlier rejection and the weight of the returns
+        against the silhouette tangents change. A stem whose scans hold millimetres of range
+        noise then follows its returns rather than one edge return on a stub or twig. 0 =
+        off (the fit uses the tests' sigma). Numpy path (as every first-echo fit).
     split_search : bool
         Cut a candidate rejected as not convex (``depth``) or by the RMS test, whose
         validated corner split (if on) gave no trunk, where the Bayesian information
@@ -510,6 +533,8 @@ class DetectorConfig:
     behind_sigmas: float = math.inf
     stub_sigmas: float = math.inf
     edge_protrusion: float = 0.0
+    fit_noise_floor: float = 0.0
+    stub_runs: bool = False
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -630,6 +655,8 @@ class DetectorConfig:
             raise bad("stub_sigmas", self.stub_sigmas, "it must be >= 0 (sigmas; inf: off)")
         if not (self.edge_protrusion >= 0 and math.isfinite(self.edge_protrusion)):
             raise bad("edge_protrusion", self.edge_protrusion, "it must be >= 0 m and finite")
+        if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):
+            raise bad("fit_noise_floor", self.fit_noise_floor, "it must be >= 0 m and finite")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
             raise bad("arc_floor_sigmas", self.arc_floor_sigmas, "it must be > 0 (sigmas)")
         if not self.arc_tangent_sigmas > 0:

@@ -42,7 +42,9 @@ from stemmap.scan._segment_fits import (
     _Fitted,
     _output_columns,
     fit_kasa_segments,
+    fit_sigma,
 )
+from stemmap.scan._stub_runs import trim_runs
 from stemmap.scan._stubs import first_echo, trim_stubs
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
@@ -359,6 +361,12 @@ class ScanTrunkDetector:
         pts = extract_points(r, bearing, angle_increment)
         if noise is not None:
             pts = replace(pts, noise=noise, step_noise=self._step_noise(raw, noise))
+        if self._fit_noise_on():
+            # the noise the fits weight by: each scan's own estimate, else the batch's
+            fit_noise = scan_noise(
+                raw, cfg.scan_noise_jump, cfg.scan_noise_surface, 0.0, batch_min=0.0
+            )
+            pts = replace(pts, fit_noise=fit_noise)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
         else:
@@ -403,6 +411,11 @@ class ScanTrunkDetector:
             )
             segs = segs.select(segs.counts >= cfg.min_points)
         return (self._filter(segs) if apply_filters else segs), r, wrap
+
+    def _fit_noise_on(self) -> bool:
+        """Whether the circle fits weight by the measured noise (``fit_noise_floor``)."""
+        cfg = self.config
+        return cfg.fit_noise_floor > 0 and cfg.beam_footprint_deg > 0 and cfg.fit_method == "ours"
 
     def _step_noise(self, r: FloatArray, noise: FloatArray) -> FloatArray | None:
         """``step_noise_pool``: the noise of every scan for the step threshold of
@@ -596,10 +609,12 @@ class ScanTrunkDetector:
         elif cfg.fit_method == "ours" and cfg.beam_footprint_deg > 0 and cfg.edge_protrusion > 0:
             # first echo: the last beam that returns may have caught a bark flake or twig
             sil = first_echo_edge_prior(segs, cfg.edge_protrusion)
+        # fit_noise_floor: the fit weights by the measured noise, the tests keep sigma
+        f_sigma = fit_sigma(cfg.fit_noise_floor, segs, sigma)
         centers, radii, covs, ok = _fit_segments(
             segs,
             cfg.fit_method,
-            sigma,
+            sigma if f_sigma is None else f_sigma,
             silhouette=sil,
             beam_divergence=divergence,
             residuals=cfg.fit_residuals,
@@ -753,5 +768,8 @@ class ScanTrunkDetector:
         if behind and math.isfinite(cfg.behind_sigmas) and np.any(which):
             segs, fitted = trim_behind(self, segs, fitted, which, grid, wrap)
         if math.isfinite(cfg.stub_sigmas) and np.any(which):
-            segs, fitted = trim_stubs(self, segs, fitted, which, grid, wrap)
+            if cfg.stub_runs and first_echo(cfg):
+                segs, fitted = trim_runs(self, segs, fitted, which, grid, wrap)
+            else:
+                segs, fitted = trim_stubs(self, segs, fitted, which, grid, wrap)
         return segs, fitted

@@ -412,6 +412,7 @@ def footprint_correct(segs: Segments, footprint: float) -> Segments:
         p.angle_increment,
         p.noise,
         p.step_noise,
+        p.fit_noise,
     )
     return replace(segs, points=pts)
 

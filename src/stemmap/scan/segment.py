@@ -62,6 +62,11 @@ class ScanPoints:
         The same with the batch's pooled estimate where a scan has none of its own (set with
         ``step_split`` and ``step_noise_pool``: the step threshold of
         :func:`stemmap.scan._step_split.step_refit`).
+    fit_noise : ndarray of shape (n_scans,), metres, or None
+        The range noise each scan's circle fits weight the returns by, before the floor of
+        ``fit_noise_floor`` and the cap of the tests' sigma: the scan's own estimate, or the
+        estimate over every scan of the batch where it has none (set with
+        ``fit_noise_floor`` on first-echo fits).
     """
 
     scan: IntArray
@@ -74,6 +79,7 @@ class ScanPoints:
     angle_increment: float
     noise: FloatArray | None = None
     step_noise: FloatArray | None = None
+    fit_noise: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
@@ -92,6 +98,7 @@ class ScanPoints:
             self.angle_increment,
             self.noise,
             self.step_noise,
+            self.fit_noise,
         )
 
 

@@ -1,0 +1,210 @@
+"""Drop a run of end returns that lies outside the circle of the rest: a branch leaving the
+stem's flank over several beams (ours, issue 11, Dec 5, "lidR view by view"; numpy path).
+
+:func:`stemmap.scan._stubs.outward_ends` deletes one end return at a time and judges it
+against the circle fitted without it. A branch that leaves the flank over m beams (lidR scan
+19: nine returns 16-97 mm outside the stem's ring, joined to the stem's twenty at a 2 mm
+step) is never caught that way: with one of them deleted the other m - 1 still pull the
+rest's circle, which then fails the chi-square test, and nothing is trimmed. The deletion
+unit here is the run: for m = 1, 2, ... up to the candidate's returns less
+``max(min_points, min_points_partial)``, the m end returns are deleted together, the rest is
+fitted with that end occluded (whether the end is a silhouette is what is asked), and the
+run goes at the *smallest* m for which
+
+- the rest's circle passes every fit test and its residuals are the range noise (the upper
+  1 % chi-square test of ``arc_chi2``, with the noise the fit weighted by: the measured
+  noise of ``fit_noise_floor`` where that is on, else the segment's sigma), and
+- every return of the run lies outside that circle by more than ``stub_sigmas`` deletion
+  standard deviations ``sqrt(s^2 + g' C g)`` (the scale of
+  :func:`~stemmap.scan._stubs.outward_ends`, ``s`` from the same noise).
+
+The smallest m: a larger one would delete the stem's own returns as well once the branch is
+gone (they lie on the rest's circle, so the second condition stops the run at the stem). The
+rest keeps more than half of the candidate's returns (both runs together too): the deletion
+test takes the rest as the stem, and a rest of a branch's few returns judged against 1 cm
+passed once and made the stem's twenty the "run" (lidR scan 19 without ``fit_noise_floor``:
+-22 cm). Each end is judged on the whole candidate; both ends' runs then go together. The new end is
+occluded when the return just beyond it lies in front of the rest's circle (nearer than the
+range at which its beam meets the circle: a branch in front hides the stem's silhouette, lidR
+scan 19) and a silhouette edge otherwise (the beam missed the stem or met something behind
+it). The trimmed candidate is fitted again and keeps the trim only when it passes every
+test (the rule of :func:`~stemmap.scan._behind.trim_behind`). First-echo fits only (as
+``stub_sigmas``): an averaging scanner's edge return is a mixed pixel outside the circle by
+construction.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import chdtri
+
+from stemmap.scan._behind import _merge, _take
+from stemmap.scan._refit import fit_passes
+from stemmap.scan._segment_fits import fit_sigma
+from stemmap.scan.segment import Segments
+from stemmap.types import FloatArray
+
+if TYPE_CHECKING:
+    from stemmap.scan.detect import ScanTrunkDetector, _Fitted
+
+__all__ = ["outward_runs", "trim_runs"]
+
+
+def _run_mask(segs: Segments, m: NDArray[np.int64], first: bool) -> NDArray[np.bool_]:
+    """Per return of ``segs``, whether it is among the ``m`` first (or last) of its segment."""
+    p_idx = np.arange(len(segs.points))
+    lab = segs.labels
+    if first:
+        out: NDArray[np.bool_] = p_idx < segs.start[lab] + m[lab]
+    else:
+        out = p_idx >= segs.stop[lab] - m[lab]
+    return out
+
+
+def outward_runs(
+    detector: ScanTrunkDetector, segs: Segments, grid: FloatArray, wrap: bool
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Per segment of ``segs``: how many returns go at its first / its last end (0: none) and
+    whether the new first / last end is occluded (module docstring)."""
+    cfg = detector.config
+    p = segs.points
+    least = max(cfg.min_points, cfg.min_points_partial)
+    k = len(segs)
+    found: list[NDArray[np.int64]] = []
+    occluded: list[NDArray[np.bool_]] = []
+    for first in (True, False):
+        m_end = np.zeros(k, dtype=np.int64)
+        occ = np.zeros(k, dtype=bool)
+        open_ = segs.counts > least
+        m = 1
+        # the rest must hold more than half of the returns: the stem is the majority of its
+        # candidate (else a branch's few returns become the reference and the stem the run)
+        while np.any(open_ & (segs.counts - m >= least) & (2 * m < segs.counts)):
+            act = open_ & (segs.counts - m >= least) & (2 * m < segs.counts)
+            mm = np.where(act, m, 0).astype(np.int64)
+            run = _run_mask(segs, mm, first)
+            c_s, c_e = act & first, act & (not first)
+            rest = _trimmed_flags(segs.drop(~run), c_s, c_e, c_s, c_e)  # that end occluded
+            sub = rest.select(act)
+            f = detector._fit_candidates(sub, grid, wrap)
+            sig = fit_sigma(cfg.fit_noise_floor, sub, f.sigma)
+            noise = f.sigma if sig is None else sig
+            n = sub.counts.astype(np.float64)
+            limit = chdtri(np.maximum(n - 3.0, 1.0), 0.01)
+            with np.errstate(invalid="ignore"):
+                good = fit_passes(cfg, f) & (n * f.rms * f.rms <= limit * noise * noise)
+            ids = np.flatnonzero(act)
+            # every return of the run outside the rest's circle by > stub_sigmas deviations
+            row = np.full(k, -1, dtype=np.int64)
+            row[ids] = np.arange(ids.size)
+            pts = np.flatnonzero(run)
+            j = row[segs.labels[pts]]
+            cx, cy, r = f.centers[j, 0], f.centers[j, 1], f.radii[j]
+            dx, dy = p.x[pts] - cx, p.y[pts] - cy
+            dist = np.hypot(dx, dy)
+            br = cfg.bark_roughness * r
+            scale2 = noise[j] ** 2 + br * br
+            with np.errstate(invalid="ignore", divide="ignore"):
+                g = np.stack((-dx / dist, -dy / dist, -np.ones_like(dist)), axis=1)
+                pred = np.einsum("ki,kij,kj->k", g, f.covs[j], g)
+                out_pt = dist - r > cfg.stub_sigmas * np.sqrt(scale2 + np.maximum(pred, 0.0))
+            all_out = np.ones(ids.size, dtype=bool)
+            np.logical_and.at(all_out, j, out_pt)
+            hit = good & all_out
+            done = ids[hit]
+            m_end[done] = m
+            open_[done] = False
+            # the return just beyond the new end: in front of the rest's circle -> occluded
+            inner = segs.start[done] + m - 1 if first else segs.stop[done] - m
+            jj = row[done]
+            occ[done] = _in_front(p.x[inner], p.y[inner], f.centers[jj], f.radii[jj])
+            m += 1
+        found.append(m_end)
+        occluded.append(occ & (m_end > 0))
+    return found[0], found[1], occluded[0], occluded[1]
+
+
+def _in_front(x: FloatArray, y: FloatArray, centers: FloatArray, radii: FloatArray) -> NDArray:
+    """Whether each return (sensor at the origin) lies nearer than the range at which its
+    beam first meets its circle (False where the beam misses the circle)."""
+    rho = np.hypot(x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ux, uy = x / rho, y / rho
+        b = centers[:, 0] * ux + centers[:, 1] * uy
+        s2 = centers[:, 0] ** 2 + centers[:, 1] ** 2 - b * b
+        meets = s2 < radii * radii
+        near = b - np.sqrt(np.maximum(radii * radii - s2, 0.0))
+    out: NDArray[np.bool_] = meets & (rho < near)
+    return out
+
+
+def trim_runs(
+    detector: ScanTrunkDetector,
+    segs: Segments,
+    fitted: _Fitted,
+    which: NDArray[np.bool_],
+    grid: FloatArray,
+    wrap: bool,
+) -> tuple[Segments, _Fitted]:
+    """``segs`` without the end runs of the candidates ``which`` that lie outside the circle
+    of their rest (:func:`outward_runs`), and the fits of the trimmed candidates; a trimmed
+    candidate that fails a test keeps its returns and fit. The same segments in order."""
+    if not np.any(which):
+        return segs, fitted
+    ids = np.flatnonzero(which)
+    sub = segs.select(which)
+    m_first, m_last, occ_first, occ_last = outward_runs(detector, sub, grid, wrap)
+    least = max(detector.config.min_points, detector.config.min_points_partial)
+    # both ends: keep at least `least` returns and more than half (the first end's run wins)
+    rest = sub.counts - m_first - m_last
+    m_last = np.where((rest >= least) & (2 * rest > sub.counts), m_last, 0)
+    occ_last &= m_last > 0
+    cut = (m_first > 0) | (m_last > 0)
+    if not np.any(cut):
+        return segs, fitted
+    k = len(segs)
+    mf = np.zeros(k, dtype=np.int64)
+    ml = np.zeros(k, dtype=np.int64)
+    of = np.zeros(k, dtype=bool)
+    ol = np.zeros(k, dtype=bool)
+    mf[ids], ml[ids], of[ids], ol[ids] = m_first, m_last, occ_first, occ_last
+    drop = _run_mask(segs, mf, True) | _run_mask(segs, ml, False)
+    sel = np.zeros(k, dtype=bool)
+    sel[ids[cut]] = True
+    trimmed = _trimmed_flags(segs.drop(~drop), mf > 0, ml > 0, of, ol)
+    refit = detector._fit_candidates(trimmed.select(sel), grid, wrap)
+    passed = fit_passes(detector.config, refit)
+    if not np.any(passed):
+        return segs, fitted
+    rows = np.flatnonzero(sel)
+    undo = np.zeros(k, dtype=bool)
+    undo[rows[~passed]] = True
+    drop &= ~undo[segs.labels]
+    mf[undo] = 0
+    ml[undo] = 0
+    out = _trimmed_flags(segs.drop(~drop), mf > 0, ml > 0, of & ~undo, ol & ~undo)
+    return out, _merge(fitted, rows[passed], _take(refit, passed))
+
+
+def _trimmed_flags(
+    segs: Segments,
+    cut_start: NDArray[np.bool_],
+    cut_end: NDArray[np.bool_],
+    occ_start: NDArray[np.bool_],
+    occ_end: NDArray[np.bool_],
+) -> Segments:
+    """A trimmed end is occluded where the run hid the stem (``occ_*``), a true silhouette
+    edge otherwise; untrimmed ends keep their flags."""
+    return Segments(
+        segs.points,
+        segs.start,
+        segs.stop,
+        segs.scan,
+        np.where(cut_start, occ_start, segs.occluded_start),
+        np.where(cut_end, occ_end, segs.occluded_end),
+        segs.truncated_start & ~cut_start,
+        segs.truncated_end & ~cut_end,
+    )
