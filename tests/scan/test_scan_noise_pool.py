@@ -97,9 +97,13 @@ def test_compiled_pooled_noise_equals_numpy():
         fov = np.ones(n, dtype=np.bool_)
         for pool in (False, True):
             for floor in (np.inf, 0.0, 0.02):
-                got = _batch_scan_noise(r, fov, 0.0, np.inf, jump, surface, pool, floor)
+                own_out = np.full(s, -1.0)
+                got = _batch_scan_noise(r, fov, 0.0, np.inf, jump, surface, pool, floor, own_out)
                 ref = scan_noise(r, jump, surface, pool=pool, batch_min=floor)
                 np.testing.assert_array_equal(got, ref)
+                # every scan's own estimate before pooling: the unpooled statistic, bit for
+                # bit (the detector kernel reads its scan noise there with the step split)
+                np.testing.assert_array_equal(own_out, own)
                 if floor == np.inf:
                     changed["pool"] += bool(pool and np.any(ref != own))
                 else:

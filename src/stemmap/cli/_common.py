@@ -44,7 +44,7 @@ QuietFlag = Annotated[
         "--quiet",
         "-q",
         help="Print no progress bar, first-run notice or summary. Errors and warnings still "
-        "go to stderr; a --json object is still printed.",
+        "go to stderr; where the command has --json, its object is still printed.",
     ),
 ]
 

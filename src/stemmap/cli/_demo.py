@@ -316,7 +316,10 @@ def demo(
     n_trees: Annotated[
         int,
         typer.Option(
-            "--n-trees", help="Trees in the 60 x 60 m stand.", callback=bounded("--n-trees", ge=1)
+            "--n-trees",
+            help="Trees drawn in the 60 x 60 m stand, before those within 2 m of the drive's "
+            "path are cleared (seed 1: 120 -> 100; the summary's 'trees in the stand').",
+            callback=bounded("--n-trees", ge=1),
         ),
     ] = 120,
     backend: Annotated[Backend, typer.Option("--backend", help="SLAM back-end.")] = (

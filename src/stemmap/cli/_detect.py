@@ -60,12 +60,18 @@ def detect(
     ] = None,
     fit: Annotated[
         str | None,
-        typer.Option(help="Override the preset's circle fit (kasa, fletcher_reeves, ours, ...)."),
+        typer.Option(
+            help="Override the preset's circle fit (kasa, fletcher_reeves, ours, ...) "
+            "[default: the preset's: stemmap ours, zheng2012 fletcher_reeves, xue2018 "
+            "chord_width, visual_lidar2023 kasa]."
+        ),
     ] = None,
     sigma: Annotated[
         float | None,
         typer.Option(
-            help="Override the sensor range noise, metres.", callback=bounded("--sigma", gt=0)
+            help="Override the sensor range noise (1 sigma), metres [default: the preset's, "
+            "0.01 m for every preset].",
+            callback=bounded("--sigma", gt=0),
         ),
     ] = None,
     sigma_from_scan: Annotated[
@@ -125,7 +131,9 @@ def detect(
     footprint: Annotated[
         float | None,
         typer.Option(
-            help="Beam footprint of a nearest-return scanner, degrees (corrects wide trunks).",
+            help="Beam footprint of a nearest-return (first-echo) scanner, degrees: its "
+            "returns are moved to the footprint side nearest the trunk (corrects wide trunks) "
+            "[default: 0, none: an averaging scanner such as a SICK LMS2xx or the simulator].",
             callback=bounded("--footprint", ge=0, lt=180),
         ),
     ] = None,
@@ -136,10 +144,10 @@ def detect(
             metavar="MIN MAX",
             help="Return threshold of an averaging (SICK-class) scanner, the share of its "
             "footprint that must hit for a beam to return, assumed to lie in [MIN, MAX]: 0.5 "
-            "0.5 (the preset's) = half the footprint, 0 0 = any part, 0 0.5 = unknown (the "
-            "tangent prior widened by half a footprint). Off by default: it costs the "
-            "simulated DBH target (docs/algorithms/scan-detection.md, 'Averaging scanners: "
-            "the return threshold').",
+            "0.5 = half the footprint (the default, every preset), 0 0 = any part, 0 0.5 = "
+            "unknown (the tangent prior widened by half a footprint). Other values than the "
+            "default cost the simulated DBH target (docs/algorithms/scan-detection.md, "
+            "'Averaging scanners: the return threshold').",
         ),
     ] = None,
     rejected: Annotated[
@@ -161,8 +169,9 @@ def detect(
     workers: WorkersOption = None,
     scheduler: SchedulerOption = None,
 ) -> None:
-    """Detect trunks in every scan and write scan_index,time_s,x,y,diameter,radius_std,n_points,...
+    """Detect the trunks in every 2D laser scan: one CSV row per trunk per scan.
 
+    Columns scan_index, time_s, x, y, diameter, radius_std, n_points, ... (docs/outputs.md).
     Coordinates are in the sensor frame (metres). A damaged frame is reported and skipped;
     ``scan_index`` is the frame's position in the file, so skipped frames leave gaps.
 

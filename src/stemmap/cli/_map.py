@@ -333,8 +333,9 @@ def map_command(
     trajectory_format: Annotated[
         TrajectoryFormat,
         typer.Option(
-            help="trajectory.csv (time_s,x,y,theta + pose covariance columns where the back-end "
-            "has them: fastslam, ekf, isam2) or TUM trajectory.tum for evo (no covariances)."
+            help="trajectory.csv (time_s,x,y,theta in s, m, m, rad + the pose covariance "
+            "columns, which every back-end writes: docs/outputs.md) or TUM trajectory.tum for "
+            "evo (no covariances)."
         ),
     ] = TrajectoryFormat.csv,
     workers: WorkersOption = None,
@@ -343,7 +344,8 @@ def map_command(
     """Map trees and the machine's path with tree-landmark SLAM.
 
     Writes to --out: trees.csv, trees.geojson, trajectory.csv (--trajectory-format tum:
-    trajectory.tum), metrics.json, map.png, report.html, and with --gpkg map.gpkg; Victoria
+    trajectory.tum), metrics.json, map.png, report.html, run.json, with isam2 graph.npz and
+    trees_information.npz (what a later --prior-map reads), and with --gpkg map.gpkg; Victoria
     Park also gps_trees.csv, gps_trees.geojson, gps_trajectory.csv and gps_alignment.json
     (the map in the GPS frame). With --gnss also trajectory_gnss.csv (or .tum; with --crs
     trajectory_gnss.geojson; in map.gpkg layers trajectory_gnss, poses_gnss): the path as the

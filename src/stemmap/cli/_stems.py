@@ -305,9 +305,11 @@ def stems(
     as_json: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
-    """Find stems in CLOUD and write x, y, z, diameter, n_points, quality per stem (cloud frame,
-    metres). LAS/LAZ files are streamed in chunks (progress bar). munjer2025 expects one lidar
-    frame in the sensor frame (pass-through box x 0..10, y -10..10, z -0.5..0 m).
+    """Find the stems in a point cloud (or LAS/LAZ tiles): one CSV row per stem, position + DBH.
+
+    Columns x, y, z, diameter, n_points, quality, ... per stem (cloud frame, metres). LAS/LAZ
+    files are streamed in chunks (progress bar). munjer2025 expects one lidar frame in the
+    sensor frame (pass-through box x 0..10, y -10..10, z -0.5..0 m).
 
     With the scanner's positions (--origin for one station, or --trajectory plus the points'
     time stamps for a mobile cloud) the circle fits of preset ours minimise the range errors

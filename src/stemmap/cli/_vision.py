@@ -570,7 +570,14 @@ def fuse(
     bpa: Annotated[
         str, typer.Option(help="BPA preset: xue2018, xue2018_printed, forest.")
     ] = "xue2018",
-    preset: Annotated[str, typer.Option(help="Segmentation preset.")] = "xue2018",
+    preset: Annotated[
+        str,
+        typer.Option(
+            help="Segmentation preset of the image regions: xue2018 (the paper's rules; crops "
+            "the top 25 % of the image), xue2018_strict (without our green-plant rule) or "
+            "full_frame (no crop)."
+        ),
+    ] = "xue2018",
 ) -> None:
     """Fuse one laser scan with one image: laser RoIs + stripping segmentation + Dempster-Shafer.
 

@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap._leaf_jit import leaf_njit
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -26,7 +27,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def sagitta(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma: no cover - numba
     """Sagitta depth of returns ``a:b`` towards the sensor (numba twin of
     :func:`stemmap.scan.features.sagitta_depth`, Zheng et al. 2012 §3.2 criterion 4)."""
@@ -54,7 +55,7 @@ def sagitta(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma:
     return depth
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _behind_chord(
     px: FloatArray, py: FloatArray, lo: int, i: int, c: int
 ) -> tuple[float, float, float]:  # pragma: no cover - numba
@@ -68,7 +69,7 @@ def _behind_chord(
     return (-side_p if side_o > 0.0 else side_p), cx, cy
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def segment_corners(
     px: FloatArray,
     py: FloatArray,
@@ -100,7 +101,7 @@ def segment_corners(
     return found
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def may_have_corner(
     px: FloatArray, py: FloatArray, a: int, b: int, span: int, thr: float
 ) -> bool:  # pragma: no cover - numba
@@ -117,7 +118,7 @@ def may_have_corner(
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def corner_parity(
     px: FloatArray,
     py: FloatArray,
@@ -147,7 +148,7 @@ def corner_parity(
     return found
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def piece_table(
     a: int,
     b: int,

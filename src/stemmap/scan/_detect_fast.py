@@ -191,8 +191,11 @@ def _detect_kernel(
         if pool_on
         else np.zeros(1)
     )
-    # step_split (_fast_step_split), with step_noise_pool every scan's step noise
+    # step_split (_fast_step_split), with step_noise_pool every scan's step noise; that pass
+    # also gives every scan's own estimate, the scan noise where it is not pooled (own_noise)
     step_on = prm[_STEP] > 0.0
+    step_noise = step_on and prm[_STEP_NOISE] > 0.0
+    own_noise = np.zeros(s_count)
     step_all = (
         _batch_scan_noise(
             ranges,
@@ -203,10 +206,12 @@ def _detect_kernel(
             scan_surface,
             prm[_STEP_POOL] > 0.0,
             prm[_STEP_BATCH_MIN],
+            own_noise,
         )
-        if step_on and prm[_STEP_NOISE] > 0.0
+        if step_noise
         else np.zeros(s_count)
     )
+    own_on = step_noise and scan_on and not pool_on
     refit_on = prm[56] > 0.0  # refit_pieces with refit_split="corners" (_fast_candidates)
     arcs_on = prm[58] > 0.0  # arc_refit (_fast_arcs)
     arc_replace = prm[61]
@@ -277,6 +282,8 @@ def _detect_kernel(
         # ---- the scan's own range-noise scale (plausibility.scan_noise, ours) ----
         if pool_on:
             noise_s = noise_all[s]
+        elif own_on:  # (the same numbers as _scan_noise: _batch_scan_noise's own)
+            noise_s = own_noise[s]
         else:
             noise_s = _scan_noise(g0, scan_jump, scan_surface, dnoise) if scan_on else 0.0
         # ---- three-neighbour median filter (preprocess.median_filter3, Xue 2018 §2.2) ----

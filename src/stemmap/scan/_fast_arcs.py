@@ -23,9 +23,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit
 from stemmap.scan import (
     _corners,
     _fast_candidates,
@@ -65,7 +65,7 @@ ARC_WORK_ROWS = 16
 _MAD = 1.4826
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _kasa(s: FloatArray, m: FloatArray) -> tuple[bool, float, float, float]:  # pragma: no cover
     """Kasa circle from the running sums ``s`` = (n, Sx, Sy, Sxx, Syy, Sxy, Sz, Sxz, Syz) with
     z = x^2 + y^2 (local coordinates): the normal equations solved by Gaussian elimination
@@ -110,7 +110,7 @@ def _kasa(s: FloatArray, m: FloatArray) -> tuple[bool, float, float, float]:  # 
     return True, cx, cy, math.sqrt(r2)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def largest_arc(
     px: FloatArray,
     py: FloatArray,
@@ -242,7 +242,7 @@ def largest_arc(
     return best_lo, best_hi
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def arc_run(
     px: FloatArray,
     py: FloatArray,
@@ -289,7 +289,7 @@ def arc_run(
     return -1, -1
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def arc_verdict(
     px: FloatArray,
     py: FloatArray,
@@ -347,7 +347,7 @@ def arc_verdict(
     return 1 if ok else 0
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def arc_candidate(
     px: FloatArray,
     py: FloatArray,
@@ -374,7 +374,7 @@ def arc_candidate(
     return v == 1
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def arc_consistent(
     pr: FloatArray,
     qa: int,

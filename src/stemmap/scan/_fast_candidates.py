@@ -24,6 +24,7 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit
 from stemmap.scan import (
     _corners,
     _fast_robust,
@@ -60,7 +61,7 @@ _RAD2DEG = 180.0 / math.pi
 _SQRT12 = math.sqrt(12.0)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _grid_at(grid: FloatArray, beam: int, n: int, wrap: bool) -> float:  # pragma: no cover
     """Range of ``beam`` in the scan's grid, inf for no return or outside the scan (the
     ``at`` helper of :func:`stemmap.scan.features.edge_silhouette`)."""
@@ -73,7 +74,7 @@ def _grid_at(grid: FloatArray, beam: int, n: int, wrap: bool) -> float:  # pragm
     return v if math.isfinite(v) else math.inf
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _edge_prior(
     grid: FloatArray,
     edge_r: float,
@@ -114,7 +115,7 @@ _HIT_MIN = PARAM_INDEX["edge_hit_min"]
 _HIT_MAX = PARAM_INDEX["edge_hit_max"]
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _edge_default(
     sil: FloatArray,
     prm: FloatArray,
@@ -144,7 +145,7 @@ def _edge_default(
         sil[3] = std
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _segment_code(
     px: FloatArray,
     py: FloatArray,
@@ -222,7 +223,7 @@ def _segment_code(
     return 0
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _fit_candidate(
     px: FloatArray,
     py: FloatArray,
@@ -313,7 +314,8 @@ def _fit_candidate(
         sil_fit[3] = sil[1]
     else:
         use_lo, use_hi = e_start, e_end
-        sil_fit[:] = sil
+        for q in range(4):  # (element by element: an array copy would need the NRT)
+            sil_fit[q] = sil[q]
     fit_out[:] = np.nan
     status = _fit_one(
         px[a:b],
@@ -390,7 +392,7 @@ def _fit_candidate(
     return 0
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def corner_threshold(
     pr: FloatArray, a: int, b: int, depth: float, noise_s: float, prm: FloatArray
 ) -> float:  # pragma: no cover - numba
@@ -411,7 +413,7 @@ def corner_threshold(
     return max(thr, prm[48] * sig)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _split_parent(
     px: FloatArray,
     py: FloatArray,
@@ -487,8 +489,9 @@ def _split_parent(
                 inside |= math.hypot(px[i] - pres[q, 0], py[i] - pres[q, 1]) < lim
             if inside:
                 continue
-        if out != q:
-            pres[out, :] = pres[q, :]
+        if out != q:  # (element by element: an array copy would need the NRT)
+            for col in range(pres.shape[1]):
+                pres[out, col] = pres[q, col]
         out += 1
     return out
 
@@ -511,7 +514,7 @@ def _emit(
     return rows, scans, n_out + 1
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def has_corners(
     px: FloatArray,
     py: FloatArray,

@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.types import FloatArray
 
 #: 1.4826 MAD -> sigma for a Gaussian, / sqrt(6): the std of a second difference of iid noise
@@ -19,7 +20,7 @@ from stemmap.types import FloatArray
 _ROUGH = 1.4826 / math.sqrt(6.0)
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _range_roughness(r: FloatArray) -> float:
     """Robust range-noise + bark-roughness scale of consecutive returns (numba twin of
     :func:`stemmap.scan.plausibility.range_roughness`, same arithmetic)."""
@@ -35,7 +36,7 @@ def _range_roughness(r: FloatArray) -> float:
     return _ROUGH * med
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
     """Median of ``d[:m]`` (mean of the two middle values for even ``m``, as ``np.median``)
     by quickselect (Hoare partition) in place: no allocation, ``d[:m]`` is reordered."""
@@ -76,7 +77,7 @@ def _median_inplace(d: FloatArray, m: int) -> float:  # pragma: no cover - numba
 _SCAN_NOISE_MIN_TRIPLES = 16
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _interior_triples(g: FloatArray, jump: float, d: FloatArray) -> tuple[int, int]:
     """Second differences of the interior continuous beam triples of ``g`` (``n >= 4`` beams),
     written to ``d[:m]`` in beam order; returns ``m`` and the longest run of consecutive ones.
@@ -114,7 +115,7 @@ def _interior_triples(g: FloatArray, jump: float, d: FloatArray) -> tuple[int, i
 _FLOAT_MAX = float(np.finfo(np.float64).max)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _scan_noise(g: FloatArray, jump: float, surface: float, d: FloatArray) -> float:
     """Range-noise scale of one gated scan ``g`` from its interior continuous beam triples
     (numba twin of :func:`stemmap.scan.plausibility.scan_noise`, same statistic and
@@ -138,15 +139,21 @@ def _batch_scan_noise(
     surface: float,
     pool: bool = True,
     batch_min: float = math.inf,
+    own: FloatArray | None = None,
 ) -> FloatArray:  # pragma: no cover - numba
     """Every scan's range-noise scale with the scans that have too few interior triples for
     an estimate of their own sharing one from the union of their triples (``pool``), and the
     scans still without one taking the estimate over every scan's triples where it is at least
     ``batch_min`` (numba twin of :func:`stemmap.scan.plausibility.scan_noise` with ``pool`` and
     ``batch_min``; scans gated to ``(lo, hi)`` and the field of view as the detector kernel
-    gates them; the same arithmetic)."""
+    gates them; the same arithmetic). ``own`` (shape (S,)), if given, receives every scan's own
+    estimate before any pooling (0 where it has none): :func:`_scan_noise` of the scan, the
+    same numbers, so the detector kernel reads its scan noise there instead of estimating it
+    twice when the step split pools its own."""
     s_count, n = ranges.shape
     out = np.zeros(s_count)
+    if own is not None:
+        own[:] = 0.0
     g = np.empty(n)
     d = np.empty(n)
     pool_v = np.empty(s_count * n)
@@ -172,6 +179,8 @@ def _batch_scan_noise(
         if m >= _SCAN_NOISE_MIN_TRIPLES and 2 * longest <= m:
             out[s] = _mad_scale(d, m, surface)
             unset[s] = False
+            if own is not None:
+                own[s] = out[s]
         elif pool and m < _SCAN_NOISE_MIN_TRIPLES:
             lacking[s] = True
             pool_v[pool_m : pool_m + m] = d[:m]
@@ -192,7 +201,7 @@ def _batch_scan_noise(
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _mad_scale(d: FloatArray, m: int, surface: float) -> float:  # pragma: no cover - numba
     """``sqrt(max((1.4826 MAD / sqrt(6))^2 - surface^2, 0))`` of ``d[:m]`` (reordered)."""
     med = _median_inplace(d, m)
@@ -202,7 +211,7 @@ def _mad_scale(d: FloatArray, m: int, surface: float) -> float:  # pragma: no co
     return math.sqrt(max(e * e - surface * surface, 0.0))
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r: float) -> float:
     """1.4826 x the median absolute orthogonal residual (numba twin of
     :func:`stemmap.scan.plausibility.robust_residual_scale`, same arithmetic)."""
@@ -216,7 +225,7 @@ def _robust_residual_scale(x: FloatArray, y: FloatArray, cx: float, cy: float, r
     return 1.4826 * med
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
     """Median of ``v[start:stop]`` (mean of the two middle values for even counts), as
     :func:`stemmap.scan.features._segment_median`."""

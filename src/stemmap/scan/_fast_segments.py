@@ -10,12 +10,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.types import FloatArray
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _pairwise(a: FloatArray, lo: int, n: int) -> float:  # pragma: no cover - numba
     """numpy's pairwise summation of ``a[lo:lo + n]`` (``DOUBLE_pairwise_sum``: blocks of 128,
     eight accumulators), so the sums below equal ``np.add.reduceat`` bit for bit."""
@@ -56,14 +56,14 @@ def _pairwise(a: FloatArray, lo: int, n: int) -> float:  # pragma: no cover - nu
     return _pairwise(a, lo, n2) + _pairwise(a, lo + n2, n - n2)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _seg_sum(a: FloatArray, start: int, stop: int) -> float:  # pragma: no cover - numba
     """``np.add.reduceat(a, starts)`` for one segment: the first value plus the pairwise sum of
     the rest (numpy's reduction order)."""
     return a[start] + _pairwise(a, start + 1, stop - start - 1)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _algebraic_floor(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  # pragma: no cover
     """Minimum over all circles of the Kasa (algebraic) cost ``sum (|p - c|^2 - r^2)^2`` of the
     points ``a..b-1`` (a linear least-squares problem in (2c, r^2 - |c|^2), solved in centred
@@ -109,7 +109,7 @@ def _algebraic_floor(px: FloatArray, py: FloatArray, a: int, b: int) -> float:  
     return res
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _select_min(
     st: np.ndarray,
     sp: np.ndarray,
@@ -133,7 +133,7 @@ def _select_min(
     return _drop(st, sp, oc0, oc1, tr0, tr1, pb, pr, px, py, keep, ns)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _drop(
     st: np.ndarray,
     sp: np.ndarray,
@@ -172,7 +172,7 @@ def _drop(
     return nk, w
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def _geometric_cov(
     px: FloatArray,
     py: FloatArray,

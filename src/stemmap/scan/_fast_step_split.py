@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit
 from stemmap.scan import (
     _corners,
     _fast_arcs,
@@ -59,7 +60,7 @@ __all__ = ["largest_step", "step_emit", "step_limit"]
 _SIGMAS = 3.0
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def step_limit(
     pr: FloatArray, a: int, b: int, noise_s: float, step_s: float, prm: FloatArray
 ) -> float:  # pragma: no cover - numba
@@ -73,7 +74,7 @@ def step_limit(
     return _SIGMAS * math.sqrt(2.0) * sig
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def largest_step(
     pr: FloatArray, a: int, b: int, limit: float
 ) -> tuple[int, int]:  # pragma: no cover - numba
@@ -100,7 +101,7 @@ def largest_step(
     return f, spike
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _seen_through(
     px: FloatArray, py: FloatArray, pr: FloatArray, a: int, b: int, res: FloatArray
 ) -> bool:  # pragma: no cover - numba

@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.scan import _fit_lm
 from stemmap.scan._fit_lm import _footprint_range as _footprint_range
 from stemmap.scan._fit_lm import _inv3, _lm, _range_residual, _solve3, _valid
@@ -60,7 +61,7 @@ _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _abs_residual(
     i: int,
     lx: FloatArray,
@@ -82,7 +83,7 @@ def _abs_residual(
     return abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _truncated_moments(
     m: float, v: float, lo: float, hi: float
 ) -> tuple[float, float, bool]:  # pragma: no cover - numba
@@ -103,7 +104,7 @@ def _truncated_moments(
     return m + s * dm, var, True
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _box_tangents(
     p: FloatArray, C: FloatArray, mdl: FloatArray, work: FloatArray
 ) -> bool:  # pragma: no cover - numba
@@ -168,7 +169,76 @@ def _box_tangents(
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
+def _median_spacing(th: FloatArray) -> float:  # pragma: no cover - numba
+    """Median spacing of the sorted bearings ``th`` (the beam step when none is given); kept
+    out of :func:`_fit_one`, which compiles without reference counting and cannot
+    allocate."""
+    diffs = np.diff(np.sort(th))
+    return float(np.median(diffs))
+
+
+@nrt_njit()
+def _median_of(x: FloatArray) -> float:  # pragma: no cover - numba
+    """``np.median(x)`` (allocates: kept out of :func:`_fit_one`)."""
+    return float(np.median(x))
+
+
+@nrt_njit()
+def _reject_largest(dabs: FloatArray, keep: FloatArray, limit: float) -> int:  # pragma: no cover
+    """Drop (``keep`` = 0) up to N // 4 returns with |residual| ``dabs`` > ``limit``, largest
+    first, if any is (``np.max``: none where one is NaN); return how many (allocates: kept out
+    of :func:`_fit_one`)."""
+    n = dabs.shape[0]
+    n_rej = 0
+    if not np.max(dabs) > limit:
+        return n_rej
+    order = np.argsort(-dabs)
+    for j in range(n // 4):
+        i = order[j]
+        if dabs[i] > limit:
+            keep[i] = 0.0
+            n_rej += 1
+    return n_rej
+
+
+@nrt_njit()
+def _kasa_start(lx: FloatArray, ly: FloatArray, p: FloatArray) -> bool:  # pragma: no cover
+    """The algebraic (Kasa) circle of the local-frame returns (``lx``, ``ly``) into ``p``
+    (cx, cy, r), the start without a silhouette; False where the returns are collinear
+    (allocates: kept out of :func:`_fit_one`)."""
+    n = lx.shape[0]
+    mx = np.mean(lx)
+    my = np.mean(ly)
+    ux = lx - mx
+    uy = ly - my
+    sc = math.sqrt(np.mean(ux * ux + uy * uy))
+    ux = ux / sc
+    uy = uy / sc
+    A = np.zeros((3, 3))
+    bb = np.zeros(3)
+    for i in range(n):
+        z = -(ux[i] * ux[i] + uy[i] * uy[i])
+        row = (ux[i], uy[i], 1.0)
+        for a in range(3):
+            bb[a] += row[a] * z
+            for b in range(3):
+                A[a, b] += row[a] * row[b]
+    sol = np.zeros(3)
+    if not _solve3(A, bb, sol):
+        return False
+    kcx = -0.5 * sol[0]
+    kcy = -0.5 * sol[1]
+    r2 = kcx * kcx + kcy * kcy - sol[2]
+    if not r2 > 0.0:
+        return False
+    p[0] = kcx * sc + mx
+    p[1] = kcy * sc + my
+    p[2] = math.sqrt(r2) * sc
+    return True
+
+
+@leaf_njit()
 def _fit_one(
     px: FloatArray,
     py: FloatArray,
@@ -242,8 +312,7 @@ def _fit_one(
         keep[i] = 1.0
     one_sided = th_min > -0.5 * math.pi + 1e-3 and th_max < 0.5 * math.pi - 1e-3
     if dtheta <= 0.0:
-        diffs = np.diff(np.sort(th))
-        dtheta = np.median(diffs)
+        dtheta = _median_spacing(th)
         if not dtheta > 0.0:
             dtheta = (th_max - th_min) / (n - 1)
     # Points around the sensor (or on it) have no visible side: no silhouette terms then.
@@ -268,35 +337,9 @@ def _fit_one(
     p[0] = d0 * math.cos(b0)
     p[1] = d0 * math.sin(b0)
     p[2] = r0
-    if not use_sil:
-        # No silhouette: start from the algebraic (Kasa) solution in the local frame.
-        mx = np.mean(lx)
-        my = np.mean(ly)
-        ux = lx - mx
-        uy = ly - my
-        sc = math.sqrt(np.mean(ux * ux + uy * uy))
-        ux = ux / sc
-        uy = uy / sc
-        A = np.zeros((3, 3))
-        bb = np.zeros(3)
-        for i in range(n):
-            z = -(ux[i] * ux[i] + uy[i] * uy[i])
-            row = (ux[i], uy[i], 1.0)
-            for a in range(3):
-                bb[a] += row[a] * z
-                for b in range(3):
-                    A[a, b] += row[a] * row[b]
-        sol = np.zeros(3)
-        if not _solve3(A, bb, sol):
-            return COLLINEAR
-        kcx = -0.5 * sol[0]
-        kcy = -0.5 * sol[1]
-        r2 = kcx * kcx + kcy * kcy - sol[2]
-        if not r2 > 0.0:
-            return COLLINEAR
-        p[0] = kcx * sc + mx
-        p[1] = kcy * sc + my
-        p[2] = math.sqrt(r2) * sc
+    # No silhouette: start from the algebraic (Kasa) solution in the local frame.
+    if not use_sil and not _kasa_start(lx, ly, p):
+        return COLLINEAR
     # ---- noise scale: given, or estimated from a first (equal-weight) pass ----
     extent = max(th_max - th_min, dtheta) * near
     sang = dtheta / _SQRT12
@@ -345,15 +388,8 @@ def _fit_one(
             dabs[i] = _abs_residual(i, lx, ly, rho, ux, uy, p, mdl, tmp)
         scale = sig
         if sigma <= 0.0:
-            scale = max(1.4826 * np.median(dabs) * math.sqrt(n / (n - 3.0)), _SIGMA_FLOOR)
-        n_rej = 0
-        if np.max(dabs) > _REJECT * scale:
-            order = np.argsort(-dabs)
-            for j in range(n // 4):
-                i = order[j]
-                if dabs[i] > _REJECT * scale:
-                    keep[i] = 0.0
-                    n_rej += 1
+            scale = max(1.4826 * _median_of(dabs) * math.sqrt(n / (n - 3.0)), _SIGMA_FLOOR)
+        n_rej = _reject_largest(dabs, keep, _REJECT * scale)
         if n_rej > 0:
             if sigma <= 0.0:
                 ss = 0.0
@@ -380,10 +416,14 @@ def _fit_one(
         pe = wv[5]
         pe[0], pe[1], pe[2] = p[0], p[1], p[2]
         Ce = ws3[3]
-        Ce[:, :] = C
+        for a in range(3):  # (element by element: an array copy would need the NRT)
+            for b in range(3):
+                Ce[a, b] = C[a, b]
         if _box_tangents(pe, Ce, mdl, wv[6:8]) and _valid(pe[0], pe[1], pe[2], rho_min, use_sil):
             p[0], p[1], p[2] = pe[0], pe[1], pe[2]
-            C[:, :] = Ce
+            for a in range(3):
+                for b in range(3):
+                    C[a, b] = Ce[a, b]
     ss = 0.0
     n_in = 0.0
     for i in range(n):

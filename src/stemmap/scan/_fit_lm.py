@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
+from stemmap._leaf_jit import leaf_njit
 from stemmap.types import FloatArray
 
 _HUBER_K = 1.5  # Huber threshold in units of sigma (95 % efficiency under Gaussian noise)
@@ -22,7 +21,7 @@ _HUBER_K = 1.5  # Huber threshold in units of sigma (95 % efficiency under Gauss
 _MAX_ITER = 40
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _solve3(H: FloatArray, g: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     """Solve the 3x3 system H out = g by Cramer's rule; False if singular."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
@@ -43,7 +42,7 @@ def _solve3(H: FloatArray, g: FloatArray, out: FloatArray) -> bool:  # pragma: n
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     """Inverse of a 3x3 matrix by cofactors; False if singular."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
@@ -66,7 +65,7 @@ def _inv3(H: FloatArray, out: FloatArray) -> bool:  # pragma: no cover - numba
     return True
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _accumulate(
     acc: tuple[float, float, float, float, float, float, float, float, float],
     w: float,
@@ -94,7 +93,7 @@ def _accumulate(
     )
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _huber(e: float, robust: bool) -> tuple[float, float]:  # pragma: no cover - numba
     """(cost, IRLS weight) of a normalised residual under the Huber loss (or plain LS)."""
     ae = abs(e)
@@ -103,7 +102,7 @@ def _huber(e: float, robust: bool) -> tuple[float, float]:  # pragma: no cover -
     return 0.5 * e * e, 1.0
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _footprint_range(
     b: float, s0: float, r: float, foot: float, out: FloatArray
 ) -> bool:  # pragma: no cover - numba
@@ -167,7 +166,7 @@ def _footprint_range(
     return True
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@leaf_njit(inline="always")
 def _range_residual(
     i: int,
     uxs: FloatArray,
@@ -215,7 +214,7 @@ def _range_residual(
     return rho[i] - b, -ux, -uy, 0.0, m, -sg * uy, sg * ux, -1.0
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _cost_and_normal(
     lx: FloatArray,
     ly: FloatArray,
@@ -331,7 +330,7 @@ def _cost_and_normal(
     return cost
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _valid(
     cx: float, cy: float, r: float, rho_min: float, use_sil: bool
 ) -> bool:  # pragma: no cover - numba
@@ -345,7 +344,7 @@ def _valid(
     return dd > r * (1.0 + 1e-12) and dd > rho_min
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def _lm(
     lx: FloatArray,
     ly: FloatArray,

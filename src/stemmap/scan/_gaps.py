@@ -9,9 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from stemmap import _numba_cache
+from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.scan import _corners
 from stemmap.scan._corners import sagitta
 from stemmap.types import FloatArray
@@ -19,7 +19,7 @@ from stemmap.types import FloatArray
 __all__ = ["gap_cut_flags", "gap_cut_occlusion"]
 
 
-@njit(cache=True, error_model="numpy")
+@nrt_njit()
 def gap_cut_flags(
     px: FloatArray,
     py: FloatArray,
@@ -67,7 +67,7 @@ def gap_cut_flags(
     return any_cut
 
 
-@njit(cache=True, error_model="numpy")
+@leaf_njit()
 def gap_cut_occlusion(
     pr: FloatArray,
     st: np.ndarray,
