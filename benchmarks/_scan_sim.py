@@ -75,6 +75,8 @@ SCENARIO: dict[str, Any] = {
         "min_returns": 5,
         "min_dbh_m": 0.10,
         "max_range_m": 15.0,
+        # = max_range + gate, the domain score_scan_detections itself scores since Dec 5;
+        # kept for tree_errors, which lists pairs without the scorer
         "detections_scored_within_m": 15.5,
         "range_bins_m": [0.0, 5.0, 10.0, 15.0],
     },

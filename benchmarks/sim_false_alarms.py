@@ -27,6 +27,12 @@ in consecutive scans), and the precision under two other conventions: detections
 m only (the benchmark drive's cut, ``precision_within_15_5m``) and every detection on a tree
 correct (``precision_any_tree``).
 
+Every false alarm is classified, at any range: ``precision`` counts them all, the demo drive's
+convention until Dec 5. Since then ``stemmap.eval.score_scan_detections`` ignores an unmatched
+detection beyond ``max_range + gate`` (docs/algorithms/sim-eval.md, "One scored domain"), so
+what the demo reports is ``precision_within_15_5m``; on the benchmark drive (cut at 15.5 m
+before detection) the two are the same.
+
 Usage::
 
     python benchmarks/sim_false_alarms.py --seeds 1
