@@ -394,9 +394,11 @@ class DetectorConfig:
         range noise measured on the data (``fit_noise_floor``'s scale, not capped by the
         tests' sigma) and looks for a run only in a candidate whose own circle fails the
         upper 1 % chi-square test against that noise (the global test before the local
-        ones). On a scan with centimetres of noise and no estimate of its own the tests'
-        1 cm sigma made noisy end returns look like runs. False = every accepted candidate
-        is searched against the fit's noise.
+        ones); a trimmed end is also occluded where the return beyond it lies nearer than
+        the rest circle's tangent range though its beam misses the circle. On a scan with
+        centimetres of noise and no estimate of its own the tests' 1 cm sigma made noisy
+        end returns look like runs. False = every accepted candidate is searched against
+        the fit's noise. Numpy path.
     fit_noise_floor : float, metres, >= 0
         First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours") only: the circle
         fits weight the returns by the range noise measured on the data instead of the
