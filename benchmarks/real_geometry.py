@@ -26,6 +26,7 @@ Usage::
     python benchmarks/real_geometry.py --quick     # 0.5 deg nearest + averaging, 3 detectors
     python benchmarks/real_geometry.py             # every scanner model, preset and fit
     python benchmarks/real_geometry.py --loo --vantage 20   # leave one dataset out (LOO_GRID)
+    python benchmarks/real_geometry.py --loo --vantage 20 --fill outline  # unseen sides joined
     python benchmarks/real_geometry.py --grid-precision     # each setting's simulated precision
     python benchmarks/real_geometry.py --sim-precision --sim-seeds 1 2 3 4 5 6 7 8  # the default's
 
@@ -72,6 +73,7 @@ from _scan_sim import (  # shared with scan_detection.py
 )
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
+    FILLS,
     SLICES,
     RealSlice,
     load_slice,
@@ -325,6 +327,7 @@ def leave_one_out(
     sim_seeds: tuple[int, ...] = SIM_SEEDS,
     return_rule: ReturnRule | None = None,
     extra_rules: tuple[ReturnRule, ...] = (),
+    fill: str = "circle",
 ) -> dict[str, Any]:
     """Choose :data:`LOO_GRID` on all datasets but one (mean :func:`_objective` over the other
     datasets and the scanner configurations), report the choice on the held-out one. A dataset
@@ -341,7 +344,8 @@ def leave_one_out(
     settings (the grid before a round's additions: before and after from one run).
     ``extra_rules`` (Dec 4, ``--loo-rules``): the averaging configurations also under these
     return thresholds, each one more scanner configuration of the objective (named
-    ``<config>@<rule>``): a choice that holds across thresholds the owner's scanner may have."""
+    ``<config>@<rule>``): a choice that holds across thresholds the owner's scanner may have.
+    ``fill``: what stands in the reference trunks' unseen sectors (``load_slice``, ``--fill``)."""
     checked: dict[int, dict[str, Any]] = {}
 
     def admitted(g: int) -> bool:
@@ -354,7 +358,7 @@ def leave_one_out(
     per: dict[str, dict[int, dict[str, Any]]] = {}
     trusted: dict[str, tuple[bool, float]] = {}
     for i, name in enumerate(names):
-        sl = load_slice(ddir, name)
+        sl = load_slice(ddir, name, fill)
         if not sl.refs:
             continue
         trusted[name] = reference_trusted(sl)
@@ -616,6 +620,14 @@ def main(argv: list[str] | None = None) -> int:
         help="averaging scanner's sub-rays per footprint (default 25 since Dec 5, 5 before; the"
         " threshold moves in steps of 1/sub-rays)",
     )
+    ap.add_argument(
+        "--fill",
+        choices=FILLS,
+        default="circle",
+        help="what stands in a reference trunk's unseen sectors: the reference circle (default,"
+        " every round's benchmark) or the outline joined across them from the seen sectors'"
+        " median radii (Dec 5, 'aRchi tree 1: the reference settled')",
+    )
     args = ap.parse_args(argv)
     rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)
     if args.sim_precision:
@@ -663,12 +675,14 @@ def main(argv: list[str] | None = None) -> int:
             sim_seeds=tuple(args.sim_seeds),
             return_rule=rule,
             extra_rules=tuple(_parse_rule(r) for r in args.loo_rules),
+            fill=args.fill,
         )
         loo["scenario"] = {
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
             "averaging_return": rule.note(),
             "averaging_return_also": [_parse_rule(r).note() for r in args.loo_rules],
             "background": scene_note(args.background),
+            "unseen_sectors_filled_with": args.fill,
             "vantage_points_per_dataset": n_vantage,
             "grid": list(LOO_GRID),
             "outside_grid": list(LOO_EXTRA),
@@ -694,6 +708,7 @@ def main(argv: list[str] | None = None) -> int:
             "averaging_footprint_deg": 0.25,
             "averaging_return": rule.note(),
             "background": scene_note(args.background),
+            "unseen_sectors_filled_with": args.fill,
             "vantage_points_per_dataset": n_vantage,
             "vantage_range_m": [1.0, 15.0],
             "min_returns_visible": args.min_returns,
@@ -706,7 +721,7 @@ def main(argv: list[str] | None = None) -> int:
         "datasets": {},
     }
     for i, name in enumerate(names):
-        sl = load_slice(ddir, name)
+        sl = load_slice(ddir, name, args.fill)
         info: dict[str, Any] = {
             "file": SLICES[name].path,
             "slice_points": int(sl.xy.shape[0]),
