@@ -189,7 +189,7 @@ def _ransac_circle(
     triples (Fischler & Bolles 1981, scored by angular coverage): the trunk among branches.
     Scoring by the inlier count alone (before Dec 5) let a larger circle through one side and
     the two ends of a lobed, sparse ring seen over 260 degrees win (aRchi tree 1: 63.7 cm over
-    200 degrees in 13 of 20 seeds, against 54-57 cm over 260-280 degrees); a trunk's ring is the
+    200 degrees in 14 of 20 seeds, against 54-57 cm over 260-280 degrees); a trunk's ring is the
     circle seen all round."""
     best = np.ones(pts.shape[0], dtype=bool)
     best_key = (0, 0)
@@ -386,7 +386,7 @@ def _stem_disc(xy: FloatArray, base: FloatArray, radius: float = 0.5) -> NDArray
     most three times), the disc about the ring fit of the set (:func:`ring_reference`). The
     base alone is off the axis where the lowest metre is seen from one side or flares: aRchi
     tree 1's base lies 21 cm west of its breast-height axis, and the 0.5 m disc about it cut
-    the 6 east-most stem points (0.52-0.60 m from it), which then stood 8-15 cm outside the
+    the 6 east-most stem points (0.52-0.60 m from it), which then stood 7-15 cm outside the
     filled ring as foreign points (Dec 5, "aRchi tree 1: the reference settled")."""
     near = np.hypot(*(xy - base).T) <= radius
     for _ in range(3):
