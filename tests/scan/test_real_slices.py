@@ -581,3 +581,23 @@ def test_load_slice_fill_outline_changes_only_the_fill():
     c, r = a.centers[0], 0.5 * a.diameters[0]
     off = np.hypot(*(b.xy[n_own:] - c).T) - r
     assert 0.02 < off.max() < 0.3 * r
+
+
+def test_fill_returns_counts_the_beams_that_see_the_filled_side():
+    """A 30 cm trunk seen over its lower half, the upper half filled on its circle: a scan from
+    above sees only fill, one from below none (``real_geometry.py --max-fill-returns``)."""
+    from stemmap.eval.real_slices import RealSlice, _fill_unseen_sectors
+
+    rg = _real_geometry_bench()
+    phi = np.linspace(-math.pi + 0.01, -0.01, 200)
+    ring = 0.15 * np.column_stack((np.cos(phi), np.sin(phi)))
+    ref = {"x": 0.0, "y": 0.0, "diameter": 0.3, "n_points": ring.shape[0]}
+    fill = _fill_unseen_sectors(ring, ref)
+    xy = np.vstack((ring, fill))
+    sl = RealSlice("half", xy, np.zeros(xy.shape[0], dtype=np.int64), [ref], [])
+    vp = np.array([[0.0, 3.0], [0.0, -3.0]])
+    ranges, hit = virtual_scans(xy, sl.labels, vp, resolution_deg=0.5, centers=sl.centers)
+    got = rg.fill_returns(sl, vp, ranges, hit)
+    n = (hit == 0).sum(axis=1)
+    assert n.min() >= 10
+    assert got[0, 0] == n[0] and got[1, 0] == 0
