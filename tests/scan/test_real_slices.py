@@ -448,9 +448,15 @@ def test_simulated_precision_seeds_reports_every_seed_mean_min_and_failing(monke
     assert sim.simulated_precision_seeds({}, [2])["admitted"] is False
 
 
-def _sim_rows(*pairs):
+def _sim_rows(*pairs, recall=(0.98, 0.98), dbh=1.1):
+    """Rows of :func:`_scan_sim.simulated_precision` with the given (benchmark, demo)
+    precisions, and recall / DBH RMSE at <= 5 m that pass unless given."""
     return [
-        {"seed": i + 1, "benchmark": {"precision": b}, "demo": {"precision": d}}
+        {
+            "seed": i + 1,
+            "benchmark": {"precision": b, "recall": recall[0], "dbh_rmse_cm_0_5": dbh},
+            "demo": {"precision": d, "recall": recall[1]},
+        }
         for i, (b, d) in enumerate(pairs)
     ]
 
@@ -474,6 +480,28 @@ def test_admission_is_the_mean_over_seeds_on_each_drive():
     assert admit(_sim_rows((0.95, 0.9499))) is False
     with pytest.raises(ValueError, match="no seeds"):
         admit([])
+
+
+def test_admission_holds_every_simulated_target_on_the_mean():
+    """Dec 5: a setting is admitted only if it keeps issue 11's other simulated targets too,
+    on the mean over seeds: recall >= 0.95 on each drive, DBH RMSE <= 1.2 cm at <= 5 m on the
+    benchmark drive (precision alone admitted the "edge any" points, 1.37-1.84 cm)."""
+    import sys
+
+    _real_geometry_bench()
+    admit = sys.modules["_scan_sim"].admitted_over_seeds
+    ok = ((0.96, 0.97), (0.96, 0.97))
+    assert admit(_sim_rows(*ok)) is True
+    assert admit(_sim_rows(*ok, dbh=1.2)) is True  # inclusive
+    assert admit(_sim_rows(*ok, dbh=1.543)) is False
+    assert admit(_sim_rows(*ok, recall=(0.94, 0.99))) is False
+    assert admit(_sim_rows(*ok, recall=(0.99, 0.9499))) is False
+    # a seed with no pair at <= 5 m: the DBH target cannot be shown, not admitted
+    assert admit(_sim_rows(*ok, dbh=None)) is False
+    # on the mean: one seed above 1.2 cm does not decide it
+    rows = _sim_rows(*ok)
+    rows[0]["benchmark"]["dbh_rmse_cm_0_5"] = 1.25
+    assert admit(rows) is True
 
 
 def test_loo_admits_lazily_best_score_first():
