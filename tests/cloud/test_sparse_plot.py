@@ -94,7 +94,10 @@ def test_a_tighter_refit_stem_is_measured_on_thin_slices(datasets_dir: Path) -> 
     (docs/algorithms/cloud.md "Single trees: the annulus about a found stem"); before, only
     first-round stems were: 9.32 cm on the thick slices, 8.50 cm on the thin ones, against a
     full ring of 8.51 cm. Asserted: within 0.3 cm of the ring (a quarter of the thick
-    error), and the thick measurement > 0.5 cm off."""
+    error), and no worse than the thick measurement. (Since Dec 5 the RANSAC draws are those
+    of the canonical point order, docs/algorithms/cloud.md "Point order": the thick slices
+    give 0.14 cm off, the thin ones 0.01 cm; the > 0.5 cm thick error was a draw of the
+    file's order.)"""
     from _cloud_refs import fixed_references, load_seeds, reference_of_each
 
     xyz = read_cloud(datasets_dir / "treels/pine_plot.laz").xyz
@@ -109,8 +112,9 @@ def test_a_tighter_refit_stem_is_measured_on_thin_slices(datasets_dir: Path) -> 
         return abs(float(d))
 
     assert refs[4] is not None and refs[4].full
-    assert error_at_stem_4(StemConfig()) < 0.003
-    assert error_at_stem_4(StemConfig(thin_remeasure=False)) > 0.005
+    on = error_at_stem_4(StemConfig())
+    assert on < 0.003
+    assert error_at_stem_4(StemConfig(thin_remeasure=False)) >= on
 
 
 def test_pooled_slices_never_exceed_the_band() -> None:
