@@ -357,6 +357,11 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # nearest-return rows are grid 65's, the averaging rows and the simulator grid 59's); the
     # stemmap preset since Dec 5
     _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, fit_noise_floor=0.003),
+    # Dec 5 ("Runs by data snooping"), grid 63 with the run test as data snooping
+    # (stub_runs_snoop: the measured noise, uncapped; only candidates whose own circle fails
+    # the chi-square test against it; the trimmed end occluded where the return beyond it is
+    # nearer than the circle's tangent range; numpy path: the nearest-return rows)
+    _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **_RUNS_63, stub_runs_snoop=True),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
