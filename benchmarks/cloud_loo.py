@@ -72,6 +72,7 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("<=5 slices", {"thin_remeasure_max_slices": 5}),
     ),
     "core_refits": (("off", {"core_refits": False}), ("on", {"core_refits": True})),
+    "ransac_lo": (("off", {"ransac_lo": False}), ("on", {"ransac_lo": True})),
     "single_tree_ladder": (
         ("off", {"single_tree_ladder": False}),
         ("on", {"single_tree_ladder": True}),

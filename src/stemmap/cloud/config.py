@@ -85,6 +85,10 @@ class StemConfig:
         refitted to the stem inside it (a trunk is opaque;
         :func:`~stemmap.cloud.slicefit._opaque_core_refits`): a noisy spruce's circles through
         bark and branch stubs
+    ransac_lo : bool -- the slice fits' RANSAC start scores circles by MSAC and locally
+        optimises the best hypotheses of every batch (LO-RANSAC;
+        :func:`~stemmap.cloud.slicefit._ransac_circle`): the start no longer depends on which
+        minimal samples were drawn (docs/algorithms/cloud.md, "RANSAC draws")
     single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
         noise floor is its own), the stem is chosen among the first round's and the tighter
         refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
@@ -144,6 +148,7 @@ class StemConfig:
     pooled_fallback: bool = True
     tighter_refits: bool = True
     core_refits: bool = True
+    ransac_lo: bool = True
     single_tree_ladder: bool = True
     continues_above: bool = True
     thick_dbh_slice: bool = True

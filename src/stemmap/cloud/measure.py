@@ -137,6 +137,7 @@ def _fit_slices(
         ransac_tol=_ransac_tolerance(spacing) if ransac_tol is None else ransac_tol,
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
         ray_origins=None if origins is None else origins[fitmask],
+        ransac_lo=cfg.ransac_lo,
     )
     if cfg.core_refits:
         (centers, radii, rms, ok, nin), n_core = _opaque_core_refits(
@@ -147,6 +148,7 @@ def _fit_slices(
             (cfg.min_diameter / 2, cfg.max_diameter / 2),
             cfg.min_slice_points,
             None if origins is None else origins[fitmask],
+            ransac_lo=cfg.ransac_lo,
         )
         if n_core:
             log.debug("%d slice fit(s) refitted to the stem inside them", n_core)

@@ -278,6 +278,7 @@ def _annulus_fit(
         cfg.fit_method,
         ransac_tol=max(0.5 * nf, 0.005),
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
+        ransac_lo=cfg.ransac_lo,
     )
     if not ok[0] or nin[0] < cfg.min_slice_points:
         return None
