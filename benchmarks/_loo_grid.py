@@ -348,6 +348,15 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **{**_RUNS_63, "fit_noise_floor": 0.005}),
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, fit_noise_floor=0.003),
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, stub_sigmas=2.0, stub_runs=True),
+    # Dec 5 ("Where textbook Kasa finds what the default misses"), grids 67-69 on grid 59 (the
+    # preset): a significant bend towards the sensor is never straight (straight_curvature;
+    # numpy path), the batch's noise estimate where it reads >= 2.5 sigma (scan_noise_batch,
+    # the largest class of those views: RMS rejections at 3 cm of noise), and both
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, straight_curvature=True),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5, straight_curvature=True
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
