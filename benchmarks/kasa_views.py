@@ -48,19 +48,11 @@ from typing import Any
 import numpy as np
 
 from _loo_grid import LOO_GRID
-from _real_scanning import (
-    FULL_SCANNERS,
-    TEXTBOOK,
-    ReturnRule,
-    greedy_match,
-    matched,
-    scene_scans,
-    vantage_points,
-)
+from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
 from real_geometry import DIAMETER_CLASSES, RANGE_BANDS, _in_gate
 from real_geometry_diagnose import _over
 from stemmap.datasets import find_datasets_dir
-from stemmap.eval.real_slices import SLICES, RealSlice, load_slice, noisy_batch
+from stemmap.eval.real_slices import SLICES, RealSlice
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 #: The issue's DBH RMSE target (cm): a view measured within it is "measured well".
@@ -170,32 +162,18 @@ def run(
     seed: int,
     tol: float = TOL_CM,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Every slice x :data:`FULL_SCANNERS` configuration: per configuration counts, and every
-    loss view tagged with its dataset and configuration."""
+    """Every slice x scanner configuration (:func:`_real_scanning.scene_batches`): per
+    configuration counts, and every loss view tagged with its dataset and configuration."""
     configs: list[dict[str, Any]] = []
     views: list[dict[str, Any]] = []
-    rule = ReturnRule()
-    for i, name in enumerate(SLICES):
-        if name not in names:
-            continue
-        sl = load_slice(ddir, name)
-        if not sl.refs:
-            continue
-        rng = np.random.default_rng(seed + i)
-        vp = vantage_points(sl, n_vantage, rng)
-        geometry: dict[tuple[str, float], tuple[np.ndarray, np.ndarray]] = {}
-        for model, res, noise in FULL_SCANNERS:
-            if (model, res) not in geometry:
-                geometry[(model, res)] = scene_scans(
-                    sl, vp, model, res, "none", seed + i, return_rule=rule
-                )
-            ranges0, hit = geometry[(model, res)]
-            batch = noisy_batch(ranges0, res, noise, rng)
-            counts, losses = compare_views(sl, vp, hit, batch, model, res, cfg, tol=tol)
-            tag = {"dataset": name, "config": f"{model}_{res:g}deg_noise{100 * noise:g}cm"}
-            tag.update(model=model, step_deg=res, noise_cm=round(100 * noise, 3))
-            configs.append({**tag, **counts})
-            views += [{**tag, **v} for v in losses]
+    for sc in scene_batches(ddir, n_vantage, seed, return_rule=ReturnRule(), names=names):
+        counts, losses = compare_views(
+            sc.sl, sc.vp, sc.hit, sc.batch, sc.model, sc.res, cfg, tol=tol
+        )
+        tag = {"dataset": sc.sl.name, "config": sc.config, "model": sc.model}
+        tag.update(step_deg=sc.res, noise_cm=round(100 * sc.noise, 3))
+        configs.append({**tag, **counts})
+        views += [{**tag, **v} for v in losses]
     return configs, views
 
 

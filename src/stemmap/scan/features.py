@@ -218,6 +218,25 @@ def cluster_curvature(width: ArrayLike, depth: ArrayLike) -> FloatArray:
     return out
 
 
+def _centred_moments(
+    segs: Segments,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Every segment's mean return (mx, my), its returns about it (qx, qy, per return) and
+    their second moments summed per segment (sxx, syy, sxy); centred first, which is
+    numerically safe far from the sensor."""
+    p = segs.points
+    n = segs.counts.astype(np.float64)
+    lab = segs.labels
+    mx = segment_sum(p.x, segs) / n
+    my = segment_sum(p.y, segs) / n
+    qx = p.x - mx[lab]
+    qy = p.y - my[lab]
+    sxx = segment_sum(qx * qx, segs)
+    syy = segment_sum(qy * qy, segs)
+    sxy = segment_sum(qx * qy, segs)
+    return mx, my, qx, qy, sxx, syy, sxy
+
+
 def line_fit_rms(segs: Segments) -> FloatArray:
     """RMS orthogonal distance of every segment's returns to its best straight line (PCA).
 
@@ -225,20 +244,11 @@ def line_fit_rms(segs: Segments) -> FloatArray:
     -------
     ndarray of shape (K,), metres (0 for segments of 1-2 returns).
     """
-    k = len(segs)
-    if k == 0:
+    if len(segs) == 0:
         return np.zeros(0)
-    p = segs.points
     n = segs.counts.astype(np.float64)
-    lab = segs.labels
-    # centre per segment first (numerically safe far from the sensor)
-    mx = segment_sum(p.x, segs) / n
-    my = segment_sum(p.y, segs) / n
-    qx = p.x - mx[lab]
-    qy = p.y - my[lab]
-    sxx = segment_sum(qx * qx, segs) / n
-    syy = segment_sum(qy * qy, segs) / n
-    sxy = segment_sum(qx * qy, segs) / n
+    _, _, _, _, sxx, syy, sxy = _centred_moments(segs)
+    sxx, syy, sxy = sxx / n, syy / n, sxy / n
     tr = sxx + syy
     det = sxx * syy - sxy * sxy
     lam_min = tr / 2.0 - np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
@@ -269,19 +279,11 @@ def line_bulge_gain(segs: Segments) -> FloatArray:
     -------
     ndarray of shape (K,), m^2, signed (0 for segments of fewer than 4 returns).
     """
-    k = len(segs)
-    if k == 0:
+    if len(segs) == 0:
         return np.zeros(0)
-    p = segs.points
     n = segs.counts.astype(np.float64)
     lab = segs.labels
-    mx = segment_sum(p.x, segs) / n
-    my = segment_sum(p.y, segs) / n
-    qx = p.x - mx[lab]
-    qy = p.y - my[lab]
-    sxx = segment_sum(qx * qx, segs)
-    syy = segment_sum(qy * qy, segs)
-    sxy = segment_sum(qx * qy, segs)
+    mx, my, qx, qy, sxx, syy, sxy = _centred_moments(segs)
     phi = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the best line
     ux, uy = np.cos(phi), np.sin(phi)
     # the normal, pointed at the sensor (the frame's origin)
