@@ -29,7 +29,7 @@ Usage::
 
     python benchmarks/kasa_views.py > views.json          # the preset
     python benchmarks/kasa_views.py --grid 59 --set '{"straight_curvature": true}'
-    python benchmarks/kasa_views.py --grid 69 --only lidr_dbh
+    python benchmarks/kasa_views.py --grid 70 --only lidr_dbh
 
 One JSON object on stdout: ``classes`` (loss count per class), the same by dataset, scanner
 model, range band and diameter class, ``configs`` (per dataset x configuration) and, with
