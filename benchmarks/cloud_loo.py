@@ -8,7 +8,9 @@ for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder``
 10 %), ``continues_above`` (treels pine_plot's non-stems ending inside the band) and
 ``axis_fallback`` (pine_plot's sparse stems at 20 / 10 %: one shared-axis fit over the band,
 or over 0.5-3.0 m with ``axis_reach``; default off) and ``thick_dbh_slice`` (pine_plot's DBH
-at 20 / 10 %: a sparse plot's radius from the thick slice at breast height). Here
+at 20 / 10 %: a sparse plot's radius from the thick slice at breast height), and
+``ransac_lo`` (Dec 5: the slice fits' locally optimised RANSAC start; spruce under re-exports,
+docs "RANSAC draws"). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
