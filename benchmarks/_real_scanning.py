@@ -33,6 +33,7 @@ __all__ = [
     "QUICK_SCANNERS",
     "TEXTBOOK",
     "ReturnRule",
+    "dataset_seed",
     "error_stats",
     "greedy_match",
     "matched",
@@ -215,6 +216,16 @@ def scene_note(background: str) -> str:
     )
 
 
+def dataset_seed(seed: int, name: str) -> int:
+    """The seed of slice ``name``'s random stream (vantage points, then the noise draws, and
+    its scene): ``seed`` + the slice's position in :data:`~stemmap.eval.real_slices.SLICES`,
+    what a run over every slice gives it, so a run over some of them (``--only``) draws the same
+    for each."""
+    if name not in SLICES:
+        raise KeyError(f"unknown slice {name!r}; choose from {', '.join(SLICES)}")
+    return seed + list(SLICES).index(name)
+
+
 def slice_scan_batches(
     ddir: Path,
     n_vantage: int,
@@ -228,17 +239,18 @@ def slice_scan_batches(
     configuration name ``<model>_<step>deg_noise<cm>cm``, noisy ranges (V, N)), with the
     vantage points, seeds and noise draws of ``real_geometry.run_dataset`` (``seed`` + the
     slice's index; vantage points first, then one noise draw per configuration in order)."""
-    for i, name in enumerate(SLICES):
+    for name in SLICES:
         sl = load_slice(ddir, name)
         if not sl.refs:
             continue
-        rng = np.random.default_rng(seed + i)
+        ds = dataset_seed(seed, name)
+        rng = np.random.default_rng(ds)
         vp = vantage_points(sl, n_vantage, rng)
         geometry: dict[tuple[str, float], np.ndarray] = {}
         for model, res, noise in FULL_SCANNERS:
             if (model, res) not in geometry:
                 geometry[(model, res)] = scene_scans(
-                    sl, vp, model, res, background, seed + i, mount, relief_std, relief_corr
+                    sl, vp, model, res, background, ds, mount, relief_std, relief_corr
                 )[0]
             r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
             yield name, f"{model}_{res:g}deg_noise{100 * noise:g}cm", r
