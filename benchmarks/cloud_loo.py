@@ -1,13 +1,14 @@
 """Benchmark: leave-one-dataset-out check of the cloud defaults chosen on real clouds (issue 11).
 
-Six :class:`~stemmap.cloud.config.StemConfig` options were added after failures seen on the
+Seven :class:`~stemmap.cloud.config.StemConfig` options were added after failures seen on the
 real clouds of ../shared/datasets and are reported on the same clouds
 (docs/algorithms/cloud.md): ``tighter_refits`` (treels spruce at 50 %), ``thin_remeasure``
 with its bound ``thin_remeasure_max_slices`` (treels pine_plot at 50 / 20 / 10 %, archi Tree_1
 for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder`` (spruce at
 10 %), ``continues_above`` (treels pine_plot's non-stems ending inside the band) and
 ``axis_fallback`` (pine_plot's sparse stems at 20 / 10 %: one shared-axis fit over the band,
-or over 0.5-3.0 m with ``axis_reach``; default off). Here
+or over 0.5-3.0 m with ``axis_reach``; default off) and ``thick_dbh_slice`` (pine_plot's DBH
+at 20 / 10 %: a sparse plot's radius from the thick slice at breast height). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -39,7 +40,8 @@ held-out cloud(s) the cells passed and the ring RMSE of that value against the d
 
 Prints a markdown table; with --json ONE JSON object. Usage:
 python benchmarks/cloud_loo.py [--json] [--quick] [--seeds 0,1,2,3,4] [--clouds a,b]
-[--transforms t1,t2]  (full run: 251 cells, ~210 s CPU)
+[--transforms t1,t2] [--options o1,o2]  (full run: 251 cells, ~210 s CPU; ``--options``
+runs only the named options' values, ~60 s CPU for one on/off option)
 """
 
 from __future__ import annotations
@@ -82,6 +84,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"axis_fallback": False}),
         ("band", {"axis_fallback": True, "axis_reach": False}),
         ("0.5-3 m", {"axis_fallback": True}),
+    ),
+    "thick_dbh_slice": (
+        ("off", {"thick_dbh_slice": False}),
+        ("on", {"thick_dbh_slice": True}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
@@ -272,10 +278,16 @@ def _r(v: float | None, nd: int = 2) -> float | None:
 
 
 def run_cells(
-    root: Path, clouds: Sequence[str], transforms: Sequence[str], seeds: Sequence[int]
+    root: Path,
+    clouds: Sequence[str],
+    transforms: Sequence[str],
+    seeds: Sequence[int],
+    options: Sequence[str] | None = None,
 ) -> tuple[list[Cell], dict[str, float]]:
-    """Every cell under every distinct config of :data:`OPTIONS`; CPU seconds per config."""
-    configs = {config_key(ov): replace(StemConfig(), **ov) for v in OPTIONS.values() for _, ov in v}
+    """Every cell under every distinct config of :data:`OPTIONS` (or of ``options`` only);
+    CPU seconds per config."""
+    chosen = [OPTIONS[o] for o in (options if options is not None else OPTIONS)]
+    configs = {config_key(ov): replace(StemConfig(), **ov) for v in chosen for _, ov in v}
     cpu = dict.fromkeys(configs, 0.0)
     cells: list[Cell] = []
     with tempfile.TemporaryDirectory() as td:
@@ -332,6 +344,11 @@ def main() -> None:
     ap.add_argument("--clouds", default=",".join(CLOUDS))
     ap.add_argument("--transforms", default=",".join(t for t in TRANSFORMS if t not in SKIP))
     ap.add_argument("--seeds", default="0,1,2,3,4", help="seeds of the random transforms")
+    ap.add_argument(
+        "--options",
+        default=",".join(OPTIONS),
+        help="the options to check (default: all; each option's folds read only its own values)",
+    )
     args = ap.parse_args()
     root = find_datasets_dir()
     if root is None:
@@ -341,8 +358,12 @@ def main() -> None:
     seeds: Sequence[int] = [int(s) for s in args.seeds.split(",")]
     if args.quick:
         clouds, transforms, seeds = QUICK["clouds"], QUICK["transforms"], QUICK["seeds"]
+    options: Sequence[str] = args.options.split(",")
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise SystemExit(f"error: unknown option(s) {unknown}; known: {sorted(OPTIONS)}")
     t0 = time.process_time()
-    cells, cpu = run_cells(root, clouds, transforms, seeds)
+    cells, cpu = run_cells(root, clouds, transforms, seeds, options)
     out: dict[str, Any] = {
         "benchmark": "cloud_loo",
         "note": "StemConfig options chosen on real clouds, each value (others at default) on "
@@ -363,7 +384,7 @@ def main() -> None:
                 "per_cloud": per_cloud(cells, opt),
                 "differing_cells": differing(cells, opt),
             }
-            for opt in OPTIONS
+            for opt in options
         },
     }
     print(json.dumps(out, indent=1) if args.json else table(out))

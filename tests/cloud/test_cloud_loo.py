@@ -83,6 +83,7 @@ def test_each_option_lists_its_current_default() -> None:
         "single_tree_ladder": "on",
         "continues_above": "on",
         "axis_fallback": "off",
+        "thick_dbh_slice": "on",
     }
     # every value is a distinct config; the off values of options that are on by default
     # really switch something off (axis_fallback is off by default: its off is the default)

@@ -94,6 +94,13 @@ class StemConfig:
         the band; a shrub, a sapling's clump or stacked debris ends:
         :func:`~stemmap.cloud.slicestem._ends_in_band`); the pooled fit has its own,
         stricter top-slice test
+    thick_dbh_slice : bool -- in a plot (noise floor pooled over its stems) whose band was
+        thickened to at most ``thin_remeasure_max_slices`` slices, a stem measured on the
+        thick slices takes its radius from the kept slice that holds the measurement height,
+        not from the Theil-Sen line through three or four radii, whose outer slices span the
+        root flare (0.8-1.2 m) and the crown base (1.6-2.0 m); the centre, lean and taper test
+        stay the line's (:func:`~stemmap.cloud.slicestem._stem_at`; docs/algorithms/cloud.md
+        "Sparse plots: DBH from the slice at breast height")
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -139,6 +146,7 @@ class StemConfig:
     core_refits: bool = True
     single_tree_ladder: bool = True
     continues_above: bool = True
+    thick_dbh_slice: bool = True
     axis_fallback: bool = False
     axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY

@@ -431,10 +431,19 @@ def _stems_from_band(
     # the default thin slices, when the band's were thickened for a sparse cloud; a stem
     # found on at most thin_remeasure_max_slices (4) thick slices is measured again on them
     thickened = cfg_thin.slice_thickness < cfg.slice_thickness
-    remeasure = thickened and cfg.thin_remeasure and ns <= cfg.thin_remeasure_max_slices
+    few_thick = thickened and ns <= cfg.thin_remeasure_max_slices
+    # a slice's own radius at breast height is trusted where the residual test can reject a
+    # slice fitted to clutter: with a noise floor pooled over several stems (_stem_at)
+    ctx = replace(ctx, few_thick=few_thick and not ctx.own_floor)
+    remeasure = few_thick and cfg.thin_remeasure
     ch0 = np.asarray(cfg_thin.slice_centers, dtype=np.float64)
     ctx0 = (
-        replace(ctx, centers_h=ch0, band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness))
+        replace(
+            ctx,
+            centers_h=ch0,
+            band_sl=_slice_of(band.h, ch0, cfg_thin.slice_thickness),
+            few_thick=False,
+        )
         if thickened
         else ctx
     )
