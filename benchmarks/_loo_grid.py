@@ -63,6 +63,9 @@ def _setting(
         # since Dec 5 (grid 59); a grid point without it means off, as before that day
         "step_split": False,
         "step_noise_pool": False,
+        # Dec 5: first-echo fits weighted by the measured noise, the preset's since Dec 5
+        # (grid 67); a grid point without it means off, as before (grids 63-65 name it)
+        "fit_noise_floor": 0.0,
         **extra,
     }
 
@@ -70,7 +73,7 @@ def _setting(
 #: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
 #: preset since the fifteenth round: these and the arcs of grid 35; since the sixteenth: grid
 #: 36, which adds arc_short_steps; since Dec 5: grid 59, which adds the step split,
-#: :data:`_STEP_BATCH_59`).
+#: :data:`_STEP_BATCH_59`, then grid 67, which adds ``fit_noise_floor`` 3 mm).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
@@ -115,7 +118,8 @@ _STEP_BATCH_59: dict[str, Any] = {
     "step_split": True,
     "step_noise_pool": "batch",
 }
-#: Grid 60 (the LOO's choice since Dec 5) on top of _DEFAULT_11 and _ARCS_35.
+#: Grid 60 (the LOO's choice since Dec 5) on top of _DEFAULT_11 and _ARCS_35. Grid 67 (= 59 +
+#: ``fit_noise_floor`` 3 mm) is the ``stemmap`` preset since Dec 5, after grid 59.
 _GRID_60: dict[str, Any] = {**_STEP_BATCH_59, "edge_hit_min": 0.0, "edge_hit_max": 0.0}
 #: Dec 5, "lidR view by view": the fit's measured noise and the stub test by runs.
 _RUNS_63: dict[str, Any] = {"fit_noise_floor": 0.003, "stub_sigmas": 2.0, "stub_runs": True}
@@ -348,6 +352,16 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **{**_RUNS_63, "fit_noise_floor": 0.005}),
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, fit_noise_floor=0.003),
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, stub_sigmas=2.0, stub_runs=True),
+    # Dec 5 ("The fit's measured noise, the default"), grid 65 without the averaging "edge
+    # any": grid 59 + fit_noise_floor 3 mm (first-echo fits only, numpy path: the
+    # nearest-return rows are grid 65's, the averaging rows and the simulator grid 59's); the
+    # stemmap preset since Dec 5
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, fit_noise_floor=0.003),
+    # Dec 5 ("Runs by data snooping"), grid 63 with the run test as data snooping
+    # (stub_runs_snoop: the measured noise, uncapped; only candidates whose own circle fails
+    # the chi-square test against it; the trimmed end occluded where the return beyond it is
+    # nearer than the circle's tangent range; numpy path: the nearest-return rows)
+    _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **_RUNS_63, stub_runs_snoop=True),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -71,10 +71,10 @@ from stemmap.scan.features import footprint_correct
 from stemmap.scan.plausibility import REASONS, rms_limit, robust_residual_scale
 from stemmap.types import ScanBatch, StemObservations
 
-#: The default's grid setting (``LOO_GRID[59]`` equals the ``stemmap`` preset since Dec 5; the
-#: study's numbers in scan-detection.md were measured with grid 36, the preset before the step
-#: split).
-DEFAULT_GRID = 59
+#: The default's grid setting (``LOO_GRID[67]`` equals the ``stemmap`` preset since Dec 5, grid
+#: 59 before ``fit_noise_floor``; the study's numbers in scan-detection.md were measured with
+#: grid 36, the preset before the step split).
+DEFAULT_GRID = 67
 
 #: Fit tests whose rejection the model may overrule (rough / polygonal bark fails the RMS
 #: test; a one-sided or flattened arc the radius / silhouette-width ratio).

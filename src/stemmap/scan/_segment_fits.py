@@ -198,7 +198,9 @@ class _Fitted(NamedTuple):
     own_noise: FloatArray | None = None  # the relaxed RMS test's noise (rms_noise_from_fit)
 
 
-def fit_sigma(floor: float, segs: Segments, sigma: FloatArray) -> FloatArray | None:
+def fit_sigma(
+    floor: float, segs: Segments, sigma: FloatArray, cap: bool = True
+) -> FloatArray | None:
     """``fit_noise_floor``: the range noise the fits of ``segs`` weight the returns by (ours,
     issue 11, Dec 5), None when the option is off (the fits use ``sigma``).
 
@@ -210,7 +212,8 @@ def fit_sigma(floor: float, segs: Segments, sigma: FloatArray) -> FloatArray | N
     deviation of step / sqrt(12). On a near stem that is millimetres; on a 4-return arc far
     away, centimetres (there the fit keeps ``sigma``). The median, not the RMS: the steep
     silhouette steps are two of many on a long arc (measured: docs/algorithms/
-    scan-detection.md, "lidR view by view")."""
+    scan-detection.md, "lidR view by view"). ``cap`` False: not capped by ``sigma`` (the
+    measured scale itself, for ``stub_runs_snoop``)."""
     noise = segs.points.fit_noise
     if noise is None:
         return None
@@ -229,8 +232,8 @@ def fit_sigma(floor: float, segs: Segments, sigma: FloatArray) -> FloatArray | N
         mid_hi = first[has] + cnt[has] // 2
         med[has] = 0.5 * (step[mid_lo] + step[mid_hi])
     scale = np.sqrt(noise[segs.scan] ** 2 + med * med / 12.0)
-    out: FloatArray = np.minimum(sigma, np.maximum(floor, scale))
-    return out
+    out: FloatArray = np.maximum(floor, scale)
+    return np.minimum(sigma, out) if cap else out
 
 
 def _output_columns(

@@ -388,6 +388,17 @@ class DetectorConfig:
         ``stub_sigmas`` deletion deviations, goes; the
         new end is occluded where the run lay in front of the stem. A branch leaving the
         flank over several beams. Numpy path. False = one return at a time.
+    stub_runs_snoop : bool
+        With ``stub_runs``: the run test as data snooping (Baarda 1968; ours, issue 11, Dec
+        5, "Runs by data snooping"; :func:`~stemmap.scan._stub_runs.misfit`): it reads the
+        range noise measured on the data (``fit_noise_floor``'s scale, not capped by the
+        tests' sigma) and looks for a run only in a candidate whose own circle fails the
+        upper 1 % chi-square test against that noise (the global test before the local
+        ones); a trimmed end is also occluded where the return beyond it lies nearer than
+        the rest circle's tangent range though its beam misses the circle. On a scan with
+        centimetres of noise and no estimate of its own the tests' 1 cm sigma made noisy
+        end returns look like runs. False = every accepted candidate is searched against
+        the fit's noise. Numpy path.
     fit_noise_floor : float, metres, >= 0
         First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours") only: the circle
         fits weight the returns by the range noise measured on the data instead of the
@@ -535,6 +546,7 @@ class DetectorConfig:
     edge_protrusion: float = 0.0
     fit_noise_floor: float = 0.0
     stub_runs: bool = False
+    stub_runs_snoop: bool = False
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -655,6 +667,8 @@ class DetectorConfig:
             raise bad("stub_sigmas", self.stub_sigmas, "it must be >= 0 (sigmas; inf: off)")
         if not (self.edge_protrusion >= 0 and math.isfinite(self.edge_protrusion)):
             raise bad("edge_protrusion", self.edge_protrusion, "it must be >= 0 m and finite")
+        if self.stub_runs_snoop and not self.stub_runs:
+            raise bad("stub_runs_snoop", self.stub_runs_snoop, "it needs stub_runs")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):
             raise bad("fit_noise_floor", self.fit_noise_floor, "it must be >= 0 m and finite")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
