@@ -39,7 +39,7 @@ angular radius) of the trunk's bearing and within the trunk diameter plus the ca
 width of its range. Next to it, *perfect segmentation*: the same detector (and the textbook
 Kasa detector) on scans that keep only the trunk's own beams (every other beam masked):
 what is left when nothing is merged. And per reference trunk its quality: ring RMS, coverage,
-sectors filled with the reference circle itself, and the spread of the reference diameter
+sectors filled (the outline joined across them), and the spread of the reference diameter
 when each 30-degree sector of the ring is left out in turn (jackknife).
 
 Usage::

@@ -291,7 +291,11 @@ def test_every_real_slice_is_centred_labelled_and_filled_as_documented():
             assert float(np.sqrt(np.mean(res**2))) == pytest.approx(r["ring_rms_m"], rel=1e-9)
             assert r["filled_sectors_deg"] == 360.0 - r["coverage_deg"]
             assert (fill.shape[0] > 0) == (r["coverage_deg"] < 360.0), name
+            # the fill lies on the circle (the default fill), in the ring's unseen sectors only
             np.testing.assert_allclose(np.hypot(*(fill - c).T), 0.5 * r["diameter"], atol=1e-9)
+            seen = np.unique(np.floor(np.degrees(np.arctan2(*(ring - c).T[::-1])) + 180) // 10)
+            got = np.unique(np.floor(np.degrees(np.arctan2(*(fill - c).T[::-1])) + 180) // 10)
+            assert not np.intersect1d(seen % 36, got % 36).size, name
             n_fill += fill.shape[0]
         own = sl.xy[: n - n_fill]
         np.testing.assert_allclose(0.5 * (own.min(axis=0) + own.max(axis=0)), 0.0, atol=1e-9)
@@ -444,9 +448,15 @@ def test_simulated_precision_seeds_reports_every_seed_mean_min_and_failing(monke
     assert sim.simulated_precision_seeds({}, [2])["admitted"] is False
 
 
-def _sim_rows(*pairs):
+def _sim_rows(*pairs, recall=(0.98, 0.98), dbh=1.1):
+    """Rows of :func:`_scan_sim.simulated_precision` with the given (benchmark, demo)
+    precisions, and recall / DBH RMSE at <= 5 m that pass unless given."""
     return [
-        {"seed": i + 1, "benchmark": {"precision": b}, "demo": {"precision": d}}
+        {
+            "seed": i + 1,
+            "benchmark": {"precision": b, "recall": recall[0], "dbh_rmse_cm_0_5": dbh},
+            "demo": {"precision": d, "recall": recall[1]},
+        }
         for i, (b, d) in enumerate(pairs)
     ]
 
@@ -470,6 +480,28 @@ def test_admission_is_the_mean_over_seeds_on_each_drive():
     assert admit(_sim_rows((0.95, 0.9499))) is False
     with pytest.raises(ValueError, match="no seeds"):
         admit([])
+
+
+def test_admission_holds_every_simulated_target_on_the_mean():
+    """Dec 5: a setting is admitted only if it keeps issue 11's other simulated targets too,
+    on the mean over seeds: recall >= 0.95 on each drive, DBH RMSE <= 1.2 cm at <= 5 m on the
+    benchmark drive (precision alone admitted the "edge any" points, 1.37-1.84 cm)."""
+    import sys
+
+    _real_geometry_bench()
+    admit = sys.modules["_scan_sim"].admitted_over_seeds
+    ok = ((0.96, 0.97), (0.96, 0.97))
+    assert admit(_sim_rows(*ok)) is True
+    assert admit(_sim_rows(*ok, dbh=1.2)) is True  # inclusive
+    assert admit(_sim_rows(*ok, dbh=1.543)) is False
+    assert admit(_sim_rows(*ok, recall=(0.94, 0.99))) is False
+    assert admit(_sim_rows(*ok, recall=(0.99, 0.9499))) is False
+    # a seed with no pair at <= 5 m: the DBH target cannot be shown, not admitted
+    assert admit(_sim_rows(*ok, dbh=None)) is False
+    # on the mean: one seed above 1.2 cm does not decide it
+    rows = _sim_rows(*ok)
+    rows[0]["benchmark"]["dbh_rmse_cm_0_5"] = 1.25
+    assert admit(rows) is True
 
 
 def test_loo_admits_lazily_best_score_first():
@@ -525,3 +557,110 @@ def test_only_draws_what_the_full_run_draws_for_each_dataset(datasets_dir, capsy
         assert only[name] == full[name], name
     with pytest.raises(SystemExit):  # an unknown name is refused by the option itself
         bench.main(["--datasets", str(datasets_dir), "--only", "nowhere"])
+
+
+def test_ransac_takes_the_circle_seen_all_round_over_a_denser_arc():
+    """A 30 cm ring of 40 points and a denser 60-point arc of a 1 m circle through it: the arc
+    has more inliers, the ring covers every 10-degree sector; the trunk is the ring (scoring by
+    the inlier count alone took the arc: aRchi tree 1's 63.7 cm circle over 200 degrees)."""
+    from stemmap.eval.real_slices import _ransac_circle
+
+    c, r = np.array([0.0, 0.0]), 0.15
+    phi = np.linspace(-math.pi, math.pi, 40, endpoint=False)
+    ring = c + r * np.column_stack((np.cos(phi), np.sin(phi)))
+    big = np.array([0.15 + 0.5, 0.0])  # a 1 m circle touching the ring at (0.15, 0)
+    psi = math.pi + np.linspace(0.25, 0.55, 60)
+    arc = big + 0.5 * np.column_stack((np.cos(psi), np.sin(psi)))
+    pts = np.vstack((ring, arc))
+    by_count = np.abs(np.hypot(*(pts - big).T) - 0.5) <= 0.005
+    assert by_count.sum() > ring.shape[0]  # the arc's circle has the most inliers
+    inl = _ransac_circle(pts, 0.005, np.random.default_rng(0), n_trials=2000)
+    assert inl[: ring.shape[0]].all() and inl[ring.shape[0] :].sum() <= 3
+
+
+def test_stem_disc_recentres_on_the_ring_when_the_base_is_off_the_axis():
+    """A 56 cm trunk whose base point lies 25 cm off its axis (aRchi tree 1: 21 cm): the 0.5 m disc
+    about the base cuts its far side; the disc about the ring takes every stem point and still
+    leaves a point 0.6 m from the axis out."""
+    from stemmap.eval.real_slices import _stem_disc
+
+    phi = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    ring = 0.28 * np.column_stack((np.cos(phi), np.sin(phi)))
+    far = np.array([[0.6, 0.0], [0.0, -0.62]])
+    xy = np.vstack((ring, far))
+    base = np.array([-0.25, 0.0])
+    assert (np.hypot(*(xy - base).T) <= 0.5).sum() < ring.shape[0]  # the old disc cuts
+    near = _stem_disc(xy, base)
+    assert near[: ring.shape[0]].all() and not near[ring.shape[0] :].any()
+    # a base on the axis: the same points as the plain disc
+    np.testing.assert_array_equal(_stem_disc(xy, np.zeros(2)), np.hypot(*xy.T) <= 0.5)
+
+
+def test_fill_joins_an_oblong_outline_at_both_ends_of_the_unseen_side():
+    """An oblong 68 x 56 cm outline seen except for 100 degrees around its long axis, with a
+    56 cm reference circle: the fill starts and ends within 1 cm of the seen outline's radius
+    there (the circle, 2.5 cm inside it, left a step at each end), and on a circle it is the
+    circle."""
+    from stemmap.eval.real_slices import _fill_unseen_sectors
+
+    phi = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    a, b = 0.34, 0.28
+    outline = np.column_stack((a * np.cos(phi), b * np.sin(phi)))
+    seen = np.abs(np.degrees(phi)) > 50.0
+    ring = outline[seen]
+    ref = {"x": 0.0, "y": 0.0, "diameter": 0.56}
+    r_ref = 0.5 * ref["diameter"]
+    fill = _fill_unseen_sectors(ring, ref, ring)
+    fa = np.degrees(np.arctan2(fill[:, 1], fill[:, 0]))
+    fr = np.hypot(*fill.T)
+    assert np.all(np.abs(fa) <= 50.0 + 1e-9)
+    for end in (fa.argmin(), fa.argmax()):
+        th = math.radians(fa[end])  # the ellipse's radius at that polar angle
+        true = a * b / math.hypot(b * math.cos(th), a * math.sin(th))
+        assert abs(fr[end] - true) < 0.01
+        assert true - r_ref > 0.02  # where the circle fill stood inside the outline
+    circle = _ring((0.0, 0.0), 0.2, 0.002)
+    part = circle[np.abs(np.degrees(np.arctan2(circle[:, 1], circle[:, 0]))) > 50.0]
+    for outline in (None, part):  # the default fill is the circle; the outline one too here
+        f2 = _fill_unseen_sectors(part, {"x": 0.0, "y": 0.0, "diameter": 0.4}, outline)
+        np.testing.assert_allclose(np.hypot(*f2.T), 0.2, atol=1e-12)
+    circ = _fill_unseen_sectors(ring, ref)  # the circle fill on the oblong outline: the step
+    assert np.allclose(np.hypot(*circ.T), r_ref)
+
+
+@pytest.mark.slow
+def test_load_slice_fill_outline_changes_only_the_fill():
+    """``fill="outline"`` keeps the references, the slice's own points and the labels' layout;
+    only the fill points move (aRchi tree 1's by up to 5 cm off its circle)."""
+    ddir = find_datasets_dir()
+    if ddir is None:
+        pytest.skip("shared datasets not found")
+    with pytest.raises(InputError, match="fill must be one of"):
+        load_slice(ddir, "archi_tree1", fill="nope")
+    a, b = load_slice(ddir, "archi_tree1"), load_slice(ddir, "archi_tree1", fill="outline")
+    assert a.refs == b.refs and a.partial == b.partial
+    n_own = int(np.count_nonzero(a.labels < 0)) + a.refs[0]["n_points"]
+    np.testing.assert_array_equal(a.xy[:n_own], b.xy[:n_own])
+    c, r = a.centers[0], 0.5 * a.diameters[0]
+    off = np.hypot(*(b.xy[n_own:] - c).T) - r
+    assert 0.02 < off.max() < 0.3 * r
+
+
+def test_fill_returns_counts_the_beams_that_see_the_filled_side():
+    """A 30 cm trunk seen over its lower half, the upper half filled on its circle: a scan from
+    above sees only fill, one from below none (``real_geometry.py --max-fill-returns``)."""
+    from stemmap.eval.real_slices import RealSlice, _fill_unseen_sectors
+
+    rg = _real_geometry_bench()
+    phi = np.linspace(-math.pi + 0.01, -0.01, 200)
+    ring = 0.15 * np.column_stack((np.cos(phi), np.sin(phi)))
+    ref = {"x": 0.0, "y": 0.0, "diameter": 0.3, "n_points": ring.shape[0]}
+    fill = _fill_unseen_sectors(ring, ref)
+    xy = np.vstack((ring, fill))
+    sl = RealSlice("half", xy, np.zeros(xy.shape[0], dtype=np.int64), [ref], [])
+    vp = np.array([[0.0, 3.0], [0.0, -3.0]])
+    ranges, hit = virtual_scans(xy, sl.labels, vp, resolution_deg=0.5, centers=sl.centers)
+    got = rg.fill_returns(sl, vp, ranges, hit)
+    n = (hit == 0).sum(axis=1)
+    assert n.min() >= 10
+    assert got[0, 0] == n[0] and got[1, 0] == 0
