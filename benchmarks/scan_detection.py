@@ -485,6 +485,10 @@ def benchmark_crlb(run: Any) -> dict[str, Any]:
     return out
 
 
+#: The two simulated drives of :func:`_scan_sim.simulated_precision`.
+DRIVES = ("benchmark", "demo")
+
+
 def meets_targets(
     ours: dict[str, Any], sp: dict[str, Any], over_seeds: dict[str, Any], seed: int
 ) -> dict[str, Any]:
@@ -497,11 +501,15 @@ def meets_targets(
     the ``stemmap demo`` drive, is >= ``precision_min`` (``precision_mean_over_seeds``). One
     seed's precision has an sd of 0.020-0.027 over seeds (a clutter object seen in tens of
     scans moves it by 0.02-0.04), so this run's seed alone (``precision_this_seed``, its
-    benchmark drive) is reported beside it but does not decide. ``all``: every target, precision
-    by the mean; ``failing``: the names of those not met (``precision_this_seed`` is never one)."""
+    benchmark drive) is reported beside it but does not decide. (``over_seeds["admitted"]`` is
+    the ``real_geometry.py`` grid's admission, since Dec 5 also recall and DBH on the mean: not
+    read here.) ``all``: every target, precision by the mean; ``failing``: the names of those
+    not met (``precision_this_seed`` is never one)."""
+    rows = over_seeds["per_seed"]
+    means = [float(np.mean([float(r[d]["precision"]) for r in rows])) for d in DRIVES]
     met: dict[str, Any] = {
         "recall": (ours["recall"] or 0.0) >= TARGETS["recall_min"],
-        "precision_mean_over_seeds": bool(over_seeds["admitted"]),
+        "precision_mean_over_seeds": all(m >= TARGETS["precision_min"] for m in means),
         "precision_this_seed": (ours["precision"] or 0.0) >= TARGETS["precision_min"],
         "dbh_rmse_le5": (ours["dbh_rmse_cm_le5"] or 1e9) <= TARGETS["dbh_rmse_cm_le5_max"],
         "dbh_rmse_5_10": (ours["dbh_rmse_cm_5_10"] or 1e9) <= TARGETS["dbh_rmse_cm_5_10_max"],
@@ -533,7 +541,7 @@ def precision_summary(
             "seeds": over_seeds["seeds"],
             **{
                 f"{drive}_{stat}": over_seeds[f"{drive}_precision_{stat}"]
-                for drive in ("benchmark", "demo")
+                for drive in DRIVES
                 for stat in ("mean", "min", "max")
             },
             "failing_seeds": over_seeds["failing_seeds"],

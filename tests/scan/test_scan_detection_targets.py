@@ -5,7 +5,6 @@ it under its own name."""
 from __future__ import annotations
 
 import scan_detection as sd  # benchmarks/ is on sys.path (tests/conftest.py)
-from _scan_sim import admitted_over_seeds
 
 
 def _ours(precision: float) -> dict[str, float]:
@@ -23,7 +22,8 @@ SPEED = {"scans_per_second_361": 40000, "latency_ms_1081": 0.2}
 
 
 def _over_seeds(bench: list[float], demo: list[float]) -> dict:
-    """simulated_precision_seeds' fields that the verdict reads, admission by its own rule."""
+    """simulated_precision_seeds' fields that the verdict reads (the per-seed precisions and
+    their summary; its ``admitted``, the grid's rule of every target, is not read: None)."""
     rows = [
         {"seed": i + 1, "benchmark": {"precision": b}, "demo": {"precision": d}}
         for i, (b, d) in enumerate(zip(bench, demo, strict=True))
@@ -35,7 +35,7 @@ def _over_seeds(bench: list[float], demo: list[float]) -> dict:
         out[f"{drive}_precision_max"] = max(v)
     out["failing_seeds"] = [r["seed"] for r in rows if min(r["benchmark"]["precision"],
                             r["demo"]["precision"]) < 0.95]  # fmt: skip
-    out["admitted"] = admitted_over_seeds(rows)
+    out["admitted"] = None
     return out
 
 
