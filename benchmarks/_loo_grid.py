@@ -362,6 +362,11 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # the chi-square test against it; the trimmed end occluded where the return beyond it is
     # nearer than the circle's tangent range; numpy path: the nearest-return rows)
     _setting(**_DEFAULT_11, **_ARCS_35, **_GRID_60, **_RUNS_63, stub_runs_snoop=True),
+    # Dec 5 ("The LOO after the Dec 5 merges"): grid 68's run test by data snooping on the
+    # preset's half-footprint edge model (grid 67), since the admission checks the simulated
+    # DBH target that every "edge any" point (60, 65, 68) fails; its nearest-return rows are
+    # grid 68's, its averaging rows and simulated drives grid 67's
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, **_RUNS_63, stub_runs_snoop=True),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

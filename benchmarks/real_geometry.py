@@ -69,7 +69,9 @@ from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_n
 from _real_scanning import error_stats as _stats
 from _real_scanning import greedy_match as _match
 from _scan_sim import (  # shared with scan_detection.py
+    SIM_DBH_RMSE_LE5_MAX_CM,
     SIM_PRECISION_MIN,
+    SIM_RECALL_MIN,
     SIM_SEEDS,
     simulated_precision,
     simulated_precision_seeds,
@@ -528,8 +530,9 @@ def leave_one_out(
             else sorted(g for g, a in checked.items() if a["admitted"])
         ),
         "admission": {
-            "rule": f"mean precision over seeds {list(sim_seeds)} >= {SIM_PRECISION_MIN}"
-            " on each drive"
+            "rule": f"over seeds {list(sim_seeds)}, on the mean: precision >= "
+            f"{SIM_PRECISION_MIN} and recall >= {SIM_RECALL_MIN} on each drive, benchmark"
+            f" drive DBH RMSE <= 5 m <= {SIM_DBH_RMSE_LE5_MAX_CM} cm"
             if sim_check
             else "none (--no-sim-check)",
             "checked": sorted(checked),

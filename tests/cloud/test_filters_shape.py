@@ -163,12 +163,12 @@ def test_cell_index_is_numpy_unique_of_the_packed_keys(stray: bool) -> None:
 @pytest.mark.parametrize("stray", [False, True])
 def test_dense_grid_kernels_equal_the_numpy_reductions(stray: bool) -> None:
     """The one-pass ground-minimum and canopy-maximum kernels give exactly what the numpy
-    reductions over cell_index give: the same cells in the same order, the first of equal
-    minima, the same support counts, the same maxima -- on coordinates quantised to 1 cm
-    (many exact ties, points on cell edges, negative cells); with a stray point far away the
-    dense grid is refused and the numpy path runs."""
+    reductions over cell_index give: the same cells in the same order, of equal minima the
+    one of smallest x, then y, the same three lowest z, the same maxima -- on coordinates
+    quantised to 1 cm (many exact ties, points on cell edges, negative cells); with a stray
+    point far away the dense grid is refused and the numpy path runs."""
     from stemmap.cloud._grid_kernel import lowest_per_cell, max_per_cell
-    from stemmap.cloud.ground import _SUPPORT, cell_index
+    from stemmap.cloud.ground import cell_index
     from stemmap.cloud.measure import _CANOPY_CELL, _canopy_update
 
     rng = np.random.default_rng(11)
@@ -177,7 +177,7 @@ def test_dense_grid_kernels_equal_the_numpy_reductions(stray: bool) -> None:
     if stray:
         p[7] = (4.0e6, -3.0e6, 0.0)
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    low = lowest_per_cell(x, y, z, 1.0, _SUPPORT)
+    low = lowest_per_cell(x, y, z, 1.0)
     top = max_per_cell(x, y, z, _CANOPY_CELL)
     if stray:
         assert low is None and top is None
@@ -187,11 +187,14 @@ def test_dense_grid_kernels_equal_the_numpy_reductions(stray: bool) -> None:
         zmin = np.full(cells.shape[0], np.inf)
         np.minimum.at(zmin, inv, z)
         cand = np.flatnonzero(z == zmin[inv])
+        cand = cand[np.lexsort((y[cand], x[cand], inv[cand]))]  # of equal minima: min x, y
         _, first = np.unique(inv[cand], return_index=True)
-        sup = np.bincount(inv[z <= zmin[inv] + _SUPPORT], minlength=cells.shape[0])
+        o = np.lexsort((z, inv))
+        grp = [z[o][inv[o] == c][:3] for c in range(cells.shape[0])]
+        low3 = np.array([np.pad(v, (0, 3 - v.size), constant_values=np.inf) for v in grp])
         np.testing.assert_array_equal(low[0], cells)
         np.testing.assert_array_equal(low[1], cand[first])
-        np.testing.assert_array_equal(low[2], sup)
+        np.testing.assert_array_equal(low[2], low3)
         cells, inv = cell_index(np.floor(p[:, :2] / _CANOPY_CELL).astype(np.int64))
         hmax = np.full(cells.shape[0], -np.inf)
         np.maximum.at(hmax, inv, z)
@@ -209,3 +212,4 @@ def test_dense_grid_kernels_equal_the_numpy_reductions(stray: bool) -> None:
     np.testing.assert_array_equal(parts["h"], one["h"])
     np.testing.assert_array_equal(acc1._keys, acc3._keys)
     np.testing.assert_array_equal(acc1._low, acc3._low)
+    np.testing.assert_array_equal(acc1._z3, acc3._z3)  # so the support, exactly

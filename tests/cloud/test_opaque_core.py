@@ -66,8 +66,12 @@ def test_a_stem_fit_is_left_alone() -> None:
 @pytest.mark.slow
 def test_noisy_spruce_keeps_its_stem_diameter(datasets_dir: Path) -> None:
     """treels spruce with 1 cm Gaussian noise per axis (the benchmark's ``noise_1cm``, seed
-    0): within the issue's 1.5 cm of the ring of the cloud as shipped (measured: 0.4-0.8 cm;
-    without the core refits the stem is lost or 13 cm too large)."""
+    0): within the issue's 1.5 cm of the ring of the cloud as shipped (measured: 0.4-0.8 cm).
+    Before Dec 5 the RANSAC draws followed the file's point order and, on those draws,
+    without the core refits the stem was lost or 13 cm too large; on the canonical order's
+    draws (docs/algorithms/cloud.md "Point order") no slice circle holds the stem inside on
+    this cloud (0.48 cm with and without the refits), so the refits are tested on the
+    synthetic rings above."""
     xyz = read_cloud(datasets_dir / "treels/spruce.laz").xyz
     (ref,) = stem_references(xyz, detect_stems(xyz, StemConfig()))
     assert ref is not None and ref.full
@@ -76,5 +80,3 @@ def test_noisy_spruce_keeps_its_stem_diameter(datasets_dir: Path) -> None:
     det = detect_stems(prep.xyz, StemConfig())
     assert len(det) == 1
     assert abs(float(det.diameter[0]) - ref.diameter) < 0.015
-    off = detect_stems(prep.xyz, StemConfig(core_refits=False))
-    assert len(off) == 0 or abs(float(off.diameter[0]) - ref.diameter) > 0.05

@@ -97,9 +97,11 @@ def test_a_tighter_refit_stem_is_measured_on_thin_slices(datasets_dir: Path) -> 
     (docs/algorithms/cloud.md "Single trees: the annulus about a found stem"); before, only
     first-round stems were: 9.32 cm on the thick slices, 8.50 cm on the thin ones, against a
     full ring of 8.51 cm. Asserted: within 0.3 cm of the ring (a quarter of the thick
-    error), and the thick line > 0.5 cm off. (Since Dec 5 the thick measurement of a plot
-    takes the slice at breast height, ``thick_dbh_slice``: 0.14 cm off without the thin
-    re-measure.)"""
+    error), with and without the thin re-measure (since Dec 5 the thick measurement of a
+    plot takes the slice at breast height, ``thick_dbh_slice``), and the thick line no
+    closer. (Since Dec 5 the RANSAC draws are those of the canonical point order,
+    docs/algorithms/cloud.md "Point order": the thick line gives 0.14 cm off; its > 0.5 cm
+    was a draw of the file's order.)"""
     from _cloud_refs import fixed_references, load_seeds, reference_of_each
 
     xyz = read_cloud(datasets_dir / "treels/pine_plot.laz").xyz
@@ -114,9 +116,10 @@ def test_a_tighter_refit_stem_is_measured_on_thin_slices(datasets_dir: Path) -> 
         return abs(float(d))
 
     assert refs[4] is not None and refs[4].full
-    assert error_at_stem_4(StemConfig()) < 0.003
+    on = error_at_stem_4(StemConfig())
+    assert on < 0.003
     line = StemConfig(thin_remeasure=False, thick_dbh_slice=False)
-    assert error_at_stem_4(line) > 0.005
+    assert error_at_stem_4(line) >= on
     assert error_at_stem_4(StemConfig(thin_remeasure=False)) < 0.003
 
 

@@ -102,13 +102,11 @@ def test_tenth_density_spruce_is_not_a_crown(datasets_dir: Path, tmp_path: Path)
     (r 31-72 cm, RMS 61-97 mm) as a 1.41 m stem: the single-tree cloud's noise floor is its
     own. Choosing over the whole tighter-refit ladder (:func:`stemmap.cloud.measure.
     _single_tree_stem`) gives the stem, within 2.5 cm (measured 0.9 cm); without it the
-    crown stays."""
+    crown stayed. (Since Dec 5 the RANSAC draws are those of the canonical point order,
+    docs/algorithms/cloud.md "Point order": on this cloud the first round no longer takes
+    the whorls, with or without the ladder, 23.6 cm; the crown was a draw of the file's
+    order, so only the stem is asserted.)"""
     assert (
         _subsampled_dbh_error(datasets_dir, tmp_path, "subsample_10", seed=3, check_off=False)
         < 0.025
     )
-    xyz = read_cloud(datasets_dir / "treels/spruce.laz").xyz
-    prep = TRANSFORMS["subsample_10"](Context(xyz, None, 3))
-    assert prep is not None
-    off = _detect(prep, StemConfig(single_tree_ladder=False), tmp_path)
-    assert len(off) == 1 and off.diameter[0] > 1.0

@@ -75,51 +75,63 @@ def _lowest(
     j0: int,
     ni: int,
     nj: int,
-    support: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     m = ni * nj
-    zmin = np.full(m, np.inf)
+    low3 = np.full((m, 3), np.inf)  # the three lowest z of each cell, ascending
     first = np.full(m, -1, dtype=np.int64)
     n = x.shape[0]
     for k in range(n):
         d = (int(np.floor(x[k] / cell)) - i0) * nj + (int(np.floor(y[k] / cell)) - j0)
-        if first[d] < 0 or z[k] < zmin[d]:  # strict: the first point of equal minima
-            zmin[d] = z[k]
+        f = first[d]
+        v = z[k]
+        # equal minima: the smallest x, then y (not the first in point order: the same cloud
+        # in another order gives the same ground)
+        if (
+            f < 0
+            or v < low3[d, 0]
+            or (v == low3[d, 0] and (x[k] < x[f] or (x[k] == x[f] and y[k] < y[f])))
+        ):
             first[d] = k
-    cnt = np.zeros(m, dtype=np.int64)
-    for k in range(n):
-        d = (int(np.floor(x[k] / cell)) - i0) * nj + (int(np.floor(y[k] / cell)) - j0)
-        if z[k] <= zmin[d] + support:
-            cnt[d] += 1
+        if v < low3[d, 0]:
+            low3[d, 2] = low3[d, 1]
+            low3[d, 1] = low3[d, 0]
+            low3[d, 0] = v
+        elif v < low3[d, 1]:
+            low3[d, 2] = low3[d, 1]
+            low3[d, 1] = v
+        elif v < low3[d, 2]:
+            low3[d, 2] = v
     n_occ = 0
     for q in range(m):
         if first[q] >= 0:
             n_occ += 1
     cells = np.empty((n_occ, 2), dtype=np.int64)
     sel = np.empty(n_occ, dtype=np.int64)
-    sup = np.empty(n_occ, dtype=np.int64)
+    out3 = np.empty((n_occ, 3))
     c = 0
     for q in range(m):
         if first[q] >= 0:
             cells[c, 0] = q // nj + i0
             cells[c, 1] = q % nj + j0
             sel[c] = first[q]
-            sup[c] = cnt[q]
+            out3[c] = low3[q]
             c += 1
-    return cells, sel, sup, zmin
+    return cells, sel, out3
 
 
 def lowest_per_cell(
-    x: FloatArray, y: FloatArray, z: FloatArray, cell: float, support: float
+    x: FloatArray, y: FloatArray, z: FloatArray, cell: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The occupied cells (M, 2) sorted by (i, j), the index of each cell's lowest point
-    (the first in point order among equal minima) and its support (the cell's points within
-    ``support`` of that minimum); None when the points spread too far for a dense grid."""
+    (among equal minima the one of smallest x, then y: independent of the point order; points
+    equal in x, y and z are the same point) and the cell's three lowest z, ascending (M, 3;
+    ``inf`` where it holds fewer points: what the ground's support test needs, and unlike a
+    count of the points near the minimum it merges exactly over chunks); None when the
+    points spread too far for a dense grid."""
     span = dense_span(x, y, cell)
     if span is None:
         return None
-    cells, sel, sup, _ = _lowest(x, y, z, float(cell), *span, float(support))
-    return cells, sel, sup
+    return _lowest(x, y, z, float(cell), *span)
 
 
 @njit(cache=True)

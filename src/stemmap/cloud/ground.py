@@ -160,6 +160,18 @@ def cell_index(ij: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int
     return cells.astype(np.int64), rank[d]
 
 
+def _three_lowest(z: FloatArray, grp: NDArray[np.int64], n: int) -> FloatArray:
+    """The three lowest values of ``z`` in each of the ``n`` groups ``grp`` (ascending, inf
+    where a group holds fewer)."""
+    o = np.lexsort((z, grp))
+    g, v = grp[o], z[o]
+    rank = np.arange(g.size) - np.searchsorted(g, g)
+    keep = rank < 3
+    out = np.full((n, 3), np.inf)
+    out[g[keep], rank[keep]] = v[keep]
+    return out
+
+
 class GroundAccumulator:
     """Per-cell minimum z over a stream of chunks; :meth:`model` builds the GroundModel."""
 
@@ -172,18 +184,25 @@ class GroundAccumulator:
         self.max_memory = float(max_memory)
         self._keys = np.zeros(0, dtype=np.int64)
         self._low = np.zeros((0, 3))  # lowest point of each cell
-        self._sup = np.zeros(0, dtype=np.int64)  # points within _SUPPORT above it
+        self._z3 = np.zeros((0, 3))  # its three lowest z, ascending (inf: fewer points)
+
+    @property
+    def _sup(self) -> NDArray[np.int64]:
+        """Support of each cell's minimum: its points within ``_SUPPORT`` above it, counted
+        up to 3 (the tests ask only whether it is below 3)."""
+        return np.sum(self._z3 <= self._z3[:, :1] + _SUPPORT, axis=1).astype(np.int64)
 
     def update(self, xyz: ArrayLike) -> None:
         p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         if p.shape[0] == 0:
             return
-        # reduce the chunk to its lowest point per cell first (one pass on a dense grid, or
-        # cell_index + ufunc.at: much cheaper than a lexsort of the whole chunk), then merge
-        # with the running minima
-        low = lowest_per_cell(p[:, 0], p[:, 1], p[:, 2], self.cell, _SUPPORT)
+        # reduce the chunk to its lowest point and three lowest z per cell first (one pass on
+        # a dense grid; cell_index and a sort of the chunk when its points spread too far for
+        # one), then merge with the running ones. Both are exact over
+        # chunks, so the accumulator does not depend on how the points were split or ordered.
+        low = lowest_per_cell(p[:, 0], p[:, 1], p[:, 2], self.cell)
         if low is not None:
-            cells, sel, cnt = low
+            cells, sel, z3 = low
             new = ((cells[:, 0] + _OFF) << 32) | (cells[:, 1] + _OFF)
         else:
             ij = np.floor(p[:, :2] / self.cell).astype(np.int64)
@@ -192,27 +211,25 @@ class GroundAccumulator:
             zmin = np.full(uk.shape[0], np.inf)
             np.minimum.at(zmin, inv, p[:, 2])
             cand = np.flatnonzero(p[:, 2] == zmin[inv])
+            # equal minima: the smallest x, then y (lowest_per_cell's choice)
+            cand = cand[np.lexsort((p[cand, 1], p[cand, 0], inv[cand]))]
             _, first = np.unique(inv[cand], return_index=True)
             sel = cand[first]
-            # support of each minimum: the chunk's points within _SUPPORT of it (a lone noise
-            # point below the ground has support 1; the ground or a stem's cut has many)
-            near = p[:, 2] <= zmin[inv] + _SUPPORT
-            cnt = np.bincount(inv[near], minlength=uk.shape[0])
+            z3 = _three_lowest(p[:, 2], inv, uk.shape[0])
             new = uk[inv[sel]]
         keys = np.concatenate((self._keys, new))
         pts = np.concatenate((self._low, p[sel]))
-        sup = np.concatenate((self._sup, cnt))
-        order = np.lexsort((pts[:, 2], keys))
-        keys, pts, sup = keys[order], pts[order], sup[order]
+        z3 = np.concatenate((self._z3, z3))
+        # per cell the lowest point, of equal minima the smallest x, then y: the same point
+        # whichever chunk (and whatever point order) it came in
+        order = np.lexsort((pts[:, 1], pts[:, 0], pts[:, 2], keys))
+        keys, pts, z3 = keys[order], pts[order], z3[order]
         first = np.ones(keys.shape[0], dtype=bool)
         first[1:] = keys[1:] != keys[:-1]
-        # merging two minima of one cell: the support adds up when they are within _SUPPORT
-        # (approximately: points of the higher one above the lower one + _SUPPORT count too)
-        grp = np.cumsum(first) - 1
-        zlow = pts[first, 2][grp]
-        add = np.bincount(grp, np.where(pts[:, 2] <= zlow + _SUPPORT, sup, 0))
-        self._keys, self._low = keys[first], pts[first]
-        self._sup = add.astype(np.int64)
+        if not first.all():  # cells seen before: the three lowest of their rows' values
+            grp = np.cumsum(first) - 1
+            z3 = _three_lowest(z3.ravel(), np.repeat(grp, 3), int(grp[-1]) + 1)
+        self._keys, self._low, self._z3 = keys[first], pts[first], z3
 
     def stem_base(self, max_width: float, slab: float = 0.5) -> float | None:
         """Base z of a cloud without ground (one segmented tree), or None if it has ground.

@@ -36,6 +36,7 @@ from stemmap.cloud.band import (
     _sliced_points,
     _vertical_filter,
 )
+from stemmap.cloud.canonical import canonical_band
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.heights import _CANOPY_CELL, _breast_height_z, _canopy_update, _stem_heights
 from stemmap.cloud.pooled import _pooled_stems
@@ -347,6 +348,9 @@ def _stems_from_band(
         )
     # --- coordinates rounded too coarsely for a diameter (float32 at UTM values): refused
     check_coordinate_step(band.xy, cfg.max_coordinate_step)
+    # --- the band in an order of its points alone: the same cloud in another point order
+    # (a re-export, tiles) gives the same stems (:mod:`~stemmap.cloud.canonical`)
+    band = canonical_band(band)
     # --- spacing -> clustering cell (measured, not tuned)
     sp2d = cfg.spacing if cfg.spacing is not None else _band_spacing(band.xy, band.h)
     if not math.isfinite(sp2d):

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from stemmap.cloud.canonical import canonical_order
 from stemmap.cloud.result import CloudStems
 from stemmap.cloud.slicefit import _fit_segments, _segment_arcs, _segment_covariances
 from stemmap.errors import ConfigError
@@ -136,6 +137,9 @@ def stem_profiles(
             reach_s = rad + np.maximum(rad, 0.15)
             near = d <= reach_s[owner[m]]
             idx = np.flatnonzero(m)[near]
+            # the level's points in an order of their own (x, y, z), not the file's: the
+            # fits' RANSAC draws and sums follow it (stemmap.cloud.canonical)
+            idx = idx[canonical_order(p[idx, 0], p[idx, 1], p[idx, 2])]
             ids = owner[idx]
             c, r, rms, ok, nin = _fit_segments(
                 p[idx, :2],
