@@ -433,7 +433,9 @@ def test_simulated_precision_seeds_reports_every_seed_mean_min_and_failing(monke
             "benchmark": {
                 "recall": 0.98,
                 "precision": b,
-                **{"dbh_rmse_cm_0_5": 1.1, "dbh_bias_cm_0_5": -0.1, "n_0_5": 300},
+                "dbh_rmse_cm_0_5": 1.1,
+                "dbh_bias_cm_0_5": -0.1,
+                "n_0_5": 300,
             },
             "demo": {"recall": 0.97, "precision": d},
             "admitted": min(b, d) >= sim.SIM_PRECISION_MIN,
