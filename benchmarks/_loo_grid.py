@@ -367,6 +367,16 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # DBH target that every "edge any" point (60, 65, 68) fails; its nearest-return rows are
     # grid 68's, its averaging rows and simulated drives grid 67's
     _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, **_RUNS_63, stub_runs_snoop=True),
+    # Dec 5 ("Where textbook Kasa finds what the default misses"), grids 70-72 on grid 59 (the
+    # preset until grid 67): a significant bend towards the sensor is never straight
+    # (straight_curvature; numpy path), the batch's noise estimate where it reads >= 2.5 sigma
+    # (scan_noise_batch, the largest class of those views: RMS rejections at 3 cm of noise),
+    # and both
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, straight_curvature=True),
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5, straight_curvature=True
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

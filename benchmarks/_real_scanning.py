@@ -7,7 +7,7 @@ on ``sys.path`` when it runs, from any working directory)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -25,6 +25,7 @@ from stemmap.eval.real_slices import (
 )
 from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD
 from stemmap.scan.detect import DetectorConfig
+from stemmap.types import ScanBatch
 
 __all__ = [
     "AVERAGING_SCANNERS",
@@ -33,10 +34,12 @@ __all__ = [
     "QUICK_SCANNERS",
     "TEXTBOOK",
     "ReturnRule",
+    "SceneBatch",
     "dataset_seed",
     "error_stats",
     "greedy_match",
     "matched",
+    "scene_batches",
     "scene_note",
     "scene_scans",
     "slice_scan_batches",
@@ -239,18 +242,60 @@ def slice_scan_batches(
     configuration name ``<model>_<step>deg_noise<cm>cm``, noisy ranges (V, N)), with the
     vantage points, seeds and noise draws of ``real_geometry.run_dataset`` (``seed`` + the
     slice's index; vantage points first, then one noise draw per configuration in order)."""
+    for sc in scene_batches(ddir, n_vantage, seed, background, mount, relief_std, relief_corr):
+        yield sc.sl.name, sc.config, sc.batch.ranges
+
+
+@dataclass(frozen=True)
+class SceneBatch:
+    """One slice x scanner configuration of :func:`scene_batches`: the slice, its vantage
+    points, the scanner (model, step deg, range noise m), the hit trunk of every beam of the
+    noise-free scans (-1: none) and the noisy scans."""
+
+    sl: RealSlice
+    vp: np.ndarray
+    model: str
+    res: float
+    noise: float
+    hit: np.ndarray
+    batch: ScanBatch
+
+    @property
+    def config(self) -> str:
+        return f"{self.model}_{self.res:g}deg_noise{100 * self.noise:g}cm"
+
+
+def scene_batches(
+    ddir: Path,
+    n_vantage: int,
+    seed: int,
+    background: str = "none",
+    mount: Mount = MOUNT,
+    relief_std: float = RELIEF_STD,
+    relief_corr: float = RELIEF_CORR,
+    return_rule: ReturnRule | None = None,
+    names: Iterable[str] | None = None,
+) -> Iterator[SceneBatch]:
+    """:func:`slice_scan_batches` with the slice, vantage points, hits and batch of every
+    configuration (``names``: only these slices, the others' seeds unchanged;
+    ``return_rule``: the averaging scanner's, as ``real_geometry.py --loo`` passes it)."""
+    only = None if names is None else set(names)
     for name in SLICES:
+        if only is not None and name not in only:
+            continue
         sl = load_slice(ddir, name)
         if not sl.refs:
             continue
         ds = dataset_seed(seed, name)
         rng = np.random.default_rng(ds)
         vp = vantage_points(sl, n_vantage, rng)
-        geometry: dict[tuple[str, float], np.ndarray] = {}
+        geometry: dict[tuple[str, float], tuple[np.ndarray, np.ndarray]] = {}
         for model, res, noise in FULL_SCANNERS:
             if (model, res) not in geometry:
                 geometry[(model, res)] = scene_scans(
-                    sl, vp, model, res, background, ds, mount, relief_std, relief_corr
-                )[0]
-            r = noisy_batch(geometry[(model, res)], res, noise, rng).ranges
-            yield name, f"{model}_{res:g}deg_noise{100 * noise:g}cm", r
+                    sl, vp, model, res, background, ds, mount, relief_std, relief_corr,
+                    return_rule=return_rule,
+                )  # fmt: skip
+            ranges0, hit = geometry[(model, res)]
+            batch = noisy_batch(ranges0, res, noise, rng)
+            yield SceneBatch(sl, vp, model, res, noise, hit, batch)

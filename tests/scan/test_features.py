@@ -11,6 +11,7 @@ from stemmap.scan.features import (
     cluster_curvature,
     footprint_correct,
     is_straight,
+    line_bulge_gain,
     line_fit_rms,
     point_curvature,
     radius_median_filter,
@@ -107,6 +108,36 @@ def test_wall_is_straight_trunk_is_not():
     assert abs(sagitta_depth(segs)[wall_k]) < 0.05
     with pytest.raises(ConfigError):
         is_straight(f.line_rms, f.width, 0.01, alpha=2.0)
+
+
+def test_line_bulge_gain_reads_the_bend_towards_the_sensor():
+    # noise-free: a 15 cm stem at 3 m (0.5 deg) bulges towards the sensor, and a parabola
+    # takes most of its line residual (exactly the circle's arc is not a parabola: >= 90 %);
+    # a hollow (the middle receding by 5 cm) bends away: the same kind of gain, negative
+    a = np.radians(np.arange(-20, 20.01, 0.5))
+    trunk = trunk_ranges(3.0, 0.075, a)
+    hollow = 4.0 + 0.05 * (1.0 - (a / a.max()) ** 2)
+    segs = segments_of(np.stack([np.where(np.isfinite(trunk), trunk, np.inf), hollow]))
+    g = line_bulge_gain(segs)
+    line_rss = segs.counts * line_fit_rms(segs) ** 2
+    t, h = int(np.argmax(segs.scan == 0)), int(np.argmax(segs.scan == 1))
+    assert 0.9 * line_rss[t] < g[t] <= line_rss[t] * (1 + 1e-9)
+    assert -line_rss[h] * (1 + 1e-9) <= g[h] < -0.9 * line_rss[h]
+
+
+def test_line_bulge_gain_of_a_noisy_wall_is_one_chi_square_degree():
+    # a wall at 4 m over 40 deg (0.5 deg) with 3 cm range noise: the gain / sigma^2 is chi^2 with
+    # one degree of freedom, signed at random, so P(gain > z_0.99^2 sigma^2) = 1 %; 4 000
+    # walls: binomial std 0.16 %, the bounds are > 3 std; E|gain| / sigma^2 = 1 (std of the
+    # mean 0.022, +-0.1 is > 4 std)
+    rng = np.random.default_rng(11)
+    a = np.radians(np.arange(-20, 20.01, 0.5))
+    walls = 4.0 / np.cos(a) + rng.normal(0.0, 0.03, (4000, a.size))
+    segs = segments_of(walls)
+    assert len(segs) == 4000
+    g = line_bulge_gain(segs) / 0.03**2
+    assert np.mean(np.abs(g)) == pytest.approx(1.0, abs=0.1)
+    assert 0.005 < np.mean(g > 2.3263478740408408**2) < 0.015
 
 
 def test_radius_median_filter_separates_merged_trunks():

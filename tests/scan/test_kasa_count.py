@@ -68,3 +68,75 @@ def test_no_detection_counts_as_f1_zero_and_an_rmse_loss(kc):
 
 def test_the_default_is_the_grid_setting_that_equals_the_preset(kc):
     assert kc.default_index(_loo((1, 1, 1), (1, 1, 1))) == "0"
+
+
+def _loo3(ours_rec3, kasa_rec3, ours_rec=0.9, kasa_rec=0.95):
+    """:func:`_loo` with the recall within 3 cm of both (``recall_3cm``, Dec 5)."""
+    loo = _loo((ours_rec, 1.0, 2.0), (kasa_rec, 1.0, 9.0))
+    held = loo["held_out"]["d"]
+    (sc,) = held["held_out"]
+    held["held_out"][sc]["textbook_kasa_recall_3cm"] = kasa_rec3
+    held["added_settings"]["0"][sc].append(ours_rec3)
+    return loo
+
+
+def test_recall_within_3cm_compares_like_with_like(kc):
+    # Kasa finds more (0.95 against 0.90) but measures fewer within 3 cm (0.40 against 0.85):
+    # a loss of the literal count, none of the like-with-like one
+    (row,) = kc.rows(_loo3(0.85, 0.40), chosen=False, setting="0")
+    assert row["recall_loss"] == pytest.approx(0.05)
+    assert row["recall_3cm_loss"] == 0.0 and row["recall_3cm_scored"]
+    # ... and where Kasa measures more trunks within 3 cm, it counts, with the views lost
+    (row,) = kc.rows(_loo3(0.50, 0.62), chosen=False, setting="0")
+    t = kc.tally([row])
+    assert (t["recall_lower"], t["recall_3cm_lower"], t["recall_3cm_trunks_lost"]) == (1, 1, 12)
+
+
+def test_loo_json_without_recall_3cm_scores_none(kc):
+    # JSON written before Dec 5 has four numbers per setting and no Kasa recall_3cm
+    (row,) = kc.rows(_loo((0.9, 1.0, 2.0), (0.95, 1.0, 9.0)), chosen=False, setting="0")
+    assert row["ours_recall_3cm"] is None and not row["recall_3cm_scored"]
+    assert kc.tally([row])["recall_3cm_lower"] == 0
+
+
+@pytest.fixture(scope="module")
+def kv():
+    import sys
+
+    bench = str(Path(__file__).resolve().parents[2] / "benchmarks")
+    added = bench not in sys.path
+    if added:
+        sys.path.insert(0, bench)
+    try:
+        path = Path(bench) / "kasa_views.py"
+        spec = importlib.util.spec_from_file_location("kasa_views_bench", path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        if added:
+            sys.path.remove(bench)
+    return mod
+
+
+def test_a_lost_view_is_classed_by_the_candidates_over_its_trunk(kv):
+    import numpy as np
+
+    # a 30 cm trunk 5 m ahead with 6 own returns; rejected candidates of scan 0: over it
+    # (bearing 0, 5.0 m) or beside it (bearing 20 deg)
+    def rej(*cands):
+        cols = ("scan_index", "bearing_deg", "range", "width", "n_points")
+        out = {c: np.array([x[i] for x in cands], dtype=float) for i, c in enumerate(cols)}
+        out["reason"] = [x[5] for x in cands]
+        for c in ("radius", "rms", "sigma"):
+            out[c] = np.full(len(cands), 0.01)
+        return out
+
+    rel = np.array([5.0, 0.0])
+    aside = (0, 20.0, 5.0, 0.3, 6, "rms")
+    assert kv.miss_class(rej(aside), 0, rel, 0.3, 6)[0] == "no_candidate"
+    cls, cand = kv.miss_class(rej(aside, (0, 0.0, 4.9, 0.3, 7, "rms")), 0, rel, 0.3, 6)
+    assert cls == "rms" and cand["cand_returns"] == 7 and cand["cand_rms"] == 10.0
+    assert kv.miss_class(rej((0, 0.0, 4.9, 0.4, 9, "rms")), 0, rel, 0.3, 6)[0] == "merge:rms"
+    two = rej((0, 0.5, 4.9, 0.1, 3, "straight"), (0, -0.5, 4.9, 0.1, 3, "min_points"))
+    assert kv.miss_class(two, 0, rel, 0.3, 6)[0] == "split:min_points/straight"
+    assert kv.miss_class(two, 1, rel, 0.3, 6)[0] == "no_candidate"  # another scan's

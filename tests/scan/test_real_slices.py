@@ -179,6 +179,15 @@ def test_false_alarms_skip_references_partial_rings_far_and_incomplete_slices():
     assert bench.score(rows, 2, 2, -1)["all"]["precision"] is None
 
 
+def test_recall_3cm_counts_the_trunks_found_within_the_rmse_target():
+    bench = _real_geometry_bench()
+    # four visible trunks: found 0.5 cm off, found 3.0 cm off (the target itself), found
+    # -4 cm off, missed: recall 0.75, within 3 cm 0.5
+    rows = [(3.0, 0.3, 0.5), (4.0, 0.3, 3.0), (5.0, 0.3, -4.0), (6.0, 0.3, math.nan)]
+    a = bench.score(rows, 1, 0, 0)["all"]
+    assert (a["recall"], a["recall_3cm"]) == (0.75, 0.5)
+
+
 def _diagnose_bench():
     import importlib.util
     import sys

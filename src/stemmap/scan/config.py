@@ -85,6 +85,18 @@ class DetectorConfig:
         never straight (ours, issue 11): a near trunk's arc of 10-20 returns can have a line
         RMS within the chi-square bound (TreeLS plot: 13-16 cm stems at 1.1-1.5 m) while
         bulging 4 sigma towards the sensor, which a wall does not. ``inf`` = off.
+    straight_curvature : bool
+        A segment whose bend towards the sensor is significant is never straight (ours,
+        issue 11, Dec 5): the drop of the residual sum of squares when a parabola replaces
+        the best line (:func:`~stemmap.scan.features.line_bulge_gain`, one degree of
+        freedom) exceeds ``z_0.99^2 sigma^2`` (one-sided: a 1 % rate). The chi-square test
+        spreads the bend of a small trunk under range noise over the line's ``n - 2``
+        degrees of freedom, the sagitta exemption (``straight_depth_sigmas``) reads it from
+        one return; this reads it from every return in one degree (at 3 cm of noise the
+        real slices' 13-25 cm trunks at 1.5-9 m with 8-20 returns passed as straight). A
+        wall with independent errors is exempted at the test's 1 % rate (and still meets
+        the circle fit's radius tests); a bend away from the sensor (a hollow, an inside
+        corner) never exempts. Numpy path only. False = off (every preset).
     drop_partial : bool
         Drop segments with an occluded or truncated end.
     fit_method : str
@@ -491,6 +503,7 @@ class DetectorConfig:
     straight_test: Literal["chi2", "ratio"] = "chi2"
     straight_min_points: int = 3
     straight_depth_sigmas: float = math.inf
+    straight_curvature: bool = False
     drop_partial: bool = False
     fit_method: str = "kasa"
     sigma: float = 0.01

@@ -480,7 +480,8 @@ class ScanTrunkDetector:
         """Whether :func:`stemmap.scan._detect_fast.detect_scans` covers this call: the "ours"
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
         corner splits (``refit_split="corners"``), no relaxed RMS tests, lobed outlines
-        (``lobe_harmonics``) or RMS test over the fit's degrees of freedom (``rms_dof``), no
+        (``lobe_harmonics``), RMS test over the fit's degrees of freedom (``rms_dof``) or bend
+        test of straightness (``straight_curvature``), no
         ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
@@ -500,6 +501,7 @@ class ScanTrunkDetector:
             and not cfg.split_search
             and not (cfg.step_split and cfg.step_twigs)
             and not cfg.rms_dof
+            and not cfg.straight_curvature
         )
 
     def _run(

@@ -15,7 +15,8 @@ Paper methods
 * :func:`radius_median_filter` -- keep returns within 0.5 m of the cluster's median point
   (visual-lidar paper §2.3), which separates overlapping trunks.
 * :func:`line_fit_rms` -- residual of the best straight line; :func:`is_straight` rejects walls
-  and fences (ours: the papers only reject them implicitly through depth and width).
+  and fences (ours: the papers only reject them implicitly through depth and width);
+  :func:`line_bulge_gain` -- the share of it a bend towards the sensor explains (ours).
 * :func:`edge_silhouette` -- where each trunk edge's tangent lies, from the beams next to the
   segment: background behind them narrows the interval, a mixed pixel pins it (ours).
 """
@@ -43,6 +44,7 @@ __all__ = [
     "first_echo_edge_prior",
     "footprint_correct",
     "is_straight",
+    "line_bulge_gain",
     "line_fit_rms",
     "point_curvature",
     "radius_median_filter",
@@ -216,6 +218,25 @@ def cluster_curvature(width: ArrayLike, depth: ArrayLike) -> FloatArray:
     return out
 
 
+def _centred_moments(
+    segs: Segments,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Every segment's mean return (mx, my), its returns about it (qx, qy, per return) and
+    their second moments summed per segment (sxx, syy, sxy); centred first, which is
+    numerically safe far from the sensor."""
+    p = segs.points
+    n = segs.counts.astype(np.float64)
+    lab = segs.labels
+    mx = segment_sum(p.x, segs) / n
+    my = segment_sum(p.y, segs) / n
+    qx = p.x - mx[lab]
+    qy = p.y - my[lab]
+    sxx = segment_sum(qx * qx, segs)
+    syy = segment_sum(qy * qy, segs)
+    sxy = segment_sum(qx * qy, segs)
+    return mx, my, qx, qy, sxx, syy, sxy
+
+
 def line_fit_rms(segs: Segments) -> FloatArray:
     """RMS orthogonal distance of every segment's returns to its best straight line (PCA).
 
@@ -223,24 +244,63 @@ def line_fit_rms(segs: Segments) -> FloatArray:
     -------
     ndarray of shape (K,), metres (0 for segments of 1-2 returns).
     """
-    k = len(segs)
-    if k == 0:
+    if len(segs) == 0:
         return np.zeros(0)
-    p = segs.points
     n = segs.counts.astype(np.float64)
-    lab = segs.labels
-    # centre per segment first (numerically safe far from the sensor)
-    mx = segment_sum(p.x, segs) / n
-    my = segment_sum(p.y, segs) / n
-    qx = p.x - mx[lab]
-    qy = p.y - my[lab]
-    sxx = segment_sum(qx * qx, segs) / n
-    syy = segment_sum(qy * qy, segs) / n
-    sxy = segment_sum(qx * qy, segs) / n
+    _, _, _, _, sxx, syy, sxy = _centred_moments(segs)
+    sxx, syy, sxy = sxx / n, syy / n, sxy / n
     tr = sxx + syy
     det = sxx * syy - sxy * sxy
     lam_min = tr / 2.0 - np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
     out: FloatArray = np.sqrt(np.maximum(lam_min, 0.0))
+    return out
+
+
+def line_bulge_gain(segs: Segments) -> FloatArray:
+    """How much a bend explains of every segment's residual from its best line, m^2 (ours,
+    issue 11, Dec 5; ``straight_curvature``).
+
+    In the frame of the segment's best line (PCA: ``s`` along it, ``t`` across it, ``t``
+    pointing to the sensor), the returns are regressed on ``s^2`` after ``1`` and ``s``: the
+    least-squares parabola ``t = a + b s + c s^2``, whose ``c`` is half the curvature. Its
+    gain is the drop of the residual sum of squares over the line's, ``(sum t z)^2 / sum
+    z^2`` with ``z`` = ``s^2`` made orthogonal to ``1`` and ``s`` (``t`` is already orthogonal
+    to both, the PCA line being the least-squares one). Under a straight surface with
+    independent errors of std ``sigma`` across it, the gain is ``sigma^2 chi^2_1``: one degree
+    of freedom, the curvature, against the ``n - 2`` of the line's whole residual that
+    :func:`is_straight` tests. An arc of sagitta ``h`` over ``n`` returns puts ``4 n h^2 / 45``
+    (returns even along the chord) into that one degree, so the bend of a small trunk under
+    noise is read from all its returns at once, where the line's residual spreads it over
+    ``n - 2`` degrees and :func:`sagitta_depth` reads it from the deepest return alone. The
+    sign: positive where the middle bulges towards the sensor (``c < 0``; a trunk seen from
+    outside), negative where it recedes (a wall's inside corner, a hollow).
+
+    Returns
+    -------
+    ndarray of shape (K,), m^2, signed (0 for segments of fewer than 4 returns).
+    """
+    if len(segs) == 0:
+        return np.zeros(0)
+    n = segs.counts.astype(np.float64)
+    lab = segs.labels
+    mx, my, qx, qy, sxx, syy, sxy = _centred_moments(segs)
+    phi = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the best line
+    ux, uy = np.cos(phi), np.sin(phi)
+    # the normal, pointed at the sensor (the frame's origin)
+    flip = np.where(-(mx * -uy + my * ux) >= 0.0, 1.0, -1.0)
+    vx, vy = -uy * flip, ux * flip
+    s_along = qx * ux[lab] + qy * uy[lab]
+    t_across = qx * vx[lab] + qy * vy[lab]
+    s2 = s_along * s_along
+    m2 = segment_sum(s2, segs) / n
+    ss = segment_sum(s2, segs)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        beta = np.where(ss > 0, segment_sum(s2 * s_along, segs) / ss, 0.0)
+        z = s2 - m2[lab] - beta[lab] * s_along
+        tz = segment_sum(t_across * z, segs)
+        zz = segment_sum(z * z, segs)
+        gain = np.where(zz > 0, tz * tz / zz, 0.0)
+    out: FloatArray = np.where(segs.counts >= 4, np.where(tz < 0, gain, -gain), 0.0)
     return out
 
 

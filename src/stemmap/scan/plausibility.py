@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from stemmap.scan.features import SegmentFeatures, is_straight
+from stemmap.scan.features import SegmentFeatures, is_straight, line_bulge_gain
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
 
@@ -44,6 +44,11 @@ __all__ = [
     "segment_reasons",
     "segment_sigma",
 ]
+
+#: ``straight_curvature``: the bend of :func:`~stemmap.scan.features.line_bulge_gain` is
+#: significant towards the sensor at the chi-square straightness test's 1 %: one-sided, the
+#: curvature's z-score above z_0.99 = 2.326, i.e. the gain above 2.326^2 sigma^2
+STRAIGHT_BEND_CHI2 = 5.411894431054339
 
 #: 1.4826 MAD -> sigma of a Gaussian, / sqrt(6): std of a second difference of iid noise
 _ROUGH = 1.4826 / math.sqrt(6.0)
@@ -335,6 +340,8 @@ def segment_reasons(segs: Segments, f: SegmentFeatures, cfg: DetectorConfig) -> 
         )
         # ours (issue 11): a sagitta of many sigmas is an arc, whatever the line's RMS says
         straight &= ~(f.depth > cfg.straight_depth_sigmas * sigma)
+        if cfg.straight_curvature:  # ours (Dec 5): a significant bend towards the sensor
+            straight &= ~(line_bulge_gain(segs) > STRAIGHT_BEND_CHI2 * sigma * sigma)
         _first_failure(codes, straight & (f.n_points >= cfg.straight_min_points), "straight")
     if cfg.drop_partial:
         _first_failure(codes, segs.partial, "partial")
