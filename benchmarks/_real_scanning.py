@@ -35,6 +35,7 @@ __all__ = [
     "TEXTBOOK",
     "ReturnRule",
     "SceneBatch",
+    "dataset_seed",
     "error_stats",
     "greedy_match",
     "matched",
@@ -218,6 +219,16 @@ def scene_note(background: str) -> str:
     )
 
 
+def dataset_seed(seed: int, name: str) -> int:
+    """The seed of slice ``name``'s random stream (vantage points, then the noise draws, and
+    its scene): ``seed`` + the slice's position in :data:`~stemmap.eval.real_slices.SLICES`,
+    what a run over every slice gives it, so a run over some of them (``--only``) draws the same
+    for each."""
+    if name not in SLICES:
+        raise KeyError(f"unknown slice {name!r}; choose from {', '.join(SLICES)}")
+    return seed + list(SLICES).index(name)
+
+
 def slice_scan_batches(
     ddir: Path,
     n_vantage: int,
@@ -269,19 +280,20 @@ def scene_batches(
     configuration (``names``: only these slices, the others' seeds unchanged;
     ``return_rule``: the averaging scanner's, as ``real_geometry.py --loo`` passes it)."""
     only = None if names is None else set(names)
-    for i, name in enumerate(SLICES):
+    for name in SLICES:
         if only is not None and name not in only:
             continue
         sl = load_slice(ddir, name)
         if not sl.refs:
             continue
-        rng = np.random.default_rng(seed + i)
+        ds = dataset_seed(seed, name)
+        rng = np.random.default_rng(ds)
         vp = vantage_points(sl, n_vantage, rng)
         geometry: dict[tuple[str, float], tuple[np.ndarray, np.ndarray]] = {}
         for model, res, noise in FULL_SCANNERS:
             if (model, res) not in geometry:
                 geometry[(model, res)] = scene_scans(
-                    sl, vp, model, res, background, seed + i, mount, relief_std, relief_corr,
+                    sl, vp, model, res, background, ds, mount, relief_std, relief_corr,
                     return_rule=return_rule,
                 )  # fmt: skip
             ranges0, hit = geometry[(model, res)]

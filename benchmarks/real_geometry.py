@@ -60,6 +60,7 @@ from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_n
     QUICK_SCANNERS,
     TEXTBOOK,
     ReturnRule,
+    dataset_seed,
     matched,
     scene_note,
     scene_scans,
@@ -403,7 +404,7 @@ def leave_one_out(
 
     per: dict[str, dict[int, dict[str, Any]]] = {}
     trusted: dict[str, tuple[bool, float]] = {}
-    for i, name in enumerate(names):
+    for name in names:
         sl = load_slice(ddir, name, fill)
         if not sl.refs:
             continue
@@ -428,7 +429,7 @@ def leave_one_out(
                 dets,
                 n_vantage=n_vantage,
                 min_returns=min_returns,
-                seed=seed + i,
+                seed=dataset_seed(seed, name),
                 background=background,
                 return_rule=rule,
                 max_fill_returns=max_fill_returns,
@@ -577,8 +578,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="2 scanner configs, 3 detectors")
     ap.add_argument("--vantage", type=int, default=None, help="vantage points per dataset")
     ap.add_argument("--min-returns", type=int, default=4)
-    ap.add_argument("--only", nargs="*", default=None, help="datasets to run (default: all)")
-    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument(
+        "--only",
+        nargs="*",
+        choices=list(SLICES),
+        default=None,
+        help="datasets to run (default: all); each draws the vantage points and noise of a"
+        " full run (its stream's seed is --seed + its position in the full list)",
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=11,
+        help="dataset k of the full list (0-based) draws from the stream --seed + k",
+    )
     ap.add_argument(
         "--loo", action="store_true", help="leave-one-dataset-out choice of LOO_GRID (stemmap)"
     )
@@ -781,7 +794,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "datasets": {},
     }
-    for i, name in enumerate(names):
+    for name in names:
         sl = load_slice(ddir, name, args.fill)
         info: dict[str, Any] = {
             "file": SLICES[name].path,
@@ -806,7 +819,7 @@ def main(argv: list[str] | None = None) -> int:
                 dets,
                 n_vantage=n_vantage,
                 min_returns=args.min_returns,
-                seed=args.seed + i,
+                seed=dataset_seed(args.seed, name),
                 background=args.background,
                 return_rule=rule,
                 max_fill_returns=args.max_fill_returns,

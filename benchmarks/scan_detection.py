@@ -5,7 +5,11 @@ branches, a wall, a fence, rocks), a SICK LMS-like scanner (0.5 deg, 180 deg, 1 
 0.25 deg beam divergence with mixed pixels), a drive through the stand. Each scan is scored
 against the truth in the sensor frame with ``stemmap.eval.detection.scan_detection_metrics``:
 a tree counts if it has >= 5 returns, DBH >= 10 cm and lies within 15 m; detections whose
-centre lies beyond 15.5 m are not scored.
+centre lies beyond 15.5 m are not scored. The precision target is judged as documented since
+Dec 3 (sixteenth round): on the mean over ``--precision-seeds`` (default 1-10) on each of the two
+simulated drives, this 400-scan one and the ``stemmap demo`` drive
+(``meets_targets.precision_mean_over_seeds``, which ``meets_targets.all`` reads); this run's seed
+alone is reported as ``precision_this_seed`` and does not decide.
 
 Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--quick]
        python benchmarks/scan_detection.py --speed-set '{"sigma_from_scan": true}' --rounds 5
@@ -44,6 +48,8 @@ import numpy as np
 from _scan_fits import crlb_diameter_var, load_rings, run_real_geometry  # of scan_fits_real.py
 from _scan_sim import (  # shared with real_geometry.py
     SCENARIO,
+    SIM_PRECISION_MIN,
+    SIM_SEEDS,
     benchmark_drive,
     edge_status,
     make_run,
@@ -65,7 +71,7 @@ FIT_METHODS = ("kasa", "fletcher_reeves", "three_point", "chord_width", "ours")
 #: the 5-10 m, bias and latency rows are the first issue's.
 TARGETS = {
     "recall_min": 0.95,
-    "precision_min": 0.95,
+    "precision_min": SIM_PRECISION_MIN,  # 0.95, the real_geometry.py grid's admission too
     "dbh_rmse_cm_le5_max": 1.2,
     "dbh_rmse_cm_5_10_max": 2.5,
     "abs_dbh_bias_cm_max": 0.5,
@@ -479,6 +485,70 @@ def benchmark_crlb(run: Any) -> dict[str, Any]:
     return out
 
 
+#: The two simulated drives of :func:`_scan_sim.simulated_precision`.
+DRIVES = ("benchmark", "demo")
+
+
+def meets_targets(
+    ours: dict[str, Any], sp: dict[str, Any], over_seeds: dict[str, Any], seed: int
+) -> dict[str, Any]:
+    """Which of :data:`TARGETS` the ``stemmap`` preset meets: ``ours`` its :func:`score` on
+    this run's drive (seed ``seed``), ``sp`` :func:`speed`, ``over_seeds``
+    :func:`_scan_sim.simulated_precision_seeds` of the preset.
+
+    Precision is judged as documented since Dec 3 (sixteenth round, "admission over seeds";
+    docs/algorithms/scan-detection.md): its **mean over seeds**, on the benchmark drive and on
+    the ``stemmap demo`` drive, is >= ``precision_min`` (``precision_mean_over_seeds``). One
+    seed's precision has an sd of 0.020-0.027 over seeds (a clutter object seen in tens of
+    scans moves it by 0.02-0.04), so this run's seed alone (``precision_this_seed``, its
+    benchmark drive) is reported beside it but does not decide. (``over_seeds["admitted"]`` is
+    the ``real_geometry.py`` grid's admission, since Dec 5 also recall and DBH on the mean: not
+    read here.) ``all``: every target, precision by the mean; ``failing``: the names of those
+    not met (``precision_this_seed`` is never one)."""
+    rows = over_seeds["per_seed"]
+    means = [float(np.mean([float(r[d]["precision"]) for r in rows])) for d in DRIVES]
+    met: dict[str, Any] = {
+        "recall": (ours["recall"] or 0.0) >= TARGETS["recall_min"],
+        "precision_mean_over_seeds": all(m >= TARGETS["precision_min"] for m in means),
+        "precision_this_seed": (ours["precision"] or 0.0) >= TARGETS["precision_min"],
+        "dbh_rmse_le5": (ours["dbh_rmse_cm_le5"] or 1e9) <= TARGETS["dbh_rmse_cm_le5_max"],
+        "dbh_rmse_5_10": (ours["dbh_rmse_cm_5_10"] or 1e9) <= TARGETS["dbh_rmse_cm_5_10_max"],
+        "dbh_bias": max(abs(ours["dbh_bias_cm_le5"] or 1e9), abs(ours["dbh_bias_cm_5_10"] or 1e9))
+        <= TARGETS["abs_dbh_bias_cm_max"],
+        "speed_361": sp["scans_per_second_361"] >= TARGETS["scans_per_second_361_min"],
+        "latency_1081": sp["latency_ms_1081"] <= TARGETS["latency_ms_1081_max"],
+    }
+    failing = [k for k, v in met.items() if not v and k != "precision_this_seed"]
+    return {
+        **met,
+        "all": not failing,
+        "failing": failing,
+        "precision_rule": f"mean precision over seeds {over_seeds['seeds']} on each drive"
+        f" (benchmark, stemmap demo) >= {TARGETS['precision_min']}; precision_this_seed"
+        f" (seed {seed}, benchmark drive) is reported, not judged",
+    }
+
+
+def precision_summary(
+    ours: dict[str, Any], over_seeds: dict[str, Any], seed: int
+) -> dict[str, Any]:
+    """The precisions :func:`meets_targets` reads: this run's seed (benchmark drive) and the
+    mean / smallest / largest over seeds per drive with the seeds below the target on either
+    drive (``failing_seeds``)."""
+    return {
+        "this_seed": {"seed": seed, "benchmark": ours["precision"]},
+        "over_seeds": {
+            "seeds": over_seeds["seeds"],
+            **{
+                f"{drive}_{stat}": over_seeds[f"{drive}_precision_{stat}"]
+                for drive in DRIVES
+                for stat in ("mean", "min", "max")
+            },
+            "failing_seeds": over_seeds["failing_seeds"],
+        },
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
@@ -511,6 +581,14 @@ def main(argv: list[str] | None = None) -> int:
         help="--seeds: overrides of the stemmap preset, e.g. '{\"arc_refit\": false}'",
     )
     ap.add_argument("--worst", type=int, default=5, help="--seeds: trees listed per seed")
+    ap.add_argument(
+        "--precision-seeds",
+        type=int,
+        nargs="+",
+        default=list(SIM_SEEDS),
+        help="the full run: seeds whose mean precision (each drive) judges the precision target"
+        f" (default {' '.join(map(str, SIM_SEEDS))}, the documented rule)",
+    )
     ap.add_argument(
         "--speed-seeds",
         type=int,
@@ -562,16 +640,9 @@ def main(argv: list[str] | None = None) -> int:
     result["scans_per_second_361"] = sp["scans_per_second_361"]
     result["latency_ms_1081"] = sp["latency_ms_1081"]
     ours = methods["ours"]
-    result["meets_targets"] = {
-        "recall": (ours["recall"] or 0.0) >= TARGETS["recall_min"],
-        "precision": (ours["precision"] or 0.0) >= TARGETS["precision_min"],
-        "dbh_rmse_le5": (ours["dbh_rmse_cm_le5"] or 1e9) <= TARGETS["dbh_rmse_cm_le5_max"],
-        "dbh_rmse_5_10": (ours["dbh_rmse_cm_5_10"] or 1e9) <= TARGETS["dbh_rmse_cm_5_10_max"],
-        "dbh_bias": max(abs(ours["dbh_bias_cm_le5"] or 1e9), abs(ours["dbh_bias_cm_5_10"] or 1e9))
-        <= TARGETS["abs_dbh_bias_cm_max"],
-        "speed_361": sp["scans_per_second_361"] >= TARGETS["scans_per_second_361_min"],
-        "latency_1081": sp["latency_ms_1081"] <= TARGETS["latency_ms_1081_max"],
-    }
+    over_seeds = simulated_precision_seeds({}, args.precision_seeds)
+    result["precision"] = precision_summary(ours, over_seeds, args.seed)
+    result["meets_targets"] = meets_targets(ours, sp, over_seeds, args.seed)
     if not args.no_real:
         ddir = find_datasets_dir(Path(__file__).resolve().parent)
         result["real_detection"] = None if ddir is None else run_real_detection(ddir, args.seed)

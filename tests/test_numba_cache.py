@@ -44,6 +44,29 @@ def test_cache_dropped_only_when_a_dependency_changes(tmp_path: Path) -> None:
     assert not list(cache.glob("kern.*.nb?"))
 
 
+def test_an_edit_of_the_compile_flags_alone_drops_the_cache(tmp_path: Path, monkeypatch) -> None:
+    """numba's cache key holds no compile option (``_nrt`` of stemmap._leaf_jit): a change of
+    the flag module drops every caller's entries, with or without listed dependencies."""
+    disp, mod, dep, cache = _fake(tmp_path)
+    flags = tmp_path / "_leaf_jit.py"
+    flags.write_text("NRT = False\n")
+    monkeypatch.setattr(_numba_cache, "FLAGS_FILE", flags)
+    for deps in ((str(dep),), ()):
+        drop_stale_cache(disp, str(mod), *deps)  # first record
+        kept = _entries(cache)
+        assert not drop_stale_cache(disp, str(mod), *deps)
+        assert sorted(p.name for p in cache.glob("kern.*.nb?")) == kept
+        flags.write_text(flags.read_text() + "# edited\n")  # the dependency itself unchanged
+        assert drop_stale_cache(disp, str(mod), *deps)
+        assert not list(cache.glob("kern.*.nb?"))
+
+
+def test_the_flags_file_is_the_leaf_jit_module() -> None:
+    from stemmap import _leaf_jit
+
+    assert Path(_leaf_jit.__file__).resolve() == _numba_cache.FLAGS_FILE.resolve()
+
+
 def test_unwritable_cache_is_not_an_error(tmp_path: Path) -> None:
     disp, mod, dep, _ = _fake(tmp_path)
     blocker = tmp_path / "file"
@@ -99,8 +122,9 @@ def test_the_detector_kernel_records_its_dependencies() -> None:
 
 def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
     """The fit's kernels compile in its Levenberg-Marquardt core (_fit_lm), the gap cuts the
-    corners' sagitta, the per-candidate steps the fit and the cuts: each module's record
-    matches those files."""
+    corners' sagitta, the per-candidate steps the fit and the cuts; the leaf modules (_fit_lm,
+    _corners, _fast_robust, _fast_segments) compile in nothing but the flags: each module's
+    record matches those files (and the flag module, always hashed)."""
     from stemmap.scan import (
         _corners,
         _fast_arcs,
@@ -125,6 +149,10 @@ def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
         _kernel_params.__file__,
     )
     for mod, disp, deps in (
+        (_fit_lm, _fit_lm._lm, ()),
+        (_corners, _corners.sagitta, ()),
+        (_fast_robust, _fast_robust._range_roughness, ()),
+        (_fast_segments, _fast_segments._pairwise, ()),
         (_fit_geometric, _fit_geometric._fit_segments, (_fit_lm.__file__,)),
         (_gaps, _gaps.gap_cut_flags, (_corners.__file__,)),
         (_fast_candidates, _fast_candidates._fit_candidate, candidate_deps),
@@ -177,3 +205,50 @@ def test_the_dependency_lists_cover_every_imported_kernel_module() -> None:
                     if isinstance(arg, ast.Attribute) and isinstance(arg.value, ast.Name):
                         listed.add(arg.value.id)
         assert imported <= listed, (mod.__name__, imported - listed)
+
+
+def _module_calls_drop_stale_cache(tree: object) -> bool:
+    import ast
+
+    assert isinstance(tree, ast.Module)
+    return any(
+        isinstance(node, ast.Expr)
+        and isinstance(node.value, ast.Call)
+        and isinstance(node.value.func, ast.Attribute)
+        and node.value.func.attr == "drop_stale_cache"
+        for node in tree.body
+    )
+
+
+def test_every_module_compiled_with_the_leaf_flags_checks_its_cache() -> None:
+    """numba's cache key ignores the ``_nrt`` flag of stemmap._leaf_jit, so every stemmap
+    module whose cached kernels are compiled with it -- it imports ``leaf_njit`` / ``nrt_njit``,
+    or imports kernels from a module that does -- calls drop_stale_cache at import (at module
+    level, so the call runs before any kernel loads its cache), which hashes the flag module."""
+    import ast
+
+    import stemmap
+
+    root = Path(stemmap.__file__).parent
+    trees = {}
+    for path in sorted(root.rglob("*.py")):
+        name = ".".join(path.relative_to(root.parent).with_suffix("").parts)
+        trees[name] = ast.parse(path.read_text())
+
+    def imported_modules(name: str, tree: ast.Module) -> set[str]:
+        mods: set[str] = set()
+        for node in tree.body:
+            if isinstance(node, ast.ImportFrom) and node.module:
+                mods.add(node.module)
+                mods |= {f"{node.module}.{a.name}" for a in node.names}  # submodules
+        return mods & set(trees)
+
+    leaf = {n for n, t in trees.items() if "stemmap._leaf_jit" in imported_modules(n, t)}
+    assert {"stemmap.scan._fit_lm", "stemmap.scan._corners"} <= leaf  # the scan is real
+    using = set(leaf)
+    for name, tree in trees.items():
+        cached = "cache=True" in ast.unparse(tree)
+        if cached and imported_modules(name, tree) & leaf:
+            using.add(name)
+    missing = sorted(n for n in using if not _module_calls_drop_stale_cache(trees[n]))
+    assert not missing, missing

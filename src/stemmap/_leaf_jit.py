@@ -19,6 +19,12 @@ never given). numba compiles a callee with its caller's setting unless the calle
 own: a kernel that allocates and is called from a leaf kernel is compiled with
 :func:`nrt_njit`, which keeps the runtime. Where numba lacks the flag (a private option), the
 kernels compile as ordinary ``njit`` ones: the same results, slower.
+
+numba's on-disk cache key holds a kernel's signature, target and bytecode but not its compile
+options: an edit of this file alone would leave kernels compiled under the old flags in the
+cache. Every module whose cached kernels use these decorators (or compile in kernels that do)
+calls :func:`stemmap._numba_cache.drop_stale_cache` at import, which hashes this file
+(tests/test_numba_cache.py checks that none is missed).
 """
 
 from __future__ import annotations

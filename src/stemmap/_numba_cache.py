@@ -7,6 +7,14 @@ edit of the other module -- or a ``git pull`` into an editable install -- the st
 code would keep running without any error. :func:`drop_stale_cache` records a hash of the
 dependency files next to the cache and deletes the dependent module's cache entries when the
 hash changes, so the next call recompiles.
+
+The compile flags are a dependency of every such module: numba's cache key holds the
+signature, the target machine and the function's bytecode, but not its compile options, and
+:mod:`stemmap._leaf_jit` sets one of them (``_nrt``, reference counting on or off) for the
+kernels of ``leaf_njit`` / ``nrt_njit`` -- and, by inlining and linking, for every kernel that
+calls them. An edit of that file alone (a kernel moved between the two, the flag's default)
+would leave machine code compiled under the old flags in the cache, so :func:`drop_stale_cache`
+always hashes it (:data:`FLAGS_FILE`) with the listed dependencies.
 """
 
 from __future__ import annotations
@@ -20,6 +28,10 @@ __all__ = ["drop_stale_cache"]
 
 log = logging.getLogger(__name__)
 
+#: The compile-flag module every caller's kernels are compiled with (module docstring): part of
+#: every dependency hash.
+FLAGS_FILE = Path(__file__).with_name("_leaf_jit.py")
+
 
 def _cache_dir(dispatcher: Any, module_file: Path) -> Path:
     """Where numba keeps ``dispatcher``'s cache (``__pycache__`` beside the module, or the
@@ -30,7 +42,8 @@ def _cache_dir(dispatcher: Any, module_file: Path) -> Path:
 
 
 def drop_stale_cache(dispatcher: Any, module_file: str, *deps: str) -> bool:
-    """Delete the cache entries of ``module_file``'s kernels if any of ``deps`` changed.
+    """Delete the cache entries of ``module_file``'s kernels if any of ``deps`` or the
+    compile-flag module :data:`FLAGS_FILE` changed.
 
     Parameters
     ----------
@@ -39,7 +52,8 @@ def drop_stale_cache(dispatcher: Any, module_file: str, *deps: str) -> bool:
     module_file : str
         ``__file__`` of the dependent module.
     deps : str
-        Source files whose code or constants that module's kernels compile in.
+        Source files whose code or constants that module's kernels compile in (none: the
+        module depends on the compile flags alone).
 
     Returns
     -------
@@ -51,7 +65,7 @@ def drop_stale_cache(dispatcher: Any, module_file: str, *deps: str) -> bool:
     """
     mod = Path(module_file)
     h = hashlib.sha256()
-    for dep in deps:
+    for dep in (str(FLAGS_FILE), *deps):
         h.update(Path(dep).read_bytes())
     stamp = h.hexdigest()
     cache_dir = _cache_dir(dispatcher, mod)

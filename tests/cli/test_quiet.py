@@ -106,6 +106,28 @@ def test_quiet_silences_stdout_and_keeps_the_products(name, inputs, tmp_path):
         assert "summary" in doc and doc["files"]
 
 
+def test_sim_score_quiet_prints_nothing_and_writes_the_same_metrics(tmp_path):
+    """``sim score`` (no --json object on stdout: its --json is a file): -q prints no
+    summary, and the metrics file is byte for byte the one written without it."""
+    run, stems = tmp_path / "run.npz", tmp_path / "stems.csv"
+    sim = _run(["sim", "scans", "--out", run, "--n-scans", "20", "-q"])
+    assert sim.exit_code == 0, sim.output
+    det = _run(["detect", run, "--out", stems, "-q"])
+    assert det.exit_code == 0, det.output
+    loud = _run(["sim", "score", stems, "--run", run, "--json", tmp_path / "loud.json"])
+    assert loud.exit_code == 0, loud.output
+    assert "precision" in loud.stdout  # the summary, without -q
+    for flag in ("-q", "--quiet"):
+        quiet = _run(["sim", "score", stems, "--run", run, "--json", tmp_path / "q.json", flag])
+        assert quiet.exit_code == 0, quiet.output
+        assert quiet.stdout == "" and quiet.stderr == ""
+        assert (tmp_path / "q.json").read_bytes() == (tmp_path / "loud.json").read_bytes()
+    # errors are still printed: a detections file that does not exist
+    bad = _run(["sim", "score", tmp_path / "missing.csv", "--run", run, "-q"])
+    assert bad.exit_code == 2
+    assert bad.stdout == "" and bad.stderr.startswith("error:")
+
+
 def test_quiet_still_prints_errors(tmp_path):
     res = _run(["detect", tmp_path / "missing.npz", "--out", tmp_path / "d.csv", "-q"])
     assert res.exit_code == 2
@@ -132,7 +154,7 @@ def test_one_quiet_option_everywhere():
                 with_quiet[name] = p
     # every command of the brief, and the sim / io ones that had their own
     assert {"detect", "odometry", "stems", "map", "demo", "io convert-scans", "sim scans",
-            "sim munjer"} <= set(with_quiet)  # fmt: skip
+            "sim score", "sim munjer"} <= set(with_quiet)  # fmt: skip
     for name, p in with_quiet.items():
         assert sorted(p.opts) == ["--quiet", "-q"], name
         assert p.help == expected, name

@@ -539,6 +539,41 @@ def test_loo_admits_lazily_best_score_first():
         bench._best_admitted([1, 4], scores.__getitem__, lambda g: False)
 
 
+@pytest.mark.slow
+def test_only_draws_what_the_full_run_draws_for_each_dataset(datasets_dir, capsys):
+    """``real_geometry.py --only X`` gives dataset X the vantage points and noise draws of the
+    full run (its stream's seed is --seed + X's position in SLICES, not in --only), and the
+    full run keeps the streams it always had (seed + position)."""
+    import json
+
+    import _real_scanning
+
+    bench = _real_geometry_bench()
+    names = list(SLICES)
+    assert [_real_scanning.dataset_seed(11, n) for n in names] == [11 + k for k in range(7)]
+    with pytest.raises(KeyError, match="unknown slice"):
+        _real_scanning.dataset_seed(11, "nowhere")
+
+    def run(*argv: str) -> dict:
+        base = ["--datasets", str(datasets_dir), "--quick", "--vantage", "2"]
+        assert bench.main([*base, *argv]) == 0
+        out = json.loads(capsys.readouterr().out)["datasets"]
+        for info in out.values():  # timings are not results
+            for conf in info.get("results", {}).values():
+                for det in conf.values():
+                    det.pop("scans_per_s")
+        return out
+
+    full = run()
+    # lidr_dbh is 5th of the full list and 1st here; treels_pine_plot 2nd in both
+    only = run("--only", "lidr_dbh", "treels_pine_plot")
+    assert set(only) == {"lidr_dbh", "treels_pine_plot"}
+    for name in only:
+        assert only[name] == full[name], name
+    with pytest.raises(SystemExit):  # an unknown name is refused by the option itself
+        bench.main(["--datasets", str(datasets_dir), "--only", "nowhere"])
+
+
 def test_ransac_takes_the_circle_seen_all_round_over_a_denser_arc():
     """A 30 cm ring of 40 points and a denser 60-point arc of a 1 m circle through it: the arc
     has more inliers, the ring covers every 10-degree sector; the trunk is the ring (scoring by

@@ -23,7 +23,7 @@ import json
 import math
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -31,6 +31,9 @@ import typer
 from stemmap.cli._common import QuietFlag, fail_on_stemmap_error, out
 from stemmap.cli._validate import bounded
 from stemmap.io._util import check_npz_sizes, existing_file
+
+if TYPE_CHECKING:
+    from stemmap.eval.detection import DetectionMetrics
 
 __all__ = ["register"]
 
@@ -289,6 +292,32 @@ def _read_truth_trees(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return table[order, 1:3], table[order, 3]
 
 
+def _print_scores(m: DetectionMetrics) -> None:
+    """The ``sim score`` summary on stdout: counts, rates, centre and DBH error, and recall /
+    DBH error per range bin that holds truth trees (``m``: the scorer's metrics)."""
+
+    def cm(v: float) -> str:
+        return "n/a" if not math.isfinite(v) else f"{100 * v:.2f} cm"
+
+    def ratio(v: float) -> str:
+        return "n/a" if not math.isfinite(v) else f"{v:.3f}"
+
+    out.print(
+        f"{m.n_frames} scans, {m.n_detections} detections: TA {m.ta}, FA {m.fa}, FR {m.fr}, "
+        f"TR {m.tr}/{m.n_nontree}\n"
+        f"precision {ratio(m.precision)}, recall {ratio(m.recall)}, F1 {ratio(m.f1)}; "
+        f"centre RMSE {cm(m.center_rmse)}; DBH RMSE {cm(m.diameter_rmse)}, "
+        f"bias {cm(m.diameter_bias)}"
+    )
+    for b in m.by_range:
+        if b.n_truth:
+            out.print(
+                f"  {b.range_lo:g}-{b.range_hi:g} m: recall {ratio(b.recall)}, "
+                f"DBH RMSE {cm(b.diameter_rmse)}, bias {cm(b.diameter_bias)} "
+                f"({b.n_truth} trees)"
+            )
+
+
 @sim_app.command("score")
 def score(
     detections: Annotated[
@@ -333,6 +362,7 @@ def score(
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the metrics as JSON here.")
     ] = None,
+    quiet: QuietFlag = False,
 ) -> None:
     """Score per-scan detections against the simulator's ground truth (TA/FA/FR/TR, DBH error).
 
@@ -401,26 +431,8 @@ def score(
             with atomic_write(run.path(json_out)) as fh:
                 json.dump(d, fh, indent=2)
 
-        def cm(v: float) -> str:
-            return "n/a" if not math.isfinite(v) else f"{100 * v:.2f} cm"
-
-        def ratio(v: float) -> str:
-            return "n/a" if not math.isfinite(v) else f"{v:.3f}"
-
-        out.print(
-            f"{m.n_frames} scans, {m.n_detections} detections: TA {m.ta}, FA {m.fa}, FR {m.fr}, "
-            f"TR {m.tr}/{m.n_nontree}\n"
-            f"precision {ratio(m.precision)}, recall {ratio(m.recall)}, F1 {ratio(m.f1)}; "
-            f"centre RMSE {cm(m.center_rmse)}; DBH RMSE {cm(m.diameter_rmse)}, "
-            f"bias {cm(m.diameter_bias)}"
-        )
-        for b in m.by_range:
-            if b.n_truth:
-                out.print(
-                    f"  {b.range_lo:g}-{b.range_hi:g} m: recall {ratio(b.recall)}, "
-                    f"DBH RMSE {cm(b.diameter_rmse)}, bias {cm(b.diameter_bias)} "
-                    f"({b.n_truth} trees)"
-                )
+        if not quiet:  # the metrics file (--json) is the product, written either way
+            _print_scores(m)
 
 
 def register(app: typer.Typer) -> None:

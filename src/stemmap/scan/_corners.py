@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap import _numba_cache
 from stemmap._leaf_jit import leaf_njit
 from stemmap.types import FloatArray
 
@@ -237,3 +238,8 @@ def cut_tables(
         oc12[ns2 - 1] = oc1[j]
         tr12[ns2 - 1] = tr1[j]
     return st2, sp2, oc02, oc12, tr02, tr12, st, sp, oc0, oc1, tr0, tr1, ns2
+
+
+# after every kernel is defined, before the first call loads the cache: no other module's
+# kernels are compiled in here, but the compile flags (stemmap._leaf_jit) are
+_numba_cache.drop_stale_cache(sagitta, __file__)

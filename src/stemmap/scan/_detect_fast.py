@@ -40,9 +40,9 @@ kernel compiles in those helpers and constants, ``_fit_one`` of
 :mod:`stemmap.scan._fit_lm`), the corner and gap cuts (:mod:`stemmap.scan._corners`,
 :mod:`stemmap.scan._gaps`) and the constant ``MIXED_FRACTION_STD`` of
 :mod:`stemmap.scan.features`; at import :func:`stemmap._numba_cache.drop_stale_cache` drops
-this module's cache entries when any of those files changed (an edit, or a ``git pull`` into an
-editable install), so the stale code cannot keep running (tests/test_numba_cache.py lists the
-same files).
+this module's cache entries when any of those files or the compile flags
+(:mod:`stemmap._leaf_jit`) changed (an edit, or a ``git pull`` into an editable install), so the
+stale code cannot keep running (tests/test_numba_cache.py lists the same files).
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
+from stemmap import _numba_cache
 from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.types import FloatArray
 
@@ -232,3 +233,8 @@ def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover 
     s = np.sort(v[start:stop])
     c = stop - start
     return 0.5 * (s[(c - 1) // 2] + s[c // 2])
+
+
+# after every kernel is defined, before the first call loads the cache: no other module's
+# kernels are compiled in here, but the compile flags (stemmap._leaf_jit) are
+_numba_cache.drop_stale_cache(_range_roughness, __file__)

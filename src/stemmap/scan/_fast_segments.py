@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from stemmap import _numba_cache
 from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.types import FloatArray
 
@@ -218,3 +219,8 @@ def _geometric_cov(
     else:
         for q in range(9):
             out[3 + q] = np.nan
+
+
+# after every kernel is defined, before the first call loads the cache: no other module's
+# kernels are compiled in here, but the compile flags (stemmap._leaf_jit) are
+_numba_cache.drop_stale_cache(_pairwise, __file__)

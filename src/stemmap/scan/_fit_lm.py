@@ -4,7 +4,8 @@ distances, with the Gaussian silhouette terms), Huber weights, the Gauss-Newton 
 equations, 3x3 solves and the damped iteration. The model is documented in
 :mod:`stemmap.scan.circle` and docs/algorithms/scan-fits.md.
 
-Kept free of other modules' kernels: numba's cache of this file depends on this file alone;
+Kept free of other modules' kernels: numba's cache of this file depends on this file and the
+compile flags (:mod:`stemmap._leaf_jit`, dropped at import when it changes) alone;
 the modules that compile these kernels in (:mod:`stemmap.scan._fit_geometric`,
 :mod:`stemmap.scan._detect_fast`) drop their caches when it changes."""
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+from stemmap import _numba_cache
 from stemmap._leaf_jit import leaf_njit
 from stemmap.types import FloatArray
 
@@ -440,3 +442,8 @@ def _lm(
         if not improved:
             return cost, it + 1
     return cost, it + 1
+
+
+# after every kernel is defined, before the first call loads the cache: no other module's
+# kernels are compiled in here, but the compile flags (stemmap._leaf_jit) are
+_numba_cache.drop_stale_cache(_lm, __file__)
