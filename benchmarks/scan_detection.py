@@ -11,7 +11,7 @@ simulated drives, this 400-scan one and the ``stemmap demo`` drive
 (``meets_targets.precision_mean_over_seeds``, which ``meets_targets.all`` reads); this run's seed
 alone is reported as ``precision_this_seed`` and does not decide.
 
-Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--quick]
+Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--no-real] [--crlb]
        python benchmarks/scan_detection.py --speed-set '{"sigma_from_scan": true}' --rounds 5
        python benchmarks/scan_detection.py --seeds 1 2 3 [--set '{...}'] [--worst 5]
        python benchmarks/scan_detection.py --speed-seeds 1 2 3
