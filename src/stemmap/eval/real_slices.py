@@ -248,7 +248,7 @@ def ring_reference(
         inl = np.abs(res) <= trim_sigmas * max(mad, 0.005)
     assert fit is not None
     q = ring[inl] - fit.center
-    sectors = np.unique(np.floor(np.degrees(np.arctan2(q[:, 1], q[:, 0]) + math.pi) / 10.0))
+    sectors = np.unique(_sectors(q))
     coverage = 10.0 * sectors.size
     if coverage < min_coverage_deg:
         return None
@@ -289,7 +289,7 @@ def reference_jackknife(sl: RealSlice, t: int, sector_deg: float = 30.0) -> dict
     n_own = int(ref["n_points"])
     pts = sl.xy[sl.labels == t][:n_own]  # the ring's inliers; the filled sectors come after
     q = pts - np.array([ref["x"], ref["y"]])
-    sector = np.floor((np.degrees(np.arctan2(q[:, 1], q[:, 0])) + 180.0) / sector_deg).astype(int)
+    sector = _sectors(q, sector_deg)
     d = []
     for s in np.unique(sector):
         got = ring_reference(pts[sector != s])
