@@ -225,11 +225,22 @@ def _lo_kernel(
                     n += 1
             if n < 3 or not _kasa_start(lx[:n], ly[:n], p):
                 break
-            _lm(lx[:n], ly[:n], unused[:n], unused[:n], unused[:n], keep[:n], p, mdl, 0.0,
-                False, ws3, wv, 1.0)
-            if not (
-                math.isfinite(p[0]) and math.isfinite(p[1]) and r_min <= p[2] <= r_max
-            ):
+            _lm(
+                lx[:n],
+                ly[:n],
+                unused[:n],
+                unused[:n],
+                unused[:n],
+                keep[:n],
+                p,
+                mdl,
+                0.0,
+                False,
+                ws3,
+                wv,
+                1.0,
+            )
+            if not (math.isfinite(p[0]) and math.isfinite(p[1]) and r_min <= p[2] <= r_max):
                 break
             s = _score_one(qx, qy, p[0], p[1], p[2], tol, True)
             if not s > score[k]:
@@ -678,8 +689,9 @@ def _opaque_core_refits(
     inliers, a residual RMS no larger than s, lies within the old circle
     (``|c' - c| + r' <= r + 3 t``), and leaves fewer than half as many points inside its
     own disc (margin ``3 max(s', 5 mm)``), at most :data:`CORE_INSIDE_FRACTION` of its
-    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed`` as in :func:`_fit_segments`. Returns the fits (copies;
-    centres, radii, RMS, ok, inliers) and the number of segments replaced."""
+    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed`` as in :func:`_fit_segments`.
+    Returns the fits (copies; centres, radii, RMS, ok, inliers) and the number of segments
+    replaced."""
     centers, radii, rms = (np.array(a, dtype=np.float64) for a in fit[:3])
     ok, nin = np.array(fit[3], dtype=bool), np.array(fit[4], dtype=np.int64)
     if pts.shape[0] == 0 or not ok.any():
