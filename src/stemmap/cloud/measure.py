@@ -139,6 +139,7 @@ def _fit_slices(
         ray_origins=None if origins is None else origins[fitmask],
         ransac_lo=cfg.ransac_lo,
         ransac_seed=cfg.ransac_seed,
+        window=cfg.slice_fit_window,
     )
     if cfg.core_refits:
         (centers, radii, rms, ok, nin), n_core = _opaque_core_refits(
@@ -151,6 +152,7 @@ def _fit_slices(
             None if origins is None else origins[fitmask],
             ransac_lo=cfg.ransac_lo,
             ransac_seed=cfg.ransac_seed,
+            window=cfg.slice_fit_window,
         )
         if n_core:
             log.debug("%d slice fit(s) refitted to the stem inside them", n_core)

@@ -336,6 +336,7 @@ def _fit_segments(
     ray_origins: FloatArray | None = None,
     ransac_lo: bool = True,
     ransac_seed: int = 0,
+    window: float = 3.0,
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int64]]:
     """Robust batched circle fit of K segments: fit, trim |res| > 3 sigma (MAD), refit.
 
@@ -343,7 +344,10 @@ def _fit_segments(
     residuals along the rays (:func:`_refine_along_rays`). Returns centres (K, 2), radii,
     rms, ok, inlier counts; rows for ids absent from ``ids`` are NaN / False. ``ransac_lo``:
     the RANSAC start is locally optimised (:func:`_ransac_circle`); ``ransac_seed``: its
-    draws (:func:`_segment_rng`; ``StemConfig.ransac_seed``).
+    draws (:func:`_segment_rng`; ``StemConfig.ransac_seed``). ``window``
+    (``StemConfig.slice_fit_window``, 3): the points kept after a RANSAC start are those
+    within ``window`` tolerances of its circle, and the trim drops residuals beyond
+    ``window x 1.4826 x MAD``.
     """
     centers = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)
@@ -381,7 +385,7 @@ def _fit_segments(
                 continue
             cx, cy, r = best
             res = np.abs(np.hypot(pts[idx, 0] - cx, pts[idx, 1] - cy) - r)
-            keep[idx] = res <= 3 * ransac_tol
+            keep[idx] = res <= window * ransac_tol
             c0[first.segment_ids[row]] = (cx, cy)
     for it in range(2):
         sel_ids = ids[keep]
@@ -408,7 +412,7 @@ def _fit_segments(
         c0 = np.where(np.isfinite(centers), centers, c0)
         if it == 1:
             break
-        # trim outliers: |residual| > max(3 * 1.4826 * MAD, 1 mm) of the segment
+        # trim outliers: |residual| > max(window (3) * 1.4826 * MAD, 1 mm) of the segment
         good = ok[ids]
         res = np.full(pts.shape[0], np.inf)
         res[good] = np.abs(np.hypot(*(pts[good] - centers[ids[good]]).T) - radii[ids[good]])
@@ -424,7 +428,7 @@ def _fit_segments(
             counts = np.diff(np.r_[starts, s_ids.size])
             med = s_res[starts + counts // 2]
             mad[s_ids[starts]] = med
-        thr = np.maximum(3.0 * 1.4826 * mad, 0.001)
+        thr = np.maximum(window * 1.4826 * mad, 0.001)
         keep = good & (res <= thr[ids])
         keep |= ~good  # segments that failed keep their points for the second try
     if ray_origins is not None and method != "kasa":
@@ -674,6 +678,7 @@ def _opaque_core_refits(
     ray_origins: FloatArray | None = None,
     ransac_lo: bool = True,
     ransac_seed: int = 0,
+    window: float = 3.0,
 ) -> tuple[_Fits, int]:
     """Slice circles refitted to the stem inside them: a trunk is opaque.
 
@@ -689,7 +694,8 @@ def _opaque_core_refits(
     inliers, a residual RMS no larger than s, lies within the old circle
     (``|c' - c| + r' <= r + 3 t``), and leaves fewer than half as many points inside its
     own disc (margin ``3 max(s', 5 mm)``), at most :data:`CORE_INSIDE_FRACTION` of its
-    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed`` as in :func:`_fit_segments`.
+    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed``, ``window`` as in
+    :func:`_fit_segments`.
     Returns the fits (copies; centres, radii, RMS, ok, inliers) and the number of segments
     replaced."""
     centers, radii, rms = (np.array(a, dtype=np.float64) for a in fit[:3])
@@ -726,6 +732,7 @@ def _opaque_core_refits(
             ray_origins=None if ray_origins is None else ray_origins[sel],
             ransac_lo=ransac_lo,
             ransac_seed=ransac_seed,
+            window=window,
         )
         if not (ok2[0] and n2[0] >= min_points and s2[0] <= rms[s] and r2[0] <= radii[s]):
             continue

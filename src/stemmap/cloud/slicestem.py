@@ -280,6 +280,7 @@ def _annulus_fit(
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
         ransac_lo=cfg.ransac_lo,
         ransac_seed=cfg.ransac_seed,
+        window=cfg.slice_fit_window,
     )
     if not ok[0] or nin[0] < cfg.min_slice_points:
         return None
