@@ -34,7 +34,7 @@ returns; scan-fits.md). No unbiased fit of those returns has a smaller standard 
   background beyond its edges goes too, so ``isolated`` also carries the change of the
   neighbour-silhouette priors that ``neighbour_silhouette_off`` shows).
 
-Usage: python benchmarks/sim_dbh_trunks.py --seeds 6 11 17 [--drive benchmark|demo]
+Usage: python benchmarks/sim_dbh_trunks.py --seeds 6 11 13 17 [--drive benchmark|demo]
        [--set '{}'] [--top 5] [--z 3]
 
 One JSON line per seed.
@@ -249,7 +249,7 @@ def seed_trunks(
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[6, 11, 17])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[6, 11, 13, 17])
     ap.add_argument("--drive", choices=("benchmark", "demo"), default="benchmark")
     ap.add_argument("--set", type=json.loads, default=None, help="stemmap preset overrides")
     ap.add_argument("--top", type=int, default=5, help="trees listed per seed")
