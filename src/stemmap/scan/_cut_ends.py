@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from stemmap.scan._behind import _merge, _take
 from stemmap.scan._refit import Refitted, fit_passes
+from stemmap.scan._stub_runs import _trimmed_flags
 from stemmap.scan._stubs import first_echo
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
@@ -88,7 +89,8 @@ def trim_cut_ends(
     drop = np.zeros(len(segs.points), dtype=bool)
     drop[segs.start[c_s]] = True
     drop[segs.stop[c_e] - 1] = True
-    trimmed = _occluded(segs.drop(~drop), c_s, c_e)
+    # the cut ends occluded: the stem's silhouette there was never seen
+    trimmed = _trimmed_flags(segs.drop(~drop), c_s, c_e, c_s, c_e)
     refit = detector._fit_candidates(trimmed.select(act), grid, wrap)
     passed = fit_passes(cfg, refit)
     if not np.any(passed):
@@ -99,19 +101,5 @@ def trim_cut_ends(
     drop &= ~undo[segs.labels]
     c_s &= ~undo
     c_e &= ~undo
-    out = _occluded(segs.drop(~drop), c_s, c_e)
+    out = _trimmed_flags(segs.drop(~drop), c_s, c_e, c_s, c_e)
     return got._replace(segs=out, fitted=_merge(got.fitted, rows[passed], _take(refit, passed)))
-
-
-def _occluded(segs: Segments, cut_start: NDArray[np.bool_], cut_end: NDArray[np.bool_]) -> Segments:
-    """``segs`` with the trimmed cut ends occluded (the stem's silhouette there unseen)."""
-    return Segments(
-        segs.points,
-        segs.start,
-        segs.stop,
-        segs.scan,
-        segs.occluded_start | cut_start,
-        segs.occluded_end | cut_end,
-        segs.truncated_start,
-        segs.truncated_end,
-    )
