@@ -377,7 +377,18 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(
         **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5, straight_curvature=True
     ),
-    # Dec 5 ("The branch root at the arc end"), grids 73 / 74 on grids 67 (the preset) and
+    # Dec 5 ("Per seed or on the mean"), grid 67 (the preset) with the averaging scanner's
+    # blend at an occluded segment end dropped where it steps towards the sensor by more than
+    # 3 sigmas (occluded_blend_sigmas; numpy path: the averaging rows and the simulated drives;
+    # the nearest-return rows are grid 67's)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        fit_noise_floor=0.003,
+        occluded_blend_sigmas=3.0,
+    ),
+    # Dec 5 ("The branch root at the arc end"), grids 74 / 75 on grids 67 (the preset) and
     # 69 (its run test by data snooping): an accepted piece's cut-end return goes and that
     # end is occluded where the trimmed piece passes every test (cut_ends; first-echo fits,
     # numpy path: the nearest-return rows; the averaging rows and the simulator are 67's / 69's)
