@@ -388,6 +388,14 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         fit_noise_floor=0.003,
         occluded_blend_sigmas=3.0,
     ),
+    # Dec 5 ("The branch root at the arc end"), grids 74 / 75 on grids 67 (the preset) and
+    # 69 (its run test by data snooping): an accepted piece's cut-end return goes and that
+    # end is occluded where the trimmed piece passes every test (cut_ends; first-echo fits,
+    # numpy path: the nearest-return rows; the averaging rows and the simulator are 67's / 69's)
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, fit_noise_floor=0.003, cut_ends=True),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, **_RUNS_63, stub_runs_snoop=True, cut_ends=True
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -418,6 +418,16 @@ class DetectorConfig:
         centimetres of noise and no estimate of its own the tests' 1 cm sigma made noisy
         end returns look like runs. False = every accepted candidate is searched against
         the fit's noise. Numpy path.
+    cut_ends : bool
+        First-echo or thin-beam fits (``beam_footprint_deg`` > 0 or ``beam_divergence_deg``
+        0): at each end of an accepted piece (corner split, step split, largest consistent
+        arc) where it was cut from its candidate, the end return goes and the end is occluded
+        when the piece fitted again passes every test (ours, issue 11, Dec 5, "The branch root
+        at the arc end"; :func:`~stemmap.scan._cut_ends.trim_cut_ends`). At a cut the stem
+        meets another surface (a branch root, a fillet, a touching stem): the last beam's
+        footprint holds both, its first echo is the junction's and the footprint correction
+        misplaces it, and the stem's silhouette on that side was never seen. Numpy path.
+        False = the pieces keep their cut-end returns.
     fit_noise_floor : float, metres, >= 0
         First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours") only: the circle
         fits weight the returns by the range noise measured on the data instead of the
@@ -568,6 +578,7 @@ class DetectorConfig:
     fit_noise_floor: float = 0.0
     stub_runs: bool = False
     stub_runs_snoop: bool = False
+    cut_ends: bool = False
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False

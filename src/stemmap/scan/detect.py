@@ -487,7 +487,7 @@ class ScanTrunkDetector:
         (``lobe_harmonics``), RMS test over the fit's degrees of freedom (``rms_dof``) or bend
         test of straightness (``straight_curvature``), no occluded-end blend trim
         (``occluded_blend_sigmas``), no
-        ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
+        ``behind_sigmas`` trim nor a ``stub_sigmas`` or ``cut_ends`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
         step split with ``step_noise_pool`` since Dec 5: :mod:`stemmap.scan._fast_step_split`)."""
@@ -503,6 +503,7 @@ class ScanTrunkDetector:
             and cfg.lobe_harmonics == 0
             and math.isinf(cfg.behind_sigmas)
             and (math.isinf(cfg.stub_sigmas) or not first_echo(cfg))
+            and not (cfg.cut_ends and first_echo(cfg))
             and not cfg.split_search
             and not (cfg.step_split and cfg.step_twigs)
             and not cfg.rms_dof
