@@ -144,8 +144,8 @@ def scan_noise(
 
     ``batch_scale`` (Dec 5, "The batch's noise from few triples"; ``batch_noise_scale``): the
     scale statistic of that batch estimate, ``"mad"`` (the statistic above) or ``"biweight"``
-    (:func:`biweight_scale`: as robust to a few surface tails, about half the sampling spread
-    of the MAD's on the 12-60 triples a batch of sparse slice scans holds at 1 deg). The scans'
+    (:func:`biweight_scale`: as robust to a few surface tails, about three quarters of the MAD's
+    sampling spread on the 20-60 triples a batch of sparse slice scans holds at 1 deg). The scans'
     own estimates and the pool keep the MAD.
 
     Parameters
