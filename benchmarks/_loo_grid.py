@@ -67,7 +67,7 @@ def _setting(
         # (grid 67); a grid point without it means off, as before (grids 63-65 name it)
         "fit_noise_floor": 0.0,
         # Dec 5 ("The batch's noise from few triples"): the batch estimate's statistic; a grid
-        # point without it means the MAD, as before (grids 73-75 name the biweight)
+        # point without it means the MAD, as before (grids 74-76 name the biweight)
         "batch_noise_scale": "mad",
         **extra,
     }
@@ -380,10 +380,21 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(
         **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5, straight_curvature=True
     ),
-    # Dec 5 ("The batch's noise from few triples"), grids 73-75: the batch's range-noise
-    # estimate by the biweight midvariance (batch_noise_scale; both paths) on grid 69, on the
-    # preset (grid 67), and on grid 69 with the RMS test reading the batch's estimate where it
-    # is >= 2.5 sigma (scan_noise_batch)
+    # Dec 5 ("Per seed or on the mean"), grid 67 (the preset) with the averaging scanner's
+    # blend at an occluded segment end dropped where it steps towards the sensor by more than
+    # 3 sigmas (occluded_blend_sigmas; numpy path: the averaging rows and the simulated drives;
+    # the nearest-return rows are grid 67's)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        fit_noise_floor=0.003,
+        occluded_blend_sigmas=3.0,
+    ),
+    # Dec 5 ("The batch's noise from few triples"), grids 74-76 (measured as 73-75 before
+    # main's grid 73): the batch's range-noise estimate by the biweight midvariance
+    # (batch_noise_scale; both paths) on grid 69, on the preset (grid 67), and on grid 69 with
+    # the RMS test reading the batch's estimate where it is >= 2.5 sigma (scan_noise_batch)
     _setting(
         **_DEFAULT_11,
         **_ARCS_35,
