@@ -339,6 +339,7 @@ class ScanTrunkDetector:
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
                 pool=cfg.scan_noise_pool,
                 batch_min=cfg.scan_noise_batch_min(),
+                batch_scale=cfg.batch_noise_scale,
             )
             if cfg.sigma_from_scan
             else None
@@ -365,7 +366,12 @@ class ScanTrunkDetector:
         if self._fit_noise_on():
             # the noise the fits weight by: each scan's own estimate, else the batch's
             fit_noise = scan_noise(
-                raw, cfg.scan_noise_jump, cfg.scan_noise_surface, 0.0, batch_min=0.0
+                raw,
+                cfg.scan_noise_jump,
+                cfg.scan_noise_surface,
+                0.0,
+                batch_min=0.0,
+                batch_scale=cfg.batch_noise_scale,
             )
             pts = replace(pts, fit_noise=fit_noise)
         if cfg.segmentation == "range_jump":
@@ -440,6 +446,7 @@ class ScanTrunkDetector:
             math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
             pool=not batch,
             batch_min=0.0 if batch else math.inf,
+            batch_scale=cfg.batch_noise_scale,
         )
         return pooled
 
