@@ -401,8 +401,9 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     ),
     # Dec 5 ("The batch's noise from few triples"), grids 76-78 (measured as 73-75, then
     # numbered 74-76 on their branch; renumbered after the branch root's 74 / 75): the
-    # batch's range-noise estimate by the biweight midvariance (batch_noise_scale; both paths) on grid 69, on the preset (grid 67), and on grid 69 with
-    # the RMS test reading the batch's estimate where it is >= 2.5 sigma (scan_noise_batch)
+    # batch's range-noise estimate by the biweight midvariance (batch_noise_scale; both paths)
+    # on grid 69, on the preset (grid 67), and on grid 69 with the RMS test reading the batch's
+    # estimate where it is >= 2.5 sigma (scan_noise_batch)
     _setting(
         **_DEFAULT_11,
         **_ARCS_35,
