@@ -92,6 +92,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"thick_dbh_slice": False}),
         ("on", {"thick_dbh_slice": True}),
     ),
+    "thin_refit_points": (
+        ("off", {"thin_refit_points": False}),
+        ("on", {"thin_refit_points": True}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")
@@ -154,7 +158,8 @@ def cell_error(row: dict[str, Any], transform: str, single: bool) -> float | Non
         own = row.get("dbh_vs_own_ring_max_cm")
         if own is not None:
             return abs(float(own))
-    v = row.get("dbh_vs_ring_rmse_cm")
+    key = "dbh_vs_tracked_ring_rmse_cm" if transform.startswith("crop") else "dbh_vs_ring_rmse_cm"
+    v = row.get(key)
     return None if v is None else abs(float(v))
 
 

@@ -12,8 +12,13 @@ count and slice count, plus the spacing and noise floor spread, and whether ever
 gave bit-identical positions, diameters and point counts. CPU time (``time.process_time``)
 of the file-order run (median of ``--repeat`` runs) is printed too.
 
+``--subsample F`` first keeps a random fraction F of every cloud's points (the draw of
+``cloud_robustness.py``'s ``subsample_*``, seed 0: a sparse cloud's thickened band), and
+``--set key=value`` overrides a :class:`StemConfig` option (true / false / a number), e.g.
+``--set thin_refit_points=true``.
+
 Prints ONE JSON object. Usage: python benchmarks/cloud_point_order.py [--perms 10]
-[--clouds a,b] [--repeat 3]
+[--clouds a,b] [--repeat 3] [--subsample F] [--set key=value ...]
 """
 
 from __future__ import annotations
@@ -68,9 +73,35 @@ def _write_las(path: Path, src: str, perm: np.ndarray) -> None:
     out.write(str(path))
 
 
-def run_cloud(path: str, perms: int, repeat: int) -> dict[str, Any]:
-    cfg = replace(StemConfig(), estimate_height=True)
+def _value(v: str) -> Any:
+    """A ``--set`` value: true / false, else a number."""
+    low = v.strip().lower()
+    return low == "true" if low in ("true", "false") else float(v)
+
+
+def _write_xyz_las(path: Path, xyz: np.ndarray) -> None:
+    """``xyz`` as a LAS 1.2 file at a 0.1 mm scale (the subsampled cloud's file order)."""
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    header.scales = np.full(3, 1e-4)
+    header.offsets = np.floor(xyz.min(axis=0))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.write(str(path))
+
+
+def run_cloud(
+    path: str,
+    perms: int,
+    repeat: int,
+    subsample: float | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    cfg = replace(StemConfig(), estimate_height=True, **(overrides or {}))
     xyz = read_cloud(path).xyz
+    if subsample is not None:
+        n = xyz.shape[0]
+        keep = np.random.default_rng(0).choice(n, int(subsample * n), replace=False)
+        xyz = xyz[np.sort(keep)]
     cpu = []
     for _ in range(repeat):
         t0 = time.process_time()
@@ -82,9 +113,13 @@ def run_cloud(path: str, perms: int, repeat: int) -> dict[str, Any]:
         runs.append(detect_stems(xyz[perm], cfg))
     with tempfile.TemporaryDirectory() as tmp:
         las = Path(tmp) / "permuted.las"
-        _write_las(las, path, np.random.default_rng(1000).permutation(xyz.shape[0]))
+        src = path
+        if subsample is not None:  # the subsample in file order, as the file to compare with
+            src = str(Path(tmp) / "subsample.las")
+            _write_xyz_las(Path(src), xyz)
+        _write_las(las, src, np.random.default_rng(1000).permutation(xyz.shape[0]))
         streamed = detect_stems_file(las, cfg)
-        file_order = detect_stems_file(path, cfg)
+        file_order = detect_stems_file(src, cfg)
     same = all(
         len(r) == len(base)
         and np.array_equal(r.xy, base.xy)
@@ -114,16 +149,20 @@ def main() -> None:
     ap.add_argument("--perms", type=int, default=10)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--clouds", default=",".join(CLOUDS))
+    ap.add_argument("--subsample", type=float, default=None, help="keep this fraction")
+    ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     a = ap.parse_args()
+    overrides = {k: _value(v) for k, v in (kv.split("=", 1) for kv in a.set)}
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
     res = {
-        k: run_cloud(str(root / CLOUDS[k]), a.perms, a.repeat)
+        k: run_cloud(str(root / CLOUDS[k]), a.perms, a.repeat, a.subsample, overrides)
         for k in a.clouds.split(",")
         if k in CLOUDS
     }
-    print(json.dumps({"perms": a.perms, "clouds": res}, indent=1))
+    out = {"perms": a.perms, "subsample": a.subsample, "set": overrides, "clouds": res}
+    print(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":
