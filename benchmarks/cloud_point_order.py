@@ -35,6 +35,7 @@ import laspy
 import numpy as np
 
 from _cloud_refs import CLOUDS, match_stems
+from cloud_robustness import set_value, write_las
 from stemmap.cloud.stems import CloudStems, StemConfig, detect_stems, detect_stems_file
 from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
@@ -73,22 +74,6 @@ def _write_las(path: Path, src: str, perm: np.ndarray) -> None:
     out.write(str(path))
 
 
-def _value(v: str) -> Any:
-    """A ``--set`` value: true / false, else a number."""
-    low = v.strip().lower()
-    return low == "true" if low in ("true", "false") else float(v)
-
-
-def _write_xyz_las(path: Path, xyz: np.ndarray) -> None:
-    """``xyz`` as a LAS 1.2 file at a 0.1 mm scale (the subsampled cloud's file order)."""
-    header = laspy.LasHeader(point_format=0, version="1.2")
-    header.scales = np.full(3, 1e-4)
-    header.offsets = np.floor(xyz.min(axis=0))
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    las.write(str(path))
-
-
 def run_cloud(
     path: str,
     perms: int,
@@ -116,7 +101,7 @@ def run_cloud(
         src = path
         if subsample is not None:  # the subsample in file order, as the file to compare with
             src = str(Path(tmp) / "subsample.las")
-            _write_xyz_las(Path(src), xyz)
+            write_las(Path(src), xyz, 1e-4, 1.0)
         _write_las(las, src, np.random.default_rng(1000).permutation(xyz.shape[0]))
         streamed = detect_stems_file(las, cfg)
         file_order = detect_stems_file(src, cfg)
@@ -152,7 +137,7 @@ def main() -> None:
     ap.add_argument("--subsample", type=float, default=None, help="keep this fraction")
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     a = ap.parse_args()
-    overrides = {k: _value(v) for k, v in (kv.split("=", 1) for kv in a.set)}
+    overrides = {k: set_value(v) for k, v in (kv.split("=", 1) for kv in a.set)}
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")

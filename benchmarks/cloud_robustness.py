@@ -258,7 +258,7 @@ def refused_row(name: str, prep: Prepared, exc: QuantisedCoordinatesError) -> di
 TRACKED_RMS_FACTOR = 3.0
 
 
-def _value(v: str) -> Any:
+def set_value(v: str) -> Any:
     """A ``--set`` value: true / false, else a number."""
     low = v.strip().lower()
     return low == "true" if low in ("true", "false") else float(v)
@@ -542,7 +542,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the random transforms")
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
-    overrides = {k: _value(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    overrides = {k: set_value(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
