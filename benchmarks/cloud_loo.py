@@ -10,7 +10,8 @@ for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder``
 or over 0.5-3.0 m with ``axis_reach``; default off) and ``thick_dbh_slice`` (pine_plot's DBH
 at 20 / 10 %: a sparse plot's radius from the thick slice at breast height), and
 ``ransac_lo`` (Dec 5: the slice fits' locally optimised RANSAC start; spruce under re-exports,
-docs "RANSAC draws"). Here
+docs "RANSAC draws") and ``thin_refit_points`` (Dec 5: the thin ladder's guided refits held to
+the count the density gives a thin slice; pine_plot at 20 / 10 %, default off). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
