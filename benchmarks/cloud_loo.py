@@ -10,9 +10,11 @@ for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder``
 or over 0.5-3.0 m with ``axis_reach``; default off) and ``thick_dbh_slice`` (pine_plot's DBH
 at 20 / 10 %: a sparse plot's radius from the thick slice at breast height), and
 ``ransac_lo`` (Dec 5: the slice fits' locally optimised RANSAC start; spruce under re-exports,
-docs "RANSAC draws"), and ``slice_fit_window`` (Dec 5: the slice fits' keep window and trim in
+docs "RANSAC draws"), ``slice_fit_window`` (Dec 5: the slice fits' keep window and trim in
 tolerances / robust sigmas, 3 as before, 2.5 or 2; spruce with 1 cm noise, docs "RANSAC
-draws"; its current value is listed first, the least intervention). Here
+draws"; its current value is listed first, the least intervention) and ``thin_refit_points``
+(Dec 5: the thin ladder's guided refits held to the count the density gives a thin slice;
+pine_plot at 20 / 10 %, default off). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -99,6 +101,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"thick_dbh_slice": False}),
         ("on", {"thick_dbh_slice": True}),
     ),
+    "thin_refit_points": (
+        ("off", {"thin_refit_points": False}),
+        ("on", {"thin_refit_points": True}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")
@@ -161,7 +167,8 @@ def cell_error(row: dict[str, Any], transform: str, single: bool) -> float | Non
         own = row.get("dbh_vs_own_ring_max_cm")
         if own is not None:
             return abs(float(own))
-    v = row.get("dbh_vs_ring_rmse_cm")
+    key = "dbh_vs_tracked_ring_rmse_cm" if transform.startswith("crop") else "dbh_vs_ring_rmse_cm"
+    v = row.get(key)
     return None if v is None else abs(float(v))
 
 

@@ -21,8 +21,13 @@ with ``ground_relative`` off (the default) and on. Per case: whether every order
 bit-identical voxel points, DBSCAN labels and stems, the stems' count, and the CPU time of
 ``munjer_clusters`` with the share of it spent on the voxel grid's canonical sort.
 
+``--subsample F`` first keeps a random fraction F of every cloud's points (the draw of
+``cloud_robustness.py``'s ``subsample_*``, seed 0: a sparse cloud's thickened band), and
+``--set key=value`` overrides a :class:`StemConfig` option (true / false / a number), e.g.
+``--set thin_refit_points=true``.
+
 Prints ONE JSON object. Usage: python benchmarks/cloud_point_order.py [--perms 10]
-[--clouds a,b] [--repeat 3] [--munjer] [--no-ours]
+[--clouds a,b] [--repeat 3] [--munjer] [--no-ours] [--subsample F] [--set key=value ...]
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ import laspy
 import numpy as np
 
 from _cloud_refs import CLOUDS, match_stems
+from cloud_robustness import set_value, write_las
 from munjer2025_real_frames import LINES_X, virtual_frame
 from stemmap.cloud.canonical import canonical_order
 from stemmap.cloud.filters import pass_through
@@ -81,9 +87,19 @@ def _write_las(path: Path, src: str, perm: np.ndarray) -> None:
     out.write(str(path))
 
 
-def run_cloud(path: str, perms: int, repeat: int) -> dict[str, Any]:
-    cfg = replace(StemConfig(), estimate_height=True)
+def run_cloud(
+    path: str,
+    perms: int,
+    repeat: int,
+    subsample: float | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    cfg = replace(StemConfig(), estimate_height=True, **(overrides or {}))
     xyz = read_cloud(path).xyz
+    if subsample is not None:
+        n = xyz.shape[0]
+        keep = np.random.default_rng(0).choice(n, int(subsample * n), replace=False)
+        xyz = xyz[np.sort(keep)]
     cpu = []
     for _ in range(repeat):
         t0 = time.process_time()
@@ -95,9 +111,13 @@ def run_cloud(path: str, perms: int, repeat: int) -> dict[str, Any]:
         runs.append(detect_stems(xyz[perm], cfg))
     with tempfile.TemporaryDirectory() as tmp:
         las = Path(tmp) / "permuted.las"
-        _write_las(las, path, np.random.default_rng(1000).permutation(xyz.shape[0]))
+        src = path
+        if subsample is not None:  # the subsample in file order, as the file to compare with
+            src = str(Path(tmp) / "subsample.las")
+            write_las(Path(src), xyz, 1e-4, 1.0)
+        _write_las(las, src, np.random.default_rng(1000).permutation(xyz.shape[0]))
         streamed = detect_stems_file(las, cfg)
-        file_order = detect_stems_file(path, cfg)
+        file_order = detect_stems_file(src, cfg)
     same = all(
         len(r) == len(base)
         and np.array_equal(r.xy, base.xy)
@@ -209,16 +229,24 @@ def main() -> None:
     ap.add_argument("--clouds", default=",".join(CLOUDS))
     ap.add_argument("--munjer", action="store_true", help="also the munjer2025 preset")
     ap.add_argument("--no-ours", action="store_true", help="skip preset ours")
+    ap.add_argument("--subsample", type=float, default=None, help="keep this fraction")
+    ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     a = ap.parse_args()
+    overrides = {k: set_value(v) for k, v in (kv.split("=", 1) for kv in a.set)}
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
     res = {
-        k: run_cloud(str(root / CLOUDS[k]), a.perms, a.repeat)
+        k: run_cloud(str(root / CLOUDS[k]), a.perms, a.repeat, a.subsample, overrides)
         for k in a.clouds.split(",")
         if k in CLOUDS and not a.no_ours
     }
-    out: dict[str, Any] = {"perms": a.perms, "clouds": res}
+    out: dict[str, Any] = {
+        "perms": a.perms,
+        "subsample": a.subsample,
+        "set": overrides,
+        "clouds": res,
+    }
     if a.munjer:
         out["munjer2025"] = run_munjer(root, a.perms, a.repeat)
     print(json.dumps(out, indent=1))

@@ -86,6 +86,7 @@ def test_each_option_lists_its_current_default() -> None:
         "continues_above": "on",
         "axis_fallback": "off",
         "thick_dbh_slice": "on",
+        "thin_refit_points": "off",
     }
     # every value is a distinct config; the off values of options that are on by default
     # really switch something off (axis_fallback is off by default: its off is the default;
@@ -97,9 +98,15 @@ def test_each_option_lists_its_current_default() -> None:
 
 
 def test_crop_cells_read_the_error_their_pass_test_reads() -> None:
-    row = {"dbh_vs_ring_rmse_cm": 3.0, "dbh_vs_own_ring_max_cm": -0.4}
+    row = {
+        "dbh_vs_ring_rmse_cm": 3.0,
+        "dbh_vs_own_ring_max_cm": -0.4,
+        "dbh_vs_tracked_ring_rmse_cm": 0.6,
+    }
     assert cloud_loo.cell_error(row, "crop_0.3", single=True) == 0.4
-    assert cloud_loo.cell_error(row, "crop_0.3", single=False) == 3.0
+    # a plot's crop: the rings followed up to each detection's height
+    assert cloud_loo.cell_error(row, "crop_0.3", single=False) == 0.6
+    assert cloud_loo.cell_error(row, "noise_1cm", single=False) == 3.0
     assert cloud_loo.cell_error({"dbh_vs_ring_rmse_cm": None}, "noise_1cm", True) is None
 
 

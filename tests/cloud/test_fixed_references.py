@@ -130,3 +130,37 @@ def test_pine_plots_unchecked_stem_has_no_breast_height(datasets_dir: Path) -> N
     assert all(returns(det.xy[k], lo) == 0 for lo in levels)
     (j,) = [i for i in range(len(det)) if np.hypot(*(det.xy[i] - (0.42, 8.24))) < 0.05]
     assert all(returns(det.xy[j], lo) >= 10 for lo in levels)
+
+
+def _leaning_tapered_stem(rng: np.random.Generator, lean_deg: float) -> np.ndarray:
+    """A stem from 0 to 3.5 m, radius 0.12 m at 1.3 m narrowing 1 cm per metre, its axis
+    leaning ``lean_deg`` towards +x; 4 mm noise."""
+    h = rng.uniform(0.0, 3.5, 40_000)
+    t = rng.uniform(0, 2 * np.pi, h.size)
+    r = 0.12 - 0.01 * (h - 1.3) + rng.normal(0, 0.004, h.size)
+    ax = np.tan(np.radians(lean_deg)) * h
+    return np.column_stack((ax + r * np.cos(t), r * np.sin(t), h))
+
+
+def test_tracked_reference_follows_a_leaning_stem(rng: np.random.Generator) -> None:
+    """A crop's DBH is measured higher up the stem: the reference at that height follows the
+    stem from the committed seed (1.3 m) in 10 cm steps and gives the stem's section there;
+    the seed's circle used directly at 2.4 m is 19 cm off a 10 degree lean and has no ring."""
+    from _cloud_refs import RingSeed, tracked_reference
+
+    xyz = _leaning_tapered_stem(rng, 10.0)
+    x13 = np.tan(np.radians(10.0)) * 1.3
+    seed = RingSeed(x13, 0.0, 1.3, 0.12, 0.05)
+    got = tracked_reference(xyz, seed, 2.4)
+    true_d = 2 * (0.12 - 0.011) * np.cos(np.radians(10.0))  # the leaning section's minor axis
+    assert got is not None and got.full
+    # a horizontal section of a leaning cylinder is an ellipse: its fitted circle lies
+    # between the axes (d cos-1 and d), 2.2 mm apart here
+    assert true_d - 0.001 < got.diameter < true_d / np.cos(np.radians(10.0)) ** 2 + 0.001
+    assert abs(got.x - np.tan(np.radians(10.0)) * 2.4) < 0.005
+    direct = converged_ring_reference(xyz, (seed.x, seed.y), 2.4, seed.r)
+    assert direct is None or abs(direct.diameter - got.diameter) > 0.01
+    # at the seed's own height it is the fixed reference
+    same = tracked_reference(xyz, seed, 1.3)
+    ref = converged_ring_reference(xyz, (seed.x, seed.y), 1.3, seed.r, half_thickness=0.05)
+    assert same is not None and ref is not None and same.diameter == ref.diameter

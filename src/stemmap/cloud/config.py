@@ -115,6 +115,14 @@ class StemConfig:
         root flare (0.8-1.2 m) and the crown base (1.6-2.0 m); the centre, lean and taper test
         stay the line's (:func:`~stemmap.cloud.slicestem._stem_at`; docs/algorithms/cloud.md
         "Sparse plots: DBH from the slice at breast height")
+    thin_refit_points : bool -- in a plot (noise floor pooled over its stems) whose band was
+        thickened, the guided refits of the tighter refits on the default thin slices (the
+        annulus fits about the circle two agreeing thin slices predict) need
+        ``min_slice_points`` x thin / thick inliers (at least 5) instead of
+        ``min_slice_points``: a thin slice holds that fraction of a thick one's returns on the
+        same stem (:func:`~stemmap.cloud.slicestem.thin_slice_points`). The thin re-measure
+        of a stem already found keeps ``min_slice_points``. Off: docs/algorithms/cloud.md
+        "Sparse plots: thin-slice counts from the density"
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -164,6 +172,7 @@ class StemConfig:
     single_tree_ladder: bool = True
     continues_above: bool = True
     thick_dbh_slice: bool = True
+    thin_refit_points: bool = False
     axis_fallback: bool = False
     axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY

@@ -49,7 +49,13 @@ from stemmap.cloud.slicefit import (
     _segment_arcs,
     _segment_covariances,
 )
-from stemmap.cloud.slicestem import _BandContext, _slice_stem, _SliceFits, _thin_slice_stem
+from stemmap.cloud.slicestem import (
+    _BandContext,
+    _slice_stem,
+    _SliceFits,
+    _thin_slice_stem,
+    thin_slice_points,
+)
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -457,6 +463,19 @@ def _stems_from_band(
         if thickened
         else ctx
     )
+    # the thin slices of a plot's thickened band hold thin / thick of a thick slice's returns
+    # on a stem: the thin ladder's guided refits (finding) need that many; the thin
+    # re-measure of a stem already found keeps the dense count (StemConfig.thin_refit_points)
+    ctx0_find = (
+        replace(
+            ctx0,
+            annulus_points=thin_slice_points(
+                cfg_thin.min_slice_points, cfg_thin.slice_thickness, cfg.slice_thickness
+            ),
+        )
+        if thickened and cfg.thin_refit_points and not ctx.own_floor
+        else ctx0
+    )
 
     def thin_again(
         f: _SliceFits, c: int, stem: tuple[tuple[float, ...], str]
@@ -544,7 +563,7 @@ def _stems_from_band(
                 sp2d,
                 None if origins_use is None else origins_use[in0],
                 rms_max,
-                lambda f, c: _slice_stem(f, c, ctx0, cfg_thin),
+                lambda f, c: _slice_stem(f, c, ctx0_find, cfg_thin),
                 first=first,
                 floor=floor,
             )

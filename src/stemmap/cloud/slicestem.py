@@ -71,6 +71,10 @@ class _BandContext:
     # holding the measurement height, not from the line through them (_stem_at,
     # StemConfig.thick_dbh_slice)
     few_thick: bool = False
+    # inliers an annulus refit about an established stem must hold (:func:`_annulus_fit`;
+    # None: ``cfg.min_slice_points``). Set for the default thin slices of a plot's thickened
+    # band (StemConfig.thin_refit_points)
+    annulus_points: int | None = None
 
 
 def _radius_consensus(
@@ -260,15 +264,17 @@ def _annulus_fit(
     ``cfg.min_arc_deg``, RMS within the per-slice residual test (``ctx.rms_max``, or 2 % of
     r), a radius within ``tol`` + slack of the prediction and a centre within max(tol, 0.3 r)
     + slack of it. ``noise`` replaces the noise floor in the width and the tolerance
-    (:func:`_annulus_noise`; None: the floor).
+    (:func:`_annulus_noise`; None: the floor). The inlier count is ``ctx.annulus_points``
+    where set (a plot's thin slices in a thickened band, :func:`thin_slice_points`).
     """
+    need = cfg.min_slice_points if ctx.annulus_points is None else ctx.annulus_points
     nf = ctx.noise_floor if noise is None else noise
     width = max(0.3 * radius, 3.0 * nf) + slack
     idx = np.asarray(ctx.tree.query_ball_point(center, radius + width), dtype=np.int64)
     idx = idx[ctx.band_sl[idx] == s]
     q = ctx.band.xy[idx]
     q = q[np.abs(np.hypot(*(q - center).T) - radius) <= width]
-    if q.shape[0] < cfg.min_slice_points:
+    if q.shape[0] < need:
         return None
     ids = np.zeros(q.shape[0], dtype=np.int64)
     cen, rad, rms, ok, nin = _fit_segments(
@@ -282,7 +288,7 @@ def _annulus_fit(
         ransac_seed=cfg.ransac_seed,
         window=cfg.slice_fit_window,
     )
-    if not ok[0] or nin[0] < cfg.min_slice_points:
+    if not ok[0] or nin[0] < need:
         return None
     arc = float(_segment_arcs(q, ids, 1, cen)[0])
     good = (
@@ -295,6 +301,27 @@ def _annulus_fit(
         return None
     cov = _segment_covariances(q, ids, 1, cen, rad, rms)[0]
     return _AnnulusFit(cen[0], float(rad[0]), float(rms[0]), arc, int(nin[0]), cov)
+
+
+#: the fewest inliers of a circle refit about a known stem: three parameters and two degrees
+#: of freedom left to test the residual
+MIN_ANNULUS_POINTS = 5
+
+
+def thin_slice_points(min_points: int, thin: float, thick: float) -> int:
+    """Inliers a default (``thin``) slice must hold in a band thickened to ``thick`` slices:
+    ``min_points`` x thin / thick, at least :data:`MIN_ANNULUS_POINTS`.
+
+    :func:`~stemmap.cloud.band._adapt_slices` thickens the slices of a sparse cloud until each
+    is ``slices_per_spacing`` spacings thick, so that a stem's side in one holds the
+    ``min_points`` a circle fit must find among clutter; a thin slice of the same cloud holds
+    thin / thick of that on the same stem. An annulus refit about the circle two agreeing thin
+    slices predict (:func:`_guided_refits` in the tighter refits' thin ladder) does not search
+    the clutter for a circle -- its centre and radius must agree with the prediction -- so it
+    is held to the count the density gives, not to the dense cloud's (never above
+    ``min_points``)."""
+    scaled = math.ceil(min_points * thin / thick - 1e-9)
+    return min(min_points, max(MIN_ANNULUS_POINTS, scaled))
 
 
 def _set_slice(out: _SliceFits, s: int, fit: _AnnulusFit) -> None:
