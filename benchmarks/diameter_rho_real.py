@@ -15,7 +15,13 @@ per-scan spread ``s``. ``rho`` is the value that makes the median of
 standard error), solved over all passes, and leave-one-dataset-out (solved without a dataset,
 scored on it).
 
+``bias``: the same passes for the per-trunk bias scale ``b`` of
+``sqrt(s^2 (1 + (n - 1) rho) / n + b^2)`` (:data:`stemmap.slam.uncertainty.DIAMETER_BIAS`):
+per form of ``b`` (:data:`BIAS_FORMS`) and rho in (1, 0.03), ``k`` solved for median |z| =
+0.6745 on all passes and leave-one-dataset-out (median |z| and share |z| < 1 held out).
+
 Usage: python benchmarks/diameter_rho_real.py [--noise 0 0.01] [--skip fortls_slice]
+[--rows-out rows.json | --rows-in rows.json]
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -74,7 +80,7 @@ def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, 
                 centers=sl.centers,
             )  # fmt: skip
             obs = det.detect_batch(noisy_batch(ranges0, 0.5, noise, rng))
-            errs = []
+            errs, arcs = [], []
             for s in range(vp.shape[0]):
                 m = obs.index == s
                 if not m.any():
@@ -83,6 +89,7 @@ def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, 
                 k = int(np.argmin(dist))
                 if dist[k] <= d / 2.0 + 0.05:
                     errs.append(2.0 * float(obs.radii[m][k]) - d)
+                    arcs.append(float(obs.arc_deg[m][k]))
             if len(errs) >= 2:
                 e = np.asarray(errs)
                 rows.append(
@@ -93,6 +100,10 @@ def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, 
                         "e": float(e.mean()),
                         "s": float(e.std(ddof=1)),
                         "dbh": float(d),
+                        "offset_m": float(np.hypot(*(vp[vp.shape[0] // 2] - c))),
+                        "arc_deg": float(np.nanmedian(arcs))
+                        if np.isfinite(arcs).any()
+                        else math.nan,
                     }
                 )
     return rows
@@ -115,6 +126,71 @@ def solve_rho(rows: list[dict[str, Any]]) -> float:
     return float(brentq(lambda r: median_abs_z(rows, r) - MEDIAN_ABS_Z, 0.0, 1.0))
 
 
+#: Forms of the per-trunk bias scale ``b`` tried (``k`` is fitted): a constant (m), a share of
+#: the measured DBH, or ``k`` times 180 deg over the scan's median arc of the trunk (a one-sided
+#: arc's edge-model bias grows as less of the circle is seen).
+BIAS_FORMS = ("constant", "dbh", "inverse_arc")
+
+
+def bias_scale(rows: list[dict[str, Any]], form: str, k: float) -> np.ndarray:
+    """``b`` (m) per row for the bias ``form`` with scale ``k``."""
+    if form == "constant":
+        return np.full(len(rows), k)
+    if form == "dbh":  # the measured DBH, as a map has it (not the reference)
+        return k * np.array([r["dbh"] + r["e"] for r in rows])
+    if form == "inverse_arc":
+        arc = np.array([r.get("arc_deg", math.nan) for r in rows])
+        return k * 180.0 / np.where(np.isfinite(arc) & (arc > 1.0), arc, 180.0)
+    raise ValueError(form)
+
+
+def abs_z_bias(rows: list[dict[str, Any]], rho: float, form: str, k: float) -> np.ndarray:
+    """|mean error| / sqrt(s^2 (1 + (n - 1) rho) / n + b^2) of the rows with s > 0."""
+    n = np.array([r["n"] for r in rows], dtype=float)
+    e = np.array([r["e"] for r in rows])
+    s = np.array([r["s"] for r in rows])
+    ok = s > 0
+    b = bias_scale(rows, form, k)[ok]
+    se = np.sqrt(s[ok] ** 2 * (1.0 + (n[ok] - 1.0) * rho) / n[ok] + b**2)
+    return np.abs(e[ok]) / se
+
+
+def solve_bias(rows: list[dict[str, Any]], rho: float, form: str) -> float:
+    """The ``k`` making the median |z| of ``rows`` 0.6745 (0 if already at or below)."""
+
+    def f(k: float) -> float:
+        return float(np.median(abs_z_bias(rows, rho, form, k))) - MEDIAN_ABS_Z
+
+    if f(0.0) <= 0:
+        return 0.0
+    hi = 0.01
+    while f(hi) > 0 and hi < 100.0:
+        hi *= 2.0
+    return float(brentq(f, 0.0, hi))
+
+
+def bias_loo(rows: list[dict[str, Any]], rhos: tuple[float, ...]) -> dict[str, Any]:
+    """Per bias form and rho: ``k`` on all passes, and leave-one-dataset-out (``k`` solved
+    without a dataset; median |z| and share |z| < 1 on it)."""
+    out: dict[str, Any] = {}
+    names = sorted({r["dataset"] for r in rows})
+    for form in BIAS_FORMS:
+        for rho in rhos:
+            res: dict[str, Any] = {"k_all": solve_bias(rows, rho, form)}
+            for name in names:
+                train = [r for r in rows if r["dataset"] != name]
+                test = [r for r in rows if r["dataset"] == name]
+                k = solve_bias(train, rho, form)
+                z = abs_z_bias(test, rho, form, k)
+                res[name] = {
+                    "k_without": k,
+                    "held_out_median_abs_z": float(np.median(z)),
+                    "held_out_share_abs_z_below_1": float(np.mean(z < 1.0)),
+                }
+            out[f"{form}_rho{rho:g}"] = res
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.01], help="range noise, m")
@@ -124,15 +200,24 @@ def main() -> None:
         "--skip", nargs="*", default=["fortls_slice"],
         help="datasets left out (default: fortls_slice, synthetic perfect circles)",
     )  # fmt: skip
+    ap.add_argument("--rows-out", help="write the per-pass rows to this JSON file")
+    ap.add_argument("--rows-in", help="read the per-pass rows from this JSON file (no scans)")
     a = ap.parse_args()
     rows: list[dict[str, Any]] = []
-    for i, name in enumerate(SLICES):
-        if name in a.skip:
-            continue
-        for model in a.models:
-            for noise in a.noise:
-                for r in run_slice(name, model, noise, a.seed + i):
-                    rows.append({**r, "model": model, "noise_m": noise})
+    if a.rows_in:
+        with open(a.rows_in) as f:
+            rows = json.load(f)
+    else:
+        for i, name in enumerate(SLICES):
+            if name in a.skip:
+                continue
+            for model in a.models:
+                for noise in a.noise:
+                    for r in run_slice(name, model, noise, a.seed + i):
+                        rows.append({**r, "model": model, "noise_m": noise})
+    if a.rows_out:
+        with open(a.rows_out, "w") as f:
+            json.dump(rows, f)
     out: dict[str, Any] = {"n_passes": len(rows), "rho_all": solve_rho(rows)}
     out["median_abs_z_at_rho_all"] = median_abs_z(rows, out["rho_all"])
     out["median_abs_z_at_0.03"] = median_abs_z(rows, 0.03)
@@ -167,6 +252,7 @@ def main() -> None:
                     "median_spread_cm": 100 * float(np.median([r["s"] for r in sel])),
                 }
     out["by_scanner"] = by
+    out["bias"] = bias_loo(rows, (1.0, 0.03))
     print(json.dumps(out, indent=1))
 
 

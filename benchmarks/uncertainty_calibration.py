@@ -31,7 +31,7 @@ from stemmap.cli._map import sim_problem
 from stemmap.eval.matching import match_points
 from stemmap.scan.detect import ScanTrunkDetector
 from stemmap.slam.base import make_backend
-from stemmap.slam.uncertainty import DIAMETER_RHO, annotate_uncertainty
+from stemmap.slam.uncertainty import DIAMETER_BIAS, DIAMETER_RHO, annotate_uncertainty
 
 
 def run_one(seed: int, backend: str) -> dict[str, object]:
@@ -62,6 +62,7 @@ def run_one(seed: int, backend: str) -> dict[str, object]:
         "d_err": d_err[ok].tolist(),
         "se0": se[ok].tolist(),
         "n": n[ok].tolist(),
+        "dbh": sm.diameters[mi][ok].tolist(),
         "pos_z2": pos_z2,
         "conf": conf.tolist(),
         "real": real.tolist(),
@@ -74,8 +75,17 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--backends", nargs="+", default=["isam2", "ekf", "fastslam"])
+    ap.add_argument("--runs-out", help="write the per-run rows to this JSON file")
+    ap.add_argument("--runs-in", help="read the per-run rows from this JSON file (no runs)")
     a = ap.parse_args()
-    runs = [run_one(s, b) for b in a.backends for s in a.seeds]
+    if a.runs_in:
+        with open(a.runs_in) as f:
+            runs = [r for r in json.load(f) if r["backend"] in a.backends and r["seed"] in a.seeds]
+    else:
+        runs = [run_one(s, b) for b in a.backends for s in a.seeds]
+    if a.runs_out:
+        with open(a.runs_out, "w") as f:
+            json.dump(runs, f)
     out: dict[str, object] = {"scenario": "stemmap demo, 120 trees", "seeds": a.seeds}
     for b in a.backends:
         rs = [r for r in runs if r["backend"] == b]
@@ -84,9 +94,11 @@ def main() -> None:
         n = np.concatenate([np.asarray(r["n"]) for r in rs])
         spread = se0 * np.sqrt(n)
 
-        def med_z(rho: float, e=e, spread=spread, n=n) -> float:
-            se = spread / np.sqrt(n) * np.sqrt(1 + (n - 1) * rho)
-            return float(np.median(np.abs(e) / se))
+        def abs_z(rho: float, bias: float = 0.0, e=e, spread=spread, n=n) -> np.ndarray:
+            return np.abs(e) / np.sqrt(spread**2 * (1 + (n - 1) * rho) / n + bias**2)
+
+        def med_z(rho: float, bias: float = 0.0) -> float:
+            return float(np.median(abs_z(rho, bias)))
 
         rho = brentq(lambda r: med_z(r) - 0.6745, 0.0, 1.0) if med_z(0.0) > 0.6745 else 0.0
         z2 = np.concatenate([np.asarray(r["pos_z2"]) for r in rs])
@@ -114,12 +126,17 @@ def main() -> None:
             "median_abs_z_rho0": med_z(0.0),
             "share_abs_z_below_1_rho0": float(np.mean(np.abs(e) / se0 < 1)),
             "rho_for_median_z_0.674": rho,
-            "share_abs_z_below_1_at_rho": float(
-                np.mean(np.abs(e) / (se0 * np.sqrt(1 + (n - 1) * rho)) < 1)
-            ),
+            "share_abs_z_below_1_at_rho": float(np.mean(abs_z(rho) < 1)),
             "median_abs_z_at_default_rho": med_z(DIAMETER_RHO),
-            "share_abs_z_below_1_at_default_rho": float(
-                np.mean(np.abs(e) / (se0 * np.sqrt(1 + (n - 1) * DIAMETER_RHO)) < 1)
+            "share_abs_z_below_1_at_default_rho": float(np.mean(abs_z(DIAMETER_RHO) < 1)),
+            "default_bias_m": DIAMETER_BIAS,
+            "dbh_se_default_median_cm": 100
+            * float(
+                np.median(np.sqrt(spread**2 * (1 + (n - 1) * DIAMETER_RHO) / n + DIAMETER_BIAS**2))
+            ),
+            "median_abs_z_at_default": med_z(DIAMETER_RHO, DIAMETER_BIAS),
+            "share_abs_z_below_1_at_default": float(
+                np.mean(abs_z(DIAMETER_RHO, DIAMETER_BIAS) < 1)
             ),
             "position_z2_median": float(np.median(z2)) if z2.size else math.nan,
             "position_share_z2_below_1": float(np.mean(z2 < 1)) if z2.size else math.nan,

@@ -7,7 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from stemmap.errors import ConfigError
 from stemmap.slam.uncertainty import (
+    DIAMETER_BIAS,
+    DIAMETER_RHO,
     DetectionCounts,
     annotate_uncertainty,
     confidence_from_counts,
@@ -148,6 +151,13 @@ def test_diameter_standard_errors() -> None:
     assert np.isnan(se[1:]).all()  # < 2 finite diameters
     se_r, _, _ = diameter_standard_errors(idx, d, 4, rho=0.5)
     assert se_r[0] == pytest.approx(s / 2 * math.sqrt(1 + 3 * 0.5))
+    # the per-trunk bias adds in quadrature and does not average out; n < 2 stays NaN
+    se_b, spread_b, _ = diameter_standard_errors(idx, d, 4, rho=0.5, bias=0.03)
+    assert se_b[0] == pytest.approx(math.hypot(s / 2 * math.sqrt(1 + 3 * 0.5), 0.03))
+    assert spread_b[0] == pytest.approx(s) and np.isnan(se_b[1:]).all()
+    for bad in ({"bias": -0.01}, {"bias": math.nan}, {"rho": 1.5}):
+        with pytest.raises(ConfigError):
+            diameter_standard_errors(idx, d, 4, **bad)
 
 
 @pytest.mark.slow
@@ -165,8 +175,11 @@ def test_every_backend_gets_uncertainty(backend: str) -> None:
     conf = np.array([t.confidence for t in sm])
     n_ok = np.array([t.n_obs >= 3 for t in sm])
     assert np.isfinite(dstd[n_ok]).mean() > 0.95
-    # rho = 1 (real trunks): the per-scan spread of the diameters, a few cm on the simulator
-    assert np.all(dstd[np.isfinite(dstd)] < 0.05)
+    # rho = 1 and the bias b (both set on real trunks): sqrt(spread^2 + b^2), the per-scan
+    # spread a few cm on the simulator's cylinders
+    fin = dstd[np.isfinite(dstd)]
+    assert rep.diameter_bias_m == DIAMETER_BIAS and rep.diameter_rho == DIAMETER_RHO
+    assert np.all(fin >= DIAMETER_BIAS) and np.all(fin < math.hypot(DIAMETER_BIAS, 0.05))
     assert np.all((conf >= 0) & (conf <= 1)) and conf.std() > 0
     assert all(np.all(np.isfinite(t.cov)) for t in sm)
     assert 0.8 < rep.associated_fraction <= 1.0

@@ -10,11 +10,14 @@ covariance but no diameter spread, FastSLAM per-particle landmark EKFs, Forestri
    (:func:`~stemmap.slam.base.observation_to_world`) and given to the nearest mapped tree within
    ``gate`` metres.
 2. **Diameter std** (``diameter_std``, m): the standard error of the mapped diameter,
-   ``s / sqrt(n) * sqrt(1 + (n - 1) rho)`` with ``s`` the sample standard deviation of the
-   tree's ``n`` per-detection diameters and ``rho`` (:data:`DIAMETER_RHO`) the correlation of
+   ``sqrt(s^2 (1 + (n - 1) rho) / n + b^2)`` with ``s`` the sample standard deviation of the
+   tree's ``n`` per-detection diameters, ``rho`` (:data:`DIAMETER_RHO`) the correlation of
    one trunk's per-scan diameter errors: the design effect of clustered samples (Kish 1965,
    "Survey Sampling", §5.4) -- scans of one trunk share part of their error (same side seen,
-   same bark), which does not average out as 1 / sqrt(n). NaN with fewer than 2 diameters.
+   same bark), which does not average out as 1 / sqrt(n) -- and ``b``
+   (:data:`DIAMETER_BIAS`) the scale of the detector's per-trunk systematic error, which the
+   spread of one trunk's scans cannot show (an independent variance component added in
+   quadrature). NaN with fewer than 2 diameters.
 3. **Position covariance** (``cov``), only where the back-end gave none (a fallback: every
    registered back-end now reports one; Forestrix's and the tree DB's come from
    :mod:`stemmap.slam.tree_covariance`): the covariance of the associated map-frame detections
@@ -56,6 +59,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from stemmap.slam.base import SlamProblem, SlamResult
 
 __all__ = [
+    "DIAMETER_BIAS",
     "DIAMETER_RHO",
     "DetectionCounts",
     "MixtureFit",
@@ -78,6 +82,17 @@ __all__ = [
 #: it and the standard error is the per-scan spread ``s``. On the simulator's ideal cylinders
 #: this is conservative (benchmarks/uncertainty_calibration.py fitted 0.03 there).
 DIAMETER_RHO = 1.0
+
+#: Per-trunk systematic DBH error scale ``b`` (m) of the scan detector (module doc, item 2), set
+#: on the same real passes as :data:`DIAMETER_RHO` (benchmarks/diameter_rho_real.py, "bias"):
+#: with rho = 1 alone the held-out median |z| was 0.76-1.76 (a calibrated error gives 0.674),
+#: because a pass's mean error is a shared per-trunk bias larger than the per-scan spread. Of
+#: the forms tried (constant, share of the DBH, over the arc seen), a constant is the simplest
+#: that moves every held-out dataset towards 0.674: 0.114 m on all passes (0.105-0.144
+#: leave-one-dataset-out; held out 0.64-1.04). Pooled over two scanner models: nearest-return
+#: alone gives 0.18 m, SICK-class averaging alone 0.03 m. Conservative on the simulator's ideal
+#: cylinders (benchmarks/uncertainty_calibration.py, docs/outputs.md).
+DIAMETER_BIAS = 0.11
 
 #: Detections converted (and frames' rows counted, /64) per block in
 #: :func:`annotate_uncertainty`: bounds its temporaries on a long drive.
@@ -361,18 +376,27 @@ def expected_detections(
 
 
 def diameter_standard_errors(
-    tree_index: ArrayLike, diameters: ArrayLike, n_trees: int, *, rho: float = 0.0
+    tree_index: ArrayLike,
+    diameters: ArrayLike,
+    n_trees: int,
+    *,
+    rho: float = 0.0,
+    bias: float = 0.0,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """Per-tree diameter statistics of the associated detections.
 
     Returns
     -------
     se : ndarray (n_trees,), m
-        ``s / sqrt(n) * sqrt(1 + (n - 1) rho)`` (module doc, item 2); NaN where n < 2.
+        ``sqrt(s^2 (1 + (n - 1) rho) / n + bias^2)`` (module doc, item 2); NaN where n < 2.
     spread : ndarray (n_trees,), m
         ``s``, the sample standard deviation of one detection's diameter; NaN where n < 2.
     n : ndarray (n_trees,), int
     """
+    if not (0.0 <= rho <= 1.0):
+        raise ConfigError(f"diameter_standard_errors: rho must be in [0, 1], got {rho}.")
+    if not (bias >= 0.0 and math.isfinite(bias)):
+        raise ConfigError(f"diameter_standard_errors: bias must be >= 0 m, got {bias}.")
     idx = np.asarray(tree_index, dtype=np.int64).reshape(-1)
     d = np.asarray(diameters, dtype=np.float64).reshape(-1)
     ok = (idx >= 0) & np.isfinite(d)
@@ -384,7 +408,7 @@ def diameter_standard_errors(
     ss = np.maximum(s2 - n * mean**2, 0.0)
     var = np.divide(ss, n - 1, out=np.full(n_trees, np.nan), where=n > 1)
     spread = np.sqrt(var)
-    se = spread / np.sqrt(np.maximum(n, 1.0)) * np.sqrt(1.0 + (n - 1.0) * rho)
+    se = np.sqrt(var / np.maximum(n, 1.0) * (1.0 + (n - 1.0) * rho) + bias**2)
     return np.where(n > 1, se, np.nan), spread, n.astype(np.int64)
 
 
@@ -400,13 +424,20 @@ class UncertaintyReport:
     gate_m: float
     run_length_frames: float
     overdispersion: float = 0.0
+    diameter_rho: float = DIAMETER_RHO
+    diameter_bias_m: float = DIAMETER_BIAS
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
 def annotate_uncertainty(
-    result: SlamResult, problem: SlamProblem, *, gate: float = 0.75, rho: float = DIAMETER_RHO
+    result: SlamResult,
+    problem: SlamProblem,
+    *,
+    gate: float = 0.75,
+    rho: float = DIAMETER_RHO,
+    bias: float = DIAMETER_BIAS,
 ) -> tuple[StemMap, UncertaintyReport]:
     """The result's stem map with ``diameter_std``, missing covariances and ``confidence``
     filled in as the module doc describes. A back-end's finite covariance is kept;
@@ -433,7 +464,7 @@ def annotate_uncertainty(
         hit = np.isfinite(dist)
         idx[hit] = near[hit]
         del dist, near, hit
-    dstd, _, _ = diameter_standard_errors(idx, fr.diameters, nt, rho=rho)
+    dstd, _, _ = diameter_standard_errors(idx, fr.diameters, nt, rho=rho, bias=bias)
     r_hi = float(np.quantile(fr.ranges, 0.9)) if fr.ranges.size else 20.0
     r_hi = min(r_hi, float(problem.max_range))
     fov = SensorFov(problem.fov[0], problem.fov[1], min(1.0, 0.5 * r_hi), r_hi)
@@ -465,6 +496,8 @@ def annotate_uncertainty(
         gate_m=gate,
         run_length_frames=mix.run_length,
         overdispersion=mix.overdispersion,
+        diameter_rho=rho,
+        diameter_bias_m=bias,
     )
     # replace keeps every other field of the map (frame, CRS, iSAM2's joint information)
     return replace(sm, trees=tuple(trees)), report
