@@ -60,6 +60,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "DIAMETER_BIAS",
+    "DIAMETER_BIAS_FIRST_ECHO",
     "DIAMETER_RHO",
     "DetectionCounts",
     "MixtureFit",
@@ -85,14 +86,22 @@ DIAMETER_RHO = 1.0
 
 #: Per-trunk systematic DBH error scale ``b`` (m) of the scan detector (module doc, item 2), set
 #: on the same real passes as :data:`DIAMETER_RHO` (benchmarks/diameter_rho_real.py, "bias"):
-#: with rho = 1 alone the held-out median |z| was 0.76-1.76 (a calibrated error gives 0.674),
+#: with rho = 1 alone the held-out median |z| was 0.53-1.99 (a calibrated error gives 0.674),
 #: because a pass's mean error is a shared per-trunk bias larger than the per-scan spread. Of
 #: the forms tried (constant, share of the DBH, over the arc seen), a constant is the simplest
-#: that moves every held-out dataset towards 0.674: 0.114 m on all passes (0.105-0.144
-#: leave-one-dataset-out; held out 0.64-1.04). Pooled over two scanner models: nearest-return
-#: alone gives 0.18 m, SICK-class averaging alone 0.03 m. Conservative on the simulator's ideal
-#: cylinders (benchmarks/uncertainty_calibration.py, docs/outputs.md).
-DIAMETER_BIAS = 0.11
+#: that moves the held-out datasets towards 0.674. It depends on the scanner model: fitted per
+#: model, SICK-class averaging (the model of the default detector, which ``stemmap map`` and
+#: ``stemmap demo`` run on 2D scans) gives 0.031 m (0.026-0.035 leave-one-dataset-out; held out
+#: 0.50 / 1.42 / 0.63 / 0.67 against 0.53 / 1.52 / 0.81 / 0.80 without it), a first-echo
+#: (nearest-return) scanner 0.18 m (:data:`DIAMETER_BIAS_FIRST_ECHO`; held out 0.50-1.00 against
+#: 1.12-1.99). Pooling both models (0.11 m) is 3x too wide for the averaging scanner (held out
+#: 0.28-0.80) and too narrow for first echoes (0.94-1.35), so the default is the averaging
+#: model's. Conservative on the simulator's ideal cylinders (docs/outputs.md).
+DIAMETER_BIAS = 0.03
+
+#: ``b`` for detections of a first-echo scanner (``stemmap detect --footprint``), measured as
+#: :data:`DIAMETER_BIAS`; pass it as ``bias=`` when mapping such detections.
+DIAMETER_BIAS_FIRST_ECHO = 0.18
 
 #: Detections converted (and frames' rows counted, /64) per block in
 #: :func:`annotate_uncertainty`: bounds its temporaries on a long drive.
