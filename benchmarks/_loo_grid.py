@@ -377,6 +377,17 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(
         **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, scan_noise_batch=2.5, straight_curvature=True
     ),
+    # Dec 5 ("Per seed or on the mean"), grid 67 (the preset) with the averaging scanner's
+    # blend at an occluded segment end dropped where it steps towards the sensor by more than
+    # 3 sigmas (occluded_blend_sigmas; numpy path: the averaging rows and the simulated drives;
+    # the nearest-return rows are grid 67's)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        fit_noise_floor=0.003,
+        occluded_blend_sigmas=3.0,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

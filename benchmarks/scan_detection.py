@@ -5,11 +5,15 @@ branches, a wall, a fence, rocks), a SICK LMS-like scanner (0.5 deg, 180 deg, 1 
 0.25 deg beam divergence with mixed pixels), a drive through the stand. Each scan is scored
 against the truth in the sensor frame with ``stemmap.eval.detection.scan_detection_metrics``:
 a tree counts if it has >= 5 returns, DBH >= 10 cm and lies within 15 m; detections whose
-centre lies beyond 15.5 m are not scored. The precision target is judged as documented since
-Dec 3 (sixteenth round): on the mean over ``--precision-seeds`` (default 1-10) on each of the two
-simulated drives, this 400-scan one and the ``stemmap demo`` drive
-(``meets_targets.precision_mean_over_seeds``, which ``meets_targets.all`` reads); this run's seed
-alone is reported as ``precision_this_seed`` and does not decide.
+centre lies beyond 15.5 m are not scored. Issue 11's simulated accuracy targets (recall,
+precision >= 0.95; DBH RMSE <= 1.2 cm at <= 5 m) are each reported this run's seed alone
+(``meets_targets.<target>_this_seed``), on the mean over ``--precision-seeds`` (default 1-10;
+recall and precision on each of the two simulated drives, this 400-scan one and the ``stemmap
+demo`` drive: ``<target>_mean_over_seeds``, what ``meets_targets.all`` reads, the rule of
+precision since Dec 3 and of the ``real_geometry.py`` grid's admission since Dec 5) and on
+every one of those seeds (``<target>_every_seed``, what ``meets_targets.all_every_seed``
+reads): :func:`seed_verdicts`. Which reading the issue means is the owner's decision
+(docs/algorithms/scan-detection.md, "Per seed or on the mean").
 
 Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--no-real] [--crlb]
        python benchmarks/scan_detection.py --speed-set '{"sigma_from_scan": true}' --rounds 5
@@ -18,8 +22,10 @@ Usage: python benchmarks/scan_detection.py --json [--scans 400] [--seed 1] [--no
 
 ``--seeds``: issue 11's simulated targets over seeds (each a new stand, clutter and drive; the
 400-scan drive and the ``stemmap demo`` drive of ``_scan_sim.simulated_precision_seeds``): per
-seed and mean / smallest / largest recall, precision, DBH RMSE and bias at <= 5 m, and per seed
-the DBH RMSE split into whole and partial trunks with the trees that weigh most in it.
+seed and mean / smallest / largest recall, precision, DBH RMSE and bias at <= 5 m, the verdict
+of each of the three targets on the mean and on every seed (``verdicts``, :func:`seed_verdicts`),
+and per seed the DBH RMSE split into whole and partial trunks with the trees that weigh most in
+it, and the Cramer-Rao bound over the same matched pairs (``crlb_same_pairs_cm``).
 ``--speed-seeds``: scans per CPU second of the default on each seed's drive (tiled to
 ``--batch`` scans, best of 3), each next to seed 1's batch timed in the same turn (the ratio
 is what a loaded machine leaves comparable).
@@ -58,6 +64,7 @@ from _scan_sim import (  # shared with real_geometry.py
     tree_errors,
     worst_trees,
 )
+from sim_dbh_trunks import pair_bounds
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.matching import match_points
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
@@ -216,16 +223,26 @@ def accuracy_over_seeds(
     and partial trunks, the ``n_worst`` trees with the largest share of its squares
     (:func:`_scan_sim.worst_trees`) and the drive's Cramér-Rao bound at <= 5 m with footprint
     edges, all eligible trunks (``crlb_cm``) and whole trunks (``crlb_whole_cm``):
-    :func:`benchmark_crlb`, scan-fits.md."""
+    :func:`benchmark_crlb`, scan-fits.md; and the bound of each matched pair's own scan over
+    the same pairs the RMSE is taken on (``crlb_same_pairs_cm``: the RMSE an efficient fit of
+    these very pairs would have, ``sim_dbh_trunks.pair_bounds``) with the share of the sum of
+    squares held by the ``n_worst`` trees listed (``worst_sse_share``). ``verdicts``: each
+    target on the mean and on every seed (:func:`seed_verdicts`)."""
     out = simulated_precision_seeds(overrides, seeds)
+    out["verdicts"] = seed_verdicts(out)
     det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
     by_seed: dict[str, Any] = {}
     for s in seeds:
         run = benchmark_drive(s)
-        row = worst_trees(tree_errors(det.detect_batch(run.scans), run), n=n_worst)
+        err = tree_errors(det.detect_batch(run.scans), run)
+        row = worst_trees(err, n=n_worst)
         bound = benchmark_crlb(run)
         row["crlb_cm"] = bound["crlb_footprint_edges_dbh_rmse_cm_0_5"]
         row["crlb_whole_cm"] = bound["crlb_footprint_edges_whole_trunks_dbh_rmse_cm_0_5"]
+        pb = pair_bounds(run, err, err["range"] < 5.0)
+        pb = pb[np.isfinite(pb)]
+        row["crlb_same_pairs_cm"] = round(float(np.sqrt(np.mean(pb**2))), 3) if pb.size else None
+        row["worst_sse_share"] = round(sum(float(t["sse_share"]) for t in row["worst"]), 3)
         by_seed[str(s)] = row
     out["dbh_le5_by_seed"] = by_seed
     return out
@@ -489,6 +506,56 @@ def benchmark_crlb(run: Any) -> dict[str, Any]:
 DRIVES = ("benchmark", "demo")
 
 
+def seed_verdicts(over_seeds: dict[str, Any]) -> dict[str, Any]:
+    """Issue 11's three simulated accuracy targets over the seeds of ``over_seeds``
+    (:func:`_scan_sim.simulated_precision_seeds`), each read both ways the docs discuss:
+
+    - ``met_on_mean``: the mean over the seeds >= / <= the target (precision and recall: each
+      drive's mean; DBH RMSE at <= 5 m: the mean of the benchmark drive's per-seed RMSE), the
+      rule of the ``real_geometry.py`` grid's admission (:func:`_scan_sim.admitted_over_seeds`)
+      and of precision since Dec 3;
+    - ``met_every_seed``: every seed keeps it on its own (``failing_seeds`` lists those that do
+      not; recall and precision: on either drive).
+
+    Per target also the mean / smallest / largest the verdicts read (DBH: and pooled over every
+    pair). Which reading the issue means is the owner's decision (scan-detection.md, "Per seed
+    or on the mean"); this reports both, the same numbers."""
+    rows = over_seeds["per_seed"]
+    out: dict[str, Any] = {"seeds": over_seeds["seeds"]}
+    for key, lo in (("recall", TARGETS["recall_min"]), ("precision", TARGETS["precision_min"])):
+        means = {d: float(np.mean([float(r[d][key]) for r in rows])) for d in DRIVES}
+        failing = [r["seed"] for r in rows if min(float(r[d][key]) for d in DRIVES) < lo]
+        out[key] = {
+            "target_min": lo,
+            **{f"{d}_mean": round(means[d], 4) for d in DRIVES},
+            **{
+                f"{d}_{stat}": round(fn([float(r[d][key]) for r in rows]), 4)
+                for d in DRIVES
+                for stat, fn in (("min", min), ("max", max))
+            },
+            "met_on_mean": all(m >= lo for m in means.values()),
+            "met_every_seed": not failing,
+            "failing_seeds": failing,
+        }
+    hi = TARGETS["dbh_rmse_cm_le5_max"]
+    v = [r["benchmark"].get("dbh_rmse_cm_0_5") for r in rows]
+    have = [float(x) for x in v if x is not None]
+    mean = float(np.mean(have)) if have and len(have) == len(v) else math.nan
+    failing = [r["seed"] for r, x in zip(rows, v, strict=True) if x is None or float(x) > hi]
+    out["dbh_rmse_le5"] = {
+        "target_max_cm": hi,
+        "drive": "benchmark",
+        "benchmark_mean_cm": round(mean, 3) if math.isfinite(mean) else None,
+        "benchmark_min_cm": round(min(have), 3) if have else None,
+        "benchmark_max_cm": round(max(have), 3) if have else None,
+        "benchmark_pooled_cm": over_seeds.get("benchmark_dbh_rmse_cm_0_5_pooled"),
+        "met_on_mean": bool(mean <= hi),  # NaN (a seed without a pair): not met
+        "met_every_seed": not failing,
+        "failing_seeds": failing,
+    }
+    return out
+
+
 def meets_targets(
     ours: dict[str, Any], sp: dict[str, Any], over_seeds: dict[str, Any], seed: int
 ) -> dict[str, Any]:
@@ -496,36 +563,57 @@ def meets_targets(
     this run's drive (seed ``seed``), ``sp`` :func:`speed`, ``over_seeds``
     :func:`_scan_sim.simulated_precision_seeds` of the preset.
 
-    Precision is judged as documented since Dec 3 (sixteenth round, "admission over seeds";
-    docs/algorithms/scan-detection.md): its **mean over seeds**, on the benchmark drive and on
-    the ``stemmap demo`` drive, is >= ``precision_min`` (``precision_mean_over_seeds``). One
-    seed's precision has an sd of 0.020-0.027 over seeds (a clutter object seen in tens of
-    scans moves it by 0.02-0.04), so this run's seed alone (``precision_this_seed``, its
-    benchmark drive) is reported beside it but does not decide. (``over_seeds["admitted"]`` is
-    the ``real_geometry.py`` grid's admission, since Dec 5 also recall and DBH on the mean: not
-    read here.) ``all``: every target, precision by the mean; ``failing``: the names of those
-    not met (``precision_this_seed`` is never one)."""
-    rows = over_seeds["per_seed"]
-    means = [float(np.mean([float(r[d]["precision"]) for r in rows])) for d in DRIVES]
+    Issue 11's three simulated accuracy targets (recall, precision, DBH RMSE at <= 5 m) are
+    each reported three ways, under names that say which: ``<target>_this_seed`` (this run's
+    seed, benchmark drive), ``<target>_mean_over_seeds`` (the mean over the seeds, recall and
+    precision on each drive: :func:`seed_verdicts` ``met_on_mean``) and
+    ``<target>_every_seed`` (every seed on its own, both drives). One seed's precision has an
+    sd of 0.020-0.027 over seeds (a clutter object seen in tens of scans moves it by
+    0.02-0.04) and its DBH RMSE 0.03-0.06 cm with the noise draw alone (scan-detection.md), so
+    ``all`` reads the three targets on the mean, the rule the docs state for precision since
+    Dec 3 and the ``real_geometry.py`` grid admits by since Dec 5
+    (:func:`_scan_sim.admitted_over_seeds`); ``all_every_seed`` reads them per seed (every
+    seed, both drives). The 5-10 m DBH, bias, speed and latency targets (the first issue's)
+    are this run's in both. ``failing`` / ``failing_every_seed``: the names not met under
+    each reading (``_this_seed`` names are reported, never judged)."""
+    v = seed_verdicts(over_seeds)
     met: dict[str, Any] = {
-        "recall": (ours["recall"] or 0.0) >= TARGETS["recall_min"],
-        "precision_mean_over_seeds": all(m >= TARGETS["precision_min"] for m in means),
+        "recall_this_seed": (ours["recall"] or 0.0) >= TARGETS["recall_min"],
+        "recall_mean_over_seeds": v["recall"]["met_on_mean"],
+        "recall_every_seed": v["recall"]["met_every_seed"],
         "precision_this_seed": (ours["precision"] or 0.0) >= TARGETS["precision_min"],
-        "dbh_rmse_le5": (ours["dbh_rmse_cm_le5"] or 1e9) <= TARGETS["dbh_rmse_cm_le5_max"],
+        "precision_mean_over_seeds": v["precision"]["met_on_mean"],
+        "precision_every_seed": v["precision"]["met_every_seed"],
+        "dbh_rmse_le5_this_seed": (ours["dbh_rmse_cm_le5"] or 1e9)
+        <= TARGETS["dbh_rmse_cm_le5_max"],
+        "dbh_rmse_le5_mean_over_seeds": v["dbh_rmse_le5"]["met_on_mean"],
+        "dbh_rmse_le5_every_seed": v["dbh_rmse_le5"]["met_every_seed"],
         "dbh_rmse_5_10": (ours["dbh_rmse_cm_5_10"] or 1e9) <= TARGETS["dbh_rmse_cm_5_10_max"],
         "dbh_bias": max(abs(ours["dbh_bias_cm_le5"] or 1e9), abs(ours["dbh_bias_cm_5_10"] or 1e9))
         <= TARGETS["abs_dbh_bias_cm_max"],
         "speed_361": sp["scans_per_second_361"] >= TARGETS["scans_per_second_361_min"],
         "latency_1081": sp["latency_ms_1081"] <= TARGETS["latency_ms_1081_max"],
     }
-    failing = [k for k, v in met.items() if not v and k != "precision_this_seed"]
+    others = ("dbh_rmse_5_10", "dbh_bias", "speed_361", "latency_1081")
+    failing = [
+        k for k, ok in met.items() if not ok and (k.endswith("_mean_over_seeds") or k in others)
+    ]
+    failing_every = [
+        k for k, ok in met.items() if not ok and (k.endswith("_every_seed") or k in others)
+    ]
     return {
         **met,
         "all": not failing,
         "failing": failing,
-        "precision_rule": f"mean precision over seeds {over_seeds['seeds']} on each drive"
-        f" (benchmark, stemmap demo) >= {TARGETS['precision_min']}; precision_this_seed"
-        f" (seed {seed}, benchmark drive) is reported, not judged",
+        "all_every_seed": not failing_every,
+        "failing_every_seed": failing_every,
+        "failing_seeds": {
+            k: v[k]["failing_seeds"] for k in ("recall", "precision", "dbh_rmse_le5")
+        },
+        "rule": f"all: recall and precision (each drive, benchmark and stemmap demo) and the"
+        f" benchmark drive's DBH RMSE <= 5 m on their mean over seeds {over_seeds['seeds']};"
+        f" all_every_seed: the same on every one of those seeds; _this_seed (seed {seed},"
+        " benchmark drive) is reported, not judged; the other targets are this run's",
     }
 
 
@@ -586,8 +674,9 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         nargs="+",
         default=list(SIM_SEEDS),
-        help="the full run: seeds whose mean precision (each drive) judges the precision target"
-        f" (default {' '.join(map(str, SIM_SEEDS))}, the documented rule)",
+        help="the full run: seeds over which recall, precision (each drive) and the DBH RMSE"
+        " <= 5 m are judged, on their mean and on every seed"
+        f" (default {' '.join(map(str, SIM_SEEDS))})",
     )
     ap.add_argument(
         "--speed-seeds",

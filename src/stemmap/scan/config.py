@@ -97,6 +97,13 @@ class DetectorConfig:
         wall with independent errors is exempted at the test's 1 % rate (and still meets
         the circle fit's radius tests); a bend away from the sensor (a hollow, an inside
         corner) never exempts. Numpy path only. False = off (every preset).
+    occluded_blend_sigmas : float, > 0
+        An averaging scanner's (``beam_divergence_deg`` > 0, no ``beam_footprint_deg``)
+        segment loses the end return of an occluded end when it lies nearer than the next
+        return inward by more than this many range-noise sigmas: the beam straddling the
+        occluder's silhouette returns a blend of the two ranges, in front of the trunk
+        (ours, issue 11, Dec 5; :mod:`stemmap.scan._occluded_blend`). Numpy path only.
+        ``inf`` = off (every preset).
     drop_partial : bool
         Drop segments with an occluded or truncated end.
     fit_method : str
@@ -504,6 +511,7 @@ class DetectorConfig:
     straight_min_points: int = 3
     straight_depth_sigmas: float = math.inf
     straight_curvature: bool = False
+    occluded_blend_sigmas: float = math.inf
     drop_partial: bool = False
     fit_method: str = "kasa"
     sigma: float = 0.01
@@ -662,6 +670,10 @@ class DetectorConfig:
             raise bad("corner_span", self.corner_span, "it must be >= 1 return")
         if not self.straight_depth_sigmas > 0:
             raise bad("straight_depth_sigmas", self.straight_depth_sigmas, "it must be > 0")
+        if not self.occluded_blend_sigmas > 0:
+            raise bad(
+                "occluded_blend_sigmas", self.occluded_blend_sigmas, "it must be > 0 (inf: off)"
+            )
         if not (self.gap_sigmas >= 0 and math.isfinite(self.gap_sigmas)):
             raise bad("gap_sigmas", self.gap_sigmas, "it must be >= 0")
         if not (self.gap_ratio >= 0 and math.isfinite(self.gap_ratio)):

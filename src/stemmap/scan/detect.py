@@ -34,6 +34,7 @@ from stemmap.scan._behind import trim_behind
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._lobed import lobed_refit
+from stemmap.scan._occluded_blend import blend_ends_on, drop_occluded_blends
 from stemmap.scan._pieces import arc_candidates, split_pieces
 from stemmap.scan._refit import corner_cut_pieces
 from stemmap.scan._segment_fits import (
@@ -381,6 +382,9 @@ class ScanTrunkDetector:
             first_beam=first_beam,
             last_beam=last_beam,
         )
+        if blend_ends_on(cfg):
+            # an averaging beam straddling an occluder's silhouette: a blend at the trunk's end
+            segs = drop_occluded_blends(segs, cfg)
         segs = segs.select(segs.counts >= cfg.min_points)
         if cfg.point_curvature_min is not None and len(segs):
             # Zheng §3.2 criterion (2): failing returns are rejected, the cluster stays
@@ -481,7 +485,8 @@ class ScanTrunkDetector:
         fit, no footprint correction, no tilt compensation to apply, re-fitted pieces only as
         corner splits (``refit_split="corners"``), no relaxed RMS tests, lobed outlines
         (``lobe_harmonics``), RMS test over the fit's degrees of freedom (``rms_dof``) or bend
-        test of straightness (``straight_curvature``), no
+        test of straightness (``straight_curvature``), no occluded-end blend trim
+        (``occluded_blend_sigmas``), no
         ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
@@ -502,6 +507,7 @@ class ScanTrunkDetector:
             and not (cfg.step_split and cfg.step_twigs)
             and not cfg.rms_dof
             and not cfg.straight_curvature
+            and not blend_ends_on(cfg)
         )
 
     def _run(
