@@ -474,7 +474,8 @@ def leave_one_out(
                 "train_score": round(score(best_b), 3),
                 "held_out": _held_out_rows(per[held], best_b),
             }
-            # held out, every setting the round added (recall, precision, RMSE, bias)
+            # held out, every setting the round added (recall, precision, RMSE, bias, recall
+            # within 3 cm, false alarms and unmatched detections per scan)
             table[held]["added_settings"] = {
                 str(g): {
                     sc: [
