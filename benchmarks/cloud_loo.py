@@ -10,7 +10,9 @@ for the bound), ``core_refits`` (spruce with 1 cm noise), ``single_tree_ladder``
 or over 0.5-3.0 m with ``axis_reach``; default off) and ``thick_dbh_slice`` (pine_plot's DBH
 at 20 / 10 %: a sparse plot's radius from the thick slice at breast height), and
 ``ransac_lo`` (Dec 5: the slice fits' locally optimised RANSAC start; spruce under re-exports,
-docs "RANSAC draws"). Here
+docs "RANSAC draws"), and ``slice_fit_window`` (Dec 5: the slice fits' keep window and trim in
+tolerances / robust sigmas, 3 as before, 2.5 or 2; spruce with 1 cm noise, docs "RANSAC
+draws"; its current value is listed first, the least intervention). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -75,6 +77,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     ),
     "core_refits": (("off", {"core_refits": False}), ("on", {"core_refits": True})),
     "ransac_lo": (("off", {"ransac_lo": False}), ("on", {"ransac_lo": True})),
+    "slice_fit_window": (
+        ("3", {"slice_fit_window": 3.0}),
+        ("2.5", {"slice_fit_window": 2.5}),
+        ("2", {"slice_fit_window": 2.0}),
+    ),
     "single_tree_ladder": (
         ("off", {"single_tree_ladder": False}),
         ("on", {"single_tree_ladder": True}),

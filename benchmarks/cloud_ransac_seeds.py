@@ -2,7 +2,7 @@
 
 The slice circles start from RANSAC where the algebraic fit explains the points badly
 (``stemmap.cloud.slicefit._ransac_circle``); its draws are seeded per segment, and
-``slicefit.RANSAC_SEED`` picks another, equally valid, set of draws. Every cloud of
+``StemConfig.ransac_seed`` picks another, equally valid, set of draws. Every cloud of
 ``cloud_real.py`` goes through ``detect_stems_file`` (preset ours, as ``stemmap stems``) as
 shipped and in the transforms of ``cloud_robustness.py`` given by ``--transforms``, each
 written to LAS and read back, once per seed 0 .. ``--seeds`` - 1. Per cloud and transform:
@@ -27,6 +27,7 @@ import argparse
 import json
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,6 @@ import numpy as np
 from _cloud_refs import match_stems
 from cloud_real import CLOUDS
 from cloud_robustness import run_baseline, score_run, transformed_files
-from stemmap.cloud import slicefit
 from stemmap.cloud.stems import StemConfig, detect_stems, detect_stems_file
 from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
@@ -77,23 +77,20 @@ def _cell(rows: list[dict[str, Any]], dets: list[Any], single: bool) -> dict[str
 def run_cloud(
     key: str, path: Path, names: list[str], seeds: int, tmp: Path, cfg: StemConfig
 ) -> dict[str, Any]:
-    slicefit.RANSAC_SEED = 0
-    bl = run_baseline(key, path, cfg)
+    bl = run_baseline(key, path, replace(cfg, ransac_seed=0))
     single = len(bl.det) == 1
     out: dict[str, Any] = {}
     for name, prep, f in transformed_files(bl, names, tmp):
         rows, dets = [], []
         cpu = 0.0
         for s in range(seeds):
-            slicefit.RANSAC_SEED = s
             t0 = time.process_time()
-            det = detect_stems_file(f, cfg)
+            det = detect_stems_file(f, replace(cfg, ransac_seed=s))
             cpu += time.process_time() - t0
             dets.append(det)
             rows.append(score_run(name, bl, det, prep))
         out[name] = _cell(rows, dets, single)
         out[name]["cpu_s_per_run"] = round(cpu / seeds, 3)
-    slicefit.RANSAC_SEED = 0
     return out
 
 

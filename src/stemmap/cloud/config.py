@@ -89,6 +89,16 @@ class StemConfig:
         optimises the best hypotheses of every batch (LO-RANSAC;
         :func:`~stemmap.cloud.slicefit._ransac_circle`): the start no longer depends on which
         minimal samples were drawn (docs/algorithms/cloud.md, "RANSAC draws")
+    ransac_seed : int -- the slice fits' RANSAC draws: 0 (the default) seeds each segment's
+        generator by its point count alone, another value (>= 0) by (seed, count)
+        (:func:`~stemmap.cloud.slicefit._segment_rng`): other, equally valid draws, for
+        measuring how much a result depends on them (benchmarks/cloud_ransac_seeds.py). Part
+        of the configuration, so a tile run's manifest tells seeds apart (``--resume``)
+    slice_fit_window : float -- the slice fits keep the points within this many RANSAC
+        tolerances of a RANSAC start and trim residuals beyond this many robust sigmas
+        (1.4826 MAD) (:func:`~stemmap.cloud.slicefit._fit_segments`; 3). Narrower keeps a
+        noisy stem's branch stubs out of its fit (docs/algorithms/cloud.md, "RANSAC draws:
+        the noisy spruce")
     single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
         noise floor is its own), the stem is chosen among the first round's and the tighter
         refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
@@ -149,6 +159,8 @@ class StemConfig:
     tighter_refits: bool = True
     core_refits: bool = True
     ransac_lo: bool = True
+    ransac_seed: int = 0
+    slice_fit_window: float = 3.0
     single_tree_ladder: bool = True
     continues_above: bool = True
     thick_dbh_slice: bool = True
@@ -173,6 +185,10 @@ class StemConfig:
             raise ConfigError(f"spacing must be > 0 m, got {self.spacing}.")
         if self.noise_floor is not None and not self.noise_floor > 0:
             raise ConfigError(f"noise_floor must be > 0 m, got {self.noise_floor}.")
+        if not (isinstance(self.ransac_seed, (int, np.integer)) and self.ransac_seed >= 0):
+            raise ConfigError(f"ransac_seed must be an integer >= 0, got {self.ransac_seed!r}.")
+        if not self.slice_fit_window > 0:
+            raise ConfigError(f"slice_fit_window must be > 0, got {self.slice_fit_window}.")
         if self.max_coordinate_step is not None and not self.max_coordinate_step > 0:
             raise ConfigError(
                 f"max_coordinate_step must be > 0 m (or None), got {self.max_coordinate_step}."

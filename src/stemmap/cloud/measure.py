@@ -138,6 +138,8 @@ def _fit_slices(
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
         ray_origins=None if origins is None else origins[fitmask],
         ransac_lo=cfg.ransac_lo,
+        ransac_seed=cfg.ransac_seed,
+        window=cfg.slice_fit_window,
     )
     if cfg.core_refits:
         (centers, radii, rms, ok, nin), n_core = _opaque_core_refits(
@@ -149,6 +151,8 @@ def _fit_slices(
             cfg.min_slice_points,
             None if origins is None else origins[fitmask],
             ransac_lo=cfg.ransac_lo,
+            ransac_seed=cfg.ransac_seed,
+            window=cfg.slice_fit_window,
         )
         if n_core:
             log.debug("%d slice fit(s) refitted to the stem inside them", n_core)

@@ -9,6 +9,10 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from stemmap import _numba_cache
+from stemmap.scan import _fit_geometric, _fit_lm
+from stemmap.scan._fit_geometric import _kasa_start
+from stemmap.scan._fit_lm import _lm
 from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
@@ -75,15 +79,12 @@ def _segment_arcs(
     return np.asarray(np.where(cnt >= 2, arc, 0.0), dtype=np.float64)
 
 
-#: RANSAC seed offset of the slice fits: 0 (the default) seeds each segment's draws by its
-#: point count alone; another value gives other, equally valid draws (benchmarks measure the
-#: spread of the results over seeds with it: benchmarks/cloud_ransac_seeds.py)
-RANSAC_SEED = 0
-
-
-def _segment_rng(n: int) -> np.random.Generator:
-    """The random generator of one segment of ``n`` points (:data:`RANSAC_SEED`)."""
-    return np.random.default_rng(n if RANSAC_SEED == 0 else (RANSAC_SEED, n))
+def _segment_rng(n: int, seed: int = 0) -> np.random.Generator:
+    """The random generator of one segment of ``n`` points: ``seed`` 0 (the default,
+    ``StemConfig.ransac_seed``) seeds it by the point count alone, another value draws
+    ``default_rng((seed, n))`` -- other, equally valid draws (benchmarks measure the spread of
+    the results over seeds with it: benchmarks/cloud_ransac_seeds.py)."""
+    return np.random.default_rng(n if seed == 0 else (seed, n))
 
 
 def _circle_scores(
@@ -95,22 +96,55 @@ def _circle_scores(
     within ``tol`` counts ``1 - (d / tol)^2`` (the truncated quadratic cost, as a score),
     so among circles with the same support the tighter one wins instead of the luckier
     draw. Either way a trunk is opaque: returns more than ``3 tol`` inside a candidate
-    circle (branches, needles, a neighbour's clutter) count -1 each.
+    circle (branches, needles, a neighbour's clutter) count -1 each. One compiled pass
+    (:func:`_scores_kernel`; the counts are exact integers, the MSAC sums run in point order).
     """
-    sd = np.hypot(q[None, :, 0] - ux[:, None], q[None, :, 1] - uy[:, None]) - r[:, None]
-    inl = np.abs(sd) <= tol
-    pos = (1.0 - (sd / tol) ** 2) * inl if msac else inl
-    return np.asarray(pos.sum(axis=1) - (sd < -3 * tol).sum(axis=1), dtype=np.float64)
-
-
-def _weighted_gram(w: FloatArray, J: FloatArray) -> FloatArray:
-    """``sum_m w[k, m] J[k, m, i] J[k, m, j]`` (K, 3, 3) of weights (K, M), rows (K, M, 3)."""
-    out = np.empty((w.shape[0], 3, 3))
-    for i in range(3):
-        wi = w * J[:, :, i]
-        for j in range(i, 3):
-            out[:, i, j] = out[:, j, i] = (wi * J[:, :, j]).sum(axis=1)
+    out = np.empty(ux.shape[0])
+    _scores_kernel(
+        np.ascontiguousarray(q[:, 0]),
+        np.ascontiguousarray(q[:, 1]),
+        np.ascontiguousarray(ux, dtype=np.float64),
+        np.ascontiguousarray(uy, dtype=np.float64),
+        np.ascontiguousarray(r, dtype=np.float64),
+        float(tol),
+        bool(msac),
+        out,
+    )
     return out
+
+
+@njit(cache=True)
+def _score_one(
+    qx: FloatArray, qy: FloatArray, cx: float, cy: float, r: float, tol: float, msac: bool
+) -> float:  # pragma: no cover - numba
+    """:func:`_circle_scores` of one circle."""
+    s = 0.0
+    for i in range(qx.shape[0]):
+        d = math.sqrt((qx[i] - cx) ** 2 + (qy[i] - cy) ** 2) - r
+        if abs(d) <= tol:
+            s += 1.0 - (d / tol) ** 2 if msac else 1.0
+        elif d < -3.0 * tol:
+            s -= 1.0
+    return s
+
+
+@njit(cache=True)
+def _scores_kernel(
+    qx: FloatArray,
+    qy: FloatArray,
+    ux: FloatArray,
+    uy: FloatArray,
+    r: FloatArray,
+    tol: float,
+    msac: bool,
+    out: FloatArray,
+) -> None:  # pragma: no cover - numba
+    for k in range(ux.shape[0]):
+        out[k] = _score_one(qx, qy, ux[k], uy[k], r[k], tol, msac)
+
+
+#: rounds of the local optimisation of one hypothesis (refit to its inliers, re-score)
+LO_ROUNDS = 4
 
 
 def _local_optimisation(
@@ -121,61 +155,97 @@ def _local_optimisation(
     score: FloatArray,
     tol: float,
     radius_window: tuple[float, float],
-    n_iter: int = 4,
+    n_iter: int = LO_ROUNDS,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """LO-RANSAC's local optimisation (Chum, Matas & Kittler 2003, the iterated
-    least-squares step) of K circles at once: each is refitted to the points within ``tol``
-    of it -- Kasa's algebraic fit (Kasa 1976), then 2 Gauss-Newton steps of the orthogonal
-    distances (Chernov 2010, §4.4) -- and re-scored (:func:`_circle_scores`, MSAC); a refit
-    replaces its circle when its score is higher and its radius inside ``radius_window``,
-    at most ``n_iter`` times. Returns the circles and their scores.
+    least-squares step) of K circles: each is refitted to the points within ``tol`` of it
+    and re-scored (:func:`_circle_scores`, MSAC); a refit replaces its circle when its score
+    is higher and its radius inside ``radius_window``, at most ``n_iter`` times. Returns the
+    circles and their scores.
+
+    The refit is the project's geometric circle fit of the scan detector: the algebraic
+    start (Kasa 1976; :func:`stemmap.scan._fit_geometric._kasa_start`) and
+    Levenberg-Marquardt on the orthogonal distances (:func:`stemmap.scan._fit_lm._lm`, plain
+    least squares, no silhouette terms; Chernov 2010, §4.4), compiled with the inlier
+    selection and scoring into one pass over the K circles (:func:`_lo_kernel`).
 
     A minimal sample's circle is three noisy points: on a spruce slice a stem sample often
     scores below a circle through the branch clutter, and whether a draw close enough to the
     stem came up decided the fit (23.6-25.0 cm over 12 seeds). Its least-squares refit on
     its inliers is the stem's circle whichever of the stem's samples was drawn."""
-    ux, uy, r, score = ux.copy(), uy.copy(), r.copy(), score.copy()
-    ones = np.ones(q.shape[0])
-    X = np.column_stack((q, ones))  # (m, 3)
-    z = (q * q).sum(axis=1)
-    active = np.ones(ux.shape[0], dtype=bool)
-    for _ in range(n_iter):
-        if not active.any():
-            break
-        sd = np.hypot(q[None, :, 0] - ux[:, None], q[None, :, 1] - uy[:, None]) - r[:, None]
-        w = (np.abs(sd) <= tol).astype(np.float64)  # (K, m)
-        A = _weighted_gram(w, np.broadcast_to(X, (w.shape[0], *X.shape))) + 1e-12 * np.eye(3)
-        g = (w * z) @ X
-        ok = active & (w.sum(axis=1) >= 3) & (np.abs(np.linalg.det(A)) > 1e-18)
-        sol = np.zeros_like(g)
-        sol[ok] = np.linalg.solve(A[ok], g[ok][:, :, None])[:, :, 0]
-        p = np.column_stack((sol[:, 0] / 2, sol[:, 1] / 2, np.zeros(sol.shape[0])))
-        r2 = sol[:, 2] + p[:, 0] ** 2 + p[:, 1] ** 2
-        ok &= r2 > 0
-        p[:, 2] = np.sqrt(np.maximum(r2, 0.0))
-        for _gn in range(2):
-            vx, vy = q[None, :, 0] - p[:, 0:1], q[None, :, 1] - p[:, 1:2]
-            d = np.maximum(np.hypot(vx, vy), 1e-12)
-            J = np.stack((-vx / d, -vy / d, -np.ones_like(d)), axis=2)  # (K, m, 3)
-            H = _weighted_gram(w, J) + 1e-12 * np.eye(3)
-            we = w * (d - p[:, 2:3])
-            gg = np.stack([(we * J[:, :, i]).sum(axis=1) for i in range(3)], axis=1)
-            ok &= np.abs(np.linalg.det(H)) > 1e-18
-            step = np.zeros_like(p)
-            step[ok] = np.linalg.solve(H[ok], -gg[ok][:, :, None])[:, :, 0]
-            p = p + step
-        ok &= np.isfinite(p).all(axis=1)
-        ok &= (p[:, 2] >= radius_window[0]) & (p[:, 2] <= radius_window[1])
-        new = np.full(ux.shape[0], -np.inf)
-        if ok.any():
-            new[ok] = _circle_scores(q, p[ok, 0], p[ok, 1], p[ok, 2], tol, True)
-        better = ok & (new > score)
-        ux = np.where(better, p[:, 0], ux)
-        uy = np.where(better, p[:, 1], uy)
-        r = np.where(better, p[:, 2], r)
-        score = np.where(better, new, score)
-        active = better
+    ux, uy, r, score = (np.array(a, dtype=np.float64) for a in (ux, uy, r, score))
+    if ux.shape[0]:
+        _lo_kernel(
+            np.ascontiguousarray(q[:, 0]),
+            np.ascontiguousarray(q[:, 1]),
+            ux,
+            uy,
+            r,
+            score,
+            float(tol),
+            float(radius_window[0]),
+            float(radius_window[1]),
+            int(n_iter),
+        )
     return ux, uy, r, score
+
+
+@njit(cache=True)
+def _lo_kernel(
+    qx: FloatArray,
+    qy: FloatArray,
+    ux: FloatArray,
+    uy: FloatArray,
+    r: FloatArray,
+    score: FloatArray,
+    tol: float,
+    r_min: float,
+    r_max: float,
+    n_iter: int,
+) -> None:  # pragma: no cover - numba
+    """:func:`_local_optimisation` in place on (ux, uy, r, score)."""
+    m = qx.shape[0]
+    lx = np.empty(m)
+    ly = np.empty(m)
+    keep = np.ones(m)
+    unused = np.zeros(m)  # ranges and ray directions: only the range model reads them
+    ws3 = np.empty((3, 3, 3))
+    wv = np.empty((8, 3))
+    mdl = np.zeros(10)  # orthogonal distances, sigma 1, no silhouette (_fit_lm._cost_and_normal)
+    mdl[0] = 1.0
+    p = np.empty(3)
+    for k in range(ux.shape[0]):
+        for _ in range(n_iter):
+            n = 0
+            for i in range(m):
+                d = math.sqrt((qx[i] - ux[k]) ** 2 + (qy[i] - uy[k]) ** 2) - r[k]
+                if abs(d) <= tol:
+                    lx[n] = qx[i]
+                    ly[n] = qy[i]
+                    n += 1
+            if n < 3 or not _kasa_start(lx[:n], ly[:n], p):
+                break
+            _lm(
+                lx[:n],
+                ly[:n],
+                unused[:n],
+                unused[:n],
+                unused[:n],
+                keep[:n],
+                p,
+                mdl,
+                0.0,
+                False,
+                ws3,
+                wv,
+                1.0,
+            )
+            if not (math.isfinite(p[0]) and math.isfinite(p[1]) and r_min <= p[2] <= r_max):
+                break
+            s = _score_one(qx, qy, p[0], p[1], p[2], tol, True)
+            if not s > score[k]:
+                break
+            ux[k], uy[k], r[k], score[k] = p[0], p[1], p[2], s
 
 
 #: hypotheses of each RANSAC batch that are locally optimised (the highest-scoring ones)
@@ -265,13 +335,19 @@ def _fit_segments(
     radius_window: tuple[float, float] = (0.0, np.inf),
     ray_origins: FloatArray | None = None,
     ransac_lo: bool = True,
+    ransac_seed: int = 0,
+    window: float = 3.0,
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int64]]:
     """Robust batched circle fit of K segments: fit, trim |res| > 3 sigma (MAD), refit.
 
     With ``ray_origins`` (N, 2: each point's sensor position) the result is refined with
     residuals along the rays (:func:`_refine_along_rays`). Returns centres (K, 2), radii,
     rms, ok, inlier counts; rows for ids absent from ``ids`` are NaN / False. ``ransac_lo``:
-    the RANSAC start is locally optimised (:func:`_ransac_circle`).
+    the RANSAC start is locally optimised (:func:`_ransac_circle`); ``ransac_seed``: its
+    draws (:func:`_segment_rng`; ``StemConfig.ransac_seed``). ``window``
+    (``StemConfig.slice_fit_window``, 3): the points kept after a RANSAC start are those
+    within ``window`` tolerances of its circle, and the trim drops residuals beyond
+    ``window x 1.4826 x MAD``.
     """
     centers = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)
@@ -303,13 +379,13 @@ def _fit_segments(
             # seeded per segment (by its point count), not by a stream shared with the
             # segments before it: a segment gets the same draws in any chunk of a catalog as
             # in the whole cloud (docs/algorithms/engine.md), and in a shifted copy of it
-            gen = _segment_rng(idx.size)
+            gen = _segment_rng(idx.size, ransac_seed)
             best = _ransac_circle(pts[idx], ransac_tol, radius_window, gen, lo=ransac_lo)
             if best is None:
                 continue
             cx, cy, r = best
             res = np.abs(np.hypot(pts[idx, 0] - cx, pts[idx, 1] - cy) - r)
-            keep[idx] = res <= 3 * ransac_tol
+            keep[idx] = res <= window * ransac_tol
             c0[first.segment_ids[row]] = (cx, cy)
     for it in range(2):
         sel_ids = ids[keep]
@@ -336,7 +412,7 @@ def _fit_segments(
         c0 = np.where(np.isfinite(centers), centers, c0)
         if it == 1:
             break
-        # trim outliers: |residual| > max(3 * 1.4826 * MAD, 1 mm) of the segment
+        # trim outliers: |residual| > max(window (3) * 1.4826 * MAD, 1 mm) of the segment
         good = ok[ids]
         res = np.full(pts.shape[0], np.inf)
         res[good] = np.abs(np.hypot(*(pts[good] - centers[ids[good]]).T) - radii[ids[good]])
@@ -352,7 +428,7 @@ def _fit_segments(
             counts = np.diff(np.r_[starts, s_ids.size])
             med = s_res[starts + counts // 2]
             mad[s_ids[starts]] = med
-        thr = np.maximum(3.0 * 1.4826 * mad, 0.001)
+        thr = np.maximum(window * 1.4826 * mad, 0.001)
         keep = good & (res <= thr[ids])
         keep |= ~good  # segments that failed keep their points for the second try
     if ray_origins is not None and method != "kasa":
@@ -601,6 +677,8 @@ def _opaque_core_refits(
     min_points: int,
     ray_origins: FloatArray | None = None,
     ransac_lo: bool = True,
+    ransac_seed: int = 0,
+    window: float = 3.0,
 ) -> tuple[_Fits, int]:
     """Slice circles refitted to the stem inside them: a trunk is opaque.
 
@@ -616,8 +694,10 @@ def _opaque_core_refits(
     inliers, a residual RMS no larger than s, lies within the old circle
     (``|c' - c| + r' <= r + 3 t``), and leaves fewer than half as many points inside its
     own disc (margin ``3 max(s', 5 mm)``), at most :data:`CORE_INSIDE_FRACTION` of its
-    inliers. ``ray_origins``, ``ransac_lo`` as in :func:`_fit_segments`. Returns the fits (copies;
-    centres, radii, RMS, ok, inliers) and the number of segments replaced."""
+    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed``, ``window`` as in
+    :func:`_fit_segments`.
+    Returns the fits (copies; centres, radii, RMS, ok, inliers) and the number of segments
+    replaced."""
     centers, radii, rms = (np.array(a, dtype=np.float64) for a in fit[:3])
     ok, nin = np.array(fit[3], dtype=bool), np.array(fit[4], dtype=np.int64)
     if pts.shape[0] == 0 or not ok.any():
@@ -651,6 +731,8 @@ def _opaque_core_refits(
             radius_window=(radius_window[0], float(radii[s])),
             ray_origins=None if ray_origins is None else ray_origins[sel],
             ransac_lo=ransac_lo,
+            ransac_seed=ransac_seed,
+            window=window,
         )
         if not (ok2[0] and n2[0] >= min_points and s2[0] <= rms[s] and r2[0] <= radii[s]):
             continue
@@ -663,3 +745,9 @@ def _opaque_core_refits(
         centers[s], radii[s], rms[s], nin[s] = c2[0], r2[0], s2[0], n2[0]
         replaced += 1
     return (centers, radii, rms, ok, nin), replaced
+
+
+# after every kernel is defined, before the first call loads the cache: the local
+# optimisation compiles in the scan fits' Kasa start and Levenberg-Marquardt core
+# (stemmap._numba_cache)
+_numba_cache.drop_stale_cache(_lo_kernel, __file__, _fit_geometric.__file__, _fit_lm.__file__)

@@ -279,6 +279,8 @@ def _annulus_fit(
         ransac_tol=max(0.5 * nf, 0.005),
         radius_window=(cfg.min_diameter / 2, cfg.max_diameter / 2),
         ransac_lo=cfg.ransac_lo,
+        ransac_seed=cfg.ransac_seed,
+        window=cfg.slice_fit_window,
     )
     if not ok[0] or nin[0] < cfg.min_slice_points:
         return None
