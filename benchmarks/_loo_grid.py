@@ -66,6 +66,9 @@ def _setting(
         # Dec 5: first-echo fits weighted by the measured noise, the preset's since Dec 5
         # (grid 67); a grid point without it means off, as before (grids 63-65 name it)
         "fit_noise_floor": 0.0,
+        # Dec 5 ("The batch's noise from few triples"): the batch estimate's statistic; a grid
+        # point without it means the MAD, as before (grids 74-76 name the biweight)
+        "batch_noise_scale": "mad",
         **extra,
     }
 
@@ -387,6 +390,43 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         **_STEP_BATCH_59,
         fit_noise_floor=0.003,
         occluded_blend_sigmas=3.0,
+    ),
+    # Dec 5 ("The branch root at the arc end"), grids 74 / 75 on grids 67 (the preset) and
+    # 69 (its run test by data snooping): an accepted piece's cut-end return goes and that
+    # end is occluded where the trimmed piece passes every test (cut_ends; first-echo fits,
+    # numpy path: the nearest-return rows; the averaging rows and the simulator are 67's / 69's)
+    _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, fit_noise_floor=0.003, cut_ends=True),
+    _setting(
+        **_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, **_RUNS_63, stub_runs_snoop=True, cut_ends=True
+    ),
+    # Dec 5 ("The batch's noise from few triples"), grids 76-78 (measured as 73-75, then
+    # numbered 74-76 on their branch; renumbered after the branch root's 74 / 75): the
+    # batch's range-noise estimate by the biweight midvariance (batch_noise_scale; both paths)
+    # on grid 69, on the preset (grid 67), and on grid 69 with the RMS test reading the batch's
+    # estimate where it is >= 2.5 sigma (scan_noise_batch)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+    ),
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        fit_noise_floor=0.003,
+        batch_noise_scale="biweight",
+    ),
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+        scan_noise_batch=2.5,
     ),
 )
 

@@ -12,8 +12,17 @@ count and slice count, plus the spacing and noise floor spread, and whether ever
 gave bit-identical positions, diameters and point counts. CPU time (``time.process_time``)
 of the file-order run (median of ``--repeat`` runs) is printed too.
 
+Preset ``munjer2025`` (EB-LiDAR, ``--munjer``): the real clouds under 1 m tall (the lidR and
+FORTLS slices) with the pass-through box opened, as ``cloud_stems.py`` runs them, and virtual
+VLP-16 frames of ``treels/pine_plot.laz`` (``munjer2025_real_frames.virtual_frame``, sensor
+every 2 m on the three lines between the rows, 39 frames) with the published box, as given
+and rounded to a 2 mm grid (equal z in a cell: the ground-relative box's tie-break), each
+with ``ground_relative`` off (the default) and on. Per case: whether every order gave
+bit-identical voxel points, DBSCAN labels and stems, the stems' count, and the CPU time of
+``munjer_clusters`` with the share of it spent on the voxel grid's canonical sort.
+
 Prints ONE JSON object. Usage: python benchmarks/cloud_point_order.py [--perms 10]
-[--clouds a,b] [--repeat 3]
+[--clouds a,b] [--repeat 3] [--munjer] [--no-ours]
 """
 
 from __future__ import annotations
@@ -30,6 +39,10 @@ import laspy
 import numpy as np
 
 from _cloud_refs import CLOUDS, match_stems
+from munjer2025_real_frames import LINES_X, virtual_frame
+from stemmap.cloud.canonical import canonical_order
+from stemmap.cloud.filters import pass_through
+from stemmap.cloud.munjer import MunjerClusters, MunjerConfig, level_to_ground, munjer_clusters
 from stemmap.cloud.stems import CloudStems, StemConfig, detect_stems, detect_stems_file
 from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
@@ -109,11 +122,93 @@ def run_cloud(path: str, perms: int, repeat: int) -> dict[str, Any]:
     }
 
 
+def _same_clusters(a: MunjerClusters, b: MunjerClusters) -> bool:
+    """Voxel points, labels and accepted stems bit-identical."""
+    sa, sb = a.stems(), b.stems()
+    return (
+        np.array_equal(a.points, b.points)
+        and np.array_equal(a.labels, b.labels)
+        and len(sa) == len(sb)
+        and np.array_equal(sa.xy, sb.xy)
+        and np.array_equal(sa.diameter, sb.diameter)
+    )
+
+
+def _munjer_case(clouds: list[np.ndarray], cfg: MunjerConfig, perms: int, repeat: int) -> dict:
+    """EB-LiDAR on each cloud in its order and ``perms`` permutations; CPU time of the
+    pipeline and of the voxel grid's canonical sort (on the pass-through points)."""
+    identical, stems, differ, stems_differ, counts = True, 0, 0, 0, set()
+    cpu, sort_cpu = 0.0, 0.0
+    for xyz in clouds:
+        base = munjer_clusters(xyz, cfg)
+        stems += len(base.stems())
+        runs = [
+            munjer_clusters(xyz[np.random.default_rng(s).permutation(len(xyz))], cfg)
+            for s in range(perms)
+        ]
+        same = all(_same_clusters(r, base) for r in runs)
+        identical &= same
+        differ += not same
+        b = base.stems()
+        stems_differ += not all(
+            len(r.stems()) == len(b) and np.array_equal(r.stems().diameter, b.diameter)
+            for r in runs
+        )
+        counts |= {len(r.stems()) - len(b) for r in runs}
+        zb = level_to_ground(xyz) if cfg.ground_relative else xyz
+        p = xyz[pass_through(zb, x=cfg.box_x, y=cfg.box_y, z=cfg.box_z)]
+        t_all, t_sort = [], []
+        for _ in range(repeat):
+            t0 = time.process_time()
+            munjer_clusters(xyz, cfg)
+            t1 = time.process_time()
+            canonical_order(p[:, 0], p[:, 1], p[:, 2])
+            t_all.append(t1 - t0)
+            t_sort.append(time.process_time() - t1)
+        cpu += float(np.median(t_all))
+        sort_cpu += float(np.median(t_sort))
+    return {
+        "clouds": len(clouds),
+        "stems_file_order": stems,
+        "bit_identical_over_orders": identical,
+        "clouds_differing": differ,
+        "clouds_with_other_stems": stems_differ,
+        "stem_count_change_over_orders": sorted(counts),
+        "cpu_s": round(cpu, 4),
+        "sort_cpu_s": round(sort_cpu, 4),
+        "sort_share": round(sort_cpu / cpu, 4) if cpu > 0 else None,
+    }
+
+
+def run_munjer(root: Path, perms: int, repeat: int) -> dict[str, Any]:
+    """EB-LiDAR's order check (module docstring)."""
+    out: dict[str, Any] = {}
+    opened = MunjerConfig(box_x=None, box_y=None, box_z=None)
+    for k in ("lidr_dbh", "fortls_slice"):
+        xyz = read_cloud(str(root / CLOUDS[k])).xyz
+        out[f"{k}_box_opened"] = _munjer_case([xyz], opened, perms, repeat)
+    plot = read_cloud(str(root / "treels" / "pine_plot.laz")).xyz
+    frames = [
+        virtual_frame(plot, np.array([x, y, np.pi / 2]))
+        for x in LINES_X
+        for y in np.arange(-8.0, 18.0, 2.0)
+    ]
+    gridded = [np.round(f / 0.002) * 0.002 for f in frames]
+    for name, fs in (("frames", frames), ("frames_2mm", gridded)):
+        for gr in (False, True):
+            cfg = MunjerConfig(ground_relative=gr)
+            key = f"pine_plot_{name}" + ("_ground_relative" if gr else "")
+            out[key] = _munjer_case(fs, cfg, perms, repeat)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--perms", type=int, default=10)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--clouds", default=",".join(CLOUDS))
+    ap.add_argument("--munjer", action="store_true", help="also the munjer2025 preset")
+    ap.add_argument("--no-ours", action="store_true", help="skip preset ours")
     a = ap.parse_args()
     root = find_datasets_dir()
     if root is None:
@@ -121,9 +216,12 @@ def main() -> None:
     res = {
         k: run_cloud(str(root / CLOUDS[k]), a.perms, a.repeat)
         for k in a.clouds.split(",")
-        if k in CLOUDS
+        if k in CLOUDS and not a.no_ours
     }
-    print(json.dumps({"perms": a.perms, "clouds": res}, indent=1))
+    out: dict[str, Any] = {"perms": a.perms, "clouds": res}
+    if a.munjer:
+        out["munjer2025"] = run_munjer(root, a.perms, a.repeat)
+    print(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

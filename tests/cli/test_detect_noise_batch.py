@@ -62,3 +62,20 @@ def test_noise_batch_refuses_a_factor_below_one(tmp_path: Path) -> None:
     )
     assert res.exit_code != 0
     assert "--noise-batch" in res.output
+
+
+def test_noise_batch_scale_option(tmp_path: Path) -> None:
+    # --noise-batch-scale biweight (batch_noise_scale, Dec 5): the batch's estimate by the
+    # biweight; with --noise-batch the noisy arcs pass as with the MAD's (both read ~3 cm)
+    src, _ = _sparse_noisy_scans(tmp_path)
+    off, on = tmp_path / "off.csv", tmp_path / "on.csv"
+    r_off = runner.invoke(app, ["detect", str(src), "--out", str(off), "-q"])
+    args = ["detect", str(src), "--out", str(on), "-q", "--noise-batch", "2"]
+    r_on = runner.invoke(app, [*args, "--noise-batch-scale", "biweight"])
+    assert r_off.exit_code == 0, r_off.output
+    assert r_on.exit_code == 0, r_on.output
+    assert _rows(on) > _rows(off)
+    doc = json.loads((tmp_path / "on.csv.run.json").read_text())
+    assert doc["parameters"]["noise_batch_scale"] == "biweight"
+    bad = runner.invoke(app, [*args, "--noise-batch-scale", "std"])
+    assert bad.exit_code != 0

@@ -199,3 +199,37 @@ def test_y_up_single_tree_is_warned_and_the_axis_assumed_is_stated(
         assert ("pass --up-axis y" in text) == warned, text
         payload = json.loads(res.stdout)
         assert payload["up_axis"] == "z" and payload["units"] == "m"
+
+
+def test_y_up_pine_gives_the_z_up_stems_with_up_axis(tmp_path: Path, datasets_dir: Path) -> None:
+    """TreeLS pine (a real tree with its ground) written Y up as (x, z, -y) on the file's own
+    LAS grid: `--up-axis y` gives the stems of the Z-up file, bit for bit. Tolerance 0 is
+    justified: the file's integers are only swapped and negated (the offsets with them), so
+    the turned coordinates equal the original doubles exactly, and the detector does not
+    depend on the point order (docs/algorithms/cloud.md, "Point order").
+
+    Without --up-axis the cloud is a tree lying on its side; a horizontal branch (12.4 m up
+    the trunk, reaching 1 m toward -y) then stands vertical and can pass as a 7.4 cm stem
+    (it does on a 1 mm grid, not on this 0.1 mm one). Whatever it finds, the run warns and
+    names --up-axis y (docs/reliability.md, "The up axis of a single tree")."""
+    import laspy
+
+    src = datasets_dir / "treels" / "pine.laz"
+    las = laspy.read(src)
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    header.scales = las.header.scales[[0, 2, 1]]
+    header.offsets = las.header.offsets[[0, 2, 1]] * [1.0, 1.0, -1.0]
+    turned = laspy.LasData(header)
+    turned.X, turned.Y, turned.Z = las.X, las.Z, -np.asarray(las.Y)
+    path = tmp_path / "pine_yup.las"
+    turned.write(str(path))
+
+    z_up, _ = _stems(tmp_path, src)
+    y_up, _ = _stems(tmp_path, path, "--up-axis", "y")
+    assert len(z_up) == 1 and float(z_up[0]["diameter"]) == pytest.approx(0.255, abs=0.005)
+    assert y_up == z_up
+
+    res = runner.invoke(app, ["stems", str(path), "-o", str(tmp_path / "as_read.csv"), "-q"])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert "like a tree lying on its side" in text and "pass --up-axis y" in text

@@ -36,11 +36,11 @@ def _y_up_tiles(src: Path, out: Path, size: float) -> Path:
 
 
 def test_lying_tree_in_tiles_is_warned(datasets_dir: Path, tmp_path: Path) -> None:
-    """TreeLS spruce Y up in 10 m tiles. (TreeLS pine Y up, used before Dec 5, now gives one
-    false 60.8 cm stem, in tiles as in the single file: since the ground breaks ties of equal
-    cell minima by coordinates, docs/algorithms/cloud.md "Point order", its band holds 3
-    points more and the lying trunk's cross-section passes; on the old ground it passed in
-    0 of 6 point orders, on the new one in 4 of 6 before the band was sorted.)"""
+    """TreeLS spruce Y up in 10 m tiles: no stem, the lying-tree warning and the cloud's size.
+    (TreeLS pine Y up, used before Dec 5, now gives one false 7.4 cm stem -- a horizontal
+    branch standing vertical -- in tiles as in the single file, with the same warning:
+    docs/algorithms/cloud.md "Point order", "A lying tree"; the single file is tested in
+    tests/cli/test_stems_conventions.py, the tiles were checked by hand: 42 s in a test.)"""
     tiles = _y_up_tiles(datasets_dir / "treels" / "spruce.laz", tmp_path / "tiles", 10.0)
     res = CliRunner().invoke(
         app, ["stems", str(tiles), "-o", str(tmp_path / "s.csv"), "--workers", "1"]

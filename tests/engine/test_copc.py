@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from stemmap.cloud import StemConfig, detect_stems
+from stemmap.cloud import CloudStems, StemConfig, detect_stems
 from stemmap.engine import Catalog, plan_chunks, read_chunk, run_stems_catalog
 
 pytest.importorskip("copclib")
@@ -65,18 +65,25 @@ def test_copc_query_reads_exactly_the_buffered_box(tmp_path: Path) -> None:
         np.testing.assert_array_equal(got, whole[m])
 
 
+@pytest.fixture(scope="module")
+def copc_reference(copc_tiles: Path) -> CloudStems:
+    """One process over the whole cloud, tiles in catalog order, each in its file order (a
+    single run's anchors: the pilot is the whole catalog); shared by the chunk sizes."""
+    cat = Catalog.from_inputs([copc_tiles])
+    whole = np.concatenate([_read_all(t.path) for t in cat.tiles])
+    return detect_stems(whole, StemConfig())
+
+
 @pytest.mark.parametrize("size", [10.0, 7.0])
 def test_copc_catalog_equals_single_process(
-    copc_tiles: Path, client: Any, tmp_path: Path, size: float
+    copc_tiles: Path, copc_reference: CloudStems, client: Any, tmp_path: Path, size: float
 ) -> None:
     cat = Catalog.from_inputs([copc_tiles])
     assert len(cat) == 9 and all(t.copc for t in cat.tiles)
     run = run_stems_catalog(cat, StemConfig(), tmp_path, chunk_size=size, buffer=4.0, client=client)
     assert not run.failed and run.stems is not None
     assert not (tmp_path / "stage").exists()  # COPC tiles are queried, never staged
-    # one process over the whole cloud, tiles in catalog order, each in its file order
-    whole = np.concatenate([_read_all(t.path) for t in cat.tiles])
-    reference = detect_stems(whole, StemConfig())  # a single run's anchors (pilot: all)
+    reference = copc_reference
     assert_same_stems(reference, run.stems)
     assert isinstance(run.config, StemConfig)
     assert run.config.spacing == reference.spacing

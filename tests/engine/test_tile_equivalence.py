@@ -68,17 +68,38 @@ def _run(tiles: Path, work: Path, client: Any, config: StemConfig, **kw: Any) ->
     return run_stems_catalog(Catalog.from_inputs([tiles]), config, work, client=client, **kw)
 
 
+def _tiles_and_file(
+    datasets_dir: Path, factory: pytest.TempPathFactory, name: str, size: float
+) -> tuple[Path, CloudStems]:
+    """The cloud ``name`` cut into ``size`` m tiles, and its single-file stems: built once
+    per module for the tests that run its tiles with several chunk sizes (read only)."""
+    src = datasets_dir / name
+    return cut_tiles(src, factory.mktemp("tiles") / "t", size), detect_stems_file(src)
+
+
+@pytest.fixture(scope="module")
+def tree_1_tiles(
+    datasets_dir: Path, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Path, CloudStems]:
+    return _tiles_and_file(datasets_dir, tmp_path_factory, "archi/Tree_1_point_cloud.las", 5.0)
+
+
+@pytest.fixture(scope="module")
+def spruce_tiles(
+    datasets_dir: Path, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Path, CloudStems]:
+    return _tiles_and_file(datasets_dir, tmp_path_factory, "treels/spruce.laz", 1.0)
+
+
 @pytest.mark.parametrize("chunk", [None, 2.0])
 def test_tree_without_ground_in_tiles(
-    datasets_dir: Path, tmp_path: Path, client: Any, chunk: float | None
+    tree_1_tiles: tuple[Path, CloudStems], tmp_path: Path, client: Any, chunk: float | None
 ) -> None:
     """archi Tree_1 in 5 m tiles, one chunk and 2 m chunks (chunks of crown only, which
     on their own points would take their lowest branches for a stem base): the single
     file's stem, from the same flat base."""
-    src = datasets_dir / "archi" / "Tree_1_point_cloud.las"
-    one = detect_stems_file(src)
-    run = _run(cut_tiles(src, tmp_path / "t", 5.0), tmp_path / "w", client, StemConfig(),
-               chunk_size=chunk)  # fmt: skip
+    tiles, one = tree_1_tiles
+    run = _run(tiles, tmp_path / "w", client, StemConfig(), chunk_size=chunk)
     assert run.stems is not None
     _same(run.stems, one)
     assert one.base == run.stems.base == BASE_STEM
@@ -114,15 +135,13 @@ def test_slice_in_tiles(datasets_dir: Path, tmp_path: Path, client: Any) -> None
 
 @pytest.mark.parametrize("chunk", [None, 2.0])
 def test_spruce_in_tiles(
-    datasets_dir: Path, tmp_path: Path, client: Any, chunk: float | None
+    spruce_tiles: tuple[Path, CloudStems], tmp_path: Path, client: Any, chunk: float | None
 ) -> None:
     """TreeLS spruce in 1 m tiles: the single file's stem. Before Dec 5 its DBH was 10.8 mm
     off (24.64 cm and 663 points for 23.56 cm and 540): the tiles hold the file's points in
     another order, and the ground's ties and the band's fits followed the order."""
-    src = datasets_dir / "treels" / "spruce.laz"
-    one = detect_stems_file(src)
-    run = _run(cut_tiles(src, tmp_path / "t", 1.0), tmp_path / "w", client, StemConfig(),
-               chunk_size=chunk)  # fmt: skip
+    tiles, one = spruce_tiles
+    run = _run(tiles, tmp_path / "w", client, StemConfig(), chunk_size=chunk)
     assert run.stems is not None and run.stems.base == one.base == BASE_GROUND
     _same(run.stems, one)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -15,6 +16,14 @@ from stemmap.cli._summary import announce_compile
 from stemmap.cli._validate import bounded
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan.config import ARC_OPTIONS
+
+
+class NoiseScale(StrEnum):
+    """The batch range-noise estimate's statistic (``batch_noise_scale``)."""
+
+    mad = "mad"
+    biweight = "biweight"
+
 
 __all__ = ["detect", "register"]
 
@@ -97,6 +106,19 @@ def detect(
             "e.g. 2.5). Off by default (docs/algorithms/scan-detection.md, 'Range noise on "
             "sparse scans').",
             callback=bounded("--noise-batch", ge=1),
+        ),
+    ] = None,
+    noise_batch_scale: Annotated[
+        NoiseScale | None,
+        typer.Option(
+            "--noise-batch-scale",
+            help="The statistic of the range-noise estimate over every scan of a batch, which a "
+            "scan too sparse for its own takes (the fit's noise with --footprint, the step "
+            "split's threshold, --noise-batch): mad (1.4826 x the median absolute deviation) "
+            "or biweight (the biweight midvariance: as robust, a quarter less sampling spread "
+            "on the few tens of triples of a sparse batch; batch_noise_scale). Default: the "
+            "preset's (docs/algorithms/scan-detection.md, 'The batch's noise from few "
+            "triples').",
         ),
     ] = None,
     step_split: Annotated[
@@ -234,6 +256,8 @@ def detect(
             overrides["sigma_from_scan"] = sigma_from_scan
         if noise_batch is not None:
             overrides["scan_noise_batch"] = noise_batch
+        if noise_batch_scale is not None:
+            overrides["batch_noise_scale"] = noise_batch_scale.value
         if step_split:
             overrides["step_split"] = True
             overrides["step_noise_pool"] = "batch"

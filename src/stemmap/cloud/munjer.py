@@ -339,8 +339,10 @@ def level_to_ground(xyz: ArrayLike, cell: float = 1.0, max_residual: float = 0.1
 
     Ours (Munjer et al. 2025 apply the pass-through box in the raw lidar frame). The plane
     ``g = a + b x + c y`` is fitted by least squares to the lowest point of every ``cell`` m
-    cell below the sensor (z < 0), three rounds dropping cells more than ``max_residual`` above
-    it (trunk or bush bottoms); with fewer than 3 cells the points are returned unchanged.
+    cell below the sensor (z < 0; of equal minima the one of smallest x, then y, so the plane
+    does not depend on the point order), three rounds dropping cells more than
+    ``max_residual`` above it (trunk or bush bottoms); with fewer than 3 cells the points are
+    returned unchanged.
     """
     p = as_xyz(xyz)
     below = p[p[:, 2] < 0]
@@ -351,9 +353,12 @@ def level_to_ground(xyz: ArrayLike, cell: float = 1.0, max_residual: float = 0.1
     inv = inv.reshape(-1)
     zmin = np.full(int(inv.max()) + 1, np.inf)
     np.minimum.at(zmin, inv, below[:, 2])
-    first = np.flatnonzero(below[:, 2] == zmin[inv])
-    _, keep_first = np.unique(inv[first], return_index=True)
-    g = below[first[keep_first]]
+    low = np.flatnonzero(below[:, 2] == zmin[inv])
+    # of equal cell minima the one of smallest x, then y: the plane does not depend on the
+    # point order (as the default preset's ground, docs/algorithms/cloud.md "Point order")
+    low = low[np.lexsort((below[low, 1], below[low, 0], inv[low]))]
+    _, keep_first = np.unique(inv[low], return_index=True)
+    g = below[low[keep_first]]
     ok = np.ones(g.shape[0], bool)
     coef = None
     for _ in range(3):

@@ -5,7 +5,7 @@ detector's grid anchors, point spacing, noise floor, the ground / no-ground deci
 ``base_z``. :func:`catalog_statistics` measures them once on a pilot region
 (:func:`pilot_chunk`: the densest box of about ``max_points`` points near the catalog's
 middle) and hands them to every chunk through the config (``CatalogRun.config``); a pre-cut
-slice's z range comes from the catalog header (:func:`_slice_range`). Used by
+slice's z range comes from the catalog header (:func:`slice_z_range`). Used by
 :mod:`stemmap.engine.stems`.
 """
 
@@ -21,14 +21,26 @@ from stemmap.cloud.ground import BASE_GROUND, BASE_STEM
 from stemmap.engine.catalog import Catalog, Chunk
 from stemmap.engine.staging import chunk_points, task_clock, task_spent
 
-__all__ = ["catalog_base", "catalog_statistics", "pilot_box", "pilot_chunk", "pilot_statistics"]
+__all__ = [
+    "anchored_config",
+    "catalog_base",
+    "catalog_corner",
+    "catalog_statistics",
+    "config_with_statistics",
+    "log_statistics",
+    "pilot_box",
+    "pilot_chunk",
+    "pilot_statistics",
+    "slice_z_range",
+]
 
 log = logging.getLogger(__name__)
 
 
-def _slice_range(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> tuple[float, float] | None:
-    """The catalog's header z range for a slice catalog (``slice_mode="always"``, decided by
-    :func:`_catalog_config`): a pre-cut slice's sub-slices and breast height are laid out on
+def slice_z_range(catalog: Catalog, cfg: StemConfig | MunjerConfig) -> tuple[float, float] | None:
+    """The catalog's header z range for a slice catalog (``slice_mode="always"``, decided
+    once for the whole catalog from its header z range by the run, :mod:`stemmap.engine.
+    stems`): a pre-cut slice's sub-slices and breast height are laid out on
     its whole z extent (:func:`stemmap.cloud.stems._slice_setup`), which a chunk's points
     may not reach (a tilted slice: the stem's z, the slice's middle, would be the chunk's).
     None otherwise."""
@@ -68,7 +80,7 @@ def pilot_box(catalog: Catalog, max_points: int) -> tuple[float, float, float, f
     return box(lo)
 
 
-def _anchored(catalog: Catalog, config: StemConfig, *, pilot: bool = False) -> StemConfig:
+def anchored_config(catalog: Catalog, config: StemConfig, *, pilot: bool = False) -> StemConfig:
     """``config`` with its ground raster spanning the catalog's header box (each chunk
     builds the part its buffer covers; without it a chunk's raster would end at its own
     points) and, unless a ``pilot`` region will measure them (:func:`pilot_statistics`), its
@@ -83,7 +95,9 @@ def _anchored(catalog: Catalog, config: StemConfig, *, pilot: bool = False) -> S
     return config
 
 
-def _corner(catalog: Catalog) -> tuple[float, float]:
+def catalog_corner(catalog: Catalog) -> tuple[float, float]:
+    """The catalog's lower-left header corner ``(x0, y0)``: the grid anchor of every chunk
+    when no pilot region measured one (:func:`config_with_statistics`)."""
     return (catalog.bounds[0], catalog.bounds[1])
 
 
@@ -148,8 +162,8 @@ def pilot_statistics(
         cfg = replace(config, ground_extent=None, estimate_height=False)
         own = config.grid_origin is None
         if own and not whole:
-            cfg = replace(cfg, grid_origin=_corner(catalog))
-        prep = prepare_cloud(xyz, cfg, origins=origins, z_range=_slice_range(catalog, cfg))
+            cfg = replace(cfg, grid_origin=catalog_corner(catalog))
+        prep = prepare_cloud(xyz, cfg, origins=origins, z_range=slice_z_range(catalog, cfg))
         st = detect_prepared(prep, cfg, statistics_only=True)
         anchors = grid_anchors(prep, cfg, float(st.spacing)) if own and whole else None
     except Exception as exc:  # an unreadable tile: its chunks fail and are reported later
@@ -169,7 +183,7 @@ def pilot_statistics(
     }
 
 
-def _with_statistics(
+def config_with_statistics(
     config: StemConfig, stats: dict[str, Any] | None, corner: tuple[float, float]
 ) -> StemConfig:
     """``config`` with the pilot's spacing and noise floor filled in where unset (a
@@ -200,9 +214,14 @@ def _with_statistics(
     )
 
 
-def _log_statistics(
+def log_statistics(
     config: StemConfig, pilot: Chunk, stats: dict[str, Any], catalog_points: int
 ) -> None:
+    """Log the statistics the ``pilot`` region gave the catalog (:func:`pilot_statistics`'s
+    ``stats``; values set in ``config`` win): an info line with the spacing and noise floor,
+    a warning when a pilot that is only part of the catalog found no ground (heights then
+    from its lowest points in every chunk), and one when it measured no spacing or noise
+    floor (each chunk then measures its own)."""
     sp = config.spacing if config.spacing is not None else float(stats["spacing"])
     nf = config.noise_floor if config.noise_floor is not None else float(stats["noise_floor"])
     log.info(
@@ -258,10 +277,10 @@ def catalog_statistics(
     chunk measures its own (logged as a warning).
     """
     need = config.spacing is None or config.noise_floor is None
-    config = _anchored(catalog, config, pilot=need)
+    config = anchored_config(catalog, config, pilot=need)
     if not need:
         return config
     pilot = pilot_chunk(catalog, max_points)
     stats = pilot_statistics(catalog, pilot, config, sensor, time_field, None)
-    _log_statistics(config, pilot, stats, catalog.n_points)
-    return _with_statistics(config, stats, _corner(catalog))
+    log_statistics(config, pilot, stats, catalog.n_points)
+    return config_with_statistics(config, stats, catalog_corner(catalog))

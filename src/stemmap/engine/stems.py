@@ -43,15 +43,15 @@ from stemmap.engine.manifest import (
     save_columns,
 )
 from stemmap.engine.pilot import (
-    _anchored,
-    _corner,
-    _log_statistics,
-    _slice_range,
-    _with_statistics,
+    anchored_config,
     catalog_base,
+    catalog_corner,
     catalog_statistics,
+    config_with_statistics,
+    log_statistics,
     pilot_chunk,
     pilot_statistics,
+    slice_z_range,
 )
 from stemmap.engine.staging import (
     chunk_points,
@@ -118,7 +118,7 @@ def _detect(
     """The detector on a buffered chunk; ours fits only the clusters near the owned area
     (``detect_prepared(region=)``: the owned stems are the same), with the catalog's height
     reference ``base`` (:func:`catalog_base`; None: decided on the chunk's points) and, for
-    a slice catalog, its z range (:func:`_slice_range`)."""
+    a slice catalog, its z range (:func:`slice_z_range`)."""
     from stemmap.cloud import detect_prepared, detect_stems_munjer, prepare_cloud
 
     if isinstance(cfg, MunjerConfig):
@@ -155,7 +155,7 @@ def _chunk_stems(
     if sensor is not None:
         times = extra[time_field] if time_field else None
         origins = sensor.origins(n, times, f"chunk {chunk.id}")
-    return _detect(xyz, config, origins, chunk, base, _slice_range(catalog, config)), n
+    return _detect(xyz, config, origins, chunk, base, slice_z_range(catalog, config)), n
 
 
 def _prepared_path(stage: str, chunk_id: str) -> Path:
@@ -197,7 +197,7 @@ def prepare_chunk(
             config,
             origins=origins,
             ground_window=chunk.buffered,
-            z_range=_slice_range(catalog, config),
+            z_range=slice_z_range(catalog, config),
         )
         if n
         else PreparedCloud(None)
@@ -237,7 +237,7 @@ def stems_chunk(
     check_staged(staged)
     base = None
     if isinstance(config, StemConfig):
-        config = _with_statistics(config, statistics, _corner(catalog))
+        config = config_with_statistics(config, statistics, catalog_corner(catalog))
         base = catalog_base(statistics)
     before = 0.0  # the preparation's seconds (the manifest records the chunk's total)
     prep = None
@@ -435,7 +435,7 @@ def run_stems_catalog(
     pilot: Chunk | None = None
     if isinstance(cfg, StemConfig):
         need = cfg.spacing is None or cfg.noise_floor is None
-        cfg = _anchored(catalog, cfg, pilot=need)
+        cfg = anchored_config(catalog, cfg, pilot=need)
         if need:
             pilot = pilot_chunk(catalog, max_points)
     hashes: dict[int, str] = {}
@@ -479,7 +479,9 @@ def run_stems_catalog(
     )
     if isinstance(cfg, StemConfig) and pilot is not None and not todo and chunks:
         # every chunk done before: the statistics they ran with
-        run.config = _with_statistics(cfg, man.entries()[chunks[0].id], _corner(catalog))
+        run.config = config_with_statistics(
+            cfg, man.entries()[chunks[0].id], catalog_corner(catalog)
+        )
     stage = str(Path(work) / "stage")
     fields = (time_field,) if time_field else ()
     # one graph: stage 1 decodes each LAS/LAZ tile once into the fragments of the chunks still
@@ -551,8 +553,8 @@ def run_stems_catalog(
         if oc.key == "pilot":
             assert pilot is not None and isinstance(cfg, StemConfig)
             value = oc.value if oc.ok else {"spacing": math.nan, "noise_floor": math.nan}
-            _log_statistics(cfg, pilot, {"reason": oc.error, **value}, catalog.n_points)
-            run.config = _with_statistics(cfg, value, _corner(catalog))
+            log_statistics(cfg, pilot, {"reason": oc.error, **value}, catalog.n_points)
+            run.config = config_with_statistics(cfg, value, catalog_corner(catalog))
             clear_stage(stage, pilot.id)
             return
         if oc.key.startswith("prepare-chunk-"):

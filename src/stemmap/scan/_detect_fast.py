@@ -110,6 +110,7 @@ _STEP = PARAM_INDEX["step_split"]
 _STEP_NOISE = PARAM_INDEX["step_noise_on"]
 _STEP_POOL = PARAM_INDEX["step_noise_pool"]
 _STEP_BATCH_MIN = PARAM_INDEX["step_noise_batch_min"]
+_BIWEIGHT = PARAM_INDEX["batch_noise_biweight"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -186,8 +187,20 @@ def _detect_kernel(
     # scan_noise_batch: those still without one taking every scan's pooled estimate
     batch_min = prm[_BATCH_MIN]
     pool_on = scan_on and (prm[65] > 0.0 or batch_min < math.inf)
+    biweight = prm[_BIWEIGHT] > 0.0  # batch_noise_scale="biweight"
     noise_all = (
-        _batch_scan_noise(ranges, fov_in, lo, hi, scan_jump, scan_surface, prm[65] > 0.0, batch_min)
+        _batch_scan_noise(
+            ranges,
+            fov_in,
+            lo,
+            hi,
+            scan_jump,
+            scan_surface,
+            prm[65] > 0.0,
+            batch_min,
+            None,
+            biweight,
+        )
         if pool_on
         else np.zeros(1)
     )
@@ -207,6 +220,7 @@ def _detect_kernel(
             prm[_STEP_POOL] > 0.0,
             prm[_STEP_BATCH_MIN],
             own_noise,
+            biweight,
         )
         if step_noise
         else np.zeros(s_count)

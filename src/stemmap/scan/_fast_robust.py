@@ -141,6 +141,7 @@ def _batch_scan_noise(
     pool: bool = True,
     batch_min: float = math.inf,
     own: FloatArray | None = None,
+    biweight: bool = False,
 ) -> FloatArray:  # pragma: no cover - numba
     """Every scan's range-noise scale with the scans that have too few interior triples for
     an estimate of their own sharing one from the union of their triples (``pool``), and the
@@ -150,7 +151,8 @@ def _batch_scan_noise(
     gates them; the same arithmetic). ``own`` (shape (S,)), if given, receives every scan's own
     estimate before any pooling (0 where it has none): :func:`_scan_noise` of the scan, the
     same numbers, so the detector kernel reads its scan noise there instead of estimating it
-    twice when the step split pools its own."""
+    twice when the step split pools its own. ``biweight``: the estimate over every scan's
+    triples is :func:`_biweight_scale`'s (``batch_noise_scale="biweight"``)."""
     s_count, n = ranges.shape
     out = np.zeros(s_count)
     if own is not None:
@@ -194,7 +196,11 @@ def _batch_scan_noise(
                 out[s] = e
                 unset[s] = False
     if every_m >= _SCAN_NOISE_MIN_TRIPLES and 2 * every_longest <= every_m:
-        e = _mad_scale(every, every_m, surface)
+        e = (
+            _biweight_scale(every, every_m, surface)
+            if biweight
+            else _mad_scale(every, every_m, surface)
+        )
         if e >= batch_min:
             for s in range(s_count):
                 if unset[s]:
@@ -209,6 +215,43 @@ def _mad_scale(d: FloatArray, m: int, surface: float) -> float:  # pragma: no co
     for i in range(m):
         d[i] = abs(d[i] - med)
     e = _ROUGH * _median_inplace(d, m)
+    return math.sqrt(max(e * e - surface * surface, 0.0))
+
+
+#: plausibility.BIWEIGHT_C / BIWEIGHT_GAUSS (the same values on both paths)
+_BIWEIGHT_C = 6.0
+_BIWEIGHT_GAUSS = 1.0462
+
+
+@nrt_njit()
+def _biweight_scale(v: FloatArray, m: int, surface: float) -> float:  # pragma: no cover - numba
+    """``sqrt(max((s_bi / sqrt(6))^2 - surface^2, 0))`` of ``v[:m]`` (left as it is), ``s_bi``
+    the Gaussian-consistent biweight midvariance scale (numba twin of
+    :func:`stemmap.scan.plausibility.biweight_scale`; its sums run over ``v`` in order, as the
+    reference's ``np.cumsum``: the same value bit for bit)."""
+    w = v[:m].copy()
+    med = _median_inplace(w, m)
+    for i in range(m):
+        w[i] = abs(v[i] - med)
+    s = _median_inplace(w, m)
+    if not s > 0.0:
+        return 0.0
+    num = 0.0
+    den = 0.0
+    cs = _BIWEIGHT_C * s
+    for i in range(m):
+        u = (v[i] - med) / cs
+        if abs(u) < 1.0:
+            d = v[i] - med
+            uu = u * u
+            t = 1.0 - uu
+            t2 = t * t
+            num += d * d * (t2 * t2)
+            den += t * (1.0 - 5.0 * uu)
+    den = abs(den)
+    if not den > 0.0:
+        return 0.0
+    e = math.sqrt(m * num) / den / _BIWEIGHT_GAUSS / math.sqrt(6.0)
     return math.sqrt(max(e * e - surface * surface, 0.0))
 
 

@@ -97,6 +97,7 @@ PARAM_NAMES = (
     "step_noise_on",  # 1: ... the step read against the scans' pooled noise (step_noise_pool)
     "step_noise_pool",  # ... scans without an estimate share their pooled one (scan_noise pool)
     "step_noise_batch_min",  # ... still without one take every scan's when >= this (inf: off)
+    "batch_noise_biweight",  # 1: every scan's pooled estimate is the biweight's (not the MAD's)
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -196,6 +197,7 @@ def kernel_params(
         "step_noise_on": cfg.step_split and bool(cfg.step_noise_pool) and cfg.sigma_from_scan,
         "step_noise_pool": cfg.step_noise_pool != "batch",
         "step_noise_batch_min": _step_batch_min(cfg),
+        "batch_noise_biweight": cfg.batch_noise_scale == "biweight",
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtri
 
 from stemmap.scan._arcs import arc_pieces
+from stemmap.scan._cut_ends import trim_cut_ends
 from stemmap.scan._refit import Refitted, refit_pieces, split_refit
 from stemmap.scan._segment_fits import _Fitted, _output_columns
 from stemmap.scan._split_search import search_refit
@@ -87,10 +88,10 @@ def split_pieces(
             if got is not None:
                 rms[got.parent[got.ok]] = False
                 which[got.parent[got.ok]] = False
-            cols, order_key = add_pieces(detector, cols, order_key, got, grid, wrap, fate)
+            cols, order_key = add_pieces(detector, cols, order_key, got, grid, wrap, fate, every)
             for g in step_refit(detector, every, rms, grid, wrap):
                 which[g.parent[g.ok]] = False
-                cols, order_key = add_pieces(detector, cols, order_key, g, grid, wrap, fate)
+                cols, order_key = add_pieces(detector, cols, order_key, g, grid, wrap, fate, every)
             got = None
         if cfg.split_search:
             # the candidates whose corner split gave no trunk: search every cut; unless
@@ -101,9 +102,9 @@ def split_pieces(
                 which &= depth
             if got is not None:
                 which[got.parent[got.ok]] = False
-            cols, order_key = add_pieces(detector, cols, order_key, got, grid, wrap, fate)
+            cols, order_key = add_pieces(detector, cols, order_key, got, grid, wrap, fate, every)
             got = search_refit(detector, every, which, grid, wrap)
-        cols, order_key = add_pieces(detector, cols, order_key, got, grid, wrap, fate)
+        cols, order_key = add_pieces(detector, cols, order_key, got, grid, wrap, fate, every)
     elif cfg.refit_pieces:
         got = refit_pieces(detector, segs, fitted, codes, grid, wrap)
         if fate is not None and got is not None:
@@ -124,15 +125,19 @@ def add_pieces(
     grid: FloatArray,
     wrap: bool,
     fate: dict[str, Any] | None = None,
+    every: Segments | None = None,
 ) -> tuple[Columns, np.ndarray]:
-    """The accepted pieces of a split (``got``, parents indexing every candidate) added to
-    the output; each takes its parent's place (odd order key). ``behind_sigmas`` trims
-    them as it trims accepted candidates. ``fate``:
-    :meth:`~stemmap.scan.detect.ScanTrunkDetector._run_numpy`."""
+    """The accepted pieces of a split (``got``, parents indexing every candidate ``every``)
+    added to the output; each takes its parent's place (odd order key). ``cut_ends`` drops
+    their cut-end returns (:func:`~stemmap.scan._cut_ends.trim_cut_ends`), then
+    ``behind_sigmas`` and ``stub_sigmas`` trim them as they trim accepted candidates.
+    ``fate``: :meth:`~stemmap.scan.detect.ScanTrunkDetector._run_numpy`."""
     if fate is not None and got is not None:
         fate["split"].append((got.parent, got.ok))
     if got is None or not np.any(got.ok):
         return cols, order_key
+    if every is not None:
+        got = trim_cut_ends(detector, got, every, grid, wrap)
     p_segs, p_fit = detector._trim_ends(got.segs, got.fitted, got.ok, grid, wrap)
     got = got._replace(segs=p_segs, fitted=p_fit)
     more = _output_columns(got.segs, got.fitted, got.ok)
@@ -194,6 +199,7 @@ def arc_candidates(
         stay = ~(np.isin(order_key // 2, gone) & (order_key % 2 == 0))
     if not np.any(ok):
         return cols, order_key
+    got = trim_cut_ends(detector, got._replace(ok=ok), every, grid, wrap)
     g_segs, g_fit = detector._trim_ends(got.segs, got.fitted, ok, grid, wrap, behind=False)
     more = _output_columns(g_segs, g_fit, ok)
     cols = {k: np.concatenate((cols[k][stay], more[k])) for k in cols}

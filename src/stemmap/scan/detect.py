@@ -339,6 +339,7 @@ class ScanTrunkDetector:
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
                 pool=cfg.scan_noise_pool,
                 batch_min=cfg.scan_noise_batch_min(),
+                batch_scale=cfg.batch_noise_scale,
             )
             if cfg.sigma_from_scan
             else None
@@ -365,7 +366,12 @@ class ScanTrunkDetector:
         if self._fit_noise_on():
             # the noise the fits weight by: each scan's own estimate, else the batch's
             fit_noise = scan_noise(
-                raw, cfg.scan_noise_jump, cfg.scan_noise_surface, 0.0, batch_min=0.0
+                raw,
+                cfg.scan_noise_jump,
+                cfg.scan_noise_surface,
+                0.0,
+                batch_min=0.0,
+                batch_scale=cfg.batch_noise_scale,
             )
             pts = replace(pts, fit_noise=fit_noise)
         if cfg.segmentation == "range_jump":
@@ -440,6 +446,7 @@ class ScanTrunkDetector:
             math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
             pool=not batch,
             batch_min=0.0 if batch else math.inf,
+            batch_scale=cfg.batch_noise_scale,
         )
         return pooled
 
@@ -487,7 +494,7 @@ class ScanTrunkDetector:
         (``lobe_harmonics``), RMS test over the fit's degrees of freedom (``rms_dof``) or bend
         test of straightness (``straight_curvature``), no occluded-end blend trim
         (``occluded_blend_sigmas``), no
-        ``behind_sigmas`` trim nor a ``stub_sigmas`` trim that acts
+        ``behind_sigmas`` trim nor a ``stub_sigmas`` or ``cut_ends`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
         step split with ``step_noise_pool`` since Dec 5: :mod:`stemmap.scan._fast_step_split`)."""
@@ -503,6 +510,7 @@ class ScanTrunkDetector:
             and cfg.lobe_harmonics == 0
             and math.isinf(cfg.behind_sigmas)
             and (math.isinf(cfg.stub_sigmas) or not first_echo(cfg))
+            and not (cfg.cut_ends and first_echo(cfg))
             and not cfg.split_search
             and not (cfg.step_split and cfg.step_twigs)
             and not cfg.rms_dof

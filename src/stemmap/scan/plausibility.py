@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 __all__ = [
     "PIECE_REASONS",
     "REASONS",
+    "biweight_scale",
     "fit_reasons",
     "fitted_reasons",
     "interior_triples",
@@ -90,6 +91,7 @@ def scan_noise(
     missing: float = 0.0,
     pool: bool = False,
     batch_min: float = math.inf,
+    batch_scale: str = "mad",
 ) -> FloatArray:
     """Range-noise scale of every scan from all its returns, metres (ours, issue 11).
 
@@ -140,12 +142,19 @@ def scan_noise(
     sparse scans do, so the batch only speaks when it reads a scanner clearly noisier than
     configured (the detector passes ``scan_noise_batch x sigma``). ``inf``: off.
 
+    ``batch_scale`` (Dec 5, "The batch's noise from few triples"; ``batch_noise_scale``): the
+    scale statistic of that batch estimate, ``"mad"`` (the statistic above) or ``"biweight"``
+    (:func:`biweight_scale`: as robust to a few surface tails, about three quarters of the MAD's
+    sampling spread on the 20-60 triples a batch of sparse slice scans holds at 1 deg). The scans'
+    own estimates and the pool keep the MAD.
+
     Parameters
     ----------
     ranges : array_like of shape (S, N), metres, gated (NaN / inf = no return), beam order
     jump : float, metres, > 0 -- largest range step inside a continuous triple
     surface : float, metres, >= 0 -- the surfaces' own share of the estimate
     batch_min : float, metres -- smallest batch estimate shared (``inf``: off)
+    batch_scale : "mad" or "biweight" -- the batch estimate's scale statistic
     """
     r = np.atleast_2d(np.asarray(ranges, dtype=np.float64))
     out = np.full(r.shape[0], missing)
@@ -175,7 +184,7 @@ def scan_noise(
     if batch_min < math.inf and unset.any():
         v = np.concatenate(every)
         if v.shape[0] >= SCAN_NOISE_MIN_TRIPLES and 2 * every_longest <= v.shape[0]:
-            e = _noise_estimate(v, surface)
+            e = _noise_estimate(v, surface, batch_scale)
             if e >= batch_min:
                 out[unset] = e
     return out
@@ -205,10 +214,53 @@ def interior_triples(ranges: FloatArray, jump: float) -> tuple[list[FloatArray],
     return values, runs
 
 
-def _noise_estimate(v: FloatArray, surface: float) -> float:
-    """:func:`scan_noise`'s statistic of the second differences ``v``."""
-    e = _ROUGH * float(np.median(np.abs(v - np.median(v))))
+def _noise_estimate(v: FloatArray, surface: float, scale: str = "mad") -> float:
+    """:func:`scan_noise`'s statistic of the second differences ``v`` (``scale`` "biweight":
+    :func:`biweight_scale`)."""
+    if scale == "biweight":
+        e = biweight_scale(v) / math.sqrt(6.0)
+    else:
+        e = _ROUGH * float(np.median(np.abs(v - np.median(v))))
     return math.sqrt(max(e * e - surface * surface, 0.0))
+
+
+#: Tuning constant of :func:`biweight_scale`, in MADs: Mosteller & Tukey's (1977) c = 6 of the
+#: biweight; values beyond 6 MAD (4 sigma) from the median weigh nothing.
+BIWEIGHT_C = 6.0
+
+#: :func:`biweight_scale`'s raw statistic for Gaussian data is 1.0462 sigma at c = 6
+#: (2 x 10^6 draws, three runs 1.0460-1.0473): divided out, so it estimates sigma.
+BIWEIGHT_GAUSS = 1.0462
+
+
+def biweight_scale(v: FloatArray) -> float:
+    """Biweight midvariance scale of ``v`` (Mosteller & Tukey 1977, *Data Analysis and
+    Regression*, ch. 10; Lax 1985, JASA 80, eq. for s_bi; the form of Beers, Flynn & Gebhardt
+    1990, AJ 100, eq. 9), made consistent for Gaussian data (:data:`BIWEIGHT_GAUSS`):
+
+    ``u_i = (v_i - M) / (c MAD)``, ``s = sqrt(n sum_{|u|<1} (v_i - M)^2 (1 - u_i^2)^4) /
+    |sum_{|u|<1} (1 - u_i^2)(1 - 5 u_i^2)|``, M the median, c = :data:`BIWEIGHT_C`.
+
+    Its breakdown point is the MAD's (a value beyond c MAD weighs nothing; a surface's
+    curvature tails and a few bark flakes do not move it), its Gaussian efficiency higher:
+    over the second differences of i.i.d. noise (4 000 draws), 21 values, the estimate's
+    spread is 0.234 sigma against the MAD's 0.308 (5-95 %: 0.62-1.40 against 0.57-1.57), 50
+    values 0.150 against 0.197. 0 when the MAD is 0 (more than half the values equal). The
+    sums run in the order of ``v`` (``np.cumsum``), as the compiled twin's loop
+    (``_fast_robust._biweight_scale``) does: the same value bit for bit."""
+    m = float(np.median(v))
+    s = float(np.median(np.abs(v - m)))
+    if not s > 0.0:
+        return 0.0
+    u = (v - m) / (BIWEIGHT_C * s)
+    w = np.abs(u) < 1.0
+    d = v[w] - m
+    uu = u[w] * u[w]
+    t = 1.0 - uu
+    t2 = t * t
+    num = math.sqrt(v.shape[0] * float(np.cumsum(d * d * (t2 * t2))[-1]))
+    den = abs(float(np.cumsum(t * (1.0 - 5.0 * uu))[-1]))
+    return num / den / BIWEIGHT_GAUSS if den > 0.0 else 0.0
 
 
 def segment_sigma(cfg: DetectorConfig, segs: Segments, mean_r: FloatArray) -> FloatArray:
