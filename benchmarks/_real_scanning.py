@@ -259,6 +259,8 @@ class SceneBatch:
     noise: float
     hit: np.ndarray
     batch: ScanBatch
+    #: the noise-free ranges (V, N) the noisy ``batch`` was drawn from
+    ranges0: np.ndarray | None = None
 
     @property
     def config(self) -> str:
@@ -298,4 +300,4 @@ def scene_batches(
                 )  # fmt: skip
             ranges0, hit = geometry[(model, res)]
             batch = noisy_batch(ranges0, res, noise, rng)
-            yield SceneBatch(sl, vp, model, res, noise, hit, batch)
+            yield SceneBatch(sl, vp, model, res, noise, hit, batch, ranges0)

@@ -50,7 +50,7 @@ import numpy as np
 
 from _loo_grid import LOO_GRID
 from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
-from real_geometry import DIAMETER_CLASSES, RANGE_BANDS, _in_gate
+from real_geometry import DIAMETER_CLASSES, RANGE_BANDS, _in_gate, fill_returns
 from real_geometry_diagnose import _over
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, RealSlice
@@ -66,11 +66,34 @@ COUNTS = (
 )  # fmt: skip
 
 
+def span_returns(
+    rej: dict[str, Any], j: int, hit_s: np.ndarray, ranges_s: np.ndarray, t: int
+) -> dict[str, int]:
+    """What the beams under rejected candidate ``j`` of one scan hit in the noise-free scan
+    (``hit_s``, ``ranges_s``: beam k at bearing ``-pi + k * step``): trunk ``t`` (``span_own``),
+    another reference trunk (``span_other_trunk``) or a slice point on no reference trunk
+    (``span_no_trunk``: a branch, twig or partial ring), over the candidate's angular span
+    (bearing +- half its width over its range)."""
+    n = ranges_s.shape[0]
+    b0 = math.radians(float(rej["bearing_deg"][j]))
+    half = 0.5 * float(rej["width"][j]) / max(float(rej["range"][j]), 1e-9)
+    ang = -math.pi + np.arange(n) * (2.0 * math.pi / n)
+    inside = np.abs(np.angle(np.exp(1j * (ang - b0)))) <= half + math.pi / n
+    inside &= np.isfinite(ranges_s)
+    h = hit_s[inside]
+    return {
+        "span_own": int((h == t).sum()),
+        "span_other_trunk": int(((h >= 0) & (h != t)).sum()),
+        "span_no_trunk": int((h < 0).sum()),
+    }
+
+
 def miss_class(
     rej: dict[str, Any], s: int, rel: np.ndarray, diam: float, own: int
 ) -> tuple[str, dict[str, Any]]:
     """What became of the preset's candidates over a missed trunk (module docstring), and the
-    candidate's returns, fitted radius (cm), RMS and sigma (mm) where there is one."""
+    candidate's returns, fitted radius (cm), RMS and sigma (mm) where there is one (and its
+    row ``cand_row`` in ``rej``)."""
     rows = np.flatnonzero(np.asarray(rej["scan_index"]) == s)
     near = _over(rej, rows, rel, diam)
     if near.size == 0:
@@ -79,7 +102,7 @@ def miss_class(
     if near.size > 1:
         return "split:" + "/".join(sorted(set(reasons[near].tolist()))), {}
     j = int(near[0])
-    cand = {"cand_returns": int(rej["n_points"][j])}
+    cand = {"cand_returns": int(rej["n_points"][j]), "cand_row": j}
     for key, unit in (("radius", 100.0), ("rms", 1000.0), ("sigma", 1000.0)):
         v = float(rej[key][j])
         cand[f"cand_{key}"] = round(unit * v, 1) if math.isfinite(v) else None
@@ -103,8 +126,14 @@ def compare_views(
     cfg: DetectorConfig,
     min_returns: int = 4,
     tol: float = TOL_CM,
+    ranges0: np.ndarray | None = None,
 ) -> tuple[dict[str, int], list[dict[str, Any]]]:
-    """Counts and loss views of one configuration (module docstring)."""
+    """Counts and loss views of one configuration (module docstring). With the noise-free
+    ranges ``ranges0`` each loss view also carries its returns from the trunk's filled unseen
+    sectors (``fill_returns``, :func:`real_geometry.fill_returns`: views of the side no lidar
+    saw, "aRchi tree 1: the reference settled") and what the beams under its candidate hit
+    (:func:`span_returns`)."""
+    fill = None if ranges0 is None else fill_returns(sl, vp, ranges0, hit)
     det = ScanTrunkDetector(matched(cfg, model, res))
     obs, rej = det.detect_with_rejected(batch)
     kobs = ScanTrunkDetector(TEXTBOOK).detect_batch(batch)
@@ -140,6 +169,11 @@ def compare_views(
                 continue
             counts["loss"] += 1
             cls, cand = miss_class(rej, s, rel[t], float(diam[t]), int(own[t]))
+            if ranges0 is not None and fill is not None:
+                cand["fill_returns"] = int(fill[s, t])
+                if "cand_row" in cand:
+                    cand.update(span_returns(rej, cand["cand_row"], hit[s], ranges0[s], int(t)))
+            cand.pop("cand_row", None)
             losses.append(
                 {
                     "scan": s,
@@ -169,7 +203,7 @@ def run(
     views: list[dict[str, Any]] = []
     for sc in scene_batches(ddir, n_vantage, seed, return_rule=ReturnRule(), names=names):
         counts, losses = compare_views(
-            sc.sl, sc.vp, sc.hit, sc.batch, sc.model, sc.res, cfg, tol=tol
+            sc.sl, sc.vp, sc.hit, sc.batch, sc.model, sc.res, cfg, tol=tol, ranges0=sc.ranges0
         )
         tag = {"dataset": sc.sl.name, "config": sc.config, "model": sc.model}
         tag.update(step_deg=sc.res, noise_cm=round(100 * sc.noise, 3))

@@ -342,6 +342,12 @@ def _held_out_rows(per: dict[int, dict[str, Any]], g: int) -> dict[str, Any]:
             "textbook_kasa_precision": per[-1][sc]["all"]["precision"],
             "textbook_kasa_rmse_cm_le10m": per[-1][sc]["within_10m"]["rmse_cm"],
             "textbook_kasa_bias_cm_le10m": per[-1][sc]["within_10m"]["bias_cm"],
+            # both sides of kasa_count.py's fair count (Dec 5): detections per scan that are
+            # false alarms (None where the slice scores no precision) or matched to no trunk
+            "false_alarms_per_scan": r["false_alarms_per_scan"],
+            "unmatched_per_scan": r["unmatched_per_scan"],
+            "textbook_kasa_false_alarms_per_scan": per[-1][sc]["false_alarms_per_scan"],
+            "textbook_kasa_unmatched_per_scan": per[-1][sc]["unmatched_per_scan"],
         }
         for sc, r in per[g].items()
     }
@@ -468,7 +474,8 @@ def leave_one_out(
                 "train_score": round(score(best_b), 3),
                 "held_out": _held_out_rows(per[held], best_b),
             }
-            # held out, every setting the round added (recall, precision, RMSE, bias)
+            # held out, every setting the round added (recall, precision, RMSE, bias, recall
+            # within 3 cm, false alarms and unmatched detections per scan)
             table[held]["added_settings"] = {
                 str(g): {
                     sc: [
@@ -477,6 +484,8 @@ def leave_one_out(
                         r["within_10m"]["rmse_cm"],
                         r["within_10m"]["bias_cm"],
                         r["all"]["recall_3cm"],
+                        r["false_alarms_per_scan"],
+                        r["unmatched_per_scan"],
                     ]
                     for sc, r in per[held][g].items()
                 }

@@ -140,3 +140,81 @@ def test_a_lost_view_is_classed_by_the_candidates_over_its_trunk(kv):
     two = rej((0, 0.5, 4.9, 0.1, 3, "straight"), (0, -0.5, 4.9, 0.1, 3, "min_points"))
     assert kv.miss_class(two, 0, rel, 0.3, 6)[0] == "split:min_points/straight"
     assert kv.miss_class(two, 1, rel, 0.3, 6)[0] == "no_candidate"  # another scan's
+
+
+def _fair_row(kc, ours, kasa, precision_scored=True):
+    """One row with recall within 3 cm, precision and false alarms per scan of both: ours /
+    kasa = (recall_3cm, precision, false alarms per scan)."""
+    loo = _loo3(ours[0], kasa[0])
+    held = loo["held_out"]["d"]
+    (sc,) = held["held_out"]
+    r = held["held_out"][sc]
+    r["precision"] = ours[1]
+    r["textbook_kasa_precision"] = kasa[1] if precision_scored else None
+    r["false_alarms_per_scan"] = ours[2] if precision_scored else None
+    r["textbook_kasa_false_alarms_per_scan"] = kasa[2] if precision_scored else None
+    added = held["added_settings"]["0"][sc]
+    added[1] = ours[1] if precision_scored else None
+    added.append(ours[2] if precision_scored else None)
+    (row,) = kc.rows(loo, chosen=False, setting="0")
+    return row
+
+
+SIM = {
+    "ours": {"precision_mean": 0.97, "benchmark_fa_mean": 30.0},
+    "kasa": {"precision_mean": 0.55, "benchmark_fa_mean": 800.0},
+}
+
+
+@pytest.mark.parametrize(
+    ("ours", "kasa", "lower", "f1_lower"),
+    [
+        ((0.80, 1.00, 0.0), (0.90, 1.00, 0.0), True, True),  # more within 3 cm, no more FA
+        ((0.80, 0.95, 0.2), (0.80, 1.00, 0.0), True, True),  # as many, fewer false alarms
+        ((0.80, 1.00, 0.0), (0.90, 0.90, 0.5), False, True),  # more, bought with FA ...
+        ((0.80, 1.00, 0.0), (0.82, 0.80, 1.0), False, False),  # ... here more than it gains
+        ((0.90, 1.00, 0.0), (0.80, 1.00, 0.0), False, False),  # ours measures more
+        ((0.80, 1.00, 0.0), (0.80, 1.00, 0.0), False, False),  # a tie is not worse
+        ((0.00, None, 0.0), (0.00, 0.40, 0.3), False, False),  # ours found nothing, Kasa
+        # nothing within 3 cm and false alarms: no false alarm is not a worse precision
+    ],
+)
+def test_the_fair_count_weighs_both_sides(kc, ours, kasa, lower, f1_lower):
+    row = _fair_row(kc, ours, kasa)
+    kc.fair_sides(row, None)
+    assert row["precision_from"] == "scans"
+    assert (row["fair_lower"], row["fair_f1_lower"]) == (lower, f1_lower)
+
+
+def test_without_a_scored_precision_the_simulator_s_clutter_decides(kc):
+    # the slice scores no precision (the TreeLS plot): Kasa's 800 false alarms per drive on
+    # the simulator's clutter against ours 30
+    row = _fair_row(kc, (0.80, None, None), (0.90, None, None), precision_scored=False)
+    kc.fair_sides(row, SIM)
+    assert row["precision_from"] == "sim"
+    assert not row["fair_lower"]  # more within 3 cm at a far lower precision
+    kc.fair_sides(row, None)  # no simulator: recall within 3 cm alone
+    assert row["precision_from"] == "none" and row["fair_lower"]
+    t = kc.tally([row])
+    assert (t["fair_lower"], t["fair_lower_views"]) == (1, 10)
+
+
+def test_the_span_under_a_candidate_counts_what_its_beams_hit(kv):
+    import math
+
+    import numpy as np
+
+    # 360 beams of 1 deg; beam k at -pi + k deg; a candidate at bearing 0 (beam 180), 5 m,
+    # 0.35 m wide: +-2 deg, beams 178-182 (and the half-beam margin)
+    n = 360
+    ranges = np.full(n, np.inf)
+    hit = np.full(n, -1)
+    ranges[177:184] = 5.0
+    hit[178:181] = 0  # the trunk
+    hit[181] = 1  # another trunk
+    # beam 182: a point on no reference trunk (hit -1, finite range); beams 177 and 183 lie
+    # outside the span (3 deg off)
+    rej = {"bearing_deg": np.array([0.0]), "range": np.array([5.0]), "width": np.array([0.35])}
+    got = kv.span_returns(rej, 0, hit, ranges, 0)
+    assert got == {"span_own": 3, "span_other_trunk": 1, "span_no_trunk": 1}
+    assert math.isclose(math.degrees(0.5 * 0.35 / 5.0), 2.005, abs_tol=1e-3)
