@@ -84,18 +84,20 @@ def test_a_needle_inside_the_arc_does_not_cost_the_stem_its_ends():
 def test_the_branch_run_still_goes():
     # the bar of test_stub_runs leaving the flank (no noise): its returns bend the circle, no
     # one return explains the misfit, the run goes as with snooping alone (measured: the same
-    # errors bearing by bearing)
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, **WORST))
-    got = []
+    # errors bearing by bearing, each within 1.2 cm; without the run test +5.4 ... +6.6 cm)
+    dets = [
+        ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, **x))
+        for x in (SNOOP, WORST)
+    ]
+    got = np.zeros((2, 12))
     for k in range(12):
-        batch, centre, hit = _scan(1.5, 0.3 + k * math.radians(STEP) * 5.3 / 12, 0.06)
-        obs = det.detect_batch(batch)
-        near = np.hypot(*(obs.centers - centre).T) < 0.1
-        assert np.count_nonzero(near) == 1
-        assert int(obs.n_points[near][0]) - int(np.count_nonzero(hit[0] == 0)) <= 2
-        got.append(200.0 * (obs.radii[near][0] - 0.15))
-    assert abs(np.mean(got)) < 1.0
-    assert np.abs(got).max() < 2.0
+        batch, centre, _ = _scan(1.5, 0.3 + k * math.radians(STEP) * 5.3 / 12, 0.06)
+        for i, det in enumerate(dets):
+            obs = det.detect_batch(batch)
+            near = np.flatnonzero(np.hypot(*(obs.centers - centre).T) < 0.1)
+            got[i, k] = 200.0 * (obs.radii[near[0]] - 0.15)
+    np.testing.assert_allclose(got[1], got[0], atol=1e-9)
+    assert np.abs(got[1]).max() < 2.0
 
 
 @pytest.mark.parametrize("where", [0, 4, 9])
