@@ -1,16 +1,17 @@
-"""The run holds the worst return (``stub_runs_worst``; issue 11, Dec 5, "The run test on
-clean needles" in docs/algorithms/scan-detection.md).
+"""The run test snoops the worst return first (``stub_runs_worst``; issue 11, Dec 5, "The run
+test on clean needles" in docs/algorithms/scan-detection.md).
 
 With ``stub_runs_snoop`` a candidate whose circle fails the global chi-square test is
 searched for an outward end run; on TreeLS pine at 0.25 deg without noise the misfit came
 from needle returns in front of the stem *inside* the arc, and the smallest passing run was
 two of the stem's own end returns at the other end (views -4.1 / -7.6 cm). Data snooping's
-local test points at the observation with the largest standardised residual; the option lets
-only a run that holds it go. The scenes here are a clean 25.6 cm disc (TreeLS pine's stem)
-4.3 m from the benchmark's first-echo virtual scanner (0.5 deg: the beam spacing on the stem
-of 8.6 m at 0.25 deg) with a tuft of needles in front of its outline inside the arc, from 40
-bearings a fraction of a beam apart. A tuft of several returns (6 cm wide) is not helped: no
-one return explains its misfit (measured, "The run test on clean needles")."""
+local test points at the observation with the largest standardised residual; where one inner
+return explains the misfit, the option lets a run go only at the end on its side. The scenes
+here are a clean 25.6 cm disc (TreeLS pine's stem) 4.3 m from the benchmark's first-echo
+virtual scanner (0.5 deg: the beam spacing on the stem of 8.6 m at 0.25 deg) with a tuft of
+needles in front of its outline inside the arc, from 40 bearings a fraction of a beam apart.
+A tuft of several returns (6 cm wide) is not helped: no one return explains its misfit
+(measured, "The run test on clean needles")."""
 
 import functools
 import math
