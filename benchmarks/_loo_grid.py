@@ -428,6 +428,18 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         batch_noise_scale="biweight",
         scan_noise_batch=2.5,
     ),
+    # Dec 5 ("The LOO after the second Dec 5 merges"), grid 79: grid 76 (69 + the biweight
+    # batch noise) with the branch root's cut_ends (grid 75 = 69 + cut_ends): the two
+    # settings the held-out folds chose, together
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+        cut_ends=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan.test_scan_noise_pool import random_range_batch
 
 from stemmap.errors import ConfigError
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -114,13 +115,7 @@ def test_compiled_biweight_batch_noise_equals_numpy():
     rng = np.random.default_rng(12)
     changed = 0
     for _ in range(200):
-        s, n = int(rng.integers(1, 12)), int(rng.integers(0, 120))
-        r = 5.0 + np.cumsum(rng.normal(0.0, rng.choice([0.01, 0.05, 0.15]), (s, n)), axis=1)
-        r += rng.normal(0.0, rng.choice([0.01, 0.03]), (s, n))
-        cut = rng.random((s, n)) < rng.choice([0.0, 0.1, 0.3])
-        r[cut] = rng.choice([np.nan, np.inf, -np.inf], int(cut.sum()))
-        jump = float(rng.choice([0.05, 0.2]))
-        surface = float(rng.choice([0.0, 0.006]))
+        r, n, jump, surface = random_range_batch(rng)
         fov = np.ones(n, dtype=np.bool_)
         for pool in (False, True):
             for floor in (np.inf, 0.0, 0.02):

@@ -79,6 +79,18 @@ def test_the_pool_keeps_the_breakdown_rule():
     assert np.all(scan_noise(one, 0.2, pool=True) == 0.0)
 
 
+def random_range_batch(rng):
+    """A random batch for the compiled-vs-numpy noise checks: 1-11 scans of 0-119 beams, a
+    random walk in range with 1 or 3 cm noise, 0-30 % of the returns NaN or +-inf, and a random
+    jump threshold and surface roughness. Returns (ranges, n_beams, jump, surface)."""
+    s, n = int(rng.integers(1, 12)), int(rng.integers(0, 120))
+    r = 5.0 + np.cumsum(rng.normal(0.0, rng.choice([0.01, 0.05, 0.15]), (s, n)), axis=1)
+    r += rng.normal(0.0, rng.choice([0.01, 0.03]), (s, n))
+    cut = rng.random((s, n)) < rng.choice([0.0, 0.1, 0.3])
+    r[cut] = rng.choice([np.nan, np.inf, -np.inf], int(cut.sum()))
+    return r, n, float(rng.choice([0.05, 0.2])), float(rng.choice([0.0, 0.006]))
+
+
 def test_compiled_pooled_noise_equals_numpy():
     # the pool, the batch (scan_noise_batch: floors inf = off, 0, 2 cm) and both together
     from stemmap.scan._fast_robust import _batch_scan_noise
@@ -86,18 +98,12 @@ def test_compiled_pooled_noise_equals_numpy():
     rng = np.random.default_rng(12)
     changed = {"pool": 0, "batch": 0}
     for _ in range(300):
-        s, n = int(rng.integers(1, 12)), int(rng.integers(0, 120))
-        r = 5.0 + np.cumsum(rng.normal(0.0, rng.choice([0.01, 0.05, 0.15]), (s, n)), axis=1)
-        r += rng.normal(0.0, rng.choice([0.01, 0.03]), (s, n))
-        cut = rng.random((s, n)) < rng.choice([0.0, 0.1, 0.3])
-        r[cut] = rng.choice([np.nan, np.inf, -np.inf], int(cut.sum()))
-        jump = float(rng.choice([0.05, 0.2]))
-        surface = float(rng.choice([0.0, 0.006]))
+        r, n, jump, surface = random_range_batch(rng)
         own = scan_noise(r, jump, surface)
         fov = np.ones(n, dtype=np.bool_)
         for pool in (False, True):
             for floor in (np.inf, 0.0, 0.02):
-                own_out = np.full(s, -1.0)
+                own_out = np.full(r.shape[0], -1.0)
                 got = _batch_scan_noise(r, fov, 0.0, np.inf, jump, surface, pool, floor, own_out)
                 ref = scan_noise(r, jump, surface, pool=pool, batch_min=floor)
                 np.testing.assert_array_equal(got, ref)
