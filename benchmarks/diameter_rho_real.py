@@ -21,7 +21,7 @@ per form of ``b`` (:data:`BIAS_FORMS`) and rho in (1, 0.03), ``k`` solved for me
 0.6745 on all passes and leave-one-dataset-out (median |z| and share |z| < 1 held out).
 
 Usage: python benchmarks/diameter_rho_real.py [--noise 0 0.01] [--skip fortls_slice]
-[--rows-out rows.json | --rows-in rows.json]
+[--rows-out rows.json | --rows-in rows.json] [--preset stemmap|none] [--scans]
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -30,12 +30,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from scipy.optimize import brentq
 
+from _real_scanning import matched  # shared with real_geometry.py
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -58,24 +58,41 @@ def passes(center: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
     return out
 
 
-def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, Any]]:
-    """One row per (trunk, pass) with >= 2 matched detections: n, mean error e, spread s (m)."""
+def pass_detector(model: str, preset: str | None = "stemmap") -> DetectorConfig:
+    """The detector of the passes: the default detector (``ScanTrunkDetector()``, the
+    ``stemmap`` preset that ``map`` and ``demo`` run) set up for the scanner as
+    ``real_geometry.py`` does (:func:`_real_scanning.matched`: a first-echo scanner's
+    footprint is one beam step, ``stemmap detect --footprint``). ``preset=None``: a bare
+    ``DetectorConfig()`` (Kasa fit, no plausibility tests), what this benchmark ran before
+    Dec 5 by mistake (``--preset none``, kept to reproduce those rows)."""
+    cfg = DetectorConfig() if preset is None else DetectorConfig.preset(preset)
+    return matched(cfg, model, 0.5)
+
+
+def run_slice(
+    name: str,
+    model: str,
+    noise: float,
+    seed: int,
+    preset: str | None = "stemmap",
+    scans: list[dict[str, Any]] | None = None,
+) -> list[dict[str, Any]]:
+    """One row per (trunk, pass) with >= 2 matched detections: n, mean error e, spread s (m).
+    ``scans``: when given, one record per matched scan is appended to it (range to the trunk
+    centre, the trunk's returns in the noise-free scan, the detection's points and arc, the
+    error; m / deg) for the per-scan breakdown."""
     where = find_datasets_dir()
     if where is None:
         raise SystemExit("no shared/datasets folder found: set STEMMAP_DATASETS.")
     sl = load_slice(where, name)
     rng = np.random.default_rng(seed)
-    cfg = DetectorConfig()
-    if model == "nearest" and cfg.fit_method == "ours":
-        # a first-echo scanner's footprint is one beam step (``stemmap detect --footprint``)
-        cfg = replace(cfg, beam_footprint_deg=0.5)
-    det = ScanTrunkDetector(cfg)
+    det = ScanTrunkDetector(pass_detector(model, preset))
     rows: list[dict[str, Any]] = []
     for t, (c, d) in enumerate(zip(sl.centers, sl.diameters, strict=True)):
         if not 0.1 <= d <= 1.0:
             continue
-        for vp in passes(c, rng):
-            ranges0, _ = virtual_scans(
+        for p, vp in enumerate(passes(c, rng)):
+            ranges0, hit = virtual_scans(
                 sl.xy, sl.labels, vp, resolution_deg=0.5, model=model,  # type: ignore[arg-type]
                 centers=sl.centers,
             )  # fmt: skip
@@ -90,6 +107,20 @@ def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, 
                 if dist[k] <= d / 2.0 + 0.05:
                     errs.append(2.0 * float(obs.radii[m][k]) - d)
                     arcs.append(float(obs.arc_deg[m][k]))
+                    if scans is not None:
+                        scans.append(
+                            {
+                                "dataset": name,
+                                "trunk": t,
+                                "pass": p,
+                                "range_m": float(np.hypot(*(c - vp[s]))),
+                                "returns": int((hit[s] == t).sum()),
+                                "points": int(obs.n_points[m][k]),
+                                "arc_deg": arcs[-1],
+                                "err": errs[-1],
+                                "dbh": float(d),
+                            }
+                        )
             if len(errs) >= 2:
                 e = np.asarray(errs)
                 rows.append(
@@ -107,6 +138,44 @@ def run_slice(name: str, model: str, noise: float, seed: int) -> list[dict[str, 
                     }
                 )
     return rows
+
+
+#: Bands of the per-scan breakdown (:func:`scan_breakdown`): range to the trunk centre (m),
+#: the trunk's returns in the noise-free scan, the detection's arc (deg).
+SCAN_BANDS: dict[str, tuple[tuple[float, float], ...]] = {
+    "range_m": ((0.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0)),
+    "returns": ((0, 8), (8, 16), (16, 32), (32, 1000)),
+    "arc_deg": ((0.0, 60.0), (60.0, 90.0), (90.0, 120.0), (120.0, 360.0)),
+}
+
+
+def scan_breakdown(scans: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per-scan DBH errors (cm: count, bias, RMSE, median |error|) by dataset and by each band
+    of :data:`SCAN_BANDS` (``lo <= value < hi``), overall and per dataset."""
+
+    def stats(sel: list[dict[str, Any]]) -> dict[str, Any]:
+        e = 100.0 * np.array([r["err"] for r in sel])
+        if e.size == 0:
+            return {"n": 0}
+        return {
+            "n": int(e.size),
+            "bias_cm": round(float(e.mean()), 2),
+            "rmse_cm": round(float(np.sqrt(np.mean(e**2))), 2),
+            "median_abs_cm": round(float(np.median(np.abs(e))), 2),
+        }
+
+    def bands(sel: list[dict[str, Any]]) -> dict[str, Any]:
+        out: dict[str, Any] = {"all": stats(sel)}
+        for key, bs in SCAN_BANDS.items():
+            out[key] = {
+                f"{lo:g}-{hi:g}": stats([r for r in sel if lo <= r[key] < hi]) for lo, hi in bs
+            }
+        return out
+
+    res = bands(scans)
+    for name in sorted({r["dataset"] for r in scans}):
+        res[name] = bands([r for r in scans if r["dataset"] == name])
+    return res
 
 
 def median_abs_z(rows: list[dict[str, Any]], rho: float) -> float:
@@ -202,8 +271,19 @@ def main() -> None:
     )  # fmt: skip
     ap.add_argument("--rows-out", help="write the per-pass rows to this JSON file")
     ap.add_argument("--rows-in", help="read the per-pass rows from this JSON file (no scans)")
+    ap.add_argument(
+        "--preset", default="stemmap",
+        help="detector preset (default stemmap, the default detector; 'none': a bare"
+        " DetectorConfig(), Kasa without plausibility tests, what ran before Dec 5)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--scans", action="store_true",
+        help="also print the per-scan errors by range, returns and arc (scan_breakdown)",
+    )  # fmt: skip
     a = ap.parse_args()
+    preset = None if a.preset == "none" else a.preset
     rows: list[dict[str, Any]] = []
+    scans: dict[str, list[dict[str, Any]]] = {}
     if a.rows_in:
         with open(a.rows_in) as f:
             rows = json.load(f)
@@ -213,12 +293,13 @@ def main() -> None:
                 continue
             for model in a.models:
                 for noise in a.noise:
-                    for r in run_slice(name, model, noise, a.seed + i):
+                    sc = scans.setdefault(f"{model}_noise{100 * noise:g}cm", [])
+                    for r in run_slice(name, model, noise, a.seed + i, preset, sc):
                         rows.append({**r, "model": model, "noise_m": noise})
     if a.rows_out:
         with open(a.rows_out, "w") as f:
             json.dump(rows, f)
-    out: dict[str, Any] = {"n_passes": len(rows), "rho_all": solve_rho(rows)}
+    out: dict[str, Any] = {"preset": a.preset, "n_passes": len(rows), "rho_all": solve_rho(rows)}
     out["median_abs_z_at_rho_all"] = median_abs_z(rows, out["rho_all"])
     out["median_abs_z_at_0.03"] = median_abs_z(rows, 0.03)
     out["median_abs_err_cm"] = 100 * float(np.median([abs(r["e"]) for r in rows]))
@@ -253,6 +334,8 @@ def main() -> None:
                 }
     out["by_scanner"] = by
     out["bias"] = bias_loo(rows, (1.0, 0.03))
+    if a.scans and scans:
+        out["per_scan"] = {k: scan_breakdown(v) for k, v in scans.items()}
     print(json.dumps(out, indent=1))
 
 

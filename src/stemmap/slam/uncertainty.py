@@ -60,7 +60,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "DIAMETER_BIAS",
-    "DIAMETER_BIAS_FIRST_ECHO",
     "DIAMETER_RHO",
     "DetectionCounts",
     "MixtureFit",
@@ -85,23 +84,18 @@ __all__ = [
 DIAMETER_RHO = 1.0
 
 #: Per-trunk systematic DBH error scale ``b`` (m) of the scan detector (module doc, item 2), set
-#: on the same real passes as :data:`DIAMETER_RHO` (benchmarks/diameter_rho_real.py, "bias"):
-#: with rho = 1 alone the held-out median |z| was 0.53-1.99 (a calibrated error gives 0.674),
-#: because a pass's mean error is a shared per-trunk bias larger than the per-scan spread. Of
-#: the forms tried (constant, share of the DBH, over the arc seen), a constant is the simplest
-#: that moves the held-out datasets towards 0.674. It depends on the scanner model: fitted per
-#: model, SICK-class averaging (the model of the default detector, which ``stemmap map`` and
-#: ``stemmap demo`` run on 2D scans) gives 0.031 m (0.026-0.035 leave-one-dataset-out; held out
-#: 0.50 / 1.42 / 0.63 / 0.67 against 0.53 / 1.52 / 0.81 / 0.80 without it), a first-echo
-#: (nearest-return) scanner 0.18 m (:data:`DIAMETER_BIAS_FIRST_ECHO`; held out 0.50-1.00 against
-#: 1.12-1.99). Pooling both models (0.11 m) is 3x too wide for the averaging scanner (held out
-#: 0.28-0.80) and too narrow for first echoes (0.94-1.35), so the default is the averaging
-#: model's. Conservative on the simulator's ideal cylinders (docs/outputs.md).
-DIAMETER_BIAS = 0.03
-
-#: ``b`` for detections of a first-echo scanner (``stemmap detect --footprint``), measured as
-#: :data:`DIAMETER_BIAS`; pass it as ``bias=`` when mapping such detections.
-DIAMETER_BIAS_FIRST_ECHO = 0.18
+#: on the same real passes as :data:`DIAMETER_RHO` (benchmarks/diameter_rho_real.py, the
+#: default ``stemmap`` detector since the Dec 5 fix of the passes' detector): a pass's mean
+#: error is a per-trunk bias the per-scan spread cannot show. A constant is the simplest form
+#: that moves the held-out datasets towards a median |z| of 0.674. It depends on the scanner
+#: model: for the SICK-class averaging scanner (the default detector's model, which ``stemmap
+#: map`` and ``stemmap demo`` run on 2D scans) 0.053 m on all its passes (0.051-0.061
+#: leave-one-dataset-out; held out 0.73 / 0.89 / 0.69 / 0.65 with 0.05 m against 0.88 / 1.18 /
+#: 1.41 / 1.43 without it: aRchi Tree_1, lidR, TreeLS pine, pine_plot). For a first-echo
+#: (nearest-return, ``--footprint``) scanner the fit gives 0 (rho = 1 alone is already
+#: conservative there: held out 0.26-0.70), so such detections are mapped with ``bias=0``.
+#: Conservative on the simulator's ideal cylinders (docs/outputs.md).
+DIAMETER_BIAS = 0.05
 
 #: Detections converted (and frames' rows counted, /64) per block in
 #: :func:`annotate_uncertainty`: bounds its temporaries on a long drive.
