@@ -440,6 +440,18 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         batch_noise_scale="biweight",
         cut_ends=True,
     ),
+    # Dec 5 ("The run test on clean needles"), grid 80: grid 79 with the run search held to
+    # the side of an inner worst return that alone explains the misfit (stub_runs_worst)
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+        cut_ends=True,
+        stub_runs_worst=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
