@@ -44,7 +44,7 @@ import laspy
 import numpy as np
 
 from _cloud_refs import CLOUDS, match_stems
-from cloud_robustness import set_value, write_las
+from cloud_robustness import set_overrides, write_las
 from munjer2025_real_frames import LINES_X, virtual_frame
 from stemmap.cloud.canonical import canonical_order
 from stemmap.cloud.filters import pass_through
@@ -232,7 +232,7 @@ def main() -> None:
     ap.add_argument("--subsample", type=float, default=None, help="keep this fraction")
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     a = ap.parse_args()
-    overrides = {k: set_value(v) for k, v in (kv.split("=", 1) for kv in a.set)}
+    overrides = set_overrides(a.set)
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")

@@ -264,6 +264,11 @@ def set_value(v: str) -> Any:
     return low == "true" if low in ("true", "false") else float(v)
 
 
+def set_overrides(pairs: list[str]) -> dict[str, Any]:
+    """The ``--set key=value`` arguments as :class:`StemConfig` overrides."""
+    return {k: set_value(v) for k, v in (kv.split("=", 1) for kv in pairs)}
+
+
 def _r(v: float, nd: int = 2) -> float | None:
     return round(float(v), nd) if np.isfinite(v) else None
 
@@ -542,7 +547,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the random transforms")
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
-    overrides = {k: set_value(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    overrides = set_overrides(args.set)
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")

@@ -204,11 +204,7 @@ def _inner_worst_side(
         drop[(sub.start + pos)[inner]] = True
         less = sub.select(inner).drop(~drop[np.repeat(inner, sub.counts)])
         f = detector._fit_candidates(less, grid, wrap)
-        n = less.counts.astype(np.float64)
-        s = noise[inner]
-        limit = chdtri(np.maximum(n - 3.0, 1.0), 0.01)
-        with np.errstate(invalid="ignore"):
-            explained[inner] = n * f.rms * f.rms <= limit * s * s
+        explained[inner] = passes_global_test(less.counts, f.rms, noise[inner])
     twice = 2 * pos
     first_ok = ~explained | (twice <= sub.counts - 1)
     last_ok = ~explained | (twice >= sub.counts - 1)
@@ -229,6 +225,19 @@ def run_noise(cfg: DetectorConfig, segs: Segments, sigma: FloatArray) -> FloatAr
     return noise
 
 
+def passes_global_test(
+    counts: NDArray[np.int64], rms: FloatArray, noise: FloatArray
+) -> NDArray[np.bool_]:
+    """The global test of data snooping: whether each circle fit of ``counts`` returns with
+    RMS residual ``rms`` passes the upper 1 % chi-square test (n - 3 degrees of freedom)
+    against the range noise ``noise``."""
+    n = counts.astype(np.float64)
+    limit = chdtri(np.maximum(n - 3.0, 1.0), 0.01)
+    with np.errstate(invalid="ignore"):
+        ok: NDArray[np.bool_] = n * rms * rms <= limit * noise * noise
+    return ok
+
+
 def misfit(
     cfg: DetectorConfig, segs: Segments, fitted: _Fitted, which: NDArray[np.bool_]
 ) -> NDArray[np.bool_]:
@@ -239,11 +248,7 @@ def misfit(
     if not cfg.stub_runs_snoop or not np.any(which):
         return which
     noise = run_noise(cfg, segs, fitted.sigma)
-    n = segs.counts.astype(np.float64)
-    limit = chdtri(np.maximum(n - 3.0, 1.0), 0.01)
-    with np.errstate(invalid="ignore"):
-        fits = n * fitted.rms * fitted.rms <= limit * noise * noise
-    out: NDArray[np.bool_] = which & ~fits
+    out: NDArray[np.bool_] = which & ~passes_global_test(segs.counts, fitted.rms, noise)
     return out
 
 
