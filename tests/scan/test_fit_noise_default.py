@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP
-from tests.scan.test_stub_runs import R, _scan
+from tests.scan.test_stub_runs import GRID_67, R, _scan
 
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.sim.forest import add_clutter, random_stand
@@ -26,7 +26,9 @@ from stemmap.sim.scanner import scanner_preset, simulate_scans
 def _clean_errors(d: float, floor: float) -> np.ndarray:
     """DBH error (cm) of the clean disc seen from ``d`` m over 12 bearings within 5 beams."""
     det = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, fit_noise_floor=floor)
+        DetectorConfig.preset(
+            "stemmap", beam_footprint_deg=STEP, **{**GRID_67, "fit_noise_floor": floor}
+        )
     )
     err = []
     for k in range(12):
