@@ -452,6 +452,20 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         cut_ends=True,
         stub_runs_worst=True,
     ),
+    # Dec 5 ("Needles inside the arc"), grid 81: grid 80 with the run test's inner
+    # explanation (stub_runs_inner): needles or a twig in front of the bark inside the arc
+    # are dropped instead of the stem's own end returns
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+        cut_ends=True,
+        stub_runs_worst=True,
+        stub_runs_inner=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
