@@ -64,7 +64,7 @@ def inner_runs(
     """Per candidate of ``segs`` (fits ``fitted``, run-test noise ``noise``): the position
     (from its first return) and the length of the inner run of returns in front of the rest's
     circle that explains its misfit, length 0 where none does (module docstring)."""
-    from stemmap.scan._stub_runs import passes_global_test
+    from stemmap.scan._stub_runs import passes_global_test, runs_outside
 
     cfg = detector.config
     p = segs.points
@@ -117,19 +117,7 @@ def inner_runs(
         good = fit_passes(cfg, f) & passes_global_test(rest.counts, f.rms, noise[cand])
         # every return of the run outside the rest's circle by > stub_sigmas deviations
         rp = src[in_run]
-        j = owner[in_run]
-        cx, cy, r = f.centers[j, 0], f.centers[j, 1], f.radii[j]
-        dx, dy = p.x[rp] - cx, p.y[rp] - cy
-        dist = np.hypot(dx, dy)
-        br = cfg.bark_roughness * r
-        scale2 = noise[cand][j] ** 2 + br * br
-        with np.errstate(invalid="ignore", divide="ignore"):
-            g = np.stack((-dx / dist, -dy / dist, -np.ones_like(dist)), axis=1)
-            pred = np.einsum("ki,kij,kj->k", g, f.covs[j], g)
-            out_pt = dist - r > cfg.stub_sigmas * np.sqrt(scale2 + np.maximum(pred, 0.0))
-        all_out = np.ones(cand.size, dtype=bool)
-        np.logical_and.at(all_out, j, out_pt)
-        hit = good & all_out
+        hit = good & runs_outside(cfg, p.x[rp], p.y[rp], owner[in_run], f, noise[cand])
         if np.any(hit):
             # per candidate, the hit whose rest has the smallest sum of squares
             sse = np.where(hit, rest.counts * f.rms * f.rms, np.inf)

@@ -82,7 +82,15 @@ if TYPE_CHECKING:
     from stemmap.scan.config import DetectorConfig
     from stemmap.scan.detect import ScanTrunkDetector, _Fitted
 
-__all__ = ["misfit", "outward_runs", "run_noise", "trim_runs", "worst_return"]
+__all__ = [
+    "misfit",
+    "outward_runs",
+    "passes_global_test",
+    "run_noise",
+    "runs_outside",
+    "trim_runs",
+    "worst_return",
+]
 
 
 def _run_mask(segs: Segments, m: NDArray[np.int64], first: bool) -> NDArray[np.bool_]:
@@ -133,18 +141,7 @@ def outward_runs(
             row[ids] = np.arange(ids.size)
             pts = np.flatnonzero(run)
             j = row[segs.labels[pts]]
-            cx, cy, r = f.centers[j, 0], f.centers[j, 1], f.radii[j]
-            dx, dy = p.x[pts] - cx, p.y[pts] - cy
-            dist = np.hypot(dx, dy)
-            br = cfg.bark_roughness * r
-            scale2 = noise[j] ** 2 + br * br
-            with np.errstate(invalid="ignore", divide="ignore"):
-                g = np.stack((-dx / dist, -dy / dist, -np.ones_like(dist)), axis=1)
-                pred = np.einsum("ki,kij,kj->k", g, f.covs[j], g)
-                out_pt = dist - r > cfg.stub_sigmas * np.sqrt(scale2 + np.maximum(pred, 0.0))
-            all_out = np.ones(ids.size, dtype=bool)
-            np.logical_and.at(all_out, j, out_pt)
-            hit = good & all_out
+            hit = good & runs_outside(cfg, p.x[pts], p.y[pts], j, f, noise)
             done = ids[hit]
             m_end[done] = m
             open_[done] = False
@@ -158,6 +155,33 @@ def outward_runs(
         found.append(m_end)
         occluded.append(occ & (m_end > 0))
     return found[0], found[1], occluded[0], occluded[1]
+
+
+def runs_outside(
+    cfg: DetectorConfig,
+    x: FloatArray,
+    y: FloatArray,
+    row: NDArray[np.int64],
+    f: _Fitted,
+    noise: FloatArray,
+) -> NDArray[np.bool_]:
+    """Per fit of ``f``, whether every return ``(x, y)`` of its run (``row``: the fit each
+    belongs to) lies outside its circle by more than ``stub_sigmas`` deletion deviations
+    ``sqrt(s^2 + (bark_roughness r)^2 + g' C g)`` (``s`` the fit's ``noise``, ``C`` its
+    covariance, ``g`` the gradient of ``|p - c| - r`` in ``(cx, cy, r)``: the circle's own
+    uncertainty where it is extrapolated to the return)."""
+    cx, cy, r = f.centers[row, 0], f.centers[row, 1], f.radii[row]
+    dx, dy = x - cx, y - cy
+    dist = np.hypot(dx, dy)
+    br = cfg.bark_roughness * r
+    scale2 = noise[row] ** 2 + br * br
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.stack((-dx / dist, -dy / dist, -np.ones_like(dist)), axis=1)
+        pred = np.einsum("ki,kij,kj->k", g, f.covs[row], g)
+        out_pt = dist - r > cfg.stub_sigmas * np.sqrt(scale2 + np.maximum(pred, 0.0))
+    out = np.ones(len(f.radii), dtype=bool)
+    np.logical_and.at(out, row, out_pt)
+    return out
 
 
 def worst_return(segs: Segments, fitted: _Fitted, noise: FloatArray) -> NDArray[np.int64]:
