@@ -4,13 +4,12 @@ height that it pairs with (``_cloud_refs``: converged from 15 start circles abou
 seed, never from the detector; with its RMS, arc and spread over the starts), the tree height
 against the cloud's top above the stem's base, and the stem profile's reach.
 
-Prints ONE JSON object. Usage: python benchmarks/cloud_real.py [--set key=value ...]
-(``--set``: StemConfig overrides, as in cloud_robustness.py)
+Prints ONE JSON object. Usage: python benchmarks/cloud_real.py [--set key=value ...] (a
+StemConfig option, as cloud_robustness.py)
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from dataclasses import replace
@@ -36,7 +35,7 @@ def run_one(path: str, key: str, overrides: dict[str, Any] | None = None) -> dic
     xyz = read_cloud(path).xyz
     refs = fixed_references(xyz, load_seeds()[key])
     t0 = time.perf_counter()
-    det = detect_stems_file(path, replace(StemConfig(**(overrides or {})), estimate_height=True))
+    det = detect_stems_file(path, replace(StemConfig(), estimate_height=True, **(overrides or {})))
     dt = time.perf_counter() - t0
     profs = stem_profiles(xyz, det) if det.base != BASE_SLICE else []
     stems = []
@@ -99,6 +98,8 @@ def run_one(path: str, key: str, overrides: dict[str, Any] | None = None) -> dic
 
 
 def main() -> None:
+    import argparse
+
     from cloud_robustness import set_overrides
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -112,7 +113,7 @@ def main() -> None:
         "note": "ring references share the points with the detector, not its machinery nor "
         "its stems (fixed seeds, benchmarks/_cloud_ring_seeds.json); ring_spread_cm = range "
         "of the ring fits from 15 start circles; times from a loaded shared machine",
-        "config_overrides": overrides,
+        "set": overrides,
         "clouds": {k: run_one(str(root / v), k, overrides) for k, v in CLOUDS.items()},
     }
     print(json.dumps(out, indent=1))
