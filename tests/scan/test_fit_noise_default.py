@@ -59,7 +59,9 @@ def test_a_clean_first_echo_stem_is_read_closer_with_the_default(d):
     assert np.abs(on).max() < np.abs(off).max()
 
 
-def test_averaging_scans_are_unchanged_bit_for_bit():
+def sick_drive():
+    """A 40-scan simulated SICK LMS drive (the averaging beam) through a 45-tree stand with
+    bushes and rocks."""
     rng = np.random.default_rng(11)
     stand = add_clutter(
         random_stand(45, (30.0, 30.0), dbh_mean=0.3, dbh_std=0.1, dbh_min=0.08, rng=rng),
@@ -70,6 +72,11 @@ def test_averaging_scans_are_unchanged_bit_for_bit():
     t = np.linspace(0.0, 1.0, 40)
     poses = np.column_stack((3.0 + 24.0 * t, 4.0 + 20.0 * t, 0.7 + 3.0 * t))
     batch, _, _ = simulate_scans(stand, poses, scanner_preset("sick_lms", range_max=30.0), rng=3)
+    return batch
+
+
+def test_averaging_scans_are_unchanged_bit_for_bit():
+    batch = sick_drive()
     default = ScanTrunkDetector("stemmap").detect_batch(batch)
     off = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_noise_floor=0.0)).detect_batch(
         batch

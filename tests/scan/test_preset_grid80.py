@@ -12,22 +12,14 @@ import math
 
 import numpy as np
 from tests.scan.test_edge_protrusion import STEP
+from tests.scan.test_fit_noise_default import sick_drive
 from tests.scan.test_stub_runs import GRID_67, R, _errors, _scan
 
 from _loo_grid import LOO_GRID  # benchmarks/ is on sys.path (tests/conftest.py)
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
-from stemmap.sim.forest import add_clutter, random_stand
-from stemmap.sim.scanner import scanner_preset, simulate_scans
 
-#: The options grid 80 adds to grid 67, at their grid-80 values.
-GRID_80_ADDS = {
-    "stub_sigmas": 2.0,
-    "stub_runs": True,
-    "stub_runs_snoop": True,
-    "stub_runs_worst": True,
-    "cut_ends": True,
-    "batch_noise_scale": "biweight",
-}
+#: The options grid 80 adds to grid 67 (the fields of GRID_67), at their grid-80 values.
+GRID_80_ADDS = {field: LOO_GRID[80][field] for field in GRID_67}
 
 
 def test_the_stemmap_preset_is_loo_grid_80():
@@ -42,7 +34,8 @@ def test_the_stemmap_preset_is_loo_grid_80():
         "stemmap", **GRID_67
     )
     assert DetectorConfig.preset("stemmap", **{**LOO_GRID[67], **GRID_80_ADDS}) == preset
-    assert set(GRID_80_ADDS) == set(GRID_67)
+    # the six fields the flip changed: on in grid 80, off in grid 67
+    assert all(GRID_80_ADDS[f] != GRID_67[f] for f in GRID_67)
 
 
 def test_the_paper_presets_keep_their_published_fits():
@@ -87,16 +80,7 @@ def test_an_averaging_default_is_grid_67_bit_for_bit():
     # a simulated SICK LMS drive with clutter (the simulator's averaging beam): the compiled
     # path, where the trims never act and the biweight batch noise leaves every step
     # threshold where it was (max(sigma, estimate): the scans hold their own estimates)
-    rng = np.random.default_rng(11)
-    stand = add_clutter(
-        random_stand(45, (30.0, 30.0), dbh_mean=0.3, dbh_std=0.1, dbh_min=0.08, rng=rng),
-        n_bushes=4,
-        n_rocks=3,
-        rng=rng,
-    )
-    t = np.linspace(0.0, 1.0, 40)
-    poses = np.column_stack((3.0 + 24.0 * t, 4.0 + 20.0 * t, 0.7 + 3.0 * t))
-    batch, _, _ = simulate_scans(stand, poses, scanner_preset("sick_lms", range_max=30.0), rng=3)
+    batch = sick_drive()
     new = ScanTrunkDetector("stemmap")
     old = ScanTrunkDetector(DetectorConfig.preset("stemmap", **GRID_67))
     assert new._compiled(None, None) and old._compiled(None, None)
