@@ -109,6 +109,14 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"consensus_floor": False}),
         ("on", {"consensus_floor": True}),
     ),
+    "consensus_radius_se": (
+        ("off", {"consensus_radius_se": False}),
+        ("on", {"consensus_radius_se": True}),
+    ),
+    "guided_taper": (
+        ("off", {"guided_taper": False}),
+        ("on", {"guided_taper": True}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")
