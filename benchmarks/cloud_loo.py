@@ -14,7 +14,9 @@ docs "RANSAC draws"), ``slice_fit_window`` (Dec 5: the slice fits' keep window a
 tolerances / robust sigmas, 3 as before, 2.5 or 2; spruce with 1 cm noise, docs "RANSAC
 draws"; its current value is listed first, the least intervention) and ``thin_refit_points``
 (Dec 5: the thin ladder's guided refits held to the count the density gives a thin slice;
-pine_plot at 20 / 10 %, default off). Here
+pine_plot at 20 / 10 %, default off), ``consensus_radius_se`` and ``guided_taper`` (Dec 5:
+the radius consensus by each slice radius's own standard error, and guided refits kept only
+within the taper; pine_plot at 20 / 10 %, docs "Short arcs in the radius consensus"). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
