@@ -82,11 +82,13 @@ def test_each_option_lists_its_current_default() -> None:
         "core_refits": "on",
         "ransac_lo": "on",
         "slice_fit_window": "3",
+        "slice_stub_trim": "off",
         "single_tree_ladder": "on",
         "continues_above": "on",
         "axis_fallback": "off",
         "thick_dbh_slice": "on",
         "thin_refit_points": "off",
+        "consensus_floor": "off",
     }
     # every value is a distinct config; the off values of options that are on by default
     # really switch something off (axis_fallback is off by default: its off is the default;
