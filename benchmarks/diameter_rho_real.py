@@ -116,6 +116,7 @@ def run_slice(
                                 "range_m": float(np.hypot(*(c - vp[s]))),
                                 "returns": int((hit[s] == t).sum()),
                                 "points": int(obs.n_points[m][k]),
+                                "r_std": float(np.sqrt(max(obs.covs[m][k][2, 2], 0.0))),
                                 "arc_deg": arcs[-1],
                                 "err": errs[-1],
                                 "dbh": float(d),
@@ -272,6 +273,9 @@ def main() -> None:
     ap.add_argument("--rows-out", help="write the per-pass rows to this JSON file")
     ap.add_argument("--rows-in", help="read the per-pass rows from this JSON file (no scans)")
     ap.add_argument(
+        "--scans-out", help="write the per-scan records (per scanner configuration) to this JSON"
+    )
+    ap.add_argument(
         "--preset", default="stemmap",
         help="detector preset (default stemmap, the default detector; 'none': a bare"
         " DetectorConfig(), Kasa without plausibility tests, what ran before Dec 5)",
@@ -299,6 +303,9 @@ def main() -> None:
     if a.rows_out:
         with open(a.rows_out, "w") as f:
             json.dump(rows, f)
+    if a.scans_out and scans:
+        with open(a.scans_out, "w") as f:
+            json.dump(scans, f)
     out: dict[str, Any] = {"preset": a.preset, "n_passes": len(rows), "rho_all": solve_rho(rows)}
     out["median_abs_z_at_rho_all"] = median_abs_z(rows, out["rho_all"])
     out["median_abs_z_at_0.03"] = median_abs_z(rows, 0.03)
