@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -225,18 +226,24 @@ def abs_z_bias(rows: list[dict[str, Any]], rho: float, form: str, k: float) -> n
     return np.abs(e[ok]) / se
 
 
-def solve_bias(rows: list[dict[str, Any]], rho: float, form: str) -> float:
-    """The ``k`` making the median |z| of ``rows`` 0.6745 (0 if already at or below)."""
+def solve_scale(abs_z: Callable[[float], np.ndarray], upper: float = 100.0) -> float:
+    """The scale ``k`` >= 0 making the median of ``abs_z(k)`` (decreasing in ``k``) 0.6745
+    (0 if already at or below; bracket doubled from 0.01 up to ``upper``)."""
 
     def f(k: float) -> float:
-        return float(np.median(abs_z_bias(rows, rho, form, k))) - MEDIAN_ABS_Z
+        return float(np.median(abs_z(k))) - MEDIAN_ABS_Z
 
     if f(0.0) <= 0:
         return 0.0
     hi = 0.01
-    while f(hi) > 0 and hi < 100.0:
+    while f(hi) > 0 and hi < upper:
         hi *= 2.0
     return float(brentq(f, 0.0, hi))
+
+
+def solve_bias(rows: list[dict[str, Any]], rho: float, form: str) -> float:
+    """The ``k`` making the median |z| of ``rows`` 0.6745 (0 if already at or below)."""
+    return solve_scale(lambda k: abs_z_bias(rows, rho, form, k))
 
 
 def bias_loo(rows: list[dict[str, Any]], rhos: tuple[float, ...]) -> dict[str, Any]:

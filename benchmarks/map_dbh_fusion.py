@@ -43,11 +43,10 @@ from collections import defaultdict
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq
 
+from diameter_rho_real import solve_scale
 from stemmap.slam.uncertainty import DIAMETER_BIAS, DIAMETER_RHO, fused_diameters
 
-MEDIAN_ABS_Z = 0.6745
 #: Floors ``f`` (m) tried for the inverse-variance weight.
 FLOORS = (0.001, 0.0025, 0.005, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1)
 NEAR_M = 10.0
@@ -125,16 +124,7 @@ def abs_z(e: np.ndarray, s: np.ndarray, b: float) -> np.ndarray:
 
 def solve_b(e: np.ndarray, s: np.ndarray) -> float:
     """``b`` making the median |z| 0.674 (0 if already at or below)."""
-
-    def f(b: float) -> float:
-        return float(np.median(abs_z(e, s, b))) - MEDIAN_ABS_Z
-
-    if f(0.0) <= 0:
-        return 0.0
-    hi = 0.01
-    while f(hi) > 0 and hi < 10.0:
-        hi *= 2.0
-    return float(brentq(f, 0.0, hi))
+    return solve_scale(lambda b: abs_z(e, s, b), upper=10.0)
 
 
 def stats(e: np.ndarray, s: np.ndarray, b: float) -> dict[str, Any]:
