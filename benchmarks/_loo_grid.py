@@ -452,6 +452,29 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         cut_ends=True,
         stub_runs_worst=True,
     ),
+    # Dec 5 ("The LOO by scanner family"), grids 81-84: grid 80 with each ingredient grid 72
+    # (the lidR fold's choice, = 59 + scan_noise_batch 2.5 + straight_curvature, no fit noise
+    # floor) has and grid 80 lacks, then with all three: the RMS test reading the batch's noise
+    # where it is >= 2.5 sigma (81), the bend test of straightness (82), no 3 mm floor under the
+    # first-echo fit's measured noise (83), all three (84)
+    *(
+        _setting(
+            **_DEFAULT_11,
+            **_ARCS_35,
+            **_STEP_BATCH_59,
+            stub_runs_snoop=True,
+            batch_noise_scale="biweight",
+            cut_ends=True,
+            stub_runs_worst=True,
+            **{**_RUNS_63, **ingredient},
+        )
+        for ingredient in (
+            {"scan_noise_batch": 2.5},
+            {"straight_curvature": True},
+            {"fit_noise_floor": 0.0},
+            {"scan_noise_batch": 2.5, "straight_curvature": True, "fit_noise_floor": 0.0},
+        )
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

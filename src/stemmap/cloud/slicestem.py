@@ -125,14 +125,34 @@ def _centre_line(h: FloatArray, centers: FloatArray, at: FloatArray) -> FloatArr
     return np.column_stack((lx[0] + lx[1] * at, ly[0] + ly[1] * at))
 
 
-def _consistent_slices(fits: _SliceFits, c: int, centers_h: FloatArray) -> _Agreement:
+def _consensus_weights(fits: _SliceFits, c: int, floor: float) -> FloatArray:
+    """Cluster ``c``'s slice fit weights for the radius consensus: inliers / RMS^2, or with a
+    ``floor`` > 0 inliers / max(RMS, floor)^2.
+
+    A fit's weight stands for the inverse variance of its points about the circle. Where the
+    noise floor is pooled over a plot's stems it measures the scatter a stem's surface has in
+    this cloud (range noise, bark); a fit whose RMS is below it has not found a surface that
+    much smoother -- its RANSAC tolerance and trimming kept the few points that happen to lie
+    on a circle (treels pine_plot at 20 %, seed 0: a 10.1 cm circle through its neighbours'
+    clutter, 8 inliers at RMS 1.7 mm against a 7.0 mm floor, outweighed two slices of an
+    8.6 cm stem at 4-6 mm 16-fold; docs/algorithms/cloud.md "Sparse plots: the consensus
+    weight floored at the noise"). ``StemConfig.consensus_floor``; only with a pooled floor
+    (a single tree's floor is its own median RMS, on a sparse spruce its branch whorls')."""
+    if floor <= 0:
+        return fits.weights[c]
+    return np.asarray(fits.n_in[c] / np.maximum(fits.rms[c], floor) ** 2, dtype=np.float64)
+
+
+def _consistent_slices(
+    fits: _SliceFits, c: int, centers_h: FloatArray, floor: float = 0.0
+) -> _Agreement:
     """The passing slices of cluster ``c`` that agree on the radius and the centre line.
 
     Radii within max(15 % of r, 5 sigma_r) of the median -- or of the consensus radius
     (:func:`_radius_consensus`) when not all slices agree with the median -- where
     sigma_r = 2 rms / sqrt(n) x max(1, 180 deg / arc)^2 approximates a slice fit's radius
     noise; centres within max(that, 0.3 r) of a Theil-Sen line through them (>= 3 slices) or
-    of their median.
+    of their median. ``floor``: the consensus weights' RMS floor (:func:`_consensus_weights`).
     """
     radii, cen, arcs = fits.radii[c], fits.centers[c], fits.arcs[c]
     m = fits.passed[c]
@@ -144,7 +164,7 @@ def _consistent_slices(fits: _SliceFits, c: int, centers_h: FloatArray) -> _Agre
     short = np.maximum(1.0, 180.0 / np.maximum(arcs[m], 1.0)) ** 2
     sig_r = float(np.median(2.0 * fits.rms[c, m] / np.sqrt(np.maximum(fits.n_in[c, m], 1)) * short))
     tol = max(0.15 * r_med, 5.0 * sig_r)
-    r_med, m = _radius_consensus(radii, m, tol, sig_r, fits.weights[c])
+    r_med, m = _radius_consensus(radii, m, tol, sig_r, _consensus_weights(fits, c, floor))
     tol = max(0.15 * r_med, 5.0 * sig_r)
     c_med = np.median(cen[m], axis=0)
     # centres are compared with a robust line through them (a leaning stem's centre
@@ -510,6 +530,12 @@ def _ends_in_band(agree: _Agreement, ctx: _BandContext, cfg: StemConfig) -> bool
     return True
 
 
+def _consensus_floor(ctx: _BandContext, cfg: StemConfig) -> float:
+    """The RMS floor of the radius consensus weights: the pooled noise floor where
+    ``cfg.consensus_floor`` is on and the floor is pooled over stems, else 0 (none)."""
+    return ctx.noise_floor if cfg.consensus_floor and not ctx.own_floor else 0.0
+
+
 def _slice_stem(
     fits: _SliceFits, c: int, ctx: _BandContext, cfg: StemConfig
 ) -> tuple[tuple[float, ...], str] | None:
@@ -526,7 +552,7 @@ def _slice_stem(
     floor / RMS).
     """
     centers_h = ctx.centers_h
-    agree = _consistent_slices(fits, c, centers_h)
+    agree = _consistent_slices(fits, c, centers_h, _consensus_floor(ctx, cfg))
     if agree.kept.sum() < cfg.min_slices:
         refit = _guided_refits(fits, c, agree, ctx, cfg)
         if refit is None:
@@ -595,7 +621,7 @@ def _thin_slice_stem(
     slices that pass as on a dense cloud (:func:`_slice_stem`: consistency, buttress,
     Theil-Sen line, lean). Only the measurement changes, not which stems are found.
     """
-    agree = _consistent_slices(fits, c, ctx.centers_h)
+    agree = _consistent_slices(fits, c, ctx.centers_h, _consensus_floor(ctx, cfg_thin))
     m = agree.kept
     if ctx_thin.tree is None or m.sum() < 2:
         return None
