@@ -475,6 +475,20 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
             {"scan_noise_batch": 2.5, "straight_curvature": True, "fit_noise_floor": 0.0},
         )
     ),
+    # Dec 5 ("Needles inside the arc"), grid 85 (81 on its branch): grid 80 with the run
+    # test's inner explanation (stub_runs_inner): needles or a twig in front of the bark
+    # inside the arc are dropped instead of the stem's own end returns
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+        cut_ends=True,
+        stub_runs_worst=True,
+        stub_runs_inner=True,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

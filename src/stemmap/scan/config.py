@@ -443,6 +443,17 @@ class DetectorConfig:
         stem's own returns at the other end went as a run (TreeLS pine 0.25 deg nearest, no
         noise: 1.49 -> 3.04 cm with grid 69 / 79, 1.93 with the option; lidR's gains kept).
         False = both ends of every candidate that fails the global test. Numpy path.
+    stub_runs_inner : bool
+        With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
+        "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
+        candidate that the run test searches, the smallest run of consecutive returns that
+        holds neither end return, lies outside the circle of the rest by more than
+        ``stub_sigmas`` deletion deviations and leaves a rest that passes every test and the
+        global chi-square test is found; where one is, the misfit is needles or a twig in
+        front of the bark (a stem cannot return from in front of itself): that run is not
+        fitted and no end run goes (the ends are the stem's). TreeLS pine 0.25 deg nearest,
+        no noise: the silhouette return went for needles on two inner beams (grid 80: 1.93
+        cm, with the option 1.43). False = only end runs. Numpy path.
     cut_ends : bool
         First-echo or thin-beam fits (``beam_footprint_deg`` > 0 or ``beam_divergence_deg``
         0): at each end of an accepted piece (corner split, step split, largest consistent
@@ -605,6 +616,7 @@ class DetectorConfig:
     stub_runs: bool = False
     stub_runs_snoop: bool = False
     stub_runs_worst: bool = False
+    stub_runs_inner: bool = False
     cut_ends: bool = False
     split_search: bool = False
     split_search_convex: bool = False
@@ -736,6 +748,8 @@ class DetectorConfig:
             raise bad("stub_runs_snoop", self.stub_runs_snoop, "it needs stub_runs")
         if self.stub_runs_worst and not self.stub_runs:
             raise bad("stub_runs_worst", self.stub_runs_worst, "it needs stub_runs")
+        if self.stub_runs_inner and not self.stub_runs:
+            raise bad("stub_runs_inner", self.stub_runs_inner, "it needs stub_runs")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):
             raise bad("fit_noise_floor", self.fit_noise_floor, "it must be >= 0 m and finite")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
