@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from cloud_robustness import SINGLE_TREE_TOL_CM, baseline_misses_too
+from cloud_robustness import SINGLE_TREE_TOL_CM, baseline_misses_too, single_tree_dbh_fails
 
 
 def test_listed_only_where_the_baseline_misses_too_and_the_crop_did_not_move_it() -> None:
@@ -50,3 +50,17 @@ def test_archi_tree_1_cropped_at_0_3_m(datasets_dir: Path) -> None:
     assert low["dbh_vs_own_ring_max_cm"] > 5.0  # the crop's miss is real and reported
     assert low["fails"] == [] and low["baseline_misses_too_cm"] < -5.0
     assert high["fails"] == [] and "baseline_misses_too_cm" not in high
+
+
+def test_a_single_tree_without_a_ring_fails_when_the_export_moves_its_dbh() -> None:
+    """aRchi Tree_1 has no full ring at breast height: an export that moves its DBH by more
+    than the single-tree tolerance from the shipped tree's fails (it used to pass unjudged);
+    a crop is judged by its own-height ring or not at all (its change is taper)."""
+    fails = single_tree_dbh_fails
+    assert fails("subsample_20", None, 13.49) == [
+        "DBH moved 13.49 cm from the shipped tree's (no ring)"
+    ]
+    assert fails("subsample_20", None, 1.2) == []
+    assert fails("crop_0.3", None, 5.0) == []
+    assert fails("noise_1cm", 1.88, 0.3) == ["DBH 1.88 cm off the ring"]
+    assert fails("noise_1cm", -1.0, 9.0) == []
