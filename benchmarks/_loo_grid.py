@@ -475,6 +475,23 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
             {"scan_noise_batch": 2.5, "straight_curvature": True, "fit_noise_floor": 0.0},
         )
     ),
+    # Dec 5 ("Noisy first-echo rows"): grid 80 and 81 (80 + scan_noise_batch 2.5) with the
+    # precision gate, a first-echo candidate whose fit's own DBH std exceeds the 3 cm target
+    # is rejected (max_dbh_sd; 85, 86)
+    *(
+        _setting(
+            **_DEFAULT_11,
+            **_ARCS_35,
+            **_STEP_BATCH_59,
+            stub_runs_snoop=True,
+            batch_noise_scale="biweight",
+            cut_ends=True,
+            stub_runs_worst=True,
+            max_dbh_sd=0.03,
+            **{**_RUNS_63, **ingredient},
+        )
+        for ingredient in ({}, {"scan_noise_batch": 2.5})
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -443,6 +443,16 @@ class DetectorConfig:
         stem's own returns at the other end went as a run (TreeLS pine 0.25 deg nearest, no
         noise: 1.49 -> 3.04 cm with grid 69 / 79, 1.93 with the option; lidR's gains kept).
         False = both ends of every candidate that fails the global test. Numpy path.
+    max_dbh_sd : float, metres, > 0
+        First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours"), numpy path: a
+        candidate whose circle fit's own diameter standard deviation ``2 sqrt(C_rr)`` (the
+        inverse Gauss-Newton Hessian of the fit at the tests' noise, with the silhouette
+        tangents; :mod:`stemmap.scan._circle_ours`) exceeds this is rejected with the reason
+        ``"precision"`` (ours, issue 11, Dec 5, "Noisy first-echo rows"). At centimetres of
+        range noise a few returns on a 10-30 cm stem carry almost no diameter information
+        (the Cramer-Rao bound of a range-only fit is 4-25 cm of DBH at 3 cm noise and 2-10 m):
+        once the RMS test reads the true noise (``scan_noise_batch``) such candidates pass it,
+        and only their covariance says the diameter was not measured. inf = off.
     cut_ends : bool
         First-echo or thin-beam fits (``beam_footprint_deg`` > 0 or ``beam_divergence_deg``
         0): at each end of an accepted piece (corner split, step split, largest consistent
@@ -606,6 +616,7 @@ class DetectorConfig:
     stub_runs_snoop: bool = False
     stub_runs_worst: bool = False
     cut_ends: bool = False
+    max_dbh_sd: float = math.inf
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -736,6 +747,8 @@ class DetectorConfig:
             raise bad("stub_runs_snoop", self.stub_runs_snoop, "it needs stub_runs")
         if self.stub_runs_worst and not self.stub_runs:
             raise bad("stub_runs_worst", self.stub_runs_worst, "it needs stub_runs")
+        if not self.max_dbh_sd > 0:
+            raise bad("max_dbh_sd", self.max_dbh_sd, "it must be > 0 m (inf: off)")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):
             raise bad("fit_noise_floor", self.fit_noise_floor, "it must be >= 0 m and finite")
         if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
