@@ -475,9 +475,23 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
             {"scan_noise_batch": 2.5, "straight_curvature": True, "fit_noise_floor": 0.0},
         )
     ),
+    # Dec 5 ("Needles inside the arc"), grid 85 (81 on its branch): grid 80 with the run
+    # test's inner explanation (stub_runs_inner): needles or a twig in front of the bark
+    # inside the arc are dropped instead of the stem's own end returns
+    _setting(
+        **_DEFAULT_11,
+        **_ARCS_35,
+        **_STEP_BATCH_59,
+        **_RUNS_63,
+        stub_runs_snoop=True,
+        batch_noise_scale="biweight",
+        cut_ends=True,
+        stub_runs_worst=True,
+        stub_runs_inner=True,
+    ),
     # Dec 5 ("Noisy first-echo rows"): grid 80 and 81 (80 + scan_noise_batch 2.5) with the
     # precision gate, a first-echo candidate whose fit's own DBH std exceeds the 3 cm target
-    # is rejected (max_dbh_sd; 85, 86)
+    # is rejected (max_dbh_sd; 86, 87; measured as 85 / 86 before main's grid 85)
     *(
         _setting(
             **_DEFAULT_11,

@@ -12,7 +12,10 @@ at 20 / 10 %: a sparse plot's radius from the thick slice at breast height), and
 ``ransac_lo`` (Dec 5: the slice fits' locally optimised RANSAC start; spruce under re-exports,
 docs "RANSAC draws"), ``slice_fit_window`` (Dec 5: the slice fits' keep window and trim in
 tolerances / robust sigmas, 3 as before, 2.5 or 2; spruce with 1 cm noise, docs "RANSAC
-draws"; its current value is listed first, the least intervention) and ``thin_refit_points``
+draws"; its current value is listed first, the least intervention), ``slice_stub_trim``
+(Dec 5: the slice fits' trim scaled by the residuals inside the circle, with an outside
+bound at 2 or 1.5 of those robust sigmas; spruce with 1 cm noise, docs "The noisy spruce: a
+trim scaled by the inside half"; off first) and ``thin_refit_points``
 (Dec 5: the thin ladder's guided refits held to the count the density gives a thin slice;
 pine_plot at 20 / 10 %, default off). Here
 each candidate value of each option (the others at their defaults) is run on
@@ -83,6 +86,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("3", {"slice_fit_window": 3.0}),
         ("2.5", {"slice_fit_window": 2.5}),
         ("2", {"slice_fit_window": 2.0}),
+    ),
+    "slice_stub_trim": (
+        ("off", {"slice_stub_trim": 0.0}),
+        ("2", {"slice_stub_trim": 2.0}),
+        ("1.5", {"slice_stub_trim": 1.5}),
     ),
     "single_tree_ladder": (
         ("off", {"single_tree_ladder": False}),

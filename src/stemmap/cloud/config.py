@@ -99,6 +99,14 @@ class StemConfig:
         (1.4826 MAD) (:func:`~stemmap.cloud.slicefit._fit_segments`; 3). Narrower keeps a
         noisy stem's branch stubs out of its fit (docs/algorithms/cloud.md, "RANSAC draws:
         the noisy spruce")
+    slice_stub_trim : float -- 0 (off), or the slice fits' trim takes its robust sigma
+        (1.4826 MAD) from the residuals inside the circle only, drops the points more than
+        this many of those sigmas outside it (and, as before, more than
+        ``slice_fit_window`` of them either side), and trims and refits three times
+        (:func:`~stemmap.cloud.slicefit._fit_segments`): branch stubs and needles lie outside
+        the bark only, the noise on both sides, so the stubs no longer widen the trim that
+        should remove them (docs/algorithms/cloud.md, "The noisy spruce: a trim scaled by the
+        inside half")
     single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
         noise floor is its own), the stem is chosen among the first round's and the tighter
         refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
@@ -175,6 +183,7 @@ class StemConfig:
     ransac_lo: bool = True
     ransac_seed: int = 0
     slice_fit_window: float = 3.0
+    slice_stub_trim: float = 0.0
     single_tree_ladder: bool = True
     continues_above: bool = True
     thick_dbh_slice: bool = True
@@ -205,6 +214,8 @@ class StemConfig:
             raise ConfigError(f"ransac_seed must be an integer >= 0, got {self.ransac_seed!r}.")
         if not self.slice_fit_window > 0:
             raise ConfigError(f"slice_fit_window must be > 0, got {self.slice_fit_window}.")
+        if not self.slice_stub_trim >= 0:
+            raise ConfigError(f"slice_stub_trim must be >= 0 (0: off), got {self.slice_stub_trim}.")
         if self.max_coordinate_step is not None and not self.max_coordinate_step > 0:
             raise ConfigError(
                 f"max_coordinate_step must be > 0 m (or None), got {self.max_coordinate_step}."

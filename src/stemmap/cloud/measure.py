@@ -146,6 +146,7 @@ def _fit_slices(
         ransac_lo=cfg.ransac_lo,
         ransac_seed=cfg.ransac_seed,
         window=cfg.slice_fit_window,
+        stub_trim=cfg.slice_stub_trim,
     )
     if cfg.core_refits:
         (centers, radii, rms, ok, nin), n_core = _opaque_core_refits(
@@ -159,6 +160,7 @@ def _fit_slices(
             ransac_lo=cfg.ransac_lo,
             ransac_seed=cfg.ransac_seed,
             window=cfg.slice_fit_window,
+            stub_trim=cfg.slice_stub_trim,
         )
         if n_core:
             log.debug("%d slice fit(s) refitted to the stem inside them", n_core)

@@ -307,6 +307,7 @@ def _annulus_fit(
         ransac_lo=cfg.ransac_lo,
         ransac_seed=cfg.ransac_seed,
         window=cfg.slice_fit_window,
+        stub_trim=cfg.slice_stub_trim,
     )
     if not ok[0] or nin[0] < need:
         return None
