@@ -34,7 +34,7 @@ import numpy as np
 import _loo_grid
 from _real_scanning import FULL_SCANNERS, dataset_seed, matched, scene_scans, vantage_points
 from _real_scanning import greedy_match as _match
-from real_geometry_diagnose import _over
+from real_geometry_diagnose import miss_class
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import load_slice, noisy_batch
 from stemmap.scan.detect import ScanTrunkDetector
@@ -64,15 +64,7 @@ def classify(sl: Any, vp: np.ndarray, hit: np.ndarray, obs: Any, rej: dict) -> l
                 err = float(2.0 * obs.radii[m][match[t]] - diam[t]) * 100.0
                 sd = 200.0 * math.sqrt(max(float(obs.covs[m][match[t]][2, 2]), 0.0))
             else:
-                near = _over(rej, np.flatnonzero(rej_scan == s), rel[t], float(diam[t]))
-                if near.size == 0:
-                    c = "no_candidate"
-                elif near.size > 1:
-                    c = "split:" + "/".join(sorted(set(reasons[near].tolist())))
-                else:
-                    j = int(near[0])
-                    merged = int(rej["n_points"][j]) > own + 1
-                    c = ("merge:" if merged else "") + str(reasons[j])
+                c = miss_class(rej, rej_scan, reasons, s, rel[t], float(diam[t]), own)[1]
             rows.append(
                 {
                     "scan": s,

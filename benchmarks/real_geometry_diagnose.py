@@ -94,6 +94,27 @@ def _over(rej: dict[str, Any], rows: np.ndarray, rel: np.ndarray, diam: float) -
     return rows[ok]
 
 
+def miss_class(
+    rej: dict[str, Any],
+    rej_scan: np.ndarray,
+    reasons: np.ndarray,
+    s: int,
+    rel: np.ndarray,
+    diam: float,
+    own: int,
+) -> tuple[np.ndarray, str]:
+    """The rejected candidates of scan ``s`` over a missed trunk (at ``rel``, ``own`` own
+    returns) and the miss's class: ``no_candidate``, ``split:<reasons>``, or the reason of
+    the one candidate (``merge:`` when it holds more than one return beyond the trunk's)."""
+    near = _over(rej, np.flatnonzero(rej_scan == s), rel, diam)
+    if near.size == 0:
+        return near, "no_candidate"
+    if near.size > 1:
+        return near, "split:" + "/".join(sorted(set(reasons[near].tolist())))
+    j = int(near[0])
+    return near, ("merge:" if int(rej["n_points"][j]) > own + 1 else "") + str(reasons[j])
+
+
 def own_beams_only(batch: ScanBatch, hit: np.ndarray, s: int, t: int) -> ScanBatch:
     """Scan ``s`` of ``batch`` with only trunk ``t``'s own beams (``hit``, every other beam
     masked): what the detector gives under perfect segmentation."""
@@ -178,14 +199,7 @@ def diagnose(
                     )
                 )
                 continue
-            near = _over(rej, np.flatnonzero(rej_scan == s), rel[t], float(diam[t]))
-            if near.size == 0:
-                c = "no_candidate"
-            elif near.size > 1:
-                c = "split:" + "/".join(sorted(set(reasons[near].tolist())))
-            else:
-                j = int(near[0])
-                c = ("merge:" if int(rej["n_points"][j]) > own + 1 else "") + str(reasons[j])
+            near, c = miss_class(rej, rej_scan, reasons, s, rel[t], float(diam[t]), own)
             classes[c] += 1
             cause = c
             if own < cfg.min_points_partial and (
