@@ -449,10 +449,12 @@ class DetectorConfig:
         inverse Gauss-Newton Hessian of the fit at the tests' noise, with the silhouette
         tangents; :mod:`stemmap.scan._circle_ours`) exceeds this is rejected with the reason
         ``"precision"`` (ours, issue 11, Dec 5, "Noisy first-echo rows"). At centimetres of
-        range noise a few returns on a 10-30 cm stem carry almost no diameter information
-        (the Cramer-Rao bound of a range-only fit is 4-25 cm of DBH at 3 cm noise and 2-10 m):
-        once the RMS test reads the true noise (``scan_noise_batch``) such candidates pass it,
-        and only their covariance says the diameter was not measured. inf = off.
+        range noise the ranges of a few returns on a 10-30 cm stem carry little diameter
+        information (Cramer-Rao bound of a range-only fit at 3 cm noise: 4.5-26 cm of DBH
+        with 3-9 returns); once the RMS test reads the true noise (``scan_noise_batch``) such
+        candidates pass it. inf = off (every preset): at 3 cm the LOO chooses it for no
+        held-out dataset and it lowers every training set's score (the covariance is not a
+        calibrated precision on first-echo scans).
     stub_runs_inner : bool
         With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
         "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
