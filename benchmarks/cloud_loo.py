@@ -17,7 +17,9 @@ draws"; its current value is listed first, the least intervention), ``slice_stub
 bound at 2 or 1.5 of those robust sigmas; spruce with 1 cm noise, docs "The noisy spruce: a
 trim scaled by the inside half"; off first) and ``thin_refit_points``
 (Dec 5: the thin ladder's guided refits held to the count the density gives a thin slice;
-pine_plot at 20 / 10 %, default off). Here
+pine_plot at 20 / 10 %, default off), ``consensus_radius_se`` and ``guided_taper`` (Dec 5:
+the radius consensus by each slice radius's own standard error, and guided refits kept only
+within the taper; pine_plot at 20 / 10 %, docs "Short arcs in the radius consensus"). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -116,6 +118,14 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "consensus_floor": (
         ("off", {"consensus_floor": False}),
         ("on", {"consensus_floor": True}),
+    ),
+    "consensus_radius_se": (
+        ("off", {"consensus_radius_se": False}),
+        ("on", {"consensus_radius_se": True}),
+    ),
+    "guided_taper": (
+        ("off", {"guided_taper": False}),
+        ("on", {"guided_taper": True}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

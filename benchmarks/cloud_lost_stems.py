@@ -11,7 +11,8 @@ ladder -- the slice count tells which):
 * ``band``: the band's returns (before the vertical filter) within r + 5 cm of the baseline
   stem per slice of that call -- what the data hold;
 * ``fits``: each slice's circle (r cm / RMS mm / inliers / arc deg), passed or not (per-slice
-  tests, step 7), and the consensus weight (inliers / RMS^2, cm^-2);
+  tests, step 7), the consensus weight (inliers / RMS^2, cm^-2) and the radius standard
+  error from the fit's covariance (``se``, mm; ``slicestem._radius_se``);
 * ``stage``: where the per-stem step stops -- ``consensus`` (fewer than ``min_slices``
   agreeing slices and no guided refit passes), ``guided refits`` (refits passed but still too
   few), ``vertical extent``, ``ends in band``, ``taper``, or ``stem`` (it gave a stem that a
@@ -57,7 +58,9 @@ def stage_of(fits: Any, c: int, ctx: Any, cfg: StemConfig) -> tuple[str, Any, st
     """Where :func:`~stemmap.cloud.slicestem._slice_stem` stops for cluster ``c`` (its tests
     in its order, through the same functions), the agreement it reached, and the guided
     refits that passed ("h: r cm / RMS mm / inliers", or "")."""
-    agree = ss._consistent_slices(fits, c, ctx.centers_h, ss._consensus_floor(ctx, cfg))
+    agree = ss._consistent_slices(
+        fits, c, ctx.centers_h, ss._consensus_floor(ctx, cfg), ss._se_floor(ctx, cfg)
+    )
     done = ""
     if agree.kept.sum() < cfg.min_slices:
         refit = ss._guided_refits(fits, c, agree, ctx, cfg)
@@ -136,6 +139,7 @@ def lost_report(bl: cr.Baseline, i: int, calls: list[Any]) -> dict[str, Any]:
                     f"{int(fits.n_in[c, s])}/{fits.arcs[c, s]:.0f}"
                     + ("" if fits.passed[c, s] else " x")
                     + f" w{fits.weights[c, s] * 1e-4:.0f}"
+                    + f" se{1000 * float(ss._radius_se(fits, c)[s]):.1f}"
                     for s in range(ctx.centers_h.shape[0])
                 ),
                 "stage": stage,

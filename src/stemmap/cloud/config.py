@@ -137,6 +137,18 @@ class StemConfig:
         clutter points on a circle) does not outvote the stem's slices
         (:func:`~stemmap.cloud.slicestem._consensus_weights`). Off: docs/algorithms/cloud.md
         "Sparse plots: the consensus weight floored at the noise"
+    consensus_radius_se : bool -- the radius consensus of a stem's slices weighs each slice by
+        its radius's own inverse variance (from the fit's covariance: arc, inliers, RMS)
+        instead of inliers / RMS^2 and takes the weighted median (in a plot the RMS in the
+        covariance floored at the pooled noise floor;
+        :func:`~stemmap.cloud.slicestem._radius_consensus`). Off:
+        docs/algorithms/cloud.md "Short arcs in the radius consensus"
+    guided_taper : bool -- a guided refit (the annulus fit of a slice that disagreed, about
+        the circle the agreeing slices predict) is kept only when the Theil-Sen line through
+        the agreeing slices' radii and the refits kept so far stays within ``max_taper``
+        (:func:`~stemmap.cloud.slicestem._taper_checked`): a refit on a root flare is left
+        out instead of failing the whole stem's taper test. Off: docs/algorithms/cloud.md
+        "Short arcs in the radius consensus"
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -189,6 +201,8 @@ class StemConfig:
     thick_dbh_slice: bool = True
     thin_refit_points: bool = False
     consensus_floor: bool = False
+    consensus_radius_se: bool = False
+    guided_taper: bool = False
     axis_fallback: bool = False
     axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY

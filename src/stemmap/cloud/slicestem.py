@@ -77,8 +77,50 @@ class _BandContext:
     annulus_points: int | None = None
 
 
+def _weighted_median(x: FloatArray, w: FloatArray) -> float:
+    """The weighted median of ``x`` (weights ``w`` > 0): the smallest value whose cumulative
+    weight reaches half the total; the mean of the two middle values at an exact tie (the
+    plain median with equal weights)."""
+    o = np.argsort(x)
+    xs, cw = x[o], np.cumsum(w[o])
+    half = 0.5 * cw[-1]
+    k = int(np.searchsorted(cw, half * (1 - 1e-12)))
+    if abs(cw[k] - half) <= 1e-12 * cw[-1] and k + 1 < xs.size:
+        return float(0.5 * (xs[k] + xs[k + 1]))
+    return float(xs[k])
+
+
+def _short_arc_sigma(fits: _SliceFits, c: int) -> FloatArray:
+    """The approximate radius noise (S,) of cluster ``c``'s slice fits: 2 rms / sqrt(n) on a
+    half arc, growing like max(1, 180 deg / arc)^2 on shorter arcs (partly occluded trunks)."""
+    short = np.maximum(1.0, 180.0 / np.maximum(fits.arcs[c], 1.0)) ** 2
+    return np.asarray(2.0 * fits.rms[c] / np.sqrt(np.maximum(fits.n_in[c], 1)) * short)
+
+
+def _radius_se(fits: _SliceFits, c: int, floor: float = 0.0) -> FloatArray:
+    """Each slice fit's radius standard error (S,) from its covariance (sqrt of the (r, r)
+    entry, :func:`~stemmap.cloud.slicefit._segment_covariances`); where it is missing (no
+    covariance), the short-arc approximation 2 rms / sqrt(n) x max(1, 180 deg / arc)^2.
+
+    The covariance is RMS^2 (J^T J)^-1: with a ``floor`` > 0 (a plot's pooled noise floor)
+    a fit whose RMS is below it has its standard error scaled by floor / RMS, for the reason
+    of :func:`_consensus_weights`: a few clutter points that happen to lie on a circle are
+    not a smoother surface than the cloud's stems have."""
+    rms = np.maximum(fits.rms[c], 1e-4)
+    scale = np.maximum(1.0, floor / rms) if floor > 0 else np.ones_like(rms)
+    approx = _short_arc_sigma(fits, c)
+    var = fits.cov[c, :, 2, 2]
+    ok = np.isfinite(var) & (var > 0)
+    return np.where(ok, np.sqrt(np.where(ok, var, 1.0)), approx) * scale
+
+
 def _radius_consensus(
-    r: FloatArray, m: NDArray[np.bool_], tol: float, sig_r: float, w: FloatArray
+    r: FloatArray,
+    m: NDArray[np.bool_],
+    tol: float,
+    sig_r: float,
+    w: FloatArray,
+    se: FloatArray | None = None,
 ) -> tuple[float, NDArray[np.bool_]]:
     """Radius most slices agree on, and the slices that agree.
 
@@ -91,9 +133,17 @@ def _radius_consensus(
     count: around a spruce's whorls the circles through the branches agree with each other
     too (a crown is round), but they fit their points with several times the RMS of the
     bark, so three of them do not outvote one clean stem slice.
+
+    ``se`` (S,; ``StemConfig.consensus_radius_se``): each slice's radius standard error from
+    its fit. The consensus radius is then the median weighted by 1 / se^2 (the radius's own
+    inverse variance), and the support of a radius is that weight too: a one-sided arc of
+    9 points fixes its radius to several cm, a 145 deg arc of 10 to a few mm, and the
+    points' RMS alone (``w``) does not tell them apart.
     """
     idx = np.flatnonzero(m)
-    r_med = float(np.median(r[idx]))
+    if se is not None:
+        w = 1.0 / np.maximum(se, 1e-4) ** 2
+    r_med = _middle(r[idx], None if se is None else w[idx])
     if np.all(np.abs(r[idx] - r_med) <= tol):
         return r_med, m
     tols = np.maximum(0.15 * r[idx], 5.0 * sig_r)
@@ -103,7 +153,12 @@ def _radius_consensus(
     # among equally supported radii, the smallest: clutter makes circles larger, not smaller
     j = idx[best][int(np.argmin(r[idx][best]))]
     agree = m & (np.abs(r - r[j]) <= max(0.15 * r[j], 5.0 * sig_r))
-    return float(np.median(r[agree])), agree
+    return _middle(r[agree], None if se is None else w[agree]), agree
+
+
+def _middle(x: FloatArray, w: FloatArray | None) -> float:
+    """The median of ``x``, weighted by ``w`` when given (:func:`_weighted_median`)."""
+    return float(np.median(x)) if w is None else _weighted_median(x, w)
 
 
 @dataclass(frozen=True)
@@ -144,7 +199,11 @@ def _consensus_weights(fits: _SliceFits, c: int, floor: float) -> FloatArray:
 
 
 def _consistent_slices(
-    fits: _SliceFits, c: int, centers_h: FloatArray, floor: float = 0.0
+    fits: _SliceFits,
+    c: int,
+    centers_h: FloatArray,
+    floor: float = 0.0,
+    se_floor: float | None = None,
 ) -> _Agreement:
     """The passing slices of cluster ``c`` that agree on the radius and the centre line.
 
@@ -153,18 +212,22 @@ def _consistent_slices(
     sigma_r = 2 rms / sqrt(n) x max(1, 180 deg / arc)^2 approximates a slice fit's radius
     noise; centres within max(that, 0.3 r) of a Theil-Sen line through them (>= 3 slices) or
     of their median. ``floor``: the consensus weights' RMS floor (:func:`_consensus_weights`).
+
+    ``se_floor`` (not None: ``StemConfig.consensus_radius_se``): the consensus weighs slices
+    by their radius's own inverse variance (:func:`_radius_se` with that RMS floor,
+    :func:`_radius_consensus`); the tolerances stay as above.
     """
-    radii, cen, arcs = fits.radii[c], fits.centers[c], fits.arcs[c]
+    radii, cen = fits.radii[c], fits.centers[c]
     m = fits.passed[c]
     # consistency: drop slices whose radius or centre is far from the median
     r_med = float(np.median(radii[m]))
     # tolerance: 15 % of the radius, or 5 sigma of a slice radius, whichever is larger.
     # sigma_r is the fit's parameter noise, not the points': ~2 rms / sqrt(n) on a half
     # arc, growing like (180 deg / arc)^2 on shorter arcs (partly occluded trunks)
-    short = np.maximum(1.0, 180.0 / np.maximum(arcs[m], 1.0)) ** 2
-    sig_r = float(np.median(2.0 * fits.rms[c, m] / np.sqrt(np.maximum(fits.n_in[c, m], 1)) * short))
+    sig_r = float(np.median(_short_arc_sigma(fits, c)[m]))
     tol = max(0.15 * r_med, 5.0 * sig_r)
-    r_med, m = _radius_consensus(radii, m, tol, sig_r, _consensus_weights(fits, c, floor))
+    se = None if se_floor is None else _radius_se(fits, c, se_floor)
+    r_med, m = _radius_consensus(radii, m, tol, sig_r, _consensus_weights(fits, c, floor), se)
     tol = max(0.15 * r_med, 5.0 * sig_r)
     c_med = np.median(cen[m], axis=0)
     # centres are compared with a robust line through them (a leaning stem's centre
@@ -242,14 +305,52 @@ def _guided_refits(
     noise = _annulus_noise(fits, c, m, ctx, cfg)
     out = _row(fits, c)
     changed = np.zeros(m.shape[0], dtype=bool)
+    found: dict[int, _AnnulusFit] = {}
     for s in map(int, np.flatnonzero(~m)):
         slack = cfg.max_taper * abs(float(ch[s]) - h_ref)
         fit = _annulus_fit(ctx, s, pred[s], r_med, tol, slack, cfg, noise)
-        if fit is None:
-            continue
+        if fit is not None:
+            found[s] = fit
+    if cfg.guided_taper:
+        found = _taper_checked(found, ch, m, fits.radii[c], h_ref, cfg)
+    for s, fit in found.items():
         _set_slice(out, s, fit)
         changed[s] = True
     return (out, changed) if changed.any() else None
+
+
+def _taper_checked(
+    found: dict[int, _AnnulusFit],
+    ch: FloatArray,
+    m: NDArray[np.bool_],
+    radii: FloatArray,
+    h_ref: float,
+    cfg: StemConfig,
+) -> dict[int, _AnnulusFit]:
+    """The guided refits ``found`` (slice -> fit) that keep the stem's taper: taken from the
+    nearest to the agreeing slices' mean height ``h_ref`` outwards, a refit is kept when the
+    Theil-Sen line through the agreeing slices' radii (``radii[m]``) and the refits kept so
+    far and its own has |d r / d h| <= ``cfg.max_taper`` (``StemConfig.guided_taper``).
+
+    An annulus refit may pass its radius test within the consensus tolerance plus the largest
+    taper over its height difference, and that tolerance grows with the short arcs' radius
+    noise (5 sigma_r, :func:`_consistent_slices`): on treels pine_plot at 10 % (seed 3) the
+    0.8-1.2 m slice of a stem with slices r = 8.02 / 9.32 cm at 1.4 / 1.8 m refitted at
+    14.22 cm on the root flare and clutter, within 4.8 + 3.0 cm of 8.67 cm; the line through
+    the three radii then tapers by 6.1 cm/m and :func:`_stem_at` rejects the stem, the
+    refit with it. A refit that breaks the taper test is a swelling or clutter, not the
+    stem's radius at that height: it is left out instead, and the stem stands or falls by
+    the others (docs/algorithms/cloud.md "Short arcs in the radius consensus")."""
+    keep: dict[int, _AnnulusFit] = {}
+    h0, r0 = ch[m], radii[m]
+    for s in sorted(found, key=lambda k: (abs(float(ch[k]) - h_ref), k)):
+        ks = sorted(keep)
+        h = np.concatenate((h0, ch[ks], [ch[s]]))
+        r = np.concatenate((r0, [keep[k].radius for k in ks], [found[s].radius]))
+        if h.size >= 3 and np.ptp(h) >= 0.3 and abs(_theil_sen(h, r)[1]) > cfg.max_taper:
+            continue
+        keep[s] = found[s]
+    return keep
 
 
 @dataclass(frozen=True)
@@ -537,6 +638,15 @@ def _consensus_floor(ctx: _BandContext, cfg: StemConfig) -> float:
     return ctx.noise_floor if cfg.consensus_floor and not ctx.own_floor else 0.0
 
 
+def _se_floor(ctx: _BandContext, cfg: StemConfig) -> float | None:
+    """None (the consensus by fit weights) unless ``cfg.consensus_radius_se``; then the RMS
+    floor of the slices' radius standard errors (:func:`_radius_se`): the pooled noise floor
+    in a plot, 0 (none) where the floor is one candidate's own."""
+    if not cfg.consensus_radius_se:
+        return None
+    return 0.0 if ctx.own_floor else ctx.noise_floor
+
+
 def _slice_stem(
     fits: _SliceFits, c: int, ctx: _BandContext, cfg: StemConfig
 ) -> tuple[tuple[float, ...], str] | None:
@@ -553,7 +663,7 @@ def _slice_stem(
     floor / RMS).
     """
     centers_h = ctx.centers_h
-    agree = _consistent_slices(fits, c, centers_h, _consensus_floor(ctx, cfg))
+    agree = _consistent_slices(fits, c, centers_h, _consensus_floor(ctx, cfg), _se_floor(ctx, cfg))
     if agree.kept.sum() < cfg.min_slices:
         refit = _guided_refits(fits, c, agree, ctx, cfg)
         if refit is None:
@@ -622,7 +732,9 @@ def _thin_slice_stem(
     slices that pass as on a dense cloud (:func:`_slice_stem`: consistency, buttress,
     Theil-Sen line, lean). Only the measurement changes, not which stems are found.
     """
-    agree = _consistent_slices(fits, c, ctx.centers_h, _consensus_floor(ctx, cfg_thin))
+    agree = _consistent_slices(
+        fits, c, ctx.centers_h, _consensus_floor(ctx, cfg_thin), _se_floor(ctx, cfg_thin)
+    )
     m = agree.kept
     if ctx_thin.tree is None or m.sum() < 2:
         return None

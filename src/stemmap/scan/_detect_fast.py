@@ -67,7 +67,7 @@ from stemmap.scan import (
     features,
 )
 from stemmap.scan._corners import corner_parity, cut_tables, sagitta
-from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_candidate, arc_run
+from stemmap.scan._fast_arcs import ARC_WORK_ROWS, arc_candidate, arc_run, continues_outline
 from stemmap.scan._fast_candidates import (
     _DEPTH,
     _PREFIT,
@@ -673,8 +673,9 @@ def _detect_kernel(
                 continue
             # arc_replace: an accepted candidate gives way to its arc when its fit RMS exceeds
             # arc_replace x the arc's and the arc's sigma and its residuals fail the upper 1 %
-            # chi^2 test at that sigma (detect._arc_candidates); that sigma is at least
-            # max(sigma, the scan's noise), so below it no arc is looked for
+            # chi^2 test at that sigma (detect._arc_candidates), unless its outline goes on past
+            # the arc's cut on its own circle (_fast_arcs.continues_outline); that sigma is at
+            # least max(sigma, the scan's noise), so below it no arc is looked for
             if replace_on and rms > max(sigma0, noise_s) and cnt_i > arc_least:
                 sig_a = max(sigma0 + sigma_rel * mean_r, noise_s)  # (segment_sigma)
                 lo_a, hi_a = arc_run(px, py, pr, a, b, sig_a, prm, arc_work)
@@ -687,6 +688,10 @@ def _detect_kernel(
                     and rms > max(arc_replace * pres[0, OUT_COLUMNS + 1], pres[0, OUT_COLUMNS])
                     and cnt_i * rms * rms
                     > chi2[cnt_i - 3] * pres[0, OUT_COLUMNS] * pres[0, OUT_COLUMNS]
+                    and not continues_outline(
+                        px, py, pr, a, b, a + lo_a, a + hi_a, cx, cy, rad,
+                        (pres[0, 0], pres[0, 1], pres[0, 2]), pres[0, OUT_COLUMNS], bark, chi2,
+                    )
                 ):  # fmt: skip
                     rows, scans, n_out = _emit(rows, scans, n_out, s, pres[0])
                     continue

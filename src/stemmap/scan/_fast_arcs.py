@@ -43,11 +43,13 @@ from stemmap.types import FloatArray
 
 __all__ = [
     "ARC_WORK_ROWS",
+    "FRONT_SIGMAS",
     "MAX_SEEDS",
     "MIN_SHARE",
     "arc_candidate",
     "arc_consistent",
     "arc_run",
+    "continues_outline",
     "largest_arc",
 ]
 
@@ -58,6 +60,10 @@ MAX_SEEDS = 24
 #: 5-8 of 11-20 at 5-9 m); a 2 cm bark ridge or stub at the end of a 150-return trunk does not
 #: (aRchi at 2 m, 0.25 deg: 6 of ~150 returns fitted as a 5 cm stem inside the 55 cm trunk).
 MIN_SHARE = 0.25
+#: :func:`continues_outline`: a return across the arc's cut this many noise sigmas (with the
+#: bark allowance) in front of the arc circle's tangent range continues the outline (the
+#: scale of ``arc_tangent_sigmas``' default, 3).
+FRONT_SIGMAS = 3.0
 #: Rows of the work array of :func:`largest_arc`: per return 9 Kasa terms and 2 buffers, then
 #: the 3 x 4 elimination tableau and two running-sum rows (work shape: (ARC_WORK_ROWS,
 #: max(N, 9)) for segments of up to N returns).
@@ -411,6 +417,68 @@ def arc_consistent(
         if far - math.sqrt(d2) > k * math.sqrt(sig * sig + br * br):
             return False
     return True
+
+
+@leaf_njit()
+def continues_outline(
+    px: FloatArray,
+    py: FloatArray,
+    pr: FloatArray,
+    a: int,
+    b: int,
+    qa: int,
+    qb: int,
+    cx: float,
+    cy: float,
+    rad: float,
+    arc_c: tuple[float, float, float],
+    sig: float,
+    bark: float,
+    chi2: FloatArray,
+) -> bool:  # pragma: no cover - numba
+    """Whether an accepted candidate ``a:b`` (returns ``px, py, pr``, sensor frame; its fit
+    the circle ``cx, cy, rad``) keeps its returns against its arc ``qa:qb`` (absolute
+    indices; the arc's circle ``arc_c`` = (x, y, r), its range noise ``sig``) that
+    ``arc_replace`` would put in its place (issue 11, Dec 5: benchmark seed 6, scan 188).
+    True when both hold:
+
+    * a return across a cut end of the arc lies nearer than the arc circle's tangent range
+      ``sqrt(|c|^2 - r^2)`` by more than :data:`FRONT_SIGMAS` x ``sqrt(sig^2 + (bark r)^2)``
+      (``arc_tangent_sigmas``' scale): were the arc the whole trunk, the surface across the
+      cut would stand in front of its silhouette edge; the outline goes on towards the
+      sensor, as a larger convex surface's does;
+    * the candidate's circle explains each part within the range noise: the arc's returns
+      (sum of squared orthogonal residuals ``<= chi2_0.99(m) x sig^2``, m returns) and the
+      returns the arc leaves out (``<= chi2_0.99(n - m) x sig^2``): a fit pulled by a stub or
+      fillet misses the part it is pulled from or the part that pulls it, so when it misses
+      neither, its chi-square excess is the noise spread over both parts.
+
+    ``chi2``: the kernel's upper 1 % table by degrees of freedom. The numpy pipeline
+    (:func:`stemmap.scan._pieces.arc_candidates`) calls this same function."""
+    ax, ay, ar = arc_c
+    d2 = ax * ax + ay * ay - ar * ar
+    if not d2 > 0.0:
+        return False
+    tangent = math.sqrt(d2)
+    br = bark * ar
+    lim = FRONT_SIGMAS * math.sqrt(sig * sig + br * br)
+    front = False
+    if qa > a and tangent - pr[qa - 1] > lim:
+        front = True
+    if qb < b and tangent - pr[qb] > lim:
+        front = True
+    if not front:
+        return False
+    s_arc = 0.0
+    s_out = 0.0
+    for i in range(a, b):
+        e = math.hypot(px[i] - cx, py[i] - cy) - rad
+        if qa <= i < qb:
+            s_arc += e * e
+        else:
+            s_out += e * e
+    s2 = sig * sig
+    return s_arc <= chi2[qb - qa] * s2 and s_out <= chi2[(b - a) - (qb - qa)] * s2
 
 
 # after every kernel is defined, before the first call loads the cache (see the module notes)

@@ -26,11 +26,12 @@ from scipy.special import chdtri
 
 from stemmap.scan._arcs import arc_pieces
 from stemmap.scan._cut_ends import trim_cut_ends
+from stemmap.scan._fast_arcs import continues_outline
 from stemmap.scan._refit import Refitted, refit_pieces, split_refit
 from stemmap.scan._segment_fits import _Fitted, _output_columns
 from stemmap.scan._split_search import search_refit
 from stemmap.scan._step_split import step_refit
-from stemmap.scan.features import segment_features
+from stemmap.scan.features import footprint_correct, segment_features
 from stemmap.scan.plausibility import REASONS, segment_reasons
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
@@ -145,6 +146,51 @@ def add_pieces(
     return cols, np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
 
 
+def _outline_goes_on(
+    detector: ScanTrunkDetector,
+    every: Segments,
+    got: Refitted,
+    i: int,
+    cols: Columns,
+    order_key: np.ndarray,
+) -> bool:
+    """Whether the accepted candidate that arc ``i`` of ``got`` would replace keeps its
+    returns (:func:`stemmap.scan._fast_arcs.continues_outline`, which the compiled kernel
+    calls with the same numbers): its returns as it was fitted (footprint-corrected for a
+    first-echo scanner), its output row's circle, the arc's circle and range noise."""
+    from stemmap.scan.detect import _chi2_table  # (detect imports this module)
+
+    cfg = detector.config
+    p = int(got.parent[i])
+    seg = every.select(np.arange(len(every)) == p)
+    if cfg.beam_footprint_deg > 0:
+        seg = footprint_correct(seg, math.radians(cfg.beam_footprint_deg))
+    pts = seg.points
+    arc_beams = got.segs.points.beam[got.segs.start[i] : got.segs.stop[i]]
+    qa = int(np.flatnonzero(pts.beam == arc_beams[0])[0])
+    row = int(np.flatnonzero(order_key == 2 * p)[0])
+    cx, cy = (float(v) for v in cols["centers"][row])
+    ac = got.fitted.centers[i]
+    return bool(
+        continues_outline(
+            np.ascontiguousarray(pts.x, dtype=np.float64),
+            np.ascontiguousarray(pts.y, dtype=np.float64),
+            np.ascontiguousarray(pts.r, dtype=np.float64),
+            0,
+            len(pts.r),
+            qa,
+            qa + arc_beams.shape[0],
+            cx,
+            cy,
+            float(cols["radii"][row]),
+            (float(ac[0]), float(ac[1]), float(got.fitted.radii[i])),
+            float(got.fitted.sigma[i]),
+            float(cfg.bark_roughness),
+            _chi2_table(pts.n_beams),
+        )
+    )
+
+
 def arc_candidates(
     detector: ScanTrunkDetector,
     every: Segments,
@@ -194,6 +240,10 @@ def arc_candidates(
         limit = chdtri(np.maximum(n_par - 3, 1).astype(np.float64), 0.01)
         with np.errstate(invalid="ignore"):
             better &= n_par * par_rms * par_rms > limit * sig * sig
+        # ... and its outline does not go on past the arc's cut on the circle it was fitted
+        # (_fast_arcs.continues_outline; benchmark seed 6, scan 188)
+        for i in np.flatnonzero(ok & acc & better):
+            better[i] = not _outline_goes_on(detector, every, got, int(i), cols, order_key)
         ok &= ~acc | better
         gone = got.parent[ok & acc]
         stay = ~(np.isin(order_key // 2, gone) & (order_key % 2 == 0))

@@ -359,7 +359,12 @@ class DetectorConfig:
         lidR, accepted trunks with one branch return at an end were 5-10 cm too wide), and
         (since the review of the fifteenth round) the candidate's residuals fail the upper
         1 % chi-square test at the range noise, ``n x RMS^2 > chi2_0.99(n - 3) x sigma^2``:
-        a fit whose residuals are the noise keeps its returns. inf = off.
+        a fit whose residuals are the noise keeps its returns. Since Dec 5 (benchmark seed
+        6) a candidate also keeps them when its outline goes on past the arc's cut on its own
+        circle: a return across the cut lies more than 3 sigma (with the bark allowance) in
+        front of the arc circle's tangent range and the candidate's circle explains both the
+        arc's returns and the dropped ones within the upper 1 % chi-square points
+        (:func:`stemmap.scan._fast_arcs.continues_outline`). inf = off.
     arc_short_steps : bool
         With ``arc_refit``: an arc of ``min_points`` to ``min_points_partial - 1`` returns
         counts too when a range step larger than ``max_jump`` separates it from the rest of
