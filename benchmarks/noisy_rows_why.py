@@ -33,8 +33,7 @@ import numpy as np
 
 import _loo_grid
 from _real_scanning import FULL_SCANNERS, dataset_seed, matched, scene_scans, vantage_points
-from _real_scanning import greedy_match as _match
-from real_geometry_diagnose import miss_class
+from real_geometry_diagnose import miss_class, view_row, visible_views
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import load_slice, noisy_batch
 from stemmap.scan.detect import ScanTrunkDetector
@@ -49,34 +48,21 @@ def classify(sl: Any, vp: np.ndarray, hit: np.ndarray, obs: Any, rej: dict) -> l
     reasons = np.asarray(rej["reason"], dtype=object)
     diam = sl.diameters
     rows = []
-    for s in range(vp.shape[0]):
-        rel = sl.centers - vp[s]
-        rng_t = np.hypot(rel[:, 0], rel[:, 1])
-        m = obs.index == s
-        match = _match(obs.centers[m], rel, diam / 2.0 + 0.05)
-        for t in range(len(sl.refs)):
-            own = int((hit[s] == t).sum())
-            if not (own >= 4 and rng_t[t] <= 15.0 and 0.1 <= diam[t] <= 1.0):
-                continue
-            err = sd = math.nan
-            if match[t] >= 0:
-                c = "found"
-                err = float(2.0 * obs.radii[m][match[t]] - diam[t]) * 100.0
-                sd = 200.0 * math.sqrt(max(float(obs.covs[m][match[t]][2, 2]), 0.0))
-            else:
-                c = miss_class(rej, rej_scan, reasons, s, rel[t], float(diam[t]), own)[1]
-            rows.append(
-                {
-                    "scan": s,
-                    "trunk": t,
-                    "d_cm": round(100.0 * float(diam[t]), 1),
-                    "range": round(float(rng_t[t]), 2),
-                    "own": own,
-                    "cls": c,
-                    "dbh_sd": None if math.isnan(sd) else round(sd, 2),
-                    "err": None if math.isnan(err) else round(err, 2),
-                }
-            )
+    for s, t, rel, rng_t, m, match, own in visible_views(sl, vp, hit, obs, 4):
+        err = sd = math.nan
+        if match[t] >= 0:
+            c = "found"
+            err = float(2.0 * obs.radii[m][match[t]] - diam[t]) * 100.0
+            sd = 200.0 * math.sqrt(max(float(obs.covs[m][match[t]][2, 2]), 0.0))
+        else:
+            c = miss_class(rej, rej_scan, reasons, s, rel[t], float(diam[t]), own)[1]
+        rows.append(
+            {
+                **view_row(s, t, float(diam[t]), float(rng_t[t]), own, c),
+                "dbh_sd": None if math.isnan(sd) else round(sd, 2),
+                "err": None if math.isnan(err) else round(err, 2),
+            }
+        )
     return rows
 
 
@@ -107,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             own = scan_noise(batch.ranges, cfg.scan_noise_jump, cfg.scan_noise_surface, 0.0)
             for r in rows:
                 r["scan_own_noise"] = round(100.0 * float(own[r["scan"]]), 2)
-            e = np.array([r["err"] for r in rows if r["err"] is not None and r["range"] <= 10])
-            cls = Counter(r["cls"] for r in rows)
+            e = np.array([r["err"] for r in rows if r["err"] is not None and r["range_m"] <= 10])
+            cls = Counter(r["class"] for r in rows)
             key = f"{name} {res:g}deg {100 * noise:g}cm"
             out[key] = {
                 "classes": dict(cls),
