@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -116,6 +117,7 @@ def run_slice(
                                 "range_m": float(np.hypot(*(c - vp[s]))),
                                 "returns": int((hit[s] == t).sum()),
                                 "points": int(obs.n_points[m][k]),
+                                "r_std": float(np.sqrt(max(obs.covs[m][k][2, 2], 0.0))),
                                 "arc_deg": arcs[-1],
                                 "err": errs[-1],
                                 "dbh": float(d),
@@ -224,18 +226,24 @@ def abs_z_bias(rows: list[dict[str, Any]], rho: float, form: str, k: float) -> n
     return np.abs(e[ok]) / se
 
 
-def solve_bias(rows: list[dict[str, Any]], rho: float, form: str) -> float:
-    """The ``k`` making the median |z| of ``rows`` 0.6745 (0 if already at or below)."""
+def solve_scale(abs_z: Callable[[float], np.ndarray], upper: float = 100.0) -> float:
+    """The scale ``k`` >= 0 making the median of ``abs_z(k)`` (decreasing in ``k``) 0.6745
+    (0 if already at or below; bracket doubled from 0.01 up to ``upper``)."""
 
     def f(k: float) -> float:
-        return float(np.median(abs_z_bias(rows, rho, form, k))) - MEDIAN_ABS_Z
+        return float(np.median(abs_z(k))) - MEDIAN_ABS_Z
 
     if f(0.0) <= 0:
         return 0.0
     hi = 0.01
-    while f(hi) > 0 and hi < 100.0:
+    while f(hi) > 0 and hi < upper:
         hi *= 2.0
     return float(brentq(f, 0.0, hi))
+
+
+def solve_bias(rows: list[dict[str, Any]], rho: float, form: str) -> float:
+    """The ``k`` making the median |z| of ``rows`` 0.6745 (0 if already at or below)."""
+    return solve_scale(lambda k: abs_z_bias(rows, rho, form, k))
 
 
 def bias_loo(rows: list[dict[str, Any]], rhos: tuple[float, ...]) -> dict[str, Any]:
@@ -272,6 +280,9 @@ def main() -> None:
     ap.add_argument("--rows-out", help="write the per-pass rows to this JSON file")
     ap.add_argument("--rows-in", help="read the per-pass rows from this JSON file (no scans)")
     ap.add_argument(
+        "--scans-out", help="write the per-scan records (per scanner configuration) to this JSON"
+    )
+    ap.add_argument(
         "--preset", default="stemmap",
         help="detector preset (default stemmap, the default detector; 'none': a bare"
         " DetectorConfig(), Kasa without plausibility tests, what ran before Dec 5)",
@@ -299,6 +310,9 @@ def main() -> None:
     if a.rows_out:
         with open(a.rows_out, "w") as f:
             json.dump(rows, f)
+    if a.scans_out and scans:
+        with open(a.scans_out, "w") as f:
+            json.dump(scans, f)
     out: dict[str, Any] = {"preset": a.preset, "n_passes": len(rows), "rho_all": solve_rho(rows)}
     out["median_abs_z_at_rho_all"] = median_abs_z(rows, out["rho_all"])
     out["median_abs_z_at_0.03"] = median_abs_z(rows, 0.03)

@@ -220,6 +220,11 @@ class TreeFrames:
         :func:`stemmap.vision.depth.daim_trunks`). Only back ends asked to use it do
         (:class:`stemmap.slam.fastslam.FastSlam` ``detection_noise``, the Kalman refinement);
         the others use their constant R.
+    diameter_std : ndarray (K,) or None
+        Each detection's own diameter standard deviation, m (the fit's, ``2 sqrt(cov_rr)``;
+        NaN where unknown). :func:`stemmap.slam.uncertainty.annotate_uncertainty` weights a
+        tree's diameters by it (:func:`~stemmap.slam.uncertainty.fused_diameters`); None: every
+        detection counts the same.
     """
 
     times: FloatArray
@@ -228,6 +233,7 @@ class TreeFrames:
     bearings: FloatArray
     diameters: FloatArray
     noise: FloatArray | None = None
+    diameter_std: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = _ro(self.times, "TreeFrames.times")
@@ -267,6 +273,15 @@ class TreeFrames:
                 )
             nz.setflags(write=False)
             object.__setattr__(self, "noise", nz)
+        if self.diameter_std is not None:
+            ds = np.array(self.diameter_std, dtype=np.float64, copy=True).reshape(-1)
+            if ds.shape != (k,) or np.any(ds[np.isfinite(ds)] < 0):
+                raise InputError(
+                    f"TreeFrames.diameter_std must be ({k},) sigmas >= 0 or NaN, got shape "
+                    f"{ds.shape}."
+                )
+            ds.setflags(write=False)
+            object.__setattr__(self, "diameter_std", ds)
         object.__setattr__(self, "times", t)
         object.__setattr__(self, "ptr", ptr)
         object.__setattr__(self, "ranges", r)
@@ -301,6 +316,7 @@ class TreeFrames:
             self.bearings[s],
             self.diameters[s],
             None if self.noise is None else self.noise[s],
+            None if self.diameter_std is None else self.diameter_std[s],
         )
 
     def slice(self, t0: float, t1: float) -> TreeFrames:
@@ -316,7 +332,9 @@ class TreeFrames:
         Observation centres must be in the sensor frame; range and bearing are computed from
         them, the diameter is ``2 * radius``. Where ``obs.covs`` has a finite (x, y) block, its
         polar form ``J C J^T`` (``J = d(range, bearing) / d(x, y)``) gives ``noise`` (the
-        square roots of its diagonal); ``noise`` is None when no detection has one.
+        square roots of its diagonal); ``noise`` is None when no detection has one. A finite
+        radius variance ``obs.covs[:, 2, 2]`` gives ``diameter_std`` (``2 sqrt(cov_rr)``; None
+        when no detection has one).
         """
         t = _ro(times, "times")
         idx = np.asarray(obs.index, dtype=np.int64)
@@ -339,6 +357,10 @@ class TreeFrames:
             J[:, 1, 0], J[:, 1, 1] = -c[:, 1] / rs**2, c[:, 0] / rs**2
             polar = J @ cxy @ np.swapaxes(J, 1, 2)
             noise = np.sqrt(np.clip(np.diagonal(polar, axis1=1, axis2=2), 0.0, None))
+        dstd = None
+        crr = np.asarray(obs.covs, dtype=np.float64)[order][:, 2, 2] if rng.size else np.zeros(0)
+        if np.any(np.isfinite(crr)):
+            dstd = 2.0 * np.sqrt(np.clip(crr, 0.0, None))
         return cls(
             t,
             ptr,
@@ -346,6 +368,7 @@ class TreeFrames:
             np.arctan2(c[:, 1], c[:, 0]),
             2.0 * np.asarray(obs.radii)[order],
             noise,
+            dstd,
         )
 
     @classmethod
