@@ -76,6 +76,9 @@ def _setting(
         "stub_runs_snoop": False,
         "stub_runs_worst": False,
         "cut_ends": False,
+        # Dec 5 ("Grid 85 is the `stemmap` preset"): the inner-run trim, the preset's since
+        # grid 85; a grid point without it means off, as before (grid 85 names it)
+        "stub_runs_inner": False,
         **extra,
     }
 

@@ -31,6 +31,7 @@ GRID_67 = {
     "stub_runs": False,
     "stub_runs_snoop": False,
     "stub_runs_worst": False,
+    "stub_runs_inner": False,
     "cut_ends": False,
     "batch_noise_scale": "mad",
 }

@@ -1,7 +1,8 @@
-"""The ``stemmap`` preset is LOO grid 80 (issue 11, Dec 5; docs/algorithms/scan-detection.md,
-"Grid 80 is the `stemmap` preset").
+"""The ``stemmap`` preset is LOO grid 85 (issue 11, Dec 5; docs/algorithms/scan-detection.md,
+"Grid 80 is the `stemmap` preset" and "Grid 85 is the `stemmap` preset").
 
-Grid 80 = grid 67 (the preset before) + the stub test by runs of end returns read as data
+Grid 85 = grid 80 + the inner-run trim (``stub_runs_inner``); grid 80 = grid 67 (the preset
+before) + the stub test by runs of end returns read as data
 snooping on the side of an inner worst return (``stub_sigmas`` 2, ``stub_runs``,
 ``stub_runs_snoop``, ``stub_runs_worst``), the cut-end trim (``cut_ends``) and the batch's
 range noise by the biweight (``batch_noise_scale``). The trims act on first-echo fits only
@@ -18,24 +19,24 @@ from tests.scan.test_stub_runs import GRID_67, R, _errors, _scan
 from _loo_grid import LOO_GRID  # benchmarks/ is on sys.path (tests/conftest.py)
 from stemmap.scan.detect import PRESETS, DetectorConfig, ScanTrunkDetector
 
-#: The options grid 80 adds to grid 67 (the fields of GRID_67), at their grid-80 values.
-GRID_80_ADDS = {field: LOO_GRID[80][field] for field in GRID_67}
+#: The options grid 85 adds to grid 67 (the fields of GRID_67), at their grid-85 values.
+GRID_85_ADDS = {field: LOO_GRID[85][field] for field in GRID_67}
 
 
-def test_the_stemmap_preset_is_loo_grid_80():
+def test_the_stemmap_preset_is_loo_grid_85():
     preset = DetectorConfig.preset("stemmap")
-    for field, value in LOO_GRID[80].items():
+    for field, value in LOO_GRID[85].items():
         assert getattr(preset, field) == value, field
     # the one grid point that equals the preset (what kasa_count.py and the LOO call the
-    # default), and grid 67 is the preset before with exactly the six options changed
+    # default), and grid 67 is the preset before with exactly the seven options changed
     same = [g for g, s in enumerate(LOO_GRID) if DetectorConfig.preset("stemmap", **s) == preset]
-    assert same == [80]
+    assert same == [85]
     assert DetectorConfig.preset("stemmap", **LOO_GRID[67]) == DetectorConfig.preset(
         "stemmap", **GRID_67
     )
-    assert DetectorConfig.preset("stemmap", **{**LOO_GRID[67], **GRID_80_ADDS}) == preset
-    # the six fields the flip changed: on in grid 80, off in grid 67
-    assert all(GRID_80_ADDS[f] != GRID_67[f] for f in GRID_67)
+    assert DetectorConfig.preset("stemmap", **{**LOO_GRID[67], **GRID_85_ADDS}) == preset
+    # the seven fields the flips changed: on in grid 85, off in grid 67
+    assert all(GRID_85_ADDS[f] != GRID_67[f] for f in GRID_67)
 
 
 def test_the_paper_presets_keep_their_published_fits():
@@ -44,7 +45,7 @@ def test_the_paper_presets_keep_their_published_fits():
         if name == "stemmap":
             continue
         cfg = DetectorConfig.preset(name)
-        for field in GRID_80_ADDS:
+        for field in GRID_85_ADDS:
             assert getattr(cfg, field) == getattr(plain, field), (name, field)
         assert math.isinf(cfg.stub_sigmas) and cfg.batch_noise_scale == "mad"
 
