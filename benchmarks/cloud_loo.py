@@ -127,6 +127,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"guided_taper": False}),
         ("on", {"guided_taper": True}),
     ),
+    "ladder_found_rms": (
+        ("off", {"ladder_found_rms": False}),
+        ("on", {"ladder_found_rms": True}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")
