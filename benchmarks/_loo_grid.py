@@ -69,6 +69,13 @@ def _setting(
         # Dec 5 ("The batch's noise from few triples"): the batch estimate's statistic; a grid
         # point without it means the MAD, as before (grids 74-76 name the biweight)
         "batch_noise_scale": "mad",
+        # Dec 5 ("Grid 80 is the `stemmap` preset"): the stub test by runs, its data
+        # snooping and worst-return side, and the cut-end trim, the preset's since grid 80; a
+        # grid point without them means off, as before (grids 63-80 name them)
+        "stub_runs": False,
+        "stub_runs_snoop": False,
+        "stub_runs_worst": False,
+        "cut_ends": False,
         **extra,
     }
 
@@ -76,7 +83,7 @@ def _setting(
 #: The ``stemmap`` preset's options since the eleventh round (grid 21) as grid overrides (the
 #: preset since the fifteenth round: these and the arcs of grid 35; since the sixteenth: grid
 #: 36, which adds arc_short_steps; since Dec 5: grid 59, which adds the step split,
-#: :data:`_STEP_BATCH_59`, then grid 67, which adds ``fit_noise_floor`` 3 mm).
+#: :data:`_STEP_BATCH_59`, then grid 67, which adds ``fit_noise_floor`` 3 mm, then grid 80).
 _DEFAULT_11: dict[str, Any] = {
     "straight_depth_sigmas": 3.0,
     "sigma_from_scan": True,
@@ -122,7 +129,9 @@ _STEP_BATCH_59: dict[str, Any] = {
     "step_noise_pool": "batch",
 }
 #: Grid 60 (the LOO's choice since Dec 5) on top of _DEFAULT_11 and _ARCS_35. Grid 67 (= 59 +
-#: ``fit_noise_floor`` 3 mm) is the ``stemmap`` preset since Dec 5, after grid 59.
+#: ``fit_noise_floor`` 3 mm) was the ``stemmap`` preset on Dec 5 after grid 59; grid 80 (67 +
+#: the run test by data snooping on its worst return's side, ``cut_ends`` and the biweight
+#: batch noise) is since the afternoon of Dec 5.
 _GRID_60: dict[str, Any] = {**_STEP_BATCH_59, "edge_hit_min": 0.0, "edge_hit_max": 0.0}
 #: Dec 5, "lidR view by view": the fit's measured noise and the stub test by runs.
 _RUNS_63: dict[str, Any] = {"fit_noise_floor": 0.003, "stub_sigmas": 2.0, "stub_runs": True}
@@ -358,7 +367,7 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # Dec 5 ("The fit's measured noise, the default"), grid 65 without the averaging "edge
     # any": grid 59 + fit_noise_floor 3 mm (first-echo fits only, numpy path: the
     # nearest-return rows are grid 65's, the averaging rows and the simulator grid 59's); the
-    # stemmap preset since Dec 5
+    # stemmap preset on Dec 5 until grid 80
     _setting(**_DEFAULT_11, **_ARCS_35, **_STEP_BATCH_59, fit_noise_floor=0.003),
     # Dec 5 ("Runs by data snooping"), grid 63 with the run test as data snooping
     # (stub_runs_snoop: the measured noise, uncapped; only candidates whose own circle fails
@@ -441,7 +450,8 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         cut_ends=True,
     ),
     # Dec 5 ("The run test on clean needles"), grid 80: grid 79 with the run search held to
-    # the side of an inner worst return that alone explains the misfit (stub_runs_worst)
+    # the side of an inner worst return that alone explains the misfit (stub_runs_worst); the
+    # stemmap preset since Dec 5 ("Grid 80 is the `stemmap` preset")
     _setting(
         **_DEFAULT_11,
         **_ARCS_35,
@@ -488,6 +498,23 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         cut_ends=True,
         stub_runs_worst=True,
         stub_runs_inner=True,
+    ),
+    # Dec 5 ("Noisy first-echo rows"): grid 80 and 81 (80 + scan_noise_batch 2.5) with the
+    # precision gate, a first-echo candidate whose fit's own DBH std exceeds the 3 cm target
+    # is rejected (max_dbh_sd; 86, 87; measured as 85 / 86 before main's grid 85)
+    *(
+        _setting(
+            **_DEFAULT_11,
+            **_ARCS_35,
+            **_STEP_BATCH_59,
+            stub_runs_snoop=True,
+            batch_noise_scale="biweight",
+            cut_ends=True,
+            stub_runs_worst=True,
+            max_dbh_sd=0.03,
+            **{**_RUNS_63, **ingredient},
+        )
+        for ingredient in ({}, {"scan_noise_batch": 2.5})
     ),
 )
 

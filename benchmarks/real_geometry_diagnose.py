@@ -59,6 +59,7 @@ import json
 import math
 import sys
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -92,6 +93,57 @@ def _over(rej: dict[str, Any], rows: np.ndarray, rel: np.ndarray, diam: float) -
     ok = dang <= 0.5 * w / np.maximum(rr, 1e-9) + half_t
     ok &= np.abs(rr - r_t) <= diam + w
     return rows[ok]
+
+
+def miss_class(
+    rej: dict[str, Any],
+    rej_scan: np.ndarray,
+    reasons: np.ndarray,
+    s: int,
+    rel: np.ndarray,
+    diam: float,
+    own: int,
+) -> tuple[np.ndarray, str]:
+    """The rejected candidates of scan ``s`` over a missed trunk (at ``rel``, ``own`` own
+    returns) and the miss's class: ``no_candidate``, ``split:<reasons>``, or the reason of
+    the one candidate (``merge:`` when it holds more than one return beyond the trunk's)."""
+    near = _over(rej, np.flatnonzero(rej_scan == s), rel, diam)
+    if near.size == 0:
+        return near, "no_candidate"
+    if near.size > 1:
+        return near, "split:" + "/".join(sorted(set(reasons[near].tolist())))
+    j = int(near[0])
+    return near, ("merge:" if int(rej["n_points"][j]) > own + 1 else "") + str(reasons[j])
+
+
+def visible_views(
+    sl: RealSlice, vp: np.ndarray, hit: np.ndarray, obs: Any, min_returns: int
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]]:
+    """Every visible trunk view (>= ``min_returns`` own returns, <= 15 m, DBH 10-100 cm) of
+    the scans from ``vp``: scan, trunk, the trunks relative to the scanner and their ranges,
+    the scan's detections (mask into ``obs``) and their greedy match, the own returns."""
+    diam = sl.diameters
+    for s in range(vp.shape[0]):
+        rel = sl.centers - vp[s]
+        rng_t = np.hypot(rel[:, 0], rel[:, 1])
+        m = obs.index == s
+        match = _match(obs.centers[m], rel, diam / 2.0 + 0.05)
+        for t in range(len(sl.refs)):
+            own = int((hit[s] == t).sum())
+            if own >= min_returns and rng_t[t] <= 15.0 and 0.1 <= diam[t] <= 1.0:
+                yield s, t, rel, rng_t, m, match, own
+
+
+def view_row(s: int, t: int, diam: float, rng_t: float, own: int, c: str) -> dict[str, Any]:
+    """The identity of one trunk view (scan ``s``, trunk ``t``) in a per-view listing."""
+    return {
+        "scan": s,
+        "trunk": t,
+        "diameter_cm": round(100.0 * diam, 1),
+        "range_m": round(rng_t, 2),
+        "own_returns": own,
+        "class": c,
+    }
 
 
 def own_beams_only(batch: ScanBatch, hit: np.ndarray, s: int, t: int) -> ScanBatch:
@@ -141,72 +193,52 @@ def diagnose(
     alone: dict[str, list[tuple[float, float]]] = {k: [] for k in dets}
     misses: list[dict[str, Any]] = []
     diam = sl.diameters
-    for s in range(vp.shape[0]):
-        rel = sl.centers - vp[s]
-        rng_t = np.hypot(rel[:, 0], rel[:, 1])
-        m = obs.index == s
-        match = _match(obs.centers[m], rel, diam / 2.0 + 0.05)
-        for t in range(len(sl.refs)):
-            own = int((hit[s] == t).sum())
-            if not (own >= min_returns and rng_t[t] <= 15.0 and 0.1 <= diam[t] <= 1.0):
-                continue
-            solo = own_beams_only(batch, hit, s, t)  # perfect segmentation
-            solo_err = math.nan
-            for name, d in dets.items():
-                o = d.detect_batch(solo)
-                k = _match(o.centers, rel[t : t + 1], diam[t : t + 1] / 2.0 + 0.05)[0]
-                e = (2.0 * o.radii[k] - diam[t]) * 100.0 if k >= 0 else math.nan
-                alone[name].append((float(rng_t[t]), e))
-                if name == "stemmap":
-                    solo_err = e
-            if match[t] >= 0:
-                n = int(obs.n_points[m][match[t]])
-                classes["found_extra" if n > own + 1 else "found"] += 1
-                e_det = (2.0 * obs.radii[m][match[t]] - diam[t]) * 100.0
-                if rng_t[t] <= 10.0:
-                    err.append(e_det)
-                causes.append(
-                    (
-                        _found_cause(
-                            e_det,
-                            solo_err,
-                            n > own,
-                            _outline_rms(sl, t, vp[s]),
-                        ),
-                        float(rng_t[t]),
+    for s, t, rel, rng_t, m, match, own in visible_views(sl, vp, hit, obs, min_returns):
+        solo = own_beams_only(batch, hit, s, t)  # perfect segmentation
+        solo_err = math.nan
+        for name, d in dets.items():
+            o = d.detect_batch(solo)
+            k = _match(o.centers, rel[t : t + 1], diam[t : t + 1] / 2.0 + 0.05)[0]
+            e = (2.0 * o.radii[k] - diam[t]) * 100.0 if k >= 0 else math.nan
+            alone[name].append((float(rng_t[t]), e))
+            if name == "stemmap":
+                solo_err = e
+        if match[t] >= 0:
+            n = int(obs.n_points[m][match[t]])
+            classes["found_extra" if n > own + 1 else "found"] += 1
+            e_det = (2.0 * obs.radii[m][match[t]] - diam[t]) * 100.0
+            if rng_t[t] <= 10.0:
+                err.append(e_det)
+            causes.append(
+                (
+                    _found_cause(
                         e_det,
-                    )
+                        solo_err,
+                        n > own,
+                        _outline_rms(sl, t, vp[s]),
+                    ),
+                    float(rng_t[t]),
+                    e_det,
                 )
-                continue
-            near = _over(rej, np.flatnonzero(rej_scan == s), rel[t], float(diam[t]))
-            if near.size == 0:
-                c = "no_candidate"
-            elif near.size > 1:
-                c = "split:" + "/".join(sorted(set(reasons[near].tolist())))
-            else:
-                j = int(near[0])
-                c = ("merge:" if int(rej["n_points"][j]) > own + 1 else "") + str(reasons[j])
-            classes[c] += 1
-            cause = c
-            if own < cfg.min_points_partial and (
-                c == "no_candidate" or c in ("min_points", "min_points_partial")
-            ):
-                cause = "beams"
-            elif ":" not in c and c != "no_candidate":
-                cause = "reject:" + c
-            causes.append((cause, float(rng_t[t]), math.nan))
-            misses.append(
-                {
-                    "scan": s,
-                    "trunk": t,
-                    "diameter_cm": round(100.0 * float(diam[t]), 1),
-                    "range_m": round(float(rng_t[t]), 2),
-                    "own_returns": own,
-                    "class": c,
-                    "candidate_returns": [int(rej["n_points"][j]) for j in near],
-                    "candidate_width_cm": [round(100.0 * float(rej["width"][j]), 1) for j in near],
-                }
             )
+            continue
+        near, c = miss_class(rej, rej_scan, reasons, s, rel[t], float(diam[t]), own)
+        classes[c] += 1
+        cause = c
+        if own < cfg.min_points_partial and (
+            c == "no_candidate" or c in ("min_points", "min_points_partial")
+        ):
+            cause = "beams"
+        elif ":" not in c and c != "no_candidate":
+            cause = "reject:" + c
+        causes.append((cause, float(rng_t[t]), math.nan))
+        misses.append(
+            {
+                **view_row(s, t, float(diam[t]), float(rng_t[t]), own, c),
+                "candidate_returns": [int(rej["n_points"][j]) for j in near],
+                "candidate_width_cm": [round(100.0 * float(rej["width"][j]), 1) for j in near],
+            }
+        )
 
     def summary(rows: list[tuple[float, float]]) -> dict[str, Any]:
         a = np.asarray(rows, dtype=np.float64).reshape(-1, 2)

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP
-from tests.scan.test_stub_runs import _scan
+from tests.scan.test_stub_runs import GRID_67, _scan
 
 from stemmap.scan._cut_ends import cut_flags
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -80,8 +80,8 @@ def _lidr_views(datasets_dir, over):
 
 
 def test_lidr_junction_views_lose_their_cut_end_return(datasets_dir):
-    before = _lidr_views(datasets_dir, {})
-    after = _lidr_views(datasets_dir, {"cut_ends": True})
+    before = _lidr_views(datasets_dir, GRID_67)
+    after = _lidr_views(datasets_dir, {**GRID_67, "cut_ends": True})
     assert before.keys() == after.keys()  # nothing lost (recall 1.00 both)
     # only trims: a piece keeps its returns or loses one at each cut end
     drops = [before[s][1] - after[s][1] for s in before]
@@ -99,9 +99,9 @@ def test_lidr_junction_views_lose_their_cut_end_return(datasets_dir):
 
 @pytest.mark.parametrize("d", [1.5, 4.0, 7.0])
 def test_a_clean_stem_has_no_cut_end(d):
-    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_footprint_deg=STEP))
+    base = ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, **GRID_67))
     cut = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, cut_ends=True)
+        DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, **{**GRID_67, "cut_ends": True})
     )
     for k in range(6):
         batch, _, _ = _scan(d, 0.3 + k * math.radians(STEP) * 5.3 / 6, 0.0)
@@ -117,7 +117,12 @@ def test_cut_ends_is_first_echo_only_and_keeps_the_compiled_averaging_path():
     assert avg._compiled(None, None)
     assert ScanTrunkDetector(DetectorConfig.preset("stemmap"))._compiled(None, None)
     # thin beams are first-echo fits: the numpy path, where the option acts
-    thin = DetectorConfig.preset("stemmap", beam_divergence_deg=0.0, cut_ends=True)
+    thin = DetectorConfig.preset(
+        "stemmap", beam_divergence_deg=0.0, **{**GRID_67, "cut_ends": True}
+    )
     assert not ScanTrunkDetector(thin)._compiled(None, None)
-    plain = DetectorConfig.preset("stemmap", beam_divergence_deg=0.0)
+    plain = DetectorConfig.preset("stemmap", beam_divergence_deg=0.0, **GRID_67)
     assert ScanTrunkDetector(plain)._compiled(None, None)
+    # the preset since grid 80 trims cut ends (and stub runs) of thin-beam fits: numpy path
+    default_thin = DetectorConfig.preset("stemmap", beam_divergence_deg=0.0)
+    assert not ScanTrunkDetector(default_thin)._compiled(None, None)

@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP
-from tests.scan.test_stub_runs import R, _scan
+from tests.scan.test_stub_runs import GRID_67, R, _scan
 
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.sim.forest import add_clutter, random_stand
@@ -26,7 +26,9 @@ from stemmap.sim.scanner import scanner_preset, simulate_scans
 def _clean_errors(d: float, floor: float) -> np.ndarray:
     """DBH error (cm) of the clean disc seen from ``d`` m over 12 bearings within 5 beams."""
     det = ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, fit_noise_floor=floor)
+        DetectorConfig.preset(
+            "stemmap", beam_footprint_deg=STEP, **{**GRID_67, "fit_noise_floor": floor}
+        )
     )
     err = []
     for k in range(12):
@@ -57,7 +59,9 @@ def test_a_clean_first_echo_stem_is_read_closer_with_the_default(d):
     assert np.abs(on).max() < np.abs(off).max()
 
 
-def test_averaging_scans_are_unchanged_bit_for_bit():
+def sick_drive():
+    """A 40-scan simulated SICK LMS drive (the averaging beam) through a 45-tree stand with
+    bushes and rocks."""
     rng = np.random.default_rng(11)
     stand = add_clutter(
         random_stand(45, (30.0, 30.0), dbh_mean=0.3, dbh_std=0.1, dbh_min=0.08, rng=rng),
@@ -68,6 +72,11 @@ def test_averaging_scans_are_unchanged_bit_for_bit():
     t = np.linspace(0.0, 1.0, 40)
     poses = np.column_stack((3.0 + 24.0 * t, 4.0 + 20.0 * t, 0.7 + 3.0 * t))
     batch, _, _ = simulate_scans(stand, poses, scanner_preset("sick_lms", range_max=30.0), rng=3)
+    return batch
+
+
+def test_averaging_scans_are_unchanged_bit_for_bit():
+    batch = sick_drive()
     default = ScanTrunkDetector("stemmap").detect_batch(batch)
     off = ScanTrunkDetector(DetectorConfig.preset("stemmap", fit_noise_floor=0.0)).detect_batch(
         batch

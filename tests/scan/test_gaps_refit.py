@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_detect_fast import _both
+from tests.scan.test_stub_runs import GRID_67
 
 from stemmap.errors import ConfigError
 from stemmap.scan._refit import corner_cut_pieces, validate_pieces
@@ -188,7 +189,9 @@ def test_validated_corner_split_finds_a_trunk_merged_with_a_branch():
     # a 30 cm trunk at 3 m and a branch leaving its side towards the sensor: one segment,
     # concave at the junction, rejected as not convex
     batch = _scan_with_branch((3.0, 0.0, 0.15), (3.0, 0.149), (2.7, 0.4))
-    cfg = {"beam_divergence_deg": 0.0}
+    # thin beams, on the preset before grid 80 (grid 67): grid 80's first-echo trims
+    # (stub_runs, cut_ends) act on thin-beam fits and run on the numpy path
+    cfg = {"beam_divergence_deg": 0.0, **GRID_67}
     base = ScanTrunkDetector(
         DetectorConfig.preset("stemmap", **cfg, refit_pieces=False, arc_refit=False)
     )

@@ -364,7 +364,14 @@ def test_step_noise_pool_batch_reads_the_step_against_every_scans_noise():
     assert pts.noise[0] == 0.0 and np.all(pts.noise[1:] > 0.0)
     np.testing.assert_array_equal(pts.step_noise[1:], pts.noise[1:])
     # the stem's scan reads the batch's estimate (scan_noise's batch path, no floor)
-    want = scan_noise(batch.ranges, cfg.scan_noise_jump, cfg.scan_noise_surface, batch_min=0.0)
+    # (in the preset's statistic: the biweight since grid 80)
+    want = scan_noise(
+        batch.ranges,
+        cfg.scan_noise_jump,
+        cfg.scan_noise_surface,
+        batch_min=0.0,
+        batch_scale=cfg.batch_noise_scale,
+    )
     assert pts.step_noise[0] == want[0]
     assert 0.017 < pts.step_noise[0] < 0.045
     assert int(np.sum(det.detect_batch(batch).index == 0)) == 0

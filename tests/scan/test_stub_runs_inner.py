@@ -18,7 +18,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP
-from tests.scan.test_stub_runs import _scan
+from tests.scan.test_stub_runs import GRID_67, _scan
 from tests.scan.test_stub_runs_snoop import SNOOP
 from tests.scan.test_stub_runs_worst import WORST, _tuft
 
@@ -29,7 +29,8 @@ from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.segment import ScanPoints, Segments
 
 INNER = {**WORST, "stub_runs_inner": True}
-PLAIN = {"fit_noise_floor": 0.003}
+#: without the run test: the preset before grid 80 (grid 67)
+PLAIN = {**GRID_67, "fit_noise_floor": 0.003}
 
 
 def _rms(e: np.ndarray) -> float:
@@ -109,5 +110,5 @@ def test_inner_runs_takes_the_smallest_inner_run_in_front(push, found):
 
 def test_inner_needs_the_run_test():
     with pytest.raises(ConfigError):
-        DetectorConfig.preset("stemmap", stub_runs_inner=True)
+        DetectorConfig.preset("stemmap", **{**GRID_67, "stub_runs_inner": True})
     DetectorConfig.preset("stemmap", **{**SNOOP, "stub_runs_inner": True})

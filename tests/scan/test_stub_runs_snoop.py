@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP, first_echo_scan
-from tests.scan.test_stub_runs import RUNS, _errors, _scan
+from tests.scan.test_stub_runs import GRID_67, RUNS, _errors, _scan
 
 from stemmap.errors import ConfigError
 from stemmap.eval.real_slices import noisy_batch
@@ -26,6 +26,8 @@ from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 R = 0.15  # stem radius, m
 V = 60  # scans
 SNOOP = {**RUNS, "stub_runs_snoop": True}
+#: the fit without the run test (the preset before grid 80: grid 67)
+PLAIN = tuple(sorted(GRID_67.items()))
 
 
 @functools.cache
@@ -56,7 +58,7 @@ def _noisy(d: float, noise: float, extra: tuple) -> tuple[np.ndarray, np.ndarray
 def _trimmed(d: float, noise: float, extra: dict) -> tuple[int, np.ndarray]:
     """Scans whose detection holds fewer returns than the fit without the run test, and the
     DBH errors (cm)."""
-    _, base = _noisy(d, noise, (("fit_noise_floor", 0.003),))
+    _, base = _noisy(d, noise, PLAIN)
     err, n = _noisy(d, noise, tuple(sorted(extra.items())))
     return int(np.count_nonzero(n < base)), err
 
@@ -65,7 +67,7 @@ def _trimmed(d: float, noise: float, extra: dict) -> tuple[int, np.ndarray]:
 def test_noisy_end_returns_are_not_taken_for_runs(d, noise):
     runs, err_runs = _trimmed(d, noise, RUNS)
     snoop, err_snoop = _trimmed(d, noise, SNOOP)
-    plain, _ = _noisy(d, noise, (("fit_noise_floor", 0.003),))
+    plain, _ = _noisy(d, noise, PLAIN)
     # the global test at its 1 % level against the measured noise: at most ~1 % of clean
     # candidates are searched at all (allowance: 2 of 60 scans); stub_runs alone trimmed the
     # stem's own end returns in 7-8 of 60 scans here (measured)
@@ -115,5 +117,5 @@ def test_a_return_nearer_than_the_tangent_range_may_hide_the_silhouette():
 
 def test_snoop_needs_the_run_test():
     with pytest.raises(ConfigError):
-        DetectorConfig.preset("stemmap", stub_runs_snoop=True)
+        DetectorConfig.preset("stemmap", **{**GRID_67, "stub_runs_snoop": True})
     DetectorConfig.preset("stemmap", **SNOOP)

@@ -19,8 +19,8 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP, first_echo_scan
-from tests.scan.test_stub_runs import _scan
-from tests.scan.test_stub_runs_snoop import SNOOP
+from tests.scan.test_stub_runs import GRID_67, _scan
+from tests.scan.test_stub_runs_snoop import PLAIN, SNOOP
 
 from stemmap.errors import ConfigError
 from stemmap.scan._segment_fits import _Fitted
@@ -70,7 +70,7 @@ def test_a_needle_inside_the_arc_does_not_cost_the_stem_its_ends():
     # a 1.5 cm tuft 1.5 cm in front of the outline 35 deg off the line of sight: one return
     # (the beams are 3.75 cm apart on the stem), as TreeLS pine's scan 17
     off, gap, width = -35.0, 0.015, 0.015
-    plain_err, plain_n = _tuft(off, gap, width, (("fit_noise_floor", 0.003),))
+    plain_err, plain_n = _tuft(off, gap, width, PLAIN)
     snoop_err, snoop_n = _tuft(off, gap, width, tuple(sorted(SNOOP.items())))
     worst_err, worst_n = _tuft(off, gap, width, tuple(sorted(WORST.items())))
     rms = lambda e: float(np.sqrt(np.mean(e * e)))  # noqa: E731
@@ -137,5 +137,5 @@ def test_worst_return_is_the_largest_standardised_residual(where):
 
 def test_worst_needs_the_run_test():
     with pytest.raises(ConfigError):
-        DetectorConfig.preset("stemmap", stub_runs_worst=True)
+        DetectorConfig.preset("stemmap", **{**GRID_67, "stub_runs_worst": True})
     DetectorConfig.preset("stemmap", **WORST)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_arcs import TRUNK, _scan
+from tests.scan.test_stub_runs import GRID_67
 
 from stemmap.errors import ConfigError
 from stemmap.scan._stubs import first_echo
@@ -25,7 +26,8 @@ def _stub(angle_deg, radius):
 
 
 def _detect(circles, noise=0.0, seed=0, **overrides):
-    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **{**THIN, **overrides}))
+    # on the preset before grid 80 (grid 67), where the stub test was off
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **{**GRID_67, **THIN, **overrides}))
     return det.detect_batch(_scan(circles, noise, seed))
 
 
@@ -83,11 +85,13 @@ def test_the_averaging_edge_model_keeps_its_mixed_pixels():
 
 
 def test_the_option_runs_on_the_numpy_path_and_is_validated():
-    on = DetectorConfig.preset("stemmap", **THIN, **ON)
+    on = DetectorConfig.preset("stemmap", **{**GRID_67, **THIN, **ON})
     assert first_echo(on)
     assert first_echo(DetectorConfig.preset("stemmap", beam_footprint_deg=0.5))
     assert not ScanTrunkDetector(on)._compiled(None, None)
-    assert ScanTrunkDetector(DetectorConfig.preset("stemmap", **THIN))._compiled(None, None)
+    assert ScanTrunkDetector(DetectorConfig.preset("stemmap", **GRID_67, **THIN))._compiled(
+        None, None
+    )
     for bad in (-1.0, math.nan):
         with pytest.raises(ConfigError, match="stub_sigmas"):
             DetectorConfig.preset("stemmap", stub_sigmas=bad)

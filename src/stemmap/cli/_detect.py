@@ -117,8 +117,8 @@ def detect(
             "split's threshold, --noise-batch): mad (1.4826 x the median absolute deviation) "
             "or biweight (the biweight midvariance: as robust, a quarter less sampling spread "
             "on the few tens of triples of a sparse batch; batch_noise_scale). Default: the "
-            "preset's (docs/algorithms/scan-detection.md, 'The batch's noise from few "
-            "triples').",
+            "preset's (biweight in stemmap since Dec 5, grid 80; mad in the paper presets; "
+            "docs/algorithms/scan-detection.md, 'The batch's noise from few triples').",
         ),
     ] = None,
     step_split: Annotated[
@@ -157,7 +157,11 @@ def detect(
             "returns are moved to the footprint side nearest the trunk (corrects wide trunks) "
             "[default: 0, none: an averaging scanner such as a SICK LMS2xx or the simulator]. "
             "With it the stemmap preset's fits also weight by the measured noise "
-            "(--fit-noise-floor).",
+            "(--fit-noise-floor), a run of end returns off the circle (a branch leaving the "
+            "flank) goes when the fit fails the chi-square test against that noise, and a "
+            "re-fitted piece drops the return at its cut end (since Dec 5, grid 80: lidR "
+            "0.5 deg DBH RMSE 4.20 -> 1.75 cm; docs/algorithms/scan-detection.md, 'Grid 80 "
+            "is the stemmap preset').",
             callback=bounded("--footprint", ge=0, lt=180),
         ),
     ] = None,

@@ -196,6 +196,7 @@ class _Fitted(NamedTuple):
     test_rms: FloatArray  # what the RMS test reads (the RMS or the robust residual scale)
     smooth: FloatArray | None = None  # residuals' high-frequency scale (lobe_roughness only)
     own_noise: FloatArray | None = None  # the relaxed RMS test's noise (rms_noise_from_fit)
+    dbh_sd: FloatArray | None = None  # the fit's diameter std, 2 sqrt(C_rr) (max_dbh_sd only)
 
 
 def fit_sigma(

@@ -448,6 +448,18 @@ class DetectorConfig:
         stem's own returns at the other end went as a run (TreeLS pine 0.25 deg nearest, no
         noise: 1.49 -> 3.04 cm with grid 69 / 79, 1.93 with the option; lidR's gains kept).
         False = both ends of every candidate that fails the global test. Numpy path.
+    max_dbh_sd : float, metres, > 0
+        First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours"), numpy path: a
+        candidate whose circle fit's own diameter standard deviation ``2 sqrt(C_rr)`` (the
+        inverse Gauss-Newton Hessian of the fit at the tests' noise, with the silhouette
+        tangents; :mod:`stemmap.scan._circle_ours`) exceeds this is rejected with the reason
+        ``"precision"`` (ours, issue 11, Dec 5, "Noisy first-echo rows"). At centimetres of
+        range noise the ranges of a few returns on a 10-30 cm stem carry little diameter
+        information (Cramer-Rao bound of a range-only fit at 3 cm noise: 4.5-26 cm of DBH
+        with 3-9 returns); once the RMS test reads the true noise (``scan_noise_batch``) such
+        candidates pass it. inf = off (every preset): at 3 cm the LOO chooses it for no
+        held-out dataset and it lowers every training set's score (the covariance is not a
+        calibrated precision on first-echo scans).
     stub_runs_inner : bool
         With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
         "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
@@ -623,6 +635,7 @@ class DetectorConfig:
     stub_runs_worst: bool = False
     stub_runs_inner: bool = False
     cut_ends: bool = False
+    max_dbh_sd: float = math.inf
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -753,6 +766,8 @@ class DetectorConfig:
             raise bad("stub_runs_snoop", self.stub_runs_snoop, "it needs stub_runs")
         if self.stub_runs_worst and not self.stub_runs:
             raise bad("stub_runs_worst", self.stub_runs_worst, "it needs stub_runs")
+        if not self.max_dbh_sd > 0:
+            raise bad("max_dbh_sd", self.max_dbh_sd, "it must be > 0 m (inf: off)")
         if self.stub_runs_inner and not self.stub_runs:
             raise bad("stub_runs_inner", self.stub_runs_inner, "it needs stub_runs")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):

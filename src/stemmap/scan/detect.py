@@ -661,8 +661,28 @@ class ScanTrunkDetector:
             smooth = residual_smoothness(segs, centers, radii)
             if cfg.rms_noise_from_fit > 0:
                 own = own_noise(cfg, segs, sigma, smooth)
+        dbh_sd = None
+        if (
+            math.isfinite(cfg.max_dbh_sd)
+            and cfg.beam_footprint_deg > 0
+            and cfg.fit_method == "ours"
+        ):
+            # the diameter's standard deviation by the fit's own covariance (max_dbh_sd)
+            dbh_sd = 2.0 * np.sqrt(np.maximum(covs[:, 2, 2], 0.0))
         return _Fitted(
-            centers, radii, covs, ok, sigma, mean_r, f_width, sil_width, rms, test_rms, smooth, own
+            centers,
+            radii,
+            covs,
+            ok,
+            sigma,
+            mean_r,
+            f_width,
+            sil_width,
+            rms,
+            test_rms,
+            smooth,
+            own,
+            dbh_sd,
         )
 
     def _run_numpy(

@@ -291,6 +291,7 @@ REASONS: tuple[str, ...] = (
     "radius_width_ratio",  # radius > max_radius_width_ratio x silhouette width
     "centre_in_front",  # fitted centre nearer than the returns
     "rms",  # RMS (or robust residual scale) > max_rms_sigma x sigma
+    "precision",  # the fit's diameter std 2 sqrt(C_rr) > max_dbh_sd (first echo, numpy path)
 )
 _CODE = {name: i for i, name in enumerate(REASONS)}
 
@@ -469,7 +470,7 @@ def _relaxed_rms(
 
 def fitted_reasons(cfg: DetectorConfig, fitted: _Fitted) -> NDArray[np.int8]:
     """:func:`fit_reasons` of the candidates of a detector's fit (``_fit_candidates``)."""
-    return fit_reasons(
+    codes = fit_reasons(
         cfg,
         fitted.centers,
         fitted.radii,
@@ -481,6 +482,11 @@ def fitted_reasons(cfg: DetectorConfig, fitted: _Fitted) -> NDArray[np.int8]:
         fitted.smooth,
         fitted.own_noise,
     )
+    if fitted.dbh_sd is not None:
+        # max_dbh_sd: a diameter the returns did not measure (NaN covariance: not estimated)
+        with np.errstate(invalid="ignore"):
+            _first_failure(codes, fitted.dbh_sd > cfg.max_dbh_sd, "precision")
+    return codes
 
 
 def rms_limit(
