@@ -16,9 +16,7 @@ chose. Then the cell's score (``cloud_robustness.score_run``).
 
 from __future__ import annotations
 
-import argparse
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +26,9 @@ import cloud_robustness as cr
 import stemmap.cloud.measure as measure
 import stemmap.cloud.slicestem as ss
 from _cloud_refs import CLOUDS
+from cloud_lost_stems import cell_args
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.stems import detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 LOG: list[str] = []
 
@@ -109,16 +107,7 @@ def install() -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cloud", default="archi_tree_1", choices=list(CLOUDS))
-    ap.add_argument("--transforms", default="subsample_20,subsample_10")
-    ap.add_argument("--seeds", default="0,1,2,3,4")
-    ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
-    args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
-    cfg = replace(StemConfig(), **cr.set_overrides(args.set))
+    args, root, cfg = cell_args(__doc__ or "", "archi_tree_1")
     install()
     bl = cr.run_baseline(args.cloud, root / CLOUDS[args.cloud], cfg)
     print(f"=== shipped: D={bl.det.diameter * 100} h={bl.det.dbh_height}")
