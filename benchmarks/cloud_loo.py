@@ -19,7 +19,9 @@ trim scaled by the inside half"; off first) and ``thin_refit_points``
 (Dec 5: the thin ladder's guided refits held to the count the density gives a thin slice;
 pine_plot at 20 / 10 %, default off), ``consensus_radius_se`` and ``guided_taper`` (Dec 5:
 the radius consensus by each slice radius's own standard error, and guided refits kept only
-within the taper; pine_plot at 20 / 10 %, docs "Short arcs in the radius consensus"). Here
+within the taper; pine_plot at 20 / 10 %, docs "Short arcs in the radius consensus") and
+``ladder_found_rms`` (Dec 5: the single-tree ladder's fair-support test with the RMS the kept
+stem was found with; docs "aRchi Tree_1 at 20 %: where its DBH moves"). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -126,6 +128,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "guided_taper": (
         ("off", {"guided_taper": False}),
         ("on", {"guided_taper": True}),
+    ),
+    "ladder_found_rms": (
+        ("off", {"ladder_found_rms": False}),
+        ("on", {"ladder_found_rms": True}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

@@ -153,9 +153,12 @@ def lost_report(bl: cr.Baseline, i: int, calls: list[Any]) -> dict[str, Any]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cloud", default="treels_pine_plot", choices=list(CLOUDS))
+def cell_args(doc: str, cloud: str) -> tuple[argparse.Namespace, Path, StemConfig]:
+    """The command line of a per-cell diagnostic (``--cloud``, default ``cloud``;
+    ``--transforms``, ``--seeds``, ``--set``): the arguments, the datasets directory and the
+    configuration."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--cloud", default=cloud, choices=list(CLOUDS))
     ap.add_argument("--transforms", default="subsample_20,subsample_10")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
@@ -163,7 +166,11 @@ def main() -> None:
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
-    cfg = replace(StemConfig(), **cr.set_overrides(args.set))
+    return args, root, replace(StemConfig(), **cr.set_overrides(args.set))
+
+
+def main() -> None:
+    args, root, cfg = cell_args(__doc__ or "", "treels_pine_plot")
     bl = cr.run_baseline(args.cloud, root / CLOUDS[args.cloud])
     cells = []
     with tempfile.TemporaryDirectory() as tmp:

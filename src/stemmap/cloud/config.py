@@ -149,6 +149,12 @@ class StemConfig:
         (:func:`~stemmap.cloud.slicestem._taper_checked`): a refit on a root flare is left
         out instead of failing the whole stem's taper test. Off: docs/algorithms/cloud.md
         "Short arcs in the radius consensus"
+    ladder_found_rms : bool -- the single-tree ladder's fair-support test (a smaller stem
+        fitted at a tolerance not below the kept stem's RMS may win on support,
+        :func:`~stemmap.cloud.measure._single_tree_stem`) takes the RMS of the slice fits
+        the kept stem was found with, not that of its thin re-measure (annulus fits about a
+        known circle, whose RMS is no RANSAC residual; docs/algorithms/cloud.md "aRchi
+        Tree_1 at 20 %: where its DBH moves")
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -203,6 +209,7 @@ class StemConfig:
     consensus_floor: bool = False
     consensus_radius_se: bool = False
     guided_taper: bool = False
+    ladder_found_rms: bool = False
     axis_fallback: bool = False
     axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
