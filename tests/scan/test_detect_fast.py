@@ -70,7 +70,18 @@ _NO_ARC_TESTS = {"arc_tangent_sigmas": math.inf, "arc_chi2": False}
 CONFIGS = {
     "stemmap": {},
     "no_split": {"split_merged": False},
-    "thin_beams": {"beam_divergence_deg": 0.0},
+    # a thin beam is a first echo: the preset's first-echo trims (stub runs, inner runs, cut
+    # ends) act there and only the numpy path runs them (test_thin_beams_run_numpy_with_trims),
+    # so the two pipelines are compared on the rest of the chain
+    "thin_beams": {
+        "beam_divergence_deg": 0.0,
+        "stub_sigmas": math.inf,
+        "stub_runs": False,
+        "stub_runs_snoop": False,
+        "stub_runs_worst": False,
+        "stub_runs_inner": False,
+        "cut_ends": False,
+    },
     "orthogonal": {"fit_residuals": "orthogonal", "neighbour_silhouette": False},
     "estimated_sigma": {"sigma": 0.0, "straight_test": "ratio", "max_rms_sigma": math.inf},
     "relative_sigma": {"sigma": 0.005, "sigma_rel": 0.002},
@@ -377,3 +388,13 @@ def test_compiled_step_split_equals_numpy_at_3_cm_noise(stand, pool):
     assert_same(fast, ref)
     plain = _both(ScanTrunkDetector(dataclasses.replace(cfg, step_split=False)), batch)[1]
     assert len(ref) > len(plain)
+
+
+def test_thin_beams_run_numpy_with_trims():
+    """The preset's first-echo trims exist only on the numpy path: a thin beam with them must
+    not dispatch to the compiled kernel (which would skip them), and without them it does."""
+    trims = ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_divergence_deg=0.0))
+    assert not trims._compiled(None, None)
+    assert ScanTrunkDetector(DetectorConfig.preset("stemmap", **CONFIGS["thin_beams"]))._compiled(
+        None, None
+    )
