@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan.test_stub_runs import GRID_67
 
 from stemmap.scan import _detect_fast
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -75,12 +76,7 @@ CONFIGS = {
     # so the two pipelines are compared on the rest of the chain
     "thin_beams": {
         "beam_divergence_deg": 0.0,
-        "stub_sigmas": math.inf,
-        "stub_runs": False,
-        "stub_runs_snoop": False,
-        "stub_runs_worst": False,
-        "stub_runs_inner": False,
-        "cut_ends": False,
+        **{k: v for k, v in GRID_67.items() if k != "batch_noise_scale"},
     },
     "orthogonal": {"fit_residuals": "orthogonal", "neighbour_silhouette": False},
     "estimated_sigma": {"sigma": 0.0, "straight_test": "ratio", "max_rms_sigma": math.inf},

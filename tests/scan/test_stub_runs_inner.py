@@ -13,12 +13,10 @@ the ends. The scenes are those of ``test_stub_runs_worst.py``: a clean 25.6 cm d
 the benchmark's first-echo virtual scanner (0.5 deg) with a tuft of needles 1.5 cm in front of
 its outline, from 40 bearings a fraction of a beam apart."""
 
-import math
-
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP
-from tests.scan.test_stub_runs import GRID_67, _scan
+from tests.scan.test_stub_runs import GRID_67, branch_bar_errors
 from tests.scan.test_stub_runs_snoop import SNOOP
 from tests.scan.test_stub_runs_worst import WORST, _tuft
 
@@ -59,17 +57,7 @@ def test_a_tuft_over_several_beams_goes_and_the_ends_stay(off_deg):
 def test_the_branch_run_at_the_end_still_goes():
     # the bar of test_stub_runs leaving the flank: its returns are an end run, no inner run
     # explains the misfit, and the trims are those of stub_runs_worst bearing by bearing
-    dets = [
-        ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, **x))
-        for x in (WORST, INNER)
-    ]
-    got = np.zeros((2, 12))
-    for k in range(12):
-        batch, centre, _ = _scan(1.5, 0.3 + k * math.radians(STEP) * 5.3 / 12, 0.06)
-        for i, det in enumerate(dets):
-            obs = det.detect_batch(batch)
-            near = np.flatnonzero(np.hypot(*(obs.centers - centre).T) < 0.1)
-            got[i, k] = 200.0 * (obs.radii[near[0]] - 0.15)
+    got = branch_bar_errors(WORST, INNER)
     np.testing.assert_allclose(got[1], got[0], atol=1e-9)
     assert np.abs(got[1]).max() < 2.0
 

@@ -19,7 +19,7 @@ import math
 import numpy as np
 import pytest
 from tests.scan.test_edge_protrusion import STEP, first_echo_scan
-from tests.scan.test_stub_runs import GRID_67, _scan
+from tests.scan.test_stub_runs import GRID_67, branch_bar_errors
 from tests.scan.test_stub_runs_snoop import PLAIN, SNOOP
 
 from stemmap.errors import ConfigError
@@ -86,17 +86,7 @@ def test_the_branch_run_still_goes():
     # the bar of test_stub_runs leaving the flank (no noise): its returns bend the circle, no
     # one return explains the misfit, the run goes as with snooping alone (measured: the same
     # errors bearing by bearing, each within 1.2 cm; without the run test +5.4 ... +6.6 cm)
-    dets = [
-        ScanTrunkDetector(DetectorConfig.preset("stemmap", beam_footprint_deg=STEP, **x))
-        for x in (SNOOP, WORST)
-    ]
-    got = np.zeros((2, 12))
-    for k in range(12):
-        batch, centre, _ = _scan(1.5, 0.3 + k * math.radians(STEP) * 5.3 / 12, 0.06)
-        for i, det in enumerate(dets):
-            obs = det.detect_batch(batch)
-            near = np.flatnonzero(np.hypot(*(obs.centers - centre).T) < 0.1)
-            got[i, k] = 200.0 * (obs.radii[near[0]] - 0.15)
+    got = branch_bar_errors(SNOOP, WORST)
     np.testing.assert_allclose(got[1], got[0], atol=1e-9)
     assert np.abs(got[1]).max() < 2.0
 
