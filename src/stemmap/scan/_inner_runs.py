@@ -53,6 +53,14 @@ if TYPE_CHECKING:
 __all__ = ["inner_runs"]
 
 
+def _aranges(counts: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``0 .. c - 1`` for every ``c`` of ``counts``, concatenated (no per-candidate loop)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    return np.arange(int(counts.sum()), dtype=np.int64) - np.repeat(
+        np.cumsum(counts) - counts, counts
+    )
+
+
 def inner_runs(
     detector: ScanTrunkDetector,
     segs: Segments,
@@ -89,7 +97,7 @@ def inner_runs(
         ids = np.flatnonzero(act)
         n_pos = n_all[ids] - 1 - m  # first positions 1 .. n - 1 - m
         cand = np.repeat(ids, n_pos)
-        first = np.concatenate([np.arange(1, q + 1) for q in n_pos])
+        first = _aranges(n_pos) + 1
         at = segs.start[cand] + first
         tried = csum[at + m] - csum[at] > 0.0
         if not np.any(tried):
@@ -98,7 +106,7 @@ def inner_runs(
         cand, first = cand[tried], first[tried]
         # the rest of each (candidate, run): its returns less the run, as one segment
         keep_counts = n_all[cand] - m
-        rel = np.concatenate([np.arange(c) for c in n_all[cand]])
+        rel = _aranges(n_all[cand])
         owner = np.repeat(np.arange(cand.size), n_all[cand])
         in_run = (rel >= first[owner]) & (rel < first[owner] + m)
         src = segs.start[cand][owner] + rel
