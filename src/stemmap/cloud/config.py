@@ -154,7 +154,8 @@ class StemConfig:
         :func:`~stemmap.cloud.measure._single_tree_stem`) takes the RMS of the slice fits
         the kept stem was found with, not that of its thin re-measure (annulus fits about a
         known circle, whose RMS is no RANSAC residual; docs/algorithms/cloud.md "aRchi
-        Tree_1 at 20 %: where its DBH moves")
+        Tree_1 at 20 %: where its DBH moves"). On since Dec 6: a fix of the test's meaning
+        that changes no shipped cloud (docs "ladder_found_rms is the default")
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -209,7 +210,7 @@ class StemConfig:
     consensus_floor: bool = False
     consensus_radius_se: bool = False
     guided_taper: bool = False
-    ladder_found_rms: bool = False
+    ladder_found_rms: bool = True
     axis_fallback: bool = False
     axis_reach: bool = True
     max_memory: float = DEFAULT_MAX_MEMORY
