@@ -5,11 +5,12 @@ calipers").
 Per cloud of ``_cloud_refs`` (every stem with a ring seed) and per transform of
 ``cloud_robustness`` (the same random draws: ``--seeds``), two measurements of each stem:
 
-* ``at_ref``: the section at the seed's ring height (half thickness as the seed's), about the
-  shipped cloud's converged ring (fixed centre and radius: no detector): the least-squares
-  circle of the transformed cloud's ring (``ring_reference`` from the shipped ring's circle),
-  the girth and caliper diameters of :func:`stemmap.cloud.girth.section_girth`, and the raw
-  convex hull of the same returns (perimeter / pi: what noise and sparse returns do to it);
+* ``at_ref``: the section at the seed's ring height (half thickness as the seed's, or
+  ``--half``), about the shipped cloud's converged ring (fixed centre and radius: no
+  detector): the least-squares circle of the transformed cloud's ring (``ring_reference``
+  from the shipped ring's circle), the girth and caliper diameters of
+  :func:`stemmap.cloud.girth.section_girth`, and the raw convex hull of the same returns
+  (perimeter / pi: what noise and sparse returns do to it);
 * ``detector``: ``detect_stems_file`` (preset ours, default or ``--set``) on the transformed
   cloud written to LAS; each detection's section at its breast-height z (half thickness 5 cm,
   10 cm when the spacing is above 3 cm, as ``stem_references``), traced about the detected
@@ -18,7 +19,8 @@ Per cloud of ``_cloud_refs`` (every stem with a ring seed) and per transform of
 Prints ONE JSON object: per cloud, stem and transform the values (cm), and a summary per stem of
 each estimator's largest move from the shipped cloud's value and its error against the ring
 (full rings). Usage: python benchmarks/cloud_girth.py [--clouds a,b] [--transforms t1,t2]
-[--seeds 0,1,2,3,4] [--no-detector] [--set key=value ...]
+[--seeds 0,1,2,3,4] [--no-detector] [--half H] [--set key=value ...] (``--half``: the at_ref
+sections' half thickness instead of the seed's, e.g. 0.3 for a tape over 1.0-1.6 m)
 """
 
 from __future__ import annotations
@@ -172,10 +174,15 @@ def run_cloud(
     tmp: Path,
     detector: bool,
     overrides: dict[str, Any],
+    half: float | None = None,
 ) -> dict[str, Any]:
     bl = run_baseline(key, path)
     refs = fixed_references(bl.xyz, load_seeds()[key])
-    stems = [(s, r) for s, r in zip(bl.seeds, refs, strict=True) if r is not None]
+    stems = [
+        (s if half is None else replace(s, half=half), r)
+        for s, r in zip(bl.seeds, refs, strict=True)
+        if r is not None
+    ]
     cells: dict[str, Any] = {}
     ref_rows = [
         {
@@ -244,6 +251,9 @@ def main() -> None:
     ap.add_argument("--transforms", default=DEFAULT_TRANSFORMS)
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--no-detector", action="store_true")
+    ap.add_argument(
+        "--half", type=float, default=None, help="at_ref section half thickness (m; the seed's)"
+    )
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
     root = find_datasets_dir()
@@ -262,6 +272,7 @@ def main() -> None:
                 Path(td),
                 not args.no_detector,
                 set_overrides(args.set),
+                args.half,
             )
             for k in args.clouds.split(",")
         }
