@@ -31,6 +31,7 @@ no stem another path found is changed.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +49,9 @@ from stemmap.cloud.axisfit import (
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.pooled import POOL_MAX_LEAN
 from stemmap.types import FloatArray
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: heights (m above the base) the sparse stems are measured over
 TALL_RANGE = AXIS_RANGE
@@ -90,7 +94,7 @@ def _sparse_todo(
 
 def _gather(
     t: FloatArray,
-    tree: object,
+    tree: cKDTree,
     all_xy: FloatArray,
     all_h: FloatArray,
     cfg: StemConfig,
@@ -109,7 +113,7 @@ def _gather(
     tol_far = float(_reach_tolerance(r, noise_floor, far))
     c_far = max(abs(cfg.breast_height - lo), abs(hi - cfg.breast_height))
     near = np.asarray(
-        tree.query_ball_point(t[:2], r + POOL_MAX_LEAN * c_far + tol_far),  # type: ignore[attr-defined]
+        tree.query_ball_point(t[:2], r + POOL_MAX_LEAN * c_far + tol_far),
         dtype=np.int64,
     )
     if near.size == 0:
