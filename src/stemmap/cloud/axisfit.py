@@ -404,9 +404,10 @@ def _axis_row(
 
 def _reach_range(cfg: StemConfig) -> tuple[float, float]:
     """Heights the band is read over: the band, widened to :data:`AXIS_RANGE` when the
-    shared-axis fit will use the reach (``cfg.axis_fallback`` and ``cfg.axis_reach``)."""
+    shared-axis fit will use the reach (``cfg.axis_fallback`` and ``cfg.axis_reach``) or
+    the taller-band fit of sparse stems (``cfg.sparse_tall_fit``, same range)."""
     lo, hi = cfg.band
-    if not (cfg.axis_fallback and cfg.axis_reach):
+    if not ((cfg.axis_fallback and cfg.axis_reach) or cfg.sparse_tall_fit):
         return lo, hi
     return min(lo, AXIS_RANGE[0]), max(hi, AXIS_RANGE[1])
 

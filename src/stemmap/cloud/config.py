@@ -164,6 +164,13 @@ class StemConfig:
     axis_reach : bool -- the shared-axis fit also uses the returns at 0.5-3.0 m outside the
         band (:data:`~stemmap.cloud.axisfit.AXIS_RANGE`; read from files, in-memory clouds
         and the tile engine's chunks)
+    sparse_tall_fit : bool -- sparse clusters (fullest band slice < 3 x ``min_slice_points``
+        returns) that no other path made a stem are measured by one leaning ring stack with a
+        taper prior over 0.5-3.0 m: the axis from the cluster's band returns, the range's
+        returns about it gathered and refitted twice, the shared-axis fit's tests over 6 bins
+        and its gate on the DBH standard error (:func:`~stemmap.cloud.sparsereach.
+        _sparse_tall_stems`); the stem's ``dbh_rule`` names the range. Off:
+        docs/algorithms/cloud.md "Sparse plots: one ring stack over 0.5-3.0 m"
     max_memory : float, bytes -- budget for the run's rasters (ground grid, clustering grid);
         a cloud that would need more is refused with an InputError naming the raster (4 GB)
     max_coordinate_step : float or None, metres -- a cloud whose x or y coordinates near the
@@ -213,6 +220,7 @@ class StemConfig:
     ladder_found_rms: bool = True
     axis_fallback: bool = False
     axis_reach: bool = True
+    sparse_tall_fit: bool = False
     max_memory: float = DEFAULT_MAX_MEMORY
     max_coordinate_step: float | None = MAX_COORDINATE_STEP
 

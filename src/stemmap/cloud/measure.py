@@ -56,6 +56,7 @@ from stemmap.cloud.slicestem import (
     _thin_slice_stem,
     thin_slice_points,
 )
+from stemmap.cloud.sparsereach import RULE_TALL, _sparse_tall_stems, _sparse_todo
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -654,6 +655,26 @@ def _stems_from_band(
             log.info("%d stem(s) from the shared-axis band fit", len(axis))
             rows.extend(axis)
             rules.extend([RULE_BH] * len(axis))
+    if cfg.sparse_tall_fit and not slice_cloud:
+        # sparse clusters no path made a stem: one ring stack over the taller range
+        found = np.array([r[:3] for r in rows], dtype=np.float64).reshape(-1, 3)
+        tall = _sparse_tall_stems(
+            pts,
+            pts_b.h[use],
+            cl_inv.astype(np.int64),
+            sl[use],
+            _sparse_todo(cl_inv.astype(np.int64), sl[use], pts, kc, ns, cfg, found),
+            cfg,
+            ns,
+            noise_floor,
+            band.xy,
+            band.h,
+            band.reach,
+        )
+        if tall:
+            log.info("%d stem(s) from the taller-band fit of sparse clusters", len(tall))
+            rows.extend(tall)
+            rules.extend([RULE_TALL] * len(tall))
     if not rows:
         return replace(
             CloudStems.empty(
