@@ -15,7 +15,9 @@ tolerances / robust sigmas, 3 as before, 2.5 or 2; spruce with 1 cm noise, docs 
 draws"; its current value is listed first, the least intervention), ``slice_stub_trim``
 (Dec 5: the slice fits' trim scaled by the residuals inside the circle, with an outside
 bound at 2 or 1.5 of those robust sigmas; spruce with 1 cm noise, docs "The noisy spruce: a
-trim scaled by the inside half"; off first) and ``thin_refit_points``
+trim scaled by the inside half"; off first), ``slice_stub_surface`` (Dec 5: that stub trim
+at 2 with its outside bound measured from the sector's local surface; docs "The noisy
+spruce: a stub trim measured from the local surface"; off first) and ``thin_refit_points``
 (Dec 5: the thin ladder's guided refits held to the count the density gives a thin slice;
 pine_plot at 20 / 10 %, default off), ``consensus_radius_se`` and ``guided_taper`` (Dec 5:
 the radius consensus by each slice radius's own standard error, and guided refits kept only
@@ -98,6 +100,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"slice_stub_trim": 0.0}),
         ("2", {"slice_stub_trim": 2.0}),
         ("1.5", {"slice_stub_trim": 1.5}),
+    ),
+    "slice_stub_surface": (
+        ("off", {"slice_stub_surface": False}),
+        ("2", {"slice_stub_trim": 2.0, "slice_stub_surface": True}),
     ),
     "single_tree_ladder": (
         ("off", {"single_tree_ladder": False}),

@@ -83,6 +83,7 @@ def test_each_option_lists_its_current_default() -> None:
         "ransac_lo": "on",
         "slice_fit_window": "3",
         "slice_stub_trim": "off",
+        "slice_stub_surface": "off",
         "single_tree_ladder": "on",
         "continues_above": "on",
         "axis_fallback": "off",

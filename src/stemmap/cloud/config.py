@@ -107,6 +107,13 @@ class StemConfig:
         the bark only, the noise on both sides, so the stubs no longer widen the trim that
         should remove them (docs/algorithms/cloud.md, "The noisy spruce: a trim scaled by the
         inside half")
+    slice_stub_surface : bool -- with ``slice_stub_trim`` (required), the stub trim's outside
+        bound is measured from the local surface: the median residual of the point's angular
+        sector (~10 cm of arc), where that lies outside the circle
+        (:func:`~stemmap.cloud.stubtrim.trim_keep`). A branch stub is a minority of its
+        sector's returns and is still trimmed; a fork's crotch or a lobe moves the whole
+        sector and is kept (docs/algorithms/cloud.md, "The noisy spruce: a stub trim
+        measured from the local surface"; default off)
     single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
         noise floor is its own), the stem is chosen among the first round's and the tighter
         refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
@@ -210,6 +217,7 @@ class StemConfig:
     ransac_seed: int = 0
     slice_fit_window: float = 3.0
     slice_stub_trim: float = 0.0
+    slice_stub_surface: bool = False
     single_tree_ladder: bool = True
     continues_above: bool = True
     thick_dbh_slice: bool = True
@@ -246,6 +254,8 @@ class StemConfig:
             raise ConfigError(f"slice_fit_window must be > 0, got {self.slice_fit_window}.")
         if not self.slice_stub_trim >= 0:
             raise ConfigError(f"slice_stub_trim must be >= 0 (0: off), got {self.slice_stub_trim}.")
+        if self.slice_stub_surface and not self.slice_stub_trim > 0:
+            raise ConfigError("slice_stub_surface measures the stub trim: set slice_stub_trim > 0.")
         if self.max_coordinate_step is not None and not self.max_coordinate_step > 0:
             raise ConfigError(
                 f"max_coordinate_step must be > 0 m (or None), got {self.max_coordinate_step}."

@@ -148,6 +148,7 @@ def _fit_slices(
         ransac_seed=cfg.ransac_seed,
         window=cfg.slice_fit_window,
         stub_trim=cfg.slice_stub_trim,
+        stub_surface=cfg.slice_stub_surface,
     )
     if cfg.core_refits:
         (centers, radii, rms, ok, nin), n_core = _opaque_core_refits(
@@ -162,6 +163,7 @@ def _fit_slices(
             ransac_seed=cfg.ransac_seed,
             window=cfg.slice_fit_window,
             stub_trim=cfg.slice_stub_trim,
+            stub_surface=cfg.slice_stub_surface,
         )
         if n_core:
             log.debug("%d slice fit(s) refitted to the stem inside them", n_core)

@@ -10,6 +10,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from stemmap import _numba_cache
+from stemmap.cloud.stubtrim import STUB_TRIM_ROUNDS, trim_keep
 from stemmap.scan import _fit_geometric, _fit_lm
 from stemmap.scan._fit_geometric import _kasa_start
 from stemmap.scan._fit_lm import _lm
@@ -338,6 +339,7 @@ def _fit_segments(
     ransac_seed: int = 0,
     window: float = 3.0,
     stub_trim: float = 0.0,
+    stub_surface: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int64]]:
     """Robust batched circle fit of K segments: fit, trim |res| > 3 sigma (MAD), refit.
 
@@ -349,10 +351,12 @@ def _fit_segments(
     (``StemConfig.slice_fit_window``, 3): the points kept after a RANSAC start are those
     within ``window`` tolerances of its circle, and the trim drops residuals beyond
     ``window x 1.4826 x MAD``. ``stub_trim`` (``StemConfig.slice_stub_trim``, 0: off): the
-    MAD is taken over the residuals inside the circle only (:func:`_segment_medians`), the
-    trim also drops residuals more than ``stub_trim x 1.4826 x MAD`` outside it, and the fit
-    is trimmed and refitted :data:`STUB_TRIM_ROUNDS` times (docs/algorithms/cloud.md "The
-    noisy spruce: a trim scaled by the inside half").
+    MAD is taken over the residuals inside the circle only, the trim also drops residuals
+    more than ``stub_trim x 1.4826 x MAD`` outside it, and the fit is trimmed and refitted
+    :data:`~stemmap.cloud.stubtrim.STUB_TRIM_ROUNDS` times (docs/algorithms/cloud.md "The
+    noisy spruce: a trim scaled by the inside half"); ``stub_surface``
+    (``StemConfig.slice_stub_surface``): that outside bound is measured from the local surface
+    (:func:`~stemmap.cloud.stubtrim.trim_keep`).
     """
     centers = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)
@@ -420,27 +424,9 @@ def _fit_segments(
         c0 = np.where(np.isfinite(centers), centers, c0)
         if it == rounds - 1:
             break
-        # trim outliers: |residual| > max(window (3) * 1.4826 * MAD, 1 mm) of the segment
+        # trim outliers (stubtrim.trim_keep: symmetric MAD trim, or the stub trim)
         kept = keep
-        good = ok[ids]
-        signed = np.full(pts.shape[0], np.inf)
-        signed[good] = np.hypot(*(pts[good] - centers[ids[good]]).T) - radii[ids[good]]
-        res = np.abs(signed)
-        # the scale comes from the current inliers (after a RANSAC start, not from the clutter
-        # it excluded: a MAD over all points would let the clutter back in)
-        mad = _segment_medians(res, ids, good & keep, k)
-        if stub_trim > 0:
-            # the stub trim: the scale from the inside half, the outside bound at stub_trim
-            inner = good & keep & (signed < 0)
-            enough = np.bincount(ids[inner], minlength=k) >= STUB_TRIM_MIN_INSIDE
-            mad = np.where(enough, _segment_medians(res, ids, inner, k), mad)
-        thr = np.maximum(window * 1.4826 * mad, 0.001)
-        keep = good & (res <= thr[ids])
-        if stub_trim > 0:
-            # the outside bound where the inside half gave the scale (else symmetric as before)
-            out = np.maximum(min(stub_trim, window) * 1.4826 * mad, 0.001)
-            keep &= signed <= np.where(enough, out, np.inf)[ids]
-        keep |= ~good  # segments that failed keep their points for the second try
+        keep = trim_keep(pts, ids, k, centers, radii, ok, keep, window, stub_trim, stub_surface)
         if it >= 1:
             # the stub trim's further rounds refit only the segments whose points changed
             todo = np.bincount(ids[keep != kept], minlength=k) > 0
@@ -468,37 +454,6 @@ def _fit_segments(
 
 RAY_MIN_COS = 0.5
 RAY_MIN_ARC_DEG = 90.0
-
-#: trims of the stub trim (``StemConfig.slice_stub_trim``): fit, trim, refit this many times
-STUB_TRIM_ROUNDS = 3
-#: the fewest inside residuals the stub trim's scale is taken from (else the trim stays
-#: symmetric): a median of n half-normal values has a relative standard error of ~1.1 /
-#: sqrt(n), 35 % at 10 (with 5, pine_plot at 10 % lost 2 of its 13 stems; docs)
-STUB_TRIM_MIN_INSIDE = 10
-
-
-def _segment_medians(
-    v: FloatArray, ids: NDArray[np.int64], sel: NDArray[np.bool_], k: int
-) -> FloatArray:
-    """Per segment, the median of ``v`` over the points ``sel`` (the upper middle value of an
-    even count); inf for segments without a selected point.
-
-    The trim's scale in :func:`_fit_segments`: the median |residual| over a segment's
-    inliers, or with the stub trim over its inside half only. Stubs and needles lie outside
-    the bark, an opaque trunk returns nothing from inside it beyond the noise; a symmetric
-    noise has the same ``|d|`` on both sides, so the inside half's median is still the
-    noise's ``0.6745 sigma`` (the 1.4826 MAD constant holds), not widened by the stubs.
-    """
-    out = np.full(k, np.inf)
-    idx = np.flatnonzero(sel)
-    if idx.size:
-        order = np.lexsort((v[idx], ids[idx]))
-        s_ids = ids[idx][order]
-        s_v = v[idx][order]
-        starts = np.flatnonzero(np.r_[True, s_ids[1:] != s_ids[:-1]])
-        counts = np.diff(np.r_[starts, s_ids.size])
-        out[s_ids[starts]] = s_v[starts + counts // 2]
-    return out
 
 
 def _range_errors(
@@ -726,6 +681,7 @@ def _opaque_core_refits(
     ransac_seed: int = 0,
     window: float = 3.0,
     stub_trim: float = 0.0,
+    stub_surface: bool = False,
 ) -> tuple[_Fits, int]:
     """Slice circles refitted to the stem inside them: a trunk is opaque.
 
@@ -741,8 +697,8 @@ def _opaque_core_refits(
     inliers, a residual RMS no larger than s, lies within the old circle
     (``|c' - c| + r' <= r + 3 t``), and leaves fewer than half as many points inside its
     own disc (margin ``3 max(s', 5 mm)``), at most :data:`CORE_INSIDE_FRACTION` of its
-    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed``, ``window``, ``stub_trim`` as in
-    :func:`_fit_segments`.
+    inliers. ``ray_origins``, ``ransac_lo``, ``ransac_seed``, ``window``, ``stub_trim``,
+    ``stub_surface`` as in :func:`_fit_segments`.
     Returns the fits (copies; centres, radii, RMS, ok, inliers) and the number of segments
     replaced."""
     centers, radii, rms = (np.array(a, dtype=np.float64) for a in fit[:3])
@@ -781,6 +737,7 @@ def _opaque_core_refits(
             ransac_seed=ransac_seed,
             window=window,
             stub_trim=stub_trim,
+            stub_surface=stub_surface,
         )
         if not (ok2[0] and n2[0] >= min_points and s2[0] <= rms[s] and r2[0] <= radii[s]):
             continue

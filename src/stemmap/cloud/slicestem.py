@@ -409,6 +409,7 @@ def _annulus_fit(
         ransac_seed=cfg.ransac_seed,
         window=cfg.slice_fit_window,
         stub_trim=cfg.slice_stub_trim,
+        stub_surface=cfg.slice_stub_surface,
     )
     if not ok[0] or nin[0] < need:
         return None
