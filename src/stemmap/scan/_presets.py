@@ -190,6 +190,13 @@ PRESETS: dict[str, dict[str, Any]] = {
         "bark_roughness": 0.03,
         "straight_depth_sigmas": 3.0,
         "sigma_from_scan": True,
+        # Dec 5 (branch fecalib): the first-echo DBH std at the measured noise plus a 1.3 cm
+        # outline term, chosen leave-one-dataset-out on the real-bark slices (held-out median
+        # |z| 0.43-0.74 on the TreeLS plot / pine and lidR 0 cm, was 1.3-1.8); the reported
+        # covariance only, every detection the same (scan-detection.md, "First-echo DBH
+        # standard error")
+        "dbh_sd_noise": True,
+        "dbh_sd_outline": 0.013,
         **ARC_OPTIONS,
     },
 }
