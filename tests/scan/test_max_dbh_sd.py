@@ -40,9 +40,12 @@ def _batch(d: float, model: str = "nearest"):
 
 
 def _det(model: str = "nearest", **extra) -> ScanTrunkDetector:
+    # the gate reads the fit's own covariance: the detections report it here too (not the
+    # preset's std at the measured noise plus the outline term, test_dbh_sd_first_echo.py)
     foot = {"beam_footprint_deg": STEP} if model == "nearest" else {}
+    own = {"dbh_sd_noise": False, "dbh_sd_outline": 0.0}
     return ScanTrunkDetector(
-        DetectorConfig.preset("stemmap", scan_noise_batch=2.5, **foot, **extra)
+        DetectorConfig.preset("stemmap", scan_noise_batch=2.5, **foot, **own, **extra)
     )
 
 

@@ -197,6 +197,7 @@ class _Fitted(NamedTuple):
     smooth: FloatArray | None = None  # residuals' high-frequency scale (lobe_roughness only)
     own_noise: FloatArray | None = None  # the relaxed RMS test's noise (rms_noise_from_fit)
     dbh_sd: FloatArray | None = None  # the fit's diameter std, 2 sqrt(C_rr) (max_dbh_sd only)
+    cov_out: FloatArray | None = None  # the covariance reported (dbh_sd_noise; else covs)
 
 
 def fit_sigma(
@@ -237,6 +238,62 @@ def fit_sigma(
     return np.minimum(sigma, out) if cap else out
 
 
+def reported_covs(
+    covs: FloatArray,
+    fit_scale: FloatArray,
+    measured: FloatArray,
+    rms: FloatArray,
+    n: np.ndarray,
+    outline: float,
+) -> FloatArray:
+    """The covariance a first-echo detection reports (``dbh_sd_noise``, ``dbh_sd_outline``;
+    issue 11, Dec 5): the fit's ``covs`` (K, 3, 3) with the radius row and column scaled by
+    ``k = max(1, measured / fit_scale, s_res / fit_scale)``, ``s_res = rms sqrt(n / (n - 3))``
+    the fit's residual scale, and ``(outline / 2)^2`` added to ``C_rr`` (a diameter std of
+    ``outline`` in quadrature). Scaling one row and column by ``k >= 1`` and adding to the
+    diagonal keeps the matrix positive semi-definite; the centre's block is unchanged."""
+    nf = n.astype(np.float64)
+    s_res = rms * np.sqrt(nf / np.maximum(nf - 3.0, 1.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k = np.fmax(1.0, np.fmax(measured / fit_scale, s_res / fit_scale))
+    k = np.where(np.isfinite(k), k, 1.0)
+    out = covs.copy()
+    out[:, 2, :] *= k[:, None]
+    out[:, :, 2] *= k[:, None]
+    out[:, 2, 2] += 0.25 * outline * outline
+    return out
+
+
+def reported_first_echo_covs(
+    cfg: Any,
+    segs: Segments,
+    covs: FloatArray,
+    sigma: FloatArray,
+    f_sigma: FloatArray | None,
+    rms: FloatArray,
+) -> FloatArray | None:
+    """The covariances a first-echo ``ours`` fit of ``cfg`` (a
+    :class:`~stemmap.scan.config.DetectorConfig`) reports (``dbh_sd_noise``,
+    ``dbh_sd_outline``; :func:`reported_covs`), None where the fit's own stand (another
+    scanner or fit, or both options off). ``sigma``: the tests' noise; ``f_sigma``: the noise
+    the fit weighted by (:func:`fit_sigma`, None: ``sigma``); ``rms``: the fits' RMS. The
+    plausibility tests and trims keep reading the fit's own ``covs``."""
+    if not (cfg.dbh_sd_noise or cfg.dbh_sd_outline > 0):
+        return None
+    if not (cfg.beam_footprint_deg > 0 and cfg.fit_method == "ours"):
+        return None
+    scale = sigma if f_sigma is None else f_sigma
+    meas = fit_sigma(cfg.fit_noise_floor, segs, sigma, cap=False) if cfg.dbh_sd_noise else None
+    return reported_covs(
+        covs,
+        scale,
+        scale if meas is None else meas,
+        rms if cfg.dbh_sd_noise else np.zeros_like(rms),
+        segs.counts,
+        cfg.dbh_sd_outline,
+    )
+
+
 def _output_columns(
     segs: Segments, fitted: _Fitted, ok: NDArray[np.bool_]
 ) -> dict[str, np.ndarray]:
@@ -245,7 +302,7 @@ def _output_columns(
     centers, radii, covs, sigma, rms = (
         fitted.centers,
         fitted.radii,
-        fitted.covs.copy(),
+        (fitted.covs if fitted.cov_out is None else fitted.cov_out).copy(),
         fitted.sigma,
         fitted.rms,
     )

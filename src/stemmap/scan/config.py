@@ -460,6 +460,26 @@ class DetectorConfig:
         candidates pass it. inf = off (every preset): at 3 cm the LOO chooses it for no
         held-out dataset and it lowers every training set's score (the covariance is not a
         calibrated precision on first-echo scans).
+    dbh_sd_noise : bool
+        First-echo fits (``beam_footprint_deg`` > 0, ``fit_method`` "ours"), numpy path: the
+        diameter standard deviation reported with each detection (``covs``' radius row and
+        column) is scaled by ``k = max(1, n_meas / s, s_res / s)``: ``s`` the noise the fit
+        weighted its returns by, ``n_meas`` the range noise measured on the data
+        (:func:`~stemmap.scan._segment_fits.fit_sigma` not capped by the tests' sigma) and
+        ``s_res`` the fit's own residual scale over every return of the candidate (its RMS
+        over ``n - 3`` degrees of freedom, the returns the robust loss set aside included).
+        The fit's covariance is the inverse Hessian at ``s``, which is capped at the tests'
+        configured 1 cm on a scan without a noise estimate of its own: at 3 cm of noise it
+        stated a third of the error (ours, issue 11, Dec 5, docs/algorithms/
+        scan-detection.md, "First-echo DBH standard error"). Only the reported covariance
+        changes: positions, diameters and every test are the same. The ``stemmap`` preset
+        turns it on; False = the fit's own covariance.
+    dbh_sd_outline : float, metres, >= 0
+        With ``dbh_sd_noise``'s scanners: a per-view diameter error the returns cannot show
+        (a real trunk's outline is not the circle fitted to the side seen), added in
+        quadrature to the reported diameter standard deviation, ``C_rr += (b / 2)^2``. The
+        ``stemmap`` preset's value is chosen leave-one-dataset-out on the real slices
+        (same section). 0 = none.
     stub_runs_inner : bool
         With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
         "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
@@ -636,6 +656,8 @@ class DetectorConfig:
     stub_runs_inner: bool = False
     cut_ends: bool = False
     max_dbh_sd: float = math.inf
+    dbh_sd_noise: bool = False
+    dbh_sd_outline: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -768,6 +790,8 @@ class DetectorConfig:
             raise bad("stub_runs_worst", self.stub_runs_worst, "it needs stub_runs")
         if not self.max_dbh_sd > 0:
             raise bad("max_dbh_sd", self.max_dbh_sd, "it must be > 0 m (inf: off)")
+        if not (self.dbh_sd_outline >= 0 and math.isfinite(self.dbh_sd_outline)):
+            raise bad("dbh_sd_outline", self.dbh_sd_outline, "it must be >= 0 m and finite")
         if self.stub_runs_inner and not self.stub_runs:
             raise bad("stub_runs_inner", self.stub_runs_inner, "it needs stub_runs")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):

@@ -44,6 +44,7 @@ from stemmap.scan._segment_fits import (
     _output_columns,
     fit_kasa_segments,
     fit_sigma,
+    reported_first_echo_covs,
 )
 from stemmap.scan._stub_runs import trim_runs
 from stemmap.scan._stubs import first_echo, trim_stubs
@@ -669,6 +670,8 @@ class ScanTrunkDetector:
         ):
             # the diameter's standard deviation by the fit's own covariance (max_dbh_sd)
             dbh_sd = 2.0 * np.sqrt(np.maximum(covs[:, 2, 2], 0.0))
+        # the reported DBH std at the noise present, plus the outline's share (first echo)
+        cov_out = reported_first_echo_covs(cfg, segs, covs, sigma, f_sigma, rms)
         return _Fitted(
             centers,
             radii,
@@ -683,6 +686,7 @@ class ScanTrunkDetector:
             smooth,
             own,
             dbh_sd,
+            cov_out,
         )
 
     def _run_numpy(
