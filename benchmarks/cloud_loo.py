@@ -21,7 +21,10 @@ pine_plot at 20 / 10 %, default off), ``consensus_radius_se`` and ``guided_taper
 the radius consensus by each slice radius's own standard error, and guided refits kept only
 within the taper; pine_plot at 20 / 10 %, docs "Short arcs in the radius consensus") and
 ``ladder_found_rms`` (Dec 5: the single-tree ladder's fair-support test with the RMS the kept
-stem was found with; docs "aRchi Tree_1 at 20 %: where its DBH moves"). Here
+stem was found with; docs "aRchi Tree_1 at 20 %: where its DBH moves") and ``dbh_from``
+(Dec 6: the radius at breast height from the line, the median of the slices about it or the
+slice holding it; treels pine_plot's +0.39 cm bias, docs "Breast-height DBH, stage by
+stage"). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -132,6 +135,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "ladder_found_rms": (
         ("off", {"ladder_found_rms": False}),
         ("on", {"ladder_found_rms": True}),
+    ),
+    "dbh_from": (
+        ("line", {"dbh_from": "line"}),
+        ("median", {"dbh_from": "median"}),
+        ("slice", {"dbh_from": "slice"}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
