@@ -23,10 +23,13 @@ pine_plot at 20 / 10 %, default off), ``consensus_radius_se`` and ``guided_taper
 the radius consensus by each slice radius's own standard error, and guided refits kept only
 within the taper; pine_plot at 20 / 10 %, docs "Short arcs in the radius consensus") and
 ``ladder_found_rms`` (Dec 5: the single-tree ladder's fair-support test with the RMS the kept
-stem was found with; docs "aRchi Tree_1 at 20 %: where its DBH moves") and
+stem was found with; docs "aRchi Tree_1 at 20 %: where its DBH moves"),
 ``sparse_tall_fit`` (Dec 6: sparse clusters no other path made a stem measured by one ring
 stack over 0.5-3.0 m; pine_plot at 20 / 10 %, docs "Sparse plots: one ring stack over
-0.5-3.0 m", default off). Here
+0.5-3.0 m", default off) and ``dbh_from``
+(Dec 6: the radius at breast height from the line, the median of the slices about it or the
+slice holding it; treels pine_plot's +0.39 cm bias, docs "Breast-height DBH, stage by
+stage"). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -145,6 +148,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "sparse_tall_fit": (
         ("off", {"sparse_tall_fit": False}),
         ("on", {"sparse_tall_fit": True}),
+    ),
+    "dbh_from": (
+        ("line", {"dbh_from": "line"}),
+        ("median", {"dbh_from": "median"}),
+        ("slice", {"dbh_from": "slice"}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

@@ -268,9 +268,14 @@ SINGLE_TREE_TOL_CM = 1.5
 
 
 def set_value(v: str) -> Any:
-    """A ``--set`` value: true / false, else a number."""
+    """A ``--set`` value: true / false, a number, else the text (``dbh_from=median``)."""
     low = v.strip().lower()
-    return low == "true" if low in ("true", "false") else float(v)
+    if low in ("true", "false"):
+        return low == "true"
+    try:
+        return float(v)
+    except ValueError:
+        return v.strip()
 
 
 def set_overrides(pairs: list[str]) -> dict[str, Any]:

@@ -163,6 +163,13 @@ class StemConfig:
         known circle, whose RMS is no RANSAC residual; docs/algorithms/cloud.md "aRchi
         Tree_1 at 20 %: where its DBH moves"). On since Dec 6: a fix of the test's meaning
         that changes no shipped cloud (docs "ladder_found_rms is the default")
+    dbh_from : str -- where a stem's radius at the measurement height comes from, when three
+        or more kept slices span >= 0.3 m: ``"line"`` (the Theil-Sen line through the kept
+        slices' radii, as before), ``"slice"`` (the kept slice that holds the measurement
+        height) or ``"median"`` (the median of the kept slices within one slice thickness of
+        it, at least three; else the line). The centre, lean correction and taper test stay
+        the line's (:mod:`~stemmap.cloud.bhradius`). Off (``"line"``): docs/algorithms/cloud.md
+        "Breast-height DBH, stage by stage"
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -226,6 +233,7 @@ class StemConfig:
     consensus_radius_se: bool = False
     guided_taper: bool = False
     ladder_found_rms: bool = True
+    dbh_from: str = "line"
     axis_fallback: bool = False
     axis_reach: bool = True
     sparse_tall_fit: bool = False
@@ -250,6 +258,8 @@ class StemConfig:
             raise ConfigError(f"noise_floor must be > 0 m, got {self.noise_floor}.")
         if not (isinstance(self.ransac_seed, (int, np.integer)) and self.ransac_seed >= 0):
             raise ConfigError(f"ransac_seed must be an integer >= 0, got {self.ransac_seed!r}.")
+        if self.dbh_from not in ("line", "slice", "median"):
+            raise ConfigError(f"dbh_from must be line, slice or median, got {self.dbh_from!r}.")
         if not self.slice_fit_window > 0:
             raise ConfigError(f"slice_fit_window must be > 0, got {self.slice_fit_window}.")
         if not self.slice_stub_trim >= 0:

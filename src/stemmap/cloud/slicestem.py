@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.cloud.band import _Band
+from stemmap.cloud.bhradius import near_median_radius
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.result import RULE_BH
 from stemmap.cloud.slicefit import (
@@ -682,11 +683,22 @@ def _slice_stem(
     if cfg.continues_above and not ctx.slice_cloud and _ends_in_band(agree, ctx, cfg):
         return None  # a shrub, a sapling's clump or stacked debris: a stem goes on above
     h_meas, rule = _measurement_height(fits, c, agree, ctx, cfg)
-    at_slice = ctx.few_thick and cfg.thick_dbh_slice
+    at_slice = (ctx.few_thick and cfg.thick_dbh_slice) or cfg.dbh_from == "slice"
     at = _stem_at(fits, c, m, centers_h[m] - h_meas, cfg, at_slice)
     if at is None:
         return None
     r_bh, cxy, taper, var_r, cov_xy = at
+    if cfg.dbh_from == "median" and not at_slice and math.isfinite(taper):
+        # the slices about the measurement height, not the line through a flared profile
+        near = near_median_radius(
+            fits.radii[c, m],
+            fits.centers[c, m],
+            fits.cov[c, m, 2, 2],
+            centers_h[m] - h_meas,
+            cfg.slice_thickness,
+        )
+        if near is not None:
+            r_bh, var_r = near
     frac = float(m.sum()) / max(int(fits.present[c]), 1)
     arc = float(np.mean(fits.arcs[c, m]))
     rr = float(np.mean(fits.rms[c, m]))
