@@ -168,8 +168,9 @@ class StemConfig:
         slices' radii, as before), ``"slice"`` (the kept slice that holds the measurement
         height) or ``"median"`` (the median of the kept slices within one slice thickness of
         it, at least three; else the line). The centre, lean correction and taper test stay
-        the line's (:mod:`~stemmap.cloud.bhradius`). Off (``"line"``): docs/algorithms/cloud.md
-        "Breast-height DBH, stage by stage"
+        the line's (:mod:`~stemmap.cloud.bhradius`). ``"median"`` since Dec 6 (the section at
+        breast height, as a tape measures it; docs/algorithms/cloud.md "Breast-height DBH,
+        stage by stage" and "The median at breast height is the default")
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -233,7 +234,7 @@ class StemConfig:
     consensus_radius_se: bool = False
     guided_taper: bool = False
     ladder_found_rms: bool = True
-    dbh_from: str = "line"
+    dbh_from: str = "median"
     axis_fallback: bool = False
     axis_reach: bool = True
     sparse_tall_fit: bool = False
