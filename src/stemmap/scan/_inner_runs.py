@@ -82,7 +82,8 @@ def inner_runs(
     pos_out = np.zeros(k, dtype=np.int64)
     len_out = np.zeros(k, dtype=np.int64)
     # room for a run of m between the two end returns, and a rest of the majority
-    m_max = np.where(n_all >= 3, np.minimum(np.minimum(n_all - least, (n_all - 1) // 2), n_all - 2), 0)
+    m_max = np.minimum(np.minimum(n_all - least, (n_all - 1) // 2), n_all - 2)
+    m_max = np.where(n_all >= 3, m_max, 0)
     open_ = m_max >= 1
     # a run in front of the rest's circle pulls the candidate's own circle towards itself
     # but not through itself: as a whole it lies outside that circle too (the sum of its
