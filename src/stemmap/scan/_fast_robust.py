@@ -285,19 +285,22 @@ def segment_step_medians(
     """Per segment ``r[start[k]:stop[k]]``, the median absolute range step between its
     adjacent returns (0 for fewer than two returns): the step scale of
     :func:`stemmap.scan._segment_fits.fit_sigma`, which the first-echo run searches read for
-    thousands of trial rests per call (a sort per segment instead of one ``lexsort`` of all
-    of them; a median selects, so the value is the same to the bit)."""
+    thousands of trial rests per call (a selection per segment in one scratch buffer instead of
+    one ``lexsort`` of all of them; a median selects, so the value is the same to the bit)."""
     k = start.shape[0]
     out = np.zeros(k)
+    longest = 0
+    for j in range(k):
+        longest = max(longest, stop[j] - start[j] - 1)
+    d = np.empty(max(longest, 1))  # one scratch for every segment
     for j in range(k):
         a = start[j]
         c = stop[j] - a - 1
         if c < 1:
             continue
-        d = np.empty(c)
         for i in range(c):
             d[i] = abs(r[a + i + 1] - r[a + i])
-        out[j] = _median(d, 0, c)
+        out[j] = _median_inplace(d, c)
     return out
 
 

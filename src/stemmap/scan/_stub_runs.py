@@ -293,12 +293,12 @@ def run_noise(cfg: DetectorConfig, segs: Segments, sigma: FloatArray) -> FloatAr
     weighted by (``fit_noise_floor``, else the segment's ``sigma``); with
     ``stub_runs_snoop`` never below the noise measured on the data (the scale of
     :func:`~stemmap.scan._segment_fits.fit_sigma` not capped by ``sigma``)."""
-    sig = fit_sigma(cfg.fit_noise_floor, segs, sigma)
-    noise = sigma if sig is None else sig
+    meas = fit_sigma(cfg.fit_noise_floor, segs, sigma, cap=False)
+    if meas is None:
+        return sigma
+    noise: FloatArray = np.minimum(sigma, meas)  # fit_sigma's cap
     if cfg.stub_runs_snoop:
-        meas = fit_sigma(cfg.fit_noise_floor, segs, sigma, cap=False)
-        if meas is not None:
-            noise = np.maximum(noise, meas)
+        noise = np.maximum(noise, meas)
     return noise
 
 
