@@ -37,6 +37,7 @@ import argparse
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -123,16 +124,30 @@ def compare(
     return out
 
 
+def _ours(name: str) -> bool:
+    return name == "stemmap" or name.startswith("stemmap.")
+
+
+def _use(modules: dict[str, Any]) -> None:
+    """Put one checkout's ``stemmap`` modules into ``sys.modules`` (the other's out)."""
+    for name in [k for k in sys.modules if _ours(k)]:
+        del sys.modules[name]
+    sys.modules.update(modules)
+
+
 def compare_ref(
     batches: list[tuple[str, float, ScanBatch]], overrides: dict[str, Any], rounds: int, ref: Path
 ) -> dict[str, Any]:
     """The preset with ``overrides`` in this checkout (``branch``) against the same in the
     checkout ``ref``, alternating, ``rounds`` rounds of best-of-3 process-CPU times over all
-    the batches; the digest of each one's detections."""
+    the batches; the digest of each one's detections. Each checkout runs with its own
+    ``stemmap`` modules in ``sys.modules`` (:func:`_use`): a function that imports inside its
+    body (``_inner_runs.inner_runs``) would otherwise find the other checkout's."""
     from scan_speed_vs_ref import _import_from
 
     steps = sorted({res for _, res, _ in batches})
     runs: dict[str, tuple[dict[float, Any], list[tuple[float, Any]]]] = {}
+    modules: dict[str, dict[str, Any]] = {}
     for name, src in (
         ("branch", Path(__file__).resolve().parent.parent / "src"),
         ("ref", ref / "src"),
@@ -156,6 +171,7 @@ def compare_ref(
             for _, res, b in batches
         ]
         runs[name] = (dets, own)
+        modules[name] = {k: v for k, v in sys.modules.items() if _ours(k)}
     n_scans = sum(len(b) for _, _, b in batches)
     out: dict[str, Any] = {
         "overrides": overrides,
@@ -165,6 +181,7 @@ def compare_ref(
         "rounds": rounds,
     }
     for name, (dets, own) in runs.items():
+        _use(modules[name])
         h = hashlib.sha256()
         count = 0
         for res, b in own:
@@ -177,6 +194,7 @@ def compare_ref(
     sps: dict[str, list[int]] = {name: [] for name in runs}
     for _ in range(rounds):
         for name, (dets, own) in runs.items():
+            _use(modules[name])
 
             def run(dets: dict[float, Any] = dets, own: list[tuple[float, Any]] = own) -> None:
                 for res, b in own:
