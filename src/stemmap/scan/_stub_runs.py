@@ -116,7 +116,9 @@ def _block(m0: int, cost: NDArray[np.int64]) -> int:
 #: this many returns is tried together (one vectorised fit instead of one per length; a
 #: candidate that found its run at a shorter length is not tried at the longer ones of later
 #: blocks). Only memory and speed depend on it, not the result: each rest's fit is the
-#: rest's alone.
+#: rest's alone (the fit's one batch-wide switch, ``_segment_fits._fit_segments`` passing
+#: sigma only when every segment's is positive, is the config's: all are when ``sigma`` or
+#: ``sigma_rel`` is; tests/scan/test_run_search_blocks.py).
 BLOCK_RETURNS = 1 << 19
 
 
