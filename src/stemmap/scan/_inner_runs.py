@@ -71,7 +71,12 @@ def inner_runs(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Per candidate of ``segs`` (fits ``fitted``, run-test noise ``noise``): the position
     (from its first return) and the length of the inner run of returns in front of the rest's
-    circle that explains its misfit, length 0 where none does (module docstring)."""
+    circle that explains its misfit, length 0 where none does (module docstring).
+
+    Every run length is tried at once, in blocks of
+    :data:`~stemmap.scan._stub_runs.BLOCK_RETURNS` returns: the rests of all (candidate, m,
+    position) in one fit (each rest's fit is its own: the same numbers as one fit per m),
+    then per candidate the smallest m that hit."""
     from stemmap.scan._stub_runs import _block, passes_global_test, runs_outside
 
     cfg = detector.config
