@@ -278,6 +278,32 @@ def _median(v: FloatArray, start: int, stop: int) -> float:  # pragma: no cover 
     return 0.5 * (s[(c - 1) // 2] + s[c // 2])
 
 
+@njit(cache=True, error_model="numpy")
+def segment_step_medians(
+    r: FloatArray, start: np.ndarray, stop: np.ndarray
+) -> FloatArray:  # pragma: no cover - numba
+    """Per segment ``r[start[k]:stop[k]]``, the median absolute range step between its
+    adjacent returns (0 for fewer than two returns): the step scale of
+    :func:`stemmap.scan._segment_fits.fit_sigma`, which the first-echo run searches read for
+    thousands of trial rests per call (a selection per segment in one scratch buffer instead of
+    one ``lexsort`` of all of them; a median selects, so the value is the same to the bit)."""
+    k = start.shape[0]
+    out = np.zeros(k)
+    longest = 0
+    for j in range(k):
+        longest = max(longest, stop[j] - start[j] - 1)
+    d = np.empty(max(longest, 1))  # one scratch for every segment
+    for j in range(k):
+        a = start[j]
+        c = stop[j] - a - 1
+        if c < 1:
+            continue
+        for i in range(c):
+            d[i] = abs(r[a + i + 1] - r[a + i])
+        out[j] = _median_inplace(d, c)
+    return out
+
+
 # after every kernel is defined, before the first call loads the cache: no other module's
 # kernels are compiled in here, but the compile flags (stemmap._leaf_jit) are
 _numba_cache.drop_stale_cache(_range_roughness, __file__)

@@ -71,8 +71,13 @@ def inner_runs(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Per candidate of ``segs`` (fits ``fitted``, run-test noise ``noise``): the position
     (from its first return) and the length of the inner run of returns in front of the rest's
-    circle that explains its misfit, length 0 where none does (module docstring)."""
-    from stemmap.scan._stub_runs import passes_global_test, runs_outside
+    circle that explains its misfit, length 0 where none does (module docstring).
+
+    Every run length is tried at once, in blocks of
+    :data:`~stemmap.scan._stub_runs.BLOCK_RETURNS` returns: the rests of all (candidate, m,
+    position) in one fit (each rest's fit is its own: the same numbers as one fit per m),
+    then per candidate the smallest m that hit."""
+    from stemmap.scan._stub_runs import _block, passes_global_test, runs_outside
 
     cfg = detector.config
     p = segs.points
@@ -81,34 +86,42 @@ def inner_runs(
     n_all = segs.counts
     pos_out = np.zeros(k, dtype=np.int64)
     len_out = np.zeros(k, dtype=np.int64)
-    open_ = n_all >= 3
+    # room for a run of m between the two end returns, and a rest of the majority
+    m_max = np.minimum(np.minimum(n_all - least, (n_all - 1) // 2), n_all - 2)
+    m_max = np.where(n_all >= 3, m_max, 0)
+    open_ = m_max >= 1
     # a run in front of the rest's circle pulls the candidate's own circle towards itself
     # but not through itself: as a whole it lies outside that circle too (the sum of its
     # residuals is positive); only such runs are tried
     lab = segs.labels
     res = np.hypot(p.x - fitted.centers[lab, 0], p.y - fitted.centers[lab, 1]) - fitted.radii[lab]
     csum = np.concatenate(([0.0], np.cumsum(np.where(np.isfinite(res), res, 0.0))))
-    m = 1
-    while True:
-        # room for a run of m between the two end returns, and a rest of the majority
-        act = open_ & (n_all - m >= least) & (2 * m < n_all) & (n_all - 2 >= m)
-        if not np.any(act):
-            break
-        ids = np.flatnonzero(act)
-        n_pos = n_all[ids] - 1 - m  # first positions 1 .. n - 1 - m
-        cand = np.repeat(ids, n_pos)
+    top = int(m_max.max(initial=0))
+    m0 = 1
+    while m0 <= top:
+        # every m of the block m0 <= m < m1 at once (:func:`~stemmap.scan._stub_runs._block`)
+        ms = np.arange(m0, top + 1)[:, None]
+        cost = np.where(open_ & (ms <= m_max), (n_all - 1 - ms) * n_all, 0).sum(axis=1)
+        m1 = _block(m0, cost)
+        ids = np.flatnonzero(open_ & (m_max >= m0))
+        n_m = np.minimum(m_max[ids], m1 - 1) - m0 + 1
+        j_m = np.repeat(ids, n_m)
+        m_m = _aranges(n_m) + m0
+        m0 = m1
+        n_pos = n_all[j_m] - 1 - m_m  # first positions 1 .. n - 1 - m
+        cand = np.repeat(j_m, n_pos)
+        mm = np.repeat(m_m, n_pos)
         first = _aranges(n_pos) + 1
         at = segs.start[cand] + first
-        tried = csum[at + m] - csum[at] > 0.0
+        tried = csum[at + mm] - csum[at] > 0.0
         if not np.any(tried):
-            m += 1
             continue
-        cand, first = cand[tried], first[tried]
-        # the rest of each (candidate, run): its returns less the run, as one segment
-        keep_counts = n_all[cand] - m
+        cand, mm, first = cand[tried], mm[tried], first[tried]
+        # the rest of each (candidate, m, run): its returns less the run, as one segment
+        keep_counts = n_all[cand] - mm
         rel = _aranges(n_all[cand])
         owner = np.repeat(np.arange(cand.size), n_all[cand])
-        in_run = (rel >= first[owner]) & (rel < first[owner] + m)
+        in_run = (rel >= first[owner]) & (rel < first[owner] + mm[owner])
         src = segs.start[cand][owner] + rel
         stop = np.cumsum(keep_counts).astype(np.int64)
         rest = Segments(
@@ -126,16 +139,17 @@ def inner_runs(
         # every return of the run outside the rest's circle by > stub_sigmas deviations
         rp = src[in_run]
         hit = good & runs_outside(cfg, p.x[rp], p.y[rp], owner[in_run], f, noise[cand])
-        if np.any(hit):
-            # per candidate, the hit whose rest has the smallest sum of squares
-            sse = np.where(hit, rest.counts * f.rms * f.rms, np.inf)
-            order = np.lexsort((sse, cand))
-            first_row = np.ones(order.size, dtype=bool)
-            first_row[1:] = cand[order][1:] != cand[order][:-1]
-            best = order[first_row]
-            best = best[hit[best]]
-            pos_out[cand[best]] = first[best]
-            len_out[cand[best]] = m
-            open_[cand[best]] = False
-        m += 1
+        if not np.any(hit):
+            continue
+        # per candidate the smallest m that hit; of its hits the one whose rest has the
+        # smallest sum of squares (ties: the first position)
+        h = np.flatnonzero(hit)
+        sse = rest.counts[h] * f.rms[h] * f.rms[h]
+        order = np.lexsort((first[h], sse, mm[h], cand[h]))
+        lead = np.ones(order.size, dtype=bool)
+        lead[1:] = cand[h][order][1:] != cand[h][order][:-1]
+        best = h[order[lead]]
+        pos_out[cand[best]] = first[best]
+        len_out[cand[best]] = mm[best]
+        open_[cand[best]] = False
     return pos_out, len_out

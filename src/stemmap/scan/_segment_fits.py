@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.scan import circle as _circle
+from stemmap.scan._fast_robust import segment_step_medians
 from stemmap.scan.features import segment_sum
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
@@ -219,20 +220,7 @@ def fit_sigma(
     noise = segs.points.fit_noise
     if noise is None:
         return None
-    lab = segs.labels
-    same = lab[1:] == lab[:-1]
-    step = np.abs(np.diff(segs.points.r))[same]
-    owner = lab[1:][same]
-    med = np.zeros(len(segs))
-    if step.size:
-        order = np.lexsort((step, owner))
-        step, owner = step[order], owner[order]
-        cnt = np.bincount(owner, minlength=len(segs))
-        first = np.concatenate(([0], np.cumsum(cnt)[:-1]))
-        has = cnt > 0
-        mid_lo = first[has] + (cnt[has] - 1) // 2
-        mid_hi = first[has] + cnt[has] // 2
-        med[has] = 0.5 * (step[mid_lo] + step[mid_hi])
+    med = segment_step_medians(segs.points.r, segs.start, segs.stop)
     scale = np.sqrt(noise[segs.scan] ** 2 + med * med / 12.0)
     out: FloatArray = np.maximum(floor, scale)
     return np.minimum(sigma, out) if cap else out

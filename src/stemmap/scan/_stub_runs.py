@@ -72,7 +72,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtri
 
 from stemmap.scan._behind import _merge, _take
-from stemmap.scan._inner_runs import inner_runs
+from stemmap.scan._inner_runs import _aranges, inner_runs
 from stemmap.scan._refit import fit_passes
 from stemmap.scan._segment_fits import fit_sigma
 from stemmap.scan.segment import Segments
@@ -104,57 +104,105 @@ def _run_mask(segs: Segments, m: NDArray[np.int64], first: bool) -> NDArray[np.b
     return out
 
 
+def _block(m0: int, cost: NDArray[np.int64]) -> int:
+    """The end (exclusive) of the next block of run lengths from ``m0``: as many as fit
+    in :data:`BLOCK_RETURNS` returns to fit (``cost[i]``: the returns at ``m0 + i``), at
+    least one."""
+    within = int(np.searchsorted(np.cumsum(cost), BLOCK_RETURNS, side="right"))
+    return m0 + max(within, 1)
+
+
+#: Returns the run searches fit in one call at most: every run length whose rests fit in
+#: this many returns is tried together (one vectorised fit instead of one per length; a
+#: candidate that found its run at a shorter length is not tried at the longer ones of later
+#: blocks). Only memory and speed depend on it, not the result: each rest's fit is the
+#: rest's alone (the fit's one batch-wide switch, ``_segment_fits._fit_segments`` passing
+#: sigma only when every segment's is positive, is the config's: all are when ``sigma`` or
+#: ``sigma_rel`` is; tests/scan/test_run_search_blocks.py).
+BLOCK_RETURNS = 1 << 19
+
+
 def outward_runs(
     detector: ScanTrunkDetector, segs: Segments, grid: FloatArray, wrap: bool
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
     """Per segment of ``segs``: how many returns go at its first / its last end (0: none) and
-    whether the new first / last end is occluded (module docstring)."""
+    whether the new first / last end is occluded (module docstring).
+
+    Every run length m (both ends) is tried at once, in blocks of :data:`BLOCK_RETURNS`
+    returns: the rests of all (end, candidate, m) in one fit (each rest's fit is its own: the
+    same numbers as one fit per m), then per end and candidate the smallest m that hit."""
     cfg = detector.config
     p = segs.points
     least = max(cfg.min_points, cfg.min_points_partial)
     k = len(segs)
-    found: list[NDArray[np.int64]] = []
-    occluded: list[NDArray[np.bool_]] = []
-    for first in (True, False):
-        m_end = np.zeros(k, dtype=np.int64)
-        occ = np.zeros(k, dtype=bool)
-        open_ = segs.counts > least
-        m = 1
-        # the rest must hold more than half of the returns: the stem is the majority of its
-        # candidate (else a branch's few returns become the reference and the stem the run)
-        while np.any(open_ & (segs.counts - m >= least) & (2 * m < segs.counts)):
-            act = open_ & (segs.counts - m >= least) & (2 * m < segs.counts)
-            mm = np.where(act, m, 0).astype(np.int64)
-            run = _run_mask(segs, mm, first)
-            c_s, c_e = act & first, act & (not first)
-            rest = _trimmed_flags(segs.drop(~run), c_s, c_e, c_s, c_e)  # that end occluded
-            sub = rest.select(act)
-            f = detector._fit_candidates(sub, grid, wrap)
-            noise = run_noise(cfg, sub, f.sigma)
-            n = sub.counts.astype(np.float64)
-            limit = chdtri(np.maximum(n - 3.0, 1.0), 0.01)
-            with np.errstate(invalid="ignore"):
-                good = fit_passes(cfg, f) & (n * f.rms * f.rms <= limit * noise * noise)
-            ids = np.flatnonzero(act)
-            # every return of the run outside the rest's circle by > stub_sigmas deviations
-            row = np.full(k, -1, dtype=np.int64)
-            row[ids] = np.arange(ids.size)
-            pts = np.flatnonzero(run)
-            j = row[segs.labels[pts]]
-            hit = good & runs_outside(cfg, p.x[pts], p.y[pts], j, f, noise)
-            done = ids[hit]
-            m_end[done] = m
-            open_[done] = False
-            # the return just beyond the new end: in front of the rest's circle -> occluded
-            inner = segs.start[done] + m - 1 if first else segs.stop[done] - m
-            jj = row[done]
-            occ[done] = _in_front(
-                p.x[inner], p.y[inner], f.centers[jj], f.radii[jj], cfg.stub_runs_snoop
-            )
-            m += 1
-        found.append(m_end)
-        occluded.append(occ & (m_end > 0))
-    return found[0], found[1], occluded[0], occluded[1]
+    n_all = segs.counts
+    # the rest must hold at least `least` returns and more than half of them: the stem is
+    # the majority of its candidate (else a branch's few returns become the reference and
+    # the stem the run)
+    m_max = np.where(n_all > least, np.minimum(n_all - least, (n_all - 1) // 2), 0)
+    m_end = np.zeros((2, k), dtype=np.int64)  # row 0: the first end, row 1: the last
+    occ = np.zeros((2, k), dtype=bool)
+    open_ = np.ones((2, k), dtype=bool)
+    top = int(m_max.max(initial=0))
+    m0 = 1
+    while m0 <= top:
+        ms = np.arange(m0, top + 1)
+        live = open_.sum(axis=0)  # ends still searched, per candidate
+        cost = np.where(ms[:, None] <= m_max, (n_all - ms[:, None]) * live, 0).sum(axis=1)
+        m1 = _block(m0, cost)
+        # rows (end, candidate, m), m0 <= m < m1, of the ends still open
+        e_open, j_open = np.nonzero(open_ & (m_max >= m0))
+        n_m = np.minimum(m_max[j_open], m1 - 1) - m0 + 1
+        e = np.repeat(e_open, n_m)
+        j = np.repeat(j_open, n_m)
+        m = _aranges(n_m) + m0
+        m0 = m1
+        if e.size == 0:
+            continue
+        first = e == 0
+        keep = n_all[j] - m
+        src = segs.start[j] + np.where(first, m, 0)
+        stop = np.cumsum(keep).astype(np.int64)
+        # the rest: the candidate less its m end returns, with that end occluded
+        rest = Segments(
+            p.take(np.repeat(src, keep) + _aranges(keep)),
+            stop - keep,
+            stop,
+            segs.scan[j],
+            first | segs.occluded_start[j],
+            ~first | segs.occluded_end[j],
+            segs.truncated_start[j] & ~first,
+            segs.truncated_end[j] & first,
+        )
+        f = detector._fit_candidates(rest, grid, wrap)
+        noise = run_noise(cfg, rest, f.sigma)
+        n = keep.astype(np.float64)
+        limit = chdtri(np.maximum(n - 3.0, 1.0), 0.01)
+        with np.errstate(invalid="ignore"):
+            good = fit_passes(cfg, f) & (n * f.rms * f.rms <= limit * noise * noise)
+        # every return of the run outside the rest's circle by > stub_sigmas deviations
+        run0 = np.where(first, segs.start[j], segs.stop[j] - m)
+        pts = np.repeat(run0, m) + _aranges(m)
+        row = np.repeat(np.arange(e.size), m)
+        hit = np.flatnonzero(good & runs_outside(cfg, p.x[pts], p.y[pts], row, f, noise))
+        if hit.size == 0:
+            continue
+        # per end and candidate, the smallest m that hit (rows ascend in m within each)
+        key = e[hit] * k + j[hit]
+        order = np.lexsort((m[hit], key))
+        lead = np.ones(order.size, dtype=bool)
+        lead[1:] = key[order][1:] != key[order][:-1]
+        best = hit[order[lead]]
+        eb, jb, mb = e[best], j[best], m[best]
+        m_end[eb, jb] = mb
+        open_[eb, jb] = False
+        # the return just beyond the new end: in front of the rest's circle -> occluded
+        inner = np.where(eb == 0, segs.start[jb] + mb - 1, segs.stop[jb] - mb)
+        occ[eb, jb] = _in_front(
+            p.x[inner], p.y[inner], f.centers[best], f.radii[best], cfg.stub_runs_snoop
+        )
+    occ &= m_end > 0
+    return m_end[0], m_end[1], occ[0], occ[1]
 
 
 def runs_outside(
@@ -247,12 +295,12 @@ def run_noise(cfg: DetectorConfig, segs: Segments, sigma: FloatArray) -> FloatAr
     weighted by (``fit_noise_floor``, else the segment's ``sigma``); with
     ``stub_runs_snoop`` never below the noise measured on the data (the scale of
     :func:`~stemmap.scan._segment_fits.fit_sigma` not capped by ``sigma``)."""
-    sig = fit_sigma(cfg.fit_noise_floor, segs, sigma)
-    noise = sigma if sig is None else sig
+    meas = fit_sigma(cfg.fit_noise_floor, segs, sigma, cap=False)
+    if meas is None:
+        return sigma
+    noise: FloatArray = np.minimum(sigma, meas)  # fit_sigma's cap
     if cfg.stub_runs_snoop:
-        meas = fit_sigma(cfg.fit_noise_floor, segs, sigma, cap=False)
-        if meas is not None:
-            noise = np.maximum(noise, meas)
+        noise = np.maximum(noise, meas)
     return noise
 
 

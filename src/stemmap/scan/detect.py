@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, NamedTuple
 
@@ -68,7 +69,7 @@ from stemmap.scan.plausibility import (
     rejected_candidates,
     residual_smoothness,
     robust_residual_scale,
-    scan_noise,
+    scan_noise_estimates,
     segment_reasons,
     segment_sigma,
 )
@@ -331,16 +332,13 @@ class ScanTrunkDetector:
             r = fov_window(r, wrap_angle(angles), a_lo, a_hi)
         # the sensor's range noise from the raw returns of each scan (before tilt and filters)
         raw = r
+        estimate = scan_noise_estimates(raw, cfg)
         noise = (
             # (NaN where a scan has no estimate: rms_noise_from_fit reads the candidate's own)
-            scan_noise(
-                r,
-                cfg.scan_noise_jump,
-                cfg.scan_noise_surface,
+            estimate(
                 math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
-                pool=cfg.scan_noise_pool,
-                batch_min=cfg.scan_noise_batch_min(),
-                batch_scale=cfg.batch_noise_scale,
+                cfg.scan_noise_pool,
+                cfg.scan_noise_batch_min(),
             )
             if cfg.sigma_from_scan
             else None
@@ -363,18 +361,10 @@ class ScanTrunkDetector:
             bearing = roll_beams(bearing, shift)
         pts = extract_points(r, bearing, angle_increment)
         if noise is not None:
-            pts = replace(pts, noise=noise, step_noise=self._step_noise(raw, noise))
+            pts = replace(pts, noise=noise, step_noise=self._step_noise(estimate, noise))
         if self._fit_noise_on():
             # the noise the fits weight by: each scan's own estimate, else the batch's
-            fit_noise = scan_noise(
-                raw,
-                cfg.scan_noise_jump,
-                cfg.scan_noise_surface,
-                0.0,
-                batch_min=0.0,
-                batch_scale=cfg.batch_noise_scale,
-            )
-            pts = replace(pts, fit_noise=fit_noise)
+            pts = replace(pts, fit_noise=estimate(0.0, False, 0.0))
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
         else:
@@ -428,28 +418,26 @@ class ScanTrunkDetector:
         cfg = self.config
         return cfg.fit_noise_floor > 0 and cfg.beam_footprint_deg > 0 and cfg.fit_method == "ours"
 
-    def _step_noise(self, r: FloatArray, noise: FloatArray) -> FloatArray | None:
+    def _step_noise(
+        self, estimate: Callable[[float, bool, float], FloatArray], noise: FloatArray
+    ) -> FloatArray | None:
         """``step_noise_pool``: the noise of every scan for the step threshold of
-        ``step_split``, the batch's pooled estimate where a scan has none of its own (``r``:
-        the gated ranges ``noise`` was estimated from): over the sparse scans' triples
-        (``True``, :func:`scan_noise` ``pool``) or over every scan's (``"batch"``,
-        :func:`scan_noise` ``batch_min=0``); None when the option is off."""
+        ``step_split``, the batch's pooled estimate where a scan has none of its own
+        (``estimate``: :func:`~stemmap.scan.plausibility.scan_noise_estimates` of the gated
+        ranges ``noise`` was estimated from): over the sparse scans' triples (``True``,
+        :func:`scan_noise` ``pool``) or over every scan's (``"batch"``, :func:`scan_noise`
+        ``batch_min=0``); None when the option is off."""
         cfg = self.config
         if not (cfg.step_split and cfg.step_noise_pool):
             return None
         batch = cfg.step_noise_pool == "batch"
         if cfg.scan_noise_pool and not batch:
             return noise
-        pooled: FloatArray = scan_noise(
-            r,
-            cfg.scan_noise_jump,
-            cfg.scan_noise_surface,
+        return estimate(
             math.nan if cfg.rms_noise_from_fit > 0 else 0.0,
-            pool=not batch,
-            batch_min=0.0 if batch else math.inf,
-            batch_scale=cfg.batch_noise_scale,
+            not batch,
+            0.0 if batch else math.inf,
         )
-        return pooled
 
     def _filter(self, segs: Segments) -> Segments:
         """The segment filters (:func:`~stemmap.scan.plausibility.segment_reasons`)."""

@@ -14,6 +14,7 @@ leaves, grass) are not candidates and are never listed.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -42,6 +43,7 @@ __all__ = [
     "rms_limit",
     "robust_residual_scale",
     "scan_noise",
+    "scan_noise_estimates",
     "segment_reasons",
     "segment_sigma",
 ]
@@ -92,6 +94,7 @@ def scan_noise(
     pool: bool = False,
     batch_min: float = math.inf,
     batch_scale: str = "mad",
+    triples: tuple[list[FloatArray], list[int]] | None = None,
 ) -> FloatArray:
     """Range-noise scale of every scan from all its returns, metres (ours, issue 11).
 
@@ -155,6 +158,8 @@ def scan_noise(
     surface : float, metres, >= 0 -- the surfaces' own share of the estimate
     batch_min : float, metres -- smallest batch estimate shared (``inf``: off)
     batch_scale : "mad" or "biweight" -- the batch estimate's scale statistic
+    triples : :func:`interior_triples` of ``ranges`` and ``jump``, if already found (the
+        detector estimates up to three scales from one batch)
     """
     r = np.atleast_2d(np.asarray(ranges, dtype=np.float64))
     out = np.full(r.shape[0], missing)
@@ -166,7 +171,9 @@ def scan_noise(
     unset = np.ones(r.shape[0], dtype=bool)
     every: list[FloatArray] = []
     every_longest = 0
-    for s, (v, longest) in enumerate(zip(*interior_triples(r, jump), strict=True)):
+    if triples is None:
+        triples = interior_triples(r, jump)
+    for s, (v, longest) in enumerate(zip(*triples, strict=True)):
         every.append(v)
         every_longest = max(every_longest, longest)
         if v.shape[0] >= SCAN_NOISE_MIN_TRIPLES and 2 * longest <= v.shape[0]:
@@ -188,6 +195,40 @@ def scan_noise(
             if e >= batch_min:
                 out[unset] = e
     return out
+
+
+def scan_noise_estimates(
+    raw: FloatArray, cfg: DetectorConfig
+) -> Callable[[float, bool, float], FloatArray]:
+    """:func:`scan_noise` of the gated ranges ``raw`` (S, N) with
+    ``cfg``'s jump, surface and batch scale, as a function of its ``(missing, pool,
+    batch_min)``: the detector asks for up to three estimates of one batch (the tests' sigma,
+    the step threshold's, the fits' weights), so the interior triples are found once and an
+    estimate asked for twice (with ``step_noise_pool="batch"`` and ``fit_noise_floor``) is
+    computed once. The same arrays as separate calls, bit for bit."""
+    r = np.atleast_2d(np.asarray(raw, dtype=np.float64))
+    triples: tuple[list[FloatArray], list[int]] | None = None
+    memo: dict[tuple[bool, float, bool, float], FloatArray] = {}
+
+    def estimate(missing: float, pool: bool, batch_min: float) -> FloatArray:
+        nonlocal triples
+        key = (math.isnan(missing), 0.0 if math.isnan(missing) else missing, pool, batch_min)
+        if key not in memo:
+            if triples is None and r.shape[1] >= 5:
+                triples = interior_triples(r, cfg.scan_noise_jump)
+            memo[key] = scan_noise(
+                r,
+                cfg.scan_noise_jump,
+                cfg.scan_noise_surface,
+                missing,
+                pool=pool,
+                batch_min=batch_min,
+                batch_scale=cfg.batch_noise_scale,
+                triples=triples,
+            )
+        return memo[key]
+
+    return estimate
 
 
 def interior_triples(ranges: FloatArray, jump: float) -> tuple[list[FloatArray], list[int]]:
