@@ -519,6 +519,28 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         )
         for ingredient in ({}, {"scan_noise_batch": 2.5})
     ),
+    # Dec 5 ("The averaging edge bias against textbook Kasa"): grid 85 (the preset) assuming an
+    # any-hit scanner (91) or a threshold anywhere in [0, 0.5] (92) with the edge returns'
+    # range window following the assumed threshold (edge_hit_window)
+    *(
+        _setting(
+            **_DEFAULT_11,
+            **_ARCS_35,
+            **_STEP_BATCH_59,
+            **_RUNS_63,
+            stub_runs_snoop=True,
+            batch_noise_scale="biweight",
+            cut_ends=True,
+            stub_runs_worst=True,
+            stub_runs_inner=True,
+            edge_hit_window=True,
+            **edge,
+        )
+        for edge in (
+            {"edge_hit_min": 0.0, "edge_hit_max": 0.0},
+            {"edge_hit_min": 0.0, "edge_hit_max": 0.5},
+        )
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

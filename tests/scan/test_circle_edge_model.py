@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from stemmap import ConfigError, InputError
 from stemmap.scan._fit_geometric import _footprint_range
+from stemmap.scan._fit_lm import _footprint_range_share
 from stemmap.scan.circle import fit_circle_ours, fit_circles_batch
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.features import MIXED_FRACTION_STD, edge_silhouette, mixed_fraction
@@ -114,6 +115,57 @@ def test_footprint_range_matches_ray_casting_and_finite_differences(d, r, u, sid
             12 * h
         )
         assert out[1 + k] == pytest.approx(num, rel=1e-4, abs=1e-5)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.floats(1.0, 15.0),
+    st.floats(0.04, 0.4),
+    st.floats(-0.45, 3.0),
+    st.sampled_from([-1.0, 1.0]),
+    st.sampled_from([0.04, 0.25]),
+)
+def test_footprint_range_share_is_the_mean_of_a_sliver(d, r, u, side, share) -> None:
+    # edge_hit_window (Dec 5): the range window keeps at least `share` of the footprint, so a
+    # beam whose footprint the circle covers by at least that share (a scanner with a return
+    # threshold that low returned it) reads the mean range of the rays that hit, to the
+    # closed form's linearisation error (< 0.05 mm, as above); kinks where the tangent
+    # crosses the centre ray, a footprint edge or the window's edge (share - 1/2 footprints
+    # past the centre: (1/2 - share) / 2 beams of 0.5 deg for a 0.25-degree footprint)
+    kinks = (0.0, 0.25, (0.5 - share) * FOOT / DTH)
+    c = np.array([d, 0.0])
+    alpha = math.asin(r / d)
+    far = 2.0 * alpha / DTH - u
+    for x in (u, far):
+        assume(all(abs(abs(x) - k) > 0.01 for k in kinks))
+    th = side * (alpha - u * DTH)
+    ux, uy = math.cos(th), math.sin(th)
+    b, s0 = ux * c[0] + uy * c[1], ux * c[1] - uy * c[0]
+    out = np.zeros(4)
+    assert _footprint_range_share(b, s0, r, FOOT, share, out)
+    off = FOOT * ((np.arange(4001) + 0.5) / 4001 - 0.5)
+    rays = ray_range(c, r, th + off)
+    if np.mean(np.isfinite(rays)) >= share:
+        assert out[0] == pytest.approx(np.nanmean(rays), abs=5e-5)
+    h = 1e-5
+
+    def pred_at(k: int, step: float) -> float:
+        args = [b, s0, r]
+        args[k] += step
+        o = np.zeros(4)
+        assert _footprint_range_share(*args, FOOT, share, o)
+        return float(o[0])
+
+    for k in range(3):
+        num = (-pred_at(k, 2 * h) + 8 * pred_at(k, h) - 8 * pred_at(k, -h) + pred_at(k, -2 * h)) / (
+            12 * h
+        )
+        assert out[1 + k] == pytest.approx(num, rel=1e-4, abs=1e-5)
+    # the half-footprint share is the default model to the bit
+    half = np.zeros(4)
+    _footprint_range(b, s0, r, FOOT, out)
+    assert _footprint_range_share(b, s0, r, FOOT, 0.5, half)
+    np.testing.assert_array_equal(half, out)
 
 
 def test_footprint_range_beam_behind_sensor_is_rejected() -> None:

@@ -190,6 +190,9 @@ CONFIGS["arcs_consistent_short_steps"] = {**CONFIGS["arcs_consistent"], "arc_sho
 # Dec 4: the averaging scanner's return threshold assumed anywhere in [0, 0.5] / any hit
 CONFIGS["edge_hit_unknown"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.5}
 CONFIGS["edge_hit_any"] = {"edge_hit_min": 0.0, "edge_hit_max": 0.0}
+# Dec 5: ... with the edge returns' range window following the assumed threshold
+CONFIGS["edge_hit_any_window"] = {**CONFIGS["edge_hit_any"], "edge_hit_window": True}
+CONFIGS["edge_hit_unknown_window"] = {**CONFIGS["edge_hit_unknown"], "edge_hit_window": True}
 
 
 # Dec 5: the step split (compiled since: _fast_step_split) with the step read against the

@@ -15,6 +15,7 @@ tried Dec 1, fails the 90 % bound).
 """
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -28,7 +29,8 @@ from stemmap.sim.scanner import scanner_preset, simulate_scans
 
 @pytest.fixture(scope="module")
 def fit_inputs():
-    """The fit inputs of the detector's candidate segments on a cluttered simulated stand."""
+    """The fit call of the detector's candidate segments on a cluttered simulated stand, its
+    inputs bound (keywords may be added, e.g. ``tolerance``)."""
     rng = np.random.default_rng(11)
     st = random_stand(45, (30.0, 30.0), dbh_mean=0.3, dbh_std=0.1, dbh_min=0.08, rng=rng)
     st = add_clutter(st, n_bushes=4, n_branches=4, n_walls=1, n_fences=1, n_rocks=3, rng=rng)
@@ -41,9 +43,9 @@ def fit_inputs():
         DetectorConfig.preset("stemmap", refit_pieces=False, arc_refit=False, step_split=False)
     )
 
-    def capture(*args):
-        captured.append(args)
-        return fit_ours_segments(*args)
+    def capture(*args, **kw):
+        captured.append(functools.partial(fit_ours_segments, *args, **kw))
+        return fit_ours_segments(*args, **kw)
 
     mp = pytest.MonkeyPatch()
     mp.setattr(circle_mod, "fit_ours_segments", capture)
@@ -58,8 +60,8 @@ def fit_inputs():
 
 
 def test_default_stopping_rule_against_a_tight_reference(fit_inputs):
-    out, status = fit_ours_segments(*fit_inputs)
-    ref, ref_status = fit_ours_segments(*fit_inputs, tolerance=1e-8)
+    out, status = fit_inputs()
+    ref, ref_status = fit_inputs(tolerance=1e-8)
     np.testing.assert_array_equal(status, ref_status)
     # the detector's own plausibility checks (stemmap preset: radius 2-80 cm, RMS <= 2 sigma)
     r = out[:, 2]
@@ -74,7 +76,7 @@ def test_default_stopping_rule_against_a_tight_reference(fit_inputs):
 
 def test_tight_reference_is_converged(fit_inputs):
     """Tightening further moves the reference by far less than the tolerances above."""
-    a, _ = fit_ours_segments(*fit_inputs, tolerance=1e-8)
-    b, _ = fit_ours_segments(*fit_inputs, tolerance=1e-11)
+    a, _ = fit_inputs(tolerance=1e-8)
+    b, _ = fit_inputs(tolerance=1e-11)
     ok = np.isfinite(a[:, 2]) & (a[:, 2] < 0.8)
     assert np.percentile(2.0 * np.abs(a[ok, 2] - b[ok, 2]), 99) < 1e-5

@@ -110,6 +110,7 @@ _STEP = PARAM_INDEX["step_split"]
 _STEP_NOISE = PARAM_INDEX["step_noise_on"]
 _STEP_POOL = PARAM_INDEX["step_noise_pool"]
 _STEP_BATCH_MIN = PARAM_INDEX["step_noise_batch_min"]
+_EDGE_WINDOW = PARAM_INDEX["edge_window"]
 _BIWEIGHT = PARAM_INDEX["batch_noise_biweight"]
 
 
@@ -271,7 +272,8 @@ def _detect_kernel(
     buf = np.empty((8, n))
     ws3 = np.empty((6, 3, 3))
     wv = np.empty((8, 3))
-    mdl = np.empty(10)
+    mdl = np.empty(11)
+    mdl[10] = prm[_EDGE_WINDOW]  # the edge range window's share (_fit_one leaves it)
     jtj = np.empty((3, 3))
     dnoise = np.empty(n)
     scratch = (sil, sil_fit, fit_out, tmp, buf, jtj, feat)  # _fast_candidates' scratch

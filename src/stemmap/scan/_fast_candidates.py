@@ -54,7 +54,7 @@ _PREFIT = -1
 
 #: Scratch of the kernel: silhouette priors (4,), the fit's ordered priors (4,), the fit's
 #: output (14,), per-return values (N,), the fit's buffers (8, N), a 3x3 normal matrix, the
-#: segment features (2,); and the fit's work arrays (6, 3, 3), (8, 3), (10,).
+#: segment features (2,); and the fit's work arrays (6, 3, 3), (8, 3), (11,).
 _Scratch = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
 _Work = tuple[FloatArray, FloatArray, FloatArray]
 _RAD2DEG = 180.0 / math.pi

@@ -78,7 +78,9 @@ def _abs_residual(
         f_i = 0.0
         if (i == int(mdl[6]) and mdl[3] > 0.0) or (i == int(mdl[7]) and mdl[4] > 0.0):
             f_i = mdl[5]
-        e, _, _, _, m, _, _, _ = _range_residual(i, ux, uy, rho, p[0], p[1], p[2], f_i, tmp)
+        e, _, _, _, m, _, _, _ = _range_residual(
+            i, ux, uy, rho, p[0], p[1], p[2], f_i, tmp, mdl[10]
+        )
         return math.sqrt(e * e + m * m)
     return abs(math.sqrt((lx[i] - p[0]) ** 2 + (ly[i] - p[1]) ** 2) - p[2])
 
@@ -261,8 +263,10 @@ def _fit_one(
 ) -> int:  # pragma: no cover - numba
     """Fit one segment; write cx, cy, r, cov (9), rms, sigma_used into ``out``; return status.
 
-    ``buf`` (8, >= N), ``ws3`` (6, 3, 3), ``wv`` (8, 3) and ``mdl`` (10,) are scratch space
-    shared by all segments of a batch, so a fit allocates nothing on the common path.
+    ``buf`` (8, >= N), ``ws3`` (6, 3, 3), ``wv`` (8, 3) and ``mdl`` (11,) are scratch space
+    shared by all segments of a batch, so a fit allocates nothing on the common path; the
+    caller sets ``mdl[10]``, the least share of the footprint in the edge returns' range
+    window (0.5: the default edge model; :func:`_cost_and_normal`), which the fit leaves.
     ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults). ``box``:
     refine arcs with both tangents by the uniform tangent intervals (:func:`_box_tangents`)."""
     n = px.shape[0]
@@ -472,6 +476,7 @@ def _fit_segments(
     status: np.ndarray,
     tol: float,
     box: bool,
+    share: float,
 ) -> None:  # pragma: no cover - numba
     nmax = 0
     for k in range(starts.shape[0]):
@@ -479,7 +484,8 @@ def _fit_segments(
     buf = np.empty((8, nmax))
     ws3 = np.empty((6, 3, 3))
     wv = np.empty((8, 3))
-    mdl = np.empty(10)
+    mdl = np.empty(11)
+    mdl[10] = share
     for k in range(starts.shape[0]):
         a = starts[k]
         b = stops[k]
@@ -521,6 +527,7 @@ def fit_ours_segments(
     range_model: bool = True,
     tolerance: float = 1.0,
     box_tangents: bool = True,
+    edge_window: float = 0.5,
 ) -> tuple[FloatArray, np.ndarray]:
     """Run the kernel on K segments ``px[starts[k]:stops[k]]``.
 
@@ -530,7 +537,9 @@ def fit_ours_segments(
     get a tightly converged reference of the same cost). ``box_tangents``: where both tangents
     are observed, refine the fit by the uniform tangent intervals the Gaussian silhouette terms
     stand for (:func:`_box_tangents`; the detector's default); False = the plain MAP of the
-    Gaussian surrogate.
+    Gaussian surrogate. ``edge_window``: the least share of the footprint in the range window
+    of a footprint-averaged edge return (:func:`stemmap.scan._fit_lm._footprint_range_share`;
+    0.5, the default edge model; ``DetectorConfig.edge_hit_window``).
 
     Returns
     -------
@@ -563,6 +572,7 @@ def fit_ours_segments(
         status,
         float(tolerance),
         bool(box_tangents),
+        float(edge_window),
     )
     out[status != OK] = np.nan
     return out, status

@@ -108,6 +108,15 @@ def _huber(e: float, robust: bool) -> tuple[float, float]:  # pragma: no cover -
 def _footprint_range(
     b: float, s0: float, r: float, foot: float, out: FloatArray
 ) -> bool:  # pragma: no cover - numba
+    """:func:`_footprint_range_share` with the half-footprint window (the fit's default edge
+    model: a beam returns when half its footprint hits)."""
+    return _footprint_range_share(b, s0, r, foot, 0.5, out)
+
+
+@leaf_njit(inline="always")
+def _footprint_range_share(
+    b: float, s0: float, r: float, foot: float, share: float, out: FloatArray
+) -> bool:  # pragma: no cover - numba
     """Mean range over the part of a beam footprint that hits the circle, and its partials.
 
     The beam's centre ray has unit direction u; ``b = u . c`` and ``s0 = u x c`` (signed
@@ -117,19 +126,26 @@ def _footprint_range(
     ``b + s0 delta - sqrt(r^2 - (s0 - b delta)^2)``. Averaged over the hit part
     [da, db] of the footprint (|s0 - b delta| <= r) the square root integrates in closed form.
 
-    A beam returns only if at least half its footprint hits (its centre ray hits). When the
-    circle leaves less than that, the window is kept at the half footprint on the circle's
-    side (rays past the tangent count at their closest approach, the square root being 0
-    there): the prediction and its derivatives stay bounded and continuous where the model
-    says the beam should not have returned; the silhouette term pulls the circle back.
+    A beam returns only if at least a ``share`` of its footprint hits (0.5: its centre ray
+    hits). When the circle leaves less than that, the window is kept at that share of the
+    footprint on the circle's side (rays past the tangent count at their closest approach, the
+    square root being 0 there): the prediction and its derivatives stay bounded and continuous
+    where the model says the beam should not have returned; the silhouette term pulls the
+    circle back. A share below one half (``DetectorConfig.edge_hit_window``, Dec 5) lets a
+    sliver of the footprint on the circle read as the sliver's own mean range, as a scanner
+    with a lower return threshold reports it, instead of as half a footprint whose rest lies
+    past the tangent (a nearer range explained by a wider circle).
     Writes (pred, d pred/d b, d pred/d s0, d pred/d r) to ``out``; False if b <= 0."""
     if not b > 0.0:
         return False
     half = 0.5 * foot
     lo_c = (s0 - r) / b
     hi_c = (s0 + r) / b
-    da = max(-half, min(lo_c, 0.0))
-    db = min(half, max(hi_c, 0.0))
+    # the window reaches at least (share - 1/2) footprints past the centre ray on the circle's
+    # side (0 for the half footprint)
+    qw = share * foot - half
+    da = max(-half, min(lo_c, -qw))
+    db = min(half, max(hi_c, qw))
     wd = db - da
     if not wd > 1e-12 * foot:
         return False
@@ -151,12 +167,12 @@ def _footprint_range(
     p_b = 1.0 - ds_b / bw + S / (b * bw)
     p_s = 0.5 * (da + db) - ds_s0 / bw
     p_r = -ds_r / bw
-    if -half < lo_c < 0.0:  # the lower limit is the circle's edge: da = (s0 - r) / b
+    if -half < lo_c < -qw:  # the lower limit is the circle's edge: da = (s0 - r) / b
         p_da = 0.5 * s0 + b * fpa / bw - S / (bw * wd)
         p_b += p_da * (-lo_c / b)
         p_s += p_da / b
         p_r += -p_da / b
-    if 0.0 < hi_c < half:  # the upper limit is the circle's edge: db = (s0 + r) / b
+    if qw < hi_c < half:  # the upper limit is the circle's edge: db = (s0 + r) / b
         p_db = 0.5 * s0 - b * fpb / bw + S / (bw * wd)
         p_b += p_db * (-hi_c / b)
         p_s += p_db / b
@@ -179,10 +195,12 @@ def _range_residual(
     r: float,
     foot: float,
     tmp: FloatArray,
+    share: float,
 ) -> tuple[float, float, float, float, float, float, float, float]:  # pragma: no cover
     """Range residual of return i (metres) along its beam and its Jacobian over (cx, cy, r),
     plus a second "miss" residual (distance by which the beam passes the circle) and its
-    Jacobian: (e, j0, j1, j2, m, k0, k1, k2). ``foot > 0``: footprint-averaged prediction.
+    Jacobian: (e, j0, j1, j2, m, k0, k1, k2). ``foot > 0``: footprint-averaged prediction,
+    the window at least ``share`` of the footprint (:func:`_footprint_range_share`).
     ``uxs``, ``uys``: unit beam directions of the returns."""
     ux = uxs[i]
     uy = uys[i]
@@ -190,7 +208,7 @@ def _range_residual(
     s0 = ux * cy - uy * cx
     # d b / d(cx, cy) = u; d s0 / d(cx, cy) = (-uy, ux)
     if foot > 0.0:
-        if _footprint_range(b, s0, r, foot, tmp):
+        if _footprint_range_share(b, s0, r, foot, share, tmp):
             e = rho[i] - tmp[0]
             return (
                 e,
@@ -242,10 +260,13 @@ def _cost_and_normal(
     step is rejected either way (``cap = inf``: always the full evaluation).
 
     ``mdl`` = (1/sigma, t_lo, t_hi, 1/s_lo, 1/s_hi, footprint, i_lo, i_hi, range_model,
-    use_sil): silhouette targets and inverse stds (0 = side unused), beam footprint (rad),
+    use_sil, share): silhouette targets and inverse stds (0 = side unused), beam footprint (rad),
     indices of the lowest/highest-bearing returns (footprint-averaged in the range model) and
-    whether residuals are ranges along the beams (1) or orthogonal distances (0). ``tmp``
-    (>= 4) is scratch space."""
+    whether residuals are ranges along the beams (1) or orthogonal distances (0), and the
+    least share of the footprint the edge returns' range window keeps (0.5: the default
+    model; :func:`_footprint_range_share`; set by the caller of :func:`_fit_one`, which leaves
+    it; read with the range model only, so orthogonal-distance callers such as
+    :mod:`stemmap.cloud.slicefit` pass 10 entries). ``tmp`` (>= 4) is scratch space."""
     acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     cost = 0.0
     n = lx.shape[0]
@@ -254,6 +275,8 @@ def _cost_and_normal(
     foot = mdl[5]
     i_lo = int(mdl[6])
     i_hi = int(mdl[7])
+    # read by the range model only: an orthogonal-distance caller may pass 10 entries
+    share = mdl[10] if range_model else 0.5
     for i in range(n):
         if keep[i] == 0.0:
             continue
@@ -261,7 +284,9 @@ def _cost_and_normal(
             f_i = 0.0
             if (i == i_lo and mdl[3] > 0.0) or (i == i_hi and mdl[4] > 0.0):
                 f_i = foot
-            e, j0, j1, j2, m, k0, k1, k2 = _range_residual(i, ux, uy, rho, cx, cy, r, f_i, tmp)
+            e, j0, j1, j2, m, k0, k1, k2 = _range_residual(
+                i, ux, uy, rho, cx, cy, r, f_i, tmp, share
+            )
             e *= inv_sigma
             c_e, w = _huber(e, robust)
             cost += c_e

@@ -98,6 +98,7 @@ PARAM_NAMES = (
     "step_noise_pool",  # ... scans without an estimate share their pooled one (scan_noise pool)
     "step_noise_batch_min",  # ... still without one take every scan's when >= this (inf: off)
     "batch_noise_biweight",  # 1: every scan's pooled estimate is the biweight's (not the MAD's)
+    "edge_window",  # least share of the footprint in the edge returns' range window (0.5)
 )
 PARAM_INDEX = {name: i for i, name in enumerate(PARAM_NAMES)}
 N_PARAMS = len(PARAM_NAMES)
@@ -198,6 +199,7 @@ def kernel_params(
         "step_noise_pool": cfg.step_noise_pool != "batch",
         "step_noise_batch_min": _step_batch_min(cfg),
         "batch_noise_biweight": cfg.batch_noise_scale == "biweight",
+        "edge_window": cfg.edge_window_share(),
     }
     prm = np.empty(N_PARAMS)
     for name, v in values.items():

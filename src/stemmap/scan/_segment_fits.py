@@ -123,6 +123,7 @@ def _fit_segments(
     silhouette: FloatArray | None = None,
     beam_divergence: float = 0.0,
     residuals: str = "range",
+    edge_window: float = 0.5,
 ) -> tuple[FloatArray, FloatArray, FloatArray, np.ndarray]:
     """Fit every segment with ``method``: centers (K, 2), radii (K,), covs (K, 3, 3), ok (K,).
 
@@ -130,9 +131,10 @@ def _fit_segments(
     through :func:`stemmap.scan.circle.fit_circles_batch` (compiled loop for "ours"), with the
     sensor at the origin, the beam spacing, and each end flagged as a true silhouette edge
     unless it is occluded or truncated. ``silhouette`` (K, 2, 2) (segment start, end: offset,
-    std in beams; :func:`~stemmap.scan.features.edge_silhouette`), ``beam_divergence`` (rad)
-    and ``residuals`` are passed to "ours". The fits take the ends in bearing order, so with a
-    negative angle increment the start is the *last* end.
+    std in beams; :func:`~stemmap.scan.features.edge_silhouette`), ``beam_divergence`` (rad),
+    ``residuals`` and ``edge_window`` (the edge range window's least share of the footprint,
+    :func:`stemmap.scan.circle.fit_circles_batch`) are passed to "ours". The fits take the
+    ends in bearing order, so with a negative angle increment the start is the *last* end.
     """
     k = len(segs)
     covs = np.full((k, 3, 3), np.nan)
@@ -155,6 +157,7 @@ def _fit_segments(
                 "silhouette": silhouette,
                 "beam_divergence": beam_divergence,
                 "residuals": residuals,
+                "edge_window": edge_window,
             }
         res = batch_fn(
             np.column_stack((p.x, p.y)),

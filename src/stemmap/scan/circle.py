@@ -475,6 +475,13 @@ class CircleFits:
 _STATUS_TEXT = np.array([STATUS_MESSAGES[k] for k in range(max(STATUS_MESSAGES) + 1)], dtype=object)
 
 
+def _check_edge_window(share: float) -> float:
+    """The edge range window's share of the footprint, checked (``fit_circles_batch``)."""
+    if not 0.0 < share <= 1.0:
+        raise InputError(f"edge_window must be in (0, 1], got {share}.")
+    return float(share)
+
+
 def fit_circles_batch(
     points: ArrayLike,
     segment_ids: ArrayLike,
@@ -487,6 +494,7 @@ def fit_circles_batch(
     beam_divergence: float | None = None,
     silhouette: ArrayLike | None = None,
     residuals: str = "range",
+    edge_window: float = 0.5,
 ) -> CircleFits:
     """Fit one circle per segment of a batch of points.
 
@@ -513,6 +521,10 @@ def fit_circles_batch(
     beam_divergence, residuals : see :func:`fit_circle_ours` (ours only).
     silhouette : array_like of shape (2, 2) or (K, 2, 2), optional
         Per segment, see :func:`fit_circle_ours` (ours only).
+    edge_window : float in (0, 1]
+        Least share of the footprint in the range window of an averaging scanner's edge return
+        (ours only; 0.5 = the default edge model, a beam returns when half its footprint hits;
+        ``DetectorConfig.edge_hit_window``).
 
     Returns
     -------
@@ -598,6 +610,7 @@ def fit_circles_batch(
             sil,
             foot,
             use_range,
+            edge_window=_check_edge_window(edge_window),
         )
         ok = status == 0
         return CircleFits(

@@ -16,7 +16,13 @@ from stemmap.errors import ConfigError
 from stemmap.scan import circle as _circle
 from stemmap.scan._presets import ARC_OPTIONS, PRESET_NOTES, PRESETS
 
-__all__ = ["ARC_OPTIONS", "PRESETS", "PRESET_NOTES", "DetectorConfig"]
+__all__ = ["ARC_OPTIONS", "EDGE_WINDOW_MIN", "PRESETS", "PRESET_NOTES", "DetectorConfig"]
+
+#: The least share of the footprint in an edge return's range window with ``edge_hit_window``
+#: (``DetectorConfig.edge_window_share``): 1/25, one sub-ray of the simulator's and the
+#: real-geometry benchmark's footprints; a thinner sliver's mean range differs from it by less
+#: than a millimetre at a trunk edge (0.25-degree footprint).
+EDGE_WINDOW_MIN = 0.04
 
 
 def _fit_methods() -> dict[str, Any]:
@@ -147,6 +153,13 @@ class DetectorConfig:
         the next. A scanner that returns when any part of its footprint hits is 0 / 0; an
         unknown threshold ``0 / 0.5`` (the prior widened by half a footprint). Needs
         ``fit_method="ours"``, ``neighbour_silhouette`` and ``beam_divergence_deg`` > 0.
+    edge_hit_window : bool
+        The range model of the two edge returns follows the assumed threshold too (ours,
+        Dec 5): a footprint the circle covers by less than half is averaged over the part it
+        covers (at least ``edge_hit_min``, and :data:`EDGE_WINDOW_MIN`), not over half a
+        footprint whose rest lies past the tangent, which reads a thin sliver's nearer range
+        as a wider circle. Off by default; a no-op at ``edge_hit_min`` 0.5
+        (docs/algorithms/scan-detection.md, "The averaging edge bias against textbook Kasa").
     fit_residuals : {"range", "orthogonal"}
         Noise model of the ``ours`` fit: range noise along each beam (default) or orthogonal
         distances (the fit before the edge model).
@@ -608,6 +621,7 @@ class DetectorConfig:
     neighbour_silhouette: bool = True
     edge_hit_min: float = 0.5
     edge_hit_max: float = 0.5
+    edge_hit_window: bool = False
     fit_residuals: Literal["range", "orthogonal"] = "range"
     sigma_from_data: bool = False
     roughness_max_factor: float = 3.0
@@ -840,6 +854,15 @@ class DetectorConfig:
                 f"registered (available: {sorted(_fit_methods())}); pass fit_method=..."
             )
         return cls(**values)
+
+    def edge_window_share(self) -> float:
+        """The least share of the footprint in an averaging edge return's range window: 0.5
+        (the default edge model), or with ``edge_hit_window`` the assumed threshold's lower
+        end ``edge_hit_min``, at least :data:`EDGE_WINDOW_MIN` (a window of nothing has no
+        mean range)."""
+        if not self.edge_hit_window:
+            return 0.5
+        return max(self.edge_hit_min, EDGE_WINDOW_MIN)
 
     def scan_noise_batch_min(self) -> float:
         """The smallest batch noise estimate a scan without its own takes, metres

@@ -623,6 +623,7 @@ class ScanTrunkDetector:
             silhouette=sil,
             beam_divergence=divergence,
             residuals=cfg.fit_residuals,
+            edge_window=cfg.edge_window_share(),
         )
         f_width = segment_widths(segs)
         sil_width = f_width
