@@ -108,7 +108,7 @@ _ARCS_35: dict[str, Any] = {**_ARCS_29, "arc_tangent_sigmas": 3.0, "arc_chi2": T
 #: round"); by the tenth round bark 5 % and the two arc settings with ``sigma_from_scan`` no
 #: longer did (demo 0.919 / 0.949 / 0.948), so ``--loo`` now checks every setting on the
 #: current code and chooses among those that keep it (since the sixteenth round on the mean
-#: over seeds 1-10, ``_scan_sim.SIM_SEEDS``; before, on seed 1 alone). The
+#: over ``_scan_sim.SIM_SEEDS``, seeds 1-10, since Dec 6 1-20; before, on seed 1 alone). The
 #: grid: bark 0 / 3 / 5 %, largest-gap cuts (with and without a 5 sigma floor on the gap's
 #: excess over the median gap), re-fitting outlier-trimmed pieces, no straightness rejection
 #: of segments bulging 3 / 4 sigma towards the sensor. Measured
