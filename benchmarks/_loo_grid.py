@@ -519,6 +519,29 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         )
         for ingredient in ({}, {"scan_noise_batch": 2.5})
     ),
+    # Dec 5 ("Grid 85 with the lidR fold's helpful ingredients"), grids 88-90: grid 85 (the
+    # preset) with the two of grid 72's ingredients that raised the lidR fold's training score
+    # (the by-scanner section, part 3), both and each alone: the RMS test reading the batch's
+    # noise where it is >= 2.5 sigma (88, 89), the bend test of straightness (88, 90)
+    *(
+        _setting(
+            **_DEFAULT_11,
+            **_ARCS_35,
+            **_STEP_BATCH_59,
+            **_RUNS_63,
+            stub_runs_snoop=True,
+            batch_noise_scale="biweight",
+            cut_ends=True,
+            stub_runs_worst=True,
+            stub_runs_inner=True,
+            **ingredient,
+        )
+        for ingredient in (
+            {"scan_noise_batch": 2.5, "straight_curvature": True},
+            {"scan_noise_batch": 2.5},
+            {"straight_curvature": True},
+        )
+    ),
     # Dec 5 ("The averaging edge bias against textbook Kasa"): grid 85 (the preset) assuming an
     # any-hit scanner (91) or a threshold anywhere in [0, 0.5] (92) with the edge returns'
     # range window following the assumed threshold (edge_hit_window)

@@ -62,6 +62,7 @@ from _loo_choice import (  # the choice; the underscored names re-exported for o
     reference_trusted,
     train_score,
 )
+from _loo_greedy import GREEDY_EPS, greedy_loo
 from _loo_grid import LOO_EXTRA, LOO_GRID
 from _real_scanning import (  # shared with real_geometry_diagnose.py and scan_noise.py
     AVERAGING_SCANNERS,
@@ -316,6 +317,10 @@ def leave_one_out(
     fill: str = "circle",
     max_fill_returns: int | None = None,
     by_scanner: bool = False,
+    greedy_eps: float | None = None,
+    greedy_only: bool = False,
+    greedy_folds: list[str] | None = None,
+    greedy_cache: Path | None = None,
 ) -> dict[str, Any]:
     """Choose :data:`LOO_GRID` on all datasets but one (mean :func:`_objective` over the other
     datasets and the scanner configurations), report the choice on the held-out one. A dataset
@@ -338,35 +343,39 @@ def leave_one_out(
     ``by_scanner`` (Dec 5, ``--by-scanner``): each held-out dataset also gets the choice made
     separately on the nearest-return rows and on the averaging rows
     (:func:`_loo_choice.choose_by_family`, the same admission), each reported held out on its
-    family's rows (``held_out[name]["by_scanner"]``)."""
+    family's rows (``held_out[name]["by_scanner"]``). ``greedy_eps`` (Dec 5, ``--greedy``):
+    also the greedy forward selection from the preset over the grid's ingredients
+    (:mod:`_loo_greedy`, the same objective and admission), per held-out dataset and on every
+    training dataset (``greedy``); ``greedy_only``: that alone, the grid not run (only the
+    preset's setting, the start), for the folds ``greedy_folds`` (held-out names and / or
+    ``all_trusted``; default every one)."""
     checked: dict[int, dict[str, Any]] = {}
+    sims: dict[str, dict[str, Any]] = {}  # simulated targets by effective configuration
 
-    def admitted(g: int) -> bool:
+    def key(s: dict[str, Any]) -> str:
+        return repr(sorted(DetectorConfig.preset("stemmap", **s).to_dict().items()))
+
+    def admitted_setting(s: dict[str, Any]) -> bool:
         if not sim_check:
             return True
-        if g not in checked:
-            checked[g] = simulated_precision_seeds(LOO_GRID[g], sim_seeds)
-        return bool(checked[g]["admitted"])
+        if key(s) not in sims:
+            sims[key(s)] = {"setting": str(s), **simulated_precision_seeds(s, sim_seeds)}
+        return bool(sims[key(s)]["admitted"])
 
-    per: dict[str, dict[int, dict[str, Any]]] = {}
-    trusted: dict[str, tuple[bool, float]] = {}
-    for name in names:
-        sl = load_slice(ddir, name, fill)
-        if not sl.refs:
-            continue
-        trusted[name] = reference_trusted(sl)
-        dets = {
-            str(g): DetectorConfig.preset("stemmap", **LOO_GRID[g]) for g in range(len(LOO_GRID))
-        }
-        for x, extra in enumerate(LOO_EXTRA):
-            dets[f"x{x}"] = DetectorConfig.preset("stemmap", **extra)
-        dets["textbook_kasa"] = TEXTBOOK
-        # every scanner under the benchmark's return rule, then the averaging configurations
-        # again under each further return threshold (the same vantage points: the seed is the
-        # dataset's), named <config>@<rule>
-        avg = tuple(sc for sc in scanners if sc[0] == "averaging")
-        runs = [(scanners, return_rule, "")]
-        runs += [(avg, rule, f"@{rule.note()}") for rule in extra_rules]
+    def admitted(g: int) -> bool:
+        ok = admitted_setting(LOO_GRID[g])
+        if sim_check:
+            checked[g] = sims[key(LOO_GRID[g])]
+        return ok
+
+    # every scanner under the benchmark's return rule, then the averaging configurations
+    # again under each further return threshold (the same vantage points: the seed is the
+    # dataset's), named <config>@<rule>
+    avg = tuple(sc for sc in scanners if sc[0] == "averaging")
+    runs = [(scanners, return_rule, "")]
+    runs += [(avg, rule, f"@{rule.note()}") for rule in extra_rules]
+
+    def run_rows(sl: RealSlice, dets: dict[str, Any]) -> dict[str, Any]:
         res: dict[str, Any] = {}
         for scs, rule, tag in runs:
             one = run_dataset(
@@ -375,26 +384,65 @@ def leave_one_out(
                 dets,
                 n_vantage=n_vantage,
                 min_returns=min_returns,
-                seed=dataset_seed(seed, name),
+                seed=dataset_seed(seed, sl.name),
                 background=background,
                 return_rule=rule,
                 max_fill_returns=max_fill_returns,
             )
             res.update({f"{k}{tag}": v for k, v in one.items()})
-        per[name] = {
-            g: {sc: conf[str(g)] for sc, conf in res.items()} for g in range(len(LOO_GRID))
-        }
+        return res
+
+    per: dict[str, dict[int, dict[str, Any]]] = {}
+    trusted: dict[str, tuple[bool, float]] = {}
+    slices: dict[str, RealSlice] = {}
+    start = next(g for g in range(len(LOO_GRID)) if key(LOO_GRID[g]) == key({}))
+    grid_run = [start] if greedy_only else list(range(len(LOO_GRID)))
+    for name in names:
+        sl = load_slice(ddir, name, fill)
+        if not sl.refs:
+            continue
+        slices[name] = sl
+        trusted[name] = reference_trusted(sl)
+        dets = {str(g): DetectorConfig.preset("stemmap", **LOO_GRID[g]) for g in grid_run}
+        for x, extra in enumerate(() if greedy_only else LOO_EXTRA):
+            dets[f"x{x}"] = DetectorConfig.preset("stemmap", **extra)
+        dets["textbook_kasa"] = TEXTBOOK
+        res = run_rows(sl, dets)
+        per[name] = {g: {sc: conf[str(g)] for sc, conf in res.items()} for g in grid_run}
         per[name][-1] = {sc: conf["textbook_kasa"] for sc, conf in res.items()}
-        for x in range(len(LOO_EXTRA)):
+        for x in range(0 if greedy_only else len(LOO_EXTRA)):
             per[name][-2 - x] = {sc: conf[f"x{x}"] for sc, conf in res.items()}
+    scored = [n for n in per if any(r["all"]["visible"] for r in per[n][start].values())]
+    trains = [n for n in scored if train_all or trusted[n][0]]
+    greedy = None
+    if greedy_eps is not None:
+        greedy = greedy_loo(
+            LOO_GRID,
+            per,
+            slices,
+            run_rows,
+            key,
+            admitted_setting,
+            scored,
+            trains,
+            greedy_eps,
+            start,
+            greedy_folds,
+            greedy_cache,
+        )
+    if greedy_only:
+        return {
+            "training_datasets": trains,
+            "reference_jackknife_rms_cm": {n: round(trusted[n][1], 2) for n in scored},
+            "greedy": greedy,
+            "simulated_by_setting": list(sims.values()),
+        }
     table: dict[str, Any] = {}
     compiled = [
         g
         for g in range(len(LOO_GRID))
         if ScanTrunkDetector(DetectorConfig.preset("stemmap", **LOO_GRID[g]))._compiled(None, None)
     ]
-    scored = [n for n in per if any(r["all"]["visible"] for r in per[n][0].values())]
-    trains = [n for n in scored if train_all or trusted[n][0]]
     for held in scored:
         train = [n for n in trains if n != held]
 
@@ -513,12 +561,16 @@ def leave_one_out(
             n: objectives_by_row(per[n], range(len(LOO_GRID))) for n in scored
         },
         "simulated_precision": {
-            str(g): {"setting": str(LOO_GRID[g]), **checked[g]} for g in sorted(checked)
+            str(g): {**checked[g], "setting": str(LOO_GRID[g])} for g in sorted(checked)
         },
         "reference_jackknife_rms_cm": {n: round(trusted[n][1], 2) for n in scored},
         "grid_score_all_datasets": all_scores,
         "grid_score_all_datasets_capped_rmse": capped,
         "held_out": table,
+        # Dec 5 (--greedy): the greedy forward selection from the preset, per fold and on
+        # every training dataset, and the simulated targets of every setting it asked
+        "greedy": greedy,
+        "simulated_by_setting": list(sims.values()),
     }
 
 
@@ -665,6 +717,33 @@ def main(argv: list[str] | None = None) -> int:
         " fill its unseen sectors (default: every view, every round's benchmark; 1: views of"
         " the side no lidar saw do not count, Dec 5, 'aRchi tree 1: the reference settled')",
     )
+    ap.add_argument(
+        "--greedy",
+        action="store_true",
+        help="--loo: also the greedy forward selection from the preset over every option value"
+        " a grid setting sets differently (_loo_greedy.py), per fold and on every training set",
+    )
+    ap.add_argument(
+        "--greedy-eps",
+        type=float,
+        default=GREEDY_EPS,
+        help=f"--greedy: stop when no ingredient raises the training score by more (default"
+        f" {GREEDY_EPS})",
+    )
+    ap.add_argument(
+        "--greedy-only",
+        nargs="*",
+        default=None,
+        metavar="FOLD",
+        help="--loo: only the greedy selection (the grid not run), for these folds (held-out"
+        " dataset names and / or all_trusted; none given: every one)",
+    )
+    ap.add_argument(
+        "--greedy-cache",
+        type=Path,
+        default=None,
+        help="--greedy: also keep each setting's rows in this folder (shared by parallel runs)",
+    )
     args = ap.parse_args(argv)
     rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)
     if args.sim_precision:
@@ -715,7 +794,16 @@ def main(argv: list[str] | None = None) -> int:
             fill=args.fill,
             max_fill_returns=args.max_fill_returns,
             by_scanner=args.by_scanner,
+            greedy_eps=args.greedy_eps if args.greedy or args.greedy_only is not None else None,
+            greedy_only=args.greedy_only is not None,
+            greedy_folds=args.greedy_only or None,
+            greedy_cache=args.greedy_cache,
         )
+        if args.greedy_only is not None:
+            loo["runtime_s"] = round(time.perf_counter() - t0, 1)
+            loo["scenario"] = {"vantage_points_per_dataset": n_vantage, "seed": args.seed}
+            print(json.dumps(loo))
+            return 0
         loo["scenario"] = {
             "scanners_model_res_deg_noise_m": [list(s) for s in scanners],
             "averaging_return": rule.note(),
