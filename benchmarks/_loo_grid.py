@@ -138,6 +138,19 @@ _STEP_BATCH_59: dict[str, Any] = {
 _GRID_60: dict[str, Any] = {**_STEP_BATCH_59, "edge_hit_min": 0.0, "edge_hit_max": 0.0}
 #: Dec 5, "lidR view by view": the fit's measured noise and the stub test by runs.
 _RUNS_63: dict[str, Any] = {"fit_noise_floor": 0.003, "stub_sigmas": 2.0, "stub_runs": True}
+#: Grid 85, the `stemmap` preset since Dec 5 13:15 UTC (scan-detection.md "Grid 85 is the
+#: `stemmap` preset"): the base of grids 88-92.
+_GRID_85: dict[str, Any] = {
+    **_DEFAULT_11,
+    **_ARCS_35,
+    **_STEP_BATCH_59,
+    **_RUNS_63,
+    "stub_runs_snoop": True,
+    "batch_noise_scale": "biweight",
+    "cut_ends": True,
+    "stub_runs_worst": True,
+    "stub_runs_inner": True,
+}
 
 LOO_GRID: tuple[dict[str, Any], ...] = (
     _setting(bark=0.03),  # the default of the second round (straightness test unchanged)
@@ -492,15 +505,7 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # test's inner explanation (stub_runs_inner): needles or a twig in front of the bark
     # inside the arc are dropped instead of the stem's own end returns
     _setting(
-        **_DEFAULT_11,
-        **_ARCS_35,
-        **_STEP_BATCH_59,
-        **_RUNS_63,
-        stub_runs_snoop=True,
-        batch_noise_scale="biweight",
-        cut_ends=True,
-        stub_runs_worst=True,
-        stub_runs_inner=True,
+        **_GRID_85,
     ),
     # Dec 5 ("Noisy first-echo rows"): grid 80 and 81 (80 + scan_noise_batch 2.5) with the
     # precision gate, a first-echo candidate whose fit's own DBH std exceeds the 3 cm target
@@ -525,15 +530,7 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # noise where it is >= 2.5 sigma (88, 89), the bend test of straightness (88, 90)
     *(
         _setting(
-            **_DEFAULT_11,
-            **_ARCS_35,
-            **_STEP_BATCH_59,
-            **_RUNS_63,
-            stub_runs_snoop=True,
-            batch_noise_scale="biweight",
-            cut_ends=True,
-            stub_runs_worst=True,
-            stub_runs_inner=True,
+            **_GRID_85,
             **ingredient,
         )
         for ingredient in (
@@ -547,15 +544,7 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     # range window following the assumed threshold (edge_hit_window)
     *(
         _setting(
-            **_DEFAULT_11,
-            **_ARCS_35,
-            **_STEP_BATCH_59,
-            **_RUNS_63,
-            stub_runs_snoop=True,
-            batch_noise_scale="biweight",
-            cut_ends=True,
-            stub_runs_worst=True,
-            stub_runs_inner=True,
+            **_GRID_85,
             edge_hit_window=True,
             **edge,
         )
