@@ -107,6 +107,12 @@ def rows(loo: dict[str, Any], chosen: bool, setting: str | None) -> list[dict[st
                 for sc, r in base.items()
             }
         else:
+            if "added_settings" not in t:
+                raise SystemExit(
+                    "kasa_count: this LOO JSON holds only the held-out choices; compare them with"
+                    " --chosen, or re-run real_geometry.py --loo with --baseline-grid N (N above"
+                    " the preset's grid index) to score the preset or --setting"
+                )
             added = t["added_settings"]
             key = setting if setting is not None else default_index(loo)
             ours = {
@@ -275,6 +281,16 @@ def default_index(loo: dict[str, Any]) -> str:
     raise SystemExit("no grid setting equals the stemmap preset")
 
 
+def compared_label(loo: dict[str, Any], chosen: bool, setting: str | None) -> str:
+    """What the output's ``ours`` side is: the held-out choices, a named grid setting, or the
+    preset's grid setting."""
+    if chosen:
+        return "chosen"
+    if setting is not None:
+        return f"grid {setting}"
+    return f"default (grid {default_index(loo)})"
+
+
 def tally(rs: list[dict[str, Any]]) -> dict[str, Any]:
     """Counts and sizes of the losses over ``rs``."""
     rec = [r for r in rs if r["recall_loss"] > 0]
@@ -398,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
         sim = sim_sides(args.sim, over)
     for r in rs:
         fair_sides(r, sim)
-    out: dict[str, Any] = {"compared": "chosen" if args.chosen else "default"}
+    out: dict[str, Any] = {"compared": compared_label(loo, args.chosen, args.setting)}
     if sim is not None:
         out["simulated"] = {
             k: (v if k == "seeds" else {x: y for x, y in v.items() if x != "per_seed"})

@@ -70,6 +70,21 @@ def test_the_default_is_the_grid_setting_that_equals_the_preset(kc):
     assert kc.default_index(_loo((1, 1, 1), (1, 1, 1))) == "0"
 
 
+def test_the_output_names_what_ours_is(kc):
+    loo = _loo((1, 1, 1), (1, 1, 1))
+    assert kc.compared_label(loo, True, None) == "chosen"
+    assert kc.compared_label(loo, False, "1") == "grid 1"
+    assert kc.compared_label(loo, False, None) == "default (grid 0)"
+
+
+def test_a_loo_without_added_settings_says_how_to_get_them(kc):
+    loo = _loo((1, 1, 1), (1, 1, 1))
+    del loo["held_out"]["d"]["added_settings"]
+    with pytest.raises(SystemExit, match="--baseline-grid"):
+        kc.rows(loo, False, None)
+    assert kc.rows(loo, True, None)  # the held-out choices need none
+
+
 def _loo3(ours_rec3, kasa_rec3, ours_rec=0.9, kasa_rec=0.95):
     """:func:`_loo` with the recall within 3 cm of both (``recall_3cm``, Dec 5)."""
     loo = _loo((ours_rec, 1.0, 2.0), (kasa_rec, 1.0, 9.0))
