@@ -9,7 +9,7 @@ Per cloud of ``_cloud_refs`` (every stem with a ring seed) and per transform of
   ``--half``), about the shipped cloud's converged ring (fixed centre and radius: no
   detector): the least-squares circle of the transformed cloud's ring (``ring_reference``
   from the shipped ring's circle), the girth and caliper diameters of
-  :func:`stemmap.cloud.girth.section_girth`, and the raw convex hull of the same returns
+  :func:`_girth.section_girth`, and the raw convex hull of the same returns
   (perimeter / pi: what noise and sparse returns do to it);
 * ``detector``: ``detect_stems_file`` (preset ours, default or ``--set``) on the transformed
   cloud written to LAS; each detection's section at its breast-height z (half thickness 5 cm,
@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from _cloud_refs import CLOUDS, fixed_references, load_seeds, match_stems
+from _girth import hull_perimeter, section_girth
 from cloud_robustness import (
     TRANSFORMS,
     Context,
@@ -44,7 +45,6 @@ from cloud_robustness import (
     set_overrides,
     transformed_files,
 )
-from stemmap.cloud.girth import hull_perimeter, section_girth
 from stemmap.cloud.reference import ring_reference
 from stemmap.cloud.result import BASE_SLICE, CloudStems
 from stemmap.cloud.stems import StemConfig, detect_stems_file

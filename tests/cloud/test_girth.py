@@ -1,4 +1,4 @@
-"""Tape (girth) and caliper diameters of a section (:mod:`stemmap.cloud.girth`;
+"""Tape (girth) and caliper diameters of a section (`benchmarks/_girth.py`;
 docs/algorithms/cloud.md "Out-of-round stems: tape and calipers")."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stemmap.cloud.girth import caliper_widths, hull_perimeter, section_girth
+from _girth import caliper_widths, hull_perimeter, section_girth
 
 
 def _ring(r: float, n: int, sigma: float, seed: int, arc: tuple[float, float] = (0, 360)):

@@ -2,21 +2,22 @@
 whole band (``StemConfig.dbh_from``; docs/algorithms/cloud.md "Breast-height DBH, stage by
 stage: the line through a flared profile").
 
-The default DBH is the Theil-Sen line through the kept slices' radii (0.8-2.0 m) evaluated at
-breast height (:func:`~stemmap.cloud.slicestem._stem_at`). A stem's profile in that band is
+Before Dec 6 the DBH was the Theil-Sen line through the kept slices' radii (0.8-2.0 m) evaluated
+at breast height (:func:`~stemmap.cloud.slicestem._stem_at`). A stem's profile in that band is
 not a line: the root flare widens the lowest slices and fades by about breast height, so the
 profile is convex and a line through it passes above the stem in the band's middle. On treels
 pine_plot.laz the ten full-ring stems' slice fits agree with a plain least-squares ring of the
-same slice within 0.13 cm RMS (bias -0.02 cm), while the line at 1.3 m is 0.40 cm above the
-ring on average (0.76 cm RMSE), and the same line through the plain rings is too
-(+0.40 cm): the line, not the fits, makes the bias (``benchmarks/cloud_dbh_trace.py``).
+same slice within 0.13 cm RMS (bias -0.02 cm), while the line at 1.3 m is 0.40 cm above the ring
+on average (0.76 cm RMSE), and the same line through the plain rings is too (+0.40 cm): the
+line, not the fits, makes the bias (``benchmarks/cloud_dbh_trace.py``).
 
-``dbh_from`` values: ``"line"`` (the default, as before), ``"slice"`` (the kept slice that
+``dbh_from`` values: ``"line"`` (the default until Dec 6), ``"slice"`` (the kept slice that
 holds the measurement height, as ``thick_dbh_slice`` does for a sparse plot's thick slices:
 :func:`~stemmap.cloud.slicestem._stem_at` with ``at_slice``), ``"median"`` (this module: the
 median of the kept slices within one slice thickness of the measurement height -- the slice
 holding it and its neighbours -- when there are at least three; a branch stub or a knot in
-one of them does not move it). Both keep the line's centre, lean correction and taper test.
+one of them does not move it; the default since Dec 6, docs "The median at breast height is
+the default"). Both keep the line's centre, lean correction and taper test.
 """
 
 from __future__ import annotations
