@@ -171,6 +171,12 @@ class StemConfig:
         the line's (:mod:`~stemmap.cloud.bhradius`). ``"median"`` since Dec 6 (the section at
         breast height, as a tape measures it; docs/algorithms/cloud.md "Breast-height DBH,
         stage by stage" and "The median at breast height is the default")
+    dbh_sd_scatter : float -- k >= 0: a stem's DBH variance from the median of the slices
+        about breast height, the slice holding it or the line through the kept slices is the
+        larger of the stated one and k^2 x the kept slices' scatter about their Theil-Sen
+        line carried to that estimate (:func:`~stemmap.cloud.dbhsd.scatter_dbh_variance`);
+        0 (off): as stated by the fits. Changes ``diameter_std`` only, never a DBH. Off:
+        docs/algorithms/cloud.md "The stated DBH std of a cloud stem"
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real
@@ -235,6 +241,7 @@ class StemConfig:
     guided_taper: bool = False
     ladder_found_rms: bool = True
     dbh_from: str = "median"
+    dbh_sd_scatter: float = 0.0
     axis_fallback: bool = False
     axis_reach: bool = True
     sparse_tall_fit: bool = False
@@ -261,6 +268,8 @@ class StemConfig:
             raise ConfigError(f"ransac_seed must be an integer >= 0, got {self.ransac_seed!r}.")
         if self.dbh_from not in ("line", "slice", "median"):
             raise ConfigError(f"dbh_from must be line, slice or median, got {self.dbh_from!r}.")
+        if not self.dbh_sd_scatter >= 0:
+            raise ConfigError(f"dbh_sd_scatter must be >= 0 (0: off), got {self.dbh_sd_scatter}.")
         if not self.slice_fit_window > 0:
             raise ConfigError(f"slice_fit_window must be > 0, got {self.slice_fit_window}.")
         if not self.slice_stub_trim >= 0:

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from stemmap.cloud.band import _Band
 from stemmap.cloud.bhradius import near_median_radius
 from stemmap.cloud.config import StemConfig
+from stemmap.cloud.dbhsd import scatter_dbh_variance
 from stemmap.cloud.result import RULE_BH
 from stemmap.cloud.slicefit import (
     _fit_segments,
@@ -688,6 +689,7 @@ def _slice_stem(
     if at is None:
         return None
     r_bh, cxy, taper, var_r, cov_xy = at
+    path = ""
     if cfg.dbh_from == "median" and not at_slice and math.isfinite(taper):
         # the slices about the measurement height, not the line through a flared profile
         near = near_median_radius(
@@ -698,7 +700,15 @@ def _slice_stem(
             cfg.slice_thickness,
         )
         if near is not None:
-            r_bh, var_r = near
+            r_bh, var_r, path = near[0], near[1], "median"
+    if math.isfinite(taper):  # the slices' scatter term (cfg.dbh_sd_scatter; 0: unchanged)
+        hh = centers_h[m] - h_meas
+        if path != "median":
+            on = at_slice and bool(np.any(np.abs(hh) <= cfg.slice_thickness / 2 + 1e-9))
+            path = "slice" if on else "line"
+        var_r = scatter_dbh_variance(
+            var_r, fits.radii[c, m], hh, path, cfg.slice_thickness, cfg.dbh_sd_scatter
+        )
     frac = float(m.sum()) / max(int(fits.present[c]), 1)
     arc = float(np.mean(fits.arcs[c, m]))
     rr = float(np.mean(fits.rms[c, m]))
