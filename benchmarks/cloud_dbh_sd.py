@@ -6,9 +6,9 @@ Reads the JSON of ``cloud_dbh_sd_runs.py`` (one or more runs: seeds). Two kinds 
 
 * ring: ``z = (DBH - ring) / sd`` per detected stem that pairs with a *full* fixed ring
   reference (``_cloud_refs``), on the cloud as shipped and under every transform (the ring
-  is fixed, so a thinned cloud's stem is judged by the same yardstick); ``zr`` also puts the
-  ring's own spread in the denominator (its range over 15 start circles / 3.47, the expected
-  range of 15 normal draws in sigmas);
+  is fixed, so a thinned cloud's stem is judged by the same yardstick); the table's "with
+  ring" column also puts the ring's own spread in the denominator (its range over 15 start
+  circles / 3.47, the expected range of 15 normal draws in sigmas);
 * move: ``z = (DBH_t - DBH_b) / sqrt(sd_t^2 + sd_b^2)`` per stem of a transform that pairs
   with a baseline stem, for the transforms that change the points a fit sees
   (:data:`MOVING`: subsamples, noise, voxels, quantisation, tilts, the rotation about z; the
@@ -16,12 +16,14 @@ Reads the JSON of ``cloud_dbh_sd_runs.py`` (one or more runs: seeds). Two kinds 
   another height: reported, not pooled).
 
 Per cloud and transform: n, median |z| (0.674 for a calibrated normal z) and the coverage of
-1 and 2 sd (68.3 / 95.4 %). The std term: ``StemConfig.dbh_sd_scatter`` = k (``stemmap.cloud.
-dbhsd``), the median's variance is the larger of the fit term and k^2 x the slice scatter
-term; each k of :data:`GRID` is applied to the recorded median inputs (stems not measured by
-the median keep their stated sd). LOO: for each cloud, k is chosen on the other clouds'
-records (rule below), and the held-out cloud's calibration is reported with that k and with
-the stated sd (k = 0).
+1 and 2 sd (68.3 / 95.4 %), in groups of transforms (:data:`GROUPS`). The std term:
+``StemConfig.dbh_sd_scatter`` = k (:func:`stemmap.cloud.dbhsd.scatter_dbh_variance`: the
+larger of the stated variance and k^2 x the kept slices' scatter about their Theil-Sen line,
+carried to the median / slice / line estimate); each k of :data:`GRID` is applied to the
+recorded inputs (stems not measured through such a line -- pre-cut slices, pooled or axis
+fits -- keep their stated sd). LOO: for each cloud, k is chosen on the other clouds' records
+(rule below), and the held-out cloud's calibration is reported with that k and with the
+stated sd (k = 0).
 
 Choice rule (fixed before the held-out numbers were read): over the training clouds, for each
 k the per-cloud miscalibration ``|log(median |z| / 0.6745)|`` over the cloud's ring and moving

@@ -11,6 +11,7 @@ more than that, which only the slices' scatter about their profile sees.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,3 +133,20 @@ def test_median_factor_is_the_small_sample_variance_of_a_median(n: int) -> None:
     """n x var(median of n standard normals), by simulation (2e5 draws: within 2 %)."""
     x = np.random.default_rng(n).normal(size=(200_000, n))
     assert MEDIAN_FACTOR[n] == pytest.approx(n * float(np.median(x, axis=1).var()), rel=0.02)
+
+
+@pytest.mark.slow
+def test_pine_plot_same_stems_and_dbh(datasets_dir: Path) -> None:
+    """treels pine_plot.laz as shipped: with k = 0.75 (chosen on all seven real clouds) the 16
+    stems and their DBH are the default's; the std grows on the stems whose slices scatter
+    (benchmarks/cloud_dbh_sd.py: ring median |z| 0.80 -> 0.34 over the ten full rings)."""
+    from stemmap.cloud.stems import detect_stems_file
+
+    path = datasets_dir / "treels" / "pine_plot.laz"
+    off = detect_stems_file(path, StemConfig())
+    on = detect_stems_file(path, StemConfig(dbh_sd_scatter=0.75))
+    assert len(on) == len(off) == 16
+    np.testing.assert_array_equal(on.diameter, off.diameter)
+    np.testing.assert_array_equal(on.xy, off.xy)
+    assert np.all(on.diameter_std >= off.diameter_std)
+    assert np.sum(on.diameter_std > off.diameter_std) >= 5
