@@ -69,19 +69,21 @@ def test_the_term_changes_the_std_and_no_dbh() -> None:
 
 
 def test_stated_std_grows_as_one_over_root_points_when_thinned() -> None:
-    """Point noise only: a quarter of the returns doubles the std (measured 1.92-2.14 over
-    eight stems), with the scatter term too (its scatter is the fits' noise here)."""
-    for k in (0.0, 1.0):
+    """Point noise only: a quarter of the returns doubles the std (sqrt(4) = 2). The stated
+    std: median of eight stems within 10 % (measured 1.92-2.04, median 1.96). With the
+    scatter term (k = 1) its scatter is the fits' noise here, read from six slices' MAD, so
+    one stem's ratio ranges widely (0.92-4.35 over sixteen): their median within 25 %
+    (measured 2.03)."""
+    for k, n_stems, tol in ((0.0, 8, 0.10), (1.0, 16, 0.25)):
         ratios = []
-        for s in range(8):
+        for s in range(n_stems):
             xyz, _ = _stem(np.random.default_rng(100 + s), 0.0)
             keep = np.random.default_rng(s).random(xyz.shape[0]) < 0.25
             full = detect_stems(xyz, StemConfig(dbh_sd_scatter=k))
             thin = detect_stems(xyz[keep], StemConfig(dbh_sd_scatter=k))
             assert len(full) == len(thin) == 1
             ratios.append(thin.diameter_std[0] / full.diameter_std[0])
-        # sqrt(4) = 2; the median of eight ratios within 15 % of it
-        assert float(np.median(ratios)) == pytest.approx(2.0, rel=0.15)
+        assert float(np.median(ratios)) == pytest.approx(2.0, rel=tol)
 
 
 def test_coverage_on_simulated_stems() -> None:
