@@ -241,7 +241,7 @@ def candidate_covs(rows: list[dict], b: float, along: float, across: float) -> n
     own = np.array([r.get("own", r["cov"]) for r in rows]).reshape(-1, 3, 3)
     with np.errstate(invalid="ignore", divide="ignore"):
         k = np.sqrt(np.maximum(rep[:, 2, 2] - 0.25 * b * b, 0.0) / own[:, 2, 2])
-    k = np.where(np.isfinite(k) & (k > 0), k, 1.0)
+    k = np.where(np.isfinite(k), np.maximum(k, 1.0), 1.0)  # k >= 1 by construction
     c = np.array([[r["cx"], r["cy"]] for r in rows]).reshape(-1, 2)
     return centre_covs(rep, k, c, b, along, across)
 
