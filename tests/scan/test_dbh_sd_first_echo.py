@@ -21,7 +21,12 @@ from stemmap.eval.real_slices import noisy_batch
 from stemmap.scan._segment_fits import reported_covs
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
-OFF = {"dbh_sd_noise": False, "dbh_sd_outline": 0.0}
+OFF = {
+    "dbh_sd_noise": False,
+    "dbh_sd_outline": 0.0,
+    "centre_sd_along": 0.0,
+    "centre_sd_across": 0.0,
+}
 
 
 def _det(model: str = "nearest", **extra) -> ScanTrunkDetector:
@@ -59,7 +64,8 @@ def test_reported_covs_scale_the_radius_and_add_the_outline():
 
 def test_the_detections_are_the_same_and_only_the_std_changes():
     batch, _ = _batch(2.5)
-    on = _det().detect_batch(batch)
+    # the centre's options off (test_centre_cov_first_echo.py): the DBH options alone
+    on = _det(centre_sd_along=0.0, centre_sd_across=0.0).detect_batch(batch)
     off = _det(**OFF).detect_batch(batch)
     assert len(on) == len(off) > 0
     for f in ("centers", "radii", "n_points", "arc_deg", "widths", "quality", "index"):

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.scan import circle as _circle
+from stemmap.scan._centre_cov import centre_covs, noise_factors
 from stemmap.scan._fast_robust import segment_step_medians
 from stemmap.scan.features import segment_sum
 from stemmap.scan.segment import Segments
@@ -240,14 +241,12 @@ def reported_covs(
     """The covariance a first-echo detection reports (``dbh_sd_noise``, ``dbh_sd_outline``;
     issue 11, Dec 5): the fit's ``covs`` (K, 3, 3) with the radius row and column scaled by
     ``k = max(1, measured / fit_scale, s_res / fit_scale)``, ``s_res = rms sqrt(n / (n - 3))``
-    the fit's residual scale, and ``(outline / 2)^2`` added to ``C_rr`` (a diameter std of
-    ``outline`` in quadrature). Scaling one row and column by ``k >= 1`` and adding to the
-    diagonal keeps the matrix positive semi-definite; the centre's block is unchanged."""
-    nf = n.astype(np.float64)
-    s_res = rms * np.sqrt(nf / np.maximum(nf - 3.0, 1.0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        k = np.fmax(1.0, np.fmax(measured / fit_scale, s_res / fit_scale))
-    k = np.where(np.isfinite(k), k, 1.0)
+    the fit's residual scale (:func:`~stemmap.scan._centre_cov.noise_factors`), and
+    ``(outline / 2)^2`` added to ``C_rr`` (a diameter std of ``outline`` in quadrature).
+    Scaling one row and column by ``k >= 1`` and adding to the diagonal keeps the matrix
+    positive semi-definite; the centre's block is unchanged (``centre_sd_along`` /
+    ``centre_sd_across``: :func:`~stemmap.scan._centre_cov.centre_covs`)."""
+    k = noise_factors(fit_scale, measured, rms, n)
     out = covs.copy()
     out[:, 2, :] *= k[:, None]
     out[:, :, 2] *= k[:, None]
@@ -262,27 +261,37 @@ def reported_first_echo_covs(
     sigma: FloatArray,
     f_sigma: FloatArray | None,
     rms: FloatArray,
+    centers: FloatArray | None = None,
 ) -> FloatArray | None:
     """The covariances a first-echo ``ours`` fit of ``cfg`` (a
     :class:`~stemmap.scan.config.DetectorConfig`) reports (``dbh_sd_noise``,
-    ``dbh_sd_outline``; :func:`reported_covs`), None where the fit's own stand (another
-    scanner or fit, or both options off). ``sigma``: the tests' noise; ``f_sigma``: the noise
-    the fit weighted by (:func:`fit_sigma`, None: ``sigma``); ``rms``: the fits' RMS. The
-    plausibility tests and trims keep reading the fit's own ``covs``."""
-    if not (cfg.dbh_sd_noise or cfg.dbh_sd_outline > 0):
+    ``dbh_sd_outline``: :func:`reported_covs`; ``centre_sd_along``, ``centre_sd_across``
+    with the fits' ``centers``: :func:`~stemmap.scan._centre_cov.centre_covs`), None where
+    the fit's own stand (another scanner or fit, or every option off). ``sigma``: the tests'
+    noise; ``f_sigma``: the noise the fit weighted by (:func:`fit_sigma`, None: ``sigma``);
+    ``rms``: the fits' RMS. The plausibility tests and trims keep reading the fit's own
+    ``covs``."""
+    centre = centers is not None and (cfg.centre_sd_along > 0 or cfg.centre_sd_across > 0)
+    if not (cfg.dbh_sd_noise or cfg.dbh_sd_outline > 0 or centre):
         return None
     if not (cfg.beam_footprint_deg > 0 and cfg.fit_method == "ours"):
         return None
     scale = sigma if f_sigma is None else f_sigma
     meas = fit_sigma(cfg.fit_noise_floor, segs, sigma, cap=False) if cfg.dbh_sd_noise else None
-    return reported_covs(
-        covs,
+    args = (
         scale,
         scale if meas is None else meas,
         rms if cfg.dbh_sd_noise else np.zeros_like(rms),
         segs.counts,
-        cfg.dbh_sd_outline,
     )
+    out = reported_covs(covs, *args, cfg.dbh_sd_outline)
+    if centre:
+        assert centers is not None
+        k = noise_factors(*args)
+        out = centre_covs(
+            out, k, centers, cfg.dbh_sd_outline, cfg.centre_sd_along, cfg.centre_sd_across
+        )
+    return out
 
 
 def _output_columns(

@@ -493,6 +493,12 @@ class DetectorConfig:
         quadrature to the reported diameter standard deviation, ``C_rr += (b / 2)^2``. The
         ``stemmap`` preset's value is chosen leave-one-dataset-out on the real slices
         (same section). 0 = none.
+    centre_sd_along, centre_sd_across : float, >= 0 (a gain; metres)
+        First-echo ``ours`` fits, numpy path: the centre block of the reported covariance
+        is scaled by ``dbh_sd_noise``'s factor, the outline's radius error moves the centre
+        along the line of sight by ``centre_sd_along`` times it, and an error of std
+        ``centre_sd_across`` is added across it (:mod:`stemmap.scan._centre_cov`; ours,
+        issue 11, Dec 6, "First-echo centre covariance"). Detections unchanged. 0, 0 = off.
     stub_runs_inner : bool
         With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
         "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
@@ -672,6 +678,8 @@ class DetectorConfig:
     max_dbh_sd: float = math.inf
     dbh_sd_noise: bool = False
     dbh_sd_outline: float = 0.0
+    centre_sd_along: float = 0.0
+    centre_sd_across: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -806,6 +814,9 @@ class DetectorConfig:
             raise bad("max_dbh_sd", self.max_dbh_sd, "it must be > 0 m (inf: off)")
         if not (self.dbh_sd_outline >= 0 and math.isfinite(self.dbh_sd_outline)):
             raise bad("dbh_sd_outline", self.dbh_sd_outline, "it must be >= 0 m and finite")
+        for name in ("centre_sd_along", "centre_sd_across"):
+            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
+                raise bad(name, getattr(self, name), "it must be >= 0 and finite")
         if self.stub_runs_inner and not self.stub_runs:
             raise bad("stub_runs_inner", self.stub_runs_inner, "it needs stub_runs")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):

@@ -660,7 +660,7 @@ class ScanTrunkDetector:
             # the diameter's standard deviation by the fit's own covariance (max_dbh_sd)
             dbh_sd = 2.0 * np.sqrt(np.maximum(covs[:, 2, 2], 0.0))
         # the reported DBH std at the noise present, plus the outline's share (first echo)
-        cov_out = reported_first_echo_covs(cfg, segs, covs, sigma, f_sigma, rms)
+        cov_out = reported_first_echo_covs(cfg, segs, covs, sigma, f_sigma, rms, centers)
         return _Fitted(
             centers,
             radii,

@@ -1,0 +1,341 @@
+"""Calibration of the detections' CENTRE (position) covariance on the real-geometry views
+(issue 11, Dec 6, "First-echo centre covariance" in docs/algorithms/scan-detection.md); the
+sibling of ``first_echo_dbh_z.py`` (the DBH std).
+
+Replays ``real_geometry.py --vantage V``'s scans exactly (:func:`_real_scanning.scene_batches`:
+every slice with reference trunks, nearest-return and averaging scanners, 0.25 / 0.5 / 1 deg,
+0 / 1 / 3 cm of added range noise, the same vantage points and noise draws), runs the
+``stemmap`` preset set up for the scanner (:func:`_real_scanning.matched`; ``--set``: overrides
+on top of it), matches the detections to the reference trunks as the benchmark does (visible:
+>= 4 returns of the noise-free scan, <= 15 m, DBH 10-100 cm; greedy within radius + 5 cm) and
+records for every matched view the centre error against the reference centre (the slice's
+full-ring fit), the reported covariance over (x, y, r) and, for the first-echo fits, the fit's
+own covariance (``--own``; a wrapper of ``_output_columns``, detections unchanged).
+
+Scores (:func:`cstats`): the centre error split along the line of sight (sensor -> centre,
+"along") and across it, each over its stated std (median |z|: 0.674 calibrated; 90th
+percentile: 1.645), the Mahalanobis distance ``d = sqrt(e' C^-1 e)`` of the 2D error (median
+1.177, 90th percentile 2.146 for a calibrated Gaussian) and the coverage of the 1-sigma and
+2-sigma ellipses (0.393 and 0.865), the RMS centre error and the RMS the covariance states
+(``sqrt(mean(trace C))``), and the correlation of the along error with the radius error.
+
+Usage::
+
+    PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --rows-out /tmp/c.json
+    PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --rows-in /tmp/c.json
+
+One JSON object on stdout; a table on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from _real_scanning import greedy_match, matched, scene_batches
+from first_echo_dbh_z import SHORT, geometry_digest
+from real_geometry import _in_gate
+from stemmap.datasets import find_datasets_dir
+from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
+
+#: Calibrated values of the scores (a 2D Gaussian error with the stated covariance).
+CALIBRATED = {
+    "med_z": 0.674,
+    "p90_z": 1.645,
+    "med_d": math.sqrt(2.0 * math.log(2.0)),
+    "p90_d": math.sqrt(2.0 * math.log(10.0)),
+    "cov1": 1.0 - math.exp(-0.5),
+    "cov2": 1.0 - math.exp(-2.0),
+}
+
+
+class _Own:
+    """``--own``: the fit's own covariance of every output candidate of the numpy path
+    (before ``dbh_sd_noise`` and the centre options), looked up by (scan, centre)."""
+
+    def __init__(self) -> None:
+        self.table: dict[tuple[int, float, float], list[float]] = {}
+
+    def install(self) -> None:
+        import stemmap.scan._pieces as pieces
+        import stemmap.scan.detect as detect
+        from stemmap.scan._segment_fits import _output_columns
+
+        def wrapped(segs: Any, fitted: Any, ok: Any) -> dict[str, np.ndarray]:
+            cols = _output_columns(segs, fitted, ok)
+            if fitted.cov_out is not None:
+                own = _output_columns(segs, fitted._replace(cov_out=None), ok)["covs"]
+                for c, cv, s in zip(cols["centers"], own, cols["index"], strict=True):
+                    self.table[(int(s), float(c[0]), float(c[1]))] = [float(v) for v in cv.ravel()]
+            return cols
+
+        detect._output_columns = wrapped  # type: ignore[attr-defined]
+        pieces._output_columns = wrapped  # type: ignore[attr-defined]
+
+
+OWN = _Own()
+
+
+def view_rows(sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4) -> list[dict]:
+    """One row per matched visible view of ``sc`` (a :class:`_real_scanning.SceneBatch`)."""
+    sl, vp, hit = sc.sl, sc.vp, sc.hit
+    n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
+    diam = sl.diameters
+    rows = []
+    for s in range(vp.shape[0]):
+        rel = sl.centers - vp[s]
+        rng_t = np.hypot(rel[:, 0], rel[:, 1])
+        vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
+        vis &= _in_gate(cfg, rel)
+        m = np.flatnonzero(obs.index == s)
+        match = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
+        for t in np.flatnonzero(vis & (match >= 0)):
+            k = m[match[t]]
+            c = obs.centers[k]
+            row = {
+                "dataset": sl.name,
+                "model": sc.model,
+                "step": sc.res,
+                "noise": sc.noise,
+                "scan": s,
+                "trunk": int(t),
+                "range": float(rng_t[t]),
+                "dbh": float(diam[t]),
+                "ex": float(c[0] - rel[t, 0]),
+                "ey": float(c[1] - rel[t, 1]),
+                "er": float(obs.radii[k] - diam[t] / 2.0),
+                "cx": float(c[0]),
+                "cy": float(c[1]),
+                "cov": [float(v) for v in obs.covs[k].ravel()],
+                "n": int(obs.n_points[k]),
+                "arc": float(obs.arc_deg[k]),
+            }
+            own = OWN.table.get((s, float(c[0]), float(c[1])))
+            if own is not None:
+                row["own"] = own
+            rows.append(row)
+    return rows
+
+
+def collect(
+    ddir: Path, n_vantage: int, seed: int, overrides: dict[str, Any], models: tuple[str, ...]
+) -> tuple[list[dict], dict[str, Any]]:
+    """Every matched view of every configuration of ``models``, and per model the detections'
+    count, digest without the covariances (:func:`first_echo_dbh_z.geometry_digest`) and
+    with them (``scan_detection.detections_digest``)."""
+    from scan_detection import detections_digest
+
+    base = DetectorConfig.preset("stemmap", **overrides)
+    rows: list[dict] = []
+    digests = {m: hashlib.sha256() for m in models}
+    full = {m: hashlib.sha256() for m in models}
+    counts = dict.fromkeys(models, 0)
+    for sc in scene_batches(ddir, n_vantage, seed):
+        if sc.model not in models:
+            continue
+        cfg = matched(base, sc.model, sc.res)
+        OWN.table.clear()
+        obs = ScanTrunkDetector(cfg).detect_batch(sc.batch)
+        counts[sc.model] += len(obs)
+        digests[sc.model].update(geometry_digest(obs).encode())
+        full[sc.model].update(detections_digest(obs).encode())
+        rows.extend(view_rows(sc, cfg, obs))
+    return rows, {
+        m: {
+            "detections": counts[m],
+            "geometry_digest": digests[m].hexdigest()[:16],
+            "full_digest": full[m].hexdigest()[:16],
+        }
+        for m in models
+    }
+
+
+def centre_parts(rows: list[dict], key: str = "cov") -> dict[str, np.ndarray]:
+    """Arrays of the rows: error (K, 2), radius error (K,), the line of sight u (K, 2) (sensor
+    -> detected centre), and the (K, 3, 3) covariance under ``key``."""
+    e = np.array([[r["ex"], r["ey"]] for r in rows]).reshape(-1, 2)
+    c = np.array([[r["cx"], r["cy"]] for r in rows]).reshape(-1, 2)
+    u = c / np.maximum(np.hypot(c[:, 0], c[:, 1]), 1e-9)[:, None]
+    cov = np.array([r.get(key, r["cov"]) for r in rows]).reshape(-1, 3, 3)
+    return {"e": e, "er": np.array([r["er"] for r in rows]), "u": u, "cov": cov}
+
+
+def cstats(e: np.ndarray, u: np.ndarray, cxy: np.ndarray, er: np.ndarray) -> dict[str, Any]:
+    """Scores of centre errors ``e`` (K, 2) against the stated 2x2 covariances ``cxy``."""
+    if e.shape[0] == 0:
+        return {"n": 0}
+    v = np.column_stack((-u[:, 1], u[:, 0]))
+    ea = np.sum(e * u, axis=1)
+    et = np.sum(e * v, axis=1)
+    sa = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", u, cxy, u), 1e-18))
+    st = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", v, cxy, v), 1e-18))
+    det = cxy[:, 0, 0] * cxy[:, 1, 1] - cxy[:, 0, 1] ** 2
+    inv = np.empty_like(cxy)
+    inv[:, 0, 0], inv[:, 1, 1] = cxy[:, 1, 1], cxy[:, 0, 0]
+    inv[:, 0, 1] = inv[:, 1, 0] = -cxy[:, 0, 1]
+    inv /= np.where(det > 0, det, np.nan)[:, None, None]
+    d = np.sqrt(np.einsum("ki,kij,kj->k", e, inv, e))
+    d = np.where(np.isfinite(d), d, np.inf)
+    za, zt = np.abs(ea) / sa, np.abs(et) / st
+    corr = float(np.corrcoef(ea, er)[0, 1]) if e.shape[0] > 2 else math.nan
+    return {
+        "n": int(e.shape[0]),
+        "med_z_along": round(float(np.median(za)), 3),
+        "p90_z_along": round(float(np.quantile(za, 0.9)), 3),
+        "med_z_across": round(float(np.median(zt)), 3),
+        "p90_z_across": round(float(np.quantile(zt, 0.9)), 3),
+        "med_d": round(float(np.median(d)), 3),
+        "p90_d": round(float(np.quantile(d, 0.9)), 3),
+        "cov1": round(float(np.mean(d <= 1.0)), 3),
+        "cov2": round(float(np.mean(d <= 2.0)), 3),
+        "rms_cm": round(100.0 * float(np.sqrt(np.mean(np.sum(e * e, axis=1)))), 2),
+        "stated_rms_cm": round(100.0 * float(np.sqrt(np.mean(cxy[:, 0, 0] + cxy[:, 1, 1]))), 2),
+        "rms_along_cm": round(100.0 * float(np.sqrt(np.mean(ea * ea))), 2),
+        "rms_across_cm": round(100.0 * float(np.sqrt(np.mean(et * et))), 2),
+        "med_sd_along_cm": round(100.0 * float(np.median(sa)), 2),
+        "med_sd_across_cm": round(100.0 * float(np.median(st)), 2),
+        "corr_along_r": round(corr, 3),
+    }
+
+
+def group_key(r: dict, step: bool) -> str:
+    name = SHORT.get(r["dataset"], r["dataset"])
+    tail = f"{r['step']:g} deg" if step else "all"
+    return f"{r['model']} | {name} | {100 * r['noise']:g} cm | {tail}"
+
+
+def table(rows: list[dict], key: str = "cov", steps: bool = True) -> dict[str, Any]:
+    """:func:`cstats` per model x dataset x noise (x step)."""
+    groups: dict[str, list[dict]] = defaultdict(list)
+    for r in rows:
+        groups[group_key(r, False)].append(r)
+        if steps:
+            groups[group_key(r, True)].append(r)
+    out = {}
+    for k in sorted(groups):
+        p = centre_parts(groups[k], key)
+        out[k] = cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"])
+    return out
+
+
+#: The real-bark slices the centre terms are chosen on, leave one out (FORTLS: synthetic
+#: circles, no outline to learn from; aRchi: an untrusted reference; both reported).
+BARK = ("treels_pine_plot", "treels_pine", "lidr_dbh")
+
+
+def candidate_covs(rows: list[dict], b: float, along: float, across: float) -> np.ndarray:
+    """The covariance :func:`stemmap.scan._centre_cov.centre_covs` would report for every
+    nearest-return row (``--own`` rows, run with the DBH outline ``b``): the noise factor
+    ``k`` from the reported and own ``C_rr`` (``k^2 = (C_rr - b^2 / 4) / own C_rr``)."""
+    from stemmap.scan._centre_cov import centre_covs
+
+    rep = np.array([r["cov"] for r in rows]).reshape(-1, 3, 3)
+    own = np.array([r.get("own", r["cov"]) for r in rows]).reshape(-1, 3, 3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k = np.sqrt(np.maximum(rep[:, 2, 2] - 0.25 * b * b, 0.0) / own[:, 2, 2])
+    k = np.where(np.isfinite(k), np.maximum(k, 1.0), 1.0)  # k >= 1 by construction
+    c = np.array([[r["cx"], r["cy"]] for r in rows]).reshape(-1, 2)
+    return centre_covs(rep, k, c, b, along, across)
+
+
+def _median_z(rows: list[dict], cov: np.ndarray, axis: str) -> float:
+    p = centre_parts(rows)
+    u = p["u"] if axis == "along" else np.column_stack((-p["u"][:, 1], p["u"][:, 0]))
+    e = np.sum(p["e"] * u, axis=1)
+    sd = np.sqrt(np.einsum("ki,kij,kj->k", u, cov[:, :2, :2], u))
+    return float(np.median(np.abs(e) / sd))
+
+
+def _solve(f: Any, hi: float) -> float:
+    """The root of the decreasing ``f(x) - 0.674`` in [0, hi] (bisection; 0 if f(0) <= 0.674)."""
+    lo = 0.0
+    if f(lo) <= CALIBRATED["med_z"]:
+        return 0.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f(mid) > CALIBRATED["med_z"] else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def choose(rows: list[dict], b: float) -> tuple[float, float]:
+    """``centre_sd_along`` (gain) then ``centre_sd_across`` (m) so that the pooled median |z|
+    along, then across, the line of sight of ``rows`` is 0.674 (the rule of ``b``)."""
+    g = _solve(lambda x: _median_z(rows, candidate_covs(rows, b, x, 0.0), "along"), 10.0)
+    c = _solve(lambda x: _median_z(rows, candidate_covs(rows, b, g, x), "across"), 0.2)
+    return g, c
+
+
+def loo(rows: list[dict], b: float) -> dict[str, Any]:
+    """Leave one real-bark dataset out: the terms chosen on the other two (:func:`choose`),
+    scored on the held-out one per noise level; FORTLS and aRchi with the terms of all three."""
+    near = [r for r in rows if r["model"] == "nearest"]
+    out: dict[str, Any] = {}
+    for held in (*BARK, "fortls_slice", "archi_tree1"):
+        train = [r for r in near if r["dataset"] in BARK and r["dataset"] != held]
+        g, c = choose(train, b)
+        test = [r for r in near if r["dataset"] == held]
+        if not test:
+            continue
+        cov = candidate_covs(test, b, g, c)
+        for r, cv in zip(test, cov, strict=True):
+            r["_cand"] = [float(v) for v in cv.ravel()]
+        cells = {}
+        for noise in (0.0, 0.01, 0.03):
+            sub = [r for r in test if r["noise"] == noise]
+            if sub:
+                p = centre_parts(sub, "_cand")
+                cells[f"{100 * noise:g} cm"] = cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"])
+        name = SHORT.get(held, held)
+        out[name] = {"along": round(g, 3), "across_cm": round(100 * c, 3), **cells}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--datasets", type=Path, default=None, help="shared datasets folder")
+    ap.add_argument("--vantage", type=int, default=20, help="vantage points per dataset")
+    ap.add_argument("--seed", type=int, default=11, help="real_geometry.py's --seed")
+    ap.add_argument("--set", default="{}", help="JSON overrides of the stemmap preset")
+    ap.add_argument("--models", default="nearest,averaging", help="scanner models, comma separated")
+    ap.add_argument("--own", action="store_true", help="also record the fit's own covariance")
+    ap.add_argument("--no-steps", action="store_true", help="no per-step rows in the table")
+    ap.add_argument("--rows-out", type=Path, default=None)
+    ap.add_argument("--rows-in", type=Path, default=None)
+    ap.add_argument("--loo", action="store_true", help="choose the centre terms (--own rows)")
+    args = ap.parse_args(argv)
+    if args.own:
+        OWN.install()
+    if args.rows_in is not None:
+        rows = json.loads(args.rows_in.read_text())
+        digest: dict[str, Any] = {}
+    else:
+        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+        models = tuple(args.models.split(","))
+        rows, digest = collect(ddir, args.vantage, args.seed, json.loads(args.set), models)
+        if args.rows_out is not None:
+            args.rows_out.write_text(json.dumps(rows))
+    if args.loo:
+        b = DetectorConfig.preset("stemmap", **json.loads(args.set)).dbh_sd_outline
+        res = loo(rows, b)
+        for key, v in res.items():
+            print(f"{key:14s} {json.dumps(v)}", file=sys.stderr)
+        print(json.dumps({"benchmark": "centre_cov_z", "loo": True, "b": b, **res}))
+        return 0
+    tab = table(rows, steps=not args.no_steps)
+    for key, v in tab.items():
+        print(f"{key:44s} {json.dumps(v)}", file=sys.stderr)
+    out = {"benchmark": "centre_cov_z", "set": args.set, "calibrated": CALIBRATED}
+    print(json.dumps({**out, "digests": digest, "table": tab}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
