@@ -15,7 +15,7 @@ def test_numba_has_the_flag():
 
 
 def test_hot_kernels_are_leaves():
-    for kernel in (_fit_lm._cost_and_normal, _fit_lm._lm, _fit_geometric._fit_one):
+    for kernel in (_fit_lm._cost_and_normal, _fit_lm.levenberg_marquardt, _fit_geometric._fit_one):
         assert kernel.targetoptions.get("_nrt") is False, kernel
     # allocating kernels called from leaves state the runtime explicitly
     for kernel in (_fit_geometric._reject_largest, _fast_segments._geometric_cov):

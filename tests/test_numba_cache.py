@@ -149,7 +149,7 @@ def test_the_modules_the_detector_kernel_calls_record_theirs() -> None:
         _kernel_params.__file__,
     )
     for mod, disp, deps in (
-        (_fit_lm, _fit_lm._lm, ()),
+        (_fit_lm, _fit_lm.levenberg_marquardt, ()),
         (_corners, _corners.sagitta, ()),
         (_fast_robust, _fast_robust._range_roughness, ()),
         (_fast_segments, _fast_segments._pairwise, ()),

@@ -12,8 +12,8 @@ from numpy.typing import NDArray
 from stemmap import _numba_cache
 from stemmap.cloud.stubtrim import STUB_TRIM_ROUNDS, trim_keep
 from stemmap.scan import _fit_geometric, _fit_lm
-from stemmap.scan._fit_geometric import _kasa_start
-from stemmap.scan._fit_lm import _lm
+from stemmap.scan._fit_geometric import kasa_start
+from stemmap.scan._fit_lm import levenberg_marquardt
 from stemmap.scan.circle import fit_circles_batch
 from stemmap.types import FloatArray
 
@@ -165,10 +165,11 @@ def _local_optimisation(
     circles and their scores.
 
     The refit is the project's geometric circle fit of the scan detector: the algebraic
-    start (Kasa 1976; :func:`stemmap.scan._fit_geometric._kasa_start`) and
-    Levenberg-Marquardt on the orthogonal distances (:func:`stemmap.scan._fit_lm._lm`, plain
-    least squares, no silhouette terms; Chernov 2010, §4.4), compiled with the inlier
-    selection and scoring into one pass over the K circles (:func:`_lo_kernel`).
+    start (Kasa 1976; :func:`stemmap.scan._fit_geometric.kasa_start`) and
+    Levenberg-Marquardt on the orthogonal distances
+    (:func:`stemmap.scan._fit_lm.levenberg_marquardt`, plain least squares, no silhouette
+    terms; Chernov 2010, §4.4), compiled with the inlier selection and scoring into one pass
+    over the K circles (:func:`_lo_kernel`).
 
     A minimal sample's circle is three noisy points: on a spruce slice a stem sample often
     scores below a circle through the branch clutter, and whether a draw close enough to the
@@ -224,9 +225,9 @@ def _lo_kernel(
                     lx[n] = qx[i]
                     ly[n] = qy[i]
                     n += 1
-            if n < 3 or not _kasa_start(lx[:n], ly[:n], p):
+            if n < 3 or not kasa_start(lx[:n], ly[:n], p):
                 break
-            _lm(
+            levenberg_marquardt(
                 lx[:n],
                 ly[:n],
                 unused[:n],

@@ -29,10 +29,10 @@ from stemmap import _numba_cache
 from stemmap._leaf_jit import leaf_njit, nrt_njit
 from stemmap.scan import _fit_lm
 from stemmap.scan._fit_lm import _footprint_range as _footprint_range
-from stemmap.scan._fit_lm import _inv3, _lm, _range_residual, _solve3, _valid
+from stemmap.scan._fit_lm import _inv3, _range_residual, _solve3, _valid, levenberg_marquardt
 from stemmap.types import FloatArray
 
-__all__ = ["STATUS_MESSAGES", "fit_ours_segments"]
+__all__ = ["STATUS_MESSAGES", "fit_ours_segments", "kasa_start"]
 
 #: Status codes of the kernel, mapped to full-sentence reasons by the Python wrapper.
 OK = 0
@@ -205,10 +205,11 @@ def _reject_largest(dabs: FloatArray, keep: FloatArray, limit: float) -> int:  #
 
 
 @nrt_njit()
-def _kasa_start(lx: FloatArray, ly: FloatArray, p: FloatArray) -> bool:  # pragma: no cover
+def kasa_start(lx: FloatArray, ly: FloatArray, p: FloatArray) -> bool:  # pragma: no cover
     """The algebraic (Kasa) circle of the local-frame returns (``lx``, ``ly``) into ``p``
     (cx, cy, r), the start without a silhouette; False where the returns are collinear
-    (allocates: kept out of :func:`_fit_one`)."""
+    (allocates: kept out of :func:`_fit_one`). Public: the cloud's slice fits
+    (:mod:`stemmap.cloud.slicefit`) compile it in too."""
     n = lx.shape[0]
     mx = np.mean(lx)
     my = np.mean(ly)
@@ -267,8 +268,9 @@ def _fit_one(
     shared by all segments of a batch, so a fit allocates nothing on the common path; the
     caller sets ``mdl[10]``, the least share of the footprint in the edge returns' range
     window (0.5: the default edge model; :func:`_cost_and_normal`), which the fit leaves.
-    ``tol``: scale of the LM stopping thresholds (:func:`_lm`; 1.0 = the defaults). ``box``:
-    refine arcs with both tangents by the uniform tangent intervals (:func:`_box_tangents`)."""
+    ``tol``: scale of the LM stopping thresholds (:func:`levenberg_marquardt`; 1.0 = the
+    defaults). ``box``: refine arcs with both tangents by the uniform tangent intervals
+    (:func:`_box_tangents`)."""
     n = px.shape[0]
     if n < 3:
         return TOO_FEW
@@ -342,7 +344,7 @@ def _fit_one(
     p[1] = d0 * math.sin(b0)
     p[2] = r0
     # No silhouette: start from the algebraic (Kasa) solution in the local frame.
-    if not use_sil and not _kasa_start(lx, ly, p):
+    if not use_sil and not kasa_start(lx, ly, p):
         return COLLINEAR
     # ---- noise scale: given, or estimated from a first (equal-weight) pass ----
     extent = max(th_max - th_min, dtheta) * near
@@ -377,7 +379,7 @@ def _fit_one(
         # first pass: points weighted like the silhouette (sigma ~ range * angular std)
         sig = max(near * sang, _SIGMA_FLOOR)
         mdl[0] = 1.0 / sig
-        _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
+        levenberg_marquardt(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
         ss = 0.0
         for i in range(n):
             d = _abs_residual(i, lx, ly, rho, ux, uy, p, mdl, tmp)
@@ -385,7 +387,7 @@ def _fit_one(
         dof = n - 3 if n > 3 else 1
         sig = max(math.sqrt(ss / dof), _SIGMA_FLOOR)
     mdl[0] = 1.0 / sig
-    _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
+    levenberg_marquardt(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
     # ---- outlier rejection (mixed pixels): drop up to N // 4 returns beyond 4 sigma ----
     if n >= 6:
         for i in range(n):
@@ -401,14 +403,15 @@ def _fit_one(
                     ss += keep[i] * dabs[i] * dabs[i]
                 sig = max(math.sqrt(ss / max(n - n_rej - 3, 1)), _SIGMA_FLOOR)
                 mdl[0] = 1.0 / sig
-            _lm(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
+            levenberg_marquardt(lx, ly, rho, ux, uy, keep, p, mdl, rho_min, True, ws3, wv, tol)
     if not _valid(p[0], p[1], p[2], rho_min, use_sil):
         return NOT_CONVERGED
     if not use_sil and p[2] > 1e3 * max(extent, 1e-9):
         return COLLINEAR
     # ---- covariance from the final (robustly weighted) Gauss-Newton Hessian ----
-    # the last _lm left the normal equations at the returned p in ws3[0] (same p, mdl, keep,
-    # robust weights as a fresh _cost_and_normal: the identical numbers, one pass saved)
+    # the last levenberg_marquardt left the normal equations at the returned p in ws3[0] (same
+    # p, mdl, keep, robust weights as a fresh _cost_and_normal: the identical numbers, one pass
+    # saved)
     H = ws3[0]
     C = ws3[4]
     if not _inv3(H, C):

@@ -372,7 +372,7 @@ def _valid(
 
 
 @leaf_njit()
-def _lm(
+def levenberg_marquardt(
     lx: FloatArray,
     ly: FloatArray,
     rho: FloatArray,
@@ -387,7 +387,8 @@ def _lm(
     wv: FloatArray,
     tol: float,
 ) -> tuple[float, int]:  # pragma: no cover - numba
-    """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations).
+    """Levenberg-Marquardt on (cx, cy, r) in place; returns (cost, iterations). Public: the
+    cloud's slice fits (:mod:`stemmap.cloud.slicefit`) compile it in too.
 
     ``tol`` scales the stopping thresholds (step 1e-6 relative, decrease 1e-5 of the cost);
     ``tol < 1`` also allows 10x the iterations (a tight reference for tests, not for use).
@@ -471,4 +472,4 @@ def _lm(
 
 # after every kernel is defined, before the first call loads the cache: no other module's
 # kernels are compiled in here, but the compile flags (stemmap._leaf_jit) are
-_numba_cache.drop_stale_cache(_lm, __file__)
+_numba_cache.drop_stale_cache(levenberg_marquardt, __file__)

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtri
 
 from stemmap.scan._arcs import arc_pieces
+from stemmap.scan._beam_layout import _chi2_table
 from stemmap.scan._cut_ends import trim_cut_ends
 from stemmap.scan._fast_arcs import continues_outline
 from stemmap.scan._refit import Refitted, refit_pieces, split_refit
@@ -158,8 +159,6 @@ def _outline_goes_on(
     returns (:func:`stemmap.scan._fast_arcs.continues_outline`, which the compiled kernel
     calls with the same numbers): its returns as it was fitted (footprint-corrected for a
     first-echo scanner), its output row's circle, the arc's circle and range noise."""
-    from stemmap.scan.detect import _chi2_table  # (detect imports this module)
-
     cfg = detector.config
     p = int(got.parent[i])
     seg = every.select(np.arange(len(every)) == p)

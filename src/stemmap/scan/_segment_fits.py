@@ -1,12 +1,15 @@
 """The numpy pipeline's circle fits of candidate segments and the columns derived from them
 (:class:`~stemmap.scan.detect.ScanTrunkDetector`): batched Kasa, the other methods through
 :func:`stemmap.scan.circle.fit_circles_batch`, fit RMS, the geometric covariance fallback, arc
-extent, quality and the output columns of the kept candidates. The compiled kernel
-(:mod:`stemmap.scan._detect_fast`) repeats these expressions."""
+extent, quality and the output columns of the kept candidates; :func:`fit_candidates`, every
+candidate's fit with what the plausibility tests read (the body of
+``ScanTrunkDetector._fit_candidates``, moved here from :mod:`stemmap.scan.detect`). The compiled
+kernel (:mod:`stemmap.scan._detect_fast`) repeats these expressions."""
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import math
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,9 +17,25 @@ from numpy.typing import NDArray
 from stemmap.scan import circle as _circle
 from stemmap.scan._centre_cov import centre_covs, noise_factors
 from stemmap.scan._fast_robust import segment_step_medians
-from stemmap.scan.features import segment_sum
+from stemmap.scan._lobed import lobed_refit
+from stemmap.scan.features import (
+    edge_silhouette,
+    first_echo_edge_prior,
+    segment_sum,
+    segment_widths,
+)
+from stemmap.scan.plausibility import (
+    own_noise,
+    range_roughness,
+    residual_smoothness,
+    robust_residual_scale,
+    segment_sigma,
+)
 from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
+
+if TYPE_CHECKING:
+    from stemmap.scan.config import DetectorConfig
 
 
 def fit_kasa_segments(segs: Segments) -> tuple[FloatArray, FloatArray, np.ndarray]:
@@ -347,3 +366,92 @@ def _quality(n: np.ndarray, rms: FloatArray, sigma: FloatArray, partial: np.ndar
     fit = np.exp(-np.square(np.maximum(rms - s, 0.0) / (3.0 * s)))
     out: FloatArray = support * fit * np.where(partial, 0.5, 1.0)
     return out
+
+
+def fit_candidates(cfg: DetectorConfig, segs: Segments, grid: FloatArray, wrap: bool) -> _Fitted:
+    """Circle fit of every candidate segment (sensor at the origin) with what the fit
+    plausibility tests need (:func:`~stemmap.scan.plausibility.fit_reasons`;
+    ``ScanTrunkDetector._fit_candidates`` of a detector with config ``cfg``)."""
+    p = segs.points
+    n = segs.counts
+    mean_r = segment_sum(p.r, segs) / n
+    sigma = segment_sigma(cfg, segs, mean_r)  # per-segment range noise
+    if cfg.sigma_from_data and (cfg.sigma > 0 or cfg.sigma_rel > 0):
+        # (sigma 0: the fit estimates its own scale, nothing to raise)
+        sigma = np.maximum(
+            sigma, np.minimum(range_roughness(segs), cfg.roughness_max_factor * sigma)
+        )
+    # a footprint correction means a first-echo sensor: no averaging-scanner edge model
+    divergence = 0.0 if cfg.beam_footprint_deg > 0 else math.radians(cfg.beam_divergence_deg)
+    sil = None
+    if cfg.fit_method == "ours" and cfg.neighbour_silhouette and divergence > 0:
+        sil = edge_silhouette(
+            segs,
+            grid,
+            divergence,
+            margin=cfg.occlusion_margin,
+            wrap=wrap,
+            hit_range=(cfg.edge_hit_min, cfg.edge_hit_max),
+        )
+    elif cfg.fit_method == "ours" and cfg.beam_footprint_deg > 0 and cfg.edge_protrusion > 0:
+        # first echo: the last beam that returns may have caught a bark flake or twig
+        sil = first_echo_edge_prior(segs, cfg.edge_protrusion)
+    # fit_noise_floor: the fit weights by the measured noise, the tests keep sigma
+    f_sigma = fit_sigma(cfg.fit_noise_floor, segs, sigma)
+    centers, radii, covs, ok = _fit_segments(
+        segs,
+        cfg.fit_method,
+        sigma if f_sigma is None else f_sigma,
+        silhouette=sil,
+        beam_divergence=divergence,
+        residuals=cfg.fit_residuals,
+        edge_window=cfg.edge_window_share(),
+    )
+    f_width = segment_widths(segs)
+    sil_width = f_width
+    if sil is not None:
+        # a neighbour that saw a mixed pixel puts the tangent up to ~1 beam beyond the edge
+        # return: the silhouette is wider than the edge-beam chord by that much
+        beyond = np.nansum(np.maximum(sil[:, :, 0] - 0.5, 0.0), axis=1)
+        sil_width = f_width + beyond * mean_r * abs(segs.points.angle_increment)
+    with np.errstate(invalid="ignore"):
+        rms = _fit_rms(segs, centers, radii)
+        # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
+        test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
+        if cfg.rms_dof:
+            # the residual scale over the fit's n - 3 degrees of freedom
+            n = segs.counts.astype(np.float64)
+            test_rms = test_rms * np.sqrt(n / np.maximum(n - 3.0, 1.0))
+    if cfg.lobe_harmonics:
+        # a candidate that fails the RMS test as a circle may pass it as a lobed outline
+        centers, radii, covs, test_rms, lobed = lobed_refit(
+            cfg, segs, centers, radii, covs, ok, test_rms, sigma, sil_width
+        )
+        rms = np.where(lobed, test_rms, rms)
+    smooth = own = None
+    if cfg.lobe_roughness > 0 or cfg.rms_noise_from_fit > 0:
+        smooth = residual_smoothness(segs, centers, radii)
+        if cfg.rms_noise_from_fit > 0:
+            own = own_noise(cfg, segs, sigma, smooth)
+    dbh_sd = None
+    if math.isfinite(cfg.max_dbh_sd) and cfg.beam_footprint_deg > 0 and cfg.fit_method == "ours":
+        # the diameter's standard deviation by the fit's own covariance (max_dbh_sd)
+        dbh_sd = 2.0 * np.sqrt(np.maximum(covs[:, 2, 2], 0.0))
+    # the reported DBH std at the noise present, plus the outline's share (first echo)
+    cov_out = reported_first_echo_covs(cfg, segs, covs, sigma, f_sigma, rms, centers)
+    return _Fitted(
+        centers,
+        radii,
+        covs,
+        ok,
+        sigma,
+        mean_r,
+        f_width,
+        sil_width,
+        rms,
+        test_rms,
+        smooth,
+        own,
+        dbh_sd,
+        cov_out,
+    )

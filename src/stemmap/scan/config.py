@@ -1,6 +1,8 @@
-"""Detector configuration: :class:`DetectorConfig`, its fields and their validation; the
-published presets (:data:`PRESETS`), what each takes from its paper (:data:`PRESET_NOTES`) and
-:data:`ARC_OPTIONS` are :mod:`stemmap.scan._presets`, re-exported here.
+"""Detector configuration: :class:`DetectorConfig` and what each of its fields means. The
+checks of the field values and the building of a preset's values are
+:mod:`stemmap.scan._config_checks`; the published presets (:data:`PRESETS`), what each takes
+from its paper (:data:`PRESET_NOTES`) and :data:`ARC_OPTIONS` are :mod:`stemmap.scan._presets`,
+re-exported here.
 
 Split from :mod:`stemmap.scan.detect` (which re-exports every name here): the parameters and
 their provenance are one concept, the pipeline that reads them another.
@@ -12,8 +14,8 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Literal
 
-from stemmap.errors import ConfigError
-from stemmap.scan import circle as _circle
+from stemmap.errors import ConfigError as ConfigError  # re-exported (tests import it here)
+from stemmap.scan._config_checks import check_fields, preset_values
 from stemmap.scan._presets import ARC_OPTIONS, PRESET_NOTES, PRESETS
 
 __all__ = ["ARC_OPTIONS", "EDGE_WINDOW_MIN", "PRESETS", "PRESET_NOTES", "DetectorConfig"]
@@ -23,13 +25,6 @@ __all__ = ["ARC_OPTIONS", "EDGE_WINDOW_MIN", "PRESETS", "PRESET_NOTES", "Detecto
 #: real-geometry benchmark's footprints; a thinner sliver's mean range differs from it by less
 #: than a millimetre at a trunk edge (0.25-degree footprint).
 EDGE_WINDOW_MIN = 0.04
-
-
-def _fit_methods() -> dict[str, Any]:
-    """The circle-fit registry of :mod:`stemmap.scan.circle` (read at call time, so fits
-    registered later are picked up)."""
-    methods: dict[str, Any] = getattr(_circle, "FIT_METHODS", {"kasa": _circle.fit_circle_kasa})
-    return methods
 
 
 @dataclass(frozen=True)
@@ -687,184 +682,12 @@ class DetectorConfig:
     step_twigs: bool = False
 
     def __post_init__(self) -> None:
-        def bad(field: str, value: Any, need: str) -> ConfigError:
-            return ConfigError(
-                f"detector config {self.name!r}: {field} = {value!r} is invalid; {need}."
-            )
-
-        if self.range_min is not None and not self.range_min >= 0:
-            raise bad("range_min", self.range_min, "it must be >= 0 m")
-        if self.range_max is not None and not self.range_max > (self.range_min or 0.0):
-            raise bad("range_max", self.range_max, "it must exceed range_min")
-        if self.fov_deg is not None:
-            if len(self.fov_deg) != 2 or not self.fov_deg[1] > self.fov_deg[0]:
-                raise bad("fov_deg", self.fov_deg, "give (lo, hi) degrees with hi > lo")
-            object.__setattr__(self, "fov_deg", (float(self.fov_deg[0]), float(self.fov_deg[1])))
-        if self.tilt not in ("none", "eq1", "rotation"):
-            raise bad("tilt", self.tilt, "choose 'none', 'eq1' or 'rotation'")
-        if self.straight_test not in ("chi2", "ratio"):
-            raise bad("straight_test", self.straight_test, "choose 'chi2' or 'ratio'")
-        if self.segmentation not in ("range_jump", "euclidean"):
-            raise bad("segmentation", self.segmentation, "choose 'range_jump' or 'euclidean'")
-        if not self.max_jump > 0:
-            raise bad("max_jump", self.max_jump, "it must be > 0 m")
-        if self.range_factor < 0:
-            raise bad("range_factor", self.range_factor, "it must be >= 0")
-        if self.max_skip < 0:
-            raise bad("max_skip", self.max_skip, "it must be >= 0 beams")
-        if self.min_points < 3:
-            raise bad("min_points", self.min_points, "a circle needs at least 3 returns")
-        if self.max_points is not None and self.max_points < self.min_points:
-            raise bad("max_points", self.max_points, "it must be >= min_points")
-        if self.radius_median is not None and not self.radius_median > 0:
-            raise bad("radius_median", self.radius_median, "it must be > 0 m or None")
-        if not (self.max_width > self.min_width >= 0):
-            raise bad("max_width", self.max_width, "need 0 <= min_width < max_width")
-        if not self.max_curvature > self.min_curvature:
-            raise bad("max_curvature", self.max_curvature, "it must exceed min_curvature")
-        if not self.sigma >= 0:
-            raise bad("sigma", self.sigma, "it must be >= 0 m")
-        if not (self.sigma_rel >= 0 and math.isfinite(self.sigma_rel)):
-            raise bad("sigma_rel", self.sigma_rel, "it must be >= 0")
-        if not (self.max_radius > self.min_radius >= 0):
-            raise bad("max_radius", self.max_radius, "need 0 <= min_radius < max_radius")
-        if not (self.beam_footprint_deg >= 0 and math.isfinite(self.beam_footprint_deg)):
-            raise bad("beam_footprint_deg", self.beam_footprint_deg, "it must be >= 0 degrees")
-        if not (0.0 <= self.beam_divergence_deg < 20.0):
-            raise bad(
-                "beam_divergence_deg", self.beam_divergence_deg, "it must be in [0, 20) degrees"
-            )
-        if not (0.0 <= self.edge_hit_min <= self.edge_hit_max <= 1.0):
-            raise bad(
-                "edge_hit_min",
-                (self.edge_hit_min, self.edge_hit_max),
-                "need 0 <= edge_hit_min <= edge_hit_max <= 1",
-            )
-        if self.fit_residuals not in ("range", "orthogonal"):
-            raise bad("fit_residuals", self.fit_residuals, "choose 'range' or 'orthogonal'")
-        if not (self.roughness_max_factor >= 1.0 and math.isfinite(self.roughness_max_factor)):
-            raise bad("roughness_max_factor", self.roughness_max_factor, "it must be >= 1")
-        if not (self.scan_noise_jump > 0 and math.isfinite(self.scan_noise_jump)):
-            raise bad("scan_noise_jump", self.scan_noise_jump, "it must be > 0 m")
-        if not (self.scan_noise_surface >= 0 and math.isfinite(self.scan_noise_surface)):
-            raise bad("scan_noise_surface", self.scan_noise_surface, "it must be >= 0 m")
-        if self.step_noise_pool not in (False, True, "batch"):
-            raise bad("step_noise_pool", self.step_noise_pool, "choose false, true or 'batch'")
-        b = self.scan_noise_batch
-        if not (b == 0.0 or (b >= 1.0 and math.isfinite(b))):
-            raise bad("scan_noise_batch", b, "it must be 0 (off) or >= 1 (a multiple of sigma)")
-        if self.batch_noise_scale not in ("mad", "biweight"):
-            raise bad("batch_noise_scale", self.batch_noise_scale, "choose 'mad' or 'biweight'")
-        if not (self.bark_roughness >= 0 and math.isfinite(self.bark_roughness)):
-            raise bad("bark_roughness", self.bark_roughness, "it must be >= 0 (a fraction)")
-        if not (self.lobe_roughness >= 0 and math.isfinite(self.lobe_roughness)):
-            raise bad("lobe_roughness", self.lobe_roughness, "it must be >= 0 (a fraction)")
-        if not (self.lobe_smooth_sigmas > 0 and math.isfinite(self.lobe_smooth_sigmas)):
-            raise bad("lobe_smooth_sigmas", self.lobe_smooth_sigmas, "it must be > 0 (sigmas)")
-        f = self.rms_noise_from_fit
-        if not (f == 0.0 or (f >= 1.0 and math.isfinite(f))):
-            raise bad("rms_noise_from_fit", f, "it must be 0 (off) or >= 1 (a multiple of sigma)")
-        if not (self.rms_own_sigmas > 0 and math.isfinite(self.rms_own_sigmas)):
-            raise bad("rms_own_sigmas", self.rms_own_sigmas, "it must be > 0")
-        if not (self.lobe_harmonics == 0 or 2 <= self.lobe_harmonics <= 8):
-            raise bad("lobe_harmonics", self.lobe_harmonics, "it must be 0 (off) or 2-8")
-        if not (self.lobe_prior > 0 and math.isfinite(self.lobe_prior)):
-            raise bad("lobe_prior", self.lobe_prior, "it must be > 0 (a fraction)")
-        if not (self.lobe_max > 0 and math.isfinite(self.lobe_max)):
-            raise bad("lobe_max", self.lobe_max, "it must be > 0 (a fraction)")
-        if not (self.corner_depth > 0 and math.isfinite(self.corner_depth)):
-            raise bad("corner_depth", self.corner_depth, "it must be > 0 m")
-        if not self.corner_depth_convex > 0:
-            raise bad(
-                "corner_depth_convex", self.corner_depth_convex, "it must be > 0 m (inf: off)"
-            )
-        if not (self.corner_sigmas >= 0 and math.isfinite(self.corner_sigmas)):
-            raise bad("corner_sigmas", self.corner_sigmas, "it must be >= 0")
-        if self.corner_span < 1:
-            raise bad("corner_span", self.corner_span, "it must be >= 1 return")
-        if not self.straight_depth_sigmas > 0:
-            raise bad("straight_depth_sigmas", self.straight_depth_sigmas, "it must be > 0")
-        if not self.occluded_blend_sigmas > 0:
-            raise bad(
-                "occluded_blend_sigmas", self.occluded_blend_sigmas, "it must be > 0 (inf: off)"
-            )
-        if not (self.gap_sigmas >= 0 and math.isfinite(self.gap_sigmas)):
-            raise bad("gap_sigmas", self.gap_sigmas, "it must be >= 0")
-        if not (self.gap_ratio >= 0 and math.isfinite(self.gap_ratio)):
-            raise bad("gap_ratio", self.gap_ratio, "it must be >= 0")
-        if not self.gap_splits >= 0:
-            raise bad("gap_splits", self.gap_splits, "it must be >= 0 passes")
-        if not (self.refit_sigmas > 0 and math.isfinite(self.refit_sigmas)):
-            raise bad("refit_sigmas", self.refit_sigmas, "it must be > 0 (robust sigmas)")
-        if not (self.arc_sigmas > 0 and math.isfinite(self.arc_sigmas)):
-            raise bad("arc_sigmas", self.arc_sigmas, "it must be > 0 (robust sigmas)")
-        if not self.arc_replace > 1:
-            raise bad("arc_replace", self.arc_replace, "it must be > 1 (inf: off)")
-        if not self.behind_sigmas >= 0:
-            raise bad("behind_sigmas", self.behind_sigmas, "it must be >= 0 (sigmas; inf: off)")
-        if not self.stub_sigmas >= 0:
-            raise bad("stub_sigmas", self.stub_sigmas, "it must be >= 0 (sigmas; inf: off)")
-        if not (self.edge_protrusion >= 0 and math.isfinite(self.edge_protrusion)):
-            raise bad("edge_protrusion", self.edge_protrusion, "it must be >= 0 m and finite")
-        if self.stub_runs_snoop and not self.stub_runs:
-            raise bad("stub_runs_snoop", self.stub_runs_snoop, "it needs stub_runs")
-        if self.stub_runs_worst and not self.stub_runs:
-            raise bad("stub_runs_worst", self.stub_runs_worst, "it needs stub_runs")
-        if not self.max_dbh_sd > 0:
-            raise bad("max_dbh_sd", self.max_dbh_sd, "it must be > 0 m (inf: off)")
-        if not (self.dbh_sd_outline >= 0 and math.isfinite(self.dbh_sd_outline)):
-            raise bad("dbh_sd_outline", self.dbh_sd_outline, "it must be >= 0 m and finite")
-        for name in ("centre_sd_along", "centre_sd_across"):
-            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
-                raise bad(name, getattr(self, name), "it must be >= 0 and finite")
-        if self.stub_runs_inner and not self.stub_runs:
-            raise bad("stub_runs_inner", self.stub_runs_inner, "it needs stub_runs")
-        if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):
-            raise bad("fit_noise_floor", self.fit_noise_floor, "it must be >= 0 m and finite")
-        if not (self.arc_floor_sigmas > 0 and math.isfinite(self.arc_floor_sigmas)):
-            raise bad("arc_floor_sigmas", self.arc_floor_sigmas, "it must be > 0 (sigmas)")
-        if not self.arc_tangent_sigmas > 0:
-            raise bad("arc_tangent_sigmas", self.arc_tangent_sigmas, "it must be > 0 (inf: off)")
-        if not self.max_rms_sigma > 0:
-            raise bad("max_rms_sigma", self.max_rms_sigma, "it must be > 0")
-        if not self.max_radius_width_ratio > 0:
-            raise bad("max_radius_width_ratio", self.max_radius_width_ratio, "it must be > 0")
-        if self.fit_method not in _fit_methods():
-            raise bad(
-                "fit_method",
-                self.fit_method,
-                f"choose one of {sorted(_fit_methods())} (registered circle fits)",
-            )
+        check_fields(self)
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> DetectorConfig:
         """The named preset (see :data:`PRESETS`), with optional field overrides."""
-        if name == "ohman2007":
-            raise ConfigError(
-                "preset 'ohman2007' does not exist: Öhman et al. (2007) publish no laser "
-                "segmentation or filtering parameters (only the 0.25/0.5/1 deg scanner modes and "
-                "the diameter error vs range); use 'zheng2012' or 'stemmap' with "
-                "fit_method of your choice."
-            )
-        try:
-            base = PRESETS[name]
-        except KeyError:
-            raise ConfigError(
-                f"unknown detector preset {name!r}; choose one of {sorted(PRESETS)}."
-            ) from None
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(overrides) - known)
-        if unknown:
-            raise ConfigError(
-                f"unknown detector config field(s) {unknown}; known: {sorted(known)}."
-            )
-        values = {**base, "name": name, **overrides}
-        if values["fit_method"] not in _fit_methods() and "fit_method" not in overrides:
-            raise ConfigError(
-                f"preset {name!r} needs circle fit {values['fit_method']!r}, which is not "
-                f"registered (available: {sorted(_fit_methods())}); pass fit_method=..."
-            )
-        return cls(**values)
+        return cls(**preset_values(name, overrides, {f.name for f in fields(cls)}))
 
     def edge_window_share(self) -> float:
         """The least share of the footprint in an averaging edge return's range window: 0.5

@@ -11,64 +11,52 @@ in one batched 3x3 solve.
 
 Presets (``DetectorConfig.preset(name)``) reproduce each paper's published parameters; values a
 paper does not publish are marked in :data:`PRESET_NOTES` and in
-docs/algorithms/scan-detection.md. The numpy pipeline's per-segment fits and the columns
-derived from them are :mod:`stemmap.scan._segment_fits`; how the re-fitted pieces of merged
+docs/algorithms/scan-detection.md. A scan's beam layout (angles, field of view, wrap) is
+:mod:`stemmap.scan._beam_layout`; the numpy pipeline's per-segment fits and the columns derived
+from them are :mod:`stemmap.scan._segment_fits`; how the re-fitted pieces of merged
 candidates and their largest arcs join its output is :mod:`stemmap.scan._pieces`; the compiled
 pipeline is :mod:`stemmap.scan._detect_fast`.
 """
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import chdtri
 
 from stemmap.errors import ConfigError, InputError
+from stemmap.scan._beam_layout import _as_scans, _beam_geometry, _BeamGeometry, _chi2_table
 from stemmap.scan._behind import trim_behind
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
-from stemmap.scan._lobed import lobed_refit
 from stemmap.scan._occluded_blend import blend_ends_on, drop_occluded_blends
 from stemmap.scan._pieces import arc_candidates, split_pieces
 from stemmap.scan._refit import corner_cut_pieces
 from stemmap.scan._segment_fits import (
-    _fit_rms,
-    _fit_segments,
     _Fitted,
     _output_columns,
+    fit_candidates,
     fit_kasa_segments,
-    fit_sigma,
-    reported_first_echo_covs,
 )
 from stemmap.scan._stub_runs import trim_runs
 from stemmap.scan._stubs import first_echo, trim_stubs
 from stemmap.scan.config import PRESET_NOTES, PRESETS, DetectorConfig
 from stemmap.scan.features import (
-    _chi2_upper,
-    edge_silhouette,
-    first_echo_edge_prior,
     footprint_correct,
     point_curvature,
     radius_median_filter,
     sagitta_depth,
     segment_features,
     segment_sum,
-    segment_widths,
 )
 from stemmap.scan.plausibility import (
     fitted_reasons,
-    own_noise,
-    range_roughness,
     rejected_candidates,
-    residual_smoothness,
-    robust_residual_scale,
     scan_noise_estimates,
     segment_reasons,
     segment_sigma,
@@ -107,65 +95,6 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------
 # detector
 # ----------------------------------------------------------------------------------------------
-
-
-class _BeamGeometry(NamedTuple):
-    """What a scan's beam layout and the field of view make of its beams (shared by every
-    scan of one sensor, so it is computed once: :func:`_beam_geometry`)."""
-
-    angles: FloatArray  # (N,) radians
-    cos: FloatArray  # np.cos / np.sin of the angles (the compiled path's return coordinates)
-    sin: FloatArray
-    inside: NDArray[np.bool_]  # (N,) beams inside the field of view
-    first_beam: int  # first / last beam of the field of view; -1 / N for a 360 deg scan
-    last_beam: int
-    wrap: bool  # 360 deg scan: beam 0 and beam N-1 are neighbours
-
-
-@functools.lru_cache(maxsize=64)
-def _beam_geometry(
-    n: int, angle_min: float, angle_increment: float, fov_deg: tuple[float, float] | None
-) -> _BeamGeometry:
-    angles = angle_min + angle_increment * np.arange(n, dtype=np.float64)
-    first_beam, last_beam, wrap = 0, n - 1, False
-    if fov_deg is not None:
-        a_lo, a_hi = math.radians(fov_deg[0]), math.radians(fov_deg[1])
-        wa = wrap_angle(angles)
-        inside = (wa >= a_lo) & (wa <= a_hi)
-        idx = np.flatnonzero(inside)
-        if idx.size == 0:
-            raise ConfigError(f"field of view {fov_deg} deg contains none of the scan's beams.")
-        first_beam, last_beam = int(idx[0]), int(idx[-1])
-    else:
-        inside = np.ones(n, dtype=bool)
-        if abs(n * angle_increment) >= 2 * math.pi - 0.5 * abs(angle_increment):
-            first_beam, last_beam, wrap = -1, n, True  # no field-of-view edge: never truncated
-    geo = _BeamGeometry(angles, np.cos(angles), np.sin(angles), inside, first_beam, last_beam, wrap)
-    for a in (geo.angles, geo.cos, geo.sin, geo.inside):
-        a.setflags(write=False)
-    return geo
-
-
-@functools.lru_cache(maxsize=8)
-def _chi2_table(n_beams: int) -> FloatArray:
-    """Upper 1 % chi-square quantiles (``is_straight``'s default alpha) for 0..max(1023, N)
-    degrees of freedom: a segment has at most N returns."""
-    base = _chi2_upper(0.01)
-    if n_beams < base.shape[0]:
-        return base
-    extra = chdtri(np.arange(base.shape[0], n_beams + 1, dtype=np.float64), 0.01)
-    out: FloatArray = np.concatenate((base, extra))
-    out.setflags(write=False)
-    return out
-
-
-def _as_scans(ranges: ArrayLike) -> FloatArray:
-    r = np.asarray(ranges, dtype=np.float64)
-    if r.ndim == 1:
-        r = r[None, :]
-    if r.ndim != 2 or r.shape[1] == 0:
-        raise InputError(f"ranges must have shape (S, N) with N > 0, got {r.shape}.")
-    return r
 
 
 class ScanTrunkDetector:
@@ -588,95 +517,8 @@ class ScanTrunkDetector:
 
     def _fit_candidates(self, segs: Segments, grid: FloatArray, wrap: bool) -> _Fitted:
         """Circle fit of every candidate segment (sensor at the origin) with what the fit
-        plausibility tests need (:func:`~stemmap.scan.plausibility.fit_reasons`)."""
-        cfg = self.config
-        p = segs.points
-        n = segs.counts
-        mean_r = segment_sum(p.r, segs) / n
-        sigma = segment_sigma(cfg, segs, mean_r)  # per-segment range noise
-        if cfg.sigma_from_data and (cfg.sigma > 0 or cfg.sigma_rel > 0):
-            # (sigma 0: the fit estimates its own scale, nothing to raise)
-            sigma = np.maximum(
-                sigma, np.minimum(range_roughness(segs), cfg.roughness_max_factor * sigma)
-            )
-        # a footprint correction means a first-echo sensor: no averaging-scanner edge model
-        divergence = 0.0 if cfg.beam_footprint_deg > 0 else math.radians(cfg.beam_divergence_deg)
-        sil = None
-        if cfg.fit_method == "ours" and cfg.neighbour_silhouette and divergence > 0:
-            sil = edge_silhouette(
-                segs,
-                grid,
-                divergence,
-                margin=cfg.occlusion_margin,
-                wrap=wrap,
-                hit_range=(cfg.edge_hit_min, cfg.edge_hit_max),
-            )
-        elif cfg.fit_method == "ours" and cfg.beam_footprint_deg > 0 and cfg.edge_protrusion > 0:
-            # first echo: the last beam that returns may have caught a bark flake or twig
-            sil = first_echo_edge_prior(segs, cfg.edge_protrusion)
-        # fit_noise_floor: the fit weights by the measured noise, the tests keep sigma
-        f_sigma = fit_sigma(cfg.fit_noise_floor, segs, sigma)
-        centers, radii, covs, ok = _fit_segments(
-            segs,
-            cfg.fit_method,
-            sigma if f_sigma is None else f_sigma,
-            silhouette=sil,
-            beam_divergence=divergence,
-            residuals=cfg.fit_residuals,
-            edge_window=cfg.edge_window_share(),
-        )
-        f_width = segment_widths(segs)
-        sil_width = f_width
-        if sil is not None:
-            # a neighbour that saw a mixed pixel puts the tangent up to ~1 beam beyond the edge
-            # return: the silhouette is wider than the edge-beam chord by that much
-            beyond = np.nansum(np.maximum(sil[:, :, 0] - 0.5, 0.0), axis=1)
-            sil_width = f_width + beyond * mean_r * abs(segs.points.angle_increment)
-        with np.errstate(invalid="ignore"):
-            rms = _fit_rms(segs, centers, radii)
-            # the RMS test reads the robust scale when asked (quality keeps the plain RMS)
-            test_rms = robust_residual_scale(segs, centers, radii) if cfg.rms_robust else rms
-            if cfg.rms_dof:
-                # the residual scale over the fit's n - 3 degrees of freedom
-                n = segs.counts.astype(np.float64)
-                test_rms = test_rms * np.sqrt(n / np.maximum(n - 3.0, 1.0))
-        if cfg.lobe_harmonics:
-            # a candidate that fails the RMS test as a circle may pass it as a lobed outline
-            centers, radii, covs, test_rms, lobed = lobed_refit(
-                cfg, segs, centers, radii, covs, ok, test_rms, sigma, sil_width
-            )
-            rms = np.where(lobed, test_rms, rms)
-        smooth = own = None
-        if cfg.lobe_roughness > 0 or cfg.rms_noise_from_fit > 0:
-            smooth = residual_smoothness(segs, centers, radii)
-            if cfg.rms_noise_from_fit > 0:
-                own = own_noise(cfg, segs, sigma, smooth)
-        dbh_sd = None
-        if (
-            math.isfinite(cfg.max_dbh_sd)
-            and cfg.beam_footprint_deg > 0
-            and cfg.fit_method == "ours"
-        ):
-            # the diameter's standard deviation by the fit's own covariance (max_dbh_sd)
-            dbh_sd = 2.0 * np.sqrt(np.maximum(covs[:, 2, 2], 0.0))
-        # the reported DBH std at the noise present, plus the outline's share (first echo)
-        cov_out = reported_first_echo_covs(cfg, segs, covs, sigma, f_sigma, rms, centers)
-        return _Fitted(
-            centers,
-            radii,
-            covs,
-            ok,
-            sigma,
-            mean_r,
-            f_width,
-            sil_width,
-            rms,
-            test_rms,
-            smooth,
-            own,
-            dbh_sd,
-            cov_out,
-        )
+        plausibility tests need (:func:`~stemmap.scan._segment_fits.fit_candidates`)."""
+        return fit_candidates(self.config, segs, grid, wrap)
 
     def _run_numpy(
         self,
