@@ -493,6 +493,11 @@ class DetectorConfig:
         quadrature to the reported diameter standard deviation, ``C_rr += (b / 2)^2``. The
         ``stemmap`` preset's value is chosen leave-one-dataset-out on the real slices
         (same section). 0 = none.
+    dbh_sd_jackknife : float, >= 0
+        First-echo ``ours`` fits, numpy path: the reported radius std is raised to this
+        factor times the delete-a-group jackknife std of the radius where that is larger
+        (:mod:`stemmap.scan._dbh_jackknife`; ours, issue 11, Dec 6, "Junction merges on
+        lidR"). Only the reported covariance changes. 0 = off (every preset).
     stub_runs_inner : bool
         With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
         "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
@@ -672,6 +677,7 @@ class DetectorConfig:
     max_dbh_sd: float = math.inf
     dbh_sd_noise: bool = False
     dbh_sd_outline: float = 0.0
+    dbh_sd_jackknife: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False
@@ -806,6 +812,8 @@ class DetectorConfig:
             raise bad("max_dbh_sd", self.max_dbh_sd, "it must be > 0 m (inf: off)")
         if not (self.dbh_sd_outline >= 0 and math.isfinite(self.dbh_sd_outline)):
             raise bad("dbh_sd_outline", self.dbh_sd_outline, "it must be >= 0 m and finite")
+        if not (self.dbh_sd_jackknife >= 0 and math.isfinite(self.dbh_sd_jackknife)):
+            raise bad("dbh_sd_jackknife", self.dbh_sd_jackknife, "it must be >= 0 and finite")
         if self.stub_runs_inner and not self.stub_runs:
             raise bad("stub_runs_inner", self.stub_runs_inner, "it needs stub_runs")
         if not (self.fit_noise_floor >= 0 and math.isfinite(self.fit_noise_floor)):
