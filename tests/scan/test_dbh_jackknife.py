@@ -132,3 +132,54 @@ def test_off_by_default_and_an_averaging_scanner_is_untouched():
         batch
     )
     assert np.array_equal(a.covs, b.covs)
+
+
+def _loop_reference(segs: Segments, sigma: np.ndarray, groups: int = 10) -> np.ndarray:
+    """The jackknife one segment and one group at a time (Segments.drop), for comparison."""
+    out = np.full(len(segs), np.nan)
+    for j in range(len(segs)):
+        one = segs.select(np.arange(len(segs)) == j)
+        n = int(one.counts[0])
+        g_n = min(n, groups)
+        gid = (np.arange(n) * g_n) // n
+        radii = []
+        for g in range(g_n):
+            drop = gid == g
+            if n - drop.sum() < 3:
+                continue
+            flagged = Segments(
+                one.points,
+                one.start,
+                one.stop,
+                one.scan,
+                one.occluded_start | drop[0],
+                one.occluded_end | drop[-1],
+                one.truncated_start,
+                one.truncated_end,
+            ).drop(~drop)
+            _, r, _, ok = _fit_segments(flagged, "ours", sigma[j : j + 1])
+            if ok[0]:
+                radii.append(r[0])
+        a = np.array(radii)
+        if a.size >= 3:
+            out[j] = (a.size - 1) / a.size * np.sum((a - a.mean()) ** 2)
+    return out
+
+
+def test_the_batched_refits_equal_one_refit_at_a_time():
+    """Two scans in one table: the junction arc (more returns than groups: groups of 2-3) and
+    a rough arc cut to 6 returns (delete-one)."""
+    rng = np.random.default_rng(11)
+    r1, th = _junction(rng, 0.005)
+    r2, _ = _rough(rng, 0.01)
+    r2 = np.where(np.cumsum(np.isfinite(r2)) <= 6, r2, np.inf)
+    pts = extract_points(np.vstack((r1, r2)), th, STEP_RAD)
+    n1 = int(np.isfinite(r1).sum())
+    n = len(pts)
+    f = np.zeros(2, dtype=bool)
+    segs = Segments(pts, np.array([0, n1]), np.array([n1, n]), np.array([0, 1]), f, f, f, f)
+    assert segs.counts[0] > 10 and segs.counts[1] == 6
+    sigma = np.array([0.01, 0.01])
+    got = jackknife_radius_var(segs, sigma)
+    assert np.all(np.isfinite(got))
+    assert np.allclose(got, _loop_reference(segs, sigma), rtol=1e-9, atol=1e-12)

@@ -35,9 +35,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from stemmap.scan._segment_fits import _fit_segments, fit_sigma
+from stemmap.scan.segment import Segments
 
 if TYPE_CHECKING:
-    from stemmap.scan.segment import Segments
     from stemmap.types import FloatArray
 
 #: Largest number of consecutive groups of returns left out in turn (a candidate with fewer
@@ -73,29 +73,35 @@ def jackknife_radius_var(
     k = len(segs)
     n = segs.counts
     gid = group_ids(n, groups)
-    g_of = np.minimum(n, groups)
+    lab = segs.labels
+    left = n[None, :] - np.stack([np.bincount(lab[gid == g], minlength=k) for g in range(groups)])
+    run = (np.arange(groups)[:, None] < np.minimum(n, groups)[None, :]) & (left >= _MIN_KEEP)
+    gg, jj = np.nonzero(run)  # every refit: group gg[i] left out of segment jj[i]
     radii = np.full((groups, k), np.nan)
-    for g in range(groups):
-        drop = gid == g
-        left = n - np.bincount(segs.labels[drop], minlength=k)
-        run = (g < g_of) & (left >= _MIN_KEEP)
-        if not np.any(run):
-            continue
-        sub = segs.select(run)
-        d = drop[np.repeat(run, n)]
-        first, last = d[sub.start], d[sub.stop - 1]
-        sub = type(sub)(
-            sub.points,
-            sub.start,
-            sub.stop,
-            sub.scan,
-            sub.occluded_start | first,
-            sub.occluded_end | last,
-            sub.truncated_start,
-            sub.truncated_end,
-        ).drop(~d)
-        _, r, _, ok = _fit_segments(sub, method, sigma[run], residuals=residuals)
-        radii[g, run] = np.where(ok, r, np.nan)
+    if gg.size == 0:
+        return np.full(k, np.nan)
+    # one batch of every refit (a point per kept return of each (group, segment) pair)
+    pair_of_point = np.repeat(np.arange(gg.size), n[jj])
+    offs = np.arange(pair_of_point.size) - np.repeat(np.cumsum(n[jj]) - n[jj], n[jj])
+    idx = segs.start[jj][pair_of_point] + offs
+    keep = gid[idx] != gg[pair_of_point]
+    idx = idx[keep]
+    counts = left[gg, jj]
+    stop = np.cumsum(counts)
+    first = gid[segs.start[jj]] == gg  # the left-out group holds an end return: occluded
+    last = gid[segs.stop[jj] - 1] == gg
+    sub = Segments(
+        segs.points.take(idx),
+        stop - counts,
+        stop,
+        segs.scan[jj],
+        segs.occluded_start[jj] | first,
+        segs.occluded_end[jj] | last,
+        segs.truncated_start[jj],
+        segs.truncated_end[jj],
+    )
+    _, r, _, ok = _fit_segments(sub, method, sigma[jj], residuals=residuals)
+    radii[gg, jj] = np.where(ok, r, np.nan)
     m = np.sum(np.isfinite(radii), axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.nanmean(np.where(np.isfinite(radii), radii, np.nan), axis=0)
