@@ -69,8 +69,8 @@ class _Own:
         import stemmap.scan.detect as detect
         from stemmap.scan._segment_fits import _output_columns
 
-        def wrapped(segs: Any, fitted: Any, ok: Any) -> dict[str, np.ndarray]:
-            cols = _output_columns(segs, fitted, ok)
+        def wrapped(segs: Any, fitted: Any, ok: Any, cfg: Any = None) -> dict[str, np.ndarray]:
+            cols = _output_columns(segs, fitted, ok, cfg)
             if fitted.cov_out is not None:
                 own = _output_columns(segs, fitted._replace(cov_out=None), ok)["covs"]
                 for c, cv, s in zip(cols["centers"], own, cols["index"], strict=True):

@@ -77,8 +77,8 @@ class _Extras:
         import stemmap.scan.detect as detect
         from stemmap.scan._segment_fits import _output_columns, fit_sigma
 
-        def wrapped(segs: Any, fitted: Any, ok: Any) -> dict[str, np.ndarray]:
-            cols = _output_columns(segs, fitted, ok)
+        def wrapped(segs: Any, fitted: Any, ok: Any, cfg: Any = None) -> dict[str, np.ndarray]:
+            cols = _output_columns(segs, fitted, ok, cfg)
             cfg = self.cfg
             assert cfg is not None
             fs = fit_sigma(cfg.fit_noise_floor, segs, fitted.sigma)

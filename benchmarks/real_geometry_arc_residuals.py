@@ -47,7 +47,7 @@ def _recording(rows: list[dict[str, Any]]) -> Any:
     """``_output_columns`` that also keeps every output row's returns and circle."""
     original = detect_module._output_columns
 
-    def wrapped(segs: Any, fitted: Any, ok: np.ndarray) -> Any:
+    def wrapped(segs: Any, fitted: Any, ok: np.ndarray, cfg: Any = None) -> Any:
         p = segs.points
         for k in np.flatnonzero(ok):
             s = slice(int(segs.start[k]), int(segs.stop[k]))
@@ -60,7 +60,7 @@ def _recording(rows: list[dict[str, Any]]) -> Any:
                     "radius": float(fitted.radii[k]),
                 }
             )
-        return original(segs, fitted, ok)
+        return original(segs, fitted, ok, cfg)
 
     return original, wrapped
 

@@ -156,6 +156,8 @@ def check_fields(cfg: DetectorConfig) -> None:
     for name in ("centre_sd_along", "centre_sd_across"):
         if not (getattr(cfg, name) >= 0 and math.isfinite(getattr(cfg, name))):
             raise bad(name, getattr(cfg, name), "it must be >= 0 and finite")
+    if not (cfg.dbh_sd_jackknife >= 0 and math.isfinite(cfg.dbh_sd_jackknife)):
+        raise bad("dbh_sd_jackknife", cfg.dbh_sd_jackknife, "it must be >= 0 and finite")
     if cfg.stub_runs_inner and not cfg.stub_runs:
         raise bad("stub_runs_inner", cfg.stub_runs_inner, "it needs stub_runs")
     if not (cfg.fit_noise_floor >= 0 and math.isfinite(cfg.fit_noise_floor)):

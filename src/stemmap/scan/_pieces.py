@@ -112,7 +112,7 @@ def split_pieces(
         if fate is not None and got is not None:
             fate["split"].append((pos[got.parent], got.ok))
         if got is not None and np.any(got.ok):
-            more = _output_columns(got.segs, got.fitted, got.ok)
+            more = _output_columns(got.segs, got.fitted, got.ok, detector.config)
             # a piece takes its parent's place in the output (the parent failed)
             cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
             order_key = np.concatenate((order_key, 2 * pos[got.parent[got.ok]] + 1))
@@ -142,7 +142,7 @@ def add_pieces(
         got = trim_cut_ends(detector, got, every, grid, wrap)
     p_segs, p_fit = detector._trim_ends(got.segs, got.fitted, got.ok, grid, wrap)
     got = got._replace(segs=p_segs, fitted=p_fit)
-    more = _output_columns(got.segs, got.fitted, got.ok)
+    more = _output_columns(got.segs, got.fitted, got.ok, detector.config)
     cols = {k: np.concatenate((cols[k], more[k])) for k in cols}
     return cols, np.concatenate((order_key, 2 * got.parent[got.ok] + 1))
 
@@ -250,6 +250,6 @@ def arc_candidates(
         return cols, order_key
     got = trim_cut_ends(detector, got._replace(ok=ok), every, grid, wrap)
     g_segs, g_fit = detector._trim_ends(got.segs, got.fitted, ok, grid, wrap, behind=False)
-    more = _output_columns(g_segs, g_fit, ok)
+    more = _output_columns(g_segs, g_fit, ok, detector.config)
     cols = {k: np.concatenate((cols[k][stay], more[k])) for k in cols}
     return cols, np.concatenate((order_key[stay], 2 * got.parent[ok] + 1))

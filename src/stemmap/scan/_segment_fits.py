@@ -314,10 +314,12 @@ def reported_first_echo_covs(
 
 
 def _output_columns(
-    segs: Segments, fitted: _Fitted, ok: NDArray[np.bool_]
+    segs: Segments, fitted: _Fitted, ok: NDArray[np.bool_], cfg: Any = None
 ) -> dict[str, np.ndarray]:
     """The output columns of the kept candidates (``ok``): the fit's covariance (or the
-    geometric one where the fit gave none), arc extent, quality."""
+    geometric one where the fit gave none), arc extent, quality. ``cfg`` (the detector's
+    config, None: no option read): ``dbh_sd_jackknife`` raises the reported radius variance
+    towards its jackknife (:mod:`stemmap.scan._dbh_jackknife`)."""
     centers, radii, covs, sigma, rms = (
         fitted.centers,
         fitted.radii,
@@ -330,6 +332,10 @@ def _output_columns(
     if np.any(missing):
         sub = segs.select(missing)
         covs[missing] = _geometric_cov(sub, centers[missing], radii[missing], sigma[missing])
+    if cfg is not None and cfg.dbh_sd_jackknife > 0 and np.any(ok):
+        from stemmap.scan._dbh_jackknife import jackknife_covs
+
+        covs[ok] = jackknife_covs(cfg, segs.select(ok), covs[ok], sigma[ok])
     with np.errstate(invalid="ignore"):
         arc = _arc_deg(segs, centers)
         quality = _quality(n, rms, sigma, segs.partial)

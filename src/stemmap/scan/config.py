@@ -494,6 +494,11 @@ class DetectorConfig:
         along the line of sight by ``centre_sd_along`` times it, and an error of std
         ``centre_sd_across`` is added across it (:mod:`stemmap.scan._centre_cov`; ours,
         issue 11, Dec 6, "First-echo centre covariance"). Detections unchanged. 0, 0 = off.
+    dbh_sd_jackknife : float, >= 0
+        First-echo ``ours`` fits, numpy path: the reported radius std is raised to this
+        factor times the delete-a-group jackknife std of the radius where that is larger
+        (:mod:`stemmap.scan._dbh_jackknife`; ours, issue 11, Dec 6, "Junction merges on
+        lidR"). Only the reported covariance changes. 0 = off (every preset).
     stub_runs_inner : bool
         With ``stub_runs``: the run test's inner explanation (ours, issue 11, Dec 5,
         "Needles inside the arc"; :func:`~stemmap.scan._inner_runs.inner_runs`): of a
@@ -675,6 +680,7 @@ class DetectorConfig:
     dbh_sd_outline: float = 0.0
     centre_sd_along: float = 0.0
     centre_sd_across: float = 0.0
+    dbh_sd_jackknife: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False
     step_split: bool = False

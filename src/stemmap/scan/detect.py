@@ -587,7 +587,7 @@ class ScanTrunkDetector:
         # (aRchi: a 7-return bark ridge trimmed to a 6 cm "stem" on the 55 cm trunk)
         segs, fitted = self._trim_ends(segs, fitted, codes == 0, grid, wrap)
         ok = codes == 0
-        cols = _output_columns(segs, fitted, ok)
+        cols = _output_columns(segs, fitted, ok, cfg)
         order_key = 2 * pos[ok]
         # a trunk merged with its neighbour: the accepted pieces of its split, then the largest
         # consistent arcs take their parents' places (stemmap.scan._pieces)
