@@ -170,6 +170,92 @@ def _bag_huge_scan(path: Path) -> Path:
     return path
 
 
+class _CompressingSink:
+    """What rosbags' ROS 1 writer sees as a chunk's BytesIO, compressing as it is written, so
+    a multi-GB chunk never sits in memory (``getvalue`` returns the compressed bytes)."""
+
+    def __init__(self, compression: str) -> None:
+        import bz2
+
+        from lz4.frame import LZ4FrameCompressor
+
+        self._c = LZ4FrameCompressor() if compression == "lz4" else bz2.BZ2Compressor(9)
+        self._parts = [self._c.begin()] if compression == "lz4" else []
+        self._n = 0
+
+    def write(self, data: bytes | memoryview) -> int:
+        self._n += len(data)
+        self._parts.append(self._c.compress(bytes(data)))
+        return len(data)
+
+    def tell(self) -> int:
+        return self._n
+
+    def getvalue(self) -> bytes:
+        return b"".join(self._parts) + self._c.flush()
+
+    def close(self) -> None:
+        self._parts = []
+
+
+def ros1_compressed_bag(
+    path: Path,
+    n_scans: int,
+    beams: int,
+    *,
+    compression: str = "lz4",
+    size: int | None = None,
+    range_m: float = 5.0,
+) -> Path:
+    """A ROS 1 bag of ``n_scans`` LaserScans of ``beams`` ranges of ``range_m`` (0: bytes of
+    zeros, which bz2 compresses ~10x faster than a 4-byte pattern) in ONE chunk compressed
+    with ``compression`` (``"lz4"`` or ``"bz2"``): an honest bomb, 4 x n_scans x beams bytes
+    once decompressed (the chunk's ``size`` field, a uint32, allows up to 4.29 GB), written
+    through a compressing sink in ~1 message of memory (lz4: ~4 MB on disk per GB).
+    ``size``: overwrite the chunk header's uncompressed ``size`` field with this value (a
+    header announcing less than the data expand to)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    inc = 2 * math.pi / beams
+    writer = Writer(path)
+    writer.set_compression(
+        Writer.CompressionFormat.LZ4 if compression == "lz4" else Writer.CompressionFormat.BZ2
+    )
+    writer.chunk_threshold = 1 << 62  # one chunk, written on close
+    with writer:
+        writer.compressor = lambda data: data  # the sink has compressed it already
+        writer.chunks[-1].data = _CompressingSink(compression)  # type: ignore[assignment]
+        conn = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
+        msg = T["sensor_msgs/msg/LaserScan"](
+            header=T["std_msgs/msg/Header"](
+                seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="laser"
+            ),
+            angle_min=-math.pi,
+            angle_max=-math.pi + inc * (beams - 1),
+            angle_increment=inc,
+            time_increment=0.0,
+            scan_time=0.0,
+            range_min=0.1,
+            range_max=30.0,
+            ranges=np.full(beams, range_m, np.float32),
+            intensities=np.zeros(0, np.float32),
+        )
+        ser = ts.serialize_ros1(msg, "sensor_msgs/msg/LaserScan")
+        for k in range(n_scans):  # the same message at 1 s steps (its stamp says 1 s)
+            writer.write(conn, (1 + k) * 1_000_000_000, ser)
+    if size is not None:
+        with path.open("r+b") as fh:
+            head = fh.read(8192)
+            at = head.find(b"size=", len(b"#ROSBAG V2.0\n") + 4096)  # the chunk header's
+            assert at > 0, "chunk size field not found"
+            fh.seek(at + 5)
+            fh.write(struct.pack("<I", size))
+    return path
+
+
 def _map_with_odometry(d: Path, odometry: Path) -> list[str]:
     """``stemmap map`` of a small scan NPZ with ``odometry`` as its wheel odometry CSV."""
     scans = _scan_npz(d / "s.npz", 40)

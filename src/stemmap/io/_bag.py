@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from stemmap.errors import InputError
+from stemmap.io._bag_budget import bound_reader_chunks, check_ros1_chunks
 from stemmap.io._bag_salvage import _norm_type, _ros1_salvage, _Salvage
 from stemmap.io._util import PathLike, SkippedFrame
 
@@ -189,6 +190,8 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
             yield from _iter_salvaged(p, msgtype, topic, exc)
             return
         chosen = _select_topic(reader, p, msgtype, topic)
+        if p.suffix.lower() == ".bag" and p.is_file():  # compressed chunks: bounded reads
+            bound_reader_chunks(reader, p, check_ros1_chunks(p))
         conns = [c for c in reader.connections if c.topic == chosen]
         gen = reader.messages(connections=conns)
         k = 0
@@ -222,6 +225,7 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
 
 
 def _salvage_or_raise(path: Path, open_error: InputError, keep_topic: str | None) -> _Salvage:
+    check_ros1_chunks(path)  # before a chunk is decompressed (the salvage reads them whole)
     try:
         sv = _ros1_salvage(path, keep_topic)
     except (InputError, OSError, ValueError, KeyError) as exc:
