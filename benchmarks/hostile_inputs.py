@@ -18,7 +18,12 @@ Cases: ``npz_bomb`` (scan NPZ, ``--bomb-gb`` of deflated ranges), ``tiff_frame``
 LAS/LAZ whose header announces 2e9 points), ``ply_4e9`` (binary PLY announcing 4e9
 vertices), ``xyz_one_line`` / ``odometry_one_line`` (``--text-mb`` of numbers without a
 newline), ``odometry_short_lines`` (``--text-mb`` of ``0,0,0`` lines), ``bag_huge_scan``
-(a ROS 1 bag whose LaserScan announces 2^30 ranges).
+(a ROS 1 bag whose LaserScan announces 2^30 ranges); since Dec 6: ``bag_lz4_chunk`` (a ROS 1
+bag whose one lz4 chunk holds ``--bag-gb`` of LaserScans, ~4 MB a GB on disk),
+``bag_bz2_chunk`` (the same in bz2, ~1 kB a GB: python-lz4 gives up near 1 GB on its own),
+``bag_lz4_lying`` (the same chunk, its header announcing 1 MB), ``tiff_cut`` (a camera TIFF
+frame whose strip runs past the end of the file), ``yolo_polygons`` (``segment --train`` on a
+real 16 Mpx mangrove photo with a label file of ``--yolo-lines`` polygons).
 """
 
 from __future__ import annotations
@@ -256,6 +261,41 @@ def ros1_compressed_bag(
     return path
 
 
+BAG_BEAMS = 4_000_000  # 16 MB of float32 ranges a LaserScan
+
+
+def _bag_bomb(path: Path, gb: float, size: int | None = None, compression: str = "lz4") -> Path:
+    """``ros1_compressed_bag`` of ``gb`` GB in one chunk (at most the uint32 size field's
+    4.29 GB), of ranges 0 (the fastest to compress); ``size`` makes the header lie."""
+    n = max(1, min(int(gb * 1e9 / (4 * BAG_BEAMS)), (2**32 - 1) // (4 * BAG_BEAMS + 200)))
+    return ros1_compressed_bag(path, n, BAG_BEAMS, compression=compression, size=size, range_m=0.0)
+
+
+MANGROVE = Path("/work/shared/datasets/mangrove/images")
+
+
+def _yolo_training(d: Path, lines: int) -> list[str]:
+    """``segment --train`` on one real 4608 x 3456 mangrove photo (read in place) with a label
+    file of ``lines`` small class-0 squares (~60 B a line)."""
+    photo = sorted(MANGROVE.glob("*.jpg"))[0]
+    rng = np.random.default_rng(0)
+    rows = []
+    for x, y in rng.uniform(0.05, 0.9, (lines, 2)):
+        rows.append(f"0 {x:.4f} {y:.4f} {x + 0.02:.4f} {y:.4f} {x + 0.02:.4f} {y + 0.05:.4f}")
+    (d / f"{photo.stem}.txt").write_text("\n".join(rows) + "\n")
+    return [
+        "segment",
+        "--train",
+        str(photo),
+        "--labels",
+        str(d / f"{photo.stem}.txt"),
+        "--model-out",
+        str(d / "m.npz"),
+        "--augment",
+        "0",
+    ]
+
+
 def _map_with_odometry(d: Path, odometry: Path) -> list[str]:
     """``stemmap map`` of a small scan NPZ with ``odometry`` as its wheel odometry CSV."""
     scans = _scan_npz(d / "s.npz", 40)
@@ -315,6 +355,35 @@ CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
         str(d / "o.csv"),
         "-q",
     ],
+    "bag_lz4_chunk": lambda d, a: [
+        "detect",
+        str(_bag_bomb(d / "b.bag", a.bag_gb)),
+        "--out",
+        str(d / "o.csv"),
+        "-q",
+    ],
+    "bag_bz2_chunk": lambda d, a: [
+        "detect",
+        str(_bag_bomb(d / "b.bag", a.bag_gb, compression="bz2")),
+        "--out",
+        str(d / "o.csv"),
+        "-q",
+    ],
+    "bag_lz4_lying": lambda d, a: [
+        "detect",
+        str(_bag_bomb(d / "b.bag", a.bag_gb, size=10**6)),
+        "--out",
+        str(d / "o.csv"),
+        "-q",
+    ],
+    "tiff_cut": lambda d, a: [
+        "odometry",
+        "--camera",
+        str(_camera_folder(d / "f", _tiff(64, 48)[:-10], ".tif")),
+        "--out",
+        str(d / "t.csv"),
+    ],
+    "yolo_polygons": lambda d, a: _yolo_training(d, a.yolo_lines),
 }
 
 
@@ -362,6 +431,8 @@ def main() -> None:
     ap.add_argument("--src", type=Path, default=ROOT / "src", help="stemmap source tree to run")
     ap.add_argument("--bomb-gb", type=float, default=20.0, help="npz_bomb decompressed size")
     ap.add_argument("--text-mb", type=float, default=300.0, help="size of the text cases")
+    ap.add_argument("--bag-gb", type=float, default=2.0, help="bag_lz4_* chunk size (<= 4.29)")
+    ap.add_argument("--yolo-lines", type=int, default=200, help="yolo_polygons label lines")
     ap.add_argument("--max-memory-gb", type=float, default=8.0, help="address-space limit")
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--json", action="store_true", help="print one JSON object")

@@ -112,7 +112,7 @@ class _Ifd:
                 f"{self.path}: truncated TIFF (the {count:,} values of tag {tag} at byte {at} "
                 f"need {nbytes:,} bytes; the file has {len(self.data):,})."
             )
-        dtype = np.dtype(code).newbyteorder(self.bo)
+        dtype = np.dtype(self.bo + code)  # "<H", ">I", ...
         return np.frombuffer(self.data, dtype, count, at).astype(np.int64)
 
 
@@ -223,6 +223,10 @@ def _pnm_size(data: bytes, path: Path) -> tuple[int, int]:
     return w, h
 
 
+def _count(n: int, unit: str) -> str:
+    return f"{n:,} {unit}{'' if n == 1 else 's'}"
+
+
 def _pnm_check_complete(data: bytes, path: Path) -> None:
     """The pixels after a Netpbm header are all there: width x height x samples x bytes for
     the binary formats (P4: height rows of ceil(width / 8) bytes), as many numbers for the
@@ -241,16 +245,16 @@ def _pnm_check_complete(data: bytes, path: Path) -> None:
         if have < need:
             raise InputError(
                 f"{path}: truncated Netpbm ({kind}, {w} x {h}: the pixels need {need:,} "
-                f"samples after the header, the file holds {have:,}; {need - have:,} samples "
-                "short)."
+                f"samples after the header, the file holds {have:,}; "
+                f"{_count(need - have, 'sample')} short)."
             )
         return
     need = (w + 7) // 8 * h if kind == "P4" else w * h * channels * nbytes
     if len(body) < need:
         raise InputError(
             f"{path}: truncated Netpbm ({kind}, {w} x {h}: the pixels need {need:,} bytes after "
-            f"the header, the file holds {len(body):,}; {need - len(body):,} bytes short). The "
-            "file was cut short or its header is damaged."
+            f"the header, the file holds {len(body):,}; {_count(need - len(body), 'byte')} "
+            "short). The file was cut short or its header is damaged."
         )
 
 
