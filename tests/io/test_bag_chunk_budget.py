@@ -103,3 +103,18 @@ def test_the_salvage_path_checks_the_chunks_too(
 
     _, peak = _peak(read)
     assert peak < 20e6, f"peak {peak / 1e6:.0f} MB"
+
+
+def test_every_reader_of_a_bag_gets_the_check(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # open_bag itself checks: the camera Image-bag reader and the topic listing use it
+    # directly, not through the message iterator
+    from stemmap.io.camera_bag import read_camera_bag
+    from stemmap.io.rosbag import bag_summary, open_bag
+
+    bag = ros1_compressed_bag(tmp_path / "b.bag", N, BEAMS, range_m=0)
+    monkeypatch.setenv("STEMMAP_MAX_READ_GB", "0.1")
+    for call in (open_bag(bag).__enter__, lambda: bag_summary(bag), lambda: read_camera_bag(bag)):
+        with pytest.raises(InputError, match=r"b\.bag.*lz4-compressed chunk at byte"):
+            call()

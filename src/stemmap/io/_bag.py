@@ -46,7 +46,8 @@ def open_bag(path: PathLike) -> Iterator[Any]:
     """Open a ROS1 or ROS2 bag as a ``rosbags.highlevel.AnyReader`` (context manager).
 
     Bags without embedded message definitions are decoded with the ROS1 Noetic (``.bag``) or
-    ROS2 Humble type store.
+    ROS2 Humble type store. A ROS1 bag's chunks are checked against the read budget and
+    decompressed to at most their announced size (:mod:`stemmap.io._bag_budget`).
 
     Raises
     ------
@@ -74,6 +75,8 @@ def open_bag(path: PathLike) -> Iterator[Any]:
             "truncated or not a bag."
         ) from exc
     try:
+        if p.suffix.lower() == ".bag" and p.is_file():  # chunk sizes: budget, bounded reads
+            bound_reader_chunks(reader, p, check_ros1_chunks(p))
         yield reader
     finally:
         reader.close()
@@ -190,8 +193,6 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
             yield from _iter_salvaged(p, msgtype, topic, exc)
             return
         chosen = _select_topic(reader, p, msgtype, topic)
-        if p.suffix.lower() == ".bag" and p.is_file():  # compressed chunks: bounded reads
-            bound_reader_chunks(reader, p, check_ros1_chunks(p))
         conns = [c for c in reader.connections if c.topic == chosen]
         gen = reader.messages(connections=conns)
         k = 0
