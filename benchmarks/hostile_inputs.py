@@ -18,7 +18,12 @@ Cases: ``npz_bomb`` (scan NPZ, ``--bomb-gb`` of deflated ranges), ``tiff_frame``
 LAS/LAZ whose header announces 2e9 points), ``ply_4e9`` (binary PLY announcing 4e9
 vertices), ``xyz_one_line`` / ``odometry_one_line`` (``--text-mb`` of numbers without a
 newline), ``odometry_short_lines`` (``--text-mb`` of ``0,0,0`` lines), ``bag_huge_scan``
-(a ROS 1 bag whose LaserScan announces 2^30 ranges).
+(a ROS 1 bag whose LaserScan announces 2^30 ranges); since Dec 6: ``bag_lz4_chunk`` (a ROS 1
+bag whose one lz4 chunk holds ``--bag-gb`` of LaserScans, ~4 MB a GB on disk),
+``bag_bz2_chunk`` (the same in bz2, ~1 kB a GB: python-lz4 gives up near 1 GB on its own),
+``bag_lz4_lying`` (the same chunk, its header announcing 1 MB), ``tiff_cut`` (a camera TIFF
+frame whose strip runs past the end of the file), ``yolo_polygons`` (``segment --train`` on a
+real 16 Mpx mangrove photo with a label file of ``--yolo-lines`` polygons).
 """
 
 from __future__ import annotations
@@ -170,6 +175,127 @@ def _bag_huge_scan(path: Path) -> Path:
     return path
 
 
+class _CompressingSink:
+    """What rosbags' ROS 1 writer sees as a chunk's BytesIO, compressing as it is written, so
+    a multi-GB chunk never sits in memory (``getvalue`` returns the compressed bytes)."""
+
+    def __init__(self, compression: str) -> None:
+        import bz2
+
+        from lz4.frame import LZ4FrameCompressor
+
+        self._c = LZ4FrameCompressor() if compression == "lz4" else bz2.BZ2Compressor(9)
+        self._parts = [self._c.begin()] if compression == "lz4" else []
+        self._n = 0
+
+    def write(self, data: bytes | memoryview) -> int:
+        self._n += len(data)
+        self._parts.append(self._c.compress(bytes(data)))
+        return len(data)
+
+    def tell(self) -> int:
+        return self._n
+
+    def getvalue(self) -> bytes:
+        return b"".join(self._parts) + self._c.flush()
+
+    def close(self) -> None:
+        self._parts = []
+
+
+def ros1_compressed_bag(
+    path: Path,
+    n_scans: int,
+    beams: int,
+    *,
+    compression: str = "lz4",
+    size: int | None = None,
+    range_m: float = 5.0,
+) -> Path:
+    """A ROS 1 bag of ``n_scans`` LaserScans of ``beams`` ranges of ``range_m`` (0: bytes of
+    zeros, which bz2 compresses ~10x faster than a 4-byte pattern) in ONE chunk compressed
+    with ``compression`` (``"lz4"`` or ``"bz2"``): an honest bomb, 4 x n_scans x beams bytes
+    once decompressed (the chunk's ``size`` field, a uint32, allows up to 4.29 GB), written
+    through a compressing sink in ~1 message of memory (lz4: ~4 MB on disk per GB).
+    ``size``: overwrite the chunk header's uncompressed ``size`` field with this value (a
+    header announcing less than the data expand to)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    inc = 2 * math.pi / beams
+    writer = Writer(path)
+    writer.set_compression(
+        Writer.CompressionFormat.LZ4 if compression == "lz4" else Writer.CompressionFormat.BZ2
+    )
+    writer.chunk_threshold = 1 << 62  # one chunk, written on close
+    with writer:
+        writer.compressor = lambda data: data  # the sink has compressed it already
+        writer.chunks[-1].data = _CompressingSink(compression)  # type: ignore[assignment]
+        conn = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
+        msg = T["sensor_msgs/msg/LaserScan"](
+            header=T["std_msgs/msg/Header"](
+                seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="laser"
+            ),
+            angle_min=-math.pi,
+            angle_max=-math.pi + inc * (beams - 1),
+            angle_increment=inc,
+            time_increment=0.0,
+            scan_time=0.0,
+            range_min=0.1,
+            range_max=30.0,
+            ranges=np.full(beams, range_m, np.float32),
+            intensities=np.zeros(0, np.float32),
+        )
+        ser = ts.serialize_ros1(msg, "sensor_msgs/msg/LaserScan")
+        for k in range(n_scans):  # the same message at 1 s steps (its stamp says 1 s)
+            writer.write(conn, (1 + k) * 1_000_000_000, ser)
+    if size is not None:
+        with path.open("r+b") as fh:
+            head = fh.read(8192)
+            at = head.find(b"size=", len(b"#ROSBAG V2.0\n") + 4096)  # the chunk header's
+            assert at > 0, "chunk size field not found"
+            fh.seek(at + 5)
+            fh.write(struct.pack("<I", size))
+    return path
+
+
+BAG_BEAMS = 4_000_000  # 16 MB of float32 ranges a LaserScan
+
+
+def _bag_bomb(path: Path, gb: float, size: int | None = None, compression: str = "lz4") -> Path:
+    """``ros1_compressed_bag`` of ``gb`` GB in one chunk (at most the uint32 size field's
+    4.29 GB), of ranges 0 (the fastest to compress); ``size`` makes the header lie."""
+    n = max(1, min(int(gb * 1e9 / (4 * BAG_BEAMS)), (2**32 - 1) // (4 * BAG_BEAMS + 200)))
+    return ros1_compressed_bag(path, n, BAG_BEAMS, compression=compression, size=size, range_m=0.0)
+
+
+MANGROVE = Path("/work/shared/datasets/mangrove/images")
+
+
+def _yolo_training(d: Path, lines: int) -> list[str]:
+    """``segment --train`` on one real 4608 x 3456 mangrove photo (read in place) with a label
+    file of ``lines`` small class-0 squares (~60 B a line)."""
+    photo = sorted(MANGROVE.glob("*.jpg"))[0]
+    rng = np.random.default_rng(0)
+    rows = []
+    for x, y in rng.uniform(0.05, 0.9, (lines, 2)):
+        rows.append(f"0 {x:.4f} {y:.4f} {x + 0.02:.4f} {y:.4f} {x + 0.02:.4f} {y + 0.05:.4f}")
+    (d / f"{photo.stem}.txt").write_text("\n".join(rows) + "\n")
+    return [
+        "segment",
+        "--train",
+        str(photo),
+        "--labels",
+        str(d / f"{photo.stem}.txt"),
+        "--model-out",
+        str(d / "m.npz"),
+        "--augment",
+        "0",
+    ]
+
+
 def _map_with_odometry(d: Path, odometry: Path) -> list[str]:
     """``stemmap map`` of a small scan NPZ with ``odometry`` as its wheel odometry CSV."""
     scans = _scan_npz(d / "s.npz", 40)
@@ -229,6 +355,35 @@ CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
         str(d / "o.csv"),
         "-q",
     ],
+    "bag_lz4_chunk": lambda d, a: [
+        "detect",
+        str(_bag_bomb(d / "b.bag", a.bag_gb)),
+        "--out",
+        str(d / "o.csv"),
+        "-q",
+    ],
+    "bag_bz2_chunk": lambda d, a: [
+        "detect",
+        str(_bag_bomb(d / "b.bag", a.bag_gb, compression="bz2")),
+        "--out",
+        str(d / "o.csv"),
+        "-q",
+    ],
+    "bag_lz4_lying": lambda d, a: [
+        "detect",
+        str(_bag_bomb(d / "b.bag", a.bag_gb, size=10**6)),
+        "--out",
+        str(d / "o.csv"),
+        "-q",
+    ],
+    "tiff_cut": lambda d, a: [
+        "odometry",
+        "--camera",
+        str(_camera_folder(d / "f", _tiff(64, 48)[:-10], ".tif")),
+        "--out",
+        str(d / "t.csv"),
+    ],
+    "yolo_polygons": lambda d, a: _yolo_training(d, a.yolo_lines),
 }
 
 
@@ -276,6 +431,8 @@ def main() -> None:
     ap.add_argument("--src", type=Path, default=ROOT / "src", help="stemmap source tree to run")
     ap.add_argument("--bomb-gb", type=float, default=20.0, help="npz_bomb decompressed size")
     ap.add_argument("--text-mb", type=float, default=300.0, help="size of the text cases")
+    ap.add_argument("--bag-gb", type=float, default=2.0, help="bag_lz4_* chunk size (<= 4.29)")
+    ap.add_argument("--yolo-lines", type=int, default=200, help="yolo_polygons label lines")
     ap.add_argument("--max-memory-gb", type=float, default=8.0, help="address-space limit")
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--json", action="store_true", help="print one JSON object")

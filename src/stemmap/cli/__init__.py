@@ -68,7 +68,14 @@ def main() -> None:
         from stemmap.cli._app import app as typer_app
     except KeyboardInterrupt:
         _starting_error("interrupted (Ctrl-C) while starting; nothing was read or written.")
-        sys.exit(130)
+        # os._exit, not sys.exit: CPython may have flagged this interrupt as unhandled on its
+        # way through C code, and under ``python -m`` that flag turns any exit status into
+        # death by SIGINT (exit -2) after finalization. Nothing was opened or written yet, so
+        # there is nothing for finalization to do (tests/cli/test_interrupt_while_starting.py).
+        import os
+
+        sys.stdout.flush()
+        os._exit(130)
     except _Terminated:
         _starting_error("terminated (SIGTERM) while starting; nothing was read or written.")
         raise

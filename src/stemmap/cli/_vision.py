@@ -446,7 +446,8 @@ def segment(
         list[Path] | None,
         typer.Option(
             metavar="LABELS",
-            help="Training labels, files or folders: YOLO polygon .txt (class 0 = trunk) or "
+            help="Training labels, files or folders: YOLO polygon .txt (class 0 = trunk; all "
+            "class-0 polygons of a file form one trunk mask, other classes are ignored) or "
             "mask PNG (nonzero = trunk), matched to the images by file name stem.",
         ),
     ] = None,

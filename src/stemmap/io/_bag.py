@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from stemmap.errors import InputError
+from stemmap.io._bag_budget import bound_reader_chunks, check_ros1_chunks
 from stemmap.io._bag_salvage import _norm_type, _ros1_salvage, _Salvage
 from stemmap.io._util import PathLike, SkippedFrame
 
@@ -45,7 +46,8 @@ def open_bag(path: PathLike) -> Iterator[Any]:
     """Open a ROS1 or ROS2 bag as a ``rosbags.highlevel.AnyReader`` (context manager).
 
     Bags without embedded message definitions are decoded with the ROS1 Noetic (``.bag``) or
-    ROS2 Humble type store.
+    ROS2 Humble type store. A ROS1 bag's chunks are checked against the read budget and
+    decompressed to at most their announced size (:mod:`stemmap.io._bag_budget`).
 
     Raises
     ------
@@ -73,6 +75,8 @@ def open_bag(path: PathLike) -> Iterator[Any]:
             "truncated or not a bag."
         ) from exc
     try:
+        if p.suffix.lower() == ".bag" and p.is_file():  # chunk sizes: budget, bounded reads
+            bound_reader_chunks(reader, p, check_ros1_chunks(p))
         yield reader
     finally:
         reader.close()
@@ -222,6 +226,7 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
 
 
 def _salvage_or_raise(path: Path, open_error: InputError, keep_topic: str | None) -> _Salvage:
+    check_ros1_chunks(path)  # before a chunk is decompressed (the salvage reads them whole)
     try:
         sv = _ros1_salvage(path, keep_topic)
     except (InputError, OSError, ValueError, KeyError) as exc:

@@ -92,8 +92,9 @@ def _ros1_salvage(path: Path, keep_topic: str | None = None) -> _Salvage:
     when it closes the chunk) or runs past the end of the file is read as far as its
     uncompressed message records are complete, like ``rosbag reindex``.
     """
-    import bz2
     import mmap
+
+    from stemmap.io._bag_budget import bounded_decompress
 
     with path.open("rb") as fh:
         try:
@@ -106,7 +107,7 @@ def _ros1_salvage(path: Path, keep_topic: str | None = None) -> _Salvage:
             raise InputError(f"{str(path)!r} does not start with the ROS1 magic '#ROSBAG V2.0'.")
         view = memoryview(mm)
         try:
-            return _salvage_view(view, keep_topic, bz2.decompress)
+            return _salvage_view(view, keep_topic, bounded_decompress)
         finally:
             # slices still referenced by a traceback keep the map alive: let GC close it then
             with contextlib.suppress(BufferError):
@@ -123,7 +124,7 @@ def _conn_record(h: dict[str, bytes], buf: bytes | memoryview) -> tuple[int, tup
     )
 
 
-def _salvage_view(view: memoryview, keep_topic: str | None, bz2_decompress: Any) -> _Salvage:
+def _salvage_view(view: memoryview, keep_topic: str | None, decompress: Any) -> _Salvage:
     conns: dict[int, tuple[str, str, str]] = {}
     counts: Counter[int] = Counter()
     msgs: list[_Salvaged] = []
@@ -162,12 +163,9 @@ def _salvage_view(view: memoryview, keep_topic: str | None, bz2_decompress: Any)
                 try:
                     if comp == "none":
                         raw: bytes | memoryview = view[a:b]
-                    elif comp == "bz2":
-                        raw = bz2_decompress(view[a:b])
-                    else:
-                        from lz4.frame import decompress as lz4_decompress
-
-                        raw = lz4_decompress(bytes(view[a:b]))
+                    else:  # to at most the announced size (stemmap.io._bag_budget)
+                        size = int.from_bytes(h.get("size", b"")[:4], "little")
+                        raw = decompress(comp, view[a:b], size, f"the chunk at byte {off}")
                 except Exception as exc:
                     stop = f"the chunk at byte {off} cannot be decompressed ({exc})"
                     break

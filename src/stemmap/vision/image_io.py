@@ -7,7 +7,8 @@ complaint. :func:`read_image` therefore
 1. reads the width and height from the file header (PNG IHDR, JPEG SOFn, BMP info header)
    without decoding, and refuses more than ``max_pixels`` (``stemmap segment --max-pixels``);
 2. checks the container is complete: PNG chunks walked to IEND with their CRCs, JPEG entropy
-   data followed by its EOI marker, BMP file size against its header;
+   data followed by its EOI marker, BMP file size against its header (camera frames also:
+   every TIFF strip or tile inside the file, the pixels a Netpbm header announces present);
 3. decodes and checks the decoded size equals the header's.
 
 :func:`image_header` also reads TIFF (IFD 0) and Netpbm headers for camera frame folders
@@ -59,65 +60,202 @@ def image_format(data: bytes) -> str:
 
 # TIFF field types whose value is an unsigned integer: SHORT, LONG, LONG8 (BigTIFF)
 _TIFF_UINT = {3: "H", 4: "I", 16: "Q"}
+# IFD tags: ImageWidth, ImageLength; StripOffsets / StripByteCounts; TileOffsets / TileByteCounts
+_TIFF_OFFSETS = ((273, 279, "strip"), (324, 325, "tile"))
+
+
+class _Ifd:
+    """IFD 0 of a TIFF (TIFF 6.0, section 2; BigTIFF: 8-byte offsets and counts, 20-byte
+    entries): each tag's field type, count and the byte position of its value field."""
+
+    def __init__(self, data: bytes, path: Path) -> None:
+        self.data, self.path = data, path
+        self.bo = "<" if data[:2] == b"II" else ">"
+        big = data[2:4] in (b"+\0", b"\0+")
+        self.vfmt = 8 if big else 4  # bytes of an entry's value field
+        self.tags: dict[int, tuple[int, int, int]] = {}
+        try:
+            if big:
+                (ifd,) = struct.unpack_from(self.bo + "Q", data, 8)
+                (n,) = struct.unpack_from(self.bo + "Q", data, ifd)
+                first, entry, cfmt = ifd + 8, 20, "HHQ"
+            else:
+                (ifd,) = struct.unpack_from(self.bo + "I", data, 4)
+                (n,) = struct.unpack_from(self.bo + "H", data, ifd)
+                first, entry, cfmt = ifd + 2, 12, "HHI"
+            if first + n * entry > len(data):
+                raise struct.error("IFD past the end")
+            for k in range(n):
+                at = first + k * entry
+                tag, ftype, count = struct.unpack_from(self.bo + cfmt, data, at)
+                self.tags.setdefault(tag, (ftype, count, at + entry - self.vfmt))
+        except struct.error:
+            raise InputError(
+                f"{path}: damaged or truncated TIFF (its first IFD is unreadable)."
+            ) from None
+
+    def values(self, tag: int) -> NDArray[np.int64] | None:
+        """The unsigned integer values of ``tag`` (None when IFD 0 lacks it), read in place or
+        from the offset the entry holds; an array running past the end of the file is
+        reported before anything is allocated."""
+        if tag not in self.tags:
+            return None
+        ftype, count, at = self.tags[tag]
+        if ftype not in _TIFF_UINT:
+            raise InputError(f"{self.path}: damaged TIFF (tag {tag} has field type {ftype}).")
+        code = _TIFF_UINT[ftype]
+        nbytes = count * struct.calcsize(code)
+        if nbytes > self.vfmt:  # the entry holds the array's offset
+            (at,) = struct.unpack_from(self.bo + ("Q" if self.vfmt == 8 else "I"), self.data, at)
+        if at + nbytes > len(self.data):
+            raise InputError(
+                f"{self.path}: truncated TIFF (the {count:,} values of tag {tag} at byte {at} "
+                f"need {nbytes:,} bytes; the file has {len(self.data):,})."
+            )
+        dtype = np.dtype(self.bo + code)  # "<H", ">I", ...
+        return np.frombuffer(self.data, dtype, count, at).astype(np.int64)
 
 
 def _tiff_size(data: bytes, path: Path) -> tuple[int, int]:
     """(width, height) of a TIFF's first image: ImageWidth (256) and ImageLength (257) of
-    IFD 0 (TIFF 6.0, section 2; BigTIFF: 8-byte offsets and counts, 20-byte entries).
-    What OpenCV decodes is that first image."""
-    bo = "<" if data[:2] == b"II" else ">"
-    big = data[2:4] in (b"+\0", b"\0+")
-    try:
-        if big:
-            (ifd,) = struct.unpack_from(bo + "Q", data, 8)
-            (n,) = struct.unpack_from(bo + "Q", data, ifd)
-            first, entry, cfmt, vfmt = ifd + 8, 20, "HHQ", 8
-        else:
-            (ifd,) = struct.unpack_from(bo + "I", data, 4)
-            (n,) = struct.unpack_from(bo + "H", data, ifd)
-            first, entry, cfmt, vfmt = ifd + 2, 12, "HHI", 4
-        if first + n * entry > len(data):
-            raise struct.error("IFD past the end")
-        size: dict[int, int] = {}
-        for k in range(n):
-            at = first + k * entry
-            tag, ftype, count = struct.unpack_from(bo + cfmt, data, at)
-            if tag in (256, 257) and ftype in _TIFF_UINT and count == 1:
-                code = _TIFF_UINT[ftype]
-                if struct.calcsize(code) <= vfmt:  # the value sits in the entry itself
-                    (size[tag],) = struct.unpack_from(bo + code, data, at + 4 + vfmt)
-    except struct.error:
-        raise InputError(
-            f"{path}: damaged or truncated TIFF (its first IFD is unreadable)."
-        ) from None
-    if 256 not in size or 257 not in size:
+    IFD 0. What OpenCV decodes is that first image."""
+    ifd = _Ifd(data, path)
+    size = {}
+    for tag in (256, 257):
+        if tag in ifd.tags and ifd.tags[tag][1] == 1:
+            size[tag] = int(ifd.values(tag)[0])  # type: ignore[index]
+    if len(size) < 2:
         raise InputError(f"{path}: damaged TIFF (no ImageWidth / ImageLength in its first IFD).")
     return size[256], size[257]
 
 
-def _pnm_size(data: bytes, path: Path) -> tuple[int, int]:
-    """(width, height) of a Netpbm image: P1-P6 (whitespace-separated width and height after
-    the magic, ``#`` comments to the end of a line) or P7 (PAM, ``WIDTH`` / ``HEIGHT`` lines)."""
-    head = data[:4096]
-    if head[1:2] == b"7":
+def _tiff_check_complete(data: bytes, path: Path) -> None:
+    """Every strip (or tile) of IFD 0 lies inside the file: offset + byte count <= file size.
+    A cut file or a header pointing past the end would otherwise reach libtiff, which reports
+    it on stderr and leaves OpenCV with no image, or with the rows it could read."""
+    ifd = _Ifd(data, path)
+    for off_tag, cnt_tag, what in _TIFF_OFFSETS:
+        offsets = ifd.values(off_tag)
+        if offsets is None:
+            continue
+        counts = ifd.values(cnt_tag)
+        if counts is None:  # libtiff estimates them for uncompressed data: check the starts
+            counts = np.zeros_like(offsets)
+        if counts.shape != offsets.shape:
+            raise InputError(
+                f"{path}: damaged TIFF ({offsets.size} {what} offsets but {counts.size} "
+                "byte counts)."
+            )
+        short = np.flatnonzero(offsets + counts > len(data))
+        if short.size:
+            k = int(short[0])
+            raise InputError(
+                f"{path}: truncated TIFF ({what} {k} at byte {int(offsets[k])} needs "
+                f"{int(counts[k]):,} bytes; the file ends "
+                f"{int(offsets[k] + counts[k]) - len(data):,} bytes short of it). The file was "
+                "cut short (e.g. an interrupted copy) or its header is damaged."
+            )
+        return
+    raise InputError(f"{path}: damaged TIFF (no StripOffsets or TileOffsets in its first IFD).")
+
+
+_PNM_WHITESPACE = b" \t\n\v\f\r"
+
+
+def _pnm_layout(data: bytes, path: Path) -> tuple[int, int, int, int, int]:
+    """(width, height, header length, samples per pixel, bytes per sample) of a Netpbm image:
+    P1-P6 (whitespace-separated width, height and maxval after the magic, ``#`` comments to
+    the end of a line, one whitespace byte before the pixels) or P7 (PAM: ``WIDTH``,
+    ``HEIGHT``, ``DEPTH``, ``MAXVAL`` lines up to ``ENDHDR``); netpbm.sourceforge.net/doc.
+    Bytes per sample is 0 for the plain (ascii) formats P1-P3 and for the bitmap P4, whose
+    rows are ceil(width / 8) bytes."""
+    kind = data[1:2]
+    if kind == b"7":
+        end = data.find(b"ENDHDR", 0, 4096)
+        if end < 0:
+            raise InputError(f"{path}: damaged PAM header (no ENDHDR in its first 4 kB).")
         fields = dict(
             ln.split(None, 1)
-            for ln in head.split(b"ENDHDR")[0].splitlines()[1:]
+            for ln in data[:end].splitlines()[1:]
             if len(ln.split(None, 1)) == 2 and not ln.startswith(b"#")
         )
         try:
-            return int(fields[b"WIDTH"]), int(fields[b"HEIGHT"])
+            w, h = int(fields[b"WIDTH"]), int(fields[b"HEIGHT"])
+            depth = int(fields.get(b"DEPTH", b"1"))
+            maxval = int(fields.get(b"MAXVAL", b"255"))
         except (KeyError, ValueError):
             raise InputError(f"{path}: damaged PAM header (no WIDTH / HEIGHT).") from None
+        return w, h, end + len(b"ENDHDR") + 1, depth, _pnm_sample_bytes(maxval, path)
+    n_fields = 2 if kind in (b"1", b"4") else 3
     tokens: list[bytes] = []
-    for ln in head[2:].splitlines():
-        tokens += ln.split(b"#", 1)[0].split()
-        if len(tokens) >= 2:
-            break
+    pos, n = 2, min(len(data), 4096)
+    while len(tokens) < n_fields and pos < n:
+        c = data[pos : pos + 1]
+        if c in _PNM_WHITESPACE:
+            pos += 1
+        elif c == b"#":
+            eol = data.find(b"\n", pos)
+            pos = n if eol < 0 else eol + 1
+        else:
+            start = pos
+            while pos < n and data[pos : pos + 1] not in _PNM_WHITESPACE + b"#":
+                pos += 1
+            tokens.append(data[start:pos])
     try:
-        return int(tokens[0]), int(tokens[1])
+        w, h = int(tokens[0]), int(tokens[1])
+        maxval = int(tokens[2]) if n_fields == 3 else 1
     except (IndexError, ValueError):
         raise InputError(f"{path}: damaged Netpbm header (no width and height).") from None
+    channels = 3 if kind in (b"3", b"6") else 1
+    plain = kind in (b"1", b"2", b"3")
+    nbytes = 0 if plain or kind == b"4" else _pnm_sample_bytes(maxval, path)
+    return w, h, pos + 1, channels, nbytes
+
+
+def _pnm_sample_bytes(maxval: int, path: Path) -> int:
+    if not 1 <= maxval <= 65535:
+        raise InputError(f"{path}: damaged Netpbm header (maxval {maxval}, not 1..65535).")
+    return 1 if maxval < 256 else 2
+
+
+def _pnm_size(data: bytes, path: Path) -> tuple[int, int]:
+    w, h, *_ = _pnm_layout(data, path)
+    return w, h
+
+
+def _count(n: int, unit: str) -> str:
+    return f"{n:,} {unit}{'' if n == 1 else 's'}"
+
+
+def _pnm_check_complete(data: bytes, path: Path) -> None:
+    """The pixels after a Netpbm header are all there: width x height x samples x bytes for
+    the binary formats (P4: height rows of ceil(width / 8) bytes), as many numbers for the
+    plain ones (P1: one digit per pixel, no separator needed)."""
+    w, h, start, channels, nbytes = _pnm_layout(data, path)
+    kind = data[:2].decode("latin-1")
+    body = memoryview(data)[start:]
+    if kind in ("P1", "P2", "P3"):
+        arr = np.frombuffer(body, np.uint8)
+        if kind == "P1":
+            have = int(np.count_nonzero((arr == ord("0")) | (arr == ord("1"))))
+        else:
+            word = ~np.isin(arr, np.frombuffer(_PNM_WHITESPACE, np.uint8))
+            have = int(np.count_nonzero(word[1:] & ~word[:-1])) + int(word[:1].sum())
+        need = w * h * channels
+        if have < need:
+            raise InputError(
+                f"{path}: truncated Netpbm ({kind}, {w} x {h}: the pixels need {need:,} "
+                f"samples after the header, the file holds {have:,}; "
+                f"{_count(need - have, 'sample')} short)."
+            )
+        return
+    need = (w + 7) // 8 * h if kind == "P4" else w * h * channels * nbytes
+    if len(body) < need:
+        raise InputError(
+            f"{path}: truncated Netpbm ({kind}, {w} x {h}: the pixels need {need:,} bytes after "
+            f"the header, the file holds {len(body):,}; {_count(need - len(body), 'byte')} "
+            "short). The file was cut short or its header is damaged."
+        )
 
 
 def _jpeg_frame(data: bytes, path: Path) -> tuple[int, int, int]:
@@ -222,6 +360,10 @@ def check_complete(data: bytes, fmt: str, path: Path) -> None:
                 f"{path}: truncated JPEG (no end-of-image marker after the image data; "
                 f"{len(data)} bytes). The file was cut short, e.g. an interrupted copy."
             )
+    elif fmt == "tiff":
+        _tiff_check_complete(data, path)
+    elif fmt == "pnm":
+        _pnm_check_complete(data, path)
     elif fmt == "bmp":
         (declared,) = struct.unpack("<I", data[2:6])
         if declared > len(data):

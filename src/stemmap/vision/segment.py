@@ -33,9 +33,11 @@ __all__ = [
     "label_regions",
     "matching_level",
     "read_yolo_polygons",
+    "read_yolo_vertices",
     "rgb_trunk_mask",
     "segment_trunks",
     "with_params",
+    "yolo_trunk_mask",
 ]
 
 
@@ -340,18 +342,24 @@ def with_params(base: SegmentParams | str, **changes: object) -> SegmentParams:
 # ---------------------------------------------------------------------------------------------
 
 
-def read_yolo_polygons(path: str | Path, width: int, height: int) -> list[NDArray[np.bool_]]:
-    """Rasterise the class-0 polygons of a YOLO-seg label file (``0 x1 y1 x2 y2 ...``,
-    normalised) into one (height, width) bool mask per polygon.
+def read_yolo_vertices(path: str | Path, width: int, height: int) -> list[NDArray[np.int32]]:
+    """The class-0 (trunk) polygons of a YOLO-seg label file (``0 x1 y1 x2 y2 ...``,
+    normalised), each as an (n, 2) array of pixel coordinates in a ``width`` x ``height``
+    image; lines of other classes are skipped.
 
     Raises
     ------
     InputError
         Naming the file and line: a class id that is not a whole number, coordinates that are
         not finite numbers in 0..1 (1 % slack for exports that overshoot the border), or an
-        odd count or fewer than three vertices.
+        odd count or fewer than three vertices. A file whose parse would exceed the read
+        budget (``STEMMAP_MAX_READ_GB``) or with a line over 1 MB is refused before it is read.
     """
-    masks: list[NDArray[np.bool_]] = []
+    from stemmap.io._budget import check_text_budget
+
+    # the text, its lines and one line's tokens at a time: ~3 B a byte, ~100 B a line
+    check_text_budget(path, "YOLO label file", per_byte=3.0, per_line=100.0)
+    polygons: list[NDArray[np.int32]] = []
     text = Path(path).read_text(encoding="utf-8")
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
@@ -383,7 +391,48 @@ def read_yolo_polygons(path: str | Path, width: int, height: int) -> list[NDArra
                 f"{path}:{lineno}: polygon coordinates are normalised to the image (0..1); got "
                 f"{bad[0]:g}."
             )
-        v = np.rint(vals.reshape(-1, 2) * [width, height]).astype(np.int32)
+        polygons.append(np.rint(vals.reshape(-1, 2) * [width, height]).astype(np.int32))
+    return polygons
+
+
+def yolo_trunk_mask(path: str | Path, width: int, height: int) -> NDArray[np.bool_]:
+    """One (height, width) trunk mask from a YOLO-seg label file: the union of all its
+    class-0 polygons (how ``stemmap segment --train --labels`` reads a ``.txt``: the pixel
+    classifier learns trunk / not trunk, so the instances are not kept apart). Overlapping
+    polygons and a trunk drawn in several parts give the union, with no holes; the memory is
+    one mask whatever the number of polygons."""
+    m = np.zeros((height, width), np.uint8)
+    for v in read_yolo_vertices(path, width, height):
+        cv2.fillPoly(m, [v], 1)  # one polygon per call: several at once fill by even-odd
+    return m.astype(bool)
+
+
+def read_yolo_polygons(path: str | Path, width: int, height: int) -> list[NDArray[np.bool_]]:
+    """Rasterise the class-0 polygons of a YOLO-seg label file (``0 x1 y1 x2 y2 ...``,
+    normalised) into one (height, width) bool mask per polygon: a line is one trunk
+    instance (YOLO's convention; converters join the parts of an occluded object into one
+    line), as :func:`evaluate_segmentation` counts trunks. For a single mask of all trunks
+    use :func:`yolo_trunk_mask`.
+
+    Raises
+    ------
+    InputError
+        As :func:`read_yolo_vertices`, and when the masks (one byte a pixel each) would
+        exceed the read budget (``STEMMAP_MAX_READ_GB``), before they are allocated.
+    """
+    from stemmap.io._budget import check_read_budget, human_bytes
+
+    polygons = read_yolo_vertices(path, width, height)
+    need = len(polygons) * width * height
+    check_read_budget(
+        need,
+        path,
+        "YOLO label file",
+        f"its {len(polygons):,} trunk polygons need one {width} x {height} mask each, "
+        f"{human_bytes(need)}",
+    )
+    masks: list[NDArray[np.bool_]] = []
+    for v in polygons:
         m = np.zeros((height, width), np.uint8)
         cv2.fillPoly(m, [v], 1)
         masks.append(m.astype(bool))

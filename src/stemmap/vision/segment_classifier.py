@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from stemmap.errors import ConfigError, InputError
 from stemmap.io._util import check_npz_sizes
 from stemmap.io.atomic import atomic_write
-from stemmap.vision.segment import Segmentation, label_regions, read_yolo_polygons
+from stemmap.vision.segment import Segmentation, label_regions, yolo_trunk_mask
 from stemmap.vision.segment_features import (
     FEATURE_VERSION,
     feature_names,
@@ -464,17 +464,14 @@ def train_pixel_classifier(
 
 
 def read_label_mask(path: str | Path, width: int, height: int) -> NDArray[np.bool_]:
-    """Trunk mask (height, width) from a label file: a YOLO segmentation ``.txt`` (union of the
-    class-0 polygons, normalised coordinates) or a mask image (PNG/BMP; nonzero = trunk) of the
-    same size as its photo."""
+    """Trunk mask (height, width) from a label file: a YOLO segmentation ``.txt`` (the union
+    of all its class-0 polygons, :func:`stemmap.vision.segment.yolo_trunk_mask`) or a mask
+    image (PNG/BMP; nonzero = trunk) of the same size as its photo."""
     p = Path(path)
     if not p.is_file():
         raise InputError(f"label file {p} does not exist.")
     if p.suffix.lower() == ".txt":
-        gt = np.zeros((height, width), bool)
-        for poly in read_yolo_polygons(p, width, height):
-            gt |= poly
-        return gt
+        return yolo_trunk_mask(p, width, height)
     from stemmap.vision.image_io import read_image
 
     m = read_image(p).max(axis=2) > 0
