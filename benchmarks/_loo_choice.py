@@ -1,7 +1,9 @@
 """The leave-one-dataset-out choice of ``real_geometry.py --loo`` (issue 11): which datasets
 may train (:func:`reference_trusted`), the training objective of one dataset x scanner row, the
 training score of a grid setting, the best admitted setting, its held-out rows, and
-(``--by-scanner``, Dec 5) the same choice made separately per scanner family.
+(``--by-scanner``, Dec 5) the same choice made separately per scanner family -- the
+default protocol since Dec 6 (:data:`LOO_PROTOCOL_BY_SCANNER`; ``--pooled``:
+:data:`LOO_PROTOCOL_POOLED`).
 
 A helper module, not a script: ``real_geometry.py`` re-exports the names other scripts and the
 tests take from it (``_objective``, ``_best_admitted``, ``reference_trusted``, ...).
@@ -28,6 +30,23 @@ from stemmap.eval.real_slices import RealSlice, reference_jackknife
 FAMILIES = ("nearest", "averaging")
 
 Rows = Mapping[str, Mapping[int, Mapping[str, Any]]]
+
+#: The LOO's protocol since Dec 6 (docs/algorithms.md, "Decisions taken where issue 11 is
+#: silent"): the issue's target row is a nearest-return (first-echo) scan, and a first-echo
+#: scan does not depend on how an averaging scanner forms its range, so the setting a
+#: first-echo scanner runs is chosen on the training sets' nearest-return rows and the one a
+#: footprint-averaging scanner runs on their averaging rows (the detector is told its scanner
+#: model at run time: ``beam_footprint_deg``, ``stemmap detect --footprint``). Each held-out
+#: row is scored under the choice of its own family.
+LOO_PROTOCOL_BY_SCANNER = (
+    "by scanner family: the nearest-return setting chosen on the training sets' nearest-return"
+    " rows, the averaging setting on their averaging rows; each held-out row under its own"
+    " family's choice"
+)
+#: Every LOO before Dec 6 (``--pooled``): one setting chosen on every training row, both
+#: families pooled, so the averaging rows -- whose benchmark scanner's return threshold is a
+#: modelling choice -- also pick what a first-echo scanner runs.
+LOO_PROTOCOL_POOLED = "pooled: one setting chosen on every training row (both scanner families)"
 
 
 def _objective(r: Mapping[str, Any], cap: bool = False) -> float:
@@ -126,6 +145,28 @@ def choose_by_family(
     return out
 
 
+def family_protocol(fams: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The by-scanner protocol's choice of one fold (the default of ``real_geometry.py --loo``
+    since Dec 6) from :func:`by_scanner_table`'s per-family choices: each family's choice
+    (``chosen_by_family``, with its training score on that family's rows) and the held-out
+    table in which every row is scored under the choice of its own family (``held_out``: the
+    nearest-return rows under the nearest family's choice, the averaging rows under the
+    averaging family's). ``compiled_only`` is the same with the averaging family's choice among
+    the compiled settings (a first-echo detector runs the numpy path whatever its setting, so the
+    nearest family keeps its choice there)."""
+    out: dict[str, Any] = {
+        "chosen_by_family": {f: c["chosen_index"] for f, c in fams.items()},
+        "train_score_by_family": {f: c["train_score"] for f, c in fams.items()},
+        "held_out": {row: v for c in fams.values() for row, v in c["held_out"].items()},
+    }
+    comp = {f: c.get("compiled_only", c) for f, c in fams.items()}
+    out["compiled_only"] = {
+        "chosen_by_family": {f: c["chosen_index"] for f, c in comp.items()},
+        "held_out": {row: v for c in comp.values() for row, v in c["held_out"].items()},
+    }
+    return out
+
+
 def family_rows(rows: Mapping[str, Any], family: str) -> dict[str, Any]:
     """The entries of a per-row dict (a held-out table) that belong to ``family``."""
     return {row: v for row, v in rows.items() if family_of(row) == family}
@@ -155,6 +196,67 @@ def by_scanner_table(
                 c["chosen"] = dict(grid[c["chosen_index"]])
                 c["held_out"] = family_rows(_held_out_rows(per[held], c["chosen_index"]), fam)
     return fams
+
+
+def fold_choice(
+    per: Rows,
+    held: str,
+    train: list[str],
+    grid: Sequence[Mapping[str, Any]],
+    admitted: Callable[[int], bool],
+    compiled: Sequence[int],
+    baseline: int | None = None,
+    pooled: bool = False,
+    by_scanner: bool = False,
+) -> dict[str, Any]:
+    """One fold of ``real_geometry.py --loo`` (``held`` held out, the ``train`` datasets
+    training): the choice among ``grid`` by the LOO's protocol, with the held-out rows.
+
+    By default (the protocol since Dec 6, :data:`LOO_PROTOCOL_BY_SCANNER`) the choice is made
+    per scanner family (``by_scanner``: :func:`by_scanner_table`) and the fold's ``held_out`` /
+    ``compiled_only`` / ``chosen_by_family`` are :func:`family_protocol`'s (every held-out row
+    under its own family's choice); the pooled choice is reported under ``"pooled"``. With
+    ``pooled`` (:data:`LOO_PROTOCOL_POOLED`, every LOO before Dec 6) the pooled choice is the
+    fold's ``chosen_index`` / ``chosen`` / ``train_score`` / ``held_out`` / ``compiled_only``
+    as before, and ``by_scanner`` adds the per-family report. The pooled choice is also made
+    among the ``compiled`` settings (a default must run compiled). With ``baseline`` the same
+    among the first ``baseline`` settings, under ``"baseline"``."""
+
+    def score(g: int) -> float:
+        return train_score(per, train, g)
+
+    def pooled_choice(n: int) -> dict[str, Any]:
+        best = _best_admitted(range(n), score, admitted)
+        return {
+            "chosen_index": best,
+            "chosen": dict(grid[best]),
+            "train_score": round(score(best), 3),
+            "held_out": _held_out_rows(per[held], best),
+        }
+
+    def protocol(n: int) -> dict[str, Any]:
+        ch = pooled_choice(n)
+        if n == len(grid):
+            best_c = _best_admitted([g for g in compiled if g < n], score, admitted)
+            ch["compiled_only"] = {
+                "chosen_index": best_c,
+                "chosen": dict(grid[best_c]),
+                "train_score": round(score(best_c), 3),
+                "held_out": _held_out_rows(per[held], best_c),
+            }
+        out: dict[str, Any] = {"protocol": "pooled" if pooled else "by_scanner"}
+        out.update(ch if pooled else {"pooled": ch})
+        if by_scanner or not pooled:
+            fams = by_scanner_table(per, held, train, grid, admitted, compiled, n)
+            out["by_scanner"] = fams
+            if not pooled:
+                out.update(family_protocol(fams))
+        return out
+
+    table = protocol(len(grid))
+    if baseline is not None:
+        table["baseline"] = protocol(baseline)
+    return table
 
 
 #: A slice's references are trusted for choosing parameters when the RMS over its reference

@@ -19,6 +19,12 @@ declared before any run and reads training rows only:
 
 The per-row results of a setting do not depend on the fold, so ``evaluate`` runs each setting
 once (cached by the caller) and every fold reads its own training rows from the cache.
+
+Since Dec 6 the selection follows the LOO's protocol (``real_geometry.py --loo``, default
+``by_scanner``): one path per scanner family, each scored on that family's training rows only
+(nearest-return rows choose what a first-echo scanner runs, averaging rows what a SICK-class
+scanner runs), each held out on its family's rows; ``--pooled`` keeps the single path on every
+row (the Dec 5 runs).
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from _loo_choice import _objective
+from _loo_choice import _objective, family_of, family_rows
 
 #: Settings run together with ``cache_dir`` (the scans of a dataset are drawn once per batch,
 #: which costs more than a setting's detections: a batch of 3 ran about 10 CPU s a setting)
@@ -81,11 +87,19 @@ def with_ingredients(start: Setting, path: Iterable[Ingredient]) -> dict[str, An
     return {**start, **dict(path)}
 
 
-def train_score_rows(rows: Mapping[str, Mapping[str, Any]], train: Iterable[str]) -> float:
+def train_score_rows(
+    rows: Mapping[str, Mapping[str, Any]], train: Iterable[str], family: str | None = None
+) -> float:
     """Mean :func:`_objective` over the ``train`` datasets' rows with a visible trunk (every
     dataset x row weighs the same: :func:`_loo_choice.train_score` of one setting's rows
-    ``rows[dataset][row]``); ``-inf`` where no row counts."""
-    vals = [_objective(r) for n in train for r in rows[n].values() if r["all"]["visible"]]
+    ``rows[dataset][row]``), only the rows of scanner ``family`` unless it is None; ``-inf``
+    where no row counts."""
+    vals = [
+        _objective(r)
+        for n in train
+        for row, r in rows[n].items()
+        if r["all"]["visible"] and (family is None or family_of(row) == family)
+    ]
     return float(np.mean(vals)) if vals else -float("inf")
 
 
@@ -98,8 +112,10 @@ def greedy_select(
     eps: float = GREEDY_EPS,
     max_steps: int | None = None,
     valid: Callable[[Setting], bool] = lambda s: True,
+    family: str | None = None,
 ) -> dict[str, Any]:
-    """Greedy forward selection (module docstring) on the ``train`` datasets.
+    """Greedy forward selection (module docstring) on the ``train`` datasets (their rows of
+    scanner ``family`` only, unless it is None).
 
     ``rows_of(settings)`` gives each setting's per-dataset rows (``[dataset][row]`` score dicts;
     it is called once per step with every candidate of the step, so the caller can run them in
@@ -114,7 +130,7 @@ def greedy_select(
     path: list[Ingredient] = []
     current = dict(start)
     (rows0,) = rows_of([current])
-    cur = train_score_rows(rows0, train)
+    cur = train_score_rows(rows0, train, family)
     steps: list[dict[str, Any]] = [{"added": None, "train_score": round(cur, 4)}]
     last: list[tuple[Ingredient, float]] = []
     while max_steps is None or len(path) < max_steps:
@@ -126,13 +142,15 @@ def greedy_select(
         if not offer:
             break
         settings = [with_ingredients(current, [ing]) for ing in offer]
-        scores = [train_score_rows(r, train) for r in rows_of(settings)]
+        scores = [train_score_rows(r, train, family) for r in rows_of(settings)]
         # best first; equal scores keep the ingredients' declared order (a stable sort)
         order = sorted(range(len(offer)), key=lambda i: -scores[i])
         last = [(offer[i], scores[i]) for i in order]
         best3 = [(list(ing), round(sc - cur, 4)) for ing, sc in last[:3]]
         print(
-            f"greedy {train}: after {len(path)} scored, best {best3}", file=sys.stderr, flush=True
+            f"greedy {train} {family or 'pooled'}: after {len(path)} scored, best {best3}",
+            file=sys.stderr,
+            flush=True,
         )
         passed_over: list[dict[str, Any]] = []
         accepted = None
@@ -157,7 +175,11 @@ def greedy_select(
             }
         )
         cur = scores[accepted]
-        print(f"greedy {train}: step {len(path)} {steps[-1]}", file=sys.stderr, flush=True)
+        print(
+            f"greedy {train} {family or 'pooled'}: step {len(path)} {steps[-1]}",
+            file=sys.stderr,
+            flush=True,
+        )
     if not path and not admitted(current):
         raise ValueError("the start setting is not admitted (simulated targets)")
     return {
@@ -166,6 +188,7 @@ def greedy_select(
         "setting": current,
         "train_score": round(cur, 4),
         "eps": eps,
+        "family": family or "pooled",
         "last_step_best": [
             {"ingredient": list(ing), "gain": round(s - cur, 4)} for ing, s in last[:5]
         ],
@@ -183,22 +206,45 @@ def greedy_table(
     eps: float = GREEDY_EPS,
     valid: Callable[[Setting], bool] = lambda s: True,
     folds: Sequence[str] | None = None,
+    families: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """``held_out[name]["greedy"]`` of ``real_geometry.py --loo --greedy``: per ``scored``
     dataset, :func:`greedy_select` on the ``trains`` datasets other than it, with
     ``held_rows(name, rows)`` of the selected setting's rows on it; and under
     ``"all_trusted"`` the selection on every ``trains`` dataset (the candidate default); only
-    the ``folds`` named (default every one)."""
+    the ``folds`` named (default every one).
+
+    With ``families`` (the LOO's by-scanner protocol) each fold holds one selection per family
+    (``out[name][family]``, scored on that family's training rows only, its ``held_out`` the
+    held-out dataset's rows of that family), and ``out[name]["held_out"]`` joins them: every
+    held-out row under the selection of its own family (``held_rows`` must then return a
+    per-row dict)."""
     out: dict[str, Any] = {}
+
+    def select(train: list[str], fam: str | None) -> dict[str, Any]:
+        return greedy_select(
+            start, candidates, rows_of, train, admitted, eps, valid=valid, family=fam
+        )
+
     for held in (n for n in scored if folds is None or n in folds):
         train = [n for n in trains if n != held]
-        sel = greedy_select(start, candidates, rows_of, train, admitted, eps, valid=valid)
-        (rows,) = rows_of([sel["setting"]])
-        out[held] = {**sel, "held_out": held_rows(held, rows[held])}
+        if families is None:
+            sel = select(train, None)
+            (rows,) = rows_of([sel["setting"]])
+            out[held] = {**sel, "held_out": held_rows(held, rows[held])}
+            continue
+        out[held] = {"held_out": {}}
+        for fam in families:
+            sel = select(train, fam)
+            (rows,) = rows_of([sel["setting"]])
+            mine = family_rows(held_rows(held, rows[held]), fam)
+            out[held][fam] = {**sel, "held_out": mine}
+            out[held]["held_out"].update(mine)
     if folds is None or "all_trusted" in folds:
-        out["all_trusted"] = greedy_select(
-            start, candidates, rows_of, trains, admitted, eps, valid=valid
-        )
+        if families is None:
+            out["all_trusted"] = select(list(trains), None)
+        else:
+            out["all_trusted"] = {fam: select(list(trains), fam) for fam in families}
     return out
 
 
@@ -215,6 +261,7 @@ def greedy_loo(
     start: int | None = None,
     folds: Sequence[str] | None = None,
     cache_dir: Path | None = None,
+    families: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """``greedy`` of ``real_geometry.py --loo --greedy``: :func:`greedy_table` from the grid
     setting that is the ``stemmap`` preset (``key`` is a setting's effective configuration;
@@ -223,7 +270,8 @@ def greedy_loo(
     run once on every slice (``run_rows(slice, {name: DetectorConfig})``, the LOO's scans)
     and cached, whichever fold asks; with ``cache_dir`` also on disk (one pickle per setting,
     twelve settings per batch, each process starting at a different place in the candidate
-    list), so folds run as parallel processes share what they have run."""
+    list), so folds run as parallel processes share what they have run. ``families``: one
+    selection per scanner family (:func:`greedy_table`; the LOO's by-scanner protocol)."""
     from stemmap.errors import ConfigError
     from stemmap.scan.detect import DetectorConfig
 
@@ -283,11 +331,12 @@ def greedy_loo(
         return True
 
     table = greedy_table(
-        scored, trains, grid[start], ings, rows_of, admitted, held_rows, eps, valid, folds
+        scored, trains, grid[start], ings, rows_of, admitted, held_rows, eps, valid, folds, families
     )
     return {
         "start_index": start,
         "eps": eps,
+        "protocol": "pooled" if families is None else "by_scanner",
         "ingredients": [list(i) for i in ings],
         "settings_run": len(cache) - n_grid,
         "folds": table,

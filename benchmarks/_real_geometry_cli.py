@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from _loo_choice import TRUSTED_REFERENCE_CM
+from _loo_choice import LOO_PROTOCOL_BY_SCANNER, LOO_PROTOCOL_POOLED, TRUSTED_REFERENCE_CM
 from _loo_greedy import GREEDY_EPS
 from _loo_grid import LOO_EXTRA, LOO_GRID
 from _real_scanning import BACKGROUNDS, ReturnRule, scene_note
@@ -41,9 +41,10 @@ def parse_rule(text: str) -> ReturnRule:
     )
 
 
-def build_parser(description: str) -> argparse.ArgumentParser:
-    """The options of ``real_geometry.py`` (``description``: its first docstring line)."""
-    ap = argparse.ArgumentParser(description=description)
+def build_parser(description: str, epilog: str | None = None) -> argparse.ArgumentParser:
+    """The options of ``real_geometry.py`` (``description``: its first docstring line;
+    ``epilog``: the LOO protocol's paragraph)."""
+    ap = argparse.ArgumentParser(description=description, epilog=epilog)
     ap.add_argument("--datasets", type=Path, default=None, help="shared datasets folder")
     ap.add_argument("--quick", action="store_true", help="2 scanner configs, 3 detectors")
     ap.add_argument("--vantage", type=int, default=None, help="vantage points per dataset")
@@ -63,13 +64,28 @@ def build_parser(description: str) -> argparse.ArgumentParser:
         help="dataset k of the full list (0-based) draws from the stream --seed + k",
     )
     ap.add_argument(
-        "--loo", action="store_true", help="leave-one-dataset-out choice of LOO_GRID (stemmap)"
+        "--loo",
+        action="store_true",
+        help="leave-one-dataset-out choice of LOO_GRID (stemmap), by scanner family unless"
+        " --pooled",
     )
     ap.add_argument(
         "--by-scanner",
         action="store_true",
-        help="--loo: also choose separately on the nearest-return rows and on the averaging"
-        " rows (the scanner model is known at run time), each held out on its own rows",
+        help="--loo --pooled: also report the choice made separately on the nearest-return rows"
+        " and on the averaging rows, each held out on its own rows (without --pooled it is the"
+        " protocol and always reported)",
+    )
+    ap.add_argument(
+        "--pooled",
+        action="store_true",
+        help="--loo: choose one setting per fold on every training row, nearest-return and"
+        " averaging pooled (the protocol of every LOO before Dec 6). Default: by scanner family"
+        " -- the setting for first-echo scanners is chosen on the training sets' nearest-return"
+        " rows, the one for averaging scanners on their averaging rows, and each held-out row is"
+        " scored under its own family's choice (the detector knows its scanner model; the"
+        " issue's nearest-return target row then does not depend on the benchmark's averaging"
+        " model); the pooled choice is reported next to it under 'pooled'",
     )
     ap.add_argument(
         "--train-all",
@@ -234,9 +250,10 @@ def loo_scenario(
         if args.train_all
         else f"datasets whose reference jackknife is within {TRUSTED_REFERENCE_CM} cm",
         "seed": args.seed,
+        "protocol": LOO_PROTOCOL_POOLED if args.pooled else LOO_PROTOCOL_BY_SCANNER,
         "by_scanner": "also chosen per scanner family (nearest, averaging), each on its own rows"
-        if args.by_scanner
-        else "off",
+        if args.by_scanner and args.pooled
+        else ("the protocol" if not args.pooled else "off"),
     }
 
 

@@ -27,7 +27,7 @@ Usage::
     python benchmarks/real_geometry.py             # every scanner model, preset and fit
     python benchmarks/real_geometry.py --loo --vantage 20   # leave one dataset out (LOO_GRID)
     python benchmarks/real_geometry.py --loo --vantage 20 --fill outline  # unseen sides joined
-    python benchmarks/real_geometry.py --loo --vantage 20 --by-scanner  # also per scanner family
+    python benchmarks/real_geometry.py --loo --vantage 20 --pooled  # one choice on every row
     python benchmarks/real_geometry.py --grid-precision     # each setting's simulated precision
     python benchmarks/real_geometry.py --sim-precision --sim-seeds 1 2 3 4 5 6 7 8  # the default's
 
@@ -36,6 +36,15 @@ of ``--sim-seeds`` (default 1-10), the mean and smallest per drive; a setting is
 it keeps issue 11's simulated targets on the mean over the seeds: precision and recall >= 0.95
 on each drive and the benchmark drive's DBH RMSE at <= 5 m <= 1.2 cm (since Dec 5; precision
 only before; ``_scan_sim.admitted_over_seeds``; ``--sim-seeds 1``: one seed's own test).
+
+The LOO's protocol (since Dec 6; docs/algorithms.md, "Decisions taken where issue 11 is
+silent"): the detector is told its scanner model at run time (``stemmap detect --footprint``),
+so each fold chooses the setting a first-echo (nearest-return) scanner runs on the training
+sets' nearest-return rows and the setting a footprint-averaging scanner runs on their averaging
+rows, and scores every held-out row under its own family's choice. The issue's target row (0.5
+deg nearest return) so never depends on the benchmark's model of an averaging scanner (its
+return threshold, ``--hit-fraction``). ``--pooled`` is the protocol of every LOO before Dec 6:
+one setting chosen on every training row of both families.
 
 One JSON object on stdout; every parameter of the scenario is echoed in it.
 """
@@ -52,13 +61,15 @@ from typing import Any
 import numpy as np
 
 from _loo_choice import (  # the choice; the underscored names re-exported for other scripts
-    _best_admitted,
-    _held_out_rows,
+    FAMILIES,
+    LOO_PROTOCOL_BY_SCANNER,  # noqa: F401  (re-exported: the tests)
+    LOO_PROTOCOL_POOLED,  # noqa: F401  (re-exported)
+    _best_admitted,  # noqa: F401  (re-exported: learned_acceptance.py, the tests)
+    _held_out_rows,  # noqa: F401  (re-exported)
     _objective,
-    by_scanner_table,
+    fold_choice,
     objectives_by_row,
     reference_trusted,
-    train_score,
 )
 from _loo_greedy import greedy_loo
 from _loo_grid import LOO_EXTRA, LOO_GRID
@@ -323,6 +334,7 @@ def leave_one_out(
     greedy_only: bool = False,
     greedy_folds: list[str] | None = None,
     greedy_cache: Path | None = None,
+    pooled: bool = False,
 ) -> dict[str, Any]:
     """Choose :data:`LOO_GRID` on all datasets but one (mean :func:`_objective` over the other
     datasets and the scanner configurations), report the choice on the held-out one. A dataset
@@ -342,13 +354,19 @@ def leave_one_out(
     ``<config>@<rule>``): a choice that holds across thresholds the owner's scanner may have.
     ``fill``: what stands in the reference trunks' unseen sectors (``load_slice``, ``--fill``);
     ``max_fill_returns``: which views count (:func:`run_dataset`, ``--max-fill-returns``).
-    ``by_scanner`` (Dec 5, ``--by-scanner``): each held-out dataset also gets the choice made
-    separately on the nearest-return rows and on the averaging rows
-    (:func:`_loo_choice.choose_by_family`, the same admission), each reported held out on its
-    family's rows (``held_out[name]["by_scanner"]``). ``greedy_eps`` (Dec 5, ``--greedy``):
+    The protocol (Dec 6, :data:`_loo_choice.LOO_PROTOCOL_BY_SCANNER`): the choice is made
+    separately on the training sets' nearest-return rows and on their averaging rows
+    (:func:`_loo_choice.choose_by_family`, the same admission; ``held_out[name]["by_scanner"]``)
+    and each held-out row is reported under its own family's choice
+    (:func:`_loo_choice.family_protocol`: ``held_out``, ``compiled_only``, ``chosen_by_family``);
+    the pooled choice (one setting on every training row) is reported next to it under
+    ``"pooled"``. ``pooled`` (``--pooled``, every LOO before Dec 6): the pooled choice is the
+    fold's ``chosen_index`` / ``held_out`` as it was, and ``by_scanner`` (Dec 5,
+    ``--by-scanner``) adds the per-family choices as a report. ``greedy_eps`` (Dec 5, ``--greedy``):
     also the greedy forward selection from the preset over the grid's ingredients
-    (:mod:`_loo_greedy`, the same objective and admission), per held-out dataset and on every
-    training dataset (``greedy``); ``greedy_only``: that alone, the grid not run (only the
+    (:mod:`_loo_greedy`, the same objective and admission, and the same protocol: one path per
+    scanner family unless ``pooled``), per held-out dataset and on every training dataset
+    (``greedy``); ``greedy_only``: that alone, the grid not run (only the
     preset's setting, the start), for the folds ``greedy_folds`` (held-out names and / or
     ``all_trusted``; default every one)."""
     checked: dict[int, dict[str, Any]] = {}
@@ -431,6 +449,7 @@ def leave_one_out(
             start,
             greedy_folds,
             greedy_cache,
+            None if pooled else FAMILIES,
         )
     if greedy_only:
         return {
@@ -447,22 +466,10 @@ def leave_one_out(
     ]
     for held in scored:
         train = [n for n in trains if n != held]
-
-        def score(g: int, train: list[str] = train) -> float:
-            return train_score(per, train, g)
-
-        best = _best_admitted(range(len(LOO_GRID)), score, admitted)
-        # the same choice among the admitted settings the compiled detector runs (a default
-        # must: the numpy-only ones run far below the speed target)
-        best_c = _best_admitted(compiled, score, admitted)
+        table[held] = fold_choice(
+            per, held, train, LOO_GRID, admitted, compiled, baseline, pooled, by_scanner
+        )
         if baseline is not None:
-            best_b = _best_admitted(range(baseline), score, admitted)
-            table.setdefault(held, {})["baseline"] = {
-                "chosen_index": best_b,
-                "chosen": LOO_GRID[best_b],
-                "train_score": round(score(best_b), 3),
-                "held_out": _held_out_rows(per[held], best_b),
-            }
             # held out, every setting the round added (recall, precision, RMSE, bias, recall
             # within 3 cm, false alarms and unmatched detections per scan)
             table[held]["added_settings"] = {
@@ -480,43 +487,22 @@ def leave_one_out(
                 }
                 for g in range(baseline, len(LOO_GRID))
             }
-        table[held] = {
-            **table.get(held, {}),
-            "chosen_index": best,
-            "chosen": LOO_GRID[best],
-            "train_score": round(score(best), 3),
-            "held_out": _held_out_rows(per[held], best),
-            "compiled_only": {
-                "chosen_index": best_c,
-                "chosen": LOO_GRID[best_c],
-                "train_score": round(score(best_c), 3),
-                "held_out": _held_out_rows(per[held], best_c),
-            },
-            # settings outside the grid (they break the simulated precision target)
-            "outside_grid": [
-                {
-                    "setting": LOO_EXTRA[x],
-                    "results": {
-                        sc: [
-                            r["all"]["recall"],
-                            r["all"]["precision"],
-                            r["within_10m"]["rmse_cm"],
-                            r["within_10m"]["bias_cm"],
-                        ]
-                        for sc, r in per[held][-2 - x].items()
-                    },
-                }
-                for x in range(len(LOO_EXTRA))
-            ],
-        }
-        if by_scanner:
-            table[held]["by_scanner"] = by_scanner_table(
-                per, held, train, LOO_GRID, admitted, compiled
-            )
-            if baseline is not None:
-                table[held]["baseline"]["by_scanner"] = by_scanner_table(
-                    per, held, train, LOO_GRID, admitted, compiled, baseline
-                )
+        # settings outside the grid (they break the simulated precision target)
+        table[held]["outside_grid"] = [
+            {
+                "setting": LOO_EXTRA[x],
+                "results": {
+                    sc: [
+                        r["all"]["recall"],
+                        r["all"]["precision"],
+                        r["within_10m"]["rmse_cm"],
+                        r["within_10m"]["bias_cm"],
+                    ]
+                    for sc, r in per[held][-2 - x].items()
+                },
+            }
+            for x in range(len(LOO_EXTRA))
+        ]
     capped = {
         str(LOO_GRID[g]): round(
             float(np.mean([_objective(r, cap=True) for n in trains for r in per[n][g].values()])),
@@ -577,7 +563,8 @@ def leave_one_out(
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser(__doc__.split("\n")[0]).parse_args(argv)
+    epilog = __doc__[__doc__.index("The LOO's protocol") :].split("\n\n")[0]
+    args = build_parser(__doc__.split("\n")[0], epilog).parse_args(argv)
     rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)
     if args.sim_precision:
         out = simulated_precision_seeds(args.set or {}, args.sim_seeds)
@@ -631,6 +618,7 @@ def main(argv: list[str] | None = None) -> int:
             greedy_only=args.greedy_only is not None,
             greedy_folds=args.greedy_only or None,
             greedy_cache=args.greedy_cache,
+            pooled=args.pooled,
         )
         if args.greedy_only is not None:
             loo["runtime_s"] = round(time.perf_counter() - t0, 1)
