@@ -195,6 +195,21 @@ def detect(
             "'Averaging scanners: the return threshold').",
         ),
     ] = None,
+    edge_hit_window: Annotated[
+        bool | None,
+        typer.Option(
+            "--edge-hit-window/--no-edge-hit-window",
+            help="With --edge-hit MIN below 0.5 (an averaging scanner that returns when less "
+            "than half its footprint hits): also model the range of a trunk's two edge returns "
+            "as the mean over the part of the footprint on the trunk, at least MIN of it. An "
+            "edge beam that grazes the trunk with a thin sliver reports the sliver's range, "
+            "nearer than the half-footprint average the default assumes; without this the fit "
+            "reads that nearer range as a wider trunk (+0.6 to +1.1 cm on 40-60 cm trunks at "
+            "10-14 m on an any-hit scanner). No effect at MIN 0.5 (the default threshold). Off "
+            "by default, as any threshold below half is (docs/algorithms/scan-detection.md, "
+            "'The averaging edge bias against textbook Kasa').",
+        ),
+    ] = None,
     rejected: Annotated[
         Path | None,
         typer.Option(
@@ -256,6 +271,8 @@ def detect(
             overrides["fit_noise_floor"] = fit_noise_floor
         if edge_hit is not None:
             overrides["edge_hit_min"], overrides["edge_hit_max"] = map(float, edge_hit)
+        if edge_hit_window is not None:
+            overrides["edge_hit_window"] = edge_hit_window
         if sigma_from_scan is not None:
             overrides["sigma_from_scan"] = sigma_from_scan
         if noise_batch is not None:
