@@ -84,6 +84,7 @@ from _scan_sim import (  # shared with scan_detection.py
     SIM_PRECISION_MIN,
     SIM_RECALL_MIN,
     SIM_SEEDS,
+    set_sim_hit_fraction,
     simulated_precision,
     simulated_precision_seeds,
 )
@@ -744,8 +745,16 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="--greedy: also keep each setting's rows in this folder (shared by parallel runs)",
     )
+    ap.add_argument(
+        "--sim-hit-fraction",
+        type=float,
+        default=None,
+        help="the admission's simulated SICK: share of its footprint that must hit for a beam"
+        " to return, on both drives (default: the sick_lms preset's own)",
+    )
     args = ap.parse_args(argv)
     rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)
+    set_sim_hit_fraction(args.sim_hit_fraction)
     if args.sim_precision:
         out = simulated_precision_seeds(args.set or {}, args.sim_seeds)
         print(json.dumps({"benchmark": "real_geometry_sim_precision", "set": args.set, **out}))
@@ -816,6 +825,7 @@ def main(argv: list[str] | None = None) -> int:
             "outside_grid": list(LOO_EXTRA),
             "objective": "mean over training datasets x scanners of F1(recall, precision)"
             " - RMSE(<=10 m)/3 cm (recall for F1 where the reference is incomplete)",
+            "sim_hit_fraction": args.sim_hit_fraction,
             "choice": "among the settings admitted on the simulator (scan_detection.py and"
             f" stemmap demo drives, seeds {list(args.sim_seeds)}, on the mean: precision >="
             f" {SIM_PRECISION_MIN}, recall >= {SIM_RECALL_MIN}, DBH RMSE <= 5 m <="
