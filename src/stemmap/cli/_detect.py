@@ -205,9 +205,12 @@ def detect(
             "edge beam that grazes the trunk with a thin sliver reports the sliver's range, "
             "nearer than the half-footprint average the default assumes; without this the fit "
             "reads that nearer range as a wider trunk (+0.6 to +1.1 cm on 40-60 cm trunks at "
-            "10-14 m on an any-hit scanner). No effect at MIN 0.5 (the default threshold). Off "
-            "by default, as any threshold below half is (docs/algorithms/scan-detection.md, "
-            "'The averaging edge bias against textbook Kasa').",
+            "10-14 m on an any-hit scanner). Use it whenever --edge-hit MIN is below 0.5, e.g. "
+            "--edge-hit 0.25 0.38 --edge-hit-window for a SICK LMS200 (the share measured on "
+            "a real one, Victoria Park, 2-15 m). No effect at MIN 0.5 (the default threshold). "
+            "Off by default, as any threshold below half is (docs/algorithms/scan-detection.md,"
+            " 'The averaging edge bias against textbook Kasa', 'The measured LMS200 threshold "
+            "for every averaging model').",
         ),
     ] = None,
     rejected: Annotated[
