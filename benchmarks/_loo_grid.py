@@ -562,6 +562,21 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
         dbh_sd_jackknife=0.43,
         dbh_sd_outline=0.0,
     ),
+    # Dec 6 ("The measured LMS200 threshold for every averaging model"): grid 85 assuming the
+    # return threshold measured on Victoria Park's real SICK LMS200 (q 0.25-0.38 at 2-15 m,
+    # "The return threshold of a real SICK LMS200"), as an interval (94) or its point 0.3 (95),
+    # with the edge returns' range window following it
+    *(
+        _setting(
+            **_GRID_85,
+            edge_hit_window=True,
+            **edge,
+        )
+        for edge in (
+            {"edge_hit_min": 0.25, "edge_hit_max": 0.38},
+            {"edge_hit_min": 0.3, "edge_hit_max": 0.3},
+        )
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -218,6 +218,13 @@ def build_parser(description: str, epilog: str | None = None) -> argparse.Argume
         default=None,
         help="--greedy: also keep each setting's rows in this folder (shared by parallel runs)",
     )
+    ap.add_argument(
+        "--sim-hit-fraction",
+        type=float,
+        default=None,
+        help="the admission's simulated SICK: share of its footprint that must hit for a beam"
+        " to return, on both drives (default: the sick_lms preset's own)",
+    )
     return ap
 
 
@@ -240,6 +247,7 @@ def loo_scenario(
         "outside_grid": list(LOO_EXTRA),
         "objective": "mean over training datasets x scanners of F1(recall, precision)"
         " - RMSE(<=10 m)/3 cm (recall for F1 where the reference is incomplete)",
+        "sim_hit_fraction": args.sim_hit_fraction,
         "choice": "among the settings admitted on the simulator (scan_detection.py and"
         f" stemmap demo drives, seeds {list(args.sim_seeds)}, on the mean: precision >="
         f" {SIM_PRECISION_MIN}, recall >= {SIM_RECALL_MIN}, DBH RMSE <= 5 m <="

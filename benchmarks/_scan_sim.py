@@ -32,6 +32,7 @@ __all__ = [
     "edge_status",
     "make_run",
     "score",
+    "set_sim_hit_fraction",
     "simulated_precision",
     "simulated_precision_seeds",
     "tree_errors",
@@ -83,12 +84,34 @@ SCENARIO: dict[str, Any] = {
 }
 
 
+#: The simulated SICK's return threshold (``ScannerModel.min_hit_fraction``, the share of the
+#: footprint that must hit for a beam to return) on both drives; ``None``: the scanner preset's
+#: own. Set by :func:`set_sim_hit_fraction` (``scan_detection.py`` / ``real_geometry.py``
+#: ``--sim-hit-fraction``, Dec 6).
+_SIM_HIT_FRACTION: list[float | None] = [None]
+
+
+def set_sim_hit_fraction(q: float | None) -> None:
+    """Simulate both drives (:func:`make_run`, the demo drive of :func:`simulated_precision`)
+    with a scanner that returns when ``q`` of its footprint hits (``None``: the ``sick_lms``
+    preset's own threshold); drops the drives already drawn."""
+    _SIM_HIT_FRACTION[0] = None if q is None else float(q)
+    _runs.cache_clear()
+
+
+def _scanner(preset: str, **overrides: float) -> Any:
+    """The scanner preset with ``overrides`` and, when set, :data:`_SIM_HIT_FRACTION`."""
+    q = _SIM_HIT_FRACTION[0]
+    extra = {} if q is None else {"min_hit_fraction": q}
+    return scanner_preset(preset, **overrides, **extra)
+
+
 def make_run(n_scans: int, seed: int) -> Any:
     s = SCENARIO
     rng = np.random.default_rng(seed)
     stand = stand_from_spec(s["stand"], s["clutter"], rng=rng)
     sc = s["scanner"]
-    model = scanner_preset(sc["preset"], range_max=sc["range_max_m"])
+    model = _scanner(sc["preset"], range_max=sc["range_max_m"])
     dr = s["drive"]
     path = lawnmower_path(stand.bounds, dr["strip_spacing_m"], margin=dr["margin_m"])
     return simulate_run(
@@ -177,9 +200,10 @@ def _runs(seed: int) -> tuple[Any, Any]:
     """The two simulated drives of ``seed`` (``scan_detection.py``'s 400 scans, the ``stemmap
     demo`` drive of 120 trees), drawn once per process: every setting is scored on the same
     scans, and drawing them costs more than the compiled detector's pass over them."""
-    from stemmap.cli._demo import _stand_and_run
+    from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
 
-    return make_run(400, seed), _stand_and_run(seed, 120)
+    demo_scanner = _scanner(str(DEMO_SCENARIO["scanner"]))
+    return make_run(400, seed), _stand_and_run(seed, 120, scanner=demo_scanner)
 
 
 def benchmark_drive(seed: int) -> Any:

@@ -98,6 +98,7 @@ from _scan_sim import (  # shared with scan_detection.py
     SIM_PRECISION_MIN,
     SIM_RECALL_MIN,
     SIM_SEEDS,
+    set_sim_hit_fraction,
     simulated_precision,
     simulated_precision_seeds,
 )
@@ -566,6 +567,7 @@ def main(argv: list[str] | None = None) -> int:
     epilog = __doc__[__doc__.index("The LOO's protocol") :].split("\n\n")[0]
     args = build_parser(__doc__.split("\n")[0], epilog).parse_args(argv)
     rule = ReturnRule(args.hit_fraction, args.beam_profile, args.sub_rays)
+    set_sim_hit_fraction(args.sim_hit_fraction)
     if args.sim_precision:
         out = simulated_precision_seeds(args.set or {}, args.sim_seeds)
         print(json.dumps({"benchmark": "real_geometry_sim_precision", "set": args.set, **out}))

@@ -60,6 +60,7 @@ from _scan_sim import (  # shared with real_geometry.py
     edge_status,
     make_run,
     score,
+    set_sim_hit_fraction,
     simulated_precision_seeds,
     tree_errors,
     worst_trees,
@@ -670,6 +671,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--worst", type=int, default=5, help="--seeds: trees listed per seed")
     ap.add_argument(
+        "--sim-hit-fraction",
+        type=float,
+        default=None,
+        help="the simulated SICK's return threshold on both drives, the share of its footprint"
+        " that must hit for a beam to return (default: the sick_lms preset's own)",
+    )
+    ap.add_argument(
         "--precision-seeds",
         type=int,
         nargs="+",
@@ -686,9 +694,11 @@ def main(argv: list[str] | None = None) -> int:
         help="only the 361-beam speed on these seeds' drives, each against seed 1's",
     )
     args = ap.parse_args(argv)
+    set_sim_hit_fraction(args.sim_hit_fraction)
     if args.seeds is not None:
         acc = accuracy_over_seeds(args.seeds, args.set or {}, args.worst)
-        print(json.dumps({"benchmark": "scan_detection_seeds", "set": args.set, **acc}))
+        head = {"set": args.set, "sim_hit_fraction": args.sim_hit_fraction}
+        print(json.dumps({"benchmark": "scan_detection_seeds", **head, **acc}))
         return 0
     if args.speed_seeds is not None:
         sp_seeds = speed_over_seeds(args.speed_seeds, args.batch)

@@ -121,3 +121,20 @@ def test_edge_priors_against_the_true_tangent():
     assert m["ends"] > m["beam_beyond_holds_no_trunk"] > 0
     assert m["rms_true_minus_prior_others"] < m["prior_std"]
     assert m["rms_true_minus_prior_those"] > 2 * m["prior_std"]
+
+
+def test_the_simulated_scanners_threshold_reaches_both_drives():
+    """``set_sim_hit_fraction`` (``--sim-hit-fraction``, Dec 6) gives both simulated drives a
+    SICK that returns when that share of its footprint hits, and ``None`` the preset's own;
+    the drives already drawn are dropped, not served with the old scanner."""
+    from stemmap.sim.scanner import scanner_preset
+
+    own = scanner_preset("sick_lms").min_hit_fraction
+    try:
+        sim.set_sim_hit_fraction(0.3)
+        assert sim.make_run(2, 1).scanner.min_hit_fraction == 0.3
+        assert sim._runs.cache_info().currsize == 0
+        assert sim._scanner("sick_lms").min_hit_fraction == 0.3
+    finally:
+        sim.set_sim_hit_fraction(None)
+    assert sim.make_run(2, 1).scanner.min_hit_fraction == own

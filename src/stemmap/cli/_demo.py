@@ -83,10 +83,14 @@ DEMO_SCENARIO: dict[str, Any] = {
 }
 
 
-def _stand_and_run(seed: int, n_trees: int, drive_rng: np.random.Generator | None = None) -> Any:
+def _stand_and_run(
+    seed: int, n_trees: int, drive_rng: np.random.Generator | None = None, scanner: Any = None
+) -> Any:
     """The demo's stand (from ``seed``) and drive. ``drive_rng``: draw the drive's noise
     (scanner, odometry) from this generator instead of ``seed``'s stream after the stand (the
-    same stand and path, another noise draw; benchmarks/sim_dbh_causes.py ``--redraw``)."""
+    same stand and path, another noise draw; benchmarks/sim_dbh_causes.py ``--redraw``).
+    ``scanner``: a :class:`~stemmap.sim.scanner.ScannerModel` (or preset name) instead of the
+    scenario's (benchmarks/_scan_sim.py ``set_sim_hit_fraction``)."""
     from stemmap.sim.forest import stand_from_spec
     from stemmap.sim.trajectory import loop_path, simulate_run
 
@@ -100,7 +104,7 @@ def _stand_and_run(seed: int, n_trees: int, drive_rng: np.random.Generator | Non
     return simulate_run(
         stand,
         path,
-        scanner=s["scanner"],
+        scanner=s["scanner"] if scanner is None else scanner,
         speed=dr["speed_m_s"],
         rate_hz=dr["scan_rate_hz"],
         corridor_half_width=dr["corridor_half_width_m"],
