@@ -40,9 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import greedy_match, matched, scene_batches
-from first_echo_dbh_z import SHORT, geometry_digest
-from real_geometry import _in_gate
+from _real_scanning import matched, scene_batches
+from first_echo_dbh_z import SHORT, geometry_digest, matched_views
 from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -86,42 +85,33 @@ OWN = _Own()
 
 def view_rows(sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4) -> list[dict]:
     """One row per matched visible view of ``sc`` (a :class:`_real_scanning.SceneBatch`)."""
-    sl, vp, hit = sc.sl, sc.vp, sc.hit
-    n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
+    sl = sc.sl
     diam = sl.diameters
     rows = []
-    for s in range(vp.shape[0]):
-        rel = sl.centers - vp[s]
-        rng_t = np.hypot(rel[:, 0], rel[:, 1])
-        vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-        vis &= _in_gate(cfg, rel)
-        m = np.flatnonzero(obs.index == s)
-        match = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
-        for t in np.flatnonzero(vis & (match >= 0)):
-            k = m[match[t]]
-            c = obs.centers[k]
-            row = {
-                "dataset": sl.name,
-                "model": sc.model,
-                "step": sc.res,
-                "noise": sc.noise,
-                "scan": s,
-                "trunk": int(t),
-                "range": float(rng_t[t]),
-                "dbh": float(diam[t]),
-                "ex": float(c[0] - rel[t, 0]),
-                "ey": float(c[1] - rel[t, 1]),
-                "er": float(obs.radii[k] - diam[t] / 2.0),
-                "cx": float(c[0]),
-                "cy": float(c[1]),
-                "cov": [float(v) for v in obs.covs[k].ravel()],
-                "n": int(obs.n_points[k]),
-                "arc": float(obs.arc_deg[k]),
-            }
-            own = OWN.table.get((s, float(c[0]), float(c[1])))
-            if own is not None:
-                row["own"] = own
-            rows.append(row)
+    for s, t, k, rng_t, rel in matched_views(sc, cfg, obs, min_returns):
+        c = obs.centers[k]
+        row = {
+            "dataset": sl.name,
+            "model": sc.model,
+            "step": sc.res,
+            "noise": sc.noise,
+            "scan": s,
+            "trunk": int(t),
+            "range": float(rng_t[t]),
+            "dbh": float(diam[t]),
+            "ex": float(c[0] - rel[t, 0]),
+            "ey": float(c[1] - rel[t, 1]),
+            "er": float(obs.radii[k] - diam[t] / 2.0),
+            "cx": float(c[0]),
+            "cy": float(c[1]),
+            "cov": [float(v) for v in obs.covs[k].ravel()],
+            "n": int(obs.n_points[k]),
+            "arc": float(obs.arc_deg[k]),
+        }
+        own = OWN.table.get((s, float(c[0]), float(c[1])))
+        if own is not None:
+            row["own"] = own
+        rows.append(row)
     return rows
 
 

@@ -31,6 +31,7 @@ import json
 import math
 import sys
 from collections import defaultdict
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -110,10 +111,30 @@ class _Extras:
 EXTRAS = _Extras()
 
 
-def view_rows(sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4) -> list[dict]:
-    """One row per matched visible view of ``sc`` (a :class:`_real_scanning.SceneBatch`)."""
+def matched_views(
+    sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4
+) -> Iterator[tuple[int, int, int, np.ndarray, np.ndarray]]:
+    """The matched visible views of ``sc`` (a :class:`_real_scanning.SceneBatch`): per scan
+    ``s`` and trunk ``t`` with at least ``min_returns`` hits within 15 m, 10-100 cm, inside the
+    detector's gate and matched to detection ``k``: ``(s, t, k, ranges, rel)``, the trunks'
+    ranges and centres relative to the scan's vantage point (shared with centre_cov_z.py)."""
     sl, vp, hit = sc.sl, sc.vp, sc.hit
     n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
+    diam = sl.diameters
+    for s in range(vp.shape[0]):
+        rel = sl.centers - vp[s]
+        rng_t = np.hypot(rel[:, 0], rel[:, 1])
+        vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
+        vis &= _in_gate(cfg, rel)
+        m = np.flatnonzero(obs.index == s)
+        match = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
+        for t in np.flatnonzero(vis & (match >= 0)):
+            yield s, int(t), int(m[match[t]]), rng_t, rel
+
+
+def view_rows(sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4) -> list[dict]:
+    """One row per matched visible view of ``sc`` (a :class:`_real_scanning.SceneBatch`)."""
+    sl = sc.sl
     noise = scan_noise(sc.batch.ranges, cfg.scan_noise_jump, cfg.scan_noise_surface, 0.0)
     bnoise = scan_noise(
         sc.batch.ranges,
@@ -125,37 +146,29 @@ def view_rows(sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4) -> l
     )
     diam = sl.diameters
     rows = []
-    for s in range(vp.shape[0]):
-        rel = sl.centers - vp[s]
-        rng_t = np.hypot(rel[:, 0], rel[:, 1])
-        vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-        vis &= _in_gate(cfg, rel)
-        m = np.flatnonzero(obs.index == s)
-        match = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
-        for t in np.flatnonzero(vis & (match >= 0)):
-            k = m[match[t]]
-            cov = obs.covs[k].reshape(3, 3)
-            rows.append(
-                {
-                    "dataset": sl.name,
-                    "step": sc.res,
-                    "noise": sc.noise,
-                    "scan": s,
-                    "trunk": int(t),
-                    "range": float(rng_t[t]),
-                    "dbh": float(diam[t]),
-                    "err": float(2.0 * obs.radii[k] - diam[t]),
-                    "sd": float(2.0 * math.sqrt(max(cov[2, 2], 0.0))),
-                    "pos_err": float(np.hypot(*(obs.centers[k] - rel[t]))),
-                    "n": int(obs.n_points[k]),
-                    "arc": float(obs.arc_deg[k]),
-                    "width": float(obs.widths[k]),
-                    "quality": float(obs.quality[k]),
-                    "own_noise": float(noise[s]),
-                    "batch_noise": float(bnoise[s]),
-                    **EXTRAS.table.get((s, *map(float, obs.centers[k])), {}),
-                }
-            )
+    for s, t, k, rng_t, rel in matched_views(sc, cfg, obs, min_returns):
+        cov = obs.covs[k].reshape(3, 3)
+        rows.append(
+            {
+                "dataset": sl.name,
+                "step": sc.res,
+                "noise": sc.noise,
+                "scan": s,
+                "trunk": int(t),
+                "range": float(rng_t[t]),
+                "dbh": float(diam[t]),
+                "err": float(2.0 * obs.radii[k] - diam[t]),
+                "sd": float(2.0 * math.sqrt(max(cov[2, 2], 0.0))),
+                "pos_err": float(np.hypot(*(obs.centers[k] - rel[t]))),
+                "n": int(obs.n_points[k]),
+                "arc": float(obs.arc_deg[k]),
+                "width": float(obs.widths[k]),
+                "quality": float(obs.quality[k]),
+                "own_noise": float(noise[s]),
+                "batch_noise": float(bnoise[s]),
+                **EXTRAS.table.get((s, *map(float, obs.centers[k])), {}),
+            }
+        )
     return rows
 
 
