@@ -265,7 +265,12 @@ def reported_covs(
     Scaling one row and column by ``k >= 1`` and adding to the diagonal keeps the matrix
     positive semi-definite; the centre's block is unchanged (``centre_sd_along`` /
     ``centre_sd_across``: :func:`~stemmap.scan._centre_cov.centre_covs`)."""
-    k = noise_factors(fit_scale, measured, rms, n)
+    return _radius_reported(covs, noise_factors(fit_scale, measured, rms, n), outline)
+
+
+def _radius_reported(covs: FloatArray, k: FloatArray, outline: float) -> FloatArray:
+    """``covs`` with the radius row and column scaled by ``k`` and ``(outline / 2)^2`` added
+    to ``C_rr`` (:func:`reported_covs`, given its noise factors)."""
     out = covs.copy()
     out[:, 2, :] *= k[:, None]
     out[:, :, 2] *= k[:, None]
@@ -303,10 +308,10 @@ def reported_first_echo_covs(
         rms if cfg.dbh_sd_noise else np.zeros_like(rms),
         segs.counts,
     )
-    out = reported_covs(covs, *args, cfg.dbh_sd_outline)
+    k = noise_factors(*args)  # once: the radius and the centre share it
+    out = _radius_reported(covs, k, cfg.dbh_sd_outline)
     if centre:
         assert centers is not None
-        k = noise_factors(*args)
         out = centre_covs(
             out, k, centers, cfg.dbh_sd_outline, cfg.centre_sd_along, cfg.centre_sd_across
         )
