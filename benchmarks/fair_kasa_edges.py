@@ -44,16 +44,25 @@ from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 FOOT_DEG = 0.25  # the benchmark's averaging footprint (ReturnRule, virtual_scans)
 
 
-def _errors(cfg: DetectorConfig, batch: Any, rel_all: list[np.ndarray], diam: np.ndarray) -> Any:
-    """Per scan, the DBH error (cm) of each trunk under ``cfg`` (NaN: not found)."""
+def view_fits(
+    cfg: DetectorConfig, batch: Any, rel_all: list[np.ndarray], diam: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per scan, each trunk's DBH error (cm, NaN: not found) under ``cfg`` and the returns its
+    detection used (0: not found); shared with fortls_edge_trace.py."""
     obs = ScanTrunkDetector(cfg).detect_batch(batch)
     out = []
     for s, rel in enumerate(rel_all):
         m = obs.index == s
         k = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
         d = np.append(2.0 * obs.radii[m], np.nan)
-        out.append((d[k] - diam) * 100.0)
+        n = np.append(obs.n_points[m], 0)
+        out.append(((d[k] - diam) * 100.0, n[k]))
     return out
+
+
+def _errors(cfg: DetectorConfig, batch: Any, rel_all: list[np.ndarray], diam: np.ndarray) -> Any:
+    """Per scan, the DBH error (cm) of each trunk under ``cfg`` (NaN: not found)."""
+    return [e for e, _ in view_fits(cfg, batch, rel_all, diam)]
 
 
 def edge_info(

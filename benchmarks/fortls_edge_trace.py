@@ -29,26 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
-from fair_kasa_edges import edge_info
+from _real_scanning import TEXTBOOK, ReturnRule, matched, scene_batches
+from fair_kasa_edges import edge_info, view_fits
 from real_geometry import _in_gate
 from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 CONFIGS = ("averaging_0.5deg_noise0cm", "averaging_1deg_noise0cm")
-
-
-def _fits(cfg: DetectorConfig, batch: Any, rel_all: list[np.ndarray], diam: np.ndarray) -> Any:
-    """Per scan: each trunk's DBH error (cm, NaN: not found) and returns used (0)."""
-    obs = ScanTrunkDetector(cfg).detect_batch(batch)
-    out = []
-    for s, rel in enumerate(rel_all):
-        m = obs.index == s
-        k = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
-        d = np.append(2.0 * obs.radii[m], np.nan)
-        n = np.append(obs.n_points[m], 0)
-        out.append(((d[k] - diam) * 100.0, n[k]))
-    return out
 
 
 def _dr(ranges: np.ndarray, beams: np.ndarray, res: float, rel: np.ndarray, r: float) -> list:
@@ -98,8 +85,8 @@ def run(
         assert sc.ranges0 is not None
         sl, diam = sc.sl, sc.sl.diameters
         rel_all = [sl.centers - sc.vp[s] for s in range(sc.vp.shape[0])]
-        fits = [_fits(matched(c, sc.model, sc.res), sc.batch, rel_all, diam) for c in variants]
-        kasa = _fits(TEXTBOOK, sc.batch, rel_all, diam)
+        fits = [view_fits(matched(c, sc.model, sc.res), sc.batch, rel_all, diam) for c in variants]
+        kasa = view_fits(TEXTBOOK, sc.batch, rel_all, diam)
         by_n: dict[int, list[list[float]]] = {}
         count = {"config": sc.config, "visible": 0, "within_3cm": [0] * (len(variants) + 1)}
         for s, rel in enumerate(rel_all):
