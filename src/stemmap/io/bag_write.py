@@ -29,6 +29,8 @@ def write_scans_bag(
     topic: str = "/scan",
     ros: int = 1,
     storage: str = "sqlite3",
+    compression: str | None = None,
+    chunk_bytes: int | None = None,
 ) -> Path:
     """Write a :class:`ScanBatch` as ``sensor_msgs/LaserScan`` messages in a ROS bag.
 
@@ -47,6 +49,10 @@ def write_scans_bag(
         ROS1 (Noetic types) or ROS2 (Humble types, rosbag2 format version 9).
     storage : {"sqlite3", "mcap"}
         ROS2 storage plugin.
+    compression : {None, "bz2", "lz4"}
+        ROS1: compress each chunk (None: uncompressed).
+    chunk_bytes : int, optional
+        ROS1: start a new chunk once one holds this many bytes (None: rosbags' default).
 
     Returns
     -------
@@ -56,7 +62,8 @@ def write_scans_bag(
     Raises
     ------
     ConfigError
-        For an unknown ``ros`` version or ``storage``.
+        For an unknown ``ros`` version, ``storage`` or ``compression``, or chunk options
+        given for ROS2.
     """
     import os
     import shutil
@@ -71,6 +78,10 @@ def write_scans_bag(
         raise ConfigError(f"ros must be 1 or 2, got {ros!r}.")
     if storage not in ("sqlite3", "mcap"):
         raise ConfigError(f"storage must be 'sqlite3' or 'mcap', got {storage!r}.")
+    if compression not in (None, "bz2", "lz4"):
+        raise ConfigError(f"compression must be None, 'bz2' or 'lz4', got {compression!r}.")
+    if ros == 2 and (compression is not None or chunk_bytes is not None):
+        raise ConfigError("compression and chunk_bytes apply to ROS1 bags only.")
     target = Path(path)
     if ros == 1 and target.suffix.lower() != ".bag":
         target = target.with_name(target.name + ".bag")
@@ -83,6 +94,10 @@ def write_scans_bag(
     try:
         if ros == 1:
             writer: Any = Writer1(tmp)
+            if compression is not None:
+                writer.set_compression(Writer1.CompressionFormat[compression.upper()])
+            if chunk_bytes is not None:
+                writer.chunk_threshold = chunk_bytes
         else:
             plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
             writer = Writer2(tmp, version=9, storage_plugin=plugin)

@@ -255,40 +255,9 @@ def _seed_bag(p: Path) -> None:
 def _seed_bag_compressed(p: Path, compression: str) -> None:
     """The scans of :func:`_seed_bag` in a ROS 1 bag whose chunks are bz2 / lz4 compressed
     (a chunk every ~0.5 kB, so a mutation hits a chunk header, its data or the index)."""
-    import math
+    from stemmap.io.rosbag import write_scans_bag
 
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    from stemmap.io.rosbag import LASERSCAN
-
-    ts = get_typestore(Stores.ROS1_NOETIC)
-    T = ts.types
-    batch = _scans()
-    writer = Writer(p)
-    writer.set_compression(
-        Writer.CompressionFormat.BZ2 if compression == "bz2" else Writer.CompressionFormat.LZ4
-    )
-    writer.chunk_threshold = 512
-    with writer:
-        conn = writer.add_connection("/scan", LASERSCAN, typestore=ts)
-        n = batch.n_beams
-        for k, (t, r) in enumerate(zip(batch.times, batch.ranges, strict=True)):
-            sec = math.floor(t)
-            stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9))
-            msg = T[LASERSCAN](
-                header=T["std_msgs/msg/Header"](seq=k, stamp=stamp, frame_id="laser"),
-                angle_min=batch.angle_min,
-                angle_max=batch.angle_min + batch.angle_increment * (n - 1),
-                angle_increment=batch.angle_increment,
-                time_increment=0.0,
-                scan_time=0.0,
-                range_min=batch.range_min,
-                range_max=batch.range_max,
-                ranges=np.asarray(r, np.float32),
-                intensities=np.zeros(0, np.float32),
-            )
-            writer.write(conn, int(t * 1e9) + 1, ts.serialize_ros1(msg, LASERSCAN))
+    write_scans_bag(p, _scans(), ros=1, compression=compression, chunk_bytes=512)
 
 
 def _seed_ros2(p: Path, storage: str) -> None:
