@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
-from real_geometry import _in_gate
+from real_geometry import _in_gate, visible_trunks
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import noisy_batch, virtual_scans
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -110,10 +110,9 @@ def run_views(ddir: Path, sets: list[dict[str, Any]], seed: int, n_vantage: int)
         row = {"config": sc.config, "visible": 0, "kasa_ok": 0}
         row.update({f"ours_ok_{i}": 0 for i in range(len(variants))})
         for s, rel in enumerate(rel_all):
-            rng_t = np.hypot(rel[:, 0], rel[:, 1])
             own = (sc.hit[s][None, :] == np.arange(len(sl.refs))[:, None]).sum(axis=1)
-            vis = (own >= 4) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-            vis &= _in_gate(base, rel) & _in_gate(TEXTBOOK, rel)
+            vis, rng_t = visible_trunks(own, rel, diam, base, 4)
+            vis &= _in_gate(TEXTBOOK, rel)
             for t in np.flatnonzero(vis):
                 row["visible"] += 1
                 row["kasa_ok"] += int(abs(kerr[s][t]) <= 3.0)

@@ -31,7 +31,7 @@ import numpy as np
 
 from _real_scanning import TEXTBOOK, ReturnRule, matched, scene_batches
 from fair_kasa_edges import edge_info, view_fits
-from real_geometry import _in_gate
+from real_geometry import _in_gate, visible_trunks
 from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -90,10 +90,9 @@ def run(
         by_n: dict[int, list[list[float]]] = {}
         count = {"config": sc.config, "visible": 0, "within_3cm": [0] * (len(variants) + 1)}
         for s, rel in enumerate(rel_all):
-            rng_t = np.hypot(rel[:, 0], rel[:, 1])
             own = (sc.hit[s][None, :] == np.arange(len(sl.refs))[:, None]).sum(axis=1)
-            vis = (own >= 4) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-            vis &= _in_gate(base, rel) & _in_gate(TEXTBOOK, rel)
+            vis, rng_t = visible_trunks(own, rel, diam, base, 4)
+            vis &= _in_gate(TEXTBOOK, rel)
             for t in np.flatnonzero(vis):
                 errs = [float(f[s][0][t]) for f in fits] + [float(kasa[s][0][t])]
                 count["visible"] += 1

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from _real_scanning import greedy_match, matched, scene_batches
-from real_geometry import _in_gate
+from real_geometry import visible_trunks
 from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
@@ -151,9 +151,7 @@ def trace(
         n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
         for s in range(vp.shape[0]):
             rel = sl.centers - vp[s]
-            rng_t = np.hypot(rel[:, 0], rel[:, 1])
-            vis = (n_hits[s] >= 4) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-            vis &= _in_gate(cfg, rel)
+            vis, rng_t = visible_trunks(n_hits[s], rel, diam, cfg, 4)
             m = np.flatnonzero(obs.index == s)
             match = greedy_match(obs.centers[m], rel, diam / 2.0 + 0.05)
             for t in np.flatnonzero(vis & (match >= 0)):

@@ -50,7 +50,7 @@ import numpy as np
 
 from _loo_grid import LOO_GRID
 from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
-from real_geometry import DIAMETER_CLASSES, RANGE_BANDS, _in_gate, fill_returns
+from real_geometry import DIAMETER_CLASSES, RANGE_BANDS, _in_gate, fill_returns, visible_trunks
 from real_geometry_diagnose import _over
 from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, RealSlice
@@ -142,10 +142,9 @@ def compare_views(
     losses: list[dict[str, Any]] = []
     for s in range(vp.shape[0]):
         rel = sl.centers - vp[s]
-        rng_t = np.hypot(rel[:, 0], rel[:, 1])
         own = (hit[s][None, :] == np.arange(len(sl.refs))[:, None]).sum(axis=1)
-        vis = (own >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-        vis &= _in_gate(cfg, rel) & _in_gate(TEXTBOOK, rel)
+        vis, rng_t = visible_trunks(own, rel, diam, cfg, min_returns)
+        vis &= _in_gate(TEXTBOOK, rel)
         errs = []
         for o in (obs, kobs):
             m = o.index == s

@@ -148,6 +148,19 @@ def _in_gate(cfg: DetectorConfig, rel: np.ndarray) -> np.ndarray:
     return ok
 
 
+def visible_trunks(
+    own: np.ndarray, rel: np.ndarray, diam: np.ndarray, cfg: DetectorConfig, min_returns: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
+    """The issue's *visible* trunks of one scan (module docstring): at least ``min_returns``
+    own returns (``own``, per trunk), within 15 m, 10-100 cm (``diam``, m), centre (``rel``,
+    sensor frame) inside ``cfg``'s gate; and the trunks' ranges. Shared by the benchmarks that
+    trace views (first_echo_dbh_z.py, kasa_views.py, fair_kasa_edges.py, ...)."""
+    rng_t = np.hypot(rel[:, 0], rel[:, 1])
+    vis = (own >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
+    vis &= _in_gate(cfg, rel)
+    return vis, rng_t
+
+
 def score(
     rows: list[tuple[float, float, float]], n_scans: int, n_unmatched: int, n_false: int = 0
 ) -> dict[str, Any]:
@@ -249,9 +262,7 @@ def score_scans(
     unmatched = n_false = 0
     for s in range(vp.shape[0]):
         rel = centers - vp[s]
-        rng_t = np.hypot(rel[:, 0], rel[:, 1])
-        vis = (n_hits[s] >= min_returns) & (rng_t <= 15.0) & (diam >= 0.1) & (diam <= 1.0)
-        vis &= _in_gate(cfg, rel)
+        vis, rng_t = visible_trunks(n_hits[s], rel, diam, cfg, min_returns)
         if counted is not None:
             vis &= counted[s]
         m = obs.index == s
