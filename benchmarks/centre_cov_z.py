@@ -23,6 +23,10 @@ Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --rows-out /tmp/c.json
     PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --rows-in /tmp/c.json
+    PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --models averaging \
+        --hit-fraction 0.3 --rows-out /tmp/a3.json                  # the q = 0.3 virtual SICK
+    PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --loo --averaging \
+        --rows-in /tmp/a0.json /tmp/a3.json                # averaging terms, both models pooled
 
 One JSON object on stdout; a table on stderr.
 """
@@ -116,11 +120,18 @@ def view_rows(sc: Any, cfg: DetectorConfig, obs: Any, min_returns: int = 4) -> l
 
 
 def collect(
-    ddir: Path, n_vantage: int, seed: int, overrides: dict[str, Any], models: tuple[str, ...]
+    ddir: Path,
+    n_vantage: int,
+    seed: int,
+    overrides: dict[str, Any],
+    models: tuple[str, ...],
+    hit_fraction: float = 0.0,
 ) -> tuple[list[dict], dict[str, Any]]:
     """Every matched view of every configuration of ``models``, and per model the detections'
     count, digest without the covariances (:func:`first_echo_dbh_z.geometry_digest`) and
-    with them (``scan_detection.detections_digest``)."""
+    with them (``scan_detection.detections_digest``). ``hit_fraction``: the virtual averaging
+    scanner's return threshold (``real_geometry.py --hit-fraction``; 0: any sub-ray)."""
+    from _real_scanning import ReturnRule
     from scan_detection import detections_digest
 
     base = DetectorConfig.preset("stemmap", **overrides)
@@ -128,7 +139,8 @@ def collect(
     digests = {m: hashlib.sha256() for m in models}
     full = {m: hashlib.sha256() for m in models}
     counts = dict.fromkeys(models, 0)
-    for sc in scene_batches(ddir, n_vantage, seed):
+    rule = ReturnRule(min_hit_fraction=hit_fraction) if hit_fraction > 0 else None
+    for sc in scene_batches(ddir, n_vantage, seed, return_rule=rule):
         if sc.model not in models:
             continue
         cfg = matched(base, sc.model, sc.res)
@@ -263,18 +275,51 @@ def choose(rows: list[dict], b: float) -> tuple[float, float]:
     return g, c
 
 
-def loo(rows: list[dict], b: float) -> dict[str, Any]:
-    """Leave one real-bark dataset out: the terms chosen on the other two (:func:`choose`),
-    scored on the held-out one per noise level; FORTLS and aRchi with the terms of all three."""
-    near = [r for r in rows if r["model"] == "nearest"]
+def averaging_candidate_covs(
+    rows: list[dict], cfg: DetectorConfig, f: float, c: float
+) -> np.ndarray:
+    """The covariance :func:`stemmap.scan._centre_cov.averaging_centre_covs` would report for
+    every averaging row (run with the averaging terms off: ``cov`` is the fit's own), with the
+    outline term of ``cfg`` (``centre_sd_along`` times ``dbh_sd_outline / 2``), the footprint
+    share ``f`` and the across std ``c`` (m)."""
+    from stemmap.scan._centre_cov import averaging_centre_covs
+
+    own = np.array([r["cov"] for r in rows]).reshape(-1, 3, 3)
+    xy = np.array([[r["cx"], r["cy"]] for r in rows]).reshape(-1, 2)
+    outline = 0.5 * cfg.centre_sd_along * cfg.dbh_sd_outline
+    return averaging_centre_covs(own, xy, outline, f, math.radians(cfg.beam_divergence_deg), c)
+
+
+def choose_averaging(rows: list[dict], cfg: DetectorConfig) -> tuple[float, float]:
+    """``centre_sd_footprint`` then ``centre_sd_across_averaging`` (m) by the rule of
+    :func:`choose`: the pooled median |z| along, then across, the line of sight is 0.674."""
+    f = _solve(
+        lambda x: _median_z(rows, averaging_candidate_covs(rows, cfg, x, 0.0), "along"), 10.0
+    )
+    c = _solve(lambda x: _median_z(rows, averaging_candidate_covs(rows, cfg, f, x), "across"), 0.2)
+    return f, c
+
+
+def loo(rows: list[dict], b: float, cfg: DetectorConfig | None = None) -> dict[str, Any]:
+    """Leave one real-bark dataset out: the terms chosen on the other two (:func:`choose`;
+    with ``cfg``, the averaging rows and :func:`choose_averaging`), scored on the held-out one
+    per noise level; FORTLS and aRchi with the terms of all three."""
+    model = "nearest" if cfg is None else "averaging"
+    sub_rows = [r for r in rows if r["model"] == model]
     out: dict[str, Any] = {}
     for held in (*BARK, "fortls_slice", "archi_tree1"):
-        train = [r for r in near if r["dataset"] in BARK and r["dataset"] != held]
-        g, c = choose(train, b)
-        test = [r for r in near if r["dataset"] == held]
+        train = [r for r in sub_rows if r["dataset"] in BARK and r["dataset"] != held]
+        test = [r for r in sub_rows if r["dataset"] == held]
         if not test:
             continue
-        cov = candidate_covs(test, b, g, c)
+        if cfg is None:
+            g, c = choose(train, b)
+            cov = candidate_covs(test, b, g, c)
+            terms = {"along": round(g, 3), "across_cm": round(100 * c, 3)}
+        else:
+            g, c = choose_averaging(train, cfg)
+            cov = averaging_candidate_covs(test, cfg, g, c)
+            terms = {"footprint": round(g, 3), "across_cm": round(100 * c, 3)}
         for r, cv in zip(test, cov, strict=True):
             r["_cand"] = [float(v) for v in cv.ravel()]
         cells = {}
@@ -283,9 +328,68 @@ def loo(rows: list[dict], b: float) -> dict[str, Any]:
             if sub:
                 p = centre_parts(sub, "_cand")
                 cells[f"{100 * noise:g} cm"] = cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"])
-        name = SHORT.get(held, held)
-        out[name] = {"along": round(g, 3), "across_cm": round(100 * c, 3), **cells}
+        out[SHORT.get(held, held)] = {**terms, **cells}
     return out
+
+
+def sim_rows(seed: int, overrides: dict[str, Any]) -> list[dict]:
+    """The simulator's averaging rows (a check of the code; nothing is chosen on it): every
+    matched eligible (tree, detection) pair of ``scan_detection.py``'s 400-scan drive and the
+    ``stemmap demo`` drive of ``seed`` (:func:`_scan_sim._runs`; the scoring of
+    :func:`_scan_sim.tree_errors`: its gate, returns, range and diameter) with the centre
+    error in the sensor frame and the reported covariance of the ``stemmap`` preset with
+    ``overrides``."""
+    from _scan_sim import SCENARIO, _runs
+    from stemmap.eval.detection import detectable_trees
+    from stemmap.eval.matching import match_points
+
+    sc = SCENARIO["scoring"]
+    det = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides))
+    rows: list[dict] = []
+    for drive, run in zip(("benchmark", "demo"), _runs(int(seed)), strict=True):
+        obs = det.detect_batch(run.scans)
+        poses = run.true_poses.poses
+        txy, tdiam = run.stand.trees_xy, run.stand.diameters
+        for k in range(poses.shape[0]):
+            sel = np.flatnonzero(obs.index == k)
+            c, s_ = math.cos(poses[k, 2]), math.sin(poses[k, 2])
+            d = txy - poses[k, :2]
+            local = np.column_stack((c * d[:, 0] + s_ * d[:, 1], -s_ * d[:, 0] + c * d[:, 1]))
+            rng_k = np.hypot(local[:, 0], local[:, 1])
+            elig = detectable_trees(
+                run.hit_ids[k],
+                txy.shape[0],
+                min_returns=sc["min_returns"],
+                truth_range=rng_k,
+                max_range=sc["max_range_m"],
+                diameters=tdiam,
+                min_diameter=sc["min_dbh_m"],
+            )
+            m = match_points(obs.centers[sel], local, sc["gate_m"])
+            for i, j in m.pairs:
+                if not elig[j]:
+                    continue
+                q = sel[i]
+                cen = obs.centers[q]
+                rows.append(
+                    {
+                        "dataset": f"sim_{drive}",
+                        "model": "averaging",
+                        "step": float(math.degrees(abs(run.scans.angle_increment))),
+                        "noise": 0.0,
+                        "scan": k,
+                        "trunk": int(j),
+                        "range": float(rng_k[j]),
+                        "dbh": float(tdiam[j]),
+                        "ex": float(cen[0] - local[j, 0]),
+                        "ey": float(cen[1] - local[j, 1]),
+                        "er": float(obs.radii[q] - tdiam[j] / 2.0),
+                        "cx": float(cen[0]),
+                        "cy": float(cen[1]),
+                        "cov": [float(v) for v in obs.covs[q].ravel()],
+                    }
+                )
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -295,29 +399,52 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11, help="real_geometry.py's --seed")
     ap.add_argument("--set", default="{}", help="JSON overrides of the stemmap preset")
     ap.add_argument("--models", default="nearest,averaging", help="scanner models, comma separated")
+    ap.add_argument(
+        "--hit-fraction",
+        type=float,
+        default=0.0,
+        help="the virtual averaging scanner's return threshold (real_geometry.py's)",
+    )
     ap.add_argument("--own", action="store_true", help="also record the fit's own covariance")
     ap.add_argument("--no-steps", action="store_true", help="no per-step rows in the table")
     ap.add_argument("--rows-out", type=Path, default=None)
-    ap.add_argument("--rows-in", type=Path, default=None)
+    ap.add_argument(
+        "--rows-in", type=Path, nargs="+", default=None, help="rows of earlier runs (pooled)"
+    )
     ap.add_argument("--loo", action="store_true", help="choose the centre terms (--own rows)")
+    ap.add_argument(
+        "--sim", type=int, nargs="+", default=None, help="the simulator's rows of these seeds"
+    )
+    ap.add_argument(
+        "--averaging",
+        action="store_true",
+        help="with --loo: the averaging terms on the averaging rows (run with them off)",
+    )
     args = ap.parse_args(argv)
     if args.own:
         OWN.install()
-    if args.rows_in is not None:
-        rows = json.loads(args.rows_in.read_text())
-        digest: dict[str, Any] = {}
+    digest: dict[str, Any] = {}
+    if args.sim is not None:
+        rows = [r for seed in args.sim for r in sim_rows(seed, json.loads(args.set))]
+        if args.rows_out is not None:
+            args.rows_out.write_text(json.dumps(rows))
+    elif args.rows_in is not None:
+        rows = [r for path in args.rows_in for r in json.loads(path.read_text())]
     else:
         ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
         models = tuple(args.models.split(","))
-        rows, digest = collect(ddir, args.vantage, args.seed, json.loads(args.set), models)
+        rows, digest = collect(
+            ddir, args.vantage, args.seed, json.loads(args.set), models, args.hit_fraction
+        )
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(rows))
     if args.loo:
-        b = DetectorConfig.preset("stemmap", **json.loads(args.set)).dbh_sd_outline
-        res = loo(rows, b)
+        cfg = DetectorConfig.preset("stemmap", **json.loads(args.set))
+        res = loo(rows, cfg.dbh_sd_outline, cfg if args.averaging else None)
         for key, v in res.items():
             print(f"{key:14s} {json.dumps(v)}", file=sys.stderr)
-        print(json.dumps({"benchmark": "centre_cov_z", "loo": True, "b": b, **res}))
+        head = {"benchmark": "centre_cov_z", "loo": True, "b": cfg.dbh_sd_outline}
+        print(json.dumps({**head, "averaging": args.averaging, **res}))
         return 0
     tab = table(rows, steps=not args.no_steps)
     for key, v in tab.items():
