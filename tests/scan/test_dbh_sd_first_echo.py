@@ -115,8 +115,10 @@ def test_at_3_cm_the_std_states_the_error():
 
 def test_an_averaging_scanner_keeps_the_fit_covariance():
     # the averaging edge model (the compiled path, the simulator, Victoria Park-class SICKs):
-    # the option reads first-echo fits only, bit for bit
+    # the option reads first-echo fits only, bit for bit (the averaging centre terms, which
+    # carry the outline term to the centre, off in both: test_centre_cov_averaging.py)
     batch, _ = _batch(2.5, "averaging")
-    on = _det("averaging").detect_batch(batch)
-    off = _det("averaging", **OFF).detect_batch(batch)
+    own = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0}
+    on = _det("averaging", **own).detect_batch(batch)
+    off = _det("averaging", **OFF, **own).detect_batch(batch)
     assert np.array_equal(on.covs, off.covs) and np.array_equal(on.radii, off.radii)

@@ -153,7 +153,12 @@ def check_fields(cfg: DetectorConfig) -> None:
         raise bad("max_dbh_sd", cfg.max_dbh_sd, "it must be > 0 m (inf: off)")
     if not (cfg.dbh_sd_outline >= 0 and math.isfinite(cfg.dbh_sd_outline)):
         raise bad("dbh_sd_outline", cfg.dbh_sd_outline, "it must be >= 0 m and finite")
-    for name in ("centre_sd_along", "centre_sd_across"):
+    for name in (
+        "centre_sd_along",
+        "centre_sd_across",
+        "centre_sd_footprint",
+        "centre_sd_across_averaging",
+    ):
         if not (getattr(cfg, name) >= 0 and math.isfinite(getattr(cfg, name))):
             raise bad(name, getattr(cfg, name), "it must be >= 0 and finite")
     if not (cfg.dbh_sd_jackknife >= 0 and math.isfinite(cfg.dbh_sd_jackknife)):

@@ -494,6 +494,17 @@ class DetectorConfig:
         along the line of sight by ``centre_sd_along`` times it, and an error of std
         ``centre_sd_across`` is added across it (:mod:`stemmap.scan._centre_cov`; ours,
         issue 11, Dec 6, "First-echo centre covariance"). Detections unchanged. 0, 0 = off.
+    centre_sd_footprint, centre_sd_across_averaging : float, >= 0 (a share; metres)
+        Averaging ``ours`` fits (``beam_divergence_deg`` > 0, no ``beam_footprint_deg``),
+        both paths: the reported centre covariance gains, along the line of sight, the
+        outline's radius error carried as for a first echo (``centre_sd_along`` times
+        ``dbh_sd_outline / 2``) and ``centre_sd_footprint`` times the footprint's width at
+        the trunk (range times ``beam_divergence_deg``) in quadrature, and an error of std
+        ``centre_sd_across_averaging`` across it: the averaged edge returns' radius error
+        grows with the footprint and moves the centre along the line of sight
+        (:func:`stemmap.scan._centre_cov.averaging_centre_covs`; ours, issue 11, Dec 6,
+        docs/algorithms/scan-detection.md, "Averaging centre covariance"). The radius and
+        the centre-radius entries and every detection are unchanged. 0, 0 = off.
     dbh_sd_jackknife : float, >= 0
         First-echo ``ours`` fits, numpy path: the reported radius std is raised to this
         factor times the delete-a-group jackknife std of the radius where that is larger
@@ -680,6 +691,8 @@ class DetectorConfig:
     dbh_sd_outline: float = 0.0
     centre_sd_along: float = 0.0
     centre_sd_across: float = 0.0
+    centre_sd_footprint: float = 0.0
+    centre_sd_across_averaging: float = 0.0
     dbh_sd_jackknife: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False

@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from stemmap.errors import ConfigError, InputError
 from stemmap.scan._beam_layout import _as_scans, _beam_geometry, _BeamGeometry, _chi2_table
 from stemmap.scan._behind import trim_behind
+from stemmap.scan._centre_cov import averaging_report
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._occluded_blend import blend_ends_on, drop_occluded_blends
@@ -504,7 +505,7 @@ class ScanTrunkDetector:
         return StemObservations(
             centers=rows[:, 0:2],
             radii=rows[:, 2],
-            covs=rows[:, 3:12],
+            covs=averaging_report(self.config, rows[:, 0:2], rows[:, 3:12]),
             n_points=rows[:, 15].astype(np.int64),
             arc_deg=rows[:, 12],
             widths=rows[:, 13],
@@ -612,7 +613,7 @@ class ScanTrunkDetector:
         return StemObservations(
             centers=cols["centers"],
             radii=cols["radii"],
-            covs=cols["covs"],
+            covs=averaging_report(cfg, cols["centers"], cols["covs"]),
             n_points=cols["n_points"],
             arc_deg=cols["arc_deg"],
             widths=cols["widths"],
