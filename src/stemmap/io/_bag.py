@@ -105,6 +105,15 @@ def open_bag(path: PathLike) -> Iterator[Any]:
         reader.close()
 
 
+def named_limits(messages: Iterator[Any], path: PathLike) -> Iterator[Any]:
+    """``reader.messages(...)`` whose read-limit refusals (raised by the bounded decompressors,
+    which do not know the file) name the bag."""
+    try:
+        yield from messages
+    except ReadLimitError as exc:
+        raise ReadLimitError(f"ROS bag {str(path)!r}: {exc}") from exc
+
+
 def list_topics(path: PathLike) -> dict[str, str]:
     """Topics of a bag and their message types (``pkg/msg/Type``), sorted by topic name."""
     return {t.topic: t.msgtype for t in bag_summary(path)}
