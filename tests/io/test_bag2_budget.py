@@ -155,19 +155,20 @@ def test_within_the_disk_room_a_file_compressed_bag_reads(tmp_path: Path) -> Non
     assert [len(s) for s in scans] == [90, 90, 90]
 
 
-def test_a_sqlite_message_over_the_budget_is_refused_before_it_is_read(
+def test_an_inflated_message_over_the_budget_is_refused_before_it_is_read(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """An uncompressed ROS 2 bag (or one inflated from file compression) whose largest message
-    is more than a third of the budget: rosbags would read the message whole."""
+    """A file-compressed ROS 2 bag whose inflated database holds a message of more than a
+    third of the budget: rosbags would read the message whole."""
     from stemmap.io.rosbag import write_scans_bag
     from stemmap.types import ScanBatch
 
     big = ScanBatch(np.zeros((2, 2 * BEAMS)), np.array([1.0, 2.0]), -math.pi, 1e-6)
-    p = write_scans_bag(tmp_path / "b", big, ros=2)
+    p = write_scans_bag(tmp_path / "b", big, ros=2, compression="zstd", compression_mode="file")
+    assert sum(f.stat().st_size for f in p.iterdir()) < 100_000  # 16 MB of scans
     monkeypatch.setenv("STEMMAP_MAX_READ_GB", "0.01")
     msg, _ = _refusal(lambda: list(iter_laser_scans(p)))
-    assert "largest message holds 8 MB" in msg and repr(str(p)) in msg
+    assert "largest message holds 8 MB once the bag is inflated" in msg and repr(str(p)) in msg
 
 
 @pytest.mark.parametrize("mode", ["message", "file"])

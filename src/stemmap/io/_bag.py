@@ -55,9 +55,9 @@ def open_bag(path: PathLike) -> Iterator[Any]:
     Bags without embedded message definitions are decoded with the ROS1 Noetic (``.bag``) or
     ROS2 Humble type store. A ROS1 bag's chunks are checked against the read budget and
     decompressed to at most their announced size (:mod:`stemmap.io._bag_budget`); so are an
-    MCAP file's chunks, a ROS2 bag's zstd-compressed messages and its largest sqlite3
-    message, and a file-compressed ROS2 bag is inflated to at most the temporary folder's
-    free space (:mod:`stemmap.io._bag2_budget`).
+    MCAP file's chunks and a ROS2 bag's zstd-compressed messages; a file-compressed ROS2 bag
+    is inflated to at most the temporary folder's free space, and its largest message then
+    checked (:mod:`stemmap.io._bag2_budget`).
 
     Raises
     ------

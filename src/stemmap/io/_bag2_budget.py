@@ -25,9 +25,9 @@ ask for gigabytes.
   temporary folder's free space (less :data:`DISK_MARGIN_BYTES`), and the stream rosbags reads
   (``zstd.open``) stops at that size.
 
-Once opened, a sqlite3 storage's largest message (:func:`check_sqlite_messages`, from
-``length(data)``: sqlite reads a blob's length without its content) is compared with the
-budget: rosbags reads a message whole.
+Once inflated, a file-compressed bag's sqlite3 database's largest message
+(:func:`check_sqlite_messages`, from ``length(data)``: sqlite reads a blob's length without
+its content) is compared with the budget: rosbags reads a message whole.
 
 The replacements are installed once into rosbags' modules (their names are looked up when a
 bag is read, so there is no per-reader hook as for ROS 1); they return what rosbags' own code
@@ -437,16 +437,16 @@ def check_ros2_files(folder: Path) -> None:
 
 
 def check_sqlite_messages(reader: Any, path: Path) -> None:
-    """Refuse an open ROS 2 bag whose largest sqlite3 message (uncompressed, or as inflated
-    from a file-compressed bag) exceeds the read budget / ``CHUNK_READ_FACTOR``: rosbags reads
-    a message whole before it is decoded. Message-compressed bags are bounded when their
-    messages are decompressed (:func:`inflate_message`)."""
+    """Refuse an open file-compressed ROS 2 bag whose inflated sqlite3 database holds a message
+    larger than the read budget / ``CHUNK_READ_FACTOR``: rosbags reads a message whole before
+    it is decoded, and a few kB of zstd can inflate to a database holding a GB-sized message.
+    (An uncompressed database is not scanned: its messages are no larger than the file, and
+    the query reads every row, the whole file for small messages, at every open.)"""
     for r in getattr(reader, "readers", ()):
         storage = getattr(r, "storage", None)
-        if getattr(getattr(storage, "metadata", None), "compression_mode", None) == "message":
+        if getattr(getattr(storage, "metadata", None), "compression_mode", None) != "file":
             continue
-        inner = getattr(storage, "storages", None)
-        for s in inner if inner is not None else [storage]:
+        for s in getattr(storage, "storages", None) or []:
             db = getattr(s, "dbconn", None)
             if db is None:
                 continue
@@ -460,9 +460,9 @@ def check_sqlite_messages(reader: Any, path: Path) -> None:
                     CHUNK_READ_FACTOR * biggest,
                     path,
                     "ROS 2 bag",
-                    f"its largest message holds {human_bytes(biggest)}, "
-                    f"~{human_bytes(CHUNK_READ_FACTOR * biggest)} to read and decode (a message "
-                    "is read whole)",
+                    f"its largest message holds {human_bytes(biggest)} once the bag is "
+                    f"inflated, ~{human_bytes(CHUNK_READ_FACTOR * biggest)} to read and decode "
+                    "(a message is read whole)",
                 )
 
 
