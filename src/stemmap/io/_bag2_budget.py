@@ -104,7 +104,7 @@ def inflate_bounded(compression: str, data: bytes | memoryview, limit: int) -> b
     """Decompress ``data`` (zstd or lz4 frames, one after another as ``zstd.decompress`` and
     ``lz4.frame.decompress`` read them) to at most ``limit`` bytes.
 
-    Returns the bytes, or None if the data expand past ``limit`` (found out in steps of 16 MB,
+    Returns the bytes, or None if the data expand past ``limit`` (found out in steps of 1 MB,
     so at most ``limit`` + ~2 MB are allocated).
 
     Raises
