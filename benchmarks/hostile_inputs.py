@@ -23,7 +23,17 @@ bag whose one lz4 chunk holds ``--bag-gb`` of LaserScans, ~4 MB a GB on disk),
 ``bag_bz2_chunk`` (the same in bz2, ~1 kB a GB: python-lz4 gives up near 1 GB on its own),
 ``bag_lz4_lying`` (the same chunk, its header announcing 1 MB), ``tiff_cut`` (a camera TIFF
 frame whose strip runs past the end of the file), ``yolo_polygons`` (``segment --train`` on a
-real 16 Mpx mangrove photo with a label file of ``--yolo-lines`` polygons).
+real 16 Mpx mangrove photo with a label file of ``--yolo-lines`` polygons). ROS 2 / MCAP
+(benchmarks/hostile_bags.py): ``mcap_zstd_chunk`` (an MCAP file without summary whose one
+zstd chunk holds ``--bag-gb`` of LaserScans, 32 kB a GB), ``mcap_lz4_chunk`` (the same in lz4,
+with a summary), ``mcap_zstd_lying`` (the zstd chunk, indexed, its header and index announcing
+1 MB), ``ros2_zstd_message`` / ``ros2_zstd_message_unannounced`` (a message-compressed sqlite3
+bag whose last message inflates to ``--bag-gb``, its zstd frame announcing the size or not),
+``ros2_zstd_file`` (a file-compressed bag inflating to ``--bag-gb``, size not announced: rosbags
+writes it to the temporary folder), ``ros2_zstd_file_huge`` (the same, its frame header
+announcing 1 PB), ``bag_unindexed_topic`` (library: ``iter_laser_scans`` over a ROS 1 bag cut
+at its index whose topic holds ``--topic-gb`` in 64 MB lz4 chunks; the one case run as
+``python -c``, not a command).
 """
 
 from __future__ import annotations
@@ -44,6 +54,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+import hostile_bags as hb  # benchmarks/
 
 ROOT = Path(__file__).resolve().parents[1]
 BEAMS = 361
@@ -384,7 +396,41 @@ CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
         str(d / "t.csv"),
     ],
     "yolo_polygons": lambda d, a: _yolo_training(d, a.yolo_lines),
+    "mcap_zstd_chunk": lambda d, a: _detect(
+        hb.mcap_bomb(d / "m.mcap", _n_scans(a.bag_gb), BAG_BEAMS, compression="zstd"), d
+    ),
+    "mcap_lz4_chunk": lambda d, a: _detect(
+        hb.mcap_bomb(d / "m.mcap", _n_scans(a.bag_gb), BAG_BEAMS, compression="lz4", indexed=True),
+        d,
+    ),
+    "mcap_zstd_lying": lambda d, a: _detect(
+        hb.mcap_bomb(d / "m.mcap", _n_scans(a.bag_gb), BAG_BEAMS, size=10**6, indexed=True), d
+    ),
+    "ros2_zstd_message": lambda d, a: _detect(
+        hb.ros2_message_bomb(d / "b", int(a.bag_gb * 1e9 / 4)), d
+    ),
+    "ros2_zstd_message_unannounced": lambda d, a: _detect(
+        hb.ros2_message_bomb(d / "b", int(a.bag_gb * 1e9 / 4), announce=False), d
+    ),
+    "ros2_zstd_file": lambda d, a: _detect(hb.ros2_file_bomb(d / "b", a.bag_gb, announce=False), d),
+    "ros2_zstd_file_huge": lambda d, a: _detect(
+        hb.ros2_file_bomb(d / "b", a.bag_gb, announce=False, content_size=10**15), d
+    ),
+    "bag_unindexed_topic": lambda d, a: [
+        "-c",
+        "import sys; from stemmap.io.rosbag import iter_laser_scans; "
+        "print(sum(1 for _ in iter_laser_scans(sys.argv[1])), 'scans')",
+        str(hb.ros1_unindexed_bag(d / "u.bag", a.topic_gb)),
+    ],
 }
+
+
+def _n_scans(gb: float) -> int:
+    return max(1, int(gb * 1e9 / (4 * BAG_BEAMS)))
+
+
+def _detect(bag: Path, d: Path) -> list[str]:
+    return ["detect", str(bag), "--out", str(d / "o.csv"), "-q"]
 
 
 def _run(argv: list[str], src: Path, limit_gb: float, timeout: float) -> dict[str, object]:
@@ -397,7 +443,9 @@ def _run(argv: list[str], src: Path, limit_gb: float, timeout: float) -> dict[st
     t0 = time.perf_counter()
     with tempfile.TemporaryFile("w+") as err:
         p = subprocess.Popen(
-            [sys.executable, "-m", "stemmap", *argv],
+            [sys.executable, *argv]
+            if argv[0] == "-c"
+            else [sys.executable, "-m", "stemmap", *argv],
             env=env,
             stdout=subprocess.DEVNULL,
             stderr=err,
@@ -432,6 +480,7 @@ def main() -> None:
     ap.add_argument("--bomb-gb", type=float, default=20.0, help="npz_bomb decompressed size")
     ap.add_argument("--text-mb", type=float, default=300.0, help="size of the text cases")
     ap.add_argument("--bag-gb", type=float, default=2.0, help="bag_lz4_* chunk size (<= 4.29)")
+    ap.add_argument("--topic-gb", type=float, default=3.0, help="bag_unindexed_topic size")
     ap.add_argument("--yolo-lines", type=int, default=200, help="yolo_polygons label lines")
     ap.add_argument("--max-memory-gb", type=float, default=8.0, help="address-space limit")
     ap.add_argument("--timeout", type=float, default=600.0)

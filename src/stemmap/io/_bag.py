@@ -13,8 +13,15 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from stemmap.errors import InputError
+from stemmap.io._bag2_budget import (
+    check_mcap_chunks,
+    check_ros2_files,
+    check_sqlite_messages,
+    install_bounded_codecs,
+)
 from stemmap.io._bag_budget import bound_reader_chunks, check_ros1_chunks
-from stemmap.io._bag_salvage import _norm_type, _ros1_salvage, _Salvage
+from stemmap.io._bag_salvage import _norm_type, _ros1_salvage, _ros1_stream, _Salvage
+from stemmap.io._budget import ReadLimitError
 from stemmap.io._util import PathLike, SkippedFrame
 
 log = logging.getLogger("stemmap.io.rosbag")
@@ -47,12 +54,17 @@ def open_bag(path: PathLike) -> Iterator[Any]:
 
     Bags without embedded message definitions are decoded with the ROS1 Noetic (``.bag``) or
     ROS2 Humble type store. A ROS1 bag's chunks are checked against the read budget and
-    decompressed to at most their announced size (:mod:`stemmap.io._bag_budget`).
+    decompressed to at most their announced size (:mod:`stemmap.io._bag_budget`); so are an
+    MCAP file's chunks and a ROS2 bag's zstd-compressed messages; a file-compressed ROS2 bag
+    is inflated to at most the temporary folder's free space, and its largest message then
+    checked (:mod:`stemmap.io._bag2_budget`).
 
     Raises
     ------
     InputError
         If the path does not exist or the bag cannot be opened (truncated, not a bag, ...).
+    ReadLimitError
+        (an InputError) If reading it would exceed the read budget (``STEMMAP_MAX_READ_GB``).
     """
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -66,9 +78,18 @@ def open_bag(path: PathLike) -> Iterator[Any]:
             "pass the bag folder, a .db3/.mcap file or a ROS1 .bag file."
         )
     store = Stores.ROS1_NOETIC if p.suffix.lower() == ".bag" else Stores.ROS2_HUMBLE
+    if store == Stores.ROS2_HUMBLE:  # before rosbags decompresses anything at open
+        install_bounded_codecs()
+        if p.is_dir():
+            check_ros2_files(p)
+        for f in sorted(p.glob("*.mcap")) if p.is_dir() else [p]:
+            if f.suffix.lower() == ".mcap":
+                check_mcap_chunks(f)
     try:
         reader = AnyReader([p], default_typestore=get_typestore(store))
         reader.open()
+    except ReadLimitError as exc:  # inflating a file-compressed bag, an MCAP chunk at open
+        raise ReadLimitError(f"ROS bag {str(p)!r}: {exc}") from exc
     except Exception as exc:  # rosbags raises many types on damaged files; wrap them all
         raise InputError(
             f"cannot open ROS bag {str(p)!r} ({type(exc).__name__}: {exc}); the file may be "
@@ -77,9 +98,20 @@ def open_bag(path: PathLike) -> Iterator[Any]:
     try:
         if p.suffix.lower() == ".bag" and p.is_file():  # chunk sizes: budget, bounded reads
             bound_reader_chunks(reader, p, check_ros1_chunks(p))
+        else:
+            check_sqlite_messages(reader, p)
         yield reader
     finally:
         reader.close()
+
+
+def named_limits(messages: Iterator[Any], path: PathLike) -> Iterator[Any]:
+    """``reader.messages(...)`` whose read-limit refusals (raised by the bounded decompressors,
+    which do not know the file) name the bag."""
+    try:
+        yield from messages
+    except ReadLimitError as exc:
+        raise ReadLimitError(f"ROS bag {str(path)!r}: {exc}") from exc
 
 
 def list_topics(path: PathLike) -> dict[str, str]:
@@ -201,6 +233,10 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
                 conn, t_ns, raw = next(gen)
             except StopIteration:
                 return
+            except ReadLimitError as exc:  # a refusal, not damage
+                raise ReadLimitError(
+                    f"ROS bag {str(p)!r}, topic {chosen}, message {k}: {exc}"
+                ) from exc
             except Exception as exc:  # damaged chunk / truncated file
                 yield _Message(
                     k,
@@ -254,16 +290,26 @@ def _iter_salvaged(
     first = _salvage_or_raise(path, open_error, None)  # pass 1: topics and counts only
     topics = {t: m for t, m, _ in first.conns.values()}
     chosen = _choose_topic(topics, path, msgtype, topic)
-    sv = _salvage_or_raise(path, open_error, chosen)  # pass 2: this topic's messages
     store = get_typestore(Stores.ROS1_NOETIC)
-    for t, m, definition in sv.conns.values():  # non-standard types: the bag's definitions
+    for t, m, definition in first.conns.values():  # non-standard types: the bag's definitions
         if t == chosen and m not in store.types and definition:
             with contextlib.suppress(Exception):
                 store.register(get_types_from_msg(definition, m))
+    # pass 2: this topic's messages, one at a time as their chunk is read (not the whole topic:
+    # compressed chunks can hold many times the file's size)
+    gen = _ros1_stream(path, chosen)
     k = 0
-    for rec in sv.msgs:
+    while True:
         try:
-            msg = store.deserialize_ros1(rec.raw, sv.conns[rec.conn][1])
+            rec = next(gen)
+        except StopIteration as end:
+            stop = end.value.stop
+            break
+        except (InputError, OSError, ValueError, KeyError) as exc:  # read once in pass 1
+            stop = f"reading it again failed ({type(exc).__name__}: {exc})"
+            break
+        try:
+            msg = store.deserialize_ros1(rec.raw, first.conns[rec.conn][1])
         except Exception as exc:
             yield _Message(
                 k,
@@ -275,12 +321,12 @@ def _iter_salvaged(
         else:
             yield _Message(k, rec.t_ns * 1e-9, msg, "")
         k += 1
-    if sv.stop:
+    if stop:
         yield _Message(
             k,
             math.nan,
             None,
-            f"the bag has no valid index and {sv.stop}; messages of {chosen} after message "
+            f"the bag has no valid index and {stop}; messages of {chosen} after message "
             f"{k - 1} are lost",
         )
 

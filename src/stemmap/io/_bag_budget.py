@@ -13,9 +13,8 @@ chunk is decompressed whole before its first message is read (by rosbags, and by
   budget admitted is allocated. rosbags' chunk table is given this bounded decompressor
   (:func:`bound_reader_chunks`).
 
-Not covered: ROS 2 bags compressed with zstd (message or file mode) and MCAP files with
-compressed chunks are decompressed by rosbags without a bound of stemmap's
-(docs/reliability.md, "Read budget").
+ROS 2 bags compressed with zstd (message or file mode) and MCAP files with compressed chunks:
+:mod:`stemmap.io._bag2_budget` (docs/reliability.md, "Read budget").
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -87,11 +87,26 @@ class _Salvage(NamedTuple):
 def _ros1_salvage(path: Path, keep_topic: str | None = None) -> _Salvage:
     """Messages of a ROS1 bag read chunk by chunk, without its index (memory-mapped).
 
-    Counts the messages of every connection and keeps the raw messages of ``keep_topic`` only.
+    Counts the messages of every connection and keeps the raw messages of ``keep_topic`` only
+    (all of them, in ``msgs``: :func:`_ros1_stream` yields them one at a time instead).
     A chunk whose recorded size is missing (recording killed mid-chunk: rosbag writes the size
     when it closes the chunk) or runs past the end of the file is read as far as its
     uncompressed message records are complete, like ``rosbag reindex``.
     """
+    gen = _ros1_stream(path, keep_topic)
+    msgs: list[_Salvaged] = []
+    while True:
+        try:
+            msgs.append(next(gen))
+        except StopIteration as end:
+            sv: _Salvage = end.value
+            return sv._replace(msgs=msgs)
+
+
+def _ros1_stream(path: Path, keep_topic: str | None) -> Generator[_Salvaged, None, _Salvage]:
+    """:func:`_ros1_salvage` as a generator: yields the raw messages of ``keep_topic`` as their
+    chunk is read (one decompressed chunk in memory at a time, as rosbags reads an indexed
+    bag), and returns the :class:`_Salvage` (``msgs`` empty) when the file is read."""
     import mmap
 
     from stemmap.io._bag_budget import bounded_decompress
@@ -107,7 +122,7 @@ def _ros1_salvage(path: Path, keep_topic: str | None = None) -> _Salvage:
             raise InputError(f"{str(path)!r} does not start with the ROS1 magic '#ROSBAG V2.0'.")
         view = memoryview(mm)
         try:
-            return _salvage_view(view, keep_topic, bounded_decompress)
+            return (yield from _salvage_view(view, keep_topic, bounded_decompress))
         finally:
             # slices still referenced by a traceback keep the map alive: let GC close it then
             with contextlib.suppress(BufferError):
@@ -124,14 +139,15 @@ def _conn_record(h: dict[str, bytes], buf: bytes | memoryview) -> tuple[int, tup
     )
 
 
-def _salvage_view(view: memoryview, keep_topic: str | None, decompress: Any) -> _Salvage:
+def _salvage_view(
+    view: memoryview, keep_topic: str | None, decompress: Any
+) -> Generator[_Salvaged, None, _Salvage]:
     conns: dict[int, tuple[str, str, str]] = {}
     counts: Counter[int] = Counter()
-    msgs: list[_Salvaged] = []
     stop = ""
     pos_end = len(_ROS1_MAGIC)
 
-    def inner(buf: bytes | memoryview) -> int:
+    def inner(buf: bytes | memoryview) -> Generator[_Salvaged, None, int]:
         end = 0
         for _, h, a, b in _records(buf, 0):
             op = h.get("op", b"\x00")[0]
@@ -146,7 +162,7 @@ def _salvage_view(view: memoryview, keep_topic: str | None, decompress: Any) -> 
                 if keep_topic is not None and cid in conns and conns[cid][0] == keep_topic:
                     t = h.get("time", bytes(8))
                     sec, nsec = int.from_bytes(t[:4], "little"), int.from_bytes(t[4:8], "little")
-                    msgs.append(_Salvaged(cid, sec * 1_000_000_000 + nsec, bytes(buf[a:b])))
+                    yield _Salvaged(cid, sec * 1_000_000_000 + nsec, bytes(buf[a:b]))
             end = b
         return end
 
@@ -169,9 +185,9 @@ def _salvage_view(view: memoryview, keep_topic: str | None, decompress: Any) -> 
                 except Exception as exc:
                     stop = f"the chunk at byte {off} cannot be decompressed ({exc})"
                     break
-                inner(raw)
+                yield from inner(raw)
             elif comp == "none":
-                end = inner(view[a:])
+                end = yield from inner(view[a:])
                 stop = f"the last chunk (byte {off}) is incomplete; read up to byte {a + end}"
                 break
             else:
@@ -187,4 +203,4 @@ def _salvage_view(view: memoryview, keep_topic: str | None, decompress: Any) -> 
     else:
         if pos_end < len(view):
             stop = f"the file ends inside a record at byte {pos_end}"
-    return _Salvage(conns, counts, msgs, stop)
+    return _Salvage(conns, counts, [], stop)

@@ -32,6 +32,7 @@ __all__ = [
     "BUDGET_ENV",
     "BUDGET_FLOOR_BYTES",
     "BUDGET_FRACTION",
+    "ReadLimitError",
     "available_memory",
     "check_read_budget",
     "human_bytes",
@@ -44,6 +45,12 @@ BUDGET_ENV = "STEMMAP_MAX_READ_GB"
 BUDGET_FRACTION = 0.5
 #: The budget is never below this (1 GiB), whatever the machine reports.
 BUDGET_FLOOR_BYTES = 1 << 30
+
+
+class ReadLimitError(InputError):
+    """An input needs more memory (or, for a bag inflated to a temporary file, disk) than the
+    read limit allows: a refusal, not damage (a bag reader stops on it instead of skipping the
+    rest of a topic as damaged)."""
 
 
 def human_bytes(n: float) -> str:
@@ -144,15 +151,29 @@ def check_read_budget(nbytes: float, path: str | os.PathLike[str], what: str, de
     InputError
         Naming the file, the size, the limit, how it was chosen and how to raise it.
     """
-    budget, why = read_budget()
-    if nbytes <= budget:
+    if not over_read_budget(nbytes):
         return
+    raise ReadLimitError(f"{what} {os.fspath(path)!r}: {read_limit_text(nbytes, detail)}")
+
+
+def over_read_budget(nbytes: float) -> bool:
+    """True if ``nbytes`` exceed :func:`read_budget`. Cheap when the answer cannot be yes
+    (no ``STEMMAP_MAX_READ_GB`` and ``nbytes`` under the 1 GiB floor: no /proc read), so a
+    reader may call it once per message."""
+    if nbytes <= BUDGET_FLOOR_BYTES and not os.environ.get(BUDGET_ENV, "").strip():
+        return False
+    return nbytes > read_budget()[0]
+
+
+def read_limit_text(nbytes: float, detail: str) -> str:
+    """``detail``, the read limit and how to raise it: the body of a refusal (the caller puts
+    the file's name in front)."""
+    budget, why = read_budget()
     need_gb = math.ceil(nbytes / 1e9 * 1.1 * 10) / 10  # 10 % headroom, one decimal
-    raise InputError(
-        f"{what} {os.fspath(path)!r}: {detail}; that is more than stemmap's read limit of "
-        f"{human_bytes(budget)} ({why}). If the file is genuine and "
-        f"the machine has the memory, raise the limit: {BUDGET_ENV}={need_gb:g} (gigabytes; "
-        "0 turns it off)."
+    return (
+        f"{detail}; that is more than stemmap's read limit of {human_bytes(budget)} ({why}). "
+        f"If the file is genuine and the machine has the memory, raise the limit: "
+        f"{BUDGET_ENV}={need_gb:g} (gigabytes; 0 turns it off)."
     )
 
 

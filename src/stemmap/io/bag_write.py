@@ -31,6 +31,7 @@ def write_scans_bag(
     storage: str = "sqlite3",
     compression: str | None = None,
     chunk_bytes: int | None = None,
+    compression_mode: str = "message",
 ) -> Path:
     """Write a :class:`ScanBatch` as ``sensor_msgs/LaserScan`` messages in a ROS bag.
 
@@ -49,10 +50,14 @@ def write_scans_bag(
         ROS1 (Noetic types) or ROS2 (Humble types, rosbag2 format version 9).
     storage : {"sqlite3", "mcap"}
         ROS2 storage plugin.
-    compression : {None, "bz2", "lz4"}
-        ROS1: compress each chunk (None: uncompressed).
+    compression : {None, "bz2", "lz4", "zstd"}
+        ROS1: compress each chunk with bz2 or lz4. ROS2: zstd, as ``compression_mode`` says
+        (None: uncompressed).
     chunk_bytes : int, optional
         ROS1: start a new chunk once one holds this many bytes (None: rosbags' default).
+    compression_mode : {"message", "file", "storage"}
+        ROS2 with ``compression="zstd"``: compress each message, each storage file when it is
+        closed, or (``storage="mcap"`` only) each MCAP chunk.
 
     Returns
     -------
@@ -70,7 +75,7 @@ def write_scans_bag(
     import tempfile
 
     from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
     from rosbags.typesys import Stores, get_typestore
 
@@ -78,10 +83,19 @@ def write_scans_bag(
         raise ConfigError(f"ros must be 1 or 2, got {ros!r}.")
     if storage not in ("sqlite3", "mcap"):
         raise ConfigError(f"storage must be 'sqlite3' or 'mcap', got {storage!r}.")
-    if compression not in (None, "bz2", "lz4"):
-        raise ConfigError(f"compression must be None, 'bz2' or 'lz4', got {compression!r}.")
-    if ros == 2 and (compression is not None or chunk_bytes is not None):
-        raise ConfigError("compression and chunk_bytes apply to ROS1 bags only.")
+    if compression not in (None, "bz2", "lz4", "zstd"):
+        raise ConfigError(f"compression must be None, 'bz2', 'lz4' or 'zstd', got {compression!r}.")
+    if ros == 2 and (compression in ("bz2", "lz4") or chunk_bytes is not None):
+        raise ConfigError("bz2 / lz4 compression and chunk_bytes apply to ROS1 bags only.")
+    if ros == 1 and compression == "zstd":
+        raise ConfigError("zstd compression applies to ROS2 bags only (ROS1: bz2 or lz4).")
+    if compression_mode not in ("message", "file", "storage") or (
+        compression_mode == "storage" and storage != "mcap"
+    ):
+        raise ConfigError(
+            "compression_mode must be 'message', 'file' or (mcap storage) 'storage', got "
+            f"{compression_mode!r}."
+        )
     target = Path(path)
     if ros == 1 and target.suffix.lower() != ".bag":
         target = target.with_name(target.name + ".bag")
@@ -101,6 +115,10 @@ def write_scans_bag(
         else:
             plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
             writer = Writer2(tmp, version=9, storage_plugin=plugin)
+            if compression == "zstd":
+                writer.set_compression(
+                    CompressionMode[compression_mode.upper()], CompressionFormat.ZSTD
+                )
         with writer:
             conn = writer.add_connection(topic, LASERSCAN, typestore=ts)
             ser = ts.serialize_ros1 if ros == 1 else ts.serialize_cdr

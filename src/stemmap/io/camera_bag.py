@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import InputError
+from stemmap.io._bag import named_limits
 from stemmap.io.rosbag import open_bag
 from stemmap.odometry.visual import StereoCalibration, VisualFrame
 
@@ -99,7 +100,7 @@ def _first_info(reader: Any, topic: str) -> Any:
     conns = [c for c in reader.connections if c.topic == topic]
     if not conns:
         raise InputError(f"no topic {topic!r} in the bag (CameraInfo expected).")
-    for conn, _t, raw in reader.messages(connections=conns):
+    for conn, _t, raw in named_limits(reader.messages(connections=conns), reader.paths[0]):
         return reader.deserialize(raw, conn.msgtype)
     raise InputError(f"topic {topic!r} has no messages.")
 
@@ -125,7 +126,7 @@ class CameraBag:
             pending: dict[str, tuple[float, NDArray[np.generic]]] = {}
             dropped = 0
             last = -np.inf
-            for conn, t_ns, raw in reader.messages(connections=conns):
+            for conn, t_ns, raw in named_limits(reader.messages(connections=conns), self.path):
                 msg = reader.deserialize(raw, conn.msgtype)
                 img = decode_image(msg, f"{self.path}:{conn.topic}")
                 if conn.topic == self.depth_topic:

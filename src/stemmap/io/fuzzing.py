@@ -272,6 +272,38 @@ def _seed_ros2(p: Path, storage: str) -> None:
     shutil.rmtree(folder)
 
 
+def _ros2_zstd_folder(folder: Path, mode: str, storage: str = "sqlite3") -> Path:
+    """The scans of :func:`_seed_bag` in a ROS2 bag compressed with zstd per ``mode``; returns
+    the file a fuzz input replaces (the storage file, ``.zstd`` in file mode)."""
+    from stemmap.io.rosbag import write_scans_bag
+
+    write_scans_bag(
+        folder, _scans(), ros=2, storage=storage, compression="zstd", compression_mode=mode
+    )
+    return next(f for f in folder.iterdir() if f.name != "metadata.yaml")
+
+
+def _seed_ros2_zstd(p: Path, mode: str) -> None:
+    """The storage file of a zstd-compressed ROS2 bag (per message: the sqlite3 file; per
+    file: the zstd file; per MCAP chunk: the .mcap file, read alone)."""
+    import shutil
+
+    folder = p.with_name(p.stem + "_bag")
+    storage = "mcap" if mode == "storage" else "sqlite3"
+    shutil.copyfile(_ros2_zstd_folder(folder, mode, storage), p)
+    shutil.rmtree(folder)
+
+
+def _read_ros2_zstd(p: Path, mode: str) -> Any:
+    """A zstd-compressed ROS2 bag whose storage file is ``p``: the seed's bag folder (its
+    metadata.yaml names the compression) with ``p`` in place of its storage file."""
+    import shutil
+
+    folder = p.with_name(p.stem + "_bag")
+    shutil.copyfile(p, _ros2_zstd_folder(folder, mode))
+    return _read_scans(folder)
+
+
 def _seed_png(p: Path) -> None:
     import cv2
 
@@ -430,6 +462,19 @@ TARGETS: dict[str, FuzzTarget] = {
         FuzzTarget("ros1_bag_lz4", ".bag", lambda p: _seed_bag_compressed(p, "lz4"), _read_scans),
         FuzzTarget("ros2_db3", ".db3", lambda p: _seed_ros2(p, "sqlite3"), _read_scans),
         FuzzTarget("ros2_mcap", ".mcap", lambda p: _seed_ros2(p, "mcap"), _read_scans),
+        FuzzTarget("ros2_mcap_zstd", ".mcap", lambda p: _seed_ros2_zstd(p, "storage"), _read_scans),
+        FuzzTarget(
+            "ros2_zstd_message",
+            ".db3",
+            lambda p: _seed_ros2_zstd(p, "message"),
+            lambda p: _read_ros2_zstd(p, "message"),
+        ),
+        FuzzTarget(
+            "ros2_zstd_file",
+            ".zstd",
+            lambda p: _seed_ros2_zstd(p, "file"),
+            lambda p: _read_ros2_zstd(p, "file"),
+        ),
         FuzzTarget("calibration_json", ".json", _seed_calibration, _read_calibration),
         FuzzTarget("pairs_csv", ".csv", _seed_pairs, _read_pairs),
         FuzzTarget("image_png", ".png", _seed_png, _read_image_cli),
