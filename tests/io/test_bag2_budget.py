@@ -249,3 +249,17 @@ def test_an_unindexed_bag_is_read_one_chunk_at_a_time(tmp_path: Path) -> None:
     assert len(scan) == 250_000  # type: ignore[arg-type]
     assert peak < 15_000_000
     assert sum(1 for _ in iter_laser_scans(p)) == sum(t.n_messages for t in bag_summary(p))
+
+
+def test_rosbags_still_holds_the_names_the_bound_replaces() -> None:
+    # install_bounded_codecs does nothing where rosbags keeps its decompressors under other
+    # names; a rosbags upgrade that moves them must fail here, not silently unbound the reads.
+    from rosbags.rosbag2 import reader as r2
+    from rosbags.rosbag2 import storage_mcap
+
+    from stemmap.io._bag2_budget import _BoundedZstd, install_bounded_codecs
+
+    install_bounded_codecs()
+    table = storage_mcap.DECOMPRESSORS
+    assert isinstance(table, dict) and {"zstd", "lz4"} <= set(table)
+    assert isinstance(r2.zstd, _BoundedZstd)
