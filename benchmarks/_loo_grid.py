@@ -577,6 +577,16 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
             {"edge_hit_min": 0.3, "edge_hit_max": 0.3},
         )
     ),
+    # Dec 6 ("A mixed return beyond the end admits a 3-return trunk"): grid 94 with a candidate
+    # of 3 returns kept when the beam beyond an end is a mixed return behind it
+    # (mixed_end_min_points; averaging scanners only)
+    _setting(
+        **_GRID_85,
+        edge_hit_window=True,
+        edge_hit_min=0.25,
+        edge_hit_max=0.38,
+        mixed_end_min_points=3,
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported
