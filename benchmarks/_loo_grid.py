@@ -577,6 +577,23 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
             {"edge_hit_min": 0.3, "edge_hit_max": 0.3},
         )
     ),
+    # Dec 6 ("A mixed return beyond the end admits a 3-return trunk"): grid 94 with a candidate
+    # of 3 returns kept when the beam beyond an end is a mixed return behind it
+    # (mixed_end_min_points; averaging scanners only)
+    # and (97) with the fit weighted again by its own residual scale's median bound where that
+    # is below the 1 cm floor (residual_floor 0.5; a measurement of the floor on noise-free
+    # scans, "The floor read from the residuals")
+    *(
+        _setting(
+            **_GRID_85,
+            edge_hit_window=True,
+            edge_hit_min=0.25,
+            edge_hit_max=0.38,
+            mixed_end_min_points=3,
+            **floor,
+        )
+        for floor in ({}, {"residual_floor": 0.5})
+    ),
 )
 
 #: Settings measured outside the grid (they break the simulated precision target), reported

@@ -59,6 +59,11 @@ def check_fields(cfg: DetectorConfig) -> None:
         raise bad("max_skip", cfg.max_skip, "it must be >= 0 beams")
     if cfg.min_points < 3:
         raise bad("min_points", cfg.min_points, "a circle needs at least 3 returns")
+    m = cfg.mixed_end_min_points
+    if not (m == 0 or 3 <= m <= cfg.min_points):
+        raise bad("mixed_end_min_points", m, "it must be 0 (off) or 3 to min_points returns")
+    if not (0.0 <= cfg.residual_floor < 1.0):
+        raise bad("residual_floor", cfg.residual_floor, "it must be 0 (off) or in (0, 1)")
     if cfg.max_points is not None and cfg.max_points < cfg.min_points:
         raise bad("max_points", cfg.max_points, "it must be >= min_points")
     if cfg.radius_median is not None and not cfg.radius_median > 0:

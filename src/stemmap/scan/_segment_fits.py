@@ -379,6 +379,57 @@ def _quality(n: np.ndarray, rms: FloatArray, sigma: FloatArray, partial: np.ndar
     return out
 
 
+def residual_floor_refit(
+    cfg: DetectorConfig,
+    segs: Segments,
+    sigma: FloatArray,
+    fit: tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]],
+    sil: FloatArray | None,
+    divergence: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """``residual_floor`` (ours, issue 11, Dec 6; a measurement, off by default): the fits
+    ``fit`` (centers, radii, covs, ok) of ``segs``, weighted by ``sigma``, fitted again where
+    the upper ``residual_floor`` confidence bound of their own residual scale is below
+    ``sigma``, weighted by that bound (at least the scan's measured noise).
+
+    With ``nu = n - 3`` degrees of freedom the residual scale ``s = RMS sqrt(n / nu)`` of a
+    fit to returns of noise ``sigma_true`` has ``nu s^2 / sigma_true^2 ~ chi^2(nu)``, so
+    ``s sqrt(nu / chi^2_{1 - c}(nu))`` bounds ``sigma_true`` from above with confidence ``c``.
+    A floor above that bound (the preset's 1 cm on a noise-free scan) weighs the ranges less
+    than they deserve and lets the tangent prior decide the radius (docs/algorithms/
+    scan-detection.md, "The two FORTLS rows left against textbook Kasa"); a real outline's
+    departure from its circle shows in the residuals and keeps the bound up."""
+    from scipy.special import chdtri
+
+    centers, radii, covs, ok = fit
+    n = segs.counts.astype(np.float64)
+    nu = n - 3.0
+    with np.errstate(invalid="ignore"):
+        rms = _fit_rms(segs, centers, radii)
+        s_res = rms * np.sqrt(n / np.maximum(nu, 1.0))
+        bound = s_res * np.sqrt(nu / chdtri(np.maximum(nu, 1.0), cfg.residual_floor))
+    noise = segs.points.noise
+    measured = np.zeros(len(segs)) if noise is None else np.nan_to_num(noise[segs.scan])
+    lower = np.maximum(bound, np.maximum(measured, 1e-4))
+    redo = ok & (nu >= 1) & np.isfinite(lower) & (lower < sigma)
+    if not np.any(redo):
+        return fit
+    sub = segs.select(redo)
+    c2, r2, v2, ok2 = _fit_segments(
+        sub,
+        cfg.fit_method,
+        lower[redo],
+        silhouette=None if sil is None else sil[redo],
+        beam_divergence=divergence,
+        residuals=cfg.fit_residuals,
+        edge_window=cfg.edge_window_share(),
+    )
+    centers, radii, covs = centers.copy(), radii.copy(), covs.copy()
+    rows = np.flatnonzero(redo)[ok2]
+    centers[rows], radii[rows], covs[rows] = c2[ok2], r2[ok2], v2[ok2]
+    return centers, radii, covs, ok
+
+
 def fit_candidates(cfg: DetectorConfig, segs: Segments, grid: FloatArray, wrap: bool) -> _Fitted:
     """Circle fit of every candidate segment (sensor at the origin) with what the fit
     plausibility tests need (:func:`~stemmap.scan.plausibility.fit_reasons`;
@@ -418,6 +469,13 @@ def fit_candidates(cfg: DetectorConfig, segs: Segments, grid: FloatArray, wrap: 
         residuals=cfg.fit_residuals,
         edge_window=cfg.edge_window_share(),
     )
+    if cfg.residual_floor > 0 and cfg.fit_method == "ours" and cfg.beam_footprint_deg == 0:
+        # the fit weighted again by its own residuals' upper confidence bound, where that
+        # is below the noise it used (residual_floor_refit)
+        centers, radii, covs, ok = residual_floor_refit(
+            cfg, segs, sigma if f_sigma is None else f_sigma, (centers, radii, covs, ok),
+            sil, divergence,
+        )  # fmt: skip
     f_width = segment_widths(segs)
     sil_width = f_width
     if sil is not None:

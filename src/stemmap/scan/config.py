@@ -66,6 +66,22 @@ class DetectorConfig:
         Returns needed by a segment with an occluded or truncated end (ours): a few returns
         cut off by an occluder are as often a clump of bush stems as a trunk. The effective
         minimum is the larger of the two.
+    mixed_end_min_points : int
+        Footprint-averaging scanners (``beam_divergence_deg`` > 0, ``beam_footprint_deg`` 0)
+        only: a candidate with fewer than ``min_points`` returns but at least this many (>= 3)
+        is kept when the beam beyond one of its ends is a mixed return lying behind it
+        (:func:`~stemmap.scan._mixed_end.mixed_ends`: more than ``occlusion_margin``
+        farther than the end return, and the beam after it returned nothing or lies farther
+        still): that beam's footprint held the rest of the trunk's outline, blended with
+        what lies behind, and segmentation cut it off (ours, issue 11, Dec 6: FORTLS's
+        noise-free averaging trunks left with 3 clean returns). 0 = off. Numpy path.
+    residual_floor : float, in [0, 1)
+        "ours" fits without a first-echo footprint correction: a candidate whose own residual
+        scale bounds its noise below the ``sigma`` the fit weighted by (the upper confidence
+        bound at this level over its ``n - 3`` degrees of freedom) is fitted again weighted by
+        that bound, at least the scan's measured noise; the tests keep ``sigma``
+        (:func:`~stemmap.scan._segment_fits.residual_floor_refit`; ours, issue 11, Dec 6: the
+        1 cm floor on noise-free scans). 0 = off. Numpy path.
     min_width, max_width : float, metres
         Edge-beam chord width (Xue eq. 12); visual-lidar: <= 0.55 m.
     min_depth : float, metres
@@ -612,6 +628,8 @@ class DetectorConfig:
     split_merged: bool = False
     min_points: int = 3
     min_points_partial: int = 3
+    mixed_end_min_points: int = 0
+    residual_floor: float = 0.0
     max_points: int | None = None
     min_width: float = 0.0
     max_width: float = math.inf

@@ -35,6 +35,7 @@ from stemmap.scan._behind import trim_behind
 from stemmap.scan._centre_cov import averaging_report
 from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
+from stemmap.scan._mixed_end import least_points, mixed_end_on
 from stemmap.scan._occluded_blend import blend_ends_on, drop_occluded_blends
 from stemmap.scan._pieces import arc_candidates, split_pieces
 from stemmap.scan._refit import corner_cut_pieces
@@ -312,7 +313,7 @@ class ScanTrunkDetector:
         if blend_ends_on(cfg):
             # an averaging beam straddling an occluder's silhouette: a blend at the trunk's end
             segs = drop_occluded_blends(segs, cfg)
-        segs = segs.select(segs.counts >= cfg.min_points)
+        segs = self._select_least(segs, r, wrap)
         if cfg.point_curvature_min is not None and len(segs):
             # Zheng §3.2 criterion (2): failing returns are rejected, the cluster stays
             cur = point_curvature(segs.points.r, segs)
@@ -325,7 +326,7 @@ class ScanTrunkDetector:
                 # ours (split_merged): the far returns become segments of their own (the
                 # second trunk); visual-lidar §2.3: they are discarded
                 segs = segs.cut(keep) if cfg.split_merged else segs.drop(keep)
-            segs = segs.select(segs.counts >= cfg.min_points)
+            segs = self._select_least(segs, r, wrap)
         if cfg.split_corners and len(segs):
             segs = corner_cut_pieces(segs, cfg)[0]
         for _ in range(cfg.gap_splits):
@@ -340,8 +341,21 @@ class ScanTrunkDetector:
                 cfg.gap_ratio,
                 cfg.gap_sigmas * sigma,
             )
-            segs = segs.select(segs.counts >= cfg.min_points)
-        return (self._filter(segs) if apply_filters else segs), r, wrap
+            segs = self._select_least(segs, r, wrap)
+        return (self._filter(segs, self._least(segs, r, wrap)) if apply_filters else segs), r, wrap
+
+    def _least(self, segs: Segments, grid: FloatArray, wrap: bool) -> NDArray[np.int64] | None:
+        """The returns each candidate of ``segs`` needs (``mixed_end_min_points``:
+        :func:`~stemmap.scan._mixed_end.least_points`), None when the option does not act
+        (every candidate needs ``min_points``)."""
+        if not mixed_end_on(self.config):
+            return None
+        return least_points(self.config, segs, grid, wrap)
+
+    def _select_least(self, segs: Segments, grid: FloatArray, wrap: bool) -> Segments:
+        """``segs`` without the candidates holding fewer returns than they need."""
+        least = self._least(segs, grid, wrap)
+        return segs.select(segs.counts >= (self.config.min_points if least is None else least))
 
     def _fit_noise_on(self) -> bool:
         """Whether the circle fits weight by the measured noise (``fit_noise_floor``)."""
@@ -369,11 +383,13 @@ class ScanTrunkDetector:
             0.0 if batch else math.inf,
         )
 
-    def _filter(self, segs: Segments) -> Segments:
-        """The segment filters (:func:`~stemmap.scan.plausibility.segment_reasons`)."""
+    def _filter(self, segs: Segments, least: NDArray[np.int64] | None = None) -> Segments:
+        """The segment filters (:func:`~stemmap.scan.plausibility.segment_reasons`; ``least``:
+        the returns each candidate needs, None: ``min_points``)."""
         if len(segs) == 0:
             return segs
-        return segs.select(segment_reasons(segs, segment_features(segs), self.config) == 0)
+        codes = segment_reasons(segs, segment_features(segs), self.config, least)
+        return segs.select(codes == 0)
 
     def rejected(self, batch: ScanBatch) -> dict[str, Any]:
         """Candidates of ``batch`` the detector drops and the test that dropped each
@@ -412,8 +428,9 @@ class ScanTrunkDetector:
         corner splits (``refit_split="corners"``), no relaxed RMS tests, lobed outlines
         (``lobe_harmonics``), RMS test over the fit's degrees of freedom (``rms_dof``) or bend
         test of straightness (``straight_curvature``), no occluded-end blend trim
-        (``occluded_blend_sigmas``), no
-        ``behind_sigmas`` trim nor a ``stub_sigmas`` or ``cut_ends`` trim that acts
+        (``occluded_blend_sigmas``), no mixed-end admission (``mixed_end_min_points``) nor
+        ``residual_floor`` re-fit, no ``behind_sigmas`` trim nor a ``stub_sigmas`` or
+        ``cut_ends`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
         step split with ``step_noise_pool`` since Dec 5: :mod:`stemmap.scan._fast_step_split`)."""
@@ -435,6 +452,8 @@ class ScanTrunkDetector:
             and not cfg.rms_dof
             and not cfg.straight_curvature
             and not blend_ends_on(cfg)
+            and not mixed_end_on(cfg)
+            and cfg.residual_floor == 0.0
         )
 
     def _run(
@@ -566,7 +585,7 @@ class ScanTrunkDetector:
         every = segs  # with arc_refit (or a fate to record): every candidate, before the filters
         if (arcs or fate is not None) and len(every):
             features = segment_features(every)
-            seg_codes = segment_reasons(every, features, cfg)
+            seg_codes = segment_reasons(every, features, cfg, self._least(every, grid, wrap))
             passed = seg_codes == 0
             segs = every.select(passed)  # = self._filter(every)
         pos = np.flatnonzero(passed) if arcs and len(every) else np.arange(len(segs))

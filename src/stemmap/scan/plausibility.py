@@ -406,11 +406,19 @@ def _first_failure(codes: NDArray[np.int8], fails: NDArray[np.bool_], name: str)
     codes[(codes == 0) & fails] = _CODE[name]
 
 
-def segment_reasons(segs: Segments, f: SegmentFeatures, cfg: DetectorConfig) -> NDArray[np.int8]:
+def segment_reasons(
+    segs: Segments,
+    f: SegmentFeatures,
+    cfg: DetectorConfig,
+    least: NDArray[np.int64] | None = None,
+) -> NDArray[np.int8]:
     """Reason code per segment of the segment filters (Zheng et al. 2012 §3.2 criteria 1, 3, 4;
-    Xue et al. 2018 eq. 12 width window; ours: partial-segment minimum, straightness)."""
+    Xue et al. 2018 eq. 12 width window; ours: partial-segment minimum, straightness).
+    ``least`` (K,): the returns each segment needs in place of ``min_points``
+    (``mixed_end_min_points``, :func:`~stemmap.scan._mixed_end.least_points`)."""
     codes = np.zeros(len(segs), dtype=np.int8)
-    _first_failure(codes, f.n_points < cfg.min_points, "min_points")
+    need = cfg.min_points if least is None else least
+    _first_failure(codes, f.n_points < need, "min_points")
     _first_failure(
         codes, segs.partial & (f.n_points < cfg.min_points_partial), "min_points_partial"
     )
