@@ -5,13 +5,14 @@ Every cloud of ``cloud_real.py`` as shipped (the baseline: default preset, as
 trip, its seeds), with, per detected stem: its DBH and stated ``diameter_std``, the fixed ring
 reference it pairs with (``_cloud_refs``: diameter, spread over 15 start circles, full or not)
 and, for a transform, the baseline stem it pairs with (the benchmark's matching, through the
-rigid map back). Where the radius came from the stem's kept slices through a Theil-Sen line
-(the median about breast height, the slice holding it, or the line) the inputs of the slices'
-scatter term are recorded too (:func:`stemmap.cloud.dbhsd.scatter_dbh_variance`: the stated
-radius variance, the kept slices' radii and heights relative to the measurement height, the
-path), read from the call, not changed: the calibration of the term can then be computed for
-any value of it from one run (``cloud_dbh_sd.py``). ``sd_cm`` is the std as the run's config
-(``--set``) had it.
+rigid map back). Where the radius came from the stem's kept slices (the median about breast
+height, the slice holding it, the line, or a weighted mean) the inputs of the slices'
+variance's parts are recorded too (:func:`stemmap.cloud.dbhsd.dbh_variance`: the path's
+stated radius variance, the kept slices' radii, fit variances, weights and heights relative to
+the measurement height, the path; every stem measured through its slices, a pre-cut slice's
+sub-slices included), read from the call, not changed: the calibration of the term can then
+be computed for any value of it from one run (``cloud_dbh_sd.py``). ``sd_cm`` is the std as
+the run's config (``--set``) had it.
 
 Prints ONE JSON object. Usage: python benchmarks/cloud_dbh_sd_runs.py [--clouds a,b]
 [--transforms t1,t2] [--seed N] [--set key=value ...]
@@ -45,29 +46,30 @@ _CALLS: dict[float, dict[str, Any]] = {}
 
 
 def _recording(fn: Any) -> Any:
-    """``scatter_dbh_variance`` that also records its inputs by the variance it returns."""
+    """``dbh_variance`` that also records its inputs by the variance it returns."""
 
-    def wrapped(var_r, radii, hh, path, thickness, scatter):  # type: ignore[no-untyped-def]
-        out = fn(var_r, radii, hh, path, thickness, scatter)
+    def wrapped(var_r, radii, fit_var, hh, path, thickness, scatter, weights=None):  # type: ignore[no-untyped-def]
+        out = fn(var_r, radii, fit_var, hh, path, thickness, scatter, weights)
         _CALLS[float(out)] = {
             "var_r": float(var_r),
             "radii": [float(v) for v in radii],
+            "fit_var": [float(v) for v in fit_var],
             "hh": [float(v) for v in hh],
             "path": path,
             "thickness": float(thickness),
+            "weights": None if weights is None else [float(v) for v in weights],
         }
         return out
 
     return wrapped
 
 
-slicestem.scatter_dbh_variance = _recording(slicestem.scatter_dbh_variance)  # type: ignore[assignment]
+slicestem.dbh_variance = _recording(slicestem.dbh_variance)  # type: ignore[assignment]
 
 
 def _inputs_of(sd: float) -> dict[str, Any] | None:
-    """The recorded inputs of the stem whose stated DBH std is ``sd`` (m), or None (no
-    Theil-Sen line through its slices: a weighted mean of fewer slices, a pooled or axis
-    fit, a pre-cut slice)."""
+    """The recorded inputs of the stem whose stated DBH std is ``sd`` (m), or None (not
+    measured from its slices: a pooled or axis fit)."""
     if not np.isfinite(sd):
         return None
     for v, rec in _CALLS.items():

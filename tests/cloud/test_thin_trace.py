@@ -63,9 +63,13 @@ def test_tree_1_thin_slices_scatter_and_replace(tree_1: cr.Baseline) -> None:
     assert np.ptp(thick) < 2.5 and np.ptp(thin) > 4.0
     assert len(thin) > len(thick)  # more thin slices agree: the rule replaces
     stem = call["thin_stem"]
-    # its standard error is larger than the thick one's (Dec 5, canonical point order:
-    # 0.66 vs 0.62 cm; on the file order's RANSAC draws before, more than twice as large)
-    assert stem is not None and stem["dbh_std_cm"] > 100 * off.diameter_std[0]
+    # its standard error is about the thick one's (Dec 6, the median's variance about the
+    # slices' line: 0.57 vs 0.59 cm; Dec 5 with pi / 2 x mean / n: 0.66 vs 0.62; on the file
+    # order's RANSAC draws before, more than twice as large): the thin slices scatter by
+    # more, and the fit noise alone does not say so (docs/algorithms/cloud.md "The DBH std
+    # from its parts")
+    assert stem is not None
+    assert 0.8 < stem["dbh_std_cm"] / (100 * off.diameter_std[0]) < 1.25
     assert abs(100 * on.diameter[0] - stem["dbh_cm"]) < 0.01
     # the replaced DBH is 1.9 cm off the thick one's (3.4 cm on the file order's draws)
     assert 100 * (off.diameter[0] - on.diameter[0]) > 1.5

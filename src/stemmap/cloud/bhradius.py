@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from stemmap.cloud.dbhsd import dbh_variance
 from stemmap.cloud.slicefit import _theil_sen
 from stemmap.types import FloatArray
 
@@ -53,7 +54,9 @@ def near_median_radius(
     lean correction is :func:`~stemmap.cloud.slicestem._stem_at`'s (the Theil-Sen lines
     through all kept slices' centres: a horizontal section of a stem leaning by theta has a
     circle fit of about (1 + 1 / cos theta) / 2 of its diameter across the axis). The
-    variance is that of a median of n normal values, pi / 2 x their mean variance / n."""
+    variance is the fit noise's part of :func:`~stemmap.cloud.dbhsd.dbh_variance`: the median
+    of the near slices about the Theil-Sen line through all of them, against the slice that
+    holds the measurement height (the section term is added by the caller)."""
     near = np.abs(hh) <= thickness + 1e-9
     if int(near.sum()) < MIN_NEAR_SLICES:
         return None
@@ -61,7 +64,5 @@ def near_median_radius(
     slope_y = _theil_sen(hh, centers[:, 1])[1]
     cos_t = 1.0 / math.sqrt(1.0 + slope_x**2 + slope_y**2)
     r = float(np.median(radii[near])) * 2 * cos_t / (1 + cos_t)
-    v = var_r[near]
-    v = v[np.isfinite(v)]
-    var = math.pi / 2 * float(np.mean(v)) / v.size if v.size else math.nan
+    var = dbh_variance(math.nan, radii, var_r, hh, "median", thickness, 0.0)
     return r, var

@@ -171,12 +171,17 @@ class StemConfig:
         the line's (:mod:`~stemmap.cloud.bhradius`). ``"median"`` since Dec 6 (the section at
         breast height, as a tape measures it; docs/algorithms/cloud.md "Breast-height DBH,
         stage by stage" and "The median at breast height is the default")
-    dbh_sd_scatter : float -- k >= 0: a stem's DBH variance from the median of the slices
-        about breast height, the slice holding it or the line through the kept slices is the
-        larger of the stated one and k^2 x the kept slices' scatter about their Theil-Sen
-        line carried to that estimate (:func:`~stemmap.cloud.dbhsd.scatter_dbh_variance`);
-        0 (off): as stated by the fits. Changes ``diameter_std`` only, never a DBH. Off:
-        docs/algorithms/cloud.md "The stated DBH std of a cloud stem"
+    dbh_sd_scatter : float -- k >= 0, the weight of the section term in a stem's stated DBH
+        variance (:func:`~stemmap.cloud.dbhsd.dbh_variance`): a real stem's section differs
+        from one slice to the next by more than its fits say, and the variance is built from
+        the fit noise plus ``k^2 tau^2`` (tau^2: the kept slices' local scatter beyond their
+        fit noise; a pre-cut slice's: its sub-slices' scatter about their mean) carried
+        through the estimate against the section at the measurement height (the median of
+        the slices about it by fixed normal draws). 0 (off): the fit noise alone -- for the
+        median, through the exact median of the slices about their line (not pi / 2).
+        Changes ``diameter_std`` only, never a DBH. Off: docs/algorithms/cloud.md "The DBH
+        std from its parts" (k = 1, the model's value, brings every ring-referenced cloud's
+        median |z| toward 0.67 but held out the choice over-covers treels pine_plot)
     axis_fallback : bool -- sparse clusters that neither the per-slice path nor the pooled
         fit made a stem get one shared-axis ring-stack fit with a taper prior and a gate on
         its DBH standard error (:func:`~stemmap.cloud.axisfit._axis_stems`). Off: on the real

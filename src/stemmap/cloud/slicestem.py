@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from stemmap.cloud.band import _Band
 from stemmap.cloud.bhradius import near_median_radius
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.dbhsd import scatter_dbh_variance
+from stemmap.cloud.dbhsd import dbh_variance
 from stemmap.cloud.result import RULE_BH
 from stemmap.cloud.slicefit import (
     _fit_segments,
@@ -701,14 +701,23 @@ def _slice_stem(
         )
         if near is not None:
             r_bh, var_r, path = near[0], near[1], "median"
-    if math.isfinite(taper):  # the slices' scatter term (cfg.dbh_sd_scatter; 0: unchanged)
-        hh = centers_h[m] - h_meas
-        if path != "median":
-            on = at_slice and bool(np.any(np.abs(hh) <= cfg.slice_thickness / 2 + 1e-9))
-            path = "slice" if on else "line"
-        var_r = scatter_dbh_variance(
-            var_r, fits.radii[c, m], hh, path, cfg.slice_thickness, cfg.dbh_sd_scatter
-        )
+    # the variance from its parts: fit noise, the section's change (cfg.dbh_sd_scatter)
+    hh = centers_h[m] - h_meas
+    if not math.isfinite(taper):
+        path = "mean"
+    elif path != "median":
+        on = at_slice and bool(np.any(np.abs(hh) <= cfg.slice_thickness / 2 + 1e-9))
+        path = "slice" if on else "line"
+    var_r = dbh_variance(
+        var_r,
+        fits.radii[c, m],
+        fits.cov[c, m, 2, 2],
+        hh,
+        path,
+        cfg.slice_thickness,
+        cfg.dbh_sd_scatter,
+        fits.weights[c, m],
+    )
     frac = float(m.sum()) / max(int(fits.present[c]), 1)
     arc = float(np.mean(fits.arcs[c, m]))
     rr = float(np.mean(fits.rms[c, m]))
