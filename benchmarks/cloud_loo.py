@@ -29,9 +29,9 @@ stack over 0.5-3.0 m; pine_plot at 20 / 10 %, docs "Sparse plots: one ring stack
 0.5-3.0 m", default off) and ``dbh_from``
 (Dec 6: the radius at breast height from the line, the median of the slices about it or the
 slice holding it; treels pine_plot's +0.39 cm bias, docs "Breast-height DBH, stage by
-stage"), and ``density_slice_points`` (Dec 6: a plot's guided refits held to the count
-the measured spacing gives their slices; pine_plot at 20 / 10 %, docs "Thinned plots: guided
-refits held to the density's count", default off). Here
+stage"), and ``density_slice_points`` (Dec 6: slice-fit inlier counts from the measured
+spacing; pine_plot and archi Tree_1 at 20 / 10 %, docs "Thinned plots and trees: slice counts
+from the measured spacing", on since Dec 6). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;

@@ -79,8 +79,9 @@ def test_a_thinned_side_holds_the_density_share_of_the_design_count() -> None:
     assert (n_band >= need).mean() > (n_band >= cfg.min_slice_points).mean()
 
 
-def test_off_by_default() -> None:
-    assert StemConfig().density_slice_points is False
+def test_on_by_default() -> None:
+    # chosen in every fold of the cloud LOO (docs/algorithms/cloud.md)
+    assert StemConfig().density_slice_points is True
 
 
 def _matched(det_xy: np.ndarray, base: object, det: object) -> dict[int, float]:
@@ -131,7 +132,7 @@ def test_archi_tree_1_at_10_percent_is_found(datasets_dir: Path) -> None:
     assert len(shipped) == 1
     prep = TRANSFORMS["subsample_10"](Context(xyz, None, 4))
     assert prep is not None
-    off = detect_stems(prep.xyz, StemConfig())
+    off = detect_stems(prep.xyz, StemConfig(density_slice_points=False))
     on = detect_stems(prep.xyz, StemConfig(density_slice_points=True))
     assert len(off) == 0
     assert len(on) == 1
