@@ -29,7 +29,9 @@ stack over 0.5-3.0 m; pine_plot at 20 / 10 %, docs "Sparse plots: one ring stack
 0.5-3.0 m", default off) and ``dbh_from``
 (Dec 6: the radius at breast height from the line, the median of the slices about it or the
 slice holding it; treels pine_plot's +0.39 cm bias, docs "Breast-height DBH, stage by
-stage"). Here
+stage"), and ``density_slice_points`` (Dec 6: slice-fit inlier counts from the measured
+spacing; pine_plot and archi Tree_1 at 20 / 10 %, docs "Thinned plots and trees: slice counts
+from the measured spacing", on since Dec 6). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -153,6 +155,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("line", {"dbh_from": "line"}),
         ("median", {"dbh_from": "median"}),
         ("slice", {"dbh_from": "slice"}),
+    ),
+    "density_slice_points": (
+        ("off", {"density_slice_points": False}),
+        ("on", {"density_slice_points": True}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

@@ -95,6 +95,7 @@ def test_each_option_lists_its_current_default() -> None:
         "ladder_found_rms": "on",
         "sparse_tall_fit": "off",
         "dbh_from": "median",
+        "density_slice_points": "on",
     }
     # every value is a distinct config; the off values of options that are on by default
     # really switch something off (axis_fallback is off by default: its off is the default;

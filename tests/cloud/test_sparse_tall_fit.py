@@ -110,7 +110,10 @@ def test_pine_plot_at_10_percent(datasets_dir: Path) -> None:
     with tempfile.TemporaryDirectory() as td:
         for _, _, f in cr.transformed_files(bl, ["subsample_10"], Path(td), 1):
             for on in (False, True):
-                det = detect_stems_file(f, StemConfig(sparse_tall_fit=on))
+                # against the pipeline before density_slice_points (on since Dec 6)
+                det = detect_stems_file(
+                    f, StemConfig(sparse_tall_fit=on, density_slice_points=False)
+                )
                 pairs = cr._match(bl.det.xy, bl.det.diameter, det.xy)
                 got[on] = {i: float(det.diameter[j]) for i, j in pairs}
                 assert len(got[on]) == len(det)  # no extra stem

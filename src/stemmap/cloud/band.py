@@ -76,6 +76,30 @@ def _adapt_slices(cfg: StemConfig, spacing: float) -> StemConfig:
     return replace(cfg, slice_centers=centers, slice_thickness=th)
 
 
+#: the fewest inliers of a guided refit held to the density's count (three circle parameters
+#: and two degrees of freedom for the residual; slicestem.MIN_ANNULUS_POINTS)
+MIN_DENSITY_POINTS = 5
+
+
+def density_slice_points(cfg: StemConfig, thickness: float, spacing: float) -> int:
+    """Inliers a slice ``thickness`` thick can be asked to hold on a stem's side in a cloud
+    of measured ``spacing`` (StemConfig.density_slice_points).
+
+    :func:`_adapt_slices` makes a slice ``cfg.slices_per_spacing`` spacings thick so that a
+    stem's side in it holds the ``cfg.min_slice_points`` returns a circle fit needs among the
+    clutter. A slice thinner than that -- the default 0.2 m slices of a thickened band, or a
+    band held at three slices where the spacing asks for more than 0.4 m -- holds about
+    thickness / (``slices_per_spacing`` x spacing) of that count on the same stem:
+    ``ceil(min_slice_points x thickness / (slices_per_spacing x spacing))``, at least
+    :data:`MIN_DENSITY_POINTS`, never above ``min_slice_points`` (a dense cloud keeps its
+    count)."""
+    design = cfg.slices_per_spacing * spacing
+    if not (design > thickness and math.isfinite(design)):
+        return cfg.min_slice_points
+    scaled = math.ceil(cfg.min_slice_points * thickness / design - 1e-9)
+    return min(cfg.min_slice_points, max(MIN_DENSITY_POINTS, scaled))
+
+
 def _slice_of(h: FloatArray, centers_h: FloatArray, thickness: float) -> NDArray[np.int64]:
     """Slice of each point: the index of the nearest slice centre within half a
     ``thickness`` of its height ``h``, -1 for a point between or outside the slices."""

@@ -138,6 +138,19 @@ class StemConfig:
         same stem (:func:`~stemmap.cloud.slicestem.thin_slice_points`). The thin re-measure
         of a stem already found keeps ``min_slice_points``. Off: docs/algorithms/cloud.md
         "Sparse plots: thin-slice counts from the density"
+    density_slice_points : bool -- slice-fit inlier counts follow the cloud's measured
+        spacing (:func:`~stemmap.cloud.band.density_slice_points`): ``slices_per_spacing``
+        spacings is the thickness at which a slice holds ``min_slice_points`` returns on a
+        stem's side (:func:`~stemmap.cloud.band._adapt_slices`); a slice thinner than that
+        holds thickness / that share, and is asked for ``min_slice_points`` x that share (at
+        least 5, never more than ``min_slice_points``). It applies to the band's slices when
+        the band is held at three slices thinner than the design (spacing > 100 mm: 7 at
+        128 mm) -- their fits, guided refits and tighter refits; the pooled cylinder keeps the
+        dense count and the clusters it took before -- and, in a plot, to the thin ladder's
+        guided refits (0.2 m slices: 5 at 93 mm, as ``thin_refit_points``). The thin
+        re-measure of a found stem keeps ``min_slice_points``. On since Dec 6 (chosen in every
+        fold of the cloud LOO, held out 238 vs 236 cells): docs/algorithms/cloud.md "Thinned
+        plots and trees: slice counts from the measured spacing"
     consensus_floor : bool -- in a plot (noise floor pooled over its stems), the radius
         consensus of a stem's slices weighs each slice fit by inliers / max(RMS, noise
         floor)^2 instead of inliers / RMS^2: a fit smoother than the cloud's floor (a few
@@ -241,6 +254,7 @@ class StemConfig:
     continues_above: bool = True
     thick_dbh_slice: bool = True
     thin_refit_points: bool = False
+    density_slice_points: bool = True
     consensus_floor: bool = False
     consensus_radius_se: bool = False
     guided_taper: bool = False

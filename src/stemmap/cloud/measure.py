@@ -35,6 +35,7 @@ from stemmap.cloud.band import (
     _slice_of,
     _sliced_points,
     _vertical_filter,
+    density_slice_points,
 )
 from stemmap.cloud.canonical import canonical_band
 from stemmap.cloud.config import StemConfig
@@ -389,6 +390,12 @@ def _stems_from_band(
     cfg_thin = cfg
     if not slice_cloud and cfg.slices_per_spacing > 0:
         cfg = _adapt_slices(cfg, sp2d)
+    # the dense count: the pooled fit's switching rule and its own counts keep it
+    cfg_dense = cfg
+    if cfg.density_slice_points and not slice_cloud:
+        # slices thinner than the density's design (a band held at three slices) hold fewer
+        # returns on a stem's side: their fits are held to that count (band.density_slice_points)
+        cfg = replace(cfg, min_slice_points=density_slice_points(cfg, cfg.slice_thickness, sp2d))
     centers_h = np.asarray(cfg.slice_centers, dtype=np.float64)
     ns = centers_h.shape[0]
     # --- slice of each point, vertical-consistency filter
@@ -492,6 +499,12 @@ def _stems_from_band(
         if thickened and cfg.thin_refit_points and not ctx.own_floor
         else ctx0
     )
+    if cfg.density_slice_points and thickened and not ctx.own_floor:
+        # the thin ladder's guided refits in a plot: the count the measured density gives a
+        # thin slice (finding only: the thin re-measure of a found stem keeps ctx0's count)
+        ctx0_find = replace(
+            ctx0, annulus_points=density_slice_points(cfg_thin, cfg_thin.slice_thickness, sp2d)
+        )
 
     def thin_again(
         f: _SliceFits, c: int, stem: tuple[tuple[float, ...], str]
@@ -626,13 +639,16 @@ def _stems_from_band(
         if tight:
             log.info("%d stem(s) from slices refitted with a tighter RANSAC tolerance", len(tight))
     if cfg.pooled_fallback and not slice_cloud:
+        # too few points per slice for the dense count (the per-slice path may have judged
+        # such a cluster with StemConfig.density_slice_points; the pooled fit still gets it)
+        present = (fits.n_points.reshape(kc, ns) >= cfg_dense.min_slice_points).sum(axis=1)
         pooled = _pooled_stems(
             pts,
             pts_b.h[use],
             cl_inv.astype(np.int64),
             sl[use],
-            ~accepted & (per.present < cfg.min_slices),  # too few points per slice
-            cfg,
+            ~accepted & (present < cfg.min_slices),
+            cfg_dense,
             centers_h,
             noise_floor,
         )
@@ -648,7 +664,7 @@ def _stems_from_band(
             cl_inv.astype(np.int64),
             sl[use],
             ~accepted & (per.present >= cfg.min_slices),
-            cfg,
+            cfg_dense,
             centers_h,
             noise_floor,
             band.reach if cfg.axis_reach else None,
@@ -665,8 +681,8 @@ def _stems_from_band(
             pts_b.h[use],
             cl_inv.astype(np.int64),
             sl[use],
-            _sparse_todo(cl_inv.astype(np.int64), sl[use], pts, kc, ns, cfg, found),
-            cfg,
+            _sparse_todo(cl_inv.astype(np.int64), sl[use], pts, kc, ns, cfg_dense, found),
+            cfg_dense,
             ns,
             noise_floor,
             band.xy,
