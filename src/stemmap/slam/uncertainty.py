@@ -47,6 +47,13 @@ covariance but no diameter spread, FastSLAM per-particle landmark EKFs, Forestri
    Park replay).
 
 Calibration on the simulator: benchmarks/uncertainty_calibration.py (docs/outputs.md).
+
+**Fusing one pass's detections of a trunk into a position** (:func:`fused_positions`, a
+function for callers that fuse detections by their own covariance; no back-end's output uses
+it): the information-weighted mean, with a covariance that treats the detections' centre
+errors as correlated within the pass (:data:`CENTRE_RHO`) -- the same design effect as the
+diameter's (:func:`correlated_mean_covariance`, of which :func:`fused_diameters`' standard
+error is the 1 x 1 case).
 """
 
 from __future__ import annotations
