@@ -63,14 +63,42 @@ def centre_covs(
     kk = np.where(np.isfinite(k), k, 1.0)
     out[:, :2, :] *= kk[:, None, None]
     out[:, :, :2] *= kk[:, None, None]
-    u, w, _ = line_of_sight(centers)
+    u, _, _ = line_of_sight(centers)
+    out[:, :2, :2] += outline_covs(centers, outline, along, across)
     q = 0.25 * outline * outline
     gu = along * u
-    out[:, :2, :2] += q * gu[:, :, None] * gu[:, None, :] + across * across * (
-        w[:, :, None] * w[:, None, :]
-    )
     out[:, :2, 2] += q * gu
     out[:, 2, :2] += q * gu
+    return out
+
+
+def outline_centre_covs(centers: FloatArray, config: Any) -> FloatArray:
+    """The outline's part (K, 2, 2) of the centre covariance the detections of ``config`` (a
+    :class:`~stemmap.scan.config.DetectorConfig`) at ``centers`` (K, 2, sensor frame) report:
+    :func:`outline_covs` with its ``dbh_sd_outline``, ``centre_sd_along`` and
+    ``centre_sd_across`` for a first-echo ``ours`` fit (``beam_footprint_deg`` > 0), zeros
+    otherwise (the options apply to those fits only). ``shared`` of
+    :func:`stemmap.slam.uncertainty.fused_positions` when only the outline's part is taken as
+    shared between one trunk's detections (benchmarks/centre_pass_fusion.py ``--shared
+    both``; not the default)."""
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    on = config.beam_footprint_deg > 0 and config.fit_method == "ours"
+    if not (on and (config.centre_sd_along > 0 or config.centre_sd_across > 0)):
+        return np.zeros((c.shape[0], 2, 2))
+    return outline_covs(c, config.dbh_sd_outline, config.centre_sd_along, config.centre_sd_across)
+
+
+def outline_covs(centers: FloatArray, outline: float, along: float, across: float) -> FloatArray:
+    """The outline's part (K, 2, 2) of a first-echo detection's reported centre covariance
+    (:func:`centre_covs`): ``(g outline / 2)^2 u u^T + across^2 w w^T`` with ``u`` the unit
+    vector from the sensor to ``centers`` (K, 2, sensor frame), ``w`` perpendicular to it and
+    ``g`` = ``along``. What the fit's covariance at the noise present does not hold."""
+    u, w, _ = line_of_sight(np.asarray(centers, dtype=np.float64).reshape(-1, 2))
+    q = 0.25 * outline * outline
+    gu = along * u
+    out: FloatArray = q * gu[:, :, None] * gu[:, None, :] + across * across * (
+        w[:, :, None] * w[:, None, :]
+    )
     return out
 
 
