@@ -20,6 +20,7 @@ import sqlite3
 import struct
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -53,19 +54,21 @@ def zstd_rle(parts: Iterable[bytes | int], content_size: int | None = None) -> b
     return bytes(out)
 
 
-def laserscan_cdr_parts(beams: int, stamp_s: int = 1) -> tuple[bytes, bytes]:
-    """(bytes before the ranges, bytes after them) of a CDR ``sensor_msgs/msg/LaserScan``
-    whose ``beams`` ranges are zero bytes in between."""
-    from rosbags.typesys import Stores, get_typestore
-
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
+def laserscan_message(types: Any, beams: int, ranges: np.ndarray, stamp_s: int = 1) -> Any:
+    """A full-circle ``sensor_msgs/msg/LaserScan`` of ``beams`` beams holding ``ranges`` (any
+    length: the hostile inputs put a marker or zeros there), stamped ``stamp_s``, built with
+    the typestore ``types`` (ROS 1 or ROS 2: ROS 1's header also takes ``seq``)."""
     inc = 2 * math.pi / max(beams, 1)
-    marker = np.array([1.2345], np.float32)
-    msg = T["sensor_msgs/msg/LaserScan"](
-        header=T["std_msgs/msg/Header"](
-            stamp=T["builtin_interfaces/msg/Time"](sec=stamp_s, nanosec=0), frame_id="laser"
-        ),
+    stamp = types["builtin_interfaces/msg/Time"](sec=stamp_s, nanosec=0)
+    header_type = types["std_msgs/msg/Header"]
+    ros1 = "seq" in getattr(header_type, "__dataclass_fields__", {})
+    header = (
+        header_type(seq=0, stamp=stamp, frame_id="laser")
+        if ros1
+        else header_type(stamp=stamp, frame_id="laser")
+    )
+    return types["sensor_msgs/msg/LaserScan"](
+        header=header,
         angle_min=-math.pi,
         angle_max=-math.pi + inc * (beams - 1),
         angle_increment=inc,
@@ -73,9 +76,20 @@ def laserscan_cdr_parts(beams: int, stamp_s: int = 1) -> tuple[bytes, bytes]:
         scan_time=0.0,
         range_min=0.1,
         range_max=30.0,
-        ranges=marker,
+        ranges=ranges,
         intensities=np.zeros(0, np.float32),
     )
+
+
+def laserscan_cdr_parts(beams: int, stamp_s: int = 1) -> tuple[bytes, bytes]:
+    """(bytes before the ranges, bytes after them) of a CDR ``sensor_msgs/msg/LaserScan``
+    whose ``beams`` ranges are zero bytes in between."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    marker = np.array([1.2345], np.float32)
+    msg = laserscan_message(T, beams, marker, stamp_s)
     ser = bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/LaserScan"))
     at = ser.find(marker.tobytes())
     return ser[: at - 4] + struct.pack("<I", beams), ser[at + 4 :]
@@ -269,21 +283,7 @@ def ros1_unindexed_bag(
 
     ts = get_typestore(Stores.ROS1_NOETIC)
     T = ts.types
-    inc = 2 * math.pi / beams
-    msg = T["sensor_msgs/msg/LaserScan"](
-        header=T["std_msgs/msg/Header"](
-            seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="laser"
-        ),
-        angle_min=-math.pi,
-        angle_max=-math.pi + inc * (beams - 1),
-        angle_increment=inc,
-        time_increment=0.0,
-        scan_time=0.0,
-        range_min=0.1,
-        range_max=30.0,
-        ranges=np.zeros(beams, np.float32),
-        intensities=np.zeros(0, np.float32),
-    )
+    msg = laserscan_message(T, beams, np.zeros(beams, np.float32))
     ser = ts.serialize_ros1(msg, "sensor_msgs/msg/LaserScan")
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)

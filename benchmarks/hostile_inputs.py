@@ -236,7 +236,6 @@ def ros1_compressed_bag(
 
     ts = get_typestore(Stores.ROS1_NOETIC)
     T = ts.types
-    inc = 2 * math.pi / beams
     writer = Writer(path)
     writer.set_compression(
         Writer.CompressionFormat.LZ4 if compression == "lz4" else Writer.CompressionFormat.BZ2
@@ -246,20 +245,7 @@ def ros1_compressed_bag(
         writer.compressor = lambda data: data  # the sink has compressed it already
         writer.chunks[-1].data = _CompressingSink(compression)  # type: ignore[assignment]
         conn = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
-        msg = T["sensor_msgs/msg/LaserScan"](
-            header=T["std_msgs/msg/Header"](
-                seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="laser"
-            ),
-            angle_min=-math.pi,
-            angle_max=-math.pi + inc * (beams - 1),
-            angle_increment=inc,
-            time_increment=0.0,
-            scan_time=0.0,
-            range_min=0.1,
-            range_max=30.0,
-            ranges=np.full(beams, range_m, np.float32),
-            intensities=np.zeros(0, np.float32),
-        )
+        msg = hb.laserscan_message(T, beams, np.full(beams, range_m, np.float32))
         ser = ts.serialize_ros1(msg, "sensor_msgs/msg/LaserScan")
         for k in range(n_scans):  # the same message at 1 s steps (its stamp says 1 s)
             writer.write(conn, (1 + k) * 1_000_000_000, ser)
