@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from stemmap.errors import InputError
-from stemmap.io._bag_budget import CHUNK_READ_FACTOR, ChunkSize
+from stemmap.io._bag_budget import CHUNK_READ_FACTOR, ChunkSize, check_largest_chunk
 from stemmap.io._budget import (
     BUDGET_ENV,
     ReadLimitError,
@@ -368,21 +368,7 @@ def check_mcap_chunks(path: Path) -> list[ChunkSize]:
     ReadLimitError
         Naming the file, the chunk, its sizes, the limit and how to raise it.
     """
-    table = mcap_chunks(path)
-    if not table:
-        return table
-    big = max(table, key=lambda c: c.stored + CHUNK_READ_FACTOR * c.size)
-    need = big.stored + CHUNK_READ_FACTOR * big.size
-    kind = "uncompressed" if big.compression == "none" else f"{big.compression}-compressed"
-    check_read_budget(
-        need,
-        path,
-        "MCAP file",
-        f"its {kind} chunk at byte {big.offset:,} holds {human_bytes(big.size)} of messages "
-        f"({human_bytes(big.stored)} in the file), ~{human_bytes(need)} to read (a chunk is "
-        "decompressed whole)",
-    )
-    return table
+    return check_largest_chunk(mcap_chunks(path), path, "MCAP file")
 
 
 def _zstd_announced(path: Path) -> int | None:

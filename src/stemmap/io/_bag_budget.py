@@ -83,6 +83,14 @@ def check_ros1_chunks(path: Path, chunks: list[ChunkSize] | None = None) -> list
         Naming the bag, the chunk, its sizes, the limit and how to raise it.
     """
     table = ros1_chunks(path) if chunks is None else chunks
+    return check_largest_chunk(table, path, "ROS bag")
+
+
+def check_largest_chunk(table: list[ChunkSize], path: Path, what: str) -> list[ChunkSize]:
+    """Refuse ``path`` (a ``what``: "ROS bag", "MCAP file") when the largest chunk of its
+    ``table`` would take more than the read budget to read (its stored bytes +
+    ``CHUNK_READ_FACTOR`` x its announced size: a chunk is decompressed whole). Returns
+    ``table``."""
     if not table:
         return table
     big = max(table, key=lambda c: c.stored + CHUNK_READ_FACTOR * c.size)
@@ -91,7 +99,7 @@ def check_ros1_chunks(path: Path, chunks: list[ChunkSize] | None = None) -> list
     check_read_budget(
         need,
         path,
-        "ROS bag",
+        what,
         f"its {kind} chunk at byte {big.offset:,} holds {human_bytes(big.size)} of messages "
         f"({human_bytes(big.stored)} in the file), ~{human_bytes(need)} to read (a chunk is "
         "decompressed whole)",
