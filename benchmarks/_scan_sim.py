@@ -353,6 +353,29 @@ def edge_status(ranges: np.ndarray, beams: np.ndarray, dist: float, dbh: float) 
     return out[0], out[1]
 
 
+def scan_truth(
+    run: Any, k: int, *, min_returns: int, max_range: float, min_dbh: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The trees of ``run`` in scan ``k``'s sensor frame (T, 2), their range (T,) and which of
+    them the scoring counts (``detectable_trees``: at least ``min_returns`` of their own
+    returns, within ``max_range``, at least ``min_dbh`` thick)."""
+    pose = run.true_poses.poses[k]
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d = run.stand.trees_xy - pose[:2]
+    local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
+    rng = np.hypot(local[:, 0], local[:, 1])
+    elig = detectable_trees(
+        run.hit_ids[k],
+        run.stand.trees_xy.shape[0],
+        min_returns=int(min_returns),
+        truth_range=rng,
+        max_range=float(max_range),
+        diameters=run.stand.diameters,
+        min_diameter=float(min_dbh),
+    )
+    return local, rng, elig
+
+
 def tree_errors(obs: StemObservations, run: Any) -> dict[str, np.ndarray]:
     """Every matched (eligible tree, detection) pair of :func:`score` with the tree it is:
     scan, tree index, sensor range (m), true DBH (m), DBH error (m, detected - true), returns
@@ -365,26 +388,20 @@ def tree_errors(obs: StemObservations, run: Any) -> dict[str, np.ndarray]:
     keep = np.hypot(obs.centers[:, 0], obs.centers[:, 1]) <= sc["detections_scored_within_m"]
     obs = obs.select(keep)
     poses = run.true_poses.poses
-    txy, tdiam = run.stand.trees_xy, run.stand.diameters
+    tdiam = run.stand.diameters
     cols: dict[str, list[Any]] = {
         k: [] for k in ("scan", "tree", "range", "dbh", "error", "returns", "mixed", "whole")
     }
     for k in range(poses.shape[0]):
         sel = obs.index == k
-        c, s = math.cos(poses[k, 2]), math.sin(poses[k, 2])
-        d = txy - poses[k, :2]
-        local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
-        rng_k = np.hypot(local[:, 0], local[:, 1])
-        hit = run.hit_ids[k]
-        elig = detectable_trees(
-            hit,
-            txy.shape[0],
+        local, rng_k, elig = scan_truth(
+            run,
+            k,
             min_returns=sc["min_returns"],
-            truth_range=rng_k,
             max_range=sc["max_range_m"],
-            diameters=tdiam,
-            min_diameter=sc["min_dbh_m"],
+            min_dbh=sc["min_dbh_m"],
         )
+        hit = run.hit_ids[k]
         m = match_points(obs.centers[sel], local, sc["gate_m"])
         diam = obs.diameters[sel]
         for i, j in m.pairs:

@@ -339,8 +339,7 @@ def sim_rows(seed: int, overrides: dict[str, Any]) -> list[dict]:
     :func:`_scan_sim.tree_errors`: its gate, returns, range and diameter) with the centre
     error in the sensor frame and the reported covariance of the ``stemmap`` preset with
     ``overrides``."""
-    from _scan_sim import SCENARIO, _runs
-    from stemmap.eval.detection import detectable_trees
+    from _scan_sim import SCENARIO, _runs, scan_truth
     from stemmap.eval.matching import match_points
 
     sc = SCENARIO["scoring"]
@@ -348,22 +347,15 @@ def sim_rows(seed: int, overrides: dict[str, Any]) -> list[dict]:
     rows: list[dict] = []
     for drive, run in zip(("benchmark", "demo"), _runs(int(seed)), strict=True):
         obs = det.detect_batch(run.scans)
-        poses = run.true_poses.poses
-        txy, tdiam = run.stand.trees_xy, run.stand.diameters
-        for k in range(poses.shape[0]):
+        tdiam = run.stand.diameters
+        for k in range(run.true_poses.poses.shape[0]):
             sel = np.flatnonzero(obs.index == k)
-            c, s_ = math.cos(poses[k, 2]), math.sin(poses[k, 2])
-            d = txy - poses[k, :2]
-            local = np.column_stack((c * d[:, 0] + s_ * d[:, 1], -s_ * d[:, 0] + c * d[:, 1]))
-            rng_k = np.hypot(local[:, 0], local[:, 1])
-            elig = detectable_trees(
-                run.hit_ids[k],
-                txy.shape[0],
+            local, rng_k, elig = scan_truth(
+                run,
+                k,
                 min_returns=sc["min_returns"],
-                truth_range=rng_k,
                 max_range=sc["max_range_m"],
-                diameters=tdiam,
-                min_diameter=sc["min_dbh_m"],
+                min_dbh=sc["min_dbh_m"],
             )
             m = match_points(obs.centers[sel], local, sc["gate_m"])
             for i, j in m.pairs:

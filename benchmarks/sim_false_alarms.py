@@ -54,9 +54,8 @@ from typing import Any
 import numpy as np
 
 from _loo_grid import LOO_GRID
-from _scan_sim import SCENARIO, _runs
+from _scan_sim import SCENARIO, _runs, scan_truth
 from stemmap.cli._demo import DEMO_SCENARIO
-from stemmap.eval.detection import detectable_trees
 from stemmap.eval.matching import match_points
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -133,19 +132,8 @@ def _frame(
     (``ta_diameter_off_10cm``)."""
     pose = run.true_poses.poses[k]
     cth, sth = math.cos(pose[2]), math.sin(pose[2])
-    rel = run.stand.trees_xy - pose[:2]
-    t_local = np.column_stack(
-        (cth * rel[:, 0] + sth * rel[:, 1], -sth * rel[:, 0] + cth * rel[:, 1])
-    )
-    t_range = np.hypot(*t_local.T)
-    elig = detectable_trees(
-        run.hit_ids[k],
-        run.stand.n_trees,
-        min_returns=int(sc["min_returns"]),
-        truth_range=t_range,
-        max_range=float(sc["max_range"]),
-        diameters=run.stand.diameters,
-        min_diameter=float(sc["min_dbh"]),
+    t_local, _, elig = scan_truth(
+        run, k, min_returns=sc["min_returns"], max_range=sc["max_range"], min_dbh=sc["min_dbh"]
     )
     m = match_points(obs.centers[sel], t_local, float(sc["gate"]))
     matched_tree = {int(sel[d]): int(t) for d, t in m.pairs}
