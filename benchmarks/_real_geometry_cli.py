@@ -149,9 +149,10 @@ def build_parser(description: str, epilog: str | None = None) -> argparse.Argume
     ap.add_argument(
         "--hit-fraction",
         type=float,
-        default=0.0,
+        default=ReturnRule().min_hit_fraction,
         help="averaging scanner's return threshold: share of the footprint that must hit"
-        " (default 0: any sub-ray, every round's benchmark; 0.5: half the footprint)",
+        " (default 0.3: the real SICK LMS200's, measured on Victoria Park, and the simulator's;"
+        " 0: any sub-ray, every round's benchmark before Dec 6; 0.5: half the footprint)",
     )
     ap.add_argument(
         "--loo-rules",

@@ -187,10 +187,12 @@ class ReturnRule:
     return threshold"): at least ``min_hit_fraction`` of its 0.25-degree footprint, sampled by
     ``sub_rays`` sub-rays of a ``profile`` beam, must hit (see
     :func:`stemmap.eval.real_slices.virtual_scans`; the range model is the simulator's,
-    :mod:`stemmap.sim.footprint`). The default is every round's benchmark threshold, any
-    sub-ray, with 25 sub-rays (5 before Dec 5, "Mixed pixels: one footprint model")."""
+    :mod:`stemmap.sim.footprint`). The default is the real SICK LMS200's measured threshold,
+    0.3 of the footprint, the simulator's ``sick_lms`` preset's too (any sub-ray before Dec 6,
+    "One return threshold"), with 25 sub-rays (5 before Dec 5, "Mixed pixels: one footprint
+    model")."""
 
-    min_hit_fraction: float = 0.0
+    min_hit_fraction: float = 0.3
     profile: str = "uniform"
     sub_rays: int = 25
 

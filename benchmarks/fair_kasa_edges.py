@@ -3,7 +3,8 @@ where textbook Kasa measures more trunk views within 3 cm than the ``stemmap`` p
 (``kasa_count.py``'s fair count), and the edge model traced on a perfect circle.
 
 ``views`` (default): the FORTLS slice (synthetic perfect circles) under the benchmark's
-averaging scanner (any sub-ray of 25, 0.25-degree footprint, 1/r^2-weighted range), the vantage
+averaging scanner (``ReturnRule()``: 0.3 of 25 sub-rays since Dec 6, any sub-ray before;
+0.25-degree footprint, 1/r^2-weighted range), the vantage
 points, seeds and noise draws of ``real_geometry.py --loo --vantage 20``
 (:func:`_real_scanning.scene_batches`), every visible view (>= 4 own returns, <= 15 m, 10-100
 cm, as :mod:`kasa_views` counts them) with its range, diameter, own returns, the DBH error of

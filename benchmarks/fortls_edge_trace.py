@@ -148,7 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vantage", type=int, default=20)
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument(
-        "--hit-fraction", type=float, default=0.0, help="the benchmark's return threshold"
+        "--hit-fraction",
+        type=float,
+        default=ReturnRule().min_hit_fraction,
+        help="the benchmark's return threshold (default: ReturnRule's, 0.3 since Dec 6)",
     )
     args = ap.parse_args(argv)
     if not args.set:

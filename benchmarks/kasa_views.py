@@ -4,7 +4,8 @@
 Same slices, vantage points, seeds, scanner configurations (:data:`FULL_SCANNERS`) and noise
 draws as ``benchmarks/real_geometry.py --loo --vantage 20`` (seed 11 + the dataset's index in
 :data:`stemmap.eval.real_slices.SLICES`; vantage points first, then one noise draw per
-configuration in order; the averaging scanner's return rule any sub-ray of 25). For every
+configuration in order; the averaging scanner's return rule ``ReturnRule()``: 0.3 of 25
+sub-rays since Dec 6, any sub-ray before). For every
 visible trunk view (>= 4 own returns, <= 15 m, 10-100 cm, inside both detectors' gates),
 textbook Kasa (:data:`_real_scanning.TEXTBOOK`) and the preset (``--grid`` of
 :data:`_loo_grid.LOO_GRID`, default: the preset itself; ``--set`` overrides) are

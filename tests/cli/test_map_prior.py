@@ -194,8 +194,13 @@ def test_prior_map_continues_the_saved_graph(sim_log: Path) -> None:
     assert res.exit_code != 0
     err = [ln for ln in res.output.splitlines() if ln.startswith("error:")]
     assert len(err) == 1 and "graph.npz" in err[0] and "damaged" in err[0], res.output
-    # a graph.npz beside another map's trees.csv (ids differ)
-    (second / "graph.npz").write_bytes((first / "graph.npz").read_bytes())
+    # a graph.npz of another map beside this trees.csv (ids differ). Made explicit (Dec 6):
+    # the test copied session 1's graph, whose ids differed only while session 2 added a
+    # tree, which the simulated log stopped giving when the SICK's threshold became 0.3
+    with np.load(first / "graph.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["tree_ids"] = arrays["tree_ids"] + 1 + int(arrays["tree_ids"].max())
+    np.savez(second / "graph.npz", **arrays)
     res = cont(second, "g_bad2", "--prior-type", "graph")
     assert res.exit_code != 0 and "ids differ" in res.output, res.output
 

@@ -113,11 +113,15 @@ def test_width_excess_needs_leverage():
         width_excess(pid, r, np.full(20, 0.05))
 
 
-@pytest.mark.parametrize(("q", "expect_deg"), [(0.05, 0.25 * (1 - 2 * 0.025)), (0.5, 0.0125)])
+@pytest.mark.parametrize(
+    ("q", "expect_deg"),
+    [(0.05, 0.25 * (1 - 2 * 0.025)), (0.3, 0.25 * (1 - 2 * 0.275)), (0.5, 0.0125)],
+)
 def test_simulated_threshold_is_recovered_from_one_trunk(q, expect_deg):
     """The simulated SICK (0.25 deg footprint, 20 sub-beams): a beam returns when
     k = ceil(q 20) sub-beams hit, the k-th from the edge (k - 1/2)/20 of the footprint in, so
-    the excess is (1 - 2 (k - 1/2)/20) 0.25 deg: 0.2375 (any hit), 0.0125 (half)."""
+    the excess is (1 - 2 (k - 1/2)/20) 0.25 deg: 0.2375 (any hit), 0.1125 (0.3, the
+    ``sick_lms`` preset's threshold since Dec 6, the real LMS200's), 0.0125 (half)."""
     r = np.random.default_rng(5).permutation(np.linspace(3.0, 12.0, 600))  # >= 3.8 beams
     scans, _, model = _one_trunk_scans(q, 0.25, r, seed=11)
     det = beam_tree_detections(scans.ranges, model.angle_min, model.angle_increment)

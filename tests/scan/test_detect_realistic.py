@@ -87,7 +87,12 @@ def test_detector_holds_on_real_bark_shapes(name, shape, rmse_max):
     r = _run(shape)
     assert r["visible"] > 250
     assert r["recall"] >= 0.93, r
-    assert abs(r["bias"]) <= 1.5, r
+    # bark ridges read wide (the fit follows the ridges' envelope): measured +0.95 cm on the
+    # half-threshold SICK, +1.52 cm since the sick_lms preset returns at the real LMS200's
+    # threshold (0.3, Dec 6), of which +0.5 cm is the preset's half-threshold edge model
+    # (+1.02 cm with --edge-hit 0.25 0.38 --edge-hit-window); the real slices held out read
+    # -0.6..+2.8 cm (module docstring). The others measure |bias| <= 1.5 cm.
+    assert abs(r["bias"]) <= (2.0 if name == "bark" else 1.5), r
     assert r["rmse"] <= rmse_max, r
 
 
@@ -107,12 +112,19 @@ def test_corner_cuts_recover_trunks_merged_with_a_low_branch():
     on = _run(understory=branches, split_corners=True, corner_depth_convex=0.10)
     off = _run(understory=branches, refit_pieces=False)
     assert on["recall"] >= off["recall"] + 0.05, (on, off)
-    assert on["rmse"] <= 3.0 and abs(on["bias"]) <= 1.0, on
+    # RMSE of the trunks found, on / off / split: 2.53 / 2.65 / 2.50 cm on the half-threshold
+    # SICK, 3.11 / 3.25 / 3.10 cm at the sick_lms preset's threshold since Dec 6 (0.3, the real
+    # LMS200's: the footprint now returns on thinner slivers of the merged branch; 3.08 / 3.42 /
+    # 3.07 with the edge model at that threshold, so the scanner, not the edge model); the real
+    # slices held out read 1.4-3.5 cm (module docstring)
+    assert on["rmse"] <= 3.5 and abs(on["bias"]) <= 1.0, on
+    assert on["rmse"] <= off["rmse"], (on, off)
     # the default's validated corner split of rejected candidates (eleventh round): measured
     # 0.57 vs 0.52, same accuracy
     split = _run(understory=branches)
     assert split["recall"] >= off["recall"] + 0.03, (split, off)
-    assert split["rmse"] <= 3.0 and abs(split["bias"]) <= 1.0, split
+    assert split["rmse"] <= 3.5 and abs(split["bias"]) <= 1.0, split
+    assert split["rmse"] <= off["rmse"], (split, off)
 
 
 def test_understory_stems_beside_trunks_keep_most_trunks():

@@ -84,11 +84,21 @@ def test_pair_bounds_put_the_fit_of_whole_trunks_near_its_cramer_rao_bound():
     """``sim_dbh_causes.pair_crlb``: every whole trunk within 5 m has a finite bound, and the
     default's errors on them are about the bound (error / bound RMS 0.97-1.30 on the 400-scan
     and demo drives of seeds 1-20, docs/algorithms/scan-detection.md "Why some seeds miss
-    1.2 cm"); partial trunks (an edge hidden) have larger bounds than whole ones."""
+    1.2 cm"); partial trunks (an edge hidden) have larger bounds than whole ones.
+
+    On the SICK that returns when half its footprint hits, the scanner the bound was
+    calibrated on and the detector's default edge model assumes: at the ``sick_lms`` preset's
+    0.3 (Dec 6) the default's errors here are 1.56 x the bound (mean +0.49: the edge model's
+    mismatch, which the bound does not model; 1.47 / +0.29 with the edge model at 0.25-0.38),
+    scan-detection.md "One return threshold for the simulator and the benchmark"."""
     import sim_dbh_causes as causes
     from stemmap.scan.detect import ScanTrunkDetector
 
-    run = sim.make_run(120, 3)
+    try:
+        sim.set_sim_hit_fraction(0.5)
+        run = sim.make_run(120, 3)
+    finally:
+        sim.set_sim_hit_fraction(None)
     err = sim.tree_errors(ScanTrunkDetector("stemmap").detect_batch(run.scans), run)
     near = err["range"] < 5.0
     bound = np.array(
@@ -130,11 +140,12 @@ def test_the_simulated_scanners_threshold_reaches_both_drives():
     from stemmap.sim.scanner import scanner_preset
 
     own = scanner_preset("sick_lms").min_hit_fraction
+    other = 0.5 if own != 0.5 else 0.3  # a threshold that is not the preset's own
     try:
-        sim.set_sim_hit_fraction(0.3)
-        assert sim.make_run(2, 1).scanner.min_hit_fraction == 0.3
+        sim.set_sim_hit_fraction(other)
+        assert sim.make_run(2, 1).scanner.min_hit_fraction == other
         assert sim._runs.cache_info().currsize == 0
-        assert sim._scanner("sick_lms").min_hit_fraction == 0.3
+        assert sim._scanner("sick_lms").min_hit_fraction == other
     finally:
         sim.set_sim_hit_fraction(None)
     assert sim.make_run(2, 1).scanner.min_hit_fraction == own

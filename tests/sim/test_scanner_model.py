@@ -226,6 +226,17 @@ def test_presets_match_published_geometry():
     assert scanner_preset("sick_lms", range_noise=0.02).range_noise == 0.02
 
 
+def test_sick_preset_returns_at_the_measured_lms200_threshold():
+    """The ``sick_lms`` preset's return threshold lies in the range measured on a real SICK
+    LMS200 (Victoria Park, 2-15 m: q 0.25-0.38, ``benchmarks/vp_return_threshold.py``), so its
+    silhouette excess ``(1 - 2 q) * footprint`` lies inside the measured 95 % interval
+    (+0.004, +0.109) deg, which half (0) only touches and any hit (0.25) misses."""
+    s = SCANNER_PRESETS["sick_lms"]
+    assert 0.25 <= s.min_hit_fraction <= 0.38
+    excess_deg = (1 - 2 * s.min_hit_fraction) * math.degrees(s.beam_divergence)
+    assert 0.004 < excess_deg < 0.109
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [
