@@ -12,11 +12,11 @@ so that a few MB stand for gigabytes; tracemalloc shows what was allocated.
 from __future__ import annotations
 
 import math
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _memory import traced_peak
 
 import hostile_bags as hb  # benchmarks/ (tests/conftest.py)
 import stemmap.io._bag2_budget as b2
@@ -28,22 +28,13 @@ from stemmap.io.rosbag import bag_summary, iter_laser_scans
 BEAMS = 1_000_000  # 4 MB of float32 ranges a scan
 
 
-def _peak(fn) -> tuple[object, int]:
-    tracemalloc.start()
-    try:
-        out = fn()
-        return out, tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-
-
 def _refusal(fn) -> tuple[str, int]:
     def run() -> str:
         with pytest.raises(ReadLimitError) as err:
             fn()
         return str(err.value)
 
-    msg, peak = _peak(run)
+    msg, peak = traced_peak(run)
     return str(msg), peak
 
 
@@ -86,9 +77,9 @@ def test_an_mcap_chunk_expanding_past_its_announcement_is_damage_not_an_allocati
         tmp_path / "m.mcap", 2, BEAMS, compression=compression, size=1000, indexed=True
     )
     tiny = hb.mcap_bomb(tmp_path / "t.mcap", 1, 10, compression=compression, indexed=True)
-    _, base = _peak(lambda: list(iter_laser_scans(tiny)))  # opening a bag: typestore, ...
+    _, base = traced_peak(lambda: list(iter_laser_scans(tiny)))  # opening a bag: typestore, ...
     skipped: list[SkippedFrame] = []
-    scans, peak = _peak(lambda: list(iter_laser_scans(p, skipped=skipped)))
+    scans, peak = traced_peak(lambda: list(iter_laser_scans(p, skipped=skipped)))
     assert scans == []
     assert len(skipped) == 1 and "decompresses past the 1,000 bytes" in skipped[0].reason
     assert peak < base + 1_000_000  # not the 8 MB the data expand to
@@ -119,7 +110,7 @@ def test_a_message_inflating_past_the_budget_is_refused(
     p = hb.ros2_message_bomb(tmp_path / "b", 2 * BEAMS, announce=announce)  # 8 MB message
     tiny = hb.ros2_message_bomb(tmp_path / "t", 10, announce=announce)
     monkeypatch.setenv("STEMMAP_MAX_READ_GB", "0.01")  # messages up to 3.33 MB
-    _, base = _peak(lambda: list(iter_laser_scans(tiny)))  # opening a bag: typestore, ...
+    _, base = traced_peak(lambda: list(iter_laser_scans(tiny)))  # opening a bag: typestore, ...
     msg, peak = _refusal(lambda: list(iter_laser_scans(p)))
     assert repr(str(p)) in msg and "topic /scan, message 2" in msg
     assert "zstd-compressed message" in msg and "STEMMAP_MAX_READ_GB=" in msg
@@ -245,7 +236,7 @@ def test_an_unindexed_bag_is_read_one_chunk_at_a_time(tmp_path: Path) -> None:
         it.close()
         return scan
 
-    scan, peak = _peak(first)
+    scan, peak = traced_peak(first)
     assert len(scan) == 250_000  # type: ignore[arg-type]
     assert peak < 15_000_000
     assert sum(1 for _ in iter_laser_scans(p)) == sum(t.n_messages for t in bag_summary(p))

@@ -15,10 +15,10 @@ size made no difference. Now (``stemmap.io._bag_budget``):
 
 from __future__ import annotations
 
-import tracemalloc
 from pathlib import Path
 
 import pytest
+from _memory import traced_peak
 
 from hostile_inputs import ros1_compressed_bag  # benchmarks/ (tests/conftest.py)
 from stemmap.errors import InputError
@@ -26,15 +26,6 @@ from stemmap.io._util import SkippedFrame
 from stemmap.io.rosbag import iter_laser_scans
 
 N, BEAMS = 60, 250_000  # one chunk of 60 scans x 1 MB of float32 ranges: 60 MB
-
-
-def _peak(fn) -> tuple[object, int]:
-    tracemalloc.start()
-    try:
-        out = fn()
-        return out, tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
 
 
 @pytest.mark.parametrize("compression", ["lz4", "bz2"])
@@ -50,7 +41,7 @@ def test_a_chunk_announcing_more_than_the_budget_is_refused_before_it_is_decompr
             next(iter_laser_scans(bag))
         return str(err.value)
 
-    msg, peak = _peak(read)
+    msg, peak = traced_peak(read)
     assert "b.bag" in str(msg) and f"{compression}-compressed chunk" in str(msg)
     assert "60 MB" in str(msg) and "STEMMAP_MAX_READ_GB=" in str(msg)
     assert peak < 20e6, f"peak {peak / 1e6:.0f} MB"  # the chunk (60 MB) was never decompressed
@@ -76,7 +67,7 @@ def test_a_chunk_expanding_past_its_announced_size_is_damage_not_an_allocation(
     )
     monkeypatch.setenv("STEMMAP_MAX_READ_GB", "0")  # no budget: only the size bound acts
     skipped: list[SkippedFrame] = []
-    scans, peak = _peak(lambda: list(iter_laser_scans(bag, skipped=skipped)))
+    scans, peak = traced_peak(lambda: list(iter_laser_scans(bag, skipped=skipped)))
     assert scans == []
     assert len(skipped) == 1 and "past the 1,000,000 bytes its header announces" in (
         skipped[0].reason
@@ -101,7 +92,7 @@ def test_the_salvage_path_checks_the_chunks_too(
         ):
             next(iter_laser_scans(cut))
 
-    _, peak = _peak(read)
+    _, peak = traced_peak(read)
     assert peak < 20e6, f"peak {peak / 1e6:.0f} MB"
 
 
