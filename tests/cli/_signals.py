@@ -15,9 +15,17 @@ def run_and_signal(script: str, args: list[str], sig: int, ready: str) -> tuple[
     """Start ``python -c script args`` with stemmap's source on the path, wait for the line
     ``ready`` on its stdout, send ``sig``: (exit code, stderr). SIGINT is left at its default
     in the child, as a shell does (Python then raises KeyboardInterrupt)."""
-    env = dict(os.environ, PYTHONPATH=SRC)
+    return signal_when_ready([sys.executable, "-c", script, *args], sig, ready)
+
+
+def signal_when_ready(
+    cmd: list[str], sig: int, ready: str, extra_path: tuple[str, ...] = ()
+) -> tuple[int, str]:
+    """:func:`run_and_signal` for any command ``cmd`` (e.g. ``python -m module``), with
+    stemmap's source and ``extra_path`` on ``PYTHONPATH``."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([SRC, *extra_path]))
     with subprocess.Popen(
-        [sys.executable, "-c", script, *args],
+        cmd,
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

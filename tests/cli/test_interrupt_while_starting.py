@@ -65,20 +65,12 @@ _FLAGGED_IMPORT = _STALLED_IMPORT.replace(
 
 def test_ctrl_c_while_starting_exits_130_under_python_m(tmp_path: Path) -> None:
     (tmp_path / "flagged_start.py").write_text(_FLAGGED_IMPORT)
-    src = str(Path(__file__).resolve().parents[2] / "src")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, str(tmp_path)]))
-    with subprocess.Popen(
-        [sys.executable, "-m", "flagged_start"],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    ) as p:
-        assert p.stdout is not None and p.stdout.readline().strip() == "importing"
-        p.send_signal(signal.SIGINT)
-        _, err = p.communicate(timeout=60)
-    assert p.returncode == 130, err  # before: -2 (killed by SIGINT), with the same one line
+    from _signals import signal_when_ready
+
+    code, err = signal_when_ready(
+        [sys.executable, "-m", "flagged_start"], signal.SIGINT, "importing", (str(tmp_path),)
+    )
+    assert code == 130, err  # before: -2 (killed by SIGINT), with the same one line
     assert err.strip() == "error: interrupted (Ctrl-C) while starting; nothing was read or written."
 
 
