@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from _real_scanning import matched, scene_batches
-from first_echo_dbh_z import SHORT, geometry_digest, matched_views
+from first_echo_dbh_z import SHORT, geometry_digest, matched_views, zstats
 from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -57,6 +57,7 @@ CALIBRATED = {
     "p90_d": math.sqrt(2.0 * math.log(10.0)),
     "cov1": 1.0 - math.exp(-0.5),
     "cov2": 1.0 - math.exp(-2.0),
+    "med_d3": 1.5382,  # sqrt of the chi-square (3 dof) median, 2.366: (x, y, r) together
 }
 
 
@@ -149,7 +150,7 @@ def collect(
         counts[sc.model] += len(obs)
         digests[sc.model].update(geometry_digest(obs).encode())
         full[sc.model].update(detections_digest(obs).encode())
-        rows.extend(view_rows(sc, cfg, obs))
+        rows.extend({**r, "hit_fraction": hit_fraction} for r in view_rows(sc, cfg, obs))
     return rows, {
         m: {
             "detections": counts[m],
@@ -224,8 +225,35 @@ def table(rows: list[dict], key: str = "cov", steps: bool = True) -> dict[str, A
     out = {}
     for k in sorted(groups):
         p = centre_parts(groups[k], key)
-        out[k] = cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"])
+        out[k] = {**cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"]), **rstats(p)}
     return out
+
+
+def rstats(p: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Scores of the radius entries of :func:`centre_parts` ``p``: the DBH error over the
+    stated DBH std ``2 sqrt(C_rr)`` (:func:`first_echo_dbh_z.zstats`, prefixed ``dbh_``), the
+    median Mahalanobis distance of the (x, y, r) error over the full covariance (1.538
+    calibrated) and the median correlation of the along-sight centre and the radius that the
+    covariance states (against ``corr_along_r``, the errors' own)."""
+    if p["er"].size == 0:
+        return {}
+    cov, u = p["cov"], p["u"]
+    z = zstats(2.0 * p["er"], 2.0 * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)))
+    e3 = np.column_stack((p["e"], p["er"]))
+    try:
+        d3 = np.sqrt(np.einsum("ki,ki->k", e3, np.linalg.solve(cov, e3[:, :, None])[:, :, 0]))
+        med_d3 = round(float(np.median(np.where(np.isfinite(d3), d3, np.inf))), 3)
+    except np.linalg.LinAlgError:
+        med_d3 = math.nan
+    saa = np.einsum("ki,kij,kj->k", u, cov[:, :2, :2], u)
+    sar = np.einsum("ki,ki->k", u, cov[:, :2, 2])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = sar / np.sqrt(saa * cov[:, 2, 2])
+    return {
+        **{f"dbh_{k}": v for k, v in z.items() if k != "n"},
+        "med_d3": med_d3,
+        "stated_corr_along_r": round(float(np.nanmedian(rho)), 3),
+    }
 
 
 #: The real-bark slices the centre terms are chosen on, leave one out (FORTLS: synthetic
@@ -276,18 +304,35 @@ def choose(rows: list[dict], b: float) -> tuple[float, float]:
 
 
 def averaging_candidate_covs(
-    rows: list[dict], cfg: DetectorConfig, f: float, c: float
+    rows: list[dict], cfg: DetectorConfig, f: float, c: float, h: float = 0.0
 ) -> np.ndarray:
     """The covariance :func:`stemmap.scan._centre_cov.averaging_centre_covs` would report for
     every averaging row (run with the averaging terms off: ``cov`` is the fit's own), with the
     outline term of ``cfg`` (``centre_sd_along`` times ``dbh_sd_outline / 2``), the footprint
-    share ``f`` and the across std ``c`` (m)."""
+    share ``f`` and the across std ``c`` (m); ``h`` > 0: the radius terms too
+    (``dbh_sd_footprint`` = ``h``, the radius outline ``dbh_sd_outline / 2``)."""
     from stemmap.scan._centre_cov import averaging_centre_covs
 
     own = np.array([r["cov"] for r in rows]).reshape(-1, 3, 3)
     xy = np.array([[r["cx"], r["cy"]] for r in rows]).reshape(-1, 2)
     outline = 0.5 * cfg.centre_sd_along * cfg.dbh_sd_outline
-    return averaging_centre_covs(own, xy, outline, f, math.radians(cfg.beam_divergence_deg), c)
+    ro = 0.5 * cfg.dbh_sd_outline if h > 0 else 0.0
+    theta = math.radians(cfg.beam_divergence_deg)
+    return averaging_centre_covs(own, xy, outline, f, theta, c, ro, h)
+
+
+def _median_z_dbh(rows: list[dict], cov: np.ndarray) -> float:
+    er = np.array([r["er"] for r in rows])
+    return float(np.median(np.abs(er) / np.sqrt(cov[:, 2, 2])))
+
+
+def choose_averaging_radius(rows: list[dict], cfg: DetectorConfig) -> float:
+    """``dbh_sd_footprint`` so that the pooled median |z| of the DBH error of ``rows`` (the
+    fit's own covariance) is 0.674 with the outline's ``dbh_sd_outline / 2`` on the radius
+    (the rule of ``b``; the radius entries do not depend on the centre terms)."""
+    return _solve(
+        lambda x: _median_z_dbh(rows, averaging_candidate_covs(rows, cfg, 0.0, 0.0, x)), 10.0
+    )
 
 
 def choose_averaging(rows: list[dict], cfg: DetectorConfig) -> tuple[float, float]:
@@ -318,18 +363,33 @@ def loo(rows: list[dict], b: float, cfg: DetectorConfig | None = None) -> dict[s
             terms = {"along": round(g, 3), "across_cm": round(100 * c, 3)}
         else:
             g, c = choose_averaging(train, cfg)
-            cov = averaging_candidate_covs(test, cfg, g, c)
+            h = choose_averaging_radius(train, cfg)
+            cov = averaging_candidate_covs(test, cfg, g, c, h)
             terms = {"footprint": round(g, 3), "across_cm": round(100 * c, 3)}
+            terms["dbh_footprint"] = round(h, 3)
         for r, cv in zip(test, cov, strict=True):
             r["_cand"] = [float(v) for v in cv.ravel()]
         cells = {}
-        for noise in (0.0, 0.01, 0.03):
-            sub = [r for r in test if r["noise"] == noise]
+        sources = sorted({_source(r) for r in test})
+        for src, noise in ((s, n) for s in sources for n in (0.0, 0.01, 0.03)):
+            sub = [r for r in test if r["noise"] == noise and _source(r) == src]
             if sub:
                 p = centre_parts(sub, "_cand")
-                cells[f"{100 * noise:g} cm"] = cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"])
+                head = f"{src} | " if len(sources) > 1 else ""
+                cells[f"{head}{100 * noise:g} cm"] = {
+                    **cstats(p["e"], p["u"], p["cov"][:, :2, :2], p["er"]),
+                    **(rstats(p) if cfg is not None else {}),
+                }
         out[SHORT.get(held, held)] = {**terms, **cells}
     return out
+
+
+def _source(r: dict) -> str:
+    """The rows' scanner model within a family: the averaging scanner's return threshold
+    (rows of :func:`collect`), else the ``--rows-in`` file's name."""
+    if "hit_fraction" in r:
+        return f"q {r['hit_fraction']:g}"
+    return str(r.get("source", ""))
 
 
 def sim_rows(seed: int, overrides: dict[str, Any]) -> list[dict]:
@@ -421,7 +481,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(rows))
     elif args.rows_in is not None:
-        rows = [r for path in args.rows_in for r in json.loads(path.read_text())]
+        rows = [
+            {"source": path.stem, **r} for path in args.rows_in for r in json.loads(path.read_text())
+        ]
     else:
         ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
         models = tuple(args.models.split(","))

@@ -18,8 +18,10 @@ from stemmap.scan._centre_cov import averaging_centre_covs, averaging_report
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 F, C = 1.0, 0.007  # a footprint share and an across std (m)
-ON = {"centre_sd_footprint": F, "centre_sd_across_averaging": C}
-OFF = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0}
+# the radius terms (dbh_sd_footprint, on in the preset) off in both: the centre alone here
+# (the radius: test_dbh_sd_averaging.py)
+ON = {"centre_sd_footprint": F, "centre_sd_across_averaging": C, "dbh_sd_footprint": 0.0}
+OFF = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0, "dbh_sd_footprint": 0.0}
 FIELDS = ("centers", "radii", "n_points", "arc_deg", "widths", "quality", "index", "times")
 
 
@@ -96,7 +98,7 @@ def test_the_along_sd_grows_as_configured_and_the_detections_stay(numpy_path):
 
 
 def test_the_preset_turns_it_on_and_off_returns_the_fit_covariance_itself():
-    preset = DetectorConfig.preset("stemmap")
+    preset = DetectorConfig.preset("stemmap", dbh_sd_footprint=0.0)
     assert preset.centre_sd_footprint == pytest.approx(0.7)
     assert preset.centre_sd_across_averaging == pytest.approx(0.006)
     rng = np.random.default_rng(2)

@@ -111,7 +111,7 @@ def test_at_3_cm_the_centre_covariance_states_the_error():
 def test_an_averaging_scanner_keeps_the_fit_covariance():
     # the first-echo terms do not reach an averaging scanner (its own: test_centre_cov_averaging)
     batch, _ = _batch(2.5, "averaging")
-    own = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0}
+    own = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0, "dbh_sd_footprint": 0}
     on = _det("averaging", **ON, **own).detect_batch(batch)
     off = _det("averaging", **OFF, **own).detect_batch(batch)
     assert np.array_equal(on.covs, off.covs) and np.array_equal(on.centers, off.centers)

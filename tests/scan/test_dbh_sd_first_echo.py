@@ -118,7 +118,7 @@ def test_an_averaging_scanner_keeps_the_fit_covariance():
     # the option reads first-echo fits only, bit for bit (the averaging centre terms, which
     # carry the outline term to the centre, off in both: test_centre_cov_averaging.py)
     batch, _ = _batch(2.5, "averaging")
-    own = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0}
+    own = {"centre_sd_footprint": 0.0, "centre_sd_across_averaging": 0.0, "dbh_sd_footprint": 0}
     on = _det("averaging", **own).detect_batch(batch)
     off = _det("averaging", **OFF, **own).detect_batch(batch)
     assert np.array_equal(on.covs, off.covs) and np.array_equal(on.radii, off.radii)

@@ -33,6 +33,16 @@ correlation 0.74-0.995, slope 1.0-1.3). :func:`averaging_centre_covs` adds
 radius (that scanner's diameter std is the fit's own) nor to the centre-radius entries: a
 positive semi-definite addition to the centre block alone, so the result stays a covariance.
 The compiled path's fits carry no noise factor, so the centre is not scaled.
+
+The same two errors move that scanner's radius (``dbh_sd_footprint``; Dec 6, "Averaging DBH
+standard error"): the radius error has the outline's ``b / 2`` and a share ``h`` of the
+footprint's width ``d theta`` (measured on the real slices' averaging rows: radius error RMS
+1.4-1.8 cm at 0-4 m, 2.5-3.7 cm at 12-16 m on bark, against a fit's own radius std of 0.3 /
+1.1 cm). With it on, each cause is one vector over (x, y, r) --
+``v1 = (g b / 2 u, b / 2)`` for the outline and ``v2 = d theta (f u, h)`` for the footprint --
+and the addition is ``v1 v1^T + v2 v2^T + c_a^2 w w^T``: the centre block as above, ``C_rr``
+gains ``(b / 2)^2 + (h d theta)^2`` and the centre-radius covariance
+``(g (b / 2)^2 + f h (d theta)^2) u``. A sum of outer products, so still a covariance.
 """
 
 from __future__ import annotations
@@ -121,49 +131,75 @@ def averaging_centre_covs(
     footprint_sd: float,
     divergence: float,
     across: float,
+    radius_outline: float = 0.0,
+    radius_footprint: float = 0.0,
 ) -> FloatArray:
     """``covs`` (K, 3, 3) of averaging-scanner fits at ``centers`` (K, 2), sensor at the
     origin, with ``outline_sd^2 + (footprint_sd divergence d)^2`` added along the line of
     sight ``u`` and ``across^2`` across it (module doc): ``outline_sd`` (m) the outline's
     radius error carried to the centre (``centre_sd_along`` times ``dbh_sd_outline / 2``),
     ``footprint_sd`` the centre's std per footprint width, ``divergence`` the footprint's
-    full angle (radians), ``d`` the range to the centre. The radius row and column are
-    unchanged."""
+    full angle (radians), ``d`` the range to the centre. ``radius_outline`` (m, the outline's
+    radius std ``dbh_sd_outline / 2``) and ``radius_footprint`` (the radius std per footprint
+    width, ``dbh_sd_footprint``): the same two errors on the radius, ``C_rr`` gaining
+    ``radius_outline^2 + (radius_footprint divergence d)^2`` and the centre-radius entries
+    ``(outline_sd radius_outline + footprint_sd radius_footprint (divergence d)^2) u``; both
+    0 (the default): the radius row and column are unchanged."""
     out = np.array(covs, dtype=np.float64, copy=True).reshape(-1, 3, 3)
     u, w, d = line_of_sight(centers)
-    va = outline_sd * outline_sd + (footprint_sd * divergence * d) ** 2
+    wd = divergence * d
+    va = outline_sd * outline_sd + (footprint_sd * wd) ** 2
     out[:, :2, :2] += va[:, None, None] * (u[:, :, None] * u[:, None, :]) + across * across * (
         w[:, :, None] * w[:, None, :]
     )
+    if radius_outline > 0 or radius_footprint > 0:
+        out[:, 2, 2] += radius_outline * radius_outline + (radius_footprint * wd) ** 2
+        cross = (outline_sd * radius_outline + footprint_sd * radius_footprint * wd * wd)[
+            :, None
+        ] * u
+        out[:, :2, 2] += cross
+        out[:, 2, :2] += cross
     return out
 
 
 def averaging_report(cfg: Any, centers: FloatArray, covs: FloatArray) -> FloatArray:
     """The covariances an averaging ``ours`` fit of ``cfg`` (a
     :class:`~stemmap.scan.config.DetectorConfig`) reports for detections at ``centers``
-    (sensor frame) with the fit's ``covs``: :func:`averaging_centre_covs` when
-    ``centre_sd_footprint`` or ``centre_sd_across_averaging`` is on, else ``covs`` itself."""
-    if not averaging_centre_on(cfg) or covs.shape[0] == 0:
+    (sensor frame) with the fit's ``covs``: :func:`averaging_centre_covs` with the centre
+    terms when ``centre_sd_footprint`` or ``centre_sd_across_averaging`` is on and the
+    radius terms when ``dbh_sd_footprint`` is; neither: ``covs`` itself."""
+    centre = averaging_centre_on(cfg)
+    radius = averaging_radius_on(cfg)
+    if not (centre or radius) or covs.shape[0] == 0:
         return covs
     return averaging_centre_covs(
         covs,
         centers,
-        0.5 * cfg.centre_sd_along * cfg.dbh_sd_outline,
-        cfg.centre_sd_footprint,
+        0.5 * cfg.centre_sd_along * cfg.dbh_sd_outline if centre else 0.0,
+        cfg.centre_sd_footprint if centre else 0.0,
         math.radians(cfg.beam_divergence_deg),
-        cfg.centre_sd_across_averaging,
+        cfg.centre_sd_across_averaging if centre else 0.0,
+        0.5 * cfg.dbh_sd_outline if radius else 0.0,
+        cfg.dbh_sd_footprint if radius else 0.0,
     )
+
+
+def _averaging_ours(cfg: Any) -> bool:
+    return cfg.fit_method == "ours" and cfg.beam_footprint_deg == 0 and cfg.beam_divergence_deg > 0
 
 
 def averaging_centre_on(cfg: Any) -> bool:
     """Whether ``cfg`` reads an averaging scanner with the ``ours`` fit and asks for its
     centre terms."""
-    return (
-        cfg.fit_method == "ours"
-        and cfg.beam_footprint_deg == 0
-        and cfg.beam_divergence_deg > 0
-        and (cfg.centre_sd_footprint > 0 or cfg.centre_sd_across_averaging > 0)
+    return _averaging_ours(cfg) and (
+        cfg.centre_sd_footprint > 0 or cfg.centre_sd_across_averaging > 0
     )
+
+
+def averaging_radius_on(cfg: Any) -> bool:
+    """Whether ``cfg`` reads an averaging scanner with the ``ours`` fit and asks for its
+    radius terms (``dbh_sd_footprint``)."""
+    return _averaging_ours(cfg) and cfg.dbh_sd_footprint > 0
 
 
 def noise_factors(

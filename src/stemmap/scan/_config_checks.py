@@ -163,6 +163,7 @@ def check_fields(cfg: DetectorConfig) -> None:
         "centre_sd_across",
         "centre_sd_footprint",
         "centre_sd_across_averaging",
+        "dbh_sd_footprint",
     ):
         if not (getattr(cfg, name) >= 0 and math.isfinite(getattr(cfg, name))):
             raise bad(name, getattr(cfg, name), "it must be >= 0 and finite")

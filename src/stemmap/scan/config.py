@@ -521,6 +521,17 @@ class DetectorConfig:
         (:func:`stemmap.scan._centre_cov.averaging_centre_covs`; ours, issue 11, Dec 6,
         docs/algorithms/scan-detection.md, "Averaging centre covariance"). The radius and
         the centre-radius entries and every detection are unchanged. 0, 0 = off.
+    dbh_sd_footprint : float, >= 0 (a share)
+        Averaging ``ours`` fits, both paths: the reported radius variance gains the outline's
+        ``(dbh_sd_outline / 2)^2`` and the square of ``dbh_sd_footprint`` times the
+        footprint's width at the trunk (range times ``beam_divergence_deg``), and the
+        centre-radius covariance the product of each with its centre term along the line of
+        sight (``centre_sd_along`` / ``centre_sd_footprint``: the same errors move the radius
+        and the centre; a rank-two addition, still a covariance): the averaged edge returns'
+        radius error grows with the footprint and the fit's own diameter std does not
+        (:func:`stemmap.scan._centre_cov.averaging_centre_covs`; ours, issue 11, Dec 6,
+        docs/algorithms/scan-detection.md, "Averaging DBH standard error"). Only the
+        reported covariance changes. 0 = off (the fit's own diameter std).
     dbh_sd_jackknife : float, >= 0
         First-echo ``ours`` fits, numpy path: the reported radius std is raised to this
         factor times the delete-a-group jackknife std of the radius where that is larger
@@ -711,6 +722,7 @@ class DetectorConfig:
     centre_sd_across: float = 0.0
     centre_sd_footprint: float = 0.0
     centre_sd_across_averaging: float = 0.0
+    dbh_sd_footprint: float = 0.0
     dbh_sd_jackknife: float = 0.0
     split_search: bool = False
     split_search_convex: bool = False
