@@ -17,7 +17,12 @@ Scores (:func:`cstats`): the centre error split along the line of sight (sensor 
 percentile: 1.645), the Mahalanobis distance ``d = sqrt(e' C^-1 e)`` of the 2D error (median
 1.177, 90th percentile 2.146 for a calibrated Gaussian) and the coverage of the 1-sigma and
 2-sigma ellipses (0.393 and 0.865), the RMS centre error and the RMS the covariance states
-(``sqrt(mean(trace C))``), and the correlation of the along error with the radius error.
+(``sqrt(mean(trace C))``), and the correlation of the along error with the radius error. The
+radius entries (:func:`rstats`; Dec 6, "Averaging DBH standard error"): the DBH error over the
+stated DBH std ``2 sqrt(C_rr)`` (``dbh_med_z``, ``dbh_p90_z``), the median Mahalanobis distance
+of the (x, y, r) error (``med_d3``, 1.538 calibrated) and the along-radius correlation the
+covariance states. ``--loo --averaging`` also chooses ``dbh_sd_footprint`` (the pooled median
+|z| of the DBH error 0.674 on the training rows) and scores each ``--rows-in`` file apart.
 
 Usage::
 
@@ -482,7 +487,9 @@ def main(argv: list[str] | None = None) -> int:
             args.rows_out.write_text(json.dumps(rows))
     elif args.rows_in is not None:
         rows = [
-            {"source": path.stem, **r} for path in args.rows_in for r in json.loads(path.read_text())
+            {"source": path.stem, **r}
+            for path in args.rows_in
+            for r in json.loads(path.read_text())
         ]
     else:
         ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)

@@ -201,6 +201,36 @@ def report(gs: list[dict[str, Any]], allowed: tuple[float, ...] = FLOORS) -> dic
     return out
 
 
+def detection_std_z(gs: list[dict[str, Any]], floor: float) -> dict[str, Any]:
+    """Would the detections' own stds make ``DIAMETER_BIAS`` redundant? Per scanner model and
+    dataset the median |z| of the inverse-variance fused DBH error (floor ``floor``) over the
+    std the detections state for it with their errors fully shared (rho = 1): the weighted
+    mean of ``sqrt(sd^2 + floor^2)``, no ``b`` and nothing chosen (calibrated 0.674), next to
+    the map's ``sqrt(s^2 + b^2)`` (``b`` = :data:`DIAMETER_BIAS`)."""
+    out: dict[str, Any] = {}
+    for model in MODELS:
+        row: dict[str, Any] = {}
+        for name in sorted({g["dataset"] for g in gs}):
+            sel = [g for g in gs if g["config"].startswith(model) and g["dataset"] == name]
+            if not sel:
+                continue
+            z_det, z_map = [], []
+            for g in sel:
+                m, s = fuse(g, "inverse_variance", floor)
+                sd = np.sqrt(g["sd"] ** 2 + floor**2)
+                w = 1.0 / sd**2
+                e = abs(m - g["dbh"])
+                z_det.append(e / float((w * sd).sum() / w.sum()))
+                z_map.append(e / math.sqrt(s * s * DIAMETER_RHO + DIAMETER_BIAS**2))
+            row[name] = {
+                "groups": len(sel),
+                "median_abs_z_detection_std": round(float(np.nanmedian(z_det)), 3),
+                "median_abs_z_map_std": round(float(np.nanmedian(z_map)), 3),
+            }
+        out[model] = row
+    return out
+
+
 def detection_sd(scans: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
     """Per configuration: the detections' fit standard deviation and |error| by range band
     (does the detection's own uncertainty grow where its error does?)."""
@@ -290,7 +320,9 @@ def main() -> None:
     if a.scans_in:
         with open(a.scans_in) as f:
             scans = json.load(f)
-        out.update({"detections": detection_sd(scans), **report(groups(scans), allowed)})
+        gs = groups(scans)
+        out.update({"detections": detection_sd(scans), **report(gs, allowed)})
+        out["detection_std_z"] = detection_std_z(gs, out["floor_all"])
     print(json.dumps(out, indent=1))
 
 

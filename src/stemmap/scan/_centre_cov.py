@@ -147,12 +147,12 @@ def averaging_centre_covs(
     0 (the default): the radius row and column are unchanged."""
     out = np.array(covs, dtype=np.float64, copy=True).reshape(-1, 3, 3)
     u, w, d = line_of_sight(centers)
-    wd = divergence * d
-    va = outline_sd * outline_sd + (footprint_sd * wd) ** 2
+    va = outline_sd * outline_sd + (footprint_sd * divergence * d) ** 2
     out[:, :2, :2] += va[:, None, None] * (u[:, :, None] * u[:, None, :]) + across * across * (
         w[:, :, None] * w[:, None, :]
     )
     if radius_outline > 0 or radius_footprint > 0:
+        wd = divergence * d
         out[:, 2, 2] += radius_outline * radius_outline + (radius_footprint * wd) ** 2
         cross = (outline_sd * radius_outline + footprint_sd * radius_footprint * wd * wd)[
             :, None
