@@ -28,10 +28,14 @@ fused DBH (cm), and the calibration of the fused ``diameter_std`` = ``sqrt(s^2 +
 |z| (calibrated 0.674) and share |z| < 1 (0.68); per scanner model (``averaging``: the
 SICK-class model of the default detector, on which ``DIAMETER_BIAS`` was set; ``nearest``:
 first echo), ``b_without``: ``b`` solved for median |z| = 0.674 on the other datasets' passes
-of that model, and the held-out median |z| and share |z| < 1 with it.
+of that model, and the held-out median |z| and share |z| < 1 with it. ``detection_std_z``
+(Dec 6, "Averaging DBH standard error"): the fused error over the std the detections state
+for it, to see whether their stds make ``b`` redundant.
 
 Usage: python benchmarks/diameter_rho_real.py --scans-out scans.json (slow: scans), then
-python benchmarks/map_dbh_fusion.py --scans-in scans.json [--sim-seeds 1 2 3]. Prints JSON.
+python benchmarks/map_dbh_fusion.py --scans-in scans.json [--sim-seeds 1 2 3] [--floors 0.02]
+(``--floors``: the floor chosen among these only; 0.02 = the package's ``DIAMETER_FLOOR``).
+Prints JSON.
 """
 
 from __future__ import annotations
@@ -310,13 +314,17 @@ def main() -> None:
         "--sim-seeds", type=int, nargs="*", default=[],
         help="also the demo's map DBH per floor on these simulator seeds (iSAM2)",
     )  # fmt: skip
+    ap.add_argument(
+        "--floors", type=float, nargs="+", default=None,
+        help="choose the floor among these only (e.g. 0.02: the package's DIAMETER_FLOOR)",
+    )  # fmt: skip
     a = ap.parse_args()
     out: dict[str, Any] = {}
-    allowed = FLOORS
+    allowed = FLOORS if a.floors is None else tuple(a.floors)
     if a.sim_seeds:
         out["simulator"] = sim = simulated(a.sim_seeds)
         base = sim["unweighted"]["rmse_cm"]
-        allowed = tuple(f for f in FLOORS if sim[f"{f:g}"]["rmse_cm"] <= base) or FLOORS
+        allowed = tuple(f for f in allowed if sim[f"{f:g}"]["rmse_cm"] <= base) or allowed
     if a.scans_in:
         with open(a.scans_in) as f:
             scans = json.load(f)
