@@ -215,7 +215,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # Dec 6 (branch avgdbhsd): the averaging scanners' DBH std: the outline's 1.3 cm and 0.6
         # of the footprint's width at the trunk on the radius, the centre-radius covariance of
         # the same two errors, chosen leave-one-dataset-out on the real-bark slices pooled over
-        # both virtual SICK models (held-out median |z| of the DBH error 0.49-0.98 on the TreeLS
+        # both virtual SICK models (held-out median |z| of the DBH error 0.49-0.97 on the TreeLS
         # plot and pine, was 1.6-3.1); the reported covariance only (scan-detection.md,
         # "Averaging DBH standard error")
         "dbh_sd_footprint": 0.6,
@@ -333,7 +333,7 @@ PRESET_NOTES: dict[str, str] = {
     "Dec 6: the averaging scanners' DBH std (dbh_sd_footprint 0.6): the outline's 1.3 cm and "
     "0.6 of the footprint's width at the trunk on the radius, with the centre-radius "
     "covariance of the same errors, chosen leave-one-dataset-out on the real-bark slices with "
-    "both virtual SICK models pooled; held-out median |z| of the DBH error 0.49-0.98 on the "
+    "both virtual SICK models pooled; held-out median |z| of the DBH error 0.49-0.97 on the "
     "TreeLS plot and pine (was 1.6-3.1), detections unchanged. "
     "For a first-echo "
     "(nearest-return) scanner set beam_footprint_deg to its footprint (stemmap detect "
