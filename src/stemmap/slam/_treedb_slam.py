@@ -136,7 +136,7 @@ class TreeDbSlam:
         covariance (:mod:`stemmap.slam.tree_covariance`; 0: independent). Default
         :data:`~stemmap.slam.uncertainty.CENTRE_RHO`, measured on real drive-by passes: with
         both, held out on real trunk geometry the tree DB's trees state median Mahalanobis d
-        0.73-2.25 (1.18 calibrated) where the constant noise stated 0.21-0.51 and the own
+        0.66-2.02 (1.18 calibrated) where the constant noise stated 0.21-0.51 and the own
         covariances alone 1.5-5.4 (docs/algorithms/slam.md "Correlated detections in the
         tree DB's and Forestrix's tree covariance").
     tree_cov_pass_gap_s : float, s
