@@ -225,6 +225,12 @@ class TreeFrames:
         NaN where unknown). :func:`stemmap.slam.uncertainty.annotate_uncertainty` weights a
         tree's diameters by it (:func:`~stemmap.slam.uncertainty.fused_diameters`); None: every
         detection counts the same.
+    noise_cov : ndarray (K, 2, 2) or None
+        Each detection's full (range, bearing) covariance (m^2, m rad, rad^2), NaN where the
+        detector gives none: ``noise`` is the square root of its diagonal, this keeps the
+        range-bearing correlation ``noise`` drops. Read only by the covariance the tree DB and
+        Forestrix report for their trees (:mod:`stemmap.slam.tree_covariance`,
+        ``detection_covs``); no estimate reads it.
     """
 
     times: FloatArray
@@ -234,6 +240,7 @@ class TreeFrames:
     diameters: FloatArray
     noise: FloatArray | None = None
     diameter_std: FloatArray | None = None
+    noise_cov: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = _ro(self.times, "TreeFrames.times")
@@ -282,6 +289,16 @@ class TreeFrames:
                 )
             ds.setflags(write=False)
             object.__setattr__(self, "diameter_std", ds)
+        if self.noise_cov is not None:
+            nc = np.array(self.noise_cov, dtype=np.float64, copy=True)
+            fin = np.all(np.isfinite(nc), axis=(1, 2)) if nc.ndim == 3 else np.zeros(0, bool)
+            if nc.shape != (k, 2, 2) or np.any((nc[fin][:, 0, 0] < 0) | (nc[fin][:, 1, 1] < 0)):
+                raise InputError(
+                    f"TreeFrames.noise_cov must be ({k}, 2, 2) covariances or NaN, got shape "
+                    f"{nc.shape}."
+                )
+            nc.setflags(write=False)
+            object.__setattr__(self, "noise_cov", nc)
         object.__setattr__(self, "times", t)
         object.__setattr__(self, "ptr", ptr)
         object.__setattr__(self, "ranges", r)
@@ -317,6 +334,7 @@ class TreeFrames:
             self.diameters[s],
             None if self.noise is None else self.noise[s],
             None if self.diameter_std is None else self.diameter_std[s],
+            None if self.noise_cov is None else self.noise_cov[s],
         )
 
     def slice(self, t0: float, t1: float) -> TreeFrames:
@@ -332,7 +350,8 @@ class TreeFrames:
         Observation centres must be in the sensor frame; range and bearing are computed from
         them, the diameter is ``2 * radius``. Where ``obs.covs`` has a finite (x, y) block, its
         polar form ``J C J^T`` (``J = d(range, bearing) / d(x, y)``) gives ``noise`` (the
-        square roots of its diagonal); ``noise`` is None when no detection has one. A finite
+        square roots of its diagonal) and ``noise_cov`` (the whole of it); both are None when no
+        detection has one. A finite
         radius variance ``obs.covs[:, 2, 2]`` gives ``diameter_std`` (``2 sqrt(cov_rr)``; None
         when no detection has one).
         """
@@ -348,7 +367,7 @@ class TreeFrames:
         counts = np.bincount(idx, minlength=t.shape[0])
         ptr = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
         rng = np.hypot(c[:, 0], c[:, 1])
-        noise = None
+        noise = polar = None
         cxy = np.asarray(obs.covs, dtype=np.float64)[order][:, :2, :2]
         if cxy.size and np.any(np.all(np.isfinite(cxy), axis=(1, 2))):
             rs = np.where(rng > 0, rng, 1.0)
@@ -357,6 +376,7 @@ class TreeFrames:
             J[:, 1, 0], J[:, 1, 1] = -c[:, 1] / rs**2, c[:, 0] / rs**2
             polar = J @ cxy @ np.swapaxes(J, 1, 2)
             noise = np.sqrt(np.clip(np.diagonal(polar, axis1=1, axis2=2), 0.0, None))
+            polar = 0.5 * (polar + np.swapaxes(polar, 1, 2))
         dstd = None
         crr = np.asarray(obs.covs, dtype=np.float64)[order][:, 2, 2] if rng.size else np.zeros(0)
         if np.any(np.isfinite(crr)):
@@ -369,6 +389,7 @@ class TreeFrames:
             2.0 * np.asarray(obs.radii)[order],
             noise,
             dstd,
+            polar,
         )
 
     @classmethod

@@ -65,7 +65,8 @@ from stemmap.slam._tree_map_errors import Localisation, TreeMapErrors
 from stemmap.slam._treedb_localize import compose_jacobian
 from stemmap.slam.loop_closure import LoopCloser, LoopConfig, close_duplicates, relabel
 from stemmap.slam.relaxation import remap_trees
-from stemmap.slam.tree_covariance import with_tree_covariances
+from stemmap.slam.tree_covariance import check_tree_cov_pass, with_tree_covariances
+from stemmap.slam.uncertainty import CENTRE_RHO
 from stemmap.types import FloatArray, ScanBatch, StemMap, Tree
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -180,6 +181,10 @@ class ForestrixSlam:
         the derived pose covariance 4x too wide in std (demo drives, seeds 0-6: z² median
         0.075; Victoria Park second half 0.12): the fit takes its pose from the detections
         alone, so their noise model is all of its covariance between odometry steps.
+    tree_cov_detections, tree_cov_pass_rho, tree_cov_pass_gap_s
+        As :class:`~stemmap.slam._treedb_slam.TreeDbSlam`'s (Dec 6, default on): the reported
+        tree covariance with each detection's own covariance where it has one, correlated
+        within a pass with :data:`~stemmap.slam.uncertainty.CENTRE_RHO`.
     """
 
     preset: str | None = None
@@ -210,6 +215,9 @@ class ForestrixSlam:
     ray_position_tol: float = 0.05
     sigma_range: float = 0.10
     sigma_bearing: float = math.radians(0.5)
+    tree_cov_detections: bool = True
+    tree_cov_pass_rho: float = CENTRE_RHO
+    tree_cov_pass_gap_s: float = 5.0
     name: str = "forestrix"
 
     def __post_init__(self) -> None:
@@ -247,6 +255,7 @@ class ForestrixSlam:
             raise ConfigError("ForestrixSlam.loop_min_matches must be >= 3.")
         if not (self.sigma_range > 0 and self.sigma_bearing > 0):
             raise ConfigError("ForestrixSlam: sigma_range and sigma_bearing must be > 0.")
+        check_tree_cov_pass(self.tree_cov_pass_rho, self.tree_cov_pass_gap_s, "ForestrixSlam")
         if not (self.merge_dist >= 0 and self.merge_ddiam >= 0):
             raise ConfigError(
                 f"ForestrixSlam: merge_dist and merge_ddiam must be >= 0 m, got "
@@ -329,6 +338,9 @@ class ForestrixSlam:
             sigma_bearing=self.sigma_bearing,
             sensor_offset=st.off,
             gate=self.new_tree_gate,
+            detection_covs=self.tree_cov_detections,
+            pass_rho=self.tree_cov_pass_rho,
+            pass_gap=self.tree_cov_pass_gap_s,
         )
         return SlamResult(
             frame_trajectory(frames.times, st.poses), stem_map, stats, pose_covs=pose_covs

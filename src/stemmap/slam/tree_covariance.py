@@ -46,17 +46,32 @@ correlation slightly (for a Brownian bridge ``Cov = s(T-t)/T <= sqrt(Var_s Var_t
 conservative side. Sorting a tree's detections by ``s`` makes the double sum one pass with
 prefix sums (``B_k = W_k J_{p,k} P_k^{1/2}``, ``u = sqrt(s)``):
 ``Σ_q B_q B_qᵀ + Σ_q (u_q⁻¹ Σ_{i<q} u_i B_i) B_qᵀ + transpose``.
+
+**Correlated detection errors within a pass** (Dec 6, after
+:func:`~stemmap.slam.uncertainty.fused_positions`). The first sum treats the detections' own
+errors ``v_k`` as independent. On real bark the detections of one trunk along one drive-by
+pass share about half their centre error (:data:`~stemmap.slam.uncertainty.CENTRE_RHO`,
+docs/algorithms/scan-detection.md "Correlated detections of a pass"). With
+``rho`` > 0, the detection part of every tree is split into passes (runs of its detections
+without a gap of more than ``pass_gap`` s) and within a pass the ``shared`` part ``S_k`` of
+each detection's map-frame covariance is correlated as ``rho S_k^{1/2} S_l^{1/2}``
+(:func:`~stemmap.slam.uncertainty.correlated_mean_covariance`); passes are independent of each
+other. Where the detector gives each detection's own covariance (``TreeFrames.noise_cov``),
+:func:`mapped_tree_covariances` can use it for ``J_z R_z J_zᵀ`` instead of the constant one
+(``detection_covs``), and that whole covariance is the shared part; detections with the
+constant noise stay independent. Positions never change: only the stated covariance.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from stemmap.errors import InputError
+from stemmap.errors import ConfigError, InputError
 from stemmap.types import FloatArray, StemMap
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -65,7 +80,9 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "associate_per_frame",
     "averaged_tree_covariances",
+    "check_tree_cov_pass",
     "mapped_tree_covariances",
+    "pass_groups",
     "with_tree_covariances",
 ]
 
@@ -94,6 +111,34 @@ def associate_per_frame(
     return j
 
 
+def check_tree_cov_pass(rho: float, gap: float, who: str) -> None:
+    """A back-end's ``tree_cov_pass_rho`` / ``tree_cov_pass_gap_s``, validated."""
+    if not 0.0 <= rho <= 1.0:
+        raise ConfigError(f"{who}.tree_cov_pass_rho must be in [0, 1], got {rho}.")
+    if not (gap >= 0 and math.isfinite(gap)):
+        raise ConfigError(f"{who}.tree_cov_pass_gap_s must be >= 0 s, got {gap}.")
+
+
+def pass_groups(tree_index: ArrayLike, times: ArrayLike, gap: float) -> IntArray:
+    """Pass of each detection: one number per (tree, run of its detections with no time gap
+    above ``gap`` s), numbered from 0 over all trees; -1 where ``tree_index`` is negative."""
+    idx = np.asarray(tree_index, dtype=np.int64).reshape(-1)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    if t.shape != idx.shape:
+        raise InputError(f"pass_groups: {idx.size} tree indices but {t.size} times.")
+    if not gap >= 0:
+        raise InputError(f"pass_groups: gap must be >= 0 s, got {gap}.")
+    out = np.full(idx.shape, -1, dtype=np.int64)
+    sel = np.flatnonzero(idx >= 0)
+    if sel.size == 0:
+        return out
+    order = sel[np.lexsort((t[sel], idx[sel]))]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = (idx[order][1:] != idx[order][:-1]) | (np.diff(t[order]) > gap)
+    out[order] = np.cumsum(new) - 1
+    return out
+
+
 def averaged_tree_covariances(
     tree_index: ArrayLike,
     n_trees: int,
@@ -103,6 +148,9 @@ def averaged_tree_covariances(
     *,
     information: ArrayLike | None = None,
     weights: ArrayLike | None = None,
+    shared: ArrayLike | None = None,
+    passes: ArrayLike | None = None,
+    rho: float = 0.0,
 ) -> FloatArray:
     """Covariance (n_trees, 2, 2) of each tree's weighted mean of detections (module doc).
 
@@ -124,6 +172,15 @@ def averaged_tree_covariances(
         Explicit ``W_k`` instead (need not sum to ``I``): e.g. ``+W`` on one half of a tree's
         detections and ``-W`` on the other gives the covariance of the difference of the two
         halves' means (benchmarks/tree_covariance_split.py). Not with ``information``.
+    shared : ndarray (K, 2, 2), optional
+        The part of ``meas_covs`` correlated with ``rho`` between the detections of one pass
+        (module doc; default: all of it); the rest ``meas_covs - shared`` is independent.
+    passes : ndarray (K,), int, optional
+        Pass of each detection (:func:`pass_groups`; detections of one pass belong to one
+        tree); default one pass per tree.
+    rho : float in [0, 1]
+        Correlation of the shared detection errors within a pass. 0 (default): every
+        detection's error independent, the covariance of the module doc's first sum.
 
     Returns
     -------
@@ -180,12 +237,53 @@ def averaged_tree_covariances(
     inv_u = np.divide(1.0, u, out=np.zeros_like(u), where=u > 0)
     cross = (inv_u[:, None, None] * pre) @ np.swapaxes(B, 1, 2)
     term = B @ np.swapaxes(B, 1, 2) + cross + np.swapaxes(cross, 1, 2)
-    term = term + W @ M[s] @ np.swapaxes(W, 1, 2)
+    if rho == 0.0:
+        term = term + W @ M[s] @ np.swapaxes(W, 1, 2)
     acc = np.zeros((n_trees, 2, 2))
     np.add.at(acc, j, term)
+    if rho != 0.0:
+        acc += _correlated_detection_part(idx, n_trees, s, W, M, shared, passes, rho)
     has = n > 0
     out[has] = 0.5 * (acc[has] + np.swapaxes(acc[has], 1, 2))
     return out
+
+
+def _correlated_detection_part(
+    idx: IntArray,
+    n_trees: int,
+    s: IntArray,
+    W: FloatArray,
+    M: FloatArray,
+    shared: ArrayLike | None,
+    passes: ArrayLike | None,
+    rho: float,
+) -> FloatArray:
+    """Per tree, the detection part ``Cov(Σ W_k v_k)`` with the ``shared`` part of ``v_k``
+    correlated with ``rho`` within a pass (rows ``s`` of the inputs, weights ``W`` in that
+    order; module doc)."""
+    from stemmap.slam.uncertainty import correlated_mean_covariance
+
+    k = idx.shape[0]
+    S = M if shared is None else np.asarray(shared, dtype=np.float64).reshape(-1, 2, 2)
+    g = idx if passes is None else np.asarray(passes, dtype=np.int64).reshape(-1)
+    if S.shape[0] != k or g.shape[0] != k:
+        raise InputError(
+            f"averaged_tree_covariances: {k} tree indices, {S.shape[0]} shared covariances "
+            f"and {g.shape[0]} passes must agree."
+        )
+    if np.any(g[s] < 0):
+        raise InputError("averaged_tree_covariances: a detection of a tree has no pass.")
+    groups, gi = np.unique(g[s], return_inverse=True)
+    tree_of = np.full(groups.size, -1, dtype=np.int64)
+    tree_of[gi] = idx[s]
+    bad = np.zeros(groups.size, dtype=bool)
+    np.logical_or.at(bad, gi, idx[s] != tree_of[gi])
+    if np.any(bad):
+        raise InputError("averaged_tree_covariances: a pass holds detections of two trees.")
+    per_pass = correlated_mean_covariance(gi, W, M[s] - S[s], S[s], int(groups.size), rho=rho)
+    acc = np.zeros((n_trees, 2, 2))
+    np.add.at(acc, tree_of, per_pass)
+    return acc
 
 
 def mapped_tree_covariances(
@@ -201,6 +299,10 @@ def mapped_tree_covariances(
     sensor_offset: tuple[float, float] = (0.0, 0.0),
     gate: float,
     information_pose_covs: ArrayLike | None = None,
+    detection_covs: ArrayLike | None = None,
+    times: ArrayLike | None = None,
+    pass_rho: float = 0.0,
+    pass_gap: float = 5.0,
 ) -> tuple[FloatArray, IntArray]:
     """Covariance of each mapped tree from its detections (module doc), the detections given to
     the trees by :func:`associate_per_frame` at the final ``poses``.
@@ -222,6 +324,17 @@ def mapped_tree_covariances(
     information_pose_covs : ndarray (F, 3, 3), optional
         The pose covariances the estimator weighted the detections with (the tree DB's Kalman
         refinement: ``Λ_k = (J_p P_f J_pᵀ + J_z R_z J_zᵀ)⁻¹``); default equal weights.
+        The weights always use the constant ``sigma_range`` / ``sigma_bearing`` (what the
+        estimator weighted with), whatever ``detection_covs``.
+    detection_covs : ndarray (K, 2, 2), optional
+        Each detection's own (range, bearing) covariance (``TreeFrames.noise_cov``; NaN rows
+        = none): the detection noise of the stated covariance where finite, instead of the
+        constant ``diag(sigma_range², sigma_bearing²)``.
+    times : ndarray (F,), s
+        Frame times, to split a tree's detections into passes (needed with ``pass_rho``).
+    pass_rho : float in [0, 1]
+        Correlation within a pass (:func:`pass_groups`, ``pass_gap`` s) of the errors of the
+        detections that carry their own covariance (module doc); 0: independent.
 
     Returns
     -------
@@ -257,7 +370,41 @@ def mapped_tree_covariances(
             np.broadcast_to(np.asarray(information_pose_covs, np.float64), (p.shape[0], 3, 3))
         )
         info = np.linalg.inv(Jp @ Pw[frame[use]] @ np.swapaxes(Jp, 1, 2) + M)
-    cov = averaged_tree_covariances(idx[use], n, Jp, Pf[frame[use]], M, information=info)
+    own = np.zeros(use.size, dtype=bool)
+    if detection_covs is not None:
+        dc = np.asarray(detection_covs, dtype=np.float64).reshape(-1, 2, 2)
+        if dc.shape[0] != r.shape[0]:
+            raise InputError(
+                f"mapped_tree_covariances: {dc.shape[0]} detection covariances for "
+                f"{r.shape[0]} detections."
+            )
+        dc = dc[use]
+        own = np.all(np.isfinite(dc), axis=(1, 2))
+        M = M.copy()
+        M[own] = Jz[own] @ dc[own] @ np.swapaxes(Jz[own], 1, 2)
+    if not 0.0 <= pass_rho <= 1.0:
+        raise InputError(f"mapped_tree_covariances: pass_rho must be in [0, 1], got {pass_rho}.")
+    kw: dict[str, object] = {}
+    if pass_rho > 0.0 and np.any(own):
+        if times is None:
+            raise InputError("mapped_tree_covariances: pass_rho needs the frame times.")
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        if t.shape[0] != p.shape[0]:
+            raise InputError(f"mapped_tree_covariances: {t.shape[0]} times, {p.shape[0]} poses.")
+        kw = {
+            "shared": np.where(own[:, None, None], M, 0.0),
+            "passes": pass_groups(idx[use], t[frame[use]], pass_gap),
+            "rho": pass_rho,
+        }
+    cov = averaged_tree_covariances(
+        idx[use],
+        n,
+        Jp,
+        Pf[frame[use]],
+        M,
+        information=info,
+        **kw,  # type: ignore[arg-type]
+    )
     return cov, np.bincount(idx[use], minlength=n).astype(np.int64)
 
 
@@ -272,10 +419,15 @@ def with_tree_covariances(
     sensor_offset: tuple[float, float] = (0.0, 0.0),
     gate: float,
     information_pose_covs: ArrayLike | None = None,
+    detection_covs: bool = False,
+    pass_rho: float = 0.0,
+    pass_gap: float = 5.0,
 ) -> StemMap:
     """``stem_map`` with every tree's ``cov`` from :func:`mapped_tree_covariances` (trees
     without an associated detection keep theirs); positions and everything else unchanged.
-    The tree DB's and Forestrix's reported tree covariance (issue 14)."""
+    The tree DB's and Forestrix's reported tree covariance (issue 14). ``detection_covs``:
+    use the detections' own covariances (``frames.noise_cov``) where given; ``pass_rho``,
+    ``pass_gap``: their correlation within a pass (module doc)."""
     if len(stem_map) == 0:
         return stem_map
     cov, _ = mapped_tree_covariances(
@@ -290,6 +442,10 @@ def with_tree_covariances(
         sensor_offset=sensor_offset,
         gate=gate,
         information_pose_covs=information_pose_covs,
+        detection_covs=frames.noise_cov if detection_covs else None,
+        times=frames.times,
+        pass_rho=pass_rho,
+        pass_gap=pass_gap,
     )
     trees = tuple(
         replace(t, cov=cov[i]) if np.all(np.isfinite(cov[i])) else t

@@ -50,7 +50,9 @@ Calibration on the simulator: benchmarks/uncertainty_calibration.py (docs/output
 
 **Fusing one pass's detections of a trunk into a position** (:func:`fused_positions`, a
 function for callers that fuse detections by their own covariance; no back-end's output uses
-it): the information-weighted mean, with a covariance that treats the detections' centre
+it, but the tree DB's and Forestrix's tree covariance apply the same correlation within a pass,
+:mod:`stemmap.slam.tree_covariance`): the information-weighted mean, with a covariance that
+treats the detections' centre
 errors as correlated within the pass (:data:`CENTRE_RHO`) -- the same design effect as the
 diameter's (:func:`correlated_mean_covariance`, of which :func:`fused_diameters`' standard
 error is the 1 x 1 case).
