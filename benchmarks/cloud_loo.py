@@ -160,6 +160,10 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
         ("off", {"density_slice_points": False}),
         ("on", {"density_slice_points": True}),
     ),
+    "thin_remeasure_by": (
+        ("slices", {"thin_remeasure_by": "slices"}),
+        ("error", {"thin_remeasure_by": "error"}),
+    ),
 }
 #: Transforms with a random draw: run with every seed (the others once).
 RANDOM = ("subsample_50", "subsample_20", "subsample_10", "noise_5mm", "noise_1cm")

@@ -9,7 +9,10 @@ arc; none when it failed its tests). ``--shape`` adds the shipped cloud's stems'
 per thin slice (0.2 m, 0.8-2.0 m) a circle fitted to the points within 5 cm of it and the
 median residual in each 30 degree sector (a lobed or fluted section shows the same pattern
 at every height; bark noise does not). docs/algorithms/cloud.md, "Why the thin re-measure
-moves archi Tree_1".
+moves archi Tree_1". ``--set key=value`` (as in ``cloud_robustness.py``) configures the
+traced run; with the default ``thin_remeasure_by = "error"`` every re-measure is traced twice
+(its DBH std with the section term is a second call), ``--set thin_remeasure_by=slices``
+traces the count rule of the section above once per stem.
 
     python benchmarks/cloud_thin_trace.py --cloud archi_tree_1 --transforms subsample_20 --seeds 2
 """
@@ -159,12 +162,18 @@ def main() -> None:
     ap.add_argument("--transforms", default="subsample_50,subsample_20")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--shape", action="store_true", help="the shipped stems' sections")
+    ap.add_argument("--set", action="append", default=[], help="StemConfig key=value (traced run)")
     args = ap.parse_args()
+    overrides = cr.set_overrides(args.set)
     root = find_datasets_dir()
     if root is None:
         raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
     bl = cr.run_baseline(args.cloud, root / CLOUDS[args.cloud])
-    out: dict[str, Any] = {"cloud": args.cloud, "shipped_dbh_cm": [_r(d) for d in bl.det.diameter]}
+    out: dict[str, Any] = {
+        "cloud": args.cloud,
+        "set": overrides,
+        "shipped_dbh_cm": [_r(d) for d in bl.det.diameter],
+    }
     if args.shape:
         out["shape"] = section_shape(bl)
     cells = []
@@ -173,7 +182,7 @@ def main() -> None:
             for name, _, f in cr.transformed_files(bl, args.transforms.split(","), Path(tmp), seed):
                 off = detect_stems_file(f, StemConfig(thin_remeasure=False))
                 with traced() as calls:
-                    on = detect_stems_file(f, StemConfig())
+                    on = detect_stems_file(f, StemConfig(**overrides))
                 cells.append(
                     {
                         "cell": f"{name}/{seed}",

@@ -96,13 +96,15 @@ def test_each_option_lists_its_current_default() -> None:
         "sparse_tall_fit": "off",
         "dbh_from": "median",
         "density_slice_points": "on",
+        "thin_remeasure_by": "error",
     }
     # every value is a distinct config; the off values of options that are on by default
     # really switch something off (axis_fallback is off by default: its off is the default;
-    # slice_fit_window is a width, its current value listed first as the least intervention)
+    # slice_fit_window is a width, its current value listed first as the least intervention;
+    # thin_remeasure_by's former rule, "slices", is listed first as the least intervention)
     for opt, vals in OPTIONS.items():
         assert len({config_key(ov) for _, ov in vals}) == len(vals), opt
-        if default_label(opt) not in ("off", "3", "line"):
+        if default_label(opt) not in ("off", "3", "line", "slices"):
             assert config_key(vals[0][1]) != "default", opt
 
 

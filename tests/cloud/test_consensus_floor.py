@@ -114,10 +114,15 @@ def test_pine_plot_at_20_percent_keeps_its_thin_stem(datasets_dir: Path) -> None
     with tempfile.TemporaryDirectory() as td:
         for _, _, f in cr.transformed_files(bl, ["subsample_20"], Path(td), 0):
             for on in (False, True):
-                # against the pipeline before density_slice_points (on since Dec 6), which
-                # finds the stem too
+                # against the pipeline before density_slice_points and the re-measure by
+                # its error (both defaults since Dec 6), each of which finds the stem too
                 det = detect_stems_file(
-                    f, StemConfig(consensus_floor=on, density_slice_points=False)
+                    f,
+                    StemConfig(
+                        consensus_floor=on,
+                        density_slice_points=False,
+                        thin_remeasure_by="slices",
+                    ),
                 )
                 pairs = cr._match(bl.det.xy, bl.det.diameter, det.xy)
                 got[on] = {i: det.diameter[j] for i, j in pairs}

@@ -51,8 +51,11 @@ def test_tree_1_thin_slices_scatter_and_replace(tree_1: cr.Baseline) -> None:
         files = cr.transformed_files(tree_1, ["subsample_20"], Path(tmp), 2)
         _, _, f = next(files)  # the file lives until the generator moves on
         off = detect_stems_file(f, StemConfig(thin_remeasure=False))
+        # the rule the trace is about: more thin slices replace the thick measurement (the
+        # default before Dec 6; since then the re-measure is taken by its error)
         with traced() as calls:
-            on = detect_stems_file(f, StemConfig())
+            on = detect_stems_file(f, StemConfig(thin_remeasure_by="slices"))
+        by_error = detect_stems_file(f, StemConfig())
         files.close()
     # the tracer leaves the detector as it found it
     assert measure._thin_slice_stem is thin0 and slicestem._annulus_fit is ann0
@@ -73,3 +76,8 @@ def test_tree_1_thin_slices_scatter_and_replace(tree_1: cr.Baseline) -> None:
     assert abs(100 * on.diameter[0] - stem["dbh_cm"]) < 0.01
     # the replaced DBH is 1.9 cm off the thick one's (3.4 cm on the file order's draws)
     assert 100 * (off.diameter[0] - on.diameter[0]) > 1.5
+    # by its error (fit noise and the slices' section scatter, thin_remeasure_by = "error")
+    # the thin measurement does not replace the thick one: the DBH stays within 1 cm of the
+    # thick measurement's (the ladder may refit it) and far from the thin one's
+    assert abs(100 * (by_error.diameter[0] - off.diameter[0])) < 1.0
+    assert 100 * (by_error.diameter[0] - on.diameter[0]) > 1.5

@@ -320,6 +320,18 @@ def _single_tree_stem(
     return incumbent
 
 
+def _section_sd(
+    measure: Callable[[StemConfig], tuple[tuple[float, ...], str] | None], cfg: StemConfig
+) -> float:
+    """The DBH standard deviation of the stem ``measure(cfg)`` gives, with the section term
+    at its model weight (``dbh_sd_scatter`` = 1: fit noise plus the kept slices' scatter
+    about the stem's local profile, :func:`~stemmap.cloud.dbhsd.dbh_variance`), whatever the
+    configured weight; inf when it gives no stem. What ``thin_remeasure_by = "error"``
+    compares: the DBH is the same at every weight, only its stated error changes."""
+    got = measure(replace(cfg, dbh_sd_scatter=1.0))
+    return math.inf if got is None else float(got[0][9])
+
+
 def _stem_weight_of(stem: tuple[tuple[float, ...], str]) -> float:
     return _stem_weight(stem[0])
 
@@ -510,11 +522,19 @@ def _stems_from_band(
         f: _SliceFits, c: int, stem: tuple[tuple[float, ...], str]
     ) -> tuple[tuple[float, ...], str]:
         """Cluster ``c``'s ``stem``, found on at most ``thin_remeasure_max_slices`` thick
-        slices (``f``), measured again on the thin ones where more of them agree; else as
-        found."""
+        slices (``f``), measured again on the thin ones where that measurement is the better
+        one (``thin_remeasure_by``: its DBH error with the section term smaller, or more thin
+        slices agree); else as found."""
         if remeasure:
             again = _thin_slice_stem(f, c, ctx, ctx0, cfg_thin)
-            if again is not None and again[0][7] > stem[0][7]:
+            if again is None:
+                return stem
+            if cfg.thin_remeasure_by == "error":
+                if _section_sd(lambda k: _thin_slice_stem(f, c, ctx, ctx0, k), cfg_thin) < (
+                    _section_sd(lambda k: _slice_stem(f, c, ctx, k), cfg)
+                ):
+                    return again
+            elif again[0][7] > stem[0][7]:
                 return again
         return stem
 
