@@ -28,15 +28,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import scene_batches
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.config import DetectorConfig
 from stemmap.scan.plausibility import (
     SCAN_NOISE_MIN_TRIPLES,
@@ -73,10 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--redraws", type=int, default=0, help="fresh noise draws per row")
     ap.add_argument("--table", action="store_true", help="print a markdown table")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     cfg = DetectorConfig.preset("stemmap")
     lo, hi = cfg.range_min or 0.0, cfg.range_max or np.inf
     t0 = time.perf_counter()

@@ -44,9 +44,9 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import matched, scene_batches
 from first_echo_dbh_z import SHORT, geometry_digest, matched_views
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 #: Calibrated values of the scores (a 2D Gaussian error with the stated covariance).
@@ -423,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.rows_in is not None:
         rows = [r for path in args.rows_in for r in json.loads(path.read_text())]
     else:
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+        ddir = require_datasets_dir(args.datasets)
         models = tuple(args.models.split(","))
         rows, digest = collect(
             ddir, args.vantage, args.seed, json.loads(args.set), models, args.hit_fraction

@@ -47,10 +47,10 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import matched
 from diameter_rho_real import passes
 from first_echo_dbh_z import SHORT
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan._centre_cov import outline_centre_covs, outline_covs
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -61,9 +61,7 @@ def pass_records(
     name: str, model: str, noise: float, seed: int, cfg: DetectorConfig
 ) -> list[dict[str, Any]]:
     """One record per matched detection: trunk, pass, centre error (m), centre covariance."""
-    where = find_datasets_dir()
-    if where is None:
-        raise SystemExit("no shared/datasets folder found: set STEMMAP_DATASETS.")
+    where = require_datasets_dir()
     sl = load_slice(where, name)
     rng = np.random.default_rng(seed)
     det = ScanTrunkDetector(cfg)

@@ -30,8 +30,8 @@ import cloud_robustness as cr
 import stemmap.cloud.measure as measure
 import stemmap.cloud.slicestem as slicestem
 from _cloud_refs import CLOUDS
+from _datasets import require_datasets_dir
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 
 def _r(v: float, scale: float = 100.0) -> float:
@@ -160,9 +160,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--shape", action="store_true", help="the shipped stems' sections")
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     bl = cr.run_baseline(args.cloud, root / CLOUDS[args.cloud])
     out: dict[str, Any] = {"cloud": args.cloud, "shipped_dbh_cm": [_r(d) for d in bl.det.diameter]}
     if args.shape:

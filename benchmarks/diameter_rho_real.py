@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 from scipy.optimize import brentq
 
+from _datasets import require_datasets_dir
 from _real_scanning import matched  # shared with real_geometry.py
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -82,9 +82,7 @@ def run_slice(
     ``scans``: when given, one record per matched scan is appended to it (range to the trunk
     centre, the trunk's returns in the noise-free scan, the detection's points and arc, the
     error; m / deg) for the per-scan breakdown."""
-    where = find_datasets_dir()
-    if where is None:
-        raise SystemExit("no shared/datasets folder found: set STEMMAP_DATASETS.")
+    where = require_datasets_dir()
     sl = load_slice(where, name)
     rng = np.random.default_rng(seed)
     det = ScanTrunkDetector(pass_detector(model, preset))

@@ -37,9 +37,9 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import greedy_match, matched, scene_batches
 from real_geometry import visible_trunks
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.plausibility import scan_noise
 
@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = json.loads(args.rows_in.read_text())
         digest: dict[str, Any] = {}
     else:
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+        ddir = require_datasets_dir(args.datasets)
         rows, digest = collect(ddir, args.vantage, args.seed, json.loads(args.set))
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(rows))

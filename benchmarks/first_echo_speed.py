@@ -43,10 +43,10 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import matched, scene_batches
 from scan_detection import detections_digest, timed_both
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
 
@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     overrides = json.loads(args.set) if args.set is not None else dict(LOO_GRID[args.grid])
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+    ddir = require_datasets_dir(args.datasets)
     batches = nearest_batches(ddir, args.vantage, args.seed, args.background)
     out = {
         "benchmark": "first_echo_speed",

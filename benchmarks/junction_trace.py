@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import greedy_match, matched, scene_batches
 from real_geometry import visible_trunks
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
 
@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     BEAMS.install()
     global JACK
     JACK = args.jack
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+    ddir = require_datasets_dir(args.datasets)
     rows = trace(ddir, args.vantage, args.seed, args.only, json.loads(args.set), args.tol)
     print(json.dumps({"benchmark": "junction_trace", "set": args.set, "tol": args.tol,
                       "summary": summary(rows), "views": rows}))  # fmt: skip

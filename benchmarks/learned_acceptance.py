@@ -49,7 +49,6 @@ import argparse
 import json
 import math
 import pickle
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -58,12 +57,12 @@ import numpy as np
 from scipy.special import chdtri
 
 import real_geometry as rg
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import FULL_SCANNERS, TEXTBOOK, matched, scene_scans, vantage_points
 from _scan_sim import SIM_PRECISION_MIN, SIM_SEEDS
 from kasa_count import f1
 from real_geometry_folds import _row as folds_row
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan._segment_fits import _arc_deg, _output_columns
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -520,10 +519,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--speed", action="store_true", help="also measure the cost (one process)")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     import sklearn.ensemble  # noqa: F401  (loads the OpenMP runtime the limit applies to)
     from threadpoolctl import threadpool_limits  # scikit-learn's own dependency
 

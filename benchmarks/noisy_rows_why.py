@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 
 import _loo_grid
+from _datasets import require_datasets_dir
 from _real_scanning import FULL_SCANNERS, dataset_seed, matched, scene_scans, vantage_points
 from real_geometry_diagnose import miss_class, view_row, visible_views
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import load_slice, noisy_batch
 from stemmap.scan.detect import ScanTrunkDetector
 from stemmap.scan.plausibility import scan_noise
@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     preset = ScanTrunkDetector.from_preset("stemmap").config
     cfg0 = replace(preset, **{**_loo_grid.LOO_GRID[80], **json.loads(args.set)})
-    ddir = find_datasets_dir()
+    ddir = require_datasets_dir()
     out: dict[str, Any] = {}
     for name in args.only:
         sl = load_slice(ddir, name, "circle")

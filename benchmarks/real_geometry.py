@@ -53,13 +53,13 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_choice import (  # the choice; the underscored names re-exported for other scripts
     FAMILIES,
     LOO_PROTOCOL_BY_SCANNER,  # noqa: F401  (re-exported: the tests)
@@ -102,7 +102,6 @@ from _scan_sim import (  # shared with scan_detection.py
     simulated_precision,
     simulated_precision_seeds,
 )
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
     RealSlice,
@@ -596,10 +595,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         return 0
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     scanners = QUICK_SCANNERS if args.quick else FULL_SCANNERS
     if args.averaging:
         scanners = AVERAGING_SCANNERS

@@ -57,7 +57,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -65,10 +64,10 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import TEXTBOOK, matched, vantage_points  # shared with real_geometry.py
 from _real_scanning import error_stats as _stats
 from _real_scanning import greedy_match as _match
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
     RealSlice,
@@ -361,10 +360,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", default="{}", help="JSON overrides of the stemmap preset")
     ap.add_argument("--no-misses", action="store_true", help="leave out the per-miss list")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     overrides = json.loads(args.set)
     cfg = DetectorConfig.preset("stemmap", **overrides)
     out: dict[str, Any] = {

@@ -23,17 +23,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import FULL_SCANNERS
 from real_geometry import _objective, reference_trusted, run_dataset
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice
 from stemmap.scan.detect import DetectorConfig
 
@@ -133,10 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vantage", type=int, default=20)
     ap.add_argument("--seed", type=int, default=11)
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     settings = {f"grid{g}": LOO_GRID[g] for g in args.grid}
     base = LOO_GRID[args.grid[0]] if args.grid else {}
     settings |= {f"set{i}": {**base, **s} for i, s in enumerate(args.set)}

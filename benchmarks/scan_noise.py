@@ -28,20 +28,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import (  # shared with real_geometry.py
     FULL_SCANNERS,
     MOUNT,
     scene_note,
     slice_scan_batches,
 )
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD, Mount
 from stemmap.scan.plausibility import scan_noise
 
@@ -69,10 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pitch", type=float, default=MOUNT.pitch_deg, help="degrees down")
     args = ap.parse_args(argv)
     mount = Mount(MOUNT.height, args.pitch, MOUNT.band)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     t0 = time.perf_counter()
     out: dict[str, Any] = {}
     batches = slice_scan_batches(

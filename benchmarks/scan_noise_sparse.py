@@ -32,15 +32,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import slice_scan_batches
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.config import DetectorConfig
 from stemmap.scan.plausibility import SCAN_NOISE_MIN_TRIPLES, interior_triples, scan_noise
 
@@ -80,10 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--floor", type=float, default=2.0, help="scan_noise_batch, x sigma")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     cfg = DetectorConfig.preset("stemmap")
     jump, surface, sigma = cfg.scan_noise_jump, cfg.scan_noise_surface, cfg.sigma
     t0 = time.perf_counter()

@@ -37,10 +37,10 @@ from unittest import mock
 import numpy as np
 
 import stemmap.scan._pieces as pieces_mod
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import FULL_SCANNERS, matched, scene_scans, vantage_points
 from _scan_sim import _runs
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan._step_split import step_refit
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -108,10 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             float(args.real[2]),
             float(args.real[3]),
         )
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-        if ddir is None:
-            print("error: shared datasets folder not found", file=sys.stderr)
-            return 2
+        ddir = require_datasets_dir(args.datasets)
         sl = load_slice(ddir, name)
         seed = 11 + list(SLICES).index(name)
         rng = np.random.default_rng(seed)
