@@ -292,7 +292,8 @@ def run_dataset(
 ) -> dict[str, Any]:
     """Every scanner configuration x detector on one slice (``background``: the virtual
     scans' scene besides the trunks, :func:`_real_scanning.scene_scans`; ``return_rule``: the
-    averaging scanner's return threshold, default any sub-ray; ``max_fill_returns``: a view
+    averaging scanner's return threshold, which an averaging scanner needs (``ANY_HIT``: any
+    sub-ray, the rule before Dec 6); ``max_fill_returns``: a view
     counts only with at most this many returns from the trunk's filled unseen sectors,
     :func:`fill_returns`, default every view)."""
     rng = np.random.default_rng(seed)
