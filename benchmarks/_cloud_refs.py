@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from stemmap.cloud.reference import RingReference, converged_ring_reference
 from stemmap.cloud.result import BASE_SLICE
-from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 
 SEEDS_FILE = Path(__file__).resolve().parent / "_cloud_ring_seeds.json"
@@ -179,9 +179,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", action="store_true", help="rewrite the seeds from the detector")
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     if args.write:
         SEEDS_FILE.write_text(_dump(_write(root)))
     out = {}

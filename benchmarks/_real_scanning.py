@@ -6,6 +6,7 @@ on ``sys.path`` when it runs, from any working directory)."""
 
 from __future__ import annotations
 
+import argparse
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
@@ -28,6 +29,7 @@ from stemmap.scan.detect import DetectorConfig
 from stemmap.types import ScanBatch
 
 __all__ = [
+    "ANY_HIT",
     "AVERAGING_SCANNERS",
     "BACKGROUNDS",
     "FULL_SCANNERS",
@@ -35,6 +37,7 @@ __all__ = [
     "TEXTBOOK",
     "ReturnRule",
     "SceneBatch",
+    "add_hit_fraction",
     "dataset_seed",
     "error_stats",
     "greedy_match",
@@ -160,10 +163,16 @@ def scene_scans(
     ``relief_corr``: the TreeLS plot's by default,
     :meth:`stemmap.eval.scan_background.Relief.random`); headings and relief come from their
     own generators (``seed``), so the vantage points and the noise are those of ``"none"``.
-    ``return_rule``: the averaging scanner's return threshold (:class:`ReturnRule`; default
-    any sub-ray of 25; of 5 before Dec 5)."""
+    ``return_rule``: the averaging scanner's return threshold (:class:`ReturnRule`), which
+    the averaging model needs (a ValueError without one: until Dec 6 it fell silently to any
+    sub-ray, :data:`ANY_HIT`); ignored by the nearest-return model."""
     extra: dict[str, Any] = {}
-    if model == "averaging" and return_rule is not None:
+    if model == "averaging":
+        if return_rule is None:
+            raise ValueError(
+                "scene_scans: the averaging scanner needs its return rule: pass return_rule="
+                "ReturnRule(q) (ANY_HIT: any sub-ray, every benchmark's rule before Dec 6)."
+            )
         extra.update(return_rule.kwargs())
     if background == "ground":
         heads = np.random.default_rng((seed, 1)).uniform(-math.pi, math.pi, vp.shape[0])
@@ -208,6 +217,28 @@ class ReturnRule:
         return f"{share} of {self.sub_rays} {self.profile} sub-rays"
 
 
+#: The averaging scanner's rule of every benchmark before Dec 6 ("One return threshold"): a beam
+#: returns when any of its 25 uniform sub-rays hits -- ``virtual_scans``' own defaults, so a
+#: script that passes it gives the numbers it gave without a rule. Scripts whose published
+#: numbers were measured so pass it by name (or as their ``--hit-fraction 0`` default).
+ANY_HIT = ReturnRule(0.0)
+
+
+def add_hit_fraction(ap: argparse.ArgumentParser, default: ReturnRule) -> None:
+    """``--hit-fraction`` as ``real_geometry.py``'s (the virtual averaging scanner's return
+    threshold: the share of its footprint that must hit), default ``default``'s; the script
+    builds its rule as ``ReturnRule(args.hit_fraction)``."""
+    ap.add_argument(
+        "--hit-fraction",
+        type=float,
+        default=default.min_hit_fraction,
+        help="averaging scanner's return threshold: share of the footprint that must hit"
+        f" (default {default.min_hit_fraction:g}, the rule of this script's published numbers;"
+        " 0: any sub-ray, every benchmark's before Dec 6; 0.3: the real SICK LMS200's,"
+        " real_geometry.py's default)",
+    )
+
+
 def scene_note(background: str) -> str:
     """The scenario's words for ``background`` (echoed in the benchmarks' JSON)."""
     if background == "none":
@@ -239,12 +270,17 @@ def slice_scan_batches(
     mount: Mount = MOUNT,
     relief_std: float = RELIEF_STD,
     relief_corr: float = RELIEF_CORR,
+    *,
+    return_rule: ReturnRule,
 ) -> Iterator[tuple[str, str, np.ndarray]]:
     """Every slice with reference trunks x :data:`FULL_SCANNERS` configuration: (slice name,
     configuration name ``<model>_<step>deg_noise<cm>cm``, noisy ranges (V, N)), with the
     vantage points, seeds and noise draws of ``real_geometry.run_dataset`` (``seed`` + the
-    slice's index; vantage points first, then one noise draw per configuration in order)."""
-    for sc in scene_batches(ddir, n_vantage, seed, background, mount, relief_std, relief_corr):
+    slice's index; vantage points first, then one noise draw per configuration in order);
+    ``return_rule``: the averaging scanner's."""
+    for sc in scene_batches(
+        ddir, n_vantage, seed, background, mount, relief_std, relief_corr, return_rule=return_rule
+    ):
         yield sc.sl.name, sc.config, sc.batch.ranges
 
 
@@ -277,12 +313,14 @@ def scene_batches(
     mount: Mount = MOUNT,
     relief_std: float = RELIEF_STD,
     relief_corr: float = RELIEF_CORR,
-    return_rule: ReturnRule | None = None,
+    *,
+    return_rule: ReturnRule,
     names: Iterable[str] | None = None,
 ) -> Iterator[SceneBatch]:
     """:func:`slice_scan_batches` with the slice, vantage points, hits and batch of every
     configuration (``names``: only these slices, the others' seeds unchanged;
-    ``return_rule``: the averaging scanner's, as ``real_geometry.py --loo`` passes it)."""
+    ``return_rule``: the averaging scanner's, as ``real_geometry.py --loo`` passes it;
+    :data:`ANY_HIT` for the rule of every benchmark before Dec 6)."""
     only = None if names is None else set(names)
     for name in SLICES:
         if only is not None and name not in only:

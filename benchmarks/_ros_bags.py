@@ -153,6 +153,50 @@ class BagFactory:
             is_dense=False,
         )
 
+    def image(self, time: float, a: np.ndarray, encoding: str, frame: str = "cam") -> Any:
+        """A ``sensor_msgs/Image`` holding array ``a`` ((H, W) or (H, W, C)), rows unpadded."""
+        a = np.ascontiguousarray(a)
+        step = a.shape[1] * (a.shape[2] if a.ndim == 3 else 1) * a.dtype.itemsize
+        return self.t("sensor_msgs/msg/Image")(
+            header=self.header(time, frame),
+            height=a.shape[0],
+            width=a.shape[1],
+            encoding=encoding,
+            is_bigendian=0,
+            step=step,
+            data=a.view(np.uint8).ravel(),
+        )
+
+    def camera_info(
+        self,
+        time: float,
+        k: Sequence[float],
+        width: int,
+        height: int,
+        tx: float = 0.0,
+        frame: str = "cam",
+    ) -> Any:
+        """A ``sensor_msgs/CameraInfo`` with intrinsics ``k`` (9 values, row-major) and the
+        projection ``P = [K | (tx, 0, 0)]`` (a right camera's ``tx = -fx * baseline``)."""
+        roi = self.t("sensor_msgs/msg/RegionOfInterest")(
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        )
+        kk = np.asarray(k, dtype=np.float64)
+        p = [kk[0], kk[1], kk[2], tx, kk[3], kk[4], kk[5], 0.0, kk[6], kk[7], kk[8], 0.0]
+        mats = {"d": np.zeros(5), "k": kk, "r": np.eye(3).ravel(), "p": np.asarray(p)}
+        if self.ros == 1:  # ROS1 names the matrices in capitals
+            mats = {m.upper(): v for m, v in mats.items()}
+        return self.t("sensor_msgs/msg/CameraInfo")(
+            header=self.header(time, frame),
+            height=height,
+            width=width,
+            distortion_model="plumb_bob",
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **mats,
+        )
+
     def serialize(self, msg: Any) -> bytes:
         if self.ros == 1:
             return bytes(self.ts.serialize_ros1(msg, msg.__msgtype__))

@@ -17,6 +17,12 @@ less the preset's 6 mm surface share) with each statistic of ``batch_noise_scale
 The true noise is the benchmark's added Gaussian range noise (0 / 1 / 3 cm); the no-noise rows
 read the slices' own shape, bark and TLS noise.
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/batch_noise_scale.py --vantage 20 --redraws 200
@@ -28,15 +34,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from _real_scanning import scene_batches
-from stemmap.datasets import find_datasets_dir
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, ReturnRule, add_hit_fraction, scene_batches
 from stemmap.scan.config import DetectorConfig
 from stemmap.scan.plausibility import (
     SCAN_NOISE_MIN_TRIPLES,
@@ -72,18 +77,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--redraws", type=int, default=0, help="fresh noise draws per row")
     ap.add_argument("--table", action="store_true", help="print a markdown table")
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     cfg = DetectorConfig.preset("stemmap")
     lo, hi = cfg.range_min or 0.0, cfg.range_max or np.inf
     t0 = time.perf_counter()
     rng = np.random.default_rng(12345)
     clean: dict[tuple[str, str, float], np.ndarray] = {}
     rows: list[dict[str, Any]] = []
-    for sc in scene_batches(ddir, args.vantage, args.seed):
+    for sc in scene_batches(
+        ddir, args.vantage, args.seed, return_rule=ReturnRule(args.hit_fraction)
+    ):
         r = sc.batch.ranges
         gate = (r > lo) & (r < hi)
         g = np.where(gate, r, np.nan)

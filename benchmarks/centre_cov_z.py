@@ -24,6 +24,14 @@ of the (x, y, r) error (``med_d3``, 1.538 calibrated) and the along-radius corre
 covariance states. ``--loo --averaging`` also chooses ``dbh_sd_footprint`` (the pooled median
 |z| of the DBH error 0.674 on the training rows) and scores each ``--rows-in`` file apart.
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published without ``--hit-fraction``
+(its Dec 6 averaging rows were published at 0 and at 0.3: the commands in
+docs/algorithms/scan-detection.md say which). ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/centre_cov_z.py --rows-out /tmp/c.json
@@ -49,9 +57,9 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import matched, scene_batches
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, add_hit_fraction, matched, scene_batches
 from first_echo_dbh_z import SHORT, geometry_digest, matched_views, zstats
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 #: Calibrated values of the scores (a 2D Gaussian error with the stated covariance).
@@ -145,7 +153,7 @@ def collect(
     digests = {m: hashlib.sha256() for m in models}
     full = {m: hashlib.sha256() for m in models}
     counts = dict.fromkeys(models, 0)
-    rule = ReturnRule(min_hit_fraction=hit_fraction) if hit_fraction > 0 else None
+    rule = ReturnRule(min_hit_fraction=hit_fraction)  # 0: ANY_HIT, virtual_scans' default
     for sc in scene_batches(ddir, n_vantage, seed, return_rule=rule):
         if sc.model not in models:
             continue
@@ -456,12 +464,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11, help="real_geometry.py's --seed")
     ap.add_argument("--set", default="{}", help="JSON overrides of the stemmap preset")
     ap.add_argument("--models", default="nearest,averaging", help="scanner models, comma separated")
-    ap.add_argument(
-        "--hit-fraction",
-        type=float,
-        default=0.0,
-        help="the virtual averaging scanner's return threshold (real_geometry.py's)",
-    )
+    add_hit_fraction(ap, ANY_HIT)
     ap.add_argument("--own", action="store_true", help="also record the fit's own covariance")
     ap.add_argument("--no-steps", action="store_true", help="no per-step rows in the table")
     ap.add_argument("--rows-out", type=Path, default=None)
@@ -492,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
             for r in json.loads(path.read_text())
         ]
     else:
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+        ddir = require_datasets_dir(args.datasets)
         models = tuple(args.models.split(","))
         rows, digest = collect(
             ddir, args.vantage, args.seed, json.loads(args.set), models, args.hit_fraction

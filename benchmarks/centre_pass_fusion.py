@@ -28,6 +28,12 @@ median d is <= 1.177, the held-out dataset's median d per noise level before (rh
 ``--rows-out`` / ``--rows-in`` keep the matched detections (several seeds pooled: give each
 ``--seed``'s file, trunks told apart by file).
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/centre_pass_fusion.py [--models nearest]
@@ -47,10 +53,10 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import matched
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, ReturnRule, add_hit_fraction, matched
 from diameter_rho_real import passes
 from first_echo_dbh_z import SHORT
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan._centre_cov import outline_centre_covs, outline_covs
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -58,12 +64,11 @@ from stemmap.slam.uncertainty import CENTRE_RHO, fused_positions
 
 
 def pass_records(
-    name: str, model: str, noise: float, seed: int, cfg: DetectorConfig
+    name: str, model: str, noise: float, seed: int, cfg: DetectorConfig, return_rule: ReturnRule
 ) -> list[dict[str, Any]]:
-    """One record per matched detection: trunk, pass, centre error (m), centre covariance."""
-    where = find_datasets_dir()
-    if where is None:
-        raise SystemExit("no shared/datasets folder found: set STEMMAP_DATASETS.")
+    """One record per matched detection: trunk, pass, centre error (m), centre covariance
+    (``return_rule``: the averaging scanner's)."""
+    where = require_datasets_dir()
     sl = load_slice(where, name)
     rng = np.random.default_rng(seed)
     det = ScanTrunkDetector(cfg)
@@ -74,7 +79,7 @@ def pass_records(
         for p, vp in enumerate(passes(c, rng)):
             ranges0, _ = virtual_scans(
                 sl.xy, sl.labels, vp, resolution_deg=0.5, model=model,  # type: ignore[arg-type]
-                centers=sl.centers,
+                centers=sl.centers, **return_rule.kwargs(),
             )  # fmt: skip
             obs = det.detect_batch(noisy_batch(ranges0, 0.5, noise, rng))
             for s in range(vp.shape[0]):
@@ -231,7 +236,9 @@ def main() -> None:
         "sight), or the along term only",
     )  # fmt: skip
     ap.add_argument("--loo", action="store_true", help="choose rho leave one dataset out")
+    add_hit_fraction(ap, ANY_HIT)
     a = ap.parse_args()
+    rule = ReturnRule(a.hit_fraction)
     base = DetectorConfig.preset("stemmap", **json.loads(a.set))
     rows: dict[str, list[dict[str, Any]]]
     if a.rows_in:  # several files (e.g. --seed 0..4): pooled, trunks told apart by file
@@ -250,7 +257,7 @@ def main() -> None:
                 for i, name in enumerate(SLICES):
                     if name in a.skip:
                         continue
-                    recs = pass_records(name, model, noise, a.seed + i, cfg)
+                    recs = pass_records(name, model, noise, a.seed + i, cfg, rule)
                     for r in recs:
                         r["trunk"] = [i, r["trunk"]]
                     rows[f"{model} | {100 * noise:g} cm | {SHORT.get(name, name)}"] = recs

@@ -32,12 +32,12 @@ import numpy as np
 
 import stemmap.cloud.slicestem as slicestem
 from _cloud_refs import match_stems, reference_of_each
+from _datasets import require_datasets_dir
 from cloud_real import CLOUDS
 from cloud_robustness import TRANSFORMS, run_baseline, set_overrides, transformed_files
 from stemmap.cloud.quantisation import QuantisedCoordinatesError
 from stemmap.cloud.result import BASE_SLICE, CloudStems
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 #: refused for every configuration alike (cloud_loo.SKIP)
 SKIP = ("utm_ply_float32", "las_scale_10cm")
@@ -131,9 +131,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
     overrides = set_overrides(args.set)
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     t0 = time.process_time()
     with tempfile.TemporaryDirectory() as td:
         clouds = {

@@ -36,13 +36,13 @@ from typing import Any
 import numpy as np
 
 from _cloud_refs import CLOUDS, fixed_references, load_seeds, reference_of_each
+from _datasets import require_datasets_dir
 from cloud_robustness import set_overrides
 from stemmap.cloud import slicestem
 from stemmap.cloud.reference import converged_ring_reference
 from stemmap.cloud.result import BASE_SLICE
 from stemmap.cloud.slicefit import _theil_sen
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 
 
@@ -227,9 +227,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
     overrides = set_overrides(args.set)
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     out = {
         "benchmark": "cloud_dbh_trace",
         "set": overrides,

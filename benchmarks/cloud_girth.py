@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from _cloud_refs import CLOUDS, fixed_references, load_seeds, match_stems
+from _datasets import require_datasets_dir
 from _girth import hull_perimeter, section_girth
 from cloud_robustness import (
     TRANSFORMS,
@@ -48,7 +49,6 @@ from cloud_robustness import (
 from stemmap.cloud.reference import ring_reference
 from stemmap.cloud.result import BASE_SLICE, CloudStems
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 DEFAULT_TRANSFORMS = "subsample_50,subsample_20,subsample_10,noise_5mm,noise_1cm"
 KEYS = ("circle", "girth", "caliper", "pair_lo", "pair_hi", "hull_raw")
@@ -256,9 +256,7 @@ def main() -> None:
     )
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     names = args.transforms.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
     t0 = time.process_time()

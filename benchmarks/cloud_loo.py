@@ -79,10 +79,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from _datasets import require_datasets_dir
 from cloud_real import CLOUDS
 from cloud_robustness import TRANSFORMS, run_baseline, score_run, transformed_files
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 #: Per option, its candidate values as StemConfig overrides, least intervention first (the
 #: tie-break of the selection rule); the default is the value whose config equals StemConfig().
@@ -426,9 +426,7 @@ def main() -> None:
         help="the options to check (default: all; each option's folds read only its own values)",
     )
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     clouds: Sequence[str] = args.clouds.split(",")
     transforms: Sequence[str] = args.transforms.split(",")
     seeds: Sequence[int] = [int(s) for s in args.seeds.split(",")]

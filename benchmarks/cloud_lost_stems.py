@@ -45,9 +45,9 @@ import cloud_robustness as cr
 import stemmap.cloud.measure as measure
 import stemmap.cloud.slicestem as ss
 from _cloud_refs import CLOUDS
+from _datasets import require_datasets_dir
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.stems import detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 
 def _c(v: float) -> float:
@@ -163,9 +163,7 @@ def cell_args(doc: str, cloud: str) -> tuple[argparse.Namespace, Path, StemConfi
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     return args, root, replace(StemConfig(), **cr.set_overrides(args.set))
 
 

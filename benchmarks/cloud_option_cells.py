@@ -30,11 +30,11 @@ import numpy as np
 
 import cloud_robustness as cr
 from _cloud_refs import reference_of_each
+from _datasets import require_datasets_dir
 from cloud_loo import RANDOM, SKIP
 from cloud_real import CLOUDS
 from stemmap.cloud.result import CloudStems
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 KEYS = ("fails", "dbh_vs_ring_rmse_cm", "extra", "matched")
 
@@ -77,9 +77,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--set", action="append", default=[], required=True)
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     cfgs = {"default": StemConfig(), "option": replace(StemConfig(), **cr.set_overrides(args.set))}
     cpu = dict.fromkeys(cfgs, 0.0)
     seeds = [int(s) for s in args.seeds.split(",")]

@@ -44,13 +44,13 @@ import laspy
 import numpy as np
 
 from _cloud_refs import CLOUDS, match_stems
+from _datasets import require_datasets_dir
 from cloud_robustness import set_overrides, write_las
 from munjer2025_real_frames import LINES_X, virtual_frame
 from stemmap.cloud.canonical import canonical_order
 from stemmap.cloud.filters import pass_through
 from stemmap.cloud.munjer import MunjerClusters, MunjerConfig, level_to_ground, munjer_clusters
 from stemmap.cloud.stems import CloudStems, StemConfig, detect_stems, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 
 
@@ -233,9 +233,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     a = ap.parse_args()
     overrides = set_overrides(a.set)
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     res = {
         k: run_cloud(str(root / CLOUDS[k]), a.perms, a.repeat, a.subsample, overrides)
         for k in a.clouds.split(",")

@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import cloud_robustness as cr
+from _datasets import require_datasets_dir
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 STEPS = (0.005, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1)
 
@@ -34,9 +34,7 @@ def main() -> None:
     ap.add_argument("--clouds", default=",".join(cr.CLOUDS))
     ap.add_argument("--steps", default=",".join(map(str, STEPS)))
     args = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     steps = [float(s) for s in args.steps.split(",")]
     cfg = replace(StemConfig(), max_coordinate_step=None)
     t0 = time.process_time()

@@ -34,10 +34,10 @@ from typing import Any
 import numpy as np
 
 from _cloud_refs import match_stems
+from _datasets import require_datasets_dir
 from cloud_real import CLOUDS
 from cloud_robustness import run_baseline, score_run, transformed_files
 from stemmap.cloud.stems import StemConfig, detect_stems, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 from stemmap.sim.lidar import lidar_preset, random_stand3d, simulate_tls
 
@@ -137,9 +137,7 @@ def main() -> None:
     ap.add_argument("--plain", action="store_true", help="RANSAC without local optimisation")
     ap.add_argument("--cpu", action="store_true", help="CPU time with and without it")
     a = ap.parse_args()
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     if a.cpu:
         print(json.dumps({"cpu": cpu_table(root)}, indent=1))
         return

@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from _cloud_refs import CLOUDS, fixed_references, load_seeds, reference_of_each
+from _datasets import require_datasets_dir
 from stemmap.cloud.result import BASE_SLICE
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 from stemmap.products.forestry import stem_profiles, stem_volume
 
@@ -105,9 +105,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     overrides = set_overrides(ap.parse_args().set)
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     out = {
         "benchmark": "cloud_real",
         "note": "ring references share the points with the detector, not its machinery nor "

@@ -95,6 +95,7 @@ from _cloud_refs import (
     tracked_reference,
 )
 from _cloud_refs import match_stems as _match
+from _datasets import require_datasets_dir
 from cloud_real import CLOUDS  # the clouds cloud_real.py measures
 from stemmap.cloud.filters import voxel_downsample
 from stemmap.cloud.ground import GroundModel
@@ -102,7 +103,6 @@ from stemmap.cloud.quantisation import MAX_COORDINATE_STEP, QuantisedCoordinates
 from stemmap.cloud.reference import RingReference, converged_ring_reference
 from stemmap.cloud.result import BASE_SLICE, CloudStems
 from stemmap.cloud.stems import StemConfig, detect_stems, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 from stemmap.io.clouds import read_cloud
 
 UTM = np.array([500_000.0, 6_200_000.0, 300.0])
@@ -619,9 +619,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value")
     args = ap.parse_args()
     overrides = set_overrides(args.set)
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     names = args.transforms.split(",")
     t0 = time.process_time()
     with tempfile.TemporaryDirectory() as td:

@@ -33,8 +33,8 @@ import cloud_robustness as cr
 import stemmap.cloud.measure as measure
 import stemmap.cloud.slicestem as slicestem
 from _cloud_refs import CLOUDS
+from _datasets import require_datasets_dir
 from stemmap.cloud.stems import StemConfig, detect_stems_file
-from stemmap.datasets import find_datasets_dir
 
 
 def _r(v: float, scale: float = 100.0) -> float:
@@ -165,9 +165,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="StemConfig key=value (traced run)")
     args = ap.parse_args()
     overrides = cr.set_overrides(args.set)
-    root = find_datasets_dir()
-    if root is None:
-        raise SystemExit("error: ../shared/datasets not found (set STEMMAP_DATASETS).")
+    root = require_datasets_dir()
     bl = cr.run_baseline(args.cloud, root / CLOUDS[args.cloud])
     out: dict[str, Any] = {
         "cloud": args.cloud,

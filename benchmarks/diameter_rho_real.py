@@ -20,6 +20,12 @@ scored on it).
 per form of ``b`` (:data:`BIAS_FORMS`) and rho in (1, 0.03), ``k`` solved for median |z| =
 0.6745 on all passes and leave-one-dataset-out (median |z| and share |z| < 1 held out).
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage: python benchmarks/diameter_rho_real.py [--noise 0 0.01] [--skip fortls_slice]
 [--rows-out rows.json | --rows-in rows.json] [--preset stemmap|none] [--scans]
 Prints JSON. The machine is shared; times are not reported.
@@ -36,8 +42,8 @@ from typing import Any
 import numpy as np
 from scipy.optimize import brentq
 
-from _real_scanning import matched  # shared with real_geometry.py
-from stemmap.datasets import find_datasets_dir
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, ReturnRule, add_hit_fraction, matched  # real_geometry.py's
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch, virtual_scans
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -77,14 +83,14 @@ def run_slice(
     seed: int,
     preset: str | None = "stemmap",
     scans: list[dict[str, Any]] | None = None,
+    *,
+    return_rule: ReturnRule,
 ) -> list[dict[str, Any]]:
     """One row per (trunk, pass) with >= 2 matched detections: n, mean error e, spread s (m).
     ``scans``: when given, one record per matched scan is appended to it (range to the trunk
     centre, the trunk's returns in the noise-free scan, the detection's points and arc, the
-    error; m / deg) for the per-scan breakdown."""
-    where = find_datasets_dir()
-    if where is None:
-        raise SystemExit("no shared/datasets folder found: set STEMMAP_DATASETS.")
+    error; m / deg) for the per-scan breakdown. ``return_rule``: the averaging scanner's."""
+    where = require_datasets_dir()
     sl = load_slice(where, name)
     rng = np.random.default_rng(seed)
     det = ScanTrunkDetector(pass_detector(model, preset))
@@ -95,7 +101,7 @@ def run_slice(
         for p, vp in enumerate(passes(c, rng)):
             ranges0, hit = virtual_scans(
                 sl.xy, sl.labels, vp, resolution_deg=0.5, model=model,  # type: ignore[arg-type]
-                centers=sl.centers,
+                centers=sl.centers, **return_rule.kwargs(),
             )  # fmt: skip
             obs = det.detect_batch(noisy_batch(ranges0, 0.5, noise, rng))
             errs, arcs = [], []
@@ -291,7 +297,9 @@ def main() -> None:
         "--scans", action="store_true",
         help="also print the per-scan errors by range, returns and arc (scan_breakdown)",
     )  # fmt: skip
+    add_hit_fraction(ap, ANY_HIT)
     a = ap.parse_args()
+    rule = ReturnRule(a.hit_fraction)
     preset = None if a.preset == "none" else a.preset
     rows: list[dict[str, Any]] = []
     scans: dict[str, list[dict[str, Any]]] = {}
@@ -305,7 +313,9 @@ def main() -> None:
             for model in a.models:
                 for noise in a.noise:
                     sc = scans.setdefault(f"{model}_noise{100 * noise:g}cm", [])
-                    for r in run_slice(name, model, noise, a.seed + i, preset, sc):
+                    for r in run_slice(
+                        name, model, noise, a.seed + i, preset, sc, return_rule=rule
+                    ):
                         rows.append({**r, "model": model, "noise_m": noise})
     if a.rows_out:
         with open(a.rows_out, "w") as f:

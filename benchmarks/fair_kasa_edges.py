@@ -30,15 +30,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
 from real_geometry import _in_gate, visible_trunks
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import noisy_batch, virtual_scans
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -200,10 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.part == "circle":
         out = run_circle(args.set, args.diameters, args.ranges, args.steps, 4 * args.vantage)
     else:
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-        if ddir is None:
-            print("error: shared datasets folder not found", file=sys.stderr)
-            return 2
+        ddir = require_datasets_dir(args.datasets)
         out = run_views(ddir, args.set, args.seed, args.vantage)
     print(json.dumps(out))
     return 0

@@ -15,6 +15,10 @@ Reported per dataset, step and noise: median |z| (z = error / std; 0.674 calibra
 90th percentile (1.645 calibrated), the median stated std and the RMSE (cm). ``--rows-out``
 writes every row (JSON) for the analysis (``--rows-in`` rescores without scanning).
 
+Return rule: nearest-return scans only. The averaging (SICK-class) scans ``scene_batches``
+draws besides are skipped; their rule is passed by name, ``_real_scanning.ANY_HIT`` (any
+sub-ray), and changes no draw here (the noise is drawn by the scans' shape).
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/first_echo_dbh_z.py --rows-out /tmp/rows.json
@@ -37,9 +41,9 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import greedy_match, matched, scene_batches
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, greedy_match, matched, scene_batches
 from real_geometry import visible_trunks
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.scan.plausibility import scan_noise
 
@@ -181,7 +185,8 @@ def collect(
     rows: list[dict] = []
     h_geo, h_all = hashlib.sha256(), hashlib.sha256()
     count = 0
-    for sc in scene_batches(ddir, n_vantage, seed):
+    # nearest-return only: the averaging rule changes no draw (the noise is drawn by shape)
+    for sc in scene_batches(ddir, n_vantage, seed, return_rule=ANY_HIT):
         if sc.model != "nearest":
             continue
         cfg = matched(base, "nearest", sc.res)
@@ -292,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = json.loads(args.rows_in.read_text())
         digest: dict[str, Any] = {}
     else:
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+        ddir = require_datasets_dir(args.datasets)
         rows, digest = collect(ddir, args.vantage, args.seed, json.loads(args.set))
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(rows))

@@ -22,6 +22,10 @@ worktree), both imported in one process as ``scan_speed_vs_ref.py`` imports them
 reports the ratio of this checkout to the reference per round and both digests (equal digests:
 the same detections bit for bit).
 
+Return rule: nearest-return scans only. The averaging (SICK-class) scans ``scene_batches``
+draws besides are skipped; their rule is passed by name, ``_real_scanning.ANY_HIT`` (any
+sub-ray), and changes no draw here (the noise is drawn by the scans' shape).
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/first_echo_speed.py --grid 67
@@ -43,10 +47,10 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
-from _real_scanning import matched, scene_batches
+from _real_scanning import ANY_HIT, matched, scene_batches
 from scan_detection import detections_digest, timed_both
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
 
@@ -58,7 +62,7 @@ def nearest_batches(
     ``real_geometry.py`` (slice name prefixed)."""
     return [
         (f"{sc.sl.name}:{sc.config}", sc.res, sc.batch)
-        for sc in scene_batches(ddir, n_vantage, seed, background)
+        for sc in scene_batches(ddir, n_vantage, seed, background, return_rule=ANY_HIT)
         if sc.model == "nearest"
     ]
 
@@ -232,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     overrides = json.loads(args.set) if args.set is not None else dict(LOO_GRID[args.grid])
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+    ddir = require_datasets_dir(args.datasets)
     batches = nearest_batches(ddir, args.vantage, args.seed, args.background)
     out = {
         "benchmark": "first_echo_speed",

@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import TEXTBOOK, ReturnRule, matched, scene_batches
 from fair_kasa_edges import edge_info, view_fits
 from real_geometry import _in_gate, visible_trunks
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
 CONFIGS = ("averaging_0.5deg_noise0cm", "averaging_1deg_noise0cm")
@@ -157,10 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.set:
         print("error: name at least one --set (the first is traced)", file=sys.stderr)
         return 2
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     print(json.dumps(run(ddir, args.set, args.seed, args.vantage, args.hit_fraction)))
     return 0
 

@@ -13,6 +13,10 @@ trunk, understory). For each view also the error of the same detector on the ste
 |z| excess that the merged returns explain can be read off: ``merged`` views are those with a
 non-stem return in the candidate.
 
+Return rule: nearest-return scans only. The averaging (SICK-class) scans ``scene_batches``
+draws besides are skipped; their rule is passed by name, ``_real_scanning.ANY_HIT`` (any
+sub-ray), and changes no draw here (the noise is drawn by the scans' shape).
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/junction_trace.py --only lidr_dbh --vantage 60
@@ -31,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import greedy_match, matched, scene_batches
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, greedy_match, matched, scene_batches
 from real_geometry import visible_trunks
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
 
@@ -133,7 +137,7 @@ def trace(
     """One row per matched visible view (module docstring)."""
     base = DetectorConfig.preset("stemmap", **overrides)
     rows: list[dict[str, Any]] = []
-    for sc in scene_batches(ddir, n_vantage, seed, names=only):
+    for sc in scene_batches(ddir, n_vantage, seed, return_rule=ANY_HIT, names=only):
         if sc.model != "nearest":
             continue
         cfg = matched(base, "nearest", sc.res)
@@ -243,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     BEAMS.install()
     global JACK
     JACK = args.jack
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
+    ddir = require_datasets_dir(args.datasets)
     rows = trace(ddir, args.vantage, args.seed, args.only, json.loads(args.set), args.tol)
     print(json.dumps({"benchmark": "junction_trace", "set": args.set, "tol": args.tol,
                       "summary": summary(rows), "views": rows}))  # fmt: skip

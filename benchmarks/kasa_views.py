@@ -42,18 +42,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import TEXTBOOK, ReturnRule, greedy_match, matched, scene_batches
 from real_geometry import DIAMETER_CLASSES, RANGE_BANDS, _in_gate, fill_returns, visible_trunks
 from real_geometry_diagnose import _over
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, RealSlice
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 
@@ -244,10 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tol", type=float, default=TOL_CM, help="|DBH error| measured well, cm")
     ap.add_argument("--list", action="store_true", help="also every loss view")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     grid = LOO_GRID[args.grid] if args.grid is not None else {}
     cfg = DetectorConfig.preset("stemmap", **{**grid, **(args.set or {})})
     names = args.only or list(SLICES)

@@ -32,6 +32,12 @@ default (grid 59; 36 before Dec 5) and textbook Kasa from the same scans. Admiss
 grid's: each fold's model and threshold on the simulated drives (``_scan_sim``), mean
 precision over seeds >= 0.95 on each drive.
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     python benchmarks/learned_acceptance.py --vantage 20 > learned.json
@@ -49,7 +55,6 @@ import argparse
 import json
 import math
 import pickle
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -58,12 +63,21 @@ import numpy as np
 from scipy.special import chdtri
 
 import real_geometry as rg
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
-from _real_scanning import FULL_SCANNERS, TEXTBOOK, matched, scene_scans, vantage_points
+from _real_scanning import (
+    ANY_HIT,
+    FULL_SCANNERS,
+    TEXTBOOK,
+    ReturnRule,
+    add_hit_fraction,
+    matched,
+    scene_scans,
+    vantage_points,
+)
 from _scan_sim import SIM_PRECISION_MIN, SIM_SEEDS
 from kasa_count import f1
 from real_geometry_folds import _row as folds_row
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan._segment_fits import _arc_deg, _output_columns
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -269,10 +283,12 @@ def labels(
     return ok.any(axis=1).astype(np.int8)
 
 
-def collect(ddir: Path, n_vantage: int, min_returns: int, seed: int) -> dict[str, Any]:
+def collect(
+    ddir: Path, n_vantage: int, min_returns: int, seed: int, return_rule: ReturnRule
+) -> dict[str, Any]:
     """Per dataset and scanner configuration (``real_geometry.run_dataset``'s scans, seeds and
-    order): the candidate rows, labels, the default's and textbook Kasa's scores, and what
-    scoring a modified detection set needs."""
+    order; ``return_rule``: the averaging scanner's): the candidate rows, labels, the
+    default's and textbook Kasa's scores, and what scoring a modified detection set needs."""
     base = DetectorConfig.preset("stemmap", **LOO_GRID[DEFAULT_GRID])
     data: dict[str, Any] = {}
     for i, name in enumerate(SLICES):
@@ -285,7 +301,9 @@ def collect(ddir: Path, n_vantage: int, min_returns: int, seed: int) -> dict[str
         per: dict[str, Any] = {}
         for model, res, noise in FULL_SCANNERS:
             if (model, res) not in geometry:
-                geometry[model, res] = scene_scans(sl, vp, model, res, "none", seed + i)
+                geometry[model, res] = scene_scans(
+                    sl, vp, model, res, "none", seed + i, return_rule=return_rule
+                )
             ranges0, hit = geometry[model, res]
             batch = noisy_batch(ranges0, res, noise, rng)
             n_hits = np.stack([(hit == t).sum(axis=1) for t in range(len(sl.refs))], axis=1)
@@ -519,11 +537,9 @@ def main(argv: list[str] | None = None) -> int:
         help="positive label also needs |diameter error| <= this (cm; default: matching only)",
     )
     ap.add_argument("--speed", action="store_true", help="also measure the cost (one process)")
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     import sklearn.ensemble  # noqa: F401  (loads the OpenMP runtime the limit applies to)
     from threadpoolctl import threadpool_limits  # scikit-learn's own dependency
 
@@ -534,7 +550,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.cache is not None and args.cache.exists():
         data = pickle.loads(args.cache.read_bytes())
     else:
-        data = collect(ddir, args.vantage, args.min_returns, args.seed)
+        rule = ReturnRule(args.hit_fraction)
+        data = collect(ddir, args.vantage, args.min_returns, args.seed, rule)
         if args.cache is not None:
             args.cache.write_bytes(pickle.dumps(data))
     for d in data.values():

@@ -35,13 +35,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from stemmap.datasets import find_datasets_dir
+from _datasets import require_datasets_dir
 from stemmap.eval.real_slices import SLICES, RealSlice, load_slice
 from stemmap.scan._lobed import fit_lobed, harmonic_columns, ring_harmonics
 from stemmap.scan.circle import fit_circle_ours
@@ -243,10 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--datasets", type=Path, default=None)
     ap.add_argument("--prior", type=float, default=0.045, help="coefficient std / radius")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     slices = {}
     for name in SLICES:
         try:

@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from stemmap.cloud.munjer import MunjerConfig, associate_proximity
 from stemmap.cloud.stems import detect_stems
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.matching import match_points
 from stemmap.io.clouds import read_cloud
 from stemmap.slam.munjer import eb_lidar_observations
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     a = ap.parse_args(argv)
     ecc = (float(a.ecc_range[0]), float(a.ecc_range[1]))
     t0 = time.process_time()
-    path = find_datasets_dir() / "treels" / "pine_plot.laz"
+    path = require_datasets_dir() / "treels" / "pine_plot.laz"
     xyz = read_cloud(path).xyz
     ref = detect_stems(xyz)
     res: dict[str, Any] = {

@@ -11,6 +11,10 @@ estimate of its scan (``scan_own_noise`` 0: the scan has no estimate of its own 
 read the configured sigma unless ``scan_noise_batch`` gives it the batch's) and, for a found
 view, the fit's own DBH standard deviation ``2 sqrt(C_rr)``.
 
+Return rule: nearest-return scans only. The averaging (SICK-class) scans ``scene_scans``
+draws besides are skipped; their rule is passed by name, ``_real_scanning.ANY_HIT`` (any
+sub-ray), and changes no draw here (the noise is drawn by the scans' shape).
+
 Usage::
 
     PYTHONPATH=src:benchmarks python benchmarks/noisy_rows_why.py > why80.json
@@ -32,9 +36,16 @@ from typing import Any
 import numpy as np
 
 import _loo_grid
-from _real_scanning import FULL_SCANNERS, dataset_seed, matched, scene_scans, vantage_points
+from _datasets import require_datasets_dir
+from _real_scanning import (
+    ANY_HIT,
+    FULL_SCANNERS,
+    dataset_seed,
+    matched,
+    scene_scans,
+    vantage_points,
+)
 from real_geometry_diagnose import miss_class, view_row, visible_views
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import load_slice, noisy_batch
 from stemmap.scan.detect import ScanTrunkDetector
 from stemmap.scan.plausibility import scan_noise
@@ -74,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     preset = ScanTrunkDetector.from_preset("stemmap").config
     cfg0 = replace(preset, **{**_loo_grid.LOO_GRID[80], **json.loads(args.set)})
-    ddir = find_datasets_dir()
+    ddir = require_datasets_dir()
     out: dict[str, Any] = {}
     for name in args.only:
         sl = load_slice(ddir, name, "circle")
@@ -82,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         rng = np.random.default_rng(seed)
         vp = vantage_points(sl, 20, rng)
         for model, res, noise in FULL_SCANNERS:
-            ranges0, hit = scene_scans(sl, vp, model, res, "none", seed)
+            ranges0, hit = scene_scans(sl, vp, model, res, "none", seed, return_rule=ANY_HIT)
             batch = noisy_batch(ranges0, res, noise, rng)  # every row draws, as the benchmark
             if model != "nearest" or noise not in args.noise:
                 continue

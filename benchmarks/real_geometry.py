@@ -53,13 +53,13 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_choice import (  # the choice; the underscored names re-exported for other scripts
     FAMILIES,
     LOO_PROTOCOL_BY_SCANNER,  # noqa: F401  (re-exported: the tests)
@@ -102,7 +102,6 @@ from _scan_sim import (  # shared with scan_detection.py
     simulated_precision,
     simulated_precision_seeds,
 )
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
     RealSlice,
@@ -293,7 +292,8 @@ def run_dataset(
 ) -> dict[str, Any]:
     """Every scanner configuration x detector on one slice (``background``: the virtual
     scans' scene besides the trunks, :func:`_real_scanning.scene_scans`; ``return_rule``: the
-    averaging scanner's return threshold, default any sub-ray; ``max_fill_returns``: a view
+    averaging scanner's return threshold, which an averaging scanner needs (``ANY_HIT``: any
+    sub-ray, the rule before Dec 6); ``max_fill_returns``: a view
     counts only with at most this many returns from the trunk's filled unseen sectors,
     :func:`fill_returns`, default every view)."""
     rng = np.random.default_rng(seed)
@@ -596,10 +596,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         return 0
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     scanners = QUICK_SCANNERS if args.quick else FULL_SCANNERS
     if args.averaging:
         scanners = AVERAGING_SCANNERS

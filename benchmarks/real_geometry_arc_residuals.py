@@ -35,9 +35,9 @@ import numpy as np
 
 import stemmap.scan._pieces as pieces_module
 import stemmap.scan.detect as detect_module
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import greedy_match, matched, scene_scans, vantage_points
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import StemObservations
@@ -143,9 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--grid", type=int, default=37, help="LOO_GRID setting (default 37)")
     ap.add_argument("--set", type=json.loads, default={}, help="overrides on top of --grid")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        raise SystemExit("error: shared datasets folder not found (set STEMMAP_DATASETS)")
+    ddir = require_datasets_dir(args.datasets)
     over = {**LOO_GRID[args.grid], **args.set}
     result = {
         "benchmark": "real_geometry_arc_residuals",

@@ -42,6 +42,12 @@ what is left when nothing is merged. And per reference trunk its quality: ring R
 sectors filled (the outline joined across them), and the spread of the reference diameter
 when each 30-degree sector of the ring is left out in turn (jackknife).
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     python benchmarks/real_geometry_diagnose.py                    # 0.5 deg nearest, no noise
@@ -57,7 +63,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -65,10 +70,17 @@ from typing import Any
 
 import numpy as np
 
-from _real_scanning import TEXTBOOK, matched, vantage_points  # shared with real_geometry.py
+from _datasets import require_datasets_dir
+from _real_scanning import (  # shared with real_geometry.py
+    ANY_HIT,
+    TEXTBOOK,
+    ReturnRule,
+    add_hit_fraction,
+    matched,
+    vantage_points,
+)
 from _real_scanning import error_stats as _stats
 from _real_scanning import greedy_match as _match
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     SLICES,
     RealSlice,
@@ -168,8 +180,10 @@ def diagnose(
     seed: int,
     n_vantage: int,
     min_returns: int,
+    return_rule: ReturnRule,
 ) -> dict[str, Any]:
-    """Classify every visible trunk of one slice (module docstring)."""
+    """Classify every visible trunk of one slice (module docstring; ``return_rule``: the
+    averaging scanner's)."""
     rng = np.random.default_rng(seed)
     vp = vantage_points(sl, n_vantage, rng)
     ranges0, hit = virtual_scans(
@@ -179,6 +193,7 @@ def diagnose(
         resolution_deg=res,
         model=model,
         centers=sl.centers,  # type: ignore[arg-type]
+        **return_rule.kwargs(),
     )
     batch = noisy_batch(ranges0, res, noise, rng)
     det = ScanTrunkDetector(matched(cfg, model, res))
@@ -360,11 +375,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--set", default="{}", help="JSON overrides of the stemmap preset")
     ap.add_argument("--no-misses", action="store_true", help="leave out the per-miss list")
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     overrides = json.loads(args.set)
     cfg = DetectorConfig.preset("stemmap", **overrides)
     out: dict[str, Any] = {
@@ -389,6 +402,7 @@ def main(argv: list[str] | None = None) -> int:
             args.seed + i,
             args.vantage,
             args.min_returns,
+            ReturnRule(args.hit_fraction),
         )
         if args.no_misses:
             del out["datasets"][name]["misses"]

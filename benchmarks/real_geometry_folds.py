@@ -11,6 +11,12 @@ dataset, each setting's training score (mean objective over the trusted training
 scanners, exactly as the LOO) and how much each training dataset and configuration moves it
 against the first setting (``--grid`` first: the reference, e.g. the default 36).
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     python benchmarks/real_geometry_folds.py --grid 36 40 --vantage 20
@@ -23,17 +29,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
-from _real_scanning import FULL_SCANNERS
+from _real_scanning import ANY_HIT, FULL_SCANNERS, ReturnRule, add_hit_fraction
 from real_geometry import _objective, reference_trusted, run_dataset
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice
 from stemmap.scan.detect import DetectorConfig
 
@@ -56,6 +61,7 @@ def folds(
     n_vantage: int,
     seed: int,
     min_returns: int = 4,
+    return_rule: ReturnRule = ANY_HIT,
 ) -> dict[str, Any]:
     """Per dataset x scanner the rows of every setting, per held-out dataset the training
     scores and the per-dataset / per-configuration changes against the first setting."""
@@ -75,6 +81,7 @@ def folds(
             n_vantage=n_vantage,
             min_returns=min_returns,
             seed=seed + order.index(name),
+            return_rule=return_rule,
         )
     keys = list(settings)
     ref = keys[0]
@@ -132,16 +139,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--vantage", type=int, default=20)
     ap.add_argument("--seed", type=int, default=11)
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     settings = {f"grid{g}": LOO_GRID[g] for g in args.grid}
     base = LOO_GRID[args.grid[0]] if args.grid else {}
     settings |= {f"set{i}": {**base, **s} for i, s in enumerate(args.set)}
     t0 = time.perf_counter()
-    out = folds(ddir, settings, args.only or list(SLICES), args.vantage, args.seed)
+    rule = ReturnRule(args.hit_fraction)
+    out = folds(
+        ddir, settings, args.only or list(SLICES), args.vantage, args.seed, return_rule=rule
+    )
     out["settings"] = {k: str(v) for k, v in settings.items()}
     out["set_on_top_of"] = f"grid{args.grid[0]}" if args.grid else "the stemmap preset"
     out["runtime_s"] = round(time.perf_counter() - t0, 1)

@@ -44,10 +44,10 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import greedy_match, matched, scene_scans, vantage_points
 from real_geometry_diagnose import _over, reference_check
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import (
     FILLS,
     SLICES,
@@ -237,9 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-cloud", action="store_true", help="skip stemmap stems on the cloud")
     ap.add_argument("--fill", choices=FILLS, default="circle", help="unseen sectors (load_slice)")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        raise SystemExit("error: shared datasets folder not found (set STEMMAP_DATASETS)")
+    ddir = require_datasets_dir(args.datasets)
     spec = SLICES[args.only]
     sl = load_slice(ddir, args.only, args.fill)
     out: dict[str, Any] = {

@@ -41,11 +41,11 @@ from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
 from _real_scanning import error_stats, greedy_match, matched, scene_scans, vantage_points
 from real_geometry_arc_residuals import detect_recording
 from real_geometry_diagnose import _over, own_beams_only
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, RealSlice, load_slice, noisy_batch
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
 from stemmap.types import ScanBatch
@@ -165,9 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", type=json.loads, default={}, help="overrides on top of --grid")
     ap.add_argument("--beams", action="store_true", help="list the beams around each view")
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        raise SystemExit("error: shared datasets folder not found (set STEMMAP_DATASETS)")
+    ddir = require_datasets_dir(args.datasets)
     over = {**LOO_GRID[args.grid], **args.set}
     out = {
         "benchmark": "real_geometry_views",

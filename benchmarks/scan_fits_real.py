@@ -20,13 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _scan_fits import (  # shared with scan_detection.py
     DEFAULTS,
     crlb_diameter_var,
@@ -34,7 +34,6 @@ from _scan_fits import (  # shared with scan_detection.py
     run_real_geometry,
 )
 from _scan_fits import stats_cm as _stats
-from stemmap.datasets import find_datasets_dir
 from stemmap.scan.circle import FIT_METHODS, fit_circles_batch
 
 
@@ -301,10 +300,7 @@ def main(argv: list[str] | None = None) -> int:
         res_b = run_crlb(bin_deg=args.bin_deg, range_noise_m=args.noise)
         print(json.dumps(res_b) if args.json else json.dumps(res_b, indent=2))
         return 0
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     res = run_real_geometry(
         ddir,
         bin_deg=args.bin_deg,

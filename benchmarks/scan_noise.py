@@ -15,6 +15,12 @@ understory of ``real_geometry.py``'s default (:func:`_real_scanning.scene_scans`
 micro-relief ``--relief-std`` / ``--relief-corr`` and the pitch ``--pitch``; ``none`` (the
 default here, as the sixth round measured) on the trunks-only scans.
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     python benchmarks/scan_noise.py --vantage 20
@@ -28,20 +34,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from _datasets import require_datasets_dir
 from _real_scanning import (  # shared with real_geometry.py
+    ANY_HIT,
     FULL_SCANNERS,
     MOUNT,
+    ReturnRule,
+    add_hit_fraction,
     scene_note,
     slice_scan_batches,
 )
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.scan_background import RELIEF_CORR, RELIEF_STD, Mount
 from stemmap.scan.plausibility import scan_noise
 
@@ -67,17 +75,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--relief-std", type=float, default=RELIEF_STD, help="metres")
     ap.add_argument("--relief-corr", type=float, default=RELIEF_CORR, help="metres")
     ap.add_argument("--pitch", type=float, default=MOUNT.pitch_deg, help="degrees down")
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
     mount = Mount(MOUNT.height, args.pitch, MOUNT.band)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     t0 = time.perf_counter()
     out: dict[str, Any] = {}
     batches = slice_scan_batches(
-        ddir, args.vantage, args.seed, args.background, mount, args.relief_std, args.relief_corr
-    )
+        ddir, args.vantage, args.seed, args.background, mount, args.relief_std, args.relief_corr,
+        return_rule=ReturnRule(args.hit_fraction),
+    )  # fmt: skip
     for name, config, r in batches:
         r = np.where(r < 30.0, r, np.nan)  # the benchmark's range_max
         est = 100.0 * scan_noise(r, args.jump)

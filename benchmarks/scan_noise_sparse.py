@@ -21,6 +21,12 @@ slice and scanner configuration:
   (10 / 50 / 90 % over scans): ``max(1 cm, estimate less the 6 mm surface share)``, and the
   same with ``scan_noise_batch`` = ``--floor``.
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     python benchmarks/scan_noise_sparse.py --vantage 20 > sparse.json
@@ -32,15 +38,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from _real_scanning import slice_scan_batches
-from stemmap.datasets import find_datasets_dir
+from _datasets import require_datasets_dir
+from _real_scanning import ANY_HIT, ReturnRule, add_hit_fraction, slice_scan_batches
 from stemmap.scan.config import DetectorConfig
 from stemmap.scan.plausibility import SCAN_NOISE_MIN_TRIPLES, interior_triples, scan_noise
 
@@ -79,17 +84,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=int, default=10, help="stream window, scans")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--floor", type=float, default=2.0, help="scan_noise_batch, x sigma")
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
-    ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-    if ddir is None:
-        print("error: shared datasets folder not found (set STEMMAP_DATASETS)", file=sys.stderr)
-        return 2
+    ddir = require_datasets_dir(args.datasets)
     cfg = DetectorConfig.preset("stemmap")
     jump, surface, sigma = cfg.scan_noise_jump, cfg.scan_noise_surface, cfg.sigma
     t0 = time.perf_counter()
     out: dict[str, Any] = {}
     lo, hi = cfg.range_min or 0.0, cfg.range_max or np.inf
-    for name, config, ranges in slice_scan_batches(ddir, args.vantage, args.seed):
+    rule = ReturnRule(args.hit_fraction)
+    for name, config, ranges in slice_scan_batches(ddir, args.vantage, args.seed, return_rule=rule):
         r = np.where((ranges > lo) & (ranges < hi), ranges, np.nan)
         vals, runs = interior_triples(r, jump)
         longest = np.array(runs, dtype=int)

@@ -15,6 +15,12 @@ sigma of its fit, the parent's range steps (cm), and the ground truth of its bea
 The detector is the ``stemmap`` preset with :data:`_loo_grid.LOO_GRID` setting ``--grid``
 (default 36) and ``--set`` overrides (default ``{"step_split": true}``).
 
+Return rule: the virtual averaging (SICK-class) scanner's is ``--hit-fraction`` (the share of
+the footprint that must hit, as ``real_geometry.py``'s), default 0: any sub-ray
+(``_real_scanning.ANY_HIT``, ``virtual_scans``' own default; of 25 sub-rays since Dec 5, of
+5 before), the rule of every number this script has published. ``real_geometry.py``'s
+virtual SICK has used 0.3, the real LMS200's, since Dec 6.
+
 Usage::
 
     python benchmarks/step_split_pieces.py --sim 1
@@ -37,10 +43,18 @@ from unittest import mock
 import numpy as np
 
 import stemmap.scan._pieces as pieces_mod
+from _datasets import require_datasets_dir
 from _loo_grid import LOO_GRID
-from _real_scanning import FULL_SCANNERS, matched, scene_scans, vantage_points
+from _real_scanning import (
+    ANY_HIT,
+    FULL_SCANNERS,
+    ReturnRule,
+    add_hit_fraction,
+    matched,
+    scene_scans,
+    vantage_points,
+)
 from _scan_sim import _runs
-from stemmap.datasets import find_datasets_dir
 from stemmap.eval.real_slices import SLICES, load_slice, noisy_batch
 from stemmap.scan._step_split import step_refit
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
@@ -87,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--grid", type=int, default=36)
     ap.add_argument("--set", type=json.loads, default={"step_split": True})
     ap.add_argument("--datasets", type=Path, default=None)
+    add_hit_fraction(ap, ANY_HIT)
     args = ap.parse_args(argv)
     setting = {**LOO_GRID[args.grid], **args.set}
     out: dict[str, Any] = {"grid": args.grid, "set": args.set}
@@ -108,10 +123,7 @@ def main(argv: list[str] | None = None) -> int:
             float(args.real[2]),
             float(args.real[3]),
         )
-        ddir = args.datasets or find_datasets_dir(Path(__file__).resolve().parent)
-        if ddir is None:
-            print("error: shared datasets folder not found", file=sys.stderr)
-            return 2
+        ddir = require_datasets_dir(args.datasets)
         sl = load_slice(ddir, name)
         seed = 11 + list(SLICES).index(name)
         rng = np.random.default_rng(seed)
@@ -120,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         geo: dict[tuple[str, float], Any] = {}
         for m, rs, nz in FULL_SCANNERS:
             if (m, rs) not in geo:
-                geo[(m, rs)] = scene_scans(sl, vp, m, rs, "none", seed)
+                rule = ReturnRule(args.hit_fraction)
+                geo[(m, rs)] = scene_scans(sl, vp, m, rs, "none", seed, return_rule=rule)
             ranges0, hit = geo[(m, rs)]
             batch = noisy_batch(ranges0, rs, nz, rng)
             if (m, rs, nz) == (model, res, noise):

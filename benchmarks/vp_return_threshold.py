@@ -261,15 +261,13 @@ def run_real(
     same detector, detections matched to the reference trunks (nearest centre within the
     radius + 0.5 m); a "pass" is one trunk seen from one tenth of the vantage points (the
     vantage points are independent draws)."""
-    from pathlib import Path
-
+    from _datasets import require_datasets_dir
     from _real_scanning import vantage_points
-    from stemmap.datasets import find_datasets_dir
     from stemmap.eval.beam_width import beam_tree_detections
     from stemmap.eval.real_slices import load_slice, virtual_scans
 
     if sl is None:
-        sl = load_slice(find_datasets_dir(Path(__file__).resolve().parent), name)
+        sl = load_slice(require_datasets_dir(), name)
     gen = np.random.default_rng(seed)
     vp = vantage_points(sl, n_vantage, gen, 2.0, 25.0)
     ranges, _ = virtual_scans(
@@ -406,14 +404,12 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"sim q={q} seed={seed} done", file=sys.stderr)
         out["sim"] = sim_rows
     if "real" in args.parts:
-        from pathlib import Path
-
-        from stemmap.datasets import find_datasets_dir
+        from _datasets import require_datasets_dir
         from stemmap.errors import InputError
         from stemmap.eval.real_slices import load_slice
 
         rows: list[dict[str, Any]] = []
-        ddir = find_datasets_dir(Path(__file__).resolve().parent)
+        ddir = require_datasets_dir()
         for name in args.real:
             sl = load_slice(ddir, name)
             for q in args.real_q:

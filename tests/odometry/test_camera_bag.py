@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from _ros_bags import BagFactory
 from stemmap.cli import app
 from stemmap.errors import InputError
 from stemmap.io.camera_bag import decode_image, read_camera_bag
@@ -16,82 +17,23 @@ from stemmap.odometry.visual import VisualFrame, run_visual_odometry
 
 
 def _write_bag(path: Path, drive, n: int, *, ros: int = 2, depth: bool = False) -> Path:
-    from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import Writer as Writer2
-    from rosbags.typesys import Stores, get_typestore
-
-    ts = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
-    T = ts.types
-    ser = ts.serialize_ros1 if ros == 1 else ts.serialize_cdr
-    writer: Any = Writer1(path) if ros == 1 else Writer2(path, version=9)
+    f = BagFactory(ros)
     cal = drive.stereo
     k = [cal.fx, 0, cal.cx, 0, cal.fy, cal.cy, 0, 0, 1]
-
-    def header(t: float) -> Any:
-        sec = int(t)
-        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9))
-        kw: dict[str, Any] = {"stamp": stamp, "frame_id": "cam"}
-        if ros == 1:
-            kw["seq"] = 0
-        return T["std_msgs/msg/Header"](**kw)
-
-    def info(t: float, tx: float) -> Any:
-        roi = T["sensor_msgs/msg/RegionOfInterest"](
-            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
-        )
-        p = [cal.fx, 0, cal.cx, tx, 0, cal.fy, cal.cy, 0, 0, 0, 1, 0]
-        mats = {
-            "d": np.zeros(5),
-            "k": np.array(k, float),
-            "r": np.eye(3).ravel(),
-            "p": np.array(p, float),
-        }
-        if ros == 1:  # ROS1 names the matrices in capitals
-            mats = {m.upper(): v for m, v in mats.items()}
-        return T["sensor_msgs/msg/CameraInfo"](
-            header=header(t),
-            height=cal.height,
-            width=cal.width,
-            distortion_model="plumb_bob",
-            binning_x=0,
-            binning_y=0,
-            roi=roi,
-            **mats,
-        )
-
-    def image(t: float, a: np.ndarray, enc: str) -> Any:
-        a = np.ascontiguousarray(a)
-        step = a.shape[1] * (a.shape[2] if a.ndim == 3 else 1) * a.dtype.itemsize
-        return T["sensor_msgs/msg/Image"](
-            header=header(t),
-            height=a.shape[0],
-            width=a.shape[1],
-            encoding=enc,
-            is_bigendian=0,
-            step=step,
-            data=a.view(np.uint8).ravel(),
-        )
-
-    img_t, info_t = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
-    with writer:
-        cl = writer.add_connection("/stereo/left/image_rect", img_t, typestore=ts)
-        cr = writer.add_connection(
-            "/stereo/depth/image" if depth else "/stereo/right/image_rect", img_t, typestore=ts
-        )
-        il = writer.add_connection("/stereo/left/camera_info", info_t, typestore=ts)
-        ir = writer.add_connection("/stereo/right/camera_info", info_t, typestore=ts)
-        for f in drive.frames[:n]:
-            ns = round(f.time * 1e9) + 1_000_000_000
-            t = ns * 1e-9
-            writer.write(cl, ns, ser(image(t, f.left[..., ::-1], "bgr8"), img_t))
-            if depth:
-                mm = np.where(np.isfinite(f.depth), np.rint(f.depth * 1000), 0).astype(np.uint16)
-                writer.write(cr, ns, ser(image(t, mm, "16UC1"), img_t))
-            else:
-                writer.write(cr, ns, ser(image(t, f.right, "rgb8"), img_t))
-            writer.write(il, ns, ser(info(t, 0.0), info_t))
-            writer.write(ir, ns, ser(info(t, -cal.fx * cal.baseline), info_t))
-    return path
+    second = "/stereo/depth/image" if depth else "/stereo/right/image_rect"
+    msgs: list[tuple[str, Any]] = []
+    for fr in drive.frames[:n]:
+        t = (round(fr.time * 1e9) + 1_000_000_000) * 1e-9
+        msgs.append(("/stereo/left/image_rect", f.image(t, fr.left[..., ::-1], "bgr8")))
+        if depth:
+            mm = np.where(np.isfinite(fr.depth), np.rint(fr.depth * 1000), 0).astype(np.uint16)
+            msgs.append((second, f.image(t, mm, "16UC1")))
+        else:
+            msgs.append((second, f.image(t, fr.right, "rgb8")))
+        msgs.append(("/stereo/left/camera_info", f.camera_info(t, k, cal.width, cal.height)))
+        tx = -cal.fx * cal.baseline
+        msgs.append(("/stereo/right/camera_info", f.camera_info(t, k, cal.width, cal.height, tx)))
+    return f.write(path, msgs)
 
 
 @pytest.mark.parametrize("ros", [1, 2])

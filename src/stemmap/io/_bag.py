@@ -105,15 +105,6 @@ def open_bag(path: PathLike) -> Iterator[Any]:
         reader.close()
 
 
-def named_limits(messages: Iterator[Any], path: PathLike) -> Iterator[Any]:
-    """``reader.messages(...)`` whose read-limit refusals (raised by the bounded decompressors,
-    which do not know the file) name the bag."""
-    try:
-        yield from messages
-    except ReadLimitError as exc:
-        raise ReadLimitError(f"ROS bag {str(path)!r}: {exc}") from exc
-
-
 def list_topics(path: PathLike) -> dict[str, str]:
     """Topics of a bag and their message types (``pkg/msg/Type``), sorted by topic name."""
     return {t.topic: t.msgtype for t in bag_summary(path)}
@@ -207,6 +198,7 @@ class _Message(NamedTuple):
     bag_time: float
     msg: Any  # None when decoding failed
     error: str
+    topic: str = ""
 
 
 def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[_Message]:
@@ -226,39 +218,52 @@ def _iter_messages(path: PathLike, msgtype: str, topic: str | None) -> Iterator[
             return
         chosen = _select_topic(reader, p, msgtype, topic)
         conns = [c for c in reader.connections if c.topic == chosen]
-        gen = reader.messages(connections=conns)
-        k = 0
-        while True:
-            try:
-                conn, t_ns, raw = next(gen)
-            except StopIteration:
-                return
-            except ReadLimitError as exc:  # a refusal, not damage
-                raise ReadLimitError(
-                    f"ROS bag {str(p)!r}, topic {chosen}, message {k}: {exc}"
-                ) from exc
-            except Exception as exc:  # damaged chunk / truncated file
-                yield _Message(
-                    k,
-                    math.nan,
-                    None,
-                    f"the bag's data end or are damaged after message {k} of topic {chosen} "
-                    f"({type(exc).__name__}: {exc}); the rest of the topic is lost",
-                )
-                return
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception as exc:
-                yield _Message(
-                    k,
-                    t_ns * 1e-9,
-                    None,
-                    f"message {k} of topic {chosen} cannot be decoded as {msgtype} "
-                    f"({type(exc).__name__}: {exc})",
-                )
-            else:
-                yield _Message(k, t_ns * 1e-9, msg, "")
-            k += 1
+        yield from _decoded(reader, p, conns, msgtype, f"topic {chosen}")
+
+
+def _decoded(
+    reader: Any, path: Path, conns: list[Any], msgtype: str, what: str
+) -> Iterator[_Message]:
+    """The messages of ``conns`` of an open bag in bag order, decoded (``seq`` counts them).
+
+    A message that cannot be decoded comes back with ``msg`` None and its error; damage or
+    truncation met mid-read (rosbags, mcap, sqlite or decompressor exceptions) ends the
+    stream with one such message saying the rest is lost; a read-limit refusal is raised,
+    naming the bag. ``what`` names the topic(s) in those texts (``"topic /scan"``).
+    """
+    gen = reader.messages(connections=conns)
+    k = 0
+    while True:
+        try:
+            conn, t_ns, raw = next(gen)
+        except StopIteration:
+            return
+        except ReadLimitError as exc:  # a refusal, not damage
+            raise ReadLimitError(f"ROS bag {str(path)!r}, {what}, message {k}: {exc}") from exc
+        except Exception as exc:  # damaged chunk / truncated file
+            rest = "of the topic " if what.startswith("topic ") else ""
+            yield _Message(
+                k,
+                math.nan,
+                None,
+                f"the bag's data end or are damaged after message {k} of {what} "
+                f"({type(exc).__name__}: {exc}); the rest {rest}is lost",
+            )
+            return
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:
+            yield _Message(
+                k,
+                t_ns * 1e-9,
+                None,
+                f"message {k} of {what} cannot be decoded as {msgtype} "
+                f"({type(exc).__name__}: {exc})",
+                conn.topic,
+            )
+        else:
+            yield _Message(k, t_ns * 1e-9, msg, "", conn.topic)
+        k += 1
 
 
 def _salvage_or_raise(path: Path, open_error: InputError, keep_topic: str | None) -> _Salvage:

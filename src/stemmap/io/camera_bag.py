@@ -10,11 +10,19 @@ Pairing: messages are read in bag order; a left (colour) image is paired with th
 image whose header stamp is within ``max_dt`` seconds (default 0.02 s: a hardware-synchronised
 stereo camera such as the ZED 2 stamps both images identically). Unpaired images are dropped
 and counted in the log.
+
+Damage: a bag that opens but is damaged further in (a corrupt or truncated chunk, a message that
+cannot be decoded) raises an :class:`~stemmap.errors.InputError` naming the bag, the topics, the
+message (counted over both image topics) and the bag time where it broke, from the same
+message reader as :mod:`stemmap.io.rosbag` (``stemmap.io._bag._decoded``). The scan and
+odometry logs there keep what precedes the damage and report the rest as skipped; the camera
+reader stops instead, as it does on an image it cannot decode.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stemmap.errors import InputError
-from stemmap.io._bag import named_limits
+from stemmap.io._bag import _decoded, _Message
 from stemmap.io.rosbag import open_bag
 from stemmap.odometry.visual import StereoCalibration, VisualFrame
 
@@ -96,12 +104,27 @@ def _image_topics(reader: Any) -> list[str]:
     return sorted({c.topic for c in reader.connections if _norm(c.msgtype) == _norm(IMAGE)})
 
 
-def _first_info(reader: Any, topic: str) -> Any:
+def _good(path: Path, m: _Message, last_time: float) -> Any:
+    """``m.msg``; a message that could not be read (damage met mid-read, a message that
+    cannot be decoded: :func:`stemmap.io._bag._decoded`) raises an InputError naming the bag,
+    the topic(s), the message and the bag time reached."""
+    if m.msg is None:
+        if math.isfinite(m.bag_time):
+            at = f" (bag time {m.bag_time:.3f} s)"
+        elif math.isfinite(last_time):
+            at = f" (the last message read was at bag time {last_time:.3f} s)"
+        else:
+            at = ""
+        raise InputError(f"ROS bag {str(path)!r}: {m.error}{at}.")
+    return m.msg
+
+
+def _first_info(reader: Any, path: Path, topic: str) -> Any:
     conns = [c for c in reader.connections if c.topic == topic]
     if not conns:
         raise InputError(f"no topic {topic!r} in the bag (CameraInfo expected).")
-    for conn, _t, raw in named_limits(reader.messages(connections=conns), reader.paths[0]):
-        return reader.deserialize(raw, conn.msgtype)
+    for m in _decoded(reader, path, conns, CAMERA_INFO, f"topic {topic}"):
+        return _good(path, m, math.nan)
     raise InputError(f"topic {topic!r} has no messages.")
 
 
@@ -126,15 +149,18 @@ class CameraBag:
             pending: dict[str, tuple[float, NDArray[np.generic]]] = {}
             dropped = 0
             last = -np.inf
-            for conn, t_ns, raw in named_limits(reader.messages(connections=conns), self.path):
-                msg = reader.deserialize(raw, conn.msgtype)
-                img = decode_image(msg, f"{self.path}:{conn.topic}")
-                if conn.topic == self.depth_topic:
+            bag_time = math.nan
+            what = f"topics {self.left_topic} and {second}"
+            for m in _decoded(reader, self.path, conns, IMAGE, what):
+                msg = _good(self.path, m, bag_time)
+                bag_time = m.bag_time
+                img = decode_image(msg, f"{self.path}:{m.topic} (message {m.seq} of {what})")
+                if m.topic == self.depth_topic:
                     depth_scale = 0.001 if img.dtype == np.uint16 else 1.0
-                t = _stamp(msg, t_ns * 1e-9)
-                if conn.topic in pending:
+                t = _stamp(msg, m.bag_time)
+                if m.topic in pending:
                     dropped += 1
-                pending[conn.topic] = (t, img)
+                pending[m.topic] = (t, img)
                 if len(pending) == 2:
                     (tl, left), (tr, other) = pending[self.left_topic], pending[second]
                     if abs(tl - tr) <= self.max_dt:
@@ -215,13 +241,13 @@ def read_camera_bag(
                 f"{p}: no CameraInfo for {left_topic}; pass --info-topic. CameraInfo topics: "
                 f"{infos or 'none'}."
             )
-        info = _first_info(reader, info_topic)
+        info = _first_info(reader, p, info_topic)
         k = np.asarray(info.k if hasattr(info, "k") else info.K, dtype=np.float64).reshape(-1)
         b = 0.0
         if right_topic is not None:
             right_info_topic = right_info_topic or info_for(right_topic)
             if right_info_topic is not None and right_info_topic != info_topic:
-                rinfo = _first_info(reader, right_info_topic)
+                rinfo = _first_info(reader, p, right_info_topic)
                 pr = np.asarray(rinfo.p if hasattr(rinfo, "p") else rinfo.P, dtype=np.float64)
                 b = -pr[3] / pr[0] if pr[0] else 0.0
             if baseline is not None:

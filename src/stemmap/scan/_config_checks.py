@@ -11,6 +11,7 @@ a value must meet and the error that names the field another.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from stemmap.errors import ConfigError
@@ -30,6 +31,119 @@ def fit_methods() -> dict[str, Any]:
     return methods
 
 
+def _ge0f(v: Any, c: Any) -> bool:
+    return bool(v >= 0 and math.isfinite(v))
+
+
+def _gt0f(v: Any, c: Any) -> bool:
+    return bool(v > 0 and math.isfinite(v))
+
+
+def _ge0(v: Any, c: Any) -> bool:  # inf allowed (off)
+    return bool(v >= 0)
+
+
+def _gt0(v: Any, c: Any) -> bool:  # inf allowed (off)
+    return bool(v > 0)
+
+
+def _not_below(lo: float) -> _Test:
+    return lambda v, c: not v < lo  # NaN passes, as it always has
+
+
+def _one_of(*choices: Any) -> _Test:
+    return lambda v, c: v in choices
+
+
+def _off_or_ge1(v: Any, c: Any) -> bool:
+    return bool(v == 0.0 or (v >= 1.0 and math.isfinite(v)))
+
+
+def _needs_stub_runs(v: Any, c: Any) -> bool:
+    return not v or bool(c.stub_runs)
+
+
+_Test = Callable[[Any, Any], bool]
+
+#: The checks of :func:`check_fields` after range_min / range_max / fov_deg, in the order they
+#: run (the first failing one is reported): field, test of (value, config), what it needs.
+_CHECKS: tuple[tuple[str, _Test, str], ...] = (
+    ("tilt", _one_of("none", "eq1", "rotation"), "choose 'none', 'eq1' or 'rotation'"),
+    ("straight_test", _one_of("chi2", "ratio"), "choose 'chi2' or 'ratio'"),
+    ("segmentation", _one_of("range_jump", "euclidean"), "choose 'range_jump' or 'euclidean'"),
+    ("max_jump", _gt0, "it must be > 0 m"),
+    ("range_factor", _not_below(0), "it must be >= 0"),
+    ("max_skip", _not_below(0), "it must be >= 0 beams"),
+    ("min_points", _not_below(3), "a circle needs at least 3 returns"),
+    (
+        "mixed_end_min_points",
+        lambda v, c: v == 0 or 3 <= v <= c.min_points,
+        "it must be 0 (off) or 3 to min_points returns",
+    ),
+    ("residual_floor", lambda v, c: 0.0 <= v < 1.0, "it must be 0 (off) or in (0, 1)"),
+    ("max_points", lambda v, c: v is None or not v < c.min_points, "it must be >= min_points"),
+    ("radius_median", lambda v, c: v is None or v > 0, "it must be > 0 m or None"),
+    ("max_width", lambda v, c: v > c.min_width >= 0, "need 0 <= min_width < max_width"),
+    ("max_curvature", lambda v, c: v > c.min_curvature, "it must exceed min_curvature"),
+    ("sigma", _ge0, "it must be >= 0 m"),
+    ("sigma_rel", _ge0f, "it must be >= 0"),
+    ("max_radius", lambda v, c: v > c.min_radius >= 0, "need 0 <= min_radius < max_radius"),
+    ("beam_footprint_deg", _ge0f, "it must be >= 0 degrees"),
+    ("beam_divergence_deg", lambda v, c: 0.0 <= v < 20.0, "it must be in [0, 20) degrees"),
+    (
+        "edge_hit_min",
+        lambda v, c: 0.0 <= v <= c.edge_hit_max <= 1.0,
+        "need 0 <= edge_hit_min <= edge_hit_max <= 1",
+    ),
+    ("fit_residuals", _one_of("range", "orthogonal"), "choose 'range' or 'orthogonal'"),
+    ("roughness_max_factor", lambda v, c: v >= 1.0 and math.isfinite(v), "it must be >= 1"),
+    ("scan_noise_jump", _gt0f, "it must be > 0 m"),
+    ("scan_noise_surface", _ge0f, "it must be >= 0 m"),
+    ("step_noise_pool", _one_of(False, True, "batch"), "choose false, true or 'batch'"),
+    ("scan_noise_batch", _off_or_ge1, "it must be 0 (off) or >= 1 (a multiple of sigma)"),
+    ("batch_noise_scale", _one_of("mad", "biweight"), "choose 'mad' or 'biweight'"),
+    ("bark_roughness", _ge0f, "it must be >= 0 (a fraction)"),
+    ("lobe_roughness", _ge0f, "it must be >= 0 (a fraction)"),
+    ("lobe_smooth_sigmas", _gt0f, "it must be > 0 (sigmas)"),
+    ("rms_noise_from_fit", _off_or_ge1, "it must be 0 (off) or >= 1 (a multiple of sigma)"),
+    ("rms_own_sigmas", _gt0f, "it must be > 0"),
+    ("lobe_harmonics", lambda v, c: v == 0 or 2 <= v <= 8, "it must be 0 (off) or 2-8"),
+    ("lobe_prior", _gt0f, "it must be > 0 (a fraction)"),
+    ("lobe_max", _gt0f, "it must be > 0 (a fraction)"),
+    ("corner_depth", _gt0f, "it must be > 0 m"),
+    ("corner_depth_convex", _gt0, "it must be > 0 m (inf: off)"),
+    ("corner_sigmas", _ge0f, "it must be >= 0"),
+    ("corner_span", _not_below(1), "it must be >= 1 return"),
+    ("straight_depth_sigmas", _gt0, "it must be > 0"),
+    ("occluded_blend_sigmas", _gt0, "it must be > 0 (inf: off)"),
+    ("gap_sigmas", _ge0f, "it must be >= 0"),
+    ("gap_ratio", _ge0f, "it must be >= 0"),
+    ("gap_splits", _ge0, "it must be >= 0 passes"),
+    ("refit_sigmas", _gt0f, "it must be > 0 (robust sigmas)"),
+    ("arc_sigmas", _gt0f, "it must be > 0 (robust sigmas)"),
+    ("arc_replace", lambda v, c: v > 1, "it must be > 1 (inf: off)"),
+    ("behind_sigmas", _ge0, "it must be >= 0 (sigmas; inf: off)"),
+    ("stub_sigmas", _ge0, "it must be >= 0 (sigmas; inf: off)"),
+    ("edge_protrusion", _ge0f, "it must be >= 0 m and finite"),
+    ("stub_runs_snoop", _needs_stub_runs, "it needs stub_runs"),
+    ("stub_runs_worst", _needs_stub_runs, "it needs stub_runs"),
+    ("max_dbh_sd", _gt0, "it must be > 0 m (inf: off)"),
+    ("dbh_sd_outline", _ge0f, "it must be >= 0 m and finite"),
+    ("centre_sd_along", _ge0f, "it must be >= 0 and finite"),
+    ("centre_sd_across", _ge0f, "it must be >= 0 and finite"),
+    ("centre_sd_footprint", _ge0f, "it must be >= 0 and finite"),
+    ("centre_sd_across_averaging", _ge0f, "it must be >= 0 and finite"),
+    ("dbh_sd_footprint", _ge0f, "it must be >= 0 and finite"),
+    ("dbh_sd_jackknife", _ge0f, "it must be >= 0 and finite"),
+    ("stub_runs_inner", _needs_stub_runs, "it needs stub_runs"),
+    ("fit_noise_floor", _ge0f, "it must be >= 0 m and finite"),
+    ("arc_floor_sigmas", _gt0f, "it must be > 0 (sigmas)"),
+    ("arc_tangent_sigmas", _gt0, "it must be > 0 (inf: off)"),
+    ("max_rms_sigma", _gt0, "it must be > 0"),
+    ("max_radius_width_ratio", _gt0, "it must be > 0"),
+)
+
+
 def check_fields(cfg: DetectorConfig) -> None:
     """Raise :class:`~stemmap.errors.ConfigError` naming the first field of ``cfg`` whose value
     is invalid; ``fov_deg`` is stored as a tuple of floats (``cfg`` is frozen: set in place)."""
@@ -45,142 +159,11 @@ def check_fields(cfg: DetectorConfig) -> None:
         if len(cfg.fov_deg) != 2 or not cfg.fov_deg[1] > cfg.fov_deg[0]:
             raise bad("fov_deg", cfg.fov_deg, "give (lo, hi) degrees with hi > lo")
         object.__setattr__(cfg, "fov_deg", (float(cfg.fov_deg[0]), float(cfg.fov_deg[1])))
-    if cfg.tilt not in ("none", "eq1", "rotation"):
-        raise bad("tilt", cfg.tilt, "choose 'none', 'eq1' or 'rotation'")
-    if cfg.straight_test not in ("chi2", "ratio"):
-        raise bad("straight_test", cfg.straight_test, "choose 'chi2' or 'ratio'")
-    if cfg.segmentation not in ("range_jump", "euclidean"):
-        raise bad("segmentation", cfg.segmentation, "choose 'range_jump' or 'euclidean'")
-    if not cfg.max_jump > 0:
-        raise bad("max_jump", cfg.max_jump, "it must be > 0 m")
-    if cfg.range_factor < 0:
-        raise bad("range_factor", cfg.range_factor, "it must be >= 0")
-    if cfg.max_skip < 0:
-        raise bad("max_skip", cfg.max_skip, "it must be >= 0 beams")
-    if cfg.min_points < 3:
-        raise bad("min_points", cfg.min_points, "a circle needs at least 3 returns")
-    m = cfg.mixed_end_min_points
-    if not (m == 0 or 3 <= m <= cfg.min_points):
-        raise bad("mixed_end_min_points", m, "it must be 0 (off) or 3 to min_points returns")
-    if not (0.0 <= cfg.residual_floor < 1.0):
-        raise bad("residual_floor", cfg.residual_floor, "it must be 0 (off) or in (0, 1)")
-    if cfg.max_points is not None and cfg.max_points < cfg.min_points:
-        raise bad("max_points", cfg.max_points, "it must be >= min_points")
-    if cfg.radius_median is not None and not cfg.radius_median > 0:
-        raise bad("radius_median", cfg.radius_median, "it must be > 0 m or None")
-    if not (cfg.max_width > cfg.min_width >= 0):
-        raise bad("max_width", cfg.max_width, "need 0 <= min_width < max_width")
-    if not cfg.max_curvature > cfg.min_curvature:
-        raise bad("max_curvature", cfg.max_curvature, "it must exceed min_curvature")
-    if not cfg.sigma >= 0:
-        raise bad("sigma", cfg.sigma, "it must be >= 0 m")
-    if not (cfg.sigma_rel >= 0 and math.isfinite(cfg.sigma_rel)):
-        raise bad("sigma_rel", cfg.sigma_rel, "it must be >= 0")
-    if not (cfg.max_radius > cfg.min_radius >= 0):
-        raise bad("max_radius", cfg.max_radius, "need 0 <= min_radius < max_radius")
-    if not (cfg.beam_footprint_deg >= 0 and math.isfinite(cfg.beam_footprint_deg)):
-        raise bad("beam_footprint_deg", cfg.beam_footprint_deg, "it must be >= 0 degrees")
-    if not (0.0 <= cfg.beam_divergence_deg < 20.0):
-        raise bad("beam_divergence_deg", cfg.beam_divergence_deg, "it must be in [0, 20) degrees")
-    if not (0.0 <= cfg.edge_hit_min <= cfg.edge_hit_max <= 1.0):
-        raise bad(
-            "edge_hit_min",
-            (cfg.edge_hit_min, cfg.edge_hit_max),
-            "need 0 <= edge_hit_min <= edge_hit_max <= 1",
-        )
-    if cfg.fit_residuals not in ("range", "orthogonal"):
-        raise bad("fit_residuals", cfg.fit_residuals, "choose 'range' or 'orthogonal'")
-    if not (cfg.roughness_max_factor >= 1.0 and math.isfinite(cfg.roughness_max_factor)):
-        raise bad("roughness_max_factor", cfg.roughness_max_factor, "it must be >= 1")
-    if not (cfg.scan_noise_jump > 0 and math.isfinite(cfg.scan_noise_jump)):
-        raise bad("scan_noise_jump", cfg.scan_noise_jump, "it must be > 0 m")
-    if not (cfg.scan_noise_surface >= 0 and math.isfinite(cfg.scan_noise_surface)):
-        raise bad("scan_noise_surface", cfg.scan_noise_surface, "it must be >= 0 m")
-    if cfg.step_noise_pool not in (False, True, "batch"):
-        raise bad("step_noise_pool", cfg.step_noise_pool, "choose false, true or 'batch'")
-    b = cfg.scan_noise_batch
-    if not (b == 0.0 or (b >= 1.0 and math.isfinite(b))):
-        raise bad("scan_noise_batch", b, "it must be 0 (off) or >= 1 (a multiple of sigma)")
-    if cfg.batch_noise_scale not in ("mad", "biweight"):
-        raise bad("batch_noise_scale", cfg.batch_noise_scale, "choose 'mad' or 'biweight'")
-    if not (cfg.bark_roughness >= 0 and math.isfinite(cfg.bark_roughness)):
-        raise bad("bark_roughness", cfg.bark_roughness, "it must be >= 0 (a fraction)")
-    if not (cfg.lobe_roughness >= 0 and math.isfinite(cfg.lobe_roughness)):
-        raise bad("lobe_roughness", cfg.lobe_roughness, "it must be >= 0 (a fraction)")
-    if not (cfg.lobe_smooth_sigmas > 0 and math.isfinite(cfg.lobe_smooth_sigmas)):
-        raise bad("lobe_smooth_sigmas", cfg.lobe_smooth_sigmas, "it must be > 0 (sigmas)")
-    f = cfg.rms_noise_from_fit
-    if not (f == 0.0 or (f >= 1.0 and math.isfinite(f))):
-        raise bad("rms_noise_from_fit", f, "it must be 0 (off) or >= 1 (a multiple of sigma)")
-    if not (cfg.rms_own_sigmas > 0 and math.isfinite(cfg.rms_own_sigmas)):
-        raise bad("rms_own_sigmas", cfg.rms_own_sigmas, "it must be > 0")
-    if not (cfg.lobe_harmonics == 0 or 2 <= cfg.lobe_harmonics <= 8):
-        raise bad("lobe_harmonics", cfg.lobe_harmonics, "it must be 0 (off) or 2-8")
-    if not (cfg.lobe_prior > 0 and math.isfinite(cfg.lobe_prior)):
-        raise bad("lobe_prior", cfg.lobe_prior, "it must be > 0 (a fraction)")
-    if not (cfg.lobe_max > 0 and math.isfinite(cfg.lobe_max)):
-        raise bad("lobe_max", cfg.lobe_max, "it must be > 0 (a fraction)")
-    if not (cfg.corner_depth > 0 and math.isfinite(cfg.corner_depth)):
-        raise bad("corner_depth", cfg.corner_depth, "it must be > 0 m")
-    if not cfg.corner_depth_convex > 0:
-        raise bad("corner_depth_convex", cfg.corner_depth_convex, "it must be > 0 m (inf: off)")
-    if not (cfg.corner_sigmas >= 0 and math.isfinite(cfg.corner_sigmas)):
-        raise bad("corner_sigmas", cfg.corner_sigmas, "it must be >= 0")
-    if cfg.corner_span < 1:
-        raise bad("corner_span", cfg.corner_span, "it must be >= 1 return")
-    if not cfg.straight_depth_sigmas > 0:
-        raise bad("straight_depth_sigmas", cfg.straight_depth_sigmas, "it must be > 0")
-    if not cfg.occluded_blend_sigmas > 0:
-        raise bad("occluded_blend_sigmas", cfg.occluded_blend_sigmas, "it must be > 0 (inf: off)")
-    if not (cfg.gap_sigmas >= 0 and math.isfinite(cfg.gap_sigmas)):
-        raise bad("gap_sigmas", cfg.gap_sigmas, "it must be >= 0")
-    if not (cfg.gap_ratio >= 0 and math.isfinite(cfg.gap_ratio)):
-        raise bad("gap_ratio", cfg.gap_ratio, "it must be >= 0")
-    if not cfg.gap_splits >= 0:
-        raise bad("gap_splits", cfg.gap_splits, "it must be >= 0 passes")
-    if not (cfg.refit_sigmas > 0 and math.isfinite(cfg.refit_sigmas)):
-        raise bad("refit_sigmas", cfg.refit_sigmas, "it must be > 0 (robust sigmas)")
-    if not (cfg.arc_sigmas > 0 and math.isfinite(cfg.arc_sigmas)):
-        raise bad("arc_sigmas", cfg.arc_sigmas, "it must be > 0 (robust sigmas)")
-    if not cfg.arc_replace > 1:
-        raise bad("arc_replace", cfg.arc_replace, "it must be > 1 (inf: off)")
-    if not cfg.behind_sigmas >= 0:
-        raise bad("behind_sigmas", cfg.behind_sigmas, "it must be >= 0 (sigmas; inf: off)")
-    if not cfg.stub_sigmas >= 0:
-        raise bad("stub_sigmas", cfg.stub_sigmas, "it must be >= 0 (sigmas; inf: off)")
-    if not (cfg.edge_protrusion >= 0 and math.isfinite(cfg.edge_protrusion)):
-        raise bad("edge_protrusion", cfg.edge_protrusion, "it must be >= 0 m and finite")
-    if cfg.stub_runs_snoop and not cfg.stub_runs:
-        raise bad("stub_runs_snoop", cfg.stub_runs_snoop, "it needs stub_runs")
-    if cfg.stub_runs_worst and not cfg.stub_runs:
-        raise bad("stub_runs_worst", cfg.stub_runs_worst, "it needs stub_runs")
-    if not cfg.max_dbh_sd > 0:
-        raise bad("max_dbh_sd", cfg.max_dbh_sd, "it must be > 0 m (inf: off)")
-    if not (cfg.dbh_sd_outline >= 0 and math.isfinite(cfg.dbh_sd_outline)):
-        raise bad("dbh_sd_outline", cfg.dbh_sd_outline, "it must be >= 0 m and finite")
-    for name in (
-        "centre_sd_along",
-        "centre_sd_across",
-        "centre_sd_footprint",
-        "centre_sd_across_averaging",
-        "dbh_sd_footprint",
-    ):
-        if not (getattr(cfg, name) >= 0 and math.isfinite(getattr(cfg, name))):
-            raise bad(name, getattr(cfg, name), "it must be >= 0 and finite")
-    if not (cfg.dbh_sd_jackknife >= 0 and math.isfinite(cfg.dbh_sd_jackknife)):
-        raise bad("dbh_sd_jackknife", cfg.dbh_sd_jackknife, "it must be >= 0 and finite")
-    if cfg.stub_runs_inner and not cfg.stub_runs:
-        raise bad("stub_runs_inner", cfg.stub_runs_inner, "it needs stub_runs")
-    if not (cfg.fit_noise_floor >= 0 and math.isfinite(cfg.fit_noise_floor)):
-        raise bad("fit_noise_floor", cfg.fit_noise_floor, "it must be >= 0 m and finite")
-    if not (cfg.arc_floor_sigmas > 0 and math.isfinite(cfg.arc_floor_sigmas)):
-        raise bad("arc_floor_sigmas", cfg.arc_floor_sigmas, "it must be > 0 (sigmas)")
-    if not cfg.arc_tangent_sigmas > 0:
-        raise bad("arc_tangent_sigmas", cfg.arc_tangent_sigmas, "it must be > 0 (inf: off)")
-    if not cfg.max_rms_sigma > 0:
-        raise bad("max_rms_sigma", cfg.max_rms_sigma, "it must be > 0")
-    if not cfg.max_radius_width_ratio > 0:
-        raise bad("max_radius_width_ratio", cfg.max_radius_width_ratio, "it must be > 0")
+    for field, ok, need in _CHECKS:
+        value = getattr(cfg, field)
+        if not ok(value, cfg):
+            shown = (value, cfg.edge_hit_max) if field == "edge_hit_min" else value
+            raise bad(field, shown, need)
     if cfg.fit_method not in fit_methods():
         raise bad(
             "fit_method",
