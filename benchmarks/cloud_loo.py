@@ -31,7 +31,10 @@ stack over 0.5-3.0 m; pine_plot at 20 / 10 %, docs "Sparse plots: one ring stack
 slice holding it; treels pine_plot's +0.39 cm bias, docs "Breast-height DBH, stage by
 stage"), and ``density_slice_points`` (Dec 6: slice-fit inlier counts from the measured
 spacing; pine_plot and archi Tree_1 at 20 / 10 %, docs "Thinned plots and trees: slice counts
-from the measured spacing", on since Dec 6). Here
+from the measured spacing", on since Dec 6), ``thin_remeasure_by`` (Dec 6) and ``ladder_by``
+(Dec 6: the single-tree ladder's smaller stems admitted by their DBH error as well as by
+their tolerance; spruce with 1 cm noise, docs "The single-tree ladder by its error"; its
+former rule listed first). Here
 each candidate value of each option (the others at their defaults) is run on
 every cell = real cloud x perturbation of ``cloud_robustness.py`` (every transform but the
 float32 PLY and the 0.1 m LAS scale, which are refused as too coarse for every value alike;
@@ -163,6 +166,11 @@ OPTIONS: dict[str, tuple[tuple[str, dict[str, Any]], ...]] = {
     "thin_remeasure_by": (
         ("slices", {"thin_remeasure_by": "slices"}),
         ("error", {"thin_remeasure_by": "error"}),
+    ),
+    "ladder_by": (
+        ("tolerance", {"ladder_by": "tolerance"}),
+        ("error", {"ladder_by": "error"}),
+        ("error z 1", {"ladder_by": "error", "ladder_agree_z": 1.0}),
     ),
 }
 #: Transforms with a random draw: run with every seed (the others once).

@@ -97,6 +97,7 @@ def test_each_option_lists_its_current_default() -> None:
         "dbh_from": "median",
         "density_slice_points": "on",
         "thin_remeasure_by": "error",
+        "ladder_by": "tolerance",
     }
     # every value is a distinct config; the off values of options that are on by default
     # really switch something off (axis_fallback is off by default: its off is the default;
@@ -104,7 +105,7 @@ def test_each_option_lists_its_current_default() -> None:
     # thin_remeasure_by's former rule, "slices", is listed first as the least intervention)
     for opt, vals in OPTIONS.items():
         assert len({config_key(ov) for _, ov in vals}) == len(vals), opt
-        if default_label(opt) not in ("off", "3", "line", "slices"):
+        if default_label(opt) not in ("off", "3", "line", "slices", "tolerance"):
             assert config_key(vals[0][1]) != "default", opt
 
 

@@ -185,6 +185,18 @@ class StemConfig:
         known circle, whose RMS is no RANSAC residual; docs/algorithms/cloud.md "aRchi
         Tree_1 at 20 %: where its DBH moves"). On since Dec 6: a fix of the test's meaning
         that changes no shipped cloud (docs "ladder_found_rms is the default")
+    ladder_by : str -- when a smaller stem of the single-tree ladder may replace the kept one
+        on support (:func:`~stemmap.cloud.measure._single_tree_stem`): ``"tolerance"`` (it was
+        fitted at a RANSAC tolerance not below the kept stem's RMS, the fair-support test, as
+        before) or ``"error"`` (its DBH standard deviation with the section term at its model
+        weight, as ``thin_remeasure_by = "error"`` reads it, is smaller than the kept
+        stem's, and the two DBHs agree within ``ladder_agree_z`` standard deviations of
+        their difference: a smaller circle carved out of rough bark is a consistent inner
+        surface, its error no larger). Default ``"tolerance"``: issue 11,
+        docs/algorithms/cloud.md "The single-tree ladder by its error"
+    ladder_agree_z : float -- > 0, with ``ladder_by = "error"``: how many standard deviations
+        of their difference (the two section-aware DBH errors taken as independent) a ladder
+        stem's DBH may lie from the kept stem's (2, about 95 % of normal differences)
     dbh_from : str -- where a stem's radius at the measurement height comes from, when three
         or more kept slices span >= 0.3 m: ``"line"`` (the Theil-Sen line through the kept
         slices' radii, as before), ``"slice"`` (the kept slice that holds the measurement
@@ -269,6 +281,8 @@ class StemConfig:
     consensus_radius_se: bool = False
     guided_taper: bool = False
     ladder_found_rms: bool = True
+    ladder_by: str = "tolerance"
+    ladder_agree_z: float = 2.0
     dbh_from: str = "median"
     dbh_sd_scatter: float = 0.0
     axis_fallback: bool = False
@@ -301,6 +315,10 @@ class StemConfig:
             raise ConfigError(
                 f"thin_remeasure_by must be slices or error, got {self.thin_remeasure_by!r}."
             )
+        if self.ladder_by not in ("tolerance", "error"):
+            raise ConfigError(f"ladder_by must be tolerance or error, got {self.ladder_by!r}.")
+        if not self.ladder_agree_z > 0:
+            raise ConfigError(f"ladder_agree_z must be > 0, got {self.ladder_agree_z}.")
         if not self.dbh_sd_scatter >= 0:
             raise ConfigError(f"dbh_sd_scatter must be >= 0 (0: off), got {self.dbh_sd_scatter}.")
         if not self.slice_fit_window > 0:
