@@ -64,6 +64,14 @@ def check_fields(cfg: DetectorConfig) -> None:
         raise bad("mixed_end_min_points", m, "it must be 0 (off) or 3 to min_points returns")
     if not (0.0 <= cfg.residual_floor < 1.0):
         raise bad("residual_floor", cfg.residual_floor, "it must be 0 (off) or in (0, 1)")
+    if not (cfg.outline_floor_points == 0 or cfg.outline_floor_points >= 6):
+        raise bad(
+            "outline_floor_points",
+            cfg.outline_floor_points,
+            "it must be 0 (off) or >= 6 returns (3 interior residuals over 3 degrees of freedom)",
+        )
+    if not (cfg.outline_floor_min > 0 and math.isfinite(cfg.outline_floor_min)):
+        raise bad("outline_floor_min", cfg.outline_floor_min, "it must be > 0 m and finite")
     if cfg.max_points is not None and cfg.max_points < cfg.min_points:
         raise bad("max_points", cfg.max_points, "it must be >= min_points")
     if cfg.radius_median is not None and not cfg.radius_median > 0:
