@@ -59,8 +59,14 @@ __all__ = ["batch_noise", "batch_outline", "interior_residuals", "outline_floor_
 
 
 def outline_floor_on(cfg: DetectorConfig) -> bool:
-    """Whether ``outline_floor_points`` acts: set, with a ``sigma`` floor to replace."""
-    return cfg.outline_floor_points > 0 and cfg.sigma > 0
+    """Whether ``outline_floor_points`` acts: set, with a ``sigma`` floor to replace, and no
+    first-echo footprint correction (``beam_footprint_deg`` 0). A first-echo fit has its own
+    floor read from the data, ``fit_noise_floor`` (the measured noise and the footprint's
+    range step / sqrt(12), per candidate): the step a far 4-return arc carries is centimetres,
+    which the interior residuals of the near well-sampled trunks do not show; on the
+    real-geometry LOO the option lowered the nearest-return training score in every fold
+    (docs/algorithms/scan-detection.md, "The outline floor read from the batch")."""
+    return cfg.outline_floor_points > 0 and cfg.sigma > 0 and cfg.beam_footprint_deg == 0
 
 
 def interior_residuals(

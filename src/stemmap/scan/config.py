@@ -83,7 +83,9 @@ class DetectorConfig:
         (:func:`~stemmap.scan._segment_fits.residual_floor_refit`; ours, issue 11, Dec 6: the
         1 cm floor on noise-free scans). 0 = off. Numpy path.
     outline_floor_points : int
-        The range-noise floor ``sigma`` read from the data instead of assumed (issue 11: "estimate
+        Fits without a first-echo footprint correction (``beam_footprint_deg`` 0; a first-echo
+        fit reads its floor from the data with ``fit_noise_floor``): the range-noise floor
+        ``sigma`` read from the data instead of assumed (issue 11: "estimate
         the range noise and bark roughness from the data instead of assuming 1 cm";
         docs/algorithms/scan-detection.md, "The outline floor read from the batch"): the
         residuals of the interior returns of every candidate of the batch that passed its fit

@@ -271,9 +271,9 @@ class ScanTrunkDetector:
         pitch: ArrayLike | None = None,
     ) -> tuple[float, float, float, FloatArray | None, int]:
         """The batch's outline term, pooled residual scale and measured range noise (metres,
-        NaN: no estimate; :func:`~stemmap.scan._outline_floor.batch_outline`), read in a first pass at the
-        config's ``sigma`` (candidates, fits and fit tests) from the candidates with at least
-        ``outline_floor_points`` returns (10 when the option is off), with every scan's
+        NaN: no estimate; :func:`~stemmap.scan._outline_floor.batch_outline`), read in a first
+        pass at the config's ``sigma`` (candidates, fits and fit tests) from the candidates with
+        at least ``outline_floor_points`` returns (10 when the option is off), with every scan's
         measured range noise (None without ``sigma_from_scan``) and the number of scans."""
         cfg = self.config
         segs, grid, wrap = self._candidates(
