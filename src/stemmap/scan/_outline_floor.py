@@ -35,6 +35,9 @@ noise-free floor on a noisy sparse scan breaks its fits: the same section, part 
 at ``sigma``: the option only lowers the assumed floor where the batch's outlines are smoother
 than it assumes. Where the batch has no estimate every scan keeps ``sigma``.
 
+The batch is the scans detected together (one ``detect`` call, or one chunk of at most
+``chunk_scans`` scans of ``detect_batch``), as for the batch's noise estimate.
+
 The detector reads the floor in a first pass (candidates, fits and fit tests at ``sigma``) and
 then runs the whole pipeline with it (:meth:`~stemmap.scan.detect.ScanTrunkDetector._run_numpy`;
 numpy path, the compiled kernel does not implement it).
