@@ -596,6 +596,13 @@ LOO_GRID: tuple[dict[str, Any], ...] = (
     ),
 )
 
+# Dec 6 ("The outline floor read from the batch"): the range-noise floor read from the pooled
+# interior residuals of the batch's passed candidates of >= 10 returns (biweight scale, the
+# measured noise in quadrature; at least 3 mm, at most sigma) in place of the assumed 1 cm
+# (outline_floor_points) on grid 85 (the preset, 98), grid 61 (the q = 0.3 averaging choice,
+# 99) and grid 96 (94 + mixed_end_min_points, 100)
+LOO_GRID = LOO_GRID + tuple({**LOO_GRID[g], "outline_floor_points": 10} for g in (85, 61, 96))
+
 #: Settings measured outside the grid (they break the simulated precision target), reported
 #: held out with ``--loo-extra`` so the table shows what they would give.
 LOO_EXTRA: tuple[dict[str, Any], ...] = (

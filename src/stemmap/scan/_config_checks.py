@@ -81,6 +81,12 @@ _CHECKS: tuple[tuple[str, _Test, str], ...] = (
         "it must be 0 (off) or 3 to min_points returns",
     ),
     ("residual_floor", lambda v, c: 0.0 <= v < 1.0, "it must be 0 (off) or in (0, 1)"),
+    (
+        "outline_floor_points",
+        lambda v, c: v == 0 or v >= 6,
+        "it must be 0 (off) or >= 6 returns (3 interior residuals over 3 degrees of freedom)",
+    ),
+    ("outline_floor_min", _gt0f, "it must be > 0 m and finite"),
     ("max_points", lambda v, c: v is None or not v < c.min_points, "it must be >= min_points"),
     ("radius_median", lambda v, c: v is None or v > 0, "it must be > 0 m or None"),
     ("max_width", lambda v, c: v > c.min_width >= 0, "need 0 <= min_width < max_width"),

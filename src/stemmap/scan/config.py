@@ -82,6 +82,24 @@ class DetectorConfig:
         that bound, at least the scan's measured noise; the tests keep ``sigma``
         (:func:`~stemmap.scan._segment_fits.residual_floor_refit`; ours, issue 11, Dec 6: the
         1 cm floor on noise-free scans). 0 = off. Numpy path.
+    outline_floor_points : int
+        Fits without a first-echo footprint correction (``beam_footprint_deg`` 0; a first-echo
+        fit reads its floor from the data with ``fit_noise_floor``): the range-noise floor
+        ``sigma`` read from the data instead of assumed (issue 11: "estimate
+        the range noise and bark roughness from the data instead of assuming 1 cm";
+        docs/algorithms/scan-detection.md, "The outline floor read from the batch"): the
+        residuals of the interior returns of every candidate of the batch that passed its fit
+        tests with at least this many returns (>= 6), pooled, give a robust residual scale
+        (biweight); less the measured range noise in quadrature it is the outline term (bark,
+        ellipse), and every scan's floor becomes ``min(sigma, max(outline_floor_min,
+        sqrt(noise^2 + outline^2)))`` (:mod:`stemmap.scan._outline_floor`). A few-return
+        candidate cannot show its own outline; the batch's well-sampled trunks can: on
+        noise-free perfect circles the floor falls to ``outline_floor_min``, on real bark it
+        stays near the bark's. ``sigma`` where the batch has too few residuals. 0 = off. Numpy
+        path (a first pass at ``sigma`` reads the floor, then the whole pipeline runs with it).
+    outline_floor_min : float, metres, > 0
+        The lowest floor ``outline_floor_points`` sets (the trace's 3 mm: "The two FORTLS rows
+        left against textbook Kasa", part 3).
     min_width, max_width : float, metres
         Edge-beam chord width (Xue eq. 12); visual-lidar: <= 0.55 m.
     min_depth : float, metres
@@ -641,6 +659,8 @@ class DetectorConfig:
     min_points_partial: int = 3
     mixed_end_min_points: int = 0
     residual_floor: float = 0.0
+    outline_floor_points: int = 0
+    outline_floor_min: float = 0.003
     max_points: int | None = None
     min_width: float = 0.0
     max_width: float = math.inf

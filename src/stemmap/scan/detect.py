@@ -37,6 +37,7 @@ from stemmap.scan._detect_fast import detect_scans
 from stemmap.scan._kernel_params import kernel_params
 from stemmap.scan._mixed_end import least_points, mixed_end_on
 from stemmap.scan._occluded_blend import blend_ends_on, drop_occluded_blends
+from stemmap.scan._outline_floor import batch_outline, outline_floor_on, scan_floors
 from stemmap.scan._pieces import arc_candidates, split_pieces
 from stemmap.scan._refit import corner_cut_pieces
 from stemmap.scan._segment_fits import (
@@ -232,9 +233,62 @@ class ScanTrunkDetector:
         pitch: ArrayLike | None = None,
     ) -> Segments:
         """Pre-processing, segmentation and segment filters: the trunk candidate segments."""
-        return self._candidates(
+        floor = self._outline_floors(
             ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
+        )
+        return self._candidates(
+            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch, floor=floor
         )[0]
+
+    def _outline_floors(
+        self,
+        ranges: ArrayLike,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float = 0.0,
+        range_max: float = math.inf,
+        roll: ArrayLike | None = None,
+        pitch: ArrayLike | None = None,
+    ) -> FloatArray | None:
+        """``outline_floor_points``: every scan's range-noise floor in place of ``sigma``
+        (:func:`~stemmap.scan._outline_floor.scan_floors` of :meth:`outline_estimate`); None
+        when off."""
+        if not outline_floor_on(self.config):
+            return None
+        outline, _, batch, noise, n_scans = self.outline_estimate(
+            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
+        )
+        return scan_floors(self.config, outline, batch, noise, n_scans)
+
+    def outline_estimate(
+        self,
+        ranges: ArrayLike,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float = 0.0,
+        range_max: float = math.inf,
+        roll: ArrayLike | None = None,
+        pitch: ArrayLike | None = None,
+    ) -> tuple[float, float, float, FloatArray | None, int]:
+        """The batch's outline term, pooled residual scale and measured range noise (metres,
+        NaN: no estimate; :func:`~stemmap.scan._outline_floor.batch_outline`), read in a first
+        pass at the config's ``sigma`` (candidates, fits and fit tests) from the candidates with
+        at least ``outline_floor_points`` returns (10 when the option is off), with every scan's
+        measured range noise (None without ``sigma_from_scan``) and the number of scans."""
+        cfg = self.config
+        segs, grid, wrap = self._candidates(
+            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
+        )
+        n_scans = segs.points.n_scans
+        if len(segs) == 0:
+            return math.nan, math.nan, math.nan, segs.points.noise, n_scans
+        if cfg.beam_footprint_deg > 0:
+            segs = footprint_correct(segs, math.radians(cfg.beam_footprint_deg))
+        fitted = self._fit_candidates(segs, grid, wrap)
+        passed = fitted_reasons(cfg, fitted) == 0
+        least = cfg.outline_floor_points or 10
+        outline, pooled, batch = batch_outline(segs, fitted.centers, fitted.radii, passed, least)
+        return outline, pooled, batch, segs.points.noise, n_scans
 
     def _candidates(
         self,
@@ -247,10 +301,13 @@ class ScanTrunkDetector:
         pitch: ArrayLike | None = None,
         *,
         apply_filters: bool = True,
+        floor: FloatArray | None = None,
     ) -> tuple[Segments, FloatArray, bool]:
         """:meth:`candidates` plus the processed range grid the returns came from and whether
         its beams wrap around (360-degree scan). ``apply_filters=False``: every segment with
-        >= ``min_points`` returns, before the segment filters (for the rejection report)."""
+        >= ``min_points`` returns, before the segment filters (for the rejection report).
+        ``floor``: every scan's range-noise floor in place of ``sigma``
+        (:meth:`_outline_floors`; None: ``sigma``)."""
         cfg = self.config
         r = _as_scans(ranges)
         n = r.shape[1]
@@ -296,6 +353,8 @@ class ScanTrunkDetector:
         if self._fit_noise_on():
             # the noise the fits weight by: each scan's own estimate, else the batch's
             pts = replace(pts, fit_noise=estimate(0.0, False, 0.0))
+        if floor is not None:
+            pts = replace(pts, floor=floor)
         if cfg.segmentation == "range_jump":
             brk = range_jump_breaks(pts, cfg.max_jump, max_skip=cfg.max_skip)
         else:
@@ -429,7 +488,8 @@ class ScanTrunkDetector:
         (``lobe_harmonics``), RMS test over the fit's degrees of freedom (``rms_dof``) or bend
         test of straightness (``straight_curvature``), no occluded-end blend trim
         (``occluded_blend_sigmas``), no mixed-end admission (``mixed_end_min_points``) nor
-        ``residual_floor`` re-fit, no ``behind_sigmas`` trim nor a ``stub_sigmas`` or
+        ``residual_floor`` re-fit nor outline floor (``outline_floor_points``), no
+        ``behind_sigmas`` trim nor a ``stub_sigmas`` or
         ``cut_ends`` trim that acts
         (:func:`~stemmap.scan._stubs.first_echo`), no ``split_search`` and no ``step_split`` with
         ``step_twigs`` (arc re-fits are compiled since the fourteenth round of issue 11, the
@@ -454,6 +514,7 @@ class ScanTrunkDetector:
             and not blend_ends_on(cfg)
             and not mixed_end_on(cfg)
             and cfg.residual_floor == 0.0
+            and not outline_floor_on(cfg)
         )
 
     def _run(
@@ -572,6 +633,9 @@ class ScanTrunkDetector:
         search = cfg.split_search or cfg.step_split
         # every candidate is needed, before the filters
         arcs = cfg.arc_refit or corners or search
+        floor = self._outline_floors(
+            ranges, angle_min, angle_increment, range_min, range_max, roll, pitch
+        )
         segs, grid, wrap = self._candidates(
             ranges,
             angle_min,
@@ -581,6 +645,7 @@ class ScanTrunkDetector:
             roll,
             pitch,
             apply_filters=not arcs and fate is None,
+            floor=floor,
         )
         every = segs  # with arc_refit (or a fate to record): every candidate, before the filters
         if (arcs or fate is not None) and len(every):

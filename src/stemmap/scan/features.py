@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import chdtri
 
 from stemmap.errors import ConfigError
-from stemmap.scan.segment import ScanPoints, Segments
+from stemmap.scan.segment import Segments
 from stemmap.types import FloatArray
 
 __all__ = [
@@ -461,19 +461,7 @@ def footprint_correct(segs: Segments, footprint: float) -> Segments:
     apex = theta[first_min]
     d = np.arctan2(np.sin(theta - apex[lab]), np.cos(theta - apex[lab]))
     new_t = theta - np.clip(d, -footprint / 2.0, footprint / 2.0)
-    pts = ScanPoints(
-        p.scan,
-        p.beam,
-        p.r,
-        p.r * np.cos(new_t),
-        p.r * np.sin(new_t),
-        p.n_scans,
-        p.n_beams,
-        p.angle_increment,
-        p.noise,
-        p.step_noise,
-        p.fit_noise,
-    )
+    pts = replace(p, x=p.r * np.cos(new_t), y=p.r * np.sin(new_t))
     return replace(segs, points=pts)
 
 

@@ -308,8 +308,12 @@ def segment_sigma(cfg: DetectorConfig, segs: Segments, mean_r: FloatArray) -> Fl
     """Range-noise sigma of every segment: ``sigma + sigma_rel x mean range``, with
     ``sigma_from_scan`` at least its scan's own estimate (:func:`scan_noise`, carried in
     ``segs.points.noise``; only where a sigma is configured: sigma 0 lets the fit estimate its
-    scale). Same arithmetic as the compiled path."""
-    sigma: FloatArray = cfg.sigma + cfg.sigma_rel * mean_r
+    scale). ``outline_floor_points``: each scan's floor (``segs.points.floor``,
+    :mod:`stemmap.scan._outline_floor`) in place of ``sigma``. Same arithmetic as the compiled
+    path."""
+    floor = segs.points.floor  # outline_floor_points: each scan's floor in place of sigma
+    base: float | FloatArray = cfg.sigma if floor is None else floor[segs.scan]
+    sigma: FloatArray = base + cfg.sigma_rel * mean_r
     noise = segs.points.noise
     if cfg.sigma_from_scan and noise is not None and (cfg.sigma > 0 or cfg.sigma_rel > 0):
         sigma = np.fmax(sigma, noise[segs.scan])  # (NaN: no estimate, rms_noise_from_fit)

@@ -67,6 +67,10 @@ class ScanPoints:
         ``fit_noise_floor`` and the cap of the tests' sigma: the scan's own estimate, or the
         estimate over every scan of the batch where it has none (set with
         ``fit_noise_floor`` on first-echo fits).
+    floor : ndarray of shape (n_scans,), metres, or None
+        The range-noise floor of each scan in place of the config's ``sigma``: read from the
+        outlines of the batch's well-sampled candidates (set with ``outline_floor_points``:
+        :mod:`stemmap.scan._outline_floor`).
     """
 
     scan: IntArray
@@ -80,6 +84,7 @@ class ScanPoints:
     noise: FloatArray | None = None
     step_noise: FloatArray | None = None
     fit_noise: FloatArray | None = None
+    floor: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
@@ -99,6 +104,7 @@ class ScanPoints:
             self.noise,
             self.step_noise,
             self.fit_noise,
+            self.floor,
         )
 
 
