@@ -193,10 +193,10 @@ def detect(
             "unknown (the tangent prior widened by half a footprint). A real SICK LMS200 "
             "measured 0.25-0.38 (Victoria Park, 2-15 m): 0.25 0.38, with --edge-hit-window. "
             "Other values are not the default: on real trunk geometry scanned at the measured "
-            "0.3, 0.25-0.38 scores below half for three of four held-out datasets (on the "
-            "simulator's circles, whose SICK returns at 0.3 since Dec 6, it removes a +0.2 cm "
-            "DBH bias; docs/algorithms/scan-detection.md, 'One return threshold for the "
-            "simulator and the benchmark').",
+            "0.3, 0.25-0.38 scores below half in three of four leave-one-dataset-out folds "
+            "(on the simulator's circles, whose SICK returns at 0.3 since Dec 6, it removes a "
+            "+0.2 cm DBH bias; docs/algorithms/scan-detection.md, 'One return threshold for "
+            "the simulator and the benchmark').",
         ),
     ] = None,
     edge_hit_window: Annotated[
