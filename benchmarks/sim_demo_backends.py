@@ -24,11 +24,14 @@ one-second white-equivalent) to compare against another noise model on the same 
 (``FastSlamConfig(smooth=False)``: the filter's path and the particles' pose spread x
 ``POSE_COV_INFLATION``) or ``ekf-marginal-map-term`` (the EKF smoother's map term from the
 landmarks' marginals, :func:`stemmap.slam._ekf_smooth.map_error_covariance`, as before the
-joint term: ``smooth_path`` called without ``map_cov``). The simulator tests code here; nothing
-is chosen on it.
+joint term: ``smooth_path`` called without ``map_cov``). ``--sim-hit-fraction Q`` simulates the
+drives with a SICK that returns when ``Q`` of its footprint hits (the ``sick_lms`` preset's own
+threshold, 0.3 since Dec 6, by default; 0.5 gives the scanner before); ``--detector-set JSON``
+overrides fields of the detector's ``stemmap`` preset. The simulator tests
+code here; nothing is chosen on it.
 
 Usage: python benchmarks/sim_demo_backends.py [--seeds 0 1 2 3 4 5 6] [--backends isam2 ekf]
-       [--variant fastslam-unsmoothed]
+       [--variant fastslam-unsmoothed] [--sim-hit-fraction 0.5] [--detector-set JSON]
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -89,19 +92,30 @@ def one(
     backend: str,
     sigmas: str | tuple[float, float] | None,
     config: dict[str, Any] | None = None,
+    hit_fraction: float | None = None,
+    detector_set: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """One seed and back-end: accuracy, pose and tree z² arrays."""
-    from stemmap.cli._demo import _stand_and_run
+    """One seed and back-end: accuracy, pose and tree z² arrays. ``hit_fraction``: the
+    simulated SICK's return threshold instead of the ``sick_lms`` preset's own;
+    ``detector_set``: overrides of the detector's ``stemmap`` preset."""
+    from stemmap.cli._demo import DEMO_SCENARIO, _stand_and_run
     from stemmap.cli._map import sim_problem, slam_metrics
     from stemmap.eval.matching import match_points
+    from stemmap.scan.config import DetectorConfig
     from stemmap.scan.detect import ScanTrunkDetector
+    from stemmap.sim.scanner import scanner_preset
     from stemmap.slam.base import make_backend
     from stemmap.slam.uncertainty import annotate_uncertainty
 
-    run = _stand_and_run(seed, N_TREES)
+    scanner = None
+    if hit_fraction is not None:
+        scanner = scanner_preset(DEMO_SCENARIO["scanner"], min_hit_fraction=hit_fraction)
+    run = _stand_and_run(seed, N_TREES, scanner=scanner)
     problem, ctx = sim_problem(
         run,
-        ScanTrunkDetector().detect_batch(run.scans),
+        ScanTrunkDetector(DetectorConfig.preset("stemmap", **(detector_set or {}))).detect_batch(
+            run.scans
+        ),
         backend=backend,
     )
     if sigmas == "legacy":
@@ -177,6 +191,20 @@ def main() -> None:
     ap.add_argument(
         "--variant", choices=sorted(VARIANTS), default=None, help="a non-default back-end variant"
     )
+    ap.add_argument(
+        "--sim-hit-fraction",
+        type=float,
+        default=None,
+        help="the simulated SICK's return threshold, the share of its footprint that must hit"
+        " for a beam to return (default: the sick_lms preset's own; 0.5 before Dec 6)",
+    )
+    ap.add_argument(
+        "--detector-set",
+        type=json.loads,
+        default=None,
+        help="overrides of the detector's stemmap preset, e.g. "
+        '\'{"edge_hit_min": 0.25, "edge_hit_max": 0.38, "edge_hit_window": true}\'',
+    )
     a = ap.parse_args()
     sig: str | tuple[float, float] | None = None
     if a.legacy_sigmas:
@@ -185,6 +213,10 @@ def main() -> None:
         sv, sw = (float(x) for x in a.motion_sigma.split(","))
         sig = (sv, sw)
     out: dict[str, Any] = {"scenario": f"stemmap demo, {N_TREES} trees", "seeds": a.seeds}
+    if a.sim_hit_fraction is not None:
+        out["sim_hit_fraction"] = a.sim_hit_fraction
+    if a.detector_set:
+        out["detector_set"] = a.detector_set
     todo: list[tuple[str, str, dict[str, Any]]] = [(b, b, {}) for b in a.backends]
     if a.variant is not None:
         backend, config, setup = VARIANTS[a.variant]
@@ -192,7 +224,7 @@ def main() -> None:
             setup()
         todo = [(a.variant, backend, config)]
     for b, backend, config in todo:
-        runs = [one(s, backend, sig, config) for s in a.seeds]
+        runs = [one(s, backend, sig, config, a.sim_hit_fraction, a.detector_set) for s in a.seeds]
         sv, sw = runs[0]["sigmas"]  # seed 0's (the horizon follows each run's detections)
         out[b] = {"motion_sigmas_seed0 (m/s, deg/s)": [round(sv, 4), round(math.degrees(sw), 3)]}
         out[b] |= summarise(runs, a.seeds)

@@ -263,7 +263,7 @@ PRESET_NOTES: dict[str, str] = {
     "5 held-out datasets; with 3 cm of range noise it lifts the FORTLS recall at 0.25 deg "
     "nearest from 0.49 to 0.87 and the TreeLS plot's from 0.34 to 0.65; `stemmap demo` "
     "precision 0.956 / 0.991 / 0.967 on seeds 1-3; ~1.5 % of the compiled batch time. "
-    "Tenth round: validated concave-corner splits of rejected candidates on (refit_pieces, "
+    "Eleventh round: validated concave-corner splits of rejected candidates on (refit_pieces, "
     "refit_split='corners', refit_validate): a trunk merged with a branch or stem in one "
     "segment is cut at the junction and kept when exactly one piece passes every test; "
     "compiled, at no measurable speed cost; chosen leave-one-dataset-out among the compiled "
