@@ -78,22 +78,36 @@ def test_ekf_residuals_recover_the_simulated_detection_noise(sigma_r, sigma_b_de
     assert 0.9 * sb <= st["residual_sigma_bearing_long_run"] <= 1.5 * sb
 
 
-def test_noise_from_residuals_reruns_with_the_measured_noise():
+def test_noise_from_residuals_raises_a_too_small_noise_to_the_measured_one():
     problem, *_ = loop_problem(1, laps=1.2, sigma_r=0.05, sigma_b=math.radians(0.3))
-    first = EkfSlam().run(problem)
-    res = EkfSlam(noise_from_residuals=True).run(problem)
+    small = {"sigma_range": 0.02, "sigma_bearing": math.radians(0.1)}
+    first = EkfSlam(**small).run(problem)
+    res = EkfSlam(**small, noise_from_residuals=True).run(problem)
     st = res.stats
-    # the second run used the first run's long-run noise (the default run is the first pass)
+    # the second run used the first run's long-run noise (both above the configured values)
     assert st["noise_from_residuals_sigma_range"] == first.stats["residual_sigma_range_long_run"]
     assert (
         st["noise_from_residuals_sigma_bearing"] == first.stats["residual_sigma_bearing_long_run"]
     )
+    assert st["noise_from_residuals_sigma_range"] > small["sigma_range"]
+    assert st["noise_from_residuals_sigma_bearing"] > small["sigma_bearing"]
     again = EkfSlam(
         sigma_range=st["noise_from_residuals_sigma_range"],
         sigma_bearing=st["noise_from_residuals_sigma_bearing"],
     ).run(problem)
     np.testing.assert_allclose(res.trajectory.poses, again.trajectory.poses)
     np.testing.assert_allclose(res.pose_covs, again.pose_covs)
+
+
+def test_noise_from_residuals_keeps_a_larger_configured_noise():
+    # the default 0.3 m / 1 deg is above the measured 0.05 m / 0.3 deg: nothing is re-run
+    problem, *_ = loop_problem(1, laps=1.2, sigma_r=0.05, sigma_b=math.radians(0.3))
+    plain = EkfSlam().run(problem)
+    res = EkfSlam(noise_from_residuals=True).run(problem)
+    assert res.stats["noise_from_residuals_sigma_range"] == 0.3
+    assert res.stats["noise_from_residuals_sigma_bearing"] == math.radians(1.0)
+    np.testing.assert_array_equal(res.trajectory.poses, plain.trajectory.poses)
+    np.testing.assert_array_equal(res.pose_covs, plain.pose_covs)
 
 
 def test_noise_from_residuals_needs_the_smoother():
