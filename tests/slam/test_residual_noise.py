@@ -113,3 +113,9 @@ def test_noise_from_residuals_keeps_a_larger_configured_noise():
 def test_noise_from_residuals_needs_the_smoother():
     with pytest.raises(ConfigError, match="smooth"):
         EkfSlam(noise_from_residuals=True, smooth=False)
+
+
+def test_exact_residuals_have_no_noise_to_measure():
+    fr, lm, e = _ar1_residuals(0.0, (0.1, 0.01), seed=2)
+    with pytest.raises(ValueError, match="scatter"):
+        residual_noise(fr, lm, np.zeros_like(e))

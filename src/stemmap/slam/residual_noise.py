@@ -100,6 +100,8 @@ def residual_noise(
         raise ValueError(f"too few residuals ({f.size}) to measure the noise.")
     sigma = np.array([_mad(e[:, 0]), _mad(e[:, 1])])
     var = np.mean(e * e, axis=0)
+    if not np.all(var > 0):  # exact detections (a noise-free simulation): nothing to measure
+        raise ValueError("the residuals have no scatter to measure.")
     key = j * (int(f.max()) + max_lag + 2) + f
     order = np.argsort(key)
     ks = key[order]
