@@ -60,8 +60,11 @@ def test_gross_errors_are_not_noise():
     assert r.sigma_long_run[0] == pytest.approx(0.1, rel=0.12)
 
 
-@pytest.mark.parametrize(("sigma_r", "sigma_b_deg"), [(0.05, 0.3), (0.15, 0.8)])
-def test_ekf_residuals_recover_the_simulated_detection_noise(sigma_r, sigma_b_deg):
+@pytest.mark.parametrize(
+    ("sigma_r", "sigma_b_deg", "update"),
+    [(0.05, 0.3, "compressed"), (0.15, 0.8, "compressed"), (0.05, 0.3, "full")],
+)
+def test_ekf_residuals_recover_the_simulated_detection_noise(sigma_r, sigma_b_deg, update):
     # white detection noise on a simulated loop (odometry biased and noisy): the residuals of
     # the EKF's associated detections at its smoothed path against its map are the noise up to
     # the fit (each tree seen ~100 times, the path by several trees a frame: a few % smaller),
@@ -70,7 +73,7 @@ def test_ekf_residuals_recover_the_simulated_detection_noise(sigma_r, sigma_b_de
     # varying error, which the residuals share (0.068 m / 0.38 deg at 0.05 m / 0.3 deg,
     # seed 0): within 1.5x
     problem, *_ = loop_problem(0, laps=1.2, sigma_r=sigma_r, sigma_b=math.radians(sigma_b_deg))
-    st = EkfSlam().run(problem).stats
+    st = EkfSlam(update=update).run(problem).stats
     sb = math.radians(sigma_b_deg)
     assert st["residual_sigma_range"] == pytest.approx(sigma_r, rel=0.1)
     assert st["residual_sigma_bearing"] == pytest.approx(sb, rel=0.1)
