@@ -26,6 +26,7 @@ Usage: python benchmarks/pose_covariance.py --sim --seeds 1 2 3
        (``online``: the realtime iSAM2 mapper of ``stemmap map --realtime``)
        python benchmarks/pose_covariance.py --vp-gnss
        python benchmarks/pose_covariance.py --vp-ekf-map-factor
+       python benchmarks/pose_covariance.py --vp-ekf-residual-noise
 Prints JSON. The machine is shared; times are not reported.
 """
 
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from typing import Any
 
@@ -291,6 +293,92 @@ def vp_ekf_map_factor() -> dict[str, Any]:
     return out
 
 
+def _ekf_with_residuals(problem: Any, **config: Any) -> tuple[Any, tuple[Any, ...]]:
+    """An EKF run and the inputs of its residual noise (the associated detections, the
+    smoothed path, the map, the sensor offset), caught where the run measures it."""
+    import stemmap.slam._ekf_compressed as ekf_c
+    from stemmap.slam.base import make_backend
+
+    caught: list[tuple[Any, ...]] = []
+    orig = ekf_c.residual_noise_stats
+
+    def catch(*args: Any) -> Any:
+        caught.append(args)
+        return orig(*args)
+
+    ekf_c.residual_noise_stats = catch  # type: ignore[assignment]
+    try:
+        res = make_backend("ekf", **config).run(problem)
+    finally:
+        ekf_c.residual_noise_stats = orig  # type: ignore[assignment]
+    return res, caught[-1]
+
+
+def vp_ekf_residual_noise() -> dict[str, Any]:
+    """The EKF's detection noise measured from its residuals (``EkfConfig.noise_from_residuals``;
+    :mod:`stemmap.slam.residual_noise`), two folds on Victoria Park: the default run's residuals
+    of one half of the run (detections before / after the middle time) give the long-run range
+    and bearing std; the EKF re-run with them is scored on the *other* half (laser point vs GPS,
+    the GPS's own error ``G`` counted, as ``--vp``); and the noise of the whole run (what the
+    option uses) scored on both halves. ATE (m) of every run."""
+    from stemmap.datasets.victoria_park import load_victoria_park
+    from stemmap.eval.trajectory import ate
+    from stemmap.slam.base import make_backend
+    from stemmap.slam.residual_noise import detection_residuals, residual_noise
+
+    vpd = load_victoria_park(None)
+    problem = vpd.problem()
+    keep = vpd.screened_gps()
+    t = problem.frames.times
+    t_mid = 0.5 * (t[0] + t[-1])
+    G, gps = _vp_gps_cov(vpd, problem, keep, make_backend("isam2").run(problem))
+
+    def score(res: Any) -> dict[str, Any]:
+        ft, e, C = _pose_terms(res, vpd, keep)
+        ok = np.all(np.isfinite(C), axis=(1, 2))
+        a = ate(
+            res.trajectory, vpd.gps_times, vpd.gps_xy, offset=vpd.model.sensor_offset, keep=keep
+        )
+        return {
+            "ate_m": round(a.rmse, 3),
+            "trees": len(res.stem_map.trees),
+            "first_half": _stats(_z2(e[ok & (ft < t_mid)], C[ok & (ft < t_mid)] + G), 2),
+            "second_half": _stats(_z2(e[ok & (ft >= t_mid)], C[ok & (ft >= t_mid)] + G), 2),
+        }
+
+    res0, (poses, obs, lm_xy, off) = _ekf_with_residuals(problem)
+    fr, lj, rz, bz = obs
+    e = detection_residuals(poses, fr, lj, rz, bz, lm_xy, off)
+    halves = {"first_half": t[fr] < t_mid, "second_half": t[fr] >= t_mid}
+    out: dict[str, Any] = {
+        "t_split_s": round(float(t_mid), 1),
+        "gps_rms_2d_m": round(gps.rms_2d, 3),
+        "default": {"sigma_range_m": 0.30, "sigma_bearing_deg": 1.0} | score(res0),
+    }
+    noise: dict[str, tuple[float, float]] = {}
+    for label, sel in (*halves.items(), ("whole", np.ones(fr.size, dtype=bool))):
+        r = residual_noise(fr[sel], lj[sel], e[sel])
+        noise[label] = r.sigma_long_run
+        out[f"residuals_{label}"] = {
+            "sigma_range_m": round(r.sigma[0], 4),
+            "sigma_bearing_deg": round(math.degrees(r.sigma[1]), 4),
+            "lag1_correlation (range, bearing)": [round(r.rho[0][0], 3), round(r.rho[1][0], 3)],
+            "lag10_correlation (range, bearing)": [round(r.rho[0][9], 3), round(r.rho[1][9], 3)],
+            "long_run_sigma_range_m": round(r.sigma_long_run[0], 4),
+            "long_run_sigma_bearing_deg": round(math.degrees(r.sigma_long_run[1]), 4),
+            "used": r.used,
+            "removed_as_gross": r.removed,
+        }
+    for label in ("first_half", "second_half", "whole"):
+        sr, sb = noise[label]
+        out[f"noise_from_{label}"] = {
+            "sigma_range_m": round(sr, 4),
+            "sigma_bearing_deg": round(math.degrees(sb), 4),
+        } | score(make_backend("ekf", sigma_range=sr, sigma_bearing=sb).run(problem))
+        print(json.dumps({label: out[f"noise_from_{label}"]}), file=sys.stderr, flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
@@ -301,6 +389,11 @@ def main() -> None:
     ap.add_argument(
         "--vp-ekf-map-factor", action="store_true", help="choose the EKF map-term factor on VP"
     )
+    ap.add_argument(
+        "--vp-ekf-residual-noise",
+        action="store_true",
+        help="the EKF's detection noise from its residuals, two folds on VP",
+    )
     ap.add_argument("--dump", default=None, help="with --vp: save PREFIX_BACKEND.npz (t, e, C, G)")
     a = ap.parse_args()
     out: dict[str, Any] = {}
@@ -310,6 +403,8 @@ def main() -> None:
         out["victoria_park"] = vp(a.backends, a.dump)
     if a.vp_ekf_map_factor:
         out["victoria_park_ekf_map_factor"] = vp_ekf_map_factor()
+    if a.vp_ekf_residual_noise:
+        out["victoria_park_ekf_residual_noise"] = vp_ekf_residual_noise()
     if a.vp_gnss:
         out["victoria_park_isam2_gnss"] = vp_gnss()
     print(json.dumps(out, indent=1))

@@ -71,7 +71,38 @@ def _marginal_map_term() -> None:
 VARIANTS: dict[str, tuple[str, dict[str, Any], Any]] = {
     "fastslam-unsmoothed": ("fastslam", {"smooth": False}, None),
     "ekf-marginal-map-term": ("ekf", {}, _marginal_map_term),
+    "ekf-noise-from-residuals": ("ekf", {"noise_from_residuals": True}, None),
 }
+
+
+def true_detection_noise(run: Any, problem: Any) -> dict[str, float]:
+    """The demo detections' actual noise: each detection against the true stem (nearest within
+    1 m of where the true pose puts it) seen from the true pose, measured with the same
+    estimator the EKF applies to its residuals (:func:`stemmap.slam.residual_noise.residual_noise`)
+    -- what ``noise_from_residuals`` should recover."""
+    from scipy.spatial import cKDTree
+
+    from stemmap.slam.residual_noise import detection_residuals, residual_noise
+
+    fr = problem.frames
+    frame = np.repeat(np.arange(len(fr.times)), np.diff(fr.ptr))
+    poses = run.vehicle_poses.interpolate(fr.times)
+    a, b = problem.sensor_offset
+    x, y, th = poses[frame].T
+    ang = th + fr.bearings
+    px = x + a * np.cos(th) - b * np.sin(th) + fr.ranges * np.cos(ang)
+    py = y + a * np.sin(th) + b * np.cos(th) + fr.ranges * np.sin(ang)
+    trees = np.asarray(run.stand.trees_xy)
+    d, j = cKDTree(trees).query(np.column_stack((px, py)))
+    ok = d < 1.0
+    e = detection_residuals(poses, frame[ok], j[ok], fr.ranges[ok], fr.bearings[ok], trees, (a, b))
+    r = residual_noise(frame[ok], j[ok], e)
+    return {
+        "sigma_range": r.sigma[0],
+        "sigma_bearing_deg": math.degrees(r.sigma[1]),
+        "sigma_range_long_run": r.sigma_long_run[0],
+        "sigma_bearing_long_run_deg": math.degrees(r.sigma_long_run[1]),
+    }
 
 
 def legacy_sigmas(params: dict[str, Any]) -> tuple[float, float]:
@@ -132,6 +163,23 @@ def one(
         "sigmas": (problem.motion.sigma_speed, problem.motion.sigma_steer),
     }
     out |= pose_errors(run, res)
+    if backend == "ekf":  # the EKF's residual noise against the detections' actual noise
+        st = res.stats
+        out["detection_noise"] = {
+            "true": true_detection_noise(run, problem),
+            "from_residuals": {
+                "sigma_range": st.get("residual_sigma_range", math.nan),
+                "sigma_bearing_deg": math.degrees(st.get("residual_sigma_bearing", math.nan)),
+                "sigma_range_long_run": st.get("residual_sigma_range_long_run", math.nan),
+                "sigma_bearing_long_run_deg": math.degrees(
+                    st.get("residual_sigma_bearing_long_run", math.nan)
+                ),
+            },
+            "used": [
+                st.get("noise_from_residuals_sigma_range", math.nan),
+                math.degrees(st.get("noise_from_residuals_sigma_bearing", math.nan)),
+            ],
+        }
     match = match_points(sm.xy, run.stand.trees_xy, gate=1.0)
     z2 = []
     for i, t in match.pairs:
@@ -169,6 +217,16 @@ def summarise(runs: list[dict[str, Any]], seeds: list[int]) -> dict[str, Any]:
             "pose_heading_z2_median (calibrated 0.455)": _r(np.median(th)),
             "pose_nees_mean (calibrated 3)": _r(np.mean(nees)),
             "pose_nees_mean_per_dof (calibrated 1)": _r(np.mean(nees) / 3.0),
+        }
+    if all("detection_noise" in r for r in runs):
+        row["detection_noise_per_seed"] = {
+            s: {
+                k: {kk: _r(vv) for kk, vv in v.items()}
+                if isinstance(v, dict)
+                else [_r(x) for x in v]
+                for k, v in r["detection_noise"].items()
+            }
+            for s, r in zip(seeds, runs, strict=True)
         }
     tz = np.concatenate([r["z2_tree"] for r in runs])
     if tz.size:

@@ -56,6 +56,7 @@ from stemmap.slam._ekf_stream import FrameInputs
 from stemmap.slam.association import chi2_gate, jcbb, nearest_neighbour
 from stemmap.slam.base import IntArray, SlamProblem, SlamResult, frame_trajectory
 from stemmap.slam.motion import preintegrate_spans
+from stemmap.slam.residual_noise import residual_noise_stats
 from stemmap.types import FloatArray, StemMap, Tree
 
 if TYPE_CHECKING:
@@ -668,6 +669,7 @@ def run_compressed(
             inputs.poses, inputs.deltas, inputs.covs, olog.stream(st.g_ids), L.copy(), lm_cov,
             (a, b), R1, map_cov=st.Pg[3:, 3:].copy(), map_cov_inflation=cfg.map_cov_inflation,
         )  # fmt: skip
+        smooth_stats |= residual_noise_stats(poses, olog.stream(st.g_ids).arrays(), L, (a, b))
         olog.close()  # (its temporary file, if it spilled)
     else:
         poses = inputs.path()
