@@ -9,59 +9,26 @@ those features do not push it outside that range, and that the (optional) corner
 trunks merged with a branch (real lidR slice: recall 0.31 -> 0.69).
 """
 
-import math
-
 import numpy as np
 import pytest
+from tests.scan._stand_scans import scans, stand, visible_dbh_errors
 
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
-from stemmap.sim import (
-    add_understory,
-    make_trunks_noncircular,
-    random_stand,
-    scanner_preset,
-    simulate_scans,
-)
+from stemmap.sim import add_understory, make_trunks_noncircular
 
 
 def _run(shape=None, understory=None, seed=3, n=60, **overrides):
     """Recall and DBH error (cm) of the stemmap preset on SICK-class scans (0.5 deg, 1 cm
     noise, 0.25 deg footprint with mixed pixels) from ``n`` random poses in a 40-tree stand;
     a trunk counts when it has >= 5 returns within 10 m."""
-    st = random_stand(
-        40,
-        (24.0, 24.0),
-        dbh_mean=0.35,
-        dbh_std=0.15,
-        dbh_min=0.1,
-        dbh_max=1.0,
-        min_spacing=2.0,
-        rng=seed,
-    )
+    st = stand(seed)
     if shape:
         st = make_trunks_noncircular(st, rng=seed + 1, **shape)
     if understory:
         st = add_understory(st, rng=seed + 2, **understory)
-    gen = np.random.default_rng(seed + 3)
-    poses = np.column_stack(
-        (gen.uniform(2, 22, n), gen.uniform(2, 22, n), gen.uniform(-math.pi, math.pi, n))
-    )
-    batch, hit, _ = simulate_scans(st, poses, scanner_preset("sick_lms", range_max=30.0), rng=4)
+    poses, batch, hit = scans(st, seed, n)
     obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides)).detect_batch(batch)
-    errs, total = [], 0
-    for s in range(n):
-        x, y, th = poses[s]
-        c, si = math.cos(th), math.sin(th)
-        rel = st.trees_xy - (x, y)
-        local = np.column_stack((c * rel[:, 0] + si * rel[:, 1], -si * rel[:, 0] + c * rel[:, 1]))
-        cnt = np.bincount(hit[s][hit[s] >= 0], minlength=st.n_trees)
-        k = obs.index == s
-        for t in np.flatnonzero((cnt >= 5) & (np.hypot(*local.T) <= 10.0)):
-            total += 1
-            d = np.hypot(*(obs.centers[k] - local[t]).T)
-            if d.size and d.min() < st.radii[t] + 0.05:
-                errs.append(100.0 * (2.0 * obs.radii[k][int(np.argmin(d))] - st.diameters[t]))
-    e = np.asarray(errs)
+    total, e = visible_dbh_errors(st, poses, hit, obs, 5, 10.0)
     return {
         "visible": total,
         "recall": e.size / total,

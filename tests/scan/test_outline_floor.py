@@ -8,37 +8,31 @@ import math
 
 import numpy as np
 import pytest
+from tests.scan._stand_scans import scans, stand, visible_dbh_errors
 
 from stemmap.errors import ConfigError
 from stemmap.scan._outline_floor import batch_noise, outline_floor_on, scan_floors
 from stemmap.scan.detect import DetectorConfig, ScanTrunkDetector
-from stemmap.sim import make_trunks_noncircular, random_stand, scanner_preset, simulate_scans
+from stemmap.sim import make_trunks_noncircular
 
 
-def _batch(bark: float, seed: int, n: int = 60):
+def _scene(bark: float, seed: int, n: int = 60):
     """Noise-free SICK-class scans (0.5 deg, 0.25 deg footprint) of a 40-tree stand from ``n``
     random poses, the trunks perfect circles or (``bark`` > 0) with bark ridges of that RMS
-    (harmonics 9-60, 1/k spectrum: the simulator's model of real bark)."""
-    st = random_stand(
-        40,
-        (24.0, 24.0),
-        dbh_mean=0.35,
-        dbh_std=0.15,
-        dbh_min=0.1,
-        dbh_max=1.0,
-        min_spacing=2.0,
-        rng=seed,
-    )
+    (harmonics 9-60, 1/k spectrum: the simulator's model of real bark): stand, poses, batch,
+    hit ids."""
+    st = stand(seed)
     if bark:
         st = make_trunks_noncircular(
             st, rng=seed + 1, ellipticity=0.0, roughness=0.0, bark_rms=bark, n_vertices=240
         )
-    gen = np.random.default_rng(seed + 3)
-    poses = np.column_stack(
-        (gen.uniform(2, 22, n), gen.uniform(2, 22, n), gen.uniform(-math.pi, math.pi, n))
-    )
-    model = scanner_preset("sick_lms", range_max=30.0, range_noise=0.0)
-    return simulate_scans(st, poses, model, rng=4)[0]
+    poses, batch, hit = scans(st, seed, n, range_noise=0.0)
+    return st, poses, batch, hit
+
+
+def _batch(bark: float, seed: int, n: int = 60):
+    """The scans of :func:`_scene`."""
+    return _scene(bark, seed, n)[2]
 
 
 def _estimate(bark: float, seed: int) -> tuple[float, float, np.ndarray]:
@@ -106,44 +100,11 @@ def test_option_is_off_by_default_and_runs_the_numpy_path():
 
 def _dbh_errors(bark: float, seed: int, **overrides: object) -> tuple[int, np.ndarray]:
     """The visible trunks (>= 4 own returns within 15 m, the benchmark's rule) of
-    :func:`_batch` and the DBH errors (cm) of those the ``stemmap`` preset (with
+    :func:`_scene` and the DBH errors (cm) of those the ``stemmap`` preset (with
     ``overrides``) finds (nearest detection within the trunk's radius + 5 cm)."""
-    st = random_stand(
-        40,
-        (24.0, 24.0),
-        dbh_mean=0.35,
-        dbh_std=0.15,
-        dbh_min=0.1,
-        dbh_max=1.0,
-        min_spacing=2.0,
-        rng=seed,
-    )
-    if bark:
-        st = make_trunks_noncircular(
-            st, rng=seed + 1, ellipticity=0.0, roughness=0.0, bark_rms=bark, n_vertices=240
-        )
-    n = 60
-    gen = np.random.default_rng(seed + 3)
-    poses = np.column_stack(
-        (gen.uniform(2, 22, n), gen.uniform(2, 22, n), gen.uniform(-math.pi, math.pi, n))
-    )
-    model = scanner_preset("sick_lms", range_max=30.0, range_noise=0.0)
-    batch, hit, _ = simulate_scans(st, poses, model, rng=4)
+    st, poses, batch, hit = _scene(bark, seed)
     obs = ScanTrunkDetector(DetectorConfig.preset("stemmap", **overrides)).detect_batch(batch)
-    errs, total = [], 0
-    for s in range(n):
-        x, y, th = poses[s]
-        c, si = math.cos(th), math.sin(th)
-        rel = st.trees_xy - (x, y)
-        local = np.column_stack((c * rel[:, 0] + si * rel[:, 1], -si * rel[:, 0] + c * rel[:, 1]))
-        cnt = np.bincount(hit[s][hit[s] >= 0], minlength=st.n_trees)
-        k = obs.index == s
-        for t in np.flatnonzero((cnt >= 4) & (np.hypot(*local.T) <= 15.0)):
-            total += 1
-            d = np.hypot(*(obs.centers[k] - local[t]).T)
-            if d.size and d.min() < st.radii[t] + 0.05:
-                errs.append(100.0 * (2.0 * obs.radii[k][int(np.argmin(d))] - st.diameters[t]))
-    return total, np.asarray(errs)
+    return visible_dbh_errors(st, poses, hit, obs, 4, 15.0)
 
 
 def test_lower_floor_measures_noise_free_circles_closer():
