@@ -139,8 +139,15 @@ def fused_errors(
     return np.array(err).reshape(-1, 2), np.array(cov).reshape(-1, 2, 2)
 
 
+def dists(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Mahalanobis distances of the errors ``err`` (K, 2) under their covariances (K, 2, 2)."""
+    return np.sqrt(np.einsum("ki,kij,kj->k", err, np.linalg.pinv(cov), err))
+
+
 def scores(err: np.ndarray, cov: np.ndarray) -> dict[str, float]:
-    d = np.sqrt(np.einsum("ki,kij,kj->k", err, np.linalg.pinv(cov), err))
+    """RMS error, the RMS the covariances state, median / 90th percentile of the distances and
+    the shares inside 1 and 2 sigma, over ``groups`` (K) fused positions."""
+    d = dists(err, cov)
     return {
         "groups": int(err.shape[0]),
         "rms_cm": round(100.0 * float(np.sqrt(np.mean(np.sum(err * err, axis=1)))), 2),

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from centre_pass_fusion import dists, scores
 from stemmap.slam.tree_covariance import mapped_tree_covariances
 from stemmap.slam.uncertainty import CENTRE_RHO
 
@@ -108,22 +109,6 @@ class Cell:
         assert np.array_equal(nobs, np.bincount(self.tree, minlength=self.n))
         err = xy - np.column_stack((SPACING * np.arange(self.n), np.zeros(self.n)))
         return err, cov
-
-
-def dists(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.einsum("ki,kij,kj->k", err, np.linalg.inv(cov), err))
-
-
-def scores(err: np.ndarray, cov: np.ndarray) -> dict[str, float]:
-    d = dists(err, cov)
-    return {
-        "rms_cm": round(100.0 * float(np.sqrt(np.mean(np.sum(err * err, axis=1)))), 2),
-        "stated_rms_cm": round(100.0 * float(np.sqrt(np.mean(cov[:, 0, 0] + cov[:, 1, 1]))), 2),
-        "med_d": round(float(np.median(d)), 3),
-        "p90_d": round(float(np.quantile(d, 0.9)), 3),
-        "cov1": round(float(np.mean(d <= 1.0)), 3),
-        "cov2": round(float(np.mean(d <= 2.0)), 3),
-    }
 
 
 def load(paths: list[str]) -> dict[str, list[list[dict[str, Any]]]]:
