@@ -3,7 +3,7 @@
 For each cell (cloud x transform x seed: the draws of ``cloud_robustness.py`` /
 ``cloud_loo.py``) the transformed file goes through ``detect_stems_file`` with the per-stem
 step (:func:`stemmap.cloud.slicestem._slice_stem`, as :mod:`stemmap.cloud.measure` calls it)
-and the slice fits (``measure._fit_slices``) traced. For every checked baseline stem the
+and the slice fits (``_ladder._fit_slices``) traced. For every checked baseline stem the
 detection misses, per call of the per-stem step whose cluster fitted a circle near the stem
 (a fitted centre within the baseline radius + 10 cm; thick band, tighter refits, thin
 ladder -- the slice count tells which):

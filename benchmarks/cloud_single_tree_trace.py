@@ -27,6 +27,7 @@ import stemmap.cloud.measure as measure
 import stemmap.cloud.slicestem as ss
 from _cloud_refs import CLOUDS
 from cloud_lost_stems import cell_args
+from stemmap.cloud._ladder import _stem_weight
 from stemmap.cloud.config import StemConfig
 from stemmap.cloud.stems import detect_stems_file
 
@@ -39,7 +40,7 @@ def _stem(r: Any) -> str:
     row = r[0]
     return (
         f"D={100 * row[2]:.2f} h={row[13]:.2f} n={row[7]} taper={row[8]:.3f} "
-        f"w={measure._stem_weight(row):.0f} rms={1000 * row[6]:.1f} std={100 * row[9]:.2f}"
+        f"w={_stem_weight(row):.0f} rms={1000 * row[6]:.1f} std={100 * row[9]:.2f}"
     )
 
 

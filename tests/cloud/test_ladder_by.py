@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from cloud_robustness import TRANSFORMS, Context, write_las
+from stemmap.cloud._ladder import _single_tree_stem, _stem_weight
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.measure import _single_tree_stem, _stem_weight
 from stemmap.cloud.reference import stem_references
 from stemmap.cloud.stems import detect_stems_file
 from stemmap.errors import ConfigError

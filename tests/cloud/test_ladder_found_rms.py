@@ -8,8 +8,8 @@ import math
 
 import pytest
 
+from stemmap.cloud._ladder import _single_tree_stem, _stem_weight
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.measure import _single_tree_stem, _stem_weight
 
 TOL0 = 0.0585  # aRchi Tree_1 at 20 %, seed 0: the ladder's first tolerance (m)
 

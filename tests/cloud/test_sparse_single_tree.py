@@ -2,7 +2,7 @@
 ``subsample_50``; docs/algorithms/cloud.md "Single trees at lower density (Dec 3)"): its band
 is mostly needles, so half the 90th-percentile spacing (66 mm) is a RANSAC tolerance in which
 circles through the branch whorls win every slice. The tighter refits of a rejected cluster
-(:func:`stemmap.cloud.measure._tighter_refits`) find the stem again.
+(:func:`stemmap.cloud._ladder._tighter_refits`) find the stem again.
 
 The reference is the ring of the cloud as shipped at the detected stem (as the benchmark):
 on this spruce it moves with its start circle (23.3-23.9 cm for starts within 1 cm of the
@@ -105,7 +105,7 @@ def test_tenth_density_spruce_is_found_with_thin_slices(datasets_dir: Path, tmp_
 def test_tenth_density_spruce_is_not_a_crown(datasets_dir: Path, tmp_path: Path) -> None:
     """At 10 % with seed 3 the first round accepts three circles through the branch whorls
     (r 31-72 cm, RMS 61-97 mm) as a 1.41 m stem: the single-tree cloud's noise floor is its
-    own. Choosing over the whole tighter-refit ladder (:func:`stemmap.cloud.measure.
+    own. Choosing over the whole tighter-refit ladder (:func:`stemmap.cloud._ladder.
     _single_tree_stem`) gives the stem, within 2.5 cm (measured 0.9 cm); without it the
     crown stayed. (Since Dec 5 the RANSAC draws are those of the canonical point order,
     docs/algorithms/cloud.md "Point order": on this cloud the first round no longer takes

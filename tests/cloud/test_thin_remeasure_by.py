@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from cloud_robustness import TRANSFORMS, Context
+from stemmap.cloud._ladder import _section_sd
 from stemmap.cloud.config import StemConfig
-from stemmap.cloud.measure import _section_sd
 from stemmap.cloud.stems import detect_stems
 from stemmap.errors import ConfigError
 from stemmap.io.clouds import read_cloud

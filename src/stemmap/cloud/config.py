@@ -88,7 +88,7 @@ class StemConfig:
         over the whole band with stricter tests (:func:`~stemmap.cloud.pooled._pooled_stems`):
         trunks with few returns per slice (partly occluded, sparse clouds)
     tighter_refits : bool -- clusters the per-stem tests reject get their slices refitted with
-        halved RANSAC tolerances down to 5 mm (:func:`~stemmap.cloud.measure._tighter_refits`):
+        halved RANSAC tolerances down to 5 mm (:func:`~stemmap.cloud._ladder._tighter_refits`):
         a sparse single tree whose slices all fit its branch whorls
     core_refits : bool -- a slice circle with a stem's worth of returns inside its disc is
         refitted to the stem inside it (a trunk is opaque;
@@ -125,7 +125,7 @@ class StemConfig:
         measured from the local surface"; default off)
     single_tree_ladder : bool -- with a single candidate cluster (a single-tree cloud, whose
         noise floor is its own), the stem is chosen among the first round's and the tighter
-        refits' at every tolerance by support (:func:`~stemmap.cloud.measure.
+        refits' at every tolerance by support (:func:`~stemmap.cloud._ladder.
         _single_tree_stem`), not the first tolerance that gives one
     continues_above : bool -- a stem whose agreeing slices end below the band's top slice
         needs at least one band return about its circle above them (a trunk goes on above
@@ -180,13 +180,13 @@ class StemConfig:
         "Short arcs in the radius consensus"
     ladder_found_rms : bool -- the single-tree ladder's fair-support test (a smaller stem
         fitted at a tolerance not below the kept stem's RMS may win on support,
-        :func:`~stemmap.cloud.measure._single_tree_stem`) takes the RMS of the slice fits
+        :func:`~stemmap.cloud._ladder._single_tree_stem`) takes the RMS of the slice fits
         the kept stem was found with, not that of its thin re-measure (annulus fits about a
         known circle, whose RMS is no RANSAC residual; docs/algorithms/cloud.md "aRchi
         Tree_1 at 20 %: where its DBH moves"). On since Dec 6: a fix of the test's meaning
         that changes no shipped cloud (docs "ladder_found_rms is the default")
     ladder_by : str -- when a smaller stem of the single-tree ladder may replace the kept one
-        on support (:func:`~stemmap.cloud.measure._single_tree_stem`): ``"tolerance"`` (it was
+        on support (:func:`~stemmap.cloud._ladder._single_tree_stem`): ``"tolerance"`` (it was
         fitted at a RANSAC tolerance not below the kept stem's RMS, the fair-support test, as
         before) or ``"error"`` (its DBH standard deviation with the section term at its model
         weight, as ``thin_remeasure_by = "error"`` reads it, is smaller than the kept
