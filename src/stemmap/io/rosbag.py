@@ -106,8 +106,10 @@ def laserscan_from_msg(msg: Any, time: float) -> LaserScan:
     ``intensities`` are kept when they have one value per beam, dropped otherwise (many
     drivers publish an empty array). Raises InputError on invalid geometry.
     """
-    ranges = np.asarray(msg.ranges, dtype=np.float64)
-    inten = np.asarray(msg.intensities, dtype=np.float64)
+    # as the message holds them (float32 views of the message): LaserScan converts them to
+    # float64 in one copy (converting here first held a second float64 copy of a large scan)
+    ranges = np.asarray(msg.ranges)
+    inten = np.asarray(msg.intensities)
     return LaserScan(
         ranges,
         float(msg.angle_min),
