@@ -140,3 +140,100 @@ def test_scans_read_are_the_messages_bit_for_bit(
         assert s.intensities.tobytes() == inten[k].astype(np.float64).tobytes()
     batch = read_scans(bag)
     assert batch.ranges.tobytes() == ranges.astype(np.float64).tobytes()
+
+
+def _cloud_bag(path: Path, pts: np.ndarray, fields: list[tuple[str, int, int]]) -> Path:
+    """A ROS 1 lz4 bag of one PointCloud2 message holding the structured array ``pts``
+    (``fields``: name, offset, datatype), in one chunk."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    n, step = pts.shape[0], pts.dtype.itemsize
+    msg = T["sensor_msgs/msg/PointCloud2"](
+        header=T["std_msgs/msg/Header"](
+            seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="lidar"
+        ),
+        height=1,
+        width=n,
+        fields=[
+            T["sensor_msgs/msg/PointField"](name=f, offset=o, datatype=d, count=1)
+            for f, o, d in fields
+        ],
+        is_bigendian=pts.dtype["x"].byteorder == ">",
+        point_step=step,
+        row_step=step * n,
+        data=pts.view(np.uint8).reshape(-1),
+        is_dense=False,
+    )
+    w = Writer(path)
+    w.set_compression(Writer.CompressionFormat.LZ4)
+    w.chunk_threshold = 1 << 40
+    with w:
+        conn = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
+        w.write(conn, 10**9, ts.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
+    return path
+
+
+def test_a_chunk_of_one_pointcloud2_message_fits_in_what_the_check_counts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worst measured case: one x, y, z float32 cloud in a chunk (12 bytes a point become
+    24 in float64, twice: the decoded points and the PointCloud's copy)."""
+    from stemmap.io.rosbag import read_pointclouds
+
+    n = 2_000_000  # 24 MB
+    pts = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    pts["x"] = np.linspace(-20, 20, n, dtype=np.float32)
+    bag = _cloud_bag(tmp_path / "c.bag", pts, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)])
+    size = max(c.size for c in ros1_chunks(bag))
+    monkeypatch.setenv("STEMMAP_MAX_READ_GB", "0")
+    clouds, peak = traced_peak(lambda: list(read_pointclouds(bag)))
+    assert len(clouds) == 1 and clouds[0].xyz.shape == (n, 3)
+    assert peak <= CHUNK_READ_FACTOR * size, f"{peak / size:.2f} x the chunk"
+
+
+def test_pointclouds_decode_as_the_column_stack_did(tmp_path: Path) -> None:
+    """decode_pointcloud2 fills one float64 array and skips the copy when every point is kept:
+    the same points, bit for bit, as converting each column and stacking them (big-endian,
+    integer and NaN points included)."""
+    from stemmap.io.rosbag import PointField, decode_pointcloud2
+
+    rng = np.random.default_rng(5)
+    for order in "<>":
+        pts = np.zeros(
+            5000,
+            dtype=[
+                ("x", order + "f4"),
+                ("y", order + "i2"),
+                ("z", order + "f8"),
+                ("ring", order + "u2"),
+            ],
+        )
+        pts["x"] = rng.normal(0, 10, 5000)
+        pts["y"] = rng.integers(-3000, 3000, 5000)
+        pts["z"] = rng.normal(0, 3, 5000)
+        pts["ring"] = rng.integers(0, 32, 5000)
+        fields = [
+            PointField("x", 0, 7),
+            PointField("y", 4, 3),
+            PointField("z", 6, 8),
+            PointField("ring", 14, 4),
+        ]
+        for nan in (False, True):
+            if nan:
+                pts["x"][::7] = np.nan
+            for skip in (True, False):
+                c = decode_pointcloud2(
+                    pts.tobytes(),
+                    fields,
+                    point_step=16,
+                    width=5000,
+                    is_bigendian=order == ">",
+                    skip_nans=skip,
+                )
+                want = np.column_stack([pts[k].astype(np.float64) for k in ("x", "y", "z")])
+                keep = np.all(np.isfinite(want), axis=1) if skip else np.ones(5000, bool)
+                assert c.xyz.tobytes() == want[keep].tobytes()
+                assert c.fields["ring"].tobytes() == pts["ring"][keep].astype("=u2").tobytes()

@@ -32,12 +32,13 @@ from stemmap.io._bag_salvage import _OP_CHUNK, _ROS1_MAGIC, _records
 from stemmap.io._budget import check_read_budget, human_bytes
 
 #: Bytes of memory reading a chunk takes per byte of its uncompressed size, measured
-#: (docs/reliability.md, "Read budget"): a LaserScan chunk read by ``read_scans`` (what
-#: ``stemmap detect`` / ``map`` do) peaks at 4.0-4.2 x (every path: ROS 1 none / bz2 / lz4,
-#: MCAP zstd / lz4, a ROS 2 zstd message): the chunk while its scans are decoded to float64
-#: (2 bytes per float32 byte), then the scans and their stack; read one scan at a time
-#: (``iter_laser_scans``) 1.6-3.0 x. 5: the largest + 20 %.
-CHUNK_READ_FACTOR = 5
+#: (docs/reliability.md, "Memory per byte of a bag chunk"): LaserScans read by ``read_scans``
+#: (what ``stemmap detect`` / ``map`` do) peak at 4.0-4.2 x on every path (ROS 1 none / bz2 /
+#: lz4, MCAP zstd / lz4, a ROS 2 zstd message), one scan at a time (``iter_laser_scans``)
+#: 1.6-3.0 x; a chunk that is one PointCloud2 message (``read_pointclouds``) 5.9 x (x, y, z,
+#: intensity) and 6.35 x (x, y, z only: the chunk, rosbags' copy of the message, its points
+#: in float64 and the PointCloud's copy of them). 7: the largest + 10 %.
+CHUNK_READ_FACTOR = 7
 
 
 class ChunkSize(NamedTuple):
