@@ -5,12 +5,14 @@ uncompressed size fit. With a factor of 3, a 1 GB LaserScan chunk passed a 4.3 G
 ``stemmap detect`` then peaked at ~6 GB (benchmarks/hostile_inputs.py, Dec 6): the chunk was
 held twice by the decompressors (python-lz4 copies its output buffer, bz2 / zstd joined their
 blocks), every scan twice in float64, and ``read_scans`` held the scans, their stack and the
-batch's copy at once. Those copies are gone and the factor is the measured peak + 20 %
-(docs/reliability.md, "Read budget"). The properties checked here, on ~24 MB chunks:
+batch's copy at once. Those copies are gone and the factor is the largest measured peak
+(6.35 x: a chunk that is one x, y, z PointCloud2) + 10 % (docs/reliability.md, "Memory per
+byte of a bag chunk"). The properties checked here, on ~24 MB chunks:
 
 * a chunk that passes the check really fits: the traced peak of ``read_scans`` (what the
   commands do: every scan kept) is at most ``CHUNK_READ_FACTOR`` x the announced size, on
-  every compressed path (ROS 1 lz4 / bz2, MCAP zstd / lz4, a ROS 2 zstd message);
+  every compressed path (ROS 1 lz4 / bz2, MCAP zstd / lz4, a ROS 2 zstd message), and so
+  is that of ``read_pointclouds`` on a chunk that is one cloud;
 * a chunk that needs more than the budget is refused before it is decompressed, with the
   read-limit message;
 * scans read are bit-identical to decoding the messages directly.
