@@ -251,7 +251,9 @@ def _decoded(
             )
             return
         try:
-            msg = reader.deserialize(raw, conn.msgtype)
+            # a memoryview: rosbags' CDR decoder slices off the 4-byte header, which copies
+            # a bytes message (its arrays view the message either way)
+            msg = reader.deserialize(memoryview(raw), conn.msgtype)
         except Exception as exc:
             yield _Message(
                 k,

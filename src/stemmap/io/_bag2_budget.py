@@ -38,6 +38,7 @@ and the header checks still apply.
 
 from __future__ import annotations
 
+import io
 import mmap
 import os
 import shutil
@@ -47,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from stemmap.errors import InputError
-from stemmap.io._bag_budget import CHUNK_READ_FACTOR, ChunkSize, check_largest_chunk
+from stemmap.io._bag_budget import CHUNK_READ_FACTOR, ChunkSize, check_largest_chunk, drain
 from stemmap.io._budget import (
     BUDGET_ENV,
     ReadLimitError,
@@ -96,10 +97,6 @@ def _decompressor(compression: str) -> Any:
     raise InputError(f"unknown compression {compression!r}")
 
 
-#: Bytes decompressed per call: a bomb stops within this much of its limit.
-_STEP = 1 << 20
-
-
 def inflate_bounded(compression: str, data: bytes | memoryview, limit: int) -> bytes | None:
     """Decompress ``data`` (zstd or lz4 frames, one after another as ``zstd.decompress`` and
     ``lz4.frame.decompress`` read them) to at most ``limit`` bytes.
@@ -112,28 +109,20 @@ def inflate_bounded(compression: str, data: bytes | memoryview, limit: int) -> b
     InputError
         If the data end inside a frame or are not frames of this compression.
     """
-    parts: list[bytes] = []
-    n = 0
+    sink = io.BytesIO()  # one buffer, grown in place: the output is in memory once
     rest = bytes(data)
     while rest:
         d = _decompressor(compression)
-        feed = rest
-        while True:
-            try:
-                piece = d.decompress(feed, max_length=min(limit + 1 - n, _STEP))
-            except Exception as exc:  # zstd.ZstdError / RuntimeError (lz4): damaged data
-                raise InputError(f"cannot {compression}-decompress the data ({exc})") from exc
-            feed = b""
-            n += len(piece)
-            parts.append(piece)
-            if n > limit:
-                return None
-            if d.eof:
-                break
-            if d.needs_input:
-                raise InputError(f"the {compression} data end inside a frame")
+        try:
+            within = drain(d, rest, limit, sink)
+        except Exception as exc:  # zstd.ZstdError / RuntimeError (lz4): damaged data
+            raise InputError(f"cannot {compression}-decompress the data ({exc})") from exc
+        if not within:
+            return None
+        if not d.eof:
+            raise InputError(f"the {compression} data end inside a frame")
         rest = d.unused_data
-    return parts[0] if len(parts) == 1 else b"".join(parts)
+    return sink.getvalue()
 
 
 def _mcap_inflate(compression: str, data: bytes, size: int) -> bytes:
@@ -160,9 +149,9 @@ _LIMIT_CACHE: list[float] = []  # [time it was read, message limit]
 
 
 def message_limit() -> int:
-    """The largest decompressed message the read budget admits: a third of it (the message,
-    its copy and its decoded arrays). Read again at most once a second (it reads
-    /proc/meminfo; a bag has thousands of messages)."""
+    """The largest decompressed message the read budget admits: 1 / ``CHUNK_READ_FACTOR`` of
+    it (the message, its decoded float64 arrays, their stack). Read again at most once a
+    second (it reads /proc/meminfo; a bag has thousands of messages)."""
     if os.environ.get(BUDGET_ENV, "").strip():  # no /proc read: not cached
         return int(min(read_budget()[0] / CHUNK_READ_FACTOR, 1 << 62))
     now = time.monotonic()
@@ -199,8 +188,8 @@ def inflate_message(data: bytes) -> bytes:
             read_limit_text(
                 CHUNK_READ_FACTOR * (limit + 1),
                 f"a zstd-compressed message ({human_bytes(len(data))} in the file) decompresses "
-                f"past {human_bytes(limit)}, the largest message the limit admits (a third of "
-                "it: the message, its copy and its decoded arrays)",
+                f"past {human_bytes(limit)}, the largest message the limit admits (1/"
+                f"{CHUNK_READ_FACTOR} of it: the message, its decoded arrays and their stack)",
             )
         )
     return out

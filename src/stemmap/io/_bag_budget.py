@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import bz2
 import contextlib
+import io
 import mmap
 from collections.abc import Callable
 from pathlib import Path
@@ -30,9 +31,14 @@ from stemmap.errors import InputError
 from stemmap.io._bag_salvage import _OP_CHUNK, _ROS1_MAGIC, _records
 from stemmap.io._budget import check_read_budget, human_bytes
 
-#: Bytes of memory reading a chunk takes per byte of its uncompressed size: the decompressed
-#: chunk, the copy of the message being read, and its decoded arrays.
-CHUNK_READ_FACTOR = 3
+#: Bytes of memory reading a chunk takes per byte of its uncompressed size, measured
+#: (docs/reliability.md, "Memory per byte of a bag chunk"): LaserScans read by ``read_scans``
+#: (what ``stemmap detect`` / ``map`` do) peak at 4.0-4.2 x on every path (ROS 1 none / bz2 /
+#: lz4, MCAP zstd / lz4, a ROS 2 zstd message), one scan at a time (``iter_laser_scans``)
+#: 1.6-3.0 x; a chunk that is one PointCloud2 message (``read_pointclouds``) 5.9 x (x, y, z,
+#: intensity) and 6.35 x (x, y, z only: the chunk, rosbags' copy of the message, its points
+#: in float64 and the PointCloud's copy of them). 7: the largest + 10 %.
+CHUNK_READ_FACTOR = 7
 
 
 class ChunkSize(NamedTuple):
@@ -110,11 +116,15 @@ def check_largest_chunk(table: list[ChunkSize], path: Path, what: str) -> list[C
 def bounded_decompress(compression: str, data: bytes | memoryview, size: int, where: str) -> bytes:
     """Decompress a bz2 / lz4 chunk to at most ``size`` bytes (its header's announcement).
 
+    The output is built in one buffer, 1 MB at a time (:func:`drain`): a one-shot
+    ``decompress`` holds its output twice at the end (python-lz4 copies its buffer into the
+    returned bytes, bz2 joins its blocks), which doubled the memory a large chunk takes.
+
     Raises
     ------
     InputError
         If the data expand past ``size`` (``where`` names the chunk), before more than
-        ``size + 1`` bytes are allocated.
+        ``size`` + 1 MB are allocated.
     """
     d: Any
     if compression == "bz2":
@@ -125,13 +135,37 @@ def bounded_decompress(compression: str, data: bytes | memoryview, size: int, wh
         d = LZ4FrameDecompressor()
     else:
         raise InputError(f"{where} uses the unknown compression {compression!r}.")
-    out = d.decompress(bytes(data), max_length=size + 1)
-    if len(out) > size:
+    sink = io.BytesIO()
+    if not drain(d, bytes(data), size, sink):
         raise InputError(
             f"{where} decompresses past the {size:,} bytes its header announces: the file is "
             "damaged"
         )
-    return bytes(out)
+    return sink.getvalue()
+
+
+#: Bytes decompressed per call by :func:`drain`: a bomb stops within this much of its limit.
+STEP_BYTES = 1 << 20
+
+
+def drain(d: Any, data: bytes, limit: int, sink: io.BytesIO) -> bool:
+    """Feed ``data`` to the decompressor ``d`` (bz2 / lz4 / zstd, their ``decompress(data,
+    max_length)`` protocol) and write its output to ``sink`` in steps of :data:`STEP_BYTES`,
+    until its stream ends (``d.eof``) or the data run out. False (and nothing more is
+    decompressed) once ``sink`` holds more than ``limit`` bytes.
+
+    ``sink`` is a ``BytesIO``: it grows its one buffer in place (``realloc``) and
+    ``getvalue()`` returns that buffer without a copy, so the output is in memory once.
+    Raises what ``d.decompress`` raises on damaged data."""
+    feed = data
+    while True:
+        piece = d.decompress(feed, max_length=min(limit + 1 - sink.tell(), STEP_BYTES))
+        feed = b""
+        sink.write(piece)
+        if sink.tell() > limit:
+            return False
+        if d.eof or d.needs_input:  # needs_input: the data end inside the stream
+            return True
 
 
 def bound_reader_chunks(reader: Any, path: Path, chunks: list[ChunkSize]) -> None:

@@ -549,7 +549,12 @@ def _stack(
     indices: Sequence[int] | None,
     skipped: list[SkippedFrame] | None,
     source: str,
+    *,
+    consume: bool = False,
 ) -> tuple[ScanBatch, NDArray[np.int64]]:
+    """:func:`stack_scans` and the kept indices. ``consume`` (``scans`` a list the caller
+    owns): empty ``scans`` once stacked, so its float64 scans are freed before the batch
+    copies the stack (the peak is two copies of the ranges, not three)."""
     if not scans:
         raise InputError(f"{source} holds no usable laser scan.")
     keys = [_geometry_key(s) for s in scans]
@@ -600,15 +605,13 @@ def _stack(
     if len(frames) > 1:
         log.warning("%s: scans name several frames %s; using the first.", source, dict(frames))
     s0 = kept[0]
-    batch = ScanBatch(
-        ranges,
-        np.array([s.time for s in kept]),
-        s0.angle_min,
-        s0.angle_increment,
-        lo,
-        hi,
-        s0.frame,
-    )
+    times = np.array([s.time for s in kept])
+    angle_min, angle_increment, frame = s0.angle_min, s0.angle_increment, s0.frame
+    if consume and isinstance(scans, list):
+        del s0, s  # the loop above leaves its last scan in ``s``
+        kept.clear()
+        scans.clear()
+    batch = ScanBatch(ranges, times, angle_min, angle_increment, lo, hi, frame)
     return batch, np.asarray(kept_idx, dtype=np.int64)
 
 
@@ -742,4 +745,6 @@ def _read_indexed(
             f"{str(path)!r} holds no usable laser scan"
             + (f" ({len(local)} damaged frame(s) skipped)." if local else ".")
         )
-    return _stack([s for _, s in pairs], [i for i, _ in pairs], skipped, str(path))
+    scans, rows = [s for _, s in pairs], [i for i, _ in pairs]
+    del pairs  # the scans are in ``scans`` alone: _stack frees them once stacked
+    return _stack(scans, rows, skipped, str(path), consume=True)
