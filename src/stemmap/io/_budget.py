@@ -187,15 +187,19 @@ def over_read_budget(nbytes: float) -> bool:
     return nbytes > read_budget()[0]
 
 
-def read_limit_text(nbytes: float, detail: str) -> str:
+def read_limit_text(nbytes: float, detail: str, *, partial: bool = False) -> str:
     """``detail``, the read limit and how to raise it: the body of a refusal (the caller puts
-    the file's name in front)."""
+    the file's name in front). ``partial``: ``nbytes`` is what was counted before the read
+    stopped, the whole needs more (the value suggested is a lower bound)."""
     budget, why = read_budget()
     need_gb = math.ceil(nbytes / 1e9 * 1.1 * 10) / 10  # 10 % headroom, one decimal
+    raise_to = (
+        f"{BUDGET_ENV} above {need_gb:g}" if partial else f"the limit: {BUDGET_ENV}={need_gb:g}"
+    )
     return (
         f"{detail}; that is more than stemmap's read limit of {human_bytes(budget)} ({why}). "
-        f"If the file is genuine and the machine has the memory, raise the limit: "
-        f"{BUDGET_ENV}={need_gb:g} (gigabytes; 0 turns it off)."
+        f"If the file is genuine and the machine has the memory, raise {raise_to} "
+        "(gigabytes; 0 turns it off)."
     )
 
 
