@@ -187,11 +187,18 @@ def over_read_budget(nbytes: float) -> bool:
     return nbytes > read_budget()[0]
 
 
-def read_limit_text(nbytes: float, detail: str, *, partial: bool = False) -> str:
+def read_limit_text(
+    nbytes: float,
+    detail: str,
+    *,
+    partial: bool = False,
+    limit: tuple[float, str] | None = None,
+) -> str:
     """``detail``, the read limit and how to raise it: the body of a refusal (the caller puts
     the file's name in front). ``partial``: ``nbytes`` is what was counted before the read
-    stopped, the whole needs more (the value suggested is a lower bound)."""
-    budget, why = read_budget()
+    stopped, the whole needs more (the value suggested is a lower bound). ``limit``: the
+    :func:`read_budget` the caller compared with (default: computed now)."""
+    budget, why = read_budget() if limit is None else limit
     need_gb = math.ceil(nbytes / 1e9 * 1.1 * 10) / 10  # 10 % headroom, one decimal
     raise_to = (
         f"{BUDGET_ENV} above {need_gb:g}" if partial else f"the limit: {BUDGET_ENV}={need_gb:g}"

@@ -766,13 +766,13 @@ def _held_scans(
     if not bag:
         pairs.extend(_indexed(path, topic, skipped, held=True))
         return pairs
-    budget, _ = read_budget()
+    limit = read_budget()  # now: the scans held later lower the memory available
     held = stacked = 0
     for i, s in _indexed(path, topic, skipped, held=True):
         pairs.append((i, s))
         held += s.ranges.nbytes + (0 if s.intensities is None else s.intensities.nbytes)
         stacked += s.ranges.nbytes  # float64, as in the batch
-        if held + stacked > budget:
+        if held + stacked > limit[0]:
             what = f"topic {topic!r}" if topic else "its LaserScan topic"
             need = held + stacked
             raise ReadLimitError(
@@ -783,6 +783,7 @@ def _held_scans(
                     f"their stack {human_bytes(stacked)} more, ~{human_bytes(need)} so far "
                     "(the whole topic is held in memory, and more of it is left to read)",
                     partial=True,
+                    limit=limit,
                 )
             )
     return pairs
