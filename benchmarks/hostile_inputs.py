@@ -33,7 +33,8 @@ bag whose last message inflates to ``--bag-gb``, its zstd frame announcing the s
 writes it to the temporary folder), ``ros2_zstd_file_huge`` (the same, its frame header
 announcing 1 PB), ``bag_unindexed_topic`` (library: ``iter_laser_scans`` over a ROS 1 bag cut
 at its index whose topic holds ``--topic-gb`` in 64 MB lz4 chunks; the one case run as
-``python -c``, not a command).
+``python -c``, not a command); since Dec 6 (branch ``budgetroom``) ``bag_topic_detect``
+(``detect`` on that bag: ``read_scans`` holds the whole topic).
 """
 
 from __future__ import annotations
@@ -402,6 +403,7 @@ CASES: dict[str, Callable[[Path, argparse.Namespace], list[str]]] = {
     "ros2_zstd_file_huge": lambda d, a: _detect(
         hb.ros2_file_bomb(d / "b", a.bag_gb, announce=False, content_size=10**15), d
     ),
+    "bag_topic_detect": lambda d, a: _detect(hb.ros1_unindexed_bag(d / "u.bag", a.topic_gb), d),
     "bag_unindexed_topic": lambda d, a: [
         "-c",
         "import sys; from stemmap.io.rosbag import iter_laser_scans; "

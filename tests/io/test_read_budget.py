@@ -126,3 +126,57 @@ def test_whole_cloud_read_of_a_laz_announcing_billions_is_refused_first(
     p = las_announcing(tmp_path / "c.laz", 2 * 10**10)
     with pytest.raises(InputError, match=r"announces 20,000,000,000 points, ~2\.24 TB"):
         read_las(p)
+
+
+_ROOM_PROBE = """
+import json, mmap, resource, sys
+from stemmap.io import _budget
+
+def mapped():
+    return _budget._mapped_bytes()
+
+limit = mapped() + (3 << 30)  # 3 GiB above what the process has mapped now
+resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
+before = (_budget._address_space_room(), mapped())
+block = mmap.mmap(-1, 1 << 30)  # 1 GiB mapped, never touched: no RSS, but address space
+after = (_budget._address_space_room(), mapped())
+avail = _budget.available_memory()
+print(json.dumps({"limit": limit, "before": before, "after": after, "avail": avail}))
+"""
+
+
+def test_address_space_room_is_the_limit_less_what_is_mapped() -> None:
+    """Under ``ulimit -v`` (RLIMIT_AS) the room is the limit less the process's mapped size
+    (VmSize), not the limit: before, a process already holding 1 GiB of address space under a
+    4 GiB limit was told 4 GiB were available. Run in a child: RLIMIT_AS would bind pytest."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    src = str(Path(_budget.__file__).parents[2])
+    env = dict(os.environ, PYTHONPATH=src)
+    res = subprocess.run(
+        [sys.executable, "-c", _ROOM_PROBE], env=env, capture_output=True, text=True, check=True
+    )
+    got = json.loads(res.stdout)
+    limit, (room0, mapped0), (room1, mapped1) = got["limit"], got["before"], got["after"]
+    slack = 64 << 20  # reading /proc and building tuples may map a new malloc arena or two
+    assert abs(room0 - (limit - mapped0)) <= slack
+    assert abs(room0 - (3 << 30)) <= slack
+    # mapping 1 GiB shrinks the room by 1 GiB (the old code kept returning `limit`)
+    assert abs((room0 - room1) - (1 << 30)) <= slack
+    assert abs((mapped1 - mapped0) - (1 << 30)) <= slack
+    assert got["avail"] <= room1 + slack  # the least of the sources
+
+
+def test_address_space_room_is_floored_at_zero(monkeypatch) -> None:
+    import resource
+
+    monkeypatch.setattr(resource, "getrlimit", lambda _r: (1 << 20, resource.RLIM_INFINITY))
+    monkeypatch.setattr(_budget, "_mapped_bytes", lambda: 1 << 30)
+    assert _budget._address_space_room() == 0
+    monkeypatch.setattr(_budget, "_mapped_bytes", lambda: None)  # /proc unreadable: the limit
+    assert _budget._address_space_room() == 1 << 20
+    monkeypatch.setattr(resource, "getrlimit", lambda _r: (resource.RLIM_INFINITY,) * 2)
+    assert _budget._address_space_room() is None

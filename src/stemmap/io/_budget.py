@@ -10,8 +10,9 @@ line naming the file and the size, instead of minutes of swapping and the kernel
 
 The budget is :data:`BUDGET_FRACTION` of the memory available when the check runs (Linux
 ``MemAvailable`` from ``/proc/meminfo``, lowered to the cgroup's ``memory.max`` minus its
-usage and to ``RLIMIT_AS`` when those are tighter), but never less than
-:data:`BUDGET_FLOOR_BYTES`, so an ordinary file still loads on a busy or small machine. Half:
+usage and to ``RLIMIT_AS`` minus the process's mapped size (``VmSize``) when those are
+tighter), but never less than :data:`BUDGET_FLOOR_BYTES`, so an ordinary file still loads on
+a busy or small machine. Half:
 a reader's arrays are not the whole run (a cloud is sorted, gridded and copied afterwards;
 ``stemmap stems`` peaks at ~3x the raw xyz of a plot). The environment variable
 :data:`BUDGET_ENV` (gigabytes, e.g. ``STEMMAP_MAX_READ_GB=40``) replaces the budget, in either
@@ -96,15 +97,36 @@ def _cgroup_room() -> int | None:
     return None
 
 
+def _mapped_bytes() -> int | None:
+    """The address space this process has mapped now (Linux ``VmSize``), None if unknown."""
+    try:
+        text = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        if line.startswith("VmSize:"):
+            parts = line.split()
+            if len(parts) >= 2 and parts[1].isdigit():
+                return int(parts[1]) * 1024
+    return None
+
+
 def _address_space_room() -> int | None:
+    """Bytes of address space left below ``RLIMIT_AS`` (soft): the limit less what the process
+    has mapped already (``ulimit -v`` counts every mapping, not only the pages in use); the
+    limit itself where the mapped size cannot be read. None without a limit."""
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    return None if soft == resource.RLIM_INFINITY else int(soft)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    mapped = _mapped_bytes()
+    return int(soft) if mapped is None else max(int(soft) - mapped, 0)
 
 
 def available_memory() -> int | None:
     """Bytes a new allocation can take now: the least of MemAvailable, the cgroup's room and
-    ``RLIMIT_AS``; None where none of them can be read (not Linux)."""
-    known = [v for v in (_meminfo_available(), _cgroup_room(), _address_space_room()) if v]
+    the room below ``RLIMIT_AS``; None where none of them can be read (not Linux)."""
+    sources = (_meminfo_available(), _cgroup_room(), _address_space_room())
+    known = [v for v in sources if v is not None]
     if not known:
         try:  # POSIX fallback: free physical pages
             pages = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
@@ -165,15 +187,26 @@ def over_read_budget(nbytes: float) -> bool:
     return nbytes > read_budget()[0]
 
 
-def read_limit_text(nbytes: float, detail: str) -> str:
+def read_limit_text(
+    nbytes: float,
+    detail: str,
+    *,
+    partial: bool = False,
+    limit: tuple[float, str] | None = None,
+) -> str:
     """``detail``, the read limit and how to raise it: the body of a refusal (the caller puts
-    the file's name in front)."""
-    budget, why = read_budget()
+    the file's name in front). ``partial``: ``nbytes`` is what was counted before the read
+    stopped, the whole needs more (the value suggested is a lower bound). ``limit``: the
+    :func:`read_budget` the caller compared with (default: computed now)."""
+    budget, why = read_budget() if limit is None else limit
     need_gb = math.ceil(nbytes / 1e9 * 1.1 * 10) / 10  # 10 % headroom, one decimal
+    raise_to = (
+        f"{BUDGET_ENV} above {need_gb:g}" if partial else f"the limit: {BUDGET_ENV}={need_gb:g}"
+    )
     return (
         f"{detail}; that is more than stemmap's read limit of {human_bytes(budget)} ({why}). "
-        f"If the file is genuine and the machine has the memory, raise the limit: "
-        f"{BUDGET_ENV}={need_gb:g} (gigabytes; 0 turns it off)."
+        f"If the file is genuine and the machine has the memory, raise {raise_to} "
+        "(gigabytes; 0 turns it off)."
     )
 
 

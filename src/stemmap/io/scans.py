@@ -737,7 +737,7 @@ def _read_indexed(
     if kind == "npz":
         return _read_npz(path, skipped)
     local: list[SkippedFrame] = []
-    pairs = list(_indexed(path, topic, local, held=True))
+    pairs = _held_scans(path, topic, local, bag=kind == "bag")
     if skipped is not None:
         skipped.extend(local)
     if not pairs:
@@ -748,3 +748,42 @@ def _read_indexed(
     scans, rows = [s for _, s in pairs], [i for i, _ in pairs]
     del pairs  # the scans are in ``scans`` alone: _stack frees them once stacked
     return _stack(scans, rows, skipped, str(path), consume=True)
+
+
+def _held_scans(
+    path: PathLike, topic: str | None, skipped: list[SkippedFrame], *, bag: bool
+) -> list[tuple[int, LaserScan]]:
+    """Every (index, scan) of ``path``, for :func:`read_scans`, which holds them all and then
+    their stack. A bag's chunks are bounded one at a time, not its topic: a ROS 1 bag of bz2
+    chunks of zero ranges holds ~1 GB of scans per MB on disk. So the scans' bytes and their
+    stack's are summed as they are read and compared with the read budget taken when the read
+    starts (later, the scans held would lower the memory available); ReadLimitError once
+    they pass it, with at most the budget (and one chunk) held. A CSV's parse is bounded
+    before it is read (``check_text_budget``)."""
+    from stemmap.io._budget import ReadLimitError, human_bytes, read_budget, read_limit_text
+
+    pairs: list[tuple[int, LaserScan]] = []
+    if not bag:
+        pairs.extend(_indexed(path, topic, skipped, held=True))
+        return pairs
+    limit = read_budget()  # now: the scans held later lower the memory available
+    held = stacked = 0
+    for i, s in _indexed(path, topic, skipped, held=True):
+        pairs.append((i, s))
+        held += s.ranges.nbytes + (0 if s.intensities is None else s.intensities.nbytes)
+        stacked += s.ranges.nbytes  # float64, as in the batch
+        if held + stacked > limit[0]:
+            what = f"topic {topic!r}" if topic else "its LaserScan topic"
+            need = held + stacked
+            raise ReadLimitError(
+                f"ROS bag {str(path)!r}, {what}: "
+                + read_limit_text(
+                    need,
+                    f"its first {len(pairs):,} scans hold {human_bytes(held)} in memory and "
+                    f"their stack {human_bytes(stacked)} more, ~{human_bytes(need)} so far "
+                    "(the whole topic is held in memory, and more of it is left to read)",
+                    partial=True,
+                    limit=limit,
+                )
+            )
+    return pairs
