@@ -62,17 +62,23 @@ def human_bytes(n: float) -> str:
     return f"{int(n)} bytes"
 
 
-def _meminfo_available() -> int | None:
+def _proc_kb(path: str, key: str) -> int | None:
+    """Bytes of the ``key:`` line of a Linux ``/proc`` file that counts in kB (``MemAvailable``
+    of ``/proc/meminfo``, ``VmSize`` of ``/proc/self/status``), None if unknown."""
     try:
-        text = Path("/proc/meminfo").read_text()
+        text = Path(path).read_text()
     except OSError:
         return None
     for line in text.splitlines():
-        if line.startswith("MemAvailable:"):
+        if line.startswith(key + ":"):
             parts = line.split()
             if len(parts) >= 2 and parts[1].isdigit():
                 return int(parts[1]) * 1024
     return None
+
+
+def _meminfo_available() -> int | None:
+    return _proc_kb("/proc/meminfo", "MemAvailable")
 
 
 def _cgroup_room() -> int | None:
@@ -99,16 +105,7 @@ def _cgroup_room() -> int | None:
 
 def _mapped_bytes() -> int | None:
     """The address space this process has mapped now (Linux ``VmSize``), None if unknown."""
-    try:
-        text = Path("/proc/self/status").read_text()
-    except OSError:
-        return None
-    for line in text.splitlines():
-        if line.startswith("VmSize:"):
-            parts = line.split()
-            if len(parts) >= 2 and parts[1].isdigit():
-                return int(parts[1]) * 1024
-    return None
+    return _proc_kb("/proc/self/status", "VmSize")
 
 
 def _address_space_room() -> int | None:
