@@ -127,6 +127,18 @@ def ml_factor(e: np.ndarray, C: np.ndarray, G: np.ndarray) -> float:
     return float(np.exp(r.x))
 
 
+def _vp_halves() -> tuple[Any, Any, np.ndarray, np.ndarray, float]:
+    """Victoria Park: the dataset, its problem, the screened GPS fixes (mask), the frames'
+    times and the time that splits the run into the halves the calibrations are chosen and
+    scored on."""
+    from stemmap.datasets.victoria_park import load_victoria_park
+
+    vpd = load_victoria_park(None)
+    problem = vpd.problem()
+    t = problem.frames.times
+    return vpd, problem, vpd.screened_gps(), t, 0.5 * (t[0] + t[-1])
+
+
 def _vp_gps_cov(vpd: Any, problem: Any, keep: np.ndarray, ref: Any) -> tuple[np.ndarray, Any]:
     """The GPS's own error as an isotropic covariance ``G = rms² / 2 I`` (m²), from the fixes'
     disagreement at revisits of the locally right path ``ref`` (an iSAM2 result); with the
@@ -143,14 +155,9 @@ def _vp_gps_cov(vpd: Any, problem: Any, keep: np.ndarray, ref: Any) -> tuple[np.
 
 
 def vp(backends: list[str], dump: str | None = None) -> dict[str, Any]:
-    from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.slam.base import make_backend
 
-    vpd = load_victoria_park(None)
-    problem = vpd.problem()
-    keep = vpd.screened_gps()
-    t = problem.frames.times
-    t_mid = 0.5 * (t[0] + t[-1])
+    vpd, problem, keep, t, t_mid = _vp_halves()
     results = {b: _run(b, problem) for b in backends}
     # the GPS's own error: revisits of a locally right path (iSAM2's, run here if not asked)
     ref = results.get("isam2") or make_backend("isam2").run(problem)
@@ -246,14 +253,9 @@ def vp_ekf_map_factor() -> dict[str, Any]:
     since Dec 3); the median criterion is reported too (None where a criterion has no root)."""
     from scipy.optimize import brentq
 
-    from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.slam.base import make_backend
 
-    vpd = load_victoria_park(None)
-    problem = vpd.problem()
-    keep = vpd.screened_gps()
-    t = problem.frames.times
-    t_mid = 0.5 * (t[0] + t[-1])
+    vpd, problem, keep, _, t_mid = _vp_halves()
     G, gps = _vp_gps_cov(vpd, problem, keep, make_backend("isam2").run(problem))
     ft, e, C0 = _pose_terms(make_backend("ekf", map_cov_inflation=0.0).run(problem), vpd, keep)
     _, e1, C1 = _pose_terms(make_backend("ekf").run(problem), vpd, keep)
@@ -321,16 +323,11 @@ def vp_ekf_residual_noise() -> dict[str, Any]:
     and bearing std; the EKF re-run with them is scored on the *other* half (laser point vs GPS,
     the GPS's own error ``G`` counted, as ``--vp``); and the noise of the whole run (what the
     option uses) scored on both halves. ATE (m) of every run."""
-    from stemmap.datasets.victoria_park import load_victoria_park
     from stemmap.eval.trajectory import ate
     from stemmap.slam.base import make_backend
     from stemmap.slam.residual_noise import detection_residuals, residual_noise
 
-    vpd = load_victoria_park(None)
-    problem = vpd.problem()
-    keep = vpd.screened_gps()
-    t = problem.frames.times
-    t_mid = 0.5 * (t[0] + t[-1])
+    vpd, problem, keep, t, t_mid = _vp_halves()
     G, gps = _vp_gps_cov(vpd, problem, keep, make_backend("isam2").run(problem))
 
     def score(res: Any) -> dict[str, Any]:
